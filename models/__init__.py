@@ -1,0 +1,1 @@
+"""armfusion: models layer (kinematics, sensor models, effects, simulator)."""

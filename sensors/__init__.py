@@ -1,0 +1,1 @@
+"""armfusion: sensors layer (drivers, fakes, raw samples, recording I/O)."""

@@ -1,0 +1,151 @@
+"""Raw sample types: what the sensors said, exactly as counts, in time-stamped batches.
+
+A recording is a set of named streams. Each stream is one sensor (or one group of
+columns of the recording CSV) sampled at its own instants: ``t_s`` of shape ``(N,)``
+and ``values`` of shape ``(N, k)``. Raw streams hold integer counts; the optional
+ground-truth streams hold floats (rad). Conversion to SI units is a model step.
+
+Stream names and their CSV columns (shared/spec/recording-csv.md):
+
+=============  ===============  =========================================
+stream         kind             CSV columns
+=============  ===============  =========================================
+``<acc>``      ``accel``        ``<acc>_x``, ``<acc>_y``, ``<acc>_z``
+``imu_acc``    ``imu_accel``    ``imu_ax``, ``imu_ay``, ``imu_az``
+``imu_gyro``   ``gyro``         ``imu_gx``, ``imu_gy``, ``imu_gz``
+``imu_mag``    ``mag``          ``imu_mx``, ``imu_my``, ``imu_mz``
+``imu_temp``   ``temperature``  ``imu_temp``
+``enc``        ``encoder``      ``enc1`` … ``encN``
+``true_q``     ``truth_joints`` ``true_q1`` … ``true_qN`` (rad)
+``true_base``  ``truth_base``   ``true_roll``, ``true_pitch``, ``true_yaw`` (rad)
+=============  ===============  =========================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+StreamKind = Literal[
+    "accel", "imu_accel", "gyro", "mag", "temperature", "encoder", "truth_joints", "truth_base"
+]
+
+RAW_KINDS: frozenset[str] = frozenset(
+    {"accel", "imu_accel", "gyro", "mag", "temperature", "encoder"}
+)
+TRUTH_KINDS: frozenset[str] = frozenset({"truth_joints", "truth_base"})
+
+IMU_STREAMS: dict[str, tuple[StreamKind, tuple[str, ...]]] = {
+    "imu_acc": ("imu_accel", ("imu_ax", "imu_ay", "imu_az")),
+    "imu_gyro": ("gyro", ("imu_gx", "imu_gy", "imu_gz")),
+    "imu_mag": ("mag", ("imu_mx", "imu_my", "imu_mz")),
+    "imu_temp": ("temperature", ("imu_temp",)),
+}
+TRUTH_BASE_COLUMNS: tuple[str, ...] = ("true_roll", "true_pitch", "true_yaw")
+
+
+def accel_columns(name: str) -> tuple[str, str, str]:
+    """CSV columns of the link accelerometer called ``name``."""
+    return (f"{name}_x", f"{name}_y", f"{name}_z")
+
+
+def encoder_columns(n_joints: int) -> tuple[str, ...]:
+    return tuple(f"enc{i + 1}" for i in range(n_joints))
+
+
+def truth_joint_columns(n_joints: int) -> tuple[str, ...]:
+    return tuple(f"true_q{i + 1}" for i in range(n_joints))
+
+
+@dataclass(frozen=True)
+class Stream:
+    """One sensor's samples: ``t_s (N,)`` seconds and ``values (N, k)``."""
+
+    name: str
+    kind: StreamKind
+    t_s: np.ndarray
+    values: np.ndarray
+    channels: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t_s, dtype=np.float64).reshape(-1)
+        dtype = np.float64 if self.kind in TRUTH_KINDS else np.int64
+        v = np.asarray(self.values)
+        if v.ndim == 1:
+            v = v.reshape(-1, 1)
+        if v.shape != (t.shape[0], len(self.channels)):
+            raise ValueError(
+                f"stream {self.name!r}: values have shape {v.shape}, expected "
+                f"({t.shape[0]}, {len(self.channels)}) for channels {list(self.channels)}"
+            )
+        if dtype is np.int64 and v.dtype.kind == "f":
+            if not np.all(np.isfinite(v)) or np.any(v != np.round(v)):
+                raise ValueError(f"stream {self.name!r}: raw counts must be whole numbers")
+        v = v.astype(dtype, copy=False)
+        if t.size > 1:
+            bad = np.flatnonzero(np.diff(t) <= 0)
+            if bad.size:
+                i = int(bad[0]) + 1
+                raise ValueError(
+                    f"stream {self.name!r}: time is not increasing at sample {i} "
+                    f"(t = {t[i]!r} after {t[i - 1]!r})"
+                )
+        t.setflags(write=False)
+        v.setflags(write=False)
+        object.__setattr__(self, "t_s", t)
+        object.__setattr__(self, "values", v)
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    @property
+    def rate_hz(self) -> float:
+        """Median sample rate; 0 for fewer than two samples."""
+        if len(self) < 2:
+            return 0.0
+        return float(1.0 / np.median(np.diff(self.t_s)))
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_s[-1] - self.t_s[0]) if len(self) else 0.0
+
+    def between(self, t_start_s: float, t_end_s: float) -> Stream:
+        """The samples with ``t_start_s <= t < t_end_s``."""
+        m = (self.t_s >= t_start_s) & (self.t_s < t_end_s)
+        return Stream(self.name, self.kind, self.t_s[m], self.values[m], self.channels)
+
+
+@dataclass(frozen=True)
+class Recording:
+    """What the sensors said over time: named streams, plus optional ground truth."""
+
+    streams: dict[str, Stream]
+    meta: dict = field(default_factory=dict)
+
+    def raw(self) -> dict[str, Stream]:
+        return {k: s for k, s in self.streams.items() if s.kind in RAW_KINDS}
+
+    def truth(self) -> dict[str, Stream]:
+        return {k: s for k, s in self.streams.items() if s.kind in TRUTH_KINDS}
+
+    def accelerometers(self) -> dict[str, Stream]:
+        return {k: s for k, s in self.streams.items() if s.kind == "accel"}
+
+    def get(self, name: str) -> Stream | None:
+        return self.streams.get(name)
+
+    @property
+    def t_start_s(self) -> float:
+        ts = [s.t_s[0] for s in self.streams.values() if len(s)]
+        return float(min(ts)) if ts else 0.0
+
+    @property
+    def t_end_s(self) -> float:
+        ts = [s.t_s[-1] for s in self.streams.values() if len(s)]
+        return float(max(ts)) if ts else 0.0
+
+    @property
+    def duration_s(self) -> float:
+        return self.t_end_s - self.t_start_s
