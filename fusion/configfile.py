@@ -1,0 +1,111 @@
+"""Reading arm configs from disk: YAML (DH table or a URDF reference) and URDF files.
+
+``load_arm("wmra")`` finds ``config/wmra.yaml`` in the repository; any other argument
+is a path. Validation itself is :func:`models.arm_config.build_arm`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from models.arm import ArmModel, Joint
+from models.arm_config import ConfigError, ConfigProblem, build_arm
+
+REPO_CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+
+
+def resolve_config_path(name_or_path: str | Path) -> Path:
+    """A path as given if it exists, else a config shipped in ``config/`` by name."""
+    p = Path(name_or_path)
+    if p.exists():
+        return p
+    for cand in (REPO_CONFIG_DIR / f"{name_or_path}.yaml", REPO_CONFIG_DIR / str(name_or_path)):
+        if cand.exists():
+            return cand
+    shipped = sorted(x.stem for x in REPO_CONFIG_DIR.glob("*.yaml")) if REPO_CONFIG_DIR.is_dir() else []
+    raise FileNotFoundError(
+        f"no arm config {str(name_or_path)!r}: not a file, and not one of the shipped configs "
+        f"{shipped}"
+    )
+
+
+def load_arm(name_or_path: str | Path) -> ArmModel:
+    """Load and validate an arm config (YAML, or a bare URDF), raising :class:`ConfigError`."""
+    path = resolve_config_path(name_or_path)
+    source = str(path)
+    if path.suffix.lower() == ".urdf":
+        raise ConfigError([ConfigProblem(
+            source, "(file)", path.name,
+            "a URDF holds the kinematics only; reference it from a YAML config "
+            "(arm.urdf: file.urdf) that adds joint limits, encoder counts and sensors")])
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "(file)"
+        raise ConfigError([ConfigProblem(source, where, None, f"not valid YAML: {e}")]) from e
+    urdf_joints = None
+    if isinstance(data, dict) and isinstance(data.get("arm"), dict) and data["arm"].get("urdf"):
+        urdf_path = (path.parent / data["arm"]["urdf"]).resolve()
+        try:
+            urdf_joints = joints_from_urdf(urdf_path)
+        except (OSError, ValueError) as e:
+            raise ConfigError([ConfigProblem(source, "arm.urdf", data["arm"]["urdf"], str(e))]) from e
+    return build_arm(data, source, urdf_joints)
+
+
+def joints_from_urdf(path: Path) -> tuple[Joint, ...]:
+    """The revolute/continuous joints of a URDF's serial chain, base to tip.
+
+    Fixed joints between them are folded into the next joint's pre-transform (or the
+    last joint's post-transform). Limits and encoder counts come from the YAML config.
+    """
+    import yourdfpy
+
+    if not Path(path).exists():
+        raise ValueError(f"URDF file not found: {path}")
+    robot = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False)
+    children: dict[str, list] = {}
+    child_links = set()
+    for j in robot.robot.joints:
+        children.setdefault(j.parent, []).append(j)
+        child_links.add(j.child)
+    roots = [link.name for link in robot.robot.links if link.name not in child_links]
+    if len(roots) != 1:
+        raise ValueError(f"URDF {path.name}: expected one root link, found {roots}")
+    out: list[Joint] = []
+    T_acc = np.eye(4)
+    link = roots[0]
+    while link in children:
+        kids = children[link]
+        if len(kids) != 1:
+            raise ValueError(
+                f"URDF {path.name}: link {link!r} has {len(kids)} child joints; "
+                "armfusion needs a serial chain"
+            )
+        j = kids[0]
+        origin = np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=float)
+        T_acc = T_acc @ origin
+        if j.type in ("revolute", "continuous"):
+            axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=float)
+            axis = axis / np.linalg.norm(axis)
+            out.append(Joint(
+                name=j.name, R_pre=T_acc[:3, :3].copy(), p_pre_m=T_acc[:3, 3].copy(), axis=axis,
+                R_post=np.eye(3), p_post_m=np.zeros(3), offset_rad=0.0,
+                min_rad=-np.pi, max_rad=np.pi, counts_per_rev=1.0,
+            ))
+            T_acc = np.eye(4)
+        elif j.type != "fixed":
+            raise ValueError(f"URDF {path.name}: joint {j.name!r} is {j.type}; only revolute, "
+                             "continuous and fixed joints are supported")
+        link = j.child
+    if not out:
+        raise ValueError(f"URDF {path.name}: no revolute joint found")
+    if not np.allclose(T_acc, np.eye(4)):
+        last = out[-1]
+        out[-1] = Joint(**{**last.__dict__, "R_post": T_acc[:3, :3].copy(),
+                           "p_post_m": T_acc[:3, 3].copy()})
+    return tuple(out)

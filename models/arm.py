@@ -1,0 +1,244 @@
+"""The arm model: a serial chain of revolute joints and the sensors mounted on its links.
+
+Every arm description (modified DH, standard DH, URDF) becomes the same chain. Joint i
+carries frame i-1 to frame i as
+
+    T_{i-1,i} = T_pre_i · Rot(axis_i, q_i + offset_i) · T_post_i
+
+- modified (Craig) DH: ``T_pre = Rx(alpha) Tx(a)``, axis z, ``T_post = Tz(d)``;
+- standard DH: ``T_pre = I``, axis z, ``T_post = Tz(d) Tx(a) Rx(alpha)``;
+- URDF: ``T_pre`` = the joint's origin, axis = the joint's axis, ``T_post = I``.
+
+Link k is rigidly attached to frame k (frame 0 is the arm base); a sensor on link k
+depends on joints 1..k only. Lengths are metres and angles radians inside.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from models.rotations import rot_x, rot_z
+
+DhConvention = Literal["modified", "standard", "urdf"]
+SensorType = Literal["adxl345", "mpu9150", "analog_triax"]
+SENSOR_TYPES: tuple[str, ...] = ("adxl345", "mpu9150", "analog_triax")
+ACCELEROMETER_TYPES: tuple[str, ...] = ("adxl345", "analog_triax")
+
+
+def _frozen(a) -> np.ndarray:
+    arr = np.array(a, dtype=float)
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True)
+class Joint:
+    name: str
+    R_pre: np.ndarray  # (3, 3) rotation before the joint, in frame i-1
+    p_pre_m: np.ndarray  # (3,)
+    axis: np.ndarray  # (3,) unit axis, in the frame after T_pre
+    R_post: np.ndarray  # (3, 3) rotation after the joint
+    p_post_m: np.ndarray  # (3,)
+    offset_rad: float
+    min_rad: float
+    max_rad: float
+    counts_per_rev: float
+
+    @property
+    def counts_per_rad(self) -> float:
+        return self.counts_per_rev / (2.0 * np.pi)
+
+
+@dataclass(frozen=True)
+class SensorMount:
+    """A sensor rigidly mounted on a link: ``R_LS`` (its axes in the link frame), ``p_L_m``."""
+
+    name: str
+    type: str
+    link: int
+    R_LS: np.ndarray
+    p_L_m: np.ndarray
+    bus: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def is_link_accelerometer(self) -> bool:
+        return self.type in ACCELEROMETER_TYPES
+
+
+@dataclass(frozen=True)
+class DhTable:
+    """The DH parameters as the config gave them (for display), SI units."""
+
+    convention: DhConvention
+    alpha_rad: np.ndarray
+    a_m: np.ndarray
+    d_m: np.ndarray
+    offset_rad: np.ndarray
+
+
+@dataclass(frozen=True)
+class ArmModel:
+    """A validated arm: joints, sensors, limits and poses. Built once from a config."""
+
+    name: str
+    joints: tuple[Joint, ...]
+    sensors: tuple[SensorMount, ...]
+    ready_pose_rad: np.ndarray
+    dh: DhTable | None = None
+    source: str = ""
+    effects: tuple = ()
+
+    # -- derived views -------------------------------------------------------------
+    @property
+    def n_joints(self) -> int:
+        return len(self.joints)
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return tuple(j.name for j in self.joints)
+
+    @property
+    def convention(self) -> str:
+        return self.dh.convention if self.dh is not None else "urdf"
+
+    @property
+    def min_rad(self) -> np.ndarray:
+        return np.array([j.min_rad for j in self.joints])
+
+    @property
+    def max_rad(self) -> np.ndarray:
+        return np.array([j.max_rad for j in self.joints])
+
+    @property
+    def offset_rad(self) -> np.ndarray:
+        return np.array([j.offset_rad for j in self.joints])
+
+    @property
+    def counts_per_rad(self) -> np.ndarray:
+        return np.array([j.counts_per_rad for j in self.joints])
+
+    @property
+    def sensor_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.sensors)
+
+    def sensor(self, name: str) -> SensorMount:
+        for s in self.sensors:
+            if s.name == name:
+                return s
+        raise KeyError(f"arm {self.name!r} has no sensor {name!r}; it has {list(self.sensor_names)}")
+
+    @property
+    def link_accelerometers(self) -> tuple[SensorMount, ...]:
+        return tuple(s for s in self.sensors if s.is_link_accelerometer)
+
+    @property
+    def imu(self) -> SensorMount | None:
+        for s in self.sensors:
+            if s.type == "mpu9150":
+                return s
+        return None
+
+    def joints_seen_by(self, sensor_name: str) -> tuple[int, ...]:
+        """0-based indices of the joints whose angles move this sensor."""
+        return tuple(range(self.sensor(sensor_name).link))
+
+    def within_limits(self, q_rad: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
+        q = np.asarray(q_rad, dtype=float)
+        return (q >= self.min_rad - margin_rad) & (q <= self.max_rad + margin_rad)
+
+    # -- chain arrays, stacked for the batched kinematics -------------------------
+    @property
+    def chain(self) -> ChainArrays:
+        c = self.__dict__.get("_chain")
+        if c is None:
+            c = ChainArrays.from_joints(self.joints)
+            object.__setattr__(self, "_chain", c)
+        return c
+
+
+@dataclass(frozen=True)
+class ChainArrays:
+    R_pre: np.ndarray  # (n, 3, 3)
+    p_pre_m: np.ndarray  # (n, 3)
+    axis: np.ndarray  # (n, 3)
+    R_post: np.ndarray  # (n, 3, 3)
+    p_post_m: np.ndarray  # (n, 3)
+    offset_rad: np.ndarray  # (n,)
+    axis_is_z: bool  # every joint turns about its local z (DH): a faster path
+
+    @classmethod
+    def from_joints(cls, joints: tuple[Joint, ...]) -> ChainArrays:
+        axis = np.stack([j.axis for j in joints])
+        return cls(
+            R_pre=_frozen(np.stack([j.R_pre for j in joints])),
+            p_pre_m=_frozen(np.stack([j.p_pre_m for j in joints])),
+            axis=_frozen(axis),
+            R_post=_frozen(np.stack([j.R_post for j in joints])),
+            p_post_m=_frozen(np.stack([j.p_post_m for j in joints])),
+            offset_rad=_frozen([j.offset_rad for j in joints]),
+            axis_is_z=bool(np.allclose(axis, [0.0, 0.0, 1.0])),
+        )
+
+
+def joints_from_dh(
+    convention: DhConvention,
+    alpha_rad: np.ndarray,
+    a_m: np.ndarray,
+    d_m: np.ndarray,
+    offset_rad: np.ndarray,
+    names: list[str],
+    min_rad: np.ndarray,
+    max_rad: np.ndarray,
+    counts_per_rev: np.ndarray,
+) -> tuple[Joint, ...]:
+    """Chain joints from a DH table in the named convention."""
+    out = []
+    eye = np.eye(3)
+    zero = np.zeros(3)
+    z = np.array([0.0, 0.0, 1.0])
+    for i, name in enumerate(names):
+        Rx = rot_x(float(alpha_rad[i]))
+        if convention == "modified":
+            R_pre, p_pre = Rx, np.array([a_m[i], 0.0, 0.0])
+            R_post, p_post = eye, np.array([0.0, 0.0, d_m[i]])
+        elif convention == "standard":
+            R_pre, p_pre = eye, zero
+            # Tz(d) Tx(a) Rx(alpha): translation d along z then a along x, then rotate
+            R_post, p_post = Rx, np.array([a_m[i], 0.0, d_m[i]])
+        else:
+            raise ValueError(f"unknown DH convention {convention!r}")
+        out.append(
+            Joint(
+                name=name,
+                R_pre=_frozen(R_pre),
+                p_pre_m=_frozen(p_pre),
+                axis=_frozen(z),
+                R_post=_frozen(R_post),
+                p_post_m=_frozen(p_post),
+                offset_rad=float(offset_rad[i]),
+                min_rad=float(min_rad[i]),
+                max_rad=float(max_rad[i]),
+                counts_per_rev=float(counts_per_rev[i]),
+            )
+        )
+    return tuple(out)
+
+
+def dh_transform(convention: str, alpha: float, a: float, d: float, theta: float) -> np.ndarray:
+    """One 4x4 DH transform, written out plainly: the reference the chain is tested against."""
+
+    def T(R=None, p=None):
+        M = np.eye(4)
+        if R is not None:
+            M[:3, :3] = R
+        if p is not None:
+            M[:3, 3] = p
+        return M
+
+    if convention == "modified":
+        return T(rot_x(alpha)) @ T(p=[a, 0, 0]) @ T(rot_z(theta)) @ T(p=[0, 0, d])
+    return T(rot_z(theta)) @ T(p=[0, 0, d]) @ T(p=[a, 0, 0]) @ T(rot_x(alpha))

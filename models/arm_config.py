@@ -1,0 +1,322 @@
+"""Arm config schema and validation: a parsed YAML mapping in, an :class:`ArmModel` out.
+
+Validation runs once, here, and reports every problem together, each naming the file,
+the key and the bad value. File reading lives in ``fusion.configfile`` (models do no I/O).
+
+Units are in the key names: ``_deg``, ``_mm``. Inside the model everything is SI.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from models.arm import (
+    SENSOR_TYPES,
+    ArmModel,
+    DhTable,
+    Joint,
+    SensorMount,
+    joints_from_dh,
+)
+from models.rotations import rotation_problem
+
+
+@dataclass(frozen=True)
+class ConfigProblem:
+    source: str
+    key: str
+    value: Any
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.source}: {self.key}: {self.message} (got {self.value!r})"
+
+
+class ConfigError(ValueError):
+    """Every problem found in one config, reported together."""
+
+    def __init__(self, problems: list[ConfigProblem]):
+        self.problems = problems
+        n = len(problems)
+        head = f"{n} problem{'s' if n != 1 else ''} in arm config"
+        super().__init__(head + ":\n" + "\n".join(f"  - {p}" for p in problems))
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DhSection(_Strict):
+    convention: Literal["modified", "standard"]
+    alpha_deg: list[float]
+    a_mm: list[float]
+    d_mm: list[float]
+    offset_deg: list[float] | None = None
+
+
+class JointsSection(_Strict):
+    names: list[str] | None = None
+    min_deg: list[float]
+    max_deg: list[float]
+    counts_per_rev: list[float]
+
+    @field_validator("counts_per_rev")
+    @classmethod
+    def _positive(cls, v: list[float]) -> list[float]:
+        bad = [(i, x) for i, x in enumerate(v) if not x > 0]
+        if bad:
+            i, x = bad[0]
+            raise ValueError(f"counts per revolution must be positive; entry {i} is {x!r}")
+        return v
+
+
+class BusSection(_Strict):
+    kind: Literal["i2c", "spi"]
+    bus: int = Field(ge=0)
+    address: int | None = Field(default=None, ge=0, le=0x7F)
+    chip_select: int | None = Field(default=None, ge=0)
+
+
+class SensorSection(_Strict):
+    name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
+    type: str
+    link: int
+    rotation: list[list[float]] = Field(default_factory=lambda: np.eye(3).tolist())
+    position_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    bus: BusSection | None = None
+    settings: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("type")
+    @classmethod
+    def _known_type(cls, v: str) -> str:
+        if v not in SENSOR_TYPES:
+            raise ValueError(f"unknown sensor type; known types are {', '.join(SENSOR_TYPES)}")
+        return v
+
+    @field_validator("rotation")
+    @classmethod
+    def _rotation(cls, v: list[list[float]]) -> list[list[float]]:
+        why = rotation_problem(np.array(v, dtype=float) if _rect(v) else np.zeros((0,)))
+        if why:
+            raise ValueError(f"mounting rotation {why}")
+        return v
+
+    @field_validator("position_mm")
+    @classmethod
+    def _three(cls, v: list[float]) -> list[float]:
+        if len(v) != 3:
+            raise ValueError(f"a position has 3 entries, not {len(v)}")
+        return v
+
+
+def _rect(v) -> bool:
+    return isinstance(v, list) and all(isinstance(r, list) and len(r) == len(v[0]) for r in v)
+
+
+class EffectEntry(_Strict):
+    effect: str
+    target: str | None = None
+    params: dict[str, Any] = Field(default_factory=dict)
+    sigma: dict[str, Any] = Field(default_factory=dict)
+    note: str | None = None
+
+
+class ArmSection(_Strict):
+    name: str
+    description: str | None = None
+    source: str | None = None
+    dh: DhSection | None = None
+    urdf: str | None = None
+    joints: JointsSection
+    ready_pose_deg: list[float]
+
+
+class ArmConfigFile(_Strict):
+    arm: ArmSection
+    sensors: list[SensorSection]
+    effects: list[EffectEntry] = Field(default_factory=list)
+    calibration: dict[str, Any] = Field(default_factory=dict)
+
+
+def _loc(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
+
+
+def _get(data: Any, loc: tuple) -> Any:
+    for part in loc:
+        try:
+            data = data[part]
+        except (KeyError, IndexError, TypeError):
+            return None
+    return data
+
+
+def _friendly(msg: str) -> str:
+    return msg.removeprefix("Value error, ")
+
+
+def validate_config_dict(
+    data: Any, source: str, urdf_joints: tuple[Joint, ...] | None = None
+) -> tuple[ArmConfigFile | None, list[ConfigProblem]]:
+    """Structural (pydantic) and cross-field checks; returns the parsed file and problems."""
+    problems: list[ConfigProblem] = []
+    parsed: ArmConfigFile | None = None
+    if not isinstance(data, dict):
+        return None, [ConfigProblem(source, "(top level)", type(data).__name__,
+                                    "an arm config is a mapping with keys arm, sensors")]
+    try:
+        parsed = ArmConfigFile.model_validate(data)
+    except ValidationError as e:
+        for err in e.errors():
+            key = _loc(err["loc"]) or "(top level)"
+            value = err.get("input") if err["type"] != "missing" else None
+            if err["type"] == "missing":
+                problems.append(ConfigProblem(source, key, None, "required key is missing"))
+            elif err["type"] == "extra_forbidden":
+                problems.append(ConfigProblem(source, key, value, "unknown key"))
+            else:
+                problems.append(ConfigProblem(source, key, value, _friendly(err["msg"])))
+    problems.extend(_cross_checks(data, source, urdf_joints))
+    return parsed, problems
+
+
+def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
+    """Checks that need several keys at once; tolerant of a structurally broken file."""
+    out: list[ConfigProblem] = []
+    arm = data.get("arm") if isinstance(data.get("arm"), dict) else {}
+    dh = arm.get("dh") if isinstance(arm.get("dh"), dict) else None
+    joints = arm.get("joints") if isinstance(arm.get("joints"), dict) else {}
+    if dh is None and not arm.get("urdf"):
+        out.append(ConfigProblem(source, "arm", None, "give either arm.dh (a DH table) or arm.urdf"))
+    if dh is not None and arm.get("urdf"):
+        out.append(ConfigProblem(source, "arm", "dh and urdf", "give arm.dh or arm.urdf, not both"))
+    n = None
+    if dh is not None and isinstance(dh.get("alpha_deg"), list):
+        n = len(dh["alpha_deg"])
+        for key in ("a_mm", "d_mm", "offset_deg"):
+            v = dh.get(key)
+            if isinstance(v, list) and len(v) != n:
+                out.append(ConfigProblem(source, f"arm.dh.{key}", v,
+                                         f"has {len(v)} entries; alpha_deg has {n}"))
+    elif urdf_joints is not None:
+        n = len(urdf_joints)
+    if n is not None:
+        for key in ("min_deg", "max_deg", "counts_per_rev", "names"):
+            v = joints.get(key)
+            if isinstance(v, list) and len(v) != n:
+                out.append(ConfigProblem(source, f"arm.joints.{key}", v,
+                                         f"has {len(v)} entries; the arm has {n} joints"))
+        ready = arm.get("ready_pose_deg")
+        if isinstance(ready, list) and len(ready) != n:
+            out.append(ConfigProblem(source, "arm.ready_pose_deg", ready,
+                                     f"has {len(ready)} entries; the arm has {n} joints"))
+    lo, hi = joints.get("min_deg"), joints.get("max_deg")
+    if _numlist(lo) and _numlist(hi) and len(lo) == len(hi):
+        for i, (a, b) in enumerate(zip(lo, hi, strict=True)):
+            if a >= b:
+                out.append(ConfigProblem(source, f"arm.joints.min_deg[{i}]", a,
+                                         f"lower limit is not below the upper limit {b}"))
+        ready = arm.get("ready_pose_deg")
+        if _numlist(ready) and len(ready) == len(lo):
+            for i, r in enumerate(ready):
+                if not lo[i] <= r <= hi[i]:
+                    out.append(ConfigProblem(source, f"arm.ready_pose_deg[{i}]", r,
+                                             f"outside joint limits [{lo[i]}, {hi[i]}] deg"))
+    sensors = data.get("sensors")
+    if isinstance(sensors, list):
+        seen: dict[str, int] = {}
+        for k, s in enumerate(sensors):
+            if not isinstance(s, dict):
+                continue
+            name = s.get("name")
+            if isinstance(name, str):
+                if name in seen:
+                    out.append(ConfigProblem(source, f"sensors[{k}].name", name,
+                                             f"duplicate sensor name (also sensors[{seen[name]}])"))
+                seen[name] = k
+            link = s.get("link")
+            if isinstance(link, int) and n is not None and not 0 <= link <= n:
+                out.append(ConfigProblem(source, f"sensors[{k}].link", link,
+                                         f"link index out of range: 0 (base) to {n}"))
+            if s.get("type") == "mpu9150" and isinstance(link, int) and link != 0:
+                out.append(ConfigProblem(source, f"sensors[{k}].link", link,
+                                         "the base IMU (mpu9150) sits on link 0 (the base)"))
+            bus = s.get("bus")
+            if isinstance(bus, dict):
+                if bus.get("kind") == "i2c" and bus.get("address") is None:
+                    out.append(ConfigProblem(source, f"sensors[{k}].bus.address", None,
+                                             "an I2C device needs an address"))
+                if bus.get("kind") == "spi" and bus.get("chip_select") is None:
+                    out.append(ConfigProblem(source, f"sensors[{k}].bus.chip_select", None,
+                                             "an SPI device needs a chip_select"))
+        if not any(isinstance(s, dict) and s.get("type") in ("adxl345", "analog_triax")
+                   for s in sensors):
+            out.append(ConfigProblem(source, "sensors", len(sensors),
+                                     "the arm has no link accelerometer"))
+    return out
+
+
+def _numlist(v) -> bool:
+    return isinstance(v, list) and all(isinstance(x, int | float) for x in v)
+
+
+def build_arm(
+    data: Any, source: str, urdf_joints: tuple[Joint, ...] | None = None
+) -> ArmModel:
+    """Validate a parsed config mapping and build the arm model (raises :class:`ConfigError`)."""
+    parsed, problems = validate_config_dict(data, source, urdf_joints)
+    if problems or parsed is None:
+        raise ConfigError(problems)
+    arm = parsed.arm
+    deg = np.pi / 180.0
+    js = arm.joints
+    dh_table = None
+    if arm.dh is not None:
+        n = len(arm.dh.alpha_deg)
+        names = js.names or [f"j{i + 1}" for i in range(n)]
+        offset = np.array(arm.dh.offset_deg or [0.0] * n) * deg
+        alpha = np.array(arm.dh.alpha_deg) * deg
+        a_m = np.array(arm.dh.a_mm) / 1000.0
+        d_m = np.array(arm.dh.d_mm) / 1000.0
+        joints = joints_from_dh(
+            arm.dh.convention, alpha, a_m, d_m, offset, names,
+            np.array(js.min_deg) * deg, np.array(js.max_deg) * deg, np.array(js.counts_per_rev),
+        )
+        dh_table = DhTable(arm.dh.convention, alpha, a_m, d_m, offset)
+    else:
+        assert urdf_joints is not None
+        names = js.names or [j.name for j in urdf_joints]
+        joints = tuple(
+            Joint(
+                name=names[i], R_pre=j.R_pre, p_pre_m=j.p_pre_m, axis=j.axis, R_post=j.R_post,
+                p_post_m=j.p_post_m, offset_rad=0.0, min_rad=js.min_deg[i] * deg,
+                max_rad=js.max_deg[i] * deg, counts_per_rev=js.counts_per_rev[i],
+            )
+            for i, j in enumerate(urdf_joints)
+        )
+    sensors = tuple(
+        SensorMount(
+            name=s.name, type=s.type, link=s.link,
+            R_LS=_ro(np.array(s.rotation, dtype=float)),
+            p_L_m=_ro(np.array(s.position_mm, dtype=float) / 1000.0),
+            bus=s.bus.model_dump() if s.bus else {}, settings=dict(s.settings),
+        )
+        for s in parsed.sensors
+    )
+    return ArmModel(
+        name=arm.name, joints=joints, sensors=sensors,
+        ready_pose_rad=_ro(np.array(arm.ready_pose_deg) * deg), dh=dh_table, source=source,
+        effects=tuple(parsed.effects),
+    )
+
+
+def _ro(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a

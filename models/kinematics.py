@@ -1,0 +1,177 @@
+"""Batched forward kinematics and gravity Jacobians.
+
+Every function takes joint angles ``q_rad`` of shape ``(N, n)`` (N samples or sigma
+points; a single pose is N = 1) and loops only over the n joints, never over N.
+
+Conventions: frame 0 is the arm base. ``up_0`` is the world "up" direction expressed
+in frame 0 (unit); at rest an accelerometer reads specific force ``f_S = R_0S^T up_0``
+in g (it opposes gravity), so "gravity in the sensor frame" below is that reading.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.arm import ArmModel
+from models.rotations import exp_so3
+
+
+@dataclass(frozen=True)
+class ChainPoses:
+    """Every link frame in the base frame: ``R_0L (N, n+1, 3, 3)``, ``p_0L_m (N, n+1, 3)``,
+    and every joint's axis and origin in the base frame: ``axis_0 (N, n, 3)``, ``origin_0_m``."""
+
+    R_0L: np.ndarray
+    p_0L_m: np.ndarray
+    axis_0: np.ndarray
+    origin_0_m: np.ndarray
+
+
+def _as_q(arm: ArmModel, q_rad: np.ndarray) -> np.ndarray:
+    q = np.asarray(q_rad, dtype=float)
+    if q.ndim == 1:
+        q = q[None, :]
+    if q.ndim != 2 or q.shape[1] != arm.n_joints:
+        raise ValueError(
+            f"joint angles must have shape (N, {arm.n_joints}) for arm {arm.name!r}, got {q.shape}"
+        )
+    return q
+
+
+def _rot_about_z(theta: np.ndarray) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.zeros(theta.shape + (3, 3))
+    R[..., 0, 0] = c
+    R[..., 0, 1] = -s
+    R[..., 1, 0] = s
+    R[..., 1, 1] = c
+    R[..., 2, 2] = 1.0
+    return R
+
+
+def chain_poses(arm: ArmModel, q_rad: np.ndarray) -> ChainPoses:
+    """Forward kinematics of every link frame, batched over N poses."""
+    q = _as_q(arm, q_rad)
+    N, n = q.shape
+    ch = arm.chain
+    theta = q + ch.offset_rad
+    R_0L = np.empty((N, n + 1, 3, 3))
+    p_0L = np.empty((N, n + 1, 3))
+    axis_0 = np.empty((N, n, 3))
+    origin_0 = np.empty((N, n, 3))
+    R = np.broadcast_to(np.eye(3), (N, 3, 3))
+    p = np.zeros((N, 3))
+    R_0L[:, 0] = R
+    p_0L[:, 0] = p
+    for i in range(n):
+        # frame just before the joint rotation
+        p = p + R @ ch.p_pre_m[i]
+        R = R @ ch.R_pre[i]
+        axis_0[:, i] = R @ ch.axis[i]
+        origin_0[:, i] = p
+        Rj = _rot_about_z(theta[:, i]) if ch.axis_is_z else exp_so3(ch.axis[i] * theta[:, i, None])
+        R = R @ Rj
+        p = p + R @ ch.p_post_m[i]
+        R = R @ ch.R_post[i]
+        R_0L[:, i + 1] = R
+        p_0L[:, i + 1] = p
+    return ChainPoses(R_0L, p_0L, axis_0, origin_0)
+
+
+def forward_kinematics(arm: ArmModel, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of the last link (flange): ``R_0n (N, 3, 3)``, ``p_0n_m (N, 3)``."""
+    poses = chain_poses(arm, q_rad)
+    return poses.R_0L[:, -1], poses.p_0L_m[:, -1]
+
+
+def sensor_indices(arm: ArmModel, names: list[str] | tuple[str, ...] | None) -> list[int]:
+    if names is None:
+        return [i for i, s in enumerate(arm.sensors) if s.is_link_accelerometer]
+    lookup = {s.name: i for i, s in enumerate(arm.sensors)}
+    out = []
+    for name in names:
+        if name not in lookup:
+            raise KeyError(f"arm {arm.name!r} has no sensor {name!r}; it has {list(lookup)}")
+        out.append(lookup[name])
+    return out
+
+
+def sensor_poses(
+    arm: ArmModel, q_rad: np.ndarray, names=None, poses: ChainPoses | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each sensor's rotation ``R_0S (N, S, 3, 3)`` and position ``p_0S_m (N, S, 3)``.
+
+    ``names`` defaults to the link accelerometers, in config order.
+    """
+    poses = chain_poses(arm, q_rad) if poses is None else poses
+    idx = sensor_indices(arm, names)
+    links = np.array([arm.sensors[i].link for i in idx], dtype=int)
+    R_LS = np.stack([arm.sensors[i].R_LS for i in idx])  # (S, 3, 3)
+    p_LS = np.stack([arm.sensors[i].p_L_m for i in idx])  # (S, 3)
+    R_0L = poses.R_0L[:, links]  # (N, S, 3, 3)
+    R_0S = R_0L @ R_LS
+    p_0S = poses.p_0L_m[:, links] + np.einsum("nsij,sj->nsi", R_0L, p_LS)
+    return R_0S, p_0S
+
+
+def gravity_in_sensors(
+    arm: ArmModel, q_rad: np.ndarray, up_0: np.ndarray | None = None, names=None
+) -> np.ndarray:
+    """Static specific force each sensor reads, in g: ``f_S = R_0S^T up_0``, ``(N, S, 3)``.
+
+    ``up_0`` is world-up in the base frame, shape ``(3,)`` or ``(N, 3)``; default level base.
+    """
+    R_0S, _ = sensor_poses(arm, q_rad, names)
+    up = _as_up(up_0, R_0S.shape[0])
+    return np.einsum("nsji,nj->nsi", R_0S, up)
+
+
+def _as_up(up_0, N: int) -> np.ndarray:
+    if up_0 is None:
+        return np.broadcast_to(np.array([0.0, 0.0, 1.0]), (N, 3))
+    up = np.asarray(up_0, dtype=float)
+    return np.broadcast_to(up, (N, 3)) if up.ndim == 1 else up
+
+
+def gravity_jacobian(
+    arm: ArmModel, q_rad: np.ndarray, up_0: np.ndarray | None = None, names=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Static specific force ``f (N, S, 3)`` and its analytic Jacobian ``df/dq (N, S, 3, n)``.
+
+    Turning joint j rotates every frame after it about the joint axis ``a_j`` (base frame):
+    ``dR_0S/dq_j = [a_j]x R_0S``, hence ``df_S/dq_j = R_0S^T (up_0 x a_j)`` for joints on
+    the sensor's side of the chain and zero for joints beyond its link.
+    """
+    poses = chain_poses(arm, q_rad)
+    R_0S, _ = sensor_poses(arm, q_rad, names, poses=poses)
+    N, S = R_0S.shape[:2]
+    up = _as_up(up_0, N)
+    f = np.einsum("nsji,nj->nsi", R_0S, up)
+    cross = np.cross(up[:, None, :], poses.axis_0)  # (N, n, 3): up x a_j
+    J = np.einsum("nsji,nkj->nsik", R_0S, cross)  # (N, S, 3, n)
+    idx = sensor_indices(arm, names)
+    links = np.array([arm.sensors[i].link for i in idx])
+    mask = np.arange(arm.n_joints)[None, :] < links[:, None]  # (S, n)
+    J = J * mask[None, :, None, :]
+    return f, J
+
+
+def joint_axis_angle_to_vertical(arm: ArmModel, q_rad: np.ndarray, up_0=None) -> np.ndarray:
+    """Angle in rad between each joint axis and the vertical, folded to [0, pi/2]: ``(N, n)``.
+
+    Zero means the axis is parallel to gravity: turning that joint does not change what
+    any accelerometer reads (gimbal lock for that joint).
+    """
+    poses = chain_poses(arm, q_rad)
+    up = _as_up(up_0, poses.axis_0.shape[0])
+    c = np.abs(np.einsum("nkj,nj->nk", poses.axis_0, up))
+    return np.arccos(np.clip(c, 0.0, 1.0))
+
+
+def dependency_matrix(arm: ArmModel, names=None) -> np.ndarray:
+    """Boolean ``(S, n)``: which joints each sensor's reading depends on."""
+    idx = sensor_indices(arm, names)
+    links = np.array([arm.sensors[i].link for i in idx])
+    return np.arange(arm.n_joints)[None, :] < links[:, None]

@@ -1,0 +1,132 @@
+"""Rotation helpers, batched over leading axes.
+
+``R_AB`` is frame B's axes expressed in frame A. Angles in radians.
+Base attitude follows shared/spec/recording-csv.md: ``R_WB = Rz(yaw) Ry(pitch) Rx(roll)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+GRAVITY_MPS2 = 9.80665
+UP_W = np.array([0.0, 0.0, 1.0])
+
+
+def rot_x(angle_rad: np.ndarray | float) -> np.ndarray:
+    a = np.asarray(angle_rad, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
+
+def rot_y(angle_rad: np.ndarray | float) -> np.ndarray:
+    a = np.asarray(angle_rad, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def rot_z(angle_rad: np.ndarray | float) -> np.ndarray:
+    a = np.asarray(angle_rad, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """``skew(v) @ w == cross(v, w)``, batched over leading axes of ``v (..., 3)``."""
+    v = np.asarray(v, dtype=float)
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack(
+        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
+    )
+
+
+def exp_so3(rotvec_rad: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis times angle), batched (Rodrigues)."""
+    v = np.asarray(rotvec_rad, dtype=float)
+    theta = np.linalg.norm(v, axis=-1)[..., None, None]
+    K = skew(v)
+    small = theta < 1e-8
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(th) / th)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
+    eye = np.broadcast_to(np.eye(3), K.shape)
+    return eye + a * K + b * (K @ K)
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of a rotation matrix (inverse of :func:`exp_so3`), batched."""
+    R = np.asarray(R, dtype=float)
+    cos_t = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos_t)
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                  R[..., 1, 0] - R[..., 0, 1]], -1)
+    s = np.sin(theta)
+    small = s < 1e-7
+    factor = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, s)))
+    out = factor[..., None] * w
+    # near pi: use the diagonal to recover the axis
+    near_pi = (theta > np.pi - 1e-4)
+    if np.any(near_pi):
+        Rp = R[near_pi]
+        diag = np.clip((np.diagonal(Rp, axis1=-2, axis2=-1) + 1.0) / 2.0, 0.0, None)
+        axis = np.sqrt(diag)
+        i = np.argmax(axis, axis=-1)
+        rows = Rp[np.arange(len(i)), i]
+        axis = (rows + np.eye(3)[i]) / (2.0 * axis[np.arange(len(i)), i][:, None])
+        axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+        out[near_pi] = axis * theta[near_pi][:, None]
+    return out
+
+
+def R_from_rpy(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
+    """``R_WB = Rz(yaw) Ry(pitch) Rx(roll)`` (the recording spec's base attitude)."""
+    return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
+
+
+def rpy_from_R(R_WB: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`R_from_rpy`: ``(..., 3)`` roll, pitch, yaw in rad."""
+    R = np.asarray(R_WB, dtype=float)
+    pitch = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return np.stack([roll, pitch, yaw], -1)
+
+
+def up_in_base(roll_rad, pitch_rad) -> np.ndarray:
+    """World 'up' ``[0, 0, 1]`` expressed in the base frame, for a base at (roll, pitch).
+
+    Yaw does not change it. At rest an accelerometer aligned with the base reads this
+    vector in g (specific force opposes gravity).
+    """
+    R = R_from_rpy(roll_rad, pitch_rad, np.zeros_like(np.asarray(roll_rad, dtype=float)))
+    return np.swapaxes(R, -1, -2) @ UP_W
+
+
+def tilt_from_up(up_B: np.ndarray) -> np.ndarray:
+    """Roll and pitch (rad) of a base whose accelerometer reads ``up_B`` (any length).
+
+    Inverse of :func:`up_in_base`; this is the thesis's eq. 4.1 in the spec's convention.
+    """
+    u = np.asarray(up_B, dtype=float)
+    roll = np.arctan2(u[..., 1], u[..., 2])
+    pitch = np.arctan2(-u[..., 0], np.hypot(u[..., 1], u[..., 2]))
+    return np.stack([roll, pitch], -1)
+
+
+def rotation_problem(R: np.ndarray, tol: float = 1e-6) -> str | None:
+    """Why ``R`` is not a proper rotation matrix, or None if it is."""
+    R = np.asarray(R, dtype=float)
+    if R.shape != (3, 3):
+        return f"expected a 3x3 matrix, got shape {R.shape}"
+    if not np.all(np.isfinite(R)):
+        return "contains a non-finite number"
+    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if err > tol:
+        return f"not orthonormal (max |R^T R - I| = {err:.3g}, tolerance {tol:g})"
+    det = float(np.linalg.det(R))
+    if det < 0:
+        return f"a reflection, not a rotation (det = {det:.3g})"
+    return None
