@@ -22,7 +22,11 @@ def resolve_config_path(name_or_path: str | Path) -> Path:
     p = Path(name_or_path)
     if p.exists():
         return p
-    for cand in (REPO_CONFIG_DIR / f"{name_or_path}.yaml", REPO_CONFIG_DIR / str(name_or_path)):
+    for base in (REPO_CONFIG_DIR, Path.cwd() / "config"):
+        for cand in (base / f"{name_or_path}.yaml", base / str(name_or_path)):
+            if cand.exists():
+                return cand
+    for cand in ():
         if cand.exists():
             return cand
     shipped = sorted(x.stem for x in REPO_CONFIG_DIR.glob("*.yaml")) if REPO_CONFIG_DIR.is_dir() else []

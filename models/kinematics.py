@@ -40,15 +40,14 @@ def _as_q(arm: ArmModel, q_rad: np.ndarray) -> np.ndarray:
     return q
 
 
-def _rot_about_z(theta: np.ndarray) -> np.ndarray:
-    c, s = np.cos(theta), np.sin(theta)
-    R = np.zeros(theta.shape + (3, 3))
-    R[..., 0, 0] = c
-    R[..., 0, 1] = -s
-    R[..., 1, 0] = s
-    R[..., 1, 1] = c
-    R[..., 2, 2] = 1.0
-    return R
+def _mm_const(R: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """``R @ C`` for a batch ``R (N, 3, 3)`` and one constant ``C (3, 3)``: one GEMM."""
+    return (R.reshape(-1, 3) @ C).reshape(R.shape)
+
+
+def _mv(R: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``R @ v`` for a batch ``R (N, 3, 3)`` and one vector ``v (3,)``."""
+    return (R.reshape(-1, 3) @ v).reshape(R.shape[:-1])
 
 
 def chain_poses(arm: ArmModel, q_rad: np.ndarray) -> ChainPoses:
@@ -61,20 +60,27 @@ def chain_poses(arm: ArmModel, q_rad: np.ndarray) -> ChainPoses:
     p_0L = np.empty((N, n + 1, 3))
     axis_0 = np.empty((N, n, 3))
     origin_0 = np.empty((N, n, 3))
-    R = np.broadcast_to(np.eye(3), (N, 3, 3))
+    R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
     p = np.zeros((N, 3))
     R_0L[:, 0] = R
     p_0L[:, 0] = p
     for i in range(n):
         # frame just before the joint rotation
-        p = p + R @ ch.p_pre_m[i]
-        R = R @ ch.R_pre[i]
-        axis_0[:, i] = R @ ch.axis[i]
+        p = p + _mv(R, ch.p_pre_m[i])
+        R = _mm_const(R, ch.R_pre[i])
+        axis_0[:, i] = _mv(R, ch.axis[i])
         origin_0[:, i] = p
-        Rj = _rot_about_z(theta[:, i]) if ch.axis_is_z else exp_so3(ch.axis[i] * theta[:, i, None])
-        R = R @ Rj
-        p = p + R @ ch.p_post_m[i]
-        R = R @ ch.R_post[i]
+        if ch.axis_is_z:  # R @ Rz(theta) touches only the first two columns
+            c, s = np.cos(theta[:, i])[:, None], np.sin(theta[:, i])[:, None]
+            Rn = np.empty_like(R)
+            Rn[:, :, 0] = c * R[:, :, 0] + s * R[:, :, 1]
+            Rn[:, :, 1] = c * R[:, :, 1] - s * R[:, :, 0]
+            Rn[:, :, 2] = R[:, :, 2]
+            R = Rn
+        else:
+            R = R @ exp_so3(ch.axis[i] * theta[:, i, None])
+        p = p + _mv(R, ch.p_post_m[i])
+        R = _mm_const(R, ch.R_post[i])
         R_0L[:, i + 1] = R
         p_0L[:, i + 1] = p
     return ChainPoses(R_0L, p_0L, axis_0, origin_0)

@@ -1,0 +1,100 @@
+"""Plain summaries of an arm and of a recording, as JSON-ready dicts (for `info`, `inspect`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fusion.static import StaticDetectionSettings, find_static_segments
+from models.arm import ArmModel
+from models.kinematics import joint_axis_angle_to_vertical
+from sensors.samples import Recording, Stream
+
+GAP_FACTOR = 3.0
+"""A gap is an interval longer than this many median sample periods."""
+
+
+def describe_arm(arm: ArmModel) -> dict:
+    vertical = np.degrees(joint_axis_angle_to_vertical(arm, arm.ready_pose_rad))[0] < 1e-6
+    joints = []
+    for i, j in enumerate(arm.joints):
+        row = {
+            "name": j.name,
+            "min_deg": float(np.degrees(j.min_rad)),
+            "max_deg": float(np.degrees(j.max_rad)),
+            "ready_deg": float(np.degrees(arm.ready_pose_rad[i])),
+            "counts_per_rev": j.counts_per_rev,
+            "vertical_at_ready": bool(vertical[i]),
+        }
+        if arm.dh is not None:
+            row.update(
+                alpha_deg=float(np.degrees(arm.dh.alpha_rad[i])),
+                a_mm=float(arm.dh.a_m[i] * 1000),
+                d_mm=float(arm.dh.d_m[i] * 1000),
+                offset_deg=float(np.degrees(arm.dh.offset_rad[i])),
+            )
+        joints.append(row)
+    sensors = []
+    for s in arm.sensors:
+        bus = ""
+        if s.bus:
+            b = s.bus
+            bus = (f"I2C bus {b['bus']} at 0x{b['address']:02X}" if b["kind"] == "i2c"
+                   else f"SPI bus {b['bus']} CS {b['chip_select']}")
+        sensors.append({
+            "name": s.name,
+            "type": s.type,
+            "link": s.link,
+            "position_mm": (s.p_L_m * 1000).tolist(),
+            "rotation": s.R_LS.tolist(),
+            "bus": bus,
+            "sees_joints": [arm.joints[k].name for k in arm.joints_seen_by(s.name)],
+        })
+    return {
+        "name": arm.name,
+        "source": arm.source,
+        "dh_convention": arm.convention,
+        "n_joints": arm.n_joints,
+        "joints": joints,
+        "sensors": sensors,
+        "effects": [{"effect": e.effect, "target": e.target} for e in arm.effects],
+    }
+
+
+def stream_gaps(s: Stream) -> tuple[int, float]:
+    """Number of gaps and the longest interval between samples [s]."""
+    if len(s) < 3:
+        return 0, float(np.diff(s.t_s).max()) if len(s) == 2 else 0.0
+    dt = np.diff(s.t_s)
+    med = float(np.median(dt))
+    return int(np.sum(dt > GAP_FACTOR * med)), float(dt.max())
+
+
+def describe_recording(rec: Recording, settings: StaticDetectionSettings | None = None) -> dict:
+    streams = []
+    for s in rec.streams.values():
+        n_gaps, longest = stream_gaps(s)
+        streams.append({
+            "name": s.name,
+            "kind": s.kind,
+            "channels": list(s.channels),
+            "samples": len(s),
+            "rate_hz": s.rate_hz,
+            "t_start_s": float(s.t_s[0]) if len(s) else None,
+            "t_end_s": float(s.t_s[-1]) if len(s) else None,
+            "gaps": n_gaps,
+            "longest_gap_s": longest,
+        })
+    segs = find_static_segments(rec, settings) if rec.raw() else []
+    report = rec.meta.get("read_report")
+    return {
+        "t_start_s": rec.t_start_s,
+        "t_end_s": rec.t_end_s,
+        "duration_s": rec.duration_s,
+        "streams": streams,
+        "has_truth": bool(rec.truth()),
+        "static_segments": [
+            {"t_start_s": g.t_start_s, "t_end_s": g.t_end_s, "duration_s": g.duration_s}
+            for g in segs
+        ],
+        "read_report": None if report is None else getattr(report, "message", str(report)),
+    }

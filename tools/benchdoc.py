@@ -1,0 +1,40 @@
+"""Shared by the benchmark scripts: write one section of docs/benchmarks.md in place.
+
+Each script owns the text between ``<!-- NAME:start -->`` and ``<!-- NAME:end -->``, so
+several scripts share the file and re-running one replaces only its own section.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+from pathlib import Path
+
+import numpy as np
+
+BENCH_DOC = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
+HEADER = (
+    "# Benchmarks\n\n"
+    "Measured by the scripts in `tools/`, each of which rewrites its own section below.\n"
+    "Timings are wall-clock on the machine named in each section; where a baseline exists it\n"
+    "runs in the same process, on the same data, so the ratio is the figure to trust.\n"
+)
+
+
+def machine_line() -> str:
+    return (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+            f"NumPy {np.__version__}")
+
+
+def write_section(name: str, body_md: str, path: Path = BENCH_DOC) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = path.read_text() if path.exists() else HEADER
+    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+    block = f"{start}\n{body_md.rstrip()}\n{end}"
+    if start in text and end in text:
+        text = re.sub(re.escape(start) + r".*?" + re.escape(end), lambda _m: block, text, flags=re.S)
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    path.write_text(text)
+    return path
