@@ -142,9 +142,11 @@ def _as_up(up_0, N: int) -> np.ndarray:
 
 
 def gravity_jacobian(
-    arm: ArmModel, q_rad: np.ndarray, up_0: np.ndarray | None = None, names=None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Static specific force ``f (N, S, 3)`` and its analytic Jacobian ``df/dq (N, S, 3, n)``.
+    arm: ArmModel, q_rad: np.ndarray, up_0: np.ndarray | None = None, names=None,
+    with_frames: bool = False,
+):
+    """Static specific force ``f (N, S, 3)`` and its analytic Jacobian ``df/dq (N, S, 3, n)``
+    (and the sensor rotations ``R_0S (N, S, 3, 3)`` with ``with_frames``).
 
     Turning joint j rotates every frame after it about the joint axis ``a_j`` (base frame):
     ``dR_0S/dq_j = [a_j]x R_0S``, hence ``df_S/dq_j = R_0S^T (up_0 x a_j)`` for joints on
@@ -155,13 +157,17 @@ def gravity_jacobian(
     N, S = R_0S.shape[:2]
     up = _as_up(up_0, N)
     f = np.einsum("nsji,nj->nsi", R_0S, up)
-    cross = np.cross(up[:, None, :], poses.axis_0)  # (N, n, 3): up x a_j
+    a = poses.axis_0
+    u = up[:, None, :]
+    cross = np.stack([u[..., 1] * a[..., 2] - u[..., 2] * a[..., 1],
+                      u[..., 2] * a[..., 0] - u[..., 0] * a[..., 2],
+                      u[..., 0] * a[..., 1] - u[..., 1] * a[..., 0]], -1)  # (N, n, 3): up x a_j
     J = np.einsum("nsji,nkj->nsik", R_0S, cross)  # (N, S, 3, n)
     idx = sensor_indices(arm, names)
     links = np.array([arm.sensors[i].link for i in idx])
     mask = np.arange(arm.n_joints)[None, :] < links[:, None]  # (S, n)
     J = J * mask[None, :, None, :]
-    return f, J
+    return (f, J, R_0S) if with_frames else (f, J)
 
 
 def joint_axis_angle_to_vertical(arm: ArmModel, q_rad: np.ndarray, up_0=None) -> np.ndarray:

@@ -1,0 +1,683 @@
+"""Startup absolute calibration: every joint angle from a still arm.
+
+Gravity fixes two angles per accelerometer only up to a discrete set of branches. The
+solve:
+
+1. averages every sensor over a still window (readings in g, with the standard error of
+   each mean and a floor for what the sensor model does not capture);
+2. enumerates every branch in closed form, walking the chain sensor by sensor (each pair of
+   joints is the Paden-Kahan "subproblem 2": two rotations that carry one direction onto
+   another, with up to two solutions);
+3. polishes every branch at once with a batched Levenberg-Marquardt on all joints, the base
+   roll and pitch, and every sensor's residual weighted by its noise (``method="joint"``),
+   or pair by pair as the thesis did (``method="sequential"``, the reference);
+4. keeps the branches inside the joint limits and picks one with a prior (the pose saved at
+   the last clean shutdown, else the ready pose); where the prior does not clearly decide,
+   the joints that differ are flagged ``ambiguous`` and both values reported;
+5. gives every joint a sigma from the weighted Jacobian (base tilt included) and a flag.
+
+Nothing here moves the arm. When joints are gravity-blind, :func:`propose_unlock_move`
+finds the smallest move of a well-known joint that would make them readable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from models.arm import ArmModel
+from models.kinematics import chain_poses
+
+FLAGS = ("ok", "ill_conditioned", "gimbal_lock", "ambiguous", "out_of_limits")
+DEG = np.pi / 180.0
+
+
+# --------------------------------------------------------------------------------------
+# settings and results
+@dataclass(frozen=True)
+class StartupSettings:
+    gimbal_lock_deg: float = 2.5
+    """A joint whose axis is within this angle of vertical is gravity-blind: no number."""
+    sigma_limit_deg: float = 0.5
+    """A joint with a larger sigma is ``ill_conditioned``."""
+    prior_sigma_deg: float = 30.0
+    """How far the arm may have moved since the prior pose was saved (1 sigma)."""
+    prior_decisive_chi2: float = 9.0
+    """The prior decides between branches when it prefers one by this much (chi-square)."""
+    thesis_detector_g: float = 0.95
+    """The thesis's detector: the sensor axis along the joint reads above this (in g)."""
+    max_iterations: int = 30
+    limit_margin_deg: float = 0.5
+    """Readings are noisy: a branch this close outside a limit is still feasible."""
+
+
+@dataclass(frozen=True)
+class StillReadings:
+    """Averaged still readings in g, per sensor: ``mean_g (3,)`` and ``sigma_g (3,)``.
+
+    ``sigma_g`` is the standard error of each axis's mean combined with the sensor's
+    unmodelled-error floor. The IMU entry is the base accelerometer.
+    """
+
+    accel_mean_g: dict[str, np.ndarray]
+    accel_sigma_g: dict[str, np.ndarray]
+    imu_mean_g: np.ndarray | None
+    imu_sigma_g: np.ndarray | None
+    t_start_s: float = 0.0
+    t_end_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class JointEstimate:
+    name: str
+    angle_rad: float | None
+    sigma_rad: float | None
+    flag: str
+    alternatives_rad: tuple[float, ...] = ()
+    axis_to_vertical_deg: float = 90.0
+    thesis_detector_locked: bool | None = None
+
+    def as_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "angle_rad": self.angle_rad,
+            "sigma_rad": self.sigma_rad,
+            "flag": self.flag,
+            "alternatives_rad": list(self.alternatives_rad),
+            "axis_to_vertical_deg": self.axis_to_vertical_deg,
+            "thesis_detector_locked": self.thesis_detector_locked,
+        }
+
+
+@dataclass(frozen=True)
+class UnlockMove:
+    """A small, safe move of joints already known well, after which the blind joints read."""
+
+    joints: tuple[str, ...]
+    delta_rad: tuple[float, ...]
+    target_rad: tuple[float, ...]
+    expected_sigma_rad: tuple[float, ...]
+    unlocks: tuple[str, ...]
+
+    def as_dict(self) -> dict:
+        return {
+            "moves": [{"joint": j, "delta_rad": d, "target_rad": t}
+                      for j, d, t in zip(self.joints, self.delta_rad, self.target_rad, strict=True)],
+            "expected_sigma_rad": list(self.expected_sigma_rad),
+            "unlocks": list(self.unlocks),
+        }
+
+    def describe(self) -> str:
+        moves = " and ".join(f"{j} by {np.degrees(d):+.1f} deg (to {np.degrees(t):.1f})"
+                             for j, d, t in zip(self.joints, self.delta_rad, self.target_rad,
+                                                strict=True))
+        return (f"move {moves}, then calibrate again: {', '.join(self.unlocks)} become "
+                f"readable, worst expected sigma {np.degrees(max(self.expected_sigma_rad)):.3f} deg")
+
+
+@dataclass(frozen=True)
+class StartupResult:
+    joints: tuple[JointEstimate, ...]
+    roll_rad: float
+    pitch_rad: float
+    roll_sigma_rad: float
+    pitch_sigma_rad: float
+    residual_rms_g: float
+    chi2_per_dof: float
+    q_rad: np.ndarray  # the chosen branch, every joint (locked ones at an arbitrary value)
+    covariance: np.ndarray  # (n + 2, n + 2): joints, roll, pitch
+    branches_rad: np.ndarray  # (B, n) every feasible branch
+    method: str
+    t_start_s: float = 0.0
+    t_end_s: float = 0.0
+    unlock_move: UnlockMove | None = None
+    summary: str = ""
+
+    @property
+    def flags(self) -> tuple[str, ...]:
+        return tuple(j.flag for j in self.joints)
+
+    @property
+    def all_ok(self) -> bool:
+        return all(f == "ok" for f in self.flags)
+
+    def as_dict(self) -> dict:
+        return {
+            "t_start": self.t_start_s,
+            "t_end": self.t_end_s,
+            "method": self.method,
+            "base": {"roll_rad": self.roll_rad, "pitch_rad": self.pitch_rad,
+                     "roll_sigma_rad": self.roll_sigma_rad, "pitch_sigma_rad": self.pitch_sigma_rad},
+            "joints": [j.as_dict() for j in self.joints],
+            "residual_rms_g": self.residual_rms_g,
+            "chi2_per_dof": self.chi2_per_dof,
+            "branches": len(self.branches_rad),
+            "unlock_move": None if self.unlock_move is None else self.unlock_move.as_dict(),
+            "summary": self.summary,
+        }
+
+
+class StartupInputError(ValueError):
+    """The readings cannot give joint angles (NaN, saturated, dead sensor...)."""
+
+
+# --------------------------------------------------------------------------------------
+# geometry helpers
+def up_from_tilt(roll, pitch) -> np.ndarray:
+    """World up in the base frame for base (roll, pitch): ``[-sp, sr cp, cr cp]``."""
+    r, p = np.asarray(roll, float), np.asarray(pitch, float)
+    return np.stack([-np.sin(p), np.sin(r) * np.cos(p), np.cos(r) * np.cos(p)], -1)
+
+
+def up_tilt_jacobian(roll, pitch) -> np.ndarray:
+    """``d up / d (roll, pitch)``: ``(..., 3, 2)``."""
+    r, p = np.asarray(roll, float), np.asarray(pitch, float)
+    sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
+    z = np.zeros_like(r)
+    d_r = np.stack([z, cr * cp, -sr * cp], -1)
+    d_p = np.stack([-cp, -sr * sp, -cr * sp], -1)
+    return np.stack([d_r, d_p], -1)
+
+
+def tilt_from_up(up: np.ndarray) -> tuple[float, float]:
+    u = np.asarray(up, float)
+    return float(np.arctan2(u[1], u[2])), float(np.arctan2(-u[0], np.hypot(u[1], u[2])))
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
+    a = axis / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _subproblem1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> tuple[float, float]:
+    """Angle about unit axis ``w`` taking direction ``p`` closest to ``q``; and how well the
+    angle is defined (the product of the projected lengths: 0 when p or q lies on the axis)."""
+    pp = p - w * (w @ p)
+    qq = q - w * (w @ q)
+    return float(np.arctan2(w @ _cross(pp, qq), pp @ qq)), float(
+        np.linalg.norm(pp) * np.linalg.norm(qq))
+
+
+def _subproblem2(w1, w2, p, q) -> list[tuple[float, float]]:
+    """All (t1, t2) with ``Rot(w1, t1) Rot(w2, t2) p = q`` (unit directions; least-squares
+    closest when noise makes it inexact). Up to two solutions."""
+    c12 = float(w1 @ w2)
+    den = c12**2 - 1.0
+    if abs(den) < 1e-9:  # parallel axes: only the sum is defined
+        t, _ = _subproblem1(w1, p, q)
+        return [(t, 0.0)]
+    a = (c12 * (w2 @ p) - w1 @ q) / den
+    b = (c12 * (w1 @ q) - w2 @ p) / den
+    cr = _cross(w1, w2)
+    g2 = (p @ p - a * a - b * b - 2 * a * b * c12) / (cr @ cr)
+    gammas = [0.0] if g2 <= 1e-12 else [np.sqrt(g2), -np.sqrt(g2)]
+    out = []
+    for g in gammas:
+        c = a * w1 + b * w2 + g * cr
+        t2, _ = _subproblem1(w2, p, c)
+        t1, _ = _subproblem1(w1, c, q)
+        out.append((t1, t2))
+    return out
+
+
+# --------------------------------------------------------------------------------------
+@dataclass
+class _Problem:
+    """The weighted least-squares problem of one still window."""
+
+    arm: ArmModel
+    names: list[str]
+    meas: np.ndarray  # (S, 3) unit directions measured by the link accelerometers
+    sigma: np.ndarray  # (S, 3) sigma of each axis, in g (on the unit direction)
+    imu_meas: np.ndarray | None
+    imu_sigma: np.ndarray | None
+    R_0I: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    @property
+    def n(self) -> int:
+        return self.arm.n_joints
+
+    def residuals_and_jacobian(self, x: np.ndarray, active: np.ndarray | None = None):
+        """Weighted residuals ``(B, m)`` and Jacobian ``(B, m, n + 2)`` for states ``x (B, n+2)``.
+
+        ``active`` (S,) bool selects the sensors used (sequential solves).
+        """
+        from models.kinematics import gravity_jacobian
+
+        n = self.n
+        q, roll, pitch = x[:, :n], x[:, n], x[:, n + 1]
+        up = up_from_tilt(roll, pitch)  # (B, 3)
+        f, Jq, R_0S = gravity_jacobian(self.arm, q, up, self.names, with_frames=True)
+        dup = up_tilt_jacobian(roll, pitch)  # (B, 3, 2)
+        Jt = np.einsum("bsji,bjk->bsik", R_0S, dup)  # (B, S, 3, 2)
+        r = (self.meas[None] - f) / self.sigma[None]
+        J = -np.concatenate([Jq, Jt], -1) / self.sigma[None, :, :, None]
+        if active is not None:
+            r = r[:, active]
+            J = J[:, active]
+        B = x.shape[0]
+        r = r.reshape(B, -1)
+        J = J.reshape(B, -1, n + 2)
+        if self.imu_meas is not None:
+            fi = up @ self.R_0I  # (B, 3): R_0I^T up
+            ri = (self.imu_meas[None] - fi) / self.imu_sigma[None]
+            Ji = np.zeros((B, 3, n + 2))
+            Ji[:, :, n:] = -np.einsum("ji,bjk->bik", self.R_0I, dup) / self.imu_sigma[None, :, None]
+            r = np.concatenate([r, ri], 1)
+            J = np.concatenate([J, Ji], 1)
+        return r, J
+
+
+def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters: int,
+                active: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt on every start at once; ``free (n+2,)`` bool selects the unknowns.
+
+    Returns the solutions and their final cost (half sum of squared weighted residuals).
+    """
+    x = x0.copy()
+    B = x.shape[0]
+    lam = np.full(B, 1e-3)
+    r, J = problem.residuals_and_jacobian(x, active)
+    cost = 0.5 * np.sum(r**2, 1)
+    fi = np.flatnonzero(free)
+    for _ in range(iters):
+        Jf = J[:, :, fi]
+        A = np.einsum("bmi,bmj->bij", Jf, Jf)
+        g = np.einsum("bmi,bm->bi", Jf, r)
+        diag = np.einsum("bii->bi", A)
+        A_damped = A + lam[:, None, None] * np.einsum("bi,ij->bij", diag + 1e-9, np.eye(len(fi)))
+        step = -np.linalg.solve(A_damped, g[..., None])[..., 0]
+        xt = x.copy()
+        xt[:, fi] += step
+        rt, Jt = problem.residuals_and_jacobian(xt, active)
+        ct = 0.5 * np.sum(rt**2, 1)
+        better = ct < cost
+        x[better], r[better], J[better], cost[better] = xt[better], rt[better], Jt[better], ct[better]
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+        if np.all(np.abs(step).max(1) < 1e-10) or np.all(lam > 1e8):
+            break
+    return x, cost
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.ndarray:
+    """Every branch of joint angles, walking the chain sensor by sensor: ``(B, n)``.
+
+    Joints no sensor reads stay at the ready pose. A joint whose angle is undefined here
+    (its axis along gravity) takes its ready-pose value; the polish and flags handle it.
+    """
+    arm = problem.arm
+    up0 = up_from_tilt(roll, pitch)
+    order = np.argsort([arm.sensor(nm).link for nm in problem.names])
+    partial = [arm.ready_pose_rad.astype(float).copy()]
+    prev_link = 0
+    ch = arm.chain
+    for s in order:
+        mount = arm.sensor(problem.names[s])
+        k = mount.link
+        joints = list(range(prev_link, k))
+        if not joints:
+            continue
+        w = mount.R_LS @ problem.meas[s]  # up in frame k (unit)
+        new_partial = []
+        for q in partial:
+            R = np.eye(3)
+            for j in range(prev_link):
+                R = R @ _joint_rotation(ch, j, q[j])
+            v = R.T @ up0  # up in frame prev_link
+            # only the last two joints before the sensor are solved; earlier unread joints
+            # (more than two per sensor) stay at their ready values
+            solve = joints[-2:]
+            fixed = joints[:-2]
+            for j in fixed:
+                v = _joint_rotation(ch, j, q[j]).T @ v
+            if len(solve) == 1:
+                j = solve[0]
+                v1 = ch.R_pre[j].T @ v
+                w1 = ch.R_post[j] @ w
+                t, _ = _subproblem1(ch.axis[j], w1, v1)
+                cand = [(t - ch.offset_rad[j],)]
+            else:
+                a, b = solve
+                v1 = ch.R_pre[a].T @ v
+                w1 = ch.R_post[b] @ w
+                M = ch.R_post[a] @ ch.R_pre[b]
+                sols = _subproblem2(ch.axis[a], M @ ch.axis[b], M @ w1, v1)
+                cand = [(t1 - ch.offset_rad[a], t2 - ch.offset_rad[b]) for t1, t2 in sols]
+            for c in cand:
+                qn = q.copy()
+                qn[solve] = c
+                new_partial.append(qn)
+        partial = new_partial
+        prev_link = k
+    out = np.array(partial)
+    # bring each angle to the representative closest to the middle of its limits
+    mid = (arm.min_rad + arm.max_rad) / 2
+    return mid + _wrap(out - mid)
+
+
+def _joint_rotation(ch, j: int, q: float) -> np.ndarray:
+    """Rotation of frame j+1 in frame j (0-based joint j) at angle ``q``."""
+    return ch.R_pre[j] @ _rot(ch.axis[j], q + ch.offset_rad[j]) @ ch.R_post[j]
+
+
+def _dedupe(q: np.ndarray, tol: float = 1e-3) -> np.ndarray:
+    keep: list[np.ndarray] = []
+    for row in q:
+        if not any(np.max(np.abs(_wrap(row - k))) < tol for k in keep):
+            keep.append(row)
+    return np.array(keep)
+
+
+# --------------------------------------------------------------------------------------
+def solve_still(
+    arm: ArmModel,
+    readings: StillReadings,
+    settings: StartupSettings | None = None,
+    prior_q_rad: np.ndarray | None = None,
+    method: str = "joint",
+    propose_unlock: bool = True,
+) -> StartupResult:
+    """Every joint angle of a still arm from averaged readings, with sigma and flags."""
+    st = settings or StartupSettings()
+    problem = _make_problem(arm, readings)
+    n = arm.n_joints
+    # base tilt from the IMU (the thesis's eq. 4.1, in the recording spec's convention)
+    if problem.imu_meas is not None:
+        roll0, pitch0 = tilt_from_up(problem.R_0I @ problem.imu_meas)
+    else:
+        roll0 = pitch0 = 0.0
+    starts = _closed_form_branches(problem, roll0, pitch0)
+    x0 = np.concatenate([starts, np.tile([roll0, pitch0], (len(starts), 1))], 1)
+    free = np.ones(n + 2, dtype=bool)
+    if problem.imu_meas is None:
+        free[n:] = False
+    if method == "joint":
+        x, cost = _batched_lm(problem, x0, free, st.max_iterations)
+    elif method == "sequential":
+        x, cost = _sequential(problem, x0, st)
+    else:
+        raise ValueError(f"unknown method {method!r}: use 'joint' or 'sequential'")
+    x[:, :n] = (arm.min_rad + arm.max_rad) / 2 + _wrap(x[:, :n] - (arm.min_rad + arm.max_rad) / 2)
+    # drop branches that fit much worse than the best (not real solutions of the data)
+    good = cost <= cost.min() + 0.5 * 9.0 + 1e-9
+    x, cost = x[good], cost[good]
+    order = np.argsort(cost)
+    x, cost = x[order], cost[order]
+    q_all = x[:, :n]
+    axis_deg = np.degrees(_axis_to_vertical(arm, q_all, x[:, n], x[:, n + 1]))
+    locked_any = axis_deg < st.gimbal_lock_deg  # (B, n)
+    # feasibility: locked joints can take any value, so only readable joints are checked
+    margin = st.limit_margin_deg * DEG
+    inside = (arm.within_limits(q_all, margin) | locked_any).all(1)
+    feasible_idx = np.flatnonzero(inside)
+    branches = _dedupe(q_all[feasible_idx] if len(feasible_idx) else q_all, 1e-3)
+    prior = arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
+    if len(feasible_idx):
+        cand = feasible_idx
+    else:
+        cand = np.arange(len(x))
+    # prior: distance on the readable joints
+    d2 = np.sum((_wrap(q_all[cand] - prior) / (st.prior_sigma_deg * DEG)) ** 2
+                * ~locked_any[cand], 1)
+    best = cand[int(np.argmin(d2))]
+    xb = x[best]
+    qb = xb[:n]
+    # covariance from the weighted Jacobian at the chosen solution
+    r, J = problem.residuals_and_jacobian(xb[None])
+    r, J = r[0], J[0]
+    dof = max(r.size - int(free.sum()), 1)
+    chi2_dof = float(r @ r / dof)
+    locked = locked_any[best]
+    # Information from the data, plus the only thing known about a gravity-blind joint: it
+    # is somewhere in its range (a flat prior of width pi). The marginal sigma of every other
+    # joint then carries its correlation with the blind ones.
+    cols = free.copy()
+    Jr = J[:, cols]
+    info = Jr.T @ Jr
+    prior_info = np.zeros(int(cols.sum()))
+    prior_info[: n][locked[free[:n]]] = 1.0 / np.pi**2
+    # the fit itself says when the model is worse than its sigmas (Birge ratio)
+    inflate = max(chi2_dof, 1.0)
+    cov = np.full((n + 2, n + 2), np.nan)
+    cov_r = np.linalg.pinv(info + np.diag(prior_info)) * inflate
+    cov[np.ix_(cols, cols)] = cov_r
+    sig = np.sqrt(np.clip(np.diag(cov), 0, None))
+    flags = np.array(["ok"] * n, dtype=object)
+    flags[locked] = "gimbal_lock"
+    limit = st.sigma_limit_deg * DEG
+    if locked.any():
+        # a joint that would be fine with the blind joints known, but is not because they
+        # are not, rests on them: it inherits their flag
+        keep = cols & np.concatenate([~locked, [True, True]])
+        cov_held = np.linalg.pinv((J[:, keep].T @ J[:, keep])) * inflate
+        sig_held = np.full(n + 2, np.nan)
+        sig_held[keep] = np.sqrt(np.clip(np.diag(cov_held), 0, None))
+        inherit = ~locked & (sig[:n] > limit) & (sig_held[:n] <= limit)
+        flags[inherit] = "gimbal_lock"
+    ill = (sig[:n] > limit) & (flags == "ok")
+    flags[ill] = "ill_conditioned"
+    out_of_limits = ~arm.within_limits(qb, margin) & (flags == "ok")
+    flags[out_of_limits] = "out_of_limits"
+    alternatives: list[tuple[float, ...]] = [() for _ in range(n)]
+    if len(cand) > 1:
+        order_d = np.argsort(d2)
+        second = cand[order_d[1]]
+        if d2[order_d[1]] - d2[order_d[0]] < st.prior_decisive_chi2:
+            differ = np.abs(_wrap(q_all[second] - qb)) > max(5 * st.sigma_limit_deg * DEG, 1e-3)
+            for j in np.flatnonzero(differ & (flags == "ok")):
+                flags[j] = "ambiguous"
+                alternatives[j] = (float(qb[j]), float(q_all[second][j]))
+    thesis = thesis_detector(arm, problem.names, problem.meas, st.thesis_detector_g)
+    joints = []
+    for j in range(n):
+        number = flags[j] not in ("gimbal_lock", "ambiguous")
+        joints.append(JointEstimate(
+            name=arm.joints[j].name,
+            angle_rad=float(qb[j]) if number else None,
+            sigma_rad=float(sig[j]) if number and np.isfinite(sig[j]) else None,
+            flag=str(flags[j]),
+            alternatives_rad=alternatives[j],
+            axis_to_vertical_deg=float(axis_deg[best, j]),
+            thesis_detector_locked=thesis[j],
+        ))
+    resid_g = (r[: problem.meas.size] * problem.sigma.reshape(-1))
+    result = StartupResult(
+        joints=tuple(joints),
+        roll_rad=float(xb[n]), pitch_rad=float(xb[n + 1]),
+        roll_sigma_rad=float(sig[n]), pitch_sigma_rad=float(sig[n + 1]),
+        residual_rms_g=float(np.sqrt(np.mean(resid_g**2))),
+        chi2_per_dof=chi2_dof,
+        q_rad=qb.copy(), covariance=cov, branches_rad=branches, method=method,
+        t_start_s=readings.t_start_s, t_end_s=readings.t_end_s,
+    )
+    if propose_unlock and any(f in ("gimbal_lock", "ill_conditioned") for f in flags):
+        result = replace(result, unlock_move=propose_unlock_move(arm, result, readings, st, prior))
+    return replace(result, summary=_summary(result))
+
+
+def _sequential(problem: _Problem, x0: np.ndarray, st: StartupSettings):
+    """The thesis's method: each accelerometer solves its own joints, given the ones before.
+
+    acc1 -> joints 1-2, acc2 -> 3-4, acc3 -> 5-6, acc4 -> 7, each by LM with the earlier
+    joints held; the base tilt comes from the IMU alone, first.
+    """
+    arm, n = problem.arm, problem.n
+    x = x0.copy()
+    if problem.imu_meas is not None:
+        free = np.zeros(n + 2, dtype=bool)
+        free[n:] = True
+        x, _ = _batched_lm(problem, x, free, st.max_iterations, active=np.zeros(len(problem.names), bool))
+    prev = 0
+    links = [arm.sensor(nm).link for nm in problem.names]
+    for s in np.argsort(links):
+        k = links[s]
+        if k <= prev:
+            continue
+        free = np.zeros(n + 2, dtype=bool)
+        free[prev:k] = True
+        active = np.zeros(len(problem.names), bool)
+        active[s] = True
+        imu = problem.imu_meas
+        problem.imu_meas = None  # the IMU does not take part in the joint pairs
+        try:
+            x, _ = _batched_lm(problem, x, free, st.max_iterations, active=active)
+        finally:
+            problem.imu_meas = imu
+        prev = k
+    r, _ = problem.residuals_and_jacobian(x)
+    return x, 0.5 * np.sum(r**2, 1)
+
+
+def _axis_to_vertical(arm, q, roll, pitch) -> np.ndarray:
+    poses = chain_poses(arm, q)
+    up = up_from_tilt(roll, pitch)
+    c = np.abs(np.einsum("bkj,bj->bk", poses.axis_0, up))
+    return np.arccos(np.clip(c, 0.0, 1.0))
+
+
+def thesis_detector(arm: ArmModel, names, meas: np.ndarray, threshold_g: float) -> list[bool | None]:
+    """The thesis's gimbal-lock test: the accelerometer axis parallel to a joint's axis reads
+    close to 1 g. It applies only to a joint whose axis is fixed in an accelerometer's link
+    (the last joint before each sensor); for the others it says nothing (None)."""
+    out: list[bool | None] = [None] * arm.n_joints
+    ch = arm.chain
+    for s, nm in enumerate(names):
+        mount = arm.sensor(nm)
+        k = mount.link
+        if k == 0:
+            continue
+        j = k - 1
+        axis_k = ch.R_post[j].T @ ch.axis[j]  # joint k's axis in frame k
+        axis_s = mount.R_LS.T @ axis_k
+        i = int(np.argmax(np.abs(axis_s)))
+        if abs(axis_s[i]) < np.cos(10 * DEG) or out[j] is not None:
+            continue  # no sensor axis along this joint
+        out[j] = bool(abs(meas[s][i]) > threshold_g)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+def propose_unlock_move(arm: ArmModel, result: StartupResult, readings: StillReadings,
+                        settings: StartupSettings | None = None,
+                        prior_q_rad: np.ndarray | None = None,
+                        max_move_deg: float = 45.0,
+                        blind_range_deg: float = 60.0) -> UnlockMove | None:
+    """The smallest move of one well-known joint that makes the blind joints readable.
+
+    The blind joints' values are unknown: a move counts only if it works for every value
+    they plausibly have (the prior pose, +-``blind_range_deg``, inside their limits). The
+    expected sigmas are the worst over those values, from the solve's own noise model. All
+    candidate moves are evaluated in one batch.
+    """
+    st = settings or StartupSettings()
+    n = arm.n_joints
+    blind = np.array([j.flag in ("gimbal_lock", "ill_conditioned") for j in result.joints])
+    known = np.array([j.flag == "ok" for j in result.joints])
+    if not blind.any() or not known.any():
+        return None
+    problem = _make_problem(arm, readings)
+    prior = arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
+    L = np.flatnonzero(blind)
+    offsets = np.linspace(-blind_range_deg, blind_range_deg, 5) * DEG
+    grid = np.array(np.meshgrid(*[offsets] * len(L), indexing="ij")).reshape(len(L), -1).T
+    blind_values = np.clip(prior[L] + grid, arm.min_rad[L], arm.max_rad[L])  # (G, |L|)
+    base = result.q_rad.copy()
+    K = np.flatnonzero(known)
+    steps = np.array([1, 2, 3, 5, 7.5, 10, 15, 20, 30, 45], float)
+    steps = steps[steps <= max_move_deg] * DEG
+    singles = [((j, sg * d),) for d in steps for j in K for sg in (1, -1)]
+    pair_steps = np.array([5, 10, 15, 20, 30], float) * DEG
+    pairs = [((j, sj * dj), (k, sk * dk)) for j in K for k in K if j < k
+             for dj in pair_steps for dk in pair_steps for sj in (1, -1) for sk in (1, -1)]
+    pairs.sort(key=lambda m: sum(abs(d) for _, d in m))
+    for moves in (singles, pairs):  # one joint if that is enough, else two
+        for i in range(0, len(moves), 48):  # smallest moves first; stop at the first that works
+            found = _best_move(arm, problem, result, base, moves[i:i + 48], L, blind_values, st)
+            if found is not None:
+                return found
+    return None
+
+
+def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> UnlockMove | None:
+    n = arm.n_joints
+    ok_moves = [m for m in moves
+                if all(arm.min_rad[j] <= base[j] + d <= arm.max_rad[j] for j, d in m)]
+    if not ok_moves:
+        return None
+    G = len(blind_values)
+    Q = np.tile(base, (len(ok_moves) * G, 1))
+    for i, m in enumerate(ok_moves):
+        block = Q[i * G:(i + 1) * G]
+        for j, d in m:
+            block[:, j] += d
+        block[:, L] = blind_values
+    x = np.concatenate([Q, np.tile([result.roll_rad, result.pitch_rad], (len(Q), 1))], 1)
+    ang = np.degrees(_axis_to_vertical(arm, Q, x[:, n], x[:, n + 1])).reshape(len(ok_moves), G, n)
+    sig = _expected_sigma(problem, x).reshape(len(ok_moves), G, -1)[..., :n]
+    worst = np.nanmax(sig, 1)  # (M, n)
+    clear = ang.min(axis=(1, 2)) >= 2 * st.gimbal_lock_deg
+    good = clear & np.all(worst <= st.sigma_limit_deg * DEG, 1)
+    if not good.any():
+        return None
+    i = int(np.flatnonzero(good)[0])  # moves are ordered by size
+    m = ok_moves[i]
+    return UnlockMove(
+        joints=tuple(arm.joints[j].name for j, _ in m),
+        delta_rad=tuple(float(d) for _, d in m),
+        target_rad=tuple(float(base[j] + d) for j, d in m),
+        expected_sigma_rad=tuple(float(v) for v in worst[i]),
+        unlocks=tuple(arm.joints[k].name for k in L),
+    )
+
+
+def _expected_sigma(problem: _Problem, x: np.ndarray) -> np.ndarray:
+    """Sigma of every unknown at states ``x (B, n+2)`` from the Jacobian alone."""
+    _, J = problem.residuals_and_jacobian(x)
+    A = np.einsum("bmi,bmj->bij", J, J)
+    if problem.imu_meas is None:
+        n = problem.n
+        A = A[:, :n, :n]
+    cov = np.linalg.pinv(A)
+    return np.sqrt(np.clip(np.einsum("bii->bi", cov), 0, None))
+
+
+# --------------------------------------------------------------------------------------
+def _make_problem(arm: ArmModel, readings: StillReadings) -> _Problem:
+    names = [s.name for s in arm.link_accelerometers if s.name in readings.accel_mean_g]
+    if not names:
+        raise StartupInputError("no link accelerometer readings: nothing to solve from")
+    meas, sig = [], []
+    for nm in names:
+        m = np.asarray(readings.accel_mean_g[nm], float)
+        norm = float(np.linalg.norm(m))
+        meas.append(m / norm)
+        sig.append(np.asarray(readings.accel_sigma_g[nm], float) / norm)
+    imu_m = imu_s = None
+    R_0I = np.eye(3)
+    if readings.imu_mean_g is not None and arm.imu is not None:
+        m = np.asarray(readings.imu_mean_g, float)
+        norm = float(np.linalg.norm(m))
+        imu_m, imu_s = m / norm, np.asarray(readings.imu_sigma_g, float) / norm
+        R_0I = arm.imu.R_LS
+    return _Problem(arm, names, np.array(meas), np.array(sig), imu_m, imu_s, R_0I)
+
+
+def _summary(res: StartupResult) -> str:
+    bad = [f"{j.name} {j.flag}" for j in res.joints if j.flag != "ok"]
+    if not bad:
+        worst = max(j.sigma_rad for j in res.joints)
+        return f"all {len(res.joints)} joints ok; worst sigma {np.degrees(worst):.3f} deg"
+    text = f"{len(res.joints) - len(bad)} of {len(res.joints)} joints ok; " + ", ".join(bad)
+    if res.unlock_move is not None:
+        text += "; " + res.unlock_move.describe()
+    return text
