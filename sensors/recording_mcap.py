@@ -400,7 +400,7 @@ def _opcode_name(op: int) -> str:
 
 
 def _kb(n: int) -> str:
-    return f"{n / 1000:.1f} kB" if n >= 1000 else f"{n} bytes"
+    return f"{n / 1000:.1f} kB" if n >= 1000 else f"{n} byte" + ("s" if n != 1 else "")
 
 
 class _Damaged(Exception):
@@ -480,11 +480,12 @@ def read_mcap(path: str | Path) -> tuple[Recording, ReadReport]:
             start = good_end
             header = f.read(9)
             if len(header) < 9:
-                problem = (
-                    f"after the complete record that ends at byte {start}"
-                    if not header
-                    else f"inside the header of a {_opcode_name(header[0])} at byte {start}"
-                )
+                if header:
+                    problem = f"inside the header of a {_opcode_name(header[0])} at byte {start}"
+                elif start == len(MAGIC):
+                    problem = "right after the opening magic bytes"
+                else:
+                    problem = f"after the complete record that ends at byte {start}"
                 break
             op, length = _HEADER.unpack(header)
             what = _opcode_name(op)

@@ -1,0 +1,315 @@
+"""Recording MCAP: round trip, layout seen by other MCAP readers, recovery of cut files."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import struct
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from sensors.recording_mcap import McapRecorder, read_mcap, schema_for_kind, write_mcap
+from sensors.samples import (
+    IMU_STREAMS,
+    TRUTH_BASE_COLUMNS,
+    Recording,
+    Stream,
+    accel_columns,
+    encoder_columns,
+    truth_joint_columns,
+)
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _recording(seed: int = 0, duration_s: float = 2.0, t0_s: float = -1.5) -> Recording:
+    """Every stream kind at its own rate, starting before t = 0."""
+    rng = np.random.default_rng(seed)
+    t = t0_s + np.arange(int(duration_s * 100)) * 0.01
+    n = t.size
+    s = [Stream("acc1", "accel", t, rng.integers(-512, 512, (n, 3)), accel_columns("acc1"))]
+    s.append(Stream("acc2", "accel", t + 0.003, rng.integers(-512, 512, (n, 3)), accel_columns("acc2")))
+    for name, (kind, cols) in IMU_STREAMS.items():
+        step = {"imu_mag": 10, "imu_temp": 100}.get(name, 1)
+        tt = t[::step]
+        s.append(Stream(name, kind, tt, rng.integers(-32768, 32768, (tt.size, len(cols))), cols))
+    s.append(Stream("enc", "encoder", t, rng.integers(-(10**9), 10**9, (n, 7)), encoder_columns(7)))
+    s.append(Stream("true_q", "truth_joints", t, rng.uniform(-3, 3, (n, 7)), truth_joint_columns(7)))
+    s.append(Stream("true_base", "truth_base", t, rng.normal(0, 0.1, (n, 3)), TRUTH_BASE_COLUMNS))
+    return Recording({x.name: x for x in s}, meta={"arm_config": "wmra"})
+
+
+def _assert_prefix_of(back: Recording, original: Recording) -> int:
+    """Every recovered stream is the first samples of the original one; total count."""
+    total = 0
+    for name, b in back.streams.items():
+        o = original.streams[name]
+        assert (b.kind, b.channels) == (o.kind, o.channels)
+        np.testing.assert_array_equal(b.t_s, o.t_s[: len(b)])
+        np.testing.assert_array_equal(b.values, o.values[: len(b)])
+        assert b.values.dtype == o.values.dtype
+        total += len(b)
+    return total
+
+
+def _write_small_chunks(rec: Recording, path: Path) -> bytes:
+    """The recording in many small chunks (4 kB uncompressed): many places to cut."""
+    with McapRecorder(path, chunk_size_bytes=4096, t_offset_s=2.0) as r:
+        for s in rec.streams.values():
+            r.write_stream(s.between(-np.inf, -1.0))
+        for s in rec.streams.values():
+            r.write_stream(s.between(-1.0, np.inf))
+    return path.read_bytes()
+
+
+def _record_starts(data: bytes) -> list[int]:
+    """Byte offsets where top-level records start (framing: opcode u8, length u64)."""
+    starts, pos = [], 8
+    while pos < len(data) - 8:
+        starts.append(pos)
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        pos += 9 + length
+    return starts
+
+
+# ---------------------------------------------------------------------------- round trip
+
+
+def test_round_trip_is_exact_and_keeps_the_metadata(tmp_path: Path) -> None:
+    rec = _recording()
+    write_mcap(rec, tmp_path / "r.mcap")
+    back, report = read_mcap(tmp_path / "r.mcap")
+
+    assert report.complete and report.bytes_unread == 0
+    n = sum(len(s) for s in rec.streams.values())
+    assert report.messages_read == n
+    assert report.message == f"{tmp_path / 'r.mcap'}: complete: {n} messages up to t = 0.493 s"
+    assert list(back.streams) == list(rec.streams)
+    assert _assert_prefix_of(back, rec) == n  # all of it, bit for bit (floats too)
+    assert back.meta["arm_config"] == "wmra"
+    assert back.meta["armfusion_version"]
+    assert back.meta["t_offset_ns"] == 2_000_000_000  # starts at -1.5 s: a 2 s offset
+
+
+def test_other_mcap_readers_see_topics_schemas_and_metadata(tmp_path: Path) -> None:
+    jsonschema = pytest.importorskip("jsonschema")
+    rec = _recording(duration_s=0.5)
+    write_mcap(rec, tmp_path / "r.mcap")
+    with open(tmp_path / "r.mcap", "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        topics = {c.topic: c for c in summary.channels.values()}
+        assert sorted(topics) == sorted(
+            ["raw/acc1", "raw/acc2", "raw/imu_acc", "raw/imu_gyro", "raw/imu_mag", "raw/imu_temp"]
+            + ["raw/enc", "truth/true_q", "truth/true_base"]
+        )
+        enc = topics["raw/enc"]
+        assert enc.message_encoding == "json"
+        assert enc.metadata == {
+            "stream": "enc",
+            "kind": "encoder",
+            "channels": json.dumps(list(encoder_columns(7))),
+        }
+        schema = summary.schemas[enc.schema_id]
+        assert (schema.name, schema.encoding) == ("armfusion.encoder", "jsonschema")
+        assert json.loads(schema.data) == schema_for_kind("encoder")
+        [meta] = [m for m in reader.iter_metadata() if m.name == "armfusion"]
+        assert meta.metadata["arm_config"] == "wmra"
+        assert meta.metadata["t_offset_ns"] == "2000000000"
+        log_times = []
+        for sch, _ch, msg in reader.iter_messages(log_time_order=False):
+            sample = json.loads(msg.data)
+            jsonschema.validate(sample, json.loads(sch.data))
+            assert msg.log_time == msg.publish_time == round(sample["t_s"] * 1e9) + 2_000_000_000
+            log_times.append(msg.log_time)
+        assert log_times == sorted(log_times)  # streams merged in time order
+        first = json.loads(next(reader.iter_messages())[2].data)
+        assert first == {"t_s": -1.5, "values": rec.get("acc1").values[0].tolist()}
+
+
+def test_a_message_that_breaks_its_schema_is_caught_by_the_schema() -> None:
+    jsonschema = pytest.importorskip("jsonschema")
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({"t_s": 0.0, "values": [1, 2]}, schema_for_kind("accel"))
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({"t_s": 0.0, "values": [1, 2, 3.5]}, schema_for_kind("gyro"))
+
+
+# ---------------------------------------------------------------------------- recorder
+
+
+def test_recorder_writes_batches_and_json_topics(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    t = np.arange(50) * 0.02
+    counts = rng.integers(-500, 500, (50, 3))
+    with McapRecorder(tmp_path / "live.mcap", arm_config="crs_a465") as rec:
+        for i in range(0, 50, 7):  # uneven batches, a single sample as N = 1 too
+            rec.write_samples("acc3", "accel", accel_columns("acc3"), t[i : i + 7], counts[i : i + 7])
+        rec.write_samples("enc", "encoder", ("enc1",), [1.0], [[42]])
+        rec.write_json("estimates/joints", "armfusion.JointEstimate", {"q_rad": [0.1, 0.2]}, t_s=0.5)
+    back, report = read_mcap(tmp_path / "live.mcap")
+    assert report.complete and report.messages_read == 52
+    assert report.ignored_topics == ("estimates/joints",)
+    np.testing.assert_array_equal(back.get("acc3").t_s, t)
+    np.testing.assert_array_equal(back.get("acc3").values, counts)
+    np.testing.assert_array_equal(back.get("enc").values, [[42]])
+    assert back.meta["arm_config"] == "crs_a465"
+    with open(tmp_path / "live.mcap", "rb") as f:
+        [(_, ch, msg)] = make_reader(f).iter_messages(topics=["estimates/joints"])
+    assert json.loads(msg.data) == {"q_rad": [0.1, 0.2]} and msg.log_time == 500_000_000
+
+
+def test_recorder_refuses_what_it_cannot_store(tmp_path: Path) -> None:
+    with McapRecorder(tmp_path / "x.mcap") as rec:
+        rec.write_samples("acc1", "accel", accel_columns("acc1"), [1.0], [[1, 2, 3]])
+        with pytest.raises(ValueError, match=r"t_s = 1.0 does not follow the last sample written"):
+            rec.write_samples("acc1", "accel", accel_columns("acc1"), [1.0], [[1, 2, 3]])
+        with pytest.raises(ValueError, match="was started as kind accel"):
+            rec.write_samples("acc1", "gyro", ("a", "b", "c"), [2.0], [[1, 2, 3]])
+        with pytest.raises(ValueError, match=r"t_s = -0.25 is before the recorder's time origin"):
+            rec.write_samples("enc", "encoder", ("enc1",), [-0.25], [[1]])
+        with pytest.raises(ValueError, match="reserved for sample streams"):
+            rec.write_json("raw/acc1", "x", {}, t_s=1.0)
+        with pytest.raises(ValueError, match="raw counts must be whole numbers"):
+            rec.write_samples("acc2", "accel", accel_columns("acc2"), [1.0], [[1.5, 2, 3]])
+    with pytest.raises(ValueError, match="the recorder is closed"):
+        rec.write_samples("acc1", "accel", accel_columns("acc1"), [2.0], [[1, 2, 3]])
+
+
+def test_a_recorder_that_never_closes_leaves_everything_flushed_readable(tmp_path: Path) -> None:
+    """No close(), no footer: what a crash leaves. Flushing each write loses nothing."""
+    rec_path = tmp_path / "open.mcap"
+    rec = McapRecorder(rec_path, flush_interval_s=0.0)
+    t = np.arange(30) * 0.01
+    for i in range(30):
+        rec.write_samples("acc1", "accel", accel_columns("acc1"), t[i : i + 1], [[i, -i, 2 * i]])
+    back, report = read_mcap(rec_path)
+    assert not report.complete
+    assert report.messages_read == 30 and report.bytes_unread == 0
+    assert "the file's summary is missing" in report.message
+    np.testing.assert_array_equal(back.get("acc1").values[:, 0], np.arange(30))
+    rec.close()
+    assert read_mcap(rec_path)[1].complete
+
+
+_CHILD = textwrap.dedent(
+    """
+    import sys, time
+    import numpy as np
+    from sensors.recording_mcap import McapRecorder
+    from sensors.samples import accel_columns
+
+    with McapRecorder(sys.argv[1], flush_interval_s=0.05) as rec:
+        for i in range(100000):
+            v = np.array([[i, i + 1, i + 2]])
+            rec.write_samples("acc1", "accel", accel_columns("acc1"), [i * 0.01], v)
+            print(i + 1, flush=True)
+            time.sleep(0.005)
+    """
+)
+
+
+def test_kill_9_while_recording_loses_at_most_the_last_chunk(tmp_path: Path) -> None:
+    path = tmp_path / "killed.mcap"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    child = subprocess.Popen(
+        [sys.executable, "-c", _CHILD, str(path)], stdout=subprocess.PIPE, text=True, env=env
+    )
+    written = 0
+    try:
+        while written < 150:
+            written = int(child.stdout.readline())
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+        child.stdout.close()
+    back, report = read_mcap(path)
+    assert not report.complete
+    acc = back.get("acc1")
+    # a flush every 0.05 s at ~100 samples/s: the last chunk holds a handful of samples
+    assert written - 60 <= len(acc) <= written + 5
+    np.testing.assert_array_equal(acc.values[:, 0], np.arange(len(acc)))
+    assert f"recovered {len(acc)} messages up to t = {acc.t_s[-1]:.3f} s" in report.message
+
+
+# ---------------------------------------------------------------------------- cut files
+
+
+def test_a_file_cut_anywhere_gives_back_every_complete_message(tmp_path: Path) -> None:
+    rec = _recording(duration_s=1.0)
+    data = _write_small_chunks(rec, tmp_path / "full.mcap")
+    size = len(data)
+    starts = _record_starts(data)
+    assert len(starts) > 20
+    rng = np.random.default_rng(11)
+    cuts = {0, 3, 7, 8, 12, starts[2] + 5, size - 1, size - 4, size}
+    cuts |= set(starts[:12])  # exactly at record boundaries: header, metadata, chunks
+    cuts |= {s + 40 for s in starts[2:6]}  # inside the first chunks
+    cuts |= set(rng.integers(0, size, 20).tolist())
+    cuts = sorted(cuts)
+    assert len(cuts) >= 40
+
+    recovered_before = -1
+    for cut in cuts:
+        p = tmp_path / "cut.mcap"
+        p.write_bytes(data[:cut])
+        back, report = read_mcap(p)
+        n = _assert_prefix_of(back, rec)
+        assert n == report.messages_read
+        assert n >= recovered_before, f"cut at {cut}: fewer messages than a shorter file"
+        recovered_before = n
+        assert report.bytes_total == cut
+        assert 0 <= report.bytes_unread <= cut
+        if cut < size:
+            assert not report.complete
+            assert f"file ends early at byte {cut}" in report.message
+            lost = "could not be read" if report.bytes_unread else "the file's summary is missing"
+            assert lost in report.message
+    assert report.complete and recovered_before == sum(len(s) for s in rec.streams.values())
+
+
+def test_a_cut_inside_a_chunk_says_that_chunk_is_lost(tmp_path: Path) -> None:
+    rec = _recording(duration_s=1.0)
+    data = _write_small_chunks(rec, tmp_path / "full.mcap")
+    chunks = [s for s in _record_starts(data) if data[s] == 0x06]
+    cut = chunks[3] + 100
+    (tmp_path / "cut.mcap").write_bytes(data[:cut])
+    back, report = read_mcap(tmp_path / "cut.mcap")
+    (tmp_path / "upto.mcap").write_bytes(data[: chunks[3]])
+    _, at_boundary = read_mcap(tmp_path / "upto.mcap")
+    assert report.messages_read == at_boundary.messages_read > 0
+    assert report.bytes_unread == 100
+    assert report.message == (
+        f"{tmp_path / 'cut.mcap'}: file ends early at byte {cut}, inside a chunk record that "
+        f"starts at byte {chunks[3]}: recovered {report.messages_read} messages up to "
+        f"t = {report.t_last_s:.3f} s; the last 100 bytes could not be read "
+        "(the messages of that chunk are lost)"
+    )
+
+
+def test_a_damaged_chunk_ends_the_reading_there(tmp_path: Path) -> None:
+    rec = _recording(duration_s=1.0)
+    data = bytearray(_write_small_chunks(rec, tmp_path / "full.mcap"))
+    chunks = [s for s in _record_starts(bytes(data)) if data[s] == 0x06]
+    data[chunks[2] + 200] ^= 0xFF
+    (tmp_path / "bad.mcap").write_bytes(bytes(data))
+    back, report = read_mcap(tmp_path / "bad.mcap")
+    (tmp_path / "upto.mcap").write_bytes(bytes(data[: chunks[2]]))
+    assert report.messages_read == read_mcap(tmp_path / "upto.mcap")[1].messages_read
+    _assert_prefix_of(back, rec)
+    assert not report.complete
+    assert f"a damaged chunk record at byte {chunks[2]}" in report.message
+
+
+def test_a_file_that_is_not_mcap_is_named(tmp_path: Path) -> None:
+    p = tmp_path / "notes.mcap"
+    p.write_text("t,acc1_x,acc1_y,acc1_z\n0.0,1,2,3\n")
+    with pytest.raises(ValueError, match=r"notes\.mcap: not an MCAP file"):
+        read_mcap(p)
