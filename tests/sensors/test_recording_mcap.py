@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from sensors.recording import RecordingWarning, read_recording, write_recording
 from sensors.recording_mcap import McapRecorder, read_mcap, schema_for_kind, write_mcap
 from sensors.samples import (
     IMU_STREAMS,
@@ -313,3 +314,35 @@ def test_a_file_that_is_not_mcap_is_named(tmp_path: Path) -> None:
     p.write_text("t,acc1_x,acc1_y,acc1_z\n0.0,1,2,3\n")
     with pytest.raises(ValueError, match=r"notes\.mcap: not an MCAP file"):
         read_mcap(p)
+
+
+# ---------------------------------------------------------------------------- dispatcher
+
+
+def test_read_and_write_recording_pick_the_format_by_suffix(tmp_path: Path) -> None:
+    rec = _recording(duration_s=0.3)
+    write_recording(rec, tmp_path / "r.MCAP")
+    from_mcap = read_recording(tmp_path / "r.MCAP")
+    assert from_mcap.meta["read_report"].complete
+    write_recording(from_mcap, tmp_path / "r.csv")
+    from_csv = read_recording(tmp_path / "r.csv")
+    assert list(from_csv.streams) == list(rec.streams)
+    np.testing.assert_array_equal(from_csv.get("enc").values, rec.get("enc").values)
+    np.testing.assert_array_equal(from_csv.get("imu_mag").t_s, rec.get("imu_mag").t_s)
+
+
+def test_read_recording_warns_when_an_mcap_file_ends_early(tmp_path: Path) -> None:
+    data = _write_small_chunks(_recording(duration_s=1.0), tmp_path / "full.mcap")
+    (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
+    with pytest.warns(RecordingWarning, match=r"cut\.mcap: file ends early at byte \d+, inside"):
+        rec = read_recording(tmp_path / "cut.mcap")
+    report = rec.meta["read_report"]
+    assert not report.complete
+    assert sum(len(s) for s in rec.streams.values()) == report.messages_read > 0
+
+
+def test_an_unknown_suffix_is_named_with_the_accepted_ones(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"unknown recording suffix '\.bag'; expected \.csv or \.mcap"):
+        read_recording(tmp_path / "run.bag")
+    with pytest.raises(ValueError, match=r"run: unknown recording suffix '\(none\)'"):
+        write_recording(_recording(duration_s=0.1), tmp_path / "run")
