@@ -181,6 +181,15 @@ def inspect(
         console.print("No still segment found.")
 
 
+def _register_subcommands() -> None:
+    from fusion.calibrate_cmd import calibrate_app
+
+    app.add_typer(calibrate_app, name="calibrate")
+
+
+_register_subcommands()
+
+
 def run() -> None:  # pragma: no cover - console entry
     app()
 

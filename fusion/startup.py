@@ -238,6 +238,7 @@ class _Problem:
     imu_meas: np.ndarray | None
     imu_sigma: np.ndarray | None
     R_0I: np.ndarray = field(default_factory=lambda: np.eye(3))
+    tilt_prior_rad: float = 5.0 * DEG
 
     @property
     def n(self) -> int:
@@ -271,6 +272,12 @@ class _Problem:
             Ji[:, :, n:] = -np.einsum("ji,bjk->bik", self.R_0I, dup) / self.imu_sigma[None, :, None]
             r = np.concatenate([r, ri], 1)
             J = np.concatenate([J, Ji], 1)
+        else:  # no base accelerometer: all we know is that a wheelchair stands roughly level
+            rp = x[:, n:] / self.tilt_prior_rad
+            Jp = np.zeros((B, 2, n + 2))
+            Jp[:, 0, n] = Jp[:, 1, n + 1] = 1.0 / self.tilt_prior_rad
+            r = np.concatenate([r, rp], 1)
+            J = np.concatenate([J, Jp], 1)
         return r, J
 
 
@@ -386,9 +393,15 @@ def solve_still(
     prior_q_rad: np.ndarray | None = None,
     method: str = "joint",
     propose_unlock: bool = True,
+    prior_sigma_rad: np.ndarray | float | None = None,
 ) -> StartupResult:
-    """Every joint angle of a still arm from averaged readings, with sigma and flags."""
+    """Every joint angle of a still arm from averaged readings, with sigma and flags.
+
+    The prior (default: the ready pose, ``settings.prior_sigma_deg`` per joint) only picks
+    between branches that fit the data equally; it never pulls a value.
+    """
     st = settings or StartupSettings()
+    check_readings(readings)
     problem = _make_problem(arm, readings)
     n = arm.n_joints
     # base tilt from the IMU (the thesis's eq. 4.1, in the recording spec's convention)
@@ -399,8 +412,6 @@ def solve_still(
     starts = _closed_form_branches(problem, roll0, pitch0)
     x0 = np.concatenate([starts, np.tile([roll0, pitch0], (len(starts), 1))], 1)
     free = np.ones(n + 2, dtype=bool)
-    if problem.imu_meas is None:
-        free[n:] = False
     if method == "joint":
         x, cost = _batched_lm(problem, x0, free, st.max_iterations)
     elif method == "sequential":
@@ -427,8 +438,9 @@ def solve_still(
     else:
         cand = np.arange(len(x))
     # prior: distance on the readable joints
-    d2 = np.sum((_wrap(q_all[cand] - prior) / (st.prior_sigma_deg * DEG)) ** 2
-                * ~locked_any[cand], 1)
+    psig = np.broadcast_to(st.prior_sigma_deg * DEG if prior_sigma_rad is None
+                           else np.asarray(prior_sigma_rad, float), (n,))
+    d2 = np.sum((_wrap(q_all[cand] - prior) / psig) ** 2 * ~locked_any[cand], 1)
     best = cand[int(np.argmin(d2))]
     xb = x[best]
     qb = xb[:n]
@@ -459,7 +471,7 @@ def solve_still(
         # a joint that would be fine with the blind joints known, but is not because they
         # are not, rests on them: it inherits their flag
         keep = cols & np.concatenate([~locked, [True, True]])
-        cov_held = np.linalg.pinv((J[:, keep].T @ J[:, keep])) * inflate
+        cov_held = np.linalg.pinv(J[:, keep].T @ J[:, keep]) * inflate
         sig_held = np.full(n + 2, np.nan)
         sig_held[keep] = np.sqrt(np.clip(np.diag(cov_held), 0, None))
         inherit = ~locked & (sig[:n] > limit) & (sig_held[:n] <= limit)
@@ -580,7 +592,6 @@ def propose_unlock_move(arm: ArmModel, result: StartupResult, readings: StillRea
     candidate moves are evaluated in one batch.
     """
     st = settings or StartupSettings()
-    n = arm.n_joints
     blind = np.array([j.flag in ("gimbal_lock", "ill_conditioned") for j in result.joints])
     known = np.array([j.flag == "ok" for j in result.joints])
     if not blind.any() or not known.any():
@@ -608,6 +619,27 @@ def propose_unlock_move(arm: ArmModel, result: StartupResult, readings: StillRea
     return None
 
 
+def prior_after_move(result: StartupResult, move: UnlockMove, arm: ArmModel,
+                     settings: StartupSettings | None = None,
+                     known_sigma_deg: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The prior for the calibration after an unlock move: the joints known before the move
+    where they were (plus the move, which the encoders counted), tightly; the blind ones
+    loosely around their previous values."""
+    st = settings or StartupSettings()
+    q = result.q_rad.copy()
+    for name, d in zip(move.joints, move.delta_rad, strict=True):
+        q[arm.joint_names.index(name)] += d
+    sig = []
+    for j in result.joints:
+        if j.flag == "ok":
+            sig.append(known_sigma_deg * DEG)
+        elif j.flag == "ill_conditioned" and j.sigma_rad is not None:
+            sig.append(max(3 * j.sigma_rad, known_sigma_deg * DEG))  # poorly read, but read
+        else:
+            sig.append(st.prior_sigma_deg * DEG)
+    return q, np.array(sig)
+
+
 def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> UnlockMove | None:
     n = arm.n_joints
     ok_moves = [m for m in moves
@@ -626,7 +658,8 @@ def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> Unlock
     sig = _expected_sigma(problem, x).reshape(len(ok_moves), G, -1)[..., :n]
     worst = np.nanmax(sig, 1)  # (M, n)
     clear = ang.min(axis=(1, 2)) >= 2 * st.gimbal_lock_deg
-    good = clear & np.all(worst <= st.sigma_limit_deg * DEG, 1)
+    # half the limit: the move must leave a margin for noise and for the real pose
+    good = clear & np.all(worst <= 0.5 * st.sigma_limit_deg * DEG, 1)
     if not good.any():
         return None
     i = int(np.flatnonzero(good)[0])  # moves are ordered by size
@@ -644,9 +677,6 @@ def _expected_sigma(problem: _Problem, x: np.ndarray) -> np.ndarray:
     """Sigma of every unknown at states ``x (B, n+2)`` from the Jacobian alone."""
     _, J = problem.residuals_and_jacobian(x)
     A = np.einsum("bmi,bmj->bij", J, J)
-    if problem.imu_meas is None:
-        n = problem.n
-        A = A[:, :n, :n]
     cov = np.linalg.pinv(A)
     return np.sqrt(np.clip(np.einsum("bii->bi", cov), 0, None))
 
@@ -681,3 +711,101 @@ def _summary(res: StartupResult) -> str:
     if res.unlock_move is not None:
         text += "; " + res.unlock_move.describe()
     return text
+
+
+# --------------------------------------------------------------------------------------
+# from a recording
+ADXL345_LSB_PER_G = 256.0
+ADXL345_NOISE_LSB = np.array([0.75, 0.75, 1.1])  # rms per sample at 100 Hz
+ADXL345_RAW_LIMITS = (-512, 511)
+MPU9150_ACCEL_LSB_PER_G = 16384.0
+MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ = 400e-6
+MPU9150_RAW_LIMITS = (-32768, 32767)
+
+
+@dataclass(frozen=True)
+class InputCheck:
+    """What was wrong with one sensor's still window, and that it was left out."""
+
+    sensor: str
+    message: str
+
+
+def _sensor_floor_g(arm: ArmModel, name: str) -> float:
+    cal = arm.calibration if hasattr(arm, "calibration") else {}
+    per = (cal.get("accel_unmodelled_g_per_sensor") or {}).get(name)
+    return float(per if per is not None else cal.get("accel_unmodelled_g", 0.0))
+
+
+def readings_from_recording(
+    arm: ArmModel, rec, t_start_s: float, t_end_s: float, window_s: float = 1.0,
+    magnitude_range_g: tuple[float, float] = (0.8, 1.2),
+) -> tuple[StillReadings, list[InputCheck]]:
+    """Average every sensor over the last ``window_s`` of a still segment.
+
+    A sensor whose window holds saturated counts, or whose mean is far from 1 g in
+    magnitude (dead, disconnected, or the arm was not still), is left out with a message;
+    the others are kept.
+    """
+    t0 = max(t_start_s, t_end_s - window_s)
+    means, sigmas, checks = {}, {}, []
+    for mount in arm.link_accelerometers:
+        s = rec.get(mount.name)
+        if s is None:
+            checks.append(InputCheck(mount.name, f"{mount.name}: no samples in the recording"))
+            continue
+        w = s.between(t0, t_end_s + 1e-9)
+        m, sg, msg = _average(mount.name, w, ADXL345_LSB_PER_G, ADXL345_NOISE_LSB / ADXL345_LSB_PER_G,
+                              ADXL345_RAW_LIMITS, magnitude_range_g, t0, t_end_s)
+        if msg:
+            checks.append(InputCheck(mount.name, msg))
+            continue
+        floor = _sensor_floor_g(arm, mount.name)
+        means[mount.name], sigmas[mount.name] = m, np.sqrt(sg**2 + floor**2)
+    imu_m = imu_s = None
+    s = rec.get("imu_acc")
+    if arm.imu is not None and s is not None:
+        w = s.between(t0, t_end_s + 1e-9)
+        rate = w.rate_hz or 100.0
+        noise = np.full(3, MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ * np.sqrt(rate / 2))
+        m, sg, msg = _average("imu", w, MPU9150_ACCEL_LSB_PER_G, noise, MPU9150_RAW_LIMITS,
+                              magnitude_range_g, t0, t_end_s)
+        if msg:
+            checks.append(InputCheck("imu", msg))
+        else:
+            imu_m, imu_s = m, sg
+    elif arm.imu is not None:
+        checks.append(InputCheck("imu", "imu: no accelerometer samples (imu_acc) in the recording; "
+                                        "the base tilt rests on the link accelerometers alone"))
+    return StillReadings(means, sigmas, imu_m, imu_s, t0, t_end_s), checks
+
+
+def _average(name, w, lsb_per_g, noise_g, limits, mag_range, t0, t1):
+    where = f"{name} in t = {t0:.2f}..{t1:.2f} s"
+    if len(w) < 3:
+        return None, None, f"{where}: only {len(w)} samples; need at least 3"
+    v = w.values
+    sat = (v <= limits[0]) | (v >= limits[1])
+    if sat.any():
+        axis = "xyz"[int(np.argmax(sat.sum(0)))]
+        return None, None, (f"{where}: axis {axis} saturated ({int(sat.sum(0).max())} of {len(w)} "
+                            f"samples at the {limits[0]}/{limits[1]} count limit); left out")
+    mean_g = v.mean(0) / lsb_per_g
+    mag = float(np.linalg.norm(mean_g))
+    if not mag_range[0] <= mag <= mag_range[1]:
+        return None, None, (f"{where}: reads {mag:.3f} g in magnitude while still, expected about "
+                            f"1 g: a dead or disconnected sensor, or a wrong scale; left out")
+    return mean_g, noise_g / np.sqrt(len(w)), None
+
+
+def check_readings(readings: StillReadings) -> None:
+    """Refuse readings that cannot give a number (non-finite values), naming the sensor."""
+    for name, m in readings.accel_mean_g.items():
+        if not np.all(np.isfinite(m)) or not np.all(np.isfinite(readings.accel_sigma_g[name])):
+            raise StartupInputError(f"{name}: reading {np.asarray(m).tolist()} is not finite")
+        mag = float(np.linalg.norm(m))
+        if not 0.5 <= mag <= 1.5:
+            raise StartupInputError(
+                f"{name}: reads {mag:.3f} g in magnitude while still, expected about 1 g")
+    if readings.imu_mean_g is not None and not np.all(np.isfinite(readings.imu_mean_g)):
+        raise StartupInputError(f"imu: reading {np.asarray(readings.imu_mean_g).tolist()} is not finite")

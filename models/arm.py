@@ -91,6 +91,7 @@ class ArmModel:
     dh: DhTable | None = None
     source: str = ""
     effects: tuple = ()
+    calibration: dict = field(default_factory=dict)
 
     # -- derived views -------------------------------------------------------------
     @property

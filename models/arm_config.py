@@ -313,7 +313,7 @@ def build_arm(
     return ArmModel(
         name=arm.name, joints=joints, sensors=sensors,
         ready_pose_rad=_ro(np.array(arm.ready_pose_deg) * deg), dh=dh_table, source=source,
-        effects=tuple(parsed.effects),
+        effects=tuple(parsed.effects), calibration=dict(parsed.calibration),
     )
 
 

@@ -1,0 +1,123 @@
+"""`armfusion calibrate joints`: the startup calibration from a recording."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from fusion.cli import (
+    ConfigOpt,
+    JsonOpt,
+    console,
+    emit_json,
+    err_console,
+    fail,
+    load_arm_or_exit,
+    read_recording_or_exit,
+)
+from fusion.pose_store import load_pose, save_pose
+from fusion.startup import StartupInputError, StartupSettings, readings_from_recording, solve_still
+from fusion.static import StaticDetectionSettings, find_static_segments
+
+calibrate_app = typer.Typer(help="Calibrate: joint angles from a still arm, or the sensors.",
+                            no_args_is_help=True)
+
+
+@calibrate_app.command("joints")
+def calibrate_joints(
+    recording: Annotated[Path, typer.Argument(help="Recording (.csv or .mcap) with a still arm.")],
+    config: ConfigOpt = "wmra",
+    segments: Annotated[bool, typer.Option("--segments", help="One solution per still segment.")] = False,
+    method: Annotated[str, typer.Option(help="joint (all sensors at once) or sequential (the thesis).")] = "joint",
+    json_out: JsonOpt = False,
+    window_s: Annotated[float, typer.Option(help="Averaging window at the end of each still segment [s].")] = 1.0,
+    prior: Annotated[Path | None, typer.Option(help="Pose saved at the last clean shutdown (JSON).")] = None,
+    save: Annotated[Path | None, typer.Option(help="Save the solved pose here (atomically) when every joint is ok.")] = None,
+    gimbal_lock_deg: Annotated[float, typer.Option(help="Axis-to-vertical angle below which a joint is gravity-blind.")] = StartupSettings.gimbal_lock_deg,
+    sigma_limit_deg: Annotated[float, typer.Option(help="Sigma above which a joint is ill_conditioned.")] = StartupSettings.sigma_limit_deg,
+) -> None:
+    """Every joint angle of a still arm, with sigma, flags, and a move that unlocks blind joints."""
+    if method not in ("joint", "sequential"):
+        fail(f"--method must be 'joint' or 'sequential', not {method!r}")
+    arm = load_arm_or_exit(config)
+    rec = read_recording_or_exit(recording)
+    st = StartupSettings(gimbal_lock_deg=gimbal_lock_deg, sigma_limit_deg=sigma_limit_deg)
+    notes: list[str] = []
+    prior_q = None
+    if prior is not None:
+        saved, why = load_pose(prior, arm)
+        if saved is None:
+            notes.append(why)
+        else:
+            prior_q = saved.q_rad
+    segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)))
+    if not segs:
+        fail(f"{recording}: no still segment found (accelerometers, gyro and encoders all quiet "
+             "for at least 1 s); the arm must be still to calibrate")
+    if not segments:
+        segs = segs[:1]
+    out = []
+    for seg in segs:
+        readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
+        seg_notes = [c.message for c in checks]
+        try:
+            res = solve_still(arm, readings, st, prior_q_rad=prior_q, method=method)
+        except StartupInputError as e:
+            out.append({"t_start": seg.t_start_s, "t_end": seg.t_end_s, "error": str(e),
+                        "notes": seg_notes})
+            continue
+        d = res.as_dict()
+        d["t_start"], d["t_end"] = seg.t_start_s, seg.t_end_s
+        d["notes"] = seg_notes
+        out.append((d, res))
+    docs = [o[0] if isinstance(o, tuple) else o for o in out]
+    if save is not None:
+        last = next((o[1] for o in reversed(out) if isinstance(o, tuple)), None)
+        if last is not None and last.all_ok:
+            save_pose(save, arm, last.q_rad)
+            notes.append(f"pose saved to {save}")
+        else:
+            notes.append(f"pose not saved to {save}: not every joint is ok")
+    if json_out:
+        emit_json({"config": arm.source, "recording": str(recording), "method": method,
+                   "segments": docs, "notes": notes})
+        return
+    for n in notes:
+        err_console.print(n)
+    for d in docs:
+        _print_segment(d)
+    if all("error" in d for d in docs):
+        raise typer.Exit(1)
+
+
+def _print_segment(d: dict) -> None:
+    console.print(f"\n[bold]still segment t = {d['t_start']:.2f} … {d['t_end']:.2f} s[/]")
+    for n in d.get("notes", []):
+        console.print(f"[yellow]{n}[/]")
+    if "error" in d:
+        console.print(f"[red]refused:[/] {d['error']}")
+        return
+    b = d["base"]
+    console.print(f"base roll {np.degrees(b['roll_rad']):+.3f}° ± {np.degrees(b['roll_sigma_rad']):.3f}, "
+                  f"pitch {np.degrees(b['pitch_rad']):+.3f}° ± {np.degrees(b['pitch_sigma_rad']):.3f}; "
+                  f"residual {d['residual_rms_g'] * 1000:.2f} mg rms ({d['branches']} feasible branch"
+                  f"{'es' if d['branches'] != 1 else ''})")
+    t = Table(show_header=True)
+    for col in ("joint", "angle [deg]", "sigma [deg]", "flag", "axis to vertical [deg]", "thesis detector"):
+        t.add_column(col, justify="right" if "deg" in col else "left")
+    colours = {"ok": "green", "ill_conditioned": "yellow", "gimbal_lock": "red", "ambiguous": "magenta",
+               "out_of_limits": "red"}
+    for j in d["joints"]:
+        ang = "-" if j["angle_rad"] is None else f"{np.degrees(j['angle_rad']):.3f}"
+        if j["alternatives_rad"]:
+            ang = " or ".join(f"{np.degrees(a):.2f}" for a in j["alternatives_rad"])
+        sig = "-" if j["sigma_rad"] is None else f"{np.degrees(j['sigma_rad']):.3f}"
+        th = {None: "n/a", True: "locked", False: "clear"}[j["thesis_detector_locked"]]
+        t.add_row(j["name"], ang, sig, f"[{colours[j['flag']]}]{j['flag']}[/]",
+                  f"{j['axis_to_vertical_deg']:.1f}", th)
+    console.print(t)
+    console.print(d["summary"])
