@@ -68,10 +68,17 @@ def read_recording_or_exit(path: Path):
 
     if not path.exists():
         fail(f"recording not found: {path}")
+    import warnings
+
     try:
-        return read_recording(path)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            rec = read_recording(path)
     except (ValueError, OSError) as e:
         fail(f"cannot read recording {path}: {e}")
+    for w in caught:
+        err_console.print(f"[yellow]warning:[/] {w.message}", highlight=False)
+    return rec
 
 
 def version_callback(value: bool) -> None:
