@@ -388,6 +388,7 @@ class ReadReport:
     ignored_topics: tuple[str, ...] = ()
 
 
+_MAX_CHUNK_BYTES = 1 << 31  # a larger uncompressed size is a damaged chunk header
 _HEADER = struct.Struct("<BQ")  # opcode, body length: the framing of every record
 _MESSAGE = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 
@@ -414,6 +415,8 @@ def _parse_record(cls: type, body: bytes) -> Any:
 def _chunk_records(body: bytes) -> tuple[list[Channel], list[tuple[int, int, bytes]]]:
     """Channels and messages ``(channel id, log time, data)`` of one chunk record."""
     chunk = _parse_record(Chunk, body)
+    if chunk.uncompressed_size > _MAX_CHUNK_BYTES:
+        raise _Damaged(f"chunk claims {chunk.uncompressed_size} bytes uncompressed")
     if chunk.compression == "zstd":
         data = zstandard.ZstdDecompressor().decompress(
             chunk.data, max_output_size=chunk.uncompressed_size
@@ -513,7 +516,8 @@ def read_mcap(path: str | Path) -> tuple[Recording, ReadReport]:
                     if m.name == METADATA_NAME:
                         meta = dict(m.metadata)
             except Exception as e:  # a complete but damaged record ends the reading
-                damaged = f"a damaged {what} at byte {start} ({type(e).__name__}: {e})"
+                why = str(e) if isinstance(e, _Damaged) else f"{type(e).__name__}: {e}"
+                damaged = f"a damaged {what} at byte {start} ({why})"
                 break
             good_end = start + 9 + length
             if op == Opcode.FOOTER:
