@@ -336,6 +336,13 @@ def read_csv(path: str | Path) -> Recording:
     Warns once (:class:`RecordingWarning`) naming the columns it ignored.
     """
     path = Path(path)
+    try:
+        return _read_csv(path)
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 text ({e.reason}); is it a recording CSV?") from None
+
+
+def _read_csv(path: Path) -> Recording:
     with open(path, encoding="utf-8-sig", newline=None) as f:
         header_line = f.readline()
         first_data_line = 2
@@ -357,7 +364,7 @@ def read_csv(path: str | Path) -> Recording:
             warnings.warn(
                 f"{path}: ignored {len(ignored)} unknown column(s): {', '.join(ignored)}",
                 RecordingWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
         index = {c: i for i, c in enumerate(header)}
         used = sorted(used, key=index.__getitem__)

@@ -142,6 +142,8 @@ class McapRecorder:
 
     ``t_offset_s`` shifts MCAP log times (which cannot be negative) so that samples
     with ``t_s >= -t_offset_s`` can be written; ``t_s`` itself is stored unchanged.
+
+    One recorder has one owner: it is not safe to call from several threads at once.
     """
 
     def __init__(
@@ -243,17 +245,15 @@ class McapRecorder:
         Raw kinds take whole-number counts, truth kinds floats. Times must be finite
         and increase, also from one call to the next.
         """
-        self._check_open()
-        s = Stream(stream_name, kind, t_s, values, tuple(channels))
-        self._write_streams([s])
+        self.write_streams([Stream(stream_name, kind, t_s, values, tuple(channels))])
 
     def write_stream(self, stream: Stream) -> None:
         """Append all samples of ``stream`` (see :meth:`write_samples`)."""
-        self._check_open()
-        self._write_streams([stream])
+        self.write_streams([stream])
 
-    def _write_streams(self, streams: list[Stream]) -> None:
-        """Write the samples of several streams, merged in time order."""
+    def write_streams(self, streams: list[Stream]) -> None:
+        """Append the samples of several streams, merged in time order."""
+        self._check_open()
         ids, ts, payloads, seqs = [], [], [], []
         for s in streams:
             if not len(s):
@@ -365,7 +365,7 @@ def write_mcap(rec: Recording, path: str | Path, *, arm_config: str | None = Non
     config = arm_config if arm_config is not None else str(rec.meta.get("arm_config", ""))
     offset_s = float(math.ceil(-rec.t_start_s)) if rec.t_start_s < 0 else 0.0
     with McapRecorder(path, arm_config=config, t_offset_s=offset_s) as recorder:
-        recorder._write_streams(list(rec.streams.values()))
+        recorder.write_streams(list(rec.streams.values()))
 
 
 # ---------------------------------------------------------------------------- reading

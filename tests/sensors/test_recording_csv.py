@@ -287,3 +287,10 @@ def test_missing_time_column_and_empty_file(tmp_path: Path) -> None:
     p.write_text("")
     with pytest.raises(ValueError, match=r"n\.csv: the file is empty"):
         read_csv(p)
+
+
+def test_a_binary_file_is_not_taken_for_a_csv(tmp_path: Path) -> None:
+    p = tmp_path / "run.csv"
+    p.write_bytes(b"\x89MCAP0\r\n\x01\xff\xfe\x00")
+    with pytest.raises(ValueError, match=r"run\.csv: not UTF-8 text"):
+        read_csv(p)
