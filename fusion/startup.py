@@ -200,8 +200,7 @@ def _subproblem1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> tuple[float, fl
     angle is defined (the product of the projected lengths: 0 when p or q lies on the axis)."""
     pp = p - w * (w @ p)
     qq = q - w * (w @ q)
-    return float(np.arctan2(w @ _cross(pp, qq), pp @ qq)), float(
-        np.linalg.norm(pp) * np.linalg.norm(qq))
+    return float(np.arctan2(w @ _cross(pp, qq), pp @ qq)), float(np.sqrt((pp @ pp) * (qq @ qq)))
 
 
 def _subproblem2(w1, w2, p, q) -> list[tuple[float, float]]:
@@ -307,7 +306,8 @@ def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters: int,
         better = ct < cost
         x[better], r[better], J[better], cost[better] = xt[better], rt[better], Jt[better], ct[better]
         lam = np.where(better, lam * 0.3, lam * 10.0)
-        if np.all(np.abs(step).max(1) < 1e-10) or np.all(lam > 1e8):
+        # 1e-7 rad is a thousandth of the smallest sigma these sensors give: converged
+        if np.all((np.abs(step).max(1) < 1e-7) | (lam > 1e8)):
             break
     return x, cost
 
@@ -325,7 +325,8 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
     arm = problem.arm
     up0 = up_from_tilt(roll, pitch)
     order = np.argsort([arm.sensor(nm).link for nm in problem.names])
-    partial = [arm.ready_pose_rad.astype(float).copy()]
+    # each partial branch: its joint angles so far, and up expressed in its last frame
+    partial = [(arm.ready_pose_rad.astype(float).copy(), up0)]
     prev_link = 0
     ch = arm.chain
     for s in order:
@@ -336,15 +337,12 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
             continue
         w = mount.R_LS @ problem.meas[s]  # up in frame k (unit)
         new_partial = []
-        for q in partial:
-            R = np.eye(3)
-            for j in range(prev_link):
-                R = R @ _joint_rotation(ch, j, q[j])
-            v = R.T @ up0  # up in frame prev_link
+        for q, v in partial:  # v: up in frame prev_link
             # only the last two joints before the sensor are solved; earlier unread joints
             # (more than two per sensor) stay at their ready values
             solve = joints[-2:]
             fixed = joints[:-2]
+            v0 = v
             for j in fixed:
                 v = _joint_rotation(ch, j, q[j]).T @ v
             if len(solve) == 1:
@@ -363,10 +361,13 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
             for c in cand:
                 qn = q.copy()
                 qn[solve] = c
-                new_partial.append(qn)
+                vn = v0
+                for j in joints:
+                    vn = _joint_rotation(ch, j, qn[j]).T @ vn
+                new_partial.append((qn, vn))
         partial = new_partial
         prev_link = k
-    out = np.array(partial)
+    out = np.array([q for q, _ in partial])
     # bring each angle to the representative closest to the middle of its limits
     mid = (arm.min_rad + arm.max_rad) / 2
     return mid + _wrap(out - mid)
@@ -374,7 +375,11 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
 
 def _joint_rotation(ch, j: int, q: float) -> np.ndarray:
     """Rotation of frame j+1 in frame j (0-based joint j) at angle ``q``."""
-    return ch.R_pre[j] @ _rot(ch.axis[j], q + ch.offset_rad[j]) @ ch.R_post[j]
+    a = ch.axis[j]
+    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    t = q + ch.offset_rad[j]
+    R = np.eye(3) + np.sin(t) * K + (1.0 - np.cos(t)) * (K @ K)
+    return ch.R_pre[j] @ R @ ch.R_post[j]
 
 
 def _dedupe(q: np.ndarray, tol: float = 1e-3) -> np.ndarray:
