@@ -1,0 +1,564 @@
+"""ADXL345 3-axis accelerometer over I2C (smbus2) or 4-wire SPI (spidev).
+
+One driver, two transports (:mod:`sensors.bus`). It returns raw counts exactly as
+the device gives them, stamped with the host's monotonic clock; conversion to g
+is a model step (the only place this module uses g is the self-test limits).
+
+Register map (ADXL345 data sheet, Rev. E, Table 19) used here::
+
+    0x00 DEVID        R   0xE5
+    0x1E-0x20 OFSX/Y/Z R/W offsets, 15.6 mg/LSB (zeroed at init: counts stay raw)
+    0x2C BW_RATE      R/W reset 0x0A: bit 4 LOW_POWER, bits 3:0 rate code
+    0x2D POWER_CTL    R/W reset 0x00: bit 3 Measure
+    0x30 INT_SOURCE   R   bit 7 DATA_READY, bit 1 Watermark, bit 0 Overrun
+    0x31 DATA_FORMAT  R/W reset 0x00: bit 7 SELF_TEST, bit 6 SPI (3-wire), bit 3
+                          FULL_RES, bit 2 Justify, bits 1:0 range (±2/4/8/16 g)
+    0x32-0x37 DATAX0..DATAZ1  R  little-endian two's complement
+    0x38 FIFO_CTL     R/W bits 7:6 mode (bypass/FIFO/stream/trigger), 4:0 samples
+    0x39 FIFO_STATUS  R   bits 5:0 entries
+
+Reads (see docs/drivers.md for the reasons):
+
+* :meth:`ADXL345.read` (FIFO bypass): one 8-byte burst from INT_SOURCE (0x30):
+  INT_SOURCE says whether the data are new (DATA_READY) and whether a sample was
+  overwritten unread (Overrun); DATA_FORMAT (0x31) is a check byte that must echo
+  the configured value (a reset device, a floating MISO or a wrong SPI mode gives
+  something else); 0x32-0x37 are X, Y, Z from one sample.
+* :meth:`ADXL345.read_fifo` (stream mode): one 2-byte burst FIFO_CTL (check byte)
+  + FIFO_STATUS, then one 6-byte burst from 0x32 per entry. Nothing is lost while
+  the host reads at least once per 32 samples.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from sensors.bus import (
+    DEFAULT_RECOVERY,
+    DEFAULT_RETRY,
+    BusError,
+    DeviceConfigError,
+    DeviceHealth,
+    DeviceNotFoundError,
+    I2CRegisters,
+    RecoveryPolicy,
+    RegisterTransport,
+    RetryPolicy,
+    SMBusLike,
+    SpiDevLike,
+    SpiRegisters,
+    Status,
+    Supervisor,
+    s16_le,
+)
+from sensors.samples import Stream, accel_columns
+
+# registers
+DEVID = 0x00
+OFSX, OFSY, OFSZ = 0x1E, 0x1F, 0x20
+BW_RATE = 0x2C
+POWER_CTL = 0x2D
+INT_ENABLE = 0x2E
+INT_SOURCE = 0x30
+DATA_FORMAT = 0x31
+DATAX0 = 0x32
+FIFO_CTL = 0x38
+FIFO_STATUS = 0x39
+
+DEVID_VALUE = 0xE5
+I2C_ADDRESS = 0x53  # ALT ADDRESS (SDO) low
+I2C_ADDRESS_ALT = 0x1D  # ALT ADDRESS (SDO) high
+SPI_MODE = 3  # CPOL = 1, CPHA = 1
+SPI_MAX_SPEED_HZ = 5_000_000
+SPI_READ = 0x80
+SPI_MULTI = 0x40
+
+# bits
+MEASURE = 0x08
+SELF_TEST = 0x80
+FULL_RES = 0x08
+LOW_POWER = 0x10
+DATA_READY = 0x80
+WATERMARK = 0x02
+OVERRUN = 0x01
+FIFO_BYPASS = 0x00
+FIFO_STREAM = 0x80
+FIFO_DEPTH = 32
+
+RANGE_BITS = {2: 0b00, 4: 0b01, 8: 0b10, 16: 0b11}
+
+#: Self-test output change, LSB at 3.9 mg/LSB, VS = 2.5 V (data sheet Table 15:
+#: ±2 g 10-bit or any full-resolution range): (min, max) per axis.
+SELF_TEST_LIMITS_2V5_LSB = ((50.0, 540.0), (-540.0, -50.0), (75.0, 875.0))
+#: Data sheet Table 14: scale factors of the self-test change (X/Y, Z) per supply.
+SELF_TEST_SUPPLY_SCALE = {2.0: (0.64, 0.8), 2.5: (1.0, 1.0), 3.3: (1.77, 1.47), 3.6: (2.11, 1.69)}
+
+
+def rate_code(rate_hz: float) -> int:
+    """BW_RATE rate code for an output data rate: rate = 3200 Hz / 2**(15 - code)."""
+    code = 15 - math.log2(3200.0 / rate_hz) if rate_hz > 0 else -1.0
+    if not (0 <= code <= 15 and abs(code - round(code)) < 1e-6):
+        allowed = ", ".join(f"{3200 / 2**k:g}" for k in range(0, 16))
+        raise ValueError(f"ADXL345 output data rate {rate_hz!r} Hz is not one of {allowed}")
+    return int(round(code))
+
+
+def self_test_limits_lsb(supply_v: float) -> tuple[tuple[float, float], ...]:
+    """(min, max) self-test change per axis in LSB (3.9 mg/LSB) for a supply voltage."""
+    if supply_v not in SELF_TEST_SUPPLY_SCALE:
+        raise ValueError(
+            f"self-test limits are tabulated for VS in {sorted(SELF_TEST_SUPPLY_SCALE)} V, "
+            f"not {supply_v!r}"
+        )
+    sxy, sz = SELF_TEST_SUPPLY_SCALE[supply_v]
+    scales = (sxy, sxy, sz)
+    return tuple((lo * s, hi * s) for (lo, hi), s in zip(SELF_TEST_LIMITS_2V5_LSB, scales, strict=True))
+
+
+@dataclass(frozen=True)
+class ADXL345Config:
+    """What init writes. Defaults: ±2 g, 10-bit (256 LSB/g nominal), 100 Hz, no FIFO."""
+
+    range_g: int = 2
+    full_resolution: bool = False
+    rate_hz: float = 100.0
+    fifo: bool = False  # stream mode, read with read_fifo()
+    fifo_watermark: int = 16  # FIFO_CTL samples bits (only the watermark flag uses it)
+    supply_v: float = 3.3  # VS, chooses the self-test limits
+    stale_timeout_s: float | None = None  # no new data for this long -> NOT_READY
+
+    def __post_init__(self) -> None:
+        if self.range_g not in RANGE_BITS:
+            raise ValueError(f"ADXL345 range_g must be one of 2, 4, 8, 16, not {self.range_g!r}")
+        rate_code(self.rate_hz)
+        if not 0 <= self.fifo_watermark <= 31:
+            raise ValueError(f"fifo_watermark must be 0..31, not {self.fifo_watermark}")
+        self_test_limits_lsb(self.supply_v)
+
+    @property
+    def bw_rate(self) -> int:
+        return rate_code(self.rate_hz)
+
+    @property
+    def data_format(self) -> int:
+        return (FULL_RES if self.full_resolution else 0) | RANGE_BITS[self.range_g]
+
+    @property
+    def fifo_ctl(self) -> int:
+        return (FIFO_STREAM | self.fifo_watermark) if self.fifo else FIFO_BYPASS
+
+    @property
+    def lsb_per_g(self) -> float:
+        """Nominal sensitivity: 256 LSB/g in full resolution or ±2 g 10-bit."""
+        return 256.0 if self.full_resolution else 256.0 * 2 / self.range_g
+
+    @property
+    def count_limits(self) -> tuple[int, int]:
+        """Output range in counts (10-bit, or 10..13 bits in full resolution)."""
+        bits = 10 + (RANGE_BITS[self.range_g] if self.full_resolution else 0)
+        return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+
+    @property
+    def stale_timeout(self) -> float:
+        if self.stale_timeout_s is not None:
+            return self.stale_timeout_s
+        return 10.0 / self.rate_hz + 0.05
+
+
+@dataclass(frozen=True)
+class AccelSample:
+    """One reading: ``counts`` (x, y, z) only when ``status`` is OK, else None.
+
+    ``overrun`` is True when the device reports that at least one sample was
+    overwritten before this one was read (bypass) or the FIFO was full (stream).
+    """
+
+    t_s: float
+    counts: tuple[int, int, int] | None
+    status: Status
+    overrun: bool = False
+
+    @property
+    def valid(self) -> bool:
+        return self.status is Status.OK
+
+
+@dataclass(frozen=True)
+class SelfTestResult:
+    """Outcome of :meth:`ADXL345.self_test`. ``delta_lsb`` at 3.9 mg/LSB."""
+
+    passed: bool
+    delta_lsb: tuple[float, float, float] | None
+    limits_lsb: tuple[tuple[float, float], ...]
+    supply_v: float
+    message: str
+
+
+class ADXL345:
+    """ADXL345 driver. Build with :meth:`i2c` / :meth:`spi`, then :meth:`init`.
+
+    ``clock`` stamps samples and drives timeouts (default ``time.monotonic``);
+    ``sleep`` is used for retry backoff and self-test waits (default ``time.sleep``).
+    """
+
+    def __init__(
+        self,
+        transport: RegisterTransport,
+        config: ADXL345Config = ADXL345Config(),
+        *,
+        name: str = "adxl345",
+        retry: RetryPolicy = DEFAULT_RETRY,
+        recovery: RecoveryPolicy = DEFAULT_RECOVERY,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ):
+        self.transport = transport
+        self.config = config
+        self.name = name
+        self._clock = clock
+        self._sleep = sleep
+        self._sup = Supervisor(
+            name, transport.where, retry=retry, recovery=recovery, clock=clock, sleep=sleep
+        )
+        self._initialised_once = False
+        self._expected_format = config.data_format
+        self._expected_fifo_ctl = config.fifo_ctl
+        self._last_fresh_s = 0.0
+        self._last_t_s = float("-inf")
+
+    # construction -------------------------------------------------------------------
+
+    @classmethod
+    def i2c(
+        cls,
+        bus_number: int = 1,
+        address: int = I2C_ADDRESS,
+        *,
+        smbus: SMBusLike | None = None,
+        **kwargs,
+    ) -> ADXL345:
+        """On I2C ``bus_number`` at 0x53 (SDO low) or 0x1D (SDO high).
+
+        ``smbus``: an open smbus2.SMBus-like bus (shared by every device on it);
+        by default ``smbus2.SMBus(bus_number)`` is opened and closed with the driver.
+        """
+        if address not in (I2C_ADDRESS, I2C_ADDRESS_ALT):
+            raise ValueError(
+                f"an ADXL345 answers at 0x53 (ALT ADDRESS low) or 0x1D (high), not 0x{address:02X}"
+            )
+        owns = smbus is None
+        if smbus is None:
+            import smbus2
+
+            smbus = smbus2.SMBus(bus_number)
+        return cls(I2CRegisters(smbus, address, bus_number, owns_bus=owns), **kwargs)
+
+    @classmethod
+    def spi(
+        cls,
+        bus_number: int = 0,
+        device: int = 0,
+        *,
+        max_speed_hz: int = SPI_MAX_SPEED_HZ,
+        spi_factory: Callable[[], SpiDevLike] | None = None,
+        **kwargs,
+    ) -> ADXL345:
+        """On ``/dev/spidev<bus_number>.<device>``: mode 3, clock <= 5 MHz."""
+        if not 0 < max_speed_hz <= SPI_MAX_SPEED_HZ:
+            raise ValueError(
+                f"ADXL345 SPI clock must be 1..{SPI_MAX_SPEED_HZ} Hz, not {max_speed_hz}"
+            )
+        if spi_factory is None:
+            import spidev
+
+            spi_factory = spidev.SpiDev
+        transport = SpiRegisters.open(
+            spi_factory,
+            bus_number,
+            device,
+            mode=SPI_MODE,
+            max_speed_hz=max_speed_hz,
+            read_bit=SPI_READ,
+            multi_bit=SPI_MULTI,
+        )
+        return cls(transport, **kwargs)
+
+    # lifecycle ----------------------------------------------------------------------
+
+    def init(self) -> None:
+        """Identify the device and configure it; raise with one clear line if absent."""
+        first = not self._initialised_once
+        try:
+            self._identify()
+            self._configure()
+        except (DeviceNotFoundError, DeviceConfigError) as e:
+            self._sup.init_failed(str(e), first=first)
+            raise
+        self._initialised_once = True
+        self._sup.init_succeeded(first=first)
+
+    def close(self) -> None:
+        self.transport.close()
+
+    def __enter__(self) -> ADXL345:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def health(self) -> DeviceHealth:
+        return self._sup.health()
+
+    @property
+    def online(self) -> bool:
+        return self._sup.online
+
+    def _identify(self) -> None:
+        where = self.transport.where
+        try:
+            devid = self._sup.call(self.transport.read, DEVID, 1)[0]
+        except BusError as e:
+            raise DeviceNotFoundError(f"no ADXL345 on {where}: {e.__cause__}") from e
+        if devid != DEVID_VALUE:
+            hint = ""
+            if isinstance(self.transport, SpiRegisters):
+                hint = " (check wiring, chip select, SPI mode 3 and clock <= 5 MHz)"
+            raise DeviceNotFoundError(
+                f"no ADXL345 on {where}: DEVID read 0x{devid:02X}, expected 0x{DEVID_VALUE:02X}"
+                f"{hint}"
+            )
+
+    def _write(self, register: int, value: int) -> None:
+        self._sup.call(self.transport.write, register, value)
+
+    def _configure(
+        self, *, bw_rate: int | None = None, data_format: int | None = None, fifo_ctl: int | None = None
+    ) -> None:
+        """Standby, format, rate, zero offsets, FIFO, measure; then read back."""
+        c = self.config
+        bw_rate = c.bw_rate if bw_rate is None else bw_rate
+        data_format = c.data_format if data_format is None else data_format
+        fifo_ctl = c.fifo_ctl if fifo_ctl is None else fifo_ctl
+        try:
+            self._write(POWER_CTL, 0x00)  # standby while configuring (data sheet advice)
+            self._write(DATA_FORMAT, data_format)
+            self._write(BW_RATE, bw_rate)
+            for reg in (OFSX, OFSY, OFSZ):
+                self._write(reg, 0x00)
+            self._write(FIFO_CTL, fifo_ctl)
+            self._write(POWER_CTL, MEASURE)
+            back = self._sup.call(self.transport.read, BW_RATE, 6)  # 0x2C..0x31
+            fifo_back = self._sup.call(self.transport.read, FIFO_CTL, 1)[0]
+        except BusError as e:
+            raise DeviceConfigError(f"ADXL345 on {self.transport.where}: {e.__cause__}") from e
+        for reg, name, want, got in (
+            (BW_RATE, "BW_RATE", bw_rate, back[0]),
+            (POWER_CTL, "POWER_CTL", MEASURE, back[1]),
+            (DATA_FORMAT, "DATA_FORMAT", data_format, back[5]),
+            (FIFO_CTL, "FIFO_CTL", fifo_ctl, fifo_back),
+        ):
+            if want != got:
+                raise DeviceConfigError(
+                    f"ADXL345 on {self.transport.where}: {name} (0x{reg:02X}) read back "
+                    f"0x{got:02X} after writing 0x{want:02X}"
+                )
+        self._expected_format = data_format
+        self._expected_fifo_ctl = fifo_ctl
+        self._last_fresh_s = self._clock()
+
+    def _reinit_if_due(self) -> bool:
+        """True when the device is online (possibly just re-initialised)."""
+        if self._sup.online:
+            return True
+        if not self._sup.reinit_due():
+            return False
+        try:
+            self.init()
+        except (DeviceNotFoundError, DeviceConfigError):
+            return False
+        return True
+
+    # reading ------------------------------------------------------------------------
+
+    def read(self) -> AccelSample:
+        """The newest sample (FIFO bypass). Never raises on bus or device faults."""
+        if self.config.fifo:
+            raise RuntimeError(f"{self.name}: configured with fifo=True, use read_fifo()")
+        sup = self._sup
+        sup.count("reads")
+        if not self._reinit_if_due():
+            sup.count("invalid")
+            return AccelSample(self._clock(), None, Status.OFFLINE)
+        t = self._clock()
+        try:
+            raw = sup.call(self.transport.read, INT_SOURCE, 8)
+        except BusError as e:
+            sup.count("invalid")
+            sup.failed_read(str(e))
+            return AccelSample(t, None, Status.BUS_ERROR)
+        if raw[1] != self._expected_format:
+            return self._bad_data(t, f"DATA_FORMAT read 0x{raw[1]:02X}, expected "
+                                     f"0x{self._expected_format:02X}")
+        if not raw[0] & DATA_READY:
+            return self._no_new_data(t)
+        counts = (s16_le(raw[2], raw[3]), s16_le(raw[4], raw[5]), s16_le(raw[6], raw[7]))
+        overrun = bool(raw[0] & OVERRUN)
+        return self._fresh(t, counts, overrun)
+
+    def read_fifo(self) -> list[AccelSample]:
+        """Every sample queued in the FIFO (stream mode), oldest first; [] if none yet.
+
+        Timestamps: the newest entry gets the read time, older ones are spaced back
+        by the output data period (then kept strictly increasing across calls).
+        A failure gives a one-element list with the invalid sample.
+        """
+        if not self.config.fifo:
+            raise RuntimeError(f"{self.name}: configured with fifo=False, use read()")
+        sup = self._sup
+        sup.count("reads")
+        if not self._reinit_if_due():
+            sup.count("invalid")
+            return [AccelSample(self._clock(), None, Status.OFFLINE)]
+        t = self._clock()
+        try:
+            ctl, status = sup.call(self.transport.read, FIFO_CTL, 2)
+        except BusError as e:
+            sup.count("invalid")
+            sup.failed_read(str(e))
+            return [AccelSample(t, None, Status.BUS_ERROR)]
+        entries = status & 0x3F
+        if ctl != self._expected_fifo_ctl or entries > FIFO_DEPTH + 1:
+            return [self._bad_data(t, f"FIFO_CTL read 0x{ctl:02X}, expected "
+                                      f"0x{self._expected_fifo_ctl:02X}, entries {entries}")]
+        if entries == 0:
+            s = self._no_new_data(t)
+            return [] if s.status is Status.STALE else [s]
+        overrun = entries >= FIFO_DEPTH
+        if overrun:
+            sup.count("overruns")
+        period = 1.0 / self.config.rate_hz
+        out: list[AccelSample] = []
+        for i in range(entries):
+            try:
+                b = sup.call(self.transport.read, DATAX0, 6)
+            except BusError as e:
+                sup.count("invalid")
+                sup.failed_read(str(e))
+                out.append(AccelSample(t, None, Status.BUS_ERROR))
+                break
+            counts = (s16_le(b[0], b[1]), s16_le(b[2], b[3]), s16_le(b[4], b[5]))
+            ti = max(t - (entries - 1 - i) * period, self._last_t_s + 1e-6)
+            self._last_t_s = ti
+            out.append(AccelSample(ti, counts, Status.OK, overrun=overrun and i == 0))
+            sup.count("ok")
+        if out and out[0].valid:
+            self._last_fresh_s = t
+            sup.good_read()
+        return out
+
+    def _fresh(self, t: float, counts: tuple[int, int, int], overrun: bool) -> AccelSample:
+        sup = self._sup
+        if overrun:
+            sup.count("overruns")
+        sup.count("ok")
+        sup.good_read()
+        self._last_fresh_s = t
+        self._last_t_s = t
+        return AccelSample(t, counts, Status.OK, overrun)
+
+    def _no_new_data(self, t: float) -> AccelSample:
+        sup = self._sup
+        if t - self._last_fresh_s > self.config.stale_timeout:
+            sup.count("not_ready")
+            sup.count("invalid")
+            sup.failed_read(
+                f"{self.transport.where}: no new data for {t - self._last_fresh_s:.3f} s"
+            )
+            self._last_fresh_s = t  # one NOT_READY per timeout, not one per read
+            return AccelSample(t, None, Status.NOT_READY)
+        sup.count("stale")
+        return AccelSample(t, None, Status.STALE)
+
+    def _bad_data(self, t: float, what: str) -> AccelSample:
+        sup = self._sup
+        sup.count("bad_data")
+        sup.count("invalid")
+        sup.go_offline(f"{self.transport.where}: {what}", retry_now=True)
+        return AccelSample(t, None, Status.BAD_DATA)
+
+    # self-test ----------------------------------------------------------------------
+
+    def self_test(self, n_average: int = 16, settle_samples: int = 4) -> SelfTestResult:
+        """Data sheet self-test: output change with SELF_TEST set, against Table 15.
+
+        Runs in full resolution, ±16 g (room for the whole shift; AN-1077), at the
+        configured rate if it is 100..800 Hz (the data sheet's valid rates), else
+        100 Hz, normal power, FIFO bypassed; ``n_average`` samples each with the
+        self-test force off and on, after ``settle_samples`` are discarded. Restores
+        the configuration afterwards. Limits: Table 15 scaled by Table 14 for
+        ``config.supply_v``. A dead, stuck or disconnected sensor fails.
+        """
+        limits = self_test_limits_lsb(self.config.supply_v)
+        vs = self.config.supply_v
+        where = self.transport.where
+        rate = self.config.rate_hz if 100 <= self.config.rate_hz <= 800 else 100.0
+        fmt_off = FULL_RES | RANGE_BITS[16]
+        fmt_on = fmt_off | SELF_TEST
+        try:
+            if not self._sup.online:
+                self.init()
+            self._configure(bw_rate=rate_code(rate), data_format=fmt_off, fifo_ctl=FIFO_BYPASS)
+            off = self._average(n_average, settle_samples, rate, fmt_off)
+            self._write(DATA_FORMAT, fmt_on)
+            self._expected_format = fmt_on
+            on = self._average(n_average, settle_samples, rate, fmt_on)
+            self._write(DATA_FORMAT, fmt_off)
+            self._configure()
+        except (BusError, DeviceNotFoundError, DeviceConfigError, TimeoutError) as e:
+            self._sup.count("self_test_failures")
+            self._sup.go_offline(str(e), retry_now=True)
+            return SelfTestResult(False, None, limits, vs, f"ADXL345 on {where}: self-test "
+                                                          f"FAILED: {e}")
+        delta = tuple(float(a - b) for a, b in zip(on, off, strict=True))
+        bad = [
+            f"{ax} change {d:+.1f} LSB outside [{lo:.1f}, {hi:.1f}]"
+            for ax, d, (lo, hi) in zip("xyz", delta, limits, strict=True)
+            if not lo <= d <= hi
+        ]
+        if bad:
+            self._sup.count("self_test_failures")
+            msg = f"ADXL345 on {where}: self-test FAILED (VS = {vs} V limits): " + "; ".join(bad)
+        else:
+            msg = (f"ADXL345 on {where}: self-test passed, change "
+                   + ", ".join(f"{ax} {d:+.1f}" for ax, d in zip("xyz", delta, strict=True))
+                   + f" LSB (VS = {vs} V limits)")
+        return SelfTestResult(not bad, delta, limits, vs, msg)  # type: ignore[arg-type]
+
+    def _average(self, n: int, settle: int, rate_hz: float, fmt: int) -> np.ndarray:
+        period = 1.0 / rate_hz
+        got: list[tuple[int, int, int]] = []
+        deadline = self._clock() + (n + settle + 10) * period * 3 + 0.1
+        while len(got) < n + settle:
+            raw = self._sup.call(self.transport.read, INT_SOURCE, 8)
+            if raw[1] != fmt:
+                raise DeviceConfigError(f"DATA_FORMAT read 0x{raw[1]:02X}, expected 0x{fmt:02X}")
+            if raw[0] & DATA_READY:
+                got.append((s16_le(raw[2], raw[3]), s16_le(raw[4], raw[5]), s16_le(raw[6], raw[7])))
+                continue
+            if self._clock() > deadline:
+                raise TimeoutError(f"no data (DATA_READY never set) after {len(got)} samples")
+            self._sleep(period / 2)
+        return np.mean(np.array(got[settle:], dtype=np.float64), axis=0)
+
+
+def accel_stream(name: str, samples: Sequence[AccelSample]) -> Stream:
+    """The valid samples as a raw ``accel`` stream named ``name`` (invalid ones dropped)."""
+    good = [s for s in samples if s.valid]
+    t = np.array([s.t_s for s in good], dtype=np.float64)
+    v = np.array([s.counts for s in good], dtype=np.int64).reshape(-1, 3)
+    return Stream(name, "accel", t, v, accel_columns(name))
