@@ -31,7 +31,6 @@ Reads (see docs/drivers.md for the reasons):
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -99,13 +98,19 @@ SELF_TEST_LIMITS_2V5_LSB = ((50.0, 540.0), (-540.0, -50.0), (75.0, 875.0))
 SELF_TEST_SUPPLY_SCALE = {2.0: (0.64, 0.8), 2.5: (1.0, 1.0), 3.3: (1.77, 1.47), 3.6: (2.11, 1.69)}
 
 
+#: Data sheet Table 7: output data rate (Hz, as printed) -> BW_RATE rate code.
+#: The device's actual rate is 3200 Hz / 2**(15 - code) (0.1 Hz is 0.098 Hz).
+RATE_CODES = {3200: 0x0F, 1600: 0x0E, 800: 0x0D, 400: 0x0C, 200: 0x0B, 100: 0x0A, 50: 0x09,
+              25: 0x08, 12.5: 0x07, 6.25: 0x06, 3.13: 0x05, 1.56: 0x04, 0.78: 0x03,
+              0.39: 0x02, 0.2: 0x01, 0.1: 0x00}
+
+
 def rate_code(rate_hz: float) -> int:
-    """BW_RATE rate code for an output data rate: rate = 3200 Hz / 2**(15 - code)."""
-    code = 15 - math.log2(3200.0 / rate_hz) if rate_hz > 0 else -1.0
-    if not (0 <= code <= 15 and abs(code - round(code)) < 1e-6):
-        allowed = ", ".join(f"{3200 / 2**k:g}" for k in range(0, 16))
+    """BW_RATE rate code for a data sheet output data rate."""
+    if rate_hz not in RATE_CODES:
+        allowed = ", ".join(f"{r:g}" for r in RATE_CODES)
         raise ValueError(f"ADXL345 output data rate {rate_hz!r} Hz is not one of {allowed}")
-    return int(round(code))
+    return RATE_CODES[rate_hz]
 
 
 def self_test_limits_lsb(supply_v: float) -> tuple[tuple[float, float], ...]:
@@ -153,6 +158,11 @@ class ADXL345Config:
         return (FIFO_STREAM | self.fifo_watermark) if self.fifo else FIFO_BYPASS
 
     @property
+    def output_rate_hz(self) -> float:
+        """The device's actual output data rate, 3200 Hz / 2**(15 - code)."""
+        return 3200.0 / 2 ** (15 - self.bw_rate)
+
+    @property
     def lsb_per_g(self) -> float:
         """Nominal sensitivity: 256 LSB/g in full resolution or ±2 g 10-bit."""
         return 256.0 if self.full_resolution else 256.0 * 2 / self.range_g
@@ -167,7 +177,7 @@ class ADXL345Config:
     def stale_timeout(self) -> float:
         if self.stale_timeout_s is not None:
             return self.stale_timeout_s
-        return 10.0 / self.rate_hz + 0.05
+        return 10.0 / self.output_rate_hz + 0.05
 
 
 @dataclass(frozen=True)
@@ -339,7 +349,7 @@ class ADXL345:
     def _configure(
         self, *, bw_rate: int | None = None, data_format: int | None = None, fifo_ctl: int | None = None
     ) -> None:
-        """Standby, format, rate, zero offsets, FIFO, measure; then read back."""
+        """Standby, format, rate, zero offsets, FIFO, flush old data, measure; read back."""
         c = self.config
         bw_rate = c.bw_rate if bw_rate is None else bw_rate
         data_format = c.data_format if data_format is None else data_format
@@ -350,7 +360,11 @@ class ADXL345:
             self._write(BW_RATE, bw_rate)
             for reg in (OFSX, OFSY, OFSZ):
                 self._write(reg, 0x00)
-            self._write(FIFO_CTL, fifo_ctl)
+            self._write(FIFO_CTL, FIFO_BYPASS)  # entering bypass empties the FIFO
+            if fifo_ctl != FIFO_BYPASS:
+                self._write(FIFO_CTL, fifo_ctl)
+            # drop a sample left from before (DATA_READY, Overrun): it is not this config's
+            self._sup.call(self.transport.read, INT_SOURCE, 8)
             self._write(POWER_CTL, MEASURE)
             back = self._sup.call(self.transport.read, BW_RATE, 6)  # 0x2C..0x31
             fifo_back = self._sup.call(self.transport.read, FIFO_CTL, 1)[0]
@@ -441,7 +455,7 @@ class ADXL345:
         overrun = entries >= FIFO_DEPTH
         if overrun:
             sup.count("overruns")
-        period = 1.0 / self.config.rate_hz
+        period = 1.0 / self.config.output_rate_hz
         out: list[AccelSample] = []
         for i in range(entries):
             try:

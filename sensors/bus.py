@@ -367,7 +367,14 @@ class Supervisor:
         self.online = False
         self.last_error = reason
         self._consecutive_failures = 0
-        self._next_attempt_s = self.clock() + (0.0 if retry_now else self._delay_s)
+        if retry_now:
+            self._next_attempt_s = self.clock()
+        else:
+            self._schedule_next()
+
+    def _schedule_next(self) -> None:
+        self._next_attempt_s = self.clock() + self._delay_s
+        self._delay_s = min(self._delay_s * self.recovery.factor, self.recovery.max_delay_s)
 
     def reinit_due(self) -> bool:
         return not self.online and self.clock() >= self._next_attempt_s
@@ -384,8 +391,7 @@ class Supervisor:
             self.counters["reinit_failures"] += 1
         self.online = False
         self.last_error = reason
-        self._next_attempt_s = self.clock() + self._delay_s
-        self._delay_s = min(self._delay_s * self.recovery.factor, self.recovery.max_delay_s)
+        self._schedule_next()
 
     def health(self) -> DeviceHealth:
         return DeviceHealth(
