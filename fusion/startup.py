@@ -251,32 +251,31 @@ class _Problem:
         from models.kinematics import gravity_jacobian
 
         n = self.n
+        B = x.shape[0]
         q, roll, pitch = x[:, :n], x[:, n], x[:, n + 1]
         up = up_from_tilt(roll, pitch)  # (B, 3)
         f, Jq, R_0S = gravity_jacobian(self.arm, q, up, self.names, with_frames=True)
         dup = up_tilt_jacobian(roll, pitch)  # (B, 3, 2)
-        Jt = np.einsum("bsji,bjk->bsik", R_0S, dup)  # (B, S, 3, 2)
-        r = (self.meas[None] - f) / self.sigma[None]
-        J = -np.concatenate([Jq, Jt], -1) / self.sigma[None, :, :, None]
         if active is not None:
-            r = r[:, active]
-            J = J[:, active]
-        B = x.shape[0]
-        r = r.reshape(B, -1)
-        J = J.reshape(B, -1, n + 2)
+            f, Jq, R_0S = f[:, active], Jq[:, active], R_0S[:, active]
+            meas, sig = self.meas[active], self.sigma[active]
+        else:
+            meas, sig = self.meas, self.sigma
+        S = meas.shape[0]
+        m = 3 * S + (3 if self.imu_meas is not None else 2)
+        r = np.empty((B, m))
+        J = np.zeros((B, m, n + 2))
+        r[:, :3 * S] = ((meas[None] - f) / sig[None]).reshape(B, -1)
+        J[:, :3 * S, :n] = (-Jq / sig[None, :, :, None]).reshape(B, -1, n)
+        Jt = np.swapaxes(R_0S, -1, -2) @ dup[:, None]  # (B, S, 3, 2)
+        J[:, :3 * S, n:] = (-Jt / sig[None, :, :, None]).reshape(B, -1, 2)
         if self.imu_meas is not None:
             fi = up @ self.R_0I  # (B, 3): R_0I^T up
-            ri = (self.imu_meas[None] - fi) / self.imu_sigma[None]
-            Ji = np.zeros((B, 3, n + 2))
-            Ji[:, :, n:] = -np.einsum("ji,bjk->bik", self.R_0I, dup) / self.imu_sigma[None, :, None]
-            r = np.concatenate([r, ri], 1)
-            J = np.concatenate([J, Ji], 1)
+            r[:, 3 * S:] = (self.imu_meas[None] - fi) / self.imu_sigma[None]
+            J[:, 3 * S:, n:] = -(self.R_0I.T @ dup) / self.imu_sigma[None, :, None]
         else:  # no base accelerometer: all we know is that a wheelchair stands roughly level
-            rp = x[:, n:] / self.tilt_prior_rad
-            Jp = np.zeros((B, 2, n + 2))
-            Jp[:, 0, n] = Jp[:, 1, n + 1] = 1.0 / self.tilt_prior_rad
-            r = np.concatenate([r, rp], 1)
-            J = np.concatenate([J, Jp], 1)
+            r[:, 3 * S:] = x[:, n:] / self.tilt_prior_rad
+            J[:, 3 * S, n] = J[:, 3 * S + 1, n + 1] = 1.0 / self.tilt_prior_rad
         return r, J
 
 

@@ -104,6 +104,21 @@ def sensor_indices(arm: ArmModel, names: list[str] | tuple[str, ...] | None) -> 
     return out
 
 
+def _mount_arrays(arm: ArmModel, names) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Links ``(S,)``, rotations ``R_LS (S, 3, 3)`` and positions ``(S, 3)`` of the named
+    sensors, stacked once per arm and name list."""
+    cache = arm.__dict__.setdefault("_mount_cache", {})
+    key = None if names is None else tuple(names)
+    hit = cache.get(key)
+    if hit is None:
+        idx = sensor_indices(arm, names)
+        hit = (np.array([arm.sensors[i].link for i in idx], dtype=int),
+               np.stack([arm.sensors[i].R_LS for i in idx]),
+               np.stack([arm.sensors[i].p_L_m for i in idx]))
+        cache[key] = hit
+    return hit
+
+
 def sensor_poses(
     arm: ArmModel, q_rad: np.ndarray, names=None, poses: ChainPoses | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -112,10 +127,7 @@ def sensor_poses(
     ``names`` defaults to the link accelerometers, in config order.
     """
     poses = chain_poses(arm, q_rad) if poses is None else poses
-    idx = sensor_indices(arm, names)
-    links = np.array([arm.sensors[i].link for i in idx], dtype=int)
-    R_LS = np.stack([arm.sensors[i].R_LS for i in idx])  # (S, 3, 3)
-    p_LS = np.stack([arm.sensors[i].p_L_m for i in idx])  # (S, 3)
+    links, R_LS, p_LS = _mount_arrays(arm, names)
     R_0L = poses.R_0L[:, links]  # (N, S, 3, 3)
     R_0S = R_0L @ R_LS
     p_0S = poses.p_0L_m[:, links] + np.einsum("nsij,sj->nsi", R_0L, p_LS)
@@ -163,8 +175,7 @@ def gravity_jacobian(
                       u[..., 2] * a[..., 0] - u[..., 0] * a[..., 2],
                       u[..., 0] * a[..., 1] - u[..., 1] * a[..., 0]], -1)  # (N, n, 3): up x a_j
     J = np.einsum("nsji,nkj->nsik", R_0S, cross)  # (N, S, 3, n)
-    idx = sensor_indices(arm, names)
-    links = np.array([arm.sensors[i].link for i in idx])
+    links = _mount_arrays(arm, names)[0]
     mask = np.arange(arm.n_joints)[None, :] < links[:, None]  # (S, n)
     J = J * mask[None, :, None, :]
     return (f, J, R_0S) if with_frames else (f, J)
