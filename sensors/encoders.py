@@ -26,6 +26,7 @@ the sample is flagged (its counts start again from the controller's power-up).
 
 from __future__ import annotations
 
+import math
 import random
 import selectors
 import socket
@@ -300,7 +301,7 @@ class SimulatedEncoderFeed:
 
     def poll(self, timeout_s: float = 0.0) -> list[EncoderSample]:
         now = self.clock()
-        k_now = int((now - self._t0) * self.rate_hz)
+        k_now = math.floor((now - self._t0) * self.rate_hz + 1e-9)
         first = max(self._k + 1, k_now - int(self.rate_hz) + 1)  # older ticks: lost
         out: list[EncoderSample] = []
         for k in range(first, k_now + 1):
