@@ -19,13 +19,17 @@ record and says in a :class:`ReadReport` what it could not read.
 
 from __future__ import annotations
 
+import gc
 import importlib.metadata
 import io
 import json
 import math
 import struct
 import time
+import warnings
 import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -449,6 +453,19 @@ def _chunk_records(body: bytes) -> tuple[list[Channel], list[tuple[int, int, byt
     return channels, messages
 
 
+@contextmanager
+def _gc_paused() -> Iterator[None]:
+    """Millions of small objects (one per message) make the cyclic GC run over and
+    over for nothing; pausing it makes reading several times faster."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
 def read_mcap(path: str | Path) -> tuple[Recording, ReadReport]:
     """Read an armfusion MCAP file: the recording and a report of what was read.
 
@@ -460,7 +477,11 @@ def read_mcap(path: str | Path) -> tuple[Recording, ReadReport]:
     raises ``ValueError`` naming the path. Topics other than ``raw/*`` and
     ``truth/*`` are counted in the report but not returned.
     """
-    path = Path(path)
+    with _gc_paused():
+        return _read_mcap(Path(path))
+
+
+def _read_mcap(path: Path) -> tuple[Recording, ReadReport]:
     size = path.stat().st_size
     channels: dict[int, Channel] = {}
     messages: dict[int, list[bytes]] = {}
@@ -545,6 +566,33 @@ def read_mcap(path: str | Path) -> tuple[Recording, ReadReport]:
     return rec, ReadReport(complete, n_messages, size, unread, text, t_last, ignored)
 
 
+def _decode_samples(data: list[bytes], k: int, counts: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``t_s (N,)`` and ``values (N, k)`` of the JSON messages of one stream.
+
+    Messages exactly as this module writes them (``{"t_s":..,"values":[..]}``, no
+    spaces) are parsed as one block of numbers by numpy; anything else that is
+    valid JSON for the schema goes through ``json`` (slower).
+    """
+    n = len(data)
+    text = b"\n".join(data)
+    head, mid, tail = b'{"t_s":', b',"values":[', b"]}"
+    if all(text.count(x) == n for x in (head, mid, tail, b"{", b"[")) and text.count(b'"') == 4 * n:
+        plain = text.replace(head, b"").replace(mid, b",").replace(tail, b"").replace(b"\n", b",")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # fromstring on bad text
+            flat = np.fromstring(plain.decode("ascii"), sep=",") if n else np.zeros(0)
+        if flat.size == n * (k + 1):
+            table = flat.reshape(n, k + 1)
+            values = table[:, 1:]
+            if not counts:
+                return table[:, 0], values
+            if np.all(np.abs(values) < 2.0**53):  # every such decimal integer is exact
+                return table[:, 0], values.astype(np.int64)
+    samples = json.loads(b"[" + b",".join(data) + b"]")
+    t_s = np.array([m["t_s"] for m in samples], dtype=np.float64)
+    return t_s, np.array([m["values"] for m in samples]).reshape(n, k)
+
+
 def _assemble(
     path: Path, channels: dict[int, Channel], messages: dict[int, list[bytes]], meta: dict[str, str]
 ) -> tuple[Recording, tuple[str, ...], float | None]:
@@ -561,9 +609,7 @@ def _assemble(
         name = ch.metadata.get("stream") or ch.topic.split("/", 1)[1]
         names = tuple(json.loads(ch.metadata.get("channels", "[]")))
         try:
-            samples = json.loads(b"[" + b",".join(data) + b"]")
-            t_s = np.array([m["t_s"] for m in samples], dtype=np.float64)
-            values = np.array([m["values"] for m in samples]).reshape(len(samples), len(names))
+            t_s, values = _decode_samples(data, len(names), kind in RAW_KINDS)
             stream = Stream(name, kind, t_s, values, names)  # type: ignore[arg-type]
         except (ValueError, KeyError, TypeError) as e:
             raise ValueError(f"{path}: topic {ch.topic!r}: messages do not fit the stream: {e}") from e

@@ -153,14 +153,14 @@ def test_recorder_writes_batches_and_json_topics(tmp_path: Path) -> None:
     with McapRecorder(tmp_path / "live.mcap", arm_config="crs_a465") as rec:
         for i in range(0, 50, 7):  # uneven batches, a single sample as N = 1 too
             rec.write_samples("acc3", "accel", accel_columns("acc3"), t[i : i + 7], counts[i : i + 7])
-        rec.write_samples("enc", "encoder", ("enc1",), [1.0], [[42]])
+        rec.write_samples("enc", "encoder", ("enc1",), [1.0], [[2**60 + 1]])  # beyond float64
         rec.write_json("estimates/joints", "armfusion.JointEstimate", {"q_rad": [0.1, 0.2]}, t_s=0.5)
     back, report = read_mcap(tmp_path / "live.mcap")
     assert report.complete and report.messages_read == 52
     assert report.ignored_topics == ("estimates/joints",)
     np.testing.assert_array_equal(back.get("acc3").t_s, t)
     np.testing.assert_array_equal(back.get("acc3").values, counts)
-    np.testing.assert_array_equal(back.get("enc").values, [[42]])
+    assert back.get("enc").values.tolist() == [[2**60 + 1]]
     assert back.meta["arm_config"] == "crs_a465"
     with open(tmp_path / "live.mcap", "rb") as f:
         [(_, ch, msg)] = make_reader(f).iter_messages(topics=["estimates/joints"])
@@ -346,3 +346,28 @@ def test_an_unknown_suffix_is_named_with_the_accepted_ones(tmp_path: Path) -> No
         read_recording(tmp_path / "run.bag")
     with pytest.raises(ValueError, match=r"run: unknown recording suffix '\(none\)'"):
         write_recording(_recording(duration_s=0.1), tmp_path / "run")
+
+
+def test_reads_a_file_from_another_mcap_writer(tmp_path: Path) -> None:
+    """Same topics and channel metadata, but JSON spelled differently and no chunks."""
+    from mcap.writer import Writer
+
+    with open(tmp_path / "other.mcap", "wb") as f:
+        w = Writer(f, use_chunking=False)
+        w.start()
+        sid = w.register_schema("armfusion.gyro", "jsonschema", b"{}")
+        meta = {"stream": "imu_gyro", "kind": "gyro", "channels": '["imu_gx","imu_gy","imu_gz"]'}
+        cid = w.register_channel("raw/imu_gyro", "json", sid, meta)
+        other = w.register_channel("/tf", "json", sid, {})
+        for i in range(5):
+            msg = {"values": [i, -i, 2**40 + i], "t_s": 0.1 * i}  # keys swapped, spaces
+            w.add_message(cid, i, json.dumps(msg, indent=1).encode(), i)
+            w.add_message(other, i, b"{}", i)
+        w.finish()
+    back, report = read_mcap(tmp_path / "other.mcap")
+    assert report.complete and report.messages_read == 10
+    assert report.ignored_topics == ("/tf",)
+    gyro = back.get("imu_gyro")
+    np.testing.assert_array_equal(gyro.t_s, 0.1 * np.arange(5))
+    np.testing.assert_array_equal(gyro.values[:, 2], 2**40 + np.arange(5))
+    assert back.meta == {"source": str(tmp_path / "other.mcap")}  # no armfusion metadata
