@@ -331,8 +331,8 @@ def read_csv(path: str | Path) -> Recording:
 
     Raises ``ValueError`` naming the file, row (1-based data row), line and column for
     a missing ``t`` column, an empty or non-increasing ``t``, a cell that is not a
-    number (or not an integer in a count column), a row with a different number of
-    cells than the header, and a row that fills only some of a stream's columns.
+    number (or not an integer in a count column), a row too short to reach the
+    columns in use, and a row that fills only some of a stream's columns.
     Warns once (:class:`RecordingWarning`) naming the columns it ignored.
     """
     path = Path(path)
