@@ -376,7 +376,6 @@ class MPU9150:
         if not self._reinit_if_due():
             sup.count("invalid")
             return ImuSample(self._clock(), Status.OFFLINE, mag_status=mag_off)
-        t = self._clock()
         self._reads_since_check += 1
         if self._reads_since_check >= self.config.health_check_every:
             self._reads_since_check = 0
@@ -386,7 +385,8 @@ class MPU9150:
                 sup.count("bad_data")
                 sup.go_offline(f"{self.transport.where}: {problem}", retry_now=True)
                 self._mag_sup.go_offline("MPU-9150 offline")
-                return ImuSample(t, Status.BAD_DATA, mag_status=mag_off)
+                return ImuSample(self._clock(), Status.BAD_DATA, mag_status=mag_off)
+        t = self._clock()  # just before the data burst
         try:
             b = sup.call(self.transport.read, ACCEL_XOUT_H, 14)
         except BusError as e:
