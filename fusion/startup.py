@@ -460,12 +460,14 @@ def solve_still(
     cols = free.copy()
     Jr = J[:, cols]
     info = Jr.T @ Jr
-    prior_info = np.zeros(int(cols.sum()))
-    prior_info[: n][locked[free[:n]]] = 1.0 / np.pi**2
+    # Every joint gets that flat prior: it costs nothing where the data speak, and where
+    # they do not (a singular pair: two axes and gravity coplanar) the sigma becomes
+    # honestly large instead of being cut off by a pseudo-inverse.
+    prior_info = np.full(int(cols.sum()), 1.0 / np.pi**2)
     # the fit itself says when the model is worse than its sigmas (Birge ratio)
     inflate = max(chi2_dof, 1.0)
     cov = np.full((n + 2, n + 2), np.nan)
-    cov_r = np.linalg.pinv(info + np.diag(prior_info)) * inflate
+    cov_r = np.linalg.inv(info + np.diag(prior_info)) * inflate
     cov[np.ix_(cols, cols)] = cov_r
     sig = np.sqrt(np.clip(np.diag(cov), 0, None))
     flags = np.array(["ok"] * n, dtype=object)
@@ -475,7 +477,8 @@ def solve_still(
         # a joint that would be fine with the blind joints known, but is not because they
         # are not, rests on them: it inherits their flag
         keep = cols & np.concatenate([~locked, [True, True]])
-        cov_held = np.linalg.pinv(J[:, keep].T @ J[:, keep]) * inflate
+        Jk = J[:, keep]
+        cov_held = np.linalg.inv(Jk.T @ Jk + np.eye(Jk.shape[1]) / np.pi**2) * inflate
         sig_held = np.full(n + 2, np.nan)
         sig_held[keep] = np.sqrt(np.clip(np.diag(cov_held), 0, None))
         inherit = ~locked & (sig[:n] > limit) & (sig_held[:n] <= limit)
@@ -489,7 +492,9 @@ def solve_still(
         order_d = np.argsort(d2)
         second = cand[order_d[1]]
         if d2[order_d[1]] - d2[order_d[0]] < st.prior_decisive_chi2:
-            differ = np.abs(_wrap(q_all[second] - qb)) > max(5 * st.sigma_limit_deg * DEG, 1e-3)
+            # a joint is ambiguous when the two branches disagree by more than its own
+            # sigma can cover (close branches come from a nearly singular pair)
+            differ = np.abs(_wrap(q_all[second] - qb)) > np.maximum(3 * sig[:n], 1e-3)
             for j in np.flatnonzero(differ & (flags == "ok")):
                 flags[j] = "ambiguous"
                 alternatives[j] = (float(qb[j]), float(q_all[second][j]))
@@ -680,8 +685,8 @@ def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> Unlock
 def _expected_sigma(problem: _Problem, x: np.ndarray) -> np.ndarray:
     """Sigma of every unknown at states ``x (B, n+2)`` from the Jacobian alone."""
     _, J = problem.residuals_and_jacobian(x)
-    A = np.einsum("bmi,bmj->bij", J, J)
-    cov = np.linalg.pinv(A)
+    A = np.einsum("bmi,bmj->bij", J, J) + np.eye(J.shape[-1]) / np.pi**2  # as in the solve
+    cov = np.linalg.inv(A)
     return np.sqrt(np.clip(np.einsum("bii->bi", cov), 0, None))
 
 
@@ -800,6 +805,23 @@ def _average(name, w, lsb_per_g, noise_g, limits, mag_range, t0, t1):
         return None, None, (f"{where}: reads {mag:.3f} g in magnitude while still, expected about "
                             f"1 g: a dead or disconnected sensor, or a wrong scale; left out")
     return mean_g, noise_g / np.sqrt(len(w)), None
+
+
+def readings_from_counts(arm: ArmModel, mean_counts: dict[str, np.ndarray], n_samples: int,
+                         rate_hz: float = 100.0) -> StillReadings:
+    """Still readings from per-sensor mean counts over ``n_samples`` (no checks): the same
+    conversion and sigmas as :func:`readings_from_recording`, for batch tools."""
+    means, sigmas = {}, {}
+    for mount in arm.link_accelerometers:
+        if mount.name in mean_counts:
+            means[mount.name] = np.asarray(mean_counts[mount.name], float) / ADXL345_LSB_PER_G
+            sg = ADXL345_NOISE_LSB / ADXL345_LSB_PER_G / np.sqrt(n_samples)
+            sigmas[mount.name] = np.sqrt(sg**2 + _sensor_floor_g(arm, mount.name) ** 2)
+    imu_m = imu_s = None
+    if "imu_acc" in mean_counts:
+        imu_m = np.asarray(mean_counts["imu_acc"], float) / MPU9150_ACCEL_LSB_PER_G
+        imu_s = np.full(3, MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ * np.sqrt(rate_hz / 2) / np.sqrt(n_samples))
+    return StillReadings(means, sigmas, imu_m, imu_s)
 
 
 def check_readings(readings: StillReadings) -> None:
