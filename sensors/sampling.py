@@ -285,7 +285,10 @@ def open_devices(
     buses: dict[int, SMBusLike] = {}
     devices: dict[str, ADXL345 | MPU9150] = {}
     problems: list[str] = []
-    for w in wiring:
+    # the IMU first: its reset takes 150 ms, which would otherwise fill the FIFOs of the
+    # accelerometers initialised before it (the first tick would then run long)
+    order = sorted(wiring, key=lambda w: w.part != "mpu9150")
+    for w in order:
         dev: ADXL345 | MPU9150
         if w.bus == "i2c" and w.bus_number not in buses:
             buses[w.bus_number] = smbus_factory(w.bus_number)
@@ -307,7 +310,7 @@ def open_devices(
         devices[w.name] = dev
     if problems and require_all:
         raise DeviceNotFoundError("\n".join(problems))
-    return devices
+    return {w.name: devices[w.name] for w in wiring}
 
 
 def readers_for(devices: Mapping[str, ADXL345 | MPU9150]) -> dict[str, Callable[[], Any]]:

@@ -46,7 +46,7 @@ class FakeSMBus:
     i2c-bcm2835 reports). ``faults`` fails transactions on the whole bus (a NACK
     burst, random failures, a stuck bus); each device also has its own. With a
     ``clock`` that has ``advance`` (FakeClock), every transaction takes its wire
-    time at ``bitrate_hz`` (9 bits per byte). ``log`` holds every transaction.
+    time at ``bitrate_hz`` (9 bits per byte; 100 kHz, the Pi's default). ``log`` holds every transaction.
     """
 
     def __init__(
@@ -55,7 +55,7 @@ class FakeSMBus:
         devices: Iterable[FakeI2CDevice] = (),
         *,
         clock: object | None = None,
-        bitrate_hz: float = 400_000.0,
+        bitrate_hz: float = 100_000.0,
         nack_errno: int = errno_mod.EREMOTEIO,
         seed: int = 0,
         log_limit: int = 200_000,

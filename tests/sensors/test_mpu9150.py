@@ -147,7 +147,7 @@ def test_ak8975_is_only_on_the_bus_through_the_bypass(clock):
 def test_ak8975_fuse_rom_and_mode_rules(clock):
     mpu = FakeMPU9150(StaticPhysics(), clock.monotonic, asa=(170, 171, 172))
     ak = mpu.ak8975
-    bus = FakeSMBus(1, [mpu, ak], clock=clock)
+    bus = FakeSMBus(1, [mpu, ak])  # no clock: transfers take no time here
     bus.write_byte_data(0x68, 0x37, 0x02)
     assert bus.read_i2c_block_data(0x0C, 0x10, 3) == [0, 0, 0]  # not in fuse-ROM mode
     bus.write_byte_data(0x0C, 0x0A, 0x0F)
@@ -158,7 +158,7 @@ def test_ak8975_fuse_rom_and_mode_rules(clock):
     bus.write_byte_data(0x0C, 0x0A, 0x01)  # too soon after power-down
     assert "needs 100 µs" in ak.violations[-1]
     assert bus.read_byte_data(0x0C, 0x02) == 0x00
-    clock.advance(0.0073)
+    clock.advance(0.008)  # a measurement takes 7.3 ms
     assert bus.read_byte_data(0x0C, 0x02) == 0x01  # DRDY
     bus.read_i2c_block_data(0x0C, 0x03, 6)
     assert bus.read_byte_data(0x0C, 0x02) == 0x01
