@@ -523,7 +523,12 @@ def solve_still(
     )
     if propose_unlock and any(f in ("gimbal_lock", "ill_conditioned") for f in flags):
         result = replace(result, unlock_move=propose_unlock_move(arm, result, readings, st, prior))
-    return replace(result, summary=_summary(result))
+    summary = _summary(result)
+    floor_g = max(_sensor_floor_g(arm, nm) for nm in problem.names)
+    if floor_g > 0 and any(j.flag == "ill_conditioned" for j in result.joints):
+        summary += (f" (the sigmas include the config's unmodelled sensor error, "
+                    f"{floor_g * 1000:.0f} mg per axis: calibrating the sensors lowers it)")
+    return replace(result, summary=summary)
 
 
 def _sequential(problem: _Problem, x0: np.ndarray, st: StartupSettings):
