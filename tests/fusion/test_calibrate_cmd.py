@@ -1,0 +1,155 @@
+"""`armfusion calibrate joints` end to end on recordings: still windows, refusals, the
+saved prior, JSON."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from typer.testing import CliRunner
+
+from fusion.cli import app
+from fusion.pose_store import load_pose
+from fusion.startup import up_from_tilt
+from models.kinematics import gravity_in_sensors
+from sensors.recording import write_recording
+from sensors.samples import Recording, Stream, accel_columns, encoder_columns
+
+runner = CliRunner()
+DEG = np.pi / 180
+
+
+def still_recording(arm, segments, rng, rate_hz=100.0, roll_deg=1.0, pitch_deg=-0.5, spoil=None):
+    """Still segments of the arm at the given poses (deg) with 2 s of motion between them:
+    raw ADXL345 and MPU-9150 counts with datasheet noise, encoders counting from 0."""
+    t_parts, q_parts = [], []
+    t0 = 0.0
+    q_prev = None
+    for q_deg, dur in segments:
+        q = np.radians(q_deg)
+        if q_prev is not None:  # a 2 s smooth move
+            tm = t0 + np.arange(0, 2.0, 1 / rate_hz)
+            s = 0.5 - 0.5 * np.cos(np.pi * (tm - t0) / 2.0)
+            t_parts.append(tm)
+            q_parts.append(q_prev + s[:, None] * (q - q_prev))
+            t0 += 2.0
+        ts = t0 + np.arange(0, dur, 1 / rate_hz)
+        t_parts.append(ts)
+        q_parts.append(np.tile(q, (len(ts), 1)))
+        t0 += dur
+        q_prev = q
+    t = np.concatenate(t_parts)
+    Q = np.concatenate(q_parts)
+    up = up_from_tilt(roll_deg * DEG, pitch_deg * DEG)
+    f = gravity_in_sensors(arm, Q, up)
+    streams = {}
+    for i, s in enumerate(arm.link_accelerometers):
+        c = np.rint(f[:, i] * 256 + rng.normal(0, [0.75, 0.75, 1.1], (len(t), 3)))
+        c = np.clip(c, -512, 511).astype(int)
+        if spoil is not None:
+            c = spoil(s.name, t, c)
+        streams[s.name] = Stream(s.name, "accel", t, c, accel_columns(s.name))
+    imu = np.rint(np.tile(up, (len(t), 1)) * 16384 + rng.normal(0, 46, (len(t), 3))).astype(int)
+    streams["imu_acc"] = Stream("imu_acc", "imu_accel", t, imu, ("imu_ax", "imu_ay", "imu_az"))
+    gyro = np.rint(rng.normal(0, 5, (len(t), 3)) + 150).astype(int)  # a zero-rate offset
+    streams["imu_gyro"] = Stream("imu_gyro", "gyro", t, gyro, ("imu_gx", "imu_gy", "imu_gz"))
+    enc = np.rint((Q - Q[0]) * arm.counts_per_rad).astype(int)
+    streams["enc"] = Stream("enc", "encoder", t, enc, encoder_columns(arm.n_joints))
+    streams["true_q"] = Stream("true_q", "truth_joints", t, Q, tuple(f"true_q{i + 1}" for i in range(7)))
+    return Recording(streams)
+
+
+def _calibrated(arm):
+    """The WMRA config with perfectly known sensors (no unmodelled-error floor)."""
+    import yaml
+
+    from fusion.configfile import resolve_config_path
+
+    d = yaml.safe_load(resolve_config_path("wmra").read_text())
+    d["calibration"] = {"accel_unmodelled_g": 0.0}
+    return d
+
+
+def test_two_still_segments_each_solved(tmp_path, wmra, rng):
+    import yaml
+
+    cfg = tmp_path / "wmra_cal.yaml"
+    cfg.write_text(yaml.safe_dump(_calibrated(wmra)))
+    q1 = [30, 40, 20, -50, 60, 30, 100]
+    q2 = [100, 60, -30, 45, 120, -40, 10]
+    rec = still_recording(wmra, [(q1, 4.0), (q2, 4.0)], rng)
+    path = tmp_path / "two.csv"
+    write_recording(rec, path)
+    r = runner.invoke(app, ["calibrate", "joints", str(path), "--config", str(cfg), "--segments",
+                            "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    assert len(d["segments"]) == 2
+    for seg, q in zip(d["segments"], (q1, q2), strict=True):
+        got = [j["angle_rad"] for j in seg["joints"]]
+        flags = [j["flag"] for j in seg["joints"]]
+        assert all(f in ("ok", "ambiguous") for f in flags), flags
+        for g, want, j in zip(got, q, seg["joints"], strict=True):
+            if j["flag"] == "ok":
+                assert abs(np.degrees(g) - want) < max(0.15, 4 * np.degrees(j["sigma_rad"]))
+        assert abs(np.degrees(seg["base"]["roll_rad"]) - 1.0) < 0.05
+        assert seg["residual_rms_g"] < 0.002
+    # default: the first still window only, printed for a person
+    r2 = runner.invoke(app, ["calibrate", "joints", str(path), "--config", str(cfg)])
+    assert r2.exit_code == 0, r2.output
+    assert "still segment t = 0.00" in r2.stdout and r2.stdout.count("still segment") == 1
+
+
+def test_saturated_and_dead_sensors_are_left_out_by_name(tmp_path, wmra, rng):
+    def spoil(name, t, c):
+        if name == "acc2":
+            c[:, 2] = 511  # stuck at the top of its range
+        if name == "acc4":
+            c[:] = rng.integers(-1, 2, c.shape)  # reads nothing: disconnected
+        return c
+
+    rec = still_recording(wmra, [([30, 40, 20, -50, 60, 30, 100], 3.0)], rng, spoil=spoil)
+    path = tmp_path / "bad.csv"
+    write_recording(rec, path)
+    r = runner.invoke(app, ["calibrate", "joints", str(path), "--json"])
+    assert r.exit_code == 0, r.output
+    seg = json.loads(r.stdout)["segments"][0]
+    notes = " | ".join(seg["notes"])
+    assert "acc2 in t = " in notes
+    assert "axis z saturated (100 of 100 samples at the -512/511 count limit); left out" in notes
+    assert "acc4 in t = " in notes and "expected about 1 g: a dead or disconnected sensor" in notes
+    # joints 1-2 still come from acc1; 7 (only acc4 sees it) cannot be a confident number
+    flags = {j["name"]: j["flag"] for j in seg["joints"]}
+    assert flags["j7"] != "ok"
+
+
+def test_saved_prior_round_trip_and_wrong_arm_prior_ignored(tmp_path, wmra, rng, crs):
+    import yaml
+
+    cfg = tmp_path / "wmra_cal.yaml"
+    cfg.write_text(yaml.safe_dump(_calibrated(wmra)))
+    q = [30, 40, 20, -50, 60, 30, 100]
+    rec = still_recording(wmra, [(q, 3.0)], rng)
+    path = tmp_path / "s.csv"
+    write_recording(rec, path)
+    saved = tmp_path / "state" / "pose.json"
+    r = runner.invoke(app, ["calibrate", "joints", str(path), "--config", str(cfg),
+                            "--save", str(saved), "--json"])
+    assert r.exit_code == 0, r.output
+    assert any("pose saved" in n for n in json.loads(r.stdout)["notes"])
+    pose, why = load_pose(saved, wmra)
+    assert why is None and np.allclose(np.degrees(pose.q_rad), q, atol=0.3)
+    assert not list(saved.parent.glob("*.tmp"))  # the atomic write left no temporary
+    pose2, why2 = load_pose(saved, crs)
+    assert pose2 is None and "saved for arm 'WMRA-II', not 'CRS-A465'" in why2
+
+
+def test_moving_recording_is_refused(tmp_path, wmra, rng):
+    t = np.arange(0, 5, 0.01)
+    c = np.stack([200 * np.sin(3 * t), 200 * np.cos(3 * t), 100 + 0 * t], 1).astype(int)
+    rec = Recording({"acc1": Stream("acc1", "accel", t, c, accel_columns("acc1"))})
+    path = tmp_path / "moving.csv"
+    write_recording(rec, path)
+    r = runner.invoke(app, ["calibrate", "joints", str(path)])
+    assert r.exit_code == 2
+    assert "no still segment found" in r.stderr and "moving.csv" in r.stderr
