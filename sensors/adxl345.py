@@ -53,6 +53,7 @@ from sensors.bus import (
     SpiRegisters,
     Status,
     Supervisor,
+    open_smbus,
     s16_le,
 )
 from sensors.samples import Stream, accel_columns
@@ -264,9 +265,7 @@ class ADXL345:
             )
         owns = smbus is None
         if smbus is None:
-            import smbus2
-
-            smbus = smbus2.SMBus(bus_number)
+            smbus = open_smbus(bus_number)
         return cls(I2CRegisters(smbus, address, bus_number, owns_bus=owns), **kwargs)
 
     @classmethod
@@ -288,15 +287,22 @@ class ADXL345:
             import spidev
 
             spi_factory = spidev.SpiDev
-        transport = SpiRegisters.open(
-            spi_factory,
-            bus_number,
-            device,
-            mode=SPI_MODE,
-            max_speed_hz=max_speed_hz,
-            read_bit=SPI_READ,
-            multi_bit=SPI_MULTI,
-        )
+        try:
+            transport = SpiRegisters.open(
+                spi_factory,
+                bus_number,
+                device,
+                mode=SPI_MODE,
+                max_speed_hz=max_speed_hz,
+                read_bit=SPI_READ,
+                multi_bit=SPI_MULTI,
+            )
+        except OSError as e:
+            raise DeviceNotFoundError(
+                f"no ADXL345 on SPI bus {bus_number} device {device}: cannot open "
+                f"/dev/spidev{bus_number}.{device} ({e.strerror or e}); is SPI enabled "
+                "(dtparam=spi=on in /boot/config.txt)?"
+            ) from e
         return cls(transport, **kwargs)
 
     # lifecycle ----------------------------------------------------------------------

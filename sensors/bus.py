@@ -210,6 +210,21 @@ class SpiRegisters:
         self.spi.close()
 
 
+def open_smbus(bus_number: int, factory: Callable[[int], SMBusLike] | None = None) -> SMBusLike:
+    """``smbus2.SMBus(bus_number)`` (or ``factory``), with one clear line if it fails."""
+    if factory is None:
+        import smbus2
+
+        factory = smbus2.SMBus
+    try:
+        return factory(bus_number)
+    except OSError as e:
+        raise DeviceNotFoundError(
+            f"cannot open I2C bus {bus_number} (/dev/i2c-{bus_number}: {e.strerror or e}); "
+            "is I2C enabled (dtparam=i2c_arm=on in /boot/config.txt)?"
+        ) from e
+
+
 # --- numbers ---------------------------------------------------------------------------
 
 

@@ -58,6 +58,7 @@ from sensors.bus import (
     Status,
     Supervisor,
     hexbytes,
+    open_smbus,
     s16_be,
     s16_le,
 )
@@ -224,9 +225,7 @@ class MPU9150:
             )
         owns = smbus is None
         if smbus is None:
-            import smbus2
-
-            smbus = smbus2.SMBus(bus_number)
+            smbus = open_smbus(bus_number)
         return cls(I2CRegisters(smbus, address, bus_number, owns_bus=owns), **kwargs)
 
     # lifecycle ----------------------------------------------------------------------

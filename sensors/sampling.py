@@ -28,7 +28,13 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from sensors.adxl345 import ADXL345, ADXL345Config
-from sensors.bus import DeviceConfigError, DeviceNotFoundError, SMBusLike, SpiDevLike
+from sensors.bus import (
+    DeviceConfigError,
+    DeviceNotFoundError,
+    SMBusLike,
+    SpiDevLike,
+    open_smbus,
+)
 from sensors.mpu9150 import MPU9150, MPU9150Config
 
 
@@ -269,48 +275,67 @@ def open_devices(
 ) -> dict[str, ADXL345 | MPU9150]:
     """Open and initialise every device of ``wiring``; one SMBus per I2C bus number.
 
+    A bus that cannot be opened (no /dev/i2c-N or /dev/spidevB.D) always raises.
+
     ``smbus_factory(bus_number)`` defaults to ``smbus2.SMBus``, ``spi_factory`` to
     ``spidev.SpiDev``. ``driver_kwargs`` (``clock``, ``sleep``, ``retry``,
     ``recovery``) go to every driver. With ``require_all`` a device that does not
     answer raises DeviceNotFoundError listing every missing device, one line each;
     without it, such a device is returned offline and re-initialisation is retried
-    by its ``read`` on the recovery schedule.
+    by its ``read`` on the recovery schedule. Close with :func:`close_all`.
     """
     adxl_config = adxl_config or ADXL345Config()
     mpu_config = mpu_config or MPU9150Config()
-    if smbus_factory is None:
-        import smbus2
-
-        smbus_factory = smbus2.SMBus
+    for w in wiring:
+        if (w.part, w.bus) not in (("adxl345", "spi"), ("adxl345", "i2c"), ("mpu9150", "i2c")):
+            raise ValueError(f"{w.name}: no driver for a {w.part} on {w.bus}")
     buses: dict[int, SMBusLike] = {}
     devices: dict[str, ADXL345 | MPU9150] = {}
     problems: list[str] = []
+    cannot_open = False
     # the IMU first: its reset takes 150 ms, which would otherwise fill the FIFOs of the
     # accelerometers initialised before it (the first tick would then run long)
-    order = sorted(wiring, key=lambda w: w.part != "mpu9150")
-    for w in order:
+    for w in sorted(wiring, key=lambda w: w.part != "mpu9150"):
         dev: ADXL345 | MPU9150
-        if w.bus == "i2c" and w.bus_number not in buses:
-            buses[w.bus_number] = smbus_factory(w.bus_number)
-        if w.part == "adxl345" and w.bus == "spi":
-            dev = ADXL345.spi(w.bus_number, w.address, spi_factory=spi_factory,
-                              config=adxl_config, name=w.name, **driver_kwargs)
-        elif w.part == "adxl345":
-            dev = ADXL345.i2c(w.bus_number, w.address, smbus=buses[w.bus_number],
-                              config=adxl_config, name=w.name, **driver_kwargs)
-        elif w.part == "mpu9150" and w.bus == "i2c":
-            dev = MPU9150.i2c(w.bus_number, w.address, smbus=buses[w.bus_number],
-                              config=mpu_config, name=w.name, **driver_kwargs)
-        else:
-            raise ValueError(f"{w.name}: no driver for a {w.part} on {w.bus}")
+        try:
+            if w.bus == "i2c" and w.bus_number not in buses:
+                buses[w.bus_number] = open_smbus(w.bus_number, smbus_factory)
+            if w.bus == "spi":
+                dev = ADXL345.spi(w.bus_number, w.address, spi_factory=spi_factory,
+                                  config=adxl_config, name=w.name, **driver_kwargs)
+            elif w.part == "adxl345":
+                dev = ADXL345.i2c(w.bus_number, w.address, smbus=buses[w.bus_number],
+                                  config=adxl_config, name=w.name, **driver_kwargs)
+            else:
+                dev = MPU9150.i2c(w.bus_number, w.address, smbus=buses[w.bus_number],
+                                  config=mpu_config, name=w.name, **driver_kwargs)
+        except DeviceNotFoundError as e:  # no /dev node: the Pi's setup, not the device
+            problems.append(f"{w.name}: {e}")
+            cannot_open = True
+            continue
         try:
             dev.init()
         except (DeviceNotFoundError, DeviceConfigError) as e:
             problems.append(f"{w.name}: {e}")
         devices[w.name] = dev
-    if problems and require_all:
+    if problems and (require_all or cannot_open):
+        close_all(devices)
+        for bus in buses.values():
+            bus.close()
         raise DeviceNotFoundError("\n".join(problems))
     return {w.name: devices[w.name] for w in wiring}
+
+
+def close_all(devices: Mapping[str, ADXL345 | MPU9150]) -> None:
+    """Close every device and, once each, the I2C buses they share."""
+    shared: dict[int, SMBusLike] = {}
+    for dev in devices.values():
+        dev.close()
+        bus = getattr(dev.transport, "bus", None)
+        if bus is not None:
+            shared[id(bus)] = bus
+    for bus in shared.values():
+        bus.close()
 
 
 def readers_for(devices: Mapping[str, ADXL345 | MPU9150]) -> dict[str, Callable[[], Any]]:

@@ -62,7 +62,7 @@ class FakeRig:
     def smbus(self, bus_number: int) -> FakeSMBus:
         """The ``smbus2.SMBus(bus_number)`` stand-in (the same object every call)."""
         if bus_number not in self.i2c:
-            raise FileNotFoundError(2, f"No such file or directory: '/dev/i2c-{bus_number}'")
+            raise FileNotFoundError(2, "No such file or directory", f"/dev/i2c-{bus_number}")
         bus = self.i2c[bus_number]
         bus.open(bus_number)
         return bus

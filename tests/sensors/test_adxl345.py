@@ -230,6 +230,13 @@ def test_a_short_nack_burst_is_retried_with_exponential_backoff(rig):
     assert (h["bus_errors"], h["retries"], h["invalid"]) == (2, 2, 0)
 
 
+def test_spi_transfer_errors_are_retried(rig):
+    drv = rig.adxl_spi()
+    rig.clock.advance(period(drv))
+    rig.spi.faults.fail_next(2, errno.EIO)  # the spidev ioctl failed twice
+    assert drv.read().valid and drv.health()["retries"] == 2
+
+
 def test_stuck_bus_marks_samples_goes_offline_backs_off_and_recovers(rig):
     drv = rig.adxl_i2c()
     rig.bus.faults.stick(errno.ETIMEDOUT)

@@ -12,7 +12,15 @@ from sensors.adxl345 import ADXL345Config, accel_stream
 from sensors.bus import DeviceNotFoundError, Status
 from sensors.fakes import FakeClock, FakeRig, FunctionPhysics
 from sensors.mpu9150 import imu_streams
-from sensors.sampling import WMRA_WIRING, Collector, SamplingLoop, open_devices, readers_for
+from sensors.sampling import (
+    WMRA_WIRING,
+    Collector,
+    SamplingLoop,
+    Wiring,
+    close_all,
+    open_devices,
+    readers_for,
+)
 
 RATE_HZ = 100.0
 ACCS = ("acc1", "acc2", "acc3", "acc4")
@@ -193,3 +201,28 @@ def test_wiring_table_matches_the_rig():
         ("acc1", "spi", 0, 0), ("acc2", "spi", 0, 1),
         ("acc3", "i2c", 1, 0x53), ("acc4", "i2c", 1, 0x1D), ("imu", "i2c", 1, 0x68),
     ]
+
+
+def test_a_bus_that_cannot_be_opened_says_what_to_enable(clock):
+    rig = FakeRig(clock)
+    wiring = (*WMRA_WIRING, Wiring("acc5", "adxl345", "spi", 0, 2), Wiring("acc6", "adxl345",
+                                                                          "i2c", 3, 0x53))
+    with pytest.raises(DeviceNotFoundError) as e:
+        open_devices(wiring, smbus_factory=rig.smbus, spi_factory=rig.spi.SpiDev,
+                     require_all=False, clock=clock.monotonic, sleep=clock.sleep)
+    assert str(e.value).splitlines() == [
+        "acc5: no ADXL345 on SPI bus 0 device 2: cannot open /dev/spidev0.2 (No such file or "
+        "directory); is SPI enabled (dtparam=spi=on in /boot/config.txt)?",
+        "acc6: cannot open I2C bus 3 (/dev/i2c-3: No such file or directory); is I2C enabled "
+        "(dtparam=i2c_arm=on in /boot/config.txt)?",
+    ]
+    assert rig.i2c[1].closed  # what was opened is closed again
+
+
+def test_close_all_closes_each_shared_bus_once(clock):
+    rig = FakeRig(clock)
+    devices = open_devices(smbus_factory=rig.smbus, spi_factory=rig.spi.SpiDev,
+                           clock=clock.monotonic, sleep=clock.sleep)
+    close_all(devices)
+    assert rig.i2c[1].closed
+    assert devices["acc3"].read().status is Status.BUS_ERROR  # closed fd: EBADF, no crash
