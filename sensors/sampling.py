@@ -243,6 +243,17 @@ class Wiring:
     bus_number: int
     address: int  # I2C 7-bit address, or SPI chip select (spidev device number)
 
+    @classmethod
+    def from_bus(cls, name: str, part: str, bus: Mapping[str, Any]) -> Wiring:
+        """From an arm config's sensor ``bus`` section: ``{kind: spi, bus: 0,
+        chip_select: 0}`` or ``{kind: i2c, bus: 1, address: 0x53}``."""
+        kind = bus.get("kind")
+        if kind == "spi":
+            return cls(name, part, "spi", int(bus["bus"]), int(bus["chip_select"]))  # type: ignore[arg-type]
+        if kind == "i2c":
+            return cls(name, part, "i2c", int(bus["bus"]), int(bus["address"]))  # type: ignore[arg-type]
+        raise ValueError(f"sensor {name!r}: bus kind {kind!r} is neither 'spi' nor 'i2c'")
+
     @property
     def where(self) -> str:
         if self.bus == "i2c":
@@ -250,10 +261,10 @@ class Wiring:
         return f"SPI bus {self.bus_number} CE{self.address}"
 
 
-#: The default WMRA rig (docs/drivers.md): two ADXL345 on SPI0 (CE0, CE1), two on
-#: I2C1 (SDO low 0x53, SDO high 0x1D), the MPU-9150 on I2C1 at 0x68 (AD0 low), its
-#: AK8975 at 0x0C through the bypass. Which link each accelerometer sits on is the
-#: arm config's business; only the names join the two.
+#: The WMRA rig, as in config/wmra.yaml (docs/drivers.md): two ADXL345 on SPI0
+#: (CE0, CE1; the ones nearest the base, as in the thesis), two on I2C1 (SDO low
+#: 0x53, SDO high 0x1D), the MPU-9150 on I2C1 at 0x68 (AD0 low), its AK8975 at 0x0C
+#: through the bypass. Build other rigs with ``Wiring.from_bus`` from a config.
 WMRA_WIRING: tuple[Wiring, ...] = (
     Wiring("acc1", "adxl345", "spi", 0, 0),
     Wiring("acc2", "adxl345", "spi", 0, 1),

@@ -196,6 +196,16 @@ def test_a_missing_device_at_startup_is_named(clock):
     assert devices["acc3"].read().valid
 
 
+def test_wiring_matches_the_wmra_config():
+    import pathlib
+
+    import yaml
+
+    cfg = yaml.safe_load((pathlib.Path(__file__).parents[2] / "config" / "wmra.yaml").read_text())
+    assert tuple(Wiring.from_bus(s["name"], s["type"], s["bus"]) for s in cfg["sensors"]) == \
+        WMRA_WIRING
+
+
 def test_wiring_table_matches_the_rig():
     assert [(w.name, w.bus, w.bus_number, w.address) for w in WMRA_WIRING] == [
         ("acc1", "spi", 0, 0), ("acc2", "spi", 0, 1),
