@@ -49,7 +49,7 @@ def test_readings_round_trip_from_physics_to_counts_and_back(rig):
                            lambda t: case(t)[3])
     drv = rig.mpu(phys)
     cfg = drv.config
-    f = drv._asa_factor
+    f = np.array([asa_factor(a) for a in drv.asa])
     drv.read()  # starts the first magnetometer measurement
     for i in range(len(cases)):
         state["i"] = i

@@ -138,8 +138,8 @@ def test_stop_event_ends_a_real_time_run_promptly():
     report = loop.run(stop)
     elapsed = time.monotonic() - t0
     timer.join()
-    assert 0.2 <= elapsed < 0.5
-    assert 15 <= report.ticks <= 25 and len(calls) == report.ticks
+    assert 0.2 <= elapsed < 1.0
+    assert 15 <= report.ticks + report.missed_ticks <= 60 and len(calls) == report.ticks
 
 
 def test_a_stalled_read_skips_ticks_instead_of_bursting():
