@@ -130,3 +130,20 @@ def rotation_problem(R: np.ndarray, tol: float = 1e-6) -> str | None:
     if det < 0:
         return f"a reflection, not a rotation (det = {det:.3g})"
     return None
+
+
+def so3_right_jacobian(rotvec_rad: np.ndarray) -> np.ndarray:
+    """Right Jacobian ``J_r`` of SO(3), batched: ``exp(v + d) ≈ exp(v) exp(J_r(v) d)``.
+
+    ``J_r(v) = I - (1 - cos θ)/θ² [v]x + (θ - sin θ)/θ³ [v]x²`` (θ = |v|), so that
+    ``d(exp(v) w)/dv = -exp(v) [w]x J_r(v)``.
+    """
+    v = np.asarray(rotvec_rad, dtype=float)
+    theta = np.linalg.norm(v, axis=-1)[..., None, None]
+    K = skew(v)
+    small = theta < 1e-6
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
+    b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (th - np.sin(th)) / th**3)
+    eye = np.broadcast_to(np.eye(3), K.shape)
+    return eye - a * K + b * (K @ K)
