@@ -1,0 +1,205 @@
+"""What each sensor outputs, in counts: datasheet constants, count conversion, noise.
+
+A measurement model here is the last, fixed step of a prediction: a physical value in a
+sensor's own axes (specific force in g, angular rate in rad/s, magnetic field in µT,
+temperature in °C, joint angle in rad) becomes register counts by a nominal gain and
+zero, then (only when simulating) noise, rounding and saturation. Everything that makes
+a real sensor differ from its datasheet (bias, scale, axis directions, drift…) is an
+effect (:mod:`models.effects`), applied to the physical value before this step, so that
+it stays estimable.
+
+Streams and their models (names as in :mod:`sensors.samples`):
+
+=============  ==========================================================================
+``<acc>``      ADXL345, 10-bit at ±2 g: 256 LSB/g nominal (datasheet 230-282), noise
+               0.75 LSB rms on x/y and 1.1 LSB on z at 100 Hz, counts -512…511. Or an
+               ``analog_triax`` (the sensor-calibration article's 3DM): volts through an
+               ADC, its constants from the sensor's ``settings``.
+``imu_acc``    MPU-9150 accelerometer at ±2 g: 16384 LSB/g, 400 µg/√Hz, int16.
+``imu_gyro``   MPU-9150 gyroscope at ±250 °/s: 131 LSB per °/s, 0.005 °/s/√Hz, int16.
+``imu_mag``    AK8975 (inside the MPU-9150): 0.3 µT/LSB, 13-bit (-4096…4095), already
+               in the accelerometer's axes (as the recording spec has it).
+``imu_temp``   MPU-9150 temperature: raw = (T - 35 °C)·340.
+``enc``        relative encoders: counts = (q - q_power_up)·counts_per_rad, no noise.
+=============  ==========================================================================
+
+Noise is white, Gaussian, with the rms of the datasheet at the simulated rate: for the
+ADXL345 the datasheet's rms at 100 Hz (bandwidth = rate/2) scaled by √(rate/100 Hz); for
+the MPU-9150 the noise density times √(rate/2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.arm import ArmModel, SensorMount
+from sensors.samples import IMU_STREAMS, accel_columns, encoder_columns
+
+# --- ADXL345 (link accelerometers), 10-bit, ±2 g ---------------------------------------
+ADXL345_LSB_PER_G = 256.0
+"""Nominal sensitivity at ±2 g, 10-bit (datasheet: 230 min, 282 max)."""
+ADXL345_NOISE_LSB_RMS_AT_100HZ = np.array([0.75, 0.75, 1.1])
+"""Datasheet noise at 100 Hz output rate, x/y/z (290 / 430 µg/√Hz)."""
+ADXL345_COUNTS_MIN, ADXL345_COUNTS_MAX = -512, 511
+ADXL345_REFERENCE_RATE_HZ = 100.0
+
+# --- MPU-9150 accelerometer, ±2 g -----------------------------------------------------
+MPU9150_ACCEL_LSB_PER_G = 16384.0
+MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ = 400e-6
+INT16_MIN, INT16_MAX = -32768, 32767
+
+# --- MPU-9150 gyroscope, ±250 °/s -----------------------------------------------------
+MPU9150_GYRO_LSB_PER_DPS = 131.0
+MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ = 0.005
+MPU9150_GYRO_ZERO_RATE_OFFSET_DPS_MAX = 20.0
+"""Initial zero-rate offset tolerance (datasheet ±20 °/s): see the gyro_bias effect."""
+
+# --- MPU-9150 temperature sensor ------------------------------------------------------
+MPU9150_TEMP_LSB_PER_C = 340.0
+MPU9150_TEMP_OFFSET_C = 35.0
+MPU9150_TEMP_NOISE_C_RMS = 0.02
+"""Not in the datasheet: a few LSB of register jitter (our assumption)."""
+
+# --- AK8975 magnetometer --------------------------------------------------------------
+AK8975_UT_PER_LSB = 0.3
+AK8975_COUNTS_MIN, AK8975_COUNTS_MAX = -4096, 4095
+AK8975_NOISE_UT_RMS = 0.6
+"""Not in the datasheet (it gives none): about two LSB, typical of measured AK89xx parts."""
+
+# --- analog triaxial sensor (the sensor-calibration article's Microstrain 3DM taps) ------
+ANALOG_TRIAX_VOLTS_PER_G = 1.25
+"""0-5 V output for ±2 g: 1.25 V/g (the article's S ≈ 0.127 V·s²/m)."""
+ANALOG_TRIAX_ZERO_G_VOLTS = 2.5
+ANALOG_TRIAX_ADC_COUNTS_PER_VOLT = 8192 / 10.0
+"""The article's Quanser Q8 board: 14-bit, ±10 V."""
+ANALOG_TRIAX_NOISE_V_RMS = np.array([0.0134, 0.0136, 0.0146])
+"""The article's measured rms noise of its three accelerometers (at 1 kHz)."""
+ADC14_COUNTS_MIN, ADC14_COUNTS_MAX = -8192, 8191
+
+# --- Earth's magnetic field -----------------------------------------------------------
+EARTH_FIELD_TAMPA_UT = np.array([24.0, 0.0, -39.0])
+"""Earth's field in the world frame at Tampa, FL (USF), µT: world x = magnetic north,
+z up, so 24 µT horizontal toward north and 39 µT down (inclination ≈ 58°; total
+≈ 46 µT; WMM 2025, rounded). Declination does not enter: yaw is magnetic."""
+
+IMU_STREAM_NAMES = ("imu_acc", "imu_gyro", "imu_mag", "imu_temp")
+ENCODER_STREAM = "enc"
+
+
+@dataclass(frozen=True)
+class StreamModel:
+    """How one stream's physical value becomes counts: ``counts = gain·value + zero``.
+
+    ``gain`` and ``zero`` are per channel; ``noise_counts_rms`` is per channel at the
+    stream's rate; ``counts_min``/``counts_max`` the register limits (None: unbounded).
+    """
+
+    stream: str
+    kind: str
+    sensor: str  # the config sensor it belongs to ("imu" streams: the IMU's name; enc: "")
+    channels: tuple[str, ...]
+    unit: str
+    gain: np.ndarray
+    zero: np.ndarray
+    noise_counts_rms: np.ndarray
+    counts_min: float | None
+    counts_max: float | None
+
+    @property
+    def size(self) -> int:
+        return len(self.channels)
+
+    def to_counts(self, value: np.ndarray) -> np.ndarray:
+        """Physical value ``(N, k)`` to ideal (float, unrounded) counts."""
+        return value * self.gain + self.zero
+
+    def from_counts(self, counts: np.ndarray) -> np.ndarray:
+        """Counts ``(N, k)`` back to the physical value with the nominal gain and zero."""
+        return (np.asarray(counts, dtype=float) - self.zero) / self.gain
+
+    @property
+    def sigma_counts(self) -> np.ndarray:
+        """Standard deviation of one reading in counts: noise and rounding (1/√12 LSB)."""
+        return np.sqrt(self.noise_counts_rms**2 + 1.0 / 12.0)
+
+    def noise_physical_rms(self) -> np.ndarray:
+        return self.noise_counts_rms / np.abs(self.gain)
+
+    def digitise(self, counts: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+        """Add noise (if ``rng``), round to integers, saturate at the register limits."""
+        c = np.asarray(counts, dtype=float)
+        if rng is not None and np.any(self.noise_counts_rms > 0):
+            c = c + rng.standard_normal(c.shape) * self.noise_counts_rms
+        c = np.rint(c)
+        if self.counts_min is not None:
+            c = np.clip(c, self.counts_min, self.counts_max)
+        return c.astype(np.int64)
+
+
+def _accel_stream(sensor: SensorMount, rate_hz: float) -> StreamModel:
+    cols = accel_columns(sensor.name)
+    if sensor.type == "adxl345":
+        gain = float(sensor.settings.get("lsb_per_g", ADXL345_LSB_PER_G))
+        noise = ADXL345_NOISE_LSB_RMS_AT_100HZ * np.sqrt(rate_hz / ADXL345_REFERENCE_RATE_HZ)
+        return StreamModel(sensor.name, "accel", sensor.name, cols, "g", np.full(3, gain),
+                           np.zeros(3), noise, ADXL345_COUNTS_MIN, ADXL345_COUNTS_MAX)
+    # analog_triax: volts through an ADC
+    st = sensor.settings
+    cpv = float(st.get("adc_counts_per_volt", ANALOG_TRIAX_ADC_COUNTS_PER_VOLT))
+    vpg = float(st.get("volts_per_g", ANALOG_TRIAX_VOLTS_PER_G))
+    zero_v = float(st.get("zero_g_volts", ANALOG_TRIAX_ZERO_G_VOLTS))
+    noise_v = np.broadcast_to(np.asarray(st.get("accel_noise_v", ANALOG_TRIAX_NOISE_V_RMS), float), (3,))
+    return StreamModel(sensor.name, "accel", sensor.name, cols, "g", np.full(3, vpg * cpv),
+                       np.full(3, zero_v * cpv), noise_v * cpv, ADC14_COUNTS_MIN, ADC14_COUNTS_MAX)
+
+
+def stream_models(arm: ArmModel, rate_hz: float | dict[str, float] = 100.0) -> dict[str, StreamModel]:
+    """The count model of every raw stream the arm's sensors produce, config order.
+
+    ``rate_hz`` sets the noise (a number for all streams, or per stream name).
+    """
+    def rate(name: str) -> float:
+        return float(rate_hz.get(name, 100.0)) if isinstance(rate_hz, dict) else float(rate_hz)
+
+    out: dict[str, StreamModel] = {}
+    for s in arm.link_accelerometers:
+        out[s.name] = _accel_stream(s, rate(s.name))
+    imu = arm.imu
+    if imu is not None:
+        r = rate("imu_acc")
+        out["imu_acc"] = StreamModel(
+            "imu_acc", "imu_accel", imu.name, IMU_STREAMS["imu_acc"][1], "g",
+            np.full(3, MPU9150_ACCEL_LSB_PER_G), np.zeros(3),
+            np.full(3, MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ * np.sqrt(r / 2) * MPU9150_ACCEL_LSB_PER_G),
+            INT16_MIN, INT16_MAX)
+        r = rate("imu_gyro")
+        lsb_per_rad_s = MPU9150_GYRO_LSB_PER_DPS * 180.0 / np.pi
+        out["imu_gyro"] = StreamModel(
+            "imu_gyro", "gyro", imu.name, IMU_STREAMS["imu_gyro"][1], "rad/s",
+            np.full(3, lsb_per_rad_s), np.zeros(3),
+            np.full(3, MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ * np.sqrt(r / 2) * MPU9150_GYRO_LSB_PER_DPS),
+            INT16_MIN, INT16_MAX)
+        out["imu_mag"] = StreamModel(
+            "imu_mag", "mag", imu.name, IMU_STREAMS["imu_mag"][1], "uT",
+            np.full(3, 1.0 / AK8975_UT_PER_LSB), np.zeros(3),
+            np.full(3, AK8975_NOISE_UT_RMS / AK8975_UT_PER_LSB), AK8975_COUNTS_MIN, AK8975_COUNTS_MAX)
+        out["imu_temp"] = StreamModel(
+            "imu_temp", "temperature", imu.name, IMU_STREAMS["imu_temp"][1], "degC",
+            np.array([MPU9150_TEMP_LSB_PER_C]), np.array([-MPU9150_TEMP_OFFSET_C * MPU9150_TEMP_LSB_PER_C]),
+            np.array([MPU9150_TEMP_NOISE_C_RMS * MPU9150_TEMP_LSB_PER_C]), INT16_MIN, INT16_MAX)
+    out[ENCODER_STREAM] = StreamModel(
+        ENCODER_STREAM, "encoder", "", encoder_columns(arm.n_joints), "rad", arm.counts_per_rad.copy(),
+        np.zeros(arm.n_joints), np.zeros(arm.n_joints), None, None)
+    return out
+
+
+def stream_group(stream: str) -> str:
+    """The device a stream comes from (its samples share one instant): ``imu_*`` -> ``imu``."""
+    return "imu" if stream in IMU_STREAM_NAMES else stream
+
+
+def accel_counts_to_g(counts: np.ndarray, model: StreamModel) -> np.ndarray:
+    """Raw accelerometer counts to g with the nominal sensitivity (for plots and checks)."""
+    return model.from_counts(counts)
