@@ -1,0 +1,413 @@
+"""A model: the arm's sensors as the datasheets describe them, plus an ordered set of effects.
+
+The parameters of all effects live in one flat vector ``x`` (what scipy's
+``least_squares`` wants) with a name -> slice map (``Model.index``); the API talks in
+block names (``"acc3.mount_rotation"``): ``pack`` / ``unpack`` convert.
+
+A prediction runs the stages in physical order, whatever order the effects were listed in
+(the list order fixes only the layout of ``x``):
+
+1. joints: ``q_geom = q + Σ delta_e(q)`` (joint offsets, sag, play);
+2. mounts: sensors moved on their links (lever arms);
+3. kinematics (:mod:`models.motion`): specific force, angular rate, Earth's field and
+   temperature in each sensor's axes; the encoders see the controller's ``q``;
+4. sensor: each stream's value through its effects by rank (frame 10, axes 20, scale 30,
+   bias 40, drift 50; the arm's magnetic disturbance 5, before the IMU frame);
+5. time: a device's samples taken ``offset`` before their stamps;
+6. counts: nominal gain and zero (:mod:`models.sensor_models`).
+
+The Jacobian w.r.t. the parameters is accumulated forward through the same stages, as a
+dict ``{stream: {block: (N, k, p)}}`` holding only the blocks that reach that stream.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from models.arm import ArmModel
+from models.effects.base import (
+    Context,
+    Effect,
+    JointEffect,
+    MountEffect,
+    ParamBlock,
+    SensorEffect,
+    TimeEffect,
+    device_streams,
+)
+from models.motion import (
+    DEFAULT_MASSES,
+    MassModel,
+    MotionState,
+    link_motion,
+    sensor_motion,
+    specific_force_jacobian,
+)
+from models.sensor_models import EARTH_FIELD_TAMPA_UT, StreamModel, stream_models
+
+StateAt = Callable[[np.ndarray], MotionState]
+Jacobian = dict[str, dict[str, np.ndarray]]
+
+
+def _gradient_t(a: np.ndarray, t: np.ndarray) -> np.ndarray:
+    if a.shape[0] < 2:
+        return np.zeros_like(a)
+    return np.gradient(a, t, axis=0, edge_order=2 if a.shape[0] > 2 else 1)
+
+
+class Model:
+    """The arm's measurement model with an ordered set of effects (immutable).
+
+    ``values`` (block name -> array) are the current parameter estimates (default: zero,
+    the identity) and ``sigmas`` their uncertainties (default: each effect's
+    datasheet-typical magnitude); both become the prior a refit starts from.
+    """
+
+    def __init__(
+        self,
+        arm: ArmModel,
+        effects: Sequence[Effect] = (),
+        values: Mapping[str, np.ndarray] | None = None,
+        sigmas: Mapping[str, np.ndarray] | None = None,
+        earth_field_W_ut: np.ndarray = EARTH_FIELD_TAMPA_UT,
+        masses: MassModel = DEFAULT_MASSES,
+    ):
+        self.arm = arm
+        self.effects: tuple[Effect, ...] = tuple(effects)
+        seen: dict[str, int] = {}
+        for k, e in enumerate(self.effects):
+            if e.arm is not arm and (e.arm.name != arm.name or e.arm.n_joints != arm.n_joints):
+                raise ValueError(f"effect {e.block_name} was built for another arm")
+            if e.block_name in seen:
+                raise ValueError(f"effect {e.block_name} is listed twice "
+                                 f"(positions {seen[e.block_name]} and {k})")
+            seen[e.block_name] = k
+        sigmas = dict(sigmas or {})
+        unknown = set(sigmas) - set(seen)
+        if unknown:
+            raise KeyError(f"sigma given for unknown blocks {sorted(unknown)}")
+        self.blocks: tuple[ParamBlock, ...] = tuple(e.block(sigmas.get(e.block_name)) for e in self.effects)
+        self.index: dict[str, slice] = {}
+        i = 0
+        for b in self.blocks:
+            self.index[b.name] = slice(i, i + b.size)
+            i += b.size
+        self.size = i
+        self._by_name = {e.block_name: e for e in self.effects}
+        self.earth_field_W_ut = np.asarray(earth_field_W_ut, dtype=float)
+        self.masses = masses
+        self.x0 = self.pack(values or {}, base=np.zeros(self.size))
+        self.x0.setflags(write=False)
+        self._stream_models = stream_models(arm)
+        self.stream_names: tuple[str, ...] = tuple(self._stream_models)
+
+        def ordered(cls):
+            return sorted((e for e in self.effects if isinstance(e, cls)), key=lambda e: e.rank)
+
+        self._joint = ordered(JointEffect)
+        self._mount = ordered(MountEffect)
+        self._sensor = ordered(SensorEffect)
+        self._time = ordered(TimeEffect)
+
+    # -- parameters --------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.effects)
+
+    def __repr__(self) -> str:
+        return f"Model({self.arm.name}: {', '.join(e.block_name for e in self.effects) or 'no effects'})"
+
+    def effect(self, block_name: str) -> Effect:
+        try:
+            return self._by_name[block_name]
+        except KeyError:
+            raise KeyError(f"no effect {block_name!r} in the model; it has "
+                           f"{list(self._by_name)}") from None
+
+    def block(self, block_name: str) -> ParamBlock:
+        return self.blocks[self.effects.index(self.effect(block_name))]
+
+    @property
+    def prior_mean(self) -> np.ndarray:
+        return self.x0
+
+    @property
+    def prior_sigma(self) -> np.ndarray:
+        return np.concatenate([b.prior_sigma for b in self.blocks]) if self.blocks else np.zeros(0)
+
+    @property
+    def lower(self) -> np.ndarray:
+        return np.concatenate([b.lower for b in self.blocks]) if self.blocks else np.zeros(0)
+
+    @property
+    def upper(self) -> np.ndarray:
+        return np.concatenate([b.upper for b in self.blocks]) if self.blocks else np.zeros(0)
+
+    def element_names(self) -> list[str]:
+        return [n for b in self.blocks for n in b.element_names()]
+
+    def pack(self, values: Mapping[str, np.ndarray], base: np.ndarray | None = None) -> np.ndarray:
+        """A flat vector from named blocks; blocks not named keep ``base`` (default ``x0``)."""
+        x = np.array(self.x0 if base is None else base, dtype=float, copy=True)
+        for name, v in values.items():
+            b = self.block(name)
+            a = np.asarray(v, dtype=float)
+            if a.size != b.size:
+                raise ValueError(f"{name}: expected {b.size} values {b.shape}, got shape {a.shape}")
+            x[self.index[name]] = a.reshape(-1)
+        return x
+
+    def unpack(self, x: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Named blocks (shaped) from a flat vector (default ``x0``)."""
+        x = self.x0 if x is None else np.asarray(x, dtype=float)
+        if x.shape != (self.size,):
+            raise ValueError(f"parameter vector must have shape ({self.size},), got {x.shape}")
+        return {b.name: x[self.index[b.name]].reshape(b.shape) for b in self.blocks}
+
+    def with_effects(self, effects: Iterable[Effect], values: Mapping[str, np.ndarray] | None = None,
+                     sigmas: Mapping[str, np.ndarray] | None = None) -> Model:
+        """This model plus more effects (their blocks appended); current values are kept."""
+        current = self.unpack()
+        current.update(values or {})
+        s = {b.name: b.prior_sigma for b in self.blocks}
+        s.update(sigmas or {})
+        return Model(self.arm, self.effects + tuple(effects), current, s, self.earth_field_W_ut,
+                     self.masses)
+
+    def with_values(self, values: Mapping[str, np.ndarray] | np.ndarray) -> Model:
+        """The same effects with new current values (named blocks or a full flat vector)."""
+        v = self.unpack(values) if isinstance(values, np.ndarray) else dict(values)
+        return Model(self.arm, self.effects, {**self.unpack(), **v},
+                     {b.name: b.prior_sigma for b in self.blocks}, self.earth_field_W_ut, self.masses)
+
+    def without(self, block_names: Iterable[str]) -> Model:
+        drop = set(block_names)
+        keep = [e for e in self.effects if e.block_name not in drop]
+        vals = {k: v for k, v in self.unpack().items() if k not in drop}
+        return Model(self.arm, keep, vals, {b.name: b.prior_sigma for b in self.blocks
+                                            if b.name not in drop}, self.earth_field_W_ut, self.masses)
+
+    def stream_models(self, rate_hz: float | dict[str, float] = 100.0) -> dict[str, StreamModel]:
+        return stream_models(self.arm, rate_hz)
+
+    def time_offsets_s(self, x: np.ndarray | None = None) -> dict[str, float]:
+        """Each device's time offset (s), for devices that have one."""
+        th = self.unpack(x)
+        return {e.target: float(th[e.block_name][0]) for e in self._time}
+
+    # -- prediction ----------------------------------------------------------------------
+    def predict(
+        self, state: MotionState, x: np.ndarray | None = None, streams: Sequence[str] | None = None,
+        state_at: StateAt | None = None, encoder_zero_rad: np.ndarray | None = None,
+        units: str = "counts",
+    ) -> dict[str, np.ndarray]:
+        """Predicted readings ``{stream: (N, k)}``, float counts (``units="counts"``) or the
+        physical values in each sensor's axes (``"physical"``: g, rad/s, µT, °C, rad).
+
+        ``state_at`` (a function of time giving a MotionState) makes time offsets exact
+        (the state is re-evaluated at ``t - offset``); without it they are first order,
+        ``y(t) - offset·dy/dt`` with ``dy/dt`` from the samples themselves.
+        ``encoder_zero_rad``: the joint angles at power-up (default: the first sample's).
+        """
+        pred, _ = self._predict(state, x, streams, state_at, encoder_zero_rad, units, None)
+        return pred
+
+    def predict_with_jacobian(
+        self, state: MotionState, x: np.ndarray | None = None, streams: Sequence[str] | None = None,
+        state_at: StateAt | None = None, encoder_zero_rad: np.ndarray | None = None,
+        units: str = "counts", blocks: Iterable[str] | None = None,
+    ) -> tuple[dict[str, np.ndarray], Jacobian]:
+        """Predictions and ``{stream: {block: d prediction / d block (N, k, p)}}``.
+
+        ``blocks`` limits the Jacobian to those blocks (default: all).
+        """
+        want = set(self.index) if blocks is None else set(blocks)
+        unknown = want - set(self.index)
+        if unknown:
+            raise KeyError(f"no such blocks in the model: {sorted(unknown)}")
+        return self._predict(state, x, streams, state_at, encoder_zero_rad, units, want)
+
+    def dense_jacobian(self, jac: Jacobian, pred: Mapping[str, np.ndarray],
+                       blocks: Sequence[str] | None = None) -> np.ndarray:
+        """Stack a Jacobian dict into ``(M, P)``: rows stream by stream (in ``pred``'s order),
+        each ``(N, k)`` row-major as ``pred[s].ravel()``; columns the ``blocks`` (default:
+        all, in ``x`` order) concatenated."""
+        blocks = list(self.index) if blocks is None else list(blocks)
+        sizes = [self.block(b).size for b in blocks]
+        rows = []
+        for s, y in pred.items():
+            N, k = y.shape
+            R = np.zeros((N * k, sum(sizes)))
+            c = 0
+            for b, sz in zip(blocks, sizes, strict=True):
+                if b in jac.get(s, {}):
+                    R[:, c:c + sz] = jac[s][b].reshape(N * k, sz)
+                c += sz
+            rows.append(R)
+        return np.concatenate(rows, axis=0) if rows else np.zeros((0, sum(sizes)))
+
+    # -- the pipeline --------------------------------------------------------------------
+    def _predict(self, state, x, streams, state_at, q0, units, want):
+        if units not in ("counts", "physical"):
+            raise ValueError(f"units must be 'counts' or 'physical', not {units!r}")
+        streams = self.stream_names if streams is None else tuple(streams)
+        bad = [s for s in streams if s not in self.stream_names]
+        if bad:
+            raise KeyError(f"no stream {bad[0]!r} for arm {self.arm.name!r}; "
+                           f"it has {list(self.stream_names)}")
+        if state.n_joints != self.arm.n_joints:
+            raise ValueError(f"joint angles must have shape (N, {self.arm.n_joints}) for arm "
+                             f"{self.arm.name!r}, got {state.q_rad.shape}")
+        th = self.unpack(x)
+        q0 = state.q_rad[0] if q0 is None else np.asarray(q0, dtype=float)
+        # time offsets per stream
+        offset = {s: 0.0 for s in streams}
+        tblock: dict[str, str] = {}
+        for e in self._time:
+            for s in device_streams(self.arm, e.target):
+                if s in offset:
+                    offset[s] = float(th[e.block_name][0])
+                    tblock[s] = e.block_name
+        pred: dict[str, np.ndarray] = {}
+        jac: Jacobian = {}
+        if state_at is None:
+            p, j = self._evaluate(state, th, streams, q0, want)
+            for s in streams:
+                y, J = p[s], j.get(s, {})
+                if s in tblock and (offset[s] != 0.0 or (want and tblock[s] in want)):
+                    tau = offset[s]
+                    ydot = _gradient_t(y, state.t_s)
+                    if want is not None:
+                        J = {b: v - tau * _gradient_t(v, state.t_s) for b, v in J.items()}
+                        if tblock[s] in want:
+                            J[tblock[s]] = -ydot[..., None]
+                    y = y - tau * ydot
+                pred[s], jac[s] = y, J
+        else:
+            groups: dict[float, list[str]] = {}
+            for s in streams:
+                groups.setdefault(offset[s], []).append(s)
+            for tau, ss in groups.items():
+                st = state if tau == 0.0 else state_at(state.t_s - tau)
+                p, j = self._evaluate(st, th, tuple(ss), q0, want)
+                for s in ss:
+                    J = j.get(s, {})
+                    if want is not None and s in tblock and tblock[s] in want:
+                        J[tblock[s]] = -_gradient_t(p[s], state.t_s)[..., None]
+                    pred[s], jac[s] = p[s], J
+        pred = {s: pred[s] for s in streams}
+        if units == "counts":
+            sm = self._stream_models
+            for s in streams:
+                g, z = sm[s].gain, sm[s].zero
+                pred[s] = pred[s] * g + z
+                if want is not None:
+                    jac[s] = {b: v * g[None, :, None] for b, v in jac[s].items()}
+        return pred, (jac if want is not None else {})
+
+    def context(self, state: MotionState, x: np.ndarray | None = None,
+                streams: Sequence[str] | None = None) -> Context:
+        """The context effects see for ``state`` (joint stage and kinematics done): for
+        checking an effect on its own, or for an estimator that needs the kinematics."""
+        streams = self.stream_names if streams is None else tuple(streams)
+        ctx, _, _ = self._prepare(state, self.unpack(x), streams, None)
+        return ctx
+
+    def _prepare(self, state: MotionState, th, streams, want):
+        """Stages 1-3: joint effects, mounts, kinematics. Returns the context, the joint
+        blocks' ``dq_geom/dθ`` and (when Jacobians are wanted) ``df/dq_geom``."""
+        arm = self.arm
+        ctx = Context(arm, state, self.masses, self.earth_field_W_ut)
+        N = state.N
+        want_jac = want is not None
+        # 1. joints
+        Jq: dict[str, np.ndarray] = {}
+        link_acc = {s.name for s in arm.link_accelerometers}
+        geometric = any(s in link_acc for s in streams) or "imu_mag" in streams
+        joint_stage = bool(self._joint) and geometric
+        if joint_stage:
+            q = np.array(state.q_rad, dtype=float, copy=True)
+            for e in self._joint:
+                t = th[e.block_name]
+                q[:, e.j] += e.delta(state.q_rad, t, ctx)
+                if want_jac and e.block_name in want:
+                    Jb = np.zeros((N, arm.n_joints, e.size))
+                    Jb[:, e.j, :] = e.delta_jac_params(state.q_rad, t, ctx)
+                    Jq[e.block_name] = Jb
+            ctx.q_geom = q
+        # 2. mounts, 3. kinematics
+        sensors = [s for s in streams if s in link_acc]
+        imu = arm.imu
+        if imu is not None and any(s in ("imu_acc", "imu_gyro", "imu_mag") for s in streams):
+            sensors.append(imu.name)
+        dfdq = None
+        if sensors:
+            R_LS = np.stack([arm.sensor(s).R_LS for s in sensors])
+            p_LS = np.stack([arm.sensor(s).p_L_m for s in sensors]).copy()
+            for e in self._mount:
+                if e.target in sensors:
+                    i = sensors.index(e.target)
+                    R_LS[i], p_LS[i] = e.apply_mount(R_LS[i], p_LS[i], th[e.block_name])
+            gstate = state.replace(q_rad=ctx.q_geom) if joint_stage else state
+            ctx.lm = link_motion(arm, gstate)
+            ctx.sm = sensor_motion(arm, gstate, sensors, R_LS, p_LS, lm=ctx.lm)
+            ctx.sensor_index = {s: i for i, s in enumerate(sensors)}
+            if want_jac and Jq:
+                dfdq = specific_force_jacobian(arm, gstate, sensors, ctx.lm, ctx.sm)
+        return ctx, Jq, dfdq
+
+    def _evaluate(self, state: MotionState, th, streams, q0, want):
+        """Stages 1-4 for one state; physical values and (if ``want``) Jacobians."""
+        arm = self.arm
+        imu = arm.imu
+        want_jac = want is not None
+        link_acc = {s.name for s in arm.link_accelerometers}
+        ctx, Jq, dfdq = self._prepare(state, th, streams, want)
+        pred: dict[str, np.ndarray] = {}
+        jac: Jacobian = {}
+        for s in streams:
+            J: dict[str, np.ndarray] = {}
+            if s in link_acc or s == "imu_acc":
+                name = s if s in link_acc else imu.name
+                i = ctx.sensor(name)
+                y = ctx.sm.specific_force_g[:, i]
+                if want_jac:
+                    if dfdq is not None and arm.sensor(name).link > 0:
+                        for b, Jb in Jq.items():
+                            J[b] = np.einsum("nkq,nqp->nkp", dfdq[:, i], Jb)
+                    for e in self._mount:
+                        if e.target == name and e.block_name in want:
+                            J[e.block_name] = e.jac_params(ctx)
+            elif s == "imu_gyro":
+                y = ctx.sm.omega_S_rad_s[:, ctx.sensor(imu.name)]
+            elif s == "imu_mag":
+                R_0I = ctx.sm.R_0S[:, ctx.sensor(imu.name)]
+                y = np.einsum("nji,nj->ni", R_0I, ctx.earth_field_0_ut)
+            elif s == "imu_temp":
+                y = np.array(state.temperature_c, dtype=float)[:, None]
+            elif s == "enc":
+                y = state.q_rad - q0
+            else:  # pragma: no cover - stream_names guards this
+                raise KeyError(s)
+            # 4. sensor effects, by rank
+            for e in self._sensor:
+                if s not in e.streams:
+                    continue
+                t = th[e.block_name]
+                if want_jac:
+                    A = e.jac_input(y, t, ctx, s)
+                    if A is not None:
+                        J = {b: np.einsum("nij,njp->nip", A, v) for b, v in J.items()}
+                    Q = e.jac_q(y, t, ctx, s) if Jq else None
+                    if Q is not None:
+                        for b, Jb in Jq.items():
+                            d = np.einsum("nkq,nqp->nkp", Q, Jb)
+                            J[b] = J[b] + d if b in J else d
+                    if e.block_name in want:
+                        P = e.jac_params(y, t, ctx, s)
+                        J[e.block_name] = J[e.block_name] + P if e.block_name in J else P
+                y = e.apply(y, t, ctx, s)
+            pred[s] = y
+            jac[s] = J
+        return pred, jac
