@@ -1,0 +1,200 @@
+"""``armfusion simulate``: write a simulated recording and its truth file.
+
+    armfusion simulate --config wmra --scenario daily-use --out rec.csv \\
+        [--duration 600] [--rate 100] [--seed 0] [--effect mount_rotation:acc3=0.01,0.02,0 …]
+        [--realistic] [--effects-file other.truth.json] [--no-noise] [--json]
+
+Writes ``rec.csv`` (or ``.mcap``) and ``rec.truth.json``: every effect's true parameters
+as config entries (``effects: [{effect, target, params, sigma, note}]``), the scenario's
+events and the settings. ``--effects-file`` takes such a truth file (or an arm config's
+``effects:`` list) and replays its effects, so several recordings come from the same
+imperfect arm. ``--effect`` values are comma separated, in the units the effect documents
+(``armfusion simulate --help`` lists them; docs/effects.md explains them).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+import yaml
+
+from fusion.configfile import load_arm
+from models.arm import ArmModel
+from models.arm_config import ConfigError, ConfigProblem
+from models.effects import EFFECTS, Model, model_from_entries, parse_effect_option
+from models.simulator import simulate as simulate_recording
+from models.trajectories import SCENARIOS
+from sensors.recording import write_recording
+
+
+def truth_path(out: str | Path) -> Path:
+    """``REC.csv`` -> ``REC.truth.json``."""
+    return Path(out).with_suffix(".truth.json")
+
+
+def load_effect_entries(path: str | Path) -> list[dict]:
+    """The effect entries of a truth file (JSON) or an arm config (YAML ``effects:``)."""
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"effects file not found: {p}")
+    text = p.read_text(encoding="utf-8")
+    try:
+        data = json.loads(text) if p.suffix.lower() == ".json" else yaml.safe_load(text)
+    except (json.JSONDecodeError, yaml.YAMLError) as e:
+        raise ConfigError([ConfigProblem(str(p), "(file)", p.name, f"not valid JSON/YAML: {e}")]) from e
+    entries = data.get("effects") if isinstance(data, dict) else data
+    if not isinstance(entries, list):
+        raise ConfigError([ConfigProblem(str(p), "effects", type(entries).__name__,
+                                         "expected a list of effect entries under 'effects'")])
+    return entries
+
+
+def effects_model(arm: ArmModel, effect_options: list[str] | tuple[str, ...] = (),
+                  effects_file: str | Path | None = None) -> Model | None:
+    """The effects asked for: a file's (if any), then ``--effect`` options over them."""
+    model = None
+    if effects_file is not None:
+        model = model_from_entries(arm, load_effect_entries(effects_file), str(effects_file))
+    if effect_options:
+        problems, entries = [], []
+        for k, text in enumerate(effect_options):
+            try:
+                entries.append(parse_effect_option(text))
+            except ValueError as e:
+                problems.append(ConfigProblem("--effect", f"--effect[{k}]", text, str(e)))
+        if problems:
+            raise ConfigError(problems)
+        given = model_from_entries(arm, entries, "--effect", "--effect")
+        if model is None:
+            model = given
+        else:
+            extra = [e for e in given.effects if e.block_name not in model.index]
+            model = model.with_effects(extra).with_values(given.unpack())
+    return model
+
+
+def simulate(
+    config: str | Path,
+    scenario: str,
+    out: str | Path,
+    duration_s: float | None = None,
+    rate_hz: float = 100.0,
+    seed: int = 0,
+    effect: list[str] | tuple[str, ...] = (),
+    realistic: bool = False,
+    effects_file: str | Path | None = None,
+    noise: bool = True,
+) -> dict[str, Any]:
+    """Simulate and write ``out`` and its truth file; a JSON-ready summary of what was done."""
+    out = Path(out)
+    if out.suffix.lower() not in (".csv", ".mcap"):
+        raise ValueError(f"--out {out}: the recording must end in .csv or .mcap")
+    arm = load_arm(config)
+    model = effects_model(arm, effect, effects_file)
+    t0 = time.perf_counter()
+    rec, truth = simulate_recording(arm, scenario, duration_s, rate_hz, seed, model, realistic, noise)
+    t_sim = time.perf_counter() - t0
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_recording(rec, out)
+    tp = truth_path(out)
+    tp.write_text(truth_json(truth), encoding="utf-8")
+    t_all = time.perf_counter() - t0
+    return {
+        "out": str(out), "truth": str(tp), "config": arm.source, "arm": arm.name,
+        "scenario": truth["scenario"], "duration_s": truth["duration_s"], "rate_hz": rate_hz,
+        "seed": seed, "realistic": realistic, "noise": noise,
+        "effects": [f"{e['target']}.{e['effect']}" for e in truth["effects"]],
+        "streams": {k: v["samples"] for k, v in truth["streams"].items()},
+        "simulate_s": round(t_sim, 3), "total_s": round(t_all, 3),
+        "bytes": out.stat().st_size,
+    }
+
+
+def truth_json(truth: dict) -> str:
+    """The truth dict as JSON, indented, with short lists of numbers kept on one line."""
+    text = json.dumps(truth, indent=1, default=_json_default)
+    num = r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?"
+    flat = re.compile(r"\[\s*(" + num + r"(?:,\s*" + num + r")*)\s*\]")
+    inner = re.compile(r"\[\s*(\[[^\[\]]*\](?:,\s*\[[^\[\]]*\])*)\s*\]")
+    text = flat.sub(lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
+    text = inner.sub(lambda m: "[" + re.sub(r",\s*", ", ", m.group(1)) + "]", text)
+    return text + "\n"
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _effects_help() -> str:
+    rows = []
+    for name, cls in EFFECTS.items():
+        rows.append(f"{name} ({cls.target_kind}; {', '.join(cls.labels)} in {cls.units})")
+    return "; ".join(rows)
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``simulate`` command to ``app``."""
+    from rich.console import Console
+    from rich.table import Table
+
+    @app.command("simulate")
+    def simulate_command(
+        scenario: Annotated[str, typer.Option("--scenario", "-s", help="Scenario: " + "; ".join(
+            f"{k} ({v.description}, {v.default_duration_s:g} s)" for k, v in SCENARIOS.items()))],
+        out: Annotated[Path, typer.Option("--out", "-o", help="Recording to write: REC.csv or REC.mcap "
+                                          "(and REC.truth.json beside it).")],
+        config: Annotated[str, typer.Option("--config", "-c", help="Arm config: a shipped name "
+                                            "(wmra, crs_a465) or a YAML path.")] = "wmra",
+        duration: Annotated[float | None, typer.Option("--duration", help="Seconds (default: the "
+                                                       "scenario's).")] = None,
+        rate: Annotated[float, typer.Option("--rate", help="Sample rate of every device [Hz].")] = 100.0,
+        seed: Annotated[int, typer.Option("--seed", help="Seed: the same seed, the same motion, "
+                                          "effects and noise.")] = 0,
+        effect: Annotated[list[str] | None, typer.Option(
+            "--effect", help="NAME[:TARGET]=VALUE, vector values comma separated, in the effect's "
+            "units; repeatable. Effects: " + _effects_help())] = None,
+        realistic: Annotated[bool, typer.Option("--realistic", help="Draw every effect on every "
+                                                "target at datasheet-typical magnitudes (seeded).")] = False,
+        effects_file: Annotated[Path | None, typer.Option("--effects-file", help="Replay the effects "
+                                                          "of a REC.truth.json (or a config's effects list).")] = None,
+        noise: Annotated[bool, typer.Option("--noise/--no-noise", help="Sensor noise (rounding and "
+                                            "saturation always).")] = True,
+        json_out: Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON document.")] = False,
+    ) -> None:
+        """Simulate a recording of the arm's sensors (raw counts, truth columns, truth file)."""
+        err = Console(stderr=True)
+        try:
+            summary = simulate(config, scenario, out, duration, rate, seed, effect or (), realistic,
+                               effects_file, noise)
+        except (ConfigError, FileNotFoundError, ValueError) as e:
+            err.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+        if json_out:
+            typer.echo(json.dumps(summary, indent=2, default=_json_default))
+            return
+        con = Console()
+        con.print(f"[bold]{summary['scenario']}[/] on {summary['arm']}: {summary['duration_s']:.1f} s at "
+                  f"{summary['rate_hz']:g} Hz, seed {summary['seed']}"
+                  + (", realistic effects" if summary["realistic"] else "")
+                  + ("" if summary["noise"] else ", no noise"))
+        t = Table(title="Streams written", title_justify="left")
+        t.add_column("stream")
+        t.add_column("samples", justify="right")
+        for k, v in summary["streams"].items():
+            t.add_row(k, str(v))
+        con.print(t)
+        n = len(summary["effects"])
+        con.print(f"Effects: {n}" + (f" ({', '.join(summary['effects'][:6])}{', …' if n > 6 else ''})"
+                                     if n else " (ideal sensors)"))
+        con.print(f"Wrote {summary['out']} ({summary['bytes'] / 1e6:.1f} MB) and {summary['truth']} "
+                  f"in {summary['total_s']:.1f} s (simulation {summary['simulate_s']:.1f} s)")
