@@ -48,6 +48,8 @@ class StartupSettings:
     thesis_detector_g: float = 0.95
     """The thesis's detector: the sensor axis along the joint reads above this (in g)."""
     max_iterations: int = 30
+    profile_above_deg: float = 0.08
+    """Joints with a linear sigma above this get the profile (non-quadratic) check."""
     limit_margin_deg: float = 0.5
     """Readings are noisy: a branch this close outside a limit is still feasible."""
 
@@ -281,25 +283,26 @@ class _Problem:
 
 def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters: int,
                 active: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt on every start at once; ``free (n+2,)`` bool selects the unknowns.
+    """Levenberg-Marquardt on every start at once. ``free`` selects the unknowns: ``(n+2,)``
+    for all starts, or ``(B, n+2)`` per start (a held unknown keeps its start value).
 
     Returns the solutions and their final cost (half sum of squared weighted residuals).
     """
     x = x0.copy()
-    B = x.shape[0]
+    B, p = x.shape
+    M = np.broadcast_to(np.asarray(free, bool), (B, p)).astype(float)
     lam = np.full(B, 1e-3)
     r, J = problem.residuals_and_jacobian(x, active)
     cost = 0.5 * np.sum(r**2, 1)
-    fi = np.flatnonzero(free)
+    eye = np.eye(p)
     for _ in range(iters):
-        Jf = J[:, :, fi]
-        A = np.einsum("bmi,bmj->bij", Jf, Jf)
-        g = np.einsum("bmi,bm->bi", Jf, r)
+        Jm = J * M[:, None, :]
+        A = np.einsum("bmi,bmj->bij", Jm, Jm)
+        g = np.einsum("bmi,bm->bi", Jm, r)
         diag = np.einsum("bii->bi", A)
-        A_damped = A + lam[:, None, None] * np.einsum("bi,ij->bij", diag + 1e-9, np.eye(len(fi)))
-        step = -np.linalg.solve(A_damped, g[..., None])[..., 0]
-        xt = x.copy()
-        xt[:, fi] += step
+        A_damped = A + (lam[:, None] * (diag + 1e-9) * M + (1.0 - M))[:, :, None] * eye
+        step = -np.linalg.solve(A_damped, g[..., None])[..., 0] * M
+        xt = x + step
         rt, Jt = problem.residuals_and_jacobian(xt, active)
         ct = 0.5 * np.sum(rt**2, 1)
         better = ct < cost
@@ -309,6 +312,47 @@ def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters: int,
         if np.all((np.abs(step).max(1) < 1e-7) | (lam > 1e8)):
             break
     return x, cost
+
+
+def _profile_sigma(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.ndarray,
+                   joints: np.ndarray, scale: float = 1.0,
+                   ks: tuple[float, ...] = (3.0, 10.0, 30.0), cap_rad: float = np.pi / 3) -> np.ndarray:
+    """Sigma of each listed joint from the cost itself, not its curvature: hold the joint at
+    +-k linear sigmas (k = 3, 10, 30; at most 60 deg), re-solve everything else, and see how
+    much the fit worsens. Near a singular pair the cost is flatter than quadratic (a long
+    valley) and the linear sigma far too small. The sigma kept is the half-width of the
+    profile-likelihood interval (where the cost has risen by 0.5), at least the linear one."""
+    n = problem.n
+    if len(joints) == 0:
+        return np.zeros(0)
+    m = 2 * len(ks)
+    starts = np.repeat(xb[None], m * len(joints), 0)
+    free = np.ones((m * len(joints), n + 2), bool)
+    offsets = np.zeros((len(joints), m))
+    for i, j in enumerate(joints):
+        d = np.minimum(np.array(ks) * sig[j], cap_rad)
+        offsets[i] = np.concatenate([d, -d])
+        starts[m * i:m * (i + 1), j] += offsets[i]
+        free[m * i:m * (i + 1), j] = False
+    _, cost = _batched_lm(problem, starts, free, 12)
+    dcost = np.maximum(cost.reshape(len(joints), m) - cost_b, 1e-12) / scale**2
+    k = len(ks)
+    d = np.abs(offsets[:, :k])  # (J, k), increasing
+    c = np.minimum(dcost[:, :k], dcost[:, k:])  # the easier side
+    out = np.empty(len(joints))
+    for i in range(len(joints)):
+        # the 1-sigma profile interval: where the fit has worsened by 0.5
+        above = np.flatnonzero(c[i] >= 0.5)
+        if len(above) == 0:  # still inside at the widest point: extrapolate quadratically
+            out[i] = d[i, -1] / np.sqrt(2.0 * c[i, -1])
+        elif above[0] == 0:  # crossed before the first point: quadratic from there
+            out[i] = d[i, 0] / np.sqrt(2.0 * c[i, 0])
+        else:  # between two points: interpolate log(cost) against log(offset)
+            a = above[0]
+            x0, x1 = np.log(d[i, a - 1]), np.log(d[i, a])
+            y0, y1 = np.log(c[i, a - 1]), np.log(c[i, a])
+            out[i] = np.exp(x0 + (np.log(0.5) - y0) * (x1 - x0) / (y1 - y0))
+    return np.maximum(out, sig[joints])
 
 
 def _wrap(a):
@@ -451,7 +495,9 @@ def solve_still(
     # covariance from the weighted Jacobian at the chosen solution
     r, J = problem.residuals_and_jacobian(xb[None])
     r, J = r[0], J[0]
-    dof = max(r.size - int(free.sum()), 1)
+    # a normalised direction carries two constraints, not three; the tilt prior two more
+    n_dir = len(problem.names) + 1  # the IMU's direction, or the level-chair prior
+    dof = max(2 * n_dir - int(free.sum()), 1)
     chi2_dof = float(r @ r / dof)
     locked = locked_any[best]
     # Information from the data, plus the only thing known about a gravity-blind joint: it
@@ -470,6 +516,11 @@ def solve_still(
     cov_r = np.linalg.inv(info + np.diag(prior_info)) * inflate
     cov[np.ix_(cols, cols)] = cov_r
     sig = np.sqrt(np.clip(np.diag(cov), 0, None))
+    # the cost's own verdict on every readable joint (flat valleys near singular pairs)
+    # (well-read joints are quadratic over many sigmas: only the wider ones are checked)
+    readable = np.flatnonzero(~locked & np.isfinite(sig[:n]) & (sig[:n] > st.profile_above_deg * DEG))
+    sig[readable] = _profile_sigma(problem, xb, float(0.5 * r @ r), sig, readable,
+                                   np.sqrt(inflate))
     flags = np.array(["ok"] * n, dtype=object)
     flags[locked] = "gimbal_lock"
     limit = st.sigma_limit_deg * DEG
@@ -672,7 +723,8 @@ def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> Unlock
     sig = _expected_sigma(problem, x).reshape(len(ok_moves), G, -1)[..., :n]
     worst = np.nanmax(sig, 1)  # (M, n)
     clear = ang.min(axis=(1, 2)) >= 2 * st.gimbal_lock_deg
-    # half the limit: the move must leave a margin for noise and for the real pose
+    # a quarter of the limit: a margin for noise, for the real pose, and for branches that
+    # stay close together just past a singular pair
     good = clear & np.all(worst <= 0.5 * st.sigma_limit_deg * DEG, 1)
     if not good.any():
         return None
@@ -730,7 +782,8 @@ def _summary(res: StartupResult) -> str:
 # --------------------------------------------------------------------------------------
 # from a recording
 ADXL345_LSB_PER_G = 256.0
-ADXL345_NOISE_LSB = np.array([0.75, 0.75, 1.1])  # rms per sample at 100 Hz
+# rms per sample at 100 Hz, with the rounding to whole counts (1/12 LSB^2) included
+ADXL345_NOISE_LSB = np.sqrt(np.array([0.75, 0.75, 1.1]) ** 2 + 1.0 / 12.0)
 ADXL345_RAW_LIMITS = (-512, 511)
 MPU9150_ACCEL_LSB_PER_G = 16384.0
 MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ = 400e-6
