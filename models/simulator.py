@@ -31,7 +31,7 @@ from models.arm import ArmModel
 from models.effects import Model, all_effects, entries_from_model, model_from_entries, realistic_values
 from models.effects.base import device_names, device_streams
 from models.rotations import GRAVITY_MPS2
-from models.sensor_models import stream_models
+from models.sensor_models import EARTH_FIELD_TAMPA_UT, stream_models
 from models.trajectories import SCENARIOS, Scenario, make_scenario
 from sensors.samples import (
     TRUTH_BASE_COLUMNS,
@@ -53,17 +53,20 @@ def _rng(seed: int, *path: int) -> np.random.Generator:
 
 
 def build_model(arm: ArmModel, effects: Model | Iterable[Any] | None = None, realistic: bool = False,
-                seed: int = 0, source: str = "(effects)") -> tuple[Model, np.ndarray]:
+                seed: int = 0, source: str = "(effects)",
+                earth_field_ut: np.ndarray = EARTH_FIELD_TAMPA_UT) -> tuple[Model, np.ndarray]:
     """The simulation's true model and its parameters.
 
     ``realistic`` draws every effect of the library on every target at datasheet-typical
     magnitudes (seeded by ``seed``); ``effects`` (a :class:`Model`, or entries as in a
     config's ``effects:`` list) adds effects or overrides drawn values of the same block.
+    ``earth_field_ut``: Earth's field in the world frame (x magnetic north, z up), µT.
     """
-    base = Model(arm)
+    base = Model(arm, earth_field_W_ut=earth_field_ut)
     values: dict[str, np.ndarray] = {}
     if realistic:
-        base = Model(arm, [e for e in all_effects(arm) if e.block_name not in REALISTIC_EXCLUDE])
+        base = Model(arm, [e for e in all_effects(arm) if e.block_name not in REALISTIC_EXCLUDE],
+                     earth_field_W_ut=earth_field_ut)
         values = realistic_values(base, _rng(seed, 1))
     if effects is not None:
         given = effects if isinstance(effects, Model) else model_from_entries(arm, effects, source)
@@ -98,12 +101,15 @@ def simulate(
     noise: bool = True,
     rates_hz: dict[str, float] | None = None,
     scenario_options: dict | None = None,
+    earth_field_ut: np.ndarray = EARTH_FIELD_TAMPA_UT,
 ) -> tuple[Recording, dict]:
     """Simulate ``scenario`` on ``arm`` for ``duration_s`` seconds (default: the scenario's).
 
     Every device samples at ``rate_hz`` unless ``rates_hz`` names it (``acc1``, ``imu``,
     ``enc``…). ``effects``/``realistic``: see :func:`build_model`. ``noise=False`` gives the
-    ideal counts (still rounded and saturated). Returns ``(recording, truth)``.
+    ideal counts (still rounded and saturated). ``scenario_options`` go to the scenario
+    (``startup``: ``pose_rad``). ``earth_field_ut``: Earth's field, world frame (default
+    Tampa). Returns ``(recording, truth)``.
     """
     if not rate_hz > 0:
         raise ValueError(f"rate must be positive, got {rate_hz!r} Hz")
@@ -115,7 +121,7 @@ def simulate(
         if scenario not in SCENARIOS:
             raise ValueError(f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
         sc = make_scenario(arm, scenario, duration_s, seed, **(scenario_options or {}))
-    model, x = build_model(arm, effects, realistic, seed)
+    model, x = build_model(arm, effects, realistic, seed, earth_field_ut=earth_field_ut)
     rates = {d: float(rate_hz) for d in device_names(arm)}
     for d, r in (rates_hz or {}).items():
         if d not in rates:

@@ -295,6 +295,15 @@ def test_every_effect_explains_itself(wmra):
         assert np.all(e.default_sigma() > 0)
 
 
+def test_the_manual_documents_every_effect_and_its_units():
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "effects.md").read_text()
+    for name, cls in EFFECTS.items():
+        assert f"| `{name}` |" in text and f"**`{name}`**" in text, name
+        assert f"`{cls.key}`" in text, cls.key
+
+
 # --------------------------------------------------------------------------------------
 # effects in the arm config
 def _config_with(wmra_data, effects):

@@ -220,3 +220,12 @@ def test_daily_use_drives_turns_and_climbs_ramps_like_a_wheelchair(wmra):
     assert np.degrees(np.abs(st.qd_rad_s).max()) <= 25.0 + 1e-6
     whats = " ".join(e["what"] for e in sc.events)
     assert "ramp" in whats and "turn" in whats and "arm reaches" in whats
+
+
+def test_the_plot_script_draws_a_simulated_recording(wmra, tmp_path):
+    from tools.plot_recording import plot_recording
+
+    rec, truth = simulate(wmra, "daily-use", duration_s=40, seed=6, realistic=True)
+    out = plot_recording(rec, tmp_path / "rec.png", wmra, truth)
+    data = out.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 50_000
