@@ -10,8 +10,8 @@ Scenarios (``make_scenario(arm, name, …)``):
 
 - ``startup``: one still pose (the arm's ready pose by default), the chair parked.
 - ``static-poses``: K random still poses inside the joint limits (a quarter of them with
-  a joint axis within 3° of vertical: gimbal lock), each held a few seconds, with slow
-  minimum-jerk moves between them.
+  a joint axis within 3° of vertical, for the chair's actual tilt: gimbal lock), each
+  held a few seconds, with slow minimum-jerk moves between them.
 - ``renk-maneuver``: the sensor-calibration article's sweep, scaled to this arm: the
   first joint sweeps slowly ("yaw", the article's 3.1 °/s on average), the last joint
   rolls continuously (13.9 °/s), the joints between nod (0.87-5 °/s), each a sinusoid of
@@ -39,7 +39,7 @@ import numpy as np
 from models.arm import ArmModel
 from models.kinematics import joint_axis_angle_to_vertical
 from models.motion import MotionState, body_rates_from_rpy, cross
-from models.rotations import R_from_rpy
+from models.rotations import R_from_rpy, up_in_base
 
 DEG = np.pi / 180.0
 
@@ -372,14 +372,18 @@ def startup(arm: ArmModel, duration_s: float, rng: np.random.Generator, pose_rad
 
 
 def random_still_poses(arm: ArmModel, k: int, rng: np.random.Generator,
-                       near_lock_share: float = 0.25, lock_deg: float = 3.0) -> np.ndarray:
+                       near_lock_share: float = 0.25, lock_deg: float = 3.0,
+                       up_0: np.ndarray | None = None) -> np.ndarray:
     """``k`` poses inside the limits; a share of them with some joint axis within
-    ``lock_deg`` of vertical (level base), picked from a large random pool."""
+    ``lock_deg`` of vertical (``up_0``: world up in the base frame; default level), picked
+    from a large random pool."""
     lo, hi = _margin_limits(arm)
     pool = rng.uniform(lo, hi, size=(max(20000, 50 * k), arm.n_joints))
-    ang = joint_axis_angle_to_vertical(arm, pool)  # (P, n)
-    always = np.all(ang < 1e-6, axis=0)  # joints vertical whatever the pose: not a "near lock"
-    ang = np.where(always, np.inf, ang)
+    ang = joint_axis_angle_to_vertical(arm, pool, up_0)  # (P, n)
+    # a joint whose axis is fixed in the base (the first) is as near vertical as the chair's
+    # tilt makes it, whatever the pose: not what "a pose near gimbal lock" means
+    fixed = np.ptp(ang, axis=0) < 1e-9
+    ang = np.where(fixed, np.inf, ang)
     near = np.flatnonzero(ang.min(axis=1) < lock_deg * DEG)
     n_near = min(len(near), int(round(near_lock_share * k)))
     chosen_near = rng.choice(near, size=n_near, replace=False) if n_near else np.array([], int)
@@ -391,7 +395,9 @@ def random_still_poses(arm: ArmModel, k: int, rng: np.random.Generator,
 
 def static_poses(arm: ArmModel, duration_s: float, rng: np.random.Generator,
                  hold_s: float = 4.0, peak_rate_rad_s: float = 30 * DEG) -> Scenario:
-    poses = random_still_poses(arm, max(1, int(duration_s // (hold_s + 3.0)) + 1), rng)
+    base = _parked(rng)
+    up_0 = up_in_base(base.rpy[0], base.rpy[1])
+    poses = random_still_poses(arm, max(1, int(duration_s // (hold_s + 3.0)) + 1), rng, up_0=up_0)
     b = StepsBuilder(poses[0])
     events = []
     for k, q in enumerate(poses):
@@ -403,10 +409,10 @@ def static_poses(arm: ArmModel, duration_s: float, rng: np.random.Generator,
         events.append({"t_start_s": round(t0, 3), "t_end_s": round(b.t, 3), "what": f"still pose {k}",
                        "pose_deg": np.degrees(q).round(3).tolist(),
                        "min_axis_to_vertical_deg": float(np.degrees(
-                           joint_axis_angle_to_vertical(arm, q).min()))})
+                           joint_axis_angle_to_vertical(arm, q, up_0).min()))})
         if b.t >= duration_s:
             break
-    return Scenario("static-poses", arm, duration_s, WaypointPath(b.build()), _parked(rng), warm_up(),
+    return Scenario("static-poses", arm, duration_s, WaypointPath(b.build()), base, warm_up(),
                     [e for e in events if e["t_start_s"] < duration_s])
 
 

@@ -185,7 +185,7 @@ def test_static_poses_hold_still_and_some_are_near_gimbal_lock(wmra):
     for e in holds[:5]:
         st = sc.state(np.linspace(e["t_start_s"] + 0.01, e["t_end_s"] - 0.01, 50))
         assert np.abs(st.qd_rad_s).max() < 1e-12
-        ang = np.degrees(joint_axis_angle_to_vertical(wmra, st.q_rad[:1])).min()
+        ang = np.degrees(joint_axis_angle_to_vertical(wmra, st.q_rad[:1], st.up_0[:1])).min()
         assert ang == pytest.approx(e["min_axis_to_vertical_deg"], abs=1e-6)
     peak = np.degrees(np.abs(sc.state(np.linspace(0, 300, 30001)).qd_rad_s).max())
     assert peak <= 30.0 + 1e-6  # deg/s: slow moves
