@@ -189,8 +189,10 @@ def inspect(
 
 
 def _register_subcommands() -> None:
+    from fusion import simulate_cmd
     from fusion.calibrate_cmd import calibrate_app
 
+    simulate_cmd.register(app)
     app.add_typer(calibrate_app, name="calibrate")
 
 
