@@ -28,6 +28,7 @@ import numpy as np
 
 from models.arm import ArmModel
 from models.kinematics import chain_poses
+from models.sensor_models import stream_models
 
 FLAGS = ("ok", "ill_conditioned", "gimbal_lock", "ambiguous", "out_of_limits")
 DEG = np.pi / 180.0
@@ -217,7 +218,11 @@ def _subproblem2(w1, w2, p, q) -> list[tuple[float, float]]:
     b = (c12 * (w1 @ q) - w2 @ p) / den
     cr = _cross(w1, w2)
     g2 = (p @ p - a * a - b * b - 2 * a * b * c12) / (cr @ cr)
-    gammas = [0.0] if g2 <= 1e-12 else [np.sqrt(g2), -np.sqrt(g2)]
+    # Near the pair's singularity the two solutions merge, and noise can hide one of them
+    # (g2 < 0). Start on both sides anyway; the polish finds the real minima, and the
+    # duplicates are removed.
+    g_min = 0.02
+    gammas = [np.sqrt(max(g2, g_min)), -np.sqrt(max(g2, g_min))]
     out = []
     for g in gammas:
         c = a * w1 + b * w2 + g * cr
@@ -781,15 +786,6 @@ def _summary(res: StartupResult) -> str:
 
 # --------------------------------------------------------------------------------------
 # from a recording
-ADXL345_LSB_PER_G = 256.0
-# rms per sample at 100 Hz, with the rounding to whole counts (1/12 LSB^2) included
-ADXL345_NOISE_LSB = np.sqrt(np.array([0.75, 0.75, 1.1]) ** 2 + 1.0 / 12.0)
-ADXL345_RAW_LIMITS = (-512, 511)
-MPU9150_ACCEL_LSB_PER_G = 16384.0
-MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ = 400e-6
-MPU9150_RAW_LIMITS = (-32768, 32767)
-
-
 @dataclass(frozen=True)
 class InputCheck:
     """What was wrong with one sensor's still window, and that it was left out."""
@@ -804,81 +800,85 @@ def _sensor_floor_g(arm: ArmModel, name: str) -> float:
     return float(per if per is not None else cal.get("accel_unmodelled_g", 0.0))
 
 
+def _noise_g(model, n_samples: int) -> np.ndarray:
+    """Standard error of a mean of ``n_samples`` counts, in g, rounding to counts included."""
+    return np.sqrt(model.noise_counts_rms**2 + 1.0 / 12.0) / np.abs(model.gain) / np.sqrt(n_samples)
+
+
 def readings_from_recording(
     arm: ArmModel, rec, t_start_s: float, t_end_s: float, window_s: float = 1.0,
     magnitude_range_g: tuple[float, float] = (0.8, 1.2),
 ) -> tuple[StillReadings, list[InputCheck]]:
     """Average every sensor over the last ``window_s`` of a still segment.
 
-    A sensor whose window holds saturated counts, or whose mean is far from 1 g in
-    magnitude (dead, disconnected, or the arm was not still), is left out with a message;
-    the others are kept.
+    Counts become g with each sensor's count model (``models.sensor_models``). A sensor
+    whose window holds saturated counts, or whose mean is far from 1 g in magnitude (dead,
+    disconnected, or the arm was not still), is left out with a message; the others are kept.
     """
     t0 = max(t_start_s, t_end_s - window_s)
     means, sigmas, checks = {}, {}, []
-    for mount in arm.link_accelerometers:
-        s = rec.get(mount.name)
-        if s is None:
-            checks.append(InputCheck(mount.name, f"{mount.name}: no samples in the recording"))
-            continue
-        w = s.between(t0, t_end_s + 1e-9)
-        m, sg, msg = _average(mount.name, w, ADXL345_LSB_PER_G, ADXL345_NOISE_LSB / ADXL345_LSB_PER_G,
-                              ADXL345_RAW_LIMITS, magnitude_range_g, t0, t_end_s)
-        if msg:
-            checks.append(InputCheck(mount.name, msg))
-            continue
-        floor = _sensor_floor_g(arm, mount.name)
-        means[mount.name], sigmas[mount.name] = m, np.sqrt(sg**2 + floor**2)
+    names = [m.name for m in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
+    models = stream_models(arm, {nm: (rec.get(nm).rate_hz or 100.0) if rec.get(nm) is not None
+                                 else 100.0 for nm in names})
     imu_m = imu_s = None
-    s = rec.get("imu_acc")
-    if arm.imu is not None and s is not None:
+    for name in names:
+        label = "imu" if name == "imu_acc" else name
+        s = rec.get(name)
+        if s is None:
+            checks.append(InputCheck(label, (
+                "imu: no accelerometer samples (imu_acc) in the recording; the base tilt rests "
+                "on the link accelerometers alone") if name == "imu_acc"
+                else f"{name}: no samples in the recording"))
+            continue
         w = s.between(t0, t_end_s + 1e-9)
-        rate = w.rate_hz or 100.0
-        noise = np.full(3, MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ * np.sqrt(rate / 2))
-        m, sg, msg = _average("imu", w, MPU9150_ACCEL_LSB_PER_G, noise, MPU9150_RAW_LIMITS,
-                              magnitude_range_g, t0, t_end_s)
+        m, sg, msg = _average(label, w, models[name], magnitude_range_g, t0, t_end_s)
         if msg:
-            checks.append(InputCheck("imu", msg))
-        else:
+            checks.append(InputCheck(label, msg))
+        elif name == "imu_acc":
             imu_m, imu_s = m, sg
-    elif arm.imu is not None:
-        checks.append(InputCheck("imu", "imu: no accelerometer samples (imu_acc) in the recording; "
-                                        "the base tilt rests on the link accelerometers alone"))
+        else:
+            means[name] = m
+            sigmas[name] = np.sqrt(sg**2 + _sensor_floor_g(arm, name) ** 2)
     return StillReadings(means, sigmas, imu_m, imu_s, t0, t_end_s), checks
 
 
-def _average(name, w, lsb_per_g, noise_g, limits, mag_range, t0, t1):
+def _average(name, w, model, mag_range, t0, t1):
     where = f"{name} in t = {t0:.2f}..{t1:.2f} s"
     if len(w) < 3:
         return None, None, f"{where}: only {len(w)} samples; need at least 3"
     v = w.values
-    sat = (v <= limits[0]) | (v >= limits[1])
-    if sat.any():
-        axis = "xyz"[int(np.argmax(sat.sum(0)))]
-        return None, None, (f"{where}: axis {axis} saturated ({int(sat.sum(0).max())} of {len(w)} "
-                            f"samples at the {limits[0]}/{limits[1]} count limit); left out")
-    mean_g = v.mean(0) / lsb_per_g
+    lo, hi = model.counts_min, model.counts_max
+    if lo is not None:
+        sat = (v <= lo) | (v >= hi)
+        if sat.any():
+            axis = "xyz"[int(np.argmax(sat.sum(0)))]
+            return None, None, (f"{where}: axis {axis} saturated ({int(sat.sum(0).max())} of "
+                                f"{len(w)} samples at the {lo:.0f}/{hi:.0f} count limit); left out")
+    mean_g = model.from_counts(v.mean(0, keepdims=True))[0]
     mag = float(np.linalg.norm(mean_g))
     if not mag_range[0] <= mag <= mag_range[1]:
         return None, None, (f"{where}: reads {mag:.3f} g in magnitude while still, expected about "
                             f"1 g: a dead or disconnected sensor, or a wrong scale; left out")
-    return mean_g, noise_g / np.sqrt(len(w)), None
+    return mean_g, _noise_g(model, len(w)), None
 
 
 def readings_from_counts(arm: ArmModel, mean_counts: dict[str, np.ndarray], n_samples: int,
                          rate_hz: float = 100.0) -> StillReadings:
     """Still readings from per-sensor mean counts over ``n_samples`` (no checks): the same
     conversion and sigmas as :func:`readings_from_recording`, for batch tools."""
+    models = stream_models(arm, rate_hz)
     means, sigmas = {}, {}
     for mount in arm.link_accelerometers:
         if mount.name in mean_counts:
-            means[mount.name] = np.asarray(mean_counts[mount.name], float) / ADXL345_LSB_PER_G
-            sg = ADXL345_NOISE_LSB / ADXL345_LSB_PER_G / np.sqrt(n_samples)
-            sigmas[mount.name] = np.sqrt(sg**2 + _sensor_floor_g(arm, mount.name) ** 2)
+            mdl = models[mount.name]
+            means[mount.name] = mdl.from_counts(np.asarray(mean_counts[mount.name], float)[None])[0]
+            sigmas[mount.name] = np.sqrt(_noise_g(mdl, n_samples) ** 2
+                                         + _sensor_floor_g(arm, mount.name) ** 2)
     imu_m = imu_s = None
-    if "imu_acc" in mean_counts:
-        imu_m = np.asarray(mean_counts["imu_acc"], float) / MPU9150_ACCEL_LSB_PER_G
-        imu_s = np.full(3, MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ * np.sqrt(rate_hz / 2) / np.sqrt(n_samples))
+    if "imu_acc" in mean_counts and "imu_acc" in models:
+        mdl = models["imu_acc"]
+        imu_m = mdl.from_counts(np.asarray(mean_counts["imu_acc"], float)[None])[0]
+        imu_s = _noise_g(mdl, n_samples)
     return StillReadings(means, sigmas, imu_m, imu_s)
 
 
