@@ -293,6 +293,7 @@ class SensorEffect(Effect):
     """Changes a stream's physical value ``y (N, k)`` in the sensor's own axes."""
 
     stage = "sensor"
+    input_is_diagonal: ClassVar[bool] = False  # jac_input is diagonal (a per-axis scale)
 
     def apply(self, y: np.ndarray, theta: np.ndarray, ctx: Context, stream: str) -> np.ndarray:
         raise NotImplementedError

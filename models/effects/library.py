@@ -89,6 +89,7 @@ class AccelBias(_AccelEffect):
 
 
 class AccelScale(_AccelEffect):
+    input_is_diagonal = True
     name = "accel_scale"
     rank = 30
     key = "scale_error"
@@ -386,6 +387,7 @@ class Backlash(JointEffect):
 
 
 class EncoderScale(SensorEffect):
+    input_is_diagonal = True
     name = "encoder_scale"
     rank = 30
     key = "scale_error"
@@ -527,6 +529,7 @@ class GyroBias(_ImuEffect):
 
 
 class GyroScale(_ImuEffect):
+    input_is_diagonal = True
     name = "gyro_scale"
     rank = 30
     key = "scale_error"

@@ -269,42 +269,50 @@ class Model:
                 if s in offset:
                     offset[s] = float(th[e.block_name][0])
                     tblock[s] = e.block_name
+        want_t = {s: b for s, b in tblock.items() if want is not None and b in want}
         pred: dict[str, np.ndarray] = {}
-        jac: Jacobian = {}
+        jac: dict[str, _StreamJac] = {}
         if state_at is None:
-            p, j = self._evaluate(state, th, streams, q0, want)
+            p, j = self._evaluate(state, th, streams, q0, want, want_t)
             for s in streams:
-                y, J = p[s], j.get(s, {})
-                if s in tblock and (offset[s] != 0.0 or (want and tblock[s] in want)):
+                y, J = p[s], j.get(s)
+                if s in tblock and (offset[s] != 0.0 or s in want_t):
                     tau = offset[s]
                     ydot = _gradient_t(y, state.t_s)
-                    if want is not None:
-                        J = {b: v - tau * _gradient_t(v, state.t_s) for b, v in J.items()}
-                        if tblock[s] in want:
-                            J[tblock[s]] = -ydot[..., None]
+                    if J is not None:
+                        if tau != 0.0:
+                            J.minus_time_derivative(tau, state.t_s)
+                        if s in want_t:
+                            J.set(want_t[s], -ydot[..., None])
                     y = y - tau * ydot
-                pred[s], jac[s] = y, J
+                pred[s] = y
+                if J is not None:
+                    jac[s] = J
         else:
             groups: dict[float, list[str]] = {}
             for s in streams:
                 groups.setdefault(offset[s], []).append(s)
             for tau, ss in groups.items():
                 st = state if tau == 0.0 else state_at(state.t_s - tau)
-                p, j = self._evaluate(st, th, tuple(ss), q0, want)
+                p, j = self._evaluate(st, th, tuple(ss), q0, want, want_t)
                 for s in ss:
-                    J = j.get(s, {})
-                    if want is not None and s in tblock and tblock[s] in want:
-                        J[tblock[s]] = -_gradient_t(p[s], state.t_s)[..., None]
-                    pred[s], jac[s] = p[s], J
+                    J = j.get(s)
+                    if J is not None and s in want_t:
+                        J.set(want_t[s], -_gradient_t(p[s], state.t_s)[..., None])
+                    pred[s] = p[s]
+                    if J is not None:
+                        jac[s] = J
         pred = {s: pred[s] for s in streams}
         if units == "counts":
             sm = self._stream_models
             for s in streams:
                 g, z = sm[s].gain, sm[s].zero
                 pred[s] = pred[s] * g + z
-                if want is not None:
-                    jac[s] = {b: v * g[None, :, None] for b, v in jac[s].items()}
-        return pred, (jac if want is not None else {})
+                if s in jac:
+                    jac[s].scale(g)
+        if want is None:
+            return pred, {}
+        return pred, {s: (jac[s].blocks() if s in jac else {}) for s in streams}
 
     def context(self, state: MotionState, x: np.ndarray | None = None,
                 streams: Sequence[str] | None = None) -> Context:
@@ -316,13 +324,13 @@ class Model:
 
     def _prepare(self, state: MotionState, th, streams, want):
         """Stages 1-3: joint effects, mounts, kinematics. Returns the context, the joint
-        blocks' ``dq_geom/dθ`` and (when Jacobians are wanted) ``df/dq_geom``."""
+        blocks' ``d q_geom[j] / dθ`` as ``{block: (j, (N, p))}`` and (when Jacobians are
+        wanted) ``df/dq_geom``."""
         arm = self.arm
         ctx = Context(arm, state, self.masses, self.earth_field_W_ut)
-        N = state.N
         want_jac = want is not None
         # 1. joints
-        Jq: dict[str, np.ndarray] = {}
+        Jq: dict[str, tuple[int, np.ndarray]] = {}
         link_acc = {s.name for s in arm.link_accelerometers}
         geometric = any(s in link_acc for s in streams) or "imu_mag" in streams
         joint_stage = bool(self._joint) and geometric
@@ -332,9 +340,7 @@ class Model:
                 t = th[e.block_name]
                 q[:, e.j] += e.delta(state.q_rad, t, ctx)
                 if want_jac and e.block_name in want:
-                    Jb = np.zeros((N, arm.n_joints, e.size))
-                    Jb[:, e.j, :] = e.delta_jac_params(state.q_rad, t, ctx)
-                    Jq[e.block_name] = Jb
+                    Jq[e.block_name] = (e.j, e.delta_jac_params(state.q_rad, t, ctx))
             ctx.q_geom = q
         # 2. mounts, 3. kinematics
         sensors = [s for s in streams if s in link_acc]
@@ -353,32 +359,46 @@ class Model:
             ctx.lm = link_motion(arm, gstate)
             ctx.sm = sensor_motion(arm, gstate, sensors, R_LS, p_LS, lm=ctx.lm)
             ctx.sensor_index = {s: i for i, s in enumerate(sensors)}
-            if want_jac and Jq:
+            if want_jac and Jq and any(s in link_acc for s in sensors):
                 dfdq = specific_force_jacobian(arm, gstate, sensors, ctx.lm, ctx.sm)
         return ctx, Jq, dfdq
 
-    def _evaluate(self, state: MotionState, th, streams, q0, want):
-        """Stages 1-4 for one state; physical values and (if ``want``) Jacobians."""
+    def _blocks_reaching(self, s: str, want, Jq, time_block: str | None) -> list[tuple[str, int]]:
+        """The wanted blocks that reach stream ``s``, in the order they enter the pipeline."""
+        arm = self.arm
+        link_acc = {m.name: m for m in arm.link_accelerometers}
+        out: list[tuple[str, int]] = []
+        sensor = s if s in link_acc else (arm.imu.name if s == "imu_acc" else None)
+        moved_by_q = (s in link_acc and link_acc[s].link > 0) or (
+            s == "imu_mag" and any(e.name == "mag_arm_disturbance" for e in self._sensor))
+        if moved_by_q:
+            out += [(b, row.shape[1]) for b, (_, row) in Jq.items()]
+        if sensor is not None:
+            out += [(e.block_name, e.size) for e in self._mount
+                    if e.target == sensor and e.block_name in want]
+        out += [(e.block_name, e.size) for e in self._sensor
+                if s in e.streams and e.block_name in want]
+        if time_block is not None:
+            out.append((time_block, 1))
+        return out
+
+    def _evaluate(self, state: MotionState, th, streams, q0, want, want_t=None):
+        """Stages 1-4 for one state; physical values and (if ``want``) each stream's
+        Jacobian as one array (a linear stage applies to all blocks at once)."""
         arm = self.arm
         imu = arm.imu
         want_jac = want is not None
         link_acc = {s.name for s in arm.link_accelerometers}
         ctx, Jq, dfdq = self._prepare(state, th, streams, want)
+        N = state.N
         pred: dict[str, np.ndarray] = {}
-        jac: Jacobian = {}
+        jac: dict[str, _StreamJac] = {}
         for s in streams:
-            J: dict[str, np.ndarray] = {}
+            J = None
             if s in link_acc or s == "imu_acc":
                 name = s if s in link_acc else imu.name
                 i = ctx.sensor(name)
                 y = ctx.sm.specific_force_g[:, i]
-                if want_jac:
-                    if dfdq is not None and arm.sensor(name).link > 0:
-                        for b, Jb in Jq.items():
-                            J[b] = np.einsum("nkq,nqp->nkp", dfdq[:, i], Jb)
-                    for e in self._mount:
-                        if e.target == name and e.block_name in want:
-                            J[e.block_name] = e.jac_params(ctx)
             elif s == "imu_gyro":
                 y = ctx.sm.omega_S_rad_s[:, ctx.sensor(imu.name)]
             elif s == "imu_mag":
@@ -390,24 +410,88 @@ class Model:
                 y = state.q_rad - q0
             else:  # pragma: no cover - stream_names guards this
                 raise KeyError(s)
+            if want_jac:
+                J = _StreamJac(N, y.shape[1], self._blocks_reaching(s, want, Jq, (want_t or {}).get(s)))
+                if s in link_acc and dfdq is not None and arm.sensor(s).link > 0:
+                    i = ctx.sensor(s)
+                    for b, (j, row) in Jq.items():
+                        J.set(b, dfdq[:, i, :, j, None] * row[:, None, :])
+                if s in link_acc or s == "imu_acc":
+                    name = s if s in link_acc else imu.name
+                    for e in self._mount:
+                        if e.target == name and e.block_name in want:
+                            J.set(e.block_name, e.jac_params(ctx))
             # 4. sensor effects, by rank
             for e in self._sensor:
                 if s not in e.streams:
                     continue
                 t = th[e.block_name]
-                if want_jac:
+                if J is not None:
                     A = e.jac_input(y, t, ctx, s)
                     if A is not None:
-                        J = {b: np.einsum("nij,njp->nip", A, v) for b, v in J.items()}
+                        J.map(A, e.input_is_diagonal)
                     Q = e.jac_q(y, t, ctx, s) if Jq else None
                     if Q is not None:
-                        for b, Jb in Jq.items():
-                            d = np.einsum("nkq,nqp->nkp", Q, Jb)
-                            J[b] = J[b] + d if b in J else d
+                        for b, (j, row) in Jq.items():
+                            J.add(b, Q[:, :, j, None] * row[:, None, :])
                     if e.block_name in want:
-                        P = e.jac_params(y, t, ctx, s)
-                        J[e.block_name] = J[e.block_name] + P if e.block_name in J else P
+                        J.add(e.block_name, e.jac_params(y, t, ctx, s))
                 y = e.apply(y, t, ctx, s)
             pred[s] = y
-            jac[s] = J
+            if J is not None:
+                jac[s] = J
         return pred, jac
+
+
+class _StreamJac:
+    """One stream's Jacobian while it is built: every block that reaches the stream side
+    by side in one array, in the order blocks enter the pipeline, so a linear stage maps
+    all of them at once (and only the columns already filled). Stored ``(P, N, k)`` so
+    that a stage's constant matrix is one contiguous matrix product."""
+
+    def __init__(self, N: int, k: int, blocks: list[tuple[str, int]]):
+        self.cols: dict[str, slice] = {}
+        c = 0
+        for b, p in blocks:
+            self.cols[b] = slice(c, c + p)
+            c += p
+        self.arr = np.zeros((c, N, k))
+        self.filled = 0
+
+    def set(self, block: str, v: np.ndarray) -> None:
+        """Block ``block`` := ``v (N, k, p)``."""
+        sl = self.cols[block]
+        self.arr[sl] = np.moveaxis(v, -1, 0)
+        self.filled = max(self.filled, sl.stop)
+
+    def add(self, block: str, v: np.ndarray) -> None:
+        sl = self.cols[block]
+        self.arr[sl] += np.moveaxis(v, -1, 0)
+        self.filled = max(self.filled, sl.stop)
+
+    def map(self, A: np.ndarray, diagonal: bool = False) -> None:
+        """``J <- A J`` for ``A (N, k, k)``; one matrix product when A is the same for all N,
+        a product of elements when A is diagonal."""
+        f = self.filled
+        if f == 0:
+            return
+        X = self.arr[:f]
+        if diagonal:
+            X *= np.einsum("nii->ni", A)
+        elif A.ndim == 3 and A.strides[0] == 0:  # a broadcast constant matrix
+            k = X.shape[-1]
+            self.arr[:f] = (X.reshape(-1, k) @ A[0].T).reshape(X.shape)
+        else:
+            self.arr[:f] = np.einsum("nij,pnj->pni", A, X)
+
+    def scale(self, g: np.ndarray) -> None:
+        self.arr *= g
+
+    def minus_time_derivative(self, tau: float, t: np.ndarray) -> None:
+        """``J <- J - tau dJ/dt`` (the first-order time offset)."""
+        if self.arr.shape[1] > 1:
+            self.arr -= tau * np.gradient(self.arr, t, axis=1, edge_order=2 if len(t) > 2 else 1)
+
+    def blocks(self) -> dict[str, np.ndarray]:
+        """``{block: (N, k, p)}`` (views)."""
+        return {b: np.moveaxis(self.arr[sl], 0, -1) for b, sl in self.cols.items()}
