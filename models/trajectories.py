@@ -422,31 +422,44 @@ RENK_RATES_DEG_S = {"yaw": 3.1, "pitch": 0.87, "roll": 13.9}
 
 
 def renk_maneuver(arm: ArmModel, duration_s: float, rng: np.random.Generator,
-                  still_s: float = 5.0, fade_s: float = 20.0) -> Scenario:
-    """First joint: slow sweep over most of its range at the article's 3.1 °/s average;
-    last joint: roll at 13.9 °/s; the joints between nod at rates spread from the
+                  still_s: float = 5.0, fade_s: float = 20.0, joints=None) -> Scenario:
+    """First moving joint: slow sweep over most of its range at the article's 3.1 °/s
+    average; last: roll at 13.9 °/s; the joints between nod at rates spread from the
     article's 0.87 °/s to 5 °/s. Incommensurate periods make the sensors pass through many
-    orientations (the article's Fig. 2)."""
+    orientations (the article's Fig. 2).
+
+    ``joints`` (names or 0-based indices) moves only those, the others held at the ready
+    pose: the article's own experiment is ``joints=["j1", "j5", "j6"]`` on
+    ``config/crs_a465.yaml``, whose ready pose holds joints 2-4 at 90°, -180°, 0°.
+    """
     n = arm.n_joints
+    moving = list(range(n)) if joints is None else [
+        arm.joint_names.index(j) if isinstance(j, str) else int(j) for j in joints]
+    if not moving:
+        raise ValueError("renk-maneuver: give at least one joint to move")
+    m = len(moving)
     lo, hi = _margin_limits(arm)
-    center = 0.5 * (lo + hi)
+    center = np.array(arm.ready_pose_rad, dtype=float)
+    center[moving] = (0.5 * (lo + hi))[moving]
     half = 0.5 * (hi - lo)
-    amp = 0.45 * half
-    rates = np.empty(n)
-    rates[1:-1] = np.linspace(RENK_RATES_DEG_S["pitch"], 5.0, max(n - 2, 0))
-    amp[0] = 0.9 * half[0]
-    amp[-1] = 0.9 * half[-1]
-    rates[0] = RENK_RATES_DEG_S["yaw"]
-    rates[-1] = RENK_RATES_DEG_S["roll"]
+    amp = np.zeros(n)
+    rates = np.zeros(n)
+    amp[moving] = 0.45 * half[moving]
+    rates[moving[1:-1]] = np.linspace(RENK_RATES_DEG_S["pitch"], 5.0, max(m - 2, 0))
+    amp[moving[0]] = 0.9 * half[moving[0]]
+    rates[moving[0]] = RENK_RATES_DEG_S["yaw"]
+    if m > 1:
+        amp[moving[-1]] = 0.9 * half[moving[-1]]
+        rates[moving[-1]] = RENK_RATES_DEG_S["roll"]
     amp = np.minimum(amp, np.pi)
-    freq = rates * DEG / (4.0 * amp)  # mean |rate| of a sinusoid: 4·A·f
+    freq = np.divide(rates * DEG, 4.0 * amp, out=np.zeros(n), where=amp > 0)  # mean |rate| = 4·A·f
     phase = rng.uniform(0, 2 * np.pi, n)
     path = SinePath(center, amp, freq, phase, still_s, fade_s)
     # start from rest at the sinusoid's value at fade-in: q(0) = center (envelope 0)
     events = [{"t_start_s": 0.0, "t_end_s": still_s, "what": "still at the sweep's centre"},
               {"t_start_s": still_s, "t_end_s": duration_s,
                "what": "renk sweep: " + ", ".join(f"{arm.joint_names[i]} ±{np.degrees(amp[i]):.0f}° "
-                                                  f"at {rates[i]:.2f}°/s" for i in range(n))}]
+                                                  f"at {rates[i]:.2f}°/s" for i in moving)}]
     return Scenario("renk-maneuver", arm, duration_s, path, _parked(rng, 0.5 * DEG), warm_up(), events)
 
 

@@ -206,6 +206,17 @@ def test_renk_maneuver_has_the_articles_rates(wmra):
         assert np.abs(norm - 1).max() < 0.02
 
 
+def test_renk_maneuver_on_the_articles_own_arm(crs):
+    """Joints 1, 5, 6 move (yaw, pitch, roll) at the article's rates; 2-4 stay locked."""
+    sc = make_scenario(crs, "renk-maneuver", seed=0, joints=["j1", "j5", "j6"])
+    t = np.arange(30.0, sc.duration_s, 0.25)
+    st = sc.state(t)
+    np.testing.assert_allclose(np.degrees(st.q_rad[:, 1:4]), np.broadcast_to([90, -180, 0], (len(t), 3)),
+                               atol=1e-9)
+    rate = np.degrees(np.abs(st.qd_rad_s).mean(axis=0))
+    np.testing.assert_allclose(rate[[0, 4, 5]], [3.1, 0.87, 13.9], rtol=0.1)
+
+
 def test_daily_use_drives_turns_and_climbs_ramps_like_a_wheelchair(wmra):
     sc = make_scenario(wmra, "daily-use", duration_s=1200, seed=2)
     t = np.arange(0, 1200, 0.02)
