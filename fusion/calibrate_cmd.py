@@ -20,7 +20,13 @@ from fusion.cli import (
     read_recording_or_exit,
 )
 from fusion.pose_store import load_pose, save_pose
-from fusion.startup import StartupInputError, StartupSettings, readings_from_recording, solve_still
+from fusion.startup import (
+    StartupInputError,
+    StartupSettings,
+    readings_from_recording,
+    solve_still,
+    still_correction,
+)
 from fusion.static import StaticDetectionSettings, find_static_segments
 
 calibrate_app = typer.Typer(help="Calibrate: joint angles from a still arm, or the sensors.",
@@ -61,11 +67,22 @@ def calibrate_joints(
     if not segments:
         segs = segs[:1]
     out = []
+    temp = rec.get("imu_temp")
+    temperature_c = float(np.mean(temp.values) / 340.0 + 35.0) if temp is not None and len(temp) else 25.0
+    try:
+        corr = still_correction(arm, temperature_c)
+    except (ValueError, KeyError) as e:
+        fail(f"{arm.source}: effects: {e}")
+    if corr.applied:
+        notes.append("applied from the config: " + ", ".join(corr.applied))
+    if corr.not_applied:
+        notes.append("not applied to a still arm: " + ", ".join(corr.not_applied))
     for seg in segs:
         readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
+        readings = corr.correct(readings)
         seg_notes = [c.message for c in checks]
         try:
-            res = solve_still(arm, readings, st, prior_q_rad=prior_q, method=method)
+            res = solve_still(corr.arm, readings, st, prior_q_rad=prior_q, method=method)
         except StartupInputError as e:
             out.append({"t_start": seg.t_start_s, "t_end": seg.t_end_s, "error": str(e),
                         "notes": seg_notes})

@@ -893,3 +893,98 @@ def check_readings(readings: StillReadings) -> None:
                 f"{name}: reads {mag:.3f} g in magnitude while still, expected about 1 g")
     if readings.imu_mean_g is not None and not np.all(np.isfinite(readings.imu_mean_g)):
         raise StartupInputError(f"imu: reading {np.asarray(readings.imu_mean_g).tolist()} is not finite")
+
+
+# --------------------------------------------------------------------------------------
+# the config's calibrated effects
+@dataclass(frozen=True)
+class StillCorrection:
+    """The config's effects, made ready for a standstill: an arm whose joint zeros and
+    sensor mounts carry the calibrated offsets and rotations, and for each accelerometer
+    stream the affine map its calibrated output errors apply (``y_meas = A y + b``)."""
+
+    arm: ArmModel
+    affine: dict[str, tuple[np.ndarray, np.ndarray]]
+    applied: tuple[str, ...]
+    not_applied: tuple[str, ...]
+
+    def correct(self, readings: StillReadings) -> StillReadings:
+        """Readings with the output errors taken out: ``y = A^-1 (y_meas - b)``."""
+        def undo(stream, m, s):
+            if stream not in self.affine or m is None:
+                return m, s
+            A, b = self.affine[stream]
+            Ai = np.linalg.inv(A)
+            return Ai @ (np.asarray(m, float) - b), np.abs(Ai) @ np.asarray(s, float)
+
+        means, sigmas = {}, {}
+        for name, m in readings.accel_mean_g.items():
+            means[name], sigmas[name] = undo(name, m, readings.accel_sigma_g[name])
+        imu_m, imu_s = undo("imu_acc", readings.imu_mean_g, readings.imu_sigma_g)
+        return StillReadings(means, sigmas, imu_m, imu_s, readings.t_start_s, readings.t_end_s)
+
+
+def still_correction(arm: ArmModel, temperature_c: float = 25.0) -> StillCorrection:
+    """What the config's ``effects:`` change for a still arm.
+
+    Applied: ``joint_offset`` (into the joint's zero), every mount effect
+    (``mount_rotation``, ``base_mount``, lever arms), and every output effect of an
+    accelerometer stream (bias, scale, axis directions, temperature drift at
+    ``temperature_c``). Not applied, and listed: effects that need motion or a pose-
+    dependent load (link compliance, backlash, time offsets, gyro and magnetometer effects).
+    """
+    from models.effects import model_from_arm
+    from models.effects.base import JointEffect, MountEffect, SensorEffect
+    from models.motion import MotionState
+
+    if not arm.effects:
+        return StillCorrection(arm, {}, (), ())
+    model = model_from_arm(arm)
+    th = model.unpack()
+    joints = list(arm.joints)
+    mounts = {s.name: (s.R_LS.copy(), s.p_L_m.copy()) for s in arm.sensors}
+    applied, skipped = [], []
+    accel_streams = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu else [])
+    sensor_effects = []
+    for e in model.effects:
+        t = th[e.block_name]
+        if isinstance(e, JointEffect) and e.name == "joint_offset":
+            j = e.j
+            joints[j] = replace(joints[j], offset_rad=joints[j].offset_rad + float(t.reshape(-1)[0]))
+            applied.append(e.block_name)
+        elif isinstance(e, MountEffect) and e.target in mounts:
+            R, p = mounts[e.target]
+            mounts[e.target] = e.apply_mount(R, p, t)
+            applied.append(e.block_name)
+        elif isinstance(e, SensorEffect) and any(s in e.streams for s in accel_streams):
+            sensor_effects.append(e)
+            applied.append(e.block_name)
+        else:
+            skipped.append(e.block_name)
+    sensors = tuple(replace(s, R_LS=_ro(np.asarray(mounts[s.name][0], float)),
+                            p_L_m=_ro(np.asarray(mounts[s.name][1], float))) for s in arm.sensors)
+    arm_eff = replace(arm, joints=tuple(joints), sensors=sensors)
+    affine: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    if sensor_effects:
+        from models.effects.base import Context
+
+        state = MotionState.static(np.tile(arm.ready_pose_rad, (4, 1)), temperature_c=temperature_c)
+        ctx = Context(arm, state)
+        basis = np.vstack([np.zeros(3), np.eye(3)])  # y = 0, e_x, e_y, e_z
+        for stream in accel_streams:
+            y = basis.copy()
+            touched = False
+            for e in sorted(sensor_effects, key=lambda e: e.rank):
+                if stream in e.streams:
+                    y = e.apply(y, th[e.block_name], ctx, stream)
+                    touched = True
+            if touched:
+                b = y[0]
+                affine[stream] = ((y[1:] - b).T, b)
+    return StillCorrection(arm_eff, affine, tuple(applied), tuple(skipped))
+
+
+def _ro(a: np.ndarray) -> np.ndarray:
+    a = a.copy()
+    a.setflags(write=False)
+    return a

@@ -153,3 +153,41 @@ def test_moving_recording_is_refused(tmp_path, wmra, rng):
     r = runner.invoke(app, ["calibrate", "joints", str(path)])
     assert r.exit_code == 2
     assert "no still segment found" in r.stderr and "moving.csv" in r.stderr
+
+
+def test_the_configs_calibrated_effects_are_applied(tmp_path, wmra):
+    """An arm with a biased, rotated accelerometer and a joint zero off by a degree: with
+    those effects in the config the startup is right again; without them it is not."""
+    import yaml
+
+    from fusion.configfile import resolve_config_path
+    from models.simulator import simulate
+
+    effects = [
+        {"effect": "accel_bias", "target": "acc2", "params": {"bias_g": [0.03, -0.02, 0.035]}},
+        {"effect": "mount_rotation", "target": "acc3", "params": {"rotvec_rad": [0.0, 0.03, 0.0]}},
+        {"effect": "joint_offset", "target": "j2", "params": {"offset_rad": [0.017]}},
+        {"effect": "accel_scale", "target": "acc4", "params": {"scale_error": [0.01, -0.012, 0.008]}},
+    ]
+    q = np.radians([30, 40, 20, -50, 60, 30, 100])
+    rec, _ = simulate(wmra, "startup", duration_s=4.0, seed=3, effects=effects,
+                      scenario_options={"pose_rad": q})
+    path = tmp_path / "s.csv"
+    write_recording(rec, path)
+    base = yaml.safe_load(resolve_config_path("wmra").read_text())
+    base["calibration"] = {"accel_unmodelled_g": 0.0}
+    errs = {}
+    for label, eff in (("with", effects), ("without", [])):
+        cfg = tmp_path / f"{label}.yaml"
+        cfg.write_text(yaml.safe_dump({**base, "effects": eff}))
+        r = runner.invoke(app, ["calibrate", "joints", str(path), "--config", str(cfg), "--json"])
+        assert r.exit_code == 0, r.output
+        d = json.loads(r.stdout)
+        seg = d["segments"][0]
+        got = np.array([np.nan if j["angle_rad"] is None else j["angle_rad"] for j in seg["joints"]])
+        errs[label] = np.degrees(np.abs(got - q))
+        if label == "with":
+            assert any("applied from the config: acc2.accel_bias" in n for n in d["notes"])
+            assert all(j["flag"] in ("ok", "ambiguous") for j in seg["joints"])
+    assert np.nanmax(errs["with"]) < 0.15, errs["with"]
+    assert np.nanmax(errs["without"]) > 1.0, errs["without"]
