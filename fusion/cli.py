@@ -191,8 +191,10 @@ def inspect(
 def _register_subcommands() -> None:
     from fusion import simulate_cmd
     from fusion.calibrate_cmd import calibrate_app
+    from fusion.drivers_cmd import register as register_drivers
 
     simulate_cmd.register(app)
+    register_drivers(app)
     app.add_typer(calibrate_app, name="calibrate")
 
 
