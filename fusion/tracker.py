@@ -1,0 +1,1672 @@
+"""Continuous tracking: the absolute joint angles all day, from relative encoders, the link
+accelerometers and the base IMU, with an unscented Kalman filter (:mod:`fusion.ukf`).
+
+The state (:data:`STATE_NAMES`), seeded from the startup calibration:
+
+=================  ====  ============================================================
+block              size  model
+=================  ====  ============================================================
+``offset``         n     each relative encoder's absolute offset, rad:
+                         ``q = counts / counts_per_rad + offset``; a slow random walk
+                         (slips, missed counts)
+``roll, pitch``    2     base tilt, rad; integrated with the gyro
+``accel_B``        3     the base's own linear acceleration (chair driving, turning),
+                         m/s², base axes; first-order Gauss-Markov
+``yaw``            1     base heading, rad from magnetic north; integrated with the gyro
+``gyro_bias``      3     the gyro's zero-rate offset, rad/s; random walk
+=================  ====  ============================================================
+
+Every step:
+
+1. **Encoders** give ``q`` (counts plus the offsets) and, through a causal polynomial
+   differentiator (:class:`CausalDifferentiator`), the joint rates and accelerations.
+2. **Gyro** propagates the attitude (every sigma point, its own bias).
+3. **Link accelerometers and the IMU accelerometer** are predicted with motion
+   compensated, ``f_S = R_0S^T (a_S + a_B + g·up)``: ``a_S`` (the joints' motion and
+   the base's rotation, from :func:`models.motion.sensor_motion`), the base's linear
+   acceleration ``a_B`` from the state (so the IMU accelerometer, which reads it too,
+   separates the chair's acceleration from gravity and the arm's accelerometers stay
+   right while the chair drives). The sigma points differ from the mean only in the
+   offsets, the tilt and ``a_B``: their sensor rotations follow exactly from the mean's by
+   the product-of-exponentials identity ``R_0S(q + δ) = Π_j exp([a_j]x δ_j) R_0S(q)``
+   (axes ``a_j`` of the mean pose), so the kinematics run once per instant, not once per
+   sigma point. See docs/tracking.md.
+4. **Magnetometer** corrects the yaw through the tilt-compensated heading, guarded by
+   :class:`fusion.heading.MagneticGuard` (disturbance detection, rejection, recovery).
+
+Every joint's observability is checked every step (its axis's angle to gravity, and the
+eigen-decomposition of the accelerometers' information about the offsets, per second):
+along directions that the sensors cannot read well (near gimbal lock, or two joints
+that gravity only sees together), the update's gain is held to zero (Schmidt), so no
+correction flows there and the sigma of those joints grows until they are readable
+again. Each sensor has a chi-square gate; a sensor rejected for longer than
+``reacquire_after_s`` (a slip, not a bump) widens the offsets it sees and re-acquires.
+Samples that are not finite, saturated, implausible (far from the predicted magnitude:
+a dead sensor) or stuck are skipped and counted.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import chi2
+
+from fusion.heading import (
+    FieldReference,
+    HeadingSettings,
+    MagneticGuard,
+    heading_sigma_rad,
+    tilt_compensated_heading,
+)
+from fusion.startup import StartupResult
+from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound, wrap_angle
+from models.arm import ArmModel
+from models.motion import MotionState, cross, link_motion, sensor_motion
+from models.rotations import GRAVITY_MPS2, skew
+from models.sensor_models import (
+    MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
+    StreamModel,
+    stream_models,
+)
+from sensors.samples import Recording
+
+DEG = np.pi / 180.0
+G = GRAVITY_MPS2
+
+JOINT_FLAGS: tuple[str, ...] = (
+    "ok", "converging", "out_of_limits", "reacquiring", "ill_conditioned", "unobserved", "gimbal_lock",
+)
+"""Per-joint flags, from least to most severe (a joint shows its most severe one):
+
+- ``ok``: observed, sigma below ``sigma_limit_deg``;
+- ``converging``: observed, but sigma still above the limit (e.g. a joint that was blind
+  at startup and is being read for the first time);
+- ``out_of_limits``: the estimate is outside the joint's limits (plus a margin);
+- ``reacquiring``: a sensor that sees this joint disagreed for longer than a bump
+  lasts (an encoder slip?); its offset was widened and is being read again;
+- ``ill_conditioned``: the sensors read this joint only poorly, or only together with
+  another joint; the unreadable direction is held (no correction flows through it);
+- ``unobserved``: no working accelerometer sees this joint (dead, stuck or stale);
+- ``gimbal_lock``: the joint's axis is within ``gimbal_lock_deg`` of vertical: gravity
+  cannot read it; it is held, and its sigma grows with the offset random walk.
+"""
+SENSOR_STATUS: tuple[str, ...] = ("ok", "rejecting", "stale", "stuck", "dead", "absent")
+"""Per-sensor status: ``ok``; ``rejecting`` (its last sample failed the chi-square gate);
+``stale`` (no sample for ``stale_after_s``); ``stuck`` (identical counts while the
+prediction moved); ``dead`` (implausible readings for ``dead_after_s``); ``absent``
+(never seen)."""
+FLAG_CODE = {f: i for i, f in enumerate(JOINT_FLAGS)}
+STATUS_CODE = {s: i for i, s in enumerate(SENSOR_STATUS)}
+_CONVERGING, _OUT, _REACQ, _ILL, _UNOBSERVED, _GIMBAL = range(1, 7)
+_REJECTING, _STALE, _STUCK, _DEAD, _ABSENT = range(1, 6)
+COUNTERS: tuple[str, ...] = (
+    "samples", "used", "rejected", "nan", "saturated", "implausible", "stuck", "out_of_order",
+    "reacquisitions",
+)
+(C_SAMPLES, C_USED, C_REJECTED, C_NAN, C_SATURATED, C_IMPLAUSIBLE, C_STUCK, C_OUT_OF_ORDER,
+ C_REACQUISITIONS) = range(len(COUNTERS))
+
+ENC = "enc"
+GYRO = "imu_gyro"
+IMU_ACC = "imu_acc"
+MAG = "imu_mag"
+
+
+# --------------------------------------------------------------------------------------
+# settings
+@dataclass(frozen=True)
+class TrackerSettings:
+    """Everything tunable, with units in the names; the defaults suit the WMRA's sensors."""
+
+    # process noise
+    offset_random_walk_deg_per_sqrt_s: float = 0.0035
+    """Each encoder offset's random walk: lets a slip be absorbed in a few seconds while
+    keeping the steady-state sigma near 0.01 deg."""
+    gyro_noise_dps_per_sqrt_hz: float = MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ
+    gyro_bias_random_walk_dps_per_sqrt_s: float = 0.0005
+    base_accel_sigma_mps2: float = 0.7
+    """Steady-state spread of the chair's own acceleration (driving, turning, ramps)."""
+    base_accel_tau_s: float = 5.0
+    """Its correlation time: how long an acceleration typically lasts."""
+    still_gyro_dps: float = 0.5
+    still_accel_g: float = 0.004
+    still_tau_s: float = 0.3
+    """The chair stands still when, averaged over ``still_tau_s``, the gyro reads less than
+    ``still_gyro_dps`` and the IMU accelerometer wanders less than ``still_accel_g`` rms:
+    then its own acceleration is zero, which pins the tilt (a zero-acceleration update)."""
+    still_accel_sigma_mps2: float = 0.1
+    """Noise of that zero-acceleration pseudo-measurement, per sample."""
+    still_accel_q_factor: float = 0.01
+    """While the chair stands still, its acceleration's process noise is scaled by this."""
+    attitude_random_walk_deg_per_sqrt_s: float = 0.5
+    """Used instead of the gyro when there is none."""
+    # measurement noise, on top of each sensor's datasheet noise at its rate
+    accel_floor_g: float = 0.0008
+    """What the model does not capture (sensor errors left after calibration), g rms."""
+    motion_model_fraction: float = 0.04
+    """Share of the predicted motion acceleration taken as extra noise (the differentiator's
+    lag and noise), per axis."""
+    # gating and re-acquisition
+    gate_significance: float = 1e-3
+    """Chi-square gate on each sensor's NIS: probability that a good sample is rejected."""
+    reacquire_after_s: float = 0.4
+    """A sensor rejected for this long is a state change (a slip), not a bump."""
+    slip_sigma_deg: float = 1.5
+    """How much the offsets a rejecting sensor sees are widened when it re-acquires."""
+    reacquiring_flag_s: float = 3.0
+    # observability
+    gimbal_lock_deg: float = 2.5
+    """A joint whose axis is within this angle of vertical is gravity-blind: held."""
+    sigma_limit_deg: float = 0.5
+    """A joint the sensors cannot read to this sigma within ``observability_window_s`` is
+    ill-conditioned (held along the weak direction); a joint whose sigma is above it is
+    ``converging``."""
+    observability_window_s: float = 1.0
+    observability_period_s: float = 0.05
+    """How often the observability (axis angles, information, hold) is recomputed; at
+    once whenever the set of working sensors changes."""
+    unknown_joint_sigma_deg: float = 30.0
+    """Sigma of a joint the startup calibration could not read (gimbal lock, ambiguous)."""
+    limit_margin_deg: float = 1.0
+    # sensor health
+    stale_after_s: float = 0.25
+    plausible_tolerance_g: float = 0.35
+    """A reading whose magnitude differs from the prediction's by more than this is implausible."""
+    dead_after_s: float = 0.5
+    stuck_samples: int = 20
+    """Identical raw readings in a row (while the prediction moved) that make a sensor stuck."""
+    # differentiators
+    encoder_window: int = 9
+    encoder_order: int = 3
+    """The causal polynomial fit (samples, order) that gives joint rates and accelerations:
+    a cubic over 9 samples follows minimum-jerk moves with ~0.1 mg of error at the
+    sensors, where a quadratic lags by a third of the window."""
+    gyro_window: int = 15
+    gyro_order: int = 2
+    """The causal fit that gives the base's angular acceleration from the gyro."""
+    angular_accel_error_rad_s2: float = 0.015
+    angular_accel_error_fraction: float = 0.15
+    """The differentiated gyro's error (noise, plus lag as a share of the estimate); times
+    each sensor's distance from the IMU it becomes extra accelerometer noise."""
+    # sigma points (filterpy's MerweScaledSigmaPoints parameters)
+    alpha: float = 0.5
+    beta: float = 2.0
+    kappa: float = 0.0
+    # heading
+    heading: HeadingSettings = field(default_factory=HeadingSettings)
+    # diagnosis
+    innovation_capacity: int = 100_000
+    """Innovations kept per sensor (a ring buffer), for the diagnosis workbench."""
+
+
+class NotInitialisedError(RuntimeError):
+    """The tracker was used before :meth:`Tracker.initialise`."""
+
+
+# --------------------------------------------------------------------------------------
+# state layout
+@dataclass(frozen=True)
+class StateLayout:
+    n_joints: int
+
+    @property
+    def offset(self) -> slice:
+        return slice(0, self.n_joints)
+
+    @property
+    def roll(self) -> int:
+        return self.n_joints
+
+    @property
+    def pitch(self) -> int:
+        return self.n_joints + 1
+
+    @property
+    def accel(self) -> slice:
+        return slice(self.n_joints + 2, self.n_joints + 5)
+
+    @property
+    def yaw(self) -> int:
+        return self.n_joints + 5
+
+    @property
+    def bias(self) -> slice:
+        return slice(self.n_joints + 6, self.n_joints + 9)
+
+    @property
+    def size(self) -> int:
+        return self.n_joints + 9
+
+    def names(self, joint_names) -> tuple[str, ...]:
+        return tuple([f"offset[{j}]" for j in joint_names] + ["roll", "pitch"]
+                     + [f"accel_B[{a}]" for a in "xyz"] + ["yaw"] + [f"gyro_bias[{a}]" for a in "xyz"])
+
+
+# --------------------------------------------------------------------------------------
+# causal differentiation
+def causal_poly_fit(t_win: np.ndarray, y_win: np.ndarray, t_eval: np.ndarray, order: int = 2) -> np.ndarray:
+    """Least-squares polynomial through each window, evaluated at ``t_eval``.
+
+    ``t_win (K, W)``, ``y_win (K, W, d)``, ``t_eval (K,)`` -> ``(K, 3, d)``: value, first and
+    second derivative (zero for ``order`` 1). Batched over K windows; windows only hold
+    samples at or before their evaluation time (causal). ``order`` is capped by W - 1.
+    """
+    t_win = np.asarray(t_win, float)
+    K, W = t_win.shape
+    order = int(min(order, W - 1))
+    out = np.zeros((K, 3, y_win.shape[-1]))
+    if W == 1 or order == 0:
+        out[:, 0] = y_win[:, -1]
+        return out
+    tau = t_win - t_eval[:, None]
+    h = np.maximum(tau[:, 0] - tau[:, -1], 1e-9)  # window span (negative first)
+    h = np.abs(h)[:, None]
+    s = tau / h
+    A = np.stack([s**k for k in range(order + 1)], -1)  # (K, W, order+1)
+    AtA = np.einsum("kwi,kwj->kij", A, A)
+    Aty = np.einsum("kwi,kwd->kid", A, y_win)
+    c = np.linalg.solve(AtA, Aty)  # (K, order+1, d)
+    out[:, 0] = c[:, 0]
+    out[:, 1] = c[:, 1] / h
+    if order >= 2:
+        out[:, 2] = 2.0 * c[:, 2] / h**2
+    return out
+
+
+class CausalDifferentiator:
+    """Sample-by-sample causal polynomial fit over the last ``window`` samples."""
+
+    def __init__(self, dim: int, window: int, order: int):
+        self.window, self.order, self.dim = int(window), int(order), int(dim)
+        self._t = np.full(self.window, np.nan)
+        self._y = np.zeros((self.window, dim))
+        self._n = 0
+        self._fit = None  # (3, d) at self._t_last
+        self._t_last = -np.inf
+
+    def push(self, t: float, y: np.ndarray) -> None:
+        self._t = np.roll(self._t, -1)
+        self._y = np.roll(self._y, -1, axis=0)
+        self._t[-1] = t
+        self._y[-1] = y
+        self._n = min(self._n + 1, self.window)
+        w = self._n
+        if w < 2:
+            self._fit = np.stack([np.asarray(y, float), np.zeros(self.dim), np.zeros(self.dim)])
+        else:
+            order = self.order if w > self.order else w - 1
+            self._fit = causal_poly_fit(self._t[None, -w:], self._y[None, -w:], np.array([t]), order)[0]
+        self._t_last = t
+
+    def at(self, t: float) -> np.ndarray | None:
+        """Value, rate and acceleration ``(3, d)`` at ``t`` (extrapolated from the last fit)."""
+        if self._fit is None:
+            return None
+        dt = t - self._t_last
+        v, d1, d2 = self._fit
+        return np.stack([v + d1 * dt + 0.5 * d2 * dt * dt, d1 + d2 * dt, d2])
+
+    def snapshot(self) -> dict:
+        return {"t": self._t.tolist(), "y": self._y.tolist(), "n": self._n}
+
+    def restore(self, snap: dict) -> None:
+        self._t = np.array(snap["t"], float)
+        self._y = np.array(snap["y"], float)
+        self._n = int(snap["n"])
+        if self._n:
+            w = self._n
+            order = self.order if w > self.order else w - 1
+            self._fit = causal_poly_fit(self._t[None, -w:], self._y[None, -w:], self._t[-1:], order)[0] \
+                if w >= 2 else np.stack([self._y[-1], np.zeros(self.dim), np.zeros(self.dim)])
+            self._t_last = float(self._t[-1])
+
+
+def causal_fits(t: np.ndarray, y: np.ndarray, window: int, order: int) -> np.ndarray:
+    """What :class:`CausalDifferentiator` gives after each sample, for a whole stream at
+    once: ``(N, 3, d)`` (vectorised over samples)."""
+    t = np.asarray(t, float)
+    y = np.asarray(y, float).reshape(len(t), -1)
+    N, d = y.shape
+    out = np.zeros((N, 3, d))
+    if N == 0:
+        return out
+    out[0, 0] = y[0]
+    W = int(window)
+    for k in range(1, min(W - 1, N)):  # the first windows are partial
+        w = k + 1
+        o = order if w > order else w - 1
+        out[k] = causal_poly_fit(t[None, :w], y[None, :w], t[k:k + 1], o)[0]
+    if N >= W:
+        from numpy.lib.stride_tricks import sliding_window_view
+
+        tw = sliding_window_view(t, W)  # (N-W+1, W)
+        yw = np.moveaxis(sliding_window_view(y, W, axis=0), -1, 1)  # (N-W+1, W, d)
+        o = order if W > order else W - 1
+        for a in range(0, tw.shape[0], 20000):
+            b = min(tw.shape[0], a + 20000)
+            out[W - 1 + a:W - 1 + b] = causal_poly_fit(tw[a:b], yw[a:b], tw[a:b, -1], o)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# kinematic frames: the mean pose's kinematics at each instant
+@dataclass(frozen=True)
+class Frames:
+    """The kinematics at the reference poses of K instants (batched).
+
+    ``q_ref (K, n)`` the reference joint angles (encoder angles plus the offsets the frame
+    was made with, ``offset_ref (K, n)``); ``R_0S (K, S, 3, 3)`` and ``motion_mps2 (K, S, 3)``
+    (each sensor's acceleration from the joints' motion and the base's rotation, base
+    axes, without gravity or the base's own linear acceleration) for the accelerometers
+    (link accelerometers then the IMU); ``axes (K, n, 3)`` the joint axes in base axes.
+    """
+
+    q_ref: np.ndarray
+    offset_ref: np.ndarray
+    R_0S: np.ndarray
+    motion_mps2: np.ndarray
+    axes: np.ndarray
+    p_0S_m: np.ndarray
+    omega_dot_B: np.ndarray
+    K: np.ndarray  # (K, n, 3, 3) skew matrices of the axes
+    K2: np.ndarray  # their squares
+    motion_g: np.ndarray  # (K, S) |motion| in g
+    dist2_m2: np.ndarray  # (K, S) squared distance of each sensor from the base origin
+    omega_dot_norm: np.ndarray  # (K,)
+
+    def take(self, k: int) -> Frames:
+        return Frames(self.q_ref[k], self.offset_ref[k], self.R_0S[k], self.motion_mps2[k], self.axes[k],
+                      self.p_0S_m[k], self.omega_dot_B[k], self.K[k], self.K2[k], self.motion_g[k],
+                      self.dist2_m2[k], self.omega_dot_norm[k])
+
+
+def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset: np.ndarray,
+                qd: np.ndarray, qdd: np.ndarray, omega_B: np.ndarray, omega_dot_B: np.ndarray) -> Frames:
+    """Kinematic frames for K instants: ``q_enc (K, n)`` encoder angles, ``offset (n,)`` or
+    ``(K, n)``, joint rates/accelerations ``(K, n)``, base rates ``(K, 3)``."""
+    q = q_enc + offset
+    K = q.shape[0]
+    eye = np.broadcast_to(np.eye(3), (K, 3, 3))
+    st = MotionState(np.zeros(K), q, qd, qdd, eye, omega_B, omega_dot_B, np.zeros((K, 3)), 25.0)
+    lm = link_motion(arm, st)
+    sm = sensor_motion(arm, st, list(names), lm=lm)
+    Ks = skew(lm.axis_0)
+    wd = np.asarray(omega_dot_B, float)
+    return Frames(q, np.broadcast_to(offset, q.shape), sm.R_0S, sm.acc_0_mps2, lm.axis_0, sm.p_0S_m,
+                  wd, Ks, Ks @ Ks, np.linalg.norm(sm.acc_0_mps2, axis=-1) / G,
+                  np.sum(sm.p_0S_m**2, axis=-1), np.linalg.norm(wd, axis=-1))
+
+
+# --------------------------------------------------------------------------------------
+# results
+@dataclass(frozen=True)
+class Estimate:
+    """One instant's estimate: immutable, small, everything a consumer needs."""
+
+    t_s: float
+    q_rad: np.ndarray
+    sigma_rad: np.ndarray
+    flags: tuple[str, ...]
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    attitude_sigma_rad: np.ndarray
+    gyro_bias_rad_s: np.ndarray
+    axis_to_vertical_deg: np.ndarray
+    sensors: tuple[tuple[str, str], ...]
+    magnetic_disturbance: bool = False
+    magnetic_recovery: bool = False
+    joint_names: tuple[str, ...] = ()
+
+    @property
+    def heading_rad(self) -> float:
+        return self.yaw_rad
+
+    @property
+    def heading_sigma_rad(self) -> float:
+        return float(self.attitude_sigma_rad[2])
+
+    def sensor_status(self, name: str) -> str:
+        return dict(self.sensors)[name]
+
+    def summary(self) -> str:
+        """One line for a person."""
+        bad = [f"{n} {f}" for n, f in zip(self.joint_names, self.flags, strict=True) if f != "ok"]
+        sens = [f"{n} {s}" for n, s in self.sensors if s != "ok"]
+        worst = float(np.degrees(np.max(self.sigma_rad)))
+        text = (f"t={self.t_s:.2f}s heading {np.degrees(self.yaw_rad):.1f}±"
+                f"{np.degrees(self.heading_sigma_rad):.2f}°, worst joint sigma {worst:.3f}°")
+        if bad:
+            text += "; " + ", ".join(bad)
+        if sens:
+            text += "; sensors: " + ", ".join(sens)
+        if self.magnetic_disturbance:
+            text += "; magnetic disturbance"
+        return text
+
+    def as_dict(self) -> dict:
+        return {
+            "t_s": self.t_s,
+            "joints": [{"name": n, "angle_rad": float(q), "sigma_rad": float(s), "flag": f,
+                        "axis_to_vertical_deg": float(a)}
+                       for n, q, s, f, a in zip(self.joint_names, self.q_rad, self.sigma_rad, self.flags,
+                                                self.axis_to_vertical_deg, strict=True)],
+            "base": {"roll_rad": self.roll_rad, "pitch_rad": self.pitch_rad, "yaw_rad": self.yaw_rad,
+                     "sigma_rad": self.attitude_sigma_rad.tolist(),
+                     "gyro_bias_rad_s": self.gyro_bias_rad_s.tolist()},
+            "heading": {"yaw_rad": self.yaw_rad, "sigma_rad": self.heading_sigma_rad,
+                        "magnetic_disturbance": self.magnetic_disturbance,
+                        "magnetic_recovery": self.magnetic_recovery},
+            "sensors": dict(self.sensors),
+        }
+
+
+@dataclass(frozen=True)
+class InnovationLog:
+    """One sensor's innovations (oldest first): ``t_s (N,)``, ``innovation (N, k)``,
+    ``S (N, k, k)``, ``nis (N,)``, ``accepted (N,)`` (used in the update)."""
+
+    sensor: str
+    t_s: np.ndarray
+    innovation: np.ndarray
+    S: np.ndarray
+    nis: np.ndarray
+    accepted: np.ndarray
+
+
+class _InnovationRing:
+    def __init__(self, k: int, capacity: int):
+        self.cap = max(int(capacity), 1)
+        self.t = np.zeros(self.cap)
+        self.nu = np.zeros((self.cap, k))
+        self.S = np.zeros((self.cap, k, k))
+        self.nis = np.zeros(self.cap)
+        self.ok = np.zeros(self.cap, bool)
+        self.n = 0
+        # running NIS statistics (all healthy innovations, accepted or not)
+        self.nis_sum = 0.0
+        self.nis_count = 0
+
+    def add(self, t, nu, S, nis, ok, count_stats: bool = True):
+        i = self.n % self.cap
+        self.t[i], self.nu[i], self.S[i], self.nis[i], self.ok[i] = t, nu, S, nis, ok
+        self.n += 1
+        if count_stats and np.isfinite(nis):
+            self.nis_sum += nis
+            self.nis_count += 1
+
+    def log(self, name: str) -> InnovationLog:
+        m = min(self.n, self.cap)
+        idx = (np.arange(self.n - m, self.n)) % self.cap
+        return InnovationLog(name, self.t[idx].copy(), self.nu[idx].copy(), self.S[idx].copy(),
+                             self.nis[idx].copy(), self.ok[idx].copy())
+
+
+class _AccelRing:
+    """Innovations of every accelerometer, one row per update (a ring buffer)."""
+
+    def __init__(self, names: tuple[str, ...], capacity: int):
+        Sa = len(names)
+        self.names = names
+        self.cap = max(int(capacity), 1)
+        self.t = np.zeros(self.cap)
+        self.nu = np.zeros((self.cap, Sa, 3))
+        self.S = np.zeros((self.cap, Sa, 3, 3))
+        self.nis = np.zeros((self.cap, Sa))
+        self.ok = np.zeros((self.cap, Sa), bool)
+        self.present = np.zeros((self.cap, Sa), bool)
+        self.n = 0
+        self.nis_sum = np.zeros(Sa)
+        self.nis_count = np.zeros(Sa, dtype=np.int64)
+
+    def add(self, t, which, nu, S, nis, ok):
+        """``which (k,)`` sensor indices; ``nu (k, 3)``, ``S (k, 3, 3)``, ``nis``, ``ok (k,)``."""
+        i = self.n % self.cap
+        self.t[i] = t
+        self.present[i] = False
+        self.present[i, which] = True
+        self.nu[i, which] = nu
+        self.S[i, which] = S
+        self.nis[i, which] = nis
+        self.ok[i, which] = ok
+        self.n += 1
+        good = np.isfinite(nis)
+        self.nis_sum[which[good]] += nis[good]
+        self.nis_count[which[good]] += 1
+
+    def log(self, name: str) -> InnovationLog:
+        j = self.names.index(name)
+        m = min(self.n, self.cap)
+        idx = (np.arange(self.n - m, self.n)) % self.cap
+        idx = idx[self.present[idx, j]]
+        return InnovationLog(name, self.t[idx].copy(), self.nu[idx, j].copy(), self.S[idx, j].copy(),
+                             self.nis[idx, j].copy(), self.ok[idx, j].copy())
+
+
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ImuStill:
+    """What the IMU said during the still startup window: the gyro's zero-rate offset, the
+    heading (tilt-compensated, from the startup's roll and pitch) and the field reference."""
+
+    gyro_bias_rad_s: np.ndarray
+    gyro_bias_sigma_rad_s: float
+    yaw_rad: float | None
+    yaw_sigma_rad: float | None
+    field: FieldReference | None
+
+
+def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_end_s: float,
+                             startup: StartupResult, settings: TrackerSettings | None = None
+                             ) -> ImuStill:
+    """The gyro bias, initial heading and Earth-field reference from a still window."""
+    st = settings or TrackerSettings()
+    sm = stream_models(arm)
+    R_0I = arm.imu.R_LS if arm.imu is not None else np.eye(3)
+    bias = np.zeros(3)
+    bias_sigma = 0.5 * DEG  # no gyro samples: a wide guess
+    g = rec.get(GYRO)
+    if g is not None:
+        w = g.between(t_start_s, t_end_s + 1e-9)
+        if len(w) >= 3:
+            rate = w.rate_hz or 100.0
+            omega = sm[GYRO].from_counts(w.values) @ R_0I.T
+            bias = omega.mean(axis=0)
+            noise = st.gyro_noise_dps_per_sqrt_hz * DEG * np.sqrt(rate / 2.0)
+            bias_sigma = float(max(noise / np.sqrt(len(w)), 2e-5))
+    yaw = yaw_sigma = None
+    field_ref = None
+    m = rec.get(MAG)
+    if m is not None:
+        w = m.between(t_start_s, t_end_s + 1e-9)
+        if len(w) >= 1:
+            mB = sm[MAG].from_counts(w.values) @ R_0I.T
+            up = _up(np.array(startup.roll_rad), np.array(startup.pitch_rad))
+            if st.heading.reference == "model":
+                field_ref = FieldReference.from_world_field()
+            else:
+                field_ref = FieldReference.from_samples(mB, up)
+            mean = mB.mean(axis=0)
+            yaw = float(tilt_compensated_heading(mean, startup.roll_rad, startup.pitch_rad,
+                                                 field_ref.declination_rad))
+            sig = heading_sigma_rad(field_ref, st.heading.noise_ut) / np.sqrt(len(w))
+            tilt_sig = np.hypot(startup.roll_sigma_rad, startup.pitch_sigma_rad) * np.tan(field_ref.dip_rad)
+            yaw_sigma = float(np.hypot(sig, tilt_sig) + 0.2 * DEG)
+    return ImuStill(bias, bias_sigma, yaw, yaw_sigma, field_ref)
+
+
+def _up(roll, pitch) -> np.ndarray:
+    """World up in base axes for base (roll, pitch), batched: ``[-sp, sr cp, cr cp]``."""
+    sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
+    return np.stack([-sp, sr * cp, cr * cp], -1)
+
+
+def _euler_rates(r, p, w):
+    """(roll, pitch, yaw) rates of ``R = Rz Ry Rx`` for body rates ``w (N, 3)``."""
+    sr, cr = np.sin(r), np.cos(r)
+    cp = np.cos(p)
+    tp = np.tan(p)
+    a = sr * w[:, 1] + cr * w[:, 2]
+    return w[:, 0] + a * tp, cr * w[:, 1] - sr * w[:, 2], a / cp
+
+
+# --------------------------------------------------------------------------------------
+class Tracker:
+    """The joint-angle and heading tracker, driven sample by sample (or a whole recording).
+
+    Lifecycle: ``Tracker(arm, settings)`` -> :meth:`initialise` (from a startup result) ->
+    :meth:`update` for every raw sample as it arrives (or :meth:`update_instant` for all
+    samples of one instant, or :meth:`run` for a recording) -> :attr:`estimate`.
+    :meth:`snapshot` / :meth:`restore` carry the state across a restart of the process.
+    """
+
+    def __init__(self, arm: ArmModel, settings: TrackerSettings | None = None,
+                 rates_hz: Mapping[str, float] | float = 100.0):
+        self.arm = arm
+        self.settings = st = settings or TrackerSettings()
+        n = arm.n_joints
+        self.layout = L = StateLayout(n)
+        self.state_names = L.names(arm.joint_names)
+        self.link_names = tuple(s.name for s in arm.link_accelerometers)
+        self._has_imu = arm.imu is not None
+        self.accel_names = self.link_names + ((arm.imu.name,) if self._has_imu else ())
+        self.accel_streams = self.link_names + ((IMU_ACC,) if self._has_imu else ())
+        self.sensor_names = self.accel_streams + ((GYRO, MAG) if self._has_imu else ()) + (ENC,)
+        self._sidx = {s: i for i, s in enumerate(self.sensor_names)}
+        self._links = np.array([arm.sensor(nm).link for nm in self.accel_names], dtype=int)
+        self._R_0I = arm.imu.R_LS if self._has_imu else np.eye(3)
+        self._cpr = arm.counts_per_rad
+        self._rates: dict[str, float] = {}
+        self._unmodelled_g = self._unmodelled_floor()
+        self.set_rates(rates_hz)
+        self._gate3 = float(nis_bound(3, st.gate_significance))
+        self._gate1 = float(nis_bound(1, st.gate_significance))
+        self._points = SigmaPoints(L.size, st.alpha, st.beta, st.kappa)
+        self._ukf: BatchedUKF | None = None
+        self._t: float | None = None
+        self._sees = self._links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
+        self._att_idx = np.array([L.roll, L.pitch, L.yaw])
+        self._nees_idx = np.r_[np.arange(n), L.roll, L.pitch, L.yaw]
+        self._nees_ix = np.ix_(self._nees_idx, self._nees_idx)
+        self._acc_rows = np.arange(3 * len(self.accel_streams)).reshape(-1, 3)
+        self._link_cache: dict = {}
+        self._links_list = [int(k) for k in self._links[: len(self.link_names)]]
+        self._min_list = arm.min_rad.tolist()
+        self._max_list = arm.max_rad.tolist()
+        self._imu_acc_index = self._sidx.get(IMU_ACC, -1)
+        self._plan_cache: dict = {}
+        self._mag_mask: dict = {}
+
+    def _unmodelled_floor(self) -> np.ndarray:
+        """Per accelerometer stream, the config's unmodelled-error floor (g), as startup uses."""
+        cal = self.arm.calibration or {}
+        per = cal.get("accel_unmodelled_g_per_sensor") or {}
+        base = float(cal.get("accel_unmodelled_g", 0.0) or 0.0)
+        out = []
+        for nm in self.link_names:
+            out.append(float(per.get(nm, base)))
+        if self._has_imu:
+            out.append(0.0)
+        return np.array(out)
+
+    # -- configuration -------------------------------------------------------------------
+    def set_rates(self, rates_hz: Mapping[str, float] | float) -> None:
+        """Sample rates (Hz) per stream, which set each sensor's noise (datasheet rms at rate)."""
+        if isinstance(rates_hz, Mapping):
+            rates = {s: float(rates_hz.get(s, 100.0)) for s in self.sensor_names}
+        else:
+            rates = dict.fromkeys(self.sensor_names, float(rates_hz))
+        self._rates = rates
+        self._sm: dict[str, StreamModel] = stream_models(self.arm, rates)
+        st = self.settings
+        sig = []
+        for i, s in enumerate(self.accel_streams):
+            m = self._sm[s]
+            floor = max(st.accel_floor_g, self._unmodelled_g[i])
+            sig.append(np.sqrt((m.noise_counts_rms / np.abs(m.gain)) ** 2 + floor**2))
+        self._accel_sigma_g = np.array(sig).reshape(-1, 3)  # (S, 3)
+        self._accel_rate = np.array([rates[s] for s in self.accel_streams])
+        self._limits = {s: (self._sm[s].counts_min, self._sm[s].counts_max) for s in self._sm}
+        sa = self.accel_streams
+        lo = [self._sm[s].counts_min for s in sa]
+        hi = [self._sm[s].counts_max for s in sa]
+        self._acc_lo = np.array([-np.inf if v is None else v for v in lo], dtype=float)
+        self._acc_hi = np.array([np.inf if v is None else v for v in hi], dtype=float)
+
+    # -- lifecycle -----------------------------------------------------------------------
+    def initialise(self, startup: StartupResult, t_s: float, encoder_counts: np.ndarray | None = None,
+                   imu: ImuStill | None = None, prior_q_rad: np.ndarray | None = None) -> None:
+        """Seed the filter from the startup calibration (its joint angles and covariance).
+
+        ``encoder_counts`` are the counts while the startup window was still (default: the
+        first encoder sample that arrives). A joint the startup could not read starts at
+        ``prior_q_rad`` (the pose saved at the last clean shutdown; default the ready pose)
+        with ``unknown_joint_sigma_deg``, and is ``converging`` until read. ``imu`` (from
+        :func:`imu_still_from_recording`) gives the gyro bias, heading and field reference.
+        """
+        st, L, n = self.settings, self.layout, self.arm.n_joints
+        if len(startup.joints) != n:
+            raise ValueError(f"startup result has {len(startup.joints)} joints; arm {self.arm.name!r} "
+                             f"has {n}")
+        imu = imu or ImuStill(np.zeros(3), 0.5 * DEG, None, None, None)
+        x = np.zeros(L.size)
+        P = np.zeros((L.size, L.size))
+        cov = np.array(startup.covariance, dtype=float)
+        q0 = np.array(startup.q_rad, dtype=float)
+        known = np.array([j.flag not in ("gimbal_lock", "ambiguous") and j.sigma_rad is not None
+                          for j in startup.joints])
+        # a joint the startup could not read starts at the prior pose (the saved pose, else
+        # the ready pose), not at the solve's arbitrary value
+        prior = self.arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
+        q0 = np.where(known, q0, prior)
+        jb = np.r_[np.arange(n), n, n + 1]  # joints, roll, pitch in the startup covariance
+        tgt = np.r_[np.arange(n), L.roll, L.pitch]
+        if cov.shape == (n + 2, n + 2):
+            block = cov[np.ix_(jb, jb)].copy()
+        else:
+            block = np.diag(np.r_[[j.sigma_rad or 0.0 for j in startup.joints], startup.roll_sigma_rad,
+                                  startup.pitch_sigma_rad] ** 2)
+        block = np.where(np.isfinite(block), block, 0.0)
+        wide = (st.unknown_joint_sigma_deg * DEG) ** 2
+        for j in np.flatnonzero(~known):
+            block[j, :] = 0.0
+            block[:, j] = 0.0
+            block[j, j] = wide
+        # a floor: the startup's sigma is for a still average; the tracker's model adds a little
+        block[np.diag_indices(n + 2)] += (0.005 * DEG) ** 2
+        P[np.ix_(tgt, tgt)] = block
+        x[L.roll], x[L.pitch] = startup.roll_rad, startup.pitch_rad
+        P[L.accel, L.accel] = np.eye(3) * 0.05**2
+        if imu.yaw_rad is not None:
+            x[L.yaw] = imu.yaw_rad
+            P[L.yaw, L.yaw] = imu.yaw_sigma_rad**2
+        else:
+            P[L.yaw, L.yaw] = np.pi**2
+        x[L.bias] = imu.gyro_bias_rad_s
+        P[L.bias, L.bias] = np.eye(3) * imu.gyro_bias_sigma_rad_s**2
+        self._q_startup = q0
+        self._x0, self._P0 = x, P
+        self._ukf = None  # created when the first encoder sample fixes the offsets
+        self._q_enc = np.zeros(n)
+        self._enc0 = None if encoder_counts is None else np.asarray(encoder_counts, float)
+        if self._enc0 is not None:
+            self._start_filter(self._enc0 / self._cpr)
+        self._t = float(t_s)
+        self._field = imu.field
+        self._guard = MagneticGuard(imu.field, st.heading) if imu.field is not None else None
+        self._sigma_psi = heading_sigma_rad(imu.field, st.heading.noise_ut) if imu.field else np.inf
+        self._enc_diff = CausalDifferentiator(n, st.encoder_window, st.encoder_order)
+        self._gyro_diff = CausalDifferentiator(3, st.gyro_window, st.gyro_order)
+        self._omega = None  # last gyro, base axes, rad/s
+        S, Sa = len(self.sensor_names), len(self.accel_streams)
+        # sensor health, as arrays (sensor order: self.sensor_names; accelerometers first)
+        self._seen = np.zeros(S, bool)
+        self._last_t = np.full(S, -np.inf)
+        self._counts = np.zeros((S, len(COUNTERS)), dtype=np.int64)
+        self._rejecting = np.zeros(S, bool)
+        self._reject_since = np.full(S, np.nan)
+        # per accelerometer: last counts, identical run, prediction when it began, stuck,
+        # implausible since, rejecting since
+        self._acc_health = [[None, 0, None, False, None, None] for _ in range(Sa)]
+        self._stuck = np.zeros(Sa, bool)
+        self._dead = np.zeros(Sa, bool)
+        self._acc_ring = _AccelRing(self.accel_streams, st.innovation_capacity)
+        self._mag_ring = _InnovationRing(1, st.innovation_capacity)
+        self._reacq_until = np.full(n, -np.inf)
+        self._axis_deg = np.full(n, 90.0)
+        self._flags = np.zeros(n, dtype=np.int8)
+        self._status_codes = np.full(S, STATUS_CODE["absent"], dtype=np.int8)
+        self._hold = None
+        self._ill = np.zeros(n, bool)
+        self._locked = np.zeros(n, bool)
+        self._observed = np.zeros(n, bool)
+        self._obs_key = None
+        self._mag_flags = (False, False)
+        self._still_w = np.inf  # EMA of the bias-corrected gyro norm, rad/s
+        self._still_mean = None  # EMA of the IMU accelerometer, g
+        self._still_var = np.inf  # EMA of its squared deviation, g^2 (summed over axes)
+        self._still = False
+
+    def _start_filter(self, q_enc: np.ndarray) -> None:
+        L = self.layout
+        self._q_enc = np.array(q_enc, dtype=float)
+        x = self._x0.copy()
+        x[L.offset] = self._q_startup - q_enc
+        self._ukf = BatchedUKF(x, self._P0, self._points, angle_states=(L.yaw,))
+
+    def _check(self) -> None:
+        if self._t is None:
+            raise NotInitialisedError("the tracker is not initialised: call initialise(startup, t) "
+                                      "with a startup calibration first")
+
+    def _check_filter(self) -> None:
+        self._check()
+        if self._ukf is None:
+            raise NotInitialisedError("no encoder sample yet: the first one fixes the offsets")
+
+    @property
+    def initialised(self) -> bool:
+        return self._t is not None
+
+    @property
+    def t_s(self) -> float | None:
+        return self._t
+
+    @property
+    def x(self) -> np.ndarray:
+        """The filter's state (read-only copy; names in :attr:`state_names`)."""
+        self._check_filter()
+        return self._ukf.x
+
+    @property
+    def P(self) -> np.ndarray:
+        self._check_filter()
+        return self._ukf.P
+
+    # -- public update API -----------------------------------------------------------------
+    def update(self, stream: str, t_s: float, values) -> Estimate | None:
+        """Fuse one raw sample (counts, as the device gave them) of ``stream`` at ``t_s``.
+
+        Returns the estimate after it, or None if the sample was dropped (out of order,
+        not finite, saturated, or before the first encoder sample).
+        """
+        return self.update_instant(t_s, {stream: values})
+
+    def update_instant(self, t_s: float, samples: Mapping[str, np.ndarray]) -> Estimate | None:
+        """Fuse every sample of one instant together (one stacked update)."""
+        self._check()
+        unknown = [s for s in samples if s not in self._sidx and s != "imu_temp"]
+        if unknown:
+            raise KeyError(f"unknown stream {unknown[0]!r}; the tracker takes {list(self.sensor_names)}")
+        t = float(t_s)
+        if t < self._t - 1e-9:
+            for s in samples:
+                if s in self._sidx:
+                    self._counts[self._sidx[s], C_OUT_OF_ORDER] += 1
+            return None
+        phys = {}
+        for s, v in samples.items():
+            if s == "imu_temp":
+                continue
+            i = self._sidx[s]
+            self._counts[i, C_SAMPLES] += 1
+            c = np.asarray(v, dtype=float).reshape(-1)
+            if not np.all(np.isfinite(c)):
+                self._counts[i, C_NAN] += 1
+                continue
+            lo, hi = self._limits[s]
+            if lo is not None and (np.any(c <= lo) or np.any(c >= hi)):
+                self._counts[i, C_SATURATED] += 1
+                self._seen[i], self._last_t[i] = True, t
+                continue
+            phys[s] = (c, self._sm[s].from_counts(c[None])[0])
+        enc = phys.get(ENC)
+        if enc is not None:
+            q_enc = enc[0] / self._cpr
+            self._mark_used(ENC, t)
+            if self._ukf is None:
+                self._start_filter(q_enc if self._enc0 is None else self._enc0 / self._cpr)
+            self._enc_diff.push(t, q_enc)
+        if self._ukf is None:
+            return None
+        gyro = None
+        if GYRO in phys:
+            gyro = self._R_0I @ phys[GYRO][1]
+            self._gyro_diff.push(t, gyro)
+            self._mark_used(GYRO, t)
+        present = [s for s in self.accel_streams if s in phys]
+        acc = None
+        if present:
+            sel = np.array([self._sidx[s] for s in present])
+            acc = (sel, np.stack([phys[s][0] for s in present]), np.stack([phys[s][1] for s in present]))
+        mag = phys.get(MAG)
+        frame = self._frame_now(t) if acc is not None else None
+        e = self._enc_diff.at(t)
+        q_enc = self._q_enc if e is None else e[0]
+        self._step(t, gyro, acc, None if mag is None else (mag[0], self._R_0I @ mag[1]), frame, q_enc)
+        return self.estimate
+
+    def _mark_used(self, s: str, t: float) -> None:
+        i = self._sidx[s]
+        self._seen[i], self._last_t[i] = True, t
+        self._counts[i, C_USED] += 1
+
+    def _frame_now(self, t: float) -> Frames | None:
+        e = self._enc_diff.at(t)
+        if e is None:
+            return None
+        L = self.layout
+        om = np.zeros(3) if self._omega is None else self._omega - self._ukf.x[L.bias]
+        g = self._gyro_diff.at(t)
+        omd = np.zeros(3) if g is None else g[1]
+        return make_frames(self.arm, self.accel_names, e[0][None], self._ukf.x[L.offset][None],
+                           e[1][None], e[2][None], om[None], omd[None]).take(0)
+
+    # -- the step ---------------------------------------------------------------------------
+    def _step(self, t: float, gyro: np.ndarray | None, acc, mag, frame: Frames | None,
+              q_enc: np.ndarray) -> None:
+        ukf = self._ukf
+        self._q_enc = q_enc
+        dt = t - self._t
+        if dt > 0:
+            w0 = self._omega if self._omega is not None else gyro
+            w = None if w0 is None else (w0 if gyro is None else 0.5 * (w0 + gyro))
+            ukf.predict(self._fx, self._Q(dt, w is not None), dt=dt, w=w)
+        if gyro is not None:
+            self._omega = gyro
+        self._t = t
+        if frame is None:
+            acc = None
+        self._update_still(dt, gyro, acc)
+        if mag is not None:
+            mi = self._sidx[MAG]
+            self._seen[mi], self._last_t[mi] = True, t
+            if self._guard is None:
+                mag = None
+        if acc is not None or mag is not None:
+            self._fuse(t, acc, mag, frame)
+        self._update_flags(t)
+
+    def _update_still(self, dt: float, gyro: np.ndarray | None, acc) -> None:
+        """Exponential averages of the gyro and the IMU accelerometer: is the chair still?"""
+        st = self.settings
+        a = 1.0 if self._still_mean is None else min(1.0, max(dt, 1e-4) / st.still_tau_s)
+        if gyro is not None:
+            wx, wy, wz = (gyro - self._ukf._x[self.layout.bias]).tolist()
+            wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+            w0 = self._still_w
+            self._still_w = wn if not math.isfinite(w0) else w0 + a * (wn - w0)
+        if acc is not None and self._has_imu:
+            sel, _, f = acc
+            hit = np.flatnonzero(sel == self._imu_acc_index)
+            if len(hit):
+                fi = f[hit[0]].tolist()
+                if self._still_mean is None:
+                    self._still_mean = fi
+                    self._still_var = 1.0
+                else:
+                    d = [u - v for u, v in zip(fi, self._still_mean, strict=True)]
+                    self._still_mean = [m + a * e for m, e in zip(self._still_mean, d, strict=True)]
+                    self._still_var += a * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - self._still_var)
+        self._still = (self._still_w < st.still_gyro_dps * DEG
+                       and self._still_var < 3.0 * st.still_accel_g**2)
+
+    def _fx(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
+        """The process model, every sigma point at once: the gyro (minus each point's bias)
+        turns the attitude (midpoint rule on the Euler-angle rates), the base's
+        acceleration decays, offsets and bias stay."""
+        L = self.layout
+        Y = X.copy()
+        if w is not None:
+            r, p = X[:, L.roll], X[:, L.pitch]
+            wb = w[None, :] - X[:, L.bias]
+            dr, dp, dy = _euler_rates(r, p, wb)
+            dr, dp, dy = _euler_rates(r + 0.5 * dt * dr, p + 0.5 * dt * dp, wb)
+            Y[:, L.roll] = r + dt * dr
+            Y[:, L.pitch] = p + dt * dp
+            Y[:, L.yaw] = wrap_angle(X[:, L.yaw] + dt * dy)
+        Y[:, L.accel] *= np.exp(-dt / self.settings.base_accel_tau_s)
+        return Y
+
+    def _Q(self, dt: float, have_gyro: bool) -> np.ndarray:
+        st, L = self.settings, self.layout
+        q = np.zeros(L.size)
+        q[L.offset] = (st.offset_random_walk_deg_per_sqrt_s * DEG) ** 2 * dt
+        rw = st.gyro_noise_dps_per_sqrt_hz if have_gyro else st.attitude_random_walk_deg_per_sqrt_s
+        q[L.roll] = q[L.pitch] = q[L.yaw] = (rw * DEG) ** 2 * dt
+        q[L.accel] = st.base_accel_sigma_mps2**2 * (1.0 - np.exp(-2.0 * dt / st.base_accel_tau_s))
+        if self._still:  # a parked chair's acceleration changes only when it sets off
+            q[L.accel] *= st.still_accel_q_factor
+        q[L.bias] = (st.gyro_bias_random_walk_dps_per_sqrt_s * DEG) ** 2 * dt
+        return np.diag(q)
+
+    # -- measurement models ---------------------------------------------------------------
+    def _h_accel(self, X: np.ndarray, frame: Frames, sel: np.ndarray) -> np.ndarray:
+        """Predicted specific force (g) of the accelerometers ``sel`` at every sigma point.
+
+        The sigma points' sensor rotations follow from the frame's (the mean pose's) by the
+        product of exponentials: ``R_0S(q_ref + δ) = Π_{j < link} exp([a_j]x δ_j) R_0S(q_ref)``.
+        """
+        L = self.layout
+        N = X.shape[0]
+        links = self._links[sel]
+        base = X[:, L.accel] + G * _up(X[:, L.roll], X[:, L.pitch])  # (N, 3)
+        v = frame.motion_mps2[sel][None] + base[:, None, :]  # (N, S', 3)
+        order = self._link_order(links)
+        if order:
+            kmax = order[-1]
+            d = X[:, :kmax] - frame.offset_ref[:kmax]
+            E = np.eye(3) + np.sin(d)[..., None, None] * frame.K[:kmax] \
+                + (1.0 - np.cos(d))[..., None, None] * frame.K2[:kmax]  # (N, k, 3, 3)
+            prefix = {0: np.broadcast_to(np.eye(3), (N, 3, 3))}
+            P = E[:, 0]
+            j = 1
+            for link in order:
+                while j < link:
+                    P = P @ E[:, j]
+                    j += 1
+                prefix[link] = P
+            Pl = np.stack([prefix[int(k)] for k in links], axis=1)  # (N, S', 3, 3)
+            v = (v[:, :, None, :] @ Pl)[:, :, 0, :]  # rows: (P^T v)^T
+        f = (v[:, :, None, :] @ frame.R_0S[sel])[:, :, 0, :] / G
+        return f.reshape(N, -1)
+
+    def _link_order(self, links: np.ndarray) -> list[int]:
+        key = links.tobytes()
+        lo = self._link_cache.get(key)
+        if lo is None:
+            lo = [int(k) for k in np.unique(links) if k > 0]
+            self._link_cache[key] = lo
+        return lo
+
+    def _h_mag(self, X: np.ndarray, m_B: np.ndarray) -> np.ndarray:
+        """Heading residual ``yaw - tilt-compensated heading`` at every sigma point (z = 0)."""
+        L = self.layout
+        psi = tilt_compensated_heading(m_B, X[:, L.roll], X[:, L.pitch], self._field.declination_rad)
+        return wrap_angle(X[:, L.yaw] - psi)[:, None]
+
+    def _h_all(self, X, frame, sel, m_B, still=False):
+        parts = []
+        if sel is not None:
+            parts.append(self._h_accel(X, frame, sel))
+        if still:
+            parts.append(X[:, self.layout.accel])
+        if m_B is not None:
+            parts.append(self._h_mag(X, m_B))
+        return np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
+
+    # -- the stacked update -----------------------------------------------------------------
+    def _plan(self, sel_key: bytes, k: int, still: bool, mag: bool) -> GroupPlan:
+        key = (sel_key, still, mag)
+        plan = self._plan_cache.get(key)
+        if plan is None:
+            sel = np.frombuffer(sel_key, dtype=np.int64)
+            groups = [MeasurementGroup(self.sensor_names[sel[i]], self._acc_rows[i], self._gate3)
+                      for i in range(k)]
+            if still:
+                groups.append(MeasurementGroup("base_still", np.arange(3 * k, 3 * k + 3), self._gate3))
+            if mag:
+                groups.append(MeasurementGroup(MAG, np.array([3 * k + (3 if still else 0)]), self._gate1))
+            plan = self._plan_cache[key] = GroupPlan(groups)
+        return plan
+
+    def _fuse(self, t: float, acc, mag, frame: Frames | None) -> None:
+        """One update with every accelerometer and the magnetometer of this instant, each
+        sensor gated on its own NIS; health checks and re-acquisition on the way."""
+        st, ukf, L = self.settings, self._ukf, self.layout
+        zs, var = [], []
+        sel = m_B = check = None
+        k = 0
+        if acc is not None:
+            sel, counts, f = acc
+            sel = np.asarray(sel, dtype=np.int64)
+            k = len(sel)
+            wd_err = (st.angular_accel_error_rad_s2
+                      + st.angular_accel_error_fraction * float(frame.omega_dot_norm)) / G
+            extra = (st.motion_model_fraction * frame.motion_g[sel]) ** 2 + wd_err**2 * frame.dist2_m2[sel]
+            var_a = self._accel_sigma_g[sel] ** 2 + extra[:, None]
+            zs.append(f.reshape(-1))
+            var.append(var_a.reshape(-1))
+        still = self._still and acc is not None
+        if still:
+            zs.append(np.zeros(3))
+            var.append(np.full(3, st.still_accel_sigma_mps2**2))
+        n_still = 3 if still else 0
+        if mag is not None:
+            m_counts, m_B = mag
+            x = ukf._x
+            check = self._guard.check_field(m_B, _up(x[L.roll], x[L.pitch]))
+            v = self._sigma_psi**2
+            if check.disturbed:
+                v += check.doubt_rad(self._field) ** 2
+            zs.append(np.zeros(1))
+            var.append(np.array([v]))
+        z = np.concatenate(zs)
+        R = np.diag(np.concatenate(var))
+        plan = self._plan(b"" if sel is None else sel.tobytes(), k, still, mag is not None)
+        inn = ukf.innovate(z, self._h_all, R, plan,
+                           angle_rows=(3 * k + n_still,) if mag is not None else (),
+                           frame=frame, sel=sel, m_B=m_B, still=still)
+        accept = inn.gate_ok.copy()
+        if k:
+            accept[:k] = self._accel_health(t, sel, counts, f, inn, var_a)
+            used = tuple(int(i) for i in sel[accept[:k]] if i < len(self.link_names))
+            self._observability(frame, used, ukf._x)
+        mask = None
+        if mag is not None:
+            passed = bool(inn.gate_ok[-1]) and not check.disturbed
+            use = self._guard.record(t, passed, check.disturbed)
+            mi = self._sidx[MAG]
+            self._mag_ring.add(t, inn.innovation[-1:], inn.S[-1:, -1:], inn.nis[-1], use,
+                               count_stats=not check.disturbed)
+            self._mag_flags = (check.disturbed, self._guard.state.recovering)
+            self._rejecting[mi] = not use
+            self._counts[mi, C_USED if use else C_REJECTED] += 1
+            accept[-1] = use
+            # the heading corrects only yaw and the gyro's vertical bias: never the tilt (a
+            # steel door must not tilt gravity), the arm, or the chair's acceleration
+            mask = self._mag_mask.get(len(z))
+            if mask is None:
+                mask = np.ones((L.size, len(z)))
+                mask[:, -1] = 0.0
+                mask[L.yaw, -1] = 1.0
+                mask[L.bias.start + 2, -1] = 1.0
+                self._mag_mask[len(z)] = mask
+        ukf.correct(inn, accept, self._hold, mask)
+
+    def _accel_health(self, t: float, sel: np.ndarray, counts: np.ndarray, f: np.ndarray, inn,
+                      var: np.ndarray) -> np.ndarray:
+        """Stuck, implausible (dead) and gate verdicts for the accelerometers ``sel``;
+        returns which may enter the update. (A handful of sensors: plain Python is faster
+        here than array calls.)"""
+        st = self.settings
+        k = len(sel)
+        zp = inn.z_pred[: 3 * k].reshape(k, 3)
+        zl, fl, cl = zp.tolist(), f.tolist(), counts.tolist()
+        gate = inn.gate_ok[:k].tolist()
+        sd = np.sqrt(var).tolist()
+        ok = np.zeros(k, dtype=bool)
+        usable = np.zeros(k, dtype=bool)
+        H = self._acc_health
+        tol = st.plausible_tolerance_g
+        for i, s in enumerate(sel.tolist()):
+            h = H[s]
+            self._seen[s] = True
+            self._last_t[s] = t
+            # stuck: identical counts in a row while the prediction moved
+            c = cl[i]
+            if c == h[0]:
+                h[1] += 1
+                if h[2] is None:
+                    h[2] = zl[i]
+                moved = max(abs(a - b) / e for a, b, e in zip(zl[i], h[2], sd[i], strict=True)) > 6.0
+                if h[1] + 1 >= st.stuck_samples and moved:
+                    h[3] = True
+            else:
+                h[1], h[2], h[3] = 0, None, False
+            h[0] = c
+            self._stuck[s] = h[3]
+            if h[3]:
+                self._counts[s, C_STUCK] += 1
+                continue
+            # implausible: far from the predicted magnitude (a dead or disconnected sensor)
+            fx, fy, fz = fl[i]
+            px, py, pz = zl[i]
+            if abs(math.sqrt(fx * fx + fy * fy + fz * fz) - math.sqrt(px * px + py * py + pz * pz)) > tol:
+                self._counts[s, C_IMPLAUSIBLE] += 1
+                if h[4] is None:
+                    h[4] = t
+                self._dead[s] = t - h[4] >= st.dead_after_s
+                continue
+            h[4] = None
+            self._dead[s] = False
+            usable[i] = True
+            if gate[i]:
+                ok[i] = True
+                self._counts[s, C_USED] += 1
+                self._rejecting[s] = False
+                h[5] = None
+            else:
+                self._counts[s, C_REJECTED] += 1
+                self._rejecting[s] = True
+                if h[5] is None:
+                    h[5] = t
+                elif t - h[5] >= st.reacquire_after_s:
+                    self._reacquire(s, t)
+                    h[5] = None
+        if usable.any():
+            u = np.flatnonzero(usable)
+            rr = self._acc_rows[u]
+            self._acc_ring.add(t, sel[u], inn.innovation[rr], inn.S[rr[:, :, None], rr[:, None, :]],
+                               inn.nis[u], ok[u])
+        return ok
+
+    def _reacquire(self, i: int, t: float) -> None:
+        """A sensor rejected for longer than a bump lasts: widen what it sees, read it again."""
+        st, L = self.settings, self.layout
+        self._counts[i, C_REACQUISITIONS] += 1
+        if self.sensor_names[i] == IMU_ACC:
+            idx = np.r_[L.roll, L.pitch, np.arange(L.accel.start, L.accel.stop)]
+            self._ukf.inflate(idx, np.r_[(2 * DEG) ** 2, (2 * DEG) ** 2, np.full(3, 1.0)])
+            return
+        joints = np.flatnonzero(self._sees[i])
+        self._ukf.inflate(joints, (st.slip_sigma_deg * DEG) ** 2)
+        self._reacq_until[joints] = t + st.reacquiring_flag_s
+
+    # -- observability -----------------------------------------------------------------------
+    def _observability(self, frame: Frames, used: tuple[int, ...], x: np.ndarray) -> None:
+        """Each joint axis's angle to vertical, and the information the usable link
+        accelerometers give about the offsets in ``observability_window_s``; sets the hold
+        projection (Schmidt) and the inputs of the joint flags. Recomputed every
+        ``observability_period_s`` and whenever the set of working sensors changes."""
+        st, L, n = self.settings, self.layout, self.arm.n_joints
+        key = self._obs_key
+        if key is not None and key[1] == used and self._t - key[0] < st.observability_period_s:
+            return
+        self._obs_key = (self._t, used)
+        up = _up(x[L.roll], x[L.pitch])
+        c = np.abs(frame.axes @ up)
+        self._axis_deg = np.degrees(np.arccos(np.clip(c, 0.0, 1.0)))
+        locked = self._axis_deg < st.gimbal_lock_deg
+        sel = np.array(used, dtype=int)
+        info = np.zeros((n, n))
+        if len(sel):
+            v = frame.motion_mps2[sel] + (x[L.accel] + G * up)[None, :]  # (S', 3)
+            # df_s/d offset_j = R_0S^T (v_s x a_j) / g for the joints before the sensor's link
+            cr = cross(v[:, None, :], frame.axes[None, :, :])  # (S', n, 3)
+            J = np.einsum("sji,snj->sin", frame.R_0S[sel], cr) / G  # (S', 3, n)
+            J = J * self._sees[sel][:, None, :]
+            W = J / self._accel_sigma_g[sel][:, :, None]
+            info = np.einsum("sin,sim,s->nm", W, W, self._accel_rate[sel]) * st.observability_window_s
+        lam, V = np.linalg.eigh(info)
+        V2 = V**2
+        readable = lam > 1e-12
+        self._achievable = np.sqrt((V2[:, readable] / lam[readable]).sum(axis=1))
+        self._achievable[(V2[:, ~readable] > 1e-12).any(axis=1)] = np.inf
+        self._observed = self._sees[sel].any(axis=0) if len(sel) else np.zeros(n, bool)
+        self._locked = locked
+        self._ill = self._achievable > st.sigma_limit_deg * DEG
+        # hold a weak direction only where the window's information would not beat what the
+        # filter already knows along it (a joint still wide from startup takes weak readings)
+        weak = lam < 1.0 / (st.sigma_limit_deg * DEG) ** 2
+        if weak.any():
+            prior_var = np.einsum("ji,jk,ki->i", V, self._ukf._P[:n, :n], V)
+            weak &= lam * prior_var < 1.0
+        dirs = [V[:, weak]] if weak.any() else []
+        if locked.any():
+            dirs.append(np.eye(n)[:, locked])
+        if dirs:
+            B = np.concatenate(dirs, axis=1)
+            u, sv, _ = np.linalg.svd(B, full_matrices=False)
+            B = u[:, sv > 1e-6]
+            T = np.eye(L.size)
+            T[:n, :n] -= B @ B.T
+            self._hold = T
+        else:
+            self._hold = None
+
+    def _update_flags(self, t: float) -> None:
+        """Sensor statuses and joint flags (the most severe condition wins). A few
+        sensors and joints: plain Python."""
+        st, n = self.settings, self.arm.n_joints
+        stale_s = st.stale_after_s
+        Sa = len(self.accel_streams)
+        codes = []
+        for i in range(len(self.sensor_names)):
+            if not self._seen[i]:
+                c = _ABSENT
+            elif i < Sa and self._dead[i]:
+                c = _DEAD
+            elif i < Sa and self._stuck[i]:
+                c = _STUCK
+            elif t - self._last_t[i] > stale_s:
+                c = _STALE
+            elif self._rejecting[i]:
+                c = _REJECTING
+            else:
+                c = 0
+            codes.append(c)
+        self._status_codes = np.array(codes, dtype=np.int8)
+        if self._ukf is None:
+            return
+        nl = len(self.link_names)
+        usable = [codes[i] <= _REJECTING for i in range(nl)]
+        links = self._links_list
+        sig = np.sqrt(np.clip(self._ukf._P.diagonal()[:n], 0.0, None)).tolist()
+        q = (self._q_enc + self._ukf._x[:n]).tolist()
+        lim, margin = st.sigma_limit_deg * DEG, st.limit_margin_deg * DEG
+        lo, hi = self._min_list, self._max_list
+        flags = []
+        for j in range(n):
+            if self._locked[j]:
+                f = _GIMBAL
+            elif not any(u and links[i] > j for i, u in enumerate(usable)):
+                f = _UNOBSERVED
+            elif self._ill[j] and self._observed[j]:
+                f = _ILL
+            elif self._reacq_until[j] > t:
+                f = _REACQ
+            elif q[j] < lo[j] - margin or q[j] > hi[j] + margin:
+                f = _OUT
+            elif sig[j] > lim:
+                f = _CONVERGING
+            else:
+                f = 0
+            flags.append(f)
+        self._flags = np.array(flags, dtype=np.int8)
+
+    # -- a whole recording -------------------------------------------------------------------
+    def run(self, rec: Recording, t_stop_s: float | None = None, truth: bool = True,
+            block: int = 256) -> TrackRun:
+        """Fuse every sample of ``rec`` after the current time (up to ``t_stop_s``).
+
+        The same steps as :meth:`update_instant`, with the work that does not depend on
+        the filter done for many instants at once: counts to SI units, the saturation
+        checks, the causal differentiators, and the kinematics of the mean pose (``block``
+        instants per call, with the offsets and gyro bias of the block's start; the sigma
+        points then differ from it by the offsets' drift, which the product of
+        exponentials carries exactly). With ``truth`` and truth streams in ``rec``, errors
+        and NEES are kept too.
+        """
+        import time as _time
+
+        self._check()
+        st, L, n = self.settings, self.layout, self.arm.n_joints
+        t0_wall = _time.perf_counter()
+        raw = {s: rec.get(s) for s in self.sensor_names if rec.get(s) is not None and len(rec.get(s))}
+        if ENC not in raw:
+            raise ValueError("the recording has no encoder stream 'enc': nothing to track")
+        self.set_rates({s: (v.rate_hz or 100.0) for s, v in raw.items()})
+        t_from = self._t
+        t_stop = np.inf if t_stop_s is None else float(t_stop_s)
+        times = np.unique(np.concatenate([v.t_s for v in raw.values()]))
+        times = times[(times > t_from + 1e-9) & (times <= t_stop + 1e-9)]
+        T = len(times)
+        rows, phys, valid = {}, {}, {}
+        for s, v in raw.items():
+            rows[s] = _rows_at(times, v.t_s)
+            c = v.values.astype(float)
+            lo, hi = self._limits[s]
+            ok = np.ones(len(v), dtype=bool) if lo is None else ~np.any((c <= lo) | (c >= hi), axis=1)
+            valid[s] = ok
+            phys[s] = self._sm[s].from_counts(c)
+            used = rows[s][rows[s] >= 0]
+            i = self._sidx[s]
+            self._counts[i, C_SAMPLES] += len(used)
+            self._counts[i, C_SATURATED] += int((~ok[used]).sum())
+        enc = raw[ENC]
+        q_enc_all = enc.values / self._cpr
+        enc_fit = causal_fits(enc.t_s, q_enc_all, st.encoder_window, st.encoder_order)
+        gyro_B = gyro_fit = None
+        if GYRO in raw:
+            gyro_B = phys[GYRO] @ self._R_0I.T
+            gyro_fit = causal_fits(raw[GYRO].t_s, gyro_B, st.gyro_window, st.gyro_order)
+        mag_B = phys[MAG] @ self._R_0I.T if MAG in raw else None
+        if self._ukf is None:  # the offsets are fixed by the first encoder sample
+            k = min(int(np.searchsorted(enc.t_s, t_from - 1e-9)), len(enc) - 1)
+            self._start_filter(q_enc_all[k] if self._enc0 is None else self._enc0 / self._cpr)
+        # encoder angles and rates at every instant: the latest sample's fit, extrapolated
+        ie = np.searchsorted(enc.t_s, times + 1e-9) - 1
+        has_enc = ie >= 0
+        ie = np.maximum(ie, 0)
+        dt_e = np.where(has_enc, times - enc.t_s[ie], 0.0)[:, None]
+        v0, d1, d2 = enc_fit[ie, 0], enc_fit[ie, 1], enc_fit[ie, 2]
+        q_t = v0 + d1 * dt_e + 0.5 * d2 * dt_e**2
+        qd_t = d1 + d2 * dt_e
+        qdd_t = d2
+        if gyro_B is not None:
+            ig = np.searchsorted(raw[GYRO].t_s, times + 1e-9) - 1
+            has_g = (ig >= 0)[:, None]
+            ig = np.maximum(ig, 0)
+            w_t = np.where(has_g, gyro_B[ig], 0.0)
+            wd_t = np.where(has_g, gyro_fit[ig, 1], 0.0)
+        else:
+            w_t = wd_t = np.zeros((T, 3))
+        acc_streams = [s for s in self.accel_streams if s in raw]
+        acc_idx = np.array([self._sidx[s] for s in acc_streams], dtype=int)
+        # per instant: which accelerometers have a valid sample, as (T, Sa) row indices
+        acc_rows = np.stack([np.where(rows[s] >= 0, rows[s], -1) for s in acc_streams], 1) \
+            if acc_streams else np.full((T, 0), -1)
+        acc_ok = np.stack([(rows[s] >= 0) & valid[s][np.maximum(rows[s], 0)] for s in acc_streams], 1) \
+            if acc_streams else np.zeros((T, 0), bool)
+        acc_seen = acc_rows >= 0
+        acc_counts = [raw[s].values.astype(float) for s in acc_streams]
+        acc_phys = [phys[s] for s in acc_streams]
+        enc_rows = rows[ENC]
+        gyro_rows = rows.get(GYRO)
+        gyro_ok = None if gyro_rows is None else (gyro_rows >= 0) & valid[GYRO][np.maximum(gyro_rows, 0)]
+        mag_rows = rows.get(MAG)
+        mag_ok = None if mag_rows is None else (mag_rows >= 0) & valid[MAG][np.maximum(mag_rows, 0)]
+        mag_counts = raw[MAG].values if MAG in raw else None
+        out = _RunArrays(T, n, len(self.sensor_names))
+        i_enc, i_gyro = self._sidx[ENC], self._sidx.get(GYRO)
+        for b0 in range(0, T, block):
+            b1 = min(T, b0 + block)
+            x = self._ukf.x
+            frames = make_frames(self.arm, self.accel_names, q_t[b0:b1], x[L.offset], qd_t[b0:b1],
+                                 qdd_t[b0:b1], w_t[b0:b1] - x[L.bias], wd_t[b0:b1])
+            for i in range(b0, b1):
+                t = float(times[i])
+                if enc_rows[i] >= 0:
+                    self._seen[i_enc], self._last_t[i_enc] = True, t
+                    self._counts[i_enc, C_USED] += 1
+                gyro = None
+                if gyro_ok is not None and gyro_ok[i]:
+                    gyro = gyro_B[gyro_rows[i]]
+                    self._seen[i_gyro], self._last_t[i_gyro] = True, t
+                    self._counts[i_gyro, C_USED] += 1
+                acc = None
+                ok = acc_ok[i]
+                if ok.any():
+                    which = np.flatnonzero(ok)
+                    r = acc_rows[i]
+                    acc = (acc_idx[which], np.stack([acc_counts[j][r[j]] for j in which]),
+                           np.stack([acc_phys[j][r[j]] for j in which]))
+                elif acc_seen[i].any():  # saturated samples only: the sensors did speak
+                    self._seen[acc_idx[acc_seen[i]]] = True
+                    self._last_t[acc_idx[acc_seen[i]]] = t
+                mag = None
+                if mag_ok is not None and mag_ok[i]:
+                    k = mag_rows[i]
+                    mag = (mag_counts[k], mag_B[k])
+                frame = frames.take(i - b0) if acc is not None else None
+                self._step(t, gyro, acc, mag, frame, q_t[i])
+                out.record(self, i)
+        if gyro_B is not None:
+            k = int(np.searchsorted(raw[GYRO].t_s, self._t + 1e-9)) - 1
+            if k >= 0:
+                self._omega = gyro_B[k]
+        # the online differentiators continue from the recording's last samples
+        self._prime(self._enc_diff, enc.t_s, q_enc_all, self._t)
+        if gyro_B is not None:
+            self._prime(self._gyro_diff, raw[GYRO].t_s, gyro_B, self._t)
+        elapsed = _time.perf_counter() - t0_wall
+        truth_q = rec.get("true_q") if truth else None
+        truth_b = rec.get("true_base") if truth else None
+        tq_rows = _rows_at(times, truth_q.t_s) if truth_q is not None and len(truth_q) else None
+        tb_rows = _rows_at(times, truth_b.t_s) if truth_b is not None and len(truth_b) else None
+        return out.finish(self, times, elapsed, truth_q, tq_rows, truth_b, tb_rows)
+
+    @staticmethod
+    def _prime(diff: CausalDifferentiator, t: np.ndarray, y: np.ndarray, t_now: float) -> None:
+        k = int(np.searchsorted(t, t_now + 1e-9))
+        for j in range(max(0, k - diff.window), k):
+            diff.push(float(t[j]), y[j])
+
+    # -- results ---------------------------------------------------------------------------
+    def q_enc_now(self) -> np.ndarray:
+        """The encoders' angles (counts / counts per rad) at the last fused instant."""
+        return self._q_enc.copy()
+
+    @property
+    def estimate(self) -> Estimate:
+        """The estimate at the last fused instant."""
+        self._check_filter()
+        L, n = self.layout, self.arm.n_joints
+        x, sig = self._ukf.x, self._ukf.sigma
+        status = tuple((s, SENSOR_STATUS[c]) for s, c in zip(self.sensor_names, self._status_codes,
+                                                              strict=True))
+        return Estimate(
+            t_s=self._t, q_rad=_ro(self._q_enc + x[:n]), sigma_rad=_ro(sig[:n]),
+            flags=tuple(JOINT_FLAGS[f] for f in self._flags),
+            roll_rad=float(x[L.roll]), pitch_rad=float(x[L.pitch]), yaw_rad=float(x[L.yaw]),
+            attitude_sigma_rad=_ro(sig[[L.roll, L.pitch, L.yaw]]), gyro_bias_rad_s=_ro(x[L.bias]),
+            axis_to_vertical_deg=_ro(self._axis_deg), sensors=status,
+            magnetic_disturbance=self._mag_flags[0], magnetic_recovery=self._mag_flags[1],
+            joint_names=self.arm.joint_names,
+        )
+
+    def counters(self) -> dict[str, dict[str, int]]:
+        """Per sensor: samples, used, rejected, nan, saturated, implausible, stuck,
+        out_of_order, reacquisitions."""
+        self._check()
+        return {s: {c: int(self._counts[i, k]) for k, c in enumerate(COUNTERS)}
+                for i, s in enumerate(self.sensor_names)}
+
+    def innovations(self, sensor: str) -> InnovationLog:
+        """The innovations kept for ``sensor`` (a link accelerometer, ``imu_acc``, ``imu_mag``):
+        every one that was tested against the gate, accepted or not."""
+        self._check()
+        if sensor == MAG and self._has_imu:
+            return self._mag_ring.log(sensor)
+        if sensor not in self.accel_streams:
+            kept = list(self.accel_streams) + ([MAG] if self._has_imu else [])
+            raise KeyError(f"no innovations for {sensor!r}; kept for {kept}")
+        return self._acc_ring.log(sensor)
+
+    def nis_stats(self) -> dict[str, tuple[float, int, int]]:
+        """Per sensor: (mean NIS, count, degrees of freedom) over its healthy samples."""
+        self._check()
+        r = self._acc_ring
+        out = {s: (float(r.nis_sum[i] / r.nis_count[i]) if r.nis_count[i] else float("nan"),
+                   int(r.nis_count[i]), 3) for i, s in enumerate(self.accel_streams)}
+        if self._has_imu:
+            m = self._mag_ring
+            out[MAG] = (m.nis_sum / m.nis_count if m.nis_count else float("nan"), m.nis_count, 1)
+        return out
+
+
+# --------------------------------------------------------------------------------------
+# a whole run
+def _rows_at(times: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    """Index into ``t_s`` of the sample at each of ``times`` (-1 where there is none)."""
+    pos = np.searchsorted(t_s, times)
+    pos_c = np.minimum(pos, len(t_s) - 1)
+    return np.where(np.abs(t_s[pos_c] - times) < 1e-9, pos_c, -1)
+
+
+class _RunArrays:
+    def __init__(self, T: int, n: int, S: int):
+        self.q = np.full((T, n), np.nan)
+        self.sigma = np.full((T, n), np.nan)
+        self.flags = np.zeros((T, n), dtype=np.int8)
+        self.rpy = np.full((T, 3), np.nan)
+        self.rpy_sigma = np.full((T, 3), np.nan)
+        self.bias = np.full((T, 3), np.nan)
+        self.magnetic = np.zeros(T, dtype=np.int8)
+        self.status = np.zeros((T, S), dtype=np.int8)
+        self.P = np.full((T, n + 3, n + 3), np.nan)
+        self.T = T
+
+    def record(self, tr: Tracker, i: int) -> None:
+        ukf, L, n = tr._ukf, tr.layout, tr.arm.n_joints
+        x = ukf._x
+        d = np.sqrt(np.clip(np.diagonal(ukf._P), 0.0, None))
+        self.q[i] = tr._q_enc + x[:n]
+        self.sigma[i] = d[:n]
+        self.flags[i] = tr._flags
+        idx = tr._att_idx
+        self.rpy[i] = x[idx]
+        self.rpy_sigma[i] = d[idx]
+        self.bias[i] = x[L.bias]
+        self.magnetic[i] = (1 if tr._mag_flags[0] else 0) | (2 if tr._mag_flags[1] else 0)
+        self.status[i] = tr._status_codes
+        self.P[i] = ukf._P[tr._nees_ix]
+
+    def finish(self, tr: Tracker, times, elapsed, truth_q, tq_rows, truth_b, tb_rows) -> TrackRun:
+        n = tr.arm.n_joints
+        q_err = yaw_err = nees = None
+        if tq_rows is not None:
+            q_err = np.full((self.T, n), np.nan)
+            ok = tq_rows >= 0
+            q_err[ok] = self.q[ok] - truth_q.values[tq_rows[ok]]
+        if tb_rows is not None:
+            att_err = np.full((self.T, 3), np.nan)
+            ok = tb_rows >= 0
+            att_err[ok] = wrap_angle(self.rpy[ok] - truth_b.values[tb_rows[ok]])
+            yaw_err = att_err[:, 2]
+            if q_err is not None:
+                e = np.concatenate([q_err, att_err], axis=1)
+                good = np.all(np.isfinite(e), axis=1)
+                nees = np.full(self.T, np.nan)
+                if good.any():
+                    nees[good] = np.einsum("ti,ti->t", e[good],
+                                           np.linalg.solve(self.P[good], e[good][..., None])[..., 0])
+        return TrackRun(
+            joint_names=tr.arm.joint_names, sensor_names=tr.sensor_names, t_s=np.asarray(times),
+            q_rad=self.q, sigma_rad=self.sigma, flags=self.flags, rpy_rad=self.rpy,
+            rpy_sigma_rad=self.rpy_sigma, gyro_bias_rad_s=self.bias, magnetic=self.magnetic,
+            sensor_status=self.status, elapsed_s=elapsed, counters=tr.counters(), nis=tr.nis_stats(),
+            q_error_rad=q_err, yaw_error_rad=yaw_err, nees=nees, nees_dof=n + 3,
+        )
+
+
+@dataclass(frozen=True)
+class TrackRun:
+    """A run over a recording: per fused instant (``t_s (T,)``) the joint angles, their
+    sigma and flag codes (:data:`JOINT_FLAGS`), the base attitude and its sigma, the gyro
+    bias, magnetic flags (bit 1: disturbance, bit 2: recovery), sensor status codes
+    (:data:`SENSOR_STATUS`); with truth, the errors and the NEES (joints, roll, pitch, yaw)."""
+
+    joint_names: tuple[str, ...]
+    sensor_names: tuple[str, ...]
+    t_s: np.ndarray
+    q_rad: np.ndarray
+    sigma_rad: np.ndarray
+    flags: np.ndarray
+    rpy_rad: np.ndarray
+    rpy_sigma_rad: np.ndarray
+    gyro_bias_rad_s: np.ndarray
+    magnetic: np.ndarray
+    sensor_status: np.ndarray
+    elapsed_s: float
+    counters: dict
+    nis: dict
+    q_error_rad: np.ndarray | None = None
+    yaw_error_rad: np.ndarray | None = None
+    nees: np.ndarray | None = None
+    nees_dof: int = 0
+
+    @property
+    def steps(self) -> int:
+        return int(len(self.t_s))
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.steps / self.elapsed_s if self.elapsed_s > 0 else float("nan")
+
+    def flags_seen(self) -> dict:
+        """How many instants each joint showed each flag, and each sensor each status."""
+        joints = {nm: _tally(self.flags[:, j], JOINT_FLAGS) for j, nm in enumerate(self.joint_names)}
+        sensors = {nm: _tally(self.sensor_status[:, i], SENSOR_STATUS)
+                   for i, nm in enumerate(self.sensor_names)}
+        mag = {"magnetic_disturbance": int(np.sum(self.magnetic & 1 > 0)),
+               "magnetic_recovery": int(np.sum(self.magnetic & 2 > 0))}
+        return {"joints": joints, "sensors": sensors, "heading": mag}
+
+    def summary(self, after_s: float = 60.0, t0_s: float | None = None) -> dict:
+        """The JSON summary (see docs/tracking.md): steps, speed, rejections, flags seen, and
+        with truth the RMS errors after ``after_s`` (from ``t0_s``, default the first
+        instant), NEES and NIS means with their 95 % chi-square bounds."""
+        t0 = (float(self.t_s[0]) if len(self.t_s) else 0.0) if t0_s is None else t0_s
+        d: dict = {
+            "steps": self.steps,
+            "duration_s": float(self.t_s[-1] - self.t_s[0]) if self.steps > 1 else 0.0,
+            "elapsed_s": self.elapsed_s,
+            "steps_per_s": self.steps_per_s,
+            "rejections": {s: c["rejected"] for s, c in self.counters.items()},
+            "skipped": {s: {k: c[k] for k in ("nan", "saturated", "implausible", "stuck", "out_of_order")}
+                        for s, c in self.counters.items()},
+            "reacquisitions": {s: c["reacquisitions"] for s, c in self.counters.items()
+                               if c["reacquisitions"]},
+            "flags_seen": self.flags_seen(),
+        }
+        nis = {}
+        for s, (mean, count, dof) in self.nis.items():
+            if count:
+                lo, hi = chi2.ppf([0.025, 0.975], count * dof) / count
+                nis[s] = {"mean": mean, "dof": dof, "count": count, "bounds_95": [float(lo), float(hi)],
+                          "inside": bool(lo <= mean <= hi)}
+        d["nis"] = nis
+        late = self.t_s >= t0 + after_s
+        if self.q_error_rad is not None:
+            e = np.degrees(self.q_error_rad[late])
+            good = np.isfinite(e)
+            d["rms_error_deg"] = {nm: _rms(e[:, j][good[:, j]]) for j, nm in enumerate(self.joint_names)}
+            ok = (self.flags[late] == FLAG_CODE["ok"]) & good
+            d["rms_error_ok_deg"] = {nm: _rms(e[:, j][ok[:, j]]) for j, nm in enumerate(self.joint_names)}
+            d["max_error_deg"] = {nm: _maxabs(e[:, j][good[:, j]]) for j, nm in enumerate(self.joint_names)}
+            d["rms_after_s"] = after_s
+        if self.yaw_error_rad is not None:
+            y = np.degrees(self.yaw_error_rad[late])
+            d["heading_rms_deg"] = _rms(y[np.isfinite(y)])
+        if self.nees is not None:
+            v = self.nees[late & np.isfinite(self.nees)]
+            if len(v):
+                lo, hi = chi2.ppf([0.025, 0.975], self.nees_dof)
+                d["nees"] = {"mean": float(np.mean(v)), "dof": self.nees_dof, "count": int(len(v)),
+                             "bounds_95_single": [float(lo), float(hi)],
+                             "bounds_95": [float(x) for x in chi2.ppf([0.025, 0.975], len(v) * self.nees_dof)
+                                           / len(v)],
+                             "states": [f"q[{nm}]" for nm in self.joint_names] + ["roll", "pitch", "yaw"]}
+        return d
+
+
+def _tally(codes: np.ndarray, names: tuple[str, ...]) -> dict[str, int]:
+    vals, counts = np.unique(codes, return_counts=True)
+    return {names[int(c)]: int(k) for c, k in zip(vals, counts, strict=True)}
+
+
+def _maxabs(v: np.ndarray) -> float | None:
+    return float(np.max(np.abs(v))) if len(v) else None
+
+
+def _rms(v: np.ndarray) -> float | None:
+    return float(np.sqrt(np.mean(v**2))) if len(v) else None
+
+
+def _ro(a) -> np.ndarray:
+    v = np.array(a, dtype=float)
+    v.setflags(write=False)
+    return v
+
+
+__all__ = [
+    "COUNTERS", "FLAG_CODE", "JOINT_FLAGS", "SENSOR_STATUS", "CausalDifferentiator", "Estimate",
+    "Frames", "ImuStill", "InnovationLog", "NotInitialisedError", "StateLayout", "Tracker",
+    "TrackerSettings", "causal_fits", "causal_poly_fit", "imu_still_from_recording",
+    "TrackRun", "make_frames",
+]

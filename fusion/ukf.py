@@ -1,0 +1,427 @@
+"""A batched sigma-point (unscented) Kalman filter.
+
+Built on filterpy's sigma-point machinery: :class:`SigmaPoints` *is* filterpy's
+``MerweScaledSigmaPoints`` (same parameters, same weights ``Wm``/``Wc``, same point
+order ``x, x + U[k], x - U[k]``), with the points made in one array operation instead of
+filterpy's loop over the state dimension. What differs from filterpy's
+``UnscentedKalmanFilter``:
+
+- the process and measurement models are called **once per step with every sigma point**
+  (``fx(X (2n+1, n)) -> (2n+1, n)``, ``hx(X) -> (2n+1, m)``), never once per point;
+- the update uses the sigma points of the *predicted* covariance (process noise
+  included), not the propagated points of the previous posterior;
+- the covariance update is the general (Joseph-equivalent) form
+  ``P - K Pxz^T - Pxz K^T + K S K^T``, valid for any gain, so a gain with some
+  directions held (Schmidt "consider" states, see ``hold``) keeps ``P`` honest; ``P`` is
+  symmetrised after every update and repaired (eigenvalue floor) if round-off ever
+  makes it indefinite;
+- each measurement group (a sensor) is gated on its own normalised innovation squared
+  (NIS) before it may enter the update, and every update returns its innovations and
+  their covariances (:class:`Innovation`) for the diagnosis workbench;
+- the state lives behind read-only properties: nobody pokes ``x`` or ``P``.
+
+Angles in the state or the measurement (a heading) are handled by ``angle_states`` /
+``angle_rows``: residuals are wrapped to (-pi, pi] and means taken about the central
+sigma point.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.kalman import MerweScaledSigmaPoints
+from scipy.linalg import lapack
+from scipy.stats import chi2
+
+TWO_PI = 2.0 * np.pi
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles wrapped to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % TWO_PI - np.pi
+
+
+# --------------------------------------------------------------------------------------
+class SigmaPoints(MerweScaledSigmaPoints):
+    """filterpy's scaled sigma points (van der Merwe), made in one shot.
+
+    ``sigma_points(x, P)`` returns exactly what filterpy's does (rows of the upper
+    Cholesky factor of ``(n + lambda) P``), as one ``(2n+1, n)`` array without a loop.
+    When ``P`` is not numerically positive definite the square root falls back to a
+    symmetric eigen-decomposition with negative eigenvalues clipped to zero.
+    """
+
+    def __init__(self, n: int, alpha: float = 0.5, beta: float = 2.0, kappa: float = 0.0):
+        super().__init__(n, alpha, beta, kappa)
+        self.lambda_ = alpha**2 * (n + kappa) - n
+        self.Wm.setflags(write=False)
+        self.Wc.setflags(write=False)
+
+    @property
+    def scale(self) -> float:
+        """``n + lambda``: the points sit at ``x ± sqrt(scale) * columns of sqrt(P)``."""
+        return self.n + self.lambda_
+
+    def sqrt_rows(self, P: np.ndarray) -> np.ndarray:
+        """Rows ``U[k]`` with ``U^T U = (n + lambda) P`` (filterpy's convention: the upper
+        Cholesky factor, here straight from LAPACK's ``dpotrf``)."""
+        A = self.scale * P
+        U, info = lapack.dpotrf(A, lower=0, clean=1)
+        if info == 0:
+            return U
+        w, V = np.linalg.eigh(0.5 * (A + A.T))
+        return (V * np.sqrt(np.clip(w, 0.0, None))).T
+
+    def sigma_points(self, x, P) -> np.ndarray:
+        x = np.asarray(x, dtype=float).reshape(-1)
+        if x.shape[0] != self.n:
+            raise ValueError(f"expected size(x) {self.n}, but size is {x.shape[0]}")
+        U = self.sqrt_rows(np.atleast_2d(np.asarray(P, dtype=float)))
+        return np.concatenate([x[None, :], x + U, x - U], axis=0)
+
+
+# --------------------------------------------------------------------------------------
+def unscented_mean(Y: np.ndarray, Wm: np.ndarray, angles: np.ndarray | None = None) -> np.ndarray:
+    """Weighted mean of sigma points ``Y (2n+1, k)``; ``angles`` (column indices) are
+    averaged as wrapped offsets from the central point."""
+    if angles is None or len(angles) == 0:
+        return Wm @ Y
+    ref = Y[0, angles]
+    m = Wm @ Y
+    m[angles] = wrap_angle(ref + Wm @ wrap_angle(Y[:, angles] - ref))
+    return m
+
+
+def residuals(Y: np.ndarray, mean: np.ndarray, angles: np.ndarray | None = None) -> np.ndarray:
+    d = Y - mean
+    if angles is not None and len(angles):
+        d[..., angles] = wrap_angle(d[..., angles])
+    return d
+
+
+def unscented_transform(Y, Wm, Wc, noise_cov=None, angles=None):
+    """Mean, residuals and covariance of transformed sigma points (plus an additive noise).
+
+    Angle columns are averaged as wrapped offsets from the central point, and their
+    residuals are those offsets minus the mean offset (one wrap, no second pass).
+    """
+    m = Wm @ Y
+    D = Y - m
+    if angles is not None and len(angles):
+        ref = Y[0, angles]
+        dA = wrap_angle(Y[:, angles] - ref)
+        mA = Wm @ dA
+        m[angles] = wrap_angle(ref + mA)
+        D[:, angles] = dA - mA
+    C = (D.T * Wc) @ D
+    if noise_cov is not None:
+        C = C + noise_cov
+    return m, D, C
+
+
+def symmetrise(P: np.ndarray) -> np.ndarray:
+    return 0.5 * (P + P.T)
+
+
+def repair_covariance(P: np.ndarray, floor: float = 0.0) -> np.ndarray:
+    """``P`` symmetrised, with eigenvalues below ``floor`` raised to it (only if needed)."""
+    P = symmetrise(P)
+    d = np.diagonal(P)
+    if np.all(d > floor):
+        try:
+            np.linalg.cholesky(P)
+            return P
+        except np.linalg.LinAlgError:
+            pass
+    w, V = np.linalg.eigh(P)
+    return symmetrise((V * np.clip(w, floor, None)) @ V.T)
+
+
+def group_nis(nu: np.ndarray, S: np.ndarray, rows: Sequence[np.ndarray]) -> np.ndarray:
+    """Normalised innovation squared of each group of rows (inf where S is singular).
+
+    Groups of the same size are solved together in one batched call.
+    """
+    G = len(rows)
+    out = np.empty(G)
+    sizes = np.array([len(r) for r in rows])
+    for k in np.unique(sizes):
+        which = np.flatnonzero(sizes == k)
+        idx = np.stack([rows[i] for i in which])  # (g, k)
+        Sg = S[idx[:, :, None], idx[:, None, :]]  # (g, k, k)
+        v = nu[idx]  # (g, k)
+        try:
+            out[which] = np.einsum("gi,gi->g", v, np.linalg.solve(Sg, v[..., None])[..., 0])
+        except np.linalg.LinAlgError:
+            for i, gi in enumerate(which):
+                try:
+                    out[gi] = v[i] @ np.linalg.solve(Sg[i], v[i])
+                except np.linalg.LinAlgError:
+                    out[gi] = np.inf
+    return out
+
+
+def nis_bound(dof: int | np.ndarray, significance: float) -> np.ndarray:
+    """The chi-square gate: NIS above this is an outlier at ``significance``."""
+    return chi2.ppf(1.0 - significance, dof)
+
+
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MeasurementGroup:
+    """A named block of measurement rows (one sensor), gated as a whole."""
+
+    name: str
+    rows: np.ndarray  # indices into the stacked measurement vector
+    gate: float = np.inf  # NIS above this is rejected (np.inf: never)
+
+
+class GroupPlan:
+    """Measurement groups prepared once for repeated updates of the same shape: their
+    names, rows, gates, and the index arrays that batch the NIS of equal-sized groups."""
+
+    def __init__(self, groups: Sequence[MeasurementGroup]):
+        self.groups = tuple(groups)
+        self.names = tuple(g.name for g in groups)
+        self.rows = tuple(np.asarray(g.rows, dtype=int) for g in groups)
+        self.gates = np.array([g.gate for g in groups], dtype=float)
+        sizes = np.array([len(r) for r in self.rows])
+        self.batches = []
+        for k in np.unique(sizes):
+            which = np.flatnonzero(sizes == k)
+            idx = np.stack([self.rows[i] for i in which])
+            self.batches.append((which, idx, idx[:, :, None], idx[:, None, :]))
+
+    def nis(self, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
+        out = np.empty(len(self.rows))
+        for which, idx, ii, jj in self.batches:
+            Sg = S[ii, jj]
+            v = nu[idx]
+            try:
+                out[which] = np.einsum("gi,gi->g", v, np.linalg.solve(Sg, v[..., None])[..., 0])
+            except np.linalg.LinAlgError:
+                out[which] = group_nis(nu, S, [self.rows[i] for i in which])
+        return out
+
+
+@dataclass(frozen=True)
+class Innovation:
+    """One measurement's prediction against the current state, before it is applied.
+
+    ``innovation (m,)`` and ``S (m, m)`` are the full stacked vectors (every group);
+    ``nis (G,)`` is each group's normalised innovation squared, ``gate_ok (G,)`` whether
+    it passed its own gate. ``Pxz (n, m)`` is the state-measurement cross covariance.
+    """
+
+    names: tuple[str, ...]
+    rows: tuple[np.ndarray, ...]
+    innovation: np.ndarray
+    S: np.ndarray
+    Pxz: np.ndarray
+    nis: np.ndarray
+    gate_ok: np.ndarray
+    z_pred: np.ndarray
+
+    def group(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Innovation and covariance of one group."""
+        r = self.rows[self.names.index(name)]
+        return self.innovation[r], self.S[np.ix_(r, r)]
+
+
+class BatchedUKF:
+    """An unscented Kalman filter whose models see every sigma point at once.
+
+    ``fx(X, **kw) -> X'`` and ``hx(X, **kw) -> Z`` take and return ``(2n+1, ·)`` arrays.
+    ``angle_states`` are the state indices that are angles (wrapped residuals and means).
+    """
+
+    def __init__(self, x0: np.ndarray, P0: np.ndarray, points: SigmaPoints | None = None,
+                 angle_states: Sequence[int] = ()):
+        x0 = np.array(x0, dtype=float).reshape(-1)
+        P0 = np.array(P0, dtype=float)
+        n = x0.shape[0]
+        if P0.shape != (n, n):
+            raise ValueError(f"P0 must have shape ({n}, {n}) for a state of size {n}, got {P0.shape}")
+        if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(P0))):
+            raise ValueError("initial state and covariance must be finite")
+        self.points = SigmaPoints(n) if points is None else points
+        if self.points.n != n:
+            raise ValueError(f"sigma points are for n = {self.points.n}, the state has {n}")
+        self._angles = np.array(sorted(angle_states), dtype=int)
+        self._x = x0
+        self._P = repair_covariance(P0)
+        self._sigmas: np.ndarray | None = None
+        self._Wm = self.points.Wm
+        self._Wc = self.points.Wc
+
+    # -- read-only state ------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        return self._x.shape[0]
+
+    @property
+    def x(self) -> np.ndarray:
+        v = self._x.copy()
+        v.setflags(write=False)
+        return v
+
+    @property
+    def P(self) -> np.ndarray:
+        v = self._P.copy()
+        v.setflags(write=False)
+        return v
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diagonal(self._P), 0.0, None))
+
+    def sigma_points(self) -> np.ndarray:
+        return self.points.sigma_points(self._x, self._P)
+
+    # -- lifecycle ------------------------------------------------------------------------
+    def reset(self, x: np.ndarray, P: np.ndarray) -> None:
+        """Replace the state (a restart, a restore from a snapshot)."""
+        x = np.array(x, dtype=float).reshape(-1)
+        P = np.array(P, dtype=float)
+        if x.shape != self._x.shape or P.shape != self._P.shape:
+            raise ValueError(f"reset: expected x {self._x.shape} and P {self._P.shape}, "
+                             f"got {x.shape} and {P.shape}")
+        self._x, self._P = x, repair_covariance(P)
+        self._sigmas = None
+
+    def inflate(self, index: Sequence[int] | np.ndarray, variance: np.ndarray | float) -> None:
+        """Add ``variance`` to the diagonal at ``index`` (a re-acquisition after a slip)."""
+        idx = np.asarray(index, dtype=int)
+        P = self._P.copy()
+        P[idx, idx] += variance
+        self._P = P
+        self._sigmas = None
+
+    def set_component(self, index: int, value: float, variance: float | None = None) -> None:
+        """Set one state (and optionally its variance, decorrelating it from the rest)."""
+        x = self._x.copy()
+        x[index] = value
+        self._x = x
+        if variance is not None:
+            P = self._P.copy()
+            P[index, :] = 0.0
+            P[:, index] = 0.0
+            P[index, index] = variance
+            self._P = P
+        self._sigmas = None
+
+    # -- predict ----------------------------------------------------------------------------
+    def predict(self, fx: Callable[..., np.ndarray], Q: np.ndarray, **kw) -> None:
+        """Propagate every sigma point through ``fx`` in one call.
+
+        The process noise ``Q`` is added to the covariance *before* the sigma points are
+        drawn (exact for the additive, near-identity steps of a tracker: one step of a
+        random walk or of a slowly decaying state), so the propagated points represent
+        the predicted density, noise included, and the next update uses them directly:
+        one matrix square root per step, not two.
+        """
+        X = self.points.sigma_points(self._x, self._P + Q)
+        Y = fx(X, **kw)
+        m, D, C = unscented_transform(Y, self._Wm, self._Wc, None, self._angles)
+        self._x = m
+        self._P = symmetrise(C)
+        self._sigmas = Y
+        self._sigmas_D = D
+
+    def sigma_points_now(self) -> np.ndarray:
+        """The sigma points of the current state: those the last predict propagated when no
+        correction has happened since, else fresh ones."""
+        return self._sigmas if self._sigmas is not None else self.sigma_points()
+
+    # -- update -----------------------------------------------------------------------------
+    def innovate(
+        self,
+        z: np.ndarray,
+        hx: Callable[..., np.ndarray],
+        R: np.ndarray,
+        groups: Sequence[MeasurementGroup] | GroupPlan | None = None,
+        angle_rows: Sequence[int] = (),
+        X: np.ndarray | None = None,
+        **kw,
+    ) -> Innovation:
+        """Predict ``z (m,)`` through ``hx`` (every sigma point in one call), with noise
+        ``R (m, m)``, and test each group against its gate. Nothing is applied yet.
+
+        ``groups`` may be a prepared :class:`GroupPlan` (repeated updates of one shape).
+        ``X`` may pass sigma points already made from the current state.
+        """
+        z = np.asarray(z, dtype=float).reshape(-1)
+        if groups is None:
+            groups = [MeasurementGroup("z", np.arange(z.shape[0]))]
+        plan = groups if isinstance(groups, GroupPlan) else GroupPlan(groups)
+        if X is None and self._sigmas is not None:
+            X, DX = self._sigmas, self._sigmas_D
+        else:
+            X = self.sigma_points() if X is None else X
+            DX = residuals(X, self._x, self._angles)
+        Z = hx(X, **kw)
+        ang = np.asarray(angle_rows, dtype=int)
+        zp, DZ, S = unscented_transform(Z, self._Wm, self._Wc, R, ang)
+        Pxz = (DX.T * self._Wc) @ DZ
+        nu = z - zp
+        if len(ang):
+            nu[ang] = wrap_angle(nu[ang])
+        nis = plan.nis(nu, S)
+        ok = np.isfinite(nis) & (nis <= plan.gates)
+        return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, zp)
+
+    def correct(self, inn: Innovation, accept: np.ndarray | None = None,
+                hold: np.ndarray | None = None, gain_mask: np.ndarray | None = None) -> bool:
+        """Apply the groups ``accept`` (default: those that passed their gate).
+
+        ``hold`` is an ``(n, n)`` projection applied to the gain (``K' = hold @ K``): the
+        state directions it removes get no correction from this update (Schmidt-Kalman
+        "consider" states). ``gain_mask (n, m)`` then zeroes single gain entries (a
+        measurement row that may correct only some states). Either way the covariance
+        stays consistent through the general form. Returns whether anything was applied.
+        """
+        ok = inn.gate_ok if accept is None else np.asarray(accept, dtype=bool)
+        if not ok.any():
+            return False
+        if ok.all():
+            self._apply(inn.innovation, inn.S, inn.Pxz, hold, gain_mask)
+        else:
+            use = np.concatenate([r for r, a in zip(inn.rows, ok, strict=True) if a])
+            self._apply(inn.innovation[use], inn.S[np.ix_(use, use)], inn.Pxz[:, use], hold,
+                        None if gain_mask is None else gain_mask[:, use])
+        return True
+
+    def update(self, z, hx, R, groups=None, angle_rows=(), hold=None, X=None, gain_mask=None,
+               **kw) -> Innovation:
+        """:meth:`innovate` then :meth:`correct` with the groups that pass their gates."""
+        inn = self.innovate(z, hx, R, groups, angle_rows, X, **kw)
+        self.correct(inn, None, hold, gain_mask)
+        return inn
+
+    def _apply(self, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray, hold: np.ndarray | None,
+               gain_mask: np.ndarray | None = None) -> None:
+        _, Kt, info = lapack.dposv(S, Pxz.T)  # S is symmetric positive definite
+        if info != 0:
+            Kt = np.linalg.lstsq(S, Pxz.T, rcond=None)[0]
+        K = Kt.T
+        if hold is None and gain_mask is None:
+            # the optimal gain: P - K S K^T = P - K Pxz^T
+            P = self._P - K @ Pxz.T
+        else:
+            # a held gain is not optimal: the general (Joseph-equivalent) form stays exact
+            if hold is not None:
+                K = hold @ K
+            if gain_mask is not None:
+                K = K * gain_mask
+            KPt = K @ Pxz.T
+            P = self._P - KPt - KPt.T + K @ S @ K.T
+        x = self._x + K @ nu
+        if len(self._angles):
+            x[self._angles] = wrap_angle(x[self._angles])
+        P = 0.5 * (P + P.T)
+        if np.any(np.diagonal(P) <= 0.0):
+            P = repair_covariance(P, 1e-18)
+        self._x, self._P = x, P
+        self._sigmas = None
