@@ -360,6 +360,36 @@ def _profile_sigma(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.nda
     return np.maximum(out, sig[joints])
 
 
+def _follow_weak(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.ndarray,
+                 weak: np.ndarray, locked: np.ndarray, inflate: float) -> np.ndarray:
+    """How far each joint moves while each weak joint, in turn, sweeps what the data allow
+    (a locked joint: its whole turn; an ill-conditioned one: +-3 sigma, at most 60 deg) and
+    everything else is re-solved: ``(n_weak, n)`` rad. Points whose fit is worse than a
+    3-sigma change (chi-square 9) are not allowed, except for a locked joint (the data say
+    nothing about it)."""
+    n = problem.n
+    L = np.flatnonzero(weak)
+    pts = []
+    for j in L:
+        if locked[j]:
+            d = np.linspace(-np.pi, np.pi, 12, endpoint=False)[1:]
+        else:
+            w = min(3 * sig[j], np.pi / 3)
+            d = np.array([-1, -2 / 3, -1 / 3, 1 / 3, 2 / 3, 1]) * w
+        pts += [(j, v) for v in d]
+    starts = np.repeat(xb[None], len(pts), 0)
+    free = np.ones((len(pts), n + 2), bool)
+    for i, (j, v) in enumerate(pts):
+        starts[i, j] += v
+        free[i, j] = False
+    x, cost = _batched_lm(problem, starts, free, 12)
+    j_of = np.array([j for j, _ in pts])
+    allowed = locked[j_of] | ((cost - cost_b) / inflate <= 4.5)
+    moved = np.abs(_wrap(x[:, :n] - xb[:n])) * allowed[:, None]
+    moved[np.arange(len(pts)), j_of] = 0.0
+    return np.stack([moved[j_of == j].max(0) for j in L])
+
+
 def _wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
@@ -529,31 +559,39 @@ def solve_still(
     flags = np.array(["ok"] * n, dtype=object)
     flags[locked] = "gimbal_lock"
     limit = st.sigma_limit_deg * DEG
-    if locked.any():
-        # a joint that would be fine with the blind joints known, but is not because they
-        # are not, rests on them: it inherits their flag
-        keep = cols & np.concatenate([~locked, [True, True]])
-        Jk = J[:, keep]
-        cov_held = np.linalg.inv(Jk.T @ Jk + np.eye(Jk.shape[1]) / np.pi**2) * inflate
-        sig_held = np.full(n + 2, np.nan)
-        sig_held[keep] = np.sqrt(np.clip(np.diag(cov_held), 0, None))
-        inherit = ~locked & (sig[:n] > limit) & (sig_held[:n] <= limit)
-        flags[inherit] = "gimbal_lock"
+    # Joints whose value rests on a weak one (locked, or sigma above the limit): sweep the
+    # weak joint across what the data allow, re-solve the rest, and widen the others'
+    # sigma by how far they follow. A joint pushed over the limit by a locked joint
+    # inherits its flag; by an ill-conditioned one, it becomes ill-conditioned.
+    weak = locked | (sig[:n] > limit)
+    if weak.any():
+        follow = _follow_weak(problem, xb, float(0.5 * r @ r), sig, weak, locked, inflate)
+        moved = follow.max(0)  # (n,): the widest any weak joint drags each joint
+        widened = np.maximum(sig[:n], moved / 3.0)
+        by_locked = follow[locked[weak]].max(0) if locked.any() else np.zeros(n)
+        from_locked = ~weak & (widened > limit) & (by_locked / 3.0 > limit)
+        sig[:n] = np.where(weak, sig[:n], widened)
+        flags[from_locked] = "gimbal_lock"
     ill = (sig[:n] > limit) & (flags == "ok")
     flags[ill] = "ill_conditioned"
     out_of_limits = ~arm.within_limits(qb, margin) & (flags == "ok")
     flags[out_of_limits] = "out_of_limits"
-    alternatives: list[tuple[float, ...]] = [() for _ in range(n)]
+    alternatives: list[list[float]] = [[] for _ in range(n)]
     if len(cand) > 1:
-        order_d = np.argsort(d2)
-        second = cand[order_d[1]]
-        if d2[order_d[1]] - d2[order_d[0]] < st.prior_decisive_chi2:
-            # a joint is ambiguous when the two branches disagree by more than its own
-            # sigma can cover (close branches come from a nearly singular pair)
-            differ = np.abs(_wrap(q_all[second] - qb)) > np.maximum(3 * sig[:n], 1e-3)
-            for j in np.flatnonzero(differ & (flags == "ok")):
+        # every branch the prior cannot rule out against the chosen one
+        rivals = cand[d2 - d2.min() < st.prior_decisive_chi2]
+        for other in rivals:
+            if other == best:
+                continue
+            # a joint is ambiguous when the branches disagree by more than its own sigma
+            # can cover (close branches come from a nearly singular pair)
+            differ = np.abs(_wrap(q_all[other] - qb)) > np.maximum(3 * sig[:n], 1e-3)
+            for j in np.flatnonzero(differ & np.isin(flags, ("ok", "ambiguous"))):
                 flags[j] = "ambiguous"
-                alternatives[j] = (float(qb[j]), float(q_all[second][j]))
+                if not alternatives[j]:
+                    alternatives[j].append(float(qb[j]))
+                if all(abs(_wrap(q_all[other][j] - v)) > 1e-3 for v in alternatives[j]):
+                    alternatives[j].append(float(q_all[other][j]))
     thesis = thesis_detector(arm, problem.names, problem.meas, st.thesis_detector_g)
     joints = []
     for j in range(n):
@@ -563,7 +601,7 @@ def solve_still(
             angle_rad=float(qb[j]) if number else None,
             sigma_rad=float(sig[j]) if number and np.isfinite(sig[j]) else None,
             flag=str(flags[j]),
-            alternatives_rad=alternatives[j],
+            alternatives_rad=tuple(alternatives[j]),
             axis_to_vertical_deg=float(axis_deg[best, j]),
             thesis_detector_locked=thesis[j],
         ))
