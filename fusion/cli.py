@@ -198,7 +198,8 @@ def _register_subcommands() -> None:
     app.add_typer(calibrate_app, name="calibrate")
 
 
-_register_subcommands()
+if __name__ != "__main__":  # `python -m fusion.cli` registers through the real module below
+    _register_subcommands()
 
 
 def run() -> None:  # pragma: no cover - console entry
@@ -206,4 +207,6 @@ def run() -> None:  # pragma: no cover - console entry
 
 
 if __name__ == "__main__":  # pragma: no cover
-    app()
+    from fusion.cli import app as registered_app
+
+    registered_app()
