@@ -1,0 +1,794 @@
+"""Sensor and model identification: the arm calibrates its own sensors.
+
+From a recording in which the arm moves through many orientations, estimate the
+parameters of the model's effects (``models.effects``: biases, scales, axis directions,
+mounts, joint zeros, sag, the IMU's gyro and compass errors…) and the base attitude (the
+gravity and Earth-field directions in the base frame, as the sensor-calibration article's
+φ, ψ), by weighted nonlinear least squares:
+
+* residuals: every reading's prediction minus the measurement, divided by its noise
+  (window means of ``window`` samples: the noise of a mean);
+* priors as pseudo-measurements ``(x - x0) / σ0`` (each block's prior, from the config or
+  the effect's datasheet-typical magnitude);
+* analytic Jacobians from :meth:`Model.predict_with_jacobian`; the base attitude's three
+  columns by forward differences of the model (the only numerical ones);
+* identifiability first: the weighted Jacobian, scaled by the prior σ, says which
+  combinations of parameters the data know no better than their priors. Each such
+  combination is reported in words and one element of it (the one that carries most of
+  it) is **held** at its prior, as Ceres holds a parameter block (here element by
+  element, like a subset manifold). The other elements then carry the combination; their
+  σ includes the held ones' prior uncertainty (a consider covariance), so it stays honest.
+
+The encoders are relative: the joint angles of the fit are ``q_ref + encoder angle``, and
+every joint's ``joint_offset`` block absorbs the unknown zero ``q_true(0) - q_ref``. That is
+why joint offsets are a property of the recording, not of the arm, and
+:func:`config_with_estimates` leaves them out by default.
+
+For the startup calibration, :class:`StartupCorrection` (``startup_correction(arm)``)
+applies a calibrated config's effects to averaged still readings and joint angles.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from models.arm import ArmModel
+from models.effects import Model, build_effect, entries_from_model, model_from_arm
+from models.effects.base import Context, JointEffect, SensorEffect
+from models.motion import MotionState
+from models.rotations import R_from_rpy
+from models.sensor_models import stream_models
+
+DEG = np.pi / 180.0
+FIT_STREAMS_EXCLUDED = ("enc", "imu_temp")
+ATTITUDE = "base.attitude"
+ATTITUDE_LABELS = ("roll", "pitch", "yaw")
+ATTITUDE_SIGMA_RAD = np.array([10 * DEG, 10 * DEG, 180 * DEG])
+ENCODER_ZERO_SIGMA_RAD = 10 * DEG
+"""Prior σ of a joint's ``joint_offset`` when it carries the recording's unknown encoder zero."""
+
+
+# --------------------------------------------------------------------------------------
+# settings, data, results
+@dataclass(frozen=True)
+class IdentifySettings:
+    hold_ratio: float = 1.0
+    """Hold a combination whose data-only σ exceeds this many prior σ (data know it no
+    better than the prior)."""
+    partner_weight: float = 0.25
+    """An element is named as part of a combination when its share exceeds this."""
+    report_correlation: float = 0.9
+    """Pairs of estimates more correlated than this are listed."""
+    max_nfev: int = 30
+    estimate_attitude: bool = True
+    """Estimate the base attitude (gravity and Earth-field directions); else take it as zero
+    (the base level and facing magnetic north) or as the data's state says."""
+
+
+@dataclass(frozen=True)
+class FitData:
+    """What a fit sees: the motion (window means), the measured counts and their σ."""
+
+    state: MotionState
+    counts: dict[str, np.ndarray]
+    sigma_counts: dict[str, np.ndarray]
+    q_ref_rad: np.ndarray
+    window: int = 1
+    note: str = ""
+
+    @property
+    def n(self) -> int:
+        return self.state.N
+
+    def shifted(self, dq_rad: np.ndarray) -> FitData:
+        """The same data with ``q_ref`` moved by ``dq_rad`` (after a fit found the zeros)."""
+        dq = np.asarray(dq_rad, float)
+        return replace(self, state=self.state.replace(q_rad=self.state.q_rad + dq),
+                       q_ref_rad=self.q_ref_rad + dq)
+
+    def subset(self, idx: np.ndarray | slice) -> FitData:
+        s = self.state
+        st = MotionState(s.t_s[idx], s.q_rad[idx], s.qd_rad_s[idx], s.qdd_rad_s2[idx], s.R_WB[idx],
+                         s.omega_B_rad_s[idx], s.omega_dot_B_rad_s2[idx], s.accel_B_mps2[idx],
+                         s.temperature_c[idx])
+        return replace(self, state=st, counts={k: v[idx] for k, v in self.counts.items()})
+
+
+@dataclass(frozen=True)
+class Hold:
+    """One element held at its prior, and why."""
+
+    element: str
+    partners: tuple[tuple[str, float], ...]
+    data_to_prior: float
+    message: str
+    suggestion: str
+
+
+@dataclass(frozen=True)
+class StreamFit:
+    stream: str
+    unit: str
+    rms: np.ndarray
+    noise: np.ndarray
+
+    def excess(self) -> np.ndarray:
+        """RMS beyond the noise, per axis (0 where the fit is at the noise)."""
+        return np.sqrt(np.maximum(self.rms**2 - self.noise**2, 0.0))
+
+
+@dataclass(frozen=True)
+class Identification:
+    """The result of a fit. ``x``/``sigma`` over ``names`` (model elements, then the base
+    attitude if estimated); held elements sit at their prior with their prior σ."""
+
+    model: Model
+    names: tuple[str, ...]
+    x: np.ndarray
+    x0: np.ndarray
+    sigma: np.ndarray
+    prior_sigma: np.ndarray
+    covariance: np.ndarray
+    held: np.ndarray
+    holds: tuple[Hold, ...]
+    fits: tuple[StreamFit, ...]
+    chi2_red: float
+    n_samples: int
+    n_residuals: int
+    iterations: int
+    seconds: float
+    attitude_rad: np.ndarray | None
+    q_ref_rad: np.ndarray
+    mode: str = "simultaneous"
+    notes: tuple[str, ...] = ()
+
+    @property
+    def model_x(self) -> np.ndarray:
+        return self.x[: self.model.size]
+
+    def correlation(self) -> np.ndarray:
+        d = np.sqrt(np.clip(np.diag(self.covariance), 1e-300, None))
+        return self.covariance / np.outer(d, d)
+
+    def correlated_pairs(self, limit: float = 0.9) -> list[tuple[str, str, float]]:
+        C = self.correlation()
+        free = ~self.held
+        out = []
+        idx = np.flatnonzero(free)
+        for a in range(len(idx)):
+            for b in range(a + 1, len(idx)):
+                i, j = idx[a], idx[b]
+                if abs(C[i, j]) > limit:
+                    out.append((self.names[i], self.names[j], float(C[i, j])))
+        return sorted(out, key=lambda p: -abs(p[2]))
+
+    def calibrated_model(self) -> Model:
+        """The model with the estimates as values and their σ as the new priors."""
+        m = self.model
+        sig = {b.name: np.maximum(self.sigma[m.index[b.name]], 1e-12) for b in m.blocks}
+        return Model(m.arm, m.effects, m.unpack(self.model_x), sig, m.earth_field_W_ut, m.masses)
+
+    def value(self, element: str) -> tuple[float, float]:
+        i = self.names.index(element)
+        return float(self.x[i]), float(self.sigma[i])
+
+    def unmodelled_g(self) -> dict[str, float]:
+        """Per accelerometer: what the fit leaves beyond the noise (the worst axis), in g."""
+        out = {}
+        for f in self.fits:
+            if f.unit == "g":
+                name = self.model.arm.imu.name if f.stream == "imu_acc" else f.stream
+                out[name] = float(np.max(f.excess()))
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        params = []
+        for i, n in enumerate(self.names):
+            params.append({"name": n, "value": float(self.x[i]), "sigma": float(self.sigma[i]),
+                           "prior": float(self.x0[i]), "prior_sigma": float(self.prior_sigma[i]),
+                           "held": bool(self.held[i])})
+        return {
+            "mode": self.mode, "parameters": params,
+            "holds": [{"element": h.element, "partners": [p for p, _ in h.partners],
+                       "message": h.message, "suggestion": h.suggestion} for h in self.holds],
+            "correlated_pairs": [{"a": a, "b": b, "rho": r} for a, b, r in self.correlated_pairs()],
+            "fit": [{"stream": f.stream, "unit": f.unit, "rms": f.rms.tolist(), "noise": f.noise.tolist()}
+                    for f in self.fits],
+            "chi2_red": self.chi2_red, "n_samples": self.n_samples, "n_residuals": self.n_residuals,
+            "iterations": self.iterations, "seconds": round(self.seconds, 3),
+            "attitude_deg": None if self.attitude_rad is None else np.degrees(self.attitude_rad).tolist(),
+            "q_ref_rad": self.q_ref_rad.tolist(), "notes": list(self.notes),
+            "unmodelled_g": self.unmodelled_g(),
+        }
+
+    def summary(self) -> str:
+        nf = int((~self.held).sum())
+        return (f"{self.mode} fit: {nf} parameters estimated, {int(self.held.sum())} held at their "
+                f"priors; {self.n_samples:,} samples, reduced chi-square {self.chi2_red:.2f}, "
+                f"{self.iterations} Jacobians, {self.seconds:.1f} s")
+
+
+# --------------------------------------------------------------------------------------
+# data
+def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndarray | None = None,
+                        streams: Sequence[str] | None = None,
+                        t_range_s: tuple[float, float] | None = None) -> FitData:
+    """Window means of every stream on the encoders' time grid.
+
+    Joint angles are ``q_ref + encoder angle`` (default ``q_ref``: :func:`start_pose`).
+    Averaging ``window`` samples divides the noise by √window; the model is evaluated at the
+    window's mean angles, which differs from the mean of the readings by about
+    ``(Δq)²/24`` of a joint's sweep Δq over the window (for the article's 13.9 °/s roll and
+    0.25 s windows: 1.5e-4 g, below the noise of a mean).
+    """
+    enc = rec.get("enc")
+    if enc is None or len(enc) == 0:
+        raise ValueError("the recording has no encoder samples ('enc'): the joint angles of the "
+                         "maneuver are needed")
+    models = stream_models(arm, {s: (rec.get(s).rate_hz or 100.0) if rec.get(s) is not None else 100.0
+                                 for s in stream_models(arm)})
+    t = np.asarray(enc.t_s, float)
+    keep = np.ones(len(t), bool)
+    if t_range_s is not None:
+        keep = (t >= t_range_s[0]) & (t <= t_range_s[1])
+    t = t[keep]
+    q_enc = models["enc"].from_counts(enc.values[keep])
+    if q_ref_rad is None:
+        q_ref_rad = start_pose(arm, rec)
+    q = np.asarray(q_ref_rad, float) + q_enc
+    names = [s for s in models if s not in FIT_STREAMS_EXCLUDED] if streams is None else list(streams)
+    counts, sig = {}, {}
+    w = max(1, int(window))
+    n = len(t) // w
+    if n < 2:
+        raise ValueError(f"too few samples ({len(t)}) for windows of {w}")
+
+    def mean(a: np.ndarray) -> np.ndarray:
+        a = a[: n * w]
+        return a.reshape(n, w, *a.shape[1:]).mean(1)
+
+    for s in names:
+        st = rec.get(s)
+        if st is None or len(st) == 0:
+            continue
+        v = np.asarray(st.values, float)
+        ts = np.asarray(st.t_s, float)
+        if len(ts) != len(enc.t_s) or not np.allclose(ts, enc.t_s):
+            v = np.stack([np.interp(t, ts, v[:, k]) for k in range(v.shape[1])], 1)
+        else:
+            v = v[keep]
+        counts[s] = mean(v)
+        sig[s] = models[s].sigma_counts / np.sqrt(w)
+    temp = 25.0
+    ts = rec.get("imu_temp")
+    if ts is not None and len(ts):
+        tc = models["imu_temp"].from_counts(np.asarray(ts.values, float))[:, 0]
+        temp = mean(np.interp(t, np.asarray(ts.t_s, float), tc))
+    state = MotionState.from_samples(mean(t), mean(q), None, 0.0, temp)
+    return FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
+                   f"window means of {w} samples")
+
+
+def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
+    """The joint angles at the recording's first sample: the startup calibration on its first
+    ``window_s`` (the arm must be still), the ready pose for joints it cannot tell."""
+    from fusion.startup import readings_from_recording, solve_still
+
+    q = np.array(arm.ready_pose_rad, float)
+    try:
+        t0 = rec.t_start_s
+        readings, _ = readings_from_recording(arm, rec, t0, t0 + window_s, window_s)
+        res = solve_still(arm, readings, propose_unlock=False)
+    except Exception:  # noqa: BLE001 - no still start: the ready pose
+        return q
+    enc = rec.get("enc")
+    models = stream_models(arm)
+    e = models["enc"].from_counts(enc.values[:1])[0] if enc is not None and len(enc) else 0.0
+    for j, je in enumerate(res.joints):
+        if je.angle_rad is not None:
+            q[j] = je.angle_rad - (e[j] if np.ndim(e) else 0.0)
+    return q
+
+
+def with_encoder_zeros(model: Model, sigma_rad: float = ENCODER_ZERO_SIGMA_RAD) -> Model:
+    """The model plus a ``joint_offset`` on every joint that lacks one (the recording's unknown
+    encoder zeros), prior σ ``sigma_rad`` on all of them."""
+    arm = model.arm
+    extra = [build_effect(arm, "joint_offset", j) for j in arm.joint_names
+             if f"{j}.joint_offset" not in model.index]
+    sig = {f"{j}.joint_offset": np.array([sigma_rad]) for j in arm.joint_names}
+    return model.with_effects(extra, sigmas=sig)
+
+
+# --------------------------------------------------------------------------------------
+# identifiability
+_SUGGEST = {
+    "joint_offset": "move the joints between {j} and the sensor so that {j}'s axis turns in the "
+                    "sensor's frame, or tilt {j}'s axis away from vertical",
+    "mount_rotation": "turn the sensor about each of its axes (move the joints just before it)",
+    "accel_axes": "turn the sensor so that every axis points up and down in turn",
+    "accel_bias": "turn the sensor so that each axis sees gravity both up (+1 g) and down (-1 g)",
+    "accel_scale": "turn the sensor so that each axis sees gravity both up (+1 g) and down (-1 g)",
+    "temperature_drift": "record while the electronics warm up (a temperature change of 10 °C or more)",
+    "base_mount": "tilt the chair (a ramp, both ways) so the base attitude and the IMU mount separate",
+    "gyro_bias": "hold the chair still for a while (the gyro bias is its reading at rest)",
+    "gyro_scale": "turn the chair on the spot (a full turn both ways at 30 °/s or more)",
+    "mag_hard_iron": "turn the chair on the spot through a full circle (the compass readings "
+                     "trace a circle around the hard iron)",
+    "mag_soft_iron": "turn the chair through a full circle and tilt it (the readings trace an "
+                     "ellipsoid)",
+    "mag_arm_disturbance": "move {j} through its range while the chair is still",
+    "link_compliance": "move {j} so that its gravity torque changes sign and size",
+    "backlash": "move {j} so that its gravity torque changes sign",
+    "encoder_scale": "move {j} through most of its range",
+    "motion_acceleration": "swing the joints before the sensor fast (centripetal and tangential "
+                           "acceleration)",
+    "time_offset": "move faster: a time offset is seen only through the rate of change",
+    "attitude": "the base attitude: tilt the chair, or turn it on the spot for the heading",
+}
+
+
+def _element_effect(name: str) -> tuple[str, str]:
+    """``'acc3.mount_rotation[z]'`` -> (effect, target)."""
+    block = name.split("[")[0]
+    target, _, effect = block.partition(".")
+    return ("attitude" if block == ATTITUDE else effect), target
+
+
+def suggestion_for(element: str, partners: Sequence[str] = ()) -> str:
+    effect, target = _element_effect(element)
+    text = _SUGGEST.get(effect, "a motion that changes these parameters' effects differently")
+    j = target
+    if "{j}" in text and not target.startswith("j"):
+        js = [_element_effect(p)[1] for p in partners if _element_effect(p)[1].startswith("j")]
+        j = js[0] if js else "the joint"
+    return text.format(j=j)
+
+
+def analyse_identifiability(Jw: np.ndarray, sigma0: np.ndarray, names: Sequence[str],
+                            free: np.ndarray, settings: IdentifySettings | None = None) -> list[Hold]:
+    """Which free elements the data cannot tell from their priors or from each other.
+
+    ``Jw`` is the noise-weighted Jacobian (rows: readings; columns: ``names``), ``sigma0``
+    the prior σ. In prior-σ units the data's information is ``H = (Jw σ0)ᵀ(Jw σ0)``. A
+    pivoted Cholesky factorisation takes the best-known element first, then the one best
+    known given those taken, and so on (a rank-revealing order); an element whose
+    information given the others is below ``1/hold_ratio²`` (data σ above ``hold_ratio``
+    prior σ) is held, and its partners are the taken elements it is a combination of
+    (regression of its column on theirs).
+    """
+    st = settings or IdentifySettings()
+    free = np.array(free, bool)
+    Js = Jw * sigma0[None, :]
+    H = Js.T @ Js
+    idx = np.flatnonzero(free)
+    # pivoted Cholesky: take the most informative element first; an element whose
+    # information, given every element already taken, is below 1/hold_ratio² is held
+    taken: list[int] = []
+    left = list(idx)
+    d = {j: H[j, j] for j in left}
+    L = np.zeros((len(H), 0))
+    limit = 1.0 / st.hold_ratio**2
+    while left:
+        j = max(left, key=lambda c: d[c])
+        if d[j] < limit:
+            break
+        col = (H[:, j] - L @ L[j]) / np.sqrt(d[j])
+        L = np.hstack([L, col[:, None]])
+        taken.append(j)
+        left.remove(j)
+        for c in left:
+            d[c] = H[c, c] - float(L[c] @ L[c])
+    holds: list[Hold] = []
+    Ht = H[np.ix_(taken, taken)] if taken else np.zeros((0, 0))
+    for j in sorted(left, key=lambda c: -H[c, c]):
+        ratio = 1.0 / np.sqrt(max(d[j], 1e-300))
+        partners: tuple[tuple[str, float], ...] = ()
+        if taken and H[j, j] >= limit:
+            beta = np.linalg.lstsq(Ht, H[taken, j], rcond=None)[0]
+            big = np.max(np.abs(beta)) if len(beta) else 0.0
+            order = np.argsort(-np.abs(beta))
+            partners = tuple((names[taken[m]], float(beta[m])) for m in order
+                             if big > 0 and abs(beta[m]) >= st.partner_weight * big)[:6]
+        if partners:
+            msg = (f"{names[j]} cannot be separated from {', '.join(p for p, _ in partners[:4])}"
+                   f"{' …' if len(partners) > 4 else ''}: the data see only their combination "
+                   f"(alone it would be known to {min(ratio, 1e6):.3g} prior σ); held at its prior")
+        else:
+            msg = (f"{names[j]} is not seen by the data (its effect on the readings is below the "
+                   f"noise: known to {min(ratio, 1e6):.3g} prior σ); held at its prior")
+        holds.append(Hold(names[j], partners, float(ratio), msg,
+                          suggestion_for(names[j], [p for p, _ in partners])))
+    return holds
+
+
+# --------------------------------------------------------------------------------------
+# the estimator
+class _Problem:
+    def __init__(self, model: Model, data: FitData, streams: Sequence[str], attitude: bool,
+                 attitude0: np.ndarray):
+        self.model = model
+        self.data = data
+        self.streams = [s for s in streams if s in data.counts]
+        if not self.streams:
+            raise ValueError("no measured stream to fit (streams: " + ", ".join(streams) + ")")
+        self.attitude = attitude
+        self.P = model.size
+        self.size = model.size + (3 if attitude else 0)
+        self.names = tuple(model.element_names()) + (
+            tuple(f"{ATTITUDE}[{k}]" for k in ATTITUDE_LABELS) if attitude else ())
+        self.x0 = np.concatenate([model.x0, attitude0 if attitude else []])
+        self.sigma0 = np.concatenate([model.prior_sigma, ATTITUDE_SIGMA_RAD if attitude else []])
+        self.lower = np.concatenate([model.lower, [-np.pi / 2, -np.pi / 2, -4 * np.pi] if attitude else []])
+        self.upper = np.concatenate([model.upper, [np.pi / 2, np.pi / 2, 4 * np.pi] if attitude else []])
+        self.meas = np.concatenate([data.counts[s].ravel() for s in self.streams])
+        self.w = np.concatenate([np.broadcast_to(1.0 / data.sigma_counts[s], data.counts[s].shape).ravel()
+                                 for s in self.streams])
+        self.base_rpy = np.zeros(3)
+        self._R0 = data.state.R_WB
+
+    def state(self, z: np.ndarray) -> MotionState:
+        if not self.attitude:
+            return self.data.state
+        a = z[self.P:]
+        R = R_from_rpy(np.array([a[0]]), np.array([a[1]]), np.array([a[2]]))[0]
+        return self.data.state.replace(R_WB=np.broadcast_to(R, self._R0.shape).copy())
+
+    def predict(self, z: np.ndarray) -> np.ndarray:
+        p = self.model.predict(self.state(z), z[: self.P], self.streams)
+        return np.concatenate([p[s].ravel() for s in self.streams])
+
+    def residual(self, z: np.ndarray) -> np.ndarray:
+        return (self.predict(z) - self.meas) * self.w
+
+    def jacobian(self, z: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted residual and Jacobian columns ``cols`` (indices into z)."""
+        m = self.model
+        mcols = cols[cols < self.P]
+        blocks = [b.name for b in m.blocks
+                  if np.any((mcols >= m.index[b.name].start) & (mcols < m.index[b.name].stop))]
+        st = self.state(z)
+        pred, jac = m.predict_with_jacobian(st, z[: self.P], self.streams, blocks=blocks)
+        pred = {s: pred[s] for s in self.streams}
+        D = m.dense_jacobian(jac, pred, blocks)
+        bcols = np.concatenate([np.arange(m.index[b].start, m.index[b].stop) for b in blocks]) \
+            if blocks else np.zeros(0, int)
+        pos = {c: i for i, c in enumerate(bcols)}
+        y = np.concatenate([pred[s].ravel() for s in self.streams])
+        r = (y - self.meas) * self.w
+        J = np.zeros((len(r), len(cols)))
+        for i, c in enumerate(cols):
+            if c < self.P:
+                J[:, i] = D[:, pos[c]] * self.w
+            else:  # base attitude: forward differences of the model
+                h = 1e-6
+                zz = np.array(z, float)
+                zz[c] += h
+                J[:, i] = (self.predict(zz) - y) * self.w / h
+        return r, J
+
+
+def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
+             settings: IdentifySettings | None = None, hold: Iterable[str] = (),
+             attitude0_rad: np.ndarray | None = None,
+             progress: Callable[[int, float], None] | None = None,
+             mode: str = "simultaneous") -> Identification:
+    """Estimate every parameter of ``model`` (and the base attitude) from ``data``.
+
+    ``hold`` names elements or whole blocks to keep at their priors (besides those the
+    identifiability analysis holds). ``progress(k, cost)`` is called at every Jacobian.
+    """
+    st = settings or IdentifySettings()
+    t0 = time.perf_counter()
+    streams = [s for s in (data.counts if streams is None else streams) if s not in FIT_STREAMS_EXCLUDED]
+    att0 = np.zeros(3) if attitude0_rad is None else np.asarray(attitude0_rad, float)
+    pb = _Problem(model, data, streams, st.estimate_attitude, att0)
+    names = pb.names
+    free = np.ones(pb.size, bool)
+    hold = set(hold)
+    for i, n in enumerate(names):
+        if n in hold or n.split("[")[0] in hold:
+            free[i] = False
+    notes = []
+    if pb.attitude and "imu_mag" in pb.streams:
+        # the heading: a coarse search (the compass decides), then the fit
+        best = None
+        for yaw in np.linspace(-np.pi, np.pi, 12, endpoint=False):
+            z = pb.x0.copy()
+            z[pb.P + 2] = yaw
+            c = float(np.sum(pb.residual(z) ** 2))
+            if best is None or c < best[0]:
+                best = (c, yaw)
+        pb.x0[pb.P + 2] = best[1]
+    z0 = pb.x0.copy()
+    # identifiability at the prior
+    all_cols = np.arange(pb.size)
+    r0, J0 = pb.jacobian(z0, all_cols)
+    holds = analyse_identifiability(J0, pb.sigma0, names, free, st)
+    for h in holds:
+        free[names.index(h.element)] = False
+    fcols = np.flatnonzero(free)
+    lo = pb.lower[fcols]
+    hi = pb.upper[fcols]
+    zf0 = np.clip(z0[fcols], lo + 1e-12 * (hi - lo), hi - 1e-12 * (hi - lo))
+    prior_mu, prior_sd = pb.x0[fcols], pb.sigma0[fcols]
+    n_jac = [0]
+    cache: dict[bytes, np.ndarray] = {}
+
+    def full(zf):
+        z = z0.copy()
+        z[fcols] = zf
+        return z
+
+    def fun(zf):
+        r = pb.residual(full(zf))
+        return np.concatenate([r, (zf - prior_mu) / prior_sd])
+
+    def jac(zf):
+        r, J = pb.jacobian(full(zf), fcols)
+        n_jac[0] += 1
+        if progress is not None:
+            progress(n_jac[0], float(0.5 * np.sum(r**2)))
+        cache["J"] = J
+        return np.vstack([J, np.diag(1.0 / prior_sd)])
+
+    if len(fcols):
+        sol = least_squares(fun, zf0, jac=jac, bounds=(lo, hi), method="trf", x_scale=prior_sd,
+                            max_nfev=st.max_nfev, xtol=1e-10, ftol=1e-10, gtol=1e-10)
+        zf = sol.x
+        if not sol.success:
+            notes.append(f"the solver stopped before converging: {sol.message}")
+    else:
+        zf = np.zeros(0)
+    z = full(zf)
+    r, J = pb.jacobian(z, all_cols)
+    # covariance: free elements from data + priors, held ones as consider parameters
+    hcols = np.flatnonzero(~free)
+    Jf, Jh = J[:, fcols], J[:, hcols]
+    A = Jf.T @ Jf + np.diag(1.0 / pb.sigma0[fcols] ** 2)
+    Sff = np.linalg.pinv(A)
+    m_res = len(r)
+    dof = max(m_res - len(fcols), 1)
+    chi2 = float(np.sum(r**2) / dof)
+    if chi2 > 1.0:
+        Sff = Sff * chi2
+        notes.append(f"the residuals are {np.sqrt(chi2):.2f}x the noise: the σ are scaled by that "
+                     "(some effect is not modelled, or the noise is larger than the datasheet's)")
+    S = -Sff @ (Jf.T @ Jh)
+    Shh = np.diag(pb.sigma0[hcols] ** 2)
+    C = np.zeros((pb.size, pb.size))
+    C[np.ix_(fcols, fcols)] = Sff + S @ Shh @ S.T
+    C[np.ix_(fcols, hcols)] = S @ Shh
+    C[np.ix_(hcols, fcols)] = (S @ Shh).T
+    C[np.ix_(hcols, hcols)] = Shh
+    C = 0.5 * (C + C.T)
+    sigma = np.sqrt(np.clip(np.diag(C), 0, None))
+    # fit quality per stream, in physical units
+    sm = model.stream_models()
+    fits = []
+    pred = pb.predict(z)
+    i = 0
+    for s in pb.streams:
+        k = data.counts[s].shape
+        d = (pred[i:i + data.counts[s].size] - pb.meas[i:i + data.counts[s].size]).reshape(k)
+        i += data.counts[s].size
+        g = np.abs(sm[s].gain)
+        fits.append(StreamFit(s, sm[s].unit, np.sqrt(np.mean(d**2, 0)) / g,
+                              data.sigma_counts[s] / g))
+    return Identification(
+        model=model, names=names, x=z, x0=pb.x0.copy(), sigma=sigma, prior_sigma=pb.sigma0.copy(),
+        covariance=C, held=~free, holds=tuple(holds), fits=tuple(fits), chi2_red=chi2,
+        n_samples=data.n, n_residuals=m_res, iterations=n_jac[0], seconds=time.perf_counter() - t0,
+        attitude_rad=z[pb.P:] if pb.attitude else None, q_ref_rad=data.q_ref_rad, mode=mode,
+        notes=tuple(notes))
+
+
+def identify_recentred(model: Model, data: FitData, streams: Sequence[str] | None = None,
+                       settings: IdentifySettings | None = None, progress=None,
+                       passes: int = 3) -> tuple[Identification, FitData]:
+    """:func:`identify`, then, while a joint offset (the recording's encoder zero) ends near
+    its bound, fold the offsets into ``q_ref`` and fit again. Returns the last fit and data."""
+    res = identify(model, data, streams, settings, progress=progress)
+    for _ in range(passes - 1):
+        jo = [b for b in model.blocks if b.effect == "joint_offset"]
+        near = [b for b in jo if abs(res.model_x[model.index[b.name]][0]) > 0.5 * b.upper[0]]
+        if not near:
+            break
+        dq = np.zeros(model.arm.n_joints)
+        for b in jo:
+            dq[model.arm.joint_names.index(b.target)] = res.model_x[model.index[b.name]][0]
+        data = data.shifted(dq)
+        res = identify(model, data, streams, settings, progress=progress,
+                       attitude0_rad=res.attitude_rad)
+        res = replace(res, notes=res.notes + (
+            "encoder zeros re-centred on the previous fit (the start pose was "
+            f"{np.degrees(np.max(np.abs(dq))):.1f}° off)",))
+    return res, data
+
+
+def identify_separately(model: Model, data: FitData, settings: IdentifySettings | None = None,
+                        progress=None) -> dict[str, Identification]:
+    """The article's "separate" calibration: each accelerometer (and the IMU) alone, each with
+    its own base attitude (gravity direction), with only the blocks that reach it. If the
+    gravity directions disagree by more than their σ, the model or a sensor is wrong."""
+    out = {}
+    arm = model.arm
+    groups = [[s.name] for s in arm.link_accelerometers]
+    if arm.imu is not None:
+        groups.append([s for s in ("imu_acc", "imu_gyro", "imu_mag") if s in data.counts])
+    for g in groups:
+        g = [s for s in g if s in data.counts]
+        if not g:
+            continue
+        _, jac = model.predict_with_jacobian(data.subset(slice(0, 2)).state, None, g)
+        reach = {b for s in g for b in jac.get(s, {})}
+        sub = model.without([b.name for b in model.blocks if b.name not in reach])
+        key = arm.imu.name if g[0].startswith("imu") else g[0]
+        out[key] = identify(sub, data, g, settings, progress=progress, mode=f"separate ({key})")
+    return out
+
+
+def gravity_direction(attitude_rad: np.ndarray) -> np.ndarray:
+    """Gravity's direction in the base frame (unit, pointing down) from roll, pitch, yaw."""
+    R = R_from_rpy(np.array([attitude_rad[0]]), np.array([attitude_rad[1]]), np.array([attitude_rad[2]]))[0]
+    return -R.T @ np.array([0.0, 0.0, 1.0])
+
+
+# --------------------------------------------------------------------------------------
+# results against a simulation's truth; configs
+def truth_values(result: Identification, truth: dict) -> dict[str, float]:
+    """The true value of every model element from a ``REC.truth.json`` dict (0 where the
+    truth has no such effect). Joint offsets are shifted by the encoder-zero difference
+    ``truth['encoder_zero_rad'] - q_ref`` that they absorb in the fit."""
+    m = result.model
+    vals = {}
+    true_blocks = {f"{e['target']}.{e['effect']}": np.asarray(list(e['params'].values())[0], float).ravel()
+                   for e in truth.get("effects", [])}
+    zero = np.asarray(truth.get("encoder_zero_rad", np.zeros(m.arm.n_joints)), float)
+    for b in m.blocks:
+        v = true_blocks.get(b.name, np.zeros(b.size))
+        if b.effect == "joint_offset":
+            j = m.arm.joint_names.index(b.target)
+            v = v + (zero[j] - result.q_ref_rad[j])
+        for lab, x in zip(b.labels, v, strict=True):
+            vals[f"{b.name}[{lab}]"] = float(x)
+    return vals
+
+
+def compare_with_truth(result: Identification, truth: dict) -> list[dict]:
+    """Each model element: estimate, σ, truth and the error in σ (held ones included)."""
+    tv = truth_values(result, truth)
+    rows = []
+    for i, n in enumerate(result.names):
+        if n not in tv:
+            continue
+        z = (result.x[i] - tv[n]) / result.sigma[i] if result.sigma[i] > 0 else np.inf
+        rows.append({"name": n, "estimate": float(result.x[i]), "sigma": float(result.sigma[i]),
+                     "truth": tv[n], "z": float(z), "held": bool(result.held[i])})
+    return rows
+
+
+def config_with_estimates(config_data: dict, result: Identification,
+                          include_joint_offsets: bool = False) -> dict:
+    """A config dict (as loaded from YAML) with the effects replaced by the estimates and
+    their σ, and ``calibration.accel_unmodelled_g`` lowered to what the fit leaves beyond
+    the noise (per sensor in ``accel_unmodelled_g_per_sensor``).
+
+    Joint offsets are left out unless asked: with relative encoders they are the
+    recording's encoder zeros, not a property of the arm.
+    """
+    cm = result.calibrated_model()
+    entries = entries_from_model(cm, cm.x0)
+    if not include_joint_offsets:
+        entries = [e for e in entries if e["effect"] != "joint_offset"]
+    for e in entries:
+        b = cm.block(f"{e['target']}.{e['effect']}")
+        sl = cm.index[b.name]
+        held = result.held[sl]
+        e["note"] = (e["note"] + (" (held at its prior: the calibration data could not tell it)"
+                                  if held.all() else ""))
+    out = dict(config_data)
+    out["effects"] = entries
+    cal = dict(out.get("calibration") or {})
+    un = result.unmodelled_g()
+    if un:
+        floor = max(un.values())
+        cal["accel_unmodelled_g"] = round(max(floor, 1e-4), 6)
+        cal["accel_unmodelled_g_per_sensor"] = {k: round(max(v, 1e-4), 6) for k, v in un.items()}
+    cal["identified"] = {"mode": result.mode, "samples": result.n_samples,
+                         "chi2_red": round(result.chi2_red, 3),
+                         "held": [h.element for h in result.holds]}
+    out["calibration"] = cal
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# what the startup calibration calls
+@dataclass(frozen=True)
+class StartupCorrection:
+    """A calibrated config's effects, as the startup calibration needs them.
+
+    * ``readings(r)``: averaged still readings (g, sensor axes) back to what an ideal sensor
+      on its nominal mount would read: every sensor-stage effect of an accelerometer
+      (mount, axes, scale, bias, temperature drift) is affine, ``y' = L y + c``; this
+      inverts it, σ mapped through ``L⁻¹``;
+    * ``controller_angles(q_geom)``: the startup solves the geometric joint angles; the
+      joint-stage effects (offsets, sag, play) map the controller's angles to them, and
+      this inverts that map (fixed point, three passes).
+    """
+
+    model: Model
+    temperature_c: float = 25.0
+    maps: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    def readings(self, r):
+        from fusion.startup import StillReadings
+
+        means, sigmas = {}, {}
+        for name, m in r.accel_mean_g.items():
+            means[name], sigmas[name] = self._undo(name, m, r.accel_sigma_g[name])
+        imu_m, imu_s = r.imu_mean_g, r.imu_sigma_g
+        if imu_m is not None and "imu_acc" in self.maps:
+            imu_m, imu_s = self._undo("imu_acc", imu_m, imu_s)
+        return StillReadings(means, sigmas, imu_m, imu_s, r.t_start_s, r.t_end_s)
+
+    def _undo(self, stream, mean, sigma):
+        if stream not in self.maps:
+            return mean, sigma
+        L, c = self.maps[stream]
+        Li = np.linalg.inv(L)
+        y = Li @ (np.asarray(mean, float) - c)
+        s = np.sqrt((Li**2) @ (np.asarray(sigma, float) ** 2))
+        return y, s
+
+    def controller_angles(self, q_geom_rad: np.ndarray) -> np.ndarray:
+        joint = [e for e in self.model.effects if isinstance(e, JointEffect)]
+        qg = np.atleast_2d(np.asarray(q_geom_rad, float))
+        if not joint:
+            return qg.reshape(np.shape(q_geom_rad))
+        th = self.model.unpack()
+        q = qg.copy()
+        for _ in range(3):
+            st = MotionState.static(q)
+            ctx = Context(self.model.arm, st, self.model.masses)
+            d = np.zeros_like(q)
+            for e in joint:
+                d[:, e.j] += e.delta(q, th[e.block_name], ctx)
+            q = qg - d
+        return q.reshape(np.shape(q_geom_rad))
+
+
+def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
+                       include_joint_offsets: bool = False) -> StartupCorrection:
+    """The correction the startup calibration applies for ``arm``'s config effects.
+
+    Call once after loading the config; then ``corr.readings(readings)`` before
+    ``solve_still`` and ``corr.controller_angles(q)`` on its joint angles. Joint offsets are
+    skipped unless asked (relative encoders: the startup defines the zero).
+    """
+    model = model_from_arm(arm)
+    if not include_joint_offsets:
+        model = model.without([e.block_name for e in model.effects if e.name == "joint_offset"])
+    accel = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
+    th = model.unpack()
+    maps = {}
+    for s in accel:
+        effs = sorted((e for e in model.effects if isinstance(e, SensorEffect) and s in e.streams),
+                      key=lambda e: e.rank)
+        if not effs:
+            continue
+        st = MotionState.static(np.zeros((4, arm.n_joints)), temperature_c=temperature_c)
+        ctx = Context(arm, st, model.masses)
+        y = np.vstack([np.zeros(3), np.eye(3)])
+        for e in effs:
+            y = e.apply(y, th[e.block_name], ctx, s)
+        c = y[0]
+        L = (y[1:] - c).T
+        maps[s] = (L, c)
+    return StartupCorrection(model, temperature_c, maps)
