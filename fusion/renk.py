@@ -232,7 +232,7 @@ def fit_triax(R_0E: np.ndarray, V: np.ndarray, mode: str = "simultaneous", noise
         for k in range(3):
             f = _axis_fun(R, V[:, k], w[k], magnitude)
             x0 = np.array([b0[k], g0[k], S0[k], d0[k], ph0, ps0])
-            sol = least_squares(lambda x: f(x), x0, jac=lambda x: f(x, True)[1], method="lm",
+            sol = least_squares(f, x0, jac=lambda x, f=f: f(x, True)[1], method="lm",
                                 xtol=1e-12, ftol=1e-12)
             nfev += sol.nfev
             x = sol.x
@@ -283,7 +283,8 @@ def fit_triax(R_0E: np.ndarray, V: np.ndarray, mode: str = "simultaneous", noise
     p = _canonical(TriaxParams(**out))
     resid = predict_voltages(R, p, magnitude) - V
     rms = np.sqrt(np.mean(resid**2, 0))
-    msgs = tuple(f"{u}: undefined: the field points along the base's k̂ axis (φ = {np.degrees(p.phi[0]):.2f}°), "
+    phi_deg = np.degrees(p.phi[0])
+    msgs = tuple(f"{u}: undefined: the field points along the base's k̂ axis (φ = {phi_deg:.2f}°), "
                  "so a turn ψ about k̂ does not change it; reported, not estimated" if u.startswith("psi")
                  else f"{u}: the data cannot tell it" for u in undefined)
     return TriaxFit(mode, p, TriaxParams(**sig), rms, float(np.sqrt(np.mean(resid**2))), len(V),
