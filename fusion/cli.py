@@ -6,19 +6,24 @@ document on stdout (see docs/cli.md). Errors go to stderr as one clear message, 
 
 from __future__ import annotations
 
-import json
-import sys
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from fusion import __version__
-from fusion.configfile import load_arm
-from models.arm_config import ConfigError
+from fusion.cli_common import (  # noqa: F401  (re-exported for the command modules)
+    ConfigOpt,
+    JsonOpt,
+    console,
+    emit_json,
+    err_console,
+    fail,
+    json_default,
+    load_arm_or_exit,
+    read_recording_or_exit,
+)
 
 app = typer.Typer(
     name="armfusion",
@@ -28,57 +33,6 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-console = Console()
-err_console = Console(stderr=True)
-
-ConfigOpt = Annotated[
-    str, typer.Option("--config", "-c", help="Arm config: a shipped name (wmra, crs_a465) or a YAML path.")
-]
-JsonOpt = Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON document.")]
-
-
-def fail(message: str, code: int = 2) -> None:
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False, markup=True, soft_wrap=True)
-    raise typer.Exit(code)
-
-
-def emit_json(obj) -> None:
-    sys.stdout.write(json.dumps(obj, indent=2, default=_json_default) + "\n")
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def load_arm_or_exit(config: str):
-    try:
-        return load_arm(config)
-    except (ConfigError, FileNotFoundError) as e:
-        fail(str(e))
-
-
-def read_recording_or_exit(path: Path):
-    from sensors.recording import read_recording
-
-    if not path.exists():
-        fail(f"recording not found: {path}")
-    import warnings
-
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            rec = read_recording(path)
-    except (ValueError, OSError) as e:
-        fail(f"cannot read recording {path}: {e}")
-    for w in caught:
-        err_console.print(f"[yellow]warning:[/] {w.message}", highlight=False)
-    return rec
 
 
 def version_callback(value: bool) -> None:

@@ -38,9 +38,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
-import numpy as np
 import typer
 
+from fusion.cli_common import json_default
 from fusion.configfile import load_arm
 from fusion.fake_rig import SimulatedRun, encoder_counts_at, physics_for, simulate_physics
 from fusion.simulate_cmd import effects_model, truth_json, truth_path
@@ -542,14 +542,6 @@ def print_report(doc: dict[str, Any]) -> None:
                   highlight=False)
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def register(app: typer.Typer) -> None:
@@ -629,6 +621,6 @@ def register(app: typer.Typer) -> None:
                 tp.write_text(truth_json(truth), encoding="utf-8")
                 doc["truth"] = str(tp)
         if json_out:
-            typer.echo(json.dumps(doc, indent=2, default=_json_default))
+            typer.echo(json.dumps(doc, indent=2, default=json_default))
             return
         print_report(doc)

@@ -20,10 +20,10 @@ import time
 from pathlib import Path
 from typing import Annotated, Any
 
-import numpy as np
 import typer
 import yaml
 
+from fusion.cli_common import json_default
 from fusion.configfile import load_arm
 from models.arm import ArmModel
 from models.arm_config import ConfigError, ConfigProblem
@@ -118,7 +118,7 @@ def simulate(
 
 def truth_json(truth: dict) -> str:
     """The truth dict as JSON, indented, with short lists of numbers kept on one line."""
-    text = json.dumps(truth, indent=1, default=_json_default)
+    text = json.dumps(truth, indent=1, default=json_default)
     num = r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?"
     flat = re.compile(r"\[\s*(" + num + r"(?:,\s*" + num + r")*)\s*\]")
     inner = re.compile(r"\[\s*(\[[^\[\]]*\](?:,\s*\[[^\[\]]*\])*)\s*\]")
@@ -127,12 +127,6 @@ def truth_json(truth: dict) -> str:
     return text + "\n"
 
 
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def _effects_help() -> str:
@@ -180,7 +174,7 @@ def register(app: typer.Typer) -> None:
             err.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
         if json_out:
-            typer.echo(json.dumps(summary, indent=2, default=_json_default))
+            typer.echo(json.dumps(summary, indent=2, default=json_default))
             return
         con = Console()
         con.print(f"[bold]{summary['scenario']}[/] on {summary['arm']}: {summary['duration_s']:.1f} s at "
