@@ -1,0 +1,113 @@
+"""Identification: known parameters recovered per effect family (simulated data), and the
+identifiability warning for a pair the data cannot separate."""
+
+import numpy as np
+import pytest
+
+from fusion.configfile import load_arm
+from fusion.identify import FitData, IdentifySettings, identify, startup_correction
+from models.effects import Model, build_effect
+from models.trajectories import make_scenario
+
+NO_ATTITUDE = IdentifySettings(estimate_attitude=False)
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return load_arm("wmra")
+
+
+@pytest.fixture(scope="module")
+def state(arm):
+    sc = make_scenario(arm, "renk-maneuver", 240.0, seed=3)
+    return sc.state(np.arange(5.0, 240.0, 0.25))
+
+
+def fit_data(model: Model, x_true, state, streams, seed=0, window=25):
+    """Window means as the recording path makes them: noise of a mean of ``window`` samples."""
+    rng = np.random.default_rng(seed)
+    sm = model.stream_models()
+    pred = model.predict(state, x_true, streams)
+    counts, sig = {}, {}
+    for s in streams:
+        sig[s] = sm[s].sigma_counts / np.sqrt(window)
+        counts[s] = pred[s] + rng.standard_normal(pred[s].shape) * sig[s]
+    return FitData(state, counts, sig, np.zeros(model.arm.n_joints), window)
+
+
+FAMILIES = {
+    "accel bias and scale": ([("accel_bias", "acc3"), ("accel_scale", "acc3")], ["acc3"],
+                             {"acc3.accel_bias": [0.03, -0.02, 0.04],
+                              "acc3.accel_scale": [0.01, -0.008, 0.012]}),
+    "mount rotation": ([("mount_rotation", "acc2")], ["acc2"], {"acc2.mount_rotation": [0.02, -0.03, 0.015]}),
+    "joint offsets": ([("joint_offset", "j2"), ("joint_offset", "j4")], ["acc1", "acc2", "acc3"],
+                      {"j2.joint_offset": [0.02], "j4.joint_offset": [-0.015]}),
+    "link compliance": ([("link_compliance", "j2")], ["acc1", "acc2"], {"j2.link_compliance": [4e-4]}),
+    "gyro bias": ([("gyro_bias", "imu")], ["imu_gyro"], {"imu.gyro_bias": [0.05, -0.02, 0.01]}),
+    "mag hard iron": ([("mag_hard_iron", "imu")], ["imu_mag"], {"imu.mag_hard_iron": [20.0, -12.0, 8.0]}),
+}
+
+
+@pytest.mark.parametrize("family", list(FAMILIES))
+def test_recovers_known_parameters(arm, state, family):
+    effects, streams, truth = FAMILIES[family]
+    model = Model(arm, [build_effect(arm, e, t) for e, t in effects])
+    x_true = model.pack(truth)
+    res = identify(model, fit_data(model, x_true, state, streams), settings=NO_ATTITUDE)
+    assert not res.held.any(), [h.message for h in res.holds]
+    z = (res.model_x - x_true) / res.sigma[: model.size]
+    # within 4 sigma (seeded), and the sigma small against the effect's size (it was seen)
+    assert np.all(np.abs(z) < 4.0), dict(zip(res.names, z.round(2), strict=False))
+    assert np.all(res.sigma[: model.size] < 0.2 * np.abs(x_true) + 1e-12)
+    for f in res.fits:  # the fit reaches the noise
+        assert np.all(f.rms < 1.3 * f.noise)
+
+
+def test_unidentifiable_pair_is_held_with_a_message(arm, state):
+    # the last joint's zero and the last sensor's mount rotation turn that sensor alike
+    model = Model(arm, [build_effect(arm, "joint_offset", "j7"), build_effect(arm, "mount_rotation", "acc4")])
+    x_true = model.pack({"j7.joint_offset": [0.01], "acc4.mount_rotation": [0.01, -0.02, 0.005]})
+    res = identify(model, fit_data(model, x_true, state, ["acc4"]), settings=NO_ATTITUDE)
+    assert len(res.holds) == 1
+    h = res.holds[0]
+    involved = {h.element.split("[")[0]} | {p.split("[")[0] for p, _ in h.partners}
+    assert involved == {"j7.joint_offset", "acc4.mount_rotation"}
+    assert "cannot be separated from" in h.message and "held at its prior" in h.message
+    assert "move the joints" in h.suggestion or "turn the sensor" in h.suggestion
+    i = res.names.index(h.element)
+    assert res.x[i] == res.x0[i] and res.sigma[i] == pytest.approx(res.prior_sigma[i])
+    # the partner carries the combination; its sigma includes the held one's prior (honest)
+    assert np.all(np.abs(res.model_x - x_true) < 4 * res.sigma[: model.size])
+
+
+def test_attitude_estimated_with_the_effects(arm, state):
+    model = Model(arm, [build_effect(arm, "accel_bias", "acc2")])
+    x_true = model.pack({"acc2.accel_bias": [0.02, 0.01, -0.03]})
+    data = fit_data(model, x_true, state, ["acc1", "acc2", "acc3", "acc4"], seed=1)
+    level = data.state.replace(R_WB=np.broadcast_to(np.eye(3), data.state.R_WB.shape).copy())
+    from dataclasses import replace
+    res = identify(model, replace(data, state=level))
+    assert res.attitude_rad is not None
+    R = state.R_WB[0]
+    true_rpy = np.array([np.arctan2(R[2, 1], R[2, 2]), -np.arcsin(R[2, 0])])
+    assert np.allclose(res.attitude_rad[:2], true_rpy, atol=4 * res.sigma[-3:-1])
+    assert "base.attitude[yaw]" in [h.element for h in res.holds]  # gravity cannot see a heading
+
+
+def test_startup_correction_inverts_sensor_effects(arm):
+    import dataclasses
+
+    from fusion.startup import StillReadings
+    entries = [{"effect": "accel_bias", "target": "acc1", "params": {"bias_g": [0.03, -0.02, 0.01]}},
+               {"effect": "accel_scale", "target": "acc1", "params": {"scale_error": [0.01, 0.0, -0.02]}},
+               {"effect": "mount_rotation", "target": "acc1", "params": {"rotvec_rad": [0.02, 0.0, -0.01]}}]
+    arm2 = dataclasses.replace(arm, effects=tuple(entries))
+    corr = startup_correction(arm2)
+    model = Model(arm2, [build_effect(arm2, e["effect"], e["target"]) for e in entries])
+    from models.motion import MotionState
+    st = MotionState.static(np.array(arm.ready_pose_rad)[None])
+    ideal = Model(arm2).predict(st, None, ["acc1"], units="physical")["acc1"][0]
+    x = model.pack({f"{e['target']}.{e['effect']}": list(e["params"].values())[0] for e in entries})
+    seen = model.predict(st, x, ["acc1"], units="physical")["acc1"][0]
+    r = StillReadings({"acc1": seen}, {"acc1": np.full(3, 1e-3)}, None, None)
+    assert np.allclose(corr.readings(r).accel_mean_g["acc1"], ideal, atol=1e-12)
