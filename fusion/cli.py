@@ -143,7 +143,10 @@ def inspect(
 
 
 def _register_subcommands() -> None:
-    from fusion import simulate_cmd
+    from fusion import (
+        identify_cmd,  # noqa: F401 - registers `calibrate sensors`
+        simulate_cmd,
+    )
     from fusion.calibrate_cmd import calibrate_app
     from fusion.drivers_cmd import register as register_drivers
 

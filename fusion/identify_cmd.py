@@ -1,0 +1,153 @@
+"""``armfusion calibrate sensors``: the arm calibrates its own sensors from a recording.
+
+    armfusion calibrate sensors --config wmra REC.csv [--mode separate|simultaneous]
+        [--effects accel_bias,mount_rotation|all] [--window 25] [--json] [--write C2.yaml]
+
+Estimates every effect the config lists (or ``--effects`` names; with neither, the whole
+library) plus the recording's encoder zeros and the base attitude; reports each parameter
+with its σ, what was held and why (and the motion that would separate it), correlated
+pairs, and the fit RMS per stream axis against the noise. ``--write`` saves a config with
+the estimates and their σ and the unmodelled-error floor lowered to what the fit leaves.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+import yaml
+from rich.table import Table
+
+from fusion.calibrate_cmd import calibrate_app
+from fusion.cli import (
+    ConfigOpt,
+    JsonOpt,
+    console,
+    emit_json,
+    err_console,
+    fail,
+    load_arm_or_exit,
+    read_recording_or_exit,
+)
+from fusion.configfile import resolve_config_path
+from fusion.identify import (
+    IdentifySettings,
+    config_with_estimates,
+    data_from_recording,
+    identify_recentred,
+    identify_separately,
+    with_encoder_zeros,
+)
+from models.effects import EFFECTS, Model, all_effects, model_from_arm
+from models.simulator import REALISTIC_EXCLUDE
+
+
+def build_model(arm, effects: str | None) -> Model:
+    """The config's effects, or ``effects`` (comma separated names, or ``all``), plus the
+    encoder zeros."""
+    if effects:
+        names = list(EFFECTS) if effects.strip() == "all" else [e.strip() for e in effects.split(",") if e.strip()]
+        bad = [n for n in names if n not in EFFECTS]
+        if bad:
+            raise ValueError(f"--effects: unknown effect(s) {', '.join(bad)}; known: {', '.join(EFFECTS)}")
+        model = Model(arm, [e for e in all_effects(arm, names) if e.block_name not in REALISTIC_EXCLUDE])
+    else:
+        model = model_from_arm(arm)
+        if not model.effects:
+            model = Model(arm, [e for e in all_effects(arm) if e.block_name not in REALISTIC_EXCLUDE])
+    return with_encoder_zeros(model)
+
+
+@calibrate_app.command("sensors")
+def calibrate_sensors(
+    recording: Annotated[Path, typer.Argument(help="Recording (.csv or .mcap) of the arm moving "
+                                              "through many orientations (e.g. renk-maneuver).")],
+    config: ConfigOpt = "wmra",
+    mode: Annotated[str, typer.Option(help="simultaneous (one gravity direction) or separate "
+                                      "(each sensor alone, its own gravity direction).")] = "simultaneous",
+    effects: Annotated[str | None, typer.Option(help="Effects to estimate, comma separated, or "
+                                                "'all' (default: the config's, else all).")] = None,
+    window: Annotated[int, typer.Option(help="Average this many samples per fit point.")] = 25,
+    json_out: JsonOpt = False,
+    write: Annotated[Path | None, typer.Option(help="Write a config with the estimates here.")] = None,
+) -> None:
+    """Estimate the sensors' and the arm's effects (with σ, holds and correlations)."""
+    if mode not in ("separate", "simultaneous"):
+        fail(f"--mode must be 'separate' or 'simultaneous', not {mode!r}")
+    arm = load_arm_or_exit(config)
+    rec = read_recording_or_exit(recording)
+    try:
+        model = build_model(arm, effects)
+        data = data_from_recording(arm, rec, window)
+    except ValueError as e:
+        fail(str(e))
+    quiet = json_out
+
+    def progress(k: int, cost: float) -> None:
+        if not quiet:
+            err_console.print(f"  Jacobian {k}: cost {cost:.4g}", highlight=False)
+
+    if not quiet:
+        err_console.print(f"fitting {model.size} parameters on {data.n:,} points ({data.note})…")
+    if mode == "separate":
+        fits = identify_separately(model, data, IdentifySettings(), progress)
+        if json_out:
+            emit_json({k: v.as_dict() for k, v in fits.items()})
+            return
+        t = Table(title="Gravity direction in the base frame, per sensor (separate fits)", title_justify="left")
+        for c in ("sensor", "roll [deg]", "pitch [deg]", "RMS / noise", "held"):
+            t.add_column(c)
+        for k, f in fits.items():
+            ratio = np.mean([np.mean(s.rms / s.noise) for s in f.fits])
+            a = np.degrees(f.attitude_rad)
+            t.add_row(k, f"{a[0]:.3f} ± {np.degrees(f.sigma[-3]):.3f}",
+                      f"{a[1]:.3f} ± {np.degrees(f.sigma[-2]):.3f}", f"{ratio:.2f}", str(int(f.held.sum())))
+        console.print(t)
+        return
+    res, data = identify_recentred(model, data, None, IdentifySettings(), progress)
+    if write is not None:
+        src = resolve_config_path(config)
+        cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
+        out = config_with_estimates(cfg, res)
+        write.parent.mkdir(parents=True, exist_ok=True)
+        write.write_text(f"# {res.summary()}\n# from {recording}, config {src.name}\n"
+                         + yaml.safe_dump(out, sort_keys=False, width=110), encoding="utf-8")
+    if json_out:
+        d = res.as_dict()
+        d["written"] = str(write) if write else None
+        emit_json(d)
+        return
+    _print(res, write)
+
+
+def _print(res, write) -> None:
+    from rich.markup import escape
+    console.print(f"[bold]{res.summary()}[/]")
+    t = Table(title="Estimates", title_justify="left")
+    for c in ("parameter", "estimate", "σ", "prior σ", ""):
+        t.add_column(c, justify="right" if c != "parameter" else "left")
+    for i, n in enumerate(res.names):
+        t.add_row(escape(n), f"{res.x[i]:.5g}", f"{res.sigma[i]:.2g}", f"{res.prior_sigma[i]:.2g}",
+                  "held" if res.held[i] else "")
+    console.print(t)
+    if res.holds:
+        console.print("[bold]Not separable by this recording[/] (held at their priors):")
+        for h in res.holds:
+            console.print(escape(f"  • {h.message}.\n    To separate: {h.suggestion}."), highlight=False)
+    pairs = res.correlated_pairs()
+    if pairs:
+        console.print("[bold]Strongly correlated estimates[/] (|ρ| > 0.9):")
+        for a, b, r in pairs[:15]:
+            console.print(escape(f"  {a} ~ {b}: ρ = {r:+.3f}"), highlight=False)
+    t = Table(title="Fit RMS per axis against the noise (window means)", title_justify="left")
+    for c in ("stream", "unit", "RMS", "noise"):
+        t.add_column(c)
+    for f in res.fits:
+        t.add_row(f.stream, f.unit, ", ".join(f"{v:.3g}" for v in f.rms), ", ".join(f"{v:.3g}" for v in f.noise))
+    console.print(t)
+    for n in res.notes:
+        console.print(f"note: {n}", highlight=False)
+    if write:
+        console.print(f"Wrote {write}")
