@@ -19,13 +19,13 @@ from fusion.cli_common import (
     load_arm_or_exit,
     read_recording_or_exit,
 )
+from fusion.identify import startup_correction
 from fusion.pose_store import load_pose, save_pose
 from fusion.startup import (
     StartupInputError,
     StartupSettings,
     readings_from_recording,
     solve_still,
-    still_correction,
 )
 from fusion.static import StaticDetectionSettings, find_static_segments
 
@@ -70,19 +70,24 @@ def calibrate_joints(
     temp = rec.get("imu_temp")
     temperature_c = float(np.mean(temp.values) / 340.0 + 35.0) if temp is not None and len(temp) else 25.0
     try:
-        corr = still_correction(arm, temperature_c)
+        corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
     except (ValueError, KeyError) as e:
         fail(f"{arm.source}: effects: {e}")
-    if corr.applied:
-        notes.append("applied from the config: " + ", ".join(corr.applied))
-    if corr.not_applied:
-        notes.append("not applied to a still arm: " + ", ".join(corr.not_applied))
+    used = [e.block_name for e in corr.model.effects
+            if e.stage in ("joints", "sensor") and (e.stage == "joints" or e.target in corr.maps
+                                                   or e.target == getattr(arm.imu, "name", None))]
+    if used:
+        notes.append("applied from the config: " + ", ".join(used))
+    unused = [e.block_name for e in corr.model.effects if e.block_name not in used]
+    if unused:
+        notes.append("not applied to a still arm: " + ", ".join(unused))
     for seg in segs:
         readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
-        readings = corr.correct(readings)
+        readings = corr.readings(readings)
         seg_notes = [c.message for c in checks]
         try:
-            res = solve_still(corr.arm, readings, st, prior_q_rad=prior_q, method=method)
+            res = _controller_side(solve_still(arm, readings, st, prior_q_rad=prior_q,
+                                               method=method), corr)
         except StartupInputError as e:
             out.append({"t_start": seg.t_start_s, "t_end": seg.t_end_s, "error": str(e),
                         "notes": seg_notes})
@@ -109,6 +114,24 @@ def calibrate_joints(
         _print_segment(d)
     if all("error" in d for d in docs):
         raise typer.Exit(1)
+
+
+def _controller_side(res, corr):
+    """Gravity gives the geometric joint angles; the controller counts its own. The config's
+    joint effects (a zero offset, sag, play) map one to the other: undo them."""
+    import dataclasses
+
+    delta = res.q_rad - corr.controller_angles(res.q_rad)
+    if not np.any(delta):
+        return res
+    joints = tuple(
+        dataclasses.replace(
+            j,
+            angle_rad=None if j.angle_rad is None else j.angle_rad - delta[i],
+            alternatives_rad=tuple(a - delta[i] for a in j.alternatives_rad),
+        )
+        for i, j in enumerate(res.joints))
+    return dataclasses.replace(res, joints=joints, q_rad=res.q_rad - delta)
 
 
 def _print_segment(d: dict) -> None:
