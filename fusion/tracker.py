@@ -30,7 +30,9 @@ Every step:
    offsets, the tilt and ``a_B``: their sensor rotations follow exactly from the mean's by
    the product-of-exponentials identity ``R_0S(q + δ) = Π_j exp([a_j]x δ_j) R_0S(q)``
    (axes ``a_j`` of the mean pose), so the kinematics run once per instant, not once per
-   sigma point. See docs/tracking.md.
+   sigma point; the motion term ``a_S`` is taken at the mean pose (its change across the
+   sigma points is first order in their offset spread: ~0.1 mg once converged). See
+   docs/tracking.md.
 4. **Magnetometer** corrects the yaw through the tilt-compensated heading, guarded by
    :class:`fusion.heading.MagneticGuard` (disturbance detection, rejection, recovery).
 
@@ -139,7 +141,7 @@ class TrackerSettings:
     then its own acceleration is zero, which pins the tilt (a zero-acceleration update)."""
     still_accel_sigma_mps2: float = 0.1
     """Noise of that zero-acceleration pseudo-measurement, per sample."""
-    still_accel_q_factor: float = 0.01
+    still_accel_q_factor: float = 1e-4
     """While the chair stands still, its acceleration's process noise is scaled by this."""
     attitude_random_walk_deg_per_sqrt_s: float = 0.5
     """Used instead of the gyro when there is none."""
@@ -149,6 +151,10 @@ class TrackerSettings:
     motion_model_fraction: float = 0.04
     """Share of the predicted motion acceleration taken as extra noise (the differentiator's
     lag and noise), per axis."""
+    motion_compensation: bool = True
+    """Predict the accelerometers with the arm's and the chair's motion (and estimate the
+    chair's acceleration). Off, they are predicted as if everything stood still: only for
+    comparison (the tests show what it costs)."""
     # gating and re-acquisition
     gate_significance: float = 1e-3
     """Chi-square gate on each sensor's NIS: probability that a good sample is rejected."""
@@ -157,6 +163,12 @@ class TrackerSettings:
     slip_sigma_deg: float = 1.5
     """How much the offsets a rejecting sensor sees are widened when it re-acquires."""
     reacquiring_flag_s: float = 3.0
+    shift_tau_s: float = 1.0
+    shift_threshold: float = 40.0
+    """Slip detector: each link accelerometer's innovation, normalised per axis and averaged
+    over ``shift_tau_s`` (an exponential average), is tested against zero; a chi-square
+    (3 dof) above ``shift_threshold`` is a lasting shift (a slip, a few tenths of a degree)
+    that the gate alone may let through slowly: the offsets the sensor sees are widened."""
     # observability
     gimbal_lock_deg: float = 2.5
     """A joint whose axis is within this angle of vertical is gravity-blind: held."""
@@ -187,10 +199,10 @@ class TrackerSettings:
     gyro_window: int = 15
     gyro_order: int = 2
     """The causal fit that gives the base's angular acceleration from the gyro."""
-    angular_accel_error_rad_s2: float = 0.015
     angular_accel_error_fraction: float = 0.15
-    """The differentiated gyro's error (noise, plus lag as a share of the estimate); times
-    each sensor's distance from the IMU it becomes extra accelerometer noise."""
+    """The differentiated gyro's error: its noise (from the gyro's noise and the fit's
+    weights) plus its lag, taken as this share of the estimate; times each sensor's
+    distance from the IMU it becomes extra accelerometer noise."""
     # sigma points (filterpy's MerweScaledSigmaPoints parameters)
     alpha: float = 0.5
     beta: float = 2.0
@@ -274,6 +286,18 @@ def causal_poly_fit(t_win: np.ndarray, y_win: np.ndarray, t_eval: np.ndarray, or
     if order >= 2:
         out[:, 2] = 2.0 * c[:, 2] / h**2
     return out
+
+
+def _derivative_noise_gain(t: np.ndarray, order: int) -> float:
+    """How much unit white noise on the samples ``t`` puts on the causal fit's first
+    derivative at the last sample (the norm of its weights)."""
+    W = len(t)
+    order = int(min(order, W - 1))
+    tau = t - t[-1]
+    h = max(abs(tau[0]), 1e-9)
+    A = np.stack([(tau / h) ** k for k in range(order + 1)], -1)
+    w = np.linalg.pinv(A)[1] / h  # weights of the derivative estimate
+    return float(np.linalg.norm(w))
 
 
 class CausalDifferentiator:
@@ -384,11 +408,16 @@ class Frames:
 
 
 def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset: np.ndarray,
-                qd: np.ndarray, qdd: np.ndarray, omega_B: np.ndarray, omega_dot_B: np.ndarray) -> Frames:
+                qd: np.ndarray, qdd: np.ndarray, omega_B: np.ndarray, omega_dot_B: np.ndarray,
+                motion: bool = True) -> Frames:
     """Kinematic frames for K instants: ``q_enc (K, n)`` encoder angles, ``offset (n,)`` or
-    ``(K, n)``, joint rates/accelerations ``(K, n)``, base rates ``(K, 3)``."""
+    ``(K, n)``, joint rates/accelerations ``(K, n)``, base rates ``(K, 3)``. ``motion``
+    False: as if nothing moved (no motion compensation)."""
     q = q_enc + offset
     K = q.shape[0]
+    if not motion:
+        qd = qdd = np.zeros_like(q)
+        omega_B = omega_dot_B = np.zeros((K, 3))
     eye = np.broadcast_to(np.eye(3), (K, 3, 3))
     st = MotionState(np.zeros(K), q, qd, qdd, eye, omega_B, omega_dot_B, np.zeros((K, 3)), 25.0)
     lm = link_motion(arm, st)
@@ -598,6 +627,51 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
     return ImuStill(bias, bias_sigma, yaw, yaw_sigma, field_ref)
 
 
+@dataclass(frozen=True)
+class Start:
+    """How a tracker was started from a recording: the still window, the startup
+    calibration, what the IMU said, and the notes on sensors left out."""
+
+    t_start_s: float
+    t_end_s: float
+    startup: StartupResult
+    imu: ImuStill
+    notes: tuple[str, ...]
+
+
+class NoStillWindowError(ValueError):
+    """The recording has no still stretch to calibrate from."""
+
+
+def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSettings | None = None,
+                         prior_q_rad: np.ndarray | None = None, window_s: float = 1.0,
+                         startup_settings=None) -> tuple[Tracker, Start]:
+    """A tracker initialised from the recording's first still stretch: the startup
+    calibration there (:func:`fusion.startup.solve_still`), the gyro bias, heading and field
+    reference from the same window; it starts tracking at the window's end."""
+    from fusion.startup import readings_from_recording, solve_still
+    from fusion.static import StaticDetectionSettings, find_static_segments
+
+    segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)))
+    if not segs:
+        raise NoStillWindowError(
+            "no still stretch in the recording (accelerometers, gyro and encoders quiet for at "
+            "least 1 s): the tracker needs a startup calibration on a still arm")
+    seg = segs[0]
+    readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
+    startup = solve_still(arm, readings, startup_settings, prior_q_rad=prior_q_rad)
+    imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings)
+    enc = rec.get(ENC)
+    if enc is None or not len(enc):
+        raise ValueError("the recording has no encoder stream 'enc': nothing to track")
+    k = int(np.searchsorted(enc.t_s, seg.t_end_s + 1e-9)) - 1
+    k = min(max(k, 0), len(enc) - 1)
+    tr = Tracker(arm, settings, rates_hz={s: (v.rate_hz or 100.0) for s, v in rec.raw().items()})
+    tr.initialise(startup, float(enc.t_s[k]), encoder_counts=enc.values[k], imu=imu, prior_q_rad=prior_q_rad)
+    tr.prime(rec)
+    return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(c.message for c in checks))
+
+
 def _up(roll, pitch) -> np.ndarray:
     """World up in base axes for base (roll, pitch), batched: ``[-sp, sr cp, cr cp]``."""
     sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
@@ -689,6 +763,13 @@ class Tracker:
             sig.append(np.sqrt((m.noise_counts_rms / np.abs(m.gain)) ** 2 + floor**2))
         self._accel_sigma_g = np.array(sig).reshape(-1, 3)  # (S, 3)
         self._accel_rate = np.array([rates[s] for s in self.accel_streams])
+        # noise of the gyro's causal derivative: the fit's weights on unit white noise
+        r = rates.get(GYRO, 100.0)
+        W = st.gyro_window
+        t = np.arange(W) / r
+        gain = _derivative_noise_gain(t, st.gyro_order)
+        sig_w = st.gyro_noise_dps_per_sqrt_hz * DEG * np.sqrt(r / 2.0)
+        self._omega_dot_noise = float(gain * sig_w)
         self._limits = {s: (self._sm[s].counts_min, self._sm[s].counts_max) for s in self._sm}
         sa = self.accel_streams
         lo = [self._sm[s].counts_min for s in sa]
@@ -739,7 +820,8 @@ class Tracker:
         block[np.diag_indices(n + 2)] += (0.005 * DEG) ** 2
         P[np.ix_(tgt, tgt)] = block
         x[L.roll], x[L.pitch] = startup.roll_rad, startup.pitch_rad
-        P[L.accel, L.accel] = np.eye(3) * 0.05**2
+        # the startup window was still: the chair's acceleration is zero there
+        P[L.accel, L.accel] = np.eye(3) * (0.01**2 if st.motion_compensation else 1e-16)
         if imu.yaw_rad is not None:
             x[L.yaw] = imu.yaw_rad
             P[L.yaw, L.yaw] = imu.yaw_sigma_rad**2
@@ -771,6 +853,10 @@ class Tracker:
         # per accelerometer: last counts, identical run, prediction when it began, stuck,
         # implausible since, rejecting since
         self._acc_health = [[None, 0, None, False, None, None] for _ in range(Sa)]
+        self._shift = np.zeros((Sa, 3))  # exponential average of the normalised innovations
+        self._shift_t = np.full(Sa, np.nan)
+        self._shift_cool = np.full(Sa, -np.inf)
+        self._reacq_log: dict[int, list[float]] = {}
         self._stuck = np.zeros(Sa, bool)
         self._dead = np.zeros(Sa, bool)
         self._acc_ring = _AccelRing(self.accel_streams, st.innovation_capacity)
@@ -785,10 +871,11 @@ class Tracker:
         self._observed = np.zeros(n, bool)
         self._obs_key = None
         self._mag_flags = (False, False)
-        self._still_w = np.inf  # EMA of the bias-corrected gyro norm, rad/s
+        # the tracker starts at the end of a still window: the chair stands still
+        self._still_w = 0.0  # EMA of the bias-corrected gyro norm, rad/s
         self._still_mean = None  # EMA of the IMU accelerometer, g
-        self._still_var = np.inf  # EMA of its squared deviation, g^2 (summed over axes)
-        self._still = False
+        self._still_var = 0.0  # EMA of its squared deviation, g^2 (summed over axes)
+        self._still = True
 
     def _start_filter(self, q_enc: np.ndarray) -> None:
         L = self.layout
@@ -903,7 +990,8 @@ class Tracker:
         g = self._gyro_diff.at(t)
         omd = np.zeros(3) if g is None else g[1]
         return make_frames(self.arm, self.accel_names, e[0][None], self._ukf.x[L.offset][None],
-                           e[1][None], e[2][None], om[None], omd[None]).take(0)
+                           e[1][None], e[2][None], om[None], omd[None],
+                           self.settings.motion_compensation).take(0)
 
     # -- the step ---------------------------------------------------------------------------
     def _step(self, t: float, gyro: np.ndarray | None, acc, mag, frame: Frames | None,
@@ -933,7 +1021,7 @@ class Tracker:
     def _update_still(self, dt: float, gyro: np.ndarray | None, acc) -> None:
         """Exponential averages of the gyro and the IMU accelerometer: is the chair still?"""
         st = self.settings
-        a = 1.0 if self._still_mean is None else min(1.0, max(dt, 1e-4) / st.still_tau_s)
+        a = min(1.0, max(dt, 1e-4) / st.still_tau_s)
         if gyro is not None:
             wx, wy, wz = (gyro - self._ukf._x[self.layout.bias]).tolist()
             wn = math.sqrt(wx * wx + wy * wy + wz * wz)
@@ -946,7 +1034,6 @@ class Tracker:
                 fi = f[hit[0]].tolist()
                 if self._still_mean is None:
                     self._still_mean = fi
-                    self._still_var = 1.0
                 else:
                     d = [u - v for u, v in zip(fi, self._still_mean, strict=True)]
                     self._still_mean = [m + a * e for m, e in zip(self._still_mean, d, strict=True)]
@@ -980,6 +1067,8 @@ class Tracker:
         q[L.accel] = st.base_accel_sigma_mps2**2 * (1.0 - np.exp(-2.0 * dt / st.base_accel_tau_s))
         if self._still:  # a parked chair's acceleration changes only when it sets off
             q[L.accel] *= st.still_accel_q_factor
+        if not st.motion_compensation:
+            q[L.accel] = 0.0
         q[L.bias] = (st.gyro_bias_random_walk_dps_per_sqrt_s * DEG) ** 2 * dt
         return np.diag(q)
 
@@ -1064,13 +1153,13 @@ class Tracker:
             sel, counts, f = acc
             sel = np.asarray(sel, dtype=np.int64)
             k = len(sel)
-            wd_err = (st.angular_accel_error_rad_s2
+            wd_err = (self._omega_dot_noise
                       + st.angular_accel_error_fraction * float(frame.omega_dot_norm)) / G
             extra = (st.motion_model_fraction * frame.motion_g[sel]) ** 2 + wd_err**2 * frame.dist2_m2[sel]
             var_a = self._accel_sigma_g[sel] ** 2 + extra[:, None]
             zs.append(f.reshape(-1))
             var.append(var_a.reshape(-1))
-        still = self._still and acc is not None
+        still = self._still and acc is not None and st.motion_compensation
         if still:
             zs.append(np.zeros(3))
             var.append(np.full(3, st.still_accel_sigma_mps2**2))
@@ -1091,7 +1180,15 @@ class Tracker:
                            angle_rows=(3 * k + n_still,) if mag is not None else (),
                            frame=frame, sel=sel, m_B=m_B, still=still)
         accept = inn.gate_ok.copy()
+        if still and not inn.gate_ok[k]:
+            # the chair set off: it is no longer still (the averages will say so later)
+            self._still = False
+            self._still_var = max(self._still_var, 10.0 * st.still_accel_g**2)
         if k:
+            imu = np.flatnonzero(sel == self._imu_acc_index)
+            if len(imu) and not inn.gate_ok[imu[0]]:
+                self._still = False
+                self._still_var = max(self._still_var, 10.0 * st.still_accel_g**2)
             accept[:k] = self._accel_health(t, sel, counts, f, inn, var_a)
             used = tuple(int(i) for i in sel[accept[:k]] if i < len(self.link_names))
             self._observability(frame, used, ukf._x)
@@ -1136,6 +1233,16 @@ class Tracker:
             h = H[s]
             self._seen[s] = True
             self._last_t[s] = t
+            # implausible: far from the predicted magnitude (a dead or disconnected sensor)
+            fx, fy, fz = fl[i]
+            px, py, pz = zl[i]
+            if abs(math.sqrt(fx * fx + fy * fy + fz * fz) - math.sqrt(px * px + py * py + pz * pz)) > tol:
+                self._counts[s, C_IMPLAUSIBLE] += 1
+                if h[4] is None:
+                    h[4] = t
+                self._dead[s] = t - h[4] >= st.dead_after_s
+                h[0], h[1], h[2] = cl[i], 0, None
+                continue
             # stuck: identical counts in a row while the prediction moved
             c = cl[i]
             if c == h[0]:
@@ -1151,15 +1258,6 @@ class Tracker:
             self._stuck[s] = h[3]
             if h[3]:
                 self._counts[s, C_STUCK] += 1
-                continue
-            # implausible: far from the predicted magnitude (a dead or disconnected sensor)
-            fx, fy, fz = fl[i]
-            px, py, pz = zl[i]
-            if abs(math.sqrt(fx * fx + fy * fy + fz * fz) - math.sqrt(px * px + py * py + pz * pz)) > tol:
-                self._counts[s, C_IMPLAUSIBLE] += 1
-                if h[4] is None:
-                    h[4] = t
-                self._dead[s] = t - h[4] >= st.dead_after_s
                 continue
             h[4] = None
             self._dead[s] = False
@@ -1180,9 +1278,32 @@ class Tracker:
         if usable.any():
             u = np.flatnonzero(usable)
             rr = self._acc_rows[u]
-            self._acc_ring.add(t, sel[u], inn.innovation[rr], inn.S[rr[:, :, None], rr[:, None, :]],
-                               inn.nis[u], ok[u])
+            Su = inn.S[rr[:, :, None], rr[:, None, :]]
+            self._acc_ring.add(t, sel[u], inn.innovation[rr], Su, inn.nis[u], ok[u])
+            self._detect_shift(t, sel[u], inn.innovation[rr] / np.sqrt(np.diagonal(Su, axis1=1, axis2=2)))
         return ok
+
+    def _detect_shift(self, t: float, which: np.ndarray, nu_w: np.ndarray) -> None:
+        """A lasting shift of a link accelerometer's innovations (see ``shift_threshold``)."""
+        st = self.settings
+        link = which < len(self.link_names)
+        if not link.any():
+            return
+        which, nu_w = which[link], nu_w[link]
+        last = self._shift_t[which]
+        dt = np.where(np.isnan(last), 0.0, t - last)
+        a = np.clip(dt / st.shift_tau_s, 0.0, 1.0)[:, None]
+        ema = self._shift[which] + a * (nu_w - self._shift[which])
+        self._shift[which] = ema
+        self._shift_t[which] = t
+        # the average of unit white noise has variance a / (2 - a)
+        var = np.maximum(a / (2.0 - a), 1e-9)
+        stat = np.sum(ema**2 / var, axis=1)
+        hit = (stat > st.shift_threshold) & (t >= self._shift_cool[which])
+        for s in which[hit]:
+            self._reacquire(int(s), t)
+            self._shift[s] = 0.0
+            self._shift_cool[s] = t + st.reacquiring_flag_s
 
     def _reacquire(self, i: int, t: float) -> None:
         """A sensor rejected for longer than a bump lasts: widen what it sees, read it again."""
@@ -1193,7 +1314,13 @@ class Tracker:
             self._ukf.inflate(idx, np.r_[(2 * DEG) ** 2, (2 * DEG) ** 2, np.full(3, 1.0)])
             return
         joints = np.flatnonzero(self._sees[i])
-        self._ukf.inflate(joints, (st.slip_sigma_deg * DEG) ** 2)
+        # a sensor that keeps disagreeing widens further each time (a large slip), up to
+        # what an unread joint starts with
+        recent = [u for u in self._reacq_log.get(i, []) if t - u < 10.0]
+        recent.append(t)
+        self._reacq_log[i] = recent
+        sig = min(st.slip_sigma_deg * 2.0 ** (len(recent) - 1), st.unknown_joint_sigma_deg)
+        self._ukf.inflate(joints, (sig * DEG) ** 2)
         self._reacq_until[joints] = t + st.reacquiring_flag_s
 
     # -- observability -----------------------------------------------------------------------
@@ -1306,10 +1433,10 @@ class Tracker:
         The same steps as :meth:`update_instant`, with the work that does not depend on
         the filter done for many instants at once: counts to SI units, the saturation
         checks, the causal differentiators, and the kinematics of the mean pose (``block``
-        instants per call, with the offsets and gyro bias of the block's start; the sigma
-        points then differ from it by the offsets' drift, which the product of
-        exponentials carries exactly). With ``truth`` and truth streams in ``rec``, errors
-        and NEES are kept too.
+        instants per call, with the offsets and gyro bias of the block's start; the offsets'
+        drift since then is carried exactly by the product of exponentials, and enters the
+        motion term only to first order). With ``truth`` and truth streams in ``rec``,
+        errors and NEES are kept too.
         """
         import time as _time
 
@@ -1387,7 +1514,7 @@ class Tracker:
             b1 = min(T, b0 + block)
             x = self._ukf.x
             frames = make_frames(self.arm, self.accel_names, q_t[b0:b1], x[L.offset], qd_t[b0:b1],
-                                 qdd_t[b0:b1], w_t[b0:b1] - x[L.bias], wd_t[b0:b1])
+                                 qdd_t[b0:b1], w_t[b0:b1] - x[L.bias], wd_t[b0:b1], st.motion_compensation)
             for i in range(b0, b1):
                 t = float(times[i])
                 if enc_rows[i] >= 0:
@@ -1435,6 +1562,85 @@ class Tracker:
         k = int(np.searchsorted(t, t_now + 1e-9))
         for j in range(max(0, k - diff.window), k):
             diff.push(float(t[j]), y[j])
+
+    def prime(self, rec: Recording) -> None:
+        """Fill the causal differentiators with the recording's samples up to the current
+        time (the still window), so that the first instants have a full window."""
+        self._check()
+        enc = rec.get(ENC)
+        if enc is not None and len(enc):
+            self._prime(self._enc_diff, enc.t_s, enc.values / self._cpr, self._t)
+        g = rec.get(GYRO)
+        if g is not None and len(g):
+            wB = self._sm[GYRO].from_counts(g.values) @ self._R_0I.T
+            self._prime(self._gyro_diff, g.t_s, wB, self._t)
+            k = int(np.searchsorted(g.t_s, self._t + 1e-9)) - 1
+            if k >= 0:
+                self._omega = wB[k]
+
+    # -- restart -----------------------------------------------------------------------------
+    SNAPSHOT_FORMAT = "armfusion.tracker/1"
+
+    def snapshot(self) -> dict:
+        """The tracker's state as a JSON-ready dict: enough to resume after a restart of the
+        process without a new startup calibration, provided the encoders kept counting."""
+        self._check_filter()
+        g = self._guard
+        return {
+            "format": self.SNAPSHOT_FORMAT,
+            "arm": self.arm.name,
+            "state_names": list(self.state_names),
+            "t_s": self._t,
+            "x": self._ukf._x.tolist(),
+            "P": self._ukf._P.tolist(),
+            "q_enc": self._q_enc.tolist(),
+            "omega": None if self._omega is None else np.asarray(self._omega).tolist(),
+            "encoder_fit": self._enc_diff.snapshot(),
+            "gyro_fit": self._gyro_diff.snapshot(),
+            "field": None if self._field is None else {
+                "magnitude_ut": self._field.magnitude_ut, "dip_rad": self._field.dip_rad,
+                "declination_rad": self._field.declination_rad},
+            "guard": None if g is None else g.snapshot(),
+            "counters": self._counts.tolist(),
+            "still": [self._still_w, self._still_mean, self._still_var, self._still],
+            "shift": [self._shift.tolist(), np.nan_to_num(self._shift_t, nan=-1.0).tolist()],
+        }
+
+    def restore(self, snap: Mapping) -> None:
+        """Resume from :meth:`snapshot` (replaces :meth:`initialise`)."""
+        if snap.get("format") != self.SNAPSHOT_FORMAT:
+            raise ValueError(f"not a tracker snapshot (format {snap.get('format')!r}, expected "
+                             f"{self.SNAPSHOT_FORMAT!r})")
+        if snap.get("arm") != self.arm.name or tuple(snap.get("state_names", ())) != self.state_names:
+            raise ValueError(f"the snapshot is for arm {snap.get('arm')!r} with another state; this "
+                             f"tracker is for {self.arm.name!r}")
+        n, L = self.arm.n_joints, self.layout
+        fld = snap.get("field")
+        field_ref = None if fld is None else FieldReference(fld["magnitude_ut"], fld["dip_rad"],
+                                                            fld["declination_rad"])
+        x = np.array(snap["x"], dtype=float)
+        P = np.array(snap["P"], dtype=float)
+        dummy = StartupResult(
+            joints=tuple(_JointStub(nm) for nm in self.arm.joint_names), roll_rad=0.0, pitch_rad=0.0,
+            roll_sigma_rad=0.0, pitch_sigma_rad=0.0, residual_rms_g=0.0, chi2_per_dof=0.0,
+            q_rad=np.zeros(n), covariance=np.eye(n + 2), branches_rad=np.zeros((1, n)), method="restore")
+        self.initialise(dummy, float(snap["t_s"]),
+                        imu=ImuStill(x[L.bias], 1e-3, None, None, field_ref))
+        q_enc = np.array(snap["q_enc"], dtype=float)
+        self._q_enc = q_enc
+        self._ukf = BatchedUKF(x, P, self._points, angle_states=(L.yaw,))
+        self._omega = None if snap.get("omega") is None else np.array(snap["omega"], dtype=float)
+        self._enc_diff.restore(snap["encoder_fit"])
+        self._gyro_diff.restore(snap["gyro_fit"])
+        if self._guard is not None and snap.get("guard") is not None:
+            self._guard.restore(snap["guard"])
+        self._counts = np.array(snap["counters"], dtype=np.int64)
+        if "still" in snap:
+            self._still_w, self._still_mean, self._still_var, self._still = snap["still"]
+        if "shift" in snap:
+            self._shift = np.array(snap["shift"][0], dtype=float)
+            st_ = np.array(snap["shift"][1], dtype=float)
+            self._shift_t = np.where(st_ < 0, np.nan, st_)
 
     # -- results ---------------------------------------------------------------------------
     def q_enc_now(self) -> np.ndarray:
@@ -1658,6 +1864,13 @@ def _rms(v: np.ndarray) -> float | None:
     return float(np.sqrt(np.mean(v**2))) if len(v) else None
 
 
+@dataclass(frozen=True)
+class _JointStub:
+    name: str
+    flag: str = "ok"
+    sigma_rad: float = 0.0
+
+
 def _ro(a) -> np.ndarray:
     v = np.array(a, dtype=float)
     v.setflags(write=False)
@@ -1668,5 +1881,5 @@ __all__ = [
     "COUNTERS", "FLAG_CODE", "JOINT_FLAGS", "SENSOR_STATUS", "CausalDifferentiator", "Estimate",
     "Frames", "ImuStill", "InnovationLog", "NotInitialisedError", "StateLayout", "Tracker",
     "TrackerSettings", "causal_fits", "causal_poly_fit", "imu_still_from_recording",
-    "TrackRun", "make_frames",
+    "NoStillWindowError", "Start", "TrackRun", "make_frames", "start_from_recording",
 ]
