@@ -21,8 +21,10 @@ Before a magnetometer sample may correct the heading, :class:`MagneticGuard` che
    again even though it looks wrong: after a long disturbance the gyro's drift is the
    larger risk, or the reference itself was wrong. Unlike Fusion, a sample used in
    recovery carries its doubt: its noise is raised by the heading error that the
-   measured field error could cause (``|ΔB| / B_horizontal``), so a still-disturbed
-   field pulls the heading gently.
+   measured field error could cause (``|ΔB| / B_horizontal``), and a disturbed field is
+   used only once per ``recovery_interval_s`` (a disturbance is a bias: a hundred samples
+   of it are not a hundred independent readings), so a still-disturbed field pulls the
+   heading only as much as the gyro's own drift has made it uncertain.
 
 Conventions: world z up, yaw about z from magnetic north (world x) unless the reference
 carries a declination; ``R_WB = Rz(yaw) Ry(pitch) Rx(roll)``; fields in µT.
@@ -49,6 +51,10 @@ class HeadingSettings:
     """A field whose dip differs from the reference by more than this (deg) is disturbed."""
     recovery_trigger_s: float = 20.0
     """Fusion's recovery trigger period, in seconds of (net) rejection; 0 disables recovery."""
+    recovery_interval_s: float = 1.0
+    """In recovery, a disturbed field is used once per this interval, its noise raised by the
+    heading error its field error could cause: a disturbance is a bias, not white noise, so
+    its samples are not averaged as if independent."""
     noise_ut: float = AK8975_NOISE_UT_RMS
     """Magnetometer noise per axis, µT rms (AK8975: about 2 LSB)."""
     reference: str = "startup"

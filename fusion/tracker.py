@@ -871,6 +871,7 @@ class Tracker:
         self._observed = np.zeros(n, bool)
         self._obs_key = None
         self._mag_flags = (False, False)
+        self._mag_recovery_t = -np.inf
         # the tracker starts at the end of a still window: the chair stands still
         self._still_w = 0.0  # EMA of the bias-corrected gyro norm, rad/s
         self._still_mean = None  # EMA of the IMU accelerometer, g
@@ -1196,6 +1197,10 @@ class Tracker:
         if mag is not None:
             passed = bool(inn.gate_ok[-1]) and not check.disturbed
             use = self._guard.record(t, passed, check.disturbed)
+            if use and not passed:  # recovery: a doubtful field, once per interval
+                use = t - self._mag_recovery_t >= st.heading.recovery_interval_s
+                if use:
+                    self._mag_recovery_t = t
             mi = self._sidx[MAG]
             self._mag_ring.add(t, inn.innovation[-1:], inn.S[-1:, -1:], inn.nis[-1], use,
                                count_stats=not check.disturbed)
