@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.stats import chi2
@@ -409,10 +409,11 @@ class Frames:
 
 def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset: np.ndarray,
                 qd: np.ndarray, qdd: np.ndarray, omega_B: np.ndarray, omega_dot_B: np.ndarray,
-                motion: bool = True) -> Frames:
+                motion: bool = True, joint_effects=()) -> Frames:
     """Kinematic frames for K instants: ``q_enc (K, n)`` encoder angles, ``offset (n,)`` or
     ``(K, n)``, joint rates/accelerations ``(K, n)``, base rates ``(K, 3)``. ``motion``
-    False: as if nothing moved (no motion compensation)."""
+    False: as if nothing moved (no motion compensation). ``joint_effects`` (effect,
+    parameters) pairs turn the controller's angles into the geometric ones."""
     q = q_enc + offset
     K = q.shape[0]
     if not motion:
@@ -420,6 +421,14 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
         omega_B = omega_dot_B = np.zeros((K, 3))
     eye = np.broadcast_to(np.eye(3), (K, 3, 3))
     st = MotionState(np.zeros(K), q, qd, qdd, eye, omega_B, omega_dot_B, np.zeros((K, 3)), 25.0)
+    if joint_effects:
+        from models.effects import Context
+
+        ctx = Context(arm, st)
+        qg = np.array(q, dtype=float, copy=True)
+        for e, th in joint_effects:
+            qg[:, e.j] += e.delta(q, th, ctx)
+        st = st.replace(q_rad=qg)
     lm = link_motion(arm, st)
     sm = sensor_motion(arm, st, list(names), lm=lm)
     Ks = skew(lm.axis_0)
@@ -659,17 +668,42 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
             "least 1 s): the tracker needs a startup calibration on a still arm")
     seg = segs[0]
     readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
+    notes = [c.message for c in checks]
+    corr = None
+    if arm.effects:  # a calibrated config: the startup works on corrected readings
+        from fusion.identify import startup_correction
+
+        temp = rec.get("imu_temp")
+        temperature_c = float(np.mean(temp.values) / 340.0 + 35.0) if temp is not None and len(temp) else 25.0
+        corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
+        readings = corr.readings(readings)
+        notes.append("the config's effects applied: " + ", ".join(e.block_name for e in corr.model.effects))
     startup = solve_still(arm, readings, startup_settings, prior_q_rad=prior_q_rad)
+    if corr is not None:
+        startup = _controller_side(startup, corr)
     imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings)
     enc = rec.get(ENC)
     if enc is None or not len(enc):
         raise ValueError("the recording has no encoder stream 'enc': nothing to track")
     k = int(np.searchsorted(enc.t_s, seg.t_end_s + 1e-9)) - 1
     k = min(max(k, 0), len(enc) - 1)
-    tr = Tracker(arm, settings, rates_hz={s: (v.rate_hz or 100.0) for s, v in rec.raw().items()})
+    tr = Tracker(arm, settings, rates_hz={s: (v.rate_hz or 100.0) for s, v in rec.raw().items()},
+                 correction=corr)
     tr.initialise(startup, float(enc.t_s[k]), encoder_counts=enc.values[k], imu=imu, prior_q_rad=prior_q_rad)
     tr.prime(rec)
-    return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(c.message for c in checks))
+    return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes))
+
+
+def _controller_side(res: StartupResult, corr) -> StartupResult:
+    """The startup solves the geometric joint angles; the config's joint effects map the
+    controller's angles to them: undo that, as ``armfusion calibrate joints`` does."""
+    delta = res.q_rad - corr.controller_angles(res.q_rad)
+    if not np.any(delta):
+        return res
+    joints = tuple(replace(j, angle_rad=None if j.angle_rad is None else j.angle_rad - delta[i],
+                           alternatives_rad=tuple(a - delta[i] for a in j.alternatives_rad))
+                   for i, j in enumerate(res.joints))
+    return replace(res, joints=joints, q_rad=res.q_rad - delta)
 
 
 def _up(roll, pitch) -> np.ndarray:
@@ -698,8 +732,27 @@ class Tracker:
     """
 
     def __init__(self, arm: ArmModel, settings: TrackerSettings | None = None,
-                 rates_hz: Mapping[str, float] | float = 100.0):
+                 rates_hz: Mapping[str, float] | float = 100.0, correction=None):
+        """``correction`` (a :class:`fusion.identify.StartupCorrection`, default: made from the
+        config's effects when it has any) undoes the calibrated accelerometer errors (affine:
+        mount, axes, scale, bias) on every sample, and maps the controller's joint angles to
+        the geometric ones (zero offsets, sag, play) in the kinematics."""
         self.arm = arm
+        if correction is None and arm.effects:
+            from fusion.identify import startup_correction
+
+            correction = startup_correction(arm, include_joint_offsets=True)
+        self.correction = correction
+        self._undo = {}
+        self._joint_effects = []
+        if correction is not None:
+            for stream, (Lm, c) in correction.maps.items():
+                self._undo[stream] = (np.linalg.inv(Lm).T, np.asarray(c, float))
+            from models.effects import JointEffect
+
+            th = correction.model.unpack()
+            self._joint_effects = [(e, th[e.block_name]) for e in correction.model.effects
+                                   if isinstance(e, JointEffect)]
         self.settings = st = settings or TrackerSettings()
         n = arm.n_joints
         self.layout = L = StateLayout(n)
@@ -950,7 +1003,7 @@ class Tracker:
                 self._counts[i, C_SATURATED] += 1
                 self._seen[i], self._last_t[i] = True, t
                 continue
-            phys[s] = (c, self._sm[s].from_counts(c[None])[0])
+            phys[s] = (c, self._physical(s, c[None])[0])
         enc = phys.get(ENC)
         if enc is not None:
             q_enc = enc[0] / self._cpr
@@ -977,6 +1030,12 @@ class Tracker:
         self._step(t, gyro, acc, None if mag is None else (mag[0], self._R_0I @ mag[1]), frame, q_enc)
         return self.estimate
 
+    def _physical(self, s: str, counts: np.ndarray) -> np.ndarray:
+        """Counts ``(N, k)`` to SI units, the config's calibrated sensor errors undone."""
+        y = self._sm[s].from_counts(counts)
+        u = self._undo.get(s)
+        return y if u is None else (y - u[1]) @ u[0]
+
     def _mark_used(self, s: str, t: float) -> None:
         i = self._sidx[s]
         self._seen[i], self._last_t[i] = True, t
@@ -992,7 +1051,7 @@ class Tracker:
         omd = np.zeros(3) if g is None else g[1]
         return make_frames(self.arm, self.accel_names, e[0][None], self._ukf.x[L.offset][None],
                            e[1][None], e[2][None], om[None], omd[None],
-                           self.settings.motion_compensation).take(0)
+                           self.settings.motion_compensation, self._joint_effects).take(0)
 
     # -- the step ---------------------------------------------------------------------------
     def _step(self, t: float, gyro: np.ndarray | None, acc, mag, frame: Frames | None,
@@ -1464,7 +1523,7 @@ class Tracker:
             lo, hi = self._limits[s]
             ok = np.ones(len(v), dtype=bool) if lo is None else ~np.any((c <= lo) | (c >= hi), axis=1)
             valid[s] = ok
-            phys[s] = self._sm[s].from_counts(c)
+            phys[s] = self._physical(s, c)
             used = rows[s][rows[s] >= 0]
             i = self._sidx[s]
             self._counts[i, C_SAMPLES] += len(used)
@@ -1519,7 +1578,8 @@ class Tracker:
             b1 = min(T, b0 + block)
             x = self._ukf.x
             frames = make_frames(self.arm, self.accel_names, q_t[b0:b1], x[L.offset], qd_t[b0:b1],
-                                 qdd_t[b0:b1], w_t[b0:b1] - x[L.bias], wd_t[b0:b1], st.motion_compensation)
+                                 qdd_t[b0:b1], w_t[b0:b1] - x[L.bias], wd_t[b0:b1], st.motion_compensation,
+                                 self._joint_effects)
             for i in range(b0, b1):
                 t = float(times[i])
                 if enc_rows[i] >= 0:
