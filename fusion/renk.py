@@ -292,8 +292,9 @@ def fit_triax(R_0E: np.ndarray, V: np.ndarray, mode: str = "simultaneous", noise
 
 
 def _canonical(p: TriaxParams) -> TriaxParams:
-    """S > 0 (a negative S is the same axis reversed), angles wrapped: β in [-90°, 90°],
-    γ and ψ in [0°, 360°) as the article prints them."""
+    """S > 0 (a negative S is the same axis reversed), the field's φ ≥ 0 (the field and
+    every axis reversed together fit the same), angles wrapped: β in [-90°, 90°], γ and ψ
+    in [0°, 360°) as the article prints them."""
     beta, gamma, S = p.beta.copy(), p.gamma.copy(), p.S.copy()
     neg = S < 0
     # -P: β -> -β, γ -> γ + π
@@ -307,4 +308,11 @@ def _canonical(p: TriaxParams) -> TriaxParams:
     f2 = np.abs(phi) > np.pi / 2
     phi[f2] = np.sign(phi[f2]) * np.pi - phi[f2]
     psi[f2] += np.pi
+    # (ĝ, P_k) and (-ĝ, -P_k) predict the same voltages: the data cannot tell a field
+    # pointing down seen by these axes from one pointing up seen by the reversed axes. Report
+    # the field with no upward component (φ ≥ 0: gravity; the Earth's field north of the
+    # magnetic equator, as in the article's Tables 8, 10), reversing the axes with it.
+    up = np.broadcast_to(phi < 0, (3,))
+    phi, psi = np.where(phi < 0, -phi, phi), np.where(phi < 0, psi + np.pi, psi)
+    beta[up], gamma[up] = -beta[up], gamma[up] + np.pi
     return TriaxParams(beta, gamma % (2 * np.pi), S, p.delta.copy(), phi, psi % (2 * np.pi))
