@@ -418,3 +418,76 @@ def test_a_calibrated_config_s_effects_are_applied(arm):
     assert np.all(rms_deg(tr.run(rec), 12.0) < 0.05)
     tr, _ = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05)
     assert rms_deg(tr.run(rec), 12.0).max() > 0.5
+
+
+# --------------------------------------------------------------------------------------
+def test_the_track_command(arm, reaching, tmp_path):
+    """`armfusion track REC --json --out EST.csv|EST.mcap`: the documented JSON, the
+    estimates file, errors a person can act on."""
+    import json
+
+    import typer
+    from typer.testing import CliRunner
+
+    from fusion.track_cmd import estimate_columns, register
+    from sensors.recording import read_recording, write_recording
+
+    app = typer.Typer()
+
+    @app.callback()
+    def main() -> None:
+        """test app"""
+
+    register(app)
+    register(app)  # idempotent
+    assert [c.name for c in app.registered_commands] == ["track"]
+    path = tmp_path / "rec.csv"
+    write_recording(Recording({k: v for k, v in reaching.streams.items()}, {}), path)
+    from fusion.pose_store import save_pose
+
+    prior = save_pose(tmp_path / "pose.json", arm, POSE + 0.05)  # saved at the last shutdown
+    runner = CliRunner()
+    out = tmp_path / "est.csv"
+    r = runner.invoke(app, ["track", str(path), "--unmodelled-g", "0", "--json", "--out", str(out),
+                            "--after-s", "10", "--prior", str(prior)])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    for key in ("steps", "steps_per_s", "rms_error_deg", "heading_rms_deg", "nees", "nis", "rejections",
+                "flags_seen", "start", "final"):
+        assert key in d, key
+    assert d["steps"] > 2000 and d["start"]["t_end_s"] < 6.0
+    assert max(d["rms_error_deg"].values()) < 0.05
+    lo, hi = d["nis"]["acc1"]["bounds_95"]
+    assert lo < 3.0 < hi and d["nees"]["dof"] == 10
+    import csv
+
+    with open(out, newline="") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0][:2] == ["t", "q_j1"] and len(rows) == d["steps"] + 1
+    assert len(rows[1]) == len(rows[0]) == 41
+    mc = tmp_path / "est.mcap"
+    r = runner.invoke(app, ["track", str(path), "--unmodelled-g", "0", "--out", str(mc),
+                            "--prior", str(prior)])
+    assert r.exit_code == 0, r.output
+    assert "steps/s" in r.stdout and mc.stat().st_size > 10000
+    # the MCAP file holds the estimates as JSON messages next to nothing else
+    from mcap.reader import make_reader
+
+    with open(mc, "rb") as fh:
+        topics = {ch.topic for ch in make_reader(fh).get_summary().channels.values()}
+    assert topics == {"estimates/joints", "estimates/heading"}
+    r = runner.invoke(app, ["track", str(path), "--out", str(tmp_path / "e.txt")])
+    assert r.exit_code == 2 and "expected .csv or .mcap" in r.output
+    moving = tmp_path / "moving.csv"
+    write_recording(Recording({k: v.between(5.3, 8.7) for k, v in read_recording(path).streams.items()},
+                              {}), moving)  # only the first reach: never still
+    r = runner.invoke(app, ["track", str(moving)])
+    assert r.exit_code == 2 and "no still stretch" in r.output
+    assert len(estimate_columns(tr_run_columns(arm))) == 41
+
+
+def tr_run_columns(arm):
+    class Cols:  # what estimate_columns reads of a run
+        joint_names = arm.joint_names
+        sensor_names = ("acc1", "acc2", "acc3", "acc4", "imu_acc", "imu_gyro", "imu_mag", "enc")
+    return Cols()

@@ -1,0 +1,203 @@
+"""`armfusion track`: the tracker over a recording (startup calibration on its first still
+stretch, then every sample), with an estimates file and a JSON summary (docs/tracking.md)."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from fusion.cli import (
+    ConfigOpt,
+    JsonOpt,
+    console,
+    emit_json,
+    err_console,
+    fail,
+    load_arm_or_exit,
+    read_recording_or_exit,
+)
+
+OUT_SUFFIXES = (".csv", ".mcap")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``track`` to the ``armfusion`` app (once)."""
+    if any(c.name == "track" for c in app.registered_commands):
+        return
+    app.command("track")(track)
+
+
+def track(
+    recording: Annotated[Path, typer.Argument(help="Recording (.csv or .mcap) that starts with a still arm.")],
+    config: ConfigOpt = "wmra",
+    out: Annotated[Path | None, typer.Option("--out", help="Write every estimate to EST.csv or EST.mcap.")] = None,
+    json_out: JsonOpt = False,
+    prior: Annotated[Path | None, typer.Option(help="Pose saved at the last clean shutdown (JSON): picks startup branches.")] = None,
+    after_s: Annotated[float, typer.Option(help="With truth columns: RMS errors count from this many seconds after the recording's start.")] = 60.0,
+    gate_significance: Annotated[float, typer.Option(help="Chi-square gate: probability that a good sample is rejected.")] = 1e-3,
+    unmodelled_g: Annotated[float | None, typer.Option(help="Override the config's unmodelled accelerometer error (g, 1 sigma), for startup and tracking.")] = None,
+    no_motion_compensation: Annotated[bool, typer.Option("--no-motion-compensation", help="Predict the accelerometers as if nothing moved (for comparison only).")] = False,
+) -> None:
+    """Track the joint angles and the heading through a recording: startup calibration on
+    its first still stretch, then the unscented Kalman filter on every sample."""
+    from dataclasses import replace
+
+    from fusion.pose_store import load_pose
+    from fusion.startup import StartupInputError
+    from fusion.tracker import NoStillWindowError, TrackerSettings, start_from_recording
+
+    if not 0.0 < gate_significance < 1.0:
+        fail(f"--gate-significance must be between 0 and 1, not {gate_significance!r}")
+    if out is not None and out.suffix.lower() not in OUT_SUFFIXES:
+        fail(f"--out {out}: unknown suffix {out.suffix or '(none)'!r}; expected .csv or .mcap")
+    arm = load_arm_or_exit(config)
+    if unmodelled_g is not None:
+        if not unmodelled_g >= 0.0:
+            fail(f"--unmodelled-g must be >= 0, not {unmodelled_g!r}")
+        arm = replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": unmodelled_g,
+                                        "accel_unmodelled_g_per_sensor": {}})
+    rec = read_recording_or_exit(recording)
+    notes: list[str] = []
+    prior_q = None
+    if prior is not None:
+        saved, why = load_pose(prior, arm)
+        if saved is None:
+            notes.append(why)
+        else:
+            prior_q = saved.q_rad
+    settings = TrackerSettings(gate_significance=gate_significance,
+                               motion_compensation=not no_motion_compensation)
+    try:
+        tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q)
+    except NoStillWindowError as e:
+        fail(f"{recording}: {e}")
+    except (StartupInputError, ValueError) as e:
+        fail(f"{recording}: cannot start tracking: {e}")
+    notes.extend(start.notes)
+    run = tr.run(rec)
+    summary = run.summary(after_s=after_s, t0_s=rec.t_start_s)
+    doc = {
+        "config": arm.source,
+        "recording": str(recording),
+        "start": {"t_start_s": start.t_start_s, "t_end_s": start.t_end_s,
+                  "summary": start.startup.summary,
+                  "flags": {j.name: j.flag for j in start.startup.joints}},
+        **summary,
+        "final": tr.estimate.as_dict() if run.steps else None,
+        "out": None if out is None else str(out),
+        "notes": notes,
+    }
+    if out is not None:
+        try:
+            write_estimates(run, out, arm.source)
+        except OSError as e:
+            fail(f"cannot write {out}: {e}")
+    if json_out:
+        emit_json(doc)
+        return
+    for n in notes:
+        err_console.print(n)
+    _print(doc, run)
+
+
+# --------------------------------------------------------------------------------------
+def estimate_columns(run) -> list[str]:
+    j = run.joint_names
+    return (["t"] + [f"q_{n}" for n in j] + [f"sigma_{n}" for n in j] + [f"flag_{n}" for n in j]
+            + ["roll", "pitch", "yaw", "sigma_roll", "sigma_pitch", "sigma_yaw",
+               "gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "magnetic_disturbance", "magnetic_recovery"]
+            + [f"status_{s}" for s in run.sensor_names])
+
+
+def write_estimates(run, path: Path, arm_config: str = "") -> None:
+    """Every fused instant's estimate: CSV (one row each, angles in rad) or MCAP (JSON
+    messages on ``estimates/joints`` and ``estimates/heading``)."""
+    from fusion.tracker import JOINT_FLAGS, SENSOR_STATUS
+
+    path = Path(path)
+    if path.suffix.lower() == ".csv":
+        with open(path, "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(estimate_columns(run))
+            flags = np.array(JOINT_FLAGS, dtype=object)[run.flags]
+            status = np.array(SENSOR_STATUS, dtype=object)[run.sensor_status]
+            mag = run.magnetic
+            for i in range(run.steps):
+                w.writerow([f"{run.t_s[i]:.6f}", *(f"{v:.9f}" for v in run.q_rad[i]),
+                            *(f"{v:.3e}" for v in run.sigma_rad[i]), *flags[i],
+                            *(f"{v:.9f}" for v in run.rpy_rad[i]), *(f"{v:.3e}" for v in run.rpy_sigma_rad[i]),
+                            *(f"{v:.4e}" for v in run.gyro_bias_rad_s[i]),
+                            int(mag[i] & 1 > 0), int(mag[i] & 2 > 0), *status[i]])
+        return
+    from sensors.recording_mcap import McapRecorder
+
+    t0 = float(run.t_s[0]) if run.steps else 0.0
+    with McapRecorder(path, arm_config=arm_config, t_offset_s=max(0.0, -t0)) as mc:
+        for i in range(run.steps):
+            t = float(run.t_s[i])
+            mc.write_json("estimates/joints", "armfusion.JointEstimate", {
+                "t_s": t,
+                "names": list(run.joint_names),
+                "q_rad": run.q_rad[i].tolist(),
+                "sigma_rad": run.sigma_rad[i].tolist(),
+                "flags": [JOINT_FLAGS[f] for f in run.flags[i]],
+                "sensors": {s: SENSOR_STATUS[c] for s, c in zip(run.sensor_names, run.sensor_status[i],
+                                                                 strict=True)},
+            }, t_s=t)
+            mc.write_json("estimates/heading", "armfusion.Heading", {
+                "t_s": t,
+                "roll_rad": float(run.rpy_rad[i, 0]), "pitch_rad": float(run.rpy_rad[i, 1]),
+                "yaw_rad": float(run.rpy_rad[i, 2]), "sigma_rad": run.rpy_sigma_rad[i].tolist(),
+                "magnetic_disturbance": bool(run.magnetic[i] & 1),
+                "magnetic_recovery": bool(run.magnetic[i] & 2),
+            }, t_s=t)
+
+
+def _print(doc: dict, run) -> None:
+    console.print(f"[bold]{doc['recording']}[/]: startup on t = {doc['start']['t_start_s']:.2f} … "
+                  f"{doc['start']['t_end_s']:.2f} s: {doc['start']['summary']}")
+    console.print(f"{doc['steps']} steps over {doc['duration_s']:.1f} s in {doc['elapsed_s']:.2f} s "
+                  f"({doc['steps_per_s']:.0f} steps/s)")
+    t = Table(title="Joints", title_justify="left")
+    cols = ["joint", "final [deg]", "sigma [deg]", "flag"]
+    truth = "rms_error_deg" in doc
+    if truth:
+        cols += [f"RMS error after {doc['rms_after_s']:.0f} s [deg]", "max [deg]"]
+    cols.append("flags seen")
+    for c in cols:
+        t.add_column(c, justify="left" if c in ("joint", "flag", "flags seen") else "right")
+    final = {j["name"]: j for j in (doc["final"] or {}).get("joints", [])}
+    for nm in run.joint_names:
+        f = final.get(nm, {})
+        row = [nm, _deg(f.get("angle_rad")), _deg(f.get("sigma_rad"), 4), f.get("flag", "-")]
+        if truth:
+            row += [_num(doc["rms_error_deg"][nm], 4), _num(doc["max_error_deg"][nm], 3)]
+        seen = doc["flags_seen"]["joints"][nm]
+        row.append(", ".join(f"{k} {v}" for k, v in seen.items()))
+        t.add_row(*row)
+    console.print(t)
+    if "heading_rms_deg" in doc and doc["heading_rms_deg"] is not None:
+        console.print(f"heading RMS error {doc['heading_rms_deg']:.3f}°")
+    if "nees" in doc:
+        n = doc["nees"]
+        console.print(f"NEES mean {n['mean']:.2f} ({n['dof']} states; 95 % bounds for one instant "
+                      f"{n['bounds_95_single'][0]:.1f} … {n['bounds_95_single'][1]:.1f})")
+    rej = {s: v for s, v in doc["rejections"].items() if v}
+    console.print("rejections: " + (", ".join(f"{s} {v}" for s, v in rej.items()) or "none"))
+    for s, d in doc["nis"].items():
+        console.print(f"  NIS {s}: mean {d['mean']:.2f} ({d['dof']} dof)")
+    if doc["out"]:
+        console.print(f"estimates written to {doc['out']}")
+
+
+def _deg(v, digits: int = 3) -> str:
+    return "-" if v is None else f"{np.degrees(v):.{digits}f}"
+
+
+def _num(v, digits: int) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
