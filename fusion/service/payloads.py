@@ -1,0 +1,345 @@
+"""What armfusion nodes say to each other over Zenoh: key expressions and payloads.
+
+Key expressions (``<robot>`` and ``<sensor>`` are names of letters, digits, ``_``, ``-``)::
+
+    armfusion/<robot>/raw/<sensor>      RawBatch    a batch of one sensor's raw counts
+    armfusion/<robot>/state/joints      JointState  joint angles, sigma, flags
+    armfusion/<robot>/state/heading     Heading     the base's heading (yaw) and its sigma
+    armfusion/<robot>/status            Status      a node's health and counters
+
+Every payload is one UTF-8 JSON object (no pickle, nothing that carries code) with
+``"v": 1`` (:data:`SCHEMA_VERSION`) and ``"type"``, one of ``raw``, ``joints``,
+``heading``, ``status``; the fields of each are those of the dataclasses below and are
+written out in docs/service.md. JSON keeps a float's every bit (Python writes the
+shortest repr that reads back the same), so a replayed recording is recorded unchanged.
+
+On receipt, :class:`Inbox` checks a payload: larger than :data:`MAX_PAYLOAD_BYTES`, not
+JSON, of an unknown version or type, with a missing, mistyped or inconsistent field (or
+a type that does not match its key expression): it is counted by reason and dropped with
+one log line, never an exception into the node.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+import threading
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sensors.samples import RAW_KINDS, Stream
+
+SCHEMA_VERSION = 1
+MAX_PAYLOAD_BYTES = 1 << 20
+"""1 MiB: a raw batch of 1 s of a 3-axis sensor at 1 kHz is about 60 kB."""
+ROOT = "armfusion"
+NAME_RE = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+log = logging.getLogger("armfusion.service")
+
+
+class PayloadError(ValueError):
+    """A payload that is not what the schema says. ``reason`` is a short counter name."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+# --- key expressions ------------------------------------------------------------------------
+
+
+def check_name(name: str, what: str) -> str:
+    if not isinstance(name, str) or not NAME_RE.match(name):
+        raise ValueError(f"{what} {name!r}: use 1 to 64 letters, digits, '_' or '-'")
+    return name
+
+
+def raw_key(robot: str, sensor: str) -> str:
+    return f"{ROOT}/{check_name(robot, 'robot')}/raw/{check_name(sensor, 'sensor')}"
+
+
+def raw_keys(robot: str) -> str:
+    """The key expression of every raw sensor of ``robot``."""
+    return f"{ROOT}/{check_name(robot, 'robot')}/raw/*"
+
+
+def joints_key(robot: str) -> str:
+    return f"{ROOT}/{check_name(robot, 'robot')}/state/joints"
+
+
+def heading_key(robot: str) -> str:
+    return f"{ROOT}/{check_name(robot, 'robot')}/state/heading"
+
+
+def status_key(robot: str) -> str:
+    return f"{ROOT}/{check_name(robot, 'robot')}/status"
+
+
+def parse_key(key: str) -> tuple[str, str, str | None]:
+    """``(robot, type, sensor)`` of a key expression; raises :class:`PayloadError`."""
+    parts = str(key).split("/")
+    if len(parts) >= 3 and parts[0] == ROOT and NAME_RE.match(parts[1]):
+        robot, rest = parts[1], parts[2:]
+        if len(rest) == 2 and rest[0] == "raw" and NAME_RE.match(rest[1]):
+            return robot, "raw", rest[1]
+        if rest in (["state", "joints"], ["state", "heading"]):
+            return robot, rest[1], None
+        if rest == ["status"]:
+            return robot, "status", None
+    raise PayloadError("bad_key", f"key expression {key!r} is not an armfusion key")
+
+
+# --- payload types --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RawBatch:
+    """A batch of one sensor's raw counts: ``stream.t_s (N,)``, ``stream.values (N, k)``.
+
+    ``seq`` numbers the batches of one sensor from one publisher (0, 1, 2…) so that a
+    receiver can count the batches it missed.
+    """
+
+    robot: str
+    stream: Stream
+    seq: int
+
+    def to_json(self) -> dict[str, Any]:
+        s = self.stream
+        return {"v": SCHEMA_VERSION, "type": "raw", "robot": self.robot, "sensor": s.name,
+                "kind": s.kind, "channels": list(s.channels), "seq": self.seq,
+                "t_s": s.t_s.tolist(), "counts": s.values.tolist()}
+
+
+@dataclass(frozen=True)
+class JointState:
+    """One instant's joint estimate (see :class:`fusion.tracker.Estimate`)."""
+
+    robot: str
+    t_s: float
+    joint_names: tuple[str, ...]
+    q_rad: tuple[float, ...]
+    sigma_rad: tuple[float, ...]
+    flags: tuple[str, ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"v": SCHEMA_VERSION, "type": "joints", "robot": self.robot, "t_s": self.t_s,
+                "joint_names": list(self.joint_names), "q_rad": list(self.q_rad),
+                "sigma_rad": list(self.sigma_rad), "flags": list(self.flags)}
+
+
+@dataclass(frozen=True)
+class Heading:
+    """The base's heading (yaw about the vertical) and its one-sigma uncertainty."""
+
+    robot: str
+    t_s: float
+    heading_rad: float
+    sigma_rad: float
+    magnetic_disturbance: bool = False
+
+    def to_json(self) -> dict[str, Any]:
+        return {"v": SCHEMA_VERSION, "type": "heading", "robot": self.robot, "t_s": self.t_s,
+                "heading_rad": self.heading_rad, "sigma_rad": self.sigma_rad,
+                "magnetic_disturbance": self.magnetic_disturbance}
+
+
+NODE_STATES = ("starting", "running", "calibrating", "tracking", "done", "stopping", "error")
+
+
+@dataclass(frozen=True)
+class Status:
+    """A node's health: its state, a line for a person, and its counters."""
+
+    robot: str
+    node: str
+    state: str
+    t_wall_s: float
+    message: str = ""
+    counters: tuple[tuple[str, int], ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        return {"v": SCHEMA_VERSION, "type": "status", "robot": self.robot, "node": self.node,
+                "state": self.state, "t_wall_s": self.t_wall_s, "message": self.message,
+                "counters": dict(self.counters)}
+
+
+Payload = RawBatch | JointState | Heading | Status
+
+
+def encode(payload: Payload) -> bytes:
+    """The wire form of ``payload``: compact UTF-8 JSON."""
+    data = json.dumps(payload.to_json(), separators=(",", ":"), allow_nan=False).encode()
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise ValueError(f"{type(payload).__name__}: {len(data)} bytes is more than "
+                         f"{MAX_PAYLOAD_BYTES}; publish smaller batches")
+    return data
+
+
+# --- decoding -------------------------------------------------------------------------------
+
+
+def _field(d: dict, name: str, types: type | tuple[type, ...]) -> Any:
+    if name not in d:
+        raise PayloadError("malformed", f"missing field {name!r}")
+    v = d[name]
+    allowed = types if isinstance(types, tuple) else (types,)
+    if not isinstance(v, allowed) or (isinstance(v, bool) and bool not in allowed):
+        raise PayloadError("malformed", f"field {name!r}: {type(v).__name__} is not the expected type")
+    return v
+
+
+def _finite(d: dict, name: str) -> float:
+    v = float(_field(d, name, (int, float)))
+    if not math.isfinite(v):
+        raise PayloadError("malformed", f"field {name!r} is not finite")
+    return v
+
+
+def _floats(d: dict, name: str, n: int | None = None) -> tuple[float, ...]:
+    v = _field(d, name, list)
+    if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in v):
+        raise PayloadError("malformed", f"field {name!r}: expected a list of numbers")
+    if n is not None and len(v) != n:
+        raise PayloadError("malformed", f"field {name!r}: {len(v)} values, expected {n}")
+    return tuple(float(x) for x in v)
+
+
+def _strings(d: dict, name: str, n: int | None = None) -> tuple[str, ...]:
+    v = _field(d, name, list)
+    if not all(isinstance(x, str) for x in v):
+        raise PayloadError("malformed", f"field {name!r}: expected a list of strings")
+    if n is not None and len(v) != n:
+        raise PayloadError("malformed", f"field {name!r}: {len(v)} values, expected {n}")
+    return tuple(v)
+
+
+def _raw(d: dict, robot: str) -> RawBatch:
+    sensor = check_name_or_fail(_field(d, "sensor", str), "sensor")
+    kind = _field(d, "kind", str)
+    if kind not in RAW_KINDS:
+        raise PayloadError("malformed", f"kind {kind!r} is not a raw kind ({', '.join(sorted(RAW_KINDS))})")
+    channels = _strings(d, "channels")
+    seq = _field(d, "seq", int)
+    t = _field(d, "t_s", list)
+    counts = _field(d, "counts", list)
+    if not channels or not t or len(t) != len(counts):
+        raise PayloadError("malformed", f"{len(t)} times and {len(counts)} rows of counts "
+                           f"over {len(channels)} channels")
+    if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in t):
+        raise PayloadError("malformed", "field 't_s': expected a list of numbers")
+    if not all(isinstance(r, list) and len(r) == len(channels)
+               and all(isinstance(x, int) and not isinstance(x, bool) for x in r) for r in counts):
+        raise PayloadError("malformed", f"field 'counts': expected rows of {len(channels)} integers")
+    t_s = np.asarray(t, dtype=np.float64)
+    if not np.all(np.isfinite(t_s)):
+        raise PayloadError("malformed", "field 't_s' is not finite")
+    try:
+        values = np.asarray(counts, dtype=np.int64)
+        stream = Stream(sensor, kind, t_s, values, channels)
+    except (ValueError, OverflowError) as e:
+        raise PayloadError("malformed", str(e)) from e
+    return RawBatch(robot, stream, seq)
+
+
+def check_name_or_fail(name: str, what: str) -> str:
+    if not NAME_RE.match(name):
+        raise PayloadError("malformed", f"{what} {name!r} is not a valid name")
+    return name
+
+
+def _joints(d: dict, robot: str) -> JointState:
+    names = _strings(d, "joint_names")
+    n = len(names)
+    return JointState(robot, _finite(d, "t_s"), names, _floats(d, "q_rad", n),
+                      _floats(d, "sigma_rad", n), _strings(d, "flags", n))
+
+
+def _heading(d: dict, robot: str) -> Heading:
+    return Heading(robot, _finite(d, "t_s"), _finite(d, "heading_rad"), _finite(d, "sigma_rad"),
+                   bool(d.get("magnetic_disturbance", False)))
+
+
+def _status(d: dict, robot: str) -> Status:
+    state = _field(d, "state", str)
+    if state not in NODE_STATES:
+        raise PayloadError("malformed", f"state {state!r}: expected one of {', '.join(NODE_STATES)}")
+    counters = _field(d, "counters", dict)
+    if not all(isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool)
+               for k, v in counters.items()):
+        raise PayloadError("malformed", "field 'counters': expected names to integers")
+    return Status(robot, _field(d, "node", str), state, _finite(d, "t_wall_s"),
+                  _field(d, "message", str), tuple(sorted(counters.items())))
+
+
+_DECODERS = {"raw": _raw, "joints": _joints, "heading": _heading, "status": _status}
+
+
+def decode(key: str, data: bytes) -> Payload:
+    """The payload received on ``key``; raises :class:`PayloadError` with a reason."""
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise PayloadError("oversized", f"{len(data)} bytes, more than {MAX_PAYLOAD_BYTES}")
+    robot, kind, sensor = parse_key(key)
+    try:
+        d = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+        raise PayloadError("malformed", f"not JSON: {e}") from e
+    if not isinstance(d, dict):
+        raise PayloadError("malformed", f"a JSON {type(d).__name__}, not an object")
+    version = d.get("v")
+    if version != SCHEMA_VERSION or isinstance(version, bool):
+        raise PayloadError("unknown_version", f"schema version {version!r}; this node reads "
+                           f"version {SCHEMA_VERSION}")
+    if d.get("type") != kind:
+        raise PayloadError("malformed", f"type {d.get('type')!r} on a {kind} key")
+    if d.get("robot") != robot:
+        raise PayloadError("malformed", f"robot {d.get('robot')!r} on robot {robot!r}'s key")
+    payload = _DECODERS[kind](d, robot)
+    if isinstance(payload, RawBatch) and payload.stream.name != sensor:
+        raise PayloadError("malformed", f"sensor {payload.stream.name!r} on sensor {sensor!r}'s key")
+    return payload
+
+
+class Inbox:
+    """Decodes what a node receives, counting and dropping (one log line each) what is bad.
+
+    Safe to call from Zenoh's receive threads: the counters take a lock.
+    """
+
+    def __init__(self, node: str):
+        self.node = node
+        self._lock = threading.Lock()
+        self._received = 0
+        self._dropped: Counter[str] = Counter()
+
+    def decode(self, key: str, data: bytes) -> Payload | None:
+        """The payload, or ``None`` (counted, logged) when it is not a valid one."""
+        with self._lock:
+            self._received += 1
+        try:
+            return decode(key, data)
+        except PayloadError as e:
+            reason, message = e.reason, str(e)
+        except Exception as e:  # noqa: BLE001 - a bad payload must never stop the node
+            reason, message = "malformed", f"{type(e).__name__}: {e}"
+        with self._lock:
+            self._dropped[reason] += 1
+        log.warning("%s: dropped a payload on %s (%s): %s", self.node, key, reason, message[:200])
+        return None
+
+    @property
+    def received(self) -> int:
+        with self._lock:
+            return self._received
+
+    @property
+    def dropped(self) -> dict[str, int]:
+        """Dropped payloads by reason: ``oversized``, ``malformed``, ``unknown_version``, ``bad_key``."""
+        with self._lock:
+            return dict(self._dropped)
