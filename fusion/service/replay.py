@@ -1,0 +1,127 @@
+"""``armfusion replay REC``: publish a recording's raw samples over Zenoh, with their timing.
+
+The recording's raw streams are cut into windows of ``batch_s`` of recording time; each
+window's samples of one sensor go out as one :class:`~fusion.service.payloads.RawBatch`
+on ``armfusion/<robot>/raw/<sensor>`` when the wall clock reaches the window's end
+(scaled by ``speed``; ``speed=None`` publishes as fast as the subscribers take them: the
+publishers block rather than drop). A :class:`~fusion.service.payloads.Status` goes out
+on ``armfusion/<robot>/status`` at the start and at the end, with the samples published
+per sensor.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from fusion.service import payloads as pl
+from sensors.samples import Recording, Stream
+
+log = logging.getLogger("armfusion.service")
+
+DEFAULT_BATCH_S = 0.02
+
+
+@dataclass(frozen=True)
+class ReplayReport:
+    """What a replay published."""
+
+    robot: str
+    samples: dict[str, int]
+    batches: int
+    wall_s: float
+    stopped: bool = False
+    unmatched: tuple[str, ...] = field(default=())
+
+    def as_dict(self) -> dict:
+        return {"robot": self.robot, "samples": self.samples, "batches": self.batches,
+                "wall_s": round(self.wall_s, 3), "stopped": self.stopped,
+                "unmatched": list(self.unmatched)}
+
+
+def _windows(streams: dict[str, Stream], t0: float, t1: float, batch_s: float):
+    """``(t_end, {sensor: (i0, i1)})`` for each window of ``batch_s`` holding samples."""
+    n = max(1, int(np.ceil((t1 - t0) / batch_s + 1e-9)) + 1)
+    edges = t0 + batch_s * np.arange(1, n + 1)
+    cuts = {k: np.searchsorted(s.t_s, edges, side="left") for k, s in streams.items()}
+    start = {k: 0 for k in streams}
+    for w in range(n):
+        spans = {}
+        for k, c in cuts.items():
+            i1 = int(c[w]) if w < n - 1 else len(streams[k])
+            if i1 > start[k]:
+                spans[k] = (start[k], i1)
+                start[k] = i1
+        if spans:
+            yield float(edges[w]), spans
+
+
+def _wait_for_subscribers(pubs: dict[str, zenoh.Publisher], wait_s: float,
+                          stop: threading.Event) -> tuple[str, ...]:
+    """Wait up to ``wait_s`` until every publisher has a matching subscriber."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        missing = tuple(k for k, p in pubs.items() if not p.matching_status)
+        if not missing or stop.is_set() or time.monotonic() >= deadline:
+            return missing
+        stop.wait(0.02)
+
+
+def replay(session: zenoh.Session, rec: Recording, robot: str, *, speed: float | None = 1.0,
+           batch_s: float = DEFAULT_BATCH_S, wait_for_subscribers_s: float = 0.0,
+           stop: threading.Event | None = None) -> ReplayReport:
+    """Publish the raw streams of ``rec`` as robot ``robot``; see the module's docstring.
+
+    ``wait_for_subscribers_s``: first wait up to this long for a subscriber on every raw
+    key (the sensors named in :attr:`ReplayReport.unmatched` had none by then).
+    """
+    if speed is not None and not speed > 0:
+        raise ValueError(f"speed must be > 0 (or None for as fast as possible), got {speed!r}")
+    if not batch_s > 0:
+        raise ValueError(f"batch_s must be > 0, got {batch_s!r}")
+    stop = stop or threading.Event()
+    streams = {k: s for k, s in rec.raw().items() if len(s)}
+    if not streams:
+        raise ValueError("the recording has no raw samples to replay")
+    t0, t1 = min(s.t_s[0] for s in streams.values()), max(s.t_s[-1] for s in streams.values())
+    status_pub = session.declare_publisher(pl.status_key(robot))
+    pubs = {k: session.declare_publisher(pl.raw_key(robot, k),
+                                         congestion_control=zenoh.CongestionControl.BLOCK)
+            for k in streams}
+    unmatched = _wait_for_subscribers(pubs, wait_for_subscribers_s, stop) if wait_for_subscribers_s else ()
+    samples = {k: 0 for k in streams}
+    seq = {k: 0 for k in streams}
+    batches = 0
+
+    def status(state: str, message: str) -> None:
+        counters = tuple((f"samples.{k}", v) for k, v in samples.items()) + (("batches", batches),)
+        status_pub.put(pl.encode(pl.Status(robot, "replay", state, time.time(), message, counters)))
+
+    status("running", f"replaying {t1 - t0:.2f} s of {len(streams)} sensors")
+    wall0 = time.monotonic()
+    for t_end, spans in _windows(streams, t0, t1, batch_s):
+        if speed is not None:
+            delay = wall0 + (t_end - t0) / speed - time.monotonic()
+            if delay > 0 and stop.wait(delay):
+                break
+        if stop.is_set():
+            break
+        for k, (i0, i1) in spans.items():
+            s = streams[k]
+            part = Stream(s.name, s.kind, s.t_s[i0:i1], s.values[i0:i1], s.channels)
+            pubs[k].put(pl.encode(pl.RawBatch(robot, part, seq[k])))
+            seq[k] += 1
+            samples[k] += i1 - i0
+            batches += 1
+    wall = time.monotonic() - wall0
+    stopped = stop.is_set()
+    status("done", "stopped" if stopped else f"published {sum(samples.values())} samples in {wall:.2f} s")
+    for p in pubs.values():
+        p.undeclare()
+    status_pub.undeclare()
+    return ReplayReport(robot, samples, batches, wall, stopped, unmatched)

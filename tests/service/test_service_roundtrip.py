@@ -1,0 +1,90 @@
+"""replay -> Zenoh (127.0.0.1, ephemeral port) -> record: every raw sample arrives unchanged."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from fusion.service import payloads as pl
+from fusion.service.record import Recorder
+from fusion.service.replay import replay
+from fusion.service.zenoh_config import open_session
+from sensors.recording import read_recording
+from sensors.samples import Stream
+
+
+def _wait(pred, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not pred() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return pred()
+
+
+def test_replay_to_record_loses_no_sample(hub_settings, startup_recording, tmp_path):
+    rec = read_recording(startup_recording)
+    listener, connector = hub_settings
+    out = tmp_path / "recorded.mcap"
+    stop = threading.Event()
+    result = {}
+    with open_session(listener) as rec_session:
+        recorder = Recorder(rec_session, out, "chair1")
+        th = threading.Thread(target=lambda: result.setdefault("r", recorder.run(stop)))
+        th.start()
+        try:
+            assert recorder.ready.wait(5.0)
+            with open_session(connector) as pub_session:
+                report = replay(pub_session, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
+                assert report.unmatched == ()
+                assert _wait(lambda: recorder.counts() == report.samples, 10.0), \
+                    (recorder.counts(), report.samples)
+        finally:
+            stop.set()
+            th.join(10.0)
+    got = read_recording(out)
+    rr = result["r"]
+    assert rr.dropped == {}
+    raw = rec.raw()
+    assert set(got.raw()) == set(raw)
+    for k, s in raw.items():
+        g = got.raw()[k]
+        assert g.kind == s.kind and g.channels == s.channels
+        np.testing.assert_array_equal(g.t_s, s.t_s)
+        np.testing.assert_array_equal(g.values, s.values)
+
+
+def test_replay_keeps_the_recording_timing(hub_settings, startup_recording):
+    """At speed 4, 4 s of recording take about 1 s of wall time (not less: it is paced)."""
+    rec = read_recording(startup_recording)
+    _, connector = hub_settings
+    with open_session(connector) as s:
+        report = replay(s, rec, "chair1", speed=4.0)
+    assert 0.95 <= report.wall_s <= 2.0
+    assert sum(report.samples.values()) == sum(len(x) for x in rec.raw().values())
+
+
+def test_recorder_drops_bad_payloads_and_keeps_recording(hub_settings, tmp_path):
+    listener, connector = hub_settings
+    stop = threading.Event()
+    result = {}
+    with open_session(listener) as rec_session:
+        recorder = Recorder(rec_session, tmp_path / "r.mcap", "chair1")
+        th = threading.Thread(target=lambda: result.setdefault("r", recorder.run(stop)))
+        th.start()
+        try:
+            assert recorder.ready.wait(5.0)
+            with open_session(connector) as s:
+                key = pl.raw_key("chair1", "acc1")
+                pub = s.declare_publisher(key)
+                assert _wait(lambda: pub.matching_status, 5.0)
+                pub.put(b"not json")
+                pub.put(b'{"v": 99, "type": "raw"}')
+                good = pl.RawBatch("chair1", Stream("acc1", "accel", [0.5], [[1, 2, 3]],
+                                                       ("acc1_x", "acc1_y", "acc1_z")), 0)
+                pub.put(pl.encode(good))
+                assert _wait(lambda: recorder.counts() == {"acc1": 1}, 5.0)
+        finally:
+            stop.set()
+            th.join(10.0)
+    assert result["r"].dropped == {"malformed": 1, "unknown_version": 1}
