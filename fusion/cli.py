@@ -152,6 +152,7 @@ def _register_subcommands() -> None:
 
     simulate_cmd.register(app)
     register_drivers(app)
+    from fusion.service.commands import register as register_service; register_service(app)  # noqa: E702, I001
     app.add_typer(calibrate_app, name="calibrate")
 
 

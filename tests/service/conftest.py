@@ -32,3 +32,9 @@ def startup_recording(tmp_path_factory):
     out = tmp_path_factory.mktemp("rec") / "startup.mcap"
     simulate("wmra", "startup", out, duration_s=4.0, rate_hz=100.0, seed=3)
     return out
+
+
+@pytest.fixture
+def loopback_port() -> int:
+    """A free TCP port on 127.0.0.1."""
+    return free_port()

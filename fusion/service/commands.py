@@ -1,0 +1,171 @@
+"""The service's ``armfusion`` subcommands: ``replay``, ``record`` (and their shared options).
+
+Every node takes the same Zenoh options: ``--zenoh-config`` (default config/zenoh.json5:
+peer, listening on tcp/127.0.0.1:7447, no scouting), ``--listen`` and ``--connect``
+(repeatable; loopback only) and ``--mode``. A node given ``--connect`` but no
+``--listen`` listens on an ephemeral loopback port, so that it does not compete for
+7447 with the node it connects to. See docs/service.md.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Annotated
+
+import typer
+import zenoh
+
+from fusion.cli_common import JsonOpt, console, emit_json, err_console, fail, read_recording_or_exit
+from fusion.service.node import stop_on_signals
+from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, open_session
+
+DEFAULT_ROBOT = "chair1"
+EPHEMERAL_LISTEN = "tcp/127.0.0.1:0"
+
+ZenohConfigOpt = Annotated[Path | None, typer.Option(
+    "--zenoh-config", help="Zenoh JSON5 config (default: config/zenoh.json5).")]
+ListenOpt = Annotated[list[str] | None, typer.Option(
+    "--listen", help="Listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; loopback only).")]
+ConnectOpt = Annotated[list[str] | None, typer.Option(
+    "--connect", help="Endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; loopback only).")]
+ModeOpt = Annotated[str | None, typer.Option("--mode", help="peer, client or router.")]
+RobotOpt = Annotated[str, typer.Option("--robot", help="The robot's name in the key expressions.")]
+
+
+def zenoh_settings(config: Path | None, listen: list[str] | None, connect: list[str] | None,
+                   mode: str | None) -> ZenohSettings:
+    """The node's settings from its options (``--connect`` alone: an ephemeral listen port)."""
+    if connect and not listen and mode != "client":
+        listen = [EPHEMERAL_LISTEN]
+    return ZenohSettings(config_path=config, listen=listen or None, connect=connect or None, mode=mode)
+
+
+@contextlib.contextmanager
+def session_or_exit(settings: ZenohSettings) -> Iterator[zenoh.Session]:
+    try:
+        cm = open_session(settings)
+        session = cm.__enter__()
+    except ZenohConfigError as e:
+        fail(str(e))
+    except zenoh.ZError as e:
+        fail(f"cannot open the Zenoh session: {e}")
+    try:
+        yield session
+    finally:
+        cm.__exit__(None, None, None)
+
+
+def parse_speed(text: str) -> float | None:
+    if text.strip().lower() == "max":
+        return None
+    try:
+        speed = float(text)
+    except ValueError:
+        speed = -1.0
+    if not speed > 0:
+        fail(f"--speed {text!r}: expected a factor > 0 (1 = real time) or 'max'")
+    return speed
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("replay")
+    def replay_command(
+        recording: Annotated[Path, typer.Argument(help="Recording: .csv or .mcap.")],
+        speed: Annotated[str, typer.Option(help="Time factor (1 = real time, 2 = twice as fast) "
+                                                "or 'max' (as fast as the subscribers take).")] = "1",
+        robot: RobotOpt = DEFAULT_ROBOT,
+        batch_ms: Annotated[float, typer.Option(help="Recording time per published batch, in ms.")] = 20.0,
+        wait_s: Annotated[float, typer.Option(
+            "--wait", help="First wait up to this long for a subscriber on every sensor, in s.")] = 0.0,
+        zenoh_config: ZenohConfigOpt = None,
+        listen: ListenOpt = None,
+        connect: ConnectOpt = None,
+        mode: ModeOpt = None,
+        json_out: JsonOpt = False,
+    ) -> None:
+        """Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing."""
+        from fusion.service.payloads import check_name
+        from fusion.service.replay import replay
+
+        factor = parse_speed(speed)
+        try:
+            check_name(robot, "--robot")
+        except ValueError as e:
+            fail(str(e))
+        if not batch_ms > 0:
+            fail(f"--batch-ms {batch_ms!r}: expected > 0")
+        rec = read_recording_or_exit(recording)
+        stop = threading.Event()
+        with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
+                stop_on_signals(stop):
+            try:
+                report = replay(session, rec, robot, speed=factor, batch_s=batch_ms / 1000.0,
+                                wait_for_subscribers_s=wait_s, stop=stop)
+            except ValueError as e:
+                fail(f"{recording}: {e}")
+        doc = {"recording": str(recording), **report.as_dict()}
+        if json_out:
+            emit_json(doc)
+            return
+        console.print(f"replayed {sum(report.samples.values())} samples of {len(report.samples)} "
+                      f"sensors as {robot} in {report.wall_s:.2f} s ({report.batches} batches)"
+                      + (" [yellow]stopped early[/]" if report.stopped else ""))
+        if report.unmatched:
+            err_console.print(f"[yellow]warning:[/] no subscriber for {', '.join(report.unmatched)}")
+
+    @app.command("record")
+    def record_command(
+        out: Annotated[Path, typer.Argument(help="Output recording (.mcap).")],
+        robot: RobotOpt = DEFAULT_ROBOT,
+        duration_s: Annotated[float | None, typer.Option(
+            "--duration", help="Stop after this long, in s (default: at SIGINT or SIGTERM).")] = None,
+        arm_config: Annotated[str, typer.Option("--config", "-c", help="Arm config name stored "
+                                                "in the file's metadata.")] = "",
+        zenoh_config: ZenohConfigOpt = None,
+        listen: ListenOpt = None,
+        connect: ConnectOpt = None,
+        mode: ModeOpt = None,
+        json_out: JsonOpt = False,
+    ) -> None:
+        """Record a robot's raw samples and estimates from Zenoh to MCAP until stopped."""
+        from fusion.service.payloads import check_name
+        from fusion.service.record import Recorder
+
+        if out.suffix.lower() != ".mcap":
+            fail(f"{out}: the recording must end in .mcap")
+        try:
+            check_name(robot, "--robot")
+        except ValueError as e:
+            fail(str(e))
+        if duration_s is not None and not duration_s > 0:
+            fail(f"--duration {duration_s!r}: expected > 0")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        stop = threading.Event()
+        with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
+                stop_on_signals(stop):
+            recorder = Recorder(session, out, robot, arm_config=arm_config)
+            timer = threading.Timer(duration_s, stop.set) if duration_s else None
+            if timer:
+                timer.daemon = True
+                timer.start()
+            ready = threading.Thread(target=_say_ready, args=(recorder, robot, out), daemon=True)
+            ready.start()
+            report = recorder.run(stop)
+            if timer:
+                timer.cancel()
+        if json_out:
+            emit_json(report.as_dict())
+            return
+        console.print(f"recorded {sum(report.samples.values())} samples of {len(report.samples)} "
+                      f"sensors and {sum(report.estimates.values())} estimates to {out} "
+                      f"in {report.wall_s:.1f} s; dropped: "
+                      + (", ".join(f"{k} {v}" for k, v in report.dropped.items()) or "none"))
+
+
+def _say_ready(recorder, robot: str, out: Path) -> None:
+    if recorder.ready.wait(30.0):
+        err_console.print(f"recording armfusion/{robot}/raw/* and state/* to {out}; "
+                          "Ctrl-C (SIGINT) or SIGTERM stops", highlight=False)
