@@ -32,6 +32,7 @@ carries a declination; ``R_WB = Rz(yaw) Ry(pitch) Rx(roll)``; fields in µT.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -172,11 +173,20 @@ class MagneticGuard:
         self._trigger = 0.0
         self._timeout = self.settings.recovery_trigger_s
         self._last_t: float | None = None
-        self._state = GuardState()
+        self._last = (False, False, False)
+        self._rejected = 0
+        self._disturbed = 0
 
     @property
     def state(self) -> GuardState:
-        return self._state
+        d, i, r = self._last
+        return GuardState(disturbed=d, ignored=i, recovering=r, trigger_s=self._trigger,
+                          rejected_total=self._rejected, disturbed_total=self._disturbed)
+
+    @property
+    def last_recovering(self) -> bool:
+        """Whether the last sample was used in recovery (cheap: no flags object)."""
+        return self._last[2]
 
     @property
     def recovering(self) -> bool:
@@ -185,8 +195,10 @@ class MagneticGuard:
         return period > 0 and self._trigger > self._timeout
 
     def check_field(self, m_B_ut: np.ndarray, up_B: np.ndarray) -> FieldCheck:
-        mag, dip = field_magnitude_and_dip(m_B_ut, up_B)
-        mag, dip = float(mag), float(dip)
+        mx, my, mz = (float(v) for v in m_B_ut)
+        ux, uy, uz = (float(v) for v in up_B)
+        mag = math.sqrt(mx * mx + my * my + mz * mz)
+        dip = math.asin(max(-1.0, min(1.0, -(mx * ux + my * uy + mz * uz) / max(mag, 1e-12))))
         em = mag - self.reference.magnitude_ut
         ed = dip - self.reference.dip_rad
         st = self.settings
@@ -212,13 +224,10 @@ class MagneticGuard:
             recovering = not passed
         else:
             self._timeout = period
-        self._trigger = float(np.clip(self._trigger, 0.0, period))
-        s = self._state
-        self._state = GuardState(
-            disturbed=disturbed, ignored=not use, recovering=recovering, trigger_s=self._trigger,
-            rejected_total=s.rejected_total + (0 if use else 1),
-            disturbed_total=s.disturbed_total + (1 if disturbed else 0),
-        )
+        self._trigger = min(max(self._trigger, 0.0), period)
+        self._last = (disturbed, not use, recovering)
+        self._rejected += 0 if use else 1
+        self._disturbed += 1 if disturbed else 0
         return use
 
     def snapshot(self) -> dict:

@@ -67,7 +67,7 @@ from fusion.startup import StartupResult
 from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound, wrap_angle
 from models.arm import ArmModel
 from models.motion import MotionState, cross, link_motion, sensor_motion
-from models.rotations import GRAVITY_MPS2, skew
+from models.rotations import GRAVITY_MPS2, exp_so3, skew
 from models.sensor_models import (
     MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
     StreamModel,
@@ -209,6 +209,9 @@ class TrackerSettings:
     kappa: float = 0.0
     # heading
     heading: HeadingSettings = field(default_factory=HeadingSettings)
+    mag_fuse_period_s: float = 0.1
+    """The magnetometer's samples are averaged over this period and fused as one heading
+    (its noise is white; the field checks see the average)."""
     # diagnosis
     innovation_capacity: int = 100_000
     """Innovations kept per sensor (a ring buffer), for the diagnosis workbench."""
@@ -708,8 +711,13 @@ def _controller_side(res: StartupResult, corr) -> StartupResult:
 
 def _up(roll, pitch) -> np.ndarray:
     """World up in base axes for base (roll, pitch), batched: ``[-sp, sr cp, cr cp]``."""
-    sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
-    return np.stack([-sp, sr * cp, cr * cp], -1)
+    r, p = np.asarray(roll, dtype=float), np.asarray(pitch, dtype=float)
+    sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
+    out = np.empty(np.broadcast(r, p).shape + (3,))
+    out[..., 0] = -sp
+    out[..., 1] = sr * cp
+    out[..., 2] = cr * cp
+    return out
 
 
 def _euler_rates(r, p, w):
@@ -780,6 +788,8 @@ class Tracker:
         self._nees_ix = np.ix_(self._nees_idx, self._nees_idx)
         self._acc_rows = np.arange(3 * len(self.accel_streams)).reshape(-1, 3)
         self._link_cache: dict = {}
+        self._eye3 = np.eye(3)
+        self._Q_cache: dict = {}
         self._links_list = [int(k) for k in self._links[: len(self.link_names)]]
         self._min_list = arm.min_rad.tolist()
         self._max_list = arm.max_rad.tolist()
@@ -906,9 +916,11 @@ class Tracker:
         # per accelerometer: last counts, identical run, prediction when it began, stuck,
         # implausible since, rejecting since
         self._acc_health = [[None, 0, None, False, None, None] for _ in range(Sa)]
-        self._shift = np.zeros((Sa, 3))  # exponential average of the normalised innovations
-        self._shift_t = np.full(Sa, np.nan)
-        self._shift_cool = np.full(Sa, -np.inf)
+        self._last_counts = np.full((Sa, 3), np.nan)
+        self._acc_dirty = np.zeros(Sa, bool)
+        self._shift = [[0.0, 0.0, 0.0] for _ in range(Sa)]  # average normalised innovations
+        self._shift_t: list[float | None] = [None] * Sa
+        self._shift_cool = [-np.inf] * Sa
         self._reacq_log: dict[int, list[float]] = {}
         self._stuck = np.zeros(Sa, bool)
         self._dead = np.zeros(Sa, bool)
@@ -925,6 +937,12 @@ class Tracker:
         self._obs_key = None
         self._mag_flags = (False, False)
         self._mag_recovery_t = -np.inf
+        self._flags_t = -np.inf
+        self._health_changed = True
+        self._mag_sum = None
+        self._mag_n = 0
+        self._mag_t0 = float(t_s)
+        self._mag_rot = np.eye(3)  # the base's turn since the averaging period began
         # the tracker starts at the end of a still window: the chair stands still
         self._still_w = 0.0  # EMA of the bias-corrected gyro norm, rad/s
         self._still_mean = None  # EMA of the IMU accelerometer, g
@@ -1063,6 +1081,8 @@ class Tracker:
             w0 = self._omega if self._omega is not None else gyro
             w = None if w0 is None else (w0 if gyro is None else 0.5 * (w0 + gyro))
             ukf.predict(self._fx, self._Q(dt, w is not None), dt=dt, w=w)
+            if self._mag_n and w is not None:
+                self._mag_rot = self._mag_rot @ exp_so3((w - ukf._x[self.layout.bias]) * dt)
         if gyro is not None:
             self._omega = gyro
         self._t = t
@@ -1072,11 +1092,27 @@ class Tracker:
         if mag is not None:
             mi = self._sidx[MAG]
             self._seen[mi], self._last_t[mi] = True, t
-            if self._guard is None:
-                mag = None
+            mag = self._mag_average(t, mag) if self._guard is not None else None
         if acc is not None or mag is not None:
             self._fuse(t, acc, mag, frame)
-        self._update_flags(t)
+        if t - self._flags_t >= self.settings.observability_period_s or self._health_changed:
+            self._update_flags(t)
+
+    def _mag_average(self, t: float, mag):
+        """The magnetometer is averaged over ``mag_fuse_period_s`` and fused as one heading:
+        returns (count, mean field) when a period is complete, else None. Each sample is
+        first turned, with the gyro, into the base's axes at the period's end, so that a
+        turning chair does not smear the average."""
+        m = self._mag_rot @ mag[1]  # in the base's axes at the period's start
+        self._mag_sum = m if self._mag_n == 0 else self._mag_sum + m
+        self._mag_n += 1
+        if t - self._mag_t0 < self.settings.mag_fuse_period_s - 1e-9:
+            return None
+        out = (self._mag_n, self._mag_rot.T @ (self._mag_sum / self._mag_n))
+        self._mag_n = 0
+        self._mag_t0 = t
+        self._mag_rot = np.eye(3)
+        return out
 
     def _update_still(self, dt: float, gyro: np.ndarray | None, acc) -> None:
         """Exponential averages of the gyro and the IMU accelerometer: is the chair still?"""
@@ -1114,11 +1150,20 @@ class Tracker:
             dr, dp, dy = _euler_rates(r + 0.5 * dt * dr, p + 0.5 * dt * dp, wb)
             Y[:, L.roll] = r + dt * dr
             Y[:, L.pitch] = p + dt * dp
-            Y[:, L.yaw] = wrap_angle(X[:, L.yaw] + dt * dy)
+            Y[:, L.yaw] = X[:, L.yaw] + dt * dy  # the mean wraps it
         Y[:, L.accel] *= np.exp(-dt / self.settings.base_accel_tau_s)
         return Y
 
     def _Q(self, dt: float, have_gyro: bool) -> np.ndarray:
+        key = (round(dt, 9), have_gyro, self._still)
+        Q = self._Q_cache.get(key)
+        if Q is None:
+            if len(self._Q_cache) > 64:
+                self._Q_cache.clear()
+            Q = self._Q_cache[key] = self._make_Q(dt, have_gyro)
+        return Q
+
+    def _make_Q(self, dt: float, have_gyro: bool) -> np.ndarray:
         st, L = self.settings, self.layout
         q = np.zeros(L.size)
         q[L.offset] = (st.offset_random_walk_deg_per_sqrt_s * DEG) ** 2 * dt
@@ -1142,25 +1187,33 @@ class Tracker:
         L = self.layout
         N = X.shape[0]
         links = self._links[sel]
-        base = X[:, L.accel] + G * _up(X[:, L.roll], X[:, L.pitch])  # (N, 3)
+        tilt = X[:, L.roll:L.pitch + 1]
+        sn, cs = np.sin(tilt), np.cos(tilt)
+        base = X[:, L.accel].copy()  # a_B + g·up, up = [-sp, sr cp, cr cp]
+        base[:, 0] -= G * sn[:, 1]
+        base[:, 1] += G * sn[:, 0] * cs[:, 1]
+        base[:, 2] += G * cs[:, 0] * cs[:, 1]
         v = frame.motion_mps2[sel][None] + base[:, None, :]  # (N, S', 3)
         order = self._link_order(links)
         if order:
             kmax = order[-1]
             d = X[:, :kmax] - frame.offset_ref[:kmax]
-            E = np.eye(3) + np.sin(d)[..., None, None] * frame.K[:kmax] \
+            E = self._eye3 + np.sin(d)[..., None, None] * frame.K[:kmax] \
                 + (1.0 - np.cos(d))[..., None, None] * frame.K2[:kmax]  # (N, k, 3, 3)
-            prefix = {0: np.broadcast_to(np.eye(3), (N, 3, 3))}
+            Pl = np.empty((N, len(sel), 3, 3))
+            m0 = links == 0
+            if m0.any():
+                Pl[:, m0] = self._eye3
             P = E[:, 0]
             j = 1
             for link in order:
                 while j < link:
                     P = P @ E[:, j]
                     j += 1
-                prefix[link] = P
-            Pl = np.stack([prefix[int(k)] for k in links], axis=1)  # (N, S', 3, 3)
+                Pl[:, links == link] = P[:, None]
             v = (v[:, :, None, :] @ Pl)[:, :, 0, :]  # rows: (P^T v)^T
-        f = (v[:, :, None, :] @ frame.R_0S[sel])[:, :, 0, :] / G
+        f = (v[:, :, None, :] @ frame.R_0S[sel])[:, :, 0, :]
+        f *= 1.0 / G
         return f.reshape(N, -1)
 
     def _link_order(self, links: np.ndarray) -> list[int]:
@@ -1225,10 +1278,10 @@ class Tracker:
             var.append(np.full(3, st.still_accel_sigma_mps2**2))
         n_still = 3 if still else 0
         if mag is not None:
-            m_counts, m_B = mag
+            m_count, m_B = mag
             x = ukf._x
             check = self._guard.check_field(m_B, _up(x[L.roll], x[L.pitch]))
-            v = self._sigma_psi**2
+            v = self._sigma_psi**2 / m_count
             if check.disturbed:
                 v += check.doubt_rad(self._field) ** 2
             zs.append(np.zeros(1))
@@ -1263,9 +1316,9 @@ class Tracker:
             mi = self._sidx[MAG]
             self._mag_ring.add(t, inn.innovation[-1:], inn.S[-1:, -1:], inn.nis[-1], use,
                                count_stats=not check.disturbed)
-            self._mag_flags = (check.disturbed, self._guard.state.recovering)
+            self._mag_flags = (check.disturbed, self._guard.last_recovering)
             self._rejecting[mi] = not use
-            self._counts[mi, C_USED if use else C_REJECTED] += 1
+            self._counts[mi, C_USED if use else C_REJECTED] += m_count
             accept[-1] = use
             # the heading corrects only yaw and the gyro's vertical bias: never the tilt (a
             # steel door must not tilt gravity), the arm, or the chair's acceleration
@@ -1286,30 +1339,54 @@ class Tracker:
         st = self.settings
         k = len(sel)
         zp = inn.z_pred[: 3 * k].reshape(k, 3)
-        zl, fl, cl = zp.tolist(), f.tolist(), counts.tolist()
+        same = np.all(counts == self._last_counts[sel], axis=1)
+        self._last_counts[sel] = counts
+        fn = np.sqrt(np.einsum("si,si->s", f, f))
+        pn = np.sqrt(np.einsum("si,si->s", zp, zp))
+        implausible = np.abs(fn - pn) > st.plausible_tolerance_g
+        gate_ok = inn.gate_ok[:k]
+        self._seen[sel] = True
+        self._last_t[sel] = t
+        if not (same.any() or implausible.any() or self._acc_dirty[sel].any()) and gate_ok.all():
+            # the usual case: every sensor healthy and consistent
+            self._counts[sel, C_USED] += 1
+            ok = usable = gate_ok
+        else:
+            ok, usable = self._accel_health_slow(t, sel, counts, zp, inn, var, same, implausible)
+        if usable.any():
+            u = np.flatnonzero(usable)
+            rr = self._acc_rows[u]
+            Su = inn.S[rr[:, :, None], rr[:, None, :]]
+            self._acc_ring.add(t, sel[u], inn.innovation[rr], Su, inn.nis[u], ok[u])
+            self._detect_shift(t, sel[u], inn.innovation[rr] / np.sqrt(np.diagonal(Su, axis1=1, axis2=2)))
+        return ok
+
+    def _accel_health_slow(self, t, sel, counts, zp, inn, var, same, implausible):
+        """The sensor by sensor path: a stuck, implausible or rejected sample somewhere."""
+        st = self.settings
+        k = len(sel)
+        zl = zp.tolist()
         gate = inn.gate_ok[:k].tolist()
         sd = np.sqrt(var).tolist()
         ok = np.zeros(k, dtype=bool)
         usable = np.zeros(k, dtype=bool)
         H = self._acc_health
-        tol = st.plausible_tolerance_g
         for i, s in enumerate(sel.tolist()):
             h = H[s]
-            self._seen[s] = True
-            self._last_t[s] = t
             # implausible: far from the predicted magnitude (a dead or disconnected sensor)
-            fx, fy, fz = fl[i]
-            px, py, pz = zl[i]
-            if abs(math.sqrt(fx * fx + fy * fy + fz * fz) - math.sqrt(px * px + py * py + pz * pz)) > tol:
+            if implausible[i]:
                 self._counts[s, C_IMPLAUSIBLE] += 1
                 if h[4] is None:
                     h[4] = t
-                self._dead[s] = t - h[4] >= st.dead_after_s
-                h[0], h[1], h[2] = cl[i], 0, None
+                dead = t - h[4] >= st.dead_after_s
+                if dead != self._dead[s]:
+                    self._dead[s] = dead
+                    self._health_changed = True
+                h[1], h[2] = 0, None
+                self._acc_dirty[s] = True
                 continue
             # stuck: identical counts in a row while the prediction moved
-            c = cl[i]
-            if c == h[0]:
+            if same[i]:
                 h[1] += 1
                 if h[2] is None:
                     h[2] = zl[i]
@@ -1318,13 +1395,16 @@ class Tracker:
                     h[3] = True
             else:
                 h[1], h[2], h[3] = 0, None, False
-            h[0] = c
-            self._stuck[s] = h[3]
+            if h[3] != self._stuck[s]:
+                self._stuck[s] = h[3]
+                self._health_changed = True
             if h[3]:
                 self._counts[s, C_STUCK] += 1
                 continue
             h[4] = None
-            self._dead[s] = False
+            if self._dead[s]:
+                self._dead[s] = False
+                self._health_changed = True
             usable[i] = True
             if gate[i]:
                 ok[i] = True
@@ -1339,35 +1419,34 @@ class Tracker:
                 elif t - h[5] >= st.reacquire_after_s:
                     self._reacquire(s, t)
                     h[5] = None
-        if usable.any():
-            u = np.flatnonzero(usable)
-            rr = self._acc_rows[u]
-            Su = inn.S[rr[:, :, None], rr[:, None, :]]
-            self._acc_ring.add(t, sel[u], inn.innovation[rr], Su, inn.nis[u], ok[u])
-            self._detect_shift(t, sel[u], inn.innovation[rr] / np.sqrt(np.diagonal(Su, axis1=1, axis2=2)))
-        return ok
+            self._acc_dirty[s] = (h[1] > 0 or h[2] is not None or h[3] or h[4] is not None
+                                  or h[5] is not None or bool(self._dead[s]) or bool(self._rejecting[s]))
+        return ok, usable
 
     def _detect_shift(self, t: float, which: np.ndarray, nu_w: np.ndarray) -> None:
-        """A lasting shift of a link accelerometer's innovations (see ``shift_threshold``)."""
+        """A lasting shift of a link accelerometer's innovations (see ``shift_threshold``).
+        (Four sensors, three axes: plain Python.)"""
         st = self.settings
-        link = which < len(self.link_names)
-        if not link.any():
-            return
-        which, nu_w = which[link], nu_w[link]
-        last = self._shift_t[which]
-        dt = np.where(np.isnan(last), 0.0, t - last)
-        a = np.clip(dt / st.shift_tau_s, 0.0, 1.0)[:, None]
-        ema = self._shift[which] + a * (nu_w - self._shift[which])
-        self._shift[which] = ema
-        self._shift_t[which] = t
-        # the average of unit white noise has variance a / (2 - a)
-        var = np.maximum(a / (2.0 - a), 1e-9)
-        stat = np.sum(ema**2 / var, axis=1)
-        hit = (stat > st.shift_threshold) & (t >= self._shift_cool[which])
-        for s in which[hit]:
-            self._reacquire(int(s), t)
-            self._shift[s] = 0.0
-            self._shift_cool[s] = t + st.reacquiring_flag_s
+        nl = len(self.link_names)
+        tau, thr = st.shift_tau_s, st.shift_threshold
+        for s, v in zip(which.tolist(), nu_w.tolist(), strict=True):
+            if s >= nl:
+                continue
+            last = self._shift_t[s]
+            a = 0.0 if last is None else min(1.0, (t - last) / tau)
+            ema = self._shift[s]
+            ema[0] += a * (v[0] - ema[0])
+            ema[1] += a * (v[1] - ema[1])
+            ema[2] += a * (v[2] - ema[2])
+            self._shift_t[s] = t
+            if a <= 0.0:
+                continue
+            # the average of unit white noise has variance a / (2 - a)
+            stat = (ema[0] ** 2 + ema[1] ** 2 + ema[2] ** 2) * (2.0 - a) / a
+            if stat > thr and t >= self._shift_cool[s]:
+                self._reacquire(s, t)
+                ema[0] = ema[1] = ema[2] = 0.0
+                self._shift_cool[s] = t + st.reacquiring_flag_s
 
     def _reacquire(self, i: int, t: float) -> None:
         """A sensor rejected for longer than a bump lasts: widen what it sees, read it again."""
@@ -1440,9 +1519,12 @@ class Tracker:
             self._hold = None
 
     def _update_flags(self, t: float) -> None:
-        """Sensor statuses and joint flags (the most severe condition wins). A few
-        sensors and joints: plain Python."""
+        """Sensor statuses and joint flags (the most severe condition wins), every
+        ``observability_period_s`` and at once when a sensor's health changes. A few sensors
+        and joints: plain Python."""
         st, n = self.settings, self.arm.n_joints
+        self._flags_t = t
+        self._health_changed = False
         stale_s = st.stale_after_s
         Sa = len(self.accel_streams)
         codes = []
@@ -1668,7 +1750,7 @@ class Tracker:
             "guard": None if g is None else g.snapshot(),
             "counters": self._counts.tolist(),
             "still": [self._still_w, self._still_mean, self._still_var, self._still],
-            "shift": [self._shift.tolist(), np.nan_to_num(self._shift_t, nan=-1.0).tolist()],
+            "shift": [self._shift, self._shift_t],
         }
 
     def restore(self, snap: Mapping) -> None:
@@ -1703,9 +1785,8 @@ class Tracker:
         if "still" in snap:
             self._still_w, self._still_mean, self._still_var, self._still = snap["still"]
         if "shift" in snap:
-            self._shift = np.array(snap["shift"][0], dtype=float)
-            st_ = np.array(snap["shift"][1], dtype=float)
-            self._shift_t = np.where(st_ < 0, np.nan, st_)
+            self._shift = [list(map(float, v)) for v in snap["shift"][0]]
+            self._shift_t = list(snap["shift"][1])
 
     # -- results ---------------------------------------------------------------------------
     def q_enc_now(self) -> np.ndarray:
