@@ -78,7 +78,8 @@ class AxisFit:
     unit: str
     rms: float
     noise: float
-    fit_percent: float
+    fit_percent: float | None
+    """None where the axis does not vary beyond 3× its noise (nothing to fit)."""
 
     @property
     def ratio(self) -> float:
@@ -162,7 +163,8 @@ class Diagnosis:
             "rms_ratio": round(self.rms_ratio, 4),
             "axes": [{"stream": a.stream, "axis": a.axis, "unit": a.unit, "rms": a.rms,
                       "noise": a.noise, "ratio": round(a.ratio, 4),
-                      "fit_percent": round(a.fit_percent, 3)} for a in self.axes],
+                      "fit_percent": None if a.fit_percent is None else round(a.fit_percent, 3)}
+                     for a in self.axes],
             "candidates": [c.as_dict() for c in self.candidates[:top]],
             "n_candidates": len(self.candidates),
             "unseen": list(self.unseen),
@@ -218,9 +220,11 @@ def _axes(pb: _Problem, z: np.ndarray, data: FitData, model: Model) -> list[Axis
         for k in range(shape[1]):
             e = yh[:, k] - y[:, k]
             spread = np.linalg.norm(y[:, k] - y[:, k].mean())
-            fit = 100.0 * (1.0 - np.linalg.norm(e) / spread) if spread > 0 else float("nan")
+            # an axis that does not vary beyond its noise has no fit % (MATLAB's would be ~0)
+            varies = np.std(y[:, k]) > 3.0 * sig[k]
+            fit = 100.0 * (1.0 - np.linalg.norm(e) / spread) if varies else None
             out.append(AxisFit(s, sm[s].channels[k], sm[s].unit, float(np.sqrt(np.mean(e**2)) / g[k]),
-                               float(sig[k] / g[k]), float(fit)))
+                               float(sig[k] / g[k]), None if fit is None else float(fit)))
     return out
 
 
@@ -256,7 +260,8 @@ def _fmt_value(v: float, units: str) -> str:
     return f"{v:.3g} {units}"
 
 
-def _params_words(params: dict[str, tuple[float, float]], units: str) -> str:
+def params_words(params: dict[str, tuple[float, float]], units: str) -> str:
+    """The largest (in σ) three estimates in words: ``y -1.7° ± 0.004°, …``."""
     items = sorted(params.items(), key=lambda kv: -abs(kv[1][0]) / max(kv[1][1], 1e-300))
     parts = [f"{k.split('[')[-1].rstrip(']')} {_fmt_value(v, units)} ± {_fmt_value(s, units)}"
              for k, (v, s) in items[:3]]
@@ -372,7 +377,7 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
             lab, corr = _best_correlate(ra, feat_labels, F)
             follows = f"follows {lab} (r = {corr:.2f})"
         evidence = (f"{axis_name} residual {follows}; "
-                    f"{EFFECTS[e.name].summary} of {_params_words(params, b.units)} "
+                    f"{EFFECTS[e.name].summary} of {params_words(params, b.units)} "
                     f"explains {100 * max(axis_expl, 0):.0f} % of that axis's residual and "
                     f"{100 * explained:.0f} % of the model's excess over the noise")
         out.append(Candidate(e.name, e.target, lm, dof, p, explained, float(dbic), refit, rms_after,

@@ -1,0 +1,205 @@
+"""``armfusion diagnose``: where the model fails, which effect is missing; add it, refit.
+
+    armfusion diagnose --config C REC [--json] [--add EFFECT[:TARGET] …] [--write C2.yaml]
+        [--window 10] [--history H.json]
+
+Fits the config's model to the recording (``fusion.diagnose``), shows every sensor axis's
+residual RMS against its noise floor, the verdict and the ranked missing effects. ``--add``
+refits with the named effects starting from the estimates and shows before and after;
+``--write`` saves the config with the (last) estimates. Every run appends each model
+version's residual RMS to a history (the error ladder). See docs/workbench.md.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+import yaml
+from rich.table import Table
+
+from fusion.cli_common import (
+    ConfigOpt,
+    JsonOpt,
+    console,
+    emit_json,
+    err_console,
+    fail,
+    load_arm_or_exit,
+    read_recording_or_exit,
+)
+from fusion.configfile import resolve_config_path
+from fusion.diagnose import Diagnosis, add_effects, diagnose, params_words, parse_add
+from fusion.identify import config_with_estimates, data_from_recording
+from models.effects import TargetError, model_from_arm
+
+HISTORY_FORMAT = "armfusion.workbench-history/1"
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``diagnose`` to the ``armfusion`` app (once)."""
+    if any(c.name == "diagnose" for c in app.registered_commands):
+        return
+    app.command("diagnose")(diagnose_command)
+
+
+def history_path(config: str) -> Path:
+    """Beside the config when it is a file the user named; in the current directory for a
+    shipped config (``wmra``), so the repository's configs stay untouched."""
+    p = Path(config)
+    if p.exists():
+        return p.with_name(p.stem + ".workbench.json")
+    return Path.cwd() / f"{Path(config).stem}.workbench.json"
+
+
+def history_entry(diag: Diagnosis, recording: Path, config: str, label: str) -> dict:
+    top = diag.candidates[0] if diag.candidates else None
+    return {
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "recording": str(recording), "config": str(config), "label": label,
+        "effects": [e for e in diag.effects() if not e.endswith(".joint_offset")],
+        "rms_ratio": round(diag.rms_ratio, 5),
+        "streams": {s: round(float(np.sqrt(np.mean([a.ratio**2 for a in diag.axes if a.stream == s]))), 5)
+                    for s in dict.fromkeys(a.stream for a in diag.axes)},
+        "verdict": diag.verdict,
+        "top_candidate": None if top is None else top.name,
+    }
+
+
+def append_history(path: Path, entries: list[dict]) -> list[dict]:
+    """Append ``entries`` to the history file at ``path``; returns the whole ladder."""
+    runs: list[dict] = []
+    if path.exists():
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+            runs = list(doc.get("runs", []))
+        except (ValueError, AttributeError):
+            err_console.print(f"[yellow]warning:[/] {path} is not a workbench history; starting a new one")
+    runs += entries
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"format": HISTORY_FORMAT, "runs": runs}, indent=2) + "\n", encoding="utf-8")
+    return runs
+
+
+def diagnose_command(
+    recording: Annotated[Path, typer.Argument(help="Recording (.csv or .mcap); the arm still for its "
+                                              "first second, then moving through many orientations.")],
+    config: ConfigOpt = "wmra",
+    add: Annotated[list[str] | None, typer.Option(
+        "--add", help="Add this effect and refit (EFFECT or EFFECT:TARGET, e.g. accel_bias:acc2); repeatable.")] = None,
+    write: Annotated[Path | None, typer.Option(help="Write the config with the (last) estimates here.")] = None,
+    window: Annotated[int, typer.Option(help="Average this many samples per fit point (small enough that "
+                                        "the motion within a window stays below the noise).")] = 10,
+    history: Annotated[Path | None, typer.Option(help="The error ladder's history file (default: "
+                                                 "CONFIG.workbench.json beside the config).")] = None,
+    top: Annotated[int, typer.Option(help="Candidates to show.")] = 8,
+    json_out: JsonOpt = False,
+) -> None:
+    """Compare the model with a recording: where it fails, which physical effect is missing."""
+    arm = load_arm_or_exit(config)
+    rec = read_recording_or_exit(recording)
+    try:
+        added = parse_add(arm, add or [])
+    except (KeyError, TargetError) as e:
+        fail(f"--add: {e.args[0] if e.args else e}")
+    try:
+        data = data_from_recording(arm, rec, window=window)
+    except ValueError as e:
+        fail(str(e))
+
+    def progress(msg: str) -> None:
+        if not json_out:
+            err_console.print(f"[dim]… {msg}[/]", highlight=False)
+
+    before = diagnose(model_from_arm(arm), data, progress=progress)
+    after = add_effects(before, added, progress=progress) if added else None
+    final = after or before
+    hpath = history or history_path(config)
+    entries = [history_entry(before, recording, config, "config")]
+    if after is not None:
+        entries.append(history_entry(after, recording, config, "+ " + ", ".join(e.block_name for e in added)))
+    ladder = append_history(hpath, entries)
+    if write is not None:
+        src = resolve_config_path(config)
+        cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
+        out = config_with_estimates(cfg, final.fit)
+        write.parent.mkdir(parents=True, exist_ok=True)
+        write.write_text(f"# armfusion diagnose: rms_ratio {final.rms_ratio:.3f} ({final.verdict})\n"
+                         f"# from {recording}, config {src.name}\n"
+                         + yaml.safe_dump(out, sort_keys=False, width=110), encoding="utf-8")
+    if json_out:
+        d = final.as_dict(top)
+        d["added"] = [e.block_name for e in added]
+        d["before"] = None if after is None else before.as_dict(top)
+        d["history"] = str(hpath)
+        d["ladder"] = [{"label": r["label"], "rms_ratio": r["rms_ratio"], "effects": r["effects"]}
+                       for r in ladder]
+        d["written"] = str(write) if write else None
+        emit_json(d)
+        return
+    _print(before, after, top)
+    console.print(f"History (error ladder, {len(ladder)} model versions): {hpath}")
+    if write:
+        console.print(f"Wrote {write}")
+
+
+def _verdict_line(d: Diagnosis) -> str:
+    colour = "green" if d.fits_to_noise else "yellow"
+    return (f"[bold {colour}]{d.verdict}[/]: residual RMS {d.rms_ratio:.2f}× the noise floor "
+            f"({d.fit.n_samples:,} fit points; model: "
+            f"{', '.join(e for e in d.effects() if not e.endswith('.joint_offset')) or 'the config alone'})")
+
+
+def _axes_table(d: Diagnosis, title: str, other: Diagnosis | None = None) -> Table:
+    t = Table(title=title)
+    for c in ("axis", "RMS", "noise", "RMS / noise", "fit %"):
+        t.add_column(c, justify="right" if c != "axis" else "left")
+    if other is not None:
+        t.add_column("before: RMS / noise", justify="right")
+    prev = {(a.stream, a.axis): a for a in other.axes} if other is not None else {}
+    for a in d.axes:
+        r = f"{a.ratio:.2f}"
+        row = [a.axis, f"{a.rms:.3g} {a.unit}", f"{a.noise:.3g}",
+               f"[red]{r}[/]" if a.ratio > 1.1 else r,
+               "—" if a.fit_percent is None else f"{a.fit_percent:.2f}"]
+        if other is not None:
+            row.append(f"{prev[(a.stream, a.axis)].ratio:.2f}" if (a.stream, a.axis) in prev else "")
+        t.add_row(*row)
+    return t
+
+
+def _candidates_table(d: Diagnosis, top: int) -> Table:
+    t = Table(title="Missing effects, ranked (significant: a score test beyond chance and ΔBIC < 0)")
+    for c in ("#", "effect", "target", "ΔBIC", "RMS after", "explains", "signif.", "estimate (refitted)"):
+        t.add_column(c, justify="right" if c in ("#", "ΔBIC", "RMS after", "explains") else "left")
+    for i, c in enumerate(d.candidates[:top], 1):
+        est = params_words(dict(list(c.params.items())), c.units) if c.refitted else ""
+        t.add_row(str(i), c.effect, c.target, f"{c.delta_bic:.1f}",
+                  "" if c.rms_after is None else f"{c.rms_after:.2f}", f"{100 * c.explained:.0f} %",
+                  "[bold]yes[/]" if c.significant else "no", est)
+    return t
+
+
+def _print(before: Diagnosis, after: Diagnosis | None, top: int) -> None:
+    d = after or before
+    if after is not None:
+        console.print(f"Before: {_verdict_line(before)}")
+        console.print(f"After:  {_verdict_line(after)}")
+        console.print(_axes_table(after, "Residual RMS per sensor axis, after adding", before))
+    else:
+        console.print(_verdict_line(d))
+        console.print(_axes_table(d, "Residual RMS per sensor axis (window means)"))
+    if d.candidates and d.candidates[0].significant:
+        console.print(_candidates_table(d, top))
+        c = d.candidates[0]
+        console.print(f"[bold]Most likely missing: {c.effect} on {c.target}.[/] {c.explanation}")
+        console.print(f"Evidence: {c.evidence}.")
+        console.print(f"Try: armfusion diagnose … --add {c.effect}:{c.target}")
+    else:
+        console.print("No effect of the library is significant: nothing to add.")
+    for h in d.fit.holds:
+        console.print(f"[dim]held: {h.message}[/]")
