@@ -1,4 +1,4 @@
-"""The service's ``armfusion`` subcommands: ``replay``, ``record`` (and their shared options).
+"""The service's ``armfusion`` subcommands: ``replay``, ``record``, ``serve`` (and their shared options).
 
 Every node takes the same Zenoh options: ``--zenoh-config`` (default config/zenoh.json5:
 peer, listening on tcp/127.0.0.1:7447, no scouting), ``--listen`` and ``--connect``
@@ -18,7 +18,16 @@ from typing import Annotated
 import typer
 import zenoh
 
-from fusion.cli_common import JsonOpt, console, emit_json, err_console, fail, read_recording_or_exit
+from fusion.cli_common import (
+    ConfigOpt,
+    JsonOpt,
+    console,
+    emit_json,
+    err_console,
+    fail,
+    load_arm_or_exit,
+    read_recording_or_exit,
+)
 from fusion.service.node import stop_on_signals
 from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, open_session
 
@@ -163,6 +172,59 @@ def register(app: typer.Typer) -> None:
                       f"sensors and {sum(report.estimates.values())} estimates to {out} "
                       f"in {report.wall_s:.1f} s; dropped: "
                       + (", ".join(f"{k} {v}" for k, v in report.dropped.items()) or "none"))
+
+    @app.command("serve")
+    def serve_command(
+        config: ConfigOpt = "wmra",
+        robot: RobotOpt = DEFAULT_ROBOT,
+        publish_hz: Annotated[float, typer.Option(help="Most estimates published per second "
+                                                       "of sample time.")] = 50.0,
+        duration_s: Annotated[float | None, typer.Option(
+            "--duration", help="Stop after this long, in s (default: at SIGINT or SIGTERM).")] = None,
+        zenoh_config: ZenohConfigOpt = None,
+        listen: ListenOpt = None,
+        connect: ConnectOpt = None,
+        mode: ModeOpt = None,
+        json_out: JsonOpt = False,
+    ) -> None:
+        """The fusion node: startup calibration on the first still window, then the tracker;
+        publishes armfusion/<robot>/state/joints, state/heading and status."""
+        from fusion.service.payloads import check_name
+        from fusion.service.serve import FusionNode
+
+        try:
+            check_name(robot, "--robot")
+        except ValueError as e:
+            fail(str(e))
+        if not publish_hz > 0:
+            fail(f"--publish-hz {publish_hz!r}: expected > 0")
+        if duration_s is not None and not duration_s > 0:
+            fail(f"--duration {duration_s!r}: expected > 0")
+        arm = load_arm_or_exit(config)
+        stop = threading.Event()
+        with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
+                stop_on_signals(stop):
+            node = FusionNode(session, arm, robot, publish_hz=publish_hz)
+            timer = threading.Timer(duration_s, stop.set) if duration_s else None
+            if timer:
+                timer.daemon = True
+                timer.start()
+            threading.Thread(target=_say_serving, args=(node, robot, arm.name), daemon=True).start()
+            report = node.run(stop)
+            if timer:
+                timer.cancel()
+        if json_out:
+            emit_json(report.as_dict())
+            return
+        console.print(f"{robot}: {report.message}; {report.samples} samples in, {report.estimates} "
+                      f"estimates out, {report.out_of_order} late samples dropped; dropped payloads: "
+                      + (", ".join(f"{k} {v}" for k, v in report.dropped.items()) or "none"))
+
+
+def _say_serving(node, robot: str, arm_name: str) -> None:
+    if node.ready.wait(30.0):
+        err_console.print(f"serving {arm_name} as {robot}: armfusion/{robot}/raw/* in, state/joints, "
+                          "state/heading and status out; Ctrl-C (SIGINT) or SIGTERM stops", highlight=False)
 
 
 def _say_ready(recorder, robot: str, out: Path) -> None:

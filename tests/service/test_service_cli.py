@@ -59,3 +59,25 @@ def test_bad_speed_is_refused(startup_recording):
     r = CliRunner().invoke(app, ["replay", str(startup_recording), "--speed", "fast"])
     assert r.exit_code == 2
     assert "expected a factor > 0 (1 = real time) or 'max'" in r.output
+
+
+def test_serve_process_calibrates_on_a_replay_and_stops_on_sigint(startup_recording, loopback_port):
+    from fusion.service.replay import replay
+    from fusion.service.zenoh_config import ZenohSettings, open_session
+
+    server = _cli("serve", "--listen", f"tcp/127.0.0.1:{loopback_port}", "--json")
+    try:
+        line = server.stderr.readline()
+        assert "as chair1: armfusion/chair1/raw/* in" in line, line
+        rec = read_recording(startup_recording)
+        settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{loopback_port}"])
+        with open_session(settings) as s:
+            report = replay(s, rec, "chair1", speed=None, wait_for_subscribers_s=10.0)
+        assert report.unmatched == ()
+    finally:
+        server.send_signal(signal.SIGINT)
+        out, err = server.communicate(timeout=30)
+    assert server.returncode == 0, err
+    doc = json.loads(out)
+    assert doc["startup_t_s"] is not None, doc["message"]
+    assert doc["estimates"] > 0 and doc["dropped"] == {}
