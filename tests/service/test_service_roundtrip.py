@@ -88,3 +88,37 @@ def test_recorder_drops_bad_payloads_and_keeps_recording(hub_settings, tmp_path)
             stop.set()
             th.join(10.0)
     assert result["r"].dropped == {"malformed": 1, "unknown_version": 1}
+
+
+def test_recorder_flushes_within_a_second_while_it_runs(hub_settings, tmp_path):
+    """What a SIGKILL would leave: the file as it is while recording holds what came >1 s ago."""
+    import shutil
+    import warnings
+
+    listener, connector = hub_settings
+    stop = threading.Event()
+    out = tmp_path / "live.mcap"
+    with open_session(listener) as rec_session:
+        recorder = Recorder(rec_session, out, "chair1")
+        th = threading.Thread(target=recorder.run, args=(stop,))
+        th.start()
+        try:
+            assert recorder.ready.wait(5.0)
+            with open_session(connector) as s:
+                pub = s.declare_publisher(pl.raw_key("chair1", "acc1"))
+                assert _wait(lambda: pub.matching_status, 5.0)
+                t = 0.01 * np.arange(1, 51)
+                batch = Stream("acc1", "accel", t, np.tile([1, 2, 3], (50, 1)),
+                               ("acc1_x", "acc1_y", "acc1_z"))
+                pub.put(pl.encode(pl.RawBatch("chair1", batch, 0)))
+                assert _wait(lambda: recorder.counts() == {"acc1": 50}, 5.0)
+                time.sleep(1.3)  # nothing more arrives: the recorder must flush by itself
+                shutil.copy(out, tmp_path / "killed.mcap")
+        finally:
+            stop.set()
+            th.join(10.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the copy ends early: that is the point
+        got = read_recording(tmp_path / "killed.mcap")
+    assert not got.meta["read_report"].complete
+    assert len(got.raw()["acc1"]) == 50
