@@ -413,3 +413,24 @@ def add_effects(diag: Diagnosis, effects: Sequence[Effect], settings: DiagnoseSe
     new = [e for e in effects if e.block_name not in have]
     model = diag.model.with_effects(new)
     return diagnose(model, diag.data, settings, attitude0_rad=diag.fit.attitude_rad, progress=progress)
+
+
+def predicted_and_measured(diag: Diagnosis) -> dict[str, tuple]:
+    """Per stream: ``(t_s, measured, predicted, unit, channels)`` of the fitted model, in
+    physical units (window means), for plots."""
+    st = diag.fit
+    streams = [f.stream for f in st.fits]
+    settings = IdentifySettings(estimate_attitude=st.attitude_rad is not None)
+    pb, z = _problem(st, diag.data, [], streams, settings)
+    pred = pb.predict(z)
+    sm = st.model.stream_models()
+    out = {}
+    i = 0
+    for s in pb.streams:
+        shape = diag.data.counts[s].shape
+        n = diag.data.counts[s].size
+        y = (pb.meas[i:i + n].reshape(shape) - sm[s].zero) / sm[s].gain
+        yh = (pred[i:i + n].reshape(shape) - sm[s].zero) / sm[s].gain
+        i += n
+        out[s] = (diag.data.state.t_s, y, yh, sm[s].unit, sm[s].channels)
+    return out

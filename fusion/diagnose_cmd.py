@@ -1,7 +1,7 @@
 """``armfusion diagnose``: where the model fails, which effect is missing; add it, refit.
 
     armfusion diagnose --config C REC [--json] [--add EFFECT[:TARGET] …] [--write C2.yaml]
-        [--window 10] [--history H.json]
+        [--window 10] [--history H.json] [--report out.html]
 
 Fits the config's model to the recording (``fusion.diagnose``), shows every sensor axis's
 residual RMS against its noise floor, the verdict and the ranked missing effects. ``--add``
@@ -96,6 +96,7 @@ def diagnose_command(
                                         "the motion within a window stays below the noise).")] = 10,
     history: Annotated[Path | None, typer.Option(help="The error ladder's history file (default: "
                                                  "CONFIG.workbench.json beside the config).")] = None,
+    report: Annotated[Path | None, typer.Option(help="Write an HTML report (one file, plots embedded).")] = None,
     top: Annotated[int, typer.Option(help="Candidates to show.")] = 8,
     json_out: JsonOpt = False,
 ) -> None:
@@ -131,6 +132,8 @@ def diagnose_command(
         write.write_text(f"# armfusion diagnose: rms_ratio {final.rms_ratio:.3f} ({final.verdict})\n"
                          f"# from {recording}, config {src.name}\n"
                          + yaml.safe_dump(out, sort_keys=False, width=110), encoding="utf-8")
+    if report is not None:
+        write_report(report, before, after, ladder, recording, config)
     if json_out:
         d = final.as_dict(top)
         d["added"] = [e.block_name for e in added]
@@ -139,12 +142,15 @@ def diagnose_command(
         d["ladder"] = [{"label": r["label"], "rms_ratio": r["rms_ratio"], "effects": r["effects"]}
                        for r in ladder]
         d["written"] = str(write) if write else None
+        d["report"] = str(report) if report else None
         emit_json(d)
         return
     _print(before, after, top)
     console.print(f"History (error ladder, {len(ladder)} model versions): {hpath}")
     if write:
         console.print(f"Wrote {write}")
+    if report:
+        console.print(f"Report: {report}")
 
 
 def _verdict_line(d: Diagnosis) -> str:
@@ -203,3 +209,154 @@ def _print(before: Diagnosis, after: Diagnosis | None, top: int) -> None:
         console.print("No effect of the library is significant: nothing to add.")
     for h in d.fit.holds:
         console.print(f"[dim]held: {h.message}[/]")
+
+
+# --------------------------------------------------------------------------------------
+# the HTML report: one self-contained file, the plots embedded as PNG
+def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict]) -> dict[str, bytes]:
+    """The report's figures as PNG bytes: ``ladder``, ``candidates``, ``compare`` (predicted
+    against measured, the worst axes) and ``residuals`` (the worst axis against the input the
+    top candidate's evidence names)."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fusion.diagnose import predicted_and_measured
+
+    figs: dict[str, bytes] = {}
+
+    def png(fig) -> bytes:
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+        plt.close(fig)
+        return buf.getvalue()
+
+    # the error ladder: residual RMS per model version
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    vals = [r["rms_ratio"] for r in ladder]
+    labels = [f"{k + 1}: {r['label']}" for k, r in enumerate(ladder)]
+    ax.plot(range(len(vals)), vals, "o-", color="C0")
+    ax.axhline(1.0, color="k", ls="--", lw=1, label="noise floor")
+    ax.axhspan(0, 1.1, color="green", alpha=0.08)
+    ax.set_yscale("log")
+    ax.set_xticks(range(len(vals)), labels, rotation=20, ha="right", fontsize=8)
+    ax.set_ylabel("residual RMS / noise")
+    ax.set_title("The error ladder")
+    ax.legend(fontsize=8)
+    figs["ladder"] = png(fig)
+    # the ranked candidates (of the diagnosis before adding: what suggested the step)
+    src = before
+    top = [c for c in src.candidates[:10]]
+    if top:
+        fig, ax = plt.subplots(figsize=(7, 0.35 * len(top) + 1))
+        y = np.arange(len(top))[::-1]
+        v = [-c.delta_bic for c in top]
+        ax.barh(y, np.maximum(v, 1e-1), color=["C3" if c.significant else "0.6" for c in top])
+        ax.set_yticks(y, [c.name for c in top], fontsize=8)
+        ax.set_xscale("log")
+        ax.set_xlabel("-ΔBIC (red: significant)")
+        ax.set_title("Which effect is missing")
+        figs["candidates"] = png(fig)
+    # predicted against measured on the worst axes, residual underneath
+    pm = predicted_and_measured(src)
+    worst = sorted(src.axes, key=lambda a: -a.ratio)[:4]
+    fig, axs = plt.subplots(len(worst), 2, figsize=(10, 2.2 * len(worst)), squeeze=False,
+                            layout="constrained")
+    for row, a in zip(axs, worst, strict=True):
+        t, ym, yp, unit, ch = pm[a.stream]
+        k = ch.index(a.axis)
+        row[0].plot(t, ym[:, k], ".", ms=2, color="0.4", label="measured")
+        row[0].plot(t, yp[:, k], "-", lw=1, color="C0", label="model")
+        fit = "" if a.fit_percent is None else f", fit {a.fit_percent:.1f} %"
+        row[0].set_title(f"{a.axis}{fit}", fontsize=9)
+        row[0].set_ylabel(unit)
+        row[1].plot(t, ym[:, k] - yp[:, k], ".", ms=2, color="C3")
+        row[1].axhspan(-a.noise, a.noise, color="green", alpha=0.15)
+        row[1].set_title(f"{a.axis} residual: RMS {a.ratio:.2f}× the noise (band: ±1σ)", fontsize=9)
+    axs[0][0].legend(fontsize=8)
+    axs[-1][0].set_xlabel("t [s]")
+    axs[-1][1].set_xlabel("t [s]")
+    figs["compare"] = png(fig)
+    if after is not None:
+        pm2 = predicted_and_measured(after)
+        fig, axs = plt.subplots(len(worst), 1, figsize=(10, 1.8 * len(worst)), squeeze=False,
+                            layout="constrained")
+        for (axx,), a in zip(axs, worst, strict=True):
+            t, ym, yp, unit, ch = pm[a.stream]
+            t2, ym2, yp2, _, _ = pm2[a.stream]
+            k = ch.index(a.axis)
+            axx.plot(t, ym[:, k] - yp[:, k], ".", ms=2, color="C3", label="before")
+            axx.plot(t2, ym2[:, k] - yp2[:, k], ".", ms=2, color="C2", label="after")
+            axx.axhspan(-a.noise, a.noise, color="green", alpha=0.15)
+            axx.set_title(f"{a.axis} residual before and after ({unit})", fontsize=9)
+        axs[0][0].legend(fontsize=8)
+        figs["after"] = png(fig)
+    return figs
+
+
+def write_report(path: Path, before: Diagnosis, after: Diagnosis | None, ladder: list[dict],
+                 recording: Path, config: str) -> Path:
+    """One HTML file a person reads top to bottom: verdict, ladder, ranked candidates, plots."""
+    import base64
+    import html
+
+    figs = report_figures(before, after, ladder)
+    d = after or before
+
+    def img(name: str) -> str:
+        if name not in figs:
+            return ""
+        return (f'<img alt="{name}" src="data:image/png;base64,'
+                f'{base64.b64encode(figs[name]).decode()}">')
+
+    def esc(x) -> str:
+        return html.escape(str(x))
+
+    rows = "".join(
+        f"<tr><td>{i}</td><td>{esc(c.effect)}</td><td>{esc(c.target)}</td><td>{c.delta_bic:.1f}</td>"
+        f"<td>{'' if c.rms_after is None else f'{c.rms_after:.2f}'}</td><td>{100 * c.explained:.0f} %</td>"
+        f"<td>{'yes' if c.significant else 'no'}</td>"
+        f"<td>{esc(params_words(c.params, c.units)) if c.refitted else ''}</td></tr>"
+        for i, c in enumerate(before.candidates[:10], 1))
+    axes = "".join(
+        f"<tr><td>{esc(a.axis)}</td><td>{a.rms:.3g} {esc(a.unit)}</td><td>{a.noise:.3g}</td>"
+        f"<td{' class=bad' if a.ratio > 1.1 else ''}>{a.ratio:.2f}</td>"
+        f"<td>{'—' if a.fit_percent is None else f'{a.fit_percent:.2f}'}</td></tr>" for a in d.axes)
+    best = before.candidates[0] if before.candidates and before.candidates[0].significant else None
+    why = (f"<h2>Most likely missing: {esc(best.effect)} on {esc(best.target)}</h2>"
+           f"<p>{esc(best.explanation)}</p><p><b>Evidence:</b> {esc(best.evidence)}.</p>") if best else \
+        "<p>No effect of the library is significant: nothing to add.</p>"
+    step = ""
+    if after is not None:
+        step = (f"<h2>After adding {esc(', '.join(b for b in after.effects() if b not in before.effects()))}</h2>"
+                f"<p>Residual RMS {before.rms_ratio:.2f}× → {after.rms_ratio:.2f}× the noise floor: "
+                f"<b>{esc(after.verdict)}</b>.</p>{img('after')}")
+    doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion diagnose</title>
+<style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}}
+table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}
+td:nth-child(2),td:nth-child(3){{text-align:left}}.bad{{color:#b00;font-weight:bold}}img{{max-width:100%}}</style>
+</head><body>
+<h1>armfusion diagnose</h1>
+<p>Recording <code>{esc(recording)}</code>, config <code>{esc(config)}</code>; {d.fit.n_samples:,} fit points.</p>
+<h2>Verdict: {esc(d.verdict)}</h2>
+<p>Residual RMS {d.rms_ratio:.2f}× the sensors' noise floor (1.0: the model fits to noise).
+Model effects: {esc(', '.join(e for e in d.effects() if not e.endswith('.joint_offset')) or 'none')}.</p>
+{img('ladder')}
+{why}
+<h2>Missing effects, ranked</h2>
+<table><tr><th>#</th><th>effect</th><th>target</th><th>ΔBIC</th><th>RMS after</th><th>explains</th>
+<th>significant</th><th>estimate</th></tr>{rows}</table>
+{img('candidates')}
+{step}
+<h2>Model against measurements (the worst axes)</h2>
+{img('compare')}
+<h2>Residual RMS per sensor axis</h2>
+<table><tr><th>axis</th><th>RMS</th><th>noise</th><th>RMS / noise</th><th>fit %</th></tr>{axes}</table>
+</body></html>
+"""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(doc, encoding="utf-8")
+    return path

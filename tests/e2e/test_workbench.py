@@ -98,9 +98,13 @@ def test_cli_diagnose_add_write_history(tmp_path):
             "explanation"} <= set(doc["candidates"][0])
     # add it, write the new config; the ladder falls to the noise
     out = tmp_path / "arm2.yaml"
+    report = tmp_path / "report.html"
     r = runner.invoke(app, ["diagnose", "--config", str(cfg), str(rec), "--add", "accel_bias:acc1",
-                            "--write", str(out)])
+                            "--write", str(out), "--report", str(report)])
     assert r.exit_code == 0, r.output
+    page = report.read_text(encoding="utf-8")  # one file: verdict, ladder, candidates, plots inline
+    assert "Verdict: fits to noise" in page and "Most likely missing: accel_bias on acc1" in page
+    assert page.count('src="data:image/png;base64,') == 4
     assert "fits to noise" in r.stdout and "Before:" in r.stdout
     assert "accel_bias" in out.read_text()
     hist = json.loads((tmp_path / "arm.workbench.json").read_text())["runs"]
