@@ -124,6 +124,9 @@ def table(arm, q, tilt, err, sig, flags, crb, lock_deg, thesis):
     for j in range(arm.n_joints):
         m = ok[:, j]
         rms = np.degrees(np.sqrt(np.mean(err[m, j] ** 2))) if m.any() else np.nan
+        num = np.isfinite(err[:, j])  # every pose that got a number, whatever its flag
+        rms_all = np.degrees(np.sqrt(np.mean(err[num, j] ** 2))) if num.any() else np.nan
+        med_sig = np.degrees(np.nanmedian(sig[num, j])) if num.any() else np.nan
         bound = np.degrees(np.sqrt(np.mean(crb[m, j] ** 2))) if m.any() else np.nan
         wrong = int(np.sum(m & (np.abs(err[:, j]) > 4 * sig[:, j])))
         locked_true = ang[:, j] < lock_deg
@@ -136,19 +139,22 @@ def table(arm, q, tilt, err, sig, flags, crb, lock_deg, thesis):
         share = {f: np.mean(flags[:, j] == f) * 100 for f in
                  ("ill_conditioned", "gimbal_lock", "ambiguous", "out_of_limits")}
         rows.append((arm.joints[j].name, rms, bound, rms / bound if bound else np.nan,
-                     100 - np.mean(m) * 100, share, wrong, int(locked_true.sum()), missed))
+                     100 - np.mean(m) * 100, share, wrong, int(locked_true.sum()), missed,
+                     rms_all, med_sig))
     return rows, totals
 
 
 def render(rows, totals, title, times, times_ref, n):
     lines = [f"### {title}", "",
-             "| joint | RMS error, ok poses [deg] | Cramér-Rao bound [deg] | ratio | flagged [%] "
+             "| joint | RMS error, ok poses [deg] | Cramér-Rao bound [deg] | ratio | "
+             "RMS error, every numeric answer [deg] | median sigma [deg] | flagged [%] "
              "(ill-cond / lock / ambiguous / limits) | confident wrong (ok, > 4 sigma) | "
              "axis within 2 deg of vertical: poses / reported ok |",
-             "| --- | ---: | ---: | ---: | --- | ---: | ---: |"]
-    for name, rms, bound, ratio, flagged, share, wrong, locked, missed in rows:
+             "| --- | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
+    for name, rms, bound, ratio, flagged, share, wrong, locked, missed, rms_all, med_sig in rows:
         lines.append(
-            f"| {name} | {rms:.4f} | {bound:.4f} | {ratio:.2f} | {flagged:.1f} "
+            f"| {name} | {rms:.4f} | {bound:.4f} | {ratio:.2f} | {rms_all:.3f} | {med_sig:.3f} | "
+            f"{flagged:.1f} "
             f"({share['ill_conditioned']:.1f} / {share['gimbal_lock']:.1f} / "
             f"{share['ambiguous']:.1f} / {share['out_of_limits']:.1f}) | {wrong} | "
             f"{locked} / {missed} |")
