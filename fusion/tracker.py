@@ -67,7 +67,7 @@ from fusion.startup import StartupResult
 from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound, wrap_angle
 from models.arm import ArmModel
 from models.motion import MotionState, cross, link_motion, sensor_motion
-from models.rotations import GRAVITY_MPS2, exp_so3, skew
+from models.rotations import GRAVITY_MPS2, skew
 from models.sensor_models import (
     MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
     StreamModel,
@@ -720,6 +720,19 @@ def _up(roll, pitch) -> np.ndarray:
     return out
 
 
+def _rotation(v: np.ndarray) -> np.ndarray:
+    """Rodrigues for one rotation vector (plain floats: one small matrix per step)."""
+    x, y, z = v.tolist()
+    th = math.sqrt(x * x + y * y + z * z)
+    if th < 1e-12:
+        return np.eye(3)
+    a = math.sin(th) / th
+    b = (1.0 - math.cos(th)) / (th * th)
+    return np.array([[1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
+                     [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
+                     [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
+
+
 def _euler_rates(r, p, w):
     """(roll, pitch, yaw) rates of ``R = Rz Ry Rx`` for body rates ``w (N, 3)``."""
     sr, cr = np.sin(r), np.cos(r)
@@ -1082,7 +1095,7 @@ class Tracker:
             w = None if w0 is None else (w0 if gyro is None else 0.5 * (w0 + gyro))
             ukf.predict(self._fx, self._Q(dt, w is not None), dt=dt, w=w)
             if self._mag_n and w is not None:
-                self._mag_rot = self._mag_rot @ exp_so3((w - ukf._x[self.layout.bias]) * dt)
+                self._mag_rot = self._mag_rot @ _rotation((w - ukf._x[self.layout.bias]) * dt)
         if gyro is not None:
             self._omega = gyro
         self._t = t
@@ -1354,11 +1367,18 @@ class Tracker:
         else:
             ok, usable = self._accel_health_slow(t, sel, counts, zp, inn, var, same, implausible)
         if usable.any():
-            u = np.flatnonzero(usable)
-            rr = self._acc_rows[u]
-            Su = inn.S[rr[:, :, None], rr[:, None, :]]
-            self._acc_ring.add(t, sel[u], inn.innovation[rr], Su, inn.nis[u], ok[u])
-            self._detect_shift(t, sel[u], inn.innovation[rr] / np.sqrt(np.diagonal(Su, axis1=1, axis2=2)))
+            which, Sb = inn.blocks[3]  # accelerometer groups come first, in order
+            if usable.all():
+                Su = Sb[:k]
+                nu = inn.innovation[: 3 * k].reshape(k, 3)
+                self._acc_ring.add(t, sel, nu, Su, inn.nis[:k], ok)
+                self._detect_shift(t, sel, nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2)))
+            else:
+                u = np.flatnonzero(usable)
+                rr = self._acc_rows[u]
+                Su = Sb[u]
+                self._acc_ring.add(t, sel[u], inn.innovation[rr], Su, inn.nis[u], ok[u])
+                self._detect_shift(t, sel[u], inn.innovation[rr] / np.sqrt(np.diagonal(Su, axis1=1, axis2=2)))
         return ok
 
     def _accel_health_slow(self, t, sel, counts, zp, inn, var, same, implausible):
@@ -1646,15 +1666,23 @@ class Tracker:
         acc_ok = np.stack([(rows[s] >= 0) & valid[s][np.maximum(rows[s], 0)] for s in acc_streams], 1) \
             if acc_streams else np.zeros((T, 0), bool)
         acc_seen = acc_rows >= 0
-        acc_counts = [raw[s].values.astype(float) for s in acc_streams]
-        acc_phys = [phys[s] for s in acc_streams]
+        # every instant's accelerometer samples as (T, Sa, 3) arrays: one index per step
+        Sa = len(acc_streams)
+        acc_counts = np.zeros((T, Sa, 3))
+        acc_phys = np.zeros((T, Sa, 3))
+        for j, s in enumerate(acc_streams):
+            have = acc_rows[:, j] >= 0
+            acc_counts[have, j] = raw[s].values[acc_rows[have, j]]
+            acc_phys[have, j] = phys[s][acc_rows[have, j]]
+        all_ok = acc_ok.all(axis=1)
         enc_rows = rows[ENC]
         gyro_rows = rows.get(GYRO)
         gyro_ok = None if gyro_rows is None else (gyro_rows >= 0) & valid[GYRO][np.maximum(gyro_rows, 0)]
         mag_rows = rows.get(MAG)
         mag_ok = None if mag_rows is None else (mag_rows >= 0) & valid[MAG][np.maximum(mag_rows, 0)]
         mag_counts = raw[MAG].values if MAG in raw else None
-        out = _RunArrays(T, n, len(self.sensor_names))
+        has_truth = truth and rec.get("true_q") is not None and rec.get("true_base") is not None
+        out = _RunArrays(T, n, len(self.sensor_names), keep_cov=has_truth)
         i_enc, i_gyro = self._sidx[ENC], self._sidx.get(GYRO)
         for b0 in range(0, T, block):
             b1 = min(T, b0 + block)
@@ -1673,15 +1701,15 @@ class Tracker:
                     self._seen[i_gyro], self._last_t[i_gyro] = True, t
                     self._counts[i_gyro, C_USED] += 1
                 acc = None
-                ok = acc_ok[i]
-                if ok.any():
-                    which = np.flatnonzero(ok)
-                    r = acc_rows[i]
-                    acc = (acc_idx[which], np.stack([acc_counts[j][r[j]] for j in which]),
-                           np.stack([acc_phys[j][r[j]] for j in which]))
-                elif acc_seen[i].any():  # saturated samples only: the sensors did speak
-                    self._seen[acc_idx[acc_seen[i]]] = True
-                    self._last_t[acc_idx[acc_seen[i]]] = t
+                if all_ok[i]:
+                    acc = (acc_idx, acc_counts[i], acc_phys[i])
+                else:
+                    ok = acc_ok[i]
+                    if ok.any():
+                        acc = (acc_idx[ok], acc_counts[i, ok], acc_phys[i, ok])
+                    if acc_seen[i].any():  # saturated samples: the sensors did speak
+                        self._seen[acc_idx[acc_seen[i]]] = True
+                        self._last_t[acc_idx[acc_seen[i]]] = t
                 mag = None
                 if mag_ok is not None and mag_ok[i]:
                     k = mag_rows[i]
@@ -1851,7 +1879,7 @@ def _rows_at(times: np.ndarray, t_s: np.ndarray) -> np.ndarray:
 
 
 class _RunArrays:
-    def __init__(self, T: int, n: int, S: int):
+    def __init__(self, T: int, n: int, S: int, keep_cov: bool = True):
         self.q = np.full((T, n), np.nan)
         self.sigma = np.full((T, n), np.nan)
         self.flags = np.zeros((T, n), dtype=np.int8)
@@ -1860,7 +1888,7 @@ class _RunArrays:
         self.bias = np.full((T, 3), np.nan)
         self.magnetic = np.zeros(T, dtype=np.int8)
         self.status = np.zeros((T, S), dtype=np.int8)
-        self.P = np.full((T, n + 3, n + 3), np.nan)
+        self.P = np.full((T, n + 3, n + 3), np.nan) if keep_cov else None
         self.T = T
 
     def record(self, tr: Tracker, i: int) -> None:
@@ -1876,7 +1904,8 @@ class _RunArrays:
         self.bias[i] = x[L.bias]
         self.magnetic[i] = (1 if tr._mag_flags[0] else 0) | (2 if tr._mag_flags[1] else 0)
         self.status[i] = tr._status_codes
-        self.P[i] = ukf._P[tr._nees_ix]
+        if self.P is not None:  # for the NEES
+            self.P[i] = ukf._P[tr._nees_ix]
 
     def finish(self, tr: Tracker, times, elapsed, truth_q, tq_rows, truth_b, tb_rows) -> TrackRun:
         n = tr.arm.n_joints
@@ -1890,7 +1919,7 @@ class _RunArrays:
             ok = tb_rows >= 0
             att_err[ok] = wrap_angle(self.rpy[ok] - truth_b.values[tb_rows[ok]])
             yaw_err = att_err[:, 2]
-            if q_err is not None:
+            if q_err is not None and self.P is not None:
                 e = np.concatenate([q_err, att_err], axis=1)
                 good = np.all(np.isfinite(e), axis=1)
                 nees = np.full(self.T, np.nan)

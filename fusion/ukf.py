@@ -195,11 +195,15 @@ class GroupPlan:
             self.batches.append((which, idx, idx[:, :, None], idx[:, None, :]))
 
     def nis(self, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """Each group's NIS; the diagonal blocks of S are kept in ``last_blocks`` (size ->
+        (group indices, blocks)) for whoever wants them."""
         out = np.empty(len(self.rows))
+        self.last_blocks = {}
         for which, idx, ii, jj in self.batches:
             Sg = S[ii, jj]
             v = nu[idx]
             k = idx.shape[1]
+            self.last_blocks[k] = (which, Sg)
             if k == 1:
                 out[which] = v[:, 0] ** 2 / Sg[:, 0, 0]
             elif k == 3:
@@ -246,6 +250,7 @@ class Innovation:
     nis: np.ndarray
     gate_ok: np.ndarray
     z_pred: np.ndarray
+    blocks: dict | None = None  # group size -> (group indices, their diagonal blocks of S)
 
     def group(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """Innovation and covariance of one group."""
@@ -393,7 +398,7 @@ class BatchedUKF:
             nu[ang] = wrap_angle(nu[ang])
         nis = plan.nis(nu, S)
         ok = np.isfinite(nis) & (nis <= plan.gates)
-        return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, zp)
+        return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, zp, plan.last_blocks)
 
     def correct(self, inn: Innovation, accept: np.ndarray | None = None,
                 hold: np.ndarray | None = None, gain_mask: np.ndarray | None = None) -> bool:

@@ -36,6 +36,7 @@ from fusion.tracker import (  # noqa: E402
     make_frames,
     start_from_recording,
 )
+from fusion.ukf import repair_covariance, unscented_mean  # noqa: E402
 from models.sensor_models import AK8975_UT_PER_LSB  # noqa: E402
 from models.simulator import simulate  # noqa: E402
 from sensors.samples import Recording, Stream  # noqa: E402
@@ -96,8 +97,20 @@ def filterpy_baseline(arm, rec: Recording, steps: int):
         d[L.yaw] = (d[L.yaw] + np.pi) % (2 * np.pi) - np.pi
         return d
 
+    def mean_x(sigmas, Wm):
+        return unscented_mean(sigmas, Wm, np.array([L.yaw]))
+
+    def mean_z(sigmas, Wm):  # the last row is a heading residual (an angle)
+        return unscented_mean(sigmas, Wm, np.array([sigmas.shape[1] - 1]))
+
+    def residual_z(a, b):
+        d = a - b
+        d[-1] = (d[-1] + np.pi) % (2 * np.pi) - np.pi
+        return d
+
     pts = MerweScaledSigmaPoints(L.size, st.alpha, st.beta, st.kappa, subtract=residual_x)
-    ukf = UnscentedKalmanFilter(L.size, len(R), 0.01, hx=hx, fx=fx, points=pts, residual_x=residual_x)
+    ukf = UnscentedKalmanFilter(L.size, len(R), 0.01, hx=hx, fx=fx, points=pts, residual_x=residual_x,
+                                x_mean_fn=mean_x, z_mean_fn=mean_z, residual_z=residual_z)
     ukf.x, ukf.P, ukf.Q, ukf.R = x0.copy(), P0.copy(), Q, R
     t_prev = tr.t_s
     z_zero = np.zeros(1)
@@ -107,6 +120,7 @@ def filterpy_baseline(arm, rec: Recording, steps: int):
         t_prev = t[i]
         ukf.predict(dt=dt, w=w_B[i])
         ukf.update(np.r_[f[k], z_zero], frame=frames.take(k), mB=m_B[k])
+        ukf.P = repair_covariance(ukf.P, 1e-14)  # filterpy leaves P's health to its user
     el = time.perf_counter() - t0
     err = np.degrees(fit[idx[-1], 0] + ukf.x[L.offset] - rec.get("true_q").values[idx[-1]])
     return el / len(idx), err, len(idx)
