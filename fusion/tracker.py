@@ -164,11 +164,15 @@ class TrackerSettings:
     """How much the offsets a rejecting sensor sees are widened when it re-acquires."""
     reacquiring_flag_s: float = 3.0
     shift_tau_s: float = 1.0
+    shift_slow_tau_s: float = 4.0
     shift_threshold: float = 40.0
+    shift_slow_threshold: float = 16.0
     """Slip detector: each link accelerometer's innovation, normalised per axis and averaged
-    over ``shift_tau_s`` (an exponential average), is tested against zero; a chi-square
-    (3 dof) above ``shift_threshold`` is a lasting shift (a slip, a few tenths of a degree)
-    that the gate alone may let through slowly: the offsets the sensor sees are widened."""
+    over ``shift_tau_s`` and over ``shift_slow_tau_s`` (exponential averages), is tested
+    against zero; a chi-square (3 dof) above ``shift_threshold`` (``shift_slow_threshold``
+    for the slow average: it wanders less) is a lasting shift (a slip or a drift of a few
+    tenths of a degree) that the gate alone may let through slowly: the offsets the sensor
+    sees (and no agreeing sensor does) are widened."""
     # observability
     gimbal_lock_deg: float = 2.5
     """A joint whose axis is within this angle of vertical is gravity-blind: held."""
@@ -931,9 +935,12 @@ class Tracker:
         self._acc_health = [[None, 0, None, False, None, None] for _ in range(Sa)]
         self._last_counts = np.full((Sa, 3), np.nan)
         self._acc_dirty = np.zeros(Sa, bool)
-        self._shift = [[0.0, 0.0, 0.0] for _ in range(Sa)]  # average normalised innovations
+        # averages of the normalised innovations, on each of the detector's time scales
+        self._shift_taus = (st.shift_tau_s, st.shift_slow_tau_s)
+        self._shift = [[[0.0, 0.0, 0.0] for _ in self._shift_taus] for _ in range(Sa)]
         self._shift_t: list[float | None] = [None] * Sa
         self._shift_cool = [-np.inf] * Sa
+        self._shift_stat = [0.0] * Sa
         self._reacq_log: dict[int, list[float]] = {}
         self._stuck = np.zeros(Sa, bool)
         self._dead = np.zeros(Sa, bool)
@@ -1444,28 +1451,34 @@ class Tracker:
         return ok, usable
 
     def _detect_shift(self, t: float, which: np.ndarray, nu_w: np.ndarray) -> None:
-        """A lasting shift of a link accelerometer's innovations (see ``shift_threshold``).
-        (Four sensors, three axes: plain Python.)"""
+        """A lasting shift of a link accelerometer's innovations (see ``shift_threshold``),
+        on two time scales: a slip shows within a second, a slow drift of the counts over a
+        few. (Four sensors, three axes: plain Python.)"""
         st = self.settings
         nl = len(self.link_names)
-        tau, thr = st.shift_tau_s, st.shift_threshold
+        thr = (st.shift_threshold, st.shift_slow_threshold)
         for s, v in zip(which.tolist(), nu_w.tolist(), strict=True):
             if s >= nl:
                 continue
             last = self._shift_t[s]
-            a = 0.0 if last is None else min(1.0, (t - last) / tau)
-            ema = self._shift[s]
-            ema[0] += a * (v[0] - ema[0])
-            ema[1] += a * (v[1] - ema[1])
-            ema[2] += a * (v[2] - ema[2])
             self._shift_t[s] = t
-            if a <= 0.0:
+            if last is None:
                 continue
-            # the average of unit white noise has variance a / (2 - a)
-            stat = (ema[0] ** 2 + ema[1] ** 2 + ema[2] ** 2) * (2.0 - a) / a
-            if stat > thr and t >= self._shift_cool[s]:
+            worst = 0.0  # the largest statistic, as a share of its threshold
+            for ema, tau, th in zip(self._shift[s], self._shift_taus, thr, strict=True):
+                a = min(1.0, (t - last) / tau)
+                ema[0] += a * (v[0] - ema[0])
+                ema[1] += a * (v[1] - ema[1])
+                ema[2] += a * (v[2] - ema[2])
+                if a > 0.0:
+                    # the average of unit white noise has variance a / (2 - a)
+                    stat = (ema[0] ** 2 + ema[1] ** 2 + ema[2] ** 2) * (2.0 - a) / a
+                    worst = max(worst, stat / th)
+            self._shift_stat[s] = worst
+            if worst > 1.0 and t >= self._shift_cool[s]:
                 self._reacquire(s, t)
-                ema[0] = ema[1] = ema[2] = 0.0
+                for ema in self._shift[s]:
+                    ema[0] = ema[1] = ema[2] = 0.0
                 self._shift_cool[s] = t + st.reacquiring_flag_s
 
     def _reacquire(self, i: int, t: float) -> None:
@@ -1476,7 +1489,7 @@ class Tracker:
             idx = np.r_[L.roll, L.pitch, np.arange(L.accel.start, L.accel.stop)]
             self._ukf.inflate(idx, np.r_[(2 * DEG) ** 2, (2 * DEG) ** 2, np.full(3, 1.0)])
             return
-        joints = np.flatnonzero(self._sees[i])
+        joints = self._slip_candidates(i, t)
         # a sensor that keeps disagreeing widens further each time (a large slip), up to
         # what an unread joint starts with
         recent = [u for u in self._reacq_log.get(i, []) if t - u < 10.0]
@@ -1485,6 +1498,26 @@ class Tracker:
         sig = min(st.slip_sigma_deg * 2.0 ** (len(recent) - 1), st.unknown_joint_sigma_deg)
         self._ukf.inflate(joints, (sig * DEG) ** 2)
         self._reacq_until[joints] = t + st.reacquiring_flag_s
+
+    def _slip_candidates(self, i: int, t: float) -> np.ndarray:
+        """The joints a disagreeing sensor ``i`` may have slipped: those it sees that no
+        agreeing link accelerometer sees too, and that gravity can read now (widening a
+        held joint would only throw away what is known of it)."""
+        sees = self._sees[i].copy()
+        for s in range(len(self.link_names)):
+            if s == i or not self._seen[s] or self._dead[s] or self._stuck[s]:
+                continue
+            # agreeing: nowhere near a shift of its own (a slip shows on every sensor beyond
+            # the joint, some sooner than others)
+            agrees = (not self._rejecting[s] and t >= self._shift_cool[s]
+                      and self._shift_stat[s] < 0.25)
+            if agrees and t - self._last_t[s] < self.settings.stale_after_s:
+                sees &= ~self._sees[s]
+        readable = sees & ~self._locked
+        if readable.any():
+            return np.flatnonzero(readable)
+        fallback = self._sees[i] & ~self._locked
+        return np.flatnonzero(fallback if fallback.any() else self._sees[i])
 
     # -- observability -----------------------------------------------------------------------
     def _observability(self, frame: Frames, used: tuple[int, ...], x: np.ndarray) -> None:
@@ -1813,7 +1846,7 @@ class Tracker:
         if "still" in snap:
             self._still_w, self._still_mean, self._still_var, self._still = snap["still"]
         if "shift" in snap:
-            self._shift = [list(map(float, v)) for v in snap["shift"][0]]
+            self._shift = [[list(map(float, e)) for e in v] for v in snap["shift"][0]]
             self._shift_t = list(snap["shift"][1])
 
     # -- results ---------------------------------------------------------------------------
