@@ -120,10 +120,16 @@ def diagnose_command(
     after = add_effects(before, added, progress=progress) if added else None
     final = after or before
     hpath = history or history_path(config)
-    entries = [history_entry(before, recording, config, "config")]
+    entries = [history_entry(before, recording, config, Path(config).stem)]
     if after is not None:
         entries.append(history_entry(after, recording, config, "+ " + ", ".join(e.block_name for e in added)))
     ladder = append_history(hpath, entries)
+    if write is not None and history is None:  # the written config carries the ladder on
+        nxt = history_path(str(write))
+        if nxt.resolve() != hpath.resolve():
+            nxt.parent.mkdir(parents=True, exist_ok=True)
+            nxt.write_text(json.dumps({"format": HISTORY_FORMAT, "runs": ladder}, indent=2) + "\n",
+                           encoding="utf-8")
     if write is not None:
         src = resolve_config_path(config)
         cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
@@ -236,8 +242,10 @@ def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict
 
     # the error ladder: residual RMS per model version
     fig, ax = plt.subplots(figsize=(7, 3.2))
-    vals = [r["rms_ratio"] for r in ladder]
-    labels = [f"{k + 1}: {r['label']}" for k, r in enumerate(ladder)]
+    steps = [r for k, r in enumerate(ladder)  # a re-run of the same model is the same rung
+             if k == 0 or (r["effects"], r["rms_ratio"]) != (ladder[k - 1]["effects"], ladder[k - 1]["rms_ratio"])]
+    vals = [r["rms_ratio"] for r in steps]
+    labels = [f"{k + 1}: {r['label']}" for k, r in enumerate(steps)]
     ax.plot(range(len(vals)), vals, "o-", color="C0")
     ax.axhline(1.0, color="k", ls="--", lw=1, label="noise floor")
     ax.axhspan(0, 1.1, color="green", alpha=0.08)

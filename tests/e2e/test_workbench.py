@@ -82,7 +82,7 @@ def test_null_case_fits_to_noise(arm, seed):
 def test_cli_diagnose_add_write_history(tmp_path):
     runner = CliRunner()
     rec = tmp_path / "rec.csv"
-    r = runner.invoke(app, ["simulate", "--scenario", "renk-maneuver", "--duration", str(DURATION_S),
+    r = runner.invoke(app, ["simulate", "--scenario", "renk-maneuver", "--duration", "30",
                             "--seed", "5", "--effect", "accel_bias:acc1=0.03,0.02,-0.035", "--out", str(rec)])
     assert r.exit_code == 0, r.output
     cfg = tmp_path / "arm.yaml"
@@ -108,7 +108,7 @@ def test_cli_diagnose_add_write_history(tmp_path):
     assert "fits to noise" in r.stdout and "Before:" in r.stdout
     assert "accel_bias" in out.read_text()
     hist = json.loads((tmp_path / "arm.workbench.json").read_text())["runs"]
-    assert [h["label"] for h in hist] == ["config", "config", "+ acc1.accel_bias"]
+    assert [h["label"] for h in hist] == ["arm", "arm", "+ acc1.accel_bias"]
     assert hist[-1]["rms_ratio"] < 1.1 < hist[0]["rms_ratio"]
     # the written config fits the recording to noise
     r = runner.invoke(app, ["diagnose", "--config", str(out), str(rec), "--json"])
