@@ -80,6 +80,9 @@ class AxisFit:
     noise: float
     fit_percent: float | None
     """None where the axis does not vary beyond 3× its noise (nothing to fit)."""
+    autocorr1: float = 0.0
+    """Lag-1 autocorrelation of the residual (whiteness): for white noise about ``±1/√n``;
+    a missing effect makes it near 1."""
 
     @property
     def ratio(self) -> float:
@@ -139,6 +142,8 @@ class Diagnosis:
     """Candidates this recording cannot see at all (no direction known beyond the prior)."""
     verdict: str
     seconds: float
+    worst: tuple[tuple[float, float, float], ...] = ()
+    """The worst stretches of the recording: ``(t_start_s, t_end_s, rms_ratio there)``."""
 
     @property
     def model(self) -> Model:
@@ -163,11 +168,14 @@ class Diagnosis:
             "rms_ratio": round(self.rms_ratio, 4),
             "axes": [{"stream": a.stream, "axis": a.axis, "unit": a.unit, "rms": a.rms,
                       "noise": a.noise, "ratio": round(a.ratio, 4),
-                      "fit_percent": None if a.fit_percent is None else round(a.fit_percent, 3)}
+                      "fit_percent": None if a.fit_percent is None else round(a.fit_percent, 3),
+                      "autocorr1": round(a.autocorr1, 4)}
                      for a in self.axes],
             "candidates": [c.as_dict() for c in self.candidates[:top]],
             "n_candidates": len(self.candidates),
             "unseen": list(self.unseen),
+            "worst_stretches": [{"t_start_s": a, "t_end_s": b, "rms_ratio": round(r, 3)}
+                                for a, b, r in self.worst],
             "fit": {"chi2_red": self.fit.chi2_red, "n_samples": self.fit.n_samples,
                     "n_residuals": self.fit.n_residuals,
                     "held": [h.element for h in self.fit.holds], "notes": list(self.fit.notes)},
@@ -223,8 +231,10 @@ def _axes(pb: _Problem, z: np.ndarray, data: FitData, model: Model) -> list[Axis
             # an axis that does not vary beyond its noise has no fit % (MATLAB's would be ~0)
             varies = np.std(y[:, k]) > 3.0 * sig[k]
             fit = 100.0 * (1.0 - np.linalg.norm(e) / spread) if varies else None
+            ec = e - e.mean()
+            ac = float(ec[1:] @ ec[:-1] / max(ec @ ec, 1e-300)) if len(e) > 2 else 0.0
             out.append(AxisFit(s, sm[s].channels[k], sm[s].unit, float(np.sqrt(np.mean(e**2)) / g[k]),
-                               float(sig[k] / g[k]), None if fit is None else float(fit)))
+                               float(sig[k] / g[k]), None if fit is None else float(fit), ac))
     return out
 
 
@@ -391,8 +401,37 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
         verdict = FITS_TO_NOISE
     else:
         verdict = "does not fit the noise, and no effect of the library explains it"
+    worst = worst_stretches(r, row_axis, data.state.t_s)
     return Diagnosis(fit, data, tuple(axes), rms_ratio, tuple(out), tuple(unseen), verdict,
-                     time.perf_counter() - t0)
+                     time.perf_counter() - t0, worst)
+
+
+def worst_stretches(r: np.ndarray, row_axis, t_s: np.ndarray, n: int = 3,
+                    span_s: float = 5.0) -> tuple[tuple[float, float, float], ...]:
+    """The ``n`` non-overlapping stretches of about ``span_s`` where the residual (all axes,
+    noise-weighted) is largest: ``(t_start, t_end, rms_ratio)``."""
+    m = len(t_s)
+    if m < 3:
+        return ()
+    ss = np.zeros(m)
+    na = 0
+    for _, k, a, nn in row_axis:
+        ss += np.sum(r[a:a + nn * k].reshape(nn, k) ** 2, 1)
+        na += k
+    dt = float(np.median(np.diff(t_s)))
+    w = int(max(1, min(m, round(span_s / max(dt, 1e-9)))))
+    c = np.concatenate([[0.0], np.cumsum(ss)])
+    win = (c[w:] - c[:-w]) / (w * na)
+    out = []
+    taken = np.zeros(len(win), bool)
+    for i in np.argsort(-win):
+        if len(out) == n:
+            break
+        if taken[max(0, i - w + 1):i + w].any():
+            continue
+        taken[i] = True
+        out.append((float(t_s[i]), float(t_s[i + w - 1]), float(np.sqrt(win[i]))))
+    return tuple(out)
 
 
 def parse_add(arm, items: Sequence[str]) -> list[Effect]:

@@ -168,16 +168,18 @@ def _verdict_line(d: Diagnosis) -> str:
 
 def _axes_table(d: Diagnosis, title: str, other: Diagnosis | None = None) -> Table:
     t = Table(title=title)
-    for c in ("axis", "RMS", "noise", "RMS / noise", "fit %"):
+    for c in ("axis", "RMS", "noise", "RMS / noise", "fit %", "lag-1 autocorr."):
         t.add_column(c, justify="right" if c != "axis" else "left")
     if other is not None:
         t.add_column("before: RMS / noise", justify="right")
     prev = {(a.stream, a.axis): a for a in other.axes} if other is not None else {}
+    band = 1.0 / np.sqrt(max(d.fit.n_samples, 1))  # white noise: lag-1 σ 1/√n; red beyond 3σ
     for a in d.axes:
         r = f"{a.ratio:.2f}"
         row = [a.axis, f"{a.rms:.3g} {a.unit}", f"{a.noise:.3g}",
                f"[red]{r}[/]" if a.ratio > 1.1 else r,
-               "—" if a.fit_percent is None else f"{a.fit_percent:.2f}"]
+               "—" if a.fit_percent is None else f"{a.fit_percent:.2f}",
+               f"[red]{a.autocorr1:.2f}[/]" if abs(a.autocorr1) > 3 * band else f"{a.autocorr1:.2f}"]
         if other is not None:
             row.append(f"{prev[(a.stream, a.axis)].ratio:.2f}" if (a.stream, a.axis) in prev else "")
         t.add_row(*row)
@@ -205,6 +207,9 @@ def _print(before: Diagnosis, after: Diagnosis | None, top: int) -> None:
     else:
         console.print(_verdict_line(d))
         console.print(_axes_table(d, "Residual RMS per sensor axis (window means)"))
+    if d.worst and not d.fits_to_noise:
+        console.print("Worst stretches: " + "; ".join(f"{a:.1f}-{b:.1f} s ({r:.1f}× the noise)"
+                                                      for a, b, r in d.worst))
     if d.candidates and d.candidates[0].significant:
         console.print(_candidates_table(d, top))
         c = d.candidates[0]

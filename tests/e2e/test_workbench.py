@@ -94,6 +94,11 @@ def test_cli_diagnose_add_write_history(tmp_path):
     assert doc["candidates"][0]["significant"] and doc["rms_ratio"] > 2
     for k in ("effects", "axes", "rms_ratio", "candidates", "verdict"):
         assert k in doc
+    # where it fails: the residual is not white, the worst stretches lie in the recording
+    assert max(a["autocorr1"] for a in doc["axes"] if a["stream"] == "acc1") > 0.5
+    assert doc["worst_stretches"]
+    assert all(0 <= w["t_start_s"] < w["t_end_s"] <= 30 and w["rms_ratio"] > 1
+               for w in doc["worst_stretches"])
     assert {"effect", "target", "delta_bic", "rms_after", "significant", "params",
             "explanation"} <= set(doc["candidates"][0])
     # add it, write the new config; the ladder falls to the noise
