@@ -936,11 +936,12 @@ class Tracker:
         self._last_counts = np.full((Sa, 3), np.nan)
         self._acc_dirty = np.zeros(Sa, bool)
         # averages of the normalised innovations, on each of the detector's time scales
-        self._shift_taus = (st.shift_tau_s, st.shift_slow_tau_s)
-        self._shift = [[[0.0, 0.0, 0.0] for _ in self._shift_taus] for _ in range(Sa)]
-        self._shift_t: list[float | None] = [None] * Sa
-        self._shift_cool = [-np.inf] * Sa
-        self._shift_stat = [0.0] * Sa
+        self._shift_taus = np.array([st.shift_tau_s, st.shift_slow_tau_s])
+        self._shift_thr = np.array([st.shift_threshold, st.shift_slow_threshold])
+        self._shift = np.zeros((Sa, 2, 3))
+        self._shift_t = np.full(Sa, np.nan)
+        self._shift_cool = np.full(Sa, -np.inf)
+        self._shift_stat = np.zeros(Sa)
         self._reacq_log: dict[int, list[float]] = {}
         self._stuck = np.zeros(Sa, bool)
         self._dead = np.zeros(Sa, bool)
@@ -955,6 +956,8 @@ class Tracker:
         self._locked = np.zeros(n, bool)
         self._observed = np.zeros(n, bool)
         self._obs_key = None
+        self._obs_used_key = None
+        self._obs_t = -np.inf
         self._mag_flags = (False, False)
         self._mag_recovery_t = -np.inf
         self._flags_t = -np.inf
@@ -963,6 +966,7 @@ class Tracker:
         self._mag_n = 0
         self._mag_t0 = float(t_s)
         self._mag_rot = np.eye(3)  # the base's turn since the averaging period began
+        self._frame_cache = None
         # the tracker starts at the end of a still window: the chair stands still
         self._still_w = 0.0  # EMA of the bias-corrected gyro norm, rad/s
         self._still_mean = None  # EMA of the IMU accelerometer, g
@@ -1049,6 +1053,7 @@ class Tracker:
             if self._ukf is None:
                 self._start_filter(q_enc if self._enc0 is None else self._enc0 / self._cpr)
             self._enc_diff.push(t, q_enc)
+            self._frame_cache = None
         if self._ukf is None:
             return None
         gyro = None
@@ -1080,6 +1085,10 @@ class Tracker:
         self._counts[i, C_USED] += 1
 
     def _frame_now(self, t: float) -> Frames | None:
+        """The mean pose's kinematics at ``t`` (kept for further samples of the same
+        instant: the product of exponentials carries any change of the offsets)."""
+        if self._frame_cache is not None and self._frame_cache[0] == t:
+            return self._frame_cache[1]
         e = self._enc_diff.at(t)
         if e is None:
             return None
@@ -1087,9 +1096,11 @@ class Tracker:
         om = np.zeros(3) if self._omega is None else self._omega - self._ukf.x[L.bias]
         g = self._gyro_diff.at(t)
         omd = np.zeros(3) if g is None else g[1]
-        return make_frames(self.arm, self.accel_names, e[0][None], self._ukf.x[L.offset][None],
-                           e[1][None], e[2][None], om[None], omd[None],
-                           self.settings.motion_compensation, self._joint_effects).take(0)
+        frame = make_frames(self.arm, self.accel_names, e[0][None], self._ukf.x[L.offset][None],
+                            e[1][None], e[2][None], om[None], omd[None],
+                            self.settings.motion_compensation, self._joint_effects).take(0)
+        self._frame_cache = (t, frame)
+        return frame
 
     # -- the step ---------------------------------------------------------------------------
     def _step(self, t: float, gyro: np.ndarray | None, acc, mag, frame: Frames | None,
@@ -1323,8 +1334,11 @@ class Tracker:
                 self._still = False
                 self._still_var = max(self._still_var, 10.0 * st.still_accel_g**2)
             accept[:k] = self._accel_health(t, sel, counts, f, inn, var_a)
-            used = tuple(int(i) for i in sel[accept[:k]] if i < len(self.link_names))
-            self._observability(frame, used, ukf._x)
+            key = (sel.tobytes(), accept[:k].tobytes())
+            if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
+                self._obs_used_key, self._obs_t = key, t
+                used = tuple(int(i) for i in sel[accept[:k]] if i < len(self.link_names))
+                self._observability(frame, used, ukf._x)
         mask = None
         if mag is not None:
             passed = bool(inn.gate_ok[-1]) and not check.disturbed
@@ -1453,33 +1467,28 @@ class Tracker:
     def _detect_shift(self, t: float, which: np.ndarray, nu_w: np.ndarray) -> None:
         """A lasting shift of a link accelerometer's innovations (see ``shift_threshold``),
         on two time scales: a slip shows within a second, a slow drift of the counts over a
-        few. (Four sensors, three axes: plain Python.)"""
-        st = self.settings
-        nl = len(self.link_names)
-        thr = (st.shift_threshold, st.shift_slow_threshold)
-        for s, v in zip(which.tolist(), nu_w.tolist(), strict=True):
-            if s >= nl:
-                continue
-            last = self._shift_t[s]
-            self._shift_t[s] = t
-            if last is None:
-                continue
-            worst = 0.0  # the largest statistic, as a share of its threshold
-            for ema, tau, th in zip(self._shift[s], self._shift_taus, thr, strict=True):
-                a = min(1.0, (t - last) / tau)
-                ema[0] += a * (v[0] - ema[0])
-                ema[1] += a * (v[1] - ema[1])
-                ema[2] += a * (v[2] - ema[2])
-                if a > 0.0:
-                    # the average of unit white noise has variance a / (2 - a)
-                    stat = (ema[0] ** 2 + ema[1] ** 2 + ema[2] ** 2) * (2.0 - a) / a
-                    worst = max(worst, stat / th)
-            self._shift_stat[s] = worst
-            if worst > 1.0 and t >= self._shift_cool[s]:
-                self._reacquire(s, t)
-                for ema in self._shift[s]:
-                    ema[0] = ema[1] = ema[2] = 0.0
-                self._shift_cool[s] = t + st.reacquiring_flag_s
+        few."""
+        link = which < len(self.link_names)
+        if not link.all():
+            which, nu_w = which[link], nu_w[link]
+        last = self._shift_t[which]
+        dt = np.where(np.isnan(last), 0.0, t - last)
+        self._shift_t[which] = t
+        a = np.minimum(1.0, dt[:, None] / self._shift_taus)  # (k, 2)
+        ema = self._shift[which]  # (k, 2, 3)
+        ema += a[:, :, None] * (nu_w[:, None, :] - ema)
+        self._shift[which] = ema
+        # the average of unit white noise has variance a / (2 - a); each scale its threshold
+        with np.errstate(divide="ignore", invalid="ignore"):
+            stat = np.where(a > 0, np.sum(ema**2, axis=2) * (2.0 - a) / a, 0.0) / self._shift_thr
+        worst = stat.max(axis=1)
+        self._shift_stat[which] = worst
+        hit = worst > 1.0
+        if hit.any():
+            for s in which[hit & (t >= self._shift_cool[which])]:
+                self._reacquire(int(s), t)
+                self._shift[s] = 0.0
+                self._shift_cool[s] = t + self.settings.reacquiring_flag_s
 
     def _reacquire(self, i: int, t: float) -> None:
         """A sensor rejected for longer than a bump lasts: widen what it sees, read it again."""
@@ -1648,6 +1657,11 @@ class Tracker:
         self.set_rates({s: (v.rate_hz or 100.0) for s, v in raw.items()})
         t_from = self._t
         t_stop = np.inf if t_stop_s is None else float(t_stop_s)
+        # only what this run needs: its span, and a little history for the differentiators
+        raw = {s: v.between(t_from - 2.0, t_stop + 1e-6) for s, v in raw.items()}
+        raw = {s: v for s, v in raw.items() if len(v)}
+        if ENC not in raw:
+            raise ValueError(f"the recording has no encoder sample after t = {t_from:.3f} s")
         times = np.unique(np.concatenate([v.t_s for v in raw.values()]))
         times = times[(times > t_from + 1e-9) & (times <= t_stop + 1e-9)]
         T = len(times)
@@ -1811,7 +1825,7 @@ class Tracker:
             "guard": None if g is None else g.snapshot(),
             "counters": self._counts.tolist(),
             "still": [self._still_w, self._still_mean, self._still_var, self._still],
-            "shift": [self._shift, self._shift_t],
+            "shift": [self._shift.tolist(), np.nan_to_num(self._shift_t, nan=-1e300).tolist()],
         }
 
     def restore(self, snap: Mapping) -> None:
@@ -1846,8 +1860,9 @@ class Tracker:
         if "still" in snap:
             self._still_w, self._still_mean, self._still_var, self._still = snap["still"]
         if "shift" in snap:
-            self._shift = [[list(map(float, e)) for e in v] for v in snap["shift"][0]]
-            self._shift_t = list(snap["shift"][1])
+            self._shift = np.array(snap["shift"][0], dtype=float)
+            st_ = np.array(snap["shift"][1], dtype=float)
+            self._shift_t = np.where(st_ < -1e299, np.nan, st_)
 
     # -- results ---------------------------------------------------------------------------
     def q_enc_now(self) -> np.ndarray:
