@@ -63,6 +63,9 @@ class DiagnoseSettings:
     """Candidates refitted (the best by the linearised ΔBIC whose score test is significant)."""
     noise_tolerance: float = 1.1
     """``rms_ratio`` at or below this counts as noise (the sensor model's floor ±10 %)."""
+    chunk_rows: int = 400_000
+    """Residual rows per chunk of the score tests' Jacobian (bounds memory: rows × ~200
+    candidate columns × 8 bytes; the evidence sentences use one chunk's worth of points)."""
     effects: tuple[str, ...] | None = None
     """Library effects to consider (None: all)."""
     identify: IdentifySettings = field(default_factory=IdentifySettings)
@@ -301,24 +304,51 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     free_old = np.concatenate([~fit.held[:P0], np.zeros(pb.P - P0, bool), ~fit.held[P0:]])
     fcols = np.flatnonzero(free_old)
     ccols = np.arange(P0, pb.P)
-    r, J = pb.jacobian(z, np.concatenate([fcols, ccols]))
-    Jf, Jc = J[:, :len(fcols)], J[:, len(fcols):]
-    A = Jf.T @ Jf + np.diag(1.0 / pb.sigma0[fcols] ** 2)
-    Jperp = Jc - Jf @ np.linalg.solve(A, Jf.T @ Jc)
-    g_all = Jc.T @ r
-    n_res = len(r)
-    chi2_now = float(r @ r)
+    cols = np.concatenate([fcols, ccols])
+    nf = len(fcols)
+    # the sums the score tests need, accumulated over chunks of the recording (memory stays
+    # bounded on long recordings): JfᵀJf, JfᵀJc, JcᵀJc, Jcᵀr, rᵀr, and each point's Σr²
+    n_axes = sum(data.counts[s].shape[1] for s in pb.streams)
+    per = max(20, int(st.chunk_rows // max(n_axes, 1)))
+    A = np.diag(1.0 / pb.sigma0[fcols] ** 2)
+    B = np.zeros((nf, len(ccols)))
+    CC = np.zeros((len(ccols), len(ccols)))
+    g_all = np.zeros(len(ccols))
+    chi2_now = 0.0
+    n_res = 0
+    ss = np.zeros(data.n)
+    for a0 in range(0, data.n, per):
+        sub = data.subset(slice(a0, a0 + per))
+        rk, Jk = _Problem(pb.model, sub, pb.streams, pb.attitude, z[pb.P:]).jacobian(z, cols)
+        Jf, Jc = Jk[:, :nf], Jk[:, nf:]
+        A += Jf.T @ Jf
+        B += Jf.T @ Jc
+        CC += Jc.T @ Jc
+        g_all += Jc.T @ rk
+        chi2_now += float(rk @ rk)
+        n_res += len(rk)
+        i = 0
+        for s in pb.streams:
+            nk, k = sub.counts[s].shape
+            ss[a0:a0 + nk] += np.sum(rk[i:i + nk * k].reshape(nk, k) ** 2, 1)
+            i += nk * k
+    AiB = np.linalg.solve(A, B)
     rms_ratio = float(np.sqrt(chi2_now / n_res))
     excess = max(chi2_now - n_res, 1e-300)
     lnn = np.log(n_res)
     K = max(len(cands), 1)
-    feat_labels, F = _features(data, arm.joint_names)
-    # row -> (stream, axis) map
+    # the evidence in words is read off (at most) one chunk's worth of evenly spread points
+    stride = int(np.ceil(data.n / per))
+    ev = data.subset(slice(None, None, stride)) if stride > 1 else data
+    r, Je = _Problem(pb.model, ev, pb.streams, pb.attitude, z[pb.P:]).jacobian(z, cols)
+    Jperp = Je[:, nf:] - Je[:, :nf] @ AiB
+    feat_labels, F = _features(ev, arm.joint_names)
+    # row -> (stream, axis) map of the evidence points
     sm = m.stream_models()
     row_axis: list[tuple[str, int, int, int]] = []  # stream, k, start, n
     i = 0
     for s in pb.streams:
-        n, k = data.counts[s].shape
+        n, k = ev.counts[s].shape
         row_axis.append((s, k, i, n))
         i += n * k
     lin = []
@@ -328,7 +358,7 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
         cs = np.arange(sl.start, sl.stop) - P0
         sig_c = pb.sigma0[sl]
         Sp = Jperp[:, cs] * sig_c
-        Ms = Sp.T @ Sp
+        Ms = (CC[np.ix_(cs, cs)] - B[:, cs].T @ AiB[:, cs]) * np.outer(sig_c, sig_c)
         lam, V = np.linalg.eigh(0.5 * (Ms + Ms.T))
         keep = lam > max(1.0, 1e-9 * lam.max(initial=0.0))
         if not keep.any():
@@ -378,8 +408,7 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
         axis_expl = float(1.0 - np.sum((ra + da) ** 2) / max(np.sum(ra**2), 1e-300))
         sensor = sm[s].sensor or s
         axis_name = f"{s if s.startswith('imu') else sensor}'s {sm[s].channels[q]}"
-        g_phys = data.sigma_counts[s][q] / np.abs(sm[s].gain[q]) if np.ndim(data.sigma_counts[s]) \
-            else data.sigma_counts[s] / np.abs(sm[s].gain[q])
+        g_phys = float(np.broadcast_to(data.sigma_counts[s], (k,))[q] / np.abs(sm[s].gain[q]))
         if ra.mean() ** 2 > ra.var():
             follows = (f"is nearly constant ({_fmt_value(float(ra.mean() * g_phys), sm[s].unit)} "
                        f"on average)")
@@ -401,27 +430,24 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
         verdict = FITS_TO_NOISE
     else:
         verdict = "does not fit the noise, and no effect of the library explains it"
-    worst = worst_stretches(r, row_axis, data.state.t_s)
+    worst = worst_stretches(ss / n_axes, data.state.t_s)
     return Diagnosis(fit, data, tuple(axes), rms_ratio, tuple(out), tuple(unseen), verdict,
                      time.perf_counter() - t0, worst)
 
 
-def worst_stretches(r: np.ndarray, row_axis, t_s: np.ndarray, n: int = 3,
+def worst_stretches(chi2_per_point: np.ndarray, t_s: np.ndarray, n: int = 3,
                     span_s: float = 5.0) -> tuple[tuple[float, float, float], ...]:
-    """The ``n`` non-overlapping stretches of about ``span_s`` where the residual (all axes,
-    noise-weighted) is largest: ``(t_start, t_end, rms_ratio)``."""
+    """The ``n`` non-overlapping stretches of about ``span_s`` where the residual (mean over
+    the axes of the noise-weighted r² at each fit point) is largest:
+    ``(t_start, t_end, rms_ratio)``."""
     m = len(t_s)
     if m < 3:
         return ()
-    ss = np.zeros(m)
-    na = 0
-    for _, k, a, nn in row_axis:
-        ss += np.sum(r[a:a + nn * k].reshape(nn, k) ** 2, 1)
-        na += k
+    ss = np.asarray(chi2_per_point, float)
     dt = float(np.median(np.diff(t_s)))
     w = int(max(1, min(m, round(span_s / max(dt, 1e-9)))))
     c = np.concatenate([[0.0], np.cumsum(ss)])
-    win = (c[w:] - c[:-w]) / (w * na)
+    win = (c[w:] - c[:-w]) / w
     out = []
     taken = np.zeros(len(win), bool)
     for i in np.argsort(-win):
