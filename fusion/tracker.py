@@ -54,6 +54,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.linalg import lapack
 from scipy.stats import chi2
 
 from fusion.heading import (
@@ -66,7 +67,7 @@ from fusion.heading import (
 from fusion.startup import StartupResult
 from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound, wrap_angle
 from models.arm import ArmModel
-from models.motion import MotionState, cross, link_motion, sensor_motion
+from models.motion import MotionState, link_motion, sensor_motion
 from models.rotations import GRAVITY_MPS2, skew
 from models.sensor_models import (
     MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
@@ -571,13 +572,21 @@ class _AccelRing:
         """``which (k,)`` sensor indices; ``nu (k, 3)``, ``S (k, 3, 3)``, ``nis``, ``ok (k,)``."""
         i = self.n % self.cap
         self.t[i] = t
-        self.present[i] = False
-        self.present[i, which] = True
-        self.nu[i, which] = nu
-        self.S[i, which] = S
-        self.nis[i, which] = nis
-        self.ok[i, which] = ok
         self.n += 1
+        if len(which) == self.present.shape[1]:  # every sensor, in order: whole rows
+            self.present[i] = True
+            self.nu[i], self.S[i], self.nis[i], self.ok[i] = nu, S, nis, ok
+            if np.isfinite(nis).all():
+                self.nis_sum += nis
+                self.nis_count += 1
+                return
+        else:
+            self.present[i] = False
+            self.present[i, which] = True
+            self.nu[i, which] = nu
+            self.S[i, which] = S
+            self.nis[i, which] = nis
+            self.ok[i, which] = ok
         good = np.isfinite(nis)
         self.nis_sum[which[good]] += nis[good]
         self.nis_count[which[good]] += 1
@@ -942,6 +951,9 @@ class Tracker:
         self._shift_t = np.full(Sa, np.nan)
         self._shift_cool = np.full(Sa, -np.inf)
         self._shift_stat = np.zeros(Sa)
+        self._shift_sum = np.zeros((Sa, 3))
+        self._shift_n = np.zeros(Sa, dtype=np.int64)
+        self._shift_block_t = float(t_s)
         self._reacq_log: dict[int, list[float]] = {}
         self._stuck = np.zeros(Sa, bool)
         self._dead = np.zeros(Sa, bool)
@@ -1393,13 +1405,23 @@ class Tracker:
                 Su = Sb[:k]
                 nu = inn.innovation[: 3 * k].reshape(k, 3)
                 self._acc_ring.add(t, sel, nu, Su, inn.nis[:k], ok)
-                self._detect_shift(t, sel, nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2)))
+                u = sel
             else:
-                u = np.flatnonzero(usable)
-                rr = self._acc_rows[u]
-                Su = Sb[u]
-                self._acc_ring.add(t, sel[u], inn.innovation[rr], Su, inn.nis[u], ok[u])
-                self._detect_shift(t, sel[u], inn.innovation[rr] / np.sqrt(np.diagonal(Su, axis1=1, axis2=2)))
+                ui = np.flatnonzero(usable)
+                nu = inn.innovation[self._acc_rows[ui]]
+                Su = Sb[ui]
+                u = sel[ui]
+                self._acc_ring.add(t, u, nu, Su, inn.nis[ui], ok[ui])
+            # the slip detector sees the normalised innovations, averaged over 50 ms
+            self._shift_sum[u] += nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2))
+            self._shift_n[u] += 1
+            if t - self._shift_block_t >= 0.05:
+                have = np.flatnonzero(self._shift_n > 0)
+                n_ = self._shift_n[have]
+                self._detect_shift(t, have, self._shift_sum[have] / n_[:, None], n_)
+                self._shift_sum[:] = 0.0
+                self._shift_n[:] = 0
+                self._shift_block_t = t
         return ok
 
     def _accel_health_slow(self, t, sel, counts, zp, inn, var, same, implausible):
@@ -1464,13 +1486,13 @@ class Tracker:
                                   or h[5] is not None or bool(self._dead[s]) or bool(self._rejecting[s]))
         return ok, usable
 
-    def _detect_shift(self, t: float, which: np.ndarray, nu_w: np.ndarray) -> None:
+    def _detect_shift(self, t: float, which: np.ndarray, nu_w: np.ndarray, count: np.ndarray) -> None:
         """A lasting shift of a link accelerometer's innovations (see ``shift_threshold``),
         on two time scales: a slip shows within a second, a slow drift of the counts over a
-        few."""
+        few. ``nu_w`` are the normalised innovations averaged over ``count`` samples."""
         link = which < len(self.link_names)
         if not link.all():
-            which, nu_w = which[link], nu_w[link]
+            which, nu_w, count = which[link], nu_w[link], count[link]
         last = self._shift_t[which]
         dt = np.where(np.isnan(last), 0.0, t - last)
         self._shift_t[which] = t
@@ -1478,9 +1500,11 @@ class Tracker:
         ema = self._shift[which]  # (k, 2, 3)
         ema += a[:, :, None] * (nu_w[:, None, :] - ema)
         self._shift[which] = ema
-        # the average of unit white noise has variance a / (2 - a); each scale its threshold
+        # the average of unit white noise (block means of n samples) has variance
+        # a / (2 - a) / n; each time scale has its threshold
         with np.errstate(divide="ignore", invalid="ignore"):
-            stat = np.where(a > 0, np.sum(ema**2, axis=2) * (2.0 - a) / a, 0.0) / self._shift_thr
+            stat = np.where(a > 0, np.sum(ema**2, axis=2) * (2.0 - a) / a * count[:, None], 0.0)
+        stat /= self._shift_thr
         worst = stat.max(axis=1)
         self._shift_stat[which] = worst
         hit = worst > 1.0
@@ -1547,13 +1571,14 @@ class Tracker:
         info = np.zeros((n, n))
         if len(sel):
             v = frame.motion_mps2[sel] + (x[L.accel] + G * up)[None, :]  # (S', 3)
-            # df_s/d offset_j = R_0S^T (v_s x a_j) / g for the joints before the sensor's link
-            cr = cross(v[:, None, :], frame.axes[None, :, :])  # (S', n, 3)
+            # df_s/d offset_j = R_0S^T (v_s x a_j) / g for the joints before the sensor's link;
+            # v x a_j = -[a_j]x v
+            cr = -np.einsum("nij,sj->sni", frame.K, v)  # (S', n, 3)
             J = np.einsum("sji,snj->sin", frame.R_0S[sel], cr) / G  # (S', 3, n)
             J = J * self._sees[sel][:, None, :]
             W = J / self._accel_sigma_g[sel][:, :, None]
             info = np.einsum("sin,sim,s->nm", W, W, self._accel_rate[sel]) * st.observability_window_s
-        lam, V = np.linalg.eigh(info)
+        lam, V, _ = lapack.dsyevd(info)
         V2 = V**2
         readable = lam > 1e-12
         self._achievable = np.sqrt((V2[:, readable] / lam[readable]).sum(axis=1))
@@ -1572,10 +1597,10 @@ class Tracker:
             dirs.append(np.eye(n)[:, locked])
         if dirs:
             B = np.concatenate(dirs, axis=1)
-            u, sv, _ = np.linalg.svd(B, full_matrices=False)
-            B = u[:, sv > 1e-6]
+            w, U, _ = lapack.dsyevd(B @ B.T)  # the span of the held directions
+            U = U[:, w > 1e-6]
             T = np.eye(L.size)
-            T[:n, :n] -= B @ B.T
+            T[:n, :n] -= U @ U.T
             self._hold = T
         else:
             self._hold = None

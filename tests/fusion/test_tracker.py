@@ -182,9 +182,9 @@ def test_without_motion_compensation_the_same_drift_test_fails(arm, driving):
                                  prior_q_rad=POSE + 0.05)
     run = tr.run(driving)
     late = rms_deg(run, 30.0)
-    # the chair's accelerations read as tilts of gravity: tenths of a degree and more
-    assert late.max() > 0.25, late
-    assert np.sum(late > 0.05) >= 4, late
+    # the chair's accelerations read as tilts of gravity: the same test fails, by far
+    assert not np.all(late < 0.05), late
+    assert late.max() > 0.5, late
 
 
 # --------------------------------------------------------------------------------------
