@@ -385,7 +385,6 @@ def causal_fits(t: np.ndarray, y: np.ndarray, window: int, order: int) -> np.nda
 
 # --------------------------------------------------------------------------------------
 # kinematic frames: the mean pose's kinematics at each instant
-@dataclass(frozen=True)
 class Frames:
     """The kinematics at the reference poses of K instants (batched).
 
@@ -396,23 +395,22 @@ class Frames:
     (link accelerometers then the IMU); ``axes (K, n, 3)`` the joint axes in base axes.
     """
 
-    q_ref: np.ndarray
-    offset_ref: np.ndarray
-    R_0S: np.ndarray
-    motion_mps2: np.ndarray
-    axes: np.ndarray
-    p_0S_m: np.ndarray
-    omega_dot_B: np.ndarray
-    K: np.ndarray  # (K, n, 3, 3) skew matrices of the axes
-    K2: np.ndarray  # their squares
-    motion_g: np.ndarray  # (K, S) |motion| in g
-    dist2_m2: np.ndarray  # (K, S) squared distance of each sensor from the base origin
-    omega_dot_norm: np.ndarray  # (K,)
+    FIELDS = ("q_ref", "offset_ref", "R_0S", "motion_mps2", "axes", "p_0S_m", "omega_dot_B", "K", "K2",
+              "motion_g", "dist2_m2", "omega_dot_norm")
+    # K (., n, 3, 3): the axes' skew matrices, K2 their squares; motion_g (., S): |motion| in g;
+    # dist2_m2 (., S): each sensor's squared distance from the base origin
+    __slots__ = FIELDS
+
+    def __init__(self, *values):
+        for name, v in zip(self.FIELDS, values, strict=True):
+            object.__setattr__(self, name, v)
+
+    def __setattr__(self, name, value):
+        raise AttributeError("Frames are read-only")
 
     def take(self, k: int) -> Frames:
-        return Frames(self.q_ref[k], self.offset_ref[k], self.R_0S[k], self.motion_mps2[k], self.axes[k],
-                      self.p_0S_m[k], self.omega_dot_B[k], self.K[k], self.K2[k], self.motion_g[k],
-                      self.dist2_m2[k], self.omega_dot_norm[k])
+        """The frame of instant ``k`` (a plain read-only record; one per fused instant)."""
+        return Frames(*(getattr(self, f)[k] for f in self.FIELDS))
 
 
 def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset: np.ndarray,
@@ -814,6 +812,8 @@ class Tracker:
         self._nees_ix = np.ix_(self._nees_idx, self._nees_idx)
         self._acc_rows = np.arange(3 * len(self.accel_streams)).reshape(-1, 3)
         self._link_cache: dict = {}
+        self._zeros3 = np.zeros(3)
+        self._still_var3 = np.full(3, st.still_accel_sigma_mps2**2)
         self._eye3 = np.eye(3)
         self._Q_cache: dict = {}
         self._links_list = [int(k) for k in self._links[: len(self.link_names)]]
@@ -851,6 +851,7 @@ class Tracker:
             floor = max(st.accel_floor_g, self._unmodelled_g[i])
             sig.append(np.sqrt((m.noise_counts_rms / np.abs(m.gain)) ** 2 + floor**2))
         self._accel_sigma_g = np.array(sig).reshape(-1, 3)  # (S, 3)
+        self._accel_var_g2 = self._accel_sigma_g**2
         self._accel_rate = np.array([rates[s] for s in self.accel_streams])
         # noise of the gyro's causal derivative: the fit's weights on unit white noise
         r = rates.get(GYRO, 100.0)
@@ -1312,13 +1313,13 @@ class Tracker:
             wd_err = (self._omega_dot_noise
                       + st.angular_accel_error_fraction * float(frame.omega_dot_norm)) / G
             extra = (st.motion_model_fraction * frame.motion_g[sel]) ** 2 + wd_err**2 * frame.dist2_m2[sel]
-            var_a = self._accel_sigma_g[sel] ** 2 + extra[:, None]
+            var_a = self._accel_var_g2[sel] + extra[:, None]
             zs.append(f.reshape(-1))
             var.append(var_a.reshape(-1))
         still = self._still and acc is not None and st.motion_compensation
         if still:
-            zs.append(np.zeros(3))
-            var.append(np.full(3, st.still_accel_sigma_mps2**2))
+            zs.append(self._zeros3)
+            var.append(self._still_var3)
         n_still = 3 if still else 0
         if mag is not None:
             m_count, m_B = mag

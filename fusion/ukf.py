@@ -206,31 +206,12 @@ class GroupPlan:
             self.last_blocks[k] = (which, Sg)
             if k == 1:
                 out[which] = v[:, 0] ** 2 / Sg[:, 0, 0]
-            elif k == 3:
-                out[which] = _nis3(v, Sg)
             else:
                 try:
                     out[which] = np.einsum("gi,gi->g", v, np.linalg.solve(Sg, v[..., None])[..., 0])
                 except np.linalg.LinAlgError:
                     out[which] = group_nis(nu, S, [self.rows[i] for i in which])
         return out
-
-
-def _nis3(v: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """``v^T S^-1 v`` for a batch of 3x3 symmetric ``S`` by the adjugate (no LAPACK call)."""
-    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
-    d, e, f = S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]
-    A = d * f - e * e
-    B = c * e - b * f
-    C = b * e - c * d
-    D = a * f - c * c
-    E = b * c - a * e
-    F = a * d - b * b
-    det = a * A + b * B + c * C
-    x, y, z = v[:, 0], v[:, 1], v[:, 2]
-    q = A * x * x + D * y * y + F * z * z + 2.0 * (B * x * y + C * x * z + E * y * z)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(det > 0, q / det, np.inf)
 
 
 @dataclass(frozen=True)
