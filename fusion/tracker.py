@@ -161,13 +161,17 @@ class TrackerSettings:
     """Chi-square gate on each sensor's NIS: probability that a good sample is rejected."""
     reacquire_after_s: float = 0.4
     """A sensor rejected for this long is a state change (a slip), not a bump."""
-    slip_sigma_deg: float = 1.5
-    """How much the offsets a rejecting sensor sees are widened when it re-acquires."""
+    slip_sigma_deg: float = 1.0
+    """How much the offsets a disagreeing sensor sees are widened when it re-acquires
+    (doubled each time it happens again within 10 s)."""
     reacquiring_flag_s: float = 3.0
     shift_tau_s: float = 1.0
     shift_slow_tau_s: float = 4.0
-    shift_threshold: float = 40.0
-    shift_slow_threshold: float = 16.0
+    shift_threshold: float = 60.0
+    shift_slow_threshold: float = 24.0
+    shift_max_angular_accel_rad_s2: float = 0.5
+    """The slip detector pauses while the base's angular acceleration exceeds this (a chair
+    starting or stopping a turn) or the IMU accelerometer disagrees with the model."""
     """Slip detector: each link accelerometer's innovation, normalised per axis and averaged
     over ``shift_tau_s`` and over ``shift_slow_tau_s`` (exponential averages), is tested
     against zero; a chi-square (3 dof) above ``shift_threshold`` (``shift_slow_threshold``
@@ -985,6 +989,8 @@ class Tracker:
         self._still_mean = None  # EMA of the IMU accelerometer, g
         self._still_var = 0.0  # EMA of its squared deviation, g^2 (summed over axes)
         self._still = True
+        self._imu_nis_ema = 3.0
+        self._imu_nis_t = float(t_s)
 
     def _start_filter(self, q_enc: np.ndarray) -> None:
         L = self.layout
@@ -1178,8 +1184,12 @@ class Tracker:
                     d = [u - v for u, v in zip(fi, self._still_mean, strict=True)]
                     self._still_mean = [m + a * e for m, e in zip(self._still_mean, d, strict=True)]
                     self._still_var += a * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - self._still_var)
+        # and the filter itself no longer sees the chair accelerate (a smooth stop looks
+        # quiet to the averages before it is over)
+        ax, ay, az = self._ukf._x[self.layout.accel].tolist()
         self._still = (self._still_w < st.still_gyro_dps * DEG
-                       and self._still_var < 3.0 * st.still_accel_g**2)
+                       and self._still_var < 3.0 * st.still_accel_g**2
+                       and ax * ax + ay * ay + az * az < (2.0 * st.still_accel_g * G) ** 2)
 
     def _fx(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
         """The process model, every sigma point at once: the gyro (minus each point's bias)
@@ -1337,16 +1347,36 @@ class Tracker:
                            angle_rows=(3 * k + n_still,) if mag is not None else (),
                            frame=frame, sel=sel, m_B=m_B, still=still)
         accept = inn.gate_ok.copy()
-        if still and not inn.gate_ok[k]:
-            # the chair set off: it is no longer still (the averages will say so later)
-            self._still = False
-            self._still_var = max(self._still_var, 10.0 * st.still_accel_g**2)
+        set_off = still and not inn.gate_ok[k]
+        imu_ok = True
         if k:
             imu = np.flatnonzero(sel == self._imu_acc_index)
-            if len(imu) and not inn.gate_ok[imu[0]]:
-                self._still = False
-                self._still_var = max(self._still_var, 10.0 * st.still_accel_g**2)
-            accept[:k] = self._accel_health(t, sel, counts, f, inn, var_a)
+            if len(imu):
+                # the IMU's NIS, averaged over 0.2 s: a chair that sets off smoothly shows there
+                # before any average of the raw readings does
+                a = min(1.0, max(t - self._imu_nis_t, 0.0) / 0.2)
+                self._imu_nis_t = t
+                self._imu_nis_ema += a * (min(float(inn.nis[imu[0]]), 100.0) - self._imu_nis_ema)
+                imu_ok = bool(inn.gate_ok[imu[0]]) and self._imu_nis_ema < 6.0
+            set_off |= self._still and not imu_ok
+            # the slip detector listens only while the base behaves as modelled: the IMU
+            # agrees and the chair is not wrenched about (a lurch is common to all sensors)
+            calm = (imu_ok and self._imu_nis_ema < 4.5
+                    and float(frame.omega_dot_norm) < st.shift_max_angular_accel_rad_s2)
+        if set_off:
+            # the chair set off: it is no longer still (the averages will say so later), and
+            # its acceleration, held near zero while it stood, must be free to follow at once
+            self._still = False
+            self._still_var = max(self._still_var, 10.0 * st.still_accel_g**2)
+            ukf.inflate(np.arange(L.accel.start, L.accel.stop), st.base_accel_sigma_mps2**2)
+            inn = ukf.innovate(z, self._h_all, R, plan,
+                               angle_rows=(3 * k + n_still,) if mag is not None else (),
+                               frame=frame, sel=sel, m_B=m_B, still=still)
+            accept = inn.gate_ok.copy()
+            if still:
+                accept[k] = False
+        if k:
+            accept[:k] = self._accel_health(t, sel, counts, f, inn, var_a, shift=calm and not set_off)
             key = (sel.tobytes(), accept[:k].tobytes())
             if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
                 self._obs_used_key, self._obs_t = key, t
@@ -1379,7 +1409,7 @@ class Tracker:
         ukf.correct(inn, accept, self._hold, mask)
 
     def _accel_health(self, t: float, sel: np.ndarray, counts: np.ndarray, f: np.ndarray, inn,
-                      var: np.ndarray) -> np.ndarray:
+                      var: np.ndarray, shift: bool = True) -> np.ndarray:
         """Stuck, implausible (dead) and gate verdicts for the accelerometers ``sel``;
         returns which may enter the update. (A handful of sensors: plain Python is faster
         here than array calls.)"""
@@ -1413,10 +1443,16 @@ class Tracker:
                 Su = Sb[ui]
                 u = sel[ui]
                 self._acc_ring.add(t, u, nu, Su, inn.nis[ui], ok[ui])
-            # the slip detector sees the normalised innovations, averaged over 50 ms
-            self._shift_sum[u] += nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2))
-            self._shift_n[u] += 1
-            if t - self._shift_block_t >= 0.05:
+            # the slip detector sees the normalised innovations, averaged over 50 ms; not
+            # while the IMU disagrees too (the chair lurched: that is common to all sensors)
+            if shift:
+                self._shift_sum[u] += nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2))
+                self._shift_n[u] += 1
+            else:  # paused: the averages keep what they had, and do not count the pause
+                self._shift_t[u] = t
+                self._shift_sum[u] = 0.0
+                self._shift_n[u] = 0
+            if t - self._shift_block_t >= 0.05 and self._shift_n.any():
                 have = np.flatnonzero(self._shift_n > 0)
                 n_ = self._shift_n[have]
                 self._detect_shift(t, have, self._shift_sum[have] / n_[:, None], n_)
