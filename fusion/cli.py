@@ -154,6 +154,7 @@ def _register_subcommands() -> None:
     register_drivers(app)
     from fusion.service.commands import register as register_service; register_service(app)  # noqa: E702, I001
     from fusion.diagnose_cmd import register as register_diagnose; register_diagnose(app)  # noqa: E702, I001
+    from fusion.track_cmd import register as register_track; register_track(app)  # noqa: E702, I001
     app.add_typer(calibrate_app, name="calibrate")
 
 

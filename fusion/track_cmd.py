@@ -11,7 +11,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from fusion.cli import (
+from fusion.cli_common import (
     ConfigOpt,
     JsonOpt,
     console,
