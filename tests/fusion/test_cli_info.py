@@ -44,8 +44,8 @@ def test_bad_config_is_one_clear_error(tmp_path):
     assert "Traceback" not in r.output
 
 
-@pytest.mark.parametrize("cmd", [[], ["info"], ["inspect"], ["simulate"], ["drivers"], ["track"], ["diagnose"],
-                                 ["serve"], ["replay"], ["record"], ["calibrate", "joints"],
+@pytest.mark.parametrize("cmd", [[], ["info"], ["inspect"], ["simulate"], ["drivers"], ["track"],
+                                 ["diagnose"], ["serve"], ["replay"], ["record"], ["calibrate", "joints"],
                                  ["calibrate", "sensors"]])
 def test_help_everywhere(cmd):
     r = runner.invoke(app, [*cmd, "--help"])
