@@ -57,6 +57,8 @@ class StartupSettings:
     """Joints with a linear sigma above this get the profile (non-quadratic) check."""
     limit_margin_deg: float = 0.5
     """Readings are noisy: a branch this close outside a limit is still feasible."""
+    limit_reach_deg: float = 45.0
+    """A branch at most this far outside a limit is also tried held at the limit."""
 
 
 @dataclass(frozen=True)
@@ -497,6 +499,11 @@ def solve_still(
     else:
         roll0 = pitch0 = 0.0
     starts = _closed_form_branches(problem, roll0, pitch0)
+    prior = arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
+    if method == "joint":
+        # Near a singular pair the closed-form starts are noisy and LM from them can miss
+        # the branch nearest the prior (it slides into a neighbouring one): start there too.
+        starts = np.vstack([starts, prior[None]])
     x0 = np.concatenate([starts, np.tile([roll0, pitch0], (len(starts), 1))], 1)
     free = np.ones(n + 2, dtype=bool)
     if method == "joint":
@@ -505,7 +512,22 @@ def solve_still(
         x, cost = _sequential(problem, x0, st)
     else:
         raise ValueError(f"unknown method {method!r}: use 'joint' or 'sequential'")
-    x[:, :n] = (arm.min_rad + arm.max_rad) / 2 + _wrap(x[:, :n] - (arm.min_rad + arm.max_rad) / 2)
+    mid = (arm.min_rad + arm.max_rad) / 2
+    x[:, :n] = mid + _wrap(x[:, :n] - mid)
+    margin = st.limit_margin_deg * DEG
+    # A minimum just outside a limit (a flat valley, noise pushing its floor past the limit)
+    # leaves a real solution at the limit itself: hold the joints there, re-solve the rest,
+    # and let that constrained solution compete like any other branch.
+    past = np.maximum(arm.min_rad - margin - x[:, :n], x[:, :n] - arm.max_rad - margin)
+    near_out = (past > 0).any(1) & (past.max(1) < st.limit_reach_deg * DEG)
+    if near_out.any():
+        xc = x[near_out].copy()
+        xc[:, :n] = np.clip(xc[:, :n], arm.min_rad, arm.max_rad)
+        free_c = np.ones((len(xc), n + 2), dtype=bool)
+        free_c[:, :n] = ~(past[near_out] > 0)
+        xc, cost_c = _batched_lm(problem, xc, free_c, st.max_iterations)
+        xc[:, :n] = mid + _wrap(xc[:, :n] - mid)
+        x, cost = np.vstack([x, xc]), np.concatenate([cost, cost_c])
     # drop branches that fit much worse than the best (not real solutions of the data)
     good = cost <= cost.min() + 0.5 * 9.0 + 1e-9
     x, cost = x[good], cost[good]
@@ -515,11 +537,9 @@ def solve_still(
     axis_deg = np.degrees(_axis_to_vertical(arm, q_all, x[:, n], x[:, n + 1]))
     locked_any = axis_deg < st.gimbal_lock_deg  # (B, n)
     # feasibility: locked joints can take any value, so only readable joints are checked
-    margin = st.limit_margin_deg * DEG
     inside = (arm.within_limits(q_all, margin) | locked_any).all(1)
     feasible_idx = np.flatnonzero(inside)
     branches = _dedupe(q_all[feasible_idx] if len(feasible_idx) else q_all, 1e-3)
-    prior = arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
     if len(feasible_idx):
         cand = feasible_idx
     else:
