@@ -46,7 +46,7 @@ from fusion.identify import (
     identify,
     with_encoder_zeros,
 )
-from models.effects import EFFECTS, Effect, Model, all_effects
+from models.effects import EFFECTS, Effect, JointEffect, Model, all_effects
 
 DEG = np.pi / 180.0
 EXCLUDED_CANDIDATES = frozenset({"enc.time_offset"})
@@ -59,8 +59,10 @@ FITS_TO_NOISE = "fits to noise"
 class DiagnoseSettings:
     alpha: float = 0.05
     """Family-wise false-alarm rate of the score tests (Bonferroni over the candidates)."""
-    n_refit: int = 3
+    n_refit: int = 5
     """Candidates refitted (the best by the linearised ΔBIC whose score test is significant)."""
+    evidence_points: int = 3000
+    """Fit points (evenly spread) the evidence sentences are read off."""
     noise_tolerance: float = 1.1
     """``rms_ratio`` at or below this counts as noise (the sensor model's floor ±10 %)."""
     chunk_rows: int = 400_000
@@ -147,6 +149,8 @@ class Diagnosis:
     seconds: float
     worst: tuple[tuple[float, float, float], ...] = ()
     """The worst stretches of the recording: ``(t_start_s, t_end_s, rms_ratio there)``."""
+    analysis: ResidualAnalysis | None = None
+    """Whiteness and cross-correlation of the residuals with the inputs."""
 
     @property
     def model(self) -> Model:
@@ -182,8 +186,166 @@ class Diagnosis:
             "fit": {"chi2_red": self.fit.chi2_red, "n_samples": self.fit.n_samples,
                     "n_residuals": self.fit.n_residuals,
                     "held": [h.element for h in self.fit.holds], "notes": list(self.fit.notes)},
+            "residual_analysis": None if self.analysis is None else self.analysis.as_dict(),
             "seconds": round(self.seconds, 3),
         }
+
+
+# --------------------------------------------------------------------------------------
+# where it fails: whiteness and cross-correlation with the inputs (as MATLAB's ``resid``)
+MAX_LAG = 25
+"""Lags (fit points, either side) of the auto- and cross-correlations (MATLAB's default)."""
+BAND_Z = 2.58
+"""The 99 % band of a correlation estimate of white residuals: ±2.58/√N."""
+
+
+@dataclass(frozen=True)
+class InputCorrelation:
+    """One residual axis against one input: the largest cross-correlation within ±MAX_LAG."""
+
+    stream: str
+    axis: str
+    input: str
+    r: float
+    lag: int
+    """Fit points; positive: the residual follows the input that many points later."""
+    r_lag0: float
+
+
+@dataclass(frozen=True)
+class ResidualAnalysis:
+    """Autocorrelation (whiteness) of every residual axis and its cross-correlation with every
+    input (joint angles, rates, accelerations, the chair's acceleration, the temperature).
+
+    For white residuals each estimate is about N(0, 1/N): MATLAB's ``resid`` draws the 99 %
+    band ``±2.58/√N``. Beyond that band one pair in a hundred still strays by chance, and
+    there are axes × inputs × lags of them, so a correlation is **flagged** only beyond the
+    band corrected for that many tests (Bonferroni at 1 %): a model that fits to noise shows
+    no flag in 99 % of recordings."""
+
+    axes: tuple[tuple[str, str], ...]
+    inputs: tuple[str, ...]
+    n: int
+    dt_s: float
+    max_lag: int
+    autocorr: np.ndarray
+    """``(axes, max_lag + 1)``: lags 0 (= 1) to max_lag."""
+    xcorr: np.ndarray
+    """``(axes, inputs, 2 max_lag + 1)``: lags -max_lag … max_lag."""
+    constant_inputs: tuple[str, ...] = ()
+    """Inputs that do not vary in this recording (left out: no correlation to speak of)."""
+    source: str = "fit residuals"
+
+    @property
+    def band(self) -> float:
+        return BAND_Z / np.sqrt(max(self.n, 1))
+
+    @property
+    def band_flag(self) -> float:
+        from scipy.stats import norm
+
+        tests = max(len(self.axes) * max(len(self.inputs), 1) * (2 * self.max_lag + 1), 1)
+        return float(norm.isf(0.005 / tests) / np.sqrt(max(self.n, 1)))
+
+    @property
+    def band_flag_autocorr(self) -> float:
+        from scipy.stats import norm
+
+        return float(norm.isf(0.005 / max(len(self.axes) * self.max_lag, 1)) / np.sqrt(max(self.n, 1)))
+
+    def correlations(self) -> list[InputCorrelation]:
+        """Every axis-input pair's strongest correlation, strongest first."""
+        out = []
+        L = self.max_lag
+        for a, (s, ax) in enumerate(self.axes):
+            for i, lab in enumerate(self.inputs):
+                c = self.xcorr[a, i]
+                k = int(np.argmax(np.abs(c)))
+                out.append(InputCorrelation(s, ax, lab, float(c[k]), k - L, float(c[L])))
+        return sorted(out, key=lambda c: -abs(c.r))
+
+    def flagged(self) -> list[InputCorrelation]:
+        return [c for c in self.correlations() if abs(c.r) > self.band_flag]
+
+    def not_white(self) -> list[tuple[str, str, float]]:
+        """Axes whose autocorrelation strays beyond the corrected band at some lag:
+        ``(stream, axis, largest |autocorrelation|)``."""
+        out = []
+        for a, (s, ax) in enumerate(self.axes):
+            m = float(np.max(np.abs(self.autocorr[a, 1:]))) if self.max_lag else 0.0
+            if m > self.band_flag_autocorr:
+                out.append((s, ax, m))
+        return sorted(out, key=lambda t: -t[2])
+
+    @property
+    def white(self) -> bool:
+        return not self.not_white() and not self.flagged()
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "source": self.source, "n": self.n, "dt_s": self.dt_s, "max_lag": self.max_lag,
+            "band_99": round(self.band, 5), "band_flag": round(self.band_flag, 5),
+            "band_flag_autocorr": round(self.band_flag_autocorr, 5),
+            "inputs": list(self.inputs), "constant_inputs": list(self.constant_inputs),
+            "white": self.white,
+            "autocorr": [{"stream": s, "axis": ax, "r": np.round(self.autocorr[a, 1:], 4).tolist()}
+                         for a, (s, ax) in enumerate(self.axes)],
+            "not_white": [{"stream": s, "axis": ax, "max_abs_r": round(m, 4)}
+                          for s, ax, m in self.not_white()],
+            "flagged": [{"stream": c.stream, "axis": c.axis, "input": c.input, "r": round(c.r, 4),
+                         "lag": c.lag, "r_lag0": round(c.r_lag0, 4)} for c in self.flagged()],
+            "xcorr_lag0": {f"{s}:{ax}": {lab: round(float(self.xcorr[a, i, self.max_lag]), 4)
+                                         for i, lab in enumerate(self.inputs)}
+                           for a, (s, ax) in enumerate(self.axes)},
+        }
+
+
+def fit_inputs(state, joint_names: Sequence[str]) -> dict[str, np.ndarray]:
+    """The inputs a residual is held against: each joint's angle, rate and acceleration, the
+    chair's acceleration (base axes) and the temperature, at the fit points."""
+    out: dict[str, np.ndarray] = {}
+    N = state.t_s.shape[0]
+    for j, jn in enumerate(joint_names):
+        k = jn[1:] if jn.startswith("j") else jn
+        out[f"q{k}"] = state.q_rad[:, j]
+        out[f"rate q{k}"] = state.qd_rad_s[:, j]
+        out[f"accel q{k}"] = state.qdd_rad_s2[:, j]
+    a = np.broadcast_to(np.asarray(state.accel_B_mps2, float), (N, 3))
+    for c, lab in enumerate("xyz"):
+        out[f"chair accel {lab}"] = a[:, c]
+    out["temperature"] = np.broadcast_to(np.asarray(state.temperature_c, float), (N,))
+    return out
+
+
+def residual_analysis(E: np.ndarray, axes: Sequence[tuple[str, str]], inputs: dict[str, np.ndarray],
+                      dt_s: float, max_lag: int = MAX_LAG, source: str = "fit residuals") -> ResidualAnalysis:
+    """Auto- and cross-correlations (biased, 1/N, as MATLAB's ``resid``) of the residuals
+    ``E (N, axes)`` and the ``inputs`` (each ``(N,)``), lags -max_lag … max_lag."""
+    E = np.asarray(E, float)
+    N = E.shape[0]
+    L = int(max(0, min(max_lag, N - 2)))
+    Ec = E - E.mean(0)
+    sd = Ec.std(0)
+    Ec = Ec / np.where(sd > 0, sd, 1.0)
+    labels, cols, const = [], [], []
+    for lab, u in inputs.items():
+        u = np.asarray(u, float)
+        s = u.std()
+        if not np.isfinite(s) or s <= 1e-12 * max(np.abs(u).max(), 1e-300):
+            const.append(lab)
+            continue
+        labels.append(lab)
+        cols.append((u - u.mean()) / s)
+    U = np.stack(cols, 1) if cols else np.zeros((N, 0))
+    ac = np.ones((E.shape[1], L + 1))
+    X = np.zeros((E.shape[1], U.shape[1], 2 * L + 1))
+    for lag in range(0, L + 1):
+        if lag:
+            ac[:, lag] = np.sum(Ec[lag:] * Ec[:-lag], 0) / N
+        X[:, :, L + lag] = Ec[lag:].T @ U[:N - lag] / N
+        if lag:
+            X[:, :, L - lag] = Ec[:N - lag].T @ U[lag:] / N
+    return ResidualAnalysis(tuple(axes), tuple(labels), N, float(dt_s), L, ac, X, tuple(const), source)
 
 
 # --------------------------------------------------------------------------------------
@@ -215,21 +377,18 @@ def _problem(fit: Identification, data: FitData, extra: Sequence[Effect], stream
     return pb, pb.x0.copy()
 
 
-def _axes(pb: _Problem, z: np.ndarray, data: FitData, model: Model) -> list[AxisFit]:
-    pred = pb.predict(z)
+def _axes(R: np.ndarray, data: FitData, streams: Sequence[str], model: Model) -> list[AxisFit]:
+    """Per sensor axis from the noise-weighted residuals ``R (N, axes)`` (streams in order)."""
     sm = model.stream_models()
     out = []
     i = 0
-    for s in pb.streams:
-        shape = data.counts[s].shape
-        n = data.counts[s].size
-        y = pb.meas[i:i + n].reshape(shape)
-        yh = pred[i:i + n].reshape(shape)
-        i += n
+    for s in streams:
+        y = data.counts[s]
         g = np.abs(sm[s].gain)
-        sig = np.broadcast_to(data.sigma_counts[s], (shape[1],))
-        for k in range(shape[1]):
-            e = yh[:, k] - y[:, k]
+        sig = np.broadcast_to(data.sigma_counts[s], (y.shape[1],))
+        for k in range(y.shape[1]):
+            e = R[:, i] * sig[k]  # counts
+            i += 1
             spread = np.linalg.norm(y[:, k] - y[:, k].mean())
             # an axis that does not vary beyond its noise has no fit % (MATLAB's would be ~0)
             varies = np.std(y[:, k]) > 3.0 * sig[k]
@@ -281,24 +440,146 @@ def params_words(params: dict[str, tuple[float, float]], units: str) -> str:
     return ", ".join(parts)
 
 
+def fit_form(model: Model, q_ref_rad: np.ndarray) -> Model:
+    """``model`` with every library ``encoder_scale`` (an effect on the encoder stream, which
+    the fit takes as its input, not as a measurement) replaced by its joint-stage twin
+    :class:`EncoderScaleInFit`, values and prior σ kept."""
+    if not any(isinstance(e, EFFECTS["encoder_scale"]) for e in model.effects):
+        return model
+    effects = [EncoderScaleInFit(model.arm, e.target, q_ref_rad) if isinstance(e, EFFECTS["encoder_scale"])
+               else e for e in model.effects]
+    return Model(model.arm, effects, model.unpack(), {b.name: b.prior_sigma for b in model.blocks},
+                 model.earth_field_W_ut, model.masses)
+
+
+class EncoderScaleInFit(JointEffect):
+    """``encoder_scale`` as the fit sees it. The encoders read ``(q_true - q0)(1 + s)`` from
+    power-up; the fit's joint angles are ``q = q_ref + encoder angle``, so the link really
+    stands at ``q0 + (q - q_ref)/(1 + s)``: a joint-stage change ``-s/(1+s) (q - q_ref)`` (the
+    constant ``q0 - q_ref`` is the joint offset's). Same name, key and units as the library's
+    effect, so a config written from it reads back as the library's ``encoder_scale``."""
+
+    name = "encoder_scale"
+    rank = 25
+    key = "scale_error"
+    shape = (1,)
+    units = "1 (fraction)"
+    labels = ("scale",)
+    bound = 0.1
+
+    def __init__(self, arm, target=None, q_ref_rad: np.ndarray | None = None):
+        super().__init__(arm, target)
+        lib = EFFECTS["encoder_scale"]
+        self.summary, self.description, self.seen_in = lib.summary, lib.description, lib.seen_in
+        self.q_ref = np.zeros(arm.n_joints) if q_ref_rad is None else np.asarray(q_ref_rad, float)
+
+    def default_sigma(self):
+        return EFFECTS["encoder_scale"](self.arm, self.target).default_sigma()
+
+    def delta(self, q, theta, ctx):
+        return -theta[0] / (1.0 + theta[0]) * (q[:, self.j] - self.q_ref[self.j])
+
+    def delta_jac_params(self, q, theta, ctx):
+        return (-(q[:, self.j] - self.q_ref[self.j]) / (1.0 + theta[0]) ** 2)[:, None]
+
+    def delta_jac_q(self, q, theta, ctx):
+        d = np.zeros(q.shape)
+        d[:, self.j] = -theta[0] / (1.0 + theta[0])
+        return d
+
+
+def _candidates(model: Model, q_ref_rad: np.ndarray, names: Sequence[str] | None) -> list[Effect]:
+    out = []
+    for e in all_effects(model.arm, names):
+        if e.block_name in model.index or e.block_name in EXCLUDED_CANDIDATES:
+            continue
+        out.append(EncoderScaleInFit(model.arm, e.target, q_ref_rad)
+                   if isinstance(e, EFFECTS["encoder_scale"]) else e)
+    return out
+
+
+def _sums(pb: _Problem, sub: FitData, z: np.ndarray, cols: np.ndarray, G: np.ndarray, g: np.ndarray,
+          res: np.ndarray) -> tuple[float, int]:
+    """Add one chunk's ``JᵀJ`` (to ``G``) and ``Jᵀr`` (to ``g``) over the columns ``cols``
+    (indices into z), stream by stream with only the columns that reach each stream (most
+    candidates reach one sensor: the products stay small); the noise-weighted residuals go
+    to ``res (N, axes)``, stream by stream.
+    Returns the chunk's ``rᵀr`` and residual count."""
+    m = pb.model
+    P = pb.P
+    spb = _Problem(m, sub, pb.streams, pb.attitude, z[P:])
+    pos = np.full(pb.size, -1)
+    pos[cols] = np.arange(len(cols))
+    blocks = [b.name for b in m.blocks if np.any(pos[m.index[b.name]] >= 0)]
+    st = spb.state(z)
+    pred, jac = m.predict_with_jacobian(st, z[:P], spb.streams, blocks=blocks)
+    att_cols = [c for c in cols if c >= P]
+    att_pred = []
+    for c in att_cols:  # the base attitude: forward differences, as identify does
+        zz = np.array(z, float)
+        zz[c] += 1e-6
+        att_pred.append(m.predict(spb.state(zz), z[:P], spb.streams))
+    chi2, n_res, col = 0.0, 0, 0
+    for s in spb.streams:
+        y = pred[s]
+        N, k = y.shape
+        w = np.broadcast_to(1.0 / sub.sigma_counts[s], (N, k)).ravel()
+        r = (y.ravel() - sub.counts[s].ravel()) * w
+        parts, idx = [], []
+        for b, Jb in jac.get(s, {}).items():
+            p = pos[m.index[b]]
+            keep = p >= 0
+            if keep.any():
+                parts.append(Jb.reshape(N * k, -1)[:, keep])
+                idx.append(p[keep])
+        for c, ap in zip(att_cols, att_pred, strict=True):
+            parts.append(((ap[s] - y).ravel() / 1e-6)[:, None])
+            idx.append(np.array([pos[c]]))
+        if parts:
+            J = np.concatenate(parts, 1) * w[:, None]
+            ix = np.concatenate(idx)
+            G[np.ix_(ix, ix)] += J.T @ J
+            g[ix] += J.T @ r
+        chi2 += float(r @ r)
+        n_res += len(r)
+        res[:, col:col + k] = r.reshape(N, k)
+        col += k
+    return chi2, n_res
+
+
+def _chi2(model: Model, data: FitData, streams: Sequence[str], attitude: bool, x: np.ndarray,
+          att: np.ndarray, per: int) -> float:
+    """Σr² of the data residuals of ``model`` at ``x`` (and base attitude ``att``), by chunks."""
+    total = 0.0
+    z = np.concatenate([x, att if attitude else []])
+    for a0 in range(0, data.n, per):
+        sub = data.subset(slice(a0, a0 + per))
+        r = _Problem(model, sub, streams, attitude, att).residual(z)
+        total += float(r @ r)
+    return total
+
+
 def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = None,
              streams: Sequence[str] | None = None, attitude0_rad: np.ndarray | None = None,
-             progress: Callable[[str], None] | None = None) -> Diagnosis:
-    """Fit ``model`` to ``data`` and rank every library effect it lacks (module docstring)."""
+             progress: Callable[[str, float], None] | None = None) -> Diagnosis:
+    """Fit ``model`` to ``data`` and rank every library effect it lacks (module docstring).
+
+    ``progress(stage, fraction_done)`` is called as the work advances (0 to 1)."""
     import time
 
     st = settings or DiagnoseSettings()
     t0 = time.perf_counter()
-    say = progress or (lambda _m: None)
+    say = progress or (lambda _m, _f: None)
     streams = [s for s in (data.counts if streams is None else streams) if s not in FIT_STREAMS_EXCLUDED]
-    say("fitting the model")
-    fit = fit_model(model, data, streams, st.identify, attitude0_rad)
+    model = fit_form(model, data.q_ref_rad)
+    say("fitting the model", 0.0)
+    max_j = st.identify.max_nfev + 1
+    fit = fit_model(model, data, streams, st.identify, attitude0_rad,
+                    progress=lambda k, _c: say("fitting the model", 0.45 * min(k / max_j, 1.0)))
     m = fit.model
     arm = m.arm
-    cands = [e for e in all_effects(arm, st.effects)
-             if e.block_name not in m.index and e.block_name not in EXCLUDED_CANDIDATES]
-    # one Jacobian for every candidate column (all at zero: the prediction is unchanged)
-    say(f"score tests of {len(cands)} candidates")
+    cands = _candidates(m, data.q_ref_rad, st.effects)
+    # every candidate's columns at zero (the prediction is unchanged): the score tests
     pb, z = _problem(fit, data, cands, streams, st.identify)
     P0 = m.size
     free_old = np.concatenate([~fit.held[:P0], np.zeros(pb.P - P0, bool), ~fit.held[P0:]])
@@ -310,35 +591,28 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     # bounded on long recordings): JfᵀJf, JfᵀJc, JcᵀJc, Jcᵀr, rᵀr, and each point's Σr²
     n_axes = sum(data.counts[s].shape[1] for s in pb.streams)
     per = max(20, int(st.chunk_rows // max(n_axes, 1)))
-    A = np.diag(1.0 / pb.sigma0[fcols] ** 2)
-    B = np.zeros((nf, len(ccols)))
-    CC = np.zeros((len(ccols), len(ccols)))
-    g_all = np.zeros(len(ccols))
+    G = np.zeros((len(cols), len(cols)))
+    gv = np.zeros(len(cols))
     chi2_now = 0.0
     n_res = 0
-    ss = np.zeros(data.n)
-    for a0 in range(0, data.n, per):
-        sub = data.subset(slice(a0, a0 + per))
-        rk, Jk = _Problem(pb.model, sub, pb.streams, pb.attitude, z[pb.P:]).jacobian(z, cols)
-        Jf, Jc = Jk[:, :nf], Jk[:, nf:]
-        A += Jf.T @ Jf
-        B += Jf.T @ Jc
-        CC += Jc.T @ Jc
-        g_all += Jc.T @ rk
-        chi2_now += float(rk @ rk)
-        n_res += len(rk)
-        i = 0
-        for s in pb.streams:
-            nk, k = sub.counts[s].shape
-            ss[a0:a0 + nk] += np.sum(rk[i:i + nk * k].reshape(nk, k) ** 2, 1)
-            i += nk * k
+    R = np.zeros((data.n, n_axes))
+    n_chunks = -(-data.n // per)
+    for ci, a0 in enumerate(range(0, data.n, per)):
+        say(f"score tests of {len(cands)} candidates", 0.45 + 0.4 * ci / n_chunks)
+        c2, nr = _sums(pb, data.subset(slice(a0, a0 + per)), z, cols, G, gv, R[a0:a0 + per])
+        chi2_now += c2
+        n_res += nr
+    A = G[:nf, :nf] + np.diag(1.0 / pb.sigma0[fcols] ** 2)
+    B = G[:nf, nf:]
+    CC = G[nf:, nf:]
+    g_all = gv[nf:]
     AiB = np.linalg.solve(A, B)
     rms_ratio = float(np.sqrt(chi2_now / n_res))
     excess = max(chi2_now - n_res, 1e-300)
     lnn = np.log(n_res)
     K = max(len(cands), 1)
-    # the evidence in words is read off (at most) one chunk's worth of evenly spread points
-    stride = int(np.ceil(data.n / per))
+    # the evidence in words is read off a few thousand evenly spread points
+    stride = int(np.ceil(data.n / min(per, st.evidence_points)))
     ev = data.subset(slice(None, None, stride)) if stride > 1 else data
     r, Je = _Problem(pb.model, ev, pb.streams, pb.attitude, z[pb.P:]).jacobian(z, cols)
     Jperp = Je[:, nf:] - Je[:, :nf] @ AiB
@@ -358,7 +632,8 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
         cs = np.arange(sl.start, sl.stop) - P0
         sig_c = pb.sigma0[sl]
         Sp = Jperp[:, cs] * sig_c
-        Ms = (CC[np.ix_(cs, cs)] - B[:, cs].T @ AiB[:, cs]) * np.outer(sig_c, sig_c)
+        Mc = CC[np.ix_(cs, cs)] - B[:, cs].T @ AiB[:, cs]
+        Ms = Mc * np.outer(sig_c, sig_c)
         lam, V = np.linalg.eigh(0.5 * (Ms + Ms.T))
         keep = lam > max(1.0, 1e-9 * lam.max(initial=0.0))
         if not keep.any():
@@ -374,24 +649,40 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
             lm = 0.0  # only a step outside the bounds (a negative play or sag) would help
         delta = np.clip(delta, lo, hi)
         cov = (V[:, keep] / lam[keep]) @ V[:, keep].T * np.outer(sig_c, sig_c)
-        lin.append((e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s))
+        lin.append((e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s, Mc, cs))
     lin.sort(key=lambda c: -(c[1] - c[2] * lnn))
     out: list[Candidate] = []
     base_model = m.with_values(fit.model_x)
-    for rank, (e, lm, dof, delta, dsig, dr) in enumerate(lin):
+    att_now = z[pb.P:]
+    n_do = sum(1 for rank, c in enumerate(lin) if rank < st.n_refit
+               and min(1.0, chi2_dist.sf(c[1], c[2]) * K) < st.alpha)
+    done = 0
+    for rank, (e, lm, dof, delta, dsig, dr, Mc, cs) in enumerate(lin):
         p = float(min(1.0, chi2_dist.sf(lm, dof) * K))
         b = pb.model.block(e.block_name)
         names = b.element_names()
         refit = rank < st.n_refit and p < st.alpha  # only a significant score can be significant
         if refit:
-            say(f"refitting with {e.block_name}")
-            res = identify(base_model.with_effects([e]), data, streams, st.identify,
-                           attitude0_rad=fit.attitude_rad)
-            sl2 = res.model.index[e.block_name]
-            new_free = int((~res.held[sl2]).sum())
-            dbic = chi2_total(res) - chi2_now + new_free * lnn
-            rms_after = rms_ratio_of(res)
-            params = {n: (float(res.x[sl2][q]), float(res.sigma[sl2][q])) for q, n in enumerate(names)}
+            # the quick refit: one Gauss-Newton step of the model with the candidate added (its
+            # prior included, every fitted parameter re-adjusting), from the current estimates;
+            # the residual evaluated exactly there, over the whole recording
+            say(f"refitting with {e.block_name}", 0.85 + 0.15 * done / max(n_do, 1))
+            done += 1
+            sig_c = pb.sigma0[pb.model.index[e.block_name]]
+            H = Mc + np.diag(1.0 / sig_c**2)
+            Hi = np.linalg.inv(0.5 * (H + H.T))
+            dc = np.clip(-Hi @ g_all[cs], b.lower, b.upper)
+            dz = np.zeros(pb.size)
+            dz[fcols] = -AiB[:, cs] @ dc
+            xm = np.concatenate([fit.model_x + dz[:P0], dc])
+            att = att_now + dz[pb.P:]
+            mc = base_model.with_effects([e])
+            chi2_new = _chi2(mc, data, pb.streams, pb.attitude, xm, att, per)
+            dbic = chi2_new - chi2_now + dof * lnn
+            rms_after = float(np.sqrt(chi2_new / n_res))
+            infl = max(1.0, chi2_new / max(n_res - nf - dof, 1))
+            sd = np.sqrt(np.clip(np.diag(Hi), 0, None) * infl)
+            params = {n: (float(dc[q]), float(sd[q])) for q, n in enumerate(names)}
         else:
             dbic = -lm + dof * lnn
             rms_after = None
@@ -421,8 +712,10 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
                     f"{100 * explained:.0f} % of the model's excess over the noise")
         out.append(Candidate(e.name, e.target, lm, dof, p, explained, float(dbic), refit, rms_after,
                              params, b.units, significant, EFFECTS[e.name].description, evidence))
-    out.sort(key=lambda c: (not c.refitted, c.delta_bic))
-    axes = _axes(pb, z, data, pb.model)
+    # ties (effects the recording cannot tell apart, e.g. hard and soft iron on a parked
+    # chair): the one with fewer parameters first
+    out.sort(key=lambda c: (not c.refitted, float(f"{c.delta_bic:.6g}"), len(c.params)))
+    axes = _axes(R, data, pb.streams, m)
     sig = [c for c in out if c.significant]
     if sig:
         verdict = f"missing effect: {sig[0].effect} on {sig[0].target}"
@@ -430,9 +723,13 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
         verdict = FITS_TO_NOISE
     else:
         verdict = "does not fit the noise, and no effect of the library explains it"
-    worst = worst_stretches(ss / n_axes, data.state.t_s)
+    worst = worst_stretches(np.mean(R**2, 1), data.state.t_s)
+    dt = float(np.median(np.diff(data.state.t_s))) if data.n > 1 else 0.0
+    analysis = residual_analysis(R, [(a.stream, a.axis) for a in axes],
+                                 fit_inputs(data.state, arm.joint_names), dt)
+    say("done", 1.0)
     return Diagnosis(fit, data, tuple(axes), rms_ratio, tuple(out), tuple(unseen), verdict,
-                     time.perf_counter() - t0, worst)
+                     time.perf_counter() - t0, worst, analysis)
 
 
 def worst_stretches(chi2_per_point: np.ndarray, t_s: np.ndarray, n: int = 3,

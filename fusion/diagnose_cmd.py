@@ -20,6 +20,7 @@ from typing import Annotated
 import numpy as np
 import typer
 import yaml
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from fusion.cli_common import (
@@ -112,12 +113,19 @@ def diagnose_command(
     except ValueError as e:
         fail(str(e))
 
-    def progress(msg: str) -> None:
-        if not json_out:
-            err_console.print(f"[dim]… {msg}[/]", highlight=False)
+    runs = 2 if added else 1
+    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TimeElapsedColumn(), console=err_console, transient=True,
+                  disable=json_out or not err_console.is_terminal) as bar:
+        task = bar.add_task("diagnose", total=1.0)
 
-    before = diagnose(model_from_arm(arm), data, progress=progress)
-    after = add_effects(before, added, progress=progress) if added else None
+        def stage(k: int):
+            def progress(msg: str, frac: float) -> None:
+                bar.update(task, completed=(k + frac) / runs, description=f"{msg:<40.40}")
+            return progress
+
+        before = diagnose(model_from_arm(arm), data, progress=stage(0))
+        after = add_effects(before, added, progress=stage(1)) if added else None
     final = after or before
     hpath = history or history_path(config)
     entries = [history_entry(before, recording, config, Path(config).stem)]
