@@ -1,4 +1,5 @@
-"""The service's ``armfusion`` subcommands: ``replay``, ``record``, ``serve`` (and their shared options).
+"""The service's ``armfusion`` subcommands: ``replay``, ``record``, ``serve``, ``recalibrate``
+(and their shared options).
 
 Every node takes the same Zenoh options: ``--zenoh-config`` (default config/zenoh.json5:
 peer, listening on tcp/127.0.0.1:7447, no scouting), ``--listen`` and ``--connect``
@@ -10,6 +11,7 @@ peer, listening on tcp/127.0.0.1:7447, no scouting), ``--listen`` and ``--connec
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -181,14 +183,23 @@ def register(app: typer.Typer) -> None:
                                                        "of sample time.")] = 50.0,
         duration_s: Annotated[float | None, typer.Option(
             "--duration", help="Stop after this long, in s (default: at SIGINT or SIGTERM).")] = None,
+        state_file: Annotated[Path | None, typer.Option(
+            "--state-file", help="Save the tracker's state here (every --save-every s and at stop) "
+                                 "and resume from it at start when the encoders kept counting.")] = None,
+        save_every_s: Annotated[float, typer.Option(
+            "--save-every", help="Seconds (wall time) between saves of --state-file.")] = 1.0,
+        state_max_age_s: Annotated[float, typer.Option(
+            "--state-max-age", help="A saved state older than this (s) is stale: calibrate "
+                                    "on a still arm instead.")] = 60.0,
         zenoh_config: ZenohConfigOpt = None,
         listen: ListenOpt = None,
         connect: ConnectOpt = None,
         mode: ModeOpt = None,
         json_out: JsonOpt = False,
     ) -> None:
-        """The fusion node: startup calibration on the first still window, then the tracker;
-        publishes armfusion/<robot>/state/joints, state/heading and status."""
+        """The fusion node: startup calibration on the first still window (or resume from
+        --state-file), then the tracker; publishes armfusion/<robot>/state/joints,
+        state/heading and status; answers armfusion/<robot>/calibrate."""
         from fusion.service.payloads import check_name
         from fusion.service.serve import FusionNode
 
@@ -200,11 +211,14 @@ def register(app: typer.Typer) -> None:
             fail(f"--publish-hz {publish_hz!r}: expected > 0")
         if duration_s is not None and not duration_s > 0:
             fail(f"--duration {duration_s!r}: expected > 0")
+        if not save_every_s > 0 or not state_max_age_s > 0:
+            fail(f"--save-every {save_every_s!r} and --state-max-age {state_max_age_s!r}: expected > 0")
         arm = load_arm_or_exit(config)
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
                 stop_on_signals(stop):
-            node = FusionNode(session, arm, robot, publish_hz=publish_hz)
+            node = FusionNode(session, arm, robot, publish_hz=publish_hz, state_path=state_file,
+                              save_period_s=save_every_s, max_state_age_s=state_max_age_s)
             timer = threading.Timer(duration_s, stop.set) if duration_s else None
             if timer:
                 timer.daemon = True
@@ -216,9 +230,53 @@ def register(app: typer.Typer) -> None:
         if json_out:
             emit_json(report.as_dict())
             return
+        if report.resume_message:
+            console.print(f"{robot}: {report.resume_message}")
         console.print(f"{robot}: {report.message}; {report.samples} samples in, {report.estimates} "
                       f"estimates out, {report.out_of_order} late samples dropped; dropped payloads: "
                       + (", ".join(f"{k} {v}" for k, v in report.dropped.items()) or "none"))
+
+
+    @app.command("recalibrate")
+    def recalibrate_command(
+        robot: RobotOpt = DEFAULT_ROBOT,
+        timeout_s: Annotated[float, typer.Option(
+            "--timeout", help="Wait this long for the reply, in s.")] = 10.0,
+        zenoh_config: ZenohConfigOpt = None,
+        listen: ListenOpt = None,
+        connect: ConnectOpt = None,
+        mode: ModeOpt = None,
+        json_out: JsonOpt = False,
+    ) -> None:
+        """Ask the fusion node (armfusion serve) to re-run the startup calibration now, on the
+        latest still stretch; it refuses, saying why, while the arm moves. Exits 1 when refused."""
+        from fusion.service.calibrate_request import NoReplyError, request_calibration
+        from fusion.service.payloads import PayloadError, check_name
+
+        try:
+            check_name(robot, "--robot")
+        except ValueError as e:
+            fail(str(e))
+        if not timeout_s > 0:
+            fail(f"--timeout {timeout_s!r}: expected > 0")
+        with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session:
+            try:
+                reply = request_calibration(session, robot, timeout_s)
+            except (NoReplyError, PayloadError) as e:
+                fail(str(e))
+        if json_out:
+            emit_json(reply.to_json())
+        elif reply.ok:
+            console.print(f"{robot}: calibrated on {reply.t_start_s:.2f}-{reply.t_end_s:.2f} s")
+            for name, q, sig, flag in zip(reply.joint_names, reply.q_rad, reply.sigma_rad, reply.flags,
+                                          strict=True):
+                angle = "    —   " if q is None else f"{math.degrees(q):8.3f}°"
+                sigma = "" if sig is None else f" ± {math.degrees(sig):.3f}°"
+                console.print(f"  {name:>4} {angle}{sigma}  {flag}", highlight=False)
+        else:
+            err_console.print(f"{robot}: calibration refused: {reply.message}", highlight=False)
+        if not reply.ok:
+            raise typer.Exit(1)
 
 
 def _say_serving(node, robot: str, arm_name: str) -> None:

@@ -6,11 +6,12 @@ Key expressions (``<robot>`` and ``<sensor>`` are names of letters, digits, ``_`
     armfusion/<robot>/state/joints      JointState  joint angles, sigma, flags
     armfusion/<robot>/state/heading     Heading     the base's heading (yaw) and its sigma
     armfusion/<robot>/status            Status      a node's health and counters
+    armfusion/<robot>/calibrate         Calibration the fusion node's reply to a calibration request
 
 Every payload is one UTF-8 JSON object (no pickle, nothing that carries code) with
 ``"v": 1`` (:data:`SCHEMA_VERSION`) and ``"type"``, one of ``raw``, ``joints``,
-``heading``, ``status``; the fields of each are those of the dataclasses below and are
-written out in docs/service.md. JSON keeps a float's every bit (Python writes the
+``heading``, ``status``, ``calibration``; the fields of each are those of the dataclasses
+below and are written out in docs/service.md. JSON keeps a float's every bit (Python writes the
 shortest repr that reads back the same), so a replayed recording is recorded unchanged.
 
 On receipt, :class:`Inbox` checks a payload: larger than :data:`MAX_PAYLOAD_BYTES`, not
@@ -81,6 +82,11 @@ def status_key(robot: str) -> str:
     return f"{ROOT}/{check_name(robot, 'robot')}/status"
 
 
+def calibrate_key(robot: str) -> str:
+    """The fusion node's queryable: a query re-runs the startup calibration (see serve)."""
+    return f"{ROOT}/{check_name(robot, 'robot')}/calibrate"
+
+
 def parse_key(key: str) -> tuple[str, str, str | None]:
     """``(robot, type, sensor)`` of a key expression; raises :class:`PayloadError`."""
     parts = str(key).split("/")
@@ -92,6 +98,8 @@ def parse_key(key: str) -> tuple[str, str, str | None]:
             return robot, rest[1], None
         if rest == ["status"]:
             return robot, "status", None
+        if rest == ["calibrate"]:
+            return robot, "calibration", None
     raise PayloadError("bad_key", f"key expression {key!r} is not an armfusion key")
 
 
@@ -127,11 +135,14 @@ class JointState:
     q_rad: tuple[float, ...]
     sigma_rad: tuple[float, ...]
     flags: tuple[str, ...]
+    sensors: tuple[tuple[str, str], ...] = ()
+    """Each sensor's status (``ok``, ``rejecting``, ``stale``, ``stuck``, ``dead``, ``absent``)."""
 
     def to_json(self) -> dict[str, Any]:
         return {"v": SCHEMA_VERSION, "type": "joints", "robot": self.robot, "t_s": self.t_s,
                 "joint_names": list(self.joint_names), "q_rad": list(self.q_rad),
-                "sigma_rad": list(self.sigma_rad), "flags": list(self.flags)}
+                "sigma_rad": list(self.sigma_rad), "flags": list(self.flags),
+                "sensors": dict(self.sensors)}
 
 
 @dataclass(frozen=True)
@@ -163,14 +174,47 @@ class Status:
     t_wall_s: float
     message: str = ""
     counters: tuple[tuple[str, int], ...] = ()
+    sensors: tuple[tuple[str, str], ...] = ()
+    """The fusion node's sensor statuses, as in :class:`JointState` (other nodes: none)."""
 
     def to_json(self) -> dict[str, Any]:
         return {"v": SCHEMA_VERSION, "type": "status", "robot": self.robot, "node": self.node,
                 "state": self.state, "t_wall_s": self.t_wall_s, "message": self.message,
-                "counters": dict(self.counters)}
+                "counters": dict(self.counters), "sensors": dict(self.sensors)}
 
 
-Payload = RawBatch | JointState | Heading | Status
+@dataclass(frozen=True)
+class Calibration:
+    """The fusion node's reply on ``armfusion/<robot>/calibrate``.
+
+    ``ok``: the startup calibration ran on the still stretch ``t_start_s``-``t_end_s`` and
+    the tracker restarted from it; ``message`` is its summary. Otherwise ``message`` says why
+    it was refused (the arm moves, no still stretch yet, no samples) and the other fields
+    are empty. ``q_rad`` and ``sigma_rad`` are ``None`` (JSON ``null``) for a joint gravity
+    cannot read (``gimbal_lock``, ``ambiguous``).
+    """
+
+    robot: str
+    ok: bool
+    message: str
+    t_start_s: float | None = None
+    t_end_s: float | None = None
+    joint_names: tuple[str, ...] = ()
+    q_rad: tuple[float | None, ...] = ()
+    sigma_rad: tuple[float | None, ...] = ()
+    flags: tuple[str, ...] = ()
+    roll_rad: float | None = None
+    pitch_rad: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"v": SCHEMA_VERSION, "type": "calibration", "robot": self.robot, "ok": self.ok,
+                "message": self.message, "t_start_s": self.t_start_s, "t_end_s": self.t_end_s,
+                "joint_names": list(self.joint_names), "q_rad": list(self.q_rad),
+                "sigma_rad": list(self.sigma_rad), "flags": list(self.flags),
+                "roll_rad": self.roll_rad, "pitch_rad": self.pitch_rad}
+
+
+Payload = RawBatch | JointState | Heading | Status | Calibration
 
 
 def encode(payload: Payload) -> bytes:
@@ -220,6 +264,26 @@ def _strings(d: dict, name: str, n: int | None = None) -> tuple[str, ...]:
     return tuple(v)
 
 
+def _optional_floats(d: dict, name: str, n: int) -> tuple[float | None, ...]:
+    v = _field(d, name, list)
+    if len(v) != n or not all(x is None or (isinstance(x, int | float) and not isinstance(x, bool)
+                                            and math.isfinite(x)) for x in v):
+        raise PayloadError("malformed", f"field {name!r}: expected {n} numbers or nulls")
+    return tuple(None if x is None else float(x) for x in v)
+
+
+def _optional_finite(d: dict, name: str) -> float | None:
+    return None if d.get(name) is None else _finite(d, name)
+
+
+def _sensors(d: dict) -> tuple[tuple[str, str], ...]:
+    """The optional ``sensors`` field: sensor names to status strings."""
+    v = d.get("sensors", {})
+    if not isinstance(v, dict) or not all(isinstance(k, str) and isinstance(x, str) for k, x in v.items()):
+        raise PayloadError("malformed", "field 'sensors': expected sensor names to status strings")
+    return tuple(v.items())
+
+
 def _raw(d: dict, robot: str) -> RawBatch:
     sensor = check_name_or_fail(_field(d, "sensor", str), "sensor")
     kind = _field(d, "kind", str)
@@ -258,7 +322,7 @@ def _joints(d: dict, robot: str) -> JointState:
     names = _strings(d, "joint_names")
     n = len(names)
     return JointState(robot, _finite(d, "t_s"), names, _floats(d, "q_rad", n),
-                      _floats(d, "sigma_rad", n), _strings(d, "flags", n))
+                      _floats(d, "sigma_rad", n), _strings(d, "flags", n), _sensors(d))
 
 
 def _heading(d: dict, robot: str) -> Heading:
@@ -275,10 +339,21 @@ def _status(d: dict, robot: str) -> Status:
                for k, v in counters.items()):
         raise PayloadError("malformed", "field 'counters': expected names to integers")
     return Status(robot, _field(d, "node", str), state, _finite(d, "t_wall_s"),
-                  _field(d, "message", str), tuple(sorted(counters.items())))
+                  _field(d, "message", str), tuple(sorted(counters.items())), _sensors(d))
 
 
-_DECODERS = {"raw": _raw, "joints": _joints, "heading": _heading, "status": _status}
+def _calibration(d: dict, robot: str) -> Calibration:
+    names = _strings(d, "joint_names")
+    n = len(names)
+    return Calibration(robot, _field(d, "ok", bool), _field(d, "message", str),
+                       _optional_finite(d, "t_start_s"), _optional_finite(d, "t_end_s"), names,
+                       _optional_floats(d, "q_rad", n), _optional_floats(d, "sigma_rad", n),
+                       _strings(d, "flags", n), _optional_finite(d, "roll_rad"),
+                       _optional_finite(d, "pitch_rad"))
+
+
+_DECODERS = {"raw": _raw, "joints": _joints, "heading": _heading, "status": _status,
+             "calibration": _calibration}
 
 
 def decode(key: str, data: bytes) -> Payload:

@@ -12,24 +12,41 @@ before the tracker (which drops a sample older than the last): a sample is relea
 every sensor heard from in the last ``max_lag_s`` has sent something at least as late, or
 when it is ``max_lag_s`` older than the newest sample (a silent sensor does not stall the
 others). Estimates go out on ``state/joints`` and ``state/heading`` at most
-``publish_hz`` per second of sample time, a status on ``status`` every second, and the
-node holds a liveliness token on ``armfusion/<robot>/status`` while it runs.
+``publish_hz`` per second of sample time, a status on ``status`` every second (and at
+once when a sensor's status changes), and the node holds a liveliness token on
+``armfusion/<robot>/status`` while it runs. Every joint state and status carries each
+sensor's status (``ok``, ``stale``…): a sensor that stops is ``stale`` after
+``stale_after_s`` (0.25 s) of sample time, while the others go on.
+
+A queryable on ``armfusion/<robot>/calibrate`` re-runs the startup calibration on request
+on the latest still stretch of the last ``recent_s`` of samples (the arm still now), and
+restarts the tracker from it; it refuses, saying why, while the arm moves or before there
+is a still stretch (:meth:`FusionNode.calibrate`).
+
+With a ``state_path``, the node saves its state there (:mod:`fusion.service.state_file`)
+every ``save_period_s`` of wall time and when it stops, and at start resumes from it
+without a new startup calibration when the encoders kept counting; otherwise it says why
+and calibrates on a still arm as usual.
 """
 
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import zenoh
 
 from fusion.service import payloads as pl
+from fusion.service import state_file
 from fusion.service.node import BoundedReceiver
-from fusion.tracker import NoStillWindowError, Tracker, TrackerSettings, start_from_recording
+from fusion.static import StaticDetectionSettings, find_static_segments
+from fusion.tracker import ENC, NoStillWindowError, Start, Tracker, TrackerSettings, start_from_recording
 from models.arm import ArmModel
 from sensors.samples import Recording, Stream
 
@@ -46,11 +63,16 @@ class ServeReport:
     dropped: dict[str, int]
     startup_t_s: float | None
     message: str
+    resumed: bool = False
+    resume_message: str = ""
+    calibrations: int = 0
 
     def as_dict(self) -> dict:
         return {"robot": self.robot, "state": self.state, "samples": self.samples,
                 "estimates": self.estimates, "out_of_order": self.out_of_order,
-                "dropped": self.dropped, "startup_t_s": self.startup_t_s, "message": self.message}
+                "dropped": self.dropped, "startup_t_s": self.startup_t_s, "message": self.message,
+                "resumed": self.resumed, "resume_message": self.resume_message,
+                "calibrations": self.calibrations}
 
 
 class _Reorder:
@@ -106,12 +128,36 @@ class _Reorder:
         return out
 
 
+def _merge(parts: dict[str, list[Stream]], t_from_s: float = -np.inf) -> Recording:
+    """One recording of the batches in ``parts`` (from ``t_from_s`` on); a repeated batch is ignored."""
+    streams = {}
+    for k, ps in parts.items():
+        if not ps:
+            continue
+        t = np.concatenate([p.t_s for p in ps])
+        v = np.concatenate([p.values for p in ps])
+        keep = np.concatenate([[True], np.diff(t) > 0]) & (t >= t_from_s)
+        if np.any(keep):
+            streams[k] = Stream(k, ps[0].kind, t[keep], v[keep], ps[0].channels)
+    return Recording(streams)
+
+
 class FusionNode:
-    """Subscribes to a robot's raw samples on ``session``, calibrates, tracks, publishes."""
+    """Subscribes to a robot's raw samples on ``session``, calibrates, tracks, publishes.
+
+    ``state_path``: the saved state (see :mod:`fusion.service.state_file`), written every
+    ``save_period_s`` of wall time and at stop, and resumed from at start when it is no
+    older than ``max_state_age_s`` and the encoders moved no faster than
+    ``max_joint_rate_rad_s`` in between. ``recent_s``: how much of the latest samples the
+    node keeps for a calibration on request.
+    """
 
     def __init__(self, session: zenoh.Session, arm: ArmModel, robot: str, *,
                  settings: TrackerSettings | None = None, publish_hz: float = 50.0,
-                 min_data_s: float = 2.0, retry_s: float = 0.5, max_lag_s: float = 0.1):
+                 min_data_s: float = 2.0, retry_s: float = 0.5, max_lag_s: float = 0.1,
+                 state_path: Path | str | None = None, save_period_s: float = 1.0,
+                 max_state_age_s: float = 60.0, max_joint_rate_rad_s: float = 1.5,
+                 recent_s: float = 5.0, still_tolerance_s: float = 0.3):
         self.session = session
         self.arm = arm
         self.robot = pl.check_name(robot, "robot")
@@ -119,17 +165,40 @@ class FusionNode:
         self.publish_period_s = 1.0 / publish_hz
         self.min_data_s = min_data_s
         self.retry_s = retry_s
+        self.state_path = None if state_path is None else Path(state_path)
+        self.save_period_s = save_period_s
+        self.max_state_age_s = max_state_age_s
+        self.max_joint_rate_rad_s = max_joint_rate_rad_s
+        self.recent_s = recent_s
+        self.still_tolerance_s = still_tolerance_s
         self.ready = threading.Event()
+        self._max_lag_s = max_lag_s
         self._reorder = _Reorder(max_lag_s)
         self._inbox = pl.Inbox("serve")
         self._buffer: dict[str, list[Stream]] = {}
+        self._recent: dict[str, deque[Stream]] = {}
+        self._queries: queue.Queue = queue.Queue()
         self._tracker: Tracker | None = None
+        self._rates_hz: dict[str, float] = {}
+        self._last_enc: tuple[float, np.ndarray] | None = None
         self._next_try_t = -np.inf
         self._next_pub_t = -np.inf
         self._startup_t: float | None = None
         self._counts: Counter[str] = Counter()
+        self._sensors: tuple[tuple[str, str], ...] = ()
+        self._status_due = False
         self._state = "starting"
         self._message = "waiting for samples"
+        self._resumed = False
+        self._saved: dict | None = None
+        self._resume_message = ""
+        if self.state_path is not None:
+            try:
+                self._saved = state_file.load_state(self.state_path)
+                self._resume_message = f"found a saved state in {self.state_path}"
+            except state_file.StateFileError as e:
+                self._resume_message = f"no resume: {e}; a startup calibration on a still arm"
+                log.info("serve: %s", self._resume_message)
 
     @property
     def tracker(self) -> Tracker | None:
@@ -147,31 +216,45 @@ class FusionNode:
         pub_status = self.session.declare_publisher(pl.status_key(self.robot))
         token = self.session.liveliness().declare_token(pl.status_key(self.robot))
         sub = self.session.declare_subscriber(pl.raw_keys(self.robot), receiver)
+        queryable = self.session.declare_queryable(pl.calibrate_key(self.robot), self._queries.put)
         self._pubs = (pub_joints, pub_heading)
         self._state = "calibrating"
         self.ready.set()
-        next_status = 0.0
+        next_status = next_save = last_status = 0.0
         try:
             while not stop.is_set():
                 msg = receiver.get(timeout_s=0.1)
                 if msg is not None:
                     self._on_message(msg)
-                if time.monotonic() >= next_status:
+                while (query := self._next_query()) is not None:
+                    self._answer(query)
+                now = time.monotonic()
+                # every second, and at once (at most 10 a second) when a sensor's status changes
+                if now >= next_status or (self._status_due and now >= last_status + 0.1):
                     self._publish_status(pub_status, receiver)
-                    next_status = time.monotonic() + 1.0
+                    last_status, next_status = now, now + 1.0
+                if self.state_path is not None and now >= next_save:
+                    self.save_state()
+                    next_save = now + self.save_period_s
             while (msg := receiver.get_nowait()) is not None:
                 self._on_message(msg)
             self._state = "stopping"
+            if self.state_path is not None:
+                self.save_state()
             self._publish_status(pub_status, receiver)
         finally:
             receiver.closed.set()
+            queryable.undeclare()
+            while (query := self._next_query()) is not None:
+                self._reply(query, pl.Calibration(self.robot, False, "the fusion node is stopping"))
             sub.undeclare()
             token.undeclare()
             for p in (pub_joints, pub_heading, pub_status):
                 p.undeclare()
         return ServeReport(self.robot, self._state, self._counts["samples"], self._counts["estimates"],
                            self._counts["out_of_order"], self._dropped(receiver), self._startup_t,
-                           self._message)
+                           self._message, self._resumed, self._resume_message,
+                           self._counts["calibrations"])
 
     def _dropped(self, receiver: BoundedReceiver) -> dict[str, int]:
         d = Counter(self._inbox.dropped)
@@ -185,27 +268,73 @@ class FusionNode:
             return
         s = batch.stream
         self._counts["samples"] += len(s)
+        self._keep_recent(s)
         if self._tracker is None:
             self._buffer.setdefault(s.name, []).append(s)
+            if self._saved is not None:
+                if s.name != ENC:
+                    return  # the first encoder sample decides whether the saved state holds
+                self._try_resume(float(s.t_s[0]), s.values[0])
+                if self._tracker is not None:
+                    return
             self._try_start(float(s.t_s[-1]))
             return
         self._counts["out_of_order"] += self._reorder.push(s)
         self._fuse(self._reorder.release())
 
-    def _recording(self) -> Recording:
-        streams = {}
-        for k, parts in self._buffer.items():
-            t = np.concatenate([p.t_s for p in parts])
-            v = np.concatenate([p.values for p in parts])
-            keep = np.concatenate([[True], np.diff(t) > 0])  # a repeated batch is ignored
-            streams[k] = Stream(k, parts[0].kind, t[keep], v[keep], parts[0].channels)
-        return Recording(streams)
+    def _keep_recent(self, s: Stream) -> None:
+        parts = self._recent.setdefault(s.name, deque())
+        parts.append(s)
+        while len(parts) > 1 and parts[0].t_s[-1] < s.t_s[-1] - self.recent_s:
+            parts.popleft()
+
+    # -- start: a saved state, or a startup calibration on a still arm -------------------------
+    def _try_resume(self, t_s: float, encoder_counts: np.ndarray) -> None:
+        doc, self._saved = self._saved, None
+        problem = state_file.resume_problem(
+            doc, robot=self.robot, arm_name=self.arm.name, joint_names=self.arm.joint_names,
+            counts_per_rad=self.arm.counts_per_rad, t_s=t_s, encoder_counts=encoder_counts,
+            now_wall_s=time.time(), max_age_s=self.max_state_age_s,
+            max_joint_rate_rad_s=self.max_joint_rate_rad_s)
+        tracker = None
+        if problem is None:
+            snap = dict(doc["tracker"])
+            gap_s = t_s - float(doc["t_s"])
+            if gap_s > self._max_lag_s:
+                # the node was down longer than a few samples: the causal fits of the encoders
+                # and the gyro start afresh rather than differentiate across the gap
+                snap["encoder_fit"] = {**snap["encoder_fit"], "n": 0}
+                snap["gyro_fit"] = {**snap["gyro_fit"], "n": 0}
+                snap["omega"] = None
+            try:
+                tracker = Tracker(self.arm, self.settings, rates_hz=doc["rates_hz"])
+                tracker.restore(snap)
+            except (ValueError, KeyError, TypeError) as e:
+                problem = f"the tracker cannot restore it: {e}"
+        if problem is not None:
+            self._resume_message = (f"saved state in {self.state_path} not used: {problem}; "
+                                    "a startup calibration on a still arm")
+            self._message = self._resume_message
+            log.warning("serve: %s", self._resume_message)
+            return
+        moved = np.abs(np.asarray(encoder_counts, float) - np.asarray(doc["encoder_counts"], float))
+        moved_deg = float(np.degrees(np.max(moved / self.arm.counts_per_rad)))
+        self._resume_message = (f"resumed from the state saved in {self.state_path} "
+                                f"{time.time() - float(doc['saved_wall_s']):.1f} s ago at t = "
+                                f"{float(doc['t_s']):.3f} s; the encoders moved up to {moved_deg:.2f}° "
+                                "since: no startup calibration needed")
+        self._resumed = True
+        self._rates_hz = dict(doc["rates_hz"])
+        self._last_enc = (float(doc["t_s"]), np.asarray(doc["encoder_counts"], dtype=np.int64))
+        self._begin(tracker, _merge(self._buffer), self._resume_message)
 
     def _try_start(self, t_now: float) -> None:
         if t_now < self._next_try_t:
             return
-        rec = self._recording()
+        rec = _merge(self._buffer)
         if rec.duration_s < self.min_data_s:
+            self._message = (f"collecting {self.min_data_s:g} s of samples for the startup calibration "
+                             f"({rec.duration_s:.1f} s so far)")
             return
         self._next_try_t = t_now + self.retry_s
         try:
@@ -217,27 +346,102 @@ class FusionNode:
             self._message = f"startup calibration failed: {e}"
             log.warning("serve: %s", self._message)
             return
+        self._rates_hz = {k: (v.rate_hz or 100.0) for k, v in rec.raw().items()}
+        self._begin(tracker, rec, f"startup calibration on the still stretch {start.t_start_s:.2f}"
+                                  f"-{start.t_end_s:.2f} s; tracking")
+
+    def _begin(self, tracker: Tracker, rec: Recording, message: str) -> None:
+        """Track with ``tracker`` from its time on; ``rec``'s later samples go to it first."""
         self._tracker = tracker
         self._startup_t = float(tracker.t_s)
         self._state = "tracking"
-        self._message = (f"startup calibration on the still stretch {start.t_start_s:.2f}"
-                         f"-{start.t_end_s:.2f} s; tracking")
-        log.info("serve: %s", self._message)
+        self._message = message
+        self._status_due = True
+        log.info("serve: %s", message)
         for s in rec.streams.values():
             self._reorder.seen(s.name, float(s.t_s[-1]))
             after = s.between(self._startup_t + 1e-9, np.inf)
             if len(after):
-                self._reorder.push(after)
+                self._counts["out_of_order"] += self._reorder.push(after)
         self._buffer.clear()
         self._fuse(self._reorder.release())
 
+    # -- calibration on request ------------------------------------------------------------------
+    def _next_query(self):
+        try:
+            return self._queries.get_nowait()
+        except queue.Empty:
+            return None
+
+    def _answer(self, query) -> None:
+        try:
+            result = self.calibrate()
+        except Exception as e:  # noqa: BLE001 - a request must get a reply and never stop the node
+            log.exception("serve: calibration on request failed")
+            result = pl.Calibration(self.robot, False, f"calibration failed: {type(e).__name__}: {e}")
+        self._reply(query, result)
+
+    def _reply(self, query, result: pl.Calibration) -> None:
+        try:
+            query.reply(pl.calibrate_key(self.robot), pl.encode(result))
+        finally:
+            query.drop()
+
+    def calibrate(self) -> pl.Calibration:
+        """Re-run the startup calibration on the latest still stretch and restart the tracker
+        from it; or refuse, saying why (the arm moves, no still stretch yet, no samples)."""
+        rec = _merge({k: list(v) for k, v in self._recent.items()})
+
+        def refuse(why: str) -> pl.Calibration:
+            return pl.Calibration(self.robot, False, why)
+
+        if not rec.streams:
+            return refuse("no samples received yet")
+        if rec.get(ENC) is None:
+            return refuse("no encoder samples received yet")
+        span_s = rec.duration_s
+        segs = find_static_segments(rec, StaticDetectionSettings(window_s=1.0))
+        if not segs:
+            return refuse(f"the arm moves: no still stretch of at least 1 s in the last {span_s:.1f} s "
+                          "of samples; ask again when it has been still for a second")
+        seg = segs[-1]
+        since_s = rec.t_end_s - seg.t_end_s
+        if since_s > self.still_tolerance_s:
+            return refuse(f"the arm moves: it was last still {since_s:.1f} s ago "
+                          f"({seg.t_start_s:.2f}-{seg.t_end_s:.2f} s); ask again when it is still")
+        window = _merge({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
+        try:
+            tracker, start = start_from_recording(self.arm, window, self.settings)
+        except NoStillWindowError as e:
+            return refuse(f"the arm moves: {e}")
+        except (ValueError, KeyError) as e:
+            return refuse(f"the startup calibration failed: {e}")
+        self._counts["calibrations"] += 1
+        if self._tracker is None:
+            self._rates_hz = {k: (v.rate_hz or 100.0) for k, v in rec.raw().items()}
+        else:
+            tracker.set_rates(self._rates_hz)
+        message = (f"calibrated on request on the still stretch {start.t_start_s:.2f}-{start.t_end_s:.2f} s"
+                   f"; tracking from it: {start.startup.summary or ''}").rstrip(": ")
+        self._begin(tracker, Recording({}), message)
+        return _calibration_reply(self.robot, self.arm.joint_names, start)
+
+    # -- tracking, publishing, saving ------------------------------------------------------------
     def _fuse(self, instants) -> None:
         """Feed released instants to the tracker; publish at most every publish period."""
         tr = self._tracker
         takes = set(tr.sensor_names) | {"imu_temp"}
         for t, samples in instants:
+            enc = samples.get(ENC)
+            if enc is not None and t >= tr.t_s - 1e-9:  # what the tracker fuses, not drops
+                self._last_enc = (t, np.asarray(enc, dtype=np.int64))
             e = tr.update_instant(t, {k: v for k, v in samples.items() if k in takes})
-            if e is not None and t >= self._next_pub_t:
+            if e is None:
+                continue
+            if e.sensors != self._sensors:
+                self._sensors = e.sensors
+                self._status_due = True
+            if t >= self._next_pub_t:
                 self._publish(e)
                 self._next_pub_t = t + self.publish_period_s
 
@@ -245,14 +449,46 @@ class FusionNode:
         pub_joints, pub_heading = self._pubs
         pub_joints.put(pl.encode(pl.JointState(
             self.robot, e.t_s, tuple(e.joint_names), tuple(float(x) for x in e.q_rad),
-            tuple(float(x) for x in e.sigma_rad), tuple(e.flags))))
+            tuple(float(x) for x in e.sigma_rad), tuple(e.flags), tuple(e.sensors))))
         pub_heading.put(pl.encode(pl.Heading(self.robot, e.t_s, float(e.heading_rad),
                                              float(e.heading_sigma_rad), bool(e.magnetic_disturbance))))
         self._counts["estimates"] += 1
 
     def _publish_status(self, pub, receiver: BoundedReceiver) -> None:
+        self._status_due = False
         counters = {"samples": self._counts["samples"], "estimates": self._counts["estimates"],
-                    "out_of_order": self._counts["out_of_order"]}
+                    "out_of_order": self._counts["out_of_order"],
+                    "calibrations": self._counts["calibrations"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
         pub.put(pl.encode(pl.Status(self.robot, "serve", self._state, time.time(), self._message,
-                                    tuple(counters.items()))))
+                                    tuple(counters.items()), self._sensors)))
+
+    def save_state(self) -> bool:
+        """Write the tracker's state to ``state_path`` (atomically); False before it tracks."""
+        tr = self._tracker
+        if self.state_path is None or tr is None or self._last_enc is None or tr.t_s is None:
+            return False
+        try:
+            snap = tr.snapshot()
+        except RuntimeError:  # no encoder sample fused yet
+            return False
+        t_enc, counts = self._last_enc
+        doc = state_file.state_document(self.robot, self.arm.name, t_enc, counts, self._rates_hz, snap)
+        # the snapshot's time is the last fused instant; the encoder counts are as of t_enc
+        doc["t_s"] = float(t_enc)
+        try:
+            state_file.save_state(self.state_path, doc)
+        except OSError as e:
+            log.warning("serve: cannot save the state to %s: %s", self.state_path, e)
+            return False
+        return True
+
+
+def _calibration_reply(robot: str, joint_names, start: Start) -> pl.Calibration:
+    res = start.startup
+    return pl.Calibration(
+        robot, True, res.summary or "calibrated", float(start.t_start_s), float(start.t_end_s),
+        tuple(joint_names),
+        tuple(None if j.angle_rad is None else float(j.angle_rad) for j in res.joints),
+        tuple(None if j.sigma_rad is None else float(j.sigma_rad) for j in res.joints),
+        tuple(j.flag for j in res.joints), float(res.roll_rad), float(res.pitch_rad))

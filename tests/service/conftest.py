@@ -38,3 +38,47 @@ def startup_recording(tmp_path_factory):
 def loopback_port() -> int:
     """A free TCP port on 127.0.0.1."""
     return free_port()
+
+
+# --- the fusion node in a thread (helpers: service_helpers.py) ----------------------------------
+
+
+@pytest.fixture
+def fusion_node():
+    """``fusion_node(settings, arm, **kwargs)``: a context manager running a FusionNode in a
+    thread on a session opened from ``settings``; yields ``(node, result)`` where
+    ``result["report"]`` is its ServeReport once the block has ended."""
+    import contextlib
+    import threading
+
+    from fusion.service.serve import FusionNode
+    from fusion.service.zenoh_config import open_session
+
+    @contextlib.contextmanager
+    def run(settings, arm, robot: str = "chair1", **kwargs):
+        stop = threading.Event()
+        result: dict = {}
+        with open_session(settings) as session:
+            node = FusionNode(session, arm, robot, **kwargs)
+            th = threading.Thread(target=lambda: result.setdefault("report", node.run(stop)), daemon=True)
+            th.start()
+            try:
+                assert node.ready.wait(10.0)
+                yield node, result
+            finally:
+                stop.set()
+                th.join(30.0)
+        assert "report" in result, "the fusion node did not stop"
+
+    return run
+
+
+@pytest.fixture(scope="session")
+def renk_recording():
+    """9 s of the WMRA's renk-maneuver at 100 Hz: still until 5 s, then every joint sweeps
+    slowly (the chair parked). In memory, with truth."""
+    from fusion.configfile import load_arm
+    from models.simulator import simulate
+
+    rec, _ = simulate(load_arm("wmra"), "renk-maneuver", 9.0, 100.0, seed=11)
+    return rec

@@ -1,0 +1,128 @@
+"""The fusion node's saved state: what ``armfusion serve`` needs to resume after a restart
+without asking the arm to be still again.
+
+``serve --state-file PATH`` writes, every ``save_period_s`` of wall time and when it stops,
+one JSON document (atomically: a temporary file in the same directory, flushed to disk,
+then renamed over the old one, so a crash leaves either the old or the new state, never
+half of one)::
+
+    {"format": "armfusion.serve-state/1", "robot": "chair1", "arm": "wmra",
+     "saved_wall_s": 1790000000.0, "t_s": 812.35, "encoder_counts": [...],
+     "rates_hz": {"acc1": 100.0, ...}, "tracker": {... Tracker.snapshot() ...}}
+
+``tracker`` holds the filter's state and covariance (the encoder offsets, the base's
+attitude and acceleration, the gyro bias), the encoders' angles and the heading's field
+reference; ``encoder_counts`` and ``t_s`` are the last encoder sample the tracker fused.
+
+On restart the node reads the file and waits for the first encoder sample. It resumes
+from the saved state only when :func:`resume_problem` finds nothing wrong: the same robot
+and arm, saved less than ``max_age_s`` ago (wall time) and no more than ``max_age_s``
+of sample time before the new sample, the sample clock not gone back (the rig did not
+restart), and every joint's encoder count moved no further than the joint could have
+turned in the gap (``max_joint_rate_rad_s``): the encoders kept counting. Otherwise it
+says why and falls back to a startup calibration on a still arm.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import tempfile
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+STATE_FORMAT = "armfusion.serve-state/1"
+
+
+class StateFileError(ValueError):
+    """The state file cannot be used; the message says why."""
+
+
+def save_state(path: Path | str, doc: Mapping) -> None:
+    """Write ``doc`` to ``path`` atomically (temporary file, fsync, rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = json.dumps(doc, separators=(",", ":")).encode()
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):  # the rename itself survives a power cut once the directory is synced
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+
+def load_state(path: Path | str) -> dict:
+    """The saved state at ``path``; raises :class:`StateFileError` saying what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise StateFileError(f"no saved state at {path}")
+    try:
+        doc = json.loads(path.read_bytes())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise StateFileError(f"{path}: cannot read the saved state: {e}") from e
+    if not isinstance(doc, dict) or doc.get("format") != STATE_FORMAT:
+        fmt = doc.get("format") if isinstance(doc, dict) else None
+        raise StateFileError(f"{path}: not a saved fusion state (format {fmt!r}, expected {STATE_FORMAT!r})")
+    missing = [k for k in ("robot", "arm", "saved_wall_s", "t_s", "encoder_counts", "rates_hz", "tracker")
+               if k not in doc]
+    if missing:
+        raise StateFileError(f"{path}: the saved state lacks {', '.join(missing)}")
+    return doc
+
+
+def state_document(robot: str, arm_name: str, t_s: float, encoder_counts, rates_hz: Mapping[str, float],
+                   tracker_snapshot: Mapping, saved_wall_s: float | None = None) -> dict:
+    return {"format": STATE_FORMAT, "robot": robot, "arm": arm_name,
+            "saved_wall_s": time.time() if saved_wall_s is None else float(saved_wall_s),
+            "t_s": float(t_s), "encoder_counts": [int(c) for c in encoder_counts],
+            "rates_hz": {k: float(v) for k, v in rates_hz.items()}, "tracker": dict(tracker_snapshot)}
+
+
+def resume_problem(doc: Mapping, *, robot: str, arm_name: str, joint_names, counts_per_rad,
+                   t_s: float, encoder_counts, now_wall_s: float, max_age_s: float,
+                   max_joint_rate_rad_s: float) -> str | None:
+    """Why the saved state ``doc`` must not be resumed at the encoder sample
+    (``t_s``, ``encoder_counts``), or ``None`` when it may."""
+    if doc["robot"] != robot or doc["arm"] != arm_name:
+        return (f"it is robot {doc['robot']!r} with arm {doc['arm']!r}; this node serves {robot!r} "
+                f"with arm {arm_name!r}")
+    age_s = now_wall_s - float(doc["saved_wall_s"])
+    if not math.isfinite(age_s) or age_s > max_age_s:
+        return f"it is stale: saved {age_s:.0f} s ago (more than {max_age_s:g} s)"
+    t_saved = float(doc["t_s"])
+    gap_s = t_s - t_saved
+    if gap_s < -1e-9:
+        return (f"the sample clock went back from {t_saved:.3f} s to {t_s:.3f} s: the sensors "
+                "restarted, so their encoder counts did too")
+    if gap_s > max_age_s:
+        return f"it is stale: {gap_s:.0f} s of samples since it was saved (more than {max_age_s:g} s)"
+    saved = np.asarray(doc["encoder_counts"], dtype=float)
+    now = np.asarray(encoder_counts, dtype=float)
+    cpr = np.asarray(counts_per_rad, dtype=float)
+    if saved.shape != now.shape or saved.shape != cpr.shape:
+        return f"it has {saved.size} encoder counts; the arm has {cpr.size} joints"
+    moved_rad = np.abs(now - saved) / cpr
+    allowed_rad = max_joint_rate_rad_s * gap_s + 2.0 / cpr  # two counts of quantisation
+    bad = np.flatnonzero(moved_rad > allowed_rad)
+    if bad.size:
+        j = int(bad[np.argmax(moved_rad[bad] - allowed_rad[bad])])
+        return (f"joint {joint_names[j]}'s encoder jumped {math.degrees(moved_rad[j]):.1f}° in "
+                f"{gap_s:.3f} s, more than it can turn at {max_joint_rate_rad_s:g} rad/s: the "
+                "encoders were reset or lost counts")
+    return None
