@@ -327,15 +327,19 @@ def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters: int,
 
 def _profile_sigma(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.ndarray,
                    joints: np.ndarray, scale: float = 1.0,
-                   ks: tuple[float, ...] = (3.0, 10.0, 30.0), cap_rad: float = np.pi / 3) -> np.ndarray:
+                   ks: tuple[float, ...] = (3.0, 10.0, 30.0), cap_rad: float = np.pi / 3,
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Sigma of each listed joint from the cost itself, not its curvature: hold the joint at
     +-k linear sigmas (k = 3, 10, 30; at most 60 deg), re-solve everything else, and see how
     much the fit worsens. Near a singular pair the cost is flatter than quadratic (a long
     valley) and the linear sigma far too small. The sigma kept is the half-width of the
-    profile-likelihood interval (where the cost has risen by 0.5), at least the linear one."""
+    profile-likelihood interval (where the cost has risen by 0.5), at least the linear one.
+
+    Also returns the probes' solutions ``(len(joints) * 6, n + 2)``: released from there,
+    LM finds any other minimum along the valley."""
     n = problem.n
     if len(joints) == 0:
-        return np.zeros(0)
+        return np.zeros(0), np.zeros((0, n + 2))
     m = 2 * len(ks)
     starts = np.repeat(xb[None], m * len(joints), 0)
     free = np.ones((m * len(joints), n + 2), bool)
@@ -345,7 +349,7 @@ def _profile_sigma(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.nda
         offsets[i] = np.concatenate([d, -d])
         starts[m * i:m * (i + 1), j] += offsets[i]
         free[m * i:m * (i + 1), j] = False
-    _, cost = _batched_lm(problem, starts, free, 12)
+    probes, cost = _batched_lm(problem, starts, free, 12)
     dcost = np.maximum(cost.reshape(len(joints), m) - cost_b, 1e-12) / scale**2
     k = len(ks)
     d = np.abs(offsets[:, :k])  # (J, k), increasing
@@ -363,7 +367,7 @@ def _profile_sigma(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.nda
             x0, x1 = np.log(d[i, a - 1]), np.log(d[i, a])
             y0, y1 = np.log(c[i, a - 1]), np.log(c[i, a])
             out[i] = np.exp(x0 + (np.log(0.5) - y0) * (x1 - x0) / (y1 - y0))
-    return np.maximum(out, sig[joints])
+    return np.maximum(out, sig[joints]), probes
 
 
 def _follow_weak(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.ndarray,
@@ -578,8 +582,22 @@ def solve_still(
     # the cost's own verdict on every readable joint (flat valleys near singular pairs)
     # (well-read joints are quadratic over many sigmas: only the wider ones are checked)
     readable = np.flatnonzero(~locked & np.isfinite(sig[:n]) & (sig[:n] > st.profile_above_deg * DEG))
-    sig[readable] = _profile_sigma(problem, xb, float(0.5 * r @ r), sig, readable,
-                                   np.sqrt(inflate))
+    sig[readable], probes = _profile_sigma(problem, xb, float(0.5 * r @ r), sig, readable,
+                                           np.sqrt(inflate))
+    if len(probes):
+        # a valley may hold other minima than the branches the starts reached: release the
+        # probes and let each roll to its own; good ones join the branches as rivals below
+        xr, cost_r = _batched_lm(problem, probes, free, st.max_iterations)
+        xr[:, :n] = mid + _wrap(xr[:, :n] - mid)
+        keep = ((cost_r <= cost.min() + 0.5 * 9.0 + 1e-9)
+                & (arm.within_limits(xr[:, :n], margin) | locked_any[best]).all(1))
+        if keep.any():
+            xr = _dedupe(xr[keep], 1e-3)
+            x = np.vstack([x, xr])
+            q_all = x[:, :n]
+            d2r = np.sum((_wrap(xr[:, :n] - prior) / psig) ** 2 * ~locked_any[best], 1)
+            cand = np.concatenate([cand, np.arange(len(x) - len(xr), len(x))])
+            d2 = np.concatenate([d2, d2r])
     flags = np.array(["ok"] * n, dtype=object)
     flags[locked] = "gimbal_lock"
     limit = st.sigma_limit_deg * DEG
@@ -610,7 +628,15 @@ def solve_still(
                 continue
             # a joint is ambiguous when the branches disagree by more than its own sigma
             # can cover (close branches come from a nearly singular pair)
-            differ = np.abs(_wrap(q_all[other] - qb)) > np.maximum(3 * sig[:n], 1e-3)
+            gap = np.abs(_wrap(q_all[other] - qb))
+            differ = gap > np.maximum(3 * sig[:n], 1e-3)
+            # an ill-conditioned joint already says its number is weak: its sigma grows to
+            # cover the other minimum (at 2 sigma) instead of hiding it
+            for j in np.flatnonzero(differ & (flags == "ill_conditioned")):
+                grow = gap[j] / 2.0 / sig[j]
+                sig[j] *= grow
+                cov[j, :] *= grow
+                cov[:, j] *= grow
             for j in np.flatnonzero(differ & np.isin(flags, ("ok", "ambiguous"))):
                 flags[j] = "ambiguous"
                 if not alternatives[j]:
@@ -768,7 +794,9 @@ def prior_after_move(result: StartupResult, move: UnlockMove, arm: ArmModel,
         if j.flag == "ok":
             sig.append(known_sigma_deg * DEG)
         elif j.flag == "ill_conditioned" and j.sigma_rad is not None:
-            sig.append(max(3 * j.sigma_rad, known_sigma_deg * DEG))  # poorly read, but read
+            # poorly read, but read: its sigma already covers every minimum the data allow
+            # (the prior's own chi-square test then asks for 3 of them before it decides)
+            sig.append(max(j.sigma_rad, known_sigma_deg * DEG))
         else:
             sig.append(st.prior_sigma_deg * DEG)
     return q, np.array(sig)
