@@ -28,10 +28,11 @@ def arm():
 
 def _replay_all(session, node, rec) -> int:
     """Replay ``rec`` as fast as the node takes it; wait until the node has every sample."""
+    before = node.report_samples()
     report = replay(session, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
     assert report.unmatched == ()
     total = sum(report.samples.values())
-    assert wait_for(lambda: node.report_samples() >= total, 30.0), (node.report_samples(), total)
+    assert wait_for(lambda: node.report_samples() >= before + total, 30.0), (node.report_samples(), total)
     return total
 
 
