@@ -65,7 +65,7 @@ from fusion.heading import (
     tilt_compensated_heading,
 )
 from fusion.startup import StartupResult
-from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound, wrap_angle
+from fusion.ukf import TWO_PI, BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound, wrap_angle
 from models.arm import ArmModel
 from models.motion import MotionState, link_motion, sensor_motion
 from models.rotations import GRAVITY_MPS2, skew
@@ -400,9 +400,12 @@ class Frames:
     """
 
     FIELDS = ("q_ref", "offset_ref", "R_0S", "motion_mps2", "axes", "p_0S_m", "omega_dot_B", "K", "K2",
-              "motion_g", "dist2_m2", "omega_dot_norm")
+              "motion_g", "dist2_m2", "omega_dot_norm", "KK", "R_lo", "motion_lo")
     # K (., n, 3, 3): the axes' skew matrices, K2 their squares; motion_g (., S): |motion| in g;
-    # dist2_m2 (., S): each sensor's squared distance from the base origin
+    # dist2_m2 (., S): each sensor's squared distance from the base origin; KK (., 2n, 9n): the
+    # block matrix that makes every joint's exp([a_j]x d_j) = I + [sin d_j, 1 - cos d_j] KK
+    # (rows 2j, 2j+1; columns 9j … 9j+8); R_lo, motion_lo: R_0S and motion_mps2 with the
+    # sensors in the order of their links
     __slots__ = FIELDS
 
     def __init__(self, *values):
@@ -442,10 +445,23 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     lm = link_motion(arm, st)
     sm = sensor_motion(arm, st, list(names), lm=lm)
     Ks = skew(lm.axis_0)
+    K2 = Ks @ Ks
+    n = q.shape[1]
+    KK = np.zeros((K, 2 * n, 9 * n))
+    for j in range(n):
+        KK[:, 2 * j, 9 * j:9 * j + 9] = Ks[:, j].reshape(K, 9)
+        KK[:, 2 * j + 1, 9 * j:9 * j + 9] = K2[:, j].reshape(K, 9)
+    lo = link_order(arm, names)
     wd = np.asarray(omega_dot_B, float)
     return Frames(q, np.broadcast_to(offset, q.shape), sm.R_0S, sm.acc_0_mps2, lm.axis_0, sm.p_0S_m,
-                  wd, Ks, Ks @ Ks, np.linalg.norm(sm.acc_0_mps2, axis=-1) / G,
-                  np.sum(sm.p_0S_m**2, axis=-1), np.linalg.norm(wd, axis=-1))
+                  wd, Ks, K2, np.linalg.norm(sm.acc_0_mps2, axis=-1) / G,
+                  np.sum(sm.p_0S_m**2, axis=-1), np.linalg.norm(wd, axis=-1), KK,
+                  sm.R_0S[:, lo], sm.acc_0_mps2[:, lo])
+
+
+def link_order(arm: ArmModel, names) -> np.ndarray:
+    """The accelerometers ``names`` sorted by the link they sit on (stable)."""
+    return np.argsort([arm.sensor(nm).link for nm in names], kind="stable")
 
 
 # --------------------------------------------------------------------------------------
@@ -816,6 +832,7 @@ class Tracker:
         self._nees_ix = np.ix_(self._nees_idx, self._nees_idx)
         self._acc_rows = np.arange(3 * len(self.accel_streams)).reshape(-1, 3)
         self._link_cache: dict = {}
+        self._link_order = link_order(arm, self.accel_names)
         self._zeros3 = np.zeros(3)
         self._still_var3 = np.full(3, st.still_accel_sigma_mps2**2)
         self._eye3 = np.eye(3)
@@ -1232,66 +1249,94 @@ class Tracker:
         return np.diag(q)
 
     # -- measurement models ---------------------------------------------------------------
-    def _h_accel(self, X: np.ndarray, frame: Frames, sel: np.ndarray) -> np.ndarray:
+    def _h_accel(self, X: np.ndarray, frame: Frames, sel: np.ndarray, trig=None) -> np.ndarray:
         """Predicted specific force (g) of the accelerometers ``sel`` at every sigma point.
 
         The sigma points' sensor rotations follow from the frame's (the mean pose's) by the
         product of exponentials: ``R_0S(q_ref + δ) = Π_{j < link} exp([a_j]x δ_j) R_0S(q_ref)``.
+        In row form ``f^T = v^T E_0 E_1 … E_{link-1} R_0S / g``: the sensors are taken in
+        order of their link, so each joint's ``E_j`` (every sigma point's, made in one matrix
+        product from the frame's ``KK``) turns a trailing block of them at once.
+        ``trig``: ``(sin, cos)`` of the points' roll and pitch, when the caller has them.
         """
         L = self.layout
         N = X.shape[0]
-        links = self._links[sel]
-        tilt = X[:, L.roll:L.pitch + 1]
-        sn, cs = np.sin(tilt), np.cos(tilt)
+        perm, ss, starts, full = self._accel_plan(sel)
+        if trig is None:
+            tilt = X[:, L.roll:L.pitch + 1]
+            trig = np.sin(tilt), np.cos(tilt)
+        sn, cs = trig
         base = X[:, L.accel].copy()  # a_B + g·up, up = [-sp, sr cp, cr cp]
         base[:, 0] -= G * sn[:, 1]
         base[:, 1] += G * sn[:, 0] * cs[:, 1]
         base[:, 2] += G * cs[:, 0] * cs[:, 1]
-        v = frame.motion_mps2[sel][None] + base[:, None, :]  # (N, S', 3)
-        order = self._link_order(links)
-        if order:
-            kmax = order[-1]
-            d = X[:, :kmax] - frame.offset_ref[:kmax]
-            E = self._eye3 + np.sin(d)[..., None, None] * frame.K[:kmax] \
-                + (1.0 - np.cos(d))[..., None, None] * frame.K2[:kmax]  # (N, k, 3, 3)
-            Pl = np.empty((N, len(sel), 3, 3))
-            m0 = links == 0
-            if m0.any():
-                Pl[:, m0] = self._eye3
-            P = E[:, 0]
-            j = 1
-            for link in order:
-                while j < link:
-                    P = P @ E[:, j]
-                    j += 1
-                Pl[:, links == link] = P[:, None]
-            v = (v[:, :, None, :] @ Pl)[:, :, 0, :]  # rows: (P^T v)^T
-        f = (v[:, :, None, :] @ frame.R_0S[sel])[:, :, 0, :]
+        v = (frame.motion_lo if full else frame.motion_mps2[ss])[None] + base[:, None, :]  # (N, S', 3)
+        k = len(starts)
+        if k:
+            d = X[:, :k] - frame.offset_ref[:k]
+            sc = np.empty((N, k, 2))
+            np.sin(d, out=sc[:, :, 0])
+            np.cos(d, out=sc[:, :, 1])
+            np.subtract(1.0, sc[:, :, 1], out=sc[:, :, 1])
+            E = (sc.reshape(N, 2 * k) @ frame.KK[:2 * k, :9 * k]).reshape(N, k, 3, 3)
+            E += self._eye3
+            for j, a in enumerate(starts):
+                v[:, a:] = v[:, a:] @ E[:, j]
+        Rs = frame.R_lo if full else frame.R_0S[ss]
+        f = (v[:, :, None, :] @ Rs)[:, :, 0, :]
         f *= 1.0 / G
+        if perm is not None:
+            f = f[:, perm]
         return f.reshape(N, -1)
 
-    def _link_order(self, links: np.ndarray) -> list[int]:
-        key = links.tobytes()
-        lo = self._link_cache.get(key)
-        if lo is None:
-            lo = [int(k) for k in np.unique(links) if k > 0]
-            self._link_cache[key] = lo
-        return lo
+    def _accel_plan(self, sel: np.ndarray):
+        """For the accelerometers ``sel``: the order back from link order (None: sel is in it),
+        ``sel`` in link order, where each joint's trailing block of sensors starts, and
+        whether that is every accelerometer (the frame keeps them in link order too)."""
+        key = sel.tobytes()
+        plan = self._link_cache.get(key)
+        if plan is None:
+            links = self._links[sel]
+            order = np.argsort(links, kind="stable")
+            ls = links[order]
+            kmax = int(ls[-1]) if len(ls) else 0
+            starts = [int(np.searchsorted(ls, j, side="right")) for j in range(kmax)]
+            ss = sel[order]
+            full = bool(len(ss) == len(self._links) and np.array_equal(ss, self._link_order))
+            perm = None if np.array_equal(order, np.arange(len(order))) else np.argsort(order)
+            plan = self._link_cache[key] = (perm, ss, starts, full)
+        return plan
 
-    def _h_mag(self, X: np.ndarray, m_B: np.ndarray) -> np.ndarray:
-        """Heading residual ``yaw - tilt-compensated heading`` at every sigma point (z = 0)."""
+    def _h_mag(self, X: np.ndarray, m_B: np.ndarray, trig=None) -> np.ndarray:
+        """Heading residual ``yaw - tilt-compensated heading`` at every sigma point (z = 0);
+        :func:`fusion.heading.tilt_compensated_heading` written out on the points' ``trig``
+        (sin, cos of roll and pitch)."""
         L = self.layout
-        psi = tilt_compensated_heading(m_B, X[:, L.roll], X[:, L.pitch], self._field.declination_rad)
-        return wrap_angle(X[:, L.yaw] - psi)[:, None]
+        if trig is None:
+            tilt = X[:, L.roll:L.pitch + 1]
+            trig = np.sin(tilt), np.cos(tilt)
+        sn, cs = trig
+        mx, my, mz = m_B.tolist()
+        sr, sp, cr, cp = sn[:, 0], sn[:, 1], cs[:, 0], cs[:, 1]
+        y1 = cr * my - sr * mz
+        hx = cp * mx + sp * (sr * my + cr * mz)
+        d = X[:, L.yaw] + np.arctan2(y1, hx)  # yaw - atan2(-y1, hx)
+        d -= self._field.declination_rad - np.pi
+        d %= TWO_PI
+        d -= np.pi
+        return d[:, None]
 
     def _h_all(self, X, frame, sel, m_B, still=False):
+        L = self.layout
+        tilt = X[:, L.roll:L.pitch + 1]
+        trig = np.sin(tilt), np.cos(tilt)
         parts = []
         if sel is not None:
-            parts.append(self._h_accel(X, frame, sel))
+            parts.append(self._h_accel(X, frame, sel, trig))
         if still:
-            parts.append(X[:, self.layout.accel])
+            parts.append(X[:, L.accel])
         if m_B is not None:
-            parts.append(self._h_mag(X, m_B))
+            parts.append(self._h_mag(X, m_B, trig))
         return np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
 
     # -- the stacked update -----------------------------------------------------------------

@@ -78,8 +78,17 @@ class SigmaPoints(MerweScaledSigmaPoints):
         x = np.asarray(x, dtype=float).reshape(-1)
         if x.shape[0] != self.n:
             raise ValueError(f"expected size(x) {self.n}, but size is {x.shape[0]}")
-        U = self.sqrt_rows(np.atleast_2d(np.asarray(P, dtype=float)))
-        return np.concatenate([x[None, :], x + U, x - U], axis=0)
+        return self.points_of(x, np.atleast_2d(np.asarray(P, dtype=float)))
+
+    def points_of(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """:meth:`sigma_points` for a float ``x (n,)`` and ``P (n, n)`` as they are (no checks)."""
+        U = self.sqrt_rows(P)
+        n = self.n
+        X = np.empty((2 * n + 1, n))
+        X[0] = x
+        np.add(x, U, out=X[1:n + 1])
+        np.subtract(x, U, out=X[n + 1:])
+        return X
 
 
 # --------------------------------------------------------------------------------------
@@ -119,6 +128,25 @@ def unscented_transform(Y, Wm, Wc, noise_cov=None, angles=None):
     if noise_cov is not None:
         C = C + noise_cov
     return m, D, C
+
+
+def _ut(Y: np.ndarray, Wm: np.ndarray, WcT: np.ndarray, angle: int | None):
+    """:func:`unscented_transform` for at most one angle column, returning also the
+    weighted residuals ``D^T * Wc`` (the cross covariance needs them again)."""
+    m = Wm @ Y
+    D = Y - m
+    if angle is not None:
+        y = Y[:, angle]
+        dA = y - y[0]
+        dA += np.pi
+        dA %= TWO_PI
+        dA -= np.pi
+        mA = float(Wm @ dA)
+        m[angle] = (float(y[0]) + mA + np.pi) % TWO_PI - np.pi
+        dA -= mA
+        D[:, angle] = dA
+    DW = D.T * WcT
+    return m, D, DW, DW @ D
 
 
 def symmetrise(P: np.ndarray) -> np.ndarray:
@@ -193,24 +221,48 @@ class GroupPlan:
             which = np.flatnonzero(sizes == k)
             idx = np.stack([self.rows[i] for i in which])
             self.batches.append((which, idx, idx[:, :, None], idx[:, None, :]))
+        m = int(sum(sizes))
+        self.m = m
+        # the block diagonal of S (one block per group) and which rows make each group: the
+        # NIS of every group from one Cholesky factor, when the groups tile the rows
+        self._tiled = m > 0 and np.array_equal(np.sort(np.concatenate(self.rows)), np.arange(m))
+        if self._tiled:
+            self._block_mask = np.zeros((m, m))
+            self._member = np.zeros((m, len(self.rows)))
+            for g, r in enumerate(self.rows):
+                self._block_mask[np.ix_(r, r)] = 1.0
+                self._member[r, g] = 1.0
 
     def nis(self, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
         """Each group's NIS; the diagonal blocks of S are kept in ``last_blocks`` (size ->
         (group indices, blocks)) for whoever wants them."""
+        self.last_blocks = {k: (which, S[ii, jj]) for which, idx, ii, jj in self.batches
+                            for k in (idx.shape[1],)}
+        if self._tiled and nu.shape[0] == self.m:
+            c, info = lapack.dpotrf(S * self._block_mask, lower=1, clean=0)
+            if info == 0:
+                w, info = lapack.dtrtrs(c, nu, lower=1)
+                if info == 0:
+                    return (w * w) @ self._member
+        return self._nis_blocks(nu)
+
+    def _nis_blocks(self, nu: np.ndarray) -> np.ndarray:
+        """The NIS block by block (a group whose block is singular gets inf)."""
         out = np.empty(len(self.rows))
-        self.last_blocks = {}
-        for which, idx, ii, jj in self.batches:
-            Sg = S[ii, jj]
-            v = nu[idx]
+        for which, idx, _, _ in self.batches:
             k = idx.shape[1]
-            self.last_blocks[k] = (which, Sg)
+            Sg = self.last_blocks[k][1]
+            v = nu[idx]
             if k == 1:
-                out[which] = v[:, 0] ** 2 / Sg[:, 0, 0]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    r = v[:, 0] ** 2 / Sg[:, 0, 0]
+                out[which] = np.where(Sg[:, 0, 0] > 0, r, np.inf)
             else:
-                try:
-                    out[which] = np.einsum("gi,gi->g", v, np.linalg.solve(Sg, v[..., None])[..., 0])
-                except np.linalg.LinAlgError:
-                    out[which] = group_nis(nu, S, [self.rows[i] for i in which])
+                for i, gi in enumerate(which):
+                    try:
+                        out[gi] = v[i] @ np.linalg.solve(Sg[i], v[i])
+                    except np.linalg.LinAlgError:
+                        out[gi] = np.inf
         return out
 
 
@@ -259,6 +311,7 @@ class BatchedUKF:
         if self.points.n != n:
             raise ValueError(f"sigma points are for n = {self.points.n}, the state has {n}")
         self._angles = np.array(sorted(angle_states), dtype=int)
+        self._angle1 = int(self._angles[0]) if len(self._angles) == 1 else None
         self._x = x0
         self._P = repair_covariance(P0)
         self._sigmas: np.ndarray | None = None
@@ -331,13 +384,20 @@ class BatchedUKF:
         the predicted density, noise included, and the next update uses them directly:
         one matrix square root per step, not two.
         """
-        X = self.points.sigma_points(self._x, self._P + Q)
+        X = self.points.points_of(self._x, self._P + Q)
         Y = fx(X, **kw)
-        m, D, C = unscented_transform(Y, self._Wm, self._Wc, None, self._angles)
+        if len(self._angles) <= 1:
+            m, D, DW, C = _ut(Y, self._Wm, self._Wc, self._angle1)
+        else:
+            m, D, C = unscented_transform(Y, self._Wm, self._Wc, None, self._angles)
+            DW = D.T * self._Wc
         self._x = m
-        self._P = symmetrise(C)
+        C += C.T
+        C *= 0.5
+        self._P = C
         self._sigmas = Y
         self._sigmas_D = D
+        self._sigmas_DW = DW
 
     def sigma_points_now(self) -> np.ndarray:
         """The sigma points of the current state: those the last predict propagated when no
@@ -366,17 +426,24 @@ class BatchedUKF:
             groups = [MeasurementGroup("z", np.arange(z.shape[0]))]
         plan = groups if isinstance(groups, GroupPlan) else GroupPlan(groups)
         if X is None and self._sigmas is not None:
-            X, DX = self._sigmas, self._sigmas_D
+            X, DXW = self._sigmas, self._sigmas_DW
         else:
             X = self.sigma_points() if X is None else X
-            DX = residuals(X, self._x, self._angles)
+            DXW = residuals(X, self._x, self._angles).T * self._Wc
         Z = hx(X, **kw)
-        ang = np.asarray(angle_rows, dtype=int)
-        zp, DZ, S = unscented_transform(Z, self._Wm, self._Wc, R, ang)
-        Pxz = (DX.T * self._Wc) @ DZ
-        nu = z - zp
-        if len(ang):
+        if len(angle_rows) <= 1:
+            a = int(angle_rows[0]) if len(angle_rows) else None
+            zp, DZ, _, S = _ut(Z, self._Wm, self._Wc, a)
+            S += R
+            nu = z - zp
+            if a is not None:
+                nu[a] = (nu[a] + np.pi) % TWO_PI - np.pi
+        else:
+            ang = np.asarray(angle_rows, dtype=int)
+            zp, DZ, S = unscented_transform(Z, self._Wm, self._Wc, R, ang)
+            nu = z - zp
             nu[ang] = wrap_angle(nu[ang])
+        Pxz = DXW @ DZ
         nis = plan.nis(nu, S)
         ok = np.isfinite(nis) & (nis <= plan.gates)
         return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, zp, plan.last_blocks)
@@ -427,10 +494,14 @@ class BatchedUKF:
             KPt = K @ Pxz.T
             P = self._P - KPt - KPt.T + K @ S @ K.T
         x = self._x + K @ nu
-        if len(self._angles):
+        a = self._angle1
+        if a is not None:
+            x[a] = (x[a] + np.pi) % TWO_PI - np.pi
+        elif len(self._angles):
             x[self._angles] = wrap_angle(x[self._angles])
-        P = 0.5 * (P + P.T)
-        if np.any(np.diagonal(P) <= 0.0):
+        P += P.T
+        P *= 0.5
+        if not (P.diagonal() > 0.0).all():
             P = repair_covariance(P, 1e-18)
         self._x, self._P = x, P
         self._sigmas = None
