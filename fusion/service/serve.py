@@ -31,6 +31,7 @@ and calibrates on a still arm as usual.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import queue
 import threading
@@ -76,22 +77,31 @@ class ServeReport:
 
 
 class _Reorder:
-    """Per-sensor queues of ``(t_s, counts)``, released merged in time (see the module)."""
+    """Per-sensor queues of ``(t_s, counts)``, released merged in time (see the module).
+
+    Plain Python queues: a driver sends one or a few samples per batch, for which NumPy's
+    per-call overhead would cost more than the work."""
 
     def __init__(self, max_lag_s: float):
         self.max_lag_s = max_lag_s
-        self._t: dict[str, list[np.ndarray]] = {}
-        self._v: dict[str, list[np.ndarray]] = {}
+        self._q: dict[str, deque[tuple[float, np.ndarray]]] = {}
         self._last: dict[str, float] = {}
         self._released = -np.inf
 
     def push(self, s: Stream) -> int:
         """Queue a batch; returns how many of its samples were already too late (dropped)."""
-        late = int(np.sum(s.t_s <= self._released))
-        keep = s.t_s > self._released
-        self._t.setdefault(s.name, []).append(s.t_s[keep])
-        self._v.setdefault(s.name, []).append(s.values[keep])
-        self._last[s.name] = max(self._last.get(s.name, -np.inf), float(s.t_s[-1]))
+        q = self._q.setdefault(s.name, deque())
+        released, late = self._released, 0
+        times = s.t_s.tolist()
+        for t, v in zip(times, s.values, strict=True):
+            if t <= released:
+                late += 1
+            elif not q or t > q[-1][0]:
+                q.append((t, v))
+            else:  # earlier than what is queued (a batch overtook another): keep the queue in order
+                bisect.insort(q, (t, v), key=lambda item: item[0])
+        if times[-1] > self._last.get(s.name, -np.inf):
+            self._last[s.name] = times[-1]
         return late
 
     def seen(self, name: str, t_s: float) -> None:
@@ -105,26 +115,22 @@ class _Reorder:
         newest = max(self._last.values())
         alive = [t for t in self._last.values() if t >= newest - self.max_lag_s]
         mark = newest if flush else max(min(alive), newest - self.max_lag_s)
-        ts, names, rows = [], [], []
-        for k in list(self._t):
-            t = np.concatenate(self._t[k]) if self._t[k] else np.empty(0)
-            v = np.concatenate(self._v[k]) if self._v[k] else np.empty((0, 0))
-            n = int(np.searchsorted(t, mark, side="right"))
-            self._t[k], self._v[k] = [t[n:]], [v[n:]]
-            ts.append(t[:n])
-            names.extend([k] * n)
-            rows.extend(v[:n])
-        if not names:
+        if mark <= self._released:  # nothing queued is that old (push drops what is)
             return []
-        t_all = np.concatenate(ts)
-        order = np.argsort(t_all, kind="stable")
+        items: list[tuple[float, str, np.ndarray]] = []
+        for k, q in self._q.items():
+            while q and q[0][0] <= mark:
+                t, v = q.popleft()
+                items.append((t, k, v))
+        if not items:
+            return []
+        items.sort(key=lambda item: item[0])  # stable: a sensor's samples keep their order
         out: list[tuple[float, dict[str, np.ndarray]]] = []
-        for i in order.tolist():
-            t = float(t_all[i])
+        for t, k, v in items:
             if not out or out[-1][0] != t:
                 out.append((t, {}))
-            out[-1][1][names[i]] = rows[i]
-        self._released = max(self._released, float(t_all[order[-1]]))
+            out[-1][1][k] = v
+        self._released = max(self._released, items[-1][0])
         return out
 
 
