@@ -43,6 +43,7 @@ import typer
 from fusion.cli_common import json_default
 from fusion.configfile import load_arm
 from fusion.fake_rig import SimulatedRun, encoder_counts_at, physics_for, simulate_physics
+from fusion.service.commands import ConnectOpt, ListenOpt, ModeOpt, ZenohConfigOpt
 from fusion.simulate_cmd import effects_model, truth_json, truth_path
 from models.arm import ArmModel
 from models.arm_config import ConfigError
@@ -277,6 +278,45 @@ def recording_from(samples: Mapping[str, list[Any]], devices: Mapping[str, ADXL3
     return Recording(streams, dict(meta or {}))
 
 
+class LiveSink:
+    """The sampling loop's sink when publishing: keeps every result (as a
+    :class:`~sensors.sampling.Collector`) and, every ``batch_s`` of the loop's clock, hands
+    the samples read since the last batch to ``on_batch`` as raw streams (times relative to
+    ``epoch_s``; a sensor with no valid sample in the batch is left out)."""
+
+    def __init__(self, devices: Mapping[str, ADXL345 | MPU9150], epoch_s: float,
+                 clock: Callable[[], float], batch_s: float,
+                 on_batch: Callable[[list[Stream]], None], last_reader: str):
+        self.collector = Collector()
+        self.results = self.collector.results
+        self._devices = devices
+        self._epoch_s = epoch_s
+        self._clock = clock
+        self._batch_s = batch_s
+        self._on_batch = on_batch
+        self._last_reader = last_reader
+        self._pending: dict[str, list[Any]] = {}
+        self._next_s = clock() + batch_s
+
+    def __call__(self, name: str, result: Any) -> None:
+        self.collector(name, result)
+        bucket = self._pending.setdefault(name, [])
+        if isinstance(result, list):
+            bucket.extend(result)
+        else:
+            bucket.append(result)
+        if name == self._last_reader and self._clock() >= self._next_s:
+            self.flush()
+
+    def flush(self) -> None:
+        """Hand on what is pending (also called once after the loop ends)."""
+        self._next_s = self._clock() + self._batch_s
+        pending, self._pending = self._pending, {}
+        if any(pending.values()):
+            rec = recording_from(pending, self._devices, self._epoch_s)
+            self._on_batch([s for s in rec.streams.values() if len(s)])
+
+
 @contextlib.contextmanager
 def _stop_on_sigint(stop: threading.Event) -> Iterator[None]:
     """Ctrl-C sets ``stop`` (the loop ends within one wait) instead of raising."""
@@ -314,11 +354,14 @@ def run_fake(
     realtime: bool = False,
     stop: threading.Event | None = None,
     prepare: Callable[[FakeRig], None] | None = None,
+    on_batch: Callable[[list[Stream]], None] | None = None,
+    batch_s: float = 0.02,
 ) -> DriversRun:
     """Run the real drivers against the simulator-fed fakes for ``duration_s`` seconds.
 
     ``prepare(rig)`` runs after the devices are opened and before the first tick (a
-    test's hook for fault injection beyond ``faults``).
+    test's hook for fault injection beyond ``faults``). ``on_batch(streams)`` receives the
+    samples read in each ``batch_s`` of the rig's clock as they come (:class:`LiveSink`).
     """
     if not duration_s > 0:
         raise ValueError(f"--duration must be positive, got {duration_s!r} s")
@@ -359,18 +402,23 @@ def run_fake(
             return read_first()
 
         readers[first] = first_with_faults
-        sink = Collector()
+        sink: Collector | LiveSink = Collector() if on_batch is None else \
+            LiveSink(devices, epoch, now, batch_s, on_batch, last_reader=list(readers)[-1])
         loop = SamplingLoop(readers, rate_hz, sink=sink, clock=now,
                             wait=None if realtime else sleep)
         stop = stop or threading.Event()
         with _stop_on_sigint(stop):
             report = loop.run(stop, duration_s=duration_s)
+        if isinstance(sink, LiveSink):
+            sink.flush()
         health = _health(devices)
     finally:
         close_all(devices)
     meta = {"generator": "armfusion drivers --fake", "arm": arm.name, "arm_config": arm.source,
             "scenario": scenario, "seed": int(seed), "rate_hz": float(rate_hz),
             "realistic": bool(realistic), "noise": bool(noise), "realtime": bool(realtime)}
+    if realtime:
+        meta["epoch_monotonic_s"] = float(epoch)
     rec = recording_from(sink.results, devices, epoch, meta)
     rec = Recording({**rec.streams, **sim.truth_streams(rate_hz, rec.t_end_s)}, rec.meta)
     return DriversRun("fake", arm, wiring, float(rate_hz), float(duration_s), epoch, report,
@@ -384,10 +432,13 @@ def run_real(
     rate_hz: float = 100.0,
     *,
     stop: threading.Event | None = None,
+    on_batch: Callable[[list[Stream]], None] | None = None,
+    batch_s: float = 0.02,
 ) -> DriversRun:
     """Open the config's devices on the real buses and read them (until ``stop`` or
-    ``duration_s``). Raises :class:`DeviceNotFoundError` with one line per device that
-    cannot be opened or does not answer."""
+    ``duration_s``); ``on_batch`` as for :func:`run_fake`. Raises
+    :class:`DeviceNotFoundError` with one line per device that cannot be opened or does
+    not answer."""
     arm = config if isinstance(config, ArmModel) else load_arm(config)
     wiring, notes = wiring_from_arm(arm)
     adxl_config = _adxl_config(rate_hz)
@@ -401,16 +452,20 @@ def run_real(
         raise DeviceNotFoundError(f"cannot reach the buses: {e} (pip install smbus2 spidev)") from None
     epoch = time.monotonic()
     try:
-        sink = Collector()
-        loop = SamplingLoop(readers_for(devices), rate_hz, sink=sink)
+        readers = readers_for(devices)
+        sink: Collector | LiveSink = Collector() if on_batch is None else \
+            LiveSink(devices, epoch, time.monotonic, batch_s, on_batch, last_reader=list(readers)[-1])
+        loop = SamplingLoop(readers, rate_hz, sink=sink)
         stop = stop or threading.Event()
         with _stop_on_sigint(stop):
             report = loop.run(stop, duration_s=duration_s)
+        if isinstance(sink, LiveSink):
+            sink.flush()
         health = _health(devices)
     finally:
         close_all(devices)
     meta = {"generator": "armfusion drivers", "arm": arm.name, "arm_config": arm.source,
-            "rate_hz": float(rate_hz)}
+            "rate_hz": float(rate_hz), "epoch_monotonic_s": float(epoch)}
     notes.append("encoders: not read (the UDP feed from the motor controller is the "
                  "service's job)")
     rec = recording_from(sink.results, devices, epoch, meta)
@@ -476,8 +531,8 @@ def summary(run: DriversRun) -> dict[str, Any]:
         "mode": run.mode,
         "config": run.arm.source,
         "arm": run.arm.name,
-        **({k: run.settings[k] for k in ("scenario", "seed", "realistic", "noise", "realtime")
-            if k in run.settings}),
+        **({k: run.settings[k] for k in ("scenario", "seed", "realistic", "noise", "realtime",
+                                         "epoch_monotonic_s") if k in run.settings}),
         "rate_hz": run.rate_hz,
         "duration_s": round(rep.duration_s, 6),
         "ticks": rep.ticks,
@@ -544,6 +599,46 @@ def print_report(doc: dict[str, Any]) -> None:
 
 
 
+@dataclass
+class _Live:
+    publisher: Any
+    stop: threading.Event
+    batch_s: float
+
+
+@contextlib.contextmanager
+def _publishing(robot: str, batch_ms: float, wait_s: float, zenoh_config: Path | None,
+                listen: list[str] | None, connect: list[str] | None, mode: str | None,
+                fail: Callable[[str], None]) -> Iterator[_Live]:
+    """A Zenoh session and a :class:`~fusion.service.raw_publisher.RawPublisher` for
+    ``--robot``; SIGINT and SIGTERM stop the run; the last status says ``done``."""
+    from fusion.service.commands import session_or_exit, zenoh_settings
+    from fusion.service.node import stop_on_signals
+    from fusion.service.payloads import check_name
+    from fusion.service.raw_publisher import RawPublisher
+
+    try:
+        check_name(robot, "--robot")
+    except ValueError as e:
+        fail(str(e))
+    if not batch_ms > 0:
+        fail(f"--batch-ms {batch_ms!r}: expected > 0")
+    if wait_s < 0:
+        fail(f"--wait {wait_s!r}: expected >= 0")
+    stop = threading.Event()
+    with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
+            stop_on_signals(stop):
+        publisher = RawPublisher(session, robot, message="publishing raw samples")
+        if wait_s:
+            publisher.wait_for_subscriber("imu_acc", wait_s, stop)
+        publisher.status("running", "publishing raw samples")
+        try:
+            yield _Live(publisher, stop, batch_ms / 1000.0)
+        finally:
+            n = sum(publisher.samples.values())
+            publisher.close(("stopped: " if stop.is_set() else "") + f"published {n} samples")
+
+
 def register(app: typer.Typer) -> None:
     """Add the ``drivers`` command to ``app``."""
     from rich.console import Console
@@ -579,9 +674,21 @@ def register(app: typer.Typer) -> None:
                                                "clock instead of as fast as possible.")] = False,
         json_out: Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON "
                                                "document.")] = False,
+        robot: Annotated[str | None, typer.Option("--robot", help="Publish the raw samples over Zenoh "
+                                                  "on armfusion/<robot>/raw/<sensor> as they are "
+                                                  "read.")] = None,
+        batch_ms: Annotated[float, typer.Option("--batch-ms", help="With --robot: read time per "
+                                                "published batch, in ms.")] = 20.0,
+        wait_s: Annotated[float, typer.Option("--wait", help="With --robot: first wait up to this long "
+                                              "for a subscriber to the raw samples, in s.")] = 0.0,
+        zenoh_config: ZenohConfigOpt = None,
+        listen: ListenOpt = None,
+        connect: ConnectOpt = None,
+        mode: ModeOpt = None,
     ) -> None:
         """Read the sensors through the drivers (or, with --fake, the simulator-fed fakes) and
-        report read time, jitter, errors and samples per device."""
+        report read time, jitter, errors and samples per device; with --robot, publish the raw
+        samples over Zenoh as they are read."""
         err = Console(stderr=True)
 
         def fail(message: str) -> None:
@@ -591,11 +698,34 @@ def register(app: typer.Typer) -> None:
 
         if out is not None and out.suffix.lower() not in SUFFIXES:
             fail(f"--out {out}: the recording must end in .csv or .mcap")
+        if robot is None:
+            given = [o for o, v in (("--listen", listen), ("--connect", connect), ("--mode", mode),
+                                    ("--zenoh-config", zenoh_config), ("--wait", wait_s)) if v]
+            if given:
+                fail(f"{', '.join(given)}: only with --robot (which publishes over Zenoh)")
+            publishing = contextlib.nullcontext(None)
+        else:
+            publishing = _publishing(robot, batch_ms, wait_s, zenoh_config, listen, connect, mode, fail)
+        with publishing as live:
+            run = _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file,
+                       noise, fault, realtime, live, fail)
+        doc = summary(run)
+        if live is not None:
+            doc["published"] = {"robot": robot, "samples": live.publisher.samples,
+                                "batches": live.publisher.batches}
+        _finish(doc, run, out, json_out)
+
+    def _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file, noise,
+             fault, realtime, live, fail) -> DriversRun:
+        on_batch = None if live is None else live.publisher.publish
+        batch_s = 0.02 if live is None else live.batch_s
+        stop = threading.Event() if live is None else live.stop
         try:
             if fake:
-                run = run_fake(config, scenario, duration, rate, seed=seed, realistic=realistic,
-                               effect=effect or (), effects_file=effects_file, noise=noise,
-                               faults=fault or (), realtime=realtime)
+                return run_fake(config, scenario, duration, rate, seed=seed, realistic=realistic,
+                                effect=effect or (), effects_file=effects_file, noise=noise,
+                                faults=fault or (), realtime=realtime, stop=stop, on_batch=on_batch,
+                                batch_s=batch_s)
             else:
                 ignored = [o for o, v in (("--scenario", scenario != "startup"), ("--seed", seed != 0),
                                           ("--realistic", realistic), ("--effect", bool(effect)),
@@ -604,12 +734,14 @@ def register(app: typer.Typer) -> None:
                 if ignored:
                     fail(f"{', '.join(ignored)} only appl{'y' if len(ignored) > 1 else 'ies'} "
                          "with --fake")
-                run = run_real(config, duration, rate)
+                return run_real(config, duration, rate, stop=stop, on_batch=on_batch, batch_s=batch_s)
         except DeviceNotFoundError as e:
             fail(str(e))
         except (ConfigError, FileNotFoundError, ValueError) as e:
             fail(str(e))
-        doc = summary(run)
+        raise AssertionError("unreachable")  # fail() exits
+
+    def _finish(doc: dict[str, Any], run: DriversRun, out: Path | None, json_out: bool) -> None:
         if out is not None:
             out.parent.mkdir(parents=True, exist_ok=True)
             write_recording(run.recording, out)
