@@ -48,7 +48,10 @@ RobotOpt = Annotated[str, typer.Option("--robot", help="The robot's name in the 
 
 def zenoh_settings(config: Path | None, listen: list[str] | None, connect: list[str] | None,
                    mode: str | None) -> ZenohSettings:
-    """The node's settings from its options (``--connect`` alone: an ephemeral listen port)."""
+    """The node's settings from its options (``--connect`` alone: an ephemeral listen port;
+    a client listens nowhere unless told)."""
+    if mode == "client" and not listen:
+        return ZenohSettings(config_path=config, listen=[], connect=connect or None, mode=mode)
     if connect and not listen and mode != "client":
         listen = [EPHEMERAL_LISTEN]
     return ZenohSettings(config_path=config, listen=listen or None, connect=connect or None, mode=mode)
@@ -277,6 +280,10 @@ def register(app: typer.Typer) -> None:
             err_console.print(f"{robot}: calibration refused: {reply.message}", highlight=False)
         if not reply.ok:
             raise typer.Exit(1)
+
+    from fusion.service.fleet import register as register_fleet  # router, fleet, monitor
+
+    register_fleet(app)
 
 
 def _say_serving(node, robot: str, arm_name: str) -> None:

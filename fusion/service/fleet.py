@@ -1,0 +1,196 @@
+"""``armfusion router``, ``armfusion fleet`` and ``armfusion monitor``.
+
+``router``: a Zenoh session in router mode (listening on loopback only, no scouting) that
+the nodes of several chairs connect to; with gossip off, peers do not find each other
+through a third peer, so a fleet needs one.
+
+``fleet``: N simulated chairs, each two processes (``armfusion drivers --fake --realtime
+--robot chairK`` → ``armfusion serve --robot chairK``), every one connected to a router
+(its own, started as a process, or ``--connect``'s); stops them all on SIGINT or SIGTERM
+(or after ``--duration``), and leaves no child behind.
+
+``monitor``: a live table of every robot it hears (:mod:`fusion.service.monitor`).
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from fusion.cli_common import JsonOpt, console, emit_json, err_console, fail
+from fusion.service.commands import (
+    ConnectOpt,
+    ListenOpt,
+    ModeOpt,
+    ZenohConfigOpt,
+    session_or_exit,
+    zenoh_settings,
+)
+from fusion.service.node import stop_on_signals
+from fusion.service.zenoh_config import ZenohConfigError, check_loopback
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+
+
+def free_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("router")
+    def router_command(
+        listen: ListenOpt = None,
+        zenoh_config: ZenohConfigOpt = None,
+        duration_s: Annotated[float | None, typer.Option(
+            "--duration", help="Stop after this long, in s (default: at SIGINT or SIGTERM).")] = None,
+    ) -> None:
+        """A Zenoh router on loopback (default tcp/127.0.0.1:7447) for the nodes of several
+        robots; runs until SIGINT or SIGTERM."""
+        if duration_s is not None and not duration_s > 0:
+            fail(f"--duration {duration_s!r}: expected > 0")
+        endpoints = listen or [DEFAULT_ROUTER]
+        stop = threading.Event()
+        with session_or_exit(zenoh_settings(zenoh_config, endpoints, [], "router")) as session, \
+                stop_on_signals(stop):
+            err_console.print(f"router {session.zid()} listening on {', '.join(endpoints)}; "
+                              "Ctrl-C (SIGINT) or SIGTERM stops", highlight=False)
+            stop.wait(duration_s)
+        err_console.print("router stopped", highlight=False)
+
+    @app.command("fleet")
+    def fleet_command(
+        chairs: Annotated[int, typer.Option("--chairs", "-n", help="How many simulated chairs.")] = 3,
+        duration_s: Annotated[float, typer.Option(
+            "--duration", help="Seconds each chair's fake drivers run.")] = 60.0,
+        scenario: Annotated[str, typer.Option(
+            "--scenario", "-s", help="The chairs' simulated motion.")] = "daily-use",
+        realistic: Annotated[bool, typer.Option(
+            "--realistic", help="Datasheet-typical sensor errors.")] = False,
+        seed: Annotated[int, typer.Option("--seed", help="Chair k simulates with seed + k.")] = 0,
+        prefix: Annotated[str, typer.Option("--prefix", help="Chair k is <prefix><k>.")] = "chair",
+        config: Annotated[str, typer.Option("--config", "-c", help="Arm config of every chair.")] = "wmra",
+        router_listen: Annotated[str | None, typer.Option(
+            "--router-listen", help="Start a router listening here (default: a free loopback port).")] = None,
+        connect: Annotated[str | None, typer.Option(
+            "--connect", help="Use this running router instead of starting one.")] = None,
+        workdir: Annotated[Path | None, typer.Option(
+            "--workdir", help="Where the nodes' outputs go (default: a temporary directory).")] = None,
+    ) -> None:
+        """N simulated chairs as separate processes (fake drivers → serve each), connected
+        through one Zenoh router; watch them with `armfusion monitor --connect <router>`."""
+        import tempfile
+
+        from fusion.service.payloads import check_name
+        from fusion.service.processes import Children
+
+        if not 1 <= chairs <= 50:
+            fail(f"--chairs {chairs}: expected 1 to 50")
+        if not duration_s > 0:
+            fail(f"--duration {duration_s!r}: expected > 0")
+        try:
+            names = [check_name(f"{prefix}{k}", "--prefix") for k in range(1, chairs + 1)]
+            for ep in [e for e in (router_listen, connect) if e]:
+                check_loopback([ep], "fleet")
+        except (ValueError, ZenohConfigError) as e:
+            fail(str(e))
+        wd = workdir or Path(tempfile.mkdtemp(prefix="armfusion-fleet-"))
+        router = connect or router_listen or f"tcp/127.0.0.1:{free_loopback_port()}"
+        stop = threading.Event()
+        with Children(wd) as ch, stop_on_signals(stop):
+            if connect is None:
+                r = ch.start("router", ["router", "--listen", router], stdout=False)
+                if not r.wait_for_line("listening", 30.0):
+                    fail(f"the router did not start on {router}: {r.stderr_tail()}")
+            serves = [ch.start(f"serve-{n}", ["serve", "--config", config, "--robot", n, "--mode", "client",
+                                              "--connect", router, "--json"]) for n in names]
+            for n, s in zip(names, serves, strict=True):
+                if not s.wait_for_line("serving", 60.0):
+                    fail(f"{n}'s fusion node did not start: {s.stderr_tail()}")
+            drivers = [ch.start(f"drivers-{n}", [
+                "drivers", "--fake", "--realtime", "--config", config, "--scenario", scenario,
+                "--seed", str(seed + k), "--duration", str(duration_s), "--robot", n,
+                "--mode", "client", "--connect", router, "--wait", "10", "--json",
+                *(["--realistic"] if realistic else [])])
+                for k, n in enumerate(names, 1)]
+            err_console.print(f"fleet of {chairs} chairs ({', '.join(names)}) through the router at "
+                              f"{router}; watch: armfusion monitor --connect {router}; Ctrl-C stops",
+                              highlight=False)
+            while not stop.is_set() and any(d.running for d in drivers):
+                stop.wait(0.2)
+            for d in drivers:
+                ch.stop(d)
+            time.sleep(0.5)  # the fusion nodes take the last batches
+            for s in serves:
+                ch.stop(s)
+        console.print(f"fleet stopped; outputs in {wd}", highlight=False)
+
+    @app.command("monitor")
+    def monitor_command(
+        robot: Annotated[list[str] | None, typer.Option(
+            "--robot", help="Show only this robot (repeatable; default: every robot heard).")] = None,
+        duration_s: Annotated[float | None, typer.Option(
+            "--duration", help="Stop after this long, in s (default: at SIGINT; with --once: 3 s).")] = None,
+        once: Annotated[bool, typer.Option("--once", help="Listen for --duration (or until --expect "
+                                           "robots have joint states), print one table, exit.")] = False,
+        expect: Annotated[int | None, typer.Option(
+            "--expect", help="Stop as soon as this many robots have sent joint states.")] = None,
+        refresh_hz: Annotated[float, typer.Option("--refresh-hz", help="Live table refreshes per s.")] = 4.0,
+        zenoh_config: ZenohConfigOpt = None,
+        listen: ListenOpt = None,
+        connect: ConnectOpt = None,
+        mode: ModeOpt = None,
+        json_out: JsonOpt = False,
+    ) -> None:
+        """A live table of every robot: joints (deg, sigma, flags), heading, node states,
+        samples and drops, age of the last update. Subscribes armfusion/*/state/*, status and
+        the liveliness tokens."""
+        from rich.live import Live
+
+        from fusion.service.monitor import Monitor, render, snapshot_json
+
+        if duration_s is not None and not duration_s > 0:
+            fail(f"--duration {duration_s!r}: expected > 0")
+        if expect is not None and expect < 1:
+            fail(f"--expect {expect!r}: expected >= 1")
+        if not refresh_hz > 0:
+            fail(f"--refresh-hz {refresh_hz!r}: expected > 0")
+        if once and duration_s is None:
+            duration_s = 3.0
+        if connect and mode is None:
+            mode = "client"  # a consumer attached to a router (or to a node): routers forward to clients
+        live_view = not (once or json_out)
+        stop = threading.Event()
+        with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
+                stop_on_signals(stop):
+            try:
+                mon = Monitor(session, tuple(robot or ()))
+            except ValueError as e:
+                fail(str(e))
+            deadline = None if duration_s is None else time.monotonic() + duration_s
+
+            def done() -> bool:
+                return stop.is_set() or (deadline is not None and time.monotonic() >= deadline) or \
+                    (expect is not None and mon.with_joints() >= expect)
+
+            if live_view:
+                with Live(render(mon), console=console, refresh_per_second=refresh_hz) as live:
+                    while not done():
+                        stop.wait(1.0 / refresh_hz)
+                        live.update(render(mon))
+            else:
+                while not done():
+                    stop.wait(0.05)
+            doc = snapshot_json(mon)
+            mon.close()
+        if json_out:
+            emit_json(doc)
+        elif once:
+            console.print(render(mon))
