@@ -52,6 +52,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import lapack
@@ -389,7 +390,26 @@ def causal_fits(t: np.ndarray, y: np.ndarray, window: int, order: int) -> np.nda
 
 # --------------------------------------------------------------------------------------
 # kinematic frames: the mean pose's kinematics at each instant
-class Frames:
+class _FrameFields(NamedTuple):
+    q_ref: np.ndarray
+    offset_ref: np.ndarray
+    R_0S: np.ndarray
+    motion_mps2: np.ndarray
+    axes: np.ndarray
+    p_0S_m: np.ndarray
+    omega_dot_B: np.ndarray
+    K: np.ndarray
+    K2: np.ndarray
+    motion_g: np.ndarray
+    dist2_m2: np.ndarray
+    omega_dot_norm: np.ndarray
+    KK: np.ndarray
+    R_lo: np.ndarray
+    motion_lo: np.ndarray
+    accel_var_g2: np.ndarray | None = None
+
+
+class Frames(_FrameFields):
     """The kinematics at the reference poses of K instants (batched).
 
     ``q_ref (K, n)`` the reference joint angles (encoder angles plus the offsets the frame
@@ -397,27 +417,21 @@ class Frames:
     (each sensor's acceleration from the joints' motion and the base's rotation, base
     axes, without gravity or the base's own linear acceleration) for the accelerometers
     (link accelerometers then the IMU); ``axes (K, n, 3)`` the joint axes in base axes.
+    ``K (., n, 3, 3)``: the axes' skew matrices, ``K2`` their squares; ``motion_g (., S)``:
+    |motion| in g; ``dist2_m2 (., S)``: each sensor's squared distance from the base origin;
+    ``KK (., 2n, 9n)``: the block matrix that makes every joint's
+    ``exp([a_j]x d_j) = I + [sin d_j, 1 - cos d_j] KK`` (rows 2j, 2j+1; columns 9j … 9j+8);
+    ``R_lo``, ``motion_lo``: ``R_0S`` and ``motion_mps2`` with the sensors in the order of
+    their links; ``accel_var_g2 (., S, 3)``: the accelerometers' measurement variances at
+    these instants, when a tracker has added them. Read-only (a named tuple).
     """
 
-    FIELDS = ("q_ref", "offset_ref", "R_0S", "motion_mps2", "axes", "p_0S_m", "omega_dot_B", "K", "K2",
-              "motion_g", "dist2_m2", "omega_dot_norm", "KK", "R_lo", "motion_lo")
-    # K (., n, 3, 3): the axes' skew matrices, K2 their squares; motion_g (., S): |motion| in g;
-    # dist2_m2 (., S): each sensor's squared distance from the base origin; KK (., 2n, 9n): the
-    # block matrix that makes every joint's exp([a_j]x d_j) = I + [sin d_j, 1 - cos d_j] KK
-    # (rows 2j, 2j+1; columns 9j … 9j+8); R_lo, motion_lo: R_0S and motion_mps2 with the
-    # sensors in the order of their links
-    __slots__ = FIELDS
-
-    def __init__(self, *values):
-        for name, v in zip(self.FIELDS, values, strict=True):
-            object.__setattr__(self, name, v)
-
-    def __setattr__(self, name, value):
-        raise AttributeError("Frames are read-only")
+    __slots__ = ()
+    FIELDS = _FrameFields._fields
 
     def take(self, k: int) -> Frames:
         """The frame of instant ``k`` (a plain read-only record; one per fused instant)."""
-        return Frames(*(getattr(self, f)[k] for f in self.FIELDS))
+        return tuple.__new__(Frames, [None if a is None else a[k] for a in self])
 
 
 def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset: np.ndarray,
@@ -887,6 +901,8 @@ class Tracker:
         hi = [self._sm[s].counts_max for s in sa]
         self._acc_lo = np.array([-np.inf if v is None else v for v in lo], dtype=float)
         self._acc_hi = np.array([np.inf if v is None else v for v in hi], dtype=float)
+        self._sel_cache: dict = {}  # per set of accelerometers: see _sel_info
+        self._obs_cache: dict = {}  # per set of link accelerometers: see _obs_sel
 
     # -- lifecycle -----------------------------------------------------------------------
     def initialise(self, startup: StartupResult, t_s: float, encoder_counts: np.ndarray | None = None,
@@ -1132,9 +1148,9 @@ class Tracker:
         om = np.zeros(3) if self._omega is None else self._omega - self._ukf.x[L.bias]
         g = self._gyro_diff.at(t)
         omd = np.zeros(3) if g is None else g[1]
-        frame = make_frames(self.arm, self.accel_names, e[0][None], self._ukf.x[L.offset][None],
-                            e[1][None], e[2][None], om[None], omd[None],
-                            self.settings.motion_compensation, self._joint_effects).take(0)
+        frame = self._with_noise(make_frames(
+            self.arm, self.accel_names, e[0][None], self._ukf.x[L.offset][None], e[1][None], e[2][None],
+            om[None], omd[None], self.settings.motion_compensation, self._joint_effects)).take(0)
         self._frame_cache = (t, frame)
         return frame
 
@@ -1185,16 +1201,19 @@ class Tracker:
         """Exponential averages of the gyro and the IMU accelerometer: is the chair still?"""
         st = self.settings
         a = min(1.0, max(dt, 1e-4) / st.still_tau_s)
+        xl = self._ukf._x.tolist()
         if gyro is not None:
-            wx, wy, wz = (gyro - self._ukf._x[self.layout.bias]).tolist()
+            b = self.layout.n_joints + 6  # gyro_bias
+            gx, gy, gz = gyro.tolist()
+            wx, wy, wz = gx - xl[b], gy - xl[b + 1], gz - xl[b + 2]
             wn = math.sqrt(wx * wx + wy * wy + wz * wz)
             w0 = self._still_w
             self._still_w = wn if not math.isfinite(w0) else w0 + a * (wn - w0)
         if acc is not None and self._has_imu:
             sel, _, f = acc
-            hit = np.flatnonzero(sel == self._imu_acc_index)
-            if len(hit):
-                fi = f[hit[0]].tolist()
+            pos = self._sel_info(np.asarray(sel, dtype=np.int64))[1]
+            if pos >= 0:
+                fi = f[pos].tolist()
                 if self._still_mean is None:
                     self._still_mean = fi
                 else:
@@ -1203,7 +1222,7 @@ class Tracker:
                     self._still_var += a * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - self._still_var)
         # and the filter itself no longer sees the chair accelerate (a smooth stop looks
         # quiet to the averages before it is over)
-        ax, ay, az = self._ukf._x[self.layout.accel].tolist()
+        ax, ay, az = xl[self.layout.n_joints + 2:self.layout.n_joints + 5]  # accel_B
         self._still = (self._still_w < st.still_gyro_dps * DEG
                        and self._still_var < 3.0 * st.still_accel_g**2
                        and ax * ax + ay * ay + az * az < (2.0 * st.still_accel_g * G) ** 2)
@@ -1340,6 +1359,28 @@ class Tracker:
         return np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
 
     # -- the stacked update -----------------------------------------------------------------
+    def _with_noise(self, frames: Frames) -> Frames:
+        """``frames`` with the accelerometers' measurement variances at their instants
+        (g²): the datasheet noise at the stream's rate with the unmodelled floor, a share of
+        the predicted motion acceleration (the differentiator), and the differentiated
+        gyro's error times the sensor's distance from the IMU."""
+        st = self.settings
+        wd_err = (self._omega_dot_noise + st.angular_accel_error_fraction * frames.omega_dot_norm) / G
+        extra = (st.motion_model_fraction * frames.motion_g) ** 2 + (wd_err**2)[..., None] * frames.dist2_m2
+        return frames._replace(accel_var_g2=self._accel_var_g2 + extra[..., None])
+
+    def _sel_info(self, sel: np.ndarray) -> tuple:
+        """For the accelerometers ``sel`` (cached): its key, the IMU's position in it (-1:
+        absent), whether it is every accelerometer in order, and their datasheet variances."""
+        key = sel.tobytes()
+        info = self._sel_cache.get(key)
+        if info is None:
+            hit = np.flatnonzero(sel == self._imu_acc_index)
+            full = bool(len(sel) == len(self.accel_streams) and np.array_equal(sel, np.arange(len(sel))))
+            info = self._sel_cache[key] = (key, int(hit[0]) if len(hit) else -1, full,
+                                           self._accel_var_g2[sel].copy())
+        return info
+
     def _plan(self, sel_key: bytes, k: int, still: bool, mag: bool) -> GroupPlan:
         key = (sel_key, still, mag)
         plan = self._plan_cache.get(key)
@@ -1358,24 +1399,25 @@ class Tracker:
         """One update with every accelerometer and the magnetometer of this instant, each
         sensor gated on its own NIS; health checks and re-acquisition on the way."""
         st, ukf, L = self.settings, self._ukf, self.layout
-        zs, var = [], []
         sel = m_B = check = None
         k = 0
+        key, imu_pos, full = b"", -1, False
         if acc is not None:
             sel, counts, f = acc
             sel = np.asarray(sel, dtype=np.int64)
             k = len(sel)
-            wd_err = (self._omega_dot_noise
-                      + st.angular_accel_error_fraction * float(frame.omega_dot_norm)) / G
-            extra = (st.motion_model_fraction * frame.motion_g[sel]) ** 2 + wd_err**2 * frame.dist2_m2[sel]
-            var_a = self._accel_var_g2[sel] + extra[:, None]
-            zs.append(f.reshape(-1))
-            var.append(var_a.reshape(-1))
+            key, imu_pos, full, _ = self._sel_info(sel)
+            var_a = frame.accel_var_g2 if full else frame.accel_var_g2[sel]
         still = self._still and acc is not None and st.motion_compensation
-        if still:
-            zs.append(self._zeros3)
-            var.append(self._still_var3)
         n_still = 3 if still else 0
+        m = 3 * k + n_still + (mag is not None)
+        z = np.zeros(m)
+        var = np.empty(m)
+        if k:
+            z[:3 * k] = f.reshape(-1)
+            var[:3 * k] = var_a.reshape(-1)
+        if still:
+            var[3 * k:3 * k + 3] = self._still_var3
         if mag is not None:
             m_count, m_B = mag
             x = ukf._x
@@ -1383,26 +1425,22 @@ class Tracker:
             v = self._sigma_psi**2 / m_count
             if check.disturbed:
                 v += check.doubt_rad(self._field) ** 2
-            zs.append(np.zeros(1))
-            var.append(np.array([v]))
-        z = np.concatenate(zs)
-        R = np.diag(np.concatenate(var))
-        plan = self._plan(b"" if sel is None else sel.tobytes(), k, still, mag is not None)
-        inn = ukf.innovate(z, self._h_all, R, plan,
-                           angle_rows=(3 * k + n_still,) if mag is not None else (),
+            var[-1] = v
+        plan = self._plan(key, k, still, mag is not None)
+        angle_rows = (3 * k + n_still,) if mag is not None else ()
+        inn = ukf.innovate(z, self._h_all, var, plan, angle_rows=angle_rows,
                            frame=frame, sel=sel, m_B=m_B, still=still)
         accept = inn.gate_ok.copy()
         set_off = still and not inn.gate_ok[k]
         imu_ok = True
         if k:
-            imu = np.flatnonzero(sel == self._imu_acc_index)
-            if len(imu):
+            if imu_pos >= 0:
                 # the IMU's NIS, averaged over 0.2 s: a chair that sets off smoothly shows there
                 # before any average of the raw readings does
                 a = min(1.0, max(t - self._imu_nis_t, 0.0) / 0.2)
                 self._imu_nis_t = t
-                self._imu_nis_ema += a * (min(float(inn.nis[imu[0]]), 100.0) - self._imu_nis_ema)
-                imu_ok = bool(inn.gate_ok[imu[0]]) and self._imu_nis_ema < 6.0
+                self._imu_nis_ema += a * (min(float(inn.nis[imu_pos]), 100.0) - self._imu_nis_ema)
+                imu_ok = bool(inn.gate_ok[imu_pos]) and self._imu_nis_ema < 6.0
             set_off |= self._still and not imu_ok
             # the slip detector listens only while the base behaves as modelled: the IMU
             # agrees and the chair is not wrenched about (a lurch is common to all sensors)
@@ -1414,15 +1452,15 @@ class Tracker:
             self._still = False
             self._still_var = max(self._still_var, 10.0 * st.still_accel_g**2)
             ukf.inflate(np.arange(L.accel.start, L.accel.stop), st.base_accel_sigma_mps2**2)
-            inn = ukf.innovate(z, self._h_all, R, plan,
-                               angle_rows=(3 * k + n_still,) if mag is not None else (),
+            inn = ukf.innovate(z, self._h_all, var, plan, angle_rows=angle_rows,
                                frame=frame, sel=sel, m_B=m_B, still=still)
             accept = inn.gate_ok.copy()
             if still:
                 accept[k] = False
         if k:
-            accept[:k] = self._accel_health(t, sel, counts, f, inn, var_a, shift=calm and not set_off)
-            key = (sel.tobytes(), accept[:k].tobytes())
+            accept[:k] = self._accel_health(t, sel, counts, f, inn, var_a, shift=calm and not set_off,
+                                            full=full)
+            key = (key, accept[:k].tobytes())
             if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
                 self._obs_used_key, self._obs_t = key, t
                 used = tuple(int(i) for i in sel[accept[:k]] if i < len(self.link_names))
@@ -1444,44 +1482,46 @@ class Tracker:
             accept[-1] = use
             # the heading corrects only yaw and the gyro's vertical bias: never the tilt (a
             # steel door must not tilt gravity), the arm, or the chair's acceleration
-            mask = self._mag_mask.get(len(z))
+            mask = self._mag_mask.get(m)
             if mask is None:
-                mask = np.ones((L.size, len(z)))
+                mask = np.ones((L.size, m))
                 mask[:, -1] = 0.0
                 mask[L.yaw, -1] = 1.0
                 mask[L.bias.start + 2, -1] = 1.0
-                self._mag_mask[len(z)] = mask
+                self._mag_mask[m] = mask
         ukf.correct(inn, accept, self._hold, mask)
 
     def _accel_health(self, t: float, sel: np.ndarray, counts: np.ndarray, f: np.ndarray, inn,
-                      var: np.ndarray, shift: bool = True) -> np.ndarray:
+                      var: np.ndarray, shift: bool = True, full: bool = False) -> np.ndarray:
         """Stuck, implausible (dead) and gate verdicts for the accelerometers ``sel``;
         returns which may enter the update. (A handful of sensors: plain Python is faster
-        here than array calls.)"""
+        here than array calls.) ``full``: ``sel`` is every accelerometer, in order."""
         st = self.settings
         k = len(sel)
+        ix = slice(0, k) if full else sel  # plain slices where every sensor spoke
         zp = inn.z_pred[: 3 * k].reshape(k, 3)
-        same = np.all(counts == self._last_counts[sel], axis=1)
-        self._last_counts[sel] = counts
-        fn = np.sqrt(np.einsum("si,si->s", f, f))
-        pn = np.sqrt(np.einsum("si,si->s", zp, zp))
-        implausible = np.abs(fn - pn) > st.plausible_tolerance_g
+        same = (counts == self._last_counts[ix]).all(axis=1)
+        self._last_counts[ix] = counts
+        implausible = np.abs(np.sqrt((f * f).sum(axis=1)) - np.sqrt((zp * zp).sum(axis=1))) \
+            > st.plausible_tolerance_g
         gate_ok = inn.gate_ok[:k]
-        self._seen[sel] = True
-        self._last_t[sel] = t
-        if not (same.any() or implausible.any() or self._acc_dirty[sel].any()) and gate_ok.all():
+        self._seen[ix] = True
+        self._last_t[ix] = t
+        if not (same | implausible | self._acc_dirty[ix] | ~gate_ok).any():
             # the usual case: every sensor healthy and consistent
-            self._counts[sel, C_USED] += 1
+            self._counts[ix, C_USED] += 1
             ok = usable = gate_ok
+            all_usable = True
         else:
             ok, usable = self._accel_health_slow(t, sel, counts, zp, inn, var, same, implausible)
-        if usable.any():
+            all_usable = bool(usable.all())
+        if all_usable or usable.any():
             which, Sb = inn.blocks[3]  # accelerometer groups come first, in order
-            if usable.all():
+            if all_usable:
                 Su = Sb[:k]
                 nu = inn.innovation[: 3 * k].reshape(k, 3)
                 self._acc_ring.add(t, sel, nu, Su, inn.nis[:k], ok)
-                u = sel
+                u = ix
             else:
                 ui = np.flatnonzero(usable)
                 nu = inn.innovation[self._acc_rows[ui]]
@@ -1491,7 +1531,7 @@ class Tracker:
             # the slip detector sees the normalised innovations, averaged over 50 ms; not
             # while the IMU disagrees too (the chair lurched: that is common to all sensors)
             if shift:
-                self._shift_sum[u] += nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2))
+                self._shift_sum[u] += nu / np.sqrt(Su.reshape(-1, 9)[:, ::4])
                 self._shift_n[u] += 1
             else:  # paused: the averages keep what they had, and do not count the pause
                 self._shift_t[u] = t
@@ -1645,26 +1685,30 @@ class Tracker:
         if key is not None and key[1] == used and self._t - key[0] < st.observability_period_s:
             return
         self._obs_key = (self._t, used)
-        up = _up(x[L.roll], x[L.pitch])
+        sr, cr = math.sin(x[L.roll]), math.cos(x[L.roll])
+        sp, cp = math.sin(x[L.pitch]), math.cos(x[L.pitch])
+        up = np.array([-sp, sr * cp, cr * cp])
         c = np.abs(frame.axes @ up)
-        self._axis_deg = np.degrees(np.arccos(np.clip(c, 0.0, 1.0)))
+        self._axis_deg = np.degrees(np.arccos(np.minimum(c, 1.0)))
         locked = self._axis_deg < st.gimbal_lock_deg
-        sel = np.array(used, dtype=int)
+        sel, coef = self._obs_sel(used)
         info = np.zeros((n, n))
         if len(sel):
-            v = frame.motion_mps2[sel] + (x[L.accel] + G * up)[None, :]  # (S', 3)
+            v = frame.motion_mps2[sel] + (x[L.accel] + G * up)  # (S', 3)
             # df_s/d offset_j = R_0S^T (v_s x a_j) / g for the joints before the sensor's link;
-            # v x a_j = -[a_j]x v
-            cr = -np.einsum("nij,sj->sni", frame.K, v)  # (S', n, 3)
-            J = np.einsum("sji,snj->sin", frame.R_0S[sel], cr) / G  # (S', 3, n)
-            J = J * self._sees[sel][:, None, :]
-            W = J / self._accel_sigma_g[sel][:, :, None]
-            info = np.einsum("sin,sim,s->nm", W, W, self._accel_rate[sel]) * st.observability_window_s
+            # v x a_j = -[a_j]x v, every (j, s) in one product
+            Kv = (frame.K.reshape(3 * n, 3) @ v.T).reshape(n, 3, -1).transpose(2, 1, 0)  # (S', 3, n)
+            W = (frame.R_0S[sel].transpose(0, 2, 1) @ Kv) * coef  # J / sigma * sqrt(rate * window)
+            W = W.reshape(-1, n)
+            info = W.T @ W
         lam, V, _ = lapack.dsyevd(info)
         V2 = V**2
         readable = lam > 1e-12
-        self._achievable = np.sqrt((V2[:, readable] / lam[readable]).sum(axis=1))
-        self._achievable[(V2[:, ~readable] > 1e-12).any(axis=1)] = np.inf
+        if readable.all():
+            self._achievable = np.sqrt(V2 @ (1.0 / lam))
+        else:
+            self._achievable = np.sqrt(V2[:, readable] @ (1.0 / lam[readable]))
+            self._achievable[(V2[:, ~readable] > 1e-12).any(axis=1)] = np.inf
         self._observed = self._sees[sel].any(axis=0) if len(sel) else np.zeros(n, bool)
         self._locked = locked
         self._ill = self._achievable > st.sigma_limit_deg * DEG
@@ -1686,6 +1730,19 @@ class Tracker:
             self._hold = T
         else:
             self._hold = None
+
+    def _obs_sel(self, used: tuple[int, ...]):
+        """The link accelerometers ``used`` as an index array, and the factor that turns
+        their Jacobian rows into information rows: ``-sees / sigma * sqrt(rate * window) / g``
+        (cached per set)."""
+        hit = self._obs_cache.get(used)
+        if hit is None:
+            sel = np.array(used, dtype=int)
+            w = np.sqrt(self._accel_rate[sel] * self.settings.observability_window_s)
+            coef = -(self._sees[sel][:, None, :] / self._accel_sigma_g[sel][:, :, None])
+            coef *= (w / G)[:, None, None]
+            hit = self._obs_cache[used] = (sel, coef)
+        return hit
 
     def _update_flags(self, t: float) -> None:
         """Sensor statuses and joint flags (the most severe condition wins), every
@@ -1836,26 +1893,36 @@ class Tracker:
         mag_ok = None if mag_rows is None else (mag_rows >= 0) & valid[MAG][np.maximum(mag_rows, 0)]
         mag_counts = raw[MAG].values if MAG in raw else None
         has_truth = truth and rec.get("true_q") is not None and rec.get("true_base") is not None
-        out = _RunArrays(T, n, len(self.sensor_names), keep_cov=has_truth)
+        out = _RunArrays(T, n, len(self.sensor_names), keep_cov=has_truth, size=L.size)
         i_enc, i_gyro = self._sidx[ENC], self._sidx.get(GYRO)
         for b0 in range(0, T, block):
             b1 = min(T, b0 + block)
             x = self._ukf.x
-            frames = make_frames(self.arm, self.accel_names, q_t[b0:b1], x[L.offset], qd_t[b0:b1],
-                                 qdd_t[b0:b1], w_t[b0:b1] - x[L.bias], wd_t[b0:b1], st.motion_compensation,
-                                 self._joint_effects)
+            frames = self._with_noise(make_frames(
+                self.arm, self.accel_names, q_t[b0:b1], x[L.offset], qd_t[b0:b1], qdd_t[b0:b1],
+                w_t[b0:b1] - x[L.bias], wd_t[b0:b1], st.motion_compensation, self._joint_effects))
+            # the block's per-instant flags as plain Python values (cheaper to test one by one)
+            t_l = times[b0:b1].tolist()
+            enc_l = (enc_rows[b0:b1] >= 0).tolist()
+            gyro_l = [-1] * (b1 - b0) if gyro_ok is None else \
+                np.where(gyro_ok[b0:b1], gyro_rows[b0:b1], -1).tolist()
+            mag_l = [-1] * (b1 - b0) if mag_ok is None else \
+                np.where(mag_ok[b0:b1], mag_rows[b0:b1], -1).tolist()
+            all_l = all_ok[b0:b1].tolist()
             for i in range(b0, b1):
-                t = float(times[i])
-                if enc_rows[i] >= 0:
+                r = i - b0
+                t = t_l[r]
+                if enc_l[r]:
                     self._seen[i_enc], self._last_t[i_enc] = True, t
                     self._counts[i_enc, C_USED] += 1
                 gyro = None
-                if gyro_ok is not None and gyro_ok[i]:
-                    gyro = gyro_B[gyro_rows[i]]
+                kg = gyro_l[r]
+                if kg >= 0:
+                    gyro = gyro_B[kg]
                     self._seen[i_gyro], self._last_t[i_gyro] = True, t
                     self._counts[i_gyro, C_USED] += 1
                 acc = None
-                if all_ok[i]:
+                if all_l[r]:
                     acc = (acc_idx, acc_counts[i], acc_phys[i])
                 else:
                     ok = acc_ok[i]
@@ -1865,10 +1932,10 @@ class Tracker:
                         self._seen[acc_idx[acc_seen[i]]] = True
                         self._last_t[acc_idx[acc_seen[i]]] = t
                 mag = None
-                if mag_ok is not None and mag_ok[i]:
-                    k = mag_rows[i]
-                    mag = (mag_counts[k], mag_B[k])
-                frame = frames.take(i - b0) if acc is not None else None
+                km = mag_l[r]
+                if km >= 0:
+                    mag = (mag_counts[km], mag_B[km])
+                frame = frames.take(r) if acc is not None else None
                 self._step(t, gyro, acc, mag, frame, q_t[i])
                 out.record(self, i)
         if gyro_B is not None:
@@ -2034,36 +2101,51 @@ def _rows_at(times: np.ndarray, t_s: np.ndarray) -> np.ndarray:
 
 
 class _RunArrays:
-    def __init__(self, T: int, n: int, S: int, keep_cov: bool = True):
-        self.q = np.full((T, n), np.nan)
-        self.sigma = np.full((T, n), np.nan)
+    """Per fused instant: the state, the diagonal of its covariance, the encoder angles and the
+    flags, as the run goes (a few row copies per step); angles and sigmas are made from them
+    at the end."""
+
+    def __init__(self, T: int, n: int, S: int, keep_cov: bool = True, size: int | None = None):
+        size = n + 9 if size is None else size
+        self.x = np.full((T, size), np.nan)
+        self.var = np.full((T, size), np.nan)
+        self.q_enc = np.full((T, n), np.nan)
         self.flags = np.zeros((T, n), dtype=np.int8)
-        self.rpy = np.full((T, 3), np.nan)
-        self.rpy_sigma = np.full((T, 3), np.nan)
-        self.bias = np.full((T, 3), np.nan)
         self.magnetic = np.zeros(T, dtype=np.int8)
         self.status = np.zeros((T, S), dtype=np.int8)
         self.P = np.full((T, n + 3, n + 3), np.nan) if keep_cov else None
         self.T = T
+        self._flat = None
 
     def record(self, tr: Tracker, i: int) -> None:
-        ukf, L, n = tr._ukf, tr.layout, tr.arm.n_joints
-        x = ukf._x
-        d = np.sqrt(np.clip(np.diagonal(ukf._P), 0.0, None))
-        self.q[i] = tr._q_enc + x[:n]
-        self.sigma[i] = d[:n]
+        ukf = tr._ukf
+        P = ukf._P
+        self.x[i] = ukf._x
+        self.var[i] = P.diagonal()
+        self.q_enc[i] = tr._q_enc
         self.flags[i] = tr._flags
-        idx = tr._att_idx
-        self.rpy[i] = x[idx]
-        self.rpy_sigma[i] = d[idx]
-        self.bias[i] = x[L.bias]
-        self.magnetic[i] = (1 if tr._mag_flags[0] else 0) | (2 if tr._mag_flags[1] else 0)
+        mf = tr._mag_flags
+        if mf[0] or mf[1]:
+            self.magnetic[i] = (1 if mf[0] else 0) | (2 if mf[1] else 0)
         self.status[i] = tr._status_codes
         if self.P is not None:  # for the NEES
-            self.P[i] = ukf._P[tr._nees_ix]
+            if self._flat is None:
+                ix = tr._nees_idx
+                self._flat = (ix[:, None] * P.shape[1] + ix[None, :]).reshape(-1)
+            self.P[i] = P.take(self._flat).reshape(self.P.shape[1:])
+
+    def _arrays(self, tr: Tracker) -> None:
+        L, n = tr.layout, tr.arm.n_joints
+        d = np.sqrt(np.maximum(self.var, 0.0))
+        self.q = self.q_enc + self.x[:, :n]
+        self.sigma = d[:, :n]
+        self.rpy = self.x[:, tr._att_idx]
+        self.rpy_sigma = d[:, tr._att_idx]
+        self.bias = self.x[:, L.bias]
 
     def finish(self, tr: Tracker, times, elapsed, truth_q, tq_rows, truth_b, tb_rows) -> TrackRun:
         n = tr.arm.n_joints
+        self._arrays(tr)
         q_err = yaw_err = nees = None
         if tq_rows is not None:
             q_err = np.full((self.T, n), np.nan)

@@ -416,12 +416,14 @@ class BatchedUKF:
         **kw,
     ) -> Innovation:
         """Predict ``z (m,)`` through ``hx`` (every sigma point in one call), with noise
-        ``R (m, m)``, and test each group against its gate. Nothing is applied yet.
+        ``R (m, m)`` (or its diagonal ``(m,)``), and test each group against its gate.
+        Nothing is applied yet.
 
         ``groups`` may be a prepared :class:`GroupPlan` (repeated updates of one shape).
         ``X`` may pass sigma points already made from the current state.
         """
         z = np.asarray(z, dtype=float).reshape(-1)
+        R = np.asarray(R, dtype=float)
         if groups is None:
             groups = [MeasurementGroup("z", np.arange(z.shape[0]))]
         plan = groups if isinstance(groups, GroupPlan) else GroupPlan(groups)
@@ -434,13 +436,16 @@ class BatchedUKF:
         if len(angle_rows) <= 1:
             a = int(angle_rows[0]) if len(angle_rows) else None
             zp, DZ, _, S = _ut(Z, self._Wm, self._Wc, a)
-            S += R
+            if R.ndim == 1:
+                S.reshape(-1)[::S.shape[0] + 1] += R
+            else:
+                S += R
             nu = z - zp
             if a is not None:
                 nu[a] = (nu[a] + np.pi) % TWO_PI - np.pi
         else:
             ang = np.asarray(angle_rows, dtype=int)
-            zp, DZ, S = unscented_transform(Z, self._Wm, self._Wc, R, ang)
+            zp, DZ, S = unscented_transform(Z, self._Wm, self._Wc, np.diag(R) if R.ndim == 1 else R, ang)
             nu = z - zp
             nu[ang] = wrap_angle(nu[ang])
         Pxz = DXW @ DZ
@@ -491,16 +496,23 @@ class BatchedUKF:
                 K = hold @ K
             if gain_mask is not None:
                 K = K * gain_mask
-            KPt = K @ Pxz.T
-            P = self._P - KPt - KPt.T + K @ S @ K.T
+            # P - K Pxz^T - Pxz K^T + K S K^T = P + B + B^T with B = (K S / 2 - Pxz) K^T:
+            # exactly symmetric as it is summed
+            B = K @ S
+            B *= 0.5
+            B -= Pxz
+            B = B @ K.T
+            B += B.T
+            P = self._P + B
         x = self._x + K @ nu
         a = self._angle1
         if a is not None:
             x[a] = (x[a] + np.pi) % TWO_PI - np.pi
         elif len(self._angles):
             x[self._angles] = wrap_angle(x[self._angles])
-        P += P.T
-        P *= 0.5
+        if hold is None and gain_mask is None:
+            P += P.T
+            P *= 0.5
         if not (P.diagonal() > 0.0).all():
             P = repair_covariance(P, 1e-18)
         self._x, self._P = x, P
