@@ -8,7 +8,8 @@ JSON5 file) with explicit overrides from its command line::
         ...
 
 Whatever the file says, multicast and gossip scouting are switched off, and every listen
-and connect endpoint must be a literal loopback address (``127.0.0.0/8`` or ``[::1]``):
+and connect endpoint (``tcp/``, ``tls/``, ``udp/``, ``quic/``, ``ws/``) must be a literal
+loopback address (``127.0.0.0/8`` or ``[::1]``):
 anything else is refused, with every offending endpoint named, before a session opens.
 A peer or router with no listen endpoint would listen on every interface, so one is
 required.
@@ -18,14 +19,17 @@ from __future__ import annotations
 
 import ipaddress
 import json
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "config" / "zenoh.json5"
+DEPLOY_CONFIG_DIR = DEFAULT_CONFIG_PATH.parent / "deploy"
+"""The deployment example: router.json5 (base station), chair.json5, base.json5 (TLS, ACL)."""
 MODES = ("peer", "client", "router")
 LOCATOR_PROTOCOLS = ("tcp", "udp", "quic", "tls", "ws")
 """Protocols whose endpoint is ``proto/host:port``; others (unix sockets…) are refused."""
@@ -47,6 +51,10 @@ class ZenohSettings:
     listen: Sequence[str] | None = None
     connect: Sequence[str] | None = None
     mode: str | None = None
+    extra: Mapping[str, Any] | None = None
+    """Other keys to set, path to JSON value, e.g. the certificates of a TLS deployment:
+    ``{"transport/link/tls/root_ca_certificate": "/etc/armfusion/tls/ca.pem"}``. Applied
+    before the checks: they cannot switch scouting on or add a non-loopback endpoint."""
 
 
 def endpoint_problem(endpoint: str) -> str | None:
@@ -102,6 +110,11 @@ def load_config(settings: ZenohSettings | None = None) -> zenoh.Config:
         if settings.mode not in MODES:
             raise ZenohConfigError(f"mode {settings.mode!r}: expected one of {', '.join(MODES)}")
         config.insert_json5("mode", json.dumps(settings.mode))
+    for key, value in (settings.extra or {}).items():
+        try:
+            config.insert_json5(key, json.dumps(value))
+        except Exception as e:  # zenoh raises its own ZError for an unknown key or a bad value
+            raise ZenohConfigError(f"{path}: cannot set {key} = {value!r}: {e}") from e
     for key, override in (("listen/endpoints", settings.listen), ("connect/endpoints", settings.connect)):
         if override is not None:
             check_loopback(list(override), f"{key} override")

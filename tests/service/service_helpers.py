@@ -3,6 +3,15 @@ a deadline, and a recording cut and edited (a sensor stopped, encoders reset).""
 
 from __future__ import annotations
 
+import socket
+
+
+def free_port() -> int:
+    """A free TCP port on 127.0.0.1."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
 
 class Collected:
     """Every joint state and status of one robot a session receives, decoded, in order."""

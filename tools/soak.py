@@ -1,0 +1,238 @@
+"""Soak test of the fusion node: four link accelerometers, the IMU and the encoders at 200 Hz,
+in real time through Zenoh on 127.0.0.1, to ``armfusion serve`` running as its own process.
+
+Measures what a deployment cares about: samples lost (published but never received, or
+dropped), joint states missing (an instant after the startup calibration without one), the
+sample -> estimate latency (from the moment the last sensor's message of an instant is put
+to the moment its joint state arrives back: Zenoh both ways, decoding, the reorder stage
+and the tracker), and the node's CPU use. The scenario is the WMRA's daily use (still
+for 15 s, then reaching while the chair drives). Run it niced on a shared machine::
+
+    nice python tools/soak.py --duration 60 --write
+
+``--write`` replaces the ``soak`` section of docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from fusion.configfile import load_arm  # noqa: E402
+from fusion.service import payloads as pl  # noqa: E402
+from fusion.service.zenoh_config import ZenohSettings, open_session  # noqa: E402
+from models.simulator import simulate  # noqa: E402
+from sensors.samples import Stream  # noqa: E402
+from tools.benchdoc import machine_line, write_section  # noqa: E402
+
+ROBOT = "soak"
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class Joints:
+    """Arrival time (monotonic) and sample time of every joint state."""
+
+    def __init__(self, session: zenoh.Session):
+        self.lock = threading.Lock()
+        self.t_s: list[float] = []
+        self.wall_s: list[float] = []
+        self.sub = session.declare_subscriber(pl.joints_key(ROBOT), self)
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        now = time.monotonic()
+        js = pl.decode(str(sample.key_expr), sample.payload.to_bytes())
+        with self.lock:
+            self.t_s.append(js.t_s)
+            self.wall_s.append(now)
+
+    def last_t(self) -> float:
+        with self.lock:
+            return self.t_s[-1] if self.t_s else -np.inf
+
+
+def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int) -> dict:
+    arm = load_arm("wmra")
+    rec, _ = simulate(arm, "daily-use", duration_s, rate_hz, seed=seed)
+    streams = {k: s for k, s in rec.raw().items() if len(s)}
+    port = _free_port()
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "fusion.cli", "serve", "--robot", ROBOT, "--listen",
+         f"tcp/127.0.0.1:{port}", "--publish-hz", "1000", "--json"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err_lines: list[str] = []
+    try:
+        # connect once it listens and serves (its first line on stderr says so); then keep
+        # reading its stderr so that a full pipe never stalls it
+        line = serve.stderr.readline()
+        if "serving" not in line:
+            raise RuntimeError(f"armfusion serve did not start: {line}{serve.stderr.read()[-2000:]}")
+        threading.Thread(target=lambda: err_lines.extend(serve.stderr), daemon=True).start()
+        settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
+        with open_session(settings) as session:
+            joints = Joints(session)
+            pubs = {k: session.declare_publisher(pl.raw_key(ROBOT, k),
+                                                 congestion_control=zenoh.CongestionControl.BLOCK)
+                    for k in streams}
+            deadline = time.monotonic() + 60.0
+            while not all(p.matching_status for p in pubs.values()):
+                if time.monotonic() > deadline or serve.poll() is not None:
+                    raise RuntimeError("armfusion serve did not subscribe: " + "".join(err_lines)[-2000:])
+                time.sleep(0.05)
+            # windows of batch_s: every sensor's samples in it go out as one message each
+            t0 = min(s.t_s[0] for s in streams.values())
+            edges = t0 + batch_s * np.arange(1, int(np.ceil(duration_s / batch_s)) + 2)
+            cuts = {k: np.searchsorted(s.t_s, edges, side="left") for k, s in streams.items()}
+            enc_t = streams["enc"].t_s
+            put_wall = np.full(len(enc_t), np.nan)  # when the last message of its window went out
+            enc_window = np.searchsorted(edges, enc_t, side="right")
+            seq = dict.fromkeys(streams, 0)
+            published = 0
+            cpu0, wall0 = _cpu_s(serve.pid), time.monotonic()
+            for w in range(len(edges)):
+                delay = wall0 + (edges[w] - t0) - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                for k, s in streams.items():
+                    i0 = int(cuts[k][w - 1]) if w else 0
+                    i1 = int(cuts[k][w])
+                    if i1 > i0:
+                        part = Stream(k, s.kind, s.t_s[i0:i1], s.values[i0:i1], s.channels)
+                        pubs[k].put(pl.encode(pl.RawBatch(ROBOT, part, seq[k])))
+                        seq[k] += 1
+                        published += i1 - i0
+                put_wall[enc_window == w] = time.monotonic()
+            wall_pub = time.monotonic() - wall0
+            cpu_pub = _cpu_s(serve.pid) - cpu0
+            # let the node finish (the reorder stage holds the newest 0.1 s until the stop)
+            done_by = time.monotonic() + max(30.0, 2.0 * duration_s)
+            while joints.last_t() < enc_t[-1] - 0.11 and time.monotonic() < done_by:
+                time.sleep(0.05)
+            wall_all = time.monotonic() - wall0
+            cpu_all = _cpu_s(serve.pid) - cpu0
+            time.sleep(0.2)
+        serve.send_signal(signal.SIGINT)
+        out, _ = serve.communicate(timeout=60)
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+    report = json.loads(out)
+    if report["startup_t_s"] is None:
+        raise RuntimeError(f"armfusion serve did not start tracking: {report['message']}")
+    with joints.lock:
+        got_t, got_wall = np.array(joints.t_s), np.array(joints.wall_s)
+    startup_t = report["startup_t_s"]
+    expected = enc_t[(enc_t > startup_t + 1e-9) & (enc_t <= got_t.max() + 1e-9)]
+    missing = int(len(np.setdiff1d(expected, got_t)))
+    # latency of the instants put after the first joint state arrived (before it, the node
+    # was waiting for its startup calibration, then catching up on the samples it kept)
+    k = np.searchsorted(enc_t, got_t)
+    k = np.clip(k, 0, len(enc_t) - 1)
+    matched = np.abs(enc_t[k] - got_t) < 1e-9
+    lat = got_wall[matched] - put_wall[k[matched]]
+    live = put_wall[k[matched]] > got_wall.min()
+    lat_ms = 1e3 * lat[live]
+    catch_up_s = float(got_wall.min() - np.nanmin(put_wall[enc_t >= startup_t])) if len(got_wall) else None
+    return {
+        "duration_s": duration_s, "rate_hz": rate_hz, "batch_ms": 1e3 * batch_s,
+        "sensors": sorted(streams), "published": published, "received": report["samples"],
+        "lost": published - report["samples"], "dropped": report["dropped"],
+        "out_of_order": report["out_of_order"], "startup_t_s": startup_t,
+        "estimates_expected": int(len(expected)), "estimates_received": int(len(np.unique(got_t))),
+        "estimates_missing": missing, "catch_up_s": catch_up_s,
+        "latency_ms": {"n": int(lat_ms.size), **({
+            "p50": float(np.percentile(lat_ms, 50)), "p99": float(np.percentile(lat_ms, 99)),
+            "max": float(lat_ms.max())} if lat_ms.size else {"p50": None, "p99": None, "max": None})},
+        "wall_publish_s": wall_pub, "wall_total_s": wall_all,
+        "serve_cpu_percent_while_publishing": 100.0 * cpu_pub / wall_pub,
+        "serve_cpu_percent_overall": 100.0 * cpu_all / wall_all,
+        "instants_per_serve_cpu_s": float(len(enc_t) / cpu_all) if cpu_all > 0 else None,
+        "load_average_1min": os.getloadavg()[0], "cores": os.cpu_count(),
+    }
+
+
+def markdown(r: dict) -> str:
+    lat = r["latency_ms"]
+    if lat["n"]:
+        ok_lat = "this run meets it" if lat["p99"] <= 10.0 else "this run misses it"
+        lat_text = f"{lat['p50']:.1f} / {lat['p99']:.1f} / {lat['max']:.1f} ms (n = {lat['n']})"
+    else:
+        ok_lat = "this run never caught up, so it has no figure"
+        lat_text = "none: the node never caught up with the stream"
+    rows = [
+        ("samples published / received", f"{r['published']} / {r['received']}"),
+        ("samples lost / dropped / late",
+         f"{r['lost']} / {sum(r['dropped'].values())} / {r['out_of_order']}"),
+        ("joint states expected / missing", f"{r['estimates_expected']} / {r['estimates_missing']}"),
+        ("startup calibration at (sample time)", f"{r['startup_t_s']:.2f} s"),
+        ("catch-up after it (wall)", f"{r['catch_up_s']:.2f} s"),
+        ("latency sample -> joint state, p50 / p99 / max", lat_text),
+        ("serve CPU while publishing / overall",
+         f"{r['serve_cpu_percent_while_publishing']:.0f} % / "
+         f"{r['serve_cpu_percent_overall']:.0f} % of one core"),
+        ("instants per CPU-second of serve", f"{r['instants_per_serve_cpu_s']:.0f}"),
+        ("wall time: publishing / until the last joint state",
+         f"{r['wall_publish_s']:.1f} s / {r['wall_total_s']:.1f} s"),
+    ]
+    table = "| figure | value |\n| --- | --- |\n" + "\n".join(f"| {a} | {b} |" for a, b in rows)
+    return f"""## Soak: the fusion node at {r['rate_hz']:.0f} Hz through Zenoh (`tools/soak.py`)
+
+{machine_line()}; load average {r['load_average_1min']:.1f} during the run (a shared machine:
+other processes took CPU too). `armfusion serve` as its own process on 127.0.0.1; the WMRA's
+daily use ({r['duration_s']:.0f} s: still for 15 s, then reaching while the chair drives);
+{', '.join(r['sensors'])} at {r['rate_hz']:.0f} Hz, every sensor's samples of each
+{r['batch_ms']:.0f} ms sent as one message (about one sample each), in real time.
+
+{table}
+
+The p99 latency target is 10 ms: {ok_lat}. Latency counts the instants sent
+after the first joint state arrived (before it the node waits for its startup calibration,
+then fuses the samples it kept). A node that needs more than one CPU-second per
+{r['rate_hz']:.0f} instants cannot keep up: its queue, and the latency, grow for as long as
+the stream lasts; samples are still not lost (the receive channel holds 4096 messages,
+then makes the publishers wait).
+"""
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--duration", type=float, default=60.0, help="Seconds of data (real time).")
+    ap.add_argument("--rate", type=float, default=200.0, help="Every sensor's rate, Hz.")
+    ap.add_argument("--batch-ms", type=float, default=5.0, help="Sample time per message, ms.")
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--write", action="store_true", help="Write the soak section of docs/benchmarks.md.")
+    ap.add_argument("--json", action="store_true", help="Print the figures as JSON.")
+    args = ap.parse_args(argv)
+    r = soak(args.duration, args.rate, args.batch_ms / 1000.0, args.seed)
+    print(json.dumps(r, indent=2) if args.json else markdown(r))
+    if args.write:
+        print(f"wrote {write_section('soak', markdown(r))}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
