@@ -133,7 +133,7 @@ def diagnose_command(
         entries.append(history_entry(after, recording, config, "+ " + ", ".join(e.block_name for e in added)))
     ladder = append_history(hpath, entries)
     if write is not None and history is None:  # the written config carries the ladder on
-        nxt = history_path(str(write))
+        nxt = write.with_name(write.stem + ".workbench.json")  # beside it (it is not written yet)
         if nxt.resolve() != hpath.resolve():
             nxt.parent.mkdir(parents=True, exist_ok=True)
             nxt.write_text(json.dumps({"format": HISTORY_FORMAT, "runs": ladder}, indent=2) + "\n",
@@ -206,6 +206,30 @@ def _candidates_table(d: Diagnosis, top: int) -> Table:
     return t
 
 
+def _correlation_table(a, rows: int = 8, per_axis: int = 3) -> Table | None:
+    """The axes whose residual is not white or follows an input beyond the band (None if none)."""
+    flagged = a.flagged()
+    nw = {(s, ax): m for s, ax, m in a.not_white()}
+    keys = list(dict.fromkeys([(c.stream, c.axis) for c in flagged] + list(nw)))
+    if not keys:
+        return None
+    t = Table(title=f"Where it fails ({a.source}): correlations beyond the 99 % band, corrected for "
+                    f"{len(a.axes) * len(a.inputs) * (2 * a.max_lag + 1):,} tests (|r| > {a.band_flag:.3f}; "
+                    f"lags in units of {a.dt_s:.2g} s)")
+    t.add_column("axis")
+    t.add_column("max |autocorr.|", justify="right")
+    t.add_column("follows (r at lag)")
+    for s, ax in keys[:rows]:
+        cs = [c for c in flagged if (c.stream, c.axis) == (s, ax)][:per_axis]
+        k = a.axes.index((s, ax))
+        m = float(np.max(np.abs(a.autocorr[k, 1:]))) if a.max_lag else 0.0
+        t.add_row(ax, f"[red]{m:.2f}[/]" if (s, ax) in nw else f"{m:.2f}",
+                  ", ".join(f"{c.input} ({c.r:+.2f} at {c.lag:+d})" for c in cs) or "—")
+    if len(keys) > rows:
+        t.caption = f"… and {len(keys) - rows} more axes (--json has them all)"
+    return t
+
+
 def _print(before: Diagnosis, after: Diagnosis | None, top: int) -> None:
     d = after or before
     if after is not None:
@@ -218,6 +242,10 @@ def _print(before: Diagnosis, after: Diagnosis | None, top: int) -> None:
     if d.worst and not d.fits_to_noise:
         console.print("Worst stretches: " + "; ".join(f"{a:.1f}-{b:.1f} s ({r:.1f}× the noise)"
                                                       for a, b, r in d.worst))
+    if d.analysis is not None:
+        t = _correlation_table(d.analysis)
+        if t is not None:
+            console.print(t)
     if d.candidates and d.candidates[0].significant:
         console.print(_candidates_table(d, top))
         c = d.candidates[0]
@@ -315,7 +343,79 @@ def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict
             axx.set_title(f"{a.axis} residual before and after ({unit})", fontsize=9)
         axs[0][0].legend(fontsize=8)
         figs["after"] = png(fig)
+    if src.analysis is not None:
+        figs.update(analysis_figures(src, png))
     return figs
+
+
+def analysis_figures(d: Diagnosis, png) -> dict[str, bytes]:
+    """``inputs``: the worst axis's residual against every input (binned means over the
+    points); ``correlation``: the worst axes' autocorrelation and the worst axis's
+    cross-correlation with the inputs it follows most, with the 99 % band (MATLAB's ``resid``)."""
+    import matplotlib.pyplot as plt
+
+    a = d.analysis
+    figs: dict[str, bytes] = {}
+    worst = sorted(range(len(d.axes)), key=lambda k: -d.axes[k].ratio)[:3]
+    w = worst[0]
+    ax0 = d.axes[w]
+    from fusion.diagnose import fit_inputs
+
+    inputs = fit_inputs(d.data.state, d.fit.model.arm.joint_names)
+    shown = [k for k in inputs if k not in a.constant_inputs]
+    res = _residual_of_axis(d, w)
+    ncol = 7
+    nrow = -(-len(shown) // ncol)
+    fig, axs = plt.subplots(nrow, ncol, figsize=(14, 1.9 * nrow), squeeze=False, sharey=True,
+                            layout="constrained")
+    step = max(1, len(res) // 3000)
+    for k, lab in enumerate(shown):
+        axx = axs[k // ncol][k % ncol]
+        u = inputs[lab]
+        axx.plot(u[::step], res[::step], ".", ms=1, color="0.6")
+        bins = np.linspace(u.min(), u.max(), 21)
+        idx = np.clip(np.digitize(u, bins) - 1, 0, 19)
+        cnt = np.bincount(idx, minlength=20)
+        mean = np.bincount(idx, res, minlength=20) / np.maximum(cnt, 1)
+        ok = cnt > 5
+        axx.plot(0.5 * (bins[1:] + bins[:-1])[ok], mean[ok], "-", color="C3", lw=1.5)
+        axx.axhspan(-1, 1, color="green", alpha=0.12)
+        axx.set_title(lab, fontsize=8)
+        axx.tick_params(labelsize=6)
+    for k in range(len(shown), nrow * ncol):
+        axs[k // ncol][k % ncol].axis("off")
+    fig.suptitle(f"{ax0.axis} residual (in noise σ) against each input; red: binned mean, "
+                 "band ±1σ", fontsize=10)
+    figs["inputs"] = png(fig)
+    fig, (p1, p2) = plt.subplots(1, 2, figsize=(11, 3.2), layout="constrained")
+    lags = np.arange(a.max_lag + 1)
+    for k in worst:
+        p1.plot(lags[1:], a.autocorr[k, 1:], "o-", ms=3, label=d.axes[k].axis)
+    p1.axhspan(-a.band, a.band, color="0.85", label="99 % band")
+    p1.set_title("Residual autocorrelation (whiteness)", fontsize=9)
+    p1.set_xlabel(f"lag [{a.dt_s:.2g} s]")
+    p1.legend(fontsize=7)
+    if a.inputs:
+        xl = np.arange(-a.max_lag, a.max_lag + 1)
+        top = np.argsort(-np.max(np.abs(a.xcorr[w]), 1))[:4]
+        for i in top:
+            p2.plot(xl, a.xcorr[w, i], "-", label=a.inputs[i])
+        p2.axhspan(-a.band, a.band, color="0.85", label="99 % band")
+        p2.legend(fontsize=7)
+    p2.set_title(f"Cross-correlation of {ax0.axis}'s residual with the inputs", fontsize=9)
+    p2.set_xlabel(f"lag [{a.dt_s:.2g} s] (positive: the residual follows later)")
+    figs["correlation"] = png(fig)
+    return figs
+
+
+def _residual_of_axis(d: Diagnosis, k: int) -> np.ndarray:
+    """Axis ``k``'s residual in units of its noise σ (measured minus model)."""
+    from fusion.diagnose import predicted_and_measured
+
+    a = d.axes[k]
+    t, ym, yp, unit, ch = predicted_and_measured(d)[a.stream]
+    c = ch.index(a.axis)
+    return (ym[:, c] - yp[:, c]) / a.noise
 
 
 def write_report(path: Path, before: Diagnosis, after: Diagnosis | None, ladder: list[dict],
@@ -355,6 +455,14 @@ def write_report(path: Path, before: Diagnosis, after: Diagnosis | None, ladder:
         step = (f"<h2>After adding {esc(', '.join(b for b in after.effects() if b not in before.effects()))}</h2>"
                 f"<p>Residual RMS {before.rms_ratio:.2f}× → {after.rms_ratio:.2f}× the noise floor: "
                 f"<b>{esc(after.verdict)}</b>.</p>{img('after')}")
+    corr_words = ""
+    if before.analysis is not None:
+        an = before.analysis
+        fl = an.flagged()[:5]
+        corr_words = (f"Correlations beyond the 99 % band ±{an.band:.3f}, corrected for the number of "
+                      f"tests (|r| > {an.band_flag:.3f}): "
+                      + ("; ".join(f"{c.axis} with {c.input} (r = {c.r:+.2f} at lag {c.lag:+d})" for c in fl)
+                         if fl else "none: the residuals are white and follow no input") + ".")
     doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion diagnose</title>
 <style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}}
 table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}
@@ -374,6 +482,10 @@ Model effects: {esc(', '.join(e for e in d.effects() if not e.endswith('.joint_o
 {step}
 <h2>Model against measurements (the worst axes)</h2>
 {img('compare')}
+<h2>Where it fails: residuals against the inputs</h2>
+<p>{esc(corr_words)}</p>
+{img('inputs')}
+{img('correlation')}
 <h2>Residual RMS per sensor axis</h2>
 <table><tr><th>axis</th><th>RMS</th><th>noise</th><th>RMS / noise</th><th>fit %</th></tr>{axes}</table>
 </body></html>
