@@ -155,7 +155,9 @@ class FusionNode:
     ``save_period_s`` of wall time and at stop, and resumed from at start when it is no
     older than ``max_state_age_s`` and the encoders moved no faster than
     ``max_joint_rate_rad_s`` in between. ``recent_s``: how much of the latest samples the
-    node keeps for a calibration on request.
+    node keeps for a calibration on request. ``silent_after_s``: a sensor none of whose
+    batches arrived for that long (wall time) is ``stale`` in the status, also when every
+    sensor stops and the tracker, which judges staleness in sample time, hears nothing.
     """
 
     def __init__(self, session: zenoh.Session, arm: ArmModel, robot: str, *,
@@ -163,7 +165,7 @@ class FusionNode:
                  min_data_s: float = 2.0, retry_s: float = 0.5, max_lag_s: float = 0.1,
                  state_path: Path | str | None = None, save_period_s: float = 1.0,
                  max_state_age_s: float = 60.0, max_joint_rate_rad_s: float = 1.5,
-                 recent_s: float = 5.0, still_tolerance_s: float = 0.3):
+                 recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5):
         self.session = session
         self.arm = arm
         self.robot = pl.check_name(robot, "robot")
@@ -177,6 +179,7 @@ class FusionNode:
         self.max_joint_rate_rad_s = max_joint_rate_rad_s
         self.recent_s = recent_s
         self.still_tolerance_s = still_tolerance_s
+        self.silent_after_s = silent_after_s
         self.ready = threading.Event()
         self._max_lag_s = max_lag_s
         self._reorder = _Reorder(max_lag_s)
@@ -192,6 +195,8 @@ class FusionNode:
         self._startup_t: float | None = None
         self._counts: Counter[str] = Counter()
         self._sensors: tuple[tuple[str, str], ...] = ()
+        self._arrived: dict[str, float] = {}  # sensor -> when its last batch arrived (monotonic)
+        self._silent: frozenset[str] = frozenset()
         self._status_due = False
         self._state = "starting"
         self._message = "waiting for samples"
@@ -235,6 +240,9 @@ class FusionNode:
                 while (query := self._next_query()) is not None:
                     self._answer(query)
                 now = time.monotonic()
+                silent = frozenset(k for k, t in self._arrived.items() if now - t > self.silent_after_s)
+                if silent != self._silent:
+                    self._silent, self._status_due = silent, True
                 # every second, and at once (at most 10 a second) when a sensor's status changes
                 if now >= next_status or (self._status_due and now >= last_status + 0.1):
                     self._publish_status(pub_status, receiver)
@@ -274,6 +282,7 @@ class FusionNode:
             return
         s = batch.stream
         self._counts["samples"] += len(s)
+        self._arrived[s.name] = time.monotonic()
         self._keep_recent(s)
         if self._tracker is None:
             self._buffer.setdefault(s.name, []).append(s)
@@ -466,8 +475,14 @@ class FusionNode:
                     "out_of_order": self._counts["out_of_order"],
                     "calibrations": self._counts["calibrations"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
-        pub.put(pl.encode(pl.Status(self.robot, "serve", self._state, time.time(), self._message,
-                                    tuple(counters.items()), self._sensors)))
+        sensors = dict(self._sensors)
+        sensors.update(dict.fromkeys(self._silent & set(sensors), "stale"))
+        message = self._message
+        if self._silent and self._silent >= set(sensors):
+            quiet_s = time.monotonic() - max(self._arrived.values())
+            message = f"no samples for {quiet_s:.1f} s: every sensor stale; {message}"
+        pub.put(pl.encode(pl.Status(self.robot, "serve", self._state, time.time(), message,
+                                    tuple(counters.items()), tuple(sensors.items()))))
 
     def save_state(self) -> bool:
         """Write the tracker's state to ``state_path`` (atomically); False before it tracks."""

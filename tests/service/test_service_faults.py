@@ -50,7 +50,7 @@ def test_a_sensor_that_stops_is_flagged_stale_and_the_estimates_go_on(
     with fusion_node(listener, arm, publish_hz=100.0) as (node, result), open_session(connector) as s:
         got = Collected(s)
         _replay_all(s, node, rec)
-        time.sleep(0.3)  # the last joint states and statuses on their way
+        assert wait_for(lambda: any(st.message.startswith("no samples for") for st in got.snapshot()[1]), 5.0)
     joints, status = got.snapshot()
     assert result["report"].state == "stopping"
     acc2 = [(j.t_s, dict(j.sensors)["acc2"]) for j in joints]
@@ -66,8 +66,11 @@ def test_a_sensor_that_stops_is_flagged_stale_and_the_estimates_go_on(
         "acc1": "ok", "acc2": "stale", "acc3": "ok", "acc4": "ok"}
     ok = np.array([f != "gimbal_lock" for f in last.flags])
     assert np.all(_error_deg(rec, last)[ok] < 0.5), (_error_deg(rec, last), last.flags)
-    # the status says so too
-    assert any(dict(st.sensors).get("acc2") == "stale" for st in status)
+    # the status says so too; and once the whole feed has stopped (the replay is over), that
+    # every sensor is stale
+    assert any(dict(st.sensors).get("acc2") == "stale" and dict(st.sensors)["acc1"] == "ok" for st in status)
+    assert any(set(dict(st.sensors).values()) == {"stale"} and st.message.startswith("no samples for")
+               for st in status)
 
 
 def test_bad_and_late_messages_are_counted_and_dropped_and_serving_goes_on(
