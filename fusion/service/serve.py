@@ -306,11 +306,14 @@ class FusionNode:
     # -- start: a saved state, or a startup calibration on a still arm -------------------------
     def _try_resume(self, t_s: float, encoder_counts: np.ndarray) -> None:
         doc, self._saved = self._saved, None
-        problem = state_file.resume_problem(
-            doc, robot=self.robot, arm_name=self.arm.name, joint_names=self.arm.joint_names,
-            counts_per_rad=self.arm.counts_per_rad, t_s=t_s, encoder_counts=encoder_counts,
-            now_wall_s=time.time(), max_age_s=self.max_state_age_s,
-            max_joint_rate_rad_s=self.max_joint_rate_rad_s)
+        try:
+            problem = state_file.resume_problem(
+                doc, robot=self.robot, arm_name=self.arm.name, joint_names=self.arm.joint_names,
+                counts_per_rad=self.arm.counts_per_rad, t_s=t_s, encoder_counts=encoder_counts,
+                now_wall_s=time.time(), max_age_s=self.max_state_age_s,
+                max_joint_rate_rad_s=self.max_joint_rate_rad_s)
+        except (TypeError, ValueError, KeyError) as e:  # a hand-edited or damaged file
+            problem = f"it is malformed: {type(e).__name__}: {e}"
         tracker = None
         if problem is None:
             snap = dict(doc["tracker"])
