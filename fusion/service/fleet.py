@@ -45,6 +45,10 @@ def free_loopback_port() -> int:
 
 
 def register(app: typer.Typer) -> None:
+    from fusion.service.demo import register as register_demo
+
+    register_demo(app)
+
     @app.command("router")
     def router_command(
         listen: ListenOpt = None,
@@ -76,6 +80,7 @@ def register(app: typer.Typer) -> None:
             "--realistic", help="Datasheet-typical sensor errors.")] = False,
         seed: Annotated[int, typer.Option("--seed", help="Chair k simulates with seed + k.")] = 0,
         prefix: Annotated[str, typer.Option("--prefix", help="Chair k is <prefix><k>.")] = "chair",
+        rate_hz: Annotated[float, typer.Option("--rate", help="Each chair's sampling rate, Hz.")] = 100.0,
         config: Annotated[str, typer.Option("--config", "-c", help="Arm config of every chair.")] = "wmra",
         router_listen: Annotated[str | None, typer.Option(
             "--router-listen", help="Start a router listening here (default: a free loopback port).")] = None,
@@ -109,27 +114,26 @@ def register(app: typer.Typer) -> None:
                 r = ch.start("router", ["router", "--listen", router], stdout=False)
                 if not r.wait_for_line("listening", 30.0):
                     fail(f"the router did not start on {router}: {r.stderr_tail()}")
+            # every node at once: the drivers wait (--wait) until their fusion node subscribes
             serves = [ch.start(f"serve-{n}", ["serve", "--config", config, "--robot", n, "--mode", "client",
                                               "--connect", router, "--json"]) for n in names]
-            for n, s in zip(names, serves, strict=True):
-                if not s.wait_for_line("serving", 60.0):
-                    fail(f"{n}'s fusion node did not start: {s.stderr_tail()}")
             drivers = [ch.start(f"drivers-{n}", [
                 "drivers", "--fake", "--realtime", "--config", config, "--scenario", scenario,
-                "--seed", str(seed + k), "--duration", str(duration_s), "--robot", n,
-                "--mode", "client", "--connect", router, "--wait", "10", "--json",
+                "--seed", str(seed + k), "--duration", str(duration_s), "--rate", str(rate_hz), "--robot", n,
+                "--mode", "client", "--connect", router, "--wait", "120", "--json",
                 *(["--realistic"] if realistic else [])])
                 for k, n in enumerate(names, 1)]
+            for n, s in zip(names, serves, strict=True):
+                if not s.wait_for_line("serving", 120.0):
+                    fail(f"{n}'s fusion node did not start: {s.stderr_tail()}")
             err_console.print(f"fleet of {chairs} chairs ({', '.join(names)}) through the router at "
                               f"{router}; watch: armfusion monitor --connect {router}; Ctrl-C stops",
                               highlight=False)
             while not stop.is_set() and any(d.running for d in drivers):
                 stop.wait(0.2)
-            for d in drivers:
-                ch.stop(d)
+            ch.stop_all(children=drivers)
             time.sleep(0.5)  # the fusion nodes take the last batches
-            for s in serves:
-                ch.stop(s)
+            ch.stop_all(children=serves)
         console.print(f"fleet stopped; outputs in {wd}", highlight=False)
 
     @app.command("monitor")

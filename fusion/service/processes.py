@@ -114,12 +114,15 @@ class Children:
                 child.proc.kill()
         return child.proc.wait()
 
-    def stop_all(self, grace_s: float = 15.0) -> None:
-        for c in self.children:  # all at once, then wait for each
+    def stop_all(self, grace_s: float = 15.0, children: list[Child] | None = None) -> None:
+        """SIGINT to every child (or to ``children``) at once, then SIGKILL to what still runs
+        after ``grace_s``."""
+        group = self.children if children is None else children
+        for c in group:
             if c.proc.poll() is None:
                 c.proc.send_signal(signal.SIGINT)
         deadline = time.monotonic() + grace_s
-        for c in self.children:
+        for c in group:
             try:
                 c.proc.wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
