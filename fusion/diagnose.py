@@ -46,7 +46,7 @@ from fusion.identify import (
     identify,
     with_encoder_zeros,
 )
-from models.effects import EFFECTS, Effect, JointEffect, Model, all_effects
+from models.effects import EFFECTS, Effect, Model, all_effects
 
 DEG = np.pi / 180.0
 EXCLUDED_CANDIDATES = frozenset({"enc.time_offset"})
@@ -59,8 +59,15 @@ FITS_TO_NOISE = "fits to noise"
 class DiagnoseSettings:
     alpha: float = 0.05
     """Family-wise false-alarm rate of the score tests (Bonferroni over the candidates)."""
-    n_refit: int = 5
+    n_refit: int = 3
     """Candidates refitted (the best by the linearised ΔBIC whose score test is significant)."""
+    max_refit: int = 8
+    """Refits go on past ``n_refit`` (in the linearised order) while none has reached the noise."""
+    max_rivals: int = 4
+    """Besides, refit up to this many more candidates on the best refit's target."""
+    refit_points: int = 400
+    """Fit points (evenly spread) a quick refit estimates on; its residual is then evaluated
+    over the whole recording."""
     evidence_points: int = 3000
     """Fit points (evenly spread) the evidence sentences are read off."""
     noise_tolerance: float = 1.1
@@ -235,6 +242,13 @@ class ResidualAnalysis:
     constant_inputs: tuple[str, ...] = ()
     """Inputs that do not vary in this recording (left out: no correlation to speak of)."""
     source: str = "fit residuals"
+    excluded: np.ndarray | None = None
+    """``(axes, inputs)``: pairs not tested (an input measured by that same sensor shares its
+    noise: the chair's acceleration from the IMU against the IMU's own innovations)."""
+
+    def _tested(self) -> np.ndarray:
+        ok = np.ones((len(self.axes), len(self.inputs)), bool)
+        return ok if self.excluded is None else ~self.excluded
 
     @property
     def band(self) -> float:
@@ -244,7 +258,7 @@ class ResidualAnalysis:
     def band_flag(self) -> float:
         from scipy.stats import norm
 
-        tests = max(len(self.axes) * max(len(self.inputs), 1) * (2 * self.max_lag + 1), 1)
+        tests = max(int(self._tested().sum()) * (2 * self.max_lag + 1), 1)
         return float(norm.isf(0.005 / tests) / np.sqrt(max(self.n, 1)))
 
     @property
@@ -257,8 +271,11 @@ class ResidualAnalysis:
         """Every axis-input pair's strongest correlation, strongest first."""
         out = []
         L = self.max_lag
+        ok = self._tested()
         for a, (s, ax) in enumerate(self.axes):
             for i, lab in enumerate(self.inputs):
+                if not ok[a, i]:
+                    continue
                 c = self.xcorr[a, i]
                 k = int(np.argmax(np.abs(c)))
                 out.append(InputCorrelation(s, ax, lab, float(c[k]), k - L, float(c[L])))
@@ -295,7 +312,7 @@ class ResidualAnalysis:
             "flagged": [{"stream": c.stream, "axis": c.axis, "input": c.input, "r": round(c.r, 4),
                          "lag": c.lag, "r_lag0": round(c.r_lag0, 4)} for c in self.flagged()],
             "xcorr_lag0": {f"{s}:{ax}": {lab: round(float(self.xcorr[a, i, self.max_lag]), 4)
-                                         for i, lab in enumerate(self.inputs)}
+                                         for i, lab in enumerate(self.inputs) if self._tested()[a, i]}
                            for a, (s, ax) in enumerate(self.axes)},
         }
 
@@ -318,15 +335,17 @@ def fit_inputs(state, joint_names: Sequence[str]) -> dict[str, np.ndarray]:
 
 
 def residual_analysis(E: np.ndarray, axes: Sequence[tuple[str, str]], inputs: dict[str, np.ndarray],
-                      dt_s: float, max_lag: int = MAX_LAG, source: str = "fit residuals") -> ResidualAnalysis:
+                      dt_s: float, max_lag: int = MAX_LAG, source: str = "fit residuals",
+                      exclude: Callable[[str, str], bool] | None = None) -> ResidualAnalysis:
     """Auto- and cross-correlations (biased, 1/N, as MATLAB's ``resid``) of the residuals
-    ``E (N, axes)`` and the ``inputs`` (each ``(N,)``), lags -max_lag … max_lag."""
+    ``E (N, axes)`` and the ``inputs`` (each ``(N,)``), lags -max_lag … max_lag;
+    ``exclude(stream, input)`` names pairs not to test."""
     E = np.asarray(E, float)
     N = E.shape[0]
     L = int(max(0, min(max_lag, N - 2)))
-    Ec = E - E.mean(0)
-    sd = Ec.std(0)
-    Ec = Ec / np.where(sd > 0, sd, 1.0)
+    # not centred: white noise has mean zero, and a constant offset is a failure too
+    sd = np.sqrt(np.mean(E**2, 0))
+    Ec = E / np.where(sd > 0, sd, 1.0)
     labels, cols, const = [], [], []
     for lab, u in inputs.items():
         u = np.asarray(u, float)
@@ -345,7 +364,11 @@ def residual_analysis(E: np.ndarray, axes: Sequence[tuple[str, str]], inputs: di
         X[:, :, L + lag] = Ec[lag:].T @ U[:N - lag] / N
         if lag:
             X[:, :, L - lag] = Ec[:N - lag].T @ U[lag:] / N
-    return ResidualAnalysis(tuple(axes), tuple(labels), N, float(dt_s), L, ac, X, tuple(const), source)
+    excl = None
+    if exclude is not None:
+        excl = np.array([[bool(exclude(s, lab)) for lab in labels] for s, _ in axes], bool).reshape(
+            len(axes), len(labels))
+    return ResidualAnalysis(tuple(axes), tuple(labels), N, float(dt_s), L, ac, X, tuple(const), source, excl)
 
 
 # --------------------------------------------------------------------------------------
@@ -393,8 +416,8 @@ def _axes(R: np.ndarray, data: FitData, streams: Sequence[str], model: Model) ->
             # an axis that does not vary beyond its noise has no fit % (MATLAB's would be ~0)
             varies = np.std(y[:, k]) > 3.0 * sig[k]
             fit = 100.0 * (1.0 - np.linalg.norm(e) / spread) if varies else None
-            ec = e - e.mean()
-            ac = float(ec[1:] @ ec[:-1] / max(ec @ ec, 1e-300)) if len(e) > 2 else 0.0
+            # not centred: an offset is colour too (white residuals have mean zero)
+            ac = float(e[1:] @ e[:-1] / max(e @ e, 1e-300)) if len(e) > 2 else 0.0
             out.append(AxisFit(s, sm[s].channels[k], sm[s].unit, float(np.sqrt(np.mean(e**2)) / g[k]),
                                float(sig[k] / g[k]), None if fit is None else float(fit), ac))
     return out
@@ -440,61 +463,12 @@ def params_words(params: dict[str, tuple[float, float]], units: str) -> str:
     return ", ".join(parts)
 
 
-def fit_form(model: Model, q_ref_rad: np.ndarray) -> Model:
-    """``model`` with every library ``encoder_scale`` (an effect on the encoder stream, which
-    the fit takes as its input, not as a measurement) replaced by its joint-stage twin
-    :class:`EncoderScaleInFit`, values and prior σ kept."""
-    if not any(isinstance(e, EFFECTS["encoder_scale"]) for e in model.effects):
-        return model
-    effects = [EncoderScaleInFit(model.arm, e.target, q_ref_rad) if isinstance(e, EFFECTS["encoder_scale"])
-               else e for e in model.effects]
-    return Model(model.arm, effects, model.unpack(), {b.name: b.prior_sigma for b in model.blocks},
-                 model.earth_field_W_ut, model.masses)
-
-
-class EncoderScaleInFit(JointEffect):
-    """``encoder_scale`` as the fit sees it. The encoders read ``(q_true - q0)(1 + s)`` from
-    power-up; the fit's joint angles are ``q = q_ref + encoder angle``, so the link really
-    stands at ``q0 + (q - q_ref)/(1 + s)``: a joint-stage change ``-s/(1+s) (q - q_ref)`` (the
-    constant ``q0 - q_ref`` is the joint offset's). Same name, key and units as the library's
-    effect, so a config written from it reads back as the library's ``encoder_scale``."""
-
-    name = "encoder_scale"
-    rank = 25
-    key = "scale_error"
-    shape = (1,)
-    units = "1 (fraction)"
-    labels = ("scale",)
-    bound = 0.1
-
-    def __init__(self, arm, target=None, q_ref_rad: np.ndarray | None = None):
-        super().__init__(arm, target)
-        lib = EFFECTS["encoder_scale"]
-        self.summary, self.description, self.seen_in = lib.summary, lib.description, lib.seen_in
-        self.q_ref = np.zeros(arm.n_joints) if q_ref_rad is None else np.asarray(q_ref_rad, float)
-
-    def default_sigma(self):
-        return EFFECTS["encoder_scale"](self.arm, self.target).default_sigma()
-
-    def delta(self, q, theta, ctx):
-        return -theta[0] / (1.0 + theta[0]) * (q[:, self.j] - self.q_ref[self.j])
-
-    def delta_jac_params(self, q, theta, ctx):
-        return (-(q[:, self.j] - self.q_ref[self.j]) / (1.0 + theta[0]) ** 2)[:, None]
-
-    def delta_jac_q(self, q, theta, ctx):
-        d = np.zeros(q.shape)
-        d[:, self.j] = -theta[0] / (1.0 + theta[0])
-        return d
-
-
-def _candidates(model: Model, q_ref_rad: np.ndarray, names: Sequence[str] | None) -> list[Effect]:
+def _candidates(model: Model, names: Sequence[str] | None) -> list[Effect]:
     out = []
     for e in all_effects(model.arm, names):
         if e.block_name in model.index or e.block_name in EXCLUDED_CANDIDATES:
             continue
-        out.append(EncoderScaleInFit(model.arm, e.target, q_ref_rad)
-                   if isinstance(e, EFFECTS["encoder_scale"]) else e)
+        out.append(e)
     return out
 
 
@@ -510,7 +484,13 @@ def _sums(pb: _Problem, sub: FitData, z: np.ndarray, cols: np.ndarray, G: np.nda
     spb = _Problem(m, sub, pb.streams, pb.attitude, z[P:])
     pos = np.full(pb.size, -1)
     pos[cols] = np.arange(len(cols))
-    blocks = [b.name for b in m.blocks if np.any(pos[m.index[b.name]] >= 0)]
+    # encoder scale errors: the fit's joint angles come from the encoders (identify's
+    # ``_Problem`` scales them); the column is the joint's joint_offset column times
+    # -(encoder angle)/(1 + s)
+    enc = [(b.name, m.effect(b.name).j) for b in m.blocks
+           if b.effect == "encoder_scale" and pos[m.index[b.name].start] >= 0]
+    need = {f"{m.arm.joint_names[j]}.joint_offset" for _, j in enc}
+    blocks = [b.name for b in m.blocks if np.any(pos[m.index[b.name]] >= 0) or b.name in need]
     st = spb.state(z)
     pred, jac = m.predict_with_jacobian(st, z[:P], spb.streams, blocks=blocks)
     att_cols = [c for c in cols if c >= P]
@@ -532,6 +512,13 @@ def _sums(pb: _Problem, sub: FitData, z: np.ndarray, cols: np.ndarray, G: np.nda
             if keep.any():
                 parts.append(Jb.reshape(N * k, -1)[:, keep])
                 idx.append(p[keep])
+        for b, j in enc:
+            off = f"{m.arm.joint_names[j]}.joint_offset"
+            if off in jac.get(s, {}):
+                c = m.index[b].start
+                q_enc = (st.q_rad[:, j] - sub.q_ref_rad[j]) / (1.0 + z[c])
+                parts.append((jac[s][off][:, :, 0] * -q_enc[:, None]).reshape(N * k, 1))
+                idx.append(np.array([pos[c]]))
         for c, ap in zip(att_cols, att_pred, strict=True):
             parts.append(((ap[s] - y).ravel() / 1e-6)[:, None])
             idx.append(np.array([pos[c]]))
@@ -571,14 +558,13 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     t0 = time.perf_counter()
     say = progress or (lambda _m, _f: None)
     streams = [s for s in (data.counts if streams is None else streams) if s not in FIT_STREAMS_EXCLUDED]
-    model = fit_form(model, data.q_ref_rad)
     say("fitting the model", 0.0)
     max_j = st.identify.max_nfev + 1
     fit = fit_model(model, data, streams, st.identify, attitude0_rad,
                     progress=lambda k, _c: say("fitting the model", 0.45 * min(k / max_j, 1.0)))
     m = fit.model
     arm = m.arm
-    cands = _candidates(m, data.q_ref_rad, st.effects)
+    cands = _candidates(m, st.effects)
     # every candidate's columns at zero (the prediction is unchanged): the score tests
     pb, z = _problem(fit, data, cands, streams, st.identify)
     P0 = m.size
@@ -649,40 +635,54 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
             lm = 0.0  # only a step outside the bounds (a negative play or sag) would help
         delta = np.clip(delta, lo, hi)
         cov = (V[:, keep] / lam[keep]) @ V[:, keep].T * np.outer(sig_c, sig_c)
-        lin.append((e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s, Mc, cs))
+        lin.append((e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s))
     lin.sort(key=lambda c: -(c[1] - c[2] * lnn))
     out: list[Candidate] = []
     base_model = m.with_values(fit.model_x)
-    att_now = z[pb.P:]
+    rstride = int(np.ceil(data.n / max(st.refit_points, 2)))
+    sub = data.subset(slice(None, None, rstride)) if rstride > 1 else data
     n_do = sum(1 for rank, c in enumerate(lin) if rank < st.n_refit
                and min(1.0, chi2_dist.sf(c[1], c[2]) * K) < st.alpha)
     done = 0
-    for rank, (e, lm, dof, delta, dsig, dr, Mc, cs) in enumerate(lin):
+    best_after = np.inf
+    best_target = None
+    rivals = 0
+    for rank, (e, lm, dof, delta, dsig, dr) in enumerate(lin):
         p = float(min(1.0, chi2_dist.sf(lm, dof) * K))
         b = pb.model.block(e.block_name)
         names = b.element_names()
-        refit = rank < st.n_refit and p < st.alpha  # only a significant score can be significant
+        # only a significant score can be significant; past the first n_refit, go on while no
+        # refit has reached the noise (the linearised ranking misleads when the current fit
+        # has bent other parameters to take up the missing effect)
+        # and refit the rivals of the best so far: effects on the same sensor or joint often
+        # explain nearly the same (a turned IMU and its accelerometer's axes on a parked chair)
+        rival = best_target == e.target and rivals < st.max_rivals
+        refit = p < st.alpha and (rank < st.n_refit or rival or (
+            rank < st.max_refit and best_after > st.noise_tolerance))
+        if refit and rival and rank >= st.n_refit:
+            rivals += 1
         if refit:
-            # the quick refit: one Gauss-Newton step of the model with the candidate added (its
-            # prior included, every fitted parameter re-adjusting), from the current estimates;
-            # the residual evaluated exactly there, over the whole recording
-            say(f"refitting with {e.block_name}", 0.85 + 0.15 * done / max(n_do, 1))
+            # the quick refit: identify with the candidate added, from the current estimates, on
+            # at most ``refit_points`` evenly spread fit points; the residual evaluated exactly
+            # at its estimates over the whole recording
+            say(f"refitting with {e.block_name}", 0.85 + 0.15 * min(done / max(n_do, 1), 1.0))
             done += 1
-            sig_c = pb.sigma0[pb.model.index[e.block_name]]
-            H = Mc + np.diag(1.0 / sig_c**2)
-            Hi = np.linalg.inv(0.5 * (H + H.T))
-            dc = np.clip(-Hi @ g_all[cs], b.lower, b.upper)
-            dz = np.zeros(pb.size)
-            dz[fcols] = -AiB[:, cs] @ dc
-            xm = np.concatenate([fit.model_x + dz[:P0], dc])
-            att = att_now + dz[pb.P:]
-            mc = base_model.with_effects([e])
-            chi2_new = _chi2(mc, data, pb.streams, pb.attitude, xm, att, per)
-            dbic = chi2_new - chi2_now + dof * lnn
+            res = identify(base_model.with_effects([e]), sub, streams, st.identify,
+                           attitude0_rad=fit.attitude_rad)
+            sl2 = res.model.index[e.block_name]
+            new_free = int((~res.held[sl2]).sum())
+            if sub is data:
+                chi2_new = chi2_total(res)
+            else:
+                att = res.attitude_rad if res.attitude_rad is not None else np.zeros(3)
+                chi2_new = _chi2(res.model, data, pb.streams, pb.attitude, res.model_x, att, per)
+            dbic = chi2_new - chi2_now + new_free * lnn
             rms_after = float(np.sqrt(chi2_new / n_res))
-            infl = max(1.0, chi2_new / max(n_res - nf - dof, 1))
-            sd = np.sqrt(np.clip(np.diag(Hi), 0, None) * infl)
-            params = {n: (float(dc[q]), float(sd[q])) for q, n in enumerate(names)}
+            if rms_after < best_after:
+                best_after, best_target = rms_after, e.target
+            shrink = np.sqrt(sub.n / data.n)  # σ of the whole recording from the subsample's
+            params = {n: (float(res.x[sl2][q]), float(res.sigma[sl2][q] * shrink))
+                      for q, n in enumerate(names)}
         else:
             dbic = -lm + dof * lnn
             rms_after = None
@@ -796,3 +796,182 @@ def predicted_and_measured(diag: Diagnosis) -> dict[str, tuple]:
         i += n
         out[s] = (diag.data.state.t_s, y, yh, sm[s].unit, sm[s].channels)
     return out
+
+
+# --------------------------------------------------------------------------------------
+# on moving data: the same analysis on the tracker's normalised innovations
+INNOVATIONS_WHITE = "innovations white: the model fits the moving recording"
+
+
+@dataclass(frozen=True)
+class InnovationDiagnosis:
+    """Whiteness and cross-correlation of the tracker's normalised innovations
+    (``L⁻¹ν`` with ``S = LLᵀ``: white, unit variance and following no input when the
+    model and its noise are right), and each sensor's mean NIS."""
+
+    analyses: tuple[ResidualAnalysis, ...]
+    """One per group of sensors fused at the same instants (the accelerometers; the compass)."""
+    nis: dict[str, tuple[float, int, int]]
+    """Per sensor: mean NIS, count, degrees of freedom."""
+    steps: int
+    seconds: float
+
+    @property
+    def white(self) -> bool:
+        return all(a.white for a in self.analyses)
+
+    def not_white(self) -> list[tuple[str, str, float]]:
+        return sorted((x for a in self.analyses for x in a.not_white()), key=lambda x: -x[2])
+
+    def flagged(self) -> list[InputCorrelation]:
+        return sorted((c for a in self.analyses for c in a.flagged()), key=lambda c: -abs(c.r))
+
+    @property
+    def verdict(self) -> str:
+        if self.white:
+            return INNOVATIONS_WHITE
+        nw, fl = self.not_white(), self.flagged()
+        where = nw[0][1] if nw else fl[0].axis
+        return f"innovations not white: the model misses something while moving (worst: {where})"
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"verdict": self.verdict, "white": self.white, "steps": self.steps,
+                "seconds": round(self.seconds, 3),
+                "nis": {s: {"mean": round(float(m), 4), "count": int(c), "dof": int(k)}
+                        for s, (m, c, k) in self.nis.items()},
+                "analyses": [a.as_dict() for a in self.analyses]}
+
+
+def chair_moves(arm, rec, rate_rad_s: float = 5 * DEG, share: float = 0.01) -> bool:
+    """Whether the chair turns in ``rec``: the IMU gyro reads more than ``rate_rad_s`` (beyond
+    its median, the bias) on more than ``share`` of the samples. The fit of :func:`diagnose`
+    takes the chair as parked; a moving recording is for :func:`innovation_diagnosis`."""
+    from models.sensor_models import stream_models
+
+    g = rec.get("imu_gyro")
+    if g is None or not len(g):
+        return False
+    w = stream_models(arm)["imu_gyro"].from_counts(np.asarray(g.values, float))
+    w = w - np.median(w, 0)
+    return bool(np.mean(np.linalg.norm(w, axis=1) > rate_rad_s) > share)
+
+
+def _moving_mean(x: np.ndarray, n: int) -> np.ndarray:
+    if n <= 1 or len(x) < n:
+        return x
+    c = np.cumsum(np.concatenate([np.zeros((1,) + x.shape[1:]), x]), 0)
+    m = (c[n:] - c[:-n]) / n
+    pad = n - 1
+    return np.concatenate([np.repeat(m[:1], pad // 2, 0), m, np.repeat(m[-1:], pad - pad // 2, 0)])
+
+
+def _shares_noise(stream: str, label: str) -> bool:
+    """The chair's acceleration is read off the IMU's accelerometer: not evidence against it."""
+    return stream == "imu_acc" and label.startswith("chair accel")
+
+
+def innovation_inputs(arm, rec, run, t_s: np.ndarray) -> dict[str, np.ndarray]:
+    """The inputs at the innovations' instants: each joint's tracked angle, its rate and
+    acceleration (from the angle smoothed over 0.2 s), the chair's acceleration (the IMU's
+    specific force less gravity at the tracked tilt, base axes, averaged over 0.5 s so that
+    the IMU's own noise does not correlate with its innovations) and the temperature."""
+    from models.rotations import up_in_base
+    from models.sensor_models import stream_models
+
+    sm = stream_models(arm)
+    tt = np.asarray(run.t_s, float)
+    ok = np.all(np.isfinite(run.q_rad), 1)
+    tt, q = tt[ok], run.q_rad[ok]
+    dt = float(np.median(np.diff(tt))) if len(tt) > 1 else 0.01
+    qs = _moving_mean(q, max(1, int(round(0.2 / dt))))
+    qd = np.gradient(qs, tt, axis=0)
+    qdd = np.gradient(_moving_mean(qd, max(1, int(round(0.2 / dt)))), tt, axis=0)
+    out: dict[str, np.ndarray] = {}
+    for j, jn in enumerate(arm.joint_names):
+        k = jn[1:] if jn.startswith("j") else jn
+        out[f"q{k}"] = np.interp(t_s, tt, q[:, j])
+        out[f"rate q{k}"] = np.interp(t_s, tt, qd[:, j])
+        out[f"accel q{k}"] = np.interp(t_s, tt, qdd[:, j])
+    ia = rec.get("imu_acc")
+    if ia is not None and len(ia) and arm.imu is not None:
+        f = sm["imu_acc"].from_counts(np.asarray(ia.values, float)) @ arm.imu.R_LS.T
+        rpy = run.rpy_rad[ok]
+        up = up_in_base(np.interp(ia.t_s, tt, rpy[:, 0]), np.interp(ia.t_s, tt, rpy[:, 1]))
+        da = np.asarray(ia.t_s, float)
+        a = _moving_mean(f - up, max(1, int(round(0.5 / max(float(np.median(np.diff(da))), 1e-3)))))
+        for c, lab in enumerate("xyz"):
+            out[f"chair accel {lab}"] = np.interp(t_s, da, a[:, c])
+    tp = rec.get("imu_temp")
+    if tp is not None and len(tp):
+        temp_c = sm["imu_temp"].from_counts(np.asarray(tp.values, float))[:, 0]
+        out["temperature"] = np.interp(t_s, tp.t_s, temp_c)
+    return out
+
+
+def _block_means(t: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    m = len(t) // n
+    if n <= 1 or m < 2:
+        return t, x
+    return (t[: m * n].reshape(m, n).mean(1),
+            x[: m * n].reshape(m, n, *x.shape[1:]).mean(1))
+
+
+def innovation_diagnosis(arm, rec, settings=None, max_lag: int = MAX_LAG, block_s: float = 0.5,
+                         progress: Callable[[str, float], None] | None = None) -> InnovationDiagnosis:
+    """Run the tracker (``fusion.tracker``, started on the recording's first still stretch)
+    over ``rec`` and analyse its normalised innovations: whiteness per axis and
+    cross-correlation with the inputs (:func:`residual_analysis`).
+
+    The innovations are averaged over blocks of ``block_s`` first ("batch means"): a filter's
+    innovations carry short-lived colour even when its model is right (the differentiators'
+    lag in the motion terms, the encoders' rounding, a gain below the optimum where the
+    noise is taken larger than it is), which the block means wash out, while a missing
+    effect (a bias that follows the pose, a drift) lasts for seconds and survives."""
+    import time
+
+    from fusion.tracker import start_from_recording
+    from models.sensor_models import stream_models
+
+    t0 = time.perf_counter()
+    say = progress or (lambda _m, _f: None)
+    say("starting the tracker", 0.0)
+    tr, _start = start_from_recording(arm, rec, settings)
+    say("tracking the recording", 0.1)
+    run = tr.run(rec, truth=False)
+    say("analysing the innovations", 0.9)
+    sm = stream_models(arm)
+    logs = []
+    for s in [a.name for a in arm.link_accelerometers] + (["imu_acc", "imu_mag"] if arm.imu else []):
+        try:
+            lg = tr.innovations(s)
+        except KeyError:
+            continue
+        good = np.isfinite(lg.nis) & np.all(np.isfinite(lg.innovation), 1)
+        if good.sum() < 10:
+            continue
+        Lc = np.linalg.cholesky(lg.S[good])
+        e = np.linalg.solve(Lc, lg.innovation[good][..., None])[..., 0]
+        names = tuple(c.removeprefix(f"{s}_") for c in sm[s].channels) \
+            if lg.innovation.shape[1] == len(sm[s].channels) else ("heading",)
+        logs.append((s, np.round(lg.t_s[good], 6), e, names))
+    # sensors fused at the same instants are analysed together (the accelerometers at every
+    # instant; the compass at its own, slower, fusion period)
+    groups: list[tuple[np.ndarray, list]] = []
+    for s, t, e, names in logs:
+        for gt, members in groups:
+            if len(gt) == len(t) and np.array_equal(gt, t):
+                members.append((s, e, names))
+                break
+        else:
+            groups.append((t, [(s, e, names)]))
+    analyses = []
+    for t, members in groups:
+        E = np.concatenate([e for _, e, _ in members], 1)
+        axes = [(s, f"{s}_{n}") for s, _, names in members for n in names]
+        dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        t, E = _block_means(t, E, max(1, int(round(block_s / max(dt, 1e-9)))))
+        dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        analyses.append(residual_analysis(E, axes, innovation_inputs(arm, rec, run, t), dt, max_lag,
+                                          source="tracker innovations", exclude=_shares_noise))
+    say("done", 1.0)
+    return InnovationDiagnosis(tuple(analyses), tr.nis_stats(), run.steps, time.perf_counter() - t0)

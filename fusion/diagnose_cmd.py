@@ -34,7 +34,15 @@ from fusion.cli_common import (
     read_recording_or_exit,
 )
 from fusion.configfile import resolve_config_path
-from fusion.diagnose import Diagnosis, add_effects, diagnose, params_words, parse_add
+from fusion.diagnose import (
+    Diagnosis,
+    add_effects,
+    chair_moves,
+    diagnose,
+    innovation_diagnosis,
+    params_words,
+    parse_add,
+)
 from fusion.identify import config_with_estimates, data_from_recording
 from models.effects import TargetError, model_from_arm
 
@@ -99,6 +107,9 @@ def diagnose_command(
                                                  "CONFIG.workbench.json beside the config).")] = None,
     report: Annotated[Path | None, typer.Option(help="Write an HTML report (one file, plots embedded).")] = None,
     top: Annotated[int, typer.Option(help="Candidates to show.")] = 8,
+    innovations: Annotated[bool, typer.Option(
+        "--innovations", help="Also run the tracker over the recording and analyse its normalised "
+        "innovations (whiteness, correlation with the inputs); automatic when the chair moves.")] = False,
     json_out: JsonOpt = False,
 ) -> None:
     """Compare the model with a recording: where it fails, which physical effect is missing."""
@@ -108,6 +119,12 @@ def diagnose_command(
         added = parse_add(arm, add or [])
     except (KeyError, TargetError) as e:
         fail(f"--add: {e.args[0] if e.args else e}")
+    if chair_moves(arm, rec):
+        if added or write is not None:
+            fail("the chair moves in this recording: the fit (and so --add and --write) takes it as parked; "
+                 "record with the chair parked to find and add effects")
+        _innovations_only(arm, rec, recording, config, report, json_out)
+        return
     try:
         data = data_from_recording(arm, rec, window=window)
     except ValueError as e:
@@ -126,6 +143,7 @@ def diagnose_command(
 
         before = diagnose(model_from_arm(arm), data, progress=stage(0))
         after = add_effects(before, added, progress=stage(1)) if added else None
+    inn = _run_innovations(arm, rec, json_out) if innovations else None
     final = after or before
     hpath = history or history_path(config)
     entries = [history_entry(before, recording, config, Path(config).stem)]
@@ -157,9 +175,12 @@ def diagnose_command(
                        for r in ladder]
         d["written"] = str(write) if write else None
         d["report"] = str(report) if report else None
+        d["innovations"] = None if inn is None else inn.as_dict()
         emit_json(d)
         return
     _print(before, after, top)
+    if inn is not None:
+        _print_innovations(inn)
     console.print(f"History (error ladder, {len(ladder)} model versions): {hpath}")
     if write:
         console.print(f"Wrote {write}")
@@ -206,6 +227,50 @@ def _candidates_table(d: Diagnosis, top: int) -> Table:
     return t
 
 
+def _run_innovations(arm, rec, json_out: bool):
+    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TimeElapsedColumn(), console=err_console, transient=True,
+                  disable=json_out or not err_console.is_terminal) as bar:
+        task = bar.add_task("tracker", total=1.0)
+        try:
+            return innovation_diagnosis(arm, rec, progress=lambda m, f: bar.update(
+                task, completed=f, description=f"{m:<40.40}"))
+        except (ValueError, RuntimeError) as e:
+            fail(f"--innovations: {e}")
+
+
+def _print_innovations(inn) -> None:
+    colour = "green" if inn.white else "yellow"
+    console.print(f"Tracker innovations ({inn.steps:,} fused instants): [bold {colour}]{inn.verdict}[/]")
+    t = Table(title="Normalised innovation squared per sensor (its mean is the dof when the noise is right)")
+    for c in ("sensor", "mean NIS", "dof", "samples"):
+        t.add_column(c, justify="left" if c == "sensor" else "right")
+    for s, (m, n, k) in inn.nis.items():
+        t.add_row(s, f"{m:.3g}", str(k), f"{n:,}")
+    console.print(t)
+    for a in inn.analyses:
+        ct = _correlation_table(a)
+        if ct is not None:
+            console.print(ct)
+
+
+def _innovations_only(arm, rec, recording: Path, config: str, report: Path | None, json_out: bool) -> None:
+    """A moving chair: the fit (parked) does not apply; the tracker's innovations do."""
+    inn = _run_innovations(arm, rec, json_out)
+    note = ("the chair moves in this recording: the model fit takes the chair as parked, so the analysis "
+            "runs on the tracker's normalised innovations")
+    if report is not None:
+        write_innovation_report(report, inn, recording, config, note)
+    if json_out:
+        emit_json({"mode": "innovations", "verdict": inn.verdict, "note": note,
+                   "innovations": inn.as_dict(), "report": str(report) if report else None})
+        return
+    console.print(f"[dim]{note}[/]")
+    _print_innovations(inn)
+    if report:
+        console.print(f"Report: {report}")
+
+
 def _correlation_table(a, rows: int = 8, per_axis: int = 3) -> Table | None:
     """The axes whose residual is not white or follows an input beyond the band (None if none)."""
     flagged = a.flagged()
@@ -214,7 +279,7 @@ def _correlation_table(a, rows: int = 8, per_axis: int = 3) -> Table | None:
     if not keys:
         return None
     t = Table(title=f"Where it fails ({a.source}): correlations beyond the 99 % band, corrected for "
-                    f"{len(a.axes) * len(a.inputs) * (2 * a.max_lag + 1):,} tests (|r| > {a.band_flag:.3f}; "
+                    f"{int(a._tested().sum()) * (2 * a.max_lag + 1):,} tests (|r| > {a.band_flag:.3f}; "
                     f"lags in units of {a.dt_s:.2g} s)")
     t.add_column("axis")
     t.add_column("max |autocorr.|", justify="right")
@@ -387,25 +452,80 @@ def analysis_figures(d: Diagnosis, png) -> dict[str, bytes]:
     fig.suptitle(f"{ax0.axis} residual (in noise σ) against each input; red: binned mean, "
                  "band ±1σ", fontsize=10)
     figs["inputs"] = png(fig)
+    figs["correlation"] = correlation_figure(a, [(d.axes[k].stream, d.axes[k].axis) for k in worst], png)
+    return figs
+
+
+def correlation_figure(a, worst: list[tuple[str, str]], png) -> bytes:
+    """The ``worst`` axes' autocorrelation and the first one's cross-correlation with the four
+    inputs it follows most, with the 99 % band ±2.58/√N (as MATLAB's ``resid``)."""
+    import matplotlib.pyplot as plt
+
     fig, (p1, p2) = plt.subplots(1, 2, figsize=(11, 3.2), layout="constrained")
     lags = np.arange(a.max_lag + 1)
-    for k in worst:
-        p1.plot(lags[1:], a.autocorr[k, 1:], "o-", ms=3, label=d.axes[k].axis)
+    idx = [a.axes.index(w) for w in worst]
+    for k in idx:
+        p1.plot(lags[1:], a.autocorr[k, 1:], "o-", ms=3, label=a.axes[k][1])
     p1.axhspan(-a.band, a.band, color="0.85", label="99 % band")
-    p1.set_title("Residual autocorrelation (whiteness)", fontsize=9)
+    p1.set_title(f"Autocorrelation ({a.source}): whiteness", fontsize=9)
     p1.set_xlabel(f"lag [{a.dt_s:.2g} s]")
     p1.legend(fontsize=7)
+    w = idx[0]
     if a.inputs:
         xl = np.arange(-a.max_lag, a.max_lag + 1)
-        top = np.argsort(-np.max(np.abs(a.xcorr[w]), 1))[:4]
-        for i in top:
+        score = np.where(a._tested()[w], np.max(np.abs(a.xcorr[w]), 1), -1.0)
+        for i in np.argsort(-score)[:4]:
             p2.plot(xl, a.xcorr[w, i], "-", label=a.inputs[i])
         p2.axhspan(-a.band, a.band, color="0.85", label="99 % band")
         p2.legend(fontsize=7)
-    p2.set_title(f"Cross-correlation of {ax0.axis}'s residual with the inputs", fontsize=9)
-    p2.set_xlabel(f"lag [{a.dt_s:.2g} s] (positive: the residual follows later)")
-    figs["correlation"] = png(fig)
-    return figs
+    p2.set_title(f"Cross-correlation of {a.axes[w][1]} with the inputs", fontsize=9)
+    p2.set_xlabel(f"lag [{a.dt_s:.2g} s] (positive: it follows later)")
+    return png(fig)
+
+
+def write_innovation_report(path: Path, inn, recording: Path, config: str, note: str) -> Path:
+    """The report of a moving recording: the tracker's innovations, whiteness and correlations."""
+    import base64
+    import html
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def png(fig) -> bytes:
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+        plt.close(fig)
+        return buf.getvalue()
+
+    imgs = []
+    for a in inn.analyses:
+        order = sorted(range(len(a.axes)), key=lambda k: -float(np.max(np.abs(a.autocorr[k, 1:]), initial=0.0)))
+        b = correlation_figure(a, [a.axes[k] for k in order[:3]], png)
+        imgs.append(f'<img alt="correlation" src="data:image/png;base64,{base64.b64encode(b).decode()}">')
+    fl = inn.flagged()[:8]
+    words = "; ".join(f"{html.escape(c.axis)} with {html.escape(c.input)} (r = {c.r:+.2f} at lag {c.lag:+d})"
+                      for c in fl) or "none"
+    nis = "".join(f"<tr><td>{html.escape(s)}</td><td>{m:.3g}</td><td>{k}</td><td>{n:,}</td></tr>"
+                  for s, (m, n, k) in inn.nis.items())
+    doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion diagnose (moving)</title>
+<style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}}
+table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padding:2px 6px}}img{{max-width:100%}}</style>
+</head><body><h1>armfusion diagnose: the tracker's innovations</h1>
+<p>Recording <code>{html.escape(str(recording))}</code>, config <code>{html.escape(str(config))}</code>;
+{inn.steps:,} fused instants. {html.escape(note)}.</p>
+<h2>Verdict: {html.escape(inn.verdict)}</h2>
+<p>Correlations beyond the corrected 99 % band: {words}.</p>
+{''.join(imgs)}
+<h2>Normalised innovation squared</h2>
+<table><tr><th>sensor</th><th>mean NIS</th><th>dof</th><th>samples</th></tr>{nis}</table>
+</body></html>
+"""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(doc, encoding="utf-8")
+    return path
 
 
 def _residual_of_axis(d: Diagnosis, k: int) -> np.ndarray:
