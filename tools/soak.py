@@ -167,7 +167,8 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int) -> dict:
         "duration_s": duration_s, "rate_hz": rate_hz, "batch_ms": 1e3 * batch_s,
         "sensors": sorted(streams), "published": published, "received": report["samples"],
         "lost": published - report["samples"], "dropped": report["dropped"],
-        "out_of_order": report["out_of_order"], "startup_t_s": startup_t,
+        "out_of_order": report["out_of_order"], "missed_batches": report["missed_batches"],
+        "startup_t_s": startup_t,
         "estimates_expected": int(len(expected)), "estimates_received": int(len(np.unique(got_t))),
         "estimates_missing": missing, "catch_up_s": catch_up_s,
         "latency_ms": {"n": int(lat_ms.size), **({
@@ -213,6 +214,7 @@ def markdown(r: dict) -> str:
         ("samples published / received", f"{r['published']} / {r['received']}"),
         ("samples lost / dropped / late",
          f"{r['lost']} / {sum(r['dropped'].values())} / {r['out_of_order']}"),
+        ("batches the node saw missing (seq gaps)", f"{r.get('missed_batches', 'not counted')}"),
         ("joint states expected / missing", f"{r['estimates_expected']} / {r['estimates_missing']}"),
         ("startup calibration at (sample time)", f"{r['startup_t_s']:.2f} s"),
         ("caught up (a joint state within 50 ms of its samples) after",

@@ -67,13 +67,14 @@ class ServeReport:
     resumed: bool = False
     resume_message: str = ""
     calibrations: int = 0
+    missed_batches: int = 0
 
     def as_dict(self) -> dict:
         return {"robot": self.robot, "state": self.state, "samples": self.samples,
                 "estimates": self.estimates, "out_of_order": self.out_of_order,
                 "dropped": self.dropped, "startup_t_s": self.startup_t_s, "message": self.message,
                 "resumed": self.resumed, "resume_message": self.resume_message,
-                "calibrations": self.calibrations}
+                "calibrations": self.calibrations, "missed_batches": self.missed_batches}
 
 
 class _Reorder:
@@ -165,7 +166,8 @@ class FusionNode:
                  min_data_s: float = 2.0, retry_s: float = 0.5, max_lag_s: float = 0.1,
                  state_path: Path | str | None = None, save_period_s: float = 1.0,
                  max_state_age_s: float = 60.0, max_joint_rate_rad_s: float = 1.5,
-                 recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5):
+                 recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5,
+                 queue_size: int = 1 << 16):
         self.session = session
         self.arm = arm
         self.robot = pl.check_name(robot, "robot")
@@ -180,6 +182,8 @@ class FusionNode:
         self.recent_s = recent_s
         self.still_tolerance_s = still_tolerance_s
         self.silent_after_s = silent_after_s
+        self.queue_size = queue_size
+        self._seq: dict[str, int] = {}
         self.ready = threading.Event()
         self._max_lag_s = max_lag_s
         self._reorder = _Reorder(max_lag_s)
@@ -221,7 +225,11 @@ class FusionNode:
 
     def run(self, stop: threading.Event) -> ServeReport:
         """Serve until ``stop`` is set."""
-        receiver = BoundedReceiver()
+        # a deep channel: while the node catches up (after its startup calibration, or on a
+        # busy machine) Zenoh's receive thread must not block for long, or a blocking
+        # publisher waits and Zenoh closes the link after 5 s (block/wait_before_close),
+        # losing what was in flight
+        receiver = BoundedReceiver(maxsize=self.queue_size)
         pub_joints = self.session.declare_publisher(pl.joints_key(self.robot))
         pub_heading = self.session.declare_publisher(pl.heading_key(self.robot))
         pub_status = self.session.declare_publisher(pl.status_key(self.robot))
@@ -268,7 +276,7 @@ class FusionNode:
         return ServeReport(self.robot, self._state, self._counts["samples"], self._counts["estimates"],
                            self._counts["out_of_order"], self._dropped(receiver), self._startup_t,
                            self._message, self._resumed, self._resume_message,
-                           self._counts["calibrations"])
+                           self._counts["calibrations"], self._counts["missed_batches"])
 
     def _dropped(self, receiver: BoundedReceiver) -> dict[str, int]:
         d = Counter(self._inbox.dropped)
@@ -282,6 +290,10 @@ class FusionNode:
             return
         s = batch.stream
         self._counts["samples"] += len(s)
+        last = self._seq.get(s.name)
+        if last is not None and batch.seq > last + 1:
+            self._counts["missed_batches"] += batch.seq - last - 1  # lost on the way
+        self._seq[s.name] = batch.seq  # (a smaller one: the publisher restarted)
         self._arrived[s.name] = time.monotonic()
         self._keep_recent(s)
         if self._tracker is None:
@@ -476,6 +488,7 @@ class FusionNode:
         self._status_due = False
         counters = {"samples": self._counts["samples"], "estimates": self._counts["estimates"],
                     "out_of_order": self._counts["out_of_order"],
+                    "missed_batches": self._counts["missed_batches"],
                     "calibrations": self._counts["calibrations"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
         sensors = dict(self._sensors)

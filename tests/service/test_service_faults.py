@@ -26,14 +26,15 @@ def arm():
     return load_arm("wmra")
 
 
-def _replay_all(session, node, rec) -> int:
-    """Replay ``rec`` as fast as the node takes it; wait until the node has every sample."""
+def _replay_all(session, node, rec, batches: bool = False):
+    """Replay ``rec`` as fast as the node takes it; wait until the node has every sample.
+    Returns the samples published (and the batches, with ``batches``)."""
     before = node.report_samples()
     report = replay(session, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
     assert report.unmatched == ()
     total = sum(report.samples.values())
     assert wait_for(lambda: node.report_samples() >= before + total, 30.0), (node.report_samples(), total)
-    return total
+    return (total, report.batches) if batches else total
 
 
 def _error_deg(rec, js) -> np.ndarray:
@@ -80,7 +81,7 @@ def test_bad_and_late_messages_are_counted_and_dropped_and_serving_goes_on(
     acc1 = rec.get("acc1")
     with fusion_node(listener, arm, publish_hz=100.0) as (node, result), open_session(connector) as s:
         got = Collected(s)
-        total = _replay_all(s, node, rec)
+        total, report_batches = _replay_all(s, node, rec, batches=True)
         n_before = len(got.snapshot()[0])
         pub = s.declare_publisher(pl.raw_key("chair1", "acc1"))
         pub.put(b"not json")
@@ -92,24 +93,28 @@ def test_bad_and_late_messages_are_counted_and_dropped_and_serving_goes_on(
         # five good samples of acc1 from 2 s ago: valid, but older than what was fused
         late = acc1.between(2.0, 2.05)
         pub.put(pl.encode(pl.RawBatch("chair1", late, 99)))
-        # and then the next instant of every sensor: fused as usual
+        # and then the next instant of every sensor: fused as usual; but five batches of each
+        # sensor but acc1 went missing on the way (their seq numbers jump by six)
         t_next = rec.t_end_s + 0.01
+        last_seq = report_batches // len(rec.raw()) - 1
         for k, st in rec.raw().items():
             nxt = Stream(k, st.kind, [t_next], st.values[-1:], st.channels)
-            s.put(pl.raw_key("chair1", k), pl.encode(pl.RawBatch("chair1", nxt, 100)))
+            seq = 100 if k == "acc1" else last_seq + 6
+            s.put(pl.raw_key("chair1", k), pl.encode(pl.RawBatch("chair1", nxt, seq)))
 
         def counters():
             status = got.snapshot()[1]
             return dict(status[-1].counters) if status else {}
 
         want = {"out_of_order": 5, "dropped.malformed": 2, "dropped.unknown_version": 1,
-                "dropped.oversized": 1}
+                "dropped.oversized": 1, "missed_batches": 5 * (len(rec.raw()) - 1)}
         assert wait_for(lambda: all(counters().get(k) == v for k, v in want.items()), 10.0), counters()
         assert wait_for(lambda: any(j.t_s == pytest.approx(t_next) for j in got.snapshot()[0]), 5.0)
     r = result["report"]
     assert r.samples == total + 5 + len(rec.raw())
     assert r.out_of_order == 5
     assert r.dropped == {"malformed": 2, "unknown_version": 1, "oversized": 1}
+    assert r.missed_batches == 5 * (len(rec.raw()) - 1)
     assert r.state == "stopping" and len(got.snapshot()[0]) > n_before
 
 

@@ -41,6 +41,7 @@ def test_five_sensors_at_200_hz_lose_no_sample(hub_settings, fusion_node, at_200
         assert wait_for(lambda: got.snapshot()[0] and got.snapshot()[0][-1].t_s >= t_last - 0.11, 10.0)
     r = result["report"]
     assert r.samples == published and r.dropped == {} and r.out_of_order == 0, r
+    assert r.missed_batches == 0
     assert r.startup_t_s is not None, r.message
     joints = got.snapshot()[0]
     t = np.array([j.t_s for j in joints])
