@@ -598,7 +598,13 @@ class _AccelRing:
         self.present = np.zeros((self.cap, Sa), bool)
         self.n = 0
         self.nis_sum = np.zeros(Sa)
-        self.nis_count = np.zeros(Sa, dtype=np.int64)
+        self.nis_count = np.zeros(Sa, dtype=np.int64)  # rows with only some sensors
+        self.nis_whole = 0  # rows with every sensor
+
+    @property
+    def counts(self) -> np.ndarray:
+        """Healthy innovations counted per sensor."""
+        return self.nis_count + self.nis_whole
 
     def add(self, t, which, nu, S, nis, ok):
         """``which (k,)`` sensor indices; ``nu (k, 3)``, ``S (k, 3, 3)``, ``nis``, ``ok (k,)``."""
@@ -608,9 +614,9 @@ class _AccelRing:
         if len(which) == self.present.shape[1]:  # every sensor, in order: whole rows
             self.present[i] = True
             self.nu[i], self.S[i], self.nis[i], self.ok[i] = nu, S, nis, ok
-            if np.isfinite(nis).all():
+            if math.isfinite(nis.sum()):
                 self.nis_sum += nis
-                self.nis_count += 1
+                self.nis_whole += 1  # counted for every sensor (see counts)
                 return
         else:
             self.present[i] = False
@@ -1234,14 +1240,28 @@ class Tracker:
         L = self.layout
         Y = X.copy()
         if w is not None:
-            r, p = X[:, L.roll], X[:, L.pitch]
-            wb = w[None, :] - X[:, L.bias]
-            dr, dp, dy = _euler_rates(r, p, wb)
-            dr, dp, dy = _euler_rates(r + 0.5 * dt * dr, p + 0.5 * dt * dp, wb)
-            Y[:, L.roll] = r + dt * dr
-            Y[:, L.pitch] = p + dt * dp
-            Y[:, L.yaw] = X[:, L.yaw] + dt * dy  # the mean wraps it
-        Y[:, L.accel] *= np.exp(-dt / self.settings.base_accel_tau_s)
+            r0 = L.roll  # roll, pitch: two adjacent columns
+            wb = w - X[:, L.bias]
+            w0, w1, w2 = wb[:, 0], wb[:, 1], wb[:, 2]
+            rp = X[:, r0:r0 + 2]
+            # the Euler-angle rates at the start (see _euler_rates), then at the midpoint
+            sn, cs = np.sin(rp), np.cos(rp)
+            a = sn[:, 0] * w1
+            a += cs[:, 0] * w2
+            d = np.empty_like(rp)
+            np.multiply(a, np.tan(rp[:, 1]), out=d[:, 0])
+            d[:, 0] += w0
+            np.multiply(cs[:, 0], w1, out=d[:, 1])
+            d[:, 1] -= sn[:, 0] * w2
+            d *= 0.5 * dt
+            d += rp
+            sn, cs = np.sin(d), np.cos(d)
+            a = sn[:, 0] * w1
+            a += cs[:, 0] * w2
+            Y[:, r0] += dt * (w0 + a * np.tan(d[:, 1]))
+            Y[:, r0 + 1] += dt * (cs[:, 0] * w1 - sn[:, 0] * w2)
+            Y[:, L.yaw] += dt * (a / cs[:, 1])  # the mean wraps it
+        Y[:, L.accel] *= math.exp(-dt / self.settings.base_accel_tau_s)
         return Y
 
     def _Q(self, dt: float, have_gyro: bool) -> np.ndarray:
@@ -1431,7 +1451,8 @@ class Tracker:
         inn = ukf.innovate(z, self._h_all, var, plan, angle_rows=angle_rows,
                            frame=frame, sel=sel, m_B=m_B, still=still)
         accept = inn.gate_ok.copy()
-        set_off = still and not inn.gate_ok[k]
+        gate_l = inn.gate_ok.tolist()
+        set_off = still and not gate_l[k]
         imu_ok = True
         if k:
             if imu_pos >= 0:
@@ -1439,13 +1460,13 @@ class Tracker:
                 # before any average of the raw readings does
                 a = min(1.0, max(t - self._imu_nis_t, 0.0) / 0.2)
                 self._imu_nis_t = t
-                self._imu_nis_ema += a * (min(float(inn.nis[imu_pos]), 100.0) - self._imu_nis_ema)
-                imu_ok = bool(inn.gate_ok[imu_pos]) and self._imu_nis_ema < 6.0
+                self._imu_nis_ema += a * (min(inn.nis.item(imu_pos), 100.0) - self._imu_nis_ema)
+                imu_ok = gate_l[imu_pos] and self._imu_nis_ema < 6.0
             set_off |= self._still and not imu_ok
             # the slip detector listens only while the base behaves as modelled: the IMU
             # agrees and the chair is not wrenched about (a lurch is common to all sensors)
             calm = (imu_ok and self._imu_nis_ema < 4.5
-                    and float(frame.omega_dot_norm) < st.shift_max_angular_accel_rad_s2)
+                    and frame.omega_dot_norm.item() < st.shift_max_angular_accel_rad_s2)
         if set_off:
             # the chair set off: it is no longer still (the averages will say so later), and
             # its acceleration, held near zero while it stood, must be free to follow at once
@@ -1502,18 +1523,20 @@ class Tracker:
         zp = inn.z_pred[: 3 * k].reshape(k, 3)
         same = (counts == self._last_counts[ix]).all(axis=1)
         self._last_counts[ix] = counts
-        implausible = np.abs(np.sqrt((f * f).sum(axis=1)) - np.sqrt((zp * zp).sum(axis=1))) \
-            > st.plausible_tolerance_g
+        # |f| against |prediction|, sensor by sensor in plain floats (a handful of sensors)
+        tol = st.plausible_tolerance_g
+        implausible = [abs(math.sqrt(a * a + b * b + c * c) - math.sqrt(u * u + v * v + w * w)) > tol
+                       for (a, b, c), (u, v, w) in zip(f.tolist(), zp.tolist(), strict=True)]
         gate_ok = inn.gate_ok[:k]
         self._seen[ix] = True
         self._last_t[ix] = t
-        if not (same | implausible | self._acc_dirty[ix] | ~gate_ok).any():
+        if not (same.any() or any(implausible) or self._acc_dirty.any()) and gate_ok.all():
             # the usual case: every sensor healthy and consistent
             self._counts[ix, C_USED] += 1
             ok = usable = gate_ok
             all_usable = True
         else:
-            ok, usable = self._accel_health_slow(t, sel, counts, zp, inn, var, same, implausible)
+            ok, usable = self._accel_health_slow(t, sel, counts, zp, inn, var, same, np.array(implausible))
             all_usable = bool(usable.all())
         if all_usable or usable.any():
             which, Sb = inn.blocks[3]  # accelerometer groups come first, in order
@@ -2083,8 +2106,9 @@ class Tracker:
         """Per sensor: (mean NIS, count, degrees of freedom) over its healthy samples."""
         self._check()
         r = self._acc_ring
-        out = {s: (float(r.nis_sum[i] / r.nis_count[i]) if r.nis_count[i] else float("nan"),
-                   int(r.nis_count[i]), 3) for i, s in enumerate(self.accel_streams)}
+        cnt = r.counts
+        out = {s: (float(r.nis_sum[i] / cnt[i]) if cnt[i] else float("nan"),
+                   int(cnt[i]), 3) for i, s in enumerate(self.accel_streams)}
         if self._has_imu:
             m = self._mag_ring
             out[MAG] = (m.nis_sum / m.nis_count if m.nis_count else float("nan"), m.nis_count, 1)

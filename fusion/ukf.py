@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
@@ -266,9 +267,9 @@ class GroupPlan:
         return out
 
 
-@dataclass(frozen=True)
-class Innovation:
-    """One measurement's prediction against the current state, before it is applied.
+class Innovation(NamedTuple):
+    """One measurement's prediction against the current state, before it is applied
+    (immutable: a named tuple, cheap to make once per step).
 
     ``innovation (m,)`` and ``S (m, m)`` are the full stacked vectors (every group);
     ``nis (G,)`` is each group's normalised innovation squared, ``gate_ok (G,)`` whether
@@ -464,10 +465,10 @@ class BatchedUKF:
         stays consistent through the general form. Returns whether anything was applied.
         """
         ok = inn.gate_ok if accept is None else np.asarray(accept, dtype=bool)
-        if not ok.any():
-            return False
         if ok.all():
             self._apply(inn.innovation, inn.S, inn.Pxz, hold, gain_mask)
+        elif not ok.any():
+            return False
         else:
             use = np.concatenate([r for r, a in zip(inn.rows, ok, strict=True) if a])
             self._apply(inn.innovation[use], inn.S[np.ix_(use, use)], inn.Pxz[:, use], hold,
