@@ -251,8 +251,9 @@ calibration take the rest. Latency counts the instants sent
 after the node caught up (before, it waits for its startup calibration, then fuses the
 samples it kept). A node that needs more than one CPU-second per
 {r['rate_hz']:.0f} instants cannot keep up: its queue, and the latency, grow for as long as
-the stream lasts; samples are still not lost (the receive channel holds 4096 messages,
-then makes the publishers wait).
+the stream lasts, and once its receive channel (65536 messages) is full the publishers wait,
+and Zenoh closes a link whose publisher waited 5 s: samples are then lost, and counted as
+missing batches.
 """
 
 

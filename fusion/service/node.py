@@ -20,8 +20,11 @@ import zenoh
 
 log = logging.getLogger("armfusion.service")
 
-DEFAULT_QUEUE_SIZE = 4096
-"""Messages a receiver holds before it makes Zenoh wait (a batch is one message)."""
+DEFAULT_QUEUE_SIZE = 1 << 16
+"""Messages a receiver holds before it makes Zenoh wait (a batch is one message): about
+36 s of five sensors and the encoders at 200 Hz sent one sample per message. Deep on
+purpose: a receiver that makes Zenoh's receive thread wait makes a blocking publisher wait,
+and Zenoh closes a link whose publisher waited 5 s, losing what was in flight."""
 DEFAULT_BLOCK_S = 1.0
 """How long a full receiver makes Zenoh's receive thread wait before it drops a message.
 While it waits, a publisher with ``CongestionControl.BLOCK`` is slowed down instead of

@@ -45,7 +45,7 @@ import zenoh
 
 from fusion.service import payloads as pl
 from fusion.service import state_file
-from fusion.service.node import BoundedReceiver
+from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver
 from fusion.static import StaticDetectionSettings, find_static_segments
 from fusion.tracker import ENC, NoStillWindowError, Start, Tracker, TrackerSettings, start_from_recording
 from models.arm import ArmModel
@@ -167,7 +167,7 @@ class FusionNode:
                  state_path: Path | str | None = None, save_period_s: float = 1.0,
                  max_state_age_s: float = 60.0, max_joint_rate_rad_s: float = 1.5,
                  recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5,
-                 queue_size: int = 1 << 16):
+                 queue_size: int = DEFAULT_QUEUE_SIZE):
         self.session = session
         self.arm = arm
         self.robot = pl.check_name(robot, "robot")
