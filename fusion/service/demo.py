@@ -112,14 +112,15 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
     record = ch.start("record", ["record", str(rec_path), "--robot", ROBOT, "--config", str(config),
                                  "--json", *client])
     serve = ch.start("serve", ["serve", "--config", str(config), "--robot", ROBOT, "--json", *client])
-    for name, child, line in (("recorder", record, "recording"), ("fusion node", serve, "serving")):
-        if not child.wait_for_line(line, 120.0):
-            raise DemoError(f"the {name} did not start: {child.stderr_tail()}")
     watched = Watched()
     truth_path = workdir / "drivers.mcap"
     with open_session(ZenohSettings(listen=[], connect=[router], mode="client")) as session:
         subs = [session.declare_subscriber(k, watched.on_sample)
                 for k in (pl.joints_key(ROBOT), pl.heading_key(ROBOT), pl.status_key(ROBOT))]
+        # the drivers once both subscribe: every sample published reaches both
+        for name, child, line in (("recorder", record, "recording"), ("fusion node", serve, "serving")):
+            if not child.wait_for_line(line, 120.0):
+                raise DemoError(f"the {name} did not start: {child.stderr_tail()}")
         drivers = ch.start("drivers", [
             "drivers", "--fake", "--realtime", "--scenario", scenario, "--seed", str(seed),
             "--duration", str(duration_s), "--robot", ROBOT, "--wait", "60", "--out", str(truth_path),
