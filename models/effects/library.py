@@ -708,6 +708,12 @@ class MagArmDisturbance(SensorEffect):
         _, D, _ = dipole_field(r, R_0L @ theta)
         return np.swapaxes(R_0I, -1, -2) @ D @ R_0L
 
+    def jac_sensor_position(self, y, theta, ctx):
+        """``d reading / d p_0I``: the IMU moved (base axes) relative to the dipole, ``(N, 3, 3)``."""
+        R_0I, r, R_0L, _ = self._geometry(ctx)
+        _, _, G = dipole_field(r, R_0L @ theta)
+        return np.swapaxes(R_0I, -1, -2) @ G
+
     def jac_q(self, y, theta, ctx, stream):
         R_0I, r, R_0L, p_d = self._geometry(ctx)
         m0 = R_0L @ theta

@@ -373,6 +373,8 @@ class Model:
             s == "imu_mag" and any(e.name == "mag_arm_disturbance" for e in self._sensor))
         if moved_by_q:
             out += [(b, row.shape[1]) for b, (_, row) in Jq.items()]
+        if sensor is None and s == "imu_mag" and any(e.name == "mag_arm_disturbance" for e in self._sensor):
+            sensor = arm.imu.name  # the IMU's position moves it relative to the arm's dipoles
         if sensor is not None:
             out += [(e.block_name, e.size) for e in self._mount
                     if e.target == sensor and e.block_name in want]
@@ -436,11 +438,26 @@ class Model:
                             J.add(b, Q[:, :, j, None] * row[:, None, :])
                     if e.block_name in want:
                         J.add(e.block_name, e.jac_params(y, t, ctx, s))
+                    if s == "imu_mag" and e.name == "mag_arm_disturbance":
+                        self._add_imu_position(J, e, y, t, ctx, want)
                 y = e.apply(y, t, ctx, s)
             pred[s] = y
             if J is not None:
                 jac[s] = J
         return pred, jac
+
+    def _add_imu_position(self, J, e, y, theta, ctx, want) -> None:
+        """The compass's dependence on the IMU's own position (a mount effect on the IMU
+        moves it relative to the arm's dipoles): ``dy/dθ = R_0Iᵀ (dB/dr) R_0L``."""
+        imu = self.arm.imu
+        blocks = [m for m in self._mount if m.target == imu.name and m.block_name in want
+                  and m.block_name in J.cols]
+        if not blocks:
+            return
+        dydp = e.jac_sensor_position(y, theta, ctx)  # (N, 3, 3): d reading / d p_0I
+        R_0L = ctx.lm.R_0L[:, imu.link]
+        for m in blocks:
+            J.add(m.block_name, dydp @ R_0L)
 
 
 class _StreamJac:
