@@ -36,7 +36,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from models.arm import ArmModel
 from models.effects import Model, build_effect, entries_from_model, model_from_arm
@@ -65,8 +64,14 @@ class IdentifySettings:
     """An element is named as part of a combination when its share exceeds this."""
     report_correlation: float = 0.9
     """Pairs of estimates more correlated than this are listed."""
-    max_nfev: int = 30
+    max_nfev: int = 40
+    """Most Jacobians (Levenberg-Marquardt iterations) per solve."""
     estimate_attitude: bool = True
+    encoder_scale: bool = False
+    """Let ``encoder_scale`` effects act on the fit's joint angles (they come from the
+    encoders: ``q_ref + encoder angle / (1 + s)``). ``calibrate sensors`` turns it on; off,
+    an encoder's scale is invisible to the fit (the workbench's candidate tests, on window
+    means evaluated at one node, keep it off: there it would absorb the window-mean bias)."""
     """Estimate the base attitude (gravity and Earth-field directions); else take it as zero
     (the base level and facing magnetic north) or as the data's state says."""
 
@@ -81,10 +86,14 @@ class FitData:
     q_ref_rad: np.ndarray
     window: int = 1
     note: str = ""
+    nodes: int = 1
+    """Instants per fit point: 2 means the state holds each window's two Gauss-Legendre
+    nodes (t̄ ± T/(2√3)) one after the other, and a prediction is their mean (exact for a
+    reading that is a cubic in time over the window)."""
 
     @property
     def n(self) -> int:
-        return self.state.N
+        return self.state.N // self.nodes
 
     def shifted(self, dq_rad: np.ndarray) -> FitData:
         """The same data with ``q_ref`` moved by ``dq_rad`` (after a fit found the zeros)."""
@@ -94,6 +103,14 @@ class FitData:
 
     def subset(self, idx: np.ndarray | slice) -> FitData:
         s = self.state
+        if self.nodes > 1:  # the nodes of the chosen points
+            pts = np.arange(self.n)[idx]
+            sidx = (pts[:, None] * self.nodes + np.arange(self.nodes)).ravel()
+            st = MotionState(s.t_s[sidx], s.q_rad[sidx], s.qd_rad_s[sidx], s.qdd_rad_s2[sidx],
+                             s.R_WB[sidx], s.omega_B_rad_s[sidx], s.omega_dot_B_rad_s2[sidx],
+                             s.accel_B_mps2[sidx] if np.ndim(s.accel_B_mps2) > 1 else s.accel_B_mps2,
+                             s.temperature_c[sidx] if np.ndim(s.temperature_c) else s.temperature_c)
+            return replace(self, state=st, counts={k: v[idx] for k, v in self.counts.items()})
         st = MotionState(s.t_s[idx], s.q_rad[idx], s.qd_rad_s[idx], s.qdd_rad_s2[idx], s.R_WB[idx],
                          s.omega_B_rad_s[idx], s.omega_dot_B_rad_s2[idx], s.accel_B_mps2[idx],
                          s.temperature_c[idx])
@@ -218,8 +235,13 @@ class Identification:
 # data
 def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndarray | None = None,
                         streams: Sequence[str] | None = None,
-                        t_range_s: tuple[float, float] | None = None) -> FitData:
+                        t_range_s: tuple[float, float] | None = None, nodes: int = 1) -> FitData:
     """Window means of every stream on the encoders' time grid.
+
+    ``nodes=2`` evaluates the model at each window's two Gauss-Legendre nodes and averages
+    them (twice the model evaluations): the mean of a reading over its window then carries
+    no bias from the motion within the window (``nodes=1``: a sinusoid's mean is its middle
+    value times ``1 - (Δq)²/24``, which a fit takes for a scale error of that size).
 
     Joint angles are ``q_ref + encoder angle`` (default ``q_ref``: :func:`start_pose`).
     Averaging ``window`` samples divides the noise by √window; the model is evaluated at the
@@ -270,9 +292,20 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
     if ts is not None and len(ts):
         tc = models["imu_temp"].from_counts(np.asarray(ts.values, float))[:, 0]
         temp = mean(np.interp(t, np.asarray(ts.t_s, float), tc))
-    state = MotionState.from_samples(mean(t), mean(q), None, 0.0, temp)
+    if nodes == 1:
+        state = MotionState.from_samples(mean(t), mean(q), None, 0.0, temp)
+        return FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
+                       f"window means of {w} samples")
+    if nodes != 2:
+        raise ValueError(f"nodes must be 1 or 2, not {nodes!r}")
+    tw = t[: n * w].reshape(n, w)
+    dt = (tw[:, -1] - tw[:, 0]) * w / max(w - 1, 1)  # the window's length
+    tn = (tw.mean(1)[:, None] + dt[:, None] / (2 * np.sqrt(3)) * np.array([-1.0, 1.0])).ravel()
+    qn = np.stack([np.interp(tn, t, q[:, j]) for j in range(q.shape[1])], 1)
+    tempn = np.repeat(np.broadcast_to(temp, (n,)), 2)
+    state = MotionState.from_samples(tn, qn, None, 0.0, tempn)
     return FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
-                   f"window means of {w} samples")
+                   f"window means of {w} samples (model at two nodes per window)", nodes=2)
 
 
 def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
@@ -363,10 +396,16 @@ def analyse_identifiability(Jw: np.ndarray, sigma0: np.ndarray, names: Sequence[
     prior σ) is held, and its partners are the taken elements it is a combination of
     (regression of its column on theirs).
     """
+    return analyse_information(Jw.T @ Jw, sigma0, names, free, settings)
+
+
+def analyse_information(H_data: np.ndarray, sigma0: np.ndarray, names: Sequence[str],
+                        free: np.ndarray, settings: IdentifySettings | None = None) -> list[Hold]:
+    """:func:`analyse_identifiability` from the data's information ``JwᵀJw`` (as the
+    estimator accumulates it chunk by chunk)."""
     st = settings or IdentifySettings()
     free = np.array(free, bool)
-    Js = Jw * sigma0[None, :]
-    H = Js.T @ Js
+    H = H_data * np.outer(sigma0, sigma0)
     idx = np.flatnonzero(free)
     # pivoted Cholesky: take the most informative element first; an element whose
     # information, given every element already taken, is below 1/hold_ratio² is held
@@ -412,7 +451,7 @@ def analyse_identifiability(Jw: np.ndarray, sigma0: np.ndarray, names: Sequence[
 # the estimator
 class _Problem:
     def __init__(self, model: Model, data: FitData, streams: Sequence[str], attitude: bool,
-                 attitude0: np.ndarray):
+                 attitude0: np.ndarray, encoder_scale: bool = False):
         self.model = model
         self.data = data
         self.streams = [s for s in streams if s in data.counts]
@@ -432,46 +471,220 @@ class _Problem:
                                  for s in self.streams])
         self.base_rpy = np.zeros(3)
         self._R0 = data.state.R_WB
+        # encoder scale errors: the fit's joint angles come from the encoders, so a joint whose
+        # encoder counts too fast stands at q_ref + (encoder angle)/(1 + s); its column is the
+        # joint's sensitivity (its joint_offset column, where the model has one) times
+        # -(encoder angle)/(1 + s)²
+        self.enc_scale: list[tuple[int, int, str | None]] = []
+        for e in model.effects:
+            if encoder_scale and e.name == "encoder_scale":
+                off = f"{e.target}.joint_offset"
+                self.enc_scale.append((model.index[e.block_name].start, e.j,
+                                       off if off in model.index else None))
 
-    def state(self, z: np.ndarray) -> MotionState:
+    def _scaled_joints(self, st: MotionState, z: np.ndarray) -> MotionState:
+        if not self.enc_scale:
+            return st
+        f = np.ones(self.model.arm.n_joints)
+        for c, j, _ in self.enc_scale:
+            f[j] = 1.0 / (1.0 + z[c])
+        if np.all(f == 1.0):
+            return st
+        q_ref = self.data.q_ref_rad
+        return st.replace(q_rad=q_ref + (st.q_rad - q_ref) * f, qd_rad_s=st.qd_rad_s * f,
+                          qdd_rad_s2=st.qdd_rad_s2 * f)
+
+    def state(self, z: np.ndarray, rows: slice | None = None) -> MotionState:
+        st = self.data.state if rows is None else self.data.subset(rows).state
+        st = self._scaled_joints(st, z)
         if not self.attitude:
-            return self.data.state
+            return st
         a = z[self.P:]
         R = R_from_rpy(np.array([a[0]]), np.array([a[1]]), np.array([a[2]]))[0]
-        return self.data.state.replace(R_WB=np.broadcast_to(R, self._R0.shape).copy())
+        return st.replace(R_WB=np.broadcast_to(R, st.R_WB.shape).copy())
+
+    def _mean_nodes(self, a: np.ndarray) -> np.ndarray:
+        k = self.data.nodes
+        return a if k == 1 else a.reshape(a.shape[0] // k, k, *a.shape[1:]).mean(1)
 
     def predict(self, z: np.ndarray) -> np.ndarray:
         p = self.model.predict(self.state(z), z[: self.P], self.streams)
-        return np.concatenate([p[s].ravel() for s in self.streams])
+        return np.concatenate([self._mean_nodes(p[s]).ravel() for s in self.streams])
 
     def residual(self, z: np.ndarray) -> np.ndarray:
         return (self.predict(z) - self.meas) * self.w
 
     def jacobian(self, z: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Weighted residual and Jacobian columns ``cols`` (indices into z)."""
+        return self._jacobian_rows(z, cols, None, None, self.w)
+
+    def _rows(self, rows: slice | None, keep: slice | None, w_stream: dict[str, float] | None = None):
+        """Measurements and weights of the points ``rows`` (then ``keep`` of them), stream-major."""
+        d = self.data
+        meas, w = [], []
+        for s in self.streams:
+            c = d.counts[s] if rows is None else d.counts[s][rows]
+            if keep is not None:
+                c = c[keep]
+            ws = np.broadcast_to(1.0 / d.sigma_counts[s], c.shape) * (1.0 if w_stream is None
+                                                                      else w_stream[s])
+            meas.append(c.ravel())
+            w.append(ws.ravel())
+        return np.concatenate(meas), np.concatenate(w)
+
+    def _jacobian_rows(self, z, cols, rows, keep, w, meas=None):
         m = self.model
         mcols = cols[cols < self.P]
-        blocks = [b.name for b in m.blocks
-                  if np.any((mcols >= m.index[b.name].start) & (mcols < m.index[b.name].stop))]
-        st = self.state(z)
+        want = set(b.name for b in m.blocks
+                   if np.any((mcols >= m.index[b.name].start) & (mcols < m.index[b.name].stop)))
+        enc_cols = {c: (j, off) for c, j, off in self.enc_scale if c in set(mcols.tolist())}
+        want |= {off for _, off in enc_cols.values() if off is not None}
+        blocks = [b.name for b in m.blocks if b.name in want]
+        st = self.state(z, rows)
         pred, jac = m.predict_with_jacobian(st, z[: self.P], self.streams, blocks=blocks)
-        pred = {s: pred[s] for s in self.streams}
+        if self.data.nodes > 1:
+            pred = {s: self._mean_nodes(pred[s]) for s in self.streams}
+            jac = {s: {b: self._mean_nodes(v) for b, v in jac.get(s, {}).items()} for s in self.streams}
+        if keep is not None:
+            pred = {s: pred[s][keep] for s in self.streams}
+            jac = {s: {b: v[keep] for b, v in jac.get(s, {}).items()} for s in self.streams}
+        else:
+            pred = {s: pred[s] for s in self.streams}
         D = m.dense_jacobian(jac, pred, blocks)
         bcols = np.concatenate([np.arange(m.index[b].start, m.index[b].stop) for b in blocks]) \
             if blocks else np.zeros(0, int)
         pos = {c: i for i, c in enumerate(bcols)}
         y = np.concatenate([pred[s].ravel() for s in self.streams])
-        r = (y - self.meas) * self.w
+        if meas is None:
+            meas = self.meas
+        r = (y - meas) * w
         J = np.zeros((len(r), len(cols)))
+        enc = None
         for i, c in enumerate(cols):
-            if c < self.P:
-                J[:, i] = D[:, pos[c]] * self.w
+            if c in enc_cols:
+                j, off = enc_cols[c]
+                if enc is None:  # each point's encoder angle, repeated over the stream's axes
+                    q_pts = self._mean_nodes(st.q_rad)
+                    q = q_pts if keep is None else q_pts[keep]
+                    enc = (q - self.data.q_ref_rad)
+                    enc = np.concatenate([np.repeat(enc, pred[s].shape[1], axis=0).reshape(
+                        len(q), pred[s].shape[1], -1).reshape(-1, enc.shape[1]) for s in self.streams])
+                if off is not None:
+                    J[:, i] = D[:, pos[m.index[off].start]] * w * (-enc[:, j] / (1.0 + z[c]))
+                else:
+                    J[:, i] = self._numeric_column(z, c, y, w, rows, keep)
+            elif c < self.P:
+                J[:, i] = D[:, pos[c]] * w
             else:  # base attitude: forward differences of the model
-                h = 1e-6
-                zz = np.array(z, float)
-                zz[c] += h
-                J[:, i] = (self.predict(zz) - y) * self.w / h
+                J[:, i] = self._numeric_column(z, c, y, w, rows, keep)
         return r, J
+
+    def _numeric_column(self, z, c, y, w, rows, keep, h=1e-6):
+        zz = np.array(z, float)
+        zz[c] += h
+        p = self.model.predict(self.state(zz, rows), zz[: self.P], self.streams)
+        p = {s: self._mean_nodes(p[s]) for s in self.streams}
+        if keep is not None:
+            p = {s: p[s][keep] for s in self.streams}
+        return (np.concatenate([p[s].ravel() for s in self.streams]) - y) * w / h
+
+    def normal_equations(self, z: np.ndarray, cols: np.ndarray, w_stream: dict[str, float] | None = None,
+                         chunk: int = 1500) -> tuple[np.ndarray, np.ndarray, float]:
+        """``JᵀJ``, ``Jᵀr`` and ``rᵀr`` over columns ``cols``, accumulated ``chunk`` points at a
+        time (memory stays bounded whatever the recording's length). Chunks overlap by two
+        points on each side so the time derivatives of the time offsets are those of the
+        whole series; ``w_stream`` scales each stream's weights."""
+        n = self.data.n
+        H = np.zeros((len(cols), len(cols)))
+        g = np.zeros(len(cols))
+        rr = 0.0
+        pad = 2
+        for a in range(0, n, chunk):
+            b = min(n, a + chunk)
+            lo, hi = max(0, a - pad), min(n, b + pad)
+            keep = slice(a - lo, a - lo + (b - a))
+            meas, w = self._rows(slice(lo, hi), keep, w_stream)
+            r, J = self._jacobian_rows(z, cols, slice(lo, hi), keep, w, meas)
+            H += J.T @ J
+            g += J.T @ r
+            rr += float(r @ r)
+        return H, g, rr
+
+
+def _solve(pb: _Problem, z0: np.ndarray, fcols: np.ndarray, w_stream: dict[str, float], max_jac: int,
+           progress: Callable[[int, float], None]) -> tuple[np.ndarray, bool]:
+    """Levenberg-Marquardt on the normal equations (accumulated chunk by chunk), the priors
+    as pseudo-measurements, bounds by projection: an element at a bound whose gradient
+    pushes it out stays there for that step. Returns the estimate and whether it converged
+    (the cost lowered by less than 0.05, a tenth of a unit of χ², or every step below 1e-3
+    of its prior σ)."""
+    mu, sd = pb.x0[fcols], pb.sigma0[fcols]
+    lo, hi = pb.lower[fcols], pb.upper[fcols]
+    meas, w = pb._rows(None, None, w_stream)
+
+    def cost(z):
+        r = (pb.predict(z) - meas) * w
+        p = (z[fcols] - mu) / sd
+        return 0.5 * float(r @ r + p @ p)
+
+    z = np.array(z0, float)
+    z[fcols] = np.clip(z[fcols], lo, hi)
+    lam = 1e-3
+    c = None
+    for k in range(max(1, max_jac)):
+        H, g, rr = pb.normal_equations(z, fcols, w_stream)
+        x = z[fcols]
+        H = H + np.diag(1.0 / sd**2)
+        g = g + (x - mu) / sd**2
+        c = 0.5 * (rr + float(np.sum(((x - mu) / sd) ** 2)))
+        progress(k + 1, c)
+        d = np.sqrt(np.clip(np.diag(H), 1e-300, None))
+        while True:
+            stuck = ((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0))
+            move = ~stuck
+            dx = np.zeros_like(x)
+            Hm = H[np.ix_(move, move)] / np.outer(d[move], d[move])
+            Hm[np.diag_indices_from(Hm)] += lam
+            try:
+                dx[move] = -np.linalg.solve(Hm, g[move] / d[move]) / d[move]
+            except np.linalg.LinAlgError:
+                dx[move] = -np.linalg.lstsq(Hm, g[move] / d[move], rcond=None)[0] / d[move]
+            zn = z.copy()
+            zn[fcols] = np.clip(x + dx, lo, hi)
+            cn = cost(zn)
+            if cn <= c:
+                lam = max(lam / 5.0, 1e-9)
+                step = np.max(np.abs(zn[fcols] - x) / sd)
+                z = zn
+                if c - cn <= max(1e-7 * c, 0.05) or step < 1e-3:
+                    return z, True
+                break
+            lam *= 5.0
+            if lam > 1e10:
+                return z, True  # no step lowers the cost: at the minimum (to rounding)
+    return z, False
+
+
+def _stream_scales(pb: _Problem, z: np.ndarray) -> dict[str, float]:
+    """Per stream: how many times its (weighted) residual exceeds what white noise at the
+    weights would give, counting its lag-1 autocorrelation ρ (smooth, unmodelled errors) as
+    fewer independent readings, ``√(χ²/n · (1 + ρ)/(1 - ρ))``; at least 1."""
+    pred = pb.predict(z)
+    out = {}
+    i = 0
+    for s in pb.streams:
+        c = pb.data.counts[s]
+        k = c.size
+        r = ((pred[i:i + k] - c.ravel()).reshape(c.shape) / pb.data.sigma_counts[s])
+        i += k
+        chi2 = float(np.mean(r**2))
+        rc = r - r.mean(0)
+        den = np.sum(rc**2, 0)
+        rho = float(np.mean(np.sum(rc[1:] * rc[:-1], 0) / np.where(den > 0, den, 1.0))) if len(r) > 2 else 0.0
+        rho = min(max(rho, 0.0), 0.95)
+        out[s] = float(np.sqrt(max(chi2, 1.0) * (1.0 + rho) / (1.0 - rho))) if chi2 > 1.0 else \
+            float(np.sqrt((1.0 + rho) / (1.0 - rho)))
+    return out
 
 
 def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
@@ -488,7 +701,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     t0 = time.perf_counter()
     streams = [s for s in (data.counts if streams is None else streams) if s not in FIT_STREAMS_EXCLUDED]
     att0 = np.zeros(3) if attitude0_rad is None else np.asarray(attitude0_rad, float)
-    pb = _Problem(model, data, streams, st.estimate_attitude, att0)
+    pb = _Problem(model, data, streams, st.estimate_attitude, att0, encoder_scale=st.encoder_scale)
     names = pb.names
     free = np.ones(pb.size, bool)
     hold = set(hold)
@@ -509,58 +722,71 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     z0 = pb.x0.copy()
     # identifiability at the prior
     all_cols = np.arange(pb.size)
-    r0, J0 = pb.jacobian(z0, all_cols)
-    holds = analyse_identifiability(J0, pb.sigma0, names, free, st)
+    H0, _, _ = pb.normal_equations(z0, all_cols)
+    holds = analyse_information(H0, pb.sigma0, names, free, st)
     for h in holds:
         free[names.index(h.element)] = False
     fcols = np.flatnonzero(free)
-    lo = pb.lower[fcols]
-    hi = pb.upper[fcols]
-    zf0 = np.clip(z0[fcols], lo + 1e-12 * (hi - lo), hi - 1e-12 * (hi - lo))
-    prior_mu, prior_sd = pb.x0[fcols], pb.sigma0[fcols]
     n_jac = [0]
-    cache: dict[bytes, np.ndarray] = {}
 
-    def full(zf):
-        z = z0.copy()
-        z[fcols] = zf
-        return z
-
-    def fun(zf):
-        r = pb.residual(full(zf))
-        return np.concatenate([r, (zf - prior_mu) / prior_sd])
-
-    def jac(zf):
-        r, J = pb.jacobian(full(zf), fcols)
+    def counted(k, cost):
         n_jac[0] += 1
         if progress is not None:
-            progress(n_jac[0], float(0.5 * np.sum(r**2)))
-        cache["J"] = J
-        return np.vstack([J, np.diag(1.0 / prior_sd)])
+            progress(n_jac[0], cost)
 
+    z = z0.copy()
+    w_stream = {s_: 1.0 for s_ in pb.streams}
+    scale: dict[str, float] = {}
     if len(fcols):
-        sol = least_squares(fun, zf0, jac=jac, bounds=(lo, hi), method="trf", x_scale=prior_sd,
-                            max_nfev=st.max_nfev, xtol=1e-10, ftol=1e-10, gtol=1e-10)
-        zf = sol.x
-        if not sol.success:
-            notes.append(f"the solver stopped before converging: {sol.message}")
-    else:
-        zf = np.zeros(0)
-    z = full(zf)
-    r, J = pb.jacobian(z, all_cols)
+        z, converged = _solve(pb, z0, fcols, w_stream, st.max_nfev, counted)
+        # bilinear effects (a compass dipole's field and the IMU's position, a soft-iron matrix
+        # on that field) are invisible at the prior, where the other factor is zero: analyse
+        # again at the estimate and free what the data now see
+        H1, _, _ = pb.normal_equations(z, all_cols)
+        free1 = np.ones(pb.size, bool)
+        for i, n in enumerate(names):
+            if n in hold or n.split("[")[0] in hold:
+                free1[i] = False
+        # a bilinear element is freed only when the data know it well (to half its prior σ):
+        # one barely above the line makes a long flat valley the solver creeps along
+        holds1 = analyse_information(H1, pb.sigma0, names, free1, replace(st, hold_ratio=0.5 * st.hold_ratio))
+        before = {h.element for h in holds}
+        holds1 = [h for h in holds1 if h.element in before]
+        if {h.element for h in holds1} != before:
+            free = free1
+            for h in holds1:
+                free[names.index(h.element)] = False
+            holds = holds1
+            fcols = np.flatnonzero(free)
+            z[~free] = z0[~free]
+            z, converged = _solve(pb, z, fcols, w_stream, st.max_nfev, counted)
+        # each stream at its own scale: a stream the model fits worse than its noise (or with
+        # smooth, correlated residuals) counts for fewer independent readings; weight it so
+        # and fit again (one pass), so its errors neither pull the others' estimates nor
+        # shrink their σ
+        scale = _stream_scales(pb, z)
+        if any(v > 1.05 for v in scale.values()):
+            w_stream = {s_: 1.0 / scale[s_] for s_ in pb.streams}
+            z, converged = _solve(pb, z, fcols, w_stream, st.max_nfev, counted)
+            scale = _stream_scales(pb, z)
+        w_stream = {s_: 1.0 / scale[s_] for s_ in pb.streams}
+        if not converged:
+            notes.append(f"the solver stopped before converging (after {n_jac[0]} Jacobians)")
     # covariance: free elements from data + priors, held ones as consider parameters
+    H, _, rr = pb.normal_equations(z, all_cols, w_stream)
+    r = pb.residual(z)
     hcols = np.flatnonzero(~free)
-    Jf, Jh = J[:, fcols], J[:, hcols]
-    A = Jf.T @ Jf + np.diag(1.0 / pb.sigma0[fcols] ** 2)
+    A = H[np.ix_(fcols, fcols)] + np.diag(1.0 / pb.sigma0[fcols] ** 2)
     Sff = np.linalg.pinv(A)
     m_res = len(r)
     dof = max(m_res - len(fcols), 1)
     chi2 = float(np.sum(r**2) / dof)
-    if chi2 > 1.0:
-        Sff = Sff * chi2
-        notes.append(f"the residuals are {np.sqrt(chi2):.2f}x the noise: the σ are scaled by that "
-                     "(some effect is not modelled, or the noise is larger than the datasheet's)")
-    S = -Sff @ (Jf.T @ Jh)
+    worse = {s_: v for s_, v in scale.items() if v > 1.05}
+    if worse:
+        notes.append("σ scaled per stream by its residual's size and correlation (some effect is not "
+                     "modelled, or the noise is larger than the datasheet's): "
+                     + ", ".join(f"{s_} {v:.2f}x" for s_, v in worse.items()))
+    S = -Sff @ H[np.ix_(fcols, hcols)]
     Shh = np.diag(pb.sigma0[hcols] ** 2)
     C = np.zeros((pb.size, pb.size))
     C[np.ix_(fcols, fcols)] = Sff + S @ Shh @ S.T
@@ -674,6 +900,38 @@ def compare_with_truth(result: Identification, truth: dict) -> list[dict]:
     return rows
 
 
+def joint_zero_conventions(result: Identification) -> list[str]:
+    """Held elements that the data cannot tell from a joint's zero (the last sensor's mount
+    rotation about the last joint's axis…): with relative encoders the startup defines the
+    zeros with them at their priors, so they are a convention, not an error of the startup."""
+    return [h.element for h in result.holds
+            if any(p.split("[")[0].endswith(".joint_offset") for p, _ in h.partners)]
+
+
+def correction_covariance(result: Identification) -> dict[str, dict]:
+    """Per accelerometer stream, the covariance of the elements its still-reading correction
+    uses (mount, axes, scale, bias, temperature drift), correlations included (a held axis
+    angle and the mount rotation that carries it are known together far better than
+    alone), without the joint-zero conventions. The startup adds its spread to each
+    reading's σ (``StartupCorrection``)."""
+    m = result.model
+    conv = set(joint_zero_conventions(result))
+    arm = m.arm
+    streams = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
+    out = {}
+    for s in streams:
+        idx = []
+        for e in m.effects:
+            if isinstance(e, SensorEffect) and s in e.streams:
+                sl = m.index[e.block_name]
+                idx += [i for i in range(sl.start, sl.stop) if result.names[i] not in conv]
+        if idx:
+            C = result.covariance[np.ix_(idx, idx)]
+            out[s] = {"elements": [result.names[i] for i in idx],
+                      "matrix": [[float(f"{v:.6g}") for v in row] for row in C]}
+    return out
+
+
 def config_with_estimates(config_data: dict, result: Identification,
                           include_joint_offsets: bool = False) -> dict:
     """A config dict (as loaded from YAML) with the effects replaced by the estimates and
@@ -701,9 +959,11 @@ def config_with_estimates(config_data: dict, result: Identification,
         floor = max(un.values())
         cal["accel_unmodelled_g"] = round(max(floor, 1e-4), 6)
         cal["accel_unmodelled_g_per_sensor"] = {k: round(max(v, 1e-4), 6) for k, v in un.items()}
+    cal["correction_covariance"] = correction_covariance(result)
     cal["identified"] = {"mode": result.mode, "samples": result.n_samples,
                          "chi2_red": round(result.chi2_red, 3),
-                         "held": [h.element for h in result.holds]}
+                         "held": [h.element for h in result.holds],
+                         "joint_zero_conventions": joint_zero_conventions(result)}
     out["calibration"] = cal
     return out
 
@@ -726,6 +986,9 @@ class StartupCorrection:
     model: Model
     temperature_c: float = 25.0
     maps: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    spread: dict[str, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    """Per stream, the map with each calibrated element moved by its σ: how uncertain the
+    correction itself is, added to each reading's σ (along the reading's own direction)."""
 
     def readings(self, r):
         from fusion.startup import StillReadings
@@ -743,9 +1006,12 @@ class StartupCorrection:
             return mean, sigma
         L, c = self.maps[stream]
         Li = np.linalg.inv(L)
-        y = Li @ (np.asarray(mean, float) - c)
-        s = np.sqrt((Li**2) @ (np.asarray(sigma, float) ** 2))
-        return y, s
+        m = np.asarray(mean, float)
+        y = Li @ (m - c)
+        var = (Li**2) @ (np.asarray(sigma, float) ** 2)
+        for L1, c1 in self.spread.get(stream, ()):
+            var = var + (np.linalg.solve(L1, m - c1) - y) ** 2
+        return y, np.sqrt(var)
 
     def controller_angles(self, q_geom_rad: np.ndarray) -> np.ndarray:
         joint = [e for e in self.model.effects if isinstance(e, JointEffect)]
@@ -777,7 +1043,8 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
         model = model.without([e.block_name for e in model.effects if e.name == "joint_offset"])
     accel = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
     th = model.unpack()
-    maps = {}
+    cov = (getattr(arm, "calibration", None) or {}).get("correction_covariance") or {}
+    maps, spread = {}, {}
     for s in accel:
         effs = sorted((e for e in model.effects if isinstance(e, SensorEffect) and s in e.streams),
                       key=lambda e: e.rank)
@@ -785,10 +1052,26 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
             continue
         st = MotionState.static(np.zeros((4, arm.n_joints)), temperature_c=temperature_c)
         ctx = Context(arm, st, model.masses)
-        y = np.vstack([np.zeros(3), np.eye(3)])
-        for e in effs:
-            y = e.apply(y, th[e.block_name], ctx, s)
-        c = y[0]
-        L = (y[1:] - c).T
-        maps[s] = (L, c)
-    return StartupCorrection(model, temperature_c, maps)
+
+        def affine(theta, effs=effs, ctx=ctx, s=s):
+            y = np.vstack([np.zeros(3), np.eye(3)])
+            for e in effs:
+                y = e.apply(y, theta[e.block_name], ctx, s)
+            return (y[1:] - y[0]).T, y[0]
+
+        maps[s] = affine(th)
+        c = cov.get(s)
+        if c:  # a calibrated config: the fit's covariance of this sensor's correction
+            names = model.element_names()
+            els = [n for n in c["elements"] if n in names]
+            keep = [c["elements"].index(n) for n in els]
+            C = np.asarray(c["matrix"], float)[np.ix_(keep, keep)]
+            lam, V = np.linalg.eigh(0.5 * (C + C.T))
+            spread[s] = []
+            x0 = model.pack(th)
+            for k in np.flatnonzero(lam > 0):  # each principal direction moved by its σ
+                x1 = x0.copy()
+                for i, n in enumerate(els):
+                    x1[names.index(n)] += np.sqrt(lam[k]) * V[i, k]
+                spread[s].append(affine(model.unpack(x1)))
+    return StartupCorrection(model, temperature_c, maps, spread)

@@ -80,7 +80,7 @@ def calibrate_sensors(
     rec = read_recording_or_exit(recording)
     try:
         model = build_model(arm, effects)
-        data = data_from_recording(arm, rec, window)
+        data = data_from_recording(arm, rec, window, nodes=2)
     except ValueError as e:
         fail(str(e))
     quiet = json_out
@@ -92,7 +92,7 @@ def calibrate_sensors(
     if not quiet:
         err_console.print(f"fitting {model.size} parameters on {data.n:,} points ({data.note})…")
     if mode == "separate":
-        fits = identify_separately(model, data, IdentifySettings(), progress)
+        fits = identify_separately(model, data, IdentifySettings(encoder_scale=True), progress)
         if json_out:
             emit_json({k: v.as_dict() for k, v in fits.items()})
             return
@@ -106,7 +106,7 @@ def calibrate_sensors(
                       f"{a[1]:.3f} ± {np.degrees(f.sigma[-2]):.3f}", f"{ratio:.2f}", str(int(f.held.sum())))
         console.print(t)
         return
-    res, data = identify_recentred(model, data, None, IdentifySettings(), progress)
+    res, data = identify_recentred(model, data, None, IdentifySettings(encoder_scale=True), progress)
     if write is not None:
         src = resolve_config_path(config)
         cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
