@@ -219,3 +219,46 @@ def test_an_unreadable_state_file_says_why(tmp_path):
     p.write_text(json.dumps({"format": "something else"}))
     with pytest.raises(state_file.StateFileError, match="not a saved fusion state"):
         state_file.load_state(p)
+
+
+def test_serve_processes_restart_from_the_state_file(renk_recording, tmp_path):
+    """What systemd would do: `armfusion serve --state-file` stopped by SIGTERM, started again."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from service_helpers import free_port
+
+    from fusion.service.zenoh_config import ZenohSettings
+
+    root = Path(__file__).resolve().parents[2]
+    state = tmp_path / "chair1.json"
+
+    def serve_with(rec) -> dict:
+        port = free_port()
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "fusion.cli", "serve", "--listen", f"tcp/127.0.0.1:{port}",
+             "--state-file", str(state), "--json"], cwd=root, env={**os.environ, "PYTHONPATH": str(root)},
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert "serving" in proc.stderr.readline()
+            settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
+            with open_session(settings) as s:
+                report = replay(s, rec, "chair1", speed=None, wait_for_subscribers_s=10.0)
+            assert report.unmatched == ()
+            time.sleep(0.5)  # the last batches on their way; SIGTERM then drains and saves
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        return json.loads(out)
+
+    first = serve_with(cut(renk_recording, 0.0, 3.0))
+    assert first["startup_t_s"] is not None and not first["resumed"]
+    assert "no saved state at" in first["resume_message"]
+    assert state_file.load_state(state)["t_s"] > 2.9
+    second = serve_with(cut(renk_recording, 3.0, 4.0))  # 1 s: too little for a startup calibration
+    assert second["resumed"], second["resume_message"]
+    assert second["estimates"] > 0 and second["state"] == "stopping"
