@@ -771,9 +771,10 @@ def _up(roll, pitch) -> np.ndarray:
     return out
 
 
-def _rotation(v: np.ndarray) -> np.ndarray:
-    """Rodrigues for one rotation vector (plain floats: one small matrix per step)."""
-    x, y, z = v.tolist()
+def _rotation(v) -> np.ndarray:
+    """Rodrigues for one rotation vector (an array or three floats; plain floats: one small
+    matrix per step)."""
+    x, y, z = v.tolist() if isinstance(v, np.ndarray) else v
     th = math.sqrt(x * x + y * y + z * z)
     if th < 1e-12:
         return np.eye(3)
@@ -782,6 +783,35 @@ def _rotation(v: np.ndarray) -> np.ndarray:
     return np.array([[1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
                      [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
                      [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
+
+
+def _turn_steps(starts: list[int]):
+    """How :meth:`Tracker._h_accel` turns the sensor blocks: joints that turn the same
+    trailing block (equal ``starts``) are grouped; the first two of each group are multiplied
+    in one batched call (``E[:, pa] @ E[:, pb]``, slices when regular); returns
+    ``(pa, pb, steps)``, ``steps`` a list of (block start, pair index or -1, first joint,
+    further joints)."""
+    groups: list[tuple[int, list[int]]] = []
+    for j, a in enumerate(starts):
+        if groups and groups[-1][0] == a:
+            groups[-1][1].append(j)
+        else:
+            groups.append((a, [j]))
+    pa = [js[0] for _, js in groups if len(js) >= 2]
+    pb = [js[1] for _, js in groups if len(js) >= 2]
+    steps, q = [], 0
+    for a, js in groups:
+        if len(js) >= 2:
+            steps.append((a, q, js[0], tuple(js[2:])))
+            q += 1
+        else:
+            steps.append((a, -1, js[0], ()))
+
+    def index(ix):
+        if len(ix) >= 2 and len(set(np.diff(ix))) == 1 and ix[1] > ix[0]:
+            return slice(ix[0], ix[-1] + 1, ix[1] - ix[0])
+        return np.array(ix, dtype=int)
+    return (index(pa) if pa else None), (index(pb) if pb else None), steps
 
 
 def _euler_rates(r, p, w):
@@ -1171,7 +1201,10 @@ class Tracker:
             w = None if w0 is None else (w0 if gyro is None else 0.5 * (w0 + gyro))
             ukf.predict(self._fx, self._Q(dt, w is not None), dt=dt, w=w)
             if self._mag_n and w is not None:
-                self._mag_rot = self._mag_rot @ _rotation((w - ukf._x[self.layout.bias]) * dt)
+                b = self.layout.n_joints + 6  # gyro_bias
+                bx, by, bz = ukf._x[b:b + 3].tolist()
+                wx, wy, wz = w.tolist()
+                self._mag_rot = self._mag_rot @ _rotation(((wx - bx) * dt, (wy - by) * dt, (wz - bz) * dt))
         if gyro is not None:
             self._omega = gyro
         self._t = t
@@ -1300,7 +1333,7 @@ class Tracker:
         """
         L = self.layout
         N = X.shape[0]
-        perm, ss, starts, full = self._accel_plan(sel)
+        perm, ss, starts, full, turns = self._accel_plan(sel)
         if trig is None:
             tilt = X[:, L.roll:L.pitch + 1]
             trig = np.sin(tilt), np.cos(tilt)
@@ -1319,8 +1352,14 @@ class Tracker:
             np.subtract(1.0, sc[:, :, 1], out=sc[:, :, 1])
             E = (sc.reshape(N, 2 * k) @ frame.KK[:2 * k, :9 * k]).reshape(N, k, 3, 3)
             E += self._eye3
-            for j, a in enumerate(starts):
-                v[:, a:] = v[:, a:] @ E[:, j]
+            # joints that turn the same block are multiplied together first (pairs, in one call)
+            pa, pb, steps = turns
+            Pp = E[:, pa] @ E[:, pb] if pa is not None else None
+            for a, pair, j0, rest in steps:
+                M = Pp[:, pair] if pair >= 0 else E[:, j0]
+                for j in rest:
+                    M = M @ E[:, j]
+                v[:, a:] = v[:, a:] @ M
         Rs = frame.R_lo if full else frame.R_0S[ss]
         f = (v[:, :, None, :] @ Rs)[:, :, 0, :]
         f *= 1.0 / G
@@ -1330,8 +1369,9 @@ class Tracker:
 
     def _accel_plan(self, sel: np.ndarray):
         """For the accelerometers ``sel``: the order back from link order (None: sel is in it),
-        ``sel`` in link order, where each joint's trailing block of sensors starts, and
-        whether that is every accelerometer (the frame keeps them in link order too)."""
+        ``sel`` in link order, where each joint's trailing block of sensors starts, whether
+        that is every accelerometer (the frame keeps them in link order too), and the turns
+        (:func:`_turn_steps`)."""
         key = sel.tobytes()
         plan = self._link_cache.get(key)
         if plan is None:
@@ -1343,7 +1383,7 @@ class Tracker:
             ss = sel[order]
             full = bool(len(ss) == len(self._links) and np.array_equal(ss, self._link_order))
             perm = None if np.array_equal(order, np.arange(len(order))) else np.argsort(order)
-            plan = self._link_cache[key] = (perm, ss, starts, full)
+            plan = self._link_cache[key] = (perm, ss, starts, full, _turn_steps(starts))
         return plan
 
     def _h_mag(self, X: np.ndarray, m_B: np.ndarray, trig=None) -> np.ndarray:
@@ -1521,7 +1561,7 @@ class Tracker:
         k = len(sel)
         ix = slice(0, k) if full else sel  # plain slices where every sensor spoke
         zp = inn.z_pred[: 3 * k].reshape(k, 3)
-        same = (counts == self._last_counts[ix]).all(axis=1)
+        same = [a == b for a, b in zip(counts.tolist(), self._last_counts[ix].tolist(), strict=True)]
         self._last_counts[ix] = counts
         # |f| against |prediction|, sensor by sensor in plain floats (a handful of sensors)
         tol = st.plausible_tolerance_g
@@ -1530,13 +1570,13 @@ class Tracker:
         gate_ok = inn.gate_ok[:k]
         self._seen[ix] = True
         self._last_t[ix] = t
-        if not (same.any() or any(implausible) or self._acc_dirty.any()) and gate_ok.all():
+        if not (any(same) or any(implausible) or self._acc_dirty.any()) and gate_ok.all():
             # the usual case: every sensor healthy and consistent
             self._counts[ix, C_USED] += 1
             ok = usable = gate_ok
             all_usable = True
         else:
-            ok, usable = self._accel_health_slow(t, sel, counts, zp, inn, var, same, np.array(implausible))
+            ok, usable = self._accel_health_slow(t, sel, counts, zp, inn, var, same, implausible)
             all_usable = bool(usable.all())
         if all_usable or usable.any():
             which, Sb = inn.blocks[3]  # accelerometer groups come first, in order
@@ -1561,7 +1601,7 @@ class Tracker:
                 self._shift_sum[u] = 0.0
                 self._shift_n[u] = 0
             if t - self._shift_block_t >= 0.05 and self._shift_n.any():
-                have = np.flatnonzero(self._shift_n > 0)
+                have = (self._shift_n > 0).nonzero()[0]
                 n_ = self._shift_n[have]
                 self._detect_shift(t, have, self._shift_sum[have] / n_[:, None], n_)
                 self._shift_sum[:] = 0.0
@@ -1647,8 +1687,15 @@ class Tracker:
         self._shift[which] = ema
         # the average of unit white noise (block means of n samples) has variance
         # a / (2 - a) / n; each time scale has its threshold
-        with np.errstate(divide="ignore", invalid="ignore"):
-            stat = np.where(a > 0, np.sum(ema**2, axis=2) * (2.0 - a) / a * count[:, None], 0.0)
+        stat = np.square(ema).sum(axis=2)
+        stat *= 2.0 - a
+        pos = a > 0
+        if pos.all():
+            stat /= a
+        else:  # a sensor heard for the first time: no average yet
+            stat /= np.where(pos, a, 1.0)
+            stat[~pos] = 0.0
+        stat *= count[:, None]
         stat /= self._shift_thr
         worst = stat.max(axis=1)
         self._shift_stat[which] = worst
@@ -1739,15 +1786,19 @@ class Tracker:
         # filter already knows along it (a joint still wide from startup takes weak readings)
         weak = lam < 1.0 / (st.sigma_limit_deg * DEG) ** 2
         if weak.any():
-            prior_var = np.einsum("ji,jk,ki->i", V, self._ukf._P[:n, :n], V)
+            prior_var = (V * (self._ukf._P[:n, :n] @ V)).sum(axis=0)
             weak &= lam * prior_var < 1.0
-        dirs = [V[:, weak]] if weak.any() else []
-        if locked.any():
-            dirs.append(np.eye(n)[:, locked])
-        if dirs:
-            B = np.concatenate(dirs, axis=1)
-            w, U, _ = lapack.dsyevd(B @ B.T)  # the span of the held directions
-            U = U[:, w > 1e-6]
+        any_weak, any_locked = bool(weak.any()), bool(locked.any())
+        if any_weak or any_locked:
+            # the span of the held directions (orthonormal already when of one kind)
+            if not any_locked:
+                U = V[:, weak]
+            elif not any_weak:
+                U = np.eye(n)[:, locked]
+            else:
+                B = np.concatenate([V[:, weak], np.eye(n)[:, locked]], axis=1)
+                w, U, _ = lapack.dsyevd(B @ B.T)
+                U = U[:, w > 1e-6]
             T = np.eye(L.size)
             T[:n, :n] -= U @ U.T
             self._hold = T

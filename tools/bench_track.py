@@ -62,7 +62,8 @@ def with_stream(rec: Recording, name: str, values: np.ndarray) -> Recording:
 def filterpy_baseline(arm, rec: Recording, steps: int):
     """filterpy's UnscentedKalmanFilter on the tracker's model, one sigma point per call.
 
-    Returns (seconds per step, the joint errors at the end, steps run)."""
+    Returns (seconds per step (wall clock), CPU seconds per step, the joint errors at the end,
+    steps run)."""
     from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
     tr, start = start_from_recording(arm, rec)
@@ -114,16 +115,16 @@ def filterpy_baseline(arm, rec: Recording, steps: int):
     ukf.x, ukf.P, ukf.Q, ukf.R = x0.copy(), P0.copy(), Q, R
     t_prev = tr.t_s
     z_zero = np.zeros(1)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for k, i in enumerate(idx):
         dt = t[i] - t_prev
         t_prev = t[i]
         ukf.predict(dt=dt, w=w_B[i])
         ukf.update(np.r_[f[k], z_zero], frame=frames.take(k), mB=m_B[k])
         ukf.P = repair_covariance(ukf.P, 1e-14)  # filterpy leaves P's health to its user
-    el = time.perf_counter() - t0
+    el, cpu = time.perf_counter() - t0, time.process_time() - c0
     err = np.degrees(fit[idx[-1], 0] + ukf.x[L.offset] - rec.get("true_q").values[idx[-1]])
-    return el / len(idx), err, len(idx)
+    return el / len(idx), cpu / len(idx), err, len(idx)
 
 
 def ours_on(arm, rec: Recording, steps: int | None = None):
@@ -133,8 +134,9 @@ def ours_on(arm, rec: Recording, steps: int | None = None):
         t = rec.get(ENC).t_s
         i0 = int(np.searchsorted(t, tr.t_s + 1e-9))
         t_stop = float(t[min(len(t) - 1, i0 + steps - 1)])
+    c0 = time.process_time()
     run = tr.run(rec, t_stop_s=t_stop)
-    return run, tr, start
+    return run, tr, start, time.process_time() - c0
 
 
 # --------------------------------------------------------------------------------------
@@ -166,30 +168,37 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=600.0, help="daily-use recording length, s")
     ap.add_argument("--baseline-steps", type=int, default=1500)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--repeats", type=int, default=3, help="side-by-side speed runs (the best of each kept)")
     ap.add_argument("--no-write", action="store_true")
     a = ap.parse_args()
     arm = calibrated_wmra()
     rec, _ = simulate(arm, "daily-use", a.duration, seed=a.seed)
 
-    # -- speed, side by side on the same instants
-    fp_s, fp_err, N = filterpy_baseline(arm, rec, a.baseline_steps)
-    run_seg, _, _ = ours_on(arm, rec, N)
-    ours_seg = run_seg.elapsed_s / run_seg.steps
-    ratio = fp_s / ours_seg
-    print(f"filterpy: {fp_s * 1e3:.2f} ms/step over {N} steps; ours {ours_seg * 1e3:.3f} ms/step "
-          f"on the same steps: {ratio:.1f}x")
+    # -- speed, side by side on the same instants, alternating, the best of each kept (the
+    # machine may be shared: CPU time is what one core spent, wall-clock time is shown too)
+    fp_wall = fp_cpu = ours_wall = ours_cpu = np.inf
+    for rep in range(a.repeats):
+        fw, fc, fp_err, N = filterpy_baseline(arm, rec, a.baseline_steps)
+        run_seg, _, _, oc = ours_on(arm, rec, N)
+        ow, oc = run_seg.elapsed_s / run_seg.steps, oc / run_seg.steps
+        fp_wall, fp_cpu = min(fp_wall, fw), min(fp_cpu, fc)
+        ours_wall, ours_cpu = min(ours_wall, ow), min(ours_cpu, oc)
+        print(f"[{rep + 1}/{a.repeats}] filterpy {fw * 1e3:.2f} ms/step (CPU {fc * 1e3:.2f}) over {N} "
+              f"steps; ours {ow * 1e3:.3f} ms/step (CPU {oc * 1e3:.3f})")
+    ratio, ratio_wall = fp_cpu / ours_cpu, fp_wall / ours_wall
+    print(f"filterpy / ours: {ratio:.1f}x (CPU time), {ratio_wall:.1f}x (wall clock)")
 
     # -- accuracy and speed on the whole recording
-    run, tr, start = ours_on(arm, rec)
+    run, tr, start, run_cpu = ours_on(arm, rec)
     s = run.summary(after_s=60.0, t0_s=0.0)
     print(f"ours, whole recording: {run.steps} steps in {run.elapsed_s:.1f} s = "
-          f"{run.steps_per_s:.0f} steps/s")
+          f"{run.steps_per_s:.0f} steps/s ({run.steps / run_cpu:.0f} per CPU second)")
     print("RMS after 60 s (deg):", {k: round(v, 4) for k, v in s["rms_error_deg"].items()})
     print("RMS while ok (deg):  ", {k: round(v, 4) for k, v in s["rms_error_ok_deg"].items() if v})
     print(f"heading RMS {s['heading_rms_deg']:.3f} deg; NEES {s['nees']['mean']:.2f} / {s['nees']['dof']}")
 
     t1, t2 = min(200.0, 0.4 * a.duration), min(290.0, 0.55 * a.duration)
-    run_d, _, _ = ours_on(arm, disturbed(rec, t1, t2, [12.0, -6.0, 4.0]))
+    run_d, _, _, _ = ours_on(arm, disturbed(rec, t1, t2, [12.0, -6.0, 4.0]))
     sd = run_d.summary(after_s=60.0, t0_s=0.0)
     ep = (run_d.t_s >= t1) & (run_d.t_s <= t2 + 5)
     head_ep = float(np.sqrt(np.mean(np.degrees(run_d.yaw_error_rad[ep]) ** 2)))
@@ -198,7 +207,7 @@ def main() -> None:
 
     slips = []
     for j, ts in ((1, 0.3 * a.duration), (3, 0.5 * a.duration), (4, 0.7 * a.duration)):
-        run_s, _, _ = ours_on(arm, slipped(arm, rec, j, ts, 0.5))
+        run_s, _, _, _ = ours_on(arm, slipped(arm, rec, j, ts, 0.5))
         slips.append((arm.joint_names[j], ts, correction_time(run_s, run, j, ts)))
     print("0.5 deg slips corrected (to < 0.05 deg) within:", [(n, round(c, 2)) for n, _, c in slips])
 
@@ -210,22 +219,35 @@ def main() -> None:
         f"sensors, startup calibration on the first still stretch (t = {start.t_start_s:.1f} … "
         f"{start.t_end_s:.1f} s); {machine_line()}.",
         "",
-        "Speed, side by side on the same instants and the same model (filterpy calls the tracker's "
-        "own process and measurement functions with one sigma point at a time; it is given its "
-        "kinematic frames for free):",
+        "Speed, side by side on the same instants and the same model. The baseline is filterpy's "
+        "`UnscentedKalmanFilter` as its documentation builds it: `MerweScaledSigmaPoints` with the "
+        "tracker's alpha, beta, kappa, the state's yaw handled by `residual_x`/`x_mean_fn` and the heading "
+        "row by `residual_z`/`z_mean_fn`, the tracker's own process and measurement functions "
+        "(`Tracker._fx`, `Tracker._h_all`, the same code our filter calls) called by filterpy with one "
+        "sigma point at a time, the tracker's Q and R, `predict(dt, w)` then `update(z)` every instant "
+        "with every accelerometer and the heading, and P repaired after each update (filterpy leaves "
+        "that to its user). It is given its kinematic frames, encoder fits and SI readings for free "
+        "(computed before the clock starts); it has no gates, holds, health checks or innovation "
+        "logging, all of which our time includes. The two alternate "
+        f"{a.repeats} times on the same {N} instants; the best time of each is kept. CPU time (what one "
+        "core spent on the process) is the figure compared, as the machine is shared; wall-clock "
+        "time is shown too.",
         "",
-        "| filter | per step | steps/s |",
-        "| --- | ---: | ---: |",
-        f"| filterpy `UnscentedKalmanFilter`, fx/hx per sigma point ({N} steps) | {fp_s * 1e3:.2f} ms | "
-        f"{1 / fp_s:.0f} |",
-        f"| armfusion `Tracker.run`, same steps, everything included | {ours_seg * 1e3:.3f} ms | "
-        f"{1 / ours_seg:.0f} |",
+        "| filter | per step (CPU) | steps per CPU second | per step (wall) |",
+        "| --- | ---: | ---: | ---: |",
+        f"| filterpy `UnscentedKalmanFilter`, fx/hx per sigma point ({N} steps) | {fp_cpu * 1e3:.2f} ms | "
+        f"{1 / fp_cpu:.0f} | {fp_wall * 1e3:.2f} ms |",
+        f"| armfusion `Tracker.run`, same steps, everything included | {ours_cpu * 1e3:.3f} ms | "
+        f"{1 / ours_cpu:.0f} | {ours_wall * 1e3:.3f} ms |",
         f"| armfusion `Tracker.run`, the whole recording ({run.steps} steps) | "
-        f"{run.elapsed_s / run.steps * 1e3:.3f} ms | {run.steps_per_s:.0f} |",
+        f"{run_cpu / run.steps * 1e3:.3f} ms | {run.steps / run_cpu:.0f} | "
+        f"{run.elapsed_s / run.steps * 1e3:.3f} ms |",
         "",
-        f"The tracker is **{ratio:.0f}x** faster than the plain filterpy UKF (target ≥ 10x) and fuses "
-        f"**{run.steps_per_s:.0f} steps/s** (target ≥ 5,000; a step is one instant: 4 link "
-        "accelerometers, the IMU's accelerometer, gyro and magnetometer, the encoders).",
+        f"The tracker is **{ratio:.1f}x** faster than the plain filterpy UKF in CPU time "
+        f"({ratio_wall:.1f}x wall clock; target ≥ 10x) and fuses **{run.steps / run_cpu:.0f} steps per CPU "
+        f"second** on the whole recording ({run.steps_per_s:.0f} steps/s wall clock; target ≥ 5,000; a "
+        "step is one instant: 4 link accelerometers, the IMU's accelerometer, gyro and magnetometer, "
+        "the encoders).",
         "",
         "Accuracy:",
         "",
