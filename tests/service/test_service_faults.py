@@ -255,10 +255,10 @@ def test_serve_processes_restart_from_the_state_file(renk_recording, tmp_path):
         assert proc.returncode == 0, err
         return json.loads(out)
 
-    first = serve_with(cut(renk_recording, 0.0, 3.0))
+    first = serve_with(cut(renk_recording, 0.0, 2.5))
     assert first["startup_t_s"] is not None and not first["resumed"]
     assert "no saved state at" in first["resume_message"]
-    assert state_file.load_state(state)["t_s"] > 2.9
-    second = serve_with(cut(renk_recording, 3.0, 4.0))  # 1 s: too little for a startup calibration
+    assert state_file.load_state(state)["t_s"] > 2.4
+    second = serve_with(cut(renk_recording, 2.5, 3.5))  # 1 s: too little for a startup calibration
     assert second["resumed"], second["resume_message"]
     assert second["estimates"] > 0 and second["state"] == "stopping"
