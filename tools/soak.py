@@ -51,6 +51,18 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _commit() -> str:
+    """The commit measured, marked ``+changes`` when fusion/ or models/ differ from it."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "fusion", "models"], cwd=ROOT,
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + (" +changes" if dirty else "")
+
+
 def _cpu_s(pid: int) -> float:
     """User + system CPU seconds of process ``pid`` so far (Linux /proc)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -180,6 +192,7 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int) -> dict:
         "instants_per_serve_cpu_s": float(len(enc_t) / cpu_all) if cpu_all > 0 else None,
         "load_average_1min": os.getloadavg()[0], "cores": os.cpu_count(),
         "tracker_instants_per_cpu_s": tracker_alone(rec),
+        "commit": _commit(),
     }
 
 
@@ -233,9 +246,10 @@ def markdown(r: dict) -> str:
     table = "| figure | value |\n| --- | --- |\n" + "\n".join(f"| {a} | {b} |" for a, b in rows)
     return f"""## Soak: the fusion node at {r['rate_hz']:.0f} Hz through Zenoh (`tools/soak.py`)
 
-{machine_line()}; load average {r['load_average_1min']:.1f} during the run (a shared machine:
-other processes took CPU too). `armfusion serve` as its own process on 127.0.0.1; the WMRA's
-daily use ({r['duration_s']:.0f} s: still for 15 s, then reaching while the chair drives);
+{machine_line()}; commit {r.get('commit', 'unknown')}; load average
+{r['load_average_1min']:.1f} during the run (a shared machine: other processes took CPU too).
+`armfusion serve` as its own process on 127.0.0.1; the WMRA's daily use
+({r['duration_s']:.0f} s: still for 15 s, then reaching while the chair drives);
 {', '.join(r['sensors'])} at {r['rate_hz']:.0f} Hz, every sensor's samples of each
 {r['batch_ms']:.0f} ms sent as one message (about one sample each), in real time.
 
