@@ -18,14 +18,18 @@ which physical effect is missing.
    that many degrees of freedom; the p-value is Bonferroni-corrected over the candidates.
    No refit is needed for this.
 3. The best few by the linearised ΔBIC, among those whose score test is significant, are
-   refitted (``identify`` with the candidate added,
-   starting from the current estimates): residual RMS after, ΔBIC, the estimated
-   parameters with σ. A candidate is **significant** when its corrected p-value is below
-   ``alpha`` and its ΔBIC is negative. Each comes with the effect's plain-language
-   description and the evidence: which input its residual follows, and how much of the
-   residual the candidate explains.
+   refitted (``identify`` with the candidate added, starting from the current estimates,
+   on at most ``refit_points`` evenly spread fit points; the residual then evaluated over
+   the whole recording), more while none reaches the noise, and the rivals of the best on
+   its target: residual RMS after, ΔBIC, the estimated parameters with σ. A candidate is
+   **significant** when its corrected p-value is below ``alpha`` and its ΔBIC is negative.
+   Each comes with the effect's plain-language description and the evidence: which input
+   its residual follows, and how much of the residual the candidate explains.
+4. **Where it fails.** Each axis's residual auto- and cross-correlation with the inputs
+   (:func:`residual_analysis`, as MATLAB's ``resid``) and the worst stretches.
 
-See docs/workbench.md.
+On moving data (the chair driving) :func:`innovation_diagnosis` runs the same analysis on
+the tracker's normalised innovations. See docs/workbench.md.
 """
 
 from __future__ import annotations
@@ -65,9 +69,12 @@ class DiagnoseSettings:
     """Refits go on past ``n_refit`` (in the linearised order) while none has reached the noise."""
     max_rivals: int = 4
     """Besides, refit up to this many more candidates on the best refit's target."""
-    refit_points: int = 400
+    refit_points: int = 1000
     """Fit points (evenly spread) a quick refit estimates on; its residual is then evaluated
     over the whole recording."""
+    prefit_points: int = 2000
+    """On a recording with more than twice as many fit points, the encoder zeros and the base
+    attitude are first fitted on this many evenly spread points (0: never)."""
     evidence_points: int = 3000
     """Fit points (evenly spread) the evidence sentences are read off."""
     noise_tolerance: float = 1.1
@@ -560,8 +567,19 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     streams = [s for s in (data.counts if streams is None else streams) if s not in FIT_STREAMS_EXCLUDED]
     say("fitting the model", 0.0)
     max_j = st.identify.max_nfev + 1
+    if st.prefit_points and data.n > 2 * st.prefit_points:
+        # a long recording: the recording's encoder zeros and the base attitude (the nonlinear
+        # nuisances, wide priors) first from evenly spread points, so that the fit of the
+        # whole recording starts next to its optimum and needs few iterations
+        pre = fit_model(model, data.subset(slice(None, None, int(np.ceil(data.n / st.prefit_points)))),
+                        streams, st.identify, attitude0_rad,
+                        progress=lambda k, _c: say("fitting the model", 0.1 * min(k / max_j, 1.0)))
+        zeros = {b.name: pre.x[pre.model.index[b.name]] for b in pre.model.blocks
+                 if b.effect == "joint_offset" and b.name not in model.index}
+        model = with_encoder_zeros(model).with_values(zeros)
+        attitude0_rad = pre.attitude_rad
     fit = fit_model(model, data, streams, st.identify, attitude0_rad,
-                    progress=lambda k, _c: say("fitting the model", 0.45 * min(k / max_j, 1.0)))
+                    progress=lambda k, _c: say("fitting the model", 0.1 + 0.35 * min(k / max_j, 1.0)))
     m = fit.model
     arm = m.arm
     cands = _candidates(m, st.effects)
@@ -635,7 +653,7 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
             lm = 0.0  # only a step outside the bounds (a negative play or sag) would help
         delta = np.clip(delta, lo, hi)
         cov = (V[:, keep] / lam[keep]) @ V[:, keep].T * np.outer(sig_c, sig_c)
-        lin.append((e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s))
+        lin.append((e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s, Mc, cs))
     lin.sort(key=lambda c: -(c[1] - c[2] * lnn))
     out: list[Candidate] = []
     base_model = m.with_values(fit.model_x)
@@ -647,7 +665,7 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     best_after = np.inf
     best_target = None
     rivals = 0
-    for rank, (e, lm, dof, delta, dsig, dr) in enumerate(lin):
+    for rank, (e, lm, dof, delta, dsig, dr, Mc, cs) in enumerate(lin):
         p = float(min(1.0, chi2_dist.sf(lm, dof) * K))
         b = pb.model.block(e.block_name)
         names = b.element_names()
@@ -676,13 +694,31 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
             else:
                 att = res.attitude_rad if res.attitude_rad is not None else np.zeros(3)
                 chi2_new = _chi2(res.model, data, pb.streams, pb.attitude, res.model_x, att, per)
+            shrink = np.sqrt(sub.n / data.n)  # σ of the whole recording from the subsample's
+            params = {n: (float(res.x[sl2][q]), float(res.sigma[sl2][q] * shrink))
+                      for q, n in enumerate(names)}
+            if sub is not data:
+                # the subsample's estimates carry its noise into every parameter; where the
+                # problem is nearly linear, one Gauss-Newton step from the current fit on the
+                # whole recording's sums does better: keep whichever fits the recording better
+                sig_c = pb.sigma0[pb.model.index[e.block_name]]
+                H = Mc + np.diag(1.0 / sig_c**2)
+                Hi = np.linalg.inv(0.5 * (H + H.T))
+                dc = np.clip(-Hi @ g_all[cs], b.lower, b.upper)
+                dz = np.zeros(pb.size)
+                dz[fcols] = -AiB[:, cs] @ dc
+                xm = np.concatenate([fit.model_x + dz[:P0], dc])
+                chi2_gn = _chi2(base_model.with_effects([e]), data, pb.streams, pb.attitude, xm,
+                                z[pb.P:] + dz[pb.P:], per)
+                if chi2_gn < chi2_new:
+                    chi2_new = chi2_gn
+                    infl = max(1.0, chi2_gn / max(n_res - nf - dof, 1))
+                    sd = np.sqrt(np.clip(np.diag(Hi), 0, None) * infl)
+                    params = {n: (float(dc[q]), float(sd[q])) for q, n in enumerate(names)}
             dbic = chi2_new - chi2_now + new_free * lnn
             rms_after = float(np.sqrt(chi2_new / n_res))
             if rms_after < best_after:
                 best_after, best_target = rms_after, e.target
-            shrink = np.sqrt(sub.n / data.n)  # σ of the whole recording from the subsample's
-            params = {n: (float(res.x[sl2][q]), float(res.sigma[sl2][q] * shrink))
-                      for q, n in enumerate(names)}
         else:
             dbic = -lm + dof * lnn
             rms_after = None

@@ -56,6 +56,7 @@ HIDDEN_SPEED = [{"effect": "mount_rotation", "target": "acc3",
 def _tests_module():
     spec = importlib.util.spec_from_file_location("wb_tests", ROOT / "tests" / "e2e" / "test_workbench.py")
     mod = importlib.util.module_from_spec(spec)
+    sys.modules["wb_tests"] = mod
     spec.loader.exec_module(mod)
     return mod
 
@@ -106,6 +107,7 @@ def _baseline_module():
     path.write_text(src)
     spec = importlib.util.spec_from_file_location("diagnose_baseline", path)
     mod = importlib.util.module_from_spec(spec)
+    sys.modules["diagnose_baseline"] = mod
     spec.loader.exec_module(mod)
     return mod
 
@@ -119,32 +121,35 @@ def speed(arm, hour_s: float, baseline_s: float) -> dict:
     t0 = time.perf_counter()
     data = data_from_recording(arm, rec, window=10)
     t_data = time.perf_counter() - t0
-    stages: dict[str, float] = {}
-    last = [time.perf_counter(), "fitting the model"]
+    stages: dict[str, list[float]] = {}
+    last = [time.perf_counter(), time.process_time(), "fitting the model"]
 
     def progress(msg: str, _frac: float) -> None:
         key = msg.split(" with ")[0]
-        now = time.perf_counter()
-        stages[last[1]] = stages.get(last[1], 0.0) + now - last[0]
-        last[:] = [now, key]
+        now, cpu = time.perf_counter(), time.process_time()
+        w = stages.setdefault(last[2], [0.0, 0.0])
+        w[0] += now - last[0]
+        w[1] += cpu - last[1]
+        last[:] = [now, cpu, key]
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     d = diagnose(model_from_arm(arm), data, progress=progress)
-    t_diag = time.perf_counter() - t0
+    t_diag, c_diag = time.perf_counter() - t0, time.process_time() - c0
     out = {"hour_s": hour_s, "fit_points": data.n, "axes": len(d.axes), "simulate_s": t_sim,
-           "data_s": t_data, "diagnose_s": t_diag, "stages": stages, "verdict": d.verdict,
+           "data_s": t_data, "diagnose_s": t_diag, "diagnose_cpu_s": c_diag, "stages": stages,
+           "verdict": d.verdict, "load": os.getloadavg()[0],
            "n_candidates": len(d.candidates) + len(d.unseen),
            "refits": sum(c.refitted for c in d.candidates)}
-    print(f"  1 h: {t_diag:.1f} s ({stages})", flush=True)
+    print(f"  1 h: {t_diag:.1f} s wall, {c_diag:.1f} s CPU ({stages})", flush=True)
     if baseline_s > 0:
         short = data.subset(slice(0, int(round(data.n * baseline_s / hour_s))))
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         diagnose(model_from_arm(arm), short)
-        out["new_short_s"] = time.perf_counter() - t0
+        out["new_short_s"], out["new_short_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
         old = _baseline_module()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         old.diagnose(model_from_arm(arm), short)
-        out["old_short_s"] = time.perf_counter() - t0
+        out["old_short_s"], out["old_short_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
         out["short_points"] = short.n
         print(f"  {baseline_s:.0f} s: new {out['new_short_s']:.1f} s, before {out['old_short_s']:.1f} s",
               flush=True)
@@ -182,21 +187,27 @@ def section(fa: dict | None, pw: list[dict], sp: dict | None, duration_s: float)
                   f"{sp['hour_s']:.0f} s of `renk-maneuver` with acc3's board turned (so the refits run): "
                   f"{sp['fit_points']:,} fit points x {sp['axes']} axes, {sp['n_candidates']} candidates, "
                   f"{sp['refits']} quick refits; verdict \"{sp['verdict']}\".", "",
-                  "| stage | wall time |", "| --- | ---: |"]
-        for k, v in st.items():
+                  "| stage | CPU time (one core) | wall time (shared machine) |", "| --- | ---: | ---: |"]
+        for k, (w, c) in st.items():
             if k != "done":
-                lines.append(f"| {k} | {v:.1f} s |")
-        lines += [f"| **diagnose, total** | **{sp['diagnose_s']:.1f} s** |",
-                  f"| (simulating the hour; window means) | "
+                lines.append(f"| {k} | {c:.1f} s | {w:.1f} s |")
+        lines += [f"| **diagnose, total** | **{sp['diagnose_cpu_s']:.1f} s** | {sp['diagnose_s']:.1f} s |",
+                  f"| (simulating the hour; window means: wall) | | "
                   f"({sp['simulate_s']:.1f} s; {sp['data_s']:.1f} s) |",
-                  "", f"Target: ≤ {TARGET_S:.0f} s on one core: "
-                  f"**{'met' if sp['diagnose_s'] <= TARGET_S else 'not met'}** ({sp['diagnose_s']:.0f} s)."]
+                  "", f"The machine is shared (load average {sp['load']:.1f} on 2 cores during the run), so "
+                  "the CPU time of the process (BLAS on one thread) is the one-core figure; the wall "
+                  "time is what it took here. "
+                  f"Target: ≤ {TARGET_S:.0f} s on one core: "
+                  f"**{'met' if sp['diagnose_cpu_s'] <= TARGET_S else 'not met'}** "
+                  f"({sp['diagnose_cpu_s']:.0f} s of CPU)."]
         if "old_short_s" in sp:
             lines += ["", f"Side by side on the recording's first {sp['short_points']:,} fit points, "
                       "same process: "
-                      f"this workbench {sp['new_short_s']:.1f} s, the workbench before the speed-up "
-                      f"(git {BASELINE_COMMIT}) {sp['old_short_s']:.1f} s "
-                      f"(**{sp['old_short_s'] / max(sp['new_short_s'], 1e-9):.0f}x**)."]
+                      f"this workbench {sp['new_short_cpu_s']:.1f} s of CPU "
+                      f"({sp['new_short_s']:.1f} s wall), the workbench before the speed-up "
+                      f"(git {BASELINE_COMMIT}) {sp['old_short_cpu_s']:.1f} s "
+                      f"({sp['old_short_s']:.1f} s wall): "
+                      f"**{sp['old_short_cpu_s'] / max(sp['new_short_cpu_s'], 1e-9):.1f}x** less CPU."]
     return "\n".join(lines)
 
 

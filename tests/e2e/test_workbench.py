@@ -202,6 +202,8 @@ def test_null_case_fits_to_noise(arm, seed):
     assert 0.9 < d.rms_ratio < 1.1
     # every axis of a correct model sits at its noise floor
     assert all(0.8 < a.ratio < 1.2 for a in d.axes), [(a.axis, round(a.ratio, 2)) for a in d.axes]
+    # its residuals are white and follow no input beyond the corrected 99 % band
+    assert d.analysis.white, (d.analysis.not_white()[:3], d.analysis.flagged()[:3])
 
 
 def test_cli_diagnose_add_write_history(tmp_path):
@@ -226,6 +228,15 @@ def test_cli_diagnose_add_write_history(tmp_path):
                for w in doc["worst_stretches"])
     assert {"effect", "target", "delta_bic", "rms_after", "significant", "params",
             "explanation"} <= set(doc["candidates"][0])
+    # where it fails, against the inputs: acc1's residual is not white and follows some input
+    ra = doc["residual_analysis"]
+    assert ra["band_99"] == pytest.approx(2.58 / np.sqrt(ra["n"]), rel=1e-3)
+    assert ra["band_flag"] > ra["band_99"]
+    assert not ra["white"] and any(x["stream"] == "acc1" for x in ra["not_white"])
+    assert ra["flagged"] and all(abs(x["r"]) > ra["band_flag"] for x in ra["flagged"])
+    assert {"q4", "rate q4", "accel q4", "temperature"} <= set(ra["inputs"])
+    r = runner.invoke(app, ["diagnose", "--config", str(cfg), str(rec), "--history", str(tmp_path / "h")])
+    assert r.exit_code == 0 and "Where it fails" in r.stdout and "acc1_" in r.stdout
     # add it, write the new config; the ladder falls to the noise
     out = tmp_path / "arm2.yaml"
     report = tmp_path / "report.html"
