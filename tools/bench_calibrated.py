@@ -103,6 +103,10 @@ def still_means(arm, seed: int, q, tilt, rng, n_samples: int = 100, rate_hz: flo
     arm (or ``true_effects``: the sensors the maneuver calibrated), and the joints' true zero
     offsets."""
     model, x = true_model(arm, true_effects, realistic=true_effects is None, seed=seed)
+    x = np.array(x, float)
+    for e in model.effects:  # a still arm does not see a time offset (and the rows of one
+        if e.stage == "time":  # batch are unrelated poses: no time derivative across them)
+            x[model.index[e.block_name]] = 0.0
     streams = [s.name for s in arm.link_accelerometers] + ["imu_acc"]
     st = MotionState.static(q, tilt[:, 0], tilt[:, 1], temperature_c=temperature_c)
     phys = model.predict(st, x, streams, units="physical")
