@@ -10,7 +10,7 @@ for 15 s, then reaching while the chair drives). Run it niced on a shared machin
 
     nice python tools/soak.py --duration 60 --write
 
-``--write`` replaces the ``soak-<rate>hz`` section of docs/benchmarks.md; ``--json`` prints the
+``--write`` replaces the ``soak-<rate>hz-<batch>ms`` section of docs/benchmarks.md; ``--json`` prints the
 figures, which ``--from-json FILE --write`` renders later without running again.
 """
 
@@ -242,16 +242,18 @@ def markdown(r: dict) -> str:
     ]
     need = 100.0 * r["rate_hz"] / r["instants_per_serve_cpu_s"]
     msgs_per_s = len(r["sensors"]) * min(r["rate_hz"], 1000.0 / r["batch_ms"])
+    per_msg = max(1.0, r["rate_hz"] * r["batch_ms"] / 1000.0)
     tracker_share = 100.0 * r["instants_per_serve_cpu_s"] / r["tracker_instants_per_cpu_s"]
     table = "| figure | value |\n| --- | --- |\n" + "\n".join(f"| {a} | {b} |" for a, b in rows)
-    return f"""## Soak: the fusion node at {r['rate_hz']:.0f} Hz through Zenoh (`tools/soak.py`)
+    title = f"Soak: the fusion node at {r['rate_hz']:.0f} Hz, {r['batch_ms']:.0f} ms batches, through Zenoh"
+    return f"""## {title} (`tools/soak.py`)
 
 {machine_line()}; commit {r.get('commit', 'unknown')}; load average
 {r['load_average_1min']:.1f} during the run (a shared machine: other processes took CPU too).
 `armfusion serve` as its own process on 127.0.0.1; the WMRA's daily use
 ({r['duration_s']:.0f} s: still for 15 s, then reaching while the chair drives);
 {', '.join(r['sensors'])} at {r['rate_hz']:.0f} Hz, every sensor's samples of each
-{r['batch_ms']:.0f} ms sent as one message (about one sample each), in real time.
+{r['batch_ms']:.0f} ms sent as one message (about {per_msg:.0f} sample(s) each), in real time.
 
 {table}
 
@@ -261,9 +263,10 @@ per CPU-second); it got {r['serve_cpu_percent_while_publishing']:.0f} % on this 
 tracker alone does {r['tracker_instants_per_cpu_s']:.0f} instants per CPU-second on the same
 samples, so it takes {tracker_share:.0f} % of the node's CPU; Zenoh's receive threads (about
 {msgs_per_s:.0f} messages a second), decoding, the reorder stage, publishing and the startup
-calibration take the rest. Latency counts the instants sent
-after the node caught up (before, it waits for its startup calibration, then fuses the
-samples it kept). A node that needs more than one CPU-second per
+calibration take the rest. Latency runs from the moment the message holding an instant is
+put (a sample first waits up to one batch, {r['batch_ms']:.0f} ms, in the driver) to its joint
+state's arrival, over the instants sent after the node caught up (before, it waits for its
+startup calibration, then fuses the samples it kept). A node that needs more than one CPU-second per
 {r['rate_hz']:.0f} instants cannot keep up: its queue, and the latency, grow for as long as
 the stream lasts, and once its receive channel (65536 messages) is full the publishers wait,
 and Zenoh closes a link whose publisher waited 5 s: samples are then lost, and counted as
@@ -288,7 +291,7 @@ def main(argv=None) -> int:
         r = soak(args.duration, args.rate, args.batch_ms / 1000.0, args.seed)
     print(json.dumps(r, indent=2) if args.json else markdown(r))
     if args.write:
-        section = "soak-{:.0f}hz".format(r["rate_hz"])
+        section = "soak-{:.0f}hz-{:.0f}ms".format(r["rate_hz"], r["batch_ms"])
         print(f"wrote {write_section(section, markdown(r))}")
     return 0
 
