@@ -24,6 +24,7 @@ import base64
 import html
 import json
 import math
+import os
 import threading
 import time
 from collections import Counter
@@ -96,7 +97,7 @@ def calibrate(workdir: Path, seed: int, duration_s: float, realistic: bool, ch: 
 
 
 def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, scenario: str,
-             realistic: bool, ch: Children, progress) -> dict[str, Any]:
+             realistic: bool, ch: Children, progress, batch_ms: float = 100.0) -> dict[str, Any]:
     """Router, recorder, fusion node and drivers as processes; returns what each reported
     and what the demo's consumer received."""
     import zenoh
@@ -112,6 +113,7 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
     record = ch.start("record", ["record", str(rec_path), "--robot", ROBOT, "--config", str(config),
                                  "--json", *client])
     serve = ch.start("serve", ["serve", "--config", str(config), "--robot", ROBOT, "--json", *client])
+    serve_t0 = time.monotonic()
     watched = Watched()
     truth_path = workdir / "drivers.mcap"
     with open_session(ZenohSettings(listen=[], connect=[router], mode="client")) as session:
@@ -124,6 +126,7 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
         drivers = ch.start("drivers", [
             "drivers", "--fake", "--realtime", "--scenario", scenario, "--seed", str(seed),
             "--duration", str(duration_s), "--robot", ROBOT, "--wait", "60", "--out", str(truth_path),
+            "--batch-ms", str(batch_ms),
             "--json", *(["--realistic"] if realistic else []), *client])
         while drivers.running:
             progress(watched)
@@ -135,6 +138,9 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
         while len(watched.joints) != n_before:
             n_before = len(watched.joints)
             time.sleep(1.0)
+        machine = {"cpus": os.cpu_count(), "load_average_1min": round(os.getloadavg()[0], 2),
+                   "serve_cpu_s": _cpu_s(serve.proc.pid),
+                   "serve_wall_s": round(time.monotonic() - serve_t0, 1)}
         ch.stop_all(children=[serve, record])
         for s in subs:
             s.undeclare()
@@ -146,7 +152,16 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
     return {"drivers": json.loads(drivers.stdout_path.read_text()),
             "serve": json.loads(serve.stdout_path.read_text()),
             "record": json.loads(record.stdout_path.read_text()),
-            "watched": watched, "truth_path": truth_path, "recording": rec_path}
+            "watched": watched, "truth_path": truth_path, "recording": rec_path, "machine": machine}
+
+
+def _cpu_s(pid: int) -> float | None:
+    """CPU seconds (user + system) a process has used so far (Linux /proc), or None."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return round((int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), 1)
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 # --- the figures of merit ---------------------------------------------------------------------
@@ -219,6 +234,7 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
                     "estimates_received": int(len(t)),
                     "estimates_recorded": int(sum(rec.get("estimates", {}).values()))},
         "latency": latency,
+        "machine": live.get("machine"),
         "_series": {"t": t, "q": q, "sigma": sig, "flags": flags, "truth_q": tq, "truth_base": tb,
                     "headings": [(h.t_s, h.heading_rad, h.sigma_rad) for _, h in w.headings]},
     }
@@ -348,6 +364,11 @@ def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladd
                    + img("wb_ladder") + img("wb_candidates"))
     s = ev["samples"]
     lat = ev["latency"]
+    m = ev.get("machine") or {}
+    machine = "" if m.get("serve_cpu_s") is None else (
+        f"<p>The fusion node used {m['serve_cpu_s']:.0f} CPU-s in {m['serve_wall_s']:.0f} s of wall time; "
+        f"load average {m['load_average_1min']:.1f} on {m['cpus']} CPUs. With too little CPU the fusion "
+        "node falls behind real time: the latency grows, nothing is lost.</p>")
     doc_html = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion demo</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}}
 table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}
@@ -368,6 +389,7 @@ separate processes over Zenoh on 127.0.0.1.</p>
 recorded; dropped: {esc(', '.join(f'{k} {v}' for k, v in s['dropped'].items()) or 'none')}.
 Sample→estimate latency: {'—' if lat is None else
                             f"p50 {lat['p50_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms"}.</p>
+{machine}
 <h2>Tracking: estimate against truth, and the error with its ±2σ band</h2>{img('joints')}
 <h2>Heading</h2>{img('heading')}
 <h2>The workbench: what the sensor calibration fixed</h2>{wb_html}
@@ -411,6 +433,11 @@ def _summary_table(doc: dict[str, Any], ev: dict[str, Any]):
                                        f"p50 {lat['p50_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms "
                                        f"(max {lat['max_ms']:.1f} ms, {lat['count']} estimates)"),
     ]
+    m = ev.get("machine")
+    if m and m.get("serve_cpu_s") is not None:
+        lines.append(f"the fusion node used {m['serve_cpu_s']:.0f} CPU-s in {m['serve_wall_s']:.0f} s; load "
+                     f"average {m['load_average_1min']:.1f} on {m['cpus']} CPUs (with too little CPU the "
+                     "fusion node falls behind: the latency grows, nothing is lost)")
     return t, lines
 
 
@@ -427,7 +454,7 @@ def register(app: typer.Typer) -> None:
             "--calibrate/--no-calibrate", help="First identify the sensors' errors on the calibration "
             "maneuver and serve with the calibrated config (default); else the shipped config.")] = True,
         calibration_s: Annotated[float, typer.Option(
-            "--calibration-duration", help="Seconds of the simulated calibration maneuver.")] = 120.0,
+            "--calibration-duration", help="Seconds of the simulated calibration maneuver.")] = 60.0,
         scenario: Annotated[str, typer.Option(
             "--scenario", "-s", help="The live run's motion.")] = "daily-use",
         run_workbench: Annotated[bool, typer.Option(
@@ -435,6 +462,9 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option(
             "--out", "-o", help="Directory for the recordings, the configs, the nodes' outputs and "
             "the report.")] = Path("armfusion-demo"),
+        batch_ms: Annotated[float, typer.Option(
+            "--batch-ms", help="The drivers' read time per published batch, ms (each message costs "
+            "the fusion node CPU: 100 ms batches need about half the CPU of 20 ms ones).")] = 100.0,
         json_out: JsonOpt = False,
     ) -> None:
         """The whole service on this machine, no hardware, loopback only: the simulated WMRA
@@ -446,6 +476,8 @@ def register(app: typer.Typer) -> None:
             fail(f"--duration {duration_s!r}: expected at least 5 s (the arm is still for the first seconds)")
         if calibrate_sensors and not calibration_s >= 15:
             fail(f"--calibration-duration {calibration_s!r}: expected at least 15 s")
+        if not 1.0 <= batch_ms <= 1000.0:
+            fail(f"--batch-ms {batch_ms!r}: expected 1 to 1000")
         if scenario not in SCENARIOS:
             fail(f"--scenario {scenario!r}: expected one of {', '.join(SCENARIOS)}")
         if out.exists() and not out.is_dir():
@@ -494,7 +526,8 @@ def register(app: typer.Typer) -> None:
                         bar.update(task, completed=0.0 if last is None else min(last.t_s, duration_s),
                                    info=f"{state} · {published} samples out · {n} estimates in · {flags}")
 
-                    live = run_live(out, config, seed, duration_s, scenario, realistic, ch, progress)
+                    live = run_live(out, config, seed, duration_s, scenario, realistic, ch, progress,
+                                    batch_ms)
                     bar.update(task, completed=duration_s)
                 timings["live_s"] = time.monotonic() - t1
         except DemoError as e:
