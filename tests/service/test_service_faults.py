@@ -50,7 +50,11 @@ def test_a_sensor_that_stops_is_flagged_stale_and_the_estimates_go_on(
     listener, connector = hub_settings
     with fusion_node(listener, arm, publish_hz=100.0) as (node, result), open_session(connector) as s:
         got = Collected(s)
-        _replay_all(s, node, rec)
+        _replay_all(s, node, cut(rec, 0.0, 3.2))
+        # the last 1.3 s in real time: the others keep coming (a status while they do)
+        before = node.report_samples()
+        report = replay(s, cut(rec, 3.2, 4.5), "chair1", speed=1.0)
+        assert wait_for(lambda: node.report_samples() >= before + sum(report.samples.values()), 30.0)
         assert wait_for(lambda: any(st.message.startswith("no samples for") for st in got.snapshot()[1]), 5.0)
     joints, status = got.snapshot()
     assert result["report"].state == "stopping"
