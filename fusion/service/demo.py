@@ -97,7 +97,7 @@ def calibrate(workdir: Path, seed: int, duration_s: float, realistic: bool, ch: 
 
 
 def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, scenario: str,
-             realistic: bool, ch: Children, progress, batch_ms: float = 100.0) -> dict[str, Any]:
+             realistic: bool, ch: Children, progress, batch_ms: float = 20.0) -> dict[str, Any]:
     """Router, recorder, fusion node and drivers as processes; returns what each reported
     and what the demo's consumer received."""
     import zenoh
@@ -463,8 +463,8 @@ def register(app: typer.Typer) -> None:
             "--out", "-o", help="Directory for the recordings, the configs, the nodes' outputs and "
             "the report.")] = Path("armfusion-demo"),
         batch_ms: Annotated[float, typer.Option(
-            "--batch-ms", help="The drivers' read time per published batch, ms (each message costs "
-            "the fusion node CPU: 100 ms batches need about half the CPU of 20 ms ones).")] = 100.0,
+            "--batch-ms", help="The drivers' read time per published batch, ms (keep it well under "
+            "the fusion node's 0.1 s reorder window, or samples arrive too late to fuse).")] = 20.0,
         json_out: JsonOpt = False,
     ) -> None:
         """The whole service on this machine, no hardware, loopback only: the simulated WMRA

@@ -26,6 +26,7 @@ PR_SET_PDEATHSIG = 1
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
     os.setpgrp()
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # even when this process ignores it (a background job)
     if sys.platform.startswith("linux"):
         try:
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
