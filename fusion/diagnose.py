@@ -84,7 +84,10 @@ class DiagnoseSettings:
     candidate columns × 8 bytes; the evidence sentences use one chunk's worth of points)."""
     effects: tuple[str, ...] | None = None
     """Library effects to consider (None: all)."""
-    identify: IdentifySettings = field(default_factory=IdentifySettings)
+    identify: IdentifySettings = field(default_factory=lambda: IdentifySettings(encoder_scale=True))
+    """The fits' settings. ``encoder_scale`` on: the score tests already treat an encoder's
+    scale as acting on the fit's joint angles, and a refit that left it out would hold an
+    ``encoder_scale`` candidate at its prior (added, it would change nothing)."""
 
 
 @dataclass(frozen=True)
@@ -403,7 +406,7 @@ def _problem(fit: Identification, data: FitData, extra: Sequence[Effect], stream
     base = fit.model.with_values(fit.model_x)
     big = base.with_effects(extra) if extra else base
     att = fit.attitude_rad if fit.attitude_rad is not None else np.zeros(3)
-    pb = _Problem(big, data, streams, settings.estimate_attitude, att)
+    pb = _Problem(big, data, streams, settings.estimate_attitude, att, encoder_scale=settings.encoder_scale)
     return pb, pb.x0.copy()
 
 
@@ -488,7 +491,7 @@ def _sums(pb: _Problem, sub: FitData, z: np.ndarray, cols: np.ndarray, G: np.nda
     Returns the chunk's ``rᵀr`` and residual count."""
     m = pb.model
     P = pb.P
-    spb = _Problem(m, sub, pb.streams, pb.attitude, z[P:])
+    spb = _Problem(m, sub, pb.streams, pb.attitude, z[P:], encoder_scale=bool(pb.enc_scale))
     pos = np.full(pb.size, -1)
     pos[cols] = np.arange(len(cols))
     # encoder scale errors: the fit's joint angles come from the encoders (identify's
@@ -548,7 +551,7 @@ def _chi2(model: Model, data: FitData, streams: Sequence[str], attitude: bool, x
     z = np.concatenate([x, att if attitude else []])
     for a0 in range(0, data.n, per):
         sub = data.subset(slice(a0, a0 + per))
-        r = _Problem(model, sub, streams, attitude, att).residual(z)
+        r = _Problem(model, sub, streams, attitude, att, encoder_scale=True).residual(z)
         total += float(r @ r)
     return total
 
@@ -618,7 +621,8 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     # the evidence in words is read off a few thousand evenly spread points
     stride = int(np.ceil(data.n / min(per, st.evidence_points)))
     ev = data.subset(slice(None, None, stride)) if stride > 1 else data
-    r, Je = _Problem(pb.model, ev, pb.streams, pb.attitude, z[pb.P:]).jacobian(z, cols)
+    r, Je = _Problem(pb.model, ev, pb.streams, pb.attitude, z[pb.P:],
+                     encoder_scale=bool(pb.enc_scale)).jacobian(z, cols)
     Jperp = Je[:, nf:] - Je[:, :nf] @ AiB
     feat_labels, F = _features(ev, arm.joint_names)
     # row -> (stream, axis) map of the evidence points
@@ -818,7 +822,7 @@ def predicted_and_measured(diag: Diagnosis) -> dict[str, tuple]:
     physical units (window means), for plots."""
     st = diag.fit
     streams = [f.stream for f in st.fits]
-    settings = IdentifySettings(estimate_attitude=st.attitude_rad is not None)
+    settings = IdentifySettings(estimate_attitude=st.attitude_rad is not None, encoder_scale=True)
     pb, z = _problem(st, diag.data, [], streams, settings)
     pred = pb.predict(z)
     sm = st.model.stream_models()
