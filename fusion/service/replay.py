@@ -66,7 +66,7 @@ def _wait_for_subscribers(pubs: dict[str, zenoh.Publisher], wait_s: float,
     """Wait up to ``wait_s`` until every publisher has a matching subscriber."""
     deadline = time.monotonic() + wait_s
     while True:
-        missing = tuple(k for k, p in pubs.items() if not p.matching_status)
+        missing = tuple(k for k, p in pubs.items() if not p.matching_status.matching)
         if not missing or stop.is_set() or time.monotonic() >= deadline:
             return missing
         stop.wait(0.02)

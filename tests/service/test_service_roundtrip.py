@@ -122,3 +122,16 @@ def test_recorder_flushes_within_a_second_while_it_runs(hub_settings, tmp_path):
         got = read_recording(tmp_path / "killed.mcap")
     assert not got.meta["read_report"].complete
     assert len(got.raw()["acc1"]) == 50
+
+
+def test_replay_waits_for_subscribers_and_names_the_sensors_nobody_hears(hub_settings, startup_recording):
+    """Without a subscriber, replay waits the time it was given, then publishes anyway and
+    reports every raw stream as unmatched (a subscriber that joins late would miss samples)."""
+    rec = read_recording(startup_recording)
+    _, connector = hub_settings
+    with open_session(connector) as s:
+        t0 = time.monotonic()
+        report = replay(s, rec, "chair1", speed=None, wait_for_subscribers_s=0.5)
+        waited = time.monotonic() - t0
+    assert set(report.unmatched) == set(rec.raw())
+    assert waited >= 0.5
