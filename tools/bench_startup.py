@@ -74,6 +74,10 @@ def simulate_means(arm, q, tilt, rng, n_samples=100, rate_hz=100.0, realistic=Fa
         for a in range(0, len(q), arm_every):
             sl = slice(a, min(a + arm_every, len(q)))
             model, x = build_model(arm, realistic=True, seed=seed * 100_003 + a)
+            x = np.array(x, float)
+            for e in model.effects:  # a still arm sees no time offset (and a batch's rows are
+                if e.stage == "time":  # unrelated poses: no time derivative across them)
+                    x[model.index[e.block_name]] = 0.0
             state = MotionState.static(q[sl], tilt[sl, 0], tilt[sl, 1])
             pred = model.predict(state, x, streams, units="physical")
             for s in streams:
