@@ -108,6 +108,10 @@ class Context:
         self.state = state
         self.masses = masses
         self.q_geom: np.ndarray = state.q_rad
+        self.q_torque: np.ndarray = state.q_rad
+        """The angles the gravity torque is evaluated at: the controller's plus the joints'
+        zero offsets (the model sets it after the offsets; gravity pulls on a link where it
+        really stands, not where the controller's zero says)."""
         self.lm = None
         self.sm = None
         self.sensor_index: dict[str, int] = {}
@@ -121,16 +125,21 @@ class Context:
     def N(self) -> int:
         return self.state.N
 
+    def set_torque_angles(self, q_rad: np.ndarray) -> None:
+        """Evaluate the gravity torque at ``q_rad (N, n)`` from now on."""
+        self.q_torque = q_rad
+        self._tau = self._dtau = None
+
     def gravity_torque(self) -> np.ndarray:
-        """Static gravity torque on every joint at the controller's angles, N·m ``(N, n)``."""
+        """Static gravity torque on every joint at ``q_torque``, N·m ``(N, n)``."""
         if self._tau is None:
-            self._tau = gravity_torques(self.arm, self.state.q_rad, self.state.up_0, self.masses)
+            self._tau = gravity_torques(self.arm, self.q_torque, self.state.up_0, self.masses)
         return self._tau
 
     def gravity_torque_jacobian(self) -> np.ndarray:
-        """``dτ/dq (N, n, n)`` at the controller's angles."""
+        """``dτ/dq (N, n, n)`` at ``q_torque``."""
         if self._dtau is None:
-            self._tau, self._dtau = gravity_torques(self.arm, self.state.q_rad, self.state.up_0,
+            self._tau, self._dtau = gravity_torques(self.arm, self.q_torque, self.state.up_0,
                                                     self.masses, jacobian=True)
         return self._dtau
 

@@ -330,17 +330,43 @@ class Model:
         ctx = Context(arm, state, self.masses, self.earth_field_W_ut)
         want_jac = want is not None
         # 1. joints
-        Jq: dict[str, tuple[int, np.ndarray]] = {}
+        # d q_geom / dθ per wanted joint block: (the joints it moves, (N, joints, p))
+        Jq: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         link_acc = {s.name for s in arm.link_accelerometers}
         geometric = any(s in link_acc for s in streams) or "imu_mag" in streams
         joint_stage = bool(self._joint) and geometric
         if joint_stage:
             q = np.array(state.q_rad, dtype=float, copy=True)
-            for e in self._joint:
+            # the zero offsets first: the torque-driven effects (sag, play) then see the
+            # gravity torque where the links really stand. Evaluated at the controller's
+            # angles instead, a joint's offset and the base's tilt about its axis would
+            # change the torque differently, a difference a long fit takes for information
+            # that separates them (it does not exist: a confident wrong encoder zero).
+            # An offset then also moves every torque-driven joint's delta (its column carries
+            # that chain: d q_geom[j] / d offset[k] = δjk + d delta_j / d q_k).
+            order = sorted(self._joint, key=lambda e: e.name != "joint_offset")
+            offsets = [e for e in order if e.name == "joint_offset"]
+            torque_set = False
+            for e in order:
+                if not torque_set and e.name != "joint_offset":
+                    if offsets:
+                        ctx.set_torque_angles(q.copy())
+                    torque_set = True
                 t = th[e.block_name]
                 q[:, e.j] += e.delta(state.q_rad, t, ctx)
                 if want_jac and e.block_name in want:
-                    Jq[e.block_name] = (e.j, e.delta_jac_params(state.q_rad, t, ctx))
+                    Jq[e.block_name] = (np.array([e.j]), e.delta_jac_params(state.q_rad, t, ctx)[:, None, :])
+                if want_jac and offsets and e.name != "joint_offset":
+                    dq = e.delta_jac_q(state.q_rad, t, ctx)  # (N, n) at q_torque
+                    if dq is not None:
+                        for o in offsets:
+                            if o.block_name in want and np.any(dq[:, o.j]):
+                                js, R = Jq[o.block_name]
+                                if e.j not in js:
+                                    js = np.append(js, e.j)
+                                    R = np.concatenate([R, np.zeros((R.shape[0], 1, R.shape[2]))], 1)
+                                R[:, list(js).index(e.j), 0] += dq[:, o.j]
+                                Jq[o.block_name] = (js, R)
             ctx.q_geom = q
         # 2. mounts, 3. kinematics
         sensors = [s for s in streams if s in link_acc]
@@ -372,7 +398,7 @@ class Model:
         moved_by_q = (s in link_acc and link_acc[s].link > 0) or (
             s == "imu_mag" and any(e.name == "mag_arm_disturbance" for e in self._sensor))
         if moved_by_q:
-            out += [(b, row.shape[1]) for b, (_, row) in Jq.items()]
+            out += [(b, row.shape[-1]) for b, (_, row) in Jq.items()]
         if sensor is None and s == "imu_mag" and any(e.name == "mag_arm_disturbance" for e in self._sensor):
             sensor = arm.imu.name  # the IMU's position moves it relative to the arm's dipoles
         if sensor is not None:
@@ -416,8 +442,8 @@ class Model:
                 J = _StreamJac(N, y.shape[1], self._blocks_reaching(s, want, Jq, (want_t or {}).get(s)))
                 if s in link_acc and dfdq is not None and arm.sensor(s).link > 0:
                     i = ctx.sensor(s)
-                    for b, (j, row) in Jq.items():
-                        J.set(b, dfdq[:, i, :, j, None] * row[:, None, :])
+                    for b, (js, row) in Jq.items():
+                        J.set(b, np.einsum("nam,nmp->nap", dfdq[:, i][:, :, js], row))
                 if s in link_acc or s == "imu_acc":
                     name = s if s in link_acc else imu.name
                     for e in self._mount:
@@ -434,8 +460,8 @@ class Model:
                         J.map(A, e.input_is_diagonal)
                     Q = e.jac_q(y, t, ctx, s) if Jq else None
                     if Q is not None:
-                        for b, (j, row) in Jq.items():
-                            J.add(b, Q[:, :, j, None] * row[:, None, :])
+                        for b, (js, row) in Jq.items():
+                            J.add(b, np.einsum("nam,nmp->nap", Q[:, :, js], row))
                     if e.block_name in want:
                         J.add(e.block_name, e.jac_params(y, t, ctx, s))
                     if s == "imu_mag" and e.name == "mag_arm_disturbance":

@@ -383,3 +383,28 @@ def test_command_line_effect_option():
         parse_effect_option("gyro_bias")
     with pytest.raises(ValueError, match="must be numbers separated by commas"):
         parse_effect_option("gyro_bias=a,b")
+
+
+def test_sag_and_play_see_gravity_where_the_links_really_stand(wmra, rng):
+    """Tilting the base about joint 1's axis (WMRA: the base's y) and turning joint 1's zero
+    back by the same angle leaves every link exactly where it was, so no link accelerometer
+    may tell the two apart, sag and play included. Evaluated at the controller's angles
+    instead of the real ones, the gravity torque differs, a long fit reads that difference
+    as information, and the encoder zero comes out confidently wrong."""
+    axis = wmra.joints[0].R_pre @ np.array([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(axis, [0.0, 1.0, 0.0], atol=1e-12)
+    effs = [build_effect(wmra, "joint_offset", "j1")] + \
+        [build_effect(wmra, n, j) for n in ("link_compliance", "backlash") for j in wmra.joint_names]
+    model = Model(wmra, effs)
+    x = model.pack(realistic_values(model, rng)) * 3.0
+    n = 50
+    q = rng.uniform(wmra.min_rad, wmra.max_rad, size=(n, wmra.n_joints))
+    roll, pitch = np.zeros(n), rng.normal(0, 0.05, n)  # roll 0: pitch turns about the base's y
+    streams = [s.name for s in wmra.link_accelerometers]
+    before = model.predict(MotionState.static(q, roll, pitch), x, streams, units="physical")
+    delta_rad = 0.03
+    x2 = x.copy()
+    x2[model.index["j1.joint_offset"]] += delta_rad
+    after = model.predict(MotionState.static(q, roll, pitch - delta_rad), x2, streams, units="physical")
+    for s in streams:
+        np.testing.assert_allclose(after[s], before[s], atol=1e-9, err_msg=s)
