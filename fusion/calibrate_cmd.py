@@ -86,8 +86,8 @@ def calibrate_joints(
         readings = corr.readings(readings)
         seg_notes = [c.message for c in checks]
         try:
-            res = _controller_side(solve_still(arm, readings, st, prior_q_rad=prior_q,
-                                               method=method), corr)
+            res = corr.controller_result(solve_still(arm, readings, st, prior_q_rad=prior_q,
+                                                         method=method))
         except StartupInputError as e:
             out.append({"t_start": seg.t_start_s, "t_end": seg.t_end_s, "error": str(e),
                         "notes": seg_notes})
@@ -114,24 +114,6 @@ def calibrate_joints(
         _print_segment(d)
     if all("error" in d for d in docs):
         raise typer.Exit(1)
-
-
-def _controller_side(res, corr):
-    """Gravity gives the geometric joint angles; the controller counts its own. The config's
-    joint effects (a zero offset, sag, play) map one to the other: undo them."""
-    import dataclasses
-
-    delta = res.q_rad - corr.controller_angles(res.q_rad)
-    if not np.any(delta):
-        return res
-    joints = tuple(
-        dataclasses.replace(
-            j,
-            angle_rad=None if j.angle_rad is None else j.angle_rad - delta[i],
-            alternatives_rad=tuple(a - delta[i] for a in j.alternatives_rad),
-        )
-        for i, j in enumerate(res.joints))
-    return dataclasses.replace(res, joints=joints, q_rad=res.q_rad - delta)
 
 
 def _print_segment(d: dict) -> None:

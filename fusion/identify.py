@@ -1013,6 +1013,54 @@ class StartupCorrection:
             var = var + (np.linalg.solve(L1, m - c1) - y) ** 2
         return y, np.sqrt(var)
 
+    def controller_result(self, res, sigma_limit_rad: float | None = None):
+        """A startup result (geometric angles, from ``solve_still``) on the controller's side:
+        the config's joint effects (offsets, sag, play) undone at the chosen branch.
+
+        Sag and play follow the gravity torque, which depends on where every joint stands.
+        Where the startup cannot say (a rival branch it could not rule out, a gimbal-locked
+        joint at any angle of its range), each numbered joint's σ grows to cover, at 2 σ,
+        what its correction would be there; one pushed past ``sigma_limit_rad`` (default:
+        the startup's limit) becomes ``ill_conditioned``."""
+        from fusion.startup import StartupSettings
+
+        limit = (StartupSettings().sigma_limit_deg * np.pi / 180 if sigma_limit_rad is None
+                 else sigma_limit_rad)
+        q = np.asarray(res.q_rad, float)
+        delta = q - self.controller_angles(q)
+        if not np.any(delta):
+            return res
+        n = len(q)
+        variants = []
+        if any(j.flag == "ambiguous" for j in res.joints):
+            variants += [b for b in np.asarray(res.branches_rad, float).reshape(-1, n)
+                         if np.any(np.abs(b - q) > 1e-6)]
+        arm = self.model.arm
+        for i, j in enumerate(res.joints):
+            if j.flag == "gimbal_lock":
+                for v in np.linspace(arm.min_rad[i], arm.max_rad[i], 9):
+                    qv = q.copy()
+                    qv[i] = v
+                    variants.append(qv)
+        spread = np.zeros(n)
+        if variants:
+            V = np.array(variants)
+            spread = np.max(np.abs((V - self.controller_angles(V)) - delta), axis=0)
+        joints, cov = [], np.array(res.covariance, float, copy=True)
+        for i, j in enumerate(res.joints):
+            sig, flag = j.sigma_rad, j.flag
+            if sig is not None and spread[i] / 2.0 > sig:
+                grow = spread[i] / 2.0 / sig
+                sig = sig * grow
+                cov[i, :] *= grow
+                cov[:, i] *= grow
+                if flag == "ok" and sig > limit:
+                    flag = "ill_conditioned"
+            joints.append(replace(j, angle_rad=None if j.angle_rad is None else j.angle_rad - delta[i],
+                                  sigma_rad=sig, flag=flag,
+                                  alternatives_rad=tuple(a - delta[i] for a in j.alternatives_rad)))
+        return replace(res, joints=tuple(joints), q_rad=q - delta, covariance=cov)
+
     def controller_angles(self, q_geom_rad: np.ndarray) -> np.ndarray:
         joint = [e for e in self.model.effects if isinstance(e, JointEffect)]
         qg = np.atleast_2d(np.asarray(q_geom_rad, float))

@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -734,7 +734,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         notes.append("the config's effects applied: " + ", ".join(e.block_name for e in corr.model.effects))
     startup = solve_still(arm, readings, startup_settings, prior_q_rad=prior_q_rad)
     if corr is not None:
-        startup = _controller_side(startup, corr)
+        startup = corr.controller_result(startup)
     imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings)
     enc = rec.get(ENC)
     if enc is None or not len(enc):
@@ -746,18 +746,6 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     tr.initialise(startup, float(enc.t_s[k]), encoder_counts=enc.values[k], imu=imu, prior_q_rad=prior_q_rad)
     tr.prime(rec)
     return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes))
-
-
-def _controller_side(res: StartupResult, corr) -> StartupResult:
-    """The startup solves the geometric joint angles; the config's joint effects map the
-    controller's angles to them: undo that, as ``armfusion calibrate joints`` does."""
-    delta = res.q_rad - corr.controller_angles(res.q_rad)
-    if not np.any(delta):
-        return res
-    joints = tuple(replace(j, angle_rad=None if j.angle_rad is None else j.angle_rad - delta[i],
-                           alternatives_rad=tuple(a - delta[i] for a in j.alternatives_rad))
-                   for i, j in enumerate(res.joints))
-    return replace(res, joints=joints, q_rad=res.q_rad - delta)
 
 
 def _up(roll, pitch) -> np.ndarray:

@@ -131,16 +131,12 @@ def solve_poses(arm, means, prior, temperature_c: float = 25.0):
     st = StartupSettings()
     for k in range(n):
         r = readings_from_counts(arm, {s: m[k] for s, m in means.items()}, n_samples=100, rate_hz=100.0)
-        res = solve_still(arm, corr.readings(r), st, prior_q_rad=prior[k], propose_unlock=False,
-                          prior_sigma_rad=30 * DEG)
-        q_geom = np.array([np.nan if j.angle_rad is None else j.angle_rad for j in res.joints])
-        ok = np.isfinite(q_geom)
-        q_ctrl = q_geom.copy()
-        q_ctrl[ok] = corr.controller_angles(np.where(ok, q_geom, 0.0))[ok]
+        res = corr.controller_result(solve_still(arm, corr.readings(r), st, prior_q_rad=prior[k],
+                                                 propose_unlock=False, prior_sigma_rad=30 * DEG))
         for j, je in enumerate(res.joints):
             flags[k, j] = je.flag
             if je.angle_rad is not None:
-                est[k, j] = q_ctrl[j]
+                est[k, j] = je.angle_rad
                 sig[k, j] = je.sigma_rad if je.sigma_rad is not None else np.nan
     return est, sig, flags
 

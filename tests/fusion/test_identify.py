@@ -184,3 +184,35 @@ def test_calibrated_config_makes_the_startup_ok_on_the_same_sensors(arm):
     z = np.abs(err[ok]) / sig[ok]
     assert np.all(z < 4.0), (np.degrees(err).round(3), z.round(1))
     assert np.degrees(np.sqrt(np.mean(err[ok] ** 2))) < 0.2
+
+
+def test_a_locked_joint_s_unknown_angle_widens_the_sag_correction_it_drives(arm):
+    """At the park pose joint 3 stands vertical: gravity cannot read it, yet where it stands
+    moves the forearm's weight and so the shoulder's sag. On the controller's side, the
+    shoulder's σ must cover its sag correction at any angle joint 3 may have (the startup
+    puts a locked joint anywhere), or a calibrated config makes it confidently wrong."""
+    import dataclasses
+
+    from fusion.startup import StartupSettings, StillReadings, solve_still
+    from models.effects import model_from_arm
+    from models.motion import MotionState
+    entries = [{"effect": "link_compliance", "target": "j2", "params": {"compliance_rad_per_nm": [4e-4]}}]
+    arm2 = dataclasses.replace(arm, effects=tuple(entries))
+    model = model_from_arm(arm2)
+    q_true = np.array(arm.ready_pose_rad, float)
+    q_true[2] = 1.3  # joint 3 far from where the startup will put it
+    streams = [s.name for s in arm.link_accelerometers] + ["imu_acc"]
+    f = model.predict(MotionState.static(q_true[None]), None, streams, units="physical")
+    sig = np.full(3, 2e-4)
+    r = StillReadings({s: f[s][0] for s in streams[:-1]}, {s: sig for s in streams[:-1]},
+                      f["imu_acc"][0], sig)
+    res = solve_still(arm2, r, StartupSettings(), propose_unlock=False)
+    assert res.joints[2].flag == "gimbal_lock"
+    # noise-free, the shoulder's sag tilts joint 3 just enough to read it; real noise would
+    # not, and the startup would leave it where its search happened to stop, e.g. here
+    res = dataclasses.replace(res, q_rad=np.where(np.arange(arm.n_joints) == 2, -1.0, res.q_rad))
+    out = startup_correction(arm2).controller_result(res)
+    j2 = out.joints[1]
+    assert j2.angle_rad is not None
+    assert abs(j2.angle_rad - q_true[1]) <= 2 * j2.sigma_rad, (np.degrees(j2.angle_rad - q_true[1]),
+                                                               np.degrees(j2.sigma_rad))
