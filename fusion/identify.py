@@ -64,7 +64,7 @@ class IdentifySettings:
     """An element is named as part of a combination when its share exceeds this."""
     report_correlation: float = 0.9
     """Pairs of estimates more correlated than this are listed."""
-    max_nfev: int = 40
+    max_nfev: int = 100
     """Most Jacobians (Levenberg-Marquardt iterations) per solve."""
     estimate_attitude: bool = True
     encoder_scale: bool = False
@@ -776,8 +776,13 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     H, _, rr = pb.normal_equations(z, all_cols, w_stream)
     r = pb.residual(z)
     hcols = np.flatnonzero(~free)
-    A = H[np.ix_(fcols, fcols)] + np.diag(1.0 / pb.sigma0[fcols] ** 2)
-    Sff = np.linalg.pinv(A)
+    # in prior units the priors make A the identity plus the data's information: a plain
+    # inverse there. (A pseudo-inverse of A itself cuts every direction whose information is
+    # below 1e-15 of the largest, i.e. exactly the ones the data barely see, and reports
+    # them known perfectly: a heading and the hard iron it trades with came out 10x too sure.)
+    D = pb.sigma0[fcols]
+    A = H[np.ix_(fcols, fcols)] * np.outer(D, D) + np.eye(len(fcols))
+    Sff = np.linalg.inv(A) * np.outer(D, D)
     m_res = len(r)
     dof = max(m_res - len(fcols), 1)
     chi2 = float(np.sum(r**2) / dof)

@@ -216,3 +216,24 @@ def test_a_locked_joint_s_unknown_angle_widens_the_sag_correction_it_drives(arm)
     assert j2.angle_rad is not None
     assert abs(j2.angle_rad - q_true[1]) <= 2 * j2.sigma_rad, (np.degrees(j2.angle_rad - q_true[1]),
                                                                np.degrees(j2.sigma_rad))
+
+
+def test_a_heading_the_parked_chair_cannot_see_keeps_its_prior_sized_sigma(arm):
+    """A parked chair's compass reads one constant field: the heading and the hard iron
+    trade freely (the field's horizontal part can point anywhere). The whole sensor set's
+    fit must say so: heading σ near its prior's reach, the hard iron's estimate within 3 σ
+    of the truth, instead of both known to a fraction of a degree and wrong."""
+    from fusion.identify import compare_with_truth, data_from_recording, identify_recentred
+    from fusion.identify_cmd import build_model as identification_model
+    from models.simulator import simulate
+
+    rec, truth = simulate(arm, "renk-maneuver", 120.0, seed=1, realistic=True)
+    data = data_from_recording(arm, rec, 25, nodes=2)
+    res, _ = identify_recentred(identification_model(arm, "all"), data, None,
+                                IdentifySettings(encoder_scale=True))
+    yaw = res.names.index("base.attitude[yaw]")
+    assert res.sigma[yaw] > np.radians(10), np.degrees(res.sigma[yaw])
+    rows = {r["name"]: r for r in compare_with_truth(res, truth)}
+    for axis in "xyz":
+        r = rows[f"imu.mag_hard_iron[{axis}]"]
+        assert abs(r["z"]) < 3, r
