@@ -209,7 +209,10 @@ def main(argv=None) -> None:
     t_solve = time.perf_counter() - t0
     floor = cal.calibration.get("accel_unmodelled_g", 0.0)
     per = cal.calibration.get("accel_unmodelled_g_per_sensor", {})
-    worst = max((r["rms_ok_deg"] for r in after), default=np.nan)
+    answered = [r for r in after if r["ok_pct"] > 0]
+    worst = max((r["rms_ok_deg"] for r in answered), default=np.nan)
+    never = [r["joint"] for r in after if r["ok_pct"] == 0]
+    wrong = sum(r["wrong_4sigma"] for r in after)
     shift_text = ", ".join(f"{n} {np.degrees(v):+.2f}°"
                            for n, v in zip(base.joint_names, shift, strict=True) if v)
     lines = [
@@ -241,7 +244,10 @@ def main(argv=None) -> None:
         "### Startup on the same sensors: the calibrated config", "",
         *render_rows(after), "",
         f"Target: RMS ≤ {TARGET_DEG} deg per joint on the ok poses after calibration: worst joint "
-        f"**{worst:.4f} deg** ({'met' if worst <= TARGET_DEG else 'not met'}). Both startup runs "
+        f"**{worst:.4f} deg** ({'met' if worst <= TARGET_DEG else 'not met'})"
+        + (f"; never ok: {', '.join(never)} (flagged in every pose: the calibration could not pin "
+           "what it rests on, see the held elements)" if never else "")
+        + f"; ok answers beyond 4 sigma: **{wrong}**. Both startup runs "
         f"took {t_solve:.0f} s.",
     ]
     md = "\n".join(lines)
