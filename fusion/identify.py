@@ -1006,6 +1006,13 @@ class StartupCorrection:
             imu_m, imu_s = self._undo("imu_acc", imu_m, imu_s)
         return StillReadings(means, sigmas, imu_m, imu_s, r.t_start_s, r.t_end_s)
 
+    def readings_one(self, stream: str, mean_g: np.ndarray) -> np.ndarray:
+        """One still reading of ``stream`` (g, sensor axes) corrected, as :meth:`readings`."""
+        if stream not in self.maps:
+            return np.asarray(mean_g, float)
+        L, c = self.maps[stream]
+        return np.linalg.solve(L, np.asarray(mean_g, float) - c)
+
     def _undo(self, stream, mean, sigma):
         if stream not in self.maps:
             return mean, sigma

@@ -14,6 +14,12 @@ block              size  model
                          m/s², base axes; first-order Gauss-Markov
 ``yaw``            1     base heading, rad from magnetic north; integrated with the gyro
 ``gyro_bias``      3     the gyro's zero-rate offset, rad/s; random walk
+``imu_bias``       3     what is left of the IMU accelerometer's own error after the
+                         config's correction, g, IMU axes; a slow random walk from the
+                         correction's uncertainty (a calibrated config's covariance, else
+                         the config's unmodelled-error floor). Without it a parked chair's
+                         IMU, read as exact, ties the arm's tilt about joint 1's axis and
+                         joint 1 to its bias: joint 1 converged confidently to that bias
 =================  ====  ============================================================
 
 Every step:
@@ -131,6 +137,8 @@ class TrackerSettings:
     keeping the steady-state sigma near 0.01 deg."""
     gyro_noise_dps_per_sqrt_hz: float = MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ
     gyro_bias_random_walk_dps_per_sqrt_s: float = 0.0005
+    imu_accel_bias_random_walk_g_per_sqrt_s: float = 2e-6
+    """The IMU accelerometer's residual error drifts slowly (temperature): 0.1 mg in 40 min."""
     base_accel_sigma_mps2: float = 0.7
     """Steady-state spread of the chair's own acceleration (driving, turning, ramps)."""
     base_accel_tau_s: float = 5.0
@@ -262,12 +270,17 @@ class StateLayout:
         return slice(self.n_joints + 6, self.n_joints + 9)
 
     @property
+    def imu_bias(self) -> slice:
+        return slice(self.n_joints + 9, self.n_joints + 12)
+
+    @property
     def size(self) -> int:
-        return self.n_joints + 9
+        return self.n_joints + 12
 
     def names(self, joint_names) -> tuple[str, ...]:
         return tuple([f"offset[{j}]" for j in joint_names] + ["roll", "pitch"]
-                     + [f"accel_B[{a}]" for a in "xyz"] + ["yaw"] + [f"gyro_bias[{a}]" for a in "xyz"])
+                     + [f"accel_B[{a}]" for a in "xyz"] + ["yaw"] + [f"gyro_bias[{a}]" for a in "xyz"]
+                     + [f"imu_accel_bias[{a}]" for a in "xyz"])
 
 
 # --------------------------------------------------------------------------------------
@@ -882,6 +895,25 @@ class Tracker:
         self._plan_cache: dict = {}
         self._mag_mask: dict = {}
 
+    def _imu_bias_prior_var(self, roll_rad: float, pitch_rad: float) -> np.ndarray:
+        """Prior variance (g²) of what the IMU accelerometer's correction leaves, per IMU
+        axis, at the still reading of the startup's tilt: a calibrated config's correction
+        spread there, else the config's unmodelled-error floor (its statement of how far its
+        sensors are from their model)."""
+        if not self._has_imu:
+            return np.full(3, 1e-12)
+        corr = self.correction
+        m = self._R_0I.T @ _up(roll_rad, pitch_rad)
+        if corr is not None and corr.spread.get(IMU_ACC):
+            y0 = corr.readings_one(IMU_ACC, m)
+            var = np.zeros(3)
+            for L1, c1 in corr.spread[IMU_ACC]:
+                var += (np.linalg.solve(L1, m - c1) - y0) ** 2
+            return np.maximum(var, 1e-12)
+        cal = self.arm.calibration or {}
+        floor = float(cal.get("imu_accel_unmodelled_g", cal.get("accel_unmodelled_g", 0.0)) or 0.0)
+        return np.full(3, max(floor, 1e-6) ** 2)
+
     def _unmodelled_floor(self) -> np.ndarray:
         """Per accelerometer stream, the config's unmodelled-error floor (g), as startup uses."""
         cal = self.arm.calibration or {}
@@ -980,6 +1012,7 @@ class Tracker:
             P[L.yaw, L.yaw] = np.pi**2
         x[L.bias] = imu.gyro_bias_rad_s
         P[L.bias, L.bias] = np.eye(3) * imu.gyro_bias_sigma_rad_s**2
+        P[L.imu_bias, L.imu_bias] = np.diag(self._imu_bias_prior_var(startup.roll_rad, startup.pitch_rad))
         self._q_startup = q0
         self._x0, self._P0 = x, P
         self._ukf = None  # created when the first encoder sample fixes the offsets
@@ -1306,6 +1339,7 @@ class Tracker:
         if not st.motion_compensation:
             q[L.accel] = 0.0
         q[L.bias] = (st.gyro_bias_random_walk_dps_per_sqrt_s * DEG) ** 2 * dt
+        q[L.imu_bias] = st.imu_accel_bias_random_walk_g_per_sqrt_s**2 * dt
         return np.diag(q)
 
     # -- measurement models ---------------------------------------------------------------
@@ -1353,6 +1387,9 @@ class Tracker:
         f *= 1.0 / G
         if perm is not None:
             f = f[:, perm]
+        imu = self._sel_info(sel)[1]
+        if imu >= 0:  # the IMU reads its own residual error too
+            f[:, imu] += X[:, L.imu_bias]
         return f.reshape(N, -1)
 
     def _accel_plan(self, sel: np.ndarray):
