@@ -917,10 +917,12 @@ def correction_covariance(result: Identification) -> dict[str, dict]:
     """Per accelerometer stream, the covariance of the elements its still-reading correction
     uses (mount, axes, scale, bias, temperature drift), correlations included (a held axis
     angle and the mount rotation that carries it are known together far better than
-    alone), without the joint-zero conventions. The startup adds its spread to each
-    reading's σ (``StartupCorrection``)."""
+    alone). The joint-zero conventions are in it too: a sensor's mount about the last
+    joint's axis that no calibration can tell from that joint's zero is an uncertainty of
+    the joint's real angle, which the startup's and the tracker's σ must carry
+    (``StartupCorrection``)."""
     m = result.model
-    conv = set(joint_zero_conventions(result))
+    conv: set[str] = set()
     arm = m.arm
     streams = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
     out = {}

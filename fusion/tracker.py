@@ -848,9 +848,12 @@ class Tracker:
         self.correction = correction
         self._undo = {}
         self._joint_effects = []
+        self._spread: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
         if correction is not None:
             for stream, (Lm, c) in correction.maps.items():
                 self._undo[stream] = (np.linalg.inv(Lm).T, np.asarray(c, float))
+            for stream, maps in correction.spread.items():
+                self._spread[stream] = [(np.linalg.inv(L1), np.asarray(c1, float)) for L1, c1 in maps]
             from models.effects import JointEffect
 
             th = correction.model.unpack()
@@ -1060,6 +1063,7 @@ class Tracker:
         self._status_codes = np.full(S, STATUS_CODE["absent"], dtype=np.int8)
         self._hold = None
         self._ill = np.zeros(n, bool)
+        self._sys_var = np.zeros(n)
         self._locked = np.zeros(n, bool)
         self._observed = np.zeros(n, bool)
         self._obs_key = None
@@ -1804,9 +1808,11 @@ class Tracker:
         else:
             self._achievable = np.sqrt(V2[:, readable] @ (1.0 / lam[readable]))
             self._achievable[(V2[:, ~readable] > 1e-12).any(axis=1)] = np.inf
+        if self._spread and len(sel):
+            self._sys_var = self._systematic_var(frame, sel, v, x[L.accel] + G * up, W, lam, V, readable)
         self._observed = self._sees[sel].any(axis=0) if len(sel) else np.zeros(n, bool)
         self._locked = locked
-        self._ill = self._achievable > st.sigma_limit_deg * DEG
+        self._ill = np.sqrt(self._achievable**2 + self._sys_var) > st.sigma_limit_deg * DEG
         # hold a weak direction only where the window's information would not beat what the
         # filter already knows along it (a joint still wide from startup takes weak readings)
         weak = lam < 1.0 / (st.sigma_limit_deg * DEG) ** 2
@@ -1829,6 +1835,51 @@ class Tracker:
             self._hold = T
         else:
             self._hold = None
+
+    def _systematic_var(self, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray,
+                        W: np.ndarray, lam: np.ndarray, V: np.ndarray, readable: np.ndarray) -> np.ndarray:
+        """Per joint, the variance (rad²) the calibration's own uncertainty leaves in the
+        offsets, however long the filter averages: each of a calibrated config's correction
+        spreads (every calibrated element moved by its σ, ``StartupCorrection.spread``) is a
+        constant error in a sensor's corrected reading; the offsets it would pull, through
+        the same information the window's readings give (``W``), are summed as a consider
+        covariance. The IMU's spread turns the base's reference (tilt and the chair's
+        acceleration) for every link accelerometer at once. Reported sigmas and the
+        ``ill_conditioned`` flag include it; the filter's own covariance does not."""
+        n = self.arm.n_joints
+        Ainv = (V[:, readable] / lam[readable]) @ V[:, readable].T
+        k = len(sel)
+        R = frame.R_0S[sel]  # (k, 3, 3)
+        f = np.einsum("kji,kj->ki", R, v) / G  # corrected readings, g (sensor axes)
+        scale = np.sqrt(self._accel_rate[sel] * self.settings.observability_window_s)
+        Wk = W.reshape(k, 3, n)
+        cov = np.zeros((n, n))
+
+        def add(err_g: np.ndarray) -> None:  # (k, 3) reading errors of the used sensors
+            e = err_g / self._accel_sigma_g[sel] * scale[:, None]
+            x = Ainv @ np.einsum("kan,ka->n", Wk, e)
+            cov[:, :] += np.outer(x, x)
+
+        for i, s_idx in enumerate(sel.tolist()):
+            maps = self._spread.get(self.accel_streams[s_idx])
+            if not maps:
+                continue
+            Lm, c = self.correction.maps[self.accel_streams[s_idx]]
+            raw = Lm @ f[i] + c
+            for M1, c1 in maps:
+                err = np.zeros((k, 3))
+                err[i] = M1 @ (raw - c1) - f[i]
+                add(err)
+        imu_maps = self._spread.get(IMU_ACC) if self._has_imu else None
+        if imu_maps:
+            Lm, c = self.correction.maps[IMU_ACC]
+            raw = Lm @ (self._R_0I.T @ base / G) + c
+            y0 = np.linalg.solve(Lm, raw - c)
+            for M1, c1 in imu_maps:
+                d = M1 @ (raw - c1) - y0
+                r = self._R_0I @ np.cross(y0 / np.linalg.norm(y0), d)  # the reference turned by
+                add(np.einsum("kji,kj->ki", R, np.cross(r, v)) / G)
+        return np.clip(np.diag(cov), 0.0, None)
 
     def _obs_sel(self, used: tuple[int, ...]):
         """The link accelerometers ``used`` as an index array, and the factor that turns
@@ -1873,7 +1924,7 @@ class Tracker:
         nl = len(self.link_names)
         usable = [codes[i] <= _REJECTING for i in range(nl)]
         links = self._links_list
-        sig = np.sqrt(np.clip(self._ukf._P.diagonal()[:n], 0.0, None)).tolist()
+        sig = np.sqrt(np.clip(self._ukf._P.diagonal()[:n], 0.0, None) + self._sys_var).tolist()
         q = (self._q_enc + self._ukf._x[:n]).tolist()
         lim, margin = st.sigma_limit_deg * DEG, st.limit_margin_deg * DEG
         lo, hi = self._min_list, self._max_list
@@ -2147,7 +2198,8 @@ class Tracker:
         """The estimate at the last fused instant."""
         self._check_filter()
         L, n = self.layout, self.arm.n_joints
-        x, sig = self._ukf.x, self._ukf.sigma
+        x, sig = self._ukf.x, self._ukf.sigma.copy()
+        sig[:n] = np.sqrt(sig[:n] ** 2 + self._sys_var)  # the calibration's own uncertainty
         status = tuple((s, SENSOR_STATUS[c]) for s, c in zip(self.sensor_names, self._status_codes,
                                                               strict=True))
         return Estimate(
@@ -2222,6 +2274,8 @@ class _RunArrays:
         P = ukf._P
         self.x[i] = ukf._x
         self.var[i] = P.diagonal()
+        n = len(tr._sys_var)
+        self.var[i, :n] += tr._sys_var  # the calibration's own uncertainty
         self.q_enc[i] = tr._q_enc
         self.flags[i] = tr._flags
         mf = tr._mag_flags
@@ -2233,6 +2287,7 @@ class _RunArrays:
                 ix = tr._nees_idx
                 self._flat = (ix[:, None] * P.shape[1] + ix[None, :]).reshape(-1)
             self.P[i] = P.take(self._flat).reshape(self.P.shape[1:])
+            self.P[i][np.diag_indices(n)] += tr._sys_var
 
     def _arrays(self, tr: Tracker) -> None:
         L, n = tr.layout, tr.arm.n_joints
