@@ -138,6 +138,11 @@ class TrackerSettings:
     gyro_noise_dps_per_sqrt_hz: float = MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ
     gyro_bias_random_walk_dps_per_sqrt_s: float = 0.0005
     imu_accel_bias_random_walk_g_per_sqrt_s: float = 2e-6
+    compass_max_unmodelled_deg: float = 10.0
+    """A compass whose config leaves more unmodelled iron than this (as a heading error,
+    :func:`compass_unmodelled_rad`) is not fused: its error follows the heading, so
+    averaging its readings would not shrink it. The heading is then the gyro's, from a
+    start as wide as the compass's doubt."""
     """The IMU accelerometer's residual error drifts slowly (temperature): 0.1 mg in 40 min."""
     base_accel_sigma_mps2: float = 0.7
     """Steady-state spread of the chair's own acceleration (driving, turning, ramps)."""
@@ -699,8 +704,30 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
                                                  field_ref.declination_rad))
             sig = heading_sigma_rad(field_ref, st.heading.noise_ut) / np.sqrt(len(w))
             tilt_sig = np.hypot(startup.roll_sigma_rad, startup.pitch_sigma_rad) * np.tan(field_ref.dip_rad)
-            yaw_sigma = float(np.hypot(sig, tilt_sig) + 0.2 * DEG)
+            iron_sig = compass_unmodelled_rad(arm, field_ref)
+            yaw_sigma = float(np.sqrt(sig**2 + tilt_sig**2 + iron_sig**2) + 0.2 * DEG)
     return ImuStill(bias, bias_sigma, yaw, yaw_sigma, field_ref)
+
+
+def compass_unmodelled_ut(arm: ArmModel) -> float:
+    """How far the compass's horizontal reading may be from Earth's field, µT, by what the
+    config says: a hard iron it holds (the tracker does not apply compass effects, so its
+    value and its σ both count), else ``calibration.mag_unmodelled_ut``, else 0."""
+    for e in arm.effects or ():
+        d = e if isinstance(e, Mapping) else e.model_dump()
+        if d.get("effect") == "mag_hard_iron":
+            h = np.asarray((d.get("params") or {}).get("offset_ut", [0.0, 0.0, 0.0]), float)
+            s = np.asarray((d.get("sigma") or {}).get("offset_ut", [0.0, 0.0, 0.0]), float)
+            return float(np.sqrt(np.sum(h[:2] ** 2) + np.sum(s[:2] ** 2)))
+    return float((arm.calibration or {}).get("mag_unmodelled_ut", 0.0) or 0.0)
+
+
+def compass_unmodelled_rad(arm: ArmModel, field: FieldReference) -> float:
+    """:func:`compass_unmodelled_ut` as a heading error (rad) against the horizontal field;
+    at or past the field itself the compass says nothing about the heading (π)."""
+    u = compass_unmodelled_ut(arm)
+    h = max(field.horizontal_ut, 1e-6)
+    return float(np.pi if u >= h else np.arcsin(u / h))
 
 
 @dataclass(frozen=True)
@@ -1027,6 +1054,10 @@ class Tracker:
         self._field = imu.field
         self._guard = MagneticGuard(imu.field, st.heading) if imu.field is not None else None
         self._sigma_psi = heading_sigma_rad(imu.field, st.heading.noise_ut) if imu.field else np.inf
+        # an unmodelled hard iron turns every compass heading by up to asin(h / B_h), a
+        # different amount at every heading: taken as noise of that size on each update
+        self._iron_var = compass_unmodelled_rad(self.arm, imu.field) ** 2 if imu.field else 0.0
+        self._compass_usable = self._iron_var <= (st.compass_max_unmodelled_deg * DEG) ** 2
         self._enc_diff = CausalDifferentiator(n, st.encoder_window, st.encoder_order)
         self._gyro_diff = CausalDifferentiator(3, st.gyro_window, st.gyro_order)
         self._omega = None  # last gyro, base axes, rad/s
@@ -1239,7 +1270,7 @@ class Tracker:
         if mag is not None:
             mi = self._sidx[MAG]
             self._seen[mi], self._last_t[mi] = True, t
-            mag = self._mag_average(t, mag) if self._guard is not None else None
+            mag = self._mag_average(t, mag) if self._guard is not None and self._compass_usable else None
         if acc is not None or mag is not None:
             self._fuse(t, acc, mag, frame)
         if t - self._flags_t >= self.settings.observability_period_s or self._health_changed:
@@ -1511,7 +1542,7 @@ class Tracker:
             m_count, m_B = mag
             x = ukf._x
             check = self._guard.check_field(m_B, _up(x[L.roll], x[L.pitch]))
-            v = self._sigma_psi**2 / m_count
+            v = self._sigma_psi**2 / m_count + self._iron_var
             if check.disturbed:
                 v += check.doubt_rad(self._field) ** 2
             var[-1] = v

@@ -516,3 +516,23 @@ def test_a_calibration_s_own_uncertainty_stays_in_the_sigmas(arm):
     assert np.all(err <= 3 * sig), (np.degrees(err.max()), np.degrees(sig.min()))
     assert np.degrees(sig.min()) > 1.0
     assert np.all(run.flags[late, 0] != FLAG_CODE["ok"])  # 1.7° is past the 0.5° limit: not ok
+
+
+def test_an_uncalibrated_hard_iron_leaves_the_heading_honestly_unknown(arm):
+    """A compass with 20 µT of hard iron against Earth's 24 µT horizontal field, and a
+    config that knows it only to ±15 µT (a parked maneuver cannot see it): its heading is
+    off by tens of degrees, differently at every heading, so averaging cannot help. The
+    tracker must not fuse it, and its heading sigma must cover the error."""
+    config_entry = {"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": [0.0, 0.0, 0.0]},
+                    "sigma": {"offset_ut": [15.0, 15.0, 15.0]}}
+    calibrated = replace(arm, effects=(config_entry,))
+    true_entry = {"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": [14.0, -14.0, 5.0]}}
+    T = 40.0
+    rec, _ = simulate(arm, scenario(arm, T, still_then(POSE, T), accelerating_chair(T)), seed=3,
+                      effects=[true_entry])
+    tr, _ = start_from_recording(calibrated, rec, prior_q_rad=POSE + 0.05)
+    run = tr.run(rec)
+    err = np.abs(run.yaw_error_rad)
+    sig = run.rpy_sigma_rad[:, 2]
+    assert np.degrees(sig.min()) > 30.0
+    assert np.all(err <= 3 * sig)
