@@ -201,8 +201,11 @@ def main(argv=None) -> None:
     q, tilt = draw_poses(base, a.poses, rng)
     prior = q + rng.normal(0, 10 * DEG, q.shape)
     means, offset = still_means(base, a.seed, q, tilt, rng)
+    # the held joint-zero conventions (a sensor's mount about the last joint's axis) are in
+    # the calibrated config's correction covariance: the startup's sigma carries them, and
+    # the truth is the joint's real angle
     shift = convention_shift(res, truth)
-    truth_q = q + offset + shift
+    truth_q = q + offset
     t0 = time.perf_counter()
     before = summary(base, *solve_poses(shipped, means, prior), truth_q)
     after = summary(base, *solve_poses(cal, means, prior), truth_q)
@@ -222,9 +225,10 @@ def main(argv=None) -> None:
         f"`calibrate sensors --effects all` ({res.model.size} elements + the base attitude); then "
         f"{a.poses:,} random still poses (pose seed {a.pose_seed}) of the same physical sensors at 25 °C, "
         f"prior = true pose + N(0, 10 deg). Truth of a startup answer: the encoder's angle plus the "
-        f"joint's true zero offset (relative encoders: the startup defines the zero), moved by what the "
-        f"held joint-zero conventions carry ({', '.join(joint_zero_conventions(res)) or 'none'}: "
-        f"{shift_text}). {machine_line()}.", "",
+        f"joint's true zero offset (relative encoders: the startup defines the zero). The held "
+        f"joint-zero conventions ({', '.join(joint_zero_conventions(res)) or 'none'}; they would move "
+        f"the zero by {shift_text}) are in the correction's covariance, so in the startup's sigma. "
+        f"{machine_line()}.", "",
         "### The identification against the simulation's truth", "",
         f"- {n_free} elements estimated, {int(res.held.sum())} held at their priors (each reported "
         f"with the motion that would separate it); fit {t_fit:.0f} s ({res.iterations} Jacobians), "
