@@ -671,9 +671,13 @@ def solve_still(
         result = replace(result, unlock_move=propose_unlock_move(arm, result, readings, st, prior))
     summary = _summary(result)
     floor_g = max(_sensor_floor_g(arm, nm) for nm in problem.names)
-    if floor_g > 0 and any(j.flag == "ill_conditioned" for j in result.joints):
+    if floor_g >= 0.005 and any(j.flag == "ill_conditioned" for j in result.joints):
         summary += (f" (the sigmas include the config's unmodelled sensor error, "
                     f"{floor_g * 1000:.0f} mg per axis: calibrating the sensors lowers it)")
+    elif arm.calibration.get("correction_covariance") and any(j.flag == "ill_conditioned"
+                                                            for j in result.joints):
+        summary += (" (the sigmas include what the sensors' calibration could not pin: its held "
+                    "elements, with the motion that would separate them, in `calibrate sensors`)")
     return replace(result, summary=summary)
 
 
