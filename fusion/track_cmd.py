@@ -63,6 +63,9 @@ def track(
                                         "accel_unmodelled_g_per_sensor": {}})
     rec = read_recording_or_exit(recording)
     notes: list[str] = []
+    rec, note = _scoring_truth(rec, recording, arm.joint_names)
+    if note:
+        notes.append(note)
     prior_q = None
     if prior is not None:
         saved, why = load_pose(prior, arm)
@@ -106,6 +109,33 @@ def track(
 
 
 # --------------------------------------------------------------------------------------
+def _scoring_truth(rec, recording: Path, joint_names) -> tuple:
+    """With a simulator's ``REC.truth.json`` beside the recording, the joint truth the
+    errors are scored against is the true angle plus each joint's true DH zero offset (the
+    angle gravity can find; :func:`models.simulator.angle_truth`). Returns the recording
+    (its ``true_q`` replaced when it applies) and a note, or ``None``."""
+    import json
+
+    from fusion.simulate_cmd import truth_path
+    from models.simulator import angle_truth, true_zero_offsets_rad
+    from sensors.samples import Recording
+
+    tq = rec.get("true_q")
+    sidecar = truth_path(recording)
+    if tq is None or not sidecar.exists():
+        return rec, None
+    try:
+        truth = json.loads(sidecar.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        return rec, f"{sidecar}: not read ({e}); errors against the recording's true_q as it is"
+    if not np.any(true_zero_offsets_rad(truth, joint_names)):
+        return rec, None
+    streams = {**rec.streams, "true_q": angle_truth(tq, truth, joint_names)}
+    return Recording(streams, rec.meta), (
+        f"errors against the true angle plus each joint's true zero offset ({sidecar.name}): "
+        "a relative encoder's zero is what the startup makes it")
+
+
 def estimate_columns(run) -> list[str]:
     j = run.joint_names
     return (["t"] + [f"q_{n}" for n in j] + [f"sigma_{n}" for n in j] + [f"flag_{n}" for n in j]

@@ -81,7 +81,7 @@ from models.sensor_models import (
     StreamModel,
     stream_models,
 )
-from sensors.samples import Recording
+from sensors.samples import Recording, Stream
 
 DEG = np.pi / 180.0
 G = GRAVITY_MPS2
@@ -886,6 +886,16 @@ class Tracker:
             th = correction.model.unpack()
             self._joint_effects = [(e, th[e.block_name]) for e in correction.model.effects
                                    if isinstance(e, JointEffect)]
+        # the spreads as columns of one consider sensitivity (see _consider_update)
+        self._spread_cols: dict[str, np.ndarray] = {}
+        self._spread_stack: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        m = 0
+        for stream, maps in self._spread.items():
+            if maps:
+                self._spread_cols[stream] = np.arange(m, m + len(maps))
+                self._spread_stack[stream] = (np.array([M for M, _ in maps]), np.array([c for _, c in maps]))
+                m += len(maps)
+        self._spread_m = m
         self.settings = st = settings or TrackerSettings()
         n = arm.n_joints
         self.layout = L = StateLayout(n)
@@ -1095,6 +1105,8 @@ class Tracker:
         self._hold = None
         self._ill = np.zeros(n, bool)
         self._sys_var = np.zeros(n)
+        self._consider = np.zeros((n, self._spread_m))
+        self._consider_t = None
         self._locked = np.zeros(n, bool)
         self._observed = np.zeros(n, bool)
         self._obs_key = None
@@ -1839,11 +1851,8 @@ class Tracker:
         else:
             self._achievable = np.sqrt(V2[:, readable] @ (1.0 / lam[readable]))
             self._achievable[(V2[:, ~readable] > 1e-12).any(axis=1)] = np.inf
-        if self._spread and len(sel):
-            self._sys_var = self._systematic_var(frame, sel, v, x[L.accel] + G * up, W, lam, V, readable)
         self._observed = self._sees[sel].any(axis=0) if len(sel) else np.zeros(n, bool)
         self._locked = locked
-        self._ill = np.sqrt(self._achievable**2 + self._sys_var) > st.sigma_limit_deg * DEG
         # hold a weak direction only where the window's information would not beat what the
         # filter already knows along it (a joint still wide from startup takes weak readings)
         weak = lam < 1.0 / (st.sigma_limit_deg * DEG) ** 2
@@ -1866,51 +1875,81 @@ class Tracker:
             self._hold = T
         else:
             self._hold = None
+        if self._spread and len(sel):
+            self._consider_update(frame, sel, v, x[L.accel] + G * up, W)
+        self._ill = np.sqrt(self._achievable**2 + self._sys_var) > st.sigma_limit_deg * DEG
 
-    def _systematic_var(self, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray,
-                        W: np.ndarray, lam: np.ndarray, V: np.ndarray, readable: np.ndarray) -> np.ndarray:
-        """Per joint, the variance (rad²) the calibration's own uncertainty leaves in the
-        offsets, however long the filter averages: each of a calibrated config's correction
-        spreads (every calibrated element moved by its σ, ``StartupCorrection.spread``) is a
-        constant error in a sensor's corrected reading; the offsets it would pull, through
-        the same information the window's readings give (``W``), are summed as a consider
-        covariance. The IMU's spread turns the base's reference (tilt and the chair's
-        acceleration) for every link accelerometer at once. Reported sigmas and the
-        ``ill_conditioned`` flag include it; the filter's own covariance does not."""
+    def _consider_update(self, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray,
+                         W: np.ndarray) -> None:
+        """The calibration's own uncertainty in the offsets, carried as the filter carries
+        what it learnt (a consider, or Schmidt, sensitivity). Each of a calibrated config's
+        correction spreads (every calibrated element moved by its sigma along a principal
+        direction, ``StartupCorrection.spread``) is a constant error in a sensor's corrected
+        reading; ``self._consider`` (n, m) is how far each spread has pulled the offsets'
+        estimate so far. Since the last update the filter took the information ``A`` that
+        the used readings gave (the window's ``W``, scaled to the time elapsed, without the
+        held directions) and, with it, each spread's pull ``B``; the estimate moved by the
+        same gain: ``S += P (B - A S)``, with P the filter's offset covariance, which already
+        holds ``A``. What the filter learnt from a pose keeps that pose's calibration error
+        until new readings replace it (a joint read once in a poorly conditioned pose, then
+        held, keeps its doubt). Reported sigmas and the ``ill_conditioned`` flag include
+        ``diag(S S^T)``; the filter's own covariance does not."""
         n = self.arm.n_joints
-        Ainv = (V[:, readable] / lam[readable]) @ V[:, readable].T
+        t = self._t
+        window = self.settings.observability_window_s
+        # the first time: the startup's answer already rests on at least a window of these
+        # readings (its still stretch), so it carries a whole window's pull
+        dt = window if self._consider_t is None else max(t - self._consider_t, 0.0)
+        self._consider_t = t
+        w = min(dt, window) / window
+        if w <= 0.0:
+            return
         k = len(sel)
+        E = self._spread_errors(frame, sel, v, base).reshape(3 * k, -1)  # (3k, m)
+        Wn = W if self._hold is None else W @ self._hold[:n, :n]
+        A = (Wn.T @ Wn) * w
+        B = (Wn.T @ E) * w
+        P = self._ukf._P[:n, :n]
+        # the information the filter held before these readings: its covariance's inverse
+        # less what they gave (clipped: a gated reading gave less than the window says)
+        lam, V = np.linalg.eigh(np.linalg.inv(P) - A)
+        prior = (V * np.clip(lam, 0.0, None)) @ V.T
+        S = self._consider
+        self._consider = np.linalg.solve(prior + A + 1e-12 * np.eye(n), prior @ S + B)
+        self._sys_var = (self._consider**2).sum(axis=1)
+
+    def _spread_errors(self, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray) -> np.ndarray:
+        """Each correction spread's error in the used sensors' corrected readings, in the
+        information rows' units (per sigma, times sqrt(rate * window)): (k, 3, m), the
+        columns in ``self._spread_cols`` order. A link accelerometer's spread errs on its own
+        rows; the IMU's turns the base's reference (tilt and the chair's acceleration) for
+        every link accelerometer at once."""
+        k = len(sel)
+        E = np.zeros((k, 3, self._spread_m))
         R = frame.R_0S[sel]  # (k, 3, 3)
         f = np.einsum("kji,kj->ki", R, v) / G  # corrected readings, g (sensor axes)
-        scale = np.sqrt(self._accel_rate[sel] * self.settings.observability_window_s)
-        Wk = W.reshape(k, 3, n)
-        cov = np.zeros((n, n))
-
-        def add(err_g: np.ndarray) -> None:  # (k, 3) reading errors of the used sensors
-            e = err_g / self._accel_sigma_g[sel] * scale[:, None]
-            x = Ainv @ np.einsum("kan,ka->n", Wk, e)
-            cov[:, :] += np.outer(x, x)
-
         for i, s_idx in enumerate(sel.tolist()):
-            maps = self._spread.get(self.accel_streams[s_idx])
-            if not maps:
+            stream = self.accel_streams[s_idx]
+            cols = self._spread_cols.get(stream)
+            if cols is None:
                 continue
-            Lm, c = self.correction.maps[self.accel_streams[s_idx]]
+            Lm, c = self.correction.maps[stream]
             raw = Lm @ f[i] + c
-            for M1, c1 in maps:
-                err = np.zeros((k, 3))
-                err[i] = M1 @ (raw - c1) - f[i]
-                add(err)
-        imu_maps = self._spread.get(IMU_ACC) if self._has_imu else None
-        if imu_maps:
+            M1, c1 = self._spread_stack[stream]  # (m_s, 3, 3), (m_s, 3)
+            E[i, :, cols] = (M1 @ raw - np.einsum("mab,mb->ma", M1, c1) - f[i])
+        cols = self._spread_cols.get(IMU_ACC) if self._has_imu else None
+        if cols is not None:
             Lm, c = self.correction.maps[IMU_ACC]
             raw = Lm @ (self._R_0I.T @ base / G) + c
             y0 = np.linalg.solve(Lm, raw - c)
-            for M1, c1 in imu_maps:
-                d = M1 @ (raw - c1) - y0
-                r = self._R_0I @ np.cross(y0 / np.linalg.norm(y0), d)  # the reference turned by
-                add(np.einsum("kji,kj->ki", R, np.cross(r, v)) / G)
-        return np.clip(np.diag(cov), 0.0, None)
+            M1, c1 = self._spread_stack[IMU_ACC]
+            d = M1 @ raw - np.einsum("mab,mb->ma", M1, c1) - y0  # (m_s, 3)
+            r = np.cross(y0 / np.linalg.norm(y0), d) @ self._R_0I.T  # the reference turned by
+            # each link sensor's reading error: R^T (r x v) / g
+            rv = np.cross(r[:, None, :], v[None, :, :])  # (m_s, k, 3)
+            E[:, :, cols] = np.einsum("kji,mkj->kim", R, rv) / G
+        scale = np.sqrt(self._accel_rate[sel] * self.settings.observability_window_s)
+        return E / self._accel_sigma_g[sel][:, :, None] * scale[:, None, None]
 
     def _obs_sel(self, used: tuple[int, ...]):
         """The link accelerometers ``used`` as an index array, and the factor that turns
@@ -2130,9 +2169,9 @@ class Tracker:
         elapsed = _time.perf_counter() - t0_wall
         truth_q = rec.get("true_q") if truth else None
         truth_b = rec.get("true_base") if truth else None
-        tq_rows = _rows_at(times, truth_q.t_s) if truth_q is not None and len(truth_q) else None
-        tb_rows = _rows_at(times, truth_b.t_s) if truth_b is not None and len(truth_b) else None
-        return out.finish(self, times, elapsed, truth_q, tq_rows, truth_b, tb_rows)
+        tq = _truth_at(truth_q, times) if truth_q is not None and len(truth_q) else None
+        tb = _truth_at(truth_b, times, angles=True) if truth_b is not None and len(truth_b) else None
+        return out.finish(self, times, elapsed, tq, tb)
 
     @staticmethod
     def _prime(diff: CausalDifferentiator, t: np.ndarray, y: np.ndarray, t_now: float) -> None:
@@ -2181,6 +2220,7 @@ class Tracker:
             "counters": self._counts.tolist(),
             "still": [self._still_w, self._still_mean, self._still_var, self._still],
             "shift": [self._shift.tolist(), np.nan_to_num(self._shift_t, nan=-1e300).tolist()],
+            "consider": self._consider.tolist(),
         }
 
     def restore(self, snap: Mapping) -> None:
@@ -2218,6 +2258,10 @@ class Tracker:
             self._shift = np.array(snap["shift"][0], dtype=float)
             st_ = np.array(snap["shift"][1], dtype=float)
             self._shift_t = np.where(st_ < -1e299, np.nan, st_)
+        consider = np.array(snap.get("consider", []), dtype=float)
+        if consider.shape == self._consider.shape:  # the calibration's pull on the offsets so far
+            self._consider = consider
+            self._sys_var = (consider**2).sum(axis=1)
 
     # -- results ---------------------------------------------------------------------------
     def q_enc_now(self) -> np.ndarray:
@@ -2283,6 +2327,28 @@ def _rows_at(times: np.ndarray, t_s: np.ndarray) -> np.ndarray:
     return np.where(np.abs(t_s[pos_c] - times) < 1e-9, pos_c, -1)
 
 
+def _truth_at(truth: Stream, times: np.ndarray, angles: bool = False) -> np.ndarray:
+    """The truth at each of ``times``, (T, k): linear between the truth's own samples (a
+    live recording's instants fall between the simulator's grid), NaN outside its span or
+    across a gap of more than two of its periods. ``angles``: interpolated unwrapped."""
+    t, v = truth.t_s, truth.values
+    if angles:
+        v = np.unwrap(v, axis=0)
+    out = np.full((len(times), v.shape[1]), np.nan)
+    if len(t) < 2:
+        if len(t) == 1:
+            out[np.abs(times - t[0]) < 1e-9] = v[0]
+        return out
+    i = np.clip(np.searchsorted(t, times, side="right") - 1, 0, len(t) - 2)
+    span = t[i + 1] - t[i]
+    period = float(np.median(np.diff(t)))
+    ok = (times >= t[0] - 1e-9) & (times <= t[-1] + 1e-9) & (span <= 2.0 * period + 1e-9)
+    w = np.clip((times - t[i]) / np.where(span > 0, span, 1.0), 0.0, 1.0)[:, None]
+    val = v[i] * (1.0 - w) + v[i + 1] * w
+    out[ok] = val[ok]
+    return out
+
+
 class _RunArrays:
     """Per fused instant: the state, the diagonal of its covariance, the encoder angles and the
     flags, as the run goes (a few row copies per step); angles and sigmas are made from them
@@ -2329,18 +2395,16 @@ class _RunArrays:
         self.rpy_sigma = d[:, tr._att_idx]
         self.bias = self.x[:, L.bias]
 
-    def finish(self, tr: Tracker, times, elapsed, truth_q, tq_rows, truth_b, tb_rows) -> TrackRun:
+    def finish(self, tr: Tracker, times, elapsed, truth_q: np.ndarray | None,
+               truth_b: np.ndarray | None) -> TrackRun:
+        """``truth_q``, ``truth_b``: the truth at each instant (NaN where there is none)."""
         n = tr.arm.n_joints
         self._arrays(tr)
         q_err = yaw_err = nees = None
-        if tq_rows is not None:
-            q_err = np.full((self.T, n), np.nan)
-            ok = tq_rows >= 0
-            q_err[ok] = self.q[ok] - truth_q.values[tq_rows[ok]]
-        if tb_rows is not None:
-            att_err = np.full((self.T, 3), np.nan)
-            ok = tb_rows >= 0
-            att_err[ok] = wrap_angle(self.rpy[ok] - truth_b.values[tb_rows[ok]])
+        if truth_q is not None:
+            q_err = self.q - truth_q
+        if truth_b is not None:
+            att_err = wrap_angle(self.rpy - truth_b)
             yaw_err = att_err[:, 2]
             if q_err is not None and self.P is not None:
                 e = np.concatenate([q_err, att_err], axis=1)

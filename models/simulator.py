@@ -202,3 +202,24 @@ def simulate(
                     for s, st in rec_streams.items()},
     }
     return Recording(rec_streams, meta), truth
+
+
+def true_zero_offsets_rad(truth: dict, joint_names: Iterable[str]) -> np.ndarray:
+    """Per joint, the true DH zero offset (the ``joint_offset`` effects of a truth document,
+    ``REC.truth.json``), rad; zero for a joint without one."""
+    names = list(joint_names)
+    out = np.zeros(len(names))
+    for e in truth.get("effects", ()):
+        if e.get("effect") == "joint_offset" and e.get("target") in names:
+            out[names.index(e["target"])] += float(np.ravel(e["params"]["offset_rad"])[0])
+    return out
+
+
+def angle_truth(true_q: Stream, truth: dict, joint_names: Iterable[str]) -> Stream:
+    """The joint angles an absolute estimator must find, to score it: the simulated
+    controller angle (``true_q``) plus each joint's true zero offset. A relative encoder's
+    zero is whatever the startup makes it, and no gravity reading can tell the DH zero's
+    assembly error from the angle, so the angle that puts the nominal DH model's links where
+    they really are is the one to find."""
+    off = true_zero_offsets_rad(truth, joint_names)
+    return Stream(true_q.name, true_q.kind, true_q.t_s, true_q.values + off, true_q.channels)

@@ -39,6 +39,8 @@ from fusion.cli_common import JsonOpt, console, emit_json, err_console, fail
 from fusion.service import payloads as pl
 from fusion.service.fleet import free_loopback_port
 from fusion.service.processes import Children
+from fusion.simulate_cmd import truth_path
+from models.simulator import angle_truth
 from models.trajectories import SCENARIOS
 
 ROBOT = "chair1"
@@ -189,6 +191,9 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
     arrived = np.array([a for a, _ in w.joints])
     js = [j for _, j in w.joints]
     names = list(js[0].joint_names)
+    sidecar = truth_path(live["truth_path"])
+    if sidecar.exists():  # score against the angle gravity can find: true angle + DH zero offset
+        tq = angle_truth(tq, json.loads(sidecar.read_text(encoding="utf-8")), names)
     t = np.array([j.t_s for j in js])
     q = np.array([j.q_rad for j in js])
     sig = np.array([j.sigma_rad for j in js])
