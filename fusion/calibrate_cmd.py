@@ -28,6 +28,7 @@ from fusion.startup import (
     solve_still,
 )
 from fusion.static import StaticDetectionSettings, find_static_segments
+from models.sensor_models import MPU9150_TEMP_LSB_PER_C
 
 calibrate_app = typer.Typer(help="Calibrate: joint angles from a still arm, or the sensors.",
                             no_args_is_help=True)
@@ -68,7 +69,8 @@ def calibrate_joints(
         segs = segs[:1]
     out = []
     temp = rec.get("imu_temp")
-    temperature_c = float(np.mean(temp.values) / 340.0 + 35.0) if temp is not None and len(temp) else 25.0
+    temperature_c = (float(np.mean(temp.values) / MPU9150_TEMP_LSB_PER_C + 35.0)
+                     if temp is not None and len(temp) else 25.0)
     try:
         corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
     except (ValueError, KeyError) as e:
@@ -81,13 +83,22 @@ def calibrate_joints(
     unused = [e.block_name for e in corr.model.effects if e.block_name not in used]
     if unused:
         notes.append("not applied to a still arm: " + ", ".join(unused))
+    drifts = any(e.name == "temperature_drift" for e in corr.model.effects)
+    by_temperature = {round(temperature_c, 1): corr}
     for seg in segs:
         readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
-        readings = corr.readings(readings)
+        seg_corr = corr
+        seg_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None and drifts else None
+        if seg_temp is not None and len(seg_temp):  # each still stretch at its own temperature
+            key = round(float(np.mean(seg_temp.values) / MPU9150_TEMP_LSB_PER_C + 35.0), 1)
+            if key not in by_temperature:
+                by_temperature[key] = startup_correction(arm, key, include_joint_offsets=True)
+            seg_corr = by_temperature[key]
+        readings = seg_corr.readings(readings)
         seg_notes = [c.message for c in checks]
         try:
-            res = corr.controller_result(solve_still(arm, readings, st, prior_q_rad=prior_q,
-                                                         method=method))
+            res = seg_corr.controller_result(solve_still(arm, readings, st, prior_q_rad=prior_q,
+                                                             method=method))
         except StartupInputError as e:
             out.append({"t_start": seg.t_start_s, "t_end": seg.t_end_s, "error": str(e),
                         "notes": seg_notes})

@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -78,6 +78,7 @@ from models.motion import MotionState, link_motion, sensor_motion
 from models.rotations import GRAVITY_MPS2, skew
 from models.sensor_models import (
     MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
+    MPU9150_TEMP_LSB_PER_C,
     StreamModel,
     stream_models,
 )
@@ -425,6 +426,7 @@ class _FrameFields(NamedTuple):
     R_lo: np.ndarray
     motion_lo: np.ndarray
     accel_var_g2: np.ndarray | None = None
+    omega_S_rad_s: np.ndarray | None = None
 
 
 class Frames(_FrameFields):
@@ -441,7 +443,8 @@ class Frames(_FrameFields):
     ``exp([a_j]x d_j) = I + [sin d_j, 1 - cos d_j] KK`` (rows 2j, 2j+1; columns 9j … 9j+8);
     ``R_lo``, ``motion_lo``: ``R_0S`` and ``motion_mps2`` with the sensors in the order of
     their links; ``accel_var_g2 (., S, 3)``: the accelerometers' measurement variances at
-    these instants, when a tracker has added them. Read-only (a named tuple).
+    these instants, when a tracker has added them; ``omega_S_rad_s (., S, 3)``: each
+    accelerometer's angular velocity in its own axes. Read-only (a named tuple).
     """
 
     __slots__ = ()
@@ -488,7 +491,7 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     return Frames(q, np.broadcast_to(offset, q.shape), sm.R_0S, sm.acc_0_mps2, lm.axis_0, sm.p_0S_m,
                   wd, Ks, K2, np.linalg.norm(sm.acc_0_mps2, axis=-1) / G,
                   np.sum(sm.p_0S_m**2, axis=-1), np.linalg.norm(wd, axis=-1), KK,
-                  sm.R_0S[:, lo], sm.acc_0_mps2[:, lo])
+                  sm.R_0S[:, lo], sm.acc_0_mps2[:, lo], omega_S_rad_s=sm.omega_S_rad_s)
 
 
 def link_order(arm: ArmModel, names) -> np.ndarray:
@@ -768,7 +771,12 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         from fusion.identify import startup_correction
 
         temp = rec.get("imu_temp")
-        temperature_c = float(np.mean(temp.values) / 340.0 + 35.0) if temp is not None and len(temp) else 25.0
+        still_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None else None
+        if still_temp is None or not len(still_temp):
+            still_temp = temp
+        # corrected at the temperature of the still stretch (the tracker follows it after)
+        temperature_c = (float(np.mean(still_temp.values) / MPU9150_TEMP_LSB_PER_C + 35.0)
+                         if still_temp is not None and len(still_temp) else 25.0)
         corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
         readings = corr.readings(readings)
         notes.append("the config's effects applied: " + ", ".join(e.block_name for e in corr.model.effects))
@@ -786,6 +794,71 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     tr.initialise(startup, float(enc.t_s[k]), encoder_counts=enc.values[k], imu=imu, prior_q_rad=prior_q_rad)
     tr.prime(rec)
     return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes))
+
+
+def _effect_dicts(arm: ArmModel, name: str):
+    """The config's entries of effect ``name`` as plain dicts."""
+    for e in arm.effects or ():
+        d = e if isinstance(e, Mapping) else e.model_dump()
+        if d.get("effect") == name:
+            yield d
+
+
+def _encoder_scales(arm: ArmModel) -> np.ndarray:
+    """Per joint, the config's calibrated encoder scale error (``encoder_scale``: the
+    encoder gives ``1 + s`` times the counts the config's counts per revolution say)."""
+    s = np.zeros(arm.n_joints)
+    for d in _effect_dicts(arm, "encoder_scale"):
+        if d.get("target") in arm.joint_names:
+            value = (d.get("params") or {}).get("scale_error", [0.0])
+            s[arm.joint_names.index(d["target"])] = float(np.ravel(value)[0])
+    return s
+
+
+def _encoder_scale_sigmas(arm: ArmModel) -> np.ndarray:
+    """Per joint, the sigma of the config's encoder scale error (0 where it gives none)."""
+    s = np.zeros(arm.n_joints)
+    for d in _effect_dicts(arm, "encoder_scale"):
+        sig = (d.get("sigma") or {}).get("scale_error")
+        if d.get("target") in arm.joint_names and sig is not None:
+            s[arm.joint_names.index(d["target"])] = float(np.ravel(sig)[0])
+    return s
+
+
+def _offset_per_degree(arm: ArmModel, correction) -> dict[str, np.ndarray]:
+    """Per accelerometer stream, how the correction's offset moves per °C (the config's
+    ``temperature_drift``), so that readings are corrected at the temperature the IMU reads
+    now rather than the startup's."""
+    if not any(True for _ in _effect_dicts(arm, "temperature_drift")):
+        return {}
+    from fusion.identify import startup_correction
+
+    t0 = float(correction.temperature_c)
+    warmer = startup_correction(arm, t0 + 1.0, include_joint_offsets=True)
+    out = {}
+    for stream, (_, c) in correction.maps.items():
+        slope = np.asarray(warmer.maps[stream][1], float) - np.asarray(c, float)
+        if np.any(slope):
+            out[stream] = slope
+    return out
+
+
+def _with_lever_arms(arm: ArmModel) -> ArmModel:
+    """The arm with each sensor where its config's calibrated lever arm puts it (the
+    ``motion_acceleration`` effects: an offset in the link's axes), so that the motion the
+    tracker predicts at a sensor (centripetal, tangential) is at the right point."""
+    shift: dict[str, np.ndarray] = {}
+    for e in arm.effects or ():
+        d = e if isinstance(e, Mapping) else e.model_dump()
+        if d.get("effect") == "motion_acceleration" and d.get("target"):
+            v = np.asarray((d.get("params") or {}).get("lever_arm_offset_m", [0.0, 0.0, 0.0]), float)
+            if v.shape == (3,) and np.any(v):
+                shift[d["target"]] = v
+    if not shift:
+        return arm
+    sensors = tuple(replace(s, p_L_m=np.asarray(s.p_L_m, float) + shift[s.name]) if s.name in shift else s
+                    for s in arm.sensors)
+    return replace(arm, sensors=sensors)
 
 
 def _up(roll, pitch) -> np.ndarray:
@@ -867,6 +940,7 @@ class Tracker:
         config's effects when it has any) undoes the calibrated accelerometer errors (affine:
         mount, axes, scale, bias) on every sample, and maps the controller's joint angles to
         the geometric ones (zero offsets, sag, play) in the kinematics."""
+        arm = _with_lever_arms(arm)
         self.arm = arm
         if correction is None and arm.effects:
             from fusion.identify import startup_correction
@@ -874,6 +948,9 @@ class Tracker:
             correction = startup_correction(arm, include_joint_offsets=True)
         self.correction = correction
         self._undo = {}
+        self._undo_per_c: dict[str, np.ndarray] = {}
+        self._temperature_ref_c = float(getattr(correction, "temperature_c", 25.0)) if correction else 25.0
+        self._temperature_c = self._temperature_ref_c
         self._joint_effects = []
         self._spread: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
         if correction is not None:
@@ -881,21 +958,12 @@ class Tracker:
                 self._undo[stream] = (np.linalg.inv(Lm).T, np.asarray(c, float))
             for stream, maps in correction.spread.items():
                 self._spread[stream] = [(np.linalg.inv(L1), np.asarray(c1, float)) for L1, c1 in maps]
+            self._undo_per_c = _offset_per_degree(arm, correction)
             from models.effects import JointEffect
 
             th = correction.model.unpack()
             self._joint_effects = [(e, th[e.block_name]) for e in correction.model.effects
                                    if isinstance(e, JointEffect)]
-        # the spreads as columns of one consider sensitivity (see _consider_update)
-        self._spread_cols: dict[str, np.ndarray] = {}
-        self._spread_stack: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        m = 0
-        for stream, maps in self._spread.items():
-            if maps:
-                self._spread_cols[stream] = np.arange(m, m + len(maps))
-                self._spread_stack[stream] = (np.array([M for M, _ in maps]), np.array([c for _, c in maps]))
-                m += len(maps)
-        self._spread_m = m
         self.settings = st = settings or TrackerSettings()
         n = arm.n_joints
         self.layout = L = StateLayout(n)
@@ -908,9 +976,11 @@ class Tracker:
         self._sidx = {s: i for i, s in enumerate(self.sensor_names)}
         self._links = np.array([arm.sensor(nm).link for nm in self.accel_names], dtype=int)
         self._R_0I = arm.imu.R_LS if self._has_imu else np.eye(3)
-        self._cpr = arm.counts_per_rad
+        self._cpr = arm.counts_per_rad * (1.0 + _encoder_scales(arm))
         self._rates: dict[str, float] = {}
         self._unmodelled_g = self._unmodelled_floor()
+        self._consider_columns()
+        self._time_offset_s, self._time_var_s2 = self._stamp_offsets()
         self.set_rates(rates_hz)
         self._gate3 = float(nis_bound(3, st.gate_significance))
         self._gate1 = float(nis_bound(1, st.gate_significance))
@@ -934,6 +1004,55 @@ class Tracker:
         self._imu_acc_index = self._sidx.get(IMU_ACC, -1)
         self._plan_cache: dict = {}
         self._mag_mask: dict = {}
+
+    def _consider_columns(self) -> None:
+        """The columns of the consider sensitivity (see :meth:`_consider_update`): each
+        correction spread of a calibrated config, and, per link accelerometer whose config
+        states an unmodelled error (``calibration.accel_unmodelled_g``), one column per axis:
+        an error of that size that stays (an uncalibrated ADXL345's offset and its board's
+        tilt do not average away)."""
+        self._spread_cols: dict[str, np.ndarray] = {}
+        self._spread_stack: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._floor_cols: dict[str, tuple[np.ndarray, float]] = {}
+        m = 0
+        for stream, maps in self._spread.items():
+            if maps:
+                self._spread_cols[stream] = np.arange(m, m + len(maps))
+                self._spread_stack[stream] = (np.array([M for M, _ in maps]), np.array([c for _, c in maps]))
+                m += len(maps)
+        for stream, floor_g in zip(self.link_names, self._unmodelled_g.tolist(), strict=False):
+            if floor_g > 0.0:
+                self._floor_cols[stream] = (np.arange(m, m + 3), floor_g)
+                m += 3
+        # an encoder scale known to sigma_s moves the joint's true offset by sigma_s per radian
+        # the encoder turns: one column per joint whose config gives that sigma
+        sig_s = _encoder_scale_sigmas(self.arm)
+        self._scale_joints = np.flatnonzero(sig_s > 0.0)
+        self._scale_sigma = sig_s[self._scale_joints]
+        self._scale_cols = np.arange(m, m + len(self._scale_joints))
+        m += len(self._scale_joints)
+        self._spread_m = m
+
+    def _stamp_offsets(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Per accelerometer stream, the config's calibrated time offset (s: samples stamped
+        late by it, ``time_offset``) and its variance (s², the estimate's sigma, or the
+        prior's where the calibration held it). While a link turns, a reading stamped dt late
+        saw gravity as it was dt earlier (7 ms at 30 deg/s is 0.2 deg): the offset is undone,
+        its sigma is measurement noise. ``None`` when the config has no time offsets."""
+        idx = {nm: i for i, nm in enumerate(self.accel_names)}
+        off = np.zeros(len(self.accel_names))
+        var = np.zeros(len(self.accel_names))
+        for e in self.arm.effects or ():
+            d = e if isinstance(e, Mapping) else e.model_dump()
+            if d.get("effect") != "time_offset" or d.get("target") not in idx:
+                continue
+            i = idx[d["target"]]
+            off[i] = float(np.ravel((d.get("params") or {}).get("offset_s", [0.0]))[0])
+            sig = (d.get("sigma") or {}).get("offset_s")
+            var[i] = float(np.ravel(sig)[0]) ** 2 if sig is not None else 0.0
+        if not off.any() and not var.any():
+            return None, None
+        return off, var
 
     def _imu_bias_prior_var(self, roll_rad: float, pitch_rad: float) -> np.ndarray:
         """Prior variance (g²) of what the IMU accelerometer's correction leaves, per IMU
@@ -1107,6 +1226,7 @@ class Tracker:
         self._sys_var = np.zeros(n)
         self._consider = np.zeros((n, self._spread_m))
         self._consider_t = None
+        self._consider_q_enc = None
         self._locked = np.zeros(n, bool)
         self._observed = np.zeros(n, bool)
         self._obs_key = None
@@ -1187,6 +1307,11 @@ class Tracker:
                     self._counts[self._sidx[s], C_OUT_OF_ORDER] += 1
             return None
         phys = {}
+        temp = samples.get("imu_temp")
+        if temp is not None:
+            raw_t = float(np.ravel(temp)[0])
+            if math.isfinite(raw_t):
+                self._temperature_c = raw_t / MPU9150_TEMP_LSB_PER_C + 35.0
         for s, v in samples.items():
             if s == "imu_temp":
                 continue
@@ -1229,11 +1354,19 @@ class Tracker:
         self._step(t, gyro, acc, None if mag is None else (mag[0], self._R_0I @ mag[1]), frame, q_enc)
         return self.estimate
 
-    def _physical(self, s: str, counts: np.ndarray) -> np.ndarray:
-        """Counts ``(N, k)`` to SI units, the config's calibrated sensor errors undone."""
+    def _physical(self, s: str, counts: np.ndarray, temperature_c=None) -> np.ndarray:
+        """Counts ``(N, k)`` to SI units, the config's calibrated sensor errors undone at
+        ``temperature_c`` (scalar or ``(N,)``, °C; default the latest the IMU read)."""
         y = self._sm[s].from_counts(counts)
         u = self._undo.get(s)
-        return y if u is None else (y - u[1]) @ u[0]
+        if u is None:
+            return y
+        c = u[1]
+        slope = self._undo_per_c.get(s)
+        if slope is not None:
+            t_c = self._temperature_c if temperature_c is None else np.asarray(temperature_c, float)
+            c = c + np.multiply.outer(t_c - self._temperature_ref_c, slope)
+        return (y - c) @ u[0]
 
     def _mark_used(self, s: str, t: float) -> None:
         i = self._sidx[s]
@@ -1499,7 +1632,12 @@ class Tracker:
         st = self.settings
         wd_err = (self._omega_dot_noise + st.angular_accel_error_fraction * frames.omega_dot_norm) / G
         extra = (st.motion_model_fraction * frames.motion_g) ** 2 + (wd_err**2)[..., None] * frames.dist2_m2
-        return frames._replace(accel_var_g2=self._accel_var_g2 + extra[..., None])
+        var = self._accel_var_g2 + extra[..., None]
+        if self._time_var_s2 is not None and frames.omega_S_rad_s is not None:
+            # a stamp known to sigma_t reads gravity turned by omega x g sigma_t (sensor axes)
+            turn = np.cross(frames.omega_S_rad_s, frames.R_0S[..., 2, :])
+            var = var + self._time_var_s2[:, None] * turn**2
+        return frames._replace(accel_var_g2=var)
 
     def _sel_info(self, sel: np.ndarray) -> tuple:
         """For the accelerometers ``sel`` (cached): its key, the IMU's position in it (-1:
@@ -1538,6 +1676,10 @@ class Tracker:
             sel, counts, f = acc
             sel = np.asarray(sel, dtype=np.int64)
             k = len(sel)
+            if self._time_offset_s is not None and frame.omega_S_rad_s is not None:
+                # a reading stamped late by dt saw gravity dt earlier: turn it to the stamp
+                w = frame.omega_S_rad_s[sel]
+                f = f - self._time_offset_s[sel][:, None] * np.cross(w, f)
             key, imu_pos, full, _ = self._sel_info(sel)
             var_a = frame.accel_var_g2 if full else frame.accel_var_g2[sel]
         still = self._still and acc is not None and st.motion_compensation
@@ -1875,7 +2017,7 @@ class Tracker:
             self._hold = T
         else:
             self._hold = None
-        if self._spread and len(sel):
+        if self._spread_m and len(sel):
             self._consider_update(frame, sel, v, x[L.accel] + G * up, W)
         self._ill = np.sqrt(self._achievable**2 + self._sys_var) > st.sigma_limit_deg * DEG
 
@@ -1915,6 +2057,11 @@ class Tracker:
         lam, V = np.linalg.eigh(np.linalg.inv(P) - A)
         prior = (V * np.clip(lam, 0.0, None)) @ V.T
         S = self._consider
+        if len(self._scale_joints):  # the true offsets moved with the encoders since
+            if self._consider_q_enc is not None:
+                travel = self._q_enc[self._scale_joints] - self._consider_q_enc[self._scale_joints]
+                S[self._scale_joints, self._scale_cols] += self._scale_sigma * travel
+            self._consider_q_enc = self._q_enc.copy()
         self._consider = np.linalg.solve(prior + A + 1e-12 * np.eye(n), prior @ S + B)
         self._sys_var = (self._consider**2).sum(axis=1)
 
@@ -1930,6 +2077,9 @@ class Tracker:
         f = np.einsum("kji,kj->ki", R, v) / G  # corrected readings, g (sensor axes)
         for i, s_idx in enumerate(sel.tolist()):
             stream = self.accel_streams[s_idx]
+            floor = self._floor_cols.get(stream)
+            if floor is not None:
+                E[i, :, floor[0]] = floor[1] * self._eye3
             cols = self._spread_cols.get(stream)
             if cols is None:
                 continue
@@ -2050,13 +2200,25 @@ class Tracker:
         times = times[(times > t_from + 1e-9) & (times <= t_stop + 1e-9)]
         T = len(times)
         rows, phys, valid = {}, {}, {}
+        temp = rec.get("imu_temp")
+        temp_t = temp_c = None
+        if temp is not None and len(temp) and self._undo_per_c:
+            temp_t = temp.t_s
+            temp_c = temp.values[:, 0] / MPU9150_TEMP_LSB_PER_C + 35.0
+
+        def temperature_at(t: np.ndarray):
+            """The IMU's latest temperature reading at each time (the tracker's, before any)."""
+            if temp_t is None:
+                return None
+            k = np.searchsorted(temp_t, t, side="right") - 1
+            return np.where(k >= 0, temp_c[np.maximum(k, 0)], self._temperature_c)
         for s, v in raw.items():
             rows[s] = _rows_at(times, v.t_s)
             c = v.values.astype(float)
             lo, hi = self._limits[s]
             ok = np.ones(len(v), dtype=bool) if lo is None else ~np.any((c <= lo) | (c >= hi), axis=1)
             valid[s] = ok
-            phys[s] = self._physical(s, c)
+            phys[s] = self._physical(s, c, temperature_at(v.t_s))
             used = rows[s][rows[s] >= 0]
             i = self._sidx[s]
             self._counts[i, C_SAMPLES] += len(used)
