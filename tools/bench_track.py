@@ -48,7 +48,8 @@ DEG = np.pi / 180.0
 def calibrated_wmra():
     """The WMRA with calibrated sensors (the simulation adds noise only)."""
     arm = load_arm("wmra")
-    return replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": 0.0})
+    return replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": 0.0,
+                                     "mag_unmodelled_ut": 0.0})
 
 
 def with_stream(rec: Recording, name: str, values: np.ndarray) -> Recording:

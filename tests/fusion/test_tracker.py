@@ -51,7 +51,8 @@ ACCELS = ("acc1", "acc2", "acc3", "acc4", "imu_acc")
 @pytest.fixture(scope="module")
 def arm(wmra):
     """The WMRA with calibrated sensors: the simulation adds nothing but noise."""
-    return replace(wmra, calibration={**wmra.calibration, "accel_unmodelled_g": 0.0})
+    return replace(wmra, calibration={**wmra.calibration, "accel_unmodelled_g": 0.0,
+                                      "mag_unmodelled_ut": 0.0})
 
 
 def const_temperature(t):
