@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from models.arm import ArmModel
-from models.kinematics import chain_poses
+from models.kinematics import chain_poses, gravity_chain
 from models.sensor_models import stream_models
 
 FLAGS = ("ok", "ill_conditioned", "gimbal_lock", "ambiguous", "out_of_limits")
@@ -252,76 +252,132 @@ class _Problem:
     R_0I: np.ndarray = field(default_factory=lambda: np.eye(3))
     tilt_prior_rad: float = 5.0 * DEG
 
+    def __post_init__(self):
+        self._chain = gravity_chain(self.arm, self.names)
+        # every row's read-out, weighted and negated: rows = -(D_s v) / sigma = r - meas / sigma
+        self._read_w = -self._chain.read_out / self.sigma[:, :, None]  # (S, 3, 3)
+        self._layouts: dict = {}
+
     @property
     def n(self) -> int:
         return self.arm.n_joints
 
-    def residuals_and_jacobian(self, x: np.ndarray, active: np.ndarray | None = None):
+    def _layout(self, active: np.ndarray | None, use_imu: bool):
+        """Rows of one kind of solve: the sensors used, the IMU or the level-chair prior."""
+        key = (None if active is None else np.asarray(active, bool).tobytes(), use_imu)
+        hit = self._layouts.get(key)
+        if hit is None:
+            S = len(self.names)
+            used = np.arange(S) if active is None else np.flatnonzero(active)
+            imu = use_imu and self.imu_meas is not None
+            m = 3 * len(used) + (3 if imu else 2)
+            meas_w = np.zeros(m)  # measured / sigma; 0 on the tilt prior's rows
+            meas_w[: 3 * len(used)] = (self.meas[used] / self.sigma[used]).reshape(-1)
+            reads = [(3 * i, int(self._chain.links[s]), self._read_w[s]) for i, s in enumerate(used)]
+            if imu:
+                meas_w[3 * len(used):] = self.imu_meas / self.imu_sigma
+                reads.append((3 * len(used), 0, -self.R_0I.T / self.imu_sigma[:, None]))
+            last = max([k for _, k, _ in reads], default=0) - 1  # the last joint any row needs
+            hit = (m, meas_w, reads, imu, 3 * len(used), last)
+            self._layouts[key] = hit
+        return hit
+
+    def residuals_and_jacobian(self, x: np.ndarray, active: np.ndarray | None = None,
+                               use_imu: bool = True):
         """Weighted residuals ``(B, m)`` and Jacobian ``(B, m, n + 2)`` for states ``x (B, n+2)``.
 
-        ``active`` (S,) bool selects the sensors used (sequential solves).
+        ``active`` (S,) bool selects the sensors used (sequential solves); ``use_imu=False``
+        leaves the base accelerometer out (the level-chair prior takes its place).
+        Rows: 3 per sensor used (in config order), then the IMU's 3 or the prior's 2.
         """
-        from models.kinematics import gravity_jacobian
-
         n = self.n
         B = x.shape[0]
-        q, roll, pitch = x[:, :n], x[:, n], x[:, n + 1]
-        up = up_from_tilt(roll, pitch)  # (B, 3)
-        f, Jq, R_0S = gravity_jacobian(self.arm, q, up, self.names, with_frames=True)
-        dup = up_tilt_jacobian(roll, pitch)  # (B, 3, 2)
-        if active is not None:
-            f, Jq, R_0S = f[:, active], Jq[:, active], R_0S[:, active]
-            meas, sig = self.meas[active], self.sigma[active]
-        else:
-            meas, sig = self.meas, self.sigma
-        S = meas.shape[0]
-        m = 3 * S + (3 if self.imu_meas is not None else 2)
-        r = np.empty((B, m))
-        J = np.zeros((B, m, n + 2))
-        r[:, :3 * S] = ((meas[None] - f) / sig[None]).reshape(B, -1)
-        J[:, :3 * S, :n] = (-Jq / sig[None, :, :, None]).reshape(B, -1, n)
-        Jt = np.swapaxes(R_0S, -1, -2) @ dup[:, None]  # (B, S, 3, 2)
-        J[:, :3 * S, n:] = (-Jt / sig[None, :, :, None]).reshape(B, -1, 2)
-        if self.imu_meas is not None:
-            fi = up @ self.R_0I  # (B, 3): R_0I^T up
-            r[:, 3 * S:] = (self.imu_meas[None] - fi) / self.imu_sigma[None]
-            J[:, 3 * S:, n:] = -(self.R_0I.T @ dup) / self.imu_sigma[None, :, None]
-        else:  # no base accelerometer: all we know is that a wheelchair stands roughly level
-            r[:, 3 * S:] = x[:, n:] / self.tilt_prior_rad
-            J[:, 3 * S, n] = J[:, 3 * S + 1, n + 1] = 1.0 / self.tilt_prior_rad
-        return r, J
+        m, meas_w, reads, imu, n_sensor_rows, last = self._layout(active, use_imu)
+        seed = _up_and_tilt_jacobian(x[:, n], x[:, n + 1])  # (B, 3, 3)
+        after = self._chain.propagate(x[:, :n], seed, upto_joint=last)
+        out = np.empty((B, m, n + 3))  # column 0: the residual's model part; then d/dx
+        for row, k, W in reads:
+            np.matmul(W, after[k], out=out[:, row:row + 3])
+        if not imu:  # no base accelerometer: all we know is that a wheelchair stands roughly level
+            prior = out[:, n_sensor_rows:]
+            prior[:] = 0.0
+            prior[:, :, 0] = x[:, n:] / self.tilt_prior_rad
+            prior[:, 0, n + 1] = prior[:, 1, n + 2] = 1.0 / self.tilt_prior_rad
+        return out[:, :, 0] + meas_w, out[:, :, 1:]
 
 
-def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters: int,
-                active: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _up_and_tilt_jacobian(roll, pitch) -> np.ndarray:
+    """``[up, d up / d roll, d up / d pitch]`` as the columns of ``(B, 3, 3)``."""
+    sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
+    srcp, crcp = sr * cp, cr * cp
+    out = np.empty((len(sr), 3, 3))
+    out[:, 0, 0] = -sp
+    out[:, 1, 0] = srcp
+    out[:, 2, 0] = crcp
+    out[:, 0, 1] = 0.0
+    out[:, 1, 1] = crcp
+    out[:, 2, 1] = -srcp
+    out[:, 0, 2] = -cp
+    out[:, 1, 2] = -sr * sp
+    out[:, 2, 2] = -cr * sp
+    return out
+
+
+def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
+                active: np.ndarray | None = None, use_imu: bool = True,
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on every start at once. ``free`` selects the unknowns: ``(n+2,)``
     for all starts, or ``(B, n+2)`` per start (a held unknown keeps its start value).
+    ``iters``: the most iterations, for all starts or ``(B,)`` per start.
 
-    Returns the solutions and their final cost (half sum of squared weighted residuals).
+    Each start stops on its own once it has converged (its step below 1e-7 rad, or its
+    damping past 1e8: no step lowers the cost) or used its iterations; the others go on
+    without it. Returns the solutions and their final cost (half sum of squared weighted
+    residuals).
     """
-    x = x0.copy()
+    x = np.array(x0, float)
     B, p = x.shape
-    M = np.broadcast_to(np.asarray(free, bool), (B, p)).astype(float)
-    lam = np.full(B, 1e-3)
-    r, J = problem.residuals_and_jacobian(x, active)
-    cost = 0.5 * np.sum(r**2, 1)
+    held_mask = ~np.broadcast_to(np.asarray(free, bool), (B, p))
+    masked = bool(held_mask.any())
+    iters_left = np.broadcast_to(np.asarray(iters), (B,)).astype(int)
+    r, J = problem.residuals_and_jacobian(x, active, use_imu)
+    cost = 0.5 * np.einsum("bm,bm->b", r, r)
+    # the starts still iterating, packed: their rows in x, their state
+    rows = np.flatnonzero(iters_left > 0)
+    xa, ra, Ja, ca = x[rows], r[rows], J[rows], cost[rows]
+    lam = np.full(len(rows), 1e-3)
+    free_f = (~held_mask[rows]).astype(float)
+    held_f = held_mask[rows].astype(float)
+    left = iters_left[rows]
     eye = np.eye(p)
-    for _ in range(iters):
-        Jm = J * M[:, None, :]
-        A = np.einsum("bmi,bmj->bij", Jm, Jm)
-        g = np.einsum("bmi,bm->bi", Jm, r)
-        diag = np.einsum("bii->bi", A)
-        A_damped = A + (lam[:, None] * (diag + 1e-9) * M + (1.0 - M))[:, :, None] * eye
-        step = -np.linalg.solve(A_damped, g[..., None])[..., 0] * M
-        xt = x + step
-        rt, Jt = problem.residuals_and_jacobian(xt, active)
-        ct = 0.5 * np.sum(rt**2, 1)
-        better = ct < cost
-        x[better], r[better], J[better], cost[better] = xt[better], rt[better], Jt[better], ct[better]
+    while len(rows):
+        Jm = Ja * free_f[:, None, :] if masked else Ja
+        JmT = np.swapaxes(Jm, 1, 2)
+        A = JmT @ Jm
+        g = (JmT @ ra[:, :, None])[:, :, 0]
+        diag = np.diagonal(A, axis1=1, axis2=2)
+        A_damped = A + (lam[:, None] * (diag + 1e-9) * free_f + held_f)[:, :, None] * eye
+        step = -np.linalg.solve(A_damped, g[..., None])[..., 0]
+        if masked:
+            step *= free_f
+        xt = xa + step
+        rt, Jt = problem.residuals_and_jacobian(xt, active, use_imu)
+        ct = 0.5 * np.einsum("bm,bm->b", rt, rt)
+        better = ct < ca
+        if better.all():
+            xa, ra, Ja, ca = xt, rt, Jt, ct
+        elif better.any():
+            xa, ra, Ja, ca = (np.where(better[:, None], xt, xa), np.where(better[:, None], rt, ra),
+                              np.where(better[:, None, None], Jt, Ja), np.where(better, ct, ca))
         lam = np.where(better, lam * 0.3, lam * 10.0)
+        left = left - 1
         # 1e-7 rad is a thousandth of the smallest sigma these sensors give: converged
-        if np.all((np.abs(step).max(1) < 1e-7) | (lam > 1e8)):
-            break
+        done = (np.abs(step).max(1) < 1e-7) | (lam > 1e8) | (left <= 0)
+        if done.any():
+            x[rows[done]], cost[rows[done]] = xa[done], ca[done]
+            go = ~done
+            rows, xa, ra, Ja, ca, lam = rows[go], xa[go], ra[go], Ja[go], ca[go], lam[go]
+            free_f, held_f, left = free_f[go], held_f[go], left[go]
     return x, cost
 
 
@@ -703,12 +759,8 @@ def _sequential(problem: _Problem, x0: np.ndarray, st: StartupSettings):
         free[prev:k] = True
         active = np.zeros(len(problem.names), bool)
         active[s] = True
-        imu = problem.imu_meas
-        problem.imu_meas = None  # the IMU does not take part in the joint pairs
-        try:
-            x, _ = _batched_lm(problem, x, free, st.max_iterations, active=active)
-        finally:
-            problem.imu_meas = imu
+        # the IMU does not take part in the joint pairs
+        x, _ = _batched_lm(problem, x, free, st.max_iterations, active=active, use_imu=False)
         prev = k
     r, _ = problem.residuals_and_jacobian(x)
     return x, 0.5 * np.sum(r**2, 1)
