@@ -194,47 +194,46 @@ def tilt_from_up(up: np.ndarray) -> tuple[float, float]:
     return float(np.arctan2(u[1], u[2])), float(np.arctan2(-u[0], np.hypot(u[1], u[2])))
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+def _skew(w: np.ndarray) -> np.ndarray:
+    """``u @ _skew(w) == cross(u, w)`` for rows ``u``; ``_skew(w) @ u == cross(w, u)``."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
-def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = axis / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+def _subproblem1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Angle about unit axis ``w`` taking direction ``p`` closest to ``q``, for rows of
+    directions ``p``, ``q`` (``(P, 3)``, or one ``(3,)`` for all): ``(P,)``."""
+    pp = p - np.multiply.outer(p @ w, w)
+    qq = q - np.multiply.outer(q @ w, w)
+    pp, qq = np.broadcast_arrays(pp, qq)
+    # w . (pp x qq) = pp . (qq x w)
+    return np.arctan2(np.einsum("pi,pi->p", pp, qq @ _skew(w)), np.einsum("pi,pi->p", pp, qq))
 
 
-def _subproblem1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> tuple[float, float]:
-    """Angle about unit axis ``w`` taking direction ``p`` closest to ``q``; and how well the
-    angle is defined (the product of the projected lengths: 0 when p or q lies on the axis)."""
-    pp = p - w * (w @ p)
-    qq = q - w * (w @ q)
-    return float(np.arctan2(w @ _cross(pp, qq), pp @ qq)), float(np.sqrt((pp @ pp) * (qq @ qq)))
-
-
-def _subproblem2(w1, w2, p, q) -> list[tuple[float, float]]:
-    """All (t1, t2) with ``Rot(w1, t1) Rot(w2, t2) p = q`` (unit directions; least-squares
-    closest when noise makes it inexact). Up to two solutions."""
+def _subproblem2(w1, w2, p, q) -> np.ndarray:
+    """Every (t1, t2) with ``Rot(w1, t1) Rot(w2, t2) p = q`` (unit directions; least-squares
+    closest when noise makes it inexact), for rows ``q (P, 3)`` and ``p`` one ``(3,)`` or
+    ``(P, 3)``: ``(P, k, 2)``, k = 2 solutions (1 for parallel axes)."""
+    q = np.atleast_2d(q)
+    p = np.broadcast_to(p, q.shape)
     c12 = float(w1 @ w2)
     den = c12**2 - 1.0
     if abs(den) < 1e-9:  # parallel axes: only the sum is defined
-        t, _ = _subproblem1(w1, p, q)
-        return [(t, 0.0)]
-    a = (c12 * (w2 @ p) - w1 @ q) / den
-    b = (c12 * (w1 @ q) - w2 @ p) / den
-    cr = _cross(w1, w2)
-    g2 = (p @ p - a * a - b * b - 2 * a * b * c12) / (cr @ cr)
+        t = _subproblem1(w1, p, q)
+        return np.stack([t, np.zeros_like(t)], -1)[:, None]
+    a = (c12 * (p @ w2) - q @ w1) / den
+    b = (c12 * (q @ w1) - p @ w2) / den
+    cr = _skew(w1) @ w2
+    g2 = (np.sum(p * p, -1) - a * a - b * b - 2 * a * b * c12) / (cr @ cr)
     # Near the pair's singularity the two solutions merge, and noise can hide one of them
     # (g2 < 0). Start on both sides anyway; the polish finds the real minima, and the
     # duplicates are removed.
     g_min = 0.02
-    gammas = [np.sqrt(max(g2, g_min)), -np.sqrt(max(g2, g_min))]
-    out = []
-    for g in gammas:
-        c = a * w1 + b * w2 + g * cr
-        t2, _ = _subproblem1(w2, p, c)
-        t1, _ = _subproblem1(w1, c, q)
-        out.append((t1, t2))
+    gamma = np.sqrt(np.maximum(g2, g_min))[:, None, None] * np.array([1.0, -1.0])[:, None]
+    c = (np.multiply.outer(a, w1) + np.multiply.outer(b, w2))[:, None] + gamma * cr  # (P, 2, 3)
+    c = c.reshape(-1, 3)
+    out = np.empty((len(q), 2, 2))
+    out[:, :, 1] = _subproblem1(w2, np.repeat(p, 2, 0), c).reshape(-1, 2)
+    out[:, :, 0] = _subproblem1(w1, c, np.repeat(q, 2, 0)).reshape(-1, 2)
     return out
 
 
@@ -465,12 +464,14 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
 
     Joints no sensor reads stay at the ready pose. A joint whose angle is undefined here
     (its axis along gravity) takes its ready-pose value; the polish and flags handle it.
+    Every partial branch is carried at once (rows of ``q``, ``v``).
     """
     arm = problem.arm
     up0 = up_from_tilt(roll, pitch)
     order = np.argsort([arm.sensor(nm).link for nm in problem.names])
     # each partial branch: its joint angles so far, and up expressed in its last frame
-    partial = [(arm.ready_pose_rad.astype(float).copy(), up0)]
+    q = arm.ready_pose_rad.astype(float)[None].copy()  # (P, n)
+    v = up0[None]  # (P, 3): up in frame prev_link
     prev_link = 0
     ch = arm.chain
     for s in order:
@@ -480,50 +481,42 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
         if not joints:
             continue
         w = mount.R_LS @ problem.meas[s]  # up in frame k (unit)
-        new_partial = []
-        for q, v in partial:  # v: up in frame prev_link
-            # only the last two joints before the sensor are solved; earlier unread joints
-            # (more than two per sensor) stay at their ready values
-            solve = joints[-2:]
-            fixed = joints[:-2]
-            v0 = v
-            for j in fixed:
-                v = _joint_rotation(ch, j, q[j]).T @ v
-            if len(solve) == 1:
-                j = solve[0]
-                v1 = ch.R_pre[j].T @ v
-                w1 = ch.R_post[j] @ w
-                t, _ = _subproblem1(ch.axis[j], w1, v1)
-                cand = [(t - ch.offset_rad[j],)]
-            else:
-                a, b = solve
-                v1 = ch.R_pre[a].T @ v
-                w1 = ch.R_post[b] @ w
-                M = ch.R_post[a] @ ch.R_pre[b]
-                sols = _subproblem2(ch.axis[a], M @ ch.axis[b], M @ w1, v1)
-                cand = [(t1 - ch.offset_rad[a], t2 - ch.offset_rad[b]) for t1, t2 in sols]
-            for c in cand:
-                qn = q.copy()
-                qn[solve] = c
-                vn = v0
-                for j in joints:
-                    vn = _joint_rotation(ch, j, qn[j]).T @ vn
-                new_partial.append((qn, vn))
-        partial = new_partial
+        # only the last two joints before the sensor are solved; earlier unread joints
+        # (more than two per sensor) stay at their ready values
+        solve = joints[-2:]
+        u = v
+        for j in joints[:-2]:
+            u = _turn_back(ch, j, q[:, j], u)
+        if len(solve) == 1:
+            j = solve[0]
+            v1 = u @ ch.R_pre[j]  # rows of R_pre^T u
+            w1 = ch.R_post[j] @ w
+            cand = (_subproblem1(ch.axis[j], w1, v1) - ch.offset_rad[j])[:, None, None]
+        else:
+            a, b = solve
+            v1 = u @ ch.R_pre[a]
+            w1 = ch.R_post[b] @ w
+            M = ch.R_post[a] @ ch.R_pre[b]
+            cand = _subproblem2(ch.axis[a], M @ ch.axis[b], M @ w1, v1) - ch.offset_rad[solve]
+        per = cand.shape[1]  # candidates per partial branch, kept in order
+        q = np.repeat(q, per, 0)
+        q[:, solve] = cand.reshape(-1, len(solve))
+        v = np.repeat(v, per, 0)
+        for j in joints:
+            v = _turn_back(ch, j, q[:, j], v)
         prev_link = k
-    out = np.array([q for q, _ in partial])
     # bring each angle to the representative closest to the middle of its limits
     mid = (arm.min_rad + arm.max_rad) / 2
-    return mid + _wrap(out - mid)
+    return mid + _wrap(q - mid)
 
 
-def _joint_rotation(ch, j: int, q: float) -> np.ndarray:
-    """Rotation of frame j+1 in frame j (0-based joint j) at angle ``q``."""
-    a = ch.axis[j]
-    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    t = q + ch.offset_rad[j]
+def _turn_back(ch, j: int, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rows ``v (P, 3)`` in frame j, expressed in frame j+1 (0-based joint j at ``q (P,)``)."""
+    K = _skew(ch.axis[j])
+    t = (q + ch.offset_rad[j])[:, None, None]
     R = np.eye(3) + np.sin(t) * K + (1.0 - np.cos(t)) * (K @ K)
-    return ch.R_pre[j] @ R @ ch.R_post[j]
+    R = ch.R_pre[j] @ R @ ch.R_post[j]  # (P, 3, 3): frame j+1 in frame j
+    return np.einsum("pij,pi->pj", R, v)
 
 
 def _dedupe(q: np.ndarray, tol: float = 1e-3) -> np.ndarray:
