@@ -348,17 +348,17 @@ def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
     free_f = (~held_mask[rows]).astype(float)
     held_f = held_mask[rows].astype(float)
     left = iters_left[rows]
-    eye = np.eye(p)
     while len(rows):
-        Jm = Ja * free_f[:, None, :] if masked else Ja
-        JmT = np.swapaxes(Jm, 1, 2)
-        A = JmT @ Jm
-        g = (JmT @ ra[:, :, None])[:, :, 0]
-        diag = np.diagonal(A, axis1=1, axis2=2)
-        A_damped = A + (lam[:, None] * (diag + 1e-9) * free_f + held_f)[:, :, None] * eye
-        step = -np.linalg.solve(A_damped, g[..., None])[..., 0]
         if masked:
-            step *= free_f
+            Ja = Ja * free_f[:, None, :]  # a held unknown's column is zero: it takes no step
+        JaT = np.swapaxes(Ja, 1, 2)
+        A = JaT @ Ja
+        g = JaT @ ra[:, :, None]
+        diag = A.reshape(len(A), p * p)[:, :: p + 1]  # a view: damping in place
+        diag += lam[:, None] * (diag + 1e-9)
+        if masked:
+            diag += held_f
+        step = -np.linalg.solve(A, g)[..., 0]
         xt = xa + step
         rt, Jt = problem.residuals_and_jacobian(xt, active, use_imu)
         ct = 0.5 * np.einsum("bm,bm->b", rt, rt)
