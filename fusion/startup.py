@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from models.arm import ArmModel
-from models.kinematics import chain_poses, gravity_chain
+from models.kinematics import gravity_chain
 from models.sensor_models import stream_models
 
 FLAGS = ("ok", "ill_conditioned", "gimbal_lock", "ambiguous", "out_of_limits")
@@ -396,32 +396,34 @@ def _profile_sigma(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.nda
     if len(joints) == 0:
         return np.zeros(0), np.zeros((0, n + 2))
     m = 2 * len(ks)
-    starts = np.repeat(xb[None], m * len(joints), 0)
-    free = np.ones((m * len(joints), n + 2), bool)
-    offsets = np.zeros((len(joints), m))
-    for i, j in enumerate(joints):
-        d = np.minimum(np.array(ks) * sig[j], cap_rad)
-        offsets[i] = np.concatenate([d, -d])
-        starts[m * i:m * (i + 1), j] += offsets[i]
-        free[m * i:m * (i + 1), j] = False
+    J = len(joints)
+    d = np.minimum(np.multiply.outer(sig[joints], ks), cap_rad)  # (J, k), increasing
+    offsets = np.concatenate([d, -d], 1)  # (J, m)
+    rows = np.arange(J * m)
+    held = np.repeat(joints, m)  # the joint each probe holds
+    starts = np.repeat(xb[None], J * m, 0)
+    starts[rows, held] += offsets.reshape(-1)
+    free = np.ones((J * m, n + 2), bool)
+    free[rows, held] = False
     probes, cost = _batched_lm(problem, starts, free, 12)
-    dcost = np.maximum(cost.reshape(len(joints), m) - cost_b, 1e-12) / scale**2
+    dcost = np.maximum(cost.reshape(J, m) - cost_b, 1e-12) / scale**2
     k = len(ks)
-    d = np.abs(offsets[:, :k])  # (J, k), increasing
     c = np.minimum(dcost[:, :k], dcost[:, k:])  # the easier side
-    out = np.empty(len(joints))
-    for i in range(len(joints)):
-        # the 1-sigma profile interval: where the fit has worsened by 0.5
-        above = np.flatnonzero(c[i] >= 0.5)
-        if len(above) == 0:  # still inside at the widest point: extrapolate quadratically
-            out[i] = d[i, -1] / np.sqrt(2.0 * c[i, -1])
-        elif above[0] == 0:  # crossed before the first point: quadratic from there
-            out[i] = d[i, 0] / np.sqrt(2.0 * c[i, 0])
-        else:  # between two points: interpolate log(cost) against log(offset)
-            a = above[0]
-            x0, x1 = np.log(d[i, a - 1]), np.log(d[i, a])
-            y0, y1 = np.log(c[i, a - 1]), np.log(c[i, a])
-            out[i] = np.exp(x0 + (np.log(0.5) - y0) * (x1 - x0) / (y1 - y0))
+    # the 1-sigma profile interval: where the fit has worsened by 0.5
+    crossed = c >= 0.5
+    a = np.argmax(crossed, 1)  # the first point past it (0 when none is)
+    # crossed before the first point, or still inside at the widest: quadratic from there
+    at = np.where(crossed.any(1), 0, k - 1)
+    i = np.arange(J)
+    quadratic = d[i, at] / np.sqrt(2.0 * c[i, at])
+    # between two points: interpolate log(cost) against log(offset)
+    a0 = np.maximum(a - 1, 0)
+    x0, x1 = np.log(d[i, a0]), np.log(d[i, a])
+    y0, y1 = np.log(c[i, a0]), np.log(c[i, a])
+    between = crossed.any(1) & (a > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inner = np.exp(x0 + (np.log(0.5) - y0) * (x1 - x0) / (y1 - y0))
+    out = np.where(between, inner, quadratic)
     return np.maximum(out, sig[joints]), probes
 
 
@@ -434,24 +436,19 @@ def _follow_weak(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.ndarr
     nothing about it)."""
     n = problem.n
     L = np.flatnonzero(weak)
-    pts = []
-    for j in L:
-        if locked[j]:
-            d = np.linspace(-np.pi, np.pi, 12, endpoint=False)[1:]
-        else:
-            w = min(3 * sig[j], np.pi / 3)
-            d = np.array([-1, -2 / 3, -1 / 3, 1 / 3, 2 / 3, 1]) * w
-        pts += [(j, v) for v in d]
-    starts = np.repeat(xb[None], len(pts), 0)
-    free = np.ones((len(pts), n + 2), bool)
-    for i, (j, v) in enumerate(pts):
-        starts[i, j] += v
-        free[i, j] = False
+    sweeps = [np.linspace(-np.pi, np.pi, 12, endpoint=False)[1:] if locked[j]
+              else np.array([-1, -2 / 3, -1 / 3, 1 / 3, 2 / 3, 1]) * min(3 * sig[j], np.pi / 3)
+              for j in L]
+    j_of = np.repeat(L, [len(d) for d in sweeps])  # the joint each point holds
+    rows = np.arange(len(j_of))
+    starts = np.repeat(xb[None], len(j_of), 0)
+    starts[rows, j_of] += np.concatenate(sweeps)
+    free = np.ones((len(j_of), n + 2), bool)
+    free[rows, j_of] = False
     x, cost = _batched_lm(problem, starts, free, 12)
-    j_of = np.array([j for j, _ in pts])
     allowed = locked[j_of] | ((cost - cost_b) / inflate <= 4.5)
     moved = np.abs(_wrap(x[:, :n] - xb[:n])) * allowed[:, None]
-    moved[np.arange(len(pts)), j_of] = 0.0
+    moved[rows, j_of] = 0.0
     return np.stack([moved[j_of == j].max(0) for j in L])
 
 
@@ -520,11 +517,14 @@ def _turn_back(ch, j: int, q: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _dedupe(q: np.ndarray, tol: float = 1e-3) -> np.ndarray:
-    keep: list[np.ndarray] = []
-    for row in q:
-        if not any(np.max(np.abs(_wrap(row - k))) < tol for k in keep):
-            keep.append(row)
-    return np.array(keep)
+    """The rows of ``q`` in order, each left out when within ``tol`` (every angle) of a row
+    kept before it."""
+    close = (np.abs(_wrap(q[:, None] - q[None])).max(-1) < tol).tolist()  # (B, B)
+    keep: list[int] = []
+    for i, row in enumerate(close):
+        if not any(row[k] for k in keep):
+            keep.append(i)
+    return q[keep]
 
 
 # --------------------------------------------------------------------------------------
@@ -760,9 +760,7 @@ def _sequential(problem: _Problem, x0: np.ndarray, st: StartupSettings):
 
 
 def _axis_to_vertical(arm, q, roll, pitch) -> np.ndarray:
-    poses = chain_poses(arm, q)
-    up = up_from_tilt(roll, pitch)
-    c = np.abs(np.einsum("bkj,bj->bk", poses.axis_0, up))
+    c = np.abs(gravity_chain(arm).axis_up_cos(q, up_from_tilt(roll, pitch)))
     return np.arccos(np.clip(c, 0.0, 1.0))
 
 

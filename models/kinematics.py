@@ -249,16 +249,7 @@ class GravityChain:
         V = np.zeros((N, 3, n + E))
         V[:, :, 0] = seed[:, :, 0]
         V[:, :, n + 1:] = seed[:, :, 1:]
-        theta = q[:, : last + 1] + self.offset_rad[: last + 1]
-        c, s = np.cos(theta), np.sin(theta)
-        # Rz(theta)^T C for every joint at once: (N, J, 3, 3)
-        Rt = np.zeros((N, last + 1, 3, 3))
-        Rt[:, :, 0, 0] = c
-        Rt[:, :, 0, 1] = s
-        Rt[:, :, 1, 0] = -s
-        Rt[:, :, 1, 1] = c
-        Rt[:, :, 2, 2] = 1.0
-        step = Rt @ self.step_in[: last + 1]
+        step = self._steps(q[:, : last + 1])
         out: list[np.ndarray | None] = [V] + [None] * n
         for i in range(last + 1):
             V = step[:, i] @ V
@@ -266,6 +257,31 @@ class GravityChain:
             V[:, 1, 1 + i] = -V[:, 0, 0]
             out[i + 1] = V
         return out
+
+    def axis_up_cos(self, q_rad: np.ndarray, up_0: np.ndarray) -> np.ndarray:
+        """Cosine of the angle between every joint's axis and up: ``(N, n)`` (z of up in the
+        joint's axis frame)."""
+        q = np.asarray(q_rad, float)
+        step = self._steps(q)
+        v = np.broadcast_to(np.asarray(up_0, float), (len(q), 3))[:, :, None]
+        out = np.empty(q.shape)
+        for i in range(q.shape[1]):
+            v = step[:, i] @ v
+            out[:, i] = v[:, 2, 0]
+        return out
+
+    def _steps(self, q: np.ndarray) -> np.ndarray:
+        """``Rz(theta_i)^T C_i`` for the first ``J`` joints of every pose: ``(N, J, 3, 3)``."""
+        J = q.shape[1]
+        theta = q + self.offset_rad[:J]
+        c, s = np.cos(theta), np.sin(theta)
+        Rt = np.zeros(q.shape + (3, 3))
+        Rt[:, :, 0, 0] = c
+        Rt[:, :, 0, 1] = s
+        Rt[:, :, 1, 0] = -s
+        Rt[:, :, 1, 1] = c
+        Rt[:, :, 2, 2] = 1.0
+        return Rt @ self.step_in[:J]
 
 
 def gravity_chain(arm: ArmModel, names=None) -> GravityChain:

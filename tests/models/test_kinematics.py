@@ -127,6 +127,8 @@ def test_gravity_chain_gives_the_readings_and_jacobian_of_the_frames(arm_name, r
         np.testing.assert_allclose(G[:, :, 1:1 + arm.n_joints], J[:, s], atol=1e-14)
         np.testing.assert_allclose(G[:, :, 1 + arm.n_joints:],
                                    np.swapaxes(R_0S[:, s], -1, -2) @ outer, atol=1e-14)
+    np.testing.assert_allclose(np.arccos(np.clip(np.abs(gc.axis_up_cos(q, up)), 0, 1)),
+                               joint_axis_angle_to_vertical(arm, q, up), atol=1e-7)
 
 
 def test_which_joints_each_wmra_accelerometer_sees(wmra, rng):
