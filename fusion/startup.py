@@ -329,9 +329,9 @@ def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
     for all starts, or ``(B, n+2)`` per start (a held unknown keeps its start value).
     ``iters``: the most iterations, for all starts or ``(B,)`` per start.
 
-    Each start stops on its own once it has converged (its step below 1e-7 rad, or its
-    damping past 1e8: no step lowers the cost) or used its iterations; the others go on
-    without it. Returns the solutions and their final cost (half sum of squared weighted
+    Each start stops on its own once it has converged (its next step below 1e-7 rad, not
+    taken, or its damping past 1e8: no step lowers the cost) or used its iterations; the
+    others go on without it. Returns the solutions and their final cost (half sum of squared weighted
     residuals).
     """
     x = np.array(x0, float)
@@ -359,6 +359,16 @@ def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
         if masked:
             diag += held_f
         step = -np.linalg.solve(A, g)[..., 0]
+        # 1e-7 rad is a thousandth of the smallest sigma these sensors give: converged
+        # (that last step is not taken: it could not change anything that is reported)
+        done = np.abs(step).max(1) < 1e-7
+        if done.any():
+            x[rows[done]], cost[rows[done]] = xa[done], ca[done]
+            go = ~done
+            rows, xa, ra, Ja, ca, lam, step = rows[go], xa[go], ra[go], Ja[go], ca[go], lam[go], step[go]
+            free_f, held_f, left = free_f[go], held_f[go], left[go]
+            if not len(rows):
+                break
         xt = xa + step
         rt, Jt = problem.residuals_and_jacobian(xt, active, use_imu)
         ct = 0.5 * np.einsum("bm,bm->b", rt, rt)
@@ -370,8 +380,7 @@ def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
                               np.where(better[:, None, None], Jt, Ja), np.where(better, ct, ca))
         lam = np.where(better, lam * 0.3, lam * 10.0)
         left = left - 1
-        # 1e-7 rad is a thousandth of the smallest sigma these sensors give: converged
-        done = (np.abs(step).max(1) < 1e-7) | (lam > 1e8) | (left <= 0)
+        done = (lam > 1e8) | (left <= 0)  # no step lowers the cost, or no iteration left
         if done.any():
             x[rows[done]], cost[rows[done]] = xa[done], ca[done]
             go = ~done
