@@ -436,29 +436,34 @@ def _profile_sigma(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.nda
     return np.maximum(out, sig[joints]), probes
 
 
-def _follow_weak(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.ndarray,
-                 weak: np.ndarray, locked: np.ndarray, inflate: float) -> np.ndarray:
-    """How far each joint moves while each weak joint, in turn, sweeps what the data allow
-    (a locked joint: its whole turn; an ill-conditioned one: +-3 sigma, at most 60 deg) and
-    everything else is re-solved: ``(n_weak, n)`` rad. Points whose fit is worse than a
-    3-sigma change (chi-square 9) are not allowed, except for a locked joint (the data say
-    nothing about it)."""
-    n = problem.n
+def _follow_weak_starts(xb: np.ndarray, sig: np.ndarray, weak: np.ndarray, locked: np.ndarray):
+    """The points each weak joint, in turn, is held at while everything else is re-solved
+    (a locked joint: its whole turn; an ill-conditioned one: +-3 sigma, at most 60 deg):
+    starts ``(P, n + 2)``, their free unknowns, and the joint each holds ``(P,)``."""
     L = np.flatnonzero(weak)
     sweeps = [np.linspace(-np.pi, np.pi, 12, endpoint=False)[1:] if locked[j]
               else np.array([-1, -2 / 3, -1 / 3, 1 / 3, 2 / 3, 1]) * min(3 * sig[j], np.pi / 3)
               for j in L]
-    j_of = np.repeat(L, [len(d) for d in sweeps])  # the joint each point holds
+    j_of = np.repeat(L, [len(d) for d in sweeps]).astype(int)
     rows = np.arange(len(j_of))
     starts = np.repeat(xb[None], len(j_of), 0)
-    starts[rows, j_of] += np.concatenate(sweeps)
-    free = np.ones((len(j_of), n + 2), bool)
+    starts[rows, j_of] += np.concatenate(sweeps) if sweeps else 0.0
+    free = np.ones(starts.shape, bool)
     free[rows, j_of] = False
-    x, cost = _batched_lm(problem, starts, free, 12)
+    return starts, free, j_of
+
+
+def _follow_weak(x: np.ndarray, cost: np.ndarray, j_of: np.ndarray, xb: np.ndarray,
+                 cost_b: float, locked: np.ndarray, inflate: float) -> np.ndarray:
+    """How far each joint moves while each weak joint sweeps what the data allow, from the
+    re-solved points ``x`` (and their ``cost``) of :func:`_follow_weak_starts`: ``(n_weak,
+    n)`` rad. Points whose fit is worse than a 3-sigma change (chi-square 9) are not
+    allowed, except for a locked joint (the data say nothing about it)."""
+    n = len(locked)
     allowed = locked[j_of] | ((cost - cost_b) / inflate <= 4.5)
     moved = np.abs(_wrap(x[:, :n] - xb[:n])) * allowed[:, None]
-    moved[rows, j_of] = 0.0
-    return np.stack([moved[j_of == j].max(0) for j in L])
+    moved[np.arange(len(j_of)), j_of] = 0.0
+    return np.stack([moved[j_of == j].max(0) for j in np.unique(j_of)])
 
 
 def _wrap(a):
@@ -642,10 +647,26 @@ def solve_still(
     readable = np.flatnonzero(~locked & np.isfinite(sig[:n]) & (sig[:n] > st.profile_above_deg * DEG))
     sig[readable], probes = _profile_sigma(problem, xb, float(0.5 * r @ r), sig, readable,
                                            np.sqrt(inflate))
+    flags = np.array(["ok"] * n, dtype=object)
+    flags[locked] = "gimbal_lock"
+    limit = st.sigma_limit_deg * DEG
+    # Joints whose value rests on a weak one (locked, or sigma above the limit): sweep the
+    # weak joint across what the data allow, re-solve the rest, and widen the others'
+    # sigma by how far they follow. A joint pushed over the limit by a locked joint
+    # inherits its flag; by an ill-conditioned one, it becomes ill-conditioned.
+    weak = locked | (sig[:n] > limit)
+    follow_x0, follow_free, follow_j = _follow_weak_starts(xb, sig, weak, locked)
+    # A valley may hold other minima than the branches the starts reached: the profile's
+    # probes are released, each rolls to its own; good ones join the branches as rivals
+    # below. Those and the sweep are solved in one batch (every row on its own).
+    solved, solved_cost = np.zeros((0, n + 2)), np.zeros(0)
+    if len(probes) or len(follow_j):
+        solved, solved_cost = _batched_lm(
+            problem, np.vstack([probes, follow_x0]),
+            np.vstack([np.ones(probes.shape, bool), follow_free]),
+            np.concatenate([np.full(len(probes), st.max_iterations), np.full(len(follow_j), 12)]))
+    xr, cost_r = solved[: len(probes)], solved_cost[: len(probes)]
     if len(probes):
-        # a valley may hold other minima than the branches the starts reached: release the
-        # probes and let each roll to its own; good ones join the branches as rivals below
-        xr, cost_r = _batched_lm(problem, probes, free, st.max_iterations)
         xr[:, :n] = mid + _wrap(xr[:, :n] - mid)
         keep = ((cost_r <= cost.min() + 0.5 * 9.0 + 1e-9)
                 & (arm.within_limits(xr[:, :n], margin) | locked_any[best]).all(1))
@@ -656,16 +677,9 @@ def solve_still(
             d2r = np.sum((_wrap(xr[:, :n] - prior) / psig) ** 2 * ~locked_any[best], 1)
             cand = np.concatenate([cand, np.arange(len(x) - len(xr), len(x))])
             d2 = np.concatenate([d2, d2r])
-    flags = np.array(["ok"] * n, dtype=object)
-    flags[locked] = "gimbal_lock"
-    limit = st.sigma_limit_deg * DEG
-    # Joints whose value rests on a weak one (locked, or sigma above the limit): sweep the
-    # weak joint across what the data allow, re-solve the rest, and widen the others'
-    # sigma by how far they follow. A joint pushed over the limit by a locked joint
-    # inherits its flag; by an ill-conditioned one, it becomes ill-conditioned.
-    weak = locked | (sig[:n] > limit)
     if weak.any():
-        follow = _follow_weak(problem, xb, float(0.5 * r @ r), sig, weak, locked, inflate)
+        follow = _follow_weak(solved[len(probes):], solved_cost[len(probes):], follow_j, xb,
+                              float(0.5 * r @ r), locked, inflate)
         moved = follow.max(0)  # (n,): the widest any weak joint drags each joint
         widened = np.maximum(sig[:n], moved / 3.0)
         by_locked = follow[locked[weak]].max(0) if locked.any() else np.zeros(n)
