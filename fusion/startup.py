@@ -289,6 +289,11 @@ class _Problem:
         leaves the base accelerometer out (the level-chair prior takes its place).
         Rows: 3 per sensor used (in config order), then the IMU's 3 or the prior's 2.
         """
+        rJ = self._augmented(x, active, use_imu)
+        return rJ[:, :, 0], rJ[:, :, 1:]
+
+    def _augmented(self, x: np.ndarray, active: np.ndarray | None, use_imu: bool) -> np.ndarray:
+        """Residuals and Jacobian side by side: ``(B, m, 1 + n + 2)``."""
         n = self.n
         B = x.shape[0]
         m, meas_w, reads, imu, n_sensor_rows, last = self._layout(active, use_imu)
@@ -302,7 +307,15 @@ class _Problem:
             prior[:] = 0.0
             prior[:, :, 0] = x[:, n:] / self.tilt_prior_rad
             prior[:, 0, n + 1] = prior[:, 1, n + 2] = 1.0 / self.tilt_prior_rad
-        return out[:, :, 0] + meas_w, out[:, :, 1:]
+        out[:, :, 0] += meas_w
+        return out
+
+    def normal_matrices(self, x: np.ndarray, active: np.ndarray | None = None,
+                        use_imu: bool = True) -> np.ndarray:
+        """``[r J]^T [r J]`` for states ``x (B, n+2)``: ``(B, n+3, n+3)``, with ``r . r`` at
+        [0, 0], ``J^T r`` down the rest of column 0 and ``J^T J`` below right; all LM needs."""
+        rJ = self._augmented(x, active, use_imu)
+        return np.swapaxes(rJ, 1, 2) @ rJ
 
 
 def _up_and_tilt_jacobian(roll, pitch) -> np.ndarray:
@@ -339,21 +352,22 @@ def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
     held_mask = ~np.broadcast_to(np.asarray(free, bool), (B, p))
     masked = bool(held_mask.any())
     iters_left = np.broadcast_to(np.asarray(iters), (B,)).astype(int)
-    r, J = problem.residuals_and_jacobian(x, active, use_imu)
-    cost = 0.5 * np.einsum("bm,bm->b", r, r)
+    N = problem.normal_matrices(x, active, use_imu)  # (B, 1 + p, 1 + p): r.r, J^T r, J^T J
+    cost = 0.5 * N[:, 0, 0]
     # the starts still iterating, packed: their rows in x, their state
     rows = np.flatnonzero(iters_left > 0)
-    xa, ra, Ja, ca = x[rows], r[rows], J[rows], cost[rows]
+    xa, Na, ca = x[rows], N[rows], cost[rows]
     lam = np.full(len(rows), 1e-3)
     free_f = (~held_mask[rows]).astype(float)
     held_f = held_mask[rows].astype(float)
     left = iters_left[rows]
     while len(rows):
-        if masked:
-            Ja = Ja * free_f[:, None, :]  # a held unknown's column is zero: it takes no step
-        JaT = np.swapaxes(Ja, 1, 2)
-        A = JaT @ Ja
-        g = JaT @ ra[:, :, None]
+        if masked:  # a held unknown's column is zero: it takes no step
+            A = Na[:, 1:, 1:] * free_f[:, :, None] * free_f[:, None, :]
+            g = Na[:, 1:, :1] * free_f[:, :, None]
+        else:
+            A = Na[:, 1:, 1:].copy()
+            g = Na[:, 1:, :1]
         diag = A.reshape(len(A), p * p)[:, :: p + 1]  # a view: damping in place
         diag += lam[:, None] * (diag + 1e-9)
         if masked:
@@ -365,26 +379,26 @@ def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
         if done.any():
             x[rows[done]], cost[rows[done]] = xa[done], ca[done]
             go = ~done
-            rows, xa, ra, Ja, ca, lam, step = rows[go], xa[go], ra[go], Ja[go], ca[go], lam[go], step[go]
+            rows, xa, Na, ca, lam, step = rows[go], xa[go], Na[go], ca[go], lam[go], step[go]
             free_f, held_f, left = free_f[go], held_f[go], left[go]
             if not len(rows):
                 break
         xt = xa + step
-        rt, Jt = problem.residuals_and_jacobian(xt, active, use_imu)
-        ct = 0.5 * np.einsum("bm,bm->b", rt, rt)
+        Nt = problem.normal_matrices(xt, active, use_imu)
+        ct = 0.5 * Nt[:, 0, 0]
         better = ct < ca
         if better.all():
-            xa, ra, Ja, ca = xt, rt, Jt, ct
+            xa, Na, ca = xt, Nt, ct
         elif better.any():
-            xa, ra, Ja, ca = (np.where(better[:, None], xt, xa), np.where(better[:, None], rt, ra),
-                              np.where(better[:, None, None], Jt, Ja), np.where(better, ct, ca))
+            xa, Na, ca = (np.where(better[:, None], xt, xa), np.where(better[:, None, None], Nt, Na),
+                          np.where(better, ct, ca))
         lam = np.where(better, lam * 0.3, lam * 10.0)
         left = left - 1
         done = (lam > 1e8) | (left <= 0)  # no step lowers the cost, or no iteration left
         if done.any():
             x[rows[done]], cost[rows[done]] = xa[done], ca[done]
             go = ~done
-            rows, xa, ra, Ja, ca, lam = rows[go], xa[go], ra[go], Ja[go], ca[go], lam[go]
+            rows, xa, Na, ca, lam = rows[go], xa[go], Na[go], ca[go], lam[go]
             free_f, held_f, left = free_f[go], held_f[go], left[go]
     return x, cost
 
