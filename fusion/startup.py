@@ -202,37 +202,37 @@ def _skew(w: np.ndarray) -> np.ndarray:
 def _subproblem1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Angle about unit axis ``w`` taking direction ``p`` closest to ``q``, for rows of
     directions ``p``, ``q`` (``(P, 3)``, or one ``(3,)`` for all): ``(P,)``."""
-    pp = p - np.multiply.outer(p @ w, w)
-    qq = q - np.multiply.outer(q @ w, w)
-    pp, qq = np.broadcast_arrays(pp, qq)
+    pp = p - (p @ w)[..., None] * w
+    qq = q - (q @ w)[..., None] * w
     # w . (pp x qq) = pp . (qq x w)
-    return np.arctan2(np.einsum("pi,pi->p", pp, qq @ _skew(w)), np.einsum("pi,pi->p", pp, qq))
+    return np.arctan2((pp * (qq @ _skew(w))).sum(-1), (pp * qq).sum(-1))
 
 
 def _subproblem2(w1, w2, p, q) -> np.ndarray:
     """Every (t1, t2) with ``Rot(w1, t1) Rot(w2, t2) p = q`` (unit directions; least-squares
-    closest when noise makes it inexact), for rows ``q (P, 3)`` and ``p`` one ``(3,)`` or
-    ``(P, 3)``: ``(P, k, 2)``, k = 2 solutions (1 for parallel axes)."""
+    closest when noise makes it inexact), for one direction ``p (3,)`` and rows ``q (P, 3)``:
+    ``(P, k, 2)``, k = 2 solutions (1 for parallel axes)."""
     q = np.atleast_2d(q)
-    p = np.broadcast_to(p, q.shape)
     c12 = float(w1 @ w2)
     den = c12**2 - 1.0
     if abs(den) < 1e-9:  # parallel axes: only the sum is defined
         t = _subproblem1(w1, p, q)
         return np.stack([t, np.zeros_like(t)], -1)[:, None]
-    a = (c12 * (p @ w2) - q @ w1) / den
-    b = (c12 * (q @ w1) - p @ w2) / den
+    qw1 = q @ w1
+    pw2 = float(p @ w2)
+    a = (c12 * pw2 - qw1) / den
+    b = (c12 * qw1 - pw2) / den
     cr = _skew(w1) @ w2
-    g2 = (np.sum(p * p, -1) - a * a - b * b - 2 * a * b * c12) / (cr @ cr)
+    g2 = (float(p @ p) - a * a - b * b - 2 * a * b * c12) / (cr @ cr)
     # Near the pair's singularity the two solutions merge, and noise can hide one of them
     # (g2 < 0). Start on both sides anyway; the polish finds the real minima, and the
     # duplicates are removed.
     g_min = 0.02
     gamma = np.sqrt(np.maximum(g2, g_min))[:, None, None] * np.array([1.0, -1.0])[:, None]
-    c = (np.multiply.outer(a, w1) + np.multiply.outer(b, w2))[:, None] + gamma * cr  # (P, 2, 3)
+    c = (a[:, None] * w1 + b[:, None] * w2)[:, None] + gamma * cr  # (P, 2, 3)
     c = c.reshape(-1, 3)
     out = np.empty((len(q), 2, 2))
-    out[:, :, 1] = _subproblem1(w2, np.repeat(p, 2, 0), c).reshape(-1, 2)
+    out[:, :, 1] = _subproblem1(w2, p, c).reshape(-1, 2)
     out[:, :, 0] = _subproblem1(w1, c, np.repeat(q, 2, 0)).reshape(-1, 2)
     return out
 
@@ -499,6 +499,7 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
     v = up0[None]  # (P, 3): up in frame prev_link
     prev_link = 0
     ch = arm.chain
+    turns = _joint_turn_parts(arm)
     for s in order:
         mount = arm.sensor(problem.names[s])
         k = mount.link
@@ -511,7 +512,7 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
         solve = joints[-2:]
         u = v
         for j in joints[:-2]:
-            u = _turn_back(ch, j, q[:, j], u)
+            u = _turn_back(turns[j], ch.offset_rad[j], q[:, j], u)
         if len(solve) == 1:
             j = solve[0]
             v1 = u @ ch.R_pre[j]  # rows of R_pre^T u
@@ -528,20 +529,35 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
         q[:, solve] = cand.reshape(-1, len(solve))
         v = np.repeat(v, per, 0)
         for j in joints:
-            v = _turn_back(ch, j, q[:, j], v)
+            v = _turn_back(turns[j], ch.offset_rad[j], q[:, j], v)
         prev_link = k
     # bring each angle to the representative closest to the middle of its limits
     mid = (arm.min_rad + arm.max_rad) / 2
     return mid + _wrap(q - mid)
 
 
-def _turn_back(ch, j: int, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rows ``v (P, 3)`` in frame j, expressed in frame j+1 (0-based joint j at ``q (P,)``)."""
-    K = _skew(ch.axis[j])
-    t = (q + ch.offset_rad[j])[:, None, None]
-    R = np.eye(3) + np.sin(t) * K + (1.0 - np.cos(t)) * (K @ K)
-    R = ch.R_pre[j] @ R @ ch.R_post[j]  # (P, 3, 3): frame j+1 in frame j
-    return np.einsum("pij,pi->pj", R, v)
+def _joint_turn_parts(arm: ArmModel) -> np.ndarray:
+    """Per joint, the three constant parts of the rotation of frame j+1 in frame j:
+    ``R(t) = P0 + sin t P1 + (1 - cos t) P2`` (Rodrigues between ``R_pre`` and ``R_post``):
+    ``(n, 3, 3, 3)``, built once per arm."""
+    parts = arm.__dict__.get("_startup_turn_parts")
+    if parts is None:
+        ch = arm.chain
+        parts = np.empty((arm.n_joints, 3, 3, 3))
+        for j in range(arm.n_joints):
+            K = _skew(ch.axis[j])
+            for i, M in enumerate((np.eye(3), K, K @ K)):
+                parts[j, i] = ch.R_pre[j] @ M @ ch.R_post[j]
+        arm.__dict__["_startup_turn_parts"] = parts
+    return parts
+
+
+def _turn_back(parts: np.ndarray, offset_rad: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rows ``v (P, 3)`` in frame j, expressed in frame j+1 (joint j at ``q (P,)``; ``parts``
+    its :func:`_joint_turn_parts`): ``v @ R(q)``."""
+    t = (q + offset_rad)[:, None]
+    u = v @ parts  # (3, P, 3)
+    return u[0] + np.sin(t) * u[1] + (1.0 - np.cos(t)) * u[2]
 
 
 def _dedupe(q: np.ndarray, tol: float = 1e-3) -> np.ndarray:
