@@ -252,7 +252,7 @@ class GravityChain:
         step = self._steps(q[:, : last + 1])
         out: list[np.ndarray | None] = [V] + [None] * n
         for i in range(last + 1):
-            V = step[:, i] @ V
+            V = step[i] @ V
             V[:, 0, 1 + i] = V[:, 1, 0]  # d v / d theta_i = v x z
             V[:, 1, 1 + i] = -V[:, 0, 0]
             out[i + 1] = V
@@ -266,22 +266,23 @@ class GravityChain:
         v = np.broadcast_to(np.asarray(up_0, float), (len(q), 3))[:, :, None]
         out = np.empty(q.shape)
         for i in range(q.shape[1]):
-            v = step[:, i] @ v
+            v = step[i] @ v
             out[:, i] = v[:, 2, 0]
         return out
 
     def _steps(self, q: np.ndarray) -> np.ndarray:
-        """``Rz(theta_i)^T C_i`` for the first ``J`` joints of every pose: ``(N, J, 3, 3)``."""
-        J = q.shape[1]
-        theta = q + self.offset_rad[:J]
+        """``Rz(theta_i)^T C_i`` for the first ``J`` joints of every pose: ``(J, N, 3, 3)``
+        (joint-major: one matrix product per joint over every pose)."""
+        N, J = q.shape
+        theta = (q + self.offset_rad[:J]).T
         c, s = np.cos(theta), np.sin(theta)
-        Rt = np.zeros(q.shape + (3, 3))
+        Rt = np.zeros((J, N, 3, 3))
         Rt[:, :, 0, 0] = c
         Rt[:, :, 0, 1] = s
         Rt[:, :, 1, 0] = -s
         Rt[:, :, 1, 1] = c
         Rt[:, :, 2, 2] = 1.0
-        return Rt @ self.step_in[:J]
+        return (Rt.reshape(J, N * 3, 3) @ self.step_in[:J]).reshape(J, N, 3, 3)
 
 
 def gravity_chain(arm: ArmModel, names=None) -> GravityChain:
