@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from models.arm import ArmModel
-from models.kinematics import chain_poses
+from models.kinematics import gravity_chain
 from models.sensor_models import stream_models
 
 FLAGS = ("ok", "ill_conditioned", "gimbal_lock", "ambiguous", "out_of_limits")
@@ -194,47 +194,46 @@ def tilt_from_up(up: np.ndarray) -> tuple[float, float]:
     return float(np.arctan2(u[1], u[2])), float(np.arctan2(-u[0], np.hypot(u[1], u[2])))
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+def _skew(w: np.ndarray) -> np.ndarray:
+    """``u @ _skew(w) == cross(u, w)`` for rows ``u``; ``_skew(w) @ u == cross(w, u)``."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
-def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = axis / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+def _subproblem1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Angle about unit axis ``w`` taking direction ``p`` closest to ``q``, for rows of
+    directions ``p``, ``q`` (``(P, 3)``, or one ``(3,)`` for all): ``(P,)``."""
+    pp = p - (p @ w)[..., None] * w
+    qq = q - (q @ w)[..., None] * w
+    # w . (pp x qq) = pp . (qq x w)
+    return np.arctan2((pp * (qq @ _skew(w))).sum(-1), (pp * qq).sum(-1))
 
 
-def _subproblem1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> tuple[float, float]:
-    """Angle about unit axis ``w`` taking direction ``p`` closest to ``q``; and how well the
-    angle is defined (the product of the projected lengths: 0 when p or q lies on the axis)."""
-    pp = p - w * (w @ p)
-    qq = q - w * (w @ q)
-    return float(np.arctan2(w @ _cross(pp, qq), pp @ qq)), float(np.sqrt((pp @ pp) * (qq @ qq)))
-
-
-def _subproblem2(w1, w2, p, q) -> list[tuple[float, float]]:
-    """All (t1, t2) with ``Rot(w1, t1) Rot(w2, t2) p = q`` (unit directions; least-squares
-    closest when noise makes it inexact). Up to two solutions."""
+def _subproblem2(w1, w2, p, q) -> np.ndarray:
+    """Every (t1, t2) with ``Rot(w1, t1) Rot(w2, t2) p = q`` (unit directions; least-squares
+    closest when noise makes it inexact), for one direction ``p (3,)`` and rows ``q (P, 3)``:
+    ``(P, k, 2)``, k = 2 solutions (1 for parallel axes)."""
+    q = np.atleast_2d(q)
     c12 = float(w1 @ w2)
     den = c12**2 - 1.0
     if abs(den) < 1e-9:  # parallel axes: only the sum is defined
-        t, _ = _subproblem1(w1, p, q)
-        return [(t, 0.0)]
-    a = (c12 * (w2 @ p) - w1 @ q) / den
-    b = (c12 * (w1 @ q) - w2 @ p) / den
-    cr = _cross(w1, w2)
-    g2 = (p @ p - a * a - b * b - 2 * a * b * c12) / (cr @ cr)
+        t = _subproblem1(w1, p, q)
+        return np.stack([t, np.zeros_like(t)], -1)[:, None]
+    qw1 = q @ w1
+    pw2 = float(p @ w2)
+    a = (c12 * pw2 - qw1) / den
+    b = (c12 * qw1 - pw2) / den
+    cr = _skew(w1) @ w2
+    g2 = (float(p @ p) - a * a - b * b - 2 * a * b * c12) / (cr @ cr)
     # Near the pair's singularity the two solutions merge, and noise can hide one of them
     # (g2 < 0). Start on both sides anyway; the polish finds the real minima, and the
     # duplicates are removed.
     g_min = 0.02
-    gammas = [np.sqrt(max(g2, g_min)), -np.sqrt(max(g2, g_min))]
-    out = []
-    for g in gammas:
-        c = a * w1 + b * w2 + g * cr
-        t2, _ = _subproblem1(w2, p, c)
-        t1, _ = _subproblem1(w1, c, q)
-        out.append((t1, t2))
+    gamma = np.sqrt(np.maximum(g2, g_min))[:, None, None] * np.array([1.0, -1.0])[:, None]
+    c = (a[:, None] * w1 + b[:, None] * w2)[:, None] + gamma * cr  # (P, 2, 3)
+    c = c.reshape(-1, 3)
+    out = np.empty((len(q), 2, 2))
+    out[:, :, 1] = _subproblem1(w2, p, c).reshape(-1, 2)
+    out[:, :, 0] = _subproblem1(w1, c, np.repeat(q, 2, 0)).reshape(-1, 2)
     return out
 
 
@@ -252,76 +251,155 @@ class _Problem:
     R_0I: np.ndarray = field(default_factory=lambda: np.eye(3))
     tilt_prior_rad: float = 5.0 * DEG
 
+    def __post_init__(self):
+        self._chain = gravity_chain(self.arm, self.names)
+        # every row's read-out, weighted and negated: rows = -(D_s v) / sigma = r - meas / sigma
+        self._read_w = -self._chain.read_out / self.sigma[:, :, None]  # (S, 3, 3)
+        self._layouts: dict = {}
+
     @property
     def n(self) -> int:
         return self.arm.n_joints
 
-    def residuals_and_jacobian(self, x: np.ndarray, active: np.ndarray | None = None):
+    def _layout(self, active: np.ndarray | None, use_imu: bool):
+        """Rows of one kind of solve: the sensors used, the IMU or the level-chair prior."""
+        key = (None if active is None else np.asarray(active, bool).tobytes(), use_imu)
+        hit = self._layouts.get(key)
+        if hit is None:
+            S = len(self.names)
+            used = np.arange(S) if active is None else np.flatnonzero(active)
+            imu = use_imu and self.imu_meas is not None
+            m = 3 * len(used) + (3 if imu else 2)
+            meas_w = np.zeros(m)  # measured / sigma; 0 on the tilt prior's rows
+            meas_w[: 3 * len(used)] = (self.meas[used] / self.sigma[used]).reshape(-1)
+            reads = [(3 * i, int(self._chain.links[s]), self._read_w[s]) for i, s in enumerate(used)]
+            if imu:
+                meas_w[3 * len(used):] = self.imu_meas / self.imu_sigma
+                reads.append((3 * len(used), 0, -self.R_0I.T / self.imu_sigma[:, None]))
+            last = max([k for _, k, _ in reads], default=0) - 1  # the last joint any row needs
+            hit = (m, meas_w, reads, imu, 3 * len(used), last)
+            self._layouts[key] = hit
+        return hit
+
+    def residuals_and_jacobian(self, x: np.ndarray, active: np.ndarray | None = None,
+                               use_imu: bool = True):
         """Weighted residuals ``(B, m)`` and Jacobian ``(B, m, n + 2)`` for states ``x (B, n+2)``.
 
-        ``active`` (S,) bool selects the sensors used (sequential solves).
+        ``active`` (S,) bool selects the sensors used (sequential solves); ``use_imu=False``
+        leaves the base accelerometer out (the level-chair prior takes its place).
+        Rows: 3 per sensor used (in config order), then the IMU's 3 or the prior's 2.
         """
-        from models.kinematics import gravity_jacobian
+        rJ = self._augmented(x, active, use_imu)
+        return rJ[:, :, 0], rJ[:, :, 1:]
 
+    def _augmented(self, x: np.ndarray, active: np.ndarray | None, use_imu: bool) -> np.ndarray:
+        """Residuals and Jacobian side by side: ``(B, m, 1 + n + 2)``."""
         n = self.n
         B = x.shape[0]
-        q, roll, pitch = x[:, :n], x[:, n], x[:, n + 1]
-        up = up_from_tilt(roll, pitch)  # (B, 3)
-        f, Jq, R_0S = gravity_jacobian(self.arm, q, up, self.names, with_frames=True)
-        dup = up_tilt_jacobian(roll, pitch)  # (B, 3, 2)
-        if active is not None:
-            f, Jq, R_0S = f[:, active], Jq[:, active], R_0S[:, active]
-            meas, sig = self.meas[active], self.sigma[active]
-        else:
-            meas, sig = self.meas, self.sigma
-        S = meas.shape[0]
-        m = 3 * S + (3 if self.imu_meas is not None else 2)
-        r = np.empty((B, m))
-        J = np.zeros((B, m, n + 2))
-        r[:, :3 * S] = ((meas[None] - f) / sig[None]).reshape(B, -1)
-        J[:, :3 * S, :n] = (-Jq / sig[None, :, :, None]).reshape(B, -1, n)
-        Jt = np.swapaxes(R_0S, -1, -2) @ dup[:, None]  # (B, S, 3, 2)
-        J[:, :3 * S, n:] = (-Jt / sig[None, :, :, None]).reshape(B, -1, 2)
-        if self.imu_meas is not None:
-            fi = up @ self.R_0I  # (B, 3): R_0I^T up
-            r[:, 3 * S:] = (self.imu_meas[None] - fi) / self.imu_sigma[None]
-            J[:, 3 * S:, n:] = -(self.R_0I.T @ dup) / self.imu_sigma[None, :, None]
-        else:  # no base accelerometer: all we know is that a wheelchair stands roughly level
-            r[:, 3 * S:] = x[:, n:] / self.tilt_prior_rad
-            J[:, 3 * S, n] = J[:, 3 * S + 1, n + 1] = 1.0 / self.tilt_prior_rad
-        return r, J
+        m, meas_w, reads, imu, n_sensor_rows, last = self._layout(active, use_imu)
+        seed = _up_and_tilt_jacobian(x[:, n], x[:, n + 1])  # (B, 3, 3)
+        after = self._chain.propagate(x[:, :n], seed, upto_joint=last)
+        out = np.empty((B, m, n + 3))  # column 0: the residual's model part; then d/dx
+        for row, k, W in reads:
+            np.matmul(W, after[k], out=out[:, row:row + 3])
+        if not imu:  # no base accelerometer: all we know is that a wheelchair stands roughly level
+            prior = out[:, n_sensor_rows:]
+            prior[:] = 0.0
+            prior[:, :, 0] = x[:, n:] / self.tilt_prior_rad
+            prior[:, 0, n + 1] = prior[:, 1, n + 2] = 1.0 / self.tilt_prior_rad
+        out[:, :, 0] += meas_w
+        return out
+
+    def normal_matrices(self, x: np.ndarray, active: np.ndarray | None = None,
+                        use_imu: bool = True) -> np.ndarray:
+        """``[r J]^T [r J]`` for states ``x (B, n+2)``: ``(B, n+3, n+3)``, with ``r . r`` at
+        [0, 0], ``J^T r`` down the rest of column 0 and ``J^T J`` below right; all LM needs."""
+        rJ = self._augmented(x, active, use_imu)
+        return np.ascontiguousarray(np.swapaxes(rJ, 1, 2)) @ rJ  # contiguous: a faster product
 
 
-def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters: int,
-                active: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _up_and_tilt_jacobian(roll, pitch) -> np.ndarray:
+    """``[up, d up / d roll, d up / d pitch]`` as the columns of ``(B, 3, 3)``."""
+    sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
+    srcp, crcp = sr * cp, cr * cp
+    out = np.empty((len(sr), 3, 3))
+    out[:, 0, 0] = -sp
+    out[:, 1, 0] = srcp
+    out[:, 2, 0] = crcp
+    out[:, 0, 1] = 0.0
+    out[:, 1, 1] = crcp
+    out[:, 2, 1] = -srcp
+    out[:, 0, 2] = -cp
+    out[:, 1, 2] = -sr * sp
+    out[:, 2, 2] = -cr * sp
+    return out
+
+
+def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
+                active: np.ndarray | None = None, use_imu: bool = True,
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on every start at once. ``free`` selects the unknowns: ``(n+2,)``
     for all starts, or ``(B, n+2)`` per start (a held unknown keeps its start value).
+    ``iters``: the most iterations, for all starts or ``(B,)`` per start.
 
-    Returns the solutions and their final cost (half sum of squared weighted residuals).
+    Each start stops on its own once it has converged (its next step below 1e-7 rad, not
+    taken, or its damping past 1e8: no step lowers the cost) or used its iterations; the
+    others go on without it. Returns the solutions and their final cost (half sum of squared weighted
+    residuals).
     """
-    x = x0.copy()
+    x = np.array(x0, float)
     B, p = x.shape
-    M = np.broadcast_to(np.asarray(free, bool), (B, p)).astype(float)
-    lam = np.full(B, 1e-3)
-    r, J = problem.residuals_and_jacobian(x, active)
-    cost = 0.5 * np.sum(r**2, 1)
-    eye = np.eye(p)
-    for _ in range(iters):
-        Jm = J * M[:, None, :]
-        A = np.einsum("bmi,bmj->bij", Jm, Jm)
-        g = np.einsum("bmi,bm->bi", Jm, r)
-        diag = np.einsum("bii->bi", A)
-        A_damped = A + (lam[:, None] * (diag + 1e-9) * M + (1.0 - M))[:, :, None] * eye
-        step = -np.linalg.solve(A_damped, g[..., None])[..., 0] * M
-        xt = x + step
-        rt, Jt = problem.residuals_and_jacobian(xt, active)
-        ct = 0.5 * np.sum(rt**2, 1)
-        better = ct < cost
-        x[better], r[better], J[better], cost[better] = xt[better], rt[better], Jt[better], ct[better]
-        lam = np.where(better, lam * 0.3, lam * 10.0)
+    held_mask = ~np.broadcast_to(np.asarray(free, bool), (B, p))
+    masked = bool(held_mask.any())
+    iters_left = np.broadcast_to(np.asarray(iters), (B,)).astype(int)
+    N = problem.normal_matrices(x, active, use_imu)  # (B, 1 + p, 1 + p): r.r, J^T r, J^T J
+    cost = 0.5 * N[:, 0, 0]
+    # the starts still iterating, packed: their rows in x, their state
+    rows = np.flatnonzero(iters_left > 0)
+    xa, Na, ca = x[rows], N[rows], cost[rows]
+    lam = np.full(len(rows), 1e-3)
+    free_f = (~held_mask[rows]).astype(float)
+    held_f = held_mask[rows].astype(float)
+    left = iters_left[rows]
+    while len(rows):
+        if masked:  # a held unknown's column is zero: it takes no step
+            A = Na[:, 1:, 1:] * free_f[:, :, None] * free_f[:, None, :]
+            g = Na[:, 1:, :1] * free_f[:, :, None]
+        else:
+            A = Na[:, 1:, 1:].copy()
+            g = Na[:, 1:, :1]
+        diag = A.reshape(len(A), p * p)[:, :: p + 1]  # a view: damping in place
+        diag += lam[:, None] * (diag + 1e-9)
+        if masked:
+            diag += held_f
+        step = -np.linalg.solve(A, g)[..., 0]
         # 1e-7 rad is a thousandth of the smallest sigma these sensors give: converged
-        if np.all((np.abs(step).max(1) < 1e-7) | (lam > 1e8)):
-            break
+        # (that last step is not taken: it could not change anything that is reported)
+        done = np.abs(step).max(1) < 1e-7
+        if done.any():
+            x[rows[done]], cost[rows[done]] = xa[done], ca[done]
+            go = ~done
+            rows, xa, Na, ca, lam, step = rows[go], xa[go], Na[go], ca[go], lam[go], step[go]
+            free_f, held_f, left = free_f[go], held_f[go], left[go]
+            if not len(rows):
+                break
+        xt = xa + step
+        Nt = problem.normal_matrices(xt, active, use_imu)
+        ct = 0.5 * Nt[:, 0, 0]
+        better = ct < ca
+        if better.all():
+            xa, Na, ca = xt, Nt, ct
+        elif better.any():
+            xa, Na, ca = (np.where(better[:, None], xt, xa), np.where(better[:, None, None], Nt, Na),
+                          np.where(better, ct, ca))
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+        left = left - 1
+        done = (lam > 1e8) | (left <= 0)  # no step lowers the cost, or no iteration left
+        if done.any():
+            x[rows[done]], cost[rows[done]] = xa[done], ca[done]
+            go = ~done
+            rows, xa, Na, ca, lam = rows[go], xa[go], Na[go], ca[go], lam[go]
+            free_f, held_f, left = free_f[go], held_f[go], left[go]
     return x, cost
 
 
@@ -341,63 +419,65 @@ def _profile_sigma(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.nda
     if len(joints) == 0:
         return np.zeros(0), np.zeros((0, n + 2))
     m = 2 * len(ks)
-    starts = np.repeat(xb[None], m * len(joints), 0)
-    free = np.ones((m * len(joints), n + 2), bool)
-    offsets = np.zeros((len(joints), m))
-    for i, j in enumerate(joints):
-        d = np.minimum(np.array(ks) * sig[j], cap_rad)
-        offsets[i] = np.concatenate([d, -d])
-        starts[m * i:m * (i + 1), j] += offsets[i]
-        free[m * i:m * (i + 1), j] = False
+    J = len(joints)
+    d = np.minimum(np.multiply.outer(sig[joints], ks), cap_rad)  # (J, k), increasing
+    offsets = np.concatenate([d, -d], 1)  # (J, m)
+    rows = np.arange(J * m)
+    held = np.repeat(joints, m)  # the joint each probe holds
+    starts = np.repeat(xb[None], J * m, 0)
+    starts[rows, held] += offsets.reshape(-1)
+    free = np.ones((J * m, n + 2), bool)
+    free[rows, held] = False
     probes, cost = _batched_lm(problem, starts, free, 12)
-    dcost = np.maximum(cost.reshape(len(joints), m) - cost_b, 1e-12) / scale**2
+    dcost = np.maximum(cost.reshape(J, m) - cost_b, 1e-12) / scale**2
     k = len(ks)
-    d = np.abs(offsets[:, :k])  # (J, k), increasing
     c = np.minimum(dcost[:, :k], dcost[:, k:])  # the easier side
-    out = np.empty(len(joints))
-    for i in range(len(joints)):
-        # the 1-sigma profile interval: where the fit has worsened by 0.5
-        above = np.flatnonzero(c[i] >= 0.5)
-        if len(above) == 0:  # still inside at the widest point: extrapolate quadratically
-            out[i] = d[i, -1] / np.sqrt(2.0 * c[i, -1])
-        elif above[0] == 0:  # crossed before the first point: quadratic from there
-            out[i] = d[i, 0] / np.sqrt(2.0 * c[i, 0])
-        else:  # between two points: interpolate log(cost) against log(offset)
-            a = above[0]
-            x0, x1 = np.log(d[i, a - 1]), np.log(d[i, a])
-            y0, y1 = np.log(c[i, a - 1]), np.log(c[i, a])
-            out[i] = np.exp(x0 + (np.log(0.5) - y0) * (x1 - x0) / (y1 - y0))
+    # the 1-sigma profile interval: where the fit has worsened by 0.5
+    crossed = c >= 0.5
+    a = np.argmax(crossed, 1)  # the first point past it (0 when none is)
+    # crossed before the first point, or still inside at the widest: quadratic from there
+    at = np.where(crossed.any(1), 0, k - 1)
+    i = np.arange(J)
+    quadratic = d[i, at] / np.sqrt(2.0 * c[i, at])
+    # between two points: interpolate log(cost) against log(offset)
+    a0 = np.maximum(a - 1, 0)
+    x0, x1 = np.log(d[i, a0]), np.log(d[i, a])
+    y0, y1 = np.log(c[i, a0]), np.log(c[i, a])
+    between = crossed.any(1) & (a > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inner = np.exp(x0 + (np.log(0.5) - y0) * (x1 - x0) / (y1 - y0))
+    out = np.where(between, inner, quadratic)
     return np.maximum(out, sig[joints]), probes
 
 
-def _follow_weak(problem: _Problem, xb: np.ndarray, cost_b: float, sig: np.ndarray,
-                 weak: np.ndarray, locked: np.ndarray, inflate: float) -> np.ndarray:
-    """How far each joint moves while each weak joint, in turn, sweeps what the data allow
-    (a locked joint: its whole turn; an ill-conditioned one: +-3 sigma, at most 60 deg) and
-    everything else is re-solved: ``(n_weak, n)`` rad. Points whose fit is worse than a
-    3-sigma change (chi-square 9) are not allowed, except for a locked joint (the data say
-    nothing about it)."""
-    n = problem.n
+def _follow_weak_starts(xb: np.ndarray, sig: np.ndarray, weak: np.ndarray, locked: np.ndarray):
+    """The points each weak joint, in turn, is held at while everything else is re-solved
+    (a locked joint: its whole turn; an ill-conditioned one: +-3 sigma, at most 60 deg):
+    starts ``(P, n + 2)``, their free unknowns, and the joint each holds ``(P,)``."""
     L = np.flatnonzero(weak)
-    pts = []
-    for j in L:
-        if locked[j]:
-            d = np.linspace(-np.pi, np.pi, 12, endpoint=False)[1:]
-        else:
-            w = min(3 * sig[j], np.pi / 3)
-            d = np.array([-1, -2 / 3, -1 / 3, 1 / 3, 2 / 3, 1]) * w
-        pts += [(j, v) for v in d]
-    starts = np.repeat(xb[None], len(pts), 0)
-    free = np.ones((len(pts), n + 2), bool)
-    for i, (j, v) in enumerate(pts):
-        starts[i, j] += v
-        free[i, j] = False
-    x, cost = _batched_lm(problem, starts, free, 12)
-    j_of = np.array([j for j, _ in pts])
+    sweeps = [np.linspace(-np.pi, np.pi, 12, endpoint=False)[1:] if locked[j]
+              else np.array([-1, -2 / 3, -1 / 3, 1 / 3, 2 / 3, 1]) * min(3 * sig[j], np.pi / 3)
+              for j in L]
+    j_of = np.repeat(L, [len(d) for d in sweeps]).astype(int)
+    rows = np.arange(len(j_of))
+    starts = np.repeat(xb[None], len(j_of), 0)
+    starts[rows, j_of] += np.concatenate(sweeps) if sweeps else 0.0
+    free = np.ones(starts.shape, bool)
+    free[rows, j_of] = False
+    return starts, free, j_of
+
+
+def _follow_weak(x: np.ndarray, cost: np.ndarray, j_of: np.ndarray, xb: np.ndarray,
+                 cost_b: float, locked: np.ndarray, inflate: float) -> np.ndarray:
+    """How far each joint moves while each weak joint sweeps what the data allow, from the
+    re-solved points ``x`` (and their ``cost``) of :func:`_follow_weak_starts`: ``(n_weak,
+    n)`` rad. Points whose fit is worse than a 3-sigma change (chi-square 9) are not
+    allowed, except for a locked joint (the data say nothing about it)."""
+    n = len(locked)
     allowed = locked[j_of] | ((cost - cost_b) / inflate <= 4.5)
     moved = np.abs(_wrap(x[:, :n] - xb[:n])) * allowed[:, None]
-    moved[np.arange(len(pts)), j_of] = 0.0
-    return np.stack([moved[j_of == j].max(0) for j in L])
+    moved[np.arange(len(j_of)), j_of] = 0.0
+    return np.stack([moved[j_of == j].max(0) for j in np.unique(j_of)])
 
 
 def _wrap(a):
@@ -409,14 +489,17 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
 
     Joints no sensor reads stay at the ready pose. A joint whose angle is undefined here
     (its axis along gravity) takes its ready-pose value; the polish and flags handle it.
+    Every partial branch is carried at once (rows of ``q``, ``v``).
     """
     arm = problem.arm
     up0 = up_from_tilt(roll, pitch)
     order = np.argsort([arm.sensor(nm).link for nm in problem.names])
     # each partial branch: its joint angles so far, and up expressed in its last frame
-    partial = [(arm.ready_pose_rad.astype(float).copy(), up0)]
+    q = arm.ready_pose_rad.astype(float)[None].copy()  # (P, n)
+    v = up0[None]  # (P, 3): up in frame prev_link
     prev_link = 0
     ch = arm.chain
+    turns = _joint_turn_parts(arm)
     for s in order:
         mount = arm.sensor(problem.names[s])
         k = mount.link
@@ -424,58 +507,68 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
         if not joints:
             continue
         w = mount.R_LS @ problem.meas[s]  # up in frame k (unit)
-        new_partial = []
-        for q, v in partial:  # v: up in frame prev_link
-            # only the last two joints before the sensor are solved; earlier unread joints
-            # (more than two per sensor) stay at their ready values
-            solve = joints[-2:]
-            fixed = joints[:-2]
-            v0 = v
-            for j in fixed:
-                v = _joint_rotation(ch, j, q[j]).T @ v
-            if len(solve) == 1:
-                j = solve[0]
-                v1 = ch.R_pre[j].T @ v
-                w1 = ch.R_post[j] @ w
-                t, _ = _subproblem1(ch.axis[j], w1, v1)
-                cand = [(t - ch.offset_rad[j],)]
-            else:
-                a, b = solve
-                v1 = ch.R_pre[a].T @ v
-                w1 = ch.R_post[b] @ w
-                M = ch.R_post[a] @ ch.R_pre[b]
-                sols = _subproblem2(ch.axis[a], M @ ch.axis[b], M @ w1, v1)
-                cand = [(t1 - ch.offset_rad[a], t2 - ch.offset_rad[b]) for t1, t2 in sols]
-            for c in cand:
-                qn = q.copy()
-                qn[solve] = c
-                vn = v0
-                for j in joints:
-                    vn = _joint_rotation(ch, j, qn[j]).T @ vn
-                new_partial.append((qn, vn))
-        partial = new_partial
+        # only the last two joints before the sensor are solved; earlier unread joints
+        # (more than two per sensor) stay at their ready values
+        solve = joints[-2:]
+        u = v
+        for j in joints[:-2]:
+            u = _turn_back(turns[j], ch.offset_rad[j], q[:, j], u)
+        if len(solve) == 1:
+            j = solve[0]
+            v1 = u @ ch.R_pre[j]  # rows of R_pre^T u
+            w1 = ch.R_post[j] @ w
+            cand = (_subproblem1(ch.axis[j], w1, v1) - ch.offset_rad[j])[:, None, None]
+        else:
+            a, b = solve
+            v1 = u @ ch.R_pre[a]
+            w1 = ch.R_post[b] @ w
+            M = ch.R_post[a] @ ch.R_pre[b]
+            cand = _subproblem2(ch.axis[a], M @ ch.axis[b], M @ w1, v1) - ch.offset_rad[solve]
+        per = cand.shape[1]  # candidates per partial branch, kept in order
+        q = np.repeat(q, per, 0)
+        q[:, solve] = cand.reshape(-1, len(solve))
+        v = np.repeat(v, per, 0)
+        for j in joints:
+            v = _turn_back(turns[j], ch.offset_rad[j], q[:, j], v)
         prev_link = k
-    out = np.array([q for q, _ in partial])
     # bring each angle to the representative closest to the middle of its limits
     mid = (arm.min_rad + arm.max_rad) / 2
-    return mid + _wrap(out - mid)
+    return mid + _wrap(q - mid)
 
 
-def _joint_rotation(ch, j: int, q: float) -> np.ndarray:
-    """Rotation of frame j+1 in frame j (0-based joint j) at angle ``q``."""
-    a = ch.axis[j]
-    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    t = q + ch.offset_rad[j]
-    R = np.eye(3) + np.sin(t) * K + (1.0 - np.cos(t)) * (K @ K)
-    return ch.R_pre[j] @ R @ ch.R_post[j]
+def _joint_turn_parts(arm: ArmModel) -> np.ndarray:
+    """Per joint, the three constant parts of the rotation of frame j+1 in frame j:
+    ``R(t) = P0 + sin t P1 + (1 - cos t) P2`` (Rodrigues between ``R_pre`` and ``R_post``):
+    ``(n, 3, 3, 3)``, built once per arm."""
+    parts = arm.__dict__.get("_startup_turn_parts")
+    if parts is None:
+        ch = arm.chain
+        parts = np.empty((arm.n_joints, 3, 3, 3))
+        for j in range(arm.n_joints):
+            K = _skew(ch.axis[j])
+            for i, M in enumerate((np.eye(3), K, K @ K)):
+                parts[j, i] = ch.R_pre[j] @ M @ ch.R_post[j]
+        arm.__dict__["_startup_turn_parts"] = parts
+    return parts
+
+
+def _turn_back(parts: np.ndarray, offset_rad: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rows ``v (P, 3)`` in frame j, expressed in frame j+1 (joint j at ``q (P,)``; ``parts``
+    its :func:`_joint_turn_parts`): ``v @ R(q)``."""
+    t = (q + offset_rad)[:, None]
+    u = v @ parts  # (3, P, 3)
+    return u[0] + np.sin(t) * u[1] + (1.0 - np.cos(t)) * u[2]
 
 
 def _dedupe(q: np.ndarray, tol: float = 1e-3) -> np.ndarray:
-    keep: list[np.ndarray] = []
-    for row in q:
-        if not any(np.max(np.abs(_wrap(row - k))) < tol for k in keep):
-            keep.append(row)
-    return np.array(keep)
+    """The rows of ``q`` in order, each left out when within ``tol`` (every angle) of a row
+    kept before it."""
+    close = (np.abs(_wrap(q[:, None] - q[None])).max(-1) < tol).tolist()  # (B, B)
+    keep: list[int] = []
+    for i, row in enumerate(close):
+        if not any(row[k] for k in keep):
+            keep.append(i)
+    return q[keep]
 
 
 # --------------------------------------------------------------------------------------
@@ -584,10 +677,26 @@ def solve_still(
     readable = np.flatnonzero(~locked & np.isfinite(sig[:n]) & (sig[:n] > st.profile_above_deg * DEG))
     sig[readable], probes = _profile_sigma(problem, xb, float(0.5 * r @ r), sig, readable,
                                            np.sqrt(inflate))
+    flags = np.array(["ok"] * n, dtype=object)
+    flags[locked] = "gimbal_lock"
+    limit = st.sigma_limit_deg * DEG
+    # Joints whose value rests on a weak one (locked, or sigma above the limit): sweep the
+    # weak joint across what the data allow, re-solve the rest, and widen the others'
+    # sigma by how far they follow. A joint pushed over the limit by a locked joint
+    # inherits its flag; by an ill-conditioned one, it becomes ill-conditioned.
+    weak = locked | (sig[:n] > limit)
+    follow_x0, follow_free, follow_j = _follow_weak_starts(xb, sig, weak, locked)
+    # A valley may hold other minima than the branches the starts reached: the profile's
+    # probes are released, each rolls to its own; good ones join the branches as rivals
+    # below. Those and the sweep are solved in one batch (every row on its own).
+    solved, solved_cost = np.zeros((0, n + 2)), np.zeros(0)
+    if len(probes) or len(follow_j):
+        solved, solved_cost = _batched_lm(
+            problem, np.vstack([probes, follow_x0]),
+            np.vstack([np.ones(probes.shape, bool), follow_free]),
+            np.concatenate([np.full(len(probes), st.max_iterations), np.full(len(follow_j), 12)]))
+    xr, cost_r = solved[: len(probes)], solved_cost[: len(probes)]
     if len(probes):
-        # a valley may hold other minima than the branches the starts reached: release the
-        # probes and let each roll to its own; good ones join the branches as rivals below
-        xr, cost_r = _batched_lm(problem, probes, free, st.max_iterations)
         xr[:, :n] = mid + _wrap(xr[:, :n] - mid)
         keep = ((cost_r <= cost.min() + 0.5 * 9.0 + 1e-9)
                 & (arm.within_limits(xr[:, :n], margin) | locked_any[best]).all(1))
@@ -598,16 +707,9 @@ def solve_still(
             d2r = np.sum((_wrap(xr[:, :n] - prior) / psig) ** 2 * ~locked_any[best], 1)
             cand = np.concatenate([cand, np.arange(len(x) - len(xr), len(x))])
             d2 = np.concatenate([d2, d2r])
-    flags = np.array(["ok"] * n, dtype=object)
-    flags[locked] = "gimbal_lock"
-    limit = st.sigma_limit_deg * DEG
-    # Joints whose value rests on a weak one (locked, or sigma above the limit): sweep the
-    # weak joint across what the data allow, re-solve the rest, and widen the others'
-    # sigma by how far they follow. A joint pushed over the limit by a locked joint
-    # inherits its flag; by an ill-conditioned one, it becomes ill-conditioned.
-    weak = locked | (sig[:n] > limit)
     if weak.any():
-        follow = _follow_weak(problem, xb, float(0.5 * r @ r), sig, weak, locked, inflate)
+        follow = _follow_weak(solved[len(probes):], solved_cost[len(probes):], follow_j, xb,
+                              float(0.5 * r @ r), locked, inflate)
         moved = follow.max(0)  # (n,): the widest any weak joint drags each joint
         widened = np.maximum(sig[:n], moved / 3.0)
         by_locked = follow[locked[weak]].max(0) if locked.any() else np.zeros(n)
@@ -703,21 +805,15 @@ def _sequential(problem: _Problem, x0: np.ndarray, st: StartupSettings):
         free[prev:k] = True
         active = np.zeros(len(problem.names), bool)
         active[s] = True
-        imu = problem.imu_meas
-        problem.imu_meas = None  # the IMU does not take part in the joint pairs
-        try:
-            x, _ = _batched_lm(problem, x, free, st.max_iterations, active=active)
-        finally:
-            problem.imu_meas = imu
+        # the IMU does not take part in the joint pairs
+        x, _ = _batched_lm(problem, x, free, st.max_iterations, active=active, use_imu=False)
         prev = k
     r, _ = problem.residuals_and_jacobian(x)
     return x, 0.5 * np.sum(r**2, 1)
 
 
 def _axis_to_vertical(arm, q, roll, pitch) -> np.ndarray:
-    poses = chain_poses(arm, q)
-    up = up_from_tilt(roll, pitch)
-    c = np.abs(np.einsum("bkj,bj->bk", poses.axis_0, up))
+    c = np.abs(gravity_chain(arm).axis_up_cos(q, up_from_tilt(roll, pitch)))
     return np.arccos(np.clip(c, 0.0, 1.0))
 
 

@@ -198,3 +198,114 @@ def dependency_matrix(arm: ArmModel, names=None) -> np.ndarray:
     idx = sensor_indices(arm, names)
     links = np.array([arm.sensors[i].link for i in idx])
     return np.arange(arm.n_joints)[None, :] < links[:, None]
+
+
+# --------------------------------------------------------------------------------------
+# gravity carried down the chain: readings and Jacobian for many still poses at once
+def _z_onto(axis: np.ndarray) -> np.ndarray:
+    """A rotation ``P`` with ``P @ z = axis`` (unit axis)."""
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    c = float(a[2])
+    if c < -1.0 + 1e-12:  # a = -z: half a turn about x
+        return np.diag([1.0, -1.0, -1.0])
+    k = np.array([-a[1], a[0], 0.0])  # z x a, of length sin(angle)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + K + K @ K / (1.0 + c)
+
+
+@dataclass(frozen=True)
+class GravityChain:
+    """The constant frame changes that carry world-up from the base to every sensor.
+
+    Only rotations matter to what a still accelerometer reads. Each joint turns about its
+    own axis; a constant change of frame ``P_i`` (``P_i z = axis_i``) makes that axis z,
+    so going through joint i is ``v <- Rz(theta_i)^T C_i v`` with a constant ``C_i``, and
+    ``v`` is world-up in joint i's axis frame after its turn. The sensor on link k reads
+    ``D_s v`` with ``v`` taken after joint k-1 (``D_s`` constant; up itself for link 0).
+
+    Turning joint i changes ``v`` there by ``v x z``; every later step is linear in ``v``,
+    so a derivative column is carried by the same steps as ``v`` itself. One pass gives the
+    readings and their exact Jacobian (the same as :func:`gravity_jacobian`'s).
+    """
+
+    step_in: np.ndarray  # (n, 3, 3) C_i: previous joint's axis frame -> joint i's, before its turn
+    read_out: np.ndarray  # (S, 3, 3) D_s: the axis frame of joint link_s - 1 -> the sensor frame
+    links: np.ndarray  # (S,) the link each sensor is on (0: the base)
+    offset_rad: np.ndarray  # (n,)
+
+    @property
+    def n(self) -> int:
+        return len(self.offset_rad)
+
+    def propagate(self, q_rad: np.ndarray, seed: np.ndarray, upto_joint: int | None = None):
+        """Carry ``seed (N, 3, E)`` (up in the base frame, then its derivatives by E - 1 outer
+        parameters) through the joints: a list of ``V (N, 3, 1 + n + E - 1)`` after each
+        joint (index i + 1; index 0 is before joint 0), columns [up, d/dq_0..q_{n-1}, outer].
+        ``upto_joint``: stop after that joint (the later entries are None)."""
+        q = np.asarray(q_rad, float)
+        N, n = q.shape
+        E = seed.shape[2]
+        last = n - 1 if upto_joint is None else upto_joint
+        V = np.zeros((N, 3, n + E))
+        V[:, :, 0] = seed[:, :, 0]
+        V[:, :, n + 1:] = seed[:, :, 1:]
+        step = self._steps(q[:, : last + 1])
+        out: list[np.ndarray | None] = [V] + [None] * n
+        for i in range(last + 1):
+            V = step[i] @ V
+            V[:, 0, 1 + i] = V[:, 1, 0]  # d v / d theta_i = v x z
+            V[:, 1, 1 + i] = -V[:, 0, 0]
+            out[i + 1] = V
+        return out
+
+    def axis_up_cos(self, q_rad: np.ndarray, up_0: np.ndarray) -> np.ndarray:
+        """Cosine of the angle between every joint's axis and up: ``(N, n)`` (z of up in the
+        joint's axis frame)."""
+        q = np.asarray(q_rad, float)
+        step = self._steps(q)
+        v = np.broadcast_to(np.asarray(up_0, float), (len(q), 3))[:, :, None]
+        out = np.empty(q.shape)
+        for i in range(q.shape[1]):
+            v = step[i] @ v
+            out[:, i] = v[:, 2, 0]
+        return out
+
+    def _steps(self, q: np.ndarray) -> np.ndarray:
+        """``Rz(theta_i)^T C_i`` for the first ``J`` joints of every pose: ``(J, N, 3, 3)``
+        (joint-major: one matrix product per joint over every pose)."""
+        N, J = q.shape
+        theta = (q + self.offset_rad[:J]).T
+        c, s = np.cos(theta), np.sin(theta)
+        Rt = np.zeros((J, N, 3, 3))
+        Rt[:, :, 0, 0] = c
+        Rt[:, :, 0, 1] = s
+        Rt[:, :, 1, 0] = -s
+        Rt[:, :, 1, 1] = c
+        Rt[:, :, 2, 2] = 1.0
+        return (Rt.reshape(J, N * 3, 3) @ self.step_in[:J]).reshape(J, N, 3, 3)
+
+
+def gravity_chain(arm: ArmModel, names=None) -> GravityChain:
+    """The :class:`GravityChain` of the named sensors (default: the link accelerometers),
+    built once per arm and name list."""
+    cache = arm.__dict__.setdefault("_gravity_chain_cache", {})
+    key = None if names is None else tuple(names)
+    hit = cache.get(key)
+    if hit is None:
+        ch = arm.chain
+        n = arm.n_joints
+        P = np.stack([_z_onto(ch.axis[i]) for i in range(n)])
+        # frame before joint i's turn, in joint i-1's axis frame after its turn:
+        # R_pre_0 P_0 from the base; P_{i-1}^T R_post_{i-1} R_pre_i P_i after
+        K = np.empty((n, 3, 3))
+        K[0] = ch.R_pre[0] @ P[0]
+        for i in range(1, n):
+            K[i] = P[i - 1].T @ ch.R_post[i - 1] @ ch.R_pre[i] @ P[i]
+        links, R_LS, _ = _mount_arrays(arm, names)
+        D = np.empty((len(links), 3, 3))
+        for s_, k in enumerate(links):
+            D[s_] = R_LS[s_].T if k == 0 else (P[k - 1].T @ ch.R_post[k - 1] @ R_LS[s_]).T
+        hit = GravityChain(np.ascontiguousarray(np.swapaxes(K, -1, -2)), D, links.copy(),
+                           np.asarray(ch.offset_rad, float).copy())
+        cache[key] = hit
+    return hit

@@ -14,6 +14,11 @@ errors the solver's config does not know (the simulator's `--realistic` draw of 
 in the library, a new imperfect arm every 100 poses), which is the thesis's situation, and
 the solver uses the shipped config's unmodelled-error floor; without it the sensors are
 exactly as configured and the config claims no unmodelled error.
+
+The solve time is the CPU time (``time.process_time``) of one ``solve_still`` call (every
+branch, sigma checks included, no unlock move), median over the poses, against issue 4's
+target of 5 ms: the machine is shared, and wall-clock time would measure the other
+processes too.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 DEG = np.pi / 180
 THESIS_RAD = 0.1
+TARGET_S = 5e-3  # issue 4: median solve time, all 7 joints, every branch
 
 
 def draw_poses(arm, n, rng):
@@ -104,10 +110,10 @@ def run(arm, q, tilt, means, prior, settings, method):
     for k in range(n):
         readings = readings_from_counts(arm, {s: m[k] for s, m in means.items()}, n_samples=100,
                                         rate_hz=100.0)
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         res = solve_still(arm, readings, settings, prior_q_rad=prior[k], method=method,
                           propose_unlock=False, prior_sigma_rad=30 * DEG)
-        times[k] = time.perf_counter() - t0
+        times[k] = time.process_time() - t0
         for j, je in enumerate(res.joints):
             flags[k, j] = je.flag
             thesis[k, j] = bool(je.thesis_detector_locked)
@@ -170,20 +176,28 @@ def render(rows, totals, title, times, times_ref, n):
               f"Confident wrong answers in {n:,} poses: **{totals['wrong']}**; locked joints "
               f"reported ok: **{totals['missed_lock']}** of {totals['locked']} (the thesis's "
               f"own detector, at 0.95 g, misses {totals['thesis_missed']}).",
-              (f"Solve time (all 7 joints, every branch), median: joint {np.median(times) * 1e3:.1f} ms, "
+              (f"Solve time (all 7 joints, every branch; CPU time), median: joint "
+               f"{np.median(times) * 1e3:.1f} ms, "
                f"thesis's sequential {np.median(times_ref) * 1e3:.1f} ms (ratio "
-               f"{np.median(times) / np.median(times_ref):.2f}).") if times is not times_ref else
-              f"Solve time, median: {np.median(times) * 1e3:.1f} ms."]
+               f"{np.median(times) / np.median(times_ref):.2f}); 90th percentile: joint "
+               f"{np.percentile(times, 90) * 1e3:.1f} ms. Target (issue 4), median ≤ "
+               f"{TARGET_S * 1e3:.0f} ms: "
+               + ("met." if np.median(times) <= TARGET_S else
+                  "**not met** (what limits it: docs/startup.md, Speed).")) if times is not times_ref else
+              f"Solve time (CPU time), median: {np.median(times) * 1e3:.1f} ms."]
     return "\n".join(lines)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--poses", type=int, default=10_000)
-    ap.add_argument("--config", default="wmra")
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--poses", type=int, default=10_000, help="random still poses (default 10,000)")
+    ap.add_argument("--config", default="wmra", help="arm config, by name or path")
     ap.add_argument("--seed", type=int, default=7)
-    ap.add_argument("--realistic", action="store_true")
-    ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--realistic", action="store_true",
+                    help="datasheet-typical sensor errors the config does not know")
+    ap.add_argument("--no-write", action="store_true",
+                    help="print the section without writing docs/benchmarks.md")
     a = ap.parse_args()
     arm = load_arm(a.config)
     if not a.realistic:  # the sensors are exactly as configured: no unmodelled error

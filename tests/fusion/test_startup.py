@@ -234,3 +234,24 @@ def test_recorded_confident_wrong_answers_are_now_honest(wmra, case):
         if je.flag == "ok":  # every confident number is within 4 of its own sigmas
             assert abs(err[j]) < 4 * np.degrees(je.sigma_rad), (je.name, err[j], je.sigma_rad)
     assert sum(je.flag == "ok" for je in res.joints) >= 3  # and the well-read joints still read
+
+
+def test_one_lm_batch_gives_what_separate_solves_give(wmra, rng):
+    """Rows of the batched LM are independent: starts with their own held unknowns and
+    iteration limits, solved together, end where each would alone (the solve batches the
+    released profile probes with the weak joints' sweep on this)."""
+    from fusion.startup import _batched_lm, _make_problem
+
+    q = np.radians([30, 40, 20, -50, 60, 30, 100])
+    problem = _make_problem(wmra, still(wmra, np.degrees(q), rng))
+    n = wmra.n_joints
+    x0 = np.concatenate([q, [0.8 * DEG, -1.2 * DEG]])[None] + rng.normal(0, 0.2, (6, n + 2))
+    free = np.ones((6, n + 2), bool)
+    free[3:, 2] = False  # the last three hold joint 3
+    iters = np.array([30, 30, 30, 12, 12, 3])
+    x, cost = _batched_lm(problem, x0, free, iters)
+    for i in range(6):
+        xi, ci = _batched_lm(problem, x0[i:i + 1], free[i], int(iters[i]))
+        np.testing.assert_allclose(x[i], xi[0], atol=1e-12)
+        np.testing.assert_allclose(cost[i], ci[0], rtol=1e-12)
+    assert np.all(x[3:, 2] == x0[3:, 2])  # a held unknown keeps its start value

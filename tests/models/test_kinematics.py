@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from models.kinematics import (
     chain_poses,
     dependency_matrix,
     forward_kinematics,
+    gravity_chain,
     gravity_in_sensors,
     gravity_jacobian,
     joint_axis_angle_to_vertical,
@@ -91,6 +94,41 @@ def test_gravity_jacobian_matches_finite_differences(arm_name, request, rng):
         num = (gravity_in_sensors(arm, q + dq, up) - gravity_in_sensors(arm, q - dq, up)) / (2 * h)
         np.testing.assert_allclose(J[..., j], num, atol=1e-8)
     np.testing.assert_allclose(f, gravity_in_sensors(arm, q, up), atol=1e-14)
+
+
+def _turned_axes(arm, rng):
+    """The same arm with every joint axis expressed in a random frame (not z): the same
+    kinematics, through the general-axis path."""
+    from models.rotations import exp_so3
+
+    joints = []
+    for j in arm.joints:
+        Q = exp_so3(rng.normal(0, 1.0, 3))
+        joints.append(dataclasses.replace(j, R_pre=j.R_pre @ Q.T, axis=Q @ j.axis,
+                                          R_post=Q @ j.R_post))
+    return dataclasses.replace(arm, joints=tuple(joints))
+
+
+@pytest.mark.parametrize("arm_name", ["wmra", "crs", "wmra-turned-axes"])
+def test_gravity_chain_gives_the_readings_and_jacobian_of_the_frames(arm_name, request, rng):
+    arm = request.getfixturevalue(arm_name.removesuffix("-turned-axes"))
+    if arm_name.endswith("-turned-axes"):
+        arm = _turned_axes(arm, rng)
+        assert not arm.chain.axis_is_z
+    q = random_poses(arm, 20, rng)
+    up = up_in_base(rng.normal(0, 0.2, 20), rng.normal(0, 0.2, 20))
+    f, J, R_0S = gravity_jacobian(arm, q, up, with_frames=True)
+    outer = rng.normal(size=(20, 3, 2))  # derivatives of up by two outer parameters
+    gc = gravity_chain(arm)
+    after = gc.propagate(q, np.concatenate([up[:, :, None], outer], 2))
+    for s, k in enumerate(gc.links):
+        G = gc.read_out[s] @ after[k]
+        np.testing.assert_allclose(G[:, :, 0], f[:, s], atol=1e-14)
+        np.testing.assert_allclose(G[:, :, 1:1 + arm.n_joints], J[:, s], atol=1e-14)
+        np.testing.assert_allclose(G[:, :, 1 + arm.n_joints:],
+                                   np.swapaxes(R_0S[:, s], -1, -2) @ outer, atol=1e-14)
+    np.testing.assert_allclose(np.arccos(np.clip(np.abs(gc.axis_up_cos(q, up)), 0, 1)),
+                               joint_axis_angle_to_vertical(arm, q, up), atol=1e-7)
 
 
 def test_which_joints_each_wmra_accelerometer_sees(wmra, rng):
