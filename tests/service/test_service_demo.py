@@ -40,10 +40,11 @@ def test_demo_end_to_end(tmp_path):
     assert set(rms) == {f"j{k}" for k in range(1, 8)}
     # calibrated sensors, even from a 20 s maneuver: no joint on a wrong branch (uncalibrated,
     # j3 ends ~100 deg off in a seed-0 run), and the sigmas say how far a 20 s calibration
-    # reaches (this run: 0.0-3 deg off; j1 and j7 rest on what a parked maneuver cannot pin)
+    # reaches (this run: 0.2-2.2 deg off; j1 and j7 rest on what a parked maneuver cannot
+    # pin): every joint within 3 sigma of the truth (the angle with its true zero offset)
     assert all(math.isfinite(v) and v < 10.0 for v in rms.values()), rms
     within = doc["tracking"]["within_3_sigma"]
-    assert sorted(within.values())[1] >= 0.95 and min(within.values()) >= 0.75, within
+    assert min(within.values()) >= 0.95, within
     assert doc["tracking"]["heading_rms_deg"] is not None
     s = doc["samples"]
     assert s["published"] > 5000
