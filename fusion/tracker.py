@@ -422,7 +422,7 @@ class _FrameFields(NamedTuple):
     dist2_m2: np.ndarray
     omega_dot_norm: np.ndarray
     KK: np.ndarray
-    R_lo: np.ndarray
+    R_bd: np.ndarray
     motion_lo: np.ndarray
     accel_var_g2: np.ndarray | None = None
 
@@ -437,11 +437,18 @@ class Frames(_FrameFields):
     (link accelerometers then the IMU); ``axes (K, n, 3)`` the joint axes in base axes.
     ``K (., n, 3, 3)``: the axes' skew matrices, ``K2`` their squares; ``motion_g (., S)``:
     |motion| in g; ``dist2_m2 (., S)``: each sensor's squared distance from the base origin;
-    ``KK (., 2n, 9n)``: the block matrix that makes every joint's
-    ``exp([a_j]x d_j) = I + [sin d_j, 1 - cos d_j] KK`` (rows 2j, 2j+1; columns 9j … 9j+8);
-    ``R_lo``, ``motion_lo``: ``R_0S`` and ``motion_mps2`` with the sensors in the order of
-    their links; ``accel_var_g2 (., S, 3)``: the accelerometers' measurement variances at
-    these instants, when a tracker has added them. Read-only (a named tuple).
+    ``KK (., 2n + 4p + 1, 9B)``: the block matrix that makes, from one product with
+    ``c = [sin d_0 … sin d_n-1, 1 - cos d_0 … 1 - cos d_n-1, products, 1]``, the B rotations
+    of :func:`turn_blocks` (columns 9b … 9b+8): a joint's
+    ``E_j = exp([a_j]x d_j) = I + sin d_j K_j + (1 - cos d_j) K_j²``, or the product
+    ``E_a E_b`` of a pair of joints that turn the same sensors, whose cross terms come from
+    the rows 2n + r p + i (pair i of p; r: ``sin d_a sin d_b``, ``sin d_a (1 - cos d_b)``,
+    ``(1 - cos d_a) sin d_b``, ``(1 - cos d_a)(1 - cos d_b)``);
+    ``R_bd (., 3S, 3S)``: the block-diagonal matrix that takes the sensors'
+    base-axis vectors, in the order of their links, to their readings in g, in ``names``
+    order (``R_0S / g`` per block); ``motion_lo``: ``motion_mps2`` in the order of their
+    links; ``accel_var_g2 (., S, 3)``: the accelerometers' measurement variances at these
+    instants, when a tracker has added them. Read-only (a named tuple).
     """
 
     __slots__ = ()
@@ -479,21 +486,70 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     Ks = skew(lm.axis_0)
     K2 = Ks @ Ks
     n = q.shape[1]
-    KK = np.zeros((K, 2 * n, 9 * n))
-    for j in range(n):
-        KK[:, 2 * j, 9 * j:9 * j + 9] = Ks[:, j].reshape(K, 9)
-        KK[:, 2 * j + 1, 9 * j:9 * j + 9] = K2[:, j].reshape(K, 9)
+    blocks = turn_blocks(arm, names)
+    pairs = [blk for blk in blocks if len(blk) == 2]
+    p = len(pairs)
+    KK = np.zeros((K, 2 * n + 4 * p + 1, 9 * len(blocks)))
+    KK[:, -1] = np.tile(np.eye(3).reshape(-1), len(blocks))  # the identity in every block
+    for b, blk in enumerate(blocks):
+        cols = slice(9 * b, 9 * b + 9)
+        for j in blk:
+            KK[:, j, cols] = Ks[:, j].reshape(K, 9)
+            KK[:, n + j, cols] = K2[:, j].reshape(K, 9)
+        if len(blk) == 2:
+            # E_a E_b = I + (E_a - I) + (E_b - I) + (E_a - I)(E_b - I): the cross terms are the
+            # products of [sin d_a, 1 - cos d_a] and [sin d_b, 1 - cos d_b] with K_a^r K_b^s
+            i, (ja, jb) = pairs.index(blk), blk
+            for r, (Ma, Mb) in enumerate(((Ks, Ks), (Ks, K2), (K2, Ks), (K2, K2))):
+                KK[:, 2 * n + r * p + i, cols] = (Ma[:, ja] @ Mb[:, jb]).reshape(K, 9)
     lo = link_order(arm, names)
+    S = len(names)
+    R_bd = np.zeros((K, S, 3, S, 3))
+    R_bd[:, np.arange(S), :, lo, :] = np.moveaxis(sm.R_0S[:, lo], 1, 0) / G
     wd = np.asarray(omega_dot_B, float)
     return Frames(q, np.broadcast_to(offset, q.shape), sm.R_0S, sm.acc_0_mps2, lm.axis_0, sm.p_0S_m,
                   wd, Ks, K2, np.linalg.norm(sm.acc_0_mps2, axis=-1) / G,
                   np.sum(sm.p_0S_m**2, axis=-1), np.linalg.norm(wd, axis=-1), KK,
-                  sm.R_0S[:, lo], sm.acc_0_mps2[:, lo])
+                  R_bd.reshape(K, 3 * S, 3 * S), sm.acc_0_mps2[:, lo])
 
 
 def link_order(arm: ArmModel, names) -> np.ndarray:
     """The accelerometers ``names`` sorted by the link they sit on (stable)."""
     return np.argsort([arm.sensor(nm).link for nm in names], kind="stable")
+
+
+def _block_starts(links_sorted) -> list[int]:
+    """For sensors sorted by link: where the trailing block each joint turns begins (joint
+    j turns every sensor on a link after j)."""
+    ls = np.asarray(links_sorted, dtype=int)
+    kmax = int(ls[-1]) if len(ls) else 0
+    return [int(np.searchsorted(ls, j, side="right")) for j in range(kmax)]
+
+
+def _joint_groups(starts: list[int]) -> list[tuple[int, list[int]]]:
+    """Joints that turn the same trailing block of sensors (equal ``starts``), in order:
+    ``(block start, joints)``."""
+    groups: list[tuple[int, list[int]]] = []
+    for j, a in enumerate(starts):
+        if groups and groups[-1][0] == a:
+            groups[-1][1].append(j)
+        else:
+            groups.append((a, [j]))
+    return groups
+
+
+def turn_blocks(arm: ArmModel, names) -> list[tuple[int, ...]]:
+    """The joint rotations :class:`Frames` multiplies out in its ``KK``, in order: for each
+    group of joints that turn the same sensors of ``names`` (in the order of their links),
+    the product of its first two joints (or its only joint), then each further joint (what
+    every sensor needs, first); then every other joint alone (what a subset may need)."""
+    links = sorted(arm.sensor(nm).link for nm in names)
+    blocks: list[tuple[int, ...]] = []
+    for _, js in _joint_groups(_block_starts(links)):
+        blocks.append(tuple(js[:2]))
+        blocks.extend((j,) for j in js[2:])
+    blocks.extend((j,) for j in range(arm.n_joints) if (j,) not in blocks)
+    return blocks
 
 
 # --------------------------------------------------------------------------------------
@@ -813,33 +869,46 @@ def _rotation(v) -> np.ndarray:
                      [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
 
 
-def _turn_steps(starts: list[int]):
-    """How :meth:`Tracker._h_accel` turns the sensor blocks: joints that turn the same
-    trailing block (equal ``starts``) are grouped; the first two of each group are multiplied
-    in one batched call (``E[:, pa] @ E[:, pb]``, slices when regular); returns
-    ``(pa, pb, steps)``, ``steps`` a list of (block start, pair index or -1, first joint,
-    further joints)."""
-    groups: list[tuple[int, list[int]]] = []
-    for j, a in enumerate(starts):
-        if groups and groups[-1][0] == a:
-            groups[-1][1].append(j)
+def _turn_steps(starts: list[int], blocks: list[tuple[int, ...]]):
+    """How :meth:`Tracker._h_accel` turns the sensor blocks: for each group of joints that
+    turn the same trailing block (:func:`_joint_groups`), ``(block start, first, rest)``:
+    ``first`` the rotation (an index into ``blocks``, :func:`turn_blocks`) that starts the
+    group's product, ``rest`` those multiplied after it; and how many rotations they need."""
+    steps = []
+    for a, js in _joint_groups(starts):
+        if len(js) >= 2 and tuple(js[:2]) in blocks:
+            first, rest = blocks.index(tuple(js[:2])), js[2:]
         else:
-            groups.append((a, [j]))
-    pa = [js[0] for _, js in groups if len(js) >= 2]
-    pb = [js[1] for _, js in groups if len(js) >= 2]
-    steps, q = [], 0
-    for a, js in groups:
-        if len(js) >= 2:
-            steps.append((a, q, js[0], tuple(js[2:])))
-            q += 1
-        else:
-            steps.append((a, -1, js[0], ()))
+            first, rest = blocks.index((js[0],)), js[1:]
+        steps.append((a, first, tuple(blocks.index((j,)) for j in rest)))
+    used = max((max((f,) + r) for _, f, r in steps), default=-1) + 1
+    return steps, used
 
-    def index(ix):
-        if len(ix) >= 2 and len(set(np.diff(ix))) == 1 and ix[1] > ix[0]:
-            return slice(ix[0], ix[-1] + 1, ix[1] - ix[0])
-        return np.array(ix, dtype=int)
-    return (index(pa) if pa else None), (index(pb) if pb else None), steps
+
+class _AccelPlan(NamedTuple):
+    """How :meth:`Tracker._h_accel` predicts a set of accelerometers (see ``_accel_plan``)."""
+
+    ss: np.ndarray
+    order: np.ndarray
+    full: bool
+    imu: int
+    steps: list
+    n_blocks: int
+
+
+def _tilt_trig(XT: np.ndarray, roll: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(sin, cos)`` of the points' roll and pitch, ``(2, N)`` each, from state-major points."""
+    tilt = XT[roll:roll + 2]
+    return np.sin(tilt), np.cos(tilt)
+
+
+def _index(ix: list[int]):
+    """``ix`` as a slice when it is a regular increasing run (a view, not a copy), else an array."""
+    if len(ix) >= 2 and len(set(np.diff(ix))) == 1 and ix[1] > ix[0]:
+        return slice(ix[0], ix[-1] + 1, ix[1] - ix[0])
+    if len(ix) == 1:
+        return slice(ix[0], ix[0] + 1)
+    return np.array(ix, dtype=int)
 
 
 def _euler_rates(r, p, w):
@@ -914,6 +983,10 @@ class Tracker:
         self._acc_rows = np.arange(3 * len(self.accel_streams)).reshape(-1, 3)
         self._link_cache: dict = {}
         self._link_order = link_order(arm, self.accel_names)
+        self._blocks = turn_blocks(arm, self.accel_names)
+        pairs = [blk for blk in self._blocks if len(blk) == 2]
+        # the pairs' first and second joints (slices when regular): see _h_accel
+        self._pair_index = (_index([a for a, _ in pairs]), _index([b for _, b in pairs])) if pairs else (None, None)
         self._zeros3 = np.zeros(3)
         self._still_var3 = np.full(3, st.still_accel_sigma_mps2**2)
         self._eye3 = np.eye(3)
@@ -1384,91 +1457,98 @@ class Tracker:
         The sigma points' sensor rotations follow from the frame's (the mean pose's) by the
         product of exponentials: ``R_0S(q_ref + δ) = Π_{j < link} exp([a_j]x δ_j) R_0S(q_ref)``.
         In row form ``f^T = v^T E_0 E_1 … E_{link-1} R_0S / g``: the sensors are taken in
-        order of their link, so each joint's ``E_j`` (every sigma point's, made in one matrix
-        product from the frame's ``KK``) turns a trailing block of them at once.
-        ``trig``: ``(sin, cos)`` of the points' roll and pitch, when the caller has them.
+        order of their link, so each group of joints that turn the same trailing block of
+        sensors turns it at once. Every joint's ``E_j`` and the product of each pair of
+        joints in a group, for every sigma point, come from one matrix product with the
+        frame's ``KK``; the sensors' rotations to their own axes (and back to ``sel``'s
+        order) are one product with the frame's block-diagonal ``R_bd``. The work is done
+        on ``X.T`` where it concerns a state's points (contiguous when ``X`` is the UKF's
+        Fortran-ordered array); the result is ``(N, 3 len(sel))``.
+        ``trig``: ``(sin, cos)`` of the points' roll and pitch ``(2, N)``, when the caller has them.
         """
         L = self.layout
-        N = X.shape[0]
-        perm, ss, starts, full, turns = self._accel_plan(sel)
+        XT = X.T
+        N = XT.shape[1]
+        plan = self._accel_plan(sel)
         if trig is None:
-            tilt = X[:, L.roll:L.pitch + 1]
-            trig = np.sin(tilt), np.cos(tilt)
-        sn, cs = trig
-        base = X[:, L.accel].copy()  # a_B + g·up, up = [-sp, sr cp, cr cp]
-        base[:, 0] -= G * sn[:, 1]
-        base[:, 1] += G * sn[:, 0] * cs[:, 1]
-        base[:, 2] += G * cs[:, 0] * cs[:, 1]
-        v = (frame.motion_lo if full else frame.motion_mps2[ss])[None] + base[:, None, :]  # (N, S', 3)
-        k = len(starts)
-        if k:
-            d = X[:, :k] - frame.offset_ref[:k]
-            sc = np.empty((N, k, 2))
-            np.sin(d, out=sc[:, :, 0])
-            np.cos(d, out=sc[:, :, 1])
-            np.subtract(1.0, sc[:, :, 1], out=sc[:, :, 1])
-            E = (sc.reshape(N, 2 * k) @ frame.KK[:2 * k, :9 * k]).reshape(N, k, 3, 3)
-            E += self._eye3
-            # joints that turn the same block are multiplied together first (pairs, in one call)
-            pa, pb, steps = turns
-            Pp = E[:, pa] @ E[:, pb] if pa is not None else None
-            for a, pair, j0, rest in steps:
-                M = Pp[:, pair] if pair >= 0 else E[:, j0]
+            trig = _tilt_trig(XT, L.roll)
+        (sr, sp), (cr, cp) = trig
+        base = XT[L.accel].copy()  # a_B + g·up, up = [-sp, sr cp, cr cp]
+        base[0] -= G * sp
+        base[1] += G * sr * cp
+        base[2] += G * cr * cp
+        motion = frame.motion_lo if plan.full else frame.motion_mps2[plan.ss]
+        v = motion + base.T[:, None, :]  # (N, S', 3)
+        if plan.steps:
+            n, (pa, pb) = L.n_joints, self._pair_index
+            c = np.empty((frame.KK.shape[0], N))  # see Frames.KK
+            np.subtract(XT[:n], frame.offset_ref[:, None], out=c[n:2 * n])
+            np.sin(c[n:2 * n], out=c[:n])
+            np.cos(c[n:2 * n], out=c[n:2 * n])
+            np.subtract(1.0, c[n:2 * n], out=c[n:2 * n])
+            if pa is not None:
+                sc = c[:2 * n].reshape(2, n, N)
+                np.multiply(sc[:, None, pa], sc[None, :, pb], out=c[2 * n:-1].reshape(2, 2, -1, N))
+            c[-1] = 1.0
+            # the rotations the plan needs (every sigma point's): joints' E_j, pairs' E_a E_b
+            E = (c.T @ frame.KK[:, :9 * plan.n_blocks]).reshape(N, -1, 3, 3)
+            for a, first, rest in plan.steps:
+                M = E[:, first]
                 for j in rest:
                     M = M @ E[:, j]
                 v[:, a:] = v[:, a:] @ M
-        Rs = frame.R_lo if full else frame.R_0S[ss]
-        f = (v[:, :, None, :] @ Rs)[:, :, 0, :]
-        f *= 1.0 / G
-        if perm is not None:
-            f = f[:, perm]
-        imu = self._sel_info(sel)[1]
-        if imu >= 0:  # the IMU reads its own residual error too
-            f[:, imu] += X[:, L.imu_bias]
-        return f.reshape(N, -1)
+        f = v.reshape(N, -1) @ (frame.R_bd if plan.full else self._R_bd(frame, plan))
+        if plan.imu >= 0:  # the IMU reads its own residual error too
+            f[:, 3 * plan.imu:3 * plan.imu + 3] += X[:, L.imu_bias]
+        return f
 
-    def _accel_plan(self, sel: np.ndarray):
-        """For the accelerometers ``sel``: the order back from link order (None: sel is in it),
-        ``sel`` in link order, where each joint's trailing block of sensors starts, whether
-        that is every accelerometer (the frame keeps them in link order too), and the turns
+    def _R_bd(self, frame: Frames, plan: _AccelPlan) -> np.ndarray:
+        """The frame's ``R_bd`` for a subset of the accelerometers (in the plan's order)."""
+        S = len(plan.ss)
+        B = np.zeros((S, 3, S, 3))
+        B[np.arange(S), :, plan.order, :] = frame.R_0S[plan.ss] / G
+        return B.reshape(3 * S, 3 * S)
+
+    def _accel_plan(self, sel: np.ndarray) -> _AccelPlan:
+        """For the accelerometers ``sel`` (cached): ``sel`` in link order and where each
+        lands in ``sel`` (``order``), whether that is every accelerometer (the frame keeps
+        them so), the IMU's position in ``sel`` (-1: absent), and the turns
         (:func:`_turn_steps`)."""
         key = sel.tobytes()
         plan = self._link_cache.get(key)
         if plan is None:
             links = self._links[sel]
             order = np.argsort(links, kind="stable")
-            ls = links[order]
-            kmax = int(ls[-1]) if len(ls) else 0
-            starts = [int(np.searchsorted(ls, j, side="right")) for j in range(kmax)]
             ss = sel[order]
             full = bool(len(ss) == len(self._links) and np.array_equal(ss, self._link_order))
-            perm = None if np.array_equal(order, np.arange(len(order))) else np.argsort(order)
-            plan = self._link_cache[key] = (perm, ss, starts, full, _turn_steps(starts))
+            steps, used = _turn_steps(_block_starts(links[order]), self._blocks)
+            plan = self._link_cache[key] = _AccelPlan(ss, order, full, self._sel_info(sel)[1], steps, used)
         return plan
 
     def _h_mag(self, X: np.ndarray, m_B: np.ndarray, trig=None) -> np.ndarray:
         """Heading residual ``yaw - tilt-compensated heading`` at every sigma point (z = 0);
         :func:`fusion.heading.tilt_compensated_heading` written out on the points' ``trig``
-        (sin, cos of roll and pitch)."""
+        (sin, cos of roll and pitch, ``(2, N)``)."""
         L = self.layout
+        XT = X.T
         if trig is None:
-            tilt = X[:, L.roll:L.pitch + 1]
-            trig = np.sin(tilt), np.cos(tilt)
-        sn, cs = trig
+            trig = _tilt_trig(XT, L.roll)
+        (sr, sp), (cr, cp) = trig
         mx, my, mz = m_B.tolist()
-        sr, sp, cr, cp = sn[:, 0], sn[:, 1], cs[:, 0], cs[:, 1]
         y1 = cr * my - sr * mz
         hx = cp * mx + sp * (sr * my + cr * mz)
-        d = X[:, L.yaw] + np.arctan2(y1, hx)  # yaw - atan2(-y1, hx)
+        d = XT[L.yaw] + np.arctan2(y1, hx)  # yaw - atan2(-y1, hx)
         d -= self._field.declination_rad - np.pi
         d %= TWO_PI
         d -= np.pi
         return d[:, None]
 
     def _h_all(self, X, frame, sel, m_B, still=False):
+        """Every measurement of one update at every sigma point, ``(N, m)``: the
+        accelerometers ``sel``, the still chair's zero acceleration, the heading residual."""
         L = self.layout
-        tilt = X[:, L.roll:L.pitch + 1]
-        trig = np.sin(tilt), np.cos(tilt)
+        XT = X.T
+        trig = _tilt_trig(XT, L.roll)
         parts = []
         if sel is not None:
             parts.append(self._h_accel(X, frame, sel, trig))
