@@ -2366,7 +2366,9 @@ def _rows_at(times: np.ndarray, t_s: np.ndarray) -> np.ndarray:
 class _RunArrays:
     """Per fused instant: the state, the diagonal of its covariance, the encoder angles and the
     flags, as the run goes (a few row copies per step); angles and sigmas are made from them
-    at the end."""
+    at the end. The joint flags, sensor statuses and the calibration's share of the joints'
+    variance change only now and then (the tracker replaces those arrays when they do): they
+    are kept where they changed and spread over the instants at the end."""
 
     def __init__(self, T: int, n: int, S: int, keep_cov: bool = True, size: int | None = None):
         size = n + 9 if size is None else size
@@ -2376,32 +2378,51 @@ class _RunArrays:
         self.flags = np.zeros((T, n), dtype=np.int8)
         self.magnetic = np.zeros(T, dtype=np.int8)
         self.status = np.zeros((T, S), dtype=np.int8)
+        self.sys_var = np.zeros((T, n))
         self.P = np.full((T, n + 3, n + 3), np.nan) if keep_cov else None
+        self._P_rows = None if self.P is None else self.P.reshape(T, -1)
         self.T = T
         self._flat = None
+        self._held = (None, None, None)
+        self._changes: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._last = -1
 
     def record(self, tr: Tracker, i: int) -> None:
         ukf = tr._ukf
         P = ukf._P
         self.x[i] = ukf._x
         self.var[i] = P.diagonal()
-        n = len(tr._sys_var)
-        self.var[i, :n] += tr._sys_var  # the calibration's own uncertainty
         self.q_enc[i] = tr._q_enc
-        self.flags[i] = tr._flags
+        held = self._held
+        if tr._flags is not held[0] or tr._status_codes is not held[1] or tr._sys_var is not held[2]:
+            self._held = held = (tr._flags, tr._status_codes, tr._sys_var)
+            self._changes.append((i, *held))
         mf = tr._mag_flags
         if mf[0] or mf[1]:
             self.magnetic[i] = (1 if mf[0] else 0) | (2 if mf[1] else 0)
-        self.status[i] = tr._status_codes
         if self.P is not None:  # for the NEES
             if self._flat is None:
                 ix = tr._nees_idx
                 self._flat = (ix[:, None] * P.shape[1] + ix[None, :]).reshape(-1)
-            self.P[i] = P.take(self._flat).reshape(self.P.shape[1:])
-            self.P[i][np.diag_indices(n)] += tr._sys_var
+            P.take(self._flat, out=self._P_rows[i])
+        self._last = i
+
+    def _spread_changes(self) -> None:
+        """The flags, statuses and the calibration's share at every recorded instant, and that
+        share added to the joints' variances."""
+        ends = [c[0] for c in self._changes[1:]] + [self._last + 1]
+        for (i, flags, status, sys_var), j in zip(self._changes, ends, strict=True):
+            self.flags[i:j] = flags
+            self.status[i:j] = status
+            self.sys_var[i:j] = sys_var
+        n = self.sys_var.shape[1]
+        self.var[:, :n] += self.sys_var  # the calibration's own uncertainty
+        if self.P is not None:
+            self.P[:, np.arange(n), np.arange(n)] += self.sys_var
 
     def _arrays(self, tr: Tracker) -> None:
         L, n = tr.layout, tr.arm.n_joints
+        self._spread_changes()
         d = np.sqrt(np.maximum(self.var, 0.0))
         self.q = self.q_enc + self.x[:, :n]
         self.sigma = d[:, :n]
