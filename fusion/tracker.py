@@ -680,15 +680,16 @@ class _AccelRing:
         """Healthy innovations counted per sensor."""
         return self.nis_count + self.nis_whole
 
-    def add(self, t, which, nu, S, nis, ok):
-        """``which (k,)`` sensor indices; ``nu (k, 3)``, ``S (k, 3, 3)``, ``nis``, ``ok (k,)``."""
+    def add(self, t, which, nu, S, nis, ok, finite=False):
+        """``which (k,)`` sensor indices; ``nu (k, 3)``, ``S (k, 3, 3)``, ``nis``, ``ok (k,)``;
+        ``finite``: the caller knows every NIS is finite (each passed its gate)."""
         i = self.n % self.cap
         self.t[i] = t
         self.n += 1
         if len(which) == self.present.shape[1]:  # every sensor, in order: whole rows
             self.present[i] = True
             self.nu[i], self.S[i], self.nis[i], self.ok[i] = nu, S, nis, ok
-            if math.isfinite(nis.sum()):
+            if finite or math.isfinite(nis.sum()):
                 self.nis_sum += nis
                 self.nis_whole += 1  # counted for every sensor (see counts)
                 return
@@ -990,6 +991,7 @@ class Tracker:
         self._zeros3 = np.zeros(3)
         self._still_var3 = np.full(3, st.still_accel_sigma_mps2**2)
         self._eye3 = np.eye(3)
+        self._eye_state = np.eye(L.size)
         self._Q_cache: dict = {}
         self._links_list = [int(k) for k in self._links[: len(self.link_names)]]
         self._min_list = arm.min_rad.tolist()
@@ -1145,7 +1147,7 @@ class Tracker:
         # implausible since, rejecting since
         self._acc_health = [[None, 0, None, False, None, None] for _ in range(Sa)]
         self._last_counts = np.full((Sa, 3), np.nan)
-        self._acc_dirty = np.zeros(Sa, bool)
+        self._acc_dirty = [False] * Sa  # a sensor whose health bookkeeping is not at rest
         # averages of the normalised innovations, on each of the detector's time scales
         self._shift_taus = np.array([st.shift_tau_s, st.shift_slow_tau_s])
         self._shift_thr = np.array([st.shift_threshold, st.shift_slow_threshold])
@@ -1281,8 +1283,9 @@ class Tracker:
         present = [s for s in self.accel_streams if s in phys]
         acc = None
         if present:
-            sel = np.array([self._sidx[s] for s in present])
-            acc = (sel, np.stack([phys[s][0] for s in present]), np.stack([phys[s][1] for s in present]))
+            sel = np.array([self._sidx[s] for s in present], dtype=np.int64)
+            acc = (sel, np.stack([phys[s][0] for s in present]), np.stack([phys[s][1] for s in present]),
+                   self._sel_info(sel))
         mag = phys.get(MAG)
         frame = self._frame_now(t) if acc is not None else None
         e = self._enc_diff.at(t)
@@ -1378,8 +1381,7 @@ class Tracker:
             w0 = self._still_w
             self._still_w = wn if not math.isfinite(w0) else w0 + a * (wn - w0)
         if acc is not None and self._has_imu:
-            sel, _, f = acc
-            pos = self._sel_info(np.asarray(sel, dtype=np.int64))[1]
+            _, _, f, (_, pos, _, _) = acc
             if pos >= 0:
                 fi = f[pos].tolist()
                 if self._still_mean is None:
@@ -1603,10 +1605,8 @@ class Tracker:
         k = 0
         key, imu_pos, full = b"", -1, False
         if acc is not None:
-            sel, counts, f = acc
-            sel = np.asarray(sel, dtype=np.int64)
+            sel, counts, f, (key, imu_pos, full, _) = acc
             k = len(sel)
-            key, imu_pos, full, _ = self._sel_info(sel)
             var_a = frame.accel_var_g2 if full else frame.accel_var_g2[sel]
         still = self._still and acc is not None and st.motion_compensation
         n_still = 3 if still else 0
@@ -1710,7 +1710,7 @@ class Tracker:
         gate_ok = inn.gate_ok[:k]
         self._seen[ix] = True
         self._last_t[ix] = t
-        if not (any(same) or any(implausible) or self._acc_dirty.any()) and gate_ok.all():
+        if not (any(same) or any(implausible) or any(self._acc_dirty)) and gate_ok.all():
             # the usual case: every sensor healthy and consistent
             self._counts[ix, C_USED] += 1
             ok = usable = gate_ok
@@ -1723,7 +1723,7 @@ class Tracker:
             if all_usable:
                 Su = Sb[:k]
                 nu = inn.innovation[: 3 * k].reshape(k, 3)
-                self._acc_ring.add(t, sel, nu, Su, inn.nis[:k], ok)
+                self._acc_ring.add(t, sel, nu, Su, inn.nis[:k], ok, finite=ok is gate_ok)
                 u = ix
             else:
                 ui = np.flatnonzero(usable)
@@ -1936,12 +1936,12 @@ class Tracker:
             if not any_locked:
                 U = V[:, weak]
             elif not any_weak:
-                U = np.eye(n)[:, locked]
+                U = self._eye_state[:n, :n][:, locked]
             else:
-                B = np.concatenate([V[:, weak], np.eye(n)[:, locked]], axis=1)
+                B = np.concatenate([V[:, weak], self._eye_state[:n, :n][:, locked]], axis=1)
                 w, U, _ = lapack.dsyevd(B @ B.T)
                 U = U[:, w > 1e-6]
-            T = np.eye(L.size)
+            T = self._eye_state.copy()
             T[:n, :n] -= U @ U.T
             self._hold = T
         else:
@@ -2033,9 +2033,11 @@ class Tracker:
         if self._ukf is None:
             return
         nl = len(self.link_names)
-        usable = [codes[i] <= _REJECTING for i in range(nl)]
         links = self._links_list
-        sig = np.sqrt(np.clip(self._ukf._P.diagonal()[:n], 0.0, None) + self._sys_var).tolist()
+        # a joint is seen by a usable link accelerometer on a later link
+        reach = max((links[i] for i in range(nl) if codes[i] <= _REJECTING), default=-1)
+        sig = [math.sqrt(max(p, 0.0) + v)
+               for p, v in zip(self._ukf._P.diagonal()[:n].tolist(), self._sys_var.tolist(), strict=True)]
         q = (self._q_enc + self._ukf._x[:n]).tolist()
         lim, margin = st.sigma_limit_deg * DEG, st.limit_margin_deg * DEG
         lo, hi = self._min_list, self._max_list
@@ -2043,7 +2045,7 @@ class Tracker:
         for j in range(n):
             if self._locked[j]:
                 f = _GIMBAL
-            elif not any(u and links[i] > j for i, u in enumerate(usable)):
+            elif reach <= j:
                 f = _UNOBSERVED
             elif self._ill[j] and self._observed[j]:
                 f = _ILL
@@ -2131,7 +2133,8 @@ class Tracker:
         else:
             w_t = wd_t = np.zeros((T, 3))
         acc_streams = [s for s in self.accel_streams if s in raw]
-        acc_idx = np.array([self._sidx[s] for s in acc_streams], dtype=int)
+        acc_idx = np.array([self._sidx[s] for s in acc_streams], dtype=np.int64)
+        acc_info = self._sel_info(acc_idx)
         # per instant: which accelerometers have a valid sample, as (T, Sa) row indices
         acc_rows = np.stack([np.where(rows[s] >= 0, rows[s], -1) for s in acc_streams], 1) \
             if acc_streams else np.full((T, 0), -1)
@@ -2184,11 +2187,12 @@ class Tracker:
                     self._counts[i_gyro, C_USED] += 1
                 acc = None
                 if all_l[r]:
-                    acc = (acc_idx, acc_counts[i], acc_phys[i])
+                    acc = (acc_idx, acc_counts[i], acc_phys[i], acc_info)
                 else:
                     ok = acc_ok[i]
                     if ok.any():
-                        acc = (acc_idx[ok], acc_counts[i, ok], acc_phys[i, ok])
+                        sel = acc_idx[ok]
+                        acc = (sel, acc_counts[i, ok], acc_phys[i, ok], self._sel_info(sel))
                     if acc_seen[i].any():  # saturated samples: the sensors did speak
                         self._seen[acc_idx[acc_seen[i]]] = True
                         self._last_t[acc_idx[acc_seen[i]]] = t
