@@ -1400,31 +1400,34 @@ class Tracker:
     def _fx(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
         """The process model, every sigma point at once: the gyro (minus each point's bias)
         turns the attitude (midpoint rule on the Euler-angle rates), the base's
-        acceleration decays, offsets and bias stay."""
+        acceleration decays, offsets and bias stay.
+
+        The rates of ``R = Rz Ry Rx`` (see :func:`_euler_rates`) turn the body rates'
+        (y, z) pair by the roll: with ``u = e^{i roll} (w_y + i w_z)``, roll rate
+        ``w_x + Im u tan(pitch)``, pitch rate ``Re u``, yaw rate ``Im u / cos(pitch)``; one
+        complex exponential gives the roll's sine and cosine."""
         L = self.layout
         Y = X.copy()
         if w is not None:
             r0 = L.roll  # roll, pitch: two adjacent columns
             wb = w - X[:, L.bias]
-            w0, w1, w2 = wb[:, 0], wb[:, 1], wb[:, 2]
-            rp = X[:, r0:r0 + 2]
-            # the Euler-angle rates at the start (see _euler_rates), then at the midpoint
-            sn, cs = np.sin(rp), np.cos(rp)
-            a = sn[:, 0] * w1
-            a += cs[:, 0] * w2
-            d = np.empty_like(rp)
-            np.multiply(a, np.tan(rp[:, 1]), out=d[:, 0])
-            d[:, 0] += w0
-            np.multiply(cs[:, 0], w1, out=d[:, 1])
-            d[:, 1] -= sn[:, 0] * w2
-            d *= 0.5 * dt
-            d += rp
-            sn, cs = np.sin(d), np.cos(d)
-            a = sn[:, 0] * w1
-            a += cs[:, 0] * w2
-            Y[:, r0] += dt * (w0 + a * np.tan(d[:, 1]))
-            Y[:, r0 + 1] += dt * (cs[:, 0] * w1 - sn[:, 0] * w2)
-            Y[:, L.yaw] += dt * (a / cs[:, 1])  # the mean wraps it
+            w0 = wb[:, 0]
+            wyz = wb[:, 1:].view(np.complex128)[:, 0]  # w_y + i w_z
+            # the Euler-angle rates at the start, then at the midpoint
+            u = np.exp(1j * X[:, r0])
+            u *= wyz
+            mid = np.empty((X.shape[0], 2))
+            np.multiply(u.imag, np.tan(X[:, r0 + 1]), out=mid[:, 0])
+            mid[:, 0] += w0
+            mid[:, 1] = u.real
+            mid *= 0.5 * dt
+            mid += X[:, r0:r0 + 2]
+            u = np.exp(1j * mid[:, 0])
+            u *= wyz
+            a = u.imag
+            Y[:, r0] += dt * (w0 + a * np.tan(mid[:, 1]))
+            Y[:, r0 + 1] += dt * u.real
+            Y[:, L.yaw] += dt * (a / np.cos(mid[:, 1]))  # the mean wraps it
         Y[:, L.accel] *= math.exp(-dt / self.settings.base_accel_tau_s)
         return Y
 
@@ -1734,7 +1737,7 @@ class Tracker:
             # the slip detector sees the normalised innovations, averaged over 50 ms; not
             # while the IMU disagrees too (the chair lurched: that is common to all sensors)
             if shift:
-                self._shift_sum[u] += nu / np.sqrt(Su.reshape(-1, 9)[:, ::4])
+                self._shift_sum[u] += nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2))
                 self._shift_n[u] += 1
             else:  # paused: the averages keep what they had, and do not count the pause
                 self._shift_t[u] = t
