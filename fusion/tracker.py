@@ -1146,7 +1146,7 @@ class Tracker:
         # per accelerometer: last counts, identical run, prediction when it began, stuck,
         # implausible since, rejecting since
         self._acc_health = [[None, 0, None, False, None, None] for _ in range(Sa)]
-        self._last_counts = np.full((Sa, 3), np.nan)
+        self._last_counts: list = [None] * Sa  # per accelerometer: its last counts (3 floats)
         self._acc_dirty = [False] * Sa  # a sensor whose health bookkeeping is not at rest
         # averages of the normalised innovations, on each of the detector's time scales
         self._shift_taus = np.array([st.shift_tau_s, st.shift_slow_tau_s])
@@ -1663,7 +1663,7 @@ class Tracker:
                 accept[k] = False
         if k:
             accept[:k] = self._accel_health(t, sel, counts, f, inn, var_a, shift=calm and not set_off,
-                                            full=full)
+                                            full=full, gate_l=None if set_off else gate_l)
             key = (key, accept[:k].tobytes())
             if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
                 self._obs_used_key, self._obs_t = key, t
@@ -1696,16 +1696,27 @@ class Tracker:
         ukf.correct(inn, accept, self._hold, mask)
 
     def _accel_health(self, t: float, sel: np.ndarray, counts: np.ndarray, f: np.ndarray, inn,
-                      var: np.ndarray, shift: bool = True, full: bool = False) -> np.ndarray:
+                      var: np.ndarray, shift: bool = True, full: bool = False,
+                      gate_l: list | None = None) -> np.ndarray:
         """Stuck, implausible (dead) and gate verdicts for the accelerometers ``sel``;
         returns which may enter the update. (A handful of sensors: plain Python is faster
-        here than array calls.) ``full``: ``sel`` is every accelerometer, in order."""
+        here than array calls.) ``full``: ``sel`` is every accelerometer, in order;
+        ``gate_l``: ``inn.gate_ok`` as a list, when the caller has it."""
         st = self.settings
         k = len(sel)
         ix = slice(0, k) if full else sel  # plain slices where every sensor spoke
+        if gate_l is None:
+            gate_l = inn.gate_ok.tolist()
         zp = inn.z_pred[: 3 * k].reshape(k, 3)
-        same = [a == b for a, b in zip(counts.tolist(), self._last_counts[ix].tolist(), strict=True)]
-        self._last_counts[ix] = counts
+        cl, last = counts.tolist(), self._last_counts
+        if full:
+            same = [c == b for c, b in zip(cl, last, strict=True)]
+            last[:] = cl
+        else:
+            sl = sel.tolist()
+            same = [c == last[s] for c, s in zip(cl, sl, strict=True)]
+            for c, s in zip(cl, sl, strict=True):
+                last[s] = c
         # |f| against |prediction|, sensor by sensor in plain floats (a handful of sensors)
         tol = st.plausible_tolerance_g
         implausible = [abs(math.sqrt(a * a + b * b + c * c) - math.sqrt(u * u + v * v + w * w)) > tol
@@ -1713,7 +1724,7 @@ class Tracker:
         gate_ok = inn.gate_ok[:k]
         self._seen[ix] = True
         self._last_t[ix] = t
-        if not (any(same) or any(implausible) or any(self._acc_dirty)) and gate_ok.all():
+        if not (any(same) or any(implausible) or any(self._acc_dirty)) and all(gate_l[:k]):
             # the usual case: every sensor healthy and consistent
             self._counts[ix, C_USED] += 1
             ok = usable = gate_ok
@@ -1744,9 +1755,12 @@ class Tracker:
                 self._shift_sum[u] = 0.0
                 self._shift_n[u] = 0
             if t - self._shift_block_t >= 0.05 and self._shift_n.any():
-                have = (self._shift_n > 0).nonzero()[0]
-                n_ = self._shift_n[have]
-                self._detect_shift(t, have, self._shift_sum[have] / n_[:, None], n_)
+                nl = len(self.link_names)
+                have = (self._shift_n[:nl] > 0).nonzero()[0]
+                if len(have):
+                    n_ = self._shift_n[have]
+                    self._detect_shift(t, slice(0, nl) if len(have) == nl else have,
+                                       self._shift_sum[have] / n_[:, None], n_)
                 self._shift_sum[:] = 0.0
                 self._shift_n[:] = 0
                 self._shift_block_t = t
@@ -1814,13 +1828,11 @@ class Tracker:
                                   or h[5] is not None or bool(self._dead[s]) or bool(self._rejecting[s]))
         return ok, usable
 
-    def _detect_shift(self, t: float, which: np.ndarray, nu_w: np.ndarray, count: np.ndarray) -> None:
+    def _detect_shift(self, t: float, which: np.ndarray | slice, nu_w: np.ndarray, count: np.ndarray) -> None:
         """A lasting shift of a link accelerometer's innovations (see ``shift_threshold``),
         on two time scales: a slip shows within a second, a slow drift of the counts over a
-        few. ``nu_w`` are the normalised innovations averaged over ``count`` samples."""
-        link = which < len(self.link_names)
-        if not link.all():
-            which, nu_w, count = which[link], nu_w[link], count[link]
+        few. ``nu_w`` are the normalised innovations averaged over ``count`` samples, for the
+        link accelerometers ``which`` (indices, or a slice of them)."""
         last = self._shift_t[which]
         dt = np.where(np.isnan(last), 0.0, t - last)
         self._shift_t[which] = t
@@ -1844,7 +1856,8 @@ class Tracker:
         self._shift_stat[which] = worst
         hit = worst > 1.0
         if hit.any():
-            for s in which[hit & (t >= self._shift_cool[which])]:
+            ids = np.arange(len(self._shift_t))[which]
+            for s in ids[hit & (t >= self._shift_cool[which])]:
                 self._reacquire(int(s), t)
                 self._shift[s] = 0.0
                 self._shift_cool[s] = t + self.settings.reacquiring_flag_s

@@ -134,19 +134,24 @@ def unscented_transform(Y, Wm, Wc, noise_cov=None, angles=None):
 
 def _ut(Y: np.ndarray, Wm: np.ndarray, WcT: np.ndarray, angle: int | None):
     """:func:`unscented_transform` for at most one angle column, returning also the
-    weighted residuals ``D^T * Wc`` (the cross covariance needs them again)."""
+    weighted residuals ``D^T * Wc`` (the cross covariance needs them again). When the
+    angle's points lie within 3 rad of the central one (no wrap between them, the usual
+    case) their plain mean and residuals are the wrapped ones; the mean is then wrapped."""
     m = Wm @ Y
     D = Y - m
     if angle is not None:
         y = Y[:, angle]
         dA = y - y[0]
-        dA += np.pi
-        dA %= TWO_PI
-        dA -= np.pi
-        mA = float(Wm @ dA)
-        m[angle] = (float(y[0]) + mA + np.pi) % TWO_PI - np.pi
-        dA -= mA
-        D[:, angle] = dA
+        if np.abs(dA).max() < 3.0:
+            m[angle] = (float(m[angle]) + math.pi) % TWO_PI - math.pi
+        else:
+            dA += np.pi
+            dA %= TWO_PI
+            dA -= np.pi
+            mA = float(Wm @ dA)
+            m[angle] = (float(y[0]) + mA + np.pi) % TWO_PI - np.pi
+            dA -= mA
+            D[:, angle] = dA
     DW = D.T * WcT
     return m, D, DW, DW @ D
 
