@@ -1432,7 +1432,7 @@ class Tracker:
         return Y
 
     def _Q(self, dt: float, have_gyro: bool) -> np.ndarray:
-        key = (round(dt, 9), have_gyro, self._still)
+        key = (round(dt * 1e9), have_gyro, self._still)  # dt to the nanosecond
         Q = self._Q_cache.get(key)
         if Q is None:
             if len(self._Q_cache) > 64:
