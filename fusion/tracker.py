@@ -1141,7 +1141,7 @@ class Tracker:
         self._seen = np.zeros(S, bool)
         self._last_t = np.full(S, -np.inf)
         self._counts = np.zeros((S, len(COUNTERS)), dtype=np.int64)
-        self._rejecting = np.zeros(S, bool)
+        self._rejecting = [False] * S  # per-sensor verdicts as plain lists (read one by one)
         self._reject_since = np.full(S, np.nan)
         # per accelerometer: last counts, identical run, prediction when it began, stuck,
         # implausible since, rejecting since
@@ -1159,8 +1159,8 @@ class Tracker:
         self._shift_n = np.zeros(Sa, dtype=np.int64)
         self._shift_block_t = float(t_s)
         self._reacq_log: dict[int, list[float]] = {}
-        self._stuck = np.zeros(Sa, bool)
-        self._dead = np.zeros(Sa, bool)
+        self._stuck = [False] * Sa
+        self._dead = [False] * Sa
         self._acc_ring = _AccelRing(self.accel_streams, st.innovation_capacity)
         self._mag_ring = _InnovationRing(1, st.innovation_capacity)
         self._reacq_until = np.full(n, -np.inf)
@@ -1825,7 +1825,7 @@ class Tracker:
                     self._reacquire(s, t)
                     h[5] = None
             self._acc_dirty[s] = (h[1] > 0 or h[2] is not None or h[3] or h[4] is not None
-                                  or h[5] is not None or bool(self._dead[s]) or bool(self._rejecting[s]))
+                                  or h[5] is not None or self._dead[s] or self._rejecting[s])
         return ok, usable
 
     def _detect_shift(self, t: float, which: np.ndarray | slice, nu_w: np.ndarray, count: np.ndarray) -> None:
