@@ -897,10 +897,13 @@ class _AccelPlan(NamedTuple):
     n_blocks: int
 
 
-def _tilt_trig(XT: np.ndarray, roll: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(sin, cos)`` of the points' roll and pitch, ``(2, N)`` each, from state-major points."""
+def _tilt_trig(XT: np.ndarray, roll: int) -> np.ndarray:
+    """``[sin, cos]`` of the points' roll and pitch, ``(2, 2, N)``, from state-major points."""
     tilt = XT[roll:roll + 2]
-    return np.sin(tilt), np.cos(tilt)
+    sc = np.empty((2,) + tilt.shape)
+    np.sin(tilt, out=sc[0])
+    np.cos(tilt, out=sc[1])
+    return sc
 
 
 def _index(ix: list[int]):
@@ -1469,7 +1472,7 @@ class Tracker:
         order) are one product with the frame's block-diagonal ``R_bd``. The work is done
         on ``X.T`` where it concerns a state's points (contiguous when ``X`` is the UKF's
         Fortran-ordered array); the result is ``(N, 3 len(sel))``.
-        ``trig``: ``(sin, cos)`` of the points' roll and pitch ``(2, N)``, when the caller has them.
+        ``trig``: ``[sin, cos]`` of the points' roll and pitch ``(2, 2, N)``, when the caller has them.
         """
         L = self.layout
         XT = X.T
@@ -1477,11 +1480,10 @@ class Tracker:
         plan = self._accel_plan(sel)
         if trig is None:
             trig = _tilt_trig(XT, L.roll)
-        (sr, sp), (cr, cp) = trig
-        base = XT[L.accel].copy()  # a_B + g·up, up = [-sp, sr cp, cr cp]
-        base[0] -= G * sp
-        base[1] += G * sr * cp
-        base[2] += G * cr * cp
+        base = np.empty((3, N))  # a_B + g·up, up = [-sp, sr cp, cr cp]
+        np.multiply(trig[0, 1], -G, out=base[0])
+        np.multiply(trig[:, 0], G * trig[1, 1], out=base[1:])  # [sr, cr] g cp
+        base += XT[L.accel]
         motion = frame.motion_lo if plan.full else frame.motion_mps2[plan.ss]
         v = motion + base.T[:, None, :]  # (N, S', 3)
         if plan.steps:
@@ -1533,7 +1535,7 @@ class Tracker:
     def _h_mag(self, X: np.ndarray, m_B: np.ndarray, trig=None) -> np.ndarray:
         """Heading residual ``yaw - tilt-compensated heading`` at every sigma point (z = 0);
         :func:`fusion.heading.tilt_compensated_heading` written out on the points' ``trig``
-        (sin, cos of roll and pitch, ``(2, N)``)."""
+        (sin, cos of roll and pitch, ``(2, 2, N)``)."""
         L = self.layout
         XT = X.T
         if trig is None:
