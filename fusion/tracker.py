@@ -2402,7 +2402,7 @@ class _RunArrays:
         self.status = np.zeros((T, S), dtype=np.int8)
         self.sys_var = np.zeros((T, n))
         self.P = np.full((T, n + 3, n + 3), np.nan) if keep_cov else None
-        self._P_rows = None if self.P is None else self.P.reshape(T, -1)
+        self._P_rows = None if self.P is None else self.P.reshape(T, (n + 3) ** 2)
         self.T = T
         self._flat = None
         self._held = (None, None, None)
@@ -2432,7 +2432,7 @@ class _RunArrays:
     def _spread_changes(self) -> None:
         """The flags, statuses and the calibration's share at every recorded instant, and that
         share added to the joints' variances."""
-        ends = [c[0] for c in self._changes[1:]] + [self._last + 1]
+        ends = [c[0] for c in self._changes[1:]] + ([self._last + 1] if self._changes else [])
         for (i, flags, status, sys_var), j in zip(self._changes, ends, strict=True):
             self.flags[i:j] = flags
             self.status[i:j] = status
