@@ -423,7 +423,7 @@ class _FrameFields(NamedTuple):
     dist2_m2: np.ndarray
     omega_dot_norm: np.ndarray
     KK: np.ndarray
-    R_lo: np.ndarray
+    R_bd: np.ndarray
     motion_lo: np.ndarray
     accel_var_g2: np.ndarray | None = None
     omega_S_rad_s: np.ndarray | None = None
@@ -439,11 +439,18 @@ class Frames(_FrameFields):
     (link accelerometers then the IMU); ``axes (K, n, 3)`` the joint axes in base axes.
     ``K (., n, 3, 3)``: the axes' skew matrices, ``K2`` their squares; ``motion_g (., S)``:
     |motion| in g; ``dist2_m2 (., S)``: each sensor's squared distance from the base origin;
-    ``KK (., 2n, 9n)``: the block matrix that makes every joint's
-    ``exp([a_j]x d_j) = I + [sin d_j, 1 - cos d_j] KK`` (rows 2j, 2j+1; columns 9j … 9j+8);
-    ``R_lo``, ``motion_lo``: ``R_0S`` and ``motion_mps2`` with the sensors in the order of
-    their links; ``accel_var_g2 (., S, 3)``: the accelerometers' measurement variances at
-    these instants, when a tracker has added them; ``omega_S_rad_s (., S, 3)``: each
+    ``KK (., 2n + 4p + 1, 9B)``: the block matrix that makes, from one product with
+    ``c = [sin d_0 … sin d_n-1, 1 - cos d_0 … 1 - cos d_n-1, products, 1]``, the B rotations
+    of :func:`turn_blocks` (columns 9b … 9b+8): a joint's
+    ``E_j = exp([a_j]x d_j) = I + sin d_j K_j + (1 - cos d_j) K_j²``, or the product
+    ``E_a E_b`` of a pair of joints that turn the same sensors, whose cross terms come from
+    the rows 2n + r p + i (pair i of p; r: ``sin d_a sin d_b``, ``sin d_a (1 - cos d_b)``,
+    ``(1 - cos d_a) sin d_b``, ``(1 - cos d_a)(1 - cos d_b)``);
+    ``R_bd (., 3S, 3S)``: the block-diagonal matrix that takes the sensors'
+    base-axis vectors, in the order of their links, to their readings in g, in ``names``
+    order (``R_0S / g`` per block); ``motion_lo``: ``motion_mps2`` in the order of their
+    links; ``accel_var_g2 (., S, 3)``: the accelerometers' measurement variances at these
+    instants, when a tracker has added them; ``omega_S_rad_s (., S, 3)``: each
     accelerometer's angular velocity in its own axes. Read-only (a named tuple).
     """
 
@@ -482,21 +489,70 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     Ks = skew(lm.axis_0)
     K2 = Ks @ Ks
     n = q.shape[1]
-    KK = np.zeros((K, 2 * n, 9 * n))
-    for j in range(n):
-        KK[:, 2 * j, 9 * j:9 * j + 9] = Ks[:, j].reshape(K, 9)
-        KK[:, 2 * j + 1, 9 * j:9 * j + 9] = K2[:, j].reshape(K, 9)
+    blocks = turn_blocks(arm, names)
+    pairs = [blk for blk in blocks if len(blk) == 2]
+    p = len(pairs)
+    KK = np.zeros((K, 2 * n + 4 * p + 1, 9 * len(blocks)))
+    KK[:, -1] = np.tile(np.eye(3).reshape(-1), len(blocks))  # the identity in every block
+    for b, blk in enumerate(blocks):
+        cols = slice(9 * b, 9 * b + 9)
+        for j in blk:
+            KK[:, j, cols] = Ks[:, j].reshape(K, 9)
+            KK[:, n + j, cols] = K2[:, j].reshape(K, 9)
+        if len(blk) == 2:
+            # E_a E_b = I + (E_a - I) + (E_b - I) + (E_a - I)(E_b - I): the cross terms are the
+            # products of [sin d_a, 1 - cos d_a] and [sin d_b, 1 - cos d_b] with K_a^r K_b^s
+            i, (ja, jb) = pairs.index(blk), blk
+            for r, (Ma, Mb) in enumerate(((Ks, Ks), (Ks, K2), (K2, Ks), (K2, K2))):
+                KK[:, 2 * n + r * p + i, cols] = (Ma[:, ja] @ Mb[:, jb]).reshape(K, 9)
     lo = link_order(arm, names)
+    S = len(names)
+    R_bd = np.zeros((K, S, 3, S, 3))
+    R_bd[:, np.arange(S), :, lo, :] = np.moveaxis(sm.R_0S[:, lo], 1, 0) / G
     wd = np.asarray(omega_dot_B, float)
     return Frames(q, np.broadcast_to(offset, q.shape), sm.R_0S, sm.acc_0_mps2, lm.axis_0, sm.p_0S_m,
                   wd, Ks, K2, np.linalg.norm(sm.acc_0_mps2, axis=-1) / G,
                   np.sum(sm.p_0S_m**2, axis=-1), np.linalg.norm(wd, axis=-1), KK,
-                  sm.R_0S[:, lo], sm.acc_0_mps2[:, lo], omega_S_rad_s=sm.omega_S_rad_s)
+                  R_bd.reshape(K, 3 * S, 3 * S), sm.acc_0_mps2[:, lo], omega_S_rad_s=sm.omega_S_rad_s)
 
 
 def link_order(arm: ArmModel, names) -> np.ndarray:
     """The accelerometers ``names`` sorted by the link they sit on (stable)."""
     return np.argsort([arm.sensor(nm).link for nm in names], kind="stable")
+
+
+def _block_starts(links_sorted) -> list[int]:
+    """For sensors sorted by link: where the trailing block each joint turns begins (joint
+    j turns every sensor on a link after j)."""
+    ls = np.asarray(links_sorted, dtype=int)
+    kmax = int(ls[-1]) if len(ls) else 0
+    return [int(np.searchsorted(ls, j, side="right")) for j in range(kmax)]
+
+
+def _joint_groups(starts: list[int]) -> list[tuple[int, list[int]]]:
+    """Joints that turn the same trailing block of sensors (equal ``starts``), in order:
+    ``(block start, joints)``."""
+    groups: list[tuple[int, list[int]]] = []
+    for j, a in enumerate(starts):
+        if groups and groups[-1][0] == a:
+            groups[-1][1].append(j)
+        else:
+            groups.append((a, [j]))
+    return groups
+
+
+def turn_blocks(arm: ArmModel, names) -> list[tuple[int, ...]]:
+    """The joint rotations :class:`Frames` multiplies out in its ``KK``, in order: for each
+    group of joints that turn the same sensors of ``names`` (in the order of their links),
+    the product of its first two joints (or its only joint), then each further joint (what
+    every sensor needs, first); then every other joint alone (what a subset may need)."""
+    links = sorted(arm.sensor(nm).link for nm in names)
+    blocks: list[tuple[int, ...]] = []
+    for _, js in _joint_groups(_block_starts(links)):
+        blocks.append(tuple(js[:2]))
+        blocks.extend((j,) for j in js[2:])
+    blocks.extend((j,) for j in range(arm.n_joints) if (j,) not in blocks)
+    return blocks
 
 
 # --------------------------------------------------------------------------------------
@@ -627,15 +683,16 @@ class _AccelRing:
         """Healthy innovations counted per sensor."""
         return self.nis_count + self.nis_whole
 
-    def add(self, t, which, nu, S, nis, ok):
-        """``which (k,)`` sensor indices; ``nu (k, 3)``, ``S (k, 3, 3)``, ``nis``, ``ok (k,)``."""
+    def add(self, t, which, nu, S, nis, ok, finite=False):
+        """``which (k,)`` sensor indices; ``nu (k, 3)``, ``S (k, 3, 3)``, ``nis``, ``ok (k,)``;
+        ``finite``: the caller knows every NIS is finite (each passed its gate)."""
         i = self.n % self.cap
         self.t[i] = t
         self.n += 1
         if len(which) == self.present.shape[1]:  # every sensor, in order: whole rows
             self.present[i] = True
             self.nu[i], self.S[i], self.nis[i], self.ok[i] = nu, S, nis, ok
-            if math.isfinite(nis.sum()):
+            if finite or math.isfinite(nis.sum()):
                 self.nis_sum += nis
                 self.nis_whole += 1  # counted for every sensor (see counts)
                 return
@@ -886,33 +943,49 @@ def _rotation(v) -> np.ndarray:
                      [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
 
 
-def _turn_steps(starts: list[int]):
-    """How :meth:`Tracker._h_accel` turns the sensor blocks: joints that turn the same
-    trailing block (equal ``starts``) are grouped; the first two of each group are multiplied
-    in one batched call (``E[:, pa] @ E[:, pb]``, slices when regular); returns
-    ``(pa, pb, steps)``, ``steps`` a list of (block start, pair index or -1, first joint,
-    further joints)."""
-    groups: list[tuple[int, list[int]]] = []
-    for j, a in enumerate(starts):
-        if groups and groups[-1][0] == a:
-            groups[-1][1].append(j)
+def _turn_steps(starts: list[int], blocks: list[tuple[int, ...]]):
+    """How :meth:`Tracker._h_accel` turns the sensor blocks: for each group of joints that
+    turn the same trailing block (:func:`_joint_groups`), ``(block start, first, rest)``:
+    ``first`` the rotation (an index into ``blocks``, :func:`turn_blocks`) that starts the
+    group's product, ``rest`` those multiplied after it; and how many rotations they need."""
+    steps = []
+    for a, js in _joint_groups(starts):
+        if len(js) >= 2 and tuple(js[:2]) in blocks:
+            first, rest = blocks.index(tuple(js[:2])), js[2:]
         else:
-            groups.append((a, [j]))
-    pa = [js[0] for _, js in groups if len(js) >= 2]
-    pb = [js[1] for _, js in groups if len(js) >= 2]
-    steps, q = [], 0
-    for a, js in groups:
-        if len(js) >= 2:
-            steps.append((a, q, js[0], tuple(js[2:])))
-            q += 1
-        else:
-            steps.append((a, -1, js[0], ()))
+            first, rest = blocks.index((js[0],)), js[1:]
+        steps.append((a, first, tuple(blocks.index((j,)) for j in rest)))
+    used = max((max((f,) + r) for _, f, r in steps), default=-1) + 1
+    return steps, used
 
-    def index(ix):
-        if len(ix) >= 2 and len(set(np.diff(ix))) == 1 and ix[1] > ix[0]:
-            return slice(ix[0], ix[-1] + 1, ix[1] - ix[0])
-        return np.array(ix, dtype=int)
-    return (index(pa) if pa else None), (index(pb) if pb else None), steps
+
+class _AccelPlan(NamedTuple):
+    """How :meth:`Tracker._h_accel` predicts a set of accelerometers (see ``_accel_plan``)."""
+
+    ss: np.ndarray
+    order: np.ndarray
+    full: bool
+    imu: int
+    steps: list
+    n_blocks: int
+
+
+def _tilt_trig(XT: np.ndarray, roll: int) -> np.ndarray:
+    """``[sin, cos]`` of the points' roll and pitch, ``(2, 2, N)``, from state-major points."""
+    tilt = XT[roll:roll + 2]
+    sc = np.empty((2,) + tilt.shape)
+    np.sin(tilt, out=sc[0])
+    np.cos(tilt, out=sc[1])
+    return sc
+
+
+def _index(ix: list[int]):
+    """``ix`` as a slice when it is a regular increasing run (a view, not a copy), else an array."""
+    if len(ix) >= 2 and len(set(np.diff(ix))) == 1 and ix[1] > ix[0]:
+        return slice(ix[0], ix[-1] + 1, ix[1] - ix[0])
+    if len(ix) == 1:
+        return slice(ix[0], ix[0] + 1)
+    return np.array(ix, dtype=int)
 
 
 def _euler_rates(r, p, w):
@@ -994,9 +1067,15 @@ class Tracker:
         self._acc_rows = np.arange(3 * len(self.accel_streams)).reshape(-1, 3)
         self._link_cache: dict = {}
         self._link_order = link_order(arm, self.accel_names)
+        self._blocks = turn_blocks(arm, self.accel_names)
+        pairs = [blk for blk in self._blocks if len(blk) == 2]
+        # the pairs' first and second joints (slices when regular): see _h_accel
+        self._pair_index = ((_index([a for a, _ in pairs]), _index([b for _, b in pairs])) if pairs
+                            else (None, None))
         self._zeros3 = np.zeros(3)
         self._still_var3 = np.full(3, st.still_accel_sigma_mps2**2)
         self._eye3 = np.eye(3)
+        self._eye_state = np.eye(L.size)
         self._Q_cache: dict = {}
         self._links_list = [int(k) for k in self._links[: len(self.link_names)]]
         self._min_list = arm.min_rad.tolist()
@@ -1195,13 +1274,13 @@ class Tracker:
         self._seen = np.zeros(S, bool)
         self._last_t = np.full(S, -np.inf)
         self._counts = np.zeros((S, len(COUNTERS)), dtype=np.int64)
-        self._rejecting = np.zeros(S, bool)
+        self._rejecting = [False] * S  # per-sensor verdicts as plain lists (read one by one)
         self._reject_since = np.full(S, np.nan)
         # per accelerometer: last counts, identical run, prediction when it began, stuck,
         # implausible since, rejecting since
         self._acc_health = [[None, 0, None, False, None, None] for _ in range(Sa)]
-        self._last_counts = np.full((Sa, 3), np.nan)
-        self._acc_dirty = np.zeros(Sa, bool)
+        self._last_counts: list = [None] * Sa  # per accelerometer: its last counts (3 floats)
+        self._acc_dirty = [False] * Sa  # a sensor whose health bookkeeping is not at rest
         # averages of the normalised innovations, on each of the detector's time scales
         self._shift_taus = np.array([st.shift_tau_s, st.shift_slow_tau_s])
         self._shift_thr = np.array([st.shift_threshold, st.shift_slow_threshold])
@@ -1213,8 +1292,8 @@ class Tracker:
         self._shift_n = np.zeros(Sa, dtype=np.int64)
         self._shift_block_t = float(t_s)
         self._reacq_log: dict[int, list[float]] = {}
-        self._stuck = np.zeros(Sa, bool)
-        self._dead = np.zeros(Sa, bool)
+        self._stuck = [False] * Sa
+        self._dead = [False] * Sa
         self._acc_ring = _AccelRing(self.accel_streams, st.innovation_capacity)
         self._mag_ring = _InnovationRing(1, st.innovation_capacity)
         self._reacq_until = np.full(n, -np.inf)
@@ -1345,8 +1424,9 @@ class Tracker:
         present = [s for s in self.accel_streams if s in phys]
         acc = None
         if present:
-            sel = np.array([self._sidx[s] for s in present])
-            acc = (sel, np.stack([phys[s][0] for s in present]), np.stack([phys[s][1] for s in present]))
+            sel = np.array([self._sidx[s] for s in present], dtype=np.int64)
+            acc = (sel, np.stack([phys[s][0] for s in present]), np.stack([phys[s][1] for s in present]),
+                   self._sel_info(sel))
         mag = phys.get(MAG)
         frame = self._frame_now(t) if acc is not None else None
         e = self._enc_diff.at(t)
@@ -1450,8 +1530,7 @@ class Tracker:
             w0 = self._still_w
             self._still_w = wn if not math.isfinite(w0) else w0 + a * (wn - w0)
         if acc is not None and self._has_imu:
-            sel, _, f = acc
-            pos = self._sel_info(np.asarray(sel, dtype=np.int64))[1]
+            _, _, f, (_, pos, _, _) = acc
             if pos >= 0:
                 fi = f[pos].tolist()
                 if self._still_mean is None:
@@ -1470,36 +1549,39 @@ class Tracker:
     def _fx(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
         """The process model, every sigma point at once: the gyro (minus each point's bias)
         turns the attitude (midpoint rule on the Euler-angle rates), the base's
-        acceleration decays, offsets and bias stay."""
+        acceleration decays, offsets and bias stay.
+
+        The rates of ``R = Rz Ry Rx`` (see :func:`_euler_rates`) turn the body rates'
+        (y, z) pair by the roll: with ``u = e^{i roll} (w_y + i w_z)``, roll rate
+        ``w_x + Im u tan(pitch)``, pitch rate ``Re u``, yaw rate ``Im u / cos(pitch)``; one
+        complex exponential gives the roll's sine and cosine."""
         L = self.layout
         Y = X.copy()
         if w is not None:
             r0 = L.roll  # roll, pitch: two adjacent columns
             wb = w - X[:, L.bias]
-            w0, w1, w2 = wb[:, 0], wb[:, 1], wb[:, 2]
-            rp = X[:, r0:r0 + 2]
-            # the Euler-angle rates at the start (see _euler_rates), then at the midpoint
-            sn, cs = np.sin(rp), np.cos(rp)
-            a = sn[:, 0] * w1
-            a += cs[:, 0] * w2
-            d = np.empty_like(rp)
-            np.multiply(a, np.tan(rp[:, 1]), out=d[:, 0])
-            d[:, 0] += w0
-            np.multiply(cs[:, 0], w1, out=d[:, 1])
-            d[:, 1] -= sn[:, 0] * w2
-            d *= 0.5 * dt
-            d += rp
-            sn, cs = np.sin(d), np.cos(d)
-            a = sn[:, 0] * w1
-            a += cs[:, 0] * w2
-            Y[:, r0] += dt * (w0 + a * np.tan(d[:, 1]))
-            Y[:, r0 + 1] += dt * (cs[:, 0] * w1 - sn[:, 0] * w2)
-            Y[:, L.yaw] += dt * (a / cs[:, 1])  # the mean wraps it
+            w0 = wb[:, 0]
+            wyz = wb[:, 1:].view(np.complex128)[:, 0]  # w_y + i w_z
+            # the Euler-angle rates at the start, then at the midpoint
+            u = np.exp(1j * X[:, r0])
+            u *= wyz
+            mid = np.empty((X.shape[0], 2))
+            np.multiply(u.imag, np.tan(X[:, r0 + 1]), out=mid[:, 0])
+            mid[:, 0] += w0
+            mid[:, 1] = u.real
+            mid *= 0.5 * dt
+            mid += X[:, r0:r0 + 2]
+            u = np.exp(1j * mid[:, 0])
+            u *= wyz
+            a = u.imag
+            Y[:, r0] += dt * (w0 + a * np.tan(mid[:, 1]))
+            Y[:, r0 + 1] += dt * u.real
+            Y[:, L.yaw] += dt * (a / np.cos(mid[:, 1]))  # the mean wraps it
         Y[:, L.accel] *= math.exp(-dt / self.settings.base_accel_tau_s)
         return Y
 
     def _Q(self, dt: float, have_gyro: bool) -> np.ndarray:
-        key = (round(dt, 9), have_gyro, self._still)
+        key = (round(dt * 1e9), have_gyro, self._still)  # dt to the nanosecond
         Q = self._Q_cache.get(key)
         if Q is None:
             if len(self._Q_cache) > 64:
@@ -1529,91 +1611,97 @@ class Tracker:
         The sigma points' sensor rotations follow from the frame's (the mean pose's) by the
         product of exponentials: ``R_0S(q_ref + δ) = Π_{j < link} exp([a_j]x δ_j) R_0S(q_ref)``.
         In row form ``f^T = v^T E_0 E_1 … E_{link-1} R_0S / g``: the sensors are taken in
-        order of their link, so each joint's ``E_j`` (every sigma point's, made in one matrix
-        product from the frame's ``KK``) turns a trailing block of them at once.
-        ``trig``: ``(sin, cos)`` of the points' roll and pitch, when the caller has them.
+        order of their link, so each group of joints that turn the same trailing block of
+        sensors turns it at once. Every joint's ``E_j`` and the product of each pair of
+        joints in a group, for every sigma point, come from one matrix product with the
+        frame's ``KK``; the sensors' rotations to their own axes (and back to ``sel``'s
+        order) are one product with the frame's block-diagonal ``R_bd``. The work is done
+        on ``X.T`` where it concerns a state's points (contiguous when ``X`` is the UKF's
+        Fortran-ordered array); the result is ``(N, 3 len(sel))``.
+        ``trig``: ``[sin, cos]`` of the points' roll and pitch ``(2, 2, N)``, when the caller has them.
         """
         L = self.layout
-        N = X.shape[0]
-        perm, ss, starts, full, turns = self._accel_plan(sel)
+        XT = X.T
+        N = XT.shape[1]
+        plan = self._accel_plan(sel)
         if trig is None:
-            tilt = X[:, L.roll:L.pitch + 1]
-            trig = np.sin(tilt), np.cos(tilt)
-        sn, cs = trig
-        base = X[:, L.accel].copy()  # a_B + g·up, up = [-sp, sr cp, cr cp]
-        base[:, 0] -= G * sn[:, 1]
-        base[:, 1] += G * sn[:, 0] * cs[:, 1]
-        base[:, 2] += G * cs[:, 0] * cs[:, 1]
-        v = (frame.motion_lo if full else frame.motion_mps2[ss])[None] + base[:, None, :]  # (N, S', 3)
-        k = len(starts)
-        if k:
-            d = X[:, :k] - frame.offset_ref[:k]
-            sc = np.empty((N, k, 2))
-            np.sin(d, out=sc[:, :, 0])
-            np.cos(d, out=sc[:, :, 1])
-            np.subtract(1.0, sc[:, :, 1], out=sc[:, :, 1])
-            E = (sc.reshape(N, 2 * k) @ frame.KK[:2 * k, :9 * k]).reshape(N, k, 3, 3)
-            E += self._eye3
-            # joints that turn the same block are multiplied together first (pairs, in one call)
-            pa, pb, steps = turns
-            Pp = E[:, pa] @ E[:, pb] if pa is not None else None
-            for a, pair, j0, rest in steps:
-                M = Pp[:, pair] if pair >= 0 else E[:, j0]
+            trig = _tilt_trig(XT, L.roll)
+        base = np.empty((3, N))  # a_B + g·up, up = [-sp, sr cp, cr cp]
+        np.multiply(trig[0, 1], -G, out=base[0])
+        np.multiply(trig[:, 0], G * trig[1, 1], out=base[1:])  # [sr, cr] g cp
+        base += XT[L.accel]
+        motion = frame.motion_lo if plan.full else frame.motion_mps2[plan.ss]
+        v = motion + base.T[:, None, :]  # (N, S', 3)
+        if plan.steps:
+            n, (pa, pb) = L.n_joints, self._pair_index
+            c = np.empty((frame.KK.shape[0], N))  # see Frames.KK
+            np.subtract(XT[:n], frame.offset_ref[:, None], out=c[n:2 * n])
+            np.sin(c[n:2 * n], out=c[:n])
+            np.cos(c[n:2 * n], out=c[n:2 * n])
+            np.subtract(1.0, c[n:2 * n], out=c[n:2 * n])
+            if pa is not None:
+                sc = c[:2 * n].reshape(2, n, N)
+                np.multiply(sc[:, None, pa], sc[None, :, pb], out=c[2 * n:-1].reshape(2, 2, -1, N))
+            c[-1] = 1.0
+            # the rotations the plan needs (every sigma point's): joints' E_j, pairs' E_a E_b
+            E = (c.T @ frame.KK[:, :9 * plan.n_blocks]).reshape(N, -1, 3, 3)
+            for a, first, rest in plan.steps:
+                M = E[:, first]
                 for j in rest:
                     M = M @ E[:, j]
                 v[:, a:] = v[:, a:] @ M
-        Rs = frame.R_lo if full else frame.R_0S[ss]
-        f = (v[:, :, None, :] @ Rs)[:, :, 0, :]
-        f *= 1.0 / G
-        if perm is not None:
-            f = f[:, perm]
-        imu = self._sel_info(sel)[1]
-        if imu >= 0:  # the IMU reads its own residual error too
-            f[:, imu] += X[:, L.imu_bias]
-        return f.reshape(N, -1)
+        f = v.reshape(N, -1) @ (frame.R_bd if plan.full else self._R_bd(frame, plan))
+        if plan.imu >= 0:  # the IMU reads its own residual error too
+            f[:, 3 * plan.imu:3 * plan.imu + 3] += X[:, L.imu_bias]
+        return f
 
-    def _accel_plan(self, sel: np.ndarray):
-        """For the accelerometers ``sel``: the order back from link order (None: sel is in it),
-        ``sel`` in link order, where each joint's trailing block of sensors starts, whether
-        that is every accelerometer (the frame keeps them in link order too), and the turns
+    def _R_bd(self, frame: Frames, plan: _AccelPlan) -> np.ndarray:
+        """The frame's ``R_bd`` for a subset of the accelerometers (in the plan's order)."""
+        S = len(plan.ss)
+        B = np.zeros((S, 3, S, 3))
+        B[np.arange(S), :, plan.order, :] = frame.R_0S[plan.ss] / G
+        return B.reshape(3 * S, 3 * S)
+
+    def _accel_plan(self, sel: np.ndarray) -> _AccelPlan:
+        """For the accelerometers ``sel`` (cached): ``sel`` in link order and where each
+        lands in ``sel`` (``order``), whether that is every accelerometer (the frame keeps
+        them so), the IMU's position in ``sel`` (-1: absent), and the turns
         (:func:`_turn_steps`)."""
         key = sel.tobytes()
         plan = self._link_cache.get(key)
         if plan is None:
             links = self._links[sel]
             order = np.argsort(links, kind="stable")
-            ls = links[order]
-            kmax = int(ls[-1]) if len(ls) else 0
-            starts = [int(np.searchsorted(ls, j, side="right")) for j in range(kmax)]
             ss = sel[order]
             full = bool(len(ss) == len(self._links) and np.array_equal(ss, self._link_order))
-            perm = None if np.array_equal(order, np.arange(len(order))) else np.argsort(order)
-            plan = self._link_cache[key] = (perm, ss, starts, full, _turn_steps(starts))
+            steps, used = _turn_steps(_block_starts(links[order]), self._blocks)
+            plan = self._link_cache[key] = _AccelPlan(ss, order, full, self._sel_info(sel)[1], steps, used)
         return plan
 
     def _h_mag(self, X: np.ndarray, m_B: np.ndarray, trig=None) -> np.ndarray:
         """Heading residual ``yaw - tilt-compensated heading`` at every sigma point (z = 0);
         :func:`fusion.heading.tilt_compensated_heading` written out on the points' ``trig``
-        (sin, cos of roll and pitch)."""
+        (sin, cos of roll and pitch, ``(2, 2, N)``)."""
         L = self.layout
+        XT = X.T
         if trig is None:
-            tilt = X[:, L.roll:L.pitch + 1]
-            trig = np.sin(tilt), np.cos(tilt)
-        sn, cs = trig
+            trig = _tilt_trig(XT, L.roll)
+        (sr, sp), (cr, cp) = trig
         mx, my, mz = m_B.tolist()
-        sr, sp, cr, cp = sn[:, 0], sn[:, 1], cs[:, 0], cs[:, 1]
         y1 = cr * my - sr * mz
         hx = cp * mx + sp * (sr * my + cr * mz)
-        d = X[:, L.yaw] + np.arctan2(y1, hx)  # yaw - atan2(-y1, hx)
+        d = XT[L.yaw] + np.arctan2(y1, hx)  # yaw - atan2(-y1, hx)
         d -= self._field.declination_rad - np.pi
         d %= TWO_PI
         d -= np.pi
         return d[:, None]
 
     def _h_all(self, X, frame, sel, m_B, still=False):
+        """Every measurement of one update at every sigma point, ``(N, m)``: the
+        accelerometers ``sel``, the still chair's zero acceleration, the heading residual."""
         L = self.layout
-        tilt = X[:, L.roll:L.pitch + 1]
-        trig = np.sin(tilt), np.cos(tilt)
+        XT = X.T
+        trig = _tilt_trig(XT, L.roll)
         parts = []
         if sel is not None:
             parts.append(self._h_accel(X, frame, sel, trig))
@@ -1673,14 +1761,12 @@ class Tracker:
         k = 0
         key, imu_pos, full = b"", -1, False
         if acc is not None:
-            sel, counts, f = acc
-            sel = np.asarray(sel, dtype=np.int64)
+            sel, counts, f, (key, imu_pos, full, _) = acc
             k = len(sel)
             if self._time_offset_s is not None and frame.omega_S_rad_s is not None:
                 # a reading stamped late by dt saw gravity dt earlier: turn it to the stamp
                 w = frame.omega_S_rad_s[sel]
                 f = f - self._time_offset_s[sel][:, None] * np.cross(w, f)
-            key, imu_pos, full, _ = self._sel_info(sel)
             var_a = frame.accel_var_g2 if full else frame.accel_var_g2[sel]
         still = self._still and acc is not None and st.motion_compensation
         n_still = 3 if still else 0
@@ -1734,7 +1820,7 @@ class Tracker:
                 accept[k] = False
         if k:
             accept[:k] = self._accel_health(t, sel, counts, f, inn, var_a, shift=calm and not set_off,
-                                            full=full)
+                                            full=full, gate_l=None if set_off else gate_l)
             key = (key, accept[:k].tobytes())
             if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
                 self._obs_used_key, self._obs_t = key, t
@@ -1767,16 +1853,27 @@ class Tracker:
         ukf.correct(inn, accept, self._hold, mask)
 
     def _accel_health(self, t: float, sel: np.ndarray, counts: np.ndarray, f: np.ndarray, inn,
-                      var: np.ndarray, shift: bool = True, full: bool = False) -> np.ndarray:
+                      var: np.ndarray, shift: bool = True, full: bool = False,
+                      gate_l: list | None = None) -> np.ndarray:
         """Stuck, implausible (dead) and gate verdicts for the accelerometers ``sel``;
         returns which may enter the update. (A handful of sensors: plain Python is faster
-        here than array calls.) ``full``: ``sel`` is every accelerometer, in order."""
+        here than array calls.) ``full``: ``sel`` is every accelerometer, in order;
+        ``gate_l``: ``inn.gate_ok`` as a list, when the caller has it."""
         st = self.settings
         k = len(sel)
         ix = slice(0, k) if full else sel  # plain slices where every sensor spoke
+        if gate_l is None:
+            gate_l = inn.gate_ok.tolist()
         zp = inn.z_pred[: 3 * k].reshape(k, 3)
-        same = [a == b for a, b in zip(counts.tolist(), self._last_counts[ix].tolist(), strict=True)]
-        self._last_counts[ix] = counts
+        cl, last = counts.tolist(), self._last_counts
+        if full:
+            same = [c == b for c, b in zip(cl, last, strict=True)]
+            last[:] = cl
+        else:
+            sl = sel.tolist()
+            same = [c == last[s] for c, s in zip(cl, sl, strict=True)]
+            for c, s in zip(cl, sl, strict=True):
+                last[s] = c
         # |f| against |prediction|, sensor by sensor in plain floats (a handful of sensors)
         tol = st.plausible_tolerance_g
         implausible = [abs(math.sqrt(a * a + b * b + c * c) - math.sqrt(u * u + v * v + w * w)) > tol
@@ -1784,7 +1881,7 @@ class Tracker:
         gate_ok = inn.gate_ok[:k]
         self._seen[ix] = True
         self._last_t[ix] = t
-        if not (any(same) or any(implausible) or self._acc_dirty.any()) and gate_ok.all():
+        if not (any(same) or any(implausible) or any(self._acc_dirty)) and all(gate_l[:k]):
             # the usual case: every sensor healthy and consistent
             self._counts[ix, C_USED] += 1
             ok = usable = gate_ok
@@ -1797,7 +1894,7 @@ class Tracker:
             if all_usable:
                 Su = Sb[:k]
                 nu = inn.innovation[: 3 * k].reshape(k, 3)
-                self._acc_ring.add(t, sel, nu, Su, inn.nis[:k], ok)
+                self._acc_ring.add(t, sel, nu, Su, inn.nis[:k], ok, finite=ok is gate_ok)
                 u = ix
             else:
                 ui = np.flatnonzero(usable)
@@ -1808,16 +1905,19 @@ class Tracker:
             # the slip detector sees the normalised innovations, averaged over 50 ms; not
             # while the IMU disagrees too (the chair lurched: that is common to all sensors)
             if shift:
-                self._shift_sum[u] += nu / np.sqrt(Su.reshape(-1, 9)[:, ::4])
+                self._shift_sum[u] += nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2))
                 self._shift_n[u] += 1
             else:  # paused: the averages keep what they had, and do not count the pause
                 self._shift_t[u] = t
                 self._shift_sum[u] = 0.0
                 self._shift_n[u] = 0
             if t - self._shift_block_t >= 0.05 and self._shift_n.any():
-                have = (self._shift_n > 0).nonzero()[0]
-                n_ = self._shift_n[have]
-                self._detect_shift(t, have, self._shift_sum[have] / n_[:, None], n_)
+                nl = len(self.link_names)
+                have = (self._shift_n[:nl] > 0).nonzero()[0]
+                if len(have):
+                    n_ = self._shift_n[have]
+                    self._detect_shift(t, slice(0, nl) if len(have) == nl else have,
+                                       self._shift_sum[have] / n_[:, None], n_)
                 self._shift_sum[:] = 0.0
                 self._shift_n[:] = 0
                 self._shift_block_t = t
@@ -1882,16 +1982,14 @@ class Tracker:
                     self._reacquire(s, t)
                     h[5] = None
             self._acc_dirty[s] = (h[1] > 0 or h[2] is not None or h[3] or h[4] is not None
-                                  or h[5] is not None or bool(self._dead[s]) or bool(self._rejecting[s]))
+                                  or h[5] is not None or self._dead[s] or self._rejecting[s])
         return ok, usable
 
-    def _detect_shift(self, t: float, which: np.ndarray, nu_w: np.ndarray, count: np.ndarray) -> None:
+    def _detect_shift(self, t: float, which: np.ndarray | slice, nu_w: np.ndarray, count: np.ndarray) -> None:
         """A lasting shift of a link accelerometer's innovations (see ``shift_threshold``),
         on two time scales: a slip shows within a second, a slow drift of the counts over a
-        few. ``nu_w`` are the normalised innovations averaged over ``count`` samples."""
-        link = which < len(self.link_names)
-        if not link.all():
-            which, nu_w, count = which[link], nu_w[link], count[link]
+        few. ``nu_w`` are the normalised innovations averaged over ``count`` samples, for the
+        link accelerometers ``which`` (indices, or a slice of them)."""
         last = self._shift_t[which]
         dt = np.where(np.isnan(last), 0.0, t - last)
         self._shift_t[which] = t
@@ -1915,7 +2013,8 @@ class Tracker:
         self._shift_stat[which] = worst
         hit = worst > 1.0
         if hit.any():
-            for s in which[hit & (t >= self._shift_cool[which])]:
+            ids = np.arange(len(self._shift_t))[which]
+            for s in ids[hit & (t >= self._shift_cool[which])]:
                 self._reacquire(int(s), t)
                 self._shift[s] = 0.0
                 self._shift_cool[s] = t + self.settings.reacquiring_flag_s
@@ -2007,12 +2106,12 @@ class Tracker:
             if not any_locked:
                 U = V[:, weak]
             elif not any_weak:
-                U = np.eye(n)[:, locked]
+                U = self._eye_state[:n, :n][:, locked]
             else:
-                B = np.concatenate([V[:, weak], np.eye(n)[:, locked]], axis=1)
+                B = np.concatenate([V[:, weak], self._eye_state[:n, :n][:, locked]], axis=1)
                 w, U, _ = lapack.dsyevd(B @ B.T)
                 U = U[:, w > 1e-6]
-            T = np.eye(L.size)
+            T = self._eye_state.copy()
             T[:n, :n] -= U @ U.T
             self._hold = T
         else:
@@ -2142,9 +2241,11 @@ class Tracker:
         if self._ukf is None:
             return
         nl = len(self.link_names)
-        usable = [codes[i] <= _REJECTING for i in range(nl)]
         links = self._links_list
-        sig = np.sqrt(np.clip(self._ukf._P.diagonal()[:n], 0.0, None) + self._sys_var).tolist()
+        # a joint is seen by a usable link accelerometer on a later link
+        reach = max((links[i] for i in range(nl) if codes[i] <= _REJECTING), default=-1)
+        sig = [math.sqrt(max(p, 0.0) + v)
+               for p, v in zip(self._ukf._P.diagonal()[:n].tolist(), self._sys_var.tolist(), strict=True)]
         q = (self._q_enc + self._ukf._x[:n]).tolist()
         lim, margin = st.sigma_limit_deg * DEG, st.limit_margin_deg * DEG
         lo, hi = self._min_list, self._max_list
@@ -2152,7 +2253,7 @@ class Tracker:
         for j in range(n):
             if self._locked[j]:
                 f = _GIMBAL
-            elif not any(u and links[i] > j for i, u in enumerate(usable)):
+            elif reach <= j:
                 f = _UNOBSERVED
             elif self._ill[j] and self._observed[j]:
                 f = _ILL
@@ -2252,7 +2353,8 @@ class Tracker:
         else:
             w_t = wd_t = np.zeros((T, 3))
         acc_streams = [s for s in self.accel_streams if s in raw]
-        acc_idx = np.array([self._sidx[s] for s in acc_streams], dtype=int)
+        acc_idx = np.array([self._sidx[s] for s in acc_streams], dtype=np.int64)
+        acc_info = self._sel_info(acc_idx)
         # per instant: which accelerometers have a valid sample, as (T, Sa) row indices
         acc_rows = np.stack([np.where(rows[s] >= 0, rows[s], -1) for s in acc_streams], 1) \
             if acc_streams else np.full((T, 0), -1)
@@ -2305,11 +2407,12 @@ class Tracker:
                     self._counts[i_gyro, C_USED] += 1
                 acc = None
                 if all_l[r]:
-                    acc = (acc_idx, acc_counts[i], acc_phys[i])
+                    acc = (acc_idx, acc_counts[i], acc_phys[i], acc_info)
                 else:
                     ok = acc_ok[i]
                     if ok.any():
-                        acc = (acc_idx[ok], acc_counts[i, ok], acc_phys[i, ok])
+                        sel = acc_idx[ok]
+                        acc = (sel, acc_counts[i, ok], acc_phys[i, ok], self._sel_info(sel))
                     if acc_seen[i].any():  # saturated samples: the sensors did speak
                         self._seen[acc_idx[acc_seen[i]]] = True
                         self._last_t[acc_idx[acc_seen[i]]] = t
@@ -2514,7 +2617,9 @@ def _truth_at(truth: Stream, times: np.ndarray, angles: bool = False) -> np.ndar
 class _RunArrays:
     """Per fused instant: the state, the diagonal of its covariance, the encoder angles and the
     flags, as the run goes (a few row copies per step); angles and sigmas are made from them
-    at the end."""
+    at the end. The joint flags, sensor statuses and the calibration's share of the joints'
+    variance change only now and then (the tracker replaces those arrays when they do): they
+    are kept where they changed and spread over the instants at the end."""
 
     def __init__(self, T: int, n: int, S: int, keep_cov: bool = True, size: int | None = None):
         size = n + 9 if size is None else size
@@ -2524,32 +2629,51 @@ class _RunArrays:
         self.flags = np.zeros((T, n), dtype=np.int8)
         self.magnetic = np.zeros(T, dtype=np.int8)
         self.status = np.zeros((T, S), dtype=np.int8)
+        self.sys_var = np.zeros((T, n))
         self.P = np.full((T, n + 3, n + 3), np.nan) if keep_cov else None
+        self._P_rows = None if self.P is None else self.P.reshape(T, (n + 3) ** 2)
         self.T = T
         self._flat = None
+        self._held = (None, None, None)
+        self._changes: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._last = -1
 
     def record(self, tr: Tracker, i: int) -> None:
         ukf = tr._ukf
         P = ukf._P
         self.x[i] = ukf._x
         self.var[i] = P.diagonal()
-        n = len(tr._sys_var)
-        self.var[i, :n] += tr._sys_var  # the calibration's own uncertainty
         self.q_enc[i] = tr._q_enc
-        self.flags[i] = tr._flags
+        held = self._held
+        if tr._flags is not held[0] or tr._status_codes is not held[1] or tr._sys_var is not held[2]:
+            self._held = held = (tr._flags, tr._status_codes, tr._sys_var)
+            self._changes.append((i, *held))
         mf = tr._mag_flags
         if mf[0] or mf[1]:
             self.magnetic[i] = (1 if mf[0] else 0) | (2 if mf[1] else 0)
-        self.status[i] = tr._status_codes
         if self.P is not None:  # for the NEES
             if self._flat is None:
                 ix = tr._nees_idx
                 self._flat = (ix[:, None] * P.shape[1] + ix[None, :]).reshape(-1)
-            self.P[i] = P.take(self._flat).reshape(self.P.shape[1:])
-            self.P[i][np.diag_indices(n)] += tr._sys_var
+            P.take(self._flat, out=self._P_rows[i])
+        self._last = i
+
+    def _spread_changes(self) -> None:
+        """The flags, statuses and the calibration's share at every recorded instant, and that
+        share added to the joints' variances."""
+        ends = [c[0] for c in self._changes[1:]] + ([self._last + 1] if self._changes else [])
+        for (i, flags, status, sys_var), j in zip(self._changes, ends, strict=True):
+            self.flags[i:j] = flags
+            self.status[i:j] = status
+            self.sys_var[i:j] = sys_var
+        n = self.sys_var.shape[1]
+        self.var[:, :n] += self.sys_var  # the calibration's own uncertainty
+        if self.P is not None:
+            self.P[:, np.arange(n), np.arange(n)] += self.sys_var
 
     def _arrays(self, tr: Tracker) -> None:
         L, n = tr.layout, tr.arm.n_joints
+        self._spread_changes()
         d = np.sqrt(np.maximum(self.var, 0.0))
         self.q = self.q_enc + self.x[:, :n]
         self.sigma = d[:, :n]

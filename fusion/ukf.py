@@ -27,6 +27,7 @@ sigma point.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -133,19 +134,24 @@ def unscented_transform(Y, Wm, Wc, noise_cov=None, angles=None):
 
 def _ut(Y: np.ndarray, Wm: np.ndarray, WcT: np.ndarray, angle: int | None):
     """:func:`unscented_transform` for at most one angle column, returning also the
-    weighted residuals ``D^T * Wc`` (the cross covariance needs them again)."""
+    weighted residuals ``D^T * Wc`` (the cross covariance needs them again). When the
+    angle's points lie within 3 rad of the central one (no wrap between them, the usual
+    case) their plain mean and residuals are the wrapped ones; the mean is then wrapped."""
     m = Wm @ Y
     D = Y - m
     if angle is not None:
         y = Y[:, angle]
         dA = y - y[0]
-        dA += np.pi
-        dA %= TWO_PI
-        dA -= np.pi
-        mA = float(Wm @ dA)
-        m[angle] = (float(y[0]) + mA + np.pi) % TWO_PI - np.pi
-        dA -= mA
-        D[:, angle] = dA
+        if np.abs(dA).max() < 3.0:
+            m[angle] = (float(m[angle]) + math.pi) % TWO_PI - math.pi
+        else:
+            dA += np.pi
+            dA %= TWO_PI
+            dA -= np.pi
+            mA = float(Wm @ dA)
+            m[angle] = (float(y[0]) + mA + np.pi) % TWO_PI - np.pi
+            dA -= mA
+            D[:, angle] = dA
     DW = D.T * WcT
     return m, D, DW, DW @ D
 
@@ -221,7 +227,12 @@ class GroupPlan:
         for k in np.unique(sizes):
             which = np.flatnonzero(sizes == k)
             idx = np.stack([self.rows[i] for i in which])
-            self.batches.append((which, idx, idx[:, :, None], idx[:, None, :]))
+            # groups that tile consecutive rows: their diagonal blocks of S are a view
+            r0 = int(idx[0, 0])
+            tiles = np.array_equal(idx.reshape(-1), np.arange(r0, r0 + idx.size))
+            tile = (r0, len(which), int(k)) if tiles else None
+            self.batches.append((which, idx, idx[:, :, None], idx[:, None, :], tile))
+        self._finite_gates = bool(np.all(np.isfinite(self.gates)))
         m = int(sum(sizes))
         self.m = m
         # the block diagonal of S (one block per group) and which rows make each group: the
@@ -237,8 +248,8 @@ class GroupPlan:
     def nis(self, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
         """Each group's NIS; the diagonal blocks of S are kept in ``last_blocks`` (size ->
         (group indices, blocks)) for whoever wants them."""
-        self.last_blocks = {k: (which, S[ii, jj]) for which, idx, ii, jj in self.batches
-                            for k in (idx.shape[1],)}
+        self.last_blocks = {idx.shape[1]: (which, S[ii, jj] if tile is None else _diagonal_blocks(S, *tile))
+                            for which, idx, ii, jj, tile in self.batches}
         if self._tiled and nu.shape[0] == self.m:
             c, info = lapack.dpotrf(S * self._block_mask, lower=1, clean=0)
             if info == 0:
@@ -250,7 +261,7 @@ class GroupPlan:
     def _nis_blocks(self, nu: np.ndarray) -> np.ndarray:
         """The NIS block by block (a group whose block is singular gets inf)."""
         out = np.empty(len(self.rows))
-        for which, idx, _, _ in self.batches:
+        for which, idx, _, _, _ in self.batches:
             k = idx.shape[1]
             Sg = self.last_blocks[k][1]
             v = nu[idx]
@@ -265,6 +276,13 @@ class GroupPlan:
                     except np.linalg.LinAlgError:
                         out[gi] = np.inf
         return out
+
+
+def _diagonal_blocks(S: np.ndarray, r0: int, g: int, k: int) -> np.ndarray:
+    """The ``g`` diagonal ``(k, k)`` blocks of ``S`` that tile its rows from ``r0`` on, as a
+    read-only view ``(g, k, k)``."""
+    Sv = S[r0:r0 + g * k, r0:r0 + g * k].reshape(g, k, g, k)
+    return Sv.diagonal(axis1=0, axis2=2).transpose(2, 0, 1)
 
 
 class Innovation(NamedTuple):
@@ -451,7 +469,8 @@ class BatchedUKF:
             nu[ang] = wrap_angle(nu[ang])
         Pxz = DXW @ DZ
         nis = plan.nis(nu, S)
-        ok = np.isfinite(nis) & (nis <= plan.gates)
+        # (a NaN NIS fails any gate; an infinite one fails every finite gate)
+        ok = nis <= plan.gates if plan._finite_gates else np.isfinite(nis) & (nis <= plan.gates)
         return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, zp, plan.last_blocks)
 
     def correct(self, inn: Innovation, accept: np.ndarray | None = None,
@@ -508,13 +527,13 @@ class BatchedUKF:
         x = self._x + K @ nu
         a = self._angle1
         if a is not None:
-            x[a] = (x[a] + np.pi) % TWO_PI - np.pi
+            x[a] = (float(x[a]) + math.pi) % TWO_PI - math.pi
         elif len(self._angles):
             x[self._angles] = wrap_angle(x[self._angles])
         if hold is None and gain_mask is None:
             P += P.T
             P *= 0.5
-        if not (P.diagonal() > 0.0).all():
+        if not P.diagonal().min() > 0.0:  # (NaN too)
             P = repair_covariance(P, 1e-18)
         self._x, self._P = x, P
         self._sigmas = None

@@ -316,6 +316,15 @@ def test_sample_by_sample_equals_the_whole_recording_path(arm, reaching):
     assert est.flags == tuple(JOINT_FLAGS[f] for f in run.flags[-1])
 
 
+def test_a_run_with_nothing_to_fuse_is_empty_and_the_next_one_carries_on(arm, reaching):
+    tr, start = start_from_recording(arm, reaching)
+    empty = tr.run(reaching, t_stop_s=tr.t_s)
+    assert empty.steps == 0 and empty.q_rad.shape == (0, 7) and empty.summary()["steps"] == 0
+    run = tr.run(reaching, t_stop_s=start.t_end_s + 0.5)
+    assert run.steps > 0 and run.flags.shape == (run.steps, 7)
+    assert tuple(JOINT_FLAGS[f] for f in run.flags[-1]) == tr.estimate.flags
+
+
 def test_snapshot_and_restore_resume_where_it_stopped(arm, reaching):
     import json
 
