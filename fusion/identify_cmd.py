@@ -8,6 +8,7 @@ library) plus the recording's encoder zeros and the base attitude; reports each 
 with its σ, what was held and why (and the motion that would separate it), correlated
 pairs, and the fit RMS per stream axis against the noise. ``--write`` saves a config with
 the estimates and their σ and the unmodelled-error floor lowered to what the fit leaves.
+A chair parked in several stances (``renk-ramp``) gets one base attitude per stance.
 """
 
 from __future__ import annotations
@@ -70,6 +71,11 @@ def calibrate_sensors(
     effects: Annotated[str | None, typer.Option(help="Effects to estimate, comma separated, or "
                                                 "'all' (default: the config's, else all).")] = None,
     window: Annotated[int, typer.Option(help="Average this many samples per fit point.")] = 25,
+    stances: Annotated[bool, typer.Option(help="Find where the chair stands parked (the IMU's gyro and "
+                                          "accelerometer) and fit each stance's own base attitude, "
+                                          "leaving out the moves between them (a maneuver on a "
+                                          "ramp: renk-ramp); a chair that never moves is one "
+                                          "stance.")] = True,
     json_out: JsonOpt = False,
     write: Annotated[Path | None, typer.Option(help="Write a config with the estimates here.")] = None,
 ) -> None:
@@ -80,7 +86,7 @@ def calibrate_sensors(
     rec = read_recording_or_exit(recording)
     try:
         model = build_model(arm, effects)
-        data = data_from_recording(arm, rec, window, nodes=2)
+        data = data_from_recording(arm, rec, window, nodes=2, stances=stances)
     except ValueError as e:
         fail(str(e))
     quiet = json_out
