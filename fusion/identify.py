@@ -96,6 +96,11 @@ class FitData:
     used: np.ndarray | None = None
     """Per point, whether it enters the fit (``False`` while the chair moves between stances:
     its attitude is not constant there). ``None``: every point."""
+    base_tilt_reference: tuple[np.ndarray, float] | None = None
+    """The arm base's roll and pitch (rad, as the base attitude's) in the first stance,
+    measured independently (an inclinometer on the base), and that measurement's σ (rad).
+    Without it the base's angle about the first joint's axis, that joint's zero and the
+    IMU's mount about that axis are one unknown (any set of tilts leaves them so)."""
 
     @property
     def n(self) -> int:
@@ -579,6 +584,14 @@ class _Problem:
         self.sigma0 = np.concatenate([model.prior_sigma, np.tile(ATTITUDE_SIGMA_RAD, K)])
         self.lower = np.concatenate([model.lower, np.tile([-np.pi / 2, -np.pi / 2, -4 * np.pi], K)])
         self.upper = np.concatenate([model.upper, np.tile([np.pi / 2, np.pi / 2, 4 * np.pi], K)])
+        ref = data.base_tilt_reference
+        if K and ref is not None:  # an independent measurement of the first stance's tilt
+            tilt, sig = np.asarray(ref[0], float).reshape(2), float(ref[1])
+            if not sig > 0 or not np.all(np.abs(tilt) < np.pi / 2):
+                raise ValueError(f"base tilt reference: roll and pitch within ±90° and a positive σ, "
+                                 f"got {np.degrees(tilt)} deg ± {np.degrees(sig)} deg")
+            self.x0[self.P:self.P + 2] = tilt
+            self.sigma0[self.P:self.P + 2] = sig
         self.meas = np.concatenate([data.counts[s].ravel() for s in self.streams])
         self.w = self._rows(None, None)[1]
         self.base_rpy = np.zeros(3)

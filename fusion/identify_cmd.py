@@ -13,6 +13,7 @@ A chair parked in several stances (``renk-ramp``) gets one base attitude per sta
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -43,6 +44,19 @@ from fusion.identify import (
 )
 from models.effects import EFFECTS, Model, all_effects, model_from_arm
 from models.simulator import REALISTIC_EXCLUDE
+
+
+def parse_base_tilt(text: str, sigma_deg: float) -> tuple[np.ndarray, float]:
+    """``"ROLL,PITCH"`` (degrees) and its σ (degrees) as the fit's base tilt reference (rad)."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 2 or not all(np.isfinite(vals)) or max(abs(v) for v in vals) >= 90:
+        raise ValueError(f"--base-tilt: give ROLL,PITCH in degrees (within ±90), e.g. 0.4,-4.9; got {text!r}")
+    if not (np.isfinite(sigma_deg) and sigma_deg > 0):
+        raise ValueError(f"--base-tilt-sigma must be a positive number of degrees, got {sigma_deg!r}")
+    return np.radians(vals), float(np.radians(sigma_deg))
 
 
 def build_model(arm, effects: str | None) -> Model:
@@ -76,6 +90,11 @@ def calibrate_sensors(
                                           "leaving out the moves between them (a maneuver on a "
                                           "ramp: renk-ramp); a chair that never moves is one "
                                           "stance.")] = True,
+    base_tilt: Annotated[str | None, typer.Option(help="ROLL,PITCH in degrees: the arm base's tilt in "
+                                                  "the first stance, read by an inclinometer on the "
+                                                  "base (R = Rz Ry Rx). Pins the IMU's mount about "
+                                                  "the first joint's axis, which no maneuver can.")] = None,
+    base_tilt_sigma: Annotated[float, typer.Option(help="The inclinometer's σ, degrees.")] = 0.05,
     json_out: JsonOpt = False,
     write: Annotated[Path | None, typer.Option(help="Write a config with the estimates here.")] = None,
 ) -> None:
@@ -87,6 +106,8 @@ def calibrate_sensors(
     try:
         model = build_model(arm, effects)
         data = data_from_recording(arm, rec, window, nodes=2, stances=stances)
+        if base_tilt is not None:
+            data = replace(data, base_tilt_reference=parse_base_tilt(base_tilt, base_tilt_sigma))
     except ValueError as e:
         fail(str(e))
     quiet = json_out

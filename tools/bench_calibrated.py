@@ -27,6 +27,7 @@ import argparse
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -60,10 +61,12 @@ TARGET_DEG = 0.1
 
 def calibrate(arm, seed: int, duration_s: float, window: int = 25, progress=None,
               true_effects: list[dict] | None = None, fit_effects: str = "all",
-              scenario: str = "renk-maneuver"):
+              scenario: str = "renk-maneuver", base_tilt_sigma_deg: float = 0.0):
     """Simulate the maneuver ``scenario`` on seed ``seed``'s realistic arm (or on
     ``true_effects``, config entries) and identify ``fit_effects`` (as ``calibrate sensors
     --effects``: each parked stance of the chair its own base attitude).
+    ``base_tilt_sigma_deg > 0``: an inclinometer on the arm's base reads its tilt in the first
+    stance with that σ (``calibrate sensors --base-tilt``), the reading drawn around the truth.
     Returns the identification, the truth dict and the seconds (simulation, fit)."""
     t0 = time.perf_counter()
     rec, truth = simulate(arm, scenario, duration_s, seed=seed, realistic=true_effects is None,
@@ -72,8 +75,21 @@ def calibrate(arm, seed: int, duration_s: float, window: int = 25, progress=None
     t0 = time.perf_counter()
     model = identification_model(arm, fit_effects)
     data = data_from_recording(arm, rec, window, nodes=2, stances=True)
+    if base_tilt_sigma_deg > 0:
+        data = replace(data, base_tilt_reference=inclinometer(rec, data, base_tilt_sigma_deg, seed))
     res, _ = identify_recentred(model, data, None, IdentifySettings(encoder_scale=True), progress)
     return res, truth, (t_sim, time.perf_counter() - t0)
+
+
+def inclinometer(rec, data, sigma_deg: float, seed: int) -> tuple[np.ndarray, float]:
+    """What an inclinometer on the arm's base reads in the recording's first stance: the true
+    roll and pitch there plus N(0, ``sigma_deg``) (seeded), and that σ, in rad."""
+    first = np.flatnonzero(data.used)[0] if data.used is not None else 0
+    t = data.state.t_s[first * data.nodes]
+    tb = rec.get("true_base")
+    tilt = np.array([np.interp(t, tb.t_s, tb.values[:, k]) for k in (0, 1)])
+    sig = np.radians(sigma_deg)
+    return tilt + np.random.default_rng([seed, 0x1C1]).normal(0.0, sig, 2), float(sig)
 
 
 def calibrated_config(res, base_config: str = "wmra") -> dict:
@@ -180,6 +196,9 @@ def main(argv=None) -> None:
                     help="the calibration maneuver: the chair parked (renk-maneuver, section "
                          "bench_calibrated) or parked in turn on a ramp (renk-ramp, section "
                          "bench_calibrated_ramp)")
+    ap.add_argument("--base-tilt-sigma", type=float, default=0.0,
+                    help="an inclinometer on the arm's base reads its tilt in the first stance with "
+                         "this sigma, deg (calibrate sensors --base-tilt); 0: none (default)")
     ap.add_argument("--pose-seed", type=int, default=7)
     ap.add_argument("--write-config", type=Path, default=None, help="keep the calibrated config here")
     ap.add_argument("--no-write", action="store_true", help="do not write docs/benchmarks.md")
@@ -190,7 +209,8 @@ def main(argv=None) -> None:
     def progress(k, cost):
         print(f"  Jacobian {k}: cost {cost:.6g} ({time.perf_counter() - t_start:.0f} s)", flush=True)
 
-    res, truth, (t_sim, t_fit) = calibrate(base, a.seed, a.duration, progress=progress, scenario=a.scenario)
+    res, truth, (t_sim, t_fit) = calibrate(base, a.seed, a.duration, progress=progress, scenario=a.scenario,
+                                           base_tilt_sigma_deg=a.base_tilt_sigma)
     rows_t = compare_with_truth(res, truth)
     z = np.array([r["z"] for r in rows_t])
     beyond = [r for r in rows_t if abs(r["z"]) > 3]
@@ -227,12 +247,17 @@ def main(argv=None) -> None:
                            for n, v in zip(base.joint_names, shift, strict=True) if v)
     lines = [
         "## The WMRA calibrated by its own maneuver, then started (`tools/bench_calibrated.py`"
-        + ("" if a.scenario == "renk-maneuver" else f" `--scenario {a.scenario}`") + ")", "",
+        + ("" if a.scenario == "renk-maneuver" else f" `--scenario {a.scenario}`")
+        + (f" `--base-tilt-sigma {a.base_tilt_sigma:g}`" if a.base_tilt_sigma > 0 else "") + ")", "",
         f"Seed {a.seed}'s realistic WMRA (every effect of the library drawn at datasheet-typical "
         f"magnitudes); `{a.scenario}` for {a.duration:.0f} s"
         + (" (the chair parked in turn level, on a 1:12 ramp facing up, down and across both ways; "
            f"{res.attitudes_rad.shape[0]} stances found, each its own base attitude)"
-           if a.scenario == "renk-ramp" else "") + ", window means of 25 samples; "
+           if a.scenario == "renk-ramp" else "")
+        + ("; an inclinometer on the arm's base read its tilt in the first stance "
+           f"(σ {a.base_tilt_sigma:g}°, "
+           "`calibrate sensors --base-tilt`)" if a.base_tilt_sigma > 0 else "")
+        + ", window means of 25 samples; "
         f"`calibrate sensors --effects all` ({res.model.size} elements + the base attitude); then "
         f"{a.poses:,} random still poses (pose seed {a.pose_seed}) of the same physical sensors at 25 °C, "
         f"prior = true pose + N(0, 10 deg). Truth of a startup answer: the encoder's angle plus the "
@@ -268,7 +293,8 @@ def main(argv=None) -> None:
     md = "\n".join(lines)
     print(md)
     if not a.no_write:
-        section = "bench_calibrated" + ("" if a.scenario == "renk-maneuver" else "_ramp")
+        section = ("bench_calibrated" + ("" if a.scenario == "renk-maneuver" else "_ramp")
+                   + ("_inclinometer" if a.base_tilt_sigma > 0 else ""))
         print(f"\nwritten to {write_section(section, md)}")
 
 
