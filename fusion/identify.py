@@ -455,7 +455,10 @@ _SUGGEST = {
     "accel_bias": "turn the sensor so that each axis sees gravity both up (+1 g) and down (-1 g)",
     "accel_scale": "turn the sensor so that each axis sees gravity both up (+1 g) and down (-1 g)",
     "temperature_drift": "record while the electronics warm up (a temperature change of 10 °C or more)",
-    "base_mount": "tilt the chair (a ramp, both ways) so the base attitude and the IMU mount separate",
+    "base_mount": "park the chair on a ramp facing up, down and across (renk-ramp) so the base "
+                  "attitude and the IMU's mount separate; its angle about the first joint's axis no "
+                  "tilt can separate from that joint's zero: read the base's tilt with an "
+                  "inclinometer in the first stance (calibrate sensors --base-tilt)",
     "gyro_bias": "hold the chair still for a while (the gyro bias is its reading at rest)",
     "gyro_scale": "turn the chair on the spot (a full turn both ways at 30 °/s or more)",
     "mag_hard_iron": "turn the chair on the spot through a full circle (the compass readings "
