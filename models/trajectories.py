@@ -550,14 +550,14 @@ def renk_ramp(arm: ArmModel, duration_s: float, rng: np.random.Generator, still_
             heading += ang
             sync()
             roll_to(r_lvl, p_lvl)
-            t_park = t0 + transition_s
-            for c in chans:
-                c.hold(t_park - c.t)
             events.append({"t_start_s": round(t0, 3), "t_end_s": round(speed.t, 3),
                            "what": f"the chair moves to: {name}"})
+            t_end = t0 + transition_s + parked_s  # every stance ends on the same schedule
+        else:
+            t_end = parked_s
         t_start = speed.t
         for c in chans:
-            c.hold(t_start + parked_s - c.t)
+            c.hold(t_end - c.t)
         events.append({"t_start_s": round(t_start, 3), "t_end_s": round(speed.t, 3),
                        "what": f"parked: {name}", "parked": True,
                        "tilt_deg": [round(float(np.degrees(r_lvl * angle)), 3),
