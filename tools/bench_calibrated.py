@@ -258,7 +258,9 @@ def main(argv=None) -> None:
            f"(σ {a.base_tilt_sigma:g}°, "
            "`calibrate sensors --base-tilt`)" if a.base_tilt_sigma > 0 else "")
         + ", window means of 25 samples; "
-        f"`calibrate sensors --effects all` ({res.model.size} elements + the base attitude); then "
+        f"`calibrate sensors --effects all` ({res.model.size} elements + the base attitude"
+        + (f" of each of the {len(res.attitudes_rad)} stances" if len(res.attitudes_rad) > 1 else "")
+        + "); then "
         f"{a.poses:,} random still poses (pose seed {a.pose_seed}) of the same physical sensors at 25 °C, "
         f"prior = true pose + N(0, 10 deg). Truth of a startup answer: the encoder's angle plus the "
         f"joint's true zero offset (relative encoders: the startup defines the zero). The held "
