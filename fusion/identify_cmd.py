@@ -123,14 +123,16 @@ def calibrate_sensors(
         if json_out:
             emit_json({k: v.as_dict() for k, v in fits.items()})
             return
-        t = Table(title="Gravity direction in the base frame, per sensor (separate fits)", title_justify="left")
+        t = Table(title="Gravity direction in the base frame, per sensor (separate fits; the first "
+                        "stance)", title_justify="left")
         for c in ("sensor", "roll [deg]", "pitch [deg]", "RMS / noise", "held"):
             t.add_column(c)
         for k, f in fits.items():
             ratio = np.mean([np.mean(s.rms / s.noise) for s in f.fits])
-            a = np.degrees(f.attitude_rad)
-            t.add_row(k, f"{a[0]:.3f} ± {np.degrees(f.sigma[-3]):.3f}",
-                      f"{a[1]:.3f} ± {np.degrees(f.sigma[-2]):.3f}", f"{ratio:.2f}", str(int(f.held.sum())))
+            a = np.degrees(f.attitude_rad)  # the first stance's
+            i0 = len(f.names) - 3 * len(f.attitudes_rad)
+            t.add_row(k, f"{a[0]:.3f} ± {np.degrees(f.sigma[i0]):.3f}",
+                      f"{a[1]:.3f} ± {np.degrees(f.sigma[i0 + 1]):.3f}", f"{ratio:.2f}", str(int(f.held.sum())))
         console.print(t)
         return
     res, data = identify_recentred(model, data, None, IdentifySettings(encoder_scale=True), progress)
