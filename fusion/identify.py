@@ -4,7 +4,8 @@ From a recording in which the arm moves through many orientations, estimate the
 parameters of the model's effects (``models.effects``: biases, scales, axis directions,
 mounts, joint zeros, sag, the IMU's gyro and compass errors…) and the base attitude (the
 gravity and Earth-field directions in the base frame, as the sensor-calibration article's
-φ, ψ), by weighted nonlinear least squares:
+φ, ψ; one per parked stance of the chair, :func:`parked_stances`, optionally with an
+inclinometer's reading of the first stance's tilt), by weighted nonlinear least squares:
 
 * residuals: every reading's prediction minus the measurement, divided by its noise
   (window means of ``window`` samples: the noise of a mean);
