@@ -4,7 +4,8 @@ From a recording in which the arm moves through many orientations, estimate the
 parameters of the model's effects (``models.effects``: biases, scales, axis directions,
 mounts, joint zeros, sag, the IMU's gyro and compass errors…) and the base attitude (the
 gravity and Earth-field directions in the base frame, as the sensor-calibration article's
-φ, ψ), by weighted nonlinear least squares:
+φ, ψ; one per parked stance of the chair, :func:`parked_stances`, optionally with an
+inclinometer's reading of the first stance's tilt), by weighted nonlinear least squares:
 
 * residuals: every reading's prediction minus the measurement, divided by its noise
   (window means of ``window`` samples: the noise of a mean);
@@ -90,10 +91,30 @@ class FitData:
     """Instants per fit point: 2 means the state holds each window's two Gauss-Legendre
     nodes (t̄ ± T/(2√3)) one after the other, and a prediction is their mean (exact for a
     reading that is a cubic in time over the window)."""
+    stance: np.ndarray | None = None
+    """Per point, the parked stretch (stance) of the chair it belongs to, 0…K-1: each stance
+    has its own base attitude in the fit. ``None``: one stance (a parked chair)."""
+    used: np.ndarray | None = None
+    """Per point, whether it enters the fit (``False`` while the chair moves between stances:
+    its attitude is not constant there). ``None``: every point."""
+    base_tilt_reference: tuple[np.ndarray, float] | None = None
+    """The arm base's roll and pitch (rad, as the base attitude's) in the first stance,
+    measured independently (an inclinometer on the base), and that measurement's σ (rad).
+    Without it the base's angle about the first joint's axis, that joint's zero and the
+    IMU's mount about that axis are one unknown (any set of tilts leaves them so)."""
 
     @property
     def n(self) -> int:
         return self.state.N // self.nodes
+
+    @property
+    def n_stances(self) -> int:
+        return 1 if self.stance is None else int(self.stance.max()) + 1
+
+    def stance_of_instants(self) -> np.ndarray:
+        """The stance of every instant of the state (``nodes`` per point)."""
+        st = np.zeros(self.n, int) if self.stance is None else self.stance
+        return np.repeat(st, self.nodes)
 
     def shifted(self, dq_rad: np.ndarray) -> FitData:
         """The same data with ``q_ref`` moved by ``dq_rad`` (after a fit found the zeros)."""
@@ -102,6 +123,10 @@ class FitData:
                        q_ref_rad=self.q_ref_rad + dq)
 
     def subset(self, idx: np.ndarray | slice) -> FitData:
+        per_point = {k: getattr(self, k)[idx] for k in ("stance", "used") if getattr(self, k) is not None}
+        return replace(self._subset_state(idx), **per_point)
+
+    def _subset_state(self, idx: np.ndarray | slice) -> FitData:
         s = self.state
         if self.nodes > 1:  # the nodes of the chosen points
             pts = np.arange(self.n)[idx]
@@ -164,6 +189,8 @@ class Identification:
     q_ref_rad: np.ndarray
     mode: str = "simultaneous"
     notes: tuple[str, ...] = ()
+    attitudes_rad: np.ndarray | None = None
+    """Roll, pitch, yaw of every parked stance ``(K, 3)`` (``attitude_rad`` is the first)."""
 
     @property
     def model_x(self) -> np.ndarray:
@@ -220,6 +247,8 @@ class Identification:
             "chi2_red": self.chi2_red, "n_samples": self.n_samples, "n_residuals": self.n_residuals,
             "iterations": self.iterations, "seconds": round(self.seconds, 3),
             "attitude_deg": None if self.attitude_rad is None else np.degrees(self.attitude_rad).tolist(),
+            "stance_attitudes_deg": None if self.attitudes_rad is None
+            else np.degrees(self.attitudes_rad).tolist(),
             "q_ref_rad": self.q_ref_rad.tolist(), "notes": list(self.notes),
             "unmodelled_g": self.unmodelled_g(),
         }
@@ -235,8 +264,14 @@ class Identification:
 # data
 def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndarray | None = None,
                         streams: Sequence[str] | None = None,
-                        t_range_s: tuple[float, float] | None = None, nodes: int = 1) -> FitData:
+                        t_range_s: tuple[float, float] | None = None, nodes: int = 1,
+                        stances: bool = False) -> FitData:
     """Window means of every stream on the encoders' time grid.
+
+    ``stances=True`` finds where the chair stands parked (:func:`parked_stances`, from the
+    IMU's gyro and accelerometer): each parked stretch gets its own base attitude in the fit
+    and the windows while the chair moves between them are left out. A recording on a chair
+    that never moves gives one stance and every window, as ``stances=False``.
 
     ``nodes=2`` evaluates the model at each window's two Gauss-Legendre nodes and averages
     them (twice the model evaluations): the mean of a reading over its window then carries
@@ -292,12 +327,19 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
     if ts is not None and len(ts):
         tc = models["imu_temp"].from_counts(np.asarray(ts.values, float))[:, 0]
         temp = mean(np.interp(t, np.asarray(ts.t_s, float), tc))
+    stance = used = None
+    note = ""
+    if stances:
+        stance, used = parked_stances(arm, rec, mean(t), w)
+        if stance is not None:
+            note = (f"; {int(stance.max()) + 1} parked stances, each its own base attitude "
+                    f"({int((~used).sum())} windows left out while the chair moved)")
+    if nodes not in (1, 2):
+        raise ValueError(f"nodes must be 1 or 2, not {nodes!r}")
     if nodes == 1:
         state = MotionState.from_samples(mean(t), mean(q), None, 0.0, temp)
         return FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
-                       f"window means of {w} samples")
-    if nodes != 2:
-        raise ValueError(f"nodes must be 1 or 2, not {nodes!r}")
+                       f"window means of {w} samples" + note, stance=stance, used=used)
     tw = t[: n * w].reshape(n, w)
     dt = (tw[:, -1] - tw[:, 0]) * w / max(w - 1, 1)  # the window's length
     tn = (tw.mean(1)[:, None] + dt[:, None] / (2 * np.sqrt(3)) * np.array([-1.0, 1.0])).ravel()
@@ -305,7 +347,72 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
     tempn = np.repeat(np.broadcast_to(temp, (n,)), 2)
     state = MotionState.from_samples(tn, qn, None, 0.0, tempn)
     return FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
-                   f"window means of {w} samples (model at two nodes per window)", nodes=2)
+                   f"window means of {w} samples (model at two nodes per window)" + note, nodes=2,
+                   stance=stance, used=used)
+
+
+def parked_stances(arm: ArmModel, rec, t_windows_s: np.ndarray, window: int,
+                   rate_threshold_rad_s: float = 0.3 * DEG, accel_threshold_g: float = 0.005,
+                   margin_s: float = 1.0, min_stance_s: float = 10.0):
+    """Where the chair stands parked: per window (``t_windows_s``, means of ``window``
+    encoder samples), the stance it belongs to and whether it is parked.
+
+    The chair moves where the IMU's gyro departs from its median (the gyro bias: a
+    calibration stands parked most of the time) by more than ``rate_threshold_rad_s`` on
+    some axis, or where its accelerometer's window mean changes from one window to the next
+    by more than ``accel_threshold_g`` (rolling onto a slope, driving); the arm's own motion
+    moves neither. Those windows, ``margin_s`` either side and parked stretches shorter than
+    ``min_stance_s`` are left out. Every window gets the nearest stance (so a time
+    derivative across the edge of a stance sees one attitude). Returns ``(stance, used)``,
+    or ``(None, None)`` when the chair never moves (one stance, every window).
+    """
+    if arm.imu is None:
+        raise ValueError("finding the parked stances needs the base IMU's gyro and accelerometer")
+    models = stream_models(arm)
+    n = len(t_windows_s)
+    moving = np.zeros(n, bool)
+    for name, thr, diff in (("imu_gyro", rate_threshold_rad_s, False), ("imu_acc", accel_threshold_g, True)):
+        st = rec.get(name)
+        if st is None or len(st) == 0:
+            raise ValueError(f"finding the parked stances needs the IMU's {name!r} stream")
+        v = models[name].from_counts(np.asarray(st.values, float))
+        ts = np.asarray(st.t_s, float)
+        # the stream's mean over each window, on the windows' own instants
+        half = 0.5 * window * np.median(np.diff(ts)) if len(ts) > 1 else 0.0
+        cs = np.vstack([np.zeros((1, v.shape[1])), np.cumsum(v, 0)])
+        a = np.searchsorted(ts, t_windows_s - half)
+        b = np.maximum(np.searchsorted(ts, t_windows_s + half), a + 1)
+        b = np.minimum(b, len(ts))
+        m = (cs[b] - cs[a]) / np.maximum(b - a, 1)[:, None]
+        if diff:
+            d = np.zeros(n)
+            d[1:] = np.max(np.abs(np.diff(m, axis=0)), 1)
+            moving |= d > thr
+            moving[:-1] |= d[1:] > thr
+        else:
+            moving |= np.max(np.abs(m - np.median(m, 0)), 1) > thr
+    if not moving.any():
+        return None, None
+    dt = float(np.median(np.diff(t_windows_s))) if n > 1 else 1.0
+    pad = int(np.ceil(margin_s / dt))
+    grown = moving.copy()
+    for k in range(1, pad + 1):
+        grown[k:] |= moving[:-k]
+        grown[:-k] |= moving[k:]
+    parked = ~grown
+    # runs of parked windows
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], parked.astype(int), [0]])))
+    runs = [(a, b) for a, b in zip(edges[::2], edges[1::2], strict=True) if (b - a) * dt >= min_stance_s]
+    if not runs:
+        raise ValueError("the chair never stands parked for "
+                         f"{min_stance_s:g} s: no stance to calibrate on")
+    used = np.zeros(n, bool)
+    for a, b in runs:
+        used[a:b] = True
+    # every window to its nearest run (by index distance to the run's ends)
+    idx = np.arange(n)
+    dist = np.stack([np.where(idx < a, a - idx, np.where(idx >= b, idx - b + 1, 0)) for a, b in runs])
+    return np.argmin(dist, 0), used
 
 
 def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
@@ -349,7 +456,10 @@ _SUGGEST = {
     "accel_bias": "turn the sensor so that each axis sees gravity both up (+1 g) and down (-1 g)",
     "accel_scale": "turn the sensor so that each axis sees gravity both up (+1 g) and down (-1 g)",
     "temperature_drift": "record while the electronics warm up (a temperature change of 10 °C or more)",
-    "base_mount": "tilt the chair (a ramp, both ways) so the base attitude and the IMU mount separate",
+    "base_mount": "park the chair on a ramp facing up, down and across (renk-ramp) so the base "
+                  "attitude and the IMU's mount separate; its angle about the first joint's axis no "
+                  "tilt can separate from that joint's zero: read the base's tilt with an "
+                  "inclinometer in the first stance (calibrate sensors --base-tilt)",
     "gyro_bias": "hold the chair still for a while (the gyro bias is its reading at rest)",
     "gyro_scale": "turn the chair on the spot (a full turn both ways at 30 °/s or more)",
     "mag_hard_iron": "turn the chair on the spot through a full circle (the compass readings "
@@ -365,6 +475,14 @@ _SUGGEST = {
     "time_offset": "move faster: a time offset is seen only through the rate of change",
     "attitude": "the base attitude: tilt the chair, or turn it on the spot for the heading",
 }
+
+
+def attitude_names(n_stances: int) -> tuple[str, ...]:
+    """The base attitude's element names: ``base.attitude[roll]``… for one stance,
+    ``base.attitude[2.roll]``… (stance 2 of K, from 1) for several."""
+    if n_stances == 1:
+        return tuple(f"{ATTITUDE}[{k}]" for k in ATTITUDE_LABELS)
+    return tuple(f"{ATTITUDE}[{i + 1}.{k}]" for i in range(n_stances) for k in ATTITUDE_LABELS)
 
 
 def _element_effect(name: str) -> tuple[str, str]:
@@ -459,16 +577,27 @@ class _Problem:
             raise ValueError("no measured stream to fit (streams: " + ", ".join(streams) + ")")
         self.attitude = attitude
         self.P = model.size
-        self.size = model.size + (3 if attitude else 0)
-        self.names = tuple(model.element_names()) + (
-            tuple(f"{ATTITUDE}[{k}]" for k in ATTITUDE_LABELS) if attitude else ())
-        self.x0 = np.concatenate([model.x0, attitude0 if attitude else []])
-        self.sigma0 = np.concatenate([model.prior_sigma, ATTITUDE_SIGMA_RAD if attitude else []])
-        self.lower = np.concatenate([model.lower, [-np.pi / 2, -np.pi / 2, -4 * np.pi] if attitude else []])
-        self.upper = np.concatenate([model.upper, [np.pi / 2, np.pi / 2, 4 * np.pi] if attitude else []])
+        # one attitude per parked stance (the chair tilted differently in each)
+        self.K = data.n_stances
+        K = self.K if attitude else 0
+        self.size = model.size + 3 * K
+        self.names = tuple(model.element_names()) + attitude_names(K)
+        att0 = np.broadcast_to(np.asarray(attitude0, float).reshape(-1, 3)
+                               if np.size(attitude0) else np.zeros((1, 3)), (max(K, 1), 3))
+        self.x0 = np.concatenate([model.x0, att0[:K].ravel()])
+        self.sigma0 = np.concatenate([model.prior_sigma, np.tile(ATTITUDE_SIGMA_RAD, K)])
+        self.lower = np.concatenate([model.lower, np.tile([-np.pi / 2, -np.pi / 2, -4 * np.pi], K)])
+        self.upper = np.concatenate([model.upper, np.tile([np.pi / 2, np.pi / 2, 4 * np.pi], K)])
+        ref = data.base_tilt_reference
+        if K and ref is not None:  # an independent measurement of the first stance's tilt
+            tilt, sig = np.asarray(ref[0], float).reshape(2), float(ref[1])
+            if not sig > 0 or not np.all(np.abs(tilt) < np.pi / 2):
+                raise ValueError(f"base tilt reference: roll and pitch within ±90° and a positive σ, "
+                                 f"got {np.degrees(tilt)} deg ± {np.degrees(sig)} deg")
+            self.x0[self.P:self.P + 2] = tilt
+            self.sigma0[self.P:self.P + 2] = sig
         self.meas = np.concatenate([data.counts[s].ravel() for s in self.streams])
-        self.w = np.concatenate([np.broadcast_to(1.0 / data.sigma_counts[s], data.counts[s].shape).ravel()
-                                 for s in self.streams])
+        self.w = self._rows(None, None)[1]
         self.base_rpy = np.zeros(3)
         self._R0 = data.state.R_WB
         # encoder scale errors: the fit's joint angles come from the encoders, so a joint whose
@@ -495,13 +624,17 @@ class _Problem:
                           qdd_rad_s2=st.qdd_rad_s2 * f)
 
     def state(self, z: np.ndarray, rows: slice | None = None) -> MotionState:
-        st = self.data.state if rows is None else self.data.subset(rows).state
-        st = self._scaled_joints(st, z)
+        return self._state_of(self.data if rows is None else self.data.subset(rows), z)
+
+    def _state_of(self, d: FitData, z: np.ndarray) -> MotionState:
+        st = self._scaled_joints(d.state, z)
         if not self.attitude:
             return st
-        a = z[self.P:]
-        R = R_from_rpy(np.array([a[0]]), np.array([a[1]]), np.array([a[2]]))[0]
-        return st.replace(R_WB=np.broadcast_to(R, st.R_WB.shape).copy())
+        a = z[self.P:].reshape(-1, 3)
+        R = R_from_rpy(a[:, 0], a[:, 1], a[:, 2])
+        if len(a) == 1:
+            return st.replace(R_WB=np.broadcast_to(R[0], st.R_WB.shape).copy())
+        return st.replace(R_WB=R[d.stance_of_instants()])
 
     def _mean_nodes(self, a: np.ndarray) -> np.ndarray:
         k = self.data.nodes
@@ -522,12 +655,19 @@ class _Problem:
         """Measurements and weights of the points ``rows`` (then ``keep`` of them), stream-major."""
         d = self.data
         meas, w = [], []
+        used = None
+        if d.used is not None:
+            used = d.used if rows is None else d.used[rows]
+            if keep is not None:
+                used = used[keep]
         for s in self.streams:
             c = d.counts[s] if rows is None else d.counts[s][rows]
             if keep is not None:
                 c = c[keep]
             ws = np.broadcast_to(1.0 / d.sigma_counts[s], c.shape) * (1.0 if w_stream is None
                                                                       else w_stream[s])
+            if used is not None:  # points while the chair moves weigh nothing
+                ws = ws * used[:, None]
             meas.append(c.ravel())
             w.append(ws.ravel())
         return np.concatenate(meas), np.concatenate(w)
@@ -575,9 +715,38 @@ class _Problem:
                     J[:, i] = self._numeric_column(z, c, y, w, rows, keep)
             elif c < self.P:
                 J[:, i] = D[:, pos[c]] * w
-            else:  # base attitude: forward differences of the model
+            elif self.K == 1:  # base attitude: forward differences of the model
                 J[:, i] = self._numeric_column(z, c, y, w, rows, keep)
+            else:  # one stance's attitude: forward differences on that stance's points only
+                J[:, i] = self._stance_column(z, c, y, w, rows, keep, {s: pred[s].shape[1]
+                                                                      for s in self.streams})
         return r, J
+
+    def _stance_column(self, z, c, y, w, rows, keep, dims, h=1e-6):
+        """An attitude column of stance k: only its points change. The model is evaluated on
+        them with two points either side (so a time derivative there uses the same
+        neighbours as the whole chunk's) and the column is zero elsewhere."""
+        d = self.data if rows is None else self.data.subset(rows)
+        pts = np.arange(d.n) if keep is None else np.arange(d.n)[keep]
+        k = (c - self.P) // 3
+        sel = np.flatnonzero(d.stance[pts] == k)  # positions among the kept points
+        col = np.zeros(len(y))
+        if not len(sel):
+            return col
+        a, b = max(0, pts[sel[0]] - 2), min(d.n, pts[sel[-1]] + 3)
+        zz = np.array(z, float)
+        zz[c] += h
+        sub = d.subset(slice(a, b))
+        p = self.model.predict(self._state_of(sub, zz), zz[: self.P], self.streams)
+        at = pts[sel] - a
+        off = 0
+        for s in self.streams:
+            m = dims[s]
+            ps = self._mean_nodes(p[s])[at]
+            idx = off + (sel[:, None] * m + np.arange(m)).ravel()
+            col[idx] = (ps.ravel() - y[idx]) * w[idx] / h
+            off += len(pts) * m
+        return col
 
     def _numeric_column(self, z, c, y, w, rows, keep, h=1e-6):
         zz = np.array(z, float)
@@ -672,11 +841,14 @@ def _stream_scales(pb: _Problem, z: np.ndarray) -> dict[str, float]:
     pred = pb.predict(z)
     out = {}
     i = 0
+    used = pb.data.used
     for s in pb.streams:
         c = pb.data.counts[s]
         k = c.size
         r = ((pred[i:i + k] - c.ravel()).reshape(c.shape) / pb.data.sigma_counts[s])
         i += k
+        if used is not None:
+            r = r[used]
         chi2 = float(np.mean(r**2))
         rc = r - r.mean(0)
         den = np.sum(rc**2, 0)
@@ -710,15 +882,17 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
             free[i] = False
     notes = []
     if pb.attitude and "imu_mag" in pb.streams:
-        # the heading: a coarse search (the compass decides), then the fit
-        best = None
-        for yaw in np.linspace(-np.pi, np.pi, 12, endpoint=False):
+        # the heading of each stance: a coarse search (the compass decides), then the fit
+        point_stance = np.zeros(data.n, int) if data.stance is None else data.stance
+        rows_stance = np.concatenate([np.repeat(point_stance, data.counts[s].shape[1])
+                                      for s in pb.streams])
+        yaws = np.linspace(-np.pi, np.pi, 12, endpoint=False)
+        cost = np.zeros((len(yaws), pb.K))
+        for i, yaw in enumerate(yaws):
             z = pb.x0.copy()
-            z[pb.P + 2] = yaw
-            c = float(np.sum(pb.residual(z) ** 2))
-            if best is None or c < best[0]:
-                best = (c, yaw)
-        pb.x0[pb.P + 2] = best[1]
+            z[pb.P + 2::3] = yaw
+            cost[i] = np.bincount(rows_stance, pb.residual(z) ** 2, minlength=pb.K)
+        pb.x0[pb.P + 2::3] = yaws[np.argmin(cost, 0)]
     z0 = pb.x0.copy()
     # identifiability at the prior
     all_cols = np.arange(pb.size)
@@ -783,7 +957,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     D = pb.sigma0[fcols]
     A = H[np.ix_(fcols, fcols)] * np.outer(D, D) + np.eye(len(fcols))
     Sff = np.linalg.inv(A) * np.outer(D, D)
-    m_res = len(r)
+    m_res = int(np.count_nonzero(pb.w))
     dof = max(m_res - len(fcols), 1)
     chi2 = float(np.sum(r**2) / dof)
     worse = {s_: v for s_, v in scale.items() if v > 1.05}
@@ -809,15 +983,18 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         k = data.counts[s].shape
         d = (pred[i:i + data.counts[s].size] - pb.meas[i:i + data.counts[s].size]).reshape(k)
         i += data.counts[s].size
+        if data.used is not None:
+            d = d[data.used]
         g = np.abs(sm[s].gain)
         fits.append(StreamFit(s, sm[s].unit, np.sqrt(np.mean(d**2, 0)) / g,
                               data.sigma_counts[s] / g))
     return Identification(
         model=model, names=names, x=z, x0=pb.x0.copy(), sigma=sigma, prior_sigma=pb.sigma0.copy(),
         covariance=C, held=~free, holds=tuple(holds), fits=tuple(fits), chi2_red=chi2,
-        n_samples=data.n, n_residuals=m_res, iterations=n_jac[0], seconds=time.perf_counter() - t0,
-        attitude_rad=z[pb.P:] if pb.attitude else None, q_ref_rad=data.q_ref_rad, mode=mode,
-        notes=tuple(notes))
+        n_samples=data.n if data.used is None else int(data.used.sum()), n_residuals=m_res,
+        iterations=n_jac[0], seconds=time.perf_counter() - t0,
+        attitude_rad=z[pb.P:pb.P + 3] if pb.attitude else None, q_ref_rad=data.q_ref_rad, mode=mode,
+        notes=tuple(notes), attitudes_rad=z[pb.P:].reshape(-1, 3) if pb.attitude else None)
 
 
 def identify_recentred(model: Model, data: FitData, streams: Sequence[str] | None = None,
@@ -836,7 +1013,7 @@ def identify_recentred(model: Model, data: FitData, streams: Sequence[str] | Non
             dq[model.arm.joint_names.index(b.target)] = res.model_x[model.index[b.name]][0]
         data = data.shifted(dq)
         res = identify(model, data, streams, settings, progress=progress,
-                       attitude0_rad=res.attitude_rad)
+                       attitude0_rad=res.attitudes_rad)
         res = replace(res, notes=res.notes + (
             "encoder zeros re-centred on the previous fit (the start pose was "
             f"{np.degrees(np.max(np.abs(dq))):.1f}° off)",))

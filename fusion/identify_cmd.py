@@ -8,10 +8,12 @@ library) plus the recording's encoder zeros and the base attitude; reports each 
 with its σ, what was held and why (and the motion that would separate it), correlated
 pairs, and the fit RMS per stream axis against the noise. ``--write`` saves a config with
 the estimates and their σ and the unmodelled-error floor lowered to what the fit leaves.
+A chair parked in several stances (``renk-ramp``) gets one base attitude per stance.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -44,6 +46,19 @@ from models.effects import EFFECTS, Model, all_effects, model_from_arm
 from models.simulator import REALISTIC_EXCLUDE
 
 
+def parse_base_tilt(text: str, sigma_deg: float) -> tuple[np.ndarray, float]:
+    """``"ROLL,PITCH"`` (degrees) and its σ (degrees) as the fit's base tilt reference (rad)."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 2 or not all(np.isfinite(vals)) or max(abs(v) for v in vals) >= 90:
+        raise ValueError(f"--base-tilt: give ROLL,PITCH in degrees (within ±90), e.g. 0.4,-4.9; got {text!r}")
+    if not (np.isfinite(sigma_deg) and sigma_deg > 0):
+        raise ValueError(f"--base-tilt-sigma must be a positive number of degrees, got {sigma_deg!r}")
+    return np.radians(vals), float(np.radians(sigma_deg))
+
+
 def build_model(arm, effects: str | None) -> Model:
     """The config's effects, or ``effects`` (comma separated names, or ``all``), plus the
     encoder zeros."""
@@ -70,6 +85,16 @@ def calibrate_sensors(
     effects: Annotated[str | None, typer.Option(help="Effects to estimate, comma separated, or "
                                                 "'all' (default: the config's, else all).")] = None,
     window: Annotated[int, typer.Option(help="Average this many samples per fit point.")] = 25,
+    stances: Annotated[bool, typer.Option(help="Find where the chair stands parked (the IMU's gyro and "
+                                          "accelerometer) and fit each stance's own base attitude, "
+                                          "leaving out the moves between them (a maneuver on a "
+                                          "ramp: renk-ramp); a chair that never moves is one "
+                                          "stance.")] = True,
+    base_tilt: Annotated[str | None, typer.Option(help="ROLL,PITCH in degrees: the arm base's tilt in "
+                                                  "the first stance, read by an inclinometer on the "
+                                                  "base (R = Rz Ry Rx). Pins the IMU's mount about "
+                                                  "the first joint's axis, which no maneuver can.")] = None,
+    base_tilt_sigma: Annotated[float, typer.Option(help="The inclinometer's σ, degrees.")] = 0.05,
     json_out: JsonOpt = False,
     write: Annotated[Path | None, typer.Option(help="Write a config with the estimates here.")] = None,
 ) -> None:
@@ -80,7 +105,9 @@ def calibrate_sensors(
     rec = read_recording_or_exit(recording)
     try:
         model = build_model(arm, effects)
-        data = data_from_recording(arm, rec, window, nodes=2)
+        data = data_from_recording(arm, rec, window, nodes=2, stances=stances)
+        if base_tilt is not None:
+            data = replace(data, base_tilt_reference=parse_base_tilt(base_tilt, base_tilt_sigma))
     except ValueError as e:
         fail(str(e))
     quiet = json_out
@@ -96,14 +123,16 @@ def calibrate_sensors(
         if json_out:
             emit_json({k: v.as_dict() for k, v in fits.items()})
             return
-        t = Table(title="Gravity direction in the base frame, per sensor (separate fits)", title_justify="left")
+        t = Table(title="Gravity direction in the base frame, per sensor (separate fits; the first "
+                        "stance)", title_justify="left")
         for c in ("sensor", "roll [deg]", "pitch [deg]", "RMS / noise", "held"):
             t.add_column(c)
         for k, f in fits.items():
             ratio = np.mean([np.mean(s.rms / s.noise) for s in f.fits])
-            a = np.degrees(f.attitude_rad)
-            t.add_row(k, f"{a[0]:.3f} ± {np.degrees(f.sigma[-3]):.3f}",
-                      f"{a[1]:.3f} ± {np.degrees(f.sigma[-2]):.3f}", f"{ratio:.2f}", str(int(f.held.sum())))
+            a = np.degrees(f.attitude_rad)  # the first stance's
+            i0 = len(f.names) - 3 * len(f.attitudes_rad)
+            t.add_row(k, f"{a[0]:.3f} ± {np.degrees(f.sigma[i0]):.3f}",
+                      f"{a[1]:.3f} ± {np.degrees(f.sigma[i0 + 1]):.3f}", f"{ratio:.2f}", str(int(f.held.sum())))
         console.print(t)
         return
     res, data = identify_recentred(model, data, None, IdentifySettings(encoder_scale=True), progress)

@@ -2,6 +2,7 @@
 sensors: the issue's point 4, measured. Writes its section of docs/benchmarks.md.
 
     python tools/bench_calibrated.py [--seed 1] [--duration 600] [--poses 1000] [--write-config C2]
+        [--scenario renk-maneuver|renk-ramp]
 
 1. ``armfusion simulate --scenario renk-maneuver --realistic --seed S``: every effect of the
    library drawn at datasheet-typical magnitudes (the simulator's realistic arm for seed S);
@@ -26,6 +27,7 @@ import argparse
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -58,19 +60,36 @@ TARGET_DEG = 0.1
 
 
 def calibrate(arm, seed: int, duration_s: float, window: int = 25, progress=None,
-              true_effects: list[dict] | None = None, fit_effects: str = "all"):
-    """Simulate the maneuver on seed ``seed``'s realistic arm (or on ``true_effects``, config
-    entries) and identify ``fit_effects`` (as ``calibrate sensors --effects``).
+              true_effects: list[dict] | None = None, fit_effects: str = "all",
+              scenario: str = "renk-maneuver", base_tilt_sigma_deg: float = 0.0):
+    """Simulate the maneuver ``scenario`` on seed ``seed``'s realistic arm (or on
+    ``true_effects``, config entries) and identify ``fit_effects`` (as ``calibrate sensors
+    --effects``: each parked stance of the chair its own base attitude).
+    ``base_tilt_sigma_deg > 0``: an inclinometer on the arm's base reads its tilt in the first
+    stance with that σ (``calibrate sensors --base-tilt``), the reading drawn around the truth.
     Returns the identification, the truth dict and the seconds (simulation, fit)."""
     t0 = time.perf_counter()
-    rec, truth = simulate(arm, "renk-maneuver", duration_s, seed=seed, realistic=true_effects is None,
+    rec, truth = simulate(arm, scenario, duration_s, seed=seed, realistic=true_effects is None,
                           effects=true_effects)
     t_sim = time.perf_counter() - t0
     t0 = time.perf_counter()
     model = identification_model(arm, fit_effects)
-    data = data_from_recording(arm, rec, window, nodes=2)
+    data = data_from_recording(arm, rec, window, nodes=2, stances=True)
+    if base_tilt_sigma_deg > 0:
+        data = replace(data, base_tilt_reference=inclinometer(rec, data, base_tilt_sigma_deg, seed))
     res, _ = identify_recentred(model, data, None, IdentifySettings(encoder_scale=True), progress)
     return res, truth, (t_sim, time.perf_counter() - t0)
+
+
+def inclinometer(rec, data, sigma_deg: float, seed: int) -> tuple[np.ndarray, float]:
+    """What an inclinometer on the arm's base reads in the recording's first stance: the true
+    roll and pitch there plus N(0, ``sigma_deg``) (seeded), and that σ, in rad."""
+    first = np.flatnonzero(data.used)[0] if data.used is not None else 0
+    t = data.state.t_s[first * data.nodes]
+    tb = rec.get("true_base")
+    tilt = np.array([np.interp(t, tb.t_s, tb.values[:, k]) for k in (0, 1)])
+    sig = np.radians(sigma_deg)
+    return tilt + np.random.default_rng([seed, 0x1C1]).normal(0.0, sig, 2), float(sig)
 
 
 def calibrated_config(res, base_config: str = "wmra") -> dict:
@@ -173,6 +192,13 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=1, help="the realistic arm (and its maneuver)")
     ap.add_argument("--duration", type=float, default=600.0, help="maneuver length [s]")
     ap.add_argument("--poses", type=int, default=1000)
+    ap.add_argument("--scenario", default="renk-maneuver", choices=["renk-maneuver", "renk-ramp"],
+                    help="the calibration maneuver: the chair parked (renk-maneuver, section "
+                         "bench_calibrated) or parked in turn on a ramp (renk-ramp, section "
+                         "bench_calibrated_ramp)")
+    ap.add_argument("--base-tilt-sigma", type=float, default=0.0,
+                    help="an inclinometer on the arm's base reads its tilt in the first stance with "
+                         "this sigma, deg (calibrate sensors --base-tilt); 0: none (default)")
     ap.add_argument("--pose-seed", type=int, default=7)
     ap.add_argument("--write-config", type=Path, default=None, help="keep the calibrated config here")
     ap.add_argument("--no-write", action="store_true", help="do not write docs/benchmarks.md")
@@ -183,7 +209,8 @@ def main(argv=None) -> None:
     def progress(k, cost):
         print(f"  Jacobian {k}: cost {cost:.6g} ({time.perf_counter() - t_start:.0f} s)", flush=True)
 
-    res, truth, (t_sim, t_fit) = calibrate(base, a.seed, a.duration, progress=progress)
+    res, truth, (t_sim, t_fit) = calibrate(base, a.seed, a.duration, progress=progress, scenario=a.scenario,
+                                           base_tilt_sigma_deg=a.base_tilt_sigma)
     rows_t = compare_with_truth(res, truth)
     z = np.array([r["z"] for r in rows_t])
     beyond = [r for r in rows_t if abs(r["z"]) > 3]
@@ -219,10 +246,21 @@ def main(argv=None) -> None:
     shift_text = ", ".join(f"{n} {np.degrees(v):+.2f}°"
                            for n, v in zip(base.joint_names, shift, strict=True) if v)
     lines = [
-        "## The WMRA calibrated by its own maneuver, then started (`tools/bench_calibrated.py`)", "",
+        "## The WMRA calibrated by its own maneuver, then started (`tools/bench_calibrated.py`"
+        + ("" if a.scenario == "renk-maneuver" else f" `--scenario {a.scenario}`")
+        + (f" `--base-tilt-sigma {a.base_tilt_sigma:g}`" if a.base_tilt_sigma > 0 else "") + ")", "",
         f"Seed {a.seed}'s realistic WMRA (every effect of the library drawn at datasheet-typical "
-        f"magnitudes); `renk-maneuver` for {a.duration:.0f} s, window means of 25 samples; "
-        f"`calibrate sensors --effects all` ({res.model.size} elements + the base attitude); then "
+        f"magnitudes); `{a.scenario}` for {a.duration:.0f} s"
+        + (" (the chair parked in turn level, on a 1:12 ramp facing up, down and across both ways; "
+           f"{res.attitudes_rad.shape[0]} stances found, each its own base attitude)"
+           if a.scenario == "renk-ramp" else "")
+        + ("; an inclinometer on the arm's base read its tilt in the first stance "
+           f"(σ {a.base_tilt_sigma:g}°, "
+           "`calibrate sensors --base-tilt`)" if a.base_tilt_sigma > 0 else "")
+        + ", window means of 25 samples; "
+        f"`calibrate sensors --effects all` ({res.model.size} elements + the base attitude"
+        + (f" of each of the {len(res.attitudes_rad)} stances" if len(res.attitudes_rad) > 1 else "")
+        + "); then "
         f"{a.poses:,} random still poses (pose seed {a.pose_seed}) of the same physical sensors at 25 °C, "
         f"prior = true pose + N(0, 10 deg). Truth of a startup answer: the encoder's angle plus the "
         f"joint's true zero offset (relative encoders: the startup defines the zero). The held "
@@ -257,7 +295,9 @@ def main(argv=None) -> None:
     md = "\n".join(lines)
     print(md)
     if not a.no_write:
-        print(f"\nwritten to {write_section('bench_calibrated', md)}")
+        section = ("bench_calibrated" + ("" if a.scenario == "renk-maneuver" else "_ramp")
+                   + ("_inclinometer" if a.base_tilt_sigma > 0 else ""))
+        print(f"\nwritten to {write_section(section, md)}")
 
 
 if __name__ == "__main__":

@@ -1,11 +1,12 @@
 """`armfusion calibrate joints` end to end on recordings: still windows, refusals, the
-saved prior, JSON."""
+saved prior, JSON; `calibrate sensors` on a ramp recording (stances, the inclinometer)."""
 
 from __future__ import annotations
 
 import json
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from fusion.cli import app
@@ -191,3 +192,41 @@ def test_the_configs_calibrated_effects_are_applied(tmp_path, wmra):
             assert all(j["flag"] in ("ok", "ambiguous") for j in seg["joints"])
     assert np.nanmax(errs["with"]) < 0.15, errs["with"]
     assert np.nanmax(errs["without"]) > 1.0, errs["without"]
+
+
+@pytest.fixture(scope="module")
+def ramp_recording(tmp_path_factory, wmra):
+    from models.simulator import simulate
+
+    rec, truth = simulate(wmra, "renk-ramp", 125.0, seed=3, effects=[
+        {"effect": "accel_bias", "target": "imu", "params": {"bias_g": [0.02, -0.015, 0.01]}},
+        {"effect": "base_mount", "target": "imu", "params": {"rotvec_rad": [0.01, -0.008, 0.012]}}])
+    path = tmp_path_factory.mktemp("ramp") / "ramp.csv"
+    write_recording(rec, path)
+    return path, truth
+
+
+def test_calibrate_sensors_fits_each_stance_and_takes_the_inclinometer(ramp_recording):
+    """On a ramp recording `calibrate sensors` gives each parked stance its own attitude,
+    and the inclinometer's reading of the first stance's tilt pins the IMU's mount about
+    j1's axis (held without it)."""
+    path, truth = ramp_recording
+    want = [e["tilt_deg"] for e in truth["events"] if e.get("parked")]
+    r = runner.invoke(app, ["calibrate", "sensors", str(path), "--effects", "accel_bias,base_mount",
+                            "--base-tilt", f"{want[0][0]},{want[0][1]}", "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    stances = np.array(d["stance_attitudes_deg"])
+    assert stances.shape == (5, 3)
+    np.testing.assert_allclose(stances[:, :2], want, atol=0.2)  # every stance's tilt found
+    p = {q["name"]: q for q in d["parameters"]}
+    y = p["imu.base_mount[y]"]
+    assert not y["held"] and abs(y["value"] - (-0.008)) < 3 * y["sigma"], y
+
+
+@pytest.mark.parametrize("bad", ["1,2,3", "north,2", "0,95"])
+def test_calibrate_sensors_refuses_a_malformed_base_tilt(ramp_recording, bad):
+    path, _ = ramp_recording
+    r = runner.invoke(app, ["calibrate", "sensors", str(path), "--base-tilt", bad])
+    assert r.exit_code == 2
+    assert "--base-tilt: give ROLL,PITCH in degrees" in r.output

@@ -217,6 +217,41 @@ def test_renk_maneuver_on_the_articles_own_arm(crs):
     np.testing.assert_allclose(rate[[0, 4, 5]], [3.1, 0.87, 13.9], rtol=0.1)
 
 
+def test_renk_ramp_parks_the_chair_level_then_up_down_and_across_a_ramp(wmra):
+    """The calibration maneuver on a ramp: the chair stands still in each stance at the 1:12
+    slope's tilt (up, down, across both ways; the ground a few tenths off), moves only in the
+    transitions (rolling onto the slope, turning on the spot), and the arm sweeps as in
+    renk-maneuver throughout."""
+    sc = make_scenario(wmra, "renk-ramp", 300.0, seed=4)
+    parked = [e for e in sc.events if e.get("parked")]
+    assert [e["what"] for e in parked] == [
+        "parked: level", "parked: ramp facing up", "parked: ramp facing down",
+        "parked: across the ramp, right side low", "parked: across the ramp, left side low"]
+    slope_deg = np.degrees(np.arctan(1 / 12))
+    nominal = [(0, 0), (0, -slope_deg), (0, slope_deg), (slope_deg, 0), (-slope_deg, 0)]
+    for e, want in zip(parked, nominal, strict=True):
+        assert e["t_end_s"] - e["t_start_s"] > 40.0
+        t = np.linspace(e["t_start_s"], e["t_end_s"], 200)
+        st = sc.state(t)
+        tilt = np.degrees(st.rpy_rad[:, :2])
+        np.testing.assert_allclose(tilt, np.broadcast_to(e["tilt_deg"], tilt.shape), atol=1e-3)  # rounded
+        assert np.abs(tilt[0] - want).max() < 1.0  # uneven ground: tenths of a degree
+        assert np.abs(st.omega_B_rad_s).max() < 1e-12 and np.abs(st.accel_B_mps2).max() < 1e-12  # parked
+    moves = [e for e in sc.events if e["what"].startswith("the chair moves")]
+    assert len(moves) == 4
+    for e in moves:
+        st = sc.state(np.linspace(e["t_start_s"], e["t_end_s"], 2000))
+        rate = np.degrees(np.abs(st.omega_B_rad_s).max(0))
+        assert 1.0 < rate[:2].max() < 10.0 and 30.0 < rate[2] <= 45.0 + 1e-6  # rolls on, turns
+        assert np.linalg.norm(st.accel_B_mps2, axis=1).max() < 1.0  # m/s²: a slow technician's drive
+    # the arm sweeps as in renk-maneuver (same seed, same joints)
+    t = np.arange(0.0, 300.0, 0.5)
+    parked_sweep = make_scenario(wmra, "renk-maneuver", 300.0, seed=4)
+    np.testing.assert_allclose(sc.state(t).q_rad, parked_sweep.state(t).q_rad)
+    with pytest.raises(ValueError, match="too short"):
+        make_scenario(wmra, "renk-ramp", 60.0)
+
+
 def test_daily_use_drives_turns_and_climbs_ramps_like_a_wheelchair(wmra):
     sc = make_scenario(wmra, "daily-use", duration_s=1200, seed=2)
     t = np.arange(0, 1200, 0.02)
