@@ -853,6 +853,14 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes))
 
 
+def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross products of 3-vectors on the last axis, broadcast (np.cross costs several times
+    more on the tracker's small arrays)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def _effect_dicts(arm: ArmModel, name: str):
     """The config's entries of effect ``name`` as plain dicts."""
     for e in arm.effects or ():
@@ -1306,6 +1314,7 @@ class Tracker:
         self._consider = np.zeros((n, self._spread_m))
         self._consider_t = None
         self._consider_q_enc = None
+        self._consider_used: set[int] = set()
         self._locked = np.zeros(n, bool)
         self._observed = np.zeros(n, bool)
         self._obs_key = None
@@ -1723,7 +1732,7 @@ class Tracker:
         var = self._accel_var_g2 + extra[..., None]
         if self._time_var_s2 is not None and frames.omega_S_rad_s is not None:
             # a stamp known to sigma_t reads gravity turned by omega x g sigma_t (sensor axes)
-            turn = np.cross(frames.omega_S_rad_s, frames.R_0S[..., 2, :])
+            turn = _cross3(frames.omega_S_rad_s, frames.R_0S[..., 2, :])
             var = var + self._time_var_s2[:, None] * turn**2
         return frames._replace(accel_var_g2=var)
 
@@ -1765,8 +1774,7 @@ class Tracker:
             k = len(sel)
             if self._time_offset_s is not None and frame.omega_S_rad_s is not None:
                 # a reading stamped late by dt saw gravity dt earlier: turn it to the stamp
-                w = frame.omega_S_rad_s[sel]
-                f = f - self._time_offset_s[sel][:, None] * np.cross(w, f)
+                f = f - self._time_offset_s[sel][:, None] * _cross3(frame.omega_S_rad_s[sel], f)
             var_a = frame.accel_var_g2 if full else frame.accel_var_g2[sel]
         still = self._still and acc is not None and st.motion_compensation
         n_still = 3 if still else 0
@@ -2076,13 +2084,9 @@ class Tracker:
         locked = self._axis_deg < st.gimbal_lock_deg
         sel, coef = self._obs_sel(used)
         info = np.zeros((n, n))
+        base = x[L.accel] + G * up
         if len(sel):
-            v = frame.motion_mps2[sel] + (x[L.accel] + G * up)  # (S', 3)
-            # df_s/d offset_j = R_0S^T (v_s x a_j) / g for the joints before the sensor's link;
-            # v x a_j = -[a_j]x v, every (j, s) in one product
-            Kv = (frame.K.reshape(3 * n, 3) @ v.T).reshape(n, 3, -1).transpose(2, 1, 0)  # (S', 3, n)
-            W = (frame.R_0S[sel].transpose(0, 2, 1) @ Kv) * coef  # J / sigma * sqrt(rate * window)
-            W = W.reshape(-1, n)
+            v, W = self._info_rows(frame, sel, coef, base)
             info = W.T @ W
         lam, V, _ = lapack.dsyevd(info)
         V2 = V**2
@@ -2094,34 +2098,71 @@ class Tracker:
             self._achievable[(V2[:, ~readable] > 1e-12).any(axis=1)] = np.inf
         self._observed = self._sees[sel].any(axis=0) if len(sel) else np.zeros(n, bool)
         self._locked = locked
-        # hold a weak direction only where the window's information would not beat what the
-        # filter already knows along it (a joint still wide from startup takes weak readings)
-        weak = lam < 1.0 / (st.sigma_limit_deg * DEG) ** 2
-        if weak.any():
-            prior_var = (V * (self._ukf._P[:n, :n] @ V)).sum(axis=0)
-            weak &= lam * prior_var < 1.0
-        any_weak, any_locked = bool(weak.any()), bool(locked.any())
-        if any_weak or any_locked:
-            # the span of the held directions (orthonormal already when of one kind)
-            if not any_locked:
-                U = V[:, weak]
-            elif not any_weak:
-                U = self._eye_state[:n, :n][:, locked]
-            else:
-                B = np.concatenate([V[:, weak], self._eye_state[:n, :n][:, locked]], axis=1)
-                w, U, _ = lapack.dsyevd(B @ B.T)
-                U = U[:, w > 1e-6]
+        U = self._held_span(lam, V, locked)
+        if U is not None:
             T = self._eye_state.copy()
             T[:n, :n] -= U @ U.T
             self._hold = T
         else:
             self._hold = None
-        if self._spread_m and len(sel):
-            self._consider_update(frame, sel, v, x[L.accel] + G * up, W)
+        if self._spread_m:
+            # the calibration's pull, over every link accelerometer used since the last time
+            # (sensors read at instants of their own each make a set of one)
+            self._consider_used.update(used)
+            if self._consider_t is None:  # the first time: the startup read every one of them
+                self._consider_used.update(range(len(self.link_names)))
+            if self._consider_t is None or self._t - self._consider_t >= st.observability_period_s:
+                both = tuple(sorted(self._consider_used))
+                self._consider_used = set()
+                if both:
+                    sel_c, coef_c = self._obs_sel(both)
+                    if both == tuple(used):
+                        v_c, W_c, hold_c = v, W, self._hold
+                    else:  # what the filter holds, judged on the information of them all
+                        v_c, W_c = self._info_rows(frame, sel_c, coef_c, base)
+                        lam_c, V_c, _ = lapack.dsyevd(W_c.T @ W_c)
+                        U_c = self._held_span(lam_c, V_c, locked)
+                        hold_c = None if U_c is None else self._eye_state[:n, :n] - U_c @ U_c.T
+                    self._consider_update(frame, sel_c, v_c, base, W_c, hold_c)
         self._ill = np.sqrt(self._achievable**2 + self._sys_var) > st.sigma_limit_deg * DEG
 
+    def _held_span(self, lam: np.ndarray, V: np.ndarray, locked: np.ndarray) -> np.ndarray | None:
+        """An orthonormal basis (n, h) of the offsets' directions to hold, from the window's
+        information (eigenvalues ``lam``, vectors ``V``) and the gimbal-locked joints; ``None``
+        when nothing is held. A weak direction is held only where the window's information
+        would not beat what the filter already knows along it (a joint still wide from
+        startup takes weak readings)."""
+        st, n = self.settings, self.arm.n_joints
+        weak = lam < 1.0 / (st.sigma_limit_deg * DEG) ** 2
+        if weak.any():
+            prior_var = (V * (self._ukf._P[:n, :n] @ V)).sum(axis=0)
+            weak &= lam * prior_var < 1.0
+        any_weak, any_locked = bool(weak.any()), bool(locked.any())
+        if not (any_weak or any_locked):
+            return None
+        # the span of the held directions (orthonormal already when of one kind)
+        if not any_locked:
+            return V[:, weak]
+        if not any_weak:
+            return self._eye_state[:n, :n][:, locked]
+        B = np.concatenate([V[:, weak], self._eye_state[:n, :n][:, locked]], axis=1)
+        w, U, _ = lapack.dsyevd(B @ B.T)
+        return U[:, w > 1e-6]
+
+    def _info_rows(self, frame: Frames, sel: np.ndarray, coef: np.ndarray, base: np.ndarray):
+        """The used link accelerometers' acceleration less gravity ``v`` (S', 3: motion plus
+        the base's ``base``) and their information rows ``W`` (3S', n): the Jacobian of each
+        reading with respect to the offsets, over its sigma, times sqrt(rate * window)."""
+        n = self.arm.n_joints
+        v = frame.motion_mps2[sel] + base  # (S', 3)
+        # df_s/d offset_j = R_0S^T (v_s x a_j) / g for the joints before the sensor's link;
+        # v x a_j = -[a_j]x v, every (j, s) in one product
+        Kv = (frame.K.reshape(3 * n, 3) @ v.T).reshape(n, 3, -1).transpose(2, 1, 0)  # (S', 3, n)
+        W = (frame.R_0S[sel].transpose(0, 2, 1) @ Kv) * coef  # J / sigma * sqrt(rate * window)
+        return v, W.reshape(-1, n)
+
     def _consider_update(self, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray,
-                         W: np.ndarray) -> None:
+                         W: np.ndarray, hold: np.ndarray | None) -> None:
         """The calibration's own uncertainty in the offsets, carried as the filter carries
         what it learnt (a consider, or Schmidt, sensitivity). Each of a calibrated config's
         correction spreads (every calibrated element moved by its sigma along a principal
@@ -2140,19 +2181,21 @@ class Tracker:
         window = self.settings.observability_window_s
         # the first time: the startup's answer already rests on at least a window of these
         # readings (its still stretch), so it carries a whole window's pull
-        dt = window if self._consider_t is None else max(t - self._consider_t, 0.0)
+        first = self._consider_t is None
+        dt = window if first else max(t - self._consider_t, 0.0)
         self._consider_t = t
         w = min(dt, window) / window
         if w <= 0.0:
             return
         k = len(sel)
         E = self._spread_errors(frame, sel, v, base).reshape(3 * k, -1)  # (3k, m)
-        Wn = W if self._hold is None else W @ self._hold[:n, :n]
+        Wn = W if hold is None else W @ hold[:n, :n]
         A = (Wn.T @ Wn) * w
         B = (Wn.T @ E) * w
-        P = self._ukf._P[:n, :n]
         # the information the filter held before these readings: its covariance's inverse
-        # less what they gave (clipped: a gated reading gave less than the window says)
+        # less what they gave (clipped: a gated reading gave less than the window says); the
+        # first time, the startup's (the filter has taken a few of these readings already)
+        P = self._P0[:n, :n] if first else self._ukf._P[:n, :n]
         lam, V = np.linalg.eigh(np.linalg.inv(P) - A)
         prior = (V * np.clip(lam, 0.0, None)) @ V.T
         S = self._consider
@@ -2193,9 +2236,9 @@ class Tracker:
             y0 = np.linalg.solve(Lm, raw - c)
             M1, c1 = self._spread_stack[IMU_ACC]
             d = M1 @ raw - np.einsum("mab,mb->ma", M1, c1) - y0  # (m_s, 3)
-            r = np.cross(y0 / np.linalg.norm(y0), d) @ self._R_0I.T  # the reference turned by
+            r = _cross3(y0 / np.linalg.norm(y0), d) @ self._R_0I.T  # the reference turned by
             # each link sensor's reading error: R^T (r x v) / g
-            rv = np.cross(r[:, None, :], v[None, :, :])  # (m_s, k, 3)
+            rv = _cross3(r[:, None, :], v[None, :, :])  # (m_s, k, 3)
             E[:, :, cols] = np.einsum("kji,mkj->kim", R, rv) / G
         scale = np.sqrt(self._accel_rate[sel] * self.settings.observability_window_s)
         return E / self._accel_sigma_g[sel][:, :, None] * scale[:, None, None]
@@ -2527,6 +2570,7 @@ class Tracker:
         if consider.shape == self._consider.shape:  # the calibration's pull on the offsets so far
             self._consider = consider
             self._sys_var = (consider**2).sum(axis=1)
+            self._consider_t = float(snap["t_s"])
 
     # -- results ---------------------------------------------------------------------------
     def q_enc_now(self) -> np.ndarray:
