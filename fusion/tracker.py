@@ -913,9 +913,8 @@ def _with_lever_arms(arm: ArmModel) -> ArmModel:
     ``motion_acceleration`` effects: an offset in the link's axes), so that the motion the
     tracker predicts at a sensor (centripetal, tangential) is at the right point."""
     shift: dict[str, np.ndarray] = {}
-    for e in arm.effects or ():
-        d = e if isinstance(e, Mapping) else e.model_dump()
-        if d.get("effect") == "motion_acceleration" and d.get("target"):
+    for d in _effect_dicts(arm, "motion_acceleration"):
+        if d.get("target"):
             v = np.asarray((d.get("params") or {}).get("lever_arm_offset_m", [0.0, 0.0, 0.0]), float)
             if v.shape == (3,) and np.any(v):
                 shift[d["target"]] = v
@@ -1129,9 +1128,8 @@ class Tracker:
         idx = {nm: i for i, nm in enumerate(self.accel_names)}
         off = np.zeros(len(self.accel_names))
         var = np.zeros(len(self.accel_names))
-        for e in self.arm.effects or ():
-            d = e if isinstance(e, Mapping) else e.model_dump()
-            if d.get("effect") != "time_offset" or d.get("target") not in idx:
+        for d in _effect_dicts(self.arm, "time_offset"):
+            if d.get("target") not in idx:
                 continue
             i = idx[d["target"]]
             off[i] = float(np.ravel((d.get("params") or {}).get("offset_s", [0.0]))[0])
