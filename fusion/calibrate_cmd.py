@@ -28,7 +28,7 @@ from fusion.startup import (
     solve_still,
 )
 from fusion.static import StaticDetectionSettings, find_static_segments
-from models.sensor_models import MPU9150_TEMP_LSB_PER_C
+from models.sensor_models import mpu9150_temperature_c
 
 calibrate_app = typer.Typer(help="Calibrate: joint angles from a still arm, or the sensors.",
                             no_args_is_help=True)
@@ -69,7 +69,7 @@ def calibrate_joints(
         segs = segs[:1]
     out = []
     temp = rec.get("imu_temp")
-    temperature_c = (float(np.mean(temp.values) / MPU9150_TEMP_LSB_PER_C + 35.0)
+    temperature_c = (float(mpu9150_temperature_c(np.mean(temp.values)))
                      if temp is not None and len(temp) else 25.0)
     try:
         corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
@@ -90,7 +90,7 @@ def calibrate_joints(
         seg_corr = corr
         seg_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None and drifts else None
         if seg_temp is not None and len(seg_temp):  # each still stretch at its own temperature
-            key = round(float(np.mean(seg_temp.values) / MPU9150_TEMP_LSB_PER_C + 35.0), 1)
+            key = round(float(mpu9150_temperature_c(np.mean(seg_temp.values))), 1)
             if key not in by_temperature:
                 by_temperature[key] = startup_correction(arm, key, include_joint_offsets=True)
             seg_corr = by_temperature[key]

@@ -78,8 +78,8 @@ from models.motion import MotionState, link_motion, sensor_motion
 from models.rotations import GRAVITY_MPS2, skew
 from models.sensor_models import (
     MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
-    MPU9150_TEMP_LSB_PER_C,
     StreamModel,
+    mpu9150_temperature_c,
     stream_models,
 )
 from sensors.samples import Recording, Stream
@@ -832,7 +832,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         if still_temp is None or not len(still_temp):
             still_temp = temp
         # corrected at the temperature of the still stretch (the tracker follows it after)
-        temperature_c = (float(np.mean(still_temp.values) / MPU9150_TEMP_LSB_PER_C + 35.0)
+        temperature_c = (float(mpu9150_temperature_c(np.mean(still_temp.values)))
                          if still_temp is not None and len(still_temp) else 25.0)
         corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
         readings = corr.readings(readings)
@@ -1397,7 +1397,7 @@ class Tracker:
         if temp is not None:
             raw_t = float(np.ravel(temp)[0])
             if math.isfinite(raw_t):
-                self._temperature_c = raw_t / MPU9150_TEMP_LSB_PER_C + 35.0
+                self._temperature_c = float(mpu9150_temperature_c(raw_t))
         for s, v in samples.items():
             if s == "imu_temp":
                 continue
@@ -2346,7 +2346,7 @@ class Tracker:
         temp_t = temp_c = None
         if temp is not None and len(temp) and self._undo_per_c:
             temp_t = temp.t_s
-            temp_c = temp.values[:, 0] / MPU9150_TEMP_LSB_PER_C + 35.0
+            temp_c = mpu9150_temperature_c(temp.values[:, 0])
 
         def temperature_at(t: np.ndarray):
             """The IMU's latest temperature reading at each time (the tracker's, before any)."""

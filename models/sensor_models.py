@@ -203,3 +203,8 @@ def stream_group(stream: str) -> str:
 def accel_counts_to_g(counts: np.ndarray, model: StreamModel) -> np.ndarray:
     """Raw accelerometer counts to g with the nominal sensitivity (for plots and checks)."""
     return model.from_counts(counts)
+
+
+def mpu9150_temperature_c(raw) -> np.ndarray | float:
+    """The MPU-9150's temperature register (counts, any shape) in °C: raw / 340 + 35."""
+    return np.asarray(raw, dtype=float) / MPU9150_TEMP_LSB_PER_C + MPU9150_TEMP_OFFSET_C
