@@ -72,7 +72,8 @@ from fusion.heading import (
     tilt_compensated_heading,
 )
 from fusion.startup import StartupResult
-from fusion.ukf import TWO_PI, BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound, wrap_angle
+from fusion.tracker_kernels import measurement_points, process_points
+from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound, wrap_angle
 from models.arm import ArmModel
 from models.motion import MotionState, link_motion, sensor_motion
 from models.rotations import GRAVITY_MPS2, skew
@@ -418,13 +419,9 @@ class _FrameFields(NamedTuple):
     p_0S_m: np.ndarray
     omega_dot_B: np.ndarray
     K: np.ndarray
-    K2: np.ndarray
     motion_g: np.ndarray
     dist2_m2: np.ndarray
     omega_dot_norm: np.ndarray
-    KK: np.ndarray
-    R_bd: np.ndarray
-    motion_lo: np.ndarray
     accel_var_g2: np.ndarray | None = None
     omega_S_rad_s: np.ndarray | None = None
 
@@ -437,19 +434,9 @@ class Frames(_FrameFields):
     (each sensor's acceleration from the joints' motion and the base's rotation, base
     axes, without gravity or the base's own linear acceleration) for the accelerometers
     (link accelerometers then the IMU); ``axes (K, n, 3)`` the joint axes in base axes.
-    ``K (., n, 3, 3)``: the axes' skew matrices, ``K2`` their squares; ``motion_g (., S)``:
+    ``K (., n, 3, 3)``: the axes' skew matrices; ``motion_g (., S)``:
     |motion| in g; ``dist2_m2 (., S)``: each sensor's squared distance from the base origin;
-    ``KK (., 2n + 4p + 1, 9B)``: the block matrix that makes, from one product with
-    ``c = [sin d_0 … sin d_n-1, 1 - cos d_0 … 1 - cos d_n-1, products, 1]``, the B rotations
-    of :func:`turn_blocks` (columns 9b … 9b+8): a joint's
-    ``E_j = exp([a_j]x d_j) = I + sin d_j K_j + (1 - cos d_j) K_j²``, or the product
-    ``E_a E_b`` of a pair of joints that turn the same sensors, whose cross terms come from
-    the rows 2n + r p + i (pair i of p; r: ``sin d_a sin d_b``, ``sin d_a (1 - cos d_b)``,
-    ``(1 - cos d_a) sin d_b``, ``(1 - cos d_a)(1 - cos d_b)``);
-    ``R_bd (., 3S, 3S)``: the block-diagonal matrix that takes the sensors'
-    base-axis vectors, in the order of their links, to their readings in g, in ``names``
-    order (``R_0S / g`` per block); ``motion_lo``: ``motion_mps2`` in the order of their
-    links; ``accel_var_g2 (., S, 3)``: the accelerometers' measurement variances at these
+    ``accel_var_g2 (., S, 3)``: the accelerometers' measurement variances at these
     instants, when a tracker has added them; ``omega_S_rad_s (., S, 3)``: each
     accelerometer's angular velocity in its own axes. Read-only (a named tuple).
     """
@@ -487,72 +474,11 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     lm = link_motion(arm, st)
     sm = sensor_motion(arm, st, list(names), lm=lm)
     Ks = skew(lm.axis_0)
-    K2 = Ks @ Ks
-    n = q.shape[1]
-    blocks = turn_blocks(arm, names)
-    pairs = [blk for blk in blocks if len(blk) == 2]
-    p = len(pairs)
-    KK = np.zeros((K, 2 * n + 4 * p + 1, 9 * len(blocks)))
-    KK[:, -1] = np.tile(np.eye(3).reshape(-1), len(blocks))  # the identity in every block
-    for b, blk in enumerate(blocks):
-        cols = slice(9 * b, 9 * b + 9)
-        for j in blk:
-            KK[:, j, cols] = Ks[:, j].reshape(K, 9)
-            KK[:, n + j, cols] = K2[:, j].reshape(K, 9)
-        if len(blk) == 2:
-            # E_a E_b = I + (E_a - I) + (E_b - I) + (E_a - I)(E_b - I): the cross terms are the
-            # products of [sin d_a, 1 - cos d_a] and [sin d_b, 1 - cos d_b] with K_a^r K_b^s
-            i, (ja, jb) = pairs.index(blk), blk
-            for r, (Ma, Mb) in enumerate(((Ks, Ks), (Ks, K2), (K2, Ks), (K2, K2))):
-                KK[:, 2 * n + r * p + i, cols] = (Ma[:, ja] @ Mb[:, jb]).reshape(K, 9)
-    lo = link_order(arm, names)
-    S = len(names)
-    R_bd = np.zeros((K, S, 3, S, 3))
-    R_bd[:, np.arange(S), :, lo, :] = np.moveaxis(sm.R_0S[:, lo], 1, 0) / G
     wd = np.asarray(omega_dot_B, float)
     return Frames(q, np.broadcast_to(offset, q.shape), sm.R_0S, sm.acc_0_mps2, lm.axis_0, sm.p_0S_m,
-                  wd, Ks, K2, np.linalg.norm(sm.acc_0_mps2, axis=-1) / G,
-                  np.sum(sm.p_0S_m**2, axis=-1), np.linalg.norm(wd, axis=-1), KK,
-                  R_bd.reshape(K, 3 * S, 3 * S), sm.acc_0_mps2[:, lo], omega_S_rad_s=sm.omega_S_rad_s)
-
-
-def link_order(arm: ArmModel, names) -> np.ndarray:
-    """The accelerometers ``names`` sorted by the link they sit on (stable)."""
-    return np.argsort([arm.sensor(nm).link for nm in names], kind="stable")
-
-
-def _block_starts(links_sorted) -> list[int]:
-    """For sensors sorted by link: where the trailing block each joint turns begins (joint
-    j turns every sensor on a link after j)."""
-    ls = np.asarray(links_sorted, dtype=int)
-    kmax = int(ls[-1]) if len(ls) else 0
-    return [int(np.searchsorted(ls, j, side="right")) for j in range(kmax)]
-
-
-def _joint_groups(starts: list[int]) -> list[tuple[int, list[int]]]:
-    """Joints that turn the same trailing block of sensors (equal ``starts``), in order:
-    ``(block start, joints)``."""
-    groups: list[tuple[int, list[int]]] = []
-    for j, a in enumerate(starts):
-        if groups and groups[-1][0] == a:
-            groups[-1][1].append(j)
-        else:
-            groups.append((a, [j]))
-    return groups
-
-
-def turn_blocks(arm: ArmModel, names) -> list[tuple[int, ...]]:
-    """The joint rotations :class:`Frames` multiplies out in its ``KK``, in order: for each
-    group of joints that turn the same sensors of ``names`` (in the order of their links),
-    the product of its first two joints (or its only joint), then each further joint (what
-    every sensor needs, first); then every other joint alone (what a subset may need)."""
-    links = sorted(arm.sensor(nm).link for nm in names)
-    blocks: list[tuple[int, ...]] = []
-    for _, js in _joint_groups(_block_starts(links)):
-        blocks.append(tuple(js[:2]))
-        blocks.extend((j,) for j in js[2:])
-    blocks.extend((j,) for j in range(arm.n_joints) if (j,) not in blocks)
-    return blocks
+                  wd, Ks, np.linalg.norm(sm.acc_0_mps2, axis=-1) / G,
+                  np.sum(sm.p_0S_m**2, axis=-1), np.linalg.norm(wd, axis=-1),
+                  omega_S_rad_s=sm.omega_S_rad_s)
 
 
 # --------------------------------------------------------------------------------------
@@ -950,51 +876,6 @@ def _rotation(v) -> np.ndarray:
                      [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
 
 
-def _turn_steps(starts: list[int], blocks: list[tuple[int, ...]]):
-    """How :meth:`Tracker._h_accel` turns the sensor blocks: for each group of joints that
-    turn the same trailing block (:func:`_joint_groups`), ``(block start, first, rest)``:
-    ``first`` the rotation (an index into ``blocks``, :func:`turn_blocks`) that starts the
-    group's product, ``rest`` those multiplied after it; and how many rotations they need."""
-    steps = []
-    for a, js in _joint_groups(starts):
-        if len(js) >= 2 and tuple(js[:2]) in blocks:
-            first, rest = blocks.index(tuple(js[:2])), js[2:]
-        else:
-            first, rest = blocks.index((js[0],)), js[1:]
-        steps.append((a, first, tuple(blocks.index((j,)) for j in rest)))
-    used = max((max((f,) + r) for _, f, r in steps), default=-1) + 1
-    return steps, used
-
-
-class _AccelPlan(NamedTuple):
-    """How :meth:`Tracker._h_accel` predicts a set of accelerometers (see ``_accel_plan``)."""
-
-    ss: np.ndarray
-    order: np.ndarray
-    full: bool
-    imu: int
-    steps: list
-    n_blocks: int
-
-
-def _tilt_trig(XT: np.ndarray, roll: int) -> np.ndarray:
-    """``[sin, cos]`` of the points' roll and pitch, ``(2, 2, N)``, from state-major points."""
-    tilt = XT[roll:roll + 2]
-    sc = np.empty((2,) + tilt.shape)
-    np.sin(tilt, out=sc[0])
-    np.cos(tilt, out=sc[1])
-    return sc
-
-
-def _index(ix: list[int]):
-    """``ix`` as a slice when it is a regular increasing run (a view, not a copy), else an array."""
-    if len(ix) >= 2 and len(set(np.diff(ix))) == 1 and ix[1] > ix[0]:
-        return slice(ix[0], ix[-1] + 1, ix[1] - ix[0])
-    if len(ix) == 1:
-        return slice(ix[0], ix[0] + 1)
-    return np.array(ix, dtype=int)
-
-
 def _euler_rates(r, p, w):
     """(roll, pitch, yaw) rates of ``R = Rz Ry Rx`` for body rates ``w (N, 3)``."""
     sr, cr = np.sin(r), np.cos(r)
@@ -1072,13 +953,10 @@ class Tracker:
         self._nees_idx = np.r_[np.arange(n), L.roll, L.pitch, L.yaw]
         self._nees_ix = np.ix_(self._nees_idx, self._nees_idx)
         self._acc_rows = np.arange(3 * len(self.accel_streams)).reshape(-1, 3)
-        self._link_cache: dict = {}
-        self._link_order = link_order(arm, self.accel_names)
-        self._blocks = turn_blocks(arm, self.accel_names)
-        pairs = [blk for blk in self._blocks if len(blk) == 2]
-        # the pairs' first and second joints (slices when regular): see _h_accel
-        self._pair_index = ((_index([a for a, _ in pairs]), _index([b for _, b in pairs])) if pairs
-                            else (None, None))
+        self._links_i64 = self._links.astype(np.int64)
+        self._no_field = np.full(3, np.nan)
+        self._no_sel = np.zeros(0, dtype=np.int64)
+        self._accel_decay: dict[float, float] = {}
         self._zeros3 = np.zeros(3)
         self._still_var3 = np.full(3, st.still_accel_sigma_mps2**2)
         self._eye3 = np.eye(3)
@@ -1554,38 +1432,19 @@ class Tracker:
                        and ax * ax + ay * ay + az * az < (2.0 * st.still_accel_g * G) ** 2)
 
     def _fx(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
-        """The process model, every sigma point at once: the gyro (minus each point's bias)
+        """The process model, every sigma point at once (compiled:
+        :func:`fusion.tracker_kernels.process_points`): the gyro (minus each point's bias)
         turns the attitude (midpoint rule on the Euler-angle rates), the base's
-        acceleration decays, offsets and bias stay.
-
-        The rates of ``R = Rz Ry Rx`` (see :func:`_euler_rates`) turn the body rates'
-        (y, z) pair by the roll: with ``u = e^{i roll} (w_y + i w_z)``, roll rate
-        ``w_x + Im u tan(pitch)``, pitch rate ``Re u``, yaw rate ``Im u / cos(pitch)``; one
-        complex exponential gives the roll's sine and cosine."""
+        acceleration decays, offsets and bias stay."""
         L = self.layout
-        Y = X.copy()
-        if w is not None:
-            r0 = L.roll  # roll, pitch: two adjacent columns
-            wb = w - X[:, L.bias]
-            w0 = wb[:, 0]
-            wyz = wb[:, 1:].view(np.complex128)[:, 0]  # w_y + i w_z
-            # the Euler-angle rates at the start, then at the midpoint
-            u = np.exp(1j * X[:, r0])
-            u *= wyz
-            mid = np.empty((X.shape[0], 2))
-            np.multiply(u.imag, np.tan(X[:, r0 + 1]), out=mid[:, 0])
-            mid[:, 0] += w0
-            mid[:, 1] = u.real
-            mid *= 0.5 * dt
-            mid += X[:, r0:r0 + 2]
-            u = np.exp(1j * mid[:, 0])
-            u *= wyz
-            a = u.imag
-            Y[:, r0] += dt * (w0 + a * np.tan(mid[:, 1]))
-            Y[:, r0 + 1] += dt * u.real
-            Y[:, L.yaw] += dt * (a / np.cos(mid[:, 1]))  # the mean wraps it
-        Y[:, L.accel] *= math.exp(-dt / self.settings.base_accel_tau_s)
-        return Y
+        decay = self._accel_decay.get(dt)
+        if decay is None:
+            if len(self._accel_decay) > 64:
+                self._accel_decay.clear()
+            decay = self._accel_decay[dt] = math.exp(-dt / self.settings.base_accel_tau_s)
+        have_w = w is not None
+        return process_points(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
+                              L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay)
 
     def _Q(self, dt: float, have_gyro: bool) -> np.ndarray:
         key = (round(dt * 1e9), have_gyro, self._still)  # dt to the nanosecond
@@ -1612,111 +1471,26 @@ class Tracker:
         return np.diag(q)
 
     # -- measurement models ---------------------------------------------------------------
-    def _h_accel(self, X: np.ndarray, frame: Frames, sel: np.ndarray, trig=None) -> np.ndarray:
-        """Predicted specific force (g) of the accelerometers ``sel`` at every sigma point.
-
-        The sigma points' sensor rotations follow from the frame's (the mean pose's) by the
-        product of exponentials: ``R_0S(q_ref + δ) = Π_{j < link} exp([a_j]x δ_j) R_0S(q_ref)``.
-        In row form ``f^T = v^T E_0 E_1 … E_{link-1} R_0S / g``: the sensors are taken in
-        order of their link, so each group of joints that turn the same trailing block of
-        sensors turns it at once. Every joint's ``E_j`` and the product of each pair of
-        joints in a group, for every sigma point, come from one matrix product with the
-        frame's ``KK``; the sensors' rotations to their own axes (and back to ``sel``'s
-        order) are one product with the frame's block-diagonal ``R_bd``. The work is done
-        on ``X.T`` where it concerns a state's points (contiguous when ``X`` is the UKF's
-        Fortran-ordered array); the result is ``(N, 3 len(sel))``.
-        ``trig``: ``[sin, cos]`` of the points' roll and pitch ``(2, 2, N)``, when the caller has them.
-        """
-        L = self.layout
-        XT = X.T
-        N = XT.shape[1]
-        plan = self._accel_plan(sel)
-        if trig is None:
-            trig = _tilt_trig(XT, L.roll)
-        base = np.empty((3, N))  # a_B + g·up, up = [-sp, sr cp, cr cp]
-        np.multiply(trig[0, 1], -G, out=base[0])
-        np.multiply(trig[:, 0], G * trig[1, 1], out=base[1:])  # [sr, cr] g cp
-        base += XT[L.accel]
-        motion = frame.motion_lo if plan.full else frame.motion_mps2[plan.ss]
-        v = motion + base.T[:, None, :]  # (N, S', 3)
-        if plan.steps:
-            n, (pa, pb) = L.n_joints, self._pair_index
-            c = np.empty((frame.KK.shape[0], N))  # see Frames.KK
-            np.subtract(XT[:n], frame.offset_ref[:, None], out=c[n:2 * n])
-            np.sin(c[n:2 * n], out=c[:n])
-            np.cos(c[n:2 * n], out=c[n:2 * n])
-            np.subtract(1.0, c[n:2 * n], out=c[n:2 * n])
-            if pa is not None:
-                sc = c[:2 * n].reshape(2, n, N)
-                np.multiply(sc[:, None, pa], sc[None, :, pb], out=c[2 * n:-1].reshape(2, 2, -1, N))
-            c[-1] = 1.0
-            # the rotations the plan needs (every sigma point's): joints' E_j, pairs' E_a E_b
-            E = (c.T @ frame.KK[:, :9 * plan.n_blocks]).reshape(N, -1, 3, 3)
-            for a, first, rest in plan.steps:
-                M = E[:, first]
-                for j in rest:
-                    M = M @ E[:, j]
-                v[:, a:] = v[:, a:] @ M
-        f = v.reshape(N, -1) @ (frame.R_bd if plan.full else self._R_bd(frame, plan))
-        if plan.imu >= 0:  # the IMU reads its own residual error too
-            f[:, 3 * plan.imu:3 * plan.imu + 3] += X[:, L.imu_bias]
-        return f
-
-    def _R_bd(self, frame: Frames, plan: _AccelPlan) -> np.ndarray:
-        """The frame's ``R_bd`` for a subset of the accelerometers (in the plan's order)."""
-        S = len(plan.ss)
-        B = np.zeros((S, 3, S, 3))
-        B[np.arange(S), :, plan.order, :] = frame.R_0S[plan.ss] / G
-        return B.reshape(3 * S, 3 * S)
-
-    def _accel_plan(self, sel: np.ndarray) -> _AccelPlan:
-        """For the accelerometers ``sel`` (cached): ``sel`` in link order and where each
-        lands in ``sel`` (``order``), whether that is every accelerometer (the frame keeps
-        them so), the IMU's position in ``sel`` (-1: absent), and the turns
-        (:func:`_turn_steps`)."""
-        key = sel.tobytes()
-        plan = self._link_cache.get(key)
-        if plan is None:
-            links = self._links[sel]
-            order = np.argsort(links, kind="stable")
-            ss = sel[order]
-            full = bool(len(ss) == len(self._links) and np.array_equal(ss, self._link_order))
-            steps, used = _turn_steps(_block_starts(links[order]), self._blocks)
-            plan = self._link_cache[key] = _AccelPlan(ss, order, full, self._sel_info(sel)[1], steps, used)
-        return plan
-
-    def _h_mag(self, X: np.ndarray, m_B: np.ndarray, trig=None) -> np.ndarray:
-        """Heading residual ``yaw - tilt-compensated heading`` at every sigma point (z = 0);
-        :func:`fusion.heading.tilt_compensated_heading` written out on the points' ``trig``
-        (sin, cos of roll and pitch, ``(2, 2, N)``)."""
-        L = self.layout
-        XT = X.T
-        if trig is None:
-            trig = _tilt_trig(XT, L.roll)
-        (sr, sp), (cr, cp) = trig
-        mx, my, mz = m_B.tolist()
-        y1 = cr * my - sr * mz
-        hx = cp * mx + sp * (sr * my + cr * mz)
-        d = XT[L.yaw] + np.arctan2(y1, hx)  # yaw - atan2(-y1, hx)
-        d -= self._field.declination_rad - np.pi
-        d %= TWO_PI
-        d -= np.pi
-        return d[:, None]
-
     def _h_all(self, X, frame, sel, m_B, still=False):
         """Every measurement of one update at every sigma point, ``(N, m)``: the
-        accelerometers ``sel``, the still chair's zero acceleration, the heading residual."""
+        accelerometers ``sel`` (specific force in g), the still chair's zero acceleration,
+        the heading residual ``yaw - tilt-compensated heading`` when ``m_B`` (the mean
+        field in base axes) is given. Compiled:
+        :func:`fusion.tracker_kernels.measurement_points` (its docstring has the model)."""
         L = self.layout
-        XT = X.T
-        trig = _tilt_trig(XT, L.roll)
-        parts = []
-        if sel is not None:
-            parts.append(self._h_accel(X, frame, sel, trig))
-        if still:
-            parts.append(X[:, L.accel])
-        if m_B is not None:
-            parts.append(self._h_mag(X, m_B, trig))
-        return np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
+        n = L.n_joints
+        if sel is None:
+            sel = self._no_sel
+        field = self._no_field if m_B is None else m_B
+        shift = (self._field.declination_rad - np.pi) if m_B is not None else 0.0
+        return measurement_points(np.ascontiguousarray(X), sel, self._links_i64, frame.axes, frame.offset_ref,
+                                  frame.motion_mps2, frame.R_0S, self._imu_acc_index, L.roll, n + 2, L.yaw,
+                                  n + 9, G, bool(still), field, shift)
+
+    def _h_accel(self, X: np.ndarray, frame: Frames, sel: np.ndarray) -> np.ndarray:
+        """Predicted specific force (g) of the accelerometers ``sel`` at every sigma point,
+        ``(N, 3 len(sel))`` in ``sel``'s order."""
+        return self._h_all(X, frame, np.asarray(sel, dtype=np.int64), None)
 
     # -- the stacked update -----------------------------------------------------------------
     def _with_noise(self, frames: Frames) -> Frames:
