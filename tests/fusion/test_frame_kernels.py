@@ -1,0 +1,129 @@
+"""The live path's compiled kinematic frame and causal fits equal their NumPy forms.
+
+:func:`fusion.frame_kernels.frame_one` (through :class:`FrameConstants`) against
+:func:`fusion.tracker.make_frames` for one instant, field by field, at seeded random
+states: motion on and off, a calibrated config's joint effects, and joint axes that are
+not z (the chain's general path). The compiled one-window fit against
+:func:`fusion.tracker.causal_poly_fit`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fusion.configfile import load_arm
+from fusion.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
+from fusion.tracker import Frames, Tracker, causal_poly_fit, make_frames
+from models.simulator import simulate
+
+JOINT_EFFECTS = ("joint_offset", "link_compliance", "backlash")
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return load_arm("wmra")
+
+
+@pytest.fixture(scope="module")
+def effects(arm):
+    """A realistic draw of every joint effect (zero offsets, sag, play) on every joint."""
+    _, truth = simulate(arm, "startup", 1.0, seed=11, realistic=True)
+    return tuple(e for e in truth["effects"] if e["effect"] in JOINT_EFFECTS)
+
+
+def random_states(arm, rng, count):
+    """Encoder fits ``(3, n)`` (angles within the limits, rates, accelerations), offsets,
+    base rates and accelerations: brisker than the arm moves, so every term counts."""
+    for _ in range(count):
+        fit = np.stack([rng.uniform(arm.min_rad, arm.max_rad), rng.normal(0, 1.0, arm.n_joints),
+                        rng.normal(0, 3.0, arm.n_joints)])
+        yield fit, rng.normal(0, 0.1, arm.n_joints), rng.normal(0, 0.5, 3), rng.normal(0, 2.0, 3)
+
+
+def assert_frames_equal(got: tuple, ref: Frames) -> None:
+    assert len(got) == len(Frames.FIELDS)
+    for name, a, b in zip(Frames.FIELDS, got, ref, strict=True):
+        if b is None:
+            assert a is None, name
+            continue
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.shape == b.shape, (name, a.shape, b.shape)
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12, err_msg=name)
+
+
+def check_against_make_frames(tr: Tracker, rng, motion: bool, count: int = 25) -> None:
+    fc = FrameConstants(tr.arm, tr.accel_names, tr._joint_effects)
+    for fit, offset, w, wd in random_states(tr.arm, rng, count):
+        ref = make_frames(tr.arm, tr.accel_names, fit[0][None], offset[None], fit[1][None], fit[2][None],
+                          w[None], wd[None], motion, tr._joint_effects).take(0)
+        assert_frames_equal(fc.fields(fit, offset, w, wd, motion), ref)
+
+
+# --------------------------------------------------------------------------------------
+# the frame
+@pytest.mark.parametrize("motion", [True, False])
+def test_the_compiled_frame_equals_make_frames(arm, motion):
+    tr = Tracker(arm)
+    assert not tr._joint_effects
+    check_against_make_frames(tr, np.random.default_rng(101), motion)
+
+
+def test_no_gyro_yet_is_a_base_at_rest(arm):
+    """``omega_B``/``omega_dot_B`` None (no gyro sample yet) is the base not turning."""
+    tr = Tracker(arm)
+    fc = FrameConstants(tr.arm, tr.accel_names)
+    fit, offset, _, _ = next(random_states(arm, np.random.default_rng(102), 1))
+    z = np.zeros((1, 3))
+    ref = make_frames(arm, tr.accel_names, fit[0][None], offset[None], fit[1][None], fit[2][None],
+                      z, z).take(0)
+    assert_frames_equal(fc.fields(fit, offset, None, None), ref)
+
+
+@pytest.mark.parametrize("motion", [True, False])
+def test_the_compiled_frame_applies_a_calibrated_config_s_joint_effects(arm, effects, motion):
+    """Zero offsets (added in the kernel), sag and play (their gravity torques in NumPy, as
+    make_frames evaluates them): several effects on every joint, in the config's order."""
+    tr = Tracker(replace(arm, effects=effects))
+    kinds = {type(e).__name__ for e, _ in tr._joint_effects}
+    assert kinds == {"JointOffset", "LinkCompliance", "Backlash"}
+    check_against_make_frames(tr, np.random.default_rng(103), motion)
+
+
+def test_the_compiled_frame_turns_about_axes_that_are_not_z(arm):
+    """Joint axes tilted off z: the chain's Rodrigues path (models.rotations.exp_so3)."""
+    rng = np.random.default_rng(104)
+    axes = [np.array([0.0, 0.0, 1.0]) + rng.normal(0, 0.3, 3) for _ in arm.joints]
+    tilted = replace(arm, joints=tuple(replace(j, axis=a / np.linalg.norm(a))
+                                       for j, a in zip(arm.joints, axes, strict=True)))
+    assert not tilted.chain.axis_is_z
+    check_against_make_frames(Tracker(tilted), rng, True)
+
+
+# --------------------------------------------------------------------------------------
+# the differentiators
+@pytest.mark.parametrize("window, order, dim", [(9, 3, 7), (15, 2, 3), (4, 3, 2), (2, 1, 1), (5, 0, 2)])
+def test_one_window_s_fit_equals_causal_poly_fit(window, order, dim):
+    rng = np.random.default_rng(105)
+    for start in (0.0, 1.7e9):  # a recording's clock and a wall clock
+        for _ in range(20):
+            t = start + np.cumsum(rng.uniform(0.005, 0.015, window))
+            y = rng.normal(0, 1, (window, dim)) + np.sin(3.0 * t - start)[:, None]
+            ref = causal_poly_fit(t[None], y[None], t[-1:], order)[0]
+            got = poly_fit_one(t, y, float(t[-1]), order)
+            scale = np.abs(ref).max(axis=1, keepdims=True) + 1.0  # per row: value, rate, acceleration
+            assert np.max(np.abs(got - ref) / scale) < 1e-11
+
+
+def test_push_fit_shifts_the_window_in_place():
+    t_buf, y_buf = np.full(4, np.nan), np.zeros((4, 2))
+    for k, v in enumerate((1.0, 2.0, 4.0)):
+        fit = push_fit(t_buf, y_buf, float(k), np.array([v, -v]), k + 1, 2)
+    np.testing.assert_array_equal(t_buf[1:], [0.0, 1.0, 2.0])
+    np.testing.assert_array_equal(y_buf[1:, 0], [1.0, 2.0, 4.0])
+    np.testing.assert_allclose(fit[:, 0], [4.0, 2.5, 1.0], atol=1e-12)  # 1 + t/2 + t²/2 at t = 2
+    fit, dt = np.random.default_rng(107).normal(0, 1, (3, 2)), 0.25
+    np.testing.assert_array_equal(extrapolate_fit(fit, dt), np.stack(
+        [fit[0] + fit[1] * dt + 0.5 * fit[2] * dt * dt, fit[1] + fit[2] * dt, fit[2]]))
