@@ -64,6 +64,7 @@ import numpy as np
 from scipy.linalg import lapack
 from scipy.stats import chi2
 
+from fusion.frame_kernels import FrameConstants
 from fusion.heading import (
     FieldReference,
     HeadingSettings,
@@ -968,6 +969,9 @@ class Tracker:
         self._imu_acc_index = self._sidx.get(IMU_ACC, -1)
         self._plan_cache: dict = {}
         self._mag_mask: dict = {}
+        # the live path's one-instant frame, compiled (False: make_frames, the NumPy reference)
+        self._frame_consts = FrameConstants(arm, self.accel_names, self._joint_effects, G)
+        self._frames_compiled = True
 
     def _consider_columns(self) -> None:
         """The columns of the consider sensitivity (see :meth:`_consider_update`): each
@@ -1340,19 +1344,27 @@ class Tracker:
 
     def _frame_now(self, t: float) -> Frames | None:
         """The mean pose's kinematics at ``t`` (kept for further samples of the same
-        instant: the product of exponentials carries any change of the offsets)."""
+        instant: the product of exponentials carries any change of the offsets). Compiled
+        (:mod:`fusion.frame_kernels`); ``_frames_compiled`` False: :func:`make_frames`."""
         if self._frame_cache is not None and self._frame_cache[0] == t:
             return self._frame_cache[1]
         e = self._enc_diff.at(t)
         if e is None:
             return None
         L = self.layout
-        om = np.zeros(3) if self._omega is None else self._omega - self._ukf.x[L.bias]
+        x = self._ukf.x
+        om = None if self._omega is None else self._omega - x[L.bias]
         g = self._gyro_diff.at(t)
-        omd = np.zeros(3) if g is None else g[1]
-        frame = self._with_noise(make_frames(
-            self.arm, self.accel_names, e[0][None], self._ukf.x[L.offset][None], e[1][None], e[2][None],
-            om[None], omd[None], self.settings.motion_compensation, self._joint_effects)).take(0)
+        omd = None if g is None else g[1]
+        if self._frames_compiled:
+            fields = self._frame_consts.fields(e, x[L.offset], om, omd, self.settings.motion_compensation)
+            frame = self._with_noise(tuple.__new__(Frames, fields))
+        else:  # the NumPy reference
+            z = np.zeros(3)
+            frame = self._with_noise(make_frames(
+                self.arm, self.accel_names, e[0][None], x[L.offset][None], e[1][None], e[2][None],
+                (z if om is None else om)[None], (z if omd is None else omd)[None],
+                self.settings.motion_compensation, self._joint_effects)).take(0)
         self._frame_cache = (t, frame)
         return frame
 

@@ -4,7 +4,9 @@
 :func:`fusion.tracker.make_frames` for one instant, field by field, at seeded random
 states: motion on and off, a calibrated config's joint effects, and joint axes that are
 not z (the chain's general path). The compiled one-window fit against
-:func:`fusion.tracker.causal_poly_fit`.
+:func:`fusion.tracker.causal_poly_fit`. Then the tracker's live path
+(:meth:`Tracker.update_instant`) with the compiled frame against the same tracker with
+the NumPy frame, instant by instant.
 """
 
 from __future__ import annotations
@@ -16,9 +18,11 @@ import pytest
 
 from fusion.configfile import load_arm
 from fusion.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
-from fusion.tracker import Frames, Tracker, causal_poly_fit, make_frames
+from fusion.tracker import Frames, Tracker, causal_poly_fit, make_frames, start_from_recording
 from models.simulator import simulate
+from models.trajectories import DrivingChair, Scenario, StepsBuilder, WaypointPath
 
+POSE = np.radians([45.0, 60.0, 30.0, -50.0, 40.0, 30.0, 20.0])
 JOINT_EFFECTS = ("joint_offset", "link_compliance", "backlash")
 
 
@@ -127,3 +131,54 @@ def test_push_fit_shifts_the_window_in_place():
     fit, dt = np.random.default_rng(107).normal(0, 1, (3, 2)), 0.25
     np.testing.assert_array_equal(extrapolate_fit(fit, dt), np.stack(
         [fit[0] + fit[1] * dt + 0.5 * fit[2] * dt * dt, fit[1] + fit[2] * dt, fit[2]]))
+
+
+# --------------------------------------------------------------------------------------
+# the live path
+def moving_on_a_turning_chair(arm, duration_s: float) -> Scenario:
+    """Still for the startup, then the arm reaching while the chair drives and turns."""
+    q2 = POSE + np.radians([10, -15, 20, 15, -20, 25, 30])
+    b = StepsBuilder(POSE).hold(3.0).move(q2, 2.0).hold(0.5).move(POSE, 2.0)
+    while b.t < duration_s:
+        b.hold(0.2).move(q2, 1.5).move(POSE, 1.5)
+    speed = StepsBuilder(0.0).hold(3.5).move([0.8], 1.5).hold(1.0).move([0.0], 1.5).build()
+    yaw_rate = StepsBuilder(0.0).hold(3.5).move([0.5], 1.0).hold(1.0).move([-0.3], 1.0).build()
+    flat = StepsBuilder(0.0).build()
+    chair = DrivingChair(speed, yaw_rate, flat, flat)
+    return Scenario("live", arm, duration_s, WaypointPath(b.build()), chair,
+                    lambda t: 25.0 + 0.0 * np.asarray(t, float))
+
+
+@pytest.mark.parametrize("calibrated", [False, True])
+def test_update_instant_gives_the_same_estimates_as_the_numpy_path(arm, effects, calibrated):
+    """Instant by instant, the compiled frame against make_frames (the live path before it
+    was compiled)."""
+    arm = replace(arm, effects=effects) if calibrated else arm
+    rec, _ = simulate(arm, moving_on_a_turning_chair(arm, 9.0), seed=21,
+                      effects=effects if calibrated else None)
+    a, _ = start_from_recording(arm, rec)
+    b, _ = start_from_recording(arm, rec)
+    b._frames_compiled = False
+    assert a.t_s < 4.0
+    names = a.sensor_names
+    enc = rec.get("enc")
+    streams = {s: rec.get(s) for s in names}
+    fused = 0
+    for i in np.flatnonzero(enc.t_s > a.t_s + 1e-9):
+        samples = {s: streams[s].values[i] for s in names}
+        ea, eb = a.update_instant(enc.t_s[i], samples), b.update_instant(enc.t_s[i], samples)
+        assert ea.t_s == eb.t_s
+        np.testing.assert_allclose(ea.q_rad, eb.q_rad, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(ea.sigma_rad, eb.sigma_rad, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose([ea.roll_rad, ea.pitch_rad, ea.yaw_rad],
+                                   [eb.roll_rad, eb.pitch_rad, eb.yaw_rad], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(ea.gyro_bias_rad_s, eb.gyro_bias_rad_s, rtol=0, atol=1e-9)
+        assert ea.flags == eb.flags and ea.sensors == eb.sensors
+        fused += 1
+    assert fused > 400
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a.P, b.P, rtol=1e-9, atol=1e-15)
+    fa, fb = a._frame_cache[1], b._frame_cache[1]
+    assert np.max(np.abs(fa.motion_mps2)) > 0.05  # the arm and the chair were moving
+    for name, x, y in zip(Frames.FIELDS, fa, fb, strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9, err_msg=name)
