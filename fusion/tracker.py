@@ -64,7 +64,7 @@ import numpy as np
 from scipy.linalg import lapack
 from scipy.stats import chi2
 
-from fusion.frame_kernels import FrameConstants
+from fusion.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
 from fusion.heading import (
     FieldReference,
     HeadingSettings,
@@ -346,26 +346,18 @@ class CausalDifferentiator:
         self._t_last = -np.inf
 
     def push(self, t: float, y: np.ndarray) -> None:
-        self._t = np.roll(self._t, -1)
-        self._y = np.roll(self._y, -1, axis=0)
-        self._t[-1] = t
-        self._y[-1] = y
+        """Take one sample (its window shifts in place) and fit the window at it (compiled:
+        :func:`fusion.frame_kernels.push_fit`, :func:`causal_poly_fit` for one window)."""
         self._n = min(self._n + 1, self.window)
-        w = self._n
-        if w < 2:
-            self._fit = np.stack([np.asarray(y, float), np.zeros(self.dim), np.zeros(self.dim)])
-        else:
-            order = self.order if w > self.order else w - 1
-            self._fit = causal_poly_fit(self._t[None, -w:], self._y[None, -w:], np.array([t]), order)[0]
+        self._fit = push_fit(self._t, self._y, float(t), np.asarray(y, dtype=float).reshape(self.dim),
+                             self._n, self.order)
         self._t_last = t
 
     def at(self, t: float) -> np.ndarray | None:
         """Value, rate and acceleration ``(3, d)`` at ``t`` (extrapolated from the last fit)."""
         if self._fit is None:
             return None
-        dt = t - self._t_last
-        v, d1, d2 = self._fit
-        return np.stack([v + d1 * dt + 0.5 * d2 * dt * dt, d1 + d2 * dt, d2])
+        return extrapolate_fit(self._fit, float(t - self._t_last))
 
     def snapshot(self) -> dict:
         return {"t": self._t.tolist(), "y": self._y.tolist(), "n": self._n}
@@ -377,7 +369,7 @@ class CausalDifferentiator:
         if self._n:
             w = self._n
             order = self.order if w > self.order else w - 1
-            self._fit = causal_poly_fit(self._t[None, -w:], self._y[None, -w:], self._t[-1:], order)[0] \
+            self._fit = poly_fit_one(self._t[-w:], self._y[-w:], float(self._t[-1]), order) \
                 if w >= 2 else np.stack([self._y[-1], np.zeros(self.dim), np.zeros(self.dim)])
             self._t_last = float(self._t[-1])
 

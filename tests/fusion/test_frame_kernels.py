@@ -3,10 +3,10 @@
 :func:`fusion.frame_kernels.frame_one` (through :class:`FrameConstants`) against
 :func:`fusion.tracker.make_frames` for one instant, field by field, at seeded random
 states: motion on and off, a calibrated config's joint effects, and joint axes that are
-not z (the chain's general path). The compiled one-window fit against
+not z (the chain's general path). The compiled differentiator against
 :func:`fusion.tracker.causal_poly_fit`. Then the tracker's live path
-(:meth:`Tracker.update_instant`) with the compiled frame against the same tracker with
-the NumPy frame, instant by instant.
+(:meth:`Tracker.update_instant`) with both compiled against the same tracker with the
+NumPy frame and the NumPy differentiator, instant by instant.
 """
 
 from __future__ import annotations
@@ -18,7 +18,14 @@ import pytest
 
 from fusion.configfile import load_arm
 from fusion.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
-from fusion.tracker import Frames, Tracker, causal_poly_fit, make_frames, start_from_recording
+from fusion.tracker import (
+    CausalDifferentiator,
+    Frames,
+    Tracker,
+    causal_poly_fit,
+    make_frames,
+    start_from_recording,
+)
 from models.simulator import simulate
 from models.trajectories import DrivingChair, Scenario, StepsBuilder, WaypointPath
 
@@ -121,6 +128,53 @@ def test_one_window_s_fit_equals_causal_poly_fit(window, order, dim):
             assert np.max(np.abs(got - ref) / scale) < 1e-11
 
 
+class NumpyDifferentiator(CausalDifferentiator):
+    """The differentiator as it was in NumPy (``np.roll``, :func:`causal_poly_fit`)."""
+
+    def push(self, t, y):
+        self._t = np.roll(self._t, -1)
+        self._y = np.roll(self._y, -1, axis=0)
+        self._t[-1] = t
+        self._y[-1] = y
+        self._n = min(self._n + 1, self.window)
+        w = self._n
+        if w < 2:
+            self._fit = np.stack([np.asarray(y, float), np.zeros(self.dim), np.zeros(self.dim)])
+        else:
+            order = self.order if w > self.order else w - 1
+            self._fit = causal_poly_fit(self._t[None, -w:], self._y[None, -w:], np.array([t]), order)[0]
+        self._t_last = t
+
+    def at(self, t):
+        if self._fit is None:
+            return None
+        dt = t - self._t_last
+        v, d1, d2 = self._fit
+        return np.stack([v + d1 * dt + 0.5 * d2 * dt * dt, d1 + d2 * dt, d2])
+
+
+def test_the_differentiator_sample_by_sample_equals_its_numpy_form():
+    """Through the first, partial windows and on; extrapolated between samples; restored
+    from a snapshot it goes on the same."""
+    rng = np.random.default_rng(106)
+    t = np.cumsum(rng.uniform(0.008, 0.012, 60))
+    y = np.stack([np.sin(2 * t), t**2, np.cos(5 * t)], 1) + rng.normal(0, 1e-3, (60, 3))
+    a, b = CausalDifferentiator(3, 9, 3), NumpyDifferentiator(3, 9, 3)
+    assert a.at(0.0) is None
+    for k in range(len(t)):
+        a.push(float(t[k]), y[k])
+        b.push(float(t[k]), y[k])
+        np.testing.assert_array_equal(a._t, b._t)
+        np.testing.assert_array_equal(a._y, b._y)
+        for dt in (0.0, 0.004):
+            got, ref = a.at(t[k] + dt), b.at(t[k] + dt)
+            np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-9 * (1 + np.abs(ref).max()))
+        if k == 30:
+            c = CausalDifferentiator(3, 9, 3)
+            c.restore(a.snapshot())
+            np.testing.assert_array_equal(c.at(t[k] + 0.004), a.at(t[k] + 0.004))
+
+
 def test_push_fit_shifts_the_window_in_place():
     t_buf, y_buf = np.full(4, np.nan), np.zeros((4, 2))
     for k, v in enumerate((1.0, 2.0, 4.0)):
@@ -150,14 +204,17 @@ def moving_on_a_turning_chair(arm, duration_s: float) -> Scenario:
 
 
 @pytest.mark.parametrize("calibrated", [False, True])
-def test_update_instant_gives_the_same_estimates_as_the_numpy_path(arm, effects, calibrated):
-    """Instant by instant, the compiled frame against make_frames (the live path before it
-    was compiled)."""
+def test_update_instant_gives_the_same_estimates_as_the_numpy_path(arm, effects, calibrated, monkeypatch):
+    """Instant by instant, the compiled frame and differentiators against make_frames and
+    the NumPy differentiator (the live path before they were compiled)."""
     arm = replace(arm, effects=effects) if calibrated else arm
     rec, _ = simulate(arm, moving_on_a_turning_chair(arm, 9.0), seed=21,
                       effects=effects if calibrated else None)
     a, _ = start_from_recording(arm, rec)
-    b, _ = start_from_recording(arm, rec)
+    with monkeypatch.context() as m:
+        m.setattr("fusion.tracker.CausalDifferentiator", NumpyDifferentiator)
+        b, _ = start_from_recording(arm, rec)
+    assert isinstance(b._enc_diff, NumpyDifferentiator) and not isinstance(a._enc_diff, NumpyDifferentiator)
     b._frames_compiled = False
     assert a.t_s < 4.0
     names = a.sensor_names
