@@ -1179,6 +1179,7 @@ class Tracker:
         self._reacq_until = np.full(n, -np.inf)
         self._axis_deg = np.full(n, 90.0)
         self._flags = np.zeros(n, dtype=np.int8)
+        self._named = (None, None, (), ())  # (status codes, flags, their names): see estimate
         self._status_codes = np.full(S, STATUS_CODE["absent"], dtype=np.int8)
         self._hold = None
         self._ill = np.zeros(n, bool)
@@ -1278,11 +1279,12 @@ class Tracker:
             i = self._sidx[s]
             self._counts[i, C_SAMPLES] += 1
             c = np.asarray(v, dtype=float).reshape(-1)
-            if not np.all(np.isfinite(c)):
+            cl = c.tolist()  # a handful of numbers: plain floats are cheaper to check
+            if not all(map(math.isfinite, cl)):
                 self._counts[i, C_NAN] += 1
                 continue
             lo, hi = self._limits[s]
-            if lo is not None and (np.any(c <= lo) or np.any(c >= hi)):
+            if lo is not None and (min(cl) <= lo or max(cl) >= hi):
                 self._counts[i, C_SATURATED] += 1
                 self._seen[i], self._last_t[i] = True, t
                 continue
@@ -2360,14 +2362,19 @@ class Tracker:
         L, n = self.layout, self.arm.n_joints
         x, sig = self._ukf.x, self._ukf.sigma.copy()
         sig[:n] = np.sqrt(sig[:n] ** 2 + self._sys_var)  # the calibration's own uncertainty
-        status = tuple((s, SENSOR_STATUS[c]) for s, c in zip(self.sensor_names, self._status_codes,
-                                                              strict=True))
+        named = self._named
+        if named[0] is not self._status_codes or named[1] is not self._flags:
+            # (both arrays are replaced, never written in place, when the flags are updated)
+            codes = self._status_codes.tolist()
+            status = tuple((s, SENSOR_STATUS[c]) for s, c in zip(self.sensor_names, codes, strict=True))
+            self._named = named = (self._status_codes, self._flags, status,
+                                   tuple(JOINT_FLAGS[f] for f in self._flags.tolist()))
         return Estimate(
             t_s=self._t, q_rad=_ro(self._q_enc + x[:n]), sigma_rad=_ro(sig[:n]),
-            flags=tuple(JOINT_FLAGS[f] for f in self._flags),
+            flags=named[3],
             roll_rad=float(x[L.roll]), pitch_rad=float(x[L.pitch]), yaw_rad=float(x[L.yaw]),
             attitude_sigma_rad=_ro(sig[[L.roll, L.pitch, L.yaw]]), gyro_bias_rad_s=_ro(x[L.bias]),
-            axis_to_vertical_deg=_ro(self._axis_deg), sensors=status,
+            axis_to_vertical_deg=_ro(self._axis_deg), sensors=named[2],
             magnetic_disturbance=self._mag_flags[0], magnetic_recovery=self._mag_flags[1],
             joint_names=self.arm.joint_names,
         )
