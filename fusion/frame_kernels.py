@@ -338,7 +338,8 @@ def poly_fit_one(t_win, y_win, t_eval, order):  # pragma: no cover - compiled
 
     ``t_win (W,)`` s, ``y_win (W, d)`` -> ``(3, d)``: value, first and second derivative
     (per s, per s²; zero beyond ``order``, which is capped by W - 1). With ``τ = t - t_eval``
-    and ``h = |τ_0 - τ_(W-1)|`` (at least 1 ns), the fit is ``y ≈ Σ_k c_k s^k``, ``s = τ / h``,
+    and ``h = t_(W-1) - t_0`` the window's span (at least 1 ns), the fit is
+    ``y ≈ Σ_k c_k s^k``, ``s = τ / h``,
     from the normal equations ``(AᵀA) c = Aᵀy``, ``A_wk = s_w^k`` (Gaussian elimination
     with partial pivoting); value ``c_0``, rate ``c_1 / h``, acceleration ``2 c_2 / h²``.
     """
@@ -351,8 +352,7 @@ def poly_fit_one(t_win, y_win, t_eval, order):  # pragma: no cover - compiled
             out[0, c] = y_win[W - 1, c]
         return out
     m = order + 1
-    h = max((t_win[0] - t_eval) - (t_win[W - 1] - t_eval), 1e-9)
-    h = abs(h)
+    h = max(t_win[W - 1] - t_win[0], 1e-9)  # the window's span (oldest first)
     A = np.empty((W, m))
     for w in range(W):
         s = (t_win[w] - t_eval) / h

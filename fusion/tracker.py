@@ -308,8 +308,7 @@ def causal_poly_fit(t_win: np.ndarray, y_win: np.ndarray, t_eval: np.ndarray, or
         out[:, 0] = y_win[:, -1]
         return out
     tau = t_win - t_eval[:, None]
-    h = np.maximum(tau[:, 0] - tau[:, -1], 1e-9)  # window span (negative first)
-    h = np.abs(h)[:, None]
+    h = np.maximum(tau[:, -1] - tau[:, 0], 1e-9)[:, None]  # the window's span (oldest first)
     s = tau / h
     A = np.stack([s**k for k in range(order + 1)], -1)  # (K, W, order+1)
     AtA = np.einsum("kwi,kwj->kij", A, A)
