@@ -266,28 +266,28 @@ class GroupPlan:
             self._group_rows = np.ascontiguousarray(np.concatenate(self.rows), dtype=np.int64)
             self._group_start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
             self._gates_c = np.ascontiguousarray(self.gates)
-            # each batch's diagonal blocks in a C-ordered float64 S (m, m): a tile as the
-            # (shape, byte offset, strides) of a view, any other batch by its indices
-            item = np.dtype(np.float64).itemsize
-            self._block_views = []
-            for which, idx, ii, jj, tile in self.batches:
-                view = None
-                if tile is not None:
-                    r0, g, k = tile  # block b starts at S[r0 + b k, r0 + b k]; its rows are m apart
-                    view = ((g, k, k), (r0 * m + r0) * item, ((k * m + k) * item, m * item, item))
-                self._block_views.append((idx.shape[1], which, view, ii, jj))
+            # the diagonal blocks of S, batch by batch (groups of one size, in order), one
+            # after the other in one flat array: where each group's block starts, and each
+            # batch's span and shape there
+            self._block_start = np.zeros(len(self.rows), dtype=np.int64)
+            self._block_spans = []
+            start = 0
+            for which, idx, _, _, _ in self.batches:
+                g, k = idx.shape
+                self._block_start[which] = start + k * k * np.arange(g)
+                self._block_spans.append((k, which, slice(start, start + g * k * k), (g, k, k)))
+                start += g * k * k
+            self._block_size = start
 
     def _blocks_of(self, S: np.ndarray) -> dict:
         """The diagonal blocks of S by group size: size -> (group indices, blocks (g, k, k))."""
         return {idx.shape[1]: (which, S[ii, jj] if tile is None else _diagonal_blocks(S, *tile))
                 for which, idx, ii, jj, tile in self.batches}
 
-    def _blocks_of_c(self, S: np.ndarray) -> dict:
-        """:meth:`_blocks_of` for a tiled plan's C-ordered float64 ``S (m, m)``: the tiles as
-        read-only views made straight on its buffer (a third of the cost of slicing)."""
-        buf = memoryview(S).toreadonly()
-        return {k: (which, S[ii, jj] if view is None else np.ndarray(view[0], np.float64, buf, *view[1:]))
-                for k, which, view, ii, jj in self._block_views}
+    def _blocks_from(self, flat: np.ndarray) -> dict:
+        """:meth:`_blocks_of` from the blocks laid out one after the other in ``flat`` (as
+        ``_block_start`` says; the compiled innovation copies them there): views on it."""
+        return {k: (which, flat[span].reshape(shape)) for k, which, span, shape in self._block_spans}
 
     def nis(self, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
         """Each group's NIS; the diagonal blocks of S are kept in ``last_blocks`` (size ->
@@ -576,11 +576,12 @@ class BatchedUKF:
             return None
         G = len(plan.rows)
         z_pred, nu, S, Pxz = np.empty(m), np.empty(m), np.empty((m, m)), np.empty((n, m))
-        nis, ok = np.empty(G), np.empty(G, dtype=np.bool_)
+        flat, nis, ok = np.empty(plan._block_size), np.empty(G), np.empty(G, dtype=np.bool_)
         status = innovation_into(Zc, self._weights, angle_row, np.ascontiguousarray(z),
                                  np.ascontiguousarray(R), np.ascontiguousarray(DXW), plan._group_rows,
-                                 plan._group_start, plan._gates_c, z_pred, nu, S, Pxz, nis, ok)
-        blocks = plan.last_blocks = plan._blocks_of_c(S)
+                                 plan._group_start, plan._block_start, plan._gates_c,
+                                 z_pred, nu, S, Pxz, flat, nis, ok)
+        blocks = plan.last_blocks = plan._blocks_from(flat)
         if status != OK:  # a block of S is not positive definite: NumPy, block by block
             nis = plan._nis_blocks(nu)
             ok = nis <= plan.gates if plan._finite_gates else np.isfinite(nis) & (nis <= plan.gates)

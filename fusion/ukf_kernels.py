@@ -207,16 +207,17 @@ def unscented_moments_into(Y: np.ndarray, W: np.ndarray, angle: int, mean: np.nd
 
 @njit(cache=True)
 def innovation_into(Z: np.ndarray, W: np.ndarray, angle: int, z: np.ndarray, R: np.ndarray, DXW: np.ndarray,
-                    group_rows: np.ndarray, group_start: np.ndarray, gates: np.ndarray,
-                    z_pred: np.ndarray, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray, nis: np.ndarray,
-                    gate_ok: np.ndarray) -> int:
+                    group_rows: np.ndarray, group_start: np.ndarray, block_start: np.ndarray,
+                    gates: np.ndarray, z_pred: np.ndarray, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray,
+                    blocks: np.ndarray, nis: np.ndarray, gate_ok: np.ndarray) -> int:
     """The statistics of a measurement ``z (m,)`` predicted by the points ``Z (N, m)``:
     ``z_pred`` (the unscented mean, row ``angle`` as in :func:`_mean_and_residuals`),
     ``S = DZ^T diag(Wc) DZ + diag(R)`` (symmetrised), ``nu = z - z_pred`` (row ``angle``
     wrapped), ``Pxz = DXW DZ`` (``DXW (n, N)``: the state's weighted residuals) and, for
-    each group ``g`` (rows ``group_rows[group_start[g]:group_start[g + 1]]``), its NIS
-    ``nu_g^T S_gg^-1 nu_g = |U_g^-T nu_g|^2`` from the Cholesky factor ``U_g`` of its
-    diagonal block, and whether it is finite and within ``gates[g]``.
+    each group ``g`` of ``k`` rows ``group_rows[group_start[g]:group_start[g + 1]]``: its
+    diagonal block of ``S``, row by row into ``blocks[block_start[g]:block_start[g] + k k]``,
+    its NIS ``nu_g^T S_gg^-1 nu_g = |U_g^-T nu_g|^2`` from the block's Cholesky factor
+    ``U_g``, and whether that is finite and within ``gates[g]``.
 
     Returns :data:`NOT_POSITIVE_DEFINITE` when a group's block does not factor (``nis``
     and ``gate_ok`` are then unfinished), else :data:`OK`."""
@@ -237,17 +238,20 @@ def innovation_into(Z: np.ndarray, W: np.ndarray, angle: int, z: np.ndarray, R: 
     G = gates.shape[0]
     largest = 0
     for g in range(G):
-        largest = max(largest, group_start[g + 1] - group_start[g])
-    A = np.empty((largest, largest))
+        r0 = group_start[g]
+        k = group_start[g + 1] - r0
+        largest = max(largest, k)
+        b0 = block_start[g]
+        for i in range(k):
+            for j in range(k):
+                blocks[b0 + i * k + j] = S[group_rows[r0 + i], group_rows[r0 + j]]
     U = np.empty((largest, largest))
     v = np.empty(largest)
     for g in range(G):
         r0 = group_start[g]
         k = group_start[g + 1] - r0
-        for i in range(k):
-            for j in range(i, k):
-                A[i, j] = S[group_rows[r0 + i], group_rows[r0 + j]]
-        if not _cholesky_upper(A, U, k):
+        b0 = block_start[g]
+        if not _cholesky_upper(blocks[b0:b0 + k * k].reshape((k, k)), U, k):
             return NOT_POSITIVE_DEFINITE
         # forward substitution U^T v = nu_g, NIS = |v|^2
         total = 0.0
