@@ -559,8 +559,8 @@ class BatchedUKF:
         ok = nis <= plan.gates if plan._finite_gates else np.isfinite(nis) & (nis <= plan.gates)
         return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, zp, plan.last_blocks)
 
-    def _innovation_compiled(self, z: np.ndarray, Z, R: np.ndarray, plan: GroupPlan, angle_row: int | None,
-                             DXW: np.ndarray) -> Innovation | None:
+    def _innovation_compiled(self, z: np.ndarray, Z: np.ndarray, R: np.ndarray, plan: GroupPlan,
+                             angle_row: int | None, DXW: np.ndarray) -> Innovation | None:
         """:meth:`innovate`'s statistics from the compiled kernel (a diagonal ``R``, a tiled
         plan, at most one angle row); None when the shapes are not those of the common case."""
         Zc = np.ascontiguousarray(Z, dtype=np.float64)

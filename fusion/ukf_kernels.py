@@ -17,8 +17,9 @@ They write into arrays the caller allocates (cheaper than returning new ones to 
 and report by a status code when the caller must fall back to the NumPy path (a matrix
 that is not numerically positive definite). The caller guarantees shapes, float64 and C
 order: the kernels do not check bounds. ``angle`` is a column (or row) index, -1 for none.
-Every loop that accumulates runs along contiguous memory (``c[j] += w * a[j]``), which the
-compiler turns into vector instructions.
+The matrix products go to BLAS (``np.dot``); the Cholesky factors and triangular solves
+are written out, their inner loops running along contiguous rows (``b[j] -= u * a[j]``,
+which the compiler turns into vector instructions), four rows at a time.
 """
 
 from __future__ import annotations
