@@ -242,6 +242,7 @@ def _forbid_numpy_paths(monkeypatch, f: BatchedUKF, plan: GroupPlan | None = Non
 
 
 def _state(rng, yaw=np.pi - 0.01, yaw_sigma=0.05):
+    """A random state and covariance, the yaw at ``yaw`` with its own ``yaw_sigma``."""
     x = 0.3 * rng.normal(size=N_STATE)
     x[YAW] = yaw
     P = spd(rng, N_STATE, 1e-3)
@@ -259,7 +260,7 @@ def _fx(X, dt=0.01):
     return Y
 
 
-def _plan(rng, still: bool, gates=None):
+def _plan(still: bool, gates=None):
     """The tracker's shape of plan: five 3-row accelerometers (+ 3 "still" rows), one heading
     row last."""
     k = 5 + still
@@ -269,6 +270,7 @@ def _plan(rng, still: bool, gates=None):
 
 
 def _hx_of(rng, m):
+    """A nonlinear measurement of ``m`` rows: ``m - 1`` of the state but the yaw, then the yaw."""
     H = 0.5 * rng.normal(size=(m - 1, N_STATE))
     H[:, YAW] = 0.0  # accelerometers do not see the yaw
 
@@ -343,7 +345,7 @@ def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still):
     m = 3 * k + 1
     gates = [float(nis_bound(3, 1e-3))] * k + [float(nis_bound(1, 1e-3))]
     gates[1] = np.inf
-    plan_fast, plan_ref = _plan(rng, still, gates), _plan(rng, still, gates)
+    plan_fast, plan_ref = _plan(still, gates), _plan(still, gates)
     _forbid_numpy_paths(monkeypatch, fast, plan_fast)
     hx = _hx_of(rng, m)
     z = hx(fast.x[None])[0] + 0.05 * rng.normal(size=m)
@@ -396,8 +398,8 @@ def test_compiled_innovation_falls_back_when_a_block_of_S_is_not_positive_defini
     R = np.full(m, 0.01)
     R[3:6] = -50.0  # the second sensor's block of S is indefinite
     z = hx(x[None])[0] + 0.05 * rng.normal(size=m)
-    a = fast.innovate(z, hx, R, _plan(rng, False), angle_rows=(m - 1,))
-    b = ref.innovate(z, hx, R, _plan(rng, False), angle_rows=(m - 1,))
+    a = fast.innovate(z, hx, R, _plan(False), angle_rows=(m - 1,))
+    b = ref.innovate(z, hx, R, _plan(False), angle_rows=(m - 1,))
     _assert_close(a.nis, b.nis, 1e-10)
     np.testing.assert_array_equal(a.gate_ok, b.gate_ok)
     assert a.nis[1] < 0.0  # (a solve of the indefinite block: no Cholesky factor gives that)
@@ -440,7 +442,7 @@ def test_compiled_correction_is_the_numpy_correction(rng, monkeypatch, held, mas
         R[-1] = 1e-4
         before = fast.x[YAW]
         for f in (fast, ref):
-            inn = f.innovate(z, hx, R, _plan(rng, False), angle_rows=(m - 1,))
+            inn = f.innovate(z, hx, R, _plan(False), angle_rows=(m - 1,))
             assert f.correct(inn, accept, hold if held else None, mask if masked else None)
         crossed |= before > 3.0 and fast.x[YAW] < -3.0  # the update itself crossed pi
         _assert_close(fast.x, ref.x)
