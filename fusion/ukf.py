@@ -23,6 +23,12 @@ filterpy's loop over the state dimension. What differs from filterpy's
 Angles in the state or the measurement (a heading) are handled by ``angle_states`` /
 ``angle_rows``: residuals are wrapped to (-pi, pi] and means taken about the central
 sigma point.
+
+The arithmetic of a step runs in compiled kernels (:mod:`fusion.ukf_kernels`, one call per
+stage) in the common case: :class:`SigmaPoints`' own points, at most one angle state and
+one angle row, a diagonal ``R``, groups that tile the measurement rows, a positive definite
+``P + Q`` and ``S``. Everything else takes the NumPy path, which stays the reference the
+kernels are tested against (to round-off).
 """
 
 from __future__ import annotations
@@ -37,7 +43,18 @@ from filterpy.kalman import MerweScaledSigmaPoints
 from scipy.linalg import lapack
 from scipy.stats import chi2
 
+from fusion.ukf_kernels import (
+    DIAGONAL_NOT_POSITIVE,
+    NOT_POSITIVE_DEFINITE,
+    OK,
+    innovation_into,
+    kalman_update_into,
+    sigma_points_into,
+    unscented_moments_into,
+)
+
 TWO_PI = 2.0 * np.pi
+_NONE_2D = np.zeros((0, 0))  # "no hold / no gain mask" for the compiled update
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:
@@ -244,12 +261,38 @@ class GroupPlan:
             for g, r in enumerate(self.rows):
                 self._block_mask[np.ix_(r, r)] = 1.0
                 self._member[r, g] = 1.0
+            # for the compiled innovation: every group's rows one after the other, and where
+            # each group's start (group g is group_rows[group_start[g]:group_start[g + 1]])
+            self._group_rows = np.ascontiguousarray(np.concatenate(self.rows), dtype=np.int64)
+            self._group_start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+            self._gates_c = np.ascontiguousarray(self.gates)
+            # the diagonal blocks of S, batch by batch (groups of one size, in order), one
+            # after the other in one flat array: where each group's block starts, and each
+            # batch's span and shape there
+            self._block_start = np.zeros(len(self.rows), dtype=np.int64)
+            self._block_spans = []
+            start = 0
+            for which, idx, _, _, _ in self.batches:
+                g, k = idx.shape
+                self._block_start[which] = start + k * k * np.arange(g)
+                self._block_spans.append((k, which, slice(start, start + g * k * k), (g, k, k)))
+                start += g * k * k
+            self._block_size = start
+
+    def _blocks_of(self, S: np.ndarray) -> dict:
+        """The diagonal blocks of S by group size: size -> (group indices, blocks (g, k, k))."""
+        return {idx.shape[1]: (which, S[ii, jj] if tile is None else _diagonal_blocks(S, *tile))
+                for which, idx, ii, jj, tile in self.batches}
+
+    def _blocks_from(self, flat: np.ndarray) -> dict:
+        """:meth:`_blocks_of` from the blocks laid out one after the other in ``flat`` (as
+        ``_block_start`` says; the compiled innovation copies them there): views on it."""
+        return {k: (which, flat[span].reshape(shape)) for k, which, span, shape in self._block_spans}
 
     def nis(self, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
         """Each group's NIS; the diagonal blocks of S are kept in ``last_blocks`` (size ->
         (group indices, blocks)) for whoever wants them."""
-        self.last_blocks = {idx.shape[1]: (which, S[ii, jj] if tile is None else _diagonal_blocks(S, *tile))
-                            for which, idx, ii, jj, tile in self.batches}
+        self.last_blocks = self._blocks_of(S)
         if self._tiled and nu.shape[0] == self.m:
             c, info = lapack.dpotrf(S * self._block_mask, lower=1, clean=0)
             if info == 0:
@@ -336,6 +379,16 @@ class BatchedUKF:
         self._sigmas: np.ndarray | None = None
         self._Wm = self.points.Wm
         self._Wc = self.points.Wc
+        # the compiled step (fusion.ukf_kernels) serves the common case: SigmaPoints' own
+        # points and at most one angle state; anything else takes the NumPy path below
+        sp = type(self.points)
+        self._use_kernels = (isinstance(self.points, SigmaPoints) and sp.points_of is SigmaPoints.points_of
+                             and sp.sqrt_rows is SigmaPoints.sqrt_rows and len(self._angles) <= 1
+                             and (self._angle1 is None or -n <= self._angle1 < n))
+        if self._use_kernels:
+            self._weights = np.ascontiguousarray(np.stack([self._Wm, self._Wc]), dtype=np.float64)  # (2, N)
+            self._angle_index = -1 if self._angle1 is None else self._angle1 % n  # (-1: none)
+            self._scale = float(self.points.scale)
 
     # -- read-only state ------------------------------------------------------------------
     @property
@@ -403,8 +456,13 @@ class BatchedUKF:
         the predicted density, noise included, and the next update uses them directly:
         one matrix square root per step, not two.
         """
+        if self._use_kernels and self._predict_compiled(fx, Q, kw):
+            return
         X = self.points.points_of(self._x, self._P + Q)
-        Y = fx(X, **kw)
+        self._propagate(fx(X, **kw))
+
+    def _propagate(self, Y: np.ndarray) -> None:
+        """The NumPy unscented transform of the propagated points ``Y`` (any number of angles)."""
         if len(self._angles) <= 1:
             m, D, DW, C = _ut(Y, self._Wm, self._Wc, self._angle1)
         else:
@@ -415,8 +473,31 @@ class BatchedUKF:
         C *= 0.5
         self._P = C
         self._sigmas = Y
-        self._sigmas_D = D
         self._sigmas_DW = DW
+
+    def _predict_compiled(self, fx: Callable[..., np.ndarray], Q, kw: dict) -> bool:
+        """:meth:`predict` through the compiled kernels: the points from a Cholesky factor of
+        ``P + Q``, then the unscented transform of ``fx``'s points. False, with nothing done,
+        when ``Q`` is not an ``(n, n)`` matrix or ``P + Q`` is not positive definite (the
+        NumPy path and its eigen-decomposition take over)."""
+        P = self._P
+        Qc = np.ascontiguousarray(Q, dtype=np.float64)
+        if Qc.shape != P.shape:
+            return False
+        n = P.shape[0]
+        N = 2 * n + 1
+        X = np.empty((N, n))
+        if not sigma_points_into(X, self._x, P, Qc, self._scale):
+            return False
+        Y = fx(X, **kw)
+        Yc = np.ascontiguousarray(Y, dtype=np.float64)
+        if Yc.shape != X.shape:
+            self._propagate(Y)  # (let NumPy say what is wrong with Y)
+            return True
+        x, P, DW = np.empty(n), np.empty((n, n)), np.empty((n, N))
+        unscented_moments_into(Yc, self._weights, self._angle_index, x, P, DW)
+        self._x, self._P, self._sigmas, self._sigmas_DW = x, P, Yc, DW
+        return True
 
     def sigma_points_now(self) -> np.ndarray:
         """The sigma points of the current state: those the last predict propagated when no
@@ -452,6 +533,11 @@ class BatchedUKF:
             X = self.sigma_points() if X is None else X
             DXW = residuals(X, self._x, self._angles).T * self._Wc
         Z = hx(X, **kw)
+        if self._use_kernels and R.ndim == 1 and len(angle_rows) <= 1 and plan._tiled:
+            a = int(angle_rows[0]) if len(angle_rows) else None
+            inn = self._innovation_compiled(z, Z, R, plan, a, DXW)
+            if inn is not None:
+                return inn
         if len(angle_rows) <= 1:
             a = int(angle_rows[0]) if len(angle_rows) else None
             zp, DZ, _, S = _ut(Z, self._Wm, self._Wc, a)
@@ -473,6 +559,34 @@ class BatchedUKF:
         ok = nis <= plan.gates if plan._finite_gates else np.isfinite(nis) & (nis <= plan.gates)
         return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, zp, plan.last_blocks)
 
+    def _innovation_compiled(self, z: np.ndarray, Z: np.ndarray, R: np.ndarray, plan: GroupPlan,
+                             angle_row: int | None, DXW: np.ndarray) -> Innovation | None:
+        """:meth:`innovate`'s statistics from the compiled kernel (a diagonal ``R``, a tiled
+        plan, at most one angle row); None when the shapes are not those of the common case."""
+        Zc = np.ascontiguousarray(Z, dtype=np.float64)
+        N, n = self._weights.shape[1], self._x.shape[0]
+        m = plan.m
+        if Zc.shape != (N, m) or z.shape[0] != m or R.shape[0] != m or DXW.shape != (n, N):
+            return None
+        if angle_row is None:
+            angle_row = -1
+        elif -m <= angle_row < m:
+            angle_row %= m
+        else:
+            return None
+        G = len(plan.rows)
+        z_pred, nu, S, Pxz = np.empty(m), np.empty(m), np.empty((m, m)), np.empty((n, m))
+        flat, nis, ok = np.empty(plan._block_size), np.empty(G), np.empty(G, dtype=np.bool_)
+        status = innovation_into(Zc, self._weights, angle_row, np.ascontiguousarray(z),
+                                 np.ascontiguousarray(R), np.ascontiguousarray(DXW), plan._group_rows,
+                                 plan._group_start, plan._block_start, plan._gates_c,
+                                 z_pred, nu, S, Pxz, flat, nis, ok)
+        blocks = plan.last_blocks = plan._blocks_from(flat)
+        if status != OK:  # a block of S is not positive definite: NumPy, block by block
+            nis = plan._nis_blocks(nu)
+            ok = nis <= plan.gates if plan._finite_gates else np.isfinite(nis) & (nis <= plan.gates)
+        return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, z_pred, blocks)
+
     def correct(self, inn: Innovation, accept: np.ndarray | None = None,
                 hold: np.ndarray | None = None, gain_mask: np.ndarray | None = None) -> bool:
         """Apply the groups ``accept`` (default: those that passed their gate).
@@ -483,10 +597,10 @@ class BatchedUKF:
         measurement row that may correct only some states). Either way the covariance
         stays consistent through the general form. Returns whether anything was applied.
         """
-        ok = inn.gate_ok if accept is None else np.asarray(accept, dtype=bool)
-        if ok.all():
+        ok = (inn.gate_ok if accept is None else np.asarray(accept, dtype=bool)).reshape(-1).tolist()
+        if all(ok):
             self._apply(inn.innovation, inn.S, inn.Pxz, hold, gain_mask)
-        elif not ok.any():
+        elif not any(ok):
             return False
         else:
             use = np.concatenate([r for r, a in zip(inn.rows, ok, strict=True) if a])
@@ -503,6 +617,37 @@ class BatchedUKF:
 
     def _apply(self, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray, hold: np.ndarray | None,
                gain_mask: np.ndarray | None = None) -> None:
+        if not (self._use_kernels and self._apply_compiled(nu, S, Pxz, hold, gain_mask)):
+            self._apply_numpy(nu, S, Pxz, hold, gain_mask)
+
+    def _apply_compiled(self, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray, hold: np.ndarray | None,
+                        gain_mask: np.ndarray | None) -> bool:
+        """:meth:`_apply` through the compiled kernel; False, with nothing done, when ``S``
+        is not positive definite or a shape is not the common case's (``hold (n, n)``,
+        ``gain_mask (n, m)``)."""
+        n, m = Pxz.shape
+        hold_c = _NONE_2D if hold is None else np.ascontiguousarray(hold, dtype=np.float64)
+        mask_c = _NONE_2D if gain_mask is None else np.ascontiguousarray(gain_mask, dtype=np.float64)
+        if not (m > 0 and nu.shape == (m,) and S.shape == (m, m) and n == self._x.shape[0]
+                and (hold is None or hold_c.shape == (n, n))
+                and (gain_mask is None or mask_c.shape == (n, m))):
+            return False
+        x, P = np.empty(n), np.empty((n, n))
+        status = kalman_update_into(self._x, self._P, np.ascontiguousarray(nu, dtype=np.float64),
+                                    np.ascontiguousarray(S, dtype=np.float64),
+                                    np.ascontiguousarray(Pxz, dtype=np.float64), hold_c, mask_c,
+                                    self._angle_index, x, P)
+        if status == NOT_POSITIVE_DEFINITE:
+            return False
+        if status == DIAGONAL_NOT_POSITIVE:
+            P = repair_covariance(P, 1e-18)
+        self._x, self._P = x, P
+        self._sigmas = None
+        return True
+
+    def _apply_numpy(self, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray, hold: np.ndarray | None,
+                     gain_mask: np.ndarray | None = None) -> None:
+        """:meth:`_apply` in NumPy: any gain, any angles, an ``S`` that is not positive definite."""
         _, Kt, info = lapack.dposv(S, Pxz.T)  # S is symmetric positive definite
         if info != 0:
             Kt = np.linalg.lstsq(S, Pxz.T, rcond=None)[0]

@@ -11,12 +11,19 @@ from scipy.stats import chi2
 from fusion.ukf import (
     BatchedUKF,
     GroupPlan,
+    Innovation,
     MeasurementGroup,
     SigmaPoints,
     nis_bound,
     repair_covariance,
     unscented_transform,
     wrap_angle,
+)
+from fusion.ukf_kernels import (
+    DIAGONAL_NOT_POSITIVE,
+    NOT_POSITIVE_DEFINITE,
+    kalman_update_into,
+    sigma_points_into,
 )
 
 
@@ -209,3 +216,278 @@ def test_repair_restores_positive_definiteness():
     Q = repair_covariance(P, 1e-9)
     assert np.all(np.linalg.eigvalsh(Q) >= 1e-9 - 1e-15)
     np.testing.assert_allclose(Q, Q.T)
+
+
+# -- the compiled step (fusion.ukf_kernels) against the NumPy reference ---------------------
+N_STATE, YAW = 19, 12  # the tracker's state size and its one angle state
+
+
+def _compiled_and_reference(x0, P0, angle_states=(YAW,)):
+    """Two filters from one state: the compiled step, and the NumPy path as the reference."""
+    fast = BatchedUKF(x0, P0, angle_states=angle_states)
+    ref = BatchedUKF(x0, P0, angle_states=angle_states)
+    assert fast._use_kernels
+    ref._use_kernels = False
+    return fast, ref
+
+
+def _forbid_numpy_paths(monkeypatch, f: BatchedUKF, plan: GroupPlan | None = None):
+    """Make the NumPy paths of ``f`` (and of its ``plan``) fail: the compiled one must serve."""
+    def numpy_path(*args, **kw):
+        raise AssertionError("the NumPy path ran where the compiled one should have")
+    monkeypatch.setattr(f, "_propagate", numpy_path)
+    monkeypatch.setattr(f, "_apply_numpy", numpy_path)
+    if plan is not None:
+        monkeypatch.setattr(plan, "nis", numpy_path)
+
+
+def _state(rng, yaw=np.pi - 0.01, yaw_sigma=0.05):
+    """A random state and covariance, the yaw at ``yaw`` with its own ``yaw_sigma``."""
+    x = 0.3 * rng.normal(size=N_STATE)
+    x[YAW] = yaw
+    P = spd(rng, N_STATE, 1e-3)
+    P[YAW, :] = P[:, YAW] = 0.0
+    P[YAW, YAW] = yaw_sigma**2
+    return x, P
+
+
+def _fx(X, dt=0.01):
+    """A nonlinear step. The yaw turns by 0.02 rad plus a little more the further a point is
+    from the central one (so wide points are not symmetric about it), and is left unwrapped
+    (the filter wraps its mean)."""
+    Y = X + dt * np.sin(X[:, ::-1])
+    Y[:, YAW] = X[:, YAW] + 0.02 + 0.2 * (X[:, YAW] - X[0, YAW]) ** 2
+    return Y
+
+
+def _plan(still: bool, gates=None):
+    """The tracker's shape of plan: five 3-row accelerometers (+ 3 "still" rows), one heading
+    row last."""
+    k = 5 + still
+    gates = [float(nis_bound(3, 1e-3))] * k + [float(nis_bound(1, 1e-3))] if gates is None else gates
+    groups = [MeasurementGroup(f"s{i}", np.arange(3 * i, 3 * i + 3), gates[i]) for i in range(k)]
+    return GroupPlan([*groups, MeasurementGroup("heading", np.array([3 * k]), gates[k])])
+
+
+def _hx_of(rng, m):
+    """A nonlinear measurement of ``m`` rows: ``m - 1`` of the state but the yaw, then the yaw."""
+    H = 0.5 * rng.normal(size=(m - 1, N_STATE))
+    H[:, YAW] = 0.0  # accelerometers do not see the yaw
+
+    def hx(X):
+        Z = np.empty((X.shape[0], m))
+        Z[:, :m - 1] = np.tanh(X @ H.T)
+        Z[:, m - 1] = X[:, YAW]  # the heading measures the yaw
+        return Z
+    return hx
+
+
+def _assert_close(a, b, rel=1e-12):
+    a, b = np.asarray(a), np.asarray(b)
+    np.testing.assert_allclose(a, b, rtol=rel, atol=rel * max(np.abs(b).max(), 1e-300))
+
+
+def test_compiled_sigma_points_are_filterpys_and_decline_an_indefinite_covariance(rng):
+    x, P = _state(rng)
+    Q = np.diag(rng.uniform(1e-5, 1e-4, N_STATE))
+    pts = SigmaPoints(N_STATE)
+    X = np.empty((2 * N_STATE + 1, N_STATE))
+    assert sigma_points_into(X, x, P, Q, pts.scale)
+    ref = MerweScaledSigmaPoints(N_STATE, 0.5, 2.0, 0.0).sigma_points(x, P + Q)
+    np.testing.assert_allclose(X, ref, rtol=0, atol=1e-13)
+    indefinite = P.copy()
+    indefinite[3, 3] = -1e-3
+    assert not sigma_points_into(X, x, indefinite, Q, pts.scale)
+
+
+@pytest.mark.parametrize("yaw_sigma", [0.05, 1.5], ids=["points-near", "points-wrapped"])
+@pytest.mark.parametrize("angle_states", [(YAW,), ()], ids=["yaw", "no-angle"])
+def test_compiled_predict_is_the_numpy_predict(rng, monkeypatch, yaw_sigma, angle_states):
+    """The mean (the yaw wrapped across pi, its points spread near or wide enough to wrap),
+    the covariance and the weighted residuals the update needs, equal to round-off."""
+    x, P = _state(rng, yaw_sigma=yaw_sigma)
+    fast, ref = _compiled_and_reference(x, P, angle_states)
+    _forbid_numpy_paths(monkeypatch, fast)
+    Q = np.diag(rng.uniform(1e-5, 1e-4, N_STATE))
+    seen = []
+    for _ in range(3):
+        for f in (fast, ref):
+            f.predict(lambda X: seen.append(X.copy()) or _fx(X), Q)
+        np.testing.assert_allclose(seen[-2], seen[-1], rtol=0, atol=1e-12)
+        _assert_close(fast.x, ref.x)
+        _assert_close(fast.P, ref.P)
+        _assert_close(fast._sigmas_DW, ref._sigmas_DW)
+        np.testing.assert_array_equal(fast.P, fast.P.T)
+    if angle_states:
+        assert -np.pi <= fast.x[YAW] < np.pi
+        if yaw_sigma < 1.0:
+            assert fast.x[YAW] < 0.0  # the yaw has crossed pi
+    # the points of a covariance that is not positive definite come from the NumPy path
+    monkeypatch.undo()
+    fast.set_component(3, 0.0, -1e-3)
+    ref.set_component(3, 0.0, -1e-3)
+    fast.predict(_fx, Q)
+    ref.predict(_fx, Q)
+    _assert_close(fast.x, ref.x)
+    _assert_close(fast.P, ref.P, 1e-10)
+
+
+@pytest.mark.parametrize("still", [False, True], ids=["m16", "m19"])
+def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still):
+    """Predicted measurement, innovation (the heading wrapped across pi), S, Pxz, each
+    group's NIS and gate verdict (an outlier fails its gate; an infinite gate passes), and
+    the diagonal blocks of S, equal to round-off."""
+    x, P = _state(rng, yaw=-np.pi + 0.02)
+    fast, ref = _compiled_and_reference(x, P)
+    fast.predict(_fx, np.eye(N_STATE) * 1e-5)
+    ref.predict(_fx, np.eye(N_STATE) * 1e-5)
+    k = 5 + still
+    m = 3 * k + 1
+    gates = [float(nis_bound(3, 1e-3))] * k + [float(nis_bound(1, 1e-3))]
+    gates[1] = np.inf
+    plan_fast, plan_ref = _plan(still, gates), _plan(still, gates)
+    _forbid_numpy_paths(monkeypatch, fast, plan_fast)
+    hx = _hx_of(rng, m)
+    z = hx(fast.x[None])[0] + 0.05 * rng.normal(size=m)
+    z[6:9] += 3.0  # the third sensor is an outlier
+    z[-1] = np.pi - 0.01  # the heading, measured across pi from the yaw near -pi
+    R = rng.uniform(0.01, 0.03, m)
+    a = fast.innovate(z, hx, R, plan_fast, angle_rows=(m - 1,))
+    b = ref.innovate(z, hx, R, plan_ref, angle_rows=(m - 1,))
+    for name in ("innovation", "S", "Pxz", "nis", "z_pred"):
+        _assert_close(getattr(a, name), getattr(b, name), 1e-11)
+    np.testing.assert_array_equal(a.gate_ok, b.gate_ok)
+    assert not a.gate_ok[2] and a.gate_ok.sum() == k
+    assert abs(a.innovation[-1]) < 0.1  # wrapped: not 2 pi
+    assert a.blocks.keys() == b.blocks.keys()
+    for size, (which, blocks) in a.blocks.items():
+        np.testing.assert_array_equal(which, b.blocks[size][0])
+        _assert_close(blocks, b.blocks[size][1], 1e-11)
+    np.testing.assert_array_equal(a.S, a.S.T)
+    assert plan_fast.last_blocks is a.blocks
+
+
+def test_compiled_innovation_takes_groups_in_any_order(rng, monkeypatch):
+    """Groups that cover the rows but not in order (a 1-row group between 3-row ones, rows
+    listed backwards): NIS, verdicts and diagonal blocks as NumPy has them."""
+    x, P = _state(rng)
+    fast, ref = _compiled_and_reference(x, P)
+    m = 10
+    rows = [np.array([2, 1, 0]), np.array([3]), np.array([4, 6, 5]), np.array([9]), np.array([7, 8])]
+    gate = float(nis_bound(3, 1e-3))
+    plans = [GroupPlan([MeasurementGroup(f"g{i}", r, gate) for i, r in enumerate(rows)]) for _ in range(2)]
+    _forbid_numpy_paths(monkeypatch, fast, plans[0])
+    hx = _hx_of(rng, m)
+    z = hx(x[None])[0] + 0.1 * rng.normal(size=m)
+    R = rng.uniform(0.01, 0.03, m)
+    a = fast.innovate(z, hx, R, plans[0], angle_rows=(9,))
+    b = ref.innovate(z, hx, R, plans[1], angle_rows=(9,))
+    _assert_close(a.nis, b.nis, 1e-11)
+    np.testing.assert_array_equal(a.gate_ok, b.gate_ok)
+    assert a.blocks.keys() == b.blocks.keys() == {1, 2, 3}
+    for size, (which, blocks) in a.blocks.items():
+        np.testing.assert_array_equal(which, b.blocks[size][0])
+        _assert_close(blocks, b.blocks[size][1], 1e-11)
+
+
+def test_compiled_innovation_falls_back_when_a_block_of_S_is_not_positive_definite(rng):
+    x, P = _state(rng)
+    fast, ref = _compiled_and_reference(x, P)
+    m = 16
+    hx = _hx_of(rng, m)
+    R = np.full(m, 0.01)
+    R[3:6] = -50.0  # the second sensor's block of S is indefinite
+    z = hx(x[None])[0] + 0.05 * rng.normal(size=m)
+    a = fast.innovate(z, hx, R, _plan(False), angle_rows=(m - 1,))
+    b = ref.innovate(z, hx, R, _plan(False), angle_rows=(m - 1,))
+    _assert_close(a.nis, b.nis, 1e-10)
+    np.testing.assert_array_equal(a.gate_ok, b.gate_ok)
+    assert a.nis[1] < 0.0  # (a solve of the indefinite block: no Cholesky factor gives that)
+
+
+def _hold_and_mask(m):
+    d = np.zeros(N_STATE)
+    d[[0, 4]] = 1.0 / np.sqrt(2.0)
+    hold = np.eye(N_STATE) - np.outer(d, d)  # no correction along d
+    mask = np.ones((N_STATE, m))
+    mask[:, -1] = 0.0
+    mask[[YAW, 15], -1] = 1.0  # the heading corrects only the yaw and one bias
+    return hold, mask
+
+
+@pytest.mark.parametrize("held, masked, reject", [
+    (False, False, None), (True, False, None), (True, True, None), (False, True, None),
+    (True, True, 2), (False, False, 2)],
+    ids=["optimal", "held", "held-masked", "masked", "held-masked-rejected", "optimal-rejected"])
+def test_compiled_correction_is_the_numpy_correction(rng, monkeypatch, held, masked, reject):
+    """The state (the yaw wrapped across pi) and the covariance after an update with the
+    optimal gain, a held and / or masked one (the general form) and a group rejected through
+    ``accept``, equal to round-off over a few steps."""
+    x, P = _state(rng, yaw=np.pi - 0.15)
+    fast, ref = _compiled_and_reference(x, P)
+    _forbid_numpy_paths(monkeypatch, fast)
+    m = 16
+    hx = _hx_of(rng, m)
+    hold, mask = _hold_and_mask(m)
+    accept = np.ones(6, bool)
+    if reject is not None:
+        accept[reject] = False
+    crossed = False
+    for _ in range(4):
+        for f in (fast, ref):
+            f.predict(_fx, np.eye(N_STATE) * 1e-5)
+        z = hx(fast.x[None])[0] + 0.1 * rng.normal(size=m)
+        z[-1] = wrap_angle(fast.x[YAW] + 0.1)  # a precise heading pulls the yaw on by 0.1 rad
+        R = rng.uniform(0.01, 0.03, m)
+        R[-1] = 1e-4
+        before = fast.x[YAW]
+        for f in (fast, ref):
+            inn = f.innovate(z, hx, R, _plan(False), angle_rows=(m - 1,))
+            assert f.correct(inn, accept, hold if held else None, mask if masked else None)
+        crossed |= before > 3.0 and fast.x[YAW] < -3.0  # the update itself crossed pi
+        _assert_close(fast.x, ref.x)
+        _assert_close(fast.P, ref.P, 1e-11)
+        np.testing.assert_array_equal(fast.P, fast.P.T)
+    assert crossed
+
+
+def _innovation(nu, S, Pxz):
+    m = len(nu)
+    return Innovation(("z",), (np.arange(m),), nu, S, Pxz, np.zeros(1), np.ones(1, bool), np.zeros(m))
+
+
+def test_compiled_correction_repairs_a_covariance_whose_diagonal_goes_negative(rng):
+    """A (wrong) cross covariance larger than P allows: P - K Pxz^T loses its positive
+    diagonal, and both paths repair it the same way."""
+    x, P = _state(rng)
+    fast, ref = _compiled_and_reference(x, P)
+    m = 3
+    S = np.eye(m) * 1e-4
+    Pxz = 0.1 * rng.normal(size=(N_STATE, m))
+    nu = rng.normal(size=m) * 0.01
+    x_new, P_new = np.empty(N_STATE), np.empty((N_STATE, N_STATE))
+    status = kalman_update_into(fast._x, fast._P, nu, S, Pxz, np.zeros((0, 0)), np.zeros((0, 0)), YAW,
+                                x_new, P_new)
+    assert status == DIAGONAL_NOT_POSITIVE
+    for f in (fast, ref):
+        f.correct(_innovation(nu, S, Pxz))
+    _assert_close(fast.x, ref.x)
+    _assert_close(fast.P, ref.P, 1e-9)
+    assert np.all(np.diagonal(fast.P) > 0)
+
+
+def test_compiled_correction_declines_an_S_that_is_not_positive_definite(rng):
+    x, P = _state(rng)
+    fast, ref = _compiled_and_reference(x, P)
+    m = 3
+    S = np.diag([1.0, -1.0, 1.0])
+    Pxz = 1e-3 * rng.normal(size=(N_STATE, m))
+    nu = rng.normal(size=m) * 0.01
+    x_new, P_new = np.empty(N_STATE), np.empty((N_STATE, N_STATE))
+    status = kalman_update_into(fast._x, fast._P, nu, S, Pxz, np.zeros((0, 0)), np.zeros((0, 0)), YAW,
+                                x_new, P_new)
+    assert status == NOT_POSITIVE_DEFINITE
+    for f in (fast, ref):
+        f.correct(_innovation(nu, S, Pxz))
+    np.testing.assert_array_equal(fast.x, ref.x)
+    np.testing.assert_array_equal(fast.P, ref.P)

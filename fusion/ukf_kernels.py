@@ -1,0 +1,345 @@
+"""Compiled (numba) kernels for the common case of :class:`fusion.ukf.BatchedUKF`'s step.
+
+A step of a 19-state filter is a few dozen small matrix products; called from NumPy, their
+interpreter and dispatch overhead, not their arithmetic, sets the pace. Each kernel here
+does one stage of the step in one call:
+
+- :func:`sigma_points_into`: the points ``x, x + U[k], x - U[k]`` with ``U^T U = s (P + Q)``
+  (the upper Cholesky factor, filterpy's convention);
+- :func:`unscented_moments_into`: the unscented transform of the propagated points (the
+  weighted mean, with at most one angle column, and the covariance);
+- :func:`innovation_into`: the predicted measurement, its covariance ``S``, the innovation,
+  the cross covariance and each measurement group's normalised innovation squared;
+- :func:`kalman_update_into`: the gain from a Cholesky solve and the updated state and
+  covariance (optimal, or held / masked through the general form).
+
+They write into arrays the caller allocates (cheaper than returning new ones to Python)
+and report by a status code when the caller must fall back to the NumPy path (a matrix
+that is not numerically positive definite). The caller guarantees shapes, float64 and C
+order: the kernels do not check bounds. ``angle`` is a column (or row) index, -1 for none.
+The matrix products go to BLAS (``np.dot``); the Cholesky factors and triangular solves
+are written out, their inner loops running along contiguous rows (``b[j] -= u * a[j]``,
+which the compiler turns into vector instructions), four rows at a time.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+TWO_PI = 2.0 * math.pi
+
+# status codes of the kernels that may decline
+OK = 0
+NOT_POSITIVE_DEFINITE = 1  # a matrix to factor (S, a block of S, s (P + Q)) is not
+DIAGONAL_NOT_POSITIVE = 2  # the updated covariance has a diagonal entry <= 0 (or NaN)
+
+
+@njit(cache=True)
+def _wrap(a: float) -> float:
+    """An angle wrapped to [-pi, pi) (Python's float ``%``: the sign of the divisor)."""
+    return (a + math.pi) % TWO_PI - math.pi
+
+
+@njit(cache=True)
+def _cholesky_upper(A: np.ndarray, U: np.ndarray, k: int) -> bool:
+    """``U`` upper triangular with ``U^T U = A`` for the leading ``(k, k)`` blocks, from the
+    upper triangle of ``A`` (left alone; ``U`` gets zeros below its diagonal). Row by row:
+    ``U[i, i:] = (A[i, i:] - sum_{r<i} U[r, i] U[r, i:]) / sqrt(pivot)``, the sum taken four
+    rows at a time. False when a pivot is not positive (or is NaN)."""
+    for i in range(k):
+        for j in range(i, k):
+            U[i, j] = A[i, j]
+        r = 0
+        while r + 4 <= i:
+            a0, a1, a2, a3 = U[r, i], U[r + 1, i], U[r + 2, i], U[r + 3, i]
+            for j in range(i, k):
+                U[i, j] -= (a0 * U[r, j] + a1 * U[r + 1, j]) + (a2 * U[r + 2, j] + a3 * U[r + 3, j])
+            r += 4
+        while r < i:
+            a0 = U[r, i]
+            for j in range(i, k):
+                U[i, j] -= a0 * U[r, j]
+            r += 1
+        d = U[i, i]
+        if not d > 0.0:
+            return False
+        u = math.sqrt(d)
+        U[i, i] = u
+        for j in range(i + 1, k):
+            U[i, j] /= u
+        for j in range(i):
+            U[i, j] = 0.0
+    return True
+
+
+@njit(cache=True)
+def _cholesky_solve_rows(U: np.ndarray, B: np.ndarray) -> None:
+    """``B = A^-1 B`` in place for ``A = U^T U`` (``U (m, m)`` upper triangular, ``B (m, c)``):
+    the forward substitution ``U^T Y = B``, then the back substitution ``U X = Y``, each row
+    of ``B`` losing its multiples of the rows already solved (four at a time)."""
+    m, c = B.shape
+    for r in range(m):
+        q = 0
+        while q + 4 <= r:
+            u0, u1, u2, u3 = U[q, r], U[q + 1, r], U[q + 2, r], U[q + 3, r]
+            for j in range(c):
+                B[r, j] -= (u0 * B[q, j] + u1 * B[q + 1, j]) + (u2 * B[q + 2, j] + u3 * B[q + 3, j])
+            q += 4
+        while q < r:
+            u0 = U[q, r]
+            for j in range(c):
+                B[r, j] -= u0 * B[q, j]
+            q += 1
+        d = U[r, r]
+        for j in range(c):
+            B[r, j] /= d
+    for r in range(m - 1, -1, -1):
+        q = r + 1
+        while q + 4 <= m:
+            u0, u1, u2, u3 = U[r, q], U[r, q + 1], U[r, q + 2], U[r, q + 3]
+            for j in range(c):
+                B[r, j] -= (u0 * B[q, j] + u1 * B[q + 1, j]) + (u2 * B[q + 2, j] + u3 * B[q + 3, j])
+            q += 4
+        while q < m:
+            u0 = U[r, q]
+            for j in range(c):
+                B[r, j] -= u0 * B[q, j]
+            q += 1
+        d = U[r, r]
+        for j in range(c):
+            B[r, j] /= d
+
+
+@njit(cache=True)
+def sigma_points_into(X: np.ndarray, x: np.ndarray, P: np.ndarray, Q: np.ndarray, scale: float) -> bool:
+    """Van der Merwe's points of ``x (n,)`` and ``P + Q`` into ``X (2n+1, n)``: ``X[0] = x``,
+    ``X[1 + k] = x + U[k]``, ``X[1 + n + k] = x - U[k]`` with ``U`` the upper Cholesky factor
+    of ``scale (P + Q)``. False (``X`` unfinished) when that is not positive definite."""
+    n = x.shape[0]
+    A = np.empty((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            A[i, j] = scale * (P[i, j] + Q[i, j])
+    U = np.empty((n, n))
+    if not _cholesky_upper(A, U, n):
+        return False
+    for j in range(n):
+        X[0, j] = x[j]
+    for k in range(n):
+        for j in range(n):
+            X[1 + k, j] = x[j] + U[k, j]
+            X[1 + n + k, j] = x[j] - U[k, j]
+    return True
+
+
+@njit(cache=True)
+def _mean_and_residuals(Y: np.ndarray, Wm: np.ndarray, angle: int, mean: np.ndarray, D: np.ndarray) -> None:
+    """``mean = Wm Y`` and ``D = Y - mean`` for points ``Y (N, k)``, one column ``angle``
+    treated as :func:`fusion.ukf._ut` does: when its points lie within 3 rad of the central
+    one the plain mean (then wrapped) and plain residuals stand; else the mean is the
+    central point plus the weighted mean of the wrapped offsets from it, and the residuals
+    are those offsets minus their mean."""
+    N, k = Y.shape
+    for j in range(k):
+        mean[j] = 0.0
+    for p in range(N):
+        w = Wm[p]
+        for j in range(k):
+            mean[j] += w * Y[p, j]
+    for p in range(N):
+        for j in range(k):
+            D[p, j] = Y[p, j] - mean[j]
+    if angle >= 0:
+        y0 = Y[0, angle]
+        near = True
+        for p in range(N):
+            if not abs(Y[p, angle] - y0) < 3.0:
+                near = False
+        if near:
+            mean[angle] = _wrap(mean[angle])
+        else:
+            offset_mean = 0.0
+            for p in range(N):
+                d = _wrap(Y[p, angle] - y0)
+                D[p, angle] = d
+                offset_mean += Wm[p] * d
+            mean[angle] = _wrap(y0 + offset_mean)
+            for p in range(N):
+                D[p, angle] -= offset_mean
+
+
+@njit(cache=True)
+def _symmetrise(C: np.ndarray) -> None:
+    """``C = (C + C^T) / 2`` in place: exactly symmetric."""
+    k = C.shape[0]
+    for i in range(k):
+        for j in range(i + 1, k):
+            c = 0.5 * (C[i, j] + C[j, i])
+            C[i, j] = c
+            C[j, i] = c
+
+
+@njit(cache=True)
+def _weighted_transpose(D: np.ndarray, Wc: np.ndarray, DW: np.ndarray) -> None:
+    """``DW = D^T diag(Wc)``: residuals ``D (N, k)`` weighted and turned to ``(k, N)``."""
+    N, k = D.shape
+    for p in range(N):
+        w = Wc[p]
+        for i in range(k):
+            DW[i, p] = D[p, i] * w
+
+
+@njit(cache=True)
+def unscented_moments_into(Y: np.ndarray, W: np.ndarray, angle: int, mean: np.ndarray, cov: np.ndarray,
+                           DW: np.ndarray) -> None:
+    """The unscented transform of propagated points ``Y (N, n)`` with weights ``W (2, N)``
+    (rows ``Wm``, ``Wc``): ``mean (n,)``, the weighted residuals ``DW = D^T diag(Wc) (n, N)``
+    (the cross covariance needs them) and ``cov = DW D (n, n)``, symmetrised."""
+    N, n = Y.shape
+    D = np.empty((N, n))
+    _mean_and_residuals(Y, W[0], angle, mean, D)
+    _weighted_transpose(D, W[1], DW)
+    np.dot(DW, D, cov)
+    _symmetrise(cov)
+
+
+@njit(cache=True)
+def innovation_into(Z: np.ndarray, W: np.ndarray, angle: int, z: np.ndarray, R: np.ndarray, DXW: np.ndarray,
+                    group_rows: np.ndarray, group_start: np.ndarray, block_start: np.ndarray,
+                    gates: np.ndarray, z_pred: np.ndarray, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray,
+                    blocks: np.ndarray, nis: np.ndarray, gate_ok: np.ndarray) -> int:
+    """The statistics of a measurement ``z (m,)`` predicted by the points ``Z (N, m)``:
+    ``z_pred`` (the unscented mean, row ``angle`` as in :func:`_mean_and_residuals`),
+    ``S = DZ^T diag(Wc) DZ + diag(R)`` (symmetrised), ``nu = z - z_pred`` (row ``angle``
+    wrapped), ``Pxz = DXW DZ`` (``DXW (n, N)``: the state's weighted residuals) and, for
+    each group ``g`` of ``k`` rows ``group_rows[group_start[g]:group_start[g + 1]]``: its
+    diagonal block of ``S``, row by row into ``blocks[block_start[g]:block_start[g] + k k]``,
+    its NIS ``nu_g^T S_gg^-1 nu_g = |U_g^-T nu_g|^2`` from the block's Cholesky factor
+    ``U_g``, and whether that is finite and within ``gates[g]``.
+
+    Returns :data:`NOT_POSITIVE_DEFINITE` when a group's block does not factor (``nis``
+    and ``gate_ok`` are then unfinished), else :data:`OK`."""
+    N, m = Z.shape
+    DZ = np.empty((N, m))
+    _mean_and_residuals(Z, W[0], angle, z_pred, DZ)
+    DZW = np.empty((m, N))
+    _weighted_transpose(DZ, W[1], DZW)
+    np.dot(DZW, DZ, S)
+    for i in range(m):
+        S[i, i] += R[i]
+    _symmetrise(S)
+    np.dot(DXW, DZ, Pxz)
+    for i in range(m):
+        nu[i] = z[i] - z_pred[i]
+    if angle >= 0:
+        nu[angle] = _wrap(nu[angle])
+    G = gates.shape[0]
+    largest = 0
+    for g in range(G):
+        r0 = group_start[g]
+        k = group_start[g + 1] - r0
+        largest = max(largest, k)
+        b0 = block_start[g]
+        for i in range(k):
+            for j in range(k):
+                blocks[b0 + i * k + j] = S[group_rows[r0 + i], group_rows[r0 + j]]
+    U = np.empty((largest, largest))
+    v = np.empty(largest)
+    for g in range(G):
+        r0 = group_start[g]
+        k = group_start[g + 1] - r0
+        b0 = block_start[g]
+        if not _cholesky_upper(blocks[b0:b0 + k * k].reshape((k, k)), U, k):
+            return NOT_POSITIVE_DEFINITE
+        # forward substitution U^T v = nu_g, NIS = |v|^2
+        total = 0.0
+        for i in range(k):
+            s = nu[group_rows[r0 + i]]
+            for j in range(i):
+                s -= U[j, i] * v[j]
+            v[i] = s / U[i, i]
+            total += v[i] * v[i]
+        nis[g] = total
+        gate_ok[g] = math.isfinite(total) and total <= gates[g]
+    return OK
+
+
+@njit(cache=True)
+def kalman_update_into(x: np.ndarray, P: np.ndarray, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray,
+                       hold: np.ndarray, gain_mask: np.ndarray, angle: int,
+                       x_new: np.ndarray, P_new: np.ndarray) -> int:
+    """The Kalman update of ``x (n,)``, ``P (n, n)`` by the innovation ``nu (m,)`` with
+    covariance ``S (m, m)`` and cross covariance ``Pxz (n, m)``.
+
+    The gain ``K = Pxz S^-1`` comes from the Cholesky factor of ``S`` (``U^T U = S``: two
+    triangular solves for ``K^T``). With ``hold (n, n)`` the gain is ``hold K``, with
+    ``gain_mask (n, m)`` it is then multiplied entry by entry (an empty ``(0, 0)`` array
+    means none). The state is ``x + K nu`` (``angle`` wrapped). The covariance is, for the
+    optimal gain, ``P - K Pxz^T`` symmetrised; for a held or masked one, the general
+    (Joseph-equivalent) form ``P + B + B^T`` with ``B = (K S / 2 - Pxz) K^T``.
+
+    Returns :data:`NOT_POSITIVE_DEFINITE` when ``S`` does not factor (nothing written),
+    :data:`DIAGONAL_NOT_POSITIVE` when the new covariance has a diagonal entry that is not
+    positive (it needs repair), else :data:`OK`."""
+    n, m = Pxz.shape
+    U = np.empty((m, m))
+    if not _cholesky_upper(S, U, m):
+        return NOT_POSITIVE_DEFINITE
+    PxzT = np.empty((m, n))
+    for i in range(n):
+        for r in range(m):
+            PxzT[r, i] = Pxz[i, r]
+    Kt = PxzT.copy()
+    _cholesky_solve_rows(U, Kt)  # K^T = S^-1 Pxz^T
+    K = np.empty((n, m))
+    for i in range(n):
+        for r in range(m):
+            K[i, r] = Kt[r, i]
+    held = hold.shape[0] > 0
+    masked = gain_mask.shape[0] > 0
+    if held:
+        K_held = np.empty((n, m))
+        np.dot(hold, K, K_held)
+        K = K_held
+    if masked:
+        for i in range(n):
+            for r in range(m):
+                K[i, r] *= gain_mask[i, r]
+    for i in range(n):
+        s = 0.0
+        for r in range(m):
+            s += K[i, r] * nu[r]
+        x_new[i] = x[i] + s
+    if angle >= 0:
+        x_new[angle] = _wrap(x_new[angle])
+    if not (held or masked):
+        # P - K Pxz^T, symmetrised
+        np.dot(K, PxzT, P_new)
+        for i in range(n):
+            for j in range(i, n):
+                p = 0.5 * ((P[i, j] - P_new[i, j]) + (P[j, i] - P_new[j, i]))
+                P_new[i, j] = p
+                P_new[j, i] = p
+    else:
+        # P + B + B^T, B = (K S / 2 - Pxz) K^T
+        KS = np.empty((n, m))
+        np.dot(K, S, KS)
+        for i in range(n):
+            for c in range(m):
+                KS[i, c] = 0.5 * KS[i, c] - Pxz[i, c]
+        for i in range(n):
+            for r in range(m):
+                Kt[r, i] = K[i, r]  # K^T of the held / masked gain
+        np.dot(KS, Kt, P_new)
+        for i in range(n):
+            for j in range(i, n):
+                b = P_new[i, j] + P_new[j, i]
+                P_new[i, j] = P[i, j] + b
+                P_new[j, i] = P[j, i] + b
+    for i in range(n):
+        if not P_new[i, i] > 0.0:
+            return DIAGONAL_NOT_POSITIVE
+    return OK
