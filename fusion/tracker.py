@@ -2254,8 +2254,8 @@ class Tracker:
         elapsed = _time.perf_counter() - t0_wall
         truth_q = rec.get("true_q") if truth else None
         truth_b = rec.get("true_base") if truth else None
-        tq = _truth_at(truth_q, times) if truth_q is not None and len(truth_q) else None
-        tb = _truth_at(truth_b, times, angles=True) if truth_b is not None and len(truth_b) else None
+        tq = truth_at(truth_q, times) if truth_q is not None and len(truth_q) else None
+        tb = truth_at(truth_b, times, angles=True) if truth_b is not None and len(truth_b) else None
         return out.finish(self, times, elapsed, tq, tb)
 
     @staticmethod
@@ -2418,7 +2418,7 @@ def _rows_at(times: np.ndarray, t_s: np.ndarray) -> np.ndarray:
     return np.where(np.abs(t_s[pos_c] - times) < 1e-9, pos_c, -1)
 
 
-def _truth_at(truth: Stream, times: np.ndarray, angles: bool = False) -> np.ndarray:
+def truth_at(truth: Stream, times: np.ndarray, angles: bool = False) -> np.ndarray:
     """The truth at each of ``times``, (T, k): linear between the truth's own samples (a
     live recording's instants fall between the simulator's grid), NaN outside its span or
     across a gap of more than two of its periods. ``angles``: interpolated unwrapped."""

@@ -40,6 +40,7 @@ from fusion.service import payloads as pl
 from fusion.service.fleet import free_loopback_port
 from fusion.service.processes import Children
 from fusion.simulate_cmd import truth_path
+from fusion.tracker import truth_at
 from models.simulator import angle_truth
 from models.trajectories import SCENARIOS
 
@@ -169,11 +170,6 @@ def _cpu_s(pid: int) -> float | None:
 # --- the figures of merit ---------------------------------------------------------------------
 
 
-def _rows_at(truth_t: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """The truth row at or just before each time (truth and samples share the 100 Hz grid)."""
-    return np.clip(np.searchsorted(truth_t, t + 1e-6, side="right") - 1, 0, len(truth_t) - 1)
-
-
 def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
@@ -198,20 +194,24 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
     q = np.array([j.q_rad for j in js])
     sig = np.array([j.sigma_rad for j in js])
     flags = np.array([j.flags for j in js])
-    err_deg = np.degrees(q - tq.values[_rows_at(tq.t_s, t)])
+    # the truth interpolated to each estimate's instant: the fake drivers read each device at
+    # an instant of its own, between the simulator's 100 Hz grid points
+    err_deg = np.degrees(q - truth_at(tq, t))
     first = 0
     startup = {n: {"error_deg": float(err_deg[first, k]), "sigma_deg": float(np.degrees(sig[first, k])),
                    "flag": str(flags[first, k])} for k, n in enumerate(names)}
+    scored = np.isfinite(err_deg).all(axis=1)  # (an estimate past the truth's end is not scored)
+    err_deg, sig_deg = err_deg[scored], np.degrees(sig[scored])
     rms = {n: float(np.sqrt(np.mean(err_deg[:, k] ** 2))) for k, n in enumerate(names)}
     worst = {n: float(np.max(np.abs(err_deg[:, k]))) for k, n in enumerate(names)}
-    inside = np.abs(err_deg) <= 3 * np.degrees(sig)
+    inside = np.abs(err_deg) <= 3 * sig_deg
     within = {n: float(np.mean(inside[:, k])) for k, n in enumerate(names)}
     seen = {n: dict(Counter(flags[:, k].tolist()).most_common()) for k, n in enumerate(names)}
     heading_rms = None
     if w.headings:
         th = np.array([h.t_s for _, h in w.headings])
         yaw = np.array([h.heading_rad for _, h in w.headings])
-        yaw_true = tb.values[_rows_at(tb.t_s, th), 2]
+        yaw_true = truth_at(tb, th, angles=True)[:, 2]
         heading_rms = float(np.degrees(np.sqrt(np.mean(_wrap(yaw - yaw_true) ** 2))))
     drv, srv, rec = live["drivers"], live["serve"], live["record"]
     epoch = drv.get("epoch_monotonic_s")
@@ -293,13 +293,13 @@ def tracking_figures(ev: dict[str, Any]) -> dict[str, bytes]:
     n = len(names)
     fig, axs = plt.subplots(n, 2, figsize=(12, 1.9 * n), squeeze=False, layout="constrained")
     span = (tq.t_s >= t[0] - 1.0) & (tq.t_s <= t[-1])
-    truth_rows = _rows_at(tq.t_s, t)
+    q_true = truth_at(tq, t)
     for k, name in enumerate(names):
         a, b = axs[k]
         a.plot(tq.t_s[span], np.degrees(tq.values[span, k]), "-", color="0.5", lw=2, label="truth")
         a.plot(t, np.degrees(q[:, k]), "-", color="C0", lw=1, label="estimate")
         a.set_ylabel(f"{name} [deg]")
-        e = np.degrees(q[:, k] - tq.values[truth_rows, k])
+        e = np.degrees(q[:, k] - q_true[:, k])
         s2 = 2 * np.degrees(sig[:, k])
         b.fill_between(t, -s2, s2, color="C0", alpha=0.2, label="±2σ")
         b.plot(t, e, "-", color="C3", lw=1, label="error")
@@ -314,7 +314,7 @@ def tracking_figures(ev: dict[str, Any]) -> dict[str, bytes]:
     if s["headings"]:
         tb = s["truth_base"]
         th, yaw, ysig = (np.array(v) for v in zip(*s["headings"], strict=True))
-        yaw_true = tb.values[_rows_at(tb.t_s, th), 2]
+        yaw_true = truth_at(tb, th, angles=True)[:, 2]
         fig, (a, b) = plt.subplots(1, 2, figsize=(12, 2.8), layout="constrained")
         a.plot(th, np.degrees(yaw_true), "-", color="0.5", lw=2, label="truth")
         a.plot(th, np.degrees(yaw), "-", color="C0", lw=1, label="estimate")
