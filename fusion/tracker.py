@@ -1167,6 +1167,9 @@ class Tracker:
         self._shift_t = np.full(Sa, np.nan)
         self._shift_cool = np.full(Sa, -np.inf)
         self._shift_stat = np.zeros(Sa)
+        # per link accelerometer: the covariance of the lasting error the calibration leaves in
+        # its normalised innovations (see _consider_update); the slip test allows for it
+        self._shift_cal = np.zeros((len(self.link_names), 3, 3))
         self._shift_sum = np.zeros((Sa, 3))
         self._shift_n = np.zeros(Sa, dtype=np.int64)
         self._shift_block_t = float(t_s)
@@ -1784,18 +1787,23 @@ class Tracker:
         self._shift[which] = ema
         # the average of unit white noise (block means of n samples) has variance
         # a / (2 - a) / n; each time scale has its threshold
-        stat = np.square(ema).sum(axis=2)
-        stat *= 2.0 - a
         pos = a > 0
-        if pos.all():
-            stat /= a
-        else:  # a sensor heard for the first time: no average yet
-            stat /= np.where(pos, a, 1.0)
-            stat[~pos] = 0.0
-        stat *= count[:, None]
+        var_w = np.where(pos, a, 1.0) / ((2.0 - a) * count[:, None])  # (k, 2)
+        stat = np.square(ema).sum(axis=2) / var_w
+        stat[~pos] = 0.0  # a sensor heard for the first time: no average yet
         stat /= self._shift_thr
-        worst = stat.max(axis=1)
-        self._shift_stat[which] = worst
+        # (whether the sensor agrees: no shift at all, see _slip_candidates)
+        self._shift_stat[which] = worst = stat.max(axis=1)
+        cal = self._shift_cal[which]  # (k, 3, 3)
+        if cal.any():
+            # the sensor's own calibration error lasts: it does not average away, so the
+            # test that sets off a re-acquisition allows for it,
+            # stat = ema^T (var_w I + C)^-1 ema (per time scale)
+            M = cal[:, None] + var_w[:, :, None, None] * self._eye3
+            stat = np.einsum("kti,kti->kt", ema, np.linalg.solve(M, ema[..., None])[..., 0])
+            stat[~pos] = 0.0
+            stat /= self._shift_thr
+            worst = stat.max(axis=1)
         hit = worst > 1.0
         if hit.any():
             ids = np.arange(len(self._shift_t))[which]
@@ -1983,6 +1991,13 @@ class Tracker:
             self._consider_q_enc = self._q_enc.copy()
         self._consider = np.linalg.solve(prior + A + 1e-12 * np.eye(n), prior @ S + B)
         self._sys_var = (self._consider**2).sum(axis=1)
+        # what each spread leaves in the readings once the offsets have taken their pull: a
+        # lasting shift of the innovations the slip test must not take for a slip
+        links = sel < len(self.link_names)
+        if links.any():
+            D = E.reshape(k, 3, -1)[links]
+            scale = self._accel_rate[sel[links]] * self.settings.observability_window_s
+            self._shift_cal[sel[links]] = (D @ D.transpose(0, 2, 1)) / scale[:, None, None]
 
     def _spread_errors(self, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray) -> np.ndarray:
         """Each correction spread's error in the used sensors' corrected readings, in the
