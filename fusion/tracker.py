@@ -726,10 +726,12 @@ class NoStillWindowError(ValueError):
 
 def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSettings | None = None,
                          prior_q_rad: np.ndarray | None = None, window_s: float = 1.0,
-                         startup_settings=None) -> tuple[Tracker, Start]:
+                         startup_settings=None, propose_unlock: bool = True) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
     calibration there (:func:`fusion.startup.solve_still`), the gyro bias, heading and field
-    reference from the same window; it starts tracking at the window's end."""
+    reference from the same window; it starts tracking at the window's end.
+    ``propose_unlock`` False: no search for a move that would unlock gravity-blind joints
+    (about 2 s of the startup's time, for a caller that does not show it)."""
     from fusion.startup import readings_from_recording, solve_still
     from fusion.static import StaticDetectionSettings, find_static_segments
 
@@ -755,7 +757,8 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
         readings = corr.readings(readings)
         notes.append("the config's effects applied: " + ", ".join(e.block_name for e in corr.model.effects))
-    startup = solve_still(arm, readings, startup_settings, prior_q_rad=prior_q_rad)
+    startup = solve_still(arm, readings, startup_settings, prior_q_rad=prior_q_rad,
+                          propose_unlock=propose_unlock)
     if corr is not None:
         startup = corr.controller_result(startup)
     imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings)

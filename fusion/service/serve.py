@@ -368,7 +368,8 @@ class FusionNode:
             return
         self._next_try_t = t_now + self.retry_s
         try:
-            tracker, start = start_from_recording(self.arm, rec, self.settings)
+            # (the unlock-move search is for a person asking: calibrate on request shows it)
+            tracker, start = start_from_recording(self.arm, rec, self.settings, propose_unlock=False)
         except NoStillWindowError as e:
             self._message = f"waiting for a still arm: {e}"
             return
