@@ -548,13 +548,10 @@ def test_an_uncalibrated_hard_iron_leaves_the_heading_honestly_unknown(arm):
     assert np.all(err <= 3 * sig)
 
 
-def test_what_the_calibration_left_in_a_joint_stays_in_its_sigma_as_the_arm_moves(arm):
-    """A calibrated config that knows acc3's board only to ±1° (its correction covariance)
-    and a board really turned by about that much: the joints acc3 reads learn the mount's
-    error in the pose where they are first read, and carry it as the arm reaches through
-    other poses. The reported sigma must cover that error at every instant, not only where
-    the current pose happens to show it (a consider covariance of the current window alone
-    dropped to a tenth of a degree between poses while the error stayed)."""
+@pytest.fixture(scope="module")
+def acc3_known_to_1deg(arm):
+    """A calibrated config that knows acc3's board only to ±1° (its correction covariance),
+    and the arm reaching with that board really turned by about that much: (config, recording)."""
     sig_rad = np.radians(1.0)
     names = ["acc3.mount_rotation[x]", "acc3.mount_rotation[y]", "acc3.mount_rotation[z]"]
     cov = {"acc3": {"elements": names, "matrix": (np.eye(3) * sig_rad**2).tolist()}}
@@ -568,6 +565,17 @@ def test_what_the_calibration_left_in_a_joint_stays_in_its_sigma_as_the_arm_move
     jp = still_then(POSE, 5.0, (q2, 4.0, 3.0), (q3, 5.0, 3.0), (POSE, 4.0, 3.0), (q2, 4.0, 3.0))
     rec, _ = simulate(arm, scenario(arm, 34.0, jp, ParkedBase(0.02, -0.01, 1.0)), seed=6,
                       effects=[true_entry])
+    return calibrated, rec
+
+
+def test_what_the_calibration_left_in_a_joint_stays_in_its_sigma_as_the_arm_moves(acc3_known_to_1deg):
+    """A calibrated config that knows acc3's board only to ±1° (its correction covariance)
+    and a board really turned by about that much: the joints acc3 reads learn the mount's
+    error in the pose where they are first read, and carry it as the arm reaches through
+    other poses. The reported sigma must cover that error at every instant, not only where
+    the current pose happens to show it (a consider covariance of the current window alone
+    dropped to a tenth of a degree between poses while the error stayed)."""
+    calibrated, rec = acc3_known_to_1deg
     tr, _ = start_from_recording(calibrated, rec, prior_q_rad=POSE + 0.05)
     run = tr.run(rec)
     err = np.abs(run.q_error_rad)
@@ -577,26 +585,14 @@ def test_what_the_calibration_left_in_a_joint_stays_in_its_sigma_as_the_arm_move
     assert np.degrees(np.median(run.sigma_rad[run.t_s > 10.0, :2])) < 0.1
 
 
-def test_a_calibration_s_lasting_error_is_not_taken_for_a_slip_and_a_slip_still_is(arm):
+def test_a_calibration_s_lasting_error_is_not_taken_for_a_slip_and_a_slip_still_is(arm, acc3_known_to_1deg):
     """acc3's board known to ±1° and really turned by about that much: as the arm reaches,
     acc3's innovations shift with the pose (the board's error seen from another side) and
     stay shifted. That is no slip: the slip test allows for what the calibration says the
     sensor's own error may be (a test on white innovations alone re-opened joints 8 times
     on acc3 here). A real 0.5° slip of j3, which acc2, acc3 and acc4 see, is still caught
     and corrected."""
-    sig_rad = np.radians(1.0)
-    names = ["acc3.mount_rotation[x]", "acc3.mount_rotation[y]", "acc3.mount_rotation[z]"]
-    cov = {"acc3": {"elements": names, "matrix": (np.eye(3) * sig_rad**2).tolist()}}
-    config_entry = {"effect": "mount_rotation", "target": "acc3", "params": {"rotvec_rad": [0.0, 0.0, 0.0]}}
-    calibrated = replace(arm, effects=(config_entry,),
-                         calibration={**arm.calibration, "correction_covariance": cov})
-    true_entry = {"effect": "mount_rotation", "target": "acc3",
-                  "params": {"rotvec_rad": [0.6 * sig_rad, -0.9 * sig_rad, 0.7 * sig_rad]}}
-    q2 = POSE + np.radians([10, -15, 20, 15, -20, 25, 30])
-    q3 = POSE + np.radians([-10, 10, -15, -10, 15, -20, -30])
-    jp = still_then(POSE, 5.0, (q2, 4.0, 3.0), (q3, 5.0, 3.0), (POSE, 4.0, 3.0), (q2, 4.0, 3.0))
-    rec, _ = simulate(arm, scenario(arm, 34.0, jp, ParkedBase(0.02, -0.01, 1.0)), seed=6,
-                      effects=[true_entry])
+    calibrated, rec = acc3_known_to_1deg
     tr, _ = start_from_recording(calibrated, rec, prior_q_rad=POSE + 0.05)
     run = tr.run(rec)
     assert tr.counters()["acc3"]["reacquisitions"] <= 2

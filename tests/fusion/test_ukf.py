@@ -456,6 +456,14 @@ def _innovation(nu, S, Pxz):
     return Innovation(("z",), (np.arange(m),), nu, S, Pxz, np.zeros(1), np.ones(1, bool), np.zeros(m))
 
 
+
+def _kernel_status(ukf, nu, S, Pxz) -> int:
+    """What the compiled correction says of these inputs (it writes into scratch arrays)."""
+    x_new, P_new = np.empty(N_STATE), np.empty((N_STATE, N_STATE))
+    return kalman_update_into(ukf._x, ukf._P, nu, S, Pxz, np.zeros((0, 0)), np.zeros((0, 0)), YAW,
+                              x_new, P_new)
+
+
 def test_compiled_correction_repairs_a_covariance_whose_diagonal_goes_negative(rng):
     """A (wrong) cross covariance larger than P allows: P - K Pxz^T loses its positive
     diagonal, and both paths repair it the same way."""
@@ -465,9 +473,7 @@ def test_compiled_correction_repairs_a_covariance_whose_diagonal_goes_negative(r
     S = np.eye(m) * 1e-4
     Pxz = 0.1 * rng.normal(size=(N_STATE, m))
     nu = rng.normal(size=m) * 0.01
-    x_new, P_new = np.empty(N_STATE), np.empty((N_STATE, N_STATE))
-    status = kalman_update_into(fast._x, fast._P, nu, S, Pxz, np.zeros((0, 0)), np.zeros((0, 0)), YAW,
-                                x_new, P_new)
+    status = _kernel_status(fast, nu, S, Pxz)
     assert status == DIAGONAL_NOT_POSITIVE
     for f in (fast, ref):
         f.correct(_innovation(nu, S, Pxz))
@@ -483,9 +489,7 @@ def test_compiled_correction_declines_an_S_that_is_not_positive_definite(rng):
     S = np.diag([1.0, -1.0, 1.0])
     Pxz = 1e-3 * rng.normal(size=(N_STATE, m))
     nu = rng.normal(size=m) * 0.01
-    x_new, P_new = np.empty(N_STATE), np.empty((N_STATE, N_STATE))
-    status = kalman_update_into(fast._x, fast._P, nu, S, Pxz, np.zeros((0, 0)), np.zeros((0, 0)), YAW,
-                                x_new, P_new)
+    status = _kernel_status(fast, nu, S, Pxz)
     assert status == NOT_POSITIVE_DEFINITE
     for f in (fast, ref):
         f.correct(_innovation(nu, S, Pxz))
