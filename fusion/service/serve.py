@@ -47,7 +47,15 @@ from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver
 from fusion.static import StaticDetectionSettings, find_static_segments
-from fusion.tracker import ENC, NoStillWindowError, Start, Tracker, TrackerSettings, start_from_recording
+from fusion.tracker import (
+    ENC,
+    NoStillWindowError,
+    Start,
+    Tracker,
+    TrackerSettings,
+    start_from_recording,
+    warm_up,
+)
 from models.arm import ArmModel
 from sensors.samples import Recording, Stream
 
@@ -229,6 +237,12 @@ class FusionNode:
         # busy machine) Zenoh's receive thread must not block for long, or a blocking
         # publisher waits and Zenoh closes the link after 5 s (block/wait_before_close),
         # losing what was in flight
+        # the compiled kernels ready before any sample is taken in (compiled once after an
+        # install: seconds the node would otherwise spend while the samples queue up)
+        try:
+            log.info("serve: tracker kernels ready in %.1f s", warm_up(self.arm, self.settings))
+        except (ValueError, KeyError, RuntimeError) as e:  # (a speed-up only: they compile on first use)
+            log.warning("serve: could not warm the tracker's kernels up (%s); they compile on first use", e)
         receiver = BoundedReceiver(maxsize=self.queue_size)
         pub_joints = self.session.declare_publisher(pl.joints_key(self.robot))
         pub_heading = self.session.declare_publisher(pl.heading_key(self.robot))
