@@ -359,10 +359,11 @@ def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on every start, compiled (:func:`fusion.startup_kernels.lm_solve`):
     the same arithmetic as :func:`_batched_lm_numpy`, which says what the arguments are."""
-    x = np.ascontiguousarray(x0, dtype=float)
+    # fresh writable C arrays of one type each: a single compiled signature
+    x = np.array(x0, dtype=float, order="C")
     B, p = x.shape
-    free_f = np.ascontiguousarray(np.broadcast_to(np.asarray(free, bool), (B, p)), dtype=float)
-    left = np.ascontiguousarray(np.broadcast_to(np.asarray(iters), (B,)), dtype=np.int64)
+    free_f = np.array(np.broadcast_to(np.asarray(free, bool), (B, p)), dtype=float, order="C")
+    left = np.array(np.broadcast_to(np.asarray(iters), (B,)), dtype=np.int64, order="C")
     return lm_solve(x, free_f, left, *problem.kernel_layout(active, use_imu))
 
 

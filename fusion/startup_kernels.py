@@ -187,13 +187,33 @@ def lm_solve(X0, free, iters, step_in, offset, read_W, read_row, read_link, meas
     for b in range(B):
         x = X[b]
         f = free[b]
-        _evaluate(x, step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_rows, imu,
-                  tilt_prior, last, V, rJ)
-        _normal(rJ, N)
-        c = 0.5 * N[0, 0]
         left = iters[b]
         lam = 1e-3
-        while left > 0:
+        c = 0.0
+        xt[:] = x
+        first = True
+        while True:  # one evaluation per pass (one call site: a smaller compiled loop)
+            _evaluate(xt, step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_rows, imu,
+                      tilt_prior, last, V, rJ)
+            _normal(rJ, Nt)
+            ct = 0.5 * Nt[0, 0]
+            if first:  # the start itself
+                N, Nt = Nt, N
+                c = ct
+                first = False
+            else:
+                if ct < c:  # the step lowers the cost: taken
+                    x[:] = xt
+                    N, Nt = Nt, N
+                    c = ct
+                    lam = lam * 0.3
+                else:
+                    lam = lam * 10.0
+                left -= 1
+                if lam > 1e8:  # no step lowers the cost
+                    break
+            if left <= 0:
+                break
             for i in range(p):
                 for j in range(p):
                     A[i, j] = N[1 + i, 1 + j] * f[i] * f[j]
@@ -210,19 +230,5 @@ def lm_solve(X0, free, iters, step_in, offset, read_W, read_row, read_link, meas
                 break
             for i in range(p):
                 xt[i] = x[i] + step[i]
-            _evaluate(xt, step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_rows, imu,
-                      tilt_prior, last, V, rJ)
-            _normal(rJ, Nt)
-            ct = 0.5 * Nt[0, 0]
-            if ct < c:
-                x[:] = xt
-                N, Nt = Nt, N
-                c = ct
-                lam = lam * 0.3
-            else:
-                lam = lam * 10.0
-            left -= 1
-            if lam > 1e8:  # no step lowers the cost
-                break
         cost[b] = c
     return X, cost
