@@ -26,6 +26,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from fusion.startup_kernels import lm_solve
 from models.arm import ArmModel
 from models.kinematics import gravity_chain
 from models.sensor_models import stream_models
@@ -256,6 +257,7 @@ class _Problem:
         # every row's read-out, weighted and negated: rows = -(D_s v) / sigma = r - meas / sigma
         self._read_w = -self._chain.read_out / self.sigma[:, :, None]  # (S, 3, 3)
         self._layouts: dict = {}
+        self._kernel_layouts: dict = {}
 
     @property
     def n(self) -> int:
@@ -278,8 +280,25 @@ class _Problem:
                 reads.append((3 * len(used), 0, -self.R_0I.T / self.imu_sigma[:, None]))
             last = max([k for _, k, _ in reads], default=0) - 1  # the last joint any row needs
             hit = (m, meas_w, reads, imu, 3 * len(used), last)
+            # the same, as the compiled kernels take it (fusion.startup_kernels)
+            kern = (np.ascontiguousarray(np.stack([W for _, _, W in reads]) if reads
+                                         else np.zeros((0, 3, 3))),
+                    np.array([row for row, _, _ in reads], dtype=np.int64),
+                    np.array([k for _, k, _ in reads], dtype=np.int64),
+                    np.ascontiguousarray(meas_w), int(3 * len(used)), bool(imu),
+                    float(self.tilt_prior_rad), int(last))
+            self._kernel_layouts[key] = (self._chain.step_in, np.ascontiguousarray(
+                self._chain.offset_rad, dtype=float)) + kern
             self._layouts[key] = hit
         return hit
+
+    def kernel_layout(self, active: np.ndarray | None, use_imu: bool) -> tuple:
+        """The chain and the rows of one kind of solve as :mod:`fusion.startup_kernels` takes
+        them: ``(step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_rows, imu,
+        tilt_prior, last)``."""
+        self._layout(active, use_imu)
+        return self._kernel_layouts[(None if active is None else np.asarray(active, bool).tobytes(),
+                                     use_imu)]
 
     def residuals_and_jacobian(self, x: np.ndarray, active: np.ndarray | None = None,
                                use_imu: bool = True):
@@ -338,14 +357,28 @@ def _up_and_tilt_jacobian(roll, pitch) -> np.ndarray:
 def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
                 active: np.ndarray | None = None, use_imu: bool = True,
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt on every start at once. ``free`` selects the unknowns: ``(n+2,)``
-    for all starts, or ``(B, n+2)`` per start (a held unknown keeps its start value).
-    ``iters``: the most iterations, for all starts or ``(B,)`` per start.
+    """Levenberg-Marquardt on every start, compiled (:func:`fusion.startup_kernels.lm_solve`):
+    the same arithmetic as :func:`_batched_lm_numpy`, which says what the arguments are."""
+    # fresh writable C arrays of one type each: a single compiled signature
+    x = np.array(x0, dtype=float, order="C")
+    B, p = x.shape
+    free_f = np.array(np.broadcast_to(np.asarray(free, bool), (B, p)), dtype=float, order="C")
+    left = np.array(np.broadcast_to(np.asarray(iters), (B,)), dtype=np.int64, order="C")
+    return lm_solve(x, free_f, left, *problem.kernel_layout(active, use_imu))
+
+
+def _batched_lm_numpy(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
+                      active: np.ndarray | None = None, use_imu: bool = True,
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt on every start at once (the NumPy form of the compiled solve).
+    ``free`` selects the unknowns: ``(n+2,)`` for all starts, or ``(B, n+2)`` per start (a
+    held unknown keeps its start value). ``iters``: the most iterations, for all starts or
+    ``(B,)`` per start.
 
     Each start stops on its own once it has converged (its next step below 1e-7 rad, not
     taken, or its damping past 1e8: no step lowers the cost) or used its iterations; the
-    others go on without it. Returns the solutions and their final cost (half sum of squared weighted
-    residuals).
+    others go on without it. Returns the solutions and their final cost (half sum of
+    squared weighted residuals).
     """
     x = np.array(x0, float)
     B, p = x.shape

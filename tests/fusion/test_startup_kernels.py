@@ -1,0 +1,95 @@
+"""The compiled startup kernels equal their NumPy forms on the same inputs.
+
+(What the solve gives is tested in tests/fusion/test_startup.py; here, that the compiled
+evaluation and Levenberg-Marquardt agree with ``_Problem._augmented`` and
+``_batched_lm_numpy`` for every kind of solve the startup runs: all sensors with the base
+accelerometer, without it (the level-chair prior's rows), one sensor at a time as the
+thesis's method does, the base accelerometer alone, and readings with no IMU at all.)"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fusion.startup import (
+    StillReadings,
+    _batched_lm,
+    _batched_lm_numpy,
+    _make_problem,
+    up_from_tilt,
+)
+from fusion.startup_kernels import augmented
+from models.kinematics import gravity_in_sensors
+
+DEG = np.pi / 180
+Q_DEG = np.array([30.0, 40.0, 20.0, -50.0, 60.0, 30.0, 100.0])
+
+
+def _readings(arm, seed: int, imu: bool = True) -> StillReadings:
+    rng = np.random.default_rng(seed)
+    up = up_from_tilt(0.8 * DEG, -1.2 * DEG)
+    f = gravity_in_sensors(arm, np.radians(Q_DEG), up)[0]
+    names = [s.name for s in arm.link_accelerometers]
+    sig = np.array([0.003, 0.003, 0.004])
+    means = {nm: f[i] + rng.normal(0, sig) for i, nm in enumerate(names)}
+    return StillReadings(means, {nm: sig for nm in names},
+                         up + rng.normal(0, 3e-4, 3) if imu else None, np.full(3, 3e-4) if imu else None)
+
+
+def _layouts(n_sensors: int):
+    """(active, use_imu) of every kind of solve the startup runs."""
+    one = np.zeros(n_sensors, bool)
+    one[2] = True
+    return [(None, True), (None, False), (one, False), (np.zeros(n_sensors, bool), True)]
+
+
+@pytest.fixture(scope="module", params=[True, False], ids=["imu", "no-imu"])
+def problem(wmra, request):
+    return _make_problem(wmra, _readings(wmra, 11, imu=request.param))
+
+
+def test_evaluation_equals_the_numpy_form(problem):
+    n = problem.n
+    rng = np.random.default_rng(3)
+    X = np.concatenate([rng.uniform(-np.pi, np.pi, (9, n)), rng.normal(0, 0.1, (9, 2))], 1)
+    for active, use_imu in _layouts(len(problem.names)):
+        got = augmented(X, *problem.kernel_layout(active, use_imu))
+        ref = problem._augmented(X, active, use_imu)
+        assert got.shape == ref.shape
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+        # a row's columns past its sensor's link are exactly zero in both
+        assert np.array_equal(got == 0.0, ref == 0.0)
+
+
+@pytest.mark.parametrize("spread, atol", [(0.05, 1e-12), (0.6, 1e-6)])
+def test_levenberg_marquardt_equals_the_numpy_form(problem, spread, atol):
+    """Starts near the pose and far from it, some unknowns held, each start with its own
+    iteration limit (some stop on it, some converge, one takes no step at all).
+
+    The two differ in the last bits of each product's sums (the NumPy form's are BLAS's and
+    LAPACK's), and a start still crawling along a curved valley after its iterations
+    amplifies those: the far starts, whose iteration limits are reached there, agree to
+    ``atol`` (3e-8 seen); their first steps, and every near start, to 1e-12 (costs 1e-11)."""
+    n = problem.n
+    rng = np.random.default_rng(int(spread * 100))
+    B = 12
+    x_true = np.concatenate([np.radians(Q_DEG), [0.8 * DEG, -1.2 * DEG]])
+    x0 = x_true + rng.normal(0, spread, (B, n + 2))
+    free = rng.random((B, n + 2)) > 0.15
+    free[:3] = True
+    iters = np.array([30, 30, 30, 12, 12, 12, 5, 5, 3, 2, 1, 0])
+    first = iters <= 3
+    for active, use_imu in _layouts(len(problem.names)):
+        x, cost = _batched_lm(problem, x0, free, iters, active, use_imu)
+        x_ref, cost_ref = _batched_lm_numpy(problem, x0, free, iters, active, use_imu)
+        np.testing.assert_allclose(x, x_ref, rtol=0, atol=atol)
+        np.testing.assert_allclose(cost, cost_ref, rtol=atol, atol=1e-12)
+        np.testing.assert_allclose(x[first], x_ref[first], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(cost[first], cost_ref[first], rtol=1e-11, atol=1e-12)
+        assert np.all(x[~free] == x0[~free])  # a held unknown keeps its start value
+        assert np.array_equal(x[-1], x0[-1])  # no iteration: the start itself
+    # every start free, one iteration limit for all (the joint solve's first batch)
+    x, cost = _batched_lm(problem, x0, np.ones(n + 2, bool), 30)
+    x_ref, cost_ref = _batched_lm_numpy(problem, x0, np.ones(n + 2, bool), 30)
+    np.testing.assert_allclose(x, x_ref, rtol=0, atol=atol)
+    np.testing.assert_allclose(cost, cost_ref, rtol=atol, atol=1e-12)
