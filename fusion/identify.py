@@ -1269,6 +1269,10 @@ class StartupCorrection:
         return q.reshape(np.shape(q_geom_rad))
 
 
+COMPASS_MAP_EFFECTS = ("mag_soft_iron", "mag_hard_iron")
+"""The compass effects that are a fixed affine map of its reading (the tracker undoes them)."""
+
+
 def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
                        include_joint_offsets: bool = False) -> StartupCorrection:
     """The correction the startup calibration applies for ``arm``'s config effects.
@@ -1284,9 +1288,11 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
     th = model.unpack()
     cov = (getattr(arm, "calibration", None) or {}).get("correction_covariance") or {}
     maps, spread = {}, {}
-    for s in accel:
-        effs = sorted((e for e in model.effects if isinstance(e, SensorEffect) and s in e.streams),
-                      key=lambda e: e.rank)
+    for s in accel + (["imu_mag"] if arm.imu is not None else []):
+        # the compass's own map is its soft and hard iron; the arm's steel (mag_arm_disturbance)
+        # turns with the joints and is no fixed map
+        effs = sorted((e for e in model.effects if isinstance(e, SensorEffect) and s in e.streams
+                       and (s != "imu_mag" or e.name in COMPASS_MAP_EFFECTS)), key=lambda e: e.rank)
         if not effs:
             continue
         st = MotionState.static(np.zeros((4, arm.n_joints)), temperature_c=temperature_c)

@@ -672,7 +672,11 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
     if m is not None:
         w = m.between(t_start_s, t_end_s + 1e-9)
         if len(w) >= 1:
-            mB = sm[MAG].from_counts(w.values) @ R_0I.T
+            y = sm[MAG].from_counts(w.values)
+            undo = compass_map(arm)
+            if undo is not None:  # the config's hard and soft iron, as the tracker undoes them
+                y = (y - undo[1]) @ undo[0]
+            mB = y @ R_0I.T
             up = _up(np.array(startup.roll_rad), np.array(startup.pitch_rad))
             if st.heading.reference == "model":
                 field_ref = FieldReference.from_world_field()
@@ -690,15 +694,26 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
 
 def compass_unmodelled_ut(arm: ArmModel) -> float:
     """How far the compass's horizontal reading may be from Earth's field, µT, by what the
-    config says: a hard iron it holds (the tracker does not apply compass effects, so its
-    value and its σ both count), else ``calibration.mag_unmodelled_ut``, else 0."""
+    config says: the σ of a hard iron it holds (the tracker undoes the hard and soft iron,
+    :data:`fusion.identify.COMPASS_MAP_EFFECTS`, so what stays is how well they are known),
+    else ``calibration.mag_unmodelled_ut``, else 0."""
     for e in arm.effects or ():
         d = e if isinstance(e, Mapping) else e.model_dump()
         if d.get("effect") == "mag_hard_iron":
-            h = np.asarray((d.get("params") or {}).get("offset_ut", [0.0, 0.0, 0.0]), float)
             s = np.asarray((d.get("sigma") or {}).get("offset_ut", [0.0, 0.0, 0.0]), float)
-            return float(np.sqrt(np.sum(h[:2] ** 2) + np.sum(s[:2] ** 2)))
+            return float(np.sqrt(np.sum(s[:2] ** 2)))
     return float((arm.calibration or {}).get("mag_unmodelled_ut", 0.0) or 0.0)
+
+
+def compass_map(arm: ArmModel) -> tuple[np.ndarray, np.ndarray] | None:
+    """The config's soft and hard iron as the map that undoes them, ``(A, c)``: the field
+    in the compass's axes is ``(y - c) @ A`` for readings ``y (N, 3)`` µT; None without them."""
+    if not any(True for n in ("mag_hard_iron", "mag_soft_iron") for _ in _effect_dicts(arm, n)):
+        return None
+    from fusion.identify import startup_correction
+
+    m = startup_correction(arm).maps.get(MAG)
+    return None if m is None else (np.linalg.inv(m[0]).T, np.asarray(m[1], float))
 
 
 def compass_unmodelled_rad(arm: ArmModel, field: FieldReference) -> float:
@@ -938,7 +953,8 @@ class Tracker:
             for stream, (Lm, c) in correction.maps.items():
                 self._undo[stream] = (np.linalg.inv(Lm).T, np.asarray(c, float))
             for stream, maps in correction.spread.items():
-                self._spread[stream] = [(np.linalg.inv(L1), np.asarray(c1, float)) for L1, c1 in maps]
+                if stream != MAG:  # (the compass's doubt is compass_unmodelled_ut)
+                    self._spread[stream] = [(np.linalg.inv(L1), np.asarray(c1, float)) for L1, c1 in maps]
             self._undo_per_c = _offset_per_degree(arm, correction)
             from models.effects import JointEffect
 
