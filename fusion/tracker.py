@@ -649,9 +649,11 @@ class ImuStill:
 
 
 def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_end_s: float,
-                             startup: StartupResult, settings: TrackerSettings | None = None
-                             ) -> ImuStill:
-    """The gyro bias, initial heading and Earth-field reference from a still window."""
+                             startup: StartupResult, settings: TrackerSettings | None = None,
+                             correction=None) -> ImuStill:
+    """The gyro bias, initial heading and Earth-field reference from a still window.
+    ``correction``: the config's :class:`fusion.identify.StartupCorrection`, when the caller
+    has it (else made here when the config has compass effects)."""
     st = settings or TrackerSettings()
     sm = stream_models(arm)
     R_0I = arm.imu.R_LS if arm.imu is not None else np.eye(3)
@@ -673,7 +675,7 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
         w = m.between(t_start_s, t_end_s + 1e-9)
         if len(w) >= 1:
             y = sm[MAG].from_counts(w.values)
-            undo = compass_map(arm)
+            undo = compass_map(arm, correction)
             if undo is not None:  # the config's hard and soft iron, as the tracker undoes them
                 y = (y - undo[1]) @ undo[0]
             mB = y @ R_0I.T
@@ -705,14 +707,17 @@ def compass_unmodelled_ut(arm: ArmModel) -> float:
     return float((arm.calibration or {}).get("mag_unmodelled_ut", 0.0) or 0.0)
 
 
-def compass_map(arm: ArmModel) -> tuple[np.ndarray, np.ndarray] | None:
+def compass_map(arm: ArmModel, correction=None) -> tuple[np.ndarray, np.ndarray] | None:
     """The config's soft and hard iron as the map that undoes them, ``(A, c)``: the field
-    in the compass's axes is ``(y - c) @ A`` for readings ``y (N, 3)`` µT; None without them."""
-    if not any(True for n in ("mag_hard_iron", "mag_soft_iron") for _ in _effect_dicts(arm, n)):
-        return None
-    from fusion.identify import startup_correction
+    in the compass's axes is ``(y - c) @ A`` for readings ``y (N, 3)`` µT; None without them.
+    ``correction``: the config's :class:`fusion.identify.StartupCorrection`, if made already."""
+    if correction is None:
+        if not any(True for n in ("mag_hard_iron", "mag_soft_iron") for _ in _effect_dicts(arm, n)):
+            return None
+        from fusion.identify import startup_correction
 
-    m = startup_correction(arm).maps.get(MAG)
+        correction = startup_correction(arm)
+    m = correction.maps.get(MAG)
     return None if m is None else (np.linalg.inv(m[0]).T, np.asarray(m[1], float))
 
 
@@ -801,7 +806,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
                           propose_unlock=propose_unlock)
     if corr is not None:
         startup = corr.controller_result(startup)
-    imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings)
+    imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings, corr)
     enc = rec.get(ENC)
     if enc is None or not len(enc):
         raise ValueError("the recording has no encoder stream 'enc': nothing to track")
@@ -909,15 +914,6 @@ def _rotation(v) -> np.ndarray:
     return np.array([[1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
                      [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
                      [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
-
-
-def _euler_rates(r, p, w):
-    """(roll, pitch, yaw) rates of ``R = Rz Ry Rx`` for body rates ``w (N, 3)``."""
-    sr, cr = np.sin(r), np.cos(r)
-    cp = np.cos(p)
-    tp = np.tan(p)
-    a = sr * w[:, 1] + cr * w[:, 2]
-    return w[:, 0] + a * tp, cr * w[:, 1] - sr * w[:, 2], a / cp
 
 
 # --------------------------------------------------------------------------------------
@@ -1538,11 +1534,6 @@ class Tracker:
         return measurement_points(np.ascontiguousarray(X), sel, self._links_i64, frame.axes, frame.offset_ref,
                                   frame.motion_mps2, frame.R_0S, self._imu_acc_index, L.roll, n + 2, L.yaw,
                                   n + 9, G, bool(still), field, shift)
-
-    def _h_accel(self, X: np.ndarray, frame: Frames, sel: np.ndarray) -> np.ndarray:
-        """Predicted specific force (g) of the accelerometers ``sel`` at every sigma point,
-        ``(N, 3 len(sel))`` in ``sel``'s order."""
-        return self._h_all(X, frame, np.asarray(sel, dtype=np.int64), None)
 
     # -- the stacked update -----------------------------------------------------------------
     def _with_noise(self, frames: Frames) -> Frames:
