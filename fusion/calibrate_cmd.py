@@ -23,7 +23,10 @@ from fusion.identify import startup_correction
 from fusion.pose_store import load_pose, save_pose
 from fusion.startup import (
     StartupInputError,
+    StartupPrior,
+    StartupResult,
     StartupSettings,
+    prior_after_move,
     readings_from_recording,
     solve_still,
 )
@@ -42,7 +45,9 @@ def calibrate_joints(
     method: Annotated[str, typer.Option(help="joint (all sensors at once) or sequential (the thesis).")] = "joint",
     json_out: JsonOpt = False,
     window_s: Annotated[float, typer.Option(help="Averaging window at the end of each still segment [s].")] = 1.0,
-    prior: Annotated[Path | None, typer.Option(help="Pose saved at the last clean shutdown (JSON).")] = None,
+    prior: Annotated[Path | None, typer.Option(help="Pose saved at the last clean shutdown (JSON): checked against the data, used to choose a branch only if it fits.")] = None,
+    assume_parked: Annotated[bool, typer.Option("--assume-parked", help="Take the ready pose as evidence (the arm is known to be parked there): it picks among branches that fit, and the result says so.")] = False,
+    independent: Annotated[bool, typer.Option("--independent", help="With --segments: solve every still window alone (by default each window's answer is carried to the next through the encoder counts).")] = False,
     save: Annotated[Path | None, typer.Option(help="Save the solved pose here (atomically) when every joint is ok.")] = None,
     gimbal_lock_deg: Annotated[float, typer.Option(help="Axis-to-vertical angle below which a joint is gravity-blind.")] = StartupSettings.gimbal_lock_deg,
     sigma_limit_deg: Annotated[float, typer.Option(help="Sigma above which a joint is ill_conditioned.")] = StartupSettings.sigma_limit_deg,
@@ -54,13 +59,17 @@ def calibrate_joints(
     rec = read_recording_or_exit(recording)
     st = StartupSettings(gimbal_lock_deg=gimbal_lock_deg, sigma_limit_deg=sigma_limit_deg)
     notes: list[str] = []
-    prior_q = None
+    first_prior = None
+    if prior is not None and assume_parked:
+        fail("--prior and --assume-parked: give one (a saved pose is checked; --assume-parked asserts the ready pose)")
     if prior is not None:
         saved, why = load_pose(prior, arm)
         if saved is None:
             notes.append(why)
         else:
-            prior_q = saved.q_rad
+            first_prior = StartupPrior.saved_pose(saved.q_rad, source=f"the pose saved in {prior}")
+    elif assume_parked:
+        first_prior = StartupPrior.assume_parked(arm)
     segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)))
     if not segs:
         fail(f"{recording}: no still segment found (accelerometers, gyro and encoders all quiet "
@@ -85,8 +94,16 @@ def calibrate_joints(
         notes.append("not applied to a still arm: " + ", ".join(unused))
     drifts = any(e.name == "temperature_drift" for e in corr.model.effects)
     by_temperature = {round(temperature_c, 1): corr}
+    enc = rec.get("enc")
+    carried: tuple[StartupResult, np.ndarray] | None = None  # last answer, encoder angles then
     for seg in segs:
         readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
+        enc_rad = _encoder_angles_at(arm, enc, seg.t_end_s)
+        seg_prior = first_prior
+        if carried is not None and not independent and enc_rad is not None:
+            # within one power-on the encoders are continuous: what the last window found,
+            # moved by what they counted since, is this window's (checked) prior
+            seg_prior = prior_after_move(carried[0], enc_rad - carried[1], arm, st)
         seg_corr = corr
         seg_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None and drifts else None
         if seg_temp is not None and len(seg_temp):  # each still stretch at its own temperature
@@ -97,15 +114,17 @@ def calibrate_joints(
         readings = seg_corr.readings(readings)
         seg_notes = [c.message for c in checks]
         try:
-            res = seg_corr.controller_result(solve_still(arm, readings, st, prior_q_rad=prior_q,
-                                                             method=method))
+            geometric = solve_still(arm, readings, st, prior=seg_prior, method=method)
+            res = seg_corr.controller_result(geometric)
         except StartupInputError as e:
             out.append({"t_start": seg.t_start_s, "t_end": seg.t_end_s, "error": str(e),
                         "notes": seg_notes})
             continue
+        if enc_rad is not None:
+            carried = (geometric, enc_rad)
         d = res.as_dict()
         d["t_start"], d["t_end"] = seg.t_start_s, seg.t_end_s
-        d["notes"] = seg_notes
+        d["notes"] = seg_notes + list(res.notes)
         out.append((d, res))
     docs = [o[0] if isinstance(o, tuple) else o for o in out]
     if save is not None:
@@ -125,6 +144,14 @@ def calibrate_joints(
         _print_segment(d)
     if all("error" in d for d in docs):
         raise typer.Exit(1)
+
+
+def _encoder_angles_at(arm, enc, t_s: float) -> np.ndarray | None:
+    """The encoders' relative joint angles (rad) at the last sample at or before ``t_s``."""
+    if enc is None or not len(enc) or enc.values.shape[1] != arm.n_joints:
+        return None
+    k = min(max(int(np.searchsorted(enc.t_s, t_s + 1e-9)) - 1, 0), len(enc) - 1)
+    return np.asarray(enc.values[k], float) / arm.counts_per_rad
 
 
 def _print_segment(d: dict) -> None:

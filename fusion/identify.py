@@ -1223,8 +1223,9 @@ class StartupCorrection:
             return res
         n = len(q)
         variants = []
+        rivals = res.candidates_rad if res.candidates_rad is not None else res.branches_rad
         if any(j.flag == "ambiguous" for j in res.joints):
-            variants += [b for b in np.asarray(res.branches_rad, float).reshape(-1, n)
+            variants += [b for b in np.asarray(rivals, float).reshape(-1, n)
                          if np.any(np.abs(b - q) > 1e-6)]
         arm = self.model.arm
         for i, j in enumerate(res.joints):
@@ -1250,7 +1251,9 @@ class StartupCorrection:
             joints.append(replace(j, angle_rad=None if j.angle_rad is None else j.angle_rad - delta[i],
                                   sigma_rad=sig, flag=flag,
                                   alternatives_rad=tuple(a - delta[i] for a in j.alternatives_rad)))
-        return replace(res, joints=tuple(joints), q_rad=q - delta, covariance=cov)
+        cands = (None if res.candidates_rad is None
+                 else np.atleast_2d(self.controller_angles(np.asarray(res.candidates_rad, float))))
+        return replace(res, joints=tuple(joints), q_rad=q - delta, covariance=cov, candidates_rad=cands)
 
     def controller_angles(self, q_geom_rad: np.ndarray) -> np.ndarray:
         joint = [e for e in self.model.effects if isinstance(e, JointEffect)]

@@ -11,9 +11,13 @@ solve:
 3. polishes every branch at once with a batched Levenberg-Marquardt on all joints, the base
    roll and pitch, and every sensor's residual weighted by its noise (``method="joint"``),
    or pair by pair as the thesis did (``method="sequential"``, the reference);
-4. keeps the branches inside the joint limits and picks one with a prior (the pose saved at
-   the last clean shutdown, else the ready pose); where the prior does not clearly decide,
-   the joints that differ are flagged ``ambiguous`` and both values reported;
+4. keeps the branches inside the joint limits. With no prior every branch that fits is a
+   rival: the joints on which fitting branches differ are flagged ``ambiguous`` with every
+   candidate, and :func:`propose_disambiguating_move` finds the smallest safe move after
+   which they read differently. A prior (:class:`StartupPrior`: a saved pose, or an earlier
+   window's answer carried through the encoder counts) chooses only when it fits the data
+   (chi-square test); the ready pose chooses only when the caller asserts the arm is
+   parked, and the result says so;
 5. gives every joint a sigma from the weighted Jacobian (base tilt included) and a flag.
 
 Nothing here moves the arm. When joints are gravity-blind, :func:`propose_unlock_move`
@@ -60,6 +64,26 @@ class StartupSettings:
     """Readings are noisy: a branch this close outside a limit is still feasible."""
     limit_reach_deg: float = 45.0
     """A branch at most this far outside a limit is also tried held at the limit."""
+    fit_chi2: float = 9.0
+    """A branch fits the data when its chi-square is within this of the best branch's."""
+    prior_fit_p: float = 1e-3
+    """A checked prior (saved pose, encoder carry) fits a branch unless the branch lies
+    this improbably far from it (chi-square test over the joints both know)."""
+    saved_pose_sigma_deg: float = 3.0
+    """How far a joint may have settled since its pose was saved at a clean shutdown
+    (1 sigma): brakes taking the load, gear play. A pose moved further is stale."""
+    ill_grow_max_deg: float = 30.0
+    """An ill-conditioned joint's sigma grows to cover a rival minimum up to this far away
+    (one valley); a rival further away makes it ``ambiguous``."""
+    numbered_sigma_max_deg: float = 45.0
+    """A joint whose sigma would exceed this is not given a number: the data do not see it
+    (its angle is null and its range the limits)."""
+    encoder_carry_sigma_deg: float = 0.1
+    """What the encoders add to a pose they carry from one still window to the next (1
+    sigma): they count the motor, and the gears between it and the link have play."""
+    separation_chi2: float = 100.0
+    """A disambiguating move must make every pair of rival branches predict readings this
+    far apart (chi-square over the sensors' noise: 10 sigma)."""
 
 
 @dataclass(frozen=True)
@@ -87,6 +111,8 @@ class JointEstimate:
     alternatives_rad: tuple[float, ...] = ()
     axis_to_vertical_deg: float = 90.0
     thesis_detector_locked: bool | None = None
+    range_rad: tuple[float, float] | None = None
+    """Where a joint with no number may be: its limits (the data do not narrow it)."""
 
     def as_dict(self) -> dict:
         return {
@@ -95,6 +121,7 @@ class JointEstimate:
             "sigma_rad": self.sigma_rad,
             "flag": self.flag,
             "alternatives_rad": list(self.alternatives_rad),
+            "range_rad": None if self.range_rad is None else list(self.range_rad),
             "axis_to_vertical_deg": self.axis_to_vertical_deg,
             "thesis_detector_locked": self.thesis_detector_locked,
         }
@@ -127,6 +154,73 @@ class UnlockMove:
 
 
 @dataclass(frozen=True)
+class DisambiguatingMove:
+    """A small, safe move after which branches that fit the still data equally well predict
+    readings far apart: after it and a second still window, the encoders (which counted
+    the move) carry each branch forward and only the true one fits."""
+
+    joints: tuple[str, ...]
+    delta_rad: tuple[float, ...]
+    separation_sigma: float
+    """The closest any two rival branches then come, in the sensors' noise (sqrt chi-square)."""
+    resolves: tuple[str, ...]
+
+    def as_dict(self) -> dict:
+        return {"moves": [{"joint": j, "delta_rad": d}
+                          for j, d in zip(self.joints, self.delta_rad, strict=True)],
+                "separation_sigma": self.separation_sigma, "resolves": list(self.resolves)}
+
+    def describe(self) -> str:
+        moves = " and ".join(f"{j} by {np.degrees(d):+.1f} deg"
+                             for j, d in zip(self.joints, self.delta_rad, strict=True))
+        return (f"move {moves} (every candidate stays inside the limits), hold still, and "
+                f"calibrate again: the candidates of {', '.join(self.resolves)} then read "
+                f"{self.separation_sigma:.0f} sigma apart")
+
+
+@dataclass(frozen=True)
+class StartupPrior:
+    """What is known of the pose before a still window, and how far it may be used.
+
+    ``kind``:
+
+    - ``"checked"``: candidate poses (the pose saved at the last clean shutdown, or an
+      earlier window's answers carried through the encoder counts). They choose between
+      branches only where a branch that fits the data lies within their sigma (a chi-square
+      test over the joints both know); when none does, the prior is ignored and the result
+      says so. Relative encoders lose their count with the power, and a person may move the
+      arm by hand: a saved pose is a claim to check, not evidence.
+    - ``"assumed"``: the caller asserts where the arm stands (``--assume-parked``): the pose
+      picks among the branches as a Gaussian prior, and the result says it rests on that.
+
+    ``sigma_rad`` is per joint; ``inf`` where the prior knows nothing of a joint.
+    """
+
+    candidates_rad: np.ndarray  # (C, n)
+    sigma_rad: np.ndarray  # (n,)
+    kind: str = "checked"
+    source: str = "a saved pose"
+
+    def __post_init__(self):
+        c = np.atleast_2d(np.asarray(self.candidates_rad, float))
+        object.__setattr__(self, "candidates_rad", c)
+        object.__setattr__(self, "sigma_rad", np.broadcast_to(
+            np.asarray(self.sigma_rad, float), (c.shape[1],)).copy())
+        if self.kind not in ("checked", "assumed"):
+            raise ValueError(f"prior kind must be 'checked' or 'assumed', not {self.kind!r}")
+
+    @classmethod
+    def saved_pose(cls, q_rad: np.ndarray, sigma_deg: float = StartupSettings.saved_pose_sigma_deg,
+                   source: str = "the saved pose") -> StartupPrior:
+        return cls(np.asarray(q_rad, float)[None], np.full(len(q_rad), sigma_deg * DEG), "checked", source)
+
+    @classmethod
+    def assume_parked(cls, arm: ArmModel, sigma_deg: float = StartupSettings.prior_sigma_deg) -> StartupPrior:
+        return cls(arm.ready_pose_rad[None], np.full(arm.n_joints, sigma_deg * DEG), "assumed",
+                   "the arm assumed parked at its ready pose")
+
+
+@dataclass(frozen=True)
 class StartupResult:
     joints: tuple[JointEstimate, ...]
     roll_rad: float
@@ -143,6 +237,12 @@ class StartupResult:
     t_end_s: float = 0.0
     unlock_move: UnlockMove | None = None
     summary: str = ""
+    candidates_rad: np.ndarray | None = None
+    """(R, n): every branch the result cannot rule out, the reported one first."""
+    prior_used: str = "none"
+    """What chose the branch: "none" (the data alone), or the prior's source."""
+    notes: tuple[str, ...] = ()
+    disambiguating_move: DisambiguatingMove | None = None
 
     @property
     def flags(self) -> tuple[str, ...]:
@@ -164,7 +264,11 @@ class StartupResult:
             "chi2_per_dof": self.chi2_per_dof,
             "branches": len(self.branches_rad),
             "unlock_move": None if self.unlock_move is None else self.unlock_move.as_dict(),
+            "disambiguating_move": (None if self.disambiguating_move is None
+                                    else self.disambiguating_move.as_dict()),
+            "prior": self.prior_used,
             "summary": self.summary,
+            "notes": list(self.notes),
         }
 
 
@@ -609,15 +713,17 @@ def solve_still(
     arm: ArmModel,
     readings: StillReadings,
     settings: StartupSettings | None = None,
-    prior_q_rad: np.ndarray | None = None,
+    prior: StartupPrior | None = None,
     method: str = "joint",
     propose_unlock: bool = True,
-    prior_sigma_rad: np.ndarray | float | None = None,
 ) -> StartupResult:
     """Every joint angle of a still arm from averaged readings, with sigma and flags.
 
-    The prior (default: the ready pose, ``settings.prior_sigma_deg`` per joint) only picks
-    between branches that fit the data equally; it never pulls a value.
+    With no ``prior`` the data alone decide: every branch that fits them and lies inside the
+    limits is a rival, and the joints on which rivals differ are ``ambiguous`` (every
+    candidate listed, a move that would separate them proposed). The ready pose is then only
+    a start for the search. A ``prior`` (:class:`StartupPrior`) chooses between branches
+    as its kind says; it never pulls a value.
     """
     st = settings or StartupSettings()
     check_readings(readings)
@@ -629,11 +735,14 @@ def solve_still(
     else:
         roll0 = pitch0 = 0.0
     starts = _closed_form_branches(problem, roll0, pitch0)
-    prior = arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
     if method == "joint":
-        # Near a singular pair the closed-form starts are noisy and LM from them can miss
-        # the branch nearest the prior (it slides into a neighbouring one): start there too.
-        starts = np.vstack([starts, prior[None]])
+        # Near a singular pair the closed-form starts are noisy and LM from them can slide
+        # into a neighbouring branch: start at the ready pose and the prior's poses too
+        # (starts only: where the search begins is no evidence).
+        extra = [arm.ready_pose_rad[None]]
+        if prior is not None:
+            extra.append(np.where(np.isfinite(prior.sigma_rad), prior.candidates_rad, arm.ready_pose_rad))
+        starts = np.vstack([starts, *extra])
     x0 = np.concatenate([starts, np.tile([roll0, pitch0], (len(starts), 1))], 1)
     free = np.ones(n + 2, dtype=bool)
     if method == "joint":
@@ -658,8 +767,8 @@ def solve_still(
         xc, cost_c = _batched_lm(problem, xc, free_c, st.max_iterations)
         xc[:, :n] = mid + _wrap(xc[:, :n] - mid)
         x, cost = np.vstack([x, xc]), np.concatenate([cost, cost_c])
-    # drop branches that fit much worse than the best (not real solutions of the data)
-    good = cost <= cost.min() + 0.5 * 9.0 + 1e-9
+    # drop branches that fit much worse than the best (not solutions of the data)
+    good = cost <= cost.min() + 0.5 * st.fit_chi2 + 1e-9
     x, cost = x[good], cost[good]
     order = np.argsort(cost)
     x, cost = x[order], cost[order]
@@ -670,34 +779,33 @@ def solve_still(
     inside = (arm.within_limits(q_all, margin) | locked_any).all(1)
     feasible_idx = np.flatnonzero(inside)
     branches = _dedupe(q_all[feasible_idx] if len(feasible_idx) else q_all, 1e-3)
-    if len(feasible_idx):
-        cand = feasible_idx
-    else:
-        cand = np.arange(len(x))
-    # prior: distance on the readable joints
-    psig = np.broadcast_to(st.prior_sigma_deg * DEG if prior_sigma_rad is None
-                           else np.asarray(prior_sigma_rad, float), (n,))
-    d2 = np.sum((_wrap(q_all[cand] - prior) / psig) ** 2 * ~locked_any[cand], 1)
-    best = cand[int(np.argmin(d2))]
+    cand = feasible_idx if len(feasible_idx) else np.arange(len(x))
+    n_dir = len(problem.names) + 1  # the IMU's direction, or the level-chair prior
+    dof = max(2 * n_dir - int(free.sum()), 1)
+    inflate0 = max(2.0 * float(cost[cand].min()) / dof, 1.0)
+    # which branches may be the arm's: the data's (every feasible one), or the prior's choice
+    notes: list[str] = []
+    chooser = _BranchChooser.make(prior, st, q_all[cand], locked_any[cand],
+                                  _expected_sigma(problem, x[cand])[:, :n] * np.sqrt(inflate0), notes)
+    pool = cand[chooser.keep]
+    best = pool[int(np.argmin(chooser.rank[chooser.keep]))]
     xb = x[best]
     qb = xb[:n]
     # covariance from the weighted Jacobian at the chosen solution
     r, J = problem.residuals_and_jacobian(xb[None])
     r, J = r[0], J[0]
     # a normalised direction carries two constraints, not three; the tilt prior two more
-    n_dir = len(problem.names) + 1  # the IMU's direction, or the level-chair prior
-    dof = max(2 * n_dir - int(free.sum()), 1)
     chi2_dof = float(r @ r / dof)
     locked = locked_any[best]
     # Information from the data, plus the only thing known about a gravity-blind joint: it
-    # is somewhere in its range (a flat prior of width pi). The marginal sigma of every other
-    # joint then carries its correlation with the blind ones.
+    # is somewhere in its range (a flat prior of width pi). Every joint gets that flat
+    # prior: it costs nothing where the data speak, and where they do not (a singular pair:
+    # two axes and gravity coplanar) the sigma becomes honestly large instead of being cut
+    # off by a pseudo-inverse. The marginal sigma of every joint carries its correlation
+    # with the blind ones.
     cols = free.copy()
     Jr = J[:, cols]
     info = Jr.T @ Jr
-    # Every joint gets that flat prior: it costs nothing where the data speak, and where
-    # they do not (a singular pair: two axes and gravity coplanar) the sigma becomes
-    # honestly large instead of being cut off by a pseudo-inverse.
     prior_info = np.full(int(cols.sum()), 1.0 / np.pi**2)
     # the fit itself says when the model is worse than its sigmas (Birge ratio)
     inflate = max(chi2_dof, 1.0)
@@ -729,17 +837,16 @@ def solve_still(
             np.vstack([np.ones(probes.shape, bool), follow_free]),
             np.concatenate([np.full(len(probes), st.max_iterations), np.full(len(follow_j), 12)]))
     xr, cost_r = solved[: len(probes)], solved_cost[: len(probes)]
+    rivals_x = x[pool]
     if len(probes):
         xr[:, :n] = mid + _wrap(xr[:, :n] - mid)
-        keep = ((cost_r <= cost.min() + 0.5 * 9.0 + 1e-9)
+        keep = ((cost_r <= cost[cand].min() + 0.5 * st.fit_chi2 + 1e-9)
                 & (arm.within_limits(xr[:, :n], margin) | locked_any[best]).all(1))
         if keep.any():
             xr = _dedupe(xr[keep], 1e-3)
-            x = np.vstack([x, xr])
-            q_all = x[:, :n]
-            d2r = np.sum((_wrap(xr[:, :n] - prior) / psig) ** 2 * ~locked_any[best], 1)
-            cand = np.concatenate([cand, np.arange(len(x) - len(xr), len(x))])
-            d2 = np.concatenate([d2, d2r])
+            joins = chooser.admits(xr[:, :n], np.broadcast_to(locked, (len(xr), n)),
+                                   np.broadcast_to(sig[:n], (len(xr), n)))
+            rivals_x = np.vstack([rivals_x, xr[joins]])
     if weak.any():
         follow = _follow_weak(solved[len(probes):], solved_cost[len(probes):], follow_j, xb,
                               float(0.5 * r @ r), locked, inflate)
@@ -754,34 +861,37 @@ def solve_still(
     flags[ill] = "ill_conditioned"
     out_of_limits = ~arm.within_limits(qb, margin) & (flags == "ok")
     flags[out_of_limits] = "out_of_limits"
+    # every rival the chooser kept against the chosen one: a joint on which they differ by
+    # more than its sigma can cover is ambiguous (an ill-conditioned joint's sigma grows to
+    # cover a rival in the same valley instead)
+    rivals_x = _dedupe_x(rivals_x, xb, n)
     alternatives: list[list[float]] = [[] for _ in range(n)]
-    if len(cand) > 1:
-        # every branch the prior cannot rule out against the chosen one
-        rivals = cand[d2 - d2.min() < st.prior_decisive_chi2]
-        for other in rivals:
-            if other == best:
-                continue
-            # a joint is ambiguous when the branches disagree by more than its own sigma
-            # can cover (close branches come from a nearly singular pair)
-            gap = np.abs(_wrap(q_all[other] - qb))
-            differ = gap > np.maximum(3 * sig[:n], 1e-3)
-            # an ill-conditioned joint already says its number is weak: its sigma grows to
-            # cover the other minimum (at 2 sigma) instead of hiding it
-            for j in np.flatnonzero(differ & (flags == "ill_conditioned")):
-                grow = gap[j] / 2.0 / sig[j]
-                sig[j] *= grow
-                cov[j, :] *= grow
-                cov[:, j] *= grow
-            for j in np.flatnonzero(differ & np.isin(flags, ("ok", "ambiguous"))):
-                flags[j] = "ambiguous"
-                if not alternatives[j]:
-                    alternatives[j].append(float(qb[j]))
-                if all(abs(_wrap(q_all[other][j] - v)) > 1e-3 for v in alternatives[j]):
-                    alternatives[j].append(float(q_all[other][j]))
+    kept = [xb]
+    for other in rivals_x[1:]:
+        gap = np.abs(_wrap(other[:n] - qb))
+        differ = (gap > np.maximum(3 * sig[:n], 1e-3)) & (flags != "gimbal_lock")
+        if not differ.any():
+            continue
+        kept.append(other)
+        grow = differ & (flags == "ill_conditioned") & (gap <= st.ill_grow_max_deg * DEG)
+        for j in np.flatnonzero(grow):
+            scale = max(gap[j] / 2.0 / sig[j], 1.0)
+            sig[j] *= scale
+            cov[j, :] *= scale
+            cov[:, j] *= scale
+        for j in np.flatnonzero(differ & ~grow):
+            flags[j] = "ambiguous"
+            if not alternatives[j]:
+                alternatives[j].append(float(qb[j]))
+            if all(abs(_wrap(other[j] - v)) > 1e-3 for v in alternatives[j]):
+                alternatives[j].append(float(other[j]))
+    # a joint the data cannot see gets no number (never a sigma of thousands of degrees)
+    blind = (sig[:n] > st.numbered_sigma_max_deg * DEG) & ~np.isin(flags, ("gimbal_lock", "ambiguous"))
+    flags[blind] = "ill_conditioned"
     thesis = thesis_detector(arm, problem.names, problem.meas, st.thesis_detector_g)
     joints = []
     for j in range(n):
-        number = flags[j] not in ("gimbal_lock", "ambiguous")
+        number = flags[j] not in ("gimbal_lock", "ambiguous") and not blind[j]
         joints.append(JointEstimate(
             name=arm.joints[j].name,
             angle_rad=float(qb[j]) if number else None,
@@ -790,6 +900,8 @@ def solve_still(
             alternatives_rad=tuple(alternatives[j]),
             axis_to_vertical_deg=float(axis_deg[best, j]),
             thesis_detector_locked=thesis[j],
+            range_rad=None if number or flags[j] == "ambiguous"
+            else (float(arm.min_rad[j]), float(arm.max_rad[j])),
         ))
     resid_g = (r[: problem.meas.size] * problem.sigma.reshape(-1))
     result = StartupResult(
@@ -801,9 +913,15 @@ def solve_still(
         q_rad=qb.copy(), covariance=cov * st.sigma_safety_factor**2, branches_rad=branches,
         method=method,
         t_start_s=readings.t_start_s, t_end_s=readings.t_end_s,
+        candidates_rad=np.array([k[:n] for k in kept]),
+        prior_used=chooser.used,
+        notes=tuple(notes),
     )
     if propose_unlock and any(f in ("gimbal_lock", "ill_conditioned") for f in flags):
-        result = replace(result, unlock_move=propose_unlock_move(arm, result, readings, st, prior))
+        result = replace(result, unlock_move=propose_unlock_move(arm, result, readings, st))
+    if len(kept) > 1:
+        result = replace(result, disambiguating_move=propose_disambiguating_move(
+            arm, result, readings, st, roll_pitch=xb[n:]))
     summary = _summary(result)
     floor_g = max(_sensor_floor_g(arm, nm) for nm in problem.names)
     if floor_g >= 0.005 and any(j.flag == "ill_conditioned" for j in result.joints):
@@ -814,6 +932,81 @@ def solve_still(
         summary += (" (the sigmas include what the sensors' calibration could not pin: its held "
                     "elements, with the motion that would separate them, in `calibrate sensors`)")
     return replace(result, summary=summary)
+
+
+def _dedupe_x(rivals_x: np.ndarray, xb: np.ndarray, n: int) -> np.ndarray:
+    """The chosen state first, then every other rival once."""
+    return _dedupe(np.vstack([xb[None], rivals_x]), 1e-3) if len(rivals_x) else xb[None]
+
+
+@dataclass
+class _BranchChooser:
+    """Which of the fitting branches the result may not rule out, and which to report.
+
+    ``keep`` (B,): the branches in the pool; ``rank`` (B,): lower is reported first;
+    ``admits``: whether a further minimum found later joins the pool; ``used``: what chose.
+    """
+
+    keep: np.ndarray
+    rank: np.ndarray
+    used: str
+    prior: StartupPrior | None
+    threshold: float
+    settings: StartupSettings
+
+    @classmethod
+    def make(cls, prior: StartupPrior | None, st: StartupSettings, q: np.ndarray,
+             locked: np.ndarray, sig: np.ndarray, notes: list[str]) -> _BranchChooser:
+        B = len(q)
+        by_cost = np.arange(B, dtype=float)  # q comes ordered by cost
+        if prior is None:
+            return cls(np.ones(B, bool), by_cost, "none", None, np.inf, st)
+        if prior.kind == "assumed":
+            d2 = _prior_d2(prior, q, locked, np.zeros_like(sig))
+            notes.append(f"the branch rests on an assumption: {prior.source} (--assume-parked); "
+                         f"without it every branch that fits would be reported")
+            return cls(d2 - d2.min() < st.prior_decisive_chi2, d2, prior.source, prior,
+                       float(d2.min() + st.prior_decisive_chi2), st)
+        d2, k = _prior_d2(prior, q, locked, sig, with_dof=True)
+        thr = _chi2_quantile(k, st.prior_fit_p)
+        fits = d2 <= thr
+        if not fits.any():
+            i = int(np.argmin(d2 / np.maximum(thr, 1e-9)))
+            notes.append(f"{prior.source} does not fit the still data (chi-square {d2[i]:.0f} "
+                         f"over {int(k[i])} joints at the nearest branch, above {thr[i]:.0f}): "
+                         f"ignored; the arm was moved since, or its count lost")
+            return cls(np.ones(B, bool), by_cost, "none", None, np.inf, st)
+        notes.append(f"{prior.source} fits the still data (chi-square {d2[fits].min():.1f}); "
+                     f"it chose among {B} fitting branch{'es' if B != 1 else ''}")
+        return cls(fits, by_cost, prior.source, prior, np.inf, st)
+
+    def admits(self, q: np.ndarray, locked: np.ndarray, sig: np.ndarray) -> np.ndarray:
+        if self.prior is None:
+            return np.ones(len(q), bool)
+        if self.prior.kind == "assumed":
+            return _prior_d2(self.prior, q, locked, np.zeros_like(sig)) < self.threshold
+        d2, k = _prior_d2(self.prior, q, locked, sig, with_dof=True)
+        return d2 <= _chi2_quantile(k, self.settings.prior_fit_p)
+
+
+def _prior_d2(prior: StartupPrior, q: np.ndarray, locked: np.ndarray, sig: np.ndarray,
+              with_dof: bool = False):
+    """Per branch ``q (B, n)``: the chi-square of its nearest prior candidate over the joints
+    both know (readable in the branch, finite in the prior), with the branch's own sigma
+    ``sig (B, n)`` added to the prior's; and the number of those joints."""
+    known = ~locked & np.isfinite(prior.sigma_rad)  # (B, n)
+    var = sig**2 + np.where(np.isfinite(prior.sigma_rad), prior.sigma_rad, 1.0) ** 2
+    dq = _wrap(q[:, None, :] - prior.candidates_rad[None])  # (B, C, n)
+    d2 = np.sum(dq**2 / var[:, None] * known[:, None], -1).min(1)
+    return (d2, known.sum(1)) if with_dof else d2
+
+
+def _chi2_quantile(k, p: float) -> np.ndarray:
+    """The chi-square value exceeded with probability ``p`` at ``k`` degrees of freedom."""
+    from scipy.special import chdtri
+
+    k = np.maximum(np.asarray(k, float), 1.0)
+    return chdtri(k, p)
 
 
 def _sequential(problem: _Problem, x0: np.ndarray, st: StartupSettings):
@@ -912,27 +1105,98 @@ def propose_unlock_move(arm: ArmModel, result: StartupResult, readings: StillRea
     return None
 
 
-def prior_after_move(result: StartupResult, move: UnlockMove, arm: ArmModel,
-                     settings: StartupSettings | None = None,
-                     known_sigma_deg: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """The prior for the calibration after an unlock move: the joints known before the move
-    where they were (plus the move, which the encoders counted), tightly; the blind ones
-    loosely around their previous values."""
+def prior_after_move(result: StartupResult, move, arm: ArmModel,
+                     settings: StartupSettings | None = None) -> StartupPrior:
+    """The prior for the still window after a move that the encoders counted: every
+    candidate pose of ``result`` (its rivals too, when some joints were ambiguous) moved by
+    the move, each joint with the result's sigma and the encoders' own (a joint the result
+    could not read: unknown). ``move``: an :class:`UnlockMove`, a
+    :class:`DisambiguatingMove`, or the encoder-counted change of every joint ``(n,)`` rad.
+    It is a checked prior: if the arm was moved otherwise, it does not fit and is ignored."""
     st = settings or StartupSettings()
-    q = result.q_rad.copy()
-    for name, d in zip(move.joints, move.delta_rad, strict=True):
-        q[arm.joint_names.index(name)] += d
-    sig = []
-    for j in result.joints:
-        if j.flag == "ok":
-            sig.append(known_sigma_deg * DEG)
-        elif j.flag == "ill_conditioned" and j.sigma_rad is not None:
-            # poorly read, but read: its sigma already covers every minimum the data allow
-            # (the prior's own chi-square test then asks for 3 of them before it decides)
-            sig.append(max(j.sigma_rad, known_sigma_deg * DEG))
-        else:
-            sig.append(st.prior_sigma_deg * DEG)
-    return q, np.array(sig)
+    n = arm.n_joints
+    if isinstance(move, UnlockMove | DisambiguatingMove):
+        delta = np.zeros(n)
+        for name, d in zip(move.joints, move.delta_rad, strict=True):
+            delta[arm.joint_names.index(name)] += d
+    else:
+        delta = np.asarray(move, float).reshape(n)
+    cands = (result.candidates_rad if result.candidates_rad is not None else result.q_rad[None]) + delta
+    stat = np.sqrt(np.clip(np.diag(result.covariance)[:n], 0, None))
+    sig = np.full(n, np.inf)
+    for j, je in enumerate(result.joints):
+        if je.sigma_rad is not None:
+            sig[j] = je.sigma_rad
+        elif je.flag == "ambiguous" and np.isfinite(stat[j]):
+            sig[j] = stat[j]  # each candidate is a minimum known to the branch's own sigma
+    sig = np.sqrt(sig**2 + (st.encoder_carry_sigma_deg * DEG) ** 2)
+    return StartupPrior(cands, sig, "checked",
+                        f"the still window at t = {result.t_start_s:.1f}..{result.t_end_s:.1f} s "
+                        f"carried through the encoder counts")
+
+
+def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: StillReadings,
+                                settings: StartupSettings | None = None,
+                                roll_pitch: np.ndarray | None = None,
+                                max_move_deg: float = 45.0) -> DisambiguatingMove | None:
+    """The smallest safe move after which every pair of rival branches predicts readings
+    ``settings.separation_chi2`` apart.
+
+    The encoders count the move, so each rival moves by the same joint deltas. Joints the
+    data know (``ok``) are tried first, one at a time, then pairs, then moves of the
+    ambiguous joints themselves; a move counts only if every rival stays inside the limits
+    (the arm is on one of them), which are the checks of the unlock move. All candidate
+    moves of one size class are evaluated in one batch.
+    """
+    st = settings or StartupSettings()
+    cands = result.candidates_rad
+    if cands is None or len(cands) < 2:
+        return None
+    n = arm.n_joints
+    problem = _make_problem(arm, readings)
+    rp = np.array([result.roll_rad, result.pitch_rad]) if roll_pitch is None else np.asarray(roll_pitch)
+    flags = [j.flag for j in result.joints]
+    known = [j for j in range(n) if flags[j] == "ok"]
+    unsure = [j for j in range(n) if flags[j] in ("ambiguous", "ill_conditioned", "out_of_limits")]
+    resolves = tuple(j.name for j in result.joints if j.flag == "ambiguous")
+    steps = np.array([2, 3, 5, 7.5, 10, 15, 20, 30, 45], float)
+    steps = steps[steps <= max_move_deg] * DEG
+    pair_steps = np.array([5, 10, 15, 20, 30], float) * DEG
+
+    def singles(js):
+        return [((j, sg * d),) for d in steps for j in js for sg in (1, -1)]
+
+    def pairs(js):
+        out = [((j, sj * dj), (k, sk * dk)) for j in js for k in js if j < k
+               for dj in pair_steps for dk in pair_steps for sj in (1, -1) for sk in (1, -1)]
+        return sorted(out, key=lambda m: sum(abs(d) for _, d in m))
+
+    R = len(cands)
+    ia, ib = np.triu_indices(R, 1)
+    rows = 3 * len(problem.names)
+    for moves in (singles(known), pairs(known), singles(unsure), pairs(known + unsure)):
+        for i in range(0, len(moves), 64):
+            chunk = moves[i:i + 64]
+            delta = np.zeros((len(chunk), n))
+            for c, m in enumerate(chunk):
+                for j, d in m:
+                    delta[c, j] += d
+            moved = cands[None] + delta[:, None]  # (M, R, n)
+            inside = arm.within_limits(moved.reshape(-1, n), 0.0).all(-1).reshape(len(chunk), R).all(1)
+            if not inside.any():
+                continue
+            x = np.concatenate([moved.reshape(-1, n), np.tile(rp, (len(chunk) * R, 1))], 1)
+            pred, _ = problem.residuals_and_jacobian(x)  # residuals: (prediction - reading) / sigma
+            pred = pred[:, :rows].reshape(len(chunk), R, rows)
+            sep = np.sum((pred[:, ia] - pred[:, ib]) ** 2, -1).min(1)  # closest pair, per move
+            good = inside & (sep >= st.separation_chi2)
+            if good.any():
+                c = int(np.flatnonzero(good)[0])
+                return DisambiguatingMove(
+                    joints=tuple(arm.joints[j].name for j, _ in chunk[c]),
+                    delta_rad=tuple(float(d) for _, d in chunk[c]),
+                    separation_sigma=float(np.sqrt(sep[c])), resolves=resolves)
+    return None
 
 
 def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> UnlockMove | None:
@@ -1006,6 +1270,10 @@ def _summary(res: StartupResult) -> str:
     text = f"{len(res.joints) - len(bad)} of {len(res.joints)} joints ok; " + ", ".join(bad)
     if res.unlock_move is not None:
         text += "; " + res.unlock_move.describe()
+    if res.disambiguating_move is not None:
+        text += "; to tell the branches apart: " + res.disambiguating_move.describe()
+    elif any(j.flag == "ambiguous" for j in res.joints):
+        text += "; no safe move of up to 45 deg separates the branches: a person must confirm the pose"
     return text
 
 

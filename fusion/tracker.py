@@ -771,13 +771,20 @@ def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
 
 def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSettings | None = None,
                          prior_q_rad: np.ndarray | None = None, window_s: float = 1.0,
-                         startup_settings=None, propose_unlock: bool = True) -> tuple[Tracker, Start]:
+                         startup_settings=None, propose_unlock: bool = True,
+                         prior=None) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
     calibration there (:func:`fusion.startup.solve_still`), the gyro bias, heading and field
     reference from the same window; it starts tracking at the window's end.
     ``propose_unlock`` False: no search for a move that would unlock gravity-blind joints
-    (about 2 s of the startup's time, for a caller that does not show it)."""
-    from fusion.startup import readings_from_recording, solve_still
+    (about 2 s of the startup's time, for a caller that does not show it).
+    ``prior_q_rad``: a pose saved at the last clean shutdown, checked against the still data
+    before it may choose a branch (:class:`fusion.startup.StartupPrior`); ``prior``: any
+    other startup prior (e.g. ``StartupPrior.assume_parked``)."""
+    from fusion.startup import StartupPrior, readings_from_recording, solve_still
+
+    if prior is None and prior_q_rad is not None:
+        prior = StartupPrior.saved_pose(prior_q_rad)
     from fusion.static import StaticDetectionSettings, find_static_segments
 
     segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)))
@@ -802,8 +809,9 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
         readings = corr.readings(readings)
         notes.append("the config's effects applied: " + ", ".join(e.block_name for e in corr.model.effects))
-    startup = solve_still(arm, readings, startup_settings, prior_q_rad=prior_q_rad,
+    startup = solve_still(arm, readings, startup_settings, prior=prior,
                           propose_unlock=propose_unlock)
+    notes.extend(startup.notes)
     if corr is not None:
         startup = corr.controller_result(startup)
     imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings, corr)
