@@ -779,7 +779,12 @@ def solve_still(
     inside = (arm.within_limits(q_all, margin) | locked_any).all(1)
     feasible_idx = np.flatnonzero(inside)
     branches = _dedupe(q_all[feasible_idx] if len(feasible_idx) else q_all, 1e-3)
-    cand = feasible_idx if len(feasible_idx) else np.arange(len(x))
+    if len(feasible_idx):
+        cand = feasible_idx
+    else:  # no branch inside the limits: the ones least outside (flagged out_of_limits below)
+        excess = np.sum(np.maximum(0, np.maximum(arm.min_rad - q_all, q_all - arm.max_rad))
+                        * ~locked_any, 1)
+        cand = np.flatnonzero(excess <= excess.min() + DEG)
     n_dir = len(problem.names) + 1  # the IMU's direction, or the level-chair prior
     dof = max(2 * n_dir - int(free.sum()), 1)
     inflate0 = max(2.0 * float(cost[cand].min()) / dof, 1.0)
@@ -1159,6 +1164,7 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
     known = [j for j in range(n) if flags[j] == "ok"]
     unsure = [j for j in range(n) if flags[j] in ("ambiguous", "ill_conditioned", "out_of_limits")]
     resolves = tuple(j.name for j in result.joints if j.flag == "ambiguous")
+    amb = np.array([j.flag == "ambiguous" for j in result.joints])
     steps = np.array([2, 3, 5, 7.5, 10, 15, 20, 30, 45], float)
     steps = steps[steps <= max_move_deg] * DEG
     pair_steps = np.array([5, 10, 15, 20, 30], float) * DEG
@@ -1186,6 +1192,12 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
             if not inside.any():
                 continue
             x = np.concatenate([moved.reshape(-1, n), np.tile(rp, (len(chunk) * R, 1))], 1)
+            # the joints to resolve must be readable afterwards, whichever rival is true
+            axis = np.degrees(_axis_to_vertical(arm, x[:, :n], x[:, n], x[:, n + 1]))
+            readable = (axis[:, amb] >= 2 * st.gimbal_lock_deg).all(1).reshape(len(chunk), R).all(1)
+            inside &= readable
+            if not inside.any():
+                continue
             pred, _ = problem.residuals_and_jacobian(x)  # residuals: (prediction - reading) / sigma
             pred = pred[:, :rows].reshape(len(chunk), R, rows)
             sep = np.sum((pred[:, ia] - pred[:, ib]) ** 2, -1).min(1)  # closest pair, per move

@@ -8,6 +8,7 @@ import pytest
 
 from fusion.startup import (
     StartupInputError,
+    StartupPrior,
     StartupSettings,
     StillReadings,
     prior_after_move,
@@ -58,8 +59,9 @@ def test_joint_method_is_at_least_as_precise_as_the_thesis_sequential_one(wmra, 
     q = [30, 40, 20, -50, 60, 30, 100]
     r = still(wmra, q, rng)
     prior = np.radians(q)
-    j = solve_still(wmra, r, method="joint", prior_q_rad=prior, prior_sigma_rad=10 * DEG)
-    s = solve_still(wmra, r, method="sequential", prior_q_rad=prior, prior_sigma_rad=10 * DEG)
+    saved = StartupPrior.saved_pose(prior, sigma_deg=10)
+    j = solve_still(wmra, r, method="joint", prior=saved)
+    s = solve_still(wmra, r, method="sequential", prior=saved)
     assert j.all_ok and s.all_ok
     # the joint solve uses every sensor for every joint: its sigmas are never larger
     assert all(a.sigma_rad <= b.sigma_rad * 1.0001 for a, b in zip(j.joints, s.joints, strict=True))
@@ -93,9 +95,7 @@ def test_park_pose_locks_joints_3_and_6_and_the_proposed_move_unlocks_them(wmra,
     q2 = q.copy()
     for name, d in zip(move.joints, move.delta_rad, strict=True):
         q2[wmra.joint_names.index(name)] += np.degrees(d)
-    prior, prior_sigma = prior_after_move(res, move, wmra)
-    res2 = solve_still(wmra, still(wmra, q2, rng, 0.3, -0.4), prior_q_rad=prior,
-                       prior_sigma_rad=prior_sigma)
+    res2 = solve_still(wmra, still(wmra, q2, rng, 0.3, -0.4), prior=prior_after_move(res, move, wmra))
     assert res2.all_ok, res2.summary
     assert np.all(np.abs(errors_deg(res2, q2)) < 0.2)
     sig2 = np.array([j.sigma_rad for j in res2.joints])
@@ -119,25 +119,28 @@ def test_thesis_modified_park_pose(wmra, rng):
     q2 = np.array(q, float)
     for name, d in zip(move.joints, move.delta_rad, strict=True):
         q2[wmra.joint_names.index(name)] += np.degrees(d)
-    prior, prior_sigma = prior_after_move(res, move, wmra)
-    res2 = solve_still(wmra, still(wmra, q2, rng, 0.3, -0.4), prior_q_rad=prior,
-                       prior_sigma_rad=prior_sigma)
+    res2 = solve_still(wmra, still(wmra, q2, rng, 0.3, -0.4), prior=prior_after_move(res, move, wmra))
     assert res2.all_ok, res2.summary
 
 
 def test_branch_ambiguity_is_flagged_and_the_saved_prior_resolves_it(wmra, rng):
     q = np.array([5, 8, -40, 60, -30, 40, 120], float)
     r = still(wmra, q, rng)
-    res = solve_still(wmra, r, propose_unlock=False)  # prior: the ready pose, far from both
+    res = solve_still(wmra, r, propose_unlock=False)  # no prior: the data alone
     f = flags(res)
     amb = [n for n, v in f.items() if v == "ambiguous"]
-    assert amb == ["j5", "j6"]
-    j5 = res.joints[4]
-    assert j5.angle_rad is None and len(j5.alternatives_rad) == 2
-    assert min(abs(np.degrees(a) - q[4]) for a in j5.alternatives_rad) < 0.1
+    # two branches of the j5-j6 pair, and two of the j3-j4 pair, lie inside the limits and
+    # fit the data equally: the data alone cannot choose, and the result says so
+    assert amb == ["j3", "j4", "j5", "j6"]
+    for j in (2, 3, 4, 5):
+        je = res.joints[j]
+        assert je.angle_rad is None and je.sigma_rad is None and len(je.alternatives_rad) == 2
+        assert min(abs(np.degrees(a) - q[j]) for a in je.alternatives_rad) < 0.1
+    assert res.disambiguating_move is not None and set(res.disambiguating_move.resolves) == set(amb)
     # the pose saved at the last clean shutdown was close to where the arm is now
     prior = np.radians(q + np.array([3, -4, 5, -2, 6, -5, 4]))
-    res2 = solve_still(wmra, r, prior_q_rad=prior, propose_unlock=False)
+    res2 = solve_still(wmra, r, prior=StartupPrior.saved_pose(prior), propose_unlock=False)
+    assert res2.prior_used == "the saved pose" and "fits the still data" in res2.notes[0]
     assert res2.all_ok, res2.summary
     sig = np.degrees([j.sigma_rad for j in res2.joints])
     assert np.all(np.abs(errors_deg(res2, q)) < 4 * sig)
@@ -227,8 +230,8 @@ def test_recorded_confident_wrong_answers_are_now_honest(wmra, case):
     arm = dataclasses.replace(wmra, calibration={**wmra.calibration, "accel_unmodelled_g": 0.0})
     r = readings_from_counts(arm, {s: np.array(c) for s, c in case["counts"].items()},
                              n_samples=100, rate_hz=100.0)
-    res = solve_still(arm, r, prior_q_rad=np.radians(case["prior_deg"]), propose_unlock=False,
-                      prior_sigma_rad=30 * DEG)
+    res = solve_still(arm, r, prior=StartupPrior.saved_pose(np.radians(case["prior_deg"]), sigma_deg=10),
+                      propose_unlock=False)
     err = errors_deg(res, np.array(case["q_deg"]))
     for j, je in enumerate(res.joints):
         if je.flag == "ok":  # every confident number is within 4 of its own sigmas
