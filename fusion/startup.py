@@ -1180,35 +1180,48 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
     R = len(cands)
     ia, ib = np.triu_indices(R, 1)
     rows = 3 * len(problem.names)
-    for moves in (singles(known), pairs(known), singles(unsure), pairs(known + unsure)):
-        for i in range(0, len(moves), 64):
-            chunk = moves[i:i + 64]
-            delta = np.zeros((len(chunk), n))
-            for c, m in enumerate(chunk):
-                for j, d in m:
-                    delta[c, j] += d
-            moved = cands[None] + delta[:, None]  # (M, R, n)
-            inside = arm.within_limits(moved.reshape(-1, n), 0.0).all(-1).reshape(len(chunk), R).all(1)
-            if not inside.any():
-                continue
-            x = np.concatenate([moved.reshape(-1, n), np.tile(rp, (len(chunk) * R, 1))], 1)
-            # the joints to resolve must be readable afterwards, whichever rival is true
-            axis = np.degrees(_axis_to_vertical(arm, x[:, :n], x[:, n], x[:, n + 1]))
-            readable = (axis[:, amb] >= 2 * st.gimbal_lock_deg).all(1).reshape(len(chunk), R).all(1)
-            inside &= readable
-            if not inside.any():
-                continue
-            pred, _ = problem.residuals_and_jacobian(x)  # residuals: (prediction - reading) / sigma
-            pred = pred[:, :rows].reshape(len(chunk), R, rows)
-            sep = np.sum((pred[:, ia] - pred[:, ib]) ** 2, -1).min(1)  # closest pair, per move
-            good = inside & (sep >= st.separation_chi2)
-            if good.any():
-                c = int(np.flatnonzero(good)[0])
-                return DisambiguatingMove(
-                    joints=tuple(arm.joints[j].name for j, _ in chunk[c]),
-                    delta_rad=tuple(float(d) for _, d in chunk[c]),
-                    separation_sigma=float(np.sqrt(sep[c])), resolves=resolves)
+    # After the move every joint should be readable, whichever rival is true (a joint still
+    # gimbal-locked leaves the next window with rivals of its own); failing that, at least
+    # the joints to resolve.
+    for need in (np.ones(n, bool), amb):
+        for moves in (singles(known), pairs(known), singles(unsure), pairs(known + unsure)):
+            for i in range(0, len(moves), 64):
+                found = _separating(arm, problem, cands, rp, moves[i:i + 64], need, ia, ib, rows, st)
+                if found is not None:
+                    m, sep = found
+                    return DisambiguatingMove(
+                        joints=tuple(arm.joints[j].name for j, _ in m),
+                        delta_rad=tuple(float(d) for _, d in m),
+                        separation_sigma=float(np.sqrt(sep)), resolves=resolves)
     return None
+
+
+def _separating(arm, problem, cands, rp, chunk, need, ia, ib, rows, st):
+    """The first move of ``chunk`` (ordered by size) that keeps every rival inside the
+    limits with the ``need`` joints readable and separates every pair of rivals by
+    ``st.separation_chi2``: ``(move, chi-square)``, or None."""
+    n, R = arm.n_joints, len(cands)
+    delta = np.zeros((len(chunk), n))
+    for c, m in enumerate(chunk):
+        for j, d in m:
+            delta[c, j] += d
+    moved = cands[None] + delta[:, None]  # (M, R, n)
+    inside = arm.within_limits(moved.reshape(-1, n), 0.0).all(-1).reshape(len(chunk), R).all(1)
+    if not inside.any():
+        return None
+    x = np.concatenate([moved.reshape(-1, n), np.tile(rp, (len(chunk) * R, 1))], 1)
+    axis = np.degrees(_axis_to_vertical(arm, x[:, :n], x[:, n], x[:, n + 1]))
+    inside &= (axis[:, need] >= 2 * st.gimbal_lock_deg).all(1).reshape(len(chunk), R).all(1)
+    if not inside.any():
+        return None
+    pred, _ = problem.residuals_and_jacobian(x)  # residuals: (prediction - reading) / sigma
+    pred = pred[:, :rows].reshape(len(chunk), R, rows)
+    sep = np.sum((pred[:, ia] - pred[:, ib]) ** 2, -1).min(1)  # the closest pair, per move
+    good = inside & (sep >= st.separation_chi2)
+    if not good.any():
+        return None
+    c = int(np.flatnonzero(good)[0])
+    return chunk[c], float(sep[c])
 
 
 def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> UnlockMove | None:
