@@ -877,6 +877,10 @@ def solve_still(
         differ = (gap > np.maximum(3 * sig[:n], 1e-3)) & (flags != "gimbal_lock")
         if not differ.any():
             continue
+        # one rival per distinct set of readable angles (a locked joint's value is arbitrary)
+        if any(np.all((np.abs(_wrap(other[:n] - k[:n])) <= np.maximum(3 * sig[:n], 1e-3))
+                      | (flags == "gimbal_lock")) for k in kept[1:]):
+            continue
         kept.append(other)
         grow = differ & (flags == "ill_conditioned") & (gap <= st.ill_grow_max_deg * DEG)
         for j in np.flatnonzero(grow):
@@ -1162,7 +1166,12 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
     rp = np.array([result.roll_rad, result.pitch_rad]) if roll_pitch is None else np.asarray(roll_pitch)
     flags = [j.flag for j in result.joints]
     known = [j for j in range(n) if flags[j] == "ok"]
-    unsure = [j for j in range(n) if flags[j] in ("ambiguous", "ill_conditioned", "out_of_limits")]
+    # joints the data read but not to a number: ambiguous or weak ones, and those flagged
+    # only for resting on a locked joint (their own axis is clear of vertical); a move of
+    # one of them keeps a margin inside its limits, at every candidate
+    unsure = [j for j in range(n) if flags[j] in ("ambiguous", "ill_conditioned", "out_of_limits")
+              or (flags[j] == "gimbal_lock" and result.joints[j].axis_to_vertical_deg
+                  >= 2 * st.gimbal_lock_deg)]
     resolves = tuple(j.name for j in result.joints if j.flag == "ambiguous")
     amb = np.array([j.flag == "ambiguous" for j in result.joints])
     steps = np.array([2, 3, 5, 7.5, 10, 15, 20, 30, 45], float)
@@ -1179,49 +1188,65 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
 
     R = len(cands)
     ia, ib = np.triu_indices(R, 1)
-    rows = 3 * len(problem.names)
     # After the move every joint should be readable, whichever rival is true (a joint still
-    # gimbal-locked leaves the next window with rivals of its own); failing that, at least
-    # the joints to resolve.
-    for need in (np.ones(n, bool), amb):
-        for moves in (singles(known), pairs(known), singles(unsure), pairs(known + unsure)):
-            for i in range(0, len(moves), 64):
-                found = _separating(arm, problem, cands, rp, moves[i:i + 64], need, ia, ib, rows, st)
-                if found is not None:
-                    m, sep = found
-                    return DisambiguatingMove(
-                        joints=tuple(arm.joints[j].name for j, _ in m),
-                        delta_rad=tuple(float(d) for _, d in m),
-                        separation_sigma=float(np.sqrt(sep)), resolves=resolves)
+    # weak leaves the next window with rivals of its own); failing that, at least the joints
+    # to resolve. Moves are tried smallest first, class by class; within the class where a
+    # move does the second, one that does the first is preferred.
+    fallback = None
+    for moves in (singles(known), pairs(known), singles(unsure), pairs(known + unsure)):
+        for i in range(0, len(moves), 64):
+            found = _separating(arm, problem, cands, rp, moves[i:i + 64], amb, ia, ib, st,
+                                np.isin(np.arange(n), unsure))
+            if found is None:
+                continue
+            m, sep, every = found
+            if every:
+                fallback = (m, sep)
+                break
+            fallback = fallback or (m, sep)
+        if fallback is not None:
+            m, sep = fallback
+            return DisambiguatingMove(
+                joints=tuple(arm.joints[j].name for j, _ in m),
+                delta_rad=tuple(float(d) for _, d in m),
+                separation_sigma=float(np.sqrt(sep)), resolves=resolves)
     return None
 
 
-def _separating(arm, problem, cands, rp, chunk, need, ia, ib, rows, st):
+def _separating(arm, problem, cands, rp, chunk, amb, ia, ib, st, unsure, unsure_margin_deg=5.0):
     """The first move of ``chunk`` (ordered by size) that keeps every rival inside the
-    limits with the ``need`` joints readable and separates every pair of rivals by
-    ``st.separation_chi2``: ``(move, chi-square)``, or None."""
+    limits, leaves the ``amb`` joints readable (axis off vertical, expected sigma within half
+    the limit, at every rival), and separates every pair of rivals by ``st.separation_chi2``:
+    ``(move, chi-square, every joint readable too)``, preferring the last; or None."""
     n, R = arm.n_joints, len(cands)
     delta = np.zeros((len(chunk), n))
     for c, m in enumerate(chunk):
         for j, d in m:
             delta[c, j] += d
     moved = cands[None] + delta[:, None]  # (M, R, n)
-    inside = arm.within_limits(moved.reshape(-1, n), 0.0).all(-1).reshape(len(chunk), R).all(1)
+    margin = np.where((delta != 0) & unsure, unsure_margin_deg * DEG, 0.0)[:, None]  # (M, 1, n)
+    # only the moved joints can leave their limits (a joint that stays is where the arm is)
+    inside = (((moved >= arm.min_rad + margin) & (moved <= arm.max_rad - margin))
+              | (delta == 0)[:, None]).all((1, 2))
     if not inside.any():
         return None
     x = np.concatenate([moved.reshape(-1, n), np.tile(rp, (len(chunk) * R, 1))], 1)
     axis = np.degrees(_axis_to_vertical(arm, x[:, :n], x[:, n], x[:, n + 1]))
-    inside &= (axis[:, need] >= 2 * st.gimbal_lock_deg).all(1).reshape(len(chunk), R).all(1)
-    if not inside.any():
-        return None
-    pred, _ = problem.residuals_and_jacobian(x)  # residuals: (prediction - reading) / sigma
+    pred, J = problem.residuals_and_jacobian(x)  # residuals: (prediction - reading) / sigma
+    info = np.einsum("bmi,bmj->bij", J, J) + np.eye(J.shape[-1]) / np.pi**2  # as in the solve
+    sig = np.sqrt(np.clip(np.einsum("bii->bi", np.linalg.inv(info)), 0, None))[:, :n]
+    readable = (axis >= 2 * st.gimbal_lock_deg) & (sig * st.sigma_safety_factor
+                                                   <= 0.5 * st.sigma_limit_deg * DEG)
+    readable = readable.reshape(len(chunk), R, n).all(1)  # (M, n): at every rival
+    rows = 3 * len(problem.names)
     pred = pred[:, :rows].reshape(len(chunk), R, rows)
     sep = np.sum((pred[:, ia] - pred[:, ib]) ** 2, -1).min(1)  # the closest pair, per move
-    good = inside & (sep >= st.separation_chi2)
+    good = inside & readable[:, amb].all(1) & (sep >= st.separation_chi2)
     if not good.any():
         return None
-    c = int(np.flatnonzero(good)[0])
-    return chunk[c], float(sep[c])
+    every = good & readable.all(1)
+    c = int(np.flatnonzero(every)[0]) if every.any() else int(np.flatnonzero(good)[0])
+    return chunk[c], float(sep[c]), bool(every[c])
 
 
 def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> UnlockMove | None:
