@@ -1181,10 +1181,12 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
     def singles(js):
         return [((j, sg * d),) for d in steps for j in js for sg in (1, -1)]
 
+    # the pairs' step sizes, smallest total first (a stable sort keeps joint order within)
+    sizes = sorted(((dj, dk) for dj in pair_steps for dk in pair_steps), key=lambda p: p[0] + p[1])
+
     def pairs(js):
-        out = [((j, sj * dj), (k, sk * dk)) for j in js for k in js if j < k
-               for dj in pair_steps for dk in pair_steps for sj in (1, -1) for sk in (1, -1)]
-        return sorted(out, key=lambda m: sum(abs(d) for _, d in m))
+        return [((j, sj * dj), (k, sk * dk)) for dj, dk in sizes for j in js for k in js if j < k
+                for sj in (1, -1) for sk in (1, -1)]
 
     R = len(cands)
     ia, ib = np.triu_indices(R, 1)
@@ -1193,7 +1195,9 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
     # to resolve. Moves are tried smallest first, class by class; within the class where a
     # move does the second, one that does the first is preferred.
     fallback = None
-    for moves in (singles(known), pairs(known), singles(unsure), pairs(known + unsure)):
+    for make in (lambda: singles(known), lambda: pairs(known), lambda: singles(unsure),
+                 lambda: pairs(known + unsure)):
+        moves = make()  # built only when the smaller classes found nothing
         for i in range(0, len(moves), 64):
             found = _separating(arm, problem, cands, rp, moves[i:i + 64], amb, ia, ib, st,
                                 np.isin(np.arange(n), unsure))
@@ -1232,21 +1236,28 @@ def _separating(arm, problem, cands, rp, chunk, amb, ia, ib, st, unsure, unsure_
         return None
     x = np.concatenate([moved.reshape(-1, n), np.tile(rp, (len(chunk) * R, 1))], 1)
     axis = np.degrees(_axis_to_vertical(arm, x[:, :n], x[:, n], x[:, n + 1]))
+    clear = (axis >= 2 * st.gimbal_lock_deg).reshape(len(chunk), R, n).all(1)  # (M, n)
     pred, J = problem.residuals_and_jacobian(x)  # residuals: (prediction - reading) / sigma
-    info = np.einsum("bmi,bmj->bij", J, J) + np.eye(J.shape[-1]) / np.pi**2  # as in the solve
-    sig = np.sqrt(np.clip(np.einsum("bii->bi", np.linalg.inv(info)), 0, None))[:, :n]
-    readable = (axis >= 2 * st.gimbal_lock_deg) & (sig * st.sigma_safety_factor
-                                                   <= 0.5 * st.sigma_limit_deg * DEG)
-    readable = readable.reshape(len(chunk), R, n).all(1)  # (M, n): at every rival
     rows = 3 * len(problem.names)
     pred = pred[:, :rows].reshape(len(chunk), R, rows)
     sep = np.sum((pred[:, ia] - pred[:, ib]) ** 2, -1).min(1)  # the closest pair, per move
-    good = inside & readable[:, amb].all(1) & (sep >= st.separation_chi2)
+    good = inside & clear[:, amb].all(1) & (sep >= st.separation_chi2)
     if not good.any():
         return None
-    every = good & readable.all(1)
-    c = int(np.flatnonzero(every)[0]) if every.any() else int(np.flatnonzero(good)[0])
-    return chunk[c], float(sep[c]), bool(every[c])
+    # expected sigmas (the solve's noise model, its flat prior and safety factor), for the
+    # moves still in the running only
+    idx = np.flatnonzero(good)
+    Jg = J.reshape(len(chunk), R, *J.shape[1:])[idx].reshape(-1, *J.shape[1:])
+    info = np.einsum("bmi,bmj->bij", Jg, Jg) + np.eye(J.shape[-1]) / np.pi**2
+    sig = np.sqrt(np.clip(np.einsum("bii->bi", np.linalg.inv(info)), 0, None))[:, :n]
+    sharp = (sig * st.sigma_safety_factor <= 0.5 * st.sigma_limit_deg * DEG)
+    readable = clear[idx] & sharp.reshape(len(idx), R, n).all(1)  # (G, n): at every rival
+    ok = readable[:, amb].all(1)
+    if not ok.any():
+        return None
+    every = ok & readable.all(1)
+    c = int(idx[np.flatnonzero(every)[0]] if every.any() else idx[np.flatnonzero(ok)[0]])
+    return chunk[c], float(sep[c]), bool(every.any())
 
 
 def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> UnlockMove | None:
