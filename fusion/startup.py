@@ -200,12 +200,21 @@ class StartupPrior:
     sigma_rad: np.ndarray  # (n,)
     kind: str = "checked"
     source: str = "a saved pose"
+    covariance_rad2: np.ndarray | None = None
+    """(n, n): the candidates' covariance where it is known (an earlier window's answer:
+    near a singular pair its joints are strongly correlated); default ``diag(sigma_rad**2)``."""
 
     def __post_init__(self):
         c = np.atleast_2d(np.asarray(self.candidates_rad, float))
         object.__setattr__(self, "candidates_rad", c)
-        object.__setattr__(self, "sigma_rad", np.broadcast_to(
-            np.asarray(self.sigma_rad, float), (c.shape[1],)).copy())
+        sig = np.broadcast_to(np.asarray(self.sigma_rad, float), (c.shape[1],)).copy()
+        object.__setattr__(self, "sigma_rad", sig)
+        known = np.isfinite(sig)
+        cov = (np.diag(np.where(known, sig, 0.0) ** 2) if self.covariance_rad2 is None
+               else np.array(self.covariance_rad2, float))
+        cov[~known, :] = 0.0
+        cov[:, ~known] = 0.0
+        object.__setattr__(self, "covariance_rad2", np.where(np.isfinite(cov), cov, 0.0))
         if self.kind not in ("checked", "assumed"):
             raise ValueError(f"prior kind must be 'checked' or 'assumed', not {self.kind!r}")
 
@@ -791,7 +800,7 @@ def solve_still(
     # which branches may be the arm's: the data's (every feasible one), or the prior's choice
     notes: list[str] = []
     chooser = _BranchChooser.make(prior, st, q_all[cand], locked_any[cand],
-                                  _expected_sigma(problem, x[cand])[:, :n] * np.sqrt(inflate0), notes)
+                                  _expected_covariance(problem, x[cand])[:, :n, :n] * inflate0, notes)
     pool = cand[chooser.keep]
     best = pool[int(np.argmin(chooser.rank[chooser.keep]))]
     xb = x[best]
@@ -850,7 +859,7 @@ def solve_still(
         if keep.any():
             xr = _dedupe(xr[keep], 1e-3)
             joins = chooser.admits(xr[:, :n], np.broadcast_to(locked, (len(xr), n)),
-                                   np.broadcast_to(sig[:n], (len(xr), n)))
+                                   _expected_covariance(problem, xr)[:, :n, :n] * inflate)
             rivals_x = np.vstack([rivals_x, xr[joins]])
     if weak.any():
         follow = _follow_weak(solved[len(probes):], solved_cost[len(probes):], follow_j, xb,
@@ -877,12 +886,13 @@ def solve_still(
         differ = (gap > np.maximum(3 * sig[:n], 1e-3)) & (flags != "gimbal_lock")
         if not differ.any():
             continue
-        # one rival per distinct set of readable angles (a locked joint's value is arbitrary)
-        if any(np.all((np.abs(_wrap(other[:n] - k[:n])) <= np.maximum(3 * sig[:n], 1e-3))
-                      | (flags == "gimbal_lock")) for k in kept[1:]):
-            continue
-        kept.append(other)
         grow = differ & (flags == "ill_conditioned") & (gap <= st.ill_grow_max_deg * DEG)
+        # one rival per distinct set of readable angles (a locked joint's value is arbitrary),
+        # and only one that makes a joint ambiguous (a weak joint's sigma covers the rest)
+        if (differ & ~grow).any() and not any(
+                np.all((np.abs(_wrap(other[:n] - k[:n])) <= np.maximum(3 * sig[:n], 1e-3))
+                       | (flags == "gimbal_lock")) for k in kept[1:]):
+            kept.append(other)
         for j in np.flatnonzero(grow):
             scale = max(gap[j] / 2.0 / sig[j], 1.0)
             sig[j] *= scale
@@ -965,18 +975,18 @@ class _BranchChooser:
 
     @classmethod
     def make(cls, prior: StartupPrior | None, st: StartupSettings, q: np.ndarray,
-             locked: np.ndarray, sig: np.ndarray, notes: list[str]) -> _BranchChooser:
+             locked: np.ndarray, cov: np.ndarray, notes: list[str]) -> _BranchChooser:
         B = len(q)
         by_cost = np.arange(B, dtype=float)  # q comes ordered by cost
         if prior is None:
             return cls(np.ones(B, bool), by_cost, "none", None, np.inf, st)
         if prior.kind == "assumed":
-            d2 = _prior_d2(prior, q, locked, np.zeros_like(sig))
+            d2 = _prior_d2(prior, q, locked, np.zeros_like(cov))
             notes.append(f"the branch rests on an assumption: {prior.source} (--assume-parked); "
                          f"without it every branch that fits would be reported")
             return cls(d2 - d2.min() < st.prior_decisive_chi2, d2, prior.source, prior,
                        float(d2.min() + st.prior_decisive_chi2), st)
-        d2, k = _prior_d2(prior, q, locked, sig, with_dof=True)
+        d2, k = _prior_d2(prior, q, locked, cov, with_dof=True)
         thr = _chi2_quantile(k, st.prior_fit_p)
         fits = d2 <= thr
         if not fits.any():
@@ -985,28 +995,39 @@ class _BranchChooser:
                          f"over {int(k[i])} joints at the nearest branch, above {thr[i]:.0f}): "
                          f"ignored; the arm was moved since, or its count lost")
             return cls(np.ones(B, bool), by_cost, "none", None, np.inf, st)
-        notes.append(f"{prior.source} fits the still data (chi-square {d2[fits].min():.1f}); "
-                     f"it chose among {B} fitting branch{'es' if B != 1 else ''}")
-        return cls(fits, by_cost, prior.source, prior, np.inf, st)
+        # it fits: it chooses, as evidence, among the branches that agree with it (those it
+        # does not prefer by a chi-square of prior_decisive_chi2 stay rivals)
+        best = float(d2[fits].min())
+        keep = fits & (d2 - best < st.prior_decisive_chi2)
+        notes.append(f"{prior.source} fits the still data (chi-square {best:.1f} over "
+                     f"{int(k[fits].max())} joints); it chose among {B} fitting branch"
+                     f"{'es' if B != 1 else ''}")
+        return cls(keep, d2, prior.source, prior, best + st.prior_decisive_chi2, st)
 
-    def admits(self, q: np.ndarray, locked: np.ndarray, sig: np.ndarray) -> np.ndarray:
+    def admits(self, q: np.ndarray, locked: np.ndarray, cov: np.ndarray) -> np.ndarray:
         if self.prior is None:
             return np.ones(len(q), bool)
         if self.prior.kind == "assumed":
-            return _prior_d2(self.prior, q, locked, np.zeros_like(sig)) < self.threshold
-        d2, k = _prior_d2(self.prior, q, locked, sig, with_dof=True)
-        return d2 <= _chi2_quantile(k, self.settings.prior_fit_p)
+            return _prior_d2(self.prior, q, locked, np.zeros_like(cov)) < self.threshold
+        d2, k = _prior_d2(self.prior, q, locked, cov, with_dof=True)
+        return (d2 <= _chi2_quantile(k, self.settings.prior_fit_p)) & (d2 < self.threshold)
 
 
-def _prior_d2(prior: StartupPrior, q: np.ndarray, locked: np.ndarray, sig: np.ndarray,
+def _prior_d2(prior: StartupPrior, q: np.ndarray, locked: np.ndarray, cov: np.ndarray,
               with_dof: bool = False):
     """Per branch ``q (B, n)``: the chi-square of its nearest prior candidate over the joints
-    both know (readable in the branch, finite in the prior), with the branch's own sigma
-    ``sig (B, n)`` added to the prior's; and the number of those joints."""
+    both know (readable in the branch, known to the prior), with the branch's own covariance
+    ``cov (B, n, n)`` added to the prior's (full matrices: along a valley the joints move
+    together, and a rival that is many sigmas away as a whole may be within each joint's
+    own sigma); and the number of those joints."""
     known = ~locked & np.isfinite(prior.sigma_rad)  # (B, n)
-    var = sig**2 + np.where(np.isfinite(prior.sigma_rad), prior.sigma_rad, 1.0) ** 2
-    dq = _wrap(q[:, None, :] - prior.candidates_rad[None])  # (B, C, n)
-    d2 = np.sum(dq**2 / var[:, None] * known[:, None], -1).min(1)
+    S = cov + prior.covariance_rad2  # (B, n, n)
+    S = np.where(known[:, :, None] & known[:, None, :], S, 0.0)
+    S = S + np.eye(q.shape[1]) * np.where(known, 0.0, 1.0)[:, None]  # unknown rows: identity
+    dq = _wrap(q[:, None, :] - prior.candidates_rad[None]) * known[:, None]  # (B, C, n)
+    C = dq.shape[1]
+    w = np.linalg.solve(np.repeat(S[:, None], C, 1), dq[..., None])[..., 0]
+    d2 = np.sum(dq * w, -1).min(1)
     return (d2, known.sum(1)) if with_dof else d2
 
 
@@ -1138,10 +1159,17 @@ def prior_after_move(result: StartupResult, move, arm: ArmModel,
             sig[j] = je.sigma_rad
         elif je.flag == "ambiguous" and np.isfinite(stat[j]):
             sig[j] = stat[j]  # each candidate is a minimum known to the branch's own sigma
-    sig = np.sqrt(sig**2 + (st.encoder_carry_sigma_deg * DEG) ** 2)
-    return StartupPrior(cands, sig, "checked",
-                        f"the still window at t = {result.t_start_s:.1f}..{result.t_end_s:.1f} s "
-                        f"carried through the encoder counts")
+    # the result's correlations, scaled to the sigmas it reports (the profile and the
+    # sweep widen a sigma beyond the linear one), plus what the encoders add
+    cov = np.array(result.covariance, float)[:n, :n]
+    lin = np.sqrt(np.clip(np.diag(cov), 1e-30, None))
+    scale = np.where(np.isfinite(sig), np.maximum(sig / lin, 1.0), 1.0)
+    enc_var = (st.encoder_carry_sigma_deg * DEG) ** 2
+    cov = cov * np.outer(scale, scale) + np.eye(n) * enc_var
+    sig = np.sqrt(sig**2 + enc_var)
+    return StartupPrior(cands, sig, "checked", covariance_rad2=cov, source=(
+        f"the still window at t = {result.t_start_s:.1f}..{result.t_end_s:.1f} s carried "
+        "through the encoder counts"))
 
 
 def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: StillReadings,
@@ -1190,6 +1218,18 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
 
     R = len(cands)
     ia, ib = np.triu_indices(R, 1)
+    # what the next window knows of each rival: this window's covariance (as the encoders
+    # carry it), the joints it could not read anywhere in their turn
+    carried = np.array(result.covariance, float)
+    bad = ~np.isfinite(np.diag(carried))
+    carried[bad, :] = carried[:, bad] = 0.0
+    carried[bad, bad] = np.pi**2
+    lin = np.sqrt(np.clip(np.diag(carried), 1e-30, None))
+    rep = np.array([j.sigma_rad if j.sigma_rad is not None else 0.0 for j in result.joints]
+                   + [result.roll_sigma_rad, result.pitch_sigma_rad])
+    scale = np.maximum(rep / lin, 1.0)
+    carried = carried * np.outer(scale, scale)
+    carried[np.diag_indices(n)] += (st.encoder_carry_sigma_deg * DEG) ** 2
     # After the move every joint should be readable, whichever rival is true (a joint still
     # weak leaves the next window with rivals of its own); failing that, at least the joints
     # to resolve. Moves are tried smallest first, class by class; within the class where a
@@ -1200,7 +1240,7 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
         moves = make()  # built only when the smaller classes found nothing
         for i in range(0, len(moves), 64):
             found = _separating(arm, problem, cands, rp, moves[i:i + 64], amb, ia, ib, st,
-                                np.isin(np.arange(n), unsure))
+                                np.isin(np.arange(n), unsure), carried)
             if found is None:
                 continue
             m, sep, every = found
@@ -1217,7 +1257,8 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
     return None
 
 
-def _separating(arm, problem, cands, rp, chunk, amb, ia, ib, st, unsure, unsure_margin_deg=5.0):
+def _separating(arm, problem, cands, rp, chunk, amb, ia, ib, st, unsure, carried,
+                unsure_margin_deg=5.0):
     """The first move of ``chunk`` (ordered by size) that keeps every rival inside the
     limits, leaves the ``amb`` joints readable (axis off vertical, expected sigma within half
     the limit, at every rival), and separates every pair of rivals by ``st.separation_chi2``:
@@ -1238,9 +1279,16 @@ def _separating(arm, problem, cands, rp, chunk, amb, ia, ib, st, unsure, unsure_
     axis = np.degrees(_axis_to_vertical(arm, x[:, :n], x[:, n], x[:, n + 1]))
     clear = (axis >= 2 * st.gimbal_lock_deg).reshape(len(chunk), R, n).all(1)  # (M, n)
     pred, J = problem.residuals_and_jacobian(x)  # residuals: (prediction - reading) / sigma
-    rows = 3 * len(problem.names)
-    pred = pred[:, :rows].reshape(len(chunk), R, rows)
-    sep = np.sum((pred[:, ia] - pred[:, ib]) ** 2, -1).min(1)  # the closest pair, per move
+    # How far apart two rivals then read, in the noise, when each may be anywhere its
+    # carried uncertainty allows (linearised: d' (I + J C J')^-1 d): a weak joint can
+    # absorb part of the difference, and a separation it can absorb resolves nothing.
+    m = pred.shape[1]
+    pred = pred.reshape(len(chunk), R, m)
+    Jm = J.reshape(len(chunk), R, m, -1)
+    d = pred[:, ia] - pred[:, ib]  # (M, P, m)
+    Ja = Jm[:, ia]  # (M, P, m, p)
+    S = np.eye(m) + Ja @ carried @ np.swapaxes(Ja, -1, -2)
+    sep = np.einsum("kpi,kpi->kp", d, np.linalg.solve(S, d[..., None])[..., 0]).min(1)
     good = inside & clear[:, amb].all(1) & (sep >= st.separation_chi2)
     if not good.any():
         return None
@@ -1250,9 +1298,13 @@ def _separating(arm, problem, cands, rp, chunk, amb, ia, ib, st, unsure, unsure_
     Jg = J.reshape(len(chunk), R, *J.shape[1:])[idx].reshape(-1, *J.shape[1:])
     info = np.einsum("bmi,bmj->bij", Jg, Jg) + np.eye(J.shape[-1]) / np.pi**2
     sig = np.sqrt(np.clip(np.einsum("bii->bi", np.linalg.inv(info)), 0, None))[:, :n]
-    sharp = (sig * st.sigma_safety_factor <= 0.5 * st.sigma_limit_deg * DEG)
-    readable = clear[idx] & sharp.reshape(len(idx), R, n).all(1)  # (G, n): at every rival
-    ok = readable[:, amb].all(1)
+    sig = (sig * st.sigma_safety_factor).reshape(len(idx), R, n).max(1)  # (G, n): worst rival
+    readable = clear[idx] & (sig <= 0.5 * st.sigma_limit_deg * DEG)
+    # the joints to resolve need not be sharp (a floor of unmodelled error may forbid it), but
+    # their rivals must stand 6 of their sigmas apart for the next window to choose
+    gap = np.abs(_wrap(cands[ia] - cands[ib]))  # (pairs, n)
+    gap = np.where(gap > 1e-3, gap, np.inf).min(0)  # the closest two distinct values, per joint
+    ok = (clear[idx] & (6 * sig <= gap))[:, amb].all(1)
     if not ok.any():
         return None
     every = ok & readable.all(1)
@@ -1294,12 +1346,17 @@ def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> Unlock
     )
 
 
-def _expected_sigma(problem: _Problem, x: np.ndarray) -> np.ndarray:
-    """Sigma of every unknown at states ``x (B, n+2)`` from the Jacobian alone."""
+def _expected_covariance(problem: _Problem, x: np.ndarray) -> np.ndarray:
+    """Covariance of every unknown at states ``x (B, n+2)`` from the Jacobian alone (with the
+    solve's flat prior): ``(B, n+2, n+2)``."""
     _, J = problem.residuals_and_jacobian(x)
     A = np.einsum("bmi,bmj->bij", J, J) + np.eye(J.shape[-1]) / np.pi**2  # as in the solve
-    cov = np.linalg.inv(A)
-    return np.sqrt(np.clip(np.einsum("bii->bi", cov), 0, None))
+    return np.linalg.inv(A)
+
+
+def _expected_sigma(problem: _Problem, x: np.ndarray) -> np.ndarray:
+    """Sigma of every unknown at states ``x (B, n+2)`` from the Jacobian alone."""
+    return np.sqrt(np.clip(np.einsum("bii->bi", _expected_covariance(problem, x)), 0, None))
 
 
 # --------------------------------------------------------------------------------------
