@@ -201,8 +201,9 @@ class StartupPrior:
     kind: str = "checked"
     source: str = "a saved pose"
     covariance_rad2: np.ndarray | None = None
-    """(n, n): the candidates' covariance where it is known (an earlier window's answer:
-    near a singular pair its joints are strongly correlated); default ``diag(sigma_rad**2)``."""
+    """(n, n), or (C, n, n) one per candidate: the candidates' covariance where it is known
+    (an earlier window's answer: near a singular pair its joints are strongly correlated);
+    default ``diag(sigma_rad**2)``."""
 
     def __post_init__(self):
         c = np.atleast_2d(np.asarray(self.candidates_rad, float))
@@ -212,8 +213,8 @@ class StartupPrior:
         known = np.isfinite(sig)
         cov = (np.diag(np.where(known, sig, 0.0) ** 2) if self.covariance_rad2 is None
                else np.array(self.covariance_rad2, float))
-        cov[~known, :] = 0.0
-        cov[:, ~known] = 0.0
+        cov[..., ~known, :] = 0.0
+        cov[..., :, ~known] = 0.0
         object.__setattr__(self, "covariance_rad2", np.where(np.isfinite(cov), cov, 0.0))
         if self.kind not in ("checked", "assumed"):
             raise ValueError(f"prior kind must be 'checked' or 'assumed', not {self.kind!r}")
@@ -248,6 +249,8 @@ class StartupResult:
     summary: str = ""
     candidates_rad: np.ndarray | None = None
     """(R, n): every branch the result cannot rule out, the reported one first."""
+    candidates_covariance: np.ndarray | None = None
+    """(R, n + 2, n + 2): each candidate's covariance (the first is ``covariance``)."""
     prior_used: str = "none"
     """What chose the branch: "none" (the data alone), or the prior's source."""
     notes: tuple[str, ...] = ()
@@ -776,6 +779,8 @@ def solve_still(
         xc, cost_c = _batched_lm(problem, xc, free_c, st.max_iterations)
         xc[:, :n] = mid + _wrap(xc[:, :n] - mid)
         x, cost = np.vstack([x, xc]), np.concatenate([cost, cost_c])
+    if method == "joint":
+        x, cost = _complete_combinations(problem, x, cost, st, mid)
     # drop branches that fit much worse than the best (not solutions of the data)
     good = cost <= cost.min() + 0.5 * st.fit_chi2 + 1e-9
     x, cost = x[good], cost[good]
@@ -886,7 +891,11 @@ def solve_still(
         differ = (gap > np.maximum(3 * sig[:n], 1e-3)) & (flags != "gimbal_lock")
         if not differ.any():
             continue
-        grow = differ & (flags == "ill_conditioned") & (gap <= st.ill_grow_max_deg * DEG)
+        # a rival in the same valley (every angle close by) widens the sigmas of the joints
+        # that differ, which makes them ill-conditioned; another branch (some angle far off)
+        # makes every joint that differs ambiguous
+        same_valley = np.all(gap[differ] <= st.ill_grow_max_deg * DEG)
+        grow = differ & same_valley
         # one rival per distinct set of readable angles (a locked joint's value is arbitrary),
         # and only one that makes a joint ambiguous (a weak joint's sigma covers the rest)
         if (differ & ~grow).any() and not any(
@@ -898,6 +907,8 @@ def solve_still(
             sig[j] *= scale
             cov[j, :] *= scale
             cov[:, j] *= scale
+            if flags[j] == "ok" and sig[j] > limit:
+                flags[j] = "ill_conditioned"
         for j in np.flatnonzero(differ & ~grow):
             flags[j] = "ambiguous"
             if not alternatives[j]:
@@ -923,6 +934,11 @@ def solve_still(
             else (float(arm.min_rad[j]), float(arm.max_rad[j])),
         ))
     resid_g = (r[: problem.meas.size] * problem.sigma.reshape(-1))
+    # the covariance keeps the linear correlations, scaled to the sigmas the checks arrived
+    # at (the profile, the sweep and the rivals widen them), every joint's included
+    lin = np.sqrt(np.clip(np.diag(cov), 1e-30, None)) * st.sigma_safety_factor
+    widen = np.where(np.isfinite(sig), np.maximum(sig / lin, 1.0), 1.0)
+    cov = cov * np.outer(widen, widen)
     result = StartupResult(
         joints=tuple(joints),
         roll_rad=float(xb[n]), pitch_rad=float(xb[n + 1]),
@@ -933,6 +949,8 @@ def solve_still(
         method=method,
         t_start_s=readings.t_start_s, t_end_s=readings.t_end_s,
         candidates_rad=np.array([k[:n] for k in kept]),
+        candidates_covariance=_candidate_covariances(problem, kept, cov * st.sigma_safety_factor**2,
+                                                     inflate * st.sigma_safety_factor**2),
         prior_used=chooser.used,
         notes=tuple(notes),
     )
@@ -951,6 +969,64 @@ def solve_still(
         summary += (" (the sigmas include what the sensors' calibration could not pin: its held "
                     "elements, with the motion that would separate them, in `calibrate sensors`)")
     return replace(result, summary=summary)
+
+
+def _joint_groups(arm: ArmModel, names: list[str]) -> list[np.ndarray]:
+    """The joints between one accelerometer and the next along the chain: each group's
+    angles are fixed (up to its own branches) by the direction of up at its two ends."""
+    links = sorted({arm.sensor(nm).link for nm in names})
+    edges = [0, *links]
+    groups = [np.arange(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+    if edges[-1] < arm.n_joints:
+        groups.append(np.arange(edges[-1], arm.n_joints))
+    return groups
+
+
+def _complete_combinations(problem: _Problem, x: np.ndarray, cost: np.ndarray,
+                           st: StartupSettings, mid: np.ndarray, most: int = 64):
+    """Every combination of the groups' solutions, polished. Each group's branches are
+    independent of the others' (the twins of a pair leave up the same in the frame after
+    them), but near a singular pair the polish from one closed-form start can slide into its
+    neighbour's minimum, and a combination goes missing; the true pose may be the one. The
+    fitting branches' group values are crossed, and the new combinations solved too."""
+    n = problem.n
+    good = cost <= cost.min() + 0.5 * st.fit_chi2 + 1e-9
+    if good.sum() < 2:
+        return x, cost
+    q = x[good, :n]
+    values = []
+    for g in _joint_groups(problem.arm, problem.names):
+        v = _dedupe(q[:, g], 0.5 * DEG)
+        values.append((g, v))
+    total = int(np.prod([len(v) for _, v in values]))
+    if total <= 1 or total > most:
+        return x, cost
+    combos = np.repeat(x[good][:1], total, 0)
+    idx = np.indices([len(v) for _, v in values]).reshape(len(values), -1).T  # (total, groups)
+    for gi, (g, v) in enumerate(values):
+        combos[:, g] = v[idx[:, gi]]
+    have = np.abs(_wrap(combos[:, None, :n] - q[None])).max(-1).min(1) < 0.5 * DEG
+    if have.all():
+        return x, cost
+    new, new_cost = _batched_lm(problem, combos[~have], np.ones(n + 2, bool), st.max_iterations)
+    new[:, :n] = mid + _wrap(new[:, :n] - mid)
+    return np.vstack([x, new]), np.concatenate([cost, new_cost])
+
+
+def _candidate_covariances(problem: _Problem, kept: list[np.ndarray], cov_best: np.ndarray,
+                           scale: float) -> np.ndarray:
+    """Each candidate's covariance: the chosen one's as the checks left it; a rival's from
+    its own Jacobian, its sigmas no smaller than the chosen one's (the profile and the sweep
+    widened those; a rival's linear sigmas know nothing of its valley)."""
+    out = [cov_best]
+    if len(kept) > 1:
+        rivals = _expected_covariance(problem, np.array(kept[1:])) * scale
+        floor = np.sqrt(np.clip(np.diag(cov_best), 0, None))
+        for c in rivals:
+            lin = np.sqrt(np.clip(np.diag(c), 1e-30, None))
+            w = np.maximum(np.where(np.isfinite(floor), floor, 0.0) / lin, 1.0)
+            out.append(c * np.outer(w, w))
+    return np.array(out)
 
 
 def _dedupe_x(rivals_x: np.ndarray, xb: np.ndarray, n: int) -> np.ndarray:
@@ -1021,12 +1097,13 @@ def _prior_d2(prior: StartupPrior, q: np.ndarray, locked: np.ndarray, cov: np.nd
     together, and a rival that is many sigmas away as a whole may be within each joint's
     own sigma); and the number of those joints."""
     known = ~locked & np.isfinite(prior.sigma_rad)  # (B, n)
-    S = cov + prior.covariance_rad2  # (B, n, n)
-    S = np.where(known[:, :, None] & known[:, None, :], S, 0.0)
-    S = S + np.eye(q.shape[1]) * np.where(known, 0.0, 1.0)[:, None]  # unknown rows: identity
+    C = len(prior.candidates_rad)
+    Cp = np.broadcast_to(prior.covariance_rad2, (C, *prior.covariance_rad2.shape[-2:]))
+    S = cov[:, None] + Cp[None]  # (B, C, n, n)
+    both = (known[:, :, None] & known[:, None, :])[:, None]
+    S = np.where(both, S, 0.0) + np.eye(q.shape[1]) * np.where(known, 0.0, 1.0)[:, None, None]
     dq = _wrap(q[:, None, :] - prior.candidates_rad[None]) * known[:, None]  # (B, C, n)
-    C = dq.shape[1]
-    w = np.linalg.solve(np.repeat(S[:, None], C, 1), dq[..., None])[..., 0]
+    w = np.linalg.solve(S, dq[..., None])[..., 0]
     d2 = np.sum(dq * w, -1).min(1)
     return (d2, known.sum(1)) if with_dof else d2
 
@@ -1161,11 +1238,11 @@ def prior_after_move(result: StartupResult, move, arm: ArmModel,
             sig[j] = stat[j]  # each candidate is a minimum known to the branch's own sigma
     # the result's correlations, scaled to the sigmas it reports (the profile and the
     # sweep widen a sigma beyond the linear one), plus what the encoders add
-    cov = np.array(result.covariance, float)[:n, :n]
-    lin = np.sqrt(np.clip(np.diag(cov), 1e-30, None))
-    scale = np.where(np.isfinite(sig), np.maximum(sig / lin, 1.0), 1.0)
     enc_var = (st.encoder_carry_sigma_deg * DEG) ** 2
-    cov = cov * np.outer(scale, scale) + np.eye(n) * enc_var
+    if result.candidates_covariance is not None:  # each candidate's own (a valley's shape)
+        cov = np.array(result.candidates_covariance, float)[:, :n, :n] + np.eye(n) * enc_var
+    else:
+        cov = np.array(result.covariance, float)[:n, :n] + np.eye(n) * enc_var
     sig = np.sqrt(sig**2 + enc_var)
     return StartupPrior(cands, sig, "checked", covariance_rad2=cov, source=(
         f"the still window at t = {result.t_start_s:.1f}..{result.t_end_s:.1f} s carried "
