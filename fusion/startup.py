@@ -1361,11 +1361,16 @@ def _separating(arm, problem, cands, rp, chunk, amb, ia, ib, st, unsure, carried
     # absorb part of the difference, and a separation it can absorb resolves nothing.
     m = pred.shape[1]
     pred = pred.reshape(len(chunk), R, m)
-    Jm = J.reshape(len(chunk), R, m, -1)
     d = pred[:, ia] - pred[:, ib]  # (M, P, m)
-    Ja = Jm[:, ia]  # (M, P, m, p)
-    S = np.eye(m) + Ja @ carried @ np.swapaxes(Ja, -1, -2)
-    sep = np.einsum("kpi,kpi->kp", d, np.linalg.solve(S, d[..., None])[..., 0]).min(1)
+    sep = np.full(len(chunk), -np.inf)
+    # (I + J C J')^-1 only lowers d'd: moves that fail on d'd alone need no more
+    go = np.flatnonzero(inside & clear[:, amb].all(1)
+                        & (np.einsum("kpi,kpi->kp", d, d).min(1) >= st.separation_chi2))
+    if len(go):
+        Ja = J.reshape(len(chunk), R, m, -1)[go][:, ia]  # (G, P, m, p)
+        S = np.eye(m) + Ja @ carried @ np.swapaxes(Ja, -1, -2)
+        dg = d[go]
+        sep[go] = np.einsum("kpi,kpi->kp", dg, np.linalg.solve(S, dg[..., None])[..., 0]).min(1)
     good = inside & clear[:, amb].all(1) & (sep >= st.separation_chi2)
     if not good.any():
         return None
