@@ -430,9 +430,16 @@ def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
     enc = rec.get("enc")
     models = stream_models(arm)
     e = models["enc"].from_counts(enc.values[:1])[0] if enc is not None and len(enc) else 0.0
-    for j, je in enumerate(res.joints):
-        if je.angle_rad is not None:
-            q[j] = je.angle_rad - (e[j] if np.ndim(e) else 0.0)
+    geo = np.array([je.angle_rad if je.angle_rad is not None else np.nan for je in res.joints])
+    if res.candidates_rad is not None and len(res.candidates_rad) > 1:
+        # rival branches the still start cannot tell apart: this is only where the fit
+        # starts, and a calibration maneuver starts from the arm's ready pose: the candidate
+        # nearest it (the fit's residuals then say whether it was the right one)
+        amb = np.array([je.flag == "ambiguous" for je in res.joints])
+        d = np.abs((res.candidates_rad - q + np.pi) % (2 * np.pi) - np.pi)[:, amb].sum(1)
+        geo[amb] = res.candidates_rad[int(np.argmin(d))][amb]
+    for j in np.flatnonzero(np.isfinite(geo)):
+        q[j] = geo[j] - (e[j] if np.ndim(e) else 0.0)
     return q
 
 

@@ -92,6 +92,7 @@ G = GRAVITY_MPS2
 
 JOINT_FLAGS: tuple[str, ...] = (
     "ok", "converging", "out_of_limits", "reacquiring", "ill_conditioned", "unobserved", "gimbal_lock",
+    "ambiguous",
 )
 """Per-joint flags, from least to most severe (a joint shows its most severe one):
 
@@ -105,7 +106,11 @@ JOINT_FLAGS: tuple[str, ...] = (
   another joint; the unreadable direction is held (no correction flows through it);
 - ``unobserved``: no working accelerometer sees this joint (dead, stuck or stale);
 - ``gimbal_lock``: the joint's axis is within ``gimbal_lock_deg`` of vertical: gravity
-  cannot read it; it is held, and its sigma grows with the offset random walk.
+  cannot read it; it is held, and its sigma grows with the offset random walk;
+- ``ambiguous``: the startup found two or more branches that fit the still data equally
+  (and no prior that fits chose): the joint is not tracked as known until a still window
+  after a move tells them apart (:meth:`Tracker.ambiguity`: the candidates, moved by what
+  the encoders counted since); its sigma covers them.
 """
 SENSOR_STATUS: tuple[str, ...] = ("ok", "rejecting", "stale", "stuck", "dead", "absent")
 """Per-sensor status: ``ok``; ``rejecting`` (its last sample failed the chi-square gate);
@@ -114,7 +119,7 @@ prediction moved); ``dead`` (implausible readings for ``dead_after_s``); ``absen
 (never seen)."""
 FLAG_CODE = {f: i for i, f in enumerate(JOINT_FLAGS)}
 STATUS_CODE = {s: i for i, s in enumerate(SENSOR_STATUS)}
-_CONVERGING, _OUT, _REACQ, _ILL, _UNOBSERVED, _GIMBAL = range(1, 7)
+_CONVERGING, _OUT, _REACQ, _ILL, _UNOBSERVED, _GIMBAL, _AMBIGUOUS = range(1, 8)
 _REJECTING, _STALE, _STUCK, _DEAD, _ABSENT = range(1, 6)
 COUNTERS: tuple[str, ...] = (
     "samples", "used", "rejected", "nan", "saturated", "implausible", "stuck", "out_of_order",
@@ -739,6 +744,11 @@ class Start:
     startup: StartupResult
     imu: ImuStill
     notes: tuple[str, ...]
+    geometric: StartupResult | None = None
+    """The startup before the config's joint effects were undone (what a later still
+    window's solve compares with, through :func:`fusion.startup.prior_after_move`)."""
+    encoder_rad: np.ndarray | None = None
+    """The encoders' angles (counts / counts per rad) at the end of the still window."""
 
 
 class NoStillWindowError(ValueError):
@@ -812,6 +822,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     startup = solve_still(arm, readings, startup_settings, prior=prior,
                           propose_unlock=propose_unlock)
     notes.extend(startup.notes)
+    geometric = startup
     if corr is not None:
         startup = corr.controller_result(startup)
     imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings, corr)
@@ -824,7 +835,8 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
                  correction=corr)
     tr.initialise(startup, float(enc.t_s[k]), encoder_counts=enc.values[k], imu=imu, prior_q_rad=prior_q_rad)
     tr.prime(rec)
-    return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes))
+    return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes), geometric,
+                     np.asarray(enc.values[k], float) / arm.counts_per_rad)
 
 
 def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -1179,6 +1191,13 @@ class Tracker:
         P[L.bias, L.bias] = np.eye(3) * imu.gyro_bias_sigma_rad_s**2
         P[L.imu_bias, L.imu_bias] = np.diag(self._imu_bias_prior_var(startup.roll_rad, startup.pitch_rad))
         self._q_startup = q0
+        # joints the startup left with rival branches: not known until a move resolves them
+        self._ambiguous = np.array([j.flag == "ambiguous" for j in startup.joints], dtype=bool)
+        self._amb_candidates = tuple(tuple(j.alternatives_rad) for j in startup.joints)
+        self._amb_q_enc = None  # the encoders' angles when the candidates held
+        self._amb_half_gap = np.array([
+            (max(a) - min(a)) / 2.0 if j.flag == "ambiguous" and len(a) > 1 else 0.0
+            for j, a in ((j, j.alternatives_rad) for j in startup.joints)])
         self._x0, self._P0 = x, P
         self._ukf = None  # created when the first encoder sample fixes the offsets
         self._q_enc = np.zeros(n)
@@ -1228,7 +1247,7 @@ class Tracker:
         self._mag_ring = _InnovationRing(1, st.innovation_capacity)
         self._reacq_until = np.full(n, -np.inf)
         self._axis_deg = np.full(n, 90.0)
-        self._flags = np.zeros(n, dtype=np.int8)
+        self._flags = np.where(self._ambiguous, _AMBIGUOUS, 0).astype(np.int8)
         self._named = (None, None, (), ())  # (status codes, flags, their names): see estimate
         self._status_codes = np.full(S, STATUS_CODE["absent"], dtype=np.int8)
         self._hold = None
@@ -1263,6 +1282,8 @@ class Tracker:
     def _start_filter(self, q_enc: np.ndarray) -> None:
         L = self.layout
         self._q_enc = np.array(q_enc, dtype=float)
+        if self._amb_q_enc is None:
+            self._amb_q_enc = self._q_enc.copy()  # the candidates hold at these encoder angles
         x = self._x0.copy()
         x[L.offset] = self._q_startup - q_enc
         self._ukf = BatchedUKF(x, self._P0, self._points, angle_states=(L.yaw,))
@@ -2129,7 +2150,9 @@ class Tracker:
         lo, hi = self._min_list, self._max_list
         flags = []
         for j in range(n):
-            if self._locked[j]:
+            if self._ambiguous[j]:
+                f = _AMBIGUOUS
+            elif self._locked[j]:
                 f = _GIMBAL
             elif reach <= j:
                 f = _UNOBSERVED
@@ -2364,6 +2387,9 @@ class Tracker:
             "still": [self._still_w, self._still_mean, self._still_var, self._still],
             "shift": [self._shift.tolist(), np.nan_to_num(self._shift_t, nan=-1e300).tolist()],
             "consider": self._consider.tolist(),
+            "ambiguous": {"joints": self._ambiguous.tolist(),
+                          "candidates_rad": [list(c) for c in self._amb_candidates],
+                          "q_enc": None if self._amb_q_enc is None else self._amb_q_enc.tolist()},
         }
 
     def restore(self, snap: Mapping) -> None:
@@ -2401,6 +2427,14 @@ class Tracker:
             self._shift = np.array(snap["shift"][0], dtype=float)
             st_ = np.array(snap["shift"][1], dtype=float)
             self._shift_t = np.where(st_ < -1e299, np.nan, st_)
+        amb = snap.get("ambiguous")
+        if amb is not None and len(amb.get("joints", ())) == n:  # rival branches still open
+            self._ambiguous = np.array(amb["joints"], dtype=bool)
+            self._amb_candidates = tuple(tuple(float(a) for a in c) for c in amb["candidates_rad"])
+            self._amb_q_enc = None if amb.get("q_enc") is None else np.array(amb["q_enc"], float)
+            self._amb_half_gap = np.array([(max(c) - min(c)) / 2.0 if len(c) > 1 else 0.0
+                                           for c in self._amb_candidates])
+            self._flags = np.where(self._ambiguous, _AMBIGUOUS, self._flags).astype(np.int8)
         consider = np.array(snap.get("consider", []), dtype=float)
         if consider.shape == self._consider.shape:  # the calibration's pull on the offsets so far
             self._consider = consider
@@ -2408,6 +2442,16 @@ class Tracker:
             self._consider_t = float(snap["t_s"])
 
     # -- results ---------------------------------------------------------------------------
+    def ambiguity(self) -> dict[str, tuple[float, ...]]:
+        """Per joint the startup left ``ambiguous``: its candidate angles now (the startup's,
+        moved by what the encoders counted since), rad. Empty once every branch is known."""
+        if not self._ambiguous.any():
+            return {}
+        moved = (np.zeros(self.arm.n_joints) if self._amb_q_enc is None
+                 else self._q_enc - self._amb_q_enc)
+        return {self.arm.joint_names[j]: tuple(float(a + moved[j]) for a in self._amb_candidates[j])
+                for j in np.flatnonzero(self._ambiguous)}
+
     def q_enc_now(self) -> np.ndarray:
         """The encoders' angles (counts / counts per rad) at the last fused instant."""
         return self._q_enc.copy()
@@ -2419,6 +2463,8 @@ class Tracker:
         L, n = self.layout, self.arm.n_joints
         x, sig = self._ukf.x, self._ukf.sigma.copy()
         sig[:n] = np.sqrt(sig[:n] ** 2 + self._sys_var)  # the calibration's own uncertainty
+        if self._ambiguous.any():  # the sigma of a joint with rival branches covers them
+            sig[:n] = np.maximum(sig[:n], self._amb_half_gap)
         named = self._named
         if named[0] is not self._status_codes or named[1] is not self._flags:
             # (both arrays are replaced, never written in place, when the flags are updated)
@@ -2701,6 +2747,7 @@ class _JointStub:
     name: str
     flag: str = "ok"
     sigma_rad: float = 0.0
+    alternatives_rad: tuple[float, ...] = ()
 
 
 def _ro(a) -> np.ndarray:

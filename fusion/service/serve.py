@@ -46,6 +46,7 @@ import zenoh
 from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver
+from fusion.startup import prior_after_move
 from fusion.static import StaticDetectionSettings, find_static_segments
 from fusion.tracker import (
     ENC,
@@ -203,6 +204,8 @@ class FusionNode:
         self._rates_hz: dict[str, float] = {}
         self._last_enc: tuple[float, np.ndarray] | None = None
         self._next_try_t = -np.inf
+        self._start: Start | None = None  # the startup the tracker runs on (its rival branches)
+        self._next_resolve_t = -np.inf
         self._next_pub_t = -np.inf
         self._startup_t: float | None = None
         self._counts: Counter[str] = Counter()
@@ -392,8 +395,9 @@ class FusionNode:
             log.warning("serve: %s", self._message)
             return
         self._rates_hz = {k: (v.rate_hz or 100.0) for k, v in rec.raw().items()}
+        self._start = start
         self._begin(tracker, rec, f"startup calibration on the still stretch {start.t_start_s:.2f}"
-                                  f"-{start.t_end_s:.2f} s; tracking")
+                                  f"-{start.t_end_s:.2f} s; tracking" + _ambiguity_note(start))
 
     def _begin(self, tracker: Tracker, rec: Recording, message: str) -> None:
         """Track with ``tracker`` from its time on; ``rec``'s later samples go to it first."""
@@ -466,6 +470,7 @@ class FusionNode:
             self._rates_hz = {k: (v.rate_hz or 100.0) for k, v in rec.raw().items()}
         else:
             tracker.set_rates(self._rates_hz)
+        self._start = start
         message = (f"calibrated on request on the still stretch {start.t_start_s:.2f}-{start.t_end_s:.2f} s"
                    f"; tracking from it: {start.startup.summary or ''}").rstrip(": ")
         self._begin(tracker, Recording({}), message)
@@ -489,6 +494,51 @@ class FusionNode:
             if t >= self._next_pub_t:
                 self._publish(e)
                 self._next_pub_t = t + self.publish_period_s
+        if self._start is not None and tr.ambiguity():
+            self._try_resolve(tr.t_s)
+
+    def _try_resolve(self, t_now: float) -> None:
+        """Joints the startup left ambiguous: on each new still stretch after it, solve again
+        with the startup's candidates carried through the encoder counts
+        (:func:`fusion.startup.prior_after_move`); when that tells the branches apart, track
+        from it. Nothing here moves the arm: the status names the move that would help."""
+        if t_now < self._next_resolve_t:
+            return
+        self._next_resolve_t = t_now + self.retry_s
+        start = self._start
+        rec = _merge({k: list(v) for k, v in self._recent.items()})
+        if rec.get(ENC) is None or start.geometric is None or start.encoder_rad is None:
+            return
+        segs = find_static_segments(rec, StaticDetectionSettings(window_s=1.0))
+        if not segs or segs[-1].t_start_s <= start.t_end_s + 1e-6:
+            return
+        seg = segs[-1]
+        if rec.t_end_s - seg.t_end_s > self.still_tolerance_s:
+            return
+        window = _merge({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
+        enc = window.get(ENC)
+        k = min(max(int(np.searchsorted(enc.t_s, seg.t_end_s + 1e-9)) - 1, 0), len(enc) - 1)
+        moved = np.asarray(enc.values[k], float) / self.arm.counts_per_rad - start.encoder_rad
+        prior = prior_after_move(start.geometric, moved, self.arm)
+        try:
+            tracker, again = start_from_recording(self.arm, window, self.settings, prior=prior,
+                                                  propose_unlock=False)
+        except (NoStillWindowError, ValueError, KeyError) as e:
+            log.info("serve: the ambiguous joints were not solved again: %s", e)
+            return
+        before = set(self._tracker.ambiguity())
+        still = {j.name for j in again.startup.joints if j.flag == "ambiguous"}
+        if still >= before:
+            self._message = (f"{', '.join(sorted(before))} still ambiguous after the still stretch "
+                             f"{seg.t_start_s:.2f}-{seg.t_end_s:.2f} s" + _ambiguity_note(start))
+            self._status_due = True
+            return
+        tracker.set_rates(self._rates_hz)
+        self._start = again
+        self._begin(tracker, Recording({}), (
+            f"the branches of {', '.join(sorted(before - still))} told apart on the still stretch "
+            f"{seg.t_start_s:.2f}-{seg.t_end_s:.2f} s (the startup's candidates carried through the "
+            "encoder counts); tracking from it" + _ambiguity_note(again)))
 
     def _publish(self, e) -> None:
         pub_joints, pub_heading = self._pubs
@@ -534,6 +584,19 @@ class FusionNode:
             log.warning("serve: cannot save the state to %s: %s", self.state_path, e)
             return False
         return True
+
+
+def _ambiguity_note(start: Start) -> str:
+    """What the status says of joints the startup could not choose a branch for."""
+    amb = [j for j in start.startup.joints if j.flag == "ambiguous"]
+    if not amb:
+        return ""
+    cands = "; ".join(f"{j.name} " + " or ".join(f"{np.degrees(a):.1f}" for a in j.alternatives_rad)
+                      + " deg" for j in amb)
+    move = start.startup.disambiguating_move
+    how = (move.describe() if move is not None else
+           "no safe move of up to 45 deg separates them: a person must confirm the pose")
+    return f"; not tracked as known, ambiguous: {cands}; to tell them apart: {how}"
 
 
 def _calibration_reply(robot: str, joint_names, start: Start) -> pl.Calibration:

@@ -46,9 +46,10 @@ def test_calibrate_on_request_replies_with_the_result_and_refuses_while_the_arm_
         assert reply.joint_names == arm.joint_names
         truth = renk_recording.truth()["true_q"].between(0.0, 4.0).values[-1]
         read = np.array([q is not None for q in reply.q_rad])
-        # the renk pose has joint axes along gravity: flagged, no angle (JSON null)
+        # the renk pose has joint axes along gravity, and with no saved pose the branches of
+        # the pairs behind them cannot be told apart: flagged, no angle (JSON null)
         assert {f for f, r in zip(reply.flags, read, strict=True) if not r} <= {"gimbal_lock", "ambiguous"}
-        assert read.sum() >= 4
+        assert read.sum() >= 3
         err_deg = np.degrees(np.abs(np.array([q for q in reply.q_rad if q is not None]) - truth[read]))
         sig_deg = np.degrees(np.array([x for x in reply.sigma_rad if x is not None]))
         assert np.all(err_deg < np.maximum(4.0 * sig_deg, 0.2)), (err_deg, sig_deg)
