@@ -175,6 +175,9 @@ def _print_segment(d: dict) -> None:
         ang = "-" if j["angle_rad"] is None else f"{np.degrees(j['angle_rad']):.3f}"
         if j["alternatives_rad"]:
             ang = " or ".join(f"{np.degrees(a):.2f}" for a in j["alternatives_rad"])
+        elif j["angle_rad"] is None and j.get("range_rad"):
+            lo, hi = np.degrees(j["range_rad"])
+            ang = f"unseen: {lo:.0f} … {hi:.0f}"
         sig = "-" if j["sigma_rad"] is None else f"{np.degrees(j['sigma_rad']):.3f}"
         th = {None: "n/a", True: "locked", False: "clear"}[j["thesis_detector_locked"]]
         t.add_row(j["name"], ang, sig, f"[{colours[j['flag']]}]{j['flag']}[/]",

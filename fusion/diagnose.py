@@ -975,7 +975,7 @@ def innovation_diagnosis(arm, rec, settings=None, max_lag: int = MAX_LAG, block_
     t0 = time.perf_counter()
     say = progress or (lambda _m, _f: None)
     say("starting the tracker", 0.0)
-    tr, _start = start_from_recording(arm, rec, settings)
+    tr, _start = start_from_recording(arm, rec, settings, resolve_by_motion_s=20.0)
     say("tracking the recording", 0.1)
     run = tr.run(rec, truth=False)
     say("analysing the innovations", 0.9)

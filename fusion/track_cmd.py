@@ -76,7 +76,7 @@ def track(
     settings = TrackerSettings(gate_significance=gate_significance,
                                motion_compensation=not no_motion_compensation)
     try:
-        tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q)
+        tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q, resolve_by_motion_s=20.0)
     except NoStillWindowError as e:
         fail(f"{recording}: {e}")
     except (StartupInputError, ValueError) as e:

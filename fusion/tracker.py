@@ -782,7 +782,7 @@ def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
 def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSettings | None = None,
                          prior_q_rad: np.ndarray | None = None, window_s: float = 1.0,
                          startup_settings=None, propose_unlock: bool = True,
-                         prior=None) -> tuple[Tracker, Start]:
+                         prior=None, resolve_by_motion_s: float | None = None) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
     calibration there (:func:`fusion.startup.solve_still`), the gyro bias, heading and field
     reference from the same window; it starts tracking at the window's end.
@@ -790,7 +790,11 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     (about 2 s of the startup's time, for a caller that does not show it).
     ``prior_q_rad``: a pose saved at the last clean shutdown, checked against the still data
     before it may choose a branch (:class:`fusion.startup.StartupPrior`); ``prior``: any
-    other startup prior (e.g. ``StartupPrior.assume_parked``)."""
+    other startup prior (e.g. ``StartupPrior.assume_parked``).
+    ``resolve_by_motion_s``: for a whole recording (not live), when the startup left joints
+    ``ambiguous``, track each candidate branch over the next this many seconds and keep the
+    one the motion's readings favour (:func:`_branch_by_motion`); they stay ambiguous when no
+    branch is decisively better (the arm did not move enough)."""
     from fusion.startup import StartupPrior, readings_from_recording, solve_still
 
     if prior is None and prior_q_rad is not None:
@@ -831,12 +835,75 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         raise ValueError("the recording has no encoder stream 'enc': nothing to track")
     k = int(np.searchsorted(enc.t_s, seg.t_end_s + 1e-9)) - 1
     k = min(max(k, 0), len(enc) - 1)
-    tr = Tracker(arm, settings, rates_hz={s: (v.rate_hz or 100.0) for s, v in rec.raw().items()},
-                 correction=corr)
-    tr.initialise(startup, float(enc.t_s[k]), encoder_counts=enc.values[k], imu=imu, prior_q_rad=prior_q_rad)
-    tr.prime(rec)
+    rates = {s: (v.rate_hz or 100.0) for s, v in rec.raw().items()}
+
+    def tracker_from(result: StartupResult) -> Tracker:
+        t = Tracker(arm, settings, rates_hz=rates, correction=corr)
+        t.initialise(result, float(enc.t_s[k]), encoder_counts=enc.values[k], imu=imu,
+                     prior_q_rad=prior_q_rad)
+        t.prime(rec)
+        return t
+
+    if resolve_by_motion_s and startup.candidates_rad is not None and len(startup.candidates_rad) > 1:
+        chosen, note = _branch_by_motion(startup, tracker_from, rec, float(enc.t_s[k]),
+                                         resolve_by_motion_s, startup_settings)
+        notes.append(note)
+        if chosen is not None:
+            startup = chosen
+    tr = tracker_from(startup)
     return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes), geometric,
                      np.asarray(enc.values[k], float) / arm.counts_per_rad)
+
+
+def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s: float,
+                      horizon_s: float, startup_settings=None,
+                      decisive_nis: float = 50.0) -> tuple[StartupResult | None, str]:
+    """The candidate branch the motion after a still window favours, offline.
+
+    Twins that read the same still read differently once the arm or the chair moves (as a
+    disambiguating move makes them). Each candidate of ``startup`` seeds a tracker, run over
+    ``horizon_s`` of the recording after ``t0_s``; the link accelerometers' normalised
+    innovations (NIS) summed over that stretch are the evidence. A candidate is chosen when
+    it beats every other by ``decisive_nis`` (a log-likelihood ratio of 25); it is then a
+    startup with those joints numbered (the candidate's own covariance), and the note says
+    so. Otherwise ``None``: the joints stay ``ambiguous``."""
+    from fusion.startup import StartupSettings
+
+    st = startup_settings or StartupSettings()
+    n = len(startup.joints)
+    amb = [j for j, je in enumerate(startup.joints) if je.flag == "ambiguous"]
+    names = ", ".join(startup.joints[j].name for j in amb)
+    covs = (startup.candidates_covariance if startup.candidates_covariance is not None
+            else np.repeat(np.asarray(startup.covariance)[None], len(startup.candidates_rad), 0))
+    window = Recording({kk: v.between(-np.inf, t0_s + horizon_s) for kk, v in rec.streams.items()},
+                       dict(rec.meta))
+    totals, variants = [], []
+    for cand, cov in zip(startup.candidates_rad, covs, strict=True):
+        sig = np.sqrt(np.clip(np.diag(cov)[:n], 0, None))
+        joints = tuple(
+            replace(je, angle_rad=float(cand[j]), sigma_rad=float(sig[j]), alternatives_rad=(),
+                    flag="ok" if sig[j] <= st.sigma_limit_deg * DEG else "ill_conditioned")
+            if j in amb else je for j, je in enumerate(startup.joints))
+        v = replace(startup, joints=joints, q_rad=np.array(cand, float), covariance=np.array(cov),
+                    candidates_rad=np.array(cand, float)[None], candidates_covariance=np.array(cov)[None],
+                    disambiguating_move=None)
+        tr = tracker_from(v)
+        tr.run(window, truth=False)
+        total = 0.0
+        for s_ in tr.link_names:
+            lg = tr.innovations(s_)
+            ok = np.isfinite(lg.nis) & (lg.t_s > t0_s)
+            total += float(np.sum(lg.nis[ok]))
+        totals.append(total)
+        variants.append(v)
+    order = np.argsort(totals)
+    best, second = totals[order[0]], totals[order[1]]
+    if second - best >= decisive_nis:
+        return variants[order[0]], (
+            f"{names}: the branch chosen by the motion after the still window (the candidates' "
+            f"summed NIS over {horizon_s:g} s: {best:.0f} against {second:.0f} at the next)")
+    return None, (f"{names}: ambiguous, and the motion after the still window does not tell the "
+                  f"branches apart (summed NIS over {horizon_s:g} s: {best:.0f} and {second:.0f})")
 
 
 def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
