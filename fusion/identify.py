@@ -646,6 +646,18 @@ def suggestion_for(element: str, partners: Sequence[str] = ()) -> str:
     if "{j}" in text and not target.startswith("j"):
         js = [_element_effect(p)[1] for p in partners if _element_effect(p)[1].startswith("j")]
         j = js[0] if js else "the joint"
+    zeros = [_element_effect(p)[1] for p in partners if _element_effect(p)[0] == "joint_offset"]
+    if effect == "joint_offset" and any(_element_effect(p)[0] == "mount_rotation" for p in partners):
+        zeros = [target]
+        effect = "mount_rotation"
+    if effect == "mount_rotation" and zeros:
+        # a gauge: the sensor turned about the joint's axis and the joint's zero turned back
+        # read the same in every motion; only an outside reference of the angle separates them
+        return (f"no motion separates it from {zeros[0]}'s zero: give {zeros[0]}'s angle once, at a "
+                f"mechanical index or a pose the installer confirms (calibrate sensors --reference "
+                f"{zeros[0]}=DEG)")
+    if effect == "base_mount" and zeros:
+        text += f", or give {zeros[0]}'s angle once (calibrate sensors --reference {zeros[0]}=DEG)"
     return text.format(j=j)
 
 

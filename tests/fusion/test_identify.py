@@ -73,7 +73,9 @@ def test_unidentifiable_pair_is_held_with_a_message(arm, state):
     involved = {h.element.split("[")[0]} | {p.split("[")[0] for p, _ in h.partners}
     assert involved == {"j7.joint_offset", "acc4.mount_rotation"}
     assert "cannot be separated from" in h.message and "held at its prior" in h.message
-    assert "move the joints" in h.suggestion or "turn the sensor" in h.suggestion
+    # no motion separates them: the suggestion is the one-time reference of j7's angle
+    assert "no motion separates it from j7's zero" in h.suggestion
+    assert "calibrate sensors --reference j7=DEG" in h.suggestion
     i = res.names.index(h.element)
     assert res.x[i] == res.x0[i] and res.sigma[i] == pytest.approx(res.prior_sigma[i])
     # the partner carries the combination; its sigma includes the held one's prior (honest)
