@@ -291,6 +291,11 @@ def test_a_j7_reference_pins_the_last_sensors_mount_about_j7s_axis(j7_gauge_reco
     (ref,) = ident["references"]
     assert ref["joint"] == "j7" and ref["sigma_deg"] == 0.05 and ref["where"] == "the first still segment"
     assert abs(ref["angle_deg"] - j7_deg) < 1e-3 and ref["t_start_s"] == 0.0 and not ref["contradicted"]
+    # and the startup on that config says what its j7 rests on
+    r = runner.invoke(app, ["calibrate", "joints", str(path), "--config", str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    assert any(n.startswith("j7's zero rests on the one-time reference of the sensors' calibration: j7 = ")
+               for n in json.loads(r.stdout)["notes"])
 
 
 def test_a_reference_that_contradicts_the_data_writes_nothing(j7_gauge_recording, tmp_path):
