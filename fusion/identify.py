@@ -1208,7 +1208,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     C[np.ix_(hcols, hcols)] = Shh
     C = 0.5 * (C + C.T)
     sigma = np.sqrt(np.clip(np.diag(C), 0, None))
-    checks = _reference_checks(pb, z, C)
+    checks = _reference_checks(pb, z, H, C)
     notes += [c.message() for c in checks]
     # fit quality per stream, in physical units
     sm = model.stream_models()
@@ -1234,26 +1234,33 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         reference_checks=checks)
 
 
-def _reference_checks(pb: _Problem, z: np.ndarray, C: np.ndarray) -> tuple[ReferenceCheck, ...]:
-    """Each reference against the rest of the fit, leave-one-out from the posterior: with the
-    fitted angle ``q ± √P`` and the reference ``v ± σ``, the rest alone says ``Y ± S`` with
-    ``1/S² = 1/P - 1/σ²`` and ``Y - v = S² (q - v) / P`` (linear Gaussian, one measurement
-    taken out); ``z = (Y - v) / √(S² + σ²)``."""
+def _reference_checks(pb: _Problem, z: np.ndarray, H: np.ndarray, C: np.ndarray
+                      ) -> tuple[ReferenceCheck, ...]:
+    """Each reference against the rest of the fit, leave-one-out: ``H`` is the information of
+    the data and the references over every element (the fit's weights); without reference k
+    (every prior counted, held elements' too) the rest says ``Y ± S``, ``S² = g C_rest gᵀ``
+    (``g`` the joint's geometric angle's gradient); the fitted angle ``q`` is their
+    combination with the reference ``v ± σ``, so ``Y - v = (q - v)(1 + S²/σ²)``;
+    ``z = (Y - v) / √(S² + σ²)``. The fitted angle's σ is the fit's own (``C``: held elements
+    as consider parameters)."""
     if not pb.refs:
         return ()
     r, J = pb.reference_rows(z, np.arange(pb.size))
+    D = pb.sigma0
     out = []
     for k, ref in enumerate(pb.refs):
         s_r = ref.sigma_rad
         g = J[k] * s_r  # d q_geom / d z
-        P = max(float(g @ C @ g), 1e-300)
+        H_rest = H - np.outer(J[k], J[k])
+        A = H_rest * np.outer(D, D) + np.eye(pb.size)
+        gd = g * D
+        S2 = float(gd @ np.linalg.solve(A, gd))
         d = float(r[k]) * s_r  # fitted minus the reference
-        info_rest = 1.0 / P - 1.0 / s_r**2
-        if info_rest * s_r**2 < 1e-9:  # the reference alone knows it (a gauge with no prior)
+        P = float(g @ C @ g)
+        if S2 > (10.0 * np.pi) ** 2:  # nothing but the reference knows it
             out.append(ReferenceCheck(ref, ref.angle_rad + d, np.sqrt(P), np.nan, np.inf, 0.0))
             continue
-        S2 = 1.0 / info_rest
-        dy = S2 * d / P
+        dy = d * (1.0 + S2 / s_r**2)
         out.append(ReferenceCheck(ref, ref.angle_rad + d, np.sqrt(P), ref.angle_rad + dy, np.sqrt(S2),
                                   dy / np.sqrt(S2 + s_r**2)))
     return tuple(out)
