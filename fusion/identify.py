@@ -1181,7 +1181,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         if not converged:
             notes.append(f"the solver stopped before converging (after {n_jac[0]} Jacobians)")
     # covariance: free elements from data + priors, held ones as consider parameters
-    H, _, rr = pb.normal_equations(z, all_cols, w_stream)
+    H, grad, rr = pb.normal_equations(z, all_cols, w_stream)
     r = pb.residual(z)
     hcols = np.flatnonzero(~free)
     # in prior units the priors make A the identity plus the data's information: a plain
@@ -1208,7 +1208,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     C[np.ix_(hcols, hcols)] = Shh
     C = 0.5 * (C + C.T)
     sigma = np.sqrt(np.clip(np.diag(C), 0, None))
-    checks = _reference_checks(pb, z, H, C)
+    checks = _reference_checks(pb, z, H, grad, C)
     notes += [c.message() for c in checks]
     # fit quality per stream, in physical units
     sm = model.stream_models()
@@ -1234,25 +1234,28 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         reference_checks=checks)
 
 
-def _reference_checks(pb: _Problem, z: np.ndarray, H: np.ndarray, C: np.ndarray
+def _reference_checks(pb: _Problem, z: np.ndarray, H: np.ndarray, grad: np.ndarray, C: np.ndarray
                       ) -> tuple[ReferenceCheck, ...]:
-    """Each reference against the rest of the fit, leave-one-out: ``H`` is the information of
-    the data and the references over every element (the fit's weights); without reference k
-    (every prior counted, held elements' too) the rest says ``Y ± S``, ``S² = g C_rest gᵀ``
-    (``g`` the joint's geometric angle's gradient); the fitted angle ``q`` is their
-    combination with the reference ``v ± σ``, so ``Y - v = (q - v)(1 + S²/σ²)``;
-    ``z = (Y - v) / √(S² + σ²)``. The fitted angle's σ is the fit's own (``C``: held elements
-    as consider parameters)."""
+    """Each reference against the rest of the fit, leave-one-out: ``H`` and ``grad`` are the
+    information and the cost's data gradient (the references' rows included) over every
+    element at the fit ``z``, with the fit's weights. Without reference k, every prior
+    counted (held elements' too, as if free), one Gauss-Newton step from ``z`` reaches the
+    rest's own optimum: ``δ = -A⁻¹ ∇``; the joint's geometric angle there is
+    ``Y = q + g δ`` (``g`` its gradient), known to ``S² = g A⁻¹ gᵀ``; ``z = (Y - v) / √(S² + σ²)``.
+    A step, not the posterior's algebra: the fit stops on a flat valley (a gauge) before its
+    last hundredth of a σ, and a reference 100× sharper than the rest would magnify that.
+    The fitted angle's σ is the fit's own (``C``: held elements as consider parameters)."""
     if not pb.refs:
         return ()
     r, J = pb.reference_rows(z, np.arange(pb.size))
     D = pb.sigma0
+    prior_grad = (z - pb.x0) / D**2
     out = []
     for k, ref in enumerate(pb.refs):
         s_r = ref.sigma_rad
         g = J[k] * s_r  # d q_geom / d z
-        H_rest = H - np.outer(J[k], J[k])
-        A = H_rest * np.outer(D, D) + np.eye(pb.size)
+        A = (H - np.outer(J[k], J[k])) * np.outer(D, D) + np.eye(pb.size)  # prior units
+        rest = (grad - J[k] * r[k] + prior_grad) * D
         gd = g * D
         S2 = float(gd @ np.linalg.solve(A, gd))
         d = float(r[k]) * s_r  # fitted minus the reference
@@ -1260,7 +1263,7 @@ def _reference_checks(pb: _Problem, z: np.ndarray, H: np.ndarray, C: np.ndarray
         if S2 > (10.0 * np.pi) ** 2:  # nothing but the reference knows it
             out.append(ReferenceCheck(ref, ref.angle_rad + d, np.sqrt(P), np.nan, np.inf, 0.0))
             continue
-        dy = d * (1.0 + S2 / s_r**2)
+        dy = d - float(gd @ np.linalg.solve(A, rest))
         out.append(ReferenceCheck(ref, ref.angle_rad + d, np.sqrt(P), ref.angle_rad + dy, np.sqrt(S2),
                                   dy / np.sqrt(S2 + s_r**2)))
     return tuple(out)

@@ -300,12 +300,12 @@ def test_a_j7_reference_pins_the_last_sensors_mount_about_j7s_axis(j7_gauge_reco
 
 def test_a_reference_that_contradicts_the_data_writes_nothing(j7_gauge_recording, tmp_path):
     """j7's zero is a gauge, so the data alone never see a wrong reference: what they see is
-    the mount it implies against the mount's own tolerance (2°). A reference 10° off puts
-    acc4 10° round its mount: refused, nothing written. One 1° off is inside the tolerance:
+    the mount it implies against the mount's own tolerance (2°). A reference 12° off puts
+    acc4 12° round its mount: refused, nothing written. One 1° off is inside the tolerance:
     accepted, and the check says how large an error it could not have seen."""
     path, j7_deg = j7_gauge_recording
     out = tmp_path / "bad.yaml"
-    r = _sensors(path, "--reference", f"j7={j7_deg + 10:.4f}", "--write", str(out))
+    r = _sensors(path, "--reference", f"j7={j7_deg + 12:.4f}", "--write", str(out))
     assert r.exit_code == 2
     assert "contradicts the calibration" in r.output and "not written" in r.output
     assert not out.exists()
