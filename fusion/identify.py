@@ -77,6 +77,85 @@ class IdentifySettings:
     (the base level and facing magnetic north) or as the data's state says."""
 
 
+REFERENCE_SIGMA_RAD = 0.05 * DEG
+"""Default σ of a one-time joint reference (a mechanical index, a pose the installer confirms)."""
+REFERENCE_CONTRADICTION_SIGMA = 4.0
+"""A reference farther than this many σ from where the rest of the fit (data and priors) puts
+the joint contradicts it."""
+
+
+@dataclass(frozen=True)
+class JointReference:
+    """A joint's true geometric angle, given once, over a still stretch of the recording:
+    the joint at a mechanical index, or a pose the installer confirms (``calibrate sensors
+    --reference j7=0``). In the fit it is a pseudo-measurement of the joint's geometric angle
+    there (encoder angle plus the joint stage: zero offset, sag, play), which pins the
+    joint's zero; on a joint whose zero is a gauge (the last joint and the last sensor's
+    mount about its axis; the first joint and the IMU's mount about its axis) it is what
+    defines the gauge."""
+
+    joint: str
+    angle_rad: float
+    sigma_rad: float
+    t_start_s: float
+    t_end_s: float
+    encoder_rad: np.ndarray
+    """Every joint's relative encoder angle there (mean over the stretch), rad."""
+    where: str = "the first still segment"
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"joint": self.joint, "angle_deg": round(float(np.degrees(self.angle_rad)), 6),
+                "sigma_deg": round(float(np.degrees(self.sigma_rad)), 6),
+                "t_start_s": round(float(self.t_start_s), 3), "t_end_s": round(float(self.t_end_s), 3),
+                "where": self.where}
+
+
+@dataclass(frozen=True)
+class ReferenceCheck:
+    """A reference against the rest of the fit: where the data and the priors alone put the
+    joint's geometric angle at the reference (leave-one-out, ``without_rad ± without_sigma_rad``;
+    an infinite σ when nothing but the reference knows it) and the reference's distance from
+    it in σ of their difference."""
+
+    reference: JointReference
+    fitted_rad: float
+    fitted_sigma_rad: float
+    without_rad: float
+    without_sigma_rad: float
+    z: float
+
+    @property
+    def contradicted(self) -> bool:
+        return bool(abs(self.z) > REFERENCE_CONTRADICTION_SIGMA)
+
+    def message(self) -> str:
+        r = self.reference
+        head = (f"reference {r.joint} = {np.degrees(r.angle_rad):.3f}° ± {np.degrees(r.sigma_rad):.3g}° "
+                f"({r.where}, t {r.t_start_s:.1f}-{r.t_end_s:.1f} s)")
+        if not np.isfinite(self.without_sigma_rad):
+            return (f"{head}: nothing else in the fit knows {r.joint} there, so nothing can check "
+                    "the reference; the calibration rests on it")
+        rest = (f"the data and the priors alone put {r.joint} at {np.degrees(self.without_rad):.3f}° "
+                f"± {np.degrees(self.without_sigma_rad):.3g}° there")
+        if self.contradicted:
+            return (f"{head} contradicts the calibration: {rest} ({self.z:+.1f} σ of their difference); "
+                    f"check that {r.joint} stood at that angle then (the index, the pose confirmed, the "
+                    "sign and the time)")
+        blind_deg = REFERENCE_CONTRADICTION_SIGMA * np.degrees(np.hypot(self.without_sigma_rad, r.sigma_rad))
+        return (f"{head}: {rest} ({self.z:+.1f} σ), consistent; a reference wrong by less than about "
+                f"{blind_deg:.2g}° would not be detected")
+
+    def as_dict(self) -> dict[str, Any]:
+        fin = np.isfinite(self.without_sigma_rad)
+        return {**self.reference.as_dict(),
+                "fitted_deg": float(np.degrees(self.fitted_rad)),
+                "fitted_sigma_deg": float(np.degrees(self.fitted_sigma_rad)),
+                "without_reference_deg": float(np.degrees(self.without_rad)) if fin else None,
+                "without_reference_sigma_deg": float(np.degrees(self.without_sigma_rad)) if fin else None,
+                "z": float(self.z) if fin else None, "contradicted": self.contradicted,
+                "message": self.message()}
+
+
 @dataclass(frozen=True)
 class FitData:
     """What a fit sees: the motion (window means), the measured counts and their σ."""
@@ -102,6 +181,8 @@ class FitData:
     measured independently (an inclinometer on the base), and that measurement's σ (rad).
     Without it the base's angle about the first joint's axis, that joint's zero and the
     IMU's mount about that axis are one unknown (any set of tilts leaves them so)."""
+    joint_references: tuple[JointReference, ...] = ()
+    """One-time references of joints' geometric angles (:func:`joint_references`)."""
 
     @property
     def n(self) -> int:
@@ -191,6 +272,12 @@ class Identification:
     notes: tuple[str, ...] = ()
     attitudes_rad: np.ndarray | None = None
     """Roll, pitch, yaw of every parked stance ``(K, 3)`` (``attitude_rad`` is the first)."""
+    reference_checks: tuple[ReferenceCheck, ...] = ()
+    """Each one-time joint reference of the data against the rest of the fit."""
+
+    @property
+    def references_contradicted(self) -> list[ReferenceCheck]:
+        return [c for c in self.reference_checks if c.contradicted]
 
     @property
     def model_x(self) -> np.ndarray:
@@ -250,6 +337,7 @@ class Identification:
             "stance_attitudes_deg": None if self.attitudes_rad is None
             else np.degrees(self.attitudes_rad).tolist(),
             "q_ref_rad": self.q_ref_rad.tolist(), "notes": list(self.notes),
+            "references": [c.as_dict() for c in self.reference_checks],
             "unmodelled_g": self.unmodelled_g(),
         }
 
@@ -443,6 +531,65 @@ def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
     return q
 
 
+def joint_references(arm: ArmModel, rec, specs: Sequence[tuple[str, float, float, float | int | None]]
+                     ) -> tuple[JointReference, ...]:
+    """One-time references from ``specs``: ``(joint, angle_rad, sigma_rad, when)``, ``when``
+    ``None`` (the recording's first still segment), an ``int`` k (its k-th still segment,
+    from 1) or a ``float`` time (s, on the recording's clock; the still segment that holds
+    it). The arm must be still there (``fusion.static.find_static_segments``); the encoder
+    angles are their mean over that segment."""
+    from fusion.static import find_static_segments
+
+    if not specs:
+        return ()
+    enc = rec.get("enc")
+    if enc is None or len(enc) == 0:
+        raise ValueError("a joint reference needs the recording's encoder samples ('enc')")
+    segs = find_static_segments(rec)
+    q_enc = stream_models(arm)["enc"].from_counts(np.asarray(enc.values, float))
+    t_enc = np.asarray(enc.t_s, float)
+    seen: set[str] = set()
+    out = []
+    for joint, angle, sigma, when in specs:
+        if joint not in arm.joint_names:
+            raise ValueError(f"--reference: no joint {str(joint)[:20]!r} on {arm.name} "
+                             f"(joints: {', '.join(arm.joint_names)})")
+        if joint in seen:
+            raise ValueError(f"--reference: {joint} given twice")
+        seen.add(joint)
+        j = arm.joint_names.index(joint)
+        lo, hi = float(arm.min_rad[j]), float(arm.max_rad[j])
+        if not (np.isfinite(angle) and lo - 1e-9 <= angle <= hi + 1e-9):
+            raise ValueError(f"--reference {joint}: {np.degrees(angle):.6g}° is outside its limits "
+                             f"({np.degrees(lo):.1f}° to {np.degrees(hi):.1f}°)")
+        if not (np.isfinite(sigma) and 0 < sigma < 10 * DEG):
+            raise ValueError(f"--reference {joint}: σ must be a positive number of degrees below 10, "
+                             f"got {np.degrees(sigma):.3g}")
+        listing = ", ".join(f"{s.t_start_s:.1f}-{s.t_end_s:.1f} s" for s in segs[:6]) + (
+            " …" if len(segs) > 6 else "")
+        if not segs:
+            raise ValueError(f"--reference {joint}: the recording has no still segment (every sensor "
+                             "and encoder quiet for 1 s): the reference must hold while the arm is still")
+        if when is None:
+            seg, where = segs[0], "the first still segment"
+        elif isinstance(when, (int, np.integer)) and not isinstance(when, bool):
+            if not 1 <= when <= len(segs):
+                raise ValueError(f"--reference {joint}: still segment {when} does not exist (the "
+                                 f"recording has {len(segs)}: {listing})")
+            seg, where = segs[when - 1], f"still segment {when}"
+        else:
+            t = float(when)
+            inside = [s for s in segs if s.t_start_s <= t <= s.t_end_s]
+            if not inside:
+                raise ValueError(f"--reference {joint}: the arm is not still at t = {t:.6g} s (still "
+                                 f"segments: {listing})")
+            seg, where = inside[0], f"the still segment at t = {t:g} s"
+        m = (t_enc >= seg.t_start_s) & (t_enc <= seg.t_end_s)
+        out.append(JointReference(joint, float(angle), float(sigma), seg.t_start_s, seg.t_end_s,
+                                  q_enc[m].mean(0), where))
+    return tuple(out)
+
+
 def with_encoder_zeros(model: Model, sigma_rad: float = ENCODER_ZERO_SIGMA_RAD) -> Model:
     """The model plus a ``joint_offset`` on every joint that lacks one (the recording's unknown
     encoder zeros), prior σ ``sigma_rad`` on all of them."""
@@ -506,6 +653,18 @@ def suggestion_for(element: str, partners: Sequence[str] = ()) -> str:
     if "{j}" in text and not target.startswith("j"):
         js = [_element_effect(p)[1] for p in partners if _element_effect(p)[1].startswith("j")]
         j = js[0] if js else "the joint"
+    zeros = [_element_effect(p)[1] for p in partners if _element_effect(p)[0] == "joint_offset"]
+    if effect == "joint_offset" and any(_element_effect(p)[0] == "mount_rotation" for p in partners):
+        zeros = [target]
+        effect = "mount_rotation"
+    if effect == "mount_rotation" and zeros:
+        # a gauge: the sensor turned about the joint's axis and the joint's zero turned back
+        # read the same in every motion; only an outside reference of the angle separates them
+        return (f"no motion separates it from {zeros[0]}'s zero: give {zeros[0]}'s angle once, at a "
+                f"mechanical index or a pose the installer confirms (calibrate sensors --reference "
+                f"{zeros[0]}=DEG)")
+    if effect == "base_mount" and zeros:
+        text += f", or give {zeros[0]}'s angle once (calibrate sensors --reference {zeros[0]}=DEG)"
     return text.format(j=j)
 
 
@@ -617,6 +776,75 @@ class _Problem:
                 off = f"{e.target}.joint_offset"
                 self.enc_scale.append((model.index[e.block_name].start, e.j,
                                        off if off in model.index else None))
+        self._init_references(encoder_scale)
+
+    # one-time joint references: pseudo-measurements of a joint's geometric angle
+    def _init_references(self, encoder_scale: bool) -> None:
+        m, d = self.model, self.data
+        arm = m.arm
+        self.refs = tuple(d.joint_references)
+        self.ref_cols = np.zeros(0, int)
+        if not self.refs:
+            return
+        if not arm.link_accelerometers:
+            raise ValueError("a joint reference needs the arm's link accelerometers")
+        for r in self.refs:
+            if r.joint not in arm.joint_names:
+                raise ValueError(f"joint reference: no joint {r.joint[:20]!r} on this arm")
+        self._ref_j = np.array([arm.joint_names.index(r.joint) for r in self.refs])
+        self._ref_angle = np.array([r.angle_rad for r in self.refs], float)
+        self._ref_sigma = np.array([r.sigma_rad for r in self.refs], float)
+        self._ref_enc = np.array([np.asarray(r.encoder_rad, float) for r in self.refs])
+        # the stance each reference stands in (its nearest point's), for the base attitude
+        # its sag and play see
+        t_pts = d.state.t_s.reshape(d.n, d.nodes).mean(1)
+        near = np.array([int(np.argmin(np.abs(t_pts - 0.5 * (r.t_start_s + r.t_end_s)))) for r in self.refs])
+        self._ref_point = near
+        self._ref_stance = np.zeros(len(near), int) if d.stance is None else d.stance[near]
+        # what moves a joint's geometric angle at a still instant: the joint stage (offsets,
+        # sag, play), the encoder scales, the base attitude (sag follows the tilt)
+        cols: list[int] = []
+        for e in m.effects:
+            if isinstance(e, JointEffect) or (encoder_scale and e.name == "encoder_scale"):
+                sl = m.index[e.block_name]
+                cols += range(sl.start, sl.stop)
+        cols += range(m.size, self.size)
+        self.ref_cols = np.array(sorted(cols), int)
+        self._ref_stream = arm.link_accelerometers[0].name
+
+    def reference_angles(self, z: np.ndarray) -> np.ndarray:
+        """Each reference's joint's geometric angle at the reference, as the fit at ``z`` has it."""
+        q = self.data.q_ref_rad + self._ref_enc
+        st = self._scaled_joints(MotionState.static(q), z)
+        if self.attitude:
+            a = z[self.P:].reshape(-1, 3)[self._ref_stance]
+            st = st.replace(R_WB=R_from_rpy(a[:, 0], a[:, 1], a[:, 2]))
+        else:
+            st = st.replace(R_WB=np.asarray(self._R0)[self._ref_point * self.data.nodes])
+        ctx = self.model.context(st, z[: self.P], (self._ref_stream,))
+        return np.asarray(ctx.q_geom, float)[np.arange(len(self.refs)), self._ref_j]
+
+    def reference_residual(self, z: np.ndarray) -> np.ndarray:
+        if not self.refs:
+            return np.zeros(0)
+        dq = (self.reference_angles(z) - self._ref_angle + np.pi) % (2 * np.pi) - np.pi
+        return dq / self._ref_sigma
+
+    def reference_rows(self, z: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The references' weighted residuals and their Jacobian over columns ``cols`` (forward
+        differences: one still instant per reference, only the columns that can move it)."""
+        r = self.reference_residual(z)
+        J = np.zeros((len(r), len(cols)))
+        if not len(r):
+            return r, J
+        moving = set(self.ref_cols.tolist())
+        for i, c in enumerate(cols):
+            if int(c) in moving:
+                h = 1e-3 * self.sigma0[c]
+                zz = np.array(z, float)
+                zz[c] += h
+                J[:, i] = (self.reference_residual(zz) - r) / h
+        return r, J
 
     def _scaled_joints(self, st: MotionState, z: np.ndarray) -> MotionState:
         if not self.enc_scale:
@@ -784,6 +1012,11 @@ class _Problem:
             H += J.T @ J
             g += J.T @ r
             rr += float(r @ r)
+        if self.refs:
+            r, J = self.reference_rows(z, np.asarray(cols))
+            H += J.T @ J
+            g += J.T @ r
+            rr += float(r @ r)
         return H, g, rr
 
 
@@ -801,7 +1034,8 @@ def _solve(pb: _Problem, z0: np.ndarray, fcols: np.ndarray, w_stream: dict[str, 
     def cost(z):
         r = (pb.predict(z) - meas) * w
         p = (z[fcols] - mu) / sd
-        return 0.5 * float(r @ r + p @ p)
+        a = pb.reference_residual(z)
+        return 0.5 * float(r @ r + p @ p + a @ a)
 
     z = np.array(z0, float)
     z[fcols] = np.clip(z[fcols], lo, hi)
@@ -954,7 +1188,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         if not converged:
             notes.append(f"the solver stopped before converging (after {n_jac[0]} Jacobians)")
     # covariance: free elements from data + priors, held ones as consider parameters
-    H, _, rr = pb.normal_equations(z, all_cols, w_stream)
+    H, grad, rr = pb.normal_equations(z, all_cols, w_stream)
     r = pb.residual(z)
     hcols = np.flatnonzero(~free)
     # in prior units the priors make A the identity plus the data's information: a plain
@@ -981,6 +1215,8 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     C[np.ix_(hcols, hcols)] = Shh
     C = 0.5 * (C + C.T)
     sigma = np.sqrt(np.clip(np.diag(C), 0, None))
+    checks = _reference_checks(pb, z, H, grad, C)
+    notes += [c.message() for c in checks]
     # fit quality per stream, in physical units
     sm = model.stream_models()
     fits = []
@@ -1001,7 +1237,43 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         n_samples=data.n if data.used is None else int(data.used.sum()), n_residuals=m_res,
         iterations=n_jac[0], seconds=time.perf_counter() - t0,
         attitude_rad=z[pb.P:pb.P + 3] if pb.attitude else None, q_ref_rad=data.q_ref_rad, mode=mode,
-        notes=tuple(notes), attitudes_rad=z[pb.P:].reshape(-1, 3) if pb.attitude else None)
+        notes=tuple(notes), attitudes_rad=z[pb.P:].reshape(-1, 3) if pb.attitude else None,
+        reference_checks=checks)
+
+
+def _reference_checks(pb: _Problem, z: np.ndarray, H: np.ndarray, grad: np.ndarray, C: np.ndarray
+                      ) -> tuple[ReferenceCheck, ...]:
+    """Each reference against the rest of the fit, leave-one-out: ``H`` and ``grad`` are the
+    information and the cost's data gradient (the references' rows included) over every
+    element at the fit ``z``, with the fit's weights. Without reference k, every prior
+    counted (held elements' too, as if free), one Gauss-Newton step from ``z`` reaches the
+    rest's own optimum: ``δ = -A⁻¹ ∇``; the joint's geometric angle there is
+    ``Y = q + g δ`` (``g`` its gradient), known to ``S² = g A⁻¹ gᵀ``; ``z = (Y - v) / √(S² + σ²)``.
+    A step, not the posterior's algebra: the fit stops on a flat valley (a gauge) before its
+    last hundredth of a σ, and a reference 100× sharper than the rest would magnify that.
+    The fitted angle's σ is the fit's own (``C``: held elements as consider parameters)."""
+    if not pb.refs:
+        return ()
+    r, J = pb.reference_rows(z, np.arange(pb.size))
+    D = pb.sigma0
+    prior_grad = (z - pb.x0) / D**2
+    out = []
+    for k, ref in enumerate(pb.refs):
+        s_r = ref.sigma_rad
+        g = J[k] * s_r  # d q_geom / d z
+        A = (H - np.outer(J[k], J[k])) * np.outer(D, D) + np.eye(pb.size)  # prior units
+        rest = (grad - J[k] * r[k] + prior_grad) * D
+        gd = g * D
+        S2 = float(gd @ np.linalg.solve(A, gd))
+        d = float(r[k]) * s_r  # fitted minus the reference
+        P = float(g @ C @ g)
+        if S2 > (10.0 * np.pi) ** 2:  # nothing but the reference knows it
+            out.append(ReferenceCheck(ref, ref.angle_rad + d, np.sqrt(P), np.nan, np.inf, 0.0))
+            continue
+        dy = d - float(gd @ np.linalg.solve(A, rest))
+        out.append(ReferenceCheck(ref, ref.angle_rad + d, np.sqrt(P), ref.angle_rad + dy, np.sqrt(S2),
+                                  dy / np.sqrt(S2 + s_r**2)))
+    return tuple(out)
 
 
 def identify_recentred(model: Model, data: FitData, streams: Sequence[str] | None = None,
@@ -1045,7 +1317,10 @@ def identify_separately(model: Model, data: FitData, settings: IdentifySettings 
         reach = {b for s in g for b in jac.get(s, {})}
         sub = model.without([b.name for b in model.blocks if b.name not in reach])
         key = arm.imu.name if g[0].startswith("imu") else g[0]
-        out[key] = identify(sub, data, g, settings, progress=progress, mode=f"separate ({key})")
+        # a joint reference pins a joint's zero in the one fit of every sensor; each sensor
+        # alone compares gravity directions, which the reference does not touch
+        out[key] = identify(sub, replace(data, joint_references=()), g, settings, progress=progress,
+                            mode=f"separate ({key})")
     return out
 
 
@@ -1154,7 +1429,8 @@ def config_with_estimates(config_data: dict, result: Identification,
     cal["identified"] = {"mode": result.mode, "samples": result.n_samples,
                          "chi2_red": round(result.chi2_red, 3),
                          "held": [h.element for h in result.holds],
-                         "joint_zero_conventions": joint_zero_conventions(result)}
+                         "joint_zero_conventions": joint_zero_conventions(result),
+                         "references": [c.as_dict() for c in result.reference_checks]}
     out["calibration"] = cal
     return out
 

@@ -2,6 +2,7 @@
 
     armfusion calibrate sensors --config wmra REC.csv [--mode separate|simultaneous]
         [--effects accel_bias,mount_rotation|all] [--window 25] [--json] [--write C2.yaml]
+        [--base-tilt ROLL,PITCH] [--reference j7=0[:0.05][@T|@segK] ...]
 
 Estimates every effect the config lists (or ``--effects`` names; with neither, the whole
 library) plus the recording's encoder zeros and the base attitude; reports each parameter
@@ -9,6 +10,10 @@ with its σ, what was held and why (and the motion that would separate it), corr
 pairs, and the fit RMS per stream axis against the noise. ``--write`` saves a config with
 the estimates and their σ and the unmodelled-error floor lowered to what the fit leaves.
 A chair parked in several stances (``renk-ramp``) gets one base attitude per stance.
+``--reference`` gives a joint's true angle once (a mechanical index, a pose the installer
+confirms): it pins what gravity cannot (the last joint's zero against the last sensor's mount
+about its axis; the first joint's against the IMU's mount), is checked against the rest of
+the fit (a contradiction writes nothing) and is recorded in the written config.
 """
 
 from __future__ import annotations
@@ -35,11 +40,13 @@ from fusion.cli import (
 )
 from fusion.configfile import resolve_config_path
 from fusion.identify import (
+    REFERENCE_SIGMA_RAD,
     IdentifySettings,
     config_with_estimates,
     data_from_recording,
     identify_recentred,
     identify_separately,
+    joint_references,
     with_encoder_zeros,
 )
 from models.effects import EFFECTS, Model, all_effects, model_from_arm
@@ -57,6 +64,38 @@ def parse_base_tilt(text: str, sigma_deg: float) -> tuple[np.ndarray, float]:
     if not (np.isfinite(sigma_deg) and sigma_deg > 0):
         raise ValueError(f"--base-tilt-sigma must be a positive number of degrees, got {sigma_deg!r}")
     return np.radians(vals), float(np.radians(sigma_deg))
+
+
+def parse_reference(text: str) -> tuple[str, float, float, float | int | None]:
+    """``JOINT=DEG[:SIGMA_DEG][@WHEN]`` as ``(joint, angle_rad, sigma_rad, when)``: WHEN a time
+    in seconds on the recording's clock (``@12.5``) or its k-th still segment (``@seg2``);
+    without it, the first still segment. σ defaults to 0.05° (a mechanical index)."""
+    shown = text if len(text) <= 40 else text[:40] + "…"
+    usage = (f"--reference: give JOINT=DEG[:SIGMA_DEG][@SECONDS|@segK], e.g. j7=0 or "
+             f"j1=90:0.1@seg2; got {shown!r}")
+    head, _, when_text = text.partition("@")
+    joint, eq, value = head.partition("=")
+    angle_text, _, sigma_text = value.partition(":")
+    joint = joint.strip()
+    if not eq or not joint or not angle_text.strip():
+        raise ValueError(usage)
+    try:
+        angle = float(angle_text)
+        sigma = float(sigma_text) if sigma_text.strip() else float(np.degrees(REFERENCE_SIGMA_RAD))
+    except ValueError:
+        raise ValueError(usage) from None
+    if not (np.isfinite(angle) and np.isfinite(sigma)):
+        raise ValueError(usage)
+    when: float | int | None = None
+    w = when_text.strip()
+    if "@" in text:
+        try:
+            when = int(w[3:]) if w.lower().startswith("seg") else float(w)
+        except ValueError:
+            raise ValueError(usage) from None
+        if isinstance(when, float) and not np.isfinite(when):
+            raise ValueError(usage)
+    return joint, float(np.radians(angle)), float(np.radians(sigma)), when
 
 
 def build_model(arm, effects: str | None) -> Model:
@@ -95,6 +134,13 @@ def calibrate_sensors(
                                                   "base (R = Rz Ry Rx). Pins the IMU's mount about "
                                                   "the first joint's axis, which no maneuver can.")] = None,
     base_tilt_sigma: Annotated[float, typer.Option(help="The inclinometer's σ, degrees.")] = 0.05,
+    reference: Annotated[list[str] | None, typer.Option(
+        "--reference", help="JOINT=DEG[:SIGMA_DEG][@SECONDS|@segK], repeatable: the joint's true "
+        "geometric angle while the arm stands still (at a mechanical index, or a pose the installer "
+        "confirms), default σ 0.05°, default the recording's first still segment. Pins what no "
+        "maneuver can: j7's zero against the last sensor's mount about its axis, j1's against the "
+        "IMU's mount (or use --base-tilt). Checked against the data; recorded in the written "
+        "config.")] = None,
     json_out: JsonOpt = False,
     write: Annotated[Path | None, typer.Option(help="Write a config with the estimates here.")] = None,
 ) -> None:
@@ -108,6 +154,13 @@ def calibrate_sensors(
         data = data_from_recording(arm, rec, window, nodes=2, stances=stances)
         if base_tilt is not None:
             data = replace(data, base_tilt_reference=parse_base_tilt(base_tilt, base_tilt_sigma))
+        if reference:
+            if mode == "separate":
+                raise ValueError("--reference pins a joint's zero in the simultaneous fit; --mode "
+                                 "separate compares each sensor's gravity direction and has no use "
+                                 "for it")
+            data = replace(data, joint_references=joint_references(
+                arm, rec, [parse_reference(r) for r in reference]))
     except ValueError as e:
         fail(str(e))
     quiet = json_out
@@ -136,12 +189,24 @@ def calibrate_sensors(
         console.print(t)
         return
     res, data = identify_recentred(model, data, None, IdentifySettings(encoder_scale=True), progress)
+    bad = res.references_contradicted
+    if bad:  # the installer's claim and the data disagree: nothing written, nothing to trust
+        if json_out:
+            d = res.as_dict()
+            d["written"] = None
+            emit_json(d)
+        fail("; ".join(c.message() for c in bad)
+             + (f". {write} not written" if write is not None else ""))
     if write is not None:
         src = resolve_config_path(config)
         cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
         out = config_with_estimates(cfg, res)
         write.parent.mkdir(parents=True, exist_ok=True)
-        write.write_text(f"# {res.summary()}\n# from {recording}, config {src.name}\n"
+        refs = "".join(f"# rests on the one-time reference {c.reference.joint} = "
+                       f"{np.degrees(c.reference.angle_rad):.3f}° ± {np.degrees(c.reference.sigma_rad):.3g}° "
+                       f"({c.reference.where}): calibration.identified.references\n"
+                       for c in res.reference_checks)
+        write.write_text(f"# {res.summary()}\n# from {recording}, config {src.name}\n" + refs
                          + yaml.safe_dump(out, sort_keys=False, width=110), encoding="utf-8")
     if json_out:
         d = res.as_dict()

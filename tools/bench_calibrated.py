@@ -2,7 +2,7 @@
 sensors: the issue's point 4, measured. Writes its section of docs/benchmarks.md.
 
     python tools/bench_calibrated.py [--seed 1] [--duration 600] [--poses 1000] [--write-config C2]
-        [--scenario renk-maneuver|renk-ramp]
+        [--scenario renk-maneuver|renk-ramp] [--base-tilt-sigma 0.05] [--references j1,j7]
 
 1. ``armfusion simulate --scenario renk-maneuver --realistic --seed S``: every effect of the
    library drawn at datasheet-typical magnitudes (the simulator's realistic arm for seed S);
@@ -27,6 +27,7 @@ import argparse
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -42,12 +43,14 @@ from fusion.identify import (  # noqa: E402
     config_with_estimates,
     data_from_recording,
     identify_recentred,
+    joint_references,
     joint_zero_conventions,
     startup_correction,
     truth_values,
 )
 from fusion.identify_cmd import build_model as identification_model  # noqa: E402
 from fusion.startup import StartupSettings, readings_from_counts, solve_still  # noqa: E402
+from fusion.static import find_static_segments  # noqa: E402
 from models.motion import MotionState  # noqa: E402
 from models.sensor_models import stream_models  # noqa: E402
 from models.simulator import build_model as true_model  # noqa: E402
@@ -61,12 +64,16 @@ TARGET_DEG = 0.1
 
 def calibrate(arm, seed: int, duration_s: float, window: int = 25, progress=None,
               true_effects: list[dict] | None = None, fit_effects: str = "all",
-              scenario: str = "renk-maneuver", base_tilt_sigma_deg: float = 0.0):
+              scenario: str = "renk-maneuver", base_tilt_sigma_deg: float = 0.0,
+              references: Sequence[str] = (), reference_sigma_deg: float = 0.05):
     """Simulate the maneuver ``scenario`` on seed ``seed``'s realistic arm (or on
     ``true_effects``, config entries) and identify ``fit_effects`` (as ``calibrate sensors
     --effects``: each parked stance of the chair its own base attitude).
     ``base_tilt_sigma_deg > 0``: an inclinometer on the arm's base reads its tilt in the first
     stance with that σ (``calibrate sensors --base-tilt``), the reading drawn around the truth.
+    ``references`` (joint names): the installer gives each joint's angle once over the first
+    still segment with σ ``reference_sigma_deg`` (``calibrate sensors --reference``,
+    :func:`installer_reference`).
     Returns the identification, the truth dict and the seconds (simulation, fit)."""
     t0 = time.perf_counter()
     rec, truth = simulate(arm, scenario, duration_s, seed=seed, realistic=true_effects is None,
@@ -77,6 +84,9 @@ def calibrate(arm, seed: int, duration_s: float, window: int = 25, progress=None
     data = data_from_recording(arm, rec, window, nodes=2, stances=True)
     if base_tilt_sigma_deg > 0:
         data = replace(data, base_tilt_reference=inclinometer(rec, data, base_tilt_sigma_deg, seed))
+    if references:
+        data = replace(data, joint_references=joint_references(arm, rec, installer_reference(
+            arm, rec, references, reference_sigma_deg, seed, true_effects)))
     res, _ = identify_recentred(model, data, None, IdentifySettings(encoder_scale=True), progress)
     return res, truth, (t_sim, time.perf_counter() - t0)
 
@@ -90,6 +100,28 @@ def inclinometer(rec, data, sigma_deg: float, seed: int) -> tuple[np.ndarray, fl
     tilt = np.array([np.interp(t, tb.t_s, tb.values[:, k]) for k in (0, 1)])
     sig = np.radians(sigma_deg)
     return tilt + np.random.default_rng([seed, 0x1C1]).normal(0.0, sig, 2), float(sig)
+
+
+def installer_reference(arm, rec, joints, sigma_deg: float, seed: int,
+                        true_effects: list[dict] | None = None) -> list[tuple]:
+    """What an installer's one-time references say (``calibrate sensors --reference``): each of
+    ``joints``' true geometric angle over the recording's first still segment (the controller's
+    angle through seed ``seed``'s true joint stage: zero offset, sag and play at the true base
+    tilt) plus N(0, ``sigma_deg``) (seeded), as ``(joint, angle_rad, sigma_rad, None)``."""
+    seg = find_static_segments(rec)[0]
+    model, x = true_model(arm, true_effects, realistic=true_effects is None, seed=seed)
+    out = []
+    tq, tb = rec.get("true_q").between(seg.t_start_s, seg.t_end_s), rec.get("true_base").between(
+        seg.t_start_s, seg.t_end_s)
+    rpy = tb.values.mean(0)
+    st = MotionState.static(tq.values.mean(0), rpy[0], rpy[1], rpy[2])
+    q_geom = model.context(st, x, (arm.link_accelerometers[0].name,)).q_geom[0]
+    rng = np.random.default_rng([seed, 0x5EF])
+    sig = np.radians(sigma_deg)
+    for j in joints:
+        k = arm.joint_names.index(j)
+        out.append((j, float(q_geom[k] + rng.normal(0.0, sig)), float(sig), None))
+    return out
 
 
 def calibrated_config(res, base_config: str = "wmra") -> dict:
@@ -199,10 +231,16 @@ def main(argv=None) -> None:
     ap.add_argument("--base-tilt-sigma", type=float, default=0.0,
                     help="an inclinometer on the arm's base reads its tilt in the first stance with "
                          "this sigma, deg (calibrate sensors --base-tilt); 0: none (default)")
+    ap.add_argument("--references", default="",
+                    help="joints the installer gives once, comma separated (e.g. j1,j7): their true "
+                         "angle over the maneuver's first still segment plus N(0, --reference-sigma) "
+                         "(calibrate sensors --reference); default none")
+    ap.add_argument("--reference-sigma", type=float, default=0.05, help="the references' sigma, deg")
     ap.add_argument("--pose-seed", type=int, default=7)
     ap.add_argument("--write-config", type=Path, default=None, help="keep the calibrated config here")
     ap.add_argument("--no-write", action="store_true", help="do not write docs/benchmarks.md")
     a = ap.parse_args(argv)
+    refs = [j.strip() for j in a.references.split(",") if j.strip()]
     base = load_arm("wmra")
     t_start = time.perf_counter()
 
@@ -210,7 +248,8 @@ def main(argv=None) -> None:
         print(f"  Jacobian {k}: cost {cost:.6g} ({time.perf_counter() - t_start:.0f} s)", flush=True)
 
     res, truth, (t_sim, t_fit) = calibrate(base, a.seed, a.duration, progress=progress, scenario=a.scenario,
-                                           base_tilt_sigma_deg=a.base_tilt_sigma)
+                                           base_tilt_sigma_deg=a.base_tilt_sigma, references=refs,
+                                           reference_sigma_deg=a.reference_sigma)
     rows_t = compare_with_truth(res, truth)
     z = np.array([r["z"] for r in rows_t])
     beyond = [r for r in rows_t if abs(r["z"]) > 3]
@@ -248,7 +287,8 @@ def main(argv=None) -> None:
     lines = [
         "## The WMRA calibrated by its own maneuver, then started (`tools/bench_calibrated.py`"
         + ("" if a.scenario == "renk-maneuver" else f" `--scenario {a.scenario}`")
-        + (f" `--base-tilt-sigma {a.base_tilt_sigma:g}`" if a.base_tilt_sigma > 0 else "") + ")", "",
+        + (f" `--base-tilt-sigma {a.base_tilt_sigma:g}`" if a.base_tilt_sigma > 0 else "")
+        + (f" `--references {','.join(refs)}`" if refs else "") + ")", "",
         f"Seed {a.seed}'s realistic WMRA (every effect of the library drawn at datasheet-typical "
         f"magnitudes); `{a.scenario}` for {a.duration:.0f} s"
         + (" (the chair parked in turn level, on a 1:12 ramp facing up, down and across both ways; "
@@ -257,6 +297,9 @@ def main(argv=None) -> None:
         + ("; an inclinometer on the arm's base read its tilt in the first stance "
            f"(σ {a.base_tilt_sigma:g}°, "
            "`calibrate sensors --base-tilt`)" if a.base_tilt_sigma > 0 else "")
+        + (f"; the installer gave {', '.join(refs)} once, their true geometric angle over the "
+           f"maneuver's first still segment (σ {a.reference_sigma:g}°, the value drawn around the "
+           "truth; `calibrate sensors --reference`)" if refs else "")
         + ", window means of 25 samples; "
         f"`calibrate sensors --effects all` ({res.model.size} elements + the base attitude"
         + (f" of each of the {len(res.attitudes_rad)} stances" if len(res.attitudes_rad) > 1 else "")
@@ -296,7 +339,8 @@ def main(argv=None) -> None:
     print(md)
     if not a.no_write:
         section = ("bench_calibrated" + ("" if a.scenario == "renk-maneuver" else "_ramp")
-                   + ("_inclinometer" if a.base_tilt_sigma > 0 else ""))
+                   + ("_inclinometer" if a.base_tilt_sigma > 0 else "")
+                   + ("_references" if refs else ""))
         print(f"\nwritten to {write_section(section, md)}")
 
 

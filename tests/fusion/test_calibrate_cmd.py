@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 from typer.testing import CliRunner
 
 from fusion.cli import app
@@ -230,3 +231,103 @@ def test_calibrate_sensors_refuses_a_malformed_base_tilt(ramp_recording, bad):
     r = runner.invoke(app, ["calibrate", "sensors", str(path), "--base-tilt", bad])
     assert r.exit_code == 2
     assert "--base-tilt: give ROLL,PITCH in degrees" in r.output
+
+
+# --------------------------------------------------------------------------------------
+# `calibrate sensors --reference`: what gravity can never give
+@pytest.fixture(scope="module")
+def j7_gauge_recording(tmp_path_factory, wmra):
+    """A minute of the sensor-calibration maneuver on an arm whose last sensor is turned 1.5°
+    about j7's axis (and a little about the others) and whose joints sit off their zeros; the
+    true geometric angle of j7 over the first still segment (no sag or play: controller angle
+    plus zero offset)."""
+    from fusion.static import find_static_segments
+    from models.simulator import simulate
+
+    offsets = np.radians([0.6, -0.4, 0.8, -0.5, 0.3, -0.7, 0.9])
+    entries = [{"effect": "mount_rotation", "target": "acc4",
+                "params": {"rotvec_rad": [0.02, -0.015, 0.026]}}]
+    entries += [{"effect": "joint_offset", "target": j, "params": {"offset_rad": [float(o)]}}
+                for j, o in zip(wmra.joint_names, offsets, strict=True)]
+    rec, _ = simulate(wmra, "renk-maneuver", 60.0, seed=4, effects=entries)
+    path = tmp_path_factory.mktemp("gauge") / "man.csv"
+    write_recording(rec, path)
+    seg = find_static_segments(rec)[0]
+    tq = rec.get("true_q").between(seg.t_start_s, seg.t_end_s)
+    return path, float(np.degrees(tq.values[:, 6].mean() + offsets[6]))
+
+
+def _sensors(path, *args):
+    return runner.invoke(app, ["calibrate", "sensors", str(path), "--effects", "mount_rotation",
+                               "--json", *args])
+
+
+def test_a_j7_reference_pins_the_last_sensors_mount_about_j7s_axis(j7_gauge_recording, tmp_path):
+    """Without a reference acc4's mount about j7's axis is held with j7's zero (a gauge);
+    with the joint at a known angle once, it is estimated (the truth within 3σ, σ near the
+    reference's) and the written config says what the number rests on."""
+    path, j7_deg = j7_gauge_recording
+    out = tmp_path / "none.yaml"
+    r = _sensors(path, "--write", str(out))
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    mount_z = {p["name"]: p for p in d["parameters"]}["acc4.mount_rotation[z]"]
+    assert mount_z["held"] and d["references"] == []
+    ident = yaml.safe_load(out.read_text())["calibration"]["identified"]
+    assert "acc4.mount_rotation[z]" in ident["joint_zero_conventions"] and ident["references"] == []
+
+    out = tmp_path / "ref.yaml"
+    r = _sensors(path, "--reference", f"j7={j7_deg:.4f}:0.05", "--write", str(out))
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    mount_z = {p["name"]: p for p in d["parameters"]}["acc4.mount_rotation[z]"]
+    assert not mount_z["held"]
+    assert abs(mount_z["value"] - 0.026) < 3 * mount_z["sigma"], mount_z
+    assert mount_z["sigma"] < np.radians(0.1), mount_z
+    text = out.read_text()
+    assert "# rests on the one-time reference j7 = " in text
+    ident = yaml.safe_load(text)["calibration"]["identified"]
+    assert ident["joint_zero_conventions"] == []
+    (ref,) = ident["references"]
+    assert ref["joint"] == "j7" and ref["sigma_deg"] == 0.05 and ref["where"] == "the first still segment"
+    assert abs(ref["angle_deg"] - j7_deg) < 1e-3 and ref["t_start_s"] == 0.0 and not ref["contradicted"]
+    # and the startup on that config says what its j7 rests on
+    r = runner.invoke(app, ["calibrate", "joints", str(path), "--config", str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    assert any(n.startswith("j7's zero rests on the one-time reference of the sensors' calibration: j7 = ")
+               for n in json.loads(r.stdout)["notes"])
+
+
+def test_a_reference_that_contradicts_the_data_writes_nothing(j7_gauge_recording, tmp_path):
+    """j7's zero is a gauge, so the data alone never see a wrong reference: what they see is
+    the mount it implies against the mount's own tolerance (2°). A reference 12° off puts
+    acc4 12° round its mount: refused, nothing written. One 1° off is inside the tolerance:
+    accepted, and the check says how large an error it could not have seen."""
+    path, j7_deg = j7_gauge_recording
+    out = tmp_path / "bad.yaml"
+    r = _sensors(path, "--reference", f"j7={j7_deg + 12:.4f}", "--write", str(out))
+    assert r.exit_code == 2
+    assert "contradicts the calibration" in r.output and "not written" in r.output
+    assert not out.exists()
+    r = _sensors(path, "--reference", f"j7={j7_deg + 1:.4f}")
+    assert r.exit_code == 0, r.output
+    (ref,) = json.loads(r.stdout)["references"]
+    assert not ref["contradicted"] and 1.5 < ref["without_reference_sigma_deg"] < 2.5
+    assert "would not be detected" in ref["message"]
+
+
+@pytest.mark.parametrize(("given", "message"), [
+    ("j7", "--reference: give JOINT=DEG"),
+    ("j7=north", "--reference: give JOINT=DEG"),
+    ("j7=0:abc", "--reference: give JOINT=DEG"),
+    ("j9=0", "--reference: no joint 'j9' on WMRA-II"),
+    ("j2=130", "--reference j2: 130° is outside its limits"),
+    ("j7=0:0", "--reference j7: σ must be a positive number"),
+    ("j7=0@seg99", "--reference j7: still segment 99 does not exist"),
+    ("j7=0@30", "--reference j7: the arm is not still at t = 30 s"),
+])
+def test_calibrate_sensors_refuses_a_malformed_reference(j7_gauge_recording, given, message):
+    path, _ = j7_gauge_recording
+    r = _sensors(path, "--reference", given)
+    assert r.exit_code == 2
+    assert message in " ".join(r.output.split())

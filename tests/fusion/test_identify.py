@@ -73,7 +73,9 @@ def test_unidentifiable_pair_is_held_with_a_message(arm, state):
     involved = {h.element.split("[")[0]} | {p.split("[")[0] for p, _ in h.partners}
     assert involved == {"j7.joint_offset", "acc4.mount_rotation"}
     assert "cannot be separated from" in h.message and "held at its prior" in h.message
-    assert "move the joints" in h.suggestion or "turn the sensor" in h.suggestion
+    # no motion separates them: the suggestion is the one-time reference of j7's angle
+    assert "no motion separates it from j7's zero" in h.suggestion
+    assert "calibrate sensors --reference j7=DEG" in h.suggestion
     i = res.names.index(h.element)
     assert res.x[i] == res.x0[i] and res.sigma[i] == pytest.approx(res.prior_sigma[i])
     # the partner carries the combination; its sigma includes the held one's prior (honest)
@@ -184,6 +186,52 @@ def test_calibrated_config_makes_the_startup_ok_on_the_same_sensors(arm):
     z = np.abs(err[ok]) / sig[ok]
     assert np.all(z < 4.0), (np.degrees(err).round(3), z.round(1))
     assert np.degrees(np.sqrt(np.mean(err[ok] ** 2))) < 0.2
+
+
+def test_one_time_references_make_j1_and_j7_ok_after_self_calibration(arm):
+    """What gravity can never give: j7's zero against the last sensor's mount about j7's
+    axis, j1's against the IMU's mount about j1's axis. Given once by the installer
+    (`calibrate sensors --reference j1=…,j7=…` over the maneuver's first still segment,
+    σ 0.05°), the calibrated config makes the startup answer both `ok` within 0.1° on the
+    same sensors; the written config records the references."""
+    import tempfile
+    from pathlib import Path
+
+    import yaml
+
+    from fusion.configfile import load_arm as load
+    from tools.bench_calibrated import calibrate, calibrated_config, solve_poses, still_means
+    from tools.bench_startup import draw_poses
+
+    rng = np.random.default_rng(11)
+    truth_entries = []
+    for s in ("acc1", "acc2", "acc3", "acc4", "imu"):
+        for eff in ("accel_bias", "base_mount" if s == "imu" else "mount_rotation"):
+            e = build_effect(arm, eff, s)
+            truth_entries.append({"effect": eff, "target": s, "params": {e.key: e.draw(rng).tolist()}})
+    for j in arm.joint_names:
+        truth_entries.append({"effect": "joint_offset", "target": j,
+                              "params": {"offset_rad": [float(rng.normal(0, 0.017))]}})
+    res, truth, _ = calibrate(arm, 5, 100.0, true_effects=truth_entries,
+                              fit_effects="accel_bias,mount_rotation,base_mount", references=("j1", "j7"))
+    assert [c.reference.joint for c in res.reference_checks] == ["j1", "j7"]
+    assert not res.references_contradicted
+    cfg = calibrated_config(res)
+    recorded = cfg["calibration"]["identified"]["references"]
+    assert [(r["joint"], r["sigma_deg"], r["where"]) for r in recorded] == [
+        ("j1", 0.05, "the first still segment"), ("j7", 0.05, "the first still segment")]
+    path = Path(tempfile.mkdtemp()) / "wmra_cal.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
+    q, tilt = draw_poses(arm, 8, rng)
+    prior = q + rng.normal(0, np.radians(10.0), q.shape)
+    means, offset = still_means(arm, 5, q, tilt, rng, true_effects=truth_entries)
+    est, sig, flags = solve_poses(load(str(path)), means, prior)
+    err = np.degrees((est - (q + offset) + np.pi) % (2 * np.pi) - np.pi)
+    for j in (0, 6):
+        ok = flags[:, j] == "ok"
+        assert ok.mean() >= 0.75, flags[:, j]
+        assert np.sqrt(np.mean(err[ok, j] ** 2)) <= 0.1, err[:, j].round(3)
+        assert np.all(np.abs(err[ok, j]) < 4 * np.degrees(sig[ok, j])), (err[:, j], np.degrees(sig[:, j]))
 
 
 def test_a_locked_joint_s_unknown_angle_widens_the_sag_correction_it_drives(arm):
