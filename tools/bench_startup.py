@@ -10,9 +10,10 @@ samples at 100 Hz (noise, rounding to counts, saturation: `models.sensor_models`
 averaged exactly as `calibrate joints` averages a still window. Three priors on the same
 poses: none (no saved pose), a stale saved pose (another pose's: the arm was moved by hand
 while off), and a saved pose near the truth (the true pose + N(0, 10 deg)); after each, the
-proposed disambiguating move is made and the pose solved again (issue 15). With ``--realistic`` every sensor carries datasheet-typical
-errors the solver's config does not know (the simulator's `--realistic` draw of every effect
-in the library, a new imperfect arm every 100 poses), which is the thesis's situation, and
+proposed disambiguating move is made and the pose solved again (issue 15). With
+``--realistic`` every sensor carries datasheet-typical errors the solver's config does not
+know (the simulator's `--realistic` draw of every effect in the library, a new imperfect arm
+every 100 poses), which is the thesis's situation, and
 the solver uses the shipped config's unmodelled-error floor; without it the sensors are
 exactly as configured and the config claims no unmodelled error.
 
@@ -38,9 +39,9 @@ from fusion.configfile import load_arm  # noqa: E402
 from fusion.startup import (  # noqa: E402
     StartupPrior,
     StartupSettings,
-    prior_after_move,
     _expected_sigma,
     _make_problem,
+    prior_after_move,
     readings_from_counts,
     solve_still,
     up_from_tilt,

@@ -71,5 +71,6 @@ def test_ambiguous_joints_are_not_tracked_as_known_until_the_proposed_move_resol
     q_true = np.array([np.interp(last.t_s, true_q.t_s, true_q.values[:, j]) for j in range(arm.n_joints)])
     for j in (2, 3):  # j3, j4: the true branch, within their sigma
         err = abs((last.q_rad[j] - q_true[j] + np.pi) % (2 * np.pi) - np.pi)
-        assert err < 4 * last.sigma_rad[j], (arm.joint_names[j], np.degrees(err), np.degrees(last.sigma_rad[j]))
+        assert err < 4 * last.sigma_rad[j], (arm.joint_names[j], np.degrees(err),
+                                             np.degrees(last.sigma_rad[j]))
     assert any("told apart" in st.message for st in got.snapshot()[1])
