@@ -1229,6 +1229,18 @@ class Tracker:
         # a joint the startup could not read starts at the prior pose (the saved pose, else
         # the ready pose), not at the solve's arbitrary value
         prior = self.arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
+        amb = np.array([j.flag == "ambiguous" for j in startup.joints])
+        cands = startup.candidates_rad
+        if amb.any() and cands is not None and len(cands) > 1:
+            # rival branches: the filter runs on one of them, the one nearest the prior pose
+            # (where the search started: no evidence, so the flag stays `ambiguous` and the
+            # sigma covers every candidate), each one a real minimum with its own covariance
+            d = np.abs((np.asarray(cands) - prior + np.pi) % (2 * np.pi) - np.pi)[:, amb].sum(1)
+            c = int(np.argmin(d))
+            q0 = np.array(cands[c], dtype=float)
+            if startup.candidates_covariance is not None:
+                cov = np.array(startup.candidates_covariance[c], dtype=float)
+            known = known | amb
         q0 = np.where(known, q0, prior)
         jb = np.r_[np.arange(n), n, n + 1]  # joints, roll, pitch in the startup covariance
         tgt = np.r_[np.arange(n), L.roll, L.pitch]

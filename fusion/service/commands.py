@@ -194,6 +194,10 @@ def register(app: typer.Typer) -> None:
         state_max_age_s: Annotated[float, typer.Option(
             "--state-max-age", help="A saved state older than this (s) is stale: calibrate "
                                     "on a still arm instead.")] = 60.0,
+        assume_parked: Annotated[bool, typer.Option(
+            "--assume-parked", help="Take the ready pose as evidence at the startup (the arm is "
+                                    "known to power up parked there): it picks the branches the "
+                                    "still data cannot tell apart, and the status says so.")] = False,
         zenoh_config: ZenohConfigOpt = None,
         listen: ListenOpt = None,
         connect: ConnectOpt = None,
@@ -221,7 +225,8 @@ def register(app: typer.Typer) -> None:
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
                 stop_on_signals(stop):
             node = FusionNode(session, arm, robot, publish_hz=publish_hz, state_path=state_file,
-                              save_period_s=save_every_s, max_state_age_s=state_max_age_s)
+                              save_period_s=save_every_s, max_state_age_s=state_max_age_s,
+                              assume_parked=assume_parked)
             timer = threading.Timer(duration_s, stop.set) if duration_s else None
             if timer:
                 timer.daemon = True

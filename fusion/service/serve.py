@@ -46,7 +46,7 @@ import zenoh
 from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver
-from fusion.startup import prior_after_move
+from fusion.startup import StartupPrior, prior_after_move
 from fusion.static import StaticDetectionSettings, find_static_segments
 from fusion.tracker import (
     ENC,
@@ -176,8 +176,11 @@ class FusionNode:
                  state_path: Path | str | None = None, save_period_s: float = 1.0,
                  max_state_age_s: float = 60.0, max_joint_rate_rad_s: float = 1.5,
                  recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5,
-                 queue_size: int = DEFAULT_QUEUE_SIZE):
+                 queue_size: int = DEFAULT_QUEUE_SIZE, assume_parked: bool = False):
         self.session = session
+        # the ready pose as evidence for the startup's branches only when the caller says the
+        # arm is parked there (serve --assume-parked); by default nothing but the data chooses
+        self.assume_parked = assume_parked
         self.arm = arm
         self.robot = pl.check_name(robot, "robot")
         self.settings = settings
@@ -386,7 +389,8 @@ class FusionNode:
         self._next_try_t = t_now + self.retry_s
         try:
             # (the unlock-move search is for a person asking: calibrate on request shows it)
-            tracker, start = start_from_recording(self.arm, rec, self.settings, propose_unlock=False)
+            tracker, start = start_from_recording(self.arm, rec, self.settings, propose_unlock=False,
+                                                  prior=self._parked_prior())
         except NoStillWindowError as e:
             self._message = f"waiting for a still arm: {e}"
             return
@@ -396,8 +400,10 @@ class FusionNode:
             return
         self._rates_hz = {k: (v.rate_hz or 100.0) for k, v in rec.raw().items()}
         self._start = start
+        assumed = ("; its branches rest on an assumption: the arm parked at its ready pose "
+                   "(--assume-parked)" if self.assume_parked else "")
         self._begin(tracker, rec, f"startup calibration on the still stretch {start.t_start_s:.2f}"
-                                  f"-{start.t_end_s:.2f} s; tracking" + _ambiguity_note(start))
+                                  f"-{start.t_end_s:.2f} s; tracking" + assumed + _ambiguity_note(start))
 
     def _begin(self, tracker: Tracker, rec: Recording, message: str) -> None:
         """Track with ``tracker`` from its time on; ``rec``'s later samples go to it first."""
@@ -460,7 +466,8 @@ class FusionNode:
                           f"({seg.t_start_s:.2f}-{seg.t_end_s:.2f} s); ask again when it is still")
         window = _merge({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
         try:
-            tracker, start = start_from_recording(self.arm, window, self.settings)
+            tracker, start = start_from_recording(self.arm, window, self.settings,
+                                                  prior=self._parked_prior())
         except NoStillWindowError as e:
             return refuse(f"the arm moves: {e}")
         except (ValueError, KeyError) as e:
@@ -496,6 +503,9 @@ class FusionNode:
                 self._next_pub_t = t + self.publish_period_s
         if self._start is not None and tr.ambiguity():
             self._try_resolve(tr.t_s)
+
+    def _parked_prior(self):
+        return StartupPrior.assume_parked(self.arm) if self.assume_parked else None
 
     def _try_resolve(self, t_now: float) -> None:
         """Joints the startup left ambiguous: on each new still stretch after it, solve again

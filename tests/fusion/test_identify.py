@@ -6,6 +6,7 @@ import pytest
 
 from fusion.configfile import load_arm
 from fusion.identify import FitData, IdentifySettings, identify, startup_correction
+from fusion.startup import StartupPrior
 from models.effects import Model, build_effect
 from models.trajectories import make_scenario
 
@@ -173,12 +174,13 @@ def test_calibrated_config_makes_the_startup_ok_on_the_same_sensors(arm):
     cal = load(str(path))
     assert cal.calibration["accel_unmodelled_g"] < 0.005  # far below the uncalibrated 45 mg
     q, tilt = draw_poses(arm, 8, rng)
-    prior = q + rng.normal(0, np.radians(10.0), q.shape)
+    # the pose saved at the last clean shutdown, near the truth (checked against the data)
+    prior = [StartupPrior.saved_pose(p, sigma_deg=10.0) for p in q + rng.normal(0, np.radians(10.0), q.shape)]
     means, offset = still_means(arm, 5, q, tilt, rng, true_effects=truth_entries)
     truth_q = q + offset + convention_shift(res, truth)
-    _, _, flags0 = solve_poses(load("wmra"), means, prior)
+    _, _, flags0, _ = solve_poses(load("wmra"), means, prior)
     assert np.mean(flags0 != "ok") > 0.9  # uncalibrated: honestly flagged
-    est, sig, flags = solve_poses(cal, means, prior)
+    est, sig, flags, _ = solve_poses(cal, means, prior)
     ok = flags == "ok"
     # about as often ok as with perfect sensors (random poses: some near a lock or ambiguous)
     assert ok.mean() > 0.6, flags
@@ -223,9 +225,9 @@ def test_one_time_references_make_j1_and_j7_ok_after_self_calibration(arm):
     path = Path(tempfile.mkdtemp()) / "wmra_cal.yaml"
     path.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
     q, tilt = draw_poses(arm, 8, rng)
-    prior = q + rng.normal(0, np.radians(10.0), q.shape)
+    prior = [StartupPrior.saved_pose(p, sigma_deg=10.0) for p in q + rng.normal(0, np.radians(10.0), q.shape)]
     means, offset = still_means(arm, 5, q, tilt, rng, true_effects=truth_entries)
-    est, sig, flags = solve_poses(load(str(path)), means, prior)
+    est, sig, flags, _ = solve_poses(load(str(path)), means, prior)
     err = np.degrees((est - (q + offset) + np.pi) % (2 * np.pi) - np.pi)
     for j in (0, 6):
         ok = flags[:, j] == "ok"

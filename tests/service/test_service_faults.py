@@ -69,7 +69,8 @@ def test_a_sensor_that_stops_is_flagged_stale_and_the_estimates_go_on(
     assert last.t_s > rec.t_end_s - 0.15
     assert {k: v for k, v in last.sensors if k.startswith("acc")} == {
         "acc1": "ok", "acc2": "stale", "acc3": "ok", "acc4": "ok"}
-    ok = np.array([f != "gimbal_lock" for f in last.flags])
+    # (joints the startup could not choose a branch for, with no saved pose, are not claimed)
+    ok = np.array([f not in ("gimbal_lock", "ambiguous") for f in last.flags])
     assert np.all(_error_deg(rec, last)[ok] < 0.5), (_error_deg(rec, last), last.flags)
     # the status says so too; and once the whole feed has stopped (the replay is over), that
     # every sensor is stale
@@ -154,10 +155,13 @@ def test_a_restarted_node_resumes_from_its_saved_state_while_the_arm_moves(
     joints = got.snapshot()[0]
     assert joints and joints[0].t_s < 6.9 and joints[-1].t_s > 8.8
     # the arm swept on while the node was down and after: still tracked within a degree
+    # (the renk maneuver starts at the park pose: with no saved pose the startup leaves the
+    # j3-j4 and j5-j6 pairs ambiguous, and the resumed state carries that on: not claimed)
     for js in (joints[len(joints) // 2], joints[-1]):
-        ok = np.array([f not in ("gimbal_lock", "unobserved") for f in js.flags])
-        assert ok.sum() >= 5 and np.all(_error_deg(renk_recording, js)[ok] < 1.0), \
+        ok = np.array([f not in ("gimbal_lock", "unobserved", "ambiguous") for f in js.flags])
+        assert ok.sum() >= 3 and np.all(_error_deg(renk_recording, js)[ok] < 1.0), \
             (_error_deg(renk_recording, js), js.flags)
+        assert set(js.flags) - {"ambiguous"}, js.flags
 
     # the same samples without a saved state: the arm moves, so no startup calibration
     with fusion_node(listener, arm) as (node, result), open_session(connector) as s:
