@@ -59,7 +59,7 @@ __all__ = [
 ]
 
 _BLOCK_ROWS = 65536  # rows parsed per np.loadtxt call at most
-_BLOCK_CELLS = 1 << 21  # and cells: the fixed-width parse of a block takes ~ cells * 32 B
+_BLOCK_CELLS = 1 << 19  # and cells: a block's parse takes ~ 100 B a cell (~50 MB)
 _BLOCK_CHARS = 1 << 24  # and characters of text held at once
 _CELL_BYTES = 32  # fixed cell width for parsing; wider cells trigger a re-parse to the limit
 _ECHO_START = 16  # characters of a too-long cell quoted in its message
@@ -299,10 +299,11 @@ def _parse_block(
     """Cells of the used columns as a ``(rows, len(usecols))`` byte-string array."""
     # Fixed-width cells parse fast; a cell that fills the width may have been cut, so
     # that block is parsed again with cells one longer than the limit, to find any beyond.
-    cells = _loadtxt(path, block, usecols, row_offset, f"S{_CELL_BYTES}")
-    if cells.size and np.char.str_len(cells).max() >= _CELL_BYTES:
-        width = max(limits.max_cell_chars + 1, _CELL_BYTES)
-        cells = _loadtxt(path, block, usecols, row_offset, f"S{width}")
+    first = min(_CELL_BYTES, limits.max_cell_chars + 1)
+    cells = _loadtxt(path, block, usecols, row_offset, f"S{first}")
+    if cells.size and np.char.str_len(cells).max() >= first:
+        if first <= limits.max_cell_chars:
+            cells = _loadtxt(path, block, usecols, row_offset, f"S{limits.max_cell_chars + 1}")
         too_long = np.char.str_len(cells) > limits.max_cell_chars
         if too_long.any():
             i, j = (int(x[0]) for x in np.nonzero(too_long))
