@@ -329,7 +329,8 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
 
 
 def _numlist(v) -> bool:
-    return isinstance(v, list) and all(isinstance(x, int | float) for x in v)
+    """A list of finite numbers (a NaN or an infinity is said once, by the field's own check)."""
+    return isinstance(v, list) and all(isinstance(x, int | float) and np.isfinite(x) for x in v)
 
 
 def build_arm(
