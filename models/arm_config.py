@@ -312,11 +312,12 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
                                      "the arm has no link accelerometer"))
         accels = [s.get("name") for s in sensors
                   if isinstance(s, dict) and s.get("type") in ("adxl345", "analog_triax")]
-        has_imu = any(isinstance(s, dict) and s.get("type") == "mpu9150" for s in sensors)
+        imus = [s.get("name") for s in sensors if isinstance(s, dict) and s.get("type") == "mpu9150"]
         cal = data.get("calibration")
         if isinstance(cal, dict):
-            for key, allowed in (("accel_unmodelled_g_per_sensor", accels),
-                                 ("correction_covariance", accels + ["imu_acc"] * has_imu)):
+            # per sensor: by the sensor's name (the IMU's too); covariances: by stream
+            for key, allowed in (("accel_unmodelled_g_per_sensor", accels + imus),
+                                 ("correction_covariance", accels + ["imu_acc"] * bool(imus))):
                 given = cal.get(key)
                 if isinstance(given, dict):
                     for name in given:

@@ -3,8 +3,9 @@
 The format is ``shared/spec/recording-csv.md``: one header row, then one row per
 sample instant; an empty cell means that sensor was not sampled at that instant.
 Each stream takes the rows where *all* of its columns are filled; a row with only
-some of them filled is an error. Unknown columns are ignored with one
-:class:`RecordingWarning` that names them.
+some of them filled is an error, and so is a row with fewer or more cells than the
+header. One :class:`RecordingWarning` names the sensors left out because only some of
+their columns are there, and the first few unknown columns ignored.
 
 Which columns make which stream (see :mod:`sensors.samples`):
 
@@ -18,6 +19,12 @@ Which columns make which stream (see :mod:`sensors.samples`):
 
 Parsing is column-wise with numpy (``np.loadtxt`` on fixed-width byte strings, in
 blocks), so a one-hour, 100 Hz, 30-column file reads in a few seconds.
+
+The reader bounds its work (:class:`CsvLimits`: file size, line length, header
+columns, the length of a cell in use; a NUL byte is refused), so that a broken or
+hostile file is refused with a :class:`~sensors.samples.RecordingError` naming the
+place, within bounded time and memory, as soon as the problem is met
+(``docs/cli.md``, "What the readers refuse").
 """
 
 from __future__ import annotations

@@ -137,7 +137,7 @@ def test_an_unmodelled_error_of_lots_fails_at_load_naming_the_key(
          "calibration.mag_unmodelled_ut: Input should be greater than or equal to 0 (got -3)"),
         (lambda d: d["calibration"].__setitem__("accel_unmodelled_g_per_sensor", {"acc9": 0.01}),
          "calibration.accel_unmodelled_g_per_sensor.acc9: no such accelerometer in sensors "
-         "(it has acc1, acc2, acc3, acc4) (got 'acc9')"),
+         "(it has acc1, acc2, acc3, acc4, imu) (got 'acc9')"),
         (lambda d: d["calibration"].__setitem__("unmodeled_g", 0.01),
          "calibration.unmodeled_g: unknown key (got 0.01)"),
         (lambda d: d["calibration"].__setitem__(
