@@ -209,28 +209,40 @@ def test_a_sensor_missing_one_axis_is_said_to_be_incomplete(tmp_path: Path) -> N
 
 # ---------------------------------------------------------------------------- fuzzing
 
-_NAMES = ["t", "acc1_x", "acc1_y", "acc1_z", "acc2_x", "enc1", "enc2", "imu_mx", "imu_my",
-          "imu_mz", "imu_temp", "true_q1", "true_roll", "note", "t", "", "acc1_y "]
-_CELLS = st.one_of(
+_GROUPS = [("acc1_x", "acc1_y", "acc1_z"), ("acc2_x", "acc2_z"), ("enc1", "enc2"), ("enc3",),
+           ("imu_mx", "imu_my", "imu_mz"), ("imu_temp",), ("true_q1",), ("true_roll",),
+           ("note",), ("",), ("acc1_y ",)]
+_HOSTILE_CELLS = st.one_of(
     st.integers(-(2**70), 2**70).map(str),
     st.floats(allow_nan=True, allow_infinity=True).map(repr),
-    st.sampled_from(["", " ", "nan", "-", "+", "1e400", "0x10", "1_000", '"', '"1,2"', "\0",
+    st.sampled_from([" ", "nan", "-", "+", "1e400", "0x10", "1_000", '"', '"1,2"', "\0",
                      "\ufeff", "é", "1" * 80, "\r", "'"]),
     st.text(max_size=6),
 )
+# mostly a count, sometimes empty, now and then something hostile
+_CELLS = st.integers(0, 19).flatmap(
+    lambda k: st.integers(-600, 600).map(str) if k < 15 else st.just("") if k < 18 else _HOSTILE_CELLS)
 _LIMITS = CsvLimits(max_file_bytes=50_000, max_columns=12, max_cell_chars=40, max_line_chars=300)
 
 
 @st.composite
 def _files(draw) -> bytes:
-    if draw(st.integers(0, 9)) == 0:  # sometimes just bytes
+    """Mostly near-valid recordings (a header starting with t, known column groups,
+    increasing times, small counts) with hostile cells, widths and bytes mixed in."""
+    if draw(st.integers(0, 19)) == 0:  # sometimes just bytes
         return draw(st.binary(max_size=300))
-    header = draw(st.lists(st.sampled_from(_NAMES), min_size=1, max_size=14))
+    groups = draw(st.lists(st.sampled_from(_GROUPS), max_size=6, unique=True))
+    header = ["t"] + [c for g in groups for c in g]
+    if draw(st.integers(0, 9)) == 0:  # t elsewhere, or twice
+        header = draw(st.permutations(header + draw(st.sampled_from([[], ["t"]]))))
     n_rows = draw(st.integers(0, 8))
     rows = []
-    for _ in range(n_rows):
-        width = len(header) + draw(st.sampled_from([0, 0, 0, -1, 1]))
-        rows.append(",".join(draw(_CELLS) for _ in range(max(width, 0))))
+    for k in range(n_rows):
+        width = len(header) + draw(st.sampled_from([0] * 8 + [-1, 1]))
+        cells = [draw(_CELLS) for _ in range(max(width, 0))]
+        if cells and draw(st.integers(0, 9)) < 8:
+            cells[0] = f"{k * 0.01:.2f}"  # a proper time, mostly
+        rows.append(",".join(cells))
     newline = draw(st.sampled_from(["\n", "\r\n", "\r"]))
     return newline.join([",".join(header), *rows]).encode("utf-8", "surrogatepass")
 
