@@ -307,23 +307,30 @@ def _parse_block(
     # Fixed-width cells parse fast; a cell that fills the width may have been cut, so
     # that block is parsed again with cells one longer than the limit, to find any beyond.
     first = min(_CELL_BYTES, limits.max_cell_chars + 1)
-    cells = _loadtxt(path, block, usecols, row_offset, f"S{first}")
+    cells = _loadtxt(path, block, used, usecols, row_offset, lines, f"S{first}")
     if cells.size and np.char.str_len(cells).max() >= first:
         if first <= limits.max_cell_chars:
-            cells = _loadtxt(path, block, usecols, row_offset, f"S{limits.max_cell_chars + 1}")
+            cells = _loadtxt(path, block, used, usecols, row_offset, lines,
+                             f"S{limits.max_cell_chars + 1}")
         too_long = np.char.str_len(cells) > limits.max_cell_chars
         if too_long.any():
             i, j = (int(x[0]) for x in np.nonzero(too_long))
             raise _row_error(
                 path, row_offset + i, lines,
                 f"column {clipped_repr(used[j])}: a cell longer than {limits.max_cell_chars} "
-                f"characters (it starts {cells[i, j][:_ECHO_START].decode('utf-8', 'replace')!r}); "
+                f"characters (it starts {_text(cells[i, j][:_ECHO_START])!r}); "
                 "no number needs so many",
             )
     return cells
 
 
-def _loadtxt(path: Path, block: list[str], usecols: list[int], row_offset: int, dtype: str) -> np.ndarray:
+_LOADTXT_PLACE = re.compile(r"at row (\d+), column (\d+)")
+
+
+def _loadtxt(
+    path: Path, block: list[str], used: list[str], usecols: list[int], row_offset: int, lines,
+    dtype: str,
+) -> np.ndarray:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
@@ -338,6 +345,18 @@ def _loadtxt(path: Path, block: list[str], usecols: list[int], row_offset: int, 
                 encoding="utf-8",
             )
     except ValueError as e:
+        # numpy names the block's row (from 0) and the file's column (from 1): say it
+        # our way, with the cell (a letter outside ASCII in a number column, say)
+        m = _LOADTXT_PLACE.search(str(e))
+        if m and int(m.group(1)) < len(block) and int(m.group(2)) - 1 in usecols:
+            i, c = int(m.group(1)), int(m.group(2)) - 1
+            try:
+                cell = next(csv.reader([block[i]]))[c].strip()
+            except (csv.Error, IndexError):
+                cell = "?"
+            raise _row_error(path, row_offset + i, lines,
+                             f"column {clipped_repr(used[usecols.index(c)])}: "
+                             f"{clipped_repr(cell)} is not a number") from None
         raise RecordingError(
             f"{path}: cannot parse rows {row_offset + 1}..{row_offset + len(block)}: "
             f"{clipped_repr(str(e), 80)}"
@@ -412,18 +431,24 @@ def _parse_block_values(
 _INT64 = (-(2**63), 2**63 - 1)
 
 
+def _text(cell: bytes) -> str:
+    """A parsed cell as the file wrote it: numpy stores the characters below 256 of a
+    byte-string cell one byte each (latin-1); any other makes it fail earlier."""
+    return cell.decode("latin-1")
+
+
 def _convert(path: Path, name: str, cell: bytes, conv: type, row0: int, lines):
     try:
         value = conv(cell)
     except ValueError:
         kind = "an integer (raw counts)" if conv is int else "a number"
         raise _row_error(
-            path, row0, lines, f"column {clipped_repr(name)}: {clipped_repr(cell)} is not {kind}"
+            path, row0, lines, f"column {clipped_repr(name)}: {clipped_repr(_text(cell))} is not {kind}"
         ) from None
     if conv is int and not _INT64[0] <= value <= _INT64[1]:
         raise _row_error(
             path, row0, lines,
-            f"column {clipped_repr(name)}: {clipped_repr(cell)} is beyond any count "
+            f"column {clipped_repr(name)}: {clipped_repr(_text(cell))} is beyond any count "
             "(raw counts are 64-bit integers)",
         )
     return value

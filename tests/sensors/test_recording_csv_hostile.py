@@ -5,6 +5,7 @@ time and memory; a fuzzing pass checks that nothing else ever escapes the reader
 from __future__ import annotations
 
 import os
+import re
 import time
 import tracemalloc
 import warnings
@@ -167,6 +168,15 @@ def test_memory_stays_a_small_multiple_of_the_file_plus_a_fixed_block(tmp_path: 
         tracemalloc.stop()
     np.testing.assert_array_equal(rec.get("enc").values, counts[:, 3:])
     assert peak < 4 * p.stat().st_size + 50e6  # a 1.1 MB file
+
+
+@pytest.mark.parametrize("cell, kind", [("Ðé", "an integer \\(raw counts\\)"),
+                                        ("\U0005afd5x", "a number")])
+def test_a_cell_of_letters_outside_ascii_is_quoted_as_written(tmp_path: Path, cell: str, kind: str) -> None:
+    p = _write(tmp_path / "u.csv", HEADER + _rows(3, bad_row=1, bad_cell=cell))
+    with pytest.raises(RecordingError, match=rf"u\.csv: row 2 \(line 3\): column 'acc1_y': "
+                                             rf"{re.escape(repr(cell))} is not {kind}"):
+        read_csv(p)
 
 
 # ---------------------------------------------------------------------------- row widths
