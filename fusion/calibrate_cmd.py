@@ -56,7 +56,7 @@ def calibrate_joints(
     if method not in ("joint", "sequential"):
         fail(f"--method must be 'joint' or 'sequential', not {method!r}")
     arm = load_arm_or_exit(config)
-    rec = read_recording_or_exit(recording)
+    rec = read_recording_or_exit(recording, arm)
     st = StartupSettings(gimbal_lock_deg=gimbal_lock_deg, sigma_limit_deg=sigma_limit_deg)
     notes: list[str] = []
     first_prior = None

@@ -122,12 +122,15 @@ def inspect(
     if d.get("read_report"):
         console.print(f"[yellow]{d['read_report']}[/]")
     t = Table(title="Streams", title_justify="left")
-    for col in ("stream", "kind", "channels", "samples", "rate [Hz]", "gaps", "longest gap [s]"):
-        t.add_column(col, justify="right" if col in ("samples", "rate [Hz]", "gaps",
+    for col in ("stream", "kind", "channels", "samples", "rate [Hz]", "gaps (missing)",
+                "longest gap [s]"):
+        t.add_column(col, justify="right" if col in ("samples", "rate [Hz]", "gaps (missing)",
                                                      "longest gap [s]") else "left")
     for s in d["streams"]:
         t.add_row(s["name"], s["kind"], ", ".join(s["channels"]), str(s["samples"]),
-                  f"{s['rate_hz']:.1f}", str(s["gaps"]), f"{s['longest_gap_s']:.3f}")
+                  f"{s['rate_hz']:.1f}",
+                  f"{s['gaps']} ({s['missing_samples']})" if s["gaps"] else "0",
+                  f"{s['longest_gap_s']:.3f}")
     console.print(t)
     segs = d["static_segments"]
     if segs:

@@ -55,7 +55,11 @@ def load_arm_or_exit(config: str):
         fail(str(e))
 
 
-def read_recording_or_exit(path: Path):
+def read_recording_or_exit(path: Path, arm=None):
+    """The recording at ``path``, or a one-line error and exit 2. With ``arm`` (the
+    command's config), also exit 2 when the recording does not fit it (an encoder per
+    joint, a config sensor's channels: ``models.sensor_models.recording_problems``):
+    this is where every command's recording meets its config."""
     from sensors.recording import read_recording
 
     if not path.exists():
@@ -70,4 +74,11 @@ def read_recording_or_exit(path: Path):
         fail(f"cannot read recording {path}: {e}")
     for w in caught:
         err_console.print(f"[yellow]warning:[/] {w.message}", highlight=False)
+    if arm is not None:
+        from models.sensor_models import recording_problems
+
+        problems = recording_problems(arm, rec)
+        if problems:
+            fail(f"recording {path} does not fit the arm config {arm.source}: "
+                 + "; ".join(problems))
     return rec

@@ -7,14 +7,97 @@ is a path. Validation itself is :func:`models.arm_config.build_arm`.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
 
 from models.arm import ArmModel, Joint
 from models.arm_config import ConfigError, ConfigProblem, build_arm
+from sensors.samples import clipped_repr
 
 REPO_CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+
+MAX_CONFIG_BYTES = 4_000_000
+"""A config file larger than this is refused unread (the shipped ones are 2-4 kB; a
+calibrated one with its covariances some tens of kB)."""
+
+MAX_YAML_VALUES = 200_000
+"""Values a YAML file may hold once its aliases are expanded: a 300-byte "alias bomb"
+(nine anchors each repeating the one before ten times) means 10^9 of them."""
+
+
+def _yaml_problem(source: str, where: str, message: str) -> ConfigError:
+    return ConfigError([ConfigProblem(source, where, None, message)])
+
+
+def _expanded_size(node: yaml.Node, source: str) -> int:
+    """How many values ``node`` holds with every alias expanded, counted without
+    expanding (each node once, by identity); refuses past :data:`MAX_YAML_VALUES` and
+    a node that contains itself."""
+    sizes: dict[int, int] = {}
+    open_nodes: set[int] = set()
+
+    def size(n: yaml.Node) -> int:
+        key = id(n)
+        if key in sizes:
+            return sizes[key]
+        if key in open_nodes:
+            raise _yaml_problem(source, f"line {n.start_mark.line + 1}",
+                                "a YAML alias refers to a node that contains it (a recursive alias)")
+        open_nodes.add(key)
+        total = 1
+        if isinstance(n, yaml.SequenceNode):
+            total += sum(size(c) for c in n.value)
+        elif isinstance(n, yaml.MappingNode):
+            total += sum(size(k) + size(v) for k, v in n.value)
+        open_nodes.discard(key)
+        sizes[key] = total
+        if total > MAX_YAML_VALUES:
+            raise _yaml_problem(
+                source, f"line {n.start_mark.line + 1}",
+                f"its aliases expand to more than {MAX_YAML_VALUES} values (a YAML alias bomb?); "
+                "a config is far smaller")
+        return total
+
+    return size(node)
+
+
+def read_yaml(path: Path) -> Any:
+    """A YAML file's data, read safely and within bounds, or :class:`ConfigError` with a
+    one-line reason: not a file of at most :data:`MAX_CONFIG_BYTES`, not UTF-8 text, not
+    YAML, nested too deeply, or aliases that expand past :data:`MAX_YAML_VALUES`. Only
+    plain data is built (``yaml.SafeLoader``: no Python objects)."""
+    source = str(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_CONFIG_BYTES:
+            raise _yaml_problem(source, "(file)", f"{size} bytes is more than a config may be "
+                                                  f"({MAX_CONFIG_BYTES}); is it a config?")
+        raw = path.read_bytes()[: MAX_CONFIG_BYTES + 1]
+    except OSError as e:
+        raise _yaml_problem(source, "(file)", f"cannot read it: {e.strerror or e}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise _yaml_problem(source, f"byte {e.start}",
+                            "not UTF-8 text; a config is a YAML text file") from None
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _expanded_size(node, source)
+        return loader.construct_document(node)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "(file)"
+        what = getattr(e, "problem", None) or type(e).__name__
+        raise _yaml_problem(source, where, f"not valid YAML: {clipped_repr(what, 80)[1:-1]}") from None
+    except RecursionError:
+        raise _yaml_problem(source, "(file)", "nested too deeply to be a config") from None
+    finally:
+        loader.dispose()
 
 
 def resolve_config_path(name_or_path: str | Path) -> Path:
@@ -45,20 +128,23 @@ def load_arm(name_or_path: str | Path) -> ArmModel:
             source, "(file)", path.name,
             "a URDF holds the kinematics only; reference it from a YAML config "
             "(arm.urdf: file.urdf) that adds joint limits, encoder counts and sensors")])
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "(file)"
-        raise ConfigError([ConfigProblem(source, where, None, f"not valid YAML: {e}")]) from e
+    data = read_yaml(path)
     urdf_joints = None
-    if isinstance(data, dict) and isinstance(data.get("arm"), dict) and data["arm"].get("urdf"):
+    if (isinstance(data, dict) and isinstance(data.get("arm"), dict)
+            and isinstance(data["arm"].get("urdf"), str) and data["arm"]["urdf"]):
         urdf_path = (path.parent / data["arm"]["urdf"]).resolve()
         try:
             urdf_joints = joints_from_urdf(urdf_path)
         except (OSError, ValueError) as e:
             raise ConfigError([ConfigProblem(source, "arm.urdf", data["arm"]["urdf"], str(e))]) from e
-    return build_arm(data, source, urdf_joints)
+    arm = build_arm(data, source, urdf_joints)
+    # the effects too, now: a bad one found later would be blamed on the recording
+    from models.effects import model_problems
+
+    _, problems = model_problems(arm, arm.effects, source, "effects")
+    if problems:
+        raise ConfigError(problems)
+    return arm
 
 
 def joints_from_urdf(path: Path) -> tuple[Joint, ...]:

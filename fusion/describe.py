@@ -9,8 +9,14 @@ from models.arm import ArmModel
 from models.kinematics import joint_axis_angle_to_vertical
 from sensors.samples import Recording, Stream
 
-GAP_FACTOR = 3.0
-"""A gap is an interval longer than this many median sample periods."""
+GAP_FACTOR = 1.5
+"""A gap is an interval longer than this many sample periods: at least one sample is
+missing there (one missing sample makes an interval of two periods). It was 3, which
+let a stream missing one sample in five pass as "0 gaps"."""
+
+PERIOD_PERCENTILE = 10.0
+"""The stream's sample period is this percentile of its intervals: the median is no
+period when half of them span a missing sample."""
 
 
 def describe_arm(arm: ArmModel) -> dict:
@@ -60,19 +66,22 @@ def describe_arm(arm: ArmModel) -> dict:
     }
 
 
-def stream_gaps(s: Stream) -> tuple[int, float]:
-    """Number of gaps and the longest interval between samples [s]."""
+def stream_gaps(s: Stream) -> tuple[int, float, int]:
+    """Number of gaps, the longest interval between samples [s], and how many samples
+    the gaps miss (each gap's interval in sample periods, less one)."""
     if len(s) < 3:
-        return 0, float(np.diff(s.t_s).max()) if len(s) == 2 else 0.0
+        return 0, float(np.diff(s.t_s).max()) if len(s) == 2 else 0.0, 0
     dt = np.diff(s.t_s)
-    med = float(np.median(dt))
-    return int(np.sum(dt > GAP_FACTOR * med)), float(dt.max())
+    period = float(np.percentile(dt, PERIOD_PERCENTILE))
+    gap = dt > GAP_FACTOR * period
+    missing = int(np.sum(np.maximum(np.rint(dt[gap] / period) - 1, 1)))
+    return int(np.sum(gap)), float(dt.max()), missing
 
 
 def describe_recording(rec: Recording, settings: StaticDetectionSettings | None = None) -> dict:
     streams = []
     for s in rec.streams.values():
-        n_gaps, longest = stream_gaps(s)
+        n_gaps, longest, missing = stream_gaps(s)
         streams.append({
             "name": s.name,
             "kind": s.kind,
@@ -82,6 +91,8 @@ def describe_recording(rec: Recording, settings: StaticDetectionSettings | None 
             "t_start_s": float(s.t_s[0]) if len(s) else None,
             "t_end_s": float(s.t_s[-1]) if len(s) else None,
             "gaps": n_gaps,
+            "missing_samples": missing,
+            "missing_percent": 100.0 * missing / (len(s) + missing) if len(s) else 0.0,
             "longest_gap_s": longest,
         })
     segs = find_static_segments(rec, settings) if rec.raw() else []

@@ -114,7 +114,7 @@ def diagnose_command(
 ) -> None:
     """Compare the model with a recording: where it fails, which physical effect is missing."""
     arm = load_arm_or_exit(config)
-    rec = read_recording_or_exit(recording)
+    rec = read_recording_or_exit(recording, arm)
     try:
         added = parse_add(arm, add or [])
     except (KeyError, TargetError) as e:

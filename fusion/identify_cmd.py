@@ -148,7 +148,7 @@ def calibrate_sensors(
     if mode not in ("separate", "simultaneous"):
         fail(f"--mode must be 'separate' or 'simultaneous', not {mode!r}")
     arm = load_arm_or_exit(config)
-    rec = read_recording_or_exit(recording)
+    rec = read_recording_or_exit(recording, arm)
     try:
         model = build_model(arm, effects)
         data = data_from_recording(arm, rec, window, nodes=2, stances=stances)

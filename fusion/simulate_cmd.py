@@ -21,10 +21,9 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-import yaml
 
 from fusion.cli_common import json_default
-from fusion.configfile import load_arm
+from fusion.configfile import load_arm, read_yaml
 from models.arm import ArmModel
 from models.arm_config import ConfigError, ConfigProblem
 from models.effects import EFFECTS, Model, model_from_entries, parse_effect_option
@@ -43,11 +42,13 @@ def load_effect_entries(path: str | Path) -> list[dict]:
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"effects file not found: {p}")
-    text = p.read_text(encoding="utf-8")
-    try:
-        data = json.loads(text) if p.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (json.JSONDecodeError, yaml.YAMLError) as e:
-        raise ConfigError([ConfigProblem(str(p), "(file)", p.name, f"not valid JSON/YAML: {e}")]) from e
+    if p.suffix.lower() == ".json":
+        try:
+            data = json.loads(p.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise ConfigError([ConfigProblem(str(p), "(file)", p.name, f"not valid JSON: {e}")]) from e
+    else:
+        data = read_yaml(p)  # bounded: an alias bomb is refused
     entries = data.get("effects") if isinstance(data, dict) else data
     if not isinstance(entries, list):
         raise ConfigError([ConfigProblem(str(p), "effects", type(entries).__name__,

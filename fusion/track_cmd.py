@@ -61,7 +61,7 @@ def track(
             fail(f"--unmodelled-g must be >= 0, not {unmodelled_g!r}")
         arm = replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": unmodelled_g,
                                         "accel_unmodelled_g_per_sensor": {}})
-    rec = read_recording_or_exit(recording)
+    rec = read_recording_or_exit(recording, arm)
     notes: list[str] = []
     rec, note = _scoring_truth(rec, recording, arm.joint_names)
     if note:

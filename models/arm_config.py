@@ -9,10 +9,10 @@ Units are in the key names: ``_deg``, ``_mm``. Inside the model everything is SI
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from models.arm import (
     SENSOR_TYPES,
@@ -23,6 +23,7 @@ from models.arm import (
     joints_from_dh,
 )
 from models.rotations import rotation_problem
+from sensors.samples import clipped_repr
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,10 @@ class ConfigProblem:
     message: str
 
     def __str__(self) -> str:
-        return f"{self.source}: {self.key}: {self.message} (got {self.value!r})"
+        # a value is quoted short: a list of a million numbers, or what a YAML alias
+        # expands to, must not become a message of megabytes
+        got = "" if self.value is None else f" (got {clipped_repr(self.value, 60)})"
+        return f"{self.source}: {self.key}: {self.message}{got}"
 
 
 class ConfigError(ValueError):
@@ -47,7 +51,8 @@ class ConfigError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # every number finite: d_mm: .inf is a typo, not an arm
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class DhSection(_Strict):
@@ -125,6 +130,51 @@ class EffectEntry(_Strict):
     note: str | None = None
 
 
+UnmodelledG = Annotated[float, Field(ge=0.0, le=1.0)]
+"""An accelerometer's unmodelled error, 1 sigma per axis, in g: 0 to 1 g (more than
+gravity itself would make the sensor useless)."""
+
+
+class CovarianceEntry(_Strict):
+    """One stream's correction covariance, as ``calibrate sensors --write`` gives it."""
+
+    elements: list[str]
+    matrix: list[list[float]]
+
+    @model_validator(mode="after")
+    def _square(self) -> CovarianceEntry:
+        n = len(self.elements)
+        if len(self.matrix) != n or any(len(row) != n for row in self.matrix):
+            raise ValueError(f"matrix must be {n} x {n}, one row and column per element")
+        m = np.array(self.matrix, dtype=float) if n else np.zeros((0, 0))
+        # the file holds 6 significant digits: symmetric to that
+        scale = float(np.abs(np.diag(m)).max()) if n else 0.0
+        if n and (np.any(np.diag(m) < 0) or not np.allclose(m, m.T, rtol=1e-4, atol=1e-9 * scale)):
+            raise ValueError("matrix must be symmetric with a non-negative diagonal (a covariance)")
+        return self
+
+
+class IdentifiedRecord(_Strict):
+    """What the fit that calibrated this config did (written by ``calibrate sensors``)."""
+
+    mode: str | None = None
+    samples: int | None = Field(default=None, ge=0)
+    chi2_red: float | None = Field(default=None, ge=0.0)
+    held: list[str] = Field(default_factory=list)
+    joint_zero_conventions: list[str] = Field(default_factory=list)
+
+
+class CalibrationSection(_Strict):
+    """The ``calibration:`` block: how far the sensors' model is to be trusted."""
+
+    accel_unmodelled_g: UnmodelledG | None = None
+    accel_unmodelled_g_per_sensor: dict[str, UnmodelledG] | None = None
+    imu_accel_unmodelled_g: UnmodelledG | None = None
+    mag_unmodelled_ut: float | None = Field(default=None, ge=0.0, le=1000.0)
+    correction_covariance: dict[str, CovarianceEntry] | None = None
+    identified: IdentifiedRecord | None = None
+
+
 class ArmSection(_Strict):
     name: str
     description: str | None = None
@@ -139,7 +189,7 @@ class ArmConfigFile(_Strict):
     arm: ArmSection
     sensors: list[SensorSection]
     effects: list[EffectEntry] = Field(default_factory=list)
-    calibration: dict[str, Any] = Field(default_factory=dict)
+    calibration: CalibrationSection = Field(default_factory=CalibrationSection)
 
 
 def _loc(loc: tuple) -> str:
@@ -260,11 +310,28 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
                    for s in sensors):
             out.append(ConfigProblem(source, "sensors", len(sensors),
                                      "the arm has no link accelerometer"))
+        accels = [s.get("name") for s in sensors
+                  if isinstance(s, dict) and s.get("type") in ("adxl345", "analog_triax")]
+        imus = [s.get("name") for s in sensors if isinstance(s, dict) and s.get("type") == "mpu9150"]
+        cal = data.get("calibration")
+        if isinstance(cal, dict):
+            # per sensor: by the sensor's name (the IMU's too); covariances: by stream
+            for key, allowed in (("accel_unmodelled_g_per_sensor", accels + imus),
+                                 ("correction_covariance", accels + ["imu_acc"] * bool(imus))):
+                given = cal.get(key)
+                if isinstance(given, dict):
+                    for name in given:
+                        if name not in allowed:
+                            out.append(ConfigProblem(
+                                source, f"calibration.{key}.{name}", name,
+                                "no such accelerometer in sensors (it has "
+                                f"{', '.join(map(str, allowed)) or 'none'})"))
     return out
 
 
 def _numlist(v) -> bool:
-    return isinstance(v, list) and all(isinstance(x, int | float) for x in v)
+    """A list of finite numbers (a NaN or an infinity is said once, by the field's own check)."""
+    return isinstance(v, list) and all(isinstance(x, int | float) and np.isfinite(x) for x in v)
 
 
 def build_arm(
@@ -313,7 +380,8 @@ def build_arm(
     return ArmModel(
         name=arm.name, joints=joints, sensors=sensors,
         ready_pose_rad=_ro(np.array(arm.ready_pose_deg) * deg), dh=dh_table, source=source,
-        effects=tuple(parsed.effects), calibration=dict(parsed.calibration),
+        effects=tuple(parsed.effects),
+        calibration=parsed.calibration.model_dump(exclude_none=True, exclude_unset=True),
     )
 
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.arm import ArmModel, SensorMount
-from sensors.samples import IMU_STREAMS, accel_columns, encoder_columns
+from sensors.samples import IMU_STREAMS, Recording, accel_columns, encoder_columns
 
 # --- ADXL345 (link accelerometers), 10-bit, ±2 g ---------------------------------------
 ADXL345_LSB_PER_G = 256.0
@@ -208,3 +208,28 @@ def accel_counts_to_g(counts: np.ndarray, model: StreamModel) -> np.ndarray:
 def mpu9150_temperature_c(raw) -> np.ndarray | float:
     """The MPU-9150's temperature register (counts, any shape) in °C: raw / 340 + 35."""
     return np.asarray(raw, dtype=float) / MPU9150_TEMP_LSB_PER_C + MPU9150_TEMP_OFFSET_C
+
+
+def recording_problems(arm: ArmModel, rec: Recording) -> list[str]:
+    """Where a recording does not fit ``arm``'s config, one line each: a stream of the
+    config's sensors with another number of channels than the config gives it (the
+    encoders: one per joint), and ground-truth joint angles for another number of
+    joints. Empty when it fits. A sensor the recording lacks is not a misfit here (the
+    commands say what they can do without it)."""
+    out = []
+    n = arm.n_joints
+    for name, model in stream_models(arm).items():
+        s = rec.get(name)
+        if s is None or len(s.channels) == model.size:
+            continue
+        if name == ENCODER_STREAM:
+            out.append(f"encoder stream {name!r} has {len(s.channels)} channels "
+                       f"({s.channels[0]}..{s.channels[-1]}) but the arm has {n} joints")
+        else:
+            out.append(f"stream {name!r} has {len(s.channels)} channels; the config's sensor "
+                       f"gives {model.size} ({', '.join(model.channels)})")
+    for s in rec.truth().values():
+        if s.kind == "truth_joints" and len(s.channels) != n:
+            out.append(f"ground truth {s.name!r} has {len(s.channels)} joint angles but the arm "
+                       f"has {n} joints")
+    return out

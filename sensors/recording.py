@@ -7,9 +7,9 @@ from pathlib import Path
 
 from sensors.recording_csv import RecordingWarning, read_csv, write_csv
 from sensors.recording_mcap import read_mcap, write_mcap
-from sensors.samples import Recording
+from sensors.samples import Recording, RecordingError
 
-__all__ = ["SUFFIXES", "RecordingWarning", "read_recording", "write_recording"]
+__all__ = ["SUFFIXES", "RecordingError", "RecordingWarning", "read_recording", "write_recording"]
 
 SUFFIXES = (".csv", ".mcap")
 
@@ -27,6 +27,8 @@ def _suffix(path: Path) -> str:
 def read_recording(path: str | Path) -> Recording:
     """Read a ``.csv`` or ``.mcap`` recording.
 
+    A file that is not a readable recording raises
+    :class:`~sensors.samples.RecordingError` (a ``ValueError``) naming the place.
     For MCAP the :class:`~sensors.recording_mcap.ReadReport` is in
     ``rec.meta["read_report"]``, and a :class:`RecordingWarning` says what was lost
     when the file ends early or is damaged.

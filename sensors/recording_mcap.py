@@ -42,7 +42,15 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Metadata
 from mcap.writer import CompressionType, Writer
 
-from sensors.samples import RAW_KINDS, TRUTH_KINDS, Recording, Stream, StreamKind
+from sensors.samples import (
+    RAW_KINDS,
+    TRUTH_KINDS,
+    Recording,
+    RecordingError,
+    Stream,
+    StreamKind,
+    clipped_repr,
+)
 
 __all__ = [
     "FORMAT_VERSION",
@@ -607,12 +615,16 @@ def _assemble(
             ignored.append(ch.topic)
             continue
         name = ch.metadata.get("stream") or ch.topic.split("/", 1)[1]
-        names = tuple(json.loads(ch.metadata.get("channels", "[]")))
         try:
+            names = tuple(json.loads(ch.metadata.get("channels", "[]")))
             t_s, values = _decode_samples(data, len(names), kind in RAW_KINDS)
             stream = Stream(name, kind, t_s, values, names)  # type: ignore[arg-type]
-        except (ValueError, KeyError, TypeError) as e:
-            raise ValueError(f"{path}: topic {ch.topic!r}: messages do not fit the stream: {e}") from e
+        except (ValueError, KeyError, TypeError, OverflowError, RecursionError) as e:
+            # (a count beyond 64 bits, JSON nested past the recursion limit...): named, short
+            raise RecordingError(
+                f"{path}: topic {clipped_repr(ch.topic)}: messages do not fit the stream: "
+                f"{clipped_repr(f'{type(e).__name__}: {e}', 120)[1:-1]}"
+            ) from None
         streams[name] = stream
         if len(stream):
             t_last = stream.t_s[-1] if t_last is None else max(t_last, float(stream.t_s[-1]))
@@ -620,5 +632,9 @@ def _assemble(
     if meta:
         rec_meta["arm_config"] = meta.get("arm_config", "")
         rec_meta["armfusion_version"] = meta.get("armfusion_version", "")
-        rec_meta["t_offset_ns"] = int(meta.get("t_offset_ns", "0"))
+        try:
+            rec_meta["t_offset_ns"] = int(meta.get("t_offset_ns", "0")[:24])
+        except ValueError:
+            raise RecordingError(f"{path}: the armfusion metadata's t_offset_ns is not an "
+                                 f"integer: {clipped_repr(meta.get('t_offset_ns'))}") from None
     return Recording(streams, rec_meta), tuple(ignored), (None if t_last is None else float(t_last))

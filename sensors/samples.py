@@ -45,6 +45,24 @@ IMU_STREAMS: dict[str, tuple[StreamKind, tuple[str, ...]]] = {
 }
 TRUTH_BASE_COLUMNS: tuple[str, ...] = ("true_roll", "true_pitch", "true_yaw")
 
+ECHO_CHARS = 32
+"""At most this many characters of an offending value are quoted in an error message."""
+
+
+class RecordingError(ValueError):
+    """A file is not a readable recording; the message names the file and the place."""
+
+
+def clipped_repr(value: object, limit: int = ECHO_CHARS) -> str:
+    """``repr(value)`` for a message, cut to about ``limit`` characters (a hostile file
+    may hold a cell of millions of digits: the message says how long it was instead)."""
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", "replace")
+    if isinstance(value, str) and len(value) > limit:
+        return f"{value[:limit]!r}… ({len(value)} characters)"
+    text = repr(value)
+    return text if len(text) <= limit + 2 else f"{text[:limit]}… ({len(text)} characters)"
+
 
 def accel_columns(name: str) -> tuple[str, str, str]:
     """CSV columns of the link accelerometer called ``name``."""
@@ -83,6 +101,13 @@ class Stream:
         if dtype is np.int64 and v.dtype.kind == "f":
             if not np.all(np.isfinite(v)) or np.any(v != np.round(v)):
                 raise ValueError(f"stream {self.name!r}: raw counts must be whole numbers")
+            if v.size and float(np.abs(v).max()) >= 2.0**63:
+                raise ValueError(f"stream {self.name!r}: a raw count beyond 64-bit integers")
+        if dtype is np.int64 and v.dtype == object:
+            try:
+                v = np.asarray(v, dtype=np.int64)
+            except (OverflowError, TypeError, ValueError):
+                raise ValueError(f"stream {self.name!r}: raw counts must be 64-bit integers") from None
         v = v.astype(dtype, copy=False)
         if t.size > 1:
             bad = np.flatnonzero(np.diff(t) <= 0)

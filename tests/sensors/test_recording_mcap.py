@@ -374,3 +374,30 @@ def test_reads_a_file_from_another_mcap_writer(tmp_path: Path) -> None:
     np.testing.assert_array_equal(gyro.t_s, 0.1 * np.arange(5))
     np.testing.assert_array_equal(gyro.values[:, 2], 2**40 + np.arange(5))
     assert back.meta == {"source": str(tmp_path / "other.mcap")}  # no armfusion metadata
+
+
+@pytest.mark.parametrize("values, why", [
+    ("[1, 2, 100000000000000000000000]", "raw counts must be 64-bit integers"),
+    ("[1, 2, " + "[" * 100_000 + "]" * 100_000 + "]", "RecursionError"),
+    ('[1, 2, "x"]', "ValueError"),
+])
+def test_messages_that_do_not_fit_are_refused_naming_the_topic(
+    tmp_path: Path, values: str, why: str
+) -> None:
+    from mcap.writer import Writer
+
+    from sensors.samples import RecordingError
+
+    with open(tmp_path / "bad.mcap", "wb") as f:
+        w = Writer(f, use_chunking=False)
+        w.start()
+        sid = w.register_schema("armfusion.gyro", "jsonschema", b"{}")
+        meta = {"stream": "imu_gyro", "kind": "gyro", "channels": '["imu_gx","imu_gy","imu_gz"]'}
+        cid = w.register_channel("raw/imu_gyro", "json", sid, meta)
+        w.add_message(cid, 0, b'{"t_s": 0.0, "values": [1, 2, 3]}', 0)
+        w.add_message(cid, 1, ('{"t_s": 0.1, "values": ' + values + "}").encode(), 1)
+        w.finish()
+    with pytest.raises(RecordingError, match=r"bad\.mcap: topic 'raw/imu_gyro': messages do not "
+                                             r"fit the stream: ") as caught:
+        read_mcap(tmp_path / "bad.mcap")
+    assert why in str(caught.value) and len(str(caught.value)) < 300
