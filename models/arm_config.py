@@ -154,6 +154,25 @@ class CovarianceEntry(_Strict):
         return self
 
 
+class ReferenceRecord(_Strict):
+    """A one-time joint reference the calibration rests on (``calibrate sensors --reference``):
+    the joint's geometric angle the installer gave, where, and how the fit's check came out."""
+
+    joint: str
+    angle_deg: float
+    sigma_deg: float = Field(gt=0.0)
+    t_start_s: float
+    t_end_s: float
+    where: str
+    fitted_deg: float | None = None
+    fitted_sigma_deg: float | None = Field(default=None, ge=0.0)
+    without_reference_deg: float | None = None
+    without_reference_sigma_deg: float | None = Field(default=None, ge=0.0)
+    z: float | None = None
+    contradicted: bool = False
+    message: str | None = None
+
+
 class IdentifiedRecord(_Strict):
     """What the fit that calibrated this config did (written by ``calibrate sensors``)."""
 
@@ -162,6 +181,7 @@ class IdentifiedRecord(_Strict):
     chi2_red: float | None = Field(default=None, ge=0.0)
     held: list[str] = Field(default_factory=list)
     joint_zero_conventions: list[str] = Field(default_factory=list)
+    references: list[ReferenceRecord] = Field(default_factory=list)
 
 
 class CalibrationSection(_Strict):
