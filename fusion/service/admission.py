@@ -73,8 +73,8 @@ SHOWN = 40
 """Characters of a peer's text (a name, a value) a message repeats at most."""
 
 
-def _shown(value) -> str:
-    text = repr(value)
+def _shown(value, quoted: bool = True) -> str:
+    text = repr(value) if quoted else str(value)
     return text if len(text) <= SHOWN else text[:SHOWN - 1] + "…"
 
 
@@ -166,8 +166,8 @@ class Admission:
         if s.kind != model.kind:
             return Verdict("wrong_kind", f"kind {_shown(s.kind)}, expected {model.kind!r}")
         if tuple(s.channels) != model.channels:
-            got = ", ".join(s.channels[:8]) + (", …" if len(s.channels) > 8 else "")
-            return Verdict("wrong_channels", f"{len(s.channels)} channels ({_shown(got)}), expected "
+            got = _shown(", ".join(c[:SHOWN] for c in s.channels[:8]), quoted=False)
+            return Verdict("wrong_channels", f"{len(s.channels)} channels ({got}), expected "
                                              f"{model.size} ({', '.join(model.channels)})")
         lo, hi = self._range[s.name]
         bad = (s.values < lo) | (s.values > hi)
