@@ -80,7 +80,8 @@ def test_hostile_batches_while_tracking_are_refused_and_the_estimates_stay_true(
         pub["acc1"].put(_batch(acc1, t_last + 0.004, acc1.values[-1], seq=10**9))
         want = {"dropped.wrong_channels": 1, "dropped.time_ahead": 1, "dropped.out_of_range": 1,
                 "dropped.encoder_jump": 1}
-        assert wait_for(lambda: all(_counters(got).get(k) == v for k, v in want.items()), 10.0), _counters(got)
+        assert wait_for(lambda: all(_counters(got).get(k) == v for k, v in want.items()), 10.0), \
+            _counters(got)
         real += _replay_all(s, node, part2)
         assert wait_for(lambda: got.snapshot()[0] and got.snapshot()[0][-1].t_s > 4.35, 10.0)
     r = result["report"]
