@@ -252,8 +252,12 @@ class FusionNode:
         return self._tracker
 
     def report_samples(self) -> int:
-        """Raw samples received so far (may be read from another thread)."""
+        """Raw samples accepted so far (may be read from another thread)."""
         return self._counts["samples"]
+
+    def refused(self) -> dict[str, int]:
+        """Raw batches the admission refused so far, by reason (a copy; any thread)."""
+        return dict(self._admission.rejected.copy())
 
     def run(self, stop: threading.Event) -> ServeReport:
         """Serve until ``stop`` is set."""
