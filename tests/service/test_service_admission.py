@@ -240,3 +240,31 @@ def test_a_deeply_nested_payload_is_malformed_not_a_crash():
     with pytest.raises(pl.PayloadError, match="not JSON") as e:
         pl.decode(KEY, data)
     assert e.value.reason == "malformed"
+
+
+class _Sample:
+    """What BoundedReceiver reads of a zenoh.Sample: its key expression and payload bytes."""
+
+    class _Payload:
+        def __init__(self, data: bytes):
+            self._data = data
+
+        def to_bytes(self) -> bytes:
+            return self._data
+
+    def __init__(self, key: str, data: bytes):
+        self.key_expr, self.payload = key, self._Payload(data)
+
+
+def test_a_flood_of_large_payloads_is_bounded_in_bytes_not_only_in_messages():
+    from fusion.service.node import BoundedReceiver
+
+    mib = b" " * (1 << 20)
+    rx = BoundedReceiver(maxsize=1000, block_s=0.05, max_bytes=3 << 20)
+    for _ in range(5):
+        rx(_Sample(KEY, mib))
+    assert rx.overflowed == 2 and rx.queued_bytes == 3 << 20
+    assert rx.get(0.1) is not None and rx.queued_bytes == 2 << 20
+    rx(_Sample(KEY, mib))  # room again
+    assert rx.overflowed == 2
+    assert sum(1 for _ in iter(rx.get_nowait, None)) == 3 and rx.queued_bytes == 0
