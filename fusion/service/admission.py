@@ -23,10 +23,10 @@ reason             the batch…
 
 **The sensors' clock.** A recording's time has any origin (a replay, a rig powered up a
 week ago), so the node's wall clock cannot judge a stamp. The reference is the sensors'
-own: the median of the newest accepted times of the *other* streams that were accepted in
-the last ``vote_fresh_s`` of wall time (a stream does not vote on itself, and a stream
-that fell silent stops voting). With no other stream voting, a stream is held to its
-own newest time; the very first batch sets the clock. So one batch stamped 10⁶ s ahead
+own: the median (the lower of the middle two) of the newest accepted times of the *other*
+streams that were accepted in the last ``vote_fresh_s`` of wall time (a stream does not
+vote on itself, and a stream that fell silent stops voting). With no other stream voting,
+a stream is held to its own newest time; the very first batch sets the clock. So one batch stamped 10⁶ s ahead
 is refused whether the node tracks or not, and the clock does not move. Should a bogus
 batch be the first of all, the other streams are refused until its vote goes stale
 (``vote_fresh_s``) and the stream that sent it is then reset (:attr:`Verdict.reset`:
@@ -170,9 +170,8 @@ class Admission:
             return Verdict("wrong_channels", f"{len(s.channels)} channels ({got}), expected "
                                              f"{model.size} ({', '.join(model.channels)})")
         lo, hi = self._range[s.name]
-        bad = (s.values < lo) | (s.values > hi)
-        if bad.any():
-            i, j = (int(x) for x in np.argwhere(bad)[0])
+        if int(s.values.min()) < lo or int(s.values.max()) > hi:
+            i, j = (int(x) for x in np.argwhere((s.values < lo) | (s.values > hi))[0])
             return Verdict("out_of_range", f"{s.channels[j]} = {_shown(int(s.values[i, j]))} at t = "
                                            f"{float(s.t_s[i]):.6g} s is beyond the device's range {lo}…{hi}")
         verdict = self._check_time(s.name, float(s.t_s[0]), float(s.t_s[-1]), now_s)
@@ -191,18 +190,20 @@ class Admission:
         fresh = now_s - self.settings.vote_fresh_s
         voters = [t for k, t in self._newest.items() if k != name and self._voted_at[k] >= fresh]
         if voters:
-            ref, whose = float(np.median(voters)), f"the other sensors' clock ({len(voters)} streams)"
+            voters.sort()  # the median (the lower of the middle two); np.median costs 20x more here
+            ref = voters[(len(voters) - 1) // 2]
         elif name in self._newest and self._voted_at[name] >= fresh:
-            ref, whose = self._newest[name], "this sensor's last sample"
+            ref = self._newest[name]
         else:
             ref = None
-        if ref is not None:
+        if ref is not None and not ref - w <= t0 <= t1 <= ref + w:
+            whose = (f"the other sensors' clock ({len(voters)} streams)" if voters
+                     else "this sensor's last sample")
             if t1 > ref + w:
                 return Verdict("time_ahead", f"t = {t1:.6g} s is {t1 - ref:.6g} s ahead of {whose} "
                                              f"(t = {ref:.6g} s; at most {w:g} s)")
-            if t0 < ref - w:
-                return Verdict("time_behind", f"t = {t0:.6g} s is {ref - t0:.6g} s behind {whose} "
-                                              f"(t = {ref:.6g} s; at most {w:g} s)")
+            return Verdict("time_behind", f"t = {t0:.6g} s is {ref - t0:.6g} s behind {whose} "
+                                          f"(t = {ref:.6g} s; at most {w:g} s)")
         reset = name in self._newest and self._newest[name] > t1 + w
         return Verdict(None, reset=reset)
 
