@@ -1,7 +1,13 @@
 """``armfusion serve``: the fusion node. Startup calibration on the first still window,
 then the tracker, sample by sample; publishes the joint state, the heading and a status.
 
-Raw batches arrive per sensor on ``armfusion/<robot>/raw/*``. Until the tracker starts,
+Raw batches arrive per sensor on ``armfusion/<robot>/raw/*``. Each is checked twice before
+anything else sees it: as a payload (:class:`~fusion.service.payloads.Inbox`) and against the
+arm's sensors and the sensors' own clock (:class:`~fusion.service.admission.Admission`);
+what fails is dropped and counted by reason (``dropped.<reason>`` in the status), and only
+accepted samples count as ``samples``. While tracking, no estimate for ``stall_after_s``
+while raw batches arrive is a stall (``stalled`` 1 in the status, and said in its message).
+Until the tracker starts,
 they are kept; once ``min_data_s`` of samples are in, every ``retry_s`` the node looks
 for the first still stretch in them and runs the startup calibration there
 (:func:`fusion.tracker.start_from_recording`); the samples after it are then fed to the
