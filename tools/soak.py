@@ -13,7 +13,7 @@ for 15 s, then reaching while the chair drives). Run it niced on a shared machin
 ``--write`` replaces the ``soak-<rate>hz-<batch>ms`` section of docs/benchmarks.md; ``--json`` prints the
 figures, which ``--from-json FILE --write`` renders later without running again.
 
-``--hostile HZ`` runs a second publisher beside the real one, in its own Zenoh session:
+``--hostile HZ`` runs a second publisher beside the real one, in its own process and Zenoh session:
 ``HZ`` times a second it sends one payload of each case of issue 16 and the earlier hostile
 input (:data:`HOSTILE_CASES`: garbage bytes, another schema version, NaN, another robot,
 deep nesting, an oversized payload, 3 encoder channels, a batch 10⁶ s ahead, counts of
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import signal
 import socket
@@ -110,45 +111,78 @@ sample (the node accepts it: it could be real) whose ``seq`` jumps by 10⁹."""
 
 
 class Hostile:
-    """A second publisher on the node's raw keys, in its own session: every ``1/hz`` s one
-    payload of each of :data:`HOSTILE_CASES`, made from the real stream's latest samples
-    (:meth:`saw` tells it), seeded."""
+    """A second publisher on the node's raw keys, in a process and a Zenoh session of its own
+    (as an attacker would be: its work and its blocking puts do not hold up the real publisher
+    or the soak's clock): every ``1/hz`` s one payload of each of :data:`HOSTILE_CASES`, made
+    from the real stream's latest samples (:meth:`saw` tells it, through shared memory),
+    seeded. :attr:`sent` counts what it put, by case."""
 
-    def __init__(self, session: zenoh.Session, streams: dict[str, Stream], hz: float, seed: int,
+    def __init__(self, endpoint: str, streams: dict[str, Stream], hz: float, seed: int,
                  counts_per_rad: np.ndarray):
-        self.session, self.streams, self.period_s = session, streams, 1.0 / hz
-        self.rng = np.random.default_rng(seed)
-        self.cpr = counts_per_rad
-        self.sent = dict.fromkeys(HOSTILE_CASES, 0)
-        self._last: dict[str, tuple[float, np.ndarray]] = {}
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
+        ctx = multiprocessing.get_context("spawn")
+        self._latest = {k: ctx.Array("d", 1 + streams[k].values.shape[1]) for k in ("enc", "acc1")}
+        for a in self._latest.values():
+            a[0] = np.nan
+        self._sent = ctx.Array("q", len(HOSTILE_CASES))
+        self._stop = ctx.Event()
+        meta = {k: (s.kind, s.channels) for k, s in streams.items()}
+        cpr = np.asarray(counts_per_rad, float)
+        self._proc = ctx.Process(target=_hostile_main, daemon=True, args=(
+            endpoint, meta, hz, seed, cpr, self._latest, self._sent, self._stop))
 
     def saw(self, name: str, t_s: float, counts: np.ndarray) -> None:
-        with self._lock:
-            self._last[name] = (t_s, counts)
+        a = self._latest.get(name)
+        if a is not None:
+            with a.get_lock():
+                a[1:] = [float(c) for c in counts]
+                a[0] = t_s
 
     def start(self) -> None:
-        self._thread.start()
+        self._proc.start()
 
     def stop(self) -> None:
         self._stop.set()
-        self._thread.join(10.0)
+        self._proc.join(30.0)
+        if self._proc.is_alive():
+            self._proc.kill()
+
+    @property
+    def sent(self) -> dict[str, int]:
+        return dict(zip(HOSTILE_CASES, self._sent[:], strict=True))
+
+
+def _hostile_main(endpoint, meta, hz, seed, cpr, latest, sent, stop) -> None:
+    settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[endpoint])
+    with open_session(settings) as session:
+        _HostileLoop(session, meta, hz, seed, cpr, latest, sent, stop).run()
+
+
+class _HostileLoop:
+    """The hostile process's loop (see :class:`Hostile`)."""
+
+    def __init__(self, session, meta, hz, seed, cpr, latest, sent, stop):
+        self.session, self.meta, self.period_s = session, meta, 1.0 / hz
+        self.rng = np.random.default_rng(seed)
+        self.cpr, self.latest, self.sent, self.stop = cpr, latest, sent, stop
+
+    def _last(self, name: str) -> tuple[float, np.ndarray]:
+        a = self.latest[name]
+        with a.get_lock():
+            values = a[:]
+        return values[0], np.array(values[1:], dtype=np.int64)
 
     def _batch(self, name: str, t_s: float, counts, seq: int, channels=None) -> dict:
-        s = self.streams[name]
-        part = Stream(name, s.kind, np.array([t_s]), np.atleast_2d(np.asarray(counts, dtype=np.int64)),
-                      channels or s.channels)
+        kind, all_channels = self.meta[name]
+        part = Stream(name, kind, np.array([t_s]), np.atleast_2d(np.asarray(counts, dtype=np.int64)),
+                      channels or all_channels)
         return pl.RawBatch(ROBOT, part, seq).to_json()
 
     def _payloads(self, k: int) -> list[tuple[str, str, bytes]]:
-        with self._lock:
-            if "enc" not in self._last or "acc1" not in self._last:
-                return []
-            t_enc, enc = self._last["enc"]
-            t_acc, acc = self._last["acc1"]
-        enc_ch = self.streams["enc"].channels
+        t_enc, enc = self._last("enc")
+        t_acc, acc = self._last("acc1")
+        if not (np.isfinite(t_enc) and np.isfinite(t_acc)):
+            return []
+        enc_ch = self.meta["enc"][1]
         jumped = enc.copy()
         jumped[0] += int(np.radians(174.0) * self.cpr[0])
         v2 = self._batch("acc1", t_acc + 1e-4, acc, k)
@@ -177,15 +211,15 @@ class Hostile:
         }
         return [(case, name, data) for case, (name, data) in cases.items()]
 
-    def _run(self) -> None:
+    def run(self) -> None:
         k, next_t = 0, time.monotonic()
-        while not self._stop.wait(max(0.0, next_t - time.monotonic())):
+        while not self.stop.wait(max(0.0, next_t - time.monotonic())):
             next_t += self.period_s
             for case, name, data in self._payloads(k):
                 # blocking, as the real publisher: a dropped hostile payload would blur the count
                 self.session.put(pl.raw_key(ROBOT, name), data,
                                  congestion_control=zenoh.CongestionControl.BLOCK)
-                self.sent[case] += 1
+                self.sent[HOSTILE_CASES.index(case)] += 1
             k += 1
 
 
@@ -220,10 +254,12 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
             raise RuntimeError(f"armfusion serve did not start: {line}{serve.stderr.read()[-2000:]}")
         threading.Thread(target=lambda: err_lines.extend(serve.stderr), daemon=True).start()
         settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
-        with open_session(settings) as session, open_session(settings) as hostile_session:
+        with open_session(settings) as session:
             joints = Joints(session)
-            hostile = (Hostile(hostile_session, streams, hostile_hz, seed, arm.counts_per_rad)
+            hostile = (Hostile(f"tcp/127.0.0.1:{port}", streams, hostile_hz, seed, arm.counts_per_rad)
                        if hostile_hz > 0 else None)
+            if hostile is not None:  # (its process starts while the node waits for samples)
+                hostile.start()
             pubs = {k: session.declare_publisher(pl.raw_key(ROBOT, k),
                                                  congestion_control=zenoh.CongestionControl.BLOCK)
                     for k in streams}
@@ -242,8 +278,6 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
             seq = dict.fromkeys(streams, 0)
             published = 0
             cpu0, wall0 = _cpu_s(serve.pid), time.monotonic()
-            if hostile is not None:
-                hostile.start()
             for w in range(len(edges)):
                 delay = wall0 + (edges[w] - t0) - time.monotonic()
                 if delay > 0:
@@ -296,9 +330,10 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
     first_put = float(np.nanmin(put_wall[enc_t >= startup_t]))
     catch_up_s = t_up - first_put if up.size else None
     z = _z_scores(joints, truth, startup_t)
-    accepted_hostile = hostile.sent["invented_seq"] if hostile is not None else 0
+    hostile_sent = hostile.sent if hostile is not None else {}
+    accepted_hostile = hostile_sent.get("invented_seq", 0)
     return {
-        "hostile_hz": hostile_hz, "hostile_sent": hostile.sent if hostile is not None else {},
+        "hostile_hz": hostile_hz, "hostile_sent": hostile_sent,
         "hostile_accepted": accepted_hostile,
         "sigma": {"n": int(z.shape[0]), "max_z": float(z.max()) if z.size else None,
                   "beyond_4_sigma": int((z > 4.0).any(axis=1).sum()),

@@ -59,7 +59,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.service.payloads import RawBatch
+from fusion.service.payloads import DropLog, RawBatch
 from models.arm import ArmModel
 from models.sensor_models import ENCODER_STREAM, stream_models
 
@@ -145,7 +145,7 @@ class Admission:
         self.missed_batches = 0
         self.seq_resets = 0
         self.encoder_rebases = 0
-        self._logged: dict[str, tuple[float, int]] = {}
+        self._log = DropLog()
 
     # -- the checks --------------------------------------------------------------------------
     def check(self, batch: RawBatch, now_s: float | None = None) -> Verdict:
@@ -154,7 +154,7 @@ class Admission:
         verdict = self._check(batch, now_s)
         if not verdict.ok:
             self.rejected[verdict.reason] += 1
-            self._log(batch, verdict)
+            self._warn(batch, verdict)
         return verdict
 
     def _check(self, batch: RawBatch, now_s: float) -> Verdict:
@@ -277,13 +277,6 @@ class Admission:
             self.encoder_rebases += 1
         return missed, reset
 
-    def _log(self, batch: RawBatch, v: Verdict) -> None:
-        now = time.monotonic()
-        last, quiet = self._logged.get(v.reason, (-math.inf, 0))
-        if now - last < 1.0:
-            self._logged[v.reason] = (last, quiet + 1)
-            return
-        more = f" ({quiet} more since the last line)" if quiet else ""
-        log.warning("serve: refused a batch of %s (%s): %s%s", _shown(batch.stream.name), v.reason,
-                    v.message, more)
-        self._logged[v.reason] = (now, 0)
+    def _warn(self, batch: RawBatch, v: Verdict) -> None:
+        self._log.warn(v.reason, "serve: refused a batch of %s (%s): %s", _shown(batch.stream.name),
+                       v.reason, v.message)

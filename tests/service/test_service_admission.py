@@ -268,3 +268,18 @@ def test_a_flood_of_large_payloads_is_bounded_in_bytes_not_only_in_messages():
     rx(_Sample(KEY, mib))  # room again
     assert rx.overflowed == 2
     assert sum(1 for _ in iter(rx.get_nowait, None)) == 3 and rx.queued_bytes == 0
+
+
+def test_a_flood_of_bad_payloads_is_counted_in_full_but_logged_once_a_second(caplog, arm, models):
+    import logging
+
+    inbox, adm = pl.Inbox("serve"), Admission(arm)
+    with caplog.at_level(logging.WARNING, logger="armfusion.service"):
+        for i in range(1000):
+            inbox.decode(KEY, b"\x80garbage")
+            adm.check(_raw(models, "acc1", 1.0 + i * 1e-3, [5000, 0, 0]), 0.0)
+    assert inbox.dropped == {"malformed": 1000} and adm.rejected == {"out_of_range": 1000}
+    lines = [r.getMessage() for r in caplog.records]
+    assert 2 <= len(lines) <= 10, lines  # the first of each reason, then one a second at most
+    assert lines[0].startswith("serve: dropped a payload on armfusion/chair1/raw/acc1 (malformed)")
+    assert any(m.startswith("serve: refused a batch of 'acc1' (out_of_range): acc1_x = 5000") for m in lines)
