@@ -185,6 +185,8 @@ class Admission:
             if jump is not None:
                 return jump
         missed, seq_reset = self._note(batch, now_s, rebased)
+        if not (verdict.reset or missed or seq_reset or rebased):
+            return _OK  # (the common case: no object to make)
         return Verdict(None, reset=verdict.reset, missed=missed, seq_reset=seq_reset, rebased=rebased)
 
     def _check_time(self, name: str, t0: float, t1: float, now_s: float) -> Verdict:
@@ -207,7 +209,7 @@ class Admission:
             return Verdict("time_behind", f"t = {t0:.6g} s is {ref - t0:.6g} s behind {whose} "
                                           f"(t = {ref:.6g} s; at most {w:g} s)")
         reset = name in self._newest and self._newest[name] > t1 + w
-        return Verdict(None, reset=reset)
+        return Verdict(None, reset=True) if reset else _OK
 
     def _check_encoder(self, t_s: np.ndarray, counts: np.ndarray) -> tuple[Verdict | None, bool]:
         """``(None, rebased)`` when every step of ``counts`` is one the joints can make, or a
