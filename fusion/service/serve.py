@@ -6,7 +6,8 @@ anything else sees it: as a payload (:class:`~fusion.service.payloads.Inbox`) an
 arm's sensors and the sensors' own clock (:class:`~fusion.service.admission.Admission`);
 what fails is dropped and counted by reason (``dropped.<reason>`` in the status), and only
 accepted samples count as ``samples``. While tracking, no estimate for ``stall_after_s``
-while raw batches arrive is a stall (``stalled`` 1 in the status, and said in its message).
+while raw batches arrive is a stall (``stalled`` 1 in the status, and said in its message,
+until estimates come again).
 Until the tracker starts,
 they are kept; once ``min_data_s`` of samples are in, every ``retry_s`` the node looks
 for the first still stretch in them and runs the startup calibration there
@@ -588,7 +589,7 @@ class FusionNode:
             message = f"no samples for {quiet_s:.1f} s: every sensor stale; {message}"
         if self._stalled_since is not None:
             message = (f"stalled: no estimate for {time.monotonic() - self._stalled_since:.1f} s while raw "
-                       f"batches arrive; {message}")
+                       f"batches arrived; {message}")
         pub.put(pl.encode(pl.Status(self.robot, "serve", self._state, time.time(), message,
                                     tuple(counters.items()), tuple(sensors.items()))))
 
