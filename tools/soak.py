@@ -18,9 +18,9 @@ figures, which ``--from-json FILE --write`` renders later without running again.
 input (:data:`HOSTILE_CASES`: garbage bytes, another schema version, NaN, another robot,
 deep nesting, an oversized payload, 3 encoder channels, a batch 10⁶ s ahead, counts of
 2⁶³ − 1, a 174° encoder jump, an unknown sensor, and a plausible accelerometer sample with
-an invented ``seq``) on the node's raw keys. The figures then add what the node refused by
-reason, and how far every joint state is from the truth in its own sigma; the section is
-``soak-<rate>hz-<batch>ms-hostile``.
+an invented ``seq``, and 2,000 plausible samples 0.1 ms apart) on the node's raw keys. The
+figures then add what the node refused by reason, and how far every joint state is from the
+truth in its own sigma; the section is ``soak-<rate>hz-<batch>ms-hostile``.
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ class Joints:
 
 
 HOSTILE_CASES = ("garbage", "version_2", "nan", "other_robot", "nested", "oversized", "enc_3_channels",
-                 "acc_1e6_s_ahead", "enc_2_63", "enc_jump_174_deg", "unknown_sensor", "invented_seq")
+                 "acc_1e6_s_ahead", "enc_2_63", "enc_jump_174_deg", "unknown_sensor", "invented_seq", "dense")
 """What the hostile publisher sends, one of each per cycle; ``invented_seq`` is a plausible
 sample (the node accepts it: it could be real) whose ``seq`` jumps by 10⁹."""
 
@@ -173,7 +173,8 @@ class _HostileLoop:
 
     def _batch(self, name: str, t_s: float, counts, seq: int, channels=None) -> dict:
         kind, all_channels = self.meta[name]
-        part = Stream(name, kind, np.array([t_s]), np.atleast_2d(np.asarray(counts, dtype=np.int64)),
+        part = Stream(name, kind, np.atleast_1d(np.asarray(t_s, float)),
+                      np.atleast_2d(np.asarray(counts, dtype=np.int64)),
                       channels or all_channels)
         return pl.RawBatch(ROBOT, part, seq).to_json()
 
@@ -185,13 +186,13 @@ class _HostileLoop:
         enc_ch = self.meta["enc"][1]
         jumped = enc.copy()
         jumped[0] += int(np.radians(174.0) * self.cpr[0])
-        v2 = self._batch("acc1", t_acc + 1e-4, acc, k)
+        v2 = self._batch("acc1", t_acc + 1e-3, acc, k)
         v2["v"] = 2
-        other = self._batch("acc1", t_acc + 1e-4, acc, k)
+        other = self._batch("acc1", t_acc + 1e-3, acc, k)
         other["robot"] = "chair9"
-        nan = self._batch("acc1", t_acc + 1e-4, acc, k)
+        nan = self._batch("acc1", t_acc + 1e-3, acc, k)
         nan["counts"][0][0] = float("nan")
-        unknown = self._batch("acc1", t_acc + 1e-4, acc, k)
+        unknown = self._batch("acc1", t_acc + 1e-3, acc, k)
         unknown["sensor"], unknown["channels"] = "acc9", ["acc9_x", "acc9_y", "acc9_z"]
         cases = {
             "garbage": ("acc1", self.rng.bytes(int(self.rng.integers(1, 400)))),
@@ -200,14 +201,16 @@ class _HostileLoop:
             "other_robot": ("acc1", json.dumps(other).encode()),
             "nested": ("enc", b'{"v":1,"type":"raw","counts":' + b"[" * 20000 + b"]" * 20000 + b"}"),
             "oversized": ("imu_acc", b" " * (pl.MAX_PAYLOAD_BYTES + 1)),
-            "enc_3_channels": ("enc", json.dumps(self._batch("enc", t_enc + 1e-4, enc[:3], 10**9,
+            "enc_3_channels": ("enc", json.dumps(self._batch("enc", t_enc + 1e-3, enc[:3], 10**9,
                                                              enc_ch[:3])).encode()),
             "acc_1e6_s_ahead": ("acc1", json.dumps(self._batch("acc1", t_acc + 1e6, acc, k)).encode()),
-            "enc_2_63": ("enc", json.dumps(self._batch("enc", t_enc + 1e-4, np.full(len(enc), 2**63 - 1),
+            "enc_2_63": ("enc", json.dumps(self._batch("enc", t_enc + 1e-3, np.full(len(enc), 2**63 - 1),
                                                        10**9)).encode()),
-            "enc_jump_174_deg": ("enc", json.dumps(self._batch("enc", t_enc + 1e-4, jumped, 10**9)).encode()),
+            "enc_jump_174_deg": ("enc", json.dumps(self._batch("enc", t_enc + 1e-3, jumped, 10**9)).encode()),
             "unknown_sensor": ("acc9", json.dumps(unknown).encode()),
-            "invented_seq": ("acc1", json.dumps(self._batch("acc1", t_acc + 1e-4, acc, 10**9 + k)).encode()),
+            "invented_seq": ("acc1", json.dumps(self._batch("acc1", t_acc + 1e-3, acc, 10**9 + k)).encode()),
+            "dense": ("acc1", json.dumps(self._batch(
+                "acc1", t_acc + 1e-3 + 1e-4 * np.arange(2000), np.tile(acc, (2000, 1)), k)).encode()),
         }
         return [(case, name, data) for case, (name, data) in cases.items()]
 

@@ -19,6 +19,9 @@ reason             the batch…
                    ``jump_slack_rad``)
 ``time_ahead``     is stamped more than ``clock_window_s`` ahead of the sensors' clock
 ``time_behind``    is stamped more than ``clock_window_s`` behind it
+``too_dense``      holds samples closer than half a period of the fastest sensor
+                   (``max_rate_hz``), within the batch or after the stream's newest one
+                   (so one 1 MiB payload cannot hand the tracker 15,000 instants)
 =================  =====================================================================
 
 **The sensors' clock.** A recording's time has any origin (a replay, a rig powered up a
@@ -68,7 +71,7 @@ log = logging.getLogger("armfusion.service")
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
 """The encoder feed's counts (sensors/encoders.py: int32 per joint)."""
 REASONS: tuple[str, ...] = ("unknown_sensor", "wrong_kind", "wrong_channels", "out_of_range",
-                            "encoder_jump", "time_ahead", "time_behind")
+                            "time_ahead", "time_behind", "too_dense", "encoder_jump")
 SHOWN = 40
 """Characters of a peer's text (a name, a value) a message repeats at most."""
 
@@ -179,6 +182,9 @@ class Admission:
         verdict = self._check_time(s.name, float(s.t_s[0]), float(s.t_s[-1]), now_s)
         if not verdict.ok:
             return verdict
+        dense = self._check_density(s.name, s.t_s)
+        if dense is not None:
+            return dense
         rebased = False
         if s.name == ENCODER_STREAM:
             jump, rebased = self._check_encoder(s.t_s, s.values)
@@ -210,6 +216,19 @@ class Admission:
                                           f"(t = {ref:.6g} s; at most {w:g} s)")
         reset = name in self._newest and self._newest[name] > t1 + w
         return Verdict(None, reset=True) if reset else _OK
+
+    def _check_density(self, name: str, t_s: np.ndarray) -> Verdict | None:
+        """Refuse samples closer than half a period of the fastest sensor (``max_rate_hz``):
+        within the batch, and after the stream's newest accepted sample."""
+        min_dt = 0.5 / self.settings.max_rate_hz
+        newest = self._newest.get(name)
+        gap = float(t_s[0]) - newest if newest is not None and t_s[0] > newest else np.inf
+        if len(t_s) > 1:
+            gap = min(gap, float(np.min(np.diff(t_s))))
+        if gap < min_dt:
+            return Verdict("too_dense", f"samples {gap * 1e3:.3g} ms apart: faster than any sensor samples "
+                                        f"(at most {self.settings.max_rate_hz:g} Hz)")
+        return None
 
     def _check_encoder(self, t_s: np.ndarray, counts: np.ndarray) -> tuple[Verdict | None, bool]:
         """``(None, rebased)`` when every step of ``counts`` is one the joints can make, or a

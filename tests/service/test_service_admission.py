@@ -138,6 +138,21 @@ def test_a_bogus_first_batch_holds_the_clock_only_until_its_vote_goes_stale(arm,
     assert adm.check(_raw(models, "acc1", 1e6 + 1, [0, 0, 256]), now_s=2.6).reason == "time_ahead"
 
 
+def test_samples_denser_than_any_sensor_samples_are_refused(arm, models):
+    adm = Admission(arm, AdmissionSettings(max_rate_hz=1000.0))
+    acc = np.array([0, 0, 256])
+    assert adm.check(_raw(models, "acc1", 1.00, acc), 0.0).ok
+    # a plausible payload of 15,000 samples 0.1 ms apart would be seconds of tracker work
+    t = 1.01 + 1e-4 * np.arange(15_000)
+    v = adm.check(_raw(models, "acc1", t, np.tile(acc, (len(t), 1))), 0.0)
+    assert v.reason == "too_dense"
+    assert v.message == "samples 0.1 ms apart: faster than any sensor samples (at most 1000 Hz)"
+    # one sample 0.2 ms after the last accepted one: the same
+    assert adm.check(_raw(models, "acc1", 1.0002, acc), 0.0).reason == "too_dense"
+    # 1 kHz with jitter down to half a period is fine
+    assert adm.check(_raw(models, "acc1", [1.0007, 1.0015, 1.0021], np.tile(acc, (3, 1))), 0.0).ok
+
+
 def test_seq_gaps_count_only_as_far_as_time_leaves_room(arm, models):
     adm = Admission(arm, AdmissionSettings(max_rate_hz=1000.0))
     acc = np.array([0, 0, 256])
