@@ -184,10 +184,13 @@ def test_messages_never_repeat_more_than_a_few_dozen_characters_of_a_value(arm, 
 # --- fuzzing: the decoder and the admission take anything and raise only PayloadError --------
 
 KEY = pl.raw_key("chair1", "acc1")
+def _json_containers(inner):
+    return st.one_of(st.lists(inner, max_size=5), st.dictionaries(st.text(max_size=10), inner, max_size=5))
+
+
 _json = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats(allow_nan=True) | st.text(max_size=20),
-    lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=10), inner, max_size=5),
-    max_leaves=30)
+    _json_containers, max_leaves=30)
 
 
 def _valid() -> dict:
