@@ -152,3 +152,29 @@ def test_a_replay_restarted_while_the_node_tracks_is_reported_as_a_stall(
     r = result["report"]
     assert r.stalls == 1 and r.errors == 0
     assert r.dropped.get("time_behind", 0) > 0
+
+
+def test_a_bogus_batch_before_any_real_one_holds_the_clock_for_2_s_only(
+        hub_settings, fusion_node, arm, renk_recording):
+    """The very first batch the node ever gets is stamped 10^6 s: nothing to judge it by, so
+    it is taken; the real streams are refused (time_behind) until its vote goes stale after
+    2 s of wall time, then they set the clock, the bogus sample is forgotten, and the node
+    calibrates and tracks as usual (no joint state anywhere near 10^6 s)."""
+    rec = renk_recording
+    acc1 = rec.get("acc1")
+    listener, connector = hub_settings
+    with fusion_node(listener, arm, publish_hz=100.0) as (node, result), \
+            open_session(connector) as s, open_session(connector) as hostile:
+        got = Collected(s)
+        hostile.put(pl.raw_key("chair1", "acc1"), _batch(acc1, 1e6, acc1.values[0]))
+        assert wait_for(lambda: node.report_samples() == 1, 10.0)
+        replay(s, cut(rec, 0.0, 5.0), "chair1", speed=1.0, wait_for_subscribers_s=5.0)
+        assert wait_for(lambda: got.snapshot()[0] and got.snapshot()[0][-1].t_s > 4.8, 10.0), \
+            (node.refused(), _counters(got))
+    r = result["report"]
+    joints = got.snapshot()[0]
+    assert r.errors == 0 and r.startup_t_s is not None and r.startup_t_s < 4.5
+    assert r.dropped.get("time_behind", 0) > 0
+    assert max(j.t_s for j in joints) < 5.0
+    z = np.array([_z_scores(rec, j) for j in joints])
+    assert z.max() < 4.0, z.max(axis=0)
