@@ -40,9 +40,9 @@ sample is compared with the last accepted one; a board that really restarted (it
 counts start again elsewhere) would be refused for ever, so after
 ``encoder_rebase_after_s`` of sample time in which every encoder sample was refused as a
 jump while agreeing with the previous refused one (and none was accepted) the new counts
-are taken as a new baseline, counted in ``encoder_rebases``; the tracker's gate then sees
-the slip and re-acquires. A publisher interleaving bogus counts with the real ones never
-gets there: every real sample is accepted and restarts the wait.
+are taken as a new baseline, counted in ``encoder_rebases`` (what the tracker makes of
+the jump is its own slip handling). A publisher interleaving bogus counts with the real
+ones never gets there: every real sample is accepted and restarts the wait.
 
 **Batch numbers.** ``seq`` counts the batches of one sensor from one publisher. Only an
 accepted batch moves it. A gap counts as missed batches only as far as the batch's time
