@@ -54,7 +54,6 @@ nothing. So a peer cannot make ``missed_batches`` grow faster than real time all
 
 from __future__ import annotations
 
-import logging
 import math
 import time
 from collections import Counter
@@ -65,8 +64,6 @@ import numpy as np
 from fusion.service.payloads import DropLog, RawBatch
 from models.arm import ArmModel
 from models.sensor_models import ENCODER_STREAM, stream_models
-
-log = logging.getLogger("armfusion.service")
 
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
 """The encoder feed's counts (sensors/encoders.py: int32 per joint)."""
