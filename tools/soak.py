@@ -12,12 +12,22 @@ for 15 s, then reaching while the chair drives). Run it niced on a shared machin
 
 ``--write`` replaces the ``soak-<rate>hz-<batch>ms`` section of docs/benchmarks.md; ``--json`` prints the
 figures, which ``--from-json FILE --write`` renders later without running again.
+
+``--hostile HZ`` runs a second publisher beside the real one, in its own process and Zenoh session:
+``HZ`` times a second it sends one payload of each case of issue 16 and the earlier hostile
+input (:data:`HOSTILE_CASES`: garbage bytes, another schema version, NaN, another robot,
+deep nesting, an oversized payload, 3 encoder channels, a batch 10⁶ s ahead, counts of
+2⁶³ − 1, a 174° encoder jump, an unknown sensor, and a plausible accelerometer sample with
+an invented ``seq``, and 2,000 plausible samples 0.1 ms apart) on the node's raw keys. The
+figures then add what the node refused by reason, and how far every joint state is from the
+truth in its own sigma; the section is ``soak-<rate>hz-<batch>ms-hostile``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import signal
 import socket
@@ -36,7 +46,7 @@ sys.path.insert(0, str(ROOT))
 from fusion.configfile import load_arm  # noqa: E402
 from fusion.service import payloads as pl  # noqa: E402
 from fusion.service.zenoh_config import ZenohSettings, open_session  # noqa: E402
-from models.simulator import simulate  # noqa: E402
+from models.simulator import angle_truth, simulate  # noqa: E402
 from sensors.samples import Stream  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
@@ -70,12 +80,14 @@ def _cpu_s(pid: int) -> float:
 
 
 class Joints:
-    """Arrival time (monotonic) and sample time of every joint state."""
+    """Arrival time (monotonic), sample time, angles and sigmas of every joint state."""
 
     def __init__(self, session: zenoh.Session):
         self.lock = threading.Lock()
         self.t_s: list[float] = []
         self.wall_s: list[float] = []
+        self.q_rad: list[tuple[float, ...]] = []
+        self.sigma_rad: list[tuple[float, ...]] = []
         self.sub = session.declare_subscriber(pl.joints_key(ROBOT), self)
 
     def __call__(self, sample: zenoh.Sample) -> None:
@@ -84,15 +96,152 @@ class Joints:
         with self.lock:
             self.t_s.append(js.t_s)
             self.wall_s.append(now)
+            self.q_rad.append(js.q_rad)
+            self.sigma_rad.append(js.sigma_rad)
 
     def last_t(self) -> float:
         with self.lock:
             return self.t_s[-1] if self.t_s else -np.inf
 
 
-def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int) -> dict:
+HOSTILE_CASES = ("garbage", "version_2", "nan", "other_robot", "nested", "oversized", "enc_3_channels",
+                 "acc_1e6_s_ahead", "enc_2_63", "enc_jump_174_deg", "unknown_sensor", "invented_seq", "dense")
+"""What the hostile publisher sends, one of each per cycle; ``invented_seq`` is a plausible
+sample (the node accepts it: it could be real) whose ``seq`` jumps by 10⁹."""
+
+
+class Hostile:
+    """A second publisher on the node's raw keys, in a process and a Zenoh session of its own
+    (as an attacker would be: its work and its blocking puts do not hold up the real publisher
+    or the soak's clock): every ``1/hz`` s one payload of each of :data:`HOSTILE_CASES`, made
+    from the real stream's latest samples (:meth:`saw` tells it, through shared memory),
+    seeded. :attr:`sent` counts what it put, by case."""
+
+    def __init__(self, endpoint: str, streams: dict[str, Stream], hz: float, seed: int,
+                 counts_per_rad: np.ndarray):
+        ctx = multiprocessing.get_context("spawn")
+        self._latest = {k: ctx.Array("d", 1 + streams[k].values.shape[1]) for k in ("enc", "acc1")}
+        for a in self._latest.values():
+            a[0] = np.nan
+        self._sent = ctx.Array("q", len(HOSTILE_CASES))
+        self._stop = ctx.Event()
+        meta = {k: (s.kind, s.channels) for k, s in streams.items()}
+        cpr = np.asarray(counts_per_rad, float)
+        self._proc = ctx.Process(target=_hostile_main, daemon=True, args=(
+            endpoint, meta, hz, seed, cpr, self._latest, self._sent, self._stop))
+
+    def saw(self, name: str, t_s: float, counts: np.ndarray) -> None:
+        a = self._latest.get(name)
+        if a is not None:
+            with a.get_lock():
+                a[1:] = [float(c) for c in counts]
+                a[0] = t_s
+
+    def start(self) -> None:
+        self._proc.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._proc.join(30.0)
+        if self._proc.is_alive():
+            self._proc.kill()
+
+    @property
+    def sent(self) -> dict[str, int]:
+        return dict(zip(HOSTILE_CASES, self._sent[:], strict=True))
+
+
+def _hostile_main(endpoint, meta, hz, seed, cpr, latest, sent, stop) -> None:
+    settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[endpoint])
+    with open_session(settings) as session:
+        _HostileLoop(session, meta, hz, seed, cpr, latest, sent, stop).run()
+
+
+class _HostileLoop:
+    """The hostile process's loop (see :class:`Hostile`)."""
+
+    def __init__(self, session, meta, hz, seed, cpr, latest, sent, stop):
+        self.session, self.meta, self.period_s = session, meta, 1.0 / hz
+        self.rng = np.random.default_rng(seed)
+        self.cpr, self.latest, self.sent, self.stop = cpr, latest, sent, stop
+
+    def _last(self, name: str) -> tuple[float, np.ndarray]:
+        a = self.latest[name]
+        with a.get_lock():
+            values = a[:]
+        return values[0], np.array(values[1:], dtype=np.int64)
+
+    def _batch(self, name: str, t_s: float, counts, seq: int, channels=None) -> dict:
+        kind, all_channels = self.meta[name]
+        part = Stream(name, kind, np.atleast_1d(np.asarray(t_s, float)),
+                      np.atleast_2d(np.asarray(counts, dtype=np.int64)),
+                      channels or all_channels)
+        return pl.RawBatch(ROBOT, part, seq).to_json()
+
+    def _payloads(self, k: int) -> list[tuple[str, str, bytes]]:
+        t_enc, enc = self._last("enc")
+        t_acc, acc = self._last("acc1")
+        if not (np.isfinite(t_enc) and np.isfinite(t_acc)):
+            return []
+        enc_ch = self.meta["enc"][1]
+        jumped = enc.copy()
+        jumped[0] += int(np.radians(174.0) * self.cpr[0])
+        v2 = self._batch("acc1", t_acc + 1e-3, acc, k)
+        v2["v"] = 2
+        other = self._batch("acc1", t_acc + 1e-3, acc, k)
+        other["robot"] = "chair9"
+        nan = self._batch("acc1", t_acc + 1e-3, acc, k)
+        nan["counts"][0][0] = float("nan")
+        unknown = self._batch("acc1", t_acc + 1e-3, acc, k)
+        unknown["sensor"], unknown["channels"] = "acc9", ["acc9_x", "acc9_y", "acc9_z"]
+        cases = {
+            "garbage": ("acc1", self.rng.bytes(int(self.rng.integers(1, 400)))),
+            "version_2": ("acc1", json.dumps(v2).encode()),
+            "nan": ("acc1", json.dumps(nan).encode()),  # (Python writes NaN)
+            "other_robot": ("acc1", json.dumps(other).encode()),
+            "nested": ("enc", b'{"v":1,"type":"raw","counts":' + b"[" * 20000 + b"]" * 20000 + b"}"),
+            "oversized": ("imu_acc", b" " * (pl.MAX_PAYLOAD_BYTES + 1)),
+            "enc_3_channels": ("enc", json.dumps(self._batch("enc", t_enc + 1e-3, enc[:3], 10**9,
+                                                             enc_ch[:3])).encode()),
+            "acc_1e6_s_ahead": ("acc1", json.dumps(self._batch("acc1", t_acc + 1e6, acc, k)).encode()),
+            "enc_2_63": ("enc", json.dumps(self._batch("enc", t_enc + 1e-3, np.full(len(enc), 2**63 - 1),
+                                                       10**9)).encode()),
+            "enc_jump_174_deg": ("enc", json.dumps(self._batch("enc", t_enc + 1e-3, jumped, 10**9)).encode()),
+            "unknown_sensor": ("acc9", json.dumps(unknown).encode()),
+            "invented_seq": ("acc1", json.dumps(self._batch("acc1", t_acc + 1e-3, acc, 10**9 + k)).encode()),
+            "dense": ("acc1", json.dumps(self._batch(
+                "acc1", t_acc + 1e-3 + 1e-4 * np.arange(2000), np.tile(acc, (2000, 1)), k)).encode()),
+        }
+        return [(case, name, data) for case, (name, data) in cases.items()]
+
+    def run(self) -> None:
+        k, next_t = 0, time.monotonic()
+        while not self.stop.wait(max(0.0, next_t - time.monotonic())):
+            next_t += self.period_s
+            for case, name, data in self._payloads(k):
+                # blocking, as the real publisher: a dropped hostile payload would blur the count
+                self.session.put(pl.raw_key(ROBOT, name), data,
+                                 congestion_control=zenoh.CongestionControl.BLOCK)
+                self.sent[HOSTILE_CASES.index(case)] += 1
+            k += 1
+
+
+def _z_scores(joints: Joints, truth: Stream, after_t_s: float) -> np.ndarray:
+    """|estimate - truth| / sigma, per joint state (rows) and joint, for states after ``after_t_s``."""
+    with joints.lock:
+        t = np.array(joints.t_s)
+        q, sig = np.array(joints.q_rad), np.array(joints.sigma_rad)
+    keep = t > after_t_s
+    t, q, sig = t[keep], q[keep], sig[keep]
+    k = np.clip(np.searchsorted(truth.t_s, t + 1e-9) - 1, 0, len(truth) - 1)
+    err = np.abs(np.angle(np.exp(1j * (q - truth.values[k]))))
+    return err / sig
+
+
+def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_hz: float = 0.0) -> dict:
     arm = load_arm("wmra")
-    rec, _ = simulate(arm, "daily-use", duration_s, rate_hz, seed=seed)
+    rec, sim_truth = simulate(arm, "daily-use", duration_s, rate_hz, seed=seed)
+    truth = angle_truth(rec.get("true_q"), sim_truth, arm.joint_names)
     streams = {k: s for k, s in rec.raw().items() if len(s)}
     port = _free_port()
     serve = subprocess.Popen(
@@ -110,6 +259,10 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int) -> dict:
         settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
         with open_session(settings) as session:
             joints = Joints(session)
+            hostile = (Hostile(f"tcp/127.0.0.1:{port}", streams, hostile_hz, seed, arm.counts_per_rad)
+                       if hostile_hz > 0 else None)
+            if hostile is not None:  # (its process starts while the node waits for samples)
+                hostile.start()
             pubs = {k: session.declare_publisher(pl.raw_key(ROBOT, k),
                                                  congestion_control=zenoh.CongestionControl.BLOCK)
                     for k in streams}
@@ -140,9 +293,13 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int) -> dict:
                         pubs[k].put(pl.encode(pl.RawBatch(ROBOT, part, seq[k])))
                         seq[k] += 1
                         published += i1 - i0
+                        if hostile is not None:
+                            hostile.saw(k, float(s.t_s[i1 - 1]), s.values[i1 - 1])
                 put_wall[enc_window == w] = time.monotonic()
             wall_pub = time.monotonic() - wall0
             cpu_pub = _cpu_s(serve.pid) - cpu0
+            if hostile is not None:
+                hostile.stop()
             # let the node finish (the reorder stage holds the newest 0.1 s until the stop)
             done_by = time.monotonic() + max(30.0, 2.0 * duration_s)
             while joints.last_t() < enc_t[-1] - 0.11 and time.monotonic() < done_by:
@@ -175,10 +332,21 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int) -> dict:
     lat_ms = 1e3 * lat[put >= t_up]
     first_put = float(np.nanmin(put_wall[enc_t >= startup_t]))
     catch_up_s = t_up - first_put if up.size else None
+    z = _z_scores(joints, truth, startup_t)
+    hostile_sent = hostile.sent if hostile is not None else {}
+    accepted_hostile = hostile_sent.get("invented_seq", 0)
     return {
+        "hostile_hz": hostile_hz, "hostile_sent": hostile_sent,
+        "hostile_accepted": accepted_hostile,
+        "sigma": {"n": int(z.shape[0]), "max_z": float(z.max()) if z.size else None,
+                  "beyond_4_sigma": int((z > 4.0).any(axis=1).sum()),
+                  "within_3_sigma_percent_worst_joint":
+                      float(100.0 * (z <= 3.0).mean(axis=0).min()) if z.size else None},
+        "seq_resets": report.get("seq_resets"), "stalls": report.get("stalls"),
+        "errors": report.get("errors"),
         "duration_s": duration_s, "rate_hz": rate_hz, "batch_ms": 1e3 * batch_s,
         "sensors": sorted(streams), "published": published, "received": report["samples"],
-        "lost": published - report["samples"], "dropped": report["dropped"],
+        "lost": published + accepted_hostile - report["samples"], "dropped": report["dropped"],
         "out_of_order": report["out_of_order"], "missed_batches": report["missed_batches"],
         "startup_t_s": startup_t,
         "estimates_expected": int(len(expected)), "estimates_received": int(len(np.unique(got_t))),
@@ -240,12 +408,33 @@ def markdown(r: dict) -> str:
         ("wall time: publishing / until the last joint state",
          f"{r['wall_publish_s']:.1f} s / {r['wall_total_s']:.1f} s"),
     ]
+    sig = r.get("sigma")
+    if sig and sig["n"]:
+        rows += [
+            ("joint states beyond 4 sigma of the truth (any joint) / largest error in sigmas",
+             f"{sig['beyond_4_sigma']} of {sig['n']} / {sig['max_z']:.2f}"),
+            ("joint states within 3 sigma, the worst joint",
+             f"{sig['within_3_sigma_percent_worst_joint']:.1f} %"),
+            ("stalls / errors in the node", f"{r.get('stalls')} / {r.get('errors')}"),
+        ]
+    if r.get("hostile_hz"):
+        sent = r["hostile_sent"]
+        rows += [
+            ("hostile payloads sent (one of each case per cycle)",
+             f"{sum(sent.values())} ({r['hostile_hz']:g} cycles a second; {len(sent)} cases)"),
+            ("refused by the node, by reason",
+             ", ".join(f"{k} {v}" for k, v in sorted(r["dropped"].items()))),
+            ("hostile samples accepted (plausible, invented seq) / publisher sessions seen (seq_resets)",
+             f"{r['hostile_accepted']} / {r.get('seq_resets')}"),
+        ]
     need = 100.0 * r["rate_hz"] / r["instants_per_serve_cpu_s"]
     msgs_per_s = len(r["sensors"]) * min(r["rate_hz"], 1000.0 / r["batch_ms"])
     per_msg = max(1.0, r["rate_hz"] * r["batch_ms"] / 1000.0)
     tracker_share = 100.0 * r["instants_per_serve_cpu_s"] / r["tracker_instants_per_cpu_s"]
     table = "| figure | value |\n| --- | --- |\n" + "\n".join(f"| {a} | {b} |" for a, b in rows)
     title = f"Soak: the fusion node at {r['rate_hz']:.0f} Hz, {r['batch_ms']:.0f} ms batches, through Zenoh"
+    if r.get("hostile_hz"):
+        title += ", a hostile publisher beside the real one"
     return f"""## {title} (`tools/soak.py`)
 
 {machine_line()}; commit {r.get('commit', 'unknown')}; load average
@@ -280,6 +469,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=float, default=200.0, help="Every sensor's rate, Hz.")
     ap.add_argument("--batch-ms", type=float, default=5.0, help="Sample time per message, ms.")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--hostile", type=float, default=0.0, metavar="HZ",
+                    help="Cycles a second of a hostile publisher beside the real one (0: none).")
     ap.add_argument("--write", action="store_true", help="Write the soak section of docs/benchmarks.md.")
     ap.add_argument("--json", action="store_true", help="Print the figures as JSON.")
     ap.add_argument("--from-json", type=Path, help="Render the figures of an earlier --json run "
@@ -288,10 +479,12 @@ def main(argv=None) -> int:
     if args.from_json is not None:
         r = json.loads(args.from_json.read_text())
     else:
-        r = soak(args.duration, args.rate, args.batch_ms / 1000.0, args.seed)
+        r = soak(args.duration, args.rate, args.batch_ms / 1000.0, args.seed, args.hostile)
     print(json.dumps(r, indent=2) if args.json else markdown(r))
     if args.write:
         section = "soak-{:.0f}hz-{:.0f}ms".format(r["rate_hz"], r["batch_ms"])
+        if r.get("hostile_hz"):
+            section += "-hostile"
         print(f"wrote {write_section(section, markdown(r))}")
     return 0
 

@@ -93,7 +93,8 @@ def register(app: typer.Typer) -> None:
         robot: RobotOpt = DEFAULT_ROBOT,
         batch_ms: Annotated[float, typer.Option(help="Recording time per published batch, in ms.")] = 20.0,
         wait_s: Annotated[float, typer.Option(
-            "--wait", help="First wait up to this long for a subscriber on every sensor, in s.")] = 0.0,
+            "--wait", help="First wait up to this long for a subscriber on every sensor, in s; "
+                           "if no sensor has one by then, publish nothing and exit 1.")] = 5.0,
         zenoh_config: ZenohConfigOpt = None,
         listen: ListenOpt = None,
         connect: ConnectOpt = None,
@@ -102,7 +103,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing."""
         from fusion.service.payloads import check_name
-        from fusion.service.replay import replay
+        from fusion.service.replay import NoSubscriberError, replay
 
         factor = parse_speed(speed)
         try:
@@ -111,24 +112,34 @@ def register(app: typer.Typer) -> None:
             fail(str(e))
         if not batch_ms > 0:
             fail(f"--batch-ms {batch_ms!r}: expected > 0")
+        if not (math.isfinite(wait_s) and wait_s >= 0):
+            fail(f"--wait {wait_s!r}: expected a number of seconds >= 0")
         rec = read_recording_or_exit(recording)
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
                 stop_on_signals(stop):
             try:
                 report = replay(session, rec, robot, speed=factor, batch_s=batch_ms / 1000.0,
-                                wait_for_subscribers_s=wait_s, stop=stop)
+                                wait_for_subscribers_s=wait_s, stop=stop, require_subscriber=True)
+            except NoSubscriberError as e:
+                fail(str(e), code=1)
             except ValueError as e:
                 fail(f"{recording}: {e}")
         doc = {"recording": str(recording), **report.as_dict()}
         if json_out:
             emit_json(doc)
-            return
-        console.print(f"replayed {sum(report.samples.values())} samples of {len(report.samples)} "
-                      f"sensors as {robot} in {report.wall_s:.2f} s ({report.batches} batches)"
-                      + (" [yellow]stopped early[/]" if report.stopped else ""))
-        if report.unmatched:
-            err_console.print(f"[yellow]warning:[/] no subscriber for {', '.join(report.unmatched)}")
+        else:
+            console.print(f"replayed {sum(report.samples.values())} samples of {len(report.samples)} "
+                          f"sensors as {robot} in {report.wall_s:.2f} s ({report.batches} batches)"
+                          + (" [yellow]stopped early[/]" if report.stopped else ""))
+            if report.unmatched:
+                err_console.print(f"[yellow]warning:[/] no subscriber for {', '.join(report.unmatched)} "
+                                  f"after {wait_s:g} s")
+        if report.unheard:
+            total = sum(report.samples.values())
+            fail(f"{sum(report.unheard.values())} of {total} samples went out while nothing subscribed "
+                 f"to their key ({', '.join(f'{k} {n}' for k, n in report.unheard.items())}): the "
+                 "subscriber left or never came", code=1)
 
     @app.command("record")
     def record_command(

@@ -191,7 +191,8 @@ def render(monitor: Monitor):
             heading = f"{math.degrees(v.heading.heading_rad):7.2f} ± {math.degrees(v.heading.sigma_rad):.2f}"
             if v.heading.magnetic_disturbance:
                 heading += "\n[yellow]magnetic disturbance[/]"
-        nodes = "\n".join(f"{n}: {s.state}" for n, s in sorted(v.nodes.items())) or "-"
+        nodes = "\n".join(f"{n}: {s.state}" + (" [red]stalled[/]" if dict(s.counters).get("stalled") else "")
+                          for n, s in sorted(v.nodes.items())) or "-"
         age = v.age_s(now)
         t.add_row(label, joints, heading, nodes, _counters(v), "-" if age is None else f"{age:.1f}")
     if monitor.dropped:

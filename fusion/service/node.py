@@ -25,6 +25,11 @@ DEFAULT_QUEUE_SIZE = 1 << 16
 36 s of five sensors and the encoders at 200 Hz sent one sample per message. Deep on
 purpose: a receiver that makes Zenoh's receive thread wait makes a blocking publisher wait,
 and Zenoh closes a link whose publisher waited 5 s, losing what was in flight."""
+DEFAULT_MAX_BYTES = 64 << 20
+"""Bytes of payloads a receiver holds at most (64 MiB): 65536 real messages of a few hundred
+bytes are about 20 MB, but as many payloads of 1 MiB (the largest a node reads) would be
+64 GiB; a peer flooding large payloads fills this bound first, and what does not fit waits
+and then is dropped like a message a full channel cannot take."""
 DEFAULT_BLOCK_S = 1.0
 """How long a full receiver makes Zenoh's receive thread wait before it drops a message.
 While it waits, a publisher with ``CongestionControl.BLOCK`` is slowed down instead of
@@ -59,14 +64,20 @@ class Message:
 class BoundedReceiver:
     """A subscriber's bounded channel: Zenoh's thread puts, the node's loop takes.
 
-    When the channel is full, the receive thread waits up to ``block_s`` (back-pressure
-    on a blocking publisher) and then drops the message, counted in :attr:`overflowed`.
+    Bounded in messages (``maxsize``) and in bytes (``max_bytes``; a single message larger
+    than that is still taken into an empty channel). When either bound is reached, the
+    receive thread waits up to ``block_s`` (back-pressure on a blocking publisher) and then
+    drops the message, counted in :attr:`overflowed`.
     """
 
-    def __init__(self, maxsize: int = DEFAULT_QUEUE_SIZE, block_s: float = DEFAULT_BLOCK_S):
+    def __init__(self, maxsize: int = DEFAULT_QUEUE_SIZE, block_s: float = DEFAULT_BLOCK_S,
+                 max_bytes: int = DEFAULT_MAX_BYTES):
         self._queue: queue.Queue[Message] = queue.Queue(maxsize=maxsize)
         self._block_s = block_s
+        self._max_bytes = max_bytes
         self._lock = threading.Lock()
+        self._room = threading.Condition(self._lock)
+        self._bytes = 0
         self._overflowed = 0
         self.closed = threading.Event()
 
@@ -75,25 +86,48 @@ class BoundedReceiver:
         if self.closed.is_set():
             return
         msg = Message(str(sample.key_expr), sample.payload.to_bytes())
-        try:
-            self._queue.put(msg, timeout=self._block_s)
-        except queue.Full:
-            with self._lock:
-                self._overflowed += 1
-            log.warning("receive channel full: dropped a message on %s", msg.key)
+        n = len(msg.data)
+        with self._room:
+            fits = self._room.wait_for(lambda: self._bytes == 0 or self._bytes + n <= self._max_bytes,
+                                       timeout=self._block_s)
+            if fits:
+                self._bytes += n
+        if fits:
+            try:
+                self._queue.put(msg, timeout=self._block_s)
+                return
+            except queue.Full:
+                self._release(n)
+        with self._lock:
+            self._overflowed += 1
+        log.warning("receive channel full: dropped a message on %s", msg.key[:100])
+
+    def _release(self, n: int) -> None:
+        with self._room:
+            self._bytes -= n
+            self._room.notify_all()
 
     def get(self, timeout_s: float) -> Message | None:
         """The next message, or ``None`` after ``timeout_s`` without one."""
         try:
-            return self._queue.get(timeout=max(timeout_s, 0.0))
+            msg = self._queue.get(timeout=max(timeout_s, 0.0))
         except queue.Empty:
             return None
+        self._release(len(msg.data))
+        return msg
 
     def get_nowait(self) -> Message | None:
         try:
-            return self._queue.get_nowait()
+            msg = self._queue.get_nowait()
         except queue.Empty:
             return None
+        self._release(len(msg.data))
+        return msg
+
+    @property
+    def queued_bytes(self) -> int:
+        with self._lock:
+            return self._bytes
 
     @property
     def overflowed(self) -> int:

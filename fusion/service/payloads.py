@@ -27,6 +27,7 @@ import logging
 import math
 import re
 import threading
+import time
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any
@@ -381,8 +382,30 @@ def decode(key: str, data: bytes) -> Payload:
     return payload
 
 
+class DropLog:
+    """One warning line per reason per ``period_s`` at most, saying how many were not logged
+    since: a peer flooding bad payloads cannot flood the log. Thread-safe."""
+
+    def __init__(self, period_s: float = 1.0):
+        self.period_s = period_s
+        self._lock = threading.Lock()
+        self._last: dict[str, tuple[float, int]] = {}
+
+    def warn(self, reason: str, message: str, *args) -> None:
+        now = time.monotonic()
+        with self._lock:
+            last, quiet = self._last.get(reason, (-math.inf, 0))
+            if now - last < self.period_s:
+                self._last[reason] = (last, quiet + 1)
+                return
+            self._last[reason] = (now, 0)
+        more = f" ({quiet} more since the last line)" if quiet else ""
+        log.warning(message + "%s", *args, more)
+
+
 class Inbox:
-    """Decodes what a node receives, counting and dropping (one log line each) what is bad.
+    """Decodes what a node receives, counting and dropping what is bad (with one log line per
+    reason per second at most, :class:`DropLog`).
 
     Safe to call from Zenoh's receive threads: the counters take a lock.
     """
@@ -392,6 +415,7 @@ class Inbox:
         self._lock = threading.Lock()
         self._received = 0
         self._dropped: Counter[str] = Counter()
+        self._log = DropLog()
 
     def decode(self, key: str, data: bytes) -> Payload | None:
         """The payload, or ``None`` (counted, logged) when it is not a valid one."""
@@ -405,7 +429,8 @@ class Inbox:
             reason, message = "malformed", f"{type(e).__name__}: {e}"
         with self._lock:
             self._dropped[reason] += 1
-        log.warning("%s: dropped a payload on %s (%s): %s", self.node, key, reason, message[:200])
+        self._log.warn(reason, "%s: dropped a payload on %s (%s): %s", self.node, str(key)[:100], reason,
+                       message[:200])
         return None
 
     @property

@@ -7,6 +7,13 @@ on ``armfusion/<robot>/raw/<sensor>`` when the wall clock reaches the window's e
 publishers block rather than drop). A :class:`~fusion.service.payloads.Status` goes out
 on ``armfusion/<robot>/status`` at the start and at the end, with the samples published
 per sensor.
+
+Whether anything hears it is Zenoh's matching status of each publisher (a subscriber whose
+key expression matches, anywhere the session reaches). With ``require_subscriber``,
+:func:`replay` first waits up to ``wait_for_subscribers_s`` for one and raises
+:class:`NoSubscriberError` (nothing published) when no sensor's key has any; every batch
+put while its key had no subscriber is counted in :attr:`ReplayReport.unheard`, so a
+subscriber that leaves half-way shows too. ``armfusion replay`` exits 1 in both cases.
 """
 
 from __future__ import annotations
@@ -27,6 +34,10 @@ log = logging.getLogger("armfusion.service")
 DEFAULT_BATCH_S = 0.02
 
 
+class NoSubscriberError(RuntimeError):
+    """Nothing subscribes to the replay's raw keys: publishing would reach nobody."""
+
+
 @dataclass(frozen=True)
 class ReplayReport:
     """What a replay published."""
@@ -37,11 +48,14 @@ class ReplayReport:
     wall_s: float
     stopped: bool = False
     unmatched: tuple[str, ...] = field(default=())
+    """Sensors whose key had no subscriber when the wait for one ended."""
+    unheard: dict[str, int] = field(default_factory=dict)
+    """Samples per sensor put while its key had no subscriber (sensors with none left out)."""
 
     def as_dict(self) -> dict:
         return {"robot": self.robot, "samples": self.samples, "batches": self.batches,
                 "wall_s": round(self.wall_s, 3), "stopped": self.stopped,
-                "unmatched": list(self.unmatched)}
+                "unmatched": list(self.unmatched), "unheard": dict(self.unheard)}
 
 
 def _windows(streams: dict[str, Stream], t0: float, t1: float, batch_s: float):
@@ -74,11 +88,13 @@ def _wait_for_subscribers(pubs: dict[str, zenoh.Publisher], wait_s: float,
 
 def replay(session: zenoh.Session, rec: Recording, robot: str, *, speed: float | None = 1.0,
            batch_s: float = DEFAULT_BATCH_S, wait_for_subscribers_s: float = 0.0,
-           stop: threading.Event | None = None) -> ReplayReport:
+           stop: threading.Event | None = None, require_subscriber: bool = False) -> ReplayReport:
     """Publish the raw streams of ``rec`` as robot ``robot``; see the module's docstring.
 
     ``wait_for_subscribers_s``: first wait up to this long for a subscriber on every raw
     key (the sensors named in :attr:`ReplayReport.unmatched` had none by then).
+    ``require_subscriber``: raise :class:`NoSubscriberError`, publishing nothing, when no
+    raw key has a subscriber after that wait.
     """
     if speed is not None and not speed > 0:
         raise ValueError(f"speed must be > 0 (or None for as fast as possible), got {speed!r}")
@@ -94,7 +110,15 @@ def replay(session: zenoh.Session, rec: Recording, robot: str, *, speed: float |
                                          congestion_control=zenoh.CongestionControl.BLOCK)
             for k in streams}
     unmatched = _wait_for_subscribers(pubs, wait_for_subscribers_s, stop) if wait_for_subscribers_s else ()
+    if require_subscriber and all(not p.matching_status.matching for p in pubs.values()):
+        for p in (*pubs.values(), status_pub):
+            p.undeclare()
+        raise NoSubscriberError(
+            f"nothing subscribes to {pl.raw_keys(robot)} (waited {wait_for_subscribers_s:g} s): is "
+            "`armfusion serve` or `record` running, for this robot, and connected to this node? "
+            "Nothing was published")
     samples = {k: 0 for k in streams}
+    unheard = {k: 0 for k in streams}
     seq = {k: 0 for k in streams}
     batches = 0
 
@@ -114,6 +138,8 @@ def replay(session: zenoh.Session, rec: Recording, robot: str, *, speed: float |
         for k, (i0, i1) in spans.items():
             s = streams[k]
             part = Stream(s.name, s.kind, s.t_s[i0:i1], s.values[i0:i1], s.channels)
+            if not pubs[k].matching_status.matching:
+                unheard[k] += i1 - i0
             pubs[k].put(pl.encode(pl.RawBatch(robot, part, seq[k])))
             seq[k] += 1
             samples[k] += i1 - i0
@@ -124,4 +150,5 @@ def replay(session: zenoh.Session, rec: Recording, robot: str, *, speed: float |
     for p in pubs.values():
         p.undeclare()
     status_pub.undeclare()
-    return ReplayReport(robot, samples, batches, wall, stopped, unmatched)
+    return ReplayReport(robot, samples, batches, wall, stopped, unmatched,
+                        {k: n for k, n in unheard.items() if n})

@@ -1,7 +1,14 @@
 """``armfusion serve``: the fusion node. Startup calibration on the first still window,
 then the tracker, sample by sample; publishes the joint state, the heading and a status.
 
-Raw batches arrive per sensor on ``armfusion/<robot>/raw/*``. Until the tracker starts,
+Raw batches arrive per sensor on ``armfusion/<robot>/raw/*``. Each is checked twice before
+anything else sees it: as a payload (:class:`~fusion.service.payloads.Inbox`) and against the
+arm's sensors and the sensors' own clock (:class:`~fusion.service.admission.Admission`);
+what fails is dropped and counted by reason (``dropped.<reason>`` in the status), and only
+accepted samples count as ``samples``. While tracking, no estimate for ``stall_after_s``
+while raw batches arrive is a stall (``stalled`` 1 in the status, and said in its message,
+until estimates come again).
+Until the tracker starts,
 they are kept; once ``min_data_s`` of samples are in, every ``retry_s`` the node looks
 for the first still stretch in them and runs the startup calibration there
 (:func:`fusion.tracker.start_from_recording`); the samples after it are then fed to the
@@ -45,6 +52,7 @@ import zenoh
 
 from fusion.service import payloads as pl
 from fusion.service import state_file
+from fusion.service.admission import Admission, AdmissionSettings
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver
 from fusion.startup import StartupPrior, prior_after_move
 from fusion.static import StaticDetectionSettings, find_static_segments
@@ -77,13 +85,19 @@ class ServeReport:
     resume_message: str = ""
     calibrations: int = 0
     missed_batches: int = 0
+    seq_resets: int = 0
+    encoder_rebases: int = 0
+    stalls: int = 0
+    errors: int = 0
 
     def as_dict(self) -> dict:
         return {"robot": self.robot, "state": self.state, "samples": self.samples,
                 "estimates": self.estimates, "out_of_order": self.out_of_order,
                 "dropped": self.dropped, "startup_t_s": self.startup_t_s, "message": self.message,
                 "resumed": self.resumed, "resume_message": self.resume_message,
-                "calibrations": self.calibrations, "missed_batches": self.missed_batches}
+                "calibrations": self.calibrations, "missed_batches": self.missed_batches,
+                "seq_resets": self.seq_resets, "encoder_rebases": self.encoder_rebases,
+                "stalls": self.stalls, "errors": self.errors}
 
 
 class _Reorder:
@@ -113,6 +127,11 @@ class _Reorder:
         if times[-1] > self._last.get(s.name, -np.inf):
             self._last[s.name] = times[-1]
         return late
+
+    def forget(self, name: str) -> None:
+        """Drop what is queued of ``name`` and its newest time (its clock was refuted)."""
+        self._q.pop(name, None)
+        self._last.pop(name, None)
 
     def seen(self, name: str, t_s: float) -> None:
         """Note that ``name`` has sent everything up to ``t_s`` (before any push of it)."""
@@ -145,13 +164,17 @@ class _Reorder:
 
 
 def _merge(parts: dict[str, list[Stream]], t_from_s: float = -np.inf) -> Recording:
-    """One recording of the batches in ``parts`` (from ``t_from_s`` on); a repeated batch is ignored."""
+    """One recording of the batches in ``parts`` (from ``t_from_s`` on), in time order; a
+    repeated sample is ignored. (The admission keeps the batches' times within a bounded
+    window and their channels the config's; this stays in order whatever comes.)"""
     streams = {}
     for k, ps in parts.items():
         if not ps:
             continue
         t = np.concatenate([p.t_s for p in ps])
         v = np.concatenate([p.values for p in ps])
+        order = np.argsort(t, kind="stable")
+        t, v = t[order], v[order]
         keep = np.concatenate([[True], np.diff(t) > 0]) & (t >= t_from_s)
         if np.any(keep):
             streams[k] = Stream(k, ps[0].kind, t[keep], v[keep], ps[0].channels)
@@ -168,6 +191,9 @@ class FusionNode:
     node keeps for a calibration on request. ``silent_after_s``: a sensor none of whose
     batches arrived for that long (wall time) is ``stale`` in the status, also when every
     sensor stops and the tracker, which judges staleness in sample time, hears nothing.
+    ``admission``: the bounds every raw batch is checked against
+    (:mod:`fusion.service.admission`). ``stall_after_s``: while tracking, no estimate for
+    that long (wall time) while raw batches arrive is a stall, reported in the status.
     """
 
     def __init__(self, session: zenoh.Session, arm: ArmModel, robot: str, *,
@@ -176,7 +202,8 @@ class FusionNode:
                  state_path: Path | str | None = None, save_period_s: float = 1.0,
                  max_state_age_s: float = 60.0, max_joint_rate_rad_s: float = 1.5,
                  recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5,
-                 queue_size: int = DEFAULT_QUEUE_SIZE, assume_parked: bool = False):
+                 queue_size: int = DEFAULT_QUEUE_SIZE, admission: AdmissionSettings | None = None,
+                 stall_after_s: float = 1.0, assume_parked: bool = False):
         self.session = session
         # the ready pose as evidence for the startup's branches only when the caller says the
         # arm is parked there (serve --assume-parked); by default nothing but the data chooses
@@ -195,7 +222,11 @@ class FusionNode:
         self.still_tolerance_s = still_tolerance_s
         self.silent_after_s = silent_after_s
         self.queue_size = queue_size
-        self._seq: dict[str, int] = {}
+        self.stall_after_s = stall_after_s
+        self._admission = Admission(arm, admission)
+        self._raw_arrived = -np.inf  # when the last well-formed raw batch arrived (monotonic)
+        self._estimated = -np.inf  # when the tracker last gave an estimate (monotonic)
+        self._stalled_since: float | None = None
         self.ready = threading.Event()
         self._max_lag_s = max_lag_s
         self._reorder = _Reorder(max_lag_s)
@@ -234,8 +265,12 @@ class FusionNode:
         return self._tracker
 
     def report_samples(self) -> int:
-        """Raw samples received so far (may be read from another thread)."""
+        """Raw samples accepted so far (may be read from another thread)."""
         return self._counts["samples"]
+
+    def refused(self) -> dict[str, int]:
+        """Raw batches the admission refused so far, by reason (a copy; any thread)."""
+        return dict(self._admission.rejected.copy())
 
     def run(self, stop: threading.Event) -> ServeReport:
         """Serve until ``stop`` is set."""
@@ -264,10 +299,11 @@ class FusionNode:
             while not stop.is_set():
                 msg = receiver.get(timeout_s=0.1)
                 if msg is not None:
-                    self._on_message(msg)
+                    self._on_message_guarded(msg)
                 while (query := self._next_query()) is not None:
                     self._answer(query)
                 now = time.monotonic()
+                self._watch_stall(now)
                 silent = frozenset(k for k, t in self._arrived.items() if now - t > self.silent_after_s)
                 if silent != self._silent:
                     self._silent, self._status_due = silent, True
@@ -279,7 +315,7 @@ class FusionNode:
                     self.save_state()
                     next_save = now + self.save_period_s
             while (msg := receiver.get_nowait()) is not None:
-                self._on_message(msg)
+                self._on_message_guarded(msg)
             self._state = "stopping"
             if self.state_path is not None:
                 self.save_state()
@@ -293,28 +329,46 @@ class FusionNode:
             token.undeclare()
             for p in (pub_joints, pub_heading, pub_status):
                 p.undeclare()
+        adm = self._admission
         return ServeReport(self.robot, self._state, self._counts["samples"], self._counts["estimates"],
                            self._counts["out_of_order"], self._dropped(receiver), self._startup_t,
                            self._message, self._resumed, self._resume_message,
-                           self._counts["calibrations"], self._counts["missed_batches"])
+                           self._counts["calibrations"], adm.missed_batches, adm.seq_resets,
+                           adm.encoder_rebases, self._counts["stalls"], self._counts["errors"])
 
     def _dropped(self, receiver: BoundedReceiver) -> dict[str, int]:
-        d = Counter(self._inbox.dropped)
+        d = Counter(self._inbox.dropped) + self._admission.rejected
         if receiver.overflowed:
             d["overflow"] += receiver.overflowed
         return dict(d)
+
+    def _on_message_guarded(self, msg) -> None:
+        """:meth:`_on_message`, and the last line of defence: whatever slipped past the checks
+        is counted (``errors``), logged with its traceback, and the node goes on."""
+        try:
+            self._on_message(msg)
+        except Exception as e:  # noqa: BLE001 - nothing a peer sends may stop the node
+            self._counts["errors"] += 1
+            self._status_due = True
+            log.exception("serve: error on a message on %s: %s: %s", msg.key[:100], type(e).__name__,
+                          str(e)[:200])
 
     def _on_message(self, msg) -> None:
         batch = self._inbox.decode(msg.key, msg.data)
         if not isinstance(batch, pl.RawBatch):
             return
         s = batch.stream
+        now = time.monotonic()
+        self._raw_arrived = now
+        verdict = self._admission.check(batch, now)
+        if not verdict.ok:
+            return
+        if verdict.reset:  # what was kept of this stream was on a clock the others refute
+            self._buffer.pop(s.name, None)
+            self._recent.pop(s.name, None)
+            self._reorder.forget(s.name)
         self._counts["samples"] += len(s)
-        last = self._seq.get(s.name)
-        if last is not None and batch.seq > last + 1:
-            self._counts["missed_batches"] += batch.seq - last - 1  # lost on the way
-        self._seq[s.name] = batch.seq  # (a smaller one: the publisher restarted)
-        self._arrived[s.name] = time.monotonic()
+        self._arrived[s.name] = now
         self._keep_recent(s)
         if self._tracker is None:
             self._buffer.setdefault(s.name, []).append(s)
@@ -408,6 +462,7 @@ class FusionNode:
     def _begin(self, tracker: Tracker, rec: Recording, message: str) -> None:
         """Track with ``tracker`` from its time on; ``rec``'s later samples go to it first."""
         self._tracker = tracker
+        self._estimated = time.monotonic()
         self._startup_t = float(tracker.t_s)
         self._state = "tracking"
         self._message = message
@@ -495,6 +550,7 @@ class FusionNode:
             e = tr.update_instant(t, {k: v for k, v in samples.items() if k in takes})
             if e is None:
                 continue
+            self._estimated = time.monotonic()
             if e.sensors != self._sensors:
                 self._sensors = e.sensors
                 self._status_due = True
@@ -559,11 +615,30 @@ class FusionNode:
                                              float(e.heading_sigma_rad), bool(e.magnetic_disturbance))))
         self._counts["estimates"] += 1
 
+    def _watch_stall(self, now: float) -> None:
+        """Stalled: tracking, raw batches arriving, and no estimate for ``stall_after_s``."""
+        stalled = (self._tracker is not None and now - self._estimated > self.stall_after_s
+                   and now - self._raw_arrived < self.stall_after_s)
+        if stalled and self._stalled_since is None:
+            self._stalled_since = self._estimated
+            self._counts["stalls"] += 1
+            self._status_due = True
+            log.warning("serve: stalled: no estimate for %.1f s while raw batches arrive",
+                        now - self._estimated)
+        elif not stalled and self._stalled_since is not None and now - self._estimated <= self.stall_after_s:
+            self._stalled_since = None
+            self._status_due = True
+            log.info("serve: estimates again after a stall")
+
     def _publish_status(self, pub, receiver: BoundedReceiver) -> None:
         self._status_due = False
+        adm = self._admission
         counters = {"samples": self._counts["samples"], "estimates": self._counts["estimates"],
                     "out_of_order": self._counts["out_of_order"],
-                    "missed_batches": self._counts["missed_batches"],
+                    "missed_batches": adm.missed_batches, "seq_resets": adm.seq_resets,
+                    "encoder_rebases": adm.encoder_rebases,
+                    "stalled": int(self._stalled_since is not None), "stalls": self._counts["stalls"],
+                    "errors": self._counts["errors"],
                     "calibrations": self._counts["calibrations"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
         sensors = dict(self._sensors)
@@ -572,6 +647,9 @@ class FusionNode:
         if self._silent and self._silent >= set(sensors):
             quiet_s = time.monotonic() - max(self._arrived.values())
             message = f"no samples for {quiet_s:.1f} s: every sensor stale; {message}"
+        if self._stalled_since is not None:
+            message = (f"stalled: no estimate for {time.monotonic() - self._stalled_since:.1f} s while raw "
+                       f"batches arrived; {message}")
         pub.put(pl.encode(pl.Status(self.robot, "serve", self._state, time.time(), message,
                                     tuple(counters.items()), tuple(sensors.items()))))
 

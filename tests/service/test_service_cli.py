@@ -81,3 +81,44 @@ def test_serve_process_calibrates_on_a_replay_and_stops_on_sigint(startup_record
     doc = json.loads(out)
     assert doc["startup_t_s"] is not None, doc["message"]
     assert doc["estimates"] > 0 and doc["dropped"] == {}
+
+
+def test_replay_to_an_endpoint_nobody_listens_on_exits_1_saying_so(startup_recording, loopback_port):
+    r = CliRunner().invoke(app, ["replay", str(startup_recording), "--speed", "max", "--wait", "1",
+                                 "--connect", f"tcp/127.0.0.1:{loopback_port}"])
+    assert r.exit_code == 1, r.output
+    assert "nothing subscribes to armfusion/chair1/raw/* (waited 1 s)" in r.output
+    assert "Nothing was published" in r.output
+
+
+def test_replay_to_a_node_that_listens_for_another_robot_exits_1(startup_recording, hub_settings):
+    from fusion.service.zenoh_config import open_session
+
+    listener, _ = hub_settings
+    with open_session(listener) as s:
+        s.declare_subscriber("armfusion/chair2/raw/*", lambda sample: None)
+        r = CliRunner().invoke(app, ["replay", str(startup_recording), "--speed", "max", "--wait", "1",
+                                     "--connect", listener.listen[0]])
+    assert r.exit_code == 1, r.output
+    assert "nothing subscribes to armfusion/chair1/raw/*" in r.output
+
+
+def test_replay_counts_what_went_out_after_its_subscriber_left(startup_recording, hub_settings):
+    import threading
+    import time
+
+    from fusion.service.replay import replay
+    from fusion.service.zenoh_config import open_session
+    from sensors.recording import read_recording
+
+    listener, connector = hub_settings
+    rec = read_recording(startup_recording)
+    with open_session(listener) as node, open_session(connector) as s:
+        sub = node.declare_subscriber("armfusion/chair1/raw/*", lambda sample: None)
+        threading.Timer(2.0, sub.undeclare).start()  # the subscriber leaves after 2 s of the 4 s
+        start = time.monotonic()
+        report = replay(s, rec, "chair1", speed=1.0, wait_for_subscribers_s=5.0, require_subscriber=True)
+    assert report.unmatched == () and time.monotonic() - start > 3.5
+    total = sum(report.samples.values())
+    unheard = sum(report.unheard.values())
+    assert 0.2 * total < unheard < 0.8 * total, (unheard, total)

@@ -5,6 +5,7 @@ openssl command line at test time."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import threading
@@ -47,12 +48,33 @@ def _certificates(d: Path, names: tuple[str, ...], ca: str = "ca") -> None:
                  "-CAcreateserial", "-out", f"{n}.pem", "-days", "2", "-extfile", f"{n}.ext", cwd=d)
 
 
+def _chair_acl() -> dict:
+    config = load_config(ZenohSettings(DEPLOY_CONFIG_DIR / "chair.json5"))
+    return json.loads(config.get_json("access_control"))
+
+
 def _tls(d: Path, name: str, ca: str = "ca", listen: bool = False) -> dict:
     keys = {"root_ca_certificate": d / f"{ca}.pem", "connect_private_key": d / f"{name}.key",
             "connect_certificate": d / f"{name}.pem"}
     if listen:
         keys |= {"listen_private_key": d / f"{name}.key", "listen_certificate": d / f"{name}.pem"}
     return {f"transport/link/tls/{k}": str(v) for k, v in keys.items()}
+
+
+PASSWORDS = {"drivers": "d-secret", "serve": "s-secret", "record": "r-secret", "monitor": "m-secret"}
+
+
+def _users(d: Path) -> dict:
+    """The chair router's user dictionary (one ``user:password`` line each), as ``extra``."""
+    path = d / "chair.users"
+    path.write_text("".join(f"{u}:{p}\n" for u, p in PASSWORDS.items()))
+    return {"transport/auth/usrpwd/dictionary_file": str(path)}
+
+
+def _as(user: str, password: str | None = None) -> dict:
+    """A chair node's credentials, as ``extra``."""
+    return {"transport/auth/usrpwd/user": user,
+            "transport/auth/usrpwd/password": PASSWORDS[user] if password is None else password}
 
 
 def test_tls_loopback_endpoints_are_accepted_and_others_refused():
@@ -75,11 +97,15 @@ def test_a_chair_publishes_only_under_its_own_key_through_the_base_router(tmp_pa
     chair_eps = {c: f"tcp/127.0.0.1:{free_port()}" for c in ("chair1", "chair2")}
 
     def chair_router(c: str) -> ZenohSettings:
+        # (chair.json5 is chair1's; chair2's is the same file with chair2 for chair1)
+        extra = _tls(tmp_path, c) | _users(tmp_path)
+        if c != "chair1":
+            extra["access_control"] = json.loads(json.dumps(_chair_acl()).replace("chair1", c))
         return ZenohSettings(DEPLOY_CONFIG_DIR / "chair.json5", listen=[chair_eps[c]], connect=[base_ep],
-                             extra=_tls(tmp_path, c))
+                             extra=extra)
 
-    def chair_node(c: str) -> ZenohSettings:  # a node on the chair (serve, drivers), plain peer
-        return ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[chair_eps[c]])
+    def chair_node(c: str) -> ZenohSettings:  # a node on the chair (serve here), plain peer
+        return ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[chair_eps[c]], extra=_as("serve"))
 
     router = ZenohSettings(DEPLOY_CONFIG_DIR / "router.json5", listen=[base_ep],
                            extra=_tls(tmp_path, "router", listen=True))
@@ -132,3 +158,70 @@ def test_a_chair_publishes_only_under_its_own_key_through_the_base_router(tmp_pa
                                      "connect/timeout_ms": 2000})
         with pytest.raises(zenoh.ZError), open_session(rogue):
             pass
+
+
+def test_only_the_drivers_may_publish_raw_samples_on_a_chair_and_the_node_checks_what_they_send(
+        tmp_path, fusion_node, renk_recording):
+    """Both layers on chair1's router (config/deploy/chair.json5, its access-control policy
+    as shipped, its users from a dictionary made here): the router drops a raw sample put by
+    any chair node but the drivers, and refuses a node without the password; what the
+    drivers (allowed) send is still checked by the fusion node, which refuses a hostile
+    batch and counts it."""
+    import numpy as np
+
+    from fusion.configfile import load_arm
+    from fusion.service import payloads as pl
+    from fusion.service.replay import replay
+    from sensors.samples import Stream
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = ZenohSettings(DEPLOY_CONFIG_DIR / "chair.json5", listen=[endpoint], connect=[],
+                           extra=_users(tmp_path))
+
+    def node(user: str, password: str | None = None) -> ZenohSettings:
+        return ZenohSettings(mode="client", listen=[], connect=[endpoint],
+                             extra=_as(user, password) | {"connect/timeout_ms": 2000})
+
+    heard: list[str] = []
+    arm = load_arm("wmra")
+    with open_session(router), open_session(node("record")) as recorder:
+        recorder.declare_subscriber("armfusion/chair1/raw/*", lambda s: heard.append(s.payload.to_string()))
+        sessions = {u: open_session(node(u)) for u in ("drivers", "serve", "monitor")}
+        try:
+            pubs = {u: cm.__enter__().declare_publisher("armfusion/chair1/raw/acc1")
+                    for u, cm in sessions.items()}
+            # every publisher sees the recorder's subscription (interest flows to all)...
+            assert wait_for(lambda: all(p.matching_status.matching for p in pubs.values()), 10.0)
+            for i in range(10):
+                for u, p in pubs.items():
+                    p.put(f"{u} {i}")
+            assert wait_for(lambda: len(heard) >= 10, 5.0)
+            time.sleep(0.5)  # anything denied would have arrived by now
+            # ...but only the drivers' samples get through
+            assert sorted(heard) == sorted(f"drivers {i}" for i in range(10))
+        finally:
+            for cm in sessions.values():
+                cm.__exit__(None, None, None)
+        # a node with a wrong password, or none, is refused at the link
+        with pytest.raises(zenoh.ZError), open_session(node("drivers", "guess")):
+            pass
+        with pytest.raises(zenoh.ZError), open_session(ZenohSettings(
+                mode="client", listen=[], connect=[endpoint], extra={"connect/timeout_ms": 2000})):
+            pass
+
+        # the second layer: the drivers are allowed, and a batch of theirs is still checked
+        with fusion_node(node("serve"), arm, publish_hz=100.0) as (fnode, result), \
+                open_session(node("drivers")) as drivers:
+            rec = renk_recording
+            part = type(rec)({k: s.between(0.0, 3.0) for k, s in rec.streams.items()})
+            sent = replay(drivers, part, "chair1", speed=None, wait_for_subscribers_s=10.0)
+            total = sum(sent.samples.values())
+            assert wait_for(lambda: fnode.report_samples() >= total, 30.0)
+            enc = part.get("enc")
+            bogus = Stream("enc", "encoder", np.array([float(enc.t_s[-1]) + 0.001]),
+                           np.full((1, 7), 2**63 - 1), enc.channels)
+            drivers.put(pl.raw_key("chair1", "enc"), pl.encode(pl.RawBatch("chair1", bogus, 10**6)))
+            assert wait_for(lambda: fnode.refused().get("out_of_range") == 1, 10.0)
+        r = result["report"]
+    assert r.samples == total and r.dropped == {"out_of_range": 1}
+    assert r.startup_t_s is not None and r.errors == 0
