@@ -22,8 +22,7 @@ import typer
 import yaml
 from rich.table import Table
 
-from fusion.calibrate_cmd import calibrate_app
-from fusion.cli import (
+from fusion.cli_common import (
     ConfigOpt,
     JsonOpt,
     console,
@@ -75,7 +74,6 @@ def build_model(arm, effects: str | None) -> Model:
     return with_encoder_zeros(model)
 
 
-@calibrate_app.command("sensors")
 def calibrate_sensors(
     recording: Annotated[Path, typer.Argument(help="Recording (.csv or .mcap) of the arm moving "
                                               "through many orientations (e.g. renk-maneuver).")],
