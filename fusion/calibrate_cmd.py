@@ -12,6 +12,7 @@ from rich.table import Table
 from fusion.cli_common import (
     ConfigOpt,
     JsonOpt,
+    check_output_path,
     console,
     emit_json,
     err_console,
@@ -50,6 +51,8 @@ def calibrate_joints(
     """Every joint angle of a still arm, with sigma, flags, and a move that unlocks blind joints."""
     if method not in ("joint", "sequential"):
         fail(f"--method must be 'joint' or 'sequential', not {method!r}")
+    if save is not None:
+        check_output_path(save, "--save")
     arm = load_arm_or_exit(config)
     rec = read_recording_or_exit(recording)
     st = StartupSettings(gimbal_lock_deg=gimbal_lock_deg, sigma_limit_deg=sigma_limit_deg)

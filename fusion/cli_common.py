@@ -106,6 +106,16 @@ def check_output_path(path: Path, option: str, suffixes: Sequence[str] | None = 
         fail(f"{option} {path}: {why}")
 
 
+def prepare_output_path(path: Path, option: str, suffixes: Sequence[str] | None = None) -> Path:
+    """:func:`check_output_path`, then create the missing parent directories."""
+    check_output_path(path, option, suffixes)
+    try:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        fail(f"{option} {path}: cannot create its directory: {e.strerror or e}")
+    return Path(path)
+
+
 # --------------------------------------------------------------------------------------
 def progress_shown(json_out: bool) -> bool:
     """Progress bars only for a person at a terminal: not with --json, not when stdout or

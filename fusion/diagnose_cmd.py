@@ -26,6 +26,7 @@ from rich.table import Table
 from fusion.cli_common import (
     ConfigOpt,
     JsonOpt,
+    check_output_path,
     console,
     emit_json,
     err_console,
@@ -113,6 +114,11 @@ def diagnose_command(
     json_out: JsonOpt = False,
 ) -> None:
     """Compare the model with a recording: where it fails, which physical effect is missing."""
+    for path, option in ((write, "--write"), (report, "--report"), (history, "--history")):
+        if path is not None:
+            check_output_path(path, option)
+    if write is not None and history is None:
+        check_output_path(write.with_name(write.stem + ".workbench.json"), "--write (its history)")
     arm = load_arm_or_exit(config)
     rec = read_recording_or_exit(recording)
     try:

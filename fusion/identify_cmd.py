@@ -25,6 +25,7 @@ from rich.table import Table
 from fusion.cli_common import (
     ConfigOpt,
     JsonOpt,
+    check_output_path,
     console,
     emit_json,
     err_console,
@@ -99,6 +100,8 @@ def calibrate_sensors(
     """Estimate the sensors' and the arm's effects (with σ, holds and correlations)."""
     if mode not in ("separate", "simultaneous"):
         fail(f"--mode must be 'separate' or 'simultaneous', not {mode!r}")
+    if write is not None:
+        check_output_path(write, "--write")
     arm = load_arm_or_exit(config)
     rec = read_recording_or_exit(recording)
     try:

@@ -52,3 +52,96 @@ def test_the_listing_says_what_each_command_says_of_itself():
         real = group.commands[name]
         assert " ".join((real.help or "").split("\n\n")[0].split()) == text, name
     assert set(group.commands) == {"info", "inspect", *COMMANDS}
+
+
+# --------------------------------------------------------------------------------------
+# output paths: checked before the work starts, one line, exit 2
+
+@pytest.fixture(scope="module")
+def startup_csv(tmp_path_factory):
+    from fusion.simulate_cmd import simulate
+
+    path = tmp_path_factory.mktemp("rec") / "startup.csv"
+    simulate("wmra", "startup", path, duration_s=3.0, seed=1)
+    return path
+
+
+@pytest.mark.parametrize("args,option", [
+    (["info", "--plot", "{f}/arm.png"], "--plot"),
+    (["simulate", "-s", "daily-use", "--out", "{f}/rec.csv"], "--out"),
+    (["diagnose", "{rec}", "--report", "{f}/report.html"], "--report"),
+    (["diagnose", "{rec}", "--write", "{f}/c2.yaml"], "--write"),
+    (["calibrate", "sensors", "{rec}", "--write", "{f}/c2.yaml"], "--write"),
+    (["calibrate", "joints", "{rec}", "--save", "{f}/pose.json"], "--save"),
+    (["track", "{rec}", "--out", "{f}/est.csv"], "--out"),
+    (["record", "{f}/rec.mcap", "--duration", "0.1"], "OUT"),
+])
+def test_an_output_under_a_regular_file_is_refused_before_the_work(tmp_path, startup_csv, args, option):
+    f = tmp_path / "a_file"
+    f.write_text("not a directory")
+    argv = [a.format(f=f, rec=startup_csv) for a in args]
+    r = runner.invoke(app, argv)
+    assert r.exit_code == 2, r.output
+    assert f"error: {option} {f}/" in r.stderr
+    assert f"{f} is a file, not a directory" in r.stderr
+    assert "Traceback" not in r.output and "FileExistsError" not in r.output
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert f.read_text() == "not a directory"
+
+
+def test_info_plot_with_an_image_suffix_matplotlib_cannot_write_is_one_line(tmp_path):
+    r = runner.invoke(app, ["info", "--plot", str(tmp_path / "arm.txt")])
+    assert r.exit_code == 2
+    assert "--plot" in r.stderr and "unsupported suffix '.txt'; expected .png or .svg or .pdf" in r.stderr
+    assert "Traceback" not in r.output and not (tmp_path / "arm.txt").exists()
+
+
+def test_simulate_refuses_a_run_larger_than_memory_naming_the_bound(tmp_path):
+    r = runner.invoke(app, ["simulate", "-s", "daily-use", "--duration", "1e9", "--out",
+                            str(tmp_path / "r.csv")])
+    assert r.exit_code == 2
+    msg = " ".join(r.stderr.split())
+    assert "--duration 1e+09 s at 100 Hz would need about 351 TB of memory" in msg
+    assert "the bound is half the memory available now" in msg and "at most" in msg
+    assert not list(tmp_path.iterdir())
+    for bad in ("nan", "-5", "inf"):
+        r = runner.invoke(app, ["simulate", "-s", "daily-use", "--duration", bad, "--out",
+                                str(tmp_path / "r.csv")])
+        assert r.exit_code == 2 and "--duration must be a positive number of seconds" in r.stderr
+
+
+def test_the_run_size_bound_is_what_memory_allows():
+    from fusion.configfile import load_arm
+    from fusion.simulate_cmd import MEMORY_BYTES_PER_VALUE, check_run_size
+
+    arm = load_arm("wmra")
+    per_s = 100 * 39 * MEMORY_BYTES_PER_VALUE  # 39 values an instant on the WMRA
+    check_run_size(arm, "daily-use", 600.0, 100.0, available_bytes=2 * 600 * per_s)  # fits
+    with pytest.raises(ValueError, match=r"at most 500 s at this rate"):
+        check_run_size(arm, "daily-use", 600.0, 100.0, available_bytes=2 * 500 * per_s)
+    with pytest.raises(ValueError, match=r"--rate must be a positive number of Hz"):
+        check_run_size(arm, "daily-use", 10.0, 0.0)
+
+
+# --------------------------------------------------------------------------------------
+def test_track_says_which_span_its_rms_covers_on_a_short_recording(tmp_path):
+    import re
+
+    from fusion.simulate_cmd import simulate
+
+    path = tmp_path / "short.csv"
+    simulate("wmra", "daily-use", path, duration_s=25.0, seed=2)
+    r = runner.invoke(app, ["track", str(path)], env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    assert "after 60 s" not in r.stdout
+    m = re.search(r"RMS error (\d+\.\d)…(\d+\.\d) s \[deg\]", r.stdout)
+    assert m is not None, r.stdout
+    start, end = float(m.group(1)), float(m.group(2))
+    assert 0.0 < start < end <= 25.0
+    assert "before --after-s 60 s: the RMS errors are over the whole tracked run" in " ".join(r.stderr.split())
+    doc = json.loads(runner.invoke(app, ["track", str(path), "--json"]).stdout)
+    assert doc["rms_span_s"] == pytest.approx([start, end], abs=0.05) and doc["rms_after_s"] == 0.0
+    assert all(v is not None for v in doc["rms_error_deg"].values())
+    # long enough: the span starts at --after-s
+    doc = json.loads(runner.invoke(app, ["track", str(path), "--json", "--after-s", "20"]).stdout)
+    assert doc["rms_after_s"] == 20.0 and doc["rms_span_s"][0] == pytest.approx(20.0, abs=0.011)
