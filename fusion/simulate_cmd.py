@@ -32,7 +32,6 @@ from models.simulator import simulate as simulate_recording
 from models.trajectories import SCENARIOS
 from sensors.recording import write_recording
 
-
 MEMORY_BYTES_PER_VALUE = 90
 """Peak memory per simulated value (one channel at one instant, truth columns included):
 3000 s of the WMRA at 100 Hz (39 values an instant) peaked at 1.05 GB writing MCAP, 0.62 GB

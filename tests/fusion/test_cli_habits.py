@@ -138,7 +138,8 @@ def test_track_says_which_span_its_rms_covers_on_a_short_recording(tmp_path):
     assert m is not None, r.stdout
     start, end = float(m.group(1)), float(m.group(2))
     assert 0.0 < start < end <= 25.0
-    assert "before --after-s 60 s: the RMS errors are over the whole tracked run" in " ".join(r.stderr.split())
+    said = " ".join(r.stderr.split())
+    assert "before --after-s 60 s: the RMS errors are over the whole tracked run" in said
     doc = json.loads(runner.invoke(app, ["track", str(path), "--json"]).stdout)
     assert doc["rms_span_s"] == pytest.approx([start, end], abs=0.05) and doc["rms_after_s"] == 0.0
     assert all(v is not None for v in doc["rms_error_deg"].values())
