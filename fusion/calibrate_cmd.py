@@ -19,6 +19,7 @@ from fusion.cli_common import (
     fail,
     load_arm_or_exit,
     read_recording_or_exit,
+    screen_or_exit,
 )
 from fusion.identify import startup_correction
 from fusion.pose_store import load_pose, save_pose
@@ -55,6 +56,8 @@ def calibrate_joints(
         check_output_path(save, "--save")
     arm = load_arm_or_exit(config)
     rec = read_recording_or_exit(recording)
+    screen = screen_or_exit(arm, rec, recording, [a.name for a in arm.link_accelerometers], "calibrate "
+                            f"joints needs (every link accelerometer of {arm.source})", json_out)
     st = StartupSettings(gimbal_lock_deg=gimbal_lock_deg, sigma_limit_deg=sigma_limit_deg)
     notes: list[str] = []
     prior_q = None
@@ -120,7 +123,7 @@ def calibrate_joints(
             notes.append(f"pose not saved to {save}: not every joint is ok")
     if json_out:
         emit_json({"config": arm.source, "recording": str(recording), "method": method,
-                   "segments": docs, "notes": notes})
+                   "segments": docs, "notes": notes, "saturated_left_out": screen.as_dict()["saturated"]})
         return
     for n in notes:
         err_console.print(n)

@@ -79,6 +79,23 @@ def read_recording_or_exit(path: Path):
     return rec
 
 
+def screen_or_exit(arm, rec, path: Path, required: Sequence[str], needed_by: str,
+                   json_out: bool = False):
+    """The one treatment of range and saturation (``models.sensor_models.screen_samples``)
+    for a command: exit 2 with one line when ``rec`` lacks a stream of ``required`` (what
+    ``needed_by`` needs) or holds a value past its device's range, naming the place; else
+    say on stderr how many saturated samples are left out, and return the screen."""
+    from models.sensor_models import MissingSensorError, OutOfRangeError, screen_samples
+
+    try:
+        screen = screen_samples(arm, rec, required, needed_by)
+    except (MissingSensorError, OutOfRangeError) as e:
+        fail(f"{path}: {e}")
+    if screen.any_saturated and not json_out:
+        err_console.print(f"[yellow]{screen.words()}[/]", highlight=False)
+    return screen
+
+
 def output_path_problem(path: Path, suffixes: Sequence[str] | None = None) -> str | None:
     """Why ``path`` cannot be written (a parent that is a file, a directory in its place, a
     suffix not among ``suffixes``), or ``None``. Checks only: creates nothing."""

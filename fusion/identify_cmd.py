@@ -31,13 +31,16 @@ from fusion.cli_common import (
     err_console,
     fail,
     load_arm_or_exit,
+    progress_bar,
     read_recording_or_exit,
+    screen_or_exit,
 )
 from fusion.configfile import resolve_config_path
 from fusion.identify import (
     IdentifySettings,
     config_with_estimates,
     data_from_recording,
+    fit_streams,
     identify_recentred,
     identify_separately,
     with_encoder_zeros,
@@ -104,6 +107,8 @@ def calibrate_sensors(
         check_output_path(write, "--write")
     arm = load_arm_or_exit(config)
     rec = read_recording_or_exit(recording)
+    screen = screen_or_exit(arm, rec, recording, fit_streams(arm), "calibrate sensors fits (the "
+                            f"encoders and every sensor stream of {arm.source})", json_out)
     try:
         model = build_model(arm, effects)
         data = data_from_recording(arm, rec, window, nodes=2, stances=stances)
@@ -111,16 +116,13 @@ def calibrate_sensors(
             data = replace(data, base_tilt_reference=parse_base_tilt(base_tilt, base_tilt_sigma))
     except ValueError as e:
         fail(str(e))
-    quiet = json_out
-
-    def progress(k: int, cost: float) -> None:
-        if not quiet:
-            err_console.print(f"  Jacobian {k}: cost {cost:.4g}", highlight=False)
-
-    if not quiet:
+    if not json_out:
         err_console.print(f"fitting {model.size} parameters on {data.n:,} points ({data.note})…")
+    settings = IdentifySettings(encoder_scale=True)
     if mode == "separate":
-        fits = identify_separately(model, data, IdentifySettings(encoder_scale=True), progress)
+        with progress_bar("fitting", json_out) as advance:
+            groups = len(arm.link_accelerometers) + (arm.imu is not None)  # one fit each
+            fits = identify_separately(model, data, settings, _jacobians(advance, groups))
         if json_out:
             emit_json({k: v.as_dict() for k, v in fits.items()})
             return
@@ -136,7 +138,8 @@ def calibrate_sensors(
                       f"{a[1]:.3f} ± {np.degrees(f.sigma[i0 + 1]):.3f}", f"{ratio:.2f}", str(int(f.held.sum())))
         console.print(t)
         return
-    res, data = identify_recentred(model, data, None, IdentifySettings(encoder_scale=True), progress)
+    with progress_bar("fitting", json_out) as advance:
+        res, data = identify_recentred(model, data, None, settings, _jacobians(advance))
     if write is not None:
         src = resolve_config_path(config)
         cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
@@ -147,9 +150,29 @@ def calibrate_sensors(
     if json_out:
         d = res.as_dict()
         d["written"] = str(write) if write else None
+        d["saturated_left_out"] = {"samples": screen.as_dict()["saturated"],
+                                   "windows": data.saturated_windows}
         emit_json(d)
         return
     _print(res, write)
+
+
+EXPECTED_JACOBIANS = 20
+"""Jacobians a calibration fit takes, for the bar's time left: 13 on a 30 s renk-maneuver,
+16 on the full 1664 s one (realistic effects, 6657 points); past it the bar expects one more
+at a time."""
+
+
+def _jacobians(advance, fits: int = 1):
+    """``progress(k, cost)`` of ``fits`` fits as a bar: every Jacobian (of any pass) counts
+    one of :data:`EXPECTED_JACOBIANS` per fit."""
+    done = 0
+
+    def progress(k: int, cost: float) -> None:
+        nonlocal done
+        done += 1
+        advance(done / max(fits * EXPECTED_JACOBIANS, done + 1), f"fitting: Jacobian {k}, cost {cost:.4g}")
+    return progress
 
 
 def _print(res, write) -> None:

@@ -20,7 +20,9 @@ from fusion.cli_common import (
     err_console,
     fail,
     load_arm_or_exit,
+    progress_bar,
     read_recording_or_exit,
+    screen_or_exit,
 )
 
 OUT_SUFFIXES = (".csv", ".mcap")
@@ -63,6 +65,9 @@ def track(
         arm = replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": unmodelled_g,
                                         "accel_unmodelled_g_per_sensor": {}})
     rec = read_recording_or_exit(recording)
+    screen = screen_or_exit(arm, rec, recording, ["enc", *(a.name for a in arm.link_accelerometers)],
+                            f"track needs (the encoders and every link accelerometer of {arm.source})",
+                            json_out)
     notes: list[str] = []
     rec, note = _scoring_truth(rec, recording, arm.joint_names)
     if note:
@@ -76,14 +81,16 @@ def track(
             prior_q = saved.q_rad
     settings = TrackerSettings(gate_significance=gate_significance,
                                motion_compensation=not no_motion_compensation)
-    try:
-        tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q)
-    except NoStillWindowError as e:
-        fail(f"{recording}: {e}")
-    except (StartupInputError, ValueError) as e:
-        fail(f"{recording}: cannot start tracking: {e}")
-    notes.extend(start.notes)
-    run = tr.run(rec)
+    with progress_bar("startup calibration", json_out) as advance:
+        try:
+            tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q)
+        except NoStillWindowError as e:
+            fail(f"{recording}: {e}")
+        except (StartupInputError, ValueError) as e:
+            fail(f"{recording}: cannot start tracking: {e}")
+        notes.extend(start.notes)
+        advance(0.0, "tracking")
+        run = tr.run(rec, progress=advance)
     after = after_s
     if run.steps and run.t_s[-1] < rec.t_start_s + after_s:  # nothing to score after --after-s
         after = 0.0
@@ -103,6 +110,7 @@ def track(
         **summary,
         "final": tr.estimate.as_dict() if run.steps else None,
         "out": None if out is None else str(out),
+        "saturated_left_out": screen.as_dict()["saturated"],
         "notes": notes,
     }
     if out is not None:

@@ -146,3 +146,66 @@ def test_track_says_which_span_its_rms_covers_on_a_short_recording(tmp_path):
     # long enough: the span starts at --after-s
     doc = json.loads(runner.invoke(app, ["track", str(path), "--json", "--after-s", "20"]).stdout)
     assert doc["rms_after_s"] == 20.0 and doc["rms_span_s"][0] == pytest.approx(20.0, abs=0.011)
+
+
+# --------------------------------------------------------------------------------------
+# progress bars: with the time left, at a terminal only
+
+BAR = __import__("re").compile(r"━+.*\d+%.*\d:\d\d:\d\d left (\d:\d\d:\d\d|-:--:--)")
+"""A rich bar: the bar, per cent done, time elapsed, time left."""
+
+
+def _at_a_terminal(args: list[str], cwd) -> str:
+    """Run ``armfusion ARGS`` with stdout and stderr on a pseudo-terminal; what it showed."""
+    import os
+    import pty
+    import select
+
+    master, slave = pty.openpty()
+    env = {**os.environ, "TERM": "xterm", "COLUMNS": "120"}
+    env.pop("NO_COLOR", None)
+    p = subprocess.Popen([sys.executable, "-m", "fusion.cli", *args], stdout=slave, stderr=slave,
+                         stdin=subprocess.DEVNULL, cwd=cwd, env=env)
+    os.close(slave)
+    out = b""
+    while True:
+        ready, _, _ = select.select([master], [], [], 120)
+        if not ready:
+            break
+        try:
+            chunk = os.read(master, 65536)
+        except OSError:  # the child closed the terminal
+            break
+        if not chunk:
+            break
+        out += chunk
+    p.wait(timeout=120)
+    os.close(master)
+    text = __import__("re").sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", out.decode(errors="replace"))
+    assert p.returncode == 0, text[-2000:]
+    return text
+
+
+def test_simulate_shows_a_bar_with_the_time_left_at_a_terminal_only(tmp_path):
+    shown = _at_a_terminal(["simulate", "-s", "daily-use", "--duration", "300", "--out", "r.csv"], tmp_path)
+    assert "simulating" in shown or "writing r.csv" in shown
+    assert BAR.search(shown), shown[-1500:]
+    assert "Wrote r.csv" in shown
+    quiet = _at_a_terminal(["simulate", "-s", "daily-use", "--duration", "300", "--out", "r.csv",
+                            "--json"], tmp_path)
+    assert "simulating" not in quiet and not BAR.search(quiet)
+    assert json.loads(quiet[quiet.index("{"):])["duration_s"] == 300.0
+    # redirected (a test's pipes): no bar either
+    r = runner.invoke(app, ["simulate", "-s", "daily-use", "--duration", "300", "--out",
+                            str(tmp_path / "r.csv")])
+    assert r.exit_code == 0 and not BAR.search(r.output) and "simulating" not in r.output
+
+
+def test_track_shows_its_bar_at_a_terminal(tmp_path, startup_csv):
+    from fusion.simulate_cmd import simulate
+
+    simulate("wmra", "daily-use", tmp_path / "d.csv", duration_s=120.0, seed=4)
+    shown = _at_a_terminal(["track", "d.csv"], tmp_path)
+    assert "tracking" in shown and BAR.search(shown)
+    r = runner.invoke(app, ["track", str(tmp_path / "d.csv")])
+    assert r.exit_code == 0 and not BAR.search(r.output)
