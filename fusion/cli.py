@@ -101,7 +101,15 @@ class LazyCommands(TyperGroup):
     def resolve_command(self, ctx, args):
         if args and args[0] in COMMANDS and args[0] not in self.commands:
             self.load(args[0])
-        return super().resolve_command(ctx, args)
+        try:
+            return super().resolve_command(ctx, args)
+        except typer._click.exceptions.UsageError as e:  # a typo: suggest from every command
+            from difflib import get_close_matches
+
+            near = get_close_matches(args[0], self.list_commands(ctx)) if args else []
+            if near and "Did you mean" not in e.message:
+                e.message = f"{e.message.rstrip('.')}. Did you mean {', '.join(map(repr, near))}?"
+            raise
 
     def load(self, cmd_name: str) -> None:
         """Build the commands that ``cmd_name``'s register function adds, and keep them."""

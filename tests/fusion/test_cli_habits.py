@@ -209,3 +209,9 @@ def test_track_shows_its_bar_at_a_terminal(tmp_path, startup_csv):
     assert "tracking" in shown and BAR.search(shown)
     r = runner.invoke(app, ["track", str(tmp_path / "d.csv")])
     assert r.exit_code == 0 and not BAR.search(r.output)
+
+
+def test_a_mistyped_command_gets_a_suggestion_among_the_lazy_ones():
+    r = runner.invoke(app, ["trak"])
+    assert r.exit_code == 2
+    assert "No such command 'trak'. Did you mean 'track'?" in " ".join(r.output.split()).replace("│ ", "")
