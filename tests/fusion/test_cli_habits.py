@@ -75,6 +75,7 @@ def startup_csv(tmp_path_factory):
     (["calibrate", "joints", "{rec}", "--save", "{f}/pose.json"], "--save"),
     (["track", "{rec}", "--out", "{f}/est.csv"], "--out"),
     (["record", "{f}/rec.mcap", "--duration", "0.1"], "OUT"),
+    (["drivers", "--fake", "--duration", "1", "--out", "{f}/rec.csv"], "--out"),
 ])
 def test_an_output_under_a_regular_file_is_refused_before_the_work(tmp_path, startup_csv, args, option):
     f = tmp_path / "a_file"
