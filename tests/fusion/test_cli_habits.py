@@ -205,7 +205,7 @@ def test_simulate_shows_a_bar_with_the_time_left_at_a_terminal_only(tmp_path):
 def test_track_shows_its_bar_at_a_terminal(tmp_path, startup_csv):
     from fusion.simulate_cmd import simulate
 
-    simulate("wmra", "daily-use", tmp_path / "d.csv", duration_s=120.0, seed=4)
+    simulate("wmra", "daily-use", tmp_path / "d.csv", duration_s=60.0, seed=4)
     shown = _at_a_terminal(["track", "d.csv"], tmp_path)
     assert "tracking" in shown and BAR.search(shown)
     r = runner.invoke(app, ["track", str(tmp_path / "d.csv")])
