@@ -159,6 +159,7 @@ def info(
     plot: Annotated[Path | None, typer.Option(help="Also draw the arm at its ready pose to this PNG.")] = None,
 ) -> None:
     """Print the arm: its joints, its sensors, and which joints each sensor sees."""
+    from rich.markup import escape
     from rich.table import Table
 
     from fusion.describe import describe_arm
@@ -183,7 +184,7 @@ def info(
     t = Table(title="Joints", title_justify="left")
     for col in ("joint", "alpha [deg]", "a [mm]", "d [mm]", "offset [deg]", "limits [deg]",
                 "ready [deg]", "counts/rev", "vertical at ready"):
-        t.add_column(col, justify="right" if col != "joint" else "left")
+        t.add_column(escape(col), justify="right" if col != "joint" else "left")  # "[deg]": text
     for j in d["joints"]:
         t.add_row(j["name"], _f(j.get("alpha_deg")), _f(j.get("a_mm")), _f(j.get("d_mm")),
                   _f(j.get("offset_deg")), f"{j['min_deg']:.0f} … {j['max_deg']:.0f}",
@@ -192,7 +193,7 @@ def info(
     console.print(t)
     t = Table(title="Sensors", title_justify="left")
     for col in ("sensor", "type", "link", "position [mm]", "bus", "sees joints"):
-        t.add_column(col)
+        t.add_column(escape(col))
     for s in d["sensors"]:
         t.add_row(s["name"], s["type"], str(s["link"]),
                   ", ".join(f"{v:.1f}" for v in s["position_mm"]), s["bus"] or "-",
@@ -217,6 +218,7 @@ def inspect(
     window_s: Annotated[float, typer.Option(help="Still-detection window [s].")] = 1.0,
 ) -> None:
     """Summarise a recording: sensors, samples and rate each, duration, gaps, still segments."""
+    from rich.markup import escape
     from rich.table import Table
 
     from fusion.describe import describe_recording
@@ -234,7 +236,7 @@ def inspect(
         console.print(f"[yellow]{d['read_report']}[/]")
     t = Table(title="Streams", title_justify="left")
     for col in ("stream", "kind", "channels", "samples", "rate [Hz]", "gaps", "longest gap [s]"):
-        t.add_column(col, justify="right" if col in ("samples", "rate [Hz]", "gaps",
+        t.add_column(escape(col), justify="right" if col in ("samples", "rate [Hz]", "gaps",
                                                      "longest gap [s]") else "left")
     for s in d["streams"]:
         t.add_row(s["name"], s["kind"], ", ".join(s["channels"]), str(s["samples"]),
@@ -244,7 +246,7 @@ def inspect(
     if segs:
         t = Table(title=f"Still segments ({len(segs)})", title_justify="left")
         for col in ("#", "start [s]", "end [s]", "duration [s]"):
-            t.add_column(col, justify="right")
+            t.add_column(escape(col), justify="right")
         for i, s in enumerate(segs):
             t.add_row(str(i), f"{s['t_start_s']:.2f}", f"{s['t_end_s']:.2f}",
                       f"{s['duration_s']:.2f}")

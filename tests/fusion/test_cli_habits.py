@@ -216,3 +216,11 @@ def test_a_mistyped_command_gets_a_suggestion_among_the_lazy_ones():
     r = runner.invoke(app, ["trak"])
     assert r.exit_code == 2
     assert "No such command 'trak'. Did you mean 'track'?" in " ".join(r.output.split()).replace("│ ", "")
+
+
+def test_table_headers_keep_their_units(startup_csv):
+    """"[deg]" in a rich header is markup unless escaped: the units had vanished."""
+    r = runner.invoke(app, ["info"], env={"COLUMNS": "220"})
+    assert r.exit_code == 0 and "alpha [deg]" in r.stdout and "d [mm]" in r.stdout
+    r = runner.invoke(app, ["inspect", str(startup_csv)], env={"COLUMNS": "220"})
+    assert r.exit_code == 0 and "rate [Hz]" in r.stdout and "longest gap [s]" in r.stdout
