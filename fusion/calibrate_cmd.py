@@ -12,12 +12,14 @@ from rich.table import Table
 from fusion.cli_common import (
     ConfigOpt,
     JsonOpt,
+    check_output_path,
     console,
     emit_json,
     err_console,
     fail,
     load_arm_or_exit,
     read_recording_or_exit,
+    screen_or_exit,
 )
 from fusion.identify import startup_correction
 from fusion.pose_store import load_pose, save_pose
@@ -55,8 +57,12 @@ def calibrate_joints(
     """Every joint angle of a still arm, with sigma, flags, and a move that unlocks blind joints."""
     if method not in ("joint", "sequential"):
         fail(f"--method must be 'joint' or 'sequential', not {method!r}")
+    if save is not None:
+        check_output_path(save, "--save")
     arm = load_arm_or_exit(config)
     rec = read_recording_or_exit(recording, arm)
+    screen = screen_or_exit(arm, rec, recording, [a.name for a in arm.link_accelerometers], "calibrate "
+                            f"joints needs (every link accelerometer of {arm.source})", json_out)
     st = StartupSettings(gimbal_lock_deg=gimbal_lock_deg, sigma_limit_deg=sigma_limit_deg)
     notes: list[str] = []
     first_prior = None
@@ -140,7 +146,7 @@ def calibrate_joints(
             notes.append(f"pose not saved to {save}: not every joint is ok")
     if json_out:
         emit_json({"config": arm.source, "recording": str(recording), "method": method,
-                   "segments": docs, "notes": notes})
+                   "segments": docs, "notes": notes, "saturated_left_out": screen.as_dict()["saturated"]})
         return
     for n in notes:
         err_console.print(n)

@@ -2,36 +2,134 @@
 
 Every command that computes something takes ``--json`` and then prints exactly one JSON
 document on stdout (see docs/cli.md). Errors go to stderr as one clear message, exit 2.
+
+Commands are registered explicitly: ``info`` and ``inspect`` here, every other one by the
+``register`` function :data:`COMMANDS` names, called when that command runs or its help is
+asked for (the root group, :class:`LazyCommands`, lists them from the table). So
+``armfusion --help`` imports typer and rich, not the tracker, the fits or Zenoh.
 """
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.table import Table
+from typer.core import TyperGroup
 
 from fusion import __version__
-from fusion.cli_common import (  # noqa: F401  (re-exported for the command modules)
+from fusion.cli_common import (
     ConfigOpt,
     JsonOpt,
+    check_output_path,
     console,
     emit_json,
-    err_console,
     fail,
-    json_default,
     load_arm_or_exit,
     read_recording_or_exit,
 )
 
+# command name -> (its first help paragraph, "module:function" that registers it on the app);
+# one function may register several commands (the service's)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "simulate": ("Simulate a recording of the arm's sensors (raw counts, truth columns, truth file).",
+                 "fusion.simulate_cmd:register"),
+    "drivers": ("Read the sensors through the drivers (or, with --fake, the simulator-fed fakes) and "
+                "report read time, jitter, errors and samples per device; with --robot, publish the raw "
+                "samples over Zenoh as they are read.", "fusion.drivers_cmd:register"),
+    "replay": ("Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing.",
+               "fusion.service.commands:register"),
+    "record": ("Record a robot's raw samples and estimates from Zenoh to MCAP until stopped.",
+               "fusion.service.commands:register"),
+    "serve": ("The fusion node: startup calibration on the first still window (or resume from "
+              "--state-file), then the tracker; publishes armfusion/<robot>/state/joints, "
+              "state/heading and status; answers armfusion/<robot>/calibrate.",
+              "fusion.service.commands:register"),
+    "recalibrate": ("Ask the fusion node (armfusion serve) to re-run the startup calibration now, on the "
+                    "latest still stretch; it refuses, saying why, while the arm moves. Exits 1 when "
+                    "refused.", "fusion.service.commands:register"),
+    "demo": ("The whole service on this machine, no hardware, loopback only: the simulated WMRA "
+             "calibrates its sensors, then fake drivers → fusion node → recorder run as processes "
+             "over Zenoh; a summary against the truth and an HTML report.",
+             "fusion.service.commands:register"),
+    "router": ("A Zenoh router on loopback (default tcp/127.0.0.1:7447) for the nodes of several "
+               "robots; runs until SIGINT or SIGTERM.", "fusion.service.commands:register"),
+    "fleet": ("N simulated chairs as separate processes (fake drivers → serve each), connected "
+              "through one Zenoh router; watch them with `armfusion monitor --connect <router>`.",
+              "fusion.service.commands:register"),
+    "monitor": ("A live table of every robot: joints (deg, sigma, flags), heading, node states, "
+                "samples and drops, age of the last update. Subscribes armfusion/*/state/*, status "
+                "and the liveliness tokens.", "fusion.service.commands:register"),
+    "diagnose": ("Compare the model with a recording: where it fails, which physical effect is missing.",
+                 "fusion.diagnose_cmd:register"),
+    "track": ("Track the joint angles and the heading through a recording: startup calibration on "
+              "its first still stretch, then the unscented Kalman filter on every sample.",
+              "fusion.track_cmd:register"),
+    "calibrate": ("Calibrate: joint angles from a still arm, or the sensors.",
+                  "fusion.cli:register_calibrate"),
+}
+
+
+def register_calibrate(app: typer.Typer) -> None:
+    """``calibrate joints`` (fusion.calibrate_cmd) and ``calibrate sensors``
+    (fusion.identify_cmd) under ``calibrate``."""
+    from fusion.calibrate_cmd import calibrate_app
+    from fusion.identify_cmd import calibrate_sensors
+
+    if not any(c.name == "sensors" for c in calibrate_app.registered_commands):
+        calibrate_app.command("sensors")(calibrate_sensors)
+    app.add_typer(calibrate_app, name="calibrate")
+
+
+class LazyCommands(TyperGroup):
+    """The root group: lists every command of :data:`COMMANDS` from its table entry and
+    builds the real one (importing its module) when it is resolved, i.e. run or asked for
+    its help."""
+
+    def list_commands(self, ctx) -> list[str]:
+        return [*super().list_commands(ctx), *(n for n in COMMANDS if n not in self.commands)]
+
+    def get_command(self, ctx, cmd_name: str):
+        cmd = super().get_command(ctx, cmd_name)
+        if cmd is None and cmd_name in COMMANDS:  # for the listing only
+            from typer.core import TyperCommand
+
+            cmd = TyperCommand(cmd_name, help=COMMANDS[cmd_name][0])
+        return cmd
+
+    def resolve_command(self, ctx, args):
+        if args and args[0] in COMMANDS and args[0] not in self.commands:
+            self.load(args[0])
+        try:
+            return super().resolve_command(ctx, args)
+        except typer._click.exceptions.UsageError as e:  # a typo: suggest from every command
+            from difflib import get_close_matches
+
+            near = get_close_matches(args[0], self.list_commands(ctx)) if args else []
+            if near and "Did you mean" not in e.message:
+                e.message = f"{e.message.rstrip('.')}. Did you mean {', '.join(map(repr, near))}?"
+            raise
+
+    def load(self, cmd_name: str) -> None:
+        """Build the commands that ``cmd_name``'s register function adds, and keep them."""
+        module, func = COMMANDS[cmd_name][1].split(":")
+        sub = typer.Typer()
+        getattr(importlib.import_module(module), func)(sub)
+        built = typer.main.get_group(sub)
+        for name, cmd in built.commands.items():
+            self.commands.setdefault(name, cmd)
+
+
 app = typer.Typer(
     name="armfusion",
+    cls=LazyCommands,
     help="Absolute joint angles of a robot arm with relative encoders, from gravity: "
     "startup calibration, tracking, sensor calibration and model diagnosis.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
 )
 
 
@@ -50,6 +148,10 @@ def main(
 
 
 # --------------------------------------------------------------------------------------
+PLOT_SUFFIXES = (".png", ".svg", ".pdf")
+"""What ``info --plot`` draws to (matplotlib's formats that need nothing else)."""
+
+
 @app.command()
 def info(
     config: ConfigOpt = "wmra",
@@ -57,14 +159,22 @@ def info(
     plot: Annotated[Path | None, typer.Option(help="Also draw the arm at its ready pose to this PNG.")] = None,
 ) -> None:
     """Print the arm: its joints, its sensors, and which joints each sensor sees."""
+    from rich.markup import escape
+    from rich.table import Table
+
     from fusion.describe import describe_arm
 
+    if plot is not None:
+        check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES)
     arm = load_arm_or_exit(config)
     d = describe_arm(arm)
     if plot is not None:
         from fusion.plots import plot_arm
 
-        plot_arm(arm, arm.ready_pose_rad, plot)
+        try:
+            plot_arm(arm, arm.ready_pose_rad, plot)
+        except OSError as e:
+            fail(f"--plot {plot}: cannot write the drawing: {e.strerror or e}")
         d["plot"] = str(plot)
     if json_out:
         emit_json(d)
@@ -74,7 +184,7 @@ def info(
     t = Table(title="Joints", title_justify="left")
     for col in ("joint", "alpha [deg]", "a [mm]", "d [mm]", "offset [deg]", "limits [deg]",
                 "ready [deg]", "counts/rev", "vertical at ready"):
-        t.add_column(col, justify="right" if col != "joint" else "left")
+        t.add_column(escape(col), justify="right" if col != "joint" else "left")  # "[deg]": text
     for j in d["joints"]:
         t.add_row(j["name"], _f(j.get("alpha_deg")), _f(j.get("a_mm")), _f(j.get("d_mm")),
                   _f(j.get("offset_deg")), f"{j['min_deg']:.0f} … {j['max_deg']:.0f}",
@@ -83,7 +193,7 @@ def info(
     console.print(t)
     t = Table(title="Sensors", title_justify="left")
     for col in ("sensor", "type", "link", "position [mm]", "bus", "sees joints"):
-        t.add_column(col)
+        t.add_column(escape(col))
     for s in d["sensors"]:
         t.add_row(s["name"], s["type"], str(s["link"]),
                   ", ".join(f"{v:.1f}" for v in s["position_mm"]), s["bus"] or "-",
@@ -108,6 +218,9 @@ def inspect(
     window_s: Annotated[float, typer.Option(help="Still-detection window [s].")] = 1.0,
 ) -> None:
     """Summarise a recording: sensors, samples and rate each, duration, gaps, still segments."""
+    from rich.markup import escape
+    from rich.table import Table
+
     from fusion.describe import describe_recording
     from fusion.static import StaticDetectionSettings
 
@@ -124,7 +237,7 @@ def inspect(
     t = Table(title="Streams", title_justify="left")
     for col in ("stream", "kind", "channels", "samples", "rate [Hz]", "gaps (missing)",
                 "longest gap [s]"):
-        t.add_column(col, justify="right" if col in ("samples", "rate [Hz]", "gaps (missing)",
+        t.add_column(escape(col), justify="right" if col in ("samples", "rate [Hz]", "gaps (missing)",
                                                      "longest gap [s]") else "left")
     for s in d["streams"]:
         t.add_row(s["name"], s["kind"], ", ".join(s["channels"]), str(s["samples"]),
@@ -136,7 +249,7 @@ def inspect(
     if segs:
         t = Table(title=f"Still segments ({len(segs)})", title_justify="left")
         for col in ("#", "start [s]", "end [s]", "duration [s]"):
-            t.add_column(col, justify="right")
+            t.add_column(escape(col), justify="right")
         for i, s in enumerate(segs):
             t.add_row(str(i), f"{s['t_start_s']:.2f}", f"{s['t_end_s']:.2f}",
                       f"{s['duration_s']:.2f}")
@@ -145,31 +258,9 @@ def inspect(
         console.print("No still segment found.")
 
 
-def _register_subcommands() -> None:
-    from fusion import (
-        identify_cmd,  # noqa: F401 - registers `calibrate sensors`
-        simulate_cmd,
-    )
-    from fusion.calibrate_cmd import calibrate_app
-    from fusion.drivers_cmd import register as register_drivers
-
-    simulate_cmd.register(app)
-    register_drivers(app)
-    from fusion.service.commands import register as register_service; register_service(app)  # noqa: E702, I001
-    from fusion.diagnose_cmd import register as register_diagnose; register_diagnose(app)  # noqa: E702, I001
-    from fusion.track_cmd import register as register_track; register_track(app)  # noqa: E702, I001
-    app.add_typer(calibrate_app, name="calibrate")
-
-
-if __name__ != "__main__":  # `python -m fusion.cli` registers through the real module below
-    _register_subcommands()
-
-
 def run() -> None:  # pragma: no cover - console entry
     app()
 
 
 if __name__ == "__main__":  # pragma: no cover
-    from fusion.cli import app as registered_app
-
-    registered_app()
+    app()

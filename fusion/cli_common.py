@@ -2,22 +2,23 @@
 failures, JSON output, and loading a config or a recording with a clear error.
 
 Kept apart from ``fusion.cli`` (which registers the commands) so that command modules can
-import it without an import cycle.
+import it without an import cycle. It imports typer and rich only: ``armfusion --help``
+loads it, so numpy, the config loader and the recording readers are imported by the
+functions that use them.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import sys
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 from rich.console import Console
-
-from fusion.configfile import load_arm
-from models.arm_config import ConfigError
 
 console = Console()
 err_console = Console(stderr=True)
@@ -39,6 +40,8 @@ def emit_json(obj) -> None:
 
 def json_default(o):
     """``json.dumps`` default for numpy arrays and scalars and paths."""
+    import numpy as np
+
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, np.generic):
@@ -49,6 +52,9 @@ def json_default(o):
 
 
 def load_arm_or_exit(config: str):
+    from fusion.configfile import load_arm
+    from models.arm_config import ConfigError
+
     try:
         return load_arm(config)
     except (ConfigError, FileNotFoundError) as e:
@@ -82,3 +88,94 @@ def read_recording_or_exit(path: Path, arm=None):
             fail(f"recording {path} does not fit the arm config {arm.source}: "
                  + "; ".join(problems))
     return rec
+
+
+def screen_or_exit(arm, rec, path: Path, required: Sequence[str], needed_by: str,
+                   json_out: bool = False):
+    """The one treatment of range and saturation (``models.sensor_models.screen_samples``)
+    for a command: exit 2 with one line when ``rec`` lacks a stream of ``required`` (what
+    ``needed_by`` needs) or holds a value past its device's range, naming the place; else
+    say on stderr how many saturated samples are left out, and return the screen."""
+    from models.sensor_models import MissingSensorError, OutOfRangeError, screen_samples
+
+    try:
+        screen = screen_samples(arm, rec, required, needed_by)
+    except (MissingSensorError, OutOfRangeError) as e:
+        fail(f"{path}: {e}")
+    if screen.any_saturated and not json_out:
+        err_console.print(f"[yellow]{screen.words()}[/]", highlight=False)
+    return screen
+
+
+def output_path_problem(path: Path, suffixes: Sequence[str] | None = None) -> str | None:
+    """Why ``path`` cannot be written (a parent that is a file, a directory in its place, a
+    suffix not among ``suffixes``), or ``None``. Checks only: creates nothing."""
+    path = Path(path)
+    if suffixes is not None and path.suffix.lower() not in suffixes:
+        return (f"unsupported suffix {path.suffix or '(none)'!r}; expected "
+                + " or ".join(suffixes))
+    if path.is_dir():
+        return "is a directory"
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                return f"{parent} is a file, not a directory"
+            if not os.access(parent, os.W_OK | os.X_OK):
+                return f"cannot create files in {parent} (no permission)"
+            break
+    return None
+
+
+def check_output_path(path: Path, option: str, suffixes: Sequence[str] | None = None) -> None:
+    """Exit 2 with one line before any work when ``path`` cannot be written (see
+    :func:`output_path_problem`); ``option`` names it (``--out``)."""
+    why = output_path_problem(path, suffixes)
+    if why is not None:
+        fail(f"{option} {path}: {why}")
+
+
+def prepare_output_path(path: Path, option: str, suffixes: Sequence[str] | None = None) -> Path:
+    """:func:`check_output_path`, then create the missing parent directories."""
+    check_output_path(path, option, suffixes)
+    try:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        fail(f"{option} {path}: cannot create its directory: {e.strerror or e}")
+    return Path(path)
+
+
+# --------------------------------------------------------------------------------------
+def progress_shown(json_out: bool) -> bool:
+    """Progress bars only for a person at a terminal: not with --json, not when stdout or
+    stderr is redirected (a pipe, a file, a test)."""
+    if json_out or os.environ.get("TERM") == "dumb":
+        return False
+    return sys.stdout.isatty() and err_console.is_terminal
+
+
+@contextlib.contextmanager
+def progress_bar(description: str, json_out: bool) -> Iterator[Callable[[float, str | None], None]]:
+    """A progress bar on stderr with the time elapsed and the time left (rich), shown only
+    when :func:`progress_shown`; yields ``advance(fraction_done, description=None)``."""
+    if not progress_shown(json_out):
+        yield lambda _f, _d=None: None
+        return
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TaskProgressColumn,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn(),
+                  console=err_console, transient=True) as bar:
+        task = bar.add_task(f"{description:<32.32}", total=1.0)
+
+        def advance(fraction: float, text: str | None = None) -> None:
+            kw = {} if text is None else {"description": f"{text:<32.32}"}
+            bar.update(task, completed=min(max(float(fraction), 0.0), 1.0), **kw)
+
+        yield advance

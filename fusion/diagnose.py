@@ -977,7 +977,7 @@ def innovation_diagnosis(arm, rec, settings=None, max_lag: int = MAX_LAG, block_
     say("starting the tracker", 0.0)
     tr, _start = start_from_recording(arm, rec, settings, resolve_by_motion_s=20.0)
     say("tracking the recording", 0.1)
-    run = tr.run(rec, truth=False)
+    run = tr.run(rec, truth=False, progress=lambda f: say("tracking the recording", 0.1 + 0.8 * f))
     say("analysing the innovations", 0.9)
     sm = stream_models(arm)
     logs = []

@@ -20,18 +20,20 @@ from typing import Annotated
 import numpy as np
 import typer
 import yaml
-from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from fusion.cli_common import (
     ConfigOpt,
     JsonOpt,
+    check_output_path,
     console,
     emit_json,
     err_console,
     fail,
     load_arm_or_exit,
+    progress_bar,
     read_recording_or_exit,
+    screen_or_exit,
 )
 from fusion.configfile import resolve_config_path
 from fusion.diagnose import (
@@ -43,7 +45,7 @@ from fusion.diagnose import (
     params_words,
     parse_add,
 )
-from fusion.identify import config_with_estimates, data_from_recording
+from fusion.identify import config_with_estimates, data_from_recording, fit_streams
 from models.effects import TargetError, model_from_arm
 
 HISTORY_FORMAT = "armfusion.workbench-history/1"
@@ -113,8 +115,15 @@ def diagnose_command(
     json_out: JsonOpt = False,
 ) -> None:
     """Compare the model with a recording: where it fails, which physical effect is missing."""
+    for path, option in ((write, "--write"), (report, "--report"), (history, "--history")):
+        if path is not None:
+            check_output_path(path, option)
+    if write is not None and history is None:
+        check_output_path(write.with_name(write.stem + ".workbench.json"), "--write (its history)")
     arm = load_arm_or_exit(config)
     rec = read_recording_or_exit(recording, arm)
+    screen = screen_or_exit(arm, rec, recording, fit_streams(arm), "diagnose fits (the encoders and "
+                            f"every sensor stream of {arm.source})", json_out)
     try:
         added = parse_add(arm, add or [])
     except (KeyError, TargetError) as e:
@@ -123,22 +132,22 @@ def diagnose_command(
         if added or write is not None:
             fail("the chair moves in this recording: the fit (and so --add and --write) takes it as parked; "
                  "record with the chair parked to find and add effects")
-        _innovations_only(arm, rec, recording, config, report, json_out)
+        _innovations_only(arm, rec, recording, config, report, json_out, screen)
         return
     try:
         data = data_from_recording(arm, rec, window=window)
     except ValueError as e:
         fail(str(e))
+    if data.saturated_windows and not json_out:
+        err_console.print(f"[yellow]{data.saturated_windows:,} fit windows left out: they hold saturated "
+                          "samples[/]", highlight=False)
 
     runs = 2 if added else 1
-    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
-                  TimeElapsedColumn(), console=err_console, transient=True,
-                  disable=json_out or not err_console.is_terminal) as bar:
-        task = bar.add_task("diagnose", total=1.0)
+    with progress_bar("diagnose", json_out) as advance:
 
         def stage(k: int):
             def progress(msg: str, frac: float) -> None:
-                bar.update(task, completed=(k + frac) / runs, description=f"{msg:<40.40}")
+                advance((k + frac) / runs, msg)
             return progress
 
         before = diagnose(model_from_arm(arm), data, progress=stage(0))
@@ -176,6 +185,8 @@ def diagnose_command(
         d["written"] = str(write) if write else None
         d["report"] = str(report) if report else None
         d["innovations"] = None if inn is None else inn.as_dict()
+        d["saturated_left_out"] = {"samples": screen.as_dict()["saturated"],
+                                   "windows": data.saturated_windows}
         emit_json(d)
         return
     _print(before, after, top)
@@ -228,13 +239,9 @@ def _candidates_table(d: Diagnosis, top: int) -> Table:
 
 
 def _run_innovations(arm, rec, json_out: bool):
-    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
-                  TimeElapsedColumn(), console=err_console, transient=True,
-                  disable=json_out or not err_console.is_terminal) as bar:
-        task = bar.add_task("tracker", total=1.0)
+    with progress_bar("tracker", json_out) as advance:
         try:
-            return innovation_diagnosis(arm, rec, progress=lambda m, f: bar.update(
-                task, completed=f, description=f"{m:<40.40}"))
+            return innovation_diagnosis(arm, rec, progress=lambda m, f: advance(f, m))
         except (ValueError, RuntimeError) as e:
             fail(f"--innovations: {e}")
 
@@ -254,7 +261,8 @@ def _print_innovations(inn) -> None:
             console.print(ct)
 
 
-def _innovations_only(arm, rec, recording: Path, config: str, report: Path | None, json_out: bool) -> None:
+def _innovations_only(arm, rec, recording: Path, config: str, report: Path | None, json_out: bool,
+                      screen) -> None:
     """A moving chair: the fit (parked) does not apply; the tracker's innovations do."""
     inn = _run_innovations(arm, rec, json_out)
     note = ("the chair moves in this recording: the model fit takes the chair as parked, so the analysis "
@@ -263,7 +271,8 @@ def _innovations_only(arm, rec, recording: Path, config: str, report: Path | Non
         write_innovation_report(report, inn, recording, config, note)
     if json_out:
         emit_json({"mode": "innovations", "verdict": inn.verdict, "note": note,
-                   "innovations": inn.as_dict(), "report": str(report) if report else None})
+                   "innovations": inn.as_dict(), "report": str(report) if report else None,
+                   "saturated_left_out": {"samples": screen.as_dict()["saturated"]}})
         return
     console.print(f"[dim]{note}[/]")
     _print_innovations(inn)

@@ -40,7 +40,7 @@ from typing import Annotated, Any
 
 import typer
 
-from fusion.cli_common import json_default
+from fusion.cli_common import json_default, output_path_problem, progress_bar
 from fusion.configfile import load_arm
 from fusion.fake_rig import SimulatedRun, encoder_counts_at, physics_for, simulate_physics
 from fusion.service.commands import ConnectOpt, ListenOpt, ModeOpt, ZenohConfigOpt
@@ -356,12 +356,14 @@ def run_fake(
     prepare: Callable[[FakeRig], None] | None = None,
     on_batch: Callable[[list[Stream]], None] | None = None,
     batch_s: float = 0.02,
+    progress: Callable[[float], None] | None = None,
 ) -> DriversRun:
     """Run the real drivers against the simulator-fed fakes for ``duration_s`` seconds.
 
     ``prepare(rig)`` runs after the devices are opened and before the first tick (a
     test's hook for fault injection beyond ``faults``). ``on_batch(streams)`` receives the
     samples read in each ``batch_s`` of the rig's clock as they come (:class:`LiveSink`).
+    ``progress(fraction_done)`` follows the rig's clock (every 1 % of ``duration_s``).
     """
     if not duration_s > 0:
         raise ValueError(f"--duration must be positive, got {duration_s!r} s")
@@ -397,8 +399,14 @@ def run_fake(
         first = next(iter(readers))
         read_first = readers[first]
 
+        shown = [-1]
+
         def first_with_faults() -> Any:
-            schedule.step(now() - epoch)
+            t = now() - epoch
+            schedule.step(t)
+            if progress is not None and int(100 * t / duration_s) > shown[0]:
+                shown[0] = int(100 * t / duration_s)
+                progress(min(t / duration_s, 1.0))
             return read_first()
 
         readers[first] = first_with_faults
@@ -696,8 +704,11 @@ def register(app: typer.Typer) -> None:
                 err.print(f"[bold red]error:[/] {escape(line)}", highlight=False, soft_wrap=True)
             raise typer.Exit(2)
 
-        if out is not None and out.suffix.lower() not in SUFFIXES:
-            fail(f"--out {out}: the recording must end in .csv or .mcap")
+        if out is not None:
+            for path in (out, truth_path(out) if fake else None):
+                why = None if path is None else output_path_problem(path, SUFFIXES if path == out else None)
+                if why is not None:
+                    fail(f"--out {path}: {why}")
         if robot is None:
             given = [o for o, v in (("--listen", listen), ("--connect", connect), ("--mode", mode),
                                     ("--zenoh-config", zenoh_config), ("--wait", wait_s)) if v]
@@ -706,9 +717,9 @@ def register(app: typer.Typer) -> None:
             publishing = contextlib.nullcontext(None)
         else:
             publishing = _publishing(robot, batch_ms, wait_s, zenoh_config, listen, connect, mode, fail)
-        with publishing as live:
+        with publishing as live, progress_bar("reading the fakes", json_out or not fake) as advance:
             run = _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file,
-                       noise, fault, realtime, live, fail)
+                       noise, fault, realtime, live, fail, advance)
         doc = summary(run)
         if live is not None:
             doc["published"] = {"robot": robot, "samples": live.publisher.samples,
@@ -716,7 +727,7 @@ def register(app: typer.Typer) -> None:
         _finish(doc, run, out, json_out)
 
     def _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file, noise,
-             fault, realtime, live, fail) -> DriversRun:
+             fault, realtime, live, fail, advance) -> DriversRun:
         on_batch = None if live is None else live.publisher.publish
         batch_s = 0.02 if live is None else live.batch_s
         stop = threading.Event() if live is None else live.stop
@@ -725,7 +736,7 @@ def register(app: typer.Typer) -> None:
                 return run_fake(config, scenario, duration, rate, seed=seed, realistic=realistic,
                                 effect=effect or (), effects_file=effects_file, noise=noise,
                                 faults=fault or (), realtime=realtime, stop=stop, on_batch=on_batch,
-                                batch_s=batch_s)
+                                batch_s=batch_s, progress=advance)
             else:
                 ignored = [o for o, v in (("--scenario", scenario != "startup"), ("--seed", seed != 0),
                                           ("--realistic", realistic), ("--effect", bool(effect)),

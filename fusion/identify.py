@@ -176,6 +176,10 @@ class FitData:
     used: np.ndarray | None = None
     """Per point, whether it enters the fit (``False`` while the chair moves between stances:
     its attitude is not constant there). ``None``: every point."""
+    saturated_samples: dict[str, int] = field(default_factory=dict)
+    """Per stream, the samples at a register limit; the windows holding them (or interpolated
+    from them) are not in the data (``saturated_windows`` of them)."""
+    saturated_windows: int = 0
     base_tilt_reference: tuple[np.ndarray, float] | None = None
     """The arm base's roll and pitch (rad, as the base attitude's) in the first stance,
     measured independently (an inclinometer on the base), and that measurement's σ (rad).
@@ -350,6 +354,12 @@ class Identification:
 
 # --------------------------------------------------------------------------------------
 # data
+def fit_streams(arm: ArmModel) -> list[str]:
+    """The streams a fit (calibrate sensors, diagnose) needs of a recording: the encoders and
+    every stream of the config's sensors that it fits."""
+    return ["enc", *(s for s in stream_models(arm) if s not in FIT_STREAMS_EXCLUDED)]
+
+
 def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndarray | None = None,
                         streams: Sequence[str] | None = None,
                         t_range_s: tuple[float, float] | None = None, nodes: int = 1,
@@ -398,12 +408,22 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
         a = a[: n * w]
         return a.reshape(n, w, *a.shape[1:]).mean(1)
 
+    reach = np.zeros(len(t) + 1, int)  # instants a saturated sample reaches (below)
+    saturated: dict[str, int] = {}
     for s in names:
         st = rec.get(s)
         if st is None or len(st) == 0:
             continue
         v = np.asarray(st.values, float)
         ts = np.asarray(st.t_s, float)
+        sat = np.flatnonzero(models[s].saturated(v).any(axis=1))
+        if len(sat):  # its window is left out: the instants strictly between its neighbours
+            saturated[s] = len(sat)
+            before = np.where(sat > 0, ts[np.maximum(sat - 1, 0)], -np.inf)
+            after = np.where(sat < len(ts) - 1, ts[np.minimum(sat + 1, len(ts) - 1)], np.inf)
+            i0, i1 = np.searchsorted(t, before, "right"), np.searchsorted(t, after, "left")
+            np.add.at(reach, i0[i1 > i0], 1)
+            np.add.at(reach, i1[i1 > i0], -1)
         if len(ts) != len(enc.t_s) or not np.allclose(ts, enc.t_s):
             v = np.stack([np.interp(t, ts, v[:, k]) for k in range(v.shape[1])], 1)
         else:
@@ -426,17 +446,29 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
         raise ValueError(f"nodes must be 1 or 2, not {nodes!r}")
     if nodes == 1:
         state = MotionState.from_samples(mean(t), mean(q), None, 0.0, temp)
-        return FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
+        data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
                        f"window means of {w} samples" + note, stance=stance, used=used)
-    tw = t[: n * w].reshape(n, w)
-    dt = (tw[:, -1] - tw[:, 0]) * w / max(w - 1, 1)  # the window's length
-    tn = (tw.mean(1)[:, None] + dt[:, None] / (2 * np.sqrt(3)) * np.array([-1.0, 1.0])).ravel()
-    qn = np.stack([np.interp(tn, t, q[:, j]) for j in range(q.shape[1])], 1)
-    tempn = np.repeat(np.broadcast_to(temp, (n,)), 2)
-    state = MotionState.from_samples(tn, qn, None, 0.0, tempn)
-    return FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
-                   f"window means of {w} samples (model at two nodes per window)" + note, nodes=2,
-                   stance=stance, used=used)
+    else:
+        tw = t[: n * w].reshape(n, w)
+        dt = (tw[:, -1] - tw[:, 0]) * w / max(w - 1, 1)  # the window's length
+        tn = (tw.mean(1)[:, None] + dt[:, None] / (2 * np.sqrt(3)) * np.array([-1.0, 1.0])).ravel()
+        qn = np.stack([np.interp(tn, t, q[:, j]) for j in range(q.shape[1])], 1)
+        tempn = np.repeat(np.broadcast_to(temp, (n,)), 2)
+        state = MotionState.from_samples(tn, qn, None, 0.0, tempn)
+        data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
+                       f"window means of {w} samples (model at two nodes per window)" + note, nodes=2,
+                       stance=stance, used=used)
+    if saturated:  # a window holding a saturated sample (or interpolated from one) is left out
+        bad = (np.cumsum(reach)[: n * w] > 0).reshape(n, w).any(axis=1)
+        if int((~bad).sum()) < 2:
+            raise ValueError(f"every window of {w} samples holds a saturated sample (a channel at its "
+                             f"register limit: " + ", ".join(f"{s} {k:,}" for s, k in saturated.items())
+                             + "): nothing left to fit")
+        data = replace(data.subset(np.flatnonzero(~bad)), saturated_samples=saturated,
+                       saturated_windows=int(bad.sum()),
+                       note=data.note + f"; {int(bad.sum()):,} of {n:,} windows left out: they hold "
+                       "saturated samples (" + ", ".join(f"{s} {k:,}" for s, k in saturated.items()) + ")")
+    return data
 
 
 def parked_stances(arm: ArmModel, rec, t_windows_s: np.ndarray, window: int,

@@ -27,16 +27,18 @@ import typer
 import yaml
 from rich.table import Table
 
-from fusion.calibrate_cmd import calibrate_app
-from fusion.cli import (
+from fusion.cli_common import (
     ConfigOpt,
     JsonOpt,
+    check_output_path,
     console,
     emit_json,
     err_console,
     fail,
     load_arm_or_exit,
+    progress_bar,
     read_recording_or_exit,
+    screen_or_exit,
 )
 from fusion.configfile import resolve_config_path
 from fusion.identify import (
@@ -44,6 +46,7 @@ from fusion.identify import (
     IdentifySettings,
     config_with_estimates,
     data_from_recording,
+    fit_streams,
     identify_recentred,
     identify_separately,
     joint_references,
@@ -114,7 +117,6 @@ def build_model(arm, effects: str | None) -> Model:
     return with_encoder_zeros(model)
 
 
-@calibrate_app.command("sensors")
 def calibrate_sensors(
     recording: Annotated[Path, typer.Argument(help="Recording (.csv or .mcap) of the arm moving "
                                               "through many orientations (e.g. renk-maneuver).")],
@@ -147,8 +149,12 @@ def calibrate_sensors(
     """Estimate the sensors' and the arm's effects (with σ, holds and correlations)."""
     if mode not in ("separate", "simultaneous"):
         fail(f"--mode must be 'separate' or 'simultaneous', not {mode!r}")
+    if write is not None:
+        check_output_path(write, "--write")
     arm = load_arm_or_exit(config)
     rec = read_recording_or_exit(recording, arm)
+    screen = screen_or_exit(arm, rec, recording, fit_streams(arm), "calibrate sensors fits (the "
+                            f"encoders and every sensor stream of {arm.source})", json_out)
     try:
         model = build_model(arm, effects)
         data = data_from_recording(arm, rec, window, nodes=2, stances=stances)
@@ -163,16 +169,13 @@ def calibrate_sensors(
                 arm, rec, [parse_reference(r) for r in reference]))
     except ValueError as e:
         fail(str(e))
-    quiet = json_out
-
-    def progress(k: int, cost: float) -> None:
-        if not quiet:
-            err_console.print(f"  Jacobian {k}: cost {cost:.4g}", highlight=False)
-
-    if not quiet:
+    if not json_out:
         err_console.print(f"fitting {model.size} parameters on {data.n:,} points ({data.note})…")
+    settings = IdentifySettings(encoder_scale=True)
     if mode == "separate":
-        fits = identify_separately(model, data, IdentifySettings(encoder_scale=True), progress)
+        with progress_bar("fitting", json_out) as advance:
+            groups = len(arm.link_accelerometers) + (arm.imu is not None)  # one fit each
+            fits = identify_separately(model, data, settings, _jacobians(advance, groups))
         if json_out:
             emit_json({k: v.as_dict() for k, v in fits.items()})
             return
@@ -188,7 +191,8 @@ def calibrate_sensors(
                       f"{a[1]:.3f} ± {np.degrees(f.sigma[i0 + 1]):.3f}", f"{ratio:.2f}", str(int(f.held.sum())))
         console.print(t)
         return
-    res, data = identify_recentred(model, data, None, IdentifySettings(encoder_scale=True), progress)
+    with progress_bar("fitting", json_out) as advance:
+        res, data = identify_recentred(model, data, None, settings, _jacobians(advance))
     bad = res.references_contradicted
     if bad:  # the installer's claim and the data disagree: nothing written, nothing to trust
         if json_out:
@@ -211,9 +215,29 @@ def calibrate_sensors(
     if json_out:
         d = res.as_dict()
         d["written"] = str(write) if write else None
+        d["saturated_left_out"] = {"samples": screen.as_dict()["saturated"],
+                                   "windows": data.saturated_windows}
         emit_json(d)
         return
     _print(res, write)
+
+
+EXPECTED_JACOBIANS = 20
+"""Jacobians a calibration fit takes, for the bar's time left: 13 on a 30 s renk-maneuver,
+16 on the full 1664 s one (realistic effects, 6657 points); past it the bar expects one more
+at a time."""
+
+
+def _jacobians(advance, fits: int = 1):
+    """``progress(k, cost)`` of ``fits`` fits as a bar: every Jacobian (of any pass) counts
+    one of :data:`EXPECTED_JACOBIANS` per fit."""
+    done = 0
+
+    def progress(k: int, cost: float) -> None:
+        nonlocal done
+        done += 1
+        advance(done / max(fits * EXPECTED_JACOBIANS, done + 1), f"fitting: Jacobian {k}, cost {cost:.4g}")
+    return progress
 
 
 def _print(res, write) -> None:

@@ -1542,7 +1542,7 @@ def _average(name, w, model, mag_range, t0, t1):
     v = w.values
     lo, hi = model.counts_min, model.counts_max
     if lo is not None:
-        sat = (v <= lo) | (v >= hi)
+        sat = model.saturated(v)
         if sat.any():
             axis = "xyz"[int(np.argmax(sat.sum(0)))]
             return None, None, (f"{where}: axis {axis} saturated ({int(sat.sum(0).max())} of "

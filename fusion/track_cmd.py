@@ -14,12 +14,15 @@ from rich.table import Table
 from fusion.cli_common import (
     ConfigOpt,
     JsonOpt,
+    check_output_path,
     console,
     emit_json,
     err_console,
     fail,
     load_arm_or_exit,
+    progress_bar,
     read_recording_or_exit,
+    screen_or_exit,
 )
 
 OUT_SUFFIXES = (".csv", ".mcap")
@@ -53,8 +56,8 @@ def track(
 
     if not 0.0 < gate_significance < 1.0:
         fail(f"--gate-significance must be between 0 and 1, not {gate_significance!r}")
-    if out is not None and out.suffix.lower() not in OUT_SUFFIXES:
-        fail(f"--out {out}: unknown suffix {out.suffix or '(none)'!r}; expected .csv or .mcap")
+    if out is not None:
+        check_output_path(out, "--out", OUT_SUFFIXES)
     arm = load_arm_or_exit(config)
     if unmodelled_g is not None:
         if not unmodelled_g >= 0.0:
@@ -62,6 +65,9 @@ def track(
         arm = replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": unmodelled_g,
                                         "accel_unmodelled_g_per_sensor": {}})
     rec = read_recording_or_exit(recording, arm)
+    screen = screen_or_exit(arm, rec, recording, ["enc", *(a.name for a in arm.link_accelerometers)],
+                            f"track needs (the encoders and every link accelerometer of {arm.source})",
+                            json_out)
     notes: list[str] = []
     rec, note = _scoring_truth(rec, recording, arm.joint_names)
     if note:
@@ -75,15 +81,27 @@ def track(
             prior_q = saved.q_rad
     settings = TrackerSettings(gate_significance=gate_significance,
                                motion_compensation=not no_motion_compensation)
-    try:
-        tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q, resolve_by_motion_s=20.0)
-    except NoStillWindowError as e:
-        fail(f"{recording}: {e}")
-    except (StartupInputError, ValueError) as e:
-        fail(f"{recording}: cannot start tracking: {e}")
-    notes.extend(start.notes)
-    run = tr.run(rec)
-    summary = run.summary(after_s=after_s, t0_s=rec.t_start_s)
+    with progress_bar("startup calibration", json_out) as advance:
+        try:
+            tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q,
+                                              resolve_by_motion_s=20.0)
+        except NoStillWindowError as e:
+            fail(f"{recording}: {e}")
+        except (StartupInputError, ValueError) as e:
+            fail(f"{recording}: cannot start tracking: {e}")
+        notes.extend(start.notes)
+        advance(0.0, "tracking")
+        run = tr.run(rec, progress=advance)
+    after = after_s
+    if run.steps and run.t_s[-1] < rec.t_start_s + after_s:  # nothing to score after --after-s
+        after = 0.0
+        if rec.get("true_q") is not None:
+            notes.append(f"the recording ends {run.t_s[-1] - rec.t_start_s:.1f} s after its start, "
+                         f"before --after-s {after_s:g} s: the RMS errors are over the whole tracked run")
+    summary = run.summary(after_s=after, t0_s=rec.t_start_s)
+    scored = run.t_s[run.t_s >= rec.t_start_s + after] - rec.t_start_s if run.steps else run.t_s
+    if "rms_error_deg" in summary:
+        summary["rms_span_s"] = [float(scored[0]), float(scored[-1])] if len(scored) else None
     doc = {
         "config": arm.source,
         "recording": str(recording),
@@ -93,6 +111,7 @@ def track(
         **summary,
         "final": tr.estimate.as_dict() if run.steps else None,
         "out": None if out is None else str(out),
+        "saturated_left_out": screen.as_dict()["saturated"],
         "notes": notes,
     }
     if out is not None:
@@ -189,6 +208,8 @@ def write_estimates(run, path: Path, arm_config: str = "") -> None:
 
 
 def _print(doc: dict, run) -> None:
+    from rich.markup import escape
+
     console.print(f"[bold]{doc['recording']}[/]: startup on t = {doc['start']['t_start_s']:.2f} … "
                   f"{doc['start']['t_end_s']:.2f} s: {doc['start']['summary']}")
     console.print(f"{doc['steps']} steps over {doc['duration_s']:.1f} s in {doc['elapsed_s']:.2f} s "
@@ -197,10 +218,12 @@ def _print(doc: dict, run) -> None:
     cols = ["joint", "final [deg]", "sigma [deg]", "flag"]
     truth = "rms_error_deg" in doc
     if truth:
-        cols += [f"RMS error after {doc['rms_after_s']:.0f} s [deg]", "max [deg]"]
+        span = doc.get("rms_span_s")
+        cols += ["RMS error, no instant scored" if span is None else
+                 f"RMS error {span[0]:.1f}…{span[1]:.1f} s [deg]", "max [deg]"]
     cols.append("flags seen")
-    for c in cols:
-        t.add_column(c, justify="left" if c in ("joint", "flag", "flags seen") else "right")
+    for c in cols:  # escaped: "[deg]" is not a style
+        t.add_column(escape(c), justify="left" if c in ("joint", "flag", "flags seen") else "right")
     final = {j["name"]: j for j in (doc["final"] or {}).get("joints", [])}
     for nm in run.joint_names:
         f = final.get(nm, {})

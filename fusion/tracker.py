@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
@@ -2250,7 +2250,7 @@ class Tracker:
 
     # -- a whole recording -------------------------------------------------------------------
     def run(self, rec: Recording, t_stop_s: float | None = None, truth: bool = True,
-            block: int = 256) -> TrackRun:
+            block: int = 256, progress: Callable[[float], None] | None = None) -> TrackRun:
         """Fuse every sample of ``rec`` after the current time (up to ``t_stop_s``).
 
         The same steps as :meth:`update_instant`, with the work that does not depend on
@@ -2259,7 +2259,7 @@ class Tracker:
         instants per call, with the offsets and gyro bias of the block's start; the offsets'
         drift since then is carried exactly by the product of exponentials, and enters the
         motion term only to first order). With ``truth`` and truth streams in ``rec``,
-        errors and NEES are kept too.
+        errors and NEES are kept too. ``progress(fraction_done)`` is called after every block.
         """
         import time as _time
 
@@ -2296,8 +2296,7 @@ class Tracker:
         for s, v in raw.items():
             rows[s] = _rows_at(times, v.t_s)
             c = v.values.astype(float)
-            lo, hi = self._limits[s]
-            ok = np.ones(len(v), dtype=bool) if lo is None else ~np.any((c <= lo) | (c >= hi), axis=1)
+            ok = ~self._sm[s].saturated(c).any(axis=1)
             valid[s] = ok
             phys[s] = self._physical(s, c, temperature_at(v.t_s))
             used = rows[s][rows[s] >= 0]
@@ -2403,6 +2402,8 @@ class Tracker:
                 frame = frames.take(r) if acc is not None else None
                 self._step(t, gyro, acc, mag, frame, q_t[i])
                 out.record(self, i)
+            if progress is not None:
+                progress(b1 / T)
         if gyro_B is not None:
             k = int(np.searchsorted(raw[GYRO].t_s, self._t + 1e-9)) - 1
             if k >= 0:

@@ -30,6 +30,7 @@ the MPU-9150 the noise density times √(rate/2).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -126,6 +127,23 @@ class StreamModel:
 
     def noise_physical_rms(self) -> np.ndarray:
         return self.noise_counts_rms / np.abs(self.gain)
+
+    def saturated(self, counts: np.ndarray) -> np.ndarray:
+        """``(N, k)``: where a channel reads its register limit (or past it): the true value
+        may be anywhere beyond, so such a sample says nothing reliable. All False for an
+        unbounded stream (the encoders)."""
+        c = np.asarray(counts, dtype=float)
+        if self.counts_min is None:
+            return np.zeros(c.shape, bool)
+        return (c <= self.counts_min) | (c >= self.counts_max)
+
+    def beyond_range(self, counts: np.ndarray) -> np.ndarray:
+        """``(N, k)``: where a channel reads past its register limits (or ±inf): no such
+        device can have said it, so the recording is wrong, not the sensor saturated."""
+        c = np.asarray(counts, dtype=float)
+        if self.counts_min is None:
+            return np.isinf(c)
+        return (c < self.counts_min) | (c > self.counts_max)
 
     def digitise(self, counts: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
         """Add noise (if ``rng``), round to integers, saturate at the register limits."""
@@ -233,3 +251,73 @@ def recording_problems(arm: ArmModel, rec: Recording) -> list[str]:
             out.append(f"ground truth {s.name!r} has {len(s.channels)} joint angles but the arm "
                        f"has {n} joints")
     return out
+
+
+# --------------------------------------------------------------------------------------
+# what every command that reads samples does with range and saturation
+class OutOfRangeError(ValueError):
+    """A recording holds a value its device cannot output (past its register range)."""
+
+
+class MissingSensorError(ValueError):
+    """A recording lacks a stream that the config and the command require."""
+
+
+@dataclass(frozen=True)
+class SampleScreen:
+    """What :func:`screen_samples` found: per stream with a count model, its samples and
+    those saturated (a channel at its register limit); the commands leave those out."""
+
+    samples: dict[str, int]
+    saturated: dict[str, int]
+
+    @property
+    def any_saturated(self) -> bool:
+        return any(self.saturated.values())
+
+    def words(self) -> str:
+        """One line for a person: which streams had saturated samples, how many of how many."""
+        parts = [f"{s} {n:,} of {self.samples[s]:,} ({100.0 * n / self.samples[s]:.2g} %)"
+                 for s, n in self.saturated.items() if n]
+        return ("saturated samples (a channel at its register limit), left out: " + ", ".join(parts)
+                if parts else "no saturated sample")
+
+    def as_dict(self) -> dict:
+        return {"samples": dict(self.samples), "saturated": {s: n for s, n in self.saturated.items() if n}}
+
+
+def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: str = "") -> SampleScreen:
+    """Every command's check of a recording's samples against the config's sensors.
+
+    Raises :class:`MissingSensorError` when a stream of ``required`` has no sample (naming
+    them and ``needed_by``), :class:`OutOfRangeError` at the first value past its device's
+    register range (naming the stream, channel, time and sample), and otherwise counts the
+    saturated samples per stream (:meth:`StreamModel.saturated`), which the commands leave out.
+    Streams the config does not describe (truth, unknown sensors) are not looked at.
+    """
+    missing = [s for s in required if rec.get(s) is None or len(rec.get(s)) == 0]
+    if missing:
+        raise MissingSensorError(
+            f"the recording has no samples of {', '.join(missing)}"
+            + (f", which {needed_by}" if needed_by else "")
+            + f" (it has: {', '.join(s for s in rec.raw() if len(rec.get(s))) or 'no sensor stream'})")
+    samples, saturated = {}, {}
+    for name, model in stream_models(arm).items():
+        st = rec.get(name)
+        if st is None or len(st) == 0 or st.values.shape[1] != model.size:
+            continue
+        bad = model.beyond_range(st.values)
+        if bad.any():
+            i, k = (int(v[0]) for v in np.nonzero(bad))
+            v = float(st.values[i, k])
+            where = (f"{model.channels[k]} = {v:.6g} counts at t = {float(st.t_s[i]):.3f} s "
+                     f"(sample {i + 1:,} of {name})")
+            rng = ("" if model.counts_min is None else
+                   f" {model.counts_min:.0f}…{model.counts_max:.0f} counts")
+            sensor = next((m for m in arm.sensors if m.name == model.sensor), None)
+            device = f"the {sensor.type}'s" if sensor is not None else "its"
+            raise OutOfRangeError(f"{where}: beyond {device} register range{rng}; no such sensor "
+                                  f"can read that, so the recording is refused")
+        samples[name] = len(st)
+        saturated[name] = int(model.saturated(st.values).any(axis=1).sum())
+    return SampleScreen(samples, saturated)

@@ -22,7 +22,7 @@ the effects.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -102,6 +102,7 @@ def simulate(
     rates_hz: dict[str, float] | None = None,
     scenario_options: dict | None = None,
     earth_field_ut: np.ndarray = EARTH_FIELD_TAMPA_UT,
+    progress: Callable[[float], None] | None = None,
 ) -> tuple[Recording, dict]:
     """Simulate ``scenario`` on ``arm`` for ``duration_s`` seconds (default: the scenario's).
 
@@ -109,7 +110,8 @@ def simulate(
     ``enc``…). ``effects``/``realistic``: see :func:`build_model`. ``noise=False`` gives the
     ideal counts (still rounded and saturated). ``scenario_options`` go to the scenario
     (``startup``: ``pose_rad``). ``earth_field_ut``: Earth's field, world frame (default
-    Tampa). Returns ``(recording, truth)``.
+    Tampa). ``progress(fraction_done)`` is called after every chunk of samples. Returns
+    ``(recording, truth)``.
     """
     if not rate_hz > 0:
         raise ValueError(f"rate must be positive, got {rate_hz!r} Hz")
@@ -145,6 +147,16 @@ def simulate(
     for e in model.effects:
         if e.stage == "time":
             x_now[model.index[e.block_name]] = 0.0
+    n_truth = int(np.floor(sc.duration_s * rate_hz + 1e-9))
+    work = sum(int(np.floor(sc.duration_s * r + 1e-9)) for r in grids) + n_truth
+    done = 0
+
+    def advanced(k: int) -> None:
+        nonlocal done
+        done += k
+        if progress is not None:
+            progress(done / max(work, 1))
+
     for r, devices in grids.items():
         n = int(np.floor(sc.duration_s * r + 1e-9))
         t_all = np.arange(n) / r
@@ -161,17 +173,19 @@ def simulate(
             for s in streams:
                 y = _shifted(pred[s], pad, b - a, shift[s])
                 values[s].append(smodels[s].digitise(y, noise_rng.get(s)))
+            advanced(b - a)
     rec_streams: dict[str, Stream] = {}
     for s, m in smodels.items():
         v = np.concatenate(values[s]) if values[s] else np.zeros((0, m.size), np.int64)
         rec_streams[s] = Stream(s, m.kind, times[s], v, m.channels)
     # ground truth at the main rate
-    truth_t = np.arange(int(np.floor(sc.duration_s * rate_hz + 1e-9))) / rate_hz
+    truth_t = np.arange(n_truth) / rate_hz
     q_true = np.zeros((len(truth_t), arm.n_joints))
     rpy_true = np.zeros((len(truth_t), 3))
     for a in range(0, len(truth_t), CHUNK_SAMPLES):
         st = sc.state(truth_t[a:a + CHUNK_SAMPLES])
         q_true[a:a + CHUNK_SAMPLES], rpy_true[a:a + CHUNK_SAMPLES] = st.q_rad, st.rpy_rad
+        advanced(len(st.q_rad))
     rec_streams["true_q"] = Stream("true_q", "truth_joints", truth_t, q_true,
                                    truth_joint_columns(arm.n_joints))
     rec_streams["true_base"] = Stream("true_base", "truth_base", truth_t, rpy_true, TRUTH_BASE_COLUMNS)

@@ -28,6 +28,7 @@ from fusion.cli_common import (
     err_console,
     fail,
     load_arm_or_exit,
+    prepare_output_path,
     read_recording_or_exit,
 )
 from fusion.service.node import stop_on_signals
@@ -167,7 +168,7 @@ def register(app: typer.Typer) -> None:
             fail(str(e))
         if duration_s is not None and not duration_s > 0:
             fail(f"--duration {duration_s!r}: expected > 0")
-        out.parent.mkdir(parents=True, exist_ok=True)
+        prepare_output_path(out, "OUT")
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
                 stop_on_signals(stop):

@@ -149,7 +149,7 @@ def test_saved_prior_round_trip_and_wrong_arm_prior_ignored(tmp_path, wmra, rng,
 def test_moving_recording_is_refused(tmp_path, wmra, rng):
     t = np.arange(0, 5, 0.01)
     c = np.stack([200 * np.sin(3 * t), 200 * np.cos(3 * t), 100 + 0 * t], 1).astype(int)
-    rec = Recording({"acc1": Stream("acc1", "accel", t, c, accel_columns("acc1"))})
+    rec = Recording({a: Stream(a, "accel", t, c, accel_columns(a)) for a in ("acc1", "acc2", "acc3", "acc4")})
     path = tmp_path / "moving.csv"
     write_recording(rec, path)
     r = runner.invoke(app, ["calibrate", "joints", str(path)])
