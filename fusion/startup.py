@@ -1212,6 +1212,14 @@ def propose_unlock_move(arm: ArmModel, result: StartupResult, readings: StillRea
     return None
 
 
+def move_delta_rad(move: UnlockMove | DisambiguatingMove, arm: ArmModel) -> np.ndarray:
+    """What a proposed move changes, every joint: ``(n,)`` rad (zero for the joints it keeps)."""
+    delta = np.zeros(arm.n_joints)
+    for name, d in zip(move.joints, move.delta_rad, strict=True):
+        delta[arm.joint_names.index(name)] += d
+    return delta
+
+
 def prior_after_move(result: StartupResult, move, arm: ArmModel,
                      settings: StartupSettings | None = None) -> StartupPrior:
     """The prior for the still window after a move that the encoders counted: every
@@ -1222,12 +1230,8 @@ def prior_after_move(result: StartupResult, move, arm: ArmModel,
     It is a checked prior: if the arm was moved otherwise, it does not fit and is ignored."""
     st = settings or StartupSettings()
     n = arm.n_joints
-    if isinstance(move, UnlockMove | DisambiguatingMove):
-        delta = np.zeros(n)
-        for name, d in zip(move.joints, move.delta_rad, strict=True):
-            delta[arm.joint_names.index(name)] += d
-    else:
-        delta = np.asarray(move, float).reshape(n)
+    delta = (move_delta_rad(move, arm) if isinstance(move, UnlockMove | DisambiguatingMove)
+             else np.asarray(move, float).reshape(n))
     cands = (result.candidates_rad if result.candidates_rad is not None else result.q_rad[None]) + delta
     stat = np.sqrt(np.clip(np.diag(result.covariance)[:n], 0, None))
     sig = np.full(n, np.inf)

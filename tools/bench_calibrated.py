@@ -61,7 +61,7 @@ from models.motion import MotionState  # noqa: E402
 from models.sensor_models import stream_models  # noqa: E402
 from models.simulator import build_model as true_model  # noqa: E402
 from models.simulator import simulate  # noqa: E402
-from tools.bench_startup import draw_poses  # noqa: E402
+from tools.bench_startup import draw_poses, moved_poses  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 DEG = np.pi / 180
@@ -208,15 +208,9 @@ def after_move(arm, base, seed, q, tilt, offset, geometric, rng, temperature_c: 
     after it, numeric answers after it)."""
     corr = startup_correction(arm, temperature_c)
     st = StartupSettings()
-    amb = [k for k, g in enumerate(geometric) if any(j.flag == "ambiguous" for j in g.joints)]
-    moved = [k for k in amb if geometric[k].disambiguating_move is not None]
+    amb, moved, q2 = moved_poses(arm, q, geometric)
     if not moved:
         return len(amb), 0, 0, 0, 0
-    q2 = q.copy()
-    for k in moved:
-        m = geometric[k].disambiguating_move
-        for name, d in zip(m.joints, m.delta_rad, strict=True):
-            q2[k, arm.joint_names.index(name)] += d
     means2, _ = still_means(base, seed, q2[moved], tilt[moved], rng)
     resolved = wrong = numeric = 0
     for i, k in enumerate(moved):

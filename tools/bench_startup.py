@@ -41,6 +41,7 @@ from fusion.startup import (  # noqa: E402
     StartupSettings,
     _expected_sigma,
     _make_problem,
+    move_delta_rad,
     prior_after_move,
     readings_from_counts,
     solve_still,
@@ -132,20 +133,25 @@ def run(arm, q, tilt, means, priors, settings, method):
     return err, sig, flags, crb, times, thesis, results
 
 
+def moved_poses(arm, q, results):
+    """The poses left with an ambiguous joint, those of them with a proposed disambiguating
+    move, and every pose after its move (the others as they were)."""
+    amb = [k for k, r in enumerate(results) if any(j.flag == "ambiguous" for j in r.joints)]
+    moved = [k for k in amb if results[k].disambiguating_move is not None]
+    q2 = q.copy()
+    for k in moved:
+        q2[k] += move_delta_rad(results[k].disambiguating_move, arm)
+    return amb, moved, q2
+
+
 def after_move(arm, q, tilt, results, settings, rng, realistic, seed):
     """Every pose left with ambiguous joints: make its proposed disambiguating move (the
     encoders count it), simulate a second still second there, and solve again with the first
     window's candidates carried through the encoders. Returns (ambiguous poses, with a move,
     resolved, confident wrong answers after the move, numeric answers of the second solve)."""
-    amb = [k for k, r in enumerate(results) if any(j.flag == "ambiguous" for j in r.joints)]
-    moved = [k for k in amb if results[k].disambiguating_move is not None]
+    amb, moved, q2 = moved_poses(arm, q, results)
     if not moved:
         return len(amb), 0, 0, 0, 0
-    q2 = q.copy()
-    for k in moved:
-        m = results[k].disambiguating_move
-        for name, d in zip(m.joints, m.delta_rad, strict=True):
-            q2[k, arm.joint_names.index(name)] += d
     # the whole set again (the same imperfect arm per block of poses), only the moved ones used
     means2 = simulate_means(arm, q2, tilt, rng, realistic=realistic, seed=seed)
     resolved = wrong = numeric = 0

@@ -138,6 +138,20 @@ def test_compass_jacobian_follows_the_imu_position(arm, state):
                                    rtol=1e-5, atol=1e-6 * np.abs(num).max())
 
 
+def _drawn_effects(arm, rng, per_sensor: dict[str, tuple[str, ...]]) -> list[dict]:
+    """A truth document's effects: each sensor's listed effects drawn from their datasheet
+    priors, and every joint's zero offset (1 deg)."""
+    out = []
+    for s, effects in per_sensor.items():
+        for eff in effects:
+            e = build_effect(arm, eff, s)
+            out.append({"effect": eff, "target": s, "params": {e.key: e.draw(rng).tolist()}})
+    for j in arm.joint_names:
+        out.append({"effect": "joint_offset", "target": j,
+                    "params": {"offset_rad": [float(rng.normal(0, 0.017))]}})
+    return out
+
+
 def test_calibrated_config_makes_the_startup_ok_on_the_same_sensors(arm):
     """The flow of `simulate --realistic` -> `calibrate sensors --write` -> `calibrate joints`,
     CI-sized: datasheet-typical accelerometer errors (bias, scale, mount) and joint zeros on a
@@ -159,14 +173,8 @@ def test_calibrated_config_makes_the_startup_ok_on_the_same_sensors(arm):
     from tools.bench_startup import draw_poses
 
     rng = np.random.default_rng(11)
-    truth_entries = []
-    for s in ("acc1", "acc2", "acc3", "acc4"):
-        for eff in ("accel_bias", "accel_scale", "mount_rotation"):
-            e = build_effect(arm, eff, s)
-            truth_entries.append({"effect": eff, "target": s, "params": {e.key: e.draw(rng).tolist()}})
-    for j in arm.joint_names:
-        truth_entries.append({"effect": "joint_offset", "target": j,
-                              "params": {"offset_rad": [float(rng.normal(0, 0.017))]}})
+    truth_entries = _drawn_effects(arm, rng, {s: ("accel_bias", "accel_scale", "mount_rotation")
+                                              for s in ("acc1", "acc2", "acc3", "acc4")})
     res, truth, _ = calibrate(arm, 5, 150.0, true_effects=truth_entries,
                               fit_effects="accel_bias,accel_scale,mount_rotation")
     path = Path(tempfile.mkdtemp()) / "wmra_cal.yaml"
@@ -206,14 +214,8 @@ def test_one_time_references_make_j1_and_j7_ok_after_self_calibration(arm):
     from tools.bench_startup import draw_poses
 
     rng = np.random.default_rng(11)
-    truth_entries = []
-    for s in ("acc1", "acc2", "acc3", "acc4", "imu"):
-        for eff in ("accel_bias", "base_mount" if s == "imu" else "mount_rotation"):
-            e = build_effect(arm, eff, s)
-            truth_entries.append({"effect": eff, "target": s, "params": {e.key: e.draw(rng).tolist()}})
-    for j in arm.joint_names:
-        truth_entries.append({"effect": "joint_offset", "target": j,
-                              "params": {"offset_rad": [float(rng.normal(0, 0.017))]}})
+    effects = {s: ("accel_bias", "mount_rotation") for s in ("acc1", "acc2", "acc3", "acc4")}
+    truth_entries = _drawn_effects(arm, rng, {**effects, "imu": ("accel_bias", "base_mount")})
     res, truth, _ = calibrate(arm, 5, 100.0, true_effects=truth_entries,
                               fit_effects="accel_bias,mount_rotation,base_mount", references=("j1", "j7"))
     assert [c.reference.joint for c in res.reference_checks] == ["j1", "j7"]

@@ -15,6 +15,7 @@ import pytest
 from fusion.startup import (
     StartupPrior,
     StillReadings,
+    move_delta_rad,
     prior_after_move,
     readings_from_recording,
     solve_still,
@@ -79,9 +80,7 @@ def test_rival_branches_are_ambiguous_and_the_proposed_move_resolves_them(ideal,
     move = res.disambiguating_move
     assert move is not None and {"j3", "j4"} <= set(move.resolves)
     assert "tell the branches apart" in res.summary
-    delta = np.zeros(ideal.n_joints)
-    for name, d in zip(move.joints, move.delta_rad, strict=True):
-        delta[ideal.joint_names.index(name)] += d
+    delta = move_delta_rad(move, ideal)
     assert np.abs(delta).max() <= 45 * DEG
     # every candidate stays inside the limits: the arm is on one of them
     assert np.all(ideal.within_limits(res.candidates_rad + delta))

@@ -14,7 +14,7 @@ from service_helpers import Collected, cut, wait_for
 from fusion.configfile import load_arm
 from fusion.service.replay import replay
 from fusion.service.zenoh_config import open_session
-from fusion.startup import readings_from_recording, solve_still
+from fusion.startup import move_delta_rad, readings_from_recording, solve_still
 from fusion.static import StaticDetectionSettings, find_static_segments
 from models.simulator import simulate
 from models.trajectories import ParkedBase, Scenario, StepsBuilder, WaypointPath, warm_up
@@ -44,9 +44,7 @@ def test_ambiguous_joints_are_not_tracked_as_known_until_the_proposed_move_resol
     res = solve_still(arm, readings_from_recording(arm, first, seg.t_start_s, seg.t_end_s)[0])
     amb = {j.name for j in res.joints if j.flag == "ambiguous"}
     assert {"j3", "j4"} <= amb and res.disambiguating_move is not None
-    delta = np.zeros(arm.n_joints)
-    for name, d in zip(res.disambiguating_move.joints, res.disambiguating_move.delta_rad, strict=True):
-        delta[arm.joint_names.index(name)] += d
+    delta = move_delta_rad(res.disambiguating_move, arm)
     rec, truth = simulate(arm, _scenario(arm, pose, delta, base), seed=4)
     true_q = rec.truth()["true_q"]
 
