@@ -1,7 +1,8 @@
 """The simulator feeding the fake devices: one :class:`~sensors.fakes.physics.PhysicsSource`
 per device, from a simulator run.
 
-``sensors/`` may not import ``models/``, so the bridge lives here. :func:`simulate_physics`
+``sensors/`` may not import ``models/``, so the bridge lives here, beside the simulator
+(it imports only models and sensors; ``armfusion drivers --fake`` uses it). :func:`simulate_physics`
 runs the simulator's measurement chain (scenario motion, the model with its effects,
 time offsets) on a fine time grid (:data:`FINE_RATE_HZ`) and keeps the *physical*
 values, before any noise or rounding:
