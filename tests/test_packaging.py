@@ -78,3 +78,17 @@ def test_an_unpacked_wheel_finds_its_configs_from_another_directory(wheel, tmp_p
     for found in (wmra, zenoh_json5, chair):
         assert Path(found).is_file() and Path(found).is_relative_to(site), found
     assert Path(wmra).name == "wmra.yaml" and int(n_joints) == 6
+
+
+def test_the_readmes_python_example_runs_as_written(tmp_path):
+    """The README's "From Python" block: what a user's code imports, run from elsewhere."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## From Python"):]
+    start = section.index("```python\n") + len("```python\n")
+    code = section[start:section.index("\n```", start)]
+    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.splitlines()
+    assert [line.split()[0] for line in lines[:7]] == [f"j{k}" for k in range(1, 8)]
+    assert "'steps':" in lines[7] and (tmp_path / "poses.csv").is_file()
