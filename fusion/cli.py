@@ -52,15 +52,15 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("The whole service on this machine, no hardware, loopback only: the simulated WMRA "
              "calibrates its sensors, then fake drivers → fusion node → recorder run as processes "
              "over Zenoh; a summary against the truth and an HTML report.",
-             "fusion.service.commands:register"),
+             "fusion.service.demo:register"),
     "router": ("A Zenoh router on loopback (default tcp/127.0.0.1:7447) for the nodes of several "
-               "robots; runs until SIGINT or SIGTERM.", "fusion.service.commands:register"),
+               "robots; runs until SIGINT or SIGTERM.", "fusion.service.fleet:register"),
     "fleet": ("N simulated chairs as separate processes (fake drivers → serve each), connected "
               "through one Zenoh router; watch them with `armfusion monitor --connect <router>`.",
-              "fusion.service.commands:register"),
+              "fusion.service.fleet:register"),
     "monitor": ("A live table of every robot: joints (deg, sigma, flags), heading, node states, "
                 "samples and drops, age of the last update. Subscribes armfusion/*/state/*, status "
-                "and the liveliness tokens.", "fusion.service.commands:register"),
+                "and the liveliness tokens.", "fusion.service.fleet:register"),
     "diagnose": ("Compare the model with a recording: where it fails, which physical effect is missing.",
                  "fusion.diagnose_cmd:register"),
     "track": ("Track the joint angles and the heading through a recording: startup calibration on "

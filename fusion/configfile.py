@@ -1,7 +1,8 @@
 """Reading arm configs from disk: YAML (DH table or a URDF reference) and URDF files.
 
-``load_arm("wmra")`` finds ``config/wmra.yaml`` in the repository; any other argument
-is a path. Validation itself is :func:`models.arm_config.build_arm`.
+``load_arm("wmra")`` finds the shipped ``config/wmra.yaml`` (package data wherever
+armfusion is installed: :mod:`fusion.shipped`); any other argument is a path.
+Validation itself is :func:`models.arm_config.build_arm`.
 """
 
 from __future__ import annotations
@@ -12,11 +13,10 @@ from typing import Any
 import numpy as np
 import yaml
 
+from fusion.shipped import shipped_config_dir
 from models.arm import ArmModel, Joint
 from models.arm_config import ConfigError, ConfigProblem, build_arm
 from sensors.samples import clipped_repr
-
-REPO_CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 
 MAX_CONFIG_BYTES = 4_000_000
 """A config file larger than this is refused unread (the shipped ones are 2-4 kB; a
@@ -101,18 +101,17 @@ def read_yaml(path: Path) -> Any:
 
 
 def resolve_config_path(name_or_path: str | Path) -> Path:
-    """A path as given if it exists, else a config shipped in ``config/`` by name."""
+    """A path as given if it exists, else a shipped config by name (``wmra`` or
+    ``wmra.yaml``), else one in ``./config/`` by name."""
     p = Path(name_or_path)
     if p.exists():
         return p
-    for base in (REPO_CONFIG_DIR, Path.cwd() / "config"):
+    shipped_dir = shipped_config_dir()
+    for base in (shipped_dir, Path.cwd() / "config"):
         for cand in (base / f"{name_or_path}.yaml", base / str(name_or_path)):
             if cand.exists():
                 return cand
-    for cand in ():
-        if cand.exists():
-            return cand
-    shipped = sorted(x.stem for x in REPO_CONFIG_DIR.glob("*.yaml")) if REPO_CONFIG_DIR.is_dir() else []
+    shipped = sorted(x.stem for x in shipped_dir.glob("*.yaml")) if shipped_dir.is_dir() else []
     raise FileNotFoundError(
         f"no arm config {str(name_or_path)!r}: not a file, and not one of the shipped configs "
         f"{shipped}"

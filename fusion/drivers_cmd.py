@@ -11,7 +11,7 @@ each, and the exit code is 2.
 
 With ``--fake`` the same driver code runs against the register-level fakes
 (:class:`~sensors.fakes.FakeRig`), whose physics come from the simulator
-(:mod:`fusion.fake_rig`): the scenario, the effects and the seed mean what they mean for
+(:mod:`models.fake_rig`): the scenario, the effects and the seed mean what they mean for
 ``armfusion simulate``. The sampling loop runs on a :class:`~sensors.fakes.FakeClock`, as
 fast as the host can (the buses' wire time still counts), or on the wall clock with
 ``--realtime``. The encoders come from a :class:`~sensors.encoders.SimulatedEncoderFeed`
@@ -42,11 +42,11 @@ import typer
 
 from fusion.cli_common import json_default, output_path_problem, progress_bar
 from fusion.configfile import load_arm
-from fusion.fake_rig import SimulatedRun, encoder_counts_at, physics_for, simulate_physics
 from fusion.service.commands import ConnectOpt, ListenOpt, ModeOpt, ZenohConfigOpt
 from fusion.simulate_cmd import effects_model, truth_json, truth_path
 from models.arm import ArmModel
 from models.arm_config import ConfigError
+from models.fake_rig import SimulatedRun, encoder_counts_at, physics_for, simulate_physics
 from models.trajectories import SCENARIOS
 from sensors.adxl345 import ADXL345, ADXL345Config, accel_stream
 from sensors.bus import DeviceNotFoundError

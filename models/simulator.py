@@ -192,30 +192,47 @@ def simulate(
     meta = {"generator": "armfusion simulate", "arm": arm.name, "scenario": sc.name, "seed": int(seed),
             "rate_hz": float(rate_hz), "realistic": bool(realistic), "noise": bool(noise)}
     device_rate = {s: rates[d] for d in rates for s in device_streams(arm, d)}
+    truth = truth_document(
+        arm, sc, model, x, q0, generator="armfusion simulate", rate_hz=rate_hz, seed=seed,
+        realistic=realistic, rates_hz=rates, noise=noise, gravity_mps2=GRAVITY_MPS2,
+        streams={s: {"samples": len(st), "rate_hz": device_rate.get(s, float(rate_hz))}
+                 for s, st in rec_streams.items()})
+    return Recording(rec_streams, meta), truth
+
+
+def truth_document(arm: ArmModel, sc: Scenario, model: Model, x: np.ndarray, q0: np.ndarray, *,
+                   generator: str, rate_hz: float, seed: int, realistic: bool,
+                   rates_hz: dict | None = None, noise: bool | None = None,
+                   gravity_mps2: float | None = None, streams: dict | None = None) -> dict:
+    """The JSON-ready truth of a simulated run (``REC.truth.json``): the arm, the scenario,
+    the settings, every effect's true parameters as config entries, the encoders' zero, the
+    world and its temperature, the scenario's events. The keyword arguments left ``None``
+    are left out (the fakes' run has no per-device rates, noise switch or streams)."""
     temp = sc.temperature(np.array([0.0, sc.duration_s]))
-    truth = {
+    optional = {"rates_hz": rates_hz, "noise": None if noise is None else bool(noise),
+                "gravity_mps2": gravity_mps2, "streams": streams}
+    doc = {
         "format": TRUTH_FORMAT,
-        "generator": "armfusion simulate",
+        "generator": generator,
         "arm": arm.name,
         "config": arm.source,
         "scenario": sc.name,
         "duration_s": float(sc.duration_s),
         "rate_hz": float(rate_hz),
-        "rates_hz": rates,
+        "rates_hz": rates_hz,
         "seed": int(seed),
         "realistic": bool(realistic),
-        "noise": bool(noise),
+        "noise": optional["noise"],
         "effects": entries_from_model(model, x),
         "encoder_zero_rad": q0.tolist(),
         "earth_field_world_ut": model.earth_field_W_ut.tolist(),
         "world_frame": "x magnetic north, z up; base attitude R_WB = Rz(yaw) Ry(pitch) Rx(roll)",
-        "gravity_mps2": GRAVITY_MPS2,
+        "gravity_mps2": gravity_mps2,
         "temperature_c": {"start": float(temp[0]), "end": float(temp[1])},
         "events": sc.events,
-        "streams": {s: {"samples": len(st), "rate_hz": device_rate.get(s, float(rate_hz))}
-                    for s, st in rec_streams.items()},
+        "streams": streams,
     }
-    return Recording(rec_streams, meta), truth
+    return {k: v for k, v in doc.items() if not (k in optional and optional[k] is None)}
 
 
 def true_zero_offsets_rad(truth: dict, joint_names: Iterable[str]) -> np.ndarray:

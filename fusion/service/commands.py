@@ -298,10 +298,6 @@ def register(app: typer.Typer) -> None:
         if not reply.ok:
             raise typer.Exit(1)
 
-    from fusion.service.fleet import register as register_fleet  # router, fleet, monitor
-
-    register_fleet(app)
-
 
 def _say_serving(node, robot: str, arm_name: str) -> None:
     if node.ready.wait(30.0):

@@ -45,10 +45,6 @@ def free_loopback_port() -> int:
 
 
 def register(app: typer.Typer) -> None:
-    from fusion.service.demo import register as register_demo
-
-    register_demo(app)
-
     @app.command("router")
     def router_command(
         listen: ListenOpt = None,

@@ -1,7 +1,8 @@
 """The Zenoh configuration of every armfusion node: loopback only, no scouting.
 
-Every node builds its :class:`zenoh.Config` here, from ``config/zenoh.json5`` (or another
-JSON5 file) with explicit overrides from its command line::
+Every node builds its :class:`zenoh.Config` here, from the shipped ``config/zenoh.json5``
+(package data: :mod:`fusion.shipped`) or another JSON5 file, with explicit overrides from
+its command line::
 
     settings = ZenohSettings(listen=("tcp/127.0.0.1:0",), connect=("tcp/127.0.0.1:7447",))
     with open_session(settings) as session:
@@ -27,8 +28,10 @@ from typing import Any
 
 import zenoh
 
-DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "config" / "zenoh.json5"
-DEPLOY_CONFIG_DIR = DEFAULT_CONFIG_PATH.parent / "deploy"
+from fusion.shipped import shipped_config
+
+DEFAULT_CONFIG_PATH = shipped_config("zenoh.json5")
+DEPLOY_CONFIG_DIR = shipped_config("deploy")
 """The deployment example: router.json5 (base station), chair.json5, base.json5 (TLS, ACL)."""
 MODES = ("peer", "client", "router")
 LOCATOR_PROTOCOLS = ("tcp", "udp", "quic", "tls", "ws")

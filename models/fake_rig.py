@@ -1,7 +1,8 @@
 """The simulator feeding the fake devices: one :class:`~sensors.fakes.physics.PhysicsSource`
 per device, from a simulator run.
 
-``sensors/`` may not import ``models/``, so the bridge lives here. :func:`simulate_physics`
+``sensors/`` may not import ``models/``, so the bridge lives here, beside the simulator
+(it imports only models and sensors; ``armfusion drivers --fake`` uses it). :func:`simulate_physics`
 runs the simulator's measurement chain (scenario motion, the model with its effects,
 time offsets) on a fine time grid (:data:`FINE_RATE_HZ`) and keeps the *physical*
 values, before any noise or rounding:
@@ -35,10 +36,10 @@ from typing import Any
 import numpy as np
 
 from models.arm import ArmModel
-from models.effects import Model, entries_from_model
+from models.effects import Model
 from models.effects.base import device_streams
 from models.sensor_models import ADXL345_LSB_PER_G, EARTH_FIELD_TAMPA_UT, stream_models
-from models.simulator import TRUTH_FORMAT, build_model
+from models.simulator import build_model, truth_document
 from models.trajectories import SCENARIOS, Scenario, make_scenario
 from sensors.samples import TRUTH_BASE_COLUMNS, Stream, truth_joint_columns
 
@@ -170,24 +171,8 @@ def simulate_physics(
             noise[s] = sm.noise_physical_rms()
         v.setflags(write=False)
         values[s] = v
-    temp = sc.temperature(np.array([0.0, sc.duration_s]))
-    truth = {
-        "format": TRUTH_FORMAT,
-        "generator": "armfusion drivers --fake",
-        "arm": arm.name,
-        "config": arm.source,
-        "scenario": sc.name,
-        "duration_s": float(sc.duration_s),
-        "rate_hz": float(sample_rate_hz),
-        "seed": int(seed),
-        "realistic": bool(realistic),
-        "effects": entries_from_model(model, x),
-        "encoder_zero_rad": q0.tolist(),
-        "earth_field_world_ut": model.earth_field_W_ut.tolist(),
-        "world_frame": "x magnetic north, z up; base attitude R_WB = Rz(yaw) Ry(pitch) Rx(roll)",
-        "temperature_c": {"start": float(temp[0]), "end": float(temp[1])},
-        "events": sc.events,
-    }
+    truth = truth_document(arm, sc, model, x, q0, generator="armfusion drivers --fake",
+                           rate_hz=sample_rate_hz, seed=seed, realistic=realistic)
     return SimulatedRun(arm, sc, model, np.array(x), float(rate_hz), t, values, noise,
                         {s: offsets.get(s, 0.0) for s in streams}, truth)
 
