@@ -7,6 +7,7 @@ from typing import Annotated
 
 import numpy as np
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from fusion.cli_common import (
@@ -178,7 +179,7 @@ def _print_segment(d: dict) -> None:
                   f"{'es' if d['branches'] != 1 else ''})")
     t = Table(show_header=True)
     for col in ("joint", "angle [deg]", "sigma [deg]", "flag", "axis to vertical [deg]", "thesis detector"):
-        t.add_column(col, justify="right" if "deg" in col else "left")
+        t.add_column(escape(col), justify="right" if "deg" in col else "left")
     colours = {"ok": "green", "ill_conditioned": "yellow", "gimbal_lock": "red", "ambiguous": "magenta",
                "out_of_limits": "red"}
     for j in d["joints"]:
