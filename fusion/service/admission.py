@@ -19,9 +19,11 @@ reason             the batch…
                    ``jump_slack_rad``)
 ``time_ahead``     is stamped more than ``clock_window_s`` ahead of the sensors' clock
 ``time_behind``    is stamped more than ``clock_window_s`` behind it
-``too_dense``      holds samples closer than half a period of the fastest sensor
-                   (``max_rate_hz``), within the batch or after the stream's newest one
-                   (so one 1 MiB payload cannot hand the tracker 15,000 instants)
+``too_dense``      holds more samples than the stream's budget allows: a token bucket
+                   per stream that fills at ``max_rate_hz`` of sample time and holds
+                   ``burst_samples`` (a real driver that fell behind reads a few samples
+                   in quick succession; a peer cannot hand the tracker 15,000 instants
+                   in one 1 MiB payload, nor a steady stream faster than any sensor)
 =================  =====================================================================
 
 **The sensors' clock.** A recording's time has any origin (a replay, a rig powered up a
@@ -88,6 +90,7 @@ class AdmissionSettings:
     jump_slack_rad: float = math.radians(0.5)
     encoder_rebase_after_s: float = 1.0
     max_rate_hz: float = 1000.0
+    burst_samples: int = 16
 
 
 @dataclass(frozen=True)
@@ -136,6 +139,7 @@ class Admission:
         self._enc_step = self._cpr * st.max_joint_rate_rad_s  # counts per second
         self._enc_slack = self._cpr * st.jump_slack_rad
         self._newest: dict[str, float] = {}
+        self._budget: dict[str, tuple[float, float]] = {}  # stream -> (samples left, at time)
         self._voted_at: dict[str, float] = {}
         self._seq: dict[str, tuple[int, float]] = {}
         self._enc_last: tuple[float, np.ndarray] | None = None
@@ -214,18 +218,22 @@ class Admission:
         reset = name in self._newest and self._newest[name] > t1 + w
         return Verdict(None, reset=True) if reset else _OK
 
+    def _budget_left(self, name: str, t_s: np.ndarray) -> float:
+        """Samples the stream may still deliver by its last sample's time: its bucket, filled
+        at ``max_rate_hz`` of sample time since it was last drawn on, capped at the burst."""
+        st = self.settings
+        left, at = self._budget.get(name, (float(st.burst_samples), float(t_s[0])))
+        return min(float(st.burst_samples), left + max(float(t_s[-1]) - at, 0.0) * st.max_rate_hz)
+
     def _check_density(self, name: str, t_s: np.ndarray) -> Verdict | None:
-        """Refuse samples closer than half a period of the fastest sensor (``max_rate_hz``):
-        within the batch, and after the stream's newest accepted sample."""
-        min_dt = 0.5 / self.settings.max_rate_hz
-        newest = self._newest.get(name)
-        gap = float(t_s[0]) - newest if newest is not None and t_s[0] > newest else np.inf
-        if len(t_s) > 1:
-            gap = min(gap, float(np.min(np.diff(t_s))))
-        if gap < min_dt:
-            return Verdict("too_dense", f"samples {gap * 1e3:.3g} ms apart: faster than any sensor samples "
-                                        f"(at most {self.settings.max_rate_hz:g} Hz)")
-        return None
+        """Refuse a batch with more samples than the stream's budget holds (see the module's
+        docstring); the budget is drawn on only when the batch is accepted (:meth:`_note`)."""
+        if len(t_s) <= self._budget_left(name, t_s):
+            return None
+        span_ms = (float(t_s[-1]) - float(t_s[0])) * 1e3
+        return Verdict("too_dense", f"{len(t_s)} samples in {span_ms:.3g} ms: denser than any sensor "
+                                    f"samples (at most {self.settings.max_rate_hz:g} Hz, bursts of "
+                                    f"{self.settings.burst_samples})")
 
     def _check_encoder(self, t_s: np.ndarray, counts: np.ndarray) -> tuple[Verdict | None, bool]:
         """``(None, rebased)`` when every step of ``counts`` is one the joints can make, or a
@@ -277,6 +285,7 @@ class Admission:
         w = self.settings.clock_window_s
         newest = self._newest.get(s.name)
         self._newest[s.name] = t1 if newest is None or newest > t1 + w else max(newest, t1)
+        self._budget[s.name] = (self._budget_left(s.name, s.t_s) - len(s.t_s), max(t1, t0))
         self._voted_at[s.name] = now_s
         if s.name == ENCODER_STREAM and (self._enc_last is None or t1 >= self._enc_last[0]):
             self._enc_last = (t1, s.values[-1].copy())
