@@ -45,13 +45,12 @@ from fusion.startup import (  # noqa: E402
     prior_after_move,
     readings_from_counts,
     solve_still,
-    up_from_tilt,
 )
 from models.kinematics import gravity_in_sensors, joint_axis_angle_to_vertical  # noqa: E402
+from models.rotations import DEG, up_from_tilt  # noqa: E402
 from models.sensor_models import stream_models  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
-DEG = np.pi / 180
 THESIS_RAD = 0.1
 TARGET_S = 5e-3  # issue 4: median solve time, all 7 joints, every branch
 

@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 
 from fusion.cli import app
 from fusion.pose_store import load_pose
-from fusion.startup import up_from_tilt
 from models.kinematics import gravity_in_sensors
+from models.rotations import up_from_tilt
 from sensors.recording import write_recording
 from sensors.samples import Recording, Stream, accel_columns, encoder_columns
 

@@ -19,10 +19,10 @@ from fusion.startup import (
     prior_after_move,
     readings_from_recording,
     solve_still,
-    up_from_tilt,
 )
 from fusion.static import StaticDetectionSettings, find_static_segments
 from models.kinematics import gravity_in_sensors
+from models.rotations import up_from_tilt
 from models.simulator import angle_truth, simulate
 
 DEG = np.pi / 180

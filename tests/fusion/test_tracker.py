@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from fusion.startup import up_from_tilt
 from fusion.tracker import (
     COUNTERS,
     FLAG_CODE,
@@ -31,7 +30,7 @@ from fusion.tracker import (
     start_from_recording,
 )
 from models.motion import MotionState, specific_force
-from models.rotations import R_from_rpy
+from models.rotations import R_from_rpy, up_from_tilt
 from models.simulator import simulate
 from models.trajectories import (
     DrivingChair,
