@@ -75,10 +75,10 @@ from fusion.heading import (
 )
 from fusion.startup import StartupResult
 from fusion.tracker_kernels import measurement_points, process_points
-from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound, wrap_angle
+from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound
 from models.arm import ArmModel
 from models.motion import MotionState, link_motion, sensor_motion
-from models.rotations import GRAVITY_MPS2, skew
+from models.rotations import DEG, GRAVITY_MPS2, exp_so3_one, skew, up_from_tilt, wrap_angle
 from models.sensor_models import (
     MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
     StreamModel,
@@ -87,7 +87,6 @@ from models.sensor_models import (
 )
 from sensors.samples import Recording, Stream
 
-DEG = np.pi / 180.0
 G = GRAVITY_MPS2
 
 JOINT_FLAGS: tuple[str, ...] = (
@@ -684,7 +683,7 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
             if undo is not None:  # the config's hard and soft iron, as the tracker undoes them
                 y = (y - undo[1]) @ undo[0]
             mB = y @ R_0I.T
-            up = _up(np.array(startup.roll_rad), np.array(startup.pitch_rad))
+            up = up_from_tilt(np.array(startup.roll_rad), np.array(startup.pitch_rad))
             if st.heading.reference == "model":
                 field_ref = FieldReference.from_world_field()
             else:
@@ -978,31 +977,6 @@ def _with_lever_arms(arm: ArmModel) -> ArmModel:
     return replace(arm, sensors=sensors)
 
 
-def _up(roll, pitch) -> np.ndarray:
-    """World up in base axes for base (roll, pitch), batched: ``[-sp, sr cp, cr cp]``."""
-    r, p = np.asarray(roll, dtype=float), np.asarray(pitch, dtype=float)
-    sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
-    out = np.empty(np.broadcast(r, p).shape + (3,))
-    out[..., 0] = -sp
-    out[..., 1] = sr * cp
-    out[..., 2] = cr * cp
-    return out
-
-
-def _rotation(v) -> np.ndarray:
-    """Rodrigues for one rotation vector (an array or three floats; plain floats: one small
-    matrix per step)."""
-    x, y, z = v.tolist() if isinstance(v, np.ndarray) else v
-    th = math.sqrt(x * x + y * y + z * z)
-    if th < 1e-12:
-        return np.eye(3)
-    a = math.sin(th) / th
-    b = (1.0 - math.cos(th)) / (th * th)
-    return np.array([[1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
-                     [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
-                     [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
-
-
 # --------------------------------------------------------------------------------------
 class Tracker:
     """The joint-angle and heading tracker, driven sample by sample (or a whole recording).
@@ -1147,7 +1121,7 @@ class Tracker:
         if not self._has_imu:
             return np.full(3, 1e-12)
         corr = self.correction
-        m = self._R_0I.T @ _up(roll_rad, pitch_rad)
+        m = self._R_0I.T @ up_from_tilt(roll_rad, pitch_rad)
         if corr is not None and corr.spread.get(IMU_ACC):
             y0 = corr.readings_one(IMU_ACC, m)
             var = np.zeros(3)
@@ -1235,7 +1209,7 @@ class Tracker:
             # rival branches: the filter runs on one of them, the one nearest the prior pose
             # (where the search started: no evidence, so the flag stays `ambiguous` and the
             # sigma covers every candidate), each one a real minimum with its own covariance
-            d = np.abs((np.asarray(cands) - prior + np.pi) % (2 * np.pi) - np.pi)[:, amb].sum(1)
+            d = np.abs(wrap_angle(np.asarray(cands) - prior))[:, amb].sum(1)
             c = int(np.argmin(d))
             q0 = np.array(cands[c], dtype=float)
             if startup.candidates_covariance is not None:
@@ -1526,7 +1500,7 @@ class Tracker:
                 b = self.layout.n_joints + 6  # gyro_bias
                 bx, by, bz = ukf._x[b:b + 3].tolist()
                 wx, wy, wz = w.tolist()
-                self._mag_rot = self._mag_rot @ _rotation(((wx - bx) * dt, (wy - by) * dt, (wz - bz) * dt))
+                self._mag_rot = self._mag_rot @ exp_so3_one(((wx - bx) * dt, (wy - by) * dt, (wz - bz) * dt))
         if gyro is not None:
             self._omega = gyro
         self._t = t
@@ -1712,7 +1686,7 @@ class Tracker:
         if mag is not None:
             m_count, m_B = mag
             x = ukf._x
-            check = self._guard.check_field(m_B, _up(x[L.roll], x[L.pitch]))
+            check = self._guard.check_field(m_B, up_from_tilt(x[L.roll], x[L.pitch]))
             v = self._sigma_psi**2 / m_count + self._iron_var
             if check.disturbed:
                 v += check.doubt_rad(self._field) ** 2
