@@ -51,8 +51,8 @@ from fusion.identify import (
     with_encoder_zeros,
 )
 from models.effects import EFFECTS, Effect, Model, all_effects
+from models.rotations import DEG
 
-DEG = np.pi / 180.0
 EXCLUDED_CANDIDATES = frozenset({"enc.time_offset"})
 """The encoders are the time reference: their own delay is every other device's."""
 

@@ -77,7 +77,7 @@ from fusion.startup import StartupResult
 from fusion.tracker_kernels import measurement_points, process_points
 from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound
 from models.arm import ArmModel
-from models.motion import MotionState, link_motion, sensor_motion
+from models.motion import MotionState, cross, link_motion, sensor_motion
 from models.rotations import DEG, GRAVITY_MPS2, exp_so3_one, skew, up_from_tilt, wrap_angle
 from models.sensor_models import (
     MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
@@ -905,14 +905,6 @@ def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s
                   f"branches apart (summed NIS over {horizon_s:g} s: {best:.0f} and {second:.0f})")
 
 
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross products of 3-vectors on the last axis, broadcast (np.cross costs several times
-    more on the tracker's small arrays)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
 def _effect_dicts(arm: ArmModel, name: str):
     """The config's entries of effect ``name`` as plain dicts."""
     for e in arm.effects or ():
@@ -1629,7 +1621,7 @@ class Tracker:
         var = self._accel_var_g2 + extra[..., None]
         if self._time_var_s2 is not None and frames.omega_S_rad_s is not None:
             # a stamp known to sigma_t reads gravity turned by omega x g sigma_t (sensor axes)
-            turn = _cross3(frames.omega_S_rad_s, frames.R_0S[..., 2, :])
+            turn = cross(frames.omega_S_rad_s, frames.R_0S[..., 2, :])
             var = var + self._time_var_s2[:, None] * turn**2
         return frames._replace(accel_var_g2=var)
 
@@ -1671,7 +1663,7 @@ class Tracker:
             k = len(sel)
             if self._time_offset_s is not None and frame.omega_S_rad_s is not None:
                 # a reading stamped late by dt saw gravity dt earlier: turn it to the stamp
-                f = f - self._time_offset_s[sel][:, None] * _cross3(frame.omega_S_rad_s[sel], f)
+                f = f - self._time_offset_s[sel][:, None] * cross(frame.omega_S_rad_s[sel], f)
             var_a = frame.accel_var_g2 if full else frame.accel_var_g2[sel]
         still = self._still and acc is not None and st.motion_compensation
         n_still = 3 if still else 0
@@ -2145,9 +2137,9 @@ class Tracker:
             y0 = np.linalg.solve(Lm, raw - c)
             M1, c1 = self._spread_stack[IMU_ACC]
             d = M1 @ raw - np.einsum("mab,mb->ma", M1, c1) - y0  # (m_s, 3)
-            r = _cross3(y0 / np.linalg.norm(y0), d) @ self._R_0I.T  # the reference turned by
+            r = cross(y0 / np.linalg.norm(y0), d) @ self._R_0I.T  # the reference turned by
             # each link sensor's reading error: R^T (r x v) / g
-            rv = _cross3(r[:, None, :], v[None, :, :])  # (m_s, k, 3)
+            rv = cross(r[:, None, :], v[None, :, :])  # (m_s, k, 3)
             E[:, :, cols] = np.einsum("kji,mkj->kim", R, rv) / G
         scale = np.sqrt(self._accel_rate[sel] * self.settings.observability_window_s)
         return E / self._accel_sigma_g[sel][:, :, None] * scale[:, None, None]

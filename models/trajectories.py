@@ -42,9 +42,7 @@ import numpy as np
 from models.arm import ArmModel
 from models.kinematics import joint_axis_angle_to_vertical
 from models.motion import MotionState, body_rates_from_rpy, cross
-from models.rotations import R_from_rpy, up_from_tilt
-
-DEG = np.pi / 180.0
+from models.rotations import DEG, R_from_rpy, up_from_tilt
 
 
 # --------------------------------------------------------------------------------------
