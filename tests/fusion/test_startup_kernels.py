@@ -19,9 +19,8 @@ from fusion.startup import (
 )
 from fusion.startup_kernels import augmented
 from models.kinematics import gravity_in_sensors
-from models.rotations import up_from_tilt
+from models.rotations import DEG, up_from_tilt
 
-DEG = np.pi / 180
 Q_DEG = np.array([30.0, 40.0, 20.0, -50.0, 60.0, 30.0, 100.0])
 
 

@@ -30,7 +30,7 @@ from fusion.tracker import (
     start_from_recording,
 )
 from models.motion import MotionState, specific_force
-from models.rotations import R_from_rpy
+from models.rotations import DEG, R_from_rpy
 from models.simulator import simulate
 from models.trajectories import (
     DrivingChair,
@@ -42,7 +42,6 @@ from models.trajectories import (
 )
 from sensors.samples import Recording, Stream
 
-DEG = np.pi / 180.0
 POSE = np.radians([45.0, 60.0, 30.0, -50.0, 40.0, 30.0, 20.0])  # every joint readable
 ACCELS = ("acc1", "acc2", "acc3", "acc4", "imu_acc")
 
