@@ -48,8 +48,12 @@ def rot_z(angle_rad: np.ndarray | float) -> np.ndarray:
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """``skew(v) @ w == cross(v, w)``, batched over leading axes of ``v (..., 3)``."""
+    """``skew(v) @ w == cross(v, w)``, batched over leading axes of ``v (..., 3)``; for row
+    vectors ``u``, ``u @ skew(v) == cross(u, v)``."""
     v = np.asarray(v, dtype=float)
+    if v.ndim == 1:  # one vector: the literal is 10x faster than the stacks (startup's loops)
+        x, y, w = v
+        return np.array([[0.0, -w, y], [w, 0.0, -x], [-y, x, 0.0]])
     z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
     return np.stack(

@@ -49,6 +49,9 @@ def test_skew_is_the_cross_product_for_columns_and_rows():
     w, u = rng.normal(size=3), rng.normal(size=(10, 3))
     np.testing.assert_allclose(skew(w) @ u.T, np.cross(w, u).T, atol=1e-15)
     np.testing.assert_allclose(u @ skew(w), np.cross(u, w), atol=1e-15)
+    # batched: one matrix per vector, the same as one at a time
+    assert np.array_equal(skew(u), np.stack([skew(x) for x in u]))
+    np.testing.assert_allclose(skew(u) @ w, np.cross(u, w), atol=1e-15)
 
 
 def test_one_vector_rodrigues_is_the_batched_one():
