@@ -51,8 +51,8 @@ from fusion.identify import (
     with_encoder_zeros,
 )
 from models.effects import EFFECTS, Effect, Model, all_effects
+from models.rotations import DEG
 
-DEG = np.pi / 180.0
 EXCLUDED_CANDIDATES = frozenset({"enc.time_offset"})
 """The encoders are the time reference: their own delay is every other device's."""
 
@@ -915,7 +915,7 @@ def innovation_inputs(arm, rec, run, t_s: np.ndarray) -> dict[str, np.ndarray]:
     acceleration (from the angle smoothed over 0.2 s), the chair's acceleration (the IMU's
     specific force less gravity at the tracked tilt, base axes, averaged over 0.5 s so that
     the IMU's own noise does not correlate with its innovations) and the temperature."""
-    from models.rotations import up_in_base
+    from models.rotations import up_from_tilt
     from models.sensor_models import stream_models
 
     sm = stream_models(arm)
@@ -936,7 +936,7 @@ def innovation_inputs(arm, rec, run, t_s: np.ndarray) -> dict[str, np.ndarray]:
     if ia is not None and len(ia) and arm.imu is not None:
         f = sm["imu_acc"].from_counts(np.asarray(ia.values, float)) @ arm.imu.R_LS.T
         rpy = run.rpy_rad[ok]
-        up = up_in_base(np.interp(ia.t_s, tt, rpy[:, 0]), np.interp(ia.t_s, tt, rpy[:, 1]))
+        up = up_from_tilt(np.interp(ia.t_s, tt, rpy[:, 0]), np.interp(ia.t_s, tt, rpy[:, 1]))
         da = np.asarray(ia.t_s, float)
         a = _moving_mean(f - up, max(1, int(round(0.5 / max(float(np.median(np.diff(da))), 1e-3)))))
         for c, lab in enumerate("xyz"):

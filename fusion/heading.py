@@ -37,10 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.ukf import wrap_angle
+from models.rotations import DEG, wrap_angle
 from models.sensor_models import AK8975_NOISE_UT_RMS, EARTH_FIELD_TAMPA_UT
-
-DEG = np.pi / 180.0
 
 
 # --------------------------------------------------------------------------------------

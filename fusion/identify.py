@@ -42,10 +42,9 @@ from models.arm import ArmModel
 from models.effects import Model, build_effect, entries_from_model, model_from_arm
 from models.effects.base import Context, JointEffect, SensorEffect
 from models.motion import MotionState
-from models.rotations import R_from_rpy
+from models.rotations import DEG, R_from_rpy, wrap_angle
 from models.sensor_models import stream_models
 
-DEG = np.pi / 180.0
 FIT_STREAMS_EXCLUDED = ("enc", "imu_temp")
 ATTITUDE = "base.attitude"
 ATTITUDE_LABELS = ("roll", "pitch", "yaw")
@@ -556,7 +555,7 @@ def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
         # starts, and a calibration maneuver starts from the arm's ready pose: the candidate
         # nearest it (the fit's residuals then say whether it was the right one)
         amb = np.array([je.flag == "ambiguous" for je in res.joints])
-        d = np.abs((res.candidates_rad - q + np.pi) % (2 * np.pi) - np.pi)[:, amb].sum(1)
+        d = np.abs(wrap_angle(res.candidates_rad - q))[:, amb].sum(1)
         geo[amb] = res.candidates_rad[int(np.argmin(d))][amb]
     for j in np.flatnonzero(np.isfinite(geo)):
         q[j] = geo[j] - (e[j] if np.ndim(e) else 0.0)
@@ -859,7 +858,7 @@ class _Problem:
     def reference_residual(self, z: np.ndarray) -> np.ndarray:
         if not self.refs:
             return np.zeros(0)
-        dq = (self.reference_angles(z) - self._ref_angle + np.pi) % (2 * np.pi) - np.pi
+        dq = wrap_angle(self.reference_angles(z) - self._ref_angle)
         return dq / self._ref_sigma
 
     def reference_rows(self, z: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

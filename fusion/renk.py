@@ -34,8 +34,8 @@ from scipy.optimize import least_squares
 from fusion.identify import IdentifySettings, analyse_identifiability
 from models.arm import ArmModel
 from models.kinematics import forward_kinematics
+from models.rotations import wrap_angle
 
-DEG = np.pi / 180.0
 GRAVITY_ARTICLE_MPS2 = 9.8
 ARTICLE_JOINTS = ("j1", "j5", "j6")
 ARTICLE_SAMPLES = 166_400
@@ -299,12 +299,12 @@ def _canonical(p: TriaxParams) -> TriaxParams:
     neg = S < 0
     # -P: β -> -β, γ -> γ + π
     beta[neg], gamma[neg], S[neg] = -beta[neg], gamma[neg] + np.pi, -S[neg]
-    beta = (beta + np.pi) % (2 * np.pi) - np.pi
+    beta = wrap_angle(beta)
     flip = np.abs(beta) > np.pi / 2  # (β, γ) and (π - β, γ + π) give the same axis
     beta[flip] = np.sign(beta[flip]) * np.pi - beta[flip]
     gamma[flip] += np.pi
     phi, psi = p.phi.copy(), p.psi.copy()
-    phi = (phi + np.pi) % (2 * np.pi) - np.pi
+    phi = wrap_angle(phi)
     f2 = np.abs(phi) > np.pi / 2
     phi[f2] = np.sign(phi[f2]) * np.pi - phi[f2]
     psi[f2] += np.pi

@@ -33,10 +33,10 @@ import numpy as np
 from fusion.startup_kernels import lm_solve
 from models.arm import ArmModel
 from models.kinematics import gravity_chain
+from models.rotations import DEG, skew, tilt_from_up, up_from_tilt, wrap_angle
 from models.sensor_models import stream_models
 
 FLAGS = ("ok", "ill_conditioned", "gimbal_lock", "ambiguous", "out_of_limits")
-DEG = np.pi / 180.0
 
 
 # --------------------------------------------------------------------------------------
@@ -290,12 +290,6 @@ class StartupInputError(ValueError):
 
 # --------------------------------------------------------------------------------------
 # geometry helpers
-def up_from_tilt(roll, pitch) -> np.ndarray:
-    """World up in the base frame for base (roll, pitch): ``[-sp, sr cp, cr cp]``."""
-    r, p = np.asarray(roll, float), np.asarray(pitch, float)
-    return np.stack([-np.sin(p), np.sin(r) * np.cos(p), np.cos(r) * np.cos(p)], -1)
-
-
 def up_tilt_jacobian(roll, pitch) -> np.ndarray:
     """``d up / d (roll, pitch)``: ``(..., 3, 2)``."""
     r, p = np.asarray(roll, float), np.asarray(pitch, float)
@@ -306,23 +300,13 @@ def up_tilt_jacobian(roll, pitch) -> np.ndarray:
     return np.stack([d_r, d_p], -1)
 
 
-def tilt_from_up(up: np.ndarray) -> tuple[float, float]:
-    u = np.asarray(up, float)
-    return float(np.arctan2(u[1], u[2])), float(np.arctan2(-u[0], np.hypot(u[1], u[2])))
-
-
-def _skew(w: np.ndarray) -> np.ndarray:
-    """``u @ _skew(w) == cross(u, w)`` for rows ``u``; ``_skew(w) @ u == cross(w, u)``."""
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
 def _subproblem1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Angle about unit axis ``w`` taking direction ``p`` closest to ``q``, for rows of
     directions ``p``, ``q`` (``(P, 3)``, or one ``(3,)`` for all): ``(P,)``."""
     pp = p - (p @ w)[..., None] * w
     qq = q - (q @ w)[..., None] * w
-    # w . (pp x qq) = pp . (qq x w)
-    return np.arctan2((pp * (qq @ _skew(w))).sum(-1), (pp * qq).sum(-1))
+    # w . (pp x qq) = pp . (qq x w); for rows u, u @ skew(w) == cross(u, w)
+    return np.arctan2((pp * (qq @ skew(w))).sum(-1), (pp * qq).sum(-1))
 
 
 def _subproblem2(w1, w2, p, q) -> np.ndarray:
@@ -339,7 +323,7 @@ def _subproblem2(w1, w2, p, q) -> np.ndarray:
     pw2 = float(p @ w2)
     a = (c12 * pw2 - qw1) / den
     b = (c12 * qw1 - pw2) / den
-    cr = _skew(w1) @ w2
+    cr = skew(w1) @ w2
     g2 = (float(p @ p) - a * a - b * b - 2 * a * b * c12) / (cr @ cr)
     # Near the pair's singularity the two solutions merge, and noise can hide one of them
     # (g2 < 0). Start on both sides anyway; the polish finds the real minima, and the
@@ -624,13 +608,9 @@ def _follow_weak(x: np.ndarray, cost: np.ndarray, j_of: np.ndarray, xb: np.ndarr
     allowed, except for a locked joint (the data say nothing about it)."""
     n = len(locked)
     allowed = locked[j_of] | ((cost - cost_b) / inflate <= 4.5)
-    moved = np.abs(_wrap(x[:, :n] - xb[:n])) * allowed[:, None]
+    moved = np.abs(wrap_angle(x[:, :n] - xb[:n])) * allowed[:, None]
     moved[np.arange(len(j_of)), j_of] = 0.0
     return np.stack([moved[j_of == j].max(0) for j in np.unique(j_of)])
-
-
-def _wrap(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
 def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.ndarray:
@@ -682,7 +662,7 @@ def _closed_form_branches(problem: _Problem, roll: float, pitch: float) -> np.nd
         prev_link = k
     # bring each angle to the representative closest to the middle of its limits
     mid = (arm.min_rad + arm.max_rad) / 2
-    return mid + _wrap(q - mid)
+    return mid + wrap_angle(q - mid)
 
 
 def _joint_turn_parts(arm: ArmModel) -> np.ndarray:
@@ -694,7 +674,7 @@ def _joint_turn_parts(arm: ArmModel) -> np.ndarray:
         ch = arm.chain
         parts = np.empty((arm.n_joints, 3, 3, 3))
         for j in range(arm.n_joints):
-            K = _skew(ch.axis[j])
+            K = skew(ch.axis[j])
             for i, M in enumerate((np.eye(3), K, K @ K)):
                 parts[j, i] = ch.R_pre[j] @ M @ ch.R_post[j]
         arm.__dict__["_startup_turn_parts"] = parts
@@ -712,7 +692,7 @@ def _turn_back(parts: np.ndarray, offset_rad: float, q: np.ndarray, v: np.ndarra
 def _dedupe(q: np.ndarray, tol: float = 1e-3) -> np.ndarray:
     """The rows of ``q`` in order, each left out when within ``tol`` (every angle) of a row
     kept before it."""
-    close = (np.abs(_wrap(q[:, None] - q[None])).max(-1) < tol).tolist()  # (B, B)
+    close = (np.abs(wrap_angle(q[:, None] - q[None])).max(-1) < tol).tolist()  # (B, B)
     keep: list[int] = []
     for i, row in enumerate(close):
         if not any(row[k] for k in keep):
@@ -743,7 +723,7 @@ def solve_still(
     n = arm.n_joints
     # base tilt from the IMU (the thesis's eq. 4.1, in the recording spec's convention)
     if problem.imu_meas is not None:
-        roll0, pitch0 = tilt_from_up(problem.R_0I @ problem.imu_meas)
+        roll0, pitch0 = (float(a) for a in tilt_from_up(problem.R_0I @ problem.imu_meas))
     else:
         roll0 = pitch0 = 0.0
     starts = _closed_form_branches(problem, roll0, pitch0)
@@ -764,7 +744,7 @@ def solve_still(
     else:
         raise ValueError(f"unknown method {method!r}: use 'joint' or 'sequential'")
     mid = (arm.min_rad + arm.max_rad) / 2
-    x[:, :n] = mid + _wrap(x[:, :n] - mid)
+    x[:, :n] = mid + wrap_angle(x[:, :n] - mid)
     margin = st.limit_margin_deg * DEG
     # A minimum just outside a limit (a flat valley, noise pushing its floor past the limit)
     # leaves a real solution at the limit itself: hold the joints there, re-solve the rest,
@@ -777,7 +757,7 @@ def solve_still(
         free_c = np.ones((len(xc), n + 2), dtype=bool)
         free_c[:, :n] = ~(past[near_out] > 0)
         xc, cost_c = _batched_lm(problem, xc, free_c, st.max_iterations)
-        xc[:, :n] = mid + _wrap(xc[:, :n] - mid)
+        xc[:, :n] = mid + wrap_angle(xc[:, :n] - mid)
         x, cost = np.vstack([x, xc]), np.concatenate([cost, cost_c])
     if method == "joint":
         x, cost = _complete_combinations(problem, x, cost, st, mid)
@@ -858,7 +838,7 @@ def solve_still(
     xr, cost_r = solved[: len(probes)], solved_cost[: len(probes)]
     rivals_x = x[pool]
     if len(probes):
-        xr[:, :n] = mid + _wrap(xr[:, :n] - mid)
+        xr[:, :n] = mid + wrap_angle(xr[:, :n] - mid)
         keep = ((cost_r <= cost[cand].min() + 0.5 * st.fit_chi2 + 1e-9)
                 & (arm.within_limits(xr[:, :n], margin) | locked_any[best]).all(1))
         if keep.any():
@@ -887,7 +867,7 @@ def solve_still(
     alternatives: list[list[float]] = [[] for _ in range(n)]
     kept = [xb]
     for other in rivals_x[1:]:
-        gap = np.abs(_wrap(other[:n] - qb))
+        gap = np.abs(wrap_angle(other[:n] - qb))
         differ = (gap > np.maximum(3 * sig[:n], 1e-3)) & (flags != "gimbal_lock")
         if not differ.any():
             continue
@@ -899,7 +879,7 @@ def solve_still(
         # one rival per distinct set of readable angles (a locked joint's value is arbitrary),
         # and only one that makes a joint ambiguous (a weak joint's sigma covers the rest)
         if (differ & ~grow).any() and not any(
-                np.all((np.abs(_wrap(other[:n] - k[:n])) <= np.maximum(3 * sig[:n], 1e-3))
+                np.all((np.abs(wrap_angle(other[:n] - k[:n])) <= np.maximum(3 * sig[:n], 1e-3))
                        | (flags == "gimbal_lock")) for k in kept[1:]):
             kept.append(other)
         for j in np.flatnonzero(grow):
@@ -913,7 +893,7 @@ def solve_still(
             flags[j] = "ambiguous"
             if not alternatives[j]:
                 alternatives[j].append(float(qb[j]))
-            if all(abs(_wrap(other[j] - v)) > 1e-3 for v in alternatives[j]):
+            if all(abs(wrap_angle(other[j] - v)) > 1e-3 for v in alternatives[j]):
                 alternatives[j].append(float(other[j]))
     # a joint the data cannot see gets no number (never a sigma of thousands of degrees)
     blind = (sig[:n] > st.numbered_sigma_max_deg * DEG) & ~np.isin(flags, ("gimbal_lock", "ambiguous"))
@@ -1005,11 +985,11 @@ def _complete_combinations(problem: _Problem, x: np.ndarray, cost: np.ndarray,
     idx = np.indices([len(v) for _, v in values]).reshape(len(values), -1).T  # (total, groups)
     for gi, (g, v) in enumerate(values):
         combos[:, g] = v[idx[:, gi]]
-    have = np.abs(_wrap(combos[:, None, :n] - q[None])).max(-1).min(1) < 0.5 * DEG
+    have = np.abs(wrap_angle(combos[:, None, :n] - q[None])).max(-1).min(1) < 0.5 * DEG
     if have.all():
         return x, cost
     new, new_cost = _batched_lm(problem, combos[~have], np.ones(n + 2, bool), st.max_iterations)
-    new[:, :n] = mid + _wrap(new[:, :n] - mid)
+    new[:, :n] = mid + wrap_angle(new[:, :n] - mid)
     return np.vstack([x, new]), np.concatenate([cost, new_cost])
 
 
@@ -1102,7 +1082,7 @@ def _prior_d2(prior: StartupPrior, q: np.ndarray, locked: np.ndarray, cov: np.nd
     S = cov[:, None] + Cp[None]  # (B, C, n, n)
     both = (known[:, :, None] & known[:, None, :])[:, None]
     S = np.where(both, S, 0.0) + np.eye(q.shape[1]) * np.where(known, 0.0, 1.0)[:, None, None]
-    dq = _wrap(q[:, None, :] - prior.candidates_rad[None]) * known[:, None]  # (B, C, n)
+    dq = wrap_angle(q[:, None, :] - prior.candidates_rad[None]) * known[:, None]  # (B, C, n)
     w = np.linalg.solve(S, dq[..., None])[..., 0]
     d2 = np.sum(dq * w, -1).min(1)
     return (d2, known.sum(1)) if with_dof else d2
@@ -1388,7 +1368,7 @@ def _separating(arm, problem, cands, rp, chunk, amb, ia, ib, st, unsure, carried
     readable = clear[idx] & (sig <= 0.5 * st.sigma_limit_deg * DEG)
     # the joints to resolve need not be sharp (a floor of unmodelled error may forbid it), but
     # their rivals must stand 6 of their sigmas apart for the next window to choose
-    gap = np.abs(_wrap(cands[ia] - cands[ib]))  # (pairs, n)
+    gap = np.abs(wrap_angle(cands[ia] - cands[ib]))  # (pairs, n)
     gap = np.where(gap > 1e-3, gap, np.inf).min(0)  # the closest two distinct values, per joint
     ok = (clear[idx] & (6 * sig <= gap))[:, amb].all(1)
     if not ok.any():

@@ -75,10 +75,10 @@ from fusion.heading import (
 )
 from fusion.startup import StartupResult
 from fusion.tracker_kernels import measurement_points, process_points
-from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound, wrap_angle
+from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound
 from models.arm import ArmModel
-from models.motion import MotionState, link_motion, sensor_motion
-from models.rotations import GRAVITY_MPS2, skew
+from models.motion import MotionState, cross, link_motion, sensor_motion
+from models.rotations import DEG, GRAVITY_MPS2, exp_so3_one, skew, up_from_tilt, wrap_angle
 from models.sensor_models import (
     MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
     StreamModel,
@@ -87,7 +87,6 @@ from models.sensor_models import (
 )
 from sensors.samples import Recording, Stream
 
-DEG = np.pi / 180.0
 G = GRAVITY_MPS2
 
 JOINT_FLAGS: tuple[str, ...] = (
@@ -684,7 +683,7 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
             if undo is not None:  # the config's hard and soft iron, as the tracker undoes them
                 y = (y - undo[1]) @ undo[0]
             mB = y @ R_0I.T
-            up = _up(np.array(startup.roll_rad), np.array(startup.pitch_rad))
+            up = up_from_tilt(np.array(startup.roll_rad), np.array(startup.pitch_rad))
             if st.heading.reference == "model":
                 field_ref = FieldReference.from_world_field()
             else:
@@ -906,14 +905,6 @@ def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s
                   f"branches apart (summed NIS over {horizon_s:g} s: {best:.0f} and {second:.0f})")
 
 
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross products of 3-vectors on the last axis, broadcast (np.cross costs several times
-    more on the tracker's small arrays)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
 def _effect_dicts(arm: ArmModel, name: str):
     """The config's entries of effect ``name`` as plain dicts."""
     for e in arm.effects or ():
@@ -976,31 +967,6 @@ def _with_lever_arms(arm: ArmModel) -> ArmModel:
     sensors = tuple(replace(s, p_L_m=np.asarray(s.p_L_m, float) + shift[s.name]) if s.name in shift else s
                     for s in arm.sensors)
     return replace(arm, sensors=sensors)
-
-
-def _up(roll, pitch) -> np.ndarray:
-    """World up in base axes for base (roll, pitch), batched: ``[-sp, sr cp, cr cp]``."""
-    r, p = np.asarray(roll, dtype=float), np.asarray(pitch, dtype=float)
-    sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
-    out = np.empty(np.broadcast(r, p).shape + (3,))
-    out[..., 0] = -sp
-    out[..., 1] = sr * cp
-    out[..., 2] = cr * cp
-    return out
-
-
-def _rotation(v) -> np.ndarray:
-    """Rodrigues for one rotation vector (an array or three floats; plain floats: one small
-    matrix per step)."""
-    x, y, z = v.tolist() if isinstance(v, np.ndarray) else v
-    th = math.sqrt(x * x + y * y + z * z)
-    if th < 1e-12:
-        return np.eye(3)
-    a = math.sin(th) / th
-    b = (1.0 - math.cos(th)) / (th * th)
-    return np.array([[1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
-                     [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
-                     [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
 
 
 # --------------------------------------------------------------------------------------
@@ -1147,7 +1113,7 @@ class Tracker:
         if not self._has_imu:
             return np.full(3, 1e-12)
         corr = self.correction
-        m = self._R_0I.T @ _up(roll_rad, pitch_rad)
+        m = self._R_0I.T @ up_from_tilt(roll_rad, pitch_rad)
         if corr is not None and corr.spread.get(IMU_ACC):
             y0 = corr.readings_one(IMU_ACC, m)
             var = np.zeros(3)
@@ -1235,7 +1201,7 @@ class Tracker:
             # rival branches: the filter runs on one of them, the one nearest the prior pose
             # (where the search started: no evidence, so the flag stays `ambiguous` and the
             # sigma covers every candidate), each one a real minimum with its own covariance
-            d = np.abs((np.asarray(cands) - prior + np.pi) % (2 * np.pi) - np.pi)[:, amb].sum(1)
+            d = np.abs(wrap_angle(np.asarray(cands) - prior))[:, amb].sum(1)
             c = int(np.argmin(d))
             q0 = np.array(cands[c], dtype=float)
             if startup.candidates_covariance is not None:
@@ -1526,7 +1492,7 @@ class Tracker:
                 b = self.layout.n_joints + 6  # gyro_bias
                 bx, by, bz = ukf._x[b:b + 3].tolist()
                 wx, wy, wz = w.tolist()
-                self._mag_rot = self._mag_rot @ _rotation(((wx - bx) * dt, (wy - by) * dt, (wz - bz) * dt))
+                self._mag_rot = self._mag_rot @ exp_so3_one(((wx - bx) * dt, (wy - by) * dt, (wz - bz) * dt))
         if gyro is not None:
             self._omega = gyro
         self._t = t
@@ -1655,7 +1621,7 @@ class Tracker:
         var = self._accel_var_g2 + extra[..., None]
         if self._time_var_s2 is not None and frames.omega_S_rad_s is not None:
             # a stamp known to sigma_t reads gravity turned by omega x g sigma_t (sensor axes)
-            turn = _cross3(frames.omega_S_rad_s, frames.R_0S[..., 2, :])
+            turn = cross(frames.omega_S_rad_s, frames.R_0S[..., 2, :])
             var = var + self._time_var_s2[:, None] * turn**2
         return frames._replace(accel_var_g2=var)
 
@@ -1697,7 +1663,7 @@ class Tracker:
             k = len(sel)
             if self._time_offset_s is not None and frame.omega_S_rad_s is not None:
                 # a reading stamped late by dt saw gravity dt earlier: turn it to the stamp
-                f = f - self._time_offset_s[sel][:, None] * _cross3(frame.omega_S_rad_s[sel], f)
+                f = f - self._time_offset_s[sel][:, None] * cross(frame.omega_S_rad_s[sel], f)
             var_a = frame.accel_var_g2 if full else frame.accel_var_g2[sel]
         still = self._still and acc is not None and st.motion_compensation
         n_still = 3 if still else 0
@@ -1712,7 +1678,7 @@ class Tracker:
         if mag is not None:
             m_count, m_B = mag
             x = ukf._x
-            check = self._guard.check_field(m_B, _up(x[L.roll], x[L.pitch]))
+            check = self._guard.check_field(m_B, up_from_tilt(x[L.roll], x[L.pitch]))
             v = self._sigma_psi**2 / m_count + self._iron_var
             if check.disturbed:
                 v += check.doubt_rad(self._field) ** 2
@@ -2171,9 +2137,9 @@ class Tracker:
             y0 = np.linalg.solve(Lm, raw - c)
             M1, c1 = self._spread_stack[IMU_ACC]
             d = M1 @ raw - np.einsum("mab,mb->ma", M1, c1) - y0  # (m_s, 3)
-            r = _cross3(y0 / np.linalg.norm(y0), d) @ self._R_0I.T  # the reference turned by
+            r = cross(y0 / np.linalg.norm(y0), d) @ self._R_0I.T  # the reference turned by
             # each link sensor's reading error: R^T (r x v) / g
-            rv = _cross3(r[:, None, :], v[None, :, :])  # (m_s, k, 3)
+            rv = cross(r[:, None, :], v[None, :, :])  # (m_s, k, 3)
             E[:, :, cols] = np.einsum("kji,mkj->kim", R, rv) / G
         scale = np.sqrt(self._accel_rate[sel] * self.settings.observability_window_s)
         return E / self._accel_sigma_g[sel][:, :, None] * scale[:, None, None]

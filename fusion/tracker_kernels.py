@@ -23,7 +23,7 @@ import math
 import numpy as np
 from numba import njit
 
-TWO_PI = 2.0 * math.pi
+from models.rotations import TWO_PI
 
 
 @njit(cache=True, nogil=True)

@@ -33,7 +33,6 @@ kernels are tested against (to round-off).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -52,14 +51,9 @@ from fusion.ukf_kernels import (
     sigma_points_into,
     unscented_moments_into,
 )
+from models.rotations import wrap_angle
 
-TWO_PI = 2.0 * np.pi
 _NONE_2D = np.zeros((0, 0))  # "no hold / no gain mask" for the compiled update
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Angles wrapped to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % TWO_PI - np.pi
 
 
 # --------------------------------------------------------------------------------------
@@ -160,13 +154,11 @@ def _ut(Y: np.ndarray, Wm: np.ndarray, WcT: np.ndarray, angle: int | None):
         y = Y[:, angle]
         dA = y - y[0]
         if np.abs(dA).max() < 3.0:
-            m[angle] = (float(m[angle]) + math.pi) % TWO_PI - math.pi
+            m[angle] = wrap_angle(float(m[angle]))
         else:
-            dA += np.pi
-            dA %= TWO_PI
-            dA -= np.pi
+            dA = wrap_angle(dA)
             mA = float(Wm @ dA)
-            m[angle] = (float(y[0]) + mA + np.pi) % TWO_PI - np.pi
+            m[angle] = wrap_angle(float(y[0]) + mA)
             dA -= mA
             D[:, angle] = dA
     DW = D.T * WcT
@@ -547,7 +539,7 @@ class BatchedUKF:
                 S += R
             nu = z - zp
             if a is not None:
-                nu[a] = (nu[a] + np.pi) % TWO_PI - np.pi
+                nu[a] = wrap_angle(nu[a])
         else:
             ang = np.asarray(angle_rows, dtype=int)
             zp, DZ, S = unscented_transform(Z, self._Wm, self._Wc, np.diag(R) if R.ndim == 1 else R, ang)
@@ -672,7 +664,7 @@ class BatchedUKF:
         x = self._x + K @ nu
         a = self._angle1
         if a is not None:
-            x[a] = (float(x[a]) + math.pi) % TWO_PI - math.pi
+            x[a] = wrap_angle(float(x[a]))
         elif len(self._angles):
             x[self._angles] = wrap_angle(x[self._angles])
         if hold is None and gain_mask is None:

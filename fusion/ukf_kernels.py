@@ -29,7 +29,7 @@ import math
 import numpy as np
 from numba import njit
 
-TWO_PI = 2.0 * math.pi
+from models.rotations import wrap_angle
 
 # status codes of the kernels that may decline
 OK = 0
@@ -37,10 +37,9 @@ NOT_POSITIVE_DEFINITE = 1  # a matrix to factor (S, a block of S, s (P + Q)) is 
 DIAGONAL_NOT_POSITIVE = 2  # the updated covariance has a diagonal entry <= 0 (or NaN)
 
 
-@njit(cache=True)
-def _wrap(a: float) -> float:
-    """An angle wrapped to [-pi, pi) (Python's float ``%``: the sign of the divisor)."""
-    return (a + math.pi) % TWO_PI - math.pi
+# models.rotations.wrap_angle compiled: the one definition, a scalar here (numba's float
+# ``%`` is Python's: the sign of the divisor, so the same numbers as NumPy's)
+_wrap = njit(cache=True)(wrap_angle)
 
 
 @njit(cache=True)

@@ -22,7 +22,7 @@ from models.arm import (
     SensorMount,
     joints_from_dh,
 )
-from models.rotations import rotation_problem
+from models.rotations import DEG, rotation_problem
 from sensors.samples import clipped_repr
 
 
@@ -362,19 +362,18 @@ def build_arm(
     if problems or parsed is None:
         raise ConfigError(problems)
     arm = parsed.arm
-    deg = np.pi / 180.0
     js = arm.joints
     dh_table = None
     if arm.dh is not None:
         n = len(arm.dh.alpha_deg)
         names = js.names or [f"j{i + 1}" for i in range(n)]
-        offset = np.array(arm.dh.offset_deg or [0.0] * n) * deg
-        alpha = np.array(arm.dh.alpha_deg) * deg
+        offset = np.array(arm.dh.offset_deg or [0.0] * n) * DEG
+        alpha = np.array(arm.dh.alpha_deg) * DEG
         a_m = np.array(arm.dh.a_mm) / 1000.0
         d_m = np.array(arm.dh.d_mm) / 1000.0
         joints = joints_from_dh(
             arm.dh.convention, alpha, a_m, d_m, offset, names,
-            np.array(js.min_deg) * deg, np.array(js.max_deg) * deg, np.array(js.counts_per_rev),
+            np.array(js.min_deg) * DEG, np.array(js.max_deg) * DEG, np.array(js.counts_per_rev),
         )
         dh_table = DhTable(arm.dh.convention, alpha, a_m, d_m, offset)
     else:
@@ -383,8 +382,8 @@ def build_arm(
         joints = tuple(
             Joint(
                 name=names[i], R_pre=j.R_pre, p_pre_m=j.p_pre_m, axis=j.axis, R_post=j.R_post,
-                p_post_m=j.p_post_m, offset_rad=0.0, min_rad=js.min_deg[i] * deg,
-                max_rad=js.max_deg[i] * deg, counts_per_rev=js.counts_per_rev[i],
+                p_post_m=j.p_post_m, offset_rad=0.0, min_rad=js.min_deg[i] * DEG,
+                max_rad=js.max_deg[i] * DEG, counts_per_rev=js.counts_per_rev[i],
             )
             for i, j in enumerate(urdf_joints)
         )
@@ -399,7 +398,7 @@ def build_arm(
     )
     return ArmModel(
         name=arm.name, joints=joints, sensors=sensors,
-        ready_pose_rad=_ro(np.array(arm.ready_pose_deg) * deg), dh=dh_table, source=source,
+        ready_pose_rad=_ro(np.array(arm.ready_pose_deg) * DEG), dh=dh_table, source=source,
         effects=tuple(parsed.effects),
         calibration=parsed.calibration.model_dump(exclude_none=True, exclude_unset=True),
     )

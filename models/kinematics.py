@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.arm import ArmModel
-from models.rotations import exp_so3
+from models.rotations import exp_so3, skew
 
 
 @dataclass(frozen=True)
@@ -209,7 +209,7 @@ def _z_onto(axis: np.ndarray) -> np.ndarray:
     if c < -1.0 + 1e-12:  # a = -z: half a turn about x
         return np.diag([1.0, -1.0, -1.0])
     k = np.array([-a[1], a[0], 0.0])  # z x a, of length sin(angle)
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    K = skew(k)
     return np.eye(3) + K + K @ K / (1.0 + c)
 
 

@@ -6,10 +6,24 @@ Base attitude follows shared/spec/recording-csv.md: ``R_WB = Rz(yaw) Ry(pitch) R
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 GRAVITY_MPS2 = 9.80665
 UP_W = np.array([0.0, 0.0, 1.0])
+DEG = np.pi / 180.0  # radians per degree: ``5 * DEG`` is 5 degrees in rad
+TWO_PI = 2.0 * np.pi
+
+
+def wrap_angle(a):
+    """Angle(s) in rad wrapped to [-pi, pi) (``%`` takes the sign of the divisor, so pi
+    maps to -pi). A float, a NumPy scalar or an array; the same type comes back.
+
+    Plain arithmetic only, so that numba compiles this same function for its kernels
+    (``fusion.ukf_kernels`` does): one definition for NumPy and compiled code alike.
+    """
+    return (a + np.pi) % TWO_PI - np.pi
 
 
 def rot_x(angle_rad: np.ndarray | float) -> np.ndarray:
@@ -34,8 +48,12 @@ def rot_z(angle_rad: np.ndarray | float) -> np.ndarray:
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """``skew(v) @ w == cross(v, w)``, batched over leading axes of ``v (..., 3)``."""
+    """``skew(v) @ w == cross(v, w)``, batched over leading axes of ``v (..., 3)``; for row
+    vectors ``u``, ``u @ skew(v) == cross(u, v)``."""
     v = np.asarray(v, dtype=float)
+    if v.ndim == 1:  # one vector: the literal is 10x faster than the stacks (startup's loops)
+        x, y, w = v
+        return np.array([[0.0, -w, y], [w, 0.0, -x], [-y, x, 0.0]])
     z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
     return np.stack(
@@ -54,6 +72,24 @@ def exp_so3(rotvec_rad: np.ndarray) -> np.ndarray:
     b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
     eye = np.broadcast_to(np.eye(3), K.shape)
     return eye + a * K + b * (K @ K)
+
+
+def exp_so3_one(rotvec_rad) -> np.ndarray:
+    """:func:`exp_so3` for ONE rotation vector (an array or three floats), in plain float
+    arithmetic: about 9x faster than the batched form for a single 3x3 (the tracker calls
+    it every sample). Below 1e-12 rad it returns the identity (the batched form uses the
+    series); elsewhere the two agree to a few 1e-18 (different rounding order), which is
+    why both stay.
+    """
+    x, y, z = rotvec_rad.tolist() if isinstance(rotvec_rad, np.ndarray) else rotvec_rad
+    th = math.sqrt(x * x + y * y + z * z)
+    if th < 1e-12:
+        return np.eye(3)
+    a = math.sin(th) / th
+    b = (1.0 - math.cos(th)) / (th * th)
+    return np.array([[1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
+                     [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
+                     [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
 
 
 def log_so3(R: np.ndarray) -> np.ndarray:
@@ -95,20 +131,29 @@ def rpy_from_R(R_WB: np.ndarray) -> np.ndarray:
     return np.stack([roll, pitch, yaw], -1)
 
 
-def up_in_base(roll_rad, pitch_rad) -> np.ndarray:
-    """World 'up' ``[0, 0, 1]`` expressed in the base frame, for a base at (roll, pitch).
+def up_from_tilt(roll_rad, pitch_rad) -> np.ndarray:
+    """World 'up' ``[0, 0, 1]`` expressed in the base frame, for a base at (roll, pitch):
+    ``[-sp, sr cp, cr cp]`` (the third row of :func:`R_from_rpy`), batched: roll and pitch
+    broadcast against each other, ``(..., 3)`` comes back.
 
     Yaw does not change it. At rest an accelerometer aligned with the base reads this
-    vector in g (specific force opposes gravity).
+    vector in g (specific force opposes gravity). Inverse: :func:`tilt_from_up`.
     """
-    R = R_from_rpy(roll_rad, pitch_rad, np.zeros_like(np.asarray(roll_rad, dtype=float)))
-    return np.swapaxes(R, -1, -2) @ UP_W
+    r, p = np.asarray(roll_rad, dtype=float), np.asarray(pitch_rad, dtype=float)
+    sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
+    out = np.empty(np.broadcast(r, p).shape + (3,))
+    out[..., 0] = -sp
+    out[..., 1] = sr * cp
+    out[..., 2] = cr * cp
+    return out
 
 
 def tilt_from_up(up_B: np.ndarray) -> np.ndarray:
     """Roll and pitch (rad) of a base whose accelerometer reads ``up_B`` (any length).
 
-    Inverse of :func:`up_in_base`; this is the thesis's eq. 4.1 in the spec's convention.
+    Inverse of :func:`up_from_tilt`; ``(..., 2)`` comes back (one vector: shape ``(2,)``,
+    ``roll, pitch = tilt_from_up(u)`` unpacks NumPy floats). This is the thesis's eq. 4.1
+    in the spec's convention.
     """
     u = np.asarray(up_B, dtype=float)
     roll = np.arctan2(u[..., 1], u[..., 2])

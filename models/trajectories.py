@@ -42,9 +42,7 @@ import numpy as np
 from models.arm import ArmModel
 from models.kinematics import joint_axis_angle_to_vertical
 from models.motion import MotionState, body_rates_from_rpy, cross
-from models.rotations import R_from_rpy, up_in_base
-
-DEG = np.pi / 180.0
+from models.rotations import DEG, R_from_rpy, up_from_tilt
 
 
 # --------------------------------------------------------------------------------------
@@ -399,7 +397,7 @@ def random_still_poses(arm: ArmModel, k: int, rng: np.random.Generator,
 def static_poses(arm: ArmModel, duration_s: float, rng: np.random.Generator,
                  hold_s: float = 4.0, peak_rate_rad_s: float = 30 * DEG) -> Scenario:
     base = _parked(rng)
-    up_0 = up_in_base(base.rpy[0], base.rpy[1])
+    up_0 = up_from_tilt(base.rpy[0], base.rpy[1])
     poses = random_still_poses(arm, max(1, int(duration_s // (hold_s + 3.0)) + 1), rng, up_0=up_0)
     b = StepsBuilder(poses[0])
     events = []

@@ -58,13 +58,13 @@ from fusion.startup import (  # noqa: E402
 )
 from fusion.static import find_static_segments  # noqa: E402
 from models.motion import MotionState  # noqa: E402
+from models.rotations import DEG, wrap_angle  # noqa: E402
 from models.sensor_models import stream_models  # noqa: E402
 from models.simulator import build_model as true_model  # noqa: E402
 from models.simulator import simulate  # noqa: E402
 from tools.bench_startup import draw_poses, moved_poses  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
-DEG = np.pi / 180
 TARGET_DEG = 0.1
 
 
@@ -224,13 +224,13 @@ def after_move(arm, base, seed, q, tilt, offset, geometric, rng, temperature_c: 
         for j, je in enumerate(res.joints):
             if je.angle_rad is not None:
                 numeric += 1
-                e = abs((je.angle_rad - truth[j] + np.pi) % (2 * np.pi) - np.pi)
+                e = abs(wrap_angle(je.angle_rad - truth[j]))
                 wrong += je.flag == "ok" and e > 4 * je.sigma_rad
     return len(amb), len(moved), resolved, wrong, numeric
 
 
 def summary(arm, est, sig, flags, truth_q):
-    err = (est - truth_q + np.pi) % (2 * np.pi) - np.pi
+    err = wrap_angle(est - truth_q)
     rows = []
     for j in range(arm.n_joints):
         ok = flags[:, j] == "ok"

@@ -45,13 +45,12 @@ from fusion.startup import (  # noqa: E402
     prior_after_move,
     readings_from_counts,
     solve_still,
-    up_from_tilt,
 )
 from models.kinematics import gravity_in_sensors, joint_axis_angle_to_vertical  # noqa: E402
+from models.rotations import DEG, up_from_tilt, wrap_angle  # noqa: E402
 from models.sensor_models import stream_models  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
-DEG = np.pi / 180
 THESIS_RAD = 0.1
 TARGET_S = 5e-3  # issue 4: median solve time, all 7 joints, every branch
 
@@ -129,7 +128,7 @@ def run(arm, q, tilt, means, priors, settings, method):
                 sig[k, j] = je.sigma_rad if je.sigma_rad is not None else np.nan
         x = np.concatenate([q[k], tilt[k]])[None]
         crb[k] = _expected_sigma(_make_problem(arm, readings), x)[0, : arm.n_joints]
-    err = (est - q + np.pi) % (2 * np.pi) - np.pi
+    err = wrap_angle(est - q)
     return err, sig, flags, crb, times, thesis, results
 
 
@@ -165,7 +164,7 @@ def after_move(arm, q, tilt, results, settings, rng, realistic, seed):
         for j, je in enumerate(res.joints):
             if je.angle_rad is not None:
                 numeric += 1
-                e = abs((je.angle_rad - q2[k, j] + np.pi) % (2 * np.pi) - np.pi)
+                e = abs(wrap_angle(je.angle_rad - q2[k, j]))
                 wrong += je.flag == "ok" and e > 4 * je.sigma_rad
     return len(amb), len(moved), resolved, wrong, numeric
 

@@ -47,13 +47,12 @@ from fusion.tracker import (  # noqa: E402
 )
 from fusion.tracker_kernels import measurement_points_numpy, process_points_numpy  # noqa: E402
 from fusion.ukf import repair_covariance, unscented_mean  # noqa: E402
+from models.rotations import DEG, wrap_angle  # noqa: E402
 from models.rotations import GRAVITY_MPS2 as G  # noqa: E402
 from models.sensor_models import AK8975_UT_PER_LSB  # noqa: E402
 from models.simulator import simulate  # noqa: E402
 from sensors.samples import Recording, Stream  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
-
-DEG = np.pi / 180.0
 
 
 def calibrated_wmra():
@@ -124,7 +123,7 @@ def filterpy_baseline(arm, rec: Recording, steps: int, model: str = "numpy"):
 
     def residual_x(a, b):
         d = a - b
-        d[L.yaw] = (d[L.yaw] + np.pi) % (2 * np.pi) - np.pi
+        d[L.yaw] = wrap_angle(d[L.yaw])
         return d
 
     def mean_x(sigmas, Wm):
@@ -135,7 +134,7 @@ def filterpy_baseline(arm, rec: Recording, steps: int, model: str = "numpy"):
 
     def residual_z(a, b):
         d = a - b
-        d[-1] = (d[-1] + np.pi) % (2 * np.pi) - np.pi
+        d[-1] = wrap_angle(d[-1])
         return d
 
     pts = MerweScaledSigmaPoints(L.size, st.alpha, st.beta, st.kappa, subtract=residual_x)

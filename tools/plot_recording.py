@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from fusion.configfile import load_arm  # noqa: E402
-from models.rotations import GRAVITY_MPS2, up_in_base  # noqa: E402
+from models.rotations import GRAVITY_MPS2, up_from_tilt  # noqa: E402
 from models.sensor_models import stream_models  # noqa: E402
 from sensors.recording import read_recording  # noqa: E402
 from sensors.samples import Recording  # noqa: E402
@@ -122,7 +122,7 @@ def plot_recording(rec: Recording, out: str | Path, arm, truth: dict | None = No
             tb, rpy = _window(rec.streams["true_base"], t0, t1)
             r = np.interp(t, tb, rpy[:, 0])
             p = np.interp(t, tb, rpy[:, 1])
-            a = (sm["imu_acc"].from_counts(v) - up_in_base(r, p)) * GRAVITY_MPS2
+            a = (sm["imu_acc"].from_counts(v) - up_from_tilt(r, p)) * GRAVITY_MPS2
             k = max(1, int(round(0.25 * rec.streams["imu_acc"].rate_hz)))  # 0.25 s average
             kern = np.ones(k) / k
             for c, lab in enumerate(("forward", "left", "up")):

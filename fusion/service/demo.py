@@ -41,6 +41,7 @@ from fusion.service.fleet import free_loopback_port
 from fusion.service.processes import Children
 from fusion.simulate_cmd import truth_path
 from fusion.tracker import truth_at
+from models.rotations import wrap_angle
 from models.simulator import angle_truth
 from models.trajectories import SCENARIOS
 
@@ -180,10 +181,6 @@ def _settled(lat: dict) -> str:
             f"p99 {lat['p99_after_settle_ms']:.1f} ms")
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
 def evaluate(live: dict[str, Any]) -> dict[str, Any]:
     """Accuracy against the truth, flags, counts and latency, as one JSON-ready document."""
     from sensors.recording import read_recording
@@ -222,7 +219,7 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
         th = np.array([h.t_s for _, h in w.headings])
         yaw = np.array([h.heading_rad for _, h in w.headings])
         yaw_true = truth_at(tb, th, angles=True)[:, 2]
-        heading_rms = float(np.degrees(np.sqrt(np.mean(_wrap(yaw - yaw_true) ** 2))))
+        heading_rms = float(np.degrees(np.sqrt(np.mean(wrap_angle(yaw - yaw_true) ** 2))))
     drv, srv, rec = live["drivers"], live["serve"], live["record"]
     epoch = drv.get("epoch_monotonic_s")
     latency = None
@@ -338,7 +335,7 @@ def tracking_figures(ev: dict[str, Any]) -> dict[str, bytes]:
         a.set_ylabel("heading [deg]")
         a.set_xlabel("t [s]")
         a.legend(fontsize=8)
-        e = np.degrees(_wrap(yaw - yaw_true))
+        e = np.degrees(wrap_angle(yaw - yaw_true))
         b.fill_between(th, -2 * np.degrees(ysig), 2 * np.degrees(ysig), color="C0", alpha=0.2, label="±2σ")
         b.plot(th, e, "-", color="C3", lw=1, label="error")
         b.set_ylabel("heading error [deg]")

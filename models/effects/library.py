@@ -23,10 +23,9 @@ from models.effects.base import (
 )
 from models.kinematics import chain_poses
 from models.motion import cross
-from models.rotations import exp_so3, skew, so3_right_jacobian
+from models.rotations import DEG, exp_so3, skew, so3_right_jacobian
 
 XYZ = ("x", "y", "z")
-DEG = np.pi / 180.0
 
 
 def _sensor_type(arm: ArmModel, name: str) -> str:

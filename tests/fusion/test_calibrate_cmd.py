@@ -12,13 +12,12 @@ from typer.testing import CliRunner
 
 from fusion.cli import app
 from fusion.pose_store import load_pose
-from fusion.startup import up_from_tilt
 from models.kinematics import gravity_in_sensors
+from models.rotations import DEG, up_from_tilt
 from sensors.recording import write_recording
 from sensors.samples import Recording, Stream, accel_columns, encoder_columns
 
 runner = CliRunner()
-DEG = np.pi / 180
 
 
 def still_recording(arm, segments, rng, rate_hz=100.0, roll_deg=1.0, pitch_deg=-0.5, spoil=None):

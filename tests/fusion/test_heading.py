@@ -16,13 +16,10 @@ from fusion.heading import (
     tilt_compensated_heading,
 )
 from fusion.tracker import TrackerSettings, start_from_recording
-from fusion.ukf import wrap_angle
-from models.rotations import R_from_rpy
+from models.rotations import DEG, R_from_rpy, wrap_angle
 from models.sensor_models import AK8975_UT_PER_LSB, EARTH_FIELD_TAMPA_UT
 from models.simulator import simulate
 from sensors.samples import Recording, Stream
-
-DEG = np.pi / 180.0
 
 
 def test_tilt_compensated_heading_recovers_yaw_at_any_attitude(rng):

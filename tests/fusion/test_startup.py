@@ -13,11 +13,10 @@ from fusion.startup import (
     StillReadings,
     prior_after_move,
     solve_still,
-    up_from_tilt,
 )
 from models.kinematics import gravity_in_sensors
+from models.rotations import DEG, up_from_tilt
 
-DEG = np.pi / 180
 ADXL_SIGMA_G = np.array([0.75, 0.75, 1.1]) / 256 / np.sqrt(100)  # 1 s of 100 Hz, averaged
 IMU_SIGMA_G = np.full(3, 400e-6 * np.sqrt(50) / np.sqrt(100))
 

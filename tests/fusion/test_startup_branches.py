@@ -19,13 +19,11 @@ from fusion.startup import (
     prior_after_move,
     readings_from_recording,
     solve_still,
-    up_from_tilt,
 )
 from fusion.static import StaticDetectionSettings, find_static_segments
 from models.kinematics import gravity_in_sensors
+from models.rotations import DEG, up_from_tilt, wrap_angle
 from models.simulator import angle_truth, simulate
-
-DEG = np.pi / 180
 
 
 @pytest.fixture(scope="module")
@@ -45,10 +43,6 @@ def seed11(ideal):
         k = int(np.searchsorted(q_true.t_s, seg.t_end_s)) - 1
         out[round(seg.t_start_s, 1)] = (readings, q_true.values[k], base.values[k])
     return out
-
-
-def wrap(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
 def still_after(arm, q, roll_pitch, like: StillReadings, rng):
@@ -71,12 +65,12 @@ def test_rival_branches_are_ambiguous_and_the_proposed_move_resolves_them(ideal,
         assert by[name].flag == "ambiguous", res.summary
         assert by[name].angle_rad is None and by[name].sigma_rad is None
         assert len(by[name].alternatives_rad) >= 2
-        assert min(abs(wrap(a - q_true[j])) for a in by[name].alternatives_rad) < 0.2 * DEG
+        assert min(abs(wrap_angle(a - q_true[j])) for a in by[name].alternatives_rad) < 0.2 * DEG
     assert res.prior_used == "none"
     # nothing reported as a number is wrong beyond 4 of its sigmas
     for j, je in enumerate(res.joints):
         if je.angle_rad is not None:
-            assert abs(wrap(je.angle_rad - q_true[j])) < 4 * je.sigma_rad, je
+            assert abs(wrap_angle(je.angle_rad - q_true[j])) < 4 * je.sigma_rad, je
     move = res.disambiguating_move
     assert move is not None and {"j3", "j4"} <= set(move.resolves)
     assert "tell the branches apart" in res.summary
@@ -92,7 +86,7 @@ def test_rival_branches_are_ambiguous_and_the_proposed_move_resolves_them(ideal,
         j = ideal.joint_names.index(name)
         je = res2.joints[j]
         assert je.flag == "ok", res2.summary
-        assert abs(wrap(je.angle_rad - q2[j])) < 4 * je.sigma_rad
+        assert abs(wrap_angle(je.angle_rad - q2[j])) < 4 * je.sigma_rad
     assert "carried through the encoder counts fits" in res2.notes[0]
 
 
@@ -104,7 +98,7 @@ def test_a_fresh_saved_pose_chooses_and_a_stale_one_is_ignored(ideal, seed11):
     for j, je in enumerate(fresh.joints):
         assert je.flag != "ambiguous"
         if je.angle_rad is not None:
-            assert abs(wrap(je.angle_rad - q_true[j])) < 4 * je.sigma_rad
+            assert abs(wrap_angle(je.angle_rad - q_true[j])) < 4 * je.sigma_rad
     # the arm was moved by hand while the power was off: the pose of another window
     _, q_other, _ = seed11[100.3]
     stale = solve_still(ideal, readings, prior=StartupPrior.saved_pose(q_other, source="saved.json"),
@@ -132,7 +126,7 @@ def test_assume_parked_on_a_parked_arm_behaves_as_the_ready_pose_prior_did(wmra,
     assert any("rests on an assumption" in n for n in res.notes)
     for j, je in enumerate(res.joints):
         if je.angle_rad is not None:
-            assert abs(wrap(je.angle_rad - q[j])) < 4 * je.sigma_rad
+            assert abs(wrap_angle(je.angle_rad - q[j])) < 4 * je.sigma_rad
 
 
 def test_no_joint_is_given_a_number_with_a_sigma_past_45_degrees(wmra):

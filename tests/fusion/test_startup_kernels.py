@@ -16,12 +16,11 @@ from fusion.startup import (
     _batched_lm,
     _batched_lm_numpy,
     _make_problem,
-    up_from_tilt,
 )
 from fusion.startup_kernels import augmented
 from models.kinematics import gravity_in_sensors
+from models.rotations import DEG, up_from_tilt
 
-DEG = np.pi / 180
 Q_DEG = np.array([30.0, 40.0, 20.0, -50.0, 60.0, 30.0, 100.0])
 
 

@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from fusion.startup import up_from_tilt
 from fusion.tracker import (
     COUNTERS,
     FLAG_CODE,
@@ -31,7 +30,7 @@ from fusion.tracker import (
     start_from_recording,
 )
 from models.motion import MotionState, specific_force
-from models.rotations import R_from_rpy
+from models.rotations import DEG, R_from_rpy
 from models.simulator import simulate
 from models.trajectories import (
     DrivingChair,
@@ -43,7 +42,6 @@ from models.trajectories import (
 )
 from sensors.samples import Recording, Stream
 
-DEG = np.pi / 180.0
 POSE = np.radians([45.0, 60.0, 30.0, -50.0, 40.0, 30.0, 20.0])  # every joint readable
 ACCELS = ("acc1", "acc2", "acc3", "acc4", "imu_acc")
 
@@ -403,13 +401,6 @@ def test_nees_and_nis_are_consistent_over_monte_carlo_runs(arm):
         k = 1 if s == "imu_mag" else 3
         lo, hi = chi2.ppf([0.025, 0.975], runs * k) / runs
         assert lo <= np.mean(v) <= hi, (s, np.mean(v), lo, hi)
-
-
-def test_up_conventions_agree(arm):
-    # the tracker's tilt convention is the startup's
-    from fusion.tracker import _up
-
-    np.testing.assert_allclose(_up(0.1, -0.2), up_from_tilt(0.1, -0.2))
 
 
 def test_a_calibrated_config_s_effects_are_applied(arm):

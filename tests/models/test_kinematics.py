@@ -18,7 +18,7 @@ from models.kinematics import (
     joint_axis_angle_to_vertical,
     sensor_poses,
 )
-from models.rotations import up_in_base
+from models.rotations import up_from_tilt
 from tests.conftest import random_poses
 
 
@@ -76,7 +76,7 @@ def test_sensor_frames_are_rotations_and_static_reading_is_one_g(wmra, rng):
     R_0S, _ = sensor_poses(wmra, q)
     eye = np.broadcast_to(np.eye(3), R_0S.shape)
     np.testing.assert_allclose(np.swapaxes(R_0S, -1, -2) @ R_0S, eye, atol=1e-12)
-    up = up_in_base(rng.normal(0, 0.1, 200), rng.normal(0, 0.1, 200))
+    up = up_from_tilt(rng.normal(0, 0.1, 200), rng.normal(0, 0.1, 200))
     f = gravity_in_sensors(wmra, q, up)
     np.testing.assert_allclose(np.linalg.norm(f, axis=-1), 1.0, atol=1e-12)
 
@@ -85,7 +85,7 @@ def test_sensor_frames_are_rotations_and_static_reading_is_one_g(wmra, rng):
 def test_gravity_jacobian_matches_finite_differences(arm_name, request, rng):
     arm = request.getfixturevalue(arm_name)
     q = random_poses(arm, 20, rng)
-    up = up_in_base(rng.normal(0, 0.2, 20), rng.normal(0, 0.2, 20))
+    up = up_from_tilt(rng.normal(0, 0.2, 20), rng.normal(0, 0.2, 20))
     f, J = gravity_jacobian(arm, q, up)
     h = 1e-6
     for j in range(arm.n_joints):
@@ -116,7 +116,7 @@ def test_gravity_chain_gives_the_readings_and_jacobian_of_the_frames(arm_name, r
         arm = _turned_axes(arm, rng)
         assert not arm.chain.axis_is_z
     q = random_poses(arm, 20, rng)
-    up = up_in_base(rng.normal(0, 0.2, 20), rng.normal(0, 0.2, 20))
+    up = up_from_tilt(rng.normal(0, 0.2, 20), rng.normal(0, 0.2, 20))
     f, J, R_0S = gravity_jacobian(arm, q, up, with_frames=True)
     outer = rng.normal(size=(20, 3, 2))  # derivatives of up by two outer parameters
     gc = gravity_chain(arm)

@@ -22,7 +22,7 @@ from models.motion import (
     specific_force,
     specific_force_jacobian,
 )
-from models.rotations import GRAVITY_MPS2, R_from_rpy, up_in_base
+from models.rotations import GRAVITY_MPS2, R_from_rpy, up_from_tilt
 from models.trajectories import make_scenario
 from tests.conftest import random_poses
 
@@ -176,7 +176,7 @@ def test_body_rates_from_euler_angles_match_the_rotation_matrices(rng):
 
 def test_gravity_torque_jacobian_matches_numerical(wmra, rng):
     q = random_poses(wmra, 10, rng)
-    up = up_in_base(rng.normal(0, 0.1, 10), rng.normal(0, 0.1, 10))
+    up = up_from_tilt(rng.normal(0, 0.1, 10), rng.normal(0, 0.1, 10))
     tau, dtau = gravity_torques(wmra, q, up, jacobian=True)
     h = 1e-6
     for i in range(wmra.n_joints):

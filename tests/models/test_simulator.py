@@ -11,7 +11,7 @@ import pytest
 from models.effects import model_from_entries
 from models.kinematics import gravity_in_sensors, joint_axis_angle_to_vertical, sensor_poses
 from models.motion import MotionState
-from models.rotations import GRAVITY_MPS2, R_from_rpy, up_in_base
+from models.rotations import GRAVITY_MPS2, R_from_rpy, up_from_tilt
 from models.sensor_models import stream_models
 from models.simulator import simulate
 from models.trajectories import RENK_RATES_DEG_S, SCENARIOS, make_scenario
@@ -21,7 +21,7 @@ ACCS = ("acc1", "acc2", "acc3", "acc4")
 
 def _up(rec):
     rpy = rec.streams["true_base"].values
-    return up_in_base(rpy[:, 0], rpy[:, 1])
+    return up_from_tilt(rpy[:, 0], rpy[:, 1])
 
 
 def test_still_pose_reads_one_g_and_matches_the_kinematic_prediction(wmra):

@@ -16,10 +16,10 @@ from fusion.service.replay import replay
 from fusion.service.zenoh_config import open_session
 from fusion.startup import move_delta_rad, readings_from_recording, solve_still
 from fusion.static import StaticDetectionSettings, find_static_segments
+from models.rotations import DEG
 from models.simulator import simulate
 from models.trajectories import ParkedBase, Scenario, StepsBuilder, WaypointPath, warm_up
 
-DEG = np.pi / 180
 # the still pose at t = 45.4 s of `simulate --config wmra --scenario static-poses --seed 11`:
 # the twins of the j3-j4 pair both lie inside the limits and read the same
 POSE_DEG = [7.129, 37.724, 89.371, -109.451, -20.84, -54.735, -76.267]
