@@ -351,16 +351,23 @@ def test_an_unknown_suffix_is_named_with_the_accepted_ones(tmp_path: Path) -> No
         write_recording(_recording(duration_s=0.1), tmp_path / "run")
 
 
-def test_reads_a_file_from_another_mcap_writer(tmp_path: Path) -> None:
-    """Same topics and channel metadata, but JSON spelled differently and no chunks."""
+def _foreign_gyro_writer(f):
+    """An MCAP writer of another program, started, with an ``imu_gyro`` channel of JSON
+    messages as armfusion names them: ``(writer, schema id, channel id)``."""
     from mcap.writer import Writer
 
+    w = Writer(f, use_chunking=False)
+    w.start()
+    sid = w.register_schema("armfusion.gyro", "jsonschema", b"{}")
+    meta = {"stream": "imu_gyro", "kind": "gyro", "channels": '["imu_gx","imu_gy","imu_gz"]'}
+    return w, sid, w.register_channel("raw/imu_gyro", "json", sid, meta)
+
+
+def test_reads_a_file_from_another_mcap_writer(tmp_path: Path) -> None:
+    """Same topics and channel metadata, but JSON spelled differently and no chunks."""
+
     with open(tmp_path / "other.mcap", "wb") as f:
-        w = Writer(f, use_chunking=False)
-        w.start()
-        sid = w.register_schema("armfusion.gyro", "jsonschema", b"{}")
-        meta = {"stream": "imu_gyro", "kind": "gyro", "channels": '["imu_gx","imu_gy","imu_gz"]'}
-        cid = w.register_channel("raw/imu_gyro", "json", sid, meta)
+        w, sid, cid = _foreign_gyro_writer(f)
         other = w.register_channel("/tf", "json", sid, {})
         for i in range(5):
             msg = {"values": [i, -i, 2**40 + i], "t_s": 0.1 * i}  # keys swapped, spaces
@@ -384,16 +391,11 @@ def test_reads_a_file_from_another_mcap_writer(tmp_path: Path) -> None:
 def test_messages_that_do_not_fit_are_refused_naming_the_topic(
     tmp_path: Path, values: str, why: str
 ) -> None:
-    from mcap.writer import Writer
 
     from sensors.samples import RecordingError
 
     with open(tmp_path / "bad.mcap", "wb") as f:
-        w = Writer(f, use_chunking=False)
-        w.start()
-        sid = w.register_schema("armfusion.gyro", "jsonschema", b"{}")
-        meta = {"stream": "imu_gyro", "kind": "gyro", "channels": '["imu_gx","imu_gy","imu_gz"]'}
-        cid = w.register_channel("raw/imu_gyro", "json", sid, meta)
+        w, _, cid = _foreign_gyro_writer(f)
         w.add_message(cid, 0, b'{"t_s": 0.0, "values": [1, 2, 3]}', 0)
         w.add_message(cid, 1, ('{"t_s": 0.1, "values": ' + values + "}").encode(), 1)
         w.finish()
