@@ -34,7 +34,7 @@ from fusion.startup import (
     solve_still,
 )
 from fusion.static import StaticDetectionSettings, find_static_segments
-from models.sensor_models import mpu9150_temperature_c
+from models.sensor_models import encoder_angles_at, mpu9150_temperature_c
 
 calibrate_app = typer.Typer(help="Calibrate: joint angles from a still arm, or the sensors.",
                             no_args_is_help=True)
@@ -161,8 +161,7 @@ def _encoder_angles_at(arm, enc, t_s: float) -> np.ndarray | None:
     """The encoders' relative joint angles (rad) at the last sample at or before ``t_s``."""
     if enc is None or not len(enc) or enc.values.shape[1] != arm.n_joints:
         return None
-    k = min(max(int(np.searchsorted(enc.t_s, t_s + 1e-9)) - 1, 0), len(enc) - 1)
-    return np.asarray(enc.values[k], float) / arm.counts_per_rad
+    return encoder_angles_at(arm, enc, t_s)[1]
 
 
 def _print_segment(d: dict) -> None:

@@ -863,7 +863,7 @@ def solve_still(
     # every rival the chooser kept against the chosen one: a joint on which they differ by
     # more than its sigma can cover is ambiguous (an ill-conditioned joint's sigma grows to
     # cover a rival in the same valley instead)
-    rivals_x = _dedupe_x(rivals_x, xb, n)
+    rivals_x = _dedupe_x(rivals_x, xb)
     alternatives: list[list[float]] = [[] for _ in range(n)]
     kept = [xb]
     for other in rivals_x[1:]:
@@ -1009,7 +1009,7 @@ def _candidate_covariances(problem: _Problem, kept: list[np.ndarray], cov_best: 
     return np.array(out)
 
 
-def _dedupe_x(rivals_x: np.ndarray, xb: np.ndarray, n: int) -> np.ndarray:
+def _dedupe_x(rivals_x: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """The chosen state first, then every other rival once."""
     return _dedupe(np.vstack([xb[None], rivals_x]), 1e-3) if len(rivals_x) else xb[None]
 
@@ -1285,11 +1285,7 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
     bad = ~np.isfinite(np.diag(carried))
     carried[bad, :] = carried[:, bad] = 0.0
     carried[bad, bad] = np.pi**2
-    lin = np.sqrt(np.clip(np.diag(carried), 1e-30, None))
-    rep = np.array([j.sigma_rad if j.sigma_rad is not None else 0.0 for j in result.joints]
-                   + [result.roll_sigma_rad, result.pitch_sigma_rad])
-    scale = np.maximum(rep / lin, 1.0)
-    carried = carried * np.outer(scale, scale)
+    # (the result's covariance is already scaled to the sigmas its checks arrived at)
     carried[np.diag_indices(n)] += (st.encoder_carry_sigma_deg * DEG) ** 2
     # After the move every joint should be readable, whichever rival is true (a joint still
     # weak leaves the next window with rivals of its own); failing that, at least the joints

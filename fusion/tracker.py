@@ -82,6 +82,7 @@ from models.rotations import DEG, GRAVITY_MPS2, exp_so3_one, skew, up_from_tilt,
 from models.sensor_models import (
     MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
     StreamModel,
+    encoder_angles_at,
     mpu9150_temperature_c,
     stream_models,
 )
@@ -832,8 +833,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     enc = rec.get(ENC)
     if enc is None or not len(enc):
         raise ValueError("the recording has no encoder stream 'enc': nothing to track")
-    k = int(np.searchsorted(enc.t_s, seg.t_end_s + 1e-9)) - 1
-    k = min(max(k, 0), len(enc) - 1)
+    k, enc_rad = encoder_angles_at(arm, enc, seg.t_end_s)
     rates = {s: (v.rate_hz or 100.0) for s, v in rec.raw().items()}
 
     def tracker_from(result: StartupResult) -> Tracker:
@@ -850,8 +850,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         if chosen is not None:
             startup = chosen
     tr = tracker_from(startup)
-    return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes), geometric,
-                     np.asarray(enc.values[k], float) / arm.counts_per_rad)
+    return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes), geometric, enc_rad)
 
 
 def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s: float,

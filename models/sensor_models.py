@@ -321,3 +321,10 @@ def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: 
         samples[name] = len(st)
         saturated[name] = int(model.saturated(st.values).any(axis=1).sum())
     return SampleScreen(samples, saturated)
+
+
+def encoder_angles_at(arm: ArmModel, enc, t_s: float) -> tuple[int, np.ndarray]:
+    """The encoder stream's last sample at or before ``t_s`` (the first, if none is): its
+    index and the joints' relative angles there (counts / counts per rad)."""
+    k = min(max(int(np.searchsorted(enc.t_s, t_s + 1e-9)) - 1, 0), len(enc) - 1)
+    return k, np.asarray(enc.values[k], float) / arm.counts_per_rad

@@ -66,6 +66,7 @@ from fusion.tracker import (
     warm_up,
 )
 from models.arm import ArmModel
+from models.sensor_models import encoder_angles_at
 from sensors.samples import Recording, Stream
 
 log = logging.getLogger("armfusion.service")
@@ -582,9 +583,7 @@ class FusionNode:
         if rec.t_end_s - seg.t_end_s > self.still_tolerance_s:
             return
         window = _merge({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
-        enc = window.get(ENC)
-        k = min(max(int(np.searchsorted(enc.t_s, seg.t_end_s + 1e-9)) - 1, 0), len(enc) - 1)
-        moved = np.asarray(enc.values[k], float) / self.arm.counts_per_rad - start.encoder_rad
+        moved = encoder_angles_at(self.arm, window.get(ENC), seg.t_end_s)[1] - start.encoder_rad
         prior = prior_after_move(start.geometric, moved, self.arm)
         try:
             tracker, again = start_from_recording(self.arm, window, self.settings, prior=prior,
