@@ -21,7 +21,7 @@ def wrap_angle(a):
     maps to -pi). A float, a NumPy scalar or an array; the same type comes back.
 
     Plain arithmetic only, so that numba compiles this same function for its kernels
-    (``fusion.ukf_kernels`` does): one definition for NumPy and compiled code alike.
+    (``fusion.tracking.ukf_kernels`` does): one definition for NumPy and compiled code alike.
     """
     return (a + np.pi) % TWO_PI - np.pi
 

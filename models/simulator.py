@@ -4,7 +4,7 @@
 stream as the devices would give it, plus the ground-truth streams ``true_q`` and
 ``true_base``) and a JSON-ready truth dict (every effect's true parameters as config
 entries, the scenario's events, the settings). It does no I/O: ``armfusion simulate``
-(``fusion/simulate_cmd.py``) writes the files.
+(``fusion/cli/simulate.py``) writes the files.
 
 The chain per device, per chunk of samples (no loop per sample):
 

@@ -57,7 +57,7 @@ def test_the_wheel_carries_every_module_of_the_layers_and_no_tests_or_tools(whee
     missing = sorted(sources - names)
     assert not missing, f"not in the wheel (a sub-package missing from pyproject's packages?): {missing}"
     assert not [n for n in names if n.split("/")[0] in ("tests", "tools", "config")]
-    assert "armfusion = fusion.cli:app" in entry_points
+    assert "armfusion = fusion.cli.main:app" in entry_points
 
 
 def test_an_unpacked_wheel_finds_its_configs_from_another_directory(wheel, tmp_path):

@@ -36,8 +36,9 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from fusion.cli.calibrate_sensors import build_model as identification_model  # noqa: E402
 from fusion.configfile import load_arm, resolve_config_path  # noqa: E402
-from fusion.identify import (  # noqa: E402
+from fusion.identification.identify import (  # noqa: E402
     IdentifySettings,
     compare_with_truth,
     config_with_estimates,
@@ -48,15 +49,14 @@ from fusion.identify import (  # noqa: E402
     startup_correction,
     truth_values,
 )
-from fusion.identify_cmd import build_model as identification_model  # noqa: E402
-from fusion.startup import (  # noqa: E402
+from fusion.startup.solve import (  # noqa: E402
     StartupPrior,
     StartupSettings,
     prior_after_move,
     readings_from_counts,
     solve_still,
 )
-from fusion.static import find_static_segments  # noqa: E402
+from fusion.startup.static import find_static_segments  # noqa: E402
 from models.motion import MotionState  # noqa: E402
 from models.rotations import DEG, wrap_angle  # noqa: E402
 from models.sensor_models import stream_models  # noqa: E402

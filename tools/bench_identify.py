@@ -5,10 +5,10 @@ Writes its section of docs/benchmarks.md.
 
 Side by side:
 
-* the article's own model (``fusion/renk.py``): one triaxial accelerometer on the CRS A465,
+* the article's own model (``fusion/identification/renk.py``): one triaxial accelerometer on the CRS A465,
   14 parameters, the simultaneous fit over all 166,400 samples (every sample, not every
   25th), analytic Jacobians;
-* the WMRA's generic fit (``fusion/identify.py``, what ``calibrate sensors --effects all``
+* the WMRA's generic fit (``fusion/identification/identify.py``, what ``calibrate sensors --effects all``
   runs): a 1,664 s ``renk-maneuver --realistic`` recording (166,400 samples of each of the
   seven sensor streams), window means of 25 samples (6,656 points, 22 readings each),
   174 effect elements + the base attitude, analytic Jacobians (the attitude's three columns
@@ -32,10 +32,15 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from fusion.cli.calibrate_sensors import build_model  # noqa: E402
 from fusion.configfile import load_arm  # noqa: E402
-from fusion.identify import IdentifySettings, compare_with_truth, data_from_recording, identify_recentred  # noqa: E402
-from fusion.identify_cmd import build_model  # noqa: E402
-from fusion.renk import ARTICLE_SAMPLES, TABLE2, TriaxParams, fit_triax, simulate_article  # noqa: E402
+from fusion.identification.identify import (  # noqa: E402
+    IdentifySettings,
+    compare_with_truth,
+    data_from_recording,
+    identify_recentred,
+)
+from fusion.identification.renk import ARTICLE_SAMPLES, TABLE2, TriaxParams, fit_triax, simulate_article  # noqa: E402
 from models.simulator import simulate  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
@@ -105,7 +110,8 @@ def main(argv=None) -> None:
         "| fit | samples | fit points × readings | parameters | Jacobians | CPU per Jacobian | "
         "fit, CPU time | fit, wall time |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
-        f"| the article's model (`fusion/renk.py`, CRS A465, one accelerometer) | {ra['samples']:,} | "
+        f"| the article's model (`fusion/identification/renk.py`, CRS A465, one accelerometer) | "
+        f"{ra['samples']:,} | "
         f"{ra['samples']:,} × 3 | {ra['parameters']} | {ra['evaluations']} | – | **{ra['cpu_s']:.1f} s** | "
         f"{ra['seconds']:.1f} s |",
         f"| the WMRA's generic fit (`calibrate sensors --effects all`, realistic arm, seed 1, "

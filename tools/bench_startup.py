@@ -36,7 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from fusion.configfile import load_arm  # noqa: E402
-from fusion.startup import (  # noqa: E402
+from fusion.startup.solve import (  # noqa: E402
     StartupPrior,
     StartupSettings,
     _expected_sigma,

@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from fusion.configfile import load_arm  # noqa: E402
-from fusion.tracker import (  # noqa: E402
+from fusion.tracking.tracker import (  # noqa: E402
     ENC,
     GYRO,
     MAG,
@@ -45,8 +45,8 @@ from fusion.tracker import (  # noqa: E402
     make_frames,
     start_from_recording,
 )
-from fusion.tracker_kernels import measurement_points_numpy, process_points_numpy  # noqa: E402
-from fusion.ukf import repair_covariance, unscented_mean  # noqa: E402
+from fusion.tracking.tracker_kernels import measurement_points_numpy, process_points_numpy  # noqa: E402
+from fusion.tracking.ukf import repair_covariance, unscented_mean  # noqa: E402
 from models.rotations import DEG, wrap_angle  # noqa: E402
 from models.rotations import GRAVITY_MPS2 as G  # noqa: E402
 from models.sensor_models import AK8975_UT_PER_LSB  # noqa: E402
@@ -74,7 +74,7 @@ def filterpy_baseline(arm, rec: Recording, steps: int, model: str = "numpy"):
     """filterpy's UnscentedKalmanFilter on the tracker's model, one sigma point per call.
 
     ``model``: "numpy", the process and measurement functions written in NumPy
-    (:mod:`fusion.tracker_kernels`' ``*_numpy``: the same equations, as a filterpy user would
+    (:mod:`fusion.tracking.tracker_kernels`' ``*_numpy``: the same equations, as a filterpy user would
     write them); "compiled", the tracker's own compiled ones (``Tracker._fx``, ``Tracker._h_all``).
 
     Returns (seconds per step (wall clock), CPU seconds per step, the joint errors at the end,
@@ -278,7 +278,8 @@ def main() -> None:
         "1,500 steps, little on filterpy's longer run).",
         "",
         "The baseline runs twice: with the models written in NumPy (the same equations, "
-        "`fusion.tracker_kernels.process_points_numpy` and `measurement_points_numpy`, as a filterpy "
+        "`fusion.tracking.tracker_kernels.process_points_numpy` and `measurement_points_numpy`, as a "
+        "filterpy "
         "user writes them: the issue's plain filterpy UKF), and with the tracker's own compiled "
         "kernels (`Tracker._fx`, `Tracker._h_all`, the code our filter calls), so that what batching "
         "and the compiled update around the models buy shows apart from what compiling the models buys.",

@@ -32,7 +32,7 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from fusion.configfile import load_arm  # noqa: E402
-from fusion.tracker import start_from_recording  # noqa: E402
+from fusion.tracking.tracker import start_from_recording  # noqa: E402
 from models.simulator import angle_truth, simulate  # noqa: E402
 from sensors.samples import Recording  # noqa: E402
 from tools.bench_calibrated import calibrate, calibrated_config  # noqa: E402

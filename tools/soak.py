@@ -367,7 +367,7 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
 def tracker_alone(rec, n_instants: int = 1000) -> float:
     """Instants per CPU-second of the tracker by itself (no Zenoh, no decoding), on the
     first ``n_instants`` after a startup calibration on the recording's first 3 s."""
-    from fusion.tracker import start_from_recording
+    from fusion.tracking.tracker import start_from_recording
     from sensors.samples import Recording
 
     arm = load_arm("wmra")

@@ -20,7 +20,7 @@ from typing import Annotated
 import typer
 import zenoh
 
-from fusion.cli_common import (
+from fusion.cli.common import (
     ConfigOpt,
     JsonOpt,
     console,

@@ -15,7 +15,7 @@
    seen, samples published / received / dropped, the sample→estimate latency (a sample's
    read time on the drivers' clock to the estimate's arrival here: one machine, one
    monotonic clock), and an HTML report: the tracking plots and the workbench's verdict and
-   error ladder on the calibration recording (``fusion.diagnose``).
+   error ladder on the calibration recording (``fusion.workbench.diagnose``).
 """
 
 from __future__ import annotations
@@ -35,12 +35,12 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from fusion.cli_common import JsonOpt, console, emit_json, err_console, fail
+from fusion.cli.common import JsonOpt, console, emit_json, err_console, fail
+from fusion.cli.simulate import truth_path
 from fusion.service import payloads as pl
 from fusion.service.fleet import free_loopback_port
 from fusion.service.processes import Children
-from fusion.simulate_cmd import truth_path
-from fusion.tracker import truth_at
+from fusion.tracking.tracker import truth_at
 from models.rotations import wrap_angle
 from models.simulator import angle_truth
 from models.trajectories import SCENARIOS
@@ -85,7 +85,7 @@ def calibrate(workdir: Path, seed: int, duration_s: float, realistic: bool, ch: 
               say) -> tuple[Path, dict, Path]:
     """Simulate the calibration maneuver and identify the sensors' errors: the calibrated
     config, the identification's JSON and the recording."""
-    from fusion.simulate_cmd import simulate
+    from fusion.cli.simulate import simulate
 
     rec = workdir / "calibration.mcap"
     say(f"simulating the sensor-calibration maneuver ({duration_s:g} s)")
@@ -266,8 +266,8 @@ def workbench(calibration_rec: Path, identification: dict, window: int = 25):
     """The workbench on the calibration recording: the shipped model's diagnosis (verdict,
     ranked missing effects) and the error ladder (shipped model → + the identified effects)."""
     from fusion.configfile import load_arm
-    from fusion.diagnose import diagnose
-    from fusion.identify import data_from_recording
+    from fusion.identification.identify import data_from_recording
+    from fusion.workbench.diagnose import diagnose
     from models.effects import model_from_arm
     from sensors.recording import read_recording
 
@@ -349,7 +349,7 @@ def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladd
     """One self-contained HTML file: the summary, the tracking plots, the workbench."""
     figs = tracking_figures(ev)
     if diag is not None:
-        from fusion.diagnose_cmd import report_figures
+        from fusion.cli.diagnose import report_figures
 
         wb = report_figures(diag, None, ladder)
         figs.update({f"wb_{k}": v for k, v in wb.items() if k in ("ladder", "candidates")})

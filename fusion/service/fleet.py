@@ -22,7 +22,7 @@ from typing import Annotated
 
 import typer
 
-from fusion.cli_common import JsonOpt, console, emit_json, err_console, fail
+from fusion.cli.common import JsonOpt, console, emit_json, err_console, fail
 from fusion.service.commands import (
     ConnectOpt,
     ListenOpt,

@@ -128,7 +128,7 @@ class RawBatch:
 
 @dataclass(frozen=True)
 class JointState:
-    """One instant's joint estimate (see :class:`fusion.tracker.Estimate`)."""
+    """One instant's joint estimate (see :class:`fusion.tracking.tracker.Estimate`)."""
 
     robot: str
     t_s: float

@@ -11,7 +11,7 @@ until estimates come again).
 Until the tracker starts,
 they are kept; once ``min_data_s`` of samples are in, every ``retry_s`` the node looks
 for the first still stretch in them and runs the startup calibration there
-(:func:`fusion.tracker.start_from_recording`); the samples after it are then fed to the
+(:func:`fusion.tracking.tracker.start_from_recording`); the samples after it are then fed to the
 tracker, and from then on every sample as it comes.
 
 The sensors' batches come in separately, so a small reorder stage merges them in time
@@ -54,9 +54,9 @@ from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.admission import Admission, AdmissionSettings
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver
-from fusion.startup import StartupPrior, prior_after_move
-from fusion.static import StaticDetectionSettings, find_static_segments
-from fusion.tracker import (
+from fusion.startup.solve import StartupPrior, prior_after_move
+from fusion.startup.static import StaticDetectionSettings, find_static_segments
+from fusion.tracking.tracker import (
     ENC,
     NoStillWindowError,
     Start,
@@ -567,7 +567,7 @@ class FusionNode:
     def _try_resolve(self, t_now: float) -> None:
         """Joints the startup left ambiguous: on each new still stretch after it, solve again
         with the startup's candidates carried through the encoder counts
-        (:func:`fusion.startup.prior_after_move`); when that tells the branches apart, track
+        (:func:`fusion.startup.solve.prior_after_move`); when that tells the branches apart, track
         from it. Nothing here moves the arm: the status names the move that would help."""
         if t_now < self._next_resolve_t:
             return

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from fusion.cli import app
+from fusion.cli.main import app
 from fusion.configfile import load_arm, resolve_config_path
-from fusion.diagnose import FITS_TO_NOISE, DiagnoseSettings, add_effects, diagnose
-from fusion.identify import data_from_recording, truth_values
+from fusion.identification.identify import data_from_recording, truth_values
+from fusion.workbench.diagnose import FITS_TO_NOISE, DiagnoseSettings, add_effects, diagnose
 from models.effects import EFFECTS, build_effect, model_from_arm
 from models.simulator import simulate
 from models.trajectories import SinePath, make_scenario

@@ -9,9 +9,9 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from fusion.cli import app
+from fusion.cli.main import app
 from fusion.configfile import load_arm
-from fusion.diagnose import INNOVATIONS_WHITE, chair_moves, innovation_diagnosis
+from fusion.workbench.diagnose import INNOVATIONS_WHITE, chair_moves, innovation_diagnosis
 from models.simulator import simulate
 
 DURATION_S = 45.0

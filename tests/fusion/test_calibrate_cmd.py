@@ -10,8 +10,8 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from fusion.cli import app
-from fusion.pose_store import load_pose
+from fusion.cli.main import app
+from fusion.startup.pose_store import load_pose
 from models.kinematics import gravity_in_sensors
 from models.rotations import DEG, up_from_tilt
 from sensors.recording import write_recording
@@ -240,7 +240,7 @@ def j7_gauge_recording(tmp_path_factory, wmra):
     about j7's axis (and a little about the others) and whose joints sit off their zeros; the
     true geometric angle of j7 over the first still segment (no sag or play: controller angle
     plus zero offset)."""
-    from fusion.static import find_static_segments
+    from fusion.startup.static import find_static_segments
     from models.simulator import simulate
 
     offsets = np.radians([0.6, -0.4, 0.8, -0.5, 0.3, -0.7, 0.9])

@@ -13,9 +13,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from fusion.cli import app
+from fusion.cli.main import app
 from fusion.configfile import resolve_config_path
-from fusion.pose_store import save_pose
+from fusion.startup.pose_store import save_pose
 from models.simulator import angle_truth
 from sensors.recording import read_recording
 

@@ -10,7 +10,7 @@ import sys
 import pytest
 from typer.testing import CliRunner
 
-from fusion.cli import COMMANDS, LazyCommands, app
+from fusion.cli.main import COMMANDS, LazyCommands, app
 
 runner = CliRunner()
 
@@ -26,14 +26,15 @@ def test_dash_h_is_help_everywhere(cmd):
 
 def test_help_imports_neither_the_tracker_nor_scipy_nor_zenoh():
     code = ("import sys; sys.argv = ['armfusion', '--help']\n"
-            "from fusion.cli import app\n"
+            "from fusion.cli.main import app\n"
             "try:\n    app()\nexcept SystemExit:\n    pass\n"
             "import json; print(json.dumps(sorted(sys.modules)))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     loaded = set(json.loads(r.stdout.splitlines()[-1]))
     assert "Commands" in r.stdout and "calibrate" in r.stdout and "track" in r.stdout
-    heavy = {"fusion.tracker", "fusion.identify", "fusion.service.demo", "scipy.stats", "scipy",
+    heavy = {"fusion.tracking.tracker", "fusion.identification.identify", "fusion.service.demo",
+             "scipy.stats", "scipy",
              "numpy", "numba", "zenoh", "matplotlib", "models.arm_config"}
     assert not heavy & loaded, sorted(heavy & loaded)
 
@@ -59,7 +60,7 @@ def test_the_listing_says_what_each_command_says_of_itself():
 
 @pytest.fixture(scope="module")
 def startup_csv(tmp_path_factory):
-    from fusion.simulate_cmd import simulate
+    from fusion.cli.simulate import simulate
 
     path = tmp_path_factory.mktemp("rec") / "startup.csv"
     simulate("wmra", "startup", path, duration_s=3.0, seed=1)
@@ -112,8 +113,8 @@ def test_simulate_refuses_a_run_larger_than_memory_naming_the_bound(tmp_path):
 
 
 def test_the_run_size_bound_is_what_memory_allows():
+    from fusion.cli.simulate import MEMORY_BYTES_PER_VALUE, check_run_size
     from fusion.configfile import load_arm
-    from fusion.simulate_cmd import MEMORY_BYTES_PER_VALUE, check_run_size
 
     arm = load_arm("wmra")
     per_s = 100 * 39 * MEMORY_BYTES_PER_VALUE  # 39 values an instant on the WMRA
@@ -128,7 +129,7 @@ def test_the_run_size_bound_is_what_memory_allows():
 def test_track_says_which_span_its_rms_covers_on_a_short_recording(tmp_path):
     import re
 
-    from fusion.simulate_cmd import simulate
+    from fusion.cli.simulate import simulate
 
     path = tmp_path / "short.csv"
     simulate("wmra", "daily-use", path, duration_s=25.0, seed=2)
@@ -203,7 +204,7 @@ def test_simulate_shows_a_bar_with_the_time_left_at_a_terminal_only(tmp_path):
 
 
 def test_track_shows_its_bar_at_a_terminal(tmp_path, startup_csv):
-    from fusion.simulate_cmd import simulate
+    from fusion.cli.simulate import simulate
 
     simulate("wmra", "daily-use", tmp_path / "d.csv", duration_s=60.0, seed=4)
     shown = _at_a_terminal(["track", "d.csv"], tmp_path)

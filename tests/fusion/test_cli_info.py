@@ -7,7 +7,7 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from fusion.cli import app
+from fusion.cli.main import app
 
 runner = CliRunner()
 

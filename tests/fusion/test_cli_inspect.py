@@ -8,7 +8,7 @@ import json
 import numpy as np
 from typer.testing import CliRunner
 
-from fusion.cli import app
+from fusion.cli.main import app
 
 runner = CliRunner()
 

@@ -11,9 +11,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from fusion.cli import app
+from fusion.cli.drivers import parse_fault, run_fake, summary
+from fusion.cli.main import app
 from fusion.configfile import resolve_config_path
-from fusion.drivers_cmd import parse_fault, run_fake, summary
 from models.fake_rig import simulate_physics
 from models.sensor_models import ADXL345_NOISE_LSB_RMS_AT_100HZ, stream_models
 from models.simulator import simulate

@@ -1,10 +1,10 @@
 """The live path's compiled kinematic frame and causal fits equal their NumPy forms.
 
-:func:`fusion.frame_kernels.frame_one` (through :class:`FrameConstants`) against
-:func:`fusion.tracker.make_frames` for one instant, field by field, at seeded random
+:func:`fusion.tracking.frame_kernels.frame_one` (through :class:`FrameConstants`) against
+:func:`fusion.tracking.tracker.make_frames` for one instant, field by field, at seeded random
 states: motion on and off, a calibrated config's joint effects, and joint axes that are
 not z (the chain's general path). The compiled differentiator against
-:func:`fusion.tracker.causal_poly_fit`. Then the tracker's live path
+:func:`fusion.tracking.tracker.causal_poly_fit`. Then the tracker's live path
 (:meth:`Tracker.update_instant`) with both compiled against the same tracker with the
 NumPy frame and the NumPy differentiator, instant by instant.
 """
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from fusion.configfile import load_arm
-from fusion.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
-from fusion.tracker import (
+from fusion.tracking.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
+from fusion.tracking.tracker import (
     CausalDifferentiator,
     Frames,
     Tracker,
@@ -212,7 +212,7 @@ def test_update_instant_gives_the_same_estimates_as_the_numpy_path(arm, effects,
                       effects=effects if calibrated else None)
     a, _ = start_from_recording(arm, rec)
     with monkeypatch.context() as m:
-        m.setattr("fusion.tracker.CausalDifferentiator", NumpyDifferentiator)
+        m.setattr("fusion.tracking.tracker.CausalDifferentiator", NumpyDifferentiator)
         b, _ = start_from_recording(arm, rec)
     assert isinstance(b._enc_diff, NumpyDifferentiator) and not isinstance(a._enc_diff, NumpyDifferentiator)
     b._frames_compiled = False

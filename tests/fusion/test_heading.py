@@ -8,14 +8,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fusion.heading import (
+from fusion.tracking.heading import (
     FieldReference,
     HeadingSettings,
     MagneticGuard,
     field_magnitude_and_dip,
     tilt_compensated_heading,
 )
-from fusion.tracker import TrackerSettings, start_from_recording
+from fusion.tracking.tracker import TrackerSettings, start_from_recording
 from models.rotations import DEG, R_from_rpy, wrap_angle
 from models.sensor_models import AK8975_UT_PER_LSB, EARTH_FIELD_TAMPA_UT
 from models.simulator import simulate

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from fusion.configfile import load_arm
-from fusion.identify import FitData, IdentifySettings, identify, startup_correction
-from fusion.startup import StartupPrior
+from fusion.identification.identify import FitData, IdentifySettings, identify, startup_correction
+from fusion.startup.solve import StartupPrior
 from models.effects import Model, build_effect
 from models.trajectories import make_scenario
 
@@ -100,7 +100,7 @@ def test_attitude_estimated_with_the_effects(arm, state):
 def test_startup_correction_inverts_sensor_effects(arm):
     import dataclasses
 
-    from fusion.startup import StillReadings
+    from fusion.startup.solve import StillReadings
     entries = [{"effect": "accel_bias", "target": "acc1", "params": {"bias_g": [0.03, -0.02, 0.01]}},
                {"effect": "accel_scale", "target": "acc1", "params": {"scale_error": [0.01, 0.0, -0.02]}},
                {"effect": "mount_rotation", "target": "acc1", "params": {"rotvec_rad": [0.02, 0.0, -0.01]}}]
@@ -245,7 +245,7 @@ def test_a_locked_joint_s_unknown_angle_widens_the_sag_correction_it_drives(arm)
     puts a locked joint anywhere), or a calibrated config makes it confidently wrong."""
     import dataclasses
 
-    from fusion.startup import StartupSettings, StillReadings, solve_still
+    from fusion.startup.solve import StartupSettings, StillReadings, solve_still
     from models.effects import model_from_arm
     from models.motion import MotionState
     entries = [{"effect": "link_compliance", "target": "j2", "params": {"compliance_rad_per_nm": [4e-4]}}]
@@ -275,8 +275,8 @@ def test_a_heading_the_parked_chair_cannot_see_keeps_its_prior_sized_sigma(arm):
     trade freely (the field's horizontal part can point anywhere). The whole sensor set's
     fit must say so: heading σ near its prior's reach, the hard iron's estimate within 3 σ
     of the truth, instead of both known to a fraction of a degree and wrong."""
-    from fusion.identify import compare_with_truth, data_from_recording, identify_recentred
-    from fusion.identify_cmd import build_model as identification_model
+    from fusion.cli.calibrate_sensors import build_model as identification_model
+    from fusion.identification.identify import compare_with_truth, data_from_recording, identify_recentred
     from models.simulator import simulate
 
     rec, truth = simulate(arm, "renk-maneuver", 120.0, seed=1, realistic=True)
@@ -339,8 +339,8 @@ def imu_truth(arm):
 def _imu_fit(arm, scenario, entries, reference_sigma_deg=0.0):
     from dataclasses import replace
 
-    from fusion.identify import compare_with_truth, data_from_recording, identify_recentred
-    from fusion.identify_cmd import build_model
+    from fusion.cli.calibrate_sensors import build_model
+    from fusion.identification.identify import compare_with_truth, data_from_recording, identify_recentred
     from models.simulator import simulate
     from tools.bench_calibrated import inclinometer
 
@@ -356,7 +356,7 @@ def _imu_fit(arm, scenario, entries, reference_sigma_deg=0.0):
 def test_parked_stances_are_found_from_the_imu(arm, imu_truth):
     """On the ramp maneuver each parked stance gets its own attitude and the moves between
     them are left out; a parked chair stays one stance with every window (the old fit)."""
-    from fusion.identify import data_from_recording
+    from fusion.identification.identify import data_from_recording
     from models.simulator import simulate
 
     rec, truth = simulate(arm, "renk-ramp", 150.0, seed=8, effects=imu_truth)

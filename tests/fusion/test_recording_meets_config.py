@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from fusion.cli import app
+from fusion.cli.main import app
 from models.sensor_models import recording_problems
 from models.simulator import simulate
 from sensors.recording import write_recording

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from fusion.configfile import load_arm
-from fusion.renk import (
+from fusion.identification.renk import (
     ACCEL_NOISE_V,
     MAG_NOISE_V,
     TABLE2,

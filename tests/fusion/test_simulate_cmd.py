@@ -9,7 +9,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from fusion.simulate_cmd import load_effect_entries, register, simulate, truth_path
+from fusion.cli.simulate import load_effect_entries, register, simulate, truth_path
 from models.arm_config import ConfigError
 from sensors.recording import read_recording
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fusion.startup import (
+from fusion.startup.solve import (
     StartupInputError,
     StartupPrior,
     StartupSettings,
@@ -224,7 +224,7 @@ RECORDED_FAILURES = [
 def test_recorded_confident_wrong_answers_are_now_honest(wmra, case):
     import dataclasses
 
-    from fusion.startup import readings_from_counts
+    from fusion.startup.solve import readings_from_counts
 
     arm = dataclasses.replace(wmra, calibration={**wmra.calibration, "accel_unmodelled_g": 0.0})
     r = readings_from_counts(arm, {s: np.array(c) for s, c in case["counts"].items()},
@@ -242,7 +242,7 @@ def test_one_lm_batch_gives_what_separate_solves_give(wmra, rng):
     """Rows of the batched LM are independent: starts with their own held unknowns and
     iteration limits, solved together, end where each would alone (the solve batches the
     released profile probes with the weak joints' sweep on this)."""
-    from fusion.startup import _batched_lm, _make_problem
+    from fusion.startup.solve import _batched_lm, _make_problem
 
     q = np.radians([30, 40, 20, -50, 60, 30, 100])
     problem = _make_problem(wmra, still(wmra, np.degrees(q), rng))

@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from fusion.startup import (
+from fusion.startup.solve import (
     StartupPrior,
     StillReadings,
     move_delta_rad,
@@ -20,7 +20,7 @@ from fusion.startup import (
     readings_from_recording,
     solve_still,
 )
-from fusion.static import StaticDetectionSettings, find_static_segments
+from fusion.startup.static import StaticDetectionSettings, find_static_segments
 from models.kinematics import gravity_in_sensors
 from models.rotations import DEG, up_from_tilt, wrap_angle
 from models.simulator import angle_truth, simulate

@@ -11,13 +11,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fusion.startup import (
+from fusion.startup.kernels import augmented
+from fusion.startup.solve import (
     StillReadings,
     _batched_lm,
     _batched_lm_numpy,
     _make_problem,
 )
-from fusion.startup_kernels import augmented
 from models.kinematics import gravity_in_sensors
 from models.rotations import DEG, up_from_tilt
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from fusion.tracker import (
+from fusion.tracking.tracker import (
     COUNTERS,
     FLAG_CODE,
     JOINT_FLAGS,
@@ -430,7 +430,7 @@ def test_the_track_command(arm, reaching, tmp_path):
     import typer
     from typer.testing import CliRunner
 
-    from fusion.track_cmd import estimate_columns, register
+    from fusion.cli.track import estimate_columns, register
     from sensors.recording import read_recording, write_recording
 
     app = typer.Typer()
@@ -444,7 +444,7 @@ def test_the_track_command(arm, reaching, tmp_path):
     assert [c.name for c in app.registered_commands] == ["track"]
     path = tmp_path / "rec.csv"
     write_recording(Recording({k: v for k, v in reaching.streams.items()}, {}), path)
-    from fusion.pose_store import save_pose
+    from fusion.startup.pose_store import save_pose
 
     prior = save_pose(tmp_path / "pose.json", arm, POSE + 0.05)  # saved at the last shutdown
     runner = CliRunner()
@@ -630,7 +630,7 @@ def test_track_scores_against_the_angle_with_the_true_zero_offset(tmp_path):
 
     from typer.testing import CliRunner
 
-    from fusion.cli import app
+    from fusion.cli.main import app
 
     runner = CliRunner()
     rec = tmp_path / "rec.csv"

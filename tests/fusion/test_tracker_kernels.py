@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from fusion.configfile import load_arm
-from fusion.tracker import G, Tracker, make_frames
-from fusion.tracker_kernels import (
+from fusion.tracking.tracker import G, Tracker, make_frames
+from fusion.tracking.tracker_kernels import (
     measurement_points,
     measurement_points_numpy,
     process_points,

@@ -8,7 +8,7 @@ import pytest
 from filterpy.kalman import MerweScaledSigmaPoints
 from scipy.stats import chi2
 
-from fusion.ukf import (
+from fusion.tracking.ukf import (
     BatchedUKF,
     GroupPlan,
     Innovation,
@@ -19,7 +19,7 @@ from fusion.ukf import (
     unscented_transform,
     wrap_angle,
 )
-from fusion.ukf_kernels import (
+from fusion.tracking.ukf_kernels import (
     DIAGONAL_NOT_POSITIVE,
     NOT_POSITIVE_DEFINITE,
     kalman_update_into,
@@ -218,7 +218,7 @@ def test_repair_restores_positive_definiteness():
     np.testing.assert_allclose(Q, Q.T)
 
 
-# -- the compiled step (fusion.ukf_kernels) against the NumPy reference ---------------------
+# -- the compiled step (fusion.tracking.ukf_kernels) against the NumPy reference ---------------------
 N_STATE, YAW = 19, 12  # the tracker's state size and its one angle state
 
 

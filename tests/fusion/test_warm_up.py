@@ -6,8 +6,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from fusion import frame_kernels, tracker_kernels, ukf_kernels
-from fusion.tracker import start_from_recording, warm_up
+from fusion.tracking import frame_kernels, tracker_kernels, ukf_kernels
+from fusion.tracking.tracker import start_from_recording, warm_up
 from models.simulator import simulate
 
 

@@ -14,7 +14,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from fusion.cli import app
+from fusion.cli.main import app
 from fusion.configfile import MAX_YAML_VALUES, load_arm, read_yaml
 from models.arm_config import ConfigError
 

@@ -38,7 +38,7 @@ def test_wrap_angle_keeps_minus_pi_to_pi_and_the_input_type():
 
 
 def test_wrap_angle_compiled_gives_the_numpy_numbers():
-    from fusion.ukf_kernels import _wrap
+    from fusion.tracking.ukf_kernels import _wrap
 
     x = np.random.default_rng(4).uniform(-20.0, 20.0, 200)
     assert np.array_equal([_wrap(float(v)) for v in x], wrap_angle(x))

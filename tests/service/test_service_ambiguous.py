@@ -14,8 +14,8 @@ from service_helpers import Collected, cut, wait_for
 from fusion.configfile import load_arm
 from fusion.service.replay import replay
 from fusion.service.zenoh_config import open_session
-from fusion.startup import move_delta_rad, readings_from_recording, solve_still
-from fusion.static import StaticDetectionSettings, find_static_segments
+from fusion.startup.solve import move_delta_rad, readings_from_recording, solve_still
+from fusion.startup.static import StaticDetectionSettings, find_static_segments
 from models.rotations import DEG
 from models.simulator import simulate
 from models.trajectories import ParkedBase, Scenario, StepsBuilder, WaypointPath, warm_up

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from fusion.cli import app
+from fusion.cli.main import app
 from sensors.recording import read_recording
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -12,7 +12,7 @@ from rich.console import Console
 from service_helpers import wait_for
 from typer.testing import CliRunner
 
-from fusion.cli import app
+from fusion.cli.main import app
 from fusion.service import payloads as pl
 from fusion.service.monitor import Monitor, render, snapshot_json
 from fusion.service.zenoh_config import open_session

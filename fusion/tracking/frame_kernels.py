@@ -1,19 +1,19 @@
 """The kinematic frame of one instant, and the causal fits that feed it, compiled (numba).
 
-The live path (:meth:`fusion.tracker.Tracker.update_instant`) makes one frame per fused
+The live path (:meth:`fusion.tracking.tracker.Tracker.update_instant`) makes one frame per fused
 instant: the mean pose's sensor rotations, joint axes and motion accelerations
-(:func:`fusion.tracker.make_frames` with K = 1). In NumPy that is a few hundred
+(:func:`fusion.tracking.tracker.make_frames` with K = 1). In NumPy that is a few hundred
 floating-point operations spread over some two hundred small array calls (the chain's
 forward kinematics, the outward recursion's cross products, the sensors' lever arms), so
 nearly all of its cost is call overhead. :func:`frame_one` does the same arithmetic in
 one compiled loop; :class:`FrameConstants` holds the arm's chain and the sensors' mounts
 as a few contiguous arrays, made once per tracker, and turns one instant's inputs into
-the fields of a :class:`fusion.tracker.Frames` record.
+the fields of a :class:`fusion.tracking.tracker.Frames` record.
 
-The encoder and gyro differentiators (:class:`fusion.tracker.CausalDifferentiator`) fit
+The encoder and gyro differentiators (:class:`fusion.tracking.tracker.CausalDifferentiator`) fit
 a polynomial to the last few samples at every sample; :func:`push_fit` shifts the window
 and solves that one small least-squares problem in one call (:func:`causal_poly_fit` in
-:mod:`fusion.tracker` is the batched NumPy form, for whole recordings).
+:mod:`fusion.tracking.tracker` is the batched NumPy form, for whole recordings).
 
 The tests (tests/fusion/test_frame_kernels.py) hold both to their NumPy forms.
 Compiled once per machine and cached next to this file (``__pycache__``).
@@ -64,7 +64,7 @@ def _mm_rows(R, C, c0):  # pragma: no cover - compiled
 @njit(cache=True, nogil=True)
 def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B, motion, chain,
               axis_is_z, mounts, links, g_mps2):  # pragma: no cover - compiled
-    """The kinematic frame of one instant: every field of :func:`fusion.tracker.make_frames`
+    """The kinematic frame of one instant: every field of :func:`fusion.tracking.tracker.make_frames`
     for K = 1, from the arm's constants (:class:`FrameConstants`).
 
     Inputs: ``enc_fit (3, n)`` the encoder angles (rad), rates (rad/s) and accelerations
@@ -249,7 +249,7 @@ class FrameConstants:
     (3); ``links (S,)`` int64.
 
     ``joint_effects``: the (effect, parameters) pairs of
-    :func:`fusion.tracker.make_frames`. Those that add a constant (``joint_offset``) are
+    :func:`fusion.tracking.tracker.make_frames`. Those that add a constant (``joint_offset``) are
     added in the kernel; any other (sag, play: functions of the gravity torque) is
     evaluated here in NumPy exactly as :func:`make_frames` evaluates it, and its change
     passed on.
@@ -293,7 +293,7 @@ class FrameConstants:
 
     def fields(self, enc_fit: np.ndarray, offset: np.ndarray, omega_B: np.ndarray | None,
                omega_dot_B: np.ndarray | None, motion: bool = True) -> tuple:
-        """The fields of the one-instant :class:`fusion.tracker.Frames` record (the same as
+        """The fields of the one-instant :class:`fusion.tracking.tracker.Frames` record (the same as
         ``make_frames(arm, names, enc_fit[0][None], offset[None], enc_fit[1][None],
         enc_fit[2][None], omega_B[None], omega_dot_B[None], motion, joint_effects).take(0)``),
         in its field order, without the measurement variances. ``omega_B``/``omega_dot_B``
@@ -334,7 +334,7 @@ class FrameConstants:
 @njit(cache=True, nogil=True)
 def poly_fit_one(t_win, y_win, t_eval, order):  # pragma: no cover - compiled
     """Least-squares polynomial through one window, evaluated at ``t_eval``:
-    :func:`fusion.tracker.causal_poly_fit` for K = 1.
+    :func:`fusion.tracking.tracker.causal_poly_fit` for K = 1.
 
     ``t_win (W,)`` s, ``y_win (W, d)`` -> ``(3, d)``: value, first and second derivative
     (per s, per s²; zero beyond ``order``, which is capped by W - 1). With ``τ = t - t_eval``

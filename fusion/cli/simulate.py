@@ -22,7 +22,7 @@ from typing import Annotated, Any
 
 import typer
 
-from fusion.cli_common import json_default, output_path_problem, progress_bar
+from fusion.cli.common import json_default, output_path_problem, progress_bar
 from fusion.configfile import load_arm, read_yaml
 from models.arm import ArmModel
 from models.arm_config import ConfigError, ConfigProblem

@@ -1,7 +1,7 @@
 """What every `armfusion` command shares: consoles, the --config/--json options, one-line
 failures, JSON output, and loading a config or a recording with a clear error.
 
-Kept apart from ``fusion.cli`` (which registers the commands) so that command modules can
+Kept apart from ``fusion.cli.main`` (which registers the commands) so that command modules can
 import it without an import cycle. It imports typer and rich only: ``armfusion --help``
 loads it, so numpy, the config loader and the recording readers are imported by the
 functions that use them.

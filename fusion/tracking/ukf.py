@@ -24,7 +24,7 @@ Angles in the state or the measurement (a heading) are handled by ``angle_states
 ``angle_rows``: residuals are wrapped to (-pi, pi] and means taken about the central
 sigma point.
 
-The arithmetic of a step runs in compiled kernels (:mod:`fusion.ukf_kernels`, one call per
+The arithmetic of a step runs in compiled kernels (:mod:`fusion.tracking.ukf_kernels`, one call per
 stage) in the common case: :class:`SigmaPoints`' own points, at most one angle state and
 one angle row, a diagonal ``R``, groups that tile the measurement rows, a positive definite
 ``P + Q`` and ``S``. Everything else takes the NumPy path, which stays the reference the
@@ -42,7 +42,7 @@ from filterpy.kalman import MerweScaledSigmaPoints
 from scipy.linalg import lapack
 from scipy.stats import chi2
 
-from fusion.ukf_kernels import (
+from fusion.tracking.ukf_kernels import (
     DIAGONAL_NOT_POSITIVE,
     NOT_POSITIVE_DEFINITE,
     OK,
@@ -371,7 +371,7 @@ class BatchedUKF:
         self._sigmas: np.ndarray | None = None
         self._Wm = self.points.Wm
         self._Wc = self.points.Wc
-        # the compiled step (fusion.ukf_kernels) serves the common case: SigmaPoints' own
+        # the compiled step (fusion.tracking.ukf_kernels) serves the common case: SigmaPoints' own
         # points and at most one angle state; anything else takes the NumPy path below
         sp = type(self.points)
         self._use_kernels = (isinstance(self.points, SigmaPoints) and sp.points_of is SigmaPoints.points_of

@@ -1,6 +1,6 @@
 """The startup solve's Levenberg-Marquardt, compiled (numba), for every start at once.
 
-A still solve (:func:`fusion.startup.solve_still`) is a few batched Levenberg-Marquardt
+A still solve (:func:`fusion.startup.solve.solve_still`) is a few batched Levenberg-Marquardt
 runs over 9 to 90 starts, each iteration one evaluation of every start's weighted
 residuals and Jacobian and one 9x9 linear solve per start. That is a few thousand
 floating-point operations per start, which as NumPy calls on small arrays cost far more
@@ -13,17 +13,17 @@ compiled loop; the arithmetic is the NumPy form's:
   offset_i)^T C_i V``, and sets its own column, ``d v / d q_i = v x z = [v_y, -v_x, 0]``;
 - a sensor on link k reads rows ``W_s V`` with V taken after joint k - 1 (``W_s = -D_s /
   sigma_s``, the read-out weighted and negated), column 0 plus ``meas / sigma`` being its
-  weighted residual and the others its Jacobian (:meth:`fusion.startup._Problem._augmented`);
+  weighted residual and the others its Jacobian (:meth:`fusion.startup.solve._Problem._augmented`);
   without the base accelerometer two rows of the level-chair prior follow: residual
   ``(roll, pitch) / s``, Jacobian ``1 / s`` on the tilt's columns;
-- LM (:func:`fusion.startup._batched_lm_numpy`) works from ``N = [r J]^T [r J]``: with
+- LM (:func:`fusion.startup.solve._batched_lm_numpy`) works from ``N = [r J]^T [r J]``: with
   ``f`` the free mask and ``h = 1 - f``, ``A = N_JJ * f f^T``, ``g = N_Jr * f``, the
   diagonal damped ``A_ii += lam (A_ii + 1e-9) + h_i``, step ``-A^-1 g`` (LU with partial
   pivoting). A start stops when its step is below 1e-7 rad (not taken), when ``lam``
   passes 1e8, or when its iterations are used; a step is kept when it lowers the cost
   ``r . r / 2`` (``lam * 0.3``), else refused (``lam * 10``).
 
-The layout of one kind of solve (:meth:`fusion.startup._Problem._layout`) is passed as
+The layout of one kind of solve (:meth:`fusion.startup.solve._Problem._layout`) is passed as
 arrays: the read-outs ``read_W (R, 3, 3)``, their first rows ``read_row (R,)`` and links
 ``read_link (R,)``, the weighted measurements ``meas_w (m,)``, the rows of the sensors
 ``n_sensor_rows``, whether the base accelerometer is in (``imu``; else the prior's two
@@ -151,7 +151,7 @@ def _lu_solve(A, b, out):  # pragma: no cover - compiled
 def augmented(X, step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_rows, imu,
               tilt_prior, last):  # pragma: no cover - compiled
     """Weighted residuals and Jacobian side by side for states ``X (B, n + 2)``: ``(B, m,
-    n + 3)`` (:meth:`fusion.startup._Problem._augmented`)."""
+    n + 3)`` (:meth:`fusion.startup.solve._Problem._augmented`)."""
     B = X.shape[0]
     n = offset.shape[0]
     m = meas_w.shape[0]

@@ -40,10 +40,10 @@ from typing import Annotated, Any
 
 import typer
 
-from fusion.cli_common import json_default, output_path_problem, progress_bar
+from fusion.cli.common import json_default, output_path_problem, progress_bar
+from fusion.cli.simulate import effects_model, truth_json, truth_path
 from fusion.configfile import load_arm
 from fusion.service.commands import ConnectOpt, ListenOpt, ModeOpt, ZenohConfigOpt
-from fusion.simulate_cmd import effects_model, truth_json, truth_path
 from models.arm import ArmModel
 from models.arm_config import ConfigError
 from models.fake_rig import SimulatedRun, encoder_counts_at, physics_for, simulate_physics

@@ -19,7 +19,7 @@ import typer
 from typer.core import TyperGroup
 
 from fusion import __version__
-from fusion.cli_common import (
+from fusion.cli.common import (
     ConfigOpt,
     JsonOpt,
     check_output_path,
@@ -34,10 +34,10 @@ from fusion.cli_common import (
 # one function may register several commands (the service's)
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("Simulate a recording of the arm's sensors (raw counts, truth columns, truth file).",
-                 "fusion.simulate_cmd:register"),
+                 "fusion.cli.simulate:register"),
     "drivers": ("Read the sensors through the drivers (or, with --fake, the simulator-fed fakes) and "
                 "report read time, jitter, errors and samples per device; with --robot, publish the raw "
-                "samples over Zenoh as they are read.", "fusion.drivers_cmd:register"),
+                "samples over Zenoh as they are read.", "fusion.cli.drivers:register"),
     "replay": ("Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing.",
                "fusion.service.commands:register"),
     "record": ("Record a robot's raw samples and estimates from Zenoh to MCAP until stopped.",
@@ -62,20 +62,20 @@ COMMANDS: dict[str, tuple[str, str]] = {
                 "samples and drops, age of the last update. Subscribes armfusion/*/state/*, status "
                 "and the liveliness tokens.", "fusion.service.fleet:register"),
     "diagnose": ("Compare the model with a recording: where it fails, which physical effect is missing.",
-                 "fusion.diagnose_cmd:register"),
+                 "fusion.cli.diagnose:register"),
     "track": ("Track the joint angles and the heading through a recording: startup calibration on "
               "its first still stretch, then the unscented Kalman filter on every sample.",
-              "fusion.track_cmd:register"),
+              "fusion.cli.track:register"),
     "calibrate": ("Calibrate: joint angles from a still arm, or the sensors.",
-                  "fusion.cli:register_calibrate"),
+                  "fusion.cli.main:register_calibrate"),
 }
 
 
 def register_calibrate(app: typer.Typer) -> None:
-    """``calibrate joints`` (fusion.calibrate_cmd) and ``calibrate sensors``
-    (fusion.identify_cmd) under ``calibrate``."""
-    from fusion.calibrate_cmd import calibrate_app
-    from fusion.identify_cmd import calibrate_sensors
+    """``calibrate joints`` (fusion.cli.calibrate_joints) and ``calibrate sensors``
+    (fusion.cli.calibrate_sensors) under ``calibrate``."""
+    from fusion.cli.calibrate_joints import calibrate_app
+    from fusion.cli.calibrate_sensors import calibrate_sensors
 
     if not any(c.name == "sensors" for c in calibrate_app.registered_commands):
         calibrate_app.command("sensors")(calibrate_sensors)
@@ -162,14 +162,14 @@ def info(
     from rich.markup import escape
     from rich.table import Table
 
-    from fusion.describe import describe_arm
+    from fusion.cli.describe import describe_arm
 
     if plot is not None:
         check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES)
     arm = load_arm_or_exit(config)
     d = describe_arm(arm)
     if plot is not None:
-        from fusion.plots import plot_arm
+        from fusion.cli.plots import plot_arm
 
         try:
             plot_arm(arm, arm.ready_pose_rad, plot)
@@ -221,8 +221,8 @@ def inspect(
     from rich.markup import escape
     from rich.table import Table
 
-    from fusion.describe import describe_recording
-    from fusion.static import StaticDetectionSettings
+    from fusion.cli.describe import describe_recording
+    from fusion.startup.static import StaticDetectionSettings
 
     rec = read_recording_or_exit(recording)
     d = describe_recording(rec, StaticDetectionSettings(window_s=window_s))

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from fusion.startup_kernels import lm_solve
+from fusion.startup.kernels import lm_solve
 from models.arm import ArmModel
 from models.kinematics import gravity_chain
 from models.rotations import DEG, skew, tilt_from_up, up_from_tilt, wrap_angle
@@ -380,7 +380,7 @@ class _Problem:
                 reads.append((3 * len(used), 0, -self.R_0I.T / self.imu_sigma[:, None]))
             last = max([k for _, k, _ in reads], default=0) - 1  # the last joint any row needs
             hit = (m, meas_w, reads, imu, 3 * len(used), last)
-            # the same, as the compiled kernels take it (fusion.startup_kernels)
+            # the same, as the compiled kernels take it (fusion.startup.kernels)
             kern = (np.ascontiguousarray(np.stack([W for _, _, W in reads]) if reads
                                          else np.zeros((0, 3, 3))),
                     np.array([row for row, _, _ in reads], dtype=np.int64),
@@ -393,7 +393,7 @@ class _Problem:
         return hit
 
     def kernel_layout(self, active: np.ndarray | None, use_imu: bool) -> tuple:
-        """The chain and the rows of one kind of solve as :mod:`fusion.startup_kernels` takes
+        """The chain and the rows of one kind of solve as :mod:`fusion.startup.kernels` takes
         them: ``(step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_rows, imu,
         tilt_prior, last)``."""
         self._layout(active, use_imu)
@@ -457,7 +457,7 @@ def _up_and_tilt_jacobian(roll, pitch) -> np.ndarray:
 def _batched_lm(problem: _Problem, x0: np.ndarray, free: np.ndarray, iters,
                 active: np.ndarray | None = None, use_imu: bool = True,
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt on every start, compiled (:func:`fusion.startup_kernels.lm_solve`):
+    """Levenberg-Marquardt on every start, compiled (:func:`fusion.startup.kernels.lm_solve`):
     the same arithmetic as :func:`_batched_lm_numpy`, which says what the arguments are."""
     # fresh writable C arrays of one type each: a single compiled signature
     x = np.array(x0, dtype=float, order="C")

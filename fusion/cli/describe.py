@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.static import StaticDetectionSettings, find_static_segments
+from fusion.startup.static import StaticDetectionSettings, find_static_segments
 from models.arm import ArmModel
 from models.kinematics import joint_axis_angle_to_vertical
 from sensors.samples import Recording, Stream

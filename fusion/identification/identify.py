@@ -537,7 +537,7 @@ def parked_stances(arm: ArmModel, rec, t_windows_s: np.ndarray, window: int,
 def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
     """The joint angles at the recording's first sample: the startup calibration on its first
     ``window_s`` (the arm must be still), the ready pose for joints it cannot tell."""
-    from fusion.startup import readings_from_recording, solve_still
+    from fusion.startup.solve import readings_from_recording, solve_still
 
     q = np.array(arm.ready_pose_rad, float)
     try:
@@ -567,9 +567,9 @@ def joint_references(arm: ArmModel, rec, specs: Sequence[tuple[str, float, float
     """One-time references from ``specs``: ``(joint, angle_rad, sigma_rad, when)``, ``when``
     ``None`` (the recording's first still segment), an ``int`` k (its k-th still segment,
     from 1) or a ``float`` time (s, on the recording's clock; the still segment that holds
-    it). The arm must be still there (``fusion.static.find_static_segments``); the encoder
+    it). The arm must be still there (``fusion.startup.static.find_static_segments``); the encoder
     angles are their mean over that segment."""
-    from fusion.static import find_static_segments
+    from fusion.startup.static import find_static_segments
 
     if not specs:
         return ()
@@ -1489,7 +1489,7 @@ class StartupCorrection:
     correction itself is, added to each reading's σ (along the reading's own direction)."""
 
     def readings(self, r):
-        from fusion.startup import StillReadings
+        from fusion.startup.solve import StillReadings
 
         means, sigmas = {}, {}
         for name, m in r.accel_mean_g.items():
@@ -1527,7 +1527,7 @@ class StartupCorrection:
         joint at any angle of its range), each numbered joint's σ grows to cover, at 2 σ,
         what its correction would be there; one pushed past ``sigma_limit_rad`` (default:
         the startup's limit) becomes ``ill_conditioned``."""
-        from fusion.startup import StartupSettings
+        from fusion.startup.solve import StartupSettings
 
         limit = (StartupSettings().sigma_limit_deg * np.pi / 180 if sigma_limit_rad is None
                  else sigma_limit_rad)

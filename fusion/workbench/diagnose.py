@@ -4,7 +4,7 @@ which physical effect is missing.
 ``diagnose(model, data)``:
 
 1. **Compare.** Fit the model (its effects, the recording's encoder zeros, the base
-   attitude) with :func:`fusion.identify.identify`; per sensor axis the residual RMS
+   attitude) with :func:`fusion.identification.identify.identify`; per sensor axis the residual RMS
    against the noise floor of the sensor model, and the fit in % (NRMSE, as MATLAB's
    ``compare``: ``100 (1 - |y - ŷ| / |y - mean y|)``). ``rms_ratio`` is the whole model's
    residual RMS over its noise floor (1.0: it fits to noise).
@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from fusion.identify import (
+from fusion.identification.identify import (
     FIT_STREAMS_EXCLUDED,
     FitData,
     Identification,
@@ -958,7 +958,7 @@ def _block_means(t: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray, np.n
 
 def innovation_diagnosis(arm, rec, settings=None, max_lag: int = MAX_LAG, block_s: float = 0.5,
                          progress: Callable[[str, float], None] | None = None) -> InnovationDiagnosis:
-    """Run the tracker (``fusion.tracker``, started on the recording's first still stretch)
+    """Run the tracker (``fusion.tracking.tracker``, started on the recording's first still stretch)
     over ``rec`` and analyse its normalised innovations: whiteness per axis and
     cross-correlation with the inputs (:func:`residual_analysis`).
 
@@ -969,7 +969,7 @@ def innovation_diagnosis(arm, rec, settings=None, max_lag: int = MAX_LAG, block_
     effect (a bias that follows the pose, a drift) lasts for seconds and survives."""
     import time
 
-    from fusion.tracker import start_from_recording
+    from fusion.tracking.tracker import start_from_recording
     from models.sensor_models import stream_models
 
     t0 = time.perf_counter()

@@ -11,7 +11,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from fusion.cli_common import (
+from fusion.cli.common import (
     ConfigOpt,
     JsonOpt,
     check_output_path,
@@ -50,9 +50,9 @@ def track(
     its first still stretch, then the unscented Kalman filter on every sample."""
     from dataclasses import replace
 
-    from fusion.pose_store import load_pose
-    from fusion.startup import StartupInputError
-    from fusion.tracker import NoStillWindowError, TrackerSettings, start_from_recording
+    from fusion.startup.pose_store import load_pose
+    from fusion.startup.solve import StartupInputError
+    from fusion.tracking.tracker import NoStillWindowError, TrackerSettings, start_from_recording
 
     if not 0.0 < gate_significance < 1.0:
         fail(f"--gate-significance must be between 0 and 1, not {gate_significance!r}")
@@ -135,7 +135,7 @@ def _scoring_truth(rec, recording: Path, joint_names) -> tuple:
     (its ``true_q`` replaced when it applies) and a note, or ``None``."""
     import json
 
-    from fusion.simulate_cmd import truth_path
+    from fusion.cli.simulate import truth_path
     from models.simulator import angle_truth, true_zero_offsets_rad
     from sensors.samples import Recording
 
@@ -166,7 +166,7 @@ def estimate_columns(run) -> list[str]:
 def write_estimates(run, path: Path, arm_config: str = "") -> None:
     """Every fused instant's estimate: CSV (one row each, angles in rad) or MCAP (JSON
     messages on ``estimates/joints`` and ``estimates/heading``)."""
-    from fusion.tracker import JOINT_FLAGS, SENSOR_STATUS
+    from fusion.tracking.tracker import JOINT_FLAGS, SENSOR_STATUS
 
     path = Path(path)
     if path.suffix.lower() == ".csv":

@@ -1,5 +1,5 @@
 """Continuous tracking: the absolute joint angles all day, from relative encoders, the link
-accelerometers and the base IMU, with an unscented Kalman filter (:mod:`fusion.ukf`).
+accelerometers and the base IMU, with an unscented Kalman filter (:mod:`fusion.tracking.ukf`).
 
 The state (:data:`STATE_NAMES`), seeded from the startup calibration:
 
@@ -40,7 +40,7 @@ Every step:
    sigma points is first order in their offset spread: ~0.1 mg once converged). See
    docs/tracking.md.
 4. **Magnetometer** corrects the yaw through the tilt-compensated heading, guarded by
-   :class:`fusion.heading.MagneticGuard` (disturbance detection, rejection, recovery).
+   :class:`fusion.tracking.heading.MagneticGuard` (disturbance detection, rejection, recovery).
 
 Every joint's observability is checked every step (its axis's angle to gravity, and the
 eigen-decomposition of the accelerometers' information about the offsets, per second):
@@ -65,17 +65,17 @@ import numpy as np
 from scipy.linalg import lapack
 from scipy.stats import chi2
 
-from fusion.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
-from fusion.heading import (
+from fusion.startup.solve import StartupResult
+from fusion.tracking.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
+from fusion.tracking.heading import (
     FieldReference,
     HeadingSettings,
     MagneticGuard,
     heading_sigma_rad,
     tilt_compensated_heading,
 )
-from fusion.startup import StartupResult
-from fusion.tracker_kernels import measurement_points, process_points
-from fusion.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound
+from fusion.tracking.tracker_kernels import measurement_points, process_points
+from fusion.tracking.ukf import BatchedUKF, GroupPlan, MeasurementGroup, SigmaPoints, nis_bound
 from models.arm import ArmModel
 from models.motion import MotionState, cross, link_motion, sensor_motion
 from models.rotations import DEG, GRAVITY_MPS2, exp_so3_one, skew, up_from_tilt, wrap_angle
@@ -352,7 +352,7 @@ class CausalDifferentiator:
 
     def push(self, t: float, y: np.ndarray) -> None:
         """Take one sample (its window shifts in place) and fit the window at it (compiled:
-        :func:`fusion.frame_kernels.push_fit`, :func:`causal_poly_fit` for one window)."""
+        :func:`fusion.tracking.frame_kernels.push_fit`, :func:`causal_poly_fit` for one window)."""
         self._n = min(self._n + 1, self.window)
         self._fit = push_fit(self._t, self._y, float(t), np.asarray(y, dtype=float).reshape(self.dim),
                              self._n, self.order)
@@ -657,7 +657,7 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
                              startup: StartupResult, settings: TrackerSettings | None = None,
                              correction=None) -> ImuStill:
     """The gyro bias, initial heading and Earth-field reference from a still window.
-    ``correction``: the config's :class:`fusion.identify.StartupCorrection`, when the caller
+    ``correction``: the config's :class:`fusion.identification.identify.StartupCorrection`, when the caller
     has it (else made here when the config has compass effects)."""
     st = settings or TrackerSettings()
     sm = stream_models(arm)
@@ -702,7 +702,7 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
 def compass_unmodelled_ut(arm: ArmModel) -> float:
     """How far the compass's horizontal reading may be from Earth's field, µT, by what the
     config says: the σ of a hard iron it holds (the tracker undoes the hard and soft iron,
-    :data:`fusion.identify.COMPASS_MAP_EFFECTS`, so what stays is how well they are known),
+    :data:`fusion.identification.identify.COMPASS_MAP_EFFECTS`, so what stays is how well they are known),
     else ``calibration.mag_unmodelled_ut``, else 0."""
     for e in arm.effects or ():
         d = e if isinstance(e, Mapping) else e.model_dump()
@@ -715,11 +715,12 @@ def compass_unmodelled_ut(arm: ArmModel) -> float:
 def compass_map(arm: ArmModel, correction=None) -> tuple[np.ndarray, np.ndarray] | None:
     """The config's soft and hard iron as the map that undoes them, ``(A, c)``: the field
     in the compass's axes is ``(y - c) @ A`` for readings ``y (N, 3)`` µT; None without them.
-    ``correction``: the config's :class:`fusion.identify.StartupCorrection`, if made already."""
+    ``correction``: the config's :class:`fusion.identification.identify.StartupCorrection`, if
+    made already."""
     if correction is None:
         if not any(True for n in ("mag_hard_iron", "mag_soft_iron") for _ in _effect_dicts(arm, n)):
             return None
-        from fusion.identify import startup_correction
+        from fusion.identification.identify import startup_correction
 
         correction = startup_correction(arm)
     m = correction.maps.get(MAG)
@@ -746,7 +747,7 @@ class Start:
     notes: tuple[str, ...]
     geometric: StartupResult | None = None
     """The startup before the config's joint effects were undone (what a later still
-    window's solve compares with, through :func:`fusion.startup.prior_after_move`)."""
+    window's solve compares with, through :func:`fusion.startup.solve.prior_after_move`)."""
     encoder_rad: np.ndarray | None = None
     """The encoders' angles (counts / counts per rad) at the end of the still window."""
 
@@ -784,22 +785,22 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
                          startup_settings=None, propose_unlock: bool = True,
                          prior=None, resolve_by_motion_s: float | None = None) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
-    calibration there (:func:`fusion.startup.solve_still`), the gyro bias, heading and field
+    calibration there (:func:`fusion.startup.solve.solve_still`), the gyro bias, heading and field
     reference from the same window; it starts tracking at the window's end.
     ``propose_unlock`` False: no search for a move that would unlock gravity-blind joints
     (about 2 s of the startup's time, for a caller that does not show it).
     ``prior_q_rad``: a pose saved at the last clean shutdown, checked against the still data
-    before it may choose a branch (:class:`fusion.startup.StartupPrior`); ``prior``: any
+    before it may choose a branch (:class:`fusion.startup.solve.StartupPrior`); ``prior``: any
     other startup prior (e.g. ``StartupPrior.assume_parked``).
     ``resolve_by_motion_s``: for a whole recording (not live), when the startup left joints
     ``ambiguous``, track each candidate branch over the next this many seconds and keep the
     one the motion's readings favour (:func:`_branch_by_motion`); they stay ambiguous when no
     branch is decisively better (the arm did not move enough)."""
-    from fusion.startup import StartupPrior, readings_from_recording, solve_still
+    from fusion.startup.solve import StartupPrior, readings_from_recording, solve_still
 
     if prior is None and prior_q_rad is not None:
         prior = StartupPrior.saved_pose(prior_q_rad)
-    from fusion.static import StaticDetectionSettings, find_static_segments
+    from fusion.startup.static import StaticDetectionSettings, find_static_segments
 
     segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)))
     if not segs:
@@ -811,7 +812,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     notes = [c.message for c in checks]
     corr = None
     if arm.effects:  # a calibrated config: the startup works on corrected readings
-        from fusion.identify import startup_correction
+        from fusion.identification.identify import startup_correction
 
         temp = rec.get("imu_temp")
         still_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None else None
@@ -865,7 +866,7 @@ def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s
     it beats every other by ``decisive_nis`` (a log-likelihood ratio of 25); it is then a
     startup with those joints numbered (the candidate's own covariance), and the note says
     so. Otherwise ``None``: the joints stay ``ambiguous``."""
-    from fusion.startup import StartupSettings
+    from fusion.startup.solve import StartupSettings
 
     st = startup_settings or StartupSettings()
     n = len(startup.joints)
@@ -939,7 +940,7 @@ def _offset_per_degree(arm: ArmModel, correction) -> dict[str, np.ndarray]:
     now rather than the startup's."""
     if not any(True for _ in _effect_dicts(arm, "temperature_drift")):
         return {}
-    from fusion.identify import startup_correction
+    from fusion.identification.identify import startup_correction
 
     t0 = float(correction.temperature_c)
     warmer = startup_correction(arm, t0 + 1.0, include_joint_offsets=True)
@@ -980,14 +981,14 @@ class Tracker:
 
     def __init__(self, arm: ArmModel, settings: TrackerSettings | None = None,
                  rates_hz: Mapping[str, float] | float = 100.0, correction=None):
-        """``correction`` (a :class:`fusion.identify.StartupCorrection`, default: made from the
+        """``correction`` (a :class:`fusion.identification.identify.StartupCorrection`, default: made from the
         config's effects when it has any) undoes the calibrated accelerometer errors (affine:
         mount, axes, scale, bias) on every sample, and maps the controller's joint angles to
         the geometric ones (zero offsets, sag, play) in the kinematics."""
         arm = _with_lever_arms(arm)
         self.arm = arm
         if correction is None and arm.effects:
-            from fusion.identify import startup_correction
+            from fusion.identification.identify import startup_correction
 
             correction = startup_correction(arm, include_joint_offsets=True)
         self.correction = correction
@@ -1454,7 +1455,7 @@ class Tracker:
     def _frame_now(self, t: float) -> Frames | None:
         """The mean pose's kinematics at ``t`` (kept for further samples of the same
         instant: the product of exponentials carries any change of the offsets). Compiled
-        (:mod:`fusion.frame_kernels`); ``_frames_compiled`` False: :func:`make_frames`."""
+        (:mod:`fusion.tracking.frame_kernels`); ``_frames_compiled`` False: :func:`make_frames`."""
         if self._frame_cache is not None and self._frame_cache[0] == t:
             return self._frame_cache[1]
         e = self._enc_diff.at(t)
@@ -1554,7 +1555,7 @@ class Tracker:
 
     def _fx(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
         """The process model, every sigma point at once (compiled:
-        :func:`fusion.tracker_kernels.process_points`): the gyro (minus each point's bias)
+        :func:`fusion.tracking.tracker_kernels.process_points`): the gyro (minus each point's bias)
         turns the attitude (midpoint rule on the Euler-angle rates), the base's
         acceleration decays, offsets and bias stay."""
         L = self.layout
@@ -1597,7 +1598,7 @@ class Tracker:
         accelerometers ``sel`` (specific force in g), the still chair's zero acceleration,
         the heading residual ``yaw - tilt-compensated heading`` when ``m_B`` (the mean
         field in base axes) is given. Compiled:
-        :func:`fusion.tracker_kernels.measurement_points` (its docstring has the model)."""
+        :func:`fusion.tracking.tracker_kernels.measurement_points` (its docstring has the model)."""
         L = self.layout
         n = L.n_joints
         if sel is None:

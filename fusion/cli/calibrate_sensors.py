@@ -27,7 +27,7 @@ import typer
 import yaml
 from rich.table import Table
 
-from fusion.cli_common import (
+from fusion.cli.common import (
     ConfigOpt,
     JsonOpt,
     check_output_path,
@@ -41,7 +41,7 @@ from fusion.cli_common import (
     screen_or_exit,
 )
 from fusion.configfile import resolve_config_path
-from fusion.identify import (
+from fusion.identification.identify import (
     REFERENCE_SIGMA_RAD,
     IdentifySettings,
     config_with_estimates,

@@ -3,13 +3,13 @@
 A tracker step evaluates its models at 2n + 1 = 39 sigma points of a 19-state filter: a
 few thousand floating-point operations, which as NumPy array calls cost far more in
 interpreter overhead than in arithmetic. These kernels do the same arithmetic in one
-compiled loop per call. :mod:`fusion.tracker` calls them; its tests hold them to the
+compiled loop per call. :mod:`fusion.tracking.tracker` calls them; its tests hold them to the
 motion model computed from scratch (:func:`models.motion.specific_force`) and to the
 NumPy form of the same equations (:func:`accel_points_numpy`, which the filterpy baseline
 of ``tools/bench_track.py`` also calls, one point at a time, as a filterpy user would
 write it).
 
-The state layout (see :class:`fusion.tracker.StateLayout`): joint offsets ``0 … n-1``,
+The state layout (see :class:`fusion.tracking.tracker.StateLayout`): joint offsets ``0 … n-1``,
 roll, pitch, the base's linear acceleration (3), yaw, the gyro bias (3), the IMU
 accelerometer's bias (3). Kernels take the first index of each block.
 

@@ -3,7 +3,7 @@
     armfusion diagnose --config C REC [--json] [--add EFFECT[:TARGET] …] [--write C2.yaml]
         [--window 10] [--history H.json] [--report out.html]
 
-Fits the config's model to the recording (``fusion.diagnose``), shows every sensor axis's
+Fits the config's model to the recording (``fusion.workbench.diagnose``), shows every sensor axis's
 residual RMS against its noise floor, the verdict and the ranked missing effects. ``--add``
 refits with the named effects starting from the estimates and shows before and after;
 ``--write`` saves the config with the (last) estimates. Every run appends each model
@@ -22,7 +22,7 @@ import typer
 import yaml
 from rich.table import Table
 
-from fusion.cli_common import (
+from fusion.cli.common import (
     ConfigOpt,
     JsonOpt,
     check_output_path,
@@ -36,7 +36,8 @@ from fusion.cli_common import (
     screen_or_exit,
 )
 from fusion.configfile import resolve_config_path
-from fusion.diagnose import (
+from fusion.identification.identify import config_with_estimates, data_from_recording, fit_streams
+from fusion.workbench.diagnose import (
     Diagnosis,
     add_effects,
     chair_moves,
@@ -45,7 +46,6 @@ from fusion.diagnose import (
     params_words,
     parse_add,
 )
-from fusion.identify import config_with_estimates, data_from_recording, fit_streams
 from models.effects import TargetError, model_from_arm
 
 HISTORY_FORMAT = "armfusion.workbench-history/1"
@@ -345,7 +345,7 @@ def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from fusion.diagnose import predicted_and_measured
+    from fusion.workbench.diagnose import predicted_and_measured
 
     figs: dict[str, bytes] = {}
 
@@ -433,7 +433,7 @@ def analysis_figures(d: Diagnosis, png) -> dict[str, bytes]:
     worst = sorted(range(len(d.axes)), key=lambda k: -d.axes[k].ratio)[:3]
     w = worst[0]
     ax0 = d.axes[w]
-    from fusion.diagnose import fit_inputs
+    from fusion.workbench.diagnose import fit_inputs
 
     inputs = fit_inputs(d.data.state, d.fit.model.arm.joint_names)
     shown = [k for k in inputs if k not in a.constant_inputs]
@@ -539,7 +539,7 @@ table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padd
 
 def _residual_of_axis(d: Diagnosis, k: int) -> np.ndarray:
     """Axis ``k``'s residual in units of its noise σ (measured minus model)."""
-    from fusion.diagnose import predicted_and_measured
+    from fusion.workbench.diagnose import predicted_and_measured
 
     a = d.axes[k]
     t, ym, yp, unit, ch = predicted_and_measured(d)[a.stream]

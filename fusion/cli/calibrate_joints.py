@@ -10,7 +10,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from fusion.cli_common import (
+from fusion.cli.common import (
     ConfigOpt,
     JsonOpt,
     check_output_path,
@@ -22,9 +22,9 @@ from fusion.cli_common import (
     read_recording_or_exit,
     screen_or_exit,
 )
-from fusion.identify import startup_correction
-from fusion.pose_store import load_pose, save_pose
-from fusion.startup import (
+from fusion.identification.identify import startup_correction
+from fusion.startup.pose_store import load_pose, save_pose
+from fusion.startup.solve import (
     StartupInputError,
     StartupPrior,
     StartupResult,
@@ -33,7 +33,7 @@ from fusion.startup import (
     readings_from_recording,
     solve_still,
 )
-from fusion.static import StaticDetectionSettings, find_static_segments
+from fusion.startup.static import StaticDetectionSettings, find_static_segments
 from models.sensor_models import encoder_angles_at, mpu9150_temperature_c
 
 calibrate_app = typer.Typer(help="Calibrate: joint angles from a still arm, or the sensors.",

@@ -1,4 +1,4 @@
-"""Compiled (numba) kernels for the common case of :class:`fusion.ukf.BatchedUKF`'s step.
+"""Compiled (numba) kernels for the common case of :class:`fusion.tracking.ukf.BatchedUKF`'s step.
 
 A step of a 19-state filter is a few dozen small matrix products; called from NumPy, their
 interpreter and dispatch overhead, not their arithmetic, sets the pace. Each kernel here
@@ -137,7 +137,7 @@ def sigma_points_into(X: np.ndarray, x: np.ndarray, P: np.ndarray, Q: np.ndarray
 @njit(cache=True)
 def _mean_and_residuals(Y: np.ndarray, Wm: np.ndarray, angle: int, mean: np.ndarray, D: np.ndarray) -> None:
     """``mean = Wm Y`` and ``D = Y - mean`` for points ``Y (N, k)``, one column ``angle``
-    treated as :func:`fusion.ukf._ut` does: when its points lie within 3 rad of the central
+    treated as :func:`fusion.tracking.ukf._ut` does: when its points lie within 3 rad of the central
     one the plain mean (then wrapped) and plain residuals stand; else the mean is the
     central point plus the weighted mean of the wrapped offsets from it, and the residuals
     are those offsets minus their mean."""
