@@ -11,17 +11,14 @@ from rich.markup import escape
 from rich.table import Table
 
 from fusion.cli.common import (
-    ConfigOpt,
-    JsonOpt,
+    arm_and_recording_or_exit,
     check_output_path,
     console,
     emit_json,
     err_console,
     fail,
-    load_arm_or_exit,
-    read_recording_or_exit,
-    screen_or_exit,
 )
+from fusion.cli.options import ConfigOpt, JsonOpt
 from fusion.identification.identify import startup_correction
 from fusion.startup.pose_store import load_pose, save_pose
 from fusion.startup.solve import (
@@ -60,10 +57,9 @@ def calibrate_joints(
         fail(f"--method must be 'joint' or 'sequential', not {method!r}")
     if save is not None:
         check_output_path(save, "--save")
-    arm = load_arm_or_exit(config)
-    rec = read_recording_or_exit(recording, arm)
-    screen = screen_or_exit(arm, rec, recording, [a.name for a in arm.link_accelerometers], "calibrate "
-                            f"joints needs (every link accelerometer of {arm.source})", json_out)
+    arm, rec, screen = arm_and_recording_or_exit(
+        config, recording, lambda arm: [a.name for a in arm.link_accelerometers],
+        "calibrate joints needs (every link accelerometer of {source})", json_out)
     st = StartupSettings(gimbal_lock_deg=gimbal_lock_deg, sigma_limit_deg=sigma_limit_deg)
     notes: list[str] = []
     first_prior = None

@@ -28,18 +28,15 @@ import yaml
 from rich.table import Table
 
 from fusion.cli.common import (
-    ConfigOpt,
-    JsonOpt,
+    arm_and_recording_or_exit,
     check_output_path,
     console,
     emit_json,
     err_console,
     fail,
-    load_arm_or_exit,
     progress_bar,
-    read_recording_or_exit,
-    screen_or_exit,
 )
+from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt
 from fusion.configfile import resolve_config_path
 from fusion.identification.identify import (
     REFERENCE_SIGMA_RAD,
@@ -144,17 +141,16 @@ def calibrate_sensors(
         "IMU's mount (or use --base-tilt). Checked against the data; recorded in the written "
         "config.")] = None,
     json_out: JsonOpt = False,
-    write: Annotated[Path | None, typer.Option(help="Write a config with the estimates here.")] = None,
+    write: WriteConfigOpt = None,
 ) -> None:
     """Estimate the sensors' and the arm's effects (with σ, holds and correlations)."""
     if mode not in ("separate", "simultaneous"):
         fail(f"--mode must be 'separate' or 'simultaneous', not {mode!r}")
     if write is not None:
         check_output_path(write, "--write")
-    arm = load_arm_or_exit(config)
-    rec = read_recording_or_exit(recording, arm)
-    screen = screen_or_exit(arm, rec, recording, fit_streams(arm), "calibrate sensors fits (the "
-                            f"encoders and every sensor stream of {arm.source})", json_out)
+    arm, rec, screen = arm_and_recording_or_exit(
+        config, recording, fit_streams,
+        "calibrate sensors fits (the encoders and every sensor stream of {source})", json_out)
     try:
         model = build_model(arm, effects)
         data = data_from_recording(arm, rec, window, nodes=2, stances=stances)

@@ -1,5 +1,6 @@
-"""What every `armfusion` command shares: consoles, the --config/--json options, one-line
-failures, JSON output, and loading a config or a recording with a clear error.
+"""What every `armfusion` command shares: consoles, one-line failures, JSON output, loading a
+config and a recording with a clear error, checked output paths and progress bars (the
+shared options are in ``fusion.cli.options``).
 
 Kept apart from ``fusion.cli.main`` (which registers the commands) so that command modules can
 import it without an import cycle. It imports typer and rich only: ``armfusion --help``
@@ -15,7 +16,7 @@ import os
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Annotated
+from typing import Any
 
 import typer
 from rich.console import Console
@@ -23,14 +24,14 @@ from rich.console import Console
 console = Console()
 err_console = Console(stderr=True)
 
-ConfigOpt = Annotated[
-    str, typer.Option("--config", "-c", help="Arm config: a shipped name (wmra, crs_a465) or a YAML path.")
-]
-JsonOpt = Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON document.")]
-
 
 def fail(message: str, code: int = 2) -> None:
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False, markup=True, soft_wrap=True)
+    """Say ``message`` on stderr, ``error:`` before each of its lines (taken as text, not
+    markup), and exit with ``code``."""
+    from rich.markup import escape
+
+    for line in message.splitlines() or [""]:
+        err_console.print(f"[bold red]error:[/] {escape(line)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
@@ -105,6 +106,19 @@ def screen_or_exit(arm, rec, path: Path, required: Sequence[str], needed_by: str
     if screen.any_saturated and not json_out:
         err_console.print(f"[yellow]{screen.words()}[/]", highlight=False)
     return screen
+
+
+def arm_and_recording_or_exit(config: str, path: Path, required: Callable[[Any], Sequence[str]],
+                              needed_by: str, json_out: bool = False):
+    """``(arm, recording, screen)`` for a command that reads a recording with a config: the
+    config (:func:`load_arm_or_exit`), the recording fitting it (:func:`read_recording_or_exit`)
+    and its range screen (:func:`screen_or_exit`) of the streams ``required(arm)`` names, for
+    what ``needed_by`` says (``{source}`` in it becomes the config's path)."""
+    arm = load_arm_or_exit(config)
+    rec = read_recording_or_exit(path, arm)
+    screen = screen_or_exit(arm, rec, path, required(arm), needed_by.format(source=arm.source),
+                            json_out)
+    return arm, rec, screen
 
 
 def output_path_problem(path: Path, suffixes: Sequence[str] | None = None) -> str | None:

@@ -20,8 +20,6 @@ from typer.core import TyperGroup
 
 from fusion import __version__
 from fusion.cli.common import (
-    ConfigOpt,
-    JsonOpt,
     check_output_path,
     console,
     emit_json,
@@ -29,6 +27,7 @@ from fusion.cli.common import (
     load_arm_or_exit,
     read_recording_or_exit,
 )
+from fusion.cli.options import ConfigOpt, JsonOpt, RecordingArg
 
 # command name -> (its first help paragraph, "module:function" that registers it on the app);
 # one function may register several commands (the service's)
@@ -159,8 +158,6 @@ def info(
     plot: Annotated[Path | None, typer.Option(help="Also draw the arm at its ready pose to this PNG.")] = None,
 ) -> None:
     """Print the arm: its joints, its sensors, and which joints each sensor sees."""
-    from rich.markup import escape
-    from rich.table import Table
 
     from fusion.cli.describe import describe_arm
 
@@ -181,19 +178,15 @@ def info(
         return
     console.print(f"[bold]{arm.name}[/]  ({d['dh_convention']} DH, {arm.n_joints} joints)  "
                   f"from {arm.source}")
-    t = Table(title="Joints", title_justify="left")
-    for col in ("joint", "alpha [deg]", "a [mm]", "d [mm]", "offset [deg]", "limits [deg]",
-                "ready [deg]", "counts/rev", "vertical at ready"):
-        t.add_column(escape(col), justify="right" if col != "joint" else "left")  # "[deg]": text
+    t = _table("Joints", ("joint",), ("alpha [deg]", "a [mm]", "d [mm]", "offset [deg]", "limits [deg]",
+                                     "ready [deg]", "counts/rev", "vertical at ready"))
     for j in d["joints"]:
         t.add_row(j["name"], _f(j.get("alpha_deg")), _f(j.get("a_mm")), _f(j.get("d_mm")),
                   _f(j.get("offset_deg")), f"{j['min_deg']:.0f} … {j['max_deg']:.0f}",
                   f"{j['ready_deg']:.0f}", f"{j['counts_per_rev']:.0f}",
                   "[red]yes: gravity-blind[/]" if j["vertical_at_ready"] else "no")
     console.print(t)
-    t = Table(title="Sensors", title_justify="left")
-    for col in ("sensor", "type", "link", "position [mm]", "bus", "sees joints"):
-        t.add_column(escape(col))
+    t = _table("Sensors", ("sensor", "type", "link", "position [mm]", "bus", "sees joints"))
     for s in d["sensors"]:
         t.add_row(s["name"], s["type"], str(s["link"]),
                   ", ".join(f"{v:.1f}" for v in s["position_mm"]), s["bus"] or "-",
@@ -206,6 +199,20 @@ def info(
         console.print(f"Drawing written to {plot}")
 
 
+def _table(title: str, left: tuple[str, ...], right: tuple[str, ...] = ()):
+    """A rich table titled ``title``: the ``left`` columns, then the ``right``-justified ones
+    (their names taken as text: "[deg]" is not markup)."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    t = Table(title=title, title_justify="left")
+    for col in left:
+        t.add_column(escape(col))
+    for col in right:
+        t.add_column(escape(col), justify="right")
+    return t
+
+
 def _f(v) -> str:
     return "-" if v is None else f"{v:g}"
 
@@ -213,13 +220,11 @@ def _f(v) -> str:
 # --------------------------------------------------------------------------------------
 @app.command()
 def inspect(
-    recording: Annotated[Path, typer.Argument(help="Recording: .csv (shared spec) or .mcap.")],
+    recording: RecordingArg,
     json_out: JsonOpt = False,
     window_s: Annotated[float, typer.Option(help="Still-detection window [s].")] = 1.0,
 ) -> None:
     """Summarise a recording: sensors, samples and rate each, duration, gaps, still segments."""
-    from rich.markup import escape
-    from rich.table import Table
 
     from fusion.cli.describe import describe_recording
     from fusion.startup.static import StaticDetectionSettings
@@ -234,11 +239,8 @@ def inspect(
                   f"t = {d['t_start_s']:.3f} … {d['t_end_s']:.3f} s")
     if d.get("read_report"):
         console.print(f"[yellow]{d['read_report']}[/]")
-    t = Table(title="Streams", title_justify="left")
-    for col in ("stream", "kind", "channels", "samples", "rate [Hz]", "gaps (missing)",
-                "longest gap [s]"):
-        t.add_column(escape(col), justify="right" if col in ("samples", "rate [Hz]", "gaps (missing)",
-                                                     "longest gap [s]") else "left")
+    t = _table("Streams", ("stream", "kind", "channels"),
+               ("samples", "rate [Hz]", "gaps (missing)", "longest gap [s]"))
     for s in d["streams"]:
         t.add_row(s["name"], s["kind"], ", ".join(s["channels"]), str(s["samples"]),
                   f"{s['rate_hz']:.1f}",
@@ -247,9 +249,7 @@ def inspect(
     console.print(t)
     segs = d["static_segments"]
     if segs:
-        t = Table(title=f"Still segments ({len(segs)})", title_justify="left")
-        for col in ("#", "start [s]", "end [s]", "duration [s]"):
-            t.add_column(escape(col), justify="right")
+        t = _table(f"Still segments ({len(segs)})", (), ("#", "start [s]", "end [s]", "duration [s]"))
         for i, s in enumerate(segs):
             t.add_row(str(i), f"{s['t_start_s']:.2f}", f"{s['t_end_s']:.2f}",
                       f"{s['duration_s']:.2f}")

@@ -22,7 +22,18 @@ from typing import Annotated, Any
 
 import typer
 
-from fusion.cli.common import json_default, output_path_problem, progress_bar
+from fusion.cli.common import emit_json, fail, json_default, output_path_problem, progress_bar
+from fusion.cli.options import (
+    ConfigOpt,
+    EffectOpt,
+    EffectsFileOpt,
+    JsonOpt,
+    NoiseOpt,
+    RealisticOpt,
+    RecordingOutOpt,
+    ScenarioOpt,
+    SeedOpt,
+)
 from fusion.configfile import load_arm, read_yaml
 from models.arm import ArmModel
 from models.arm_config import ConfigError, ConfigProblem
@@ -205,11 +216,13 @@ def truth_json(truth: dict) -> str:
 
 
 
-def _effects_help() -> str:
-    rows = []
-    for name, cls in EFFECTS.items():
-        rows.append(f"{name} ({cls.target_kind}; {', '.join(cls.labels)} in {cls.units})")
-    return "; ".join(rows)
+def _listing_help() -> str:
+    """The scenarios and the effects, for ``simulate --help`` (the shared --scenario and
+    --effect options point there)."""
+    scenarios = "; ".join(f"{k} ({v.description}, {v.default_duration_s:g} s)" for k, v in SCENARIOS.items())
+    effects = "; ".join(f"{name} ({cls.target_kind}; {', '.join(cls.labels)} in {cls.units})"
+                        for name, cls in EFFECTS.items())
+    return f"Scenarios: {scenarios}.\n\nEffects: {effects}."
 
 
 def register(app: typer.Typer) -> None:
@@ -219,39 +232,28 @@ def register(app: typer.Typer) -> None:
 
     @app.command("simulate")
     def simulate_command(
-        scenario: Annotated[str, typer.Option("--scenario", "-s", help="Scenario: " + "; ".join(
-            f"{k} ({v.description}, {v.default_duration_s:g} s)" for k, v in SCENARIOS.items()))],
-        out: Annotated[Path, typer.Option("--out", "-o", help="Recording to write: REC.csv or REC.mcap "
-                                          "(and REC.truth.json beside it).")],
-        config: Annotated[str, typer.Option("--config", "-c", help="Arm config: a shipped name "
-                                            "(wmra, crs_a465) or a YAML path.")] = "wmra",
+        scenario: ScenarioOpt,
+        out: RecordingOutOpt,
+        config: ConfigOpt = "wmra",
         duration: Annotated[float | None, typer.Option("--duration", help="Seconds (default: the "
                                                        "scenario's).")] = None,
         rate: Annotated[float, typer.Option("--rate", help="Sample rate of every device [Hz].")] = 100.0,
-        seed: Annotated[int, typer.Option("--seed", help="Seed: the same seed, the same motion, "
-                                          "effects and noise.")] = 0,
-        effect: Annotated[list[str] | None, typer.Option(
-            "--effect", help="NAME[:TARGET]=VALUE, vector values comma separated, in the effect's "
-            "units; repeatable. Effects: " + _effects_help())] = None,
-        realistic: Annotated[bool, typer.Option("--realistic", help="Draw every effect on every "
-                                                "target at datasheet-typical magnitudes (seeded).")] = False,
-        effects_file: Annotated[Path | None, typer.Option("--effects-file", help="Replay the effects "
-                                                          "of a REC.truth.json (or a config's effects list).")] = None,
-        noise: Annotated[bool, typer.Option("--noise/--no-noise", help="Sensor noise (rounding and "
-                                            "saturation always).")] = True,
-        json_out: Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON document.")] = False,
+        seed: SeedOpt = 0,
+        effect: EffectOpt = None,
+        realistic: RealisticOpt = False,
+        effects_file: EffectsFileOpt = None,
+        noise: NoiseOpt = True,
+        json_out: JsonOpt = False,
     ) -> None:
         """Simulate a recording of the arm's sensors (raw counts, truth columns, truth file)."""
-        err = Console(stderr=True)
         try:
             with progress_bar("simulating", json_out) as advance:
                 summary = simulate(config, scenario, out, duration, rate, seed, effect or (), realistic,
                                    effects_file, noise, progress=advance)
         except (ConfigError, FileNotFoundError, ValueError) as e:
-            err.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
-            raise typer.Exit(2) from None
+            fail(str(e))
         if json_out:
-            typer.echo(json.dumps(summary, indent=2, default=json_default))
+            emit_json(summary)
             return
         con = Console()
         con.print(f"[bold]{summary['scenario']}[/] on {summary['arm']}: {summary['duration_s']:.1f} s at "
@@ -269,3 +271,5 @@ def register(app: typer.Typer) -> None:
                                      if n else " (ideal sensors)"))
         con.print(f"Wrote {summary['out']} ({summary['bytes'] / 1e6:.1f} MB) and {summary['truth']} "
                   f"in {summary['total_s']:.1f} s (simulation {summary['simulate_s']:.1f} s)")
+
+    simulate_command.__doc__ = f"{simulate_command.__doc__}\n\n{_listing_help()}"

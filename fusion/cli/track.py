@@ -12,18 +12,15 @@ import typer
 from rich.table import Table
 
 from fusion.cli.common import (
-    ConfigOpt,
-    JsonOpt,
+    arm_and_recording_or_exit,
     check_output_path,
     console,
     emit_json,
     err_console,
     fail,
-    load_arm_or_exit,
     progress_bar,
-    read_recording_or_exit,
-    screen_or_exit,
 )
+from fusion.cli.options import ConfigOpt, JsonOpt
 
 OUT_SUFFIXES = (".csv", ".mcap")
 
@@ -58,16 +55,14 @@ def track(
         fail(f"--gate-significance must be between 0 and 1, not {gate_significance!r}")
     if out is not None:
         check_output_path(out, "--out", OUT_SUFFIXES)
-    arm = load_arm_or_exit(config)
+    if unmodelled_g is not None and not unmodelled_g >= 0.0:
+        fail(f"--unmodelled-g must be >= 0, not {unmodelled_g!r}")
+    arm, rec, screen = arm_and_recording_or_exit(
+        config, recording, lambda arm: ["enc", *(a.name for a in arm.link_accelerometers)],
+        "track needs (the encoders and every link accelerometer of {source})", json_out)
     if unmodelled_g is not None:
-        if not unmodelled_g >= 0.0:
-            fail(f"--unmodelled-g must be >= 0, not {unmodelled_g!r}")
         arm = replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": unmodelled_g,
                                         "accel_unmodelled_g_per_sensor": {}})
-    rec = read_recording_or_exit(recording, arm)
-    screen = screen_or_exit(arm, rec, recording, ["enc", *(a.name for a in arm.link_accelerometers)],
-                            f"track needs (the encoders and every link accelerometer of {arm.source})",
-                            json_out)
     notes: list[str] = []
     rec, note = _scoring_truth(rec, recording, arm.joint_names)
     if note:

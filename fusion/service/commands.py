@@ -21,8 +21,6 @@ import typer
 import zenoh
 
 from fusion.cli.common import (
-    ConfigOpt,
-    JsonOpt,
     console,
     emit_json,
     err_console,
@@ -31,20 +29,23 @@ from fusion.cli.common import (
     prepare_output_path,
     read_recording_or_exit,
 )
+from fusion.cli.options import (
+    BatchMsOpt,
+    ConfigOpt,
+    ConnectOpt,
+    JsonOpt,
+    ListenOpt,
+    ModeOpt,
+    RecordingArg,
+    RobotOpt,
+    StopAfterOpt,
+    ZenohConfigOpt,
+)
 from fusion.service.node import stop_on_signals
 from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, open_session
 
 DEFAULT_ROBOT = "chair1"
 EPHEMERAL_LISTEN = "tcp/127.0.0.1:0"
-
-ZenohConfigOpt = Annotated[Path | None, typer.Option(
-    "--zenoh-config", help="Zenoh JSON5 config (default: config/zenoh.json5).")]
-ListenOpt = Annotated[list[str] | None, typer.Option(
-    "--listen", help="Listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; loopback only).")]
-ConnectOpt = Annotated[list[str] | None, typer.Option(
-    "--connect", help="Endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; loopback only).")]
-ModeOpt = Annotated[str | None, typer.Option("--mode", help="peer, client or router.")]
-RobotOpt = Annotated[str, typer.Option("--robot", help="The robot's name in the key expressions.")]
 
 
 def zenoh_settings(config: Path | None, listen: list[str] | None, connect: list[str] | None,
@@ -88,11 +89,11 @@ def parse_speed(text: str) -> float | None:
 def register(app: typer.Typer) -> None:
     @app.command("replay")
     def replay_command(
-        recording: Annotated[Path, typer.Argument(help="Recording: .csv or .mcap.")],
+        recording: RecordingArg,
         speed: Annotated[str, typer.Option(help="Time factor (1 = real time, 2 = twice as fast) "
                                                 "or 'max' (as fast as the subscribers take).")] = "1",
         robot: RobotOpt = DEFAULT_ROBOT,
-        batch_ms: Annotated[float, typer.Option(help="Recording time per published batch, in ms.")] = 20.0,
+        batch_ms: BatchMsOpt = 20.0,
         wait_s: Annotated[float, typer.Option(
             "--wait", help="First wait up to this long for a subscriber on every sensor, in s; "
                            "if no sensor has one by then, publish nothing and exit 1.")] = 5.0,
@@ -103,16 +104,9 @@ def register(app: typer.Typer) -> None:
         json_out: JsonOpt = False,
     ) -> None:
         """Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing."""
-        from fusion.service.payloads import check_name
         from fusion.service.replay import NoSubscriberError, replay
 
         factor = parse_speed(speed)
-        try:
-            check_name(robot, "--robot")
-        except ValueError as e:
-            fail(str(e))
-        if not batch_ms > 0:
-            fail(f"--batch-ms {batch_ms!r}: expected > 0")
         if not (math.isfinite(wait_s) and wait_s >= 0):
             fail(f"--wait {wait_s!r}: expected a number of seconds >= 0")
         rec = read_recording_or_exit(recording)
@@ -146,8 +140,7 @@ def register(app: typer.Typer) -> None:
     def record_command(
         out: Annotated[Path, typer.Argument(help="Output recording (.mcap).")],
         robot: RobotOpt = DEFAULT_ROBOT,
-        duration_s: Annotated[float | None, typer.Option(
-            "--duration", help="Stop after this long, in s (default: at SIGINT or SIGTERM).")] = None,
+        duration_s: StopAfterOpt = None,
         arm_config: Annotated[str, typer.Option("--config", "-c", help="Arm config name stored "
                                                 "in the file's metadata.")] = "",
         zenoh_config: ZenohConfigOpt = None,
@@ -157,17 +150,10 @@ def register(app: typer.Typer) -> None:
         json_out: JsonOpt = False,
     ) -> None:
         """Record a robot's raw samples and estimates from Zenoh to MCAP until stopped."""
-        from fusion.service.payloads import check_name
         from fusion.service.record import Recorder
 
         if out.suffix.lower() != ".mcap":
             fail(f"{out}: the recording must end in .mcap")
-        try:
-            check_name(robot, "--robot")
-        except ValueError as e:
-            fail(str(e))
-        if duration_s is not None and not duration_s > 0:
-            fail(f"--duration {duration_s!r}: expected > 0")
         prepare_output_path(out, "OUT")
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
@@ -196,8 +182,7 @@ def register(app: typer.Typer) -> None:
         robot: RobotOpt = DEFAULT_ROBOT,
         publish_hz: Annotated[float, typer.Option(help="Most estimates published per second "
                                                        "of sample time.")] = 50.0,
-        duration_s: Annotated[float | None, typer.Option(
-            "--duration", help="Stop after this long, in s (default: at SIGINT or SIGTERM).")] = None,
+        duration_s: StopAfterOpt = None,
         state_file: Annotated[Path | None, typer.Option(
             "--state-file", help="Save the tracker's state here (every --save-every s and at stop) "
                                  "and resume from it at start when the encoders kept counting.")] = None,
@@ -219,17 +204,10 @@ def register(app: typer.Typer) -> None:
         """The fusion node: startup calibration on the first still window (or resume from
         --state-file), then the tracker; publishes armfusion/<robot>/state/joints,
         state/heading and status; answers armfusion/<robot>/calibrate."""
-        from fusion.service.payloads import check_name
         from fusion.service.serve import FusionNode
 
-        try:
-            check_name(robot, "--robot")
-        except ValueError as e:
-            fail(str(e))
         if not publish_hz > 0:
             fail(f"--publish-hz {publish_hz!r}: expected > 0")
-        if duration_s is not None and not duration_s > 0:
-            fail(f"--duration {duration_s!r}: expected > 0")
         if not save_every_s > 0 or not state_max_age_s > 0:
             fail(f"--save-every {save_every_s!r} and --state-max-age {state_max_age_s!r}: expected > 0")
         arm = load_arm_or_exit(config)
@@ -271,12 +249,8 @@ def register(app: typer.Typer) -> None:
         """Ask the fusion node (armfusion serve) to re-run the startup calibration now, on the
         latest still stretch; it refuses, saying why, while the arm moves. Exits 1 when refused."""
         from fusion.service.calibrate_request import NoReplyError, request_calibration
-        from fusion.service.payloads import PayloadError, check_name
+        from fusion.service.payloads import PayloadError
 
-        try:
-            check_name(robot, "--robot")
-        except ValueError as e:
-            fail(str(e))
         if not timeout_s > 0:
             fail(f"--timeout {timeout_s!r}: expected > 0")
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session:

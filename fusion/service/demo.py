@@ -35,7 +35,8 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from fusion.cli.common import JsonOpt, console, emit_json, err_console, fail
+from fusion.cli.common import console, emit_json, err_console, fail
+from fusion.cli.options import JsonOpt, ScenarioOpt, SeedOpt
 from fusion.cli.simulate import truth_path
 from fusion.service import payloads as pl
 from fusion.service.fleet import free_loopback_port
@@ -466,8 +467,7 @@ def register(app: typer.Typer) -> None:
     def demo_command(
         duration_s: Annotated[float, typer.Option(
             "--duration", help="Seconds of the live run (wall clock).")] = 60.0,
-        seed: Annotated[int, typer.Option("--seed", help="The simulated arm's sensor errors, "
-                                          "motion and noise.")] = 0,
+        seed: SeedOpt = 0,
         realistic: Annotated[bool, typer.Option(
             "--realistic/--ideal", help="Datasheet-typical sensor errors (default) or none.")] = True,
         calibrate_sensors: Annotated[bool, typer.Option(
@@ -475,8 +475,7 @@ def register(app: typer.Typer) -> None:
             "maneuver and serve with the calibrated config (default); else the shipped config.")] = True,
         calibration_s: Annotated[float, typer.Option(
             "--calibration-duration", help="Seconds of the simulated calibration maneuver.")] = 60.0,
-        scenario: Annotated[str, typer.Option(
-            "--scenario", "-s", help="The live run's motion.")] = "daily-use",
+        scenario: ScenarioOpt = "daily-use",
         run_workbench: Annotated[bool, typer.Option(
             "--workbench/--no-workbench", help="Diagnose the calibration recording for the report.")] = True,
         out: Annotated[Path, typer.Option(

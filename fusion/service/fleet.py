@@ -22,15 +22,19 @@ from typing import Annotated
 
 import typer
 
-from fusion.cli.common import JsonOpt, console, emit_json, err_console, fail
-from fusion.service.commands import (
+from fusion.cli.common import console, emit_json, err_console, fail
+from fusion.cli.options import (
+    ConfigOpt,
     ConnectOpt,
+    JsonOpt,
     ListenOpt,
     ModeOpt,
+    RealisticOpt,
+    ScenarioOpt,
+    StopAfterOpt,
     ZenohConfigOpt,
-    session_or_exit,
-    zenoh_settings,
 )
+from fusion.service.commands import session_or_exit, zenoh_settings
 from fusion.service.node import stop_on_signals
 from fusion.service.zenoh_config import ZenohConfigError, check_loopback
 
@@ -49,13 +53,10 @@ def register(app: typer.Typer) -> None:
     def router_command(
         listen: ListenOpt = None,
         zenoh_config: ZenohConfigOpt = None,
-        duration_s: Annotated[float | None, typer.Option(
-            "--duration", help="Stop after this long, in s (default: at SIGINT or SIGTERM).")] = None,
+        duration_s: StopAfterOpt = None,
     ) -> None:
         """A Zenoh router on loopback (default tcp/127.0.0.1:7447) for the nodes of several
         robots; runs until SIGINT or SIGTERM."""
-        if duration_s is not None and not duration_s > 0:
-            fail(f"--duration {duration_s!r}: expected > 0")
         endpoints = listen or [DEFAULT_ROUTER]
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, endpoints, [], "router")) as session, \
@@ -70,14 +71,12 @@ def register(app: typer.Typer) -> None:
         chairs: Annotated[int, typer.Option("--chairs", "-n", help="How many simulated chairs.")] = 3,
         duration_s: Annotated[float, typer.Option(
             "--duration", help="Seconds each chair's fake drivers run.")] = 60.0,
-        scenario: Annotated[str, typer.Option(
-            "--scenario", "-s", help="The chairs' simulated motion.")] = "daily-use",
-        realistic: Annotated[bool, typer.Option(
-            "--realistic", help="Datasheet-typical sensor errors.")] = False,
+        scenario: ScenarioOpt = "daily-use",
+        realistic: RealisticOpt = False,
         seed: Annotated[int, typer.Option("--seed", help="Chair k simulates with seed + k.")] = 0,
         prefix: Annotated[str, typer.Option("--prefix", help="Chair k is <prefix><k>.")] = "chair",
         rate_hz: Annotated[float, typer.Option("--rate", help="Each chair's sampling rate, Hz.")] = 100.0,
-        config: Annotated[str, typer.Option("--config", "-c", help="Arm config of every chair.")] = "wmra",
+        config: ConfigOpt = "wmra",
         router_listen: Annotated[str | None, typer.Option(
             "--router-listen", help="Start a router listening here (default: a free loopback port).")] = None,
         connect: Annotated[str | None, typer.Option(

@@ -225,3 +225,33 @@ def test_table_headers_keep_their_units(startup_csv):
     assert r.exit_code == 0 and "alpha [deg]" in r.stdout and "d [mm]" in r.stdout
     r = runner.invoke(app, ["inspect", str(startup_csv)], env={"COLUMNS": "220"})
     assert r.exit_code == 0 and "rate [Hz]" in r.stdout and "longest gap [s]" in r.stdout
+
+
+# --------------------------------------------------------------------------------------
+# shared options (fusion.cli.options): the same check, before any work, in every command
+
+@pytest.mark.parametrize("args", [
+    ["replay", "no-such.csv", "--robot", "chair 1"],
+    ["record", "out.mcap", "--robot", "chair/1"],
+    ["serve", "--robot", ""],
+    ["recalibrate", "--robot", "x" * 65],
+    ["drivers", "--fake", "--robot", "chair 1"],
+])
+def test_a_robot_name_the_key_expressions_cannot_take_is_refused_in_one_line(args):
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2, r.output
+    assert r.stdout == ""
+    assert r.stderr.startswith("error: --robot ") and r.stderr.count("\n") == 1, r.stderr
+    assert "use 1 to 64 letters, digits, '_' or '-'" in r.stderr
+
+
+@pytest.mark.parametrize("args,option", [
+    (["record", "out.mcap", "--duration", "0"], "--duration 0.0"),
+    (["router", "--duration", "-1"], "--duration -1.0"),
+    (["replay", "no-such.csv", "--batch-ms", "0"], "--batch-ms 0.0"),
+    (["drivers", "--fake", "--batch-ms", "-5"], "--batch-ms -5.0"),
+])
+def test_a_duration_or_batch_that_is_not_positive_is_refused_before_the_work(args, option):
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2, r.output
+    assert r.stderr.strip() == f"error: {option}: expected > 0"

@@ -11,7 +11,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from fusion.cli.drivers import parse_fault, run_fake, summary
+from fusion.cli.drivers_faults import parse_fault
+from fusion.cli.drivers_report import summary
+from fusion.cli.drivers_run import run_fake
 from fusion.cli.main import app
 from fusion.configfile import resolve_config_path
 from models.fake_rig import simulate_physics

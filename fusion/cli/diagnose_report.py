@@ -1,0 +1,299 @@
+"""The HTML report of ``armfusion diagnose``: one self-contained file a person reads top to
+bottom (verdict, error ladder, ranked candidates, plots embedded as PNG), and its moving
+twin, the tracker's innovations (:func:`write_innovation_report`).
+
+Imports matplotlib (the Agg backend) only when a figure is drawn.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from fusion.workbench.diagnose import Diagnosis, params_words
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def png_bytes(fig) -> bytes:
+    """``fig`` as PNG bytes (90 dpi, tight), and closed."""
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    _pyplot().close(fig)
+    return buf.getvalue()
+
+
+def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict]) -> dict[str, bytes]:
+    """The report's figures as PNG bytes: ``ladder``, ``candidates``, ``compare`` (predicted
+    against measured, the worst axes) and ``residuals`` (the worst axis against the input the
+    top candidate's evidence names)."""
+    plt = _pyplot()
+    from fusion.workbench.diagnose import predicted_and_measured
+
+    figs: dict[str, bytes] = {}
+
+    # the error ladder: residual RMS per model version
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    steps = [r for k, r in enumerate(ladder)  # a re-run of the same model is the same rung
+             if k == 0 or (r["effects"], r["rms_ratio"]) != (ladder[k - 1]["effects"], ladder[k - 1]["rms_ratio"])]
+    vals = [r["rms_ratio"] for r in steps]
+    labels = [f"{k + 1}: {r['label']}" for k, r in enumerate(steps)]
+    ax.plot(range(len(vals)), vals, "o-", color="C0")
+    ax.axhline(1.0, color="k", ls="--", lw=1, label="noise floor")
+    ax.axhspan(0, 1.1, color="green", alpha=0.08)
+    ax.set_yscale("log")
+    ax.set_xticks(range(len(vals)), labels, rotation=20, ha="right", fontsize=8)
+    ax.set_ylabel("residual RMS / noise")
+    ax.set_title("The error ladder")
+    ax.legend(fontsize=8)
+    figs["ladder"] = png_bytes(fig)
+    # the ranked candidates (of the diagnosis before adding: what suggested the step)
+    src = before
+    top = [c for c in src.candidates[:10]]
+    if top:
+        fig, ax = plt.subplots(figsize=(7, 0.35 * len(top) + 1))
+        y = np.arange(len(top))[::-1]
+        v = [-c.delta_bic for c in top]
+        ax.barh(y, np.maximum(v, 1e-1), color=["C3" if c.significant else "0.6" for c in top])
+        ax.set_yticks(y, [c.name for c in top], fontsize=8)
+        ax.set_xscale("log")
+        ax.set_xlabel("-ΔBIC (red: significant)")
+        ax.set_title("Which effect is missing")
+        figs["candidates"] = png_bytes(fig)
+    # predicted against measured on the worst axes, residual underneath
+    pm = predicted_and_measured(src)
+    worst = sorted(src.axes, key=lambda a: -a.ratio)[:4]
+    fig, axs = plt.subplots(len(worst), 2, figsize=(10, 2.2 * len(worst)), squeeze=False,
+                            layout="constrained")
+    for row, a in zip(axs, worst, strict=True):
+        t, ym, yp, unit, ch = pm[a.stream]
+        k = ch.index(a.axis)
+        row[0].plot(t, ym[:, k], ".", ms=2, color="0.4", label="measured")
+        row[0].plot(t, yp[:, k], "-", lw=1, color="C0", label="model")
+        fit = "" if a.fit_percent is None else f", fit {a.fit_percent:.1f} %"
+        row[0].set_title(f"{a.axis}{fit}", fontsize=9)
+        row[0].set_ylabel(unit)
+        row[1].plot(t, ym[:, k] - yp[:, k], ".", ms=2, color="C3")
+        row[1].axhspan(-a.noise, a.noise, color="green", alpha=0.15)
+        row[1].set_title(f"{a.axis} residual: RMS {a.ratio:.2f}× the noise (band: ±1σ)", fontsize=9)
+    axs[0][0].legend(fontsize=8)
+    axs[-1][0].set_xlabel("t [s]")
+    axs[-1][1].set_xlabel("t [s]")
+    figs["compare"] = png_bytes(fig)
+    if after is not None:
+        pm2 = predicted_and_measured(after)
+        fig, axs = plt.subplots(len(worst), 1, figsize=(10, 1.8 * len(worst)), squeeze=False,
+                            layout="constrained")
+        for (axx,), a in zip(axs, worst, strict=True):
+            t, ym, yp, unit, ch = pm[a.stream]
+            t2, ym2, yp2, _, _ = pm2[a.stream]
+            k = ch.index(a.axis)
+            axx.plot(t, ym[:, k] - yp[:, k], ".", ms=2, color="C3", label="before")
+            axx.plot(t2, ym2[:, k] - yp2[:, k], ".", ms=2, color="C2", label="after")
+            axx.axhspan(-a.noise, a.noise, color="green", alpha=0.15)
+            axx.set_title(f"{a.axis} residual before and after ({unit})", fontsize=9)
+        axs[0][0].legend(fontsize=8)
+        figs["after"] = png_bytes(fig)
+    if src.analysis is not None:
+        figs.update(analysis_figures(src))
+    return figs
+
+
+def analysis_figures(d: Diagnosis) -> dict[str, bytes]:
+    """``inputs``: the worst axis's residual against every input (binned means over the
+    points); ``correlation``: the worst axes' autocorrelation and the worst axis's
+    cross-correlation with the inputs it follows most, with the 99 % band (MATLAB's ``resid``)."""
+    plt = _pyplot()
+
+    a = d.analysis
+    figs: dict[str, bytes] = {}
+    worst = sorted(range(len(d.axes)), key=lambda k: -d.axes[k].ratio)[:3]
+    w = worst[0]
+    ax0 = d.axes[w]
+    from fusion.workbench.diagnose import fit_inputs
+
+    inputs = fit_inputs(d.data.state, d.fit.model.arm.joint_names)
+    shown = [k for k in inputs if k not in a.constant_inputs]
+    res = _residual_of_axis(d, w)
+    ncol = 7
+    nrow = -(-len(shown) // ncol)
+    fig, axs = plt.subplots(nrow, ncol, figsize=(14, 1.9 * nrow), squeeze=False, sharey=True,
+                            layout="constrained")
+    step = max(1, len(res) // 3000)
+    for k, lab in enumerate(shown):
+        axx = axs[k // ncol][k % ncol]
+        u = inputs[lab]
+        axx.plot(u[::step], res[::step], ".", ms=1, color="0.6")
+        bins = np.linspace(u.min(), u.max(), 21)
+        idx = np.clip(np.digitize(u, bins) - 1, 0, 19)
+        cnt = np.bincount(idx, minlength=20)
+        mean = np.bincount(idx, res, minlength=20) / np.maximum(cnt, 1)
+        ok = cnt > 5
+        axx.plot(0.5 * (bins[1:] + bins[:-1])[ok], mean[ok], "-", color="C3", lw=1.5)
+        axx.axhspan(-1, 1, color="green", alpha=0.12)
+        axx.set_title(lab, fontsize=8)
+        axx.tick_params(labelsize=6)
+    for k in range(len(shown), nrow * ncol):
+        axs[k // ncol][k % ncol].axis("off")
+    fig.suptitle(f"{ax0.axis} residual (in noise σ) against each input; red: binned mean, "
+                 "band ±1σ", fontsize=10)
+    figs["inputs"] = png_bytes(fig)
+    figs["correlation"] = correlation_figure(a, [(d.axes[k].stream, d.axes[k].axis) for k in worst])
+    return figs
+
+
+def correlation_figure(a, worst: list[tuple[str, str]]) -> bytes:
+    """The ``worst`` axes' autocorrelation and the first one's cross-correlation with the four
+    inputs it follows most, with the 99 % band ±2.58/√N (as MATLAB's ``resid``)."""
+    plt = _pyplot()
+
+    fig, (p1, p2) = plt.subplots(1, 2, figsize=(11, 3.2), layout="constrained")
+    lags = np.arange(a.max_lag + 1)
+    idx = [a.axes.index(w) for w in worst]
+    for k in idx:
+        p1.plot(lags[1:], a.autocorr[k, 1:], "o-", ms=3, label=a.axes[k][1])
+    p1.axhspan(-a.band, a.band, color="0.85", label="99 % band")
+    p1.set_title(f"Autocorrelation ({a.source}): whiteness", fontsize=9)
+    p1.set_xlabel(f"lag [{a.dt_s:.2g} s]")
+    p1.legend(fontsize=7)
+    w = idx[0]
+    if a.inputs:
+        xl = np.arange(-a.max_lag, a.max_lag + 1)
+        score = np.where(a._tested()[w], np.max(np.abs(a.xcorr[w]), 1), -1.0)
+        for i in np.argsort(-score)[:4]:
+            p2.plot(xl, a.xcorr[w, i], "-", label=a.inputs[i])
+        p2.axhspan(-a.band, a.band, color="0.85", label="99 % band")
+        p2.legend(fontsize=7)
+    p2.set_title(f"Cross-correlation of {a.axes[w][1]} with the inputs", fontsize=9)
+    p2.set_xlabel(f"lag [{a.dt_s:.2g} s] (positive: it follows later)")
+    return png_bytes(fig)
+
+
+def write_innovation_report(path: Path, inn, recording: Path, config: str, note: str) -> Path:
+    """The report of a moving recording: the tracker's innovations, whiteness and correlations."""
+    import base64
+    import html
+
+    imgs = []
+    for a in inn.analyses:
+        order = sorted(range(len(a.axes)), key=lambda k: -float(np.max(np.abs(a.autocorr[k, 1:]), initial=0.0)))
+        b = correlation_figure(a, [a.axes[k] for k in order[:3]])
+        imgs.append(f'<img alt="correlation" src="data:image/png;base64,{base64.b64encode(b).decode()}">')
+    fl = inn.flagged()[:8]
+    words = "; ".join(f"{html.escape(c.axis)} with {html.escape(c.input)} (r = {c.r:+.2f} at lag {c.lag:+d})"
+                      for c in fl) or "none"
+    nis = "".join(f"<tr><td>{html.escape(s)}</td><td>{m:.3g}</td><td>{k}</td><td>{n:,}</td></tr>"
+                  for s, (m, n, k) in inn.nis.items())
+    doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion diagnose (moving)</title>
+<style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}}
+table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padding:2px 6px}}img{{max-width:100%}}</style>
+</head><body><h1>armfusion diagnose: the tracker's innovations</h1>
+<p>Recording <code>{html.escape(str(recording))}</code>, config <code>{html.escape(str(config))}</code>;
+{inn.steps:,} fused instants. {html.escape(note)}.</p>
+<h2>Verdict: {html.escape(inn.verdict)}</h2>
+<p>Correlations beyond the corrected 99 % band: {words}.</p>
+{''.join(imgs)}
+<h2>Normalised innovation squared</h2>
+<table><tr><th>sensor</th><th>mean NIS</th><th>dof</th><th>samples</th></tr>{nis}</table>
+</body></html>
+"""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(doc, encoding="utf-8")
+    return path
+
+
+def _residual_of_axis(d: Diagnosis, k: int) -> np.ndarray:
+    """Axis ``k``'s residual in units of its noise σ (measured minus model)."""
+    from fusion.workbench.diagnose import predicted_and_measured
+
+    a = d.axes[k]
+    t, ym, yp, unit, ch = predicted_and_measured(d)[a.stream]
+    c = ch.index(a.axis)
+    return (ym[:, c] - yp[:, c]) / a.noise
+
+
+def write_report(path: Path, before: Diagnosis, after: Diagnosis | None, ladder: list[dict],
+                 recording: Path, config: str) -> Path:
+    """One HTML file a person reads top to bottom: verdict, ladder, ranked candidates, plots."""
+    import base64
+    import html
+
+    figs = report_figures(before, after, ladder)
+    d = after or before
+
+    def img(name: str) -> str:
+        if name not in figs:
+            return ""
+        return (f'<img alt="{name}" src="data:image/png;base64,'
+                f'{base64.b64encode(figs[name]).decode()}">')
+
+    def esc(x) -> str:
+        return html.escape(str(x))
+
+    rows = "".join(
+        f"<tr><td>{i}</td><td>{esc(c.effect)}</td><td>{esc(c.target)}</td><td>{c.delta_bic:.1f}</td>"
+        f"<td>{'' if c.rms_after is None else f'{c.rms_after:.2f}'}</td><td>{100 * c.explained:.0f} %</td>"
+        f"<td>{'yes' if c.significant else 'no'}</td>"
+        f"<td>{esc(params_words(c.params, c.units)) if c.refitted else ''}</td></tr>"
+        for i, c in enumerate(before.candidates[:10], 1))
+    axes = "".join(
+        f"<tr><td>{esc(a.axis)}</td><td>{a.rms:.3g} {esc(a.unit)}</td><td>{a.noise:.3g}</td>"
+        f"<td{' class=bad' if a.ratio > 1.1 else ''}>{a.ratio:.2f}</td>"
+        f"<td>{'—' if a.fit_percent is None else f'{a.fit_percent:.2f}'}</td></tr>" for a in d.axes)
+    best = before.candidates[0] if before.candidates and before.candidates[0].significant else None
+    why = (f"<h2>Most likely missing: {esc(best.effect)} on {esc(best.target)}</h2>"
+           f"<p>{esc(best.explanation)}</p><p><b>Evidence:</b> {esc(best.evidence)}.</p>") if best else \
+        "<p>No effect of the library is significant: nothing to add.</p>"
+    step = ""
+    if after is not None:
+        step = (f"<h2>After adding {esc(', '.join(b for b in after.effects() if b not in before.effects()))}</h2>"
+                f"<p>Residual RMS {before.rms_ratio:.2f}× → {after.rms_ratio:.2f}× the noise floor: "
+                f"<b>{esc(after.verdict)}</b>.</p>{img('after')}")
+    corr_words = ""
+    if before.analysis is not None:
+        an = before.analysis
+        fl = an.flagged()[:5]
+        corr_words = (f"Correlations beyond the 99 % band ±{an.band:.3f}, corrected for the number of "
+                      f"tests (|r| > {an.band_flag:.3f}): "
+                      + ("; ".join(f"{c.axis} with {c.input} (r = {c.r:+.2f} at lag {c.lag:+d})" for c in fl)
+                         if fl else "none: the residuals are white and follow no input") + ".")
+    doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion diagnose</title>
+<style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}}
+table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}
+td:nth-child(2),td:nth-child(3){{text-align:left}}.bad{{color:#b00;font-weight:bold}}img{{max-width:100%}}</style>
+</head><body>
+<h1>armfusion diagnose</h1>
+<p>Recording <code>{esc(recording)}</code>, config <code>{esc(config)}</code>; {d.fit.n_samples:,} fit points.</p>
+<h2>Verdict: {esc(d.verdict)}</h2>
+<p>Residual RMS {d.rms_ratio:.2f}× the sensors' noise floor (1.0: the model fits to noise).
+Model effects: {esc(', '.join(e for e in d.effects() if not e.endswith('.joint_offset')) or 'none')}.</p>
+{img('ladder')}
+{why}
+<h2>Missing effects, ranked</h2>
+<table><tr><th>#</th><th>effect</th><th>target</th><th>ΔBIC</th><th>RMS after</th><th>explains</th>
+<th>significant</th><th>estimate</th></tr>{rows}</table>
+{img('candidates')}
+{step}
+<h2>Model against measurements (the worst axes)</h2>
+{img('compare')}
+<h2>Where it fails: residuals against the inputs</h2>
+<p>{esc(corr_words)}</p>
+{img('inputs')}
+{img('correlation')}
+<h2>Residual RMS per sensor axis</h2>
+<table><tr><th>axis</th><th>RMS</th><th>noise</th><th>RMS / noise</th><th>fit %</th></tr>{axes}</table>
+</body></html>
+"""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(doc, encoding="utf-8")
+    return path

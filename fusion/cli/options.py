@@ -1,0 +1,94 @@
+"""The options that more than one ``armfusion`` command takes, each declared once here.
+
+A command names its parameter and its default; the flag, the help and the check of the
+value come from here, so that ``--seed`` or ``--robot`` means the same in every command.
+Grouped by what they are about: the arm and the output (every command), the simulated rig
+(``simulate``, ``drivers --fake``, ``fleet``, ``demo``), the recordings, and Zenoh (every
+node; see docs/service.md).
+
+The values are checked where they are parsed, before the command's work starts: a bad one
+gives the one-line ``error:`` of :func:`fusion.cli.common.fail` and exit 2.
+
+Imports typer only (``armfusion --help`` loads it): a check that needs more imports it when
+it runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from fusion.cli.common import fail
+
+
+def _positive(option: str):
+    """A callback refusing a value that is not > 0 (``None``, an option not given, passes)."""
+
+    def check(value: float | None) -> float | None:
+        if value is not None and not value > 0:
+            fail(f"{option} {value!r}: expected > 0")
+        return value
+
+    return check
+
+
+def check_robot(value: str | None) -> str | None:
+    """The callback of every ``--robot`` that names one robot: a name the key expressions take."""
+    if value is not None:
+        from fusion.service.payloads import check_name
+
+        try:
+            check_name(value, "--robot")
+        except ValueError as e:
+            fail(str(e))
+    return value
+
+
+# --- the arm, the output ---------------------------------------------------------------------
+ConfigOpt = Annotated[
+    str, typer.Option("--config", "-c", help="Arm config: a shipped name (wmra, crs_a465) or a YAML path.")
+]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON document.")]
+WriteConfigOpt = Annotated[Path | None, typer.Option(
+    "--write", help="Write the config with the (last) estimates and their σ here.")]
+
+# --- recordings --------------------------------------------------------------------------------
+RecordingArg = Annotated[Path, typer.Argument(help="Recording: .csv (shared spec) or .mcap.")]
+RecordingOutOpt = Annotated[Path, typer.Option(
+    "--out", "-o", help="Write the recording: REC.csv or REC.mcap (a simulated one also "
+    "REC.truth.json beside it).")]
+
+# --- the simulated rig -------------------------------------------------------------------------
+ScenarioOpt = Annotated[str, typer.Option(
+    "--scenario", "-s", help="The simulated motion: a scenario of models.trajectories "
+    "(`armfusion simulate --help` lists them).")]
+SeedOpt = Annotated[int, typer.Option(
+    "--seed", help="Seed: the same seed, the same motion, effects and noise.")]
+RealisticOpt = Annotated[bool, typer.Option(
+    "--realistic", help="Draw every effect on every target at datasheet-typical magnitudes (seeded).")]
+EffectOpt = Annotated[list[str] | None, typer.Option(
+    "--effect", help="NAME[:TARGET]=VALUE, vector values comma separated, in the effect's units; "
+    "repeatable (`armfusion simulate --help` lists the effects).")]
+EffectsFileOpt = Annotated[Path | None, typer.Option(
+    "--effects-file", help="Replay the effects of a REC.truth.json (or a config's effects list).")]
+NoiseOpt = Annotated[bool, typer.Option(
+    "--noise/--no-noise", help="Sensor noise (rounding and saturation always).")]
+
+# --- Zenoh: every node -------------------------------------------------------------------------
+ZenohConfigOpt = Annotated[Path | None, typer.Option(
+    "--zenoh-config", help="Zenoh JSON5 config (default: config/zenoh.json5).")]
+ListenOpt = Annotated[list[str] | None, typer.Option(
+    "--listen", help="Listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; loopback only).")]
+ConnectOpt = Annotated[list[str] | None, typer.Option(
+    "--connect", help="Endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; loopback only).")]
+ModeOpt = Annotated[str | None, typer.Option("--mode", help="peer, client or router.")]
+RobotOpt = Annotated[str, typer.Option(
+    "--robot", help="The robot's name in the key expressions (1 to 64 letters, digits, '_' or '-').",
+    callback=check_robot)]
+BatchMsOpt = Annotated[float, typer.Option(
+    "--batch-ms", help="Sample time per published batch, in ms.", callback=_positive("--batch-ms"))]
+StopAfterOpt = Annotated[float | None, typer.Option(
+    "--duration", help="Stop after this long, in s (default: at SIGINT or SIGTERM).",
+    callback=_positive("--duration"))]
