@@ -1,0 +1,155 @@
+"""Scenarios where the arm and the chair move together: ``daily-use`` (reaching while the
+chair drives, turns and takes ramps) and ``excitation`` (everything at once, for
+identification)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.arm import ArmModel
+from models.rotations import DEG
+from models.trajectories.paths import (
+    DrivingChair,
+    SinePath,
+    StepsBuilder,
+    WaypointPath,
+    min_jerk_duration,
+)
+from models.trajectories.scenario import Scenario, clip_pose, margin_limits, warm_up
+
+
+def _reach_path(arm: ArmModel, duration_s: float, rng: np.random.Generator, still_s: float,
+                home, spread_rad: float = 35 * DEG, peak_rate_rad_s: float = 25 * DEG):
+    b = StepsBuilder(home)
+    b.hold(still_s)
+    events = []
+    while b.t < duration_s:
+        b.hold(rng.uniform(2.0, 20.0))
+        t0 = b.t
+        for _ in range(rng.integers(1, 3)):  # out to one or two targets
+            target = clip_pose(arm, home + rng.normal(0, spread_rad, arm.n_joints))
+            b.move(target, min_jerk_duration(target - b.level, peak_rate_rad_s, 1.5))
+            b.hold(rng.uniform(1.0, 6.0))
+        b.move(home, min_jerk_duration(home - b.level, peak_rate_rad_s, 1.5))
+        events.append({"t_start_s": round(t0, 3), "t_end_s": round(b.t, 3), "what": "arm reaches"})
+    return WaypointPath(b.build()), events
+
+
+def _chair_path(duration_s: float, rng: np.random.Generator, still_s: float, yaw0: float):
+    """Random drives: start, cruise with turns and ramps, stop; turns on the spot; pauses."""
+    speed = StepsBuilder(0.0)
+    yaw = StepsBuilder(0.0)
+    pitch = StepsBuilder(0.0)
+    roll = StepsBuilder(0.0)
+    for ch in (speed, yaw, pitch, roll):
+        ch.hold(still_s)
+    ramp = np.arctan(1 / 12)
+    cross_slope = np.arctan(1 / 50)
+    events = []
+    t = still_s
+
+    def sync(t_):
+        for ch in (speed, yaw, pitch, roll):
+            ch.hold(t_ - ch.t)
+
+    while t < duration_s:
+        t += rng.uniform(3.0, 20.0)  # pause
+        sync(t)
+        if rng.uniform() < 0.2:  # turn on the spot
+            ang = rng.uniform(60, 180) * DEG * rng.choice([-1, 1])
+            r = 45 * DEG * np.sign(ang)
+            Tr = 0.8
+            cruise = abs(ang) / abs(r) - Tr
+            yaw.move([r], Tr).hold(cruise).move([0.0], Tr)
+            events.append({"t_start_s": round(t, 3), "t_end_s": round(yaw.t, 3),
+                           "what": f"turn on the spot {np.degrees(ang):.0f}°"})
+            t = yaw.t
+            sync(t)
+            continue
+        v = rng.uniform(0.4, 1.3)
+        acc = rng.uniform(0.4, 1.0)
+        Ta = np.sqrt(5.7735 * v / acc)  # quintic: peak acceleration 5.77·Δ/T²
+        t0 = t
+        speed.move([v], Ta)
+        t += Ta
+        sync(t)
+        what = [f"drive {v:.1f} m/s"]
+        for _ in range(rng.integers(1, 4)):  # cruise pieces: straight, a turn or a ramp
+            kind = rng.choice(["straight", "turn", "ramp", "cross"], p=[0.35, 0.35, 0.15, 0.15])
+            if kind == "straight":
+                t += rng.uniform(2.0, 10.0)
+            elif kind == "turn":
+                r_max = min(60 * DEG, 0.6 / v)
+                r = rng.uniform(0.5, 1.0) * r_max * rng.choice([-1, 1])
+                ang = rng.uniform(30, 150) * DEG
+                Tr = max(0.6, abs(r) / (90 * DEG))
+                cruise = max(0.0, ang / abs(r) - Tr)
+                yaw.move([r], Tr).hold(cruise).move([0.0], Tr)
+                what.append(f"turn {np.degrees(np.sign(r) * ang):.0f}°")
+                t = yaw.t
+            else:
+                up = rng.choice([-1, 1])
+                level = (ramp * rng.uniform(0.5, 1.0) if kind == "ramp" else cross_slope) * up
+                ch = pitch if kind == "ramp" else roll
+                Tt = max(0.6, 0.6 / v)  # the wheelbase rolls onto the slope
+                length = rng.uniform(2.0, 9.0)
+                # nose up climbing: negative pitch in R = Rz Ry Rx
+                ch.move([-level if kind == "ramp" else level], Tt).hold(length / v).move([0.0], Tt)
+                slope = f"ramp 1:{round(1 / np.tan(abs(level)))}" if kind == "ramp" else "cross-slope 1:50"
+                if kind == "ramp":
+                    way = "up" if up > 0 else "down"
+                else:
+                    way = ("right" if up > 0 else "left") + " low"
+                what.append(f"{slope} {way}")
+                t = ch.t
+            sync(t)
+        dec = rng.uniform(0.4, 1.0)
+        Td = np.sqrt(5.7735 * v / dec)
+        speed.move([0.0], Td)
+        t += Td
+        sync(t)
+        events.append({"t_start_s": round(t0, 3), "t_end_s": round(t, 3), "what": ", ".join(what)})
+    return DrivingChair(speed.build(), yaw.build(), pitch.build(), roll.build(), yaw0), events
+
+
+def daily_use(arm: ArmModel, duration_s: float, rng: np.random.Generator, still_s: float = 8.0) -> Scenario:
+    home = arm.ready_pose_rad
+    rng_arm, rng_chair = (np.random.default_rng(s) for s in rng.integers(0, 2**62, 2))
+    joints, arm_events = _reach_path(arm, duration_s, rng_arm, still_s, home)
+    chair, chair_events = _chair_path(duration_s, rng_chair, still_s, float(rng.uniform(-np.pi, np.pi)))
+    events = [{"t_start_s": 0.0, "t_end_s": still_s, "what": "still (startup)"}]
+    events += sorted(arm_events + chair_events, key=lambda e: e["t_start_s"])
+    return Scenario("daily-use", arm, duration_s, joints, chair, warm_up(),
+                    [e for e in events if e["t_start_s"] < duration_s])
+
+
+def excitation(arm: ArmModel, duration_s: float, rng: np.random.Generator, still_s: float = 2.0) -> Scenario:
+    """Everything moves: every joint sinusoidally (periods 6-25 s over ±35 % of its range),
+    the chair turning on the spot and rocking on ramps and cross slopes, temperature rising
+    fast (6 °C over the first minutes)."""
+    n = arm.n_joints
+    lo, hi = margin_limits(arm)
+    center = 0.5 * (lo + hi)
+    amp = np.minimum(0.35 * (hi - lo), np.pi / 2)
+    periods = rng.uniform(6.0, 25.0, n)
+    path = SinePath(center, amp, 1.0 / periods, rng.uniform(0, 2 * np.pi, n), still_s, 2.0)
+    yaw = StepsBuilder(0.0).hold(still_s)
+    pitch = StepsBuilder(0.0).hold(still_s)
+    roll = StepsBuilder(0.0).hold(still_s)
+    speed = StepsBuilder(0.0)
+    k = 0
+    while yaw.t < duration_s:
+        r = (35 + 10 * rng.uniform()) * DEG * (1 if k % 2 == 0 else -1)
+        yaw.move([r], 1.0).hold(rng.uniform(4.0, 10.0)).move([0.0], 1.0).hold(0.5)
+        k += 1
+    k = 0
+    while pitch.t < duration_s:
+        a = np.arctan(1 / 12) * (1 if k % 2 == 0 else -1)
+        pitch.move([a], 1.5).hold(rng.uniform(2.0, 5.0))
+        roll.hold(pitch.t - roll.t).move([np.arctan(1 / 40) * (1 if k % 3 else -1)], 1.5)
+        pitch.move([0.0], 1.5).hold(0.5)
+        k += 1
+    chair = DrivingChair(speed.build(), yaw.build(), pitch.build(), roll.build(),
+                         float(rng.uniform(-np.pi, np.pi)))
+    return Scenario("excitation", arm, duration_s, path, chair, warm_up(20.0, 6.0, 20.0),
+                    [{"t_start_s": 0.0, "t_end_s": duration_s, "what": "everything moves"}])
