@@ -1,0 +1,168 @@
+"""Which columns of a recording CSV make which stream (``shared/spec/recording-csv.md``):
+the columns a stream is written to (:func:`csv_columns`) and the streams a header holds
+(:func:`streams_from_header`), with the sensors left out because only some of their
+columns are there and the unknown columns, for the reader's one warning.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from sensors.samples import (
+    IMU_STREAMS,
+    TRUTH_BASE_COLUMNS,
+    RecordingError,
+    Stream,
+    StreamKind,
+    accel_columns,
+    clipped_repr,
+    encoder_columns,
+    truth_joint_columns,
+)
+
+T_COLUMN = "t"
+"""The time column, in seconds: the first of every recording CSV's header."""
+
+
+@dataclass(frozen=True)
+class StreamColumns:
+    """A stream found in a header: its name, kind and columns (in channel order)."""
+
+    name: str
+    kind: StreamKind
+    columns: tuple[str, ...]
+
+
+def csv_columns(stream: Stream) -> tuple[str, ...]:
+    """The CSV columns that hold ``stream``, as the spec names them.
+
+    Raises ``ValueError`` when the stream's name, kind and channels do not match a
+    column group of the format (the CSV has no other way to say what a column is).
+    """
+    k = len(stream.channels)
+    if stream.kind == "accel":
+        expected: tuple[str, ...] = accel_columns(stream.name)
+        if _is_reserved_prefix(stream.name):
+            raise ValueError(
+                f"stream {stream.name!r} (kind accel): an accelerometer name may not start "
+                "with 'imu' or 'true_' in the recording CSV"
+            )
+    elif stream.kind == "encoder":
+        expected = encoder_columns(k)
+        _expect_name(stream, "enc", expected)
+    elif stream.kind == "truth_joints":
+        expected = truth_joint_columns(k)
+        _expect_name(stream, "true_q", expected)
+    elif stream.kind == "truth_base":
+        expected = TRUTH_BASE_COLUMNS
+        _expect_name(stream, "true_base", expected)
+    else:
+        imu = {kind: (name, cols) for name, (kind, cols) in IMU_STREAMS.items()}
+        if stream.kind not in imu:
+            raise ValueError(f"stream {stream.name!r}: unknown kind {stream.kind!r}")
+        name, expected = imu[stream.kind]
+        _expect_name(stream, name, expected)
+    if tuple(stream.channels) != expected:
+        raise ValueError(
+            f"stream {stream.name!r} (kind {stream.kind}) has channels {list(stream.channels)}; "
+            f"the recording CSV names them {list(expected)}"
+        )
+    return expected
+
+
+def _expect_name(stream: Stream, name: str, expected: tuple[str, ...]) -> None:
+    if stream.name != name:
+        raise ValueError(
+            f"stream {stream.name!r} (kind {stream.kind}): the recording CSV holds this kind "
+            f"only as stream {name!r} (columns {', '.join(expected)})"
+        )
+
+
+def _is_reserved_prefix(prefix: str) -> bool:
+    return prefix == "imu" or prefix.startswith(("imu_", "true_"))
+
+
+def _contiguous(header: set[str], stem: str) -> tuple[str, ...]:
+    cols = []
+    i = 1
+    while f"{stem}{i}" in header:
+        cols.append(f"{stem}{i}")
+        i += 1
+    return tuple(cols)
+
+
+def streams_from_header(
+    header: list[str], path: Path
+) -> tuple[list[StreamColumns], list[str], list[str], list[str]]:
+    """Column groups found in ``header``, the columns used, the sensors left out because
+    only some of their columns are there (each saying what it has and what it needs),
+    and the unknown columns."""
+    present = set(header)
+    found: list[StreamColumns] = []
+    incomplete: list[str] = []
+
+    def partial(name: str, cols: tuple[str, ...]) -> None:
+        have = [c for c in cols if c in present]
+        if have and len(have) < len(cols):
+            missing = [c for c in cols if c not in present]
+            incomplete.append(f"{name} (has {', '.join(have)}; needs {', '.join(missing)} too)")
+
+    for name, (kind, cols) in IMU_STREAMS.items():
+        if all(c in present for c in cols):
+            found.append(StreamColumns(name, kind, cols))
+        partial(name, cols)
+    enc = _contiguous(present, "enc")
+    if enc:
+        found.append(StreamColumns("enc", "encoder", enc))
+    tq = _contiguous(present, "true_q")
+    if tq:
+        found.append(StreamColumns("true_q", "truth_joints", tq))
+    if all(c in present for c in TRUTH_BASE_COLUMNS):
+        found.append(StreamColumns("true_base", "truth_base", TRUTH_BASE_COLUMNS))
+    partial("true_base", TRUTH_BASE_COLUMNS)
+    taken = {c for s in found for c in s.columns} | {T_COLUMN}
+    names = {s.name for s in found}
+    imu_columns = {c for _, cols in IMU_STREAMS.values() for c in cols} | set(TRUTH_BASE_COLUMNS)
+    accel_prefixes: list[str] = []
+    for col in header:
+        if col in taken or col[-2:] not in ("_x", "_y", "_z"):
+            continue
+        prefix = col[:-2]
+        if prefix and not _is_reserved_prefix(prefix) and prefix not in accel_prefixes:
+            accel_prefixes.append(prefix)
+    for prefix in accel_prefixes:
+        cols = accel_columns(prefix)
+        if all(c in present for c in cols):
+            if prefix in names:
+                raise RecordingError(
+                    f"{path}: columns {', '.join(cols)} would make an accelerometer stream "
+                    f"{prefix!r}, which clashes with another stream of that name"
+                )
+            found.append(StreamColumns(prefix, "accel", cols))
+            names.add(prefix)
+            taken |= set(cols)
+        else:
+            partial(prefix, cols)
+    order = {c: i for i, c in enumerate(header)}
+    found.sort(key=lambda s: order[s.columns[0]])
+    unknown = []
+    for col in header:
+        if col in taken or col in imu_columns:
+            continue
+        if col[-2:] in ("_x", "_y", "_z") and col[:-2] in accel_prefixes:
+            continue  # said as an incomplete sensor
+        m = re.fullmatch(r"(enc|true_q)(\d+)", col)
+        if m:
+            incomplete.append(f"{col} ({m.group(1)}1..N must be contiguous from 1)")
+            continue
+        unknown.append(clipped_repr(col))
+    return found, sorted(taken), incomplete, unknown
+
+
+def first_few(items: list[str], first: int = 8) -> str:
+    """The first few of ``items``, and how many more (a header of 1000 unknown columns is
+    said in one line, not listed)."""
+    more = len(items) - first
+    return ", ".join(items[:first]) + (f", … and {more} more" if more > 0 else "")
