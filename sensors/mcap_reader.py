@@ -1,0 +1,286 @@
+"""Reading an armfusion MCAP file (:func:`read_mcap`), also one cut off while recording or
+damaged: up to its last complete record, saying in a :class:`ReadReport` what could not be
+read. Bounded: a chunk claiming more than the reader takes, or records that do not parse,
+are named and refused (``docs/cli.md``, "What the readers refuse").
+"""
+
+from __future__ import annotations
+
+import gc
+import io
+import json
+import struct
+import warnings
+import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lz4.frame
+import numpy as np
+import zstandard
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Metadata
+
+from sensors.mcap_format import KIND_DOC, MAGIC, METADATA_NAME, RAW_PREFIX, TRUTH_PREFIX
+from sensors.samples import RAW_KINDS, Recording, RecordingError, Stream, clipped_repr
+
+
+@dataclass(frozen=True)
+class ReadReport:
+    """How much of an MCAP file could be read.
+
+    ``complete`` is true when the file ends properly (footer and closing magic).
+    ``bytes_unread`` counts the bytes after the last record that could be read whole.
+    """
+
+    complete: bool
+    messages_read: int
+    bytes_total: int
+    bytes_unread: int
+    message: str
+    t_last_s: float | None = None
+    ignored_topics: tuple[str, ...] = ()
+
+
+_MAX_CHUNK_BYTES = 1 << 31  # a larger uncompressed size is a damaged chunk header
+_HEADER = struct.Struct("<BQ")  # opcode, body length: the framing of every record
+_MESSAGE = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+
+
+def _opcode_name(op: int) -> str:
+    try:
+        return Opcode(op).name.replace("_", " ").lower() + " record"
+    except ValueError:
+        return f"record of unknown opcode 0x{op:02x}"
+
+
+def _kb(n: int) -> str:
+    return f"{n / 1000:.1f} kB" if n >= 1000 else f"{n} byte" + ("s" if n != 1 else "")
+
+
+class _Damaged(Exception):
+    """A record that is complete but cannot be parsed."""
+
+
+def _parse_record(cls: type, body: bytes) -> Any:
+    return cls.read(ReadDataStream(io.BytesIO(body)))
+
+
+def _chunk_records(body: bytes) -> tuple[list[Channel], list[tuple[int, int, bytes]]]:
+    """Channels and messages ``(channel id, log time, data)`` of one chunk record."""
+    chunk = _parse_record(Chunk, body)
+    if chunk.uncompressed_size > _MAX_CHUNK_BYTES:
+        raise _Damaged(f"chunk claims {chunk.uncompressed_size} bytes uncompressed")
+    if chunk.compression == "zstd":
+        data = zstandard.ZstdDecompressor().decompress(
+            chunk.data, max_output_size=chunk.uncompressed_size
+        )
+    elif chunk.compression == "lz4":
+        data = lz4.frame.decompress(chunk.data)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise _Damaged(f"unknown chunk compression {chunk.compression!r}")
+    if len(data) != chunk.uncompressed_size:
+        raise _Damaged(f"chunk holds {len(data)} bytes, its header says {chunk.uncompressed_size}")
+    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise _Damaged("chunk CRC mismatch")
+    channels: list[Channel] = []
+    messages: list[tuple[int, int, bytes]] = []
+    pos, end = 0, len(data)
+    unpack_header, unpack_message = _HEADER.unpack_from, _MESSAGE.unpack_from
+    while pos < end:
+        op, length = unpack_header(data, pos)
+        body_start = pos + 9
+        pos = body_start + length
+        if pos > end:
+            raise _Damaged("a record runs past the end of its chunk")
+        if op == Opcode.MESSAGE:
+            cid, _, log_ns, _ = unpack_message(data, body_start)
+            messages.append((cid, log_ns, data[body_start + 22 : pos]))
+        elif op == Opcode.CHANNEL:
+            channels.append(_parse_record(Channel, data[body_start:pos]))
+    return channels, messages
+
+
+@contextmanager
+def _gc_paused() -> Iterator[None]:
+    """Millions of small objects (one per message) make the cyclic GC run over and
+    over for nothing; pausing it makes reading several times faster."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
+def read_mcap(path: str | Path) -> tuple[Recording, ReadReport]:
+    """Read an armfusion MCAP file: the recording and a report of what was read.
+
+    Reads the records in file order, without seeking and without trusting the summary
+    at the end, so it also reads a file whose writer was killed: every message up to
+    the last complete record is returned, and the report says where the file ends and
+    how much could not be read (the chunk being written when the file was cut is lost
+    whole; a damaged record ends the reading the same way). A file that is not MCAP
+    raises ``ValueError`` naming the path. Topics other than ``raw/*`` and
+    ``truth/*`` are counted in the report but not returned.
+    """
+    with _gc_paused():
+        return _read_mcap(Path(path))
+
+
+def _read_mcap(path: Path) -> tuple[Recording, ReadReport]:
+    size = path.stat().st_size
+    channels: dict[int, Channel] = {}
+    messages: dict[int, list[bytes]] = {}
+    meta: dict[str, str] = {}
+    n_messages = 0
+    complete = False
+    problem = ""  # where the file ends early
+    damaged = ""  # or which record could not be parsed
+    with open(path, "rb") as f:
+        head = f.read(len(MAGIC))
+        if head != MAGIC[: len(head)]:
+            raise ValueError(
+                f"{path}: not an MCAP file (it does not start with the MCAP magic bytes "
+                f"{MAGIC!r}, but with {head[:8]!r})"
+            )
+        good_end = len(head)
+        if len(head) < len(MAGIC):
+            problem = "before anything was written" if size == 0 else "inside the opening magic bytes"
+        while not (problem or damaged or complete):
+            start = good_end
+            header = f.read(9)
+            if len(header) < 9:
+                if header:
+                    problem = f"inside the header of a {_opcode_name(header[0])} at byte {start}"
+                elif start == len(MAGIC):
+                    problem = "right after the opening magic bytes"
+                else:
+                    problem = f"after the complete record that ends at byte {start}"
+                break
+            op, length = _HEADER.unpack(header)
+            what = _opcode_name(op)
+            if length > size - start - 9:
+                problem = f"inside a {what} that starts at byte {start}"
+                break
+            body = f.read(length)
+            try:
+                if op == Opcode.CHUNK:
+                    new_channels, new_messages = _chunk_records(body)
+                    for ch in new_channels:
+                        channels[ch.id] = ch
+                    for cid, _, data in new_messages:
+                        messages.setdefault(cid, []).append(data)
+                    n_messages += len(new_messages)
+                elif op == Opcode.MESSAGE:
+                    cid, _, _, _ = _MESSAGE.unpack_from(body)
+                    messages.setdefault(cid, []).append(body[22:])
+                    n_messages += 1
+                elif op == Opcode.CHANNEL:
+                    ch = _parse_record(Channel, body)
+                    channels[ch.id] = ch
+                elif op == Opcode.METADATA:
+                    m = _parse_record(Metadata, body)
+                    if m.name == METADATA_NAME:
+                        meta = dict(m.metadata)
+            except Exception as e:  # a complete but damaged record ends the reading
+                why = str(e) if isinstance(e, _Damaged) else f"{type(e).__name__}: {e}"
+                damaged = f"a damaged {what} at byte {start} ({why})"
+                break
+            good_end = start + 9 + length
+            if op == Opcode.FOOTER:
+                tail = f.read(len(MAGIC))
+                if tail == MAGIC:
+                    complete = True
+                    good_end += len(MAGIC)
+                elif MAGIC.startswith(tail):
+                    problem = f"inside the closing magic bytes at byte {good_end}"
+                else:
+                    damaged = f"damaged closing magic bytes at byte {good_end}"
+    rec, ignored, t_last = _assemble(path, channels, messages, meta)
+    unread = size - good_end
+    span = f" up to t = {t_last:.3f} s" if t_last is not None else ""
+    recovered = f"recovered {n_messages} messages{span}"
+    lost = f"the last {_kb(unread)} could not be read" if unread else "the file's summary is missing"
+    if complete:
+        text = f"{path}: complete: {n_messages} messages{span}"
+    elif damaged:
+        text = f"{path}: {damaged}: {recovered}; {lost}"
+    else:
+        text = f"{path}: file ends early at byte {size}, {problem}: {recovered}; {lost}"
+    if "chunk record" in problem + damaged:
+        text += " (the messages of that chunk are lost)"
+    return rec, ReadReport(complete, n_messages, size, unread, text, t_last, ignored)
+
+
+def _decode_samples(data: list[bytes], k: int, counts: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``t_s (N,)`` and ``values (N, k)`` of the JSON messages of one stream.
+
+    Messages exactly as this module writes them (``{"t_s":..,"values":[..]}``, no
+    spaces) are parsed as one block of numbers by numpy; anything else that is
+    valid JSON for the schema goes through ``json`` (slower).
+    """
+    n = len(data)
+    text = b"\n".join(data)
+    head, mid, tail = b'{"t_s":', b',"values":[', b"]}"
+    if all(text.count(x) == n for x in (head, mid, tail, b"{", b"[")) and text.count(b'"') == 4 * n:
+        plain = text.replace(head, b"").replace(mid, b",").replace(tail, b"").replace(b"\n", b",")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # fromstring on bad text
+            flat = np.fromstring(plain.decode("ascii"), sep=",") if n else np.zeros(0)
+        if flat.size == n * (k + 1):
+            table = flat.reshape(n, k + 1)
+            values = table[:, 1:]
+            if not counts:
+                return table[:, 0], values
+            if np.all(np.abs(values) < 2.0**53):  # every such decimal integer is exact
+                return table[:, 0], values.astype(np.int64)
+    samples = json.loads(b"[" + b",".join(data) + b"]")
+    t_s = np.array([m["t_s"] for m in samples], dtype=np.float64)
+    return t_s, np.array([m["values"] for m in samples]).reshape(n, k)
+
+
+def _assemble(
+    path: Path, channels: dict[int, Channel], messages: dict[int, list[bytes]], meta: dict[str, str]
+) -> tuple[Recording, tuple[str, ...], float | None]:
+    streams: dict[str, Stream] = {}
+    ignored: list[str] = []
+    t_last: float | None = None
+    for cid, ch in channels.items():
+        kind = ch.metadata.get("kind", "")
+        is_stream = ch.topic.startswith((RAW_PREFIX, TRUTH_PREFIX)) and kind in KIND_DOC
+        data = messages.get(cid, [])
+        if not is_stream:
+            ignored.append(ch.topic)
+            continue
+        name = ch.metadata.get("stream") or ch.topic.split("/", 1)[1]
+        try:
+            names = tuple(json.loads(ch.metadata.get("channels", "[]")))
+            t_s, values = _decode_samples(data, len(names), kind in RAW_KINDS)
+            stream = Stream(name, kind, t_s, values, names)  # type: ignore[arg-type]
+        except (ValueError, KeyError, TypeError, OverflowError, RecursionError) as e:
+            # (a count beyond 64 bits, JSON nested past the recursion limit...): named, short
+            raise RecordingError(
+                f"{path}: topic {clipped_repr(ch.topic)}: messages do not fit the stream: "
+                f"{clipped_repr(f'{type(e).__name__}: {e}', 120)[1:-1]}"
+            ) from None
+        streams[name] = stream
+        if len(stream):
+            t_last = stream.t_s[-1] if t_last is None else max(t_last, float(stream.t_s[-1]))
+    rec_meta: dict[str, Any] = {"source": str(path)}
+    if meta:
+        rec_meta["arm_config"] = meta.get("arm_config", "")
+        rec_meta["armfusion_version"] = meta.get("armfusion_version", "")
+        try:
+            rec_meta["t_offset_ns"] = int(meta.get("t_offset_ns", "0")[:24])
+        except ValueError:
+            raise RecordingError(f"{path}: the armfusion metadata's t_offset_ns is not an "
+                                 f"integer: {clipped_repr(meta.get('t_offset_ns'))}") from None
+    return Recording(streams, rec_meta), tuple(ignored), (None if t_last is None else float(t_last))
