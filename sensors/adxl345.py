@@ -42,9 +42,7 @@ from sensors.bus import (
     DEFAULT_RETRY,
     BusError,
     DeviceConfigError,
-    DeviceHealth,
     DeviceNotFoundError,
-    I2CRegisters,
     RecoveryPolicy,
     RegisterTransport,
     RetryPolicy,
@@ -52,10 +50,9 @@ from sensors.bus import (
     SpiDevLike,
     SpiRegisters,
     Status,
-    Supervisor,
-    open_smbus,
     s16_le,
 )
+from sensors.device import SupervisedDevice, check_identity, check_read_back
 from sensors.samples import Stream, accel_columns
 
 # registers
@@ -211,7 +208,7 @@ class SelfTestResult:
     message: str
 
 
-class ADXL345:
+class ADXL345(SupervisedDevice):
     """ADXL345 driver. Build with :meth:`i2c` / :meth:`spi`, then :meth:`init`.
 
     ``clock`` stamps samples and drives timeouts (default ``time.monotonic``);
@@ -229,15 +226,8 @@ class ADXL345:
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
     ):
-        self.transport = transport
+        super().__init__(transport, name, retry=retry, recovery=recovery, clock=clock, sleep=sleep)
         self.config = config
-        self.name = name
-        self._clock = clock
-        self._sleep = sleep
-        self._sup = Supervisor(
-            name, transport.where, retry=retry, recovery=recovery, clock=clock, sleep=sleep
-        )
-        self._initialised_once = False
         self._expected_format = config.data_format
         self._expected_fifo_ctl = config.fifo_ctl
         self._last_fresh_s = 0.0
@@ -263,10 +253,7 @@ class ADXL345:
             raise ValueError(
                 f"an ADXL345 answers at 0x53 (ALT ADDRESS low) or 0x1D (high), not 0x{address:02X}"
             )
-        owns = smbus is None
-        if smbus is None:
-            smbus = open_smbus(bus_number)
-        return cls(I2CRegisters(smbus, address, bus_number, owns_bus=owns), **kwargs)
+        return cls(cls._i2c_transport(bus_number, address, smbus), **kwargs)
 
     @classmethod
     def spi(
@@ -319,36 +306,11 @@ class ADXL345:
         self._initialised_once = True
         self._sup.init_succeeded(first=first)
 
-    def close(self) -> None:
-        self.transport.close()
-
-    def __enter__(self) -> ADXL345:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def health(self) -> DeviceHealth:
-        return self._sup.health()
-
-    @property
-    def online(self) -> bool:
-        return self._sup.online
-
     def _identify(self) -> None:
-        where = self.transport.where
-        try:
-            devid = self._sup.call(self.transport.read, DEVID, 1)[0]
-        except BusError as e:
-            raise DeviceNotFoundError(f"no ADXL345 on {where}: {e.__cause__}") from e
-        if devid != DEVID_VALUE:
-            hint = ""
-            if isinstance(self.transport, SpiRegisters):
-                hint = " (check wiring, chip select, SPI mode 3 and clock <= 5 MHz)"
-            raise DeviceNotFoundError(
-                f"no ADXL345 on {where}: DEVID read 0x{devid:02X}, expected 0x{DEVID_VALUE:02X}"
-                f"{hint}"
-            )
+        hint = ""
+        if isinstance(self.transport, SpiRegisters):
+            hint = " (check wiring, chip select, SPI mode 3 and clock <= 5 MHz)"
+        check_identity(self._sup, self.transport, "ADXL345", DEVID, "DEVID", DEVID_VALUE, hint)
 
     def _write(self, register: int, value: int) -> None:
         self._sup.call(self.transport.write, register, value)
@@ -377,32 +339,15 @@ class ADXL345:
             fifo_back = self._sup.call(self.transport.read, FIFO_CTL, 1)[0]
         except BusError as e:
             raise DeviceConfigError(f"ADXL345 on {self.transport.where}: {e.__cause__}") from e
-        for reg, name, want, got in (
+        check_read_back("ADXL345", self.transport.where, (
             (BW_RATE, "BW_RATE", bw_rate, back[0]),
             (POWER_CTL, "POWER_CTL", MEASURE, back[1]),
             (DATA_FORMAT, "DATA_FORMAT", data_format, back[5]),
             (FIFO_CTL, "FIFO_CTL", fifo_ctl, fifo_back),
-        ):
-            if want != got:
-                raise DeviceConfigError(
-                    f"ADXL345 on {self.transport.where}: {name} (0x{reg:02X}) read back "
-                    f"0x{got:02X} after writing 0x{want:02X}"
-                )
+        ))
         self._expected_format = data_format
         self._expected_fifo_ctl = fifo_ctl
         self._last_fresh_s = self._clock()
-
-    def _reinit_if_due(self) -> bool:
-        """True when the device is online (possibly just re-initialised)."""
-        if self._sup.online:
-            return True
-        if not self._sup.reinit_due():
-            return False
-        try:
-            self.init()
-        except (DeviceNotFoundError, DeviceConfigError):
-            return False
-        return True
 
     # reading ------------------------------------------------------------------------
 
@@ -410,18 +355,13 @@ class ADXL345:
         """The newest sample (FIFO bypass). Never raises on bus or device faults."""
         if self.config.fifo:
             raise RuntimeError(f"{self.name}: configured with fifo=True, use read_fifo()")
-        sup = self._sup
-        sup.count("reads")
-        if not self._reinit_if_due():
-            sup.count("invalid")
+        if not self._read_begins():
             return AccelSample(self._clock(), None, Status.OFFLINE)
         t = self._clock()
         try:
-            raw = sup.call(self.transport.read, INT_SOURCE, 8)
+            raw = self._sup.call(self.transport.read, INT_SOURCE, 8)
         except BusError as e:
-            sup.count("invalid")
-            sup.failed_read(str(e))
-            return AccelSample(t, None, Status.BUS_ERROR)
+            return self._bus_error(t, e)
         if raw[1] != self._expected_format:
             return self._bad_data(t, f"DATA_FORMAT read 0x{raw[1]:02X}, expected "
                                      f"0x{self._expected_format:02X}")
@@ -440,18 +380,14 @@ class ADXL345:
         """
         if not self.config.fifo:
             raise RuntimeError(f"{self.name}: configured with fifo=False, use read()")
-        sup = self._sup
-        sup.count("reads")
-        if not self._reinit_if_due():
-            sup.count("invalid")
+        if not self._read_begins():
             return [AccelSample(self._clock(), None, Status.OFFLINE)]
+        sup = self._sup
         t = self._clock()
         try:
             ctl, status = sup.call(self.transport.read, FIFO_CTL, 2)
         except BusError as e:
-            sup.count("invalid")
-            sup.failed_read(str(e))
-            return [AccelSample(t, None, Status.BUS_ERROR)]
+            return [self._bus_error(t, e)]
         entries = status & 0x3F
         if ctl != self._expected_fifo_ctl or entries > FIFO_DEPTH + 1:
             return [self._bad_data(t, f"FIFO_CTL read 0x{ctl:02X}, expected "
@@ -468,9 +404,7 @@ class ADXL345:
             try:
                 b = sup.call(self.transport.read, DATAX0, 6)
             except BusError as e:
-                sup.count("invalid")
-                sup.failed_read(str(e))
-                out.append(AccelSample(t, None, Status.BUS_ERROR))
+                out.append(self._bus_error(t, e))
                 break
             counts = (s16_le(b[0], b[1]), s16_le(b[2], b[3]), s16_le(b[4], b[5]))
             ti = max(t - (entries - 1 - i) * period, self._last_t_s + 1e-6)
@@ -491,6 +425,11 @@ class ADXL345:
         self._last_fresh_s = t
         self._last_t_s = t
         return AccelSample(t, counts, Status.OK, overrun)
+
+    def _bus_error(self, t: float, e: BusError) -> AccelSample:
+        self._sup.count("invalid")
+        self._sup.failed_read(str(e))
+        return AccelSample(t, None, Status.BUS_ERROR)
 
     def _no_new_data(self, t: float) -> AccelSample:
         sup = self._sup

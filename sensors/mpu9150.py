@@ -58,10 +58,10 @@ from sensors.bus import (
     Status,
     Supervisor,
     hexbytes,
-    open_smbus,
     s16_be,
     s16_le,
 )
+from sensors.device import SupervisedDevice, check_identity, check_read_back
 from sensors.samples import IMU_STREAMS, Stream
 
 # MPU-9150 registers
@@ -178,7 +178,7 @@ class ImuSample:
         return self.mag_status is Status.OK
 
 
-class MPU9150:
+class MPU9150(SupervisedDevice):
     """MPU-9150 + AK8975 driver. Build with :meth:`i2c`, then :meth:`init`."""
 
     def __init__(
@@ -193,21 +193,14 @@ class MPU9150:
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
     ):
-        self.transport = transport
+        super().__init__(transport, name, retry=retry, recovery=recovery, clock=clock, sleep=sleep)
         self.mag_transport = transport.sibling(mag_address)
         self.mag_transport.where += f" (AK8975 behind the MPU-9150 at 0x{transport.address:02X})"
         self.config = config
-        self.name = name
-        self._clock = clock
-        self._sleep = sleep
-        self._sup = Supervisor(
-            name, transport.where, retry=retry, recovery=recovery, clock=clock, sleep=sleep
-        )
         self._mag_sup = Supervisor(
             f"{name}.mag", self.mag_transport.where,
             retry=retry, recovery=recovery, clock=clock, sleep=sleep,
         )
-        self._initialised_once = False
         self._mag_initialised_once = False
         self._asa: tuple[int, int, int] | None = None
         self._mag_trigger_t: float | None = None
@@ -223,10 +216,7 @@ class MPU9150:
             raise ValueError(
                 f"an MPU-9150 answers at 0x68 (AD0 low) or 0x69 (AD0 high), not 0x{address:02X}"
             )
-        owns = smbus is None
-        if smbus is None:
-            smbus = open_smbus(bus_number)
-        return cls(I2CRegisters(smbus, address, bus_number, owns_bus=owns), **kwargs)
+        return cls(cls._i2c_transport(bus_number, address, smbus), **kwargs)
 
     # lifecycle ----------------------------------------------------------------------
 
@@ -235,24 +225,8 @@ class MPU9150:
         """The AK8975 fuse-ROM sensitivity adjustment values read at init."""
         return self._asa
 
-    @property
-    def online(self) -> bool:
-        return self._sup.online
-
-    def health(self) -> DeviceHealth:
-        return self._sup.health()
-
     def mag_health(self) -> DeviceHealth:
         return self._mag_sup.health()
-
-    def close(self) -> None:
-        self.transport.close()
-
-    def __enter__(self) -> MPU9150:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def init(self) -> None:
         """Identify, reset and configure the MPU-9150, then the AK8975 behind it.
@@ -287,15 +261,7 @@ class MPU9150:
 
     def _init_mpu(self) -> None:
         t, sup, c = self.transport, self._sup, self.config
-        try:
-            who = sup.call(t.read, WHO_AM_I, 1)[0]
-        except BusError as e:
-            raise DeviceNotFoundError(f"no MPU-9150 on {t.where}: {e.__cause__}") from e
-        if who != WHO_AM_I_VALUE:
-            raise DeviceNotFoundError(
-                f"no MPU-9150 on {t.where}: WHO_AM_I read 0x{who:02X}, "
-                f"expected 0x{WHO_AM_I_VALUE:02X}"
-            )
+        check_identity(sup, t, "MPU-9150", WHO_AM_I, "WHO_AM_I", WHO_AM_I_VALUE)
         expected = (
             (SMPLRT_DIV, "SMPLRT_DIV", c.smplrt_div),
             (CONFIG, "CONFIG", c.dlpf_cfg),
@@ -318,25 +284,14 @@ class MPU9150:
             raise DeviceConfigError(f"MPU-9150 on {t.where}: {e.__cause__}") from e
         got = {SMPLRT_DIV: back[0], CONFIG: back[1], GYRO_CONFIG: back[2],
                ACCEL_CONFIG: back[3], USER_CTRL: pwr[0], INT_PIN_CFG: pin}
-        for reg, name, value in expected + ((PWR_MGMT_1, "PWR_MGMT_1", CLKSEL_PLL_XGYRO),):
-            have = pwr[1] if reg == PWR_MGMT_1 else got[reg]
-            if have != value:
-                raise DeviceConfigError(
-                    f"MPU-9150 on {t.where}: {name} (0x{reg:02X}) read back 0x{have:02X} "
-                    f"after writing 0x{value:02X}"
-                )
+        check_read_back("MPU-9150", t.where, (
+            (reg, name, value, pwr[1] if reg == PWR_MGMT_1 else got[reg])
+            for reg, name, value in expected + ((PWR_MGMT_1, "PWR_MGMT_1", CLKSEL_PLL_XGYRO),)))
 
     def _init_mag(self) -> None:
         t, sup = self.mag_transport, self._mag_sup
         self._mag_trigger_t = None
-        try:
-            wia = sup.call(t.read, WIA, 1)[0]
-        except BusError as e:
-            raise DeviceNotFoundError(f"no AK8975 on {t.where}: {e.__cause__}") from e
-        if wia != WIA_VALUE:
-            raise DeviceNotFoundError(
-                f"no AK8975 on {t.where}: WIA read 0x{wia:02X}, expected 0x{WIA_VALUE:02X}"
-            )
+        check_identity(sup, t, "AK8975", WIA, "WIA", WIA_VALUE)
         try:
             self._write(sup, t, CNTL, MODE_POWER_DOWN)
             self._sleep(T_MODE_WAIT_S)
@@ -354,26 +309,13 @@ class MPU9150:
         self._asa = asa  # type: ignore[assignment]
         self._asa_factor = np.array([asa_factor(a) for a in asa])
 
-    def _reinit_if_due(self) -> bool:
-        if self._sup.online:
-            return True
-        if not self._sup.reinit_due():
-            return False
-        try:
-            self.init()
-        except (DeviceNotFoundError, DeviceConfigError):
-            return False
-        return True
-
     # reading ------------------------------------------------------------------------
 
     def read(self) -> ImuSample:
         """One 14-byte burst (accel, temp, gyro) plus the magnetometer step. Never raises."""
         sup = self._sup
-        sup.count("reads")
         mag_off = Status.OFFLINE if self.config.magnetometer else Status.DISABLED
-        if not self._reinit_if_due():
-            sup.count("invalid")
+        if not self._read_begins():
             return ImuSample(self._clock(), Status.OFFLINE, mag_status=mag_off)
         self._reads_since_check += 1
         if self._reads_since_check >= self.config.health_check_every:
