@@ -12,16 +12,90 @@ import numpy as np
 import pytest
 
 from fusion.startup.kernels import augmented
-from fusion.startup.solve import (
-    StillReadings,
-    _batched_lm,
-    _batched_lm_numpy,
-    _make_problem,
-)
+from fusion.startup.problem import batched_lm, make_problem
+from fusion.startup.readings import StillReadings
 from models.kinematics import gravity_in_sensors
 from models.rotations import DEG, up_from_tilt
 
 Q_DEG = np.array([30.0, 40.0, 20.0, -50.0, 60.0, 30.0, 100.0])
+
+
+def _normal_matrices(problem, x, active, use_imu):
+    """``[r J]^T [r J]`` for states ``x (B, n+2)``: ``(B, n+3, n+3)``, with ``r . r`` at
+    [0, 0], ``J^T r`` down the rest of column 0 and ``J^T J`` below right; all LM needs."""
+    r, J = problem.residuals_and_jacobian(x, active, use_imu)
+    rJ = np.concatenate([r[..., None], J], -1)
+    return np.swapaxes(rJ, 1, 2) @ rJ
+
+
+def batched_lm_numpy(problem, x0: np.ndarray, free: np.ndarray, iters,
+                     active: np.ndarray | None = None, use_imu: bool = True,
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt on every start at once (the NumPy form of the compiled
+    :func:`fusion.startup.problem.batched_lm`, the reference it is held to).
+    ``free`` selects the unknowns: ``(n+2,)`` for all starts, or ``(B, n+2)`` per start (a
+    held unknown keeps its start value). ``iters``: the most iterations, for all starts or
+    ``(B,)`` per start.
+
+    Each start stops on its own once it has converged (its next step below 1e-7 rad, not
+    taken, or its damping past 1e8: no step lowers the cost) or used its iterations; the
+    others go on without it. Returns the solutions and their final cost (half sum of
+    squared weighted residuals).
+    """
+    x = np.array(x0, float)
+    B, p = x.shape
+    held_mask = ~np.broadcast_to(np.asarray(free, bool), (B, p))
+    masked = bool(held_mask.any())
+    iters_left = np.broadcast_to(np.asarray(iters), (B,)).astype(int)
+    N = _normal_matrices(problem, x, active, use_imu)  # (B, 1 + p, 1 + p): r.r, J^T r, J^T J
+    cost = 0.5 * N[:, 0, 0]
+    # the starts still iterating, packed: their rows in x, their state
+    rows = np.flatnonzero(iters_left > 0)
+    xa, Na, ca = x[rows], N[rows], cost[rows]
+    lam = np.full(len(rows), 1e-3)
+    free_f = (~held_mask[rows]).astype(float)
+    held_f = held_mask[rows].astype(float)
+    left = iters_left[rows]
+    while len(rows):
+        if masked:  # a held unknown's column is zero: it takes no step
+            A = Na[:, 1:, 1:] * free_f[:, :, None] * free_f[:, None, :]
+            g = Na[:, 1:, :1] * free_f[:, :, None]
+        else:
+            A = Na[:, 1:, 1:].copy()
+            g = Na[:, 1:, :1]
+        diag = A.reshape(len(A), p * p)[:, :: p + 1]  # a view: damping in place
+        diag += lam[:, None] * (diag + 1e-9)
+        if masked:
+            diag += held_f
+        step = -np.linalg.solve(A, g)[..., 0]
+        # 1e-7 rad is a thousandth of the smallest sigma these sensors give: converged
+        # (that last step is not taken: it could not change anything that is reported)
+        done = np.abs(step).max(1) < 1e-7
+        if done.any():
+            x[rows[done]], cost[rows[done]] = xa[done], ca[done]
+            go = ~done
+            rows, xa, Na, ca, lam, step = rows[go], xa[go], Na[go], ca[go], lam[go], step[go]
+            free_f, held_f, left = free_f[go], held_f[go], left[go]
+            if not len(rows):
+                break
+        xt = xa + step
+        Nt = _normal_matrices(problem, xt, active, use_imu)
+        ct = 0.5 * Nt[:, 0, 0]
+        better = ct < ca
+        if better.all():
+            xa, Na, ca = xt, Nt, ct
+        elif better.any():
+            xa, Na, ca = (np.where(better[:, None], xt, xa), np.where(better[:, None, None], Nt, Na),
+                          np.where(better, ct, ca))
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+        left = left - 1
+        done = (lam > 1e8) | (left <= 0)  # no step lowers the cost, or no iteration left
+        if done.any():
+            x[rows[done]], cost[rows[done]] = xa[done], ca[done]
+            go = ~done
+            rows, xa, Na, ca, lam = rows[go], xa[go], Na[go], ca[go], lam[go]
+            free_f, held_f, left = free_f[go], held_f[go], left[go]
+    return x, cost
 
 
 def _readings(arm, seed: int, imu: bool = True) -> StillReadings:
@@ -44,7 +118,7 @@ def _layouts(n_sensors: int):
 
 @pytest.fixture(scope="module", params=[True, False], ids=["imu", "no-imu"])
 def problem(wmra, request):
-    return _make_problem(wmra, _readings(wmra, 11, imu=request.param))
+    return make_problem(wmra, _readings(wmra, 11, imu=request.param))
 
 
 def test_evaluation_equals_the_numpy_form(problem):
@@ -79,8 +153,8 @@ def test_levenberg_marquardt_equals_the_numpy_form(problem, spread, atol):
     iters = np.array([30, 30, 30, 12, 12, 12, 5, 5, 3, 2, 1, 0])
     first = iters <= 3
     for active, use_imu in _layouts(len(problem.names)):
-        x, cost = _batched_lm(problem, x0, free, iters, active, use_imu)
-        x_ref, cost_ref = _batched_lm_numpy(problem, x0, free, iters, active, use_imu)
+        x, cost = batched_lm(problem, x0, free, iters, active, use_imu)
+        x_ref, cost_ref = batched_lm_numpy(problem, x0, free, iters, active, use_imu)
         np.testing.assert_allclose(x, x_ref, rtol=0, atol=atol)
         np.testing.assert_allclose(cost, cost_ref, rtol=atol, atol=1e-12)
         np.testing.assert_allclose(x[first], x_ref[first], rtol=0, atol=1e-12)
@@ -88,7 +162,7 @@ def test_levenberg_marquardt_equals_the_numpy_form(problem, spread, atol):
         assert np.all(x[~free] == x0[~free])  # a held unknown keeps its start value
         assert np.array_equal(x[-1], x0[-1])  # no iteration: the start itself
     # every start free, one iteration limit for all (the joint solve's first batch)
-    x, cost = _batched_lm(problem, x0, np.ones(n + 2, bool), 30)
-    x_ref, cost_ref = _batched_lm_numpy(problem, x0, np.ones(n + 2, bool), 30)
+    x, cost = batched_lm(problem, x0, np.ones(n + 2, bool), 30)
+    x_ref, cost_ref = batched_lm_numpy(problem, x0, np.ones(n + 2, bool), 30)
     np.testing.assert_allclose(x, x_ref, rtol=0, atol=atol)
     np.testing.assert_allclose(cost, cost_ref, rtol=atol, atol=1e-12)
