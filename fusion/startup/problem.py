@@ -3,23 +3,41 @@
 :class:`StillWindowProblem` holds the measured directions of gravity and their sigmas; its
 unknowns are every joint angle, then the base roll and pitch (``x (B, n + 2)``). It gives
 weighted residuals and their Jacobian for any batch of states, and the layout of one kind
-of solve (which sensors, with or without the base accelerometer) as the compiled kernels
-take it (:mod:`fusion.startup.kernels`). :func:`batched_lm` polishes many starts at once;
+of solve (which sensors, with or without the base accelerometer: :class:`SolveLayout`) as
+the compiled kernels take it (:mod:`fusion.startup.kernels`, on the gravity chain's core
+:mod:`models.gravity_kernels`). :func:`batched_lm` polishes many starts at once;
 :func:`expected_covariance` and :func:`axis_to_vertical` read a state's geometry.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
-from fusion.startup.kernels import lm_solve
+from fusion.startup.kernels import augmented, lm_solve
 from fusion.startup.readings import StillReadings
 from fusion.startup.results import StartupInputError
 from models.arm import ArmModel
 from models.kinematics import gravity_chain
 from models.rotations import DEG, up_from_tilt
+
+
+class SolveLayout(NamedTuple):
+    """The chain and the rows of one kind of solve, as the compiled kernels take them
+    (:mod:`fusion.startup.kernels`; passed as ``*layout``)."""
+
+    step_in: np.ndarray  # (n, 3, 3) the gravity chain's constant steps
+    offset: np.ndarray  # (n,) rad, the joints' zero offsets
+    read_W: np.ndarray  # (R, 3, 3) each row block's read-out, weighted and negated
+    read_row: np.ndarray  # (R,) its first row
+    read_link: np.ndarray  # (R,) the link it reads (V after joint link - 1)
+    meas_w: np.ndarray  # (m,) measured / sigma; 0 on the tilt prior's rows
+    n_sensor_rows: int  # the link accelerometers' rows
+    imu: bool  # the base accelerometer's rows follow (else the level-chair prior's two)
+    tilt_prior: float  # rad, the level-chair prior's sigma
+    last: int  # the last joint any row needs
 
 
 @dataclass
@@ -40,14 +58,14 @@ class StillWindowProblem:
         # every row's read-out, weighted and negated: rows = -(D_s v) / sigma = r - meas / sigma
         self._read_w = -self._chain.read_out / self.sigma[:, :, None]  # (S, 3, 3)
         self._layouts: dict = {}
-        self._kernel_layouts: dict = {}
 
     @property
     def n(self) -> int:
         return self.arm.n_joints
 
-    def _layout(self, active: np.ndarray | None, use_imu: bool):
-        """Rows of one kind of solve: the sensors used, the IMU or the level-chair prior."""
+    def layout(self, active: np.ndarray | None, use_imu: bool) -> SolveLayout:
+        """The rows of one kind of solve (the sensors used, the IMU or the level-chair
+        prior), built once."""
         key = (None if active is None else np.asarray(active, bool).tobytes(), use_imu)
         hit = self._layouts.get(key)
         if hit is None:
@@ -62,26 +80,16 @@ class StillWindowProblem:
                 meas_w[3 * len(used):] = self.imu_meas / self.imu_sigma
                 reads.append((3 * len(used), 0, -self.R_0I.T / self.imu_sigma[:, None]))
             last = max([k for _, k, _ in reads], default=0) - 1  # the last joint any row needs
-            hit = (m, meas_w, reads, imu, 3 * len(used), last)
-            # the same, as the compiled kernels take it (fusion.startup.kernels)
-            kern = (np.ascontiguousarray(np.stack([W for _, _, W in reads]) if reads
-                                         else np.zeros((0, 3, 3))),
-                    np.array([row for row, _, _ in reads], dtype=np.int64),
-                    np.array([k for _, k, _ in reads], dtype=np.int64),
-                    np.ascontiguousarray(meas_w), int(3 * len(used)), bool(imu),
-                    float(self.tilt_prior_rad), int(last))
-            self._kernel_layouts[key] = (self._chain.step_in, np.ascontiguousarray(
-                self._chain.offset_rad, dtype=float)) + kern
+            hit = SolveLayout(
+                self._chain.step_in, np.ascontiguousarray(self._chain.offset_rad, dtype=float),
+                np.ascontiguousarray(np.stack([W for _, _, W in reads]) if reads
+                                     else np.zeros((0, 3, 3))),
+                np.array([row for row, _, _ in reads], dtype=np.int64),
+                np.array([k for _, k, _ in reads], dtype=np.int64),
+                np.ascontiguousarray(meas_w), int(3 * len(used)), bool(imu),
+                float(self.tilt_prior_rad), int(last))
             self._layouts[key] = hit
         return hit
-
-    def kernel_layout(self, active: np.ndarray | None, use_imu: bool) -> tuple:
-        """The chain and the rows of one kind of solve as :mod:`fusion.startup.kernels` takes
-        them: ``(step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_rows, imu,
-        tilt_prior, last)``."""
-        self._layout(active, use_imu)
-        return self._kernel_layouts[(None if active is None else np.asarray(active, bool).tobytes(),
-                                     use_imu)]
 
     def residuals_and_jacobian(self, x: np.ndarray, active: np.ndarray | None = None,
                                use_imu: bool = True):
@@ -90,44 +98,11 @@ class StillWindowProblem:
         ``active`` (S,) bool selects the sensors used (sequential solves); ``use_imu=False``
         leaves the base accelerometer out (the level-chair prior takes its place).
         Rows: 3 per sensor used (in config order), then the IMU's 3 or the prior's 2.
+        Computed by the compiled kernel the Levenberg-Marquardt runs on
+        (:func:`fusion.startup.kernels.augmented`).
         """
-        rJ = self._augmented(x, active, use_imu)
+        rJ = augmented(np.ascontiguousarray(x, dtype=float), *self.layout(active, use_imu))
         return rJ[:, :, 0], rJ[:, :, 1:]
-
-    def _augmented(self, x: np.ndarray, active: np.ndarray | None, use_imu: bool) -> np.ndarray:
-        """Residuals and Jacobian side by side: ``(B, m, 1 + n + 2)``."""
-        n = self.n
-        B = x.shape[0]
-        m, meas_w, reads, imu, n_sensor_rows, last = self._layout(active, use_imu)
-        seed = _up_and_tilt_jacobian(x[:, n], x[:, n + 1])  # (B, 3, 3)
-        after = self._chain.propagate(x[:, :n], seed, upto_joint=last)
-        out = np.empty((B, m, n + 3))  # column 0: the residual's model part; then d/dx
-        for row, k, W in reads:
-            np.matmul(W, after[k], out=out[:, row:row + 3])
-        if not imu:  # no base accelerometer: all we know is that a wheelchair stands roughly level
-            prior = out[:, n_sensor_rows:]
-            prior[:] = 0.0
-            prior[:, :, 0] = x[:, n:] / self.tilt_prior_rad
-            prior[:, 0, n + 1] = prior[:, 1, n + 2] = 1.0 / self.tilt_prior_rad
-        out[:, :, 0] += meas_w
-        return out
-
-
-def _up_and_tilt_jacobian(roll, pitch) -> np.ndarray:
-    """``[up, d up / d roll, d up / d pitch]`` as the columns of ``(B, 3, 3)``."""
-    sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
-    srcp, crcp = sr * cp, cr * cp
-    out = np.empty((len(sr), 3, 3))
-    out[:, 0, 0] = -sp
-    out[:, 1, 0] = srcp
-    out[:, 2, 0] = crcp
-    out[:, 0, 1] = 0.0
-    out[:, 1, 1] = crcp
-    out[:, 2, 1] = -srcp
-    out[:, 0, 2] = -cp
-    out[:, 1, 2] = -sr * sp
-    out[:, 2, 2] = -cr * sp
-    return out
 
 
 def batched_lm(problem: StillWindowProblem, x0: np.ndarray, free: np.ndarray, iters,
@@ -140,7 +115,7 @@ def batched_lm(problem: StillWindowProblem, x0: np.ndarray, free: np.ndarray, it
     B, p = x.shape
     free_f = np.array(np.broadcast_to(np.asarray(free, bool), (B, p)), dtype=float, order="C")
     left = np.array(np.broadcast_to(np.asarray(iters), (B,)), dtype=np.int64, order="C")
-    return lm_solve(x, free_f, left, *problem.kernel_layout(active, use_imu))
+    return lm_solve(x, free_f, left, *problem.layout(active, use_imu))
 
 
 def expected_covariance(problem: StillWindowProblem, x: np.ndarray) -> np.ndarray:

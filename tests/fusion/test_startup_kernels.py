@@ -1,10 +1,12 @@
-"""The compiled startup kernels equal their NumPy forms on the same inputs.
+"""The compiled startup kernels equal their references on the same inputs.
 
 (What the solve gives is tested in tests/fusion/test_startup.py; here, that the compiled
-evaluation and Levenberg-Marquardt agree with ``_Problem._augmented`` and
-``_batched_lm_numpy`` for every kind of solve the startup runs: all sensors with the base
-accelerometer, without it (the level-chair prior's rows), one sensor at a time as the
-thesis's method does, the base accelerometer alone, and readings with no IMU at all.)"""
+evaluation agrees with the frames of the whole chain (``models.kinematics.gravity_jacobian``)
+and the compiled Levenberg-Marquardt with its NumPy form, ``batched_lm_numpy`` below (the
+reference; it left the production module), for every kind of solve the startup runs: all
+sensors with the base accelerometer, without it (the level-chair prior's rows), one sensor
+at a time as the thesis's method does, the base accelerometer alone, and readings with no
+IMU at all.)"""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ import pytest
 from fusion.startup.kernels import augmented
 from fusion.startup.problem import batched_lm, make_problem
 from fusion.startup.readings import StillReadings
-from models.kinematics import gravity_in_sensors
+from models.kinematics import gravity_in_sensors, gravity_jacobian
 from models.rotations import DEG, up_from_tilt
 
 Q_DEG = np.array([30.0, 40.0, 20.0, -50.0, 60.0, 30.0, 100.0])
@@ -121,17 +123,53 @@ def problem(wmra, request):
     return make_problem(wmra, _readings(wmra, 11, imu=request.param))
 
 
-def test_evaluation_equals_the_numpy_form(problem):
+def _frames_reference(problem, X, active, use_imu):
+    """The weighted residuals and Jacobian of states ``X`` from the frames of the whole
+    chain (:func:`models.kinematics.gravity_jacobian`; the tilt's columns by central
+    differences of up), rows as the solve lays them out."""
+    n = problem.n
+    used = np.arange(len(problem.names)) if active is None else np.flatnonzero(active)
+    names = [problem.names[s] for s in used]
+    rows_r, rows_J = [], []
+    for x in X:
+        up = up_from_tilt(x[n], x[n + 1])
+        h = 1e-6
+        d_up = np.stack([(up_from_tilt(x[n] + h, x[n + 1]) - up_from_tilt(x[n] - h, x[n + 1])) / (2 * h),
+                         (up_from_tilt(x[n], x[n + 1] + h) - up_from_tilt(x[n], x[n + 1] - h)) / (2 * h)], 1)
+        if names:
+            f, J, R_0S = gravity_jacobian(problem.arm, x[None, :n], up, names, with_frames=True)
+        r, Jx = [], []
+        for i, s in enumerate(used):
+            r.append((problem.meas[s] - f[0, i]) / problem.sigma[s])
+            Jx.append(-np.hstack([J[0, i], R_0S[0, i].T @ d_up]) / problem.sigma[s][:, None])
+        if use_imu and problem.imu_meas is not None:
+            r.append((problem.imu_meas - problem.R_0I.T @ up) / problem.imu_sigma)
+            Jx.append(-np.hstack([np.zeros((3, n)), problem.R_0I.T @ d_up]) / problem.imu_sigma[:, None])
+        else:  # the level-chair prior
+            r.append(x[n:] / problem.tilt_prior_rad)
+            Jx.append(np.hstack([np.zeros((2, n)), np.eye(2)]) / problem.tilt_prior_rad)
+        rows_r.append(np.concatenate(r))
+        rows_J.append(np.vstack(Jx))
+    return np.array(rows_r), np.array(rows_J)
+
+
+def test_evaluation_equals_the_kinematics_of_the_frames(problem):
+    """The compiled evaluation (the gravity chain's core, read by each sensor) gives the
+    residuals and Jacobian that the frames of the whole chain give, for every kind of
+    solve; a row's columns past its sensor's link are exactly zero."""
     n = problem.n
     rng = np.random.default_rng(3)
     X = np.concatenate([rng.uniform(-np.pi, np.pi, (9, n)), rng.normal(0, 0.1, (9, 2))], 1)
     for active, use_imu in _layouts(len(problem.names)):
-        got = augmented(X, *problem.kernel_layout(active, use_imu))
-        ref = problem._augmented(X, active, use_imu)
-        assert got.shape == ref.shape
-        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
-        # a row's columns past its sensor's link are exactly zero in both
-        assert np.array_equal(got == 0.0, ref == 0.0)
+        r, J = problem.residuals_and_jacobian(X, active, use_imu)
+        r_ref, J_ref = _frames_reference(problem, X, active, use_imu)
+        assert r.shape == r_ref.shape and J.shape == J_ref.shape
+        np.testing.assert_allclose(r, r_ref, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(J[..., :n], J_ref[..., :n], rtol=0, atol=1e-9)
+        # central differences of up: about 1e-10 of each unit column, weighted by 1 / sigma
+        np.testing.assert_allclose(J[..., n:], J_ref[..., n:], rtol=0, atol=1e-5)
+        assert np.all(J[..., :n][J_ref[..., :n] == 0.0] == 0.0)  # joints past a row's link
+        assert np.array_equal(augmented(X, *problem.layout(active, use_imu))[..., 0], r)
 
 
 @pytest.mark.parametrize("spread, atol", [(0.05, 1e-12), (0.6, 1e-6)])
