@@ -58,7 +58,13 @@ from fusion.startup.moves import (
     propose_unlock_move,
 )
 from fusion.startup.prior import BranchChooser, StartupPrior
-from fusion.startup.problem import axis_to_vertical, batched_lm, expected_covariance, make_problem
+from fusion.startup.problem import (
+    StillWindowProblem,
+    axis_to_vertical,
+    batched_lm,
+    expected_covariance,
+    make_problem,
+)
 from fusion.startup.readings import (
     InputCheck,
     StillReadings,
@@ -109,6 +115,126 @@ def solve_still(
     check_readings(readings)
     problem = make_problem(arm, readings)
     n = arm.n_joints
+    free = np.ones(n + 2, dtype=bool)
+    mid = (arm.min_rad + arm.max_rad) / 2
+    margin = st.limit_margin_deg * DEG
+    x, cost = _fitting_branches(problem, st, prior, method)
+    q_all = x[:, :n]
+    axis_deg = np.degrees(axis_to_vertical(arm, q_all, x[:, n], x[:, n + 1]))
+    locked_any = axis_deg < st.gimbal_lock_deg  # (B, n)
+    branches, cand = _feasible_branches(arm, q_all, locked_any, margin)
+    n_dir = len(problem.names) + 1  # the IMU's direction, or the level-chair prior
+    dof = max(2 * n_dir - int(free.sum()), 1)
+    inflate0 = max(2.0 * float(cost[cand].min()) / dof, 1.0)
+    # which branches may be the arm's: the data's (every feasible one), or the prior's choice
+    notes: list[str] = []
+    chooser = BranchChooser.make(prior, st, q_all[cand], locked_any[cand],
+                                 expected_covariance(problem, x[cand])[:, :n, :n] * inflate0, notes)
+    pool = cand[chooser.keep]
+    best = pool[int(np.argmin(chooser.rank[chooser.keep]))]
+    xb = x[best]
+    qb = xb[:n]
+    # covariance from the weighted Jacobian at the chosen solution
+    r, J = problem.residuals_and_jacobian(xb[None])
+    r, J = r[0], J[0]
+    # a normalised direction carries two constraints, not three; the tilt prior two more
+    chi2_dof = float(r @ r / dof)
+    locked = locked_any[best]
+    # the fit itself says when the model is worse than its sigmas (Birge ratio)
+    inflate = max(chi2_dof, 1.0)
+    cov = _linear_covariance(J, free, inflate)
+    sig = np.sqrt(np.clip(np.diag(cov), 0, None))
+    # the cost's own verdict on every readable joint (flat valleys near singular pairs)
+    # (well-read joints are quadratic over many sigmas: only the wider ones are checked)
+    readable = np.flatnonzero(~locked & np.isfinite(sig[:n]) & (sig[:n] > st.profile_above_deg * DEG))
+    sig[readable], probes = profile_sigma(problem, xb, float(0.5 * r @ r), sig, readable,
+                                          np.sqrt(inflate))
+    flags = np.array(["ok"] * n, dtype=object)
+    flags[locked] = "gimbal_lock"
+    limit = st.sigma_limit_deg * DEG
+    # Joints whose value rests on a weak one (locked, or sigma above the limit): sweep the
+    # weak joint across what the data allow, re-solve the rest, and widen the others'
+    # sigma by how far they follow. A joint pushed over the limit by a locked joint
+    # inherits its flag; by an ill-conditioned one, it becomes ill-conditioned.
+    weak = locked | (sig[:n] > limit)
+    follow_x0, follow_free, follow_j = follow_weak_starts(xb, sig, weak, locked)
+    # A valley may hold other minima than the branches the starts reached: the profile's
+    # probes are released, each rolls to its own; good ones join the branches as rivals
+    # below. Those and the sweep are solved in one batch (every row on its own).
+    solved, solved_cost = np.zeros((0, n + 2)), np.zeros(0)
+    if len(probes) or len(follow_j):
+        solved, solved_cost = batched_lm(
+            problem, np.vstack([probes, follow_x0]),
+            np.vstack([np.ones(probes.shape, bool), follow_free]),
+            np.concatenate([np.full(len(probes), st.max_iterations), np.full(len(follow_j), 12)]))
+    xr, cost_r = solved[: len(probes)], solved_cost[: len(probes)]
+    rivals_x = x[pool]
+    if len(probes):
+        xr[:, :n] = mid + wrap_angle(xr[:, :n] - mid)
+        keep = ((cost_r <= cost[cand].min() + 0.5 * st.fit_chi2 + 1e-9)
+                & (arm.within_limits(xr[:, :n], margin) | locked).all(1))
+        if keep.any():
+            xr = dedupe(xr[keep], 1e-3)
+            joins = chooser.admits(xr[:, :n], np.broadcast_to(locked, (len(xr), n)),
+                                   expected_covariance(problem, xr)[:, :n, :n] * inflate)
+            rivals_x = np.vstack([rivals_x, xr[joins]])
+    if weak.any():
+        follow = follow_weak(solved[len(probes):], solved_cost[len(probes):], follow_j, xb,
+                             float(0.5 * r @ r), locked, inflate)
+        moved = follow.max(0)  # (n,): the widest any weak joint drags each joint
+        widened = np.maximum(sig[:n], moved / 3.0)
+        by_locked = follow[locked[weak]].max(0) if locked.any() else np.zeros(n)
+        from_locked = ~weak & (widened > limit) & (by_locked / 3.0 > limit)
+        sig[:n] = np.where(weak, sig[:n], widened)
+        flags[from_locked] = "gimbal_lock"
+    sig = sig * st.sigma_safety_factor
+    ill = (sig[:n] > limit) & (flags == "ok")
+    flags[ill] = "ill_conditioned"
+    out_of_limits = ~arm.within_limits(qb, margin) & (flags == "ok")
+    flags[out_of_limits] = "out_of_limits"
+    kept, alternatives = _weigh_rivals(st, dedupe_x(rivals_x, xb), sig, cov, flags)
+    # a joint the data cannot see gets no number (never a sigma of thousands of degrees)
+    blind = (sig[:n] > st.numbered_sigma_max_deg * DEG) & ~np.isin(flags, ("gimbal_lock", "ambiguous"))
+    flags[blind] = "ill_conditioned"
+    joints = _joint_estimates(arm, problem, st, qb, sig, flags, blind, alternatives, axis_deg[best])
+    resid_g = (r[: problem.meas.size] * problem.sigma.reshape(-1))
+    # the covariance keeps the linear correlations, scaled to the sigmas the checks arrived
+    # at (the profile, the sweep and the rivals widen them), every joint's included
+    lin = np.sqrt(np.clip(np.diag(cov), 1e-30, None)) * st.sigma_safety_factor
+    widen = np.where(np.isfinite(sig), np.maximum(sig / lin, 1.0), 1.0)
+    cov = cov * np.outer(widen, widen)
+    result = StartupResult(
+        joints=joints,
+        roll_rad=float(xb[n]), pitch_rad=float(xb[n + 1]),
+        roll_sigma_rad=float(sig[n]), pitch_sigma_rad=float(sig[n + 1]),
+        residual_rms_g=float(np.sqrt(np.mean(resid_g**2))),
+        chi2_per_dof=chi2_dof,
+        q_rad=qb.copy(), covariance=cov * st.sigma_safety_factor**2, branches_rad=branches,
+        method=method,
+        t_start_s=readings.t_start_s, t_end_s=readings.t_end_s,
+        candidates_rad=np.array([k[:n] for k in kept]),
+        candidates_covariance=candidate_covariances(problem, kept, cov * st.sigma_safety_factor**2,
+                                                    inflate * st.sigma_safety_factor**2),
+        prior_used=chooser.used,
+        notes=tuple(notes),
+    )
+    if propose_unlock and any(f in ("gimbal_lock", "ill_conditioned") for f in flags):
+        result = replace(result, unlock_move=propose_unlock_move(arm, result, readings, st))
+    if len(kept) > 1:
+        result = replace(result, disambiguating_move=propose_disambiguating_move(
+            arm, result, readings, st, roll_pitch=xb[n:]))
+    return replace(result, summary=_summary_with_sensor_note(arm, problem, result))
+
+
+def _fitting_branches(problem: StillWindowProblem, st: StartupSettings, prior: StartupPrior | None,
+                      method: str) -> tuple[np.ndarray, np.ndarray]:
+    """Every branch that fits the data, polished, best first: states ``(B, n + 2)`` (joint
+    angles brought to the representative nearest the middle of their limits) and costs.
+
+    The closed-form branches (and, for the joint method, the ready pose and the prior's
+    poses as further starts), polished; minima just outside a limit re-solved held at it;
+    the groups' solutions crossed; those fitting much worse than the best dropped."""
+    arm, n = problem.arm, problem.n
     # base tilt from the IMU (the thesis's eq. 4.1, in the recording spec's convention)
     if problem.imu_meas is not None:
         roll0, pitch0 = (float(a) for a in tilt_from_up(problem.R_0I @ problem.imu_meas))
@@ -153,105 +279,56 @@ def solve_still(
     good = cost <= cost.min() + 0.5 * st.fit_chi2 + 1e-9
     x, cost = x[good], cost[good]
     order = np.argsort(cost)
-    x, cost = x[order], cost[order]
-    q_all = x[:, :n]
-    axis_deg = np.degrees(axis_to_vertical(arm, q_all, x[:, n], x[:, n + 1]))
-    locked_any = axis_deg < st.gimbal_lock_deg  # (B, n)
-    # feasibility: locked joints can take any value, so only readable joints are checked
+    return x[order], cost[order]
+
+
+def _feasible_branches(arm: ArmModel, q_all: np.ndarray, locked_any: np.ndarray,
+                       margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct branches inside the limits ``(F, n)`` (every branch when none is), and
+    the rows of ``q_all`` that may be the arm's: the feasible ones, or when none is, those
+    least outside (flagged out_of_limits later). Locked joints can take any value, so only
+    readable joints are checked."""
     inside = (arm.within_limits(q_all, margin) | locked_any).all(1)
     feasible_idx = np.flatnonzero(inside)
     branches = dedupe(q_all[feasible_idx] if len(feasible_idx) else q_all, 1e-3)
     if len(feasible_idx):
-        cand = feasible_idx
-    else:  # no branch inside the limits: the ones least outside (flagged out_of_limits below)
-        excess = np.sum(np.maximum(0, np.maximum(arm.min_rad - q_all, q_all - arm.max_rad))
-                        * ~locked_any, 1)
-        cand = np.flatnonzero(excess <= excess.min() + DEG)
-    n_dir = len(problem.names) + 1  # the IMU's direction, or the level-chair prior
-    dof = max(2 * n_dir - int(free.sum()), 1)
-    inflate0 = max(2.0 * float(cost[cand].min()) / dof, 1.0)
-    # which branches may be the arm's: the data's (every feasible one), or the prior's choice
-    notes: list[str] = []
-    chooser = BranchChooser.make(prior, st, q_all[cand], locked_any[cand],
-                                  expected_covariance(problem, x[cand])[:, :n, :n] * inflate0, notes)
-    pool = cand[chooser.keep]
-    best = pool[int(np.argmin(chooser.rank[chooser.keep]))]
-    xb = x[best]
-    qb = xb[:n]
-    # covariance from the weighted Jacobian at the chosen solution
-    r, J = problem.residuals_and_jacobian(xb[None])
-    r, J = r[0], J[0]
-    # a normalised direction carries two constraints, not three; the tilt prior two more
-    chi2_dof = float(r @ r / dof)
-    locked = locked_any[best]
-    # Information from the data, plus the only thing known about a gravity-blind joint: it
-    # is somewhere in its range (a flat prior of width pi). Every joint gets that flat
-    # prior: it costs nothing where the data speak, and where they do not (a singular pair:
-    # two axes and gravity coplanar) the sigma becomes honestly large instead of being cut
-    # off by a pseudo-inverse. The marginal sigma of every joint carries its correlation
-    # with the blind ones.
+        return branches, feasible_idx
+    excess = np.sum(np.maximum(0, np.maximum(arm.min_rad - q_all, q_all - arm.max_rad))
+                    * ~locked_any, 1)
+    return branches, np.flatnonzero(excess <= excess.min() + DEG)
+
+
+def _linear_covariance(J: np.ndarray, free: np.ndarray, inflate: float) -> np.ndarray:
+    """The covariance of every unknown ``(n + 2, n + 2)`` from the weighted Jacobian ``J (m,
+    n + 2)`` at the chosen solution, times ``inflate`` (NaN for unknowns not ``free``).
+
+    Information from the data, plus the only thing known about a gravity-blind joint: it
+    is somewhere in its range (a flat prior of width pi). Every joint gets that flat
+    prior: it costs nothing where the data speak, and where they do not (a singular pair:
+    two axes and gravity coplanar) the sigma becomes honestly large instead of being cut
+    off by a pseudo-inverse. The marginal sigma of every joint carries its correlation
+    with the blind ones."""
     cols = free.copy()
     Jr = J[:, cols]
     info = Jr.T @ Jr
     prior_info = np.full(int(cols.sum()), 1.0 / np.pi**2)
-    # the fit itself says when the model is worse than its sigmas (Birge ratio)
-    inflate = max(chi2_dof, 1.0)
-    cov = np.full((n + 2, n + 2), np.nan)
+    cov = np.full((len(free), len(free)), np.nan)
     cov_r = np.linalg.inv(info + np.diag(prior_info)) * inflate
     cov[np.ix_(cols, cols)] = cov_r
-    sig = np.sqrt(np.clip(np.diag(cov), 0, None))
-    # the cost's own verdict on every readable joint (flat valleys near singular pairs)
-    # (well-read joints are quadratic over many sigmas: only the wider ones are checked)
-    readable = np.flatnonzero(~locked & np.isfinite(sig[:n]) & (sig[:n] > st.profile_above_deg * DEG))
-    sig[readable], probes = profile_sigma(problem, xb, float(0.5 * r @ r), sig, readable,
-                                           np.sqrt(inflate))
-    flags = np.array(["ok"] * n, dtype=object)
-    flags[locked] = "gimbal_lock"
+    return cov
+
+
+def _weigh_rivals(st: StartupSettings, rivals_x: np.ndarray, sig: np.ndarray, cov: np.ndarray,
+                  flags: np.ndarray) -> tuple[list[np.ndarray], list[list[float]]]:
+    """Every rival the chooser kept against the chosen state (``rivals_x[0]``): a joint on
+    which they differ by more than its sigma can cover is ambiguous; an ill-conditioned
+    joint's sigma grows to cover a rival in the same valley instead. Widens ``sig`` and
+    ``cov`` and sets ``flags`` in place; returns the candidates kept (the chosen first) and
+    each joint's alternative values."""
+    n = len(flags)
+    xb = rivals_x[0]
+    qb = xb[:n]
     limit = st.sigma_limit_deg * DEG
-    # Joints whose value rests on a weak one (locked, or sigma above the limit): sweep the
-    # weak joint across what the data allow, re-solve the rest, and widen the others'
-    # sigma by how far they follow. A joint pushed over the limit by a locked joint
-    # inherits its flag; by an ill-conditioned one, it becomes ill-conditioned.
-    weak = locked | (sig[:n] > limit)
-    follow_x0, follow_free, follow_j = follow_weak_starts(xb, sig, weak, locked)
-    # A valley may hold other minima than the branches the starts reached: the profile's
-    # probes are released, each rolls to its own; good ones join the branches as rivals
-    # below. Those and the sweep are solved in one batch (every row on its own).
-    solved, solved_cost = np.zeros((0, n + 2)), np.zeros(0)
-    if len(probes) or len(follow_j):
-        solved, solved_cost = batched_lm(
-            problem, np.vstack([probes, follow_x0]),
-            np.vstack([np.ones(probes.shape, bool), follow_free]),
-            np.concatenate([np.full(len(probes), st.max_iterations), np.full(len(follow_j), 12)]))
-    xr, cost_r = solved[: len(probes)], solved_cost[: len(probes)]
-    rivals_x = x[pool]
-    if len(probes):
-        xr[:, :n] = mid + wrap_angle(xr[:, :n] - mid)
-        keep = ((cost_r <= cost[cand].min() + 0.5 * st.fit_chi2 + 1e-9)
-                & (arm.within_limits(xr[:, :n], margin) | locked_any[best]).all(1))
-        if keep.any():
-            xr = dedupe(xr[keep], 1e-3)
-            joins = chooser.admits(xr[:, :n], np.broadcast_to(locked, (len(xr), n)),
-                                   expected_covariance(problem, xr)[:, :n, :n] * inflate)
-            rivals_x = np.vstack([rivals_x, xr[joins]])
-    if weak.any():
-        follow = follow_weak(solved[len(probes):], solved_cost[len(probes):], follow_j, xb,
-                              float(0.5 * r @ r), locked, inflate)
-        moved = follow.max(0)  # (n,): the widest any weak joint drags each joint
-        widened = np.maximum(sig[:n], moved / 3.0)
-        by_locked = follow[locked[weak]].max(0) if locked.any() else np.zeros(n)
-        from_locked = ~weak & (widened > limit) & (by_locked / 3.0 > limit)
-        sig[:n] = np.where(weak, sig[:n], widened)
-        flags[from_locked] = "gimbal_lock"
-    sig = sig * st.sigma_safety_factor
-    ill = (sig[:n] > limit) & (flags == "ok")
-    flags[ill] = "ill_conditioned"
-    out_of_limits = ~arm.within_limits(qb, margin) & (flags == "ok")
-    flags[out_of_limits] = "out_of_limits"
-    # every rival the chooser kept against the chosen one: a joint on which they differ by
-    # more than its sigma can cover is ambiguous (an ill-conditioned joint's sigma grows to
-    # cover a rival in the same valley instead)
-    rivals_x = dedupe_x(rivals_x, xb)
     alternatives: list[list[float]] = [[] for _ in range(n)]
     kept = [xb]
     for other in rivals_x[1:]:
@@ -283,12 +360,18 @@ def solve_still(
                 alternatives[j].append(float(qb[j]))
             if all(abs(wrap_angle(other[j] - v)) > 1e-3 for v in alternatives[j]):
                 alternatives[j].append(float(other[j]))
-    # a joint the data cannot see gets no number (never a sigma of thousands of degrees)
-    blind = (sig[:n] > st.numbered_sigma_max_deg * DEG) & ~np.isin(flags, ("gimbal_lock", "ambiguous"))
-    flags[blind] = "ill_conditioned"
+    return kept, alternatives
+
+
+def _joint_estimates(arm: ArmModel, problem: StillWindowProblem, st: StartupSettings,
+                     qb: np.ndarray, sig: np.ndarray, flags: np.ndarray, blind: np.ndarray,
+                     alternatives: list[list[float]], axis_deg: np.ndarray,
+                     ) -> tuple[JointEstimate, ...]:
+    """Each joint's estimate: a number and sigma unless it is locked, ambiguous or blind
+    (then its range: the limits, or for an ambiguous one its alternatives)."""
     thesis = thesis_detector(arm, problem.names, problem.meas, st.thesis_detector_g)
     joints = []
-    for j in range(n):
+    for j in range(arm.n_joints):
         number = flags[j] not in ("gimbal_lock", "ambiguous") and not blind[j]
         joints.append(JointEstimate(
             name=arm.joints[j].name,
@@ -296,37 +379,18 @@ def solve_still(
             sigma_rad=float(sig[j]) if number and np.isfinite(sig[j]) else None,
             flag=str(flags[j]),
             alternatives_rad=tuple(alternatives[j]),
-            axis_to_vertical_deg=float(axis_deg[best, j]),
+            axis_to_vertical_deg=float(axis_deg[j]),
             thesis_detector_locked=thesis[j],
             range_rad=None if number or flags[j] == "ambiguous"
             else (float(arm.min_rad[j]), float(arm.max_rad[j])),
         ))
-    resid_g = (r[: problem.meas.size] * problem.sigma.reshape(-1))
-    # the covariance keeps the linear correlations, scaled to the sigmas the checks arrived
-    # at (the profile, the sweep and the rivals widen them), every joint's included
-    lin = np.sqrt(np.clip(np.diag(cov), 1e-30, None)) * st.sigma_safety_factor
-    widen = np.where(np.isfinite(sig), np.maximum(sig / lin, 1.0), 1.0)
-    cov = cov * np.outer(widen, widen)
-    result = StartupResult(
-        joints=tuple(joints),
-        roll_rad=float(xb[n]), pitch_rad=float(xb[n + 1]),
-        roll_sigma_rad=float(sig[n]), pitch_sigma_rad=float(sig[n + 1]),
-        residual_rms_g=float(np.sqrt(np.mean(resid_g**2))),
-        chi2_per_dof=chi2_dof,
-        q_rad=qb.copy(), covariance=cov * st.sigma_safety_factor**2, branches_rad=branches,
-        method=method,
-        t_start_s=readings.t_start_s, t_end_s=readings.t_end_s,
-        candidates_rad=np.array([k[:n] for k in kept]),
-        candidates_covariance=candidate_covariances(problem, kept, cov * st.sigma_safety_factor**2,
-                                                     inflate * st.sigma_safety_factor**2),
-        prior_used=chooser.used,
-        notes=tuple(notes),
-    )
-    if propose_unlock and any(f in ("gimbal_lock", "ill_conditioned") for f in flags):
-        result = replace(result, unlock_move=propose_unlock_move(arm, result, readings, st))
-    if len(kept) > 1:
-        result = replace(result, disambiguating_move=propose_disambiguating_move(
-            arm, result, readings, st, roll_pitch=xb[n:]))
+    return tuple(joints)
+
+
+def _summary_with_sensor_note(arm: ArmModel, problem: StillWindowProblem,
+                              result: StartupResult) -> str:
+    """The result's summary, saying where ill-conditioned sigmas come from the sensors'
+    unmodelled error (the config's floor, or what their calibration could not pin)."""
     text = summary(result)
     floor_g = max(sensor_floor_g(arm, nm) for nm in problem.names)
     if floor_g >= 0.005 and any(j.flag == "ill_conditioned" for j in result.joints):
@@ -336,4 +400,4 @@ def solve_still(
                                                             for j in result.joints):
         text += (" (the sigmas include what the sensors' calibration could not pin: its held "
                  "elements, with the motion that would separate them, in `calibrate sensors`)")
-    return replace(result, summary=text)
+    return text
