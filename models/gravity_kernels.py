@@ -24,22 +24,23 @@ import math
 import numpy as np
 from numba import njit
 
+from models.rotations import up_and_tilt_derivatives_into
+
+# models.rotations.up_and_tilt_derivatives_into compiled: the one definition of up's tilt
+# Jacobian, for NumPy and compiled callers alike
+_up_and_tilt_into = njit(cache=True, nogil=True)(up_and_tilt_derivatives_into)
+
 
 @njit(cache=True, nogil=True)
 def seed_up_and_tilt(roll_rad, pitch_rad, V):  # pragma: no cover - compiled
     """``V (3, n + 3)`` before the first joint, for a base at (roll, pitch): column 0 up
-    (:func:`models.rotations.up_from_tilt`, ``[-sp, sr cp, cr cp]``), the last two its
-    derivatives by roll and by pitch, every other column zero."""
+    (:func:`models.rotations.up_from_tilt`), the last two its derivatives by roll and by
+    pitch, every other column zero."""
     w = V.shape[1]
-    sr, cr = math.sin(roll_rad), math.cos(roll_rad)
-    sp, cp = math.sin(pitch_rad), math.cos(pitch_rad)
-    srcp, crcp = sr * cp, cr * cp
     for a in range(3):
         for j in range(w):
             V[a, j] = 0.0
-    V[0, 0], V[1, 0], V[2, 0] = -sp, srcp, crcp
-    V[0, w - 2], V[1, w - 2], V[2, w - 2] = 0.0, crcp, -srcp
-    V[0, w - 1], V[1, w - 1], V[2, w - 1] = -cp, -sr * sp, -cr * sp
+    _up_and_tilt_into(roll_rad, pitch_rad, V, 0, w - 2, w - 1)
 
 
 @njit(cache=True, nogil=True)
