@@ -244,6 +244,8 @@ def _separating(arm, problem, cands, rp, chunk, amb, ia, ib, st, unsure, carried
 
 
 def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> UnlockMove | None:
+    """The first of ``moves`` (ordered by size) that keeps the arm inside its limits and
+    makes the blind joints ``L`` readable at every value in ``blind_values``, or None."""
     n = arm.n_joints
     ok_moves = [m for m in moves
                 if all(arm.min_rad[j] <= base[j] + d <= arm.max_rad[j] for j, d in m)]

@@ -89,6 +89,8 @@ class BranchChooser:
     @classmethod
     def make(cls, prior: StartupPrior | None, st: StartupSettings, q: np.ndarray,
              locked: np.ndarray, cov: np.ndarray, notes: list[str]) -> BranchChooser:
+        """The chooser of ``prior`` over branches ``q (B, n)`` ordered by cost (their locked
+        joints and covariances ``(B, n, n)``); what it did is appended to ``notes``."""
         B = len(q)
         by_cost = np.arange(B, dtype=float)  # q comes ordered by cost
         if prior is None:
@@ -118,6 +120,7 @@ class BranchChooser:
         return cls(keep, d2, prior.source, prior, best + st.prior_decisive_chi2, st)
 
     def admits(self, q: np.ndarray, locked: np.ndarray, cov: np.ndarray) -> np.ndarray:
+        """Whether each further minimum ``q (R, n)`` found later joins the pool ``(R,)``."""
         if self.prior is None:
             return np.ones(len(q), bool)
         if self.prior.kind == "assumed":

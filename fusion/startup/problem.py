@@ -105,9 +105,32 @@ class StillWindowProblem:
         return rJ[:, :, 0], rJ[:, :, 1:]
 
 
+def make_problem(arm: ArmModel, readings: StillReadings) -> StillWindowProblem:
+    """The problem of the window ``readings`` averaged: every link accelerometer read (in
+    config order) and the base accelerometer when there is one, each as a unit direction
+    with its sigmas scaled alike."""
+    names = [s.name for s in arm.link_accelerometers if s.name in readings.accel_mean_g]
+    if not names:
+        raise StartupInputError("no link accelerometer readings: nothing to solve from")
+    meas, sig = [], []
+    for nm in names:
+        m = np.asarray(readings.accel_mean_g[nm], float)
+        norm = float(np.linalg.norm(m))
+        meas.append(m / norm)
+        sig.append(np.asarray(readings.accel_sigma_g[nm], float) / norm)
+    imu_m = imu_s = None
+    R_0I = np.eye(3)
+    if readings.imu_mean_g is not None and arm.imu is not None:
+        m = np.asarray(readings.imu_mean_g, float)
+        norm = float(np.linalg.norm(m))
+        imu_m, imu_s = m / norm, np.asarray(readings.imu_sigma_g, float) / norm
+        R_0I = arm.imu.R_LS
+    return StillWindowProblem(arm, names, np.array(meas), np.array(sig), imu_m, imu_s, R_0I)
+
+
 def batched_lm(problem: StillWindowProblem, x0: np.ndarray, free: np.ndarray, iters,
-                active: np.ndarray | None = None, use_imu: bool = True,
-                ) -> tuple[np.ndarray, np.ndarray]:
+               active: np.ndarray | None = None, use_imu: bool = True,
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on every start, compiled (:func:`fusion.startup.kernels.lm_solve`):
     the same arithmetic as ``batched_lm_numpy`` in tests/fusion/test_startup_kernels.py."""
     # fresh writable C arrays of one type each: a single compiled signature
@@ -131,26 +154,8 @@ def expected_sigma(problem: StillWindowProblem, x: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(np.einsum("bii->bi", expected_covariance(problem, x)), 0, None))
 
 
-def make_problem(arm: ArmModel, readings: StillReadings) -> StillWindowProblem:
-    names = [s.name for s in arm.link_accelerometers if s.name in readings.accel_mean_g]
-    if not names:
-        raise StartupInputError("no link accelerometer readings: nothing to solve from")
-    meas, sig = [], []
-    for nm in names:
-        m = np.asarray(readings.accel_mean_g[nm], float)
-        norm = float(np.linalg.norm(m))
-        meas.append(m / norm)
-        sig.append(np.asarray(readings.accel_sigma_g[nm], float) / norm)
-    imu_m = imu_s = None
-    R_0I = np.eye(3)
-    if readings.imu_mean_g is not None and arm.imu is not None:
-        m = np.asarray(readings.imu_mean_g, float)
-        norm = float(np.linalg.norm(m))
-        imu_m, imu_s = m / norm, np.asarray(readings.imu_sigma_g, float) / norm
-        R_0I = arm.imu.R_LS
-    return StillWindowProblem(arm, names, np.array(meas), np.array(sig), imu_m, imu_s, R_0I)
-
-
-def axis_to_vertical(arm, q, roll, pitch) -> np.ndarray:
+def axis_to_vertical(arm: ArmModel, q: np.ndarray, roll, pitch) -> np.ndarray:
+    """The angle between every joint's axis and vertical at poses ``q (B, n)`` on a base at
+    (``roll``, ``pitch``) ``(B,)``: ``(B, n)`` rad (near 0: the joint is gravity-blind)."""
     c = np.abs(gravity_chain(arm).axis_up_cos(q, up_from_tilt(roll, pitch)))
     return np.arccos(np.clip(c, 0.0, 1.0))

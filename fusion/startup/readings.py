@@ -44,6 +44,8 @@ class InputCheck:
 
 
 def sensor_floor_g(arm: ArmModel, name: str) -> float:
+    """The config's unmodelled error of one accelerometer, per axis in g (its own, else the
+    arm's)."""
     cal = arm.calibration if hasattr(arm, "calibration") else {}
     per = (cal.get("accel_unmodelled_g_per_sensor") or {}).get(name)
     return float(per if per is not None else cal.get("accel_unmodelled_g", 0.0))
@@ -92,6 +94,8 @@ def readings_from_recording(
 
 
 def _average(name, w, model, mag_range, t0, t1):
+    """One sensor's window ``w`` averaged: ``(mean_g, sigma_g, None)``, or ``(None, None,
+    message)`` when it is too short, saturated or far from 1 g."""
     where = f"{name} in t = {t0:.2f}..{t1:.2f} s"
     if len(w) < 3:
         return None, None, f"{where}: only {len(w)} samples; need at least 3"

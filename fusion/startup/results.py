@@ -21,6 +21,9 @@ class StartupInputError(ValueError):
 
 @dataclass(frozen=True)
 class JointEstimate:
+    """One joint: its angle and sigma (None where it has no number), its flag, and for an
+    ambiguous joint every candidate value."""
+
     name: str
     angle_rad: float | None
     sigma_rad: float | None
@@ -97,6 +100,9 @@ class DisambiguatingMove:
 
 @dataclass(frozen=True)
 class StartupResult:
+    """Everything one still solve found: every joint, the base tilt, the fit, every branch
+    and candidate it cannot rule out, what chose, and the moves it proposes."""
+
     joints: tuple[JointEstimate, ...]
     roll_rad: float
     pitch_rad: float

@@ -11,6 +11,9 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class StartupSettings:
+    """Every threshold of the still solve and its moves (angles in deg, chi-squares
+    unitless); the defaults are the ones the benchmarks run."""
+
     gimbal_lock_deg: float = 2.5
     """A joint whose axis is within this angle of vertical is gravity-blind: no number."""
     sigma_limit_deg: float = 0.5
