@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.arm import ArmModel
+from models.gravity_kernels import propagate
 from models.rotations import exp_so3, skew
 
 
@@ -239,50 +240,21 @@ class GravityChain:
 
     def propagate(self, q_rad: np.ndarray, seed: np.ndarray, upto_joint: int | None = None):
         """Carry ``seed (N, 3, E)`` (up in the base frame, then its derivatives by E - 1 outer
-        parameters) through the joints: a list of ``V (N, 3, 1 + n + E - 1)`` after each
-        joint (index i + 1; index 0 is before joint 0), columns [up, d/dq_0..q_{n-1}, outer].
-        ``upto_joint``: stop after that joint (the later entries are None)."""
-        q = np.asarray(q_rad, float)
-        N, n = q.shape
-        E = seed.shape[2]
-        last = n - 1 if upto_joint is None else upto_joint
-        V = np.zeros((N, 3, n + E))
-        V[:, :, 0] = seed[:, :, 0]
-        V[:, :, n + 1:] = seed[:, :, 1:]
-        step = self._steps(q[:, : last + 1])
-        out: list[np.ndarray | None] = [V] + [None] * n
-        for i in range(last + 1):
-            V = step[i] @ V
-            V[:, 0, 1 + i] = V[:, 1, 0]  # d v / d theta_i = v x z
-            V[:, 1, 1 + i] = -V[:, 0, 0]
-            out[i + 1] = V
-        return out
+        parameters) through the joints: ``V (N, 3, 1 + n + E - 1)`` before joint 0 (index 0)
+        and after each joint i (index i + 1), columns [up, d/dq_0..q_{n-1}, outer]; stacked,
+        ``(last + 2, N, 3, n + E)``. ``upto_joint``: stop after that joint (``last``;
+        default the last joint). The compiled core is :func:`models.gravity_kernels.propagate`."""
+        q = np.ascontiguousarray(q_rad, dtype=float)
+        last = q.shape[1] - 1 if upto_joint is None else upto_joint
+        return propagate(q, np.ascontiguousarray(seed, dtype=float), self.step_in,
+                         self.offset_rad, int(last))
 
     def axis_up_cos(self, q_rad: np.ndarray, up_0: np.ndarray) -> np.ndarray:
         """Cosine of the angle between every joint's axis and up: ``(N, n)`` (z of up in the
         joint's axis frame)."""
-        q = np.asarray(q_rad, float)
-        step = self._steps(q)
-        v = np.broadcast_to(np.asarray(up_0, float), (len(q), 3))[:, :, None]
-        out = np.empty(q.shape)
-        for i in range(q.shape[1]):
-            v = step[i] @ v
-            out[:, i] = v[:, 2, 0]
-        return out
-
-    def _steps(self, q: np.ndarray) -> np.ndarray:
-        """``Rz(theta_i)^T C_i`` for the first ``J`` joints of every pose: ``(J, N, 3, 3)``
-        (joint-major: one matrix product per joint over every pose)."""
-        N, J = q.shape
-        theta = (q + self.offset_rad[:J]).T
-        c, s = np.cos(theta), np.sin(theta)
-        Rt = np.zeros((J, N, 3, 3))
-        Rt[:, :, 0, 0] = c
-        Rt[:, :, 0, 1] = s
-        Rt[:, :, 1, 0] = -s
-        Rt[:, :, 1, 1] = c
-        Rt[:, :, 2, 2] = 1.0
-        return (Rt.reshape(J, N * 3, 3) @ self.step_in[:J]).reshape(J, N, 3, 3)
+        q = np.ascontiguousarray(q_rad, dtype=float)
+        up = np.broadcast_to(np.asarray(up_0, float), (len(q), 3))[:, :, None]
+        return self.propagate(q, up)[1:, :, 2, 0].T
 
 
 def gravity_chain(arm: ArmModel, names=None) -> GravityChain:

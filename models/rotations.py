@@ -148,6 +148,22 @@ def up_from_tilt(roll_rad, pitch_rad) -> np.ndarray:
     return out
 
 
+def up_and_tilt_derivatives_into(roll_rad: float, pitch_rad: float, V: np.ndarray,
+                                 col_up: int, col_roll: int, col_pitch: int) -> None:
+    """:func:`up_from_tilt` of one (roll, pitch) and its derivatives by roll and by pitch,
+    written into the columns ``col_up``, ``col_roll``, ``col_pitch`` of ``V (3, w)``.
+
+    Scalar arithmetic only, so that numba compiles this same function for its kernels
+    (``models.gravity_kernels`` does): the compiled form of up and its tilt Jacobian.
+    """
+    sr, cr = math.sin(roll_rad), math.cos(roll_rad)
+    sp, cp = math.sin(pitch_rad), math.cos(pitch_rad)
+    srcp, crcp = sr * cp, cr * cp
+    V[0, col_up], V[1, col_up], V[2, col_up] = -sp, srcp, crcp
+    V[0, col_roll], V[1, col_roll], V[2, col_roll] = 0.0, crcp, -srcp
+    V[0, col_pitch], V[1, col_pitch], V[2, col_pitch] = -cp, -sr * sp, -cr * sp
+
+
 def tilt_from_up(up_B: np.ndarray) -> np.ndarray:
     """Roll and pitch (rad) of a base whose accelerometer reads ``up_B`` (any length).
 

@@ -36,11 +36,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from fusion.configfile import load_arm  # noqa: E402
+from fusion.startup.problem import expected_sigma, make_problem  # noqa: E402
 from fusion.startup.solve import (  # noqa: E402
     StartupPrior,
     StartupSettings,
-    _expected_sigma,
-    _make_problem,
     move_delta_rad,
     prior_after_move,
     readings_from_counts,
@@ -127,7 +126,7 @@ def run(arm, q, tilt, means, priors, settings, method):
                 est[k, j] = je.angle_rad
                 sig[k, j] = je.sigma_rad if je.sigma_rad is not None else np.nan
         x = np.concatenate([q[k], tilt[k]])[None]
-        crb[k] = _expected_sigma(_make_problem(arm, readings), x)[0, : arm.n_joints]
+        crb[k] = expected_sigma(make_problem(arm, readings), x)[0, : arm.n_joints]
     err = wrap_angle(est - q)
     return err, sig, flags, crb, times, thesis, results
 

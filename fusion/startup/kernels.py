@@ -5,40 +5,42 @@ runs over 9 to 90 starts, each iteration one evaluation of every start's weighte
 residuals and Jacobian and one 9x9 linear solve per start. That is a few thousand
 floating-point operations per start, which as NumPy calls on small arrays cost far more
 in call overhead than in arithmetic. Here each start is iterated on its own, in one
-compiled loop; the arithmetic is the NumPy form's:
+compiled loop:
 
-- the gravity chain (:class:`models.kinematics.GravityChain`): the state ``x = [q, roll,
-  pitch]`` seeds ``V = [up, 0 ... 0, d up/d roll, d up/d pitch]`` (3 x (n + 3)) with
-  ``up = [-sin p, sin r cos p, cos r cos p]``; joint i turns it, ``V <- Rz(q_i +
-  offset_i)^T C_i V``, and sets its own column, ``d v / d q_i = v x z = [v_y, -v_x, 0]``;
+- the gravity chain is :mod:`models.gravity_kernels` (the one implementation, which
+  :class:`models.kinematics.GravityChain` calls too): the state ``x = [q, roll, pitch]``
+  seeds ``V = [up, 0 ... 0, d up/d roll, d up/d pitch]`` (3 x (n + 3)), and each joint
+  turns it and sets its own derivative column;
 - a sensor on link k reads rows ``W_s V`` with V taken after joint k - 1 (``W_s = -D_s /
   sigma_s``, the read-out weighted and negated), column 0 plus ``meas / sigma`` being its
-  weighted residual and the others its Jacobian (:meth:`fusion.startup.solve._Problem._augmented`);
+  weighted residual and the others its Jacobian (:func:`augmented`, which
+  :meth:`fusion.startup.problem.StillWindowProblem.residuals_and_jacobian` returns);
   without the base accelerometer two rows of the level-chair prior follow: residual
   ``(roll, pitch) / s``, Jacobian ``1 / s`` on the tilt's columns;
-- LM (:func:`fusion.startup.solve._batched_lm_numpy`) works from ``N = [r J]^T [r J]``: with
+- LM (:func:`lm_solve`) works from ``N = [r J]^T [r J]``: with
   ``f`` the free mask and ``h = 1 - f``, ``A = N_JJ * f f^T``, ``g = N_Jr * f``, the
   diagonal damped ``A_ii += lam (A_ii + 1e-9) + h_i``, step ``-A^-1 g`` (LU with partial
   pivoting). A start stops when its step is below 1e-7 rad (not taken), when ``lam``
   passes 1e8, or when its iterations are used; a step is kept when it lowers the cost
   ``r . r / 2`` (``lam * 0.3``), else refused (``lam * 10``).
 
-The layout of one kind of solve (:meth:`fusion.startup.solve._Problem._layout`) is passed as
+The layout of one kind of solve (:class:`fusion.startup.problem.SolveLayout`) is passed as
 arrays: the read-outs ``read_W (R, 3, 3)``, their first rows ``read_row (R,)`` and links
 ``read_link (R,)``, the weighted measurements ``meas_w (m,)``, the rows of the sensors
 ``n_sensor_rows``, whether the base accelerometer is in (``imu``; else the prior's two
 rows with ``tilt_prior``), and the last joint any row needs (``last``).
 
-The tests (tests/fusion/test_startup_kernels.py) hold both kernels to their NumPy forms.
+The tests (tests/fusion/test_startup_kernels.py) hold the evaluation to the kinematics of
+the frames (:func:`models.kinematics.gravity_jacobian`) and the LM to its NumPy form.
 Compiled once per machine and cached next to this file (``__pycache__``).
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
+
+from models.gravity_kernels import seed_up_and_tilt, turn_joint
 
 
 @njit(cache=True, nogil=True)
@@ -49,40 +51,11 @@ def _evaluate(x, step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_
     depend on the state (joints past the row's link) are left as they are: zero."""
     n = offset.shape[0]
     w = n + 3
-    sr, cr = math.sin(x[n]), math.cos(x[n])
-    sp, cp = math.sin(x[n + 1]), math.cos(x[n + 1])
-    srcp, crcp = sr * cp, cr * cp
-    for a in range(3):
-        for j in range(w):
-            V[a, j] = 0.0
-    V[0, 0], V[1, 0], V[2, 0] = -sp, srcp, crcp
-    V[0, n + 1], V[1, n + 1], V[2, n + 1] = 0.0, crcp, -srcp
-    V[0, n + 2], V[1, n + 2], V[2, n + 2] = -cp, -sr * sp, -cr * sp
+    seed_up_and_tilt(x[n], x[n + 1], V)
     R = read_row.shape[0]
     for k in range(last + 2):  # k: the link whose rows are read (V after joint k - 1)
         if k > 0:
-            i = k - 1
-            th = x[i] + offset[i]
-            c, s = math.cos(th), math.sin(th)
-            C = step_in[i]
-            # Rz^T C: rows c C0 + s C1, -s C0 + c C1, C2
-            s00 = c * C[0, 0] + s * C[1, 0]
-            s01 = c * C[0, 1] + s * C[1, 1]
-            s02 = c * C[0, 2] + s * C[1, 2]
-            s10 = c * C[1, 0] - s * C[0, 0]
-            s11 = c * C[1, 1] - s * C[0, 1]
-            s12 = c * C[1, 2] - s * C[0, 2]
-            s20, s21, s22 = C[2, 0], C[2, 1], C[2, 2]
-            for j in range(w):
-                if j > k and j <= n:  # a later joint's column: still zero
-                    continue
-                v0, v1, v2 = V[0, j], V[1, j], V[2, j]
-                V[0, j] = s00 * v0 + s01 * v1 + s02 * v2
-                V[1, j] = s10 * v0 + s11 * v1 + s12 * v2
-                V[2, j] = s20 * v0 + s21 * v1 + s22 * v2
-            V[0, k] = V[1, 0]  # d v / d q_i = v x z
-            V[1, k] = -V[0, 0]
-            V[2, k] = 0.0
+            turn_joint(V, step_in[k - 1], x[k - 1] + offset[k - 1], k - 1, n)
         for r in range(R):
             if read_link[r] != k:
                 continue
@@ -151,7 +124,7 @@ def _lu_solve(A, b, out):  # pragma: no cover - compiled
 def augmented(X, step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_rows, imu,
               tilt_prior, last):  # pragma: no cover - compiled
     """Weighted residuals and Jacobian side by side for states ``X (B, n + 2)``: ``(B, m,
-    n + 3)`` (:meth:`fusion.startup.solve._Problem._augmented`)."""
+    n + 3)``."""
     B = X.shape[0]
     n = offset.shape[0]
     m = meas_w.shape[0]

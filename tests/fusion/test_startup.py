@@ -242,18 +242,18 @@ def test_one_lm_batch_gives_what_separate_solves_give(wmra, rng):
     """Rows of the batched LM are independent: starts with their own held unknowns and
     iteration limits, solved together, end where each would alone (the solve batches the
     released profile probes with the weak joints' sweep on this)."""
-    from fusion.startup.solve import _batched_lm, _make_problem
+    from fusion.startup.problem import batched_lm, make_problem
 
     q = np.radians([30, 40, 20, -50, 60, 30, 100])
-    problem = _make_problem(wmra, still(wmra, np.degrees(q), rng))
+    problem = make_problem(wmra, still(wmra, np.degrees(q), rng))
     n = wmra.n_joints
     x0 = np.concatenate([q, [0.8 * DEG, -1.2 * DEG]])[None] + rng.normal(0, 0.2, (6, n + 2))
     free = np.ones((6, n + 2), bool)
     free[3:, 2] = False  # the last three hold joint 3
     iters = np.array([30, 30, 30, 12, 12, 3])
-    x, cost = _batched_lm(problem, x0, free, iters)
+    x, cost = batched_lm(problem, x0, free, iters)
     for i in range(6):
-        xi, ci = _batched_lm(problem, x0[i:i + 1], free[i], int(iters[i]))
+        xi, ci = batched_lm(problem, x0[i:i + 1], free[i], int(iters[i]))
         np.testing.assert_allclose(x[i], xi[0], atol=1e-12)
         np.testing.assert_allclose(cost[i], ci[0], rtol=1e-12)
     assert np.all(x[3:, 2] == x0[3:, 2])  # a held unknown keeps its start value
