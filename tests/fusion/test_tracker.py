@@ -120,7 +120,7 @@ def test_product_of_exponentials_prediction_equals_the_motion_model(arm, rng):
     X[:, L.roll] = rng.normal(0, 0.05, 9)
     X[:, L.pitch] = rng.normal(0, 0.05, 9)
     X[:, L.accel] = rng.normal(0, 1.0, (9, 3))
-    f = tr._h_all(X, fr, np.arange(5), None).reshape(9, 5, 3)
+    f = tr.measurements.h_all(X, fr, np.arange(5), None).reshape(9, 5, 3)
     # the motion model evaluated afresh at each point (its joint rates held)
     ms = MotionState(np.zeros(9), q + X[:, L.offset], np.tile(qd, (9, 1)), np.tile(qdd, (9, 1)),
                      R_from_rpy(X[:, L.roll], X[:, L.pitch], np.zeros(9)), np.tile(w, (9, 1)),
@@ -135,7 +135,7 @@ def test_product_of_exponentials_prediction_equals_the_motion_model(arm, rng):
                      omega_B_rad_s=np.zeros((9, 3)), omega_dot_B_rad_s2=np.zeros((9, 3)))
     fr0 = make_frames(arm, tr.accel_names, q[None], np.zeros(7), np.zeros((1, 7)), np.zeros((1, 7)),
                       np.zeros((1, 3)), np.zeros((1, 3))).take(0)
-    np.testing.assert_allclose(tr._h_all(X, fr0, np.arange(5), None).reshape(9, 5, 3),
+    np.testing.assert_allclose(tr.measurements.h_all(X, fr0, np.arange(5), None).reshape(9, 5, 3),
                                specific_force(arm, ms0, list(tr.accel_names)), atol=1e-12)
 
 
