@@ -75,6 +75,11 @@ class CausalDifferentiator:
                              self._n, self.order)
         self._t_last = t
 
+    @property
+    def latest(self) -> np.ndarray | None:
+        """Value, rate and acceleration ``(3, d)`` at the last sample."""
+        return self._fit
+
     def at(self, t: float) -> np.ndarray | None:
         """Value, rate and acceleration ``(3, d)`` at ``t`` (extrapolated from the last fit)."""
         if self._fit is None:

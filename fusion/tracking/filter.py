@@ -325,11 +325,15 @@ class Tracker:
             return None
         return self.estimate
 
-    def _instant(self, t: float, q_enc: np.ndarray | None, gyro: np.ndarray | None, acc, mag) -> bool:
+    def _instant(self, t: float, q_enc: np.ndarray | None, gyro: np.ndarray | None, acc, mag,
+                 frame_x: np.ndarray | None = None) -> bool:
         """One instant's readings through the filter: the encoders' angles ``q_enc`` (rad),
         the gyro (rad/s, base axes), the accelerometers ``acc`` (indices, counts, readings in
         g, their selection's info) and the compass ``mag`` (counts, µT in base axes); any of
-        them None when it has no sample here. False before the first encoder sample."""
+        them None when it has no sample here. ``frame_x``: the state whose offsets and gyro
+        bias the kinematic frame is made with (default: the filter's now; a run over a
+        recording refreshes it every block of instants, see :func:`fusion.tracking.run.run_recording`).
+        False before the first encoder sample."""
         health = self.health
         if q_enc is not None:
             health.mark_used(self._sidx[ENC], t)
@@ -342,26 +346,28 @@ class Tracker:
         if gyro is not None:
             self._gyro_diff.push(t, gyro)
             health.mark_used(self._sidx[GYRO], t)
-        frame = self._frame_now(t, gyro) if acc is not None else None
+        frame = self._frame_now(t, gyro, frame_x) if acc is not None else None
         e = self._enc_diff.at(t)
         self._step(t, gyro, acc, mag, frame, self._q_enc if e is None else e[0])
         return True
 
-    def _frame_now(self, t: float, gyro: np.ndarray | None) -> Frames | None:
-        """The mean pose's kinematics at ``t``, with the offsets and the gyro bias now and the
-        gyro's reading at ``t`` (else its last) (kept for further samples of the same instant:
-        the product of exponentials carries any change of the offsets). Compiled
-        (:mod:`fusion.tracking.frame_kernels`)."""
+    def _frame_now(self, t: float, gyro: np.ndarray | None, x: np.ndarray | None = None) -> Frames | None:
+        """The mean pose's kinematics at ``t``, with the offsets and the gyro bias of ``x``
+        (default now), the gyro's reading at ``t`` (else its last) and its derivative at its
+        last sample (kept for further samples of the same instant: the product of exponentials
+        carries any change of the offsets since ``x``, exactly, and into the motion term to
+        first order). Compiled (:mod:`fusion.tracking.frame_kernels`)."""
         if self._frame_cache is not None and self._frame_cache[0] == t:
             return self._frame_cache[1]
         e = self._enc_diff.at(t)
         if e is None:
             return None
         L = self.layout
-        x = self._ukf.x
+        if x is None:
+            x = self._ukf.x
         w = self._omega if gyro is None else gyro
         om = None if w is None else w - x[L.bias]
-        g = self._gyro_diff.at(t)
+        g = self._gyro_diff.latest
         omd = None if g is None else g[1]
         fields = self._frame_consts.fields(e, x[L.offset], om, omd, self.settings.motion_compensation)
         frame = self.measurements.with_noise(tuple.__new__(Frames, fields))

@@ -24,8 +24,11 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
     """Fuse every sample of ``rec`` after the tracker ``tr``'s current time (up to
     ``t_stop_s``), instant by instant through its one filter path. The counts are turned
     into SI units (at the IMU's temperature then) and checked for saturation for the whole
-    span at once. With ``truth`` and truth streams in ``rec``, errors and NEES are kept too.
-    ``progress(fraction_done)`` is called every ``block`` instants."""
+    span at once. The kinematic frames are made with the offsets and gyro bias of each
+    ``block``'s start (live: of the instant): their drift since is carried exactly by the
+    product of exponentials, and enters the motion term only to first order. With ``truth``
+    and truth streams in ``rec``, errors and NEES are kept too. ``progress(fraction_done)``
+    is called after every block."""
     t0_wall = time.perf_counter()
     raw = {s: rec.get(s) for s in tr.sensor_names if rec.get(s) is not None and len(rec.get(s))}
     if ENC not in raw:
@@ -91,6 +94,7 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
         enc_l, gyro_l, mag_l = ([-1] * (b1 - b0) if s not in ok_rows else ok_rows[s][b0:b1].tolist()
                                 for s in (ENC, GYRO, MAG))
         all_l = all_ok[b0:b1].tolist()
+        x_block = tr._ukf.x  # the frames' offsets and gyro bias, the block's start's
         for i in range(b0, b1):
             r = i - b0
             t = t_l[r]
@@ -107,7 +111,7 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
                     health.last_t[acc_idx[acc_seen[i]]] = t
             ke, kg, km = enc_l[r], gyro_l[r], mag_l[r]
             tr._instant(t, q_enc_all[ke] if ke >= 0 else None, gyro_B[kg] if kg >= 0 else None, acc,
-                        (mag_counts[km], mag_B[km]) if km >= 0 else None)
+                        (mag_counts[km], mag_B[km]) if km >= 0 else None, x_block)
             out.record(tr, i)
         if progress is not None:
             progress(b1 / T)
