@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from models.arm import ArmModel
-from models.effects import Model, model_from_arm
+from models.effects import JointEffect, Model, model_from_arm
 from models.sensor_models import StreamModel, stream_models
 
 
@@ -135,3 +135,22 @@ class Readings:
             t_c = self.temperature_c if temperature_c is None else np.asarray(temperature_c, float)
             c = c + np.multiply.outer(t_c - self.temperature_ref_c, slope)
         return (y - c) @ u[0]
+
+
+def joint_effects(correction) -> list:
+    """The correction's joint effects with their values, ``(effect, parameters)`` in the
+    model's order: they turn the controller's joint angles into the geometric ones."""
+    if correction is None:
+        return []
+    th = correction.model.unpack()
+    return [(e, th[e.block_name]) for e in correction.model.effects if isinstance(e, JointEffect)]
+
+
+def spread_maps(correction) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """Per accelerometer stream, the correction's spreads (every calibrated element moved by
+    its sigma along a principal direction) as the maps ``(M, c)`` that undo them; the
+    compass's doubt is :func:`fusion.tracking.compass.compass_unmodelled_ut` instead."""
+    if correction is None:
+        return {}
+    return {stream: [(np.linalg.inv(L1), np.asarray(c1, float)) for L1, c1 in maps]
+            for stream, maps in correction.spread.items() if stream != "imu_mag"}

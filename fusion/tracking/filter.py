@@ -22,7 +22,6 @@ the conversion to SI units and the saturation checks done for many instants at o
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
 
 import numpy as np
@@ -37,15 +36,12 @@ from fusion.tracking.frames import Frames
 from fusion.tracking.health import SensorHealth
 from fusion.tracking.initial import Ambiguity, ImuStill, initial_state
 from fusion.tracking.innovations import InnovationLog
+from fusion.tracking.live import fuse_instant
 from fusion.tracking.measurement import Measurements
 from fusion.tracking.observability import Observability
 from fusion.tracking.process import ProcessModel, StillDetector
 from fusion.tracking.settings import (
-    C_NAN,
-    C_OUT_OF_ORDER,
     C_REJECTED,
-    C_SAMPLES,
-    C_SATURATED,
     C_USED,
     ENC,
     F_AMBIGUOUS,
@@ -53,7 +49,6 @@ from fusion.tracking.settings import (
     IMU_ACC,
     JOINT_FLAGS,
     MAG,
-    SENSOR_STATUS,
     G,
     NotInitialisedError,
     StateLayout,
@@ -65,7 +60,6 @@ from fusion.tracking.ukf import BatchedUKF, SigmaPoints
 from models.arm import ArmModel
 from models.motion import cross
 from models.rotations import DEG, up_from_tilt
-from models.sensor_models import mpu9150_temperature_c
 from sensors.samples import Recording
 
 
@@ -95,17 +89,7 @@ class Tracker:
             correction = startup_correction(arm, include_joint_offsets=True)
         self.correction = correction
         self.readings = calibrated.Readings(arm, model, correction)
-        self._joint_effects = []
-        spread: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
-        if correction is not None:
-            for stream, maps in correction.spread.items():
-                if stream != MAG:  # (the compass's doubt is compass_unmodelled_ut)
-                    spread[stream] = [(np.linalg.inv(L1), np.asarray(c1, float)) for L1, c1 in maps]
-            from models.effects import JointEffect
-
-            th = correction.model.unpack()
-            self._joint_effects = [(e, th[e.block_name]) for e in correction.model.effects
-                                   if isinstance(e, JointEffect)]
+        self._joint_effects = calibrated.joint_effects(correction)
         self.settings = st = settings or TrackerSettings()
         n = arm.n_joints
         self.layout = L = StateLayout(n)
@@ -129,7 +113,7 @@ class Tracker:
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
                                          self._sidx.get(IMU_ACC, -1), unmodelled_g, time_var_s2)
         self.observability = Observability(st, L, self.link_names, self.accel_streams, self._sees, correction,
-                                           spread, unmodelled_g, scale_sigma,
+                                           calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
                                            self._R_0I if self._has_imu else None)
         self.process = ProcessModel(st, L)
         self.set_rates(rates_hz)
@@ -277,53 +261,10 @@ class Tracker:
         return self.update_instant(t_s, {stream: values})
 
     def update_instant(self, t_s: float, samples: Mapping[str, np.ndarray]) -> Estimate | None:
-        """Fuse every sample of one instant together (one stacked update)."""
+        """Fuse every sample of one instant together (one stacked update): raw counts by
+        stream, as the devices gave them (:func:`fusion.tracking.live.fuse_instant`)."""
         self._check()
-        unknown = [s for s in samples if s not in self._sidx and s != "imu_temp"]
-        if unknown:
-            raise KeyError(f"unknown stream {unknown[0]!r}; the tracker takes {list(self.sensor_names)}")
-        t = float(t_s)
-        counts = self.health.counts
-        if t < self._t - 1e-9:
-            for s in samples:
-                if s in self._sidx:
-                    counts[self._sidx[s], C_OUT_OF_ORDER] += 1
-            return None
-        phys = {}
-        temp = samples.get("imu_temp")
-        if temp is not None:
-            raw_t = float(np.ravel(temp)[0])
-            if math.isfinite(raw_t):
-                self.readings.temperature_c = float(mpu9150_temperature_c(raw_t))
-        for s, v in samples.items():
-            if s == "imu_temp":
-                continue
-            i = self._sidx[s]
-            counts[i, C_SAMPLES] += 1
-            c = np.asarray(v, dtype=float).reshape(-1)
-            cl = c.tolist()  # a handful of numbers: plain floats are cheaper to check
-            if not all(map(math.isfinite, cl)):
-                counts[i, C_NAN] += 1
-                continue
-            lo, hi = self._limits[s]
-            if lo is not None and (min(cl) <= lo or max(cl) >= hi):
-                counts[i, C_SATURATED] += 1
-                self.health.seen[i], self.health.last_t[i] = True, t
-                continue
-            phys[s] = (c, self.readings.physical(s, c[None])[0])
-        enc = phys.get(ENC)
-        present = [s for s in self.accel_streams if s in phys]
-        acc = None
-        if present:
-            sel = np.array([self._sidx[s] for s in present], dtype=np.int64)
-            acc = (sel, np.stack([phys[s][0] for s in present]), np.stack([phys[s][1] for s in present]),
-                   self.measurements.selection(sel))
-        mag = phys.get(MAG)
-        if not self._instant(t, None if enc is None else enc[0] / self._cpr,
-                             self._R_0I @ phys[GYRO][1] if GYRO in phys else None, acc,
-                             None if mag is None else (mag[0], self._R_0I @ mag[1])):
-            return None
-        return self.estimate
+        return fuse_instant(self, t_s, samples)
 
     def _instant(self, t: float, q_enc: np.ndarray | None, gyro: np.ndarray | None, acc, mag,
                  frame_x: np.ndarray | None = None) -> bool:
@@ -556,9 +497,7 @@ class Tracker:
         named, codes = self._named, self.health.status_codes
         if named[0] is not codes or named[1] is not self._flags:
             # (both arrays are replaced, never written in place, when the flags are updated)
-            status = tuple((s, SENSOR_STATUS[c])
-                           for s, c in zip(self.sensor_names, codes.tolist(), strict=True))
-            self._named = named = (codes, self._flags, status,
+            self._named = named = (codes, self._flags, self.health.named_statuses(),
                                    tuple(JOINT_FLAGS[f] for f in self._flags.tolist()))
         return Estimate(
             t_s=self._t, q_rad=_ro(self._q_enc + x[:n]), sigma_rad=_ro(sig[:n]),
@@ -590,10 +529,7 @@ class Tracker:
     def nis_stats(self) -> dict[str, tuple[float, int, int]]:
         """Per sensor: (mean NIS, count, degrees of freedom) over its healthy samples."""
         self._check()
-        r = self.health.ring
-        cnt = r.counts
-        out = {s: (float(r.nis_sum[i] / cnt[i]) if cnt[i] else float("nan"),
-                   int(cnt[i]), 3) for i, s in enumerate(self.accel_streams)}
+        out = self.health.nis_stats()
         if self._has_imu:
             m = self.compass.ring
             out[MAG] = (m.nis_sum / m.nis_count if m.nis_count else float("nan"), m.nis_count, 1)

@@ -16,7 +16,11 @@ import numpy as np
 from fusion.tracking.innovations import AccelRing
 from fusion.tracking.settings import (
     C_IMPLAUSIBLE,
+    C_NAN,
+    C_OUT_OF_ORDER,
     C_REJECTED,
+    C_SAMPLES,
+    C_SATURATED,
     C_STUCK,
     C_USED,
     COUNTERS,
@@ -25,6 +29,7 @@ from fusion.tracking.settings import (
     S_REJECTING,
     S_STALE,
     S_STUCK,
+    SENSOR_STATUS,
     STATUS_CODE,
     TrackerSettings,
 )
@@ -52,6 +57,35 @@ class SensorHealth:
         """Replaced (never written in place) when the statuses are updated."""
         self.changed = True
         """A sensor's health changed since the statuses were last updated."""
+
+    def out_of_order(self, index: dict[str, int], samples) -> None:
+        """Count ``samples`` (by stream) as out of order."""
+        for s in samples:
+            if s in index:
+                self.counts[index[s], C_OUT_OF_ORDER] += 1
+
+    def admit(self, t: float, index: dict[str, int], samples, limits: dict, physical) -> dict:
+        """The raw ``samples`` (by stream; ``index`` their sensors) that are finite and not
+        saturated (``limits``: per stream the counts' range), as ``(counts, physical(s,
+        counts))``; the others counted (``nan``, ``saturated``). ``imu_temp`` is left out."""
+        counts, phys = self.counts, {}
+        for s, v in samples.items():
+            if s == "imu_temp":
+                continue
+            i = index[s]
+            counts[i, C_SAMPLES] += 1
+            c = np.asarray(v, dtype=float).reshape(-1)
+            cl = c.tolist()  # a handful of numbers: plain floats are cheaper to check
+            if not all(map(math.isfinite, cl)):
+                counts[i, C_NAN] += 1
+                continue
+            lo, hi = limits[s]
+            if lo is not None and (min(cl) <= lo or max(cl) >= hi):
+                counts[i, C_SATURATED] += 1
+                self.seen[i], self.last_t[i] = True, t
+                continue
+            phys[s] = (c, physical(s, c[None])[0])
+        return phys
 
     def mark_used(self, i: int, t: float) -> None:
         self.seen[i], self.last_t[i] = True, t
@@ -200,6 +234,18 @@ class SensorHealth:
             codes.append(c)
         self.status_codes = np.array(codes, dtype=np.int8)
         return codes
+
+    def nis_stats(self) -> dict[str, tuple[float, int, int]]:
+        """Per accelerometer: (mean NIS, count, degrees of freedom) over its healthy samples."""
+        r = self.ring
+        cnt = r.counts
+        return {s: (float(r.nis_sum[i] / cnt[i]) if cnt[i] else float("nan"), int(cnt[i]), 3)
+                for i, s in enumerate(self.names[:self.n_accel])}
+
+    def named_statuses(self) -> tuple[tuple[str, str], ...]:
+        """Each sensor's status by name."""
+        codes = self.status_codes.tolist()
+        return tuple((s, SENSOR_STATUS[c]) for s, c in zip(self.names, codes, strict=True))
 
     def counters(self) -> dict[str, dict[str, int]]:
         return {s: {c: int(self.counts[i, k]) for k, c in enumerate(COUNTERS)}

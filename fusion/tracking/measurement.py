@@ -14,7 +14,7 @@ from fusion.tracking.differentiator import derivative_noise_gain
 from fusion.tracking.frames import Frames
 from fusion.tracking.settings import GYRO, MAG, G, StateLayout, TrackerSettings
 from fusion.tracking.tracker_kernels import measurement_points
-from fusion.tracking.ukf import GroupPlan, MeasurementGroup, nis_bound
+from fusion.tracking.ukf_groups import GroupPlan, MeasurementGroup, nis_bound
 from models.motion import cross
 from models.rotations import DEG
 from models.sensor_models import StreamModel

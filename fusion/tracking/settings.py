@@ -176,39 +176,27 @@ class NotInitialisedError(RuntimeError):
 
 @dataclass(frozen=True)
 class StateLayout:
+    """Where each block of the state is, for ``n_joints`` joints: the offsets, then roll,
+    pitch, the base's acceleration (3), yaw, the gyro bias (3) and the IMU accelerometer's
+    bias (3); an index for a scalar block, a slice for the others."""
+
     n_joints: int
+    offset: slice = field(init=False, compare=False, repr=False)
+    roll: int = field(init=False, compare=False, repr=False)
+    pitch: int = field(init=False, compare=False, repr=False)
+    accel: slice = field(init=False, compare=False, repr=False)
+    yaw: int = field(init=False, compare=False, repr=False)
+    bias: slice = field(init=False, compare=False, repr=False)
+    imu_bias: slice = field(init=False, compare=False, repr=False)
+    size: int = field(init=False, compare=False, repr=False)
 
-    @property
-    def offset(self) -> slice:
-        return slice(0, self.n_joints)
-
-    @property
-    def roll(self) -> int:
-        return self.n_joints
-
-    @property
-    def pitch(self) -> int:
-        return self.n_joints + 1
-
-    @property
-    def accel(self) -> slice:
-        return slice(self.n_joints + 2, self.n_joints + 5)
-
-    @property
-    def yaw(self) -> int:
-        return self.n_joints + 5
-
-    @property
-    def bias(self) -> slice:
-        return slice(self.n_joints + 6, self.n_joints + 9)
-
-    @property
-    def imu_bias(self) -> slice:
-        return slice(self.n_joints + 9, self.n_joints + 12)
-
-    @property
-    def size(self) -> int:
-        return self.n_joints + 12
+    def __post_init__(self):
+        n, start = self.n_joints, 0
+        for name, width in (("offset", n), ("roll", 0), ("pitch", 0), ("accel", 3), ("yaw", 0), ("bias", 3),
+                            ("imu_bias", 3)):
+            object.__setattr__(self, name, slice(start, start + width) if width else start)
+            start += max(width, 1)
+        object.__setattr__(self, "size", start)
 
     def names(self, joint_names) -> tuple[str, ...]:
         return tuple([f"offset[{j}]" for j in joint_names] + ["roll", "pitch"]
