@@ -29,7 +29,7 @@ import numpy as np
 from fusion.startup.solve import StartupResult
 from fusion.tracking import calibrated
 from fusion.tracking.compass import Compass
-from fusion.tracking.differentiator import CausalDifferentiator, prime
+from fusion.tracking.differentiator import CausalDifferentiator
 from fusion.tracking.estimate import Estimate
 from fusion.tracking.frame_kernels import FrameConstants
 from fusion.tracking.frames import Frames
@@ -58,7 +58,6 @@ from fusion.tracking.slips import SlipDetector
 from fusion.tracking.snapshot import restore_into, snapshot_of
 from fusion.tracking.ukf import BatchedUKF, SigmaPoints
 from models.arm import ArmModel
-from models.motion import cross
 from models.rotations import DEG, up_from_tilt
 from sensors.samples import Recording
 
@@ -104,17 +103,19 @@ class Tracker:
         self._links = links  # (the accelerometers' links and the IMU's index: for the kernels' tests)
         self._imu_acc_index = self._sidx.get(IMU_ACC, -1)
         self._links_list = [int(k) for k in links[: len(self.link_names)]]
-        self._R_0I = arm.imu.R_LS if self._has_imu else np.eye(3)
+        self.R_0I = arm.imu.R_LS if self._has_imu else np.eye(3)  # the IMU's axes in the base's
         scale, scale_sigma = calibrated.encoder_scales(arm, model)
-        self._cpr = arm.counts_per_rad * (1.0 + scale)
-        self._time_offset_s, time_var_s2 = calibrated.stamp_offsets(model, self.accel_names)
+        self.counts_per_rad = arm.counts_per_rad * (1.0 + scale)
+        """Per joint, the encoder's counts per radian (the config's, its calibrated scale error applied)."""
+        time_offset_s, time_var_s2 = calibrated.stamp_offsets(model, self.accel_names)
         unmodelled_g = self._unmodelled_floor()
         self._sees = links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
-                                         self._sidx.get(IMU_ACC, -1), unmodelled_g, time_var_s2)
+                                         self._sidx.get(IMU_ACC, -1), unmodelled_g, time_offset_s,
+                                         time_var_s2)
         self.observability = Observability(st, L, self.link_names, self.accel_streams, self._sees, correction,
                                            calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
-                                           self._R_0I if self._has_imu else None)
+                                           self.R_0I if self._has_imu else None)
         self.process = ProcessModel(st, L)
         self.set_rates(rates_hz)
         self._points = SigmaPoints(L.size, st.alpha, st.beta, st.kappa)
@@ -134,7 +135,7 @@ class Tracker:
         if not self._has_imu:
             return np.full(3, 1e-12)
         corr = self.correction
-        m = self._R_0I.T @ up_from_tilt(roll_rad, pitch_rad)
+        m = self.R_0I.T @ up_from_tilt(roll_rad, pitch_rad)
         if corr is not None and corr.spread.get(IMU_ACC):
             y0 = corr.readings_one(IMU_ACC, m)
             var = np.zeros(3)
@@ -195,11 +196,11 @@ class Tracker:
         self._q_enc = np.zeros(n)
         self._enc0 = None if encoder_counts is None else np.asarray(encoder_counts, float)
         if self._enc0 is not None:
-            self._start_filter(self._enc0 / self._cpr)
+            self._start_filter(self._enc0 / self.counts_per_rad)
         self._t = float(t_s)
         self.compass = Compass(self.arm, self.model, imu.field, st, t_s)
-        self._enc_diff = CausalDifferentiator(n, st.encoder_window, st.encoder_order)
-        self._gyro_diff = CausalDifferentiator(3, st.gyro_window, st.gyro_order)
+        self.enc_rates = CausalDifferentiator(n, st.encoder_window, st.encoder_order)
+        self.gyro_rates = CausalDifferentiator(3, st.gyro_window, st.gyro_order)
         self._omega = None  # last gyro, base axes, rad/s
         self.health = SensorHealth(self.sensor_names, len(self.accel_streams), st)
         self.slips = SlipDetector(st, L, self.sensor_names, len(self.link_names), len(self.accel_streams),
@@ -279,16 +280,16 @@ class Tracker:
         if q_enc is not None:
             health.mark_used(self._sidx[ENC], t)
             if self._ukf is None:
-                self._start_filter(q_enc if self._enc0 is None else self._enc0 / self._cpr)
-            self._enc_diff.push(t, q_enc)
+                self._start_filter(q_enc if self._enc0 is None else self._enc0 / self.counts_per_rad)
+            self.enc_rates.push(t, q_enc)
             self._frame_cache = None
         if self._ukf is None:
             return False
         if gyro is not None:
-            self._gyro_diff.push(t, gyro)
+            self.gyro_rates.push(t, gyro)
             health.mark_used(self._sidx[GYRO], t)
         frame = self._frame_now(t, gyro, frame_x) if acc is not None else None
-        e = self._enc_diff.at(t)
+        e = self.enc_rates.at(t)
         self._step(t, gyro, acc, mag, frame, self._q_enc if e is None else e[0])
         return True
 
@@ -300,7 +301,7 @@ class Tracker:
         first order). Compiled (:mod:`fusion.tracking.frame_kernels`)."""
         if self._frame_cache is not None and self._frame_cache[0] == t:
             return self._frame_cache[1]
-        e = self._enc_diff.at(t)
+        e = self.enc_rates.at(t)
         if e is None:
             return None
         L = self.layout
@@ -308,7 +309,7 @@ class Tracker:
             x = self._ukf.x
         w = self._omega if gyro is None else gyro
         om = None if w is None else w - x[L.bias]
-        g = self._gyro_diff.latest
+        g = self.gyro_rates.latest
         omd = None if g is None else g[1]
         fields = self._frame_consts.fields(e, x[L.offset], om, omd, self.settings.motion_compensation)
         frame = self.measurements.with_noise(tuple.__new__(Frames, fields))
@@ -349,32 +350,16 @@ class Tracker:
         """One update with every accelerometer and the magnetometer of this instant, each
         sensor gated on its own NIS; health checks and re-acquisition on the way."""
         st, ukf, L, ms = self.settings, self._ukf, self.layout, self.measurements
-        sel = m_B = check = None
-        k = 0
-        key, imu_pos, full = b"", -1, False
-        if acc is not None:
-            sel, counts, f, (key, imu_pos, full, _) = acc
-            k = len(sel)
-            if self._time_offset_s is not None and frame.omega_S_rad_s is not None:
-                # a reading stamped late by dt saw gravity dt earlier: turn it to the stamp
-                f = f - self._time_offset_s[sel][:, None] * cross(frame.omega_S_rad_s[sel], f)
-            var_a = frame.accel_var_g2 if full else frame.accel_var_g2[sel]
+        m_B = check = None
         still = self.still.still and acc is not None and st.motion_compensation
-        n_still = 3 if still else 0
-        m = 3 * k + n_still + (mag is not None)
-        z = np.zeros(m)
-        var = np.empty(m)
-        if k:
-            z[:3 * k] = f.reshape(-1)
-            var[:3 * k] = var_a.reshape(-1)
-        if still:
-            var[3 * k:3 * k + 3] = ms.still_var3
+        sel, counts, f, (key, imu_pos, full, _), var_a, z, var = ms.stack(acc, frame, still, mag is not None)
+        k, m = len(counts), len(z)
         if mag is not None:
             m_count, m_B = mag
             x = ukf._x
             check, var[-1] = self.compass.variance(m_B, up_from_tilt(x[L.roll], x[L.pitch]), m_count)
         plan = ms.plan(key, k, still, mag is not None)
-        angle_rows = (3 * k + n_still,) if mag is not None else ()
+        angle_rows = (m - 1,) if mag is not None else ()
         shift = self.compass.heading_shift_rad() if mag is not None else 0.0
         inn = ukf.innovate(z, ms.h_all, var, plan, angle_rows=angle_rows,
                            frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
@@ -447,21 +432,6 @@ class Tracker:
 
         self._check()
         return run_recording(self, rec, t_stop_s, truth, block, progress)
-
-    def prime(self, rec: Recording) -> None:
-        """Fill the causal differentiators with the recording's samples up to the current
-        time (the still window), so that the first instants have a full window."""
-        self._check()
-        enc = rec.get(ENC)
-        if enc is not None and len(enc):
-            prime(self._enc_diff, enc.t_s, enc.values / self._cpr, self._t)
-        g = rec.get(GYRO)
-        if g is not None and len(g):
-            wB = self.readings.models[GYRO].from_counts(g.values) @ self._R_0I.T
-            prime(self._gyro_diff, g.t_s, wB, self._t)
-            k = int(np.searchsorted(g.t_s, self._t + 1e-9)) - 1
-            if k >= 0:
-                self._omega = wB[k]
 
     # -- restart -----------------------------------------------------------------------------
     def snapshot(self) -> dict:

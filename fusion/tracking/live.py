@@ -42,8 +42,8 @@ def fuse_instant(tr, t_s: float, samples: Mapping[str, np.ndarray]) -> Estimate 
         acc = (sel, np.stack([phys[s][0] for s in present]), np.stack([phys[s][1] for s in present]),
                tr.measurements.selection(sel))
     mag = phys.get(MAG)
-    R_0I = tr._R_0I
-    if not tr._instant(t, None if enc is None else enc[0] / tr._cpr,
+    R_0I = tr.R_0I
+    if not tr._instant(t, None if enc is None else enc[0] / tr.counts_per_rad,
                        R_0I @ phys[GYRO][1] if GYRO in phys else None, acc,
                        None if mag is None else (mag[0], R_0I @ mag[1])):
         return None

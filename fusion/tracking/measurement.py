@@ -24,15 +24,17 @@ class Measurements:
     """The measurement side of a tracker with accelerometer streams ``accel_streams``
     (the IMU's at ``imu_index``, -1 without), on links ``links``; ``names`` every stream it
     takes; ``unmodelled_g`` per accelerometer the config's unmodelled-error floor;
-    ``time_var_s2`` per accelerometer its time stamp's variance (None: none stated)."""
+    ``time_offset_s``, ``time_var_s2`` per accelerometer its time stamp's offset and variance
+    (None: none stated)."""
 
     def __init__(self, settings: TrackerSettings, layout: StateLayout, names: tuple[str, ...],
                  accel_streams: tuple[str, ...], links: np.ndarray, imu_index: int,
-                 unmodelled_g: np.ndarray, time_var_s2: np.ndarray | None):
+                 unmodelled_g: np.ndarray, time_offset_s: np.ndarray | None, time_var_s2: np.ndarray | None):
         self.settings, self.layout, self.names, self.accel_streams = settings, layout, names, accel_streams
         self.links = links.astype(np.int64)
         self.imu_index = imu_index
-        self.unmodelled_g, self.time_var_s2 = unmodelled_g, time_var_s2
+        self.unmodelled_g, self.time_offset_s, self.time_var_s2 = unmodelled_g, time_offset_s, time_var_s2
+        self._no_acc = (None, np.zeros((0, 3)), None, (b"", -1, False, None))
         self.rows = np.arange(3 * len(accel_streams)).reshape(-1, 3)
         self._gate3 = float(nis_bound(3, settings.gate_significance))
         self._gate1 = float(nis_bound(1, settings.gate_significance))
@@ -91,6 +93,30 @@ class Measurements:
             turn = cross(frames.omega_S_rad_s, frames.R_0S[..., 2, :])
             var = var + self.time_var_s2[:, None] * turn**2
         return frames._replace(accel_var_g2=var)
+
+    def stack(self, acc, frame: Frames | None, still: bool, mag: bool):
+        """One update's stacked measurement ``z`` and its variances ``var``: the
+        accelerometers ``acc`` (indices, counts, readings in g, their selection's info; None:
+        none), each turned back to its time stamp, with the frame's variances ``var_a``; the
+        still chair's zero acceleration; a last row left for the heading when ``mag``.
+        Returns ``(sel, counts, f, info, var_a, z, var)``."""
+        sel, counts, f, info = self._no_acc if acc is None else acc
+        var_a = None
+        k = len(counts)
+        if acc is not None:
+            if self.time_offset_s is not None and frame.omega_S_rad_s is not None:
+                # a reading stamped late by dt saw gravity dt earlier: turn it to the stamp
+                f = f - self.time_offset_s[sel][:, None] * cross(frame.omega_S_rad_s[sel], f)
+            var_a = frame.accel_var_g2 if info[2] else frame.accel_var_g2[sel]
+        m = 3 * k + (3 if still else 0) + mag
+        z = np.zeros(m)
+        var = np.empty(m)
+        if k:
+            z[:3 * k] = f.reshape(-1)
+            var[:3 * k] = var_a.reshape(-1)
+        if still:
+            var[3 * k:3 * k + 3] = self.still_var3
+        return sel, counts, f, info, var_a, z, var
 
     def selection(self, sel: np.ndarray) -> tuple:
         """For the accelerometers ``sel`` (cached): its key, the IMU's position in it (-1:

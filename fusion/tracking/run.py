@@ -57,12 +57,12 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
         counts[i, C_SAMPLES] += len(used)
         counts[i, C_SATURATED] += int((~ok[used]).sum())
     enc = raw[ENC]
-    q_enc_all = enc.values / tr._cpr
-    gyro_B = phys[GYRO] @ tr._R_0I.T if GYRO in raw else None
-    mag_B = phys[MAG] @ tr._R_0I.T if MAG in raw else None
+    q_enc_all = enc.values / tr.counts_per_rad
+    gyro_B = phys[GYRO] @ tr.R_0I.T if GYRO in raw else None
+    mag_B = phys[MAG] @ tr.R_0I.T if MAG in raw else None
     if tr._ukf is None:  # the offsets are fixed by the first encoder sample
         k = min(int(np.searchsorted(enc.t_s, t_from - 1e-9)), len(enc) - 1)
-        tr._start_filter(q_enc_all[k] if tr._enc0 is None else tr._enc0 / tr._cpr)
+        tr._start_filter(q_enc_all[k] if tr._enc0 is None else tr._enc0 / tr.counts_per_rad)
     acc_streams = [s for s in tr.accel_streams if s in raw]
     acc_idx = np.array([tr._sidx[s] for s in acc_streams], dtype=np.int64)
     acc_info = tr.measurements.selection(acc_idx)

@@ -27,8 +27,8 @@ def snapshot_of(tr) -> dict:
         "P": tr._ukf._P.tolist(),
         "q_enc": tr._q_enc.tolist(),
         "omega": None if tr._omega is None else np.asarray(tr._omega).tolist(),
-        "encoder_fit": tr._enc_diff.snapshot(),
-        "gyro_fit": tr._gyro_diff.snapshot(),
+        "encoder_fit": tr.enc_rates.snapshot(),
+        "gyro_fit": tr.gyro_rates.snapshot(),
         "field": c["field"],
         "guard": c["guard"],
         "counters": tr.health.counts.tolist(),
@@ -56,8 +56,8 @@ def restore_into(tr, snap: Mapping) -> None:
     tr._q_enc = np.array(snap["q_enc"], dtype=float)
     tr._ukf = BatchedUKF(x, P, tr._points, angle_states=(L.yaw,))
     tr._omega = None if snap.get("omega") is None else np.array(snap["omega"], dtype=float)
-    tr._enc_diff.restore(snap["encoder_fit"])
-    tr._gyro_diff.restore(snap["gyro_fit"])
+    tr.enc_rates.restore(snap["encoder_fit"])
+    tr.gyro_rates.restore(snap["gyro_fit"])
     tr.compass.restore(snap)
     tr.health.counts = np.array(snap["counters"], dtype=np.int64)
     if "still" in snap:

@@ -14,6 +14,7 @@ import numpy as np
 
 from fusion.startup.solve import StartupResult
 from fusion.tracking.compass import compass_map, compass_unmodelled_rad
+from fusion.tracking.differentiator import prime
 from fusion.tracking.filter import Tracker
 from fusion.tracking.heading import FieldReference, heading_sigma_rad, tilt_compensated_heading
 from fusion.tracking.initial import ImuStill
@@ -176,7 +177,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         t = Tracker(arm, settings, rates_hz=rates, correction=corr)
         t.initialise(result, float(enc.t_s[k]), encoder_counts=enc.values[k], imu=imu,
                      prior_q_rad=prior_q_rad)
-        t.prime(rec)
+        _prime(t, rec)
         return t
 
     if resolve_by_motion_s and startup.candidates_rad is not None and len(startup.candidates_rad) > 1:
@@ -238,3 +239,18 @@ def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s
             f"summed NIS over {horizon_s:g} s: {best:.0f} against {second:.0f} at the next)")
     return None, (f"{names}: ambiguous, and the motion after the still window does not tell the "
                   f"branches apart (summed NIS over {horizon_s:g} s: {best:.0f} and {second:.0f})")
+
+
+def _prime(tr: Tracker, rec: Recording) -> None:
+    """Fill the tracker's causal differentiators with the recording's samples up to its
+    current time (the still window), so that the first instants have a full window."""
+    enc = rec.get(ENC)
+    if enc is not None and len(enc):
+        prime(tr.enc_rates, enc.t_s, enc.values / tr.counts_per_rad, tr.t_s)
+    g = rec.get(GYRO)
+    if g is not None and len(g):
+        wB = tr.readings.models[GYRO].from_counts(g.values) @ tr.R_0I.T
+        prime(tr.gyro_rates, g.t_s, wB, tr.t_s)
+        k = int(np.searchsorted(g.t_s, tr.t_s + 1e-9)) - 1
+        if k >= 0:
+            tr._omega = wB[k]

@@ -229,7 +229,7 @@ def test_update_instant_gives_the_same_estimates_as_the_numpy_path(arm, effects,
     with monkeypatch.context() as m:
         m.setattr("fusion.tracking.filter.CausalDifferentiator", NumpyDifferentiator)
         b, _ = start_from_recording(arm, rec)
-    assert isinstance(b._enc_diff, NumpyDifferentiator) and not isinstance(a._enc_diff, NumpyDifferentiator)
+    assert isinstance(b.enc_rates, NumpyDifferentiator) and not isinstance(a.enc_rates, NumpyDifferentiator)
     b._frame_consts = NumpyFrame(b)
     assert a.t_s < 4.0
     names = a.sensor_names
