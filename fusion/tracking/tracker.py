@@ -53,18 +53,13 @@ again. Each sensor has a chi-square gate; a sensor rejected for longer than
 Samples that are not finite, saturated, implausible (far from the predicted magnitude:
 a dead sensor) or stuck are skipped and counted.
 
-The one filter path, live and over a recording alike: each instant's samples (as SI
-readings) go through :meth:`Tracker._instant`: the differentiators take them, the mean
-pose's kinematic frame is made (compiled, :class:`fusion.tracking.frame_kernels.FrameConstants`),
-the filter predicts and fuses. :meth:`Tracker.update_instant` feeds it one instant's raw
-samples; :meth:`Tracker.run` (:mod:`fusion.tracking.run`) a whole recording, with only the
-conversions to SI units and the saturation checks done for many instants at once.
-
-The tracker is composed of parts that own their state: :class:`SensorHealth` (counters,
-verdicts, statuses), :class:`SlipDetector` (slips and re-acquisition),
-:class:`Observability` (hold, consider sensitivity, joint flags), :class:`Compass`
-(heading), :class:`StillDetector`, :class:`ProcessModel`, :class:`Measurements`, the two
-:class:`CausalDifferentiator` and :class:`Ambiguity`.
+One filter path, live and over a recording alike: each instant's readings go through
+:meth:`Tracker._instant` (the differentiators take them, the mean pose's kinematic frame is
+made in one compiled call, the filter predicts and fuses). :meth:`Tracker.update_instant`
+(:mod:`fusion.tracking.live`) feeds it one instant's raw samples; :meth:`Tracker.run`
+(:mod:`fusion.tracking.run`) a whole recording, with only the conversions to SI units and
+the saturation checks done for many instants at once, and the frames made with the offsets
+and gyro bias of each block of instants' start (the instant's, live).
 
 Where it lives (each module one idea; this one gathers the public names):
 
@@ -81,7 +76,7 @@ Where it lives (each module one idea; this one gathers the public names):
   :mod:`~fusion.tracking.frames` (the kinematic frame), :mod:`~fusion.tracking.initial`
   (first state, ambiguity), :mod:`~fusion.tracking.calibrated` (what the config's
   effects say), :mod:`~fusion.tracking.innovations`, :mod:`~fusion.tracking.snapshot`;
-- :mod:`fusion.tracking.run`: a run over a recording (:class:`TrackRun`), scored against
+- :mod:`fusion.tracking.live` and :mod:`fusion.tracking.run`: the live front and a run over a recording (:class:`TrackRun`), scored against
   truth by :mod:`fusion.tracking.scoring`;
 - :mod:`fusion.tracking.start`: :func:`start_from_recording`, :func:`warm_up`.
 """
