@@ -76,8 +76,9 @@ Where it lives (each module one idea; this one gathers the public names):
   :mod:`~fusion.tracking.frames` (the kinematic frame), :mod:`~fusion.tracking.initial`
   (first state, ambiguity), :mod:`~fusion.tracking.calibrated` (what the config's
   effects say), :mod:`~fusion.tracking.innovations`, :mod:`~fusion.tracking.snapshot`;
-- :mod:`fusion.tracking.live` and :mod:`fusion.tracking.run`: the live front and a run over a recording (:class:`TrackRun`), scored against
-  truth by :mod:`fusion.tracking.scoring`;
+- :mod:`fusion.tracking.live` and :mod:`fusion.tracking.run`: the live front and a run
+  over a recording (:class:`TrackRun`), scored against truth by
+  :mod:`fusion.tracking.scoring`;
 - :mod:`fusion.tracking.start`: :func:`start_from_recording`, :func:`warm_up`.
 """
 
