@@ -75,7 +75,8 @@ def filterpy_baseline(arm, rec: Recording, steps: int, model: str = "numpy"):
 
     ``model``: "numpy", the process and measurement functions written in NumPy
     (:mod:`fusion.tracking.tracker_kernels`' ``*_numpy``: the same equations, as a filterpy user would
-    write them); "compiled", the tracker's own compiled ones (``Tracker._fx``, ``Tracker._h_all``).
+    write them); "compiled", the tracker's own compiled ones (``Tracker.process.fx``,
+    ``Tracker.measurements.h_all``).
 
     Returns (seconds per step (wall clock), CPU seconds per step, the joint errors at the end,
     steps run)."""
@@ -91,26 +92,28 @@ def filterpy_baseline(arm, rec: Recording, steps: int, model: str = "numpy"):
     # inputs, computed beforehand (not timed): encoder fits, gyro, frames, measurements
     q_enc = enc.values / arm.counts_per_rad
     fit = causal_fits(t, q_enc, st.encoder_window, st.encoder_order)
-    w_B = tr._sm[GYRO].from_counts(gyro.values) @ tr._R_0I.T
+    w_B = tr.readings.models[GYRO].from_counts(gyro.values) @ tr.R_0I.T
     wfit = causal_fits(gyro.t_s, w_B, st.gyro_window, st.gyro_order)
     frames = make_frames(arm, tr.accel_names, fit[idx, 0], x0[L.offset], fit[idx, 1], fit[idx, 2],
                          w_B[idx] - x0[L.bias], wfit[idx, 1])
     sel = np.arange(len(tr.accel_streams))
-    f = np.concatenate([tr._physical(s, rec.get(s).values.astype(float))[idx] for s in tr.accel_streams], 1)
-    m_B = tr._sm[MAG].from_counts(mag.values.astype(float))[idx] @ tr._R_0I.T
-    var_a = tr._accel_sigma_g[sel] ** 2
-    R = np.diag(np.r_[var_a.reshape(-1), tr._sigma_psi**2])
-    Q = tr._Q(0.01, True)
+    f = np.concatenate([tr.readings.physical(s, rec.get(s).values.astype(float))[idx]
+                        for s in tr.accel_streams], 1)
+    m_B = tr.readings.models[MAG].from_counts(mag.values.astype(float))[idx] @ tr.R_0I.T
+    var_a = tr.measurements.accel_sigma_g[sel] ** 2
+    R = np.diag(np.r_[var_a.reshape(-1), tr.compass.sigma_psi**2])
+    Q = tr.process.Q(0.01, True, tr.still.still)
 
     if model == "compiled":
         def fx(x, dt, w):
-            return tr._fx(x[None], dt, w)[0]
+            return tr.process.fx(x[None], dt, w)[0]
 
         def hx(x, frame, mB):
-            return tr._h_all(x[None], frame, sel, mB)[0]
+            return tr.measurements.h_all(x[None], frame, sel, mB,
+                                          heading_shift_rad=tr.compass.heading_shift_rad())[0]
     else:
         n, decay = L.n_joints, float(np.exp(-0.01 / st.base_accel_tau_s))
-        links, shift = tr._links.astype(np.int64), tr._field.declination_rad - np.pi
+        links, shift = tr._links.astype(np.int64), tr.compass.field.declination_rad - np.pi
 
         def fx(x, dt, w):
             return process_points_numpy(x[None], dt, w, True, L.roll, L.yaw, n + 6, n + 2,

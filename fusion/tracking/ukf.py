@@ -34,14 +34,18 @@ kernels are tested against (to round-off).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
 from scipy.linalg import lapack
-from scipy.stats import chi2
 
+from fusion.tracking.ukf_groups import (
+    GroupPlan,
+    Innovation,
+    MeasurementGroup,
+    group_nis,
+    nis_bound,
+)
 from fusion.tracking.ukf_kernels import (
     DIAGONAL_NOT_POSITIVE,
     NOT_POSITIVE_DEFINITE,
@@ -181,168 +185,6 @@ def repair_covariance(P: np.ndarray, floor: float = 0.0) -> np.ndarray:
             pass
     w, V = np.linalg.eigh(P)
     return symmetrise((V * np.clip(w, floor, None)) @ V.T)
-
-
-def group_nis(nu: np.ndarray, S: np.ndarray, rows: Sequence[np.ndarray]) -> np.ndarray:
-    """Normalised innovation squared of each group of rows (inf where S is singular).
-
-    Groups of the same size are solved together in one batched call.
-    """
-    G = len(rows)
-    out = np.empty(G)
-    sizes = np.array([len(r) for r in rows])
-    for k in np.unique(sizes):
-        which = np.flatnonzero(sizes == k)
-        idx = np.stack([rows[i] for i in which])  # (g, k)
-        Sg = S[idx[:, :, None], idx[:, None, :]]  # (g, k, k)
-        v = nu[idx]  # (g, k)
-        try:
-            out[which] = np.einsum("gi,gi->g", v, np.linalg.solve(Sg, v[..., None])[..., 0])
-        except np.linalg.LinAlgError:
-            for i, gi in enumerate(which):
-                try:
-                    out[gi] = v[i] @ np.linalg.solve(Sg[i], v[i])
-                except np.linalg.LinAlgError:
-                    out[gi] = np.inf
-    return out
-
-
-def nis_bound(dof: int | np.ndarray, significance: float) -> np.ndarray:
-    """The chi-square gate: NIS above this is an outlier at ``significance``."""
-    return chi2.ppf(1.0 - significance, dof)
-
-
-# --------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class MeasurementGroup:
-    """A named block of measurement rows (one sensor), gated as a whole."""
-
-    name: str
-    rows: np.ndarray  # indices into the stacked measurement vector
-    gate: float = np.inf  # NIS above this is rejected (np.inf: never)
-
-
-class GroupPlan:
-    """Measurement groups prepared once for repeated updates of the same shape: their
-    names, rows, gates, and the index arrays that batch the NIS of equal-sized groups."""
-
-    def __init__(self, groups: Sequence[MeasurementGroup]):
-        self.groups = tuple(groups)
-        self.names = tuple(g.name for g in groups)
-        self.rows = tuple(np.asarray(g.rows, dtype=int) for g in groups)
-        self.gates = np.array([g.gate for g in groups], dtype=float)
-        sizes = np.array([len(r) for r in self.rows])
-        self.batches = []
-        for k in np.unique(sizes):
-            which = np.flatnonzero(sizes == k)
-            idx = np.stack([self.rows[i] for i in which])
-            # groups that tile consecutive rows: their diagonal blocks of S are a view
-            r0 = int(idx[0, 0])
-            tiles = np.array_equal(idx.reshape(-1), np.arange(r0, r0 + idx.size))
-            tile = (r0, len(which), int(k)) if tiles else None
-            self.batches.append((which, idx, idx[:, :, None], idx[:, None, :], tile))
-        self._finite_gates = bool(np.all(np.isfinite(self.gates)))
-        m = int(sum(sizes))
-        self.m = m
-        # the block diagonal of S (one block per group) and which rows make each group: the
-        # NIS of every group from one Cholesky factor, when the groups tile the rows
-        self._tiled = m > 0 and np.array_equal(np.sort(np.concatenate(self.rows)), np.arange(m))
-        if self._tiled:
-            self._block_mask = np.zeros((m, m))
-            self._member = np.zeros((m, len(self.rows)))
-            for g, r in enumerate(self.rows):
-                self._block_mask[np.ix_(r, r)] = 1.0
-                self._member[r, g] = 1.0
-            # for the compiled innovation: every group's rows one after the other, and where
-            # each group's start (group g is group_rows[group_start[g]:group_start[g + 1]])
-            self._group_rows = np.ascontiguousarray(np.concatenate(self.rows), dtype=np.int64)
-            self._group_start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-            self._gates_c = np.ascontiguousarray(self.gates)
-            # the diagonal blocks of S, batch by batch (groups of one size, in order), one
-            # after the other in one flat array: where each group's block starts, and each
-            # batch's span and shape there
-            self._block_start = np.zeros(len(self.rows), dtype=np.int64)
-            self._block_spans = []
-            start = 0
-            for which, idx, _, _, _ in self.batches:
-                g, k = idx.shape
-                self._block_start[which] = start + k * k * np.arange(g)
-                self._block_spans.append((k, which, slice(start, start + g * k * k), (g, k, k)))
-                start += g * k * k
-            self._block_size = start
-
-    def _blocks_of(self, S: np.ndarray) -> dict:
-        """The diagonal blocks of S by group size: size -> (group indices, blocks (g, k, k))."""
-        return {idx.shape[1]: (which, S[ii, jj] if tile is None else _diagonal_blocks(S, *tile))
-                for which, idx, ii, jj, tile in self.batches}
-
-    def _blocks_from(self, flat: np.ndarray) -> dict:
-        """:meth:`_blocks_of` from the blocks laid out one after the other in ``flat`` (as
-        ``_block_start`` says; the compiled innovation copies them there): views on it."""
-        return {k: (which, flat[span].reshape(shape)) for k, which, span, shape in self._block_spans}
-
-    def nis(self, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
-        """Each group's NIS; the diagonal blocks of S are kept in ``last_blocks`` (size ->
-        (group indices, blocks)) for whoever wants them."""
-        self.last_blocks = self._blocks_of(S)
-        if self._tiled and nu.shape[0] == self.m:
-            c, info = lapack.dpotrf(S * self._block_mask, lower=1, clean=0)
-            if info == 0:
-                w, info = lapack.dtrtrs(c, nu, lower=1)
-                if info == 0:
-                    return (w * w) @ self._member
-        return self._nis_blocks(nu)
-
-    def _nis_blocks(self, nu: np.ndarray) -> np.ndarray:
-        """The NIS block by block (a group whose block is singular gets inf)."""
-        out = np.empty(len(self.rows))
-        for which, idx, _, _, _ in self.batches:
-            k = idx.shape[1]
-            Sg = self.last_blocks[k][1]
-            v = nu[idx]
-            if k == 1:
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    r = v[:, 0] ** 2 / Sg[:, 0, 0]
-                out[which] = np.where(Sg[:, 0, 0] > 0, r, np.inf)
-            else:
-                for i, gi in enumerate(which):
-                    try:
-                        out[gi] = v[i] @ np.linalg.solve(Sg[i], v[i])
-                    except np.linalg.LinAlgError:
-                        out[gi] = np.inf
-        return out
-
-
-def _diagonal_blocks(S: np.ndarray, r0: int, g: int, k: int) -> np.ndarray:
-    """The ``g`` diagonal ``(k, k)`` blocks of ``S`` that tile its rows from ``r0`` on, as a
-    read-only view ``(g, k, k)``."""
-    Sv = S[r0:r0 + g * k, r0:r0 + g * k].reshape(g, k, g, k)
-    return Sv.diagonal(axis1=0, axis2=2).transpose(2, 0, 1)
-
-
-class Innovation(NamedTuple):
-    """One measurement's prediction against the current state, before it is applied
-    (immutable: a named tuple, cheap to make once per step).
-
-    ``innovation (m,)`` and ``S (m, m)`` are the full stacked vectors (every group);
-    ``nis (G,)`` is each group's normalised innovation squared, ``gate_ok (G,)`` whether
-    it passed its own gate. ``Pxz (n, m)`` is the state-measurement cross covariance.
-    """
-
-    names: tuple[str, ...]
-    rows: tuple[np.ndarray, ...]
-    innovation: np.ndarray
-    S: np.ndarray
-    Pxz: np.ndarray
-    nis: np.ndarray
-    gate_ok: np.ndarray
-    z_pred: np.ndarray
-    blocks: dict | None = None  # group size -> (group indices, their diagonal blocks of S)
-
-    def group(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """Innovation and covariance of one group."""
-        r = self.rows[self.names.index(name)]
-        return self.innovation[r], self.S[np.ix_(r, r)]
 
 
 class BatchedUKF:
@@ -674,3 +516,9 @@ class BatchedUKF:
             P = repair_covariance(P, 1e-18)
         self._x, self._P = x, P
         self._sigmas = None
+
+
+__all__ = [
+    "BatchedUKF", "GroupPlan", "Innovation", "MeasurementGroup", "SigmaPoints", "group_nis", "nis_bound",
+    "repair_covariance", "residuals", "symmetrise", "unscented_mean", "unscented_transform", "wrap_angle",
+]

@@ -79,37 +79,30 @@ def _cholesky_solve_rows(U: np.ndarray, B: np.ndarray) -> None:
     """``B = A^-1 B`` in place for ``A = U^T U`` (``U (m, m)`` upper triangular, ``B (m, c)``):
     the forward substitution ``U^T Y = B``, then the back substitution ``U X = Y``, each row
     of ``B`` losing its multiples of the rows already solved (four at a time)."""
-    m, c = B.shape
+    m = B.shape[0]
     for r in range(m):
-        q = 0
-        while q + 4 <= r:
-            u0, u1, u2, u3 = U[q, r], U[q + 1, r], U[q + 2, r], U[q + 3, r]
-            for j in range(c):
-                B[r, j] -= (u0 * B[q, j] + u1 * B[q + 1, j]) + (u2 * B[q + 2, j] + u3 * B[q + 3, j])
-            q += 4
-        while q < r:
-            u0 = U[q, r]
-            for j in range(c):
-                B[r, j] -= u0 * B[q, j]
-            q += 1
-        d = U[r, r]
-        for j in range(c):
-            B[r, j] /= d
+        _solve_row(B, r, U[:, r], 0, r, U[r, r])
     for r in range(m - 1, -1, -1):
-        q = r + 1
-        while q + 4 <= m:
-            u0, u1, u2, u3 = U[r, q], U[r, q + 1], U[r, q + 2], U[r, q + 3]
-            for j in range(c):
-                B[r, j] -= (u0 * B[q, j] + u1 * B[q + 1, j]) + (u2 * B[q + 2, j] + u3 * B[q + 3, j])
-            q += 4
-        while q < m:
-            u0 = U[r, q]
-            for j in range(c):
-                B[r, j] -= u0 * B[q, j]
-            q += 1
-        d = U[r, r]
+        _solve_row(B, r, U[r], r + 1, m, U[r, r])
+
+
+@njit(cache=True, inline="always")
+def _solve_row(B: np.ndarray, r: int, u: np.ndarray, q: int, q_end: int, d: float) -> None:
+    """Row ``r`` of ``B`` loses ``u[q]`` times row ``q`` for every ``q`` in ``[q, q_end)``
+    (four rows at a time), then is divided by ``d``: one row of a triangular solve."""
+    c = B.shape[1]
+    while q + 4 <= q_end:
+        u0, u1, u2, u3 = u[q], u[q + 1], u[q + 2], u[q + 3]
         for j in range(c):
-            B[r, j] /= d
+            B[r, j] -= (u0 * B[q, j] + u1 * B[q + 1, j]) + (u2 * B[q + 2, j] + u3 * B[q + 3, j])
+        q += 4
+    while q < q_end:
+        u0 = u[q]
+        for j in range(c):
+            B[r, j] -= u0 * B[q, j]
+        q += 1
+    for j in range(c):
+        B[r, j] /= d
 
 
 @njit(cache=True)

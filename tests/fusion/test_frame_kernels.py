@@ -5,8 +5,8 @@
 states: motion on and off, a calibrated config's joint effects, and joint axes that are
 not z (the chain's general path). The compiled differentiator against
 :func:`fusion.tracking.tracker.causal_poly_fit`. Then the tracker's live path
-(:meth:`Tracker.update_instant`) with both compiled against the same tracker with the
-NumPy frame and the NumPy differentiator, instant by instant.
+(:meth:`Tracker.update_instant`, the one filter path) with both compiled against the same
+tracker given the NumPy frame and the NumPy differentiator, instant by instant.
 """
 
 from __future__ import annotations
@@ -203,19 +203,34 @@ def moving_on_a_turning_chair(arm, duration_s: float) -> Scenario:
                     lambda t: 25.0 + 0.0 * np.asarray(t, float))
 
 
+class NumpyFrame:
+    """The one-instant frame from :func:`make_frames` (the NumPy form of
+    :meth:`FrameConstants.fields`), for a tracker's filter path."""
+
+    def __init__(self, tr: Tracker):
+        self.tr = tr
+
+    def fields(self, fit, offset, omega_B, omega_dot_B, motion):
+        z = np.zeros(3)
+        return tuple(make_frames(self.tr.arm, self.tr.accel_names, fit[0][None], offset[None], fit[1][None],
+                                 fit[2][None], (z if omega_B is None else omega_B)[None],
+                                 (z if omega_dot_B is None else omega_dot_B)[None], motion,
+                                 self.tr._joint_effects).take(0))
+
+
 @pytest.mark.parametrize("calibrated", [False, True])
 def test_update_instant_gives_the_same_estimates_as_the_numpy_path(arm, effects, calibrated, monkeypatch):
     """Instant by instant, the compiled frame and differentiators against make_frames and
-    the NumPy differentiator (the live path before they were compiled)."""
+    the NumPy differentiator (the filter path before they were compiled)."""
     arm = replace(arm, effects=effects) if calibrated else arm
     rec, _ = simulate(arm, moving_on_a_turning_chair(arm, 9.0), seed=21,
                       effects=effects if calibrated else None)
     a, _ = start_from_recording(arm, rec)
     with monkeypatch.context() as m:
-        m.setattr("fusion.tracking.tracker.CausalDifferentiator", NumpyDifferentiator)
+        m.setattr("fusion.tracking.filter.CausalDifferentiator", NumpyDifferentiator)
         b, _ = start_from_recording(arm, rec)
-    assert isinstance(b._enc_diff, NumpyDifferentiator) and not isinstance(a._enc_diff, NumpyDifferentiator)
-    b._frames_compiled = False
+    assert isinstance(b.enc_rates, NumpyDifferentiator) and not isinstance(a.enc_rates, NumpyDifferentiator)
+    b._frame_consts = NumpyFrame(b)
     assert a.t_s < 4.0
     names = a.sensor_names
     enc = rec.get("enc")

@@ -120,7 +120,7 @@ def test_product_of_exponentials_prediction_equals_the_motion_model(arm, rng):
     X[:, L.roll] = rng.normal(0, 0.05, 9)
     X[:, L.pitch] = rng.normal(0, 0.05, 9)
     X[:, L.accel] = rng.normal(0, 1.0, (9, 3))
-    f = tr._h_all(X, fr, np.arange(5), None).reshape(9, 5, 3)
+    f = tr.measurements.h_all(X, fr, np.arange(5), None).reshape(9, 5, 3)
     # the motion model evaluated afresh at each point (its joint rates held)
     ms = MotionState(np.zeros(9), q + X[:, L.offset], np.tile(qd, (9, 1)), np.tile(qdd, (9, 1)),
                      R_from_rpy(X[:, L.roll], X[:, L.pitch], np.zeros(9)), np.tile(w, (9, 1)),
@@ -135,7 +135,7 @@ def test_product_of_exponentials_prediction_equals_the_motion_model(arm, rng):
                      omega_B_rad_s=np.zeros((9, 3)), omega_dot_B_rad_s2=np.zeros((9, 3)))
     fr0 = make_frames(arm, tr.accel_names, q[None], np.zeros(7), np.zeros((1, 7)), np.zeros((1, 7)),
                       np.zeros((1, 3)), np.zeros((1, 3))).take(0)
-    np.testing.assert_allclose(tr._h_all(X, fr0, np.arange(5), None).reshape(9, 5, 3),
+    np.testing.assert_allclose(tr.measurements.h_all(X, fr0, np.arange(5), None).reshape(9, 5, 3),
                                specific_force(arm, ms0, list(tr.accel_names)), atol=1e-12)
 
 
@@ -299,16 +299,26 @@ def test_saturated_samples_in_a_recording_are_counted(arm, reaching):
 
 
 def test_sample_by_sample_equals_the_whole_recording_path(arm, reaching):
+    """One filter path: a run over a recording with a frame reference refreshed every
+    instant (block 1) is the live path, instant by instant, to round-off (the counts are
+    converted for the whole recording at once there); with the default blocks the frames'
+    offsets are those of each block's start, and the motion term differs to first order in
+    their drift since then."""
     a, start = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
+    one, _ = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
     b, _ = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
-    run = a.run(reaching, t_stop_s=start.t_end_s + 6.0)
+    t_stop = start.t_end_s + 6.0
+    run = a.run(reaching, t_stop_s=t_stop)
+    run1 = one.run(reaching, t_stop_s=t_stop, block=1)
     names = ("enc", "imu_gyro", "imu_mag") + ACCELS
     t = reaching.get("enc").t_s
-    for i in np.flatnonzero((t > b.t_s + 1e-9) & (t <= start.t_end_s + 6.0 + 1e-9)):
-        est = b.update_instant(t[i], {s: reaching.get(s).values[i] for s in names})
-    assert est.t_s == pytest.approx(run.t_s[-1])
-    # the batch path makes its kinematics with the offsets of each block's start: the
-    # motion term differs to first order in their drift since then
+    live = [b.update_instant(t[i], {s: reaching.get(s).values[i] for s in names})
+            for i in np.flatnonzero((t > b.t_s + 1e-9) & (t <= t_stop + 1e-9))]
+    assert [e.t_s for e in live] == pytest.approx(run1.t_s.tolist(), abs=1e-12) and len(live) > 500
+    np.testing.assert_allclose([e.q_rad for e in live], run1.q_rad, rtol=0, atol=1e-11)
+    np.testing.assert_allclose([e.sigma_rad for e in live], run1.sigma_rad, rtol=1e-9)
+    assert [e.flags for e in live] == [tuple(JOINT_FLAGS[f] for f in fl) for fl in run1.flags]
+    est = live[-1]
     np.testing.assert_allclose(est.q_rad, run.q_rad[-1], atol=1e-5)  # 0.0006°
     np.testing.assert_allclose(est.sigma_rad, run.sigma_rad[-1], rtol=1e-3)
     assert est.flags == tuple(JOINT_FLAGS[f] for f in run.flags[-1])

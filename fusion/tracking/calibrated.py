@@ -1,0 +1,156 @@
+"""What a calibrated config's effects tell the tracker, read through the effects' own model
+(:class:`models.effects.Model`, built from the config's ``effects:`` list), and the
+readings those effects correct: counts to SI units with the calibrated sensor errors
+undone at the temperature the IMU reads (:class:`Readings`).
+
+Where the tracker needs an effect's uncertainty (an encoder scale's, a time offset's, a
+hard iron's), it is the model's prior sigma of that block: the sigma the config states,
+else the effect's datasheet-typical one (the prior a refit would start from).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from models.arm import ArmModel
+from models.effects import JointEffect, Model, model_from_arm
+from models.sensor_models import StreamModel, stream_models
+
+
+def config_model(arm: ArmModel) -> Model | None:
+    """The model of ``arm``'s config effects; None when it has none."""
+    return model_from_arm(arm) if arm.effects else None
+
+
+def _blocks(model: Model | None, effect: str):
+    """``(effect object, value, sigma)`` of every entry of ``effect`` in ``model`` (flat arrays)."""
+    if model is None:
+        return
+    values = model.unpack()
+    for e, b in zip(model.effects, model.blocks, strict=True):
+        if e.name == effect:
+            yield e, np.ravel(values[e.block_name]), np.ravel(b.prior_sigma)
+
+
+def has_effect(model: Model | None, effect: str) -> bool:
+    return any(True for _ in _blocks(model, effect))
+
+
+def encoder_scales(arm: ArmModel, model: Model | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per joint, the config's encoder scale error (``encoder_scale``: the encoder gives
+    ``1 + s`` times the counts the config's counts per revolution say) and its sigma (0
+    where the config has none)."""
+    s, sig = np.zeros(arm.n_joints), np.zeros(arm.n_joints)
+    for e, value, sigma in _blocks(model, "encoder_scale"):
+        if e.target in arm.joint_names:
+            j = arm.joint_names.index(e.target)
+            s[j], sig[j] = float(value[0]), float(sigma[0])
+    return s, sig
+
+
+def stamp_offsets(model: Model | None, accel_names) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Per accelerometer, the config's calibrated time offset (s: samples stamped late by
+    it, ``time_offset``) and its variance (s²). ``None`` when the config has no time offsets."""
+    idx = {nm: i for i, nm in enumerate(accel_names)}
+    off, var = np.zeros(len(idx)), np.zeros(len(idx))
+    for e, value, sigma in _blocks(model, "time_offset"):
+        if e.target in idx:
+            off[idx[e.target]], var[idx[e.target]] = float(value[0]), float(sigma[0]) ** 2
+    if not off.any() and not var.any():
+        return None, None
+    return off, var
+
+
+def with_lever_arms(arm: ArmModel, model: Model | None) -> ArmModel:
+    """The arm with each sensor where its config's calibrated lever arm puts it (the
+    ``motion_acceleration`` effects: an offset in the link's axes), so that the motion the
+    tracker predicts at a sensor (centripetal, tangential) is at the right point."""
+    shift = {e.target: value for e, value, _ in _blocks(model, "motion_acceleration")
+             if e.target and value.shape == (3,) and np.any(value)}
+    if not shift:
+        return arm
+    sensors = tuple(replace(s, p_L_m=np.asarray(s.p_L_m, float) + shift[s.name]) if s.name in shift else s
+                    for s in arm.sensors)
+    return replace(arm, sensors=sensors)
+
+
+def hard_iron_sigma_ut(model: Model | None) -> np.ndarray | None:
+    """The sigma (µT, per compass axis) of the config's ``mag_hard_iron``; None without one."""
+    for _, _, sigma in _blocks(model, "mag_hard_iron"):
+        return sigma
+    return None
+
+
+def offset_per_degree(arm: ArmModel, model: Model | None, correction) -> dict[str, np.ndarray]:
+    """Per accelerometer stream, how the correction's offset moves per °C (the config's
+    ``temperature_drift``), so that readings are corrected at the temperature the IMU reads
+    now rather than the startup's."""
+    if not has_effect(model, "temperature_drift"):
+        return {}
+    from fusion.identification.identify import startup_correction
+
+    t0 = float(correction.temperature_c)
+    warmer = startup_correction(arm, t0 + 1.0, include_joint_offsets=True)
+    out = {}
+    for stream, (_, c) in correction.maps.items():
+        slope = np.asarray(warmer.maps[stream][1], float) - np.asarray(c, float)
+        if np.any(slope):
+            out[stream] = slope
+    return out
+
+
+class Readings:
+    """Counts to SI units per stream, the correction's calibrated sensor errors (affine:
+    mount, axes, scale, bias; the offset's temperature drift) undone."""
+
+    def __init__(self, arm: ArmModel, model: Model | None, correction):
+        self.arm = arm
+        self.undo: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.per_c: dict[str, np.ndarray] = {}
+        self.temperature_ref_c = float(getattr(correction, "temperature_c", 25.0)) if correction else 25.0
+        self.temperature_c = self.temperature_ref_c
+        """The latest temperature the IMU read, °C."""
+        if correction is not None:
+            for stream, (Lm, c) in correction.maps.items():
+                self.undo[stream] = (np.linalg.inv(Lm).T, np.asarray(c, float))
+            self.per_c = offset_per_degree(arm, model, correction)
+        self.models: dict[str, StreamModel] = stream_models(arm)
+
+    def set_rates(self, rates_hz: dict[str, float]) -> None:
+        """Each stream's model at its rate (which sets its datasheet noise)."""
+        self.models = stream_models(self.arm, rates_hz)
+
+    def physical(self, s: str, counts: np.ndarray, temperature_c=None) -> np.ndarray:
+        """Counts ``(N, k)`` to SI units, the calibrated errors undone at ``temperature_c``
+        (scalar or ``(N,)``, °C; default the latest the IMU read)."""
+        y = self.models[s].from_counts(counts)
+        u = self.undo.get(s)
+        if u is None:
+            return y
+        c = u[1]
+        slope = self.per_c.get(s)
+        if slope is not None:
+            t_c = self.temperature_c if temperature_c is None else np.asarray(temperature_c, float)
+            c = c + np.multiply.outer(t_c - self.temperature_ref_c, slope)
+        return (y - c) @ u[0]
+
+
+def joint_effects(correction) -> list:
+    """The correction's joint effects with their values, ``(effect, parameters)`` in the
+    model's order: they turn the controller's joint angles into the geometric ones."""
+    if correction is None:
+        return []
+    th = correction.model.unpack()
+    return [(e, th[e.block_name]) for e in correction.model.effects if isinstance(e, JointEffect)]
+
+
+def spread_maps(correction) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """Per accelerometer stream, the correction's spreads (every calibrated element moved by
+    its sigma along a principal direction) as the maps ``(M, c)`` that undo them; the
+    compass's doubt is :func:`fusion.tracking.compass.compass_unmodelled_ut` instead."""
+    if correction is None:
+        return {}
+    return {stream: [(np.linalg.inv(L1), np.asarray(c1, float)) for L1, c1 in maps]
+            for stream, maps in correction.spread.items() if stream != "imu_mag"}

@@ -1,0 +1,512 @@
+"""The tracking filter, :class:`Tracker`: a small object with a frozen settings struct
+(:class:`fusion.tracking.settings.TrackerSettings`), a few lifecycle verbs (``initialise``,
+``update`` / ``update_instant``, ``run``, ``snapshot`` / ``restore``) and results by value
+(:attr:`Tracker.estimate`), composed of parts that own their state:
+:class:`~fusion.tracking.health.SensorHealth` (counters, verdicts, statuses),
+:class:`~fusion.tracking.slips.SlipDetector` (slips and re-acquisition),
+:class:`~fusion.tracking.observability.Observability` (hold, consider sensitivity, joint
+flags), :class:`~fusion.tracking.compass.Compass` (the heading),
+:class:`~fusion.tracking.process.StillDetector` and :class:`~fusion.tracking.process.ProcessModel`,
+:class:`~fusion.tracking.measurement.Measurements`, the two
+:class:`~fusion.tracking.differentiator.CausalDifferentiator` and
+:class:`~fusion.tracking.initial.Ambiguity`. The model it runs is described in
+:mod:`fusion.tracking.tracker` and docs/tracking.md.
+
+One filter path, live and over a recording alike: each instant's readings go through
+:meth:`Tracker._instant` (the differentiators take them, the mean pose's kinematic frame
+is made, compiled, with the offsets and gyro bias of the moment, the filter predicts and
+fuses). :meth:`Tracker.update_instant` feeds it one instant's raw samples;
+:meth:`Tracker.run` (:func:`fusion.tracking.run.run_recording`) a whole recording, with only
+the conversion to SI units and the saturation checks done for many instants at once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import numpy as np
+
+from fusion.startup.solve import StartupResult
+from fusion.tracking import calibrated
+from fusion.tracking.compass import Compass
+from fusion.tracking.differentiator import CausalDifferentiator
+from fusion.tracking.estimate import Estimate
+from fusion.tracking.frame_kernels import FrameConstants
+from fusion.tracking.frames import Frames
+from fusion.tracking.health import SensorHealth
+from fusion.tracking.initial import Ambiguity, ImuStill, initial_state
+from fusion.tracking.innovations import InnovationLog
+from fusion.tracking.live import fuse_instant
+from fusion.tracking.measurement import Measurements
+from fusion.tracking.observability import Observability
+from fusion.tracking.process import ProcessModel, StillDetector
+from fusion.tracking.settings import (
+    C_REJECTED,
+    C_USED,
+    ENC,
+    F_AMBIGUOUS,
+    GYRO,
+    IMU_ACC,
+    JOINT_FLAGS,
+    MAG,
+    G,
+    NotInitialisedError,
+    StateLayout,
+    TrackerSettings,
+)
+from fusion.tracking.slips import SlipDetector
+from fusion.tracking.snapshot import restore_into, snapshot_of
+from fusion.tracking.ukf import BatchedUKF, SigmaPoints
+from models.arm import ArmModel
+from models.rotations import DEG, up_from_tilt
+from sensors.samples import Recording
+
+
+class Tracker:
+    """The joint-angle and heading tracker, driven sample by sample (or a whole recording).
+
+    Lifecycle: ``Tracker(arm, settings)`` -> :meth:`initialise` (from a startup result) ->
+    :meth:`update` for every raw sample as it arrives (or :meth:`update_instant` for all
+    samples of one instant, or :meth:`run` for a recording) -> :attr:`estimate` (by value).
+    :meth:`snapshot` / :meth:`restore` carry the state across a restart of the process.
+    """
+
+    SNAPSHOT_FORMAT = "armfusion.tracker/1"
+
+    def __init__(self, arm: ArmModel, settings: TrackerSettings | None = None,
+                 rates_hz: Mapping[str, float] | float = 100.0, correction=None):
+        """``correction`` (a :class:`fusion.identification.identify.StartupCorrection`, default: made from the
+        config's effects when it has any) undoes the calibrated accelerometer errors (affine:
+        mount, axes, scale, bias) on every sample, and maps the controller's joint angles to
+        the geometric ones (zero offsets, sag, play) in the kinematics."""
+        self.model = model = calibrated.config_model(arm)
+        arm = calibrated.with_lever_arms(arm, model)
+        self.arm = arm
+        if correction is None and arm.effects:
+            from fusion.identification.identify import startup_correction
+
+            correction = startup_correction(arm, include_joint_offsets=True)
+        self.correction = correction
+        self.readings = calibrated.Readings(arm, model, correction)
+        self._joint_effects = calibrated.joint_effects(correction)
+        self.settings = st = settings or TrackerSettings()
+        n = arm.n_joints
+        self.layout = L = StateLayout(n)
+        self.state_names = L.names(arm.joint_names)
+        self.link_names = tuple(s.name for s in arm.link_accelerometers)
+        self._has_imu = arm.imu is not None
+        self.accel_names = self.link_names + ((arm.imu.name,) if self._has_imu else ())
+        self.accel_streams = self.link_names + ((IMU_ACC,) if self._has_imu else ())
+        self.sensor_names = self.accel_streams + ((GYRO, MAG) if self._has_imu else ()) + (ENC,)
+        self._sidx = {s: i for i, s in enumerate(self.sensor_names)}
+        links = np.array([arm.sensor(nm).link for nm in self.accel_names], dtype=int)
+        self._links = links  # (the accelerometers' links and the IMU's index: for the kernels' tests)
+        self._imu_acc_index = self._sidx.get(IMU_ACC, -1)
+        self._links_list = [int(k) for k in links[: len(self.link_names)]]
+        self.R_0I = arm.imu.R_LS if self._has_imu else np.eye(3)  # the IMU's axes in the base's
+        scale, scale_sigma = calibrated.encoder_scales(arm, model)
+        self.counts_per_rad = arm.counts_per_rad * (1.0 + scale)
+        """Per joint, the encoder's counts per radian (the config's, its calibrated scale error applied)."""
+        time_offset_s, time_var_s2 = calibrated.stamp_offsets(model, self.accel_names)
+        unmodelled_g = self._unmodelled_floor()
+        self._sees = links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
+        self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
+                                         self._sidx.get(IMU_ACC, -1), unmodelled_g, time_offset_s,
+                                         time_var_s2)
+        self.observability = Observability(st, L, self.link_names, self.accel_streams, self._sees, correction,
+                                           calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
+                                           self.R_0I if self._has_imu else None)
+        self.process = ProcessModel(st, L)
+        self.set_rates(rates_hz)
+        self._points = SigmaPoints(L.size, st.alpha, st.beta, st.kappa)
+        self._ukf: BatchedUKF | None = None
+        self._t: float | None = None
+        self._att_idx = np.array([L.roll, L.pitch, L.yaw])
+        self._nees_idx = np.r_[np.arange(n), L.roll, L.pitch, L.yaw]
+        self._min_list = arm.min_rad.tolist()
+        self._max_list = arm.max_rad.tolist()
+        self._frame_consts = FrameConstants(arm, self.accel_names, self._joint_effects, G)
+
+    def _imu_bias_prior_var(self, roll_rad: float, pitch_rad: float) -> np.ndarray:
+        """Prior variance (g²) of what the IMU accelerometer's correction leaves, per IMU
+        axis, at the still reading of the startup's tilt: a calibrated config's correction
+        spread there, else the config's unmodelled-error floor (its statement of how far its
+        sensors are from their model)."""
+        if not self._has_imu:
+            return np.full(3, 1e-12)
+        corr = self.correction
+        m = self.R_0I.T @ up_from_tilt(roll_rad, pitch_rad)
+        if corr is not None and corr.spread.get(IMU_ACC):
+            y0 = corr.readings_one(IMU_ACC, m)
+            var = np.zeros(3)
+            for L1, c1 in corr.spread[IMU_ACC]:
+                var += (np.linalg.solve(L1, m - c1) - y0) ** 2
+            return np.maximum(var, 1e-12)
+        cal = self.arm.calibration or {}
+        floor = float(cal.get("imu_accel_unmodelled_g", cal.get("accel_unmodelled_g", 0.0)) or 0.0)
+        return np.full(3, max(floor, 1e-6) ** 2)
+
+    def _unmodelled_floor(self) -> np.ndarray:
+        """Per accelerometer stream, the config's unmodelled-error floor (g), as startup uses."""
+        cal = self.arm.calibration or {}
+        per = cal.get("accel_unmodelled_g_per_sensor") or {}
+        base = float(cal.get("accel_unmodelled_g", 0.0) or 0.0)
+        out = []
+        for nm in self.link_names:
+            out.append(float(per.get(nm, base)))
+        if self._has_imu:
+            out.append(0.0)
+        return np.array(out)
+
+    def set_rates(self, rates_hz: Mapping[str, float] | float) -> None:
+        """Sample rates (Hz) per stream, which set each sensor's noise (datasheet rms at rate)."""
+        if isinstance(rates_hz, Mapping):
+            rates = {s: float(rates_hz.get(s, 100.0)) for s in self.sensor_names}
+        else:
+            rates = dict.fromkeys(self.sensor_names, float(rates_hz))
+        self.readings.set_rates(rates)
+        models = self.readings.models
+        self.measurements.set_rates(models, rates)
+        m = self.measurements
+        self.observability.set_rates(m.accel_sigma_g, m.accel_rate_hz)
+        self._limits = {s: (models[s].counts_min, models[s].counts_max) for s in models}
+
+    # -- lifecycle -----------------------------------------------------------------------
+    def initialise(self, startup: StartupResult, t_s: float, encoder_counts: np.ndarray | None = None,
+                   imu: ImuStill | None = None, prior_q_rad: np.ndarray | None = None) -> None:
+        """Seed the filter from the startup calibration (its joint angles and covariance).
+
+        ``encoder_counts`` are the counts while the startup window was still (default: the
+        first encoder sample that arrives). A joint the startup could not read starts at
+        ``prior_q_rad`` (the pose saved at the last clean shutdown; default the ready pose)
+        with ``unknown_joint_sigma_deg``, and is ``converging`` until read. ``imu`` (from
+        :func:`fusion.tracking.start.imu_still_from_recording`) gives the gyro bias, heading and
+        field reference.
+        """
+        st, L, n = self.settings, self.layout, self.arm.n_joints
+        if len(startup.joints) != n:
+            raise ValueError(f"startup result has {len(startup.joints)} joints; arm {self.arm.name!r} "
+                             f"has {n}")
+        imu = imu or ImuStill(np.zeros(3), 0.5 * DEG, None, None, None)
+        prior = self.arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
+        self._x0, self._P0, self._q_startup = initial_state(
+            startup, imu, L, st, prior, self._imu_bias_prior_var(startup.roll_rad, startup.pitch_rad))
+        self.ambiguity_ = Ambiguity(startup)
+        self._ukf = None  # created when the first encoder sample fixes the offsets
+        self._q_enc = np.zeros(n)
+        self._enc0 = None if encoder_counts is None else np.asarray(encoder_counts, float)
+        if self._enc0 is not None:
+            self._start_filter(self._enc0 / self.counts_per_rad)
+        self._t = float(t_s)
+        self.compass = Compass(self.arm, self.model, imu.field, st, t_s)
+        self.enc_rates = CausalDifferentiator(n, st.encoder_window, st.encoder_order)
+        self.gyro_rates = CausalDifferentiator(3, st.gyro_window, st.gyro_order)
+        self._omega = None  # last gyro, base axes, rad/s
+        self.health = SensorHealth(self.sensor_names, len(self.accel_streams), st)
+        self.slips = SlipDetector(st, L, self.sensor_names, len(self.link_names), len(self.accel_streams),
+                                  self._sees, t_s)
+        self.observability.reset()
+        self.still = StillDetector(st, L, t_s)
+        self._flags = np.where(self.ambiguity_.joints, F_AMBIGUOUS, 0).astype(np.int8)
+        self._named = (None, None, (), ())  # (status codes, flags, their names): see estimate
+        self._obs_used_key = None
+        self._obs_t = -np.inf
+        self._flags_t = -np.inf
+        self._frame_cache = None
+
+    def _start_filter(self, q_enc: np.ndarray) -> None:
+        L = self.layout
+        self._q_enc = np.array(q_enc, dtype=float)
+        if self.ambiguity_.q_enc is None:
+            self.ambiguity_.q_enc = self._q_enc.copy()  # the candidates hold at these encoder angles
+        x = self._x0.copy()
+        x[L.offset] = self._q_startup - q_enc
+        self._ukf = BatchedUKF(x, self._P0, self._points, angle_states=(L.yaw,))
+
+    def _check(self) -> None:
+        if self._t is None:
+            raise NotInitialisedError("the tracker is not initialised: call initialise(startup, t) "
+                                      "with a startup calibration first")
+
+    def _check_filter(self) -> None:
+        self._check()
+        if self._ukf is None:
+            raise NotInitialisedError("no encoder sample yet: the first one fixes the offsets")
+
+    @property
+    def initialised(self) -> bool:
+        return self._t is not None
+
+    @property
+    def t_s(self) -> float | None:
+        return self._t
+
+    @property
+    def x(self) -> np.ndarray:
+        """The filter's state (read-only copy; names in :attr:`state_names`)."""
+        self._check_filter()
+        return self._ukf.x
+
+    @property
+    def P(self) -> np.ndarray:
+        self._check_filter()
+        return self._ukf.P
+
+    # -- the one filter path ------------------------------------------------------------------
+    def update(self, stream: str, t_s: float, values) -> Estimate | None:
+        """Fuse one raw sample (counts, as the device gave them) of ``stream`` at ``t_s``.
+
+        Returns the estimate after it, or None if the sample was dropped (out of order,
+        not finite, saturated, or before the first encoder sample).
+        """
+        return self.update_instant(t_s, {stream: values})
+
+    def update_instant(self, t_s: float, samples: Mapping[str, np.ndarray]) -> Estimate | None:
+        """Fuse every sample of one instant together (one stacked update): raw counts by
+        stream, as the devices gave them (:func:`fusion.tracking.live.fuse_instant`)."""
+        self._check()
+        return fuse_instant(self, t_s, samples)
+
+    def _instant(self, t: float, q_enc: np.ndarray | None, gyro: np.ndarray | None, acc, mag,
+                 frame_x: np.ndarray | None = None) -> bool:
+        """One instant's readings through the filter: the encoders' angles ``q_enc`` (rad),
+        the gyro (rad/s, base axes), the accelerometers ``acc`` (indices, counts, readings in
+        g, their selection's info) and the compass ``mag`` (counts, µT in base axes); any of
+        them None when it has no sample here. ``frame_x``: the state whose offsets and gyro
+        bias the kinematic frame is made with (default: the filter's now; a run over a
+        recording refreshes it every block of instants, see :func:`fusion.tracking.run.run_recording`).
+        False before the first encoder sample."""
+        health = self.health
+        if q_enc is not None:
+            health.mark_used(self._sidx[ENC], t)
+            if self._ukf is None:
+                self._start_filter(q_enc if self._enc0 is None else self._enc0 / self.counts_per_rad)
+            self.enc_rates.push(t, q_enc)
+            self._frame_cache = None
+        if self._ukf is None:
+            return False
+        if gyro is not None:
+            self.gyro_rates.push(t, gyro)
+            health.mark_used(self._sidx[GYRO], t)
+        frame = self._frame_now(t, gyro, frame_x) if acc is not None else None
+        e = self.enc_rates.at(t)
+        self._step(t, gyro, acc, mag, frame, self._q_enc if e is None else e[0])
+        return True
+
+    def _frame_now(self, t: float, gyro: np.ndarray | None, x: np.ndarray | None = None) -> Frames | None:
+        """The mean pose's kinematics at ``t``, with the offsets and the gyro bias of ``x``
+        (default now), the gyro's reading at ``t`` (else its last) and its derivative at its
+        last sample (kept for further samples of the same instant: the product of exponentials
+        carries any change of the offsets since ``x``, exactly, and into the motion term to
+        first order). Compiled (:mod:`fusion.tracking.frame_kernels`)."""
+        if self._frame_cache is not None and self._frame_cache[0] == t:
+            return self._frame_cache[1]
+        e = self.enc_rates.at(t)
+        if e is None:
+            return None
+        L = self.layout
+        if x is None:
+            x = self._ukf.x
+        w = self._omega if gyro is None else gyro
+        om = None if w is None else w - x[L.bias]
+        g = self.gyro_rates.latest
+        omd = None if g is None else g[1]
+        fields = self._frame_consts.fields(e, x[L.offset], om, omd, self.settings.motion_compensation)
+        frame = self.measurements.with_noise(tuple.__new__(Frames, fields))
+        self._frame_cache = (t, frame)
+        return frame
+
+    def _step(self, t: float, gyro: np.ndarray | None, acc, mag, frame: Frames | None,
+              q_enc: np.ndarray) -> None:
+        ukf = self._ukf
+        self._q_enc = q_enc
+        dt = t - self._t
+        if dt > 0:
+            w0 = self._omega if self._omega is not None else gyro
+            w = None if w0 is None else (w0 if gyro is None else 0.5 * (w0 + gyro))
+            ukf.predict(self.process.fx, self.process.Q(dt, w is not None, self.still.still), dt=dt, w=w)
+            if w is not None:
+                b = self.layout.bias.start
+                self.compass.turn(w, tuple(ukf._x[b:b + 3].tolist()), dt)
+        if gyro is not None:
+            self._omega = gyro
+        self._t = t
+        if frame is None:
+            acc = None
+        imu_f = None
+        if acc is not None and self._has_imu and acc[3][1] >= 0:
+            imu_f = acc[2][acc[3][1]]
+        self.still.update(dt, gyro, imu_f, ukf._x.tolist())
+        if mag is not None:
+            mi = self._sidx[MAG]
+            self.health.seen[mi], self.health.last_t[mi] = True, t
+            mag = self.compass.average(t, mag[1]) if self.compass.fused else None
+        if acc is not None or mag is not None:
+            self._fuse(t, acc, mag, frame)
+        if t - self._flags_t >= self.settings.observability_period_s or self.health.changed:
+            self._update_flags(t)
+
+    def _fuse(self, t: float, acc, mag, frame: Frames | None) -> None:
+        """One update with every accelerometer and the magnetometer of this instant, each
+        sensor gated on its own NIS; health checks and re-acquisition on the way."""
+        st, ukf, L, ms = self.settings, self._ukf, self.layout, self.measurements
+        m_B = check = None
+        still = self.still.still and acc is not None and st.motion_compensation
+        sel, counts, f, (key, imu_pos, full, _), var_a, z, var = ms.stack(acc, frame, still, mag is not None)
+        k, m = len(counts), len(z)
+        if mag is not None:
+            m_count, m_B = mag
+            x = ukf._x
+            check, var[-1] = self.compass.variance(m_B, up_from_tilt(x[L.roll], x[L.pitch]), m_count)
+        plan = ms.plan(key, k, still, mag is not None)
+        angle_rows = (m - 1,) if mag is not None else ()
+        shift = self.compass.heading_shift_rad() if mag is not None else 0.0
+        inn = ukf.innovate(z, ms.h_all, var, plan, angle_rows=angle_rows,
+                           frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
+        accept = inn.gate_ok.copy()
+        gate_l = inn.gate_ok.tolist()
+        set_off = still and not gate_l[k]
+        imu_ok = True
+        if k:
+            if imu_pos >= 0:
+                imu_ok = self.still.imu_agrees(t, inn.nis.item(imu_pos), gate_l[imu_pos])
+            set_off |= self.still.still and not imu_ok
+            # the slip detector listens only while the base behaves as modelled: the IMU
+            # agrees and the chair is not wrenched about (a lurch is common to all sensors)
+            calm = (imu_ok and self.still.imu_nis < 4.5
+                    and frame.omega_dot_norm.item() < st.shift_max_angular_accel_rad_s2)
+        if set_off:
+            # the chair set off: it is no longer still (the averages will say so later), and
+            # its acceleration, held near zero while it stood, must be free to follow at once
+            self.still.set_off()
+            ukf.inflate(np.arange(L.accel.start, L.accel.stop), st.base_accel_sigma_mps2**2)
+            inn = ukf.innovate(z, ms.h_all, var, plan, angle_rows=angle_rows,
+                               frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
+            accept = inn.gate_ok.copy()
+            if still:
+                accept[k] = False
+        if k:
+            accept[:k], u, nu, Su = self.health.accel(t, sel, counts, f, inn, var_a, full,
+                                                       None if set_off else gate_l, ms.rows, self._reacquire)
+            if u is not None:
+                self.slips.listen(t, u, nu, Su, calm and not set_off, self._reacquire)
+            key = (key, accept[:k].tobytes())
+            if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
+                self._obs_used_key, self._obs_t = key, t
+                used = tuple(int(i) for i in sel[accept[:k]] if i < len(self.link_names))
+                self.observability.update(self._t, frame, used, ukf._x, ukf._P, self._P0, self._q_enc,
+                                          self.slips.calibration)
+        mask = None
+        if mag is not None:
+            use = self.compass.verdict(t, bool(inn.gate_ok[-1]), check, inn.innovation[-1:], inn.S[-1:, -1:],
+                                       inn.nis[-1])
+            mi = self._sidx[MAG]
+            self.health.rejecting[mi] = not use
+            self.health.counts[mi, C_USED if use else C_REJECTED] += m_count
+            accept[-1] = use
+            mask = ms.heading_mask(m)
+        ukf.correct(inn, accept, self.observability.hold, mask)
+
+    def _reacquire(self, i: int, t: float) -> None:
+        self.slips.reacquire(i, t, self._ukf, self.health, self.observability.locked)
+
+    def _update_flags(self, t: float) -> None:
+        """Sensor statuses and joint flags, every ``observability_period_s`` and at once
+        when a sensor's health changes."""
+        self._flags_t = t
+        codes = self.health.update_statuses(t)
+        if self._ukf is None:
+            return
+        n = self.arm.n_joints
+        self._flags = self.observability.joint_flags(
+            t, codes, self._links_list, self._ukf._P, self._q_enc + self._ukf._x[:n], self.ambiguity_.joints,
+            self.slips.reacquiring_until, self._min_list, self._max_list)
+
+    # -- a whole recording -------------------------------------------------------------------
+    def run(self, rec: Recording, t_stop_s: float | None = None, truth: bool = True,
+            block: int = 256, progress: Callable[[float], None] | None = None):
+        """Fuse every sample of ``rec`` after the current time (up to ``t_stop_s``), through
+        the same path as :meth:`update_instant`: a :class:`fusion.tracking.run.TrackRun`
+        (:func:`fusion.tracking.run.run_recording` has the details)."""
+        from fusion.tracking.run import run_recording
+
+        self._check()
+        return run_recording(self, rec, t_stop_s, truth, block, progress)
+
+    # -- restart -----------------------------------------------------------------------------
+    def snapshot(self) -> dict:
+        """The tracker's state as a JSON-ready dict: enough to resume after a restart of the
+        process without a new startup calibration, provided the encoders kept counting."""
+        self._check_filter()
+        return snapshot_of(self)
+
+    def restore(self, snap: Mapping) -> None:
+        """Resume from :meth:`snapshot` (replaces :meth:`initialise`)."""
+        restore_into(self, snap)
+
+    # -- results (by value) ------------------------------------------------------------------
+    def ambiguity(self) -> dict[str, tuple[float, ...]]:
+        """Per joint the startup left ``ambiguous``: its candidate angles now (the startup's,
+        moved by what the encoders counted since), rad. Empty once every branch is known."""
+        return self.ambiguity_.at(self.arm.joint_names, self._q_enc)
+
+    def q_enc_now(self) -> np.ndarray:
+        """The encoders' angles (counts / counts per rad) at the last fused instant."""
+        return self._q_enc.copy()
+
+    @property
+    def estimate(self) -> Estimate:
+        """The estimate at the last fused instant."""
+        self._check_filter()
+        L, n = self.layout, self.arm.n_joints
+        x, sig = self._ukf.x, self._ukf.sigma.copy()
+        sig[:n] = np.sqrt(sig[:n] ** 2 + self.observability.sys_var)  # the calibration's own uncertainty
+        amb = self.ambiguity_
+        if amb.joints.any():  # the sigma of a joint with rival branches covers them
+            sig[:n] = np.maximum(sig[:n], amb.half_gap)
+        named, codes = self._named, self.health.status_codes
+        if named[0] is not codes or named[1] is not self._flags:
+            # (both arrays are replaced, never written in place, when the flags are updated)
+            self._named = named = (codes, self._flags, self.health.named_statuses(),
+                                   tuple(JOINT_FLAGS[f] for f in self._flags.tolist()))
+        return Estimate(
+            t_s=self._t, q_rad=_ro(self._q_enc + x[:n]), sigma_rad=_ro(sig[:n]),
+            flags=named[3],
+            roll_rad=float(x[L.roll]), pitch_rad=float(x[L.pitch]), yaw_rad=float(x[L.yaw]),
+            attitude_sigma_rad=_ro(sig[[L.roll, L.pitch, L.yaw]]), gyro_bias_rad_s=_ro(x[L.bias]),
+            axis_to_vertical_deg=_ro(self.observability.axis_deg), sensors=named[2],
+            magnetic_disturbance=self.compass.flags[0], magnetic_recovery=self.compass.flags[1],
+            joint_names=self.arm.joint_names,
+        )
+
+    def counters(self) -> dict[str, dict[str, int]]:
+        """Per sensor: samples, used, rejected, nan, saturated, implausible, stuck,
+        out_of_order, reacquisitions."""
+        self._check()
+        return self.health.counters()
+
+    def innovations(self, sensor: str) -> InnovationLog:
+        """The innovations kept for ``sensor`` (a link accelerometer, ``imu_acc``, ``imu_mag``):
+        every one that was tested against the gate, accepted or not."""
+        self._check()
+        if sensor == MAG and self._has_imu:
+            return self.compass.ring.log(sensor)
+        if sensor not in self.accel_streams:
+            kept = list(self.accel_streams) + ([MAG] if self._has_imu else [])
+            raise KeyError(f"no innovations for {sensor!r}; kept for {kept}")
+        return self.health.ring.log(sensor)
+
+    def nis_stats(self) -> dict[str, tuple[float, int, int]]:
+        """Per sensor: (mean NIS, count, degrees of freedom) over its healthy samples."""
+        self._check()
+        out = self.health.nis_stats()
+        if self._has_imu:
+            m = self.compass.ring
+            out[MAG] = (m.nis_sum / m.nis_count if m.nis_count else float("nan"), m.nis_count, 1)
+        return out
+
+
+def _ro(a) -> np.ndarray:
+    v = np.array(a, dtype=float)
+    v.setflags(write=False)
+    return v

@@ -1,0 +1,141 @@
+"""The filter's first state, from the startup calibration (:func:`initial_state`), what the
+IMU said in the same still window (:class:`ImuStill`), and :class:`Ambiguity`: the joints
+the startup left with rival branches, carried until a move tells them apart."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusion.startup.solve import StartupResult
+from fusion.tracking.heading import FieldReference
+from fusion.tracking.settings import StateLayout, TrackerSettings
+from models.rotations import DEG, wrap_angle
+
+
+@dataclass(frozen=True)
+class ImuStill:
+    """What the IMU said during the still startup window: the gyro's zero-rate offset, the
+    heading (tilt-compensated, from the startup's roll and pitch) and the field reference."""
+
+    gyro_bias_rad_s: np.ndarray
+    gyro_bias_sigma_rad_s: float
+    yaw_rad: float | None
+    yaw_sigma_rad: float | None
+    field: FieldReference | None
+
+
+def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, settings: TrackerSettings,
+                  prior_q_rad: np.ndarray, imu_bias_var_g2: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(x, P, q0)``: the state and covariance (offsets zero: the first encoder sample sets
+    them to ``q0 - q_enc``) and the joint angles ``q0`` the filter starts from.
+
+    A joint the startup could not read starts at ``prior_q_rad`` with
+    ``unknown_joint_sigma_deg``; joints with rival branches start on the one nearest the
+    prior (with that branch's covariance; the sigma reported covers them all)."""
+    st, L = settings, layout
+    n = L.n_joints
+    x = np.zeros(L.size)
+    P = np.zeros((L.size, L.size))
+    cov = np.array(startup.covariance, dtype=float)
+    q0 = np.array(startup.q_rad, dtype=float)
+    known = np.array([j.flag not in ("gimbal_lock", "ambiguous") and j.sigma_rad is not None
+                      for j in startup.joints])
+    prior = np.asarray(prior_q_rad, float)
+    amb = np.array([j.flag == "ambiguous" for j in startup.joints])
+    cands = startup.candidates_rad
+    if amb.any() and cands is not None and len(cands) > 1:
+        # rival branches: the filter runs on one of them, the one nearest the prior pose
+        # (where the search started: no evidence, so the flag stays `ambiguous` and the
+        # sigma covers every candidate), each one a real minimum with its own covariance
+        d = np.abs(wrap_angle(np.asarray(cands) - prior))[:, amb].sum(1)
+        c = int(np.argmin(d))
+        q0 = np.array(cands[c], dtype=float)
+        if startup.candidates_covariance is not None:
+            cov = np.array(startup.candidates_covariance[c], dtype=float)
+        known = known | amb
+    q0 = np.where(known, q0, prior)
+    jb = np.r_[np.arange(n), n, n + 1]  # joints, roll, pitch in the startup covariance
+    tgt = np.r_[np.arange(n), L.roll, L.pitch]
+    if cov.shape == (n + 2, n + 2):
+        block = cov[np.ix_(jb, jb)].copy()
+    else:
+        block = np.diag(np.r_[[j.sigma_rad or 0.0 for j in startup.joints], startup.roll_sigma_rad,
+                              startup.pitch_sigma_rad] ** 2)
+    block = np.where(np.isfinite(block), block, 0.0)
+    wide = (st.unknown_joint_sigma_deg * DEG) ** 2
+    for j in np.flatnonzero(~known):
+        block[j, :] = 0.0
+        block[:, j] = 0.0
+        block[j, j] = wide
+    # a floor: the startup's sigma is for a still average; the tracker's model adds a little
+    block[np.diag_indices(n + 2)] += (0.005 * DEG) ** 2
+    P[np.ix_(tgt, tgt)] = block
+    x[L.roll], x[L.pitch] = startup.roll_rad, startup.pitch_rad
+    # the startup window was still: the chair's acceleration is zero there
+    P[L.accel, L.accel] = np.eye(3) * (0.01**2 if st.motion_compensation else 1e-16)
+    if imu.yaw_rad is not None:
+        x[L.yaw] = imu.yaw_rad
+        P[L.yaw, L.yaw] = imu.yaw_sigma_rad**2
+    else:
+        P[L.yaw, L.yaw] = np.pi**2
+    x[L.bias] = imu.gyro_bias_rad_s
+    P[L.bias, L.bias] = np.eye(3) * imu.gyro_bias_sigma_rad_s**2
+    P[L.imu_bias, L.imu_bias] = np.diag(imu_bias_var_g2)
+    return x, P, q0
+
+
+class Ambiguity:
+    """The joints the startup left ``ambiguous`` (rival branches that fit the still data
+    equally): their candidates, and the encoders' angles when those held."""
+
+    def __init__(self, startup: StartupResult):
+        self.joints = np.array([j.flag == "ambiguous" for j in startup.joints], dtype=bool)
+        self._candidates = tuple(tuple(j.alternatives_rad) for j in startup.joints)
+        self.q_enc = None  # the encoders' angles when the candidates held
+        self.half_gap = np.array([
+            (max(a) - min(a)) / 2.0 if j.flag == "ambiguous" and len(a) > 1 else 0.0
+            for j, a in ((j, j.alternatives_rad) for j in startup.joints)])
+        """Per joint, half the spread of its candidates (rad): its sigma covers them."""
+
+    def at(self, joint_names: tuple[str, ...], q_enc: np.ndarray) -> dict[str, tuple[float, ...]]:
+        """Per ambiguous joint, its candidates moved by what the encoders counted since."""
+        if not self.joints.any():
+            return {}
+        moved = np.zeros(len(joint_names)) if self.q_enc is None else q_enc - self.q_enc
+        return {joint_names[j]: tuple(float(a + moved[j]) for a in self._candidates[j])
+                for j in np.flatnonzero(self.joints)}
+
+    def snapshot(self) -> dict:
+        return {"joints": self.joints.tolist(), "candidates_rad": [list(c) for c in self._candidates],
+                "q_enc": None if self.q_enc is None else self.q_enc.tolist()}
+
+    def restore(self, snap: dict | None, n: int) -> bool:
+        """Rival branches still open in ``snap``: taken (True)."""
+        if snap is None or len(snap.get("joints", ())) != n:
+            return False
+        self.joints = np.array(snap["joints"], dtype=bool)
+        self._candidates = tuple(tuple(float(a) for a in c) for c in snap["candidates_rad"])
+        self.q_enc = None if snap.get("q_enc") is None else np.array(snap["q_enc"], float)
+        self.half_gap = np.array([(max(c) - min(c)) / 2.0 if len(c) > 1 else 0.0 for c in self._candidates])
+        return True
+
+
+@dataclass(frozen=True)
+class _JointStub:
+    name: str
+    flag: str = "ok"
+    sigma_rad: float = 0.0
+    alternatives_rad: tuple[float, ...] = ()
+
+
+def restored_startup(arm) -> StartupResult:
+    """A placeholder startup for a tracker resumed from a snapshot (which then replaces
+    every state it seeds)."""
+    n = arm.n_joints
+    return StartupResult(
+        joints=tuple(_JointStub(nm) for nm in arm.joint_names), roll_rad=0.0, pitch_rad=0.0,
+        roll_sigma_rad=0.0, pitch_sigma_rad=0.0, residual_rms_g=0.0, chi2_per_dof=0.0,
+        q_rad=np.zeros(n), covariance=np.eye(n + 2), branches_rad=np.zeros((1, n)), method="restore")

@@ -1,0 +1,159 @@
+"""The measurement model of one update: every accelerometer's specific force, the still
+chair's zero acceleration and the tilt-compensated heading, at every sigma point
+(compiled: :func:`fusion.tracking.tracker_kernels.measurement_points`, whose docstring has the
+model); the accelerometers' noise at their rates (:meth:`Measurements.with_noise`); and the
+update's groups, each gated on its own NIS (:meth:`Measurements.plan`)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from fusion.tracking.differentiator import derivative_noise_gain
+from fusion.tracking.frames import Frames
+from fusion.tracking.settings import GYRO, MAG, G, StateLayout, TrackerSettings
+from fusion.tracking.tracker_kernels import measurement_points
+from fusion.tracking.ukf_groups import GroupPlan, MeasurementGroup, nis_bound
+from models.motion import cross
+from models.rotations import DEG
+from models.sensor_models import StreamModel
+
+
+class Measurements:
+    """The measurement side of a tracker with accelerometer streams ``accel_streams``
+    (the IMU's at ``imu_index``, -1 without), on links ``links``; ``names`` every stream it
+    takes; ``unmodelled_g`` per accelerometer the config's unmodelled-error floor;
+    ``time_offset_s``, ``time_var_s2`` per accelerometer its time stamp's offset and variance
+    (None: none stated)."""
+
+    def __init__(self, settings: TrackerSettings, layout: StateLayout, names: tuple[str, ...],
+                 accel_streams: tuple[str, ...], links: np.ndarray, imu_index: int,
+                 unmodelled_g: np.ndarray, time_offset_s: np.ndarray | None, time_var_s2: np.ndarray | None):
+        self.settings, self.layout, self.names, self.accel_streams = settings, layout, names, accel_streams
+        self.links = links.astype(np.int64)
+        self.imu_index = imu_index
+        self.unmodelled_g, self.time_offset_s, self.time_var_s2 = unmodelled_g, time_offset_s, time_var_s2
+        self._no_acc = (None, np.zeros((0, 3)), None, (b"", -1, False, None))
+        self.rows = np.arange(3 * len(accel_streams)).reshape(-1, 3)
+        self._gate3 = float(nis_bound(3, settings.gate_significance))
+        self._gate1 = float(nis_bound(1, settings.gate_significance))
+        self._no_field = np.full(3, np.nan)
+        self._no_sel = np.zeros(0, dtype=np.int64)
+        self.still_var3 = np.full(3, settings.still_accel_sigma_mps2**2)
+        self._plans: dict = {}
+        self._masks: dict = {}
+
+    def set_rates(self, models: Mapping[str, StreamModel], rates: Mapping[str, float]) -> None:
+        """The accelerometers' noise at their rates (datasheet rms with the unmodelled
+        floor), and the differentiated gyro's noise."""
+        st = self.settings
+        sig = []
+        for i, s in enumerate(self.accel_streams):
+            m = models[s]
+            floor = max(st.accel_floor_g, self.unmodelled_g[i])
+            sig.append(np.sqrt((m.noise_counts_rms / np.abs(m.gain)) ** 2 + floor**2))
+        self.accel_sigma_g = np.array(sig).reshape(-1, 3)  # (S, 3)
+        self.accel_var_g2 = self.accel_sigma_g**2
+        self.accel_rate_hz = np.array([rates[s] for s in self.accel_streams])
+        # noise of the gyro's causal derivative: the fit's weights on unit white noise
+        r = rates.get(GYRO, 100.0)
+        W = st.gyro_window
+        gain = derivative_noise_gain(np.arange(W) / r, st.gyro_order)
+        sig_w = st.gyro_noise_dps_per_sqrt_hz * DEG * np.sqrt(r / 2.0)
+        self.omega_dot_noise = float(gain * sig_w)
+        self._sel: dict = {}  # per set of accelerometers: see selection
+
+    def h_all(self, X, frame: Frames, sel, m_B, still=False, heading_shift_rad: float = 0.0):
+        """Every measurement of one update at every sigma point, ``(N, m)``: the
+        accelerometers ``sel`` (specific force in g), the still chair's zero acceleration,
+        the heading residual ``yaw - tilt-compensated heading`` when ``m_B`` (the mean
+        field in base axes) is given (``heading_shift_rad``: the declination less π)."""
+        L = self.layout
+        n = L.n_joints
+        if sel is None:
+            sel = self._no_sel
+        field = self._no_field if m_B is None else m_B
+        shift = heading_shift_rad if m_B is not None else 0.0
+        return measurement_points(np.ascontiguousarray(X), sel, self.links, frame.axes, frame.offset_ref,
+                                  frame.motion_mps2, frame.R_0S, self.imu_index, L.roll, n + 2, L.yaw,
+                                  n + 9, G, bool(still), field, shift)
+
+    def with_noise(self, frames: Frames) -> Frames:
+        """``frames`` with the accelerometers' measurement variances at their instants
+        (g²): the datasheet noise at the stream's rate with the unmodelled floor, a share of
+        the predicted motion acceleration (the differentiator), and the differentiated
+        gyro's error times the sensor's distance from the IMU."""
+        st = self.settings
+        wd_err = (self.omega_dot_noise + st.angular_accel_error_fraction * frames.omega_dot_norm) / G
+        extra = (st.motion_model_fraction * frames.motion_g) ** 2 + (wd_err**2)[..., None] * frames.dist2_m2
+        var = self.accel_var_g2 + extra[..., None]
+        if self.time_var_s2 is not None and frames.omega_S_rad_s is not None:
+            # a stamp known to sigma_t reads gravity turned by omega x g sigma_t (sensor axes)
+            turn = cross(frames.omega_S_rad_s, frames.R_0S[..., 2, :])
+            var = var + self.time_var_s2[:, None] * turn**2
+        return frames._replace(accel_var_g2=var)
+
+    def stack(self, acc, frame: Frames | None, still: bool, mag: bool):
+        """One update's stacked measurement ``z`` and its variances ``var``: the
+        accelerometers ``acc`` (indices, counts, readings in g, their selection's info; None:
+        none), each turned back to its time stamp, with the frame's variances ``var_a``; the
+        still chair's zero acceleration; a last row left for the heading when ``mag``.
+        Returns ``(sel, counts, f, info, var_a, z, var)``."""
+        sel, counts, f, info = self._no_acc if acc is None else acc
+        var_a = None
+        k = len(counts)
+        if acc is not None:
+            if self.time_offset_s is not None and frame.omega_S_rad_s is not None:
+                # a reading stamped late by dt saw gravity dt earlier: turn it to the stamp
+                f = f - self.time_offset_s[sel][:, None] * cross(frame.omega_S_rad_s[sel], f)
+            var_a = frame.accel_var_g2 if info[2] else frame.accel_var_g2[sel]
+        m = 3 * k + (3 if still else 0) + mag
+        z = np.zeros(m)
+        var = np.empty(m)
+        if k:
+            z[:3 * k] = f.reshape(-1)
+            var[:3 * k] = var_a.reshape(-1)
+        if still:
+            var[3 * k:3 * k + 3] = self.still_var3
+        return sel, counts, f, info, var_a, z, var
+
+    def selection(self, sel: np.ndarray) -> tuple:
+        """For the accelerometers ``sel`` (cached): its key, the IMU's position in it (-1:
+        absent), whether it is every accelerometer in order, and their datasheet variances."""
+        key = sel.tobytes()
+        info = self._sel.get(key)
+        if info is None:
+            hit = np.flatnonzero(sel == self.imu_index)
+            full = bool(len(sel) == len(self.accel_streams) and np.array_equal(sel, np.arange(len(sel))))
+            info = self._sel[key] = (key, int(hit[0]) if len(hit) else -1, full,
+                                     self.accel_var_g2[sel].copy())
+        return info
+
+    def plan(self, sel_key: bytes, k: int, still: bool, mag: bool) -> GroupPlan:
+        """The update's groups: each accelerometer, the still chair, the heading (cached)."""
+        key = (sel_key, still, mag)
+        plan = self._plans.get(key)
+        if plan is None:
+            sel = np.frombuffer(sel_key, dtype=np.int64)
+            groups = [MeasurementGroup(self.names[sel[i]], self.rows[i], self._gate3) for i in range(k)]
+            if still:
+                groups.append(MeasurementGroup("base_still", np.arange(3 * k, 3 * k + 3), self._gate3))
+            if mag:
+                groups.append(MeasurementGroup(MAG, np.array([3 * k + (3 if still else 0)]), self._gate1))
+            plan = self._plans[key] = GroupPlan(groups)
+        return plan
+
+    def heading_mask(self, m: int) -> np.ndarray:
+        """The gain mask of an update of ``m`` rows whose last is the heading: it corrects
+        only yaw and the gyro's vertical bias, never the tilt (a steel door must not tilt
+        gravity), the arm, or the chair's acceleration."""
+        mask = self._masks.get(m)
+        if mask is None:
+            L = self.layout
+            mask = np.ones((L.size, m))
+            mask[:, -1] = 0.0
+            mask[L.yaw, -1] = 1.0
+            mask[L.bias.start + 2, -1] = 1.0
+            self._masks[m] = mask
+        return mask

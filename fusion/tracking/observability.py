@@ -1,0 +1,355 @@
+"""Which joints the sensors can read now, and what the calibration's own uncertainty does
+to them.
+
+:class:`Observability` recomputes, every ``observability_period_s`` and whenever the set of
+working sensors changes: each joint axis's angle to vertical (gimbal lock), the
+information the usable link accelerometers give about the offsets in
+``observability_window_s`` (its eigen-decomposition), the hold projection that keeps the
+update's gain at zero along directions they cannot read (Schmidt), and the consider
+sensitivity: how far each of a calibrated config's correction spreads (and each stated
+unmodelled error, and each encoder scale's sigma) has pulled the offsets' estimate, whose
+square joins the reported sigmas and the ``ill_conditioned`` test.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.linalg import lapack
+
+from fusion.tracking.frames import Frames
+from fusion.tracking.settings import (
+    F_AMBIGUOUS,
+    F_CONVERGING,
+    F_GIMBAL,
+    F_ILL,
+    F_OUT,
+    F_REACQ,
+    F_UNOBSERVED,
+    IMU_ACC,
+    S_REJECTING,
+    G,
+    StateLayout,
+    TrackerSettings,
+)
+from models.motion import cross
+from models.rotations import DEG
+
+
+class Observability:
+    """The observability of the offsets and the consider sensitivity, for a tracker's
+    link accelerometers ``link_names`` (of its accelerometer streams ``accel_streams``).
+
+    ``sees (S, n)``: sensor s sees joint j; ``spread``: per stream, the correction spreads
+    as maps ``(M, c)`` (``StartupCorrection.spread``, inverted); ``unmodelled_g``: per
+    accelerometer the config's unmodelled-error floor; ``scale_sigma``: per joint the
+    encoder scale's sigma; ``R_0I``: the IMU's mount (None without an IMU)."""
+
+    def __init__(self, settings: TrackerSettings, layout: StateLayout, link_names: tuple[str, ...],
+                 accel_streams: tuple[str, ...], sees: np.ndarray, correction, spread: dict,
+                 unmodelled_g: np.ndarray, scale_sigma: np.ndarray, R_0I: np.ndarray | None):
+        self.settings, self.layout = settings, layout
+        self.link_names, self.accel_streams = link_names, accel_streams
+        self.sees, self.correction, self._R_0I = sees, correction, R_0I
+        self._eye3 = np.eye(3)
+        self._eye_state = np.eye(layout.size)
+        self._columns(spread, unmodelled_g, scale_sigma)
+        self.reset()
+
+    def reset(self) -> None:
+        """Nothing read yet (a tracker's initialisation)."""
+        n = self.layout.n_joints
+        self.axis_deg = np.full(n, 90.0)
+        self.locked = np.zeros(n, bool)
+        self.observed = np.zeros(n, bool)
+        self.ill = np.zeros(n, bool)
+        self.hold: np.ndarray | None = None
+        """The projection that holds the unreadable directions (None: nothing held)."""
+        self.sys_var = np.zeros(n)
+        """Per joint, the calibration's own variance (rad²): ``diag(S S^T)``."""
+        self.consider = np.zeros((n, self.spread_m))
+        self.consider_t: float | None = None
+        self._consider_q_enc = None
+        self._consider_used: set[int] = set()
+        self._key = None
+        self._cache: dict = {}
+
+    def set_rates(self, accel_sigma_g: np.ndarray, accel_rate_hz: np.ndarray) -> None:
+        """The accelerometers' noise ``(S, 3)`` (g) and rates (Hz)."""
+        self._accel_sigma_g, self._accel_rate = accel_sigma_g, accel_rate_hz
+        self._cache = {}  # per set of link accelerometers: see _obs_sel
+
+    def snapshot(self) -> list:
+        return self.consider.tolist()
+
+    def restore(self, consider: list, t_s: float) -> None:
+        c = np.array(consider, dtype=float)
+        if c.shape == self.consider.shape:
+            self.consider = c
+            self.sys_var = (c**2).sum(axis=1)
+            self.consider_t = float(t_s)
+
+    def _columns(self, spread: dict, unmodelled_g: np.ndarray, scale_sig: np.ndarray) -> None:
+        """The columns of the consider sensitivity (see :meth:`_consider_update`): each
+        correction spread of a calibrated config, and, per link accelerometer whose config
+        states an unmodelled error (``calibration.accel_unmodelled_g``), one column per axis:
+        an error of that size that stays (an uncalibrated ADXL345's offset and its board's
+        tilt do not average away)."""
+        self._spread_cols: dict[str, np.ndarray] = {}
+        self._spread_stack: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._floor_cols: dict[str, tuple[np.ndarray, float]] = {}
+        m = 0
+        for stream, maps in spread.items():
+            if maps:
+                self._spread_cols[stream] = np.arange(m, m + len(maps))
+                self._spread_stack[stream] = (np.array([M for M, _ in maps]), np.array([c for _, c in maps]))
+                m += len(maps)
+        for stream, floor_g in zip(self.link_names, unmodelled_g.tolist(), strict=False):
+            if floor_g > 0.0:
+                self._floor_cols[stream] = (np.arange(m, m + 3), floor_g)
+                m += 3
+        # an encoder scale known to sigma_s moves the joint's true offset by sigma_s per radian
+        # the encoder turns: one column per joint whose config gives that sigma
+        self._scale_joints = np.flatnonzero(scale_sig > 0.0)
+        self._scale_sigma = scale_sig[self._scale_joints]
+        self._scale_cols = np.arange(m, m + len(self._scale_joints))
+        m += len(self._scale_joints)
+        self.spread_m = m
+
+    def update(self, t: float, frame: Frames, used: tuple[int, ...], x: np.ndarray, P: np.ndarray,
+               P0: np.ndarray, q_enc: np.ndarray, slips_calibration: np.ndarray) -> None:
+        """Each joint axis's angle to vertical, and the information the usable link
+        accelerometers give about the offsets in ``observability_window_s``; sets the hold
+        projection (Schmidt) and the inputs of the joint flags, at ``t``, from the state ``x``
+        and covariance ``P`` (``P0`` the startup's, ``q_enc`` the encoders' angles). Writes
+        into ``slips_calibration`` what the calibration leaves in the link accelerometers'
+        innovations (see :class:`fusion.tracking.slips.SlipDetector`)."""
+        st, L, n = self.settings, self.layout, self.layout.n_joints
+        key = self._key
+        if key is not None and key[1] == used and t - key[0] < st.observability_period_s:
+            return
+        self._key = (t, used)
+        sr, cr = math.sin(x[L.roll]), math.cos(x[L.roll])
+        sp, cp = math.sin(x[L.pitch]), math.cos(x[L.pitch])
+        up = np.array([-sp, sr * cp, cr * cp])
+        c = np.abs(frame.axes @ up)
+        self.axis_deg = np.degrees(np.arccos(np.minimum(c, 1.0)))
+        locked = self.axis_deg < st.gimbal_lock_deg
+        sel, coef = self._obs_sel(used)
+        info = np.zeros((n, n))
+        base = x[L.accel] + G * up
+        if len(sel):
+            v, W = self._info_rows(frame, sel, coef, base)
+            info = W.T @ W
+        lam, V, _ = lapack.dsyevd(info)
+        V2 = V**2
+        readable = lam > 1e-12
+        if readable.all():
+            achievable = np.sqrt(V2 @ (1.0 / lam))
+        else:
+            achievable = np.sqrt(V2[:, readable] @ (1.0 / lam[readable]))
+            achievable[(V2[:, ~readable] > 1e-12).any(axis=1)] = np.inf
+        self.observed = self.sees[sel].any(axis=0) if len(sel) else np.zeros(n, bool)
+        self.locked = locked
+        U = self._held_span(lam, V, locked, P)
+        if U is not None:
+            T = self._eye_state.copy()
+            T[:n, :n] -= U @ U.T
+            self.hold = T
+        else:
+            self.hold = None
+        if self.spread_m:
+            # the calibration's pull, over every link accelerometer used since the last time
+            # (sensors read at instants of their own each make a set of one)
+            self._consider_used.update(used)
+            if self.consider_t is None:  # the first time: the startup read every one of them
+                self._consider_used.update(range(len(self.link_names)))
+            if self.consider_t is None or t - self.consider_t >= st.observability_period_s:
+                both = tuple(sorted(self._consider_used))
+                self._consider_used = set()
+                if both:
+                    sel_c, coef_c = self._obs_sel(both)
+                    if both == tuple(used):
+                        v_c, W_c, hold_c = v, W, self.hold
+                    else:  # what the filter holds, judged on the information of them all
+                        v_c, W_c = self._info_rows(frame, sel_c, coef_c, base)
+                        lam_c, V_c, _ = lapack.dsyevd(W_c.T @ W_c)
+                        U_c = self._held_span(lam_c, V_c, locked, P)
+                        hold_c = None if U_c is None else self._eye_state[:n, :n] - U_c @ U_c.T
+                    self._consider_update(t, frame, sel_c, v_c, base, W_c, hold_c, P, P0, q_enc,
+                                          slips_calibration)
+        self.ill = np.sqrt(achievable**2 + self.sys_var) > st.sigma_limit_deg * DEG
+
+    def _held_span(self, lam: np.ndarray, V: np.ndarray, locked: np.ndarray,
+                   P: np.ndarray) -> np.ndarray | None:
+        """An orthonormal basis (n, h) of the offsets' directions to hold, from the window's
+        information (eigenvalues ``lam``, vectors ``V``) and the gimbal-locked joints; ``None``
+        when nothing is held. A weak direction is held only where the window's information
+        would not beat what the filter already knows along it (a joint still wide from
+        startup takes weak readings)."""
+        st, n = self.settings, self.layout.n_joints
+        weak = lam < 1.0 / (st.sigma_limit_deg * DEG) ** 2
+        if weak.any():
+            prior_var = (V * (P[:n, :n] @ V)).sum(axis=0)
+            weak &= lam * prior_var < 1.0
+        any_weak, any_locked = bool(weak.any()), bool(locked.any())
+        if not (any_weak or any_locked):
+            return None
+        # the span of the held directions (orthonormal already when of one kind)
+        if not any_locked:
+            return V[:, weak]
+        if not any_weak:
+            return self._eye_state[:n, :n][:, locked]
+        B = np.concatenate([V[:, weak], self._eye_state[:n, :n][:, locked]], axis=1)
+        w, U, _ = lapack.dsyevd(B @ B.T)
+        return U[:, w > 1e-6]
+
+    def _info_rows(self, frame: Frames, sel: np.ndarray, coef: np.ndarray, base: np.ndarray):
+        """The used link accelerometers' acceleration less gravity ``v`` (S', 3: motion plus
+        the base's ``base``) and their information rows ``W`` (3S', n): the Jacobian of each
+        reading with respect to the offsets, over its sigma, times sqrt(rate * window)."""
+        n = self.layout.n_joints
+        v = frame.motion_mps2[sel] + base  # (S', 3)
+        # df_s/d offset_j = R_0S^T (v_s x a_j) / g for the joints before the sensor's link;
+        # v x a_j = -[a_j]x v, every (j, s) in one product
+        Kv = (frame.K.reshape(3 * n, 3) @ v.T).reshape(n, 3, -1).transpose(2, 1, 0)  # (S', 3, n)
+        W = (frame.R_0S[sel].transpose(0, 2, 1) @ Kv) * coef  # J / sigma * sqrt(rate * window)
+        return v, W.reshape(-1, n)
+
+    def _consider_update(self, t: float, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray,
+                         W: np.ndarray, hold: np.ndarray | None, P_now: np.ndarray, P0: np.ndarray,
+                         q_enc: np.ndarray, slips_calibration: np.ndarray) -> None:
+        """The calibration's own uncertainty in the offsets, carried as the filter carries
+        what it learnt (a consider, or Schmidt, sensitivity). Each of a calibrated config's
+        correction spreads (every calibrated element moved by its sigma along a principal
+        direction, ``StartupCorrection.spread``) is a constant error in a sensor's corrected
+        reading; ``self.consider`` (n, m) is how far each spread has pulled the offsets'
+        estimate so far. Since the last update the filter took the information ``A`` that
+        the used readings gave (the window's ``W``, scaled to the time elapsed, without the
+        held directions) and, with it, each spread's pull ``B``; the estimate moved by the
+        same gain: ``S += P (B - A S)``, with P the filter's offset covariance, which already
+        holds ``A``. What the filter learnt from a pose keeps that pose's calibration error
+        until new readings replace it (a joint read once in a poorly conditioned pose, then
+        held, keeps its doubt). Reported sigmas and the ``ill_conditioned`` flag include
+        ``diag(S S^T)``; the filter's own covariance does not."""
+        n = self.layout.n_joints
+        window = self.settings.observability_window_s
+        # the first time: the startup's answer already rests on at least a window of these
+        # readings (its still stretch), so it carries a whole window's pull
+        first = self.consider_t is None
+        dt = window if first else max(t - self.consider_t, 0.0)
+        self.consider_t = t
+        w = min(dt, window) / window
+        if w <= 0.0:
+            return
+        k = len(sel)
+        E = self._spread_errors(frame, sel, v, base).reshape(3 * k, -1)  # (3k, m)
+        Wn = W if hold is None else W @ hold[:n, :n]
+        A = (Wn.T @ Wn) * w
+        B = (Wn.T @ E) * w
+        # the information the filter held before these readings: its covariance's inverse
+        # less what they gave (clipped: a gated reading gave less than the window says); the
+        # first time, the startup's (the filter has taken a few of these readings already)
+        P = P0[:n, :n] if first else P_now[:n, :n]
+        lam, V = np.linalg.eigh(np.linalg.inv(P) - A)
+        prior = (V * np.clip(lam, 0.0, None)) @ V.T
+        S = self.consider
+        if len(self._scale_joints):  # the true offsets moved with the encoders since
+            if self._consider_q_enc is not None:
+                travel = q_enc[self._scale_joints] - self._consider_q_enc[self._scale_joints]
+                S[self._scale_joints, self._scale_cols] += self._scale_sigma * travel
+            self._consider_q_enc = q_enc.copy()
+        self.consider = np.linalg.solve(prior + A + 1e-12 * np.eye(n), prior @ S + B)
+        self.sys_var = (self.consider**2).sum(axis=1)
+        # what each spread leaves in the readings once the offsets have taken their pull: a
+        # lasting shift of the innovations the slip test must not take for a slip
+        links = sel < len(self.link_names)
+        if links.any():
+            D = E.reshape(k, 3, -1)[links]
+            scale = self._accel_rate[sel[links]] * self.settings.observability_window_s
+            slips_calibration[sel[links]] = (D @ D.transpose(0, 2, 1)) / scale[:, None, None]
+
+    def _spread_errors(self, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray) -> np.ndarray:
+        """Each correction spread's error in the used sensors' corrected readings, in the
+        information rows' units (per sigma, times sqrt(rate * window)): (k, 3, m), the
+        columns in ``self._spread_cols`` order. A link accelerometer's spread errs on its own
+        rows; the IMU's turns the base's reference (tilt and the chair's acceleration) for
+        every link accelerometer at once."""
+        k = len(sel)
+        E = np.zeros((k, 3, self.spread_m))
+        R = frame.R_0S[sel]  # (k, 3, 3)
+        f = np.einsum("kji,kj->ki", R, v) / G  # corrected readings, g (sensor axes)
+        for i, s_idx in enumerate(sel.tolist()):
+            stream = self.accel_streams[s_idx]
+            floor = self._floor_cols.get(stream)
+            if floor is not None:
+                E[i, :, floor[0]] = floor[1] * self._eye3
+            cols = self._spread_cols.get(stream)
+            if cols is None:
+                continue
+            Lm, c = self.correction.maps[stream]
+            raw = Lm @ f[i] + c
+            M1, c1 = self._spread_stack[stream]  # (m_s, 3, 3), (m_s, 3)
+            E[i, :, cols] = (M1 @ raw - np.einsum("mab,mb->ma", M1, c1) - f[i])
+        cols = self._spread_cols.get(IMU_ACC) if self._R_0I is not None else None
+        if cols is not None:
+            Lm, c = self.correction.maps[IMU_ACC]
+            raw = Lm @ (self._R_0I.T @ base / G) + c
+            y0 = np.linalg.solve(Lm, raw - c)
+            M1, c1 = self._spread_stack[IMU_ACC]
+            d = M1 @ raw - np.einsum("mab,mb->ma", M1, c1) - y0  # (m_s, 3)
+            r = cross(y0 / np.linalg.norm(y0), d) @ self._R_0I.T  # the reference turned by
+            # each link sensor's reading error: R^T (r x v) / g
+            rv = cross(r[:, None, :], v[None, :, :])  # (m_s, k, 3)
+            E[:, :, cols] = np.einsum("kji,mkj->kim", R, rv) / G
+        scale = np.sqrt(self._accel_rate[sel] * self.settings.observability_window_s)
+        return E / self._accel_sigma_g[sel][:, :, None] * scale[:, None, None]
+
+    def _obs_sel(self, used: tuple[int, ...]):
+        """The link accelerometers ``used`` as an index array, and the factor that turns
+        their Jacobian rows into information rows: ``-sees / sigma * sqrt(rate * window) / g``
+        (cached per set)."""
+        hit = self._cache.get(used)
+        if hit is None:
+            sel = np.array(used, dtype=int)
+            w = np.sqrt(self._accel_rate[sel] * self.settings.observability_window_s)
+            coef = -(self.sees[sel][:, None, :] / self._accel_sigma_g[sel][:, :, None])
+            coef *= (w / G)[:, None, None]
+            hit = self._cache[used] = (sel, coef)
+        return hit
+
+    def joint_flags(self, t: float, codes: list[int], links: list[int], P: np.ndarray, q: np.ndarray,
+                    ambiguous: np.ndarray, reacquiring_until: np.ndarray, lo: list, hi: list) -> np.ndarray:
+        """Each joint's flag (:data:`fusion.tracking.settings.JOINT_FLAGS`: the most severe
+        condition wins) from the link accelerometers' status ``codes`` (on ``links``), the
+        covariance ``P``, the joint angles ``q`` and the limits ``lo``, ``hi``. A few joints:
+        plain Python."""
+        st, n = self.settings, self.layout.n_joints
+        nl = len(self.link_names)
+        # a joint is seen by a usable link accelerometer on a later link
+        reach = max((links[i] for i in range(nl) if codes[i] <= S_REJECTING), default=-1)
+        sig = [math.sqrt(max(p, 0.0) + v)
+               for p, v in zip(P.diagonal()[:n].tolist(), self.sys_var.tolist(), strict=True)]
+        ql = q.tolist()
+        lim, margin = st.sigma_limit_deg * DEG, st.limit_margin_deg * DEG
+        flags = []
+        for j in range(n):
+            if ambiguous[j]:
+                f = F_AMBIGUOUS
+            elif self.locked[j]:
+                f = F_GIMBAL
+            elif reach <= j:
+                f = F_UNOBSERVED
+            elif self.ill[j] and self.observed[j]:
+                f = F_ILL
+            elif reacquiring_until[j] > t:
+                f = F_REACQ
+            elif ql[j] < lo[j] - margin or ql[j] > hi[j] + margin:
+                f = F_OUT
+            elif sig[j] > lim:
+                f = F_CONVERGING
+            else:
+                f = 0
+            flags.append(f)
+        return np.array(flags, dtype=np.int8)

@@ -1,0 +1,306 @@
+"""A tracker's run over a whole recording: :func:`run_recording` feeds every instant of it
+through the filter's one path (:meth:`fusion.tracking.filter.Tracker._instant`, the same as
+live), with only the conversions to SI units and the saturation checks done for many
+instants at once, and keeps what the filter said at each (:class:`RunArrays`), as a
+:class:`TrackRun`; with truth in the recording, scored by :mod:`fusion.tracking.scoring`."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from fusion.tracking.scoring import errors, truth_at, truth_summary
+from fusion.tracking.settings import C_SAMPLES, C_SATURATED, ENC, GYRO, JOINT_FLAGS, MAG, SENSOR_STATUS
+from models.sensor_models import mpu9150_temperature_c
+from sensors.samples import Recording
+
+
+def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool = True,
+                  block: int = 256, progress: Callable[[float], None] | None = None) -> TrackRun:
+    """Fuse every sample of ``rec`` after the tracker ``tr``'s current time (up to
+    ``t_stop_s``), instant by instant through its one filter path. The counts are turned
+    into SI units (at the IMU's temperature then) and checked for saturation for the whole
+    span at once. The kinematic frames are made with the offsets and gyro bias of each
+    ``block``'s start (live: of the instant): their drift since is carried exactly by the
+    product of exponentials, and enters the motion term only to first order. With ``truth``
+    and truth streams in ``rec``, errors and NEES are kept too. ``progress(fraction_done)``
+    is called after every block."""
+    t0_wall = time.perf_counter()
+    raw = {s: rec.get(s) for s in tr.sensor_names if rec.get(s) is not None and len(rec.get(s))}
+    if ENC not in raw:
+        raise ValueError("the recording has no encoder stream 'enc': nothing to track")
+    tr.set_rates({s: (v.rate_hz or 100.0) for s, v in raw.items()})
+    t_from = tr.t_s
+    t_stop = np.inf if t_stop_s is None else float(t_stop_s)
+    raw = {s: v.between(t_from - 2.0, t_stop + 1e-6) for s, v in raw.items()}
+    raw = {s: v for s, v in raw.items() if len(v)}
+    if ENC not in raw:
+        raise ValueError(f"the recording has no encoder sample after t = {t_from:.3f} s")
+    times = np.unique(np.concatenate([v.t_s for v in raw.values()]))
+    times = times[(times > t_from + 1e-9) & (times <= t_stop + 1e-9)]
+    T = len(times)
+    rows, phys, valid = {}, {}, {}
+    temperature_at = _temperatures(tr, rec)
+    counts = tr.health.counts
+    for s, v in raw.items():
+        rows[s] = _rows_at(times, v.t_s)
+        c = v.values.astype(float)
+        ok = ~tr.readings.models[s].saturated(c).any(axis=1)
+        valid[s] = ok
+        phys[s] = tr.readings.physical(s, c, temperature_at(v.t_s))
+        used = rows[s][rows[s] >= 0]
+        i = tr._sidx[s]
+        counts[i, C_SAMPLES] += len(used)
+        counts[i, C_SATURATED] += int((~ok[used]).sum())
+    enc = raw[ENC]
+    q_enc_all = enc.values / tr.counts_per_rad
+    gyro_B = phys[GYRO] @ tr.R_0I.T if GYRO in raw else None
+    mag_B = phys[MAG] @ tr.R_0I.T if MAG in raw else None
+    if tr._ukf is None:  # the offsets are fixed by the first encoder sample
+        k = min(int(np.searchsorted(enc.t_s, t_from - 1e-9)), len(enc) - 1)
+        tr._start_filter(q_enc_all[k] if tr._enc0 is None else tr._enc0 / tr.counts_per_rad)
+    acc_streams = [s for s in tr.accel_streams if s in raw]
+    acc_idx = np.array([tr._sidx[s] for s in acc_streams], dtype=np.int64)
+    acc_info = tr.measurements.selection(acc_idx)
+    # per instant: which accelerometers have a valid sample, as (T, Sa) row indices
+    acc_rows = np.stack([np.where(rows[s] >= 0, rows[s], -1) for s in acc_streams], 1) \
+        if acc_streams else np.full((T, 0), -1)
+    acc_ok = np.stack([(rows[s] >= 0) & valid[s][np.maximum(rows[s], 0)] for s in acc_streams], 1) \
+        if acc_streams else np.zeros((T, 0), bool)
+    acc_seen = acc_rows >= 0
+    # every instant's accelerometer samples as (T, Sa, 3) arrays: one index per step
+    Sa = len(acc_streams)
+    acc_counts = np.zeros((T, Sa, 3))
+    acc_phys = np.zeros((T, Sa, 3))
+    for j, s in enumerate(acc_streams):
+        have = acc_rows[:, j] >= 0
+        acc_counts[have, j] = raw[s].values[acc_rows[have, j]]
+        acc_phys[have, j] = phys[s][acc_rows[have, j]]
+    all_ok = acc_ok.all(axis=1)
+    ok_rows = {s: np.where((rows[s] >= 0) & valid[s][np.maximum(rows[s], 0)], rows[s], -1)
+               for s in (ENC, GYRO, MAG) if s in rows}
+    mag_counts = raw[MAG].values if MAG in raw else None
+    has_truth = truth and rec.get("true_q") is not None and rec.get("true_base") is not None
+    out = RunArrays(T, tr.arm.n_joints, len(tr.sensor_names), keep_cov=has_truth, size=tr.layout.size)
+    health = tr.health
+    for b0 in range(0, T, block):
+        b1 = min(T, b0 + block)
+        # the block's per-instant rows as plain Python values (cheaper to test one by one)
+        t_l = times[b0:b1].tolist()
+        enc_l, gyro_l, mag_l = ([-1] * (b1 - b0) if s not in ok_rows else ok_rows[s][b0:b1].tolist()
+                                for s in (ENC, GYRO, MAG))
+        all_l = all_ok[b0:b1].tolist()
+        x_block = tr._ukf.x  # the frames' offsets and gyro bias, the block's start's
+        for i in range(b0, b1):
+            r = i - b0
+            t = t_l[r]
+            acc = None
+            if all_l[r]:
+                acc = (acc_idx, acc_counts[i], acc_phys[i], acc_info)
+            else:
+                ok = acc_ok[i]
+                if ok.any():
+                    sel = acc_idx[ok]
+                    acc = (sel, acc_counts[i, ok], acc_phys[i, ok], tr.measurements.selection(sel))
+                if acc_seen[i].any():  # saturated samples: the sensors did speak
+                    health.seen[acc_idx[acc_seen[i]]] = True
+                    health.last_t[acc_idx[acc_seen[i]]] = t
+            ke, kg, km = enc_l[r], gyro_l[r], mag_l[r]
+            tr._instant(t, q_enc_all[ke] if ke >= 0 else None, gyro_B[kg] if kg >= 0 else None, acc,
+                        (mag_counts[km], mag_B[km]) if km >= 0 else None, x_block)
+            out.record(tr, i)
+        if progress is not None:
+            progress(b1 / T)
+    elapsed = time.perf_counter() - t0_wall
+    truth_q = rec.get("true_q") if truth else None
+    truth_b = rec.get("true_base") if truth else None
+    tq = truth_at(truth_q, times) if truth_q is not None and len(truth_q) else None
+    tb = truth_at(truth_b, times, angles=True) if truth_b is not None and len(truth_b) else None
+    return out.finish(tr, times, elapsed, tq, tb)
+
+
+def _temperatures(tr, rec: Recording):
+    """The IMU's latest temperature reading (°C) at each of some times (the tracker's, before
+    any), when the config's corrections depend on it; else a function that gives None."""
+    temp = rec.get("imu_temp")
+    if temp is None or not len(temp) or not tr.readings.per_c:
+        return lambda t: None
+    temp_t, temp_c = temp.t_s, mpu9150_temperature_c(temp.values[:, 0])
+    before = tr.readings.temperature_c
+
+    def at(t: np.ndarray):
+        k = np.searchsorted(temp_t, t, side="right") - 1
+        return np.where(k >= 0, temp_c[np.maximum(k, 0)], before)
+    return at
+
+
+def _rows_at(times: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    """Index into ``t_s`` of the sample at each of ``times`` (-1 where there is none)."""
+    pos = np.searchsorted(t_s, times)
+    pos_c = np.minimum(pos, len(t_s) - 1)
+    return np.where(np.abs(t_s[pos_c] - times) < 1e-9, pos_c, -1)
+
+
+class RunArrays:
+    """Per fused instant: the state, the diagonal of its covariance, the encoder angles and the
+    flags, as the run goes (a few row copies per step); angles and sigmas are made from them
+    at the end. The joint flags, sensor statuses and the calibration's share of the joints'
+    variance change only now and then (the tracker replaces those arrays when they do): they
+    are kept where they changed and spread over the instants at the end."""
+
+    def __init__(self, T: int, n: int, S: int, keep_cov: bool = True, size: int | None = None):
+        size = n + 9 if size is None else size
+        self.x = np.full((T, size), np.nan)
+        self.var = np.full((T, size), np.nan)
+        self.q_enc = np.full((T, n), np.nan)
+        self.flags = np.zeros((T, n), dtype=np.int8)
+        self.magnetic = np.zeros(T, dtype=np.int8)
+        self.status = np.zeros((T, S), dtype=np.int8)
+        self.sys_var = np.zeros((T, n))
+        self.P = np.full((T, n + 3, n + 3), np.nan) if keep_cov else None
+        self._P_rows = None if self.P is None else self.P.reshape(T, (n + 3) ** 2)
+        self.T = T
+        self._flat = None
+        self._held = (None, None, None)
+        self._changes: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._last = -1
+
+    def record(self, tr, i: int) -> None:
+        """The tracker ``tr``'s state after instant ``i``."""
+        ukf = tr._ukf
+        P = ukf._P
+        self.x[i] = ukf._x
+        self.var[i] = P.diagonal()
+        self.q_enc[i] = tr._q_enc
+        held = self._held
+        flags, status, sys_var = tr._flags, tr.health.status_codes, tr.observability.sys_var
+        if flags is not held[0] or status is not held[1] or sys_var is not held[2]:
+            self._held = held = (flags, status, sys_var)
+            self._changes.append((i, *held))
+        mf = tr.compass.flags
+        if mf[0] or mf[1]:
+            self.magnetic[i] = (1 if mf[0] else 0) | (2 if mf[1] else 0)
+        if self.P is not None:  # for the NEES
+            if self._flat is None:
+                ix = tr._nees_idx
+                self._flat = (ix[:, None] * P.shape[1] + ix[None, :]).reshape(-1)
+            P.take(self._flat, out=self._P_rows[i])
+        self._last = i
+
+    def _spread_changes(self) -> None:
+        """The flags, statuses and the calibration's share at every recorded instant, and that
+        share added to the joints' variances."""
+        ends = [c[0] for c in self._changes[1:]] + ([self._last + 1] if self._changes else [])
+        for (i, flags, status, sys_var), j in zip(self._changes, ends, strict=True):
+            self.flags[i:j] = flags
+            self.status[i:j] = status
+            self.sys_var[i:j] = sys_var
+        n = self.sys_var.shape[1]
+        self.var[:, :n] += self.sys_var  # the calibration's own uncertainty
+        if self.P is not None:
+            self.P[:, np.arange(n), np.arange(n)] += self.sys_var
+
+    def _arrays(self, tr) -> None:
+        L, n = tr.layout, tr.arm.n_joints
+        self._spread_changes()
+        d = np.sqrt(np.maximum(self.var, 0.0))
+        self.q = self.q_enc + self.x[:, :n]
+        self.sigma = d[:, :n]
+        self.rpy = self.x[:, tr._att_idx]
+        self.rpy_sigma = d[:, tr._att_idx]
+        self.bias = self.x[:, L.bias]
+
+    def finish(self, tr, times, elapsed, truth_q: np.ndarray | None,
+               truth_b: np.ndarray | None) -> TrackRun:
+        """``truth_q``, ``truth_b``: the truth at each instant (NaN where there is none)."""
+        n = tr.arm.n_joints
+        self._arrays(tr)
+        q_err, yaw_err, nees = errors(self.q, self.rpy, self.P, truth_q, truth_b)
+        return TrackRun(
+            joint_names=tr.arm.joint_names, sensor_names=tr.sensor_names, t_s=np.asarray(times),
+            q_rad=self.q, sigma_rad=self.sigma, flags=self.flags, rpy_rad=self.rpy,
+            rpy_sigma_rad=self.rpy_sigma, gyro_bias_rad_s=self.bias, magnetic=self.magnetic,
+            sensor_status=self.status, elapsed_s=elapsed, counters=tr.counters(), nis=tr.nis_stats(),
+            q_error_rad=q_err, yaw_error_rad=yaw_err, nees=nees, nees_dof=n + 3,
+        )
+
+
+
+@dataclass(frozen=True)
+class TrackRun:
+    """A run over a recording: per fused instant (``t_s (T,)``) the joint angles, their
+    sigma and flag codes (:data:`JOINT_FLAGS`), the base attitude and its sigma, the gyro
+    bias, magnetic flags (bit 1: disturbance, bit 2: recovery), sensor status codes
+    (:data:`SENSOR_STATUS`); with truth, the errors and the NEES (joints, roll, pitch, yaw)."""
+
+    joint_names: tuple[str, ...]
+    sensor_names: tuple[str, ...]
+    t_s: np.ndarray
+    q_rad: np.ndarray
+    sigma_rad: np.ndarray
+    flags: np.ndarray
+    rpy_rad: np.ndarray
+    rpy_sigma_rad: np.ndarray
+    gyro_bias_rad_s: np.ndarray
+    magnetic: np.ndarray
+    sensor_status: np.ndarray
+    elapsed_s: float
+    counters: dict
+    nis: dict
+    q_error_rad: np.ndarray | None = None
+    yaw_error_rad: np.ndarray | None = None
+    nees: np.ndarray | None = None
+    nees_dof: int = 0
+
+    @property
+    def steps(self) -> int:
+        return int(len(self.t_s))
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.steps / self.elapsed_s if self.elapsed_s > 0 else float("nan")
+
+    def flags_seen(self) -> dict:
+        """How many instants each joint showed each flag, and each sensor each status."""
+        joints = {nm: _tally(self.flags[:, j], JOINT_FLAGS) for j, nm in enumerate(self.joint_names)}
+        sensors = {nm: _tally(self.sensor_status[:, i], SENSOR_STATUS)
+                   for i, nm in enumerate(self.sensor_names)}
+        mag = {"magnetic_disturbance": int(np.sum(self.magnetic & 1 > 0)),
+               "magnetic_recovery": int(np.sum(self.magnetic & 2 > 0))}
+        return {"joints": joints, "sensors": sensors, "heading": mag}
+
+    def summary(self, after_s: float = 60.0, t0_s: float | None = None) -> dict:
+        """The JSON summary (see docs/tracking.md): steps, speed, rejections, flags seen, and
+        with truth the RMS errors after ``after_s`` (from ``t0_s``, default the first
+        instant), NEES and NIS means with their 95 % chi-square bounds."""
+        t0 = (float(self.t_s[0]) if len(self.t_s) else 0.0) if t0_s is None else t0_s
+        d: dict = {
+            "steps": self.steps,
+            "duration_s": float(self.t_s[-1] - self.t_s[0]) if self.steps > 1 else 0.0,
+            "elapsed_s": self.elapsed_s,
+            "steps_per_s": self.steps_per_s,
+            "rejections": {s: c["rejected"] for s, c in self.counters.items()},
+            "skipped": {s: {k: c[k] for k in ("nan", "saturated", "implausible", "stuck", "out_of_order")}
+                        for s, c in self.counters.items()},
+            "reacquisitions": {s: c["reacquisitions"] for s, c in self.counters.items()
+                               if c["reacquisitions"]},
+            "flags_seen": self.flags_seen(),
+        }
+        nis = {}
+        for s, (mean, count, dof) in self.nis.items():
+            if count:
+                lo, hi = chi2.ppf([0.025, 0.975], count * dof) / count
+                nis[s] = {"mean": mean, "dof": dof, "count": count, "bounds_95": [float(lo), float(hi)],
+                          "inside": bool(lo <= mean <= hi)}
+        d["nis"] = nis
+        d.update(truth_summary(self, self.t_s >= t0 + after_s, after_s))
+        return d
+
+
+def _tally(codes: np.ndarray, names: tuple[str, ...]) -> dict[str, int]:
+    vals, counts = np.unique(codes, return_counts=True)
+    return {names[int(c)]: int(k) for c, k in zip(vals, counts, strict=True)}

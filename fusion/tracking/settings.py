@@ -1,0 +1,204 @@
+"""The tracker's vocabulary: its settings (:class:`TrackerSettings`, units in the names),
+the joint flags and sensor statuses it reports, its per-sensor counters, the stream names
+it takes, and the layout of its state vector (:class:`StateLayout`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from fusion.tracking.heading import HeadingSettings
+from models.rotations import GRAVITY_MPS2
+from models.sensor_models import MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ
+
+G = GRAVITY_MPS2
+
+JOINT_FLAGS: tuple[str, ...] = (
+    "ok", "converging", "out_of_limits", "reacquiring", "ill_conditioned", "unobserved", "gimbal_lock",
+    "ambiguous",
+)
+"""Per-joint flags, from least to most severe (a joint shows its most severe one):
+
+- ``ok``: observed, sigma below ``sigma_limit_deg``;
+- ``converging``: observed, but sigma still above the limit (e.g. a joint that was blind
+  at startup and is being read for the first time);
+- ``out_of_limits``: the estimate is outside the joint's limits (plus a margin);
+- ``reacquiring``: a sensor that sees this joint disagreed for longer than a bump
+  lasts (an encoder slip?); its offset was widened and is being read again;
+- ``ill_conditioned``: the sensors read this joint only poorly, or only together with
+  another joint; the unreadable direction is held (no correction flows through it);
+- ``unobserved``: no working accelerometer sees this joint (dead, stuck or stale);
+- ``gimbal_lock``: the joint's axis is within ``gimbal_lock_deg`` of vertical: gravity
+  cannot read it; it is held, and its sigma grows with the offset random walk;
+- ``ambiguous``: the startup found two or more branches that fit the still data equally
+  (and no prior that fits chose): the joint is not tracked as known until a still window
+  after a move tells them apart (:meth:`Tracker.ambiguity`: the candidates, moved by what
+  the encoders counted since); its sigma covers them.
+"""
+SENSOR_STATUS: tuple[str, ...] = ("ok", "rejecting", "stale", "stuck", "dead", "absent")
+"""Per-sensor status: ``ok``; ``rejecting`` (its last sample failed the chi-square gate);
+``stale`` (no sample for ``stale_after_s``); ``stuck`` (identical counts while the
+prediction moved); ``dead`` (implausible readings for ``dead_after_s``); ``absent``
+(never seen)."""
+FLAG_CODE = {f: i for i, f in enumerate(JOINT_FLAGS)}
+STATUS_CODE = {s: i for i, s in enumerate(SENSOR_STATUS)}
+# the codes of the flags and statuses above ``ok``
+F_CONVERGING, F_OUT, F_REACQ, F_ILL, F_UNOBSERVED, F_GIMBAL, F_AMBIGUOUS = range(1, 8)
+S_REJECTING, S_STALE, S_STUCK, S_DEAD, S_ABSENT = range(1, 6)
+COUNTERS: tuple[str, ...] = (
+    "samples", "used", "rejected", "nan", "saturated", "implausible", "stuck", "out_of_order",
+    "reacquisitions",
+)
+(C_SAMPLES, C_USED, C_REJECTED, C_NAN, C_SATURATED, C_IMPLAUSIBLE, C_STUCK, C_OUT_OF_ORDER,
+ C_REACQUISITIONS) = range(len(COUNTERS))
+
+ENC = "enc"
+GYRO = "imu_gyro"
+IMU_ACC = "imu_acc"
+MAG = "imu_mag"
+
+
+@dataclass(frozen=True)
+class TrackerSettings:
+    """Everything tunable, with units in the names; the defaults suit the WMRA's sensors."""
+
+    # process noise
+    offset_random_walk_deg_per_sqrt_s: float = 0.0035
+    """Each encoder offset's random walk: lets a slip be absorbed in a few seconds while
+    keeping the steady-state sigma near 0.01 deg."""
+    gyro_noise_dps_per_sqrt_hz: float = MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ
+    gyro_bias_random_walk_dps_per_sqrt_s: float = 0.0005
+    imu_accel_bias_random_walk_g_per_sqrt_s: float = 2e-6
+    compass_max_unmodelled_deg: float = 10.0
+    """A compass whose config leaves more unmodelled iron than this (as a heading error,
+    :func:`compass_unmodelled_rad`) is not fused: its error follows the heading, so
+    averaging its readings would not shrink it. The heading is then the gyro's, from a
+    start as wide as the compass's doubt."""
+    """The IMU accelerometer's residual error drifts slowly (temperature): 0.1 mg in 40 min."""
+    base_accel_sigma_mps2: float = 0.7
+    """Steady-state spread of the chair's own acceleration (driving, turning, ramps)."""
+    base_accel_tau_s: float = 5.0
+    """Its correlation time: how long an acceleration typically lasts."""
+    still_gyro_dps: float = 0.5
+    still_accel_g: float = 0.004
+    still_tau_s: float = 0.3
+    """The chair stands still when, averaged over ``still_tau_s``, the gyro reads less than
+    ``still_gyro_dps`` and the IMU accelerometer wanders less than ``still_accel_g`` rms:
+    then its own acceleration is zero, which pins the tilt (a zero-acceleration update)."""
+    still_accel_sigma_mps2: float = 0.1
+    """Noise of that zero-acceleration pseudo-measurement, per sample."""
+    still_accel_q_factor: float = 1e-4
+    """While the chair stands still, its acceleration's process noise is scaled by this."""
+    attitude_random_walk_deg_per_sqrt_s: float = 0.5
+    """Used instead of the gyro when there is none."""
+    # measurement noise, on top of each sensor's datasheet noise at its rate
+    accel_floor_g: float = 0.0008
+    """What the model does not capture (sensor errors left after calibration), g rms."""
+    motion_model_fraction: float = 0.04
+    """Share of the predicted motion acceleration taken as extra noise (the differentiator's
+    lag and noise), per axis."""
+    motion_compensation: bool = True
+    """Predict the accelerometers with the arm's and the chair's motion (and estimate the
+    chair's acceleration). Off, they are predicted as if everything stood still: only for
+    comparison (the tests show what it costs)."""
+    # gating and re-acquisition
+    gate_significance: float = 1e-3
+    """Chi-square gate on each sensor's NIS: probability that a good sample is rejected."""
+    reacquire_after_s: float = 0.4
+    """A sensor rejected for this long is a state change (a slip), not a bump."""
+    slip_sigma_deg: float = 1.0
+    """How much the offsets a disagreeing sensor sees are widened when it re-acquires
+    (doubled each time it happens again within 10 s)."""
+    reacquiring_flag_s: float = 3.0
+    shift_tau_s: float = 1.0
+    shift_slow_tau_s: float = 4.0
+    shift_threshold: float = 60.0
+    shift_slow_threshold: float = 24.0
+    shift_max_angular_accel_rad_s2: float = 0.5
+    """The slip detector pauses while the base's angular acceleration exceeds this (a chair
+    starting or stopping a turn) or the IMU accelerometer disagrees with the model."""
+    """Slip detector: each link accelerometer's innovation, normalised per axis and averaged
+    over ``shift_tau_s`` and over ``shift_slow_tau_s`` (exponential averages), is tested
+    against zero; a chi-square (3 dof) above ``shift_threshold`` (``shift_slow_threshold``
+    for the slow average: it wanders less) is a lasting shift (a slip or a drift of a few
+    tenths of a degree) that the gate alone may let through slowly: the offsets the sensor
+    sees (and no agreeing sensor does) are widened."""
+    # observability
+    gimbal_lock_deg: float = 2.5
+    """A joint whose axis is within this angle of vertical is gravity-blind: held."""
+    sigma_limit_deg: float = 0.5
+    """A joint the sensors cannot read to this sigma within ``observability_window_s`` is
+    ill-conditioned (held along the weak direction); a joint whose sigma is above it is
+    ``converging``."""
+    observability_window_s: float = 1.0
+    observability_period_s: float = 0.05
+    """How often the observability (axis angles, information, hold) is recomputed; at
+    once whenever the set of working sensors changes."""
+    unknown_joint_sigma_deg: float = 30.0
+    """Sigma of a joint the startup calibration could not read (gimbal lock, ambiguous)."""
+    limit_margin_deg: float = 1.0
+    # sensor health
+    stale_after_s: float = 0.25
+    plausible_tolerance_g: float = 0.35
+    """A reading whose magnitude differs from the prediction's by more than this is implausible."""
+    dead_after_s: float = 0.5
+    stuck_samples: int = 20
+    """Identical raw readings in a row (while the prediction moved) that make a sensor stuck."""
+    # differentiators
+    encoder_window: int = 9
+    encoder_order: int = 3
+    """The causal polynomial fit (samples, order) that gives joint rates and accelerations:
+    a cubic over 9 samples follows minimum-jerk moves with ~0.1 mg of error at the
+    sensors, where a quadratic lags by a third of the window."""
+    gyro_window: int = 15
+    gyro_order: int = 2
+    """The causal fit that gives the base's angular acceleration from the gyro."""
+    angular_accel_error_fraction: float = 0.15
+    """The differentiated gyro's error: its noise (from the gyro's noise and the fit's
+    weights) plus its lag, taken as this share of the estimate; times each sensor's
+    distance from the IMU it becomes extra accelerometer noise."""
+    # sigma points (filterpy's MerweScaledSigmaPoints parameters)
+    alpha: float = 0.5
+    beta: float = 2.0
+    kappa: float = 0.0
+    # heading
+    heading: HeadingSettings = field(default_factory=HeadingSettings)
+    mag_fuse_period_s: float = 0.1
+    """The magnetometer's samples are averaged over this period and fused as one heading
+    (its noise is white; the field checks see the average)."""
+    # diagnosis
+    innovation_capacity: int = 100_000
+    """Innovations kept per sensor (a ring buffer), for the diagnosis workbench."""
+
+
+class NotInitialisedError(RuntimeError):
+    """The tracker was used before :meth:`Tracker.initialise`."""
+
+
+@dataclass(frozen=True)
+class StateLayout:
+    """Where each block of the state is, for ``n_joints`` joints: the offsets, then roll,
+    pitch, the base's acceleration (3), yaw, the gyro bias (3) and the IMU accelerometer's
+    bias (3); an index for a scalar block, a slice for the others."""
+
+    n_joints: int
+    offset: slice = field(init=False, compare=False, repr=False)
+    roll: int = field(init=False, compare=False, repr=False)
+    pitch: int = field(init=False, compare=False, repr=False)
+    accel: slice = field(init=False, compare=False, repr=False)
+    yaw: int = field(init=False, compare=False, repr=False)
+    bias: slice = field(init=False, compare=False, repr=False)
+    imu_bias: slice = field(init=False, compare=False, repr=False)
+    size: int = field(init=False, compare=False, repr=False)
+
+    def __post_init__(self):
+        n, start = self.n_joints, 0
+        for name, width in (("offset", n), ("roll", 0), ("pitch", 0), ("accel", 3), ("yaw", 0), ("bias", 3),
+                            ("imu_bias", 3)):
+            object.__setattr__(self, name, slice(start, start + width) if width else start)
+            start += max(width, 1)
+        object.__setattr__(self, "size", start)
+
+    def names(self, joint_names) -> tuple[str, ...]:
+        return tuple([f"offset[{j}]" for j in joint_names] + ["roll", "pitch"]
+                     + [f"accel_B[{a}]" for a in "xyz"] + ["yaw"] + [f"gyro_bias[{a}]" for a in "xyz"]
+                     + [f"imu_accel_bias[{a}]" for a in "xyz"])

@@ -1,0 +1,256 @@
+"""Starting a tracker from a recording: the first still stretch's startup calibration
+(:func:`fusion.startup.solve.solve_still`, on readings the config's effects corrected), the
+gyro bias, heading and Earth-field reference from the same window
+(:func:`imu_still_from_recording`), and, offline, the choice between rival branches by the
+motion that follows (:func:`_branch_by_motion`). :func:`warm_up` compiles (or loads) the
+tracker's kernels before a node takes samples."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from fusion.startup.solve import StartupResult
+from fusion.tracking.compass import compass_map, compass_unmodelled_rad
+from fusion.tracking.differentiator import prime
+from fusion.tracking.filter import Tracker
+from fusion.tracking.heading import FieldReference, heading_sigma_rad, tilt_compensated_heading
+from fusion.tracking.initial import ImuStill
+from fusion.tracking.settings import ENC, GYRO, MAG, TrackerSettings
+from models.arm import ArmModel
+from models.rotations import DEG, up_from_tilt
+from models.sensor_models import encoder_angles_at, mpu9150_temperature_c, stream_models
+from sensors.samples import Recording
+
+
+def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_end_s: float,
+                             startup: StartupResult, settings: TrackerSettings | None = None,
+                             correction=None) -> ImuStill:
+    """The gyro bias, initial heading and Earth-field reference from a still window.
+    ``correction``: the config's :class:`fusion.identification.identify.StartupCorrection`, when the caller
+    has it (else made here when the config has compass effects)."""
+    st = settings or TrackerSettings()
+    sm = stream_models(arm)
+    R_0I = arm.imu.R_LS if arm.imu is not None else np.eye(3)
+    bias = np.zeros(3)
+    bias_sigma = 0.5 * DEG  # no gyro samples: a wide guess
+    g = rec.get(GYRO)
+    if g is not None:
+        w = g.between(t_start_s, t_end_s + 1e-9)
+        if len(w) >= 3:
+            rate = w.rate_hz or 100.0
+            omega = sm[GYRO].from_counts(w.values) @ R_0I.T
+            bias = omega.mean(axis=0)
+            noise = st.gyro_noise_dps_per_sqrt_hz * DEG * np.sqrt(rate / 2.0)
+            bias_sigma = float(max(noise / np.sqrt(len(w)), 2e-5))
+    yaw = yaw_sigma = None
+    field_ref = None
+    m = rec.get(MAG)
+    if m is not None:
+        w = m.between(t_start_s, t_end_s + 1e-9)
+        if len(w) >= 1:
+            y = sm[MAG].from_counts(w.values)
+            undo = compass_map(arm, correction)
+            if undo is not None:  # the config's hard and soft iron, as the tracker undoes them
+                y = (y - undo[1]) @ undo[0]
+            mB = y @ R_0I.T
+            up = up_from_tilt(np.array(startup.roll_rad), np.array(startup.pitch_rad))
+            if st.heading.reference == "model":
+                field_ref = FieldReference.from_world_field()
+            else:
+                field_ref = FieldReference.from_samples(mB, up)
+            mean = mB.mean(axis=0)
+            yaw = float(tilt_compensated_heading(mean, startup.roll_rad, startup.pitch_rad,
+                                                 field_ref.declination_rad))
+            sig = heading_sigma_rad(field_ref, st.heading.noise_ut) / np.sqrt(len(w))
+            tilt_sig = np.hypot(startup.roll_sigma_rad, startup.pitch_sigma_rad) * np.tan(field_ref.dip_rad)
+            iron_sig = compass_unmodelled_rad(arm, field_ref)
+            yaw_sigma = float(np.sqrt(sig**2 + tilt_sig**2 + iron_sig**2) + 0.2 * DEG)
+    return ImuStill(bias, bias_sigma, yaw, yaw_sigma, field_ref)
+
+
+@dataclass(frozen=True)
+class Start:
+    """How a tracker was started from a recording: the still window, the startup
+    calibration, what the IMU said, and the notes on sensors left out."""
+
+    t_start_s: float
+    t_end_s: float
+    startup: StartupResult
+    imu: ImuStill
+    notes: tuple[str, ...]
+    geometric: StartupResult | None = None
+    """The startup before the config's joint effects were undone (what a later still
+    window's solve compares with, through :func:`fusion.startup.solve.prior_after_move`)."""
+    encoder_rad: np.ndarray | None = None
+    """The encoders' angles (counts / counts per rad) at the end of the still window."""
+
+
+class NoStillWindowError(ValueError):
+    """The recording has no still stretch to calibrate from."""
+
+
+def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
+    """Compile (the first run after an install) or load (later runs) the tracker's compiled
+    kernels with the signatures the live path uses, by tracking 2 s of a simulated arm
+    sample by sample after a startup on the 2 s before, so that a node does not pay for it
+    while samples queue up. Returns the seconds it took."""
+    from models.simulator import simulate
+
+    t0 = time.perf_counter()
+    rec, _ = simulate(arm, "daily-use", 4.0, seed=0)
+    first = Recording({k: v.between(0.0, 2.0) for k, v in rec.streams.items()}, rec.meta)
+    tr, _ = start_from_recording(arm, first, settings, propose_unlock=False)  # then 2 s more
+    values = {s: rec.get(s).values for s in tr.sensor_names if s in rec.streams}
+    t_enc = rec.get(ENC).t_s
+    n = min(len(v) for v in values.values())
+    for i in range(int(np.searchsorted(t_enc, tr.t_s + 1e-9)), n):
+        t = float(t_enc[i])
+        if i % 2:  # every sensor at one instant, and one device at a time
+            tr.update_instant(t, {s: v[i] for s, v in values.items()})
+        else:
+            for k, (s, v) in enumerate(values.items()):
+                tr.update(s, t + 1e-4 * k, v[i])
+    return time.perf_counter() - t0
+
+
+def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSettings | None = None,
+                         prior_q_rad: np.ndarray | None = None, window_s: float = 1.0,
+                         startup_settings=None, propose_unlock: bool = True,
+                         prior=None, resolve_by_motion_s: float | None = None) -> tuple[Tracker, Start]:
+    """A tracker initialised from the recording's first still stretch: the startup
+    calibration there (:func:`fusion.startup.solve.solve_still`), the gyro bias, heading and field
+    reference from the same window; it starts tracking at the window's end.
+    ``propose_unlock`` False: no search for a move that would unlock gravity-blind joints
+    (about 2 s of the startup's time, for a caller that does not show it).
+    ``prior_q_rad``: a pose saved at the last clean shutdown, checked against the still data
+    before it may choose a branch (:class:`fusion.startup.solve.StartupPrior`); ``prior``: any
+    other startup prior (e.g. ``StartupPrior.assume_parked``).
+    ``resolve_by_motion_s``: for a whole recording (not live), when the startup left joints
+    ``ambiguous``, track each candidate branch over the next this many seconds and keep the
+    one the motion's readings favour (:func:`_branch_by_motion`); they stay ambiguous when no
+    branch is decisively better (the arm did not move enough)."""
+    from fusion.startup.solve import StartupPrior, readings_from_recording, solve_still
+
+    if prior is None and prior_q_rad is not None:
+        prior = StartupPrior.saved_pose(prior_q_rad)
+    from fusion.startup.static import StaticDetectionSettings, find_static_segments
+
+    segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)))
+    if not segs:
+        raise NoStillWindowError(
+            "no still stretch in the recording (accelerometers, gyro and encoders quiet for at "
+            "least 1 s): the tracker needs a startup calibration on a still arm")
+    seg = segs[0]
+    readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
+    notes = [c.message for c in checks]
+    corr = None
+    if arm.effects:  # a calibrated config: the startup works on corrected readings
+        from fusion.identification.identify import startup_correction
+
+        temp = rec.get("imu_temp")
+        still_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None else None
+        if still_temp is None or not len(still_temp):
+            still_temp = temp
+        # corrected at the temperature of the still stretch (the tracker follows it after)
+        temperature_c = (float(mpu9150_temperature_c(np.mean(still_temp.values)))
+                         if still_temp is not None and len(still_temp) else 25.0)
+        corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
+        readings = corr.readings(readings)
+        notes.append("the config's effects applied: " + ", ".join(e.block_name for e in corr.model.effects))
+    startup = solve_still(arm, readings, startup_settings, prior=prior,
+                          propose_unlock=propose_unlock)
+    notes.extend(startup.notes)
+    geometric = startup
+    if corr is not None:
+        startup = corr.controller_result(startup)
+    imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings, corr)
+    enc = rec.get(ENC)
+    if enc is None or not len(enc):
+        raise ValueError("the recording has no encoder stream 'enc': nothing to track")
+    k, enc_rad = encoder_angles_at(arm, enc, seg.t_end_s)
+    rates = {s: (v.rate_hz or 100.0) for s, v in rec.raw().items()}
+
+    def tracker_from(result: StartupResult) -> Tracker:
+        t = Tracker(arm, settings, rates_hz=rates, correction=corr)
+        t.initialise(result, float(enc.t_s[k]), encoder_counts=enc.values[k], imu=imu,
+                     prior_q_rad=prior_q_rad)
+        _prime(t, rec)
+        return t
+
+    if resolve_by_motion_s and startup.candidates_rad is not None and len(startup.candidates_rad) > 1:
+        chosen, note = _branch_by_motion(startup, tracker_from, rec, float(enc.t_s[k]),
+                                         resolve_by_motion_s, startup_settings)
+        notes.append(note)
+        if chosen is not None:
+            startup = chosen
+    tr = tracker_from(startup)
+    return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes), geometric, enc_rad)
+
+
+def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s: float,
+                      horizon_s: float, startup_settings=None,
+                      decisive_nis: float = 50.0) -> tuple[StartupResult | None, str]:
+    """The candidate branch the motion after a still window favours, offline.
+
+    Twins that read the same still read differently once the arm or the chair moves (as a
+    disambiguating move makes them). Each candidate of ``startup`` seeds a tracker, run over
+    ``horizon_s`` of the recording after ``t0_s``; the link accelerometers' normalised
+    innovations (NIS) summed over that stretch are the evidence. A candidate is chosen when
+    it beats every other by ``decisive_nis`` (a log-likelihood ratio of 25); it is then a
+    startup with those joints numbered (the candidate's own covariance), and the note says
+    so. Otherwise ``None``: the joints stay ``ambiguous``."""
+    from fusion.startup.solve import StartupSettings
+
+    st = startup_settings or StartupSettings()
+    n = len(startup.joints)
+    amb = [j for j, je in enumerate(startup.joints) if je.flag == "ambiguous"]
+    names = ", ".join(startup.joints[j].name for j in amb)
+    covs = (startup.candidates_covariance if startup.candidates_covariance is not None
+            else np.repeat(np.asarray(startup.covariance)[None], len(startup.candidates_rad), 0))
+    window = Recording({kk: v.between(-np.inf, t0_s + horizon_s) for kk, v in rec.streams.items()},
+                       dict(rec.meta))
+    totals, variants = [], []
+    for cand, cov in zip(startup.candidates_rad, covs, strict=True):
+        sig = np.sqrt(np.clip(np.diag(cov)[:n], 0, None))
+        joints = tuple(
+            replace(je, angle_rad=float(cand[j]), sigma_rad=float(sig[j]), alternatives_rad=(),
+                    flag="ok" if sig[j] <= st.sigma_limit_deg * DEG else "ill_conditioned")
+            if j in amb else je for j, je in enumerate(startup.joints))
+        v = replace(startup, joints=joints, q_rad=np.array(cand, float), covariance=np.array(cov),
+                    candidates_rad=np.array(cand, float)[None], candidates_covariance=np.array(cov)[None],
+                    disambiguating_move=None)
+        tr = tracker_from(v)
+        tr.run(window, truth=False)
+        total = 0.0
+        for s_ in tr.link_names:
+            lg = tr.innovations(s_)
+            ok = np.isfinite(lg.nis) & (lg.t_s > t0_s)
+            total += float(np.sum(lg.nis[ok]))
+        totals.append(total)
+        variants.append(v)
+    order = np.argsort(totals)
+    best, second = totals[order[0]], totals[order[1]]
+    if second - best >= decisive_nis:
+        return variants[order[0]], (
+            f"{names}: the branch chosen by the motion after the still window (the candidates' "
+            f"summed NIS over {horizon_s:g} s: {best:.0f} against {second:.0f} at the next)")
+    return None, (f"{names}: ambiguous, and the motion after the still window does not tell the "
+                  f"branches apart (summed NIS over {horizon_s:g} s: {best:.0f} and {second:.0f})")
+
+
+def _prime(tr: Tracker, rec: Recording) -> None:
+    """Fill the tracker's causal differentiators with the recording's samples up to its
+    current time (the still window), so that the first instants have a full window."""
+    enc = rec.get(ENC)
+    if enc is not None and len(enc):
+        prime(tr.enc_rates, enc.t_s, enc.values / tr.counts_per_rad, tr.t_s)
+    g = rec.get(GYRO)
+    if g is not None and len(g):
+        wB = tr.readings.models[GYRO].from_counts(g.values) @ tr.R_0I.T
+        prime(tr.gyro_rates, g.t_s, wB, tr.t_s)
+        k = int(np.searchsorted(g.t_s, tr.t_s + 1e-9)) - 1
+        if k >= 0:
+            tr._omega = wB[k]
