@@ -255,7 +255,7 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
         "latency": latency,
         "machine": live.get("machine"),
         "_series": {"t": t, "q": q, "sigma": sig, "flags": flags, "truth_q": tq, "truth_base": tb,
-                    "headings": [(h.t_s, h.heading_rad, h.sigma_rad) for _, h in w.headings]},
+                    "headings": [(h.t_s, h.heading_rad, h.heading_sigma_rad) for _, h in w.headings]},
     }
 
 

@@ -607,11 +607,8 @@ class FusionNode:
 
     def _publish(self, e) -> None:
         pub_joints, pub_heading = self._pubs
-        pub_joints.put(pl.encode(pl.JointState(
-            self.robot, e.t_s, tuple(e.joint_names), tuple(float(x) for x in e.q_rad),
-            tuple(float(x) for x in e.sigma_rad), tuple(e.flags), tuple(e.sensors))))
-        pub_heading.put(pl.encode(pl.Heading(self.robot, e.t_s, float(e.heading_rad),
-                                             float(e.heading_sigma_rad), bool(e.magnetic_disturbance))))
+        pub_joints.put(pl.encode(pl.JointState.of(self.robot, e)))
+        pub_heading.put(pl.encode(pl.Heading.of(self.robot, e)))
         self._counts["estimates"] += 1
 
     def _watch_stall(self, now: float) -> None:

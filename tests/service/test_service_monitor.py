@@ -34,7 +34,8 @@ def test_monitor_sees_robots_come_and_go(hub_settings):
         s_pub.put(pl.status_key("chairA"), pl.encode(pl.Status("chairA", "drivers", "running", time.time(),
                                                                 "", (("samples.acc1", 1000),))))
         s_pub.put(pl.joints_key("chairA"), _joints("chairA", 1.0))
-        s_pub.put(pl.heading_key("chairA"), pl.encode(pl.Heading("chairA", 1.0, 0.25, 0.02)))
+        s_pub.put(pl.heading_key("chairA"), pl.encode(
+            pl.Heading("chairA", 1.0, 0.25, 0.02, 0.0, 1e-3, 0.0, 1e-3, (0.0, 0.0, 0.0))))
         s_pub.put(pl.joints_key("chairB"), _joints("chairB", 2.0, ("ok", "ok")))
         s_pub.put(pl.joints_key("chairB"), b'{"v": 2, "type": "joints"}')  # a future version: dropped
         assert wait_for(lambda: mon.with_joints() == 2 and mon.snapshot()["chairA"].heading is not None
