@@ -5,25 +5,22 @@ Raw batches arrive per sensor on ``armfusion/<robot>/raw/*``. Each is checked tw
 anything else sees it: as a payload (:class:`~fusion.service.payloads.Inbox`) and against the
 arm's sensors and the sensors' own clock (:class:`~fusion.service.admission.Admission`);
 what fails is dropped and counted by reason (``dropped.<reason>`` in the status), and only
-accepted samples count as ``samples``. While tracking, no estimate for ``stall_after_s``
-while raw batches arrive is a stall (``stalled`` 1 in the status, and said in its message,
-until estimates come again).
-Until the tracker starts,
-they are kept; once ``min_data_s`` of samples are in, every ``retry_s`` the node looks
-for the first still stretch in them and runs the startup calibration there
-(:func:`fusion.tracking.tracker.start_from_recording`); the samples after it are then fed to the
-tracker, and from then on every sample as it comes.
+accepted samples count as ``samples``.
 
-The sensors' batches come in separately, so a small reorder stage merges them in time
-before the tracker (which drops a sample older than the last): a sample is released when
-every sensor heard from in the last ``max_lag_s`` has sent something at least as late, or
-when it is ``max_lag_s`` older than the newest sample (a silent sensor does not stall the
-others). Estimates go out on ``state/joints`` and ``state/heading`` at most
-``publish_hz`` per second of sample time, a status on ``status`` every second (and at
-once when a sensor's status changes), and the node holds a liveliness token on
-``armfusion/<robot>/status`` while it runs. Every joint state and status carries each
-sensor's status (``ok``, ``stale``…): a sensor that stops is ``stale`` after
-``stale_after_s`` (0.25 s) of sample time, while the others go on.
+Until the tracker starts, the samples are kept; once ``min_data_s`` of them are in, every
+``retry_s`` the node looks for the first still stretch in them and runs the startup
+calibration there (:func:`fusion.tracking.tracker.start_from_recording`); the samples after
+it are then fed to the tracker, and from then on every sample as it comes, merged in time
+across the sensors (:mod:`fusion.service.reorder`). While tracking, no estimate for
+``stall_after_s`` while raw batches arrive is a stall (``stalled`` 1 in the status, and said
+in its message, until estimates come again).
+
+Estimates go out on ``state/joints`` and ``state/heading`` (an estimate's two records,
+:mod:`fusion.tracking.estimate`) at most ``publish_hz`` per second of sample time, a status
+on ``status`` every second (and at once when a sensor's status changes), and the node holds
+a liveliness token on ``armfusion/<robot>/status`` while it runs. Every joint state and
+status carries each sensor's status (``ok``, ``stale``…): a sensor that stops is ``stale``
+after ``stale_after_s`` (0.25 s) of sample time, while the others go on.
 
 A queryable on ``armfusion/<robot>/calibrate`` re-runs the startup calibration on request
 on the latest still stretch of the last ``recent_s`` of samples (the arm still now), and
@@ -38,7 +35,6 @@ and calibrates on a still arm as usual.
 
 from __future__ import annotations
 
-import bisect
 import logging
 import queue
 import threading
@@ -54,6 +50,7 @@ from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.admission import Admission, AdmissionSettings
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver
+from fusion.service.reorder import Reorder, merge_batches
 from fusion.startup.solve import StartupPrior, prior_after_move
 from fusion.startup.static import StaticDetectionSettings, find_static_segments
 from fusion.tracking.tracker import (
@@ -99,87 +96,6 @@ class ServeReport:
                 "calibrations": self.calibrations, "missed_batches": self.missed_batches,
                 "seq_resets": self.seq_resets, "encoder_rebases": self.encoder_rebases,
                 "stalls": self.stalls, "errors": self.errors}
-
-
-class _Reorder:
-    """Per-sensor queues of ``(t_s, counts)``, released merged in time (see the module).
-
-    Plain Python queues: a driver sends one or a few samples per batch, for which NumPy's
-    per-call overhead would cost more than the work."""
-
-    def __init__(self, max_lag_s: float):
-        self.max_lag_s = max_lag_s
-        self._q: dict[str, deque[tuple[float, np.ndarray]]] = {}
-        self._last: dict[str, float] = {}
-        self._released = -np.inf
-
-    def push(self, s: Stream) -> int:
-        """Queue a batch; returns how many of its samples were already too late (dropped)."""
-        q = self._q.setdefault(s.name, deque())
-        released, late = self._released, 0
-        times = s.t_s.tolist()
-        for t, v in zip(times, s.values, strict=True):
-            if t <= released:
-                late += 1
-            elif not q or t > q[-1][0]:
-                q.append((t, v))
-            else:  # earlier than what is queued (a batch overtook another): keep the queue in order
-                bisect.insort(q, (t, v), key=lambda item: item[0])
-        if times[-1] > self._last.get(s.name, -np.inf):
-            self._last[s.name] = times[-1]
-        return late
-
-    def forget(self, name: str) -> None:
-        """Drop what is queued of ``name`` and its newest time (its clock was refuted)."""
-        self._q.pop(name, None)
-        self._last.pop(name, None)
-
-    def seen(self, name: str, t_s: float) -> None:
-        """Note that ``name`` has sent everything up to ``t_s`` (before any push of it)."""
-        self._last[name] = max(self._last.get(name, -np.inf), t_s)
-
-    def release(self, flush: bool = False) -> list[tuple[float, dict[str, np.ndarray]]]:
-        """The instants that are safe to fuse, in time order: ``(t_s, {sensor: counts})``."""
-        if not self._last:
-            return []
-        newest = max(self._last.values())
-        alive = [t for t in self._last.values() if t >= newest - self.max_lag_s]
-        mark = newest if flush else max(min(alive), newest - self.max_lag_s)
-        if mark <= self._released:  # nothing queued is that old (push drops what is)
-            return []
-        items: list[tuple[float, str, np.ndarray]] = []
-        for k, q in self._q.items():
-            while q and q[0][0] <= mark:
-                t, v = q.popleft()
-                items.append((t, k, v))
-        if not items:
-            return []
-        items.sort(key=lambda item: item[0])  # stable: a sensor's samples keep their order
-        out: list[tuple[float, dict[str, np.ndarray]]] = []
-        for t, k, v in items:
-            if not out or out[-1][0] != t:
-                out.append((t, {}))
-            out[-1][1][k] = v
-        self._released = max(self._released, items[-1][0])
-        return out
-
-
-def _merge(parts: dict[str, list[Stream]], t_from_s: float = -np.inf) -> Recording:
-    """One recording of the batches in ``parts`` (from ``t_from_s`` on), in time order; a
-    repeated sample is ignored. (The admission keeps the batches' times within a bounded
-    window and their channels the config's; this stays in order whatever comes.)"""
-    streams = {}
-    for k, ps in parts.items():
-        if not ps:
-            continue
-        t = np.concatenate([p.t_s for p in ps])
-        v = np.concatenate([p.values for p in ps])
-        order = np.argsort(t, kind="stable")
-        t, v = t[order], v[order]
-        keep = np.concatenate([[True], np.diff(t) > 0]) & (t >= t_from_s)
-        if np.any(keep):
-            streams[k] = Stream(k, ps[0].kind, t[keep], v[keep], ps[0].channels)
-    return Recording(streams)
 
 
 class FusionNode:
@@ -230,7 +146,7 @@ class FusionNode:
         self._stalled_since: float | None = None
         self.ready = threading.Event()
         self._max_lag_s = max_lag_s
-        self._reorder = _Reorder(max_lag_s)
+        self._reorder = Reorder(max_lag_s)
         self._inbox = pl.Inbox("serve")
         self._buffer: dict[str, list[Stream]] = {}
         self._recent: dict[str, deque[Stream]] = {}
@@ -393,29 +309,10 @@ class FusionNode:
     # -- start: a saved state, or a startup calibration on a still arm -------------------------
     def _try_resume(self, t_s: float, encoder_counts: np.ndarray) -> None:
         doc, self._saved = self._saved, None
-        try:
-            problem = state_file.resume_problem(
-                doc, robot=self.robot, arm_name=self.arm.name, joint_names=self.arm.joint_names,
-                counts_per_rad=self.arm.counts_per_rad, t_s=t_s, encoder_counts=encoder_counts,
-                now_wall_s=time.time(), max_age_s=self.max_state_age_s,
-                max_joint_rate_rad_s=self.max_joint_rate_rad_s)
-        except (TypeError, ValueError, KeyError) as e:  # a hand-edited or damaged file
-            problem = f"it is malformed: {type(e).__name__}: {e}"
-        tracker = None
-        if problem is None:
-            snap = dict(doc["tracker"])
-            gap_s = t_s - float(doc["t_s"])
-            if gap_s > self._max_lag_s:
-                # the node was down longer than a few samples: the causal fits of the encoders
-                # and the gyro start afresh rather than differentiate across the gap
-                snap["encoder_fit"] = {**snap["encoder_fit"], "n": 0}
-                snap["gyro_fit"] = {**snap["gyro_fit"], "n": 0}
-                snap["omega"] = None
-            try:
-                tracker = Tracker(self.arm, self.settings, rates_hz=doc["rates_hz"])
-                tracker.restore(snap)
-            except (ValueError, KeyError, TypeError) as e:
-                problem = f"the tracker cannot restore it: {e}"
+        tracker, problem = state_file.resumed_tracker(
+            doc, self.arm, self.settings, robot=self.robot, t_s=t_s, encoder_counts=encoder_counts,
+            max_age_s=self.max_state_age_s, max_joint_rate_rad_s=self.max_joint_rate_rad_s,
+            max_gap_s=self._max_lag_s)
         if problem is not None:
             self._resume_message = (f"saved state in {self.state_path} not used: {problem}; "
                                     "a startup calibration on a still arm")
@@ -431,12 +328,12 @@ class FusionNode:
         self._resumed = True
         self._rates_hz = dict(doc["rates_hz"])
         self._last_enc = (float(doc["t_s"]), np.asarray(doc["encoder_counts"], dtype=np.int64))
-        self._begin(tracker, _merge(self._buffer), self._resume_message)
+        self._begin(tracker, merge_batches(self._buffer), self._resume_message)
 
     def _try_start(self, t_now: float) -> None:
         if t_now < self._next_try_t:
             return
-        rec = _merge(self._buffer)
+        rec = merge_batches(self._buffer)
         if rec.duration_s < self.min_data_s:
             self._message = (f"collecting {self.min_data_s:g} s of samples for the startup calibration "
                              f"({rec.duration_s:.1f} s so far)")
@@ -501,7 +398,7 @@ class FusionNode:
     def calibrate(self) -> pl.Calibration:
         """Re-run the startup calibration on the latest still stretch and restart the tracker
         from it; or refuse, saying why (the arm moves, no still stretch yet, no samples)."""
-        rec = _merge({k: list(v) for k, v in self._recent.items()})
+        rec = merge_batches({k: list(v) for k, v in self._recent.items()})
 
         def refuse(why: str) -> pl.Calibration:
             return pl.Calibration(self.robot, False, why)
@@ -520,7 +417,7 @@ class FusionNode:
         if since_s > self.still_tolerance_s:
             return refuse(f"the arm moves: it was last still {since_s:.1f} s ago "
                           f"({seg.t_start_s:.2f}-{seg.t_end_s:.2f} s); ask again when it is still")
-        window = _merge({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
+        window = merge_batches({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
         try:
             tracker, start = start_from_recording(self.arm, window, self.settings,
                                                   prior=self._parked_prior())
@@ -573,7 +470,7 @@ class FusionNode:
             return
         self._next_resolve_t = t_now + self.retry_s
         start = self._start
-        rec = _merge({k: list(v) for k, v in self._recent.items()})
+        rec = merge_batches({k: list(v) for k, v in self._recent.items()})
         if rec.get(ENC) is None or start.geometric is None or start.encoder_rad is None:
             return
         segs = find_static_segments(rec, StaticDetectionSettings(window_s=1.0))
@@ -582,7 +479,7 @@ class FusionNode:
         seg = segs[-1]
         if rec.t_end_s - seg.t_end_s > self.still_tolerance_s:
             return
-        window = _merge({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
+        window = merge_batches({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
         moved = encoder_angles_at(self.arm, window.get(ENC), seg.t_end_s)[1] - start.encoder_rad
         prior = prior_after_move(start.geometric, moved, self.arm)
         try:
