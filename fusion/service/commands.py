@@ -31,7 +31,7 @@ from fusion.cli.common import (
     prepare_output_path,
     read_recording_or_exit,
 )
-from fusion.service.node import stop_on_signals
+from fusion.service.node import stop_after, stop_on_signals
 from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, open_session
 
 DEFAULT_ROBOT = "chair1"
@@ -73,6 +73,16 @@ def session_or_exit(settings: ZenohSettings) -> Iterator[zenoh.Session]:
         cm.__exit__(None, None, None)
 
 
+def robot_or_exit(robot: str) -> str:
+    """``--robot``, or exit 2 saying what a robot's name may be."""
+    from fusion.service.payloads import check_name
+
+    try:
+        return check_name(robot, "--robot")
+    except ValueError as e:
+        fail(str(e))
+
+
 def parse_speed(text: str) -> float | None:
     if text.strip().lower() == "max":
         return None
@@ -103,14 +113,10 @@ def register(app: typer.Typer) -> None:
         json_out: JsonOpt = False,
     ) -> None:
         """Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing."""
-        from fusion.service.payloads import check_name
         from fusion.service.replay import NoSubscriberError, replay
 
         factor = parse_speed(speed)
-        try:
-            check_name(robot, "--robot")
-        except ValueError as e:
-            fail(str(e))
+        robot_or_exit(robot)
         if not batch_ms > 0:
             fail(f"--batch-ms {batch_ms!r}: expected > 0")
         if not (math.isfinite(wait_s) and wait_s >= 0):
@@ -157,31 +163,20 @@ def register(app: typer.Typer) -> None:
         json_out: JsonOpt = False,
     ) -> None:
         """Record a robot's raw samples and estimates from Zenoh to MCAP until stopped."""
-        from fusion.service.payloads import check_name
         from fusion.service.record import Recorder
 
         if out.suffix.lower() != ".mcap":
             fail(f"{out}: the recording must end in .mcap")
-        try:
-            check_name(robot, "--robot")
-        except ValueError as e:
-            fail(str(e))
+        robot_or_exit(robot)
         if duration_s is not None and not duration_s > 0:
             fail(f"--duration {duration_s!r}: expected > 0")
         prepare_output_path(out, "OUT")
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
-                stop_on_signals(stop):
+                stop_on_signals(stop), stop_after(duration_s, stop):
             recorder = Recorder(session, out, robot, arm_config=arm_config)
-            timer = threading.Timer(duration_s, stop.set) if duration_s else None
-            if timer:
-                timer.daemon = True
-                timer.start()
-            ready = threading.Thread(target=_say_ready, args=(recorder, robot, out), daemon=True)
-            ready.start()
+            threading.Thread(target=_say_ready, args=(recorder, robot, out), daemon=True).start()
             report = recorder.run(stop)
-            if timer:
-                timer.cancel()
         if json_out:
             emit_json(report.as_dict())
             return
@@ -219,13 +214,9 @@ def register(app: typer.Typer) -> None:
         """The fusion node: startup calibration on the first still window (or resume from
         --state-file), then the tracker; publishes armfusion/<robot>/state/joints,
         state/heading and status; answers armfusion/<robot>/calibrate."""
-        from fusion.service.payloads import check_name
         from fusion.service.serve import FusionNode
 
-        try:
-            check_name(robot, "--robot")
-        except ValueError as e:
-            fail(str(e))
+        robot_or_exit(robot)
         if not publish_hz > 0:
             fail(f"--publish-hz {publish_hz!r}: expected > 0")
         if duration_s is not None and not duration_s > 0:
@@ -235,18 +226,12 @@ def register(app: typer.Typer) -> None:
         arm = load_arm_or_exit(config)
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
-                stop_on_signals(stop):
+                stop_on_signals(stop), stop_after(duration_s, stop):
             node = FusionNode(session, arm, robot, publish_hz=publish_hz, state_path=state_file,
                               save_period_s=save_every_s, max_state_age_s=state_max_age_s,
                               assume_parked=assume_parked)
-            timer = threading.Timer(duration_s, stop.set) if duration_s else None
-            if timer:
-                timer.daemon = True
-                timer.start()
             threading.Thread(target=_say_serving, args=(node, robot, arm.name), daemon=True).start()
             report = node.run(stop)
-            if timer:
-                timer.cancel()
         if json_out:
             emit_json(report.as_dict())
             return
@@ -271,12 +256,9 @@ def register(app: typer.Typer) -> None:
         """Ask the fusion node (armfusion serve) to re-run the startup calibration now, on the
         latest still stretch; it refuses, saying why, while the arm moves. Exits 1 when refused."""
         from fusion.service.calibrate_request import NoReplyError, request_calibration
-        from fusion.service.payloads import PayloadError, check_name
+        from fusion.service.payloads import PayloadError
 
-        try:
-            check_name(robot, "--robot")
-        except ValueError as e:
-            fail(str(e))
+        robot_or_exit(robot)
         if not timeout_s > 0:
             fail(f"--timeout {timeout_s!r}: expected > 0")
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session:

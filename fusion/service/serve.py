@@ -39,7 +39,7 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,10 +49,10 @@ import zenoh
 from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.admission import Admission, AdmissionSettings
-from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver
+from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
 from fusion.service.reorder import Reorder, merge_batches
+from fusion.service.restart import RecentSamples, ambiguity_note, calibration_reply
 from fusion.startup.solve import StartupPrior, prior_after_move
-from fusion.startup.static import StaticDetectionSettings, find_static_segments
 from fusion.tracking.tracker import (
     ENC,
     NoStillWindowError,
@@ -141,15 +141,13 @@ class FusionNode:
         self.queue_size = queue_size
         self.stall_after_s = stall_after_s
         self._admission = Admission(arm, admission)
-        self._raw_arrived = -np.inf  # when the last well-formed raw batch arrived (monotonic)
-        self._estimated = -np.inf  # when the tracker last gave an estimate (monotonic)
-        self._stalled_since: float | None = None
+        self._stall = StallWatch(stall_after_s)
         self.ready = threading.Event()
         self._max_lag_s = max_lag_s
         self._reorder = Reorder(max_lag_s)
         self._inbox = pl.Inbox("serve")
         self._buffer: dict[str, list[Stream]] = {}
-        self._recent: dict[str, deque[Stream]] = {}
+        self._recent = RecentSamples(recent_s)
         self._queries: queue.Queue = queue.Queue()
         self._tracker: Tracker | None = None
         self._rates_hz: dict[str, float] = {}
@@ -220,7 +218,8 @@ class FusionNode:
                 while (query := self._next_query()) is not None:
                     self._answer(query)
                 now = time.monotonic()
-                self._watch_stall(now)
+                if self._stall.check(self._tracker is not None, now):
+                    self._status_due = True
                 silent = frozenset(k for k, t in self._arrived.items() if now - t > self.silent_after_s)
                 if silent != self._silent:
                     self._silent, self._status_due = silent, True
@@ -251,7 +250,7 @@ class FusionNode:
                            self._counts["out_of_order"], self._dropped(receiver), self._startup_t,
                            self._message, self._resumed, self._resume_message,
                            self._counts["calibrations"], adm.missed_batches, adm.seq_resets,
-                           adm.encoder_rebases, self._counts["stalls"], self._counts["errors"])
+                           adm.encoder_rebases, self._stall.stalls, self._counts["errors"])
 
     def _dropped(self, receiver: BoundedReceiver) -> dict[str, int]:
         d = Counter(self._inbox.dropped) + self._admission.rejected
@@ -276,17 +275,17 @@ class FusionNode:
             return
         s = batch.stream
         now = time.monotonic()
-        self._raw_arrived = now
+        self._stall.raw_arrived_s = now
         verdict = self._admission.check(batch, now)
         if not verdict.ok:
             return
         if verdict.reset:  # what was kept of this stream was on a clock the others refute
             self._buffer.pop(s.name, None)
-            self._recent.pop(s.name, None)
+            self._recent.forget(s.name)
             self._reorder.forget(s.name)
         self._counts["samples"] += len(s)
         self._arrived[s.name] = now
-        self._keep_recent(s)
+        self._recent.keep(s)
         if self._tracker is None:
             self._buffer.setdefault(s.name, []).append(s)
             if self._saved is not None:
@@ -299,12 +298,6 @@ class FusionNode:
             return
         self._counts["out_of_order"] += self._reorder.push(s)
         self._fuse(self._reorder.release())
-
-    def _keep_recent(self, s: Stream) -> None:
-        parts = self._recent.setdefault(s.name, deque())
-        parts.append(s)
-        while len(parts) > 1 and parts[0].t_s[-1] < s.t_s[-1] - self.recent_s:
-            parts.popleft()
 
     # -- start: a saved state, or a startup calibration on a still arm -------------------------
     def _try_resume(self, t_s: float, encoder_counts: np.ndarray) -> None:
@@ -355,12 +348,12 @@ class FusionNode:
         assumed = ("; its branches rest on an assumption: the arm parked at its ready pose "
                    "(--assume-parked)" if self.assume_parked else "")
         self._begin(tracker, rec, f"startup calibration on the still stretch {start.t_start_s:.2f}"
-                                  f"-{start.t_end_s:.2f} s; tracking" + assumed + _ambiguity_note(start))
+                                  f"-{start.t_end_s:.2f} s; tracking" + assumed + ambiguity_note(start))
 
     def _begin(self, tracker: Tracker, rec: Recording, message: str) -> None:
         """Track with ``tracker`` from its time on; ``rec``'s later samples go to it first."""
         self._tracker = tracker
-        self._estimated = time.monotonic()
+        self._stall.estimated_s = time.monotonic()
         self._startup_t = float(tracker.t_s)
         self._state = "tracking"
         self._message = message
@@ -398,26 +391,13 @@ class FusionNode:
     def calibrate(self) -> pl.Calibration:
         """Re-run the startup calibration on the latest still stretch and restart the tracker
         from it; or refuse, saying why (the arm moves, no still stretch yet, no samples)."""
-        rec = merge_batches({k: list(v) for k, v in self._recent.items()})
-
         def refuse(why: str) -> pl.Calibration:
             return pl.Calibration(self.robot, False, why)
 
-        if not rec.streams:
-            return refuse("no samples received yet")
-        if rec.get(ENC) is None:
-            return refuse("no encoder samples received yet")
-        span_s = rec.duration_s
-        segs = find_static_segments(rec, StaticDetectionSettings(window_s=1.0))
-        if not segs:
-            return refuse(f"the arm moves: no still stretch of at least 1 s in the last {span_s:.1f} s "
-                          "of samples; ask again when it has been still for a second")
-        seg = segs[-1]
-        since_s = rec.t_end_s - seg.t_end_s
-        if since_s > self.still_tolerance_s:
-            return refuse(f"the arm moves: it was last still {since_s:.1f} s ago "
-                          f"({seg.t_start_s:.2f}-{seg.t_end_s:.2f} s); ask again when it is still")
-        window = merge_batches({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
+        still = self._recent.still_now(self.still_tolerance_s)
+        if isinstance(still, str):
+            return refuse(still)
+        _, window = still
         try:
             tracker, start = start_from_recording(self.arm, window, self.settings,
                                                   prior=self._parked_prior())
@@ -427,14 +407,14 @@ class FusionNode:
             return refuse(f"the startup calibration failed: {e}")
         self._counts["calibrations"] += 1
         if self._tracker is None:
-            self._rates_hz = {k: (v.rate_hz or 100.0) for k, v in rec.raw().items()}
+            self._rates_hz = {k: (v.rate_hz or 100.0) for k, v in self._recent.recording().raw().items()}
         else:
             tracker.set_rates(self._rates_hz)
         self._start = start
         message = (f"calibrated on request on the still stretch {start.t_start_s:.2f}-{start.t_end_s:.2f} s"
                    f"; tracking from it: {start.startup.summary or ''}").rstrip(": ")
         self._begin(tracker, Recording({}), message)
-        return _calibration_reply(self.robot, self.arm.joint_names, start)
+        return calibration_reply(self.robot, self.arm.joint_names, start)
 
     # -- tracking, publishing, saving ------------------------------------------------------------
     def _fuse(self, instants) -> None:
@@ -448,7 +428,7 @@ class FusionNode:
             e = tr.update_instant(t, {k: v for k, v in samples.items() if k in takes})
             if e is None:
                 continue
-            self._estimated = time.monotonic()
+            self._stall.estimated_s = time.monotonic()
             if e.sensors != self._sensors:
                 self._sensors = e.sensors
                 self._status_due = True
@@ -470,16 +450,12 @@ class FusionNode:
             return
         self._next_resolve_t = t_now + self.retry_s
         start = self._start
-        rec = merge_batches({k: list(v) for k, v in self._recent.items()})
-        if rec.get(ENC) is None or start.geometric is None or start.encoder_rad is None:
+        still = self._recent.still_now(self.still_tolerance_s)
+        if isinstance(still, str) or start.geometric is None or start.encoder_rad is None:
             return
-        segs = find_static_segments(rec, StaticDetectionSettings(window_s=1.0))
-        if not segs or segs[-1].t_start_s <= start.t_end_s + 1e-6:
+        seg, window = still
+        if seg.t_start_s <= start.t_end_s + 1e-6:  # the startup's own still stretch
             return
-        seg = segs[-1]
-        if rec.t_end_s - seg.t_end_s > self.still_tolerance_s:
-            return
-        window = merge_batches({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
         moved = encoder_angles_at(self.arm, window.get(ENC), seg.t_end_s)[1] - start.encoder_rad
         prior = prior_after_move(start.geometric, moved, self.arm)
         try:
@@ -492,7 +468,7 @@ class FusionNode:
         still = {j.name for j in again.startup.joints if j.flag == "ambiguous"}
         if still >= before:
             self._message = (f"{', '.join(sorted(before))} still ambiguous after the still stretch "
-                             f"{seg.t_start_s:.2f}-{seg.t_end_s:.2f} s" + _ambiguity_note(start))
+                             f"{seg.t_start_s:.2f}-{seg.t_end_s:.2f} s" + ambiguity_note(start))
             self._status_due = True
             return
         tracker.set_rates(self._rates_hz)
@@ -500,28 +476,13 @@ class FusionNode:
         self._begin(tracker, Recording({}), (
             f"the branches of {', '.join(sorted(before - still))} told apart on the still stretch "
             f"{seg.t_start_s:.2f}-{seg.t_end_s:.2f} s (the startup's candidates carried through the "
-            "encoder counts); tracking from it" + _ambiguity_note(again)))
+            "encoder counts); tracking from it" + ambiguity_note(again)))
 
     def _publish(self, e) -> None:
         pub_joints, pub_heading = self._pubs
         pub_joints.put(pl.encode(pl.JointState.of(self.robot, e)))
         pub_heading.put(pl.encode(pl.Heading.of(self.robot, e)))
         self._counts["estimates"] += 1
-
-    def _watch_stall(self, now: float) -> None:
-        """Stalled: tracking, raw batches arriving, and no estimate for ``stall_after_s``."""
-        stalled = (self._tracker is not None and now - self._estimated > self.stall_after_s
-                   and now - self._raw_arrived < self.stall_after_s)
-        if stalled and self._stalled_since is None:
-            self._stalled_since = self._estimated
-            self._counts["stalls"] += 1
-            self._status_due = True
-            log.warning("serve: stalled: no estimate for %.1f s while raw batches arrive",
-                        now - self._estimated)
-        elif not stalled and self._stalled_since is not None and now - self._estimated <= self.stall_after_s:
-            self._stalled_since = None
-            self._status_due = True
-            log.info("serve: estimates again after a stall")
 
     def _publish_status(self, pub, receiver: BoundedReceiver) -> None:
         self._status_due = False
@@ -530,7 +491,7 @@ class FusionNode:
                     "out_of_order": self._counts["out_of_order"],
                     "missed_batches": adm.missed_batches, "seq_resets": adm.seq_resets,
                     "encoder_rebases": adm.encoder_rebases,
-                    "stalled": int(self._stalled_since is not None), "stalls": self._counts["stalls"],
+                    "stalled": int(self._stall.since_s is not None), "stalls": self._stall.stalls,
                     "errors": self._counts["errors"],
                     "calibrations": self._counts["calibrations"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
@@ -540,8 +501,8 @@ class FusionNode:
         if self._silent and self._silent >= set(sensors):
             quiet_s = time.monotonic() - max(self._arrived.values())
             message = f"no samples for {quiet_s:.1f} s: every sensor stale; {message}"
-        if self._stalled_since is not None:
-            message = (f"stalled: no estimate for {time.monotonic() - self._stalled_since:.1f} s while raw "
+        if self._stall.since_s is not None:
+            message = (f"stalled: no estimate for {time.monotonic() - self._stall.since_s:.1f} s while raw "
                        f"batches arrived; {message}")
         pub.put(pl.encode(pl.Status(self.robot, "serve", self._state, time.time(), message,
                                     tuple(counters.items()), tuple(sensors.items()))))
@@ -556,35 +517,5 @@ class FusionNode:
         except RuntimeError:  # no encoder sample fused yet
             return False
         t_enc, counts = self._last_enc
-        doc = state_file.state_document(self.robot, self.arm.name, t_enc, counts, self._rates_hz, snap)
-        # the snapshot's time is the last fused instant; the encoder counts are as of t_enc
-        doc["t_s"] = float(t_enc)
-        try:
-            state_file.save_state(self.state_path, doc)
-        except OSError as e:
-            log.warning("serve: cannot save the state to %s: %s", self.state_path, e)
-            return False
-        return True
-
-
-def _ambiguity_note(start: Start) -> str:
-    """What the status says of joints the startup could not choose a branch for."""
-    amb = [j for j in start.startup.joints if j.flag == "ambiguous"]
-    if not amb:
-        return ""
-    cands = "; ".join(f"{j.name} " + " or ".join(f"{np.degrees(a):.1f}" for a in j.alternatives_rad)
-                      + " deg" for j in amb)
-    move = start.startup.disambiguating_move
-    how = (move.describe() if move is not None else
-           "no safe move of up to 45 deg separates them: a person must confirm the pose")
-    return f"; not tracked as known, ambiguous: {cands}; to tell them apart: {how}"
-
-
-def _calibration_reply(robot: str, joint_names, start: Start) -> pl.Calibration:
-    res = start.startup
-    return pl.Calibration(
-        robot, True, res.summary or "calibrated", float(start.t_start_s), float(start.t_end_s),
-        tuple(joint_names),
-        tuple(None if j.angle_rad is None else float(j.angle_rad) for j in res.joints),
-        tuple(None if j.sigma_rad is None else float(j.sigma_rad) for j in res.joints),
-        tuple(j.flag for j in res.joints), float(res.roll_rad), float(res.pitch_rad))
+        return state_file.save_tracker_state(self.state_path, self.robot, self.arm.name, t_enc, counts,
+                                             self._rates_hz, snap)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import math
 import os
 import tempfile
@@ -38,6 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from fusion.tracking.tracker import Tracker
+
+log = logging.getLogger("armfusion.service")
 
 STATE_FORMAT = "armfusion.serve-state/1"
 
@@ -95,6 +98,20 @@ def state_document(robot: str, arm_name: str, t_s: float, encoder_counts, rates_
             "saved_wall_s": time.time() if saved_wall_s is None else float(saved_wall_s),
             "t_s": float(t_s), "encoder_counts": [int(c) for c in encoder_counts],
             "rates_hz": {k: float(v) for k, v in rates_hz.items()}, "tracker": dict(tracker_snapshot)}
+
+
+def save_tracker_state(path: Path | str, robot: str, arm_name: str, t_enc_s: float, encoder_counts,
+                       rates_hz: Mapping[str, float], tracker_snapshot: Mapping) -> bool:
+    """Save the tracker's state (atomically): its snapshot, and the last encoder sample it
+    fused (``t_enc_s``, ``encoder_counts``), which is the document's ``t_s`` (the snapshot's own
+    time is the last fused instant). False, with a log line, when it cannot be written."""
+    doc = state_document(robot, arm_name, t_enc_s, encoder_counts, rates_hz, tracker_snapshot)
+    try:
+        save_state(path, doc)
+    except OSError as e:
+        log.warning("serve: cannot save the state to %s: %s", path, e)
+        return False
+    return True
 
 
 def resume_problem(doc: Mapping, *, robot: str, arm_name: str, joint_names, counts_per_rad,
