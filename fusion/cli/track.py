@@ -192,12 +192,12 @@ def write_estimates(run, path: Path, arm_config: str = "") -> None:
         for i in range(run.steps):
             t = float(run.t_s[i])
             sensors = zip(run.sensor_names, (SENSOR_STATUS[c] for c in run.sensor_status[i]), strict=True)
-            mc.write_json(wire.JOINTS_TOPIC, wire.JOINTS_SCHEMA, wire.joints_record(
+            wire.write_mcap_record(mc, "joints", wire.joints_record(
                 t, run.joint_names, run.q_rad[i], run.sigma_rad[i], [JOINT_FLAGS[f] for f in run.flags[i]],
-                sensors), t_s=t)
-            mc.write_json(wire.HEADING_TOPIC, wire.HEADING_SCHEMA, wire.heading_record(
+                sensors))
+            wire.write_mcap_record(mc, "heading", wire.heading_record(
                 t, run.rpy_rad[i], run.rpy_sigma_rad[i], run.gyro_bias_rad_s[i],
-                run.magnetic[i] & 1, run.magnetic[i] & 2), t_s=t)
+                run.magnetic[i] & 1, run.magnetic[i] & 2))
 
 
 def _print(doc: dict, run) -> None:

@@ -24,7 +24,7 @@ import zenoh
 
 from fusion.service import payloads as pl
 from fusion.service.node import BoundedReceiver
-from fusion.tracking.estimate import HEADING_SCHEMA, HEADING_TOPIC, JOINTS_SCHEMA, JOINTS_TOPIC
+from fusion.tracking.estimate import MCAP_CHANNELS, write_mcap_record
 from sensors.recording_mcap import McapRecorder
 
 log = logging.getLogger("armfusion.service")
@@ -121,11 +121,10 @@ class Recorder:
                 with self._lock:
                     self._samples[payload.stream.name] += len(payload.stream)
             elif isinstance(payload, pl.JointState | pl.Heading):
-                topic, schema = ((JOINTS_TOPIC, JOINTS_SCHEMA) if isinstance(payload, pl.JointState)
-                                 else (HEADING_TOPIC, HEADING_SCHEMA))
-                mcap.write_json(topic, schema, payload.record(), t_s=payload.t_s)
+                kind = "joints" if isinstance(payload, pl.JointState) else "heading"
+                write_mcap_record(mcap, kind, payload.record())
                 with self._lock:
-                    self._estimates[topic] += 1
+                    self._estimates[MCAP_CHANNELS[kind][0]] += 1
         except ValueError as e:  # out of order, before the time origin, a changed stream
             with self._lock:
                 self._rejected["rejected"] += 1

@@ -13,7 +13,8 @@ Every writer of an estimate uses these two functions: :meth:`Estimate.as_dict` (
 in one object: ``armfusion track --json``), the Zenoh payloads on ``state/joints`` and
 ``state/heading`` (:mod:`fusion.service.payloads` adds its envelope ``v``, ``type``,
 ``robot``), and the MCAP topics :data:`JOINTS_TOPIC` and :data:`HEADING_TOPIC`
-(``armfusion record``, ``armfusion track --out EST.mcap``). docs/service.md describes them.
+(:func:`write_mcap_record`: ``armfusion record``, ``armfusion track --out EST.mcap``; each
+channel carries the record's JSON schema). docs/service.md describes them.
 """
 
 from __future__ import annotations
@@ -29,6 +30,39 @@ HEADING_TOPIC = "estimates/heading"
 JOINTS_SCHEMA = "armfusion.JointState"
 HEADING_SCHEMA = "armfusion.Heading"
 """The MCAP schema names of the two records."""
+
+_NUMBER = {"type": "number"}
+_NUMBERS = {"type": "array", "items": _NUMBER}
+JOINTS_JSON_SCHEMA = {
+    "title": JOINTS_SCHEMA, "type": "object",
+    "required": ["t_s", "joint_names", "q_rad", "sigma_rad", "flags", "sensors"],
+    "properties": {"t_s": _NUMBER, "joint_names": {"type": "array", "items": {"type": "string"}},
+                   "q_rad": _NUMBERS, "sigma_rad": _NUMBERS,
+                   "flags": {"type": "array", "items": {"type": "string"}},
+                   "sensors": {"type": "object", "additionalProperties": {"type": "string"}},
+                   "axis_to_vertical_deg": _NUMBERS},
+}
+HEADING_JSON_SCHEMA = {
+    "title": HEADING_SCHEMA, "type": "object",
+    "required": ["t_s", "heading_rad", "heading_sigma_rad", "roll_rad", "roll_sigma_rad", "pitch_rad",
+                 "pitch_sigma_rad", "gyro_bias_rad_s", "magnetic_disturbance", "magnetic_recovery"],
+    "properties": {"t_s": _NUMBER, "heading_rad": _NUMBER, "heading_sigma_rad": _NUMBER,
+                   "roll_rad": _NUMBER, "roll_sigma_rad": _NUMBER, "pitch_rad": _NUMBER,
+                   "pitch_sigma_rad": _NUMBER,
+                   "gyro_bias_rad_s": {**_NUMBERS, "minItems": 3, "maxItems": 3},
+                   "magnetic_disturbance": {"type": "boolean"}, "magnetic_recovery": {"type": "boolean"}},
+}
+"""The JSON schemas the MCAP channels of the two records carry (for other MCAP readers)."""
+MCAP_CHANNELS = {"joints": (JOINTS_TOPIC, JOINTS_SCHEMA, JOINTS_JSON_SCHEMA),
+                 "heading": (HEADING_TOPIC, HEADING_SCHEMA, HEADING_JSON_SCHEMA)}
+"""Per record: its MCAP topic, schema name and JSON schema."""
+
+
+def write_mcap_record(mcap, kind: str, record: dict) -> None:
+    """Write one record (``kind`` ``joints`` or ``heading``) to an open
+    :class:`sensors.recording_mcap.McapRecorder`, on its topic with its schema."""
+    topic, name, schema = MCAP_CHANNELS[kind]
+    mcap.write_json(topic, name, record, t_s=record["t_s"], schema=schema)
 
 
 def _floats(values: Iterable) -> list[float]:

@@ -75,8 +75,22 @@ def test_an_estimate_has_one_wire_form_in_json_zenoh_and_mcap(tmp_path):
         rec._write(mcap, Msg(pl.joints_key("chair1"), js))
         rec._write(mcap, Msg(pl.heading_key("chair1"), hd))
     with open(tmp_path / "r.mcap", "rb") as fh:
-        got = {ch.topic: json.loads(m.data) for _, ch, m in make_reader(fh).iter_messages()}
+        reader = make_reader(fh)
+        got = {ch.topic: json.loads(m.data) for _, ch, m in reader.iter_messages()}
+        schemas = {s.name: json.loads(s.data) for s in reader.get_summary().schemas.values()}
     assert got == {"estimates/joints": est.joints_record(), "estimates/heading": est.heading_record()}
+    # the channels' JSON schemas name exactly the records' fields, for other MCAP readers
+    joints_schema, heading_schema = schemas["armfusion.JointState"], schemas["armfusion.Heading"]
+    assert set(joints_schema["properties"]) == set(est.joints_record())
+    assert set(joints_schema["required"]) == set(est.joints_record()) - {"axis_to_vertical_deg"}
+    assert set(heading_schema["properties"]) == set(heading_schema["required"]) == set(est.heading_record())
+    import jsonschema
+
+    jsonschema.validate(got["estimates/joints"], joints_schema)
+    jsonschema.validate(got["estimates/heading"], heading_schema)
+    with pytest.raises(jsonschema.ValidationError, match="'heading_sigma_rad' is a required property"):
+        jsonschema.validate({k: v for k, v in est.heading_record().items() if k != "heading_sigma_rad"},
+                            heading_schema)
 
 
 def test_a_version_1_heading_is_refused_naming_the_version():
