@@ -391,6 +391,7 @@ class FusionNode:
     def calibrate(self) -> pl.Calibration:
         """Re-run the startup calibration on the latest still stretch and restart the tracker
         from it; or refuse, saying why (the arm moves, no still stretch yet, no samples)."""
+
         def refuse(why: str) -> pl.Calibration:
             return pl.Calibration(self.robot, False, why)
 
