@@ -91,7 +91,7 @@ class McapRecorder:
 
         with McapRecorder("run.mcap", arm_config="wmra") as rec:
             rec.write_samples("acc1", "accel", ("acc1_x", "acc1_y", "acc1_z"), t_s, counts)
-            rec.write_json("estimates/joints", "armfusion.JointEstimate", {"q_rad": [...]}, t_s=1.2)
+            rec.write_json("estimates/joints", "armfusion.JointState", {"q_rad": [...]}, t_s=1.2)
 
     Messages are grouped in zstd-compressed chunks of about ``chunk_size_bytes``
     (uncompressed); a chunk is also closed and the file flushed when

@@ -160,7 +160,8 @@ def estimate_columns(run) -> list[str]:
 
 def write_estimates(run, path: Path, arm_config: str = "") -> None:
     """Every fused instant's estimate: CSV (one row each, angles in rad) or MCAP (JSON
-    messages on ``estimates/joints`` and ``estimates/heading``)."""
+    messages on ``estimates/joints`` and ``estimates/heading``: the records of
+    :mod:`fusion.tracking.estimate`)."""
     from fusion.tracking.tracker import JOINT_FLAGS, SENSOR_STATUS
 
     path = Path(path)
@@ -178,28 +179,20 @@ def write_estimates(run, path: Path, arm_config: str = "") -> None:
                             *(f"{v:.4e}" for v in run.gyro_bias_rad_s[i]),
                             int(mag[i] & 1 > 0), int(mag[i] & 2 > 0), *status[i]])
         return
+    from fusion.tracking import estimate as wire
     from sensors.recording_mcap import McapRecorder
 
     t0 = float(run.t_s[0]) if run.steps else 0.0
     with McapRecorder(path, arm_config=arm_config, t_offset_s=max(0.0, -t0)) as mc:
         for i in range(run.steps):
             t = float(run.t_s[i])
-            mc.write_json("estimates/joints", "armfusion.JointEstimate", {
-                "t_s": t,
-                "names": list(run.joint_names),
-                "q_rad": run.q_rad[i].tolist(),
-                "sigma_rad": run.sigma_rad[i].tolist(),
-                "flags": [JOINT_FLAGS[f] for f in run.flags[i]],
-                "sensors": {s: SENSOR_STATUS[c] for s, c in zip(run.sensor_names, run.sensor_status[i],
-                                                                 strict=True)},
-            }, t_s=t)
-            mc.write_json("estimates/heading", "armfusion.Heading", {
-                "t_s": t,
-                "roll_rad": float(run.rpy_rad[i, 0]), "pitch_rad": float(run.rpy_rad[i, 1]),
-                "yaw_rad": float(run.rpy_rad[i, 2]), "sigma_rad": run.rpy_sigma_rad[i].tolist(),
-                "magnetic_disturbance": bool(run.magnetic[i] & 1),
-                "magnetic_recovery": bool(run.magnetic[i] & 2),
-            }, t_s=t)
+            sensors = zip(run.sensor_names, (SENSOR_STATUS[c] for c in run.sensor_status[i]), strict=True)
+            wire.write_mcap_record(mc, "joints", wire.joints_record(
+                t, run.joint_names, run.q_rad[i], run.sigma_rad[i], [JOINT_FLAGS[f] for f in run.flags[i]],
+                sensors))
+            wire.write_mcap_record(mc, "heading", wire.heading_record(
+                t, run.rpy_rad[i], run.rpy_sigma_rad[i], run.gyro_bias_rad_s[i],
+                run.magnetic[i] & 1, run.magnetic[i] & 2))
 
 
 def _print(doc: dict, run) -> None:
@@ -219,10 +212,13 @@ def _print(doc: dict, run) -> None:
     cols.append("flags seen")
     for c in cols:  # escaped: "[deg]" is not a style
         t.add_column(escape(c), justify="left" if c in ("joint", "flag", "flags seen") else "right")
-    final = {j["name"]: j for j in (doc["final"] or {}).get("joints", [])}
+    last = doc["final"] or {}
+    final = {nm: {"q_rad": q, "sigma_rad": s, "flag": f} for nm, q, s, f in zip(
+        last.get("joint_names", []), last.get("q_rad", []), last.get("sigma_rad", []), last.get("flags", []),
+        strict=True)}
     for nm in run.joint_names:
         f = final.get(nm, {})
-        row = [nm, _deg(f.get("angle_rad")), _deg(f.get("sigma_rad"), 4), f.get("flag", "-")]
+        row = [nm, _deg(f.get("q_rad")), _deg(f.get("sigma_rad"), 4), f.get("flag", "-")]
         if truth:
             row += [_num(doc["rms_error_deg"][nm], 4), _num(doc["max_error_deg"][nm], 3)]
         seen = doc["flags_seen"]["joints"][nm]

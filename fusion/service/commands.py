@@ -41,7 +41,7 @@ from fusion.cli.options import (
     StopAfterOpt,
     ZenohConfigOpt,
 )
-from fusion.service.node import stop_on_signals
+from fusion.service.node import stop_after, stop_on_signals
 from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, open_session
 
 DEFAULT_ROBOT = "chair1"
@@ -157,17 +157,10 @@ def register(app: typer.Typer) -> None:
         prepare_output_path(out, "OUT")
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
-                stop_on_signals(stop):
+                stop_on_signals(stop), stop_after(duration_s, stop):
             recorder = Recorder(session, out, robot, arm_config=arm_config)
-            timer = threading.Timer(duration_s, stop.set) if duration_s else None
-            if timer:
-                timer.daemon = True
-                timer.start()
-            ready = threading.Thread(target=_say_ready, args=(recorder, robot, out), daemon=True)
-            ready.start()
+            threading.Thread(target=_say_ready, args=(recorder, robot, out), daemon=True).start()
             report = recorder.run(stop)
-            if timer:
-                timer.cancel()
         if json_out:
             emit_json(report.as_dict())
             return
@@ -213,18 +206,12 @@ def register(app: typer.Typer) -> None:
         arm = load_arm_or_exit(config)
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
-                stop_on_signals(stop):
+                stop_on_signals(stop), stop_after(duration_s, stop):
             node = FusionNode(session, arm, robot, publish_hz=publish_hz, state_path=state_file,
                               save_period_s=save_every_s, max_state_age_s=state_max_age_s,
                               assume_parked=assume_parked)
-            timer = threading.Timer(duration_s, stop.set) if duration_s else None
-            if timer:
-                timer.daemon = True
-                timer.start()
             threading.Thread(target=_say_serving, args=(node, robot, arm.name), daemon=True).start()
             report = node.run(stop)
-            if timer:
-                timer.cancel()
         if json_out:
             emit_json(report.as_dict())
             return

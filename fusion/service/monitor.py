@@ -136,7 +136,7 @@ def view_json(v: RobotView, now_s: float) -> dict[str, Any]:
                for n, q, s, f in zip(j.joint_names, j.q_rad, j.sigma_rad, j.flags, strict=True)}},
         "sensors": {} if j is None else dict(j.sensors),
         "heading": None if h is None else {"t_s": h.t_s, "deg": _deg(h.heading_rad),
-                                           "sigma_deg": _deg(h.sigma_rad),
+                                           "sigma_deg": _deg(h.heading_sigma_rad),
                                            "magnetic_disturbance": h.magnetic_disturbance},
         "nodes": {n: {"state": s.state, "message": s.message, "counters": dict(s.counters)}
                   for n, s in sorted(v.nodes.items())},
@@ -188,7 +188,8 @@ def render(monitor: Monitor):
             joints = "\n".join(rows)
         heading = "-"
         if v.heading is not None:
-            heading = f"{math.degrees(v.heading.heading_rad):7.2f} ± {math.degrees(v.heading.sigma_rad):.2f}"
+            h = v.heading
+            heading = f"{math.degrees(h.heading_rad):7.2f} ± {math.degrees(h.heading_sigma_rad):.2f}"
             if v.heading.magnetic_disturbance:
                 heading += "\n[yellow]magnetic disturbance[/]"
         nodes = "\n".join(f"{n}: {s.state}" + (" [red]stalled[/]" if dict(s.counters).get("stalled") else "")

@@ -1,15 +1,18 @@
-"""What every armfusion node shares: a stop signal, a bounded receive channel.
+"""What every armfusion node shares: a stop signal, a bounded receive channel, a stall watch.
 
 A node's shape (the one zenoh-python's examples share): a config from a file with
 explicit overrides (:mod:`fusion.service.zenoh_config`), a session in a ``with`` block, a
 :class:`BoundedReceiver` per subscription, and :func:`stop_on_signals`, which turns
-SIGINT and SIGTERM into a :class:`threading.Event` that the node's loop waits on.
+SIGINT and SIGTERM into a :class:`threading.Event` that the node's loop waits on
+(:func:`stop_after` sets it after ``--duration``). A node that estimates watches for
+stalls (:class:`StallWatch`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import queue
 import signal
 import threading
@@ -53,6 +56,21 @@ def stop_on_signals(stop: threading.Event) -> Iterator[threading.Event]:
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+
+
+@contextlib.contextmanager
+def stop_after(duration_s: float | None, stop: threading.Event) -> Iterator[threading.Event]:
+    """Set ``stop`` once ``duration_s`` has passed inside the block (``None``: never)."""
+    if not duration_s:
+        yield stop
+        return
+    timer = threading.Timer(duration_s, stop.set)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield stop
+    finally:
+        timer.cancel()
 
 
 @dataclass(frozen=True)
@@ -133,3 +151,32 @@ class BoundedReceiver:
     def overflowed(self) -> int:
         with self._lock:
             return self._overflowed
+
+
+class StallWatch:
+    """A node is stalled while it should estimate (``tracking``), raw batches arrive, and no
+    estimate came for ``after_s`` (wall time); it is not again once estimates come. The
+    node sets :attr:`raw_arrived_s` and :attr:`estimated_s` (monotonic) as they happen."""
+
+    def __init__(self, after_s: float):
+        self.after_s = after_s
+        self.raw_arrived_s = -math.inf
+        self.estimated_s = -math.inf
+        self.since_s: float | None = None
+        """When the stall in progress began (the last estimate), or ``None``."""
+        self.stalls = 0
+
+    def check(self, tracking: bool, now_s: float) -> bool:
+        """Look at ``now_s``; True when the node became stalled or stopped being so."""
+        quiet_s = now_s - self.estimated_s
+        stalled = tracking and quiet_s > self.after_s and now_s - self.raw_arrived_s < self.after_s
+        if stalled and self.since_s is None:
+            self.since_s = self.estimated_s
+            self.stalls += 1
+            log.warning("serve: stalled: no estimate for %.1f s while raw batches arrive", quiet_s)
+            return True
+        if not stalled and self.since_s is not None and quiet_s <= self.after_s:
+            self.since_s = None
+            log.info("serve: estimates again after a stall")
+            return True
+        return False

@@ -9,10 +9,13 @@ Key expressions (``<robot>`` and ``<sensor>`` are names of letters, digits, ``_`
     armfusion/<robot>/calibrate         Calibration the fusion node's reply to a calibration request
 
 Every payload is one UTF-8 JSON object (no pickle, nothing that carries code) with
-``"v": 1`` (:data:`SCHEMA_VERSION`) and ``"type"``, one of ``raw``, ``joints``,
-``heading``, ``status``, ``calibration``; the fields of each are those of the dataclasses
-below and are written out in docs/service.md. JSON keeps a float's every bit (Python writes the
-shortest repr that reads back the same), so a replayed recording is recorded unchanged.
+``"v"``, its type's version (:data:`VERSIONS`: 2 for ``heading``, 1 for the others), and
+``"type"``, one of ``raw``, ``joints``, ``heading``, ``status``, ``calibration``; the fields
+of each are those of the dataclasses below and are written out in docs/service.md. The
+fields of ``joints`` and ``heading`` are an estimate's one wire form, written by
+:mod:`fusion.tracking.estimate` (``joints_record``, ``heading_record``). JSON keeps a
+float's every bit (Python writes the shortest repr that reads back the same), so a replayed
+recording is recorded unchanged.
 
 On receipt, :class:`Inbox` checks a payload: larger than :data:`MAX_PAYLOAD_BYTES`, not
 JSON, of an unknown version or type, with a missing, mistyped or inconsistent field (or
@@ -34,9 +37,13 @@ from typing import Any
 
 import numpy as np
 
+from fusion.tracking.estimate import Estimate, heading_record, joints_record
 from sensors.samples import RAW_KINDS, Stream
 
-SCHEMA_VERSION = 1
+VERSIONS = {"raw": 1, "joints": 1, "heading": 2, "status": 1, "calibration": 1}
+"""Each payload type's schema version. ``heading`` 2: ``sigma_rad`` became
+``heading_sigma_rad``, and the base's roll and pitch, their sigmas, the gyro bias and
+``magnetic_recovery`` came in (the estimate's one wire form)."""
 MAX_PAYLOAD_BYTES = 1 << 20
 """1 MiB: a raw batch of 1 s of a 3-axis sensor at 1 kHz is about 60 kB."""
 ROOT = "armfusion"
@@ -121,14 +128,14 @@ class RawBatch:
 
     def to_json(self) -> dict[str, Any]:
         s = self.stream
-        return {"v": SCHEMA_VERSION, "type": "raw", "robot": self.robot, "sensor": s.name,
+        return {"v": VERSIONS["raw"], "type": "raw", "robot": self.robot, "sensor": s.name,
                 "kind": s.kind, "channels": list(s.channels), "seq": self.seq,
                 "t_s": s.t_s.tolist(), "counts": s.values.tolist()}
 
 
 @dataclass(frozen=True)
 class JointState:
-    """One instant's joint estimate (see :class:`fusion.tracking.tracker.Estimate`)."""
+    """One instant's joint estimate: the joints record of an :class:`~fusion.tracking.estimate.Estimate`."""
 
     robot: str
     t_s: float
@@ -138,28 +145,58 @@ class JointState:
     flags: tuple[str, ...]
     sensors: tuple[tuple[str, str], ...] = ()
     """Each sensor's status (``ok``, ``rejecting``, ``stale``, ``stuck``, ``dead``, ``absent``)."""
+    axis_to_vertical_deg: tuple[float, ...] | None = None
+    """Each joint axis's angle to the vertical (near 0: gimbal lock); ``None``: not sent."""
+
+    @classmethod
+    def of(cls, robot: str, e: Estimate) -> JointState:
+        return cls(robot, float(e.t_s), tuple(e.joint_names), tuple(float(x) for x in e.q_rad),
+                   tuple(float(x) for x in e.sigma_rad), tuple(e.flags), tuple(e.sensors),
+                   tuple(float(x) for x in e.axis_to_vertical_deg))
+
+    def record(self) -> dict[str, Any]:
+        """The joints record (:func:`fusion.tracking.estimate.joints_record`): no envelope."""
+        return joints_record(self.t_s, self.joint_names, self.q_rad, self.sigma_rad, self.flags,
+                             self.sensors, self.axis_to_vertical_deg)
 
     def to_json(self) -> dict[str, Any]:
-        return {"v": SCHEMA_VERSION, "type": "joints", "robot": self.robot, "t_s": self.t_s,
-                "joint_names": list(self.joint_names), "q_rad": list(self.q_rad),
-                "sigma_rad": list(self.sigma_rad), "flags": list(self.flags),
-                "sensors": dict(self.sensors)}
+        return {"v": VERSIONS["joints"], "type": "joints", "robot": self.robot, **self.record()}
 
 
 @dataclass(frozen=True)
 class Heading:
-    """The base's heading (yaw about the vertical) and its one-sigma uncertainty."""
+    """The base's heading (yaw about the vertical), roll and pitch, each with its one-sigma
+    uncertainty, the gyro bias and the magnetometer's state: the heading record of an
+    :class:`~fusion.tracking.estimate.Estimate`."""
 
     robot: str
     t_s: float
     heading_rad: float
-    sigma_rad: float
+    heading_sigma_rad: float
+    roll_rad: float
+    roll_sigma_rad: float
+    pitch_rad: float
+    pitch_sigma_rad: float
+    gyro_bias_rad_s: tuple[float, float, float]
     magnetic_disturbance: bool = False
+    magnetic_recovery: bool = False
+
+    @classmethod
+    def of(cls, robot: str, e: Estimate) -> Heading:
+        s_roll, s_pitch, s_yaw = (float(x) for x in e.attitude_sigma_rad)
+        bias = tuple(float(x) for x in e.gyro_bias_rad_s)
+        return cls(robot, float(e.t_s), float(e.heading_rad), s_yaw, float(e.roll_rad), s_roll,
+                   float(e.pitch_rad), s_pitch, bias, bool(e.magnetic_disturbance),
+                   bool(e.magnetic_recovery))
+
+    def record(self) -> dict[str, Any]:
+        """The heading record (:func:`fusion.tracking.estimate.heading_record`): no envelope."""
+        return heading_record(self.t_s, (self.roll_rad, self.pitch_rad, self.heading_rad),
+                              (self.roll_sigma_rad, self.pitch_sigma_rad, self.heading_sigma_rad),
+                              self.gyro_bias_rad_s, self.magnetic_disturbance, self.magnetic_recovery)
 
     def to_json(self) -> dict[str, Any]:
-        return {"v": SCHEMA_VERSION, "type": "heading", "robot": self.robot, "t_s": self.t_s,
-                "heading_rad": self.heading_rad, "sigma_rad": self.sigma_rad,
-                "magnetic_disturbance": self.magnetic_disturbance}
+        return {"v": VERSIONS["heading"], "type": "heading", "robot": self.robot, **self.record()}
 
 
 NODE_STATES = ("starting", "running", "calibrating", "tracking", "done", "stopping", "error")
@@ -179,7 +216,7 @@ class Status:
     """The fusion node's sensor statuses, as in :class:`JointState` (other nodes: none)."""
 
     def to_json(self) -> dict[str, Any]:
-        return {"v": SCHEMA_VERSION, "type": "status", "robot": self.robot, "node": self.node,
+        return {"v": VERSIONS["status"], "type": "status", "robot": self.robot, "node": self.node,
                 "state": self.state, "t_wall_s": self.t_wall_s, "message": self.message,
                 "counters": dict(self.counters), "sensors": dict(self.sensors)}
 
@@ -208,7 +245,7 @@ class Calibration:
     pitch_rad: float | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {"v": SCHEMA_VERSION, "type": "calibration", "robot": self.robot, "ok": self.ok,
+        return {"v": VERSIONS["calibration"], "type": "calibration", "robot": self.robot, "ok": self.ok,
                 "message": self.message, "t_start_s": self.t_start_s, "t_end_s": self.t_end_s,
                 "joint_names": list(self.joint_names), "q_rad": list(self.q_rad),
                 "sigma_rad": list(self.sigma_rad), "flags": list(self.flags),
@@ -319,16 +356,26 @@ def check_name_or_fail(name: str, what: str) -> str:
     return name
 
 
+def _flag(d: dict, name: str) -> bool:
+    return _field(d, name, bool)
+
+
 def _joints(d: dict, robot: str) -> JointState:
     names = _strings(d, "joint_names")
     n = len(names)
+    axis = _floats(d, "axis_to_vertical_deg", n) if "axis_to_vertical_deg" in d else None
     return JointState(robot, _finite(d, "t_s"), names, _floats(d, "q_rad", n),
-                      _floats(d, "sigma_rad", n), _strings(d, "flags", n), _sensors(d))
+                      _floats(d, "sigma_rad", n), _strings(d, "flags", n), _sensors(d), axis)
 
 
 def _heading(d: dict, robot: str) -> Heading:
-    return Heading(robot, _finite(d, "t_s"), _finite(d, "heading_rad"), _finite(d, "sigma_rad"),
-                   bool(d.get("magnetic_disturbance", False)))
+    bias = _floats(d, "gyro_bias_rad_s", 3)
+    if not all(math.isfinite(b) for b in bias):
+        raise PayloadError("malformed", "field 'gyro_bias_rad_s' is not finite")
+    return Heading(robot, _finite(d, "t_s"), _finite(d, "heading_rad"), _finite(d, "heading_sigma_rad"),
+                   _finite(d, "roll_rad"), _finite(d, "roll_sigma_rad"), _finite(d, "pitch_rad"),
+                   _finite(d, "pitch_sigma_rad"), bias, _flag(d, "magnetic_disturbance"),
+                   _flag(d, "magnetic_recovery"))
 
 
 def _status(d: dict, robot: str) -> Status:
@@ -369,9 +416,9 @@ def decode(key: str, data: bytes) -> Payload:
     if not isinstance(d, dict):
         raise PayloadError("malformed", f"a JSON {type(d).__name__}, not an object")
     version = d.get("v")
-    if version != SCHEMA_VERSION or isinstance(version, bool):
-        raise PayloadError("unknown_version", f"schema version {version!r}; this node reads "
-                           f"version {SCHEMA_VERSION}")
+    if version != VERSIONS[kind] or isinstance(version, bool):
+        raise PayloadError("unknown_version", f"{kind} payload version {version!r}; this node reads "
+                           f"version {VERSIONS[kind]}")
     if d.get("type") != kind:
         raise PayloadError("malformed", f"type {d.get('type')!r} on a {kind} key")
     if d.get("robot") != robot:

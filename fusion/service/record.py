@@ -4,7 +4,8 @@ Subscribes to ``armfusion/<robot>/raw/*`` and ``armfusion/<robot>/state/*``, che
 payload (:class:`~fusion.service.payloads.Inbox`: a bad one is counted and dropped) and
 writes it through :class:`~sensors.recording_mcap.McapRecorder`: raw batches as the
 recording's streams (``armfusion replay`` of the result publishes them again), joint
-states and headings as JSON on ``estimates/joints`` and ``estimates/heading``. The chunk
+states and headings as their records (:mod:`fusion.tracking.estimate`: the payload without
+its envelope) on ``estimates/joints`` and ``estimates/heading``. The chunk
 in progress is flushed at least every ``flush_interval_s`` (1 s), also while nothing
 arrives, so a recorder killed with SIGKILL loses at most about that much; on SIGINT or
 SIGTERM the file is closed cleanly.
@@ -23,12 +24,10 @@ import zenoh
 
 from fusion.service import payloads as pl
 from fusion.service.node import BoundedReceiver
+from fusion.tracking.estimate import MCAP_CHANNELS, write_mcap_record
 from sensors.recording_mcap import McapRecorder
 
 log = logging.getLogger("armfusion.service")
-
-JOINTS_TOPIC = "estimates/joints"
-HEADING_TOPIC = "estimates/heading"
 
 
 @dataclass(frozen=True)
@@ -122,11 +121,10 @@ class Recorder:
                 with self._lock:
                     self._samples[payload.stream.name] += len(payload.stream)
             elif isinstance(payload, pl.JointState | pl.Heading):
-                topic = JOINTS_TOPIC if isinstance(payload, pl.JointState) else HEADING_TOPIC
-                mcap.write_json(topic, f"armfusion.{type(payload).__name__}", payload.to_json(),
-                                t_s=payload.t_s)
+                kind = "joints" if isinstance(payload, pl.JointState) else "heading"
+                write_mcap_record(mcap, kind, payload.record())
                 with self._lock:
-                    self._estimates[topic] += 1
+                    self._estimates[MCAP_CHANNELS[kind][0]] += 1
         except ValueError as e:  # out of order, before the time origin, a changed stream
             with self._lock:
                 self._rejected["rejected"] += 1

@@ -5,25 +5,22 @@ Raw batches arrive per sensor on ``armfusion/<robot>/raw/*``. Each is checked tw
 anything else sees it: as a payload (:class:`~fusion.service.payloads.Inbox`) and against the
 arm's sensors and the sensors' own clock (:class:`~fusion.service.admission.Admission`);
 what fails is dropped and counted by reason (``dropped.<reason>`` in the status), and only
-accepted samples count as ``samples``. While tracking, no estimate for ``stall_after_s``
-while raw batches arrive is a stall (``stalled`` 1 in the status, and said in its message,
-until estimates come again).
-Until the tracker starts,
-they are kept; once ``min_data_s`` of samples are in, every ``retry_s`` the node looks
-for the first still stretch in them and runs the startup calibration there
-(:func:`fusion.tracking.tracker.start_from_recording`); the samples after it are then fed to the
-tracker, and from then on every sample as it comes.
+accepted samples count as ``samples``.
 
-The sensors' batches come in separately, so a small reorder stage merges them in time
-before the tracker (which drops a sample older than the last): a sample is released when
-every sensor heard from in the last ``max_lag_s`` has sent something at least as late, or
-when it is ``max_lag_s`` older than the newest sample (a silent sensor does not stall the
-others). Estimates go out on ``state/joints`` and ``state/heading`` at most
-``publish_hz`` per second of sample time, a status on ``status`` every second (and at
-once when a sensor's status changes), and the node holds a liveliness token on
-``armfusion/<robot>/status`` while it runs. Every joint state and status carries each
-sensor's status (``ok``, ``stale``…): a sensor that stops is ``stale`` after
-``stale_after_s`` (0.25 s) of sample time, while the others go on.
+Until the tracker starts, the samples are kept; once ``min_data_s`` of them are in, every
+``retry_s`` the node looks for the first still stretch in them and runs the startup
+calibration there (:func:`fusion.tracking.tracker.start_from_recording`); the samples after
+it are then fed to the tracker, and from then on every sample as it comes, merged in time
+across the sensors (:mod:`fusion.service.reorder`). While tracking, no estimate for
+``stall_after_s`` while raw batches arrive is a stall (``stalled`` 1 in the status, and said
+in its message, until estimates come again).
+
+Estimates go out on ``state/joints`` and ``state/heading`` (an estimate's two records,
+:mod:`fusion.tracking.estimate`) at most ``publish_hz`` per second of sample time, a status
+on ``status`` every second (and at once when a sensor's status changes), and the node holds
+a liveliness token on ``armfusion/<robot>/status`` while it runs. Every joint state and
+status carries each sensor's status (``ok``, ``stale``…): a sensor that stops is ``stale``
+after ``stale_after_s`` (0.25 s) of sample time, while the others go on.
 
 A queryable on ``armfusion/<robot>/calibrate`` re-runs the startup calibration on request
 on the latest still stretch of the last ``recent_s`` of samples (the arm still now), and
@@ -38,12 +35,11 @@ and calibrates on a still arm as usual.
 
 from __future__ import annotations
 
-import bisect
 import logging
 import queue
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,9 +49,10 @@ import zenoh
 from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.admission import Admission, AdmissionSettings
-from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver
+from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
+from fusion.service.reorder import Reorder, merge_batches
+from fusion.service.restart import RecentSamples, ambiguity_note, calibration_reply
 from fusion.startup.solve import StartupPrior, prior_after_move
-from fusion.startup.static import StaticDetectionSettings, find_static_segments
 from fusion.tracking.tracker import (
     ENC,
     NoStillWindowError,
@@ -101,87 +98,6 @@ class ServeReport:
                 "stalls": self.stalls, "errors": self.errors}
 
 
-class _Reorder:
-    """Per-sensor queues of ``(t_s, counts)``, released merged in time (see the module).
-
-    Plain Python queues: a driver sends one or a few samples per batch, for which NumPy's
-    per-call overhead would cost more than the work."""
-
-    def __init__(self, max_lag_s: float):
-        self.max_lag_s = max_lag_s
-        self._q: dict[str, deque[tuple[float, np.ndarray]]] = {}
-        self._last: dict[str, float] = {}
-        self._released = -np.inf
-
-    def push(self, s: Stream) -> int:
-        """Queue a batch; returns how many of its samples were already too late (dropped)."""
-        q = self._q.setdefault(s.name, deque())
-        released, late = self._released, 0
-        times = s.t_s.tolist()
-        for t, v in zip(times, s.values, strict=True):
-            if t <= released:
-                late += 1
-            elif not q or t > q[-1][0]:
-                q.append((t, v))
-            else:  # earlier than what is queued (a batch overtook another): keep the queue in order
-                bisect.insort(q, (t, v), key=lambda item: item[0])
-        if times[-1] > self._last.get(s.name, -np.inf):
-            self._last[s.name] = times[-1]
-        return late
-
-    def forget(self, name: str) -> None:
-        """Drop what is queued of ``name`` and its newest time (its clock was refuted)."""
-        self._q.pop(name, None)
-        self._last.pop(name, None)
-
-    def seen(self, name: str, t_s: float) -> None:
-        """Note that ``name`` has sent everything up to ``t_s`` (before any push of it)."""
-        self._last[name] = max(self._last.get(name, -np.inf), t_s)
-
-    def release(self, flush: bool = False) -> list[tuple[float, dict[str, np.ndarray]]]:
-        """The instants that are safe to fuse, in time order: ``(t_s, {sensor: counts})``."""
-        if not self._last:
-            return []
-        newest = max(self._last.values())
-        alive = [t for t in self._last.values() if t >= newest - self.max_lag_s]
-        mark = newest if flush else max(min(alive), newest - self.max_lag_s)
-        if mark <= self._released:  # nothing queued is that old (push drops what is)
-            return []
-        items: list[tuple[float, str, np.ndarray]] = []
-        for k, q in self._q.items():
-            while q and q[0][0] <= mark:
-                t, v = q.popleft()
-                items.append((t, k, v))
-        if not items:
-            return []
-        items.sort(key=lambda item: item[0])  # stable: a sensor's samples keep their order
-        out: list[tuple[float, dict[str, np.ndarray]]] = []
-        for t, k, v in items:
-            if not out or out[-1][0] != t:
-                out.append((t, {}))
-            out[-1][1][k] = v
-        self._released = max(self._released, items[-1][0])
-        return out
-
-
-def _merge(parts: dict[str, list[Stream]], t_from_s: float = -np.inf) -> Recording:
-    """One recording of the batches in ``parts`` (from ``t_from_s`` on), in time order; a
-    repeated sample is ignored. (The admission keeps the batches' times within a bounded
-    window and their channels the config's; this stays in order whatever comes.)"""
-    streams = {}
-    for k, ps in parts.items():
-        if not ps:
-            continue
-        t = np.concatenate([p.t_s for p in ps])
-        v = np.concatenate([p.values for p in ps])
-        order = np.argsort(t, kind="stable")
-        t, v = t[order], v[order]
-        keep = np.concatenate([[True], np.diff(t) > 0]) & (t >= t_from_s)
-        if np.any(keep):
-            streams[k] = Stream(k, ps[0].kind, t[keep], v[keep], ps[0].channels)
-    return Recording(streams)
-
-
 class FusionNode:
     """Subscribes to a robot's raw samples on ``session``, calibrates, tracks, publishes.
 
@@ -225,15 +141,13 @@ class FusionNode:
         self.queue_size = queue_size
         self.stall_after_s = stall_after_s
         self._admission = Admission(arm, admission)
-        self._raw_arrived = -np.inf  # when the last well-formed raw batch arrived (monotonic)
-        self._estimated = -np.inf  # when the tracker last gave an estimate (monotonic)
-        self._stalled_since: float | None = None
+        self._stall = StallWatch(stall_after_s)
         self.ready = threading.Event()
         self._max_lag_s = max_lag_s
-        self._reorder = _Reorder(max_lag_s)
+        self._reorder = Reorder(max_lag_s)
         self._inbox = pl.Inbox("serve")
         self._buffer: dict[str, list[Stream]] = {}
-        self._recent: dict[str, deque[Stream]] = {}
+        self._recent = RecentSamples(recent_s)
         self._queries: queue.Queue = queue.Queue()
         self._tracker: Tracker | None = None
         self._rates_hz: dict[str, float] = {}
@@ -304,7 +218,8 @@ class FusionNode:
                 while (query := self._next_query()) is not None:
                     self._answer(query)
                 now = time.monotonic()
-                self._watch_stall(now)
+                if self._stall.check(self._tracker is not None, now):
+                    self._status_due = True
                 silent = frozenset(k for k, t in self._arrived.items() if now - t > self.silent_after_s)
                 if silent != self._silent:
                     self._silent, self._status_due = silent, True
@@ -335,7 +250,7 @@ class FusionNode:
                            self._counts["out_of_order"], self._dropped(receiver), self._startup_t,
                            self._message, self._resumed, self._resume_message,
                            self._counts["calibrations"], adm.missed_batches, adm.seq_resets,
-                           adm.encoder_rebases, self._counts["stalls"], self._counts["errors"])
+                           adm.encoder_rebases, self._stall.stalls, self._counts["errors"])
 
     def _dropped(self, receiver: BoundedReceiver) -> dict[str, int]:
         d = Counter(self._inbox.dropped) + self._admission.rejected
@@ -360,17 +275,17 @@ class FusionNode:
             return
         s = batch.stream
         now = time.monotonic()
-        self._raw_arrived = now
+        self._stall.raw_arrived_s = now
         verdict = self._admission.check(batch, now)
         if not verdict.ok:
             return
         if verdict.reset:  # what was kept of this stream was on a clock the others refute
             self._buffer.pop(s.name, None)
-            self._recent.pop(s.name, None)
+            self._recent.forget(s.name)
             self._reorder.forget(s.name)
         self._counts["samples"] += len(s)
         self._arrived[s.name] = now
-        self._keep_recent(s)
+        self._recent.keep(s)
         if self._tracker is None:
             self._buffer.setdefault(s.name, []).append(s)
             if self._saved is not None:
@@ -384,38 +299,13 @@ class FusionNode:
         self._counts["out_of_order"] += self._reorder.push(s)
         self._fuse(self._reorder.release())
 
-    def _keep_recent(self, s: Stream) -> None:
-        parts = self._recent.setdefault(s.name, deque())
-        parts.append(s)
-        while len(parts) > 1 and parts[0].t_s[-1] < s.t_s[-1] - self.recent_s:
-            parts.popleft()
-
     # -- start: a saved state, or a startup calibration on a still arm -------------------------
     def _try_resume(self, t_s: float, encoder_counts: np.ndarray) -> None:
         doc, self._saved = self._saved, None
-        try:
-            problem = state_file.resume_problem(
-                doc, robot=self.robot, arm_name=self.arm.name, joint_names=self.arm.joint_names,
-                counts_per_rad=self.arm.counts_per_rad, t_s=t_s, encoder_counts=encoder_counts,
-                now_wall_s=time.time(), max_age_s=self.max_state_age_s,
-                max_joint_rate_rad_s=self.max_joint_rate_rad_s)
-        except (TypeError, ValueError, KeyError) as e:  # a hand-edited or damaged file
-            problem = f"it is malformed: {type(e).__name__}: {e}"
-        tracker = None
-        if problem is None:
-            snap = dict(doc["tracker"])
-            gap_s = t_s - float(doc["t_s"])
-            if gap_s > self._max_lag_s:
-                # the node was down longer than a few samples: the causal fits of the encoders
-                # and the gyro start afresh rather than differentiate across the gap
-                snap["encoder_fit"] = {**snap["encoder_fit"], "n": 0}
-                snap["gyro_fit"] = {**snap["gyro_fit"], "n": 0}
-                snap["omega"] = None
-            try:
-                tracker = Tracker(self.arm, self.settings, rates_hz=doc["rates_hz"])
-                tracker.restore(snap)
-            except (ValueError, KeyError, TypeError) as e:
-                problem = f"the tracker cannot restore it: {e}"
+        tracker, problem = state_file.resumed_tracker(
+            doc, self.arm, self.settings, robot=self.robot, t_s=t_s, encoder_counts=encoder_counts,
+            max_age_s=self.max_state_age_s, max_joint_rate_rad_s=self.max_joint_rate_rad_s,
+            max_gap_s=self._max_lag_s)
         if problem is not None:
             self._resume_message = (f"saved state in {self.state_path} not used: {problem}; "
                                     "a startup calibration on a still arm")
@@ -431,12 +321,12 @@ class FusionNode:
         self._resumed = True
         self._rates_hz = dict(doc["rates_hz"])
         self._last_enc = (float(doc["t_s"]), np.asarray(doc["encoder_counts"], dtype=np.int64))
-        self._begin(tracker, _merge(self._buffer), self._resume_message)
+        self._begin(tracker, merge_batches(self._buffer), self._resume_message)
 
     def _try_start(self, t_now: float) -> None:
         if t_now < self._next_try_t:
             return
-        rec = _merge(self._buffer)
+        rec = merge_batches(self._buffer)
         if rec.duration_s < self.min_data_s:
             self._message = (f"collecting {self.min_data_s:g} s of samples for the startup calibration "
                              f"({rec.duration_s:.1f} s so far)")
@@ -458,12 +348,12 @@ class FusionNode:
         assumed = ("; its branches rest on an assumption: the arm parked at its ready pose "
                    "(--assume-parked)" if self.assume_parked else "")
         self._begin(tracker, rec, f"startup calibration on the still stretch {start.t_start_s:.2f}"
-                                  f"-{start.t_end_s:.2f} s; tracking" + assumed + _ambiguity_note(start))
+                                  f"-{start.t_end_s:.2f} s; tracking" + assumed + ambiguity_note(start))
 
     def _begin(self, tracker: Tracker, rec: Recording, message: str) -> None:
         """Track with ``tracker`` from its time on; ``rec``'s later samples go to it first."""
         self._tracker = tracker
-        self._estimated = time.monotonic()
+        self._stall.estimated_s = time.monotonic()
         self._startup_t = float(tracker.t_s)
         self._state = "tracking"
         self._message = message
@@ -501,26 +391,14 @@ class FusionNode:
     def calibrate(self) -> pl.Calibration:
         """Re-run the startup calibration on the latest still stretch and restart the tracker
         from it; or refuse, saying why (the arm moves, no still stretch yet, no samples)."""
-        rec = _merge({k: list(v) for k, v in self._recent.items()})
 
         def refuse(why: str) -> pl.Calibration:
             return pl.Calibration(self.robot, False, why)
 
-        if not rec.streams:
-            return refuse("no samples received yet")
-        if rec.get(ENC) is None:
-            return refuse("no encoder samples received yet")
-        span_s = rec.duration_s
-        segs = find_static_segments(rec, StaticDetectionSettings(window_s=1.0))
-        if not segs:
-            return refuse(f"the arm moves: no still stretch of at least 1 s in the last {span_s:.1f} s "
-                          "of samples; ask again when it has been still for a second")
-        seg = segs[-1]
-        since_s = rec.t_end_s - seg.t_end_s
-        if since_s > self.still_tolerance_s:
-            return refuse(f"the arm moves: it was last still {since_s:.1f} s ago "
-                          f"({seg.t_start_s:.2f}-{seg.t_end_s:.2f} s); ask again when it is still")
-        window = _merge({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
+        still = self._recent.still_now(self.still_tolerance_s)
+        if isinstance(still, str):
+            return refuse(still)
+        _, window = still
         try:
             tracker, start = start_from_recording(self.arm, window, self.settings,
                                                   prior=self._parked_prior())
@@ -530,14 +408,14 @@ class FusionNode:
             return refuse(f"the startup calibration failed: {e}")
         self._counts["calibrations"] += 1
         if self._tracker is None:
-            self._rates_hz = {k: (v.rate_hz or 100.0) for k, v in rec.raw().items()}
+            self._rates_hz = {k: (v.rate_hz or 100.0) for k, v in self._recent.recording().raw().items()}
         else:
             tracker.set_rates(self._rates_hz)
         self._start = start
         message = (f"calibrated on request on the still stretch {start.t_start_s:.2f}-{start.t_end_s:.2f} s"
                    f"; tracking from it: {start.startup.summary or ''}").rstrip(": ")
         self._begin(tracker, Recording({}), message)
-        return _calibration_reply(self.robot, self.arm.joint_names, start)
+        return calibration_reply(self.robot, self.arm.joint_names, start)
 
     # -- tracking, publishing, saving ------------------------------------------------------------
     def _fuse(self, instants) -> None:
@@ -551,7 +429,7 @@ class FusionNode:
             e = tr.update_instant(t, {k: v for k, v in samples.items() if k in takes})
             if e is None:
                 continue
-            self._estimated = time.monotonic()
+            self._stall.estimated_s = time.monotonic()
             if e.sensors != self._sensors:
                 self._sensors = e.sensors
                 self._status_due = True
@@ -573,16 +451,12 @@ class FusionNode:
             return
         self._next_resolve_t = t_now + self.retry_s
         start = self._start
-        rec = _merge({k: list(v) for k, v in self._recent.items()})
-        if rec.get(ENC) is None or start.geometric is None or start.encoder_rad is None:
+        still = self._recent.still_now(self.still_tolerance_s)
+        if isinstance(still, str) or start.geometric is None or start.encoder_rad is None:
             return
-        segs = find_static_segments(rec, StaticDetectionSettings(window_s=1.0))
-        if not segs or segs[-1].t_start_s <= start.t_end_s + 1e-6:
+        seg, window = still
+        if seg.t_start_s <= start.t_end_s + 1e-6:  # the startup's own still stretch
             return
-        seg = segs[-1]
-        if rec.t_end_s - seg.t_end_s > self.still_tolerance_s:
-            return
-        window = _merge({k: list(v) for k, v in self._recent.items()}, t_from_s=seg.t_start_s)
         moved = encoder_angles_at(self.arm, window.get(ENC), seg.t_end_s)[1] - start.encoder_rad
         prior = prior_after_move(start.geometric, moved, self.arm)
         try:
@@ -595,7 +469,7 @@ class FusionNode:
         still = {j.name for j in again.startup.joints if j.flag == "ambiguous"}
         if still >= before:
             self._message = (f"{', '.join(sorted(before))} still ambiguous after the still stretch "
-                             f"{seg.t_start_s:.2f}-{seg.t_end_s:.2f} s" + _ambiguity_note(start))
+                             f"{seg.t_start_s:.2f}-{seg.t_end_s:.2f} s" + ambiguity_note(start))
             self._status_due = True
             return
         tracker.set_rates(self._rates_hz)
@@ -603,31 +477,13 @@ class FusionNode:
         self._begin(tracker, Recording({}), (
             f"the branches of {', '.join(sorted(before - still))} told apart on the still stretch "
             f"{seg.t_start_s:.2f}-{seg.t_end_s:.2f} s (the startup's candidates carried through the "
-            "encoder counts); tracking from it" + _ambiguity_note(again)))
+            "encoder counts); tracking from it" + ambiguity_note(again)))
 
     def _publish(self, e) -> None:
         pub_joints, pub_heading = self._pubs
-        pub_joints.put(pl.encode(pl.JointState(
-            self.robot, e.t_s, tuple(e.joint_names), tuple(float(x) for x in e.q_rad),
-            tuple(float(x) for x in e.sigma_rad), tuple(e.flags), tuple(e.sensors))))
-        pub_heading.put(pl.encode(pl.Heading(self.robot, e.t_s, float(e.heading_rad),
-                                             float(e.heading_sigma_rad), bool(e.magnetic_disturbance))))
+        pub_joints.put(pl.encode(pl.JointState.of(self.robot, e)))
+        pub_heading.put(pl.encode(pl.Heading.of(self.robot, e)))
         self._counts["estimates"] += 1
-
-    def _watch_stall(self, now: float) -> None:
-        """Stalled: tracking, raw batches arriving, and no estimate for ``stall_after_s``."""
-        stalled = (self._tracker is not None and now - self._estimated > self.stall_after_s
-                   and now - self._raw_arrived < self.stall_after_s)
-        if stalled and self._stalled_since is None:
-            self._stalled_since = self._estimated
-            self._counts["stalls"] += 1
-            self._status_due = True
-            log.warning("serve: stalled: no estimate for %.1f s while raw batches arrive",
-                        now - self._estimated)
-        elif not stalled and self._stalled_since is not None and now - self._estimated <= self.stall_after_s:
-            self._stalled_since = None
-            self._status_due = True
-            log.info("serve: estimates again after a stall")
 
     def _publish_status(self, pub, receiver: BoundedReceiver) -> None:
         self._status_due = False
@@ -636,7 +492,7 @@ class FusionNode:
                     "out_of_order": self._counts["out_of_order"],
                     "missed_batches": adm.missed_batches, "seq_resets": adm.seq_resets,
                     "encoder_rebases": adm.encoder_rebases,
-                    "stalled": int(self._stalled_since is not None), "stalls": self._counts["stalls"],
+                    "stalled": int(self._stall.since_s is not None), "stalls": self._stall.stalls,
                     "errors": self._counts["errors"],
                     "calibrations": self._counts["calibrations"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
@@ -646,8 +502,8 @@ class FusionNode:
         if self._silent and self._silent >= set(sensors):
             quiet_s = time.monotonic() - max(self._arrived.values())
             message = f"no samples for {quiet_s:.1f} s: every sensor stale; {message}"
-        if self._stalled_since is not None:
-            message = (f"stalled: no estimate for {time.monotonic() - self._stalled_since:.1f} s while raw "
+        if self._stall.since_s is not None:
+            message = (f"stalled: no estimate for {time.monotonic() - self._stall.since_s:.1f} s while raw "
                        f"batches arrived; {message}")
         pub.put(pl.encode(pl.Status(self.robot, "serve", self._state, time.time(), message,
                                     tuple(counters.items()), tuple(sensors.items()))))
@@ -662,35 +518,5 @@ class FusionNode:
         except RuntimeError:  # no encoder sample fused yet
             return False
         t_enc, counts = self._last_enc
-        doc = state_file.state_document(self.robot, self.arm.name, t_enc, counts, self._rates_hz, snap)
-        # the snapshot's time is the last fused instant; the encoder counts are as of t_enc
-        doc["t_s"] = float(t_enc)
-        try:
-            state_file.save_state(self.state_path, doc)
-        except OSError as e:
-            log.warning("serve: cannot save the state to %s: %s", self.state_path, e)
-            return False
-        return True
-
-
-def _ambiguity_note(start: Start) -> str:
-    """What the status says of joints the startup could not choose a branch for."""
-    amb = [j for j in start.startup.joints if j.flag == "ambiguous"]
-    if not amb:
-        return ""
-    cands = "; ".join(f"{j.name} " + " or ".join(f"{np.degrees(a):.1f}" for a in j.alternatives_rad)
-                      + " deg" for j in amb)
-    move = start.startup.disambiguating_move
-    how = (move.describe() if move is not None else
-           "no safe move of up to 45 deg separates them: a person must confirm the pose")
-    return f"; not tracked as known, ambiguous: {cands}; to tell them apart: {how}"
-
-
-def _calibration_reply(robot: str, joint_names, start: Start) -> pl.Calibration:
-    res = start.startup
-    return pl.Calibration(
-        robot, True, res.summary or "calibrated", float(start.t_start_s), float(start.t_end_s),
-        tuple(joint_names),
-        tuple(None if j.angle_rad is None else float(j.angle_rad) for j in res.joints),
-        tuple(None if j.sigma_rad is None else float(j.sigma_rad) for j in res.joints),
-        tuple(j.flag for j in res.joints), float(res.roll_rad), float(res.pitch_rad))
+        return state_file.save_tracker_state(self.state_path, self.robot, self.arm.name, t_enc, counts,
+                                             self._rates_hz, snap)

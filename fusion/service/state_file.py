@@ -19,14 +19,16 @@ from the saved state only when :func:`resume_problem` finds nothing wrong: the s
 and arm, saved less than ``max_age_s`` ago (wall time) and no more than ``max_age_s``
 of sample time before the new sample, the sample clock not gone back (the rig did not
 restart), and every joint's encoder count moved no further than the joint could have
-turned in the gap (``max_joint_rate_rad_s``): the encoders kept counting. Otherwise it
-says why and falls back to a startup calibration on a still arm.
+turned in the gap (``max_joint_rate_rad_s``): the encoders kept counting; then
+:func:`resumed_tracker` restores the tracker. Otherwise it says why and falls back to a
+startup calibration on a still arm.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import math
 import os
 import tempfile
@@ -35,6 +37,10 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
+
+from fusion.tracking.tracker import Tracker
+
+log = logging.getLogger("armfusion.service")
 
 STATE_FORMAT = "armfusion.serve-state/1"
 
@@ -94,6 +100,20 @@ def state_document(robot: str, arm_name: str, t_s: float, encoder_counts, rates_
             "rates_hz": {k: float(v) for k, v in rates_hz.items()}, "tracker": dict(tracker_snapshot)}
 
 
+def save_tracker_state(path: Path | str, robot: str, arm_name: str, t_enc_s: float, encoder_counts,
+                       rates_hz: Mapping[str, float], tracker_snapshot: Mapping) -> bool:
+    """Save the tracker's state (atomically): its snapshot, and the last encoder sample it
+    fused (``t_enc_s``, ``encoder_counts``), which is the document's ``t_s`` (the snapshot's own
+    time is the last fused instant). False, with a log line, when it cannot be written."""
+    doc = state_document(robot, arm_name, t_enc_s, encoder_counts, rates_hz, tracker_snapshot)
+    try:
+        save_state(path, doc)
+    except OSError as e:
+        log.warning("serve: cannot save the state to %s: %s", path, e)
+        return False
+    return True
+
+
 def resume_problem(doc: Mapping, *, robot: str, arm_name: str, joint_names, counts_per_rad,
                    t_s: float, encoder_counts, now_wall_s: float, max_age_s: float,
                    max_joint_rate_rad_s: float) -> str | None:
@@ -126,3 +146,31 @@ def resume_problem(doc: Mapping, *, robot: str, arm_name: str, joint_names, coun
                 f"{gap_s:.3f} s, more than it can turn at {max_joint_rate_rad_s:g} rad/s: the "
                 "encoders were reset or lost counts")
     return None
+
+
+def resumed_tracker(doc: Mapping, arm, settings, *, robot: str, t_s: float, encoder_counts,
+                    max_age_s: float, max_joint_rate_rad_s: float, max_gap_s: float):
+    """``(tracker, None)``: the tracker restored from the saved state ``doc`` at the first
+    encoder sample (``t_s``, ``encoder_counts``); or ``(None, why not)``. After a gap of more
+    than ``max_gap_s`` of sample time the causal fits of the encoders and the gyro start
+    afresh rather than differentiate across the gap."""
+    try:
+        problem = resume_problem(
+            doc, robot=robot, arm_name=arm.name, joint_names=arm.joint_names,
+            counts_per_rad=arm.counts_per_rad, t_s=t_s, encoder_counts=encoder_counts,
+            now_wall_s=time.time(), max_age_s=max_age_s, max_joint_rate_rad_s=max_joint_rate_rad_s)
+    except (TypeError, ValueError, KeyError) as e:  # a hand-edited or damaged file
+        return None, f"it is malformed: {type(e).__name__}: {e}"
+    if problem is not None:
+        return None, problem
+    snap = dict(doc["tracker"])
+    if t_s - float(doc["t_s"]) > max_gap_s:
+        snap["encoder_fit"] = {**snap["encoder_fit"], "n": 0}
+        snap["gyro_fit"] = {**snap["gyro_fit"], "n": 0}
+        snap["omega"] = None
+    try:
+        tracker = Tracker(arm, settings, rates_hz=doc["rates_hz"])
+        tracker.restore(snap)
+    except (ValueError, KeyError, TypeError) as e:
+        return None, f"the tracker cannot restore it: {e}"
+    return tracker, None

@@ -1,10 +1,99 @@
-"""What the tracker gives for one instant: :class:`Estimate`, immutable and small."""
+"""What the tracker gives for one instant (:class:`Estimate`) and its one wire form.
+
+An estimate goes out as two JSON records, with the unit in every field's name:
+
+- the **joints record** (:func:`joints_record`): ``t_s``, ``joint_names``, ``q_rad``,
+  ``sigma_rad``, ``flags``, ``sensors`` and, where known, ``axis_to_vertical_deg``;
+- the **heading record** (:func:`heading_record`): ``t_s``, ``heading_rad`` (yaw of the base
+  about the vertical), ``heading_sigma_rad``, ``roll_rad``, ``roll_sigma_rad``,
+  ``pitch_rad``, ``pitch_sigma_rad``, ``gyro_bias_rad_s``, ``magnetic_disturbance``,
+  ``magnetic_recovery``.
+
+Every writer of an estimate uses these two functions: :meth:`Estimate.as_dict` (both records
+in one object: ``armfusion track --json``), the Zenoh payloads on ``state/joints`` and
+``state/heading`` (:mod:`fusion.service.payloads` adds its envelope ``v``, ``type``,
+``robot``), and the MCAP topics :data:`JOINTS_TOPIC` and :data:`HEADING_TOPIC`
+(:func:`write_mcap_record`: ``armfusion record``, ``armfusion track --out EST.mcap``; each
+channel carries the record's JSON schema). docs/service.md describes them.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
+
+JOINTS_TOPIC = "estimates/joints"
+HEADING_TOPIC = "estimates/heading"
+"""The MCAP topics of the two records (JSON messages, one per estimate)."""
+JOINTS_SCHEMA = "armfusion.JointState"
+HEADING_SCHEMA = "armfusion.Heading"
+"""The MCAP schema names of the two records."""
+
+_NUMBER = {"type": "number"}
+_NUMBERS = {"type": "array", "items": _NUMBER}
+JOINTS_JSON_SCHEMA = {
+    "title": JOINTS_SCHEMA, "type": "object",
+    "required": ["t_s", "joint_names", "q_rad", "sigma_rad", "flags", "sensors"],
+    "properties": {"t_s": _NUMBER, "joint_names": {"type": "array", "items": {"type": "string"}},
+                   "q_rad": _NUMBERS, "sigma_rad": _NUMBERS,
+                   "flags": {"type": "array", "items": {"type": "string"}},
+                   "sensors": {"type": "object", "additionalProperties": {"type": "string"}},
+                   "axis_to_vertical_deg": _NUMBERS},
+}
+HEADING_JSON_SCHEMA = {
+    "title": HEADING_SCHEMA, "type": "object",
+    "required": ["t_s", "heading_rad", "heading_sigma_rad", "roll_rad", "roll_sigma_rad", "pitch_rad",
+                 "pitch_sigma_rad", "gyro_bias_rad_s", "magnetic_disturbance", "magnetic_recovery"],
+    "properties": {"t_s": _NUMBER, "heading_rad": _NUMBER, "heading_sigma_rad": _NUMBER,
+                   "roll_rad": _NUMBER, "roll_sigma_rad": _NUMBER, "pitch_rad": _NUMBER,
+                   "pitch_sigma_rad": _NUMBER,
+                   "gyro_bias_rad_s": {**_NUMBERS, "minItems": 3, "maxItems": 3},
+                   "magnetic_disturbance": {"type": "boolean"}, "magnetic_recovery": {"type": "boolean"}},
+}
+"""The JSON schemas the MCAP channels of the two records carry (for other MCAP readers)."""
+MCAP_CHANNELS = {"joints": (JOINTS_TOPIC, JOINTS_SCHEMA, JOINTS_JSON_SCHEMA),
+                 "heading": (HEADING_TOPIC, HEADING_SCHEMA, HEADING_JSON_SCHEMA)}
+"""Per record: its MCAP topic, schema name and JSON schema."""
+
+
+def write_mcap_record(mcap, kind: str, record: dict) -> None:
+    """Write one record (``kind`` ``joints`` or ``heading``) to an open
+    :class:`sensors.recording_mcap.McapRecorder`, on its topic with its schema."""
+    topic, name, schema = MCAP_CHANNELS[kind]
+    mcap.write_json(topic, name, record, t_s=record["t_s"], schema=schema)
+
+
+def _floats(values: Iterable) -> list[float]:
+    return [float(v) for v in values]
+
+
+def joints_record(t_s: float, joint_names: Iterable[str], q_rad: Iterable[float],
+                  sigma_rad: Iterable[float], flags: Iterable[str],
+                  sensors: Mapping[str, str] | Iterable[tuple[str, str]],
+                  axis_to_vertical_deg: Iterable[float] | None = None) -> dict:
+    """The joints record: each joint's angle, one-sigma and flag, and each sensor's status.
+    ``axis_to_vertical_deg`` (each joint axis's angle to the vertical) only where known."""
+    doc = {"t_s": float(t_s), "joint_names": [str(n) for n in joint_names], "q_rad": _floats(q_rad),
+           "sigma_rad": _floats(sigma_rad), "flags": [str(f) for f in flags],
+           "sensors": {str(k): str(v) for k, v in dict(sensors).items()}}
+    if axis_to_vertical_deg is not None:
+        doc["axis_to_vertical_deg"] = _floats(axis_to_vertical_deg)
+    return doc
+
+
+def heading_record(t_s: float, rpy_rad: Iterable[float], rpy_sigma_rad: Iterable[float],
+                   gyro_bias_rad_s: Iterable[float], magnetic_disturbance: bool,
+                   magnetic_recovery: bool) -> dict:
+    """The heading record: the base's attitude (roll, pitch, heading: yaw about the vertical)
+    with each one's one-sigma, the gyro bias and the magnetometer's state."""
+    roll, pitch, yaw = _floats(rpy_rad)
+    s_roll, s_pitch, s_yaw = _floats(rpy_sigma_rad)
+    return {"t_s": float(t_s), "heading_rad": yaw, "heading_sigma_rad": s_yaw,
+            "roll_rad": roll, "roll_sigma_rad": s_roll, "pitch_rad": pitch, "pitch_sigma_rad": s_pitch,
+            "gyro_bias_rad_s": _floats(gyro_bias_rad_s),
+            "magnetic_disturbance": bool(magnetic_disturbance), "magnetic_recovery": bool(magnetic_recovery)}
 
 
 @dataclass(frozen=True)
@@ -52,18 +141,15 @@ class Estimate:
             text += "; magnetic disturbance"
         return text
 
+    def joints_record(self) -> dict:
+        return joints_record(self.t_s, self.joint_names, self.q_rad, self.sigma_rad, self.flags,
+                             self.sensors, self.axis_to_vertical_deg)
+
+    def heading_record(self) -> dict:
+        return heading_record(self.t_s, (self.roll_rad, self.pitch_rad, self.yaw_rad),
+                              self.attitude_sigma_rad, self.gyro_bias_rad_s, self.magnetic_disturbance,
+                              self.magnetic_recovery)
+
     def as_dict(self) -> dict:
-        return {
-            "t_s": self.t_s,
-            "joints": [{"name": n, "angle_rad": float(q), "sigma_rad": float(s), "flag": f,
-                        "axis_to_vertical_deg": float(a)}
-                       for n, q, s, f, a in zip(self.joint_names, self.q_rad, self.sigma_rad, self.flags,
-                                                self.axis_to_vertical_deg, strict=True)],
-            "base": {"roll_rad": self.roll_rad, "pitch_rad": self.pitch_rad, "yaw_rad": self.yaw_rad,
-                     "sigma_rad": self.attitude_sigma_rad.tolist(),
-                     "gyro_bias_rad_s": self.gyro_bias_rad_s.tolist()},
-            "heading": {"yaw_rad": self.yaw_rad, "sigma_rad": self.heading_sigma_rad,
-                        "magnetic_disturbance": self.magnetic_disturbance,
-                        "magnetic_recovery": self.magnetic_recovery},
-            "sensors": dict(self.sensors),
-        }
+        """Both records in one object (they share ``t_s``; no other field name)."""
+        return {**self.joints_record(), **self.heading_record()}

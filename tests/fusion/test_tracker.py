@@ -365,9 +365,9 @@ def test_estimates_innovations_and_counters_are_complete(arm, reaching):
     assert est.q_rad.shape == (7,) and est.sigma_rad.shape == (7,) and len(est.flags) == 7
     with pytest.raises(ValueError, match="read-only"):
         est.q_rad[0] = 0.0
-    d = est.as_dict()
-    assert {j["name"] for j in d["joints"]} == set(arm.joint_names)
-    assert d["heading"]["sigma_rad"] > 0
+    d = est.as_dict()  # the one wire form (fusion.tracking.estimate): joints and heading records
+    assert d["joint_names"] == list(arm.joint_names) and d["q_rad"] == est.q_rad.tolist()
+    assert d["heading_rad"] == est.yaw_rad and d["heading_sigma_rad"] == est.heading_sigma_rad > 0
     log = tr.innovations("acc2")
     assert log.innovation.shape[1] == 3 and log.S.shape[1:] == (3, 3)
     assert len(log.t_s) == run.counters["acc2"]["used"] + run.counters["acc2"]["rejected"]
@@ -487,6 +487,12 @@ def test_the_track_command(arm, reaching, tmp_path):
     with open(mc, "rb") as fh:
         topics = {ch.topic for ch in make_reader(fh).get_summary().channels.values()}
     assert topics == {"estimates/joints", "estimates/heading"}
+    with open(mc, "rb") as fh:  # each instant's records: the fields of `--json`'s "final"
+        first = {}
+        for _, ch, m in make_reader(fh).iter_messages():
+            first.setdefault(ch.topic, json.loads(m.data))
+    assert set(first["estimates/joints"]) | set(first["estimates/heading"]) == set(d["final"]) - {
+        "axis_to_vertical_deg"}
     r = runner.invoke(app, ["track", str(path), "--out", str(tmp_path / "e.txt")])
     assert r.exit_code == 2 and "expected .csv or .mcap" in r.output
     moving = tmp_path / "moving.csv"

@@ -58,8 +58,9 @@ def test_ambiguous_joints_are_not_tracked_as_known_until_the_proposed_move_resol
         js = got.snapshot()[0][-1]
         flags = dict(zip(js.joint_names, js.flags, strict=True))
         assert flags["j3"] == "ambiguous" and flags["j4"] == "ambiguous"
-        assert any("ambiguous" in st.message and "to tell them apart: move" in st.message
-                   for st in got.snapshot()[1])
+        # (the status follows the first joint state within its 0.1 s pacing)
+        assert wait_for(lambda: any("ambiguous" in st.message and "to tell them apart: move" in st.message
+                                    for st in got.snapshot()[1]), 5.0)
         # the controller makes the proposed move; the arm is still again
         replay(s, cut(rec, 5.0, rec.t_end_s + 1.0), "chair1", speed=None, wait_for_subscribers_s=5.0)
         assert wait_for(lambda: node.tracker is not None and not node.tracker.ambiguity(), 30.0)

@@ -87,7 +87,7 @@ def test_the_calibration_reply_is_a_versioned_payload():
     reply = pl.Calibration("chair1", True, "ok", 1.0, 2.5, ("j1", "j2"), (0.1, None), (0.001, None),
                            ("ok", "gimbal_lock"), 0.01, -0.02)
     data = pl.encode(reply)
-    assert json.loads(data)["v"] == pl.SCHEMA_VERSION
+    assert json.loads(data)["v"] == pl.VERSIONS["calibration"] == 1
     assert pl.decode(pl.calibrate_key("chair1"), data) == reply
     with pytest.raises(pl.PayloadError, match="expected 2 numbers or nulls"):
         pl.decode(pl.calibrate_key("chair1"), data.replace(b'"q_rad":[0.1,null]', b'"q_rad":[0.1]'))

@@ -29,12 +29,18 @@ def test_monitor_sees_robots_come_and_go(hub_settings):
     with open_session(listener) as s_mon, open_session(connector) as s_pub:
         mon = Monitor(s_mon)
         token = s_pub.liveliness().declare_token(pl.status_key("chairA"))
-        s_pub.put(pl.status_key("chairA"), pl.encode(pl.Status("chairA", "serve", "tracking", time.time(),
-                                                                "tracking", (("samples", 900),))))
+
+        def serve_status_seen() -> bool:  # (once it is, the monitor's subscriptions reach s_pub)
+            s_pub.put(pl.status_key("chairA"), pl.encode(pl.Status(
+                "chairA", "serve", "tracking", time.time(), "tracking", (("samples", 900),))))
+            return "chairA" in mon.snapshot() and "serve" in mon.snapshot()["chairA"].nodes
+
+        assert wait_for(serve_status_seen, 10.0)
         s_pub.put(pl.status_key("chairA"), pl.encode(pl.Status("chairA", "drivers", "running", time.time(),
                                                                 "", (("samples.acc1", 1000),))))
         s_pub.put(pl.joints_key("chairA"), _joints("chairA", 1.0))
-        s_pub.put(pl.heading_key("chairA"), pl.encode(pl.Heading("chairA", 1.0, 0.25, 0.02)))
+        s_pub.put(pl.heading_key("chairA"), pl.encode(
+            pl.Heading("chairA", 1.0, 0.25, 0.02, 0.0, 1e-3, 0.0, 1e-3, (0.0, 0.0, 0.0))))
         s_pub.put(pl.joints_key("chairB"), _joints("chairB", 2.0, ("ok", "ok")))
         s_pub.put(pl.joints_key("chairB"), b'{"v": 2, "type": "joints"}')  # a future version: dropped
         assert wait_for(lambda: mon.with_joints() == 2 and mon.snapshot()["chairA"].heading is not None

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from fusion.service import payloads as pl
+from fusion.tracking.estimate import Estimate
 from sensors.samples import Stream
 
 
@@ -28,12 +29,79 @@ def test_raw_batch_round_trip_keeps_every_bit(rng):
 
 
 def test_joint_state_heading_status_round_trip():
-    js = pl.JointState("chair1", 1.5, ("q1", "q2"), (0.1, -0.2), (1e-3, 2e-3), ("ok", "gimbal_lock"))
-    hd = pl.Heading("chair1", 1.5, 0.7, 0.01, True)
+    js = pl.JointState("chair1", 1.5, ("q1", "q2"), (0.1, -0.2), (1e-3, 2e-3), ("ok", "gimbal_lock"),
+                       (("acc1", "ok"),), (88.5, 2.5))
+    hd = pl.Heading("chair1", 1.5, 0.7, 0.01, 0.02, 1e-3, -0.03, 2e-3, (1e-4, -2e-4, 3e-5), True, False)
     st = pl.Status("chair1", "serve", "tracking", 1e9, "ok", (("published", 3),))
     for key, p in ((pl.joints_key("chair1"), js), (pl.heading_key("chair1"), hd),
                    (pl.status_key("chair1"), st)):
         assert pl.decode(key, pl.encode(p)) == p
+
+
+def _estimate() -> Estimate:
+    return Estimate(t_s=2.25, q_rad=np.array([0.5, -1.25]), sigma_rad=np.array([1e-3, 2e-2]),
+                    flags=("ok", "gimbal_lock"), roll_rad=0.01, pitch_rad=-0.02, yaw_rad=2.5,
+                    attitude_sigma_rad=np.array([1e-3, 2e-3, 3e-2]),
+                    gyro_bias_rad_s=np.array([1e-4, 0, -2e-4]), axis_to_vertical_deg=np.array([89.0, 1.5]),
+                    sensors=(("acc1", "ok"), ("imu_mag", "rejecting")),
+                    magnetic_disturbance=True, magnetic_recovery=False, joint_names=("j1", "j2"))
+
+
+def test_an_estimate_has_one_wire_form_in_json_zenoh_and_mcap(tmp_path):
+    """`track --json`, the Zenoh payloads and the recorder's MCAP messages carry the same
+    fields with the same values: one record of the joints and one of the heading."""
+    from mcap.reader import make_reader
+
+    from fusion.service.record import Recorder
+    from sensors.recording_mcap import McapRecorder
+
+    est = _estimate()
+    js, hd = pl.JointState.of("chair1", est), pl.Heading.of("chair1", est)
+    assert est.as_dict() == {**js.record(), **hd.record()}
+    assert est.as_dict()["heading_rad"] == 2.5 and est.as_dict()["heading_sigma_rad"] == 3e-2
+    assert est.as_dict()["roll_sigma_rad"] == 1e-3 and est.as_dict()["axis_to_vertical_deg"] == [89.0, 1.5]
+    envelope = {"v", "type", "robot"}
+    for key, p, version in ((pl.joints_key("chair1"), js, 1), (pl.heading_key("chair1"), hd, 2)):
+        wire = json.loads(pl.encode(p))
+        assert wire["v"] == version and {k: v for k, v in wire.items() if k not in envelope} == p.record()
+        assert pl.decode(key, pl.encode(p)) == p
+
+    class Msg:  # what the recorder's receiver hands it
+        def __init__(self, key, payload):
+            self.key, self.data = key, pl.encode(payload)
+
+    rec = Recorder(None, tmp_path / "r.mcap", "chair1")  # only its writing of what it received: no session
+    with McapRecorder(tmp_path / "r.mcap") as mcap:
+        rec._write(mcap, Msg(pl.joints_key("chair1"), js))
+        rec._write(mcap, Msg(pl.heading_key("chair1"), hd))
+    with open(tmp_path / "r.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        got = {ch.topic: json.loads(m.data) for _, ch, m in reader.iter_messages()}
+        schemas = {s.name: json.loads(s.data) for s in reader.get_summary().schemas.values()}
+    assert got == {"estimates/joints": est.joints_record(), "estimates/heading": est.heading_record()}
+    # the channels' JSON schemas name exactly the records' fields, for other MCAP readers
+    joints_schema, heading_schema = schemas["armfusion.JointState"], schemas["armfusion.Heading"]
+    assert set(joints_schema["properties"]) == set(est.joints_record())
+    assert set(joints_schema["required"]) == set(est.joints_record()) - {"axis_to_vertical_deg"}
+    assert set(heading_schema["properties"]) == set(heading_schema["required"]) == set(est.heading_record())
+    import jsonschema
+
+    jsonschema.validate(got["estimates/joints"], joints_schema)
+    jsonschema.validate(got["estimates/heading"], heading_schema)
+    with pytest.raises(jsonschema.ValidationError, match="'heading_sigma_rad' is a required property"):
+        jsonschema.validate({k: v for k, v in est.heading_record().items() if k != "heading_sigma_rad"},
+                            heading_schema)
+
+
+def test_a_version_1_heading_is_refused_naming_the_version():
+    old = {"v": 1, "type": "heading", "robot": "chair1", "t_s": 1.0, "heading_rad": 0.5, "sigma_rad": 0.01,
+           "magnetic_disturbance": False}
+    with pytest.raises(pl.PayloadError, match="heading payload version 1; this node reads version 2"):
+        pl.decode(pl.heading_key("chair1"), json.dumps(old).encode())
+    good = pl.Heading.of("chair1", _estimate()).to_json()
+    del good["magnetic_recovery"]
+    with pytest.raises(pl.PayloadError, match="missing field 'magnetic_recovery'"):
+        pl.decode(pl.heading_key("chair1"), json.dumps(good).encode())
 
 
 def _good_raw(rng) -> dict:

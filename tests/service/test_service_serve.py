@@ -58,3 +58,11 @@ def test_serve_calibrates_then_tracks_and_publishes(hub_settings, startup_record
     # (the ill-conditioned ones are the worst, about 0.3 deg)
     assert np.all(err_deg[~locked] < 0.5), (err_deg, last.flags)
     assert all(np.isfinite(h.heading_rad) for h in got_h)
+    # the heading payload carries the base's tilt too, as the truth has it
+    base = rec.truth()["true_base"]
+    h = got_h[-1]
+    kb = int(np.searchsorted(base.t_s, h.t_s)) - 1
+    tilt_err_deg = np.degrees(np.abs(np.array([h.roll_rad, h.pitch_rad]) - base.values[kb, :2]))
+    assert np.all(tilt_err_deg < 0.2), tilt_err_deg
+    assert 0 < h.roll_sigma_rad < 0.01 and 0 < h.pitch_sigma_rad < 0.01 and h.heading_sigma_rad > 0
+    assert last.axis_to_vertical_deg is not None and np.all(np.array(last.axis_to_vertical_deg)[locked] < 10)

@@ -1,0 +1,196 @@
+"""What ``armfusion demo`` shows of a run (:mod:`fusion.service.demo`): the self-contained
+HTML report (the tracking plots against the truth, the workbench's verdict and error ladder)
+and the summary table for the terminal, both from the evaluation's document."""
+
+from __future__ import annotations
+
+import base64
+import html
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fusion.tracking.tracker import truth_at
+from models.rotations import wrap_angle
+
+
+def settled_latency(lat: dict) -> str:
+    if "p99_after_settle_ms" not in lat:
+        return ""
+    return (f"; after the first {lat['settle_s']:g} s of tracking p50 {lat['p50_after_settle_ms']:.1f} ms, "
+            f"p99 {lat['p99_after_settle_ms']:.1f} ms")
+
+
+def tracking_figures(ev: dict[str, Any]) -> dict[str, bytes]:
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = ev["_series"]
+    t, q, sig = s["t"], s["q"], s["sigma"]
+    tq = s["truth_q"]
+    names = ev["joint_names"]
+    figs: dict[str, bytes] = {}
+
+    def png(fig) -> bytes:
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=80, bbox_inches="tight")
+        plt.close(fig)
+        return buf.getvalue()
+
+    n = len(names)
+    fig, axs = plt.subplots(n, 2, figsize=(12, 1.9 * n), squeeze=False, layout="constrained")
+    span = (tq.t_s >= t[0] - 1.0) & (tq.t_s <= t[-1])
+    q_true = truth_at(tq, t)
+    for k, name in enumerate(names):
+        a, b = axs[k]
+        a.plot(tq.t_s[span], np.degrees(tq.values[span, k]), "-", color="0.5", lw=2, label="truth")
+        a.plot(t, np.degrees(q[:, k]), "-", color="C0", lw=1, label="estimate")
+        a.set_ylabel(f"{name} [deg]")
+        e = np.degrees(q[:, k] - q_true[:, k])
+        s2 = 2 * np.degrees(sig[:, k])
+        b.fill_between(t, -s2, s2, color="C0", alpha=0.2, label="±2σ")
+        b.plot(t, e, "-", color="C3", lw=1, label="error")
+        lim = max(1.0, float(np.percentile(np.abs(e), 99)) * 1.5)
+        b.set_ylim(-lim, lim)
+        b.set_ylabel("error [deg]")
+    axs[0][0].legend(fontsize=8, loc="upper right")
+    axs[0][1].legend(fontsize=8, loc="upper right")
+    axs[-1][0].set_xlabel("t [s]")
+    axs[-1][1].set_xlabel("t [s]")
+    figs["joints"] = png(fig)
+    if s["headings"]:
+        tb = s["truth_base"]
+        th, yaw, ysig = (np.array(v) for v in zip(*s["headings"], strict=True))
+        yaw_true = truth_at(tb, th, angles=True)[:, 2]
+        fig, (a, b) = plt.subplots(1, 2, figsize=(12, 2.8), layout="constrained")
+        a.plot(th, np.degrees(yaw_true), "-", color="0.5", lw=2, label="truth")
+        a.plot(th, np.degrees(yaw), "-", color="C0", lw=1, label="estimate")
+        a.set_ylabel("heading [deg]")
+        a.set_xlabel("t [s]")
+        a.legend(fontsize=8)
+        e = np.degrees(wrap_angle(yaw - yaw_true))
+        b.fill_between(th, -2 * np.degrees(ysig), 2 * np.degrees(ysig), color="C0", alpha=0.2, label="±2σ")
+        b.plot(th, e, "-", color="C3", lw=1, label="error")
+        b.set_ylabel("heading error [deg]")
+        b.set_xlabel("t [s]")
+        b.legend(fontsize=8)
+        figs["heading"] = png(fig)
+    return figs
+
+
+def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladder) -> Path:
+    """One self-contained HTML file: the summary, the tracking plots, the workbench."""
+    figs = tracking_figures(ev)
+    if diag is not None:
+        from fusion.cli.diagnose import report_figures
+
+        wb = report_figures(diag, None, ladder)
+        figs.update({f"wb_{k}": v for k, v in wb.items() if k in ("ladder", "candidates")})
+
+    def img(name: str) -> str:
+        if name not in figs:
+            return ""
+        return f'<img alt="{name}" src="data:image/png;base64,{base64.b64encode(figs[name]).decode()}">'
+
+    def esc(x) -> str:
+        return html.escape(str(x))
+
+    tr = ev["tracking"]
+    rows = "".join(
+        f"<tr><td>{esc(n)}</td><td>{ev['startup']['joints'][n]['error_deg']:+.3f}</td>"
+        f"<td>{ev['startup']['joints'][n]['sigma_deg']:.3f}</td><td>{esc(ev['startup']['joints'][n]['flag'])}</td>"
+        f"<td>{tr['rms_error_deg'][n]:.3f}</td><td>{tr['max_error_deg'][n]:.3f}</td>"
+        f"<td>{100 * tr['within_3_sigma'][n]:.0f} %</td>"
+        f"<td>{esc(', '.join(f'{k} {v}' for k, v in ev['flags_seen'][n].items()))}</td></tr>"
+        for n in ev["joint_names"])
+    wb_html = "<p>The workbench was not run (--no-workbench).</p>"
+    if diag is not None:
+        best = diag.candidates[0] if diag.candidates and diag.candidates[0].significant else None
+        wb_html = (f"<p>On the calibration recording (<code>{esc(doc['calibration']['recording'])}"
+                   f"</code>), the shipped model (no sensor errors) leaves a residual of "
+                   f"<b>{diag.rms_ratio:.1f}×</b> the sensors' noise: <b>{esc(diag.verdict)}</b>."
+                   + (f" {esc(best.evidence)}." if best else "")
+                   + " With the identified effects the fit's residual is "
+                   f"<b>{ladder[-1]['rms_ratio']:.2f}×</b> the noise (the identification's fit on the "
+                   "same window means).</p>"
+                   + img("wb_ladder") + img("wb_candidates"))
+    s = ev["samples"]
+    lat = ev["latency"]
+    m = ev.get("machine") or {}
+    machine = "" if m.get("serve_cpu_s") is None else (
+        f"<p>The fusion node used {m['serve_cpu_s']:.0f} CPU-s in {m['serve_wall_s']:.0f} s of wall time; "
+        f"load average {m['load_average_1min']:.1f} on {m['cpus']} CPUs. With too little CPU the fusion "
+        "node falls behind real time: the latency grows, nothing is lost.</p>")
+    doc_html = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion demo</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}}
+table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}
+td:first-child,td:last-child{{text-align:left}}img{{max-width:100%}}</style></head><body>
+<h1>armfusion demo</h1>
+<p>The WMRA simulated with {'datasheet-typical' if doc['realistic'] else 'no'} sensor errors
+(seed {doc['seed']}), scenario <code>{esc(doc['scenario'])}</code> for {doc['duration_s']:g} s on the
+wall clock: fake-device drivers → fusion node (config <code>{esc(doc['config'])}</code>) → recorder,
+separate processes over Zenoh on 127.0.0.1.</p>
+<h2>Startup calibration</h2><p>{esc(ev['startup']['message'])} (t = {ev['startup']['t_s']:.2f} s)</p>
+<h2>Accuracy against the simulator's truth</h2>
+<table><tr><th>joint</th><th>startup error [deg]</th><th>startup σ [deg]</th><th>startup flag</th>
+<th>tracking RMS [deg]</th><th>max [deg]</th><th>within 3σ</th><th>flags seen (estimates)</th></tr>
+{rows}</table>
+<p>Heading RMS error: {'—' if tr['heading_rms_deg'] is None else f"{tr['heading_rms_deg']:.2f}°"}.
+{tr['estimates']} joint states from t = {tr['t_start_s']:.2f} to {tr['t_end_s']:.2f} s.</p>
+<p>Samples: {s['published']} published, {s['received_by_serve']} received by the fusion node, {s['recorded']}
+recorded; dropped: {esc(', '.join(f'{k} {v}' for k, v in s['dropped'].items()) or 'none')}.
+Sample→estimate latency: {'—' if lat is None else
+    f"p50 {lat['p50_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms" + settled_latency(lat)}.</p>
+{machine}
+<h2>Tracking: estimate against truth, and the error with its ±2σ band</h2>{img('joints')}
+<h2>Heading</h2>{img('heading')}
+<h2>The workbench: what the sensor calibration fixed</h2>{wb_html}
+</body></html>
+"""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(doc_html, encoding="utf-8")
+    return path
+
+
+def summary_table(doc: dict[str, Any], ev: dict[str, Any]):
+    from rich.table import Table
+
+    tr = ev["tracking"]
+    t = Table(title="armfusion demo: accuracy against the simulator's truth", title_justify="left")
+    for col in ("joint", "startup error [deg]", "startup flag", "tracking RMS [deg]", "max [deg]",
+                "within 3σ", "flags seen"):
+        t.add_column(col, justify="left" if col in ("joint", "startup flag", "flags seen") else "right")
+    for n in ev["joint_names"]:
+        st = ev["startup"]["joints"][n]
+        seen = ev["flags_seen"][n]
+        total = sum(seen.values())
+        colour = "green" if st["flag"] == "ok" else "yellow"
+        t.add_row(n, f"{st['error_deg']:+.2f} ± {st['sigma_deg']:.2f}", f"[{colour}]{st['flag']}[/]",
+                  f"{tr['rms_error_deg'][n]:.2f}", f"{tr['max_error_deg'][n]:.2f}",
+                  f"{100 * tr['within_3_sigma'][n]:.0f} %",
+                  ", ".join(f"{k} {100 * v / total:.0f} %" for k, v in seen.items()))
+    s = ev["samples"]
+    lat = ev["latency"]
+    lines = [
+        "heading RMS error: " + ("—" if tr["heading_rms_deg"] is None else f"{tr['heading_rms_deg']:.2f}°"),
+        f"samples: {s['published']} published by the drivers, {s['received_by_serve']} received by the "
+        f"fusion node, {s['recorded']} recorded; dropped: "
+        + (", ".join(f"{k} {v}" for k, v in s["dropped"].items()) or "none"),
+        f"estimates: {s['estimates_published']} published, {s['estimates_received']} received here, "
+        f"{s['estimates_recorded']} recorded",
+        "sample→estimate latency: " + ("—" if lat is None else
+                                       f"p50 {lat['p50_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms "
+                                       f"(max {lat['max_ms']:.1f} ms, {lat['count']} estimates)"
+                                       + settled_latency(lat)),
+    ]
+    m = ev.get("machine")
+    if m and m.get("serve_cpu_s") is not None:
+        lines.append(f"the fusion node used {m['serve_cpu_s']:.0f} CPU-s in {m['serve_wall_s']:.0f} s; load "
+                     f"average {m['load_average_1min']:.1f} on {m['cpus']} CPUs (with too little CPU the "
+                     "fusion node falls behind: the latency grows, nothing is lost)")
+    return t, lines
