@@ -23,6 +23,8 @@ from models.rotations import DEG, wrap_angle
 from models.sensor_models import stream_models
 
 FIT_STREAMS_EXCLUDED = ("enc", "imu_temp")
+"""Streams a fit reads but does not fit: the encoders (the joint angles) and the IMU's
+temperature (an input of the temperature drift)."""
 ENCODER_ZERO_SIGMA_RAD = 10 * DEG
 """Prior σ of a joint's ``joint_offset`` when it carries the recording's unknown encoder zero."""
 REFERENCE_SIGMA_RAD = 0.05 * DEG

@@ -116,17 +116,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
             free[i] = False
     notes = []
     if pb.attitude and "imu_mag" in pb.streams:
-        # the heading of each stance: a coarse search (the compass decides), then the fit
-        point_stance = np.zeros(data.n, int) if data.stance is None else data.stance
-        rows_stance = np.concatenate([np.repeat(point_stance, data.counts[s].shape[1])
-                                      for s in pb.streams])
-        yaws = np.linspace(-np.pi, np.pi, 12, endpoint=False)
-        cost = np.zeros((len(yaws), pb.K))
-        for i, yaw in enumerate(yaws):
-            z = pb.x0.copy()
-            z[pb.P + 2::3] = yaw
-            cost[i] = np.bincount(rows_stance, pb.residual(z) ** 2, minlength=pb.K)
-        pb.x0[pb.P + 2::3] = yaws[np.argmin(cost, 0)]
+        _coarse_headings(pb, data)
     z0 = pb.x0.copy()
     # identifiability at the prior
     all_cols = np.arange(pb.size)
@@ -180,17 +170,8 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         w_stream = {s_: 1.0 / scale[s_] for s_ in pb.streams}
         if not converged:
             notes.append(f"the solver stopped before converging (after {n_jac[0]} Jacobians)")
-    # covariance: free elements from data + priors, held ones as consider parameters
     H, grad, rr = pb.normal_equations(z, all_cols, w_stream)
     r = pb.residual(z)
-    hcols = np.flatnonzero(~free)
-    # in prior units the priors make A the identity plus the data's information: a plain
-    # inverse there. (A pseudo-inverse of A itself cuts every direction whose information is
-    # below 1e-15 of the largest, i.e. exactly the ones the data barely see, and reports
-    # them known perfectly: a heading and the hard iron it trades with came out 10x too sure.)
-    D = pb.sigma0[fcols]
-    A = H[np.ix_(fcols, fcols)] * np.outer(D, D) + np.eye(len(fcols))
-    Sff = np.linalg.inv(A) * np.outer(D, D)
     m_res = int(np.count_nonzero(pb.w))
     dof = max(m_res - len(fcols), 1)
     chi2 = float(np.sum(r**2) / dof)
@@ -199,6 +180,49 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         notes.append("σ scaled per stream by its residual's size and correlation (some effect is not "
                      "modelled, or the noise is larger than the datasheet's): "
                      + ", ".join(f"{s_} {v:.2f}x" for s_, v in worse.items()))
+    C = _consider_covariance(pb, H, free)
+    sigma = np.sqrt(np.clip(np.diag(C), 0, None))
+    checks = _reference_checks(pb, z, H, grad, C)
+    notes += [c.message() for c in checks]
+    fits = _stream_fits(pb, model, data, z)
+    return Identification(
+        model=model, names=names, x=z, x0=pb.x0.copy(), sigma=sigma, prior_sigma=pb.sigma0.copy(),
+        covariance=C, held=~free, holds=tuple(holds), fits=tuple(fits), chi2_red=chi2,
+        n_samples=data.n if data.used is None else int(data.used.sum()), n_residuals=m_res,
+        iterations=n_jac[0], seconds=time.perf_counter() - t0,
+        attitude_rad=z[pb.P:pb.P + 3] if pb.attitude else None, q_ref_rad=data.q_ref_rad, mode=mode,
+        notes=tuple(notes), attitudes_rad=z[pb.P:].reshape(-1, 3) if pb.attitude else None,
+        reference_checks=checks)
+
+
+def _coarse_headings(pb: FitProblem, data: FitData) -> None:
+    """The heading of each stance, before the fit: a coarse search over twelve headings (the
+    compass decides), written into the problem's starting point ``pb.x0``."""
+    point_stance = np.zeros(data.n, int) if data.stance is None else data.stance
+    rows_stance = np.concatenate([np.repeat(point_stance, data.counts[s].shape[1])
+                                  for s in pb.streams])
+    yaws = np.linspace(-np.pi, np.pi, 12, endpoint=False)
+    cost = np.zeros((len(yaws), pb.K))
+    for i, yaw in enumerate(yaws):
+        z = pb.x0.copy()
+        z[pb.P + 2::3] = yaw
+        cost[i] = np.bincount(rows_stance, pb.residual(z) ** 2, minlength=pb.K)
+    pb.x0[pb.P + 2::3] = yaws[np.argmin(cost, 0)]
+
+
+def _consider_covariance(pb: FitProblem, H: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """The covariance of every element: the free ones from the data's information ``H`` and
+    their priors, the held ones as consider parameters (at their prior σ, carried into the
+    free ones they trade with)."""
+    fcols = np.flatnonzero(free)
+    hcols = np.flatnonzero(~free)
+    # in prior units the priors make A the identity plus the data's information: a plain
+    # inverse there. (A pseudo-inverse of A itself cuts every direction whose information is
+    # below 1e-15 of the largest, i.e. exactly the ones the data barely see, and reports
+    # them known perfectly: a heading and the hard iron it trades with came out 10x too sure.)
+    D = pb.sigma0[fcols]
+    A = H[np.ix_(fcols, fcols)] * np.outer(D, D) + np.eye(len(fcols))
+    Sff = np.linalg.inv(A) * np.outer(D, D)
     S = -Sff @ H[np.ix_(fcols, hcols)]
     Shh = np.diag(pb.sigma0[hcols] ** 2)
     C = np.zeros((pb.size, pb.size))
@@ -206,11 +230,11 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     C[np.ix_(fcols, hcols)] = S @ Shh
     C[np.ix_(hcols, fcols)] = (S @ Shh).T
     C[np.ix_(hcols, hcols)] = Shh
-    C = 0.5 * (C + C.T)
-    sigma = np.sqrt(np.clip(np.diag(C), 0, None))
-    checks = _reference_checks(pb, z, H, grad, C)
-    notes += [c.message() for c in checks]
-    # fit quality per stream, in physical units
+    return 0.5 * (C + C.T)
+
+
+def _stream_fits(pb: FitProblem, model: Model, data: FitData, z: np.ndarray) -> list[StreamFit]:
+    """The fit's quality per stream at ``z``: residual RMS and noise per axis, physical units."""
     sm = model.stream_models()
     fits = []
     pred = pb.predict(z)
@@ -224,14 +248,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         g = np.abs(sm[s].gain)
         fits.append(StreamFit(s, sm[s].unit, np.sqrt(np.mean(d**2, 0)) / g,
                               data.sigma_counts[s] / g))
-    return Identification(
-        model=model, names=names, x=z, x0=pb.x0.copy(), sigma=sigma, prior_sigma=pb.sigma0.copy(),
-        covariance=C, held=~free, holds=tuple(holds), fits=tuple(fits), chi2_red=chi2,
-        n_samples=data.n if data.used is None else int(data.used.sum()), n_residuals=m_res,
-        iterations=n_jac[0], seconds=time.perf_counter() - t0,
-        attitude_rad=z[pb.P:pb.P + 3] if pb.attitude else None, q_ref_rad=data.q_ref_rad, mode=mode,
-        notes=tuple(notes), attitudes_rad=z[pb.P:].reshape(-1, 3) if pb.attitude else None,
-        reference_checks=checks)
+    return fits
 
 
 def _reference_checks(pb: FitProblem, z: np.ndarray, H: np.ndarray, grad: np.ndarray, C: np.ndarray
