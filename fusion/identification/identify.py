@@ -79,7 +79,6 @@ from fusion.identification.settings import IdentifySettings
 from fusion.identification.solver import levenberg_marquardt, stream_scales
 from fusion.identification.truth import compare_with_truth, truth_values
 from models.effects import Model
-from models.rotations import R_from_rpy
 
 __all__ = [
     "ATTITUDE", "ATTITUDE_LABELS", "ATTITUDE_SIGMA_RAD", "COMPASS_MAP_EFFECTS", "ENCODER_ZERO_SIGMA_RAD",
@@ -87,7 +86,7 @@ __all__ = [
     "Hold", "Identification", "IdentifySettings", "JointReference", "ReferenceCheck", "StartupCorrection",
     "StreamFit", "analyse_identifiability", "analyse_information", "attitude_names", "compare_with_truth",
     "config_with_estimates", "correction_covariance", "data_from_recording", "fit_streams",
-    "gravity_direction", "identify", "identify_recentred", "identify_separately", "joint_references",
+    "identify", "identify_recentred", "identify_separately", "joint_references",
     "joint_zero_conventions", "parked_stances", "start_pose", "startup_correction", "suggestion_for",
     "truth_values", "with_encoder_zeros",
 ]
@@ -332,9 +331,3 @@ def identify_separately(model: Model, data: FitData, settings: IdentifySettings 
         out[key] = identify(sub, replace(data, joint_references=()), g, settings, progress=progress,
                             mode=f"separate ({key})")
     return out
-
-
-def gravity_direction(attitude_rad: np.ndarray) -> np.ndarray:
-    """Gravity's direction in the base frame (unit, pointing down) from roll, pitch, yaw."""
-    R = R_from_rpy(np.array([attitude_rad[0]]), np.array([attitude_rad[1]]), np.array([attitude_rad[2]]))[0]
-    return -R.T @ np.array([0.0, 0.0, 1.0])

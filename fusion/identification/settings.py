@@ -1,5 +1,5 @@
 """The settings of a fit (:func:`fusion.identification.identify.identify`): when the
-identifiability analysis holds an element, what it reports, how long the solver may go on,
+identifiability analysis holds an element and names its partners, how long the solver may go on,
 and which unknowns besides the model's effects the fit estimates."""
 
 from __future__ import annotations
@@ -9,13 +9,13 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class IdentifySettings:
+    """How a fit holds, solves and what it estimates besides the model's effects."""
+
     hold_ratio: float = 1.0
     """Hold a combination whose data-only σ exceeds this many prior σ (data know it no
     better than the prior)."""
     partner_weight: float = 0.25
     """An element is named as part of a combination when its share exceeds this."""
-    report_correlation: float = 0.9
-    """Pairs of estimates more correlated than this are listed."""
     max_nfev: int = 100
     """Most Jacobians (Levenberg-Marquardt iterations) per solve."""
     estimate_attitude: bool = True
@@ -23,6 +23,5 @@ class IdentifySettings:
     (the base level and facing magnetic north) or as the data's state says."""
     encoder_scale: bool = False
     """Let ``encoder_scale`` effects act on the fit's joint angles (they come from the
-    encoders: ``q_ref + encoder angle / (1 + s)``). ``calibrate sensors`` turns it on; off,
-    an encoder's scale is invisible to the fit (the workbench's candidate tests, on window
-    means evaluated at one node, keep it off: there it would absorb the window-mean bias)."""
+    encoders: ``q_ref + encoder angle / (1 + s)``). ``calibrate sensors`` and the workbench's
+    fits turn it on; off, an encoder's scale is invisible to the fit."""

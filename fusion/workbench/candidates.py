@@ -89,6 +89,7 @@ def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, strea
     best_target = None
     rivals = 0
     excess = max(tests.chi2 - tests.n_residuals, 1e-300)
+    sm = fit.model.stream_models()
     for rank, c in enumerate(lin):
         e, lm, dof, delta, dsig = c.effect, c.score, c.dof, c.delta, c.delta_sigma
         p = float(min(1.0, chi2_dist.sf(lm, dof) * K))
@@ -119,7 +120,7 @@ def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, strea
             params = {n: (float(delta[q]), float(dsig[q])) for q, n in enumerate(names)}
         significant = bool(p < st.alpha and dbic < 0)
         explained = float(min(lm / excess, 1.0)) if tests.chi2 > tests.n_residuals else 0.0
-        evidence = _evidence(tests, c, fit.model, data, params, b.units, explained)
+        evidence = _evidence(tests, c, sm, data, params, b.units, explained)
         out.append(Candidate(e.name, e.target, lm, dof, p, explained, float(dbic), refit, rms_after,
                              params, b.units, significant, EFFECTS[e.name].description, evidence))
     out.sort(key=lambda c: (not c.refitted, float(f"{c.delta_bic:.6g}"), len(c.params)))
@@ -187,12 +188,12 @@ def chi2_of(model: Model, data: FitData, streams: Sequence[str], attitude: bool,
 
 # --------------------------------------------------------------------------------------
 # the evidence in words
-def _evidence(tests: ScoreTests, c: Linearised, model: Model, data: FitData,
+def _evidence(tests: ScoreTests, c: Linearised, sm: dict, data: FitData,
               params: dict[str, tuple[float, float]], units: str, explained: float) -> str:
     """The axis candidate ``c`` changes most, what its residual follows, and how much of it and
-    of the model's excess over the noise the candidate explains."""
+    of the model's excess over the noise the candidate explains (``sm``: the fitted model's
+    stream models)."""
     e, dr, r = c.effect, c.residual_change, tests.evidence_residual
-    sm = model.stream_models()
     shares = [(float(np.sum(dr[a:a + n * k] ** 2)), s, k, a, n) for s, k, a, n in tests.row_axis]
     best = max(((float(np.sum(dr[a + q::k][:n] ** 2)), s, q, a, n, k)
                 for _, s, k, a, n in shares for q in range(k)), key=lambda t: t[0])
