@@ -34,13 +34,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from fusion.cli.calibrate_sensors import build_model  # noqa: E402
 from fusion.configfile import load_arm  # noqa: E402
-from fusion.identification.identify import (  # noqa: E402
-    IdentifySettings,
-    compare_with_truth,
-    data_from_recording,
-    identify_recentred,
-)
+from fusion.identification.data import data_from_recording  # noqa: E402
+from fusion.identification.identify import identify_recentred  # noqa: E402
 from fusion.identification.renk import ARTICLE_SAMPLES, TABLE2, TriaxParams, fit_triax, simulate_article  # noqa: E402
+from fusion.identification.settings import IdentifySettings  # noqa: E402
+from fusion.identification.truth import compare_with_truth  # noqa: E402
 from models.simulator import simulate  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 

@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from fusion.configfile import load_arm  # noqa: E402
-from fusion.identification.identify import data_from_recording  # noqa: E402
+from fusion.identification.data import data_from_recording  # noqa: E402
 from fusion.workbench.diagnose import add_effects, diagnose  # noqa: E402
 from models.effects import build_effect, model_from_arm  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
@@ -101,8 +101,11 @@ def power(arm, n_seeds: int, duration_s: float) -> list[dict]:
 
 
 def _baseline_module():
-    src = subprocess.run(["git", "show", f"{BASELINE_COMMIT}:fusion/workbench/diagnose.py"], cwd=ROOT,
+    src = subprocess.run(["git", "show", f"{BASELINE_COMMIT}:fusion/diagnose.py"], cwd=ROOT,
                          capture_output=True, text=True, check=True).stdout
+    # the workbench of then, on today's fit (its module and its problem class have moved since)
+    src = src.replace("from fusion.identify import (", "from fusion.identification.identify import (")
+    src = src.replace("    _Problem,\n", "    FitProblem as _Problem,\n", 1)
     path = Path(tempfile.mkdtemp()) / "diagnose_baseline.py"
     path.write_text(src)
     spec = importlib.util.spec_from_file_location("diagnose_baseline", path)

@@ -19,7 +19,7 @@ gradients), weighted by each axis's noise; σ from the Jacobian. The start is li
 the article's "every axis along î, S = 1, δ = 2.5 V": for each of 64 trial field
 directions the model is linear in ``(m S_k P_k, δ_k)``, the best one starts the fit.
 Where the field points along the base's k̂ (φ = ±90°), ψ does not change the prediction:
-the identifiability analysis of :mod:`fusion.identification.identify` says so and the fit reports ψ as
+the identifiability analysis of :mod:`fusion.identification.identifiability` says so and the fit reports ψ as
 undefined (the article's Table 3 and 7 notice the same: ψ spread by 100°, σ 88.8°).
 """
 
@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from fusion.identification.identify import IdentifySettings, analyse_identifiability
+from fusion.identification.identifiability import analyse_identifiability
+from fusion.identification.settings import IdentifySettings
 from models.arm import ArmModel
 from models.kinematics import forward_kinematics
 from models.rotations import wrap_angle

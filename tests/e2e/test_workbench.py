@@ -13,7 +13,8 @@ from typer.testing import CliRunner
 
 from fusion.cli.main import app
 from fusion.configfile import load_arm, resolve_config_path
-from fusion.identification.identify import data_from_recording, truth_values
+from fusion.identification.data import data_from_recording
+from fusion.identification.truth import truth_values
 from fusion.workbench.diagnose import FITS_TO_NOISE, DiagnoseSettings, add_effects, diagnose
 from models.effects import EFFECTS, build_effect, model_from_arm
 from models.simulator import simulate

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from fusion.cli.main import app
 from fusion.configfile import load_arm
-from fusion.workbench.diagnose import INNOVATIONS_WHITE, chair_moves, innovation_diagnosis
+from fusion.workbench.innovations import INNOVATIONS_WHITE, chair_moves, innovation_diagnosis
 from models.simulator import simulate
 
 DURATION_S = 45.0

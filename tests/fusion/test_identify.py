@@ -5,7 +5,10 @@ import numpy as np
 import pytest
 
 from fusion.configfile import load_arm
-from fusion.identification.identify import FitData, IdentifySettings, identify, startup_correction
+from fusion.identification.correction import startup_correction
+from fusion.identification.data import FitData
+from fusion.identification.identify import identify
+from fusion.identification.settings import IdentifySettings
 from fusion.startup.solve import StartupPrior
 from models.effects import Model, build_effect
 from models.trajectories import make_scenario
@@ -276,7 +279,9 @@ def test_a_heading_the_parked_chair_cannot_see_keeps_its_prior_sized_sigma(arm):
     fit must say so: heading σ near its prior's reach, the hard iron's estimate within 3 σ
     of the truth, instead of both known to a fraction of a degree and wrong."""
     from fusion.cli.calibrate_sensors import build_model as identification_model
-    from fusion.identification.identify import compare_with_truth, data_from_recording, identify_recentred
+    from fusion.identification.data import data_from_recording
+    from fusion.identification.identify import identify_recentred
+    from fusion.identification.truth import compare_with_truth
     from models.simulator import simulate
 
     rec, truth = simulate(arm, "renk-maneuver", 120.0, seed=1, realistic=True)
@@ -340,7 +345,9 @@ def _imu_fit(arm, scenario, entries, reference_sigma_deg=0.0):
     from dataclasses import replace
 
     from fusion.cli.calibrate_sensors import build_model
-    from fusion.identification.identify import compare_with_truth, data_from_recording, identify_recentred
+    from fusion.identification.data import data_from_recording
+    from fusion.identification.identify import identify_recentred
+    from fusion.identification.truth import compare_with_truth
     from models.simulator import simulate
     from tools.bench_calibrated import inclinometer
 
@@ -356,7 +363,7 @@ def _imu_fit(arm, scenario, entries, reference_sigma_deg=0.0):
 def test_parked_stances_are_found_from_the_imu(arm, imu_truth):
     """On the ramp maneuver each parked stance gets its own attitude and the moves between
     them are left out; a parked chair stays one stance with every window (the old fit)."""
-    from fusion.identification.identify import data_from_recording
+    from fusion.identification.data import data_from_recording
     from models.simulator import simulate
 
     rec, truth = simulate(arm, "renk-ramp", 150.0, seed=8, effects=imu_truth)

@@ -1,0 +1,186 @@
+"""The startup correction a calibrated config implies (:class:`StartupCorrection`, made by
+:func:`startup_correction`): the config's sensor-stage effects undone on averaged still
+readings (σ grown by the correction's own uncertainty), and its joint-stage effects undone
+on the startup's geometric joint angles."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from models.arm import ArmModel
+from models.effects import Model, model_from_arm
+from models.effects.base import Context, JointEffect, SensorEffect
+from models.motion import MotionState
+
+
+@dataclass(frozen=True)
+class StartupCorrection:
+    """A calibrated config's effects, as the startup calibration needs them.
+
+    * ``readings(r)``: averaged still readings (g, sensor axes) back to what an ideal sensor
+      on its nominal mount would read: every sensor-stage effect of an accelerometer
+      (mount, axes, scale, bias, temperature drift) is affine, ``y' = L y + c``; this
+      inverts it, σ mapped through ``L⁻¹``;
+    * ``controller_angles(q_geom)``: the startup solves the geometric joint angles; the
+      joint-stage effects (offsets, sag, play) map the controller's angles to them, and
+      this inverts that map (fixed point, three passes).
+    """
+
+    model: Model
+    temperature_c: float = 25.0
+    maps: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    spread: dict[str, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    """Per stream, the map with each calibrated element moved by its σ: how uncertain the
+    correction itself is, added to each reading's σ (along the reading's own direction)."""
+
+    def readings(self, r):
+        from fusion.startup.solve import StillReadings
+
+        means, sigmas = {}, {}
+        for name, m in r.accel_mean_g.items():
+            means[name], sigmas[name] = self._undo(name, m, r.accel_sigma_g[name])
+        imu_m, imu_s = r.imu_mean_g, r.imu_sigma_g
+        if imu_m is not None and "imu_acc" in self.maps:
+            imu_m, imu_s = self._undo("imu_acc", imu_m, imu_s)
+        return StillReadings(means, sigmas, imu_m, imu_s, r.t_start_s, r.t_end_s)
+
+    def readings_one(self, stream: str, mean_g: np.ndarray) -> np.ndarray:
+        """One still reading of ``stream`` (g, sensor axes) corrected, as :meth:`readings`."""
+        if stream not in self.maps:
+            return np.asarray(mean_g, float)
+        L, c = self.maps[stream]
+        return np.linalg.solve(L, np.asarray(mean_g, float) - c)
+
+    def _undo(self, stream, mean, sigma):
+        if stream not in self.maps:
+            return mean, sigma
+        L, c = self.maps[stream]
+        Li = np.linalg.inv(L)
+        m = np.asarray(mean, float)
+        y = Li @ (m - c)
+        var = (Li**2) @ (np.asarray(sigma, float) ** 2)
+        for L1, c1 in self.spread.get(stream, ()):
+            var = var + (np.linalg.solve(L1, m - c1) - y) ** 2
+        return y, np.sqrt(var)
+
+    def controller_result(self, res, sigma_limit_rad: float | None = None):
+        """A startup result (geometric angles, from ``solve_still``) on the controller's side:
+        the config's joint effects (offsets, sag, play) undone at the chosen branch.
+
+        Sag and play follow the gravity torque, which depends on where every joint stands.
+        Where the startup cannot say (a rival branch it could not rule out, a gimbal-locked
+        joint at any angle of its range), each numbered joint's σ grows to cover, at 2 σ,
+        what its correction would be there; one pushed past ``sigma_limit_rad`` (default:
+        the startup's limit) becomes ``ill_conditioned``."""
+        from fusion.startup.solve import StartupSettings
+
+        limit = (StartupSettings().sigma_limit_deg * np.pi / 180 if sigma_limit_rad is None
+                 else sigma_limit_rad)
+        q = np.asarray(res.q_rad, float)
+        delta = q - self.controller_angles(q)
+        if not np.any(delta):
+            return res
+        n = len(q)
+        variants = []
+        rivals = res.candidates_rad if res.candidates_rad is not None else res.branches_rad
+        if any(j.flag == "ambiguous" for j in res.joints):
+            variants += [b for b in np.asarray(rivals, float).reshape(-1, n)
+                         if np.any(np.abs(b - q) > 1e-6)]
+        arm = self.model.arm
+        for i, j in enumerate(res.joints):
+            if j.flag == "gimbal_lock":
+                for v in np.linspace(arm.min_rad[i], arm.max_rad[i], 9):
+                    qv = q.copy()
+                    qv[i] = v
+                    variants.append(qv)
+        spread = np.zeros(n)
+        if variants:
+            V = np.array(variants)
+            spread = np.max(np.abs((V - self.controller_angles(V)) - delta), axis=0)
+        joints, cov = [], np.array(res.covariance, float, copy=True)
+        for i, j in enumerate(res.joints):
+            sig, flag = j.sigma_rad, j.flag
+            if sig is not None and spread[i] / 2.0 > sig:
+                grow = spread[i] / 2.0 / sig
+                sig = sig * grow
+                cov[i, :] *= grow
+                cov[:, i] *= grow
+                if flag == "ok" and sig > limit:
+                    flag = "ill_conditioned"
+            joints.append(replace(j, angle_rad=None if j.angle_rad is None else j.angle_rad - delta[i],
+                                  sigma_rad=sig, flag=flag,
+                                  alternatives_rad=tuple(a - delta[i] for a in j.alternatives_rad)))
+        cands = (None if res.candidates_rad is None
+                 else np.atleast_2d(self.controller_angles(np.asarray(res.candidates_rad, float))))
+        return replace(res, joints=tuple(joints), q_rad=q - delta, covariance=cov, candidates_rad=cands)
+
+    def controller_angles(self, q_geom_rad: np.ndarray) -> np.ndarray:
+        joint = [e for e in self.model.effects if isinstance(e, JointEffect)]
+        qg = np.atleast_2d(np.asarray(q_geom_rad, float))
+        if not joint:
+            return qg.reshape(np.shape(q_geom_rad))
+        th = self.model.unpack()
+        q = qg.copy()
+        for _ in range(3):
+            st = MotionState.static(q)
+            ctx = Context(self.model.arm, st, self.model.masses)
+            d = np.zeros_like(q)
+            for e in joint:
+                d[:, e.j] += e.delta(q, th[e.block_name], ctx)
+            q = qg - d
+        return q.reshape(np.shape(q_geom_rad))
+
+
+COMPASS_MAP_EFFECTS = ("mag_soft_iron", "mag_hard_iron")
+"""The compass effects that are a fixed affine map of its reading (the tracker undoes them)."""
+
+
+def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
+                       include_joint_offsets: bool = False) -> StartupCorrection:
+    """The correction the startup calibration applies for ``arm``'s config effects.
+
+    Call once after loading the config; then ``corr.readings(readings)`` before
+    ``solve_still`` and ``corr.controller_angles(q)`` on its joint angles. Joint offsets are
+    skipped unless asked (relative encoders: the startup defines the zero).
+    """
+    model = model_from_arm(arm)
+    if not include_joint_offsets:
+        model = model.without([e.block_name for e in model.effects if e.name == "joint_offset"])
+    accel = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
+    th = model.unpack()
+    cov = (getattr(arm, "calibration", None) or {}).get("correction_covariance") or {}
+    maps, spread = {}, {}
+    for s in accel + (["imu_mag"] if arm.imu is not None else []):
+        # the compass's own map is its soft and hard iron; the arm's steel (mag_arm_disturbance)
+        # turns with the joints and is no fixed map
+        effs = sorted((e for e in model.effects if isinstance(e, SensorEffect) and s in e.streams
+                       and (s != "imu_mag" or e.name in COMPASS_MAP_EFFECTS)), key=lambda e: e.rank)
+        if not effs:
+            continue
+        st = MotionState.static(np.zeros((4, arm.n_joints)), temperature_c=temperature_c)
+        ctx = Context(arm, st, model.masses)
+
+        def affine(theta, effs=effs, ctx=ctx, s=s):
+            y = np.vstack([np.zeros(3), np.eye(3)])
+            for e in effs:
+                y = e.apply(y, theta[e.block_name], ctx, s)
+            return (y[1:] - y[0]).T, y[0]
+
+        maps[s] = affine(th)
+        c = cov.get(s)
+        if c:  # a calibrated config: the fit's covariance of this sensor's correction
+            names = model.element_names()
+            els = [n for n in c["elements"] if n in names]
+            keep = [c["elements"].index(n) for n in els]
+            C = np.asarray(c["matrix"], float)[np.ix_(keep, keep)]
+            lam, V = np.linalg.eigh(0.5 * (C + C.T))
+            spread[s] = []
+            x0 = model.pack(th)
+            for k in np.flatnonzero(lam > 0):  # each principal direction moved by its σ
+                x1 = x0.copy()
+                for i, n in enumerate(els):
+                    x1[names.index(n)] += np.sqrt(lam[k]) * V[i, k]
+                spread[s].append(affine(model.unpack(x1)))
+    return StartupCorrection(model, temperature_c, maps, spread)

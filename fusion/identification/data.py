@@ -1,0 +1,406 @@
+"""What a fit sees of a recording: window means of every stream on the encoders' time grid
+(:class:`FitData`, :func:`data_from_recording`), the chair's parked stances, the pose the
+recording starts from, one-time joint references, and the unknown encoder zeros the model
+gains for it (:func:`with_encoder_zeros`).
+
+The encoders are relative: the joint angles of the fit are ``q_ref + encoder angle``, and
+every joint's ``joint_offset`` block absorbs the unknown zero ``q_true(0) - q_ref``. That is
+why joint offsets are a property of the recording, not of the arm.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from models.arm import ArmModel
+from models.effects import Model, build_effect
+from models.motion import MotionState
+from models.rotations import DEG, wrap_angle
+from models.sensor_models import stream_models
+
+FIT_STREAMS_EXCLUDED = ("enc", "imu_temp")
+"""Streams a fit reads but does not fit: the encoders (the joint angles) and the IMU's
+temperature (an input of the temperature drift)."""
+ENCODER_ZERO_SIGMA_RAD = 10 * DEG
+"""Prior σ of a joint's ``joint_offset`` when it carries the recording's unknown encoder zero."""
+REFERENCE_SIGMA_RAD = 0.05 * DEG
+"""Default σ of a one-time joint reference (a mechanical index, a pose the installer confirms)."""
+
+
+@dataclass(frozen=True)
+class JointReference:
+    """A joint's true geometric angle, given once, over a still stretch of the recording:
+    the joint at a mechanical index, or a pose the installer confirms (``calibrate sensors
+    --reference j7=0``). In the fit it is a pseudo-measurement of the joint's geometric angle
+    there (encoder angle plus the joint stage: zero offset, sag, play), which pins the
+    joint's zero; on a joint whose zero is a gauge (the last joint and the last sensor's
+    mount about its axis; the first joint and the IMU's mount about its axis) it is what
+    defines the gauge."""
+
+    joint: str
+    angle_rad: float
+    sigma_rad: float
+    t_start_s: float
+    t_end_s: float
+    encoder_rad: np.ndarray
+    """Every joint's relative encoder angle there (mean over the stretch), rad."""
+    where: str = "the first still segment"
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"joint": self.joint, "angle_deg": round(float(np.degrees(self.angle_rad)), 6),
+                "sigma_deg": round(float(np.degrees(self.sigma_rad)), 6),
+                "t_start_s": round(float(self.t_start_s), 3), "t_end_s": round(float(self.t_end_s), 3),
+                "where": self.where}
+
+
+@dataclass(frozen=True)
+class FitData:
+    """What a fit sees: the motion (window means), the measured counts and their σ."""
+
+    state: MotionState
+    counts: dict[str, np.ndarray]
+    sigma_counts: dict[str, np.ndarray]
+    q_ref_rad: np.ndarray
+    window: int = 1
+    note: str = ""
+    nodes: int = 1
+    """Instants per fit point: 2 means the state holds each window's two Gauss-Legendre
+    nodes (t̄ ± T/(2√3)) one after the other, and a prediction is their mean (exact for a
+    reading that is a cubic in time over the window)."""
+    stance: np.ndarray | None = None
+    """Per point, the parked stretch (stance) of the chair it belongs to, 0…K-1: each stance
+    has its own base attitude in the fit. ``None``: one stance (a parked chair)."""
+    used: np.ndarray | None = None
+    """Per point, whether it enters the fit (``False`` while the chair moves between stances:
+    its attitude is not constant there). ``None``: every point."""
+    saturated_samples: dict[str, int] = field(default_factory=dict)
+    """Per stream, the samples at a register limit; the windows holding them (or interpolated
+    from them) are not in the data (``saturated_windows`` of them)."""
+    saturated_windows: int = 0
+    base_tilt_reference: tuple[np.ndarray, float] | None = None
+    """The arm base's roll and pitch (rad, as the base attitude's) in the first stance,
+    measured independently (an inclinometer on the base), and that measurement's σ (rad).
+    Without it the base's angle about the first joint's axis, that joint's zero and the
+    IMU's mount about that axis are one unknown (any set of tilts leaves them so)."""
+    joint_references: tuple[JointReference, ...] = ()
+    """One-time references of joints' geometric angles (:func:`joint_references`)."""
+
+    @property
+    def n(self) -> int:
+        return self.state.N // self.nodes
+
+    @property
+    def n_stances(self) -> int:
+        return 1 if self.stance is None else int(self.stance.max()) + 1
+
+    def stance_of_instants(self) -> np.ndarray:
+        """The stance of every instant of the state (``nodes`` per point)."""
+        st = np.zeros(self.n, int) if self.stance is None else self.stance
+        return np.repeat(st, self.nodes)
+
+    def shifted(self, dq_rad: np.ndarray) -> FitData:
+        """The same data with ``q_ref`` moved by ``dq_rad`` (after a fit found the zeros)."""
+        dq = np.asarray(dq_rad, float)
+        return replace(self, state=self.state.replace(q_rad=self.state.q_rad + dq),
+                       q_ref_rad=self.q_ref_rad + dq)
+
+    def subset(self, idx: np.ndarray | slice) -> FitData:
+        per_point = {k: getattr(self, k)[idx] for k in ("stance", "used") if getattr(self, k) is not None}
+        return replace(self._subset_state(idx), **per_point)
+
+    def _subset_state(self, idx: np.ndarray | slice) -> FitData:
+        s = self.state
+        if self.nodes > 1:  # the nodes of the chosen points
+            pts = np.arange(self.n)[idx]
+            sidx = (pts[:, None] * self.nodes + np.arange(self.nodes)).ravel()
+            st = MotionState(s.t_s[sidx], s.q_rad[sidx], s.qd_rad_s[sidx], s.qdd_rad_s2[sidx],
+                             s.R_WB[sidx], s.omega_B_rad_s[sidx], s.omega_dot_B_rad_s2[sidx],
+                             s.accel_B_mps2[sidx] if np.ndim(s.accel_B_mps2) > 1 else s.accel_B_mps2,
+                             s.temperature_c[sidx] if np.ndim(s.temperature_c) else s.temperature_c)
+            return replace(self, state=st, counts={k: v[idx] for k, v in self.counts.items()})
+        st = MotionState(s.t_s[idx], s.q_rad[idx], s.qd_rad_s[idx], s.qdd_rad_s2[idx], s.R_WB[idx],
+                         s.omega_B_rad_s[idx], s.omega_dot_B_rad_s2[idx], s.accel_B_mps2[idx],
+                         s.temperature_c[idx])
+        return replace(self, state=st, counts={k: v[idx] for k, v in self.counts.items()})
+
+
+def fit_streams(arm: ArmModel) -> list[str]:
+    """The streams a fit (calibrate sensors, diagnose) needs of a recording: the encoders and
+    every stream of the config's sensors that it fits."""
+    return ["enc", *(s for s in stream_models(arm) if s not in FIT_STREAMS_EXCLUDED)]
+
+
+def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndarray | None = None,
+                        streams: Sequence[str] | None = None,
+                        t_range_s: tuple[float, float] | None = None, nodes: int = 1,
+                        stances: bool = False) -> FitData:
+    """Window means of every stream on the encoders' time grid.
+
+    ``stances=True`` finds where the chair stands parked (:func:`parked_stances`, from the
+    IMU's gyro and accelerometer): each parked stretch gets its own base attitude in the fit
+    and the windows while the chair moves between them are left out. A recording on a chair
+    that never moves gives one stance and every window, as ``stances=False``.
+
+    ``nodes=2`` evaluates the model at each window's two Gauss-Legendre nodes and averages
+    them (twice the model evaluations): the mean of a reading over its window then carries
+    no bias from the motion within the window (``nodes=1``: a sinusoid's mean is its middle
+    value times ``1 - (Δq)²/24``, which a fit takes for a scale error of that size).
+
+    Joint angles are ``q_ref + encoder angle`` (default ``q_ref``: :func:`start_pose`).
+    Averaging ``window`` samples divides the noise by √window; the model is evaluated at the
+    window's mean angles, which differs from the mean of the readings by about
+    ``(Δq)²/24`` of a joint's sweep Δq over the window (for the article's 13.9 °/s roll and
+    0.25 s windows: 1.5e-4 g, below the noise of a mean).
+    """
+    enc = rec.get("enc")
+    if enc is None or len(enc) == 0:
+        raise ValueError("the recording has no encoder samples ('enc'): the joint angles of the "
+                         "maneuver are needed")
+    models = stream_models(arm, {s: (rec.get(s).rate_hz or 100.0) if rec.get(s) is not None else 100.0
+                                 for s in stream_models(arm)})
+    t = np.asarray(enc.t_s, float)
+    keep = np.ones(len(t), bool)
+    if t_range_s is not None:
+        keep = (t >= t_range_s[0]) & (t <= t_range_s[1])
+    t = t[keep]
+    q_enc = models["enc"].from_counts(enc.values[keep])
+    if q_ref_rad is None:
+        q_ref_rad = start_pose(arm, rec)
+    q = np.asarray(q_ref_rad, float) + q_enc
+    names = [s for s in models if s not in FIT_STREAMS_EXCLUDED] if streams is None else list(streams)
+    counts, sig = {}, {}
+    w = max(1, int(window))
+    n = len(t) // w
+    if n < 2:
+        raise ValueError(f"too few samples ({len(t)}) for windows of {w}")
+
+    def mean(a: np.ndarray) -> np.ndarray:
+        a = a[: n * w]
+        return a.reshape(n, w, *a.shape[1:]).mean(1)
+
+    reach = np.zeros(len(t) + 1, int)  # instants a saturated sample reaches (below)
+    saturated: dict[str, int] = {}
+    for s in names:
+        st = rec.get(s)
+        if st is None or len(st) == 0:
+            continue
+        v = np.asarray(st.values, float)
+        ts = np.asarray(st.t_s, float)
+        sat = np.flatnonzero(models[s].saturated(v).any(axis=1))
+        if len(sat):  # its window is left out: the instants strictly between its neighbours
+            saturated[s] = len(sat)
+            before = np.where(sat > 0, ts[np.maximum(sat - 1, 0)], -np.inf)
+            after = np.where(sat < len(ts) - 1, ts[np.minimum(sat + 1, len(ts) - 1)], np.inf)
+            i0, i1 = np.searchsorted(t, before, "right"), np.searchsorted(t, after, "left")
+            np.add.at(reach, i0[i1 > i0], 1)
+            np.add.at(reach, i1[i1 > i0], -1)
+        if len(ts) != len(enc.t_s) or not np.allclose(ts, enc.t_s):
+            v = np.stack([np.interp(t, ts, v[:, k]) for k in range(v.shape[1])], 1)
+        else:
+            v = v[keep]
+        counts[s] = mean(v)
+        sig[s] = models[s].sigma_counts / np.sqrt(w)
+    temp = 25.0
+    ts = rec.get("imu_temp")
+    if ts is not None and len(ts):
+        tc = models["imu_temp"].from_counts(np.asarray(ts.values, float))[:, 0]
+        temp = mean(np.interp(t, np.asarray(ts.t_s, float), tc))
+    stance = used = None
+    note = ""
+    if stances:
+        stance, used = parked_stances(arm, rec, mean(t), w)
+        if stance is not None:
+            note = (f"; {int(stance.max()) + 1} parked stances, each its own base attitude "
+                    f"({int((~used).sum())} windows left out while the chair moved)")
+    if nodes not in (1, 2):
+        raise ValueError(f"nodes must be 1 or 2, not {nodes!r}")
+    if nodes == 1:
+        state = MotionState.from_samples(mean(t), mean(q), None, 0.0, temp)
+        data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
+                       f"window means of {w} samples" + note, stance=stance, used=used)
+    else:
+        tw = t[: n * w].reshape(n, w)
+        dt = (tw[:, -1] - tw[:, 0]) * w / max(w - 1, 1)  # the window's length
+        tn = (tw.mean(1)[:, None] + dt[:, None] / (2 * np.sqrt(3)) * np.array([-1.0, 1.0])).ravel()
+        qn = np.stack([np.interp(tn, t, q[:, j]) for j in range(q.shape[1])], 1)
+        tempn = np.repeat(np.broadcast_to(temp, (n,)), 2)
+        state = MotionState.from_samples(tn, qn, None, 0.0, tempn)
+        data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
+                       f"window means of {w} samples (model at two nodes per window)" + note, nodes=2,
+                       stance=stance, used=used)
+    if saturated:  # a window holding a saturated sample (or interpolated from one) is left out
+        bad = (np.cumsum(reach)[: n * w] > 0).reshape(n, w).any(axis=1)
+        if int((~bad).sum()) < 2:
+            raise ValueError(f"every window of {w} samples holds a saturated sample (a channel at its "
+                             f"register limit: " + ", ".join(f"{s} {k:,}" for s, k in saturated.items())
+                             + "): nothing left to fit")
+        data = replace(data.subset(np.flatnonzero(~bad)), saturated_samples=saturated,
+                       saturated_windows=int(bad.sum()),
+                       note=data.note + f"; {int(bad.sum()):,} of {n:,} windows left out: they hold "
+                       "saturated samples (" + ", ".join(f"{s} {k:,}" for s, k in saturated.items()) + ")")
+    return data
+
+
+def parked_stances(arm: ArmModel, rec, t_windows_s: np.ndarray, window: int,
+                   rate_threshold_rad_s: float = 0.3 * DEG, accel_threshold_g: float = 0.005,
+                   margin_s: float = 1.0, min_stance_s: float = 10.0):
+    """Where the chair stands parked: per window (``t_windows_s``, means of ``window``
+    encoder samples), the stance it belongs to and whether it is parked.
+
+    The chair moves where the IMU's gyro departs from its median (the gyro bias: a
+    calibration stands parked most of the time) by more than ``rate_threshold_rad_s`` on
+    some axis, or where its accelerometer's window mean changes from one window to the next
+    by more than ``accel_threshold_g`` (rolling onto a slope, driving); the arm's own motion
+    moves neither. Those windows, ``margin_s`` either side and parked stretches shorter than
+    ``min_stance_s`` are left out. Every window gets the nearest stance (so a time
+    derivative across the edge of a stance sees one attitude). Returns ``(stance, used)``,
+    or ``(None, None)`` when the chair never moves (one stance, every window).
+    """
+    if arm.imu is None:
+        raise ValueError("finding the parked stances needs the base IMU's gyro and accelerometer")
+    models = stream_models(arm)
+    n = len(t_windows_s)
+    moving = np.zeros(n, bool)
+    for name, thr, diff in (("imu_gyro", rate_threshold_rad_s, False), ("imu_acc", accel_threshold_g, True)):
+        st = rec.get(name)
+        if st is None or len(st) == 0:
+            raise ValueError(f"finding the parked stances needs the IMU's {name!r} stream")
+        v = models[name].from_counts(np.asarray(st.values, float))
+        ts = np.asarray(st.t_s, float)
+        # the stream's mean over each window, on the windows' own instants
+        half = 0.5 * window * np.median(np.diff(ts)) if len(ts) > 1 else 0.0
+        cs = np.vstack([np.zeros((1, v.shape[1])), np.cumsum(v, 0)])
+        a = np.searchsorted(ts, t_windows_s - half)
+        b = np.maximum(np.searchsorted(ts, t_windows_s + half), a + 1)
+        b = np.minimum(b, len(ts))
+        m = (cs[b] - cs[a]) / np.maximum(b - a, 1)[:, None]
+        if diff:
+            d = np.zeros(n)
+            d[1:] = np.max(np.abs(np.diff(m, axis=0)), 1)
+            moving |= d > thr
+            moving[:-1] |= d[1:] > thr
+        else:
+            moving |= np.max(np.abs(m - np.median(m, 0)), 1) > thr
+    if not moving.any():
+        return None, None
+    dt = float(np.median(np.diff(t_windows_s))) if n > 1 else 1.0
+    pad = int(np.ceil(margin_s / dt))
+    grown = moving.copy()
+    for k in range(1, pad + 1):
+        grown[k:] |= moving[:-k]
+        grown[:-k] |= moving[k:]
+    parked = ~grown
+    # runs of parked windows
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], parked.astype(int), [0]])))
+    runs = [(a, b) for a, b in zip(edges[::2], edges[1::2], strict=True) if (b - a) * dt >= min_stance_s]
+    if not runs:
+        raise ValueError("the chair never stands parked for "
+                         f"{min_stance_s:g} s: no stance to calibrate on")
+    used = np.zeros(n, bool)
+    for a, b in runs:
+        used[a:b] = True
+    # every window to its nearest run (by index distance to the run's ends)
+    idx = np.arange(n)
+    dist = np.stack([np.where(idx < a, a - idx, np.where(idx >= b, idx - b + 1, 0)) for a, b in runs])
+    return np.argmin(dist, 0), used
+
+
+def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
+    """The joint angles at the recording's first sample: the startup calibration on its first
+    ``window_s`` (the arm must be still), the ready pose for joints it cannot tell."""
+    from fusion.startup.solve import readings_from_recording, solve_still
+
+    q = np.array(arm.ready_pose_rad, float)
+    try:
+        t0 = rec.t_start_s
+        readings, _ = readings_from_recording(arm, rec, t0, t0 + window_s, window_s)
+        res = solve_still(arm, readings, propose_unlock=False)
+    except Exception:  # noqa: BLE001 - no still start: the ready pose
+        return q
+    enc = rec.get("enc")
+    models = stream_models(arm)
+    e = models["enc"].from_counts(enc.values[:1])[0] if enc is not None and len(enc) else 0.0
+    geo = np.array([je.angle_rad if je.angle_rad is not None else np.nan for je in res.joints])
+    if res.candidates_rad is not None and len(res.candidates_rad) > 1:
+        # rival branches the still start cannot tell apart: this is only where the fit
+        # starts, and a calibration maneuver starts from the arm's ready pose: the candidate
+        # nearest it (the fit's residuals then say whether it was the right one)
+        amb = np.array([je.flag == "ambiguous" for je in res.joints])
+        d = np.abs(wrap_angle(res.candidates_rad - q))[:, amb].sum(1)
+        geo[amb] = res.candidates_rad[int(np.argmin(d))][amb]
+    for j in np.flatnonzero(np.isfinite(geo)):
+        q[j] = geo[j] - (e[j] if np.ndim(e) else 0.0)
+    return q
+
+
+def joint_references(arm: ArmModel, rec, specs: Sequence[tuple[str, float, float, float | int | None]]
+                     ) -> tuple[JointReference, ...]:
+    """One-time references from ``specs``: ``(joint, angle_rad, sigma_rad, when)``, ``when``
+    ``None`` (the recording's first still segment), an ``int`` k (its k-th still segment,
+    from 1) or a ``float`` time (s, on the recording's clock; the still segment that holds
+    it). The arm must be still there (``fusion.startup.static.find_static_segments``); the encoder
+    angles are their mean over that segment."""
+    from fusion.startup.static import find_static_segments
+
+    if not specs:
+        return ()
+    enc = rec.get("enc")
+    if enc is None or len(enc) == 0:
+        raise ValueError("a joint reference needs the recording's encoder samples ('enc')")
+    segs = find_static_segments(rec)
+    q_enc = stream_models(arm)["enc"].from_counts(np.asarray(enc.values, float))
+    t_enc = np.asarray(enc.t_s, float)
+    seen: set[str] = set()
+    out = []
+    for joint, angle, sigma, when in specs:
+        if joint not in arm.joint_names:
+            raise ValueError(f"--reference: no joint {str(joint)[:20]!r} on {arm.name} "
+                             f"(joints: {', '.join(arm.joint_names)})")
+        if joint in seen:
+            raise ValueError(f"--reference: {joint} given twice")
+        seen.add(joint)
+        j = arm.joint_names.index(joint)
+        lo, hi = float(arm.min_rad[j]), float(arm.max_rad[j])
+        if not (np.isfinite(angle) and lo - 1e-9 <= angle <= hi + 1e-9):
+            raise ValueError(f"--reference {joint}: {np.degrees(angle):.6g}° is outside its limits "
+                             f"({np.degrees(lo):.1f}° to {np.degrees(hi):.1f}°)")
+        if not (np.isfinite(sigma) and 0 < sigma < 10 * DEG):
+            raise ValueError(f"--reference {joint}: σ must be a positive number of degrees below 10, "
+                             f"got {np.degrees(sigma):.3g}")
+        listing = ", ".join(f"{s.t_start_s:.1f}-{s.t_end_s:.1f} s" for s in segs[:6]) + (
+            " …" if len(segs) > 6 else "")
+        if not segs:
+            raise ValueError(f"--reference {joint}: the recording has no still segment (every sensor "
+                             "and encoder quiet for 1 s): the reference must hold while the arm is still")
+        if when is None:
+            seg, where = segs[0], "the first still segment"
+        elif isinstance(when, (int, np.integer)) and not isinstance(when, bool):
+            if not 1 <= when <= len(segs):
+                raise ValueError(f"--reference {joint}: still segment {when} does not exist (the "
+                                 f"recording has {len(segs)}: {listing})")
+            seg, where = segs[when - 1], f"still segment {when}"
+        else:
+            t = float(when)
+            inside = [s for s in segs if s.t_start_s <= t <= s.t_end_s]
+            if not inside:
+                raise ValueError(f"--reference {joint}: the arm is not still at t = {t:.6g} s (still "
+                                 f"segments: {listing})")
+            seg, where = inside[0], f"the still segment at t = {t:g} s"
+        m = (t_enc >= seg.t_start_s) & (t_enc <= seg.t_end_s)
+        out.append(JointReference(joint, float(angle), float(sigma), seg.t_start_s, seg.t_end_s,
+                                  q_enc[m].mean(0), where))
+    return tuple(out)
+
+
+def with_encoder_zeros(model: Model, sigma_rad: float = ENCODER_ZERO_SIGMA_RAD) -> Model:
+    """The model plus a ``joint_offset`` on every joint that lacks one (the recording's unknown
+    encoder zeros), prior σ ``sigma_rad`` on all of them."""
+    arm = model.arm
+    extra = [build_effect(arm, "joint_offset", j) for j in arm.joint_names
+             if f"{j}.joint_offset" not in model.index]
+    sig = {f"{j}.joint_offset": np.array([sigma_rad]) for j in arm.joint_names}
+    return model.with_effects(extra, sigmas=sig)

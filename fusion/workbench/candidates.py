@@ -1,0 +1,243 @@
+"""The candidate effects ranked: the best by their score test refitted (ΔBIC and the
+residual after), the rest by their linearised ΔBIC, each with the effect's description and
+the evidence in words (which input its residual follows, how much of it the candidate
+explains).
+
+A candidate is **significant** when its score test's p-value, Bonferroni-corrected over the
+candidates, is below ``alpha`` and its ΔBIC is negative.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from fusion.identification.data import FitData
+from fusion.identification.identify import identify
+from fusion.identification.problem import FitProblem
+from fusion.identification.result import Identification
+from fusion.identification.settings import IdentifySettings
+from fusion.workbench.residuals import chi2_total
+from fusion.workbench.scores import Linearised, ScoreTests
+from models.effects import EFFECTS, Model
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A library effect the model lacks, at one target, and the evidence for it."""
+
+    effect: str
+    target: str
+    score: float
+    """The score (LM) statistic: the linearised fall of χ² if it were added."""
+    dof: int
+    """Directions of its parameters the data see (better than its prior)."""
+    p_value: float
+    """Bonferroni-corrected over all candidates."""
+    explained: float
+    """Share of the residual beyond the noise it explains (linearised, 0-1)."""
+    delta_bic: float
+    """ΔBIC of adding it (refit, or linearised when not refitted): negative is better."""
+    refitted: bool
+    rms_after: float | None
+    """Whole-model ``rms_ratio`` after the refit (None when not refitted)."""
+    params: dict[str, tuple[float, float]]
+    """Element -> (estimate, σ), in the block's units (refit, else the linearised step)."""
+    units: str
+    significant: bool
+    explanation: str
+    evidence: str
+
+    @property
+    def name(self) -> str:
+        return f"{self.effect}:{self.target}"
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"effect": self.effect, "target": self.target, "delta_bic": round(self.delta_bic, 2),
+                "rms_after": None if self.rms_after is None else round(self.rms_after, 4),
+                "significant": self.significant, "score": round(self.score, 2), "dof": self.dof,
+                "p_value": self.p_value, "explained": round(self.explained, 4),
+                "refitted": self.refitted, "units": self.units,
+                "params": {k: {"value": v, "sigma": s} for k, (v, s) in self.params.items()},
+                "explanation": self.explanation, "evidence": self.evidence}
+
+
+def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, streams: Sequence[str],
+                    settings, say: Callable[[str, float], None]) -> list[Candidate]:
+    """Every candidate the data see, ranked: the best few by the linearised ΔBIC whose score
+    test is significant are refitted (more while none reaches the noise, and the rivals of
+    the best on its target), the rest keep their linearised ΔBIC. ``settings`` is the
+    workbench's :class:`~fusion.workbench.diagnose.DiagnoseSettings`. Refitted first, then by
+    ΔBIC; ties (effects the recording cannot tell apart, e.g. hard and soft iron on a parked
+    chair): the one with fewer parameters first."""
+    st = settings
+    pb = tests.problem
+    K = tests.n_candidates
+    lin = tests.tested
+    out: list[Candidate] = []
+    base_model = fit.model.with_values(fit.model_x)
+    rstride = int(np.ceil(data.n / max(st.refit_points, 2)))
+    sub = data.subset(slice(None, None, rstride)) if rstride > 1 else data
+    n_do = sum(1 for rank, c in enumerate(lin) if rank < st.n_refit
+               and min(1.0, chi2_dist.sf(c.score, c.dof) * K) < st.alpha)
+    done = 0
+    best_after = np.inf
+    best_target = None
+    rivals = 0
+    excess = max(tests.chi2 - tests.n_residuals, 1e-300)
+    sm = fit.model.stream_models()
+    for rank, c in enumerate(lin):
+        e, lm, dof, delta, dsig = c.effect, c.score, c.dof, c.delta, c.delta_sigma
+        p = float(min(1.0, chi2_dist.sf(lm, dof) * K))
+        b = pb.model.block(e.block_name)
+        names = b.element_names()
+        # only a significant score can be significant; past the first n_refit, go on while no
+        # refit has reached the noise (the linearised ranking misleads when the current fit
+        # has bent other parameters to take up the missing effect)
+        # and refit the rivals of the best so far: effects on the same sensor or joint often
+        # explain nearly the same (a turned IMU and its accelerometer's axes on a parked chair)
+        rival = best_target == e.target and rivals < st.max_rivals
+        refit = p < st.alpha and (rank < st.n_refit or rival or (
+            rank < st.max_refit and best_after > st.noise_tolerance))
+        if refit and rival and rank >= st.n_refit:
+            rivals += 1
+        if refit:
+            say(f"refitting with {e.block_name}", 0.85 + 0.15 * min(done / max(n_do, 1), 1.0))
+            done += 1
+            chi2_new, new_free, params = _refit(tests, c, fit, base_model, data, sub, streams,
+                                                st.identify)
+            dbic = chi2_new - tests.chi2 + new_free * tests.log_n
+            rms_after = float(np.sqrt(chi2_new / tests.n_residuals))
+            if rms_after < best_after:
+                best_after, best_target = rms_after, e.target
+        else:
+            dbic = -lm + dof * tests.log_n
+            rms_after = None
+            params = {n: (float(delta[q]), float(dsig[q])) for q, n in enumerate(names)}
+        significant = bool(p < st.alpha and dbic < 0)
+        explained = float(min(lm / excess, 1.0)) if tests.chi2 > tests.n_residuals else 0.0
+        evidence = _evidence(tests, c, sm, data, params, b.units, explained)
+        out.append(Candidate(e.name, e.target, lm, dof, p, explained, float(dbic), refit, rms_after,
+                             params, b.units, significant, EFFECTS[e.name].description, evidence))
+    out.sort(key=lambda c: (not c.refitted, float(f"{c.delta_bic:.6g}"), len(c.params)))
+    return out
+
+
+def _refit(tests: ScoreTests, c: Linearised, fit: Identification, base_model: Model, data: FitData,
+           sub: FitData, streams: Sequence[str], identify_settings: IdentifySettings
+           ) -> tuple[float, int, dict[str, tuple[float, float]]]:
+    """The quick refit of candidate ``c``: identify with it added, from the current estimates,
+    on ``sub`` (at most ``refit_points`` evenly spread fit points); the residual evaluated
+    exactly at its estimates over the whole recording. Returns the whole recording's χ²
+    after it, the candidate's free elements and its estimates with σ."""
+    pb, z, e = tests.problem, tests.z, c.effect
+    P0 = fit.model.size
+    b = pb.model.block(e.block_name)
+    names = b.element_names()
+    per = tests.points_per_chunk
+    res = identify(base_model.with_effects([e]), sub, streams, identify_settings,
+                   attitude0_rad=fit.attitude_rad)
+    sl2 = res.model.index[e.block_name]
+    new_free = int((~res.held[sl2]).sum())
+    if sub is data:
+        chi2_new = chi2_total(res)
+    else:
+        att = res.attitude_rad if res.attitude_rad is not None else np.zeros(3)
+        chi2_new = chi2_of(res.model, data, pb.streams, pb.attitude, res.model_x, att, per)
+    shrink = np.sqrt(sub.n / data.n)  # σ of the whole recording from the subsample's
+    params = {n: (float(res.x[sl2][q]), float(res.sigma[sl2][q] * shrink))
+              for q, n in enumerate(names)}
+    if sub is not data:
+        # the subsample's estimates carry its noise into every parameter; where the
+        # problem is nearly linear, one Gauss-Newton step from the current fit on the
+        # whole recording's sums does better: keep whichever fits the recording better
+        cs = c.cols
+        sig_c = pb.sigma0[pb.model.index[e.block_name]]
+        H = c.information + np.diag(1.0 / sig_c**2)
+        Hi = np.linalg.inv(0.5 * (H + H.T))
+        dc = np.clip(-Hi @ tests.g_candidates[cs], b.lower, b.upper)
+        dz = np.zeros(pb.size)
+        dz[tests.fcols] = -tests.AiB[:, cs] @ dc
+        xm = np.concatenate([fit.model_x + dz[:P0], dc])
+        chi2_gn = chi2_of(base_model.with_effects([e]), data, pb.streams, pb.attitude, xm,
+                          z[pb.P:] + dz[pb.P:], per)
+        if chi2_gn < chi2_new:
+            chi2_new = chi2_gn
+            infl = max(1.0, chi2_gn / max(tests.n_residuals - len(tests.fcols) - c.dof, 1))
+            sd = np.sqrt(np.clip(np.diag(Hi), 0, None) * infl)
+            params = {n: (float(dc[q]), float(sd[q])) for q, n in enumerate(names)}
+    return chi2_new, new_free, params
+
+
+def chi2_of(model: Model, data: FitData, streams: Sequence[str], attitude: bool, x: np.ndarray,
+            att: np.ndarray, per: int) -> float:
+    """Σr² of the data residuals of ``model`` at ``x`` (and base attitude ``att``), by chunks
+    of ``per`` points."""
+    total = 0.0
+    z = np.concatenate([x, att if attitude else []])
+    for a0 in range(0, data.n, per):
+        sub = data.subset(slice(a0, a0 + per))
+        r = FitProblem(model, sub, streams, attitude, att, encoder_scale=True).residual(z)
+        total += float(r @ r)
+    return total
+
+
+# --------------------------------------------------------------------------------------
+# the evidence in words
+def _evidence(tests: ScoreTests, c: Linearised, sm: dict, data: FitData,
+              params: dict[str, tuple[float, float]], units: str, explained: float) -> str:
+    """The axis candidate ``c`` changes most, what its residual follows, and how much of it and
+    of the model's excess over the noise the candidate explains (``sm``: the fitted model's
+    stream models)."""
+    e, dr, r = c.effect, c.residual_change, tests.evidence_residual
+    shares = [(float(np.sum(dr[a:a + n * k] ** 2)), s, k, a, n) for s, k, a, n in tests.row_axis]
+    best = max(((float(np.sum(dr[a + q::k][:n] ** 2)), s, q, a, n, k)
+                for _, s, k, a, n in shares for q in range(k)), key=lambda t: t[0])
+    _, s, q, a, n, k = best
+    ra = r[a + q::k][:n]
+    da = dr[a + q::k][:n]
+    axis_expl = float(1.0 - np.sum((ra + da) ** 2) / max(np.sum(ra**2), 1e-300))
+    sensor = sm[s].sensor or s
+    axis_name = f"{s if s.startswith('imu') else sensor}'s {sm[s].channels[q]}"
+    g_phys = float(np.broadcast_to(data.sigma_counts[s], (k,))[q] / np.abs(sm[s].gain[q]))
+    if ra.mean() ** 2 > ra.var():
+        follows = (f"is nearly constant ({_fmt_value(float(ra.mean() * g_phys), sm[s].unit)} "
+                   f"on average)")
+    else:
+        lab, corr = _best_correlate(ra, tests.feature_labels, tests.features)
+        follows = f"follows {lab} (r = {corr:.2f})"
+    return (f"{axis_name} residual {follows}; "
+            f"{EFFECTS[e.name].summary} of {params_words(params, units)} "
+            f"explains {100 * max(axis_expl, 0):.0f} % of that axis's residual and "
+            f"{100 * explained:.0f} % of the model's excess over the noise")
+
+
+def _best_correlate(y: np.ndarray, labels: list[str], F: np.ndarray) -> tuple[str, float]:
+    yc = y - y.mean()
+    Fc = F - F.mean(0)
+    den = np.linalg.norm(Fc, axis=0) * np.linalg.norm(yc)
+    r = np.divide(Fc.T @ yc, den, out=np.zeros(F.shape[1]), where=den > 1e-12 * max(den.max(), 1e-300))
+    i = int(np.argmax(np.abs(r)))
+    return labels[i], float(r[i])
+
+
+def _fmt_value(v: float, units: str) -> str:
+    if units.startswith("rad"):
+        return f"{np.degrees(v):.2g}°{units[3:]}"
+    if units == "g":
+        return f"{v * 1000:.3g} mg"
+    if units.startswith("1 "):
+        return f"{100 * v:.2g} %"
+    return f"{v:.3g} {units}"
+
+
+def params_words(params: dict[str, tuple[float, float]], units: str) -> str:
+    """The largest (in σ) three estimates in words: ``y -1.7° ± 0.004°, …``."""
+    items = sorted(params.items(), key=lambda kv: -abs(kv[1][0]) / max(kv[1][1], 1e-300))
+    parts = [f"{k.split('[')[-1].rstrip(']')} {_fmt_value(v, units)} ± {_fmt_value(s, units)}"
+             for k, (v, s) in items[:3]]
+    return ", ".join(parts)

@@ -1,0 +1,259 @@
+"""The score tests: for every library effect the fitted model lacks, how much χ² would fall
+if it were added, without a refit.
+
+Every candidate is appended at zero (the identity: the prediction is unchanged) to one big
+model, and one Jacobian evaluation, accumulated chunk by chunk over the recording, gives
+all their columns. For each candidate the score (Lagrange-multiplier) test: with the
+weighted residual ``r`` and the candidate's columns ``J_c`` with the fitted parameters'
+columns ``J_f`` projected out (they would re-adjust), ``LM = gᵀ M⁺ g``, ``g = J_cᵀ r``,
+``M = J_c⊥ᵀ J_c⊥``, restricted to the directions the data know better than the candidate's
+prior. Under "nothing is missing" LM is χ² with that many degrees of freedom.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from fusion.identification.data import FitData
+from fusion.identification.problem import FitProblem
+from fusion.identification.result import Identification
+from fusion.identification.settings import IdentifySettings
+from fusion.workbench.residuals import problem_at
+from models.effects import Effect, Model, all_effects
+
+EXCLUDED_CANDIDATES = frozenset({"enc.time_offset"})
+"""The encoders are the time reference: their own delay is every other device's."""
+
+
+def candidate_effects(model: Model, names: Sequence[str] | None) -> list[Effect]:
+    """Every effect of the library (``names``: only those; None: all) on every target it could
+    apply to, that ``model`` lacks."""
+    out = []
+    for e in all_effects(model.arm, names):
+        if e.block_name in model.index or e.block_name in EXCLUDED_CANDIDATES:
+            continue
+        out.append(e)
+    return out
+
+
+class Linearised(NamedTuple):
+    """One candidate's score test and its linearised step."""
+
+    effect: Effect
+    score: float
+    """The LM statistic (0 when only a step outside the bounds would help)."""
+    dof: int
+    """Directions of its parameters the data see better than its prior."""
+    delta: np.ndarray
+    """The linearised step of its parameters, clipped to their bounds."""
+    delta_sigma: np.ndarray
+    residual_change: np.ndarray
+    """The step's change of the evidence points' weighted residual."""
+    information: np.ndarray
+    """``M``: its columns' information with the fitted parameters projected out."""
+    cols: np.ndarray
+    """Its columns among the candidates' (0 = the first candidate column)."""
+
+
+@dataclass(frozen=True)
+class ScoreTests:
+    """The score tests of every candidate, and the sums a refit's Gauss-Newton step reuses."""
+
+    problem: FitProblem
+    """The fitted model with every candidate appended at zero."""
+    z: np.ndarray
+    """Its unknowns at the fit (the candidates at zero)."""
+    fcols: np.ndarray
+    """The fit's free columns."""
+    AiB: np.ndarray
+    """``A⁻¹B``: the fitted parameters' re-adjustment per unit of each candidate column."""
+    g_candidates: np.ndarray
+    """``J_cᵀ r``."""
+    chi2: float
+    """Σ r² of the fit over the whole recording."""
+    n_residuals: int
+    residuals: np.ndarray
+    """``(points, axes)``: the noise-weighted residuals, stream by stream."""
+    points_per_chunk: int
+    n_candidates: int
+    tested: tuple[Linearised, ...]
+    """The candidates the data see, best linearised ΔBIC first."""
+    unseen: tuple[str, ...]
+    """Candidates the recording cannot see at all (no direction known beyond the prior)."""
+    evidence_residual: np.ndarray
+    """The weighted residual at the evidence points (a few thousand, evenly spread)."""
+    feature_labels: list[str]
+    features: np.ndarray
+    """What a residual may follow, at the evidence points (:func:`features`)."""
+    row_axis: list[tuple[str, int, int, int]]
+    """Per stream of the evidence rows: ``(stream, axes, first row, points)``."""
+
+    @property
+    def rms_ratio(self) -> float:
+        return float(np.sqrt(self.chi2 / self.n_residuals))
+
+    @property
+    def log_n(self) -> float:
+        """ln of the residual count: BIC's price of a parameter."""
+        return np.log(self.n_residuals)
+
+
+def features(data: FitData, names: Sequence[str]) -> tuple[list[str], np.ndarray]:
+    """What a residual may follow, at the fit points: each joint's angle, its sine and cosine
+    and its rate, the temperature and time."""
+    st = data.state
+    labels, cols = [], []
+    for j, jn in enumerate(names):
+        q = st.q_rad[:, j]
+        k = jn[1:] if jn.startswith("j") else jn
+        labels += [f"q{k}", f"sin(q{k})", f"cos(q{k})", f"the rate of q{k}"]
+        cols += [q, np.sin(q), np.cos(q), st.qd_rad_s[:, j]]
+    labels += ["the temperature", "time"]
+    cols += [np.broadcast_to(np.asarray(st.temperature_c, float), st.t_s.shape), st.t_s]
+    return labels, np.stack(cols, 1)
+
+
+def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], streams: Sequence[str],
+                identify_settings: IdentifySettings, chunk_rows: int, evidence_points: int,
+                say: Callable[[str, float], None]) -> ScoreTests:
+    """Every candidate's score test at the fit ``fit`` (module docstring); ``chunk_rows``
+    residual rows per chunk of the Jacobian, the evidence read off ``evidence_points``."""
+    m = fit.model
+    pb, z = problem_at(fit, data, cands, streams, identify_settings)
+    P0 = m.size
+    free_old = np.concatenate([~fit.held[:P0], np.zeros(pb.P - P0, bool), ~fit.held[P0:]])
+    fcols = np.flatnonzero(free_old)
+    ccols = np.arange(P0, pb.P)
+    cols = np.concatenate([fcols, ccols])
+    nf = len(fcols)
+    # the sums the score tests need, accumulated over chunks of the recording (memory stays
+    # bounded on long recordings): JfᵀJf, JfᵀJc, JcᵀJc, Jcᵀr, rᵀr, and each point's Σr²
+    n_axes = sum(data.counts[s].shape[1] for s in pb.streams)
+    per = max(20, int(chunk_rows // max(n_axes, 1)))
+    G = np.zeros((len(cols), len(cols)))
+    gv = np.zeros(len(cols))
+    chi2_now = 0.0
+    n_res = 0
+    R = np.zeros((data.n, n_axes))
+    n_chunks = -(-data.n // per)
+    for ci, a0 in enumerate(range(0, data.n, per)):
+        say(f"score tests of {len(cands)} candidates", 0.45 + 0.4 * ci / n_chunks)
+        c2, nr = _sums(pb, data.subset(slice(a0, a0 + per)), z, cols, G, gv, R[a0:a0 + per])
+        chi2_now += c2
+        n_res += nr
+    A = G[:nf, :nf] + np.diag(1.0 / pb.sigma0[fcols] ** 2)
+    B = G[:nf, nf:]
+    CC = G[nf:, nf:]
+    g_all = gv[nf:]
+    AiB = np.linalg.solve(A, B)
+    lnn = np.log(n_res)
+    # the evidence in words is read off a few thousand evenly spread points
+    stride = int(np.ceil(data.n / min(per, evidence_points)))
+    ev = data.subset(slice(None, None, stride)) if stride > 1 else data
+    r, Je = FitProblem(pb.model, ev, pb.streams, pb.attitude, z[pb.P:],
+                       encoder_scale=bool(pb.enc_scale)).jacobian(z, cols)
+    Jperp = Je[:, nf:] - Je[:, :nf] @ AiB
+    feat_labels, F = features(ev, m.arm.joint_names)
+    # row -> (stream, axis) map of the evidence points
+    row_axis: list[tuple[str, int, int, int]] = []  # stream, k, start, n
+    i = 0
+    for s in pb.streams:
+        n, k = ev.counts[s].shape
+        row_axis.append((s, k, i, n))
+        i += n * k
+    lin = []
+    unseen = []
+    for e in cands:
+        sl = pb.model.index[e.block_name]
+        cs = np.arange(sl.start, sl.stop) - P0
+        sig_c = pb.sigma0[sl]
+        Sp = Jperp[:, cs] * sig_c
+        Mc = CC[np.ix_(cs, cs)] - B[:, cs].T @ AiB[:, cs]
+        Ms = Mc * np.outer(sig_c, sig_c)
+        lam, V = np.linalg.eigh(0.5 * (Ms + Ms.T))
+        keep = lam > max(1.0, 1e-9 * lam.max(initial=0.0))
+        if not keep.any():
+            unseen.append(e.block_name)
+            continue
+        gs = V[:, keep].T @ (g_all[cs] * sig_c)
+        lm = float(np.sum(gs**2 / lam[keep]))
+        dof = int(keep.sum())
+        step_s = -V[:, keep] @ (gs / lam[keep])  # in prior-σ units
+        delta = step_s * sig_c
+        lo, hi = pb.lower[sl], pb.upper[sl]
+        if np.all(np.clip(delta, lo, hi) == 0.0):
+            lm = 0.0  # only a step outside the bounds (a negative play or sag) would help
+        delta = np.clip(delta, lo, hi)
+        cov = (V[:, keep] / lam[keep]) @ V[:, keep].T * np.outer(sig_c, sig_c)
+        lin.append(Linearised(e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s,
+                              Mc, cs))
+    lin.sort(key=lambda c: -(c.score - c.dof * lnn))
+    return ScoreTests(pb, z, fcols, AiB, g_all, chi2_now, n_res, R, per, max(len(cands), 1), tuple(lin),
+                      tuple(unseen), r, feat_labels, F, row_axis)
+
+
+def _sums(pb: FitProblem, sub: FitData, z: np.ndarray, cols: np.ndarray, G: np.ndarray, g: np.ndarray,
+          res: np.ndarray) -> tuple[float, int]:
+    """Add one chunk's ``JᵀJ`` (to ``G``) and ``Jᵀr`` (to ``g``) over the columns ``cols``
+    (indices into z), stream by stream with only the columns that reach each stream (most
+    candidates reach one sensor: the products stay small); the noise-weighted residuals go
+    to ``res (N, axes)``, stream by stream.
+    Returns the chunk's ``rᵀr`` and residual count."""
+    m = pb.model
+    P = pb.P
+    spb = FitProblem(m, sub, pb.streams, pb.attitude, z[P:], encoder_scale=bool(pb.enc_scale))
+    pos = np.full(pb.size, -1)
+    pos[cols] = np.arange(len(cols))
+    # encoder scale errors: the fit's joint angles come from the encoders (identify's
+    # ``FitProblem`` scales them); the column is the joint's joint_offset column times
+    # -(encoder angle)/(1 + s)
+    enc = [(b.name, m.effect(b.name).j) for b in m.blocks
+           if b.effect == "encoder_scale" and pos[m.index[b.name].start] >= 0]
+    need = {f"{m.arm.joint_names[j]}.joint_offset" for _, j in enc}
+    blocks = [b.name for b in m.blocks if np.any(pos[m.index[b.name]] >= 0) or b.name in need]
+    st = spb.state(z)
+    pred, jac = m.predict_with_jacobian(st, z[:P], spb.streams, blocks=blocks)
+    att_cols = [c for c in cols if c >= P]
+    att_pred = []
+    for c in att_cols:  # the base attitude: forward differences, as identify does
+        zz = np.array(z, float)
+        zz[c] += 1e-6
+        att_pred.append(m.predict(spb.state(zz), z[:P], spb.streams))
+    chi2, n_res, col = 0.0, 0, 0
+    for s in spb.streams:
+        y = pred[s]
+        N, k = y.shape
+        w = np.broadcast_to(1.0 / sub.sigma_counts[s], (N, k)).ravel()
+        r = (y.ravel() - sub.counts[s].ravel()) * w
+        parts, idx = [], []
+        for b, Jb in jac.get(s, {}).items():
+            p = pos[m.index[b]]
+            keep = p >= 0
+            if keep.any():
+                parts.append(Jb.reshape(N * k, -1)[:, keep])
+                idx.append(p[keep])
+        for b, j in enc:
+            off = f"{m.arm.joint_names[j]}.joint_offset"
+            if off in jac.get(s, {}):
+                c = m.index[b].start
+                q_enc = (st.q_rad[:, j] - sub.q_ref_rad[j]) / (1.0 + z[c])
+                parts.append((jac[s][off][:, :, 0] * -q_enc[:, None]).reshape(N * k, 1))
+                idx.append(np.array([pos[c]]))
+        for c, ap in zip(att_cols, att_pred, strict=True):
+            parts.append(((ap[s] - y).ravel() / 1e-6)[:, None])
+            idx.append(np.array([pos[c]]))
+        if parts:
+            J = np.concatenate(parts, 1) * w[:, None]
+            ix = np.concatenate(idx)
+            G[np.ix_(ix, ix)] += J.T @ J
+            g[ix] += J.T @ r
+        chi2 += float(r @ r)
+        n_res += len(r)
+        res[:, col:col + k] = r.reshape(N, k)
+        col += k
+    return chi2, n_res
+
