@@ -15,7 +15,8 @@ depends on joints 1..k only. Lengths are metres and angles radians inside.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -81,6 +82,67 @@ class DhTable:
 
 
 @dataclass(frozen=True)
+class JointReference:
+    """A one-time joint reference a calibration rests on (``calibrate sensors --reference``):
+    the joint's geometric angle an installer gave, with its sigma and where it was taken."""
+
+    joint: str
+    angle_deg: float
+    sigma_deg: float
+    where: str
+
+
+@dataclass(frozen=True)
+class CorrectionCovariance:
+    """The fit's covariance of one sensor stream's correction: ``matrix_`` over the named
+    model elements ``elements`` (``calibrate sensors --write`` gives it)."""
+
+    elements: tuple[str, ...]
+    matrix: np.ndarray  # (k, k), in the elements' own units
+
+
+@dataclass(frozen=True)
+class ArmCalibration:
+    """The config's ``calibration:`` block, typed: how far the sensors' model is trusted.
+
+    ``accel_unmodelled_g``: every accelerometer's unmodelled error, 1 sigma per axis [g],
+    unless ``accel_unmodelled_g_per_sensor`` names the sensor; the base IMU's accelerometer
+    uses ``imu_accel_unmodelled_g`` when given. ``mag_unmodelled_ut``: the compass's [µT].
+    ``correction_covariance``: per stream, what the fit could not pin. ``references``: the
+    one-time joint references the calibration's joint zeros rest on. An empty block (an
+    uncalibrated config) is all zeros and empty.
+    """
+
+    accel_unmodelled_g: float = 0.0
+    accel_unmodelled_g_per_sensor: Mapping[str, float] = field(default_factory=dict)
+    imu_accel_unmodelled_g: float | None = None
+    mag_unmodelled_ut: float = 0.0
+    correction_covariance: Mapping[str, CorrectionCovariance] = field(default_factory=dict)
+    references: tuple[JointReference, ...] = ()
+
+    def accel_floor_g(self, sensor: str) -> float:
+        """A link accelerometer's unmodelled error [g]: its own, else the common one."""
+        return float(self.accel_unmodelled_g_per_sensor.get(sensor, self.accel_unmodelled_g))
+
+    @property
+    def imu_accel_floor_g(self) -> float:
+        """The base IMU accelerometer's unmodelled error [g]."""
+        own = self.imu_accel_unmodelled_g
+        return float(self.accel_unmodelled_g if own is None else own)
+
+    def with_accel_floor(self, accel_unmodelled_g: float) -> ArmCalibration:
+        """The same calibration with one unmodelled error for every accelerometer (the
+        per-sensor ones dropped), as ``track --unmodelled-g`` and the benchmarks set it."""
+        return replace(self, accel_unmodelled_g=float(accel_unmodelled_g),
+                       accel_unmodelled_g_per_sensor={})
+
+    def as_exact(self) -> ArmCalibration:
+        """The same calibration with nothing unmodelled (no accelerometer floor, no compass
+        floor): sensors exactly as modelled, as a simulation with noise only draws them."""
+        return replace(self.with_accel_floor(0.0), imu_accel_unmodelled_g=None, mag_unmodelled_ut=0.0)
+
+
+@dataclass(frozen=True)
 class ArmModel:
     """A validated arm: joints, sensors, limits and poses. Built once from a config."""
 
@@ -91,7 +153,7 @@ class ArmModel:
     dh: DhTable | None = None
     source: str = ""
     effects: tuple = ()
-    calibration: dict = field(default_factory=dict)
+    calibration: ArmCalibration = field(default_factory=ArmCalibration)
 
     # -- derived views -------------------------------------------------------------
     @property

@@ -16,9 +16,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from models.arm import (
     SENSOR_TYPES,
+    ArmCalibration,
     ArmModel,
+    CorrectionCovariance,
     DhTable,
     Joint,
+    JointReference,
     SensorMount,
     joints_from_dh,
 )
@@ -400,7 +403,23 @@ def build_arm(
         name=arm.name, joints=joints, sensors=sensors,
         ready_pose_rad=_ro(np.array(arm.ready_pose_deg) * DEG), dh=dh_table, source=source,
         effects=tuple(parsed.effects),
-        calibration=parsed.calibration.model_dump(exclude_none=True, exclude_unset=True),
+        calibration=_calibration(parsed.calibration),
+    )
+
+
+def _calibration(section: CalibrationSection) -> ArmCalibration:
+    """The validated ``calibration:`` block as the typed object the estimators read."""
+    identified = section.identified
+    return ArmCalibration(
+        accel_unmodelled_g=float(section.accel_unmodelled_g or 0.0),
+        accel_unmodelled_g_per_sensor=dict(section.accel_unmodelled_g_per_sensor or {}),
+        imu_accel_unmodelled_g=section.imu_accel_unmodelled_g,
+        mag_unmodelled_ut=float(section.mag_unmodelled_ut or 0.0),
+        correction_covariance={
+            stream: CorrectionCovariance(tuple(c.elements), _ro(np.array(c.matrix, dtype=float)))
+            for stream, c in (section.correction_covariance or {}).items()},
+        references=tuple(JointReference(r.joint, r.angle_deg, r.sigma_deg, r.where)
+                         for r in (identified.references if identified else ())),
     )
 
 

@@ -336,8 +336,8 @@ def main(argv=None) -> None:
         moved = after_move(cal, base, a.seed, q, tilt, offset, geo, rng)
         ignored = sum(g.prior_used == "none" for g in geo) if key != "none" else 0
         prior_rows.append((key, rows, flags_, moved, ignored))
-    floor = cal.calibration.get("accel_unmodelled_g", 0.0)
-    per = cal.calibration.get("accel_unmodelled_g_per_sensor", {})
+    floor = cal.calibration.accel_unmodelled_g
+    per = cal.calibration.accel_unmodelled_g_per_sensor
     answered = [r for r in after if r["ok_pct"] > 0]
     worst = max((r["rms_ok_deg"] for r in answered), default=np.nan)
     never = [r["joint"] for r in after if r["ok_pct"] == 0]

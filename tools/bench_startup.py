@@ -262,14 +262,14 @@ def main() -> None:
     a = ap.parse_args()
     arm = load_arm(a.config)
     if not a.realistic:  # the sensors are exactly as configured: no unmodelled error
-        arm = dataclasses.replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": 0.0})
+        arm = dataclasses.replace(arm, calibration=arm.calibration.with_accel_floor(0.0))
     rng = np.random.default_rng(a.seed)
     q, tilt = draw_poses(arm, a.poses, rng)
     means = simulate_means(arm, q, tilt, rng, realistic=a.realistic, seed=a.seed)
     st = StartupSettings()
     kind = "realistic: datasheet-typical unmodelled sensor errors" if a.realistic else \
         "sensors exactly as configured"
-    floor = arm.calibration.get("accel_unmodelled_g", 0.0)
+    floor = arm.calibration.accel_unmodelled_g
     flag = " --realistic" if a.realistic else ""
     head = [f"## Startup calibration, {kind} (`tools/bench_startup.py{flag}`)",
             "",

@@ -58,8 +58,7 @@ from tools.benchdoc import machine_line, write_section  # noqa: E402
 def calibrated_wmra():
     """The WMRA with calibrated sensors (the simulation adds noise only)."""
     arm = load_arm("wmra")
-    return replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": 0.0,
-                                     "mag_unmodelled_ut": 0.0})
+    return replace(arm, calibration=arm.calibration.as_exact())
 
 
 def with_stream(rec: Recording, name: str, values: np.ndarray) -> Recording:

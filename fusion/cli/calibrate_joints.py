@@ -92,10 +92,9 @@ def calibrate_joints(
                                                    or e.target == getattr(arm.imu, "name", None))]
     if used:
         notes.append("applied from the config: " + ", ".join(used))
-    for ref in ((arm.calibration or {}).get("identified") or {}).get("references") or ():
-        notes.append(f"{ref.get('joint')}'s zero rests on the one-time reference of the sensors' "
-                     f"calibration: {ref.get('joint')} = {ref.get('angle_deg')}° ± {ref.get('sigma_deg')}° "
-                     f"({ref.get('where')})")
+    for ref in arm.calibration.references:
+        notes.append(f"{ref.joint}'s zero rests on the one-time reference of the sensors' "
+                     f"calibration: {ref.joint} = {ref.angle_deg}° ± {ref.sigma_deg}° ({ref.where})")
     unused = [e.block_name for e in corr.model.effects if e.block_name not in used]
     if unused:
         notes.append("not applied to a still arm: " + ", ".join(unused))

@@ -61,8 +61,7 @@ def track(
         config, recording, lambda arm: ["enc", *(a.name for a in arm.link_accelerometers)],
         "track needs (the encoders and every link accelerometer of {source})", json_out)
     if unmodelled_g is not None:
-        arm = replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": unmodelled_g,
-                                        "accel_unmodelled_g_per_sensor": {}})
+        arm = replace(arm, calibration=arm.calibration.with_accel_floor(unmodelled_g))
     notes: list[str] = []
     rec, note = _scoring_truth(rec, recording, arm.joint_names)
     if note:

@@ -150,7 +150,7 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
         model = model.without([e.block_name for e in model.effects if e.name == "joint_offset"])
     accel = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
     th = model.unpack()
-    cov = (getattr(arm, "calibration", None) or {}).get("correction_covariance") or {}
+    cov = arm.calibration.correction_covariance
     maps, spread = {}, {}
     for s in accel + (["imu_mag"] if arm.imu is not None else []):
         # the compass's own map is its soft and hard iron; the arm's steel (mag_arm_disturbance)
@@ -172,9 +172,9 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
         c = cov.get(s)
         if c:  # a calibrated config: the fit's covariance of this sensor's correction
             names = model.element_names()
-            els = [n for n in c["elements"] if n in names]
-            keep = [c["elements"].index(n) for n in els]
-            C = np.asarray(c["matrix"], float)[np.ix_(keep, keep)]
+            els = [n for n in c.elements if n in names]
+            keep = [c.elements.index(n) for n in els]
+            C = c.matrix[np.ix_(keep, keep)]
             lam, V = np.linalg.eigh(0.5 * (C + C.T))
             spread[s] = []
             x0 = model.pack(th)

@@ -46,9 +46,7 @@ class InputCheck:
 def sensor_floor_g(arm: ArmModel, name: str) -> float:
     """The config's unmodelled error of one accelerometer, per axis in g (its own, else the
     arm's)."""
-    cal = arm.calibration if hasattr(arm, "calibration") else {}
-    per = (cal.get("accel_unmodelled_g_per_sensor") or {}).get(name)
-    return float(per if per is not None else cal.get("accel_unmodelled_g", 0.0))
+    return arm.calibration.accel_floor_g(name)
 
 
 def _noise_g(model, n_samples: int) -> np.ndarray:

@@ -396,7 +396,7 @@ def _summary_with_sensor_note(arm: ArmModel, problem: StillWindowProblem,
     if floor_g >= 0.005 and any(j.flag == "ill_conditioned" for j in result.joints):
         text += (f" (the sigmas include the config's unmodelled sensor error, "
                  f"{floor_g * 1000:.0f} mg per axis: calibrating the sensors lowers it)")
-    elif arm.calibration.get("correction_covariance") and any(j.flag == "ill_conditioned"
+    elif arm.calibration.correction_covariance and any(j.flag == "ill_conditioned"
                                                             for j in result.joints):
         text += (" (the sigmas include what the sensors' calibration could not pin: its held "
                  "elements, with the motion that would separate them, in `calibrate sensors`)")

@@ -32,7 +32,7 @@ def compass_unmodelled_ut(arm: ArmModel, model: Model | None = None) -> float:
     s = hard_iron_sigma_ut(model)
     if s is not None:
         return float(np.sqrt(np.sum(s[:2] ** 2)))
-    return float((arm.calibration or {}).get("mag_unmodelled_ut", 0.0) or 0.0)
+    return arm.calibration.mag_unmodelled_ut
 
 
 def compass_unmodelled_rad(arm: ArmModel, field: FieldReference, model: Model | None = None) -> float:

@@ -142,18 +142,12 @@ class Tracker:
             for L1, c1 in corr.spread[IMU_ACC]:
                 var += (np.linalg.solve(L1, m - c1) - y0) ** 2
             return np.maximum(var, 1e-12)
-        cal = self.arm.calibration or {}
-        floor = float(cal.get("imu_accel_unmodelled_g", cal.get("accel_unmodelled_g", 0.0)) or 0.0)
+        floor = self.arm.calibration.imu_accel_floor_g
         return np.full(3, max(floor, 1e-6) ** 2)
 
     def _unmodelled_floor(self) -> np.ndarray:
         """Per accelerometer stream, the config's unmodelled-error floor (g), as startup uses."""
-        cal = self.arm.calibration or {}
-        per = cal.get("accel_unmodelled_g_per_sensor") or {}
-        base = float(cal.get("accel_unmodelled_g", 0.0) or 0.0)
-        out = []
-        for nm in self.link_names:
-            out.append(float(per.get(nm, base)))
+        out = [self.arm.calibration.accel_floor_g(nm) for nm in self.link_names]
         if self._has_imu:
             out.append(0.0)
         return np.array(out)

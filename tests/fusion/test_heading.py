@@ -87,8 +87,7 @@ def test_guard_rejects_then_recovers_like_fusion():
 # --------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def arm(wmra):
-    return replace(wmra, calibration={**wmra.calibration, "accel_unmodelled_g": 0.0,
-                                      "mag_unmodelled_ut": 0.0})
+    return replace(wmra, calibration=wmra.calibration.as_exact())
 
 
 @pytest.fixture(scope="module")

@@ -183,7 +183,7 @@ def test_calibrated_config_makes_the_startup_ok_on_the_same_sensors(arm):
     path = Path(tempfile.mkdtemp()) / "wmra_cal.yaml"
     path.write_text(yaml.safe_dump(calibrated_config(res), sort_keys=False), encoding="utf-8")
     cal = load(str(path))
-    assert cal.calibration["accel_unmodelled_g"] < 0.005  # far below the uncalibrated 45 mg
+    assert cal.calibration.accel_unmodelled_g < 0.005  # far below the uncalibrated 45 mg
     q, tilt = draw_poses(arm, 8, rng)
     # the pose saved at the last clean shutdown, near the truth (checked against the data)
     prior = [StartupPrior.saved_pose(p, sigma_deg=10.0) for p in q + rng.normal(0, np.radians(10.0), q.shape)]

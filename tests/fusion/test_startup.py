@@ -226,7 +226,7 @@ def test_recorded_confident_wrong_answers_are_now_honest(wmra, case):
 
     from fusion.startup.solve import readings_from_counts
 
-    arm = dataclasses.replace(wmra, calibration={**wmra.calibration, "accel_unmodelled_g": 0.0})
+    arm = dataclasses.replace(wmra, calibration=wmra.calibration.with_accel_floor(0.0))
     r = readings_from_counts(arm, {s: np.array(c) for s, c in case["counts"].items()},
                              n_samples=100, rate_hz=100.0)
     res = solve_still(arm, r, prior=StartupPrior.saved_pose(np.radians(case["prior_deg"]), sigma_deg=10),

@@ -28,7 +28,7 @@ from models.simulator import angle_truth, simulate
 
 @pytest.fixture(scope="module")
 def ideal(wmra):
-    return dataclasses.replace(wmra, calibration={**wmra.calibration, "accel_unmodelled_g": 0.0})
+    return dataclasses.replace(wmra, calibration=wmra.calibration.with_accel_floor(0.0))
 
 
 @pytest.fixture(scope="module")

@@ -29,6 +29,7 @@ from fusion.tracking.tracker import (
     make_frames,
     start_from_recording,
 )
+from models.arm import CorrectionCovariance
 from models.motion import MotionState, specific_force
 from models.rotations import DEG, R_from_rpy
 from models.simulator import simulate
@@ -49,8 +50,7 @@ ACCELS = ("acc1", "acc2", "acc3", "acc4", "imu_acc")
 @pytest.fixture(scope="module")
 def arm(wmra):
     """The WMRA with calibrated sensors: the simulation adds nothing but noise."""
-    return replace(wmra, calibration={**wmra.calibration, "accel_unmodelled_g": 0.0,
-                                      "mag_unmodelled_ut": 0.0})
+    return replace(wmra, calibration=wmra.calibration.as_exact())
 
 
 def const_temperature(t):
@@ -516,11 +516,11 @@ def test_a_calibration_s_own_uncertainty_stays_in_the_sigmas(arm):
     (1.7°): however long the chair drives, joint 1 must not be reported better than that,
     nor end beyond 3 of its sigmas. (Read as exact, the IMU once pinned j1 to its error
     within seconds at a sigma of 0.03°.)"""
-    cov = {"imu_acc": {"elements": ["imu.accel_bias[x]", "imu.accel_bias[y]", "imu.accel_bias[z]"],
-                       "matrix": (np.eye(3) * 0.035**2).tolist()}}
+    cov = {"imu_acc": CorrectionCovariance(("imu.accel_bias[x]", "imu.accel_bias[y]", "imu.accel_bias[z]"),
+                                           np.eye(3) * 0.035**2)}
     config_entry = {"effect": "accel_bias", "target": "imu", "params": {"bias_g": [0.0, 0.0, 0.0]}}
     calibrated = replace(arm, effects=(config_entry,),
-                         calibration={**arm.calibration, "correction_covariance": cov})
+                         calibration=replace(arm.calibration, correction_covariance=cov))
     true_entry = {"effect": "accel_bias", "target": "imu", "params": {"bias_g": [0.03, 0.0, 0.0]}}
     T = 40.0
     rec, _ = simulate(arm, scenario(arm, T, still_then(POSE, T), accelerating_chair(T)), seed=3,
@@ -585,10 +585,10 @@ def acc3_known_to_1deg(arm):
     and the arm reaching with that board really turned by about that much: (config, recording)."""
     sig_rad = np.radians(1.0)
     names = ["acc3.mount_rotation[x]", "acc3.mount_rotation[y]", "acc3.mount_rotation[z]"]
-    cov = {"acc3": {"elements": names, "matrix": (np.eye(3) * sig_rad**2).tolist()}}
+    cov = {"acc3": CorrectionCovariance(tuple(names), np.eye(3) * sig_rad**2)}
     config_entry = {"effect": "mount_rotation", "target": "acc3", "params": {"rotvec_rad": [0.0, 0.0, 0.0]}}
     calibrated = replace(arm, effects=(config_entry,),
-                         calibration={**arm.calibration, "correction_covariance": cov})
+                         calibration=replace(arm.calibration, correction_covariance=cov))
     true_entry = {"effect": "mount_rotation", "target": "acc3",
                   "params": {"rotvec_rad": [0.6 * sig_rad, -0.9 * sig_rad, 0.7 * sig_rad]}}
     q2 = POSE + np.radians([10, -15, 20, 15, -20, 25, 30])

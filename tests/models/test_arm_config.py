@@ -150,3 +150,30 @@ def test_urdf_that_is_not_a_chain_is_refused(tmp_path, wmra_dict):
     with pytest.raises(ConfigError, match=r"arm\.urdf: URDF tree\.urdf: link 'b' has 2 child "
                                           r"joints; armfusion needs a serial chain"):
         load_arm(tmp_path / "c.yaml")
+
+
+def test_the_calibration_block_becomes_one_typed_object(wmra, wmra_dict):
+    """What a calibrated config says of its sensors is read as attributes with units, the
+    per-sensor floor winning over the common one, and an uncalibrated config reads as zeros."""
+    assert wmra.calibration.accel_floor_g("acc1") == wmra.calibration.accel_unmodelled_g
+    assert wmra.calibration.references == () and not wmra.calibration.correction_covariance
+    d = copy.deepcopy(wmra_dict)
+    d["calibration"] = {
+        "accel_unmodelled_g": 0.004, "accel_unmodelled_g_per_sensor": {"acc2": 0.001},
+        "mag_unmodelled_ut": 2.5,
+        "correction_covariance": {"acc2": {"elements": ["acc2.accel_bias[x]", "acc2.accel_bias[y]"],
+                                           "matrix": [[1e-6, 0.0], [0.0, 4e-6]]}},
+        "identified": {"references": [{"joint": "j1", "angle_deg": 10.0, "sigma_deg": 0.05,
+                                       "t_start_s": 1.0, "t_end_s": 4.0, "where": "the parking stop"}]},
+    }
+    cal = build_arm(d, "calibrated.yaml").calibration
+    assert (cal.accel_floor_g("acc2"), cal.accel_floor_g("acc1")) == (0.001, 0.004)
+    assert cal.imu_accel_floor_g == 0.004 and cal.mag_unmodelled_ut == 2.5
+    cov = cal.correction_covariance["acc2"]
+    assert cov.elements == ("acc2.accel_bias[x]", "acc2.accel_bias[y]")
+    np.testing.assert_array_equal(cov.matrix, [[1e-6, 0.0], [0.0, 4e-6]])
+    (ref,) = cal.references
+    assert (ref.joint, ref.angle_deg, ref.sigma_deg, ref.where) == ("j1", 10.0, 0.05, "the parking stop")
+    exact = cal.as_exact()
+    assert (exact.accel_floor_g("acc2"), exact.imu_accel_floor_g, exact.mag_unmodelled_ut) == (0.0, 0.0, 0.0)
+    assert exact.references == cal.references

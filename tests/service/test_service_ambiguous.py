@@ -35,7 +35,7 @@ def _scenario(arm, pose, delta, base):
 def test_ambiguous_joints_are_not_tracked_as_known_until_the_proposed_move_resolves_them(
         hub_settings, fusion_node):
     arm = load_arm("wmra")
-    arm = dataclasses.replace(arm, calibration={**arm.calibration, "accel_unmodelled_g": 0.0})
+    arm = dataclasses.replace(arm, calibration=arm.calibration.with_accel_floor(0.0))
     pose = np.radians(POSE_DEG)
     base = ParkedBase(0.6 * DEG, -0.9 * DEG, 0.3)
     # what the startup will say on the still pose, and the move it proposes
