@@ -17,6 +17,7 @@ import numpy as np
 from models.arm import ArmModel
 from models.chain_kernels import chain_poses_batch, chain_table, mount_table, sensor_poses_batch
 from models.rotations import skew
+from models.sensor_kernels import still_readings_batch
 
 
 @dataclass(frozen=True)
@@ -108,20 +109,19 @@ def sensor_poses(
 def gravity_in_sensors(
     arm: ArmModel, q_rad: np.ndarray, up_0: np.ndarray | None = None, names=None
 ) -> np.ndarray:
-    """Static specific force each sensor reads, in g: ``f_S = R_0S^T up_0``, ``(N, S, 3)``.
+    """Static specific force each sensor reads, in g: ``f_S = R_0S^T up_0``, ``(N, S, 3)``
+    (:func:`models.sensor_kernels.still_readings_batch`).
 
     ``up_0`` is world-up in the base frame, shape ``(3,)`` or ``(N, 3)``; default level base.
     """
     R_0S, _ = sensor_poses(arm, q_rad, names)
-    up = _as_up(up_0, R_0S.shape[0])
-    return np.einsum("nsji,nj->nsi", R_0S, up)
+    return still_readings_batch(R_0S, _as_up(up_0, R_0S.shape[0]))
 
 
 def _as_up(up_0, N: int) -> np.ndarray:
-    if up_0 is None:
-        return np.broadcast_to(np.array([0.0, 0.0, 1.0]), (N, 3))
-    up = np.asarray(up_0, dtype=float)
-    return np.broadcast_to(up, (N, 3)) if up.ndim == 1 else up
+    """World-up ``(N, 3)``, contiguous: ``up_0`` of shape ``(3,)`` or ``(N, 3)``, default z."""
+    up = np.array([0.0, 0.0, 1.0]) if up_0 is None else np.asarray(up_0, dtype=float)
+    return np.ascontiguousarray(np.broadcast_to(up, (N, 3)) if up.ndim == 1 else up)
 
 
 def gravity_jacobian(
@@ -139,7 +139,7 @@ def gravity_jacobian(
     R_0S, _ = sensor_poses(arm, q_rad, names, poses=poses)
     N, S = R_0S.shape[:2]
     up = _as_up(up_0, N)
-    f = np.einsum("nsji,nj->nsi", R_0S, up)
+    f = still_readings_batch(R_0S, up)
     a = poses.axis_0
     u = up[:, None, :]
     cross = np.stack([u[..., 1] * a[..., 2] - u[..., 2] * a[..., 1],

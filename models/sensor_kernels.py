@@ -15,6 +15,9 @@
   magnetometer reads ``m`` (base axes) is ``atan2(-h_y, h_x)`` of the de-tilted field ``h =
   Ry(p) Rx(r) m`` (the compiled form of :func:`fusion.tracking.heading.tilt_compensated_heading`,
   before the declination and the wrap).
+- Still accelerometers (:func:`still_readings_batch`, for :func:`models.kinematics.gravity_in_sensors`
+  and :func:`models.kinematics.gravity_jacobian`): the accelerometer's equation with no
+  motion, in g.
 
 Everything is plain float arithmetic on three components, inlined into the kernels that
 call it. Compiled once per machine and cached next to this file (``__pycache__``).
@@ -24,6 +27,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 
@@ -63,3 +67,17 @@ def magnetic_heading_one(m0, m1, m2, sr, cr, sp, cp):  # pragma: no cover - comp
     y1 = cr * m1 - sr * m2
     hx = cp * m0 + sp * (sr * m1 + cr * m2)
     return math.atan2(-y1, hx)
+
+
+@njit(cache=True, nogil=True)
+def still_readings_batch(R_0S, up):  # pragma: no cover - compiled
+    """What still accelerometers read, in g: :func:`specific_force_one` with no motion and
+    ``g = 1`` for every instant and sensor, ``R_0S (N, S, 3, 3)``, world-up ``up (N, 3)`` ->
+    ``(N, S, 3)`` (``R_0S^T up``)."""
+    N, S = R_0S.shape[0], R_0S.shape[1]
+    out = np.empty((N, S, 3))
+    for t in range(N):
+        for s in range(S):
+            out[t, s, 0], out[t, s, 1], out[t, s, 2] = specific_force_one(
+                R_0S[t, s], 0.0, 0.0, 0.0, up[t, 0], up[t, 1], up[t, 2], 1.0)
+    return out
