@@ -74,7 +74,16 @@ def mount_table(R_LS_: np.ndarray, p_LS_m: np.ndarray) -> np.ndarray:
     out = np.empty((S, MOUNT_COLUMNS))
     out[:, R_LS:R_LS + 9] = R.reshape(S, 9)
     out[:, P_LS:P_LS + 3] = p_LS_m
-    return out
+    return kernel_input(out)
+
+
+def kernel_input(a, dtype=np.float64) -> np.ndarray:
+    """``a`` as a contiguous, read-only array (a view: no copy when it already is
+    contiguous), so that each batch kernel is compiled for one signature whatever its
+    caller passes (numba types writable and read-only arrays apart)."""
+    v = np.ascontiguousarray(a, dtype=dtype).view()
+    v.flags.writeable = False
+    return v
 
 
 # --------------------------------------------------------------------------------------

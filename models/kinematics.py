@@ -1,7 +1,9 @@
 """Batched forward kinematics and gravity Jacobians.
 
 Every function takes joint angles ``q_rad`` of shape ``(N, n)`` (N samples or sigma
-points; a single pose is N = 1) and loops only over the n joints, never over N.
+points; a single pose is N = 1). The chain and the sensors' poses and still readings are
+the compiled one-pose equations of :mod:`models.chain_kernels` and
+:mod:`models.sensor_kernels`, looped over N in compiled code; the rest is NumPy over N.
 
 Conventions: frame 0 is the arm base. ``up_0`` is the world "up" direction expressed
 in frame 0 (unit); at rest an accelerometer reads specific force ``f_S = R_0S^T up_0``
@@ -15,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.arm import ArmModel
-from models.chain_kernels import chain_poses_batch, chain_table, mount_table, sensor_poses_batch
+from models.chain_kernels import chain_poses_batch, chain_table, kernel_input, mount_table, sensor_poses_batch
 from models.rotations import skew
 from models.sensor_kernels import still_readings_batch
 
@@ -45,7 +47,7 @@ def _as_q(arm: ArmModel, q_rad: np.ndarray) -> np.ndarray:
 def chain_poses(arm: ArmModel, q_rad: np.ndarray) -> ChainPoses:
     """Forward kinematics of every link frame, batched over N poses (the compiled
     :func:`models.chain_kernels.pose_one` at each pose: its docstring has the equation)."""
-    q = np.ascontiguousarray(_as_q(arm, q_rad))
+    q = kernel_input(_as_q(arm, q_rad))
     return ChainPoses(*chain_poses_batch(q, chain_table(arm), bool(arm.chain.axis_is_z)))
 
 
@@ -103,7 +105,8 @@ def sensor_poses(
     poses = chain_poses(arm, q_rad) if poses is None else poses
     links, R_LS, p_LS = _mount_arrays(arm, names)
     mounts = _mount_table(arm, names, R_LS, p_LS)
-    return sensor_poses_batch(poses.R_0L, poses.p_0L_m, links, mounts)
+    c = kernel_input
+    return sensor_poses_batch(c(poses.R_0L), c(poses.p_0L_m), c(links, np.int64), mounts)
 
 
 def gravity_in_sensors(
@@ -115,13 +118,13 @@ def gravity_in_sensors(
     ``up_0`` is world-up in the base frame, shape ``(3,)`` or ``(N, 3)``; default level base.
     """
     R_0S, _ = sensor_poses(arm, q_rad, names)
-    return still_readings_batch(R_0S, _as_up(up_0, R_0S.shape[0]))
+    return still_readings_batch(kernel_input(R_0S), _as_up(up_0, R_0S.shape[0]))
 
 
 def _as_up(up_0, N: int) -> np.ndarray:
-    """World-up ``(N, 3)``, contiguous: ``up_0`` of shape ``(3,)`` or ``(N, 3)``, default z."""
+    """World-up ``(N, 3)``, a kernel input: ``up_0`` of shape ``(3,)`` or ``(N, 3)``, default z."""
     up = np.array([0.0, 0.0, 1.0]) if up_0 is None else np.asarray(up_0, dtype=float)
-    return np.ascontiguousarray(np.broadcast_to(up, (N, 3)) if up.ndim == 1 else up)
+    return kernel_input(np.broadcast_to(up, (N, 3)) if up.ndim == 1 else up)
 
 
 def gravity_jacobian(
@@ -139,7 +142,7 @@ def gravity_jacobian(
     R_0S, _ = sensor_poses(arm, q_rad, names, poses=poses)
     N, S = R_0S.shape[:2]
     up = _as_up(up_0, N)
-    f = still_readings_batch(R_0S, up)
+    f = still_readings_batch(kernel_input(R_0S), up)
     a = poses.axis_0
     u = up[:, None, :]
     cross = np.stack([u[..., 1] * a[..., 2] - u[..., 2] * a[..., 1],

@@ -30,7 +30,13 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from models.arm import ArmModel
-from models.chain_kernels import chain_table, link_motion_batch, mount_table, sensor_motion_batch
+from models.chain_kernels import (
+    chain_table,
+    kernel_input,
+    link_motion_batch,
+    mount_table,
+    sensor_motion_batch,
+)
 from models.kinematics import chain_poses, sensor_indices
 from models.rotations import GRAVITY_MPS2, R_from_rpy, rpy_from_R
 
@@ -248,7 +254,7 @@ def link_motion(arm: ArmModel, state: MotionState) -> LinkMotion:
     ``a_P = a_O + ω̇ x r + ω x (ω x r)``.
     """
     state = _as_state(arm, state)
-    c = np.ascontiguousarray
+    c = kernel_input
     R_0L, p_0L, om, al, ve, ac, axis_0, o_0, v_o, a_o = link_motion_batch(
         c(state.q_rad), c(state.qd_rad_s), c(state.qdd_rad_s2), c(state.omega_B_rad_s),
         c(state.omega_dot_B_rad_s2), c(state.accel_B_mps2), chain_table(arm), bool(arm.chain.axis_is_z))
@@ -304,9 +310,10 @@ def sensor_motion(
     idx = sensor_indices(arm, names)
     names = tuple(arm.sensors[i].name for i in idx)
     links, R_LS, p_LS = _mounts(arm, idx, R_LS, p_LS_m)
+    c = kernel_input
     R_0S, p_0S, vel, acc, f, om = sensor_motion_batch(
-        lm.R_0L, lm.p_0L_m, lm.omega, lm.alpha, lm.vel, lm.acc, links, mount_table(R_LS, p_LS),
-        np.ascontiguousarray(state.up_0), GRAVITY_MPS2)
+        c(lm.R_0L), c(lm.p_0L_m), c(lm.omega), c(lm.alpha), c(lm.vel), c(lm.acc), c(links, np.int64),
+        mount_table(R_LS, p_LS), c(state.up_0), float(GRAVITY_MPS2))
     return SensorMotion(names, links, R_0S, p_0S, vel, acc, f, om)
 
 

@@ -14,17 +14,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.rotations import TWO_PI
+from models.rotations import TWO_PI, up_from_tilt
 
 
 def accel_points_numpy(X: np.ndarray, sel: np.ndarray, links: np.ndarray, axes: np.ndarray,
                        offset_ref: np.ndarray, motion_mps2: np.ndarray, R_0S: np.ndarray, imu_index: int,
                        roll: int, accel: int, imu_bias: int, g_mps2: float) -> np.ndarray:
-    """The accelerometer columns of :func:`fusion.tracking.tracker_kernels.measurement_points`, in NumPy: each joint's
-    ``E_j = I + sin d_j K_j + (1 - cos d_j) K_j²`` for every point, multiplied out per sensor."""
+    """The accelerometer columns of :func:`fusion.tracking.tracker_kernels.measurement_points`,
+    in NumPy: each joint's ``E_j = I + sin d_j K_j + (1 - cos d_j) K_j²`` for every point,
+    multiplied out per sensor."""
     N, n_joints = X.shape[0], axes.shape[0]
-    r, p = X[:, roll], X[:, roll + 1]
-    up = np.stack([-np.sin(p), np.sin(r) * np.cos(p), np.cos(r) * np.cos(p)], axis=1)
+    up = up_from_tilt(X[:, roll], X[:, roll + 1])  # (N, 3)
     base = g_mps2 * up + X[:, accel:accel + 3]  # (N, 3)
     Kj = np.zeros((n_joints, 3, 3))
     Kj[:, 0, 1], Kj[:, 0, 2], Kj[:, 1, 2] = -axes[:, 2], axes[:, 1], -axes[:, 0]
@@ -46,8 +46,8 @@ def accel_points_numpy(X: np.ndarray, sel: np.ndarray, links: np.ndarray, axes: 
 
 def process_points_numpy(X: np.ndarray, dt: float, w: np.ndarray, have_w: bool, roll: int, yaw: int,
                          bias: int, accel: int, accel_decay: float) -> np.ndarray:
-    """:func:`fusion.tracking.tracker_kernels.process_points` in NumPy. The Euler-angle rates turn the body rates' (y, z)
-    pair by the roll: with ``u = e^{i roll} (w_y + i w_z)``, roll rate
+    """:func:`fusion.tracking.tracker_kernels.process_points` in NumPy. The Euler-angle rates
+    turn the body rates' (y, z) pair by the roll: with ``u = e^{i roll} (w_y + i w_z)``, roll rate
     ``w_x + Im u tan(pitch)``, pitch rate ``Re u``, yaw rate ``Im u / cos(pitch)``."""
     Y = X.copy()
     if have_w:

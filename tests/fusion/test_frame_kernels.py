@@ -2,7 +2,8 @@
 
 :func:`fusion.tracking.frame_kernels.frame_one` (through :class:`FrameConstants`) against
 :func:`fusion.tracking.tracker.make_frames` for one instant, field by field and to the bit
-(both call the compiled equations of :mod:`models.chain_kernels`), at seeded random states: motion on and off, a calibrated config's joint effects, and joint axes that are
+(both call the compiled equations of :mod:`models.chain_kernels`), at seeded random
+states: motion on and off, a calibrated config's joint effects, and joint axes that are
 not z (the chain's general path). The compiled differentiator against
 :func:`fusion.tracking.tracker.causal_poly_fit`. Then the tracker's live path
 (:meth:`Tracker.update_instant`) with both compiled against the same tracker with the
