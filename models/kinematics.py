@@ -122,9 +122,10 @@ def gravity_in_sensors(
 
 
 def _as_up(up_0, N: int) -> np.ndarray:
-    """World-up ``(N, 3)``, a kernel input: ``up_0`` of shape ``(3,)`` or ``(N, 3)``, default z."""
+    """World-up ``(N, 3)``, a kernel input: ``up_0`` of shape ``(3,)``, ``(1, 3)`` or ``(N, 3)``
+    (anything else is refused by the broadcast), default z."""
     up = np.array([0.0, 0.0, 1.0]) if up_0 is None else np.asarray(up_0, dtype=float)
-    return kernel_input(np.broadcast_to(up, (N, 3)) if up.ndim == 1 else up)
+    return kernel_input(np.broadcast_to(up, (N, 3)))
 
 
 def gravity_jacobian(

@@ -310,6 +310,13 @@ def sensor_motion(
     idx = sensor_indices(arm, names)
     names = tuple(arm.sensors[i].name for i in idx)
     links, R_LS, p_LS = _mounts(arm, idx, R_LS, p_LS_m)
+    S, N = len(idx), state.N
+    if R_LS.shape != (S, 3, 3) or p_LS.shape != (S, 3):
+        raise ValueError(f"sensor_motion: mounts for {S} sensors must have shapes ({S}, 3, 3) and ({S}, 3), "
+                         f"got {R_LS.shape} and {p_LS.shape}")
+    if lm.R_0L.shape != (N, arm.n_joints + 1, 3, 3):
+        raise ValueError(f"sensor_motion: the link motion is of {lm.R_0L.shape[0]} instants, "
+                         f"the state of {N}")
     c = kernel_input
     R_0S, p_0S, vel, acc, f, om = sensor_motion_batch(
         c(lm.R_0L), c(lm.p_0L_m), c(lm.omega), c(lm.alpha), c(lm.vel), c(lm.acc), c(links, np.int64),

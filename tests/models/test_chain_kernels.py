@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from models.kinematics import chain_poses, sensor_poses
+from models.kinematics import chain_poses, gravity_in_sensors, sensor_poses
 from models.motion import MotionState, cross, link_motion, sensor_motion
 from models.rotations import GRAVITY_MPS2, R_from_rpy, exp_so3, up_from_tilt
 from models.sensor_kernels import magnetic_heading_one, specific_force_one, tilt_up
@@ -143,3 +143,15 @@ def test_the_accelerometer_and_compass_equations(rng):
         m_B = R_from_rpy(roll, pitch, yaw).T @ B_W
         heading = magnetic_heading_one(*m_B, sr, cr, sp, cp)
         assert abs((heading - yaw + np.pi) % (2 * np.pi) - np.pi) < 1e-12
+
+
+def test_mismatched_inputs_are_refused_with_their_shapes(wmra, rng):
+    """The compiled loops index without bounds checks: what does not fit is refused first."""
+    st = moving_state(wmra, rng, N=5)
+    with pytest.raises(ValueError, match=r"mounts for 4 sensors must have shapes \(4, 3, 3\) and \(4, 3\), "
+                                         r"got \(3, 3, 3\) and \(4, 3\)"):
+        sensor_motion(wmra, st, R_LS=np.stack([np.eye(3)] * 3))
+    with pytest.raises(ValueError, match="the link motion is of 5 instants, the state of 2"):
+        sensor_motion(wmra, st.take(slice(0, 2)), lm=link_motion(wmra, st))
+    with pytest.raises(ValueError, match="broadcast"):
+        gravity_in_sensors(wmra, random_poses(wmra, 4, rng), up_0=np.ones((3, 3)))
