@@ -230,7 +230,11 @@ def sensor_pose_one(R_0L, p_0L, k, mount, R_0S, p_0S):  # pragma: no cover - com
     p_LS`` (base axes) as three floats."""
     RL = R_0L[k]
     v0, v1, v2 = mount[P_LS], mount[P_LS + 1], mount[P_LS + 2]
-    r0, r1, r2 = _mv(RL, 0, v0, v1, v2), _mv(RL, 1, v0, v1, v2), _mv(RL, 2, v0, v1, v2)
+    # summed first + third, then second: the order NumPy's einsum (two-lane SIMD) summed the
+    # batch form's lever arms in, so that seeded results did not move when this replaced it
+    r0 = (RL[0, 0] * v0 + RL[0, 2] * v2) + RL[0, 1] * v1
+    r1 = (RL[1, 0] * v0 + RL[1, 2] * v2) + RL[1, 1] * v1
+    r2 = (RL[2, 0] * v0 + RL[2, 2] * v2) + RL[2, 1] * v1
     _mm_rows(RL, mount, R_LS, R_0S)
     p_0S[0], p_0S[1], p_0S[2] = p_0L[k, 0] + r0, p_0L[k, 1] + r1, p_0L[k, 2] + r2
     return r0, r1, r2
