@@ -1,7 +1,9 @@
 """Batched forward kinematics and gravity Jacobians.
 
 Every function takes joint angles ``q_rad`` of shape ``(N, n)`` (N samples or sigma
-points; a single pose is N = 1) and loops only over the n joints, never over N.
+points; a single pose is N = 1). The chain and the sensors' poses and still readings are
+the compiled one-pose equations of :mod:`models.chain_kernels` and
+:mod:`models.sensor_kernels`, looped over N in compiled code; the rest is NumPy over N.
 
 Conventions: frame 0 is the arm base. ``up_0`` is the world "up" direction expressed
 in frame 0 (unit); at rest an accelerometer reads specific force ``f_S = R_0S^T up_0``
@@ -15,8 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.arm import ArmModel
+from models.chain_kernels import chain_poses_batch, chain_table, kernel_input, mount_table, sensor_poses_batch
 from models.gravity_kernels import propagate
-from models.rotations import exp_so3, skew
+from models.rotations import skew
+from models.sensor_kernels import still_readings_batch
 
 
 @dataclass(frozen=True)
@@ -41,50 +45,11 @@ def _as_q(arm: ArmModel, q_rad: np.ndarray) -> np.ndarray:
     return q
 
 
-def _mm_const(R: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """``R @ C`` for a batch ``R (N, 3, 3)`` and one constant ``C (3, 3)``: one GEMM."""
-    return (R.reshape(-1, 3) @ C).reshape(R.shape)
-
-
-def _mv(R: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``R @ v`` for a batch ``R (N, 3, 3)`` and one vector ``v (3,)``."""
-    return (R.reshape(-1, 3) @ v).reshape(R.shape[:-1])
-
-
 def chain_poses(arm: ArmModel, q_rad: np.ndarray) -> ChainPoses:
-    """Forward kinematics of every link frame, batched over N poses."""
-    q = _as_q(arm, q_rad)
-    N, n = q.shape
-    ch = arm.chain
-    theta = q + ch.offset_rad
-    R_0L = np.empty((N, n + 1, 3, 3))
-    p_0L = np.empty((N, n + 1, 3))
-    axis_0 = np.empty((N, n, 3))
-    origin_0 = np.empty((N, n, 3))
-    R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
-    p = np.zeros((N, 3))
-    R_0L[:, 0] = R
-    p_0L[:, 0] = p
-    for i in range(n):
-        # frame just before the joint rotation
-        p = p + _mv(R, ch.p_pre_m[i])
-        R = _mm_const(R, ch.R_pre[i])
-        axis_0[:, i] = _mv(R, ch.axis[i])
-        origin_0[:, i] = p
-        if ch.axis_is_z:  # R @ Rz(theta) touches only the first two columns
-            c, s = np.cos(theta[:, i])[:, None], np.sin(theta[:, i])[:, None]
-            Rn = np.empty_like(R)
-            Rn[:, :, 0] = c * R[:, :, 0] + s * R[:, :, 1]
-            Rn[:, :, 1] = c * R[:, :, 1] - s * R[:, :, 0]
-            Rn[:, :, 2] = R[:, :, 2]
-            R = Rn
-        else:
-            R = R @ exp_so3(ch.axis[i] * theta[:, i, None])
-        p = p + _mv(R, ch.p_post_m[i])
-        R = _mm_const(R, ch.R_post[i])
-        R_0L[:, i + 1] = R
-        p_0L[:, i + 1] = p
-    return ChainPoses(R_0L, p_0L, axis_0, origin_0)
+    """Forward kinematics of every link frame, batched over N poses (the compiled
+    :func:`models.chain_kernels.pose_one` at each pose: its docstring has the equation)."""
+    q = kernel_input(_as_q(arm, q_rad))
+    return ChainPoses(*chain_poses_batch(q, chain_table(arm), bool(arm.chain.axis_is_z)))
 
 
 def forward_kinematics(arm: ArmModel, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -113,10 +78,21 @@ def _mount_arrays(arm: ArmModel, names) -> tuple[np.ndarray, np.ndarray, np.ndar
     hit = cache.get(key)
     if hit is None:
         idx = sensor_indices(arm, names)
-        hit = (np.array([arm.sensors[i].link for i in idx], dtype=int),
+        hit = (np.array([arm.sensors[i].link for i in idx], dtype=np.int64),
                np.stack([arm.sensors[i].R_LS for i in idx]),
                np.stack([arm.sensors[i].p_L_m for i in idx]))
         cache[key] = hit
+    return hit
+
+
+def _mount_table(arm: ArmModel, names, R_LS: np.ndarray, p_LS: np.ndarray) -> np.ndarray:
+    """:func:`models.chain_kernels.mount_table` of the named sensors, made once per arm and
+    name list."""
+    cache = arm.__dict__.setdefault("_mount_table_cache", {})
+    key = None if names is None else tuple(names)
+    hit = cache.get(key)
+    if hit is None:
+        hit = cache[key] = mount_table(R_LS, p_LS)
     return hit
 
 
@@ -129,29 +105,28 @@ def sensor_poses(
     """
     poses = chain_poses(arm, q_rad) if poses is None else poses
     links, R_LS, p_LS = _mount_arrays(arm, names)
-    R_0L = poses.R_0L[:, links]  # (N, S, 3, 3)
-    R_0S = R_0L @ R_LS
-    p_0S = poses.p_0L_m[:, links] + np.einsum("nsij,sj->nsi", R_0L, p_LS)
-    return R_0S, p_0S
+    mounts = _mount_table(arm, names, R_LS, p_LS)
+    c = kernel_input
+    return sensor_poses_batch(c(poses.R_0L), c(poses.p_0L_m), c(links, np.int64), mounts)
 
 
 def gravity_in_sensors(
     arm: ArmModel, q_rad: np.ndarray, up_0: np.ndarray | None = None, names=None
 ) -> np.ndarray:
-    """Static specific force each sensor reads, in g: ``f_S = R_0S^T up_0``, ``(N, S, 3)``.
+    """Static specific force each sensor reads, in g: ``f_S = R_0S^T up_0``, ``(N, S, 3)``
+    (:func:`models.sensor_kernels.still_readings_batch`).
 
     ``up_0`` is world-up in the base frame, shape ``(3,)`` or ``(N, 3)``; default level base.
     """
     R_0S, _ = sensor_poses(arm, q_rad, names)
-    up = _as_up(up_0, R_0S.shape[0])
-    return np.einsum("nsji,nj->nsi", R_0S, up)
+    return still_readings_batch(kernel_input(R_0S), _as_up(up_0, R_0S.shape[0]))
 
 
 def _as_up(up_0, N: int) -> np.ndarray:
-    if up_0 is None:
-        return np.broadcast_to(np.array([0.0, 0.0, 1.0]), (N, 3))
-    up = np.asarray(up_0, dtype=float)
-    return np.broadcast_to(up, (N, 3)) if up.ndim == 1 else up
+    """World-up ``(N, 3)``, a kernel input: ``up_0`` of shape ``(3,)``, ``(1, 3)`` or ``(N, 3)``
+    (anything else is refused by the broadcast), default z."""
+    up = np.array([0.0, 0.0, 1.0]) if up_0 is None else np.asarray(up_0, dtype=float)
+    return kernel_input(np.broadcast_to(up, (N, 3)))
 
 
 def gravity_jacobian(
@@ -169,7 +144,7 @@ def gravity_jacobian(
     R_0S, _ = sensor_poses(arm, q_rad, names, poses=poses)
     N, S = R_0S.shape[:2]
     up = _as_up(up_0, N)
-    f = np.einsum("nsji,nj->nsi", R_0S, up)
+    f = still_readings_batch(kernel_input(R_0S), up)
     a = poses.axis_0
     u = up[:, None, :]
     cross = np.stack([u[..., 1] * a[..., 2] - u[..., 2] * a[..., 1],

@@ -30,6 +30,13 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from models.arm import ArmModel
+from models.chain_kernels import (
+    chain_table,
+    kernel_input,
+    link_motion_batch,
+    mount_table,
+    sensor_motion_batch,
+)
 from models.kinematics import chain_poses, sensor_indices
 from models.rotations import GRAVITY_MPS2, R_from_rpy, rpy_from_R
 
@@ -39,11 +46,6 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
-def _vec(R: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``R @ v`` for ``R (..., 3, 3)`` and ``v (..., 3)`` (or a fixed ``(3,)``)."""
-    return np.einsum("...ij,...j->...i", R, v)
 
 
 def _vecT(R: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -242,7 +244,9 @@ def _as_state(arm: ArmModel, state: MotionState) -> MotionState:
 
 def link_motion(arm: ArmModel, state: MotionState) -> LinkMotion:
     """Outward recursion: pose, angular velocity and acceleration, and the linear velocity
-    and acceleration of every link origin and joint origin, batched over N instants.
+    and acceleration of every link origin and joint origin, batched over N instants (the
+    compiled :func:`models.chain_kernels.pose_one` and :func:`models.chain_kernels.motion_one`
+    at each instant).
 
     For joint i with axis z (base axes) at origin o (fixed in link i-1):
     ``ω_i = ω_{i-1} + z q̇``, ``ω̇_i = ω̇_{i-1} + z q̈ + ω_{i-1} x z q̇``, and any point P
@@ -250,38 +254,10 @@ def link_motion(arm: ArmModel, state: MotionState) -> LinkMotion:
     ``a_P = a_O + ω̇ x r + ω x (ω x r)``.
     """
     state = _as_state(arm, state)
-    N, n = state.N, arm.n_joints
-    poses = chain_poses(arm, state.q_rad)
-    R_0L, p_0L, axis_0, o_0 = poses.R_0L, poses.p_0L_m, poses.axis_0, poses.origin_0_m
-    qd, qdd = state.qd_rad_s, state.qdd_rad_s2
-    om = np.empty((N, n + 1, 3))
-    al = np.empty((N, n + 1, 3))
-    ve = np.empty((N, n + 1, 3))
-    ac = np.empty((N, n + 1, 3))
-    v_o = np.empty((N, n, 3))
-    a_o = np.empty((N, n, 3))
-    w = np.array(state.omega_B_rad_s, dtype=float)
-    wd = np.array(state.omega_dot_B_rad_s2, dtype=float)
-    v = np.zeros((N, 3))
-    a = np.array(state.accel_B_mps2, dtype=float)
-    om[:, 0], al[:, 0], ve[:, 0], ac[:, 0] = w, wd, v, a
-    for i in range(n):
-        # the joint's origin is fixed in the link before it: carry v, a there
-        r = o_0[:, i] - p_0L[:, i]
-        wr = cross(w, r)
-        vo = v + wr
-        ao = a + cross(wd, r) + cross(w, wr)
-        z = axis_0[:, i]
-        zqd = z * qd[:, i, None]
-        wd = wd + z * qdd[:, i, None] + cross(w, zqd)
-        w = w + zqd
-        # then on to the next link's origin, fixed in the link after the joint
-        r2 = p_0L[:, i + 1] - o_0[:, i]
-        wr2 = cross(w, r2)
-        v = vo + wr2
-        a = ao + cross(wd, r2) + cross(w, wr2)
-        v_o[:, i], a_o[:, i] = vo, ao
-        om[:, i + 1], al[:, i + 1], ve[:, i + 1], ac[:, i + 1] = w, wd, v, a
+    c = kernel_input
+    R_0L, p_0L, om, al, ve, ac, axis_0, o_0, v_o, a_o = link_motion_batch(
+        c(state.q_rad), c(state.qd_rad_s), c(state.qdd_rad_s2), c(state.omega_B_rad_s),
+        c(state.omega_dot_B_rad_s2), c(state.accel_B_mps2), chain_table(arm), bool(arm.chain.axis_is_z))
     return LinkMotion(R_0L, p_0L, om, al, ve, ac, axis_0, o_0, v_o, a_o)
 
 
@@ -311,7 +287,7 @@ class SensorMotion:
 
 
 def _mounts(arm: ArmModel, idx: list[int], R_LS=None, p_LS_m=None):
-    links = np.array([arm.sensors[i].link for i in idx], dtype=int)
+    links = np.array([arm.sensors[i].link for i in idx], dtype=np.int64)
     R = np.stack([arm.sensors[i].R_LS for i in idx]) if R_LS is None else np.asarray(R_LS, float)
     p = np.stack([arm.sensors[i].p_L_m for i in idx]) if p_LS_m is None else np.asarray(p_LS_m, float)
     return links, R, p
@@ -327,22 +303,25 @@ def sensor_motion(
 ) -> SensorMotion:
     """Pose, motion and ideal readings of the sensors ``names`` (default: the link
     accelerometers, config order). ``R_LS (S, 3, 3)`` and ``p_LS_m (S, 3)`` override the
-    configured mounts (an effect that moves or turns a sensor on its link)."""
+    configured mounts (an effect that moves or turns a sensor on its link). The compiled
+    :func:`models.chain_kernels.sensor_one` at each instant and sensor (its docstring and
+    :func:`models.sensor_kernels.specific_force_one` have the equations)."""
     lm = link_motion(arm, state) if lm is None else lm
     idx = sensor_indices(arm, names)
     names = tuple(arm.sensors[i].name for i in idx)
     links, R_LS, p_LS = _mounts(arm, idx, R_LS, p_LS_m)
-    R_0L = lm.R_0L[:, links]  # (N, S, 3, 3)
-    r = np.einsum("nsij,sj->nsi", R_0L, p_LS)
-    w, wd = lm.omega[:, links], lm.alpha[:, links]
-    wr = cross(w, r)
-    vel = lm.vel[:, links] + wr
-    acc = lm.acc[:, links] + cross(wd, r) + cross(w, wr)
-    R_0S = R_0L @ R_LS
-    s = acc + GRAVITY_MPS2 * state.up_0[:, None, :]
-    f = _vecT(R_0S, s)
-    om = _vecT(R_0S, w)
-    return SensorMotion(names, links, R_0S, lm.p_0L_m[:, links] + r, vel, acc, f, om)
+    S, N = len(idx), state.N
+    if R_LS.shape != (S, 3, 3) or p_LS.shape != (S, 3):
+        raise ValueError(f"sensor_motion: mounts for {S} sensors must have shapes ({S}, 3, 3) and ({S}, 3), "
+                         f"got {R_LS.shape} and {p_LS.shape}")
+    if lm.R_0L.shape != (N, arm.n_joints + 1, 3, 3):
+        raise ValueError(f"sensor_motion: the link motion is of {lm.R_0L.shape[0]} instants, "
+                         f"the state of {N}")
+    c = kernel_input
+    R_0S, p_0S, vel, acc, f, om = sensor_motion_batch(
+        c(lm.R_0L), c(lm.p_0L_m), c(lm.omega), c(lm.alpha), c(lm.vel), c(lm.acc), c(links, np.int64),
+        mount_table(R_LS, p_LS), c(state.up_0), float(GRAVITY_MPS2))
+    return SensorMotion(names, links, R_0S, p_0S, vel, acc, f, om)
 
 
 def specific_force(arm: ArmModel, state: MotionState, names=None) -> np.ndarray:

@@ -6,7 +6,9 @@ temperature in °C, joint angle in rad) becomes register counts by a nominal gai
 zero, then (only when simulating) noise, rounding and saturation. Everything that makes
 a real sensor differ from its datasheet (bias, scale, axis directions, drift…) is an
 effect (:mod:`models.effects`), applied to the physical value before this step, so that
-it stays estimable.
+it stays estimable. The physical values themselves are what ideal sensors read
+(:func:`models.motion.sensor_motion`): the accelerometer's specific force and the compass's
+heading are written once, compiled, in :mod:`models.sensor_kernels`.
 
 Streams and their models (names as in :mod:`sensors.samples`):
 

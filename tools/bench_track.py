@@ -45,13 +45,13 @@ from fusion.tracking.tracker import (  # noqa: E402
     make_frames,
     start_from_recording,
 )
-from fusion.tracking.tracker_kernels import measurement_points_numpy, process_points_numpy  # noqa: E402
 from fusion.tracking.ukf import repair_covariance, unscented_mean  # noqa: E402
 from models.rotations import DEG, wrap_angle  # noqa: E402
 from models.rotations import GRAVITY_MPS2 as G  # noqa: E402
 from models.sensor_models import AK8975_UT_PER_LSB  # noqa: E402
 from models.simulator import simulate  # noqa: E402
 from sensors.samples import Recording, Stream  # noqa: E402
+from tools.bench_track_numpy import measurement_points_numpy, process_points_numpy  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 
@@ -73,8 +73,8 @@ def filterpy_baseline(arm, rec: Recording, steps: int, model: str = "numpy"):
     """filterpy's UnscentedKalmanFilter on the tracker's model, one sigma point per call.
 
     ``model``: "numpy", the process and measurement functions written in NumPy
-    (:mod:`fusion.tracking.tracker_kernels`' ``*_numpy``: the same equations, as a filterpy user would
-    write them); "compiled", the tracker's own compiled ones (``Tracker.process.fx``,
+    (:mod:`tools.bench_track_numpy`: the same equations, as a filterpy user would write
+    them); "compiled", the tracker's own compiled ones (``Tracker.process.fx``,
     ``Tracker.measurements.h_all``).
 
     Returns (seconds per step (wall clock), CPU seconds per step, the joint errors at the end,
@@ -280,7 +280,7 @@ def main() -> None:
         "1,500 steps, little on filterpy's longer run).",
         "",
         "The baseline runs twice: with the models written in NumPy (the same equations, "
-        "`fusion.tracking.tracker_kernels.process_points_numpy` and `measurement_points_numpy`, as a "
+        "`tools/bench_track_numpy.py`'s `process_points_numpy` and `measurement_points_numpy`, as a "
         "filterpy "
         "user writes them: the issue's plain filterpy UKF), and with the tracker's own compiled "
         "kernels (`Tracker._fx`, `Tracker._h_all`, the code our filter calls), so that what batching "

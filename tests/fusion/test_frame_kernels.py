@@ -1,7 +1,8 @@
-"""The live path's compiled kinematic frame and causal fits equal their NumPy forms.
+"""The live path's compiled kinematic frame and causal fits equal their batch forms.
 
 :func:`fusion.tracking.frame_kernels.frame_one` (through :class:`FrameConstants`) against
-:func:`fusion.tracking.tracker.make_frames` for one instant, field by field, at seeded random
+:func:`fusion.tracking.tracker.make_frames` for one instant, field by field and to the bit
+(both call the compiled equations of :mod:`models.chain_kernels`), at seeded random
 states: motion on and off, a calibrated config's joint effects, and joint axes that are
 not z (the chain's general path). The compiled differentiator against
 :func:`fusion.tracking.tracker.causal_poly_fit`. Then the tracker's live path
@@ -55,6 +56,8 @@ def random_states(arm, rng, count):
 
 
 def assert_frames_equal(got: tuple, ref: Frames) -> None:
+    """Every field the same number: the live frame and make_frames run the same compiled
+    equations (models.chain_kernels), so not even round-off may differ."""
     assert len(got) == len(Frames.FIELDS)
     for name, a, b in zip(Frames.FIELDS, got, ref, strict=True):
         if b is None:
@@ -62,7 +65,7 @@ def assert_frames_equal(got: tuple, ref: Frames) -> None:
             continue
         a, b = np.asarray(a), np.asarray(b)
         assert a.shape == b.shape, (name, a.shape, b.shape)
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12, err_msg=name)
+        np.testing.assert_array_equal(a, b, err_msg=name)
 
 
 def check_against_make_frames(tr: Tracker, rng, motion: bool, count: int = 25) -> None:
@@ -104,7 +107,7 @@ def test_the_compiled_frame_applies_a_calibrated_config_s_joint_effects(arm, eff
 
 
 def test_the_compiled_frame_turns_about_axes_that_are_not_z(arm):
-    """Joint axes tilted off z: the chain's Rodrigues path (models.rotations.exp_so3)."""
+    """Joint axes tilted off z: the chain's Rodrigues path (models.chain_kernels.pose_one)."""
     rng = np.random.default_rng(104)
     axes = [np.array([0.0, 0.0, 1.0]) + rng.normal(0, 0.3, 3) for _ in arm.joints]
     tilted = replace(arm, joints=tuple(replace(j, axis=a / np.linalg.norm(a))

@@ -1,5 +1,8 @@
 """The compiled process and measurement models equal their NumPy form on the same inputs.
 
+The NumPy form is the filterpy baseline's (``tools/bench_track_numpy.py``), written apart
+from the compiled one (whose equations are :mod:`models.sensor_kernels`').
+
 (The measurement model itself is held to the motion model computed from scratch in
 tests/fusion/test_tracker.py; here, that the two implementations of it agree wherever the
 tracker may call them: any subset of sensors in any order, the IMU in or out, the still
@@ -12,12 +15,8 @@ import pytest
 
 from fusion.configfile import load_arm
 from fusion.tracking.tracker import G, Tracker, make_frames
-from fusion.tracking.tracker_kernels import (
-    measurement_points,
-    measurement_points_numpy,
-    process_points,
-    process_points_numpy,
-)
+from fusion.tracking.tracker_kernels import measurement_points, process_points
+from tools.bench_track_numpy import measurement_points_numpy, process_points_numpy
 
 
 @pytest.fixture(scope="module")
