@@ -36,7 +36,10 @@ import numpy as np
 from numba import njit
 
 from models.arm import ArmModel
+from models.rotations import exp_so3_into
 from models.sensor_kernels import specific_force_one, to_sensor_axes
+
+_exp_so3_into = njit(cache=True, nogil=True, inline="always")(exp_so3_into)
 
 # the columns of a chain table: one row per joint
 R_PRE, P_PRE, AXIS, R_POST, P_POST, OFFSET = 0, 9, 12, 15, 24, 27
@@ -151,20 +154,8 @@ def pose_one(q, chain, axis_is_z, R_0L, p_0L, axes, origin):  # pragma: no cover
                 R[r, 1] = ct * T[r, 1] - st * T[r, 0]
                 R[r, 2] = T[r, 2]
         else:  # T exp([v]x), v = axis theta (models.rotations.exp_so3)
-            x, y, z = a0 * th, a1 * th, a2 * th
-            ang = math.sqrt(x * x + y * y + z * z)
-            if ang < 1e-8:
-                sa = 1.0 - ang**2 / 6.0
-                sb = 0.5 - ang**2 / 24.0
-            else:
-                sa = math.sin(ang) / ang
-                sb = (1.0 - math.cos(ang)) / ang**2
-            Kv = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
             E = np.empty((3, 3))
-            for r in range(3):
-                for s in range(3):
-                    kk = Kv[r, 0] * Kv[0, s] + Kv[r, 1] * Kv[1, s] + Kv[r, 2] * Kv[2, s]
-                    E[r, s] = ((1.0 if r == s else 0.0) + sa * Kv[r, s]) + sb * kk
+            _exp_so3_into(a0 * th, a1 * th, a2 * th, E)
             for r in range(3):
                 for s in range(3):
                     R[r, s] = T[r, 0] * E[0, s] + T[r, 1] * E[1, s] + T[r, 2] * E[2, s]

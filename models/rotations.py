@@ -74,6 +74,40 @@ def exp_so3(rotvec_rad: np.ndarray) -> np.ndarray:
     return eye + a * K + b * (K @ K)
 
 
+def skew_into(x: float, y: float, z: float, K: np.ndarray) -> None:
+    """:func:`skew` of one vector ``(x, y, z)`` written into ``K (3, 3)``.
+
+    Scalar arithmetic only, so that numba compiles this same function for its kernels
+    (``fusion.tracking.frame_kernels`` does).
+    """
+    K[0, 0], K[0, 1], K[0, 2] = 0.0, -z, y
+    K[1, 0], K[1, 1], K[1, 2] = z, 0.0, -x
+    K[2, 0], K[2, 1], K[2, 2] = -y, x, 0.0
+
+
+def exp_so3_into(x: float, y: float, z: float, E: np.ndarray) -> None:
+    """:func:`exp_so3` of one rotation vector ``(x, y, z)`` written into ``E (3, 3)``, in
+    the batched form's own order of arithmetic (``(I + a K) + b K K``, the same series below
+    1e-8 rad), so that the compiled chain equals :func:`exp_so3` to the bit.
+
+    Scalar arithmetic only, so that numba compiles this same function for its kernels
+    (``models.chain_kernels`` does). :func:`exp_so3_one` is the faster plain-Python form
+    for one vector, which rounds differently.
+    """
+    ang = math.sqrt(x * x + y * y + z * z)
+    if ang < 1e-8:
+        a = 1.0 - ang**2 / 6.0
+        b = 0.5 - ang**2 / 24.0
+    else:
+        a = math.sin(ang) / ang
+        b = (1.0 - math.cos(ang)) / ang**2
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])  # skew(x, y, z)
+    for r in range(3):
+        for s in range(3):
+            kk = K[r, 0] * K[0, s] + K[r, 1] * K[1, s] + K[r, 2] * K[2, s]
+            E[r, s] = ((1.0 if r == s else 0.0) + a * K[r, s]) + b * kk
+
+
 def exp_so3_one(rotvec_rad) -> np.ndarray:
     """:func:`exp_so3` for ONE rotation vector (an array or three floats), in plain float
     arithmetic: about 9x faster than the batched form for a single 3x3 (the tracker calls
@@ -140,12 +174,19 @@ def up_from_tilt(roll_rad, pitch_rad) -> np.ndarray:
     vector in g (specific force opposes gravity). Inverse: :func:`tilt_from_up`.
     """
     r, p = np.asarray(roll_rad, dtype=float), np.asarray(pitch_rad, dtype=float)
-    sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
     out = np.empty(np.broadcast(r, p).shape + (3,))
-    out[..., 0] = -sp
-    out[..., 1] = sr * cp
-    out[..., 2] = cr * cp
+    out[..., 0], out[..., 1], out[..., 2] = up_from_sines(np.sin(r), np.cos(r), np.sin(p), np.cos(p))
     return out
+
+
+def up_from_sines(sin_roll, cos_roll, sin_pitch, cos_pitch):
+    """The equation of :func:`up_from_tilt`, from the sines and cosines of roll and pitch:
+    ``(-sp, sr cp, cr cp)``, three floats or three arrays.
+
+    Plain arithmetic, so that numba compiles this same function for its kernels
+    (``models.sensor_kernels``, ``models.gravity_kernels``): up is written once.
+    """
+    return -sin_pitch, sin_roll * cos_pitch, cos_roll * cos_pitch
 
 
 def up_and_tilt_derivatives_into(roll_rad: float, pitch_rad: float, V: np.ndarray,
@@ -158,7 +199,7 @@ def up_and_tilt_derivatives_into(roll_rad: float, pitch_rad: float, V: np.ndarra
     """
     sr, cr = math.sin(roll_rad), math.cos(roll_rad)
     sp, cp = math.sin(pitch_rad), math.cos(pitch_rad)
-    srcp, crcp = sr * cp, cr * cp
+    srcp, crcp = sr * cp, cr * cp  # up_from_sines, inline: a compiled function calls no plain one
     V[0, col_up], V[1, col_up], V[2, col_up] = -sp, srcp, crcp
     V[0, col_roll], V[1, col_roll], V[2, col_roll] = 0.0, crcp, -srcp
     V[0, col_pitch], V[1, col_pitch], V[2, col_pitch] = -cp, -sr * sp, -cr * sp

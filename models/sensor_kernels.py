@@ -25,17 +25,14 @@ call it. Compiled once per machine and cached next to this file (``__pycache__``
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
+from models.rotations import up_from_sines
 
-@njit(cache=True, nogil=True, inline="always")
-def tilt_up(sr, cr, sp, cp):  # pragma: no cover - compiled
-    """World-up in base axes for a base at roll r and pitch p, from ``sin r, cos r, sin p,
-    cos p`` (the compass needs them too): three floats."""
-    return -sp, sr * cp, cr * cp
+# World-up in base axes from the sines and cosines of roll and pitch: the equation of
+# models.rotations.up_from_tilt, compiled.
+tilt_up = njit(cache=True, nogil=True, inline="always")(up_from_sines)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -59,14 +56,17 @@ def specific_force_one(R_0S, a0, a1, a2, u0, u1, u2, g_mps2):  # pragma: no cove
     return to_sensor_axes(R_0S, s0, s1, s2)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def magnetic_heading_one(m0, m1, m2, sr, cr, sp, cp):  # pragma: no cover - compiled
+def magnetic_heading(m0, m1, m2, sr, cr, sp, cp):
     """Magnetic heading (rad, in [-pi, pi]) of a base at roll r and pitch p (``sin r, cos r,
     sin p, cos p``) whose magnetometer reads ``m`` (base axes): ``atan2(-h_y, h_x)``, ``h =
-    Ry(p) Rx(r) m``."""
+    Ry(p) Rx(r) m``. Plain arithmetic: floats or arrays alike (``fusion.tracking.heading``
+    calls it batched), and compiled below as :func:`magnetic_heading_one`."""
     y1 = cr * m1 - sr * m2
     hx = cp * m0 + sp * (sr * m1 + cr * m2)
-    return math.atan2(-y1, hx)
+    return np.arctan2(-y1, hx)
+
+
+magnetic_heading_one = njit(cache=True, nogil=True, inline="always")(magnetic_heading)
 
 
 @njit(cache=True, nogil=True)

@@ -31,6 +31,9 @@ from numba import njit
 from models.arm import ArmModel
 from models.chain_kernels import chain_table, motion_one, mount_table, pose_one, sensor_one
 from models.kinematics import sensor_indices
+from models.rotations import skew_into
+
+_skew_into = njit(cache=True, nogil=True, inline="always")(skew_into)
 
 
 # --------------------------------------------------------------------------------------
@@ -110,10 +113,7 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
     # the axes' skew matrices
     K = np.zeros((n, 3, 3))
     for j in range(n):
-        x, y, z = axes[j, 0], axes[j, 1], axes[j, 2]
-        K[j, 0, 1], K[j, 0, 2] = -z, y
-        K[j, 1, 0], K[j, 1, 2] = z, -x
-        K[j, 2, 0], K[j, 2, 1] = -y, x
+        _skew_into(axes[j, 0], axes[j, 1], axes[j, 2], K[j])
     wd_norm = math.sqrt(wd_B[0] ** 2 + wd_B[1] ** 2 + wd_B[2] ** 2)
     return q_ref, offset_ref, R_0S, acc, axes, p_0S, wd_B, K, motion_g, dist2, wd_norm, omega_S
 

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.rotations import DEG, wrap_angle
+from models.sensor_kernels import magnetic_heading
 from models.sensor_models import AK8975_NOISE_UT_RMS, EARTH_FIELD_TAMPA_UT
 
 
@@ -116,13 +117,8 @@ def tilt_compensated_heading(m_B_ut: np.ndarray, roll_rad, pitch_rad,
     m = np.asarray(m_B_ut, dtype=float)
     r = np.asarray(roll_rad, dtype=float)
     p = np.asarray(pitch_rad, dtype=float)
-    sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
-    mx, my, mz = m[..., 0], m[..., 1], m[..., 2]
-    # Rx(φ) m, then Ry(θ) of that
-    y1 = cr * my - sr * mz
-    z1 = sr * my + cr * mz
-    hx = cp * mx + sp * z1
-    return wrap_angle(np.arctan2(-y1, hx) + declination_rad)
+    psi = magnetic_heading(m[..., 0], m[..., 1], m[..., 2], np.sin(r), np.cos(r), np.sin(p), np.cos(p))
+    return wrap_angle(psi + declination_rad)
 
 
 def heading_sigma_rad(reference: FieldReference, noise_ut: float) -> float:
