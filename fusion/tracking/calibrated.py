@@ -14,8 +14,10 @@ from dataclasses import replace
 
 import numpy as np
 
+from fusion.tracking.settings import IMU_ACC
 from models.arm import ArmModel
 from models.effects import JointEffect, Model, model_from_arm
+from models.rotations import up_from_tilt
 from models.sensor_models import StreamModel, stream_models
 
 
@@ -154,3 +156,27 @@ def spread_maps(correction) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
         return {}
     return {stream: [(np.linalg.inv(L1), np.asarray(c1, float)) for L1, c1 in maps]
             for stream, maps in correction.spread.items() if stream != "imu_mag"}
+
+
+def accel_floors_g(arm: ArmModel, link_names, has_imu: bool) -> np.ndarray:
+    """Per accelerometer stream (the link ones, then the IMU's), the config's unmodelled
+    error in g, as the startup uses it; the IMU's is carried by its bias state instead (0)."""
+    return np.array([arm.calibration.accel_floor_g(nm) for nm in link_names] + [0.0] * has_imu)
+
+
+def imu_bias_prior_var(arm: ArmModel, correction, R_0I: np.ndarray | None, roll_rad: float,
+                       pitch_rad: float) -> np.ndarray:
+    """Prior variance (g²) of what the IMU accelerometer's correction leaves, per IMU axis,
+    at the still reading of the startup's tilt: a calibrated config's correction spread
+    there, else the config's unmodelled-error floor (its statement of how far its sensors
+    are from their model). ``R_0I``: the IMU's axes in the base's; None without an IMU."""
+    if R_0I is None:
+        return np.full(3, 1e-12)
+    m = R_0I.T @ up_from_tilt(roll_rad, pitch_rad)
+    if correction is not None and correction.spread.get(IMU_ACC):
+        y0 = correction.readings_one(IMU_ACC, m)
+        var = np.zeros(3)
+        for L1, c1 in correction.spread[IMU_ACC]:
+            var += (np.linalg.solve(L1, m - c1) - y0) ** 2
+        return np.maximum(var, 1e-12)
+    return np.full(3, max(arm.calibration.imu_accel_floor_g, 1e-6) ** 2)

@@ -108,7 +108,7 @@ class Tracker:
         self.counts_per_rad = arm.counts_per_rad * (1.0 + scale)
         """Per joint, the encoder's counts per radian (the config's, its calibrated scale error applied)."""
         time_offset_s, time_var_s2 = calibrated.stamp_offsets(model, self.accel_names)
-        unmodelled_g = self._unmodelled_floor()
+        unmodelled_g = calibrated.accel_floors_g(arm, self.link_names, self._has_imu)
         self._sees = links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
                                          self._sidx.get(IMU_ACC, -1), unmodelled_g, time_offset_s,
@@ -126,31 +126,6 @@ class Tracker:
         self._min_list = arm.min_rad.tolist()
         self._max_list = arm.max_rad.tolist()
         self._frame_consts = FrameConstants(arm, self.accel_names, self._joint_effects, G)
-
-    def _imu_bias_prior_var(self, roll_rad: float, pitch_rad: float) -> np.ndarray:
-        """Prior variance (g²) of what the IMU accelerometer's correction leaves, per IMU
-        axis, at the still reading of the startup's tilt: a calibrated config's correction
-        spread there, else the config's unmodelled-error floor (its statement of how far its
-        sensors are from their model)."""
-        if not self._has_imu:
-            return np.full(3, 1e-12)
-        corr = self.correction
-        m = self.R_0I.T @ up_from_tilt(roll_rad, pitch_rad)
-        if corr is not None and corr.spread.get(IMU_ACC):
-            y0 = corr.readings_one(IMU_ACC, m)
-            var = np.zeros(3)
-            for L1, c1 in corr.spread[IMU_ACC]:
-                var += (np.linalg.solve(L1, m - c1) - y0) ** 2
-            return np.maximum(var, 1e-12)
-        floor = self.arm.calibration.imu_accel_floor_g
-        return np.full(3, max(floor, 1e-6) ** 2)
-
-    def _unmodelled_floor(self) -> np.ndarray:
-        """Per accelerometer stream, the config's unmodelled-error floor (g), as startup uses."""
-        out = [self.arm.calibration.accel_floor_g(nm) for nm in self.link_names]
-        if self._has_imu:
-            out.append(0.0)
-        return np.array(out)
 
     def set_rates(self, rates_hz: Mapping[str, float] | float) -> None:
         """Sample rates (Hz) per stream, which set each sensor's noise (datasheet rms at rate)."""
@@ -184,7 +159,9 @@ class Tracker:
         imu = imu or ImuStill(np.zeros(3), 0.5 * DEG, None, None, None)
         prior = self.arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
         self._x0, self._P0, self._q_startup = initial_state(
-            startup, imu, L, st, prior, self._imu_bias_prior_var(startup.roll_rad, startup.pitch_rad))
+            startup, imu, L, st, prior, calibrated.imu_bias_prior_var(
+                self.arm, self.correction, self.R_0I if self._has_imu else None, startup.roll_rad,
+                startup.pitch_rad))
         self.ambiguity_ = Ambiguity(startup)
         self._ukf = None  # created when the first encoder sample fixes the offsets
         self._q_enc = np.zeros(n)
