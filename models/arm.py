@@ -21,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 
-from models.rotations import rot_x, rot_z
+from models.rotations import rot_x, rot_z, wrap_angle
 
 DhConvention = Literal["modified", "standard", "urdf"]
 SensorType = Literal["adxl345", "mpu9150", "analog_triax"]
@@ -175,6 +175,16 @@ class ArmModel:
     @property
     def max_rad(self) -> np.ndarray:
         return np.array([j.max_rad for j in self.joints])
+
+    def angles_in_range(self, q_rad: np.ndarray) -> np.ndarray:
+        """Joint angles ``(..., n)`` rad, each moved by whole turns to the angle of the same
+        pose nearest the middle of its joint's limits: a revolute joint at ``q`` and at
+        ``q + 2 pi`` is in the same pose, and a controller reads the one inside its limits.
+        Angles within half a turn of the middle come back unchanged, to the bit."""
+        q = np.asarray(q_rad, dtype=float)
+        mid = 0.5 * (self.min_rad + self.max_rad)
+        d = q - mid
+        return np.where(np.abs(d) > np.pi, mid + wrap_angle(d), q)
 
     @property
     def offset_rad(self) -> np.ndarray:

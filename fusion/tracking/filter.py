@@ -441,7 +441,7 @@ class Tracker:
             self._named = named = (codes, self._flags, self.health.named_statuses(),
                                    tuple(JOINT_FLAGS[f] for f in self._flags.tolist()))
         return Estimate(
-            t_s=self._t, q_rad=_ro(self._q_enc + x[:n]), sigma_rad=_ro(sig[:n]),
+            t_s=self._t, q_rad=_ro(self.arm.angles_in_range(self._q_enc + x[:n])), sigma_rad=_ro(sig[:n]),
             flags=named[3],
             roll_rad=float(x[L.roll]), pitch_rad=float(x[L.pitch]), yaw_rad=float(x[L.yaw]),
             attitude_sigma_rad=_ro(sig[[L.roll, L.pitch, L.yaw]]), gyro_bias_rad_s=_ro(x[L.bias]),

@@ -696,3 +696,18 @@ def test_a_calibrated_config_s_motion_and_temperature_effects_are_applied(arm, e
     without, _ = worst_rms(arm)
     assert with_it < 0.05 and inside > 0.99, (with_it, inside)
     assert without > 2.0 * with_it, (without, with_it)
+
+
+def test_a_joint_the_filter_carries_a_whole_turn_is_reported_inside_its_limits(wmra):
+    """The README's example: with no saved pose, j6 (limits ±90°) starts ambiguous and the
+    filter's offset carries it a whole turn (to 290° for a true -70°). The estimate, the run
+    and its score name the pose inside the limits; the error was 360° before."""
+    rec, _ = simulate(wmra, "static-poses", seed=1)
+    tracker, _start = start_from_recording(wmra, rec)
+    run = tracker.run(rec)
+    lo, hi = np.degrees(wmra.min_rad), np.degrees(wmra.max_rad)
+    q_deg = np.degrees(run.q_rad)
+    mid = 0.5 * (lo + hi)
+    assert np.all(np.abs(q_deg - mid) <= 180.0)
+    assert np.all(np.abs(np.degrees(tracker.estimate.q_rad) - mid) <= 180.0)
+    assert run.summary(after_s=10.0)["rms_error_deg"]["j6"] < 5.0

@@ -177,3 +177,16 @@ def test_the_calibration_block_becomes_one_typed_object(wmra, wmra_dict):
     exact = cal.as_exact()
     assert (exact.accel_floor_g("acc2"), exact.imu_accel_floor_g, exact.mag_unmodelled_ut) == (0.0, 0.0, 0.0)
     assert exact.references == cal.references
+
+
+def test_joint_angles_are_reported_on_the_turn_inside_their_limits(wmra):
+    """j6 (limits ±90°) estimated at 290° is the same pose as -70°: the controller reads -70°;
+    an angle within half a turn of its limits' middle is not touched, to the bit."""
+    q = np.radians([10.0, 20.0, 30.0, 40.0, 50.0, 290.0, -200.0])
+    out = wmra.angles_in_range(q)
+    mid = np.degrees(0.5 * (wmra.min_rad + wmra.max_rad))
+    assert np.all(np.abs(np.degrees(out) - mid) <= 180.0)
+    np.testing.assert_allclose(np.degrees(out[5]), -70.0, atol=1e-9)
+    np.testing.assert_allclose(np.cos(out - q), 1.0)  # whole turns only
+    inside = np.abs(np.degrees(q) - mid) <= 180.0
+    assert np.array_equal(out[inside], q[inside])
