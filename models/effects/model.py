@@ -336,38 +336,7 @@ class Model:
         geometric = any(s in link_acc for s in streams) or "imu_mag" in streams
         joint_stage = bool(self._joint) and geometric
         if joint_stage:
-            q = np.array(state.q_rad, dtype=float, copy=True)
-            # the zero offsets first: the torque-driven effects (sag, play) then see the
-            # gravity torque where the links really stand. Evaluated at the controller's
-            # angles instead, a joint's offset and the base's tilt about its axis would
-            # change the torque differently, a difference a long fit takes for information
-            # that separates them (it does not exist: a confident wrong encoder zero).
-            # An offset then also moves every torque-driven joint's delta (its column carries
-            # that chain: d q_geom[j] / d offset[k] = δjk + d delta_j / d q_k).
-            order = sorted(self._joint, key=lambda e: e.name != "joint_offset")
-            offsets = [e for e in order if e.name == "joint_offset"]
-            torque_set = False
-            for e in order:
-                if not torque_set and e.name != "joint_offset":
-                    if offsets:
-                        ctx.set_torque_angles(q.copy())
-                    torque_set = True
-                t = th[e.block_name]
-                q[:, e.j] += e.delta(state.q_rad, t, ctx)
-                if want_jac and e.block_name in want:
-                    Jq[e.block_name] = (np.array([e.j]), e.delta_jac_params(state.q_rad, t, ctx)[:, None, :])
-                if want_jac and offsets and e.name != "joint_offset":
-                    dq = e.delta_jac_q(state.q_rad, t, ctx)  # (N, n) at q_torque
-                    if dq is not None:
-                        for o in offsets:
-                            if o.block_name in want and np.any(dq[:, o.j]):
-                                js, R = Jq[o.block_name]
-                                if e.j not in js:
-                                    js = np.append(js, e.j)
-                                    R = np.concatenate([R, np.zeros((R.shape[0], 1, R.shape[2]))], 1)
-                                R[:, list(js).index(e.j), 0] += dq[:, o.j]
-                                Jq[o.block_name] = (js, R)
-            ctx.q_geom = q
+            Jq = _apply_joint_effects(self._joint, state, th, ctx, want)
         # 2. mounts, 3. kinematics
         sensors = [s for s in streams if s in link_acc]
         imu = arm.imu
@@ -538,3 +507,44 @@ class _StreamJac:
     def blocks(self) -> dict[str, np.ndarray]:
         """``{block: (N, k, p)}`` (views)."""
         return {b: np.moveaxis(self.arr[sl], 0, -1) for b, sl in self.cols.items()}
+
+
+def _apply_joint_effects(joint_effects, state: MotionState, th, ctx: Context, want) -> dict:
+    """Stage 1 of :meth:`Model._prepare`: every joint effect added to the controller's
+    angles, giving ``ctx.q_geom``; returns (when Jacobians are wanted) each wanted joint
+    block's ``d q_geom / dθ`` as ``{block: (the joints it moves, (N, joints, p))}``."""
+    want_jac = want is not None
+    Jq: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    q = np.array(state.q_rad, dtype=float, copy=True)
+    # the zero offsets first: the torque-driven effects (sag, play) then see the
+    # gravity torque where the links really stand. Evaluated at the controller's
+    # angles instead, a joint's offset and the base's tilt about its axis would
+    # change the torque differently, a difference a long fit takes for information
+    # that separates them (it does not exist: a confident wrong encoder zero).
+    # An offset then also moves every torque-driven joint's delta (its column carries
+    # that chain: d q_geom[j] / d offset[k] = δjk + d delta_j / d q_k).
+    order = sorted(joint_effects, key=lambda e: e.name != "joint_offset")
+    offsets = [e for e in order if e.name == "joint_offset"]
+    torque_set = False
+    for e in order:
+        if not torque_set and e.name != "joint_offset":
+            if offsets:
+                ctx.set_torque_angles(q.copy())
+            torque_set = True
+        t = th[e.block_name]
+        q[:, e.j] += e.delta(state.q_rad, t, ctx)
+        if want_jac and e.block_name in want:
+            Jq[e.block_name] = (np.array([e.j]), e.delta_jac_params(state.q_rad, t, ctx)[:, None, :])
+        if want_jac and offsets and e.name != "joint_offset":
+            dq = e.delta_jac_q(state.q_rad, t, ctx)  # (N, n) at q_torque
+            if dq is not None:
+                for o in offsets:
+                    if o.block_name in want and np.any(dq[:, o.j]):
+                        js, R = Jq[o.block_name]
+                        if e.j not in js:
+                            js = np.append(js, e.j)
+                            R = np.concatenate([R, np.zeros((R.shape[0], 1, R.shape[2]))], 1)
+                        R[:, list(js).index(e.j), 0] += dq[:, o.j]
+                        Jq[o.block_name] = (js, R)
+    ctx.q_geom = q
+    return Jq
