@@ -9,15 +9,29 @@ in them, if the arm is still now (:meth:`RecentSamples.still_now`).
 
 from __future__ import annotations
 
+import logging
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
 from fusion.service import payloads as pl
 from fusion.service.reorder import merge_batches
+from fusion.startup.solve import prior_after_move
 from fusion.startup.static import Segment, StaticDetectionSettings, find_static_segments
-from fusion.tracking.tracker import ENC, Start
+from fusion.tracking.tracker import (
+    ENC,
+    NoStillWindowError,
+    Start,
+    Tracker,
+    TrackerSettings,
+    start_from_recording,
+)
+from models.arm import ArmModel
+from models.sensor_models import encoder_angles_at
 from sensors.samples import Recording, Stream
+
+log = logging.getLogger("armfusion.service")  # the fusion node's own log
 
 STILL_WINDOW_S = 1.0
 """The shortest still stretch a startup runs on."""
@@ -86,3 +100,39 @@ def calibration_reply(robot: str, joint_names, start: Start) -> pl.Calibration:
         tuple(None if j.angle_rad is None else float(j.angle_rad) for j in res.joints),
         tuple(None if j.sigma_rad is None else float(j.sigma_rad) for j in res.joints),
         tuple(j.flag for j in res.joints), float(res.roll_rad), float(res.pitch_rad))
+
+
+@dataclass(frozen=True)
+class SolvedAgain:
+    """A startup again on a still stretch after an ambiguous one: the ``tracker`` and
+    ``start`` that tell some branches apart (None when none is told apart), the joints
+    ``resolved`` and those ``still_ambiguous``, and the still stretch ``segment``."""
+
+    tracker: Tracker | None
+    start: Start | None
+    resolved: tuple[str, ...]
+    still_ambiguous: tuple[str, ...]
+    segment: Segment
+
+
+def solve_ambiguity_again(arm: ArmModel, settings: TrackerSettings, start: Start, still,
+                          ambiguous: set[str]) -> SolvedAgain | None:
+    """Solve the startup again on the still stretch ``still`` (``(segment, window)`` of
+    :meth:`RecentSamples.still_now`) with the startup's candidates carried through the
+    encoder counts (:func:`fusion.startup.solve.prior_after_move`). None when the stretch
+    is the startup's own or the solve fails (logged); else what it told apart of the
+    joints ``ambiguous`` now."""
+    seg, window = still
+    if seg.t_start_s <= start.t_end_s + 1e-6:  # the startup's own still stretch
+        return None
+    moved = encoder_angles_at(arm, window.get(ENC), seg.t_end_s)[1] - start.encoder_rad
+    prior = prior_after_move(start.geometric, moved, arm)
+    try:
+        tracker, again = start_from_recording(arm, window, settings, prior=prior, propose_unlock=False)
+    except (NoStillWindowError, ValueError, KeyError) as e:
+        log.info("serve: the ambiguous joints were not solved again: %s", e)
+        return None
+    left = {j.name for j in again.startup.joints if j.flag == "ambiguous"}
+    if left >= ambiguous:
+        return SolvedAgain(None, None, (), tuple(sorted(ambiguous)), seg)
+    return SolvedAgain(tracker, again, tuple(sorted(ambiguous - left)), tuple(sorted(left)), seg)

@@ -51,8 +51,8 @@ from fusion.service import state_file
 from fusion.service.admission import Admission, AdmissionSettings
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
 from fusion.service.reorder import Reorder, merge_batches
-from fusion.service.restart import RecentSamples, ambiguity_note, calibration_reply
-from fusion.startup.solve import StartupPrior, prior_after_move
+from fusion.service.restart import RecentSamples, ambiguity_note, calibration_reply, solve_ambiguity_again
+from fusion.startup.solve import StartupPrior
 from fusion.tracking.tracker import (
     ENC,
     NoStillWindowError,
@@ -63,7 +63,6 @@ from fusion.tracking.tracker import (
     warm_up,
 )
 from models.arm import ArmModel
-from models.sensor_models import encoder_angles_at
 from sensors.samples import Recording, Stream
 
 log = logging.getLogger("armfusion.service")
@@ -444,9 +443,9 @@ class FusionNode:
 
     def _try_resolve(self, t_now: float) -> None:
         """Joints the startup left ambiguous: on each new still stretch after it, solve again
-        with the startup's candidates carried through the encoder counts
-        (:func:`fusion.startup.solve.prior_after_move`); when that tells the branches apart, track
-        from it. Nothing here moves the arm: the status names the move that would help."""
+        (:func:`fusion.service.restart.solve_ambiguity_again`); when that tells the branches
+        apart, track from it. Nothing here moves the arm: the status names the move that would
+        help."""
         if t_now < self._next_resolve_t:
             return
         self._next_resolve_t = t_now + self.retry_s
@@ -454,30 +453,21 @@ class FusionNode:
         still = self._recent.still_now(self.still_tolerance_s)
         if isinstance(still, str) or start.geometric is None or start.encoder_rad is None:
             return
-        seg, window = still
-        if seg.t_start_s <= start.t_end_s + 1e-6:  # the startup's own still stretch
+        again = solve_ambiguity_again(self.arm, self.settings, start, still, set(self._tracker.ambiguity()))
+        if again is None:
             return
-        moved = encoder_angles_at(self.arm, window.get(ENC), seg.t_end_s)[1] - start.encoder_rad
-        prior = prior_after_move(start.geometric, moved, self.arm)
-        try:
-            tracker, again = start_from_recording(self.arm, window, self.settings, prior=prior,
-                                                  propose_unlock=False)
-        except (NoStillWindowError, ValueError, KeyError) as e:
-            log.info("serve: the ambiguous joints were not solved again: %s", e)
-            return
-        before = set(self._tracker.ambiguity())
-        still = {j.name for j in again.startup.joints if j.flag == "ambiguous"}
-        if still >= before:
-            self._message = (f"{', '.join(sorted(before))} still ambiguous after the still stretch "
+        seg = again.segment
+        if again.tracker is None:
+            self._message = (f"{', '.join(again.still_ambiguous)} still ambiguous after the still stretch "
                              f"{seg.t_start_s:.2f}-{seg.t_end_s:.2f} s" + ambiguity_note(start))
             self._status_due = True
             return
-        tracker.set_rates(self._rates_hz)
-        self._start = again
-        self._begin(tracker, Recording({}), (
-            f"the branches of {', '.join(sorted(before - still))} told apart on the still stretch "
+        again.tracker.set_rates(self._rates_hz)
+        self._start = again.start
+        self._begin(again.tracker, Recording({}), (
+            f"the branches of {', '.join(again.resolved)} told apart on the still stretch "
             f"{seg.t_start_s:.2f}-{seg.t_end_s:.2f} s (the startup's candidates carried through the "
-            "encoder counts); tracking from it" + ambiguity_note(again)))
+            "encoder counts); tracking from it" + ambiguity_note(again.start)))
 
     def _publish(self, e) -> None:
         pub_joints, pub_heading = self._pubs
