@@ -13,6 +13,7 @@ from models.arm import ArmModel
 from models.effects import Model, model_from_arm
 from models.effects.base import Context, JointEffect, SensorEffect
 from models.motion import MotionState
+from models.rotations import DEG
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,7 @@ class StartupCorrection:
         the startup's limit) becomes ``ill_conditioned``."""
         from fusion.startup.solve import StartupSettings
 
-        limit = (StartupSettings().sigma_limit_deg * np.pi / 180 if sigma_limit_rad is None
+        limit = (StartupSettings().sigma_limit_deg * DEG if sigma_limit_rad is None
                  else sigma_limit_rad)
         q = np.asarray(res.q_rad, float)
         delta = q - self.controller_angles(q)

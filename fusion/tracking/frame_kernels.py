@@ -31,7 +31,7 @@ from numba import njit
 from models.arm import ArmModel
 from models.chain_kernels import chain_table, motion_one, mount_table, pose_one, sensor_one
 from models.kinematics import sensor_indices
-from models.rotations import skew_into
+from models.rotations import GRAVITY_MPS2, skew_into
 
 _skew_into = njit(cache=True, nogil=True, inline="always")(skew_into)
 
@@ -131,7 +131,7 @@ class FrameConstants:
     passed on.
     """
 
-    def __init__(self, arm: ArmModel, names, joint_effects=(), g_mps2: float = 9.80665):
+    def __init__(self, arm: ArmModel, names, joint_effects=(), g_mps2: float = GRAVITY_MPS2):
         from models.effects.library import JointOffset
 
         idx = sensor_indices(arm, list(names))
