@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -176,13 +177,18 @@ class ArmModel:
     def max_rad(self) -> np.ndarray:
         return np.array([j.max_rad for j in self.joints])
 
+    @cached_property
+    def _limits_middle_rad(self) -> np.ndarray:
+        """Each joint's limits' middle, once per arm (the live estimate reads it every instant)."""
+        return 0.5 * (self.min_rad + self.max_rad)
+
     def angles_in_range(self, q_rad: np.ndarray) -> np.ndarray:
         """Joint angles ``(..., n)`` rad, each moved by whole turns to the angle of the same
         pose nearest the middle of its joint's limits: a revolute joint at ``q`` and at
         ``q + 2 pi`` is in the same pose, and a controller reads the one inside its limits.
         Angles within half a turn of the middle come back unchanged, to the bit."""
         q = np.asarray(q_rad, dtype=float)
-        mid = 0.5 * (self.min_rad + self.max_rad)
+        mid = self._limits_middle_rad
         d = q - mid
         return np.where(np.abs(d) > np.pi, mid + wrap_angle(d), q)
 

@@ -13,6 +13,7 @@ from rich.table import Table
 from fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
+    choice_or_exit,
     console,
     emit_json,
     err_console,
@@ -53,8 +54,7 @@ def calibrate_joints(
     sigma_limit_deg: Annotated[float, typer.Option(help="Sigma above which a joint is ill_conditioned.")] = StartupSettings.sigma_limit_deg,
 ) -> None:
     """Every joint angle of a still arm, with sigma, flags, and a move that unlocks blind joints."""
-    if method not in ("joint", "sequential"):
-        fail(f"--method must be 'joint' or 'sequential', not {method!r}")
+    choice_or_exit(method, "--method", ("joint", "sequential"))
     if save is not None:
         check_output_path(save, "--save")
     arm, rec, screen = arm_and_recording_or_exit(

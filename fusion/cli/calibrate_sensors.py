@@ -30,6 +30,7 @@ from rich.table import Table
 from fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
+    choice_or_exit,
     console,
     emit_json,
     err_console,
@@ -144,8 +145,7 @@ def calibrate_sensors(
     write: WriteConfigOpt = None,
 ) -> None:
     """Estimate the sensors' and the arm's effects (with σ, holds and correlations)."""
-    if mode not in ("separate", "simultaneous"):
-        fail(f"--mode must be 'separate' or 'simultaneous', not {mode!r}")
+    choice_or_exit(mode, "--mode", ("separate", "simultaneous"))
     if write is not None:
         check_output_path(write, "--write")
     arm, rec, screen = arm_and_recording_or_exit(

@@ -35,6 +35,13 @@ def fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
+def choice_or_exit(value: str, option: str, choices: Sequence[str]) -> str:
+    """``value`` if it is one of ``choices``, else exit 2 naming ``option`` and the choices."""
+    if value not in choices:
+        fail(f"{option} must be {' or '.join(repr(c) for c in choices)}, not {value!r}")
+    return value
+
+
 def emit_json(obj) -> None:
     sys.stdout.write(json.dumps(obj, indent=2, default=json_default) + "\n")
 
