@@ -93,10 +93,16 @@ ENCODER_STREAM = "enc"
 
 @dataclass(frozen=True)
 class StreamModel:
-    """How one stream's physical value becomes counts: ``counts = gain·value + zero``.
+    """How one stream's physical value becomes what the recording holds:
+    ``counts = gain·value + zero``.
 
     ``gain`` and ``zero`` are per channel; ``noise_counts_rms`` is per channel at the
     stream's rate; ``counts_min``/``counts_max`` the register limits (None: unbounded).
+    ``value_unit`` is the unit of the recorded values (:mod:`sensors.units`): ``counts``
+    (register counts, whole numbers) or a physical unit, when the sensor delivers values
+    already converted (then ``gain`` converts ``unit`` to it, and "counts" in the names
+    here mean the recorded values); ``step`` is their resolution (1 for counts; 0.01 for
+    values stored rounded to 0.01; 0 for none).
     """
 
     stream: str
@@ -109,6 +115,8 @@ class StreamModel:
     noise_counts_rms: np.ndarray
     counts_min: float | None
     counts_max: float | None
+    value_unit: str = "counts"
+    step: float = 1.0
 
     @property
     def size(self) -> int:
@@ -124,8 +132,8 @@ class StreamModel:
 
     @property
     def sigma_counts(self) -> np.ndarray:
-        """Standard deviation of one reading in counts: noise and rounding (1/√12 LSB)."""
-        return np.sqrt(self.noise_counts_rms**2 + 1.0 / 12.0)
+        """Standard deviation of one reading in counts: noise and rounding (step/√12)."""
+        return np.sqrt(self.noise_counts_rms**2 + self.step**2 / 12.0)
 
     def noise_physical_rms(self) -> np.ndarray:
         return self.noise_counts_rms / np.abs(self.gain)
@@ -148,14 +156,16 @@ class StreamModel:
         return (c < self.counts_min) | (c > self.counts_max)
 
     def digitise(self, counts: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
-        """Add noise (if ``rng``), round to integers, saturate at the register limits."""
+        """Add noise (if ``rng``), round to the resolution (integers for counts), saturate
+        at the range's limits."""
         c = np.asarray(counts, dtype=float)
         if rng is not None and np.any(self.noise_counts_rms > 0):
             c = c + rng.standard_normal(c.shape) * self.noise_counts_rms
-        c = np.rint(c)
+        if self.step > 0:
+            c = np.rint(c / self.step) * self.step
         if self.counts_min is not None:
             c = np.clip(c, self.counts_min, self.counts_max)
-        return c.astype(np.int64)
+        return c.astype(np.int64) if self.value_unit == "counts" else c
 
 
 def _accel_stream(sensor: SensorMount, rate_hz: float) -> StreamModel:
