@@ -418,7 +418,8 @@ def test_fast_error_the_window_means_hide_is_measured_sample_by_sample(arm):
     assert data_from_recording(arm, rec, window=10).sample_excess_counts == {}  # noise as modelled
     acc2 = rec.get("acc2")
     shake_g = 0.02
-    shaken = acc2.values + np.rint(np.random.default_rng(5).standard_normal(acc2.values.shape) * shake_g * 256)
+    shake = np.random.default_rng(5).standard_normal(acc2.values.shape) * shake_g * 256
+    shaken = acc2.values + np.rint(shake)
     rec2 = Recording({**rec.streams, "acc2": Stream("acc2", acc2.kind, acc2.t_s, shaken.astype(np.int64),
                                                     acc2.channels)}, rec.meta)
     data = data_from_recording(arm, rec2, window=10)
