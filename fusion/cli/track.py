@@ -42,9 +42,11 @@ def track(
     gate_significance: Annotated[float, typer.Option(help="Chi-square gate: probability that a good sample is rejected.")] = 1e-3,
     unmodelled_g: Annotated[float | None, typer.Option(help="Override the config's unmodelled accelerometer error (g, 1 sigma), for startup and tracking.")] = None,
     no_motion_compensation: Annotated[bool, typer.Option("--no-motion-compensation", help="Predict the accelerometers as if nothing moved (for comparison only).")] = False,
+    moving_start: Annotated[bool, typer.Option("--moving-start", help="When the recording has no still stretch (an arm that never stops), start on its least-moving instants, the sigma widened by their motion.")] = False,
 ) -> None:
     """Track the joint angles and the heading through a recording: startup calibration on
-    its first still stretch, then the unscented Kalman filter on every sample."""
+    its first still stretch (or, with --moving-start, on its least-moving instants), then
+    the unscented Kalman filter on every sample."""
     from dataclasses import replace
 
     from fusion.startup.pose_store import load_pose
@@ -78,9 +80,10 @@ def track(
     with progress_bar("startup calibration", json_out) as advance:
         try:
             tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q,
-                                              resolve_by_motion_s=20.0)
+                                              resolve_by_motion_s=20.0, moving_start=moving_start)
         except NoStillWindowError as e:
-            fail(f"{recording}: {e}")
+            fail(f"{recording}: {e}" + ("" if moving_start else
+                                        " (--moving-start starts on its least-moving instants)"))
         except (StartupInputError, ValueError) as e:
             fail(f"{recording}: cannot start tracking: {e}")
         notes.extend(start.notes)
