@@ -2,6 +2,10 @@
 
 The format is ``shared/spec/recording-csv.md``: one header row, then one row per
 sample instant; an empty cell means that sensor was not sampled at that instant.
+The spec's raw columns hold integer counts; this reader is a superset: a raw column may
+also hold finite decimals (a sensor that delivers its values in g or deg/s, the unit its
+sensor description in the config declares), and the stream then holds floats
+(:class:`~sensors.samples.Stream`); ``nan``/``inf`` there is refused.
 Each stream takes the rows where *all* of its columns are filled; a row with only
 some of them filled is an error, and so is a row with fewer or more cells than the
 header. One :class:`RecordingWarning` names the sensors left out because only some of
@@ -13,6 +17,8 @@ Which columns make which stream (see :mod:`sensors.samples`):
 - ``P_x, P_y, P_z`` for any prefix ``P`` (not ``imu``/``imu_*``/``true_*``): the link
   accelerometer stream ``P``;
 - ``imu_ax..az``, ``imu_gx..gz``, ``imu_mx..mz``, ``imu_temp``: the IMU streams;
+- ``P_gx, P_gy, P_gz`` for a prefix ``P`` as above: the link gyroscope stream ``P_gyro``
+  (kind ``link_gyro``; beyond the shared spec);
 - ``enc1 .. encN`` (contiguous from 1): the stream ``enc``;
 - ``true_q1 .. true_qN`` (contiguous from 1): ``true_q``; ``true_roll, true_pitch,
   true_yaw``: ``true_base``.
@@ -132,12 +138,16 @@ def _read_csv(path: Path, limits: CsvLimits) -> Recording:
         # where each used column's values are: (is it an int column, its index there)
         where = {c: (bool(is_int[j]), int(np.searchsorted(ic if is_int[j] else fc, j)))
                  for j, c in enumerate(used)}
-        all_ints, all_floats, all_empty, lines = parse_rows(path, source, len(header), used, usecols,
-                                                            ic, fc, limits)
+        all_ints, all_decimals, all_floats, all_empty, lines = parse_rows(
+            path, source, len(header), used, usecols, ic, fc, limits)
 
     def column(c: str) -> np.ndarray:
         as_int, k = where[c]
-        return all_ints[:, k] if as_int else all_floats[:, k]
+        if not as_int:
+            return all_floats[:, k]
+        if all_decimals is not None and not np.isnan(all_decimals[:1, k]).all():
+            return all_decimals[:, k]  # a raw column that holds decimals
+        return all_ints[:, k]
 
     t_s = column(T_COLUMN)
     t_empty = all_empty[:, col_of[T_COLUMN]]
@@ -185,7 +195,8 @@ def _read_csv(path: Path, limits: CsvLimits) -> Recording:
 
 
 def _cells(stream: Stream) -> list[str]:
-    """One text per sample: the stream's cells joined by commas."""
+    """One text per sample: the stream's cells joined by commas (counts as integers, raw
+    decimals with the shortest text that reads back to the same float)."""
     fmt = "%.10g".__mod__ if stream.kind in TRUTH_KINDS else str
     per_channel = [list(map(fmt, stream.values[:, j].tolist())) for j in range(stream.values.shape[1])]
     return list(map(",".join, zip(*per_channel, strict=True)))
@@ -197,8 +208,9 @@ def write_csv(rec: Recording, path: str | Path) -> None:
     All streams are merged onto the union of their time instants (one row per
     instant, in time order); a stream's cells are empty where it was not sampled.
     ``t`` is written with the shortest text that reads back to the same float (so
-    reading the file gives the same instants), counts as integers, ground truth
-    with 10 significant digits.
+    reading the file gives the same instants), counts as integers, raw values that are
+    not whole numbers (a sensor delivering g, say) as the shortest text that reads back
+    to the same float, ground truth with 10 significant digits.
     """
     path = Path(path)
     streams = list(rec.streams.values())
