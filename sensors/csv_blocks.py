@@ -314,7 +314,8 @@ def parse_rows(path: Path, source: LineReader, n_header: int, used: list[str], u
                ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray, array]:
     """Every data row after the header, in blocks: the raw columns ``ic``' values as
     integers, and as floats the raw columns that hold a decimal somewhere (the others NaN
-    there; ``None`` when no column does; see :func:`parse_block_values`), the float columns ``fc``' values, the empty
+    there; ``None`` when no column does; see :func:`parse_block_values`), the float
+    columns ``fc``' values, the empty
     mask of the ``used`` columns, and the line number of each row (blank lines skipped)."""
     lines = array("q")  # the line number of each data row
     block_rows = max(1, min(BLOCK_ROWS, _BLOCK_CELLS // max(len(used), 1)))

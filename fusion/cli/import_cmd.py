@@ -28,8 +28,8 @@ def import_recording_cmd(
     config: ConfigOpt = "wmra",
     json_out: JsonOpt = False,
 ) -> None:
-    """Turn a foreign recording into the arm's native one: each stream from the columns the map
-    names, in the unit the config declares; rows whose time does not increase dropped, NaN kept
+    """Turn a foreign recording (CSV, MATLAB .mat, HDF5) into the arm's native one: each stream
+    from the columns the map names, in the unit the config declares; rows whose time does not increase dropped, NaN kept
     as gaps, every change said."""
     from fusion.importing.column_map import ColumnMapError, load_column_map
     from fusion.importing.run import import_recording

@@ -196,7 +196,8 @@ def parse_column_map(data: Any, source: str) -> ColumnMap:
         if "unit" not in entry:
             problems.append(f"{key}.unit: missing: say what unit the columns hold (g, deg/s, counts...)")
         rounding = entry.get("max_rounding_counts", DEFAULT_MAX_ROUNDING_COUNTS)
-        if not (isinstance(rounding, int | float) and not isinstance(rounding, bool) and 0 <= rounding <= 0.5):
+        if not (isinstance(rounding, int | float) and not isinstance(rounding, bool)
+                and 0 <= rounding <= 0.5):
             problems.append(f"{key}.max_rounding_counts: a number of counts from 0 to 0.5 "
                             f"(got {clipped_repr(rounding)})")
             rounding = DEFAULT_MAX_ROUNDING_COUNTS

@@ -90,7 +90,8 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
         if inf.any():
             i, j = (int(x[0]) for x in np.nonzero(inf))
             raise ImportMapError(f"{path}: column {src_cols.columns[j]}: row {rows[i]} holds "
-                                 f"{clipped_repr(float(values[i, j]))}, not a value (a sample not taken is NaN)")
+                                 f"{clipped_repr(float(values[i, j]))}, not a value "
+                                 "(a sample not taken is NaN)")
         nan = np.isnan(values)
         gap, partly = nan.all(axis=1), nan.any(axis=1) & ~nan.all(axis=1)
         sampled = ~nan.any(axis=1)

@@ -132,7 +132,8 @@ def convert_values(values: np.ndarray, src: StreamSource, t: Target, source_file
             f = factor(src.unit, t.value_unit)
         except UnitError as e:  # checked before; kept for a direct caller
             raise ImportMapError(f"{source_file}: {', '.join(src.columns)}: {e}") from None
-        return Converted(convert(values, src.unit, t.value_unit), f"{src.unit} -> {t.value_unit} (x {f:.12g})")
+        return Converted(convert(values, src.unit, t.value_unit),
+                         f"{src.unit} -> {t.value_unit} (x {f:.12g})")
     physical = convert(values, src.unit, t.physical_unit)
     counts = t.model.to_counts(physical)
     how = (f"{src.unit} -> {t.physical_unit} -> counts with the config's gain "
