@@ -8,7 +8,14 @@ from typing import Annotated
 
 import typer
 
-from fusion.cli.common import console, emit_json, fail, load_arm_or_exit, prepare_output_path
+from fusion.cli.common import (
+    console,
+    emit_json,
+    err_console,
+    fail,
+    load_arm_or_exit,
+    prepare_output_path,
+)
 from fusion.cli.options import ConfigOpt, JsonOpt, RecordingOutOpt
 
 OUT_SUFFIXES = (".csv", ".mcap")
@@ -68,6 +75,8 @@ def import_recording_cmd(
         console.print(f"  {name}: absent ({why})", highlight=False)
     if summary["not_mapped"]:
         console.print(f"  not in the file: {', '.join(summary['not_mapped'])}", highlight=False)
+    for note in summary["notes"]:
+        err_console.print(f"[yellow]note:[/] {note}", highlight=False, soft_wrap=True)
     if summary["changes"]:
         console.print("Changes to the source's data:")
         for c in summary["changes"]:

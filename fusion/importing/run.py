@@ -29,9 +29,10 @@ from sensors.units import convert
 
 @dataclass(frozen=True)
 class ImportResult:
-    """The recording made and what the import did: ``summary`` (JSON-ready) and
-    ``changes``, one sentence per change to the source's data (rows left out, gaps,
-    rounding)."""
+    """The recording made and what the import did: ``summary`` (JSON-ready; its ``notes``
+    say what the data hold that the config may not expect, such as values beyond a sensor's
+    range) and ``changes``, one sentence per change to the source's data (rows left out,
+    gaps, rounding)."""
 
     recording: Recording
     summary: dict
@@ -64,6 +65,7 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     n = cols.n_rows
     s = _start_index(cmap, cols.scalars, n, path)
     changes: list[str] = []
+    notes: list[str] = []  # what the data hold that the config may not expect (no change made)
     if s:
         changes.append(f"left out the {s} row(s) before the start row {s + 1}")
     if cmap.time_column is not None:
@@ -105,6 +107,15 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
             changes.append(f"{name}: {int(gap.sum())} row(s) NaN in every column and {int(partly.sum())} "
                            f"NaN in some of {', '.join(src_cols.columns)} kept as gaps (not sampled), "
                            f"first rows {', '.join(map(str, first))}")
+        beyond = saturated = 0
+        if t.model is not None and t.model.counts_min is not None and len(streams[name]):
+            beyond = int(t.model.beyond_range(streams[name].values).any(axis=1).sum())
+            saturated = int(t.model.saturated(streams[name].values).any(axis=1).sum()) - beyond
+            if beyond:
+                notes.append(f"{name}: {beyond} sample(s) beyond the config's sensor range "
+                             f"({t.model.counts_min:g} … {t.model.counts_max:g} {t.value_unit}): the other "
+                             "commands refuse such a recording; does the config describe the sensor that "
+                             "recorded it?")
         if done.rounding_max_counts is not None and done.rounding_max_counts > 1e-6:  # not float noise
             changes.append(f"{name}: rounded to whole counts by up to {done.rounding_max_counts:.3f} counts "
                            f"(rms {done.rounding_rms_counts:.3f})")
@@ -114,6 +125,7 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
             "samples": int(sampled.sum()), "nan_gaps": int(gap.sum()), "partly_nan": int(partly.sum()),
             "values_dtype": str(streams[name].values.dtype),
             "rounding_max_counts": done.rounding_max_counts, "rounding_rms_counts": done.rounding_rms_counts,
+            "beyond_range": beyond, "at_range_limit": saturated,
         }
     all_names = targets_of(arm)  # every stream the config describes
     not_mapped = [k for k, tg in all_names.items() if k not in cmap.streams and k not in cmap.absent
@@ -132,5 +144,6 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
         "absent": dict(cmap.absent),
         "not_mapped": not_mapped,
         "changes": changes,
+        "notes": notes,
     }
     return ImportResult(rec, summary, tuple(changes))

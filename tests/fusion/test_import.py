@@ -274,3 +274,14 @@ def test_the_command_refuses_a_bad_map_and_an_unknown_shipped_one_in_one_line(tm
                             "--config", str(RIG), "--out", str(tmp_path / "x.mcap")])
     assert r.exit_code == 2 and "no column map 'nosuch': not a file, and not one of the shipped maps " \
                                 "['broad', 'imu-rig']" in r.output
+
+
+def test_values_beyond_the_configs_sensor_range_are_counted_and_noted(tmp_path: Path, arm) -> None:
+    # the ADXL345 of the config reads -512 … 511 counts (±2 g at 256 a g): 2.5 g is beyond it,
+    # -2 g at its limit (a saturated reading, said apart)
+    src = _csv(tmp_path / "log.csv", ["0,0,0,1,0,0,0,0", "10,2.5,0,1,0,0,0,0", "20,-2.0,0,1,0,0,0,0"])
+    s = import_recording(src, _map(RIG_STREAMS), arm, "rig").summary
+    assert (s["streams"]["shaft"]["beyond_range"], s["streams"]["shaft"]["at_range_limit"]) == (1, 1)
+    assert s["notes"] == ["shaft: 1 sample(s) beyond the config's sensor range (-512 … 511 counts): the "
+                          "other commands refuse such a recording; does the config describe the sensor "
+                          "that recorded it?"]
