@@ -17,7 +17,7 @@ from sensors.samples import RecordingError, clipped_repr
 MAX_FILE_BYTES = 4 * 1024**3
 """A foreign file larger than this is refused unread (the rig's 25-minute trials are 3 MB)."""
 MAX_VALUES = 1 << 28
-"""Values a column may have (2.1 GB as float64): a variable claiming more is refused unread."""
+"""Values a variable may hold (2.1 GB as float64): one claiming more is refused unread."""
 
 
 class ForeignFileError(RecordingError):
@@ -75,7 +75,7 @@ def unknown_column(path: Path, address: Address | str, names: Sequence[str]) -> 
 def check_variable(path: Path, address: Address, shape: tuple[int, ...], dtype: np.dtype) -> int:
     """The number of rows of column ``address`` of a variable of ``shape`` and ``dtype``,
     refusing a type that is not numbers, a shape that is not a column (or its index out of
-    it), and more than :data:`MAX_VALUES` rows."""
+    it), and a variable of more than :data:`MAX_VALUES` values (a reader may load it whole)."""
     where = f"{path}: column {clipped_repr(str(address))}"
     if np.dtype(dtype).kind not in "biuf":
         raise ForeignFileError(f"{where} holds {clipped_repr(str(dtype), 20)[1:-1]} values, not numbers")
@@ -93,8 +93,10 @@ def check_variable(path: Path, address: Address, shape: tuple[int, ...], dtype: 
             raise ForeignFileError(f"{where}: the variable has {shape[1]} columns (K from 0 to "
                                    f"{shape[1] - 1})")
         n = shape[0]
-    if n > MAX_VALUES:
-        raise ForeignFileError(f"{where} has {n} rows; the import takes at most {MAX_VALUES}")
+    total = int(np.prod(shape, dtype=np.float64))
+    if total > MAX_VALUES:
+        raise ForeignFileError(f"{where}: its variable holds {total} values; the import takes at most "
+                               f"{MAX_VALUES} a variable")
     return int(n)
 
 

@@ -90,3 +90,13 @@ def test_the_shipped_rig_slice_holds_what_its_readme_says() -> None:
                         ["data_line"])
     assert cols.n_rows == 2001 and cols.scalars["data_line"] == 2.0
     assert cols.columns["all_time"][0] == pytest.approx(12.109)
+
+
+def test_a_dataset_claiming_more_values_than_the_import_takes_is_refused_unread(tmp_path: Path) -> None:
+    p = tmp_path / "huge.h5"
+    with h5py.File(p, "w") as f:  # 2^29 values declared, nothing written: a few kB on disk
+        f.create_dataset("acc", shape=(1 << 27, 4), dtype="f8", chunks=(1024, 4))
+    assert p.stat().st_size < 100_000
+    with pytest.raises(ForeignFileError, match=r"huge\.h5: column 'acc\[:, 0\]': its variable holds "
+                                               r"536870912 values; the import takes at most 268435456"):
+        read_columns(p, ["acc[:, 0]"])
