@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 import re
 import warnings
 from array import array
@@ -81,6 +82,35 @@ class LineReader:
                 "is it a recording CSV?"
             )
         return text
+
+
+def read_header(path: Path, f: io.TextIOBase, limits: CsvLimits, empty_hint: str,
+                too_wide_hint: str = "") -> tuple[LineReader, list[str], int]:
+    """The line source of an open CSV file, its header row's names (stripped) and that row's
+    line number; refuses a file over ``limits.max_file_bytes`` unread, an empty one (saying
+    ``empty_hint``), a header that is not CSV and one of more than ``limits.max_columns``."""
+    size = os.fstat(f.fileno()).st_size
+    if size > limits.max_file_bytes:
+        raise RecordingError(
+            f"{path}: {size / 1e6:.0f} MB is more than the reader takes "
+            f"({limits.max_file_bytes / 1e6:.0f} MB); split the recording"
+        )
+    source = LineReader(path, f, limits)
+    header_line = source.next()
+    while header_line and not header_line.strip():
+        header_line = source.next()
+    if not header_line:
+        raise RecordingError(f"{path}: the file is empty; {empty_hint}")
+    try:
+        header = [h.strip() for h in next(csv.reader([header_line]))]
+    except csv.Error as e:
+        raise RecordingError(f"{path}: line {source.line}: not a CSV header ({e})") from None
+    if len(header) > limits.max_columns:
+        raise RecordingError(
+            f"{path}: the header has {len(header)} columns; the reader takes at most "
+            f"{limits.max_columns}{too_wide_hint}"
+        )
+    return source, header, source.line
 
 
 def row_error(path: Path, row0: int, lines, what: str) -> RecordingError:

@@ -36,15 +36,13 @@ place, within bounded time and memory, as soon as the problem is met
 
 from __future__ import annotations
 
-import csv
-import os
 import warnings
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from sensors.csv_blocks import BLOCK_ROWS, DEFAULT_LIMITS, CsvLimits, LineReader, parse_rows, row_error
+from sensors.csv_blocks import BLOCK_ROWS, DEFAULT_LIMITS, CsvLimits, parse_rows, read_header, row_error
 from sensors.csv_header import T_COLUMN, csv_columns, first_few, streams_from_header
 from sensors.samples import TRUTH_KINDS, Recording, RecordingError, Stream, clipped_repr
 
@@ -85,28 +83,8 @@ def read_csv(path: str | Path, limits: CsvLimits = DEFAULT_LIMITS) -> Recording:
 
 def _read_csv(path: Path, limits: CsvLimits) -> Recording:
     with open(path, encoding="utf-8-sig", newline=None) as f:
-        size = os.fstat(f.fileno()).st_size
-        if size > limits.max_file_bytes:
-            raise RecordingError(
-                f"{path}: {size / 1e6:.0f} MB is more than the reader takes "
-                f"({limits.max_file_bytes / 1e6:.0f} MB); split the recording"
-            )
-        source = LineReader(path, f, limits)
-        header_line = source.next()
-        while header_line and not header_line.strip():
-            header_line = source.next()
-        if not header_line:
-            raise RecordingError(f"{path}: the file is empty; expected a header row starting with 't'")
-        header_line_no = source.line
-        try:
-            header = [h.strip() for h in next(csv.reader([header_line]))]
-        except csv.Error as e:
-            raise RecordingError(f"{path}: line {header_line_no}: not a CSV header ({e})") from None
-        if len(header) > limits.max_columns:
-            raise RecordingError(
-                f"{path}: the header has {len(header)} columns; the reader takes at most "
-                f"{limits.max_columns} (is it a recording CSV?)"
-            )
+        source, header, header_line_no = read_header(
+            path, f, limits, "expected a header row starting with 't'", " (is it a recording CSV?)")
         if T_COLUMN not in header:
             raise RecordingError(
                 f"{path}: no column 't' in the header (line {header_line_no}): "

@@ -6,15 +6,13 @@ scalars: a start row is given as a number in the column map."""
 
 from __future__ import annotations
 
-import csv
-import os
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from sensors.csv_blocks import DEFAULT_LIMITS, CsvLimits, LineReader, parse_rows
+from sensors.csv_blocks import DEFAULT_LIMITS, CsvLimits, parse_rows, read_header
 from sensors.foreign.table import ForeignColumns, ForeignFileError, parse_address, unknown_column
 from sensors.samples import clipped_repr
 
@@ -26,23 +24,7 @@ def read_csv_columns(path: Path, columns: Sequence[str], scalars: Sequence[str] 
                                "start row as a number")
     try:
         with open(path, encoding="utf-8-sig", newline=None) as f:
-            size = os.fstat(f.fileno()).st_size
-            if size > limits.max_file_bytes:
-                raise ForeignFileError(f"{path}: {size / 1e6:.0f} MB is more than the reader takes "
-                                       f"({limits.max_file_bytes / 1e6:.0f} MB); split the recording")
-            source = LineReader(path, f, limits)
-            line = source.next()
-            while line and not line.strip():
-                line = source.next()
-            if not line:
-                raise ForeignFileError(f"{path}: the file is empty; expected a header row of column names")
-            try:
-                header = [h.strip() for h in next(csv.reader([line]))]
-            except csv.Error as e:
-                raise ForeignFileError(f"{path}: line {source.line}: not a CSV header ({e})") from None
-            if len(header) > limits.max_columns:
-                raise ForeignFileError(f"{path}: the header has {len(header)} columns; the reader takes "
-                                       f"at most {limits.max_columns}")
+            source, header, _ = read_header(path, f, limits, "expected a header row of column names")
             twice = {h for h, k in Counter(header).items() if k > 1}
             used: list[str] = []
             for c in columns:
