@@ -3,7 +3,7 @@
 A recording is a set of named streams. Each stream is one sensor (or one group of
 columns of the recording CSV) sampled at its own instants: ``t_s`` of shape ``(N,)``
 and ``values`` of shape ``(N, k)``. A raw stream holds int64 when every value is a whole
-number (register counts, as every armfusion device gives them) and float64 otherwise
+number within 64-bit integers (register counts, as every armfusion device gives them) and float64 otherwise
 (values a sensor delivered already in a physical unit, e.g. g rounded to 0.01: the unit
 is the config's sensor description's, ``StreamModel.value_unit``); raw values must be
 finite (a sensor not sampled is a missing sample, not a NaN). The optional ground-truth
@@ -98,9 +98,9 @@ def truth_joint_columns(n_joints: int) -> tuple[str, ...]:
 
 
 def _raw_values(name: str, v: np.ndarray) -> np.ndarray:
-    """A raw stream's values: int64 when every one is a whole number (counts: what every
-    recording before physical-unit sensors held, unchanged), else float64; refused when one
-    is not finite or a whole number is beyond 64-bit integers."""
+    """A raw stream's values: int64 when every one is a whole number within 64-bit integers
+    (counts: what every recording before physical-unit sensors held, unchanged), else
+    float64; refused when one is not finite, or integers (not floats) beyond 64 bits."""
     if v.dtype == object:
         try:
             return np.asarray(v, dtype=np.int64)
@@ -119,17 +119,15 @@ def _raw_values(name: str, v: np.ndarray) -> np.ndarray:
         i, j = (int(x[0]) for x in np.nonzero(~np.isfinite(v)))
         raise ValueError(f"stream {name!r}: raw value {float(v[i, j])!r} at sample {i}, channel {j} "
                          "is not finite (a sensor not sampled is a missing sample, not a NaN)")
-    if np.all(v == np.round(v)):
-        if v.size and float(np.abs(v).max()) >= 2.0**63:
-            raise ValueError(f"stream {name!r}: a raw count beyond 64-bit integers")
+    if np.all(v == np.round(v)) and not (v.size and float(np.abs(v).max()) >= 2.0**63):
         return v.astype(np.int64)
-    return v
+    return v  # a decimal somewhere, or a whole float beyond any count: physical values
 
 
 @dataclass(frozen=True)
 class Stream:
     """One sensor's samples: ``t_s (N,)`` seconds and ``values (N, k)`` (raw: int64 counts
-    when all are whole numbers, else float64; truth: float64)."""
+    when all are whole numbers within 64 bits, else float64; truth: float64)."""
 
     name: str
     kind: StreamKind

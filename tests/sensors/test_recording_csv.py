@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sensors.recording_csv import RecordingWarning, read_csv, write_csv
 from sensors.samples import (
@@ -354,3 +356,25 @@ def test_a_link_gyro_with_a_column_missing_is_left_out_and_named(tmp_path: Path)
     with pytest.warns(RecordingWarning, match=r"shaft_gyro \(has shaft_gx, shaft_gz; needs shaft_gy too\)"):
         rec = read_csv(p)
     assert set(rec.streams) == {"imu_gyro"}
+
+
+_FINITE = st.floats(allow_nan=False, allow_infinity=False, width=64)
+
+
+@settings(derandomize=True, max_examples=60, deadline=None)
+@given(st.lists(st.tuples(_FINITE, _FINITE, _FINITE), min_size=1, max_size=20))
+def test_any_finite_raw_values_read_back_bit_for_bit_from_both_formats(tmp_path_factory, rows) -> None:
+    from sensors.recording_mcap import read_mcap, write_mcap
+
+    values = np.array(rows, dtype=np.float64)
+    rec = Recording({"shaft_gyro": Stream("shaft_gyro", "link_gyro", np.arange(len(rows)) * 0.01, values,
+                                          ("shaft_gx", "shaft_gy", "shaft_gz"))})
+    d = tmp_path_factory.mktemp("rt")
+    write_csv(rec, d / "r.csv")
+    write_mcap(rec, d / "r.mcap")
+    expected = rec.get("shaft_gyro").values  # int64 when every value is whole, else the floats
+    for back in (read_csv(d / "r.csv"), read_mcap(d / "r.mcap")[0]):
+        got = back.get("shaft_gyro").values
+        assert got.dtype == expected.dtype
+        np.testing.assert_array_equal(got, expected)
+        assert np.array_equal(np.signbit(got), np.signbit(expected)) or expected.dtype == np.int64
