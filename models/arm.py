@@ -23,11 +23,9 @@ from typing import Literal
 import numpy as np
 
 from models.rotations import rot_x, rot_z, wrap_angle
+from models.sensor_description import SensorDescription, describe
 
 DhConvention = Literal["modified", "standard", "urdf"]
-SensorType = Literal["adxl345", "mpu9150", "analog_triax"]
-SENSOR_TYPES: tuple[str, ...] = ("adxl345", "mpu9150", "analog_triax")
-ACCELEROMETER_TYPES: tuple[str, ...] = ("adxl345", "analog_triax")
 
 
 def _frozen(a) -> np.ndarray:
@@ -65,10 +63,26 @@ class SensorMount:
     p_L_m: np.ndarray
     bus: dict = field(default_factory=dict)
     settings: dict = field(default_factory=dict)
+    description: SensorDescription | None = None
+    """What the sensor is and how its values arrive (default: its ``type``'s datasheet one)."""
+
+    def __post_init__(self) -> None:
+        if self.description is None:
+            object.__setattr__(self, "description", describe(self.type, None, None, self.settings))
+
+    @property
+    def is_base_imu(self) -> bool:
+        """An IMU on the base (link 0): the one whose streams are ``imu_*``."""
+        return self.link == 0 and self.description.kind == "imu"
 
     @property
     def is_link_accelerometer(self) -> bool:
-        return self.type in ACCELEROMETER_TYPES
+        return self.description.has("accelerometer") and not self.is_base_imu
+
+    @property
+    def has_link_gyro(self) -> bool:
+        """A gyroscope on a link (stream ``<name>_gyro``)."""
+        return self.description.has("gyroscope") and not self.is_base_imu
 
 
 @dataclass(frozen=True)
@@ -217,7 +231,7 @@ class ArmModel:
     @property
     def imu(self) -> SensorMount | None:
         for s in self.sensors:
-            if s.type == "mpu9150":
+            if s.is_base_imu:
                 return s
         return None
 

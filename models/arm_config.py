@@ -15,7 +15,6 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from models.arm import (
-    SENSOR_TYPES,
     ArmCalibration,
     ArmModel,
     CorrectionCovariance,
@@ -26,6 +25,7 @@ from models.arm import (
     joints_from_dh,
 )
 from models.rotations import DEG, rotation_problem
+from models.sensor_description import DEVICE_TYPES, SensorDescription, describe
 from sensors.samples import clipped_repr
 
 
@@ -92,18 +92,31 @@ class BusSection(_Strict):
 class SensorSection(_Strict):
     name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
     type: str
+    kind: str | None = None
     link: int
     rotation: list[list[float]] = Field(default_factory=lambda: np.eye(3).tolist())
     position_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
     bus: BusSection | None = None
     settings: dict[str, Any] = Field(default_factory=dict)
+    outputs: dict[str, dict[str, Any]] | None = None
+    """Per part (accelerometer, gyroscope, magnetometer, temperature), how its values arrive
+    where they differ from the device's datasheet (:mod:`models.sensor_description`)."""
 
     @field_validator("type")
     @classmethod
     def _known_type(cls, v: str) -> str:
-        if v not in SENSOR_TYPES:
-            raise ValueError(f"unknown sensor type; known types are {', '.join(SENSOR_TYPES)}")
+        if v not in DEVICE_TYPES:
+            raise ValueError(f"unknown sensor type; known types are {', '.join(DEVICE_TYPES)}")
         return v
+
+    @model_validator(mode="after")
+    def _described(self) -> SensorSection:
+        self.description()
+        return self
+
+    def description(self) -> SensorDescription:
+        """What the sensor is (its device's datasheet description with ``outputs`` laid over)."""
+        return describe(self.type, self.kind, self.outputs, self.settings)
 
     @field_validator("rotation")
     @classmethod
@@ -318,9 +331,16 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
             if isinstance(link, int) and n is not None and not 0 <= link <= n:
                 out.append(ConfigProblem(source, f"sensors[{k}].link", link,
                                          f"link index out of range: 0 (base) to {n}"))
-            if s.get("type") == "mpu9150" and isinstance(link, int) and link != 0:
-                out.append(ConfigProblem(source, f"sensors[{k}].link", link,
-                                         "the base IMU (mpu9150) sits on link 0 (the base)"))
+            desc = _description_or_none(s)
+            if desc is not None and isinstance(link, int):
+                if desc.has("magnetometer") and link != 0:
+                    out.append(ConfigProblem(source, f"sensors[{k}].link", link,
+                                             f"a magnetometer ({s.get('type')}) is read only as part of the "
+                                             "base IMU, on link 0 (the base)"))
+                if link == 0 and desc.kind in ("gyroscope", "magnetometer"):
+                    out.append(ConfigProblem(source, f"sensors[{k}].kind", desc.kind,
+                                             "on the base, a gyroscope or magnetometer is read as part of "
+                                             "an IMU (kind imu, with its accelerometer)"))
             bus = s.get("bus")
             if isinstance(bus, dict):
                 if bus.get("kind") == "i2c" and bus.get("address") is None:
@@ -329,13 +349,15 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
                 if bus.get("kind") == "spi" and bus.get("chip_select") is None:
                     out.append(ConfigProblem(source, f"sensors[{k}].bus.chip_select", None,
                                              "an SPI device needs a chip_select"))
-        if not any(isinstance(s, dict) and s.get("type") in ("adxl345", "analog_triax")
-                   for s in sensors):
+        roles = [(s.get("name"), _role(s)) for s in sensors if isinstance(s, dict)]
+        accels = [nm for nm, role in roles if role == "link"]
+        imus = [nm for nm, role in roles if role == "base_imu"]
+        if not accels and all(role is not None for _, role in roles):
             out.append(ConfigProblem(source, "sensors", len(sensors),
                                      "the arm has no link accelerometer"))
-        accels = [s.get("name") for s in sensors
-                  if isinstance(s, dict) and s.get("type") in ("adxl345", "analog_triax")]
-        imus = [s.get("name") for s in sensors if isinstance(s, dict) and s.get("type") == "mpu9150"]
+        if len(imus) > 1:
+            out.append(ConfigProblem(source, "sensors", ", ".join(map(str, imus)),
+                                     "more than one IMU on the base (link 0); the base has one"))
         cal = data.get("calibration")
         if isinstance(cal, dict):
             # per sensor: by the sensor's name (the IMU's too); covariances: by stream
@@ -350,6 +372,25 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
                                 "no such accelerometer in sensors (it has "
                                 f"{', '.join(map(str, allowed)) or 'none'})"))
     return out
+
+
+def _description_or_none(s: dict) -> SensorDescription | None:
+    """A config sensor's description, or None where its own check will say what is wrong."""
+    try:
+        return describe(s.get("type"), s.get("kind"), s.get("outputs") if isinstance(s.get("outputs"), dict)
+                        else None, s.get("settings") if isinstance(s.get("settings"), dict) else {})
+    except (ValueError, TypeError, AttributeError):
+        return None
+
+
+def _role(s: dict) -> str | None:
+    """``base_imu``, ``link`` (carries an accelerometer), ``other``; None when undescribable."""
+    desc = _description_or_none(s)
+    if desc is None:
+        return None
+    if desc.kind == "imu" and s.get("link") == 0:
+        return "base_imu"
+    return "link" if desc.has("accelerometer") else "other"
 
 
 def _numlist(v) -> bool:
@@ -395,7 +436,7 @@ def build_arm(
             name=s.name, type=s.type, link=s.link,
             R_LS=_ro(np.array(s.rotation, dtype=float)),
             p_L_m=_ro(np.array(s.position_mm, dtype=float) / 1000.0),
-            bus=s.bus.model_dump() if s.bus else {}, settings=dict(s.settings),
+            bus=s.bus.model_dump() if s.bus else {}, settings=dict(s.settings), description=s.description(),
         )
         for s in parsed.sensors
     )

@@ -10,20 +10,25 @@ it stays estimable. The physical values themselves are what ideal sensors read
 (:func:`models.motion.sensor_motion`): the accelerometer's specific force and the compass's
 heading are written once, compiled, in :mod:`models.sensor_kernels`.
 
-Streams and their models (names as in :mod:`sensors.samples`):
+Streams and their models (names as in :mod:`sensors.samples`), each made from its
+sensor's description (:mod:`models.sensor_description`: the datasheet's, or the config's
+``outputs``):
 
-=============  ==========================================================================
-``<acc>``      ADXL345, 10-bit at ±2 g: 256 LSB/g nominal (datasheet 230-282), noise
-               0.75 LSB rms on x/y and 1.1 LSB on z at 100 Hz, counts -512…511. Or an
-               ``analog_triax`` (the sensor-calibration article's 3DM): volts through an
-               ADC, its constants from the sensor's ``settings``.
-``imu_acc``    MPU-9150 accelerometer at ±2 g: 16384 LSB/g, 400 µg/√Hz, int16.
-``imu_gyro``   MPU-9150 gyroscope at ±250 °/s: 131 LSB per °/s, 0.005 °/s/√Hz, int16.
-``imu_mag``    AK8975 (inside the MPU-9150): 0.3 µT/LSB, 13-bit (-4096…4095), already
-               in the accelerometer's axes (as the recording spec has it).
-``imu_temp``   MPU-9150 temperature: raw = (T - 35 °C)·340.
-``enc``        relative encoders: counts = (q - q_power_up)·counts_per_rad, no noise.
-=============  ==========================================================================
+=================  ======================================================================
+``<acc>``          a link sensor's accelerometer: an ADXL345 (10-bit at ±2 g, 256 LSB/g),
+                   an ``analog_triax`` (volts through an ADC), an IMU's accelerometer…
+``<acc>_gyro``     a link sensor's gyroscope (an IMU on a link)
+``imu_acc``        the base IMU's accelerometer (MPU-9150 / MPU-6050 at ±2 g: 16384 LSB/g)
+``imu_gyro``       its gyroscope (±250 °/s: 131 LSB per °/s)
+``imu_mag``        its magnetometer, when it has one (the MPU-9150's AK8975: 0.3 µT/LSB,
+                   13-bit), already in the accelerometer's axes (as the recording spec has it)
+``imu_temp``       its temperature (MPU-9150: raw = (T - 35 °C)·340)
+``enc``            relative encoders: counts = (q - q_power_up)·counts_per_rad, no noise.
+=================  ======================================================================
+
+A sensor may deliver values already in a physical unit (a logger that stored g rounded to
+0.01): its stream's "counts" are then those values (``value_unit``), their step the
+resolution.
 
 Noise is white, Gaussian, with the rms of the datasheet at the simulated rate: for the
 ADXL345 the datasheet's rms at 100 Hz (bandwidth = rate/2) scaled by √(rate/100 Hz); for
@@ -38,48 +43,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.arm import ArmModel, SensorMount
+from models.sensor_description import (  # noqa: F401  (the datasheet numbers, re-exported)
+    ADXL345_LSB_PER_G,
+    ADXL345_NOISE_LSB_RMS_AT_100HZ,
+    AK8975_NOISE_UT_RMS,
+    AK8975_UT_PER_LSB,
+    CANONICAL_UNIT,
+    MPU9150_ACCEL_LSB_PER_G,
+    MPU9150_GYRO_LSB_PER_DPS,
+    MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ,
+    MPU9150_TEMP_LSB_PER_C,
+    MPU9150_TEMP_OFFSET_C,
+)
 from sensors.samples import IMU_STREAMS, Recording, accel_columns, encoder_columns
-
-# --- ADXL345 (link accelerometers), 10-bit, ±2 g ---------------------------------------
-ADXL345_LSB_PER_G = 256.0
-"""Nominal sensitivity at ±2 g, 10-bit (datasheet: 230 min, 282 max)."""
-ADXL345_NOISE_LSB_RMS_AT_100HZ = np.array([0.75, 0.75, 1.1])
-"""Datasheet noise at 100 Hz output rate, x/y/z (290 / 430 µg/√Hz)."""
-ADXL345_COUNTS_MIN, ADXL345_COUNTS_MAX = -512, 511
-ADXL345_REFERENCE_RATE_HZ = 100.0
-
-# --- MPU-9150 accelerometer, ±2 g -----------------------------------------------------
-MPU9150_ACCEL_LSB_PER_G = 16384.0
-MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ = 400e-6
-INT16_MIN, INT16_MAX = -32768, 32767
-
-# --- MPU-9150 gyroscope, ±250 °/s -----------------------------------------------------
-MPU9150_GYRO_LSB_PER_DPS = 131.0
-MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ = 0.005
-MPU9150_GYRO_ZERO_RATE_OFFSET_DPS_MAX = 20.0
-"""Initial zero-rate offset tolerance (datasheet ±20 °/s): see the gyro_bias effect."""
-
-# --- MPU-9150 temperature sensor ------------------------------------------------------
-MPU9150_TEMP_LSB_PER_C = 340.0
-MPU9150_TEMP_OFFSET_C = 35.0
-MPU9150_TEMP_NOISE_C_RMS = 0.02
-"""Not in the datasheet: a few LSB of register jitter (our assumption)."""
-
-# --- AK8975 magnetometer --------------------------------------------------------------
-AK8975_UT_PER_LSB = 0.3
-AK8975_COUNTS_MIN, AK8975_COUNTS_MAX = -4096, 4095
-AK8975_NOISE_UT_RMS = 0.6
-"""Not in the datasheet (it gives none): about two LSB, typical of measured AK89xx parts."""
-
-# --- analog triaxial sensor (the sensor-calibration article's Microstrain 3DM taps) ------
-ANALOG_TRIAX_VOLTS_PER_G = 1.25
-"""0-5 V output for ±2 g: 1.25 V/g (the article's S ≈ 0.127 V·s²/m)."""
-ANALOG_TRIAX_ZERO_G_VOLTS = 2.5
-ANALOG_TRIAX_ADC_COUNTS_PER_VOLT = 8192 / 10.0
-"""The article's Quanser Q8 board: 14-bit, ±10 V."""
-ANALOG_TRIAX_NOISE_V_RMS = np.array([0.0134, 0.0136, 0.0146])
-"""The article's measured rms noise of its three accelerometers (at 1 kHz)."""
-ADC14_COUNTS_MIN, ADC14_COUNTS_MAX = -8192, 8191
 
 # --- Earth's magnetic field -----------------------------------------------------------
 EARTH_FIELD_TAMPA_UT = np.array([24.0, 0.0, -39.0])
@@ -168,25 +144,24 @@ class StreamModel:
         return c.astype(np.int64) if self.value_unit == "counts" else c
 
 
-def _accel_stream(sensor: SensorMount, rate_hz: float) -> StreamModel:
-    cols = accel_columns(sensor.name)
-    if sensor.type == "adxl345":
-        gain = float(sensor.settings.get("lsb_per_g", ADXL345_LSB_PER_G))
-        noise = ADXL345_NOISE_LSB_RMS_AT_100HZ * np.sqrt(rate_hz / ADXL345_REFERENCE_RATE_HZ)
-        return StreamModel(sensor.name, "accel", sensor.name, cols, "g", np.full(3, gain),
-                           np.zeros(3), noise, ADXL345_COUNTS_MIN, ADXL345_COUNTS_MAX)
-    # analog_triax: volts through an ADC
-    st = sensor.settings
-    cpv = float(st.get("adc_counts_per_volt", ANALOG_TRIAX_ADC_COUNTS_PER_VOLT))
-    vpg = float(st.get("volts_per_g", ANALOG_TRIAX_VOLTS_PER_G))
-    zero_v = float(st.get("zero_g_volts", ANALOG_TRIAX_ZERO_G_VOLTS))
-    noise_v = np.broadcast_to(np.asarray(st.get("accel_noise_v", ANALOG_TRIAX_NOISE_V_RMS), float), (3,))
-    return StreamModel(sensor.name, "accel", sensor.name, cols, "g", np.full(3, vpg * cpv),
-                       np.full(3, zero_v * cpv), noise_v * cpv, ADC14_COUNTS_MIN, ADC14_COUNTS_MAX)
+def part_stream(stream: str, kind: str, sensor: SensorMount, channels: tuple[str, ...], part: str,
+                rate_hz: float) -> StreamModel:
+    """The count model of one sensing ``part`` of ``sensor`` (its description's units, scale,
+    zero, limits, resolution and noise at ``rate_hz``) as the recording's stream ``stream``."""
+    p = sensor.description.part(part)
+    k = len(channels)
+    limits = p.value_limits()
+    lo, hi = (None, None) if limits is None else limits
+    if p.counts and limits is not None and float(lo).is_integer() and float(hi).is_integer():
+        lo, hi = int(lo), int(hi)  # a register's limits are whole counts
+    return StreamModel(stream, kind, sensor.name, channels, CANONICAL_UNIT[part], np.full(k, p.gain()),
+                       np.full(k, p.zero), p.noise(rate_hz), lo, hi, p.units, p.resolution)
 
 
 def stream_models(arm: ArmModel, rate_hz: float | dict[str, float] = 100.0) -> dict[str, StreamModel]:
-    """The count model of every raw stream the arm's sensors produce, config order.
+    """The count model of every raw stream the arm's sensors produce, config order: each
+    link accelerometer (and a link's gyroscope, ``<name>_gyro``), the base IMU's parts,
+    the encoders. Made from the sensors' descriptions (:mod:`models.sensor_description`).
 
     ``rate_hz`` sets the noise (a number for all streams, or per stream name).
     """
@@ -195,34 +170,36 @@ def stream_models(arm: ArmModel, rate_hz: float | dict[str, float] = 100.0) -> d
 
     out: dict[str, StreamModel] = {}
     for s in arm.link_accelerometers:
-        out[s.name] = _accel_stream(s, rate(s.name))
+        out[s.name] = part_stream(s.name, "accel", s, accel_columns(s.name), "accelerometer", rate(s.name))
+    for s in arm.sensors:
+        if s.has_link_gyro:
+            name = link_gyro_stream(s.name)
+            out[name] = part_stream(name, "link_gyro", s, link_gyro_columns(s.name), "gyroscope", rate(name))
     imu = arm.imu
     if imu is not None:
-        r = rate("imu_acc")
-        out["imu_acc"] = StreamModel(
-            "imu_acc", "imu_accel", imu.name, IMU_STREAMS["imu_acc"][1], "g",
-            np.full(3, MPU9150_ACCEL_LSB_PER_G), np.zeros(3),
-            np.full(3, MPU9150_ACCEL_NOISE_G_PER_SQRT_HZ * np.sqrt(r / 2) * MPU9150_ACCEL_LSB_PER_G),
-            INT16_MIN, INT16_MAX)
-        r = rate("imu_gyro")
-        lsb_per_rad_s = MPU9150_GYRO_LSB_PER_DPS * 180.0 / np.pi
-        out["imu_gyro"] = StreamModel(
-            "imu_gyro", "gyro", imu.name, IMU_STREAMS["imu_gyro"][1], "rad/s",
-            np.full(3, lsb_per_rad_s), np.zeros(3),
-            np.full(3, MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ * np.sqrt(r / 2) * MPU9150_GYRO_LSB_PER_DPS),
-            INT16_MIN, INT16_MAX)
-        out["imu_mag"] = StreamModel(
-            "imu_mag", "mag", imu.name, IMU_STREAMS["imu_mag"][1], "uT",
-            np.full(3, 1.0 / AK8975_UT_PER_LSB), np.zeros(3),
-            np.full(3, AK8975_NOISE_UT_RMS / AK8975_UT_PER_LSB), AK8975_COUNTS_MIN, AK8975_COUNTS_MAX)
-        out["imu_temp"] = StreamModel(
-            "imu_temp", "temperature", imu.name, IMU_STREAMS["imu_temp"][1], "degC",
-            np.array([MPU9150_TEMP_LSB_PER_C]), np.array([-MPU9150_TEMP_OFFSET_C * MPU9150_TEMP_LSB_PER_C]),
-            np.array([MPU9150_TEMP_NOISE_C_RMS * MPU9150_TEMP_LSB_PER_C]), INT16_MIN, INT16_MAX)
+        for stream, part in IMU_STREAM_PARTS.items():
+            if imu.description.has(part):
+                kind, channels = IMU_STREAMS[stream]
+                out[stream] = part_stream(stream, kind, imu, channels, part, rate(stream))
     out[ENCODER_STREAM] = StreamModel(
         ENCODER_STREAM, "encoder", "", encoder_columns(arm.n_joints), "rad", arm.counts_per_rad.copy(),
         np.zeros(arm.n_joints), np.zeros(arm.n_joints), None, None)
     return out
+
+
+IMU_STREAM_PARTS = {"imu_acc": "accelerometer", "imu_gyro": "gyroscope", "imu_mag": "magnetometer",
+                    "imu_temp": "temperature"}
+"""The base IMU's streams and the part of its description each comes from."""
+
+
+def link_gyro_stream(sensor: str) -> str:
+    """The stream of the gyroscope of the link sensor ``sensor``."""
+    return f"{sensor}_gyro"
+
+
+def link_gyro_columns(sensor: str) -> tuple[str, str, str]:
+    """CSV columns of the gyroscope of the link sensor ``sensor``."""
+    return (f"{sensor}_gx", f"{sensor}_gy", f"{sensor}_gz")
 
 
 def stream_group(stream: str) -> str:

@@ -48,7 +48,7 @@ def check_robot(value: str | None) -> str | None:
 
 # --- the arm, the output ---------------------------------------------------------------------
 ConfigOpt = Annotated[
-    str, typer.Option("--config", "-c", help="Arm config: a shipped name (wmra, crs_a465) or a YAML path.")
+    str, typer.Option("--config", "-c", help="Arm config: a shipped name (wmra, crs_a465, imu_rig_roll…) or a YAML path.")
 ]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON document.")]
 WriteConfigOpt = Annotated[Path | None, typer.Option(

@@ -88,6 +88,10 @@ class FitData:
     IMU's mount about that axis are one unknown (any set of tilts leaves them so)."""
     joint_references: tuple[JointReference, ...] = ()
     """One-time references of joints' geometric angles (:func:`joint_references`)."""
+    sample_excess_counts: dict[str, np.ndarray] = field(default_factory=dict)
+    """Per stream and axis, the fast error one sample carries beyond its noise model, in
+    counts (:func:`sample_excess`: vibration, say, which a window's mean averages away but a
+    filter that reads every sample meets); absent where the scatter is the noise's."""
 
     @property
     def n(self) -> int:
@@ -131,7 +135,14 @@ class FitData:
 def fit_streams(arm: ArmModel) -> list[str]:
     """The streams a fit (calibrate sensors, diagnose) needs of a recording: the encoders and
     every stream of the config's sensors that it fits."""
-    return ["enc", *(s for s in stream_models(arm) if s not in FIT_STREAMS_EXCLUDED)]
+    return ["enc", *fitted_streams(stream_models(arm))]
+
+
+def fitted_streams(models: dict) -> list[str]:
+    """Of the count models ``models`` (by stream), the streams a fit compares with the model:
+    all but :data:`FIT_STREAMS_EXCLUDED` and a link's gyroscope (``link_gyro``: recorded and
+    imported, but the model does not predict it yet, so the fit and the workbench leave it out)."""
+    return [s for s, m in models.items() if s not in FIT_STREAMS_EXCLUDED and m.kind != "link_gyro"]
 
 
 def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndarray | None = None,
@@ -171,8 +182,8 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
     if q_ref_rad is None:
         q_ref_rad = start_pose(arm, rec)
     q = np.asarray(q_ref_rad, float) + q_enc
-    names = [s for s in models if s not in FIT_STREAMS_EXCLUDED] if streams is None else list(streams)
-    counts, sig = {}, {}
+    names = fitted_streams(models) if streams is None else list(streams)
+    counts, sig, excess = {}, {}, {}
     w = max(1, int(window))
     n = len(t) // w
     if n < 2:
@@ -190,6 +201,10 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
             continue
         v = np.asarray(st.values, float)
         ts = np.asarray(st.t_s, float)
+        inside = (ts >= t[0]) & (ts <= t[-1]) if len(t) else np.zeros(len(ts), bool)
+        fast = sample_excess(v[inside], models[s].sigma_counts)
+        if fast is not None:
+            excess[s] = fast
         sat = np.flatnonzero(models[s].saturated(v).any(axis=1))
         if len(sat):  # its window is left out: the instants strictly between its neighbours
             saturated[s] = len(sat)
@@ -221,7 +236,8 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
     if nodes == 1:
         state = MotionState.from_samples(mean(t), mean(q), None, 0.0, temp)
         data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
-                       f"window means of {w} samples" + note, stance=stance, used=used)
+                       f"window means of {w} samples" + note, stance=stance, used=used,
+                       sample_excess_counts=excess)
     else:
         tw = t[: n * w].reshape(n, w)
         dt = (tw[:, -1] - tw[:, 0]) * w / max(w - 1, 1)  # the window's length
@@ -231,7 +247,7 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
         state = MotionState.from_samples(tn, qn, None, 0.0, tempn)
         data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
                        f"window means of {w} samples (model at two nodes per window)" + note, nodes=2,
-                       stance=stance, used=used)
+                       stance=stance, used=used, sample_excess_counts=excess)
     if saturated:  # a window holding a saturated sample (or interpolated from one) is left out
         bad = (np.cumsum(reach)[: n * w] > 0).reshape(n, w).any(axis=1)
         if int((~bad).sum()) < 2:
@@ -243,6 +259,30 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
                        note=data.note + f"; {int(bad.sum()):,} of {n:,} windows left out: they hold "
                        "saturated samples (" + ", ".join(f"{s} {k:,}" for s, k in saturated.items()) + ")")
     return data
+
+
+def sample_excess(values: np.ndarray, sigma_counts: np.ndarray) -> np.ndarray | None:
+    """Per axis, the scatter of single samples ``values (N, k)`` beyond ``sigma_counts`` (the
+    noise model's σ of one sample), from their second differences (``v[i+1] - 2 v[i] +
+    v[i-1]``: 6σ² for white noise, and nearly nothing of a motion that is smooth over two
+    sample intervals, so what is left is noise and what moves faster: vibration). The excess
+    is ``√(scatter² − σ²)`` where the scatter exceeds the noise by more than three standard
+    errors of the estimate (about 2σ²/√N for white noise); 0 on the other axes; None when no
+    axis has one, or there are fewer than 50 samples."""
+    v = np.asarray(values, float)
+    if v.ndim != 2 or len(v) < 50:
+        return None
+    d2 = v[2:] - 2.0 * v[1:-1] + v[:-2]
+    ok = np.isfinite(d2).all(axis=1)
+    n = int(ok.sum())
+    if n < 50:
+        return None
+    var = np.mean(d2[ok] ** 2, axis=0) / 6.0
+    s2 = np.asarray(sigma_counts, float) ** 2
+    beyond = var - s2 > 3.0 * 2.0 * s2 / np.sqrt(n)
+    if not beyond.any():
+        return None
+    return np.where(beyond, np.sqrt(np.maximum(var - s2, 0.0)), 0.0)
 
 
 def parked_stances(arm: ArmModel, rec, t_windows_s: np.ndarray, window: int,

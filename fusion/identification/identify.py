@@ -245,8 +245,9 @@ def _stream_fits(pb: FitProblem, model: Model, data: FitData, z: np.ndarray) -> 
         if data.used is not None:
             d = d[data.used]
         g = np.abs(sm[s].gain)
+        fast = data.sample_excess_counts.get(s)
         fits.append(StreamFit(s, sm[s].unit, np.sqrt(np.mean(d**2, 0)) / g,
-                              data.sigma_counts[s] / g))
+                              data.sigma_counts[s] / g, None if fast is None else fast / g))
     return fits
 
 

@@ -72,10 +72,15 @@ class StreamFit:
     unit: str
     rms: np.ndarray
     noise: np.ndarray
+    sample_excess: np.ndarray | None = None
+    """Per axis, the fast error one sample carries beyond its noise (vibration…), which the
+    window means do not show (:func:`fusion.identification.data.sample_excess`); None: none."""
 
     def excess(self) -> np.ndarray:
-        """RMS beyond the noise, per axis (0 where the fit is at the noise)."""
-        return np.sqrt(np.maximum(self.rms**2 - self.noise**2, 0.0))
+        """RMS beyond the noise, per axis (0 where the fit is at the noise): the window means'
+        misfit, and one sample's fast excess with it."""
+        slow = np.sqrt(np.maximum(self.rms**2 - self.noise**2, 0.0))
+        return slow if self.sample_excess is None else np.hypot(slow, self.sample_excess)
 
 
 @dataclass(frozen=True)

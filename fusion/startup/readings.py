@@ -50,8 +50,9 @@ def sensor_floor_g(arm: ArmModel, name: str) -> float:
 
 
 def _noise_g(model, n_samples: int) -> np.ndarray:
-    """Standard error of a mean of ``n_samples`` counts, in g, rounding to counts included."""
-    return np.sqrt(model.noise_counts_rms**2 + 1.0 / 12.0) / np.abs(model.gain) / np.sqrt(n_samples)
+    """Standard error of a mean of ``n_samples`` counts, in g, the rounding to the values'
+    resolution included."""
+    return model.sigma_counts / np.abs(model.gain) / np.sqrt(n_samples)
 
 
 def readings_from_recording(

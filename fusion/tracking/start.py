@@ -92,6 +92,54 @@ class NoStillWindowError(ValueError):
     """The recording has no still stretch to calibrate from."""
 
 
+@dataclass(frozen=True)
+class _Window:
+    t_start_s: float
+    t_end_s: float
+
+
+MOVING_WINDOW_SAMPLES = 5
+"""Encoder samples averaged by a moving start (:func:`moving_window`)."""
+MOVING_SEARCH_S = 5.0
+"""How far into the recording a moving start looks for its least-moving instants."""
+
+
+def moving_window(arm: ArmModel, rec: Recording, search_s: float = MOVING_SEARCH_S,
+                  samples: int = MOVING_WINDOW_SAMPLES):
+    """The startup's readings on an arm that never stands still: the ``samples`` encoder
+    instants of the first ``search_s`` over which the joints travel least, averaged. Each
+    link accelerometer's σ is widened by what that travel turns gravity by (up to 1 g per
+    radian of the joints before it) and by its reading's spread in the window, so that
+    the startup's σ covers the motion; the tracker refines the angles from there. Returns
+    ``(window, readings, checks, note)``; :class:`NoStillWindowError` when too short."""
+    from fusion.startup.solve import readings_from_recording
+
+    enc = rec.get(ENC)
+    if enc is None or len(enc) < samples:
+        raise NoStillWindowError("no still stretch, and too few encoder samples to start on a moving arm")
+    t = enc.t_s
+    q = enc.values / arm.counts_per_rad
+    last = max(int(np.searchsorted(t, t[0] + search_s)), samples)
+    last = min(last, len(t))
+    windows = np.lib.stride_tricks.sliding_window_view(q[:last], samples, axis=0)  # (W, n, samples)
+    travel = np.ptp(windows, axis=2)  # (W, n)
+    k = int(np.argmin(travel.sum(axis=1)))
+    t0, t1 = float(t[k]), float(t[k + samples - 1])
+    readings, checks = readings_from_recording(arm, rec, t0, t1, t1 - t0 + 1e-9)
+    sig = {}
+    for m in arm.link_accelerometers:
+        if m.name in readings.accel_sigma_g:
+            turned = float(np.sum(travel[k][: m.link]))
+            s = rec.get(m.name).between(t0, t1 + 1e-9)
+            spread = np.std(stream_models(arm)[m.name].from_counts(s.values), axis=0) if len(s) > 1 else 0.0
+            sig[m.name] = np.sqrt(readings.accel_sigma_g[m.name] ** 2 + turned**2 + spread**2)
+    readings = replace(readings, accel_sigma_g={**readings.accel_sigma_g, **sig})
+    note = (f"no still stretch: started on the moving arm at t = {t0:.2f}..{t1:.2f} s (the least joint "
+            f"travel of the first {search_s:g} s: {np.degrees(travel[k].max()):.2f} deg), its readings' "
+            "sigma widened by that motion")
+    return _Window(t0, t1), readings, checks, note
+
+
 def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
     """Compile (the first run after an install) or load (later runs) the tracker's compiled
     kernels with the signatures the live path uses, by tracking 2 s of a simulated arm
@@ -119,7 +167,8 @@ def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
 def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSettings | None = None,
                          prior_q_rad: np.ndarray | None = None, window_s: float = 1.0,
                          startup_settings=None, propose_unlock: bool = True,
-                         prior=None, resolve_by_motion_s: float | None = None) -> tuple[Tracker, Start]:
+                         prior=None, resolve_by_motion_s: float | None = None,
+                         moving_start: bool = False) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
     calibration there (:func:`fusion.startup.solve.solve_still`), the gyro bias, heading and field
     reference from the same window; it starts tracking at the window's end.
@@ -131,7 +180,10 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     ``resolve_by_motion_s``: for a whole recording (not live), when the startup left joints
     ``ambiguous``, track each candidate branch over the next this many seconds and keep the
     one the motion's readings favour (:func:`_branch_by_motion`); they stay ambiguous when no
-    branch is decisively better (the arm did not move enough)."""
+    branch is decisively better (the arm did not move enough).
+    ``moving_start``: when the recording has no still stretch (an arm that never stops),
+    start from the readings of its least-moving instants instead (:func:`moving_window`),
+    their σ widened by the motion; else :class:`NoStillWindowError`."""
     from fusion.startup.solve import StartupPrior, readings_from_recording, solve_still
 
     if prior is None and prior_q_rad is not None:
@@ -139,13 +191,18 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     from fusion.startup.static import StaticDetectionSettings, find_static_segments
 
     segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)))
-    if not segs:
+    notes: list[str] = []
+    if segs:
+        seg = segs[0]
+        readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
+    elif moving_start:
+        seg, readings, checks, note = moving_window(arm, rec)
+        notes.append(note)
+    else:
         raise NoStillWindowError(
             "no still stretch in the recording (accelerometers, gyro and encoders quiet for at "
             "least 1 s): the tracker needs a startup calibration on a still arm")
-    seg = segs[0]
-    readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
-    notes = [c.message for c in checks]
+    notes += [c.message for c in checks]
     corr = None
     if arm.effects:  # a calibrated config: the startup works on corrected readings
         from fusion.identification.identify import startup_correction

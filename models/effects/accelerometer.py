@@ -33,11 +33,12 @@ class AccelBias(AxisOffset, _AccelEffect):
         "perfectly still (its '0 g offset'). Typical ADXL345 boards are a few hundredths "
         "of a g off; the error looks like a tilt that changes with the pose.")
     seen_in = ("ADXL345 0 g offset ±35 mg x/y, ±40 mg z typical; MPU-9150 accelerometer "
-               "±80 mg x/y, ±150 mg z initial tolerance (σ taken as half)")
+               "±80 mg x/y, ±150 mg z initial tolerance; MPU-6050 ±50 mg x/y, ±80 mg z (σ taken as half)")
 
     def default_sigma(self):
         return by_sensor_type(self.arm, self.target, {
-            "adxl345": [0.035, 0.035, 0.040], "mpu9150": [0.040, 0.040, 0.075], "default": [0.02] * 3})
+            "adxl345": [0.035, 0.035, 0.040], "mpu9150": [0.040, 0.040, 0.075],
+            "mpu6050": [0.025, 0.025, 0.040], "default": [0.02] * 3})
 
 
 class AccelScale(AxisScale, _AccelEffect):
@@ -54,8 +55,8 @@ class AccelScale(AxisScale, _AccelEffect):
                "MPU-9150 ±3 % tolerance")
 
     def default_sigma(self):
-        return by_sensor_type(self.arm, self.target, {"adxl345": [0.01] * 3, "mpu9150": [0.015] * 3,
-                                                "default": [0.01] * 3})
+        return by_sensor_type(self.arm, self.target, {
+            "adxl345": [0.01] * 3, "mpu9150": [0.015] * 3, "mpu6050": [0.015] * 3, "default": [0.01] * 3})
 
 
 # the article's eq. 4-6: axis k is e_x turned by beta about y, then gamma about z, carried
@@ -100,8 +101,8 @@ class AccelAxes(_AccelEffect):
     seen_in = "ADXL345 cross-axis sensitivity ±1 %; MPU-9150 ±2 %"
 
     def default_sigma(self):
-        return by_sensor_type(self.arm, self.target, {"adxl345": [0.01] * 6, "mpu9150": [0.02] * 6,
-                                                "default": [0.01] * 6})
+        return by_sensor_type(self.arm, self.target, {
+            "adxl345": [0.01] * 6, "mpu9150": [0.02] * 6, "mpu6050": [0.02] * 6, "default": [0.01] * 6})
 
     def apply(self, y, theta, ctx, stream):
         M, _, _ = axis_directions(theta)
@@ -141,6 +142,7 @@ class TemperatureDrift(_AccelEffect):
     def default_sigma(self):
         return by_sensor_type(self.arm, self.target, {
             "adxl345": [0.0004, 0.0004, 0.0012], "mpu9150": [0.0005, 0.0005, 0.0009],
+            "mpu6050": [0.0005, 0.0005, 0.0009],
             "default": [0.0004] * 3})
 
     def apply(self, y, theta, ctx, stream):

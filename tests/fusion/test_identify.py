@@ -404,3 +404,28 @@ def test_the_ramp_pins_the_imu_mount_that_a_parked_chair_holds(arm, imu_truth):
     for name in ("imu.base_mount[x]", "imu.base_mount[y]", "j1.joint_offset[offset]"):
         r = rows[name]
         assert not r["held"] and abs(r["z"]) < 3 and r["sigma"] < np.radians(0.2), r
+
+
+def test_fast_error_the_window_means_hide_is_measured_sample_by_sample(arm):
+    """A sensor that shakes (white error well above its datasheet noise, as a stepper motor's
+    vibration makes) looks clean in window means; the fit measures it on the single samples
+    and the calibrated floor, which a filter reading every sample needs, carries it."""
+    from fusion.identification.data import data_from_recording
+    from models.simulator import simulate
+    from sensors.samples import Recording, Stream
+
+    rec, _ = simulate(arm, "renk-maneuver", 60.0, seed=3)
+    assert data_from_recording(arm, rec, window=10).sample_excess_counts == {}  # noise as modelled
+    acc2 = rec.get("acc2")
+    shake_g = 0.02
+    shake = np.random.default_rng(5).standard_normal(acc2.values.shape) * shake_g * 256
+    shaken = acc2.values + np.rint(shake)
+    rec2 = Recording({**rec.streams, "acc2": Stream("acc2", acc2.kind, acc2.t_s, shaken.astype(np.int64),
+                                                    acc2.channels)}, rec.meta)
+    data = data_from_recording(arm, rec2, window=10)
+    assert set(data.sample_excess_counts) == {"acc2"}
+    np.testing.assert_allclose(data.sample_excess_counts["acc2"] / 256, shake_g, rtol=0.1)
+    model = Model(arm, [build_effect(arm, "accel_bias", "acc2")])
+    fit = identify(model, data)
+    assert fit.unmodelled_g()["acc2"] == pytest.approx(shake_g, rel=0.15)
+    assert fit.unmodelled_g()["acc1"] < 0.004

@@ -21,6 +21,7 @@ from fusion.tracking.tracker import (
     COUNTERS,
     FLAG_CODE,
     JOINT_FLAGS,
+    NoStillWindowError,
     NotInitialisedError,
     Tracker,
     TrackerSettings,
@@ -711,3 +712,21 @@ def test_a_joint_the_filter_carries_a_whole_turn_is_reported_inside_its_limits(w
     assert np.all(np.abs(q_deg - mid) <= 180.0)
     assert np.all(np.abs(np.degrees(tracker.estimate.q_rad) - mid) <= 180.0)
     assert run.summary(after_s=10.0)["rms_error_deg"]["j6"] < 5.0
+
+
+def test_an_arm_that_never_stands_still_starts_on_its_least_moving_instants(arm):
+    """No still stretch (every joint swinging from the first sample): the tracker starts on
+    the instants where the joints travel least, with a sigma that covers the motion, and
+    converges; without being asked to, it refuses rather than guess."""
+    amp = np.radians([12, 10, 15, 12, 15, 20, 25])
+    jp = SinePath(POSE, amp, np.array([0.13, 0.11, 0.17, 0.07, 0.19, 0.23, 0.29]), np.zeros(7), -5.0, 1.0)
+    rec, _ = simulate(arm, scenario(arm, 25.0, jp, ParkedBase(0.02, -0.01, 1.0)), seed=11)
+    with pytest.raises(NoStillWindowError, match="no still stretch"):
+        start_from_recording(arm, rec, prior_q_rad=POSE + 0.05)
+    tr, start = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05, moving_start=True)
+    assert any(n.startswith("no still stretch: started on the moving arm") for n in start.notes)
+    run = tr.run(rec)
+    late = run.t_s > 15.0
+    err = np.abs(run.q_error_rad[late])
+    assert np.all(err < 3 * run.sigma_rad[late] + 1e-4)
+    assert np.all(rms_deg(run, 15.0) < 0.2)

@@ -52,7 +52,7 @@ def test_all_problems_reported_together(wmra_dict):
     assert "wmra.yaml: arm.joints.counts_per_rev: counts per revolution must be positive; " \
            "entry 2 is -4720000.0" in text
     assert "wmra.yaml: sensors[2].type: unknown sensor type; known types are adxl345, " \
-           "mpu9150, analog_triax (got 'adxl999')" in text
+           "mpu9150, mpu6050, analog_triax, custom (got 'adxl999')" in text
 
 
 @pytest.mark.parametrize(
@@ -94,7 +94,8 @@ def test_not_a_mapping_and_bad_yaml(tmp_path):
 
 
 def test_missing_config_names_the_shipped_ones():
-    with pytest.raises(FileNotFoundError, match=r"no arm config 'nope'.*'crs_a465', 'wmra'"):
+    with pytest.raises(FileNotFoundError, match=r"no arm config 'nope'.*'crs_a465', 'imu_rig_pitch', "
+                                                  r"'imu_rig_roll', 'imu_rig_yaw', 'wmra'"):
         load_arm("nope")
 
 
