@@ -66,7 +66,7 @@ def import_recording_cmd(
     rows = summary["rows"]
     console.print(f"[bold]{source}[/] -> {out}: {rows['imported']} of {rows['in_file']} rows, "
                   f"t = {summary['time']['t_start_s']:.3f} … {summary['time']['t_end_s']:.3f} s",
-                  highlight=False)
+                  highlight=False, soft_wrap=True)
     for name, s in summary["streams"].items():
         gaps = f", {s['nan_gaps'] + s['partly_nan']} gaps" if s["nan_gaps"] + s["partly_nan"] else ""
         console.print(f"  {name} ({s['kind']}): {s['samples']} samples, {', '.join(s['columns'])}: "

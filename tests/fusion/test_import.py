@@ -68,10 +68,13 @@ def test_g_deg_s_and_deg_become_the_counts_the_config_declares(tmp_path: Path, a
 
 
 def test_into_streams_declared_in_g_and_rad_s_the_values_convert_by_their_unit_alone(arm) -> None:
-    # a sensor described as delivering g (resp. rad/s): what the lead's descriptions make
-    t = targets(arm)
-    g_stream = replace(t["shaft"], value_unit="g", model=replace(t["shaft"].model, value_unit="g"))
-    rad_s = replace(t["imu_gyro"], value_unit="rad/s", model=replace(t["imu_gyro"].model, value_unit="rad/s"))
+    # the rig's config describes its MPU-6050s as delivering g and deg/s; a sensor delivering
+    # rad/s is made here from the test config's gyro
+    t = targets(load_arm("imu_rig_roll"))
+    g_stream = t["shaft"]
+    assert (g_stream.value_unit, t["shaft_gyro"].value_unit) == ("g", "deg/s")
+    gyro = targets(arm)["imu_gyro"]
+    rad_s = replace(gyro, value_unit="rad/s", model=replace(gyro.model, value_unit="rad/s"))
     cmap = _map({"shaft": {"columns": ["a", "b", "c"], "unit": "g"},
                  "imu_gyro": {"columns": ["a", "b", "c"], "unit": "deg/s"}})
     g = np.array([[0.07, 0.82, -0.03]])
@@ -80,6 +83,8 @@ def test_into_streams_declared_in_g_and_rad_s_the_values_convert_by_their_unit_a
     np.testing.assert_allclose(mps2, g / 9.80665, rtol=1e-15)
     out = convert_values(np.array([[180.0, -90.0, 0.01]]), cmap.streams["imu_gyro"], rad_s, "f")
     np.testing.assert_allclose(out.values, [[np.pi, -np.pi / 2, np.pi / 18000]], rtol=1e-15)
+    back = convert_values(out.values, replace(cmap.streams["imu_gyro"], unit="rad/s"), t["shaft_gyro"], "f")
+    np.testing.assert_allclose(back.values, [[180.0, -90.0, 0.01]], rtol=1e-14)  # rad/s into deg/s
     with pytest.raises(ImportMapError, match=r"unit counts cannot become g: the config describes shaft "
                                              r"as delivering g"):
         from fusion.importing.to_stream import unit_problem
@@ -285,3 +290,30 @@ def test_values_beyond_the_configs_sensor_range_are_counted_and_noted(tmp_path: 
     assert s["notes"] == ["shaft: 1 sample(s) beyond the config's sensor range (-512 … 511 counts): the "
                           "other commands refuse such a recording; does the config describe the sensor "
                           "that recorded it?"]
+
+
+@pytest.mark.parametrize("trial, config, before, repeats", [("raw_roll_slow_20s.mat", "imu_rig_roll", 1, 5),
+                                                           ("raw_yaw_slow_20s.mat", "imu_rig_yaw", 10, 0)])
+def test_the_rig_slices_import_with_the_shipped_map_and_the_rigs_configs_values_kept_as_stored(
+    tmp_path: Path, trial: str, config: str, before: int, repeats: int
+) -> None:
+    src = DATA / "imu-rig" / trial
+    out = tmp_path / "rig.mcap"
+    r = runner.invoke(app, ["import", str(src), "--map", "imu-rig", "--config", config, "--out", str(out),
+                            "--json"])
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout)
+    assert s["rows"]["before_start"] == before and s["time"]["not_increasing"]["count"] == repeats
+    assert s["not_mapped"] == ["imu_temp", "true_base"] and s["notes"] == []
+    raw = scipy.io.loadmat(src)
+    t_src = raw["all_time"].ravel()[before:]
+    kept = np.concatenate([[True], np.diff(t_src) > 0])
+    back = read_recording(out)
+    # g and deg/s declared by the config: the file's values, bit for bit
+    for stream, var in (("shaft", "all_accel_2_"), ("shaft_gyro", "all_gyro_2_"), ("imu_acc", "all_accel_1_"),
+                        ("imu_gyro", "all_gyro_1_")):
+        expected = np.column_stack([raw[var + a].ravel()[before:][kept] for a in "xyz"])
+        np.testing.assert_array_equal(back.get(stream).values, expected)
+    assert back.get("shaft_gyro").kind == "link_gyro"
+    enc_deg = raw["all_encoder"].ravel()[before:][kept]
+    np.testing.assert_array_equal(back.get("enc").values[:, 0], np.rint(enc_deg * 100))  # 36000 a turn
