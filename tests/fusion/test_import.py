@@ -87,8 +87,9 @@ def test_into_streams_declared_in_g_and_rad_s_the_values_convert_by_their_unit_a
     np.testing.assert_allclose(back.values, [[180.0, -90.0, 0.01]], rtol=1e-14)  # rad/s into deg/s
     from fusion.importing.to_stream import unit_problem
 
-    assert unit_problem("counts", g_stream).startswith("unit counts cannot become g: the config describes "
-                                                       "shaft as delivering g, and counts need a device's scale")
+    said = unit_problem("counts", g_stream)
+    assert said == ("unit counts cannot become g: the config describes shaft as delivering g, and counts "
+                    "need a device's scale")
     assert unit_problem("m/s^2", g_stream) is None
 
 
