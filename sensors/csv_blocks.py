@@ -3,12 +3,18 @@ source that never reads past a line's limit (:class:`LineReader`), and the rows 
 blocks, column-wise with numpy (``np.loadtxt`` on fixed-width byte strings, integers by a
 vectorised digit parser; :func:`parse_rows`), every error naming the row, line and
 column, quoting at most a few dozen characters.
+
+Raw columns hold integer counts (the shared spec) or, beyond the spec, finite decimal
+values (a sensor that delivers g or deg/s): a raw column of a block that holds a cell
+that is not an integer is parsed as floats, whole column at once; ``nan`` or ``inf`` in a
+raw column is refused (an empty cell is how a recording says "not sampled").
 """
 
 from __future__ import annotations
 
 import csv
 import io
+import os
 import re
 import warnings
 from array import array
@@ -76,6 +82,35 @@ class LineReader:
                 "is it a recording CSV?"
             )
         return text
+
+
+def read_header(path: Path, f: io.TextIOBase, limits: CsvLimits, empty_hint: str,
+                too_wide_hint: str = "") -> tuple[LineReader, list[str], int]:
+    """The line source of an open CSV file, its header row's names (stripped) and that row's
+    line number; refuses a file over ``limits.max_file_bytes`` unread, an empty one (saying
+    ``empty_hint``), a header that is not CSV and one of more than ``limits.max_columns``."""
+    size = os.fstat(f.fileno()).st_size
+    if size > limits.max_file_bytes:
+        raise RecordingError(
+            f"{path}: {size / 1e6:.0f} MB is more than the reader takes "
+            f"({limits.max_file_bytes / 1e6:.0f} MB); split the recording"
+        )
+    source = LineReader(path, f, limits)
+    header_line = source.next()
+    while header_line and not header_line.strip():
+        header_line = source.next()
+    if not header_line:
+        raise RecordingError(f"{path}: the file is empty; {empty_hint}")
+    try:
+        header = [h.strip() for h in next(csv.reader([header_line]))]
+    except csv.Error as e:
+        raise RecordingError(f"{path}: line {source.line}: not a CSV header ({e})") from None
+    if len(header) > limits.max_columns:
+        raise RecordingError(
+            f"{path}: the header has {len(header)} columns; the reader takes at most "
+            f"{limits.max_columns}{too_wide_hint}"
+        )
+    return source, header, source.line
 
 
 def row_error(path: Path, row0: int, lines, what: str) -> RecordingError:
@@ -208,19 +243,30 @@ def parse_block_values(
     fc: np.ndarray,
     row_offset: int,
     lines,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The integer columns ``ic``' values, the float columns ``fc``' values and the empty
-    mask (all columns) of one block of cells."""
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+    """One block of cells: the raw columns ``ic``' values as integers, the same as floats
+    where a column holds a decimal (``None`` when none does; a column of whole numbers only
+    is left as integers), the float columns ``fc``' values and the empty mask (all
+    columns)."""
     empty = cells == b""
     ints = np.zeros((cells.shape[0], ic.size), np.int64)
+    decimals: np.ndarray | None = None
     floats = np.zeros((cells.shape[0], fc.size), np.float64)
     if ic.size:
         sub = cells[:, ic]
         v, ok = _parse_ints(sub)
         ints[:] = v
         slow = ~ok & ~empty[:, ic]
-        for i, j in zip(*np.nonzero(slow), strict=True):  # rare: anything int() accepts
-            ints[i, j] = _convert(path, names[ic[j]], sub[i, j], int, row_offset + i, lines)
+        for j in np.flatnonzero(slow.any(axis=0)):  # a column with a cell int() or float() takes
+            col = _raw_column(path, names[ic[j]], sub[:, j], empty[:, ic[j]], slow[:, j], row_offset,
+                              lines)
+            if isinstance(col, np.ndarray):
+                if decimals is None:
+                    decimals = np.full(ints.shape, np.nan)
+                decimals[:, j] = col
+            else:
+                for i, value in col.items():
+                    ints[i, j] = value
     if fc.size:
         sub = np.where(empty[:, fc], b"0", cells[:, fc])
         try:
@@ -228,7 +274,43 @@ def parse_block_values(
         except ValueError:
             for i, j in zip(*np.nonzero(~empty[:, fc]), strict=True):
                 floats[i, j] = _convert(path, names[fc[j]], sub[i, j], float, row_offset + i, lines)
-    return ints, floats, empty
+    return ints, decimals, floats, empty
+
+
+def _raw_column(path: Path, name: str, col: np.ndarray, empty: np.ndarray, slow: np.ndarray,
+                row_offset: int, lines):
+    """A raw column of one block whose fast integer parse failed somewhere: ``{row: count}``
+    for the cells that ``int()`` reads (``1_000``, ``+0``…) when all of them are integers, or
+    the whole column as floats (empty cells NaN) when one is a decimal; a cell that is
+    neither, or not finite, is refused naming its row."""
+    as_ints: dict[int, int] = {}
+    decimal = False
+    for i in np.flatnonzero(slow):
+        cell = col[i]
+        if not decimal and not (b"." in cell or b"e" in cell.lower() or b"n" in cell.lower()):
+            as_ints[int(i)] = _convert(path, name, cell, int, row_offset + int(i), lines)
+            continue
+        value = _convert(path, name, cell, float, row_offset + int(i), lines)
+        if not np.isfinite(value):
+            raise row_error(path, row_offset + int(i), lines,
+                            f"column {clipped_repr(name)}: {clipped_repr(_text(cell))} is not a finite "
+                            "value (leave the cell empty where the sensor was not sampled)")
+        decimal = True
+        break
+    if not decimal:
+        return as_ints
+    try:
+        out = np.where(empty, b"nan", col).astype(np.float64)
+    except ValueError:
+        out = np.array([np.nan if e else _convert(path, name, c, float, row_offset + i, lines)
+                        for i, (c, e) in enumerate(zip(col, empty, strict=True))])
+    bad = ~np.isfinite(out) & ~empty
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise row_error(path, row_offset + i, lines,
+                        f"column {clipped_repr(name)}: {clipped_repr(_text(col[i]))} is not a finite "
+                        "value (leave the cell empty where the sensor was not sampled)")
+    return out
 
 
 _INT64 = (-(2**63), 2**63 - 1)
@@ -244,7 +326,7 @@ def _convert(path: Path, name: str, cell: bytes, conv: type, row0: int, lines):
     try:
         value = conv(cell)
     except ValueError:
-        kind = "an integer (raw counts)" if conv is int else "a number"
+        kind = "an integer (raw counts) or a decimal" if conv is int else "a number"
         raise row_error(
             path, row0, lines, f"column {clipped_repr(name)}: {clipped_repr(_text(cell))} is not {kind}"
         ) from None
@@ -259,13 +341,16 @@ def _convert(path: Path, name: str, cell: bytes, conv: type, row0: int, lines):
 
 def parse_rows(path: Path, source: LineReader, n_header: int, used: list[str], usecols: list[int],
                ic: np.ndarray, fc: np.ndarray, limits: CsvLimits,
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, array]:
-    """Every data row after the header, in blocks: the integer columns ``ic``' values, the
-    float columns ``fc``' values, the empty mask of the ``used`` columns, and the line
-    number of each row (blank lines skipped)."""
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray, array]:
+    """Every data row after the header, in blocks: the raw columns ``ic``' values as
+    integers, and as floats the raw columns that hold a decimal somewhere (the others NaN
+    there; ``None`` when no column does; see :func:`parse_block_values`), the float
+    columns ``fc``' values, the empty
+    mask of the ``used`` columns, and the line number of each row (blank lines skipped)."""
     lines = array("q")  # the line number of each data row
     block_rows = max(1, min(BLOCK_ROWS, _BLOCK_CELLS // max(len(used), 1)))
     int_parts: list[np.ndarray] = []
+    decimal_parts: list[np.ndarray | None] = []
     float_parts: list[np.ndarray] = []
     empty_parts: list[np.ndarray] = []
     n_rows = 0
@@ -285,8 +370,9 @@ def parse_rows(path: Path, source: LineReader, n_header: int, used: list[str], u
         check_widths(path, block, n_header, n_rows, lines)
         cells = strip_cells(parse_block(path, block, used, usecols, n_rows, lines, limits))
         del block
-        ints, floats, empty = parse_block_values(path, used, cells, ic, fc, n_rows, lines)
+        ints, decimals, floats, empty = parse_block_values(path, used, cells, ic, fc, n_rows, lines)
         int_parts.append(ints)
+        decimal_parts.append(decimals)
         float_parts.append(floats)
         empty_parts.append(empty)
         n_rows += len(cells)
@@ -296,5 +382,15 @@ def parse_rows(path: Path, source: LineReader, n_header: int, used: list[str], u
         parts.clear()  # the blocks go as soon as they are joined: memory stays ~ one copy
         return out
 
-    return (joined(int_parts, ic.size, np.int64), joined(float_parts, fc.size, np.float64),
-            joined(empty_parts, len(used), bool), lines)
+    all_decimals = None
+    held = [d for d in decimal_parts if d is not None]
+    if held:  # the raw columns that hold a decimal anywhere, as floats; the others stay integers
+        is_decimal = np.any([~np.isnan(d).all(axis=0) for d in held], axis=0)
+        all_decimals = joined([np.where(is_decimal, i, 0).astype(np.float64) if d is None
+                               else np.where(np.isnan(d), i, d)
+                               for i, d in zip(int_parts, decimal_parts, strict=True)],
+                              ic.size, np.float64)
+        all_decimals[:, ~is_decimal] = np.nan  # these columns are read from the integers
+    decimal_parts.clear()
+    return (joined(int_parts, ic.size, np.int64), all_decimals,
+            joined(float_parts, fc.size, np.float64), joined(empty_parts, len(used), bool), lines)

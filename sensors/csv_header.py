@@ -1,4 +1,5 @@
-"""Which columns of a recording CSV make which stream (``shared/spec/recording-csv.md``):
+"""Which columns of a recording CSV make which stream (``shared/spec/recording-csv.md``, and
+beyond it a link gyroscope's ``P_gx, P_gy, P_gz`` as the stream ``P_gyro``):
 the columns a stream is written to (:func:`csv_columns`) and the streams a header holds
 (:func:`streams_from_header`), with the sensors left out because only some of their
 columns are there and the unknown columns, for the reader's one warning.
@@ -12,6 +13,7 @@ from pathlib import Path
 
 from sensors.samples import (
     IMU_STREAMS,
+    LINK_GYRO_SUFFIX,
     TRUTH_BASE_COLUMNS,
     RecordingError,
     Stream,
@@ -19,6 +21,7 @@ from sensors.samples import (
     accel_columns,
     clipped_repr,
     encoder_columns,
+    link_gyro_columns,
     truth_joint_columns,
 )
 
@@ -49,6 +52,15 @@ def csv_columns(stream: Stream) -> tuple[str, ...]:
                 f"stream {stream.name!r} (kind accel): an accelerometer name may not start "
                 "with 'imu' or 'true_' in the recording CSV"
             )
+    elif stream.kind == "link_gyro":
+        sensor = stream.name[: -len(LINK_GYRO_SUFFIX)]
+        if not stream.name.endswith(LINK_GYRO_SUFFIX) or not sensor or _is_reserved_prefix(sensor):
+            raise ValueError(
+                f"stream {stream.name!r} (kind link_gyro): a link gyroscope's stream is its "
+                f"sensor's name + {LINK_GYRO_SUFFIX!r} (the sensor's name may not start with 'imu' "
+                "or 'true_')"
+            )
+        expected = link_gyro_columns(sensor)
     elif stream.kind == "encoder":
         expected = encoder_columns(k)
         _expect_name(stream, "enc", expected)
@@ -125,6 +137,20 @@ def streams_from_header(
     taken = {c for s in found for c in s.columns} | {T_COLUMN}
     names = {s.name for s in found}
     imu_columns = {c for _, cols in IMU_STREAMS.values() for c in cols} | set(TRUTH_BASE_COLUMNS)
+    gyro_prefixes: list[str] = []  # link gyroscopes: P_gx, P_gy, P_gz -> stream P_gyro
+    for col in header:
+        prefix = col[:-3]
+        if col[-3:] in ("_gx", "_gy", "_gz") and prefix and not _is_reserved_prefix(prefix):
+            if prefix not in gyro_prefixes:
+                gyro_prefixes.append(prefix)
+    for prefix in gyro_prefixes:
+        cols, name = link_gyro_columns(prefix), prefix + LINK_GYRO_SUFFIX
+        if all(c in present for c in cols):
+            found.append(StreamColumns(name, "link_gyro", cols))
+            names.add(name)
+            taken |= set(cols)
+        else:
+            partial(name, cols)
     accel_prefixes: list[str] = []
     for col in header:
         if col in taken or col[-2:] not in ("_x", "_y", "_z"):
@@ -153,6 +179,8 @@ def streams_from_header(
             continue
         if col[-2:] in ("_x", "_y", "_z") and col[:-2] in accel_prefixes:
             continue  # said as an incomplete sensor
+        if col[-3:] in ("_gx", "_gy", "_gz") and col[:-3] in gyro_prefixes:
+            continue  # said as an incomplete link gyroscope
         m = re.fullmatch(r"(enc|true_q)(\d+)", col)
         if m:
             incomplete.append(f"{col} ({m.group(1)}1..N must be contiguous from 1)")

@@ -18,14 +18,20 @@ TRUTH_PREFIX = "truth/"
 
 # ---------------------------------------------------------------------------- schemas
 
+_AS_GIVEN = ("; integer counts, or numbers in the unit the config's sensor description "
+             "declares when the sensor delivers physical values")
+
 KIND_DOC: dict[str, tuple[str, int | None, str]] = {
-    # kind: (what one sample is, number of values or None if per arm, value type)
-    "accel": ("a link accelerometer's x, y, z: signed counts as the device gives them", 3, "integer"),
-    "imu_accel": ("the base IMU accelerometer's x, y, z: signed counts", 3, "integer"),
-    "gyro": ("the base IMU gyroscope's x, y, z: signed counts", 3, "integer"),
-    "mag": ("the base magnetometer's x, y, z in the IMU accelerometer's axes: signed counts", 3, "integer"),
-    "temperature": ("the IMU temperature register: signed counts", 1, "integer"),
-    "encoder": ("the joint encoders, joint 1 first: relative counts", None, "integer"),
+    # kind: (what one sample is, number of values or None if per arm, value type). Raw
+    # values are "number": whole counts, or decimals in a physical unit (files written
+    # before said "integer", and read the same).
+    "accel": ("a link accelerometer's x, y, z as the device gives them" + _AS_GIVEN, 3, "number"),
+    "imu_accel": ("the base IMU accelerometer's x, y, z" + _AS_GIVEN, 3, "number"),
+    "gyro": ("the base IMU gyroscope's x, y, z" + _AS_GIVEN, 3, "number"),
+    "link_gyro": ("a link gyroscope's x, y, z" + _AS_GIVEN, 3, "number"),
+    "mag": ("the base magnetometer's x, y, z in the IMU accelerometer's axes" + _AS_GIVEN, 3, "number"),
+    "temperature": ("the IMU temperature register" + _AS_GIVEN, 1, "number"),
+    "encoder": ("the joint encoders, joint 1 first: relative counts", None, "number"),
     "truth_joints": ("ground-truth joint angles, joint 1 first, rad", None, "number"),
     "truth_base": ("ground-truth base roll, pitch, yaw, rad", 3, "number"),
 }

@@ -241,7 +241,8 @@ def _decode_samples(data: list[bytes], k: int, counts: bool) -> tuple[np.ndarray
             if not counts:
                 return table[:, 0], values
             if np.all(np.abs(values) < 2.0**53):  # every such decimal integer is exact
-                return table[:, 0], values.astype(np.int64)
+                whole = np.all(values == np.round(values))
+                return table[:, 0], (values.astype(np.int64) if whole else values)
     samples = json.loads(b"[" + b",".join(data) + b"]")
     t_s = np.array([m["t_s"] for m in samples], dtype=np.float64)
     return t_s, np.array([m["values"] for m in samples]).reshape(n, k)

@@ -2,6 +2,10 @@
 
 The format is ``shared/spec/recording-csv.md``: one header row, then one row per
 sample instant; an empty cell means that sensor was not sampled at that instant.
+The spec's raw columns hold integer counts; this reader is a superset: a raw column may
+also hold finite decimals (a sensor that delivers its values in g or deg/s, the unit its
+sensor description in the config declares), and the stream then holds floats
+(:class:`~sensors.samples.Stream`); ``nan``/``inf`` there is refused.
 Each stream takes the rows where *all* of its columns are filled; a row with only
 some of them filled is an error, and so is a row with fewer or more cells than the
 header. One :class:`RecordingWarning` names the sensors left out because only some of
@@ -13,6 +17,8 @@ Which columns make which stream (see :mod:`sensors.samples`):
 - ``P_x, P_y, P_z`` for any prefix ``P`` (not ``imu``/``imu_*``/``true_*``): the link
   accelerometer stream ``P``;
 - ``imu_ax..az``, ``imu_gx..gz``, ``imu_mx..mz``, ``imu_temp``: the IMU streams;
+- ``P_gx, P_gy, P_gz`` for a prefix ``P`` as above: the link gyroscope stream ``P_gyro``
+  (kind ``link_gyro``; beyond the shared spec);
 - ``enc1 .. encN`` (contiguous from 1): the stream ``enc``;
 - ``true_q1 .. true_qN`` (contiguous from 1): ``true_q``; ``true_roll, true_pitch,
   true_yaw``: ``true_base``.
@@ -30,15 +36,13 @@ place, within bounded time and memory, as soon as the problem is met
 
 from __future__ import annotations
 
-import csv
-import os
 import warnings
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from sensors.csv_blocks import BLOCK_ROWS, DEFAULT_LIMITS, CsvLimits, LineReader, parse_rows, row_error
+from sensors.csv_blocks import BLOCK_ROWS, DEFAULT_LIMITS, CsvLimits, parse_rows, read_header, row_error
 from sensors.csv_header import T_COLUMN, csv_columns, first_few, streams_from_header
 from sensors.samples import TRUTH_KINDS, Recording, RecordingError, Stream, clipped_repr
 
@@ -79,28 +83,8 @@ def read_csv(path: str | Path, limits: CsvLimits = DEFAULT_LIMITS) -> Recording:
 
 def _read_csv(path: Path, limits: CsvLimits) -> Recording:
     with open(path, encoding="utf-8-sig", newline=None) as f:
-        size = os.fstat(f.fileno()).st_size
-        if size > limits.max_file_bytes:
-            raise RecordingError(
-                f"{path}: {size / 1e6:.0f} MB is more than the reader takes "
-                f"({limits.max_file_bytes / 1e6:.0f} MB); split the recording"
-            )
-        source = LineReader(path, f, limits)
-        header_line = source.next()
-        while header_line and not header_line.strip():
-            header_line = source.next()
-        if not header_line:
-            raise RecordingError(f"{path}: the file is empty; expected a header row starting with 't'")
-        header_line_no = source.line
-        try:
-            header = [h.strip() for h in next(csv.reader([header_line]))]
-        except csv.Error as e:
-            raise RecordingError(f"{path}: line {header_line_no}: not a CSV header ({e})") from None
-        if len(header) > limits.max_columns:
-            raise RecordingError(
-                f"{path}: the header has {len(header)} columns; the reader takes at most "
-                f"{limits.max_columns} (is it a recording CSV?)"
-            )
+        source, header, header_line_no = read_header(
+            path, f, limits, "expected a header row starting with 't'", " (is it a recording CSV?)")
         if T_COLUMN not in header:
             raise RecordingError(
                 f"{path}: no column 't' in the header (line {header_line_no}): "
@@ -132,12 +116,16 @@ def _read_csv(path: Path, limits: CsvLimits) -> Recording:
         # where each used column's values are: (is it an int column, its index there)
         where = {c: (bool(is_int[j]), int(np.searchsorted(ic if is_int[j] else fc, j)))
                  for j, c in enumerate(used)}
-        all_ints, all_floats, all_empty, lines = parse_rows(path, source, len(header), used, usecols,
-                                                            ic, fc, limits)
+        all_ints, all_decimals, all_floats, all_empty, lines = parse_rows(
+            path, source, len(header), used, usecols, ic, fc, limits)
 
     def column(c: str) -> np.ndarray:
         as_int, k = where[c]
-        return all_ints[:, k] if as_int else all_floats[:, k]
+        if not as_int:
+            return all_floats[:, k]
+        if all_decimals is not None and not np.isnan(all_decimals[:1, k]).all():
+            return all_decimals[:, k]  # a raw column that holds decimals
+        return all_ints[:, k]
 
     t_s = column(T_COLUMN)
     t_empty = all_empty[:, col_of[T_COLUMN]]
@@ -185,7 +173,8 @@ def _read_csv(path: Path, limits: CsvLimits) -> Recording:
 
 
 def _cells(stream: Stream) -> list[str]:
-    """One text per sample: the stream's cells joined by commas."""
+    """One text per sample: the stream's cells joined by commas (counts as integers, raw
+    decimals with the shortest text that reads back to the same float)."""
     fmt = "%.10g".__mod__ if stream.kind in TRUTH_KINDS else str
     per_channel = [list(map(fmt, stream.values[:, j].tolist())) for j in range(stream.values.shape[1])]
     return list(map(",".join, zip(*per_channel, strict=True)))
@@ -197,8 +186,9 @@ def write_csv(rec: Recording, path: str | Path) -> None:
     All streams are merged onto the union of their time instants (one row per
     instant, in time order); a stream's cells are empty where it was not sampled.
     ``t`` is written with the shortest text that reads back to the same float (so
-    reading the file gives the same instants), counts as integers, ground truth
-    with 10 significant digits.
+    reading the file gives the same instants), counts as integers, raw values that are
+    not whole numbers (a sensor delivering g, say) as the shortest text that reads back
+    to the same float, ground truth with 10 significant digits.
     """
     path = Path(path)
     streams = list(rec.streams.values())

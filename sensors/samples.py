@@ -1,9 +1,13 @@
-"""Raw sample types: what the sensors said, exactly as counts, in time-stamped batches.
+"""Raw sample types: what the sensors said, exactly as they said it, in time-stamped batches.
 
 A recording is a set of named streams. Each stream is one sensor (or one group of
 columns of the recording CSV) sampled at its own instants: ``t_s`` of shape ``(N,)``
-and ``values`` of shape ``(N, k)``. Raw streams hold integer counts; the optional
-ground-truth streams hold floats (rad). Conversion to SI units is a model step.
+and ``values`` of shape ``(N, k)``. A raw stream holds int64 when every value is a whole
+number within 64-bit integers (register counts, as every armfusion device gives them) and float64 otherwise
+(values a sensor delivered already in a physical unit, e.g. g rounded to 0.01: the unit
+is the config's sensor description's, ``StreamModel.value_unit``); raw values must be
+finite (a sensor not sampled is a missing sample, not a NaN). The optional ground-truth
+streams hold floats (rad). Conversion to SI units is a model step.
 
 Stream names and their CSV columns (shared/spec/recording-csv.md):
 
@@ -13,6 +17,7 @@ stream         kind             CSV columns
 ``<acc>``      ``accel``        ``<acc>_x``, ``<acc>_y``, ``<acc>_z``
 ``imu_acc``    ``imu_accel``    ``imu_ax``, ``imu_ay``, ``imu_az``
 ``imu_gyro``   ``gyro``         ``imu_gx``, ``imu_gy``, ``imu_gz``
+``<s>_gyro``   ``link_gyro``    ``<s>_gx``, ``<s>_gy``, ``<s>_gz`` (a gyroscope on a link)
 ``imu_mag``    ``mag``          ``imu_mx``, ``imu_my``, ``imu_mz``
 ``imu_temp``   ``temperature``  ``imu_temp``
 ``enc``        ``encoder``      ``enc1`` … ``encN``
@@ -29,11 +34,12 @@ from typing import Literal
 import numpy as np
 
 StreamKind = Literal[
-    "accel", "imu_accel", "gyro", "mag", "temperature", "encoder", "truth_joints", "truth_base"
+    "accel", "imu_accel", "gyro", "link_gyro", "mag", "temperature", "encoder", "truth_joints",
+    "truth_base",
 ]
 
 RAW_KINDS: frozenset[str] = frozenset(
-    {"accel", "imu_accel", "gyro", "mag", "temperature", "encoder"}
+    {"accel", "imu_accel", "gyro", "link_gyro", "mag", "temperature", "encoder"}
 )
 TRUTH_KINDS: frozenset[str] = frozenset({"truth_joints", "truth_base"})
 
@@ -69,6 +75,20 @@ def accel_columns(name: str) -> tuple[str, str, str]:
     return (f"{name}_x", f"{name}_y", f"{name}_z")
 
 
+LINK_GYRO_SUFFIX = "_gyro"
+"""A link gyroscope's stream is its sensor's name with this suffix (``shaft`` -> ``shaft_gyro``)."""
+
+
+def link_gyro_stream(sensor: str) -> str:
+    """The stream name of the gyroscope of the link sensor called ``sensor``."""
+    return sensor + LINK_GYRO_SUFFIX
+
+
+def link_gyro_columns(sensor: str) -> tuple[str, str, str]:
+    """CSV columns of the gyroscope of the link sensor called ``sensor``."""
+    return (f"{sensor}_gx", f"{sensor}_gy", f"{sensor}_gz")
+
+
 def encoder_columns(n_joints: int) -> tuple[str, ...]:
     return tuple(f"enc{i + 1}" for i in range(n_joints))
 
@@ -77,9 +97,37 @@ def truth_joint_columns(n_joints: int) -> tuple[str, ...]:
     return tuple(f"true_q{i + 1}" for i in range(n_joints))
 
 
+def _raw_values(name: str, v: np.ndarray) -> np.ndarray:
+    """A raw stream's values: int64 when every one is a whole number within 64-bit integers
+    (counts: what every recording before physical-unit sensors held, unchanged), else
+    float64; refused when one is not finite, or integers (not floats) beyond 64 bits."""
+    if v.dtype == object:
+        try:
+            return np.asarray(v, dtype=np.int64)
+        except (OverflowError, TypeError, ValueError):
+            try:
+                v = np.asarray(v, dtype=np.float64)
+            except (OverflowError, TypeError, ValueError):
+                raise ValueError(f"stream {name!r}: raw values must be numbers "
+                                 "(whole counts within 64-bit integers, or finite decimals)") from None
+            if not np.all(np.isfinite(v)) or not np.any(v != np.round(v)):
+                raise ValueError(f"stream {name!r}: raw counts must be 64-bit integers") from None
+    if v.dtype.kind in "iub":
+        return v.astype(np.int64, copy=False)
+    v = v.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(v)):
+        i, j = (int(x[0]) for x in np.nonzero(~np.isfinite(v)))
+        raise ValueError(f"stream {name!r}: raw value {float(v[i, j])!r} at sample {i}, channel {j} "
+                         "is not finite (a sensor not sampled is a missing sample, not a NaN)")
+    if np.all(v == np.round(v)) and not (v.size and float(np.abs(v).max()) >= 2.0**63):
+        return v.astype(np.int64)
+    return v  # a decimal somewhere, or a whole float beyond any count: physical values
+
+
 @dataclass(frozen=True)
 class Stream:
-    """One sensor's samples: ``t_s (N,)`` seconds and ``values (N, k)``."""
+    """One sensor's samples: ``t_s (N,)`` seconds and ``values (N, k)`` (raw: int64 counts
+    when all are whole numbers within 64 bits, else float64; truth: float64)."""
 
     name: str
     kind: StreamKind
@@ -89,7 +137,6 @@ class Stream:
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, dtype=np.float64).reshape(-1)
-        dtype = np.float64 if self.kind in TRUTH_KINDS else np.int64
         v = np.asarray(self.values)
         if v.ndim == 1:
             v = v.reshape(-1, 1)
@@ -98,17 +145,7 @@ class Stream:
                 f"stream {self.name!r}: values have shape {v.shape}, expected "
                 f"({t.shape[0]}, {len(self.channels)}) for channels {list(self.channels)}"
             )
-        if dtype is np.int64 and v.dtype.kind == "f":
-            if not np.all(np.isfinite(v)) or np.any(v != np.round(v)):
-                raise ValueError(f"stream {self.name!r}: raw counts must be whole numbers")
-            if v.size and float(np.abs(v).max()) >= 2.0**63:
-                raise ValueError(f"stream {self.name!r}: a raw count beyond 64-bit integers")
-        if dtype is np.int64 and v.dtype == object:
-            try:
-                v = np.asarray(v, dtype=np.int64)
-            except (OverflowError, TypeError, ValueError):
-                raise ValueError(f"stream {self.name!r}: raw counts must be 64-bit integers") from None
-        v = v.astype(dtype, copy=False)
+        v = v.astype(np.float64, copy=False) if self.kind in TRUTH_KINDS else _raw_values(self.name, v)
         if t.size > 1:
             bad = np.flatnonzero(np.diff(t) <= 0)
             if bad.size:

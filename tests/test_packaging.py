@@ -39,7 +39,8 @@ def wheel(tmp_path_factory) -> Path:
 
 def test_the_wheel_carries_every_shipped_config_byte_for_byte(wheel):
     shipped = sorted(p for p in (ROOT / "config").rglob("*") if p.is_file())
-    assert {p.name for p in shipped} >= {"wmra.yaml", "crs_a465.yaml", "zenoh.json5", "chair.json5"}
+    assert {p.name for p in shipped} >= {"wmra.yaml", "crs_a465.yaml", "zenoh.json5", "chair.json5",
+                                         "imu-rig.yaml", "broad.yaml"}  # the last two: imports/
     with zipfile.ZipFile(wheel) as z:
         names = set(z.namelist())
         for p in shipped:
@@ -69,13 +70,15 @@ def test_an_unpacked_wheel_finds_its_configs_from_another_directory(wheel, tmp_p
     probe = ("from fusion.configfile import load_arm, resolve_config_path\n"
              "from fusion.service.zenoh_config import DEFAULT_CONFIG_PATH, DEPLOY_CONFIG_DIR\n"
              "print(resolve_config_path('wmra')); print(DEFAULT_CONFIG_PATH)\n"
-             "print(DEPLOY_CONFIG_DIR / 'chair.json5'); print(len(load_arm('crs_a465').joints))\n")
+             "print(DEPLOY_CONFIG_DIR / 'chair.json5'); print(len(load_arm('crs_a465').joints))\n"
+             "from fusion.importing.column_map import load_column_map\n"
+             "print(load_column_map('imu-rig').source)\n")
     # the unpacked wheel first on the path: it, not the working tree, provides the packages
     done = subprocess.run([sys.executable, "-c", probe], cwd=elsewhere, capture_output=True, text=True,
                           env={"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
-    wmra, zenoh_json5, chair, n_joints = done.stdout.split()
-    for found in (wmra, zenoh_json5, chair):
+    wmra, zenoh_json5, chair, n_joints, rig_map = done.stdout.split()
+    for found in (wmra, zenoh_json5, chair, rig_map):
         assert Path(found).is_file() and Path(found).is_relative_to(site), found
     assert Path(wmra).name == "wmra.yaml" and int(n_joints) == 6
 

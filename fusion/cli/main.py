@@ -65,6 +65,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "track": ("Track the joint angles and the heading through a recording: startup calibration on "
               "its first still stretch, then the unscented Kalman filter on every sample.",
               "fusion.cli.track:register"),
+    "import": ("Turn a foreign recording (CSV, MATLAB .mat, HDF5) into the arm's native one: each "
+               "stream from the columns the map names, in the unit the config declares; rows whose time "
+               "does not increase dropped, NaN kept as gaps, every change said.",
+               "fusion.cli.import_cmd:register"),
     "calibrate": ("Calibrate: joint angles from a still arm, or the sensors.",
                   "fusion.cli.main:register_calibrate"),
 }

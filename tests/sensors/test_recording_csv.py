@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sensors.recording_csv import RecordingWarning, read_csv, write_csv
 from sensors.samples import (
@@ -241,16 +243,45 @@ def test_a_repeated_time_is_rejected(tmp_path: Path) -> None:
         read_csv(p)
 
 
-@pytest.mark.parametrize("value", ["12.5", "abc", "1e3", "12.0"])
-def test_a_count_that_is_not_an_integer_names_file_row_column_value(
+@pytest.mark.parametrize("value", ["abc", "0x10", "12a"])
+def test_a_raw_cell_that_is_not_a_number_names_file_row_column_value(
     tmp_path: Path, value: str
 ) -> None:
     p = _acc_file(tmp_path / "c.csv", [["0.0", "1", "2", "3"], ["0.1", "4", value, "6"]])
     with pytest.raises(
         ValueError,
-        match=rf"c\.csv: row 2 \(line 3\): column 'acc1_y': '{value}' is not an integer",
+        match=rf"c\.csv: row 2 \(line 3\): column 'acc1_y': '{value}' is not an integer \(raw "
+        r"counts\) or a decimal",
     ):
         read_csv(p)
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-Infinity"])
+def test_a_raw_cell_that_is_not_finite_is_refused_saying_how_to_mark_a_gap(
+    tmp_path: Path, value: str
+) -> None:
+    p = _acc_file(tmp_path / "c.csv", [["0.0", "1.5", "2", "3"], ["0.1", "4", value, "6"]])
+    with pytest.raises(ValueError, match=rf"row 2 \(line 3\): column 'acc1_y': '{value}' is not a "
+                                         r"finite value \(leave the cell empty"):
+        read_csv(p)
+
+
+def test_decimal_raw_values_are_read_as_floats_and_whole_ones_stay_integer_counts(tmp_path: Path) -> None:
+    # a sensor delivering g rounded to 0.01 (beyond the spec's integer counts), and the
+    # same file's encoder column of integers, read exactly
+    p = tmp_path / "g.csv"
+    p.write_text("t,acc1_x,acc1_y,acc1_z,enc1\n0.0,0.07,0.82,-0.03,5\n0.01,,,,7\n"
+                 "0.02,0.1,0.2,0.3,9007199254740993\n")
+    rec = read_csv(p)
+    acc, enc = rec.get("acc1"), rec.get("enc")
+    assert acc.values.dtype == np.float64 and enc.values.dtype == np.int64
+    np.testing.assert_array_equal(acc.values, [[0.07, 0.82, -0.03], [0.1, 0.2, 0.3]])
+    np.testing.assert_array_equal(acc.t_s, [0.0, 0.02])
+    assert enc.values[:, 0].tolist() == [5, 7, 9007199254740993]  # past 2**53: not through a float
+    whole = tmp_path / "w.csv"
+    whole.write_text("t,acc1_x,acc1_y,acc1_z\n0.0,1.0,2,3e0\n0.1,1e3,12.0,-0\n")
+    back = read_csv(whole).get("acc1").values
+    assert back.dtype == np.int64 and back.tolist() == [[1, 2, 3], [1000, 12, 0]]  # whole: counts
 
 
 def test_a_time_that_is_not_a_number_is_named(tmp_path: Path) -> None:
@@ -297,3 +328,53 @@ def test_a_binary_file_is_not_taken_for_a_csv(tmp_path: Path) -> None:
     p.write_bytes(b"\x89MCAP0\r\n\x01\xff\xfe\x00")
     with pytest.raises(ValueError, match=r"run\.csv: not UTF-8 text"):
         read_csv(p)
+
+
+def test_decimal_raw_values_and_a_link_gyro_round_trip_exactly_through_the_csv(tmp_path: Path) -> None:
+    rng = np.random.default_rng(12)
+    t = np.arange(300) * 0.01
+    g = np.round(rng.normal(0.0, 1.0, (300, 3)), 2)
+    dps = rng.normal(0.0, 50.0, (150, 3))  # every bit of the float, on every other row
+    rec = Recording({
+        "shaft": Stream("shaft", "accel", t, g, accel_columns("shaft")),
+        "shaft_gyro": Stream("shaft_gyro", "link_gyro", t[::2], dps, ("shaft_gx", "shaft_gy", "shaft_gz")),
+        "enc": Stream("enc", "encoder", t, rng.integers(-(10**6), 10**6, (300, 1)), ("enc1",)),
+    })
+    write_csv(rec, tmp_path / "r.csv")
+    assert (tmp_path / "r.csv").read_text().splitlines()[0] == (
+        "t,shaft_x,shaft_y,shaft_z,shaft_gx,shaft_gy,shaft_gz,enc1")
+    back = read_csv(tmp_path / "r.csv")
+    for name, s in rec.streams.items():
+        assert back.get(name).kind == s.kind and back.get(name).values.dtype == s.values.dtype
+        np.testing.assert_array_equal(back.get(name).values, s.values)
+        np.testing.assert_array_equal(back.get(name).t_s, s.t_s)
+
+
+def test_a_link_gyro_with_a_column_missing_is_left_out_and_named(tmp_path: Path) -> None:
+    p = tmp_path / "g.csv"
+    p.write_text("t,shaft_gx,shaft_gz,imu_gx,imu_gy,imu_gz\n0.0,1,2,3,4,5\n")
+    with pytest.warns(RecordingWarning, match=r"shaft_gyro \(has shaft_gx, shaft_gz; needs shaft_gy too\)"):
+        rec = read_csv(p)
+    assert set(rec.streams) == {"imu_gyro"}
+
+
+_FINITE = st.floats(allow_nan=False, allow_infinity=False, width=64)
+
+
+@settings(derandomize=True, max_examples=60, deadline=None)
+@given(st.lists(st.tuples(_FINITE, _FINITE, _FINITE), min_size=1, max_size=20))
+def test_any_finite_raw_values_read_back_bit_for_bit_from_both_formats(tmp_path_factory, rows) -> None:
+    from sensors.recording_mcap import read_mcap, write_mcap
+
+    values = np.array(rows, dtype=np.float64)
+    rec = Recording({"shaft_gyro": Stream("shaft_gyro", "link_gyro", np.arange(len(rows)) * 0.01, values,
+                                          ("shaft_gx", "shaft_gy", "shaft_gz"))})
+    d = tmp_path_factory.mktemp("rt")
+    write_csv(rec, d / "r.csv")
+    write_mcap(rec, d / "r.mcap")
+    expected = rec.get("shaft_gyro").values  # int64 when every value is whole, else the floats
+    for back in (read_csv(d / "r.csv"), read_mcap(d / "r.mcap")[0]):
+        got = back.get("shaft_gyro").values
+        assert got.dtype == expected.dtype
+        np.testing.assert_array_equal(got, expected)
+        assert np.array_equal(np.signbit(got), np.signbit(expected)) or expected.dtype == np.int64

@@ -143,7 +143,59 @@ def test_a_message_that_breaks_its_schema_is_caught_by_the_schema() -> None:
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({"t_s": 0.0, "values": [1, 2]}, schema_for_kind("accel"))
     with pytest.raises(jsonschema.ValidationError):
-        jsonschema.validate({"t_s": 0.0, "values": [1, 2, 3.5]}, schema_for_kind("gyro"))
+        jsonschema.validate({"t_s": 0.0, "values": [1, 2, "3.5"]}, schema_for_kind("gyro"))
+    # raw values are numbers: counts, or decimals in the unit the sensor delivers
+    jsonschema.validate({"t_s": 0.0, "values": [1, 2, 3.5]}, schema_for_kind("link_gyro"))
+    assert schema_for_kind("accel")["properties"]["values"]["items"] == {"type": "number"}
+
+
+def test_decimal_raw_values_and_a_link_gyro_round_trip_exactly_and_counts_stay_integers(
+    tmp_path: Path,
+) -> None:
+    rng = np.random.default_rng(11)
+    t = np.arange(200) * 0.01
+    g = np.round(rng.normal(0.0, 1.0, (200, 3)), 2)  # g rounded to 0.01, as the rig stores them
+    dps = rng.normal(0.0, 50.0, (200, 3))  # deg/s, every bit of the float
+    enc = rng.integers(-(2**60), 2**60, (200, 1))
+    rec = Recording({
+        "shaft": Stream("shaft", "accel", t, g, accel_columns("shaft")),
+        "shaft_gyro": Stream("shaft_gyro", "link_gyro", t, dps, ("shaft_gx", "shaft_gy", "shaft_gz")),
+        "enc": Stream("enc", "encoder", t, enc, ("enc1",)),
+    })
+    write_mcap(rec, tmp_path / "r.mcap")
+    back, report = read_mcap(tmp_path / "r.mcap")
+    assert report.complete
+    assert back.get("shaft").values.dtype == np.float64
+    np.testing.assert_array_equal(back.get("shaft").values, g)
+    np.testing.assert_array_equal(back.get("shaft_gyro").values, dps)
+    assert back.get("shaft_gyro").kind == "link_gyro"
+    assert back.get("enc").values.dtype == np.int64
+    np.testing.assert_array_equal(back.get("enc").values, enc)
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "r.mcap", "rb") as f:
+        topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
+    assert topics == {"raw/shaft", "raw/shaft_gyro", "raw/enc"}
+
+
+def test_a_file_whose_schema_says_integer_counts_reads_as_before(tmp_path: Path) -> None:
+    # files written before raw values could be decimals carry "integer" in their schema
+    from mcap.writer import Writer
+
+    old = dict(schema_for_kind("accel"))
+    old["properties"] = {**old["properties"], "values": {"type": "array", "items": {"type": "integer"}}}
+    with open(tmp_path / "old.mcap", "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("armfusion.accel", "jsonschema", json.dumps(old).encode())
+        cid = w.register_channel("raw/acc1", "json", sid, {"stream": "acc1", "kind": "accel",
+                                                              "channels": '["acc1_x","acc1_y","acc1_z"]'})
+        for i in range(3):
+            w.add_message(cid, i, b'{"t_s":%d,"values":[%d,-2,250]}' % (i, i), i)
+        w.finish()
+    back, _ = read_mcap(tmp_path / "old.mcap")
+    acc = back.get("acc1")
+    assert acc.values.dtype == np.int64 and acc.values.tolist() == [[0, -2, 250], [1, -2, 250], [2, -2, 250]]
 
 
 # ---------------------------------------------------------------------------- recorder
@@ -181,8 +233,8 @@ def test_recorder_refuses_what_it_cannot_store(tmp_path: Path) -> None:
             rec.write_samples("enc", "encoder", ("enc1",), [-0.25], [[1]])
         with pytest.raises(ValueError, match="reserved for sample streams"):
             rec.write_json("raw/acc1", "x", {}, t_s=1.0)
-        with pytest.raises(ValueError, match="raw counts must be whole numbers"):
-            rec.write_samples("acc2", "accel", accel_columns("acc2"), [1.0], [[1.5, 2, 3]])
+        with pytest.raises(ValueError, match=r"raw value nan at sample 0, channel 0 is not finite"):
+            rec.write_samples("acc2", "accel", accel_columns("acc2"), [1.0], [[np.nan, 2, 3]])
     with pytest.raises(ValueError, match="the recorder is closed"):
         rec.write_samples("acc1", "accel", accel_columns("acc1"), [2.0], [[1, 2, 3]])
 

@@ -1,0 +1,85 @@
+"""`armfusion import`: a foreign recording (CSV with a header, MATLAB .mat v5, HDF5) turned into
+the arm's native recording by a column map (fusion/importing; docs/cli.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from fusion.cli.common import (
+    console,
+    emit_json,
+    err_console,
+    fail,
+    load_arm_or_exit,
+    prepare_output_path,
+)
+from fusion.cli.options import ConfigOpt, JsonOpt, RecordingOutOpt
+
+OUT_SUFFIXES = (".csv", ".mcap")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``import`` to the ``armfusion`` app (once)."""
+    if any(c.name == "import" for c in app.registered_commands):
+        return
+    app.command("import")(import_recording_cmd)
+
+
+def import_recording_cmd(
+    source: Annotated[Path, typer.Argument(help="The foreign recording: .csv (a header row of names), .mat (MATLAB v5) or .h5/.hdf5.")],
+    column_map: Annotated[str, typer.Option("--map", "-m", help="Column map (YAML): a path, or a shipped one by name (imu-rig, broad).")],
+    out: RecordingOutOpt,
+    config: ConfigOpt = "wmra",
+    json_out: JsonOpt = False,
+) -> None:
+    """Turn a foreign recording (CSV, MATLAB .mat, HDF5) into the arm's native one: each stream
+    from the columns the map names, in the unit the config declares; rows whose time does not increase dropped, NaN kept
+    as gaps, every change said."""
+    from fusion.importing.column_map import ColumnMapError, load_column_map
+    from fusion.importing.run import import_recording
+    from models.arm_config import ConfigError
+    from sensors.recording import write_recording
+
+    out = prepare_output_path(out, "--out", OUT_SUFFIXES)
+    if not source.exists():
+        fail(f"recording not found: {source}")
+    try:
+        cmap = load_column_map(column_map)
+    except (ColumnMapError, FileNotFoundError, ConfigError) as e:
+        fail(str(e))
+    arm = load_arm_or_exit(config)
+    try:
+        result = import_recording(source, cmap, arm, config)
+    except (ValueError, OSError) as e:
+        fail(f"cannot import {source}: {e}")
+    try:
+        write_recording(result.recording, out)
+    except (ValueError, OSError) as e:
+        fail(f"--out {out}: cannot write the recording: {e}")
+    summary = {**result.summary, "out": str(out)}
+    if json_out:
+        emit_json(summary)
+        return
+    rows = summary["rows"]
+    console.print(f"[bold]{source}[/] -> {out}: {rows['imported']} of {rows['in_file']} rows, "
+                  f"t = {summary['time']['t_start_s']:.3f} … {summary['time']['t_end_s']:.3f} s",
+                  highlight=False, soft_wrap=True)
+    for name, s in summary["streams"].items():
+        gaps = f", {s['nan_gaps'] + s['partly_nan']} gaps" if s["nan_gaps"] + s["partly_nan"] else ""
+        console.print(f"  {name} ({s['kind']}): {s['samples']} samples, {', '.join(s['columns'])}: "
+                      f"{s['conversion']}{gaps}", highlight=False, soft_wrap=True)
+    for name, why in summary["absent"].items():
+        console.print(f"  {name}: absent ({why})", highlight=False)
+    if summary["not_mapped"]:
+        console.print(f"  not in the file: {', '.join(summary['not_mapped'])}", highlight=False)
+    for note in summary["notes"]:
+        err_console.print(f"[yellow]note:[/] {note}", highlight=False, soft_wrap=True)
+    if summary["changes"]:
+        console.print("Changes to the source's data:")
+        for c in summary["changes"]:
+            console.print(f"  - {c}", highlight=False, soft_wrap=True)
+    else:
+        console.print("No change to the source's data (every row kept, no gap, nothing rounded).")

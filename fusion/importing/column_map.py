@@ -1,0 +1,225 @@
+"""The column map: which columns of a foreign file make which stream of an arm, in which unit.
+
+A YAML file (read as boundedly and safely as a config: :func:`fusion.configfile.read_yaml`)::
+
+    time: {column: all_time, unit: s}          # or {rate_hz: 100}, or {rate_hz: {variable: sampling_rate}}
+    start_row: {variable: data_line}           # optional: 1-based first row of the data (or a number)
+    streams:
+      shaft:      {columns: [all_accel_2_x, all_accel_2_y, all_accel_2_z], unit: g}
+      imu_gyro:   {columns: ["imu_gyr[:, 0]", "imu_gyr[:, 1]", "imu_gyr[:, 2]"], unit: rad/s}
+      enc:        {columns: [all_encoder], unit: deg, max_rounding_counts: 0.5}
+      true_q:     {columns: [all_encoder], unit: deg}
+    absent:                                    # optional: streams the config needs that the file lacks
+      enc: the IMU was moved by hand; no arm
+
+A column is ``NAME`` (a column vector, a CSV column) or ``NAME[:, K]`` (column K, from 0, of a
+2-D variable or dataset). Units are those of :mod:`sensors.units` (``counts`` too). Every
+problem of the file is reported together, naming the key (:class:`ColumnMapError`); what the
+map says about a particular arm (a stream the config lacks, a unit of another quantity) is
+checked by :mod:`fusion.importing.to_stream` when the map meets the config.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fusion.configfile import read_yaml
+from fusion.shipped import shipped_config_dir
+from models.arm_config import ConfigError
+from sensors.foreign import parse_address
+from sensors.samples import clipped_repr
+from sensors.units import UnitError, canonical_unit_name, quantity_of
+
+IMPORTS_DIR = "imports"
+"""The shipped column maps' folder inside the shipped configs (``config/imports/``)."""
+
+DEFAULT_MAX_ROUNDING_COUNTS = 0.05
+"""How far an angle may be from a whole encoder count, in counts, before the import refuses to
+round it (unless the map's stream allows more): a twentieth of a count is what a float of the
+angle the encoder gave is off its count by when the file stored it with a few decimals more
+than the count needs."""
+
+MAX_STREAMS = 64
+MAX_COLUMNS = 64
+
+
+class ColumnMapError(ValueError):
+    """Every problem of one column map, reported together (file, key, what is wrong)."""
+
+    def __init__(self, source: str, problems: list[str]):
+        self.problems = problems
+        n = len(problems)
+        super().__init__(f"{n} problem{'s' if n != 1 else ''} in column map {source}:\n"
+                         + "\n".join(f"  - {p}" for p in problems))
+
+
+@dataclass(frozen=True)
+class StreamSource:
+    """One stream's source: its columns (addresses, in channel order) and their unit."""
+
+    columns: tuple[str, ...]
+    unit: str
+    max_rounding_counts: float = DEFAULT_MAX_ROUNDING_COUNTS
+
+
+@dataclass(frozen=True)
+class ColumnMap:
+    """A validated column map (see the module's docstring)."""
+
+    source: str
+    streams: dict[str, StreamSource]
+    time_column: str | None = None
+    time_unit: str = "s"
+    rate_hz: float | None = None
+    rate_variable: str | None = None
+    start_row: int | None = None
+    start_row_variable: str | None = None
+    absent: dict[str, str] = field(default_factory=dict)
+
+    def columns(self) -> list[str]:
+        """Every column the map reads, once each, in map order."""
+        cols = [self.time_column] if self.time_column else []
+        for s in self.streams.values():
+            cols.extend(s.columns)
+        return list(dict.fromkeys(cols))
+
+    def scalars(self) -> list[str]:
+        """The file's variables of one value that the map reads (start row, rate)."""
+        return [v for v in (self.start_row_variable, self.rate_variable) if v]
+
+
+def resolve_map_path(name_or_path: str | Path) -> Path:
+    """A path as given if it exists, else a shipped map by name (``imu-rig`` or ``imu-rig.yaml``)."""
+    p = Path(name_or_path)
+    if p.exists():
+        return p
+    shipped = shipped_config_dir() / IMPORTS_DIR
+    for cand in (shipped / f"{name_or_path}.yaml", shipped / str(name_or_path)):
+        if cand.is_file():
+            return cand
+    names = sorted(x.stem for x in shipped.glob("*.yaml")) if shipped.is_dir() else []
+    raise FileNotFoundError(f"no column map {str(name_or_path)!r}: not a file, and not one of the "
+                            f"shipped maps {names}")
+
+
+def load_column_map(name_or_path: str | Path) -> ColumnMap:
+    """Read and validate a column map; :class:`ColumnMapError` lists every problem."""
+    path = resolve_map_path(name_or_path)
+    try:
+        data = read_yaml(path)
+    except ConfigError as e:
+        raise ColumnMapError(str(path), [str(p).split(": ", 1)[1] for p in e.problems]) from None
+    return parse_column_map(data, str(path))
+
+
+def _unit(value: Any, key: str, problems: list[str]) -> str | None:
+    try:
+        return canonical_unit_name(value)
+    except UnitError as e:
+        problems.append(f"{key}: {e}")
+        return None
+
+
+def _positive_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and 0 < value < float("inf")
+
+
+def _variable(value: Any) -> str | None:
+    """``{variable: NAME}`` -> NAME."""
+    if isinstance(value, dict) and set(value) == {"variable"} and isinstance(value["variable"], str):
+        return value["variable"]
+    return None
+
+
+def parse_column_map(data: Any, source: str) -> ColumnMap:
+    """A :class:`ColumnMap` from the YAML's data, or :class:`ColumnMapError`."""
+    problems: list[str] = []
+    if not isinstance(data, dict):
+        raise ColumnMapError(source, ["the file should be a mapping with 'time' and 'streams'"])
+    for key in data:
+        if key not in ("time", "start_row", "streams", "absent"):
+            problems.append(f"{clipped_repr(key)}: unknown key (expected time, start_row, streams, absent)")
+    time = data.get("time")
+    time_column = rate_variable = None
+    time_unit, rate_hz = "s", None
+    if not isinstance(time, dict) or not ({"column", "unit"} == set(time) or set(time) == {"rate_hz"}):
+        problems.append("time: give {column: NAME, unit: s|ms|us|ns} or {rate_hz: NUMBER} "
+                        "(or {rate_hz: {variable: NAME}})")
+    elif "column" in time:
+        time_column = _address(time["column"], "time.column", problems)
+        time_unit = _unit(time["unit"], "time.unit", problems) or "s"
+        if quantity_of(time_unit) != "time":
+            problems.append(f"time.unit: {time_unit!r} is not a unit of time (s, ms, us, ns)")
+    else:
+        rate_variable = _variable(time["rate_hz"])
+        if rate_variable is None:
+            if _positive_number(time["rate_hz"]):
+                rate_hz = float(time["rate_hz"])
+            else:
+                problems.append(f"time.rate_hz: a rate > 0 in Hz, or {{variable: NAME}} "
+                                f"(got {clipped_repr(time['rate_hz'])})")
+    start = data.get("start_row")
+    start_row = start_variable = None
+    if start is not None:
+        start_variable = _variable(start)
+        if start_variable is None:
+            if isinstance(start, int) and not isinstance(start, bool) and start >= 1:
+                start_row = start
+            else:
+                problems.append(f"start_row: a row number from 1, or {{variable: NAME}} "
+                                f"(got {clipped_repr(start)})")
+    streams: dict[str, StreamSource] = {}
+    raw = data.get("streams")
+    if not isinstance(raw, dict) or not raw:
+        problems.append("streams: a mapping of stream name -> {columns: [...], unit: ...}")
+        raw = {}
+    if len(raw) > MAX_STREAMS:
+        problems.append(f"streams: {len(raw)} streams; a map takes at most {MAX_STREAMS}")
+        raw = {}
+    for name, entry in raw.items():
+        key = f"streams.{clipped_repr(name)[1:-1] if isinstance(name, str) else clipped_repr(name)}"
+        if not isinstance(name, str) or not isinstance(entry, dict):
+            problems.append(f"{key}: each stream is NAME: {{columns: [...], unit: ...}}")
+            continue
+        extra = set(entry) - {"columns", "unit", "max_rounding_counts"}
+        if extra:
+            problems.append(f"{key}: unknown key(s) {', '.join(sorted(map(str, extra)))} "
+                            "(expected columns, unit, max_rounding_counts)")
+        cols = entry.get("columns")
+        if (not isinstance(cols, list) or not cols or len(cols) > MAX_COLUMNS):
+            problems.append(f"{key}.columns: a list of 1 to {MAX_COLUMNS} columns")
+            continue
+        addresses = [_address(c, f"{key}.columns", problems) for c in cols]
+        unit = _unit(entry.get("unit"), f"{key}.unit", problems) if "unit" in entry else None
+        if "unit" not in entry:
+            problems.append(f"{key}.unit: missing: say what unit the columns hold (g, deg/s, counts...)")
+        rounding = entry.get("max_rounding_counts", DEFAULT_MAX_ROUNDING_COUNTS)
+        if not (isinstance(rounding, int | float) and not isinstance(rounding, bool)
+                and 0 <= rounding <= 0.5):
+            problems.append(f"{key}.max_rounding_counts: a number of counts from 0 to 0.5 "
+                            f"(got {clipped_repr(rounding)})")
+            rounding = DEFAULT_MAX_ROUNDING_COUNTS
+        if unit is not None and None not in addresses:
+            streams[name] = StreamSource(tuple(addresses), unit, float(rounding))
+    absent = data.get("absent") or {}
+    if not isinstance(absent, dict) or not all(isinstance(k, str) and isinstance(v, str) and v.strip()
+                                               for k, v in absent.items()):
+        problems.append("absent: a mapping of stream name -> why the file lacks it")
+        absent = {}
+    for name in absent:
+        if name in streams:
+            problems.append(f"absent.{name}: the map gives this stream under streams too")
+    if problems:
+        raise ColumnMapError(source, problems)
+    return ColumnMap(source, streams, time_column, time_unit, rate_hz, rate_variable, start_row,
+                     start_variable, dict(absent))
+
+
+def _address(value: Any, key: str, problems: list[str]) -> str | None:
+    try:
+        return str(parse_address(value))
+    except ValueError as e:
+        problems.append(f"{key}: {e}")
+        return None

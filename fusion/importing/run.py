@@ -1,0 +1,149 @@
+"""The import: a foreign file, a column map and an arm's config in; the arm's native
+recording and a summary of every change out (:func:`import_recording`).
+
+Order: the map is checked against the config before the file is read
+(:func:`~fusion.importing.to_stream.check_map_against`); the file's columns are read
+(:func:`sensors.foreign.read_columns`); rows before the start row are left out; the time
+column is converted to seconds (or made from the rate); rows whose time does not increase
+are dropped (:mod:`~fusion.importing.stamps`); in each stream a row with a NaN in one of its
+columns is a gap (that sensor not sampled then) and counted, an infinite value is refused;
+the values are brought into the config's unit (:func:`~fusion.importing.to_stream.convert_values`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fusion.importing.column_map import ColumnMap
+from fusion.importing.stamps import FIRST_ROWS, increasing_rows
+from fusion.importing.to_stream import ImportMapError, check_map_against, convert_values
+from fusion.importing.to_stream import targets as targets_of
+from models.arm import ArmModel
+from sensors.foreign import SUFFIXES, read_columns
+from sensors.samples import Recording, Stream, clipped_repr
+from sensors.units import convert
+
+
+@dataclass(frozen=True)
+class ImportResult:
+    """The recording made and what the import did: ``summary`` (JSON-ready; its ``notes``
+    say what the data hold that the config may not expect, such as values beyond a sensor's
+    range) and ``changes``, one sentence per change to the source's data (rows left out,
+    gaps, rounding)."""
+
+    recording: Recording
+    summary: dict
+    changes: tuple[str, ...]
+
+
+def _start_index(cmap: ColumnMap, scalars: dict[str, float], n_rows: int, path: Path) -> int:
+    """The 0-based index of the first data row."""
+    if cmap.start_row_variable is not None:
+        value = scalars[cmap.start_row_variable]
+        what = f"{path}: the start row {cmap.start_row_variable} = {value!r}"
+    elif cmap.start_row is not None:
+        value = float(cmap.start_row)
+        what = f"column map {cmap.source}: start_row {cmap.start_row}"
+    else:
+        return 0
+    if value != int(value) or not 1 <= value <= max(n_rows, 1):
+        raise ImportMapError(f"{what}: expected a row number from 1 to the file's {n_rows} rows")
+    return int(value) - 1
+
+
+def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> ImportResult:
+    """Turn the foreign file ``src`` into ``arm``'s recording by ``cmap`` (see the module's
+    docstring). Raises :class:`~fusion.importing.to_stream.ImportMapError` (map against
+    config or file) or :class:`~sensors.foreign.ForeignFileError` (the file), both
+    ``ValueError``, naming the stream, the column, the file and the unit."""
+    path = Path(src)
+    targets = check_map_against(cmap, arm, config)
+    cols = read_columns(path, cmap.columns(), cmap.scalars())
+    n = cols.n_rows
+    s = _start_index(cmap, cols.scalars, n, path)
+    changes: list[str] = []
+    notes: list[str] = []  # what the data hold that the config may not expect (no change made)
+    if s:
+        changes.append(f"left out the {s} row(s) before the start row {s + 1}")
+    if cmap.time_column is not None:
+        t_all = convert(cols.columns[cmap.time_column][s:], cmap.time_unit, "s")
+        if np.isinf(t_all).any():
+            i = int(np.argmax(np.isinf(t_all)))
+            raise ImportMapError(f"{path}: column {cmap.time_column}: row {s + i + 1} holds an infinite time")
+        rate_hz = None
+    else:
+        rate_hz = cmap.rate_hz if cmap.rate_hz is not None else cols.scalars[cmap.rate_variable]
+        if not (np.isfinite(rate_hz) and rate_hz > 0):
+            raise ImportMapError(f"{path}: {cmap.rate_variable} = {rate_hz!r} is not a rate in Hz")
+        t_all = np.arange(n - s) / rate_hz
+    keep, stamps = increasing_rows(t_all, first_row=s + 1)
+    changes.extend(stamps.words())
+    t_s = t_all[keep]
+    rows = np.flatnonzero(keep) + s + 1  # the file's row of each kept row
+    streams: dict[str, Stream] = {}
+    stream_summary: dict[str, dict] = {}
+    for name, src_cols in cmap.streams.items():
+        t = targets[name]
+        values = np.stack([cols.columns[c][s:][keep] for c in src_cols.columns], axis=1)
+        inf = np.isinf(values)
+        if inf.any():
+            i, j = (int(x[0]) for x in np.nonzero(inf))
+            raise ImportMapError(f"{path}: column {src_cols.columns[j]}: row {rows[i]} holds "
+                                 f"{clipped_repr(float(values[i, j]))}, not a value "
+                                 "(a sample not taken is NaN)")
+        nan = np.isnan(values)
+        gap, partly = nan.all(axis=1), nan.any(axis=1) & ~nan.all(axis=1)
+        sampled = ~nan.any(axis=1)
+        done = convert_values(values[sampled], src_cols, t, str(path))
+        try:
+            streams[name] = Stream(name, t.kind, t_s[sampled], done.values, t.channels)
+        except ValueError as e:
+            raise ImportMapError(f"{path}: stream {name}: {e}") from None
+        if gap.any() or partly.any():
+            first = rows[np.flatnonzero(~sampled)[:FIRST_ROWS]].tolist()
+            changes.append(f"{name}: {int(gap.sum())} row(s) NaN in every column and {int(partly.sum())} "
+                           f"NaN in some of {', '.join(src_cols.columns)} kept as gaps (not sampled), "
+                           f"first rows {', '.join(map(str, first))}")
+        beyond = saturated = 0
+        if t.model is not None and t.model.counts_min is not None and len(streams[name]):
+            beyond = int(t.model.beyond_range(streams[name].values).any(axis=1).sum())
+            saturated = int(t.model.saturated(streams[name].values).any(axis=1).sum()) - beyond
+            if beyond:
+                notes.append(f"{name}: {beyond} sample(s) beyond the config's sensor range "
+                             f"({t.model.counts_min:g} … {t.model.counts_max:g} {t.value_unit}): the other "
+                             "commands refuse such a recording; does the config describe the sensor that "
+                             "recorded it?")
+        if done.rounding_max_counts is not None and done.rounding_max_counts > 1e-6:  # not float noise
+            changes.append(f"{name}: rounded to whole counts by up to {done.rounding_max_counts:.3f} counts "
+                           f"(rms {done.rounding_rms_counts:.3f})")
+        stream_summary[name] = {
+            "kind": t.kind, "channels": list(t.channels), "columns": list(src_cols.columns),
+            "from_unit": src_cols.unit, "to_unit": t.value_unit, "conversion": done.how,
+            "samples": int(sampled.sum()), "nan_gaps": int(gap.sum()), "partly_nan": int(partly.sum()),
+            "values_dtype": str(streams[name].values.dtype),
+            "rounding_max_counts": done.rounding_max_counts, "rounding_rms_counts": done.rounding_rms_counts,
+            "beyond_range": beyond, "at_range_limit": saturated,
+        }
+    all_names = targets_of(arm)  # every stream the config describes
+    not_mapped = [k for k, tg in all_names.items() if k not in cmap.streams and k not in cmap.absent
+                  and not tg.needed]
+    dt = np.diff(t_s)
+    rec = Recording(streams, meta={"source": str(path), "arm_config": config})
+    summary = {
+        "source": str(path), "format": SUFFIXES[path.suffix.lower()], "map": cmap.source, "config": config,
+        "rows": {"in_file": n, "start_row": s + 1, "before_start": s, "imported": int(keep.sum())},
+        "time": {"column": cmap.time_column, "unit": cmap.time_unit if cmap.time_column else None,
+                 "rate_hz": rate_hz, "t_start_s": float(t_s[0]) if t_s.size else None,
+                 "t_end_s": float(t_s[-1]) if t_s.size else None,
+                 "dt_median_s": float(np.median(dt)) if dt.size else None,
+                 "dt_max_s": float(dt.max()) if dt.size else None, **stamps.as_json()},
+        "streams": stream_summary,
+        "absent": dict(cmap.absent),
+        "not_mapped": not_mapped,
+        "changes": changes,
+        "notes": notes,
+    }
+    return ImportResult(rec, summary, tuple(changes))
