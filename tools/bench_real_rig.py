@@ -1,0 +1,419 @@
+"""Real recordings: the one-joint IMU rig of Song, Pei and Hsiao-Wecksler (2022) through
+armfusion's import, workbench and tracker, trial by trial.
+
+Every ``*.mat`` trial of the data folder (default ``../shared/data/imu-rig``) is treated as
+a user's recording never seen before (nothing here knows a file by its name):
+
+1. **Import** with the shipped column map ``imu-rig`` (values in g and °/s, encoder in deg).
+2. **Which set-up**: the three rig configs (shaft horizontal along the frame IMU's x or y,
+   or vertical) are each fitted to the trial's first minute; the one whose model fits best
+   (the lowest ratio of residual to noise) is the trial's. (The file's name is printed
+   beside it as a check only.)
+3. **The error ladder** on the calibration stretch (the first ``--calibrate-s``): the
+   workbench's fit and ranking (`armfusion diagnose`), the most significant missing effect
+   added and the model refitted, again and again until nothing significant is left (or
+   ``--rungs``); each rung with what it added, its estimate ± σ and the fit's RMS over the
+   noise. The floor the target refers to is the noise model's: the MPU-6050's datasheet
+   density over half the rate and the 0.01 rounding of the stored values.
+4. **Tracking** the rest of the trial (never seen by the calibration) with the calibrated
+   config, the encoder as the joint's relative encoder (its zero unknown to the tracker,
+   which starts afresh, on a moving shaft): the angle's error against the encoder and the
+   calibration's zero (what the ladder's fit made of the encoder's zero on this power-up,
+   with its σ) over time, within 3σ, and the joint's flags.
+
+The encoder withheld (the joint tracked from the two IMUs alone, against the peer filters
+of the package index) needs the link gyroscope in the tracker, which it does not fuse yet:
+the table says so rather than show a number.
+
+Writes its section of docs/benchmarks.md and docs/real-data.md.
+
+    python tools/bench_real_rig.py [--data DIR] [--calibrate-s 300] [--rungs 10] [--no-write]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import yaml  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from fusion.configfile import load_arm, resolve_config_path  # noqa: E402
+from fusion.identification.calibrated_config import config_with_estimates  # noqa: E402
+from fusion.identification.identify import data_from_recording  # noqa: E402
+from fusion.importing.column_map import load_column_map  # noqa: E402
+from fusion.importing.run import import_recording  # noqa: E402
+from fusion.tracking.settings import JOINT_FLAGS  # noqa: E402
+from fusion.tracking.start import start_from_recording  # noqa: E402
+from fusion.workbench.diagnose import add_effects, diagnose, parse_add  # noqa: E402
+from models.effects import model_from_arm  # noqa: E402
+from models.rotations import wrap_angle  # noqa: E402
+from sensors.samples import Recording  # noqa: E402
+from tools.benchdoc import machine_line, write_section  # noqa: E402
+
+RIG_CONFIGS = ("imu_rig_roll", "imu_rig_pitch", "imu_rig_yaw")
+DATA = ROOT.parent / "shared" / "data" / "imu-rig"
+REAL_DATA_DOC = ROOT / "docs" / "real-data.md"
+CITATION = ("S. Y. Song, Y. Pei, E. T. Hsiao-Wecksler, \"Estimating Relative Angles Using Two Inertial "
+            "Measurement Units Without Magnetometers\", IEEE Sensors Journal, 2022; data and code "
+            "github.com/ssong47/compute_relative_angle_between_two_IMUs (MIT licence)")
+WINDOW = 10
+"""Samples per fit point of the ladder (0.1 s at 100 Hz)."""
+ZERO_TARGET_DEG = 0.2
+ZERO_WITHIN_S = 30.0
+
+
+@dataclass
+class Rung:
+    label: str
+    rms_ratio: float
+    verdict: str
+    estimate: str = ""
+    per_stream: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class TrialResult:
+    name: str
+    rows: int
+    import_changes: list[str]
+    config: str
+    fits: dict[str, float]
+    rungs: list[Rung]
+    follows: list[str]
+    zero_deg: float
+    zero_sigma_deg: float
+    track: dict
+    seconds: dict[str, float]
+
+
+def between(rec: Recording, t0: float, t1: float) -> Recording:
+    return Recording({k: s.between(t0, t1) for k, s in rec.streams.items()}, dict(rec.meta))
+
+
+def choose_config(rec: Recording, first_s: float) -> tuple[str, dict[str, float]]:
+    """The rig config whose model (no effects) fits the trial's first ``first_s`` best."""
+    t0 = rec.t_start_s
+    part = between(rec, t0, t0 + first_s)
+    fits = {}
+    for name in RIG_CONFIGS:
+        arm = load_arm(name)
+        data = data_from_recording(arm, part, window=WINDOW, q_ref_rad=np.zeros(arm.n_joints))
+        fits[name] = diagnose(model_from_arm(arm), data).rms_ratio
+    return min(fits, key=fits.get), fits
+
+
+def _estimate_words(c) -> str:
+    items = list(c.params.items())[:3]
+    more = f" (+{len(c.params) - 3})" if len(c.params) > 3 else ""
+    return ", ".join(f"{k.split('.', 1)[-1]} {v:+.4g} ± {s:.2g}" for k, (v, s) in items) + more
+
+
+def ladder(arm, rec: Recording, rungs: int):
+    """Walk the error ladder: rung 0 the config as it is, then the most significant missing
+    effect added each time. Returns the rungs, the final diagnosis and what the residual
+    follows at the end."""
+    data = data_from_recording(arm, rec, window=WINDOW, q_ref_rad=np.zeros(arm.n_joints))
+    d = diagnose(model_from_arm(arm), data)
+    out = [Rung("the config as shipped", d.rms_ratio, d.verdict, "", _per_stream(d))]
+    for _ in range(rungs):
+        sig = [c for c in d.candidates if c.significant]
+        if not sig:
+            break
+        c = sig[0]
+        d = add_effects(d, parse_add(arm, [f"{c.effect}:{c.target}"]))
+        out.append(Rung(f"+ {c.effect}:{c.target}", d.rms_ratio, d.verdict, _estimate_words(c),
+                        _per_stream(d)))
+    follows = []
+    if d.analysis is not None:
+        for fc in d.analysis.flagged()[:4]:
+            follows.append(f"{fc.stream} {fc.axis} follows {fc.input} (r {fc.r:+.2f} at lag {fc.lag})")
+        for s, ax, m in d.analysis.not_white()[:3]:
+            follows.append(f"{s} {ax} is not white (autocorrelation up to {m:.2f})")
+    return out, d, follows
+
+
+def _per_stream(d) -> dict[str, float]:
+    out = {}
+    for s in dict.fromkeys(a.stream for a in d.axes):
+        out[s] = float(np.sqrt(np.mean([a.ratio**2 for a in d.axes if a.stream == s])))
+    return out
+
+
+def encoder_zero(d) -> tuple[float, float]:
+    """The fit's joint zero (the encoder's, on this power-up: geometric = encoder + zero)
+    and its σ, rad."""
+    fit = d.fit
+    for i, nm in enumerate(fit.names):
+        if nm.endswith(".joint_offset") or ".joint_offset[" in nm:
+            return float(fit.x[i]), float(fit.sigma[i])
+    return 0.0, float("nan")
+
+
+def track_scored(cal_config: Path, rec: Recording, zero_rad: float) -> dict:
+    """Track ``rec`` from scratch (moving start, encoder zero unknown to the tracker) with the
+    calibrated config; errors against the encoder plus the calibration's zero."""
+    arm = load_arm(cal_config)
+    t_wall = time.perf_counter()
+    tr, start = start_from_recording(arm, rec, moving_start=True, propose_unlock=False)
+    run = tr.run(rec, truth=False)
+    elapsed = time.perf_counter() - t_wall
+    tq = rec.get("true_q")
+    t = run.t_s
+    ref = np.interp(t, tq.t_s, tq.values[:, 0]) + zero_rad
+    err = np.degrees(wrap_angle(run.q_rad[:, 0] - ref))
+    sig = np.degrees(run.sigma_rad[:, 0])
+    rel = t - t[0]
+    flags = run.flags[:, 0]
+    share = {JOINT_FLAGS[f]: float(np.mean(flags == f)) for f in np.unique(flags)}
+    late = rel >= ZERO_WITHIN_S
+    at30 = (rel >= ZERO_WITHIN_S - 5) & (rel < ZERO_WITHIN_S)
+    within = np.abs(err) <= 3 * sig
+    found = np.flatnonzero(np.abs(err) <= ZERO_TARGET_DEG)
+    return {
+        "start_note": start.notes[0] if start.notes else "",
+        "startup_deg": None if start.startup.joints[0].angle_rad is None
+        else float(np.degrees(start.startup.joints[0].angle_rad)),
+        "startup_flag": start.startup.joints[0].flag,
+        "err_at_30s_deg": float(np.sqrt(np.mean(err[at30] ** 2))) if at30.any() else float("nan"),
+        "rmse_after_30s_deg": float(np.sqrt(np.mean(err[late] ** 2))) if late.any() else float("nan"),
+        "max_after_30s_deg": float(np.max(np.abs(err[late]))) if late.any() else float("nan"),
+        "sigma_median_deg": float(np.median(sig[late])) if late.any() else float("nan"),
+        "within_3sigma": float(np.mean(within[late])) if late.any() else float("nan"),
+        "first_within_target_s": float(rel[found[0]]) if len(found) else None,
+        "flags": share,
+        "duration_s": float(rel[-1]),
+        "seconds": elapsed,
+        "pitch_end_deg": float(np.degrees(run.rpy_rad[-1, 1])),
+    }
+
+
+def run_trial(path: Path, calibrate_s: float, rungs: int, work: Path) -> TrialResult:
+    secs = {}
+    t0 = time.perf_counter()
+    cmap = load_column_map("imu-rig")
+    first = load_arm(RIG_CONFIGS[0])
+    imported = import_recording(path, cmap, first, RIG_CONFIGS[0])
+    rec = imported.recording
+    secs["import"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    config, fits = choose_config(rec, 60.0)
+    secs["choose"] = time.perf_counter() - t0
+    arm = load_arm(config)
+    t_start = rec.t_start_s
+    cal = between(rec, t_start, t_start + calibrate_s)
+    scored = between(rec, t_start + calibrate_s, np.inf)
+    t0 = time.perf_counter()
+    rs, final, follows = ladder(arm, cal, rungs)
+    secs["ladder"] = time.perf_counter() - t0
+    zero, zero_sig = encoder_zero(final)
+    cfg = yaml.safe_load(resolve_config_path(config).read_text(encoding="utf-8"))
+    out = work / f"{path.stem}.calibrated.yaml"
+    out.write_text(yaml.safe_dump(config_with_estimates(cfg, final.fit), sort_keys=False, width=110),
+                   encoding="utf-8")
+    t0 = time.perf_counter()
+    tracked = track_scored(out, scored, zero)
+    secs["track"] = time.perf_counter() - t0
+    return TrialResult(path.stem, len(rec.get("enc")), list(imported.changes), config, fits, rs, follows,
+                       float(np.degrees(zero)), float(np.degrees(zero_sig)), tracked, secs)
+
+
+# ------------------------------------------------------------------------------------ reporting
+def _fmt(x, spec=".2f", none="–") -> str:
+    if x is None or (isinstance(x, float) and not np.isfinite(x)):
+        return none
+    return format(x, spec)
+
+
+def benchmarks_section(results: list[TrialResult], calibrate_s: float) -> str:
+    lines = [
+        "## Real recordings: the one-joint IMU rig (`tools/bench_real_rig.py`)",
+        "",
+        f"Data: {CITATION}. Each trial treated as never seen: imported with the shipped column map, its "
+        f"set-up chosen by which rig config fits its first minute best, calibrated (the workbench's error "
+        f"ladder) on its first {calibrate_s:g} s, tracked over the rest with the encoder as the joint's "
+        "relative encoder whose zero the tracker does not know (it starts afresh on the moving shaft). "
+        "Errors against the encoder and the zero the calibration found (its σ below). "
+        "docs/real-data.md has each trial's ladder.",
+        "",
+        f"Machine: {machine_line()}.",
+        "",
+        "| trial | set-up (fit ratio) | ladder: start → end (× noise) | rungs | "
+        "zero found: error at 25-30 s | "
+        "RMSE after 30 s | within 3σ | σ (median) | joint flags | calibration's zero |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in results:
+        tk = r.track
+        flags = ", ".join(f"{k} {100 * v:.0f} %"
+                          for k, v in sorted(tk["flags"].items(), key=lambda kv: -kv[1]))
+        lines.append(
+            f"| {r.name} | {r.config} ({r.fits[r.config]:.1f}) | {r.rungs[0].rms_ratio:.1f} → "
+            f"{r.rungs[-1].rms_ratio:.2f} | {len(r.rungs) - 1} | {_fmt(tk['err_at_30s_deg'])}° | "
+            f"{_fmt(tk['rmse_after_30s_deg'])}° | {100 * tk['within_3sigma']:.1f} % | "
+            f"{_fmt(tk['sigma_median_deg'])}° | {flags} | {r.zero_deg:+.2f}° ± {r.zero_sigma_deg:.2f}° |")
+    lines += [
+        "",
+        "Targets (issue 18) and where they stand:",
+        "",
+        f"- Encoder as relative encoder, zero found to ≤ {ZERO_TARGET_DEG}° within {ZERO_WITHIN_S:g} s: "
+        + ("met on every horizontal trial." if all(
+            (r.track["err_at_30s_deg"] <= ZERO_TARGET_DEG) for r in results if r.config != "imu_rig_yaw")
+           else "**not met** (column 'error at 25-30 s'); see docs/real-data.md for why."),
+        "- Vertical shaft: flagged gravity-blind the whole time: "
+        + ", ".join(f"{r.name} {100 * r.track['flags'].get('gimbal_lock', 0.0):.0f} % gimbal_lock"
+                    for r in results if r.config == "imu_rig_yaw") + ".",
+        "- Horizontal shaft, encoder withheld (RMSE ≤ 0.5°, better than vqf / imufusion / ahrs in the same "
+        "run): **not measured**: the joint would be carried by the shaft's gyroscope, which the tracker "
+        "does not fuse yet (a link gyroscope is imported and described, not modelled).",
+        "- The ladder ends at ≤ 1.5× the noise floor on every trial: "
+        + ("met." if all(r.rungs[-1].rms_ratio <= 1.5 for r in results) else
+           "**not met** (column 'ladder'): the remaining residual follows the stepper motor's motion, which "
+           "no effect of the library explains (docs/real-data.md)."),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
+    out = [
+        "# Real data: a one-joint rig through armfusion",
+        "",
+        "<!-- written by tools/bench_real_rig.py; edit the tool, not this file -->",
+        "",
+        f"Data: {CITATION}. A stepper motor turns a shaft back and forth between about 0 and 180° for 25 "
+        "minutes; an MPU-6050 on the shaft, another on the frame, an encoder on the shaft as the reference. "
+        "Three set-ups: the shaft horizontal (`roll`, `pitch`: gravity sees the angle) and vertical (`yaw`: "
+        "it cannot). Values were stored in g and °/s rounded to 0.01.",
+        "",
+        "armfusion reads the rig as a one-joint arm (`config/imu_rig_{roll,pitch,yaw}.yaml`): the frame "
+        "IMU is the base IMU, the shaft IMU a link accelerometer with a link gyroscope, the encoder the "
+        "joint's relative encoder. A trial comes in with",
+        "",
+        "```sh",
+        "armfusion import raw_roll_slow.mat --map imu-rig --config imu_rig_roll --out roll.mcap",
+        "armfusion diagnose roll.mcap --config imu_rig_roll --report roll.html",
+        "armfusion diagnose roll.mcap --config imu_rig_roll --add gyro_bias:frame --write roll-1.yaml",
+        "armfusion track roll.mcap --config roll-1.yaml --moving-start",
+        "```",
+        "",
+        "and `tools/bench_real_rig.py` does for every trial what a calibration engineer would: import; "
+        "choose the set-up by which config fits (not by the file's name); walk the error ladder on the "
+        f"first {calibrate_s:g} s (add the most significant missing effect, refit, until nothing "
+        "significant is left); track the rest, never seen by the calibration, with the calibrated config, "
+        "the tracker starting afresh on the moving shaft with the encoder's zero unknown to it.",
+        "",
+        "The noise floor each ratio is measured against is the noise model's: the MPU-6050's datasheet "
+        "density (400 µg/√Hz, 0.005 °/s/√Hz) over half the 100 Hz rate, with the 0.01 rounding "
+        "(step/√12), per fit point of 10 samples.",
+        "",
+    ]
+    for r in results:
+        tk = r.track
+        out += [
+            f"## {r.name}",
+            "",
+            f"{r.rows:,} samples imported"
+            + (f"; {'; '.join(r.import_changes)}" if r.import_changes else "") + ".",
+            "",
+            "Set-up chosen by fit (ratio of residual to noise, the config as shipped, first minute): "
+            + ", ".join(f"`{k}` {v:.1f}" for k, v in r.fits.items()) + f" → **`{r.config}`**.",
+            "",
+            f"Error ladder on the first {calibrate_s:g} s ({r.seconds['ladder']:.0f} s of one core):",
+            "",
+            "| rung | added | its estimate ± σ | RMS / noise | per stream |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for i, g in enumerate(r.rungs):
+            per = ", ".join(f"{s} {v:.2f}" for s, v in g.per_stream.items())
+            out.append(f"| {i} | {g.label} | {g.estimate or '–'} | {g.rms_ratio:.2f} | {per} |")
+        out += ["", f"Verdict at the last rung: {r.rungs[-1].verdict}."]
+        if r.follows:
+            out += ["", "What the remaining residual follows (no effect of the library explains it):", ""]
+            out += [f"- {f}" for f in r.follows]
+        out += [
+            "",
+            f"The calibration's joint zero (the encoder's zero on this power-up, geometric = encoder + "
+            f"zero): {r.zero_deg:+.3f}° ± {r.zero_sigma_deg:.3f}°.",
+            "",
+            f"Tracking the remaining {tk['duration_s']:.0f} s with the calibrated config "
+            f"({tk['seconds']:.0f} s): "
+            f"{tk['start_note']}; startup "
+            + (f"{tk['startup_deg']:.1f}° ({tk['startup_flag']})" if tk["startup_deg"] is not None
+               else f"none ({tk['startup_flag']})")
+            + f". Error against the encoder and the calibration's zero: {_fmt(tk['err_at_30s_deg'])}° "
+            f"(RMS over 25-30 s), {_fmt(tk['rmse_after_30s_deg'])}° RMS after 30 s (worst "
+            f"{_fmt(tk['max_after_30s_deg'])}°), within 3σ {100 * tk['within_3sigma']:.1f} % of the time "
+            "at a "
+            f"median σ of {_fmt(tk['sigma_median_deg'])}°; first within {ZERO_TARGET_DEG}° at "
+            f"{_fmt(tk['first_within_target_s'], '.1f', 'never')} s. Joint flags: "
+            + ", ".join(f"{k} {100 * v:.0f} %" for k, v in tk["flags"].items()) + ".",
+            "",
+        ]
+    out += [
+        "## What the rig teaches",
+        "",
+        "- **Vibration is noise the datasheet does not know.** The stepper motor shakes both IMUs: the "
+        "shaft's accelerometer scatters sample to sample by about 0.01-0.07 g beyond its datasheet noise "
+        "and the frame's gyroscope by about 1 °/s. Window means (the fit's points) hide it; a filter that "
+        "reads every sample meets it. The fit now measures it on single samples (second differences) "
+        "and the calibrated config's floor carries it, so the tracker's σ stays honest.",
+        "- **One horizontal joint and a still base are one angle to gravity.** The shaft's accelerometer "
+        "sees the base's tilt about the shaft plus the joint; the frame's accelerometer sees that tilt "
+        "plus its own bias, which a base that never moves cannot separate from it. So the joint's zero is "
+        "known only as well as the frame accelerometer's bias along that axis: the tracker's σ says "
+        "about that much, and its estimate wanders within it as the base's tilt does.",
+        "- **What is not built yet**: the shaft's gyroscope (a link gyroscope) is imported and described "
+        "but not fused, so the joint cannot be tracked with the encoder withheld, and the peer filters "
+        "(vqf, imufusion, ahrs) are not yet run beside it.",
+        "",
+    ]
+    return "\n".join(out)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=DATA, help="folder of the rig's .mat trials")
+    ap.add_argument("--calibrate-s", type=float, default=300.0)
+    ap.add_argument("--rungs", type=int, default=10)
+    ap.add_argument("--no-write", action="store_true")
+    a = ap.parse_args(argv)
+    trials = sorted(a.data.glob("*.mat"))
+    if not trials:
+        print(f"no .mat trials in {a.data}", file=sys.stderr)
+        return 1
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for p in trials:
+            r = run_trial(p, a.calibrate_s, a.rungs, Path(tmp))
+            tk = r.track
+            print(f"{r.name}: {r.config}; ladder {r.rungs[0].rms_ratio:.1f} -> {r.rungs[-1].rms_ratio:.2f} "
+                  f"({len(r.rungs) - 1} rungs); zero {r.zero_deg:+.2f} ± {r.zero_sigma_deg:.2f} deg; "
+                  f"tracked: {_fmt(tk['err_at_30s_deg'])} deg at 30 s, "
+                  f"RMSE {_fmt(tk['rmse_after_30s_deg'])}, "
+                  f"within 3 sigma {100 * tk['within_3sigma']:.1f} %, flags {tk['flags']}", flush=True)
+            results.append(r)
+    body = benchmarks_section(results, a.calibrate_s)
+    doc = real_data_doc(results, a.calibrate_s)
+    if a.no_write:
+        print(body)
+        return 0
+    print(f"wrote {write_section('bench_real_rig', body)}")
+    REAL_DATA_DOC.write_text(doc, encoding="utf-8")
+    print(f"wrote {REAL_DATA_DOC}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
