@@ -135,7 +135,10 @@ class Observability:
         up = np.array([-sp, sr * cp, cr * cp])
         c = np.abs(frame.axes @ up)
         self.axis_deg = np.degrees(np.arccos(np.minimum(c, 1.0)))
-        locked = self.axis_deg < st.gimbal_lock_deg
+        # within the lock angle of vertical, or maybe so: the base's tilt is known only to its
+        # sigma, and a gravity reading through a tilt that uncertain is not a reading
+        tilt_sigma_deg = math.degrees(math.sqrt(max(P[L.roll, L.roll], P[L.pitch, L.pitch], 0.0)))
+        locked = self.axis_deg < st.gimbal_lock_deg + 3.0 * tilt_sigma_deg
         sel, coef = self._obs_sel(used)
         info = np.zeros((n, n))
         base = x[L.accel] + G * up

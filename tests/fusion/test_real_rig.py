@@ -74,9 +74,27 @@ def test_tracking_the_real_shaft_from_a_moving_start_keeps_its_sigma_honest(roll
     assert FLAG_CODE["ok"] not in run.flags[later, 0]  # never claimed known
 
 
-def test_a_vertical_shaft_is_gravity_blind_the_whole_time(yaw):
+def test_a_vertical_shaft_is_gravity_blind_the_whole_time(yaw, tmp_path):
+    """Calibrated as the benchmark calibrates (the ladder's first rungs on the recording),
+    the tracker flags the vertical shaft gravity-blind at every instant; uncalibrated it
+    never calls it known either."""
+    import yaml
+
+    from fusion.configfile import resolve_config_path
+    from fusion.identification.calibrated_config import config_with_estimates
+
     arm = load_arm("imu_rig_yaw")
     tr, start = start_from_recording(arm, yaw, moving_start=True, propose_unlock=False)
     assert start.startup.joints[0].flag == "gimbal_lock"
+    run = tr.run(yaw, truth=False)
+    assert FLAG_CODE["ok"] not in run.flags[:, 0]
+    d = diagnose(model_from_arm(arm), _data(arm, yaw))
+    for _ in range(2):
+        c = next(c for c in d.candidates if c.significant)
+        d = add_effects(d, parse_add(arm, [f"{c.effect}:{c.target}"]))
+    cfg = yaml.safe_load(resolve_config_path("imu_rig_yaw").read_text(encoding="utf-8"))
+    path = tmp_path / "yaw-calibrated.yaml"
+    path.write_text(yaml.safe_dump(config_with_estimates(cfg, d.fit)), encoding="utf-8")
+    tr, _ = start_from_recording(load_arm(path), yaw, moving_start=True, propose_unlock=False)
     run = tr.run(yaw, truth=False)
     assert np.all(run.flags[:, 0] == FLAG_CODE["gimbal_lock"])
