@@ -1,7 +1,8 @@
 """A tracker's run over a whole recording: :func:`run_recording` feeds every instant of it
 through the filter's one path (:meth:`fusion.tracking.filter.Tracker._instant`, the same as
-live), with only the conversions to SI units and the saturation checks done for many
-instants at once, and keeps what the filter said at each (:class:`RunArrays`), as a
+live), with the conversions to SI units and the saturation checks done for the whole span
+at once, and the differentiators' fits and the kinematic frames for a block of instants at
+once (:meth:`fusion.tracking.filter.Tracker._prepare_block`, one compiled call each), and keeps what the filter said at each (:class:`RunArrays`), as a
 :class:`TrackRun`; with truth in the recording, scored by :mod:`fusion.tracking.scoring`."""
 
 from __future__ import annotations
@@ -24,9 +25,10 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
     """Fuse every sample of ``rec`` after the tracker ``tr``'s current time (up to
     ``t_stop_s``), instant by instant through its one filter path. The counts are turned
     into SI units (at the IMU's temperature then) and checked for saturation for the whole
-    span at once. The kinematic frames are made with the offsets and gyro bias of each
-    ``block``'s start (live: of the instant): their drift since is carried exactly by the
-    product of exponentials, and enters the motion term only to first order. With ``truth``
+    span at once. The encoders and the gyro go through the differentiators, and the
+    kinematic frames are made, a ``block`` of instants at a time, with the offsets and gyro
+    bias of the block's start (live: of the instant): their drift since is carried exactly
+    by the product of exponentials, and enters the motion term only to first order. With ``truth``
     and truth streams in ``rec``, errors and NEES are kept too. ``progress(fraction_done)``
     is called after every block."""
     t0_wall = time.perf_counter()
@@ -94,7 +96,13 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
         enc_l, gyro_l, mag_l = ([-1] * (b1 - b0) if s not in ok_rows else ok_rows[s][b0:b1].tolist()
                                 for s in (ENC, GYRO, MAG))
         all_l = all_ok[b0:b1].tolist()
-        x_block = tr._ukf.x  # the frames' offsets and gyro bias, the block's start's
+        # the differentiators' fits and the kinematic frames of the block's instants, at once,
+        # with the offsets and gyro bias of the block's start
+        ke_b = ok_rows[ENC][b0:b1]
+        kg_b = ok_rows[GYRO][b0:b1] if GYRO in ok_rows else np.full(b1 - b0, -1)
+        prepared = tr._prepare_block(times[b0:b1], q_enc_all[np.maximum(ke_b, 0)], ke_b >= 0,
+                                     gyro_B[np.maximum(kg_b, 0)] if gyro_B is not None else np.zeros((b1 - b0, 3)),
+                                     kg_b >= 0, all_ok[b0:b1] | acc_ok[b0:b1].any(axis=1), tr._ukf.x)
         for i in range(b0, b1):
             r = i - b0
             t = t_l[r]
@@ -111,7 +119,7 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
                     health.last_t[acc_idx[acc_seen[i]]] = t
             ke, kg, km = enc_l[r], gyro_l[r], mag_l[r]
             tr._instant(t, q_enc_all[ke] if ke >= 0 else None, gyro_B[kg] if kg >= 0 else None, acc,
-                        (mag_counts[km], mag_B[km]) if km >= 0 else None, x_block)
+                        (mag_counts[km], mag_B[km]) if km >= 0 else None, prepared[r])
             out.record(tr, i)
         if progress is not None:
             progress(b1 / T)
