@@ -298,13 +298,12 @@ class Tracker:
         om = np.where(w_have[:, None], w - x[L.bias], 0.0)
         omd = g_latest[:, 1]  # zero where the gyro has no fit yet, as _frame_now's None
         make = need_frame & e_have
-        frames = None
-        if make.any():
-            fields = self._frame_consts.fields_block(e_at, make, x[L.offset], om, omd,
-                                                     self.settings.motion_compensation)
-            frames = self.measurements.with_noise(tuple.__new__(Frames, fields))
-        e_l, make_l = e_have.tolist(), make.tolist()
-        return [(e_at[b] if e_l[b] else None, frames.take(b) if make_l[b] else None) for b in range(B)]
+        e_l = [e if h else None for e, h in zip(list(e_at), e_have.tolist(), strict=True)]
+        if not make.any():
+            return [(e, None) for e in e_l]
+        fields = self._frame_consts.fields_block(e_at, make, x[L.offset], om, omd, self.settings.motion_compensation)
+        frames = self.measurements.with_noise(tuple.__new__(Frames, fields)).split()
+        return [(e, f if m else None) for e, f, m in zip(e_l, frames, make.tolist(), strict=True)]
 
     def _frame_now(self, t: float, gyro: np.ndarray | None) -> Frames | None:
         """The mean pose's kinematics at ``t``, with the filter's offsets and gyro bias now,

@@ -119,7 +119,7 @@ def test_the_compiled_frame_turns_about_axes_that_are_not_z(arm):
 @pytest.mark.parametrize("motion", [True, False])
 def test_a_block_s_frames_are_each_instant_s_frame(arm, effects, motion):
     """A run makes a block's frames in one call (FrameConstants.fields_block, then the noise
-    for the block): each instant's is the one-instant frame to the bit, joint effects and
+    for the block, then Frames.split): each instant's is the one-instant frame to the bit, joint effects and
     measurement variances included; an instant without a frame is left zero."""
     tr = Tracker(replace(arm, effects=effects))
     rng = np.random.default_rng(108)
@@ -131,8 +131,11 @@ def test_a_block_s_frames_are_each_instant_s_frame(arm, effects, motion):
     have[[0, 5]] = False
     fc = tr._frame_consts
     block = tr.measurements.with_noise(tuple.__new__(Frames, fc.fields_block(fit, have, offset, w, wd, motion)))
+    split = block.split()
+    assert len(split) == len(states)
     for b in range(len(states)):
-        got = block.take(b)
+        got = split[b]
+        assert_frames_equal(got, block.take(b))
         if not have[b]:
             assert not np.any(got.R_0S) and not np.any(got.q_ref)
             continue
