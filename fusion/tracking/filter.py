@@ -301,7 +301,8 @@ class Tracker:
         e_l = [e if h else None for e, h in zip(list(e_at), e_have.tolist(), strict=True)]
         if not make.any():
             return [(e, None) for e in e_l]
-        fields = self._frame_consts.fields_block(e_at, make, x[L.offset], om, omd, self.settings.motion_compensation)
+        fields = self._frame_consts.fields_block(e_at, make, x[L.offset], om, omd,
+                                                 self.settings.motion_compensation)
         frames = self.measurements.with_noise(tuple.__new__(Frames, fields)).split()
         return [(e, f if m else None) for e, f, m in zip(e_l, frames, make.tolist(), strict=True)]
 

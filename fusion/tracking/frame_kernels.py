@@ -123,7 +123,6 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
     return q_ref, offset_ref, R_0S, acc, axes, p_0S, wd_B, K, motion_g, dist2, wd_norm, omega_S
 
 
-
 @njit(cache=True, nogil=True)
 def frame_block(enc_fit, have, offset, effect_joint, effect_delta, omega_B, omega_dot_B, motion, chain,
                 axis_is_z, mounts, links, g_mps2):  # pragma: no cover - compiled

@@ -11,7 +11,6 @@ the compiled frame is held to and the benchmark baseline's frames.
 
 from __future__ import annotations
 
-from itertools import repeat
 from typing import NamedTuple
 
 import numpy as np
@@ -63,9 +62,10 @@ class Frames(_FrameFields):
     def split(self) -> list[Frames]:
         """Every instant's frame, in order: ``[self.take(k) for k in range(K)]`` at half the
         cost (a run takes a block's frames apart this way)."""
-        cols = [repeat(None) if a is None else list(a) for a in self]
+        K = len(self.q_ref)
+        cols = [[None] * K if a is None else list(a) for a in self]
         new = tuple.__new__
-        return [new(Frames, f) for f in zip(*cols)]
+        return [new(Frames, f) for f in zip(*cols, strict=True)]
 
 
 def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset: np.ndarray,

@@ -2,8 +2,9 @@
 through the filter's one path (:meth:`fusion.tracking.filter.Tracker._instant`, the same as
 live), with the conversions to SI units and the saturation checks done for the whole span
 at once, and the differentiators' fits and the kinematic frames for a block of instants at
-once (:meth:`fusion.tracking.filter.Tracker._prepare_block`, one compiled call each), and keeps what the filter said at each (:class:`RunArrays`), as a
-:class:`TrackRun`; with truth in the recording, scored by :mod:`fusion.tracking.scoring`."""
+once (:meth:`fusion.tracking.filter.Tracker._prepare_block`, one compiled call each), and
+keeps what the filter said at each (:class:`RunArrays`), as a :class:`TrackRun`; with truth
+in the recording, scored by :mod:`fusion.tracking.scoring`."""
 
 from __future__ import annotations
 
@@ -100,8 +101,8 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
         # with the offsets and gyro bias of the block's start
         ke_b = ok_rows[ENC][b0:b1]
         kg_b = ok_rows[GYRO][b0:b1] if GYRO in ok_rows else np.full(b1 - b0, -1)
-        prepared = tr._prepare_block(times[b0:b1], q_enc_all[np.maximum(ke_b, 0)], ke_b >= 0,
-                                     gyro_B[np.maximum(kg_b, 0)] if gyro_B is not None else np.zeros((b1 - b0, 3)),
+        gyro_b = gyro_B[np.maximum(kg_b, 0)] if gyro_B is not None else np.zeros((b1 - b0, 3))
+        prepared = tr._prepare_block(times[b0:b1], q_enc_all[np.maximum(ke_b, 0)], ke_b >= 0, gyro_b,
                                      kg_b >= 0, all_ok[b0:b1] | acc_ok[b0:b1].any(axis=1), tr._ukf.x)
         for i in range(b0, b1):
             r = i - b0

@@ -130,7 +130,8 @@ def test_a_block_s_frames_are_each_instant_s_frame(arm, effects, motion):
     have = np.ones(len(states), dtype=bool)
     have[[0, 5]] = False
     fc = tr._frame_consts
-    block = tr.measurements.with_noise(tuple.__new__(Frames, fc.fields_block(fit, have, offset, w, wd, motion)))
+    noise = tr.measurements.with_noise
+    block = noise(tuple.__new__(Frames, fc.fields_block(fit, have, offset, w, wd, motion)))
     split = block.split()
     assert len(split) == len(states)
     for b in range(len(states)):
@@ -139,7 +140,7 @@ def test_a_block_s_frames_are_each_instant_s_frame(arm, effects, motion):
         if not have[b]:
             assert not np.any(got.R_0S) and not np.any(got.q_ref)
             continue
-        one = tr.measurements.with_noise(tuple.__new__(Frames, fc.fields(fit[b], offset, w[b], wd[b], motion)))
+        one = noise(tuple.__new__(Frames, fc.fields(fit[b], offset, w[b], wd[b], motion)))
         assert_frames_equal(got, one)
 
 
