@@ -367,6 +367,30 @@ def test_a_block_prepared_at_once_gives_each_instant_the_live_path_s_pieces(arm,
         np.testing.assert_array_equal(d_a.latest, d_b.latest)
 
 
+def test_a_long_block_s_frames_made_a_part_at_a_time_change_nothing(arm, reaching, monkeypatch):
+    """A run holds at most PREPARED_MAX instants' frames at once: a block longer than that
+    is prepared in parts, all with the block's start's offsets, and fuses the same numbers."""
+    import fusion.tracking.run as run_module
+
+    whole, start = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
+    parts, _ = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
+    t_stop = start.t_end_s + 6.0
+    a = whole.run(reaching, t_stop_s=t_stop, block=256)
+    monkeypatch.setattr(run_module, "PREPARED_MAX", 100)
+    b = parts.run(reaching, t_stop_s=t_stop, block=256)
+    assert a.steps > 500
+    np.testing.assert_array_equal(a.q_rad, b.q_rad)
+    np.testing.assert_array_equal(a.sigma_rad, b.sigma_rad)
+    np.testing.assert_array_equal(a.rpy_rad, b.rpy_rad)
+
+
+@pytest.mark.parametrize("block", [0, -3, 2.5, "256", True])
+def test_a_run_s_block_must_be_a_whole_number_of_instants(arm, reaching, block):
+    tr, _ = start_from_recording(arm, reaching)
+    with pytest.raises(ValueError, match=r"block must be a whole number of instants, at least 1; got"):
+        tr.run(reaching, block=block)
+
+
 def test_a_run_with_nothing_to_fuse_is_empty_and_the_next_one_carries_on(arm, reaching):
     tr, start = start_from_recording(arm, reaching)
     empty = tr.run(reaching, t_stop_s=tr.t_s)
