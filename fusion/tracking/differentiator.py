@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.tracking.frame_kernels import extrapolate_fit, poly_fit_one, push_fit
+from fusion.tracking.frame_kernels import extrapolate_fit, poly_fit_one, push_fit, push_fits
 
 
 def causal_poly_fit(t_win: np.ndarray, y_win: np.ndarray, t_eval: np.ndarray, order: int = 2) -> np.ndarray:
@@ -66,6 +66,7 @@ class CausalDifferentiator:
         self._n = 0
         self._fit = None  # (3, d) at self._t_last
         self._t_last = -np.inf
+        self._no_fit = np.zeros((3, dim))
 
     def push(self, t: float, y: np.ndarray) -> None:
         """Take one sample (its window shifts in place) and fit the window at it (compiled:
@@ -74,6 +75,18 @@ class CausalDifferentiator:
         self._fit = push_fit(self._t, self._y, float(t), np.asarray(y, dtype=float).reshape(self.dim),
                              self._n, self.order)
         self._t_last = t
+
+    def push_block(self, t: np.ndarray, y: np.ndarray, pushed: np.ndarray) -> tuple:
+        """A block of B instants ``t`` at once (compiled: :func:`fusion.tracking.frame_kernels.push_fits`):
+        where ``pushed[b]``, :meth:`push` ``(t[b], y[b])``; at every instant, what :meth:`at`
+        and :attr:`latest` would then give. Returns ``(at (B, 3, d), latest (B, 3, d), have
+        (B,))``, ``have[b]`` False where there was no sample yet (those rows zero)."""
+        fit = self._no_fit if self._fit is None else self._fit
+        at, latest, have, fit, t_last, n = push_fits(self._t, self._y, t, y, pushed, self._n, self.order,
+                                                     fit, float(self._t_last), self._fit is not None)
+        if self._fit is not None or have.any():
+            self._fit, self._t_last, self._n = fit, t_last, n
+        return at, latest, have
 
     @property
     def latest(self) -> np.ndarray | None:

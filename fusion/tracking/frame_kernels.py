@@ -9,15 +9,20 @@ nearly all of its cost is call overhead. :func:`frame_one` calls the same compil
 equations the batch models call (:mod:`models.chain_kernels`: written once there) in one
 compiled loop; :class:`FrameConstants` holds the arm's chain and the sensors' mounts
 as a few contiguous arrays, made once per tracker, and turns one instant's inputs into
-the fields of a :class:`fusion.tracking.tracker.Frames` record.
+the fields of a :class:`fusion.tracking.tracker.Frames` record. A run over a recording
+makes a block of instants' frames in one call (:func:`frame_block`, a loop of
+:func:`frame_one`; :meth:`FrameConstants.fields_block`).
 
 The encoder and gyro differentiators (:class:`fusion.tracking.tracker.CausalDifferentiator`) fit
 a polynomial to the last few samples at every sample; :func:`push_fit` shifts the window
 and solves that one small least-squares problem in one call (:func:`causal_poly_fit` in
-:mod:`fusion.tracking.tracker` is the batched NumPy form, for whole recordings).
+:mod:`fusion.tracking.tracker` is the batched NumPy form, for whole recordings);
+:func:`push_fits` is a block of instants through it in one call (a loop of :func:`push_fit`
+and :func:`extrapolate_fit`).
 
 The tests (tests/fusion/test_frame_kernels.py) hold the frame to :func:`make_frames` (the
-batch path) and the fit to :func:`causal_poly_fit`.
+batch path), a block's frames and fits to the one-instant ones (to the bit), and the fit
+to :func:`causal_poly_fit`.
 Compiled once per machine and cached next to this file (``__pycache__``).
 """
 
@@ -118,6 +123,49 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
     return q_ref, offset_ref, R_0S, acc, axes, p_0S, wd_B, K, motion_g, dist2, wd_norm, omega_S
 
 
+@njit(cache=True, nogil=True)
+def frame_block(enc_fit, have, offset, effect_joint, effect_delta, omega_B, omega_dot_B, motion, chain,
+                axis_is_z, mounts, links, g_mps2):  # pragma: no cover - compiled
+    """:func:`frame_one` at each of B instants, in one call (a run over a recording makes a
+    block's frames at once): ``enc_fit (B, 3, n)``, ``omega_B``, ``omega_dot_B (B, 3)``,
+    ``effect_delta (B, E)``, ``offset (n,)`` shared; ``have (B,)`` False: no frame at that
+    instant (its rows are left zero). Returns :func:`frame_one`'s fields stacked on a first
+    axis of B (``omega_dot_norm (B,)``)."""
+    B = enc_fit.shape[0]
+    n = chain.shape[0]
+    S = mounts.shape[0]
+    q_ref = np.zeros((B, n))
+    offset_ref = np.zeros((B, n))
+    R_0S = np.zeros((B, S, 3, 3))
+    acc = np.zeros((B, S, 3))
+    axes = np.zeros((B, n, 3))
+    p_0S = np.zeros((B, S, 3))
+    wd_B = np.zeros((B, 3))
+    K = np.zeros((B, n, 3, 3))
+    motion_g = np.zeros((B, S))
+    dist2 = np.zeros((B, S))
+    wd_norm = np.zeros(B)
+    omega_S = np.zeros((B, S, 3))
+    for b in range(B):
+        if not have[b]:
+            continue
+        f = frame_one(enc_fit[b], offset, effect_joint, effect_delta[b], omega_B[b], omega_dot_B[b], motion,
+                      chain, axis_is_z, mounts, links, g_mps2)
+        q_ref[b] = f[0]
+        offset_ref[b] = f[1]
+        R_0S[b] = f[2]
+        acc[b] = f[3]
+        axes[b] = f[4]
+        p_0S[b] = f[5]
+        wd_B[b] = f[6]
+        K[b] = f[7]
+        motion_g[b] = f[8]
+        dist2[b] = f[9]
+        wd_norm[b] = f[10]
+        omega_S[b] = f[11]
+    return q_ref, offset_ref, R_0S, acc, axes, p_0S, wd_B, K, motion_g, dist2, wd_norm, omega_S
+
+
 # --------------------------------------------------------------------------------------
 class FrameConstants:
     """The arm's chain and the sensors' mounts as contiguous arrays for :func:`frame_one`,
@@ -172,6 +220,23 @@ class FrameConstants:
         offset_ref = out[1]
         offset_ref.setflags(write=False)
         return out[:10] + (np.float64(out[10]), None, out[11])
+
+    def fields_block(self, enc_fit: np.ndarray, have: np.ndarray, offset: np.ndarray, omega_B: np.ndarray,
+                     omega_dot_B: np.ndarray, motion: bool = True) -> tuple:
+        """:meth:`fields` at each of B instants in one compiled call (:func:`frame_block`),
+        stacked on a first axis: ``enc_fit (B, 3, n)``, ``omega_B``, ``omega_dot_B (B, 3)``
+        (zero rows for none), ``offset (n,)`` shared; ``have (B,)`` False: no frame there
+        (zero rows)."""
+        B = len(enc_fit)
+        delta = np.broadcast_to(self.effect_delta, (B, len(self.effect_delta)))
+        if self._varying:
+            delta = delta.copy()
+            for b in np.flatnonzero(have):
+                delta[b] = self._varying_deltas(enc_fit[b], offset, omega_B[b], omega_dot_B[b], motion)
+        out = frame_block(enc_fit, have, offset, self.effect_joint, delta, omega_B, omega_dot_B, bool(motion),
+                          self.chain, self.axis_is_z, self.mounts, self.links, self.g_mps2)
+        out[1].setflags(write=False)
+        return out[:11] + (None, out[11])
 
     def _varying_deltas(self, enc_fit, offset, w, wd, motion) -> np.ndarray:
         """The joint effects' changes at this instant, as :func:`make_frames` computes them
@@ -287,6 +352,36 @@ def push_fit(t_buf, y_buf, t, y, n, order):  # pragma: no cover - compiled
         return out
     o = order if n > order else n - 1
     return poly_fit_one(t_buf[W - n:], y_buf[W - n:], t, o)
+
+
+@njit(cache=True, nogil=True)
+def push_fits(t_buf, y_buf, t, y, pushed, n, order, fit, t_last, have_fit):  # pragma: no cover - compiled
+    """A block of B instants through a differentiator, in one call: at each instant ``b``
+    with ``pushed[b]``, the sample ``t[b]``, ``y[b] (d,)`` goes in (:func:`push_fit`); then
+    the fit at ``t[b]`` (:func:`extrapolate_fit` of the latest fit by ``t[b]`` less its
+    time). ``fit (3, d)``, ``t_last``, ``have_fit``: the latest fit before the block, its
+    sample's time, whether there is one; ``n`` the samples held before it.
+
+    Returns ``(at (B, 3, d), latest (B, 3, d), have (B,), fit, t_last, n)``: the fit at
+    each instant and the latest fit then (zero where ``have`` is False: no sample yet), and
+    the differentiator's state after the block."""
+    B = t.shape[0]
+    W = t_buf.shape[0]
+    d = y_buf.shape[1]
+    at = np.zeros((B, 3, d))
+    latest = np.zeros((B, 3, d))
+    have = np.zeros(B, dtype=np.bool_)
+    for b in range(B):
+        if pushed[b]:
+            n = min(n + 1, W)
+            fit = push_fit(t_buf, y_buf, t[b], y[b], n, order)
+            t_last = t[b]
+            have_fit = True
+        if have_fit:
+            have[b] = True
+            at[b] = extrapolate_fit(fit, t[b] - t_last)
+            latest[b] = fit
+    return at, latest, have, fit, t_last, n
 
 
 @njit(cache=True, nogil=True)

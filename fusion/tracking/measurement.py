@@ -86,7 +86,10 @@ class Measurements:
         gyro's error times the sensor's distance from the IMU."""
         st = self.settings
         wd_err = (self.omega_dot_noise + st.angular_accel_error_fraction * frames.omega_dot_norm) / G
-        extra = (st.motion_model_fraction * frames.motion_g) ** 2 + (wd_err**2)[..., None] * frames.dist2_m2
+        # (x * x: a NumPy scalar's ** 2 goes through pow, which can differ in the last bit from an
+        # array's square; so one instant's frame (live) and a block's (a run) agree to the bit)
+        extra = ((st.motion_model_fraction * frames.motion_g) ** 2
+                 + (wd_err * wd_err)[..., None] * frames.dist2_m2)
         var = self.accel_var_g2 + extra[..., None]
         if self.time_var_s2 is not None and frames.omega_S_rad_s is not None:
             # a stamp known to sigma_t reads gravity turned by omega x g sigma_t (sensor axes)

@@ -1,8 +1,10 @@
 """A tracker's run over a whole recording: :func:`run_recording` feeds every instant of it
 through the filter's one path (:meth:`fusion.tracking.filter.Tracker._instant`, the same as
-live), with only the conversions to SI units and the saturation checks done for many
-instants at once, and keeps what the filter said at each (:class:`RunArrays`), as a
-:class:`TrackRun`; with truth in the recording, scored by :mod:`fusion.tracking.scoring`."""
+live), with the conversions to SI units and the saturation checks done for the whole span
+at once, and the differentiators' fits and the kinematic frames for a block of instants at
+once (:meth:`fusion.tracking.filter.Tracker._prepare_block`, one compiled call each), and
+keeps what the filter said at each (:class:`RunArrays`), as a :class:`TrackRun`; with truth
+in the recording, scored by :mod:`fusion.tracking.scoring`."""
 
 from __future__ import annotations
 
@@ -18,17 +20,26 @@ from fusion.tracking.settings import C_SAMPLES, C_SATURATED, ENC, GYRO, JOINT_FL
 from models.sensor_models import mpu9150_temperature_c
 from sensors.samples import Recording
 
+PREPARED_MAX = 1024
+"""The most instants whose kinematic frames a run holds at once (about 2 kB each)."""
+
 
 def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool = True,
                   block: int = 256, progress: Callable[[float], None] | None = None) -> TrackRun:
     """Fuse every sample of ``rec`` after the tracker ``tr``'s current time (up to
     ``t_stop_s``), instant by instant through its one filter path. The counts are turned
     into SI units (at the IMU's temperature then) and checked for saturation for the whole
-    span at once. The kinematic frames are made with the offsets and gyro bias of each
-    ``block``'s start (live: of the instant): their drift since is carried exactly by the
-    product of exponentials, and enters the motion term only to first order. With ``truth``
+    span at once. The encoders and the gyro go through the differentiators, and the
+    kinematic frames are made, a ``block`` of instants at a time, with the offsets and gyro
+    bias of the block's start (live: of the instant): their drift since is carried exactly
+    by the product of exponentials, and enters the motion term only to first order (the
+    frames of a long block are made :data:`PREPARED_MAX` instants at a time, all with the
+    block's start's). With ``truth``
     and truth streams in ``rec``, errors and NEES are kept too. ``progress(fraction_done)``
     is called after every block."""
+    if isinstance(block, bool) or not isinstance(block, int | np.integer) or block < 1:
+        raise ValueError(f"block must be a whole number of instants, at least 1; got {str(block)[:40]!r}")
+    block = int(block)
     t0_wall = time.perf_counter()
     raw = {s: rec.get(s) for s in tr.sensor_names if rec.get(s) is not None and len(rec.get(s))}
     if ENC not in raw:
@@ -89,30 +100,39 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
     health = tr.health
     for b0 in range(0, T, block):
         b1 = min(T, b0 + block)
-        # the block's per-instant rows as plain Python values (cheaper to test one by one)
-        t_l = times[b0:b1].tolist()
-        enc_l, gyro_l, mag_l = ([-1] * (b1 - b0) if s not in ok_rows else ok_rows[s][b0:b1].tolist()
-                                for s in (ENC, GYRO, MAG))
-        all_l = all_ok[b0:b1].tolist()
-        x_block = tr._ukf.x  # the frames' offsets and gyro bias, the block's start's
-        for i in range(b0, b1):
-            r = i - b0
-            t = t_l[r]
-            acc = None
-            if all_l[r]:
-                acc = (acc_idx, acc_counts[i], acc_phys[i], acc_info)
-            else:
-                ok = acc_ok[i]
-                if ok.any():
-                    sel = acc_idx[ok]
-                    acc = (sel, acc_counts[i, ok], acc_phys[i, ok], tr.measurements.selection(sel))
-                if acc_seen[i].any():  # saturated samples: the sensors did speak
-                    health.seen[acc_idx[acc_seen[i]]] = True
-                    health.last_t[acc_idx[acc_seen[i]]] = t
-            ke, kg, km = enc_l[r], gyro_l[r], mag_l[r]
-            tr._instant(t, q_enc_all[ke] if ke >= 0 else None, gyro_B[kg] if kg >= 0 else None, acc,
-                        (mag_counts[km], mag_B[km]) if km >= 0 else None, x_block)
-            out.record(tr, i)
+        x_block = tr._ukf.x  # the frames' offsets and gyro bias: the block's start's
+        for c0 in range(b0, b1, PREPARED_MAX):  # (a long block: its frames a part at a time)
+            c1 = min(b1, c0 + PREPARED_MAX)
+            # the per-instant rows as plain Python values (cheaper to test one by one)
+            t_l = times[c0:c1].tolist()
+            enc_l, gyro_l, mag_l = ([-1] * (c1 - c0) if s not in ok_rows else ok_rows[s][c0:c1].tolist()
+                                    for s in (ENC, GYRO, MAG))
+            all_l = all_ok[c0:c1].tolist()
+            # the differentiators' fits and the kinematic frames of these instants, at once, with
+            # the offsets and gyro bias of the block's start
+            ke_c = ok_rows[ENC][c0:c1]
+            kg_c = ok_rows[GYRO][c0:c1] if GYRO in ok_rows else np.full(c1 - c0, -1)
+            gyro_c = gyro_B[np.maximum(kg_c, 0)] if gyro_B is not None else np.zeros((c1 - c0, 3))
+            prepared = tr._prepare_block(times[c0:c1], q_enc_all[np.maximum(ke_c, 0)], ke_c >= 0, gyro_c,
+                                         kg_c >= 0, all_ok[c0:c1] | acc_ok[c0:c1].any(axis=1), x_block)
+            for i in range(c0, c1):
+                r = i - c0
+                t = t_l[r]
+                acc = None
+                if all_l[r]:
+                    acc = (acc_idx, acc_counts[i], acc_phys[i], acc_info)
+                else:
+                    ok = acc_ok[i]
+                    if ok.any():
+                        sel = acc_idx[ok]
+                        acc = (sel, acc_counts[i, ok], acc_phys[i, ok], tr.measurements.selection(sel))
+                    if acc_seen[i].any():  # saturated samples: the sensors did speak
+                        health.seen[acc_idx[acc_seen[i]]] = True
+                        health.last_t[acc_idx[acc_seen[i]]] = t
+                ke, kg, km = enc_l[r], gyro_l[r], mag_l[r]
+                tr._instant(t, q_enc_all[ke] if ke >= 0 else None, gyro_B[kg] if kg >= 0 else None, acc,
+                            (mag_counts[km], mag_B[km]) if km >= 0 else None, prepared[r])
+                out.record(tr, i)
         if progress is not None:
             progress(b1 / T)
     elapsed = time.perf_counter() - t0_wall

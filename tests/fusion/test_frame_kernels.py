@@ -116,6 +116,50 @@ def test_the_compiled_frame_turns_about_axes_that_are_not_z(arm):
     check_against_make_frames(Tracker(tilted), rng, True)
 
 
+@pytest.mark.parametrize("motion", [True, False])
+def test_a_block_s_frames_are_each_instant_s_frame(arm, effects, motion):
+    """A run makes a block's frames in one call (FrameConstants.fields_block, then the noise
+    for the block, then Frames.split): each instant's is the one-instant frame to the bit, joint effects and
+    measurement variances included; an instant without a frame is left zero."""
+    tr = Tracker(replace(arm, effects=effects))
+    rng = np.random.default_rng(108)
+    states = list(random_states(arm, rng, 12))
+    fit = np.stack([s[0] for s in states])
+    offset = states[0][1]
+    w, wd = np.stack([s[2] for s in states]), np.stack([s[3] for s in states])
+    have = np.ones(len(states), dtype=bool)
+    have[[0, 5]] = False
+    fc = tr._frame_consts
+    noise = tr.measurements.with_noise
+    block = noise(tuple.__new__(Frames, fc.fields_block(fit, have, offset, w, wd, motion)))
+    split = block.split()
+    assert len(split) == len(states)
+    for b in range(len(states)):
+        got = split[b]
+        assert_frames_equal(got, block.take(b))
+        if not have[b]:
+            assert not np.any(got.R_0S) and not np.any(got.q_ref)
+            continue
+        one = noise(tuple.__new__(Frames, fc.fields(fit[b], offset, w[b], wd[b], motion)))
+        assert_frames_equal(got, one)
+
+
+def test_one_instant_s_noise_is_a_block_s_to_the_bit(arm):
+    """The measurement variances of one instant's frame (scalar |omega_dot|, live) and of a
+    block's (an array of them, a run) are the same numbers: the squares are products, not
+    a scalar's pow, which differs in the last bit for about one value in 1,500."""
+    tr = Tracker(arm)
+    rng = np.random.default_rng(110)
+    B, S = 3000, len(tr.accel_names)
+    fields = dict.fromkeys(Frames.FIELDS)
+    fields.update(motion_g=rng.uniform(0, 0.3, (B, S)), dist2_m2=rng.uniform(0, 1.5, (B, S)),
+                  omega_dot_norm=rng.uniform(0, 20.0, B))
+    block = tr.measurements.with_noise(Frames(**fields)).accel_var_g2
+    one = [tr.measurements.with_noise(Frames(**{k: None if v is None else v[b] for k, v in fields.items()}))
+           for b in range(B)]
+    np.testing.assert_array_equal(np.stack([f.accel_var_g2 for f in one]), block)
+
+
 # --------------------------------------------------------------------------------------
 # the differentiators
 @pytest.mark.parametrize("window, order, dim", [(9, 3, 7), (15, 2, 3), (4, 3, 2), (2, 1, 1), (5, 0, 2)])
@@ -176,6 +220,36 @@ def test_the_differentiator_sample_by_sample_equals_its_numpy_form():
             c = CausalDifferentiator(3, 9, 3)
             c.restore(a.snapshot())
             np.testing.assert_array_equal(c.at(t[k] + 0.004), a.at(t[k] + 0.004))
+
+
+def test_a_block_through_the_differentiator_equals_sample_by_sample():
+    """push_block (a run's block of instants, some without a sample) gives at every instant
+    what push, at and latest give one by one, to the bit, and leaves the same state; no
+    fit before the first sample; a block with no sample changes nothing."""
+    rng = np.random.default_rng(109)
+    t = np.cumsum(rng.uniform(0.008, 0.012, 40))
+    y = np.stack([np.sin(2 * t), t**2, np.cos(5 * t)], 1)
+    pushed = rng.uniform(size=len(t)) < 0.7
+    pushed[:3] = False
+    one, many = CausalDifferentiator(3, 9, 2), CausalDifferentiator(3, 9, 2)
+    ats, latests, haves = [], [], []
+    for a, b in ((0, 17), (17, 17), (17, 40)):  # the middle block is empty
+        at, latest, have = many.push_block(t[a:b], y[a:b], pushed[a:b])
+        ats.append(at), latests.append(latest), haves.append(have)
+    at, latest, have = (np.concatenate(v) for v in (ats, latests, haves))
+    assert not have[:3].any() and have[3:].all()
+    for k in range(len(t)):
+        if pushed[k]:
+            one.push(float(t[k]), y[k])
+        if not have[k]:
+            assert one.at(t[k]) is None
+            continue
+        np.testing.assert_array_equal(at[k], one.at(float(t[k])))
+        np.testing.assert_array_equal(latest[k], one.latest)
+    np.testing.assert_array_equal(many._t, one._t)
+    np.testing.assert_array_equal(many._y, one._y)
+    assert (many._n, many._t_last) == (one._n, one._t_last)
+    np.testing.assert_array_equal(many.at(t[-1] + 0.004), one.at(t[-1] + 0.004))
 
 
 def test_push_fit_shifts_the_window_in_place():

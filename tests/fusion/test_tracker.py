@@ -21,6 +21,7 @@ from fusion.tracking.tracker import (
     COUNTERS,
     FLAG_CODE,
     JOINT_FLAGS,
+    Frames,
     NoStillWindowError,
     NotInitialisedError,
     Tracker,
@@ -323,6 +324,72 @@ def test_sample_by_sample_equals_the_whole_recording_path(arm, reaching):
     np.testing.assert_allclose(est.q_rad, run.q_rad[-1], atol=1e-5)  # 0.0006°
     np.testing.assert_allclose(est.sigma_rad, run.sigma_rad[-1], rtol=1e-3)
     assert est.flags == tuple(JOINT_FLAGS[f] for f in run.flags[-1])
+
+
+def test_a_block_prepared_at_once_gives_each_instant_the_live_path_s_pieces(arm, reaching):
+    """A run prepares a block of instants at once (Tracker._prepare_block: the differentiators
+    and the frames, with the offsets and gyro bias of the block's start). With gaps in the
+    encoders, the gyro and the accelerometers, each instant gets the encoder fit and the
+    frame that the live path makes for it one instant at a time (_frame_now) from the same
+    state, to the bit; the differentiators end in the same state."""
+    a, _ = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
+    b, _ = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
+    rng = np.random.default_rng(111)
+    t_all = reaching.get("enc").t_s
+    i = np.flatnonzero(t_all > a.t_s + 1e-9)[:120]
+    t = t_all[i]
+    q = reaching.get("enc").values[i] / a.counts_per_rad
+    gyro = rng.normal(0.0, 0.2, (len(i), 3))
+    enc_has, gyro_has, need = (rng.uniform(size=len(i)) < p for p in (0.7, 0.6, 0.8))
+    gyro_has[:5] = False  # the block opens on the gyro's last reading before it
+    b._omega = a._omega = np.array([0.01, -0.02, 0.03])
+    prepared = a._prepare_block(t, q, enc_has, gyro, gyro_has, need, a._ukf.x)
+    assert len(prepared) == len(i)
+    frames = 0
+    for r in range(len(i)):
+        if enc_has[r]:
+            b.enc_rates.push(float(t[r]), q[r])
+        if gyro_has[r]:
+            b.gyro_rates.push(float(t[r]), gyro[r])
+        b._frame_cache = None
+        e, frame = prepared[r]
+        np.testing.assert_array_equal(e, b.enc_rates.at(float(t[r])))
+        ref = b._frame_now(float(t[r]), gyro[r] if gyro_has[r] else None) if need[r] else None
+        assert (frame is None) == (ref is None)
+        if ref is not None:
+            frames += 1
+            for name, got, want in zip(Frames.FIELDS, frame, ref, strict=True):
+                np.testing.assert_array_equal(got, want, err_msg=name)
+        if gyro_has[r]:
+            b._omega = gyro[r]  # as the filter's step keeps it
+    assert frames > 50
+    for d_a, d_b in ((a.enc_rates, b.enc_rates), (a.gyro_rates, b.gyro_rates)):
+        np.testing.assert_array_equal(d_a._y, d_b._y)
+        np.testing.assert_array_equal(d_a.latest, d_b.latest)
+
+
+def test_a_long_block_s_frames_made_a_part_at_a_time_change_nothing(arm, reaching, monkeypatch):
+    """A run holds at most PREPARED_MAX instants' frames at once: a block longer than that
+    is prepared in parts, all with the block's start's offsets, and fuses the same numbers."""
+    import fusion.tracking.run as run_module
+
+    whole, start = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
+    parts, _ = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
+    t_stop = start.t_end_s + 6.0
+    a = whole.run(reaching, t_stop_s=t_stop, block=256)
+    monkeypatch.setattr(run_module, "PREPARED_MAX", 100)
+    b = parts.run(reaching, t_stop_s=t_stop, block=256)
+    assert a.steps > 500
+    np.testing.assert_array_equal(a.q_rad, b.q_rad)
+    np.testing.assert_array_equal(a.sigma_rad, b.sigma_rad)
+    np.testing.assert_array_equal(a.rpy_rad, b.rpy_rad)
+
+
+@pytest.mark.parametrize("block", [0, -3, 2.5, "256", True])
+def test_a_run_s_block_must_be_a_whole_number_of_instants(arm, reaching, block):
+    tr, _ = start_from_recording(arm, reaching)
+    with pytest.raises(ValueError, match=r"block must be a whole number of instants, at least 1; got"):
+        tr.run(reaching, block=block)
 
 
 def test_a_run_with_nothing_to_fuse_is_empty_and_the_next_one_carries_on(arm, reaching):
