@@ -63,7 +63,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "diagnose": ("Compare the model with a recording: where it fails, which physical effect is missing.",
                  "fusion.cli.diagnose:register"),
     "track": ("Track the joint angles and the heading through a recording: startup calibration on "
-              "its first still stretch, then the unscented Kalman filter on every sample.",
+              "its first still stretch (or, with --moving-start, on its least-moving instants), then "
+              "the unscented Kalman filter on every sample.",
               "fusion.cli.track:register"),
     "import": ("Turn a foreign recording (CSV, MATLAB .mat, HDF5) into the arm's native one: each "
                "stream from the columns the map names, in the unit the config declares; rows whose time "

@@ -36,7 +36,7 @@ from fusion.tracking.estimate import Estimate
 from fusion.tracking.frame_kernels import FrameConstants
 from fusion.tracking.frames import Frames
 from fusion.tracking.health import SensorHealth
-from fusion.tracking.initial import Ambiguity, ImuStill, initial_state
+from fusion.tracking.initial import Ambiguity, ImuStill, initial_state, limits_cover_var
 from fusion.tracking.innovations import InnovationLog
 from fusion.tracking.live import fuse_instant
 from fusion.tracking.measurement import Measurements
@@ -46,7 +46,8 @@ from fusion.tracking.settings import (
     C_REJECTED,
     C_USED,
     ENC,
-    F_AMBIGUOUS,
+    F_CONVERGING,
+    FLAG_CODE,
     GYRO,
     IMU_ACC,
     JOINT_FLAGS,
@@ -150,7 +151,9 @@ class Tracker:
         ``encoder_counts`` are the counts while the startup window was still (default: the
         first encoder sample that arrives). A joint the startup could not read starts at
         ``prior_q_rad`` (the pose saved at the last clean shutdown; default the ready pose)
-        with ``unknown_joint_sigma_deg``, and is ``converging`` until read. ``imu`` (from
+        with ``unknown_joint_sigma_deg``, and is ``converging`` until read; without a saved
+        pose, the sigma it reports covers every angle inside its limits until gravity reads
+        it (the filter's own stays as said: a prior that wide would not linearise). ``imu`` (from
         :func:`fusion.tracking.start.imu_still_from_recording`) gives the gyro bias, heading and
         field reference.
         """
@@ -179,8 +182,15 @@ class Tracker:
         self.slips = SlipDetector(st, L, self.sensor_names, len(self.link_names), len(self.accel_streams),
                                   self._sees, t_s)
         self.observability.reset()
+        if prior_q_rad is None:  # no saved pose: an unread joint may be anywhere in its limits
+            unread = np.array([j.flag == "gimbal_lock" or j.sigma_rad is None for j in startup.joints])
+            unread &= ~self.ambiguity_.joints
+            self.observability.set_unread(np.where(unread, limits_cover_var(
+                self._q_startup, self.arm.min_rad, self.arm.max_rad), 0.0))
         self.still = StillDetector(st, L, t_s)
-        self._flags = np.where(self.ambiguity_.joints, F_AMBIGUOUS, 0).astype(np.int8)
+        # until the first update says more, each joint as the startup left it (a joint it
+        # could not read is not "ok" for the first instants)
+        self._flags = np.array([FLAG_CODE.get(j.flag, F_CONVERGING) for j in startup.joints], dtype=np.int8)
         self._named = (None, None, (), ())  # (status codes, flags, their names): see estimate
         self._obs_used_key = None
         self._obs_t = -np.inf

@@ -87,6 +87,13 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
     return x, P, q0
 
 
+def limits_cover_var(q0_rad: np.ndarray, lo_rad: np.ndarray, hi_rad: np.ndarray) -> np.ndarray:
+    """Per joint, the mean square distance from ``q0`` to an angle anywhere inside the limits
+    (uniform over ``[lo, hi]``): the variance of a joint known only to lie within them."""
+    a, b = np.asarray(hi_rad, float) - q0_rad, q0_rad - np.asarray(lo_rad, float)
+    return (a**3 + b**3) / (3.0 * (a + b))
+
+
 class Ambiguity:
     """The joints the startup left ``ambiguous`` (rival branches that fit the still data
     equally): their candidates, and the encoders' angles when those held."""

@@ -67,7 +67,11 @@ class Observability:
         self.hold: np.ndarray | None = None
         """The projection that holds the unreadable directions (None: nothing held)."""
         self.sys_var = np.zeros(n)
-        """Per joint, the calibration's own variance (rad²): ``diag(S S^T)``."""
+        """Per joint, the variance the filter's own does not hold (rad²): the calibration's
+        (``diag(S S^T)``) and, while a joint is unread, what covers its limits."""
+        self.unread_var = np.zeros(n)
+        """Per joint the startup could not read and gravity has not read since: the variance
+        that covers every angle inside its limits (0 once read; see :meth:`set_unread`)."""
         self.consider = np.zeros((n, self.spread_m))
         self.consider_t: float | None = None
         self._consider_q_enc = None
@@ -87,8 +91,14 @@ class Observability:
         c = np.array(consider, dtype=float)
         if c.shape == self.consider.shape:
             self.consider = c
-            self.sys_var = (c**2).sum(axis=1)
+            self.sys_var = (c**2).sum(axis=1) + self.unread_var
             self.consider_t = float(t_s)
+
+    def set_unread(self, var_rad2: np.ndarray) -> None:
+        """The joints nothing has read yet, and per joint the variance that covers its limits
+        (0 for the others): added to the joints' reported variance until gravity reads them."""
+        self.unread_var = np.asarray(var_rad2, float).copy()
+        self.sys_var = (self.consider**2).sum(axis=1) + self.unread_var
 
     def _columns(self, spread: dict, unmodelled_g: np.ndarray, scale_sig: np.ndarray) -> None:
         """The columns of the consider sensitivity (see :meth:`_consider_update`): each
@@ -264,7 +274,7 @@ class Observability:
                 S[self._scale_joints, self._scale_cols] += self._scale_sigma * travel
             self._consider_q_enc = q_enc.copy()
         self.consider = np.linalg.solve(prior + A + 1e-12 * np.eye(n), prior @ S + B)
-        self.sys_var = (self.consider**2).sum(axis=1)
+        self.sys_var = (self.consider**2).sum(axis=1) + self.unread_var
         # what each spread leaves in the readings once the offsets have taken their pull: a
         # lasting shift of the innovations the slip test must not take for a slip
         links = sel < len(self.link_names)
@@ -355,4 +365,11 @@ class Observability:
             else:
                 f = 0
             flags.append(f)
+        if self.unread_var.any():  # a joint read at last no longer needs its limits' cover
+            read = [j for j in range(n)
+                    if self.unread_var[j] > 0 and flags[j] not in (F_GIMBAL, F_UNOBSERVED)]
+            if read:
+                self.unread_var = self.unread_var.copy()
+                self.unread_var[read] = 0.0
+                self.sys_var = (self.consider**2).sum(axis=1) + self.unread_var
         return np.array(flags, dtype=np.int8)

@@ -797,3 +797,25 @@ def test_an_arm_that_never_stands_still_starts_on_its_least_moving_instants(arm)
     err = np.abs(run.q_error_rad[late])
     assert np.all(err < 3 * run.sigma_rad[late] + 1e-4)
     assert np.all(rms_deg(run, 15.0) < 0.2)
+
+
+def test_an_unread_joint_without_a_saved_pose_reports_a_sigma_covering_its_limits(arm):
+    """Started at the park pose (j3 and j6 stand vertical) with no saved pose, those joints
+    may be anywhere inside their limits: the sigma reported says so while gravity cannot
+    read them, and falls to what the filter knows once the arm's move lets gravity read them."""
+    park = arm.ready_pose_rad
+    jp = still_then(park, 5.0, (POSE, 6.0, 6.0))
+    rec, _ = simulate(arm, scenario(arm, 17.0, jp, ParkedBase(0.02, -0.01, 1.0)), seed=12)
+    tr, start = start_from_recording(arm, rec)
+    assert {2, 5} <= {j for j, je in enumerate(start.startup.joints) if je.flag == "gimbal_lock"}
+    locked = [2, 5]  # vertical at the park pose: gravity cannot read them until the arm moves
+    span = arm.max_rad - arm.min_rad
+    est = tr.estimate
+    for j in locked:  # at least the spread of a uniform over the limits about its middle
+        assert est.sigma_rad[j] >= span[j] / np.sqrt(12) and est.flags[j] == "gimbal_lock"
+    run = tr.run(rec)
+    early = run.t_s < 5.0
+    assert np.all(run.sigma_rad[early][:, locked] >= (span[locked] / np.sqrt(12))[None, :])
+    late = run.t_s > 15.0
+    assert np.all(run.sigma_rad[late][:, locked] < np.radians(1.0))
+    assert np.all(np.abs(run.q_error_rad[late]) < 3 * run.sigma_rad[late] + 1e-4)
