@@ -55,7 +55,14 @@ from models.sensor_description import (  # noqa: F401  (the datasheet numbers, r
     MPU9150_TEMP_LSB_PER_C,
     MPU9150_TEMP_OFFSET_C,
 )
-from sensors.samples import IMU_STREAMS, Recording, accel_columns, encoder_columns
+from sensors.samples import (
+    IMU_STREAMS,
+    Recording,
+    accel_columns,
+    encoder_columns,
+    link_gyro_columns,
+    link_gyro_stream,
+)
 
 # --- Earth's magnetic field -----------------------------------------------------------
 EARTH_FIELD_TAMPA_UT = np.array([24.0, 0.0, -39.0])
@@ -190,16 +197,6 @@ def stream_models(arm: ArmModel, rate_hz: float | dict[str, float] = 100.0) -> d
 IMU_STREAM_PARTS = {"imu_acc": "accelerometer", "imu_gyro": "gyroscope", "imu_mag": "magnetometer",
                     "imu_temp": "temperature"}
 """The base IMU's streams and the part of its description each comes from."""
-
-
-def link_gyro_stream(sensor: str) -> str:
-    """The stream of the gyroscope of the link sensor ``sensor``."""
-    return f"{sensor}_gyro"
-
-
-def link_gyro_columns(sensor: str) -> tuple[str, str, str]:
-    """CSV columns of the gyroscope of the link sensor ``sensor``."""
-    return (f"{sensor}_gx", f"{sensor}_gy", f"{sensor}_gz")
 
 
 def stream_group(stream: str) -> str:

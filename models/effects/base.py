@@ -28,6 +28,8 @@ import numpy as np
 
 from models.arm import ArmModel
 from models.motion import DEFAULT_MASSES, MassModel, MotionState, gravity_torques, lever_arm_jacobian
+from models.sensor_models import IMU_STREAM_PARTS
+from sensors.samples import link_gyro_stream
 
 STAGES = ("joints", "mounts", "sensor", "time")
 ENCODER_DEVICE = "enc"
@@ -79,8 +81,14 @@ def device_names(arm: ArmModel) -> tuple[str, ...]:
 
 
 def device_streams(arm: ArmModel, device: str) -> tuple[str, ...]:
-    if arm.imu is not None and device == arm.imu.name:
-        return ("imu_acc", "imu_gyro", "imu_mag", "imu_temp")
+    """The streams one device gives, as its description says: the base IMU's parts
+    (``imu_acc``, ``imu_gyro``, and ``imu_mag``, ``imu_temp`` when it has them); a link
+    sensor's accelerometer and, when it has one, its gyroscope (``<name>_gyro``)."""
+    imu = arm.imu
+    if imu is not None and device == imu.name:
+        return tuple(s for s, part in IMU_STREAM_PARTS.items() if imu.description.has(part))
+    if device in arm.sensor_names and arm.sensor(device).has_link_gyro:
+        return (device, link_gyro_stream(device))
     return (device,)
 
 

@@ -46,6 +46,7 @@ from models.motion import (
     specific_force_jacobian,
 )
 from models.sensor_models import EARTH_FIELD_TAMPA_UT, StreamModel, stream_models
+from sensors.samples import link_gyro_stream
 
 StateAt = Callable[[np.ndarray], MotionState]
 Jacobian = dict[str, dict[str, np.ndarray]]
@@ -386,6 +387,7 @@ class Model:
         imu = arm.imu
         want_jac = want is not None
         link_acc = {s.name for s in arm.link_accelerometers}
+        link_gyro = {link_gyro_stream(s.name): s.name for s in arm.sensors if s.has_link_gyro}
         ctx, Jq, dfdq = self._prepare(state, th, streams, want)
         N = state.N
         pred: dict[str, np.ndarray] = {}
@@ -398,6 +400,8 @@ class Model:
                 y = ctx.sm.specific_force_g[:, i]
             elif s == "imu_gyro":
                 y = ctx.sm.omega_S_rad_s[:, ctx.sensor(imu.name)]
+            elif s in link_gyro:  # a link sensor's gyroscope: its own rate (no effect of its own yet)
+                y = ctx.sm.omega_S_rad_s[:, ctx.sensor(link_gyro[s])]
             elif s == "imu_mag":
                 R_0I = ctx.sm.R_0S[:, ctx.sensor(imu.name)]
                 y = np.einsum("nji,nj->ni", R_0I, ctx.earth_field_0_ut)

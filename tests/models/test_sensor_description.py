@@ -90,3 +90,23 @@ def test_a_bad_description_is_refused_by_name(wmra_dict, mutate, message):
     d = copy.deepcopy(wmra_dict)
     mutate(d)
     assert any(__import__("re").search(message, p) for p in _problems(d)), _problems(d)
+
+
+def test_the_simulator_writes_what_the_descriptions_say():
+    """A rig whose MPU-6050s deliver g and deg/s rounded to 0.01, with a gyroscope on the
+    shaft and no magnetometer: simulated in those units, the shaft's gyro turning with
+    the joint, no compass stream."""
+    from models.simulator import simulate
+
+    rig = load_arm(CONFIG_DIR / "imu_rig_roll.yaml")
+    rec, _ = simulate(rig, "excitation", 20.0, seed=4)
+    assert "imu_mag" not in rec.streams and rec.get("shaft_gyro").kind == "link_gyro"
+    shaft = rec.get("shaft").values
+    assert shaft.dtype == np.float64 and np.allclose(shaft * 100, np.rint(shaft * 100))
+    gyro = rec.get("shaft_gyro")
+    q = rec.get("true_q")
+    rate_dps = np.degrees(np.gradient(q.values[:, 0], q.t_s))
+    # the shaft's axis is the shaft IMU's x axis (its config's mount): x reads the joint's rate
+    x = np.interp(q.t_s, gyro.t_s, gyro.values[:, 0])
+    assert np.corrcoef(x, rate_dps)[0, 1] > 0.99  # (the rest: the base's own turning)
+    assert np.allclose(gyro.values * 100, np.rint(gyro.values * 100))
