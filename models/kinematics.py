@@ -256,3 +256,16 @@ def gravity_chain(arm: ArmModel, names=None) -> GravityChain:
                            np.asarray(ch.offset_rad, float).copy())
         cache[key] = hit
     return hit
+
+
+def joint_rate_from_link_rates(arm: ArmModel, joint: int, omega_before: np.ndarray,
+                               omega_after: np.ndarray) -> np.ndarray:
+    """The rate (rad/s) of joint ``joint`` (0-based) from the angular rates of the links on
+    either side of it, each in its own frame (``(N, 3)`` rad/s: link ``joint`` before it,
+    link ``joint + 1`` after it; link 0 is the base): what a gyroscope on each side gives
+    where an encoder is not trusted. With ``T_pre·Rot(axis, q)·T_post`` the joint's transform,
+    ``ω_after = R^T ω_before + q̇ R_post^T axis``, so ``q̇ = axis·(R_post ω_after −
+    R_pre^T ω_before)``, whatever the joint's angle."""
+    j = arm.joints[joint]
+    a = np.asarray(j.axis, float)
+    return (np.asarray(omega_after, float) @ j.R_post.T - np.asarray(omega_before, float) @ j.R_pre) @ a

@@ -163,3 +163,24 @@ def test_thesis_failure_case_joint_3_axis_along_gravity(wmra):
     q = np.radians([90, 90, 0, 0, 0, 0, 0])
     ang = np.degrees(joint_axis_angle_to_vertical(wmra, q))[0]
     assert ang[2] < 1e-9
+
+
+@pytest.mark.parametrize("config", ["imu_rig_roll", "imu_rig_yaw"])
+def test_a_joints_rate_from_the_gyros_on_either_side_of_it(config):
+    """The real rig's layout simulated without noise: the shaft's gyro less the frame's,
+    about the joint's axis, is the encoder's rate (to the values' 0.01 deg/s rounding)."""
+    from fusion.configfile import load_arm
+    from models.kinematics import joint_rate_from_link_rates
+    from models.sensor_models import stream_models
+    from models.simulator import simulate
+
+    arm = load_arm(config)
+    rec, _ = simulate(arm, "excitation", 20.0, seed=4, noise=False)
+    sm = stream_models(arm)
+    shaft = sm["shaft_gyro"].from_counts(rec.get("shaft_gyro").values) @ arm.sensor("shaft").R_LS.T
+    base = sm["imu_gyro"].from_counts(rec.get("imu_gyro").values) @ arm.imu.R_LS.T
+    rate = joint_rate_from_link_rates(arm, 0, base, shaft)
+    q = rec.get("true_q")
+    truth = np.interp(rec.get("shaft_gyro").t_s, q.t_s, np.gradient(q.values[:, 0], q.t_s))
+    assert np.degrees(np.sqrt(np.mean((rate - truth) ** 2))) < 0.02
+    assert np.degrees(np.std(truth)) > 10.0  # the joint did turn
