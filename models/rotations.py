@@ -126,31 +126,6 @@ def exp_so3_one(rotvec_rad) -> np.ndarray:
                      [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)]])
 
 
-def log_so3(R: np.ndarray) -> np.ndarray:
-    """Rotation vector of a rotation matrix (inverse of :func:`exp_so3`), batched."""
-    R = np.asarray(R, dtype=float)
-    cos_t = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(cos_t)
-    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
-                  R[..., 1, 0] - R[..., 0, 1]], -1)
-    s = np.sin(theta)
-    small = s < 1e-7
-    factor = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, s)))
-    out = factor[..., None] * w
-    # near pi: use the diagonal to recover the axis
-    near_pi = (theta > np.pi - 1e-4)
-    if np.any(near_pi):
-        Rp = R[near_pi]
-        diag = np.clip((np.diagonal(Rp, axis1=-2, axis2=-1) + 1.0) / 2.0, 0.0, None)
-        axis = np.sqrt(diag)
-        i = np.argmax(axis, axis=-1)
-        rows = Rp[np.arange(len(i)), i]
-        axis = (rows + np.eye(3)[i]) / (2.0 * axis[np.arange(len(i)), i][:, None])
-        axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-        out[near_pi] = axis * theta[near_pi][:, None]
-    return out
-
-
 def R_from_rpy(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
     """``R_WB = Rz(yaw) Ry(pitch) Rx(roll)`` (the recording spec's base attitude)."""
     return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)

@@ -70,7 +70,6 @@ EARTH_FIELD_TAMPA_UT = np.array([24.0, 0.0, -39.0])
 z up, so 24 µT horizontal toward north and 39 µT down (inclination ≈ 58°; total
 ≈ 46 µT; WMM 2025, rounded). Declination does not enter: yaw is magnetic."""
 
-IMU_STREAM_NAMES = ("imu_acc", "imu_gyro", "imu_mag", "imu_temp")
 ENCODER_STREAM = "enc"
 
 
@@ -197,16 +196,6 @@ def stream_models(arm: ArmModel, rate_hz: float | dict[str, float] = 100.0) -> d
 IMU_STREAM_PARTS = {"imu_acc": "accelerometer", "imu_gyro": "gyroscope", "imu_mag": "magnetometer",
                     "imu_temp": "temperature"}
 """The base IMU's streams and the part of its description each comes from."""
-
-
-def stream_group(stream: str) -> str:
-    """The device a stream comes from (its samples share one instant): ``imu_*`` -> ``imu``."""
-    return "imu" if stream in IMU_STREAM_NAMES else stream
-
-
-def accel_counts_to_g(counts: np.ndarray, model: StreamModel) -> np.ndarray:
-    """Raw accelerometer counts to g with the nominal sensitivity (for plots and checks)."""
-    return model.from_counts(counts)
 
 
 def mpu9150_temperature_c(raw) -> np.ndarray | float:
