@@ -78,6 +78,35 @@ def with_lever_arms(arm: ArmModel, model: Model | None) -> ArmModel:
     return replace(arm, sensors=sensors)
 
 
+NOT_APPLIED: dict[str, str] = {
+    "gyro_bias": "the tracker estimates the gyro's bias itself (a state, seeded from the still window)",
+    "gyro_scale": "the tracker does not correct the gyro's scale",
+    "mag_arm_disturbance": "the tracker does not model the arm's steel turning with the joints",
+}
+"""The config's effects the tracker does not apply, and why (every other effect it does:
+the accelerometers' and the compass's corrections, the joints' effects in the kinematics,
+lever arms, time offsets, encoder scales)."""
+PARTLY_APPLIED: dict[str, str] = {
+    "base_mount": "applied to the IMU's accelerometer, not to its gyro and compass",
+}
+
+
+def effects_applied(model: Model | None) -> tuple[list[str], list[str]]:
+    """The config's effects the tracker applies (their block names, with a word where only
+    in part), and those it does not, each with why: what its notes say."""
+    if model is None:
+        return [], []
+    applied, not_applied = [], []
+    for e in model.effects:
+        if e.name in NOT_APPLIED:
+            not_applied.append(f"{e.block_name} ({NOT_APPLIED[e.name]})")
+        elif e.name in PARTLY_APPLIED:
+            applied.append(f"{e.block_name} ({PARTLY_APPLIED[e.name]})")
+        else:
+            applied.append(e.block_name)
+    return applied, not_applied
+
+
 def hard_iron_sigma_ut(model: Model | None) -> np.ndarray | None:
     """The sigma (µT, per compass axis) of the config's ``mag_hard_iron``; None without one."""
     for _, _, sigma in _blocks(model, "mag_hard_iron"):

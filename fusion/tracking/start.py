@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from fusion.startup.solve import StartupResult
+from fusion.tracking.calibrated import effects_applied
 from fusion.tracking.compass import compass_map, compass_unmodelled_rad
 from fusion.tracking.differentiator import prime
 from fusion.tracking.filter import Tracker
@@ -221,7 +222,10 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
                          if still_temp is not None and len(still_temp) else 25.0)
         corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
         readings = corr.readings(readings)
-        notes.append("the config's effects applied: " + ", ".join(e.block_name for e in corr.model.effects))
+        applied, not_applied = effects_applied(corr.model)
+        notes.append("the config's effects applied: " + (", ".join(applied) or "none"))
+        if not_applied:
+            notes.append("the config's effects NOT applied by the tracker: " + "; ".join(not_applied))
     startup = solve_still(arm, readings, startup_settings, prior=prior,
                           propose_unlock=propose_unlock)
     notes.extend(startup.notes)

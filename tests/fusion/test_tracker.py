@@ -819,3 +819,19 @@ def test_an_unread_joint_without_a_saved_pose_reports_a_sigma_covering_its_limit
     late = run.t_s > 15.0
     assert np.all(run.sigma_rad[late][:, locked] < np.radians(1.0))
     assert np.all(np.abs(run.q_error_rad[late]) < 3 * run.sigma_rad[late] + 1e-4)
+
+
+def test_the_notes_say_which_of_the_configs_effects_the_tracker_does_not_apply(arm, reaching):
+    """A calibrated config holding a gyro scale and the arm's steel's compass disturbance:
+    the tracker does not apply them, and its notes say so by name instead of listing them
+    as applied."""
+    _, truth = simulate(arm, "startup", 1.0, seed=11, realistic=True)
+    keep = {"accel_bias", "gyro_scale", "mag_arm_disturbance"}
+    entries = tuple(e for e in truth["effects"] if e["effect"] in keep)
+    assert {e["effect"] for e in entries} == keep
+    _, start = start_from_recording(replace(arm, effects=entries), reaching, prior_q_rad=POSE + 0.05)
+    applied = next(n for n in start.notes if n.startswith("the config's effects applied"))
+    missing = next(n for n in start.notes if n.startswith("the config's effects NOT applied"))
+    assert "accel_bias" in applied and "gyro_scale" not in applied and "mag_arm_disturbance" not in applied
+    assert "gyro_scale (the tracker does not correct the gyro's scale)" in missing
+    assert "mag_arm_disturbance (the tracker does not model the arm's steel" in missing
