@@ -8,9 +8,9 @@ is tuned to a file):
 
 - ``vqf``: ``vqf.VQF(Ts)`` (VQF 6D, its default time constants, rest and motion bias
   estimation on), ``updateBatch`` -> ``quat6D``; gyroscope rad/s, accelerometer m/s².
-- ``imufusion``: ``imufusion.Ahrs()`` with its default settings (gain 0.5, acceleration
-  rejection, NWU), ``set_sample_period(Ts)``, ``update_no_magnetometer`` each sample;
-  gyroscope deg/s, accelerometer g.
+- ``imufusion``: ``imufusion.Ahrs()`` with the settings it is constructed with (x-io's
+  defaults: gain 0.5, NWU, its start-up ramp), ``set_sample_period(Ts)``,
+  ``update_no_magnetometer`` each sample; gyroscope deg/s, accelerometer g.
 - ``ahrs Madgwick`` (default IMU gain 0.033), ``ahrs Mahony`` (k_P 1, k_I 0.3),
   ``ahrs EKF`` (its default noise variances), ``ahrs Complementary`` (gain 0.9) and
   ``ahrs AQUA`` (its defaults): the ``ahrs`` package's filters that take a gyroscope and
@@ -21,16 +21,20 @@ is tuned to a file):
   magnetometer.)
 
 The angle: each filter gives each IMU's orientation in its own world (``R_WF`` frame IMU,
-``R_WS`` shaft IMU); the relative orientation ``R_FS = R_WF^T R_WS`` is decomposed into a
-swing and a twist about the shaft axis in the shaft IMU's axes ``a_S`` (taken from the
-config: joint 1's axis at q = 0 seen from the shaft sensor's mount ``R_LS``, signed so the
-encoder counts up as the shaft turns positively about it). If ``R_FS(q) = R_FS(0)·Rot(a_S, q)``
-the twist angle is exactly ``q`` plus a constant, whatever the mounts' small errors; one
-constant (the circular mean of encoder minus twist on the calibration stretch only) aligns
-its zero to the encoder, and the rest of the recording is scored with it held fixed.
-Heading drift of a 6-axis filter is about the vertical: for a horizontal shaft gravity
-corrects the twist; for a vertical shaft the twist is the two filters' heading difference,
-gyroscope-only, and drifts.
+``R_WS`` shaft IMU). A 6-axis filter's heading is arbitrary and drifts, so for a shaft
+that is not vertical the shaft filter's world is first turned about the vertical until
+the shaft axis (the config's, in each IMU's axes) points the same way in both worlds
+(:func:`shared_heading`; without it the roll trial's peers measured 19-31 deg RMSE, the
+frame filter's heading drifting away over 25 minutes). The relative orientation
+``R_FS = R_WF^T R_WS`` is decomposed into a swing and a twist about the shaft axis in the
+shaft IMU's axes ``a_S`` (from the config: joint 1's axis at q = 0 seen from the shaft
+sensor's mount ``R_LS``, signed so that the encoder counts up as the shaft turns positively
+about it). If ``R_FS(q) = R_FS(0)·Rot(a_S, q)`` the twist is exactly ``q`` plus a constant,
+whatever ``R_FS(0)`` is; one constant (the circular mean of encoder minus twist on the
+calibration stretch only) aligns its zero to the encoder, and the rest of the recording is
+scored with it held fixed.
+For a vertical shaft no heading is shared: the twist is the two filters' heading
+difference, gyroscopes only, and drifts.
 
 Time: the samples' stamps have jitter and the import drops some rows; every stream is
 interpolated linearly onto one uniform grid at the recording's median rate (the shaft
@@ -103,7 +107,9 @@ class PeerResult:
     """One peer on one recording: the shaft angle it gives (``angle_rad (N,)`` on
     ``t_s``, zero aligned to the encoder on the calibration stretch by ``offset_deg``),
     and on the scored rest (``n_scored`` samples): RMSE and largest error against the
-    encoder, deg; ``seconds``: wall time of its two filters (both IMUs)."""
+    encoder, deg; ``seconds``: wall time of its two filters (both IMUs);
+    ``heading_shared``: the two filters' headings were reconciled through the shaft axis
+    (:func:`shared_heading`; False for a vertical shaft: gyroscopes only)."""
 
     name: str
     library: str
@@ -114,6 +120,7 @@ class PeerResult:
     max_deg: float
     n_scored: int
     seconds: float
+    heading_shared: bool
 
 
 # ------------------------------------------------------------------------ geometry from the config
@@ -225,15 +232,55 @@ PEERS: dict[str, tuple[str, PeerFilter]] = {
 
 
 # ------------------------------------------------------------------------------------ the angle
+def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product of quaternions w, x, y, z ``(N, 4)``."""
+    pw, pv, qw, qv = p[:, :1], p[:, 1:], q[:, :1], q[:, 1:]
+    return np.column_stack([pw[:, 0] * qw[:, 0] - np.sum(pv * qv, axis=1),
+                            pw * qv + qw * pv + np.cross(pv, qv)])
+
+
+def _qconj(q: np.ndarray) -> np.ndarray:
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``R(q) v`` for each row of ``q`` ``(N, 4)`` and one vector ``v`` ``(3,)``."""
+    p = np.column_stack([np.zeros(len(q)), np.broadcast_to(v, (len(q), 3))])
+    return _qmul(_qmul(q, p), _qconj(q))[:, 1:]
+
+
 def twist_angle_rad(q_WF: np.ndarray, q_WS: np.ndarray, axis_S: np.ndarray) -> np.ndarray:
     """The twist about ``axis_S`` (shaft IMU axes) of ``R_FS = R_WF^T R_WS``, unwrapped,
     rad ``(N,)``; quaternions w, x, y, z ``(N, 4)``."""
     a = np.asarray(axis_S, float) / np.linalg.norm(axis_S)
-    wf, vf = q_WF[:, :1], -q_WF[:, 1:]  # conjugate of q_WF
-    ws, vs = q_WS[:, :1], q_WS[:, 1:]
-    w = wf[:, 0] * ws[:, 0] - np.sum(vf * vs, axis=1)
-    v = wf * vs + ws * vf + np.cross(vf, vs)
-    return np.unwrap(2.0 * np.arctan2(v @ a, w))
+    q_FS = _qmul(_qconj(q_WF), q_WS)
+    return np.unwrap(2.0 * np.arctan2(q_FS[:, 1:] @ a, q_FS[:, 0]))
+
+
+HORIZONTAL_SHARE = 0.5
+"""The shaft counts as horizontal enough to carry a heading when its axis's horizontal part
+(in the frame filter's world) is at least this (30 deg or more from the vertical)."""
+
+
+def shared_heading(q_WF: np.ndarray, q_WS: np.ndarray, axis_F: np.ndarray,
+                   axis_S: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The shaft filter's orientation turned about its world's vertical (z) so that the
+    shaft axis points the same way in both filters' worlds, and whether that was done.
+
+    A 6-axis filter's heading is its own (each starts anywhere about the vertical and
+    drifts with its gyroscope's bias there): the two IMUs' worlds differ by a turn about the
+    vertical that the relative orientation would take for joint motion. The shaft axis is
+    the one direction both IMUs share; where it is horizontal enough (median over the
+    recording, :data:`HORIZONTAL_SHARE`) its heading in each world gives that turn, sample
+    by sample. A vertical shaft carries no heading: the relative orientation is left as the
+    filters give it (the angle is then their gyroscopes' alone)."""
+    u_F = _rotate(q_WF, np.asarray(axis_F, float))
+    u_S = _rotate(q_WS, np.asarray(axis_S, float))
+    if np.median(np.hypot(u_F[:, 0], u_F[:, 1])) < HORIZONTAL_SHARE:
+        return q_WS, False
+    turn = np.arctan2(u_F[:, 1], u_F[:, 0]) - np.arctan2(u_S[:, 1], u_S[:, 0])
+    q_turn = np.column_stack([np.cos(turn / 2), np.zeros((len(turn), 2)), np.sin(turn / 2)])
+    return _qmul(q_turn, q_WS), True
 
 
 def peer_joint_angles(rec: Recording, arm: ArmModel, calibrate_s: float,
@@ -252,7 +299,8 @@ def peer_joint_angles(rec: Recording, arm: ArmModel, calibrate_s: float,
                          f"known: {', '.join(PEERS)}")
     if not np.isfinite(calibrate_s) or calibrate_s <= 0:
         raise ValueError(f"calibrate_s must be a positive number of seconds, got {calibrate_s!r}")
-    axis = shaft_axes(arm)[0] if axis_shaft is None else np.asarray(axis_shaft, float)
+    axis_S, axis_F = shaft_axes(arm)
+    axis = axis_S if axis_shaft is None else np.asarray(axis_shaft, float)
     if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) < 1e-9:
         raise ValueError(f"axis_shaft must be a non-zero 3-vector, got shape {axis.shape}")
     x = rig_inputs(rec, arm)
@@ -269,13 +317,14 @@ def peer_joint_angles(rec: Recording, arm: ArmModel, calibrate_s: float,
         q_S = run(x.shaft_gyro_rad_s, x.shaft_acc_g, period_s)
         q_F = run(x.frame_gyro_rad_s, x.frame_acc_g, period_s)
         seconds = time.perf_counter() - t_wall
+        q_S, heading_shared = shared_heading(q_F, q_S, axis_F, axis)
         twist = twist_angle_rad(q_F, q_S, axis)
         offset = float(np.angle(np.mean(np.exp(1j * (x.encoder_rad[cal] - twist[cal])))))
         angle = twist + offset
         err = np.degrees(wrap_angle(angle[~cal] - x.encoder_rad[~cal]))
         out[name] = PeerResult(name, f"{package} {version(package)}", t, angle, float(np.degrees(offset)),
                                float(np.sqrt(np.mean(err**2))), float(np.max(np.abs(err))),
-                               int(err.size), seconds)
+                               int(err.size), seconds, heading_shared)
     return x.grid, out
 
 
