@@ -42,7 +42,7 @@ accelerometer's stamps) spanning the samples all four streams share, and every p
 on that grid with its constant period (vqf takes only a fixed period). The grid's facts
 (rate, stretches longer than 1.5 periods with no sample) are returned with the results.
 
-    python tools/rig_peers.py TRIAL.mat [--config imu_rig_roll] [--calibrate-s 300]
+    python tools/rig_peers.py TRIAL.mat... [--config imu_rig_roll] [--calibrate-s 300] [--json OUT]
 
 needs the optional ``[bench]`` extra (``pip install -e '.[bench]'``).
 """
@@ -55,6 +55,7 @@ for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
@@ -341,7 +342,9 @@ def main(argv=None) -> int:
                     help="rig config (default: the one whose model fits the first minute best, "
                          "as tools/bench_real_rig.py chooses)")
     ap.add_argument("--calibrate-s", type=float, default=300.0)
+    ap.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
     a = ap.parse_args(argv)
+    table = {}
     for path in a.trials:
         first = RIG_CONFIGS[0]
         rec = import_recording(path, load_column_map("imu-rig"), load_arm(first), first).recording
@@ -353,6 +356,16 @@ def main(argv=None) -> int:
         for r in res.values():
             print(f"  {r.name:20s} RMSE {r.rmse_deg:7.2f} deg  max {r.max_deg:7.2f} deg  "
                   f"({r.library}, {r.seconds:.1f} s)", flush=True)
+        table[path.stem] = {
+            "config": config, "calibrate_s": a.calibrate_s, "samples": len(grid.t_s),
+            "rate_hz": grid.rate_hz, "gaps": grid.gaps, "longest_gap_s": grid.longest_gap_s,
+            "peers": {r.name: {"library": r.library, "rmse_deg": r.rmse_deg, "max_deg": r.max_deg,
+                               "scored_samples": r.n_scored, "zero_offset_deg": r.offset_deg,
+                               "heading_shared": r.heading_shared, "seconds": r.seconds}
+                      for r in res.values()}}
+    if a.json is not None:
+        a.json.write_text(json.dumps(table, indent=1) + "\n", encoding="utf-8")
+        print(f"wrote {a.json}")
     return 0
 
 

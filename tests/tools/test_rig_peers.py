@@ -12,6 +12,7 @@ a wrong axis)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -163,3 +164,15 @@ def test_bad_requests_are_refused_with_what_and_where(roll):
     no_gyro = Recording({k: s for k, s in rec.streams.items() if k != "shaft_gyro"}, dict(rec.meta))
     with pytest.raises(ValueError, match=r"lacks stream\(s\) shaft_gyro \(of shaft, shaft_gyro, imu_acc"):
         peer_joint_angles(no_gyro, arm, 10.0)
+
+
+def test_the_command_line_chooses_the_set_up_from_the_data_and_writes_the_figures(tmp_path, capsys):
+    from tools.rig_peers import main
+
+    out = tmp_path / "peers.json"
+    assert main([str(DATA / "raw_roll_slow_20s.mat"), "--calibrate-s", "10", "--json", str(out)]) == 0
+    table = json.loads(out.read_text())["raw_roll_slow_20s"]
+    assert table["config"] == "imu_rig_roll"  # by fit, not by the file's name
+    assert set(table["peers"]) == set(PEERS)
+    assert table["peers"]["vqf 6D"]["rmse_deg"] < FOLLOWS_DEG and table["peers"]["vqf 6D"]["heading_shared"]
+    assert "vqf 6D" in capsys.readouterr().out
