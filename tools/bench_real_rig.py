@@ -488,8 +488,8 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
             "| peer | library | RMSE | max | its time (both IMUs) |",
             "| --- | --- | ---: | ---: | ---: |",
             *[f"| {n} | {p['library']} | {_fmt(p['rmse_deg'])}° | {_fmt(p['max_deg'])}° | "
-              f"{p['seconds']:.1f} s |"
-              + ("" if p["heading_shared"] else " (gyroscopes only: no direction both IMUs see)")
+              f"{p['seconds']:.1f} s"
+              + ("" if p["heading_shared"] else " (gyroscopes only: no direction both IMUs see)") + " |"
               for n, p in sorted(r.peers.items(), key=lambda kv: kv[1]["rmse_deg"])],
             "",
         ]
