@@ -32,7 +32,7 @@ from fusion.startup.solve import (
     solve_still,
 )
 from fusion.startup.static import StaticDetectionSettings, find_static_segments
-from models.sensor_models import encoder_angles_at, mpu9150_temperature_c
+from models.sensor_models import encoder_angles_at, mpu9150_temperature_c, stream_models
 
 calibrate_app = typer.Typer(help="Calibrate: joint angles from a still arm, or the sensors.",
                             no_args_is_help=True)
@@ -73,7 +73,8 @@ def calibrate_joints(
             first_prior = StartupPrior.saved_pose(saved.q_rad, source=f"the pose saved in {prior}")
     elif assume_parked:
         first_prior = StartupPrior.assume_parked(arm)
-    segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)))
+    segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)),
+                                stream_models(arm))
     if not segs:
         fail(f"{recording}: no still segment found (accelerometers, gyro and encoders all quiet "
              "for at least 1 s); the arm must be still to calibrate")

@@ -391,7 +391,7 @@ def joint_references(arm: ArmModel, rec, specs: Sequence[tuple[str, float, float
     enc = rec.get("enc")
     if enc is None or len(enc) == 0:
         raise ValueError("a joint reference needs the recording's encoder samples ('enc')")
-    segs = find_static_segments(rec)
+    segs = find_static_segments(rec, models=stream_models(arm))
     q_enc = stream_models(arm)["enc"].from_counts(np.asarray(enc.values, float))
     t_enc = np.asarray(enc.t_s, float)
     seen: set[str] = set()

@@ -39,10 +39,12 @@ STILL_WINDOW_S = 1.0
 
 class RecentSamples:
     """The last ``span_s`` of each sensor's batches (a batch is dropped once a later one of
-    the same sensor is ``span_s`` newer)."""
+    the same sensor is ``span_s`` newer). ``models``: the streams' count models (the arm's),
+    which turn the still detection's physical limits into the units the batches hold."""
 
-    def __init__(self, span_s: float):
+    def __init__(self, span_s: float, models=None):
         self.span_s = span_s
+        self.models = models
         self._parts: dict[str, deque[Stream]] = {}
 
     def keep(self, s: Stream) -> None:
@@ -67,7 +69,7 @@ class RecentSamples:
             return "no samples received yet"
         if rec.get(ENC) is None:
             return "no encoder samples received yet"
-        segs = find_static_segments(rec, StaticDetectionSettings(window_s=STILL_WINDOW_S))
+        segs = find_static_segments(rec, StaticDetectionSettings(window_s=STILL_WINDOW_S), self.models)
         if not segs:
             return (f"the arm moves: no still stretch of at least {STILL_WINDOW_S:g} s in the last "
                     f"{rec.duration_s:.1f} s of samples; ask again when it has been still for a second")

@@ -63,6 +63,7 @@ from fusion.tracking.tracker import (
     warm_up,
 )
 from models.arm import ArmModel
+from models.sensor_models import stream_models
 from sensors.samples import Recording, Stream
 
 log = logging.getLogger("armfusion.service")
@@ -146,7 +147,7 @@ class FusionNode:
         self._reorder = Reorder(max_lag_s)
         self._inbox = pl.Inbox("serve")
         self._buffer: dict[str, list[Stream]] = {}
-        self._recent = RecentSamples(recent_s)
+        self._recent = RecentSamples(recent_s, stream_models(arm))
         self._queries: queue.Queue = queue.Queue()
         self._tracker: Tracker | None = None
         self._rates_hz: dict[str, float] = {}

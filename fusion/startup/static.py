@@ -3,15 +3,20 @@
 A stretch is still when, over a sliding window, every accelerometer's and the gyro's
 sample standard deviation stays near its noise floor and no encoder moves. The
 statistics are binned on a common grid (default 0.1 s) and windowed with cumulative
-sums, so an hour of 100 Hz data takes milliseconds.
+sums, so an hour of 100 Hz data takes milliseconds. The limits are physical (g, °/s);
+each stream's are turned into the units its recording holds by its count model, the
+config's description of the sensor (without a config: the recording spec's devices,
+ADXL345 and MPU-9150 counts).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
+from models.sensor_models import StreamModel
 from sensors.samples import Recording, Stream
 
 
@@ -23,12 +28,12 @@ class StaticDetectionSettings:
     """Resolution of the segment boundaries."""
     min_duration_s: float = 1.0
     """Shorter still stretches are not reported."""
-    accel_std_lsb: float = 3.5
-    """Link accelerometer (ADXL345, 256 LSB/g): noise is 0.75-1.1 LSB rms."""
-    imu_accel_std_lsb: float = 150.0
-    """MPU-9150 accelerometer (16384 LSB/g): noise about 46 LSB rms at 100 Hz."""
-    gyro_std_lsb: float = 20.0
-    """MPU-9150 gyro (131 LSB per deg/s): noise about 5 LSB rms at 100 Hz."""
+    accel_std_g: float = 3.5 / 256.0
+    """Link accelerometer: 13.7 mg (an ADXL345's noise is 3-4 mg rms: 0.75-1.1 LSB at 256 LSB/g)."""
+    imu_accel_std_g: float = 150.0 / 16384.0
+    """The IMU's accelerometer: 9.2 mg (an MPU-9150's noise is about 2.8 mg rms at 100 Hz)."""
+    gyro_std_dps: float = 20.0 / 131.0
+    """The IMU's gyro: 0.15 °/s (an MPU-9150's noise is about 0.035 °/s rms at 100 Hz)."""
     encoder_range_counts: float = 50.0
     """Largest encoder change inside a window that still counts as not moving."""
 
@@ -89,8 +94,15 @@ def _binned_window_range(stream: Stream, edges0: float, n_bins: int, grid_s: flo
     return r
 
 
-def still_mask(rec: Recording, settings: StaticDetectionSettings | None = None):
-    """Grid times ``(M,)`` and a boolean ``(M,)``: is the arm (and chair) still there."""
+SPEC_GAIN = {"accel": 256.0, "imu_accel": 16384.0, "gyro": 131.0 * 180.0 / np.pi}
+"""Without a config, what the recording spec's count columns are: an ADXL345's counts per g,
+an MPU-9150's per g and per rad/s."""
+
+
+def still_mask(rec: Recording, settings: StaticDetectionSettings | None = None,
+               models: Mapping[str, StreamModel] | None = None):
+    """Grid times ``(M,)`` and a boolean ``(M,)``: is the arm (and chair) still there.
+    ``models``: the streams' count models (the config's; default: :data:`SPEC_GAIN`)."""
     st = settings or StaticDetectionSettings()
     t0, t1 = rec.t_start_s, rec.t_end_s
     n_bins = max(int(np.ceil((t1 - t0) / st.grid_s)) + 1, 1)
@@ -98,14 +110,17 @@ def still_mask(rec: Recording, settings: StaticDetectionSettings | None = None):
     grid_t = t0 + (np.arange(n_bins) + 0.5) * st.grid_s
     still = np.ones(n_bins, dtype=bool)
     seen = np.zeros(n_bins, dtype=bool)
-    limits = {"accel": st.accel_std_lsb, "imu_accel": st.imu_accel_std_lsb, "gyro": st.gyro_std_lsb}
+    limits = {"accel": st.accel_std_g, "imu_accel": st.imu_accel_std_g,
+              "gyro": st.gyro_std_dps * np.pi / 180.0}
     for s in rec.raw().values():
         if len(s) == 0:
             continue
         if s.kind in limits:
+            m = None if models is None else models.get(s.name)
+            gain = np.abs(m.gain) if m is not None else SPEC_GAIN[s.kind]
             std = _binned_window_std(s, t0, n_bins, st.grid_s, k)
             has = ~np.isnan(std).any(axis=1)
-            still &= ~has | (np.nan_to_num(std, nan=0.0) <= limits[s.kind]).all(axis=1)
+            still &= ~has | (np.nan_to_num(std, nan=0.0) <= limits[s.kind] * gain).all(axis=1)
             if s.kind in ("accel", "imu_accel"):
                 seen |= has
         elif s.kind == "encoder":
@@ -116,11 +131,13 @@ def still_mask(rec: Recording, settings: StaticDetectionSettings | None = None):
 
 
 def find_static_segments(
-    rec: Recording, settings: StaticDetectionSettings | None = None
+    rec: Recording, settings: StaticDetectionSettings | None = None,
+    models: Mapping[str, StreamModel] | None = None,
 ) -> list[Segment]:
-    """Still stretches at least ``min_duration_s`` long, in time order."""
+    """Still stretches at least ``min_duration_s`` long, in time order (``models``: see
+    :func:`still_mask`)."""
     st = settings or StaticDetectionSettings()
-    grid_t, still = still_mask(rec, st)
+    grid_t, still = still_mask(rec, st, models)
     if not still.any():
         return []
     d = np.diff(np.concatenate([[0], still.astype(np.int8), [0]]))

@@ -196,7 +196,8 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         prior = StartupPrior.saved_pose(prior_q_rad)
     from fusion.startup.static import StaticDetectionSettings, find_static_segments
 
-    segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)))
+    segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)),
+                                stream_models(arm))
     notes: list[str] = []
     if segs:
         seg = segs[0]

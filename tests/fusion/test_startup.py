@@ -257,3 +257,28 @@ def test_one_lm_batch_gives_what_separate_solves_give(wmra, rng):
         np.testing.assert_allclose(x[i], xi[0], atol=1e-12)
         np.testing.assert_allclose(cost[i], ci[0], rtol=1e-12)
     assert np.all(x[3:, 2] == x0[3:, 2])  # a held unknown keeps its start value
+
+
+def test_still_detection_reads_each_sensor_in_its_own_units():
+    """The still limits are physical: a sensor that delivers g (the real rig's MPU-6050s,
+    0.01 g steps) is judged by its g, not as if its values were ADXL345 counts (where a
+    whole g of shaking would look like four counts of noise)."""
+    from fusion.configfile import load_arm
+    from fusion.startup.static import find_static_segments
+    from models.sensor_models import stream_models
+    from models.simulator import simulate
+    from sensors.samples import Recording, Stream
+
+    rig = load_arm("imu_rig_roll")
+    rec, _ = simulate(rig, "startup", 12.0, seed=2)
+    models = stream_models(rig)
+    still = find_static_segments(rec, models=models)
+    assert still and still[0].duration_s > 5.0  # the simulated start is still
+    # the frame shaken by 0.2 g rms (a chair driving), the encoders quiet: not still
+    imu = rec.get("imu_acc")
+    shaken = imu.values + np.round(np.random.default_rng(3).normal(0.0, 0.2, imu.values.shape), 2)
+    rec2 = Recording({**rec.streams, "imu_acc": Stream("imu_acc", imu.kind, imu.t_s, shaken, imu.channels)},
+                     rec.meta)
+    assert find_static_segments(rec2, models=models) == []
+    # read as counts of the spec's devices (no config), 0.2 g looks like nothing
+    assert find_static_segments(rec2) != []
