@@ -315,6 +315,10 @@ def _payloads(t_list: list[float], s: Stream) -> list[bytes]:
     ]
 
 
+WRITE_SLICE_S = 60.0
+""":func:`write_mcap` makes the messages of this much time at once."""
+
+
 def write_mcap(rec: Recording, path: str | Path, *, arm_config: str | None = None) -> None:
     """Write ``rec`` as an armfusion MCAP file, all streams merged in time order.
 
@@ -323,5 +327,17 @@ def write_mcap(rec: Recording, path: str | Path, *, arm_config: str | None = Non
     """
     config = arm_config if arm_config is not None else str(rec.meta.get("arm_config", ""))
     offset_s = float(math.ceil(-rec.t_start_s)) if rec.t_start_s < 0 else 0.0
+    streams = list(rec.streams.values())
     with McapRecorder(path, arm_config=config, t_offset_s=offset_s) as recorder:
-        recorder.write_streams(list(rec.streams.values()))
+        # a slice of time at a time: the messages of one slice are made in memory, not the
+        # whole recording's (an hour at 100 Hz of five sensors is millions of messages)
+        edges = [*np.arange(rec.t_start_s, rec.t_end_s, WRITE_SLICE_S)[1:].tolist(), np.inf]
+        start = dict.fromkeys(rec.streams, 0)
+        for hi in edges:
+            part = []
+            for s in streams:
+                a, b = start[s.name], int(np.searchsorted(s.t_s, hi, side="left"))
+                part.append(s if (a, b) == (0, len(s)) else
+                            Stream(s.name, s.kind, s.t_s[a:b], s.values[a:b], s.channels))
+                start[s.name] = b
+            recorder.write_streams(part)

@@ -455,3 +455,27 @@ def test_messages_that_do_not_fit_are_refused_naming_the_topic(
                                              r"fit the stream: ") as caught:
         read_mcap(tmp_path / "bad.mcap")
     assert why in str(caught.value) and len(str(caught.value)) < 300
+
+
+def test_a_recording_longer_than_a_write_slice_is_written_whole_and_in_order(tmp_path, monkeypatch):
+    """``write_mcap`` makes a slice of time's messages at a time (memory bounded by the slice,
+    not the recording): every sample comes back, each stream in order, the file's messages in
+    time order across the slices, samples at a slice's edge included once."""
+    import sensors.recording_mcap as rm
+
+    monkeypatch.setattr(rm, "WRITE_SLICE_S", 1.0)
+    t_fast = np.arange(0, 500) * 0.01  # 5 s at 100 Hz: 1.0, 2.0 … fall on slice edges
+    t_slow = np.arange(0, 50) * 0.1
+    rec = Recording({
+        "acc1": Stream("acc1", "accel", t_fast, np.arange(1500).reshape(500, 3),
+                       ("acc1_x", "acc1_y", "acc1_z")),
+        "enc": Stream("enc", "encoder", t_slow, np.arange(50).reshape(50, 1) * 7, ("enc1",)),
+    })
+    write_mcap(rec, tmp_path / "r.mcap")
+    back = read_recording(tmp_path / "r.mcap")
+    for name in rec.streams:
+        np.testing.assert_array_equal(back.get(name).t_s, rec.get(name).t_s)
+        np.testing.assert_array_equal(back.get(name).values, rec.get(name).values)
+    with open(tmp_path / "r.mcap", "rb") as f:
+        times = [m.log_time for _s, _c, m in make_reader(f).iter_messages(log_time_order=False)]
+    assert times == sorted(times) and len(times) == 550
