@@ -421,7 +421,11 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
         "choose the set-up by which config fits (not by the file's name); walk the error ladder on the "
         f"first {calibrate_s:g} s (add the most significant missing effect, refit, until nothing "
         "significant is left); track the rest, never seen by the calibration, with the calibrated config, "
-        "the tracker starting afresh on the moving shaft with the encoder's zero unknown to it.",
+        "the tracker starting afresh on the moving shaft with the encoder's zero unknown to it."
+        " Then the same stretch with the encoder withheld (the two gyros' relative rate about the "
+        "shaft, integrated into a drifting relative encoder, its scale, bias and random walk "
+        "calibrated where the encoder was known), beside the peer filters of the package index "
+        "(`tools/rig_peers.py`: vqf, imufusion, ahrs) on the same samples.",
         "",
         "The noise floor each ratio is measured against is the noise model's: the MPU-6050's datasheet "
         "density (400 µg/√Hz, 0.005 °/s/√Hz) over half the 100 Hz rate, with the 0.01 rounding "
