@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models.sensor_description import ADXL345_LSB_PER_G, MPU9150_ACCEL_LSB_PER_G, MPU9150_GYRO_LSB_PER_DPS
 from models.sensor_models import StreamModel
 from sensors.samples import Recording, Stream
 
@@ -28,11 +29,11 @@ class StaticDetectionSettings:
     """Resolution of the segment boundaries."""
     min_duration_s: float = 1.0
     """Shorter still stretches are not reported."""
-    accel_std_g: float = 3.5 / 256.0
+    accel_std_g: float = 3.5 / ADXL345_LSB_PER_G
     """Link accelerometer: 13.7 mg (an ADXL345's noise is 3-4 mg rms: 0.75-1.1 LSB at 256 LSB/g)."""
-    imu_accel_std_g: float = 150.0 / 16384.0
+    imu_accel_std_g: float = 150.0 / MPU9150_ACCEL_LSB_PER_G
     """The IMU's accelerometer: 9.2 mg (an MPU-9150's noise is about 2.8 mg rms at 100 Hz)."""
-    gyro_std_dps: float = 20.0 / 131.0
+    gyro_std_dps: float = 20.0 / MPU9150_GYRO_LSB_PER_DPS
     """The IMU's gyro: 0.15 °/s (an MPU-9150's noise is about 0.035 °/s rms at 100 Hz)."""
     encoder_range_counts: float = 50.0
     """Largest encoder change inside a window that still counts as not moving."""
@@ -94,7 +95,8 @@ def _binned_window_range(stream: Stream, edges0: float, n_bins: int, grid_s: flo
     return r
 
 
-SPEC_GAIN = {"accel": 256.0, "imu_accel": 16384.0, "gyro": 131.0 * 180.0 / np.pi}
+SPEC_GAIN = {"accel": ADXL345_LSB_PER_G, "imu_accel": MPU9150_ACCEL_LSB_PER_G,
+             "gyro": MPU9150_GYRO_LSB_PER_DPS * 180.0 / np.pi}
 """Without a config, what the recording spec's count columns are: an ADXL345's counts per g,
 an MPU-9150's per g and per rad/s."""
 

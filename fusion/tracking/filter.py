@@ -19,7 +19,7 @@ fuses). :meth:`Tracker.update_instant` feeds it one instant's raw samples;
 :meth:`Tracker.run` (:func:`fusion.tracking.run.run_recording`) a whole recording, with the
 conversion to SI units and the saturation checks done for many instants at once, and the
 differentiators' fits and the frames for a block of instants in one compiled call each
-(:meth:`Tracker._prepare_block`, given to ``_instant`` as its ``prepared`` pieces).
+(:func:`fusion.tracking.run.prepare_block`, given to ``_instant`` as its ``prepared`` pieces).
 """
 
 from __future__ import annotations
@@ -260,7 +260,7 @@ class Tracker:
         The differentiators take the encoders and the gyro, and the kinematic frame is made
         with the filter's offsets and gyro bias now (:meth:`_frame_now`); or, over a
         recording, ``prepared`` = ``(encoder fit at t (3, n) or None, frame or None)`` from
-        :meth:`_prepare_block`, which pushed the samples and made the frames of a block of
+        :func:`fusion.tracking.run.prepare_block`, which pushed the samples and made the frames of a block of
         instants at once, with the offsets and gyro bias of the block's start."""
         health = self.health
         if q_enc is not None:
@@ -284,45 +284,13 @@ class Tracker:
         self._step(t, gyro, acc, mag, frame, self._q_enc if e is None else e[0])
         return True
 
-    def _prepare_block(self, t: np.ndarray, q_enc: np.ndarray, enc_has: np.ndarray, gyro: np.ndarray,
-                       gyro_has: np.ndarray, need_frame: np.ndarray, x: np.ndarray):
-        """For a block of B instants ``t`` that :meth:`_instant` will then take in order (the
-        started filter's; a run over a recording): the encoders' angles ``q_enc (B, n)`` and
-        the gyro ``(B, 3)`` (rad/s, base axes) where ``enc_has``/``gyro_has``, through the
-        differentiators at once, and the kinematic frame of each instant ``need_frame``
-        (those with accelerometers) made as :meth:`_frame_now` makes it, with the offsets and
-        gyro bias of ``x``, in one compiled call. Returns, per instant, the encoder fit at it
-        (None before any encoder sample) and its frame (or None), for ``_instant``'s
-        ``prepared``; :meth:`_frame_now` and this hold the same inputs to the frame."""
-        L = self.layout
-        e_at, _, e_have = self.enc_rates.push_block(t, q_enc, enc_has)
-        _, g_latest, g_have = self.gyro_rates.push_block(t, gyro, gyro_has)
-        B = len(t)
-        # the gyro's reading at each instant, else its last (the filter's _omega before it)
-        last = np.maximum.accumulate(np.where(gyro_has, np.arange(B), -1))
-        w = gyro[np.maximum(last, 0)]
-        w_have = last >= 0
-        if self._omega is not None:
-            w[~w_have] = self._omega
-            w_have[:] = True
-        om = np.where(w_have[:, None], w - x[L.bias], 0.0)
-        omd = g_latest[:, 1]  # zero where the gyro has no fit yet, as _frame_now's None
-        make = need_frame & e_have
-        e_l = [e if h else None for e, h in zip(list(e_at), e_have.tolist(), strict=True)]
-        if not make.any():
-            return [(e, None) for e in e_l]
-        fields = self._frame_consts.fields_block(e_at, make, x[L.offset], om, omd,
-                                                 self.settings.motion_compensation)
-        frames = self.measurements.with_noise(tuple.__new__(Frames, fields)).split()
-        return [(e, f if m else None) for e, f, m in zip(e_l, frames, make.tolist(), strict=True)]
-
     def _frame_now(self, t: float, gyro: np.ndarray | None) -> Frames | None:
         """The mean pose's kinematics at ``t``, with the filter's offsets and gyro bias now,
         the gyro's reading at ``t`` (else its last) and its derivative at its last sample
         (kept for further samples of the same instant: the product of exponentials carries
         any change of the offsets since, exactly, and into the motion term to first order).
-        Compiled (:mod:`fusion.tracking.frame_kernels`); :meth:`_prepare_block` is the same for
-        a block of instants."""
+        Compiled (:mod:`fusion.tracking.frame_kernels`); :func:`fusion.tracking.run.prepare_block`
+        is the same for a block of instants."""
         if self._frame_cache is not None and self._frame_cache[0] == t:
             return self._frame_cache[1]
         e = self.enc_rates.at(t)

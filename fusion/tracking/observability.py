@@ -91,13 +91,18 @@ class Observability:
         c = np.array(consider, dtype=float)
         if c.shape == self.consider.shape:
             self.consider = c
-            self.sys_var = (c**2).sum(axis=1) + self.unread_var
+            self._set_sys_var()
             self.consider_t = float(t_s)
 
     def set_unread(self, var_rad2: np.ndarray) -> None:
         """The joints nothing has read yet, and per joint the variance that covers its limits
         (0 for the others): added to the joints' reported variance until gravity reads them."""
         self.unread_var = np.asarray(var_rad2, float).copy()
+        self._set_sys_var()
+
+    def _set_sys_var(self) -> None:
+        """:attr:`sys_var` from the consider sensitivity and the unread joints' cover (a new
+        array each time: its holders compare identities to see a change)."""
         self.sys_var = (self.consider**2).sum(axis=1) + self.unread_var
 
     def _columns(self, spread: dict, unmodelled_g: np.ndarray, scale_sig: np.ndarray) -> None:
@@ -274,7 +279,7 @@ class Observability:
                 S[self._scale_joints, self._scale_cols] += self._scale_sigma * travel
             self._consider_q_enc = q_enc.copy()
         self.consider = np.linalg.solve(prior + A + 1e-12 * np.eye(n), prior @ S + B)
-        self.sys_var = (self.consider**2).sum(axis=1) + self.unread_var
+        self._set_sys_var()
         # what each spread leaves in the readings once the offsets have taken their pull: a
         # lasting shift of the innovations the slip test must not take for a slip
         links = sel < len(self.link_names)
@@ -371,5 +376,5 @@ class Observability:
             if read:
                 self.unread_var = self.unread_var.copy()
                 self.unread_var[read] = 0.0
-                self.sys_var = (self.consider**2).sum(axis=1) + self.unread_var
+                self._set_sys_var()
         return np.array(flags, dtype=np.int8)

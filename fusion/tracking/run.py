@@ -2,7 +2,7 @@
 through the filter's one path (:meth:`fusion.tracking.filter.Tracker._instant`, the same as
 live), with the conversions to SI units and the saturation checks done for the whole span
 at once, and the differentiators' fits and the kinematic frames for a block of instants at
-once (:meth:`fusion.tracking.filter.Tracker._prepare_block`, one compiled call each), and
+once (:func:`prepare_block`, one compiled call each), and
 keeps what the filter said at each (:class:`RunArrays`), as a :class:`TrackRun`; with truth
 in the recording, scored by :mod:`fusion.tracking.scoring`."""
 
@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
+from fusion.tracking.frames import Frames
 from fusion.tracking.scoring import errors, truth_at, truth_summary
 from fusion.tracking.settings import C_SAMPLES, C_SATURATED, ENC, GYRO, JOINT_FLAGS, MAG, SENSOR_STATUS
 from models.sensor_models import mpu9150_temperature_c
@@ -113,8 +114,8 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
             ke_c = ok_rows[ENC][c0:c1]
             kg_c = ok_rows[GYRO][c0:c1] if GYRO in ok_rows else np.full(c1 - c0, -1)
             gyro_c = gyro_B[np.maximum(kg_c, 0)] if gyro_B is not None else np.zeros((c1 - c0, 3))
-            prepared = tr._prepare_block(times[c0:c1], q_enc_all[np.maximum(ke_c, 0)], ke_c >= 0, gyro_c,
-                                         kg_c >= 0, all_ok[c0:c1] | acc_ok[c0:c1].any(axis=1), x_block)
+            prepared = prepare_block(tr, times[c0:c1], q_enc_all[np.maximum(ke_c, 0)], ke_c >= 0, gyro_c,
+                                     kg_c >= 0, all_ok[c0:c1] | acc_ok[c0:c1].any(axis=1), x_block)
             for i in range(c0, c1):
                 r = i - c0
                 t = t_l[r]
@@ -141,6 +142,39 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
     tq = truth_at(truth_q, times) if truth_q is not None and len(truth_q) else None
     tb = truth_at(truth_b, times, angles=True) if truth_b is not None and len(truth_b) else None
     return out.finish(tr, times, elapsed, tq, tb)
+
+
+def prepare_block(tr, t: np.ndarray, q_enc: np.ndarray, enc_has: np.ndarray, gyro: np.ndarray,
+                  gyro_has: np.ndarray, need_frame: np.ndarray, x: np.ndarray):
+    """For a block of B instants ``t`` that the tracker ``tr``'s ``_instant`` will then take in
+    order (its started filter's): the encoders' angles ``q_enc (B, n)`` and the gyro ``(B, 3)``
+    (rad/s, base axes) where ``enc_has``/``gyro_has``, through the differentiators at once,
+    and the kinematic frame of each instant ``need_frame`` (those with accelerometers) made
+    as ``Tracker._frame_now`` makes it, with the offsets and gyro bias of ``x``, in one
+    compiled call. Returns, per instant, the encoder fit at it
+    (None before any encoder sample) and its frame (or None), for ``_instant``'s
+    ``prepared``; ``Tracker._frame_now`` and this hold the same inputs to the frame."""
+    L = tr.layout
+    e_at, _, e_have = tr.enc_rates.push_block(t, q_enc, enc_has)
+    _, g_latest, g_have = tr.gyro_rates.push_block(t, gyro, gyro_has)
+    B = len(t)
+    # the gyro's reading at each instant, else its last (the filter's _omega before it)
+    last = np.maximum.accumulate(np.where(gyro_has, np.arange(B), -1))
+    w = gyro[np.maximum(last, 0)]
+    w_have = last >= 0
+    if tr._omega is not None:
+        w[~w_have] = tr._omega
+        w_have[:] = True
+    om = np.where(w_have[:, None], w - x[L.bias], 0.0)
+    omd = g_latest[:, 1]  # zero where the gyro has no fit yet, as _frame_now's None
+    make = need_frame & e_have
+    e_l = [e if h else None for e, h in zip(list(e_at), e_have.tolist(), strict=True)]
+    if not make.any():
+        return [(e, None) for e in e_l]
+    fields = tr._frame_consts.fields_block(e_at, make, x[L.offset], om, omd, tr.settings.motion_compensation)
+    frames = tr.measurements.with_noise(tuple.__new__(Frames, fields)).split()
+    return [(e, f if m else None) for e, f, m in zip(e_l, frames, make.tolist(), strict=True)]
+
 
 
 def _temperatures(tr, rec: Recording):

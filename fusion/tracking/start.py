@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from fusion.startup.solve import StartupResult
+from fusion.startup.static import Segment, StaticDetectionSettings, find_static_segments
 from fusion.tracking.calibrated import effects_applied
 from fusion.tracking.compass import compass_map, compass_unmodelled_rad
 from fusion.tracking.differentiator import prime
@@ -98,12 +99,6 @@ class NoStillWindowError(ValueError):
     """The recording has no still stretch to calibrate from."""
 
 
-@dataclass(frozen=True)
-class _Window:
-    t_start_s: float
-    t_end_s: float
-
-
 MOVING_WINDOW_SAMPLES = 5
 """Encoder samples averaged by a moving start (:func:`moving_window`)."""
 MOVING_SEARCH_S = 5.0
@@ -132,18 +127,19 @@ def moving_window(arm: ArmModel, rec: Recording, search_s: float = MOVING_SEARCH
     k = int(np.argmin(travel.sum(axis=1)))
     t0, t1 = float(t[k]), float(t[k + samples - 1])
     readings, checks = readings_from_recording(arm, rec, t0, t1, t1 - t0 + 1e-9)
+    models = stream_models(arm)
     sig = {}
     for m in arm.link_accelerometers:
         if m.name in readings.accel_sigma_g:
             turned = float(np.sum(travel[k][: m.link]))
             s = rec.get(m.name).between(t0, t1 + 1e-9)
-            spread = np.std(stream_models(arm)[m.name].from_counts(s.values), axis=0) if len(s) > 1 else 0.0
+            spread = np.std(models[m.name].from_counts(s.values), axis=0) if len(s) > 1 else 0.0
             sig[m.name] = np.sqrt(readings.accel_sigma_g[m.name] ** 2 + turned**2 + spread**2)
     readings = replace(readings, accel_sigma_g={**readings.accel_sigma_g, **sig})
     note = (f"no still stretch: started on the moving arm at t = {t0:.2f}..{t1:.2f} s (the least joint "
             f"travel of the first {search_s:g} s: {np.degrees(travel[k].max()):.2f} deg), its readings' "
             "sigma widened by that motion")
-    return _Window(t0, t1), readings, checks, note
+    return Segment(t0, t1), readings, checks, note
 
 
 def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
@@ -194,8 +190,6 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
 
     if prior is None and prior_q_rad is not None:
         prior = StartupPrior.saved_pose(prior_q_rad)
-    from fusion.startup.static import StaticDetectionSettings, find_static_segments
-
     segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)),
                                 stream_models(arm))
     notes: list[str] = []

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from fusion.tracking.run import prepare_block
 from fusion.tracking.tracker import (
     COUNTERS,
     FLAG_CODE,
@@ -327,7 +328,7 @@ def test_sample_by_sample_equals_the_whole_recording_path(arm, reaching):
 
 
 def test_a_block_prepared_at_once_gives_each_instant_the_live_path_s_pieces(arm, reaching):
-    """A run prepares a block of instants at once (Tracker._prepare_block: the differentiators
+    """A run prepares a block of instants at once (run.prepare_block: the differentiators
     and the frames, with the offsets and gyro bias of the block's start). With gaps in the
     encoders, the gyro and the accelerometers, each instant gets the encoder fit and the
     frame that the live path makes for it one instant at a time (_frame_now) from the same
@@ -343,7 +344,7 @@ def test_a_block_prepared_at_once_gives_each_instant_the_live_path_s_pieces(arm,
     enc_has, gyro_has, need = (rng.uniform(size=len(i)) < p for p in (0.7, 0.6, 0.8))
     gyro_has[:5] = False  # the block opens on the gyro's last reading before it
     b._omega = a._omega = np.array([0.01, -0.02, 0.03])
-    prepared = a._prepare_block(t, q, enc_has, gyro, gyro_has, need, a._ukf.x)
+    prepared = prepare_block(a, t, q, enc_has, gyro, gyro_has, need, a._ukf.x)
     assert len(prepared) == len(i)
     frames = 0
     for r in range(len(i)):
