@@ -137,7 +137,7 @@ def ladder(arm, rec: Recording, rungs: int):
     follows at the end."""
     data = data_from_recording(arm, rec, window=WINDOW, q_ref_rad=np.zeros(arm.n_joints))
     d = diagnose(model_from_arm(arm), data)
-    out = [Rung("the config as shipped", d.rms_ratio, d.verdict, "", _per_stream(d))]
+    out = [Rung("the config as shipped", d.rms_ratio, d.verdict, "", d.stream_ratios())]
     for _ in range(rungs):
         sig = [c for c in d.candidates if c.significant]
         if not sig:
@@ -145,7 +145,7 @@ def ladder(arm, rec: Recording, rungs: int):
         c = sig[0]
         d = add_effects(d, parse_add(arm, [f"{c.effect}:{c.target}"]))
         out.append(Rung(f"+ {c.effect}:{c.target}", d.rms_ratio, d.verdict, _estimate_words(c),
-                        _per_stream(d)))
+                        d.stream_ratios()))
     follows = []
     if d.analysis is not None:
         for fc in d.analysis.flagged()[:4]:
@@ -153,13 +153,6 @@ def ladder(arm, rec: Recording, rungs: int):
         for s, ax, m in d.analysis.not_white()[:3]:
             follows.append(f"{s} {ax} is not white (autocorrelation up to {m:.2f})")
     return out, d, follows
-
-
-def _per_stream(d) -> dict[str, float]:
-    out = {}
-    for s in dict.fromkeys(a.stream for a in d.axes):
-        out[s] = float(np.sqrt(np.mean([a.ratio**2 for a in d.axes if a.stream == s])))
-    return out
 
 
 def encoder_zero(d) -> tuple[float, float]:

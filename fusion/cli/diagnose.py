@@ -72,8 +72,7 @@ def history_entry(diag: Diagnosis, recording: Path, config: str, label: str) -> 
         "recording": str(recording), "config": str(config), "label": label,
         "effects": [e for e in diag.effects() if not e.endswith(".joint_offset")],
         "rms_ratio": round(diag.rms_ratio, 5),
-        "streams": {s: round(float(np.sqrt(np.mean([a.ratio**2 for a in diag.axes if a.stream == s]))), 5)
-                    for s in dict.fromkeys(a.stream for a in diag.axes)},
+        "streams": {s: round(r, 5) for s, r in diag.stream_ratios().items()},
         "verdict": diag.verdict,
         "top_candidate": None if top is None else top.name,
     }

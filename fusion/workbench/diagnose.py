@@ -146,6 +146,11 @@ class Diagnosis:
     def effects(self) -> list[str]:
         return [e.block_name for e in self.fit.model.effects]
 
+    def stream_ratios(self) -> dict[str, float]:
+        """Per stream, the RMS over its axes of each axis's residual over its noise."""
+        return {s: float(np.sqrt(np.mean([a.ratio**2 for a in self.axes if a.stream == s])))
+                for s in dict.fromkeys(a.stream for a in self.axes)}
+
     def as_dict(self, top: int = 10) -> dict[str, Any]:
         return {
             "verdict": self.verdict,
