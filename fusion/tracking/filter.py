@@ -36,7 +36,7 @@ from fusion.tracking.estimate import Estimate
 from fusion.tracking.frame_kernels import FrameConstants
 from fusion.tracking.frames import Frames
 from fusion.tracking.health import SensorHealth
-from fusion.tracking.initial import Ambiguity, ImuStill, initial_state, limits_cover_var
+from fusion.tracking.initial import Ambiguity, ImuStill, initial_state, limits_cover_var, read_by_startup
 from fusion.tracking.innovations import InnovationLog
 from fusion.tracking.live import fuse_instant
 from fusion.tracking.measurement import Measurements
@@ -183,8 +183,7 @@ class Tracker:
                                   self._sees, t_s)
         self.observability.reset()
         if prior_q_rad is None:  # no saved pose: an unread joint may be anywhere in its limits
-            unread = np.array([j.flag == "gimbal_lock" or j.sigma_rad is None for j in startup.joints])
-            unread &= ~self.ambiguity_.joints
+            unread = ~read_by_startup(startup) & ~self.ambiguity_.joints
             self.observability.set_unread(np.where(unread, limits_cover_var(
                 self._q_startup, self.arm.min_rad, self.arm.max_rad), 0.0))
         self.still = StillDetector(st, L, t_s)

@@ -41,8 +41,7 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
     P = np.zeros((L.size, L.size))
     cov = np.array(startup.covariance, dtype=float)
     q0 = np.array(startup.q_rad, dtype=float)
-    known = np.array([j.flag not in ("gimbal_lock", "ambiguous") and j.sigma_rad is not None
-                      for j in startup.joints])
+    known = read_by_startup(startup)
     prior = np.asarray(prior_q_rad, float)
     amb = np.array([j.flag == "ambiguous" for j in startup.joints])
     cands = startup.candidates_rad
@@ -85,6 +84,13 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
     P[L.bias, L.bias] = np.eye(3) * imu.gyro_bias_sigma_rad_s**2
     P[L.imu_bias, L.imu_bias] = np.diag(imu_bias_var_g2)
     return x, P, q0
+
+
+def read_by_startup(startup: StartupResult) -> np.ndarray:
+    """Per joint: did the startup read it (an angle and a sigma, neither gimbal-locked nor
+    left between rival branches)?"""
+    return np.array([j.flag not in ("gimbal_lock", "ambiguous") and j.sigma_rad is not None
+                     for j in startup.joints])
 
 
 def limits_cover_var(q0_rad: np.ndarray, lo_rad: np.ndarray, hi_rad: np.ndarray) -> np.ndarray:
