@@ -124,8 +124,10 @@ class ArmCalibration:
     unless ``accel_unmodelled_g_per_sensor`` names the sensor; the base IMU's accelerometer
     uses ``imu_accel_unmodelled_g`` when given. ``mag_unmodelled_ut``: the compass's [µT].
     ``correction_covariance``: per stream, what the fit could not pin. ``references``: the
-    one-time joint references the calibration's joint zeros rest on. An empty block (an
-    uncalibrated config) is all zeros and empty.
+    one-time joint references the calibration's joint zeros rest on;
+    ``joint_zero_conventions``: the elements the calibration held to fix a gauge (its joint
+    zeros and mounts are fitted relative to them). An empty block (an uncalibrated config)
+    is all zeros and empty.
     """
 
     accel_unmodelled_g: float = 0.0
@@ -134,6 +136,7 @@ class ArmCalibration:
     mag_unmodelled_ut: float = 0.0
     correction_covariance: Mapping[str, CorrectionCovariance] = field(default_factory=dict)
     references: tuple[JointReference, ...] = ()
+    joint_zero_conventions: tuple[str, ...] = ()
 
     def accel_floor_g(self, sensor: str) -> float:
         """A link accelerometer's unmodelled error [g]: its own, else the common one."""

@@ -461,6 +461,7 @@ def _calibration(section: CalibrationSection) -> ArmCalibration:
             for stream, c in (section.correction_covariance or {}).items()},
         references=tuple(JointReference(r.joint, r.angle_deg, r.sigma_deg, r.where)
                          for r in (identified.references if identified else ())),
+        joint_zero_conventions=tuple(identified.joint_zero_conventions if identified else ()),
     )
 
 

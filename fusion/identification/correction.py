@@ -35,6 +35,14 @@ class StartupCorrection:
     spread: dict[str, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
     """Per stream, the map with each calibrated element moved by its σ: how uncertain the
     correction itself is, added to each reading's σ (along the reading's own direction)."""
+    spread_given_conventions: dict[str, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    """The same, given the calibration's joint-zero conventions (``calibration.
+    identified.joint_zero_conventions``: the elements it held to fix a gauge, such as the
+    frame accelerometer's bias along a still base's only horizontal joint axis): what is
+    uncertain in the correction *relative to* the convention every calibrated joint zero
+    and mount was fitted in. A tracker that keeps that convention takes this as the doubt
+    of its IMU's corrected reading; the convention's own σ is the absolute zero's, in
+    :attr:`spread`."""
 
     def readings(self, r):
         from fusion.startup.solve import StillReadings
@@ -152,7 +160,8 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
     accel = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
     th = model.unpack()
     cov = arm.calibration.correction_covariance
-    maps, spread = {}, {}
+    maps, spread, given = {}, {}, {}
+    conventions = set(arm.calibration.joint_zero_conventions)
     for s in accel + (["imu_mag"] if arm.imu is not None else []):
         # the compass's own map is its soft and hard iron; the arm's steel (mag_arm_disturbance)
         # turns with the joints and is no fixed map
@@ -176,12 +185,28 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
             els = [n for n in c.elements if n in names]
             keep = [c.elements.index(n) for n in els]
             C = c.matrix[np.ix_(keep, keep)]
-            lam, V = np.linalg.eigh(0.5 * (C + C.T))
-            spread[s] = []
-            x0 = model.pack(th)
-            for k in np.flatnonzero(lam > 0):  # each principal direction moved by its σ
-                x1 = x0.copy()
-                for i, n in enumerate(els):
-                    x1[names.index(n)] += np.sqrt(lam[k]) * V[i, k]
-                spread[s].append(affine(model.unpack(x1)))
-    return StartupCorrection(model, temperature_c, maps, spread)
+            spread[s] = _spread_maps(model, th, els, C, affine)
+            held = [i for i, n in enumerate(els) if n in conventions]
+            if held:  # the others given the held ones (the Schur complement)
+                free = [i for i in range(len(els)) if i not in held]
+                C_fh = C[np.ix_(free, held)]
+                C_g = C[np.ix_(free, free)] - C_fh @ np.linalg.pinv(C[np.ix_(held, held)]) @ C_fh.T
+                given[s] = _spread_maps(model, th, [els[i] for i in free], C_g, affine)
+            else:
+                given[s] = spread[s]
+    return StartupCorrection(model, temperature_c, maps, spread, given)
+
+
+def _spread_maps(model: Model, th, els: list[str], C: np.ndarray, affine) -> list:
+    """The correction's map with the elements ``els`` moved by their covariance ``C`` along
+    each principal direction in turn (by its σ)."""
+    names = model.element_names()
+    lam, V = np.linalg.eigh(0.5 * (C + C.T))
+    x0 = model.pack(th)
+    out = []
+    for k in np.flatnonzero(lam > 0):
+        x1 = x0.copy()
+        for i, n in enumerate(els):
+            x1[names.index(n)] += np.sqrt(lam[k]) * V[i, k]
+        out.append(affine(model.unpack(x1)))
+    return out

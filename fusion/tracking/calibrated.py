@@ -197,15 +197,18 @@ def imu_bias_prior_var(arm: ArmModel, correction, R_0I: np.ndarray | None, roll_
                        pitch_rad: float) -> np.ndarray:
     """Prior variance (g²) of what the IMU accelerometer's correction leaves, per IMU axis,
     at the still reading of the startup's tilt: a calibrated config's correction spread
-    there, else the config's unmodelled-error floor (its statement of how far its sensors
-    are from their model). ``R_0I``: the IMU's axes in the base's; None without an IMU."""
+    there, given the calibration's joint-zero conventions (the tracker keeps the convention
+    its zeros were fitted in: the convention's own σ is the absolute zero's, reported with
+    every joint through the consider sensitivity, never a freedom for the tilt to wander
+    in), else the config's unmodelled-error floor (its statement of how far its sensors are
+    from their model). ``R_0I``: the IMU's axes in the base's; None without an IMU."""
     if R_0I is None:
         return np.full(3, 1e-12)
     m = R_0I.T @ up_from_tilt(roll_rad, pitch_rad)
     if correction is not None and correction.spread.get(IMU_ACC):
         y0 = correction.readings_one(IMU_ACC, m)
         var = np.zeros(3)
-        for L1, c1 in correction.spread[IMU_ACC]:
+        for L1, c1 in correction.spread_given_conventions.get(IMU_ACC, ()):
             var += (np.linalg.solve(L1, m - c1) - y0) ** 2
         return np.maximum(var, 1e-12)
     return np.full(3, max(arm.calibration.imu_accel_floor_g, 1e-6) ** 2)
