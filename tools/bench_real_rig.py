@@ -55,19 +55,16 @@ sys.path.insert(0, str(ROOT))
 
 from fusion.configfile import load_arm, resolve_config_path  # noqa: E402
 from fusion.identification.calibrated_config import config_with_estimates  # noqa: E402
-from fusion.identification.correction import startup_correction  # noqa: E402
 from fusion.identification.identify import data_from_recording  # noqa: E402
 from fusion.importing.column_map import load_column_map  # noqa: E402
 from fusion.importing.run import import_recording  # noqa: E402
-from fusion.tracking.calibrated import Readings, config_model  # noqa: E402
+from fusion.tracking.gyro_encoder import calibrate_gyro_encoder, settings_with_gyro_encoder, with_gyro_encoder  # noqa: E402
 from fusion.tracking.settings import JOINT_FLAGS, TrackerSettings  # noqa: E402
 from fusion.tracking.start import start_from_recording  # noqa: E402
 from fusion.workbench.diagnose import add_effects, diagnose, parse_add  # noqa: E402
 from models.effects import model_from_arm  # noqa: E402
-from models.kinematics import joint_rate_from_link_rates  # noqa: E402
 from models.rotations import wrap_angle  # noqa: E402
-from models.sensor_models import stream_models  # noqa: E402
-from sensors.samples import Recording, Stream, link_gyro_stream  # noqa: E402
+from sensors.samples import Recording  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 from tools.rig_peers import peer_joint_angles  # noqa: E402
 
@@ -204,66 +201,20 @@ def track_scored(cal_config: Path, rec: Recording, zero_rad: float,
     }
 
 
-def gyro_joint_rate(arm, rec: Recording, t_s: np.ndarray) -> np.ndarray:
-    """The joint's rate (rad/s) at ``t_s`` from the shaft's gyroscope less the frame's, about
-    the joint's axis (:func:`models.kinematics.joint_rate_from_link_rates`), each gyro
-    interpolated onto ``t_s``; the frame's calibrated gyro bias undone where the config has it
-    (through its readings' correction, as the tracker reads them)."""
-    sm = stream_models(arm)
-    shaft = arm.link_accelerometers[0]
-    g_s, g_b = rec.get(link_gyro_stream(shaft.name)), rec.get("imu_gyro")
-    w_s = sm[g_s.name].from_counts(g_s.values) @ shaft.R_LS.T
-    w_b = sm["imu_gyro"].from_counts(g_b.values)
-    corr = Readings(arm, config_model(arm), startup_correction(arm)) if arm.effects else None
-    if corr is not None:
-        w_b = corr.physical("imu_gyro", g_b.values)
-    w_b = w_b @ arm.imu.R_LS.T
-    on = lambda t, v: np.stack([np.interp(t_s, t, v[:, k]) for k in range(3)], 1)  # noqa: E731
-    return joint_rate_from_link_rates(arm, 0, on(g_b.t_s, w_b), on(g_s.t_s, w_s))
-
-
-def gyro_encoder_calibration(arm, cal: Recording) -> tuple[float, float, float]:
-    """On the calibration stretch, where the encoder is known: the gyros' joint angle's
-    scale and bias against the encoder (the least-squares fit of the encoder's angle by the
-    integral of ``scale · rate − bias``), and the random walk that integral still makes
-    (deg/√s, from the spread of its 10 s increments)."""
-    enc = cal.get("enc")
-    t = enc.t_s
-    q = enc.values[:, 0] / arm.counts_per_rad[0]
-    rate = gyro_joint_rate(arm, cal, t)
-    dt = np.diff(t)
-    angle = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * dt)])
-    A = np.stack([angle, -(t - t[0]), np.ones_like(t)], 1)
-    (scale, bias, _c), *_ = np.linalg.lstsq(A, q - q[0], rcond=None)
-    rest = A @ np.array([scale, bias, _c]) - (q - q[0])
-    k = max(int(round(10.0 / float(np.median(dt)))), 1)
-    steps = rest[k:] - rest[:-k]
-    return float(scale), float(bias), float(np.degrees(np.std(steps)) / np.sqrt(10.0))
-
-
-def with_gyro_encoder(arm, rec: Recording, scale: float, bias_rad_s: float) -> Recording:
-    """``rec`` with its encoder replaced by the integral of the gyros' joint rate (its
-    calibrated scale and bias applied): a relative encoder that drifts, in the encoder's counts."""
-    enc = rec.get("enc")
-    t = enc.t_s
-    rate = scale * gyro_joint_rate(arm, rec, t) - bias_rad_s
-    q = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
-    virtual = Stream("enc", "encoder", t, (q * arm.counts_per_rad[0])[:, None], enc.channels)
-    return Recording({**rec.streams, "enc": virtual}, dict(rec.meta))
-
-
 def track_encoder_withheld(cal_config: Path, cal: Recording, rec: Recording, zero_rad: float) -> dict:
     """The scored stretch tracked with the encoder withheld: the joint's relative angle from
-    the gyros (:func:`with_gyro_encoder`, its bias and random walk measured on the
-    calibration stretch, the tracker's offset random walk set to that), scored against the
-    encoder and the calibration's zero as :func:`track_scored` is."""
+    the gyros on either side of it (:mod:`fusion.tracking.gyro_encoder`: its scale, bias and
+    drift measured against the encoder on the calibration stretch, the drift the tracker's
+    random walk for the joint), scored against the encoder and the calibration's zero as
+    :func:`track_scored` is."""
     arm = load_arm(cal_config)
-    scale, bias, rw_deg = gyro_encoder_calibration(arm, cal)
-    settings = TrackerSettings(offset_random_walk_deg_per_sqrt_s=max(rw_deg, 0.0035))
-    out = track_scored(cal_config, with_gyro_encoder(arm, rec, scale, bias), zero_rad, settings)
-    out["gyro_scale"] = scale
-    out["gyro_bias_deg_s"] = float(np.degrees(bias))
-    out["random_walk_deg_sqrt_s"] = rw_deg
+    gcal = calibrate_gyro_encoder(arm, cal, 0)
+    settings = settings_with_gyro_encoder(None, gcal)
+    out = track_scored(cal_config, with_gyro_encoder(arm, rec, 0, gcal), zero_rad, settings)
+    out["gyro_scale"] = gcal.scale
+    out["gyro_bias_deg_s"] = float(np.degrees(gcal.bias_rad_s))
+    out["random_walk_deg_sqrt_s"] = gcal.drift_deg_per_sqrt_s
+    out["gyro_residual_deg"] = gcal.residual_deg
     return out
 
 

@@ -52,14 +52,19 @@ def encoder_scales(arm: ArmModel, model: Model | None) -> tuple[np.ndarray, np.n
     return s, sig
 
 
+def device_time_offsets(model: Model | None) -> dict[str, tuple[float, float]]:
+    """Per device, the config's calibrated time offset (s: its samples stamped late by it,
+    ``time_offset``: what is stamped t was true at t - offset) and its σ (s). Every stream
+    of the device (a link sensor's accelerometer and gyroscope, the IMU's parts) shares it."""
+    return {e.target: (float(value[0]), float(sigma[0])) for e, value, sigma in _blocks(model, "time_offset")}
+
+
 def stamp_offsets(model: Model | None, accel_names) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Per accelerometer, the config's calibrated time offset (s: samples stamped late by
-    it, ``time_offset``) and its variance (s²). ``None`` when the config has no time offsets."""
-    idx = {nm: i for i, nm in enumerate(accel_names)}
-    off, var = np.zeros(len(idx)), np.zeros(len(idx))
-    for e, value, sigma in _blocks(model, "time_offset"):
-        if e.target in idx:
-            off[idx[e.target]], var[idx[e.target]] = float(value[0]), float(sigma[0]) ** 2
+    """Per accelerometer, the config's calibrated time offset (s, :func:`device_time_offsets`)
+    and its variance (s²). ``None`` when the config has no time offsets."""
+    offsets = device_time_offsets(model)
+    off = np.array([offsets.get(nm, (0.0, 0.0))[0] for nm in accel_names])
+    var = np.array([offsets.get(nm, (0.0, 0.0))[1] ** 2 for nm in accel_names])
     if not off.any() and not var.any():
         return None, None
     return off, var

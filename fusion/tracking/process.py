@@ -19,8 +19,18 @@ class ProcessModel:
     attitude turns with the gyro (or a random walk without one); the chair's acceleration
     is a first-order Gauss-Markov process."""
 
-    def __init__(self, settings: TrackerSettings, layout: StateLayout):
+    def __init__(self, settings: TrackerSettings, layout: StateLayout, joint_names=()):
         self.settings, self.layout = settings, layout
+        rw = np.full(layout.n_joints, settings.offset_random_walk_deg_per_sqrt_s)
+        for name, deg in settings.offset_random_walk_by_joint_deg_per_sqrt_s:
+            if name not in joint_names:
+                raise ValueError(f"offset_random_walk_by_joint_deg_per_sqrt_s: no joint {name!r} "
+                                 f"(joints: {', '.join(joint_names)})")
+            if not (np.isfinite(deg) and deg > 0):
+                raise ValueError(f"offset_random_walk_by_joint_deg_per_sqrt_s[{name!r}]: a random "
+                                 f"walk must be a positive number of deg/sqrt(s), got {deg!r}")
+            rw[list(joint_names).index(name)] = float(deg)
+        self._offset_rw_rad = rw * DEG
         self._decay: dict[float, float] = {}
         self._Q: dict = {}
         self._zeros3 = np.zeros(3)
@@ -53,7 +63,7 @@ class ProcessModel:
     def _make_Q(self, dt: float, have_gyro: bool, still: bool) -> np.ndarray:
         st, L = self.settings, self.layout
         q = np.zeros(L.size)
-        q[L.offset] = (st.offset_random_walk_deg_per_sqrt_s * DEG) ** 2 * dt
+        q[L.offset] = self._offset_rw_rad**2 * dt
         rw = st.gyro_noise_dps_per_sqrt_hz if have_gyro else st.attitude_random_walk_deg_per_sqrt_s
         q[L.roll] = q[L.pitch] = q[L.yaw] = (rw * DEG) ** 2 * dt
         q[L.accel] = st.base_accel_sigma_mps2**2 * (1.0 - np.exp(-2.0 * dt / st.base_accel_tau_s))

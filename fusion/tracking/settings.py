@@ -65,6 +65,10 @@ class TrackerSettings:
     offset_random_walk_deg_per_sqrt_s: float = 0.0035
     """Each encoder offset's random walk: lets a slip be absorbed in a few seconds while
     keeping the steady-state sigma near 0.01 deg."""
+    offset_random_walk_by_joint_deg_per_sqrt_s: tuple[tuple[str, float], ...] = ()
+    """``(joint, deg/√s)`` pairs: a joint whose relative angle drifts more than a slipping
+    encoder's (its encoder withheld and its angle integrated from the gyros on either side,
+    :mod:`fusion.tracking.gyro_encoder`) takes this random walk instead."""
     gyro_noise_dps_per_sqrt_hz: float = MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ
     gyro_bias_random_walk_dps_per_sqrt_s: float = 0.0005
     imu_accel_bias_random_walk_g_per_sqrt_s: float = 2e-6

@@ -100,14 +100,11 @@ def test_a_vertical_shaft_is_gravity_blind_the_whole_time(yaw, tmp_path):
     assert np.all(run.flags[:, 0] == FLAG_CODE["gimbal_lock"])
 
 
-def test_the_tracker_keeps_the_calibrations_convention_for_the_zero(roll, tmp_path):
-    """A still frame cannot tell its accelerometer's bias along the shaft's horizontal
-    normal from its own tilt, so the calibration holds that bias as a convention and fits
-    the joint's zero in it. Calibrated on the slice's first 12 s (the ladder's first four
-    rungs, as the benchmark walks it) and started afresh on the rest, the tracker keeps that
-    convention: its angle stays on the encoder plus the calibration's zero. (When the
-    tracker took the convention's sigma, 0.04 g, as freedom for its frame-bias state, the
-    base's tilt wandered 3.6 deg in 8 s and the angle with it: 4.3 deg off at the end.)"""
+@pytest.fixture(scope="module")
+def roll_calibrated(roll, tmp_path_factory):
+    """The slice's first 12 s calibrate the rig with the encoder (the ladder's first four
+    rungs, as the benchmark walks them); the rest is scored: ``(calibrated arm, the
+    calibration's joint zero (rad), calibration stretch, scored stretch)``."""
     import yaml
 
     from fusion.configfile import resolve_config_path
@@ -123,16 +120,52 @@ def test_the_tracker_keeps_the_calibrations_convention_for_the_zero(roll, tmp_pa
         d = add_effects(d, parse_add(arm, [f"{c.effect}:{c.target}"]))
     zero_rad, _ = encoder_zero(d)
     cfg = yaml.safe_load(resolve_config_path("imu_rig_roll").read_text(encoding="utf-8"))
-    path = tmp_path / "roll-calibrated.yaml"
+    path = tmp_path_factory.mktemp("rig") / "roll-calibrated.yaml"
     path.write_text(yaml.safe_dump(config_with_estimates(cfg, d.fit)), encoding="utf-8")
-    calibrated = load_arm(path)
+    return load_arm(path), zero_rad, cal, scored
+
+
+def _error_deg(run, scored, zero_rad):
+    enc = scored.get("true_q")
+    ref = np.interp(run.t_s, enc.t_s, enc.values[:, 0]) + zero_rad
+    return np.degrees(np.abs(np.angle(np.exp(1j * (run.q_rad[:, 0] - ref)))))
+
+
+def test_the_tracker_keeps_the_calibrations_convention_for_the_zero(roll_calibrated):
+    """A still frame cannot tell its accelerometer's bias along the shaft's horizontal
+    normal from its own tilt, so the calibration holds that bias as a convention and fits
+    the joint's zero in it. Started afresh on the scored stretch, the tracker keeps that
+    convention: its angle stays on the encoder plus the calibration's zero. (When the
+    tracker took the convention's sigma, 0.04 g, as freedom for its frame-bias state, the
+    base's tilt wandered 3.6 deg in 8 s and the angle with it: 4.3 deg off at the end.)"""
+    calibrated, zero_rad, _, scored = roll_calibrated
     assert calibrated.calibration.joint_zero_conventions == ("frame.accel_bias[z]",)
     tr, _ = start_from_recording(calibrated, scored, moving_start=True, propose_unlock=False)
     run = tr.run(scored, truth=False)
-    enc = scored.get("true_q")
-    ref = np.interp(run.t_s, enc.t_s, enc.values[:, 0]) + zero_rad
-    err_deg = np.degrees(np.abs(np.angle(np.exp(1j * (run.q_rad[:, 0] - ref)))))
+    err_deg = _error_deg(run, scored, zero_rad)
     last = run.t_s > run.t_s[-1] - 2.0
     assert np.sqrt(np.mean(err_deg[last] ** 2)) < 0.5
     tilt_deg = np.degrees(run.rpy_rad[:, 1])  # the base's tilt about the shaft
     assert np.ptp(tilt_deg) < 1.0
+
+
+def test_the_encoder_withheld_the_gyros_and_gravity_carry_the_shaft(roll_calibrated):
+    """The encoder withheld on the scored stretch: the shaft's gyro less the frame's,
+    calibrated against the encoder on the first 12 s, stands in for it, and gravity holds
+    its drift: the angle stays within a degree or two of the encoder, inside its sigma."""
+    from fusion.tracking.gyro_encoder import (
+        calibrate_gyro_encoder,
+        settings_with_gyro_encoder,
+        with_gyro_encoder,
+    )
+
+    calibrated, zero_rad, cal, scored = roll_calibrated
+    gcal = calibrate_gyro_encoder(calibrated, cal, 0, drift_span_s=3.0)
+    withheld = with_gyro_encoder(calibrated, scored, 0, gcal)
+    assert not np.array_equal(withheld.get("enc").values, scored.get("enc").values)
+    settings = settings_with_gyro_encoder(None, gcal)
+    tr, _ = start_from_recording(calibrated, withheld, settings, moving_start=True, propose_unlock=False)
+    run = tr.run(withheld, truth=False)
+    err_deg = _error_deg(run, scored, zero_rad)
+    assert np.sqrt(np.mean(err_deg**2)) < 1.5 and err_deg.max() < 3.0
+    assert np.all(err_deg <= 3 * np.degrees(run.sigma_rad[:, 0]))

@@ -1,0 +1,150 @@
+"""A joint's relative encoder made from the gyroscopes on either side of it: the degraded
+mode an arm needs when an encoder fails, and how the real rig of ``docs/real-data.md`` is
+tracked with its encoder withheld.
+
+The joint's rate is the difference of the two links' angular rates about its axis
+(:func:`models.kinematics.joint_rate_from_link_rates`), each gyroscope read at the instant
+its samples were true (a device's calibrated ``time_offset``: what is stamped t was true at
+t - offset) and corrected as the tracker corrects it. Its integral is a relative encoder
+that drifts: :func:`calibrate_gyro_encoder` measures its scale, bias and drift against the
+encoder where the encoder is known (a factory calibration), :func:`with_gyro_encoder` puts
+it in the encoder's place, and the tracker takes the drift as that joint's offset random
+walk (``TrackerSettings.offset_random_walk_by_joint_deg_per_sqrt_s``), so gravity corrects
+it where gravity sees the joint and its σ grows where it cannot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from fusion.identification.correction import startup_correction
+from fusion.tracking.calibrated import Readings, config_model, device_time_offsets, encoder_scales
+from fusion.tracking.settings import GYRO, TrackerSettings
+from models.arm import ArmModel
+from models.kinematics import joint_rate_from_link_rates
+from models.sensor_models import stream_models
+from sensors.samples import Recording, Stream, link_gyro_stream
+
+DRIFT_SPAN_S = 10.0
+"""The span over which the integral's drift is measured (:func:`calibrate_gyro_encoder`)."""
+
+
+@dataclass(frozen=True)
+class GyroEncoderCalibration:
+    """The gyros' joint angle against the encoder: ``angle = scale · ∫rate − bias · t``.
+    ``drift_deg_per_sqrt_s``: the spread of what that still leaves over a span
+    (:data:`DRIFT_SPAN_S` unless asked), per √s (the tracker's random walk for the joint);
+    ``residual_deg``: its RMS over the whole stretch; ``span_s``: the stretch's length."""
+
+    joint: str
+    scale: float
+    bias_rad_s: float
+    drift_deg_per_sqrt_s: float
+    residual_deg: float
+    span_s: float
+
+    def as_dict(self) -> dict:
+        return {"joint": self.joint, "scale": self.scale, "bias_deg_s": float(np.degrees(self.bias_rad_s)),
+                "drift_deg_per_sqrt_s": self.drift_deg_per_sqrt_s, "residual_deg": self.residual_deg,
+                "span_s": self.span_s}
+
+
+def _gyros(arm: ArmModel, joint: int) -> tuple[str, object, str, object]:
+    """The gyroscope streams on either side of ``joint`` and their sensors: before it the
+    base IMU's (joint 0) or a link gyroscope on the joint's own link, after it a link
+    gyroscope on the next link."""
+    name = arm.joint_names[joint]
+    after = [s for s in arm.link_accelerometers if s.link == joint + 1 and s.has_link_gyro]
+    if not after:
+        raise ValueError(f"joint {name!r}: no link gyroscope on link {joint + 1} (after the joint) "
+                         f"to make its encoder from")
+    if joint == 0:
+        if arm.imu is None:
+            raise ValueError(f"joint {name!r}: no base IMU gyroscope (before the joint)")
+        return GYRO, arm.imu, link_gyro_stream(after[0].name), after[0]
+    before = [s for s in arm.link_accelerometers if s.link == joint and s.has_link_gyro]
+    if not before:
+        raise ValueError(f"joint {name!r}: no link gyroscope on link {joint} (before the joint) "
+                         f"to make its encoder from")
+    return link_gyro_stream(before[0].name), before[0], link_gyro_stream(after[0].name), after[0]
+
+
+def gyro_joint_rate(arm: ArmModel, rec: Recording, joint: int, t_s: np.ndarray) -> np.ndarray:
+    """The joint's rate (rad/s) at ``t_s`` from the gyroscopes on either side of it, each
+    read at the instant its samples were true (its device's calibrated time offset) and,
+    for the base IMU's, corrected as the tracker corrects it (the config's gyro effects)."""
+    s_before, dev_before, s_after, dev_after = _gyros(arm, joint)
+    models = stream_models(arm)
+    offsets = device_time_offsets(config_model(arm))
+    readings = Readings(arm, config_model(arm), startup_correction(arm)) if arm.effects else None
+    rates = []
+    for stream, dev in ((s_before, dev_before), (s_after, dev_after)):
+        st = rec.get(stream)
+        if st is None or len(st) < 2:
+            raise ValueError(f"joint {arm.joint_names[joint]!r}: the recording has no {stream!r} "
+                             f"samples to make its encoder from")
+        w = (readings.physical(stream, st.values) if readings is not None and stream == GYRO
+             else models[stream].from_counts(st.values))
+        w = w @ dev.R_LS.T  # the link's axes
+        t_true = np.asarray(t_s, float) + offsets.get(dev.name, (0.0, 0.0))[0]
+        rates.append(np.stack([np.interp(t_true, st.t_s, w[:, k]) for k in range(3)], axis=1))
+    return joint_rate_from_link_rates(arm, joint, rates[0], rates[1])
+
+
+def _integral(rate: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    return np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t_s))])
+
+
+def encoder_angle_rad(arm: ArmModel, rec: Recording, joint: int) -> tuple[np.ndarray, np.ndarray]:
+    """The encoder's times and the joint's relative angle from it (rad), the config's
+    calibrated encoder scale applied as the tracker applies it."""
+    enc = rec.get("enc")
+    if enc is None or len(enc) < 2:
+        raise ValueError("the recording has no encoder samples to calibrate the gyros' angle against")
+    scale, _ = encoder_scales(arm, config_model(arm))
+    return enc.t_s, enc.values[:, joint] / (arm.counts_per_rad[joint] * (1.0 + scale[joint]))
+
+
+def calibrate_gyro_encoder(arm: ArmModel, rec: Recording, joint: int,
+                           drift_span_s: float = DRIFT_SPAN_S) -> GyroEncoderCalibration:
+    """Where the encoder is known (``rec``, at least three times ``drift_span_s``): the
+    least-squares scale and bias of the gyros' angle against the encoder's, and the drift
+    that leaves over ``drift_span_s``."""
+    t, q = encoder_angle_rad(arm, rec, joint)
+    span = float(t[-1] - t[0])
+    if span < 3 * drift_span_s:
+        raise ValueError(f"a gyro encoder's calibration needs at least {3 * drift_span_s:.0f} s with "
+                         f"the encoder known, got {span:.1f} s")
+    angle = _integral(gyro_joint_rate(arm, rec, joint, t), t)
+    A = np.stack([angle, -(t - t[0]), np.ones_like(t)], axis=1)
+    coef, *_ = np.linalg.lstsq(A, q - q[0], rcond=None)
+    rest = A @ coef - (q - q[0])
+    k = max(int(round(drift_span_s / float(np.median(np.diff(t))))), 1)
+    drift = float(np.degrees(np.std(rest[k:] - rest[:-k])) / np.sqrt(drift_span_s))
+    return GyroEncoderCalibration(arm.joint_names[joint], float(coef[0]), float(coef[1]), drift,
+                                  float(np.degrees(np.sqrt(np.mean(rest**2)))), span)
+
+
+def with_gyro_encoder(arm: ArmModel, rec: Recording, joint: int, cal: GyroEncoderCalibration) -> Recording:
+    """``rec`` with the joint's encoder counts replaced by the gyros' calibrated angle (from
+    0 at the first sample: a relative encoder), in counts as the tracker reads them (its
+    calibrated encoder scale undone); the other joints' counts kept."""
+    enc = rec.get("enc")
+    t = enc.t_s
+    angle = _integral(cal.scale * gyro_joint_rate(arm, rec, joint, t) - cal.bias_rad_s, t)
+    scale, _ = encoder_scales(arm, config_model(arm))
+    values = np.array(enc.values, dtype=float)
+    values[:, joint] = angle * arm.counts_per_rad[joint] * (1.0 + scale[joint])
+    virtual = Stream(enc.name, enc.kind, t, values, enc.channels)
+    return Recording({**rec.streams, enc.name: virtual}, dict(rec.meta))
+
+
+def settings_with_gyro_encoder(settings: TrackerSettings | None,
+                               cal: GyroEncoderCalibration) -> TrackerSettings:
+    """Tracker settings whose random walk for ``cal``'s joint is the gyros' drift."""
+    st = settings or TrackerSettings()
+    rw = dict(st.offset_random_walk_by_joint_deg_per_sqrt_s)
+    rw[cal.joint] = max(cal.drift_deg_per_sqrt_s, st.offset_random_walk_deg_per_sqrt_s)
+    return replace(st, offset_random_walk_by_joint_deg_per_sqrt_s=tuple(rw.items()))

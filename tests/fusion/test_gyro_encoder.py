@@ -1,0 +1,104 @@
+"""A joint's encoder made from the gyroscopes on either side of it (the degraded mode of an
+arm whose encoder failed): its rate read at the instant the samples were true, its scale,
+bias and drift calibrated against the encoder, and the tracker following the joint from it
+and gravity. Simulated on the real rig's layout, then on the real rig's slice."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from fusion.configfile import load_arm, resolve_config_path
+from fusion.tracking.gyro_encoder import (
+    calibrate_gyro_encoder,
+    gyro_joint_rate,
+    with_gyro_encoder,
+)
+from fusion.tracking.process import ProcessModel
+from fusion.tracking.settings import StateLayout, TrackerSettings
+from models.effects import model_from_arm
+from models.simulator import simulate
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "imu-rig"
+
+
+def _rig_with(tmp_path, effects: list[dict]):
+    cfg = yaml.safe_load(resolve_config_path("imu_rig_roll").read_text(encoding="utf-8"))
+    cfg["effects"] = effects
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(cfg), encoding="utf-8")
+    return load_arm(path)
+
+
+def _true_rate(rec, t_s):
+    q = rec.get("true_q")
+    return np.interp(t_s, q.t_s, np.gradient(q.values[:, 0], q.t_s))
+
+
+def test_each_gyro_is_read_when_its_samples_were_true(tmp_path):
+    """The shaft's samples stamped 20 ms late (its calibrated time offset): read at the stamp
+    the joint's rate lags the truth; read 20 ms on, as the offset says, it does not."""
+    late = {"effect": "time_offset", "target": "shaft", "params": {"offset_s": [0.02]},
+            "sigma": {"offset_s": [0.001]}}
+    arm = _rig_with(tmp_path, [late])
+    rec, _ = simulate(arm, "excitation", 20.0, seed=4, noise=False, effects=model_from_arm(arm))
+    t = rec.get("enc").t_s[50:-50]
+    truth = _true_rate(rec, t)
+    err_deg_s = np.degrees(np.sqrt(np.mean((gyro_joint_rate(arm, rec, 0, t) - truth) ** 2)))
+    unaware = load_arm("imu_rig_roll")  # the same samples read at their stamps
+    err_unaware = np.degrees(np.sqrt(np.mean((gyro_joint_rate(unaware, rec, 0, t) - truth) ** 2)))
+    assert err_deg_s < 0.3 * err_unaware
+    assert err_unaware > 0.2  # deg/s: a 20 ms lag at the excitation's rates
+
+
+def test_the_gyros_angle_stands_in_for_the_encoder():
+    """Calibrated on 40 s where the encoder is known, the gyros' angle over the next 20 s
+    stays on the encoder to a fraction of a degree (noise and rounding as the sensors
+    give them), and only the withheld joint's counts are replaced."""
+    arm = load_arm("imu_rig_roll")
+    rec, _ = simulate(arm, "excitation", 60.0, seed=7)
+    t0 = rec.t_start_s
+    cal = calibrate_gyro_encoder(arm, _between(rec, t0, t0 + 40.0), 0)
+    assert abs(cal.scale - 1.0) < 0.01 and abs(np.degrees(cal.bias_rad_s)) < 0.1
+    later = _between(rec, t0 + 40.0, np.inf)
+    virtual = with_gyro_encoder(arm, later, 0, cal)
+    enc, gyro = later.get("enc"), virtual.get("enc")
+    np.testing.assert_array_equal(gyro.t_s, enc.t_s)
+    rel_enc = (enc.values[:, 0] - enc.values[0, 0]) / arm.counts_per_rad[0]
+    rel_gyro = gyro.values[:, 0] / arm.counts_per_rad[0]
+    assert np.degrees(np.max(np.abs(rel_gyro - rel_enc))) < 0.5
+    assert np.degrees(np.ptp(rel_enc)) > 20.0  # the joint did turn
+
+
+def test_a_joint_without_gyros_on_both_sides_is_refused_by_name():
+    wmra = load_arm("wmra")
+    rec, _ = simulate(wmra, "startup", 2.0, seed=1)
+    with pytest.raises(ValueError, match=r"joint 'j1': no link gyroscope on link 1"):
+        gyro_joint_rate(wmra, rec, 0, rec.get("enc").t_s)
+    arm = load_arm("imu_rig_roll")
+    short, _ = simulate(arm, "excitation", 10.0, seed=1)
+    with pytest.raises(ValueError, match=r"needs at least 30 s with the encoder known, got 10\.0 s"):
+        calibrate_gyro_encoder(arm, short, 0)
+
+
+def test_the_joint_takes_the_gyros_drift_as_its_random_walk():
+    arm = load_arm("wmra")
+    layout = StateLayout(arm.n_joints)
+    st = TrackerSettings(offset_random_walk_by_joint_deg_per_sqrt_s=(("j3", 0.3),))
+    q = np.diag(ProcessModel(st, layout, arm.joint_names).Q(1.0, True, False))[layout.offset]
+    np.testing.assert_allclose(np.sqrt(q), np.radians([0.0035, 0.0035, 0.3, 0.0035, 0.0035, 0.0035, 0.0035]))
+    with pytest.raises(ValueError, match=r"no joint 'j9'"):
+        ProcessModel(TrackerSettings(offset_random_walk_by_joint_deg_per_sqrt_s=(("j9", 0.3),)),
+                     layout, arm.joint_names)
+    with pytest.raises(ValueError, match=r"\['j3'\]: a random walk must be a positive number"):
+        ProcessModel(TrackerSettings(offset_random_walk_by_joint_deg_per_sqrt_s=(("j3", -1.0),)),
+                     layout, arm.joint_names)
+
+
+def _between(rec, t0, t1):
+    from sensors.samples import Recording
+
+    return Recording({k: s.between(t0, t1) for k, s in rec.streams.items()}, dict(rec.meta))
