@@ -198,6 +198,11 @@ class Recording:
     def get(self, name: str) -> Stream | None:
         return self.streams.get(name)
 
+    def between(self, t_start_s: float, t_end_s: float) -> Recording:
+        """Every stream's samples in ``[t_start_s, t_end_s)`` (see :meth:`Stream.between`)."""
+        return Recording({k: s.between(t_start_s, t_end_s) for k, s in self.streams.items()},
+                         dict(self.meta))
+
     @property
     def t_start_s(self) -> float:
         ts = [s.t_s[0] for s in self.streams.values() if len(s)]

@@ -106,14 +106,10 @@ class TrialResult:
     seconds: dict[str, float]
 
 
-def between(rec: Recording, t0: float, t1: float) -> Recording:
-    return Recording({k: s.between(t0, t1) for k, s in rec.streams.items()}, dict(rec.meta))
-
-
 def choose_config(rec: Recording, first_s: float) -> tuple[str, dict[str, float]]:
     """The rig config whose model (no effects) fits the trial's first ``first_s`` best."""
     t0 = rec.t_start_s
-    part = between(rec, t0, t0 + first_s)
+    part = rec.between(t0, t0 + first_s)
     fits = {}
     for name in RIG_CONFIGS:
         arm = load_arm(name)
@@ -231,8 +227,8 @@ def run_trial(path: Path, calibrate_s: float, rungs: int, work: Path) -> TrialRe
     secs["choose"] = time.perf_counter() - t0
     arm = load_arm(config)
     t_start = rec.t_start_s
-    cal = between(rec, t_start, t_start + calibrate_s)
-    scored = between(rec, t_start + calibrate_s, np.inf)
+    cal = rec.between(t_start, t_start + calibrate_s)
+    scored = rec.between(t_start + calibrate_s, np.inf)
     t0 = time.perf_counter()
     rs, final, follows = ladder(arm, cal, rungs)
     secs["ladder"] = time.perf_counter() - t0

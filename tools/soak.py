@@ -368,10 +368,9 @@ def tracker_alone(rec, n_instants: int = 1000) -> float:
     """Instants per CPU-second of the tracker by itself (no Zenoh, no decoding), on the
     first ``n_instants`` after a startup calibration on the recording's first 3 s."""
     from fusion.tracking.tracker import start_from_recording
-    from sensors.samples import Recording
 
     arm = load_arm("wmra")
-    head = Recording({k: s.between(-np.inf, rec.t_start_s + 3.0) for k, s in rec.streams.items()})
+    head = rec.between(-np.inf, rec.t_start_s + 3.0)
     tr, _ = start_from_recording(arm, head)
     names = [k for k in tr.sensor_names if rec.get(k) is not None]
     t = rec.get("enc").t_s

@@ -21,6 +21,7 @@ from fusion.cli.common import (
     progress_bar,
 )
 from fusion.cli.options import ConfigOpt, JsonOpt
+from sensors.samples import clipped_repr
 
 OUT_SUFFIXES = (".csv", ".mcap")
 
@@ -43,6 +44,7 @@ def track(
     unmodelled_g: Annotated[float | None, typer.Option(help="Override the config's unmodelled accelerometer error (g, 1 sigma), for startup and tracking.")] = None,
     no_motion_compensation: Annotated[bool, typer.Option("--no-motion-compensation", help="Predict the accelerometers as if nothing moved (for comparison only).")] = False,
     moving_start: Annotated[bool, typer.Option("--moving-start", help="When the recording has no still stretch (an arm that never stops), start on its least-moving instants, the sigma widened by their motion.")] = False,
+    encoder_withheld: Annotated[str | None, typer.Option("--encoder-withheld", metavar="JOINT@SECONDS", help="The joint's encoder fails SECONDS after the recording's start: the gyroscopes on either side of it stand in, calibrated against the encoder before then, and tracking starts afresh there (its zero unknown).")] = None,
 ) -> None:
     """Track the joint angles and the heading through a recording: startup calibration on
     its first still stretch (or, with --moving-start, on its least-moving instants), then
@@ -77,6 +79,13 @@ def track(
             prior_q = saved.q_rad
     settings = TrackerSettings(gate_significance=gate_significance,
                                motion_compensation=not no_motion_compensation)
+    withheld = None
+    if encoder_withheld is not None:
+        rec, settings, withheld = _withhold_encoder(arm, rec, settings, encoder_withheld)
+        notes.append(f"the encoder of {withheld['joint']} withheld from {withheld['from_s']:g} s: the "
+                     f"gyros on either side of it stand in (scale {withheld['scale']:.4f}, bias "
+                     f"{withheld['bias_deg_s']:+.4f} deg/s, drift {withheld['drift_deg_per_sqrt_s']:.3f} "
+                     f"deg/sqrt(s) against the encoder before then); tracking starts afresh there")
     with progress_bar("startup calibration", json_out) as advance:
         try:
             tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q,
@@ -109,6 +118,7 @@ def track(
         "final": tr.estimate.as_dict() if run.steps else None,
         "out": None if out is None else str(out),
         "saturated_left_out": screen.as_dict()["saturated"],
+        "encoder_withheld": withheld,
         "notes": notes,
     }
     if out is not None:
@@ -125,6 +135,37 @@ def track(
 
 
 # --------------------------------------------------------------------------------------
+def _withhold_encoder(arm, rec, settings, spec: str) -> tuple:
+    """``--encoder-withheld JOINT@SECONDS``: the recording from then on with the joint's
+    encoder made from the gyros (calibrated on what comes before), the settings with the
+    gyros' drift as the joint's random walk, and what was done (for the JSON)."""
+    from fusion.tracking.gyro_encoder import (
+        calibrate_gyro_encoder,
+        settings_with_gyro_encoder,
+        with_gyro_encoder,
+    )
+
+    joint, sep, when = spec.partition("@")
+    if not sep or joint not in arm.joint_names:
+        fail(f"--encoder-withheld takes JOINT@SECONDS with JOINT one of {', '.join(arm.joint_names)}, "
+             f"not {clipped_repr(spec)}")
+    try:
+        from_s = float(when)
+    except ValueError:
+        from_s = float("nan")
+    t0 = rec.t_start_s
+    if not 0.0 < from_s < rec.duration_s:
+        fail(f"--encoder-withheld {clipped_repr(spec)}: SECONDS must be a time inside the recording "
+             f"(0 to {rec.duration_s:.1f} s after its start)")
+    j = arm.joint_names.index(joint)
+    try:
+        cal = calibrate_gyro_encoder(arm, rec.between(t0, t0 + from_s), j)
+        after = with_gyro_encoder(arm, rec.between(t0 + from_s, np.inf), j, cal)
+    except ValueError as e:
+        fail(f"--encoder-withheld {clipped_repr(spec)}: {e}")
+    return after, settings_with_gyro_encoder(settings, cal), {**cal.as_dict(), "from_s": from_s}
+
+
 def _scoring_truth(rec, recording: Path, joint_names) -> tuple:
     """With a simulator's ``REC.truth.json`` beside the recording, the joint truth the
     errors are scored against is the true angle plus each joint's true DH zero offset (the

@@ -28,7 +28,9 @@ from models.sensor_models import stream_models
 from sensors.samples import Recording, Stream, link_gyro_stream
 
 DRIFT_SPAN_S = 10.0
-"""The span over which the integral's drift is measured (:func:`calibrate_gyro_encoder`)."""
+"""The longest span over which the integral's drift is measured (:func:`calibrate_gyro_encoder`)."""
+MIN_CALIBRATION_S = 10.0
+"""The shortest stretch with the encoder known that a gyro encoder is calibrated on."""
 
 
 @dataclass(frozen=True)
@@ -108,15 +110,18 @@ def encoder_angle_rad(arm: ArmModel, rec: Recording, joint: int) -> tuple[np.nda
 
 
 def calibrate_gyro_encoder(arm: ArmModel, rec: Recording, joint: int,
-                           drift_span_s: float = DRIFT_SPAN_S) -> GyroEncoderCalibration:
-    """Where the encoder is known (``rec``, at least three times ``drift_span_s``): the
+                           drift_span_s: float | None = None) -> GyroEncoderCalibration:
+    """Where the encoder is known (``rec``, at least :data:`MIN_CALIBRATION_S`): the
     least-squares scale and bias of the gyros' angle against the encoder's, and the drift
-    that leaves over ``drift_span_s``."""
+    that leaves over ``drift_span_s`` (default a third of the stretch, at most
+    :data:`DRIFT_SPAN_S`)."""
     t, q = encoder_angle_rad(arm, rec, joint)
     span = float(t[-1] - t[0])
-    if span < 3 * drift_span_s:
-        raise ValueError(f"a gyro encoder's calibration needs at least {3 * drift_span_s:.0f} s with "
+    if span < MIN_CALIBRATION_S:
+        raise ValueError(f"a gyro encoder's calibration needs at least {MIN_CALIBRATION_S:.0f} s with "
                          f"the encoder known, got {span:.1f} s")
+    if drift_span_s is None:
+        drift_span_s = min(DRIFT_SPAN_S, span / 3.0)
     angle = _integral(gyro_joint_rate(arm, rec, joint, t), t)
     A = np.stack([angle, -(t - t[0]), np.ones_like(t)], axis=1)
     coef, *_ = np.linalg.lstsq(A, q - q[0], rcond=None)

@@ -151,7 +151,7 @@ def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
 
     t0 = time.perf_counter()
     rec, _ = simulate(arm, "daily-use", 4.0, seed=0)
-    first = Recording({k: v.between(0.0, 2.0) for k, v in rec.streams.items()}, rec.meta)
+    first = rec.between(0.0, 2.0)
     tr, _ = start_from_recording(arm, first, settings, propose_unlock=False)  # then 2 s more
     values = {s: rec.get(s).values for s in tr.sensor_names if s in rec.streams}
     t_enc = rec.get(ENC).t_s
@@ -271,8 +271,7 @@ def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s
     names = ", ".join(startup.joints[j].name for j in amb)
     covs = (startup.candidates_covariance if startup.candidates_covariance is not None
             else np.repeat(np.asarray(startup.covariance)[None], len(startup.candidates_rad), 0))
-    window = Recording({kk: v.between(-np.inf, t0_s + horizon_s) for kk, v in rec.streams.items()},
-                       dict(rec.meta))
+    window = rec.between(-np.inf, t0_s + horizon_s)
     totals, variants = [], []
     for cand, cov in zip(startup.candidates_rad, covs, strict=True):
         sig = np.sqrt(np.clip(np.diag(cov)[:n], 0, None))

@@ -109,11 +109,11 @@ def roll_calibrated(roll, tmp_path_factory):
 
     from fusion.configfile import resolve_config_path
     from fusion.identification.calibrated_config import config_with_estimates
-    from tools.bench_real_rig import between, encoder_zero
+    from tools.bench_real_rig import encoder_zero
 
     arm = load_arm("imu_rig_roll")
     t0 = roll.t_start_s
-    cal, scored = between(roll, t0, t0 + 12.0), between(roll, t0 + 12.0, np.inf)
+    cal, scored = roll.between(t0, t0 + 12.0), roll.between(t0 + 12.0, np.inf)
     d = diagnose(model_from_arm(arm), _data(arm, cal))
     for _ in range(4):
         c = next(c for c in d.candidates if c.significant)
@@ -160,7 +160,7 @@ def test_the_encoder_withheld_the_gyros_and_gravity_carry_the_shaft(roll_calibra
     )
 
     calibrated, zero_rad, cal, scored = roll_calibrated
-    gcal = calibrate_gyro_encoder(calibrated, cal, 0, drift_span_s=3.0)
+    gcal = calibrate_gyro_encoder(calibrated, cal, 0)
     withheld = with_gyro_encoder(calibrated, scored, 0, gcal)
     assert not np.array_equal(withheld.get("enc").values, scored.get("enc").values)
     settings = settings_with_gyro_encoder(None, gcal)
