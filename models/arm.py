@@ -46,6 +46,9 @@ class Joint:
     min_rad: float
     max_rad: float
     counts_per_rev: float
+    encoder_on_joint: bool = False
+    """The encoder reads the joint itself (on its shaft): its counts per revolution are
+    exact, with no gear ratio or belt between to be off (no ``encoder_scale``)."""
 
     @property
     def counts_per_rad(self) -> float:

@@ -8,7 +8,7 @@ Units are in the key names: ``_deg``, ``_mm``. Inside the model everything is SI
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -71,6 +71,9 @@ class JointsSection(_Strict):
     min_deg: list[float]
     max_deg: list[float]
     counts_per_rev: list[float]
+    encoder_on_joint: list[bool] | None = None
+    """Per joint, true where the encoder reads the joint itself (its counts exact); default
+    false: through a gear or belt, whose ratio may be off."""
 
     @field_validator("counts_per_rev")
     @classmethod
@@ -294,7 +297,7 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
     elif urdf_joints is not None:
         n = len(urdf_joints)
     if n is not None:
-        for key in ("min_deg", "max_deg", "counts_per_rev", "names"):
+        for key in ("min_deg", "max_deg", "counts_per_rev", "names", "encoder_on_joint"):
             v = joints.get(key)
             if isinstance(v, list) and len(v) != n:
                 out.append(ConfigProblem(source, f"arm.joints.{key}", v,
@@ -431,6 +434,9 @@ def build_arm(
             )
             for i, j in enumerate(urdf_joints)
         )
+    if js.encoder_on_joint is not None:
+        joints = tuple(replace(j, encoder_on_joint=bool(on))
+                       for j, on in zip(joints, js.encoder_on_joint, strict=True))
     sensors = tuple(
         SensorMount(
             name=s.name, type=s.type, link=s.link,

@@ -98,6 +98,8 @@ TARGET_KINDS = {
     "accelerometer": ("an accelerometer (a link accelerometer or the IMU)", accelerometer_names),
     "imu": ("the base IMU", lambda arm: (arm.imu.name,) if arm.imu is not None else ()),
     "joint": ("a joint", lambda arm: arm.joint_names),
+    "geared_joint": ("a joint whose encoder turns through a gear or belt (not arm.joints.encoder_on_joint)",
+                     lambda arm: tuple(j.name for j in arm.joints if not j.encoder_on_joint)),
     "device": ("a sensor device (an accelerometer, the IMU, or the encoders 'enc')", device_names),
 }
 

@@ -109,7 +109,7 @@ class EncoderScale(SensorEffect):
     units = "1 (fraction)"
     labels = ("scale",)
     bound = 0.1
-    target_kind = "joint"
+    target_kind = "geared_joint"
     summary = "encoder counts per joint revolution off"
     description = (
         "The joint's encoder gives a few more (or fewer) counts per joint revolution than "

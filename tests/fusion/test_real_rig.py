@@ -169,3 +169,30 @@ def test_the_encoder_withheld_the_gyros_and_gravity_carry_the_shaft(roll_calibra
     err_deg = _error_deg(run, scored, zero_rad)
     assert np.sqrt(np.mean(err_deg**2)) < 1.5 and err_deg.max() < 3.0
     assert np.all(err_deg <= 3 * np.degrees(run.sigma_rad[:, 0]))
+
+
+def test_an_encoder_on_the_shaft_itself_is_never_given_a_scale_error(roll, tmp_path):
+    """The rig's encoder reads the shaft directly (`encoder_on_joint`): no gear ratio or belt
+    can be off, so the workbench never offers `encoder_scale` for it (over a 0-180 deg sweep
+    it mimics the accelerometer's scale error, and taking it moved the pitch trial's tracked
+    angle off the encoder by about 1 %), and a config that gives it one is refused."""
+    import yaml
+
+    from fusion.configfile import resolve_config_path
+    from models.arm_config import ConfigError
+    from models.effects.base import TargetError
+
+    arm = load_arm("imu_rig_roll")
+    assert arm.joints[0].encoder_on_joint
+    d = diagnose(model_from_arm(arm), _data(arm, roll))
+    assert d.candidates and all(c.effect != "encoder_scale" for c in d.candidates)
+    with pytest.raises(TargetError, match=r"encoder_scale applies to a joint whose encoder turns through a "
+                                          r"gear or belt .* and arm 'imu-rig-roll' has none"):
+        parse_add(arm, ["encoder_scale:shaft"])
+    cfg = yaml.safe_load(resolve_config_path("imu_rig_roll").read_text(encoding="utf-8"))
+    cfg["effects"] = [{"effect": "encoder_scale", "target": "shaft", "params": {"scale_error": [0.01]}}]
+    path = tmp_path / "scaled.yaml"
+    path.write_text(yaml.safe_dump(cfg), encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"effects\[0\]\.target: encoder_scale applies to a joint whose "
+                                          r"encoder turns .* \(got 'shaft'\)"):
+        load_arm(path)
