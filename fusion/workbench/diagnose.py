@@ -151,6 +151,27 @@ class Diagnosis:
         return {s: float(np.sqrt(np.mean([a.ratio**2 for a in self.axes if a.stream == s])))
                 for s in dict.fromkeys(a.stream for a in self.axes)}
 
+    def measured_noise_ratios(self) -> tuple[float, dict[str, float]]:
+        """The residual against the noise the recording itself shows rather than the noise
+        model's: each axis's window-mean noise with the single-sample excess the fit
+        measured (``FitData.sample_excess_counts``: vibration, say) averaged over the window
+        as white noise is. Overall (RMS over the axes) and per stream. Where a ladder stops
+        above the model's floor but near 1 here, what is left is noise the datasheet does
+        not know, not a missing effect."""
+        sm = self.data.sample_excess_counts
+        gains = {s: np.abs(m.gain) for s, m in self.fit.model.stream_models().items()}
+        seen: dict[str, int] = {}
+        ratios: dict[str, list[float]] = {}
+        for a in self.axes:
+            k = seen[a.stream] = seen.get(a.stream, -1) + 1
+            excess = sm.get(a.stream)
+            per_sample = 0.0 if excess is None else float(excess[k] / gains[a.stream][k])
+            fast = per_sample / np.sqrt(self.data.window)
+            ratios.setdefault(a.stream, []).append(a.rms / float(np.hypot(a.noise, fast)))
+        per = {s: float(np.sqrt(np.mean(np.square(r)))) for s, r in ratios.items()}
+        overall = float(np.sqrt(np.mean(np.square([x for r in ratios.values() for x in r]))))
+        return overall, per
+
     def as_dict(self, top: int = 10) -> dict[str, Any]:
         return {
             "verdict": self.verdict,
