@@ -24,6 +24,9 @@ class StartupCorrection:
       on its nominal mount would read: every sensor-stage effect of an accelerometer
       (mount, axes, scale, bias, temperature drift) is affine, ``y' = L y + c``; this
       inverts it, σ mapped through ``L⁻¹``;
+    * ``maps``: per stream, that affine map ``(L, c)``; besides the accelerometers', the
+      compass's (its soft and hard iron) and the IMU gyro's (its mount, scale and bias), which
+      the tracker undoes on every reading (:class:`fusion.tracking.calibrated.Readings`);
     * ``controller_angles(q_geom)``: the startup solves the geometric joint angles; the
       joint-stage effects (offsets, sag, play) map the controller's angles to them, and
       this inverts that map (fixed point, three passes).
@@ -162,7 +165,8 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
     cov = arm.calibration.correction_covariance
     maps, spread, given = {}, {}, {}
     conventions = set(arm.calibration.joint_zero_conventions)
-    for s in accel + (["imu_mag"] if arm.imu is not None else []):
+    imu_parts = [] if arm.imu is None else ["imu_mag", "imu_gyro"]
+    for s in accel + imu_parts:
         # the compass's own map is its soft and hard iron; the arm's steel (mag_arm_disturbance)
         # turns with the joints and is no fixed map
         effs = sorted((e for e in model.effects if isinstance(e, SensorEffect) and s in e.streams

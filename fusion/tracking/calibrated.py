@@ -14,7 +14,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from fusion.tracking.settings import IMU_ACC
+from fusion.tracking.settings import GYRO, IMU_ACC, MAG
 from models.arm import ArmModel
 from models.effects import JointEffect, Model, model_from_arm
 from models.rotations import up_from_tilt
@@ -84,15 +84,14 @@ def with_lever_arms(arm: ArmModel, model: Model | None) -> ArmModel:
 
 
 NOT_APPLIED: dict[str, str] = {
-    "gyro_bias": "the tracker estimates the gyro's bias itself (a state, seeded from the still window)",
-    "gyro_scale": "the tracker does not correct the gyro's scale",
     "mag_arm_disturbance": "the tracker does not model the arm's steel turning with the joints",
 }
 """The config's effects the tracker does not apply, and why (every other effect it does:
-the accelerometers' and the compass's corrections, the joints' effects in the kinematics,
-lever arms, time offsets, encoder scales)."""
+the accelerometers', the gyro's and the compass's corrections, the joints' effects in the
+kinematics, lever arms, time offsets, encoder scales; the gyro's calibrated bias undone, the
+tracker's bias state follows what is left of it and its drift)."""
 PARTLY_APPLIED: dict[str, str] = {
-    "base_mount": "applied to the IMU's accelerometer, not to its gyro and compass",
+    "base_mount": "applied to the IMU's accelerometer and gyro, not to its compass",
 }
 
 
@@ -137,6 +136,14 @@ def offset_per_degree(arm: ArmModel, model: Model | None, correction) -> dict[st
     return out
 
 
+def undo_map(correction, stream: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """The map that undoes ``correction``'s calibrated errors of ``stream``, ``(A, c)``: the
+    ideal sensor's reading is ``(y - c) @ A`` for readings ``y (N, 3)`` in SI units; None
+    where the correction has none."""
+    m = None if correction is None else correction.maps.get(stream)
+    return None if m is None else (np.linalg.inv(m[0]).T, np.asarray(m[1], float))
+
+
 class Readings:
     """Counts to SI units per stream, the correction's calibrated sensor errors (affine:
     mount, axes, scale, bias; the offset's temperature drift) undone."""
@@ -149,8 +156,8 @@ class Readings:
         self.temperature_c = self.temperature_ref_c
         """The latest temperature the IMU read, °C."""
         if correction is not None:
-            for stream, (Lm, c) in correction.maps.items():
-                self.undo[stream] = (np.linalg.inv(Lm).T, np.asarray(c, float))
+            for stream in correction.maps:
+                self.undo[stream] = undo_map(correction, stream)
             self.per_c = offset_per_degree(arm, model, correction)
         self.models: dict[str, StreamModel] = stream_models(arm)
 
@@ -189,7 +196,7 @@ def spread_maps(correction) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
     if correction is None:
         return {}
     return {stream: [(np.linalg.inv(L1), np.asarray(c1, float)) for L1, c1 in maps]
-            for stream, maps in correction.spread.items() if stream != "imu_mag"}
+            for stream, maps in correction.spread.items() if stream not in (MAG, GYRO)}
 
 
 def accel_floors_g(arm: ArmModel, link_names, has_imu: bool) -> np.ndarray:

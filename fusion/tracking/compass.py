@@ -59,8 +59,9 @@ def compass_map(arm: ArmModel, correction=None, model: Model | None = None
         from fusion.identification.identify import startup_correction
 
         correction = startup_correction(arm)
-    m = correction.maps.get(MAG)
-    return None if m is None else (np.linalg.inv(m[0]).T, np.asarray(m[1], float))
+    from fusion.tracking.calibrated import undo_map
+
+    return undo_map(correction, MAG)
 
 
 class Compass:

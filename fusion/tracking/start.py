@@ -12,9 +12,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from fusion.identification.correction import startup_correction
 from fusion.startup.solve import StartupResult
 from fusion.startup.static import Segment, StaticDetectionSettings, find_static_segments
-from fusion.tracking.calibrated import effects_applied
+from fusion.tracking.calibrated import effects_applied, undo_map
 from fusion.tracking.compass import compass_map, compass_unmodelled_rad
 from fusion.tracking.differentiator import prime
 from fusion.tracking.filter import Tracker
@@ -30,10 +31,14 @@ from sensors.samples import Recording
 def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_end_s: float,
                              startup: StartupResult, settings: TrackerSettings | None = None,
                              correction=None) -> ImuStill:
-    """The gyro bias, initial heading and Earth-field reference from a still window.
-    ``correction``: the config's :class:`fusion.identification.identify.StartupCorrection`, when the caller
-    has it (else made here when the config has compass effects)."""
+    """The gyro bias, initial heading and Earth-field reference from a still window, the
+    gyro and the compass read as the tracker reads them (the config's calibrated errors
+    undone). ``correction``: the config's
+    :class:`fusion.identification.identify.StartupCorrection`, when the caller has it (else
+    made here when the config has effects)."""
     st = settings or TrackerSettings()
+    if correction is None and arm.effects:
+        correction = startup_correction(arm)
     sm = stream_models(arm)
     R_0I = arm.imu.R_LS if arm.imu is not None else np.eye(3)
     bias = np.zeros(3)
@@ -43,7 +48,11 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
         w = g.between(t_start_s, t_end_s + 1e-9)
         if len(w) >= 3:
             rate = w.rate_hz or 100.0
-            omega = sm[GYRO].from_counts(w.values) @ R_0I.T
+            omega = sm[GYRO].from_counts(w.values)
+            undo = undo_map(correction, GYRO)
+            if undo is not None:  # the config's gyro mount, scale and bias, as the tracker undoes them
+                omega = (omega - undo[1]) @ undo[0]
+            omega = omega @ R_0I.T
             bias = omega.mean(axis=0)
             noise = st.gyro_noise_dps_per_sqrt_hz * DEG * np.sqrt(rate / 2.0)
             # the window's own scatter where it is above the datasheet's (a vibrating base):
@@ -309,7 +318,7 @@ def _prime(tr: Tracker, rec: Recording) -> None:
         prime(tr.enc_rates, enc.t_s, enc.values / tr.counts_per_rad, tr.t_s)
     g = rec.get(GYRO)
     if g is not None and len(g):
-        wB = tr.readings.models[GYRO].from_counts(g.values) @ tr.R_0I.T
+        wB = tr.readings.physical(GYRO, g.values) @ tr.R_0I.T
         prime(tr.gyro_rates, g.t_s, wB, tr.t_s)
         k = int(np.searchsorted(g.t_s, tr.t_s + 1e-9)) - 1
         if k >= 0:
