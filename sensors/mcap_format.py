@@ -12,7 +12,10 @@ from sensors.samples import RAW_KINDS, TRUTH_KINDS
 
 MAGIC = b"\x89MCAP0\r\n"
 METADATA_NAME = "armfusion"
-FORMAT_VERSION = "1"
+FORMAT_VERSION = "2"
+"""The format written: 2 since raw values may be decimals (a sensor described in g, °/s…)."""
+READ_FORMAT_VERSIONS = ("1", "2")
+"""The formats read: version 1's raw values are all whole counts, read the same way."""
 RAW_PREFIX = "raw/"
 TRUTH_PREFIX = "truth/"
 

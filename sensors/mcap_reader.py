@@ -25,7 +25,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Metadata
 
-from sensors.mcap_format import KIND_DOC, MAGIC, METADATA_NAME, RAW_PREFIX, TRUTH_PREFIX
+from sensors.mcap_format import KIND_DOC, MAGIC, METADATA_NAME, RAW_PREFIX, READ_FORMAT_VERSIONS, TRUTH_PREFIX
 from sensors.samples import RAW_KINDS, Recording, RecordingError, Stream, clipped_repr
 
 
@@ -276,6 +276,10 @@ def _assemble(
         if len(stream):
             t_last = stream.t_s[-1] if t_last is None else max(t_last, float(stream.t_s[-1]))
     rec_meta: dict[str, Any] = {"source": str(path)}
+    if meta and meta.get("format_version", "1") not in READ_FORMAT_VERSIONS:
+        raise RecordingError(f"{path}: armfusion MCAP format version "
+                             f"{clipped_repr(meta.get('format_version'))}; this armfusion reads "
+                             f"{' or '.join(READ_FORMAT_VERSIONS)} (docs/recording-mcap.md)")
     if meta:
         rec_meta["arm_config"] = meta.get("arm_config", "")
         rec_meta["armfusion_version"] = meta.get("armfusion_version", "")

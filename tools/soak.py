@@ -104,7 +104,7 @@ class Joints:
             return self.t_s[-1] if self.t_s else -np.inf
 
 
-HOSTILE_CASES = ("garbage", "version_2", "nan", "other_robot", "nested", "oversized", "enc_3_channels",
+HOSTILE_CASES = ("garbage", "version_3", "nan", "other_robot", "nested", "oversized", "enc_3_channels",
                  "acc_1e6_s_ahead", "enc_2_63", "enc_jump_174_deg", "unknown_sensor", "invented_seq", "dense")
 """What the hostile publisher sends, one of each per cycle; ``invented_seq`` is a plausible
 sample (the node accepts it: it could be real) whose ``seq`` jumps by 10⁹."""
@@ -186,20 +186,20 @@ class _HostileLoop:
         enc_ch = self.meta["enc"][1]
         jumped = enc.copy()
         jumped[0] += int(np.radians(174.0) * self.cpr[0])
-        v2 = self._batch("acc1", t_acc + 1e-3, acc, k)
-        v2["v"] = 2
+        v3 = self._batch("acc1", t_acc + 1e-3, acc, k)
+        v3["v"] = 3
         other = self._batch("acc1", t_acc + 1e-3, acc, k)
         other["robot"] = "chair9"
         nan = self._batch("acc1", t_acc + 1e-3, acc, k)
-        nan["counts"][0][0] = float("nan")
+        nan["values"][0][0] = float("nan")
         unknown = self._batch("acc1", t_acc + 1e-3, acc, k)
         unknown["sensor"], unknown["channels"] = "acc9", ["acc9_x", "acc9_y", "acc9_z"]
         cases = {
             "garbage": ("acc1", self.rng.bytes(int(self.rng.integers(1, 400)))),
-            "version_2": ("acc1", json.dumps(v2).encode()),
+            "version_3": ("acc1", json.dumps(v3).encode()),
             "nan": ("acc1", json.dumps(nan).encode()),  # (Python writes NaN)
             "other_robot": ("acc1", json.dumps(other).encode()),
-            "nested": ("enc", b'{"v":1,"type":"raw","counts":' + b"[" * 20000 + b"]" * 20000 + b"}"),
+            "nested": ("enc", b'{"v":2,"type":"raw","values":' + b"[" * 20000 + b"]" * 20000 + b"}"),
             "oversized": ("imu_acc", b" " * (pl.MAX_PAYLOAD_BYTES + 1)),
             "enc_3_channels": ("enc", json.dumps(self._batch("enc", t_enc + 1e-3, enc[:3], 10**9,
                                                              enc_ch[:3])).encode()),

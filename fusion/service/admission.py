@@ -130,9 +130,9 @@ class Admission:
         self.arm_name = arm.name
         self._models = stream_models(arm)
         self._range = {}
-        for name, m in self._models.items():
-            lo = INT32_MIN if m.counts_min is None else int(m.counts_min)
-            hi = INT32_MAX if m.counts_max is None else int(m.counts_max)
+        for name, m in self._models.items():  # register counts, or values in the declared unit
+            lo = INT32_MIN if m.counts_min is None else m.counts_min
+            hi = INT32_MAX if m.counts_max is None else m.counts_max
             self._range[name] = (lo, hi)
         st = self.settings
         self._cpr = arm.counts_per_rad
@@ -176,9 +176,9 @@ class Admission:
         lo, hi = self._range[s.name]
         flat = s.values.ravel().tolist() if s.values.size <= 64 else None  # (numpy's min/max: 3 us each)
         if (min(flat) < lo or max(flat) > hi) if flat is not None else (
-                int(s.values.min()) < lo or int(s.values.max()) > hi):
+                s.values.min().item() < lo or s.values.max().item() > hi):
             i, j = (int(x) for x in np.argwhere((s.values < lo) | (s.values > hi))[0])
-            return Verdict("out_of_range", f"{s.channels[j]} = {_shown(int(s.values[i, j]))} at t = "
+            return Verdict("out_of_range", f"{s.channels[j]} = {_shown(s.values[i, j].item())} at t = "
                                            f"{float(s.t_s[i]):.6g} s is beyond the device's range {lo}…{hi}")
         verdict = self._check_time(s.name, float(s.t_s[0]), float(s.t_s[-1]), now_s)
         if not verdict.ok:

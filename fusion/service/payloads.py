@@ -38,12 +38,16 @@ from typing import Any
 import numpy as np
 
 from fusion.tracking.estimate import Estimate, heading_record, joints_record
-from sensors.samples import RAW_KINDS, Stream
+from sensors.samples import RAW_KINDS, Stream, clipped_repr
 
-VERSIONS = {"raw": 1, "joints": 1, "heading": 2, "status": 1, "calibration": 1}
-"""Each payload type's schema version. ``heading`` 2: ``sigma_rad`` became
+VERSIONS = {"raw": 2, "joints": 1, "heading": 2, "status": 1, "calibration": 1}
+"""Each payload type's schema version (the one written). ``heading`` 2: ``sigma_rad`` became
 ``heading_sigma_rad``, and the base's roll and pitch, their sigmas, the gyro bias and
-``magnetic_recovery`` came in (the estimate's one wire form)."""
+``magnetic_recovery`` came in (the estimate's one wire form). ``raw`` 2: ``counts`` became
+``values``, which may hold decimals (a sensor whose description declares its values in g,
+°/s…, as an imported recording holds them)."""
+READ_VERSIONS = {**{k: (v,) for k, v in VERSIONS.items()}, "raw": (1, 2)}
+"""The versions this node reads: a version-1 ``raw`` (whole ``counts``) is read as before."""
 MAX_PAYLOAD_BYTES = 1 << 20
 """1 MiB: a raw batch of 1 s of a 3-axis sensor at 1 kHz is about 60 kB."""
 ROOT = "armfusion"
@@ -116,7 +120,8 @@ def parse_key(key: str) -> tuple[str, str, str | None]:
 
 @dataclass(frozen=True)
 class RawBatch:
-    """A batch of one sensor's raw counts: ``stream.t_s (N,)``, ``stream.values (N, k)``.
+    """A batch of one sensor's raw values: ``stream.t_s (N,)``, ``stream.values (N, k)``
+    (register counts, or decimals in the unit the sensor's description declares).
 
     ``seq`` numbers the batches of one sensor from one publisher (0, 1, 2…) so that a
     receiver can count the batches it missed.
@@ -130,7 +135,7 @@ class RawBatch:
         s = self.stream
         return {"v": VERSIONS["raw"], "type": "raw", "robot": self.robot, "sensor": s.name,
                 "kind": s.kind, "channels": list(s.channels), "seq": self.seq,
-                "t_s": s.t_s.tolist(), "counts": s.values.tolist()}
+                "t_s": s.t_s.tolist(), "values": s.values.tolist()}
 
 
 @dataclass(frozen=True)
@@ -330,20 +335,24 @@ def _raw(d: dict, robot: str) -> RawBatch:
     channels = _strings(d, "channels")
     seq = _field(d, "seq", int)
     t = _field(d, "t_s", list)
-    counts = _field(d, "counts", list)
-    if not channels or not t or len(t) != len(counts):
-        raise PayloadError("malformed", f"{len(t)} times and {len(counts)} rows of counts "
+    whole = d["v"] == 1  # version 1: whole register counts only
+    name = "counts" if whole else "values"
+    rows = _field(d, name, list)
+    if not channels or not t or len(t) != len(rows):
+        raise PayloadError("malformed", f"{len(t)} times and {len(rows)} rows of {name} "
                            f"over {len(channels)} channels")
     if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in t):
         raise PayloadError("malformed", "field 't_s': expected a list of numbers")
+    number = int if whole else (int, float)
     if not all(isinstance(r, list) and len(r) == len(channels)
-               and all(isinstance(x, int) and not isinstance(x, bool) for x in r) for r in counts):
-        raise PayloadError("malformed", f"field 'counts': expected rows of {len(channels)} integers")
+               and all(isinstance(x, number) and not isinstance(x, bool) for x in r) for r in rows):
+        raise PayloadError("malformed", f"field {name!r}: expected rows of {len(channels)} "
+                           + ("integers" if whole else "numbers"))
     t_s = np.asarray(t, dtype=np.float64)
     if not np.all(np.isfinite(t_s)):
         raise PayloadError("malformed", "field 't_s' is not finite")
     try:
-        values = np.asarray(counts, dtype=np.int64)
+        values = np.asarray(rows, dtype=np.int64 if whole else None)
         stream = Stream(sensor, kind, t_s, values, channels)
     except (ValueError, OverflowError) as e:
         raise PayloadError("malformed", str(e)) from e
@@ -416,9 +425,9 @@ def decode(key: str, data: bytes) -> Payload:
     if not isinstance(d, dict):
         raise PayloadError("malformed", f"a JSON {type(d).__name__}, not an object")
     version = d.get("v")
-    if version != VERSIONS[kind] or isinstance(version, bool):
-        raise PayloadError("unknown_version", f"{kind} payload version {version!r}; this node reads "
-                           f"version {VERSIONS[kind]}")
+    if isinstance(version, bool) or version not in READ_VERSIONS[kind]:
+        raise PayloadError("unknown_version", f"{kind} payload version {clipped_repr(version)}; this "
+                           f"node reads version {' or '.join(map(str, READ_VERSIONS[kind]))}")
     if d.get("type") != kind:
         raise PayloadError("malformed", f"type {d.get('type')!r} on a {kind} key")
     if d.get("robot") != robot:

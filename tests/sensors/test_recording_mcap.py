@@ -21,6 +21,7 @@ from sensors.samples import (
     IMU_STREAMS,
     TRUTH_BASE_COLUMNS,
     Recording,
+    RecordingError,
     Stream,
     accel_columns,
     encoder_columns,
@@ -196,6 +197,33 @@ def test_a_file_whose_schema_says_integer_counts_reads_as_before(tmp_path: Path)
     back, _ = read_mcap(tmp_path / "old.mcap")
     acc = back.get("acc1")
     assert acc.values.dtype == np.int64 and acc.values.tolist() == [[0, -2, 250], [1, -2, 250], [2, -2, 250]]
+
+
+@pytest.mark.parametrize("version", ["1", "3"])
+def test_a_file_of_a_format_version_this_armfusion_does_not_read_is_refused_naming_it(
+        tmp_path: Path, version: str) -> None:
+    """Version 1 (before raw values could be decimals) reads as before; a later version is
+    refused with its number, not read as if its values meant what they did."""
+    from mcap.writer import Writer
+
+    with open(tmp_path / "v.mcap", "wb") as f:
+        w = Writer(f)
+        w.start()
+        w.add_metadata("armfusion", {"format_version": version, "armfusion_version": "x", "arm_config": "",
+                                     "t_offset_ns": "0"})
+        schema = json.dumps(schema_for_kind("accel")).encode()
+        sid = w.register_schema("armfusion.accel", "jsonschema", schema)
+        cid = w.register_channel("raw/acc1", "json", sid, {"stream": "acc1", "kind": "accel",
+                                                              "channels": '["acc1_x","acc1_y","acc1_z"]'})
+        w.add_message(cid, 0, b'{"t_s":0,"values":[1,-2,250]}', 0)
+        w.finish()
+    if version == "1":
+        back, _ = read_mcap(tmp_path / "v.mcap")
+        assert back.get("acc1").values.tolist() == [[1, -2, 250]]
+    else:
+        with pytest.raises(RecordingError,
+                           match=r"v\.mcap: armfusion MCAP format version '3'; this armfusion reads 1 or 2"):
+            read_mcap(tmp_path / "v.mcap")
 
 
 # ---------------------------------------------------------------------------- recorder

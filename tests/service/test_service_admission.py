@@ -213,7 +213,7 @@ def _mutated(field: str, value) -> bytes:
     return json.dumps(d, allow_nan=True).encode()
 
 
-FIELDS = ("v", "type", "robot", "sensor", "kind", "channels", "seq", "t_s", "counts")
+FIELDS = ("v", "type", "robot", "sensor", "kind", "channels", "seq", "t_s", "values")
 
 
 PAYLOAD_REASONS = ("malformed", "oversized", "unknown_version", "bad_key")
@@ -262,16 +262,16 @@ def test_fuzz_one_field_of_a_valid_batch_replaced_by_any_json(field, value, fuzz
 def test_fuzz_counts_and_times_of_any_size(counts, t, fuzz_admission):
     d = _valid()
     n = min(len(counts), len(t))
-    d["counts"], d["t_s"] = counts[:n], sorted(set(t))[:n]
-    d["counts"] = d["counts"][:len(d["t_s"])]
+    d["values"], d["t_s"] = counts[:n], sorted(set(t))[:n]
+    d["values"] = d["values"][:len(d["t_s"])]
     outcome = _decode_and_admit(json.dumps(d).encode(), fuzz_admission)
     assert outcome in (*PAYLOAD_REASONS, *REASONS, None)
-    if any(abs(c) >= 2**63 for row in d["counts"] for c in row):
+    if any(abs(c) >= 2**63 for row in d["values"] for c in row):
         assert outcome is not None  # counts no device gives are never accepted
 
 
 def test_a_deeply_nested_payload_is_malformed_not_a_crash():
-    data = b'{"v": 1, "type": "raw", "counts": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"
+    data = b'{"v": 2, "type": "raw", "values": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"
     with pytest.raises(pl.PayloadError, match="not JSON") as e:
         pl.decode(KEY, data)
     assert e.value.reason == "malformed"
@@ -318,3 +318,19 @@ def test_a_flood_of_bad_payloads_is_counted_in_full_but_logged_once_a_second(cap
     assert 2 <= len(lines) <= 10, lines  # the first of each reason, then one a second at most
     assert lines[0].startswith("serve: dropped a payload on armfusion/chair1/raw/acc1 (malformed)")
     assert any(m.startswith("serve: refused a batch of 'acc1' (out_of_range): acc1_x = 5000") for m in lines)
+
+
+def test_values_in_g_are_held_to_the_range_the_description_declares():
+    """The real rig's shaft IMU delivers g (range ±16 g in its config): a batch within it is
+    admitted as it is, one reading beyond it refused naming the value as it came."""
+    rig = load_arm("imu_rig_roll")
+    adm = Admission(rig)
+    ch = ("shaft_x", "shaft_y", "shaft_z")
+    t = 10.0 + np.arange(3) * 0.01
+    ok = np.array([[0.02, -0.98, 0.11], [0.03, -0.97, 0.12], [0.01, -0.99, 0.1]])
+    verdict = adm.check(pl.RawBatch("rig", Stream("shaft", "accel", t, ok, ch), 0), 0.0)
+    assert verdict.ok, verdict
+    bad = ok.copy()
+    bad[1, 2] = 16.5
+    verdict = adm.check(pl.RawBatch("rig", Stream("shaft", "accel", t + 0.03, bad, ch), 1), 0.0)
+    assert verdict.reason == "out_of_range" and "shaft_z = 16.5 at t = 10.04 s is beyond" in verdict.message

@@ -112,8 +112,10 @@ BAD = {
     "not json": (b"\x80not json", "malformed"),
     "a list": (b"[1, 2]", "malformed"),
     "unknown version": (None, "unknown_version"),
-    "missing counts": (None, "malformed"),
-    "float counts": (None, "malformed"),
+    "missing values": (None, "malformed"),
+    "float counts in version 1": (None, "malformed"),
+    "a bool among the values": (None, "malformed"),
+    "a NaN among the values": (None, "malformed"),
     "time going back": (None, "malformed"),
     "wrong sensor for key": (None, "malformed"),
     "oversized": (b" " * (pl.MAX_PAYLOAD_BYTES + 1), "oversized"),
@@ -126,11 +128,16 @@ def _bad_payload(case: str, rng) -> bytes:
         return data
     d = _good_raw(rng)
     if case == "unknown version":
-        d["v"] = 2
-    elif case == "missing counts":
-        del d["counts"]
-    elif case == "float counts":
+        d["v"] = 3
+    elif case == "missing values":
+        del d["values"]
+    elif case == "float counts in version 1":  # version 1 holds whole register counts only
+        d["v"], d["counts"] = 1, d.pop("values")
         d["counts"][0][0] = 1.5
+    elif case == "a bool among the values":
+        d["values"][0][0] = True
+    elif case == "a NaN among the values":
+        d["values"][0][0] = float("nan")
     elif case == "time going back":
         d["t_s"][2] = d["t_s"][1] - 1.0
     elif case == "wrong sensor for key":
@@ -176,3 +183,20 @@ def test_encode_refuses_an_oversized_batch():
                ("acc1_x", "acc1_y", "acc1_z"))
     with pytest.raises(ValueError, match="publish smaller batches"):
         pl.encode(pl.RawBatch("chair1", s, 0))
+
+
+def test_a_raw_batch_of_decimal_values_keeps_them_and_version_1_counts_still_read(rng):
+    """A sensor whose description declares its values in g (an imported recording's) goes
+    over the wire as they are, every bit kept; a version-1 batch of whole counts, from a
+    publisher not yet updated, is read as before."""
+    t = np.array([0.5, 0.51, 0.52])
+    values = np.array([[0.01, -0.98, 0.13], [0.02, -0.97, 0.12], [1.0, 0.0, -0.25]])
+    batch = pl.RawBatch("rig", Stream("shaft", "accel", t, values, ("shaft_x", "shaft_y", "shaft_z")), 3)
+    back = pl.decode(pl.raw_key("rig", "shaft"), pl.encode(batch))
+    np.testing.assert_array_equal(back.stream.values, values)
+    assert back.stream.values.dtype == np.float64
+    d = _good_raw(rng)
+    d["v"], d["counts"] = 1, d.pop("values")
+    old = pl.decode(pl.raw_key("chair1", "acc1"), json.dumps(d).encode())
+    np.testing.assert_array_equal(old.stream.values, np.array(d["counts"]))
+    assert old.stream.values.dtype == np.int64

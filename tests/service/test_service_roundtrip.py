@@ -6,6 +6,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from fusion.service import payloads as pl
 from fusion.service.record import Recorder
@@ -22,8 +23,25 @@ def _wait(pred, timeout_s: float) -> bool:
     return pred()
 
 
-def test_replay_to_record_loses_no_sample(hub_settings, startup_recording, tmp_path):
-    rec = read_recording(startup_recording)
+def _rig_slice():
+    """The first 3 s of the real rig's slice as `armfusion import` makes it: values in g and
+    deg/s with decimals (tests/data/imu-rig)."""
+    from pathlib import Path
+
+    from fusion.configfile import load_arm
+    from fusion.importing.column_map import load_column_map
+    from fusion.importing.run import import_recording
+
+    src = Path(__file__).resolve().parents[1] / "data" / "imu-rig" / "raw_roll_slow_20s.mat"
+    arm = load_arm("imu_rig_roll")
+    rec = import_recording(src, load_column_map("imu-rig"), arm, "imu_rig_roll").recording
+    return rec.between(rec.t_start_s, rec.t_start_s + 3.0)
+
+
+@pytest.mark.parametrize("source", ["simulated counts", "an imported recording's decimals"])
+def test_replay_to_record_loses_no_sample(hub_settings, startup_recording, tmp_path, source):
+    rec = read_recording(startup_recording) if source == "simulated counts" else _rig_slice()
+    assert source == "simulated counts" or rec.get("shaft").values.dtype == np.float64
     listener, connector = hub_settings
     out = tmp_path / "recorded.mcap"
     stop = threading.Event()
