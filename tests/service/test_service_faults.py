@@ -90,7 +90,7 @@ def test_bad_and_late_messages_are_counted_and_dropped_and_serving_goes_on(
         n_before = len(got.snapshot()[0])
         pub = s.declare_publisher(pl.raw_key("chair1", "acc1"))
         pub.put(b"not json")
-        pub.put(b'{"v": 2, "type": "raw"}')
+        pub.put(b'{"v": 3, "type": "raw"}')
         pub.put(b"x" * (pl.MAX_PAYLOAD_BYTES + 1))
         bad = pl.encode(pl.RawBatch("chair1", acc1.between(1.0, 1.05), 7)).replace(b'"kind":"accel"',
                                                                                    b'"kind":"bogus"')
