@@ -25,6 +25,8 @@ from models.rotations import DEG, R_from_rpy, wrap_angle
 ATTITUDE = "base.attitude"
 ATTITUDE_LABELS = ("roll", "pitch", "yaw")
 ATTITUDE_SIGMA_RAD = np.array([10 * DEG, 10 * DEG, 180 * DEG])
+CHUNK_POINTS = 1500
+"""Points per chunk of :meth:`FitProblem.normal_equations` (its memory bound)."""
 
 
 def attitude_names(n_stances: int) -> tuple[str, ...]:
@@ -301,11 +303,14 @@ class FitProblem:
         return (np.concatenate([p[s].ravel() for s in self.streams]) - y) * w / h
 
     def normal_equations(self, z: np.ndarray, cols: np.ndarray, w_stream: dict[str, float] | None = None,
-                         chunk: int = 1500) -> tuple[np.ndarray, np.ndarray, float]:
+                         chunk: int = CHUNK_POINTS, rows_out: list | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, float]:
         """``JᵀJ``, ``Jᵀr`` and ``rᵀr`` over columns ``cols``, accumulated ``chunk`` points at a
         time (memory stays bounded whatever the recording's length). Chunks overlap by two
         points on each side so the time derivatives of the time offsets are those of the
-        whole series; ``w_stream`` scales each stream's weights."""
+        whole series; ``w_stream`` scales each stream's weights. ``rows_out``: a list that
+        receives each chunk's ``(r, J)`` (the references' last); on a problem of at most
+        ``chunk`` points, stacked they are the rows of :meth:`residual_rows`."""
         n = self.data.n
         H = np.zeros((len(cols), len(cols)))
         g = np.zeros(len(cols))
@@ -320,9 +325,19 @@ class FitProblem:
             H += J.T @ J
             g += J.T @ r
             rr += float(r @ r)
+            if rows_out is not None:
+                rows_out.append((r, J))
         if self.refs:
             r, J = self.reference_rows(z, np.asarray(cols))
             H += J.T @ J
             g += J.T @ r
             rr += float(r @ r)
+            if rows_out is not None:
+                rows_out.append((r, J))
         return H, g, rr
+
+    def residual_rows(self, z: np.ndarray, w_stream: dict[str, float] | None = None) -> np.ndarray:
+        """Every weighted residual at ``z``, stream by stream, then the references': the rows
+        of :meth:`normal_equations` when the problem has at most one chunk of points."""
+        meas, w = self.measurements(None, None, w_stream)
+        return np.concatenate([(self.predict(z) - meas) * w, self.reference_residual(z)])
