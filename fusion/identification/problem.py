@@ -235,17 +235,35 @@ class FitProblem:
             jac = {s: {b: v[keep] for b, v in jac.get(s, {}).items()} for s in self.streams}
         else:
             pred = {s: pred[s] for s in self.streams}
-        D = m.dense_jacobian(jac, pred, blocks)
-        bcols = np.concatenate([np.arange(m.index[b].start, m.index[b].stop) for b in blocks]) \
-            if blocks else np.zeros(0, int)
-        pos = {c: i for i, c in enumerate(bcols)}
         y = np.concatenate([pred[s].ravel() for s in self.streams])
         if meas is None:
             meas = self.meas
         r = (y - meas) * w
         J = np.zeros((len(r), len(cols)))
+        # the model's own columns straight from each stream's block Jacobians, weighted
+        at = {int(c): i for i, c in enumerate(cols) if c < self.P and c not in enc_cols}
+        span: dict[str, slice] = {}  # each stream's rows
+        o = 0
+        for s in self.streams:
+            n_s = pred[s].size
+            span[s] = slice(o, o + n_s)
+            for b, v in jac.get(s, {}).items():
+                first = m.index[b].start
+                src = [jj for jj in range(v.shape[-1]) if first + jj in at]
+                if src:
+                    J[span[s], [at[first + jj] for jj in src]] = v.reshape(n_s, -1)[:, src] * w[span[s], None]
+            o += n_s
+
+        def offset_column(block: str) -> np.ndarray:  # a joint offset's column, unweighted
+            col = np.zeros(len(r))
+            for s in self.streams:
+                if block in jac.get(s, {}):
+                    col[span[s]] = jac[s][block].reshape(pred[s].size, -1)[:, 0]
+            return col
         enc = None
         for i, c in enumerate(cols):
+            if c < self.P and c not in enc_cols:
+                continue
             if c in enc_cols:
                 j, off = enc_cols[c]
                 if enc is None:  # each point's encoder angle, repeated over the stream's axes
@@ -255,11 +273,9 @@ class FitProblem:
                     enc = np.concatenate([np.repeat(enc, pred[s].shape[1], axis=0).reshape(
                         len(q), pred[s].shape[1], -1).reshape(-1, enc.shape[1]) for s in self.streams])
                 if off is not None:
-                    J[:, i] = D[:, pos[m.index[off].start]] * w * (-enc[:, j] / (1.0 + z[c]))
+                    J[:, i] = offset_column(off) * w * (-enc[:, j] / (1.0 + z[c]))
                 else:
                     J[:, i] = self._numeric_column(z, c, y, w, rows, keep)
-            elif c < self.P:
-                J[:, i] = D[:, pos[c]] * w
             elif self.K == 1:  # base attitude: forward differences of the model
                 J[:, i] = self._numeric_column(z, c, y, w, rows, keep)
             else:  # one stance's attitude: forward differences on that stance's points only
