@@ -18,8 +18,9 @@ least squares:
 * identifiability first (:mod:`~fusion.identification.identifiability`): what the data know
   no better than their priors is held there, its σ carried into the others' as a consider
   covariance;
-* Levenberg-Marquardt (:mod:`~fusion.identification.solver`), then each stream weighted by
-  its own residual's size and correlation and fitted again.
+* Levenberg-Marquardt with geodesic acceleration (:mod:`~fusion.identification.solver`),
+  a long recording's solves started on a quarter of its points, then each stream weighted
+  by its own residual's size and correlation and fitted again.
 
 This module is the fit itself (:func:`identify`, :func:`identify_recentred`,
 :func:`identify_separately`). Its neighbours hold the rest: ``settings``, ``data``,

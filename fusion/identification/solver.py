@@ -13,7 +13,6 @@ import numpy as np
 
 from fusion.identification.problem import CHUNK_POINTS, FitProblem
 
-
 STEP_TOL_SIGMA = 0.01
 """A solve has converged when its last step moved every element by less than this share of
 its σ (the σ the current normal equations give, priors included)."""
@@ -38,7 +37,7 @@ def coarse_points(n: int, stance: np.ndarray | None) -> np.ndarray | None:
     stance has its own attitude)."""
     if n // COARSE_FACTOR < COARSE_MIN_POINTS:
         return None
-    every = max(COARSE_FACTOR, int(np.ceil(n / CHUNK_POINTS)))
+    every = max(COARSE_FACTOR, int(np.ceil(n / (CHUNK_POINTS - COARSE_BLOCK))))
     idx = np.flatnonzero((np.arange(n) // COARSE_BLOCK) % every == 0)
     if stance is not None and np.unique(stance[idx]).size != np.unique(stance).size:
         return None
@@ -123,22 +122,14 @@ def levenberg_marquardt(pb: FitProblem, z0: np.ndarray, fcols: np.ndarray, w_str
             move = ~stuck
             Hm = H[np.ix_(move, move)] / np.outer(d[move], d[move])
             Hm[np.diag_indices_from(Hm)] += lam
-
-            def damped(b):
-                out = np.zeros_like(x)
-                try:
-                    out[move] = -np.linalg.solve(Hm, b[move] / d[move]) / d[move]
-                except np.linalg.LinAlgError:
-                    out[move] = -np.linalg.lstsq(Hm, b[move] / d[move], rcond=None)[0] / d[move]
-                return out
-            v = damped(g)
+            v = _damped_step(Hm, g, move, d)
             dx = v
             if accelerate:
                 zh = z.copy()
                 zh[fcols] = np.clip(x + ACCELERATION_H * v, lo, hi)
                 vh = (zh[fcols] - x) / ACCELERATION_H
                 rvv = 2.0 / ACCELERATION_H * ((residual(zh) - r0) / ACCELERATION_H - J @ vh)
-                a = damped(J.T @ rvv)
+                a = _damped_step(Hm, J.T @ rvv, move, d)
                 if 2.0 * np.linalg.norm(a * d) <= ACCELERATION_MAX * np.linalg.norm(v * d):
                     dx = v + 0.5 * a
                 else:
@@ -164,6 +155,17 @@ def levenberg_marquardt(pb: FitProblem, z0: np.ndarray, fcols: np.ndarray, w_str
             if lam > 1e10:
                 return z, True, k + 1  # no step lowers the cost: at the minimum (to rounding)
     return z, False, max(1, max_jac)
+
+
+def _damped_step(Hm: np.ndarray, b: np.ndarray, move: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``-(H + λD)⁻¹ b`` over the moving elements (``Hm``: the damped matrix scaled by ``d``),
+    zero for the others."""
+    out = np.zeros_like(b)
+    try:
+        out[move] = -np.linalg.solve(Hm, b[move] / d[move]) / d[move]
+    except np.linalg.LinAlgError:
+        out[move] = -np.linalg.lstsq(Hm, b[move] / d[move], rcond=None)[0] / d[move]
+    return out
 
 
 def stream_scales(pb: FitProblem, z: np.ndarray) -> dict[str, float]:
