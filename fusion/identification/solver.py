@@ -16,6 +16,8 @@ from fusion.identification.problem import CHUNK_POINTS, FitProblem
 STEP_TOL_SIGMA = 0.01
 """A solve has converged when its last step moved every element by less than this share of
 its σ (the σ the current normal equations give, priors included)."""
+COST_TOL = 1e-3
+"""... or when it lowered the cost (half the χ²) by less than this."""
 COARSE_FACTOR = 4
 """The coarse start (:func:`solve`) fits one point in this many (or fewer: at most one
 chunk of points, :data:`~fusion.identification.problem.CHUNK_POINTS`)."""
@@ -24,6 +26,8 @@ COARSE_MIN_POINTS = 250
 COARSE_BLOCK = 8
 """The coarse subset takes the points in runs of this many consecutive points (so a time
 derivative, which the time offsets use, is taken between neighbours)."""
+LAMBDA0 = 1e-3
+"""The first damping of a solve (in units of the normal matrix's diagonal)."""
 ACCELERATION_H = 0.1
 """The finite-difference step (a share of the step) of the geodesic acceleration."""
 ACCELERATION_MAX = 0.75
@@ -50,7 +54,9 @@ def solve(pb: FitProblem, coarse: FitProblem | None, z0: np.ndarray, fcols: np.n
     """:func:`levenberg_marquardt` on ``pb``, started (when ``coarse`` is given: the same
     problem on a subset of the points, :func:`coarse_points`) from the coarse problem's
     optimum, which costs a fraction of the Jacobians' time and lands next to the whole
-    recording's optimum. ``progress`` sees the coarse solve's cost scaled to the whole
+    recording's optimum; the whole recording's solve starts with the coarse one's last
+    damping (the valleys are alike: a fresh λ would take a dozen steps to fall to it
+    again). ``progress`` sees the coarse solve's cost scaled to the whole
     recording's points. Returns the estimate, whether the last solve converged and the
     Jacobians of the coarse solve."""
     n_coarse = 0
@@ -60,13 +66,17 @@ def solve(pb: FitProblem, coarse: FitProblem | None, z0: np.ndarray, fcols: np.n
 
         def scaled(k, cost):
             progress(k, cost * f)
-        z, _, n_coarse = levenberg_marquardt(coarse, z, fcols, w_stream, max_jac, scaled)
-    z, converged, _ = levenberg_marquardt(pb, z, fcols, w_stream, max(1, max_jac - n_coarse), progress)
+        z, _, n_coarse, lam = levenberg_marquardt(coarse, z, fcols, w_stream, max_jac, scaled)
+    else:
+        lam = LAMBDA0
+    z, converged, _, _ = levenberg_marquardt(pb, z, fcols, w_stream, max(1, max_jac - n_coarse), progress,
+                                             lam)
     return z, converged, n_coarse
 
 
 def levenberg_marquardt(pb: FitProblem, z0: np.ndarray, fcols: np.ndarray, w_stream: dict[str, float],
-                        max_jac: int, progress: Callable[[int, float], None]) -> tuple[np.ndarray, bool, int]:
+                        max_jac: int, progress: Callable[[int, float], None], lam: float = LAMBDA0
+                        ) -> tuple[np.ndarray, bool, int, float]:
     """Levenberg-Marquardt on the normal equations (accumulated chunk by chunk), the priors
     as pseudo-measurements, bounds by projection: an element at a bound whose gradient
     pushes it out stays there for that step.
@@ -83,11 +93,10 @@ def levenberg_marquardt(pb: FitProblem, z0: np.ndarray, fcols: np.ndarray, w_str
       tangent, which the cost lets the plain step go only a little way along.
 
     Returns the estimate, whether it converged (the last step moved every element by less
-    than :data:`STEP_TOL_SIGMA` of its σ, or lowered the cost by less than 1e-3) and the
-    Jacobians it took."""
+    than :data:`STEP_TOL_SIGMA` of its σ, or lowered the cost by less than :data:`COST_TOL`), the
+    Jacobians it took and the last damping λ (``lam``: the first)."""
     mu, sd = pb.x0[fcols], pb.sigma0[fcols]
     lo, hi = pb.lower[fcols], pb.upper[fcols]
-    meas, w = pb.measurements(None, None, w_stream)
     accelerate = pb.data.n <= CHUNK_POINTS
 
     def residual(z):
@@ -99,7 +108,7 @@ def levenberg_marquardt(pb: FitProblem, z0: np.ndarray, fcols: np.ndarray, w_str
 
     z = np.array(z0, float)
     z[fcols] = np.clip(z[fcols], lo, hi)
-    lam, nu = 1e-3, 2.0
+    nu = 2.0
     for k in range(max(1, max_jac)):
         rows: list = []
         H, g, rr = pb.normal_equations(z, fcols, w_stream, rows_out=rows if accelerate else None)
@@ -147,14 +156,14 @@ def levenberg_marquardt(pb: FitProblem, z0: np.ndarray, fcols: np.ndarray, w_str
                 nu = 2.0
                 step = zn[fcols] - x
                 z = zn
-                if c - cn <= 1e-3 or np.all(np.abs(step) <= STEP_TOL_SIGMA * sig):
-                    return z, True, k + 1
+                if c - cn <= COST_TOL or np.all(np.abs(step) <= STEP_TOL_SIGMA * sig):
+                    return z, True, k + 1, lam
                 break
             lam *= nu
             nu *= 2.0
             if lam > 1e10:
-                return z, True, k + 1  # no step lowers the cost: at the minimum (to rounding)
-    return z, False, max(1, max_jac)
+                return z, True, k + 1, lam  # no step lowers the cost: at the minimum (to rounding)
+    return z, False, max(1, max_jac), lam
 
 
 def _damped_step(Hm: np.ndarray, b: np.ndarray, move: np.ndarray, d: np.ndarray) -> np.ndarray:

@@ -85,7 +85,7 @@ def whole_fit(compass_problem):
 def test_the_solver_stops_at_the_optimum_of_a_curved_valley(compass_problem, whole_fit):
     pb = compass_problem
     fcols = np.arange(pb.size)
-    z, converged, n = whole_fit
+    z, converged, n, _ = whole_fit
     assert converged, n
     step = gauss_newton_step_in_sigma(pb, z, fcols)
     worst = int(np.argmax(step))
