@@ -183,6 +183,8 @@ class FitProblem:
 
     def _mean_nodes(self, a: np.ndarray) -> np.ndarray:
         k = self.data.nodes
+        if k == 2:  # the usual two Gauss nodes: the same sum and halving as mean(), without its overhead
+            return (a[0::2] + a[1::2]) * 0.5
         return a if k == 1 else a.reshape(a.shape[0] // k, k, *a.shape[1:]).mean(1)
 
     def predict(self, z: np.ndarray) -> np.ndarray:
