@@ -119,7 +119,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         _coarse_headings(pb, data)
     z0 = pb.x0.copy()
     # a long recording: each solve starts on a subset of the points (solver.solve)
-    idx = coarse_points(data.n, data.stance)
+    idx = coarse_points(data.n, data.stance, data.used)
     coarse = None
     if idx is not None:
         coarse = FitProblem(model, data.subset(idx), streams, st.estimate_attitude, att0,

@@ -34,17 +34,20 @@ ACCELERATION_MAX = 0.75
 """The largest ``2‖a‖/‖v‖`` (acceleration against velocity, scaled) of an accepted step."""
 
 
-def coarse_points(n: int, stance: np.ndarray | None) -> np.ndarray | None:
+def coarse_points(n: int, stance: np.ndarray | None, used: np.ndarray | None = None) -> np.ndarray | None:
     """The points of the coarse start: runs of :data:`COARSE_BLOCK` consecutive points, one
     run in every :data:`COARSE_FACTOR` (or more, to keep one chunk of points); ``None`` when
-    the subset would be shorter than :data:`COARSE_MIN_POINTS` or would miss a stance (each
-    stance has its own attitude)."""
+    the subset would be shorter than :data:`COARSE_MIN_POINTS` or would miss a stance among
+    its used points (``used``: per point, whether it enters the fit; each stance has its
+    own attitude)."""
     if n // COARSE_FACTOR < COARSE_MIN_POINTS:
         return None
     every = max(COARSE_FACTOR, int(np.ceil(n / (CHUNK_POINTS - COARSE_BLOCK))))
     idx = np.flatnonzero((np.arange(n) // COARSE_BLOCK) % every == 0)
-    if stance is not None and np.unique(stance[idx]).size != np.unique(stance).size:
-        return None
+    if stance is not None:
+        ok = np.ones(n, bool) if used is None else np.asarray(used, bool)
+        if np.unique(stance[idx][ok[idx]]).size != np.unique(stance[ok]).size:
+            return None
     return idx
 
 

@@ -67,6 +67,9 @@ def test_no_coarse_start_for_a_short_recording_or_one_that_would_miss_a_stance()
     assert coarse_points(n, stance) is None
     stance[:] = np.arange(n) // 500  # four long stances: each is in the subset
     assert coarse_points(n, stance) is not None
+    used = np.ones(n, bool)
+    used[500:1000] = np.arange(500, 1000) % (COARSE_FACTOR * COARSE_BLOCK) >= COARSE_BLOCK  # between the runs
+    assert coarse_points(n, stance, used) is None
 
 
 def test_a_long_recording_s_coarse_subset_stays_one_chunk():
