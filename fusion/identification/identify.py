@@ -18,8 +18,9 @@ least squares:
 * identifiability first (:mod:`~fusion.identification.identifiability`): what the data know
   no better than their priors is held there, its σ carried into the others' as a consider
   covariance;
-* Levenberg-Marquardt (:mod:`~fusion.identification.solver`), then each stream weighted by
-  its own residual's size and correlation and fitted again.
+* Levenberg-Marquardt with geodesic acceleration (:mod:`~fusion.identification.solver`),
+  a long recording's solves started on a quarter of its points, then each stream weighted
+  by its own residual's size and correlation and fitted again.
 
 This module is the fit itself (:func:`identify`, :func:`identify_recentred`,
 :func:`identify_separately`). Its neighbours hold the rest: ``settings``, ``data``,
@@ -76,7 +77,7 @@ from fusion.identification.result import (
     StreamFit,
 )
 from fusion.identification.settings import IdentifySettings
-from fusion.identification.solver import levenberg_marquardt, stream_scales
+from fusion.identification.solver import coarse_points, solve, stream_scales
 from fusion.identification.truth import compare_with_truth, truth_values
 from models.effects import Model
 
@@ -117,6 +118,13 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     if pb.attitude and "imu_mag" in pb.streams:
         _coarse_headings(pb, data)
     z0 = pb.x0.copy()
+    # a long recording: each solve starts on a subset of the points (solver.solve)
+    idx = coarse_points(data.n, data.stance, data.used)
+    coarse = None
+    if idx is not None:
+        coarse = FitProblem(model, data.subset(idx), streams, st.estimate_attitude, att0,
+                            encoder_scale=st.encoder_scale)
+        coarse.x0 = pb.x0  # the same priors (the coarse headings included)
     # identifiability at the prior
     all_cols = np.arange(pb.size)
     H0, _, _ = pb.normal_equations(z0, all_cols)
@@ -125,6 +133,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         free[names.index(h.element)] = False
     fcols = np.flatnonzero(free)
     n_jac = [0]
+    n_coarse = 0
 
     def counted(k, cost):
         n_jac[0] += 1
@@ -135,7 +144,8 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     w_stream = {s_: 1.0 for s_ in pb.streams}
     scale: dict[str, float] = {}
     if len(fcols):
-        z, converged = levenberg_marquardt(pb, z0, fcols, w_stream, st.max_nfev, counted)
+        z, converged, nc = solve(pb, coarse, z0, fcols, w_stream, st.max_nfev, counted)
+        n_coarse += nc
         # bilinear effects (a compass dipole's field and the IMU's position, a soft-iron matrix
         # on that field) are invisible at the prior, where the other factor is zero: analyse
         # again at the estimate and free what the data now see
@@ -156,7 +166,8 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
             holds = holds1
             fcols = np.flatnonzero(free)
             z[~free] = z0[~free]
-            z, converged = levenberg_marquardt(pb, z, fcols, w_stream, st.max_nfev, counted)
+            z, converged, nc = solve(pb, coarse, z, fcols, w_stream, st.max_nfev, counted)
+            n_coarse += nc
         # each stream at its own scale: a stream the model fits worse than its noise (or with
         # smooth, correlated residuals) counts for fewer independent readings; weight it so
         # and fit again (one pass), so its errors neither pull the others' estimates nor
@@ -164,7 +175,8 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         scale = stream_scales(pb, z)
         if any(v > 1.05 for v in scale.values()):
             w_stream = {s_: 1.0 / scale[s_] for s_ in pb.streams}
-            z, converged = levenberg_marquardt(pb, z, fcols, w_stream, st.max_nfev, counted)
+            # from the optimum at the first weights: no coarse start (it would walk away)
+            z, converged, nc = solve(pb, None, z, fcols, w_stream, st.max_nfev, counted)
             scale = stream_scales(pb, z)
         w_stream = {s_: 1.0 / scale[s_] for s_ in pb.streams}
         if not converged:
@@ -191,7 +203,7 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
         iterations=n_jac[0], seconds=time.perf_counter() - t0,
         attitude_rad=z[pb.P:pb.P + 3] if pb.attitude else None, q_ref_rad=data.q_ref_rad, mode=mode,
         notes=tuple(notes), attitudes_rad=z[pb.P:].reshape(-1, 3) if pb.attitude else None,
-        reference_checks=checks)
+        reference_checks=checks, coarse_iterations=n_coarse)
 
 
 def _coarse_headings(pb: FitProblem, data: FitData) -> None:

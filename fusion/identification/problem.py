@@ -25,6 +25,8 @@ from models.rotations import DEG, R_from_rpy, wrap_angle
 ATTITUDE = "base.attitude"
 ATTITUDE_LABELS = ("roll", "pitch", "yaw")
 ATTITUDE_SIGMA_RAD = np.array([10 * DEG, 10 * DEG, 180 * DEG])
+CHUNK_POINTS = 1500
+"""Points per chunk of :meth:`FitProblem.normal_equations` (its memory bound)."""
 
 
 def attitude_names(n_stances: int) -> tuple[str, ...]:
@@ -181,6 +183,8 @@ class FitProblem:
 
     def _mean_nodes(self, a: np.ndarray) -> np.ndarray:
         k = self.data.nodes
+        if k == 2:  # the usual two Gauss nodes: the same sum and halving as mean(), without its overhead
+            return (a[0::2] + a[1::2]) * 0.5
         return a if k == 1 else a.reshape(a.shape[0] // k, k, *a.shape[1:]).mean(1)
 
     def predict(self, z: np.ndarray) -> np.ndarray:
@@ -233,17 +237,35 @@ class FitProblem:
             jac = {s: {b: v[keep] for b, v in jac.get(s, {}).items()} for s in self.streams}
         else:
             pred = {s: pred[s] for s in self.streams}
-        D = m.dense_jacobian(jac, pred, blocks)
-        bcols = np.concatenate([np.arange(m.index[b].start, m.index[b].stop) for b in blocks]) \
-            if blocks else np.zeros(0, int)
-        pos = {c: i for i, c in enumerate(bcols)}
         y = np.concatenate([pred[s].ravel() for s in self.streams])
         if meas is None:
             meas = self.meas
         r = (y - meas) * w
         J = np.zeros((len(r), len(cols)))
+        # the model's own columns straight from each stream's block Jacobians, weighted
+        at = {int(c): i for i, c in enumerate(cols) if c < self.P and c not in enc_cols}
+        span: dict[str, slice] = {}  # each stream's rows
+        o = 0
+        for s in self.streams:
+            n_s = pred[s].size
+            span[s] = slice(o, o + n_s)
+            for b, v in jac.get(s, {}).items():
+                first = m.index[b].start
+                src = [jj for jj in range(v.shape[-1]) if first + jj in at]
+                if src:
+                    J[span[s], [at[first + jj] for jj in src]] = v.reshape(n_s, -1)[:, src] * w[span[s], None]
+            o += n_s
+
+        def offset_column(block: str) -> np.ndarray:  # a joint offset's column, unweighted
+            col = np.zeros(len(r))
+            for s in self.streams:
+                if block in jac.get(s, {}):
+                    col[span[s]] = jac[s][block].reshape(pred[s].size, -1)[:, 0]
+            return col
         enc = None
         for i, c in enumerate(cols):
+            if c < self.P and c not in enc_cols:
+                continue
             if c in enc_cols:
                 j, off = enc_cols[c]
                 if enc is None:  # each point's encoder angle, repeated over the stream's axes
@@ -253,11 +275,9 @@ class FitProblem:
                     enc = np.concatenate([np.repeat(enc, pred[s].shape[1], axis=0).reshape(
                         len(q), pred[s].shape[1], -1).reshape(-1, enc.shape[1]) for s in self.streams])
                 if off is not None:
-                    J[:, i] = D[:, pos[m.index[off].start]] * w * (-enc[:, j] / (1.0 + z[c]))
+                    J[:, i] = offset_column(off) * w * (-enc[:, j] / (1.0 + z[c]))
                 else:
                     J[:, i] = self._numeric_column(z, c, y, w, rows, keep)
-            elif c < self.P:
-                J[:, i] = D[:, pos[c]] * w
             elif self.K == 1:  # base attitude: forward differences of the model
                 J[:, i] = self._numeric_column(z, c, y, w, rows, keep)
             else:  # one stance's attitude: forward differences on that stance's points only
@@ -301,11 +321,14 @@ class FitProblem:
         return (np.concatenate([p[s].ravel() for s in self.streams]) - y) * w / h
 
     def normal_equations(self, z: np.ndarray, cols: np.ndarray, w_stream: dict[str, float] | None = None,
-                         chunk: int = 1500) -> tuple[np.ndarray, np.ndarray, float]:
+                         chunk: int = CHUNK_POINTS, rows_out: list | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, float]:
         """``JᵀJ``, ``Jᵀr`` and ``rᵀr`` over columns ``cols``, accumulated ``chunk`` points at a
         time (memory stays bounded whatever the recording's length). Chunks overlap by two
         points on each side so the time derivatives of the time offsets are those of the
-        whole series; ``w_stream`` scales each stream's weights."""
+        whole series; ``w_stream`` scales each stream's weights. ``rows_out``: a list that
+        receives each chunk's ``(r, J)`` (the references' last); on a problem of at most
+        ``chunk`` points, stacked they are the rows of :meth:`residual_rows`."""
         n = self.data.n
         H = np.zeros((len(cols), len(cols)))
         g = np.zeros(len(cols))
@@ -320,9 +343,19 @@ class FitProblem:
             H += J.T @ J
             g += J.T @ r
             rr += float(r @ r)
+            if rows_out is not None:
+                rows_out.append((r, J))
         if self.refs:
             r, J = self.reference_rows(z, np.asarray(cols))
             H += J.T @ J
             g += J.T @ r
             rr += float(r @ r)
+            if rows_out is not None:
+                rows_out.append((r, J))
         return H, g, rr
+
+    def residual_rows(self, z: np.ndarray, w_stream: dict[str, float] | None = None) -> np.ndarray:
+        """Every weighted residual at ``z``, stream by stream, then the references': the rows
+        of :meth:`normal_equations` when the problem has at most one chunk of points."""
+        meas, w = self.measurements(None, None, w_stream)
+        return np.concatenate([(self.predict(z) - meas) * w, self.reference_residual(z)])

@@ -111,6 +111,9 @@ class Identification:
     """Roll, pitch, yaw of every parked stance ``(K, 3)`` (``attitude_rad`` is the first)."""
     reference_checks: tuple[ReferenceCheck, ...] = ()
     """Each one-time joint reference of the data against the rest of the fit."""
+    coarse_iterations: int = 0
+    """Of ``iterations``, the Jacobians of the coarse starts (a subset of the points,
+    :func:`fusion.identification.solver.solve`)."""
 
     @property
     def references_contradicted(self) -> list[ReferenceCheck]:
@@ -169,7 +172,8 @@ class Identification:
             "fit": [{"stream": f.stream, "unit": f.unit, "rms": f.rms.tolist(), "noise": f.noise.tolist()}
                     for f in self.fits],
             "chi2_red": self.chi2_red, "n_samples": self.n_samples, "n_residuals": self.n_residuals,
-            "iterations": self.iterations, "seconds": round(self.seconds, 3),
+            "iterations": self.iterations, "coarse_iterations": self.coarse_iterations,
+            "seconds": round(self.seconds, 3),
             "attitude_deg": None if self.attitude_rad is None else np.degrees(self.attitude_rad).tolist(),
             "stance_attitudes_deg": None if self.attitudes_rad is None
             else np.degrees(self.attitudes_rad).tolist(),

@@ -17,7 +17,8 @@ class IdentifySettings:
     partner_weight: float = 0.25
     """An element is named as part of a combination when its share exceeds this."""
     max_nfev: int = 100
-    """Most Jacobians (Levenberg-Marquardt iterations) per solve."""
+    """Most Jacobians (Levenberg-Marquardt iterations) per solve, its coarse start's
+    included (:func:`fusion.identification.solver.solve`)."""
     estimate_attitude: bool = True
     """Estimate the base attitude (gravity and Earth-field directions); else take it as zero
     (the base level and facing magnetic north) or as the data's state says."""

@@ -1,7 +1,8 @@
 """The solver of a fit: Levenberg-Marquardt on the normal equations of a
 :class:`~fusion.identification.problem.FitProblem` (the priors as pseudo-measurements,
-bounds by projection), and each stream's scale, the factor by which its residual exceeds
-what white noise at its weights would give.
+bounds by projection), started on a coarse subset of the points when the recording is
+long, and each stream's scale, the factor by which its residual exceeds what white noise
+at its weights would give.
 """
 
 from __future__ import annotations
@@ -10,62 +11,173 @@ from collections.abc import Callable
 
 import numpy as np
 
-from fusion.identification.problem import FitProblem
+from fusion.identification.problem import CHUNK_POINTS, FitProblem
+
+STEP_TOL_SIGMA = 0.01
+"""A solve has converged when its last step moved every element by less than this share of
+its σ (the σ the current normal equations give, priors included)."""
+COST_TOL = 1e-3
+"""... or when it lowered the cost (half the χ²) by less than this."""
+COARSE_FACTOR = 4
+"""The coarse start (:func:`solve`) fits one point in this many (or fewer: at most one
+chunk of points, :data:`~fusion.identification.problem.CHUNK_POINTS`)."""
+COARSE_MIN_POINTS = 250
+"""A recording gets a coarse start when its coarse subset still has this many points."""
+COARSE_BLOCK = 8
+"""The coarse subset takes the points in runs of this many consecutive points (so a time
+derivative, which the time offsets use, is taken between neighbours)."""
+LAMBDA0 = 1e-3
+"""The first damping of a solve (in units of the normal matrix's diagonal)."""
+ACCELERATION_H = 0.1
+"""The finite-difference step (a share of the step) of the geodesic acceleration."""
+ACCELERATION_MAX = 0.75
+"""The largest ``2‖a‖/‖v‖`` (acceleration against velocity, scaled) of an accepted step."""
+
+
+def coarse_points(n: int, stance: np.ndarray | None, used: np.ndarray | None = None) -> np.ndarray | None:
+    """The points of the coarse start: runs of :data:`COARSE_BLOCK` consecutive points, one
+    run in every :data:`COARSE_FACTOR` (or more, to keep one chunk of points); ``None`` when
+    the subset would be shorter than :data:`COARSE_MIN_POINTS` or would miss a stance among
+    its used points (``used``: per point, whether it enters the fit; each stance has its
+    own attitude)."""
+    if n // COARSE_FACTOR < COARSE_MIN_POINTS:
+        return None
+    every = max(COARSE_FACTOR, int(np.ceil(n / (CHUNK_POINTS - COARSE_BLOCK))))
+    idx = np.flatnonzero((np.arange(n) // COARSE_BLOCK) % every == 0)
+    if stance is not None:
+        ok = np.ones(n, bool) if used is None else np.asarray(used, bool)
+        if np.unique(stance[idx][ok[idx]]).size != np.unique(stance[ok]).size:
+            return None
+    return idx
+
+
+def solve(pb: FitProblem, coarse: FitProblem | None, z0: np.ndarray, fcols: np.ndarray,
+          w_stream: dict[str, float], max_jac: int, progress: Callable[[int, float], None]
+          ) -> tuple[np.ndarray, bool, int]:
+    """:func:`levenberg_marquardt` on ``pb``, started (when ``coarse`` is given: the same
+    problem on a subset of the points, :func:`coarse_points`) from the coarse problem's
+    optimum, which costs a fraction of the Jacobians' time and lands next to the whole
+    recording's optimum; the whole recording's solve starts with the coarse one's last
+    damping (the valleys are alike: a fresh λ would take a dozen steps to fall to it
+    again). ``progress`` sees the coarse solve's cost scaled to the whole
+    recording's points. Returns the estimate, whether the last solve converged and the
+    Jacobians of the coarse solve."""
+    n_coarse = 0
+    z = z0
+    if coarse is not None:
+        f = pb.data.n / coarse.data.n
+
+        def scaled(k, cost):
+            progress(k, cost * f)
+        z, _, n_coarse, lam = levenberg_marquardt(coarse, z, fcols, w_stream, max_jac, scaled)
+    else:
+        lam = LAMBDA0
+    z, converged, _, _ = levenberg_marquardt(pb, z, fcols, w_stream, max(1, max_jac - n_coarse), progress,
+                                             lam)
+    return z, converged, n_coarse
 
 
 def levenberg_marquardt(pb: FitProblem, z0: np.ndarray, fcols: np.ndarray, w_stream: dict[str, float],
-                        max_jac: int, progress: Callable[[int, float], None]) -> tuple[np.ndarray, bool]:
+                        max_jac: int, progress: Callable[[int, float], None], lam: float = LAMBDA0
+                        ) -> tuple[np.ndarray, bool, int, float]:
     """Levenberg-Marquardt on the normal equations (accumulated chunk by chunk), the priors
     as pseudo-measurements, bounds by projection: an element at a bound whose gradient
-    pushes it out stays there for that step. Returns the estimate and whether it converged
-    (the cost lowered by less than 0.05, a tenth of a unit of χ², or every step below 1e-3
-    of its prior σ)."""
+    pushes it out stays there for that step.
+
+    * The damping follows each step's gain ratio ρ (Nielsen's rule: ``λ ← λ·max(1/3,
+      1 - (2ρ - 1)³)`` after a step that lowers the cost, ``λ ← λν, ν ← 2ν`` after one that
+      does not), so a good step is not followed by a trial the cost rejects.
+    * On a problem of one chunk of points (the Jacobian kept), each step ``v`` gets its
+      geodesic acceleration (Transtrum & Sethna 2012): the residuals' second derivative
+      along ``v`` from one more evaluation, ``r_vv ≈ 2/h·((r(x + hv) - r(x))/h - Jv)``, and
+      ``a = -(JᵀJ + λD)⁻¹ Jᵀr_vv``; the step is ``v + a/2``, accepted while ``2‖a‖/‖v‖ ≤``
+      :data:`ACCELERATION_MAX`. The step then follows a curved valley (a heading against
+      the compass's hard iron, a soft iron against the arm's dipoles) instead of its
+      tangent, which the cost lets the plain step go only a little way along.
+
+    Returns the estimate, whether it converged (the last step moved every element by less
+    than :data:`STEP_TOL_SIGMA` of its σ, or lowered the cost by less than :data:`COST_TOL`), the
+    Jacobians it took and the last damping λ (``lam``: the first)."""
     mu, sd = pb.x0[fcols], pb.sigma0[fcols]
     lo, hi = pb.lower[fcols], pb.upper[fcols]
-    meas, w = pb.measurements(None, None, w_stream)
+    accelerate = pb.data.n <= CHUNK_POINTS
 
-    def cost(z):
-        r = (pb.predict(z) - meas) * w
+    def residual(z):
+        return pb.residual_rows(z, w_stream)
+
+    def cost_of(r, z):
         p = (z[fcols] - mu) / sd
-        a = pb.reference_residual(z)
-        return 0.5 * float(r @ r + p @ p + a @ a)
+        return 0.5 * float(r @ r + p @ p)
 
     z = np.array(z0, float)
     z[fcols] = np.clip(z[fcols], lo, hi)
-    lam = 1e-3
-    c = None
+    nu = 2.0
     for k in range(max(1, max_jac)):
-        H, g, rr = pb.normal_equations(z, fcols, w_stream)
+        rows: list = []
+        H, g, rr = pb.normal_equations(z, fcols, w_stream, rows_out=rows if accelerate else None)
+        if accelerate:
+            r0 = np.concatenate([r for r, _ in rows])
+            J = np.concatenate([j for _, j in rows])
         x = z[fcols]
         H = H + np.diag(1.0 / sd**2)
         g = g + (x - mu) / sd**2
         c = 0.5 * (rr + float(np.sum(((x - mu) / sd) ** 2)))
         progress(k + 1, c)
         d = np.sqrt(np.clip(np.diag(H), 1e-300, None))
+        # each element's σ at these normal equations (in prior units H is well scaled)
+        try:
+            sig = np.sqrt(np.clip(np.diag(np.linalg.inv(H * np.outer(sd, sd))), 0, None)) * sd
+        except np.linalg.LinAlgError:
+            sig = sd
         while True:
             stuck = ((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0))
             move = ~stuck
-            dx = np.zeros_like(x)
             Hm = H[np.ix_(move, move)] / np.outer(d[move], d[move])
             Hm[np.diag_indices_from(Hm)] += lam
-            try:
-                dx[move] = -np.linalg.solve(Hm, g[move] / d[move]) / d[move]
-            except np.linalg.LinAlgError:
-                dx[move] = -np.linalg.lstsq(Hm, g[move] / d[move], rcond=None)[0] / d[move]
-            zn = z.copy()
-            zn[fcols] = np.clip(x + dx, lo, hi)
-            cn = cost(zn)
+            v = _damped_step(Hm, g, move, d)
+            dx = v
+            if accelerate:
+                zh = z.copy()
+                zh[fcols] = np.clip(x + ACCELERATION_H * v, lo, hi)
+                vh = (zh[fcols] - x) / ACCELERATION_H
+                rvv = 2.0 / ACCELERATION_H * ((residual(zh) - r0) / ACCELERATION_H - J @ vh)
+                a = _damped_step(Hm, J.T @ rvv, move, d)
+                if 2.0 * np.linalg.norm(a * d) <= ACCELERATION_MAX * np.linalg.norm(v * d):
+                    dx = v + 0.5 * a
+                else:
+                    dx = None  # the step bends too much for its length: shorten it
+            cn = np.inf
+            if dx is not None:
+                zn = z.copy()
+                zn[fcols] = np.clip(x + dx, lo, hi)
+                cn = cost_of(residual(zn), zn)
             if cn <= c:
-                lam = max(lam / 5.0, 1e-9)
-                step = np.max(np.abs(zn[fcols] - x) / sd)
+                vs = np.clip(x + v, lo, hi) - x
+                predicted = -float(g @ vs + 0.5 * vs @ H @ vs)
+                rho = (c - cn) / predicted if predicted > 0 else 0.0
+                lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-12)
+                nu = 2.0
+                step = zn[fcols] - x
                 z = zn
-                if c - cn <= max(1e-7 * c, 0.05) or step < 1e-3:
-                    return z, True
+                if c - cn <= COST_TOL or np.all(np.abs(step) <= STEP_TOL_SIGMA * sig):
+                    return z, True, k + 1, lam
                 break
-            lam *= 5.0
+            lam *= nu
+            nu *= 2.0
             if lam > 1e10:
-                return z, True  # no step lowers the cost: at the minimum (to rounding)
-    return z, False
+                return z, True, k + 1, lam  # no step lowers the cost: at the minimum (to rounding)
+    return z, False, max(1, max_jac), lam
+
+
+def _damped_step(Hm: np.ndarray, b: np.ndarray, move: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``-(H + λD)⁻¹ b`` over the moving elements (``Hm``: the damped matrix scaled by ``d``),
+    zero for the others."""
+    out = np.zeros_like(b)
+    try:
+        out[move] = -np.linalg.solve(Hm, b[move] / d[move]) / d[move]
+    except np.linalg.LinAlgError:
+        out[move] = -np.linalg.lstsq(Hm, b[move] / d[move], rcond=None)[0] / d[move]
+    return out
 
 
 def stream_scales(pb: FitProblem, z: np.ndarray) -> dict[str, float]:
