@@ -218,10 +218,10 @@ def calibrate_sensors(
     _print(res, write)
 
 
-EXPECTED_JACOBIANS = 20
-"""Jacobians a calibration fit takes, for the bar's time left: 13 on a 30 s renk-maneuver,
-16 on the full 1664 s one (realistic effects, 6657 points); past it the bar expects one more
-at a time."""
+EXPECTED_JACOBIANS = 50
+"""Jacobians a calibration fit takes, for the bar's time left: 44 measured on 300 s of the
+realistic WMRA's renk-maneuver (34 of them on the coarse subset), 55 on 60 s
+(``docs/identification.md``); past it the bar expects one more at a time."""
 
 
 def _jacobians(advance, fits: int = 1):
