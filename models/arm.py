@@ -265,14 +265,17 @@ class ChainArrays:
 
     @classmethod
     def from_joints(cls, joints: tuple[Joint, ...]) -> ChainArrays:
-        axis = np.stack([j.axis for j in joints])
+        # a zero-joint arm (an IMU alone) has empty arrays of the same trailing shapes
+        def stack(values, shape):
+            return np.stack(values) if values else np.zeros((0, *shape))
+        axis = stack([j.axis for j in joints], (3,))
         return cls(
-            R_pre=_frozen(np.stack([j.R_pre for j in joints])),
-            p_pre_m=_frozen(np.stack([j.p_pre_m for j in joints])),
+            R_pre=_frozen(stack([j.R_pre for j in joints], (3, 3))),
+            p_pre_m=_frozen(stack([j.p_pre_m for j in joints], (3,))),
             axis=_frozen(axis),
-            R_post=_frozen(np.stack([j.R_post for j in joints])),
-            p_post_m=_frozen(np.stack([j.p_post_m for j in joints])),
-            offset_rad=_frozen([j.offset_rad for j in joints]),
+            R_post=_frozen(stack([j.R_post for j in joints], (3, 3))),
+            p_post_m=_frozen(stack([j.p_post_m for j in joints], (3,))),
+            offset_rad=_frozen(np.array([j.offset_rad for j in joints], dtype=float)),
             axis_is_z=bool(np.allclose(axis, [0.0, 0.0, 1.0])),
         )
 

@@ -352,9 +352,14 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
         roles = [(s.get("name"), _role(s)) for s in sensors if isinstance(s, dict)]
         accels = [nm for nm, role in roles if role == "link"]
         imus = [nm for nm, role in roles if role == "base_imu"]
-        if not accels and all(role is not None for _, role in roles):
+        if not accels and all(role is not None for _, role in roles) and n != 0:
+            # an arm with joints needs a link accelerometer to read them; a zero-joint arm
+            # (an IMU alone, docs/tracking.md "An IMU alone") needs only its base IMU
             out.append(ConfigProblem(source, "sensors", len(sensors),
                                      "the arm has no link accelerometer"))
+        if n == 0 and not imus and all(role is not None for _, role in roles):
+            out.append(ConfigProblem(source, "sensors", len(sensors),
+                                     "an arm with no joints needs a base IMU (an imu on link 0)"))
         if len(imus) > 1:
             out.append(ConfigProblem(source, "sensors", ", ".join(map(str, imus)),
                                      "more than one IMU on the base (link 0); the base has one"))

@@ -19,10 +19,20 @@ from fusion.tracking.frames import Frames
 from fusion.tracking.scoring import errors, truth_at, truth_summary
 from fusion.tracking.settings import C_SAMPLES, C_SATURATED, ENC, GYRO, JOINT_FLAGS, MAG, SENSOR_STATUS
 from models.sensor_models import mpu9150_temperature_c
-from sensors.samples import Recording
+from sensors.samples import Recording, Stream
 
 PREPARED_MAX = 1024
 """The most instants whose kinematic frames a run holds at once (about 2 kB each)."""
+
+
+def joint_free_clock(rec: Recording) -> Stream:
+    """An arm with no joints has no encoder: its instants are the base gyro's, as an encoder
+    stream of no counts (``(N, 0)``), so that the filter's one path steps on them."""
+    g = rec.get(GYRO)
+    if g is None or not len(g):
+        raise ValueError("an arm with no joints is tracked from its base IMU, and the recording "
+                         "has no gyro stream 'imu_gyro'")
+    return Stream(ENC, "encoder", g.t_s, np.zeros((len(g.t_s), 0), dtype=np.int64), ())
 
 
 def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool = True,
@@ -43,6 +53,8 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
     block = int(block)
     t0_wall = time.perf_counter()
     raw = {s: rec.get(s) for s in tr.sensor_names if rec.get(s) is not None and len(rec.get(s))}
+    if ENC not in raw and tr.arm.n_joints == 0 and GYRO in raw:
+        raw[ENC] = joint_free_clock(rec)
     if ENC not in raw:
         raise ValueError("the recording has no encoder stream 'enc': nothing to track")
     tr.set_rates({s: (v.rate_hz or 100.0) for s, v in raw.items()})

@@ -192,10 +192,11 @@ class StateLayout:
 
     def __post_init__(self):
         n, start = self.n_joints, 0
-        for name, width in (("offset", n), ("roll", 0), ("pitch", 0), ("accel", 3), ("yaw", 0), ("bias", 3),
-                            ("imu_bias", 3)):
-            object.__setattr__(self, name, slice(start, start + width) if width else start)
-            start += max(width, 1)
+        # width None: a scalar block (an index); the offsets are a slice even with no joints
+        for name, width in (("offset", n), ("roll", None), ("pitch", None), ("accel", 3), ("yaw", None),
+                            ("bias", 3), ("imu_bias", 3)):
+            object.__setattr__(self, name, start if width is None else slice(start, start + width))
+            start += 1 if width is None else width
         object.__setattr__(self, "size", start)
 
     def names(self, joint_names) -> tuple[str, ...]:
