@@ -158,6 +158,17 @@ class ArmCalibration:
 
 
 @dataclass(frozen=True)
+class BaseMotion:
+    """How the base moves when it does, as the tracker models its own acceleration: a
+    first-order Gauss-Markov process of steady-state spread ``accel_sigma_mps2`` and
+    correlation time ``accel_tau_s``. Without one the tracker's settings hold a wheelchair's
+    (0.7 m/s², 5 s); an IMU held in a hand moves faster and more briefly."""
+
+    accel_sigma_mps2: float
+    accel_tau_s: float
+
+
+@dataclass(frozen=True)
 class ArmModel:
     """A validated arm: joints, sensors, limits and poses. Built once from a config."""
 
@@ -169,6 +180,7 @@ class ArmModel:
     source: str = ""
     effects: tuple = ()
     calibration: ArmCalibration = field(default_factory=ArmCalibration)
+    base_motion: BaseMotion | None = None
 
     # -- derived views -------------------------------------------------------------
     @property

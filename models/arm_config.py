@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from models.arm import (
     ArmCalibration,
     ArmModel,
+    BaseMotion,
     CorrectionCovariance,
     DhTable,
     Joint,
@@ -221,11 +222,20 @@ class ArmSection(_Strict):
     ready_pose_deg: list[float]
 
 
+class BaseMotionSection(_Strict):
+    """The ``base_motion:`` block: how the base moves (its acceleration's spread and
+    correlation time), where it is not a wheelchair."""
+
+    accel_sigma_mps2: float = Field(gt=0.0, le=200.0)
+    accel_tau_s: float = Field(gt=0.0, le=3600.0)
+
+
 class ArmConfigFile(_Strict):
     arm: ArmSection
     sensors: list[SensorSection]
     effects: list[EffectEntry] = Field(default_factory=list)
     calibration: CalibrationSection = Field(default_factory=CalibrationSection)
+    base_motion: BaseMotionSection | None = None
 
 
 def _loc(loc: tuple) -> str:
@@ -450,6 +460,8 @@ def build_arm(
         ready_pose_rad=_ro(np.array(arm.ready_pose_deg) * DEG), dh=dh_table, source=source,
         effects=tuple(parsed.effects),
         calibration=_calibration(parsed.calibration),
+        base_motion=(None if parsed.base_motion is None else
+                     BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s)),
     )
 
 

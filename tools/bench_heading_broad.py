@@ -158,7 +158,8 @@ class Scores:
     no_estimate: int
 
 
-def scores(q_imu: np.ndarray, q_opt: np.ndarray, movement: np.ndarray) -> tuple[Scores, np.ndarray, np.ndarray]:
+def scores(q_imu: np.ndarray, q_opt: np.ndarray,
+           movement: np.ndarray) -> tuple[Scores, np.ndarray, np.ndarray]:
     """The benchmark's RMSEs of ``q_imu`` against ``q_opt`` over ``movement``; also the scored
     mask and the heading error (rad) per sample."""
     mv = np.asarray(movement, bool)
@@ -359,7 +360,8 @@ def report_md(rows: list[TrialResult], data: Path) -> str:
         "filter's world turned into the reference's ENU by a fixed turn only (the benchmark's own "
         "alignment: the tool's docstring).",
         "",
-        "| trial | scored (NaN ref.) | " + " | ".join(f"{n} heading / incl. / total [deg]" for n in names) + " |",
+        "| trial | scored (NaN ref.) | "
+        + " | ".join(f"{n} heading / incl. / total [deg]" for n in names) + " |",
         "| --- | --- | " + " | ".join("---" for _ in names) + " |",
     ]
     for r in rows:
@@ -378,7 +380,8 @@ def report_md(rows: list[TrialResult], data: Path) -> str:
     lines.append("")
     for r in rows:
         tag = " (magnetic disturbance)" if MAGNETIC in r.trial else ""
-        lines.append(f"- {r.trial}{tag}: {100 * r.within_3sigma:.1f} % (sigma {r.heading_sigma_median_deg:.2f} deg)")
+        lines.append(f"- {r.trial}{tag}: {100 * r.within_3sigma:.1f} % "
+                     f"(sigma {r.heading_sigma_median_deg:.2f} deg)")
     lines += ["", f"Machine: {machine_line()}."]
     return "\n".join(lines)
 
@@ -411,7 +414,8 @@ def main(argv=None) -> int:
             s = f.scores
             print(f"  {f.name:14s} heading {s.heading_deg:6.2f}  incl. {s.inclination_deg:6.2f}  total "
                   f"{s.total_deg:6.2f} deg  ({s.scored:,} scored, {s.nan_reference:,} NaN ref., "
-                  f"{s.no_estimate} no estimate; still offset {f.still_offset_deg:+.1f} deg; {f.seconds:.1f} s)",
+                  f"{s.no_estimate} no estimate; still offset {f.still_offset_deg:+.1f} deg; "
+                  f"{f.seconds:.1f} s)",
                   flush=True)
         print(f"  armfusion heading within 3 sigma: {100 * r.within_3sigma:.1f} % "
               f"(median sigma {r.heading_sigma_median_deg:.2f} deg)", flush=True)
@@ -423,8 +427,9 @@ def main(argv=None) -> int:
         a.json.write_text(json.dumps({r.trial: {
             "samples": r.samples, "movement": r.movement, "within_3sigma": r.within_3sigma,
             "heading_sigma_median_deg": r.heading_sigma_median_deg,
-            "filters": {f.name: {"library": f.library, **f.scores.__dict__, "still_offset_deg": f.still_offset_deg,
-                                 "seconds": f.seconds} for f in r.results.values()}} for r in rows}, indent=1) + "\n")
+            "filters": {f.name: {"library": f.library, **f.scores.__dict__,
+                                 "still_offset_deg": f.still_offset_deg, "seconds": f.seconds}
+                        for f in r.results.values()}} for r in rows}, indent=1) + "\n")
     if a.no_write:
         print(md)
     else:

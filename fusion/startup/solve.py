@@ -232,8 +232,10 @@ def _base_tilt_only(arm: ArmModel, readings: StillReadings, st: StartupSettings,
                     method: str) -> StartupResult:
     """An arm with no joints (an IMU alone): the base's roll and pitch from its IMU's
     averaged reading in closed form (:func:`models.rotations.tilt_from_up`, as the joint
-    solve starts from), their covariance from the reading's sigma through the same
-    direction's Jacobian, times the safety factor. No joint, no branch."""
+    solve starts from), their covariance from the reading's sigma (its noise over the
+    window, as the joint solve takes the IMU's: what the IMU accelerometer is off by is
+    the tracker's ``imu_bias`` state, whose prior is the config's unmodelled error) through
+    the same direction's Jacobian, times the safety factor. No joint, no branch."""
     if readings.imu_mean_g is None or arm.imu is None:
         raise StartupInputError("an arm with no joints is started from its base IMU, and the still "
                                 "window has no IMU accelerometer reading")
@@ -260,9 +262,10 @@ def _base_tilt_only(arm: ArmModel, readings: StillReadings, st: StartupSettings,
         t_start_s=readings.t_start_s, t_end_s=readings.t_end_s,
         candidates_rad=np.zeros((1, 0)), candidates_covariance=cov[None],
         notes=("no joints: the base tilt from the IMU accelerometer alone",))
+    sig_deg = np.degrees([result.roll_sigma_rad, result.pitch_sigma_rad])
     return replace(result, summary=(f"no joints; base roll {np.degrees(roll):.2f} deg, pitch "
-                                    f"{np.degrees(pitch):.2f} deg (sigma {np.degrees(result.roll_sigma_rad):.3f}, "
-                                    f"{np.degrees(result.pitch_sigma_rad):.3f} deg)"))
+                                    f"{np.degrees(pitch):.2f} deg (sigma {sig_deg[0]:.3f}, "
+                                    f"{sig_deg[1]:.3f} deg)"))
 
 
 def _fitting_branches(problem: StillWindowProblem, st: StartupSettings, prior: StartupPrior | None,
