@@ -361,7 +361,7 @@ class Tracker:
         plan = ms.plan(key, k, still, mag is not None)
         angle_rows = (m - 1,) if mag is not None else ()
         shift = self.compass.heading_shift_rad() if mag is not None else 0.0
-        inn = ukf.innovate(z, ms.h_tangent, var, plan, angle_rows=angle_rows,
+        inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows,
                            frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
         accept = inn.gate_ok.copy()
         gate_l = inn.gate_ok.tolist()
@@ -380,7 +380,7 @@ class Tracker:
             # its acceleration, held near zero while it stood, must be free to follow at once
             self.still.set_off()
             ukf.inflate(np.arange(L.accel.start, L.accel.stop), st.base_accel_sigma_mps2**2)
-            inn = ukf.innovate(z, ms.h_tangent, var, plan, angle_rows=angle_rows,
+            inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows,
                                frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
             accept = inn.gate_ok.copy()
             if still:
@@ -406,6 +406,12 @@ class Tracker:
             accept[-1] = use
             mask = ms.heading_mask(m)
         ukf.correct(inn, accept, self.observability.hold, mask)
+
+    def _h_tangent(self, X: np.ndarray, **kw) -> np.ndarray:
+        """Every measurement at sigma points whose attitude is in the filter's tangent space
+        (:meth:`fusion.tracking.process.ProcessModel.fx_tangent`), through the Euler-angle
+        models (:meth:`fusion.tracking.measurement.Measurements.h_all`)."""
+        return self.measurements.h_all(self.process.euler_points(X), **kw)
 
     def _reacquire(self, i: int, t: float) -> None:
         self.slips.reacquire(i, t, self._ukf, self.health, self.observability.locked)

@@ -13,7 +13,7 @@ import numpy as np
 from fusion.tracking.differentiator import derivative_noise_gain
 from fusion.tracking.frames import Frames
 from fusion.tracking.settings import GYRO, MAG, G, StateLayout, TrackerSettings
-from fusion.tracking.tracker_kernels import measurement_points, points_from_tangent
+from fusion.tracking.tracker_kernels import measurement_points
 from fusion.tracking.ukf_groups import GroupPlan, MeasurementGroup, nis_bound
 from models.motion import cross
 from models.rotations import DEG
@@ -78,14 +78,6 @@ class Measurements:
         return measurement_points(np.ascontiguousarray(X), sel, self.links, frame.axes, frame.offset_ref,
                                   frame.motion_mps2, frame.R_0S, self.imu_index, L.roll, n + 2, L.yaw,
                                   n + 9, G, bool(still), field, shift)
-
-    def h_tangent(self, X, frame: Frames, sel, m_B, still=False, heading_shift_rad: float = 0.0):
-        """:meth:`h_all` at points whose attitude is in the filter's tangent space (the central
-        point's Euler angles plus a world-axis rotation vector:
-        :meth:`fusion.tracking.process.ProcessModel.fx_tangent`)."""
-        L = self.layout
-        return self.h_all(points_from_tangent(np.ascontiguousarray(X), L.roll, L.yaw), frame, sel, m_B,
-                          still, heading_shift_rad)
 
     def with_noise(self, frames: Frames) -> Frames:
         """``frames`` with the accelerometers' measurement variances at their instants

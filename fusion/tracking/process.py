@@ -10,8 +10,13 @@ import math
 import numpy as np
 
 from fusion.tracking.settings import G, StateLayout, TrackerSettings
-from fusion.tracking.tracker_kernels import points_from_tangent, process_points, tangent_from_points
-from models.rotations import DEG, R_from_rpy, exp_so3_one, rpy_from_R, wrap_angle
+from fusion.tracking.tracker_kernels import (
+    fold_attitude,
+    points_from_tangent,
+    process_points,
+    process_points_tangent,
+)
+from models.rotations import DEG
 
 
 def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray) -> np.ndarray:
@@ -42,6 +47,7 @@ class ProcessModel:
 
     def __init__(self, settings: TrackerSettings, layout: StateLayout):
         self.settings, self.layout = settings, layout
+        self.last_points: tuple[np.ndarray, np.ndarray] | None = None
         self._decay: dict[float, float] = {}
         self._Q: dict = {}
         self._zeros3 = np.zeros(3)
@@ -53,14 +59,19 @@ class ProcessModel:
         The points' attitude columns are Euler angles (the filter calls
         :meth:`fx_tangent`)."""
         L = self.layout
+        decay = self._decay_of(dt)
+        have_w = w is not None
+        return process_points(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
+                              L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay)
+
+    def _decay_of(self, dt: float) -> float:
+        """The base acceleration's decay over ``dt`` (cached)."""
         decay = self._decay.get(dt)
         if decay is None:
             if len(self._decay) > 64:
                 self._decay.clear()
             decay = self._decay[dt] = math.exp(-dt / self.settings.base_accel_tau_s)
-        have_w = w is not None
-        return process_points(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
-                              L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay)
+        return decay
 
     def fx_tangent(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
         """:meth:`fx` for points whose attitude is in the filter's tangent space (the central
@@ -70,8 +81,21 @@ class ProcessModel:
         (:func:`~fusion.tracking.tracker_kernels.points_from_tangent`), and back about the
         propagated central point."""
         L = self.layout
-        Y = self.fx(points_from_tangent(np.ascontiguousarray(X), L.roll, L.yaw), dt, w)
-        return tangent_from_points(Y, L.roll, L.yaw)
+        decay = self._decay_of(dt)
+        have_w = w is not None
+        T, Y = process_points_tangent(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
+                                      L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay)
+        self.last_points = (T, Y)  # the propagated points, in the tangent space and in Euler angles
+        return T
+
+    def euler_points(self, X: np.ndarray) -> np.ndarray:
+        """Points in the tangent space as Euler-angle points (the last propagated ones are
+        kept: an update at the predicted points does not convert them again)."""
+        last = self.last_points
+        if last is not None and (X is last[0] or (X.base is last[0] and X.shape == last[0].shape)):
+            return last[1]
+        L = self.layout
+        return points_from_tangent(np.ascontiguousarray(X), L.roll, L.yaw)
 
     def fold_attitude(self, x: np.ndarray, anchor_rpy: np.ndarray) -> np.ndarray:
         """The state ``x`` with its attitude columns, held as ``anchor_rpy`` plus a world-axis
@@ -81,11 +105,8 @@ class ProcessModel:
         left as it is: it is ``δ``'s, about the new mean (a multiplicative filter's reset,
         to first order)."""
         L = self.layout
-        a = np.asarray(anchor_rpy, float)
-        d = np.array([x[L.roll] - a[0], x[L.pitch] - a[1], wrap_angle(x[L.yaw] - a[2])])
-        out = np.array(x, dtype=float)
-        out[[L.roll, L.pitch, L.yaw]] = rpy_from_R(exp_so3_one(d) @ R_from_rpy(*a))
-        return out
+        return fold_attitude(np.ascontiguousarray(x, dtype=float),
+                             np.ascontiguousarray(anchor_rpy, dtype=float), L.roll, L.yaw)
 
     def Q(self, dt: float, have_gyro: bool, still: bool) -> np.ndarray:
         """The process noise over ``dt`` (cached)."""

@@ -115,6 +115,93 @@ def tangent_from_points(Y, roll, yaw):  # pragma: no cover - compiled
     return Z
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _canonical_euler(A):  # pragma: no cover - compiled
+    """Roll, pitch (within ±pi/2) and yaw of the rotation ``A (3, 3)``
+    (:func:`models.rotations.rpy_from_R`, pitch by ``atan2`` to stay exact near ±pi/2)."""
+    pitch = math.atan2(-A[2, 0], math.sqrt(A[2, 1] * A[2, 1] + A[2, 2] * A[2, 2]))
+    return math.atan2(A[2, 1], A[2, 2]), pitch, math.atan2(A[1, 0], A[0, 0])
+
+
+@njit(cache=True, nogil=True)
+def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, accel_decay):  # pragma: no cover
+    """:func:`process_points` for points whose attitude is in the filter's tangent space
+    (:func:`points_from_tangent`), in one pass: each point's rotation ``exp([δ]x) R_0``,
+    turned by its gyro rates, ``R' = R exp([w dt]x)``, taken back into the tangent space
+    about the propagated central point ``R_0'``. Returns ``(T, Y)``: the propagated points
+    in the tangent space (about ``R_0'``'s canonical Euler angles) and each as canonical
+    Euler angles (the same rotations, for the measurement models: they use the angles'
+    sines and cosines, and wrap the heading)."""
+    N = X.shape[0]
+    T = X.copy()
+    Y = X.copy()
+    E = np.empty((3, 3))
+    R0 = np.empty((3, 3))
+    Ri = np.empty((3, 3))
+    A = np.empty((3, 3))
+    C0 = np.empty((3, 3))
+    r0, p0, y0 = X[0, roll], X[0, roll + 1], X[0, yaw]
+    _R_into(r0, p0, y0, R0)
+    e0r = e0p = e0y = 0.0
+    for i in range(N):
+        if i == 0:  # the point's rotation
+            Ri[:, :] = R0
+        else:
+            _exp_so3_into(X[i, roll] - r0, X[i, roll + 1] - p0, X[i, yaw] - y0, E)
+            _matmul3_into(E, R0, Ri)
+        if have_w:  # turned by the gyro, less the point's own bias
+            _exp_so3_into(dt * (w[0] - X[i, bias]), dt * (w[1] - X[i, bias + 1]),
+                          dt * (w[2] - X[i, bias + 2]), E)
+            _matmul3_into(Ri, E, A)
+        else:
+            A[:, :] = Ri
+        er, ep, ey = _canonical_euler(A)
+        Y[i, roll], Y[i, roll + 1], Y[i, yaw] = er, ep, ey
+        if i == 0:
+            e0r, e0p, e0y = er, ep, ey
+            C0[:, :] = A
+            T[0, roll], T[0, roll + 1], T[0, yaw] = er, ep, ey
+        else:
+            # log(A C0^T): the point's turn from the central point, world axes (only the
+            # skew part and the trace are needed)
+            b10 = A[1, 0] * C0[0, 0] + A[1, 1] * C0[0, 1] + A[1, 2] * C0[0, 2]
+            b01 = A[0, 0] * C0[1, 0] + A[0, 1] * C0[1, 1] + A[0, 2] * C0[1, 2]
+            b20 = A[2, 0] * C0[0, 0] + A[2, 1] * C0[0, 1] + A[2, 2] * C0[0, 2]
+            b02 = A[0, 0] * C0[2, 0] + A[0, 1] * C0[2, 1] + A[0, 2] * C0[2, 2]
+            b21 = A[2, 0] * C0[1, 0] + A[2, 1] * C0[1, 1] + A[2, 2] * C0[1, 2]
+            b12 = A[1, 0] * C0[2, 0] + A[1, 1] * C0[2, 1] + A[1, 2] * C0[2, 2]
+            tr = (A[0, 0] * C0[0, 0] + A[0, 1] * C0[0, 1] + A[0, 2] * C0[0, 2]
+                  + A[1, 0] * C0[1, 0] + A[1, 1] * C0[1, 1] + A[1, 2] * C0[1, 2]
+                  + A[2, 0] * C0[2, 0] + A[2, 1] * C0[2, 1] + A[2, 2] * C0[2, 2])
+            vx, vy, vz = 0.5 * (b21 - b12), 0.5 * (b02 - b20), 0.5 * (b10 - b01)
+            c = min(1.0, max(-1.0, 0.5 * (tr - 1.0)))
+            sn = math.sqrt(vx * vx + vy * vy + vz * vz)
+            k = 1.0 if sn < 1e-12 else math.atan2(sn, c) / sn
+            T[i, roll], T[i, roll + 1], T[i, yaw] = e0r + k * vx, e0p + k * vy, e0y + k * vz
+        for c3 in range(3):
+            v = X[i, accel + c3] * accel_decay
+            Y[i, accel + c3] = v
+            T[i, accel + c3] = v
+    return T, Y
+
+
+@njit(cache=True, nogil=True)
+def fold_attitude(x, anchor, roll, yaw):  # pragma: no cover - compiled
+    """``x (n,)`` whose attitude columns hold ``anchor (3,)`` (roll, pitch, yaw) plus a
+    world-axis rotation vector ``δ`` -> a copy whose attitude columns are the canonical
+    Euler angles of ``exp([δ]x) R(anchor)`` (pitch within ±pi/2, roll and yaw within
+    ±pi): the reset of the filter's tangent space (:func:`points_from_tangent`)."""
+    out = x.copy()
+    E = np.empty((3, 3))
+    R0 = np.empty((3, 3))
+    A = np.empty((3, 3))
+    _exp_so3_into(x[roll] - anchor[0], x[roll + 1] - anchor[1], _wrap(x[yaw] - anchor[2]), E)
+    _R_into(anchor[0], anchor[1], anchor[2], R0)
+    _matmul3_into(E, R0, A)
+    out[roll], out[roll + 1], out[yaw] = _canonical_euler(A)
+    return out
+
+
 @njit(cache=True, nogil=True)
 def process_points(X, dt, w, have_w, roll, yaw, bias, accel, accel_decay):  # pragma: no cover - compiled
     """The process model at every sigma point ``X (N, n)`` -> ``(N, n)``.
