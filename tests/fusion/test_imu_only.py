@@ -23,7 +23,7 @@ from fusion.cli.main import app
 from fusion.configfile import load_arm
 from fusion.tracking.process import ProcessModel, attitude_sigma_rad
 from fusion.tracking.settings import StateLayout, TrackerSettings
-from fusion.tracking.tracker_kernels import points_from_tangent, tangent_from_points
+from fusion.tracking.tracker_kernels import points_from_tangent, process_points_tangent, tangent_from_points
 from models.arm_config import ConfigError
 from models.rotations import R_from_rpy, exp_so3
 
@@ -101,6 +101,20 @@ def test_the_attitude_tangent_space_is_one_rotation_at_any_attitude_even_at_the_
     folded = pm.fold_attitude(x, X[0, [L.roll, L.pitch, L.yaw]])
     np.testing.assert_allclose(R_from_rpy(*folded[[L.roll, L.pitch, L.yaw]]), exp_so3(d[2]) @ R0, atol=1e-12)
     assert abs(folded[L.pitch]) <= np.pi / 2
+    # one step of the gyro in the tangent space: each point's rotation turned by its rates
+    # (1,000 deg/s for 10 ms, less its own bias), and the points taken back about the
+    # propagated central point; the Euler points given alongside are the same rotations
+    w = np.array([10.0, -17.0, 4.0])
+    X[:, L.bias] = rng.normal(0.0, 0.01, (7, 3))
+    T, Y = process_points_tangent(X, 0.01, w, True, L.roll, L.yaw, L.bias.start, L.accel.start, 0.9)
+    att = [L.roll, L.pitch, L.yaw]
+    turned = [R_from_rpy(*E[i, att]) @ exp_so3(0.01 * (w - X[i, L.bias])) for i in range(7)]
+    for i in range(7):
+        np.testing.assert_allclose(R_from_rpy(*Y[i, att]), turned[i], atol=1e-12)
+    back = points_from_tangent(T, L.roll, L.yaw)
+    for i in range(7):
+        np.testing.assert_allclose(R_from_rpy(*back[i, att]), turned[i], atol=1e-9)
+    np.testing.assert_allclose(T[:, L.accel], 0.9 * X[:, L.accel])
     # the sigmas: a level base's are the tangent vector's own; the heading's (about the
     # world's vertical) stays that at any attitude, where roll's grows without bound near
     # pitch 90 deg (Euler roll is undefined there)
