@@ -10,6 +10,7 @@ that lost the tilt by tens of degrees."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import h5py
@@ -133,3 +134,27 @@ def test_a_file_that_is_not_a_broad_trial_is_refused_naming_what_it_lacks(tmp_pa
     text.write_text("x" * 10_000)
     with pytest.raises(ValueError, match=r"text.hdf5: not a readable HDF5 file"):
         read_trial(text)
+
+
+def test_the_tool_prints_its_table_and_with_no_write_leaves_the_benchmarks_doc_alone(tmp_path: Path,
+                                                                                     capsys) -> None:
+    import shutil
+
+    from tools import bench_heading_broad
+    from tools.benchdoc import BENCH_DOC
+
+    before = BENCH_DOC.read_text() if BENCH_DOC.exists() else None
+    shutil.copy(SLICE, tmp_path / SLICE.name)
+    argv = ["--data", str(tmp_path), "--no-write", "--json", str(tmp_path / "b.json")]
+    assert bench_heading_broad.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "| 02_undisturbed_slow_rotation_B_6s_moving | 837 (0) |" in out
+    assert "armfusion heading within 3 sigma" in out and "mean vqf" in out
+    assert (BENCH_DOC.read_text() if BENCH_DOC.exists() else None) == before
+    doc = json.loads((tmp_path / "b.json").read_text())
+    assert doc["02_undisturbed_slow_rotation_B_6s_moving"]["filters"]["armfusion"]["scored"] == 837
+    # a folder without trials is refused, saying so
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert bench_heading_broad.main(["--data", str(empty), "--no-write"]) == 2
+    assert "no .hdf5 trial in it" in capsys.readouterr().err
