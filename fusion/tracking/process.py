@@ -24,8 +24,8 @@ def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray) -> np.ndarray:
     (..., 3, 3)`` of the filter's tangent space (a world-axis rotation vector ``δ``) at
     attitudes ``rpy_rad (..., 3)``: roll and pitch through the Euler angles' own rates
     (``dε = E R^T δ``, which grows without bound near pitch ±90 deg, where they are
-    undefined), the heading as ``δ``'s vertical part, whose sigma stays finite at any
-    attitude (for a level base all three are ``δ``'s own)."""
+    undefined: held at pi), the heading as ``δ``'s vertical part, whose sigma stays finite
+    at any attitude (for a level base all three are ``δ``'s own)."""
     r, p = (np.asarray(rpy_rad, float)[..., k] for k in range(2))
     cp = np.cos(p)
     cp_safe = np.where(np.abs(cp) < 1e-9, np.copysign(1e-9, cp), cp)
@@ -37,7 +37,8 @@ def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray) -> np.ndarray:
                      np.stack([np.zeros_like(r), np.zeros_like(r), np.ones_like(r)], -1)], -2)
     C = np.asarray(C_att, float)
     var = np.einsum("...ij,...jk,...ik->...i", rows, C, rows)
-    return np.sqrt(np.clip(var, 0.0, None))
+    # (an angle known to no better than pi is not known: roll's at pitch ±90 deg stops there)
+    return np.minimum(np.sqrt(np.clip(var, 0.0, None)), np.pi)
 
 
 class ProcessModel:
