@@ -188,9 +188,9 @@ def main(argv=None) -> None:
               f"{int(rb['jacobians'])} Jacobians; {cmp}")
     md = "\n".join([
         "## Identification speed (`tools/bench_identify.py`)", "",
-        f"Simultaneous fits, one BLAS thread; the machine shared with other jobs (load about 8 on "
-        "its 2 cores while this ran: the CPU time is the figure to trust, wall time is an upper "
-        f"bound); {machine_line()}.", "",
+        f"Simultaneous fits, one BLAS thread; the machine shared with other jobs (load average "
+        f"{os.getloadavg()[0]:.1f} on its {os.cpu_count()} cores as this ended: the CPU time is the figure "
+        f"to trust, wall time is an upper bound); {machine_line()}.", "",
         "| fit | samples | fit points × readings | parameters | Jacobians | CPU per Jacobian | "
         "fit, CPU time | fit, wall time |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
