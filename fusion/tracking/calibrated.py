@@ -91,7 +91,8 @@ the accelerometers', the gyro's and the compass's corrections, the joints' effec
 kinematics, lever arms, time offsets, encoder scales; the gyro's calibrated bias undone, the
 tracker's bias state follows what is left of it and its drift)."""
 PARTLY_APPLIED: dict[str, str] = {
-    "base_mount": "applied to the IMU's accelerometer and gyro, not to its compass",
+    "base_mount": ("applied to the IMU's accelerometer, not to its gyro and compass (a parked fit's "
+                   "mount is gravity's)"),
 }
 
 

@@ -50,7 +50,7 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
             rate = w.rate_hz or 100.0
             omega = sm[GYRO].from_counts(w.values)
             undo = undo_map(correction, GYRO)
-            if undo is not None:  # the config's gyro mount, scale and bias, as the tracker undoes them
+            if undo is not None:  # the config's gyro scale and bias, as the tracker undoes them
                 omega = (omega - undo[1]) @ undo[0]
             omega = omega @ R_0I.T
             bias = omega.mean(axis=0)
