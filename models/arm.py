@@ -164,6 +164,17 @@ class ArmCalibration:
 
 
 @dataclass(frozen=True)
+class BaseMotion:
+    """How the base moves when it does, as the tracker models its own acceleration: a
+    first-order Gauss-Markov process of steady-state spread ``accel_sigma_mps2`` and
+    correlation time ``accel_tau_s``. Without one the tracker's settings hold a wheelchair's
+    (0.7 m/s², 5 s); an IMU held in a hand moves faster and more briefly."""
+
+    accel_sigma_mps2: float
+    accel_tau_s: float
+
+
+@dataclass(frozen=True)
 class ArmModel:
     """A validated arm: joints, sensors, limits and poses. Built once from a config."""
 
@@ -175,6 +186,7 @@ class ArmModel:
     source: str = ""
     effects: tuple = ()
     calibration: ArmCalibration = field(default_factory=ArmCalibration)
+    base_motion: BaseMotion | None = None
 
     # -- derived views -------------------------------------------------------------
     @property
@@ -271,14 +283,17 @@ class ChainArrays:
 
     @classmethod
     def from_joints(cls, joints: tuple[Joint, ...]) -> ChainArrays:
-        axis = np.stack([j.axis for j in joints])
+        # a zero-joint arm (an IMU alone) has empty arrays of the same trailing shapes
+        def stack(values, shape):
+            return np.stack(values) if values else np.zeros((0, *shape))
+        axis = stack([j.axis for j in joints], (3,))
         return cls(
-            R_pre=_frozen(np.stack([j.R_pre for j in joints])),
-            p_pre_m=_frozen(np.stack([j.p_pre_m for j in joints])),
+            R_pre=_frozen(stack([j.R_pre for j in joints], (3, 3))),
+            p_pre_m=_frozen(stack([j.p_pre_m for j in joints], (3,))),
             axis=_frozen(axis),
-            R_post=_frozen(np.stack([j.R_post for j in joints])),
-            p_post_m=_frozen(np.stack([j.p_post_m for j in joints])),
-            offset_rad=_frozen([j.offset_rad for j in joints]),
+            R_post=_frozen(stack([j.R_post for j in joints], (3, 3))),
+            p_post_m=_frozen(stack([j.p_post_m for j in joints], (3,))),
+            offset_rad=_frozen(np.array([j.offset_rad for j in joints], dtype=float)),
             axis_is_z=bool(np.allclose(axis, [0.0, 0.0, 1.0])),
         )
 

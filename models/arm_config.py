@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from models.arm import (
     ArmCalibration,
     ArmModel,
+    BaseMotion,
     CorrectionCovariance,
     DhTable,
     Joint,
@@ -224,11 +225,20 @@ class ArmSection(_Strict):
     ready_pose_deg: list[float]
 
 
+class BaseMotionSection(_Strict):
+    """The ``base_motion:`` block: how the base moves (its acceleration's spread and
+    correlation time), where it is not a wheelchair."""
+
+    accel_sigma_mps2: float = Field(gt=0.0, le=200.0)
+    accel_tau_s: float = Field(gt=0.0, le=3600.0)
+
+
 class ArmConfigFile(_Strict):
     arm: ArmSection
     sensors: list[SensorSection]
     effects: list[EffectEntry] = Field(default_factory=list)
     calibration: CalibrationSection = Field(default_factory=CalibrationSection)
+    base_motion: BaseMotionSection | None = None
 
 
 def _loc(loc: tuple) -> str:
@@ -355,9 +365,14 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
         roles = [(s.get("name"), _role(s)) for s in sensors if isinstance(s, dict)]
         accels = [nm for nm, role in roles if role == "link"]
         imus = [nm for nm, role in roles if role == "base_imu"]
-        if not accels and all(role is not None for _, role in roles):
+        if not accels and all(role is not None for _, role in roles) and n != 0:
+            # an arm with joints needs a link accelerometer to read them; a zero-joint arm
+            # (an IMU alone, docs/tracking.md "An IMU alone") needs only its base IMU
             out.append(ConfigProblem(source, "sensors", len(sensors),
                                      "the arm has no link accelerometer"))
+        if n == 0 and not imus and all(role is not None for _, role in roles):
+            out.append(ConfigProblem(source, "sensors", len(sensors),
+                                     "an arm with no joints needs a base IMU (an imu on link 0)"))
         if len(imus) > 1:
             out.append(ConfigProblem(source, "sensors", ", ".join(map(str, imus)),
                                      "more than one IMU on the base (link 0); the base has one"))
@@ -451,6 +466,8 @@ def build_arm(
         ready_pose_rad=_ro(np.array(arm.ready_pose_deg) * DEG), dh=dh_table, source=source,
         effects=tuple(parsed.effects),
         calibration=_calibration(parsed.calibration),
+        base_motion=(None if parsed.base_motion is None else
+                     BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s)),
     )
 
 

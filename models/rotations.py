@@ -101,11 +101,12 @@ def exp_so3_into(x: float, y: float, z: float, E: np.ndarray) -> None:
     else:
         a = math.sin(ang) / ang
         b = (1.0 - math.cos(ang)) / ang**2
-    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])  # skew(x, y, z)
+    # skew(x, y, z) as a tuple (no array made: compiled, this runs allocation-free)
+    K = ((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0))
     for r in range(3):
         for s in range(3):
-            kk = K[r, 0] * K[0, s] + K[r, 1] * K[1, s] + K[r, 2] * K[2, s]
-            E[r, s] = ((1.0 if r == s else 0.0) + a * K[r, s]) + b * kk
+            kk = K[r][0] * K[0][s] + K[r][1] * K[1][s] + K[r][2] * K[2][s]
+            E[r, s] = ((1.0 if r == s else 0.0) + a * K[r][s]) + b * kk
 
 
 def exp_so3_one(rotvec_rad) -> np.ndarray:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.rotations import TWO_PI, up_from_tilt
+from models.rotations import TWO_PI, R_from_rpy, exp_so3, rpy_from_R, up_from_tilt, wrap_angle
 
 
 def accel_points_numpy(X: np.ndarray, sel: np.ndarray, links: np.ndarray, axes: np.ndarray,
@@ -46,20 +46,23 @@ def accel_points_numpy(X: np.ndarray, sel: np.ndarray, links: np.ndarray, axes: 
 
 def process_points_numpy(X: np.ndarray, dt: float, w: np.ndarray, have_w: bool, roll: int, yaw: int,
                          bias: int, accel: int, accel_decay: float) -> np.ndarray:
-    """:func:`fusion.tracking.tracker_kernels.process_points` in NumPy. The Euler-angle rates
-    turn the body rates' (y, z) pair by the roll: with ``u = e^{i roll} (w_y + i w_z)``, roll rate
-    ``w_x + Im u tan(pitch)``, pitch rate ``Re u``, yaw rate ``Im u / cos(pitch)``."""
+    """:func:`fusion.tracking.tracker_kernels.process_points` in NumPy: each point's attitude
+    ``R_from_rpy`` turned by ``exp_so3`` of its bias-corrected rates times ``dt``, read back
+    by ``rpy_from_R`` and put in the chart nearest the point's (of the two Euler triples of
+    the rotation, the closer, roll and yaw unwrapped onto the old ones)."""
     Y = X.copy()
     if have_w:
-        wb = w - X[:, bias:bias + 3]
-        wyz = wb[:, 1] + 1j * wb[:, 2]
-        u = np.exp(1j * X[:, roll]) * wyz
-        r_mid = X[:, roll] + 0.5 * dt * (wb[:, 0] + u.imag * np.tan(X[:, roll + 1]))
-        p_mid = X[:, roll + 1] + 0.5 * dt * u.real
-        u = np.exp(1j * r_mid) * wyz
-        Y[:, roll] += dt * (wb[:, 0] + u.imag * np.tan(p_mid))
-        Y[:, roll + 1] += dt * u.real
-        Y[:, yaw] += dt * (u.imag / np.cos(p_mid))
+        r, p, y = X[:, roll], X[:, roll + 1], X[:, yaw]
+        R = np.stack([R_from_rpy(a, b, c) for a, b, c in zip(r, p, y, strict=True)])
+        R2 = R @ exp_so3(dt * (w - X[:, bias:bias + 3]))
+        r1, p1, y1 = rpy_from_R(R2).T
+        dr1, dy1 = wrap_angle(r1 - r), wrap_angle(y1 - y)
+        p2 = np.copysign(np.pi, p1) - p1
+        dr2, dy2 = wrap_angle(dr1 + np.pi), wrap_angle(dy1 + np.pi)
+        first = dr1**2 + (p1 - p) ** 2 + dy1**2 <= dr2**2 + (p2 - p) ** 2 + dy2**2
+        Y[:, roll] = r + np.where(first, dr1, dr2)
+        Y[:, roll + 1] = np.where(first, p1, p2)
+        Y[:, yaw] = y + np.where(first, dy1, dy2)
     Y[:, accel:accel + 3] *= accel_decay
     return Y
 

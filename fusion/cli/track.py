@@ -33,6 +33,14 @@ def register(app: typer.Typer) -> None:
     app.command("track")(track)
 
 
+def _needed_streams(arm) -> list[str]:
+    """What track reads: the encoders and every link accelerometer; an arm with no joints
+    (an IMU alone) has neither, and its base IMU's accelerometer and gyroscope carry it."""
+    if arm.n_joints == 0:
+        return ["imu_acc", "imu_gyro"]
+    return ["enc", *(a.name for a in arm.link_accelerometers)]
+
+
 def track(
     recording: Annotated[Path, typer.Argument(help="Recording (.csv or .mcap) that starts with a still arm.")],
     config: ConfigOpt = "wmra",
@@ -62,8 +70,9 @@ def track(
     if unmodelled_g is not None and not unmodelled_g >= 0.0:
         fail(f"--unmodelled-g must be >= 0, not {unmodelled_g!r}")
     arm, rec, screen = arm_and_recording_or_exit(
-        config, recording, lambda arm: ["enc", *(a.name for a in arm.link_accelerometers)],
-        "track needs (the encoders and every link accelerometer of {source})", json_out)
+        config, recording, _needed_streams,
+        "track needs (the encoders and every link accelerometer of {source}; "
+        "with no joints, its base IMU's accelerometer and gyroscope)", json_out)
     if unmodelled_g is not None:
         arm = replace(arm, calibration=arm.calibration.with_accel_floor(unmodelled_g))
     notes: list[str] = []

@@ -41,7 +41,7 @@ from fusion.tracking.innovations import InnovationLog
 from fusion.tracking.live import fuse_instant
 from fusion.tracking.measurement import Measurements
 from fusion.tracking.observability import Observability
-from fusion.tracking.process import ProcessModel, StillDetector
+from fusion.tracking.process import ProcessModel, StillDetector, attitude_sigma_rad
 from fusion.tracking.settings import (
     C_REJECTED,
     C_USED,
@@ -92,7 +92,8 @@ class Tracker:
         self.correction = correction
         self.readings = calibrated.Readings(arm, model, correction)
         self._joint_effects = calibrated.joint_effects(correction)
-        self.settings = st = settings or TrackerSettings()
+        # the base's own motion as the config describes it (a chair's by default)
+        self.settings = st = (settings or TrackerSettings()).for_base(arm.base_motion)
         n = arm.n_joints
         self.layout = L = StateLayout(n)
         self.state_names = L.names(arm.joint_names)
@@ -186,7 +187,10 @@ class Tracker:
             unread = ~read_by_startup(startup) & ~self.ambiguity_.joints
             self.observability.set_unread(np.where(unread, limits_cover_var(
                 self._q_startup, self.arm.min_rad, self.arm.max_rad), 0.0))
-        self.still = StillDetector(st, L, t_s)
+        imu_model = self.readings.models.get(IMU_ACC)
+        imu_noise_g = (0.0 if imu_model is None else
+                       float(np.max(np.asarray(imu_model.noise_counts_rms) / np.abs(imu_model.gain))))
+        self.still = StillDetector(st, L, t_s, imu_noise_g)
         # until the first update says more, each joint as the startup left it (a joint it
         # could not read is not "ok" for the first instants)
         self._flags = np.array([FLAG_CODE.get(j.flag, F_CONVERGING) for j in startup.joints], dtype=np.int8)
@@ -311,10 +315,14 @@ class Tracker:
         ukf = self._ukf
         self._q_enc = q_enc
         dt = t - self._t
+        anchor = None
         if dt > 0:
             w0 = self._omega if self._omega is not None else gyro
             w = None if w0 is None else (w0 if gyro is None else 0.5 * (w0 + gyro))
-            ukf.predict(self.process.fx, self.process.Q(dt, w is not None, self.still.still), dt=dt, w=w)
+            ukf.predict(self.process.fx_tangent, self.process.Q(dt, w is not None, self.still.still), dt=dt,
+                        w=w)
+            # the attitude is now the propagated central point's plus a tangent vector
+            anchor = ukf._sigmas[0, self._att_idx].copy() if ukf._sigmas is not None else None
             if w is not None:
                 b = self.layout.bias.start
                 self.compass.turn(w, tuple(ukf._x[b:b + 3].tolist()), dt)
@@ -333,6 +341,8 @@ class Tracker:
             mag = self.compass.average(t, mag[1]) if self.compass.fused else None
         if acc is not None or mag is not None:
             self._fuse(t, acc, mag, frame)
+        if dt > 0 and anchor is not None:  # back to Euler angles about the anchor (a reset)
+            ukf._x = self.process.fold_attitude(ukf._x, anchor)
         if t - self._flags_t >= self.settings.observability_period_s or self.health.changed:
             self._update_flags(t)
 
@@ -351,7 +361,7 @@ class Tracker:
         plan = ms.plan(key, k, still, mag is not None)
         angle_rows = (m - 1,) if mag is not None else ()
         shift = self.compass.heading_shift_rad() if mag is not None else 0.0
-        inn = ukf.innovate(z, ms.h_all, var, plan, angle_rows=angle_rows,
+        inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows,
                            frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
         accept = inn.gate_ok.copy()
         gate_l = inn.gate_ok.tolist()
@@ -370,7 +380,7 @@ class Tracker:
             # its acceleration, held near zero while it stood, must be free to follow at once
             self.still.set_off()
             ukf.inflate(np.arange(L.accel.start, L.accel.stop), st.base_accel_sigma_mps2**2)
-            inn = ukf.innovate(z, ms.h_all, var, plan, angle_rows=angle_rows,
+            inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows,
                                frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
             accept = inn.gate_ok.copy()
             if still:
@@ -396,6 +406,12 @@ class Tracker:
             accept[-1] = use
             mask = ms.heading_mask(m)
         ukf.correct(inn, accept, self.observability.hold, mask)
+
+    def _h_tangent(self, X: np.ndarray, **kw) -> np.ndarray:
+        """Every measurement at sigma points whose attitude is in the filter's tangent space
+        (:meth:`fusion.tracking.process.ProcessModel.fx_tangent`), through the Euler-angle
+        models (:meth:`fusion.tracking.measurement.Measurements.h_all`)."""
+        return self.measurements.h_all(self.process.euler_points(X), **kw)
 
     def _reacquire(self, i: int, t: float) -> None:
         self.slips.reacquire(i, t, self._ukf, self.health, self.observability.locked)
@@ -463,7 +479,9 @@ class Tracker:
             t_s=self._t, q_rad=_ro(self.arm.angles_in_range(self._q_enc + x[:n])), sigma_rad=_ro(sig[:n]),
             flags=named[3],
             roll_rad=float(x[L.roll]), pitch_rad=float(x[L.pitch]), yaw_rad=float(x[L.yaw]),
-            attitude_sigma_rad=_ro(sig[[L.roll, L.pitch, L.yaw]]), gyro_bias_rad_s=_ro(x[L.bias]),
+            attitude_sigma_rad=_ro(attitude_sigma_rad(x[self._att_idx], self._ukf._P[np.ix_(self._att_idx,
+                                                                                              self._att_idx)])),
+            gyro_bias_rad_s=_ro(x[L.bias]),
             axis_to_vertical_deg=_ro(self.observability.axis_deg), sensors=named[2],
             magnetic_disturbance=self.compass.flags[0], magnetic_recovery=self.compass.flags[1],
             joint_names=self.arm.joint_names,

@@ -43,7 +43,7 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
     q0 = np.array(startup.q_rad, dtype=float)
     known = read_by_startup(startup)
     prior = np.asarray(prior_q_rad, float)
-    amb = np.array([j.flag == "ambiguous" for j in startup.joints])
+    amb = np.array([j.flag == "ambiguous" for j in startup.joints], dtype=bool)
     cands = startup.candidates_rad
     if amb.any() and cands is not None and len(cands) > 1:
         # rival branches: the filter runs on one of them, the one nearest the prior pose
@@ -90,7 +90,7 @@ def read_by_startup(startup: StartupResult) -> np.ndarray:
     """Per joint: did the startup read it (an angle and a sigma, neither gimbal-locked nor
     left between rival branches)?"""
     return np.array([j.flag not in ("gimbal_lock", "ambiguous") and j.sigma_rad is not None
-                     for j in startup.joints])
+                     for j in startup.joints], dtype=bool)
 
 
 def limits_cover_var(q0_rad: np.ndarray, lo_rad: np.ndarray, hi_rad: np.ndarray) -> np.ndarray:

@@ -10,8 +10,35 @@ import math
 import numpy as np
 
 from fusion.tracking.settings import G, StateLayout, TrackerSettings
-from fusion.tracking.tracker_kernels import process_points
+from fusion.tracking.tracker_kernels import (
+    fold_attitude,
+    points_from_tangent,
+    process_points,
+    process_points_tangent,
+)
 from models.rotations import DEG
+
+
+def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray) -> np.ndarray:
+    """Roll, pitch and heading sigmas ``(..., 3)`` from the attitude covariance ``C_att
+    (..., 3, 3)`` of the filter's tangent space (a world-axis rotation vector ``δ``) at
+    attitudes ``rpy_rad (..., 3)``: roll and pitch through the Euler angles' own rates
+    (``dε = E R^T δ``, which grows without bound near pitch ±90 deg, where they are
+    undefined: held at pi), the heading as ``δ``'s vertical part, whose sigma stays finite
+    at any attitude (for a level base all three are ``δ``'s own)."""
+    r, p = (np.asarray(rpy_rad, float)[..., k] for k in range(2))
+    cp = np.cos(p)
+    cp_safe = np.where(np.abs(cp) < 1e-9, np.copysign(1e-9, cp), cp)
+    y = np.asarray(rpy_rad, float)[..., 2]
+    sy, cy = np.sin(y), np.cos(y)
+    # Euler rates from world rates: roll' = (cy wx + sy wy) / cp, pitch' = -sy wx + cy wy
+    rows = np.stack([np.stack([cy / cp_safe, sy / cp_safe, np.zeros_like(r)], -1),
+                     np.stack([-sy, cy, np.zeros_like(r)], -1),
+                     np.stack([np.zeros_like(r), np.zeros_like(r), np.ones_like(r)], -1)], -2)
+    C = np.asarray(C_att, float)
+    var = np.einsum("...ij,...jk,...ik->...i", rows, C, rows)
+    # (an angle known to no better than pi is not known: roll's at pitch ±90 deg stops there)
+    return np.minimum(np.sqrt(np.clip(var, 0.0, None)), np.pi)
 
 
 class ProcessModel:
@@ -31,6 +58,7 @@ class ProcessModel:
                                  f"walk must be a positive number of deg/sqrt(s), got {deg!r}")
             rw[list(joint_names).index(name)] = float(deg)
         self._offset_rw_rad = rw * DEG
+        self.last_points: tuple[np.ndarray, np.ndarray] | None = None
         self._decay: dict[float, float] = {}
         self._Q: dict = {}
         self._zeros3 = np.zeros(3)
@@ -38,17 +66,58 @@ class ProcessModel:
     def fx(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
         """Every sigma point at once (compiled:
         :func:`fusion.tracking.tracker_kernels.process_points`): the gyro (minus each point's bias)
-        turns the attitude (midpoint rule on the Euler-angle rates), the base's
-        acceleration decays, offsets and bias stay."""
+        turns the attitude exactly, the base's acceleration decays, offsets and bias stay.
+        The points' attitude columns are Euler angles (the filter calls
+        :meth:`fx_tangent`)."""
         L = self.layout
+        decay = self._decay_of(dt)
+        have_w = w is not None
+        return process_points(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
+                              L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay)
+
+    def _decay_of(self, dt: float) -> float:
+        """The base acceleration's decay over ``dt`` (cached)."""
         decay = self._decay.get(dt)
         if decay is None:
             if len(self._decay) > 64:
                 self._decay.clear()
             decay = self._decay[dt] = math.exp(-dt / self.settings.base_accel_tau_s)
+        return decay
+
+    def fx_tangent(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
+        """:meth:`fx` for points whose attitude is in the filter's tangent space (the central
+        point's Euler angles plus a world-axis rotation vector, whose covariance the filter
+        holds: meaningful at any attitude, where Euler angles are singular at pitch ±90 deg):
+        turned into Euler angles for the kernel
+        (:func:`~fusion.tracking.tracker_kernels.points_from_tangent`), and back about the
+        propagated central point."""
+        L = self.layout
+        decay = self._decay_of(dt)
         have_w = w is not None
-        return process_points(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
-                              L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay)
+        T, Y = process_points_tangent(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
+                                      L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay)
+        self.last_points = (T, Y)  # the propagated points, in the tangent space and in Euler angles
+        return T
+
+    def euler_points(self, X: np.ndarray) -> np.ndarray:
+        """Points in the tangent space as Euler-angle points (the last propagated ones are
+        kept: an update at the predicted points does not convert them again)."""
+        last = self.last_points
+        if last is not None and (X is last[0] or (X.base is last[0] and X.shape == last[0].shape)):
+            return last[1]
+        L = self.layout
+        return points_from_tangent(np.ascontiguousarray(X), L.roll, L.yaw)
+
+    def fold_attitude(self, x: np.ndarray, anchor_rpy: np.ndarray) -> np.ndarray:
+        """The state ``x`` with its attitude columns, held as ``anchor_rpy`` plus a world-axis
+        rotation vector ``δ`` (the filter's tangent space about the points' central
+        attitude), turned back into the Euler angles of ``exp([δ]x) R(anchor)``, in the
+        canonical chart (pitch within ±pi/2, roll and yaw within ±pi). The covariance is
+        left as it is: it is ``δ``'s, about the new mean (a multiplicative filter's reset,
+        to first order)."""
+        L = self.layout
+        return fold_attitude(np.ascontiguousarray(x, dtype=float),
+                             np.ascontiguousarray(anchor_rpy, dtype=float), L.roll, L.yaw)
 
     def Q(self, dt: float, have_gyro: bool, still: bool) -> np.ndarray:
         """The process noise over ``dt`` (cached)."""
@@ -80,12 +149,18 @@ class StillDetector:
     """Exponential averages of the gyro and the IMU accelerometer (and the IMU's NIS): is the
     chair still? The tracker starts at the end of a still window: it is."""
 
-    def __init__(self, settings: TrackerSettings, layout: StateLayout, t_s: float):
+    def __init__(self, settings: TrackerSettings, layout: StateLayout, t_s: float, imu_noise_g: float = 0.0):
+        """``imu_noise_g``: the IMU accelerometer's own noise per axis at its rate (its
+        description's): a still sensor wanders by that much, so the quiet threshold is at
+        least sqrt(2) times it (``still_accel_g`` where that is more: the MPU-9150 at 100 Hz,
+        2.8 mg, meets the default 4 mg)."""
         self.settings, self.layout = settings, layout
+        self.quiet_accel_g = max(settings.still_accel_g, math.sqrt(2.0) * float(imu_noise_g))
         self.w = 0.0  # EMA of the bias-corrected gyro norm, rad/s
         self.mean = None  # EMA of the IMU accelerometer, g
         self.var = 0.0  # EMA of its squared deviation, g^2 (summed over axes)
         self.still = True
+        self.quiet_s = 0.0  # how long the gyro and the IMU accelerometer have been quiet
         self.imu_nis = 3.0  # EMA of the IMU accelerometer's NIS over 0.2 s
         self._imu_nis_t = float(t_s)
 
@@ -111,11 +186,14 @@ class StillDetector:
                 self.mean = [m + a * e for m, e in zip(self.mean, d, strict=True)]
                 self.var += a * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - self.var)
         # and the filter itself no longer sees the chair accelerate (a smooth stop looks
-        # quiet to the averages before it is over)
+        # quiet to the averages before it is over), or the quiet has outlasted any of the
+        # base's accelerations (three of their correlation times): then an acceleration the
+        # filter still holds is a tilt it mistook for one, and only stillness tells it so
+        quiet = self.w < st.still_gyro_dps * DEG and self.var < 3.0 * self.quiet_accel_g**2
+        self.quiet_s = self.quiet_s + dt if quiet else 0.0
         ax, ay, az = x[n + 2:n + 5]  # accel_B
-        self.still = (self.w < st.still_gyro_dps * DEG
-                      and self.var < 3.0 * st.still_accel_g**2
-                      and ax * ax + ay * ay + az * az < (2.0 * st.still_accel_g * G) ** 2)
+        self.still = quiet and (ax * ax + ay * ay + az * az < (2.0 * self.quiet_accel_g * G) ** 2
+                                or self.quiet_s >= 3.0 * st.base_accel_tau_s)
 
     def imu_agrees(self, t: float, nis: float, gate_ok: bool) -> bool:
         """The IMU accelerometer's NIS, averaged over 0.2 s: a chair that sets off smoothly
@@ -128,10 +206,12 @@ class StillDetector:
     def set_off(self) -> None:
         """The chair set off: it is no longer still (the averages will say so later)."""
         self.still = False
-        self.var = max(self.var, 10.0 * self.settings.still_accel_g**2)
+        self.quiet_s = 0.0
+        self.var = max(self.var, 10.0 * self.quiet_accel_g**2)
 
     def snapshot(self) -> list:
-        return [self.w, self.mean, self.var, self.still]
+        return [self.w, self.mean, self.var, self.still, self.quiet_s]
 
     def restore(self, snap: list) -> None:
-        self.w, self.mean, self.var, self.still = snap
+        self.w, self.mean, self.var, self.still = snap[:4]
+        self.quiet_s = float(snap[4]) if len(snap) > 4 else 0.0

@@ -16,13 +16,24 @@ import numpy as np
 from scipy.stats import chi2
 
 from fusion.tracking.frames import Frames
+from fusion.tracking.process import attitude_sigma_rad
 from fusion.tracking.scoring import errors, truth_at, truth_summary
 from fusion.tracking.settings import C_SAMPLES, C_SATURATED, ENC, GYRO, JOINT_FLAGS, MAG, SENSOR_STATUS
 from models.sensor_models import mpu9150_temperature_c
-from sensors.samples import Recording
+from sensors.samples import Recording, Stream
 
 PREPARED_MAX = 1024
 """The most instants whose kinematic frames a run holds at once (about 2 kB each)."""
+
+
+def joint_free_clock(rec: Recording) -> Stream:
+    """An arm with no joints has no encoder: its instants are the base gyro's, as an encoder
+    stream of no counts (``(N, 0)``), so that the filter's one path steps on them."""
+    g = rec.get(GYRO)
+    if g is None or not len(g):
+        raise ValueError("an arm with no joints is tracked from its base IMU, and the recording "
+                         "has no gyro stream 'imu_gyro'")
+    return Stream(ENC, "encoder", g.t_s, np.zeros((len(g.t_s), 0), dtype=np.int64), ())
 
 
 def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool = True,
@@ -43,6 +54,8 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
     block = int(block)
     t0_wall = time.perf_counter()
     raw = {s: rec.get(s) for s in tr.sensor_names if rec.get(s) is not None and len(rec.get(s))}
+    if ENC not in raw and tr.arm.n_joints == 0 and GYRO in raw:
+        raw[ENC] = joint_free_clock(rec)
     if ENC not in raw:
         raise ValueError("the recording has no encoder stream 'enc': nothing to track")
     tr.set_rates({s: (v.rate_hz or 100.0) for s, v in raw.items()})
@@ -215,6 +228,8 @@ class RunArrays:
         self.magnetic = np.zeros(T, dtype=np.int8)
         self.status = np.zeros((T, S), dtype=np.int8)
         self.sys_var = np.zeros((T, n))
+        self.att_cov = np.full((T, 9), np.nan)  # the attitude's (tangent space) covariance
+        self._att_flat = None
         self.P = np.full((T, n + 3, n + 3), np.nan) if keep_cov else None
         self._P_rows = None if self.P is None else self.P.reshape(T, (n + 3) ** 2)
         self.T = T
@@ -229,6 +244,10 @@ class RunArrays:
         P = ukf._P
         self.x[i] = ukf._x
         self.var[i] = P.diagonal()
+        if self._att_flat is None:
+            a = tr._att_idx
+            self._att_flat = (a[:, None] * P.shape[1] + a[None, :]).reshape(-1)
+        P.take(self._att_flat, out=self.att_cov[i])
         self.q_enc[i] = tr._q_enc
         held = self._held
         flags, status, sys_var = tr._flags, tr.health.status_codes, tr.observability.sys_var
@@ -265,7 +284,7 @@ class RunArrays:
         self.q = tr.arm.angles_in_range(self.q_enc + self.x[:, :n])
         self.sigma = d[:, :n]
         self.rpy = self.x[:, tr._att_idx]
-        self.rpy_sigma = d[:, tr._att_idx]
+        self.rpy_sigma = attitude_sigma_rad(self.rpy, self.att_cov.reshape(-1, 3, 3))
         self.bias = self.x[:, L.bias]
 
     def finish(self, tr, times, elapsed, truth_q: np.ndarray | None,

@@ -4,7 +4,7 @@ it takes, and the layout of its state vector (:class:`StateLayout`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from fusion.tracking.heading import HeadingSettings
 from models.rotations import GRAVITY_MPS2
@@ -79,7 +79,8 @@ class TrackerSettings:
     start as wide as the compass's doubt."""
     """The IMU accelerometer's residual error drifts slowly (temperature): 0.1 mg in 40 min."""
     base_accel_sigma_mps2: float = 0.7
-    """Steady-state spread of the chair's own acceleration (driving, turning, ramps)."""
+    """Steady-state spread of the chair's own acceleration (driving, turning, ramps); a
+    config's ``base_motion`` replaces it (:meth:`for_base`)."""
     base_accel_tau_s: float = 5.0
     """Its correlation time: how long an acceleration typically lasts."""
     still_gyro_dps: float = 0.5
@@ -174,6 +175,16 @@ class TrackerSettings:
     """Innovations kept per sensor (a ring buffer), for the diagnosis workbench."""
 
 
+    def for_base(self, base_motion) -> TrackerSettings:
+        """These settings with the base's acceleration model a config describes
+        (:class:`models.arm.BaseMotion`: an IMU in a hand is not a wheelchair); unchanged
+        without one."""
+        if base_motion is None:
+            return self
+        return replace(self, base_accel_sigma_mps2=float(base_motion.accel_sigma_mps2),
+                       base_accel_tau_s=float(base_motion.accel_tau_s))
+
+
 class NotInitialisedError(RuntimeError):
     """The tracker was used before :meth:`Tracker.initialise`."""
 
@@ -196,10 +207,11 @@ class StateLayout:
 
     def __post_init__(self):
         n, start = self.n_joints, 0
-        for name, width in (("offset", n), ("roll", 0), ("pitch", 0), ("accel", 3), ("yaw", 0), ("bias", 3),
-                            ("imu_bias", 3)):
-            object.__setattr__(self, name, slice(start, start + width) if width else start)
-            start += max(width, 1)
+        # width None: a scalar block (an index); the offsets are a slice even with no joints
+        for name, width in (("offset", n), ("roll", None), ("pitch", None), ("accel", 3), ("yaw", None),
+                            ("bias", 3), ("imu_bias", 3)):
+            object.__setattr__(self, name, start if width is None else slice(start, start + width))
+            start += 1 if width is None else width
         object.__setattr__(self, "size", start)
 
     def names(self, joint_names) -> tuple[str, ...]:

@@ -21,6 +21,7 @@ from fusion.tracking.differentiator import prime
 from fusion.tracking.filter import Tracker
 from fusion.tracking.heading import FieldReference, heading_sigma_rad, tilt_compensated_heading
 from fusion.tracking.initial import ImuStill
+from fusion.tracking.run import joint_free_clock
 from fusion.tracking.settings import ENC, GYRO, MAG, TrackerSettings
 from models.arm import ArmModel
 from models.rotations import DEG, up_from_tilt
@@ -237,7 +238,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     if corr is not None:
         startup = corr.controller_result(startup)
     imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings, corr)
-    enc = rec.get(ENC)
+    enc = rec.get(ENC) if arm.n_joints else joint_free_clock(rec)
     if enc is None or not len(enc):
         raise ValueError("the recording has no encoder stream 'enc': nothing to track")
     k, enc_rad = encoder_angles_at(arm, enc, seg.t_end_s)

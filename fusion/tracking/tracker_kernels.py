@@ -25,8 +25,181 @@ import numpy as np
 from numba import njit
 
 from models.chain_kernels import cross3
-from models.rotations import TWO_PI
+from models.rotations import TWO_PI, exp_so3_into, wrap_angle
 from models.sensor_kernels import gravity_plus, magnetic_heading_one, tilt_up, to_sensor_axes
+
+_exp_so3_into = njit(cache=True, nogil=True, inline="always")(exp_so3_into)
+_wrap = njit(cache=True, nogil=True, inline="always")(wrap_angle)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _R_into(r, p, y, R):  # pragma: no cover - compiled
+    """``R = Rz(y) Ry(p) Rx(r)`` (the recording spec's base attitude,
+    :func:`models.rotations.R_from_rpy`) written into ``R (3, 3)``."""
+    sr, cr = math.sin(r), math.cos(r)
+    sp, cp = math.sin(p), math.cos(p)
+    sy, cy = math.sin(y), math.cos(y)
+    R[0, 0], R[0, 1], R[0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    R[1, 0], R[1, 1], R[1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    R[2, 0], R[2, 1], R[2, 2] = -sp, cp * sr, cp * cr
+
+
+@njit(cache=True, nogil=True, inline="always")
+def euler_nearest(A, r, p, y):  # pragma: no cover - compiled
+    """The roll, pitch and yaw of the rotation ``A (3, 3)`` in the Euler chart nearest
+    ``(r, p, y)``: of the two triples that give it, ``(r1, p1, y1)`` with ``|p1| <= pi/2``
+    and ``(r1 + pi, ±pi - p1, y1 + pi)``, the one closer to ``(r, p, y)``, its roll and yaw
+    unwrapped onto those (so no point jumps a whole turn, and one that had gone past the
+    vertical stays in its chart)."""
+    p1 = math.atan2(-A[2, 0], math.sqrt(A[2, 1] * A[2, 1] + A[2, 2] * A[2, 2]))
+    dr1 = _wrap(math.atan2(A[2, 1], A[2, 2]) - r)
+    dy1 = _wrap(math.atan2(A[1, 0], A[0, 0]) - y)
+    p2 = math.copysign(math.pi, p1) - p1
+    dr2 = _wrap(dr1 + math.pi)
+    dy2 = _wrap(dy1 + math.pi)
+    if dr1 * dr1 + (p1 - p) * (p1 - p) + dy1 * dy1 <= dr2 * dr2 + (p2 - p) * (p2 - p) + dy2 * dy2:
+        return r + dr1, p1, y + dy1
+    return r + dr2, p2, y + dy2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _matmul3_into(A, B, C):  # pragma: no cover - compiled
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
+@njit(cache=True, nogil=True)
+def points_from_tangent(X, roll, yaw):  # pragma: no cover - compiled
+    """Sigma points ``X (N, n)`` whose attitude columns (roll, pitch, then ``yaw``) hold the
+    central point's roll, pitch, yaw plus a world-axis rotation vector (the filter's tangent
+    space: the attitude's covariance is that of ``δ`` in ``R = exp([δ]x) R_0``, its x and y
+    parts the tilt, its z part the heading), as points whose attitude columns are the Euler
+    angles of ``exp([δ]x) R_0``, in the central point's chart (:func:`euler_nearest`). The
+    central point ``X[0]`` is the same in both."""
+    N = X.shape[0]
+    Z = X.copy()
+    E = np.empty((3, 3))
+    R0 = np.empty((3, 3))
+    A = np.empty((3, 3))
+    r0, p0, y0 = X[0, roll], X[0, roll + 1], X[0, yaw]
+    _R_into(r0, p0, y0, R0)
+    for i in range(1, N):
+        _exp_so3_into(X[i, roll] - r0, X[i, roll + 1] - p0, _wrap(X[i, yaw] - y0), E)
+        _matmul3_into(E, R0, A)
+        Z[i, roll], Z[i, roll + 1], Z[i, yaw] = euler_nearest(A, r0, p0, y0)
+    return Z
+
+
+@njit(cache=True, nogil=True)
+def tangent_from_points(Y, roll, yaw):  # pragma: no cover - compiled
+    """The inverse of :func:`points_from_tangent` about the central point ``Y[0]``: each
+    point's attitude as ``Y[0]``'s Euler angles plus ``δ = log(R_i R_0^T)`` (world axes)."""
+    N = Y.shape[0]
+    Z = Y.copy()
+    R0 = np.empty((3, 3))
+    Ri = np.empty((3, 3))
+    m = np.empty((3, 3))
+    r0, p0, y0 = Y[0, roll], Y[0, roll + 1], Y[0, yaw]
+    _R_into(r0, p0, y0, R0)
+    for i in range(1, N):
+        _R_into(Y[i, roll], Y[i, roll + 1], Y[i, yaw], Ri)
+        for a in range(3):  # m = R_i R_0^T
+            for b in range(3):
+                m[a, b] = Ri[a, 0] * R0[b, 0] + Ri[a, 1] * R0[b, 1] + Ri[a, 2] * R0[b, 2]
+        vx, vy, vz = 0.5 * (m[2, 1] - m[1, 2]), 0.5 * (m[0, 2] - m[2, 0]), 0.5 * (m[1, 0] - m[0, 1])
+        c = min(1.0, max(-1.0, 0.5 * (m[0, 0] + m[1, 1] + m[2, 2] - 1.0)))
+        s = math.sqrt(vx * vx + vy * vy + vz * vz)
+        k = 1.0 if s < 1e-12 else math.atan2(s, c) / s
+        Z[i, roll], Z[i, roll + 1], Z[i, yaw] = r0 + k * vx, p0 + k * vy, y0 + k * vz
+    return Z
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _canonical_euler(A):  # pragma: no cover - compiled
+    """Roll, pitch (within ±pi/2) and yaw of the rotation ``A (3, 3)``
+    (:func:`models.rotations.rpy_from_R`, pitch by ``atan2`` to stay exact near ±pi/2)."""
+    pitch = math.atan2(-A[2, 0], math.sqrt(A[2, 1] * A[2, 1] + A[2, 2] * A[2, 2]))
+    return math.atan2(A[2, 1], A[2, 2]), pitch, math.atan2(A[1, 0], A[0, 0])
+
+
+@njit(cache=True, nogil=True)
+def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, accel_decay):  # pragma: no cover
+    """:func:`process_points` for points whose attitude is in the filter's tangent space
+    (:func:`points_from_tangent`), in one pass: each point's rotation ``exp([δ]x) R_0``,
+    turned by its gyro rates, ``R' = R exp([w dt]x)``, taken back into the tangent space
+    about the propagated central point ``R_0'``. Returns ``(T, Y)``: the propagated points
+    in the tangent space (about ``R_0'``'s canonical Euler angles) and each as canonical
+    Euler angles (the same rotations, for the measurement models: they use the angles'
+    sines and cosines, and wrap the heading)."""
+    N = X.shape[0]
+    T = X.copy()
+    Y = X.copy()
+    E = np.empty((3, 3))
+    R0 = np.empty((3, 3))
+    Ri = np.empty((3, 3))
+    A = np.empty((3, 3))
+    C0 = np.empty((3, 3))
+    r0, p0, y0 = X[0, roll], X[0, roll + 1], X[0, yaw]
+    _R_into(r0, p0, y0, R0)
+    e0r = e0p = e0y = 0.0
+    for i in range(N):
+        if i == 0:  # the point's rotation
+            Ri[:, :] = R0
+        else:
+            _exp_so3_into(X[i, roll] - r0, X[i, roll + 1] - p0, X[i, yaw] - y0, E)
+            _matmul3_into(E, R0, Ri)
+        if have_w:  # turned by the gyro, less the point's own bias
+            _exp_so3_into(dt * (w[0] - X[i, bias]), dt * (w[1] - X[i, bias + 1]),
+                          dt * (w[2] - X[i, bias + 2]), E)
+            _matmul3_into(Ri, E, A)
+        else:
+            A[:, :] = Ri
+        er, ep, ey = _canonical_euler(A)
+        Y[i, roll], Y[i, roll + 1], Y[i, yaw] = er, ep, ey
+        if i == 0:
+            e0r, e0p, e0y = er, ep, ey
+            C0[:, :] = A
+            T[0, roll], T[0, roll + 1], T[0, yaw] = er, ep, ey
+        else:
+            # log(A C0^T): the point's turn from the central point, world axes (only the
+            # skew part and the trace are needed)
+            b10 = A[1, 0] * C0[0, 0] + A[1, 1] * C0[0, 1] + A[1, 2] * C0[0, 2]
+            b01 = A[0, 0] * C0[1, 0] + A[0, 1] * C0[1, 1] + A[0, 2] * C0[1, 2]
+            b20 = A[2, 0] * C0[0, 0] + A[2, 1] * C0[0, 1] + A[2, 2] * C0[0, 2]
+            b02 = A[0, 0] * C0[2, 0] + A[0, 1] * C0[2, 1] + A[0, 2] * C0[2, 2]
+            b21 = A[2, 0] * C0[1, 0] + A[2, 1] * C0[1, 1] + A[2, 2] * C0[1, 2]
+            b12 = A[1, 0] * C0[2, 0] + A[1, 1] * C0[2, 1] + A[1, 2] * C0[2, 2]
+            tr = (A[0, 0] * C0[0, 0] + A[0, 1] * C0[0, 1] + A[0, 2] * C0[0, 2]
+                  + A[1, 0] * C0[1, 0] + A[1, 1] * C0[1, 1] + A[1, 2] * C0[1, 2]
+                  + A[2, 0] * C0[2, 0] + A[2, 1] * C0[2, 1] + A[2, 2] * C0[2, 2])
+            vx, vy, vz = 0.5 * (b21 - b12), 0.5 * (b02 - b20), 0.5 * (b10 - b01)
+            c = min(1.0, max(-1.0, 0.5 * (tr - 1.0)))
+            sn = math.sqrt(vx * vx + vy * vy + vz * vz)
+            k = 1.0 if sn < 1e-12 else math.atan2(sn, c) / sn
+            T[i, roll], T[i, roll + 1], T[i, yaw] = e0r + k * vx, e0p + k * vy, e0y + k * vz
+        for c3 in range(3):
+            v = X[i, accel + c3] * accel_decay
+            Y[i, accel + c3] = v
+            T[i, accel + c3] = v
+    return T, Y
+
+
+@njit(cache=True, nogil=True)
+def fold_attitude(x, anchor, roll, yaw):  # pragma: no cover - compiled
+    """``x (n,)`` whose attitude columns hold ``anchor (3,)`` (roll, pitch, yaw) plus a
+    world-axis rotation vector ``δ`` -> a copy whose attitude columns are the canonical
+    Euler angles of ``exp([δ]x) R(anchor)`` (pitch within ±pi/2, roll and yaw within
+    ±pi): the reset of the filter's tangent space (:func:`points_from_tangent`)."""
+    out = x.copy()
+    E = np.empty((3, 3))
+    R0 = np.empty((3, 3))
+    A = np.empty((3, 3))
+    _exp_so3_into(x[roll] - anchor[0], x[roll + 1] - anchor[1], _wrap(x[yaw] - anchor[2]), E)
+    _R_into(anchor[0], anchor[1], anchor[2], R0)
+    _matmul3_into(E, R0, A)
+    out[roll], out[roll + 1], out[yaw] = _canonical_euler(A)
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -34,29 +207,26 @@ def process_points(X, dt, w, have_w, roll, yaw, bias, accel, accel_decay):  # pr
     """The process model at every sigma point ``X (N, n)`` -> ``(N, n)``.
 
     With a gyro reading ``w`` (rad/s, body axes; ``have_w``), each point's rates minus its
-    own gyro bias turn its attitude over ``dt`` (midpoint rule on the rates of
-    ``R = Rz(yaw) Ry(pitch) Rx(roll)``: roll rate ``w_x + (sin r w_y + cos r w_z) tan p``,
-    pitch rate ``cos r w_y - sin r w_z``, yaw rate ``(sin r w_y + cos r w_z) / cos p``);
-    the base's acceleration decays by ``accel_decay``; everything else stays. Yaw is not
-    wrapped here (the unscented mean wraps it)."""
+    own gyro bias turn its attitude over ``dt`` exactly: ``R' = R exp([w dt]x)`` with
+    ``R = Rz(yaw) Ry(pitch) Rx(roll)``, read back as Euler angles in the chart nearest the
+    point's (:func:`euler_nearest`; exact at any rate, where a rule on the Euler-angle rates
+    loses accuracy at a hand's 1000 deg/s and breaks down near pitch ±90 deg);
+    the base's acceleration decays by ``accel_decay``; everything else stays. Roll and yaw
+    are not wrapped here (the filter holds the attitude's spread as a tangent vector and
+    folds the mean back into canonical Euler angles:
+    :meth:`fusion.tracking.process.ProcessModel.fold_attitude`)."""
     N, n = X.shape
     Y = X.copy()
+    E = np.empty((3, 3))
+    R = np.empty((3, 3))
+    A = np.empty((3, 3))
     for i in range(N):
         if have_w:
-            w0 = w[0] - X[i, bias]
-            w1 = w[1] - X[i, bias + 1]
-            w2 = w[2] - X[i, bias + 2]
-            r, p = X[i, roll], X[i, roll + 1]
-            sr, cr = math.sin(r), math.cos(r)
-            # the rates at the start, half a step, then the rates at the midpoint
-            b = sr * w1 + cr * w2
-            r_mid = r + 0.5 * dt * (w0 + b * math.tan(p))
-            p_mid = p + 0.5 * dt * (cr * w1 - sr * w2)
-            sr, cr = math.sin(r_mid), math.cos(r_mid)
-            b = sr * w1 + cr * w2
-            Y[i, roll] = r + dt * (w0 + b * math.tan(p_mid))
-            Y[i, roll + 1] = p + dt * (cr * w1 - sr * w2)
-            Y[i, yaw] = X[i, yaw] + dt * (b / math.cos(p_mid))
+            _exp_so3_into(dt * (w[0] - X[i, bias]), dt * (w[1] - X[i, bias + 1]),
+                          dt * (w[2] - X[i, bias + 2]), E)
+            _R_into(X[i, roll], X[i, roll + 1], X[i, yaw], R)
+            _matmul3_into(R, E, A)
+            Y[i, roll], Y[i, roll + 1], Y[i, yaw] = euler_nearest(A, X[i, roll], X[i, roll + 1], X[i, yaw])
         for c in range(3):
             Y[i, accel + c] = X[i, accel + c] * accel_decay
     return Y
