@@ -83,6 +83,16 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
     x[L.bias] = imu.gyro_bias_rad_s
     P[L.bias, L.bias] = np.eye(3) * imu.gyro_bias_sigma_rad_s**2
     P[L.imu_bias, L.imu_bias] = np.diag(imu_bias_var_g2)
+    # the filter holds the attitude's covariance as a world-axis rotation vector's: the
+    # startup's (and the yaw's) are of Euler-angle increments, so turn them (and their
+    # correlations with the joints) through d(delta)/d(roll, pitch, yaw) at the start
+    pch, y = x[L.pitch], x[L.yaw]
+    cy, sy, cp, sp = np.cos(y), np.sin(y), np.cos(pch), np.sin(pch)
+    T = np.array([[cy * cp, -sy, 0.0], [sy * cp, cy, 0.0], [-sp, 0.0, 1.0]])  # columns: roll, pitch, yaw
+    att = np.array([L.roll, L.pitch, L.yaw])
+    M = np.eye(L.size)
+    M[np.ix_(att, att)] = T
+    P = M @ P @ M.T
     return x, P, q0
 
 
