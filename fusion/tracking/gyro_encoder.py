@@ -79,8 +79,9 @@ def gyro_joint_rate(arm: ArmModel, rec: Recording, joint: int, t_s: np.ndarray) 
     for the base IMU's, corrected as the tracker corrects it (the config's gyro effects)."""
     s_before, dev_before, s_after, dev_after = _gyros(arm, joint)
     models = stream_models(arm)
-    offsets = device_time_offsets(config_model(arm))
-    readings = Readings(arm, config_model(arm), startup_correction(arm)) if arm.effects else None
+    model = config_model(arm)
+    offsets = device_time_offsets(model)
+    readings = Readings(arm, model, startup_correction(arm)) if arm.effects else None
     rates = []
     for stream, dev in ((s_before, dev_before), (s_after, dev_after)):
         st = rec.get(stream)
