@@ -187,6 +187,9 @@ class ArmModel:
     effects: tuple = ()
     calibration: ArmCalibration = field(default_factory=ArmCalibration)
     base_motion: BaseMotion | None = None
+    magnetic_declination_deg: float | None = None
+    """The site's magnetic declination (true north east of magnetic north, deg), from the
+    config's ``site:`` block; None: not given, headings are from magnetic north."""
 
     # -- derived views -------------------------------------------------------------
     @property

@@ -233,12 +233,21 @@ class BaseMotionSection(_Strict):
     accel_tau_s: float = Field(gt=0.0, le=3600.0)
 
 
+class SiteSection(_Strict):
+    """The ``site:`` block: where the chair is used. ``magnetic_declination_deg``: true
+    north's angle from magnetic north, degrees, east positive (a chart or NOAA's calculator
+    gives it); with it the heading is from true north."""
+
+    magnetic_declination_deg: float = Field(ge=-180.0, le=180.0)
+
+
 class ArmConfigFile(_Strict):
     arm: ArmSection
     sensors: list[SensorSection]
     effects: list[EffectEntry] = Field(default_factory=list)
     calibration: CalibrationSection = Field(default_factory=CalibrationSection)
     base_motion: BaseMotionSection | None = None
+    site: SiteSection | None = None
 
 
 def _loc(loc: tuple) -> str:
@@ -468,6 +477,7 @@ def build_arm(
         calibration=_calibration(parsed.calibration),
         base_motion=(None if parsed.base_motion is None else
                      BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s)),
+        magnetic_declination_deg=(None if parsed.site is None else parsed.site.magnetic_declination_deg),
     )
 
 

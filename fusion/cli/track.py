@@ -206,7 +206,8 @@ def estimate_columns(run) -> list[str]:
     j = run.joint_names
     return (["t"] + [f"q_{n}" for n in j] + [f"sigma_{n}" for n in j] + [f"flag_{n}" for n in j]
             + ["roll", "pitch", "yaw", "sigma_roll", "sigma_pitch", "sigma_yaw",
-               "gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "magnetic_disturbance", "magnetic_recovery"]
+               "gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "magnetic_disturbance", "magnetic_recovery",
+               "heading_status"]
             + [f"status_{s}" for s in run.sensor_names])
 
 
@@ -214,6 +215,7 @@ def write_estimates(run, path: Path, arm_config: str = "") -> None:
     """Every fused instant's estimate: CSV (one row each, angles in rad) or MCAP (JSON
     messages on ``estimates/joints`` and ``estimates/heading``: the records of
     :mod:`fusion.tracking.estimate`)."""
+    from fusion.tracking.estimate import HEADING_STATUS
     from fusion.tracking.tracker import JOINT_FLAGS, SENSOR_STATUS
 
     path = Path(path)
@@ -224,12 +226,13 @@ def write_estimates(run, path: Path, arm_config: str = "") -> None:
             flags = np.array(JOINT_FLAGS, dtype=object)[run.flags]
             status = np.array(SENSOR_STATUS, dtype=object)[run.sensor_status]
             mag = run.magnetic
+            heading_status = np.array(HEADING_STATUS, dtype=object)[run.heading_status]
             for i in range(run.steps):
                 w.writerow([f"{run.t_s[i]:.6f}", *(f"{v:.9f}" for v in run.q_rad[i]),
                             *(f"{v:.3e}" for v in run.sigma_rad[i]), *flags[i],
                             *(f"{v:.9f}" for v in run.rpy_rad[i]), *(f"{v:.3e}" for v in run.rpy_sigma_rad[i]),
                             *(f"{v:.4e}" for v in run.gyro_bias_rad_s[i]),
-                            int(mag[i] & 1 > 0), int(mag[i] & 2 > 0), *status[i]])
+                            int(mag[i] & 1 > 0), int(mag[i] & 2 > 0), heading_status[i], *status[i]])
         return
     from fusion.tracking import estimate as wire
     from sensors.recording_mcap import McapRecorder
@@ -244,7 +247,8 @@ def write_estimates(run, path: Path, arm_config: str = "") -> None:
                 sensors))
             wire.write_mcap_record(mc, "heading", wire.heading_record(
                 t, run.rpy_rad[i], run.rpy_sigma_rad[i], run.gyro_bias_rad_s[i],
-                run.magnetic[i] & 1, run.magnetic[i] & 2))
+                run.magnetic[i] & 1, run.magnetic[i] & 2, wire.HEADING_STATUS[run.heading_status[i]],
+                run.true_north))
 
 
 def _print(doc: dict, run) -> None:

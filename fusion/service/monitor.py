@@ -137,7 +137,8 @@ def view_json(v: RobotView, now_s: float) -> dict[str, Any]:
         "sensors": {} if j is None else dict(j.sensors),
         "heading": None if h is None else {"t_s": h.t_s, "deg": _deg(h.heading_rad),
                                            "sigma_deg": _deg(h.heading_sigma_rad),
-                                           "magnetic_disturbance": h.magnetic_disturbance},
+                                           "magnetic_disturbance": h.magnetic_disturbance,
+                                           "status": h.heading_status},
         "nodes": {n: {"state": s.state, "message": s.message, "counters": dict(s.counters)}
                   for n, s in sorted(v.nodes.items())},
     }
@@ -190,8 +191,8 @@ def render(monitor: Monitor):
         if v.heading is not None:
             h = v.heading
             heading = f"{math.degrees(h.heading_rad):7.2f} ± {math.degrees(h.heading_sigma_rad):.2f}"
-            if v.heading.magnetic_disturbance:
-                heading += "\n[yellow]magnetic disturbance[/]"
+            if h.heading_status != "compass_fused":
+                heading += f"\n[yellow]{h.heading_status.replace('_', ' ')}[/]"
         nodes = "\n".join(f"{n}: {s.state}" + (" [red]stalled[/]" if dict(s.counters).get("stalled") else "")
                           for n, s in sorted(v.nodes.items())) or "-"
         age = v.age_s(now)

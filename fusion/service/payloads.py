@@ -37,13 +37,15 @@ from typing import Any
 
 import numpy as np
 
-from fusion.tracking.estimate import Estimate, heading_record, joints_record
+from fusion.tracking.estimate import HEADING_STATUS, NORTH, Estimate, heading_record, joints_record
 from sensors.samples import RAW_KINDS, Stream, clipped_repr
 
-VERSIONS = {"raw": 2, "joints": 1, "heading": 2, "status": 1, "calibration": 1}
+VERSIONS = {"raw": 2, "joints": 1, "heading": 3, "status": 1, "calibration": 1}
 """Each payload type's schema version (the one written). ``heading`` 2: ``sigma_rad`` became
 ``heading_sigma_rad``, and the base's roll and pitch, their sigmas, the gyro bias and
-``magnetic_recovery`` came in (the estimate's one wire form). ``raw`` 2: ``counts`` became
+``magnetic_recovery`` came in (the estimate's one wire form); 3: ``heading_status``,
+``north``, ``yaw_enu_rad`` and ``yaw_enu_variance_rad2`` came in (a localisation
+consumer's fields). ``raw`` 2: ``counts`` became
 ``values``, which may hold decimals (a sensor whose description declares its values in g,
 °/s…, as an imported recording holds them)."""
 READ_VERSIONS = {**{k: (v,) for k, v in VERSIONS.items()}, "raw": (1, 2)}
@@ -185,6 +187,8 @@ class Heading:
     gyro_bias_rad_s: tuple[float, float, float]
     magnetic_disturbance: bool = False
     magnetic_recovery: bool = False
+    heading_status: str = "gyro_only"
+    true_north: bool = False
 
     @classmethod
     def of(cls, robot: str, e: Estimate) -> Heading:
@@ -192,13 +196,14 @@ class Heading:
         bias = tuple(float(x) for x in e.gyro_bias_rad_s)
         return cls(robot, float(e.t_s), float(e.heading_rad), s_yaw, float(e.roll_rad), s_roll,
                    float(e.pitch_rad), s_pitch, bias, bool(e.magnetic_disturbance),
-                   bool(e.magnetic_recovery))
+                   bool(e.magnetic_recovery), e.heading_status, bool(e.true_north))
 
     def record(self) -> dict[str, Any]:
         """The heading record (:func:`fusion.tracking.estimate.heading_record`): no envelope."""
         return heading_record(self.t_s, (self.roll_rad, self.pitch_rad, self.heading_rad),
                               (self.roll_sigma_rad, self.pitch_sigma_rad, self.heading_sigma_rad),
-                              self.gyro_bias_rad_s, self.magnetic_disturbance, self.magnetic_recovery)
+                              self.gyro_bias_rad_s, self.magnetic_disturbance, self.magnetic_recovery,
+                              self.heading_status, self.true_north)
 
     def to_json(self) -> dict[str, Any]:
         return {"v": VERSIONS["heading"], "type": "heading", "robot": self.robot, **self.record()}
@@ -381,10 +386,19 @@ def _heading(d: dict, robot: str) -> Heading:
     bias = _floats(d, "gyro_bias_rad_s", 3)
     if not all(math.isfinite(b) for b in bias):
         raise PayloadError("malformed", "field 'gyro_bias_rad_s' is not finite")
+    status = _field(d, "heading_status", str)
+    if status not in HEADING_STATUS:
+        raise PayloadError("malformed", f"heading_status {clipped_repr(status)}: expected one of "
+                                        f"{', '.join(HEADING_STATUS)}")
+    north = _field(d, "north", str)
+    if north not in NORTH:
+        raise PayloadError("malformed", f"north {clipped_repr(north)}: expected one of {', '.join(NORTH)}")
+    _finite(d, "yaw_enu_rad")  # (derived from heading_rad: checked, not kept)
+    _finite(d, "yaw_enu_variance_rad2")
     return Heading(robot, _finite(d, "t_s"), _finite(d, "heading_rad"), _finite(d, "heading_sigma_rad"),
                    _finite(d, "roll_rad"), _finite(d, "roll_sigma_rad"), _finite(d, "pitch_rad"),
                    _finite(d, "pitch_sigma_rad"), bias, _flag(d, "magnetic_disturbance"),
-                   _flag(d, "magnetic_recovery"))
+                   _flag(d, "magnetic_recovery"), status, north == "true")
 
 
 def _status(d: dict, robot: str) -> Status:

@@ -166,10 +166,13 @@ class FusionNode:
         self._message = "waiting for samples"
         self._resumed = False
         self._saved: dict | None = None
+        self._saved_iron: dict | None = None  # the compass's learnt iron, reused by a fresh start
         self._resume_message = ""
         if self.state_path is not None:
             try:
                 self._saved = state_file.load_state(self.state_path)
+                self._saved_iron = state_file.saved_compass_calibration(self._saved, self.robot,
+                                                                         self.arm.name)
                 self._resume_message = f"found a saved state in {self.state_path}"
             except state_file.StateFileError as e:
                 self._resume_message = f"no resume: {e}; a startup calibration on a still arm"
@@ -347,8 +350,15 @@ class FusionNode:
         self._start = start
         assumed = ("; its branches rest on an assumption: the arm parked at its ready pose "
                    "(--assume-parked)" if self.assume_parked else "")
+        compass = ""
+        try:
+            if tracker.compass.restore_iron(self._saved_iron):
+                compass = f"; the compass's iron as learnt before, from {self.state_path}"
+        except ValueError as e:
+            compass = f"; the saved compass calibration not used: {e}"
         self._begin(tracker, rec, f"startup calibration on the still stretch {start.t_start_s:.2f}"
-                                  f"-{start.t_end_s:.2f} s; tracking" + assumed + ambiguity_note(start))
+                                  f"-{start.t_end_s:.2f} s; tracking" + assumed + ambiguity_note(start)
+                    + compass)
 
     def _begin(self, tracker: Tracker, rec: Recording, message: str) -> None:
         """Track with ``tracker`` from its time on; ``rec``'s later samples go to it first."""

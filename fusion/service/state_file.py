@@ -114,6 +114,18 @@ def save_tracker_state(path: Path | str, robot: str, arm_name: str, t_enc_s: flo
     return True
 
 
+def saved_compass_calibration(doc: Mapping | None, robot: str, arm_name: str) -> dict | None:
+    """The compass's iron as the saved state's tracker had learnt it (the online hard and
+    soft iron, :mod:`fusion.tracking.compass_calibration`), for the same robot and arm; None
+    otherwise. Unlike the rest of the state it does not go stale: the chair's iron does not
+    change while it is switched off, and a tracker started afresh reuses it."""
+    if not doc or doc.get("robot") != robot or doc.get("arm") != arm_name:
+        return None
+    tracker = doc.get("tracker")
+    iron = tracker.get("iron") if isinstance(tracker, Mapping) else None
+    return iron if isinstance(iron, Mapping) else None
+
+
 def resume_problem(doc: Mapping, *, robot: str, arm_name: str, joint_names, counts_per_rad,
                    t_s: float, encoder_counts, now_wall_s: float, max_age_s: float,
                    max_joint_rate_rad_s: float) -> str | None:

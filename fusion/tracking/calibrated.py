@@ -83,17 +83,20 @@ def with_lever_arms(arm: ArmModel, model: Model | None) -> ArmModel:
     return replace(arm, sensors=sensors)
 
 
-NOT_APPLIED: dict[str, str] = {
-    "mag_arm_disturbance": "the tracker does not model the arm's steel turning with the joints",
-}
-"""The config's effects the tracker does not apply, and why (every other effect it does:
-the accelerometers', the gyro's and the compass's corrections, the joints' effects in the
-kinematics, lever arms, time offsets, encoder scales; the gyro's calibrated bias undone, the
-tracker's bias state follows what is left of it and its drift)."""
+NOT_APPLIED: dict[str, str] = {}
+"""The config's effects the tracker does not apply, and why (none now: it applies the
+accelerometers', the gyro's and the compass's corrections, the arm's steel's field at the
+compass, the joints' effects in the kinematics, lever arms, time offsets, encoder scales;
+the gyro's calibrated bias undone, the tracker's bias state follows what is left of it and
+its drift)."""
 PARTLY_APPLIED: dict[str, str] = {
     "base_mount": ("applied to the IMU's accelerometer, not to its gyro and compass (a parked fit's "
                    "mount is gravity's)"),
 }
+IMU_PARTLY_APPLIED: dict[str, str] = {
+    "time_offset": "applied to the IMU's accelerometer, not to its gyro and compass",
+}
+"""Effects applied in part where their target is the base IMU, and what is left out."""
 
 
 def effects_applied(model: Model | None) -> tuple[list[str], list[str]]:
@@ -102,8 +105,11 @@ def effects_applied(model: Model | None) -> tuple[list[str], list[str]]:
     if model is None:
         return [], []
     applied, not_applied = [], []
+    imu = model.arm.imu.name if model.arm.imu is not None else None
     for e in model.effects:
-        if e.name in NOT_APPLIED:
+        if e.name in IMU_PARTLY_APPLIED and e.target == imu:
+            applied.append(f"{e.block_name} ({IMU_PARTLY_APPLIED[e.name]})")
+        elif e.name in NOT_APPLIED:
             not_applied.append(f"{e.block_name} ({NOT_APPLIED[e.name]})")
         elif e.name in PARTLY_APPLIED:
             applied.append(f"{e.block_name} ({PARTLY_APPLIED[e.name]})")
@@ -117,6 +123,16 @@ def hard_iron_sigma_ut(model: Model | None) -> np.ndarray | None:
     for _, _, sigma in _blocks(model, "mag_hard_iron"):
         return sigma
     return None
+
+
+def heading_scale_sigma(arm: ArmModel, model: Model | None, default: float) -> float:
+    """The sigma (fraction) of the gyro's scale about the base's vertical: the config's
+    ``gyro_scale`` sigmas turned into the base's axes, else ``default`` (the datasheet's)."""
+    if arm.imu is None:
+        return default
+    for _, _, sigma in _blocks(model, "gyro_scale"):
+        return float(np.sqrt(np.sum((np.asarray(arm.imu.R_LS)[2] * sigma) ** 2)))
+    return default
 
 
 def offset_per_degree(arm: ArmModel, model: Model | None, correction) -> dict[str, np.ndarray]:

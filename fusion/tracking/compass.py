@@ -1,8 +1,11 @@
 """The compass inside the tracker: how far the config says its readings may be from
 Earth's field (the iron it leaves unmodelled), the map that undoes the iron it models,
+the field of the arm's own steel at the joint angles the tracker knows (:class:`ArmSteel`),
 and :class:`Compass`, the part of the filter that averages the magnetometer over a
-period, checks the field (:class:`fusion.tracking.heading.MagneticGuard`), sets the heading
-measurement's noise and decides whether it is used."""
+period, calibrates the iron the config leaves unknown from the chair's turns
+(:class:`fusion.tracking.compass_calibration.IronEstimator`), checks the field
+(:class:`fusion.tracking.heading.MagneticGuard`), sets the heading measurement's noise and
+decides whether it is used; its :attr:`Compass.status` is the heading feed's."""
 
 from __future__ import annotations
 
@@ -10,12 +13,16 @@ import math
 
 import numpy as np
 
-from fusion.tracking.calibrated import hard_iron_sigma_ut, has_effect
+from fusion.tracking.calibrated import _blocks, hard_iron_sigma_ut, has_effect
+from fusion.tracking.compass_calibration import IronEstimator, detilt
+from fusion.tracking.estimate import HEADING_STATUS
 from fusion.tracking.heading import FieldCheck, FieldReference, MagneticGuard, heading_sigma_rad
 from fusion.tracking.innovations import InnovationRing
 from fusion.tracking.settings import MAG, TrackerSettings
 from models.arm import ArmModel
 from models.effects import Model
+from models.effects.imu import dipole_field
+from models.kinematics import chain_poses
 from models.rotations import DEG, exp_so3_one
 
 
@@ -64,30 +71,128 @@ def compass_map(arm: ArmModel, correction=None, model: Model | None = None
     return undo_map(correction, MAG)
 
 
+SOFT_IRON_TYPICAL = np.array([0.05, 0.05, 0.05, 0.02, 0.02, 0.02])
+"""The soft iron's datasheet-typical sigma (the ``mag_soft_iron`` effect's prior), used when
+the config holds no soft iron but says its compass is not exact."""
+
+COMPASS_FUSED, GYRO_ONLY, DISTURBED, CALIBRATING = HEADING_STATUS
+STATUS_CODE = {s: i for i, s in enumerate(HEADING_STATUS)}
+
+
+class ArmSteel:
+    """The field of the arm's own steel and motors at the compass (the config's
+    ``mag_arm_disturbance`` dipoles, each fixed in the link after its joint), at the joint
+    angles the tracker knows, with its covariance from the dipoles' sigmas."""
+
+    def __init__(self, arm: ArmModel, model: Model | None):
+        self.arm = arm
+        self.dipoles = [(arm.joint_names.index(e.target), value, sigma)
+                        for e, value, sigma in _blocks(model, "mag_arm_disturbance")]
+        imu = arm.imu
+        self.R_0I = imu.R_LS if imu is not None else np.eye(3)
+        self.p_I = np.asarray(imu.p_L_m, float) if imu is not None else np.zeros(3)
+        self.sigma = np.concatenate([s for _, _, s in self.dipoles]) if self.dipoles else np.zeros(0)
+        self.J_mean = None  # the dipoles' mean Jacobian over the readings the iron was fitted on
+        self.n_mean = 0.0
+
+    def __bool__(self) -> bool:
+        return bool(self.dipoles)
+
+
+    def field_ut(self, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The steel's field at the compass ``b (3,)`` (µT, compass axes) and its Jacobian in
+        the dipoles' moments ``(3, 3 n)`` (µT per A·m²)."""
+        poses = chain_poses(self.arm, np.asarray(q_rad, float)[None])
+        b, J = np.zeros(3), np.zeros((3, 3 * len(self.dipoles)))
+        for k, (j, moment, _) in enumerate(self.dipoles):
+            R_0L, p_d = poses.R_0L[0, j + 1], poses.p_0L_m[0, j + 1]
+            B, D, _ = dipole_field((self.p_I - p_d)[None], (R_0L @ moment)[None])
+            b += self.R_0I.T @ B[0]
+            J[:, 3 * k:3 * k + 3] = self.R_0I.T @ D[0] @ R_0L
+        return b, J
+
+    def absorbed(self, J: np.ndarray, forget: float) -> None:
+        """A reading at Jacobian ``J`` went into the iron's fit: whatever field the dipoles'
+        error makes at the poses it was fitted on, the hard iron took on as its mean."""
+        self.n_mean = self.n_mean * forget + 1.0
+        self.J_mean = J.copy() if self.J_mean is None else self.J_mean + (J - self.J_mean) / self.n_mean
+
+    def covariance(self, J: np.ndarray) -> np.ndarray:
+        """The covariance (µT², compass axes) of the steel's field error at a pose of Jacobian
+        ``J``, less the part the hard iron took on (its mean over the fitted readings)."""
+        D = J if self.J_mean is None else J - self.J_mean
+        return (D * self.sigma**2) @ D.T
+
+
+def iron_prior_sigma(arm: ArmModel, model: Model | None) -> np.ndarray | None:
+    """The prior sigma of the iron the compass's readings may still hold, hard (µT, 3) then
+    soft (6): the config's ``mag_hard_iron`` and ``mag_soft_iron`` sigmas, else its
+    ``calibration.mag_unmodelled_ut`` with a datasheet-typical soft iron; None when the config
+    says its compass is exact (neither)."""
+    hard = hard_iron_sigma_ut(model)
+    soft = next((sigma for _, _, sigma in _blocks(model, "mag_soft_iron")), None)
+    if hard is None:
+        u = arm.calibration.mag_unmodelled_ut
+        if u <= 0:
+            return None
+        hard = np.full(3, u)
+    soft = SOFT_IRON_TYPICAL if soft is None else soft
+    return np.concatenate([np.maximum(hard, 1e-3), np.maximum(soft, 1e-5)])
+
+
+def mount_heading_sigma_rad(arm: ArmModel, model: Model | None) -> float:
+    """The heading's sigma (rad) from the IMU's mount about the vertical (the config's
+    ``base_mount`` of the IMU, its sigma turned into the base's axes): gravity cannot see
+    it and the compass reads the IMU's heading, so it is a constant bias of every heading
+    the tracker gives, whatever the compass and the gyro do."""
+    if arm.imu is None:
+        return 0.0
+    for e, _, sigma in _blocks(model, "base_mount"):
+        if e.target == arm.imu.name:
+            return float(math.sqrt(np.sum((np.asarray(arm.imu.R_LS)[2] * sigma) ** 2)))
+    return 0.0
+
+
 class Compass:
     """The magnetometer's part of the filter, from the startup's field reference (``None``:
     no reference, the compass is not fused).
 
-    Its samples are averaged over ``mag_fuse_period_s`` and fused as one heading; each is
-    first turned, with the gyro, into the base's axes at the period's end, so that a turning
-    chair does not smear the average. A compass whose config leaves more unmodelled iron
-    than ``compass_max_unmodelled_deg`` is not fused (:attr:`usable` False)."""
+    Its samples are averaged over ``mag_fuse_period_s``; each is first turned, with the
+    gyro, into the base's axes at the period's end, so that a turning chair does not smear
+    the average. Each average has the arm's steel (:class:`ArmSteel`) and the estimated
+    iron (:class:`~fusion.tracking.compass_calibration.IronEstimator`) taken out, and is
+    fused as one heading once the iron's doubt is below ``heading.fuse_below_deg``."""
 
     def __init__(self, arm: ArmModel, model: Model | None, field: FieldReference | None,
-                 settings: TrackerSettings, t_s: float):
+                 settings: TrackerSettings, t_s: float, R_0I: np.ndarray | None = None):
         st = settings
+        self.settings = st.heading
         self.field = field
+        self.R_0I = np.eye(3) if R_0I is None else np.asarray(R_0I, float)
         self.guard = MagneticGuard(field, st.heading) if field is not None else None
         self.sigma_psi = heading_sigma_rad(field, st.heading.noise_ut) if field else np.inf
-        # an unmodelled hard iron turns every compass heading by up to asin(h / B_h), a
-        # different amount at every heading: taken as noise of that size on each update
-        self.iron_var = compass_unmodelled_rad(arm, field, model) ** 2 if field else 0.0
-        self.usable = self.iron_var <= (st.compass_max_unmodelled_deg * DEG) ** 2
+        self.steel = ArmSteel(arm, model)
+        prior = iron_prior_sigma(arm, model) if field is not None else None
+        self.iron = None
+        if prior is not None:
+            V = field.magnitude_ut * math.sin(field.dip_rad)
+            self.iron = IronEstimator(prior[:9], field.horizontal_ut, V,
+                                      float(np.linalg.norm(prior[:3])) + 0.1 * field.magnitude_ut,
+                                      st.heading, t_s)
+        self.corr_count = max(st.heading.iron_correlation_s / st.mag_fuse_period_s, 1.0)
+        self.forget_per_period = math.exp(-st.mag_fuse_period_s / st.heading.iron_forget_s)
         self.period_s = st.mag_fuse_period_s
         self.recovery_interval_s = st.heading.recovery_interval_s
         self.ring = InnovationRing(1, st.innovation_capacity)
         self.flags = (False, False)
         """(disturbance, recovery) at the last fused heading."""
+        self.status = CALIBRATING if self.iron is not None else GYRO_ONLY
+        """The heading feed's status (:data:`HEADING_STATUS`)."""
+        self.iron_sigma_rad = np.inf if self.iron is not None else 0.0
+        """The heading's sigma from the iron still unknown, at the last period."""
+        self.steel_sigma_rad = 0.0
+        """The heading's sigma from the arm's steel as the config knows it, at the last period."""
+        self.mount_var = mount_heading_sigma_rad(arm, model) ** 2 if field is not None else 0.0
         self.recovery_t = -np.inf
         self._sum = None
         self._n = 0
@@ -96,7 +201,8 @@ class Compass:
 
     @property
     def fused(self) -> bool:
-        return self.guard is not None and self.usable
+        """Whether the compass's readings are averaged (a field reference exists)."""
+        return self.guard is not None
 
     def turn(self, w: np.ndarray, bias: tuple[float, float, float], dt: float) -> None:
         """The base turned at ``w - bias`` (rad/s, base axes) for ``dt``."""
@@ -119,11 +225,86 @@ class Compass:
         self._rot = np.eye(3)
         return out
 
+    def prepare(self, t: float, count: int, m_B: np.ndarray, roll_rad: float, pitch_rad: float,
+                q_rad: np.ndarray):
+        """One period's average ``m_B`` (µT, base axes) with the arm's steel and the estimated
+        iron taken out, ready to fuse: ``(count, field in base axes, extra heading variance
+        (rad²))``; None while the iron is too little known (status ``calibrating``)."""
+        R = self.R_0I
+        m_S = R.T @ m_B
+        b_arm = J_arm = None
+        if self.steel:
+            b_arm, J_arm = self.steel.field_ut(q_rad)
+        T = detilt(roll_rad, pitch_rad, R)
+        extra = 0.0
+        if self.iron is not None:
+            iron = self.iron
+            ready = self.iron_sigma_rad <= self.settings.fuse_below_deg * DEG
+            h = T @ iron.corrected(m_S, b_arm)
+            disturbed = ready and self._off_field(h)
+            if iron.add(t, m_S, T, self.sigma_psi_ut2(count), b_arm, disturbed) and J_arm is not None:
+                self.steel.absorbed(J_arm, self.forget_per_period)
+            if iron.refit(t):
+                self._adopt_field()
+            self.iron_sigma_rad = iron.heading_sigma_rad(m_S, T, b_arm)
+            if self.iron_sigma_rad > self.settings.fuse_below_deg * DEG:
+                self.status = CALIBRATING
+                return None
+            m_S = iron.corrected(m_S, b_arm)
+            extra += self.iron_sigma_rad**2 * self.corr_count
+        elif b_arm is not None:
+            m_S = m_S - b_arm
+        if J_arm is not None:
+            C_arm = self.steel.covariance(J_arm)
+            h = T @ m_S
+            n2 = max(h[0] ** 2 + h[1] ** 2, 1e-12)
+            g = np.array([h[1], -h[0], 0.0]) / n2 @ T  # d psi / d b_arm (compass axes), sign aside
+            self.steel_sigma_rad = math.sqrt(max(float(g @ C_arm @ g), 0.0))
+            extra += self.steel_sigma_rad**2 * self.corr_count
+        return count, R @ m_S, extra
+
+    @property
+    def heading_floor_var(self) -> float:
+        """What no averaging removes from the heading (rad²), added to its reported variance:
+        the IMU's mount about the vertical and, while the compass is fused, the errors of the
+        arm's steel as modelled at the present pose and of the iron as estimated at the
+        present heading (biases for as long as the arm and the chair stay as they are)."""
+        if self.status != COMPASS_FUSED:
+            return self.mount_var
+        iron = self.iron_sigma_rad if self.iron is not None else 0.0
+        return self.mount_var + self.steel_sigma_rad**2 + iron**2
+
+    def sigma_psi_ut2(self, count: int) -> float:
+        """One averaged reading's noise variance per axis, µT²."""
+        return self.settings.noise_ut**2 / max(count, 1)
+
+    def _off_field(self, h: np.ndarray) -> bool:
+        """Whether a de-tilted, corrected field ``h`` is off Earth's as estimated by more
+        than the guard's tolerances (a disturbance: not binned)."""
+        H, V = self.iron.field_ut
+        mag = math.hypot(H, V)
+        st = self.settings
+        got = float(np.linalg.norm(h))
+        dip = math.asin(max(-1.0, min(1.0, -h[2] / max(got, 1e-9))))
+        return (abs(got - mag) > st.magnitude_tolerance * mag
+                or abs(dip - math.atan2(V, H)) > st.dip_tolerance_deg * DEG)
+
+    def _adopt_field(self) -> None:
+        """Earth's field as the estimate has it becomes the guard's reference."""
+        H, V = self.iron.field_ut
+        if H <= 0:
+            return
+        ref = FieldReference(math.hypot(H, V), math.atan2(V, H), self.field.declination_rad)
+        self.field = ref
+        self.guard.reference = ref
+        self.sigma_psi = heading_sigma_rad(ref, self.settings.noise_ut)
+
     def variance(self, m_B: np.ndarray, up_B: np.ndarray, count: int) -> tuple[FieldCheck, float]:
         """The field check of the averaged field ``m_B`` and the heading measurement's
-        variance (rad²): the average's noise, the unmodelled iron, and a disturbed field's doubt."""
+        variance (rad²): the average's noise and a disturbed field's doubt (the iron's and
+        the steel's are :meth:`prepare`'s)."""
         check = self.guard.check_field(m_B, up_B)
-        v = self.sigma_psi**2 / count + self.iron_var
+        v = self.sigma_psi**2 / count
         if check.disturbed:
             v += check.doubt_rad(self.field) ** 2
         return check, v
@@ -139,6 +320,7 @@ class Compass:
                 self.recovery_t = t
         self.ring.add(t, innovation, S, nis, use, count_stats=not check.disturbed)
         self.flags = (check.disturbed, self.guard.last_recovering)
+        self.status = COMPASS_FUSED if use else DISTURBED
         return use
 
     def heading_shift_rad(self) -> float:
@@ -149,7 +331,9 @@ class Compass:
         return {"field": None if self.field is None else {
                     "magnitude_ut": self.field.magnitude_ut, "dip_rad": self.field.dip_rad,
                     "declination_rad": self.field.declination_rad},
-                "guard": None if self.guard is None else self.guard.snapshot()}
+                "guard": None if self.guard is None else self.guard.snapshot(),
+                "iron": None if self.iron is None else self.iron.snapshot(),
+                "status": self.status}
 
     @staticmethod
     def field_from(snap: dict) -> FieldReference | None:
@@ -160,3 +344,15 @@ class Compass:
     def restore(self, snap: dict) -> None:
         if self.guard is not None and snap.get("guard") is not None:
             self.guard.restore(snap["guard"])
+        self.restore_iron(snap.get("iron"))
+        if snap.get("heading_status") in STATUS_CODE:
+            self.status = snap["heading_status"]
+
+    def restore_iron(self, iron: dict | None) -> bool:
+        """Start the iron's estimate from a saved one (the compass's calibration outlives the
+        tracker: the chair's iron does not change when it is switched off); False where
+        there is none to restore or this compass estimates none."""
+        if self.iron is None or iron is None:
+            return False
+        self.iron.restore(iron)
+        return True

@@ -5,9 +5,13 @@ An estimate goes out as two JSON records, with the unit in every field's name:
 - the **joints record** (:func:`joints_record`): ``t_s``, ``joint_names``, ``q_rad``,
   ``sigma_rad``, ``flags``, ``sensors`` and, where known, ``axis_to_vertical_deg``;
 - the **heading record** (:func:`heading_record`): ``t_s``, ``heading_rad`` (yaw of the base
-  about the vertical), ``heading_sigma_rad``, ``roll_rad``, ``roll_sigma_rad``,
-  ``pitch_rad``, ``pitch_sigma_rad``, ``gyro_bias_rad_s``, ``magnetic_disturbance``,
-  ``magnetic_recovery``.
+  about the vertical, counter-clockwise seen from above, from north: 0 facing north, +pi/2
+  facing west), ``heading_sigma_rad``, ``roll_rad``, ``roll_sigma_rad``, ``pitch_rad``,
+  ``pitch_sigma_rad``, ``gyro_bias_rad_s``, ``magnetic_disturbance``, ``magnetic_recovery``,
+  ``heading_status`` (:data:`HEADING_STATUS`), ``north`` (``true`` where the config gives the
+  site's declination, else ``magnetic``), and the same heading in the convention of robot
+  localisation stacks (REP 103's ENU: yaw counter-clockwise from east),
+  ``yaw_enu_rad`` (in (-pi, pi]) and ``yaw_enu_variance_rad2``.
 
 Every writer of an estimate uses these two functions: :meth:`Estimate.as_dict` (both records
 in one object: ``armfusion track --json``), the Zenoh payloads on ``state/joints`` and
@@ -19,6 +23,7 @@ channel carries the record's JSON schema). docs/service.md describes them.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
@@ -42,15 +47,26 @@ JOINTS_JSON_SCHEMA = {
                    "sensors": {"type": "object", "additionalProperties": {"type": "string"}},
                    "axis_to_vertical_deg": _NUMBERS},
 }
+HEADING_STATUS = ("compass_fused", "gyro_only", "disturbed", "calibrating")
+"""The heading's status (:mod:`fusion.tracking.compass` sets it): ``compass_fused``, the
+compass corrected the heading at its last period; ``gyro_only``, there is no compass (or
+no field reference), the gyro carries the heading; ``disturbed``, the field is disturbed
+and the compass is not used (the gyro carries the heading, its sigma growing);
+``calibrating``, the compass's iron is not yet known well enough to fuse it (turn the
+chair, e.g. once on the spot)."""
+NORTH = ("magnetic", "true")
 HEADING_JSON_SCHEMA = {
     "title": HEADING_SCHEMA, "type": "object",
     "required": ["t_s", "heading_rad", "heading_sigma_rad", "roll_rad", "roll_sigma_rad", "pitch_rad",
-                 "pitch_sigma_rad", "gyro_bias_rad_s", "magnetic_disturbance", "magnetic_recovery"],
+                 "pitch_sigma_rad", "gyro_bias_rad_s", "magnetic_disturbance", "magnetic_recovery",
+                 "heading_status", "north", "yaw_enu_rad", "yaw_enu_variance_rad2"],
     "properties": {"t_s": _NUMBER, "heading_rad": _NUMBER, "heading_sigma_rad": _NUMBER,
                    "roll_rad": _NUMBER, "roll_sigma_rad": _NUMBER, "pitch_rad": _NUMBER,
                    "pitch_sigma_rad": _NUMBER,
                    "gyro_bias_rad_s": {**_NUMBERS, "minItems": 3, "maxItems": 3},
-                   "magnetic_disturbance": {"type": "boolean"}, "magnetic_recovery": {"type": "boolean"}},
+                   "magnetic_disturbance": {"type": "boolean"}, "magnetic_recovery": {"type": "boolean"},
+                   "heading_status": {"enum": list(HEADING_STATUS)}, "north": {"enum": list(NORTH)},
+                   "yaw_enu_rad": _NUMBER, "yaw_enu_variance_rad2": _NUMBER},
 }
 """The JSON schemas the MCAP channels of the two records carry (for other MCAP readers)."""
 MCAP_CHANNELS = {"joints": (JOINTS_TOPIC, JOINTS_SCHEMA, JOINTS_JSON_SCHEMA),
@@ -83,17 +99,27 @@ def joints_record(t_s: float, joint_names: Iterable[str], q_rad: Iterable[float]
     return doc
 
 
+def yaw_enu_rad(heading_rad: float) -> float:
+    """A heading (counter-clockwise from north) as ENU yaw (counter-clockwise from east),
+    in (-pi, pi]."""
+    a = math.remainder(float(heading_rad) + math.pi / 2, 2 * math.pi)
+    return math.pi if a == -math.pi else a
+
+
 def heading_record(t_s: float, rpy_rad: Iterable[float], rpy_sigma_rad: Iterable[float],
                    gyro_bias_rad_s: Iterable[float], magnetic_disturbance: bool,
-                   magnetic_recovery: bool) -> dict:
+                   magnetic_recovery: bool, heading_status: str, true_north: bool) -> dict:
     """The heading record: the base's attitude (roll, pitch, heading: yaw about the vertical)
-    with each one's one-sigma, the gyro bias and the magnetometer's state."""
+    with each one's one-sigma, the gyro bias, the magnetometer's state, the heading's status
+    and north, and the heading as ENU yaw with its variance."""
     roll, pitch, yaw = _floats(rpy_rad)
     s_roll, s_pitch, s_yaw = _floats(rpy_sigma_rad)
     return {"t_s": float(t_s), "heading_rad": yaw, "heading_sigma_rad": s_yaw,
             "roll_rad": roll, "roll_sigma_rad": s_roll, "pitch_rad": pitch, "pitch_sigma_rad": s_pitch,
             "gyro_bias_rad_s": _floats(gyro_bias_rad_s),
-            "magnetic_disturbance": bool(magnetic_disturbance), "magnetic_recovery": bool(magnetic_recovery)}
+            "magnetic_disturbance": bool(magnetic_disturbance), "magnetic_recovery": bool(magnetic_recovery),
+            "heading_status": str(heading_status), "north": NORTH[bool(true_north)],
+            "yaw_enu_rad": yaw_enu_rad(yaw), "yaw_enu_variance_rad2": s_yaw * s_yaw}
 
 
 @dataclass(frozen=True)
@@ -114,6 +140,10 @@ class Estimate:
     magnetic_disturbance: bool = False
     magnetic_recovery: bool = False
     joint_names: tuple[str, ...] = ()
+    heading_status: str = "gyro_only"
+    """:data:`HEADING_STATUS`."""
+    true_north: bool = False
+    """Whether the heading is from true north (the config gave the site's declination)."""
 
     @property
     def heading_rad(self) -> float:
@@ -148,7 +178,7 @@ class Estimate:
     def heading_record(self) -> dict:
         return heading_record(self.t_s, (self.roll_rad, self.pitch_rad, self.yaw_rad),
                               self.attitude_sigma_rad, self.gyro_bias_rad_s, self.magnetic_disturbance,
-                              self.magnetic_recovery)
+                              self.magnetic_recovery, self.heading_status, self.true_north)
 
     def as_dict(self) -> dict:
         """Both records in one object (they share ``t_s``; no other field name)."""

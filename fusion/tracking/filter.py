@@ -30,9 +30,9 @@ import numpy as np
 
 from fusion.startup.solve import StartupResult
 from fusion.tracking import calibrated
-from fusion.tracking.compass import Compass
+from fusion.tracking.compass import CALIBRATING, GYRO_ONLY, STATUS_CODE, Compass
 from fusion.tracking.differentiator import CausalDifferentiator
-from fusion.tracking.estimate import Estimate
+from fusion.tracking.estimate import HEADING_STATUS, Estimate
 from fusion.tracking.frame_kernels import FrameConstants
 from fusion.tracking.frames import Frames
 from fusion.tracking.health import SensorHealth
@@ -52,6 +52,9 @@ from fusion.tracking.settings import (
     IMU_ACC,
     JOINT_FLAGS,
     MAG,
+    S_ABSENT,
+    S_DEAD,
+    S_STALE,
     G,
     NotInitialisedError,
     StateLayout,
@@ -121,6 +124,7 @@ class Tracker:
                                            calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
                                            self.R_0I if self._has_imu else None)
         self.process = ProcessModel(st, L, arm.joint_names)
+        self.process.heading_scale_sigma = calibrated.heading_scale_sigma(arm, model, st.gyro_scale_sigma)
         self.set_rates(rates_hz)
         self._points = SigmaPoints(L.size, st.alpha, st.beta, st.kappa)
         self._ukf: BatchedUKF | None = None
@@ -175,7 +179,7 @@ class Tracker:
         if self._enc0 is not None:
             self._start_filter(self._enc0 / self.counts_per_rad)
         self._t = float(t_s)
-        self.compass = Compass(self.arm, self.model, imu.field, st, t_s)
+        self.compass = Compass(self.arm, self.model, imu.field, st, t_s, self.R_0I)
         self.enc_rates = CausalDifferentiator(n, st.encoder_window, st.encoder_order)
         self.gyro_rates = CausalDifferentiator(3, st.gyro_window, st.gyro_order)
         self._omega = None  # last gyro, base axes, rad/s
@@ -319,8 +323,10 @@ class Tracker:
         if dt > 0:
             w0 = self._omega if self._omega is not None else gyro
             w = None if w0 is None else (w0 if gyro is None else 0.5 * (w0 + gyro))
-            ukf.predict(self.process.fx_tangent, self.process.Q(dt, w is not None, self.still.still), dt=dt,
-                        w=w)
+            Q = self.process.Q(dt, w is not None, self.still.still)
+            if w is not None:
+                Q = self.process.turning(Q, w - ukf._x[self.layout.bias], dt, self.layout.yaw)
+            ukf.predict(self.process.fx_tangent, Q, dt=dt, w=w)
             # the attitude is now the propagated central point's plus a tangent vector
             anchor = ukf._sigmas[0, self._att_idx].copy() if ukf._sigmas is not None else None
             if w is not None:
@@ -339,6 +345,10 @@ class Tracker:
             mi = self._sidx[MAG]
             self.health.seen[mi], self.health.last_t[mi] = True, t
             mag = self.compass.average(t, mag[1]) if self.compass.fused else None
+            if mag is not None:
+                x, L = ukf._x, self.layout
+                mag = self.compass.prepare(t, mag[0], mag[1], float(x[L.roll]), float(x[L.pitch]),
+                                           x[L.offset] + q_enc)
         if acc is not None or mag is not None:
             self._fuse(t, acc, mag, frame)
         if dt > 0 and anchor is not None:  # back to Euler angles about the anchor (a reset)
@@ -355,9 +365,10 @@ class Tracker:
         sel, counts, f, (key, imu_pos, full, _), var_a, z, var = ms.stack(acc, frame, still, mag is not None)
         k, m = len(counts), len(z)
         if mag is not None:
-            m_count, m_B = mag
+            m_count, m_B, extra_var = mag
             x = ukf._x
             check, var[-1] = self.compass.variance(m_B, up_from_tilt(x[L.roll], x[L.pitch]), m_count)
+            var[-1] += extra_var
         plan = ms.plan(key, k, still, mag is not None)
         angle_rows = (m - 1,) if mag is not None else ()
         shift = self.compass.heading_shift_rad() if mag is not None else 0.0
@@ -480,12 +491,25 @@ class Tracker:
             flags=named[3],
             roll_rad=float(x[L.roll]), pitch_rad=float(x[L.pitch]), yaw_rad=float(x[L.yaw]),
             attitude_sigma_rad=_ro(attitude_sigma_rad(x[self._att_idx], self._ukf._P[np.ix_(self._att_idx,
-                                                                                              self._att_idx)])),
+                                                                                              self._att_idx)],
+                                                      self.compass.heading_floor_var)),
             gyro_bias_rad_s=_ro(x[L.bias]),
             axis_to_vertical_deg=_ro(self.observability.axis_deg), sensors=named[2],
             magnetic_disturbance=self.compass.flags[0], magnetic_recovery=self.compass.flags[1],
-            joint_names=self.arm.joint_names,
+            joint_names=self.arm.joint_names, heading_status=HEADING_STATUS[self.heading_status_code()],
+            true_north=self.arm.magnetic_declination_deg is not None,
         )
+
+    def heading_status_code(self) -> int:
+        """The heading's status (an index into :data:`~fusion.tracking.estimate.HEADING_STATUS`):
+        the compass's, or ``gyro_only`` where the magnetometer has gone quiet (stale, dead or
+        absent) since it last said otherwise."""
+        code = STATUS_CODE[self.compass.status]
+        mi = self._sidx.get(MAG)
+        if mi is not None and code != STATUS_CODE[CALIBRATING] and \
+                self.health.status_codes[mi] in (S_STALE, S_DEAD, S_ABSENT):
+            return STATUS_CODE[GYRO_ONLY]
+        return code
 
     def counters(self) -> dict[str, dict[str, int]]:
         """Per sensor: samples, used, rejected, nan, saturated, implausible, stuck,

@@ -59,6 +59,26 @@ class HeadingSettings:
     """Magnetometer noise per axis, µT rms (AK8975: about 2 LSB)."""
     reference: str = "startup"
     """Where the expected field comes from: "startup" (the still window) or "model"."""
+    # the compass calibrated by driving (:mod:`fusion.tracking.compass_calibration`)
+    fuse_below_deg: float = 2.0
+    """The compass is fused once the iron it leaves unknown (the config's, narrowed by the
+    turns the chair has made) would turn its heading by less than this (1 sigma); until
+    then the heading is the gyro's and its status ``calibrating``."""
+    iron_correlation_s: float = 5.0
+    """The unknown iron's heading error is a bias that changes only as the chair turns: its
+    variance is counted once per this time, not once per fused heading."""
+    iron_bin_deg: float = 5.0
+    """Readings are binned by the de-tilted field's direction, this wide."""
+    iron_bin_max_count: int = 20
+    """A bin counts as at most this many independent readings (the model's own errors do
+    not average away by sitting at one heading)."""
+    iron_forget_s: float = 7200.0
+    """A bin's weight fades with this time constant: a slow change of the chair's iron is followed."""
+    iron_refit_period_s: float = 1.0
+    """The estimate is refitted from the bins at most this often."""
+    iron_model_floor_ut: float = 1.0
+    """What one averaged reading's model leaves besides its noise, µT rms per axis (the arm's
+    steel as modelled, the tilt, the averaging)."""
 
 
 @dataclass(frozen=True)

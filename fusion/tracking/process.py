@@ -19,13 +19,15 @@ from fusion.tracking.tracker_kernels import (
 from models.rotations import DEG
 
 
-def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray) -> np.ndarray:
+def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray, heading_floor_var=0.0) -> np.ndarray:
     """Roll, pitch and heading sigmas ``(..., 3)`` from the attitude covariance ``C_att
     (..., 3, 3)`` of the filter's tangent space (a world-axis rotation vector ``δ``) at
     attitudes ``rpy_rad (..., 3)``: roll and pitch through the Euler angles' own rates
     (``dε = E R^T δ``, which grows without bound near pitch ±90 deg, where they are
     undefined: held at pi), the heading as ``δ``'s vertical part, whose sigma stays finite
-    at any attitude (for a level base all three are ``δ``'s own)."""
+    at any attitude (for a level base all three are ``δ``'s own), with
+    ``heading_floor_var`` (rad², scalar or ``(...)``: what the filter cannot average away,
+    :attr:`fusion.tracking.compass.Compass.heading_floor_var`) added."""
     r, p = (np.asarray(rpy_rad, float)[..., k] for k in range(2))
     cp = np.cos(p)
     cp_safe = np.where(np.abs(cp) < 1e-9, np.copysign(1e-9, cp), cp)
@@ -37,6 +39,7 @@ def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray) -> np.ndarray:
                      np.stack([np.zeros_like(r), np.zeros_like(r), np.ones_like(r)], -1)], -2)
     C = np.asarray(C_att, float)
     var = np.einsum("...ij,...jk,...ik->...i", rows, C, rows)
+    var[..., 2] += heading_floor_var
     # (an angle known to no better than pi is not known: roll's at pitch ±90 deg stops there)
     return np.minimum(np.sqrt(np.clip(var, 0.0, None)), np.pi)
 
@@ -58,6 +61,9 @@ class ProcessModel:
                                  f"walk must be a positive number of deg/sqrt(s), got {deg!r}")
             rw[list(joint_names).index(name)] = float(deg)
         self._offset_rw_rad = rw * DEG
+        self.heading_scale_sigma = settings.gyro_scale_sigma
+        """The gyro's scale error about the vertical (fraction, 1 sigma): the config's, where
+        it holds one (:func:`fusion.tracking.calibrated.heading_scale_sigma`)."""
         self.last_points: tuple[np.ndarray, np.ndarray] | None = None
         self._decay: dict[float, float] = {}
         self._Q: dict = {}
@@ -118,6 +124,21 @@ class ProcessModel:
         L = self.layout
         return fold_attitude(np.ascontiguousarray(x, dtype=float),
                              np.ascontiguousarray(anchor_rpy, dtype=float), L.roll, L.yaw)
+
+    def turning(self, Q: np.ndarray, w_B: np.ndarray, dt: float, yaw_index: int) -> np.ndarray:
+        """``Q`` with the heading's share of the gyro's scale error while the base turns at
+        ``w_B`` (rad/s, base axes; :attr:`TrackerSettings.gyro_scale_correlation_s`); ``Q``
+        itself where the scale is exact."""
+        s = self.heading_scale_sigma
+        if s <= 0.0:
+            return Q
+        wz = float(w_B[2])
+        add = (s * wz) ** 2 * dt * self.settings.gyro_scale_correlation_s
+        if add < 1e-16:
+            return Q
+        Q = Q.copy()
+        Q[yaw_index, yaw_index] += add
+        return Q
 
     def Q(self, dt: float, have_gyro: bool, still: bool) -> np.ndarray:
         """The process noise over ``dt`` (cached)."""

@@ -226,6 +226,8 @@ class RunArrays:
         self.q_enc = np.full((T, n), np.nan)
         self.flags = np.zeros((T, n), dtype=np.int8)
         self.magnetic = np.zeros(T, dtype=np.int8)
+        self.heading_floor_var = np.zeros(T)  # what the heading cannot average away (rad^2)
+        self.heading_status = np.zeros(T, dtype=np.int8)  # codes of HEADING_STATUS
         self.status = np.zeros((T, S), dtype=np.int8)
         self.sys_var = np.zeros((T, n))
         self.att_cov = np.full((T, 9), np.nan)  # the attitude's (tangent space) covariance
@@ -254,6 +256,8 @@ class RunArrays:
         if flags is not held[0] or status is not held[1] or sys_var is not held[2]:
             self._held = held = (flags, status, sys_var)
             self._changes.append((i, *held))
+        self.heading_floor_var[i] = tr.compass.heading_floor_var
+        self.heading_status[i] = tr.heading_status_code()
         mf = tr.compass.flags
         if mf[0] or mf[1]:
             self.magnetic[i] = (1 if mf[0] else 0) | (2 if mf[1] else 0)
@@ -284,7 +288,7 @@ class RunArrays:
         self.q = tr.arm.angles_in_range(self.q_enc + self.x[:, :n])
         self.sigma = d[:, :n]
         self.rpy = self.x[:, tr._att_idx]
-        self.rpy_sigma = attitude_sigma_rad(self.rpy, self.att_cov.reshape(-1, 3, 3))
+        self.rpy_sigma = attitude_sigma_rad(self.rpy, self.att_cov.reshape(-1, 3, 3), self.heading_floor_var)
         self.bias = self.x[:, L.bias]
 
     def finish(self, tr, times, elapsed, truth_q: np.ndarray | None,
@@ -299,6 +303,7 @@ class RunArrays:
             rpy_sigma_rad=self.rpy_sigma, gyro_bias_rad_s=self.bias, magnetic=self.magnetic,
             sensor_status=self.status, elapsed_s=elapsed, counters=tr.counters(), nis=tr.nis_stats(),
             q_error_rad=q_err, yaw_error_rad=yaw_err, nees=nees, nees_dof=n + 3,
+            heading_status=self.heading_status, true_north=tr.arm.magnetic_declination_deg is not None,
         )
 
 
@@ -328,6 +333,9 @@ class TrackRun:
     yaw_error_rad: np.ndarray | None = None
     nees: np.ndarray | None = None
     nees_dof: int = 0
+    heading_status: np.ndarray | None = None
+    """Per instant, the heading's status (codes of :data:`fusion.tracking.estimate.HEADING_STATUS`)."""
+    true_north: bool = False
 
     @property
     def steps(self) -> int:

@@ -71,12 +71,15 @@ class TrackerSettings:
     :mod:`fusion.tracking.gyro_encoder`) takes this random walk instead."""
     gyro_noise_dps_per_sqrt_hz: float = MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ
     gyro_bias_random_walk_dps_per_sqrt_s: float = 0.0005
+    gyro_scale_sigma: float = 0.015
+    """The gyro's scale error about the vertical, 1 sigma (fraction), where the config holds
+    no ``gyro_scale``: the MPU-9150's ±3 % sensitivity tolerance."""
+    gyro_scale_correlation_s: float = 2.0
+    """A scale error turns every turn's heading by the same fraction: a bias, not noise. The
+    heading's process variance grows by ``(sigma_scale * rate)^2 * dt * this`` while the
+    chair turns, so that after a turn it is as wide as the turn's scale error and the
+    compass can pull it back."""
     imu_accel_bias_random_walk_g_per_sqrt_s: float = 2e-6
-    compass_max_unmodelled_deg: float = 10.0
-    """A compass whose config leaves more unmodelled iron than this (as a heading error,
-    :func:`compass_unmodelled_rad`) is not fused: its error follows the heading, so
-    averaging its readings would not shrink it. The heading is then the gyro's, from a
-    start as wide as the compass's doubt."""
     """The IMU accelerometer's residual error drifts slowly (temperature): 0.1 mg in 40 min."""
     base_accel_sigma_mps2: float = 0.7
     """Steady-state spread of the chair's own acceleration (driving, turning, ramps); a

@@ -31,6 +31,8 @@ def snapshot_of(tr) -> dict:
         "gyro_fit": tr.gyro_rates.snapshot(),
         "field": c["field"],
         "guard": c["guard"],
+        "iron": c["iron"],
+        "heading_status": c["status"],
         "counters": tr.health.counts.tolist(),
         "still": tr.still.snapshot(),
         "shift": tr.slips.snapshot(),

@@ -77,7 +77,8 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
             if st.heading.reference == "model":
                 field_ref = FieldReference.from_world_field()
             else:
-                field_ref = FieldReference.from_samples(mB, up)
+                declination_rad = float(np.radians(arm.magnetic_declination_deg or 0.0))
+                field_ref = FieldReference.from_samples(mB, up, declination_rad)
             mean = mB.mean(axis=0)
             yaw = float(tilt_compensated_heading(mean, startup.roll_rad, startup.pitch_rad,
                                                  field_ref.declination_rad))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -31,7 +32,8 @@ def test_raw_batch_round_trip_keeps_every_bit(rng):
 def test_joint_state_heading_status_round_trip():
     js = pl.JointState("chair1", 1.5, ("q1", "q2"), (0.1, -0.2), (1e-3, 2e-3), ("ok", "gimbal_lock"),
                        (("acc1", "ok"),), (88.5, 2.5))
-    hd = pl.Heading("chair1", 1.5, 0.7, 0.01, 0.02, 1e-3, -0.03, 2e-3, (1e-4, -2e-4, 3e-5), True, False)
+    hd = pl.Heading("chair1", 1.5, 0.7, 0.01, 0.02, 1e-3, -0.03, 2e-3, (1e-4, -2e-4, 3e-5), True, False,
+                    "disturbed", True)
     st = pl.Status("chair1", "serve", "tracking", 1e9, "ok", (("published", 3),))
     for key, p in ((pl.joints_key("chair1"), js), (pl.heading_key("chair1"), hd),
                    (pl.status_key("chair1"), st)):
@@ -44,7 +46,8 @@ def _estimate() -> Estimate:
                     attitude_sigma_rad=np.array([1e-3, 2e-3, 3e-2]),
                     gyro_bias_rad_s=np.array([1e-4, 0, -2e-4]), axis_to_vertical_deg=np.array([89.0, 1.5]),
                     sensors=(("acc1", "ok"), ("imu_mag", "rejecting")),
-                    magnetic_disturbance=True, magnetic_recovery=False, joint_names=("j1", "j2"))
+                    magnetic_disturbance=True, magnetic_recovery=False, joint_names=("j1", "j2"),
+                    heading_status="compass_fused", true_north=True)
 
 
 def test_an_estimate_has_one_wire_form_in_json_zenoh_and_mcap(tmp_path):
@@ -61,7 +64,7 @@ def test_an_estimate_has_one_wire_form_in_json_zenoh_and_mcap(tmp_path):
     assert est.as_dict()["heading_rad"] == 2.5 and est.as_dict()["heading_sigma_rad"] == 3e-2
     assert est.as_dict()["roll_sigma_rad"] == 1e-3 and est.as_dict()["axis_to_vertical_deg"] == [89.0, 1.5]
     envelope = {"v", "type", "robot"}
-    for key, p, version in ((pl.joints_key("chair1"), js, 1), (pl.heading_key("chair1"), hd, 2)):
+    for key, p, version in ((pl.joints_key("chair1"), js, 1), (pl.heading_key("chair1"), hd, 3)):
         wire = json.loads(pl.encode(p))
         assert wire["v"] == version and {k: v for k, v in wire.items() if k not in envelope} == p.record()
         assert pl.decode(key, pl.encode(p)) == p
@@ -96,8 +99,28 @@ def test_an_estimate_has_one_wire_form_in_json_zenoh_and_mcap(tmp_path):
 def test_a_version_1_heading_is_refused_naming_the_version():
     old = {"v": 1, "type": "heading", "robot": "chair1", "t_s": 1.0, "heading_rad": 0.5, "sigma_rad": 0.01,
            "magnetic_disturbance": False}
-    with pytest.raises(pl.PayloadError, match="heading payload version 1; this node reads version 2"):
+    with pytest.raises(pl.PayloadError, match="heading payload version 1; this node reads version 3"):
         pl.decode(pl.heading_key("chair1"), json.dumps(old).encode())
+
+
+@pytest.mark.parametrize("heading_deg, enu_deg", [(0.0, 90.0), (90.0, 180.0), (-90.0, 0.0), (180.0, -90.0),
+                                                  (-179.0, -89.0), (100.0, -170.0)])
+def test_the_heading_feed_gives_enu_yaw_for_a_localisation_stack(heading_deg, enu_deg):
+    """REP 103: yaw counter-clockwise from east. A chair facing north (heading 0) is at ENU
+    yaw +90°, facing west (+90°, counter-clockwise from north) at 180°, facing east at 0."""
+    est = replace(_estimate(), yaw_rad=float(np.radians(heading_deg)))
+    rec = est.heading_record()
+    assert rec["yaw_enu_rad"] == pytest.approx(np.radians(enu_deg))
+    assert -np.pi < rec["yaw_enu_rad"] <= np.pi
+    assert rec["yaw_enu_variance_rad2"] == pytest.approx(3e-2**2)
+    assert rec["north"] == "true" and rec["heading_status"] == "compass_fused"
+
+
+def test_a_heading_with_an_unknown_status_is_refused_naming_it():
+    doc = json.loads(pl.encode(pl.Heading.of("chair1", _estimate())))
+    doc["heading_status"] = "fine"
+    with pytest.raises(pl.PayloadError, match="heading_status 'fine': expected one of compass_fused"):
+        pl.decode(pl.heading_key("chair1"), json.dumps(doc).encode())
     good = pl.Heading.of("chair1", _estimate()).to_json()
     del good["magnetic_recovery"]
     with pytest.raises(pl.PayloadError, match="missing field 'magnetic_recovery'"):
