@@ -174,12 +174,18 @@ class Compass:
         self.steel = ArmSteel(arm, model)
         prior = iron_prior_sigma(arm, model) if field is not None else None
         self.iron = None
-        if prior is not None:
+        # a config that knows its compass well enough to fuse it as it is (a factory-calibrated
+        # module) keeps its word: its iron's doubt is noise on every heading; one that does not
+        # (a parked fit's hard iron) has it learnt from the turns
+        doubt_rad = compass_unmodelled_rad(arm, field, model) if field is not None else 0.0
+        self.iron_var = doubt_rad**2 if doubt_rad <= st.heading.fuse_below_deg * DEG else 0.0
+        if prior is not None and doubt_rad > st.heading.fuse_below_deg * DEG:
             V = field.magnitude_ut * math.sin(field.dip_rad)
             self.iron = IronEstimator(prior[:9], field.horizontal_ut, V,
                                       float(np.linalg.norm(prior[:3])) + 0.1 * field.magnitude_ut,
                                       st.heading, t_s)
-        self.corr_count = max(st.heading.iron_correlation_s / st.mag_fuse_period_s, 1.0)
+        self.corr_count = max(st.heading.steel_correlation_s / st.mag_fuse_period_s, 1.0)
+        self._visit = (None, 0)  # (the heading a visit began at, rad; fused headings since)
         self.forget_per_period = math.exp(-st.mag_fuse_period_s / st.heading.iron_forget_s)
         self.period_s = st.mag_fuse_period_s
         self.recovery_interval_s = st.heading.recovery_interval_s
@@ -251,9 +257,18 @@ class Compass:
                 self.status = CALIBRATING
                 return None
             m_S = iron.corrected(m_S, b_arm)
-            extra += self.iron_sigma_rad**2 * self.corr_count
-        elif b_arm is not None:
-            m_S = m_S - b_arm
+            h = T @ m_S
+            psi = math.atan2(-h[1], h[0])
+            anchor, k = self._visit
+            if anchor is None or abs(math.remainder(psi - anchor, 2 * math.pi)) > \
+                    math.radians(self.settings.iron_decorrelation_deg):
+                anchor, k = psi, 0
+            self._visit = (anchor, k + 1)
+            extra += self.iron_sigma_rad**2 * (k + 1) ** 2
+        else:
+            extra += self.iron_var
+            if b_arm is not None:
+                m_S = m_S - b_arm
         if J_arm is not None:
             C_arm = self.steel.covariance(J_arm)
             h = T @ m_S
@@ -271,8 +286,8 @@ class Compass:
         present heading (biases for as long as the arm and the chair stay as they are)."""
         if self.status != COMPASS_FUSED:
             return self.mount_var
-        iron = self.iron_sigma_rad if self.iron is not None else 0.0
-        return self.mount_var + self.steel_sigma_rad**2 + iron**2
+        iron_var = self.iron_sigma_rad**2 if self.iron is not None else 0.0
+        return self.mount_var + self.steel_sigma_rad**2 + iron_var
 
     def sigma_psi_ut2(self, count: int) -> float:
         """One averaged reading's noise variance per axis, µT²."""

@@ -42,6 +42,8 @@ N_PARAMS = 11
 SOFT_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 """The soft iron's six entries (the ``mag_soft_iron`` effect's labels)."""
 SLICE_HARD, SLICE_SOFT, I_H, I_V = slice(0, 3), slice(3, 9), 9, 10
+HUBER_K = 2.5
+"""Bins whose residual is beyond this many sigma count with Huber's weight."""
 
 
 def soft_matrix(e: np.ndarray) -> np.ndarray:
@@ -99,6 +101,8 @@ class IronEstimator:
         self._dirty = False
         self.readings = 0
         """Readings binned so far."""
+        self.chi2_reduced = 1.0
+        """The last fit's reduced chi-square (its covariance is widened by it when above 1)."""
 
     # -- the readings -------------------------------------------------------------------
     def corrected(self, m_ut: np.ndarray, b_arm_ut: np.ndarray | None = None) -> np.ndarray:
@@ -177,10 +181,15 @@ class IronEstimator:
         if len(k) == 0:
             return False
         wk = self.w[k] / (self.var[k] + self.floor_ut**2)
-        W = np.concatenate([wk, wk])
+        W0 = np.concatenate([wk, wk])
+        W = W0
         th = self.theta.copy()
-        for _ in range(6):
+        for _ in range(8):
             r, J = self._residuals(th, k)
+            # Huber's weights: a bin far off the circle (a disturbance binned before the
+            # estimate could tell it) pulls as one at HUBER_K sigma, not with all its weight
+            z = np.abs(r) * np.sqrt(W0)
+            W = W0 * np.minimum(1.0, HUBER_K / np.maximum(z, 1e-12))
             A = self.info0 + J.T @ (W[:, None] * J)
             g = J.T @ (W * r) + self.info0 @ (th - self.theta0)
             step = np.linalg.solve(A, g)
@@ -190,8 +199,13 @@ class IronEstimator:
         r, J = self._residuals(th, k)
         A = self.info0 + J.T @ (W[:, None] * J)
         self.theta = th
-        self.P = np.linalg.inv(A)
-        self.P = 0.5 * (self.P + self.P.T)
+        P = np.linalg.inv(A)
+        # readings that scatter about the circle more than their noise says (a field that is
+        # not Earth's plus a constant iron: disturbances, a tilt gone wrong) widen the
+        # estimate's doubt by their reduced chi-square
+        dof = 2 * len(k) - N_PARAMS
+        self.chi2_reduced = float(np.sum(W * r * r) / dof) if dof >= 5 else 1.0
+        self.P = 0.5 * (P + P.T) * max(1.0, self.chi2_reduced)
         return True
 
     # -- what it says about the heading ---------------------------------------------------

@@ -325,7 +325,8 @@ class Tracker:
             w = None if w0 is None else (w0 if gyro is None else 0.5 * (w0 + gyro))
             Q = self.process.Q(dt, w is not None, self.still.still)
             if w is not None:
-                Q = self.process.turning(Q, w - ukf._x[self.layout.bias], dt, self.layout.yaw)
+                x, L = ukf._x, self.layout
+                Q = self.process.turning(Q, w - x[L.bias], up_from_tilt(x[L.roll], x[L.pitch]), dt, L.yaw)
             ukf.predict(self.process.fx_tangent, Q, dt=dt, w=w)
             # the attitude is now the propagated central point's plus a tangent vector
             anchor = ukf._sigmas[0, self._att_idx].copy() if ukf._sigmas is not None else None

@@ -60,13 +60,17 @@ class HeadingSettings:
     reference: str = "startup"
     """Where the expected field comes from: "startup" (the still window) or "model"."""
     # the compass calibrated by driving (:mod:`fusion.tracking.compass_calibration`)
-    fuse_below_deg: float = 2.0
+    fuse_below_deg: float = 10.0
     """The compass is fused once the iron it leaves unknown (the config's, narrowed by the
     turns the chair has made) would turn its heading by less than this (1 sigma); until
     then the heading is the gyro's and its status ``calibrating``."""
-    iron_correlation_s: float = 5.0
-    """The unknown iron's heading error is a bias that changes only as the chair turns: its
-    variance is counted once per this time, not once per fused heading."""
+    iron_decorrelation_deg: float = 30.0
+    """The unknown iron's heading error is a bias that changes only as the heading does:
+    while the heading stays within this of where a visit began, the k-th fused heading's
+    iron variance is counted k² times (together about one reading's worth per visit)."""
+    steel_correlation_s: float = 5.0
+    """The arm's steel's modelled error changes as the arm moves: its variance is counted
+    once per this time, not once per fused heading."""
     iron_bin_deg: float = 5.0
     """Readings are binned by the de-tilted field's direction, this wide."""
     iron_bin_max_count: int = 20

@@ -125,15 +125,18 @@ class ProcessModel:
         return fold_attitude(np.ascontiguousarray(x, dtype=float),
                              np.ascontiguousarray(anchor_rpy, dtype=float), L.roll, L.yaw)
 
-    def turning(self, Q: np.ndarray, w_B: np.ndarray, dt: float, yaw_index: int) -> np.ndarray:
+    def turning(self, Q: np.ndarray, w_B: np.ndarray, up_B: np.ndarray, dt: float, yaw_index: int
+                ) -> np.ndarray:
         """``Q`` with the heading's share of the gyro's scale error while the base turns at
-        ``w_B`` (rad/s, base axes; :attr:`TrackerSettings.gyro_scale_correlation_s`); ``Q``
-        itself where the scale is exact."""
+        ``w_B`` (rad/s, base axes; each axis's rate counts by its share of the vertical
+        ``up_B``: :attr:`TrackerSettings.gyro_scale_correlation_s`); ``Q`` itself where the
+        scale is exact."""
         s = self.heading_scale_sigma
         if s <= 0.0:
             return Q
-        wz = float(w_B[2])
-        add = (s * wz) ** 2 * dt * self.settings.gyro_scale_correlation_s
+        wx, wy, wz = (float(v) for v in w_B)
+        ux, uy, uz = (float(v) for v in up_B)
+        add = s * s * ((ux * wx) ** 2 + (uy * wy) ** 2 + (uz * wz) ** 2) * dt * self.settings.gyro_scale_correlation_s
         if add < 1e-16:
             return Q
         Q = Q.copy()
