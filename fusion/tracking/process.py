@@ -136,7 +136,8 @@ class ProcessModel:
             return Q
         wx, wy, wz = (float(v) for v in w_B)
         ux, uy, uz = (float(v) for v in up_B)
-        add = s * s * ((ux * wx) ** 2 + (uy * wy) ** 2 + (uz * wz) ** 2) * dt * self.settings.gyro_scale_correlation_s
+        rate2 = (ux * wx) ** 2 + (uy * wy) ** 2 + (uz * wz) ** 2
+        add = s * s * rate2 * dt * self.settings.gyro_scale_correlation_s
         if add < 1e-16:
             return Q
         Q = Q.copy()

@@ -662,7 +662,8 @@ def test_the_learnt_iron_is_saved_and_a_fresh_start_fuses_the_compass_without_tu
     sp = StepsBuilder(0.0).hold(6.0).move([0.8], 3.0).hold(10.0).move([0.0], 3.0).hold(8.0)
     flat = StepsBuilder(0.0).build()
     straight = DrivingChair(sp.build(), flat, flat, flat, 1.1)
-    rec2, _ = simulate(arm, scenario(arm, 30.0, still_then(POSE, 30.0), straight), seed=4, effects=[true_entry])
+    rec2, _ = simulate(arm, scenario(arm, 30.0, still_then(POSE, 30.0), straight), seed=4,
+                       effects=[true_entry])
     fresh, _ = start_from_recording(calibrated, rec2, prior_q_rad=POSE + 0.05)
     run_fresh = fresh.run(rec2)
     assert fresh.compass.status == "calibrating"
