@@ -36,6 +36,7 @@ from fusion.cli.common import (
     err_console,
     fail,
     progress_bar,
+    read_recording_or_exit,
 )
 from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt
 from fusion.configfile import resolve_config_path
@@ -141,6 +142,11 @@ def calibrate_sensors(
         "maneuver can: j7's zero against the last sensor's mount about its axis, j1's against the "
         "IMU's mount (or use --base-tilt). Checked against the data; recorded in the written "
         "config.")] = None,
+    compass_drive: Annotated[Path | None, typer.Option(
+        "--compass-drive", help="A recording (.csv or .mcap) of the chair driving and turning (one "
+        "turn on the spot will do): after the fit, the tracker learns the compass's hard and soft "
+        "iron from its turns (which a parked maneuver cannot see), and the written config holds "
+        "them with their σ.")] = None,
     json_out: JsonOpt = False,
     write: WriteConfigOpt = None,
 ) -> None:
@@ -197,25 +203,54 @@ def calibrate_sensors(
             emit_json(d)
         fail("; ".join(c.message() for c in bad)
              + (f". {write} not written" if write is not None else ""))
+    compass_line = None
+    src = resolve_config_path(config)
+    out = config_with_estimates(yaml.safe_load(src.read_text(encoding="utf-8")), res)
+    if compass_drive is not None:
+        out, compass_line = _with_compass_from_drive(out, compass_drive, json_out)
     if write is not None:
-        src = resolve_config_path(config)
-        cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
-        out = config_with_estimates(cfg, res)
         write.parent.mkdir(parents=True, exist_ok=True)
         refs = "".join(f"# rests on the one-time reference {c.reference.joint} = "
                        f"{np.degrees(c.reference.angle_rad):.3f}° ± {np.degrees(c.reference.sigma_rad):.3g}° "
                        f"({c.reference.where}): calibration.identified.references\n"
                        for c in res.reference_checks)
-        write.write_text(f"# {res.summary()}\n# from {recording}, config {src.name}\n" + refs
+        compass = f"# {compass_line}\n" if compass_line else ""
+        write.write_text(f"# {res.summary()}\n# from {recording}, config {src.name}\n" + refs + compass
                          + yaml.safe_dump(out, sort_keys=False, width=110), encoding="utf-8")
     if json_out:
         d = res.as_dict()
         d["written"] = str(write) if write else None
+        d["compass_drive"] = compass_line
         d["saturated_left_out"] = {"samples": screen.as_dict()["saturated"],
                                    "windows": data.saturated_windows}
         emit_json(d)
         return
     _print(res, write)
+    if compass_line:
+        console.print(compass_line)
+
+
+def _with_compass_from_drive(cfg: dict, drive: Path, json_out: bool) -> tuple[dict, str]:
+    """``cfg`` (the fitted config, as written) with the compass's iron learnt from the turns
+    in ``drive`` in place of the parked fit's; the line that says what the drive gave."""
+    import tempfile
+
+    from fusion.configfile import load_arm
+    from fusion.tracking.compass_calibration import calibrate_compass_on_drive
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "fitted.yaml"
+        path.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
+        arm = load_arm(str(path))
+    rec = read_recording_or_exit(drive, arm)
+    try:
+        entries, line = calibrate_compass_on_drive(arm, rec, drive.name)
+    except ValueError as e:
+        fail(f"--compass-drive {drive}: {e}")
+    if entries is None:
+        return cfg, line
+    kept = [e for e in cfg.get("effects", []) if e.get("effect") not in ("mag_hard_iron", "mag_soft_iron")]
+    return {**cfg, "effects": kept + entries}, line
 
 
 EXPECTED_JACOBIANS = 50

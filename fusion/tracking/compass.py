@@ -178,7 +178,6 @@ class Compass:
         # module) keeps its word: its iron's doubt is noise on every heading; one that does not
         # (a parked fit's hard iron) has it learnt from the turns
         doubt_rad = compass_unmodelled_rad(arm, field, model) if field is not None else 0.0
-        self.iron_var = doubt_rad**2 if doubt_rad <= st.heading.fuse_below_deg * DEG else 0.0
         if prior is not None and doubt_rad > st.heading.fuse_below_deg * DEG:
             V = field.magnitude_ut * math.sin(field.dip_rad)
             self.iron = IronEstimator(prior[:9], field.horizontal_ut, V,
@@ -194,8 +193,9 @@ class Compass:
         """(disturbance, recovery) at the last fused heading."""
         self.status = CALIBRATING if self.iron is not None else GYRO_ONLY
         """The heading feed's status (:data:`HEADING_STATUS`)."""
-        self.iron_sigma_rad = np.inf if self.iron is not None else 0.0
-        """The heading's sigma from the iron still unknown, at the last period."""
+        self.iron_sigma_rad = np.inf if self.iron is not None else doubt_rad
+        """The heading's sigma from the iron still unknown (the estimate's at the last period,
+        or the config's own doubt where nothing is estimated)."""
         self.steel_sigma_rad = 0.0
         """The heading's sigma from the arm's steel as the config knows it, at the last period."""
         self.mount_var = mount_heading_sigma_rad(arm, model) ** 2 if field is not None else 0.0
@@ -257,6 +257,9 @@ class Compass:
                 self.status = CALIBRATING
                 return None
             m_S = iron.corrected(m_S, b_arm)
+        elif b_arm is not None:
+            m_S = m_S - b_arm
+        if self.iron_sigma_rad > 0.0:  # the iron's doubt: one reading's worth per heading visit
             h = T @ m_S
             psi = math.atan2(-h[1], h[0])
             anchor, k = self._visit
@@ -265,10 +268,6 @@ class Compass:
                 anchor, k = psi, 0
             self._visit = (anchor, k + 1)
             extra += self.iron_sigma_rad**2 * (k + 1) ** 2
-        else:
-            extra += self.iron_var
-            if b_arm is not None:
-                m_S = m_S - b_arm
         if J_arm is not None:
             C_arm = self.steel.covariance(J_arm)
             h = T @ m_S
@@ -286,8 +285,7 @@ class Compass:
         present heading (biases for as long as the arm and the chair stay as they are)."""
         if self.status != COMPASS_FUSED:
             return self.mount_var
-        iron_var = self.iron_sigma_rad**2 if self.iron is not None else 0.0
-        return self.mount_var + self.steel_sigma_rad**2 + iron_var
+        return self.mount_var + self.steel_sigma_rad**2 + self.iron_sigma_rad**2
 
     def sigma_psi_ut2(self, count: int) -> float:
         """One averaged reading's noise variance per axis, µT²."""

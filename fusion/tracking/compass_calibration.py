@@ -256,3 +256,62 @@ class IronEstimator:
         self.P = P
         self.info0 = np.linalg.inv(P + 1e-12 * np.eye(N_PARAMS))
         self.readings = int(snap.get("readings", 0))
+
+
+# -- what a drive tells the config -----------------------------------------------------------
+def drive_compass_entries(correction_map: tuple[np.ndarray, np.ndarray] | None, estimator: IronEstimator,
+                          target: str, source: str) -> list[dict]:
+    """The config's ``mag_hard_iron`` and ``mag_soft_iron`` entries that a drive's estimate
+    makes: the config's own map (``correction_map``, ``(A, c0)`` as
+    :func:`fusion.tracking.calibrated.undo_map` gives it; None: none) composed with the
+    estimate, with the estimate's sigmas (its covariance is the whole doubt: the config's
+    was its prior).
+
+    The reading is ``y = L ideal + c0`` (``L = A^-T``); the estimate undoes ``M m - c`` of
+    ``m = L^-1 (y - c0)``, so ``y = S ideal + c_new`` with ``S = L M^-1`` (symmetrised: the
+    effect's matrix is) and ``c_new = c0 + S c``."""
+    A, c0 = correction_map if correction_map is not None else (np.eye(3), np.zeros(3))
+    L = np.linalg.inv(np.asarray(A, float).T)
+    th, P = estimator.theta, estimator.P
+    S = L @ np.linalg.inv(soft_matrix(th[SLICE_SOFT]))
+    S = 0.5 * (S + S.T)
+    c_new = np.asarray(c0, float) + S @ th[SLICE_HARD]
+    sig_c = np.sqrt(np.diag(S @ P[SLICE_HARD, SLICE_HARD] @ S.T))
+    sig_e = np.sqrt(np.diag(P[SLICE_SOFT, SLICE_SOFT]))
+    e_new = [S[a, b] - (1.0 if a == b else 0.0) for a, b in SOFT_PAIRS]
+    note = f"from the chair's turns in {source} (the tracker's online compass calibration)"
+    return [
+        {"effect": "mag_hard_iron", "target": target,
+         "params": {"offset_ut": [float(v) for v in c_new]},
+         "sigma": {"offset_ut": [float(v) for v in sig_c]}, "note": note},
+        {"effect": "mag_soft_iron", "target": target,
+         "params": {"matrix_error": [float(v) for v in e_new]},
+         "sigma": {"matrix_error": [float(v) for v in sig_e]}, "note": note},
+    ]
+
+
+def calibrate_compass_on_drive(arm, rec, source: str = "a drive",
+                               settings=None) -> tuple[list[dict] | None, str]:
+    """Track the driving recording ``rec`` with ``arm``'s config and return the compass
+    entries its turns made (:func:`drive_compass_entries`) and a line for a person; None
+    (and why) where the config estimates no iron (it states its compass known) or the drive
+    did not turn enough to know it."""
+    from fusion.tracking.calibrated import undo_map
+    from fusion.tracking.settings import MAG
+    from fusion.tracking.tracker import start_from_recording
+
+    tr, _ = start_from_recording(arm, rec, settings)
+    tr.run(rec)
+    c = tr.compass
+    if c.iron is None:
+        return None, ("the config states its compass known well enough to fuse as it is: nothing to "
+                      "learn from the drive")
+    if c.iron.readings == 0 or not np.isfinite(c.iron_sigma_rad):
+        return None, f"the drive gave the compass no readings to learn from ({source})"
+    doubt_deg = math.degrees(c.iron_sigma_rad)
+    line = (f"compass from the turns in {source}: {c.iron.coverage_deg:.0f}° of headings seen, "
+            f"heading doubt {doubt_deg:.2f}°, hard iron sigma "
+            + " / ".join(f"{v:.2f}" for v in c.iron.hard_iron_sigma_ut()) + " µT")
+    if c.status == "calibrating":
+        return None, line + ": not enough turning to know its iron (turn once on the spot)"
+    return drive_compass_entries(undo_map(tr.correction, MAG), c.iron, arm.imu.name, source), line

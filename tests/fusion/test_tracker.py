@@ -678,6 +678,38 @@ def test_the_learnt_iron_is_saved_and_a_fresh_start_fuses_the_compass_without_tu
     assert np.all(err <= 3 * sig)
 
 
+def test_a_drive_calibrates_the_configs_compass(arm):
+    """``calibrate sensors --compass-drive``'s step: the chair's turns in a drive give the
+    config's hard and soft iron entries (the parked fit's 15 µT doubt replaced by what the
+    turns pinned, the truth within 3 sigma); a config holding them fuses the compass from
+    the start of a drive that never turns, its heading within a degree."""
+    from fusion.tracking.compass_calibration import calibrate_compass_on_drive
+
+    config_entry = {"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": [0.0, 0.0, 0.0]},
+                    "sigma": {"offset_ut": [15.0, 15.0, 15.0]}}
+    true_iron_ut = np.array([14.0, -14.0, 5.0])
+    true_entry = {"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": true_iron_ut.tolist()}}
+    T = 45.0
+    drive, _ = simulate(arm, scenario(arm, T, still_then(POSE, T), accelerating_chair(T)), seed=3,
+                        effects=[true_entry])
+    entries, line = calibrate_compass_on_drive(replace(arm, effects=(config_entry,)), drive, "drive.csv")
+    assert entries is not None, line
+    assert "heading doubt" in line and "drive.csv" in line
+    hard = next(e for e in entries if e["effect"] == "mag_hard_iron")
+    est, sigma = np.array(hard["params"]["offset_ut"]), np.array(hard["sigma"]["offset_ut"])
+    assert np.all(np.abs(est - true_iron_ut) <= 3 * sigma) and np.all(sigma[:2] < 1.5), (est, sigma)
+    sp = StepsBuilder(0.0).hold(6.0).move([0.8], 3.0).hold(10.0).move([0.0], 3.0).hold(8.0)
+    flat = StepsBuilder(0.0).build()
+    straight = DrivingChair(sp.build(), flat, flat, flat, 1.1)
+    rec, _ = simulate(arm, scenario(arm, 30.0, still_then(POSE, 30.0), straight), seed=4, effects=[true_entry])
+    tr, _ = start_from_recording(replace(arm, effects=tuple(entries)), rec, prior_q_rad=POSE + 0.05)
+    run = tr.run(rec)
+    assert tr.compass.iron is None  # the config's compass is known: fused as it is
+    assert np.all(run.heading_status[run.t_s > run.t_s[0] + 1.0] == 0)  # compass_fused throughout
+    err = np.abs(run.yaw_error_rad)
+    assert np.degrees(err.max()) < 1.0 and np.all(err <= 3 * run.rpy_sigma_rad[:, 2])
+
+
 def test_a_calibrated_hard_and_soft_iron_are_undone_and_the_heading_is_found(arm):
     """The same 20 µT of hard iron, with soft iron stretching the field by a few per cent,
     now identified by a maneuver that turned the chair (known to ±0.3 µT and ±0.005): the
