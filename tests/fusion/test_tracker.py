@@ -701,7 +701,8 @@ def test_a_drive_calibrates_the_configs_compass(arm):
     sp = StepsBuilder(0.0).hold(6.0).move([0.8], 3.0).hold(10.0).move([0.0], 3.0).hold(8.0)
     flat = StepsBuilder(0.0).build()
     straight = DrivingChair(sp.build(), flat, flat, flat, 1.1)
-    rec, _ = simulate(arm, scenario(arm, 30.0, still_then(POSE, 30.0), straight), seed=4, effects=[true_entry])
+    rec, _ = simulate(arm, scenario(arm, 30.0, still_then(POSE, 30.0), straight), seed=4,
+                      effects=[true_entry])
     tr, _ = start_from_recording(replace(arm, effects=tuple(entries)), rec, prior_q_rad=POSE + 0.05)
     run = tr.run(rec)
     assert tr.compass.iron is None  # the config's compass is known: fused as it is
