@@ -330,3 +330,30 @@ def test_calibrate_sensors_refuses_a_malformed_reference(j7_gauge_recording, giv
     r = _sensors(path, "--reference", given)
     assert r.exit_code == 2
     assert message in " ".join(r.output.split())
+
+
+def test_a_drive_gives_the_written_config_its_compass(j7_gauge_recording, tmp_path, wmra):
+    """A parked maneuver cannot see the compass's hard iron; ``--compass-drive`` tracks a
+    recording of the chair turning with the fitted config and writes the iron its turns
+    pinned, with its sigma (the truth within 3 sigma, well under the shipped 15 µT), and
+    says so in the file and the JSON."""
+    from models.simulator import simulate
+
+    path, _ = j7_gauge_recording
+    true_iron_ut = np.array([14.0, -14.0, 5.0])
+    drive, _ = simulate(wmra, "excitation", 40.0, seed=5, effects=[
+        {"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": true_iron_ut.tolist()}}])
+    drive_path = tmp_path / "drive.csv"
+    write_recording(drive, drive_path)
+    out = tmp_path / "c2.yaml"
+    r = _sensors(path, "--compass-drive", str(drive_path), "--write", str(out))
+    assert r.exit_code == 0, r.output
+    line = json.loads(r.stdout)["compass_drive"]
+    assert line.startswith("compass from the turns in drive.csv") and "heading doubt" in line
+    text = out.read_text()
+    assert "# compass from the turns in drive.csv" in text
+    (hard,) = [e for e in yaml.safe_load(text)["effects"] if e["effect"] == "mag_hard_iron"]
+    est, sigma = np.array(hard["params"]["offset_ut"]), np.array(hard["sigma"]["offset_ut"])
+    assert np.all(np.abs(est - true_iron_ut) <= 3 * sigma) and np.all(sigma[:2] < 2.0), (est, sigma)
+    r = _sensors(path, "--compass-drive", str(tmp_path / "none.csv"))
+    assert r.exit_code != 0 and "none.csv" in r.output
