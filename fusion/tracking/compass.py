@@ -144,13 +144,22 @@ def mount_heading_sigma_rad(arm: ArmModel, model: Model | None) -> float:
     """The heading's sigma (rad) from the IMU's mount about the vertical (the config's
     ``base_mount`` of the IMU, its sigma turned into the base's axes): gravity cannot see
     it and the compass reads the IMU's heading, so it is a constant bias of every heading
-    the tracker gives, whatever the compass and the gyro do."""
+    the tracker gives, whatever the compass and the gyro do. A config without one whose IMU
+    is not exact (its unmodelled error above zero: sensors as they come, glued on by hand)
+    has the effect's datasheet-typical prior; an exact one, none."""
     if arm.imu is None:
         return 0.0
-    for e, _, sigma in _blocks(model, "base_mount"):
+    sigma = None
+    for e, _, s in _blocks(model, "base_mount"):
         if e.target == arm.imu.name:
-            return float(math.sqrt(np.sum((np.asarray(arm.imu.R_LS)[2] * sigma) ** 2)))
-    return 0.0
+            sigma = s
+    if sigma is None:
+        if arm.calibration.imu_accel_floor_g <= 0.0:
+            return 0.0
+        from models.effects.entries import build_effect
+
+        sigma = build_effect(arm, "base_mount", arm.imu.name).default_sigma()
+    return float(math.sqrt(np.sum((np.asarray(arm.imu.R_LS)[2] * sigma) ** 2)))
 
 
 class Compass:
@@ -199,6 +208,11 @@ class Compass:
         self.steel_sigma_rad = 0.0
         """The heading's sigma from the arm's steel as the config knows it, at the last period."""
         self.mount_var = mount_heading_sigma_rad(arm, model) ** 2 if field is not None else 0.0
+        # a tilt wrong by d turns the compass's heading by d tan(dip): the IMU accelerometer's
+        # unmodelled error (the config's floor, a bias the filter cannot average away) is such a d
+        floor_g = min(arm.calibration.imu_accel_floor_g, 1.0) if arm.imu is not None else 0.0
+        self.tilt_var = ((math.asin(floor_g) * math.tan(min(abs(field.dip_rad), 1.4))) ** 2
+                         if field is not None else 0.0)
         self.recovery_t = -np.inf
         self._sum = None
         self._n = 0
@@ -280,12 +294,13 @@ class Compass:
     @property
     def heading_floor_var(self) -> float:
         """What no averaging removes from the heading (rad²), added to its reported variance:
-        the IMU's mount about the vertical and, while the compass is fused, the errors of the
+        the IMU's mount about the vertical and, while the compass is fused, the heading error
+        the IMU accelerometer's unmodelled error makes through the tilt, and the errors of the
         arm's steel as modelled at the present pose and of the iron as estimated at the
         present heading (biases for as long as the arm and the chair stay as they are)."""
         if self.status != COMPASS_FUSED:
             return self.mount_var
-        return self.mount_var + self.steel_sigma_rad**2 + self.iron_sigma_rad**2
+        return self.mount_var + self.tilt_var + self.steel_sigma_rad**2 + self.iron_sigma_rad**2
 
     def sigma_psi_ut2(self, count: int) -> float:
         """One averaged reading's noise variance per axis, µT²."""

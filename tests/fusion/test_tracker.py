@@ -715,8 +715,10 @@ def test_a_calibrated_hard_and_soft_iron_are_undone_and_the_heading_is_found(arm
     """The same 20 µT of hard iron, with soft iron stretching the field by a few per cent,
     now identified by a maneuver that turned the chair (known to ±0.3 µT and ±0.005): the
     tracker undoes both on every compass reading and at startup, and the chair's heading
-    comes out within a degree, inside its sigma, while the chair drives and turns. (With the
-    same config but neither applied, the heading is off by tens of degrees.)"""
+    comes out within a degree, inside its sigma, while the chair drives and turns; the sigma
+    keeps what 0.3 µT of hard iron leaves at any one heading (about a degree: a bias no
+    averaging removes). (With the same config but neither applied, the heading is off by
+    tens of degrees.)"""
     hard = {"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": [14.0, -14.0, 5.0]}}
     soft = {"effect": "mag_soft_iron", "target": "imu",
             "params": {"matrix_error": [0.04, -0.03, 0.02, 0.015, 0.0, -0.01]}}
@@ -732,7 +734,7 @@ def test_a_calibrated_hard_and_soft_iron_are_undone_and_the_heading_is_found(arm
     sig = run.rpy_sigma_rad[:, 2]
     assert np.degrees(err.max()) < 1.0, np.degrees(err.max())
     assert np.all(err <= 3 * sig)
-    assert np.degrees(np.median(sig)) < 1.0
+    assert 0.7 < np.degrees(np.median(sig)) < 1.5
 
 
 @pytest.fixture(scope="module")
