@@ -236,7 +236,7 @@ def _with_compass_from_drive(cfg: dict, drive: Path, json_out: bool) -> tuple[di
     import tempfile
 
     from fusion.configfile import load_arm
-    from fusion.tracking.compass_calibration import calibrate_compass_on_drive
+    from fusion.tracking.compass_drive import calibrate_compass_on_drive
 
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "fitted.yaml"

@@ -683,7 +683,7 @@ def test_a_drive_calibrates_the_configs_compass(arm):
     config's hard and soft iron entries (the parked fit's 15 µT doubt replaced by what the
     turns pinned, the truth within 3 sigma); a config holding them fuses the compass from
     the start of a drive that never turns, its heading within a degree."""
-    from fusion.tracking.compass_calibration import calibrate_compass_on_drive
+    from fusion.tracking.compass_drive import calibrate_compass_on_drive
 
     config_entry = {"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": [0.0, 0.0, 0.0]},
                     "sigma": {"offset_ut": [15.0, 15.0, 15.0]}}
