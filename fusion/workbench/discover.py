@@ -1,0 +1,250 @@
+"""Automatic model discovery: the error ladder walked without a person.
+
+``discover(model, data)`` diagnoses the model (:func:`fusion.workbench.diagnose.diagnose`),
+adds the best significant candidate, refits, diagnoses again, and stops when nothing is
+significant (the corrected score test and ΔBIC < 0, as ``diagnose`` decides) or after
+``max_rungs``. Every rung keeps what it added, the added block's estimate ± σ from that
+rung's fit, and the residual RMS over the noise.
+
+**Indistinguishable effects.** At each rung the significant refitted candidates whose whole
+recording χ² after their quick refit is within ``tie_chi2`` of the best one's are a *tie*:
+the recording fits them equally well (a likelihood ratio below ``exp(tie_chi2 / 2)``), so
+they are reported together as one :class:`Finding` ("one of these"), with the motion that
+would separate them (:func:`fusion.identification.identifiability.suggestion_for` of each
+member). The ladder goes on with the first of them in the ranking (the best ΔBIC: on equal
+fits, the one with fewer parameters) as the group's stand-in, so that what remains can be
+found; the finding says it is a stand-in.
+
+**Where it stops above the noise** the final diagnosis's residual analysis says what the
+remaining residual follows (inputs and lags, the axes that are not white, the worst
+sensors): :attr:`Discovery.remaining`.
+
+Parked recordings only: the fit takes the chair as still. On a moving recording the
+command runs the tracker's innovations analysis instead (``armfusion diagnose --discover``
+on a moving recording), which says what the innovations follow but ranks no effect.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fusion.identification.data import FitData
+from fusion.identification.identifiability import suggestion_for
+from fusion.workbench.candidates import Candidate, params_words
+from fusion.workbench.diagnose import DiagnoseSettings, Diagnosis, add_effects, diagnose
+from models.effects import Model, build_effect
+
+STOP_NOISE = "fits to noise"
+STOP_NOTHING = "nothing significant is left, above the noise: no effect of the library explains the rest"
+STOP_RUNGS = "rung limit reached"
+STOP_NO_GAIN = "the last effect added did not lower the residual"
+
+SAME_IN_EVERY_MOTION = {
+    frozenset({"mount_rotation", "accel_axes"}): "a board turned is its three axes turned together: no "
+    "motion separates them (the one with fewer parameters stands in)",
+    frozenset({"base_mount", "accel_axes"}): "the IMU turned is its accelerometer's three axes turned "
+    "together: only its gyro and compass, with the chair turning, separate them",
+}
+"""Pairs of effects one of which contains the other in every recording (docs/effects.md, "What
+the data can and cannot separate"): no motion tells them apart."""
+
+
+@dataclass(frozen=True)
+class DiscoverSettings:
+    diagnose: DiagnoseSettings = field(default_factory=DiagnoseSettings)
+    """Each rung's diagnosis (significance level, refits, noise tolerance)."""
+    max_rungs: int = 10
+    """Effects added at most."""
+    tie_chi2: float = 10.0
+    """Candidates whose χ² after their refit is within this of the best's are reported
+    together (the recording cannot tell them apart: likelihood ratio below e^5)."""
+
+
+@dataclass(frozen=True)
+class Finding:
+    """What one rung found: one effect, or a group the recording cannot tell apart."""
+
+    members: tuple[str, ...]
+    """``effect:target`` of each; the first is the one added (the group's stand-in)."""
+    rms_after: tuple[float | None, ...]
+    """Each member's whole-model RMS over the noise after its quick refit."""
+    separate_by: str
+    """For a group: the motion that would separate them ("" for one effect)."""
+
+    @property
+    def added(self) -> str:
+        return self.members[0]
+
+    @property
+    def is_group(self) -> bool:
+        return len(self.members) > 1
+
+    def words(self) -> str:
+        if not self.is_group:
+            return self.added
+        return (f"one of {', '.join(self.members)} (the recording cannot tell them apart; "
+                f"{self.added} stands in): {self.separate_by}")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"members": list(self.members), "added": self.added,
+                "rms_after": [None if r is None else round(r, 4) for r in self.rms_after],
+                "separate_by": self.separate_by or None}
+
+
+@dataclass(frozen=True)
+class Rung:
+    """One model version of the ladder."""
+
+    label: str
+    finding: Finding | None
+    """What this rung added (None: rung 0, the config as it is)."""
+    estimate: dict[str, tuple[float, float]]
+    """The added block's elements -> (estimate, σ) from this rung's fit, in ``units``."""
+    units: str
+    diagnosis: Diagnosis
+
+    @property
+    def rms_ratio(self) -> float:
+        return self.diagnosis.rms_ratio
+
+    @property
+    def verdict(self) -> str:
+        return self.diagnosis.verdict
+
+    @property
+    def per_stream(self) -> dict[str, float]:
+        return self.diagnosis.stream_ratios()
+
+    @property
+    def measured_ratio(self) -> float:
+        """RMS over the noise the recording shows (:meth:`Diagnosis.measured_noise_ratios`)."""
+        return self.diagnosis.measured_noise_ratios()[0]
+
+    def estimate_words(self) -> str:
+        return params_words(self.estimate, self.units) if self.estimate else ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"label": self.label, "rms_ratio": round(self.rms_ratio, 4), "verdict": self.verdict,
+                "finding": None if self.finding is None else self.finding.as_dict(),
+                "units": self.units or None,
+                "estimate": {k: {"value": v, "sigma": s} for k, (v, s) in self.estimate.items()},
+                "streams": {s: round(r, 4) for s, r in self.per_stream.items()}}
+
+
+@dataclass(frozen=True)
+class Discovery:
+    """The result of :func:`discover`: the ladder, why it stopped, what is left."""
+
+    rungs: tuple[Rung, ...]
+    stop: str
+    remaining: tuple[str, ...]
+    """Where it stops above the noise: what the residual follows (empty at the noise)."""
+    seconds: float
+
+    @property
+    def first(self) -> Diagnosis:
+        return self.rungs[0].diagnosis
+
+    @property
+    def final(self) -> Diagnosis:
+        return self.rungs[-1].diagnosis
+
+    @property
+    def findings(self) -> tuple[Finding, ...]:
+        return tuple(r.finding for r in self.rungs if r.finding is not None)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"stop": self.stop, "rms_ratio": round(self.final.rms_ratio, 4),
+                "findings": [f.as_dict() for f in self.findings],
+                "rungs": [r.as_dict() for r in self.rungs],
+                "remaining": list(self.remaining), "seconds": round(self.seconds, 3)}
+
+
+def discover(model: Model, data: FitData, settings: DiscoverSettings | None = None,
+             attitude0_rad: np.ndarray | None = None,
+             progress: Callable[[str, float], None] | None = None) -> Discovery:
+    """Walk the error ladder from ``model`` on ``data`` (module docstring)."""
+    st = settings or DiscoverSettings()
+    t0 = time.perf_counter()
+    say = progress or (lambda _m, _f: None)
+    total = st.max_rungs + 1
+
+    def stage(k: int):
+        return lambda msg, f: say(f"rung {k}: {msg}", min((k + f) / total, 1.0))
+
+    d = diagnose(model, data, st.diagnose, attitude0_rad=attitude0_rad, progress=stage(0))
+    rungs = [Rung("the config as it is", None, {}, "", d)]
+    stop = STOP_RUNGS
+    for k in range(1, st.max_rungs + 1):
+        sig = d.significant
+        if not sig:
+            stop = STOP_NOISE if d.fits_to_noise else STOP_NOTHING
+            break
+        finding = _finding(sig, d.fit.n_residuals, st.tie_chi2)
+        best = sig[0]
+        nxt = add_effects(d, [build_effect(model.arm, best.effect, best.target)], st.diagnose,
+                          progress=stage(k))
+        sl = nxt.fit.model.index[f"{best.target}.{best.effect}"]
+        names = [n.split("[")[-1].rstrip("]") for n in nxt.fit.names[sl]]
+        est = {f"{best.target}.{best.effect}[{n}]": (float(v), float(s))
+               for n, v, s in zip(names, nxt.fit.x[sl], nxt.fit.sigma[sl], strict=True)}
+        rungs.append(Rung(f"+ {finding.added}", finding, est, best.units, nxt))
+        gained = nxt.rms_ratio < d.rms_ratio * (1.0 - 1e-9)
+        d = nxt
+        if not gained:
+            stop = STOP_NO_GAIN
+            break
+    else:
+        if not d.significant:
+            stop = STOP_NOISE if d.fits_to_noise else STOP_NOTHING
+    say("done", 1.0)
+    return Discovery(tuple(rungs), stop, remaining_words(d, st.diagnose.noise_tolerance),
+                     time.perf_counter() - t0)
+
+
+def _finding(sig: tuple[Candidate, ...], n_residuals: int, tie_chi2: float) -> Finding:
+    """The best significant candidate and those the recording fits as well (within
+    ``tie_chi2`` of its χ² after the refit)."""
+    best = sig[0]
+    members = [best]
+    if best.rms_after is not None:
+        chi2_best = best.rms_after**2 * n_residuals
+        members += [c for c in sig[1:] if c.refitted and c.rms_after is not None
+                    and c.rms_after**2 * n_residuals - chi2_best <= tie_chi2]
+    separate = ""
+    parts: list[str] = []
+    for c in members[1:]:
+        same = SAME_IN_EVERY_MOTION.get(frozenset({best.effect, c.effect}))
+        if same is not None and c.target == best.target:
+            parts.append(same)
+        else:  # the motion that makes each one's own parameters known
+            parts += [suggestion_for(f"{best.target}.{best.effect}[0]"), suggestion_for(f"{c.target}.{c.effect}[0]")]
+    separate = "; or ".join(dict.fromkeys(parts))
+    return Finding(tuple(c.name for c in members), tuple(c.rms_after for c in members), separate)
+
+
+def remaining_words(d: Diagnosis, noise_tolerance: float, n_inputs: int = 4, n_axes: int = 3) -> tuple[str, ...]:
+    """What the residual of ``d`` follows, in words, where it is above the noise: the worst
+    sensors, the input correlations beyond the corrected band (with their lag) and the axes
+    that are not white. Empty at the noise."""
+    if d.rms_ratio <= noise_tolerance:
+        return ()
+    out = []
+    worst = sorted(d.stream_ratios().items(), key=lambda kv: -kv[1])
+    out.append("worst sensors: " + ", ".join(f"{s} {r:.2f}× the noise" for s, r in worst[:3]))
+    a = d.analysis
+    if a is not None:
+        for fc in a.flagged()[:n_inputs]:
+            out.append(f"{fc.axis} follows {fc.input} (r {fc.r:+.2f} at lag {fc.lag:+d}, "
+                       f"{abs(fc.lag) * a.dt_s:.2g} s)")
+        for _s, ax, m in a.not_white()[:n_axes]:
+            out.append(f"{ax} is not white (autocorrelation up to {m:.2f})")
+        if a.white:
+            out.append("the residual is white and follows no input: noise the sensor model does not know "
+                       f"(measured-noise ratio {d.measured_noise_ratios()[0]:.2f})")
+    return tuple(out)
