@@ -46,7 +46,7 @@ STOP_NO_GAIN = "the last effect added did not lower the residual"
 
 SAME_IN_EVERY_MOTION = {
     frozenset({"mount_rotation", "accel_axes"}): "a board turned is its three axes turned together: no "
-    "motion separates them (the one with fewer parameters stands in)",
+    "motion separates them",
     frozenset({"base_mount", "accel_axes"}): "the IMU turned is its accelerometer's three axes turned "
     "together: only its gyro and compass, with the chair turning, separate them",
 }
@@ -79,6 +79,12 @@ class Finding:
     @property
     def added(self) -> str:
         return self.members[0]
+
+    @property
+    def added_block(self) -> str:
+        """The added effect's block name (``acc3.mount_rotation``)."""
+        effect, _, target = self.added.partition(":")
+        return f"{target}.{effect}"
 
     @property
     def is_group(self) -> bool:
