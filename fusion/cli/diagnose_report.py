@@ -236,7 +236,8 @@ def discovery_html(disc) -> str:
     rest = ("<p>The ladder stopped above the noise, and no effect of the library explains the rest. "
             "The remaining residual:</p><ul>" + "".join(f"<li>{html.escape(x)}</li>" for x in disc.remaining)
             + "</ul>") if disc.remaining else ""
-    return (f"<h2>Discovery: {len(disc.rungs) - 1} effects added ({html.escape(disc.stop)})</h2>"
+    n = len(disc.rungs) - 1
+    return (f"<h2>Discovery: {n} effect{'' if n == 1 else 's'} added ({html.escape(disc.stop)})</h2>"
             "<table><tr><th>rung</th><th>added</th><th>its estimate ± σ</th><th>RMS / noise</th></tr>"
             f"{rows}</table>" + (f"<ul>{groups}</ul>" if groups else "") + rest)
 
