@@ -49,9 +49,10 @@ sys.path.insert(0, str(ROOT))
 
 from fusion.configfile import load_arm  # noqa: E402
 from fusion.identification.data import data_from_recording  # noqa: E402
-from fusion.workbench.diagnose import diagnose  # noqa: E402
+from fusion.identification.data import FIT_STREAMS_EXCLUDED  # noqa: E402
+from fusion.workbench.diagnose import DiagnoseSettings, diagnose, fit_model  # noqa: E402
 from fusion.workbench.discover import Discovery, discover  # noqa: E402
-from fusion.workbench.scores import EXCLUDED_CANDIDATES  # noqa: E402
+from fusion.workbench.scores import EXCLUDED_CANDIDATES, candidate_effects, score_tests  # noqa: E402
 from models.effects import all_effects, model_from_arm  # noqa: E402
 from models.simulator import simulate  # noqa: E402
 from tools.benchdoc import machine_line  # noqa: E402
@@ -73,6 +74,8 @@ class Case:
     """Simulator entries, each with ``size_sigma`` (its largest element in typical σ)."""
     discovery: Discovery
     cpu_s: float
+    detectable: list[bool]
+    """Per hidden effect: whether, alone, it would pass the score test (:func:`detectability`)."""
 
     @property
     def hidden_names(self) -> list[str]:
@@ -90,6 +93,10 @@ class Case:
     @property
     def found_all(self) -> bool:
         return not self.missed and not self.spurious
+
+    @property
+    def all_detectable(self) -> bool:
+        return all(self.detectable)
 
     @property
     def rms_ok(self) -> bool:
@@ -123,12 +130,45 @@ def draw_hidden(pool: list, rng: np.random.Generator) -> list[dict]:
     return out
 
 
+def detectability(arm, seed: int, duration_s: float, hidden: list[dict]) -> list[bool]:
+    """Per hidden effect: whether it alone would be significant in this recording's motion.
+    On the same recording without effects (same seed: the same sweep and noise), the score
+    test's information ``M`` of each hidden block (the fitted parameters projected out) gives
+    the expected rise of its statistic, the noncentrality ``λ = δᵀ M δ`` at the hidden value
+    ``δ``; detectable when λ exceeds both the corrected critical value of the score test and
+    BIC's price ``dof · ln n``. (Each effect alone: the others hidden with it may bend this.)"""
+    from scipy.stats import chi2
+
+    rec, _ = simulate(arm, SCENARIO, duration_s, seed=seed)
+    data = data_from_recording(arm, rec, window=WINDOW)
+    st = DiagnoseSettings()
+    streams = [s for s in data.counts if s not in FIT_STREAMS_EXCLUDED]
+    fit = fit_model(model_from_arm(arm), data, streams, st.identify)
+    n_cands = len(candidate_effects(fit.model, None))
+    cands = [e for e in candidate_effects(fit.model, sorted({h["effect"] for h in hidden}))
+             if any(e.block_name == f"{h['target']}.{h['effect']}" for h in hidden)]
+    tests = score_tests(fit, data, cands, streams, st.identify, st.chunk_rows, st.evidence_points,
+                        lambda _m, _f: None)
+    by_block = {c.effect.block_name: c for c in tests.tested}
+    out = []
+    for h in hidden:
+        c = by_block.get(f"{h['target']}.{h['effect']}")
+        if c is None:  # unseen
+            out.append(False)
+            continue
+        delta = np.ravel(next(iter(h["params"].values())))
+        lam = float(delta @ c.information @ delta)
+        out.append(lam > max(chi2.isf(st.alpha / n_cands, c.dof), c.dof * tests.log_n))
+    return out
+
+
 def run_case(arm, seed: int, hidden: list[dict], duration_s: float) -> Case:
     entries = [{k: v for k, v in h.items() if k != "size_sigma"} for h in hidden]
     rec, _ = simulate(arm, SCENARIO, duration_s, seed=seed, effects=entries)
     c0 = time.process_time()
     disc = discover(model_from_arm(arm), data_from_recording(arm, rec, window=WINDOW))
-    return Case(seed, hidden, disc, time.process_time() - c0)
+    cpu = time.process_time() - c0
+    return Case(seed, hidden, disc, cpu, detectability(arm, seed, duration_s, hidden) if hidden else [])
 
 
 def speed(arm, hour_s: float) -> dict:
@@ -166,10 +206,17 @@ def section(hidden: list[Case], clean: list[Case], sp: dict | None, duration_s: 
         f"random among the {pool_n} (effect, target) pairs a parked sweep can show (the tool's docstring "
         "says which are left out and why), each element between 1 and 2 of the library's datasheet-typical "
         "σ with a random sign. Found: every hidden effect added, or named in a finding that groups it with "
-        "effects the recording cannot tell apart, and no finding without a hidden effect in it.", "",
+        "effects the recording cannot tell apart, and no finding without a hidden effect in it. "
+        "Detectable alone: on the same sweep without effects, the effect's noncentrality δᵀMδ (M: the score "
+        "test's information with the fitted parameters projected out) exceeds the corrected critical value "
+        "and BIC's price (`detectability` in the tool); a miss of an effect that is not is one a minute of "
+        "this sweep cannot show.", "",
         "| what | result | target | |", "| --- | ---: | ---: | --- |",
         f"| hidden set found, nothing spurious | {_share(found, nh)} | ≥ {100 * FOUND_TARGET:.0f} % | "
         f"{_met(found >= FOUND_TARGET * nh)} |",
+        f"| the same, over the {sum(c.all_detectable for c in hidden)} recordings whose every hidden effect "
+        f"is detectable alone | {_share(sum(c.found_all for c in hidden if c.all_detectable), sum(c.all_detectable for c in hidden))} "
+        "| | (not the target: an explanation of the misses) |",
         f"| final RMS ≤ {NOISE}x the noise | {_share(rms, nh)} | ≥ {100 * RMS_TARGET:.0f} % | "
         f"{_met(rms >= RMS_TARGET * nh)} |",
         f"| clean recordings: nothing added | {_share(left, nc)} | ≥ {100 * CLEAN_TARGET:.0f} % | "
@@ -190,7 +237,8 @@ def section(hidden: list[Case], clean: list[Case], sp: dict | None, duration_s: 
                   "| seed | hidden (largest element in typical σ) | found (in order) | final RMS / noise | missed | "
                   "spurious |", "| --- | --- | --- | ---: | --- | --- |"]
         for c in bad:
-            hid = ", ".join(f"{n} ({h['size_sigma']:.1f}σ)" for n, h in zip(c.hidden_names, c.hidden, strict=True))
+            hid = ", ".join(f"{n} ({h['size_sigma']:.1f}σ{'' if ok else ', not detectable alone'})"
+                            for n, h, ok in zip(c.hidden_names, c.hidden, c.detectable, strict=True))
             got = ", ".join(f.added + (f" (or {', '.join(f.members[1:])})" if f.is_group else "")
                             for f in c.discovery.findings)
             lines.append(f"| {c.seed} | {hid} | {got or '–'} | {c.discovery.final.rms_ratio:.3f} | "

@@ -46,7 +46,7 @@ from fusion.workbench.diagnose import (
     params_words,
     parse_add,
 )
-from fusion.workbench.discover import Discovery, DiscoverSettings, discover
+from fusion.workbench.discover import DiscoverSettings, Discovery, discover
 from models.effects import TargetError, model_from_arm
 
 HISTORY_FORMAT = "armfusion.workbench-history/1"
