@@ -48,8 +48,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from fusion.configfile import load_arm  # noqa: E402
-from fusion.identification.data import data_from_recording  # noqa: E402
-from fusion.identification.data import FIT_STREAMS_EXCLUDED  # noqa: E402
+from fusion.identification.data import FIT_STREAMS_EXCLUDED, data_from_recording  # noqa: E402
 from fusion.workbench.diagnose import DiagnoseSettings, diagnose, fit_model  # noqa: E402
 from fusion.workbench.discover import Discovery, discover  # noqa: E402
 from fusion.workbench.scores import EXCLUDED_CANDIDATES, candidate_effects, score_tests  # noqa: E402
@@ -63,8 +62,10 @@ NOT_DRAWN = {"joint_offset": "the recording's encoder zeros are fitted; a joint'
              "motion_acceleration": "the sweep is too slow for a lever arm's centripetal term to show"}
 FOUND_TARGET, RMS_TARGET, CLEAN_TARGET, HOUR_TARGET_S = 0.90, 0.95, 0.95, 120.0
 NOISE = 1.1
-SPEED_HIDDEN = [{"effect": "accel_bias", "target": "acc2", "params": {"bias_g": [0.032, -0.027, 0.041]}},
-                {"effect": "mount_rotation", "target": "acc3", "params": {"rotvec_rad": [0.021, -0.031, 0.012]}}]
+SPEED_HIDDEN = [
+    {"effect": "accel_bias", "target": "acc2", "params": {"bias_g": [0.032, -0.027, 0.041]}},
+    {"effect": "mount_rotation", "target": "acc3", "params": {"rotvec_rad": [0.021, -0.031, 0.012]}},
+]
 
 
 @dataclass
@@ -199,6 +200,8 @@ def section(hidden: list[Case], clean: list[Case], sp: dict | None, duration_s: 
     left = sum(not c.discovery.findings for c in clean)
     groups = sum(f.is_group for c in hidden for f in c.discovery.findings)
     cpu = [c.cpu_s for c in hidden + clean]
+    det = [c for c in hidden if c.all_detectable]
+    found_det = sum(c.found_all for c in det)
     lines = [
         "## Automatic model discovery (`tools/bench_discover.py`)", "",
         f"{machine_line()}; BLAS on one thread. Each recording {duration_s:.0f} s of `{SCENARIO}` "
@@ -214,8 +217,8 @@ def section(hidden: list[Case], clean: list[Case], sp: dict | None, duration_s: 
         "| what | result | target | |", "| --- | ---: | ---: | --- |",
         f"| hidden set found, nothing spurious | {_share(found, nh)} | ≥ {100 * FOUND_TARGET:.0f} % | "
         f"{_met(found >= FOUND_TARGET * nh)} |",
-        f"| the same, over the {sum(c.all_detectable for c in hidden)} recordings whose every hidden effect "
-        f"is detectable alone | {_share(sum(c.found_all for c in hidden if c.all_detectable), sum(c.all_detectable for c in hidden))} "
+        f"| the same, over the {len(det)} recordings whose every hidden effect "
+        f"is detectable alone | {_share(found_det, len(det))} "
         "| | (not the target: an explanation of the misses) |",
         f"| final RMS ≤ {NOISE}x the noise | {_share(rms, nh)} | ≥ {100 * RMS_TARGET:.0f} % | "
         f"{_met(rms >= RMS_TARGET * nh)} |",
@@ -224,17 +227,23 @@ def section(hidden: list[Case], clean: list[Case], sp: dict | None, duration_s: 
     ]
     if sp is not None:
         lines.append(f"| {sp['hour_s'] / 3600:.3g} h of 100 Hz data discovered, CPU of one core | "
-                     f"{sp['cpu_s']:.0f} s | ≤ {HOUR_TARGET_S:.0f} s | {_met(sp['cpu_s'] <= HOUR_TARGET_S)} |")
+                     f"{sp['cpu_s']:.0f} s | ≤ {HOUR_TARGET_S:.0f} s | "
+                     f"{_met(sp['cpu_s'] <= HOUR_TARGET_S)} |")
     lines += ["", f"Findings that grouped effects the recording cannot tell apart: {groups}. "
-              f"CPU per {duration_s:.0f} s recording: median {np.median(cpu):.1f} s, worst {np.max(cpu):.1f} s.", ""]
+              f"CPU per {duration_s:.0f} s recording: median {np.median(cpu):.1f} s, "
+              f"worst {np.max(cpu):.1f} s.", ""]
     if sp is not None:
-        lines += [f"Speed: {sp['fit_points']:,} fit points (acc2's bias and acc3's board turned hidden): ladder "
+        lines += [f"Speed: {sp['fit_points']:,} fit points (acc2's bias and acc3's board turned hidden): "
+                  "ladder "
                   f"{sp['ladder']} ({', '.join(sp['added'])}; {sp['stop']}); {sp['cpu_s']:.1f} s of CPU, "
-                  f"{sp['wall_s']:.1f} s of wall time at load average {sp['load']:.1f} on this shared machine.", ""]
+                  f"{sp['wall_s']:.1f} s of wall time at load average {sp['load']:.1f} on this shared "
+                  "machine.", ""]
     bad = [c for c in hidden if not c.found_all or not c.rms_ok]
     if bad:
-        lines += ["Recordings where the hidden set was not found exactly or the RMS stayed above the noise:", "",
-                  "| seed | hidden (largest element in typical σ) | found (in order) | final RMS / noise | missed | "
+        lines += ["Recordings where the hidden set was not found exactly or the RMS stayed above the noise:",
+                  "",
+                  "| seed | hidden (largest element in typical σ) | found (in order) | final RMS / noise "
+                  "| missed | "
                   "spurious |", "| --- | --- | --- | ---: | --- | --- |"]
         for c in bad:
             hid = ", ".join(f"{n} ({h['size_sigma']:.1f}σ{'' if ok else ', not detectable alone'})"
@@ -247,7 +256,8 @@ def section(hidden: list[Case], clean: list[Case], sp: dict | None, duration_s: 
     noisy = [c for c in clean if c.discovery.findings]
     if noisy:
         lines += ["Clean recordings where something was added: "
-                  + "; ".join(f"seed {c.seed}: {', '.join(f.added for f in c.discovery.findings)}" for c in noisy)
+                  + "; ".join(f"seed {c.seed}: {', '.join(f.added for f in c.discovery.findings)}"
+                              for c in noisy)
                   + ".", ""]
     return "\n".join(lines)
 
@@ -275,7 +285,8 @@ def main(argv=None) -> int:
         hidden.append(c)
         print(f"hidden {k + 1}/{a.hidden} seed {c.seed}: {', '.join(c.hidden_names)} -> "
               f"{'; '.join(f.words() if f.is_group else f.added for f in c.discovery.findings)} "
-              f"[{c.discovery.final.rms_ratio:.3f}x, {'found' if c.found_all else 'MISSED'}; {c.cpu_s:.1f} s]",
+              f"[{c.discovery.final.rms_ratio:.3f}x, {'found' if c.found_all else 'MISSED'}; "
+              f"{c.cpu_s:.1f} s]",
               flush=True)
     clean = []
     for k in range(a.clean):

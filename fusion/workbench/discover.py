@@ -15,9 +15,11 @@ member). The ladder goes on with the first of them in the ranking (the best ΔBI
 fits, the one with fewer parameters) as the group's stand-in, so that what remains can be
 found; the finding says it is a stand-in.
 
-**Where it stops above the noise** the final diagnosis's residual analysis says what the
-remaining residual follows (inputs and lags, the axes that are not white, the worst
-sensors): :attr:`Discovery.remaining`.
+**Where it stops above the noise** :attr:`Discovery.remaining` says what the remaining
+residual follows: the worst sensors, the residual against the noise the recording itself
+shows (:meth:`Diagnosis.measured_noise_ratios`: near 1 means noise the sensor model does not
+know, such as vibration), the inputs it follows beyond the corrected band (with their lag),
+the axes that are not white.
 
 Parked recordings only: the fit takes the chair as still. On a moving recording the
 command runs the tracker's innovations analysis instead (``armfusion diagnose --discover``
@@ -229,12 +231,14 @@ def _finding(sig: tuple[Candidate, ...], n_residuals: int, tie_chi2: float) -> F
         if same is not None and c.target == best.target:
             parts.append(same)
         else:  # the motion that makes each one's own parameters known
-            parts += [suggestion_for(f"{best.target}.{best.effect}[0]"), suggestion_for(f"{c.target}.{c.effect}[0]")]
+            parts += [suggestion_for(f"{best.target}.{best.effect}[0]"),
+                      suggestion_for(f"{c.target}.{c.effect}[0]")]
     separate = "; or ".join(dict.fromkeys(parts))
     return Finding(tuple(c.name for c in members), tuple(c.rms_after for c in members), separate)
 
 
-def remaining_words(d: Diagnosis, noise_tolerance: float, n_inputs: int = 4, n_axes: int = 3) -> tuple[str, ...]:
+def remaining_words(d: Diagnosis, noise_tolerance: float, n_inputs: int = 4,
+                    n_axes: int = 3) -> tuple[str, ...]:
     """What the residual of ``d`` follows, in words, where it is above the noise: the worst
     sensors, the input correlations beyond the corrected band (with their lag) and the axes
     that are not white. Empty at the noise."""
@@ -243,6 +247,10 @@ def remaining_words(d: Diagnosis, noise_tolerance: float, n_inputs: int = 4, n_a
     out = []
     worst = sorted(d.stream_ratios().items(), key=lambda kv: -kv[1])
     out.append("worst sensors: " + ", ".join(f"{s} {r:.2f}× the noise" for s, r in worst[:3]))
+    measured, per = d.measured_noise_ratios()
+    out.append(f"against the noise the recording itself shows (the sensor model's with the single-sample "
+               f"excess the fit measured, e.g. vibration): {measured:.2f}× overall ("
+               + ", ".join(f"{s} {per[s]:.2f}×" for s, _ in worst[:3]) + ")")
     a = d.analysis
     if a is not None:
         for fc in a.flagged()[:n_inputs]:
@@ -251,6 +259,5 @@ def remaining_words(d: Diagnosis, noise_tolerance: float, n_inputs: int = 4, n_a
         for _s, ax, m in a.not_white()[:n_axes]:
             out.append(f"{ax} is not white (autocorrelation up to {m:.2f})")
         if a.white:
-            out.append("the residual is white and follows no input: noise the sensor model does not know "
-                       f"(measured-noise ratio {d.measured_noise_ratios()[0]:.2f})")
+            out.append("the residual is white and follows no input: noise the sensor model does not know")
     return tuple(out)

@@ -86,7 +86,8 @@ def test_a_ladder_that_stops_above_the_noise_says_what_the_rest_follows(arm):
     assert disc.findings == () and disc.stop == STOP_NOTHING
     assert disc.final.rms_ratio > 5
     assert disc.remaining[0].startswith("worst sensors: acc2")
-    assert any("follows" in w or "not white" in w for w in disc.remaining[1:]), disc.remaining
+    assert disc.remaining[1].startswith("against the noise the recording itself shows")
+    assert any("follows" in w or "not white" in w for w in disc.remaining[2:]), disc.remaining
 
 
 def test_cli_discover_json_write_report(arm, tmp_path):
@@ -122,6 +123,7 @@ def test_cli_discover_json_write_report(arm, tmp_path):
 
 
 def test_cli_discover_and_add_are_refused_together(tmp_path):
-    r = CliRunner().invoke(app, ["diagnose", str(tmp_path / "none.csv"), "--discover", "--add", "accel_bias:acc2"])
+    r = CliRunner().invoke(app, ["diagnose", str(tmp_path / "none.csv"), "--discover",
+                                 "--add", "accel_bias:acc2"])
     assert r.exit_code != 0
     assert "give --discover or --add, not both" in r.output
