@@ -222,8 +222,9 @@ def diagnose_command(
 
 
 def _print_discovery(disc: Discovery) -> None:
-    n = len(disc.rungs) - 1
-    t = Table(title=f"Discovery: the error ladder ({n} effect{'' if n == 1 else 's'} added; stopped: {disc.stop})")
+    n = len(disc.findings)
+    t = Table(title=f"Discovery: the error ladder ({n} effect{'' if n == 1 else 's'} found in "
+                    f"{len(disc.rungs) - 1} rung{'' if len(disc.rungs) == 2 else 's'}; stopped: {disc.stop})")
     for c in ("#", "added", "its estimate ± σ", "RMS / noise"):
         t.add_column(c, justify="right" if c in ("#", "RMS / noise") else "left")
     for k, r in enumerate(disc.rungs):

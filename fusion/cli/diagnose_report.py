@@ -236,8 +236,9 @@ def discovery_html(disc) -> str:
     rest = ("<p>The ladder stopped above the noise, and no effect of the library explains the rest. "
             "The remaining residual:</p><ul>" + "".join(f"<li>{html.escape(x)}</li>" for x in disc.remaining)
             + "</ul>") if disc.remaining else ""
-    n = len(disc.rungs) - 1
-    return (f"<h2>Discovery: {n} effect{'' if n == 1 else 's'} added ({html.escape(disc.stop)})</h2>"
+    n = len(disc.findings)
+    return (f"<h2>Discovery: {n} effect{'' if n == 1 else 's'} found in {len(disc.rungs) - 1} rung{'' if len(disc.rungs) == 2 else 's'} "
+            f"({html.escape(disc.stop)})</h2>"
             "<table><tr><th>rung</th><th>added</th><th>its estimate ± σ</th><th>RMS / noise</th></tr>"
             f"{rows}</table>" + (f"<ul>{groups}</ul>" if groups else "") + rest)
 

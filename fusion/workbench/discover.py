@@ -6,6 +6,15 @@ significant (the corrected score test and ΔBIC < 0, as ``diagnose`` decides) or
 ``max_rungs``. Every rung keeps what it added, the added block's estimate ± σ from that
 rung's fit, and the residual RMS over the noise.
 
+**The revisit.** When the forward walk stops, each effect it added (but the last, found with
+all the others in already) is taken out again with
+all the others in and the model diagnosed without it: an early rung may have taken a larger
+effect for what a later one explains (acc3's six axis angles for its board turned by three,
+while j2's sag was still missing). The best significant candidate then is the same effect
+(kept), another one (swapped in where the BIC is lower: a rung "A -> B"), or none, the others
+explaining it (taken out where the BIC is lower: a rung "- A"). If the revisit changed the
+model and something is significant again, the forward walk goes on once more.
+
 **Indistinguishable effects.** At each rung the significant refitted candidates whose whole
 recording χ² after their quick refit is within ``tie_chi2`` of the best one's are a *tie*:
 the recording fits them equally well (a likelihood ratio below ``exp(tie_chi2 / 2)``), so
@@ -153,6 +162,8 @@ class Discovery:
     remaining: tuple[str, ...]
     """Where it stops above the noise: what the residual follows (empty at the noise)."""
     seconds: float
+    findings: tuple[Finding, ...]
+    """What the final model added, in the order found (after the revisit)."""
 
     @property
     def first(self) -> Diagnosis:
@@ -161,10 +172,6 @@ class Discovery:
     @property
     def final(self) -> Diagnosis:
         return self.rungs[-1].diagnosis
-
-    @property
-    def findings(self) -> tuple[Finding, ...]:
-        return tuple(r.finding for r in self.rungs if r.finding is not None)
 
     def as_dict(self) -> dict[str, Any]:
         return {"stop": self.stop, "rms_ratio": round(self.final.rms_ratio, 4),
@@ -180,39 +187,99 @@ def discover(model: Model, data: FitData, settings: DiscoverSettings | None = No
     st = settings or DiscoverSettings()
     t0 = time.perf_counter()
     say = progress or (lambda _m, _f: None)
-    total = st.max_rungs + 1
+    total = 2 * st.max_rungs + 1
+    count = [0]
 
-    def stage(k: int):
+    def stage():
+        k = count[0]
+        count[0] += 1
         return lambda msg, f: say(f"rung {k}: {msg}", min((k + f) / total, 1.0))
 
-    d = diagnose(model, data, st.diagnose, attitude0_rad=attitude0_rad, progress=stage(0))
+    d = diagnose(model, data, st.diagnose, attitude0_rad=attitude0_rad, progress=stage())
     rungs = [Rung("the config as it is", None, {}, "", d)]
+    findings: list[Finding] = []
     stop = STOP_RUNGS
-    for k in range(1, st.max_rungs + 1):
+    for _round in range(2):  # forward, revisit; once more forward if the revisit changed the model
+        d, stop = _forward(d, data, model.arm, st, rungs, findings, stage)
+        if stop == STOP_NO_GAIN or len(findings) < 2:
+            break
+        d, changed = _revisit(d, data, model.arm, st, rungs, findings, stage)
+        if not changed or not d.significant:
+            if not d.significant:
+                stop = STOP_NOISE if d.fits_to_noise else STOP_NOTHING
+            break
+    say("done", 1.0)
+    return Discovery(tuple(rungs), stop, remaining_words(d, st.diagnose.noise_tolerance),
+                     time.perf_counter() - t0, tuple(findings))
+
+
+def _rung(label: str, finding: Finding, c: Candidate, d: Diagnosis) -> Rung:
+    """A rung that added candidate ``c`` (the finding's stand-in), with its estimate from ``d``."""
+    block = f"{c.target}.{c.effect}"
+    sl = d.fit.model.index[block]
+    names = [n.split("[")[-1].rstrip("]") for n in d.fit.names[sl]]
+    est = {f"{block}[{n}]": (float(v), float(s))
+           for n, v, s in zip(names, d.fit.x[sl], d.fit.sigma[sl], strict=True)}
+    return Rung(label, finding, est, c.units, d)
+
+
+def _forward(d: Diagnosis, data: FitData, arm, st: DiscoverSettings, rungs: list[Rung],
+             findings: list[Finding], stage) -> tuple[Diagnosis, str]:
+    """Add the best significant candidate until nothing is significant (or the rung limit, or
+    an addition that does not lower the residual). Appends to ``rungs`` and ``findings``."""
+    while len(findings) < st.max_rungs:
         sig = d.significant
         if not sig:
-            stop = STOP_NOISE if d.fits_to_noise else STOP_NOTHING
-            break
+            return d, STOP_NOISE if d.fits_to_noise else STOP_NOTHING
         finding = _finding(sig, d.fit.n_residuals, st.tie_chi2)
-        best = sig[0]
-        nxt = add_effects(d, [build_effect(model.arm, best.effect, best.target)], st.diagnose,
-                          progress=stage(k))
-        sl = nxt.fit.model.index[f"{best.target}.{best.effect}"]
-        names = [n.split("[")[-1].rstrip("]") for n in nxt.fit.names[sl]]
-        est = {f"{best.target}.{best.effect}[{n}]": (float(v), float(s))
-               for n, v, s in zip(names, nxt.fit.x[sl], nxt.fit.sigma[sl], strict=True)}
-        rungs.append(Rung(f"+ {finding.added}", finding, est, best.units, nxt))
+        nxt = add_effects(d, [build_effect(arm, sig[0].effect, sig[0].target)], st.diagnose,
+                          progress=stage())
+        rungs.append(_rung(f"+ {finding.added}", finding, sig[0], nxt))
+        findings.append(finding)
         gained = nxt.rms_ratio < d.rms_ratio * (1.0 - 1e-9)
         d = nxt
         if not gained:
-            stop = STOP_NO_GAIN
-            break
-    else:
-        if not d.significant:
-            stop = STOP_NOISE if d.fits_to_noise else STOP_NOTHING
-    say("done", 1.0)
-    return Discovery(tuple(rungs), stop, remaining_words(d, st.diagnose.noise_tolerance),
-                     time.perf_counter() - t0)
+            return d, STOP_NO_GAIN
+    return d, STOP_RUNGS if d.significant else (STOP_NOISE if d.fits_to_noise else STOP_NOTHING)
+
+
+def _bic(d: Diagnosis) -> float:
+    """χ² of the whole recording plus BIC's price of every free element."""
+    return d.rms_ratio**2 * d.fit.n_residuals + int((~d.fit.held).sum()) * np.log(d.fit.n_residuals)
+
+
+def _revisit(d: Diagnosis, data: FitData, arm, st: DiscoverSettings, rungs: list[Rung],
+             findings: list[Finding], stage) -> tuple[Diagnosis, bool]:
+    """Each effect added, taken out again with all the others in: an early rung may have taken
+    a larger effect for what a later one explains (acc3's axes for its board turned, while
+    j2's sag was still missing). Diagnosed without it, the best significant candidate is it
+    again (kept; its group of equal fits as they stand now), another one (swapped in where the
+    BIC is lower) or none (the others explain it: taken out)."""
+    changed = False
+    for f in findings[:-1]:  # the last was found with all the others in already
+        if f.added_block not in d.fit.model.index:
+            continue
+        wo = diagnose(d.model.without([f.added_block]), data, st.diagnose, attitude0_rad=d.fit.attitude_rad,
+                      progress=stage())
+        sig = wo.significant
+        i = findings.index(f)
+        if not sig:
+            if _bic(wo) <= _bic(d):
+                rungs.append(Rung(f"- {f.added} (the others explain it)", None, {}, "", wo))
+                findings.pop(i)
+                d, changed = wo, True
+            continue
+        g = _finding(sig, wo.fit.n_residuals, st.tie_chi2)
+        if g.added == f.added:
+            findings[i] = g
+            continue
+        nxt = add_effects(wo, [build_effect(arm, sig[0].effect, sig[0].target)], st.diagnose,
+                          progress=stage())
+        if _bic(nxt) < _bic(d):
+            rungs.append(_rung(f"{f.added} -> {g.added}", g, sig[0], nxt))
+            findings[i] = g
+            d, changed = nxt, True
+    return d, changed
 
 
 def _finding(sig: tuple[Candidate, ...], n_residuals: int, tie_chi2: float) -> Finding:

@@ -115,7 +115,7 @@ def test_cli_discover_json_write_report(arm, tmp_path):
         "acc1.accel_scale[x]"]["sigma"]
     assert [x["label"] for x in doc["ladder"]] == ["wmra", "+ accel_scale:acc1"]
     html = report.read_text(encoding="utf-8")
-    assert "Discovery: 1 effect added" in html and "+ accel_scale:acc1" in html
+    assert "Discovery: 1 effect found in 1 rung " in html and "+ accel_scale:acc1" in html
     # the written config fits to noise as it is
     r = runner.invoke(app, ["diagnose", "--config", str(out), str(rec), "--json"])
     assert r.exit_code == 0, r.output

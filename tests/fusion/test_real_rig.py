@@ -17,8 +17,8 @@ from fusion.importing.run import import_recording
 from fusion.tracking.settings import FLAG_CODE
 from fusion.tracking.start import start_from_recording
 from fusion.workbench.diagnose import add_effects, diagnose, parse_add
-from models.effects import model_from_arm
 from fusion.workbench.discover import STOP_NOTHING
+from models.effects import model_from_arm
 from tools.bench_real_rig import choose_config, ladder
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "imu-rig"
