@@ -127,3 +127,17 @@ def test_cli_discover_and_add_are_refused_together(tmp_path):
                                  "--add", "accel_bias:acc2"])
     assert r.exit_code != 0
     assert "give --discover or --add, not both" in r.output
+
+
+def test_the_revisit_swaps_an_effect_taken_while_another_was_missing(arm):
+    """acc3's board turned and j2's sag hidden together (with acc2's bias): while the sag is
+    missing, acc3's six axis angles fit better than its board's three turns, so the forward
+    walk adds them; taken out again once the sag is in, the board's turn comes back as the
+    simpler equal fit and replaces them."""
+    hidden = [*TWO, ("link_compliance", "j2", "compliance_rad_per_nm", [2.5e-4])]
+    disc = discover(model_from_arm(arm), _data(arm, hidden, seed=11, duration_s=40.0))
+    labels = [r.label for r in disc.rungs]
+    assert "accel_axes:acc3 -> mount_rotation:acc3" in labels, labels
+    assert sorted(f.added for f in disc.findings) == sorted(f"{e}:{t}" for e, t, _, _ in hidden)
+    assert disc.final.fits_to_noise and disc.final.rms_ratio <= 1.1
+    assert "acc3.accel_axes" not in disc.final.fit.model.index
