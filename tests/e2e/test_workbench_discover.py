@@ -141,3 +141,15 @@ def test_the_revisit_swaps_an_effect_taken_while_another_was_missing(arm):
     assert sorted(f.added for f in disc.findings) == sorted(f"{e}:{t}" for e, t, _, _ in hidden)
     assert disc.final.fits_to_noise and disc.final.rms_ratio <= 1.1
     assert "acc3.accel_axes" not in disc.final.fit.model.index
+
+
+def test_cli_discover_on_a_moving_chair_cannot_write(tmp_path):
+    """A driving chair goes to the tracker's innovations, which name no effect: nothing to write."""
+    runner = CliRunner()
+    rec = tmp_path / "du.csv"
+    r = runner.invoke(app, ["simulate", "--scenario", "daily-use", "--duration", "20", "--seed", "2",
+                            "--out", str(rec)])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["diagnose", str(rec), "--discover", "--write", str(tmp_path / "c2.yaml")])
+    assert r.exit_code != 0 and "the chair moves in this recording" in r.output
+    assert not (tmp_path / "c2.yaml").exists()

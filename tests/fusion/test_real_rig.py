@@ -72,9 +72,10 @@ def test_discovery_walks_the_real_rigs_ladder_and_says_what_is_left(roll):
     disc = ladder(load_arm("imu_rig_roll"), roll, 10)
     assert disc.stop == STOP_NOTHING
     assert disc.findings[0].added == "gyro_bias:frame"
-    steps = [r.rms_ratio for r in disc.rungs]
-    assert all(b <= a for a, b in zip(steps, steps[1:], strict=False)), steps
-    assert steps[-1] < 0.6 * steps[0]
+    # each effect added lowers it (the revisit's swaps may trade a little χ² for fewer parameters)
+    steps = [r.rms_ratio for k, r in enumerate(disc.rungs) if k == 0 or r.label.startswith("+ ")]
+    assert all(b < a for a, b in zip(steps, steps[1:], strict=False)), steps
+    assert disc.final.rms_ratio < 0.6 * steps[0]
     assert disc.remaining[0].startswith("worst sensors: imu_gyro")
     assert disc.final.measured_noise_ratios()[0] < 1.1 < disc.final.rms_ratio
 
