@@ -7,8 +7,7 @@ significant (the corrected score test and ΔBIC < 0, as ``diagnose`` decides) or
 rung's fit, and the residual RMS over the noise.
 
 **The revisit.** When the forward walk stops, each effect it added (but the last, found with
-all the others in already) is taken out again with
-all the others in and the model diagnosed without it: an early rung may have taken a larger
+all the others in already) is taken out again and the model diagnosed without it: an early rung may have taken a larger
 effect for what a later one explains (acc3's six axis angles for its board turned by three,
 while j2's sag was still missing). The best significant candidate then is the same effect
 (kept), another one (swapped in where the BIC is lower: a rung "A -> B"), or none, the others
@@ -58,11 +57,9 @@ STOP_NO_GAIN = "the last effect added did not lower the residual"
 SAME_IN_EVERY_MOTION = {
     frozenset({"mount_rotation", "accel_axes"}): "a board turned is its three axes turned together: no "
     "motion separates them",
-    frozenset({"base_mount", "accel_axes"}): "the IMU turned is its accelerometer's three axes turned "
-    "together: only its gyro and compass, with the chair turning, separate them",
 }
-"""Pairs of effects one of which contains the other in every recording (docs/effects.md, "What
-the data can and cannot separate"): no motion tells them apart."""
+"""Pairs of effects on one sensor one of which contains the other in every recording
+(docs/effects.md, "What the data can and cannot separate"): no motion tells them apart."""
 
 
 @dataclass(frozen=True)
