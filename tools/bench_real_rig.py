@@ -45,7 +45,7 @@ import argparse  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -63,7 +63,8 @@ from fusion.tracking.calibrated import config_model, device_time_offsets  # noqa
 from fusion.tracking.gyro_encoder import calibrate_gyro_encoder, settings_with_gyro_encoder, with_gyro_encoder  # noqa: E402
 from fusion.tracking.settings import JOINT_FLAGS, TrackerSettings  # noqa: E402
 from fusion.tracking.start import start_from_recording  # noqa: E402
-from fusion.workbench.diagnose import add_effects, diagnose, parse_add  # noqa: E402
+from fusion.workbench.diagnose import diagnose  # noqa: E402
+from fusion.workbench.discover import DiscoverSettings, Discovery, Rung, discover  # noqa: E402
 from models.effects import model_from_arm  # noqa: E402
 from models.rotations import wrap_angle  # noqa: E402
 from sensors.samples import Recording  # noqa: E402
@@ -83,25 +84,14 @@ ZERO_WITHIN_S = 30.0
 
 
 @dataclass
-class Rung:
-    label: str
-    rms_ratio: float
-    verdict: str
-    estimate: str = ""
-    per_stream: dict[str, float] = field(default_factory=dict)
-    measured_ratio: float = float("nan")
-    """RMS over the noise the recording shows (:meth:`Diagnosis.measured_noise_ratios`)."""
-
-
-@dataclass
 class TrialResult:
     name: str
     rows: int
     import_changes: list[str]
     config: str
     fits: dict[str, float]
-    rungs: list[Rung]
-    follows: list[str]
+    rungs: tuple[Rung, ...]
+    follows: tuple[str, ...]
     zero_deg: float
     zero_sigma_deg: float
     track: dict
@@ -124,35 +114,12 @@ def choose_config(rec: Recording, first_s: float) -> tuple[str, dict[str, float]
     return min(fits, key=fits.get), fits
 
 
-def _estimate_words(c) -> str:
-    items = list(c.params.items())[:3]
-    more = f" (+{len(c.params) - 3})" if len(c.params) > 3 else ""
-    return ", ".join(f"{k.split('.', 1)[-1]} {v:+.4g} ± {s:.2g}" for k, (v, s) in items) + more
-
-
-def ladder(arm, rec: Recording, rungs: int):
-    """Walk the error ladder: rung 0 the config as it is, then the most significant missing
-    effect added each time. Returns the rungs, the final diagnosis and what the residual
-    follows at the end."""
+def ladder(arm, rec: Recording, rungs: int) -> Discovery:
+    """Walk the error ladder (:func:`fusion.workbench.discover.discover`): rung 0 the config as
+    it is, then the most significant missing effect added each time, until nothing significant
+    is left or ``rungs`` were added."""
     data = data_from_recording(arm, rec, window=WINDOW, q_ref_rad=np.zeros(arm.n_joints))
-    d = diagnose(model_from_arm(arm), data)
-    out = [Rung("the config as shipped", d.rms_ratio, d.verdict, "", d.stream_ratios(),
-                d.measured_noise_ratios()[0])]
-    for _ in range(rungs):
-        sig = [c for c in d.candidates if c.significant]
-        if not sig:
-            break
-        c = sig[0]
-        d = add_effects(d, parse_add(arm, [f"{c.effect}:{c.target}"]))
-        out.append(Rung(f"+ {c.effect}:{c.target}", d.rms_ratio, d.verdict, _estimate_words(c),
-                        d.stream_ratios(), d.measured_noise_ratios()[0]))
-    follows = []
-    if d.analysis is not None:
-        for fc in d.analysis.flagged()[:4]:
-            follows.append(f"{fc.stream} {fc.axis} follows {fc.input} (r {fc.r:+.2f} at lag {fc.lag})")
-        for s, ax, m in d.analysis.not_white()[:3]:
-            follows.append(f"{s} {ax} is not white (autocorrelation up to {m:.2f})")
-    return out, d, follows
+    return discover(model_from_arm(arm), data, DiscoverSettings(max_rungs=rungs))
 
 
 def encoder_zero(d) -> tuple[float, float]:
@@ -237,7 +204,8 @@ def run_trial(path: Path, calibrate_s: float, rungs: int, work: Path) -> TrialRe
     cal = rec.between(t_start, t_start + calibrate_s)
     scored = rec.between(t_start + calibrate_s, np.inf)
     t0 = time.perf_counter()
-    rs, final, follows = ladder(arm, cal, rungs)
+    disc = ladder(arm, cal, rungs)
+    rs, final, follows = disc.rungs, disc.final, disc.remaining
     secs["ladder"] = time.perf_counter() - t0
     zero, zero_sig = encoder_zero(final)
     cfg = yaml.safe_load(resolve_config_path(config).read_text(encoding="utf-8"))
@@ -407,7 +375,7 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
         ]
         for i, g in enumerate(r.rungs):
             per = ", ".join(f"{s} {v:.2f}" for s, v in g.per_stream.items())
-            out.append(f"| {i} | {g.label} | {g.estimate or '–'} | {g.rms_ratio:.2f} | {per} | "
+            out.append(f"| {i} | {g.label} | {g.estimate_words() or '–'} | {g.rms_ratio:.2f} | {per} | "
                        f"{g.measured_ratio:.2f} |")
         out += ["", f"Verdict at the last rung: {r.rungs[-1].verdict}."]
         if r.follows:

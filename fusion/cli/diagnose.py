@@ -1,11 +1,13 @@
 """``armfusion diagnose``: where the model fails, which effect is missing; add it, refit.
 
-    armfusion diagnose --config C REC [--json] [--add EFFECT[:TARGET] …] [--write C2.yaml]
-        [--window 10] [--history H.json] [--report out.html]
+    armfusion diagnose --config C REC [--json] [--add EFFECT[:TARGET] … | --discover [--rungs 10]]
+        [--write C2.yaml] [--window 10] [--history H.json] [--report out.html]
 
 Fits the config's model to the recording (``fusion.workbench.diagnose``), shows every sensor axis's
 residual RMS against its noise floor, the verdict and the ranked missing effects. ``--add``
 refits with the named effects starting from the estimates and shows before and after;
+``--discover`` walks the ladder by itself (``fusion.workbench.discover``: add the best
+significant candidate, refit, until nothing is significant) and shows every rung;
 ``--write`` saves the config with the (last) estimates. Every run appends each model
 version's residual RMS to a history (the error ladder). See docs/workbench.md.
 """
@@ -44,6 +46,7 @@ from fusion.workbench.diagnose import (
     params_words,
     parse_add,
 )
+from fusion.workbench.discover import DiscoverSettings, Discovery, discover
 from models.effects import TargetError, model_from_arm
 
 HISTORY_FORMAT = "armfusion.workbench-history/1"
@@ -109,9 +112,15 @@ def diagnose_command(
     innovations: Annotated[bool, typer.Option(
         "--innovations", help="Also run the tracker over the recording and analyse its normalised "
         "innovations (whiteness, correlation with the inputs); automatic when the chair moves.")] = False,
+    discover_: Annotated[bool, typer.Option(
+        "--discover", help="Find the missing effects by itself: add the most significant, refit, until "
+        "nothing is significant; every rung shown (with --write: the last rung's config).")] = False,
+    rungs: Annotated[int, typer.Option(help="With --discover: effects added at most.", min=1, max=50)] = 10,
     json_out: JsonOpt = False,
 ) -> None:
     """Compare the model with a recording: where it fails, which physical effect is missing."""
+    if discover_ and add:
+        fail("--discover chooses the effects itself: give --discover or --add, not both")
     for path, option in ((write, "--write"), (report, "--report"), (history, "--history")):
         if path is not None:
             check_output_path(path, option)
@@ -128,7 +137,7 @@ def diagnose_command(
         if added or write is not None:
             fail("the chair moves in this recording: the fit (and so --add and --write) takes it as parked; "
                  "record with the chair parked to find and add effects")
-        _innovations_only(arm, rec, recording, config, report, json_out, screen)
+        _innovations_only(arm, rec, recording, config, report, json_out, screen, discover_)
         return
     try:
         data = data_from_recording(arm, rec, window=window)
@@ -139,6 +148,7 @@ def diagnose_command(
                           "samples[/]", highlight=False)
 
     runs = 2 if added else 1
+    disc: Discovery | None = None
     with progress_bar("diagnose", json_out) as advance:
 
         def stage(k: int):
@@ -146,14 +156,24 @@ def diagnose_command(
                 advance((k + frac) / runs, msg)
             return progress
 
-        before = diagnose(model_from_arm(arm), data, progress=stage(0))
-        after = add_effects(before, added, progress=stage(1)) if added else None
+        if discover_:
+            disc = discover(model_from_arm(arm), data, DiscoverSettings(max_rungs=rungs), progress=stage(0))
+            before = disc.first
+            after = disc.final if len(disc.rungs) > 1 else None
+        else:
+            before = diagnose(model_from_arm(arm), data, progress=stage(0))
+            after = add_effects(before, added, progress=stage(1)) if added else None
     inn = _run_innovations(arm, rec, json_out) if innovations else None
     final = after or before
     hpath = history or history_path(config)
-    entries = [history_entry(before, recording, config, Path(config).stem)]
-    if after is not None:
-        entries.append(history_entry(after, recording, config, "+ " + ", ".join(e.block_name for e in added)))
+    if disc is not None:
+        entries = [history_entry(r.diagnosis, recording, config, Path(config).stem if k == 0 else r.label)
+                   for k, r in enumerate(disc.rungs)]
+    else:
+        entries = [history_entry(before, recording, config, Path(config).stem)]
+        if after is not None:
+            entries.append(history_entry(after, recording, config,
+                                         "+ " + ", ".join(e.block_name for e in added)))
     ladder = append_history(hpath, entries)
     if write is not None and history is None:  # the written config carries the ladder on
         nxt = write.with_name(write.stem + ".workbench.json")  # beside it (it is not written yet)
@@ -166,14 +186,18 @@ def diagnose_command(
         cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
         out = config_with_estimates(cfg, final.fit)
         write.parent.mkdir(parents=True, exist_ok=True)
+        stand_ins = "".join(f"# {f.added} stands in for one of {', '.join(f.members)} (equal fits)\n"
+                            for f in (disc.findings if disc is not None else ()) if f.is_group)
         write.write_text(f"# armfusion diagnose: rms_ratio {final.rms_ratio:.3f} ({final.verdict})\n"
-                         f"# from {recording}, config {src.name}\n"
+                         f"# from {recording}, config {src.name}\n" + stand_ins
                          + yaml.safe_dump(out, sort_keys=False, width=110), encoding="utf-8")
     if report is not None:
-        write_report(report, before, after, ladder, recording, config)
+        write_report(report, before, after, ladder, recording, config, disc)
     if json_out:
         d = final.as_dict(top)
-        d["added"] = [e.block_name for e in added]
+        d["added"] = ([f.added_block for f in disc.findings]
+                      if disc is not None else [e.block_name for e in added])
+        d["discovery"] = None if disc is None else disc.as_dict()
         d["before"] = None if after is None else before.as_dict(top)
         d["history"] = str(hpath)
         d["ladder"] = [{"label": r["label"], "rms_ratio": r["rms_ratio"], "effects": r["effects"]}
@@ -185,6 +209,8 @@ def diagnose_command(
                                    "windows": data.saturated_windows}
         emit_json(d)
         return
+    if disc is not None:
+        _print_discovery(disc)
     _print(before, after, top)
     if inn is not None:
         _print_innovations(inn)
@@ -193,6 +219,23 @@ def diagnose_command(
         console.print(f"Wrote {write}")
     if report:
         console.print(f"Report: {report}")
+
+
+def _print_discovery(disc: Discovery) -> None:
+    n = len(disc.findings)
+    t = Table(title=f"Discovery: the error ladder ({n} effect{'' if n == 1 else 's'} found in "
+                    f"{len(disc.rungs) - 1} rung{'' if len(disc.rungs) == 2 else 's'}; stopped: {disc.stop})")
+    for c in ("#", "added", "its estimate ± σ", "RMS / noise"):
+        t.add_column(c, justify="right" if c in ("#", "RMS / noise") else "left")
+    for k, r in enumerate(disc.rungs):
+        t.add_row(str(k), r.label, r.estimate_words() or "—", f"{r.rms_ratio:.3f}")
+    console.print(t)
+    for f in disc.findings:
+        if f.is_group:
+            console.print(f"[bold]One finding, one of these:[/] {f.words()}.", highlight=False)
+    if disc.remaining:
+        console.print("[yellow]The ladder stopped above the noise; no effect of the library explains the rest. "
+                      "The remaining residual:[/] " + "; ".join(disc.remaining) + ".", highlight=False)
 
 
 def _verdict_line(d: Diagnosis) -> str:
@@ -258,11 +301,14 @@ def _print_innovations(inn) -> None:
 
 
 def _innovations_only(arm, rec, recording: Path, config: str, report: Path | None, json_out: bool,
-                      screen) -> None:
+                      screen, discovering: bool = False) -> None:
     """A moving chair: the fit (parked) does not apply; the tracker's innovations do."""
     inn = _run_innovations(arm, rec, json_out)
     note = ("the chair moves in this recording: the model fit takes the chair as parked, so the analysis "
             "runs on the tracker's normalised innovations")
+    if discovering:
+        note += ("; discovery on the innovations says what they follow but names no effect (no score test "
+                 "on innovations yet): record with the chair parked for the ladder")
     if report is not None:
         write_innovation_report(report, inn, recording, config, note)
     if json_out:

@@ -222,9 +222,31 @@ def _residual_of_axis(d: Diagnosis, k: int) -> np.ndarray:
     return (ym[:, c] - yp[:, c]) / a.noise
 
 
+def discovery_html(disc) -> str:
+    """The discovery's ladder as an HTML table (what each rung added, its estimate ± σ, the RMS
+    over the noise), its grouped findings, why it stopped and what the residual follows."""
+    import html
+
+    rows = "".join(
+        f"<tr><td>{k}</td><td style='text-align:left'>{html.escape(r.label)}</td>"
+        f"<td style='text-align:left'>{html.escape(r.estimate_words() or '—')}</td><td>{r.rms_ratio:.3f}</td></tr>"
+        for k, r in enumerate(disc.rungs))
+    groups = "".join(f"<li>One finding, one of these: {html.escape(f.words())}.</li>"
+                     for f in disc.findings if f.is_group)
+    rest = ("<p>The ladder stopped above the noise, and no effect of the library explains the rest. "
+            "The remaining residual:</p><ul>" + "".join(f"<li>{html.escape(x)}</li>" for x in disc.remaining)
+            + "</ul>") if disc.remaining else ""
+    n = len(disc.findings)
+    return (f"<h2>Discovery: {n} effect{'' if n == 1 else 's'} found in {len(disc.rungs) - 1} rung{'' if len(disc.rungs) == 2 else 's'} "
+            f"({html.escape(disc.stop)})</h2>"
+            "<table><tr><th>rung</th><th>added</th><th>its estimate ± σ</th><th>RMS / noise</th></tr>"
+            f"{rows}</table>" + (f"<ul>{groups}</ul>" if groups else "") + rest)
+
+
 def write_report(path: Path, before: Diagnosis, after: Diagnosis | None, ladder: list[dict],
-                 recording: Path, config: str) -> Path:
-    """One HTML file a person reads top to bottom: verdict, ladder, ranked candidates, plots."""
+                 recording: Path, config: str, discovery=None) -> Path:
+    """One HTML file a person reads top to bottom: verdict, ladder, ranked candidates, plots;
+    with ``discovery`` (:class:`fusion.workbench.discover.Discovery`) its rungs under the ladder."""
     import base64
     import html
 
@@ -278,6 +300,7 @@ td:nth-child(2),td:nth-child(3){{text-align:left}}.bad{{color:#b00;font-weight:b
 <p>Residual RMS {d.rms_ratio:.2f}× the sensors' noise floor (1.0: the model fits to noise).
 Model effects: {esc(', '.join(e for e in d.effects() if not e.endswith('.joint_offset')) or 'none')}.</p>
 {img('ladder')}
+{'' if discovery is None else discovery_html(discovery)}
 {why}
 <h2>Missing effects, ranked</h2>
 <table><tr><th>#</th><th>effect</th><th>target</th><th>ΔBIC</th><th>RMS after</th><th>explains</th>

@@ -17,8 +17,9 @@ from fusion.importing.run import import_recording
 from fusion.tracking.settings import FLAG_CODE
 from fusion.tracking.start import start_from_recording
 from fusion.workbench.diagnose import add_effects, diagnose, parse_add
+from fusion.workbench.discover import STOP_NOTHING
 from models.effects import model_from_arm
-from tools.bench_real_rig import choose_config
+from tools.bench_real_rig import choose_config, ladder
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "imu-rig"
 
@@ -61,6 +62,22 @@ def test_the_workbench_finds_what_the_real_sensors_miss_and_the_ladder_comes_dow
     # the stepper's vibration, measured on single samples, is far beyond the datasheet noise
     data = _data(arm, roll)
     assert data.sample_excess_counts["shaft"].max() > 0.005  # g (the part's own noise: 0.004)
+
+
+def test_discovery_walks_the_real_rigs_ladder_and_says_what_is_left(roll):
+    """The benchmark's ladder (``discover``) on the real slice: the frame gyro's bias first,
+    the RMS falling at every rung, and where it stops above the datasheet's floor it says what
+    is left: the frame's gyro, whose residual is at the noise the slice itself shows (the
+    stepper's vibration), not an effect of the library."""
+    disc = ladder(load_arm("imu_rig_roll"), roll, 10)
+    assert disc.stop == STOP_NOTHING
+    assert disc.findings[0].added == "gyro_bias:frame"
+    # each effect added lowers it (the revisit's swaps may trade a little χ² for fewer parameters)
+    steps = [r.rms_ratio for k, r in enumerate(disc.rungs) if k == 0 or r.label.startswith("+ ")]
+    assert all(b < a for a, b in zip(steps, steps[1:], strict=False)), steps
+    assert disc.final.rms_ratio < 0.6 * steps[0]
+    assert disc.remaining[0].startswith("worst sensors: imu_gyro")
+    assert disc.final.measured_noise_ratios()[0] < 1.1 < disc.final.rms_ratio
 
 
 def test_tracking_the_real_shaft_from_a_moving_start_keeps_its_sigma_honest(roll):
