@@ -127,12 +127,13 @@ def hard_iron_sigma_ut(model: Model | None) -> np.ndarray | None:
 
 def heading_scale_sigma(arm: ArmModel, model: Model | None, default: float) -> float:
     """The sigma (fraction) of the gyro's scale about the base's vertical: the config's
-    ``gyro_scale`` sigmas turned into the base's axes, else ``default`` (the datasheet's)."""
+    ``gyro_scale`` sigmas turned into the base's axes, else ``default`` (the datasheet's)
+    where the config says its IMU is not exact (its unmodelled error above zero), else 0."""
     if arm.imu is None:
         return default
     for _, _, sigma in _blocks(model, "gyro_scale"):
         return float(np.sqrt(np.sum((np.asarray(arm.imu.R_LS)[2] * sigma) ** 2)))
-    return default
+    return default if arm.calibration.imu_accel_floor_g > 0.0 else 0.0
 
 
 def offset_per_degree(arm: ArmModel, model: Model | None, correction) -> dict[str, np.ndarray]:

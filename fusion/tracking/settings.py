@@ -73,7 +73,7 @@ class TrackerSettings:
     gyro_bias_random_walk_dps_per_sqrt_s: float = 0.0005
     gyro_scale_sigma: float = 0.015
     """The gyro's scale error about the vertical, 1 sigma (fraction), where the config holds
-    no ``gyro_scale``: the MPU-9150's ±3 % sensitivity tolerance."""
+    no ``gyro_scale`` and says its IMU is not exact: the MPU-9150's ±3 % sensitivity tolerance."""
     gyro_scale_correlation_s: float = 2.0
     """A scale error turns every turn's heading by the same fraction: a bias, not noise. The
     heading's process variance grows by ``(sigma_scale * rate)^2 * dt * this`` while the
