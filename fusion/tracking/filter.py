@@ -207,7 +207,8 @@ class Tracker:
             self.ambiguity_.q_enc = self._q_enc.copy()  # the candidates hold at these encoder angles
         x = self._x0.copy()
         x[L.offset] = self._q_startup - q_enc
-        self._ukf = BatchedUKF(x, self._P0, self._points, angle_states=(L.yaw,))
+        self._ukf = BatchedUKF(x, self._P0, self._points, angle_states=(L.yaw,),
+                               central_innovation=self.settings.innovation_at_mean_state)
 
     def _check(self) -> None:
         if self._t is None:

@@ -161,6 +161,15 @@ class TrackerSettings:
     """The differentiated gyro's error: its noise (from the gyro's noise and the fit's
     weights) plus its lag, taken as this share of the estimate; times each sensor's
     distance from the IMU it becomes extra accelerometer noise."""
+    innovation_at_mean_state: bool = True
+    """Each update's innovation is taken against the prediction at the mean state (the
+    central sigma point), not the sigma points' weighted mean (filterpy's); the innovation
+    covariance stays the unscented one (:class:`fusion.tracking.ukf.BatchedUKF`,
+    ``central_innovation``). A joint that gravity cannot read (its axis vertical) is held at
+    ``unknown_joint_sigma_deg``: the points spread it over ±65°, and their mean shrank every
+    horizontal specific force that joint turns by 13 % (the chair's turns and starts, the
+    arm's own motion), so the innovations followed the chair's acceleration and the gain
+    passed that bias to the joints that are read. False: the weighted mean, for comparison."""
     # sigma points (filterpy's MerweScaledSigmaPoints parameters)
     alpha: float = 0.5
     beta: float = 2.0

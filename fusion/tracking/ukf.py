@@ -192,10 +192,16 @@ class BatchedUKF:
 
     ``fx(X, **kw) -> X'`` and ``hx(X, **kw) -> Z`` take and return ``(2n+1, ·)`` arrays.
     ``angle_states`` are the state indices that are angles (wrapped residuals and means).
+    ``central_innovation``: the innovation is taken against the prediction at the central
+    sigma point (the mean state), ``ν = z - h(X_0)``, instead of the points' weighted mean
+    (filterpy's, the default); ``S`` and the cross covariance stay the unscented ones. Where a
+    state is spread wide (a joint gravity cannot read, held at 30° of sigma) the weighted
+    mean of a rotated vector shrinks it (by ``exp(-σ²/2)``, 13 % at 30°), a bias the
+    innovations would carry, and pass through the gain to the states that are read.
     """
 
     def __init__(self, x0: np.ndarray, P0: np.ndarray, points: SigmaPoints | None = None,
-                 angle_states: Sequence[int] = ()):
+                 angle_states: Sequence[int] = (), central_innovation: bool = False):
         x0 = np.array(x0, dtype=float).reshape(-1)
         P0 = np.array(P0, dtype=float)
         n = x0.shape[0]
@@ -208,6 +214,7 @@ class BatchedUKF:
             raise ValueError(f"sigma points are for n = {self.points.n}, the state has {n}")
         self._angles = np.array(sorted(angle_states), dtype=int)
         self._angle1 = int(self._angles[0]) if len(self._angles) == 1 else None
+        self._central = bool(central_innovation)
         self._x = x0
         self._P = repair_covariance(P0)
         self._sigmas: np.ndarray | None = None
@@ -379,12 +386,16 @@ class BatchedUKF:
                 S.reshape(-1)[::S.shape[0] + 1] += R
             else:
                 S += R
+            if self._central:
+                zp = Z[0].copy()
             nu = z - zp
             if a is not None:
                 nu[a] = wrap_angle(nu[a])
         else:
             ang = np.asarray(angle_rows, dtype=int)
             zp, DZ, S = unscented_transform(Z, self._Wm, self._Wc, np.diag(R) if R.ndim == 1 else R, ang)
+            if self._central:
+                zp = Z[0].copy()
             nu = z - zp
             nu[ang] = wrap_angle(nu[ang])
         Pxz = DXW @ DZ
@@ -411,7 +422,7 @@ class BatchedUKF:
         G = len(plan.rows)
         z_pred, nu, S, Pxz = np.empty(m), np.empty(m), np.empty((m, m)), np.empty((n, m))
         flat, nis, ok = np.empty(plan._block_size), np.empty(G), np.empty(G, dtype=np.bool_)
-        status = innovation_into(Zc, self._weights, angle_row, np.ascontiguousarray(z),
+        status = innovation_into(Zc, self._weights, angle_row, self._central, np.ascontiguousarray(z),
                                  np.ascontiguousarray(R), np.ascontiguousarray(DXW), plan._group_rows,
                                  plan._group_start, plan._block_start, plan._gates_c,
                                  z_pred, nu, S, Pxz, flat, nis, ok)

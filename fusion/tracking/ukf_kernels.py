@@ -199,13 +199,15 @@ def unscented_moments_into(Y: np.ndarray, W: np.ndarray, angle: int, mean: np.nd
 
 
 @njit(cache=True)
-def innovation_into(Z: np.ndarray, W: np.ndarray, angle: int, z: np.ndarray, R: np.ndarray, DXW: np.ndarray,
+def innovation_into(Z: np.ndarray, W: np.ndarray, angle: int, central: bool, z: np.ndarray, R: np.ndarray,
+                    DXW: np.ndarray,
                     group_rows: np.ndarray, group_start: np.ndarray, block_start: np.ndarray,
                     gates: np.ndarray, z_pred: np.ndarray, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray,
                     blocks: np.ndarray, nis: np.ndarray, gate_ok: np.ndarray) -> int:
     """The statistics of a measurement ``z (m,)`` predicted by the points ``Z (N, m)``:
-    ``z_pred`` (the unscented mean, row ``angle`` as in :func:`_mean_and_residuals`),
-    ``S = DZ^T diag(Wc) DZ + diag(R)`` (symmetrised), ``nu = z - z_pred`` (row ``angle``
+    ``z_pred`` (the unscented mean, row ``angle`` as in :func:`_mean_and_residuals`; with
+    ``central``, the central point's prediction ``Z[0]``), ``S = DZ^T diag(Wc) DZ + diag(R)``
+    (symmetrised, about the unscented mean either way), ``nu = z - z_pred`` (row ``angle``
     wrapped), ``Pxz = DXW DZ`` (``DXW (n, N)``: the state's weighted residuals) and, for
     each group ``g`` of ``k`` rows ``group_rows[group_start[g]:group_start[g + 1]]``: its
     diagonal block of ``S``, row by row into ``blocks[block_start[g]:block_start[g] + k k]``,
@@ -224,6 +226,9 @@ def innovation_into(Z: np.ndarray, W: np.ndarray, angle: int, z: np.ndarray, R: 
         S[i, i] += R[i]
     _symmetrise(S)
     np.dot(DXW, DZ, Pxz)
+    if central:
+        for i in range(m):
+            z_pred[i] = Z[0, i]
     for i in range(m):
         nu[i] = z[i] - z_pred[i]
     if angle >= 0:

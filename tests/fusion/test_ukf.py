@@ -222,10 +222,10 @@ def test_repair_restores_positive_definiteness():
 N_STATE, YAW = 19, 12  # the tracker's state size and its one angle state
 
 
-def _compiled_and_reference(x0, P0, angle_states=(YAW,)):
+def _compiled_and_reference(x0, P0, angle_states=(YAW,), central=False):
     """Two filters from one state: the compiled step, and the NumPy path as the reference."""
-    fast = BatchedUKF(x0, P0, angle_states=angle_states)
-    ref = BatchedUKF(x0, P0, angle_states=angle_states)
+    fast = BatchedUKF(x0, P0, angle_states=angle_states, central_innovation=central)
+    ref = BatchedUKF(x0, P0, angle_states=angle_states, central_innovation=central)
     assert fast._use_kernels
     ref._use_kernels = False
     return fast, ref
@@ -332,13 +332,15 @@ def test_compiled_predict_is_the_numpy_predict(rng, monkeypatch, yaw_sigma, angl
     _assert_close(fast.P, ref.P, 1e-10)
 
 
+@pytest.mark.parametrize("central", [False, True], ids=["weighted-mean", "central-point"])
 @pytest.mark.parametrize("still", [False, True], ids=["m16", "m19"])
-def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still):
+def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still, central):
     """Predicted measurement, innovation (the heading wrapped across pi), S, Pxz, each
     group's NIS and gate verdict (an outlier fails its gate; an infinite gate passes), and
-    the diagonal blocks of S, equal to round-off."""
+    the diagonal blocks of S, equal to round-off; with the innovation about the points'
+    weighted mean and about the central point alike."""
     x, P = _state(rng, yaw=-np.pi + 0.02)
-    fast, ref = _compiled_and_reference(x, P)
+    fast, ref = _compiled_and_reference(x, P, central=central)
     fast.predict(_fx, np.eye(N_STATE) * 1e-5)
     ref.predict(_fx, np.eye(N_STATE) * 1e-5)
     k = 5 + still
@@ -365,6 +367,32 @@ def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still):
         _assert_close(blocks, b.blocks[size][1], 1e-11)
     np.testing.assert_array_equal(a.S, a.S.T)
     assert plan_fast.last_blocks is a.blocks
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
+def test_the_innovation_about_the_mean_state_is_not_shrunk_by_a_wide_angle(compiled):
+    """A vector of 0.6 m/s² turned by a joint known to 30° (a joint gravity cannot read): the
+    sigma points spread it over ±65° and their weighted mean is 13 % short (exp(-σ²/2));
+    measured exactly at the mean angle, the innovation about the central point is zero,
+    about the weighted mean it is that shortfall. S and the cross covariance are the same."""
+    sigma = np.radians(30.0)
+    x0, P0 = np.array([0.0, 0.1]), np.diag([sigma**2, 1e-4])
+
+    def hx(X):  # the horizontal vector (0.6, 0) turned by the first state, plus the second
+        return np.stack([0.6 * np.cos(X[:, 0]) + X[:, 1], 0.6 * np.sin(X[:, 0])], 1)
+
+    z = hx(x0[None])[0]
+    inn = {}
+    for central in (False, True):
+        f = BatchedUKF(x0, P0, central_innovation=central)
+        f._use_kernels = compiled
+        inn[central] = f.innovate(z, hx, np.full(2, 1e-6), [MeasurementGroup("acc", np.arange(2))])
+    np.testing.assert_allclose(inn[True].innovation, 0.0, atol=1e-12)
+    np.testing.assert_allclose(inn[True].z_pred, z, atol=1e-12)
+    shortfall = inn[False].innovation[0] / 0.6
+    assert 0.10 < shortfall < 0.16, shortfall  # exp(-sigma^2 / 2) = 0.87, as the points see it
+    np.testing.assert_allclose(inn[True].S, inn[False].S, rtol=1e-12)
+    np.testing.assert_allclose(inn[True].Pxz, inn[False].Pxz, rtol=1e-12)
 
 
 def test_compiled_innovation_takes_groups_in_any_order(rng, monkeypatch):
