@@ -207,8 +207,7 @@ class Tracker:
             self.ambiguity_.q_enc = self._q_enc.copy()  # the candidates hold at these encoder angles
         x = self._x0.copy()
         x[L.offset] = self._q_startup - q_enc
-        self._ukf = BatchedUKF(x, self._P0, self._points, angle_states=(L.yaw,),
-                               central_innovation=self.settings.innovation_at_mean_state)
+        self._ukf = BatchedUKF(x, self._P0, self._points, angle_states=(L.yaw,))
 
     def _check(self) -> None:
         if self._t is None:
@@ -362,7 +361,8 @@ class Tracker:
         plan = ms.plan(key, k, still, mag is not None)
         angle_rows = (m - 1,) if mag is not None else ()
         shift = self.compass.heading_shift_rad() if mag is not None else 0.0
-        inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows,
+        wz = self._prediction_weights() if st.innovation_at_mean_state else None
+        inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows, z_weights=wz,
                            frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
         accept = inn.gate_ok.copy()
         gate_l = inn.gate_ok.tolist()
@@ -381,7 +381,7 @@ class Tracker:
             # its acceleration, held near zero while it stood, must be free to follow at once
             self.still.set_off()
             ukf.inflate(np.arange(L.accel.start, L.accel.stop), st.base_accel_sigma_mps2**2)
-            inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows,
+            inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows, z_weights=wz,
                                frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
             accept = inn.gate_ok.copy()
             if still:
@@ -407,6 +407,30 @@ class Tracker:
             accept[-1] = use
             mask = ms.heading_mask(m)
         ukf.correct(inn, accept, self.observability.hold, mask)
+
+    def _prediction_weights(self) -> np.ndarray | None:
+        """The sigma points' weights in the prediction an update's innovation is taken
+        against: the unscented mean's (None) unless the filter holds a direction of the
+        offsets that it knows only widely (a joint gravity cannot read, 30 deg at startup).
+        Then each pair of points keeps its weight only for the share of its offsets'
+        displacement outside those directions: the update does not correct along them,
+        and the points' spread there (±65 deg) would shrink the predicted specific force
+        that the joint turns (see ``TrackerSettings.innovation_at_mean_state``)."""
+        U = self.observability.held_wide
+        ukf = self._ukf
+        X = ukf._sigmas
+        if U is None or X is None:
+            return None
+        n, ns = self.arm.n_joints, ukf._x.shape[0]
+        D = X[1:1 + ns, :n] - X[0, :n]  # each pair's displacement of the offsets
+        d2 = np.einsum("ij,ij->i", D, D)
+        along = np.einsum("ij,ij->i", D @ U, D @ U)
+        keep = 1.0 - np.divide(along, d2, out=np.zeros(ns), where=d2 > 0.0)
+        w = ukf._Wm.copy()
+        w[1:1 + ns] *= keep
+        w[1 + ns:] *= keep
+        w[0] = 1.0 - w[1:].sum()
+        return w
 
     def _h_tangent(self, X: np.ndarray, **kw) -> np.ndarray:
         """Every measurement at sigma points whose attitude is in the filter's tangent space

@@ -54,8 +54,7 @@ def restore_into(tr, snap: Mapping) -> None:
     tr.initialise(restored_startup(tr.arm), float(snap["t_s"]),
                   imu=ImuStill(x[L.bias], 1e-3, None, None, Compass.field_from(snap)))
     tr._q_enc = np.array(snap["q_enc"], dtype=float)
-    tr._ukf = BatchedUKF(x, P, tr._points, angle_states=(L.yaw,),
-                         central_innovation=tr.settings.innovation_at_mean_state)
+    tr._ukf = BatchedUKF(x, P, tr._points, angle_states=(L.yaw,))
     tr._omega = None if snap.get("omega") is None else np.array(snap["omega"], dtype=float)
     tr.enc_rates.restore(snap["encoder_fit"])
     tr.gyro_rates.restore(snap["gyro_fit"])

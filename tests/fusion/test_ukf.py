@@ -222,10 +222,10 @@ def test_repair_restores_positive_definiteness():
 N_STATE, YAW = 19, 12  # the tracker's state size and its one angle state
 
 
-def _compiled_and_reference(x0, P0, angle_states=(YAW,), central=False):
+def _compiled_and_reference(x0, P0, angle_states=(YAW,)):
     """Two filters from one state: the compiled step, and the NumPy path as the reference."""
-    fast = BatchedUKF(x0, P0, angle_states=angle_states, central_innovation=central)
-    ref = BatchedUKF(x0, P0, angle_states=angle_states, central_innovation=central)
+    fast = BatchedUKF(x0, P0, angle_states=angle_states)
+    ref = BatchedUKF(x0, P0, angle_states=angle_states)
     assert fast._use_kernels
     ref._use_kernels = False
     return fast, ref
@@ -332,15 +332,21 @@ def test_compiled_predict_is_the_numpy_predict(rng, monkeypatch, yaw_sigma, angl
     _assert_close(fast.P, ref.P, 1e-10)
 
 
-@pytest.mark.parametrize("central", [False, True], ids=["weighted-mean", "central-point"])
+@pytest.mark.parametrize("weights", ["unscented", "central", "some-pairs"])
 @pytest.mark.parametrize("still", [False, True], ids=["m16", "m19"])
-def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still, central):
+def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still, weights):
     """Predicted measurement, innovation (the heading wrapped across pi), S, Pxz, each
     group's NIS and gate verdict (an outlier fails its gate; an infinite gate passes), and
-    the diagonal blocks of S, equal to round-off; with the innovation about the points'
-    weighted mean and about the central point alike."""
+    the diagonal blocks of S, equal to round-off; with the prediction the unscented mean, the
+    central point's, or a mean that leaves some pairs of points out."""
     x, P = _state(rng, yaw=-np.pi + 0.02)
-    fast, ref = _compiled_and_reference(x, P, central=central)
+    fast, ref = _compiled_and_reference(x, P)
+    wz = None
+    if weights != "unscented":
+        wz = np.zeros(2 * N_STATE + 1)
+        if weights == "some-pairs":  # the first three pairs keep their weight, the rest go
+            wz[1:4] = wz[1 + N_STATE:4 + N_STATE] = fast._Wm[1]
+        wz[0] = 1.0 - wz.sum()
     fast.predict(_fx, np.eye(N_STATE) * 1e-5)
     ref.predict(_fx, np.eye(N_STATE) * 1e-5)
     k = 5 + still
@@ -354,8 +360,8 @@ def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still, ce
     z[6:9] += 3.0  # the third sensor is an outlier
     z[-1] = np.pi - 0.01  # the heading, measured across pi from the yaw near -pi
     R = rng.uniform(0.01, 0.03, m)
-    a = fast.innovate(z, hx, R, plan_fast, angle_rows=(m - 1,))
-    b = ref.innovate(z, hx, R, plan_ref, angle_rows=(m - 1,))
+    a = fast.innovate(z, hx, R, plan_fast, angle_rows=(m - 1,), z_weights=wz)
+    b = ref.innovate(z, hx, R, plan_ref, angle_rows=(m - 1,), z_weights=wz)
     for name in ("innovation", "S", "Pxz", "nis", "z_pred"):
         _assert_close(getattr(a, name), getattr(b, name), 1e-11)
     np.testing.assert_array_equal(a.gate_ok, b.gate_ok)
@@ -384,9 +390,10 @@ def test_the_innovation_about_the_mean_state_is_not_shrunk_by_a_wide_angle(compi
     z = hx(x0[None])[0]
     inn = {}
     for central in (False, True):
-        f = BatchedUKF(x0, P0, central_innovation=central)
+        f = BatchedUKF(x0, P0)
         f._use_kernels = compiled
-        inn[central] = f.innovate(z, hx, np.full(2, 1e-6), [MeasurementGroup("acc", np.arange(2))])
+        wz = np.eye(5)[0] if central else None
+        inn[central] = f.innovate(z, hx, np.full(2, 1e-6), [MeasurementGroup("acc", np.arange(2))], z_weights=wz)
     np.testing.assert_allclose(inn[True].innovation, 0.0, atol=1e-12)
     np.testing.assert_allclose(inn[True].z_pred, z, atol=1e-12)
     shortfall = inn[False].innovation[0] / 0.6
