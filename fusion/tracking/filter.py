@@ -381,6 +381,7 @@ class Tracker:
             # its acceleration, held near zero while it stood, must be free to follow at once
             self.still.set_off()
             ukf.inflate(np.arange(L.accel.start, L.accel.stop), st.base_accel_sigma_mps2**2)
+            wz = self._prediction_weights() if st.innovation_at_mean_state else None
             inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows, z_weights=wz,
                                frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
             accept = inn.gate_ok.copy()
@@ -410,12 +411,13 @@ class Tracker:
 
     def _prediction_weights(self) -> np.ndarray | None:
         """The sigma points' weights in the prediction an update's innovation is taken
-        against: the unscented mean's (None) unless the filter holds a direction of the
-        offsets that it knows only widely (a joint gravity cannot read, 30 deg at startup).
-        Then each pair of points keeps its weight only for the share of its offsets'
-        displacement outside those directions: the update does not correct along them,
-        and the points' spread there (±65 deg) would shrink the predicted specific force
-        that the joint turns (see ``TrackerSettings.innovation_at_mean_state``)."""
+        against: the unscented mean's (None) unless a joint is gimbal-locked (held) and
+        known only widely (30 deg at startup: ``Observability.held_wide``). Then each pair of
+        points keeps its weight only for the share of its offsets' displacement off those
+        joints: the update does not correct along them, and the points' spread there
+        (±65 deg) would shrink the predicted specific force that the joint turns (see
+        ``TrackerSettings.innovation_at_mean_state``). None also when the step's points are
+        not drawn yet."""
         U = self.observability.held_wide
         ukf = self._ukf
         X = ukf._sigmas

@@ -163,19 +163,20 @@ class TrackerSettings:
     distance from the IMU it becomes extra accelerometer noise."""
     innovation_at_mean_state: bool = True
     mean_state_held_sigma_deg: float = 5.0
-    """While the filter holds a direction of the offsets (gimbal lock, ill-conditioned) that
-    it knows no better than ``mean_state_held_sigma_deg``, each update's innovation is taken
-    against the prediction at the mean state (the central sigma point), not the sigma
-    points' weighted mean (filterpy's); the innovation covariance and the cross covariance
-    stay the unscented ones (:meth:`fusion.tracking.ukf.BatchedUKF.innovate`, ``central``).
-    A joint gravity cannot read (its axis vertical) starts held at
-    ``unknown_joint_sigma_deg``: the points spread it over ±65°, and their weighted mean
-    shrank every horizontal specific force that joint turns by 13 % (the chair's turns and
-    starts, the arm's own motion): the innovations followed the chair's acceleration, and
-    the gain passed that bias to the joints that are read. A direction the filter holds is
-    not corrected by the update, so the points' curvature along it is information it does
-    not use; a wide direction being *read* (a joint converging from startup) keeps the
-    weighted mean, which converges better from far. False: always the weighted mean."""
+    """While a joint is gimbal-locked (held: its axis vertical, gravity cannot read it) and
+    the filter knows it no better than ``mean_state_held_sigma_deg``, each update's
+    innovation is taken without the sigma points' spread along it: each pair of points keeps
+    its weight in the prediction only for the share of its offsets' displacement off the
+    held joints (:meth:`fusion.tracking.filter.Tracker._prediction_weights`,
+    ``BatchedUKF.innovate(z_weights=)``); the innovation covariance and the cross covariance
+    stay the unscented ones. Such a joint starts at ``unknown_joint_sigma_deg``: the points
+    spread it over ±65°, and their weighted mean shrank every horizontal specific force that
+    joint turns by 13 % (the chair's turns and starts, the arm's own motion): the
+    innovations followed the chair's acceleration, and the gain passed that bias to the
+    joints that are read. The update does not correct along a held joint, so the points'
+    curvature there is information it does not use; a wide joint being *read* (converging
+    from startup) keeps the weighted mean, which converges better from far. False: always
+    the weighted mean (filterpy's)."""
     # sigma points (filterpy's MerweScaledSigmaPoints parameters)
     alpha: float = 0.5
     beta: float = 2.0
