@@ -373,7 +373,8 @@ class Tracker:
         plan = ms.plan(key, k, still, mag is not None)
         angle_rows = (m - 1,) if mag is not None else ()
         shift = self.compass.heading_shift_rad() if mag is not None else 0.0
-        inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows,
+        wz = self._prediction_weights() if st.innovation_at_mean_state else None
+        inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows, z_weights=wz,
                            frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
         accept = inn.gate_ok.copy()
         gate_l = inn.gate_ok.tolist()
@@ -392,7 +393,8 @@ class Tracker:
             # its acceleration, held near zero while it stood, must be free to follow at once
             self.still.set_off()
             ukf.inflate(np.arange(L.accel.start, L.accel.stop), st.base_accel_sigma_mps2**2)
-            inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows,
+            wz = self._prediction_weights() if st.innovation_at_mean_state else None
+            inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows, z_weights=wz,
                                frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
             accept = inn.gate_ok.copy()
             if still:
@@ -418,6 +420,31 @@ class Tracker:
             accept[-1] = use
             mask = ms.heading_mask(m)
         ukf.correct(inn, accept, self.observability.hold, mask)
+
+    def _prediction_weights(self) -> np.ndarray | None:
+        """The sigma points' weights in the prediction an update's innovation is taken
+        against: the unscented mean's (None) unless a joint is gimbal-locked (held) and
+        known only widely (30 deg at startup: ``Observability.held_wide``). Then each pair of
+        points keeps its weight only for the share of its offsets' displacement off those
+        joints: the update does not correct along them, and the points' spread there
+        (±65 deg) would shrink the predicted specific force that the joint turns (see
+        ``TrackerSettings.innovation_at_mean_state``). None also when the step's points are
+        not drawn yet."""
+        U = self.observability.held_wide
+        ukf = self._ukf
+        X = ukf._sigmas
+        if U is None or X is None:
+            return None
+        n, ns = self.arm.n_joints, ukf._x.shape[0]
+        D = X[1:1 + ns, :n] - X[0, :n]  # each pair's displacement of the offsets
+        d2 = np.einsum("ij,ij->i", D, D)
+        along = np.einsum("ij,ij->i", D @ U, D @ U)
+        keep = 1.0 - np.divide(along, d2, out=np.zeros(ns), where=d2 > 0.0)
+        w = ukf._Wm.copy()
+        w[1:1 + ns] *= keep
+        w[1 + ns:] *= keep
+        w[0] = 1.0 - w[1:].sum()
+        return w
 
     def _h_tangent(self, X: np.ndarray, **kw) -> np.ndarray:
         """Every measurement at sigma points whose attitude is in the filter's tangent space

@@ -66,6 +66,11 @@ class Observability:
         self.ill = np.zeros(n, bool)
         self.hold: np.ndarray | None = None
         """The projection that holds the unreadable directions (None: nothing held)."""
+        self.held_wide: np.ndarray | None = None
+        """The offsets of the gimbal-locked joints (held) that the filter knows no better than
+        ``mean_state_held_sigma_deg``, as unit columns ``(n, h)`` (None: none): the tracker
+        takes the innovation without the sigma points' spread along them (see
+        ``TrackerSettings.innovation_at_mean_state``)."""
         self.sys_var = np.zeros(n)
         """Per joint, the variance the filter's own does not hold (rad²): the calibration's
         (``diag(S S^T)``) and, while a joint is unread, what covers its limits."""
@@ -177,6 +182,8 @@ class Observability:
             self.hold = T
         else:
             self.hold = None
+        wide = locked & (np.diagonal(P)[:n] > (st.mean_state_held_sigma_deg * DEG) ** 2)
+        self.held_wide = self._eye_state[:n, :n][:, wide] if wide.any() else None
         if self.spread_m:
             # the calibration's pull, over every link accelerometer used since the last time
             # (sensors read at instants of their own each make a set of one)

@@ -164,6 +164,22 @@ class TrackerSettings:
     """The differentiated gyro's error: its noise (from the gyro's noise and the fit's
     weights) plus its lag, taken as this share of the estimate; times each sensor's
     distance from the IMU it becomes extra accelerometer noise."""
+    innovation_at_mean_state: bool = True
+    mean_state_held_sigma_deg: float = 5.0
+    """While a joint is gimbal-locked (held: its axis vertical, gravity cannot read it) and
+    the filter knows it no better than ``mean_state_held_sigma_deg``, each update's
+    innovation is taken without the sigma points' spread along it: each pair of points keeps
+    its weight in the prediction only for the share of its offsets' displacement off the
+    held joints (:meth:`fusion.tracking.filter.Tracker._prediction_weights`,
+    ``BatchedUKF.innovate(z_weights=)``); the innovation covariance and the cross covariance
+    stay the unscented ones. Such a joint starts at ``unknown_joint_sigma_deg``: the points
+    spread it over ±65°, and their weighted mean shrank every horizontal specific force that
+    joint turns by 13 % (the chair's turns and starts, the arm's own motion): the
+    innovations followed the chair's acceleration, and the gain passed that bias to the
+    joints that are read. The update does not correct along a held joint, so the points'
+    curvature there is information it does not use; a wide joint being *read* (converging
+    from startup) keeps the weighted mean, which converges better from far. False: always
+    the weighted mean (filterpy's)."""
     # sigma points (filterpy's MerweScaledSigmaPoints parameters)
     alpha: float = 0.5
     beta: float = 2.0

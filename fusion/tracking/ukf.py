@@ -169,6 +169,15 @@ def _ut(Y: np.ndarray, Wm: np.ndarray, WcT: np.ndarray, angle: int | None):
     return m, D, DW, DW @ D
 
 
+def _weighted_prediction(Z: np.ndarray, w: np.ndarray, angle_rows) -> np.ndarray:
+    """``Σ w_i Z_i`` (``w`` summing to 1), the ``angle_rows`` as the central point plus the
+    weighted mean of the wrapped offsets from it."""
+    zp = np.asarray(w, float) @ Z
+    for a in angle_rows:
+        zp[a] = wrap_angle(float(Z[0, a] + np.asarray(w, float) @ wrap_angle(Z[:, a] - Z[0, a])))
+    return zp
+
+
 def symmetrise(P: np.ndarray) -> np.ndarray:
     return 0.5 * (P + P.T)
 
@@ -347,6 +356,7 @@ class BatchedUKF:
         groups: Sequence[MeasurementGroup] | GroupPlan | None = None,
         angle_rows: Sequence[int] = (),
         X: np.ndarray | None = None,
+        z_weights: np.ndarray | None = None,
         **kw,
     ) -> Innovation:
         """Predict ``z (m,)`` through ``hx`` (every sigma point in one call), with noise
@@ -355,6 +365,12 @@ class BatchedUKF:
 
         ``groups`` may be a prepared :class:`GroupPlan` (repeated updates of one shape).
         ``X`` may pass sigma points already made from the current state.
+
+        ``z_weights (2n+1,)`` (summing to 1): the weights of the points in the predicted
+        measurement that the innovation is taken against, ``ν = z - Σ w_i Z_i`` (angle rows
+        as wrapped offsets from the central point); None: the unscented mean's (filterpy's).
+        ``(1, 0, …, 0)`` is the prediction at the mean state. ``S`` and the cross covariance
+        stay the unscented ones whatever the weights.
         """
         z = np.asarray(z, dtype=float).reshape(-1)
         R = np.asarray(R, dtype=float)
@@ -369,7 +385,7 @@ class BatchedUKF:
         Z = hx(X, **kw)
         if self._use_kernels and R.ndim == 1 and len(angle_rows) <= 1 and plan._tiled:
             a = int(angle_rows[0]) if len(angle_rows) else None
-            inn = self._innovation_compiled(z, Z, R, plan, a, DXW)
+            inn = self._innovation_compiled(z, Z, R, plan, a, DXW, z_weights)
             if inn is not None:
                 return inn
         if len(angle_rows) <= 1:
@@ -379,12 +395,16 @@ class BatchedUKF:
                 S.reshape(-1)[::S.shape[0] + 1] += R
             else:
                 S += R
+            if z_weights is not None:
+                zp = _weighted_prediction(Z, z_weights, () if a is None else (a,))
             nu = z - zp
             if a is not None:
                 nu[a] = wrap_angle(nu[a])
         else:
             ang = np.asarray(angle_rows, dtype=int)
             zp, DZ, S = unscented_transform(Z, self._Wm, self._Wc, np.diag(R) if R.ndim == 1 else R, ang)
+            if z_weights is not None:
+                zp = _weighted_prediction(Z, z_weights, ang)
             nu = z - zp
             nu[ang] = wrap_angle(nu[ang])
         Pxz = DXW @ DZ
@@ -394,7 +414,8 @@ class BatchedUKF:
         return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, zp, plan.last_blocks)
 
     def _innovation_compiled(self, z: np.ndarray, Z: np.ndarray, R: np.ndarray, plan: GroupPlan,
-                             angle_row: int | None, DXW: np.ndarray) -> Innovation | None:
+                             angle_row: int | None, DXW: np.ndarray,
+                             z_weights: np.ndarray | None = None) -> Innovation | None:
         """:meth:`innovate`'s statistics from the compiled kernel (a diagonal ``R``, a tiled
         plan, at most one angle row); None when the shapes are not those of the common case."""
         Zc = np.ascontiguousarray(Z, dtype=np.float64)
@@ -411,7 +432,8 @@ class BatchedUKF:
         G = len(plan.rows)
         z_pred, nu, S, Pxz = np.empty(m), np.empty(m), np.empty((m, m)), np.empty((n, m))
         flat, nis, ok = np.empty(plan._block_size), np.empty(G), np.empty(G, dtype=np.bool_)
-        status = innovation_into(Zc, self._weights, angle_row, np.ascontiguousarray(z),
+        wz = self._weights[0] if z_weights is None else np.ascontiguousarray(z_weights, dtype=np.float64)
+        status = innovation_into(Zc, self._weights, wz, angle_row, np.ascontiguousarray(z),
                                  np.ascontiguousarray(R), np.ascontiguousarray(DXW), plan._group_rows,
                                  plan._group_start, plan._block_start, plan._gates_c,
                                  z_pred, nu, S, Pxz, flat, nis, ok)

@@ -199,14 +199,17 @@ def unscented_moments_into(Y: np.ndarray, W: np.ndarray, angle: int, mean: np.nd
 
 
 @njit(cache=True)
-def innovation_into(Z: np.ndarray, W: np.ndarray, angle: int, z: np.ndarray, R: np.ndarray, DXW: np.ndarray,
+def innovation_into(Z: np.ndarray, W: np.ndarray, wz: np.ndarray, angle: int, z: np.ndarray, R: np.ndarray,
+                    DXW: np.ndarray,
                     group_rows: np.ndarray, group_start: np.ndarray, block_start: np.ndarray,
                     gates: np.ndarray, z_pred: np.ndarray, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray,
                     blocks: np.ndarray, nis: np.ndarray, gate_ok: np.ndarray) -> int:
     """The statistics of a measurement ``z (m,)`` predicted by the points ``Z (N, m)``:
-    ``z_pred`` (the unscented mean, row ``angle`` as in :func:`_mean_and_residuals`),
-    ``S = DZ^T diag(Wc) DZ + diag(R)`` (symmetrised), ``nu = z - z_pred`` (row ``angle``
-    wrapped), ``Pxz = DXW DZ`` (``DXW (n, N)``: the state's weighted residuals) and, for
+    ``z_pred = Σ wz_p Z_p`` (``wz`` summing to 1: ``W[0]`` for the unscented mean; row
+    ``angle`` as the central point plus the weighted mean of the wrapped offsets from it),
+    ``S = DZ^T diag(Wc) DZ + diag(R)`` (symmetrised; ``DZ`` the residuals about the unscented
+    mean, as in :func:`_mean_and_residuals`, whatever ``wz``), ``nu = z - z_pred`` (row
+    ``angle`` wrapped), ``Pxz = DXW DZ`` (``DXW (n, N)``: the state's weighted residuals) and, for
     each group ``g`` of ``k`` rows ``group_rows[group_start[g]:group_start[g + 1]]``: its
     diagonal block of ``S``, row by row into ``blocks[block_start[g]:block_start[g] + k k]``,
     its NIS ``nu_g^T S_gg^-1 nu_g = |U_g^-T nu_g|^2`` from the block's Cholesky factor
@@ -224,6 +227,21 @@ def innovation_into(Z: np.ndarray, W: np.ndarray, angle: int, z: np.ndarray, R: 
         S[i, i] += R[i]
     _symmetrise(S)
     np.dot(DXW, DZ, Pxz)
+    same = True
+    for p in range(N):
+        if wz[p] != W[0, p]:
+            same = False
+    if not same:  # the prediction the innovation is taken against, with the weights wz
+        for i in range(m):
+            acc = 0.0
+            for p in range(N):
+                acc += wz[p] * Z[p, i]
+            z_pred[i] = acc
+        if angle >= 0:
+            acc = 0.0
+            for p in range(N):
+                acc += wz[p] * _wrap(Z[p, angle] - Z[0, angle])
+            z_pred[angle] = _wrap(Z[0, angle] + acc)
     for i in range(m):
         nu[i] = z[i] - z_pred[i]
     if angle >= 0:

@@ -332,13 +332,21 @@ def test_compiled_predict_is_the_numpy_predict(rng, monkeypatch, yaw_sigma, angl
     _assert_close(fast.P, ref.P, 1e-10)
 
 
+@pytest.mark.parametrize("weights", ["unscented", "central", "some-pairs"])
 @pytest.mark.parametrize("still", [False, True], ids=["m16", "m19"])
-def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still):
+def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still, weights):
     """Predicted measurement, innovation (the heading wrapped across pi), S, Pxz, each
     group's NIS and gate verdict (an outlier fails its gate; an infinite gate passes), and
-    the diagonal blocks of S, equal to round-off."""
+    the diagonal blocks of S, equal to round-off; with the prediction the unscented mean, the
+    central point's, or a mean that leaves some pairs of points out."""
     x, P = _state(rng, yaw=-np.pi + 0.02)
     fast, ref = _compiled_and_reference(x, P)
+    wz = None
+    if weights != "unscented":
+        wz = np.zeros(2 * N_STATE + 1)
+        if weights == "some-pairs":  # the first three pairs keep their weight, the rest go
+            wz[1:4] = wz[1 + N_STATE:4 + N_STATE] = fast._Wm[1]
+        wz[0] = 1.0 - wz.sum()
     fast.predict(_fx, np.eye(N_STATE) * 1e-5)
     ref.predict(_fx, np.eye(N_STATE) * 1e-5)
     k = 5 + still
@@ -352,8 +360,8 @@ def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still):
     z[6:9] += 3.0  # the third sensor is an outlier
     z[-1] = np.pi - 0.01  # the heading, measured across pi from the yaw near -pi
     R = rng.uniform(0.01, 0.03, m)
-    a = fast.innovate(z, hx, R, plan_fast, angle_rows=(m - 1,))
-    b = ref.innovate(z, hx, R, plan_ref, angle_rows=(m - 1,))
+    a = fast.innovate(z, hx, R, plan_fast, angle_rows=(m - 1,), z_weights=wz)
+    b = ref.innovate(z, hx, R, plan_ref, angle_rows=(m - 1,), z_weights=wz)
     for name in ("innovation", "S", "Pxz", "nis", "z_pred"):
         _assert_close(getattr(a, name), getattr(b, name), 1e-11)
     np.testing.assert_array_equal(a.gate_ok, b.gate_ok)
@@ -365,6 +373,33 @@ def test_compiled_innovation_is_the_numpy_innovation(rng, monkeypatch, still):
         _assert_close(blocks, b.blocks[size][1], 1e-11)
     np.testing.assert_array_equal(a.S, a.S.T)
     assert plan_fast.last_blocks is a.blocks
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
+def test_the_innovation_about_the_mean_state_is_not_shrunk_by_a_wide_angle(compiled):
+    """A vector of 0.6 m/s² turned by a joint known to 30° (a joint gravity cannot read): the
+    sigma points spread it over ±65° and their weighted mean is 13 % short (exp(-σ²/2));
+    measured exactly at the mean angle, the innovation about the central point is zero,
+    about the weighted mean it is that shortfall. S and the cross covariance are the same."""
+    sigma = np.radians(30.0)
+    x0, P0 = np.array([0.0, 0.1]), np.diag([sigma**2, 1e-4])
+
+    def hx(X):  # the horizontal vector (0.6, 0) turned by the first state, plus the second
+        return np.stack([0.6 * np.cos(X[:, 0]) + X[:, 1], 0.6 * np.sin(X[:, 0])], 1)
+
+    z = hx(x0[None])[0]
+    inn = {}
+    for central in (False, True):
+        f = BatchedUKF(x0, P0)
+        f._use_kernels = compiled
+        wz = np.eye(5)[0] if central else None
+        inn[central] = f.innovate(z, hx, np.full(2, 1e-6), [MeasurementGroup("acc", np.arange(2))], z_weights=wz)
+    np.testing.assert_allclose(inn[True].innovation, 0.0, atol=1e-12)
+    np.testing.assert_allclose(inn[True].z_pred, z, atol=1e-12)
+    shortfall = inn[False].innovation[0] / 0.6
+    assert 0.10 < shortfall < 0.16, shortfall  # exp(-sigma^2 / 2) = 0.87, as the points see it
+    np.testing.assert_allclose(inn[True].S, inn[False].S, rtol=1e-12)
+    np.testing.assert_allclose(inn[True].Pxz, inn[False].Pxz, rtol=1e-12)
 
 
 def test_compiled_innovation_takes_groups_in_any_order(rng, monkeypatch):
