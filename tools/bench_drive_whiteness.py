@@ -120,7 +120,8 @@ def main() -> None:
     for sc, (w, n) in per.items():
         md.append(f"| `{sc}` | {n} | {w} ({100 * w / n:.0f} %) |" if n else f"| `{sc}` | 0 | - |")
     md += ["", f"**{len(white)} of {len(driving)} ({100 * share:.1f} %)** called \"innovations white\" "
-           f"(target ≥ 95 %); {len(rows) - len(driving)} recording(s) in which the chair did not turn left out."]
+           f"(target ≥ 95 %); {len(rows) - len(driving)} recording(s) in which the chair did not turn "
+           "left out."]
     bad = [r for r in driving if not r["white"]]
     if bad:
         md += ["", "Called not white:", ""]

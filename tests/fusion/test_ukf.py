@@ -393,7 +393,8 @@ def test_the_innovation_about_the_mean_state_is_not_shrunk_by_a_wide_angle(compi
         f = BatchedUKF(x0, P0)
         f._use_kernels = compiled
         wz = np.eye(5)[0] if central else None
-        inn[central] = f.innovate(z, hx, np.full(2, 1e-6), [MeasurementGroup("acc", np.arange(2))], z_weights=wz)
+        inn[central] = f.innovate(z, hx, np.full(2, 1e-6), [MeasurementGroup("acc", np.arange(2))],
+                                  z_weights=wz)
     np.testing.assert_allclose(inn[True].innovation, 0.0, atol=1e-12)
     np.testing.assert_allclose(inn[True].z_pred, z, atol=1e-12)
     shortfall = inn[False].innovation[0] / 0.6
