@@ -10,9 +10,10 @@ rung's fit, and the residual RMS over the noise.
 all the others in already) is taken out again and the model diagnosed without it: an early
 rung may have taken a larger effect for what a later one explains (acc3's six axis angles
 for its board turned by three, while j2's sag was still missing). The best significant
-candidate then is the same effect (kept), another one (swapped in where the BIC is lower: a rung "A -> B"), or none, the others
-explaining it (taken out where the BIC is lower: a rung "- A"). If the revisit changed the
-model and something is significant again, the forward walk goes on once more.
+candidate then is the same effect (kept), another one (swapped in where the BIC is lower: a
+rung "A -> B"), or none, the others explaining it (taken out where the BIC is lower: a rung
+"- A"). If the revisit changed the model and something is significant again, the forward
+walk goes on once more.
 
 **Indistinguishable effects.** At each rung the significant refitted candidates whose whole
 recording χ² after their quick refit is within ``tie_chi2`` of the best one's are a *tie*:
