@@ -22,8 +22,8 @@ the workbench itself lists as ``unseen`` on a clean recording of the sweep (no d
 their parameters known better than the prior: the gyro's scales on a parked chair, the
 play and sag of joints whose gravity torque never changes, …).
 
-Writes its markdown section to ``--out FILE`` (for docs/benchmarks.md; the lead runs it
-there) and prints it.
+Writes its section of docs/benchmarks.md (``--out FILE``: to that file instead; ``--quick``:
+neither unless ``--out``) and prints it.
 
     nice python tools/bench_discover.py [--hidden 50] [--clean 20] [--duration 60]
         [--hour-s 3600] [--quick] [--out FILE]
@@ -54,7 +54,7 @@ from fusion.workbench.discover import Discovery, discover  # noqa: E402
 from fusion.workbench.scores import EXCLUDED_CANDIDATES, candidate_effects, score_tests  # noqa: E402
 from models.effects import all_effects, model_from_arm  # noqa: E402
 from models.simulator import simulate  # noqa: E402
-from tools.benchdoc import machine_line  # noqa: E402
+from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 SCENARIO = "renk-maneuver"
 WINDOW = 10
@@ -304,6 +304,8 @@ def main(argv=None) -> int:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text(body + "\n", encoding="utf-8")
         print(f"wrote {a.out}")
+    elif not a.quick:
+        print("wrote", write_section("bench_discover", body))
     return 0
 
 

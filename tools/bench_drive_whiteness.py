@@ -19,8 +19,8 @@ false: `diagnose` would fit it as parked) is not a driving recording and is coun
     python tools/bench_drive_whiteness.py [--seeds 20] [--daily-s 90] [--excitation-s 60]
         [--quick] [--out FILE]
 
-``--quick``: 4 seeds of each, shorter. ``--out FILE`` writes the markdown section there
-(docs/benchmarks.md is not written by this script).
+``--quick``: 4 seeds of each, shorter (docs/benchmarks.md untouched). ``--out FILE`` writes
+the markdown section there instead of into its section of docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 from fusion.configfile import load_arm  # noqa: E402
 from fusion.workbench.innovations import chair_moves, innovation_diagnosis  # noqa: E402
 from models.simulator import simulate  # noqa: E402
-from tools.benchdoc import machine_line  # noqa: E402
+from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 
 def diagnose_one(arm, scenario: str, seed: int, duration_s: float) -> dict:
@@ -131,6 +131,8 @@ def main() -> None:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text("\n".join(md) + "\n", encoding="utf-8")
         print("wrote", a.out)
+    elif not a.quick:
+        print("wrote", write_section("bench_drive_whiteness", "\n".join(md)))
 
 
 if __name__ == "__main__":
