@@ -298,6 +298,10 @@ def _print_innovations(inn) -> None:
         ct = _correlation_table(a)
         if ct is not None:
             console.print(ct)
+    if inn.compass is not None:
+        console.print("The compass's heading innovations (not in the verdict: its iron and the arm's steel are "
+                      "biases that last a heading visit, coloured by design; its mean NIS above says whether "
+                      f"their size is right): {'white' if inn.compass.white else 'coloured'}")
 
 
 def _innovations_only(arm, rec, recording: Path, config: str, report: Path | None, json_out: bool,
