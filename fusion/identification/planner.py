@@ -51,6 +51,7 @@ from fusion.startup.solve import solve_still
 from models.arm import ArmModel
 from models.arm_config import build_arm
 from models.effects import Model, model_from_arm
+from models.effects.base import JointEffect, SensorEffect
 from models.kinematics import chain_poses
 from models.motion import MotionState
 from models.rotations import DEG
@@ -60,6 +61,10 @@ from models.trajectories.planned import PlannedManeuver, planned_scenario
 from models.trajectories.scenario import Scenario, margin_limits
 
 CRITERIA = ("D", "E")
+FOCUS = ("all", "startup")
+FILE_ROUNDING = 1e-3
+"""A rate or speed may exceed its bound by this share: a maneuver file keeps 4 decimals of
+its angles (degrees) and times (seconds)."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +88,10 @@ class PlanSettings:
     min_move_s: float = 1.0
     candidates: int = 192
     criterion: str = "D"
+    focus: str = "all"
+    """The elements the criterion counts (besides leaving the gauges out): ``all``, or
+    ``startup``: those the startup calibration uses (each link accelerometer's and the IMU
+    accelerometer's sensor stage, the joints' offsets, sag, play and encoder scales)."""
     seed: int = 0
     window: int = 25
     rate_hz: float = 100.0
@@ -90,6 +99,8 @@ class PlanSettings:
     """Random poses whose shared information decides the gauges left out."""
 
     def check(self) -> None:
+        if self.focus not in FOCUS:
+            raise ValueError(f"focus must be one of {', '.join(FOCUS)}, not {self.focus[:20]!r}")
         if self.criterion not in CRITERIA:
             raise ValueError(f"criterion must be one of {', '.join(CRITERIA)}, not {self.criterion[:20]!r}")
         for name in ("duration_s", "dwell_s", "peak_rate_deg_s", "max_move_deg", "max_tool_speed_mps",
@@ -164,12 +175,12 @@ def maneuver_problems(arm: ArmModel, maneuver: PlannedManeuver, settings: PlanSe
                        f"unlock move's {st.max_move_deg:g}° (or leaves its limits)")
         T = maneuver.move_s
         rate = np.degrees(1.875 * np.abs(Q[1:] - Q[:-1]) / T[:, None])
-        for k in np.flatnonzero(rate.max(1) > st.peak_rate_deg_s * (1 + 1e-6)):
+        for k in np.flatnonzero(rate.max(1) > st.peak_rate_deg_s * (1 + FILE_ROUNDING)):
             j = int(np.argmax(rate[k]))
             out.append(f"move {k} -> {k + 1}: {arm.joint_names[j]} peaks at {rate[k, j]:.1f}°/s, over "
                        f"{st.peak_rate_deg_s:g}°/s")
         v = _tool_speed_mps(arm, Q[:-1], Q[1:], T)
-        for k in np.flatnonzero(v > st.max_tool_speed_mps * (1 + 1e-6)):
+        for k in np.flatnonzero(v > st.max_tool_speed_mps * (1 + FILE_ROUNDING)):
             out.append(f"move {k} -> {k + 1}: a link moves at {v[k]:.2f} m/s, over "
                        f"{st.max_tool_speed_mps:g} m/s (a person beside the arm)")
     return out[:limit]
@@ -202,6 +213,21 @@ def _rows_per_pose(pb: FitProblem) -> np.ndarray:
     return np.concatenate(out, axis=1)
 
 
+def startup_elements(model: Model) -> set[str]:
+    """The elements the startup calibration uses: the sensor stage of every accelerometer it
+    reads (the link accelerometers and the IMU's), the joint stage and the encoder scales."""
+    arm = model.arm
+    streams = {s.name for s in arm.link_accelerometers} | {"imu_acc"}
+    names = model.element_names()
+    out = set()
+    for e in model.effects:
+        if (isinstance(e, JointEffect) or e.name == "encoder_scale"
+                or (isinstance(e, SensorEffect) and streams & set(e.streams))):
+            sl = model.index[e.block_name]
+            out |= set(names[sl.start:sl.stop])
+    return out
+
+
 def plan_maneuver(model: Model, settings: PlanSettings | None = None, progress=None) -> Plan:
     """Choose the poses of a maneuver of ``settings.duration_s`` for ``model``'s parameters
     (module docstring). Starts at the arm's ready pose, held ``start_still_s``."""
@@ -219,7 +245,8 @@ def plan_maneuver(model: Model, settings: PlanSettings | None = None, progress=N
     H_pool = np.einsum("nri,nrj->ij", Jp, Jp) * (st.duration_s * windows_per_s / st.pool_poses)
     holds = analyse_information(H_pool, pb.sigma0, pb.names, np.ones(pb.size, bool), IdentifySettings())
     gauges = {h.element for h in holds}
-    cols = np.array([i for i, n in enumerate(pb.names) if n not in gauges])
+    wanted = set(pb.names) if st.focus == "all" else startup_elements(model)
+    cols = np.array([i for i, n in enumerate(pb.names) if n not in gauges and n in wanted])
     D = pb.sigma0[cols]
 
     def scaled_rows(Q):
