@@ -12,6 +12,7 @@ simulator plays (a :class:`~models.trajectories.paths.WaypointPath`, the same pi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -55,7 +56,8 @@ class PlannedManeuver:
         """The maneuver file's content (degrees and seconds, rounded to what a controller needs)."""
         return {"joints": list(self.joint_names),
                 "poses": [{"pose_deg": [round(float(v), 4) for v in np.degrees(q)],
-                           "move_s": round(float(self.move_s[k - 1]), 4) if k else 0.0,
+                           # rounded up: a move never faster than planned
+                           "move_s": math.ceil(float(self.move_s[k - 1]) * 1e4) / 1e4 if k else 0.0,
                            "dwell_s": round(float(self.dwell_s[k]), 4)}
                           for k, q in enumerate(self.poses_rad)]}
 
