@@ -198,3 +198,18 @@ def test_move_durations_keep_the_peak_rate(arm):
     q1[3] = np.radians(40.0)
     T = move_durations_s(st, q0, q1[None])[0]
     assert 1.875 * 40.0 / T == pytest.approx(20.0)
+
+
+def test_plan_maneuver_refuses_a_bad_option_before_planning(tmp_path: Path):
+    from typer.testing import CliRunner
+
+    from fusion.cli.main import app
+
+    r = CliRunner().invoke(app, ["plan-maneuver", "--criterion", "A-optimal" * 20])
+    assert r.exit_code == 2 and "--criterion must be one of D, E, not 'A-optimalA-optimalA-'" in r.output
+    r = CliRunner().invoke(app, ["plan-maneuver", "--out", str(tmp_path / "M.csv")])
+    assert r.exit_code == 2 and "unsupported suffix '.csv'; expected .yaml or .yml" in r.output
+    r = CliRunner().invoke(app, ["plan-maneuver", "--duration", "3"])
+    assert r.exit_code == 2
+    assert "duration_s: 3 s leaves no time for a move after the 5 s still start" in r.output
+    assert not list(tmp_path.iterdir())
