@@ -175,9 +175,11 @@ def main(argv=None) -> None:
             ratio = sigma_ratio(pred, res) if key == "planned" else np.array([np.nan])
             results[key].append((z, start, t_fit, res.iterations, ratio))
             worst = max((r["median_sigma_deg"] for r in start if r["ok_pct"] > 0), default=np.nan)
+            beyond = ", ".join(f"{r['name']} {r['z']:+.1f}" for r in rows if abs(r["z"]) > 3)
             print(f"seed {seed} {key}: {np.mean(np.abs(z) <= 3) * 100:.1f} % within 3σ, "
                   f"{int(np.sum(np.abs(z) > 5))} beyond 5σ, worst startup σ {worst:.4f}°, "
-                  f"fit {t_fit:.0f} s ({res.iterations} Jacobians)", flush=True)
+                  f"fit {t_fit:.0f} s ({res.iterations} Jacobians); beyond 3σ: {beyond or 'none'}",
+                  flush=True)
     lines = ["## The planned self-calibration maneuver against renk-maneuver (`tools/bench_maneuver.py`"
              + (" --quick" if a.quick else "") + ")", "",
              f"`plan-maneuver --duration {a.duration:g} --criterion {a.criterion}` on the shipped WMRA "

@@ -57,6 +57,7 @@ from models.motion import MotionState
 from models.rotations import DEG
 from models.sensor_models import stream_models
 from models.simulator import simulate
+from models.trajectories.paths import min_jerk_progress
 from models.trajectories.planned import PlannedManeuver, planned_scenario
 from models.trajectories.scenario import Scenario, margin_limits
 
@@ -138,7 +139,7 @@ def _tool_speed_mps(arm: ArmModel, q_from: np.ndarray, q_to: np.ndarray, move_s:
     q_to = np.atleast_2d(q_to)
     M, n = q_to.shape
     tau = np.linspace(0.0, 1.0, points)
-    s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau**2)  # the paths' quintic blend
+    s = min_jerk_progress(tau)
     q = q_from[:, None] + (q_to - q_from)[:, None] * s[None, :, None]  # (M, points, n)
     p = chain_poses(arm, q.reshape(-1, n)).p_0L_m.reshape(M, points, -1, 3)
     dp = np.linalg.norm(np.diff(p, axis=1), axis=-1).max(axis=(1, 2))  # (M,)
