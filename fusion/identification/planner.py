@@ -46,6 +46,7 @@ from fusion.identification.problem import FitProblem
 from fusion.identification.result import Identification, StreamFit
 from fusion.identification.settings import IdentifySettings
 from fusion.startup.moves import MAX_MOVE_DEG, moves_within_limits
+from fusion.startup.prior import StartupPrior
 from fusion.startup.readings import readings_from_counts
 from fusion.startup.solve import solve_still
 from models.arm import ArmModel
@@ -345,26 +346,32 @@ def _predicted(model: Model, data: FitData) -> Identification:
 
 
 def startup_sigmas(config_data: dict, result: Identification, poses: int = 64, seed: int = 0,
-                   temperature_c: float = 25.0) -> tuple[np.ndarray, np.ndarray]:
+                   temperature_c: float = 25.0, tilt_sigma_deg: float = 3.0,
+                   prior_sigma_deg: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
     """The startup after a calibration ``result`` (its config written as ``calibrate sensors
     --write`` writes it, over ``config_data``): the still solve at ``poses`` random poses
-    inside the limits (the chair level, 1 s of readings at the prior's values), per joint
-    the median σ of the ``ok`` answers (nan where none) and the share of poses it is ok."""
+    inside the limits, the chair tilted N(0, ``tilt_sigma_deg``) per axis, 1 s of readings at
+    the prior's values, the pose saved at the last shutdown ``prior_sigma_deg`` from the truth
+    as its prior (the startup benchmark's draw); per joint the median σ of the ``ok`` answers
+    (nan where none) and the share of poses it is ok."""
     cal = build_arm(config_with_estimates(config_data, result), "(predicted calibrated config)")
     corr = startup_correction(cal, temperature_c)
     model = model_from_arm(cal)
     rng = np.random.default_rng([seed, 0x57A])
     lo, hi = margin_limits(cal)
     Q = rng.uniform(lo, hi, (poses, cal.n_joints))
+    tilt = rng.normal(0.0, tilt_sigma_deg * DEG, (poses, 2))
+    saved = Q + rng.normal(0.0, prior_sigma_deg * DEG, Q.shape)
     streams = [s.name for s in cal.link_accelerometers] + (["imu_acc"] if cal.imu is not None else [])
-    phys = model.predict(MotionState.static(Q, temperature_c=temperature_c), model.x0, streams,
-                         units="physical")
+    phys = model.predict(MotionState.static(Q, tilt[:, 0], tilt[:, 1], temperature_c=temperature_c),
+                         model.x0, streams, units="physical")
     sm = stream_models(cal)
     means = {s: sm[s].to_counts(phys[s]) for s in streams}
     sig = np.full((poses, cal.n_joints), np.nan)
     for k in range(poses):
         r = readings_from_counts(cal, {s: m[k] for s, m in means.items()}, n_samples=100)
-        res = corr.controller_result(solve_still(cal, corr.readings(r), propose_unlock=False))
+        prior = StartupPrior.saved_pose(saved[k], sigma_deg=prior_sigma_deg)
+        res = corr.controller_result(solve_still(cal, corr.readings(r), prior=prior, propose_unlock=False))
         for j, je in enumerate(res.joints):
             if je.flag == "ok" and je.sigma_rad is not None:
                 sig[k, j] = je.sigma_rad
