@@ -69,7 +69,8 @@ def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None =
             "note": "the fit's sigma at the priors (identifiability analysis and consider covariance as "
                     "calibrate sensors computes them; a stream fitted worse than its noise would scale "
                     "its elements' sigma); the startup's: median sigma of its ok answers at "
-                    f"{startup_poses} random still poses on the config that fit would write, at 25 C",
+                    f"{startup_poses} random still poses on the config that fit would write, at 25 C, the "
+                    "chair tilted N(0, 3 deg), a saved pose 10 deg off as the prior",
             "elements": [{"name": n, "sigma": float(f"{s:.4g}"), "prior_sigma": float(f"{p:.4g}"),
                           "held": bool(h)}
                          for n, s, p, h in zip(ident.names, ident.sigma, ident.prior_sigma, ident.held,
