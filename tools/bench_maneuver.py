@@ -87,13 +87,43 @@ def sigma_ratio(pred, res) -> np.ndarray:
     return res.sigma[both] / pred.sigma[both]
 
 
-def figure(model, cfg, st: PlanSettings, lengths, renk_lengths, path: Path) -> list[str]:
-    """Predicted σ against the maneuver's length: planned and renk-maneuver."""
+def draw_figure(out: dict, path: Path) -> None:
+    """``out[kind] = (lengths, median σ / prior σ, worst joint's startup σ [deg])`` drawn."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter, NullFormatter, ScalarFormatter
 
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    ticks = sorted({L for Ls, _, _ in out.values() for L in Ls})
+    for kind, (Ls, med, worst) in out.items():
+        ax[0].loglog(Ls, med, "o-", label=kind)
+        ax[1].loglog(Ls, worst, "o-", label=kind)
+    ax[0].set_ylabel("median σ / prior σ, estimated elements")
+    ax[1].set_ylabel("worst joint's startup σ [deg] (25 °C)")
+    ax[1].axhline(0.1, color="grey", ls=":", label="0.1°")
+    nice = np.array([0.01, 0.02, 0.03, 0.05, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0])
+    for a, k in ((ax[0], 1), (ax[1], 2)):
+        v = [x for o in out.values() for x in o[k]] + ([0.1] if k == 2 else [])
+        a.set_yticks(nice[(nice >= 0.9 * min(v)) & (nice <= 1.1 * max(v))])
+    for a in ax:
+        a.set_xlabel("maneuver length [s]")
+        a.set_xticks(ticks)
+        a.xaxis.set_major_formatter(ScalarFormatter())
+        a.xaxis.set_minor_formatter(NullFormatter())
+        a.yaxis.set_minor_formatter(NullFormatter())
+        a.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        a.grid(True, which="both", alpha=0.3)
+        a.legend()
+    fig.suptitle("Predicted σ after the maneuver (WMRA, --effects all, the fit at the priors)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+def figure(model, cfg, st: PlanSettings, lengths, renk_lengths, path: Path) -> list[str]:
+    """Predicted σ against the maneuver's length: planned and renk-maneuver."""
     arm = model.arm
     rows = []
     out = {}
@@ -113,22 +143,7 @@ def figure(model, cfg, st: PlanSettings, lengths, renk_lengths, path: Path) -> l
             rows.append(f"| {kind} | {L:g} | {med[-1]:.3f} | {worst[-1]:.3f} |")
             print(rows[-1], flush=True)
         out[kind] = (Ls, med, worst)
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    for kind, (Ls, med, worst) in out.items():
-        ax[0].loglog(Ls, med, "o-", label=kind)
-        ax[1].loglog(Ls, worst, "o-", label=kind)
-    ax[0].set_xlabel("maneuver length [s]")
-    ax[0].set_ylabel("median σ / prior σ, estimated elements")
-    ax[1].set_xlabel("maneuver length [s]")
-    ax[1].set_ylabel("worst joint's startup σ [deg] (25 °C)")
-    ax[1].axhline(0.1, color="grey", ls=":", label="0.1°")
-    for a in ax:
-        a.grid(True, which="both", alpha=0.3)
-        a.legend()
-    fig.suptitle("Predicted σ after the maneuver (WMRA, --effects all, the fit at the priors)")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    draw_figure(out, path)
     return ["| maneuver | length [s] | median σ / prior σ (estimated elements) "
             "| worst joint startup σ [deg] |",
             "| --- | ---: | ---: | ---: |", *rows]
