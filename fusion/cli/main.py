@@ -70,6 +70,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
                "stream from the columns the map names, in the unit the config declares; rows whose time "
                "does not increase dropped, NaN kept as gaps, every change said.",
                "fusion.cli.import_cmd:register"),
+    "plan-maneuver": ("Plan the self-calibration maneuver: poses, dwells and safe moves that make the "
+                      "fit's parameters best known in the time given; the sigma each parameter and each "
+                      "joint's startup will have after it.", "fusion.cli.plan_maneuver:register"),
     "calibrate": ("Calibrate: joint angles from a still arm, or the sensors.",
                   "fusion.cli.main:register_calibrate"),
 }

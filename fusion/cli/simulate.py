@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 from typing import Annotated, Any
 
+import numpy as np
 import typer
 
 from fusion.cli.common import emit_json, fail, json_default, output_path_problem, progress_bar
@@ -31,7 +32,6 @@ from fusion.cli.options import (
     NoiseOpt,
     RealisticOpt,
     RecordingOutOpt,
-    ScenarioOpt,
     SeedOpt,
 )
 from fusion.configfile import load_arm, read_yaml
@@ -160,6 +160,7 @@ def simulate(
     effects_file: str | Path | None = None,
     noise: bool = True,
     progress=None,
+    maneuver: str | Path | None = None,
 ) -> dict[str, Any]:
     """Simulate and write ``out`` and its truth file; a JSON-ready summary of what was done.
 
@@ -173,7 +174,23 @@ def simulate(
         if why is not None:
             raise ValueError(f"--out {p}: {why}")
     arm = load_arm(config)
-    check_run_size(arm, scenario, duration_s, rate_hz)
+    if maneuver is not None:  # a planned maneuver (plan-maneuver --out): checked, then played
+        from fusion.cli.plan_maneuver import load_maneuver
+        from fusion.identification.planner import maneuver_problems
+        from models.trajectories.planned import planned_scenario
+
+        plan = load_maneuver(maneuver)
+        problems = maneuver_problems(arm, plan)
+        if problems:
+            raise ValueError(f"--maneuver {Path(maneuver).name[:60]}: not safe to play on {arm.name}: "
+                             + "; ".join(problems))
+        if duration_s is not None:
+            raise ValueError("--duration: a maneuver file sets its own length; leave --duration out")
+        duration_s = plan.duration_s
+        check_run_size(arm, "planned", duration_s, rate_hz)
+        scenario = planned_scenario(arm, plan, np.random.default_rng([int(seed), 0x5CE]))
+    else:
+        check_run_size(arm, scenario, duration_s, rate_hz)
     model = effects_model(arm, effect, effects_file)
     say = progress or (lambda _f, _m=None: None)
     share = SIMULATED_SHARE[out.suffix.lower()]
@@ -232,8 +249,13 @@ def register(app: typer.Typer) -> None:
 
     @app.command("simulate")
     def simulate_command(
-        scenario: ScenarioOpt,
         out: RecordingOutOpt,
+        scenario: Annotated[str | None, typer.Option(
+            "--scenario", "-s", help="The simulated motion: a scenario of models.trajectories (listed "
+            "below); or give --maneuver.")] = None,
+        maneuver: Annotated[Path | None, typer.Option(
+            "--maneuver", help="Play a planned maneuver (armfusion plan-maneuver --out M.yaml) instead "
+            "of a scenario; refused if it is not safe on the config's arm.")] = None,
         config: ConfigOpt = "wmra",
         duration: Annotated[float | None, typer.Option("--duration", help="Seconds (default: the "
                                                        "scenario's).")] = None,
@@ -246,10 +268,12 @@ def register(app: typer.Typer) -> None:
         json_out: JsonOpt = False,
     ) -> None:
         """Simulate a recording of the arm's sensors (raw counts, truth columns, truth file)."""
+        if (scenario is None) == (maneuver is None):
+            fail("give one of --scenario NAME or --maneuver M.yaml")
         try:
             with progress_bar("simulating", json_out) as advance:
-                summary = simulate(config, scenario, out, duration, rate, seed, effect or (), realistic,
-                                   effects_file, noise, progress=advance)
+                summary = simulate(config, scenario or "planned", out, duration, rate, seed, effect or (),
+                                   realistic, effects_file, noise, progress=advance, maneuver=maneuver)
         except (ConfigError, FileNotFoundError, ValueError) as e:
             fail(str(e))
         if json_out:

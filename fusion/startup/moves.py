@@ -20,11 +20,27 @@ from fusion.startup.settings import StartupSettings
 from models.arm import ArmModel
 from models.rotations import DEG, wrap_angle
 
+MAX_MOVE_DEG = 45.0
+"""The largest move of one joint the startup proposes (the unlock and disambiguating moves)."""
+
+
+def moves_within_limits(arm: ArmModel, q_from_rad: np.ndarray, q_to_rad: np.ndarray,
+                        max_move_deg: float = MAX_MOVE_DEG) -> np.ndarray:
+    """The checks a proposed move must pass, for moves from ``q_from_rad`` (``(n,)`` or
+    ``(M, n)``) to ``q_to_rad (M, n)``: every joint it moves ends inside the arm's limits and
+    moves by at most ``max_move_deg`` (a joint it keeps is where the arm is, whatever its
+    limits say). ``(M,)`` bool."""
+    q0 = np.asarray(q_from_rad, float)
+    q1 = np.atleast_2d(np.asarray(q_to_rad, float))
+    delta = q1 - q0
+    inside = (q1 >= arm.min_rad) & (q1 <= arm.max_rad) & (np.abs(delta) <= max_move_deg * DEG + 1e-12)
+    return np.all(inside | (delta == 0), axis=1)
+
 
 def propose_unlock_move(arm: ArmModel, result: StartupResult, readings: StillReadings,
                         settings: StartupSettings | None = None,
                         prior_q_rad: np.ndarray | None = None,
-                        max_move_deg: float = 45.0,
+                        max_move_deg: float = MAX_MOVE_DEG,
                         blind_range_deg: float = 60.0) -> UnlockMove | None:
     """The smallest move of one well-known joint that makes the blind joints readable.
 
@@ -105,7 +121,7 @@ def prior_after_move(result: StartupResult, move, arm: ArmModel,
 def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: StillReadings,
                                 settings: StartupSettings | None = None,
                                 roll_pitch: np.ndarray | None = None,
-                                max_move_deg: float = 45.0) -> DisambiguatingMove | None:
+                                max_move_deg: float = MAX_MOVE_DEG) -> DisambiguatingMove | None:
     """The smallest safe move after which every pair of rival branches predicts readings
     ``settings.separation_chi2`` apart.
 
@@ -247,8 +263,11 @@ def _best_move(arm, problem, result, base, moves, L, blind_values, st) -> Unlock
     """The first of ``moves`` (ordered by size) that keeps the arm inside its limits and
     makes the blind joints ``L`` readable at every value in ``blind_values``, or None."""
     n = arm.n_joints
-    ok_moves = [m for m in moves
-                if all(arm.min_rad[j] <= base[j] + d <= arm.max_rad[j] for j, d in m)]
+    targets = np.tile(base, (len(moves), 1))
+    for i, m in enumerate(moves):
+        for j, d in m:
+            targets[i, j] = base[j] + d
+    ok_moves = [m for m, ok in zip(moves, moves_within_limits(arm, base, targets, np.inf), strict=True) if ok]
     if not ok_moves:
         return None
     G = len(blind_values)

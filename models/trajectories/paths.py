@@ -28,6 +28,12 @@ def _blend(tau: np.ndarray):
     return s, s1, s2, S
 
 
+def min_jerk_progress(tau: np.ndarray) -> np.ndarray:
+    """How far a minimum-jerk move has gone, 0…1, at the fractions ``tau`` of its time (the
+    blend every move of a :class:`SmoothSteps` follows)."""
+    return _blend(np.clip(np.asarray(tau, float), 0.0, 1.0))[0]
+
+
 class SmoothSteps:
     """Levels joined by quintic blends: value, its first two derivatives and its integral at
     any instants (vectorised; ``searchsorted``, not a loop over steps).

@@ -1,0 +1,392 @@
+"""The planned self-calibration maneuver (``armfusion plan-maneuver``): which still poses,
+held how long and joined by which moves, make the identification's parameters best known in
+the time given, and how well they will be known after it.
+
+Nothing here moves the arm: the plan is a :class:`~models.trajectories.planned.PlannedManeuver`
+for the arm's controller (or the simulator) to play.
+
+* **Information.** A still pose held ``T`` seconds gives the fit ``T·rate/window`` window
+  means; their information is ``JᵀWJ`` per window, ``J`` the fit's own Jacobian
+  (:class:`~fusion.identification.problem.FitProblem`: the model's effects, the encoder
+  zeros and scales, the base attitude) at the priors. In prior-σ units the fit's
+  information is ``A = I + D H D`` (``D``: the prior σ).
+* **The gauges left out.** What no pose of the chair parked can tell (a sensor's mount about
+  the last joint's axis against that joint's zero, the heading, the compass's hard iron,
+  the time offsets and motion terms a still pose cannot see, …): the identifiability
+  analysis of a pool of random poses sharing the whole duration holds them; the criterion is
+  taken over the others only.
+* **Greedy, sequential.** From the current pose, :attr:`PlanSettings.candidates` random moves
+  that pass the unlock move's checks (:func:`fusion.startup.moves.moves_within_limits`:
+  inside the limits, at most 45° per joint), a peak joint rate and a tool speed for a person
+  beside the arm (:attr:`PlanSettings.max_tool_speed_mps`); each scored by its gain in the
+  criterion per second of its move and dwell: D-optimal ``log det`` (by the determinant
+  lemma, ``log det(I + w Jc A⁻¹ Jcᵀ)``) or E-optimal (the smallest eigenvalue of ``A``).
+  The best is appended until the time is spent.
+* **Predicted σ** (:func:`predict_maneuver`): the maneuver played noise-free by the simulator
+  at the priors, turned into the fit's data as a recording would be
+  (:func:`~fusion.identification.data.data_from_recording`: the moves count too), the
+  identifiability analysis and the consider covariance of the fit
+  (:func:`~fusion.identification.identify.identify`'s). The startup's σ of each joint
+  after it (:func:`startup_sigmas`): the calibrated config such a fit would write, and the
+  startup solved on it at random still poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusion.identification.calibrated_config import config_with_estimates
+from fusion.identification.correction import startup_correction
+from fusion.identification.data import FitData, data_from_recording, fit_streams
+from fusion.identification.identifiability import analyse_information
+from fusion.identification.identify import _consider_covariance
+from fusion.identification.problem import FitProblem
+from fusion.identification.result import Identification, StreamFit
+from fusion.identification.settings import IdentifySettings
+from fusion.startup.moves import MAX_MOVE_DEG, moves_within_limits
+from fusion.startup.prior import StartupPrior
+from fusion.startup.readings import readings_from_counts
+from fusion.startup.solve import solve_still
+from models.arm import ArmModel
+from models.arm_config import build_arm
+from models.effects import Model, model_from_arm
+from models.effects.base import JointEffect, SensorEffect
+from models.kinematics import chain_poses
+from models.motion import MotionState
+from models.rotations import DEG
+from models.sensor_models import stream_models
+from models.simulator import simulate
+from models.trajectories.paths import min_jerk_progress
+from models.trajectories.planned import PlannedManeuver, planned_scenario
+from models.trajectories.scenario import Scenario, margin_limits
+
+CRITERIA = ("D", "E")
+FOCUS = ("all", "startup")
+FILE_ROUNDING = 1e-3
+"""A rate or speed may exceed its bound by this share: a maneuver file keeps 4 decimals of
+its angles (degrees) and times (seconds)."""
+
+
+@dataclass(frozen=True)
+class PlanSettings:
+    """What the planner may do (units in the names)."""
+
+    duration_s: float = 60.0
+    start_still_s: float = 5.0
+    """The first pose (the ready pose) held still: the startup's still second that finds
+    the recording's joint angles, as ``renk-maneuver``'s 5 s."""
+    dwell_s: float = 2.0
+    """Each later pose held still this long."""
+    peak_rate_deg_s: float = 20.0
+    """The fastest any joint moves (a minimum-jerk move peaks at 1.875× its mean rate);
+    ``renk-maneuver``'s roll peaks at 21.8 °/s."""
+    max_move_deg: float = MAX_MOVE_DEG
+    """The largest move of one joint between two poses: the unlock move's."""
+    max_tool_speed_mps: float = 0.25
+    """The fastest any link's origin moves: 250 mm/s, ISO 10218-1's reduced speed for a
+    robot working beside a person."""
+    min_move_s: float = 1.0
+    candidates: int = 192
+    criterion: str = "D"
+    focus: str = "all"
+    """The elements the criterion counts (besides leaving the gauges out): ``all``, or
+    ``startup``: those the startup calibration uses (each link accelerometer's and the IMU
+    accelerometer's sensor stage, the joints' offsets, sag, play and encoder scales)."""
+    seed: int = 0
+    window: int = 25
+    rate_hz: float = 100.0
+    pool_poses: int = 400
+    """Random poses whose shared information decides the gauges left out."""
+
+    def check(self) -> None:
+        if self.focus not in FOCUS:
+            raise ValueError(f"focus must be one of {', '.join(FOCUS)}, not {self.focus[:20]!r}")
+        if self.criterion not in CRITERIA:
+            raise ValueError(f"criterion must be one of {', '.join(CRITERIA)}, not {self.criterion[:20]!r}")
+        for name in ("duration_s", "dwell_s", "peak_rate_deg_s", "max_move_deg", "max_tool_speed_mps",
+                     "min_move_s", "rate_hz"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, got {v!r}")
+        if self.duration_s > 3600:
+            raise ValueError(f"duration_s: plan at most 3600 s, got {self.duration_s:g}")
+        if self.duration_s < self.start_still_s + self.min_move_s + self.dwell_s:
+            raise ValueError(f"duration_s: {self.duration_s:g} s leaves no time for a move after the "
+                             f"{self.start_still_s:g} s still start; give at least "
+                             f"{self.start_still_s + self.min_move_s + self.dwell_s:g} s")
+        if not 1 <= self.candidates <= 4096 or not 10 <= self.pool_poses <= 20000:
+            raise ValueError("candidates must be in 1..4096 and pool_poses in 10..20000")
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A planned maneuver, the criterion's columns and what it holds out as gauges."""
+
+    maneuver: PlannedManeuver
+    criterion: str
+    names: tuple[str, ...]
+    gauges: tuple[str, ...]
+    """Elements the criterion leaves out: held by the identifiability analysis of the pool."""
+    candidates_scored: int
+
+
+def _tool_speed_mps(arm: ArmModel, q_from: np.ndarray, q_to: np.ndarray, move_s: np.ndarray,
+                    points: int = 17) -> np.ndarray:
+    """The fastest any link's origin moves during each minimum-jerk move ``(M,)``: positions at
+    ``points`` instants of each move, differenced."""
+    q_from = np.atleast_2d(q_from)
+    q_to = np.atleast_2d(q_to)
+    M, n = q_to.shape
+    tau = np.linspace(0.0, 1.0, points)
+    s = min_jerk_progress(tau)
+    q = q_from[:, None] + (q_to - q_from)[:, None] * s[None, :, None]  # (M, points, n)
+    p = chain_poses(arm, q.reshape(-1, n)).p_0L_m.reshape(M, points, -1, 3)
+    dp = np.linalg.norm(np.diff(p, axis=1), axis=-1).max(axis=(1, 2))  # (M,)
+    return dp / (np.asarray(move_s, float) / (points - 1))
+
+
+def move_durations_s(settings: PlanSettings, q_from: np.ndarray, q_to: np.ndarray) -> np.ndarray:
+    """Each move's duration: its largest joint at the peak rate, at least ``min_move_s``."""
+    d = np.abs(np.atleast_2d(q_to) - q_from)
+    return np.maximum(settings.min_move_s, 1.875 * d.max(axis=1) / (settings.peak_rate_deg_s * DEG))
+
+
+def maneuver_problems(arm: ArmModel, maneuver: PlannedManeuver, settings: PlanSettings | None = None,
+                      limit: int = 10) -> list[str]:
+    """What makes ``maneuver`` unsafe to play on ``arm`` (at most ``limit`` messages): a pose
+    outside the joint limits, a move larger than the unlock move's (:func:`moves_within_limits`),
+    a joint faster than ``peak_rate_deg_s`` or a link faster than ``max_tool_speed_mps``."""
+    st = settings or PlanSettings()
+    if tuple(maneuver.joint_names) != tuple(arm.joint_names):
+        return [f"the maneuver's joints {list(maneuver.joint_names)[:10]} are not the arm's "
+                f"{list(arm.joint_names)}"]
+    out: list[str] = []
+    Q = maneuver.poses_rad
+    outside = (Q < arm.min_rad - 1e-9) | (Q > arm.max_rad + 1e-9)
+    for k, j in zip(*np.nonzero(outside), strict=True):
+        out.append(f"pose {k}: {arm.joint_names[j]} at {np.degrees(Q[k, j]):.1f}° is outside its limits "
+                   f"[{np.degrees(arm.min_rad[j]):.0f}°, {np.degrees(arm.max_rad[j]):.0f}°]")
+    if len(Q) > 1:
+        ok = moves_within_limits(arm, Q[:-1], Q[1:], st.max_move_deg)
+        for k in np.flatnonzero(~ok):
+            d = np.degrees(np.abs(Q[k + 1] - Q[k]))
+            j = int(np.argmax(d))
+            out.append(f"move {k} -> {k + 1}: {arm.joint_names[j]} moves {d[j]:.1f}°, more than the "
+                       f"unlock move's {st.max_move_deg:g}° (or leaves its limits)")
+        T = maneuver.move_s
+        rate = np.degrees(1.875 * np.abs(Q[1:] - Q[:-1]) / T[:, None])
+        for k in np.flatnonzero(rate.max(1) > st.peak_rate_deg_s * (1 + FILE_ROUNDING)):
+            j = int(np.argmax(rate[k]))
+            out.append(f"move {k} -> {k + 1}: {arm.joint_names[j]} peaks at {rate[k, j]:.1f}°/s, over "
+                       f"{st.peak_rate_deg_s:g}°/s")
+        v = _tool_speed_mps(arm, Q[:-1], Q[1:], T)
+        for k in np.flatnonzero(v > st.max_tool_speed_mps * (1 + FILE_ROUNDING)):
+            out.append(f"move {k} -> {k + 1}: a link moves at {v[k]:.2f} m/s, over "
+                       f"{st.max_tool_speed_mps:g} m/s (a person beside the arm)")
+    return out[:limit]
+
+
+def _static_problem(model: Model, poses_rad: np.ndarray, settings: PlanSettings,
+                    q_ref_rad: np.ndarray) -> FitProblem:
+    """The fit's problem over still poses, one window each, the chair level (the readings are
+    not needed: only the Jacobian is)."""
+    arm = model.arm
+    sm = stream_models(arm, settings.rate_hz)
+    streams = [s for s in fit_streams(arm) if s in sm]
+    N = len(poses_rad)
+    counts = {s: np.zeros((N, np.size(sm[s].sigma_counts))) for s in streams}
+    sig = {s: np.asarray(sm[s].sigma_counts, float) / np.sqrt(settings.window) for s in streams}
+    data = FitData(MotionState.static(poses_rad, temperature_c=25.0), counts, sig,
+                   np.asarray(q_ref_rad, float), settings.window)
+    return FitProblem(model, data, streams, True, np.zeros(3), encoder_scale=True)
+
+
+def _rows_per_pose(pb: FitProblem) -> np.ndarray:
+    """The weighted Jacobian of each still pose, ``(N, rows, size)`` (one window each)."""
+    _, J = pb.jacobian(pb.x0, np.arange(pb.size))
+    N = pb.data.n
+    out, o = [], 0
+    for s in pb.streams:
+        k = pb.data.counts[s].shape[1]
+        out.append(J[o:o + N * k].reshape(N, k, -1))
+        o += N * k
+    return np.concatenate(out, axis=1)
+
+
+def startup_elements(model: Model) -> set[str]:
+    """The elements the startup calibration uses: the sensor stage of every accelerometer it
+    reads (the link accelerometers and the IMU's), the joint stage and the encoder scales."""
+    arm = model.arm
+    streams = {s.name for s in arm.link_accelerometers} | {"imu_acc"}
+    names = model.element_names()
+    out = set()
+    for e in model.effects:
+        if (isinstance(e, JointEffect) or e.name == "encoder_scale"
+                or (isinstance(e, SensorEffect) and streams & set(e.streams))):
+            sl = model.index[e.block_name]
+            out |= set(names[sl.start:sl.stop])
+    return out
+
+
+def plan_maneuver(model: Model, settings: PlanSettings | None = None, progress=None) -> Plan:
+    """Choose the poses of a maneuver of ``settings.duration_s`` for ``model``'s parameters
+    (module docstring). Starts at the arm's ready pose, held ``start_still_s``."""
+    st = settings or PlanSettings()
+    st.check()
+    arm = model.arm
+    rng = np.random.default_rng([st.seed, 0x91A])
+    lo, hi = margin_limits(arm)
+    q0 = np.clip(np.asarray(arm.ready_pose_rad, float), arm.min_rad, arm.max_rad)
+    windows_per_s = st.rate_hz / st.window
+    # the gauges: held when the whole duration is spread over a pool of random poses
+    pool = rng.uniform(lo, hi, (st.pool_poses, arm.n_joints))
+    pb = _static_problem(model, pool, st, q0)
+    Jp = _rows_per_pose(pb)
+    H_pool = np.einsum("nri,nrj->ij", Jp, Jp) * (st.duration_s * windows_per_s / st.pool_poses)
+    holds = analyse_information(H_pool, pb.sigma0, pb.names, np.ones(pb.size, bool), IdentifySettings())
+    gauges = {h.element for h in holds}
+    wanted = set(pb.names) if st.focus == "all" else startup_elements(model)
+    cols = np.array([i for i, n in enumerate(pb.names) if n not in gauges and n in wanted])
+    D = pb.sigma0[cols]
+
+    def scaled_rows(Q):
+        J = _rows_per_pose(_static_problem(model, Q, st, q0))
+        return J[:, :, cols] * D  # prior units
+
+    J0 = scaled_rows(q0[None])[0]
+    A = np.eye(len(cols)) + (J0.T @ J0) * (st.start_still_s * windows_per_s)
+    poses, dwells, moves = [q0], [st.start_still_s], []
+    t = st.start_still_s
+    scored = 0
+    while st.duration_s - t >= st.min_move_s + st.dwell_s:
+        q = poses[-1]
+        cand = np.clip(q + rng.uniform(-1, 1, (st.candidates, arm.n_joints)) * st.max_move_deg * DEG, lo, hi)
+        T = move_durations_s(st, q, cand)
+        ok = (moves_within_limits(arm, q, cand, st.max_move_deg)
+              & (_tool_speed_mps(arm, np.broadcast_to(q, cand.shape), cand, T) <= st.max_tool_speed_mps)
+              & (T + st.dwell_s <= st.duration_s - t))
+        if not ok.any():
+            break
+        cand, T = cand[ok], T[ok]
+        scored += len(cand)
+        Jc = scaled_rows(cand)  # (C, r, p)
+        w = st.dwell_s * windows_per_s
+        if st.criterion == "D":
+            Ainv = np.linalg.inv(A)
+            S = np.eye(Jc.shape[1]) + w * np.einsum("cri,ij,csj->crs", Jc, Ainv, Jc)
+            gain = np.linalg.slogdet(S)[1]
+        else:
+            lam0 = np.linalg.eigvalsh(A)[0]
+            gain = np.array([np.linalg.eigvalsh(A + w * J.T @ J)[0] - lam0 for J in Jc])
+        best = int(np.argmax(gain / (T + st.dwell_s)))
+        A = A + w * Jc[best].T @ Jc[best]
+        poses.append(cand[best])
+        moves.append(float(T[best]))
+        dwells.append(st.dwell_s)
+        t += T[best] + st.dwell_s
+        if progress is not None:
+            progress(t / st.duration_s)
+    dwells[-1] += max(0.0, st.duration_s - t)  # the time left: the last pose held longer
+    m = PlannedManeuver(tuple(arm.joint_names), np.array(poses), np.array(dwells), np.array(moves))
+    return Plan(m, st.criterion, pb.names, tuple(sorted(gauges)), scored)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """What a fit on the maneuver will know: every element's σ (the held ones at their prior
+    σ), what it will hold, the startup's σ of each joint after it."""
+
+    identification: Identification
+    """The fit's σ as :func:`identify` would report them, at the priors (``x = x0``)."""
+    joint_sigma_rad: np.ndarray
+    """Per joint: the median σ of the startup's ``ok`` answers at random still poses on the
+    calibrated config (nan where none is ok)."""
+    joint_ok_share: np.ndarray
+
+
+def predicted_identification(model: Model, maneuver: PlannedManeuver | Scenario, window: int = 25,
+                             rate_hz: float = 100.0) -> Identification:
+    """The σ a fit of ``model`` on ``maneuver`` (a plan, or any scenario) will report: the
+    maneuver simulated without noise on the priors' arm, its data and problem as the fit
+    builds them, the identifiability analysis and the consider covariance at the priors.
+    (The fit analyses again at its
+    estimate and may free a bilinear element held here; it also scales a stream whose residual
+    exceeds its noise: neither can be known before the recording.)"""
+    arm = model.arm
+    sc = (planned_scenario(arm, maneuver, np.random.default_rng(0), tilt_sigma_rad=0.0)
+          if isinstance(maneuver, PlannedManeuver) else maneuver)
+    rec, _ = simulate(arm, sc, rate_hz=rate_hz, noise=False)
+    data = data_from_recording(arm, rec, window, nodes=2, stances=True)
+    return _predicted(model, data)
+
+
+def _predicted(model: Model, data: FitData) -> Identification:
+    st = IdentifySettings(encoder_scale=True)
+    streams = [s for s in data.counts if s in fit_streams(model.arm)]
+    pb = FitProblem(model, data, streams, True, np.zeros(3), encoder_scale=True)
+    H, _, _ = pb.normal_equations(pb.x0, np.arange(pb.size))
+    holds = analyse_information(H, pb.sigma0, pb.names, np.ones(pb.size, bool), st)
+    free = np.ones(pb.size, bool)
+    for h in holds:
+        free[pb.names.index(h.element)] = False
+    C = _consider_covariance(pb, H, free)
+    sm = model.stream_models()
+    fits = tuple(StreamFit(s, sm[s].unit, data.sigma_counts[s] / np.abs(sm[s].gain),
+                           data.sigma_counts[s] / np.abs(sm[s].gain)) for s in pb.streams)
+    return Identification(
+        model=model, names=pb.names, x=pb.x0.copy(), x0=pb.x0.copy(),
+        sigma=np.sqrt(np.clip(np.diag(C), 0, None)), prior_sigma=pb.sigma0.copy(), covariance=C,
+        held=~free, holds=tuple(holds), fits=fits, chi2_red=1.0, n_samples=data.n,
+        n_residuals=int(np.count_nonzero(pb.w)), iterations=0, seconds=0.0,
+        attitude_rad=pb.x0[pb.P:pb.P + 3], q_ref_rad=data.q_ref_rad, mode="predicted",
+        notes=("predicted at the priors, before any recording",),
+        attitudes_rad=pb.x0[pb.P:].reshape(-1, 3))
+
+
+def startup_sigmas(config_data: dict, result: Identification, poses: int = 64, seed: int = 0,
+                   temperature_c: float = 25.0, tilt_sigma_deg: float = 3.0,
+                   prior_sigma_deg: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """The startup after a calibration ``result`` (its config written as ``calibrate sensors
+    --write`` writes it, over ``config_data``): the still solve at ``poses`` random poses
+    inside the limits, the chair tilted N(0, ``tilt_sigma_deg``) per axis, 1 s of readings at
+    the prior's values, the pose saved at the last shutdown ``prior_sigma_deg`` from the truth
+    as its prior (the startup benchmark's draw); per joint the median σ of the ``ok`` answers
+    (nan where none) and the share of poses it is ok."""
+    cal = build_arm(config_with_estimates(config_data, result), "(predicted calibrated config)")
+    corr = startup_correction(cal, temperature_c)
+    model = model_from_arm(cal)
+    rng = np.random.default_rng([seed, 0x57A])
+    lo, hi = margin_limits(cal)
+    Q = rng.uniform(lo, hi, (poses, cal.n_joints))
+    tilt = rng.normal(0.0, tilt_sigma_deg * DEG, (poses, 2))
+    saved = Q + rng.normal(0.0, prior_sigma_deg * DEG, Q.shape)
+    streams = [s.name for s in cal.link_accelerometers] + (["imu_acc"] if cal.imu is not None else [])
+    phys = model.predict(MotionState.static(Q, tilt[:, 0], tilt[:, 1], temperature_c=temperature_c),
+                         model.x0, streams, units="physical")
+    sm = stream_models(cal)
+    means = {s: sm[s].to_counts(phys[s]) for s in streams}
+    sig = np.full((poses, cal.n_joints), np.nan)
+    for k in range(poses):
+        r = readings_from_counts(cal, {s: m[k] for s, m in means.items()}, n_samples=100)
+        prior = StartupPrior.saved_pose(saved[k], sigma_deg=prior_sigma_deg)
+        res = corr.controller_result(solve_still(cal, corr.readings(r), prior=prior, propose_unlock=False))
+        for j, je in enumerate(res.joints):
+            if je.flag == "ok" and je.sigma_rad is not None:
+                sig[k, j] = je.sigma_rad
+    ok = np.isfinite(sig)
+    med = np.array([np.median(sig[ok[:, j], j]) if ok[:, j].any() else np.nan for j in range(cal.n_joints)])
+    return med, ok.mean(0)
+
+
+def predict_maneuver(model: Model, maneuver: PlannedManeuver | Scenario, config_data: dict, poses: int = 64,
+                     window: int = 25) -> Prediction:
+    """:func:`predicted_identification` and :func:`startup_sigmas` of ``maneuver``."""
+    ident = predicted_identification(model, maneuver, window)
+    sig, share = startup_sigmas(config_data, ident, poses)
+    return Prediction(ident, sig, share)
+
+
+__all__ = ["CRITERIA", "Plan", "PlanSettings", "Prediction", "maneuver_problems", "move_durations_s",
+           "plan_maneuver", "predict_maneuver", "predicted_identification", "startup_sigmas"]
