@@ -1,5 +1,6 @@
 """The planned self-calibration maneuver against ``renk-maneuver``: the identification and
-the startup after each, on several realistic arms. Writes its markdown section to ``--out``.
+the startup after each, on several realistic arms. Writes its section of docs/benchmarks.md
+(``--out FILE``: to that file instead; ``--quick``: neither unless ``--out``).
 
     python tools/bench_maneuver.py [--seeds 10] [--duration 60] [--renk-duration 300]
         [--poses 200] [--out FILE] [--figure docs/img/maneuver_sigma.png] [--quick]
@@ -244,6 +245,8 @@ def main(argv=None) -> None:
     print(md)
     if a.out is not None:
         print(f"\nwritten to {write_section('bench_maneuver', md, a.out)}")
+    elif not a.quick:
+        print(f"\nwritten to {write_section('bench_maneuver', md)}")
 
 
 if __name__ == "__main__":
