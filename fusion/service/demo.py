@@ -208,12 +208,17 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
     inside = np.abs(err_deg) <= 3 * sig_deg
     within = {n: float(np.mean(inside[:, k])) for k, n in enumerate(names)}
     seen = {n: dict(Counter(flags[:, k].tolist()).most_common()) for k, n in enumerate(names)}
-    heading_rms = None
+    heading_rms = heading_within = None
+    heading_status: dict[str, float] = {}
     if w.headings:
         th = np.array([h.t_s for _, h in w.headings])
         yaw = np.array([h.heading_rad for _, h in w.headings])
         yaw_true = truth_at(tb, th, angles=True)[:, 2]
-        heading_rms = float(np.degrees(np.sqrt(np.mean(wrap_angle(yaw - yaw_true) ** 2))))
+        yaw_err = np.abs(wrap_angle(yaw - yaw_true))
+        heading_rms = float(np.degrees(np.sqrt(np.mean(yaw_err**2))))
+        heading_within = float(np.mean(yaw_err <= 3 * np.array([h.heading_sigma_rad for _, h in w.headings])))
+        heading_status = {s: n / len(w.headings) for s, n in
+                          Counter(h.heading_status for _, h in w.headings).most_common()}
     drv, srv, rec = live["drivers"], live["serve"], live["record"]
     epoch = drv.get("epoch_monotonic_s")
     latency = None
@@ -239,7 +244,8 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
                     "joints": startup},
         "tracking": {"t_start_s": float(t[0]), "t_end_s": float(t[-1]), "estimates": int(len(t)),
                      "rms_error_deg": rms, "max_error_deg": worst, "within_3_sigma": within,
-                     "heading_rms_deg": heading_rms},
+                     "heading_rms_deg": heading_rms, "heading_within_3_sigma": heading_within,
+                     "heading_status": heading_status},
         "flags_seen": seen,
         "samples": {"published": published, "received_by_serve": int(srv.get("samples", 0)),
                     "recorded": int(sum(rec.get("samples", {}).values())), "dropped": dropped,

@@ -15,6 +15,15 @@ from fusion.tracking.tracker import truth_at
 from models.rotations import wrap_angle
 
 
+def heading_detail(tr: dict) -> str:
+    """The heading's share within 3 sigma and its statuses (``compass_fused``…) over the run."""
+    within, status = tr.get("heading_within_3_sigma"), tr.get("heading_status") or {}
+    if within is None:
+        return ""
+    shares = ", ".join(f"{k.replace('_', ' ')} {100 * v:.0f} %" for k, v in status.items())
+    return f", within 3σ {100 * within:.0f} %" + (f" ({shares})" if shares else "")
+
+
 def settled_latency(lat: dict) -> str:
     if "p99_after_settle_ms" not in lat:
         return ""
@@ -126,6 +135,8 @@ def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladd
         f"<p>The fusion node used {m['serve_cpu_s']:.0f} CPU-s in {m['serve_wall_s']:.0f} s of wall time; "
         f"load average {m['load_average_1min']:.1f} on {m['cpus']} CPUs. With too little CPU the fusion "
         "node falls behind real time: the latency grows, nothing is lost.</p>")
+    heading_html = (("—" if tr["heading_rms_deg"] is None else f"{tr['heading_rms_deg']:.2f}°")
+                    + esc(heading_detail(tr)))
     doc_html = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion demo</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}}
 table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}
@@ -140,7 +151,7 @@ separate processes over Zenoh on 127.0.0.1.</p>
 <table><tr><th>joint</th><th>startup error [deg]</th><th>startup σ [deg]</th><th>startup flag</th>
 <th>tracking RMS [deg]</th><th>max [deg]</th><th>within 3σ</th><th>flags seen (estimates)</th></tr>
 {rows}</table>
-<p>Heading RMS error: {'—' if tr['heading_rms_deg'] is None else f"{tr['heading_rms_deg']:.2f}°"}.
+<p>Heading RMS error: {heading_html}.
 {tr['estimates']} joint states from t = {tr['t_start_s']:.2f} to {tr['t_end_s']:.2f} s.</p>
 <p>Samples: {s['published']} published, {s['received_by_serve']} received by the fusion node, {s['recorded']}
 recorded; dropped: {esc(', '.join(f'{k} {v}' for k, v in s['dropped'].items()) or 'none')}.
@@ -177,7 +188,8 @@ def summary_table(doc: dict[str, Any], ev: dict[str, Any]):
     s = ev["samples"]
     lat = ev["latency"]
     lines = [
-        "heading RMS error: " + ("—" if tr["heading_rms_deg"] is None else f"{tr['heading_rms_deg']:.2f}°"),
+        "heading RMS error: " + ("—" if tr["heading_rms_deg"] is None else f"{tr['heading_rms_deg']:.2f}°")
+        + heading_detail(tr),
         f"samples: {s['published']} published by the drivers, {s['received_by_serve']} received by the "
         f"fusion node, {s['recorded']} recorded; dropped: "
         + (", ".join(f"{k} {v}" for k, v in s["dropped"].items()) or "none"),

@@ -46,6 +46,10 @@ def test_demo_end_to_end(tmp_path):
     within = doc["tracking"]["within_3_sigma"]
     assert min(within.values()) >= 0.95, within
     assert doc["tracking"]["heading_rms_deg"] is not None
+    # the heading's statuses, as the feed published them, share the run between them
+    statuses = doc["tracking"]["heading_status"]
+    assert set(statuses) <= {"compass_fused", "gyro_only", "disturbed", "calibrating"}
+    assert abs(sum(statuses.values()) - 1.0) < 1e-9 and 0.0 <= doc["tracking"]["heading_within_3_sigma"] <= 1.0
     s = doc["samples"]
     assert s["published"] > 5000
     assert s["published"] == s["received_by_serve"] == s["recorded"], s
