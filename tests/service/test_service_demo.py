@@ -49,7 +49,8 @@ def test_demo_end_to_end(tmp_path):
     # the heading's statuses, as the feed published them, share the run between them
     statuses = doc["tracking"]["heading_status"]
     assert set(statuses) <= {"compass_fused", "gyro_only", "disturbed", "calibrating"}
-    assert abs(sum(statuses.values()) - 1.0) < 1e-9 and 0.0 <= doc["tracking"]["heading_within_3_sigma"] <= 1.0
+    assert abs(sum(statuses.values()) - 1.0) < 1e-9
+    assert 0.0 <= doc["tracking"]["heading_within_3_sigma"] <= 1.0
     s = doc["samples"]
     assert s["published"] > 5000
     assert s["published"] == s["received_by_serve"] == s["recorded"], s
