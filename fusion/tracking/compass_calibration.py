@@ -88,6 +88,7 @@ class IronEstimator:
         self.theta0[I_H], self.theta0[I_V] = H_ut, V_ut
         self.info0 = np.diag(1.0 / s0**2)
         self.theta = self.theta0.copy()
+        self._M = None
         self.P = np.diag(s0**2)
         nb = self.n_bins
         self.w = np.zeros(nb)            # each bin's weight (independent readings it counts as)
@@ -108,9 +109,15 @@ class IronEstimator:
     def corrected(self, m_ut: np.ndarray, b_arm_ut: np.ndarray | None = None) -> np.ndarray:
         """The reading with the estimated residual iron (and the arm's field) undone, µT,
         compass axes: ``M m - c - b_arm``."""
-        th = self.theta
-        out = soft_matrix(th[SLICE_SOFT]) @ m_ut - th[SLICE_HARD]
+        out = self.M @ m_ut - self.theta[SLICE_HARD]
         return out if b_arm_ut is None else out - b_arm_ut
+
+    @property
+    def M(self) -> np.ndarray:
+        """``I - S(e)`` at the present estimate (made once per estimate)."""
+        if self._M is None:
+            self._M = soft_matrix(self.theta[SLICE_SOFT])
+        return self._M
 
     def add(self, t_s: float, m_ut: np.ndarray, T: np.ndarray, noise_var_ut2: float,
             b_arm_ut: np.ndarray | None = None, disturbed: bool = False) -> bool:
@@ -198,7 +205,7 @@ class IronEstimator:
                 break
         r, J = self._residuals(th, k)
         A = self.info0 + J.T @ (W[:, None] * J)
-        self.theta = th
+        self.theta, self._M = th, None
         P = np.linalg.inv(A)
         # readings that scatter about the circle more than their noise says (a field that is
         # not Earth's plus a constant iron: disturbances, a tilt gone wrong) widen the
@@ -252,7 +259,7 @@ class IronEstimator:
             raise ValueError(f"compass calibration: a saved estimate needs theta ({N_PARAMS}) and "
                              f"P ({N_PARAMS}x{N_PARAMS}), finite")
         P = 0.5 * (P + P.T)
-        self.theta0, self.theta = th.copy(), th.copy()
+        self.theta0, self.theta, self._M = th.copy(), th.copy(), None
         self.P = P
         self.info0 = np.linalg.inv(P + 1e-12 * np.eye(N_PARAMS))
         self.readings = int(snap.get("readings", 0))

@@ -326,7 +326,7 @@ class Tracker:
             Q = self.process.Q(dt, w is not None, self.still.still)
             if w is not None:
                 x, L = ukf._x, self.layout
-                Q = self.process.turning(Q, w - x[L.bias], up_from_tilt(x[L.roll], x[L.pitch]), dt, L.yaw)
+                Q = self.process.turning(Q, w - x[L.bias], float(x[L.roll]), float(x[L.pitch]), dt, L.yaw)
             ukf.predict(self.process.fx_tangent, Q, dt=dt, w=w)
             # the attitude is now the propagated central point's plus a tangent vector
             anchor = ukf._sigmas[0, self._att_idx].copy() if ukf._sigmas is not None else None

@@ -16,7 +16,7 @@ from fusion.tracking.tracker_kernels import (
     process_points,
     process_points_tangent,
 )
-from models.rotations import DEG
+from models.rotations import DEG, up_from_sines
 
 
 def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray, heading_floor_var=0.0) -> np.ndarray:
@@ -125,17 +125,20 @@ class ProcessModel:
         return fold_attitude(np.ascontiguousarray(x, dtype=float),
                              np.ascontiguousarray(anchor_rpy, dtype=float), L.roll, L.yaw)
 
-    def turning(self, Q: np.ndarray, w_B: np.ndarray, up_B: np.ndarray, dt: float, yaw_index: int
-                ) -> np.ndarray:
+    def turning(self, Q: np.ndarray, w_B: np.ndarray, roll_rad: float, pitch_rad: float, dt: float,
+                yaw_index: int) -> np.ndarray:
         """``Q`` with the heading's share of the gyro's scale error while the base turns at
-        ``w_B`` (rad/s, base axes; each axis's rate counts by its share of the vertical
-        ``up_B``: :attr:`TrackerSettings.gyro_scale_correlation_s`); ``Q`` itself where the
-        scale is exact."""
+        ``w_B`` (rad/s, base axes; each axis's rate counts by its share of the vertical at
+        the tilt ``roll_rad``, ``pitch_rad``: :attr:`TrackerSettings.gyro_scale_correlation_s`);
+        ``Q`` itself where the scale is exact or the base does not turn."""
         s = self.heading_scale_sigma
         if s <= 0.0:
             return Q
-        wx, wy, wz = (float(v) for v in w_B)
-        ux, uy, uz = (float(v) for v in up_B)
+        wx, wy, wz = w_B.tolist()
+        if wx * wx + wy * wy + wz * wz < 1e-8:  # below 0.006 deg/s: nothing to add
+            return Q
+        sr, cr, sp, cp = math.sin(roll_rad), math.cos(roll_rad), math.sin(pitch_rad), math.cos(pitch_rad)
+        ux, uy, uz = up_from_sines(sr, cr, sp, cp)
         rate2 = (ux * wx) ** 2 + (uy * wy) ** 2 + (uz * wz) ** 2
         add = s * s * rate2 * dt * self.settings.gyro_scale_correlation_s
         if add < 1e-16:
