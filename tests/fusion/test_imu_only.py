@@ -65,8 +65,11 @@ def test_the_real_broad_slice_goes_through_import_and_the_imu_only_track(tmp_pat
     assert doc["rejections"]["imu_acc"] < 0.05 * doc["steps"]
     fin = doc["final"]
     assert fin["joint_names"] == [] and fin["t_s"] == pytest.approx((n - 1) / rate)
-    for k in ("roll", "pitch", "heading"):
+    for k in ("roll", "pitch"):
         assert np.isfinite(fin[f"{k}_rad"]) and 0.0 < fin[f"{k}_sigma_rad"] < np.radians(5.0), k
+    # the heading's sigma keeps the config's own doubt about the compass (2 µT of iron against
+    # about 15 µT of horizontal field: some 8 deg at any one heading, no averaging removes it)
+    assert np.isfinite(fin["heading_rad"]) and np.radians(3.0) < fin["heading_sigma_rad"] < np.radians(15.0)
     # the last attitude against the optical reference (ENU: world x east; armfusion's x is
     # magnetic north, so its world is the reference's turned by -90 deg about up)
     w, x, y, z = q_end
