@@ -60,6 +60,7 @@ from fusion.tracking.settings import (
     StateLayout,
     TrackerSettings,
 )
+from fusion.tracking.alarm import ModelChangeAlarm
 from fusion.tracking.slips import SlipDetector
 from fusion.tracking.snapshot import restore_into, snapshot_of
 from fusion.tracking.ukf import BatchedUKF, SigmaPoints
@@ -186,6 +187,7 @@ class Tracker:
         self.health = SensorHealth(self.sensor_names, len(self.accel_streams), st)
         self.slips = SlipDetector(st, L, self.sensor_names, len(self.link_names), len(self.accel_streams),
                                   self._sees, t_s)
+        self.alarm = ModelChangeAlarm(self.link_names, MAG if self._has_imu else None, t_s)
         self.observability.reset()
         if prior_q_rad is None:  # no saved pose: an unread joint may be anywhere in its limits
             unread = ~read_by_startup(startup) & ~self.ambiguity_.joints
@@ -365,6 +367,8 @@ class Tracker:
         still = self.still.still and acc is not None and st.motion_compensation
         sel, counts, f, (key, imu_pos, full, _), var_a, z, var = ms.stack(acc, frame, still, mag is not None)
         k, m = len(counts), len(z)
+        if k and self.alarm.active:  # a changed sensor is down-weighted until recalibrated
+            self.alarm.widen(sel, var)
         if mag is not None:
             m_count, m_B, extra_var = mag
             x = ukf._x
@@ -402,6 +406,10 @@ class Tracker:
                                                        None if set_off else gate_l, ms.rows, self._reacquire)
             if u is not None:
                 self.slips.listen(t, u, nu, Su, calm and not set_off, self._reacquire)
+                nl = len(self.link_names)
+                if type(u) is slice and k >= nl:  # every link accelerometer spoke
+                    self.alarm.listen(t, nu[:nl], Su[:nl], inn.z_pred[:3 * nl].reshape(nl, 3),
+                                      calm and not set_off)
             key = (key, accept[:k].tobytes())
             if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
                 self._obs_used_key, self._obs_t = key, t
@@ -416,6 +424,7 @@ class Tracker:
             self.health.rejecting[mi] = not use
             self.health.counts[mi, C_USED if use else C_REJECTED] += m_count
             accept[-1] = use
+            self.alarm.compass(t, check.disturbed, check.magnitude_error_ut)
             mask = ms.heading_mask(m)
         ukf.correct(inn, accept, self.observability.hold, mask)
 
