@@ -34,20 +34,30 @@ from models.rotations import DEG
 
 BLOCK_S = 0.5
 """Innovations are averaged over blocks this long (s) before the test."""
-TAU_S = 6.0
+TAU_S = 3.0
 """The test's exponential average of block means (s)."""
 THRESHOLD_SIGMA = 6.0
 """The average's size against its noise (white innovations) that counts as a shift."""
-FLOOR_G = 0.012
+FLOOR_G = 0.004
 """And against this floor (g): what the model leaves in ordinary use, below any alarm."""
-HOLD_S = 8.0
+HOLD_S = 3.0
 """A shift must hold this long (s) to raise an alarm."""
 WINDOW_S = 60.0
 """The naming fit uses at most this much of the shift's history (s)."""
-HARD_IRON_AFTER_S = 60.0
+ALONG_RATIO = 0.12
+"""A shift whose RMS along the predicted force exceeds this fraction of its RMS across it is
+a bias (see :func:`name_shift`)."""
+ALONG_SIGMA = 4.0
+"""And exceeds this many of the blocks' noise sigmas."""
+QUIET_S = 60.0
+"""After an accelerometer's alarm, the others' tests start again (s): the filter, moving
+joints to follow the changed sensor, shifts the sensors that share them for a while."""
+HARD_IRON_AFTER_S = 20.0
 """A compass disturbed this long without a break (s) has gained hard iron."""
 
 EFFECTS = ("mount_rotation", "bias_jump", "hard_iron")
+UNITS = {"mount_rotation": "deg", "bias_jump": "g", "hard_iron": "uT"}
+"""Each effect's size unit."""
 
 
 @dataclass(frozen=True)
@@ -64,6 +74,11 @@ class Alarm:
     since_s: float
     raised_s: float
 
+    def line(self) -> str:
+        """For a person: ``acc3 mount_rotation 2.10 ± 0.31 deg since 120.5 s``."""
+        return (f"{self.sensor} {self.effect} {self.size:.3g} ± {self.sigma:.2g} {self.unit} "
+                f"since {self.since_s:.1f} s")
+
     def as_dict(self) -> dict:
         return {"sensor": self.sensor, "effect": self.effect, "size": round(self.size, 6),
                 "sigma": round(self.sigma, 6), "unit": self.unit, "since_s": self.since_s,
@@ -77,34 +92,54 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], 1)
 
 
+def onset(nu: np.ndarray) -> int:
+    """Where a lasting shift began in the block means ``nu (N, 3)`` (oldest first): the
+    start ``k`` whose later blocks' mean, times their count, is largest (a shift from
+    then on against none before: the change point of a step in white noise)."""
+    tail = np.cumsum(nu[::-1], axis=0)[::-1]  # sum of blocks k..N-1
+    n = np.arange(len(nu), 0, -1)
+    score = np.square(tail).sum(1) / n
+    return int(np.argmax(score[: max(len(nu) - 2, 1)]))
+
+
 def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> tuple[str, float, float]:
     """Which effect explains block-mean innovations ``nu_g (N, 3)`` seen with predicted
     specific forces ``g_pred (N, 3)`` (both g, sensor axes; ``var_g2 (N,)`` each block's
-    noise variance per axis): ``(effect, size, sigma)``; a bias in g, a rotation in deg."""
+    noise variance per axis): ``(effect, size, sigma)``; a bias in g, a rotation in deg.
+
+    A turned board reads gravity's full size, only in another direction: its innovation
+    lies across the predicted force (and the filter, moving joints, can only turn the
+    prediction, never change its size). A bias changes the size too: it shows along the
+    predicted force. The innovation's RMS along the force against ``ALONG_RATIO`` x its
+    RMS across (and ``ALONG_SIGMA`` x the blocks' noise) tells them apart."""
     N = len(nu_g)
-    w = 1.0 / var_g2
-    # bias: nu = b
-    b = (w[:, None] * nu_g).sum(0) / w.sum()
-    rss_b = float((w * np.square(nu_g - b).sum(1)).sum())
-    # mount: nu = [g]x dtheta  (a sensor turned by -dtheta sees f + f x (-dtheta)... as a
-    # small rotation either way; the size is what is reported)
+    # one weight for all blocks: a sensor's variance grows once it disagrees (its gate),
+    # which would weigh the blocks before the change over those after it
+    w = np.full(N, 1.0 / float(np.mean(var_g2)))
+    u = g_pred / np.linalg.norm(g_pred, axis=1, keepdims=True)
+    along = (nu_g * u).sum(1)
+    across = nu_g - along[:, None] * u
+    rms_along = math.sqrt(float((along**2).mean()))
+    rms_across = math.sqrt(float(np.square(across).sum(1).mean()))
+    sd = math.sqrt(float(var_g2.mean()))
+    dof = max(3 * N - 3, 1)
+    if rms_along > max(ALONG_RATIO * rms_across, ALONG_SIGMA * sd):
+        b = (w[:, None] * nu_g).sum(0) / w.sum()
+        rss_b = float((w * np.square(nu_g - b).sum(1)).sum())
+        s2 = max(rss_b / dof, 1.0)
+        return "bias_jump", float(np.linalg.norm(b)), math.sqrt(s2 / w.sum())
+    # nu = [g]x dtheta: the rotation that turns the prediction onto the reading
     H = _skew(g_pred)  # (N, 3, 3)
     A = np.einsum("n,nji,njk->ik", w, H, H) + 1e-9 * np.eye(3)
     y = np.einsum("n,nji,nj->i", w, H, nu_g)
     th = np.linalg.solve(A, y)
     rss_m = float((w * np.square(nu_g - H @ th).sum(1)).sum())
-    # sigma from the fit's residual scatter (blocks are not white: inflate by the
-    # residual's own variance factor when it exceeds the noise's)
-    dof = max(3 * N - 3, 1)
-    if rss_m <= rss_b * 1.05:
-        s2 = max(rss_m / dof, 1.0)
-        cov = s2 * np.linalg.inv(A)
-        size = float(np.linalg.norm(th))
-        u = th / max(size, 1e-12)
-        return "mount_rotation", size / DEG, math.sqrt(max(float(u @ cov @ u), 0.0)) / DEG
-    s2 = max(rss_b / dof, 1.0)
-    size = float(np.linalg.norm(b))
-    return "bias_jump", size, math.sqrt(s2 / w.sum())
+    # sigma from the fit's residual scatter (the blocks are not white: the residual's own
+    # variance factor, when it exceeds the noise's)
+    cov = max(rss_m / dof, 1.0) * np.linalg.inv(A)
+    size = float(np.linalg.norm(th))
+    e = th / max(size, 1e-12)
+    return "mount_rotation", size / DEG, math.sqrt(max(float(e @ cov @ e), 0.0)) / DEG
 
 
 class ModelChangeAlarm:
@@ -121,6 +156,7 @@ class ModelChangeAlarm:
         self._ema = np.zeros((n, 3))
         self._ema_t = np.full(n, np.nan)
         self._over_since = np.full(n, np.nan)
+        self._quiet_until = -np.inf
         cap = int(WINDOW_S / BLOCK_S) + 1
         self._hist = np.zeros((n, cap, 7))  # per block: t, nu (3), g (3)
         self._hist_var = np.zeros((n, cap))
@@ -134,15 +170,28 @@ class ModelChangeAlarm:
         """Per link accelerometer: the variance (g², per axis) added to its readings."""
 
     # -- the accelerometers -------------------------------------------------------------
-    def listen(self, t: float, nu: np.ndarray, Su: np.ndarray, z_pred: np.ndarray, calm: bool) -> None:
-        """Every link accelerometer's innovation ``nu (n, 3)`` (g), covariances ``Su (n, 3, 3)``
-        and predicted readings ``z_pred (n, 3)`` at ``t``; only while ``calm`` (the base as
-        modelled) are they counted."""
+    def listen(self, t: float, u, nu: np.ndarray, Su: np.ndarray, z_pred: np.ndarray, rows: np.ndarray,
+               sel: np.ndarray, calm: bool) -> None:
+        """The usable accelerometers ``u`` (a slice of ``sel``, every one in order, or sensor
+        indices) gave innovations ``nu (k, 3)`` (g) with covariances ``Su``; ``z_pred`` the
+        update's predictions (``rows``: each accelerometer's three, by its place in ``sel``).
+        Only while ``calm`` (the base as modelled) are they counted; the link accelerometers
+        (the first ``len(names)``) only."""
+        nl = len(self.names)
         if calm:
-            self._sum_nu += nu
-            self._sum_g += z_pred
-            self._sum_var += np.trace(Su, axis1=1, axis2=2) / 3.0
-            self._n += 1
+            if type(u) is slice:
+                k = min(nl, len(nu))
+                idx = slice(0, k)
+                zp = z_pred[:3 * k].reshape(k, 3)
+            else:
+                keep = u < nl
+                idx = u[keep]
+                nu, Su = nu[keep], Su[keep]
+                zp = z_pred[rows[np.searchsorted(sel, idx)]]
+            self._sum_nu[idx] += nu[:nl] if type(u) is slice else nu
+            self._sum_g[idx] += zp
+            self._sum_var[idx] += np.trace(Su[:nl] if type(u) is slice else Su, axis1=1, axis2=2) / 3.0
+            self._n[idx] += 1
         if t - self._block_t >= BLOCK_S:
             if self._n.any():
                 self._block(t)
@@ -166,6 +215,9 @@ class ModelChangeAlarm:
         sd = np.sqrt(var * a / (2.0 - a))
         over = np.linalg.norm(self._ema[have], axis=1) > np.maximum(THRESHOLD_SIGMA * sd, FLOOR_G)
         cap = self._hist.shape[1]
+        ratio = np.zeros(len(self.names))
+        ratio[have] = np.linalg.norm(self._ema[have], axis=1) / np.maximum(THRESHOLD_SIGMA * sd, FLOOR_G)
+        quiet = t < self._quiet_until
         for j, s in enumerate(have.tolist()):
             row = self._hist_n[s] % cap
             self._hist[s, row, 0] = t
@@ -173,24 +225,30 @@ class ModelChangeAlarm:
             self._hist[s, row, 4:7] = g[j]
             self._hist_var[s, row] = var[j]
             self._hist_n[s] += 1
-            name = self.names[s]
-            if not over[j]:
+            if not over[j] or quiet or self.names[s] in self.active:
                 self._over_since[s] = np.nan
-                continue
-            if np.isnan(self._over_since[s]):
+            elif np.isnan(self._over_since[s]):
                 self._over_since[s] = t
-            if name not in self.active and t - self._over_since[s] >= HOLD_S:
-                self._raise_accel(s, t)
+        held = np.flatnonzero(t - self._over_since >= HOLD_S)  # (nan compares False)
+        if len(held):
+            # the culprit: the first sensor to shift (the others follow as the filter moves
+            # the joints they share), the largest shift among those that shifted together
+            on = np.flatnonzero(~np.isnan(self._over_since))
+            first = self._over_since[on].min()
+            tied = on[self._over_since[on] <= first + BLOCK_S]
+            self._raise_accel(int(tied[np.argmax(ratio[tied])]), t)
+            self._over_since[:] = np.nan
+            self._quiet_until = t + QUIET_S
 
     def _raise_accel(self, s: int, t: float) -> None:
-        since = float(self._over_since[s]) - TAU_S  # the average takes about tau to cross
         m = min(int(self._hist_n[s]), self._hist.shape[1])
-        h, v = self._hist[s, :m], self._hist_var[s, :m]
-        keep = h[:, 0] >= since
-        if keep.sum() < 4:
-            keep[:] = True
-        effect, size, sigma = name_shift(h[keep, 1:4], h[keep, 4:7], v[keep])
-        alarm = Alarm(self.names[s], effect, size, sigma, "deg" if effect == "mount_rotation" else "g",
+        order = np.argsort(self._hist[s, :m, 0])
+        h, v = self._hist[s, order], self._hist_var[s, order]
+        k = onset(h[:, 1:4])
+        since = float(h[k, 0]) - BLOCK_S  # the block's first sample
+        h, v = h[k:], v[k:]
+        effect, size, sigma = name_shift(h[:, 1:4], h[:, 4:7], v)
+        alarm = Alarm(self.names[s], effect, size, sigma, UNITS[effect],
                       round(since, 3), round(t, 3))
         self.active[alarm.sensor] = alarm
         self.raised.append(alarm)
@@ -221,7 +279,7 @@ class ModelChangeAlarm:
             self._mag_err = self._mag_err[::2]
         if self.mag_name not in self.active and t - self._mag_since >= HARD_IRON_AFTER_S:
             e = np.abs(np.asarray(self._mag_err))
-            alarm = Alarm(self.mag_name, "hard_iron", float(np.median(e)), float(np.std(e)), "uT",
+            alarm = Alarm(self.mag_name, "hard_iron", float(np.median(e)), float(np.std(e)), UNITS["hard_iron"],
                           round(self._mag_since, 3), round(t, 3))
             self.active[self.mag_name] = alarm
             self.raised.append(alarm)

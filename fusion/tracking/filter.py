@@ -406,10 +406,7 @@ class Tracker:
                                                        None if set_off else gate_l, ms.rows, self._reacquire)
             if u is not None:
                 self.slips.listen(t, u, nu, Su, calm and not set_off, self._reacquire)
-                nl = len(self.link_names)
-                if type(u) is slice and k >= nl:  # every link accelerometer spoke
-                    self.alarm.listen(t, nu[:nl], Su[:nl], inn.z_pred[:3 * nl].reshape(nl, 3),
-                                      calm and not set_off)
+                self.alarm.listen(t, u, nu, Su, inn.z_pred, ms.rows, sel, calm and not set_off)
             key = (key, accept[:k].tobytes())
             if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
                 self._obs_used_key, self._obs_t = key, t
