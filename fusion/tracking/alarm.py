@@ -6,21 +6,28 @@ joint angles for every pose; a magnetometer that gained hard iron reads off Eart
 (the compass's ``disturbed``) and never recovers. :class:`ModelChangeAlarm` watches:
 
 - per link accelerometer, the innovations (g, sensor axes) and the predicted specific
-  force, averaged in blocks of ``BLOCK_S``; an exponential average of the block means over
-  ``TAU_S`` is tested against ``max(THRESHOLD_SIGMA`` x its noise, ``FLOOR_G)``; a test
-  that holds for ``HOLD_S`` raises an alarm. The blocks since the shift began name it: a
-  constant shift ``b`` (``bias_jump``, size in g) against a shift ``[g]x dtheta`` that
-  follows gravity in the sensor's axes (``mount_rotation``, size in degrees), the model
-  with the smaller residual winning (a tie, when gravity has not moved in the sensor's
-  axes, goes to the mount: it is the commoner accident);
-- the compass: disturbed for ``HARD_IRON_AFTER_S`` without a break while the chair is
-  in use (``hard_iron``, size: the field magnitude's error, µT).
+  force, averaged in blocks of ``BLOCK_S`` while the base behaves as modelled; an
+  exponential average of the block means over ``TAU_S`` is tested against
+  ``max(THRESHOLD_SIGMA`` x its noise, ``FLOOR_G``, ``UNMODELLED_FACTOR`` x the config's
+  unmodelled error); a test that holds for ``HOLD_S`` raises one alarm, on the sensor that
+  shifted first (the filter, moving joints to follow it, shifts the sensors that share
+  them: their tests start again ``QUIET_S`` later). The change's onset is the change point
+  of the sensor's block means (:func:`onset`); the blocks since then name it
+  (:func:`name_shift`): a turned board reads gravity's full size in another direction, so
+  its innovation lies across the predicted force (``mount_rotation``, the rotation
+  ``dtheta`` of ``nu = [g]x dtheta`` fitted, in degrees); a bias changes the reading's size
+  too, so it shows along the force (``bias_jump``, the mean shift, in g). A bias across
+  gravity while the pose does not change looks like a mount: the arm's motion tells them
+  apart;
+- the compass: disturbed (off Earth's field as estimated) for ``HARD_IRON_AFTER_S`` without
+  a break (``hard_iron``, size: the median of the field magnitude's error, µT, its sigma
+  their spread).
 
 Each alarm is an :class:`Alarm` (sensor, effect, size with sigma, when it began, when it
 was raised). An alarmed accelerometer is down-weighted until :meth:`ModelChangeAlarm.clear`
-(recalibrated): its variance per axis is widened by the change's size squared (in g², a
-rotation's through ``g x sin``), :meth:`ModelChangeAlarm.widen`. A disturbed compass is
-already not fused (the compass's own verdict).
+(recalibrated): the variance of its readings per axis is widened by twice the change's
+size squared (g²; a rotation's as ``size x g``), :meth:`ModelChangeAlarm.widen`. A
+disturbed compass is already not fused (the compass's own verdict).
 """
 
 from __future__ import annotations
@@ -40,6 +47,8 @@ THRESHOLD_SIGMA = 6.0
 """The average's size against its noise (white innovations) that counts as a shift."""
 FLOOR_G = 0.004
 """And against this floor (g): what the model leaves in ordinary use, below any alarm."""
+UNMODELLED_FACTOR = 2.0
+"""Or against this many times the config's unmodelled error (``accel_unmodelled_g``)."""
 HOLD_S = 3.0
 """A shift must hold this long (s) to raise an alarm."""
 WINDOW_S = 60.0
@@ -145,8 +154,14 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> tupl
 class ModelChangeAlarm:
     """The alarm over the link accelerometers ``names`` and the compass (``mag_name``)."""
 
-    def __init__(self, names: tuple[str, ...], mag_name: str | None, t_s: float):
+    def __init__(self, names: tuple[str, ...], mag_name: str | None, t_s: float,
+                 unmodelled_g: np.ndarray | None = None):
         n = len(names)
+        # the test's floor: FLOOR_G, or UNMODELLED_FACTOR x what the config says its model
+        # leaves unexplained (an uncalibrated sensor's lasting, pose-dependent error is
+        # no change: only a change well above it is)
+        um = np.zeros(n) if unmodelled_g is None else np.asarray(unmodelled_g, float)
+        self.floor_g = np.maximum(FLOOR_G, UNMODELLED_FACTOR * um)
         self.names, self.mag_name = names, mag_name
         self._sum_nu = np.zeros((n, 3))
         self._sum_g = np.zeros((n, 3))
@@ -213,10 +228,10 @@ class ModelChangeAlarm:
         self._ema_t[have] = t
         self._ema[have] += a[:, None] * (nu - self._ema[have])
         sd = np.sqrt(var * a / (2.0 - a))
-        over = np.linalg.norm(self._ema[have], axis=1) > np.maximum(THRESHOLD_SIGMA * sd, FLOOR_G)
+        over = np.linalg.norm(self._ema[have], axis=1) > np.maximum(THRESHOLD_SIGMA * sd, self.floor_g[have])
         cap = self._hist.shape[1]
         ratio = np.zeros(len(self.names))
-        ratio[have] = np.linalg.norm(self._ema[have], axis=1) / np.maximum(THRESHOLD_SIGMA * sd, FLOOR_G)
+        ratio[have] = np.linalg.norm(self._ema[have], axis=1) / np.maximum(THRESHOLD_SIGMA * sd, self.floor_g[have])
         quiet = t < self._quiet_until
         for j, s in enumerate(have.tolist()):
             row = self._hist_n[s] % cap

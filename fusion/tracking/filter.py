@@ -117,6 +117,7 @@ class Tracker:
         """Per joint, the encoder's counts per radian (the config's, its calibrated scale error applied)."""
         time_offset_s, time_var_s2 = calibrated.stamp_offsets(model, self.accel_names)
         unmodelled_g = calibrated.accel_floors_g(arm, self.link_names, self._has_imu)
+        self._unmodelled_g = unmodelled_g
         self._sees = links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
                                          self._sidx.get(IMU_ACC, -1), unmodelled_g, time_offset_s,
@@ -187,7 +188,8 @@ class Tracker:
         self.health = SensorHealth(self.sensor_names, len(self.accel_streams), st)
         self.slips = SlipDetector(st, L, self.sensor_names, len(self.link_names), len(self.accel_streams),
                                   self._sees, t_s)
-        self.alarm = ModelChangeAlarm(self.link_names, MAG if self._has_imu else None, t_s)
+        self.alarm = ModelChangeAlarm(self.link_names, MAG if self._has_imu else None, t_s,
+                                      self._unmodelled_g[:len(self.link_names)])
         self.observability.reset()
         if prior_q_rad is None:  # no saved pose: an unread joint may be anywhere in its limits
             unread = ~read_by_startup(startup) & ~self.ambiguity_.joints
