@@ -58,6 +58,8 @@ ALONG_RATIO = 0.12
 a bias (see :func:`name_shift`)."""
 ALONG_SIGMA = 4.0
 """And exceeds this many of the blocks' noise sigmas."""
+STICKY_S = 10.0
+"""A sensor's first crossing counts for the culprit until its test has not held for this long (s)."""
 QUIET_S = 60.0
 """After an accelerometer's alarm, the others' tests start again (s): the filter, moving
 joints to follow the changed sensor, shifts the sensors that share them for a while."""
@@ -172,6 +174,8 @@ class ModelChangeAlarm:
         self._ema_t = np.full(n, np.nan)
         self._over_since = np.full(n, np.nan)
         self._quiet_until = -np.inf
+        self._first_over = np.full(n, np.nan)  # sticky: kept STICKY_S after the test last held
+        self._last_over = np.full(n, -np.inf)
         cap = int(WINDOW_S / BLOCK_S) + 1
         self._hist = np.zeros((n, cap, 7))  # per block: t, nu (3), g (3)
         self._hist_var = np.zeros((n, cap))
@@ -242,17 +246,25 @@ class ModelChangeAlarm:
             self._hist_n[s] += 1
             if not over[j] or quiet or self.names[s] in self.active:
                 self._over_since[s] = np.nan
-            elif np.isnan(self._over_since[s]):
+                if quiet or t - self._last_over[s] > STICKY_S:
+                    self._first_over[s] = np.nan
+                continue
+            self._last_over[s] = t
+            if np.isnan(self._over_since[s]):
                 self._over_since[s] = t
+            if np.isnan(self._first_over[s]):
+                self._first_over[s] = t
         held = np.flatnonzero(t - self._over_since >= HOLD_S)  # (nan compares False)
         if len(held):
-            # the culprit: the first sensor to shift (the others follow as the filter moves
-            # the joints they share), the largest shift among those that shifted together
-            on = np.flatnonzero(~np.isnan(self._over_since))
-            first = self._over_since[on].min()
-            tied = on[self._over_since[on] <= first + BLOCK_S]
+            # the culprit: the first sensor to shift, though the filter may since have
+            # pulled its innovation back under the test by moving the joints it shares with
+            # the others (which then shift); the largest shift among those that shifted together
+            on = np.flatnonzero(~np.isnan(self._first_over))
+            first = self._first_over[on].min()
+            tied = on[self._first_over[on] < first + 0.5 * BLOCK_S]  # the same block
             self._raise_accel(int(tied[np.argmax(ratio[tied])]), t)
             self._over_since[:] = np.nan
+            self._first_over[:] = np.nan
             self._quiet_until = t + QUIET_S
 
     def _raise_accel(self, s: int, t: float) -> None:
@@ -312,7 +324,7 @@ class ModelChangeAlarm:
                 s = self.names.index(name)
                 self.widen_g2[s] = 0.0
                 self._ema[s] = 0.0
-                self._over_since[s] = np.nan
+                self._over_since[s] = self._first_over[s] = np.nan
                 self._hist_n[s] = 0
             elif name == self.mag_name:
                 self._mag_since = None
