@@ -4,6 +4,7 @@ recording replayed without the turn raises none."""
 
 from __future__ import annotations
 
+import json
 import threading
 
 import numpy as np
@@ -75,3 +76,35 @@ def test_a_clean_replay_raises_no_alarm(fusion_node, hub_settings, arm, daily):
     assert health == []
     assert dict(status.counters).get("model_alarms", 0) == 0
     assert "model changed" not in status.message
+
+
+def _health_bytes(**alarm) -> bytes:
+    a = {"sensor": "acc4", "effect": "mount_rotation", "size": 1.5, "sigma": 0.8, "unit": "deg",
+         "since_s": 45.0, "raised_s": 49.0, **alarm}
+    return pl.encode(pl.Health("chair1", 49.0, ())).replace(b'"alarms":[]', b'"alarms":[' +
+                                                               json.dumps(a).encode() + b"]")
+
+
+def test_a_health_payload_round_trips():
+    h = pl.decode(pl.health_key("chair1"), _health_bytes())
+    assert h.alarms == (("acc4", "mount_rotation", 1.5, 0.8, "deg", 45.0, 49.0),)
+    assert pl.decode(pl.health_key("chair1"), pl.encode(h)) == h
+
+
+@pytest.mark.parametrize(("alarm", "message"), [
+    ({"effect": "sagging"}, "alarm 0: effect 'sagging': expected one of mount_rotation"),
+    ({"unit": "rad"}, "alarm 0: unit 'rad' for mount_rotation: expected 'deg'"),
+    ({"sensor": "x" * 5000}, r"alarm 0: sensor 'x{20,60}'… \(5000 characters\): use 1 to 64"),
+    ({"size": -1.0}, "alarm 0: a negative size or sigma"),
+    ({"sigma": None}, "field 'sigma': NoneType is not the expected type"),
+])
+def test_a_bad_health_payload_is_refused_naming_what(alarm, message):
+    with pytest.raises(pl.PayloadError, match=message):
+        pl.decode(pl.health_key("chair1"), _health_bytes(**alarm))
+
+
+def test_a_health_payload_with_too_many_alarms_is_refused():
+    one = _health_bytes()
+    many = one.replace(b'"alarms":[', b'"alarms":[' + b'{},' * 100)
+    with pytest.raises(pl.PayloadError, match="field 'alarms': 101 alarms, at most 64"):
+        pl.decode(pl.health_key("chair1"), many)
