@@ -25,8 +25,8 @@ joint angles for every pose; a magnetometer that gained hard iron reads off Eart
 
 Each alarm is an :class:`Alarm` (sensor, effect, size with sigma, when it began, when it
 was raised). An alarmed accelerometer is down-weighted until :meth:`ModelChangeAlarm.clear`
-(recalibrated): the variance of its readings per axis is widened by twice the change's
-size squared (g²; a rotation's as ``size x g``), :meth:`ModelChangeAlarm.widen`. A
+(recalibrated): the variance of its readings per axis is widened by (``WIDEN`` x the
+change's size)² (g²; a rotation's size as ``size x 1 g``), :meth:`ModelChangeAlarm.widen`. A
 disturbed compass is already not fused (the compass's own verdict).
 """
 
@@ -57,7 +57,11 @@ ALONG_RATIO = 0.12
 """A shift whose RMS along the predicted force exceeds this fraction of its RMS across it is
 a bias (see :func:`name_shift`)."""
 ALONG_SIGMA = 4.0
-"""And exceeds this many of the blocks' noise sigmas."""
+"""And exceeds this many noise sigmas of the quietest block (and ``FLOOR_G``)."""
+RECENT_S = 20.0
+"""A block's noise is at most the median of the last this many seconds' (s)."""
+WIDEN = 5.0
+"""An alarmed accelerometer's readings are widened by this many times the change's size."""
 STICKY_S = 10.0
 """A sensor's first crossing counts for the culprit until its test has not held for this long (s)."""
 QUIET_S = 60.0
@@ -113,7 +117,8 @@ def onset(nu: np.ndarray) -> int:
     return int(np.argmax(score[: max(len(nu) - 2, 1)]))
 
 
-def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> tuple[str, float, float]:
+def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray,
+               quiet_var_g2: float | None = None) -> tuple[str, float, float]:
     """Which effect explains block-mean innovations ``nu_g (N, 3)`` seen with predicted
     specific forces ``g_pred (N, 3)`` (both g, sensor axes; ``var_g2 (N,)`` each block's
     noise variance per axis): ``(effect, size, sigma)``; a bias in g, a rotation in deg.
@@ -122,7 +127,8 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> tupl
     lies across the predicted force (and the filter, moving joints, can only turn the
     prediction, never change its size). A bias changes the size too: it shows along the
     predicted force. The innovation's RMS along the force against ``ALONG_RATIO`` x its
-    RMS across (and ``ALONG_SIGMA`` x the blocks' noise) tells them apart."""
+    RMS across (and ``ALONG_SIGMA`` x the quietest block's noise, and ``FLOOR_G``) tells
+    them apart."""
     N = len(nu_g)
     # one weight for all blocks: a sensor's variance grows once it disagrees (its gate),
     # which would weigh the blocks before the change over those after it
@@ -132,9 +138,11 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> tupl
     across = nu_g - along[:, None] * u
     rms_along = math.sqrt(float((along**2).mean()))
     rms_across = math.sqrt(float(np.square(across).sum(1).mean()))
-    sd = math.sqrt(float(var_g2.mean()))
+    # the blocks' noise as it was before the sensor disagreed (its variance grows after):
+    # ``quiet_var_g2``, the quietest block's of the sensor's history, when given
+    sd = math.sqrt(float(var_g2.min()) if quiet_var_g2 is None else quiet_var_g2)
     dof = max(3 * N - 3, 1)
-    if rms_along > max(ALONG_RATIO * rms_across, ALONG_SIGMA * sd):
+    if rms_along > max(ALONG_RATIO * rms_across, ALONG_SIGMA * sd, FLOOR_G):
         b = (w[:, None] * nu_g).sum(0) / w.sum()
         rss_b = float((w * np.square(nu_g - b).sum(1)).sum())
         s2 = max(rss_b / dof, 1.0)
@@ -168,6 +176,7 @@ class ModelChangeAlarm:
         self._sum_nu = np.zeros((n, 3))
         self._sum_g = np.zeros((n, 3))
         self._sum_var = np.zeros(n)
+        self._sum_r = np.zeros(n)
         self._n = np.zeros(n, dtype=np.int64)
         self._block_t = float(t_s)
         self._ema = np.zeros((n, 3))
@@ -188,34 +197,43 @@ class ModelChangeAlarm:
         self.widen_g2 = np.zeros(n)
         """Per link accelerometer: the variance (g², per axis) added to its readings."""
 
+
     # -- the accelerometers -------------------------------------------------------------
-    def listen(self, t: float, u, nu: np.ndarray, Su: np.ndarray, z_pred: np.ndarray, rows: np.ndarray,
-               sel: np.ndarray, calm: bool) -> None:
+    def listen(self, t: float, u, nu: np.ndarray, Su: np.ndarray, z_pred: np.ndarray, var: np.ndarray,
+               rows: np.ndarray, sel: np.ndarray, calm: bool) -> None:
         """The usable accelerometers ``u`` (a slice of ``sel``, every one in order, or sensor
-        indices) gave innovations ``nu (k, 3)`` (g) with covariances ``Su``; ``z_pred`` the
-        update's predictions (``rows``: each accelerometer's three, by its place in ``sel``).
-        Only while ``calm`` (the base as modelled) are they counted; the link accelerometers
-        (the first ``len(names)``) only."""
+        indices) gave innovations ``nu (k, 3)`` (g) with covariances ``Su``; ``z_pred`` and
+        ``var`` are the update's predictions and measurement variances (``rows``: each
+        accelerometer's three, by its place in ``sel``). Only while ``calm`` (the base as
+        modelled) are they counted; the link accelerometers (the first ``len(names)``) only.
+
+        A block mean's variance: the measurement noise's share averages down with the
+        samples, the filter's own uncertainty (``Su`` less the noise) does not."""
         nl = len(self.names)
         if calm:
             if type(u) is slice:
                 k = min(nl, len(nu))
                 idx = slice(0, k)
+                nu, Su = nu[:k], Su[:k]
                 zp = z_pred[:3 * k].reshape(k, 3)
+                r = var[:3 * k].reshape(k, 3).mean(1)
             else:
                 keep = u < nl
                 idx = u[keep]
                 nu, Su = nu[keep], Su[keep]
-                zp = z_pred[rows[np.searchsorted(sel, idx)]]
-            self._sum_nu[idx] += nu[:nl] if type(u) is slice else nu
+                pos = rows[np.searchsorted(sel, idx)]
+                zp, r = z_pred[pos], var[pos].mean(1)
+            self._sum_nu[idx] += nu
             self._sum_g[idx] += zp
-            self._sum_var[idx] += np.trace(Su[:nl] if type(u) is slice else Su, axis1=1, axis2=2) / 3.0
+            self._sum_r[idx] += r
+            self._sum_var[idx] += np.maximum(np.trace(Su, axis1=1, axis2=2) / 3.0 - r, 0.0)
             self._n[idx] += 1
         if t - self._block_t >= BLOCK_S:
             if self._n.any():
                 self._block(t)
             self._sum_nu[:] = 0.0
             self._sum_g[:] = 0.0
+            self._sum_r[:] = 0.0
             self._sum_var[:] = 0.0
             self._n[:] = 0
             self._block_t = t
@@ -225,7 +243,17 @@ class ModelChangeAlarm:
         n_ = self._n[have].astype(float)
         nu = self._sum_nu[have] / n_[:, None]
         g = self._sum_g[have] / n_[:, None]
-        var = self._sum_var[have] / n_ / n_  # per axis, of a block mean of white samples
+        # per axis, of a block mean: the noise's share over n samples, the state's whole
+        var = self._sum_r[have] / n_ / n_ + self._sum_var[have] / n_
+        # the filter's uncertainty grows once a changed sensor disagrees (its gate, a
+        # re-acquisition): the test keeps the noise of the last RECENT_S where that is less
+        cap = self._hist.shape[1]
+        m = np.minimum(self._hist_n[have], cap)
+        recent = int(RECENT_S / BLOCK_S)
+        for j, s in enumerate(have.tolist()):
+            if m[j] >= recent:
+                rows = (self._hist_n[s] - 1 - np.arange(recent)) % cap
+                var[j] = min(var[j], float(np.median(self._hist_var[s, rows])))
         last = self._ema_t[have]
         dt = np.where(np.isnan(last), BLOCK_S, t - last)
         a = np.minimum(1.0, dt / TAU_S)
@@ -233,7 +261,6 @@ class ModelChangeAlarm:
         self._ema[have] += a[:, None] * (nu - self._ema[have])
         sd = np.sqrt(var * a / (2.0 - a))
         over = np.linalg.norm(self._ema[have], axis=1) > np.maximum(THRESHOLD_SIGMA * sd, self.floor_g[have])
-        cap = self._hist.shape[1]
         ratio = np.zeros(len(self.names))
         ratio[have] = np.linalg.norm(self._ema[have], axis=1) / np.maximum(THRESHOLD_SIGMA * sd, self.floor_g[have])
         quiet = t < self._quiet_until
@@ -271,16 +298,17 @@ class ModelChangeAlarm:
         m = min(int(self._hist_n[s]), self._hist.shape[1])
         order = np.argsort(self._hist[s, :m, 0])
         h, v = self._hist[s, order], self._hist_var[s, order]
+        quiet = float(v.min())
         k = onset(h[:, 1:4])
         since = float(h[k, 0]) - BLOCK_S  # the block's first sample
         h, v = h[k:], v[k:]
-        effect, size, sigma = name_shift(h[:, 1:4], h[:, 4:7], v)
+        effect, size, sigma = name_shift(h[:, 1:4], h[:, 4:7], v, quiet)
         alarm = Alarm(self.names[s], effect, size, sigma, UNITS[effect],
                       round(since, 3), round(t, 3))
         self.active[alarm.sensor] = alarm
         self.raised.append(alarm)
         size_g = size * DEG if effect == "mount_rotation" else size  # a rotation's force, g
-        self.widen_g2[s] = (2.0 * size_g) ** 2
+        self.widen_g2[s] = (WIDEN * size_g) ** 2
         self._ema[s] = 0.0
 
     def widen(self, sel: np.ndarray, var: np.ndarray) -> None:

@@ -408,7 +408,7 @@ class Tracker:
                                                        None if set_off else gate_l, ms.rows, self._reacquire)
             if u is not None:
                 self.slips.listen(t, u, nu, Su, calm and not set_off, self._reacquire)
-                self.alarm.listen(t, u, nu, Su, inn.z_pred, ms.rows, sel, calm and not set_off)
+                self.alarm.listen(t, u, nu, Su, inn.z_pred, var, ms.rows, sel, calm and not set_off)
             key = (key, accept[:k].tobytes())
             if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
                 self._obs_used_key, self._obs_t = key, t
