@@ -122,15 +122,16 @@ def main() -> None:
     c0, w0 = time.process_time(), time.perf_counter()
     rows = []
     for kind in a.kinds.split(","):
-        res = [trial(arm, kind, a.seed + 7919 * KINDS.index(kind) + i, a.duration, a) for i in range(a.trials)]
+        seed0 = a.seed + 7919 * KINDS.index(kind)
+        res = [trial(arm, kind, seed0 + i, a.duration, a) for i in range(a.trials)]
         det = sum(r["detected"] for r in res)
         nam = sum(r["named"] for r in res)
         delays = [r["delay_s"] for r in res if r["delay_s"] is not None]
         sz = [r["size"] for r in res if r["named"]]
         sg = [r["sigma"] for r in res if r["named"]]
         fb = sum(r["false_before"] for r in res)
-        rows.append((kind, len(res), det, nam, float(np.median(delays)) if delays else float("nan"),
-                     float(np.median(sz)) if sz else float("nan"), float(np.median(sg)) if sg else float("nan"), fb))
+        med = [float(np.median(v)) if v else float("nan") for v in (delays, sz, sg)]
+        rows.append((kind, len(res), det, nam, *med, fb))
         print(f"{kind}: detected {det}/{len(res)}, named {nam}/{len(res)}, median delay "
               f"{rows[-1][4]:.1f} s, median size {rows[-1][5]:.4g} (sigma {rows[-1][6]:.3g}); alarms before "
               f"the injection: {fb}", flush=True)
@@ -147,8 +148,9 @@ def main() -> None:
         print(f"clean {i + 1}/{n_clean}: {len(got)} alarms", flush=True)
     hours = clean_s / 3600.0
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
-    units = {"mount_rotation": f"{a.mount_deg} deg", "bias_jump": f"{a.bias_g} g", "hard_iron": f"{a.iron_ut} uT"}
-    lines = ["| change | injected | size | detected within " + f"{a.within_s:.0f} s | named | median delay s | "
+    units = {"mount_rotation": f"{a.mount_deg} deg", "bias_jump": f"{a.bias_g} g",
+             "hard_iron": f"{a.iron_ut} uT"}
+    lines = [f"| change | injected | size | detected within {a.within_s:.0f} s | named | median delay s | "
              "median size found (sigma) |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for kind, n, det, nam, dl, sz, sg, _ in rows:
         lines.append(f"| {kind} | {n} | {units[kind]} | {det}/{n} ({100 * det / n:.0f} %) | "

@@ -260,9 +260,10 @@ class ModelChangeAlarm:
         self._ema_t[have] = t
         self._ema[have] += a[:, None] * (nu - self._ema[have])
         sd = np.sqrt(var * a / (2.0 - a))
-        over = np.linalg.norm(self._ema[have], axis=1) > np.maximum(THRESHOLD_SIGMA * sd, self.floor_g[have])
+        size = np.linalg.norm(self._ema[have], axis=1) / np.maximum(THRESHOLD_SIGMA * sd, self.floor_g[have])
+        over = size > 1.0
         ratio = np.zeros(len(self.names))
-        ratio[have] = np.linalg.norm(self._ema[have], axis=1) / np.maximum(THRESHOLD_SIGMA * sd, self.floor_g[have])
+        ratio[have] = size
         quiet = t < self._quiet_until
         for j, s in enumerate(have.tolist()):
             row = self._hist_n[s] % cap
@@ -334,7 +335,8 @@ class ModelChangeAlarm:
             self._mag_err = self._mag_err[::2]
         if self.mag_name not in self.active and t - self._mag_since >= HARD_IRON_AFTER_S:
             e = np.abs(np.asarray(self._mag_err))
-            alarm = Alarm(self.mag_name, "hard_iron", float(np.median(e)), float(np.std(e)), UNITS["hard_iron"],
+            alarm = Alarm(self.mag_name, "hard_iron", float(np.median(e)), float(np.std(e)),
+                          UNITS["hard_iron"],
                           round(self._mag_since, 3), round(t, 3))
             self.active[self.mag_name] = alarm
             self.raised.append(alarm)

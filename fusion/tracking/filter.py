@@ -30,6 +30,7 @@ import numpy as np
 
 from fusion.startup.solve import StartupResult
 from fusion.tracking import calibrated
+from fusion.tracking.alarm import ModelChangeAlarm
 from fusion.tracking.compass import CALIBRATING, GYRO_ONLY, STATUS_CODE, Compass
 from fusion.tracking.differentiator import CausalDifferentiator
 from fusion.tracking.estimate import HEADING_STATUS, Estimate
@@ -60,7 +61,6 @@ from fusion.tracking.settings import (
     StateLayout,
     TrackerSettings,
 )
-from fusion.tracking.alarm import ModelChangeAlarm
 from fusion.tracking.slips import SlipDetector
 from fusion.tracking.snapshot import restore_into, snapshot_of
 from fusion.tracking.ukf import BatchedUKF, SigmaPoints

@@ -9,6 +9,7 @@ import threading
 
 import numpy as np
 import pytest
+from service_helpers import Collected, cut, wait_for
 
 from fusion.service import payloads as pl
 from fusion.service.replay import replay
@@ -16,8 +17,6 @@ from models.rotations import DEG
 from models.simulator import simulate
 from tools.bench_alarm import mount_turned
 from tools.bench_track import calibrated_wmra
-
-from service_helpers import Collected, cut, wait_for
 
 T_TURN_S = 45.0
 
