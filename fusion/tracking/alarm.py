@@ -315,6 +315,8 @@ class ModelChangeAlarm:
     def widen(self, sel: np.ndarray, var: np.ndarray) -> None:
         """Add each alarmed accelerometer's widening to the update's variances ``var`` (the
         accelerometers ``sel`` first, three rows each), in place."""
+        if not self.widen_g2.any():  # (a compass alarm only, or an arm without link accelerometers)
+            return
         k = len(sel)
         extra = self.widen_g2[np.minimum(sel, len(self.names) - 1)] * (sel < len(self.names))
         var[:3 * k] += np.repeat(extra, 3)

@@ -102,3 +102,15 @@ def test_hard_iron_is_named_on_the_compass(arm, daily):
     alarms = _alarms(arm, rec).alarm.raised
     assert [(a.sensor, a.effect, a.unit) for a in alarms] == [("imu_mag", "hard_iron", "uT")]
     assert T_CHANGE_S <= alarms[0].raised_s <= T_CHANGE_S + 30.0
+
+
+def test_a_compass_alarm_widens_no_accelerometer():
+    """An arm without link accelerometers (IMU only) whose compass is alarmed: the update's
+    variances are left as they are."""
+    al = ModelChangeAlarm((), "imu_mag", 0.0)
+    for t in np.arange(0.0, 25.0, 0.5):
+        al.compass(float(t), True, 12.0)
+    assert [a.effect for a in al.alarms] == ["hard_iron"]
+    var = np.full(3, 1e-4)
+    al.widen(np.array([0]), var)
+    assert np.all(var == 1e-4)
