@@ -121,7 +121,7 @@ def main() -> None:
     arm = calibrated_wmra()
     c0, w0 = time.process_time(), time.perf_counter()
     rows = []
-    for kind in a.kinds.split(","):
+    for kind in (a.kinds.split(",") if a.trials > 0 else []):
         seed0 = a.seed + 7919 * KINDS.index(kind)
         res = [trial(arm, kind, seed0 + i, a.duration, a) for i in range(a.trials)]
         det = sum(r["detected"] for r in res)
