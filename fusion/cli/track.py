@@ -126,6 +126,7 @@ def track(
         **summary,
         "final": tr.estimate.as_dict() if run.steps else None,
         "out": None if out is None else str(out),
+        "model_alarms": [a.as_dict() for a in tr.alarm.raised],
         "saturated_left_out": screen.as_dict()["saturated"],
         "encoder_withheld": withheld,
         "notes": notes,
@@ -287,6 +288,9 @@ def _print(doc: dict, run) -> None:
         n = doc["nees"]
         console.print(f"NEES mean {n['mean']:.2f} ({n['dof']} states; 95 % bounds for one instant "
                       f"{n['bounds_95_single'][0]:.1f} … {n['bounds_95_single'][1]:.1f})")
+    for a in doc["model_alarms"]:
+        console.print(f"[bold red]model changed[/]: {a['sensor']} {a['effect']} {a['size']:.3g} ± "
+                      f"{a['sigma']:.2g} {a['unit']} since {a['since_s']:.1f} s (raised at {a['raised_s']:.1f} s)")
     rej = {s: v for s, v in doc["rejections"].items() if v}
     console.print("rejections: " + (", ".join(f"{s} {v}" for s, v in rej.items()) or "none"))
     for s, d in doc["nis"].items():

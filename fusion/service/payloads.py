@@ -7,10 +7,11 @@ Key expressions (``<robot>`` and ``<sensor>`` are names of letters, digits, ``_`
     armfusion/<robot>/state/heading     Heading     the base's heading (yaw) and its sigma
     armfusion/<robot>/status            Status      a node's health and counters
     armfusion/<robot>/calibrate         Calibration the fusion node's reply to a calibration request
+    armfusion/<robot>/health            Health      the fusion node's model-change alarms
 
 Every payload is one UTF-8 JSON object (no pickle, nothing that carries code) with
 ``"v"``, its type's version (:data:`VERSIONS`: 2 for ``heading``, 1 for the others), and
-``"type"``, one of ``raw``, ``joints``, ``heading``, ``status``, ``calibration``; the fields
+``"type"``, one of ``raw``, ``joints``, ``heading``, ``status``, ``calibration``, ``health``; the fields
 of each are those of the dataclasses below and are written out in docs/service.md. The
 fields of ``joints`` and ``heading`` are an estimate's one wire form, written by
 :mod:`fusion.tracking.estimate` (``joints_record``, ``heading_record``). JSON keeps a
@@ -37,10 +38,12 @@ from typing import Any
 
 import numpy as np
 
+from fusion.tracking.alarm import EFFECTS as ALARM_EFFECTS
+from fusion.tracking.alarm import UNITS as ALARM_UNITS
 from fusion.tracking.estimate import HEADING_STATUS, NORTH, Estimate, heading_record, joints_record
 from sensors.samples import RAW_KINDS, Stream, clipped_repr
 
-VERSIONS = {"raw": 2, "joints": 1, "heading": 3, "status": 1, "calibration": 1}
+VERSIONS = {"raw": 2, "joints": 1, "heading": 3, "status": 1, "calibration": 1, "health": 1}
 """Each payload type's schema version (the one written). ``heading`` 2: ``sigma_rad`` became
 ``heading_sigma_rad``, and the base's roll and pitch, their sigmas, the gyro bias and
 ``magnetic_recovery`` came in (the estimate's one wire form); 3: ``heading_status``,
@@ -101,6 +104,11 @@ def calibrate_key(robot: str) -> str:
     return f"{ROOT}/{check_name(robot, 'robot')}/calibrate"
 
 
+def health_key(robot: str) -> str:
+    """The fusion node's model-change alarms (:class:`Health`)."""
+    return f"{ROOT}/{check_name(robot, 'robot')}/health"
+
+
 def parse_key(key: str) -> tuple[str, str, str | None]:
     """``(robot, type, sensor)`` of a key expression; raises :class:`PayloadError`."""
     parts = str(key).split("/")
@@ -114,6 +122,8 @@ def parse_key(key: str) -> tuple[str, str, str | None]:
             return robot, "status", None
         if rest == ["calibrate"]:
             return robot, "calibration", None
+        if rest == ["health"]:
+            return robot, "health", None
     raise PayloadError("bad_key", f"key expression {key!r} is not an armfusion key")
 
 
@@ -262,7 +272,36 @@ class Calibration:
                 "roll_rad": self.roll_rad, "pitch_rad": self.pitch_rad}
 
 
-Payload = RawBatch | JointState | Heading | Status | Calibration
+MAX_ALARMS = 64
+"""More alarms than this in one health payload is refused (a node raises a handful)."""
+
+
+@dataclass(frozen=True)
+class Health:
+    """The fusion node's model-change alarms on ``armfusion/<robot>/health``: each active
+    alarm (not cleared by a recalibration) as ``(sensor, effect, size, sigma, unit, since_s,
+    raised_s)``: ``effect`` one of :data:`ALARM_EFFECTS`, ``size`` and its 1-sigma in
+    ``unit`` (deg, g, uT by effect), ``since_s`` when the change began and ``raised_s`` when
+    the alarm was raised (the tracker's clock, the samples' time stamps); ``t_s`` the
+    tracker's time when sent."""
+
+    robot: str
+    t_s: float
+    alarms: tuple[tuple[str, str, float, float, str, float, float], ...] = ()
+
+    @classmethod
+    def of(cls, robot: str, t_s: float, alarms) -> Health:
+        """From :class:`fusion.tracking.alarm.Alarm` objects."""
+        return cls(robot, float(t_s), tuple((a.sensor, a.effect, float(a.size), float(a.sigma), a.unit,
+                                             float(a.since_s), float(a.raised_s)) for a in alarms))
+
+    def to_json(self) -> dict[str, Any]:
+        keys = ("sensor", "effect", "size", "sigma", "unit", "since_s", "raised_s")
+        return {"v": VERSIONS["health"], "type": "health", "robot": self.robot, "t_s": self.t_s,
+                "alarms": [dict(zip(keys, a, strict=True)) for a in self.alarms]}
+
+
+Payload = RawBatch | JointState | Heading | Status | Calibration | Health
 
 
 def encode(payload: Payload) -> bytes:
@@ -423,8 +462,35 @@ def _calibration(d: dict, robot: str) -> Calibration:
                        _optional_finite(d, "pitch_rad"))
 
 
+def _health(d: dict, robot: str) -> Health:
+    alarms = _field(d, "alarms", list)
+    if len(alarms) > MAX_ALARMS:
+        raise PayloadError("malformed", f"field 'alarms': {len(alarms)} alarms, at most {MAX_ALARMS}")
+    out = []
+    for i, a in enumerate(alarms):
+        if not isinstance(a, dict):
+            raise PayloadError("malformed", f"alarm {i}: a JSON {type(a).__name__}, not an object")
+        sensor = _field(a, "sensor", str)
+        if not NAME_RE.match(sensor):
+            raise PayloadError("malformed", f"alarm {i}: sensor {clipped_repr(sensor)}: use 1 to 64 letters, "
+                               "digits, '_' or '-'")
+        effect = _field(a, "effect", str)
+        if effect not in ALARM_EFFECTS:
+            raise PayloadError("malformed", f"alarm {i}: effect {clipped_repr(effect)}: expected one of "
+                               f"{', '.join(ALARM_EFFECTS)}")
+        unit = _field(a, "unit", str)
+        if unit != ALARM_UNITS[effect]:
+            raise PayloadError("malformed", f"alarm {i}: unit {clipped_repr(unit)} for {effect}: expected "
+                               f"{ALARM_UNITS[effect]!r}")
+        size, sigma = _finite(a, "size"), _finite(a, "sigma")
+        if size < 0 or sigma < 0:
+            raise PayloadError("malformed", f"alarm {i}: a negative size or sigma")
+        out.append((sensor, effect, size, sigma, unit, _finite(a, "since_s"), _finite(a, "raised_s")))
+    return Health(robot, _finite(d, "t_s"), tuple(out))
+
+
 _DECODERS = {"raw": _raw, "joints": _joints, "heading": _heading, "status": _status,
-             "calibration": _calibration}
+             "calibration": _calibration, "health": _health}
 
 
 def decode(key: str, data: bytes) -> Payload:

@@ -158,6 +158,7 @@ class FusionNode:
         self._next_pub_t = -np.inf
         self._startup_t: float | None = None
         self._counts: Counter[str] = Counter()
+        self._alarmed: set[str] = set()  # the sensors whose model-change alarm was last published
         self._sensors: tuple[tuple[str, str], ...] = ()
         self._arrived: dict[str, float] = {}  # sensor -> when its last batch arrived (monotonic)
         self._silent: frozenset[str] = frozenset()
@@ -206,6 +207,7 @@ class FusionNode:
         pub_joints = self.session.declare_publisher(pl.joints_key(self.robot))
         pub_heading = self.session.declare_publisher(pl.heading_key(self.robot))
         pub_status = self.session.declare_publisher(pl.status_key(self.robot))
+        self._pub_health = pub_health = self.session.declare_publisher(pl.health_key(self.robot))
         token = self.session.liveliness().declare_token(pl.status_key(self.robot))
         sub = self.session.declare_subscriber(pl.raw_keys(self.robot), receiver)
         queryable = self.session.declare_queryable(pl.calibrate_key(self.robot), self._queries.put)
@@ -246,7 +248,7 @@ class FusionNode:
                 self._reply(query, pl.Calibration(self.robot, False, "the fusion node is stopping"))
             sub.undeclare()
             token.undeclare()
-            for p in (pub_joints, pub_heading, pub_status):
+            for p in (pub_joints, pub_heading, pub_status, pub_health):
                 p.undeclare()
         adm = self._admission
         return ServeReport(self.robot, self._state, self._counts["samples"], self._counts["estimates"],
@@ -446,6 +448,9 @@ class FusionNode:
             if t >= self._next_pub_t:
                 self._publish(e)
                 self._next_pub_t = t + self.publish_period_s
+            if tr.alarm.active.keys() != self._alarmed:  # an alarm raised (or cleared)
+                self._alarmed = set(tr.alarm.active)
+                self._publish_health()
         if self._start is not None and tr.ambiguity():
             self._try_resolve(tr.t_s)
 
@@ -486,6 +491,13 @@ class FusionNode:
         pub_heading.put(pl.encode(pl.Heading.of(self.robot, e)))
         self._counts["estimates"] += 1
 
+    def _publish_health(self) -> None:
+        """The tracker's active model-change alarms on the health key; the status says so too."""
+        tr = self._tracker
+        self._pub_health.put(pl.encode(pl.Health.of(self.robot, tr.t_s, tr.alarm.alarms)))
+        self._counts["alarms"] = len(tr.alarm.raised)
+        self._status_due = True
+
     def _publish_status(self, pub, receiver: BoundedReceiver) -> None:
         self._status_due = False
         adm = self._admission
@@ -495,11 +507,15 @@ class FusionNode:
                     "encoder_rebases": adm.encoder_rebases,
                     "stalled": int(self._stall.since_s is not None), "stalls": self._stall.stalls,
                     "errors": self._counts["errors"],
-                    "calibrations": self._counts["calibrations"]}
+                    "calibrations": self._counts["calibrations"],
+                    "model_alarms": self._counts["alarms"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
         sensors = dict(self._sensors)
         sensors.update(dict.fromkeys(self._silent & set(sensors), "stale"))
         message = self._message
+        if self._tracker is not None and self._tracker.alarm.active:
+            message = "model changed: " + "; ".join(a.line() for a in self._tracker.alarm.alarms) + \
+                f"; {message}"
         if self._silent and self._silent >= set(sensors):
             quiet_s = time.monotonic() - max(self._arrived.values())
             message = f"no samples for {quiet_s:.1f} s: every sensor stale; {message}"

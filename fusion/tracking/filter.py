@@ -30,6 +30,7 @@ import numpy as np
 
 from fusion.startup.solve import StartupResult
 from fusion.tracking import calibrated
+from fusion.tracking.alarm import ModelChangeAlarm
 from fusion.tracking.compass import CALIBRATING, GYRO_ONLY, STATUS_CODE, Compass
 from fusion.tracking.differentiator import CausalDifferentiator
 from fusion.tracking.estimate import HEADING_STATUS, Estimate
@@ -116,6 +117,7 @@ class Tracker:
         """Per joint, the encoder's counts per radian (the config's, its calibrated scale error applied)."""
         time_offset_s, time_var_s2 = calibrated.stamp_offsets(model, self.accel_names)
         unmodelled_g = calibrated.accel_floors_g(arm, self.link_names, self._has_imu)
+        self._unmodelled_g = unmodelled_g
         self._sees = links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
                                          self._sidx.get(IMU_ACC, -1), unmodelled_g, time_offset_s,
@@ -186,6 +188,8 @@ class Tracker:
         self.health = SensorHealth(self.sensor_names, len(self.accel_streams), st)
         self.slips = SlipDetector(st, L, self.sensor_names, len(self.link_names), len(self.accel_streams),
                                   self._sees, t_s)
+        self.alarm = ModelChangeAlarm(self.link_names, MAG if self._has_imu else None, t_s,
+                                      self._unmodelled_g[:len(self.link_names)])
         self.observability.reset()
         if prior_q_rad is None:  # no saved pose: an unread joint may be anywhere in its limits
             unread = ~read_by_startup(startup) & ~self.ambiguity_.joints
@@ -365,6 +369,8 @@ class Tracker:
         still = self.still.still and acc is not None and st.motion_compensation
         sel, counts, f, (key, imu_pos, full, _), var_a, z, var = ms.stack(acc, frame, still, mag is not None)
         k, m = len(counts), len(z)
+        if k and self.alarm.active:  # a changed sensor is down-weighted until recalibrated
+            self.alarm.widen(sel, var)
         if mag is not None:
             m_count, m_B, extra_var = mag
             x = ukf._x
@@ -404,6 +410,7 @@ class Tracker:
                                                        None if set_off else gate_l, ms.rows, self._reacquire)
             if u is not None:
                 self.slips.listen(t, u, nu, Su, calm and not set_off, self._reacquire)
+                self.alarm.listen(t, u, nu, Su, inn.z_pred, var, ms.rows, sel, calm and not set_off)
             key = (key, accept[:k].tobytes())
             if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
                 self._obs_used_key, self._obs_t = key, t
@@ -418,6 +425,7 @@ class Tracker:
             self.health.rejecting[mi] = not use
             self.health.counts[mi, C_USED if use else C_REJECTED] += m_count
             accept[-1] = use
+            self.alarm.compass(t, check.disturbed, check.magnitude_error_ut)
             mask = ms.heading_mask(m)
         ukf.correct(inn, accept, self.observability.hold, mask)
 

@@ -1,0 +1,116 @@
+"""The model-change alarm (fusion/tracking/alarm.py): naming on synthetic innovations, and
+in the tracker on a simulated recording: a 2 deg mount turn and a bias jump named on the
+right sensor, a clean recording raising nothing, a hard iron on the compass."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fusion.tracking.alarm import ModelChangeAlarm, name_shift, onset
+from fusion.tracking.tracker import start_from_recording
+from models.rotations import DEG
+from models.simulator import simulate
+from tools.bench_alarm import bias_jumped, iron_gained, mount_turned
+from tools.bench_track import calibrated_wmra
+
+T_CHANGE_S = 70.0
+
+
+def _gravity_path(rng, n):
+    """Unit specific forces (g) that wander as a moving arm's do in a sensor's axes."""
+    g = np.cumsum(rng.normal(scale=0.08, size=(n, 3)), axis=0) + np.array([0.0, 0.0, 1.0])
+    return g / np.linalg.norm(g, axis=1, keepdims=True)
+
+
+def test_name_shift_tells_a_turned_board_from_a_bias():
+    rng = np.random.default_rng(3)
+    g = _gravity_path(rng, 60)
+    noise = rng.normal(scale=0.001, size=(60, 3))
+    var = np.full(60, 0.001**2)
+    th = np.array([1.0, -1.0, 0.5])
+    th *= 2.0 * DEG / np.linalg.norm(th)
+    effect, size, sigma = name_shift(np.cross(th, g) + noise, g, var)
+    assert effect == "mount_rotation"
+    assert abs(size - 2.0) < 3 * sigma + 0.05 and sigma < 0.2
+    b = np.array([0.03, -0.02, 0.04])
+    effect, size, sigma = name_shift(b + noise, g, var)
+    assert effect == "bias_jump"
+    assert abs(size - np.linalg.norm(b)) < 0.002
+
+
+def test_onset_finds_the_step():
+    rng = np.random.default_rng(4)
+    nu = rng.normal(scale=0.001, size=(80, 3))
+    nu[50:] += [0.01, 0.0, -0.01]
+    assert abs(onset(nu) - 50) <= 1
+
+
+def test_clear_names_an_unknown_sensor():
+    al = ModelChangeAlarm(("acc1", "acc2"), "imu_mag", 0.0)
+    with pytest.raises(KeyError, match="no sensor 'acc9'; the alarm watches"):
+        al.clear("acc9")
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return calibrated_wmra()
+
+
+@pytest.fixture(scope="module")
+def daily(arm):
+    rec, _ = simulate(arm, "daily-use", 110.0, seed=21)
+    return rec
+
+
+def _alarms(arm, rec):
+    tr, _ = start_from_recording(arm, rec)
+    tr.run(rec)
+    return tr
+
+
+def test_a_clean_day_raises_nothing(arm, daily):
+    tr = _alarms(arm, daily)
+    assert tr.alarm.raised == []
+    assert not tr.alarm.widen_g2.any()
+
+
+def test_a_turned_board_is_named_and_down_weighted(arm, daily):
+    rec = mount_turned(daily, "acc4", T_CHANGE_S, np.array([0.6, -0.8, 0.0]) * 2.0 * DEG)
+    tr = _alarms(arm, rec)
+    (a,) = tr.alarm.raised
+    assert (a.sensor, a.effect, a.unit) == ("acc4", "mount_rotation", "deg")
+    assert T_CHANGE_S - 2.0 <= a.since_s <= T_CHANGE_S + 2.0
+    assert T_CHANGE_S < a.raised_s <= T_CHANGE_S + 30.0
+    assert 0.7 < a.size < 5.0 and 0 < a.sigma < a.size
+    assert "acc4 mount_rotation" in a.line()
+    s = tr.link_names.index("acc4")
+    assert tr.alarm.widen_g2[s] > 0 and tr.alarm.widen_g2.sum() == tr.alarm.widen_g2[s]
+    tr.alarm.clear("acc4")  # recalibrated: its weight comes back
+    assert not tr.alarm.widen_g2.any() and tr.alarm.alarms == ()
+
+
+def test_a_bias_jump_is_named(arm, daily):
+    rec = bias_jumped(daily, "acc3", T_CHANGE_S, np.array([0.0, 0.03, -0.04]))
+    (a,) = _alarms(arm, rec).alarm.raised
+    assert (a.sensor, a.effect, a.unit) == ("acc3", "bias_jump", "g")
+    assert abs(a.size - 0.05) < 0.015
+
+
+def test_hard_iron_is_named_on_the_compass(arm, daily):
+    rec = iron_gained(daily, T_CHANGE_S, np.array([15.0, -10.0, 8.0]))
+    alarms = _alarms(arm, rec).alarm.raised
+    assert [(a.sensor, a.effect, a.unit) for a in alarms] == [("imu_mag", "hard_iron", "uT")]
+    assert T_CHANGE_S <= alarms[0].raised_s <= T_CHANGE_S + 30.0
+
+
+def test_a_compass_alarm_widens_no_accelerometer():
+    """An arm without link accelerometers (IMU only) whose compass is alarmed: the update's
+    variances are left as they are."""
+    al = ModelChangeAlarm((), "imu_mag", 0.0)
+    for t in np.arange(0.0, 25.0, 0.5):
+        al.compass(float(t), True, 12.0)
+    assert [a.effect for a in al.alarms] == ["hard_iron"]
+    var = np.full(3, 1e-4)
+    al.widen(np.array([0]), var)
+    assert np.all(var == 1e-4)

@@ -1,0 +1,109 @@
+"""The model-change alarm over Zenoh: a replayed recording whose acc4 board turns by 2 deg
+raises one named alarm on ``armfusion/<robot>/health`` (and the status says so); the same
+recording replayed without the turn raises none."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import numpy as np
+import pytest
+from service_helpers import Collected, cut, wait_for
+
+from fusion.service import payloads as pl
+from fusion.service.replay import replay
+from models.rotations import DEG
+from models.simulator import simulate
+from tools.bench_alarm import mount_turned
+from tools.bench_track import calibrated_wmra
+
+T_TURN_S = 45.0
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return calibrated_wmra()
+
+
+@pytest.fixture(scope="module")
+def daily(arm):
+    rec, _ = simulate(arm, "daily-use", 70.0, seed=21)
+    return rec
+
+
+def _serve(fusion_node, hub_settings, arm, rec):
+    """Replay ``rec`` as fast as it goes to a fusion node; the health payloads and the last
+    status received once every sample was taken in."""
+    listener, connector = hub_settings
+    from fusion.service.zenoh_config import open_session
+
+    health, lock = [], threading.Lock()
+
+    def on_health(sample) -> None:
+        with lock:
+            health.append(pl.decode(str(sample.key_expr), sample.payload.to_bytes()))
+
+    with fusion_node(listener, arm) as (node, _), open_session(connector) as s:
+        s.declare_subscriber(pl.health_key("chair1"), on_health)
+        got = Collected(s)
+        report = replay(s, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
+        total = sum(report.samples.values())
+        assert wait_for(lambda: node.report_samples() >= total, 120.0)
+        assert wait_for(lambda: any(st.counters and dict(st.counters).get("samples", 0) >= total
+                                    for st in got.snapshot()[1]), 10.0)
+        status = [st for st in got.snapshot()[1] if dict(st.counters).get("samples", 0) >= total][-1]
+    with lock:
+        return list(health), status
+
+
+def test_a_turned_board_raises_the_named_alarm_on_the_health_key(fusion_node, hub_settings, arm, daily):
+    rec = mount_turned(daily, "acc4", T_TURN_S, np.array([0.6, -0.8, 0.0]) * 2.0 * DEG)
+    health, status = _serve(fusion_node, hub_settings, arm, rec)
+    assert len(health) == 1, health
+    (h,) = health
+    (sensor, effect, size, sigma, unit, since_s, raised_s) = h.alarms[0]
+    assert (sensor, effect, unit) == ("acc4", "mount_rotation", "deg")
+    assert abs(since_s - T_TURN_S) <= 2.0 and T_TURN_S < raised_s <= T_TURN_S + 30.0
+    assert 0.7 < size < 5.0 and 0 < sigma < size
+    assert dict(status.counters)["model_alarms"] == 1
+    assert "model changed: acc4 mount_rotation" in status.message
+
+
+def test_a_clean_replay_raises_no_alarm(fusion_node, hub_settings, arm, daily):
+    health, status = _serve(fusion_node, hub_settings, arm, cut(daily, 0.0, 60.0))
+    assert health == []
+    assert dict(status.counters).get("model_alarms", 0) == 0
+    assert "model changed" not in status.message
+
+
+def _health_bytes(**alarm) -> bytes:
+    a = {"sensor": "acc4", "effect": "mount_rotation", "size": 1.5, "sigma": 0.8, "unit": "deg",
+         "since_s": 45.0, "raised_s": 49.0, **alarm}
+    return pl.encode(pl.Health("chair1", 49.0, ())).replace(b'"alarms":[]', b'"alarms":[' +
+                                                               json.dumps(a).encode() + b"]")
+
+
+def test_a_health_payload_round_trips():
+    h = pl.decode(pl.health_key("chair1"), _health_bytes())
+    assert h.alarms == (("acc4", "mount_rotation", 1.5, 0.8, "deg", 45.0, 49.0),)
+    assert pl.decode(pl.health_key("chair1"), pl.encode(h)) == h
+
+
+@pytest.mark.parametrize(("alarm", "message"), [
+    ({"effect": "sagging"}, "alarm 0: effect 'sagging': expected one of mount_rotation"),
+    ({"unit": "rad"}, "alarm 0: unit 'rad' for mount_rotation: expected 'deg'"),
+    ({"sensor": "x" * 5000}, r"alarm 0: sensor 'x{20,60}'… \(5000 characters\): use 1 to 64"),
+    ({"size": -1.0}, "alarm 0: a negative size or sigma"),
+    ({"sigma": None}, "field 'sigma': NoneType is not the expected type"),
+])
+def test_a_bad_health_payload_is_refused_naming_what(alarm, message):
+    with pytest.raises(pl.PayloadError, match=message):
+        pl.decode(pl.health_key("chair1"), _health_bytes(**alarm))
+
+
+def test_a_health_payload_with_too_many_alarms_is_refused():
+    one = _health_bytes()
+    many = one.replace(b'"alarms":[', b'"alarms":[' + b'{},' * 100)
+    with pytest.raises(pl.PayloadError, match="field 'alarms': 101 alarms, at most 64"):
+        pl.decode(pl.health_key("chair1"), many)
