@@ -220,8 +220,9 @@ class Compass:
         self._rot = np.eye(3)  # the base's turn since the averaging period began
 
     @property
-    def fused(self) -> bool:
-        """Whether the compass's readings are averaged (a field reference exists)."""
+    def listening(self) -> bool:
+        """Whether the compass's readings are averaged and prepared (a field reference exists;
+        they are fused only once the iron is known: :meth:`prepare`)."""
         return self.guard is not None
 
     def turn(self, w: np.ndarray, bias: tuple[float, float, float], dt: float) -> None:
@@ -273,8 +274,8 @@ class Compass:
             m_S = iron.corrected(m_S, b_arm)
         elif b_arm is not None:
             m_S = m_S - b_arm
+        h = T @ m_S  # the corrected field, de-tilted
         if self.iron_sigma_rad > 0.0:  # the iron's doubt: one reading's worth per heading visit
-            h = T @ m_S
             psi = math.atan2(-h[1], h[0])
             anchor, k = self._visit
             if anchor is None or abs(math.remainder(psi - anchor, 2 * math.pi)) > \
@@ -284,7 +285,6 @@ class Compass:
             extra += self.iron_sigma_rad**2 * (k + 1) ** 2
         if J_arm is not None:
             C_arm = self.steel.covariance(J_arm)
-            h = T @ m_S
             n2 = max(h[0] ** 2 + h[1] ** 2, 1e-12)
             g = np.array([h[1], -h[0], 0.0]) / n2 @ T  # d psi / d b_arm (compass axes), sign aside
             self.steel_sigma_rad = math.sqrt(max(float(g @ C_arm @ g), 0.0))

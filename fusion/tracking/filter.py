@@ -349,7 +349,7 @@ class Tracker:
         if mag is not None:
             mi = self._sidx[MAG]
             self.health.seen[mi], self.health.last_t[mi] = True, t
-            mag = self.compass.average(t, mag[1]) if self.compass.fused else None
+            mag = self.compass.average(t, mag[1]) if self.compass.listening else None
             if mag is not None:
                 x, L = ukf._x, self.layout
                 mag = self.compass.prepare(t, mag[0], mag[1], float(x[L.roll]), float(x[L.pitch]),
