@@ -26,7 +26,7 @@ def config_model(arm: ArmModel) -> Model | None:
     return model_from_arm(arm) if arm.effects else None
 
 
-def _blocks(model: Model | None, effect: str):
+def effect_blocks(model: Model | None, effect: str):
     """``(effect object, value, sigma)`` of every entry of ``effect`` in ``model`` (flat arrays)."""
     if model is None:
         return
@@ -37,7 +37,7 @@ def _blocks(model: Model | None, effect: str):
 
 
 def has_effect(model: Model | None, effect: str) -> bool:
-    return any(True for _ in _blocks(model, effect))
+    return any(True for _ in effect_blocks(model, effect))
 
 
 def encoder_scales(arm: ArmModel, model: Model | None) -> tuple[np.ndarray, np.ndarray]:
@@ -45,7 +45,7 @@ def encoder_scales(arm: ArmModel, model: Model | None) -> tuple[np.ndarray, np.n
     ``1 + s`` times the counts the config's counts per revolution say) and its sigma (0
     where the config has none)."""
     s, sig = np.zeros(arm.n_joints), np.zeros(arm.n_joints)
-    for e, value, sigma in _blocks(model, "encoder_scale"):
+    for e, value, sigma in effect_blocks(model, "encoder_scale"):
         if e.target in arm.joint_names:
             j = arm.joint_names.index(e.target)
             s[j], sig[j] = float(value[0]), float(sigma[0])
@@ -56,7 +56,8 @@ def device_time_offsets(model: Model | None) -> dict[str, tuple[float, float]]:
     """Per device, the config's calibrated time offset (s: its samples stamped late by it,
     ``time_offset``: what is stamped t was true at t - offset) and its σ (s). Every stream
     of the device (a link sensor's accelerometer and gyroscope, the IMU's parts) shares it."""
-    return {e.target: (float(value[0]), float(sigma[0])) for e, value, sigma in _blocks(model, "time_offset")}
+    return {e.target: (float(value[0]), float(sigma[0]))
+            for e, value, sigma in effect_blocks(model, "time_offset")}
 
 
 def stamp_offsets(model: Model | None, accel_names) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -74,7 +75,7 @@ def with_lever_arms(arm: ArmModel, model: Model | None) -> ArmModel:
     """The arm with each sensor where its config's calibrated lever arm puts it (the
     ``motion_acceleration`` effects: an offset in the link's axes), so that the motion the
     tracker predicts at a sensor (centripetal, tangential) is at the right point."""
-    shift = {e.target: value for e, value, _ in _blocks(model, "motion_acceleration")
+    shift = {e.target: value for e, value, _ in effect_blocks(model, "motion_acceleration")
              if e.target and value.shape == (3,) and np.any(value)}
     if not shift:
         return arm
@@ -120,7 +121,7 @@ def effects_applied(model: Model | None) -> tuple[list[str], list[str]]:
 
 def hard_iron_sigma_ut(model: Model | None) -> np.ndarray | None:
     """The sigma (µT, per compass axis) of the config's ``mag_hard_iron``; None without one."""
-    for _, _, sigma in _blocks(model, "mag_hard_iron"):
+    for _, _, sigma in effect_blocks(model, "mag_hard_iron"):
         return sigma
     return None
 
@@ -131,7 +132,7 @@ def heading_scale_sigma(arm: ArmModel, model: Model | None, default: float) -> f
     where the config says its IMU is not exact (its unmodelled error above zero), else 0."""
     if arm.imu is None:
         return default
-    for _, _, sigma in _blocks(model, "gyro_scale"):
+    for _, _, sigma in effect_blocks(model, "gyro_scale"):
         return float(np.sqrt(np.sum((np.asarray(arm.imu.R_LS)[2] * sigma) ** 2)))
     return default if arm.calibration.imu_accel_floor_g > 0.0 else 0.0
 

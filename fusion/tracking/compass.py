@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from fusion.tracking.calibrated import _blocks, hard_iron_sigma_ut, has_effect
+from fusion.tracking.calibrated import effect_blocks, hard_iron_sigma_ut, has_effect
 from fusion.tracking.compass_calibration import IronEstimator, detilt
 from fusion.tracking.estimate import HEADING_STATUS
 from fusion.tracking.heading import FieldCheck, FieldReference, MagneticGuard, heading_sigma_rad
@@ -87,7 +87,7 @@ class ArmSteel:
     def __init__(self, arm: ArmModel, model: Model | None):
         self.arm = arm
         self.dipoles = [(arm.joint_names.index(e.target), value, sigma)
-                        for e, value, sigma in _blocks(model, "mag_arm_disturbance")]
+                        for e, value, sigma in effect_blocks(model, "mag_arm_disturbance")]
         imu = arm.imu
         self.R_0I = imu.R_LS if imu is not None else np.eye(3)
         self.p_I = np.asarray(imu.p_L_m, float) if imu is not None else np.zeros(3)
@@ -130,7 +130,7 @@ def iron_prior_sigma(arm: ArmModel, model: Model | None) -> np.ndarray | None:
     ``calibration.mag_unmodelled_ut`` with a datasheet-typical soft iron; None when the config
     says its compass is exact (neither)."""
     hard = hard_iron_sigma_ut(model)
-    soft = next((sigma for _, _, sigma in _blocks(model, "mag_soft_iron")), None)
+    soft = next((sigma for _, _, sigma in effect_blocks(model, "mag_soft_iron")), None)
     if hard is None:
         u = arm.calibration.mag_unmodelled_ut
         if u <= 0:
@@ -150,7 +150,7 @@ def mount_heading_sigma_rad(arm: ArmModel, model: Model | None) -> float:
     if arm.imu is None:
         return 0.0
     sigma = None
-    for e, _, s in _blocks(model, "base_mount"):
+    for e, _, s in effect_blocks(model, "base_mount"):
         if e.target == arm.imu.name:
             sigma = s
     if sigma is None:
