@@ -45,16 +45,19 @@ def accel_points_numpy(X: np.ndarray, sel: np.ndarray, links: np.ndarray, axes: 
 
 
 def process_points_numpy(X: np.ndarray, dt: float, w: np.ndarray, have_w: bool, roll: int, yaw: int,
-                         bias: int, accel: int, accel_decay: float) -> np.ndarray:
+                         bias: int, accel: int, scale: int, accel_decay: float) -> np.ndarray:
     """:func:`fusion.tracking.tracker_kernels.process_points` in NumPy: each point's attitude
-    ``R_from_rpy`` turned by ``exp_so3`` of its bias-corrected rates times ``dt``, read back
+    ``R_from_rpy`` turned by ``exp_so3`` of its bias- (and z scale-) corrected rates times ``dt``, read back
     by ``rpy_from_R`` and put in the chart nearest the point's (of the two Euler triples of
     the rotation, the closer, roll and yaw unwrapped onto the old ones)."""
     Y = X.copy()
     if have_w:
         r, p, y = X[:, roll], X[:, roll + 1], X[:, yaw]
         R = np.stack([R_from_rpy(a, b, c) for a, b, c in zip(r, p, y, strict=True)])
-        R2 = R @ exp_so3(dt * (w - X[:, bias:bias + 3]))
+        om = w - X[:, bias:bias + 3]
+        if scale >= 0:  # the gyro's z reads (1 + s) times the true rate
+            om[:, 2] /= 1.0 + X[:, scale]
+        R2 = R @ exp_so3(dt * om)
         r1, p1, y1 = rpy_from_R(R2).T
         dr1, dy1 = wrap_angle(r1 - r), wrap_angle(y1 - y)
         p2 = np.copysign(np.pi, p1) - p1

@@ -225,12 +225,11 @@ class Compass:
         they are fused only once the iron is known: :meth:`prepare`)."""
         return self.guard is not None
 
-    def turn(self, w: np.ndarray, bias: tuple[float, float, float], dt: float) -> None:
-        """The base turned at ``w - bias`` (rad/s, base axes) for ``dt``."""
+    def turn(self, om: np.ndarray, dt: float) -> None:
+        """The base turned at ``om`` (rad/s, base axes) for ``dt``."""
         if self._n:
-            wx, wy, wz = w.tolist()
-            bx, by, bz = bias
-            self._rot = self._rot @ exp_so3_one(((wx - bx) * dt, (wy - by) * dt, (wz - bz) * dt))
+            wx, wy, wz = om.tolist()
+            self._rot = self._rot @ exp_so3_one((wx * dt, wy * dt, wz * dt))
 
     def average(self, t: float, m_B: np.ndarray):
         """Take one field sample (µT, base axes): ``(count, mean field)`` when a period is

@@ -99,10 +99,14 @@ class Tracker:
         # the base's own motion as the config describes it (a chair's by default)
         self.settings = st = (settings or TrackerSettings()).for_base(arm.base_motion)
         n = arm.n_joints
-        self.layout = L = StateLayout(n)
+        self._has_imu = arm.imu is not None
+        # the gyro's scale about the vertical: a state where it is not known exactly (a turn's
+        # heading is off by the same fraction each time; the compass shows by how much)
+        self.gyro_scale_sigma = (calibrated.heading_scale_sigma(arm, model, st.gyro_scale_sigma)
+                                 if self._has_imu else 0.0)
+        self.layout = L = StateLayout(n, gyro_scale=self.gyro_scale_sigma > 0.0)
         self.state_names = L.names(arm.joint_names)
         self.link_names = tuple(s.name for s in arm.link_accelerometers)
-        self._has_imu = arm.imu is not None
         self.accel_names = self.link_names + ((arm.imu.name,) if self._has_imu else ())
         self.accel_streams = self.link_names + ((IMU_ACC,) if self._has_imu else ())
         self.sensor_names = self.accel_streams + ((GYRO, MAG) if self._has_imu else ()) + (ENC,)
@@ -126,7 +130,6 @@ class Tracker:
                                            calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
                                            self.R_0I if self._has_imu else None)
         self.process = ProcessModel(st, L, arm.joint_names)
-        self.process.heading_scale_sigma = calibrated.heading_scale_sigma(arm, model, st.gyro_scale_sigma)
         self.set_rates(rates_hz)
         self._points = SigmaPoints(L.size, st.alpha, st.beta, st.kappa)
         self._ukf: BatchedUKF | None = None
@@ -173,7 +176,7 @@ class Tracker:
         self._x0, self._P0, self._q_startup = initial_state(
             startup, imu, L, st, prior, calibrated.imu_bias_prior_var(
                 self.arm, self.correction, self.R_0I if self._has_imu else None, startup.roll_rad,
-                startup.pitch_rad))
+                startup.pitch_rad), self.gyro_scale_sigma**2)
         self.ambiguity_ = Ambiguity(startup)
         self._ukf = None  # created when the first encoder sample fixes the offsets
         self._q_enc = np.zeros(n)
@@ -310,7 +313,7 @@ class Tracker:
         L = self.layout
         x = self._ukf.x
         w = self._omega if gyro is None else gyro
-        om = None if w is None else w - x[L.bias]
+        om = None if w is None else self.process.rate(w, x)
         g = self.gyro_rates.latest
         omd = None if g is None else g[1]
         fields = self._frame_consts.fields(e, x[L.offset], om, omd, self.settings.motion_compensation)
@@ -328,15 +331,11 @@ class Tracker:
             w0 = self._omega if self._omega is not None else gyro
             w = None if w0 is None else (w0 if gyro is None else 0.5 * (w0 + gyro))
             Q = self.process.Q(dt, w is not None, self.still.still)
-            if w is not None:
-                x, L = ukf._x, self.layout
-                Q = self.process.turning(Q, w - x[L.bias], float(x[L.roll]), float(x[L.pitch]), dt, L.yaw)
             ukf.predict(self.process.fx_tangent, Q, dt=dt, w=w)
             # the attitude is now the propagated central point's plus a tangent vector
             anchor = ukf._sigmas[0, self._att_idx].copy() if ukf._sigmas is not None else None
             if w is not None:
-                b = self.layout.bias.start
-                self.compass.turn(w, tuple(ukf._x[b:b + 3].tolist()), dt)
+                self.compass.turn(self.process.rate(w, ukf._x), dt)
         if gyro is not None:
             self._omega = gyro
         self._t = t

@@ -27,10 +27,12 @@ class ImuStill:
 
 
 def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, settings: TrackerSettings,
-                  prior_q_rad: np.ndarray, imu_bias_var_g2: np.ndarray
+                  prior_q_rad: np.ndarray, imu_bias_var_g2: np.ndarray, gyro_scale_var: float = 0.0
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(x, P, q0)``: the state and covariance (offsets zero: the first encoder sample sets
-    them to ``q0 - q_enc``) and the joint angles ``q0`` the filter starts from.
+    them to ``q0 - q_enc``) and the joint angles ``q0`` the filter starts from. Where the
+    layout holds the gyro's scale about z, it starts at zero (the config's scale is applied to
+    the readings) with ``gyro_scale_var`` (fraction²).
 
     A joint the startup could not read starts at ``prior_q_rad`` with
     ``unknown_joint_sigma_deg``; joints with rival branches start on the one nearest the
@@ -83,6 +85,8 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
     x[L.bias] = imu.gyro_bias_rad_s
     P[L.bias, L.bias] = np.eye(3) * imu.gyro_bias_sigma_rad_s**2
     P[L.imu_bias, L.imu_bias] = np.diag(imu_bias_var_g2)
+    if L.scale >= 0:
+        P[L.scale, L.scale] = gyro_scale_var
     # the filter holds the attitude's covariance as a world-axis rotation vector's: the
     # startup's (and the yaw's) are of Euler-angle increments, so turn them (and their
     # correlations with the joints) through d(delta)/d(roll, pitch, yaw) at the start

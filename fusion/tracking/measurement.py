@@ -149,7 +149,7 @@ class Measurements:
 
     def heading_mask(self, m: int) -> np.ndarray:
         """The gain mask of an update of ``m`` rows whose last is the heading: it corrects
-        only yaw and the gyro's vertical bias, never the tilt (a steel door must not tilt
+        only yaw, the gyro's vertical bias and its scale about z (where a state), never the tilt (a steel door must not tilt
         gravity), the arm, or the chair's acceleration."""
         mask = self._masks.get(m)
         if mask is None:
@@ -158,5 +158,7 @@ class Measurements:
             mask[:, -1] = 0.0
             mask[L.yaw, -1] = 1.0
             mask[L.bias.start + 2, -1] = 1.0
+            if L.scale >= 0:
+                mask[L.scale, -1] = 1.0
             self._masks[m] = mask
         return mask

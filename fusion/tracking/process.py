@@ -16,7 +16,7 @@ from fusion.tracking.tracker_kernels import (
     process_points,
     process_points_tangent,
 )
-from models.rotations import DEG, up_from_sines
+from models.rotations import DEG
 
 
 def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray, heading_floor_var=0.0) -> np.ndarray:
@@ -45,8 +45,8 @@ def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray, heading_floor_var
 
 
 class ProcessModel:
-    """Offsets, the gyro bias and the IMU accelerometer's bias take random walks; the
-    attitude turns with the gyro (or a random walk without one); the chair's acceleration
+    """Offsets, the gyro bias, its scale about z (where a state) and the IMU accelerometer's
+    bias take random walks; the attitude turns with the gyro (or a random walk without one); the chair's acceleration
     is a first-order Gauss-Markov process."""
 
     def __init__(self, settings: TrackerSettings, layout: StateLayout, joint_names=()):
@@ -61,9 +61,6 @@ class ProcessModel:
                                  f"walk must be a positive number of deg/sqrt(s), got {deg!r}")
             rw[list(joint_names).index(name)] = float(deg)
         self._offset_rw_rad = rw * DEG
-        self.heading_scale_sigma = settings.gyro_scale_sigma
-        """The gyro's scale error about the vertical (fraction, 1 sigma): the config's, where
-        it holds one (:func:`fusion.tracking.calibrated.heading_scale_sigma`)."""
         self.last_points: tuple[np.ndarray, np.ndarray] | None = None
         self._decay: dict[float, float] = {}
         self._Q: dict = {}
@@ -79,7 +76,7 @@ class ProcessModel:
         decay = self._decay_of(dt)
         have_w = w is not None
         return process_points(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
-                              L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay)
+                              L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, decay)
 
     def _decay_of(self, dt: float) -> float:
         """The base acceleration's decay over ``dt`` (cached)."""
@@ -101,7 +98,7 @@ class ProcessModel:
         decay = self._decay_of(dt)
         have_w = w is not None
         T, Y = process_points_tangent(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
-                                      L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay)
+                                      L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, decay)
         self.last_points = (T, Y)  # the propagated points, in the tangent space and in Euler angles
         return T
 
@@ -125,27 +122,15 @@ class ProcessModel:
         return fold_attitude(np.ascontiguousarray(x, dtype=float),
                              np.ascontiguousarray(anchor_rpy, dtype=float), L.roll, L.yaw)
 
-    def turning(self, Q: np.ndarray, w_B: np.ndarray, roll_rad: float, pitch_rad: float, dt: float,
-                yaw_index: int) -> np.ndarray:
-        """``Q`` with the heading's share of the gyro's scale error while the base turns at
-        ``w_B`` (rad/s, base axes; each axis's rate counts by its share of the vertical at
-        the tilt ``roll_rad``, ``pitch_rad``: :attr:`TrackerSettings.gyro_scale_correlation_s`);
-        ``Q`` itself where the scale is exact or the base does not turn."""
-        s = self.heading_scale_sigma
-        if s <= 0.0:
-            return Q
-        wx, wy, wz = w_B.tolist()
-        if wx * wx + wy * wy + wz * wz < 1e-8:  # below 0.006 deg/s: nothing to add
-            return Q
-        sr, cr, sp, cp = math.sin(roll_rad), math.cos(roll_rad), math.sin(pitch_rad), math.cos(pitch_rad)
-        ux, uy, uz = up_from_sines(sr, cr, sp, cp)
-        rate2 = (ux * wx) ** 2 + (uy * wy) ** 2 + (uz * wz) ** 2
-        add = s * s * rate2 * dt * self.settings.gyro_scale_correlation_s
-        if add < 1e-16:
-            return Q
-        Q = Q.copy()
-        Q[yaw_index, yaw_index] += add
-        return Q
+    def rate(self, w: np.ndarray, x) -> np.ndarray:
+        """The base's turn rate (rad/s, base axes; ``w`` one reading ``(3,)`` or several
+        ``(B, 3)``) from the gyro's ``w`` at the state ``x``: its bias taken out and, where the
+        state holds it, its scale error about z."""
+        L = self.layout
+        om = w - x[L.bias]  # a new array
+        if L.scale >= 0:
+            om[..., 2] /= 1.0 + x[L.scale]
+        return om
 
     def Q(self, dt: float, have_gyro: bool, still: bool) -> np.ndarray:
         """The process noise over ``dt`` (cached)."""
@@ -170,6 +155,8 @@ class ProcessModel:
             q[L.accel] = 0.0
         q[L.bias] = (st.gyro_bias_random_walk_dps_per_sqrt_s * DEG) ** 2 * dt
         q[L.imu_bias] = st.imu_accel_bias_random_walk_g_per_sqrt_s**2 * dt
+        if L.scale >= 0:
+            q[L.scale] = st.gyro_scale_random_walk_per_sqrt_s**2 * dt
         return np.diag(q)
 
 

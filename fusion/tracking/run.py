@@ -178,7 +178,7 @@ def prepare_block(tr, t: np.ndarray, q_enc: np.ndarray, enc_has: np.ndarray, gyr
     if tr._omega is not None:
         w[~w_have] = tr._omega
         w_have[:] = True
-    om = np.where(w_have[:, None], w - x[L.bias], 0.0)
+    om = np.where(w_have[:, None], tr.process.rate(w, x), 0.0)
     omd = g_latest[:, 1]  # zero where the gyro has no fit yet, as _frame_now's None
     make = need_frame & e_have
     e_l = [e if h else None for e, h in zip(list(e_at), e_have.tolist(), strict=True)]

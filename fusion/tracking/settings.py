@@ -74,11 +74,9 @@ class TrackerSettings:
     gyro_scale_sigma: float = 0.015
     """The gyro's scale error about the vertical, 1 sigma (fraction), where the config holds
     no ``gyro_scale`` and says its IMU is not exact: the MPU-9150's ±3 % sensitivity tolerance."""
-    gyro_scale_correlation_s: float = 2.0
-    """A scale error turns every turn's heading by the same fraction: a bias, not noise. The
-    heading's process variance grows by ``(sigma_scale * rate)^2 * dt * this`` while the
-    chair turns, so that after a turn it is as wide as the turn's scale error and the
-    compass can pull it back."""
+    gyro_scale_random_walk_per_sqrt_s: float = 2e-5
+    """Where the gyro's scale about the vertical is a state (its sigma above zero), how it
+    drifts (fraction per √s, temperature): 0.1 % in 40 min."""
     imu_accel_bias_random_walk_g_per_sqrt_s: float = 2e-6
     """The IMU accelerometer's residual error drifts slowly (temperature): 0.1 mg in 40 min."""
     base_accel_sigma_mps2: float = 0.7
@@ -212,9 +210,12 @@ class NotInitialisedError(RuntimeError):
 class StateLayout:
     """Where each block of the state is, for ``n_joints`` joints: the offsets, then roll,
     pitch, the base's acceleration (3), yaw, the gyro bias (3) and the IMU accelerometer's
-    bias (3); an index for a scalar block, a slice for the others."""
+    bias (3), then, with ``gyro_scale``, the gyro's scale error about the base's z axis (a
+    fraction: the rate it reads is ``(1 + s)`` times the true one); an index for a scalar
+    block (``gyro_scale`` is -1 without it), a slice for the others."""
 
     n_joints: int
+    gyro_scale: bool = False
     offset: slice = field(init=False, compare=False, repr=False)
     roll: int = field(init=False, compare=False, repr=False)
     pitch: int = field(init=False, compare=False, repr=False)
@@ -222,6 +223,7 @@ class StateLayout:
     yaw: int = field(init=False, compare=False, repr=False)
     bias: slice = field(init=False, compare=False, repr=False)
     imu_bias: slice = field(init=False, compare=False, repr=False)
+    scale: int = field(init=False, compare=False, repr=False)
     size: int = field(init=False, compare=False, repr=False)
 
     def __post_init__(self):
@@ -231,9 +233,10 @@ class StateLayout:
                             ("bias", 3), ("imu_bias", 3)):
             object.__setattr__(self, name, start if width is None else slice(start, start + width))
             start += 1 if width is None else width
-        object.__setattr__(self, "size", start)
+        object.__setattr__(self, "scale", start if self.gyro_scale else -1)
+        object.__setattr__(self, "size", start + int(self.gyro_scale))
 
     def names(self, joint_names) -> tuple[str, ...]:
         return tuple([f"offset[{j}]" for j in joint_names] + ["roll", "pitch"]
                      + [f"accel_B[{a}]" for a in "xyz"] + ["yaw"] + [f"gyro_bias[{a}]" for a in "xyz"]
-                     + [f"imu_accel_bias[{a}]" for a in "xyz"])
+                     + [f"imu_accel_bias[{a}]" for a in "xyz"] + (["gyro_scale[z]"] if self.gyro_scale else []))

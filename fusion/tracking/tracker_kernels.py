@@ -124,14 +124,14 @@ def _canonical_euler(A):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, accel_decay):  # pragma: no cover
+def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay):  # pragma: no cover
     """:func:`process_points` for points whose attitude is in the filter's tangent space
     (:func:`points_from_tangent`), in one pass: each point's rotation ``exp([δ]x) R_0``,
     turned by its gyro rates, ``R' = R exp([w dt]x)``, taken back into the tangent space
     about the propagated central point ``R_0'``. Returns ``(T, Y)``: the propagated points
     in the tangent space (about ``R_0'``'s canonical Euler angles) and each as canonical
     Euler angles (the same rotations, for the measurement models: they use the angles'
-    sines and cosines, and wrap the heading)."""
+    sines and cosines, and wrap the heading). ``scale``: as :func:`process_points`."""
     N = X.shape[0]
     T = X.copy()
     Y = X.copy()
@@ -149,9 +149,11 @@ def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, accel_decay
         else:
             _exp_so3_into(X[i, roll] - r0, X[i, roll + 1] - p0, X[i, yaw] - y0, E)
             _matmul3_into(E, R0, Ri)
-        if have_w:  # turned by the gyro, less the point's own bias
-            _exp_so3_into(dt * (w[0] - X[i, bias]), dt * (w[1] - X[i, bias + 1]),
-                          dt * (w[2] - X[i, bias + 2]), E)
+        if have_w:  # turned by the gyro, less the point's own bias (and scale about z)
+            wz = w[2] - X[i, bias + 2]
+            if scale >= 0:
+                wz /= 1.0 + X[i, scale]
+            _exp_so3_into(dt * (w[0] - X[i, bias]), dt * (w[1] - X[i, bias + 1]), dt * wz, E)
             _matmul3_into(Ri, E, A)
         else:
             A[:, :] = Ri
@@ -203,11 +205,12 @@ def fold_attitude(x, anchor, roll, yaw):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def process_points(X, dt, w, have_w, roll, yaw, bias, accel, accel_decay):  # pragma: no cover - compiled
+def process_points(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay):  # pragma: no cover - compiled
     """The process model at every sigma point ``X (N, n)`` -> ``(N, n)``.
 
     With a gyro reading ``w`` (rad/s, body axes; ``have_w``), each point's rates minus its
-    own gyro bias turn its attitude over ``dt`` exactly: ``R' = R exp([w dt]x)`` with
+    own gyro bias (its z rate divided by ``1 + s``, the point's scale error in column ``scale``
+    where that is not -1) turn its attitude over ``dt`` exactly: ``R' = R exp([w dt]x)`` with
     ``R = Rz(yaw) Ry(pitch) Rx(roll)``, read back as Euler angles in the chart nearest the
     point's (:func:`euler_nearest`; exact at any rate, where a rule on the Euler-angle rates
     loses accuracy at a hand's 1000 deg/s and breaks down near pitch ±90 deg);
@@ -222,8 +225,10 @@ def process_points(X, dt, w, have_w, roll, yaw, bias, accel, accel_decay):  # pr
     A = np.empty((3, 3))
     for i in range(N):
         if have_w:
-            _exp_so3_into(dt * (w[0] - X[i, bias]), dt * (w[1] - X[i, bias + 1]),
-                          dt * (w[2] - X[i, bias + 2]), E)
+            wz = w[2] - X[i, bias + 2]
+            if scale >= 0:
+                wz /= 1.0 + X[i, scale]
+            _exp_so3_into(dt * (w[0] - X[i, bias]), dt * (w[1] - X[i, bias + 1]), dt * wz, E)
             _R_into(X[i, roll], X[i, roll + 1], X[i, yaw], R)
             _matmul3_into(R, E, A)
             Y[i, roll], Y[i, roll + 1], Y[i, yaw] = euler_nearest(A, X[i, roll], X[i, roll + 1], X[i, yaw])

@@ -109,7 +109,7 @@ def test_the_attitude_tangent_space_is_one_rotation_at_any_attitude_even_at_the_
     # propagated central point; the Euler points given alongside are the same rotations
     w = np.array([10.0, -17.0, 4.0])
     X[:, L.bias] = rng.normal(0.0, 0.01, (7, 3))
-    T, Y = process_points_tangent(X, 0.01, w, True, L.roll, L.yaw, L.bias.start, L.accel.start, 0.9)
+    T, Y = process_points_tangent(X, 0.01, w, True, L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, 0.9)
     att = [L.roll, L.pitch, L.yaw]
     turned = [R_from_rpy(*E[i, att]) @ exp_so3(0.01 * (w - X[i, L.bias])) for i in range(7)]
     for i in range(7):

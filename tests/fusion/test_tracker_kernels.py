@@ -15,6 +15,7 @@ import pytest
 
 from fusion.configfile import load_arm
 from fusion.tracking.tracker import G, Tracker, make_frames
+from fusion.tracking.settings import StateLayout
 from fusion.tracking.tracker_kernels import measurement_points, process_points
 from tools.bench_track_numpy import measurement_points_numpy, process_points_numpy
 
@@ -84,7 +85,7 @@ def test_process_model_agrees_with_and_without_a_gyro(setup, have_w):
     tr, _, X = setup
     L = tr.layout
     w = np.array([0.4, -0.7, 1.3])
-    a = (X, 0.01, w, have_w, L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, 0.98)
+    a = (X, 0.01, w, have_w, L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, 0.98)
     got, ref = process_points(*a), process_points_numpy(*a)
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-15)
     moved = np.abs(got - X).max(axis=0) > 0
@@ -94,3 +95,22 @@ def test_process_model_agrees_with_and_without_a_gyro(setup, have_w):
     if have_w:
         expect[[L.roll, L.pitch, L.yaw]] = True
     np.testing.assert_array_equal(moved, expect)
+
+
+def test_a_gyro_scale_state_slows_the_turn_it_reads(setup):
+    """With the gyro's z scale as a state, a point whose scale error is +2 % turns 2 % less
+    about z than the gyro reads (the reading is (1 + s) times the true rate)."""
+    tr, _, X = setup
+    L = StateLayout(tr.layout.n_joints, gyro_scale=True)
+    Xs = np.zeros((len(X), L.size))
+    Xs[:, :L.scale] = X[:, :L.scale]
+    Xs[:, L.roll] = Xs[:, L.pitch] = 0.0  # level: the z rate is the heading's
+    Xs[:, L.bias] = 0.0
+    Xs[1, L.scale] = 0.02
+    w = np.array([0.0, 0.0, 1.0])
+    a = (Xs, 0.01, w, True, L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, 1.0)
+    got = process_points(*a)
+    np.testing.assert_allclose(got, process_points_numpy(*a), rtol=0, atol=1e-15)
+    turned = got[:, L.yaw] - Xs[:, L.yaw]
+    assert turned[0] == pytest.approx(0.01, rel=1e-9)
+    assert turned[1] == pytest.approx(0.01 / 1.02, rel=1e-9)
