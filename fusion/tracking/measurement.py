@@ -149,8 +149,8 @@ class Measurements:
 
     def heading_mask(self, m: int) -> np.ndarray:
         """The gain mask of an update of ``m`` rows whose last is the heading: it corrects
-        only yaw, the gyro's vertical bias and its scale about z (where a state), never the tilt (a steel door must not tilt
-        gravity), the arm, or the chair's acceleration."""
+        only yaw, the gyro's vertical bias and its scale about z (where a state), never the
+        tilt (a steel door must not tilt gravity), the arm, or the chair's acceleration."""
         mask = self._masks.get(m)
         if mask is None:
             L = self.layout

@@ -46,8 +46,8 @@ def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray, heading_floor_var
 
 class ProcessModel:
     """Offsets, the gyro bias, its scale about z (where a state) and the IMU accelerometer's
-    bias take random walks; the attitude turns with the gyro (or a random walk without one); the chair's acceleration
-    is a first-order Gauss-Markov process."""
+    bias take random walks; the attitude turns with the gyro (or a random walk without
+    one); the chair's acceleration is a first-order Gauss-Markov process."""
 
     def __init__(self, settings: TrackerSettings, layout: StateLayout, joint_names=()):
         self.settings, self.layout = settings, layout

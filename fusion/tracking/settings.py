@@ -239,4 +239,5 @@ class StateLayout:
     def names(self, joint_names) -> tuple[str, ...]:
         return tuple([f"offset[{j}]" for j in joint_names] + ["roll", "pitch"]
                      + [f"accel_B[{a}]" for a in "xyz"] + ["yaw"] + [f"gyro_bias[{a}]" for a in "xyz"]
-                     + [f"imu_accel_bias[{a}]" for a in "xyz"] + (["gyro_scale[z]"] if self.gyro_scale else []))
+                     + [f"imu_accel_bias[{a}]" for a in "xyz"]
+                     + (["gyro_scale[z]"] if self.gyro_scale else []))

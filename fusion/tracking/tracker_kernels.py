@@ -205,7 +205,7 @@ def fold_attitude(x, anchor, roll, yaw):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def process_points(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay):  # pragma: no cover - compiled
+def process_points(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay):  # pragma: no cover
     """The process model at every sigma point ``X (N, n)`` -> ``(N, n)``.
 
     With a gyro reading ``w`` (rad/s, body axes; ``have_w``), each point's rates minus its

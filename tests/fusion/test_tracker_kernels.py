@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from fusion.configfile import load_arm
-from fusion.tracking.tracker import G, Tracker, make_frames
 from fusion.tracking.settings import StateLayout
+from fusion.tracking.tracker import G, Tracker, make_frames
 from fusion.tracking.tracker_kernels import measurement_points, process_points
 from tools.bench_track_numpy import measurement_points_numpy, process_points_numpy
 
