@@ -126,6 +126,7 @@ def track(
         **summary,
         "final": tr.estimate.as_dict() if run.steps else None,
         "out": None if out is None else str(out),
+        "gyro_scale_z": tr.gyro_scale() if run.steps else None,
         "model_alarms": [a.as_dict() for a in tr.alarm.raised],
         "saturated_left_out": screen.as_dict()["saturated"],
         "encoder_withheld": withheld,

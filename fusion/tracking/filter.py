@@ -535,6 +535,19 @@ class Tracker:
             true_north=self.arm.magnetic_declination_deg is not None,
         )
 
+    def gyro_scale(self) -> dict | None:
+        """The gyro's scale error about the base's z axis as the filter holds it (fraction: it
+        reads ``1 + value`` times the true rate) with its sigma and the config's (the prior),
+        beyond what the config's own ``gyro_scale`` undoes; None where it is not a state (the
+        config knows it exactly, or there is no gyro)."""
+        self._check()
+        L = self.layout
+        if L.scale < 0 or self._ukf is None:
+            return None
+        x, P = self._ukf._x, self._ukf._P
+        return {"value": float(x[L.scale]), "sigma": float(np.sqrt(P[L.scale, L.scale])),
+                "prior_sigma": self.gyro_scale_sigma}
+
     def heading_status_code(self) -> int:
         """The heading's status (an index into :data:`~fusion.tracking.estimate.HEADING_STATUS`):
         the compass's, or ``gyro_only`` where the magnetometer has gone quiet (stale, dead or

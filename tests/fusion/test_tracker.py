@@ -711,6 +711,35 @@ def test_a_drive_calibrates_the_configs_compass(arm):
     assert np.degrees(err.max()) < 1.0 and np.all(err <= 3 * run.rpy_sigma_rad[:, 2])
 
 
+def test_the_gyro_s_scale_about_the_vertical_is_learnt_from_the_compass_after_turns(arm):
+    """A gyro whose z axis reads 2.5 % fast, and a config that knows its scale only to ±3 %
+    (a parked fit cannot see it): each turn of the chair then turns the gyro's heading 2.5 %
+    too far. With the compass known, the tracker learns the scale from the turns (its
+    estimate within 3 sigma of the truth, the sigma down to under a third of the config's),
+    and the heading stays inside its sigma throughout and within half a degree at the end."""
+    known_compass = {"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": [0.0, 0.0, 0.0]},
+                     "sigma": {"offset_ut": [0.2, 0.2, 0.2]}}
+    config_scale = {"effect": "gyro_scale", "target": "imu", "params": {"scale_error": [0.0, 0.0, 0.0]},
+                    "sigma": {"scale_error": [0.03, 0.03, 0.03]}}
+    calibrated = replace(arm, effects=(known_compass, config_scale))
+    true_scale = {"effect": "gyro_scale", "target": "imu", "params": {"scale_error": [0.0, 0.0, 0.025]}}
+    T = 45.0
+    rec, _ = simulate(arm, scenario(arm, T, still_then(POSE, T), accelerating_chair(T)), seed=3,
+                      effects=[true_scale])
+    tr, _ = start_from_recording(calibrated, rec, prior_q_rad=POSE + 0.05)
+    run = tr.run(rec)
+    learnt = tr.gyro_scale()
+    assert learnt is not None and learnt["prior_sigma"] == pytest.approx(0.03, rel=0.05)
+    assert abs(learnt["value"] - 0.025) <= 3 * learnt["sigma"], learnt
+    assert learnt["sigma"] < 0.01, learnt
+    err, sig = np.abs(run.yaw_error_rad), run.rpy_sigma_rad[:, 2]
+    assert np.all(err <= 3 * sig)
+    last = run.t_s > run.t_s[-1] - 10.0
+    assert np.degrees(err[last].max()) < 0.5, np.degrees(err[last].max())
+    # a config that knows its gyro exactly holds no scale state
+    assert start_from_recording(arm, rec, prior_q_rad=POSE + 0.05)[0].gyro_scale() is None
+
+
 def test_a_calibrated_hard_and_soft_iron_are_undone_and_the_heading_is_found(arm):
     """The same 20 µT of hard iron, with soft iron stretching the field by a few per cent,
     now identified by a maneuver that turned the chair (known to ±0.3 µT and ±0.005): the
