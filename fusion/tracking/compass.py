@@ -88,6 +88,11 @@ class ArmSteel:
         self.arm = arm
         self.dipoles = [(arm.joint_names.index(e.target), value, sigma)
                         for e, value, sigma in effect_blocks(model, "mag_arm_disturbance")]
+        if not self.dipoles and arm.imu is not None and arm.calibration.imu_accel_floor_g > 0.0:
+            # a config that says nothing of the arm's steel and whose IMU is not exact (sensors
+            # as they come): every link's steel unknown at the library's typical size, so its
+            # field's change with the pose is doubt on the heading, not a surprise
+            self.dipoles = typical_steel(arm)
         imu = arm.imu
         self.R_0I = imu.R_LS if imu is not None else np.eye(3)
         self.p_I = np.asarray(imu.p_L_m, float) if imu is not None else np.zeros(3)
@@ -122,6 +127,23 @@ class ArmSteel:
         ``J``, less the part the hard iron took on (its mean over the fitted readings)."""
         D = J if self.J_mean is None else J - self.J_mean
         return (D * self.sigma**2) @ D.T
+
+
+def typical_steel(arm: ArmModel) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """``(joint index, moment, sigma)`` of an unknown ``mag_arm_disturbance`` on every joint
+    it can model (its link's origin far enough from the IMU): zero moment, the effect's
+    datasheet-typical sigma."""
+    from models.effects.base import TargetError
+    from models.effects.entries import build_effect
+
+    out = []
+    for j, name in enumerate(arm.joint_names):
+        try:
+            sigma = build_effect(arm, "mag_arm_disturbance", name).default_sigma()
+        except TargetError:
+            continue
+        out.append((j, np.zeros(3), np.asarray(sigma, float)))
+    return out
 
 
 def iron_prior_sigma(arm: ArmModel, model: Model | None) -> np.ndarray | None:
