@@ -69,8 +69,7 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
     Returns ``(q_ref (n,), offset_ref (n,), R_0S (S, 3, 3), motion_mps2 (S, 3), axes (n, 3),
     p_0S_m (S, 3), omega_dot_B (3,), K (n, 3, 3), motion_g (S,), dist2_m2 (S,),
     omega_dot_norm, omega_S_rad_s (S, 3))``: ``K`` the axes' skew matrices, ``motion_g``
-    ``|a_S| / g``, ``dist2_m2`` ``|p_0S + ρ|²`` (the sensor's squared distance from the
-    turning centre), ``omega_dot_norm`` ``|ω̇_B|``.
+    ``|a_S| / g``, ``dist2_m2`` ``|p_0S|²``, ``omega_dot_norm`` ``|ω̇_B|``.
     """
     n = chain.shape[0]
     S = mounts.shape[0]
@@ -122,9 +121,7 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
         sensor_one(R_0L, p_0L, om, al, ve, ac, links[s], mounts[s], R_0S[s], p_0S[s], vel[s], acc[s],
                    omega_S[s])
         motion_g[s] = math.sqrt(acc[s, 0] ** 2 + acc[s, 1] ** 2 + acc[s, 2] ** 2) / g_mps2
-        # from the point the base turns about: where the angular acceleration's error counts
-        r0, r1, r2 = p_0S[s, 0] + lever[0], p_0S[s, 1] + lever[1], p_0S[s, 2] + lever[2]
-        dist2[s] = r0 * r0 + r1 * r1 + r2 * r2
+        dist2[s] = p_0S[s, 0] ** 2 + p_0S[s, 1] ** 2 + p_0S[s, 2] ** 2
 
     # the axes' skew matrices
     K = np.zeros((n, 3, 3))

@@ -84,9 +84,9 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
         omega_B = omega_dot_B = np.zeros((K, 3))
     eye = np.broadcast_to(np.eye(3), (K, 3, 3))
     bm = arm.base_motion
-    lever = np.zeros(3) if bm is None or bm.base_from_turning_centre_m is None else \
-        np.asarray(bm.base_from_turning_centre_m, float)
-    a_B = turning_lever_accel(np.asarray(omega_B, float), np.asarray(omega_dot_B, float), lever)
+    a_B = (np.zeros((K, 3)) if bm is None or bm.base_from_turning_centre_m is None else
+           turning_lever_accel(np.asarray(omega_B, float), np.asarray(omega_dot_B, float),
+                               bm.base_from_turning_centre_m))
     st = MotionState(np.zeros(K), q, qd, qdd, eye, omega_B, omega_dot_B, a_B, 25.0)
     if joint_effects:
         from models.effects import Context
@@ -102,6 +102,6 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     wd = np.asarray(omega_dot_B, float)
     return Frames(q, np.broadcast_to(offset, q.shape), sm.R_0S, sm.acc_0_mps2, lm.axis_0, sm.p_0S_m,
                   wd, Ks, np.linalg.norm(sm.acc_0_mps2, axis=-1) / G,
-                  np.sum((sm.p_0S_m + lever) ** 2, axis=-1), np.linalg.norm(wd, axis=-1),
+                  np.sum(sm.p_0S_m**2, axis=-1), np.linalg.norm(wd, axis=-1),
                   omega_S_rad_s=sm.omega_S_rad_s)
 

@@ -96,8 +96,7 @@ def test_the_compiled_frame_carries_the_base_round_the_chair_s_turning_centre(ar
     levered = replace(arm, base_motion=BaseMotion(0.7, 5.0, lever))
     tr = Tracker(levered)
     check_against_make_frames(tr, np.random.default_rng(103), True)
-    fc, fc0 = FrameConstants(levered, tr.accel_names), FrameConstants(replace(arm, base_motion=None),
-                                                                       tr.accel_names)
+    fc, fc0 = FrameConstants(levered, tr.accel_names), FrameConstants(arm, tr.accel_names)
     fit = np.zeros((3, arm.n_joints))
     fit[0] = arm.ready_pose_rad
     w, wd = np.array([0.0, 0.0, 0.8]), np.array([0.0, 0.0, 2.5])

@@ -33,7 +33,7 @@ from fusion.tracking.tracker import (
     start_from_recording,
 )
 from models.arm import CorrectionCovariance
-from models.motion import MotionState, specific_force, turning_lever_accel
+from models.motion import MotionState, specific_force
 from models.rotations import DEG, R_from_rpy
 from models.simulator import simulate
 from models.trajectories import (
@@ -125,12 +125,9 @@ def test_product_of_exponentials_prediction_equals_the_motion_model(arm, rng):
     X[:, L.accel] = rng.normal(0, 1.0, (9, 3))
     f = tr.measurements.h_all(X, fr, np.arange(5), None).reshape(9, 5, 3)
     # the motion model evaluated afresh at each point (its joint rates held)
-    # (the filter's acceleration state is the chair's turning centre's: the base origin's is
-    # that plus its lever's, where the config gives the lever)
-    lever = arm.base_motion.base_from_turning_centre_m if arm.base_motion else (0.0, 0.0, 0.0)
     ms = MotionState(np.zeros(9), q + X[:, L.offset], np.tile(qd, (9, 1)), np.tile(qdd, (9, 1)),
                      R_from_rpy(X[:, L.roll], X[:, L.pitch], np.zeros(9)), np.tile(w, (9, 1)),
-                     np.tile(wd, (9, 1)), X[:, L.accel] + turning_lever_accel(w, wd, lever), 25.0)
+                     np.tile(wd, (9, 1)), X[:, L.accel], 25.0)
     ref = specific_force(arm, ms, list(tr.accel_names))
     # these rates make accelerations of several g; 1e-3 rad of spread changes them by ~1 mg
     assert np.max(np.abs(f - ref)) < 2e-3
