@@ -172,11 +172,6 @@ class BaseMotion:
 
     accel_sigma_mps2: float
     accel_tau_s: float
-    base_from_turning_centre_m: tuple[float, float, float] | None = None
-    """Where the arm's base origin is from the point the chair turns about (the mid-point of
-    its drive wheels), base axes, m: as the chair turns and rocks, the base is carried round
-    that point (``ω̇ x ρ + ω x (ω x ρ)``). None: not given (the tracker takes the base as
-    turning about its own origin)."""
 
 
 @dataclass(frozen=True)

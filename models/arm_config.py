@@ -225,17 +225,12 @@ class ArmSection(_Strict):
     ready_pose_deg: list[float]
 
 
-LeverM = Annotated[float, Field(ge=-10.0, le=10.0, allow_inf_nan=False)]
-
-
 class BaseMotionSection(_Strict):
     """The ``base_motion:`` block: how the base moves (its acceleration's spread and
-    correlation time, where it is not a wheelchair's) and, on a chair, where the arm's base
-    is from the point the chair turns about (m, base axes)."""
+    correlation time), where it is not a wheelchair."""
 
     accel_sigma_mps2: float = Field(gt=0.0, le=200.0)
     accel_tau_s: float = Field(gt=0.0, le=3600.0)
-    base_from_turning_centre_m: list[LeverM] | None = Field(default=None, min_length=3, max_length=3)
 
 
 class SiteSection(_Strict):
@@ -481,9 +476,7 @@ def build_arm(
         effects=tuple(parsed.effects),
         calibration=_calibration(parsed.calibration),
         base_motion=(None if parsed.base_motion is None else
-                     BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s,
-                                None if parsed.base_motion.base_from_turning_centre_m is None else
-                                tuple(float(v) for v in parsed.base_motion.base_from_turning_centre_m))),
+                     BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s)),
         magnetic_declination_deg=(None if parsed.site is None else parsed.site.magnetic_declination_deg),
     )
 

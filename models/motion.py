@@ -48,15 +48,6 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
-def turning_lever_accel(omega: np.ndarray, omega_dot: np.ndarray, lever_m: np.ndarray) -> np.ndarray:
-    """The acceleration of a point at ``lever_m`` from the point a rigid body turns about,
-    ``ω̇ x ρ + ω x (ω x ρ)`` (all in the same axes; over the last axis, broadcasting): the
-    arm's base carried round the chair's turning centre. (The compiled models use
-    :func:`models.chain_kernels._lever`, the same terms.)"""
-    rho = np.asarray(lever_m, float)
-    return cross(omega_dot, rho) + cross(omega, cross(omega, rho))
-
-
 def _vecT(R: np.ndarray, v: np.ndarray) -> np.ndarray:
     """``R^T @ v``."""
     return np.einsum("...ji,...j->...i", R, v)

@@ -34,7 +34,7 @@ import numpy as np
 from numba import njit
 
 from models.arm import ArmModel
-from models.chain_kernels import _lever, chain_table, motion_one, mount_table, pose_one, sensor_one
+from models.chain_kernels import chain_table, motion_one, mount_table, pose_one, sensor_one
 from models.kinematics import sensor_indices
 from models.rotations import GRAVITY_MPS2, skew_into
 
@@ -44,7 +44,7 @@ _skew_into = njit(cache=True, nogil=True, inline="always")(skew_into)
 # --------------------------------------------------------------------------------------
 # the frame
 @njit(cache=True, nogil=True)
-def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B, lever, motion, chain,
+def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B, motion, chain,
               axis_is_z, mounts, links, g_mps2):  # pragma: no cover - compiled
     """The kinematic frame of one instant: every field of :func:`fusion.tracking.tracker.make_frames`
     for K = 1, from the arm's constants (:class:`FrameConstants`).
@@ -54,16 +54,12 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
     angles are ``q_ref = enc_fit[0] + offset``; ``effect_joint (E,)``, ``effect_delta (E,)``
     the joint effects' changes of the geometric angles (rad), added in order:
     ``q_geom[effect_joint[e]] += effect_delta[e]``; ``omega_B``, ``omega_dot_B (3,)`` the
-    base's angular velocity (rad/s) and acceleration (rad/s²), base axes; ``lever (3,)`` the
-    base origin from the point the chair turns about (m, base axes: the base origin's own
-    acceleration is then ``ω̇ x ρ + ω x (ω x ρ)``, the lever terms of
-    :func:`models.chain_kernels._lever`; the filter's acceleration state is the turning
-    centre's). ``motion`` False: the rates and accelerations are taken as zero (no motion
-    compensation).
+    base's angular velocity (rad/s) and acceleration (rad/s²), base axes. ``motion`` False:
+    the rates and accelerations are taken as zero (no motion compensation).
 
     The equations are :mod:`models.chain_kernels`' (the same functions the batch models
     call): forward kinematics (:func:`models.chain_kernels.pose_one`), the outward recursion
-    from the base origin's lever acceleration (:func:`models.chain_kernels.motion_one`),
+    with the base origin's own acceleration zero (:func:`models.chain_kernels.motion_one`),
     and each sensor's pose and motion (:func:`models.chain_kernels.sensor_one`).
 
     Returns ``(q_ref (n,), offset_ref (n,), R_0S (S, 3, 3), motion_mps2 (S, 3), axes (n, 3),
@@ -92,23 +88,19 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
     zeros_n = np.zeros(n)
     w_B = np.zeros(3)
     wd_B = np.zeros(3)
-    a_B = np.zeros(3)
     qd, qdd = zeros_n, zeros_n
     if motion:
         qd, qdd = enc_fit[1], enc_fit[2]
         for a in range(3):
             w_B[a] = omega_B[a]
             wd_B[a] = omega_dot_B[a]
-        _, _, _, t0, t1, t2, u0, u1, u2 = _lever(w_B[0], w_B[1], w_B[2], wd_B[0], wd_B[1], wd_B[2],
-                                                 lever[0], lever[1], lever[2])
-        a_B[0], a_B[1], a_B[2] = t0 + u0, t1 + u1, t2 + u2
     om = np.empty((n + 1, 3))
     al = np.empty((n + 1, 3))
     ve = np.empty((n + 1, 3))
     ac = np.empty((n + 1, 3))
     v_o = np.empty((n, 3))
     a_o = np.empty((n, 3))
-    motion_one(p_0L, axes, origin, qd, qdd, w_B, wd_B, a_B, om, al, ve, ac, v_o, a_o)
+    motion_one(p_0L, axes, origin, qd, qdd, w_B, wd_B, np.zeros(3), om, al, ve, ac, v_o, a_o)
 
     R_0S = np.empty((S, 3, 3))
     acc = np.empty((S, 3))
@@ -132,13 +124,13 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
 
 
 @njit(cache=True, nogil=True)
-def frame_block(enc_fit, have, offset, effect_joint, effect_delta, omega_B, omega_dot_B, lever, motion,
-                chain, axis_is_z, mounts, links, g_mps2):  # pragma: no cover - compiled
+def frame_block(enc_fit, have, offset, effect_joint, effect_delta, omega_B, omega_dot_B, motion, chain,
+                axis_is_z, mounts, links, g_mps2):  # pragma: no cover - compiled
     """:func:`frame_one` at each of B instants, in one call (a run over a recording makes a
     block's frames at once): ``enc_fit (B, 3, n)``, ``omega_B``, ``omega_dot_B (B, 3)``,
     ``effect_delta (B, E)``, ``offset (n,)`` shared; ``have (B,)`` False: no frame at that
-    instant (its rows are left zero); ``lever (3,)`` shared. Returns :func:`frame_one`'s
-    fields stacked on a first axis of B (``omega_dot_norm (B,)``)."""
+    instant (its rows are left zero). Returns :func:`frame_one`'s fields stacked on a first
+    axis of B (``omega_dot_norm (B,)``)."""
     B = enc_fit.shape[0]
     n = chain.shape[0]
     S = mounts.shape[0]
@@ -157,8 +149,8 @@ def frame_block(enc_fit, have, offset, effect_joint, effect_delta, omega_B, omeg
     for b in range(B):
         if not have[b]:
             continue
-        f = frame_one(enc_fit[b], offset, effect_joint, effect_delta[b], omega_B[b], omega_dot_B[b], lever,
-                      motion, chain, axis_is_z, mounts, links, g_mps2)
+        f = frame_one(enc_fit[b], offset, effect_joint, effect_delta[b], omega_B[b], omega_dot_B[b], motion,
+                      chain, axis_is_z, mounts, links, g_mps2)
         q_ref[b] = f[0]
         offset_ref[b] = f[1]
         R_0S[b] = f[2]
@@ -210,10 +202,6 @@ class FrameConstants:
             else:
                 self._varying.append((k, e, th))
         self._zeros3 = np.zeros(3)
-        bm = arm.base_motion
-        self.lever_m = np.zeros(3) if bm is None or bm.base_from_turning_centre_m is None else \
-            np.asarray(bm.base_from_turning_centre_m, float)
-        """The base origin from the chair's turning centre (m, base axes; zero: not given)."""
 
     def fields(self, enc_fit: np.ndarray, offset: np.ndarray, omega_B: np.ndarray | None,
                omega_dot_B: np.ndarray | None, motion: bool = True) -> tuple:
@@ -227,8 +215,8 @@ class FrameConstants:
         delta = self.effect_delta
         if self._varying:
             delta = self._varying_deltas(enc_fit, offset, w, wd, motion)
-        out = frame_one(enc_fit, offset, self.effect_joint, delta, w, wd, self.lever_m, bool(motion),
-                        self.chain, self.axis_is_z, self.mounts, self.links, self.g_mps2)
+        out = frame_one(enc_fit, offset, self.effect_joint, delta, w, wd, bool(motion), self.chain,
+                        self.axis_is_z, self.mounts, self.links, self.g_mps2)
         offset_ref = out[1]
         offset_ref.setflags(write=False)
         return out[:10] + (np.float64(out[10]), None, out[11])
@@ -245,8 +233,8 @@ class FrameConstants:
             delta = delta.copy()
             for b in np.flatnonzero(have):
                 delta[b] = self._varying_deltas(enc_fit[b], offset, omega_B[b], omega_dot_B[b], motion)
-        out = frame_block(enc_fit, have, offset, self.effect_joint, delta, omega_B, omega_dot_B, self.lever_m,
-                          bool(motion), self.chain, self.axis_is_z, self.mounts, self.links, self.g_mps2)
+        out = frame_block(enc_fit, have, offset, self.effect_joint, delta, omega_B, omega_dot_B, bool(motion),
+                          self.chain, self.axis_is_z, self.mounts, self.links, self.g_mps2)
         out[1].setflags(write=False)
         return out[:11] + (None, out[11])
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from fusion.tracking.settings import G
 from models.arm import ArmModel
-from models.motion import MotionState, link_motion, sensor_motion, turning_lever_accel
+from models.motion import MotionState, link_motion, sensor_motion
 from models.rotations import skew
 
 
@@ -74,20 +74,14 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     """Kinematic frames for K instants: ``q_enc (K, n)`` encoder angles, ``offset (n,)`` or
     ``(K, n)``, joint rates/accelerations ``(K, n)``, base rates ``(K, 3)``. ``motion``
     False: as if nothing moved (no motion compensation). ``joint_effects`` (effect,
-    parameters) pairs turn the controller's angles into the geometric ones. The base origin
-    accelerates as the chair's turns carry it round their centre (the config's
-    ``base_motion.base_from_turning_centre_m``, :func:`models.motion.turning_lever_accel`)."""
+    parameters) pairs turn the controller's angles into the geometric ones."""
     q = q_enc + offset
     K = q.shape[0]
     if not motion:
         qd = qdd = np.zeros_like(q)
         omega_B = omega_dot_B = np.zeros((K, 3))
     eye = np.broadcast_to(np.eye(3), (K, 3, 3))
-    bm = arm.base_motion
-    a_B = (np.zeros((K, 3)) if bm is None or bm.base_from_turning_centre_m is None else
-           turning_lever_accel(np.asarray(omega_B, float), np.asarray(omega_dot_B, float),
-                               bm.base_from_turning_centre_m))
-    st = MotionState(np.zeros(K), q, qd, qdd, eye, omega_B, omega_dot_B, a_B, 25.0)
+    st = MotionState(np.zeros(K), q, qd, qdd, eye, omega_B, omega_dot_B, np.zeros((K, 3)), 25.0)
     if joint_effects:
         from models.effects import Context
 

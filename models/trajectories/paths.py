@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.motion import body_rates_from_rpy, cross, turning_lever_accel
+from models.motion import body_rates_from_rpy, cross
 from models.rotations import R_from_rpy
 
 
@@ -226,18 +226,6 @@ class ParkedBase(BasePath):
         return np.zeros((np.asarray(t).reshape(-1).shape[0], 3))
 
 
-CHAIR_LEVER_M = (0.25, -0.35, 0.45)
-"""Where a simulated chair carries the arm's base from its turning centre (chair axes, m)
-when the config does not say (its ``base_motion.base_from_turning_centre_m``)."""
-
-
-def chair_lever_m(arm) -> tuple[float, float, float]:
-    """The arm's base from its chair's turning centre: the config's, else :data:`CHAIR_LEVER_M`."""
-    bm = arm.base_motion
-    return CHAIR_LEVER_M if bm is None or bm.base_from_turning_centre_m is None else \
-        bm.base_from_turning_centre_m
-
-
 class DrivingChair(BasePath):
     """A power wheelchair: forward speed ``v(t)`` along its x axis and yaw rate ``r(t)``
     (both :class:`SmoothSteps`), its pitch and roll following the ground (ramps, cross
@@ -248,10 +236,10 @@ class DrivingChair(BasePath):
     """
 
     def __init__(self, speed: SmoothSteps, yaw_rate: SmoothSteps, pitch: SmoothSteps,
-                 roll: SmoothSteps, yaw0_rad: float = 0.0, lever_m=None):
+                 roll: SmoothSteps, yaw0_rad: float = 0.0, lever_m=(0.25, -0.35, 0.45)):
         self.speed, self.yaw_rate, self.pitch, self.roll = speed, yaw_rate, pitch, roll
         self.yaw0 = float(yaw0_rad)
-        self.lever = np.asarray(CHAIR_LEVER_M if lever_m is None else lever_m, float)
+        self.lever = np.asarray(lever_m, float)
         self._table = None
 
     def rpy(self, t):
@@ -271,7 +259,7 @@ class DrivingChair(BasePath):
         v, v1, _ = self.speed(t)
         ex = np.array([1.0, 0.0, 0.0])
         rho = self.lever
-        a = v1 * ex + v * cross(w, ex) + turning_lever_accel(w, wd, rho)
+        a = v1 * ex + v * cross(w, ex) + cross(wd, rho) + cross(w, cross(w, rho))
         return BaseMotion(R, w, wd, a)
 
     # position: a quadrature table (for plots and the finite-difference tests only)

@@ -85,29 +85,6 @@ def test_the_compiled_frame_equals_make_frames(arm, motion):
     check_against_make_frames(tr, np.random.default_rng(101), motion)
 
 
-def test_the_compiled_frame_carries_the_base_round_the_chair_s_turning_centre(arm):
-    """A config that says where the arm's base is from the chair's turning centre: the
-    compiled frame equals make_frames (which takes the base origin's acceleration from
-    ``turning_lever_accel``), and a sensor at the base origin (the IMU) feels the chair's
-    turn as ``ω̇ x ρ + ω x (ω x ρ)`` where it felt nothing before."""
-    from models.arm import BaseMotion
-
-    lever = (0.25, -0.35, 0.45)
-    levered = replace(arm, base_motion=BaseMotion(0.7, 5.0, lever))
-    tr = Tracker(levered)
-    check_against_make_frames(tr, np.random.default_rng(103), True)
-    fc, fc0 = FrameConstants(levered, tr.accel_names), FrameConstants(arm, tr.accel_names)
-    fit = np.zeros((3, arm.n_joints))
-    fit[0] = arm.ready_pose_rad
-    w, wd = np.array([0.0, 0.0, 0.8]), np.array([0.0, 0.0, 2.5])
-    imu = tr.accel_names.index(arm.imu.name)
-    a = fc.fields(fit, np.zeros(arm.n_joints), w, wd)[3][imu]
-    a0 = fc0.fields(fit, np.zeros(arm.n_joints), w, wd)[3][imu]
-    rho = np.array(lever)
-    np.testing.assert_allclose(a - a0, np.cross(wd, rho) + np.cross(w, np.cross(w, rho)), atol=1e-12)
-    assert np.linalg.norm(a - a0) > 0.5  # m/s²: the chair's turn, felt at the base
-
-
 def test_no_gyro_yet_is_a_base_at_rest(arm):
     """``omega_B``/``omega_dot_B`` None (no gyro sample yet) is the base not turning."""
     tr = Tracker(arm)
