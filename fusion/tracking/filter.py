@@ -99,7 +99,7 @@ class Tracker:
         # the base's own motion as the config describes it (a chair's by default)
         self.settings = st = (settings or TrackerSettings()).for_base(arm.base_motion)
         n = arm.n_joints
-        self.layout = L = StateLayout(n)
+        self.layout = L = StateLayout(n, velocity=st.base_speed_sigma_mps is not None)
         self.state_names = L.names(arm.joint_names)
         self.link_names = tuple(s.name for s in arm.link_accelerometers)
         self._has_imu = arm.imu is not None

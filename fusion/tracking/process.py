@@ -64,6 +64,11 @@ class ProcessModel:
         self.heading_scale_sigma = settings.gyro_scale_sigma
         """The gyro's scale error about the vertical (fraction, 1 sigma): the config's, where
         it holds one (:func:`fusion.tracking.calibrated.heading_scale_sigma`)."""
+        self._velocity_rate_s2 = 0.0
+        if layout.vel is not None:
+            # the velocity's oscillator, 1 / (τ_a τ_v) = σ_a² / σ_v² (s⁻²): its stationary spread
+            # is then σ_v and its acceleration's σ_a (:func:`process_points_tangent`)
+            self._velocity_rate_s2 = (settings.base_accel_sigma_mps2 / settings.base_speed_sigma_mps) ** 2
         self.last_points: tuple[np.ndarray, np.ndarray] | None = None
         self._decay: dict[float, float] = {}
         self._Q: dict = {}
@@ -100,8 +105,11 @@ class ProcessModel:
         L = self.layout
         decay = self._decay_of(dt)
         have_w = w is not None
+        vel, vel_gain = -1, 0.0
+        if L.vel is not None:  # the acceleration is a bounded velocity's: see _velocity_step
+            vel, vel_gain = L.vel.start, dt * self._velocity_rate_s2
         T, Y = process_points_tangent(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
-                                      L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay)
+                                      L.roll, L.yaw, L.n_joints + 6, L.n_joints + 2, decay, vel, vel_gain)
         self.last_points = (T, Y)  # the propagated points, in the tangent space and in Euler angles
         return T
 
