@@ -122,7 +122,7 @@ def _hand_trial(path: Path, seed: int = 3, rate_hz: float = 100.0, still_s: floa
     """A BROAD-format trial of a hand turning an IMU slowly (60-90 deg/s) and moving it a few
     cm (accelerations of about 1 m/s²), its gyro with a consumer part's errors: scale and
     axis misalignment of 0.1-0.3 % (what BROAD's own gyro shows against its reference:
-    0.1-0.8 %), a constant bias, white noise; the accelerometer and magnetometer exact but
+    0.1-1.4 %), a constant bias, white noise; the accelerometer and magnetometer exact but
     for their noise. World ENU (the field points north and down), reference exact."""
     rng = np.random.default_rng(seed)
     n = int((still_s + moving_s) * rate_hz)
