@@ -227,7 +227,8 @@ class ArmSection(_Strict):
 
 class BaseMotionSection(_Strict):
     """The ``base_motion:`` block: how the base moves (its acceleration's spread and
-    correlation time), where it is not a wheelchair."""
+    correlation time; optionally its speed's spread, where the speed is bounded), where it
+    is not a wheelchair."""
 
     accel_sigma_mps2: float = Field(gt=0.0, le=200.0)
     accel_tau_s: float = Field(gt=0.0, le=3600.0)

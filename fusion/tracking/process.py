@@ -79,8 +79,11 @@ class ProcessModel:
         :func:`fusion.tracking.tracker_kernels.process_points`): the gyro (minus each point's bias)
         turns the attitude exactly, the base's acceleration decays, offsets and bias stay.
         The points' attitude columns are Euler angles (the filter calls
-        :meth:`fx_tangent`)."""
+        :meth:`fx_tangent`, which alone carries a base velocity block)."""
         L = self.layout
+        if L.vel is not None:
+            raise ValueError("ProcessModel.fx: the Euler-angle path has no base velocity; a layout with "
+                             "one is propagated by fx_tangent")
         decay = self._decay_of(dt)
         have_w = w is not None
         return process_points(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,

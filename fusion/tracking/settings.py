@@ -90,9 +90,9 @@ class TrackerSettings:
     """The spread of the base's speed, where it is bounded (a hand carrying a sensor): the
     state then holds the base's velocity too, and its acceleration is that velocity's
     derivative (:func:`fusion.tracking.tracker_kernels._velocity_step`), so it averages to
-    zero over time however large it is. None (a chair, which may cruise
-    at any speed for minutes): no velocity, the acceleration alone (a config's
-    ``base_motion.speed_sigma_mps`` sets it, :meth:`for_base`)."""
+    zero over time however large it is. None (a chair, which may cruise at any speed for
+    minutes): no velocity, the acceleration alone (a config's ``base_motion.speed_sigma_mps``
+    sets it, :meth:`for_base`)."""
     still_gyro_dps: float = 0.5
     still_accel_g: float = 0.004
     still_tau_s: float = 0.3
@@ -221,7 +221,8 @@ class NotInitialisedError(RuntimeError):
 class StateLayout:
     """Where each block of the state is, for ``n_joints`` joints: the offsets, then roll,
     pitch, the base's acceleration (3), yaw, the gyro bias (3) and the IMU accelerometer's
-    bias (3); an index for a scalar block, a slice for the others."""
+    bias (3), then with ``velocity`` the base's velocity (3; ``vel`` None without); an
+    index for a scalar block, a slice for the others."""
 
     n_joints: int
     velocity: bool = False

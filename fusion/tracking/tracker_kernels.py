@@ -12,7 +12,8 @@ equations written in NumPy (``tools/bench_track_numpy.py``, the filterpy baselin
 
 The state layout (see :class:`fusion.tracking.tracker.StateLayout`): joint offsets ``0 … n-1``,
 roll, pitch, the base's linear acceleration (3), yaw, the gyro bias (3), the IMU
-accelerometer's bias (3). Kernels take the first index of each block.
+accelerometer's bias (3), and where the base's speed is bounded its velocity (3). Kernels
+take the first index of each block.
 
 Compiled once per machine and cached next to this file (``__pycache__``).
 """
@@ -202,10 +203,10 @@ def _velocity_step(X, T, i, dt, w, have_w, bias, accel, accel_decay, vel, vel_ga
     written into ``T``: in world axes ``v' = a`` and ``a' = -a / τ_a - v / (τ_a τ_v)``
     (``accel_decay = exp(-dt / τ_a)``, ``vel_gain = dt / (τ_a τ_v)``), held in the base's
     turning axes (each less ``ω ×`` itself, ``ω`` the point's gyro rates less its bias):
-    a damped oscillator for the velocity in the world,
-    whose acceleration averages to zero over time however large it is (a hand, or anything
-    whose speed is bounded, cannot accelerate one way for long), where a first-order
-    acceleration alone can hold a sustained acceleration (and so a tilt) indefinitely."""
+    a damped oscillator for the velocity in the world, whose acceleration averages to zero
+    over time however large it is (a hand, or anything whose speed is bounded, cannot
+    accelerate one way for long), where a first-order acceleration alone can hold a
+    sustained acceleration (and so a tilt) for as long as it likes."""
     wx = wy = wz = 0.0
     if have_w:
         wx, wy, wz = w[0] - X[i, bias], w[1] - X[i, bias + 1], w[2] - X[i, bias + 2]

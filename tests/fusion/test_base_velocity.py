@@ -89,6 +89,12 @@ def test_the_velocity_and_acceleration_spreads_are_the_configs_and_a_sustained_o
     assert bounded_deg < 1.0 and first_order_deg > 3.0  # 0.8 against 4.3 deg
 
 
+def test_the_euler_angle_process_path_refuses_a_layout_with_a_velocity_it_would_not_carry() -> None:
+    _, L, pm = _hand()
+    with pytest.raises(ValueError, match=r"ProcessModel\.fx: the Euler-angle path has no base velocity"):
+        pm.fx(np.zeros((1, L.size)), 0.01, np.zeros(3))
+
+
 def test_the_velocity_and_acceleration_are_world_vectors_held_in_the_turning_axes() -> None:
     # no decay, no oscillator: a world acceleration of 1 m/s² east and a speed of 0.5 m/s
     # north, the base turning about its z at 2 rad/s for 0.5 s (a whole radian): in the
