@@ -168,10 +168,14 @@ class BaseMotion:
     """How the base moves when it does, as the tracker models its own acceleration: a
     first-order Gauss-Markov process of steady-state spread ``accel_sigma_mps2`` and
     correlation time ``accel_tau_s``. Without one the tracker's settings hold a wheelchair's
-    (0.7 m/s², 5 s); an IMU held in a hand moves faster and more briefly."""
+    (0.7 m/s², 5 s); an IMU held in a hand moves faster and more briefly. With
+    ``speed_sigma_mps`` the base's speed is bounded too (a hand's, not a chair's that may
+    cruise for minutes): the acceleration is then a velocity's derivative, with that spread
+    (:attr:`fusion.tracking.settings.TrackerSettings.base_speed_sigma_mps`)."""
 
     accel_sigma_mps2: float
     accel_tau_s: float
+    speed_sigma_mps: float | None = None
 
 
 @dataclass(frozen=True)

@@ -227,10 +227,12 @@ class ArmSection(_Strict):
 
 class BaseMotionSection(_Strict):
     """The ``base_motion:`` block: how the base moves (its acceleration's spread and
-    correlation time), where it is not a wheelchair."""
+    correlation time; optionally its speed's spread, where the speed is bounded), where it
+    is not a wheelchair."""
 
     accel_sigma_mps2: float = Field(gt=0.0, le=200.0)
     accel_tau_s: float = Field(gt=0.0, le=3600.0)
+    speed_sigma_mps: float | None = Field(default=None, gt=0.0, le=100.0)
 
 
 class SiteSection(_Strict):
@@ -476,7 +478,8 @@ def build_arm(
         effects=tuple(parsed.effects),
         calibration=_calibration(parsed.calibration),
         base_motion=(None if parsed.base_motion is None else
-                     BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s)),
+                     BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s,
+                                parsed.base_motion.speed_sigma_mps)),
         magnetic_declination_deg=(None if parsed.site is None else parsed.site.magnetic_declination_deg),
     )
 

@@ -104,7 +104,8 @@ class Tracker:
         # heading is off by the same fraction each time; the compass shows by how much)
         self.gyro_scale_sigma = (calibrated.heading_scale_sigma(arm, model, st.gyro_scale_sigma)
                                  if self._has_imu else 0.0)
-        self.layout = L = StateLayout(n, gyro_scale=self.gyro_scale_sigma > 0.0)
+        self.layout = L = StateLayout(n, velocity=st.base_speed_sigma_mps is not None,
+                                      gyro_scale=self.gyro_scale_sigma > 0.0)
         self.state_names = L.names(arm.joint_names)
         self.link_names = tuple(s.name for s in arm.link_accelerometers)
         self.accel_names = self.link_names + ((arm.imu.name,) if self._has_imu else ())

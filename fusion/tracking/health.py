@@ -31,8 +31,13 @@ from fusion.tracking.settings import (
     S_STUCK,
     SENSOR_STATUS,
     STATUS_CODE,
+    G,
     TrackerSettings,
 )
+
+PLAUSIBLE_BASE_SIGMAS = 4.0
+"""A reading's magnitude may differ from the prediction's by this many sigmas of the base's
+own acceleration (a 3-D Gaussian's magnitude exceeds four sigmas about once in 1,000)."""
 
 
 class SensorHealth:
@@ -41,6 +46,13 @@ class SensorHealth:
     def __init__(self, names: tuple[str, ...], n_accel: int, settings: TrackerSettings):
         S, Sa = len(names), n_accel
         self.names, self.n_accel, self.settings = names, Sa, settings
+        self.plausible_g = max(settings.plausible_tolerance_g,
+                               PLAUSIBLE_BASE_SIGMAS * settings.base_accel_sigma_mps2 / G)
+        """How far a reading's magnitude may be from the prediction's before it is implausible
+        (g): :attr:`TrackerSettings.plausible_tolerance_g`, or four sigmas of the base's own
+        acceleration where that is more (a hand's 3 m/s², where a chair's 0.7 keeps the
+        setting's 0.35 g): a base that accelerates more than the filter predicts changes
+        every reading's magnitude, and that is motion, not a dead sensor."""
         self.seen = np.zeros(S, bool)
         self.last_t = np.full(S, -np.inf)
         self.counts = np.zeros((S, len(COUNTERS)), dtype=np.int64)
@@ -100,7 +112,6 @@ class SensorHealth:
         every accelerometer, in order; ``gate_l``: ``inn.gate_ok`` as a list, when the caller
         has it; ``rows``: each accelerometer's three rows; ``reacquire(sensor, t)``: a sensor
         rejected for longer than a bump lasts."""
-        st = self.settings
         k = len(sel)
         ix = slice(0, k) if full else sel  # plain slices where every sensor spoke
         if gate_l is None:
@@ -116,7 +127,7 @@ class SensorHealth:
             for c, s in zip(cl, sl, strict=True):
                 last[s] = c
         # |f| against |prediction|, sensor by sensor in plain floats (a handful of sensors)
-        tol = st.plausible_tolerance_g
+        tol = self.plausible_g
         implausible = [abs(math.sqrt(a * a + b * b + c * c) - math.sqrt(u * u + v * v + w * w)) > tol
                        for (a, b, c), (u, v, w) in zip(f.tolist(), zp.tolist(), strict=True)]
         gate_ok = inn.gate_ok[:k]

@@ -61,6 +61,11 @@ class ProcessModel:
                                  f"walk must be a positive number of deg/sqrt(s), got {deg!r}")
             rw[list(joint_names).index(name)] = float(deg)
         self._offset_rw_rad = rw * DEG
+        self._velocity_rate_s2 = 0.0
+        if layout.vel is not None:
+            # the velocity's oscillator, 1 / (τ_a τ_v) = σ_a² / σ_v² (s⁻²): its stationary spread
+            # is then σ_v and its acceleration's σ_a (:func:`process_points_tangent`)
+            self._velocity_rate_s2 = (settings.base_accel_sigma_mps2 / settings.base_speed_sigma_mps) ** 2
         self.last_points: tuple[np.ndarray, np.ndarray] | None = None
         self._decay: dict[float, float] = {}
         self._Q: dict = {}
@@ -71,8 +76,11 @@ class ProcessModel:
         :func:`fusion.tracking.tracker_kernels.process_points`): the gyro (minus each point's bias)
         turns the attitude exactly, the base's acceleration decays, offsets and bias stay.
         The points' attitude columns are Euler angles (the filter calls
-        :meth:`fx_tangent`)."""
+        :meth:`fx_tangent`, which alone carries a base velocity block)."""
         L = self.layout
+        if L.vel is not None:
+            raise ValueError("ProcessModel.fx: the Euler-angle path has no base velocity; a layout with "
+                             "one is propagated by fx_tangent")
         decay = self._decay_of(dt)
         have_w = w is not None
         return process_points(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
@@ -97,8 +105,12 @@ class ProcessModel:
         L = self.layout
         decay = self._decay_of(dt)
         have_w = w is not None
+        vel, vel_gain = -1, 0.0
+        if L.vel is not None:  # the acceleration is a bounded velocity's: see _velocity_step
+            vel, vel_gain = L.vel.start, dt * self._velocity_rate_s2
         T, Y = process_points_tangent(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
-                                      L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, decay)
+                                      L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, decay, vel,
+                                      vel_gain)
         self.last_points = (T, Y)  # the propagated points, in the tangent space and in Euler angles
         return T
 

@@ -84,6 +84,13 @@ class TrackerSettings:
     config's ``base_motion`` replaces it (:meth:`for_base`)."""
     base_accel_tau_s: float = 5.0
     """Its correlation time: how long an acceleration typically lasts."""
+    base_speed_sigma_mps: float | None = None
+    """The spread of the base's speed, where it is bounded (a hand carrying a sensor): the
+    state then holds the base's velocity too, and its acceleration is that velocity's
+    derivative (:func:`fusion.tracking.tracker_kernels._velocity_step`), so it averages to
+    zero over time however large it is. None (a chair, which may cruise at any speed for
+    minutes): no velocity, the acceleration alone (a config's ``base_motion.speed_sigma_mps``
+    sets it, :meth:`for_base`)."""
     still_gyro_dps: float = 0.5
     still_accel_g: float = 0.004
     still_tau_s: float = 0.3
@@ -198,8 +205,10 @@ class TrackerSettings:
         without one."""
         if base_motion is None:
             return self
+        speed = base_motion.speed_sigma_mps
         return replace(self, base_accel_sigma_mps2=float(base_motion.accel_sigma_mps2),
-                       base_accel_tau_s=float(base_motion.accel_tau_s))
+                       base_accel_tau_s=float(base_motion.accel_tau_s),
+                       base_speed_sigma_mps=None if speed is None else float(speed))
 
 
 class NotInitialisedError(RuntimeError):
@@ -210,12 +219,16 @@ class NotInitialisedError(RuntimeError):
 class StateLayout:
     """Where each block of the state is, for ``n_joints`` joints: the offsets, then roll,
     pitch, the base's acceleration (3), yaw, the gyro bias (3) and the IMU accelerometer's
-    bias (3), then, with ``gyro_scale``, the gyro's scale error about the base's z axis (a
-    fraction: the rate it reads is ``(1 + s)`` times the true one); an index for a scalar
-    block (``gyro_scale`` is -1 without it), a slice for the others."""
+    bias (3), then with ``velocity`` the base's velocity (3; ``vel`` None without), then
+    with ``gyro_scale`` the gyro's scale error about the base's z axis (a fraction: the rate
+    it reads is ``(1 + s)`` times the true one; ``scale`` -1 without); an index for a scalar
+    block, a slice for the others."""
 
     n_joints: int
+    velocity: bool = False
+    """A base velocity block after the others (:attr:`TrackerSettings.base_speed_sigma_mps`)."""
     gyro_scale: bool = False
+    """The gyro's scale about z as a state, last (:func:`fusion.tracking.calibrated.heading_scale_sigma`)."""
     offset: slice = field(init=False, compare=False, repr=False)
     roll: int = field(init=False, compare=False, repr=False)
     pitch: int = field(init=False, compare=False, repr=False)
@@ -223,6 +236,7 @@ class StateLayout:
     yaw: int = field(init=False, compare=False, repr=False)
     bias: slice = field(init=False, compare=False, repr=False)
     imu_bias: slice = field(init=False, compare=False, repr=False)
+    vel: slice | None = field(init=False, compare=False, repr=False)
     scale: int = field(init=False, compare=False, repr=False)
     size: int = field(init=False, compare=False, repr=False)
 
@@ -233,6 +247,8 @@ class StateLayout:
                             ("bias", 3), ("imu_bias", 3)):
             object.__setattr__(self, name, start if width is None else slice(start, start + width))
             start += 1 if width is None else width
+        object.__setattr__(self, "vel", slice(start, start + 3) if self.velocity else None)
+        start += 3 if self.velocity else 0
         object.__setattr__(self, "scale", start if self.gyro_scale else -1)
         object.__setattr__(self, "size", start + int(self.gyro_scale))
 
@@ -240,4 +256,5 @@ class StateLayout:
         return tuple([f"offset[{j}]" for j in joint_names] + ["roll", "pitch"]
                      + [f"accel_B[{a}]" for a in "xyz"] + ["yaw"] + [f"gyro_bias[{a}]" for a in "xyz"]
                      + [f"imu_accel_bias[{a}]" for a in "xyz"]
+                     + ([f"vel_B[{a}]" for a in "xyz"] if self.velocity else [])
                      + (["gyro_scale[z]"] if self.gyro_scale else []))

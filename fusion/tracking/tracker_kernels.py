@@ -12,7 +12,8 @@ equations written in NumPy (``tools/bench_track_numpy.py``, the filterpy baselin
 
 The state layout (see :class:`fusion.tracking.tracker.StateLayout`): joint offsets ``0 … n-1``,
 roll, pitch, the base's linear acceleration (3), yaw, the gyro bias (3), the IMU
-accelerometer's bias (3). Kernels take the first index of each block.
+accelerometer's bias (3), and where the base's speed is bounded its velocity (3). Kernels
+take the first index of each block.
 
 Compiled once per machine and cached next to this file (``__pycache__``).
 """
@@ -124,14 +125,19 @@ def _canonical_euler(A):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay):  # pragma: no cover
+def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay, vel=-1,
+                           vel_gain=0.0):  # pragma: no cover
     """:func:`process_points` for points whose attitude is in the filter's tangent space
     (:func:`points_from_tangent`), in one pass: each point's rotation ``exp([δ]x) R_0``,
     turned by its gyro rates, ``R' = R exp([w dt]x)``, taken back into the tangent space
     about the propagated central point ``R_0'``. Returns ``(T, Y)``: the propagated points
     in the tangent space (about ``R_0'``'s canonical Euler angles) and each as canonical
     Euler angles (the same rotations, for the measurement models: they use the angles'
-    sines and cosines, and wrap the heading). ``scale``: as :func:`process_points`."""
+    sines and cosines, and wrap the heading). ``scale``: as :func:`process_points`.
+
+    With a velocity block (``vel >= 0``: :attr:`fusion.tracking.settings.StateLayout.vel`)
+    the base's acceleration is the derivative of a bounded velocity
+    (:func:`_velocity_step`); without, it only decays."""
     N = X.shape[0]
     T = X.copy()
     Y = X.copy()
@@ -180,11 +186,40 @@ def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, scale, acce
             sn = math.sqrt(vx * vx + vy * vy + vz * vz)
             k = 1.0 if sn < 1e-12 else math.atan2(sn, c) / sn
             T[i, roll], T[i, roll + 1], T[i, yaw] = e0r + k * vx, e0p + k * vy, e0y + k * vz
-        for c3 in range(3):
-            v = X[i, accel + c3] * accel_decay
-            Y[i, accel + c3] = v
-            T[i, accel + c3] = v
+        if vel >= 0:
+            _velocity_step(X, T, i, dt, w, have_w, bias, accel, accel_decay, vel, vel_gain)
+            for c3 in range(3):
+                Y[i, accel + c3] = T[i, accel + c3]
+                Y[i, vel + c3] = T[i, vel + c3]
+        else:
+            for c3 in range(3):
+                v = X[i, accel + c3] * accel_decay
+                Y[i, accel + c3] = v
+                T[i, accel + c3] = v
     return T, Y
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _velocity_step(X, T, i, dt, w, have_w, bias, accel, accel_decay, vel, vel_gain):  # pragma: no cover
+    """Point ``i``'s base acceleration ``a`` and velocity ``v`` (both base axes) over ``dt``,
+    written into ``T``: in world axes ``v' = a`` and ``a' = -a / τ_a - v / (τ_a τ_v)``
+    (``accel_decay = exp(-dt / τ_a)``, ``vel_gain = dt / (τ_a τ_v)``), held in the base's
+    turning axes (each less ``ω ×`` itself, ``ω`` the point's gyro rates less its bias):
+    a damped oscillator for the velocity in the world, whose acceleration averages to zero
+    over time however large it is (a hand, or anything whose speed is bounded, cannot
+    accelerate one way for long), where a first-order acceleration alone can hold a
+    sustained acceleration (and so a tilt) for as long as it likes."""
+    wx = wy = wz = 0.0
+    if have_w:
+        wx, wy, wz = w[0] - X[i, bias], w[1] - X[i, bias + 1], w[2] - X[i, bias + 2]
+    vx, vy, vz = X[i, vel], X[i, vel + 1], X[i, vel + 2]
+    ax, ay, az = X[i, accel], X[i, accel + 1], X[i, accel + 2]
+    T[i, vel] = vx + dt * (ax - (wy * vz - wz * vy))
+    T[i, vel + 1] = vy + dt * (ay - (wz * vx - wx * vz))
+    T[i, vel + 2] = vz + dt * (az - (wx * vy - wy * vx))
+    T[i, accel] = ax * accel_decay - vel_gain * vx - dt * (wy * az - wz * ay)
+    T[i, accel + 1] = ay * accel_decay - vel_gain * vy - dt * (wz * ax - wx * az)
+    T[i, accel + 2] = az * accel_decay - vel_gain * vz - dt * (wx * ay - wy * ax)
 
 
 @njit(cache=True, nogil=True)
