@@ -112,7 +112,6 @@ class SensorHealth:
         every accelerometer, in order; ``gate_l``: ``inn.gate_ok`` as a list, when the caller
         has it; ``rows``: each accelerometer's three rows; ``reacquire(sensor, t)``: a sensor
         rejected for longer than a bump lasts."""
-        st = self.settings
         k = len(sel)
         ix = slice(0, k) if full else sel  # plain slices where every sensor spoke
         if gate_l is None:

@@ -61,11 +61,12 @@ def test_a_bad_speed_bound_is_refused_naming_the_key(tmp_path: Path) -> None:
     cfg = yaml.safe_load(Path(load_arm("broad_imu").source).read_text())
     cfg["base_motion"]["speed_sigma_mps"] = -1.0
     (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
-    with pytest.raises(ConfigError, match=r"base_motion\.speed_sigma_mps: Input should be greater than 0 \(got -1\.0\)"):
+    with pytest.raises(ConfigError,
+                       match=r"base_motion\.speed_sigma_mps: Input should be greater than 0 \(got -1\.0\)"):
         load_arm(tmp_path / "c.yaml")
 
 
-def test_the_velocity_and_acceleration_spreads_are_the_configs_and_a_sustained_one_cannot_hide_a_tilt() -> None:
+def test_the_velocity_and_acceleration_spread_as_configured_and_a_sustained_one_cannot_hide_a_tilt() -> None:
     st, L, pm = _hand()
     dt = 1.0 / RATE_HZ
     block = np.r_[np.arange(L.accel.start, L.accel.stop), np.arange(L.vel.start, L.vel.stop)]
@@ -84,7 +85,8 @@ def test_the_velocity_and_acceleration_spreads_are_the_configs_and_a_sustained_o
     # a first-order acceleration of the same spread and correlation time (no bound): the
     # mean of N samples of an AR(1) process
     r = np.exp(-dt / st.base_accel_tau_s)
-    var_mean = st.base_accel_sigma_mps2**2 / N**2 * (N * (1 + r) / (1 - r) - 2 * r * (1 - r**N) / (1 - r) ** 2)
+    var_mean = (st.base_accel_sigma_mps2**2 / N**2
+                * (N * (1 + r) / (1 - r) - 2 * r * (1 - r**N) / (1 - r) ** 2))
     first_order_deg = np.degrees(np.sqrt(var_mean) / GRAVITY_MPS2)
     assert bounded_deg < 1.0 and first_order_deg > 3.0  # 0.8 against 4.3 deg
 
@@ -155,7 +157,8 @@ def _hand_trial(path: Path, seed: int = 3, rate_hz: float = 100.0, still_s: floa
     f = np.einsum("nji,nj->ni", Rs, acc_w + [0.0, 0.0, GRAVITY_MPS2])
     mag = np.einsum("nji,j->ni", Rs, np.array([0.0, 16.0, -40.0]))
     M = np.eye(3) + np.array([[0.003, 0.002, -0.001], [-0.002, -0.003, 0.002], [0.001, -0.002, 0.003]])
-    gyr = w_true @ M.T + rng.normal(0, np.radians(0.01) * np.sqrt(rate_hz / 2), (n, 3)) + [0.002, -0.001, 0.0015]
+    noise_rad_s = np.radians(0.01) * np.sqrt(rate_hz / 2)
+    gyr = w_true @ M.T + rng.normal(0, noise_rad_s, (n, 3)) + [0.002, -0.001, 0.0015]
     acc = f + rng.normal(0, 0.0004 * GRAVITY_MPS2 * np.sqrt(rate_hz / 2), (n, 3))
     mag = mag + rng.normal(0, 0.3, (n, 3))
     # the reference, w x y z (ENU) from each rotation
