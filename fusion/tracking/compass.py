@@ -235,6 +235,7 @@ class Compass:
         floor_g = min(arm.calibration.imu_accel_floor_g, 1.0) if arm.imu is not None else 0.0
         self.tilt_var = ((math.asin(floor_g) * math.tan(min(abs(field.dip_rad), 1.4))) ** 2
                          if field is not None else 0.0)
+        self._fused_floor_var = 0.0  # the compass's biases at the last fused period (rad²)
         self.recovery_t = -np.inf
         self._sum = None
         self._n = 0
@@ -318,10 +319,14 @@ class Compass:
         the IMU's mount about the vertical and, while the compass is fused, the heading error
         the IMU accelerometer's unmodelled error makes through the tilt, and the errors of the
         arm's steel as modelled at the present pose and of the iron as estimated at the
-        present heading (biases for as long as the arm and the chair stay as they are)."""
-        if self.status != COMPASS_FUSED:
-            return self.mount_var
-        return self.mount_var + self.tilt_var + self.steel_sigma_rad**2 + self.iron_sigma_rad**2
+        present heading (biases for as long as the arm and the chair stay as they are); while
+        the gyro carries a heading the compass once set (``disturbed``, ``gyro_only``), those
+        of the last fused period."""
+        if self.status == COMPASS_FUSED:
+            self._fused_floor_var = self.tilt_var + self.steel_sigma_rad**2 + self.iron_sigma_rad**2
+        # once fused, the compass's biases stay in the heading while the gyro carries it
+        # (disturbed, gone quiet): the last fused heading held them, and the gyro turns it on
+        return self.mount_var + self._fused_floor_var
 
     def sigma_psi_ut2(self, count: int) -> float:
         """One averaged reading's noise variance per axis, µT²."""
@@ -382,7 +387,7 @@ class Compass:
                     "declination_rad": self.field.declination_rad},
                 "guard": None if self.guard is None else self.guard.snapshot(),
                 "iron": None if self.iron is None else self.iron.snapshot(),
-                "status": self.status}
+                "status": self.status, "fused_floor_var": self._fused_floor_var}
 
     @staticmethod
     def field_from(snap: dict) -> FieldReference | None:
@@ -396,6 +401,9 @@ class Compass:
         self.restore_iron(snap.get("iron"))
         if snap.get("heading_status") in STATUS_CODE:
             self.status = snap["heading_status"]
+        floor = snap.get("compass_floor_var")
+        if isinstance(floor, (int, float)) and math.isfinite(floor) and floor >= 0.0:
+            self._fused_floor_var = float(floor)
 
     def restore_iron(self, iron: dict | None) -> bool:
         """Start the iron's estimate from a saved one (the compass's calibration outlives the

@@ -33,6 +33,7 @@ def snapshot_of(tr) -> dict:
         "guard": c["guard"],
         "iron": c["iron"],
         "heading_status": c["status"],
+        "compass_floor_var": c["fused_floor_var"],
         "counters": tr.health.counts.tolist(),
         "still": tr.still.snapshot(),
         "shift": tr.slips.snapshot(),
