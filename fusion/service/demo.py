@@ -331,6 +331,8 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
         "samples": {"published": published, "received_by_serve": int(srv.get("samples", 0)),
                     "recorded": int(sum(rec.get("samples", {}).values())), "dropped": dropped,
                     "estimates_published": int(srv.get("estimates", 0)),
+                    # messages whose handling raised in the fusion node (logged, the node going on)
+                    "serve_errors": int(srv.get("errors", 0)),
                     "estimates_received": int(len(t)),
                     "estimates_recorded": int(sum(rec.get("estimates", {}).values()))},
         "latency": latency,

@@ -199,7 +199,9 @@ def summary_table(doc: dict[str, Any], ev: dict[str, Any]):
         f"fusion node, {s['recorded']} recorded; dropped: "
         + (", ".join(f"{k} {v}" for k, v in s["dropped"].items()) or "none"),
         f"estimates: {s['estimates_published']} published, {s['estimates_received']} received here, "
-        f"{s['estimates_recorded']} recorded",
+        f"{s['estimates_recorded']} recorded"
+        + (f"; [red]the fusion node raised on {s['serve_errors']} messages[/] (its log says where)"
+           if s.get("serve_errors") else ""),
         "sample→estimate latency: " + ("—" if lat is None else
                                        f"p50 {lat['p50_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms "
                                        f"(max {lat['max_ms']:.1f} ms, {lat['count']} estimates)"
