@@ -49,6 +49,7 @@ from fusion.identification.identify import (  # noqa: E402
     startup_correction,
     truth_values,
 )
+from fusion.identification.truth import installer_reference  # noqa: E402
 from fusion.startup.solve import (  # noqa: E402
     StartupPrior,
     StartupSettings,
@@ -56,7 +57,6 @@ from fusion.startup.solve import (  # noqa: E402
     readings_from_counts,
     solve_still,
 )
-from fusion.startup.static import find_static_segments  # noqa: E402
 from models.motion import MotionState  # noqa: E402
 from models.rotations import DEG, wrap_angle  # noqa: E402
 from models.sensor_models import stream_models  # noqa: E402
@@ -106,28 +106,6 @@ def inclinometer(rec, data, sigma_deg: float, seed: int) -> tuple[np.ndarray, fl
     tilt = np.array([np.interp(t, tb.t_s, tb.values[:, k]) for k in (0, 1)])
     sig = np.radians(sigma_deg)
     return tilt + np.random.default_rng([seed, 0x1C1]).normal(0.0, sig, 2), float(sig)
-
-
-def installer_reference(arm, rec, joints, sigma_deg: float, seed: int,
-                        true_effects: list[dict] | None = None) -> list[tuple]:
-    """What an installer's one-time references say (``calibrate sensors --reference``): each of
-    ``joints``' true geometric angle over the recording's first still segment (the controller's
-    angle through seed ``seed``'s true joint stage: zero offset, sag and play at the true base
-    tilt) plus N(0, ``sigma_deg``) (seeded), as ``(joint, angle_rad, sigma_rad, None)``."""
-    seg = find_static_segments(rec)[0]
-    model, x = true_model(arm, true_effects, realistic=true_effects is None, seed=seed)
-    out = []
-    tq, tb = rec.get("true_q").between(seg.t_start_s, seg.t_end_s), rec.get("true_base").between(
-        seg.t_start_s, seg.t_end_s)
-    rpy = tb.values.mean(0)
-    st = MotionState.static(tq.values.mean(0), rpy[0], rpy[1], rpy[2])
-    q_geom = model.context(st, x, (arm.link_accelerometers[0].name,)).q_geom[0]
-    rng = np.random.default_rng([seed, 0x5EF])
-    sig = np.radians(sigma_deg)
-    for j in joints:
-        k = arm.joint_names.index(j)
-        out.append((j, float(q_geom[k] + rng.normal(0.0, sig)), float(sig), None))
-    return out
 
 
 def calibrated_config(res, base_config: str = "wmra") -> dict:

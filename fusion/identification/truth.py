@@ -1,11 +1,15 @@
 """A fit against a simulation's truth (``REC.truth.json``): the true value of every model
-element, and each estimate's error in σ."""
+element, and each estimate's error in σ; and what a simulated installer's one-time
+references say (:func:`installer_reference`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from fusion.identification.result import Identification
+from fusion.startup.static import find_static_segments
+from models.motion import MotionState
+from models.simulator import build_model as true_model
 
 
 def truth_values(result: Identification, truth: dict) -> dict[str, float]:
@@ -38,3 +42,25 @@ def compare_with_truth(result: Identification, truth: dict) -> list[dict]:
         rows.append({"name": n, "estimate": float(result.x[i]), "sigma": float(result.sigma[i]),
                      "truth": tv[n], "z": float(z), "held": bool(result.held[i])})
     return rows
+
+
+def installer_reference(arm, rec, joints, sigma_deg: float, seed: int,
+                        true_effects: list[dict] | None = None) -> list[tuple]:
+    """What an installer's one-time references say (``calibrate sensors --reference``): each of
+    ``joints``' true geometric angle over the recording's first still segment (the controller's
+    angle through seed ``seed``'s true joint stage: zero offset, sag and play at the true base
+    tilt) plus N(0, ``sigma_deg``) (seeded), as ``(joint, angle_rad, sigma_rad, None)``."""
+    seg = find_static_segments(rec)[0]
+    model, x = true_model(arm, true_effects, realistic=true_effects is None, seed=seed)
+    out = []
+    tq, tb = rec.get("true_q").between(seg.t_start_s, seg.t_end_s), rec.get("true_base").between(
+        seg.t_start_s, seg.t_end_s)
+    rpy = tb.values.mean(0)
+    st = MotionState.static(tq.values.mean(0), rpy[0], rpy[1], rpy[2])
+    q_geom = model.context(st, x, (arm.link_accelerometers[0].name,)).q_geom[0]
+    rng = np.random.default_rng([seed, 0x5EF])
+    sig = np.radians(sigma_deg)
+    for j in joints:
+        k = arm.joint_names.index(j)
+        out.append((j, float(q_geom[k] + rng.normal(0.0, sig)), float(sig), None))
+    return out

@@ -115,7 +115,9 @@ def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladd
         f"<td>{ev['startup']['joints'][n]['sigma_deg']:.3f}</td><td>{esc(ev['startup']['joints'][n]['flag'])}</td>"
         f"<td>{tr['rms_error_deg'][n]:.3f}</td><td>{tr['max_error_deg'][n]:.3f}</td>"
         f"<td>{100 * tr['within_3_sigma'][n]:.0f} %</td>"
-        f"<td>{esc(', '.join(f'{k} {v}' for k, v in ev['flags_seen'][n].items()))}</td></tr>"
+        + ("<td>never ok</td><td>—</td>" if tr["from_first_ok"][n] is None else
+           f"<td>{tr['from_first_ok'][n]['t_s']:.1f}</td><td>{tr['from_first_ok'][n]['rms_error_deg']:.3f}</td>")
+        + f"<td>{esc(', '.join(f'{k} {v}' for k, v in ev['flags_seen'][n].items()))}</td></tr>"
         for n in ev["joint_names"])
     wb_html = "<p>The workbench was not run (--no-workbench).</p>"
     if diag is not None:
@@ -149,7 +151,8 @@ separate processes over Zenoh on 127.0.0.1.</p>
 <h2>Startup calibration</h2><p>{esc(ev['startup']['message'])} (t = {ev['startup']['t_s']:.2f} s)</p>
 <h2>Accuracy against the simulator's truth</h2>
 <table><tr><th>joint</th><th>startup error [deg]</th><th>startup σ [deg]</th><th>startup flag</th>
-<th>tracking RMS [deg]</th><th>max [deg]</th><th>within 3σ</th><th>flags seen (estimates)</th></tr>
+<th>tracking RMS [deg]</th><th>max [deg]</th><th>within 3σ</th>
+<th>first ok [s]</th><th>RMS from first ok [deg]</th><th>flags seen (estimates)</th></tr>
 {rows}</table>
 <p>Heading RMS error: {heading_html}.
 {tr['estimates']} joint states from t = {tr['t_start_s']:.2f} to {tr['t_end_s']:.2f} s.</p>
@@ -174,7 +177,7 @@ def summary_table(doc: dict[str, Any], ev: dict[str, Any]):
     tr = ev["tracking"]
     t = Table(title="armfusion demo: accuracy against the simulator's truth", title_justify="left")
     for col in ("joint", "startup error [deg]", "startup flag", "tracking RMS [deg]", "max [deg]",
-                "within 3σ", "flags seen"):
+                "within 3σ", "from first ok: t [s], RMS [deg]", "flags seen"):
         t.add_column(col, justify="left" if col in ("joint", "startup flag", "flags seen") else "right")
     for n in ev["joint_names"]:
         st = ev["startup"]["joints"][n]
@@ -184,6 +187,8 @@ def summary_table(doc: dict[str, Any], ev: dict[str, Any]):
         t.add_row(n, f"{st['error_deg']:+.2f} ± {st['sigma_deg']:.2f}", f"[{colour}]{st['flag']}[/]",
                   f"{tr['rms_error_deg'][n]:.2f}", f"{tr['max_error_deg'][n]:.2f}",
                   f"{100 * tr['within_3_sigma'][n]:.0f} %",
+                  "never ok" if tr["from_first_ok"][n] is None else
+                  f"{tr['from_first_ok'][n]['t_s']:.1f}, {tr['from_first_ok'][n]['rms_error_deg']:.2f}",
                   ", ".join(f"{k} {100 * v / total:.0f} %" for k, v in seen.items()))
     s = ev["samples"]
     lat = ev["latency"]
@@ -194,7 +199,9 @@ def summary_table(doc: dict[str, Any], ev: dict[str, Any]):
         f"fusion node, {s['recorded']} recorded; dropped: "
         + (", ".join(f"{k} {v}" for k, v in s["dropped"].items()) or "none"),
         f"estimates: {s['estimates_published']} published, {s['estimates_received']} received here, "
-        f"{s['estimates_recorded']} recorded",
+        f"{s['estimates_recorded']} recorded"
+        + (f"; [red]the fusion node raised on {s['serve_errors']} messages[/] (its log says where)"
+           if s.get("serve_errors") else ""),
         "sample→estimate latency: " + ("—" if lat is None else
                                        f"p50 {lat['p50_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms "
                                        f"(max {lat['max_ms']:.1f} ms, {lat['count']} estimates)"

@@ -292,7 +292,9 @@ class Tracker:
                 self.gyro_rates.push(t, gyro)
             health.mark_used(self._sidx[GYRO], t)
         if prepared is None:
-            frame = self._frame_now(t, gyro) if acc is not None else None
+            # (the compass's heading residual is computed through the frame too: a
+            # magnetometer read at an instant of its own needs one)
+            frame = self._frame_now(t, gyro) if acc is not None or mag is not None else None
             e = self.enc_rates.at(t)
         else:
             e, frame = prepared
@@ -349,7 +351,7 @@ class Tracker:
         if mag is not None:
             mi = self._sidx[MAG]
             self.health.seen[mi], self.health.last_t[mi] = True, t
-            mag = self.compass.average(t, mag[1]) if self.compass.listening else None
+            mag = self.compass.average(t, mag[1]) if self.compass.listening and frame is not None else None
             if mag is not None:
                 x, L = ukf._x, self.layout
                 mag = self.compass.prepare(t, mag[0], mag[1], float(x[L.roll]), float(x[L.pitch]),

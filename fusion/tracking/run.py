@@ -127,8 +127,11 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
             ke_c = ok_rows[ENC][c0:c1]
             kg_c = ok_rows[GYRO][c0:c1] if GYRO in ok_rows else np.full(c1 - c0, -1)
             gyro_c = gyro_B[np.maximum(kg_c, 0)] if gyro_B is not None else np.zeros((c1 - c0, 3))
+            km_c = ok_rows[MAG][c0:c1] if MAG in ok_rows else np.full(c1 - c0, -1)
+            # a frame wherever something is fused: the accelerometers, or the compass alone
             prepared = prepare_block(tr, times[c0:c1], q_enc_all[np.maximum(ke_c, 0)], ke_c >= 0, gyro_c,
-                                     kg_c >= 0, all_ok[c0:c1] | acc_ok[c0:c1].any(axis=1), x_block)
+                                     kg_c >= 0, all_ok[c0:c1] | acc_ok[c0:c1].any(axis=1) | (km_c >= 0),
+                                     x_block)
             for i in range(c0, c1):
                 r = i - c0
                 t = t_l[r]
@@ -162,7 +165,7 @@ def prepare_block(tr, t: np.ndarray, q_enc: np.ndarray, enc_has: np.ndarray, gyr
     """For a block of B instants ``t`` that the tracker ``tr``'s ``_instant`` will then take in
     order (its started filter's): the encoders' angles ``q_enc (B, n)`` and the gyro ``(B, 3)``
     (rad/s, base axes) where ``enc_has``/``gyro_has``, through the differentiators at once,
-    and the kinematic frame of each instant ``need_frame`` (those with accelerometers) made
+    and the kinematic frame of each instant ``need_frame`` (those with accelerometers or the compass) made
     as ``Tracker._frame_now`` makes it, with the offsets and gyro bias of ``x``, in one
     compiled call. Returns, per instant, the encoder fit at it
     (None before any encoder sample) and its frame (or None), for ``_instant``'s

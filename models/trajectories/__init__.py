@@ -27,6 +27,9 @@ Scenarios (``make_scenario(arm, name, …)``):
 - ``excitation``: a short sequence where everything moves at once (every joint, the
   chair spinning on the spot and rocking on a ramp, the temperature rising): what
   identification tests need to see every effect.
+- ``compass-turn``: the chair turns once on the spot (360° at 45 °/s) between two still
+  stretches, the arm parked at its ready pose: every heading seen once, what the
+  compass's iron needs (``calibrate sensors --compass-drive``).
 
 The motion profiles are quintic "minimum-jerk" blends between levels (continuous up to
 the acceleration), so accelerations and their derivatives stay finite and realistic.
@@ -45,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.arm import ArmModel
-from models.trajectories.daily import daily_use, excitation
+from models.trajectories.daily import compass_turn, daily_use, excitation
 from models.trajectories.paths import (
     BaseMotion,
     BasePath,
@@ -88,6 +91,8 @@ SCENARIOS: dict[str, ScenarioSpec] = {
                               "down and across both ways (separates the IMU's mount from the tilt)"),
     "daily-use": ScenarioSpec(daily_use, 600.0, "reaching while the chair drives, turns, takes ramps"),
     "excitation": ScenarioSpec(excitation, 60.0, "everything moves at once (for identification tests)"),
+    "compass-turn": ScenarioSpec(compass_turn, 14.8, "one turn on the spot (360° at 45 °/s), the arm "
+                                 "parked: the compass's iron (calibrate sensors --compass-drive)"),
 }
 
 
@@ -107,7 +112,7 @@ def make_scenario(arm: ArmModel, name: str, duration_s: float | None = None, see
 __all__ = [
     "RAMP_SLOPE", "RAMP_STANCES", "RENK_DURATION_S", "RENK_RATES_DEG_S", "SCENARIOS", "BaseMotion",
     "BasePath", "DrivingChair", "JointPath", "ParkedBase", "Scenario", "ScenarioSpec", "SinePath",
-    "SmoothSteps", "StepsBuilder", "WaypointPath", "daily_use", "excitation", "make_scenario",
+    "SmoothSteps", "StepsBuilder", "WaypointPath", "compass_turn", "daily_use", "excitation", "make_scenario",
     "min_jerk_duration", "random_still_poses", "renk_maneuver", "renk_ramp", "startup",
     "static_poses", "warm_up",
 ]

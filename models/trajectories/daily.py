@@ -1,6 +1,6 @@
-"""Scenarios where the arm and the chair move together: ``daily-use`` (reaching while the
-chair drives, turns and takes ramps) and ``excitation`` (everything at once, for
-identification)."""
+"""Scenarios where the chair moves: ``daily-use`` (reaching while the chair drives, turns
+and takes ramps), ``excitation`` (everything at once, for identification) and
+``compass-turn`` (one turn on the spot, the arm parked: what the compass's iron needs)."""
 
 from __future__ import annotations
 
@@ -153,3 +153,25 @@ def excitation(arm: ArmModel, duration_s: float, rng: np.random.Generator, still
                          float(rng.uniform(-np.pi, np.pi)))
     return Scenario("excitation", arm, duration_s, path, chair, warm_up(20.0, 6.0, 20.0),
                     [{"t_start_s": 0.0, "t_end_s": duration_s, "what": "everything moves"}])
+
+
+def compass_turn(arm: ArmModel, duration_s: float, rng: np.random.Generator, still_s: float = 3.0,
+                 turn_deg: float = 360.0, rate_deg_s: float = 45.0, ramp_s: float = 0.8) -> Scenario:
+    """The chair turns once on the spot on level ground (``turn_deg`` at ``rate_deg_s``, its
+    rate ramped up and down in ``ramp_s``) between two still stretches, the arm at its ready
+    pose throughout, from a random heading: the drive ``calibrate sensors --compass-drive``
+    learns the compass's hard and soft iron from (every heading seen once), which no parked
+    maneuver can. Its length at the defaults: 14.8 s; a longer ``duration_s`` stays still."""
+    r = rate_deg_s * DEG
+    cruise = max(0.0, turn_deg / rate_deg_s - ramp_s)
+    yaw = StepsBuilder(0.0).hold(still_s).move([r], ramp_s).hold(cruise).move([0.0], ramp_s)
+    t_end = yaw.t
+    yaw.hold(max(still_s, duration_s - t_end))
+    level = [StepsBuilder(0.0).hold(yaw.t) for _ in range(3)]  # speed, pitch, roll
+    chair = DrivingChair(level[0].build(), yaw.build(), level[1].build(), level[2].build(),
+                         float(rng.uniform(-np.pi, np.pi)))
+    joints = WaypointPath(StepsBuilder(arm.ready_pose_rad).hold(yaw.t).build())
+    events = [{"t_start_s": 0.0, "t_end_s": still_s, "what": "still"},
+              {"t_start_s": still_s, "t_end_s": round(t_end, 3),
+               "what": f"turn on the spot {turn_deg:.0f}° at {rate_deg_s:g}°/s"}]
+    return Scenario("compass-turn", arm, duration_s, joints, chair, warm_up(), events)

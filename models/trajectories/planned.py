@@ -52,6 +52,13 @@ class PlannedManeuver:
             t += float(self.dwell_s[k])
         return out
 
+    def until(self, duration_s: float) -> PlannedManeuver:
+        """The maneuver's first poses, as many as end their dwell within ``duration_s``
+        seconds (a shorter maneuver of the same poses; at least the first)."""
+        ends = np.array([end for _, _, end in self.schedule()])
+        k = max(1, int(np.sum(ends <= duration_s + 1e-9)))
+        return PlannedManeuver(self.joint_names, self.poses_rad[:k], self.dwell_s[:k], self.move_s[:k - 1])
+
     def as_dict(self) -> dict[str, Any]:
         """The maneuver file's content (degrees and seconds, rounded to what a controller needs)."""
         return {"joints": list(self.joint_names),

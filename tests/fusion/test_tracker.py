@@ -740,6 +740,34 @@ def test_the_gyro_s_scale_about_the_vertical_is_learnt_from_the_compass_after_tu
     assert start_from_recording(arm, rec, prior_q_rad=POSE + 0.05)[0].gyro_scale() is None
 
 
+def test_a_known_compass_read_at_instants_of_its_own_is_fused_without_an_error(arm):
+    """Drivers read each device at an instant of its own (``armfusion drivers --fake``, a
+    real bus): the magnetometer's samples then arrive with no accelerometer beside them. With
+    a config whose compass is known (the iron a turn of the chair gave), every such sample is
+    fused (the demo's fusion node raised on each of them: 536 errors in a minute, the heading
+    left gyro-only), the heading within a degree and inside its sigma."""
+    true_iron_ut = [14.0, -14.0, 5.0]
+    truth = [{"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": true_iron_ut}}]
+    known = ({**truth[0], "sigma": {"offset_ut": [0.3, 0.3, 0.3]}},)
+    sp = StepsBuilder(0.0).hold(6.0).move([0.8], 3.0).hold(6.0).move([0.0], 3.0).hold(2.0)
+    flat = StepsBuilder(0.0).build()
+    rec, _ = simulate(arm, scenario(arm, 20.0, still_then(POSE, 20.0), DrivingChair(sp.build(), flat, flat,
+                                                                                       flat, 1.1)),
+                      seed=4, effects=truth)
+    mag = rec.get("imu_mag")
+    own = Stream(mag.name, mag.kind, mag.t_s + 0.003, mag.values, mag.channels)  # 3 ms after the others
+    rec = Recording({**rec.streams, "imu_mag": own}, rec.meta)
+    tr, _ = start_from_recording(replace(arm, effects=known), rec, prior_q_rad=POSE + 0.05)
+    run = tr.run(rec)
+    assert tr.compass.iron is None  # the config's compass is known: fused as it is
+    assert np.all(run.heading_status[run.t_s > run.t_s[0] + 1.0] == 0)  # compass_fused throughout
+    err = np.abs(run.yaw_error_rad)
+    scored = np.isfinite(err)  # (the last compass sample comes after the truth's end)
+    assert scored.mean() > 0.99
+    err, sig = err[scored], run.rpy_sigma_rad[scored, 2]
+    assert np.degrees(err.max()) < 1.0 and np.all(err <= 3 * sig)
+
+
 def test_a_calibrated_hard_and_soft_iron_are_undone_and_the_heading_is_found(arm):
     """The same 20 µT of hard iron, with soft iron stretching the field by a few per cent,
     now identified by a maneuver that turned the chair (known to ±0.3 µT and ±0.005): the

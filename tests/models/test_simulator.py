@@ -275,3 +275,19 @@ def test_the_plot_script_draws_a_simulated_recording(wmra, tmp_path):
     out = plot_recording(rec, tmp_path / "rec.png", wmra, truth)
     data = out.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 50_000
+
+
+def test_the_compass_turn_turns_the_chair_once_on_the_spot_while_the_arm_stays_parked(wmra):
+    """``compass-turn``: every heading seen once (360 deg), no drive, the arm at its ready pose
+    and still, the chair still before and after the turn."""
+    sc = make_scenario(wmra, "compass-turn", seed=2)
+    assert sc.duration_s == pytest.approx(14.8)
+    t = np.linspace(0.0, sc.duration_s, 3001)
+    st = sc.state(t)
+    assert np.allclose(st.q_rad, wmra.ready_pose_rad) and np.abs(st.qd_rad_s).max() == 0.0
+    turned = sc.base.yaw_rate.integral(np.array([sc.duration_s]))[0, 0]
+    assert np.degrees(turned) == pytest.approx(360.0, abs=1e-6)
+    assert np.abs(sc.base.speed(t)[0]).max() == 0.0
+    still = (t < 3.0) | (t > sc.duration_s - 3.0)
+    assert np.abs(st.omega_B_rad_s[still]).max() < 1e-12
+    assert np.degrees(np.abs(st.omega_B_rad_s[:, 2]).max()) == pytest.approx(45.0, rel=1e-6)
