@@ -2,7 +2,7 @@
 parameters best known in the time given, and the σ they (and each joint's startup) will have.
 
     armfusion plan-maneuver --config wmra [--duration 60] [--out M.yaml] [--effects all]
-        [--criterion D|E] [--focus all|startup] [--seed 0] [--json]
+        [--criterion D|E|startup] [--focus all|startup] [--seed 0] [--json]
 
 Writes ``M.yaml``: the poses (degrees), each one's move time and dwell, the settings the plan
 kept to (joint limits, the unlock move's largest move, peak joint rate, tool speed), and the
@@ -64,7 +64,8 @@ def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None =
                  "gauges_left_out": list(plan.gauges),
                  "checks": {"joint_limits": "every pose inside [min_deg, max_deg]",
                             "max_move_deg": st.max_move_deg, "peak_rate_deg_s": st.peak_rate_deg_s,
-                            "max_tool_speed_mps": st.max_tool_speed_mps, "chair": "parked"}},
+                            "max_tool_speed_mps": st.max_tool_speed_mps, "chair": "parked"},
+                 "dwell_choices_s": list(st.dwell_choices_s) or [st.dwell_s]},
         "predicted": {
             "note": "the fit's sigma at the priors (identifiability analysis and consider covariance as "
                     "calibrate sensors computes them; a stream fitted worse than its noise would scale "
@@ -103,8 +104,9 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the maneuver file (YAML).")] = None,
         effects: Annotated[str, typer.Option("--effects", help="The effects to calibrate, as calibrate "
                                              "sensors --effects (default all).")] = "all",
-        criterion: Annotated[str, typer.Option("--criterion", help="D (log det of the information) or "
-                                               "E (its smallest eigenvalue).")] = "D",
+        criterion: Annotated[str, typer.Option("--criterion", help="D (log det of the information), "
+                                               "E (its smallest eigenvalue) or startup (the joints' "
+                                               "linearised startup variances).")] = "D",
         focus: Annotated[str, typer.Option("--focus", help="all: every element but the gauges; startup: "
                                            "those the startup uses.")] = "all",
         seed: Annotated[int, typer.Option("--seed", help="The candidates' seed.")] = 0,
