@@ -3,7 +3,7 @@ the startup after each, on several realistic arms. Writes its section of docs/be
 (``--out FILE``: to that file instead; ``--quick``: neither unless ``--out``).
 
     python tools/bench_maneuver.py [--seeds 10] [--duration 60] [--renk-duration 300]
-        [--poses 200] [--out FILE] [--figure docs/img/maneuver_sigma.png] [--quick]
+        [--poses 200] [--jobs 1] [--out FILE] [--figure docs/img/maneuver_sigma.png] [--quick]
 
 1. ``armfusion plan-maneuver --config wmra --duration D`` (the same functions), once: the plan
    does not depend on the arm's true errors, only on the config's priors;
@@ -26,9 +26,12 @@ drawn; a smoke run of well under a minute).
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +95,39 @@ def fit_and_start(arm, seed, scenario, duration_s, effects, q, tilt, near, noise
 def mean_temperature_c(scenario) -> float:
     """The electronics' mean temperature over a maneuver (the temperature it calibrates at)."""
     return float(np.mean(scenario.temperature(np.linspace(0.0, scenario.duration_s, 401))))
+
+
+def run_seed(arm, m, model, pred, effects, renk_duration, q, tilt, near, seed: int) -> dict:
+    """Seed ``seed``: the plan ``m`` and ``renk-maneuver`` played by its realistic arm, fitted,
+    and the startup after each at 25 °C and at the maneuver's mean temperature. Per maneuver:
+    (its results row, its elements beyond 4σ, that temperature, a line to print)."""
+    sc = planned_scenario(arm, m, np.random.default_rng([seed, 0x5CE]))
+    renk = make_scenario(arm, "renk-maneuver", renk_duration, seed)
+    out = {}
+
+    def per_joint(rows):
+        return ", ".join(f"{r['joint']} {r['rms_ok_deg']:.3f}/{r['median_sigma_deg']:.3f}" for r in rows)
+
+    for key, scen, dur in (("planned", sc, m.duration_s), ("renk", "renk-maneuver", renk_duration)):
+        temp = mean_temperature_c(sc if key == "planned" else renk)
+        res, rows, starts, t_fit = fit_and_start(arm, seed, scen, dur, effects, q, tilt, near,
+                                                 [seed, 0x57], true_entries(arm, seed, model), (25.0, temp))
+        start = starts[0]
+        z = np.array([r["z"] for r in rows])
+        ratio = sigma_ratio(pred, res) if key == "planned" else np.array([np.nan])
+        worst = max((r["median_sigma_deg"] for r in start if r["ok_pct"] > 0), default=np.nan)
+        beyond = ", ".join(f"{r['name']} {r['z']:+.1f}" for r in rows if abs(r["z"]) > 3)
+        wrong = ", ".join(f"{r['joint']} {r['wrong_4sigma']} (RMS {r['rms_ok_deg']:.3f}°)"
+                          for r in start if r["wrong_4sigma"])
+        text = (f"seed {seed} {key}: {np.mean(np.abs(z) <= 3) * 100:.1f} % within 3σ, "
+                f"{int(np.sum(np.abs(z) > 5))} beyond 5σ, worst startup σ {worst:.4f}°, "
+                f"fit {t_fit:.0f} s ({res.iterations} Jacobians); beyond 3σ: {beyond or 'none'}; "
+                f"startup ok answers beyond 4σ: {wrong or 'none'}; at 25 °C: "
+                + per_joint(start) + f"; at {temp:.1f} °C: " + per_joint(starts[1]))
+        print(text, flush=True)
+        out[key] = ((z, start, t_fit, res.iterations, ratio, starts[1]),
+                    [(seed, r["name"], r["z"]) for r in rows if abs(r["z"]) > 4], temp, text)
+    return out
 
 
 def sigma_ratio(pred, res) -> np.ndarray:
@@ -170,6 +206,7 @@ def main(argv=None) -> None:
     ap.add_argument("--poses", type=int, default=200)
     ap.add_argument("--effects", default="all")
     ap.add_argument("--criterion", default="D", choices=list(CRITERIA))
+    ap.add_argument("--jobs", type=int, default=1, help="seeds run at once, each in its own process")
     ap.add_argument("--out", type=Path, default=None, help="write the markdown section to this file")
     ap.add_argument("--figure", type=Path, default=None, help="draw the predicted σ against length here")
     ap.add_argument("--quick", action="store_true", help="1 seed, 30 s against 60 s, 30 poses, the "
@@ -192,33 +229,20 @@ def main(argv=None) -> None:
     rng_p = np.random.default_rng(7)
     q, tilt = draw_poses(arm, a.poses, rng_p)
     near = [StartupPrior.saved_pose(p, sigma_deg=10.0) for p in q + rng_p.normal(0, 10 * DEG, q.shape)]
-    results = {"planned": [], "renk": []}
     temps = {}
+    results = {"planned": [], "renk": []}
     beyond4 = {"planned": [], "renk": []}
-    for seed in range(1, a.seeds + 1):
-        sc = planned_scenario(arm, m, np.random.default_rng([seed, 0x5CE]))
-        renk = make_scenario(arm, "renk-maneuver", a.renk_duration, seed)
-        for key, scen, dur in (("planned", sc, m.duration_s), ("renk", "renk-maneuver", a.renk_duration)):
-            temps[key] = mean_temperature_c(sc if key == "planned" else renk)
-            res, rows, starts, t_fit = fit_and_start(arm, seed, scen, dur, a.effects, q, tilt, near,
-                                                     [seed, 0x57], true_entries(arm, seed, model),
-                                                     (25.0, temps[key]))
-            start = starts[0]
-            z = np.array([r["z"] for r in rows])
-            ratio = sigma_ratio(pred, res) if key == "planned" else np.array([np.nan])
-            results[key].append((z, start, t_fit, res.iterations, ratio, starts[1]))
-            beyond4[key] += [(seed, r["name"], r["z"]) for r in rows if abs(r["z"]) > 4]
-            worst = max((r["median_sigma_deg"] for r in start if r["ok_pct"] > 0), default=np.nan)
-            beyond = ", ".join(f"{r['name']} {r['z']:+.1f}" for r in rows if abs(r["z"]) > 3)
-            wrong = ", ".join(f"{r['joint']} {r['wrong_4sigma']} (RMS {r['rms_ok_deg']:.3f}°)"
-                              for r in start if r["wrong_4sigma"])
-            print(f"seed {seed} {key}: {np.mean(np.abs(z) <= 3) * 100:.1f} % within 3σ, "
-                  f"{int(np.sum(np.abs(z) > 5))} beyond 5σ, worst startup σ {worst:.4f}°, "
-                  f"fit {t_fit:.0f} s ({res.iterations} Jacobians); beyond 3σ: {beyond or 'none'}; "
-                  f"startup ok answers beyond 4σ: {wrong or 'none'}; at {temps[key]:.1f} °C: "
-                  + ", ".join(f"{r['joint']} {r['rms_ok_deg']:.3f}/{r['median_sigma_deg']:.3f}"
-                              for r in starts[1]),
-                  flush=True)
+    job = partial(run_seed, arm, m, model, pred, a.effects, a.renk_duration, q, tilt, near)
+    if a.jobs > 1:
+        with ProcessPoolExecutor(a.jobs, mp_context=multiprocessing.get_context("fork")) as ex:
+            done = list(ex.map(job, range(1, a.seeds + 1)))
+    else:
+        done = [job(seed) for seed in range(1, a.seeds + 1)]
+    for out in done:
+        for key, (res_row, b4, temp, _) in out.items():
+            results[key].append(res_row)
+            beyond4[key] += b4
+            temps[key] = temp
     lines = ["## The planned self-calibration maneuver against renk-maneuver (`tools/bench_maneuver.py`"
              + (" --quick" if a.quick else "") + ")", "",
              f"`plan-maneuver --duration {a.duration:g} --criterion {a.criterion}` on the shipped WMRA "

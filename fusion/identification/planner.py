@@ -19,9 +19,12 @@ for the arm's controller (or the simulator) to play.
   that pass the unlock move's checks (:func:`fusion.startup.moves.moves_within_limits`:
   inside the limits, at most 45° per joint), a peak joint rate and a tool speed for a person
   beside the arm (:attr:`PlanSettings.max_tool_speed_mps`); each scored by its gain in the
-  criterion per second of its move and dwell: D-optimal ``log det`` (by the determinant
-  lemma, ``log det(I + w Jc A⁻¹ Jcᵀ)``) or E-optimal (the smallest eigenvalue of ``A``).
-  The best is appended until the time is spent.
+  criterion per second of its move and dwell, held each of :attr:`PlanSettings.dwell_choices_s`:
+  D-optimal ``log det`` (by the determinant lemma, ``log det(I + w Jc A⁻¹ Jcᵀ)``),
+  E-optimal (the smallest eigenvalue of ``A``) or ``startup`` (:func:`_startup_rows`: the
+  joints' startup variances, linearised at random still poses, ``noise + gᵀA⁻¹g``; the sum
+  of their logs, by Woodbury per candidate). The best pose and dwell are appended until the
+  time is spent.
 * **Predicted σ** (:func:`predict_maneuver`): the maneuver played noise-free by the simulator
   at the priors, turned into the fit's data as a recording would be
   (:func:`~fusion.identification.data.data_from_recording`: the moves count too), the
