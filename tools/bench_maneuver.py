@@ -3,7 +3,8 @@ the startup after each, on several realistic arms. Writes its section of docs/be
 (``--out FILE``: to that file instead; ``--quick``: neither unless ``--out``).
 
     python tools/bench_maneuver.py [--seeds 10] [--duration 60] [--renk-duration 300]
-        [--poses 200] [--jobs 1] [--out FILE] [--figure docs/img/maneuver_sigma.png] [--quick]
+        [--poses 200] [--dwells 1,1.5,2,3] [--jobs 1] [--out FILE]
+        [--figure docs/img/maneuver_sigma.png] [--quick]
 
 1. ``armfusion plan-maneuver --config wmra --duration D`` (the same functions), once: the plan
    does not depend on the arm's true errors, only on the config's priors;
@@ -206,6 +207,8 @@ def main(argv=None) -> None:
     ap.add_argument("--poses", type=int, default=200)
     ap.add_argument("--effects", default="all")
     ap.add_argument("--criterion", default="D", choices=list(CRITERIA))
+    ap.add_argument("--dwells", default="", help="the dwells each pose may be held, s (e.g. 1,1.5,2,3); "
+                                                 "default: every pose 2 s")
     ap.add_argument("--jobs", type=int, default=1, help="seeds run at once, each in its own process")
     ap.add_argument("--out", type=Path, default=None, help="write the markdown section to this file")
     ap.add_argument("--figure", type=Path, default=None, help="draw the predicted σ against length here")
@@ -217,7 +220,8 @@ def main(argv=None) -> None:
     arm = load_arm("wmra")
     cfg = read_yaml(resolve_config_path("wmra"))
     model = build_model(arm, a.effects)
-    st = PlanSettings(duration_s=a.duration, criterion=a.criterion)
+    dwells = tuple(float(v) for v in a.dwells.split(",") if v.strip())
+    st = PlanSettings(duration_s=a.duration, criterion=a.criterion, dwell_choices_s=dwells)
     t0, c0 = time.perf_counter(), time.process_time()
     plan = plan_maneuver(model, st)
     t_plan, t_plan_cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -245,7 +249,8 @@ def main(argv=None) -> None:
             temps[key] = temp
     lines = ["## The planned self-calibration maneuver against renk-maneuver (`tools/bench_maneuver.py`"
              + (" --quick" if a.quick else "") + ")", "",
-             f"`plan-maneuver --duration {a.duration:g} --criterion {a.criterion}` on the shipped WMRA "
+             f"`plan-maneuver --duration {a.duration:g} --criterion {a.criterion}"
+             + (f" --dwells {a.dwells}" if dwells else "") + "` on the shipped WMRA "
              f"config, `--effects {a.effects}`: {len(m.poses_rad)} poses, {m.duration_s:.1f} s, planned in "
              f"{t_plan:.0f} s ({t_plan_cpu:.0f} s of CPU); against `renk-maneuver` for "
              f"{a.renk_duration:g} s. "

@@ -301,3 +301,13 @@ def test_plan_settings_refuse_bad_dwell_choices_and_startup_poses():
         PlanSettings(startup_poses=0).check()
     with pytest.raises(ValueError, match="criterion must be one of D, E, startup, not 'A'"):
         PlanSettings(criterion="A").check()
+
+
+def test_plan_maneuver_refuses_bad_dwells_by_option():
+    from typer.testing import CliRunner
+
+    from fusion.cli.main import app
+
+    r = CliRunner().invoke(app, ["plan-maneuver", "--dwells", "1,x" * 30])
+    assert r.exit_code == 2
+    assert "--dwells: expected seconds separated by commas, got '1,x1,x1,x1,x1,x1,x1,x1,x1,x1,x'" in r.output
