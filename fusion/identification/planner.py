@@ -105,8 +105,9 @@ class PlanSettings:
     dwell_choices_s: tuple[float, ...] = ()
     """The dwells each candidate pose is scored with (the best gain per second of move and
     dwell wins); empty (the default): every later pose is held ``dwell_s``. With (1, 1.5, 2,
-    3) a D-optimal 60 s plan on the WMRA holds 14 poses mostly 1 s each instead of 12 poses
-    2 s each and its worst joint's predicted startup σ falls from 0.20° to 0.17°, but on
+    3) a D-optimal 60 s plan on the WMRA holds 15 poses, most of them 1 s, instead of 13
+    held 2 s (the start's 5 s counted), and its worst joint's predicted startup σ falls
+    from 0.20° to 0.17°, but on
     seed 2's realistic arm its fit put the compass's elements (soft iron, the IMU's mount
     about z, the arm's steel) 4-11σ off, where the 2 s plan's were within 3σ: not the
     default until that is understood (``docs/identification.md``)."""
