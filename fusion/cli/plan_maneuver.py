@@ -2,7 +2,7 @@
 parameters best known in the time given, and the σ they (and each joint's startup) will have.
 
     armfusion plan-maneuver --config wmra [--duration 60] [--out M.yaml] [--effects all]
-        [--criterion D|E] [--focus all|startup] [--seed 0] [--json]
+        [--criterion D|E|startup] [--focus all|startup] [--seed 0] [--dwells 1,1.5,2,3] [--json]
 
 Writes ``M.yaml``: the poses (degrees), each one's move time and dwell, the settings the plan
 kept to (joint limits, the unlock move's largest move, peak joint rate, tool speed), and the
@@ -37,12 +37,13 @@ from models.trajectories.planned import PlannedManeuver
 
 def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None = "all",
              criterion: str = "D", focus: str = "all", seed: int = 0, startup_poses: int = 64,
-             candidates: int = 192, progress=None) -> dict[str, Any]:
+             candidates: int = 192, progress=None, dwells_s: tuple[float, ...] = ()) -> dict[str, Any]:
     """Plan, check, predict: the maneuver file's content (``maneuver`` is the plan itself)."""
     from fusion.cli.calibrate_sensors import build_model
 
     arm = load_arm(config)
-    st = PlanSettings(duration_s=duration_s, criterion=criterion, focus=focus, seed=seed, candidates=candidates)
+    st = PlanSettings(duration_s=duration_s, criterion=criterion, focus=focus, seed=seed, candidates=candidates,
+                      dwell_choices_s=tuple(dwells_s))
     st.check()
     model = build_model(arm, effects)
     say = progress or (lambda _f, _m=None: None)
@@ -64,7 +65,8 @@ def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None =
                  "gauges_left_out": list(plan.gauges),
                  "checks": {"joint_limits": "every pose inside [min_deg, max_deg]",
                             "max_move_deg": st.max_move_deg, "peak_rate_deg_s": st.peak_rate_deg_s,
-                            "max_tool_speed_mps": st.max_tool_speed_mps, "chair": "parked"}},
+                            "max_tool_speed_mps": st.max_tool_speed_mps, "chair": "parked"},
+                 "dwell_choices_s": list(st.dwell_choices_s) or [st.dwell_s]},
         "predicted": {
             "note": "the fit's sigma at the priors (identifiability analysis and consider covariance as "
                     "calibrate sensors computes them; a stream fitted worse than its noise would scale "
@@ -103,11 +105,14 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the maneuver file (YAML).")] = None,
         effects: Annotated[str, typer.Option("--effects", help="The effects to calibrate, as calibrate "
                                              "sensors --effects (default all).")] = "all",
-        criterion: Annotated[str, typer.Option("--criterion", help="D (log det of the information) or "
-                                               "E (its smallest eigenvalue).")] = "D",
+        criterion: Annotated[str, typer.Option("--criterion", help="D (log det of the information), "
+                                               "E (its smallest eigenvalue) or startup (the joints' "
+                                               "linearised startup variances).")] = "D",
         focus: Annotated[str, typer.Option("--focus", help="all: every element but the gauges; startup: "
                                            "those the startup uses.")] = "all",
         seed: Annotated[int, typer.Option("--seed", help="The candidates' seed.")] = 0,
+        dwells: Annotated[str, typer.Option("--dwells", help="The dwells each pose may be held [s], "
+                                            "e.g. 1,1.5,2,3 (default: every pose 2 s).")] = "",
         json_out: JsonOpt = False,
     ) -> None:
         """Plan the self-calibration maneuver: poses, dwells and safe moves that make the fit's
@@ -120,8 +125,14 @@ def register(app: typer.Typer) -> None:
         if focus not in FOCUS:
             fail(f"--focus must be one of {', '.join(FOCUS)}, not {focus[:20]!r}")
         try:
+            dwells_s = tuple(float(v) for v in dwells.split(",") if v.strip())
+            PlanSettings(dwell_choices_s=dwells_s).check()
+        except ValueError as e:
+            fail(f"--dwells: expected seconds separated by commas, got {dwells[:30]!r} ({str(e)[:80]})")
+        try:
             with progress_bar("planning", json_out) as advance:
-                doc = run_plan(config, duration, effects, criterion, focus, seed, progress=advance)
+                doc = run_plan(config, duration, effects, criterion, focus, seed, progress=advance,
+                               dwells_s=dwells_s)
         except (ConfigError, FileNotFoundError, ValueError) as e:
             fail(str(e))
         if out is not None:

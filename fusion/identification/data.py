@@ -29,6 +29,13 @@ ENCODER_ZERO_SIGMA_RAD = 10 * DEG
 """Prior σ of a joint's ``joint_offset`` when it carries the recording's unknown encoder zero."""
 REFERENCE_SIGMA_RAD = 0.05 * DEG
 """Default σ of a one-time joint reference (a mechanical index, a pose the installer confirms)."""
+ENCODER_FIT_HALF_WIDTH_S = 0.08
+"""Half the span of encoder samples a fit point's joint angle, rate and acceleration are
+read from (:func:`encoder_motion`)."""
+ENCODER_FIT_ORDER = 4
+"""The degree of the polynomial fitted to them: a minimum-jerk move (a quintic in time) keeps
+its acceleration to ~1e-3 of its peak (the moves' starts and ends, where its jerk jumps, to
+~2 %)."""
 
 
 @dataclass(frozen=True)
@@ -132,6 +139,44 @@ class FitData:
         return replace(self, state=st, counts={k: v[idx] for k, v in self.counts.items()})
 
 
+def encoder_motion(t_s: np.ndarray, q_rad: np.ndarray, t_at_s: np.ndarray,
+                   half_width_s: float = ENCODER_FIT_HALF_WIDTH_S, order: int = ENCODER_FIT_ORDER,
+                   chunk: int = 20000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Joint angles, rates and accelerations ``(M, n)`` at the instants ``t_at_s`` from the
+    encoders' samples ``t_s (N,)``, ``q_rad (N, n)``: a polynomial of degree ``order`` fitted
+    by least squares to the samples within ``half_width_s`` of each instant (at least
+    ``order + 1`` of them), its value and derivatives there.
+
+    The fit's accelerometer predictions need the joints' accelerations at its window nodes;
+    ``np.gradient`` applied twice to the nodes themselves (0.125 s apart) reads them over
+    half a second, which cuts a 1-3 s minimum-jerk move's peaks by up to 15 % (its fourth
+    derivative times the span squared over 12): the fit then takes the missing tangential
+    acceleration for a lever-arm error (``motion_acceleration``). The encoders' own rate
+    reads them over a span a few times shorter, and the quartic follows the move's shape."""
+    t = np.asarray(t_s, float)
+    q = np.asarray(q_rad, float)
+    ta = np.asarray(t_at_s, float)
+    N = len(t)
+    if N < 3:
+        z = np.zeros((len(ta), q.shape[1]))
+        return np.stack([np.interp(ta, t, q[:, j]) for j in range(q.shape[1])], 1) if N else z, z, z.copy()
+    h = float(np.median(np.diff(t)))
+    order = int(min(order, N - 1))
+    half = int(min(max(round(half_width_s / h), (order + 2) // 2), (N - 1) // 2))
+    order = min(order, 2 * half)
+    out = [np.empty((len(ta), q.shape[1])) for _ in range(3)]
+    for a in range(0, len(ta), chunk):
+        tc = ta[a:a + chunk]
+        i = np.clip(np.searchsorted(t, tc), half, N - 1 - half)
+        idx = i[:, None] + np.arange(-half, half + 1)
+        V = ((t[idx] - tc[:, None]) / h)[..., None] ** np.arange(order + 1)
+        coef = np.einsum("mpk,mkj->mpj", np.linalg.pinv(V), q[idx])  # (M, order + 1, n)
+        out[0][a:a + chunk] = coef[:, 0]
+        out[1][a:a + chunk] = coef[:, 1] / h
+        out[2][a:a + chunk] = 2.0 * coef[:, 2] / h ** 2 if order >= 2 else 0.0
+    return out[0], out[1], out[2]
+
+
 def fit_streams(arm: ArmModel) -> list[str]:
     """The streams a fit (calibrate sensors, diagnose) needs of a recording: the encoders and
     every stream of the config's sensors that it fits."""
@@ -161,7 +206,9 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
     no bias from the motion within the window (``nodes=1``: a sinusoid's mean is its middle
     value times ``1 - (Δq)²/24``, which a fit takes for a scale error of that size).
 
-    Joint angles are ``q_ref + encoder angle`` (default ``q_ref``: :func:`start_pose`).
+    Joint angles are ``q_ref + encoder angle`` (default ``q_ref``: :func:`start_pose`); their
+    rates and accelerations at each fit instant come from the encoders' samples around it
+    (:func:`encoder_motion`).
     Averaging ``window`` samples divides the noise by √window; the model is evaluated at the
     window's mean angles, which differs from the mean of the readings by about
     ``(Δq)²/24`` of a joint's sweep Δq over the window (for the article's 13.9 °/s roll and
@@ -234,7 +281,9 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
     if nodes not in (1, 2):
         raise ValueError(f"nodes must be 1 or 2, not {nodes!r}")
     if nodes == 1:
-        state = MotionState.from_samples(mean(t), mean(q), None, 0.0, temp)
+        _, qd, qdd = encoder_motion(t, q, mean(t))
+        state = replace(MotionState.static(mean(q), temperature_c=temp, t_s=mean(t)), qd_rad_s=qd,
+                        qdd_rad_s2=qdd)
         data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
                        f"window means of {w} samples" + note, stance=stance, used=used,
                        sample_excess_counts=excess)
@@ -242,9 +291,9 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
         tw = t[: n * w].reshape(n, w)
         dt = (tw[:, -1] - tw[:, 0]) * w / max(w - 1, 1)  # the window's length
         tn = (tw.mean(1)[:, None] + dt[:, None] / (2 * np.sqrt(3)) * np.array([-1.0, 1.0])).ravel()
-        qn = np.stack([np.interp(tn, t, q[:, j]) for j in range(q.shape[1])], 1)
+        qn, qd, qdd = encoder_motion(t, q, tn)
         tempn = np.repeat(np.broadcast_to(temp, (n,)), 2)
-        state = MotionState.from_samples(tn, qn, None, 0.0, tempn)
+        state = replace(MotionState.static(qn, temperature_c=tempn, t_s=tn), qd_rad_s=qd, qdd_rad_s2=qdd)
         data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
                        f"window means of {w} samples (model at two nodes per window)" + note, nodes=2,
                        stance=stance, used=used, sample_excess_counts=excess)

@@ -19,9 +19,12 @@ for the arm's controller (or the simulator) to play.
   that pass the unlock move's checks (:func:`fusion.startup.moves.moves_within_limits`:
   inside the limits, at most 45° per joint), a peak joint rate and a tool speed for a person
   beside the arm (:attr:`PlanSettings.max_tool_speed_mps`); each scored by its gain in the
-  criterion per second of its move and dwell: D-optimal ``log det`` (by the determinant
-  lemma, ``log det(I + w Jc A⁻¹ Jcᵀ)``) or E-optimal (the smallest eigenvalue of ``A``).
-  The best is appended until the time is spent.
+  criterion per second of its move and dwell, held each of :attr:`PlanSettings.dwell_choices_s`:
+  D-optimal ``log det`` (by the determinant lemma, ``log det(I + w Jc A⁻¹ Jcᵀ)``),
+  E-optimal (the smallest eigenvalue of ``A``) or ``startup`` (:func:`_startup_rows`: the
+  joints' startup variances, linearised at random still poses, ``noise + gᵀA⁻¹g``; the sum
+  of their logs, by Woodbury per candidate). The best pose and dwell are appended until the
+  time is spent.
 * **Predicted σ** (:func:`predict_maneuver`): the maneuver played noise-free by the simulator
   at the priors, turned into the fit's data as a recording would be
   (:func:`~fusion.identification.data.data_from_recording`: the moves count too), the
@@ -62,7 +65,7 @@ from models.trajectories.paths import min_jerk_progress
 from models.trajectories.planned import PlannedManeuver, planned_scenario
 from models.trajectories.scenario import Scenario, margin_limits
 
-CRITERIA = ("D", "E")
+CRITERIA = ("D", "E", "startup")
 FOCUS = ("all", "startup")
 FILE_ROUNDING = 1e-3
 """A rate or speed may exceed its bound by this share: a maneuver file keeps 4 decimals of
@@ -78,7 +81,7 @@ class PlanSettings:
     """The first pose (the ready pose) held still: the startup's still second that finds
     the recording's joint angles, as ``renk-maneuver``'s 5 s."""
     dwell_s: float = 2.0
-    """Each later pose held still this long."""
+    """Each later pose held still this long when ``dwell_choices_s`` is empty."""
     peak_rate_deg_s: float = 20.0
     """The fastest any joint moves (a minimum-jerk move peaks at 1.875× its mean rate);
     ``renk-maneuver``'s roll peaks at 21.8 °/s."""
@@ -99,6 +102,21 @@ class PlanSettings:
     rate_hz: float = 100.0
     pool_poses: int = 400
     """Random poses whose shared information decides the gauges left out."""
+    dwell_choices_s: tuple[float, ...] = ()
+    """The dwells each candidate pose is scored with (the best gain per second of move and
+    dwell wins); empty (the default): every later pose is held ``dwell_s``. With (1, 1.5, 2,
+    3) a D-optimal 60 s plan on the WMRA holds 15 poses, most of them 1 s, instead of 13
+    held 2 s (the start's 5 s counted), and its worst joint's predicted startup σ falls
+    from 0.20° to 0.17°, but on
+    seed 2's realistic arm its fit put the compass's elements (soft iron, the IMU's mount
+    about z, the arm's steel) 4-11σ off, where the 2 s plan's were within 3σ: not the
+    default until that is understood (``docs/identification.md``)."""
+    startup_poses: int = 16
+    """``criterion="startup"``: the random still poses (chair tilted N(0, 3°)) the startup's
+    σ is taken over."""
+    startup_sigma_limit_deg: float = 0.5
+    """``criterion="startup"``: a joint whose startup σ from the gauges alone exceeds this (the
+    startup's own ``sigma_limit_deg``) will be flagged whatever the maneuver: left out."""
 
     def check(self) -> None:
         if self.focus not in FOCUS:
@@ -118,6 +136,12 @@ class PlanSettings:
                              f"{self.start_still_s + self.min_move_s + self.dwell_s:g} s")
         if not 1 <= self.candidates <= 4096 or not 10 <= self.pool_poses <= 20000:
             raise ValueError("candidates must be in 1..4096 and pool_poses in 10..20000")
+        if not 1 <= self.startup_poses <= 256:
+            raise ValueError(f"startup_poses must be in 1..256, not {self.startup_poses!r}")
+        if len(self.dwell_choices_s) > 8 or not all(isinstance(d, int | float) and np.isfinite(d)
+                                                     and 0.5 <= d <= 60 for d in self.dwell_choices_s):
+            raise ValueError("dwell_choices_s: at most 8 dwells, each 0.5 to 60 s, got "
+                             f"{str(tuple(self.dwell_choices_s))[:40]}")
 
 
 @dataclass(frozen=True)
@@ -130,6 +154,9 @@ class Plan:
     gauges: tuple[str, ...]
     """Elements the criterion leaves out: held by the identifiability analysis of the pool."""
     candidates_scored: int
+    startup_joints: tuple[str, ...] = ()
+    """``criterion="startup"``: the joints whose startup σ it counted (the others are a held
+    gauge's partners: flagged after any parked maneuver)."""
 
 
 def _tool_speed_mps(arm: ArmModel, q_from: np.ndarray, q_to: np.ndarray, move_s: np.ndarray,
@@ -230,6 +257,77 @@ def startup_elements(model: Model) -> set[str]:
     return out
 
 
+def _startup_rows(model: Model, settings: PlanSettings, q_ref_rad: np.ndarray, cols: np.ndarray,
+                  unanswered: set[str], rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """The startup's joint angles, linearised: at ``startup_poses`` random still poses (the
+    chair tilted N(0, 3°), as :func:`startup_sigmas`), 1 s of the accelerometers' readings
+    (the link accelerometers' and the IMU's) solved for the geometric joint angles and the
+    base's roll and pitch by weighted least squares (the saved pose's 10° as a prior). Its
+    answer moves by ``-S ∂y/∂x`` when an element ``x`` of the accelerometers' sensor stage
+    is off; in the criterion's prior units those rows are ``G``.
+
+    Returns ``G (R, len(cols))``, the noise variance of each row ``(R,)`` (rad²), the joint
+    of each row ``(R,)`` and the names of the joints counted: the joints ``unanswered`` (a
+    gauge's partners: the startup flags them after any parked maneuver) are left out, and so
+    is a joint at a pose where the readings' noise alone puts its σ over half of
+    ``startup_sigma_limit_deg`` (near a singular pose: the startup flags it there)."""
+    arm = model.arm
+    K = settings.startup_poses
+    lo, hi = margin_limits(arm)
+    Q = rng.uniform(lo, hi, (K, arm.n_joints))
+    tilt = rng.normal(0.0, 3.0 * DEG, (K, 2))
+    sm = stream_models(arm, settings.rate_hz)
+    accel = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
+    streams = [s for s in fit_streams(arm) if s in sm and s in accel]
+    counts = {s: np.zeros((K, np.size(sm[s].sigma_counts))) for s in streams}
+    sig = {s: np.asarray(sm[s].sigma_counts, float) / np.sqrt(settings.rate_hz) for s in streams}  # 1 s
+    data = FitData(MotionState.static(Q, temperature_c=25.0), counts, sig, np.asarray(q_ref_rad, float), 1,
+                   stance=np.arange(K))
+    pb = FitProblem(model, data, streams, True, np.zeros(3), encoder_scale=True)
+    z = pb.x0.copy()
+    z[pb.P:].reshape(K, 3)[:, :2] = tilt
+    _, J = pb.jacobian(z, np.arange(pb.size))
+    # rows per pose: the stream blocks are stacked stream by stream, each (K, axes)
+    J = np.concatenate([J[o:o + K * counts[s].shape[1]].reshape(K, counts[s].shape[1], -1)
+                        for o, s in zip(np.cumsum([0] + [K * counts[s].shape[1] for s in streams])[:-1],
+                                        streams, strict=True)], axis=1)  # (K, rows, size)
+    names = list(pb.names)
+    joint_cols = [names.index(f"{j}.joint_offset[offset]") for j in arm.joint_names]
+    sensor = np.zeros(pb.size, bool)
+    for e in model.effects:
+        if isinstance(e, SensorEffect) and set(e.streams) & set(accel):
+            sensor[model.index[e.block_name]] = True
+    prior = np.full(arm.n_joints + 2, 1.0 / (10.0 * DEG) ** 2)
+    prior[-2:] = 1.0 / (3.0 * DEG) ** 2
+    G, noise, joint = [], [], []
+    for k in range(K):
+        u_cols = joint_cols + [pb.P + 3 * k, pb.P + 3 * k + 1]
+        H = J[k][:, u_cols]
+        N = np.linalg.inv(H.T @ H + np.diag(prior))
+        S = N @ H.T  # (u, rows): the answer's sensitivity to the (weighted) readings
+        E = np.where(sensor, J[k], 0.0)
+        G.append(S[:arm.n_joints] @ E)  # (n, size)
+        noise.append(np.diag(N)[:arm.n_joints])
+    G = np.concatenate(G)  # (K n, size)
+    noise = np.concatenate(noise)
+    joint = np.tile(np.arange(arm.n_joints), K)
+    ok = np.array([j not in unanswered for j in arm.joint_names])
+    rows = ok[joint] & (np.sqrt(noise) <= 0.5 * settings.startup_sigma_limit_deg * DEG)
+    return (G[rows][:, cols] * pb.sigma0[cols], noise[rows], joint[rows],
+            [j for j, o in zip(arm.joint_names, ok, strict=True) if o])
+
+
+def _startup_value(var_rows: np.ndarray, joint: np.ndarray, n_joints: int) -> np.ndarray:
+    """The criterion of ``criterion="startup"``, ``(..., R) -> (...)``: the sum over the joints
+    of the log of each joint's mean startup variance over the poses (the log of their product:
+    the D-criterion of the startup's answers; greedy, it lowers the worst joint's σ further
+    than a 4-norm or the plain sum of the variances, which chase one joint each step)."""
+    K = np.bincount(joint, minlength=n_joints)
+    per = np.stack([var_rows[..., joint == j].sum(-1) / K[j] for j in np.unique(joint)], -1)
+    return np.sum(np.log(per), -1)
+
+
 def plan_maneuver(model: Model, settings: PlanSettings | None = None, progress=None) -> Plan:
     """Choose the poses of a maneuver of ``settings.duration_s`` for ``model``'s parameters
     (module docstring). Starts at the arm's ready pose, held ``start_still_s``."""
@@ -257,40 +355,66 @@ def plan_maneuver(model: Model, settings: PlanSettings | None = None, progress=N
 
     J0 = scaled_rows(q0[None])[0]
     A = np.eye(len(cols)) + (J0.T @ J0) * (st.start_still_s * windows_per_s)
+    if st.criterion == "startup":
+        unanswered = {j for h in holds for p, _ in h.partners for j in arm.joint_names
+                      if p == f"{j}.joint_offset[offset]"}
+        G, noise, joint, counted = _startup_rows(model, st, q0, cols, unanswered,
+                                                 np.random.default_rng([st.seed, 0x57A]))
+    dwell_choices = np.array(sorted(set(st.dwell_choices_s) or {st.dwell_s}))
     poses, dwells, moves = [q0], [st.start_still_s], []
     t = st.start_still_s
     scored = 0
-    while st.duration_s - t >= st.min_move_s + st.dwell_s:
+    while st.duration_s - t >= st.min_move_s + dwell_choices[0]:
         q = poses[-1]
         cand = np.clip(q + rng.uniform(-1, 1, (st.candidates, arm.n_joints)) * st.max_move_deg * DEG, lo, hi)
         T = move_durations_s(st, q, cand)
         ok = (moves_within_limits(arm, q, cand, st.max_move_deg)
               & (_tool_speed_mps(arm, np.broadcast_to(q, cand.shape), cand, T) <= st.max_tool_speed_mps)
-              & (T + st.dwell_s <= st.duration_s - t))
+              & (T + dwell_choices[0] <= st.duration_s - t))
         if not ok.any():
             break
         cand, T = cand[ok], T[ok]
         scored += len(cand)
         Jc = scaled_rows(cand)  # (C, r, p)
-        w = st.dwell_s * windows_per_s
-        if st.criterion == "D":
-            Ainv = np.linalg.inv(A)
-            S = np.eye(Jc.shape[1]) + w * np.einsum("cri,ij,csj->crs", Jc, Ainv, Jc)
-            gain = np.linalg.slogdet(S)[1]
+        Ainv = np.linalg.inv(A)
+        K = np.einsum("cri,ij,csj->crs", Jc, Ainv, Jc)  # (C, r, r)
+        if st.criterion == "startup":
+            GA = G @ Ainv
+            v_now = noise + np.einsum("Rp,Rp->R", GA, G)
+            f_now = _startup_value(v_now, joint, arm.n_joints)
+            U = np.einsum("Rp,crp->cRr", GA, Jc)  # (C, R, r)
         else:
             lam0 = np.linalg.eigvalsh(A)[0]
-            gain = np.array([np.linalg.eigvalsh(A + w * J.T @ J)[0] - lam0 for J in Jc])
-        best = int(np.argmax(gain / (T + st.dwell_s)))
-        A = A + w * Jc[best].T @ Jc[best]
-        poses.append(cand[best])
-        moves.append(float(T[best]))
-        dwells.append(st.dwell_s)
-        t += T[best] + st.dwell_s
+        best_rate, best = -np.inf, None
+        for d in dwell_choices:
+            fits = T + d <= st.duration_s - t
+            if not fits.any():
+                continue
+            w = d * windows_per_s
+            if st.criterion == "D":
+                gain = np.linalg.slogdet(np.eye(Jc.shape[1]) + w * K)[1]
+            elif st.criterion == "E":
+                gain = np.array([np.linalg.eigvalsh(A + w * J.T @ J)[0] - lam0 for J in Jc])
+            else:  # Woodbury: each row's variance falls by w uᵀ(I + w K)⁻¹u
+                Mi = np.linalg.inv(np.eye(Jc.shape[1]) + w * K)
+                drop = w * np.einsum("cRr,crs,cRs->cR", U, Mi, U)
+                gain = f_now - _startup_value(v_now - drop, joint, arm.n_joints)
+            rate = np.where(fits, gain / (T + d), -np.inf)
+            i = int(np.argmax(rate))
+            if rate[i] > best_rate:
+                best_rate, best = rate[i], (i, float(d))
+        i, d = best
+        A = A + d * windows_per_s * Jc[i].T @ Jc[i]
+        poses.append(cand[i])
+        moves.append(float(T[i]))
+        dwells.append(d)
+        t += T[i] + d
         if progress is not None:
             progress(t / st.duration_s)
     dwells[-1] += max(0.0, st.duration_s - t)  # the time left: the last pose held longer
     m = PlannedManeuver(tuple(arm.joint_names), np.array(poses), np.array(dwells), np.array(moves))
-    return Plan(m, st.criterion, pb.names, tuple(sorted(gauges)), scored)
+    return Plan(m, st.criterion, pb.names, tuple(sorted(gauges)), scored,
+                tuple(counted) if st.criterion == "startup" else ())
 
 
 @dataclass(frozen=True)
