@@ -206,7 +206,8 @@ def test_plan_maneuver_refuses_a_bad_option_before_planning(tmp_path: Path):
     from fusion.cli.main import app
 
     r = CliRunner().invoke(app, ["plan-maneuver", "--criterion", "A-optimal" * 20])
-    assert r.exit_code == 2 and "--criterion must be one of D, E, startup, not 'A-optimalA-optimalA-'" in r.output
+    assert r.exit_code == 2
+    assert "--criterion must be one of D, E, startup, not 'A-optimalA-optimalA-'" in r.output
     r = CliRunner().invoke(app, ["plan-maneuver", "--out", str(tmp_path / "M.csv")])
     assert r.exit_code == 2 and "unsupported suffix '.csv'; expected .yaml or .yml" in r.output
     r = CliRunner().invoke(app, ["plan-maneuver", "--duration", "3"])
