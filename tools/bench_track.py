@@ -115,8 +115,9 @@ def filterpy_baseline(arm, rec: Recording, steps: int, model: str = "numpy"):
         links, shift = tr._links.astype(np.int64), tr.compass.field.declination_rad - np.pi
 
         def fx(x, dt, w):
-            return process_points_numpy(x[None], dt, w, True, L.roll, L.yaw, n + 6, n + 2,
-                                        float(np.exp(-dt / st.base_accel_tau_s)) if dt != 0.01 else decay)[0]
+            return process_points_numpy(x[None], dt, w, True, L.roll, L.yaw, L.bias.start, L.accel.start,
+                                        L.scale, float(np.exp(-dt / st.base_accel_tau_s)) if dt != 0.01
+                                        else decay)[0]
 
         def hx(x, frame, mB):
             return measurement_points_numpy(x[None], sel, links, frame.axes, frame.offset_ref,
