@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -205,6 +205,7 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     t0 = time.perf_counter()
     say = progress or (lambda _m, _f: None)
     streams = [s for s in (data.counts if streams is None else streams) if s not in FIT_STREAMS_EXCLUDED]
+    data = best_start(model, data, streams, st, attitude0_rad)
     fit = _fit(model, data, streams, st, attitude0_rad, say)
     m = fit.model
     cands = candidate_effects(m, st.effects)
@@ -226,6 +227,27 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     say("done", 1.0)
     return Diagnosis(fit, data, tuple(axes), tests.rms_ratio, tuple(out), tests.unseen, verdict,
                      time.perf_counter() - t0, worst, analysis)
+
+
+def best_start(model: Model, data: FitData, streams: Sequence[str], st: DiagnoseSettings,
+               attitude0_rad: np.ndarray | None = None) -> FitData:
+    """Where the recording's still start is ambiguous (``data.start_rivals_rad``: rival branches
+    of the startup solve, e.g. a wrist that reads the same flipped), each branch is fitted on
+    at most ``prefit_points`` evenly spread points (``refit_points`` where that is 0) and the
+    one with the smallest χ² is kept: from the wrong branch the fit stays in its basin, with
+    a residual hundreds of times the noise that no effect explains. The data returned have
+    no rivals left (and say in their note which branch was taken)."""
+    if not data.start_rivals_rad:
+        return data
+    n_try = st.prefit_points or st.refit_points
+    stride = max(1, int(np.ceil(data.n / max(n_try, 2))))
+    branches = [data] + [data.shifted(q - data.q_ref_rad) for q in data.start_rivals_rad]
+    chi2 = [chi2_total(fit_model(model, b.subset(slice(None, None, stride)), streams, st.identify,
+                                 attitude0_rad)) for b in branches]
+    k = int(np.argmin(chi2))
+    note = data.note if k == 0 else (f"{data.note}; the still start's rival branch {k + 1} of "
+                                     f"{len(branches)} (it fits best)")
+    return replace(branches[k], start_rivals_rad=(), note=note)
 
 
 def _fit(model: Model, data: FitData, streams: Sequence[str], st: DiagnoseSettings,
