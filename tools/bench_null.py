@@ -17,8 +17,9 @@ other than "fits to noise" is a false alarm:
   to test: the score test and discovery cannot raise anything there, and what can fail is
   the RMS against the noise and the residual analysis.
 
-Scenarios: those a parked ``diagnose`` takes (the chair parked: ``renk-maneuver`` and
-``static-poses``); ``renk-ramp`` drives the chair between its stances and the command sends
+Scenarios: those a parked ``diagnose`` takes (the chair parked: ``renk-maneuver``,
+``static-poses`` and a maneuver ``plan-maneuver`` plans, played as ``simulate --maneuver``
+plays it); ``renk-ramp`` drives the chair between its stances and the command sends
 it to the innovations' analysis instead (checked here: a recording it would send there is
 counted as "not parked" and not diagnosed). Each recording is diagnosed as the command does
 (window means of ``--window`` samples, the config's model), through :func:`discover` (whose
@@ -26,7 +27,7 @@ first rung *is* ``diagnose``): counted are (1) the diagnosis's verdict other tha
 noise", (2) discovery adding anything, (3) the residual analysis flagging an input
 correlation or a non-white axis (``ResidualAnalysis.white``). Each rate with its Wilson 95 %
 interval. Discovery adds an effect exactly when its first rung has a significant candidate;
-``--rungs`` (3) bounds the ladder's cost on a recording where it does (the count does not
+``--rungs`` (1) bounds the ladder's cost on a recording where it does (the count does not
 depend on it).
 
 Besides the counts, how well each test's own statistics hold: the share of individual score
@@ -36,7 +37,8 @@ largest |correlation| over its flag band, per recording.
 Writes its markdown section to ``--out FILE`` (docs/benchmarks.md is written by whoever
 merges) and prints it.
 
-    nice python tools/bench_null.py [--seeds 20] [--realistic-arms 2] [--out FILE] [--quick]
+    nice python tools/bench_null.py [--seeds 20] [--planned-seeds 10] [--realistic-arms 2]
+        [--realistic-seeds 8] [--jobs 2] [--out FILE] [--quick]
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ import argparse  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -74,7 +77,11 @@ WINDOW = 10
 """Window means of 10 samples, as ``armfusion diagnose`` by default."""
 TARGET = 0.05
 SHIPPED_PLAN = (("renk-maneuver", (30.0, 60.0, 120.0, 300.0)), ("static-poses", (60.0, 120.0)))
-REALISTIC_PLAN = (("renk-maneuver", (60.0, 120.0, 300.0)),)
+REALISTIC_PLAN = (("renk-maneuver", (60.0, 120.0)),)
+PLANNED = "planned-maneuver"
+"""A maneuver ``plan-maneuver`` plans for the shipped config (``--effects all``, D-optimal,
+``PLANNED_S`` long), planned once, played with each seed's chair tilt and noise."""
+PLANNED_S = 60.0
 KINDS = ("diagnose", "discover", "residuals")
 
 
@@ -114,10 +121,11 @@ class Outcome:
                 "residuals": not self.white}
 
 
-def plan(seeds: int, realistic_arms: int, realistic_seeds: int) -> list[Case]:
-    """``seeds`` recordings per (scenario, duration) of the shipped arm, ``realistic_seeds`` per
-    (scenario, duration) of each realistic arm; every recording its own seed."""
-    out = []
+def plan(seeds: int, realistic_arms: int, realistic_seeds: int, planned_seeds: int = 0) -> list[Case]:
+    """``seeds`` recordings per (scenario, duration) of the shipped arm, ``planned_seeds`` of the
+    planned maneuver, ``realistic_seeds`` per (scenario, duration) of each realistic arm; every
+    recording its own seed."""
+    out = [Case("shipped", PLANNED, PLANNED_S, 15_000 + s) for s in range(planned_seeds)]
     for scenario, durations in SHIPPED_PLAN:
         for k, dur in enumerate(durations):
             base = 10_000 + 1000 * (SHIPPED_PLAN.index((scenario, durations))) + 100 * k
@@ -131,17 +139,30 @@ def plan(seeds: int, realistic_arms: int, realistic_seeds: int) -> list[Case]:
 
 
 def realistic_arm(arm, arm_seed: int, calibration_s: float, folder: Path):
-    """Seed ``arm_seed``'s realistic arm calibrated on its own maneuver: the calibrated config
-    (loaded) and the simulator's entries of its true effects."""
+    """Seed ``arm_seed``'s realistic arm calibrated on its own maneuver: the calibrated config's
+    path and the simulator's entries of its true effects."""
     res, truth, _ = calibrate(arm, arm_seed, calibration_s)
     path = folder / f"wmra_realistic_{arm_seed}.yaml"
     path.write_text(yaml.safe_dump(calibrated_config(res), sort_keys=False, width=110), encoding="utf-8")
-    return load_arm(str(path)), truth["effects"]
+    return str(path), truth["effects"]
 
 
-def run_case(case: Case, sim_arm, config_arm, effects, rungs: int) -> Outcome:
+def planned_maneuver(arm):
+    """The planned maneuver (``PLANNED``), as ``plan-maneuver --duration PLANNED_S`` plans it."""
+    from fusion.cli.calibrate_sensors import build_model
+    from fusion.identification.planner import PlanSettings, plan_maneuver
+
+    return plan_maneuver(build_model(arm, "all"), PlanSettings(duration_s=PLANNED_S)).maneuver
+
+
+def run_case(case: Case, sim_arm, config_arm, effects, rungs: int, maneuver=None) -> Outcome:
     c0 = time.process_time()
-    rec, _ = simulate(sim_arm, case.scenario, case.duration_s, seed=case.seed, effects=effects)
+    scenario = case.scenario
+    if scenario == PLANNED:  # as ``simulate --maneuver`` plays it
+        from models.trajectories.planned import planned_scenario
+
+        scenario = planned_scenario(sim_arm, maneuver, np.random.default_rng([case.seed, 0x5CE]))
+    rec, _ = simulate(sim_arm, scenario, case.duration_s, seed=case.seed, effects=effects)
     if chair_moves(config_arm, rec):
         return Outcome(case, parked=False, cpu_s=time.process_time() - c0)
     data = data_from_recording(config_arm, rec, window=WINDOW)
@@ -159,6 +180,21 @@ def run_case(case: Case, sim_arm, config_arm, effects, rungs: int) -> Outcome:
     top = f"{d.candidates[0].name} p {d.candidates[0].p_value:.2g}" if d.candidates else ""
     return Outcome(case, True, d.verdict, d.rms_ratio, [f.added for f in disc.findings],
                    a is None or a.white, flags, raw, top, ratio, time.process_time() - c0)
+
+
+_WORKER: dict = {}
+
+
+def _work(job: tuple) -> Outcome:
+    """One case in a worker process: the arms loaded once per process (config paths)."""
+    case, config_path, effects, rungs, maneuver = job
+    if "base" not in _WORKER:
+        _WORKER["base"] = load_arm("wmra")
+    base = _WORKER["base"]
+    key = config_path or "shipped"
+    if key not in _WORKER:
+        _WORKER[key] = base if config_path is None else load_arm(config_path)
+    return run_case(case, base, _WORKER[key], effects, rungs, maneuver)
 
 
 def wilson(k: int, n: int) -> tuple[float, float]:
@@ -193,6 +229,8 @@ def section(outs: list[Outcome], args: dict, cal_cpu: list[float]) -> str:
         "states (the shipped arm: none; the realistic arm: every library effect at datasheet-typical "
         f"size, the config calibrated on its own {args['calibration_s']:.0f} s `renk-maneuver` by "
         "`calibrate sensors --effects all`, then new recordings of the same arm with other seeds). "
+        f"Scenarios: `renk-maneuver`, `static-poses` and a {PLANNED_S:.0f} s maneuver `plan-maneuver` "
+        "plans for the shipped config, played with each seed's tilt and noise. "
         f"Window means of {WINDOW} samples, as `diagnose`. Counted: `diagnose`'s verdict other than "
         "\"fits to noise\"; `--discover` adding anything; the residual analysis flagging a correlation "
         "or a non-white axis. Rates with their Wilson 95 % interval; target ≤ 5 % each.", "",
@@ -229,7 +267,8 @@ def section(outs: list[Outcome], args: dict, cal_cpu: list[float]) -> str:
     rms = np.array([o.rms_ratio for o in parked])
     lines += [f"Whole-model RMS over the noise: median {np.median(rms):.3f}, largest {rms.max():.3f}. "
               f"CPU: {cpu / 60:.1f} min on one core in all ({len(outs)} recordings"
-              + (f", {len(cal_cpu)} calibrations {sum(cal_cpu):.0f} s" if cal_cpu else "") + ").", ""]
+              + (f"; the realistic arms' calibrations and the maneuver's plan {sum(cal_cpu):.0f} s"
+                 if cal_cpu else "") + ").", ""]
     bad = [o for o in parked if any(o.alarms.values())]
     if bad:
         lines += ["| recording | verdict (RMS / noise) | discovery added | residual analysis |",
@@ -250,38 +289,51 @@ def main(argv=None) -> int:
     ap.add_argument("--realistic-seeds", type=int, default=8,
                     help="recordings per scenario and duration of each realistic arm")
     ap.add_argument("--calibration-s", type=float, default=300.0, help="the realistic arm's maneuver [s]")
-    ap.add_argument("--rungs", type=int, default=3, help="discovery's rung limit")
+    ap.add_argument("--planned-seeds", type=int, default=10, help="recordings of the planned maneuver")
+    ap.add_argument("--rungs", type=int, default=1, help="discovery's rung limit")
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes (CPU figures are per recording)")
     ap.add_argument("--only", help="run only the groups whose label contains this (e.g. 'static-poses')")
     ap.add_argument("--quick", action="store_true", help="2 seeds per shipped group, no realistic arm")
     ap.add_argument("--out", type=Path, help="write the markdown section to this file")
     a = ap.parse_args(argv)
     if a.quick:
-        a.seeds, a.realistic_arms = 2, 0
-    if a.seeds < 0 or a.realistic_arms < 0 or a.realistic_seeds < 0 or a.rungs < 1 or a.calibration_s <= 0:
-        ap.error("--seeds, --realistic-arms and --realistic-seeds must be >= 0, --rungs >= 1, "
-                 "--calibration-s > 0")
+        a.seeds, a.realistic_arms, a.planned_seeds = 2, 0, 0
+    if (min(a.seeds, a.realistic_arms, a.realistic_seeds, a.planned_seeds) < 0 or a.rungs < 1
+            or a.jobs < 1 or a.calibration_s <= 0):
+        ap.error("--seeds, --realistic-arms, --realistic-seeds and --planned-seeds must be >= 0, "
+                 "--rungs and --jobs >= 1, --calibration-s > 0")
     base = load_arm("wmra")
-    cases = plan(a.seeds, a.realistic_arms, a.realistic_seeds)
+    cases = plan(a.seeds, a.realistic_arms, a.realistic_seeds, a.planned_seeds)
     if a.only:
         cases = [c for c in cases if a.only in f"{c.arm} {c.scenario} {c.duration_s:.0f}"]
     folder = Path(tempfile.mkdtemp(prefix="bench_null_"))
-    arms: dict[str, tuple] = {"shipped": (base, None)}
+    arms: dict[str, tuple] = {"shipped": (None, None)}
     cal_cpu: list[float] = []
+    for name in dict.fromkeys(c.arm for c in cases if c.arm != "shipped"):
+        c0 = time.process_time()
+        arms[name] = realistic_arm(base, int(name.split()[1]), a.calibration_s, folder)
+        cal_cpu.append(time.process_time() - c0)
+        print(f"{name}: calibrated in {cal_cpu[-1]:.0f} s of CPU", flush=True)
+    maneuver = None
+    if any(c.scenario == PLANNED for c in cases):
+        c0 = time.process_time()
+        maneuver = planned_maneuver(base)
+        cal_cpu.append(time.process_time() - c0)
+        print(f"planned the maneuver in {cal_cpu[-1]:.0f} s of CPU", flush=True)
+    jobs = [(c, *arms[c.arm], a.rungs, maneuver) for c in cases]
     outs: list[Outcome] = []
-    for k, c in enumerate(cases):
-        if c.arm not in arms:
-            c0 = time.process_time()
-            arms[c.arm] = realistic_arm(base, int(c.arm.split()[1]), a.calibration_s, folder)
-            cal_cpu.append(time.process_time() - c0)
-            print(f"{c.arm}: calibrated in {cal_cpu[-1]:.0f} s of CPU", flush=True)
-        config_arm, effects = arms[c.arm]
-        o = run_case(c, base, config_arm, effects, a.rungs)
+    pool = ProcessPoolExecutor(a.jobs) if a.jobs > 1 else None
+    results = pool.map(_work, jobs) if pool is not None else map(_work, jobs)
+    for k, o in enumerate(results):
+        c = o.case
         outs.append(o)
         print(f"[{k + 1}/{len(cases)}] {c.arm} {c.scenario} {c.duration_s:.0f} s seed {c.seed}: "
               + (f"{o.verdict} ({o.rms_ratio:.3f}x; {o.top}); added {o.added or '-'}; "
                  f"residuals {'white' if o.white else 'FLAGGED ' + '; '.join(o.flags)} "
                  f"(max/band {o.flag_ratio:.2f}); min raw p {o.raw_p.min(initial=1):.2g}"
                  if o.parked else "not parked") + f" [{o.cpu_s:.1f} s]", flush=True)
+    if pool is not None:
+        pool.shutdown()
     body = section(outs, vars(a), cal_cpu)
     print(body)
     if a.out is not None:
