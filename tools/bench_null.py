@@ -74,7 +74,7 @@ from tools.bench_calibrated import calibrate, calibrated_config  # noqa: E402
 from tools.benchdoc import machine_line  # noqa: E402
 
 WINDOW = 10
-"""Window means of 10 samples, as ``armfusion diagnose`` by default."""
+"""Window means of 10 samples, as ``armfusion diagnose`` by default (``--window``)."""
 TARGET = 0.05
 SHIPPED_PLAN = (("renk-maneuver", (30.0, 60.0, 120.0, 300.0)), ("static-poses", (60.0, 120.0)))
 REALISTIC_PLAN = (("renk-maneuver", (60.0, 120.0)),)
@@ -155,7 +155,8 @@ def planned_maneuver(arm):
     return plan_maneuver(build_model(arm, "all"), PlanSettings(duration_s=PLANNED_S)).maneuver
 
 
-def run_case(case: Case, sim_arm, config_arm, effects, rungs: int, maneuver=None) -> Outcome:
+def run_case(case: Case, sim_arm, config_arm, effects, rungs: int, maneuver=None,
+             window: int = WINDOW) -> Outcome:
     c0 = time.process_time()
     scenario = case.scenario
     if scenario == PLANNED:  # as ``simulate --maneuver`` plays it
@@ -165,7 +166,7 @@ def run_case(case: Case, sim_arm, config_arm, effects, rungs: int, maneuver=None
     rec, _ = simulate(sim_arm, scenario, case.duration_s, seed=case.seed, effects=effects)
     if chair_moves(config_arm, rec):
         return Outcome(case, parked=False, cpu_s=time.process_time() - c0)
-    data = data_from_recording(config_arm, rec, window=WINDOW)
+    data = data_from_recording(config_arm, rec, window=window)
     disc = discover(model_from_arm(config_arm), data, DiscoverSettings(max_rungs=rungs))
     d = disc.first
     a = d.analysis
@@ -187,14 +188,14 @@ _WORKER: dict = {}
 
 def _work(job: tuple) -> Outcome:
     """One case in a worker process: the arms loaded once per process (config paths)."""
-    case, config_path, effects, rungs, maneuver = job
+    case, config_path, effects, rungs, maneuver, window = job
     if "base" not in _WORKER:
         _WORKER["base"] = load_arm("wmra")
     base = _WORKER["base"]
     key = config_path or "shipped"
     if key not in _WORKER:
         _WORKER[key] = base if config_path is None else load_arm(config_path)
-    return run_case(case, base, _WORKER[key], effects, rungs, maneuver)
+    return run_case(case, base, _WORKER[key], effects, rungs, maneuver, window)
 
 
 def wilson(k: int, n: int) -> tuple[float, float]:
@@ -231,7 +232,9 @@ def section(outs: list[Outcome], args: dict, cal_cpu: list[float]) -> str:
         "`calibrate sensors --effects all`, then new recordings of the same arm with other seeds). "
         f"Scenarios: `renk-maneuver`, `static-poses` and a {PLANNED_S:.0f} s maneuver `plan-maneuver` "
         "plans for the shipped config, played with each seed's tilt and noise. "
-        f"Window means of {WINDOW} samples, as `diagnose`. Counted: `diagnose`'s verdict other than "
+        f"Window means of {args['window']} samples"
+        + (", as `diagnose` by default" if args["window"] == WINDOW else "")
+        + ". Counted: `diagnose`'s verdict other than "
         "\"fits to noise\"; `--discover` adding anything; the residual analysis flagging a correlation "
         "or a non-white axis. Rates with their Wilson 95 % interval; target ≤ 5 % each.", "",
         "| clean recordings | diagnose: not \"fits to noise\" | discover: added anything | "
@@ -291,6 +294,7 @@ def main(argv=None) -> int:
     ap.add_argument("--calibration-s", type=float, default=300.0, help="the realistic arm's maneuver [s]")
     ap.add_argument("--planned-seeds", type=int, default=10, help="recordings of the planned maneuver")
     ap.add_argument("--rungs", type=int, default=1, help="discovery's rung limit")
+    ap.add_argument("--window", type=int, default=WINDOW, help="samples per fit point (diagnose --window)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (CPU figures are per recording)")
     ap.add_argument("--only", help="run only the groups whose label contains this (e.g. 'static-poses')")
     ap.add_argument("--quick", action="store_true", help="2 seeds per shipped group, no realistic arm")
@@ -299,9 +303,9 @@ def main(argv=None) -> int:
     if a.quick:
         a.seeds, a.realistic_arms, a.planned_seeds = 2, 0, 0
     if (min(a.seeds, a.realistic_arms, a.realistic_seeds, a.planned_seeds) < 0 or a.rungs < 1
-            or a.jobs < 1 or a.calibration_s <= 0):
+            or a.jobs < 1 or a.window < 1 or a.calibration_s <= 0):
         ap.error("--seeds, --realistic-arms, --realistic-seeds and --planned-seeds must be >= 0, "
-                 "--rungs and --jobs >= 1, --calibration-s > 0")
+                 "--rungs, --jobs and --window >= 1, --calibration-s > 0")
     base = load_arm("wmra")
     cases = plan(a.seeds, a.realistic_arms, a.realistic_seeds, a.planned_seeds)
     if a.only:
@@ -320,7 +324,7 @@ def main(argv=None) -> int:
         maneuver = planned_maneuver(base)
         cal_cpu.append(time.process_time() - c0)
         print(f"planned the maneuver in {cal_cpu[-1]:.0f} s of CPU", flush=True)
-    jobs = [(c, *arms[c.arm], a.rungs, maneuver) for c in cases]
+    jobs = [(c, *arms[c.arm], a.rungs, maneuver, a.window) for c in cases]
     outs: list[Outcome] = []
     pool = ProcessPoolExecutor(a.jobs) if a.jobs > 1 else None
     results = pool.map(_work, jobs) if pool is not None else map(_work, jobs)
