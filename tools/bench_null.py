@@ -37,8 +37,8 @@ largest |correlation| over its flag band, per recording.
 Writes its markdown section to ``--out FILE`` (docs/benchmarks.md is written by whoever
 merges) and prints it.
 
-    nice python tools/bench_null.py [--seeds 20] [--planned-seeds 10] [--realistic-arms 2]
-        [--realistic-seeds 8] [--jobs 2] [--out FILE] [--quick]
+    nice python tools/bench_null.py [--seeds 40] [--planned-seeds 10] [--realistic-arms 2]
+        [--realistic-seeds 6] [--jobs 2] [--out FILE] [--quick]
 """
 
 from __future__ import annotations
@@ -76,8 +76,10 @@ from tools.benchdoc import machine_line  # noqa: E402
 WINDOW = 10
 """Window means of 10 samples, as ``armfusion diagnose`` by default (``--window``)."""
 TARGET = 0.05
-SHIPPED_PLAN = (("renk-maneuver", (30.0, 60.0, 120.0, 300.0)), ("static-poses", (60.0, 120.0)))
-REALISTIC_PLAN = (("renk-maneuver", (60.0, 120.0)),)
+SHIPPED_PLAN = (("renk-maneuver", 30.0, 1.75), ("renk-maneuver", 60.0, 1.0), ("renk-maneuver", 120.0, 0.6),
+                ("renk-maneuver", 300.0, 0.25), ("static-poses", 60.0, 0.6), ("static-poses", 120.0, 0.25))
+"""(scenario, duration, recordings per ``--seeds``): the shorter the more (the CPU bound)."""
+REALISTIC_PLAN = (("renk-maneuver", 60.0),)
 PLANNED = "planned-maneuver"
 """A maneuver ``plan-maneuver`` plans for the shipped config (``--effects all``, D-optimal,
 ``PLANNED_S`` long), planned once, played with each seed's chair tilt and noise."""
@@ -122,19 +124,16 @@ class Outcome:
 
 
 def plan(seeds: int, realistic_arms: int, realistic_seeds: int, planned_seeds: int = 0) -> list[Case]:
-    """``seeds`` recordings per (scenario, duration) of the shipped arm, ``planned_seeds`` of the
+    """``seeds`` times each (scenario, duration)'s share of the shipped arm, ``planned_seeds`` of the
     planned maneuver, ``realistic_seeds`` per (scenario, duration) of each realistic arm; every
     recording its own seed."""
     out = [Case("shipped", PLANNED, PLANNED_S, 15_000 + s) for s in range(planned_seeds)]
-    for scenario, durations in SHIPPED_PLAN:
-        for k, dur in enumerate(durations):
-            base = 10_000 + 1000 * (SHIPPED_PLAN.index((scenario, durations))) + 100 * k
-            out += [Case("shipped", scenario, dur, base + s) for s in range(seeds)]
+    for k, (scenario, dur, share) in enumerate(SHIPPED_PLAN):
+        out += [Case("shipped", scenario, dur, 10_000 + 100 * k + s) for s in range(round(seeds * share))]
     for a in range(1, realistic_arms + 1):
-        for scenario, durations in REALISTIC_PLAN:
-            for k, dur in enumerate(durations):
-                out += [Case(f"realistic {a}", scenario, dur, 20_000 + 1000 * a + 100 * k + s)
-                        for s in range(realistic_seeds)]
+        for k, (scenario, dur) in enumerate(REALISTIC_PLAN):
+            out += [Case(f"realistic {a}", scenario, dur, 20_000 + 1000 * a + 100 * k + s)
+                    for s in range(realistic_seeds)]
     return out
 
 
@@ -287,9 +286,10 @@ def section(outs: list[Outcome], args: dict, cal_cpu: list[float]) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, default=20, help="recordings per scenario and duration, shipped arm")
+    ap.add_argument("--seeds", type=int, default=40,
+                    help="shipped arm: recordings per (scenario, duration), times its share in SHIPPED_PLAN")
     ap.add_argument("--realistic-arms", type=int, default=2, help="realistic arms (each calibrated once)")
-    ap.add_argument("--realistic-seeds", type=int, default=8,
+    ap.add_argument("--realistic-seeds", type=int, default=6,
                     help="recordings per scenario and duration of each realistic arm")
     ap.add_argument("--calibration-s", type=float, default=300.0, help="the realistic arm's maneuver [s]")
     ap.add_argument("--planned-seeds", type=int, default=10, help="recordings of the planned maneuver")
