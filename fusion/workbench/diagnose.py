@@ -205,8 +205,12 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     t0 = time.perf_counter()
     say = progress or (lambda _m, _f: None)
     streams = [s for s in (data.counts if streams is None else streams) if s not in FIT_STREAMS_EXCLUDED]
-    data = best_start(model, data, streams, st, attitude0_rad)
     fit = _fit(model, data, streams, st, attitude0_rad, say)
+    if data.start_rivals_rad:
+        better = best_start(model, data, streams, st, rms_ratio_of(fit), attitude0_rad)
+        if better is not None:
+            fit = _fit(model, better, streams, st, attitude0_rad, say)
+        data = better or replace(data, start_rivals_rad=())
     m = fit.model
     cands = candidate_effects(m, st.effects)
     tests = score_tests(fit, data, cands, streams, st.identify, st.chunk_rows, st.evidence_points, say)
@@ -230,24 +234,28 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
 
 
 def best_start(model: Model, data: FitData, streams: Sequence[str], st: DiagnoseSettings,
-               attitude0_rad: np.ndarray | None = None) -> FitData:
-    """Where the recording's still start is ambiguous (``data.start_rivals_rad``: rival branches
-    of the startup solve, e.g. a wrist that reads the same flipped), each branch is fitted on
-    at most ``prefit_points`` evenly spread points (``refit_points`` where that is 0) and the
-    one with the smallest χ² is kept: from the wrong branch the fit stays in its basin, with
-    a residual hundreds of times the noise that no effect explains. The data returned have
-    no rivals left (and say in their note which branch was taken)."""
-    if not data.start_rivals_rad:
-        return data
+               rms_ratio_now: float, attitude0_rad: np.ndarray | None = None) -> FitData | None:
+    """Where the fit from the recording's start pose does not reach the noise
+    (``rms_ratio_now`` above ``noise_tolerance``) and the still start has rival branches
+    (``data.start_rivals_rad``: e.g. a wrist that reads the same flipped), each rival is fitted
+    on at most ``prefit_points`` evenly spread points (``refit_points`` where that is 0): from
+    the wrong branch the fit stays in its basin, with a residual hundreds of times the noise
+    that no effect explains. Returns the data from the rival whose RMS over the noise is
+    lowest, if it is lower than ``rms_ratio_now`` (no rivals left; the note says which branch
+    was taken), else None."""
+    if not data.start_rivals_rad or rms_ratio_now <= st.noise_tolerance:
+        return None
     n_try = st.prefit_points or st.refit_points
     stride = max(1, int(np.ceil(data.n / max(n_try, 2))))
-    branches = [data] + [data.shifted(q - data.q_ref_rad) for q in data.start_rivals_rad]
-    chi2 = [chi2_total(fit_model(model, b.subset(slice(None, None, stride)), streams, st.identify,
-                                 attitude0_rad)) for b in branches]
-    k = int(np.argmin(chi2))
-    note = data.note if k == 0 else (f"{data.note}; the still start's rival branch {k + 1} of "
-                                     f"{len(branches)} (it fits best)")
-    return replace(branches[k], start_rivals_rad=(), note=note)
+    rivals = [data.shifted(q - data.q_ref_rad) for q in data.start_rivals_rad]
+    ratios = [rms_ratio_of(fit_model(model, b.subset(slice(None, None, stride)), streams, st.identify,
+                                     attitude0_rad)) for b in rivals]
+    k = int(np.argmin(ratios))
+    if ratios[k] >= rms_ratio_now:
+        return None
+    note = (f"{data.note}; the still start's rival branch {k + 2} of {len(rivals) + 1} (the first "
+            f"fitted to {rms_ratio_now:.3g}x the noise, this one to {ratios[k]:.3g}x)")
+    return replace(rivals[k], start_rivals_rad=(), note=note)
 
 
 def _fit(model: Model, data: FitData, streams: Sequence[str], st: DiagnoseSettings,

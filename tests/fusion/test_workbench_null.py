@@ -82,6 +82,7 @@ def test_an_ambiguous_still_start_is_fitted_from_the_branch_that_fits(arm):
     d = diagnose(model_from_arm(arm), data_from_recording(arm, rec, window=WINDOW))
     assert d.verdict == FITS_TO_NOISE, (d.verdict, d.rms_ratio)
     assert "rival branch" in d.data.note and d.data.start_rivals_rad == ()
+    assert d.rms_ratio < 1.1
 
 
 def test_a_joint_the_start_cannot_tell_comes_from_a_later_still_stretch(arm):
