@@ -257,11 +257,13 @@ def section(outs: list[Outcome], args: dict, cal_cpu: list[float]) -> str:
         lines += [f"Not parked (the command would send them to the innovations' analysis): "
                   f"{len(skipped)} recordings of " + ", ".join(sorted({o.case.scenario for o in skipped}))
                   + ".", ""]
-    raw = np.concatenate([o.raw_p for o in parked if o.raw_p.size] or [np.zeros(0)])
-    if raw.size:
-        lines.append(f"The score tests one by one (uncorrected, {raw.size:,} tests): "
-                     f"{100 * np.mean(raw < 0.05):.1f} % below p 0.05, {100 * np.mean(raw < 0.01):.2f} % "
-                     "below 0.01 (5 % and 1 % if each test's χ² holds).")
+    for scenario in dict.fromkeys(o.case.scenario for o in parked):
+        raw = np.concatenate([o.raw_p for o in parked if o.case.scenario == scenario and o.raw_p.size]
+                             or [np.zeros(0)])
+        if raw.size:
+            lines.append(f"The score tests one by one on `{scenario}` (uncorrected, {raw.size:,} tests): "
+                         f"{100 * np.mean(raw < 0.05):.1f} % below p 0.05, {100 * np.mean(raw < 0.01):.2f} % "
+                         "below 0.01 (5 % and 1 % if each test's χ² holds).")
     fr = np.array([o.flag_ratio for o in parked])
     lines += [f"The residual analysis's largest |correlation| over its flag band, per recording: "
               f"median {np.median(fr):.2f}, 95th percentile {np.percentile(fr, 95):.2f}, "
@@ -296,8 +298,10 @@ def main(argv=None) -> int:
     ap.add_argument("--rungs", type=int, default=1, help="discovery's rung limit")
     ap.add_argument("--window", type=int, default=WINDOW, help="samples per fit point (diagnose --window)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (CPU figures are per recording)")
-    ap.add_argument("--only", help="run only the groups whose label contains this (e.g. 'static-poses')")
-    ap.add_argument("--quick", action="store_true", help="2 seeds per shipped group, no realistic arm")
+    ap.add_argument("--only", help="run only the groups whose label (ARM SCENARIO DURATION s) contains "
+                    "this, e.g. 'renk-maneuver 30 s'")
+    ap.add_argument("--quick", action="store_true",
+                    help="--seeds 2 (shares as SHIPPED_PLAN), no planned maneuver, no realistic arm")
     ap.add_argument("--out", type=Path, help="write the markdown section to this file")
     a = ap.parse_args(argv)
     if a.quick:
@@ -309,7 +313,7 @@ def main(argv=None) -> int:
     base = load_arm("wmra")
     cases = plan(a.seeds, a.realistic_arms, a.realistic_seeds, a.planned_seeds)
     if a.only:
-        cases = [c for c in cases if a.only in f"{c.arm} {c.scenario} {c.duration_s:.0f}"]
+        cases = [c for c in cases if a.only in f"{c.arm} {c.scenario} {c.duration_s:.0f} s"]
     folder = Path(tempfile.mkdtemp(prefix="bench_null_"))
     arms: dict[str, tuple] = {"shipped": (None, None)}
     cal_cpu: list[float] = []
