@@ -362,11 +362,14 @@ def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
 
 
 def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
-    """:func:`start_pose`, then the rival branches the still start cannot tell from it (the
-    startup's candidates, nearest the ready pose first): where the fit starts. A calibration
-    maneuver starts from the arm's ready pose, so the candidate nearest it comes first; a
-    recording that starts elsewhere (random still poses) may need a rival (the fit's
-    residuals say which: :func:`fusion.workbench.diagnose.diagnose` tries them)."""
+    """:func:`start_pose`, then its rivals: where the fit may start. First the startup's
+    branches on the first still ``window_s`` (its candidates, nearest the ready pose first),
+    joints it cannot tell (gimbal lock) at the ready pose: a calibration maneuver starts from
+    the ready pose, so that comes first and is right there. Then, where a joint was untold,
+    the same branches with it taken from the later still stretches
+    (:func:`_later_still_angles`): for a recording that starts elsewhere (random still poses).
+    Which one is right the fit's residuals say (:func:`fusion.workbench.diagnose.diagnose`
+    tries the rivals when the first does not fit the noise)."""
     from fusion.startup.solve import readings_from_recording, solve_still
 
     q = np.array(arm.ready_pose_rad, float)
@@ -380,8 +383,6 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
     models = stream_models(arm)
     e = models["enc"].from_counts(enc.values[:1])[0] if enc is not None and len(enc) else 0.0
     geo = np.array([je.angle_rad if je.angle_rad is not None else np.nan for je in res.joints])
-    if np.isnan(geo).any() and enc is not None and len(enc):
-        geo = _later_still_angles(arm, rec, geo, e, window_s, models)
     branches = [geo]
     if res.candidates_rad is not None and len(res.candidates_rad) > 1:
         amb = np.array([je.flag == "ambiguous" for je in res.joints])
@@ -391,6 +392,11 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
             b = geo.copy()
             b[amb] = res.candidates_rad[int(k)][amb]
             branches.append(b)
+    if np.isnan(geo).any() and enc is not None and len(enc):
+        told = _later_still_angles(arm, rec, geo, e, window_s, models)
+        untold = np.isnan(geo) & np.isfinite(told)
+        if untold.any():
+            branches += [np.where(untold, told, b) for b in branches]
     out = []
     for b in branches:
         qb = q.copy()

@@ -86,10 +86,15 @@ def test_an_ambiguous_still_start_is_fitted_from_the_branch_that_fits(arm):
 
 
 def test_a_joint_the_start_cannot_tell_comes_from_a_later_still_stretch(arm):
-    """Seed 11004 starts with j2 at gimbal lock (the still start cannot tell it: the ready
-    pose's 90° against the true 37°); the next still pose tells it, carried back through the
-    encoders."""
+    """Seed 11004 starts with j2 at gimbal lock: the still start cannot tell it and leaves it at
+    the ready pose (90°, right for a maneuver that starts there; the truth here is 37°, and
+    from there the fit ends 109x the noise). The next still pose tells it, carried back
+    through the encoders: that start is a rival, and the fit takes it."""
     rec, _ = simulate(arm, "static-poses", 60.0, seed=11004)
     q0 = rec.get("true_q").values[0]
-    first = start_poses(arm, rec)[0]
-    assert abs(np.degrees(first[1] - q0[1])) < 1.0, np.degrees(first[1])
+    first, *rivals = start_poses(arm, rec)
+    assert abs(np.degrees(first[1]) - 90.0) < 1e-6
+    assert any(abs(np.degrees(r[1] - q0[1])) < 1.0 for r in rivals)
+    d = diagnose(model_from_arm(arm), data_from_recording(arm, rec, window=WINDOW))
+    assert d.verdict == FITS_TO_NOISE and d.rms_ratio < 1.1, (d.verdict, d.rms_ratio)
+    assert "rival branch" in d.data.note
