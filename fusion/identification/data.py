@@ -99,6 +99,10 @@ class FitData:
     """Per stream and axis, the fast error one sample carries beyond its noise model, in
     counts (:func:`sample_excess`: vibration, say, which a window's mean averages away but a
     filter that reads every sample meets); absent where the scatter is the noise's."""
+    start_rivals_rad: tuple[np.ndarray, ...] = ()
+    """Other joint angles the recording's still start fits as well as ``q_ref_rad`` (rival
+    branches of the startup solve: :func:`start_poses`), for a fit to try; empty where the
+    start is unambiguous or ``q_ref_rad`` was given."""
 
     @property
     def n(self) -> int:
@@ -226,8 +230,10 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
         keep = (t >= t_range_s[0]) & (t <= t_range_s[1])
     t = t[keep]
     q_enc = models["enc"].from_counts(enc.values[keep])
+    rivals: tuple[np.ndarray, ...] = ()
     if q_ref_rad is None:
-        q_ref_rad = start_pose(arm, rec)
+        q_ref_rad, *rest = start_poses(arm, rec)
+        rivals = tuple(rest)
     q = np.asarray(q_ref_rad, float) + q_enc
     names = fitted_streams(models) if streams is None else list(streams)
     counts, sig, excess = {}, {}, {}
@@ -286,7 +292,7 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
                         qdd_rad_s2=qdd)
         data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
                        f"window means of {w} samples" + note, stance=stance, used=used,
-                       sample_excess_counts=excess)
+                       sample_excess_counts=excess, start_rivals_rad=rivals)
     else:
         tw = t[: n * w].reshape(n, w)
         dt = (tw[:, -1] - tw[:, 0]) * w / max(w - 1, 1)  # the window's length
@@ -296,7 +302,7 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
         state = replace(MotionState.static(qn, temperature_c=tempn, t_s=tn), qd_rad_s=qd, qdd_rad_s2=qdd)
         data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
                        f"window means of {w} samples (model at two nodes per window)" + note, nodes=2,
-                       stance=stance, used=used, sample_excess_counts=excess)
+                       stance=stance, used=used, sample_excess_counts=excess, start_rivals_rad=rivals)
     if saturated:  # a window holding a saturated sample (or interpolated from one) is left out
         bad = (np.cumsum(reach)[: n * w] > 0).reshape(n, w).any(axis=1)
         if int((~bad).sum()) < 2:
@@ -401,6 +407,18 @@ def parked_stances(arm: ArmModel, rec, t_windows_s: np.ndarray, window: int,
 def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
     """The joint angles at the recording's first sample: the startup calibration on its first
     ``window_s`` (the arm must be still), the ready pose for joints it cannot tell."""
+    return start_poses(arm, rec, window_s)[0]
+
+
+def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
+    """:func:`start_pose`, then its rivals: where the fit may start. First the startup's
+    branches on the first still ``window_s`` (its candidates, nearest the ready pose first),
+    joints it cannot tell (gimbal lock) at the ready pose: a calibration maneuver starts from
+    the ready pose, so that comes first and is right there. Then, where a joint was untold,
+    the same branches with it taken from the later still stretches
+    (:func:`_later_still_angles`): for a recording that starts elsewhere (random still poses).
+    Which one is right the fit's residuals say (:func:`fusion.workbench.diagnose.diagnose`
+    tries the rivals when the first does not fit the noise)."""
     from fusion.startup.solve import readings_from_recording, solve_still
 
     q = np.array(arm.ready_pose_rad, float)
@@ -409,21 +427,66 @@ def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
         readings, _ = readings_from_recording(arm, rec, t0, t0 + window_s, window_s)
         res = solve_still(arm, readings, propose_unlock=False)
     except Exception:  # noqa: BLE001 - no still start: the ready pose
-        return q
+        return [q]
     enc = rec.get("enc")
     models = stream_models(arm)
     e = models["enc"].from_counts(enc.values[:1])[0] if enc is not None and len(enc) else 0.0
     geo = np.array([je.angle_rad if je.angle_rad is not None else np.nan for je in res.joints])
+    branches = [geo]
     if res.candidates_rad is not None and len(res.candidates_rad) > 1:
-        # rival branches the still start cannot tell apart: this is only where the fit
-        # starts, and a calibration maneuver starts from the arm's ready pose: the candidate
-        # nearest it (the fit's residuals then say whether it was the right one)
         amb = np.array([je.flag == "ambiguous" for je in res.joints])
         d = np.abs(wrap_angle(res.candidates_rad - q))[:, amb].sum(1)
-        geo[amb] = res.candidates_rad[int(np.argmin(d))][amb]
-    for j in np.flatnonzero(np.isfinite(geo)):
-        q[j] = geo[j] - (e[j] if np.ndim(e) else 0.0)
-    return q
+        branches = []
+        for k in np.argsort(d, kind="stable"):
+            b = geo.copy()
+            b[amb] = res.candidates_rad[int(k)][amb]
+            branches.append(b)
+    if np.isnan(geo).any() and enc is not None and len(enc):
+        told = _later_still_angles(arm, rec, geo, e, window_s, models)
+        untold = np.isnan(geo) & np.isfinite(told)
+        if untold.any():
+            branches += [np.where(untold, told, b) for b in branches]
+    out = []
+    for b in branches:
+        qb = q.copy()
+        for j in np.flatnonzero(np.isfinite(b)):
+            qb[j] = b[j] - (e[j] if np.ndim(e) else 0.0)
+        if not any(np.allclose(qb, o) for o in out):
+            out.append(qb)
+    return out
+
+
+def _later_still_angles(arm: ArmModel, rec, geo: np.ndarray, enc0_rad: np.ndarray, window_s: float,
+                        models, max_segments: int = 8) -> np.ndarray:
+    """Joints the still start cannot tell (a joint at gimbal lock, a wrist whose roll gravity
+    does not see there): their angle at the start from the first later still stretch that
+    tells them, carried back through the encoders (``angle there - encoder there + encoder at
+    the start``). Joints no stretch tells stay NaN."""
+    from fusion.startup.solve import readings_from_recording, solve_still
+    from fusion.startup.static import find_static_segments
+
+    geo = geo.copy()
+    enc = rec.get("enc")
+    try:
+        segments = find_static_segments(rec)
+    except Exception:  # noqa: BLE001 - no stretch found: the joints stay untold
+        return geo
+    for seg in segments[1:max_segments + 1]:
+        if not np.isnan(geo).any():
+            break
+        if seg.t_end_s - seg.t_start_s < window_s:
+            continue
+        try:
+            readings, _ = readings_from_recording(arm, rec, seg.t_start_s, seg.t_start_s + window_s, window_s)
+            res = solve_still(arm, readings, propose_unlock=False)
+        except Exception:  # noqa: BLE001 - this stretch tells nothing: the next one
+            continue
+        i = int(np.searchsorted(np.asarray(enc.t_s, float), seg.t_start_s))
+        e = models["enc"].from_counts(enc.values[min(i, len(enc) - 1):][:1])[0]
+        for j, je in enumerate(res.joints):
+            if np.isnan(geo[j]) and je.angle_rad is not None and je.flag != "ambiguous":
+                geo[j] = je.angle_rad - e[j] + enc0_rad[j]
+    return geo
 
 
 def joint_references(arm: ArmModel, rec, specs: Sequence[tuple[str, float, float, float | int | None]]

@@ -257,7 +257,7 @@ def _revisit(d: Diagnosis, data: FitData, arm, st: DiscoverSettings, rungs: list
     for f in findings[:-1]:  # the last was found with all the others in already
         if f.added_block not in d.fit.model.index:
             continue
-        wo = diagnose(d.model.without([f.added_block]), data, st.diagnose, attitude0_rad=d.fit.attitude_rad,
+        wo = diagnose(d.model.without([f.added_block]), d.data, st.diagnose, attitude0_rad=d.fit.attitude_rad,
                       progress=stage())
         sig = wo.significant
         i = findings.index(f)
