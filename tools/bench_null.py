@@ -74,7 +74,7 @@ from fusion.workbench.discover import DiscoverSettings, discover  # noqa: E402
 from models.effects import model_from_arm  # noqa: E402
 from models.simulator import simulate  # noqa: E402
 from tools.bench_calibrated import calibrate, calibrated_config  # noqa: E402
-from tools.benchdoc import machine_line  # noqa: E402
+from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 WINDOW = 10
 """Window means of 10 samples, as ``armfusion diagnose`` by default (``--window``)."""
@@ -351,6 +351,8 @@ def main(argv=None) -> int:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text(body + "\n", encoding="utf-8")
         print(f"wrote {a.out}")
+    elif not a.quick:
+        print("wrote", write_section("bench_null", body))
     return 0
 
 
