@@ -54,7 +54,7 @@ from fusion.workbench.discover import Discovery, discover  # noqa: E402
 from fusion.workbench.scores import EXCLUDED_CANDIDATES, candidate_effects, score_tests  # noqa: E402
 from models.effects import all_effects, model_from_arm  # noqa: E402
 from models.simulator import simulate  # noqa: E402
-from tools.benchdoc import machine_line, write_section  # noqa: E402
+from tools.benchdoc import machine_line, publish  # noqa: E402
 
 SCENARIO = "renk-maneuver"
 WINDOW = 10
@@ -300,12 +300,7 @@ def main(argv=None) -> int:
         print(f"speed: {sp}", flush=True)
     body = section(hidden, clean, sp, a.duration, len(pool))
     print(body)
-    if a.out is not None:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(body + "\n", encoding="utf-8")
-        print(f"wrote {a.out}")
-    elif not a.quick:
-        print("wrote", write_section("bench_discover", body))
+    publish("bench_discover", body, a.out, a.quick)
     return 0
 
 

@@ -74,7 +74,7 @@ from fusion.workbench.discover import DiscoverSettings, discover  # noqa: E402
 from models.effects import model_from_arm  # noqa: E402
 from models.simulator import simulate  # noqa: E402
 from tools.bench_calibrated import calibrate, calibrated_config  # noqa: E402
-from tools.benchdoc import machine_line, write_section  # noqa: E402
+from tools.benchdoc import machine_line, publish  # noqa: E402
 
 WINDOW = 10
 """Window means of 10 samples, as ``armfusion diagnose`` by default (``--window``)."""
@@ -347,12 +347,7 @@ def main(argv=None) -> int:
         pool.shutdown()
     body = section(outs, vars(a), cal_cpu)
     print(body)
-    if a.out is not None:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(body + "\n", encoding="utf-8")
-        print(f"wrote {a.out}")
-    elif not a.quick:
-        print("wrote", write_section("bench_null", body))
+    publish("bench_null", body, a.out, a.quick)
     return 0
 
 

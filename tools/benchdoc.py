@@ -38,3 +38,14 @@ def write_section(name: str, body_md: str, path: Path = BENCH_DOC) -> Path:
         text = text.rstrip() + "\n\n" + block + "\n"
     path.write_text(text)
     return path
+
+
+def publish(name: str, body_md: str, out: Path | None, quick: bool = False) -> None:
+    """A tool's section: to ``out`` when given, else (not ``quick``) into its place in
+    docs/benchmarks.md; says where."""
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(body_md + "\n", encoding="utf-8")
+        print(f"wrote {out}")
+    elif not quick:
+        print("wrote", write_section(name, body_md))
