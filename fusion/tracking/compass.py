@@ -323,10 +323,15 @@ class Compass:
         the gyro carries a heading the compass once set (``disturbed``, ``gyro_only``), those
         of the last fused period."""
         if self.status == COMPASS_FUSED:
-            self._fused_floor_var = self.tilt_var + self.steel_sigma_rad**2 + self.iron_sigma_rad**2
+            return self.mount_var + self._biases_var()
         # once fused, the compass's biases stay in the heading while the gyro carries it
         # (disturbed, gone quiet): the last fused heading held them, and the gyro turns it on
         return self.mount_var + self._fused_floor_var
+
+    def _biases_var(self) -> float:
+        """The compass's biases in a heading it sets now (rad²): the tilt's share, the arm's
+        steel at the present pose, the iron at the present heading."""
+        return self.tilt_var + self.steel_sigma_rad**2 + self.iron_sigma_rad**2
 
     def sigma_psi_ut2(self, count: int) -> float:
         """One averaged reading's noise variance per axis, µT²."""
@@ -375,6 +380,8 @@ class Compass:
         self.ring.add(t, innovation, S, nis, use, count_stats=not check.disturbed)
         self.flags = (check.disturbed, self.guard.last_recovering)
         self.status = COMPASS_FUSED if use else DISTURBED
+        if use:
+            self._fused_floor_var = self._biases_var()
         return use
 
     def heading_shift_rad(self) -> float:
