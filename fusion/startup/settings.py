@@ -33,6 +33,14 @@ class StartupSettings:
     """Joints with a linear sigma above this get the profile (non-quadratic) check."""
     limit_margin_deg: float = 0.5
     """Readings are noisy: a branch this close outside a limit is still feasible."""
+    limit_zero_sigmas: float = 3.0
+    """A joint's limits are stated in its numbering, the branches are solved in the geometric
+    angle, and the two differ by the joint's zero offset, known to the config's
+    ``joint_offset`` sigma (the effect's datasheet-typical 1 deg where the config has none): a
+    branch within this many of those sigmas (plus ``limit_margin_deg``) outside a limit is
+    still feasible. (With 0.5 deg alone, a pose 0.8 deg inside j4's limit whose zero was 1 deg
+    off lost its true branch, and its rival's j3 and j4, 160-190 deg away, were reported
+    ``ok``.)"""
     limit_reach_deg: float = 45.0
     """A branch at most this far outside a limit is also tried held at the limit."""
     fit_chi2: float = 9.0

@@ -119,7 +119,7 @@ def solve_still(
     n = arm.n_joints
     free = np.ones(n + 2, dtype=bool)
     mid = (arm.min_rad + arm.max_rad) / 2
-    margin = st.limit_margin_deg * DEG
+    margin = limit_margins_rad(arm, st)
     x, cost = _fitting_branches(problem, st, prior, method)
     q_all = x[:, :n]
     axis_deg = np.degrees(axis_to_vertical(arm, q_all, x[:, n], x[:, n + 1]))
@@ -301,7 +301,7 @@ def _fitting_branches(problem: StillWindowProblem, st: StartupSettings, prior: S
         raise ValueError(f"unknown method {method!r}: use 'joint' or 'sequential'")
     mid = (arm.min_rad + arm.max_rad) / 2
     x[:, :n] = mid + wrap_angle(x[:, :n] - mid)
-    margin = st.limit_margin_deg * DEG
+    margin = limit_margins_rad(arm, st)
     # A minimum just outside a limit (a flat valley, noise pushing its floor past the limit)
     # leaves a real solution at the limit itself: hold the joints there, re-solve the rest,
     # and let that constrained solution compete like any other branch.
@@ -324,8 +324,31 @@ def _fitting_branches(problem: StillWindowProblem, st: StartupSettings, prior: S
     return x[order], cost[order]
 
 
+def limit_margins_rad(arm: ArmModel, st: StartupSettings) -> np.ndarray:
+    """Per joint, how far outside its limits a branch is still feasible (rad): the readings'
+    ``limit_margin_deg`` plus ``limit_zero_sigmas`` of the joint's zero offset's sigma (the
+    config's ``joint_offset`` sigma, else the effect's datasheet-typical one): the limits are
+    in the joint's numbering, the branches in its geometric angle."""
+    from models.effects.base import TargetError
+    from models.effects.entries import build_effect, entry_dict
+
+    entries = [entry_dict(e) for e in arm.effects]
+    stated = {e.get("target"): (e.get("sigma") or {}).get("offset_rad") for e in entries
+              if e.get("effect") == "joint_offset"}
+    zero = np.zeros(arm.n_joints)
+    for j, name in enumerate(arm.joint_names):
+        sig = stated.get(name)
+        if sig is None:
+            try:
+                sig = build_effect(arm, "joint_offset", name).default_sigma()
+            except TargetError:
+                sig = [0.0]
+        zero[j] = float(np.ravel(np.asarray(sig, float))[0])
+    return st.limit_margin_deg * DEG + st.limit_zero_sigmas * zero
+
+
 def _feasible_branches(arm: ArmModel, q_all: np.ndarray, locked_any: np.ndarray,
-                       margin: float) -> tuple[np.ndarray, np.ndarray]:
+                       margin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distinct branches inside the limits ``(F, n)`` (every branch when none is), and
     the rows of ``q_all`` that may be the arm's: the feasible ones, or when none is, those
     least outside (flagged out_of_limits later). Locked joints can take any value, so only

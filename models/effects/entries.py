@@ -72,7 +72,7 @@ def _as_array(v: Any, b: ParamBlock) -> tuple[np.ndarray | None, str | None]:
     return a.reshape(-1), None
 
 
-def _entry_dict(e: Any) -> dict:
+def entry_dict(e: Any) -> dict:
     if hasattr(e, "model_dump"):
         return e.model_dump()
     if isinstance(e, Mapping):
@@ -91,7 +91,7 @@ def model_problems(
     sigmas: dict[str, np.ndarray] = {}
     seen: dict[str, int] = {}
     for i, raw in enumerate(entries):
-        e = _entry_dict(raw)
+        e = entry_dict(raw)
         k = f"{key}[{i}]"
         name = e.get("effect")
         if name not in EFFECTS:

@@ -141,3 +141,27 @@ def test_no_joint_is_given_a_number_with_a_sigma_past_45_degrees(wmra):
             assert je.sigma_rad <= 45 * DEG * 1.0001, je
         if je.angle_rad is None and je.flag != "ambiguous":
             assert je.range_rad == (wmra.min_rad[j], wmra.max_rad[j])
+
+
+def test_a_pose_just_past_a_limit_by_its_zero_offset_keeps_its_branch(ideal):
+    """Limits are in the joint's numbering, branches in its geometric angle; the two differ by
+    the joint's zero offset (1 deg typical). A pose 0.2 deg inside j4's -170 deg limit whose
+    zero is 1 deg off reads as j4 = -170.8 deg: that branch must stay feasible, so its rival
+    (j3 and j4 160-190 deg away, reading the same) makes them ambiguous. With the noise's 0.5
+    deg margin alone, the true branch was dropped and the rival's j3 and j4 reported ok."""
+    rng = np.random.default_rng(1)
+    q = np.radians([176.5, 111.0, -83.7, -170.8, -38.8, 83.5, 106.4])
+    up = up_from_tilt(*np.radians([1.0, -2.0]))
+    f = gravity_in_sensors(ideal, q, up)[0]
+    names = [s.name for s in ideal.link_accelerometers]
+    sig = np.full(3, 0.0005)
+    r = StillReadings({nm: f[i] + rng.normal(0, 0.0005, 3) for i, nm in enumerate(names)},
+                      {nm: sig for nm in names}, up + rng.normal(0, 0.0005, 3), sig)
+    res = solve_still(ideal, r, propose_unlock=False)
+    for j, je in enumerate(res.joints):
+        if je.flag == "ok":
+            err = abs(wrap_angle(je.angle_rad - q[j]))
+            assert err <= 4 * je.sigma_rad, (je.name, np.degrees(je.angle_rad))
+    assert [res.joints[j].flag for j in (2, 3)] == ["ambiguous", "ambiguous"], res.summary
+    cands = np.atleast_2d(res.candidates_rad)
+    assert np.min(np.abs(wrap_angle(cands[:, 3] - q[3]))) < 0.5 * DEG  # the true branch is a candidate
