@@ -184,7 +184,9 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
                          moving_start: bool = False) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
     calibration there (:func:`fusion.startup.solve.solve_still`), the gyro bias, heading and field
-    reference from the same window; it starts tracking at the window's end.
+    reference from the same window; it starts tracking at the window's end: the still
+    stretch's end less ``settings.settle_s`` where the stretch is long enough
+    (:func:`settled_split`), so that the filter settles on the still chair before it moves.
     ``propose_unlock`` False: no search for a move that would unlock gravity-blind joints
     (about 2 s of the startup's time, for a caller that does not show it).
     ``prior_q_rad``: a pose saved at the last clean shutdown, checked against the still data
@@ -204,8 +206,11 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)),
                                 stream_models(arm))
     notes: list[str] = []
+    t_still_end = None  # where the still stretch ends, when the startup leaves its end to the tracker
     if segs:
-        seg = segs[0]
+        seg = settled_split(segs[0], window_s, (settings or TrackerSettings()).settle_s)
+        if seg.t_end_s < segs[0].t_end_s:
+            t_still_end = segs[0].t_end_s
         readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
     elif moving_start:
         seg, readings, checks, note = moving_window(arm, rec)
@@ -242,7 +247,19 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     enc = rec.get(ENC) if arm.n_joints else joint_free_clock(rec)
     if enc is None or not len(enc):
         raise ValueError("the recording has no encoder stream 'enc': nothing to track")
-    k, enc_rad = encoder_angles_at(arm, enc, seg.t_end_s)
+    t_track = seg.t_end_s
+    if t_still_end is not None:
+        if any(j.flag == "ambiguous" for j in startup.joints):
+            # a filter on one of rival branches that fit the still readings alike grows sure of
+            # the one it sits on while the arm stands: it starts where the motion can decide
+            t_track = t_still_end
+            notes.append(f"the startup calibration on {seg.t_start_s:.2f}-{seg.t_end_s:.2f} s of the still "
+                         f"stretch, the tracker from its end ({t_still_end:.2f} s): rival branches")
+        else:
+            notes.append(f"the startup calibration on {seg.t_start_s:.2f}-{seg.t_end_s:.2f} s of the still "
+                         f"stretch (to {t_still_end:.2f} s); the tracker from there, settling on the still "
+                         "chair before it moves")
+    k, enc_rad = encoder_angles_at(arm, enc, t_track)
     rates = {s: (v.rate_hz or 100.0) for s, v in rec.raw().items()}
 
     def tracker_from(result: StartupResult) -> Tracker:
@@ -260,6 +277,15 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
             startup = chosen
     tr = tracker_from(startup)
     return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes), geometric, enc_rad)
+
+
+def settled_split(seg: Segment, window_s: float, settle_s: float) -> Segment:
+    """The part of the still stretch ``seg`` the startup calibrates on: all of it but its
+    last ``settle_s``, which the tracker takes on a still chair, and never less than the
+    startup's ``window_s``. (A still stretch ends because something set off: a filter
+    started at that instant meets the motion before it has learnt what a still chair reads.)"""
+    end = max(seg.t_start_s + window_s, seg.t_end_s - max(settle_s, 0.0))
+    return seg if end >= seg.t_end_s else Segment(seg.t_start_s, end)
 
 
 def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s: float,

@@ -179,6 +179,30 @@ def test_drift_is_corrected_while_the_chair_accelerates(arm, driving):
     assert np.any(run.flags[:, 4] == FLAG_CODE["reacquiring"])
 
 
+def test_the_tracker_settles_on_the_still_chair_before_it_sets_off(arm, driving):
+    """A still stretch ends because the chair set off: the startup calibrates on all of it
+    but its last ``settle_s``, and the tracker takes those seconds on the still chair, so
+    that it has learnt what a still chair reads before the motion begins (started at the
+    set-off itself, the demo's recording had j1 0.7 deg off at a sigma of 0.1 deg)."""
+    whole, _ = start_from_recording(arm, driving, TrackerSettings(settle_s=0.0), prior_q_rad=POSE + 0.05)
+    tr, start = start_from_recording(arm, driving, prior_q_rad=POSE + 0.05)
+    assert start.t_end_s == pytest.approx(whole.t_s - TrackerSettings().settle_s, abs=0.011)
+    assert tr.t_s == pytest.approx(start.t_end_s, abs=0.011)
+    assert any("settling on the still chair" in n for n in start.notes), start.notes
+
+
+def test_rival_branches_leave_the_still_stretch_s_end_to_the_motion(wmra):
+    """Where the startup leaves joints between rival branches, a filter parked on one grows
+    sure of it: it starts where the still stretch ends, and the motion decides."""
+    rec, _ = simulate(wmra, "static-poses", seed=1, duration_s=12.0)
+    whole, _ = start_from_recording(wmra, rec, TrackerSettings(settle_s=0.0))
+    tr, start = start_from_recording(wmra, rec)
+    assert any(j.flag == "ambiguous" for j in start.startup.joints)
+    assert start.t_end_s < whole.t_s - 1.0  # the startup on the stretch less its last seconds
+    assert tr.t_s == pytest.approx(whole.t_s)  # the filter from its end
+    assert any("rival branches" in n for n in start.notes), start.notes
+
+
 def test_without_motion_compensation_the_same_drift_test_fails(arm, driving):
     tr, _ = start_from_recording(arm, driving, TrackerSettings(motion_compensation=False),
                                  prior_q_rad=POSE + 0.05)
@@ -397,7 +421,7 @@ def test_a_run_with_nothing_to_fuse_is_empty_and_the_next_one_carries_on(arm, re
     tr, start = start_from_recording(arm, reaching)
     empty = tr.run(reaching, t_stop_s=tr.t_s)
     assert empty.steps == 0 and empty.q_rad.shape == (0, 7) and empty.summary()["steps"] == 0
-    run = tr.run(reaching, t_stop_s=start.t_end_s + 0.5)
+    run = tr.run(reaching, t_stop_s=tr.t_s + 0.5)
     assert run.steps > 0 and run.flags.shape == (run.steps, 7)
     assert tuple(JOINT_FLAGS[f] for f in run.flags[-1]) == tr.estimate.flags
 
