@@ -60,7 +60,8 @@ def errors(q_rad: np.ndarray, rpy_rad: np.ndarray, P: np.ndarray | None, truth_q
 def truth_summary(run, late: np.ndarray, after_s: float) -> dict:
     """The summary's entries against the truth (see docs/tracking.md): RMS errors per joint
     over the instants ``late`` (all, and those the joint was ``ok``), the worst error, the
-    heading RMS and the NEES with its 95 % chi-square bounds."""
+    share within 3 of its sigmas, the heading RMS and the NEES with its 95 % chi-square
+    bounds."""
     d: dict = {}
     if run.q_error_rad is not None:
         e = np.degrees(run.q_error_rad[late])
@@ -69,6 +70,11 @@ def truth_summary(run, late: np.ndarray, after_s: float) -> dict:
         ok = (run.flags[late] == FLAG_CODE["ok"]) & good
         d["rms_error_ok_deg"] = {nm: _rms(e[:, j][ok[:, j]]) for j, nm in enumerate(run.joint_names)}
         d["max_error_deg"] = {nm: _maxabs(e[:, j][good[:, j]]) for j, nm in enumerate(run.joint_names)}
+        # the share of the instants whose error is within 3 of the reported sigmas: below
+        # 99 % a joint is reported surer than it is (a confident wrong answer)
+        inside = np.abs(e) <= 3.0 * np.degrees(run.sigma_rad[late])
+        d["within_3_sigma"] = {nm: (float(np.mean(inside[:, j][good[:, j]])) if good[:, j].any() else None)
+                               for j, nm in enumerate(run.joint_names)}
         d["rms_after_s"] = after_s
     if run.yaw_error_rad is not None:
         y = np.degrees(run.yaw_error_rad[late])

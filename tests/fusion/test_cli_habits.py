@@ -145,6 +145,9 @@ def test_track_says_which_span_its_rms_covers_on_a_short_recording(tmp_path):
     doc = json.loads(runner.invoke(app, ["track", str(path), "--json"]).stdout)
     assert doc["rms_span_s"] == pytest.approx([start, end], abs=0.05) and doc["rms_after_s"] == 0.0
     assert all(v is not None for v in doc["rms_error_deg"].values())
+    # a clean recording: every joint's error within 3 of its sigmas nearly always
+    assert set(doc["within_3_sigma"]) == set(doc["rms_error_deg"])
+    assert all(0.95 <= v <= 1.0 for v in doc["within_3_sigma"].values()), doc["within_3_sigma"]
     # long enough: the span starts at --after-s
     doc = json.loads(runner.invoke(app, ["track", str(path), "--json", "--after-s", "20"]).stdout)
     assert doc["rms_after_s"] == 20.0 and doc["rms_span_s"][0] == pytest.approx(20.0, abs=0.011)
