@@ -14,6 +14,7 @@ import numpy as np
 
 from fusion.tracking.health import SensorHealth
 from fusion.tracking.settings import C_REACQUISITIONS, IMU_ACC, StateLayout, TrackerSettings
+from fusion.tracking.tracker_kernels import add_normalised_innovations
 from models.rotations import DEG
 
 
@@ -38,6 +39,7 @@ class SlipDetector:
         in its normalised innovations (set by the observability's consider update)."""
         self._sum = np.zeros((Sa, 3))
         self._n = np.zeros(Sa, dtype=np.int64)
+        self._every = np.arange(Sa, dtype=np.int64)
         self._block_t = float(t_s)
         self._log: dict[int, list[float]] = {}
         self.reacquiring_until = np.full(n, -np.inf)
@@ -49,9 +51,8 @@ class SlipDetector:
         """The usable accelerometers ``u`` (indices or a slice) gave innovations ``nu (k, 3)``
         with covariances ``Su``. They are averaged over 50 ms, and tested then; only while
         the base behaves as modelled (``calm``: a lurch is common to all sensors)."""
-        if calm:
-            self._sum[u] += nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2))
-            self._n[u] += 1
+        if calm:  # (compiled: add_normalised_innovations)
+            add_normalised_innovations(self._every[u] if type(u) is slice else u, nu, Su, self._sum, self._n)
         else:  # paused: the averages keep what they had, and do not count the pause
             self.shift_t[u] = t
             self._sum[u] = 0.0

@@ -341,3 +341,45 @@ def measurement_points(X, sel, links, axes, offset_ref, motion_mps2, R_0S, imu_i
             d = X[i, yaw] - magnetic_heading_one(m_B[0], m_B[1], m_B[2], sr, cr, sp, cp) - heading_shift
             Z[i, col] = (d % TWO_PI) - math.pi
     return Z
+
+
+# -- the innovation tests' per-instant sums (the slip detector's, the model-change alarm's) ---
+@njit(cache=True, nogil=True)
+def add_normalised_innovations(which, nu, Su, sums, counts):  # pragma: no cover - compiled
+    """The slip detector's per-instant sums (:meth:`fusion.tracking.slips.SlipDetector.listen`):
+    for each accelerometer ``which[i]``, ``sums[which[i]] += nu[i] / sqrt(diag(Su[i]))`` (its
+    innovation ``nu (k, 3)``, g, over each axis's sigma) and ``counts[which[i]] += 1``."""
+    for i in range(which.shape[0]):
+        s = which[i]
+        for a in range(3):
+            sums[s, a] += nu[i, a] / math.sqrt(Su[i, a, a])
+        counts[s] += 1
+
+
+@njit(cache=True, nogil=True)
+def add_block_sums(which, nu, Su, z_pred, var, rows, sum_nu, sum_g, sum_r, sum_var,
+                   counts):  # pragma: no cover - compiled
+    """The model-change alarm's per-instant sums
+    (:meth:`fusion.tracking.alarm.ModelChangeAlarm.listen`): for each accelerometer
+    ``which[i]`` with innovation ``nu[i] (3,)`` and its covariance ``Su[i] (3, 3)``, whose
+    update rows are ``rows[i] (3,)`` (its predicted force in ``z_pred``, its measurement
+    variances in ``var``): the innovation, the prediction, the noise ``r`` (the mean of its
+    three variances) and the filter's own share ``max(trace(Su) / 3 - r, 0)`` added to the
+    sums, the count by one. (Summed in the order NumPy's ``mean`` and ``trace`` sum, so the
+    figures are the same to the bit.)"""
+    for i in range(which.shape[0]):
+        s = which[i]
+        r0, r1, r2 = rows[i, 0], rows[i, 1], rows[i, 2]
+        r = (var[r0] + var[r1] + var[r2]) / 3.0
+        sum_nu[s, 0] += nu[i, 0]
+        sum_nu[s, 1] += nu[i, 1]
+        sum_nu[s, 2] += nu[i, 2]
+        sum_g[s, 0] += z_pred[r0]
+        sum_g[s, 1] += z_pred[r1]
+        sum_g[s, 2] += z_pred[r2]
+        sum_r[s] += r
+        own = (Su[i, 0, 0] + Su[i, 1, 1] + Su[i, 2, 2]) / 3.0 - r
+        if own <= 0.0:  # (as np.maximum(own, 0): NaN stays, -0 becomes 0)
+            own = 0.0
+        sum_var[s] += own
+        counts[s] += 1

@@ -1,0 +1,86 @@
+"""The slip detector's and the model-change alarm's per-instant sums, compiled
+(:mod:`fusion.tracking.tracker_kernels`), equal the NumPy expressions they replaced, to the
+bit: the tests' averages, hence their verdicts (a slip re-acquired, an alarm raised), are
+the same as before the kernels. Summed over many instants, any difference in the order of
+the additions would show in the last bits."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fusion.tracking.alarm import ModelChangeAlarm
+from fusion.tracking.tracker_kernels import add_block_sums, add_normalised_innovations
+
+
+def _instants(rng, steps: int, k: int):
+    """Innovations ``(k, 3)``, their covariances ``(k, 3, 3)`` (symmetric, positive), the
+    update's predictions and variances (``3k`` rows, then a heading row)."""
+    for _ in range(steps):
+        nu = rng.normal(0.0, 0.01, (k, 3)) * rng.choice([1e-3, 1.0, 30.0], (k, 1))
+        A = rng.normal(0.0, 0.01, (k, 3, 3))
+        Su = A @ A.transpose(0, 2, 1) + 1e-6 * np.eye(3)
+        z_pred = rng.normal(0.0, 1.0, 3 * k + 1)
+        var = rng.uniform(1e-7, 1e-4, 3 * k + 1)
+        yield nu, Su, z_pred, var
+
+
+def test_the_slip_sums_equal_numpys_over_many_instants_any_subset():
+    rng = np.random.default_rng(3)
+    k = 5
+    ref_sum, ref_n = np.zeros((k, 3)), np.zeros(k, dtype=np.int64)
+    got_sum, got_n = np.zeros((k, 3)), np.zeros(k, dtype=np.int64)
+    for step, (nu, Su, _, _) in enumerate(_instants(rng, 400, k)):
+        u = np.arange(k) if step % 3 else np.array([0, 2, 4])  # every sensor, or some
+        nu, Su = nu[: len(u)], Su[: len(u)]
+        ref_sum[u] += nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2))  # the replaced form
+        ref_n[u] += 1
+        add_normalised_innovations(u.astype(np.int64), nu, Su, got_sum, got_n)
+    assert np.array_equal(got_sum, ref_sum)
+    assert np.array_equal(got_n, ref_n)
+
+
+def test_the_alarm_sums_equal_numpys_including_a_negative_and_a_nan_share():
+    rng = np.random.default_rng(4)
+    k = 4
+    rows = np.arange(3 * k).reshape(k, 3)
+    ref = [np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k), np.zeros(k), np.zeros(k, dtype=np.int64)]
+    got = [np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k), np.zeros(k), np.zeros(k, dtype=np.int64)]
+    for step, (nu, Su, z_pred, var) in enumerate(_instants(rng, 400, k)):
+        if step == 7:
+            Su[1] *= 1e-6  # the filter's own share below the noise: clipped at zero
+        if step == 399:
+            Su[2, 0, 0] = np.nan  # a NaN share stays NaN (np.maximum's)
+        idx = np.arange(k) if step % 4 else np.array([1, 3])
+        pos = rows[idx]
+        n_, S_ = nu[idx], Su[idx]
+        # the replaced NumPy form (alarm.listen before the kernel)
+        r = var[pos].mean(1)
+        ref[0][idx] += n_
+        ref[1][idx] += z_pred[pos]
+        ref[2][idx] += r
+        ref[3][idx] += np.maximum(np.trace(S_, axis1=1, axis2=2) / 3.0 - r, 0.0)
+        ref[4][idx] += 1
+        add_block_sums(idx.astype(np.int64), n_, S_, z_pred, var, pos, *got)
+    for a, b in zip(got, ref, strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
+    assert np.isnan(got[3][2]) and np.isfinite(got[3][[0, 1, 3]]).all()
+
+
+def test_the_alarm_counts_every_sensor_alike_given_all_of_them_or_their_indices():
+    """The update with every accelerometer in order (a slice) and the same update named
+    sensor by sensor (indices, the IMU last and left out) give the alarm the same sums."""
+    rng = np.random.default_rng(5)
+    names = ("acc1", "acc2", "acc3", "acc4")
+    a_all = ModelChangeAlarm(names, None, 0.0)
+    a_idx = ModelChangeAlarm(names, None, 0.0)
+    rows = np.arange(15).reshape(5, 3)
+    sel = np.arange(5)
+    for i, (nu, Su, z_pred, var) in enumerate(_instants(rng, 60, 5)):
+        t = 0.01 * (i + 1)
+        a_all.listen(t, slice(0, 5), nu, Su, z_pred, var, rows, sel, True)
+        a_idx.listen(t, sel, nu, Su, z_pred, var, rows, sel, True)
+    for name in ("_sum_nu", "_sum_g", "_sum_r", "_sum_var", "_n", "_ema"):
+        assert np.array_equal(getattr(a_all, name), getattr(a_idx, name)), name
+    # a block closed at 0.5 s (its means in the test's average), ten instants summed since
+    assert a_all._n.tolist() == [10, 10, 10, 10]
+    assert np.abs(a_all._ema).min() > 0.0
