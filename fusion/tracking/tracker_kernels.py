@@ -383,3 +383,26 @@ def add_block_sums(which, nu, Su, z_pred, var, rows, sum_nu, sum_g, sum_r, sum_v
             own = 0.0
         sum_var[s] += own
         counts[s] += 1
+
+
+# -- the accelerometers' health screening (fusion.tracking.health.SensorHealth.accel) ----------
+@njit(cache=True, nogil=True)
+def screen_accelerometers(sel, counts, f, z_pred, last_counts, tol_g, same,
+                          implausible):  # pragma: no cover - compiled
+    """For the accelerometers ``sel (k,)`` of one update, whose raw ``counts (k, 3)`` read
+    ``f (k, 3)`` (g) where ``z_pred`` (their three rows each, in ``sel``'s order, first)
+    predicted the specific force: ``same[i]``, the counts identical to the sensor's last
+    (``last_counts (Sa, 3)``, then set to these; NaN: none yet), and ``implausible[i]``, the
+    reading's magnitude further than ``tol_g`` from the prediction's (a dead sensor). Returns
+    whether any sample is either."""
+    flagged = False
+    for i in range(sel.shape[0]):
+        s = sel[i]
+        c0, c1, c2 = counts[i, 0], counts[i, 1], counts[i, 2]
+        same[i] = c0 == last_counts[s, 0] and c1 == last_counts[s, 1] and c2 == last_counts[s, 2]
+        last_counts[s, 0], last_counts[s, 1], last_counts[s, 2] = c0, c1, c2
+        a, b, c = f[i, 0], f[i, 1], f[i, 2]
+        u, v, w = z_pred[3 * i], z_pred[3 * i + 1], z_pred[3 * i + 2]
+        implausible[i] = abs(math.sqrt(a * a + b * b + c * c) - math.sqrt(u * u + v * v + w * w)) > tol_g
+        flagged = flagged or same[i] or implausible[i]
+    return flagged

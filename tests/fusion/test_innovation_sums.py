@@ -1,4 +1,5 @@
-"""The slip detector's and the model-change alarm's per-instant sums, compiled
+"""The slip detector's and the model-change alarm's per-instant sums, and the sensor health
+screen, compiled
 (:mod:`fusion.tracking.tracker_kernels`), equal the NumPy expressions they replaced, to the
 bit: the tests' averages, hence their verdicts (a slip re-acquired, an alarm raised), are
 the same as before the kernels. Summed over many instants, any difference in the order of
@@ -84,3 +85,35 @@ def test_the_alarm_counts_every_sensor_alike_given_all_of_them_or_their_indices(
     # a block closed at 0.5 s (its means in the test's average), ten instants summed since
     assert a_all._n.tolist() == [10, 10, 10, 10]
     assert np.abs(a_all._ema).min() > 0.0
+
+
+def test_the_health_screen_flags_the_samples_the_plain_python_form_flagged():
+    """Stuck (identical counts in a row) and implausible (magnitude off the prediction by
+    more than the tolerance) as the sensor-by-sensor Python form had them, any subset."""
+    from fusion.tracking.tracker_kernels import screen_accelerometers
+
+    rng = np.random.default_rng(6)
+    Sa, tol = 5, 0.35
+    last = np.full((Sa, 3), np.nan)
+    ref_last: list = [None] * Sa
+    seen_same = seen_implausible = 0
+    for step in range(300):
+        sel = np.arange(Sa) if step % 2 else np.sort(rng.choice(Sa, 3, replace=False))
+        k = len(sel)
+        counts = rng.integers(-3, 4, (k, 3)).astype(float)  # few values: repeats happen
+        f = rng.normal(0.0, 0.6, (k, 3))
+        z_pred = np.r_[rng.normal(0.0, 0.6, 3 * k), 0.1]
+        same, implausible = np.empty(k, bool), np.empty(k, bool)
+        flagged = screen_accelerometers(sel.astype(np.int64), counts, f, z_pred, last, tol, same, implausible)
+        cl = counts.tolist()
+        want_same = [c == ref_last[s] for c, s in zip(cl, sel.tolist(), strict=True)]
+        for c, s in zip(cl, sel.tolist(), strict=True):
+            ref_last[s] = c
+        want_imp = [abs(np.sqrt(a * a + b * b + c * c) - np.sqrt(u * u + v * v + w * w)) > tol
+                    for (a, b, c), (u, v, w) in zip(f.tolist(), z_pred[:3 * k].reshape(k, 3).tolist(),
+                                                    strict=True)]
+        assert same.tolist() == want_same and implausible.tolist() == want_imp
+        assert flagged == (any(want_same) or any(want_imp))
+        seen_same += sum(want_same)
+        seen_implausible += sum(want_imp)
+    assert seen_same > 0 and seen_implausible > 0  # both verdicts were exercised
