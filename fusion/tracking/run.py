@@ -240,6 +240,7 @@ class RunArrays:
         self.T = T
         self._flat = None
         self._held = (None, None, None)
+        self._heading_status = (None, None, 0)
         self._changes: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
         self._last = -1
 
@@ -260,7 +261,12 @@ class RunArrays:
             self._held = held = (flags, status, sys_var)
             self._changes.append((i, *held))
         self.heading_floor_var[i] = tr.compass.heading_floor_var
-        self.heading_status[i] = tr.heading_status_code()
+        # the heading's status follows the compass's and the sensors' statuses (that array is
+        # replaced when they change): worked out again only when either changed
+        hs = self._heading_status
+        if tr.compass.status is not hs[0] or tr.health.status_codes is not hs[1]:
+            self._heading_status = hs = (tr.compass.status, tr.health.status_codes, tr.heading_status_code())
+        self.heading_status[i] = hs[2]
         mf = tr.compass.flags
         if mf[0] or mf[1]:
             self.magnetic[i] = (1 if mf[0] else 0) | (2 if mf[1] else 0)
