@@ -406,3 +406,49 @@ def screen_accelerometers(sel, counts, f, z_pred, last_counts, tol_g, same,
         implausible[i] = abs(math.sqrt(a * a + b * b + c * c) - math.sqrt(u * u + v * v + w * w)) > tol_g
         flagged = flagged or same[i] or implausible[i]
     return flagged
+
+
+@njit(cache=True, nogil=True)
+def close_slip_block(t, sums, counts, n_links, taus, thresholds, shift_t, shift, stat, heard, a_out,
+                     var_w_out):  # pragma: no cover - compiled
+    """The slip detector's block at ``t`` (:meth:`fusion.tracking.slips.SlipDetector.listen`):
+    every link accelerometer ``s < n_links`` heard in it (``counts[s] > 0``; ``heard[s]``
+    says which) gets its mean normalised innovation ``sums[s] / counts[s]`` into its
+    averages on each time scale (``shift[s] (2, 3)``, weight ``a = min(1, dt / taus)``,
+    ``dt`` since its last block ``shift_t[s]``, 0 the first time), and its test statistic
+    ``|shift|² / var_w / thresholds`` (``var_w = a / (2 - a) / count``: the average of unit
+    white noise; 0 where ``a`` is 0), the worst of the two in ``stat[s]``; ``a_out`` and
+    ``var_w_out (n_links, 2)`` keep ``a`` and ``var_w`` for the caller. The sums and counts
+    of every sensor start again. Returns how many link accelerometers were heard, -1 (with
+    nothing done) when no sensor was summed at all."""
+    if not (counts != 0).any():
+        return -1
+    k = 0
+    for s in range(n_links):
+        c = counts[s]
+        heard[s] = c > 0
+        if c <= 0:
+            continue
+        k += 1
+        last = shift_t[s]
+        dt = 0.0 if math.isnan(last) else t - last
+        shift_t[s] = t
+        worst = 0.0
+        for j in range(2):
+            a = min(1.0, dt / taus[j])
+            e2 = 0.0
+            for ax in range(3):
+                e = shift[s, j, ax]
+                e = e + a * (sums[s, ax] / c - e)
+                shift[s, j, ax] = e
+                e2 = e * e if ax == 0 else e2 + e * e
+            pos = a > 0
+            var_w = (a if pos else 1.0) / ((2.0 - a) * c)
+            st = e2 / var_w if pos else 0.0
+            st /= thresholds[j]
+            a_out[s, j], var_w_out[s, j] = a, var_w
+            worst = st if j == 0 else (st if (st > worst or math.isnan(st)) and not math.isnan(worst) else worst)
+        stat[s] = worst
+    sums[:] = 0.0
+    counts[:] = 0
+    return k

@@ -117,3 +117,95 @@ def test_the_health_screen_flags_the_samples_the_plain_python_form_flagged():
         seen_same += sum(want_same)
         seen_implausible += sum(want_imp)
     assert seen_same > 0 and seen_implausible > 0  # both verdicts were exercised
+
+
+class _SlipTestBefore:
+    """The slip detector's block test as NumPy computed it before the kernel (the reference)."""
+
+    def __init__(self, det):
+        self.d = det
+        self.shift, self.shift_t = det.shift.copy(), det.shift_t.copy()
+        self._stat, self._cool = det._stat.copy(), det._cool.copy()
+        self._sum, self._n = np.zeros_like(det._sum), np.zeros_like(det._n)
+        self._block_t = det._block_t
+
+    def listen(self, t, u, nu, Su, calm, reacquire):
+        if calm:
+            self._sum[u] += nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2))
+            self._n[u] += 1
+        else:
+            self.shift_t[u] = t
+            self._sum[u] = 0.0
+            self._n[u] = 0
+        if t - self._block_t >= 0.05 and self._n.any():
+            nl = self.d.n_links
+            have = (self._n[:nl] > 0).nonzero()[0]
+            if len(have):
+                n_ = self._n[have]
+                self._detect(t, slice(0, nl) if len(have) == nl else have, self._sum[have] / n_[:, None], n_,
+                             reacquire)
+            self._sum[:] = 0.0
+            self._n[:] = 0
+            self._block_t = t
+
+    def _detect(self, t, which, nu_w, count, reacquire):
+        d = self.d
+        last = self.shift_t[which]
+        dt = np.where(np.isnan(last), 0.0, t - last)
+        self.shift_t[which] = t
+        a = np.minimum(1.0, dt[:, None] / d._taus)
+        ema = self.shift[which]
+        ema += a[:, :, None] * (nu_w[:, None, :] - ema)
+        self.shift[which] = ema
+        pos = a > 0
+        var_w = np.where(pos, a, 1.0) / ((2.0 - a) * count[:, None])
+        stat = np.square(ema).sum(axis=2) / var_w
+        stat[~pos] = 0.0
+        stat /= d._thr
+        self._stat[which] = worst = stat.max(axis=1)
+        cal = d.calibration[which]
+        if cal.any():
+            M = cal[:, None] + var_w[:, :, None, None] * np.eye(3)
+            stat = np.einsum("kti,kti->kt", ema, np.linalg.solve(M, ema[..., None])[..., 0])
+            stat[~pos] = 0.0
+            stat /= d._thr
+            worst = stat.max(axis=1)
+        hit = worst > 1.0
+        if hit.any():
+            ids = np.arange(len(self.shift_t))[which]
+            for s in ids[hit & (t >= self._cool[which])]:
+                reacquire(int(s), t)
+                self.shift[s] = 0.0
+                self._cool[s] = t + d.settings.reacquiring_flag_s
+
+
+def test_the_slip_test_re_acquires_as_its_numpy_form_did_with_and_without_the_calibrations_error():
+    from fusion.tracking.settings import StateLayout, TrackerSettings
+    from fusion.tracking.slips import SlipDetector
+
+    st, n, Sa, nl = TrackerSettings(), 7, 5, 4
+    names = ("acc1", "acc2", "acc3", "acc4", "imu_acc", "imu_gyro", "imu_mag", "enc")
+    sees = np.array([2, 4, 6, 7, 0])[:, None] > np.arange(n)[None, :]
+    for with_cal in (False, True):
+        rng = np.random.default_rng(8 + with_cal)
+        det = SlipDetector(st, StateLayout(n), names, nl, Sa, sees, 0.0)
+        if with_cal:
+            A = rng.normal(0.0, 0.3, (nl, 3, 3))
+            det.calibration[:] = A @ A.transpose(0, 2, 1)
+        ref = _SlipTestBefore(det)
+        got_calls, ref_calls = [], []
+        for i in range(1500):
+            t = 0.01 * (i + 1)
+            u = slice(0, Sa) if i % 7 else np.array([0, 2, 4])
+            k = Sa if type(u) is slice else 3
+            nu = rng.normal(0.0, 0.01, (k, 3))
+            if 500 <= i < 900:
+                nu[1 if k == Sa else 0] += 0.2  # a lasting shift on one sensor: a slip
+            A = rng.normal(0.0, 0.01, (k, 3, 3))
+            Su = A @ A.transpose(0, 2, 1) + 1e-4 * np.eye(3)
+            calm = i % 50 != 0
+            det.listen(t, u, nu, Su, calm, lambda s, tt: got_calls.append((s, tt)))
+            ref.listen(t, u, nu, Su, calm, lambda s, tt: ref_calls.append((s, tt)))
+        assert got_calls == ref_calls and len(got_calls) >= 1
+        for name in ("shift", "shift_t", "_stat", "_cool"):
+            assert np.array_equal(getattr(det, name), getattr(ref, name), equal_nan=True), name
