@@ -447,8 +447,48 @@ def close_slip_block(t, sums, counts, n_links, taus, thresholds, shift_t, shift,
             st = e2 / var_w if pos else 0.0
             st /= thresholds[j]
             a_out[s, j], var_w_out[s, j] = a, var_w
-            worst = st if j == 0 else (st if (st > worst or math.isnan(st)) and not math.isnan(worst) else worst)
+            # the larger of the two, NaN if either is (np.max's)
+            if j == 0 or (not math.isnan(worst) and (st > worst or math.isnan(st))):
+                worst = st
         stat[s] = worst
     sums[:] = 0.0
     counts[:] = 0
     return k
+
+
+# -- rows kept per instant (copies: the accelerometers' innovation ring, a run's arrays) --------
+@njit(cache=True, nogil=True)
+def ring_row_into(i, t, nu, S, nis, ok, ring_t, ring_nu, ring_S, ring_nis, ring_ok, present, nis_sum,
+                  count_nis):  # pragma: no cover - compiled
+    """Row ``i`` of the accelerometers' innovation ring (:class:`fusion.tracking.innovations.AccelRing`)
+    set to one update's with every accelerometer, in order: time ``t``, innovations ``nu (Sa, 3)``,
+    their covariances ``S (Sa, 3, 3)``, NIS and acceptance ``(Sa,)``, every sensor present; with
+    ``count_nis`` each NIS added to ``nis_sum``."""
+    ring_t[i] = t
+    for s in range(nu.shape[0]):
+        present[i, s] = True
+        ring_nis[i, s] = nis[s]
+        ring_ok[i, s] = ok[s]
+        for a in range(3):
+            ring_nu[i, s, a] = nu[s, a]
+            for b in range(3):
+                ring_S[i, s, a, b] = S[s, a, b]
+        if count_nis:
+            nis_sum[s] += nis[s]
+
+
+@njit(cache=True, nogil=True)
+def state_row_into(i, x, P, att_rows, att_cols, nees_rows, nees_cols, x_out, var_out, att_out,
+                   P_out):  # pragma: no cover - compiled
+    """Row ``i`` of a run's arrays (:class:`fusion.tracking.run.RunArrays`) from the state ``x``
+    and its covariance ``P``: ``x``, ``diag(P)``, the attitude's covariance entries
+    ``P[att_rows, att_cols]`` and, when ``P_out`` has rows, the NEES states' ``P[nees_rows,
+    nees_cols]`` (flattened)."""
+    for j in range(x.shape[0]):
+        x_out[i, j] = x[j]
+        var_out[i, j] = P[j, j]
+    for j in range(att_rows.shape[0]):
+        att_out[i, j] = P[att_rows[j], att_cols[j]]
+    if P_out.shape[0]:
+        for j in range(nees_rows.shape[0]):
+            P_out[i, j] = P[nees_rows[j], nees_cols[j]]

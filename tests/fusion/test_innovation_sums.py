@@ -204,8 +204,34 @@ def test_the_slip_test_re_acquires_as_its_numpy_form_did_with_and_without_the_ca
             A = rng.normal(0.0, 0.01, (k, 3, 3))
             Su = A @ A.transpose(0, 2, 1) + 1e-4 * np.eye(3)
             calm = i % 50 != 0
-            det.listen(t, u, nu, Su, calm, lambda s, tt: got_calls.append((s, tt)))
-            ref.listen(t, u, nu, Su, calm, lambda s, tt: ref_calls.append((s, tt)))
+            det.listen(t, u, nu, Su, calm, lambda s, tt, calls=got_calls: calls.append((s, tt)))
+            ref.listen(t, u, nu, Su, calm, lambda s, tt, calls=ref_calls: calls.append((s, tt)))
         assert got_calls == ref_calls and len(got_calls) >= 1
         for name in ("shift", "shift_t", "_stat", "_cool"):
             assert np.array_equal(getattr(det, name), getattr(ref, name), equal_nan=True), name
+
+
+def test_the_innovation_ring_keeps_whole_rows_as_it_keeps_rows_sensor_by_sensor():
+    """A row of every accelerometer (written compiled) reads back, in each sensor's log and
+    its NIS statistics, as the same row given sensor by sensor; a non-finite NIS is kept
+    but not counted."""
+    from fusion.tracking.innovations import AccelRing
+
+    rng = np.random.default_rng(9)
+    names = ("acc1", "acc2", "acc3")
+    whole, by_sensor = AccelRing(names, 50), AccelRing(names, 150)  # (three rows an instant)
+    for i, (nu, Su, _, _) in enumerate(_instants(rng, 80, 3)):  # more rows than the ring holds
+        nis = rng.chisquare(3, 3)
+        if i == 70:
+            nis[1] = np.inf
+        ok = nis < 7.8
+        whole.add(0.01 * i, np.arange(3), nu, Su, nis, ok)
+        for s in range(3):
+            by_sensor.add(0.01 * i, np.array([s]), nu[s:s + 1], Su[s:s + 1], nis[s:s + 1], ok[s:s + 1])
+    for s, name in enumerate(names):
+        a, b = whole.log(name), by_sensor.log(name)
+        assert len(a.t_s) == 50  # the last 50 rows
+        for field in ("t_s", "innovation", "S", "nis", "accepted"):
+            assert np.array_equal(getattr(a, field), getattr(b, field)), (name, field)
+    assert whole.counts.tolist() == [80, 79, 80]
+    np.testing.assert_allclose(whole.nis_sum, by_sensor.nis_sum, rtol=1e-15)
