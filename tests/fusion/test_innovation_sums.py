@@ -1,9 +1,9 @@
-"""The slip detector's and the model-change alarm's per-instant sums, and the sensor health
-screen, compiled
-(:mod:`fusion.tracking.tracker_kernels`), equal the NumPy expressions they replaced, to the
-bit: the tests' averages, hence their verdicts (a slip re-acquired, an alarm raised), are
-the same as before the kernels. Summed over many instants, any difference in the order of
-the additions would show in the last bits."""
+"""The per-instant bookkeeping compiled in :mod:`fusion.tracking.tracker_kernels` (the slip
+detector's and the model-change alarm's sums, the slip test's block, the sensor health's
+screen, the innovation ring's rows) does what the NumPy and Python forms it replaced did, to
+the bit: the tests' averages, hence their verdicts (a slip re-acquired, an alarm raised, a
+sensor stuck or dead), are the same as before the kernels. Summed over many instants, any
+difference in the order of the additions would show in the last bits."""
 
 from __future__ import annotations
 
@@ -228,7 +228,7 @@ def test_the_innovation_ring_keeps_whole_rows_as_it_keeps_rows_sensor_by_sensor(
         whole.add(0.01 * i, np.arange(3), nu, Su, nis, ok)
         for s in range(3):
             by_sensor.add(0.01 * i, np.array([s]), nu[s:s + 1], Su[s:s + 1], nis[s:s + 1], ok[s:s + 1])
-    for s, name in enumerate(names):
+    for name in names:
         a, b = whole.log(name), by_sensor.log(name)
         assert len(a.t_s) == 50  # the last 50 rows
         for field in ("t_s", "innovation", "S", "nis", "accepted"):
