@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fusion.tracking.tracker_kernels import add_block_sums
 from models.rotations import DEG
 
 BLOCK_S = 0.5
@@ -178,6 +179,7 @@ class ModelChangeAlarm:
         self._sum_var = np.zeros(n)
         self._sum_r = np.zeros(n)
         self._n = np.zeros(n, dtype=np.int64)
+        self._every = np.arange(n, dtype=np.int64)
         self._block_t = float(t_s)
         self._ema = np.zeros((n, 3))
         self._ema_t = np.full(n, np.nan)
@@ -210,24 +212,16 @@ class ModelChangeAlarm:
         A block mean's variance: the measurement noise's share averages down with the
         samples, the filter's own uncertainty (``Su`` less the noise) does not."""
         nl = len(self.names)
-        if calm:
+        if calm:  # (the sums, compiled: add_block_sums)
             if type(u) is slice:
                 k = min(nl, len(nu))
-                idx = slice(0, k)
-                nu, Su = nu[:k], Su[:k]
-                zp = z_pred[:3 * k].reshape(k, 3)
-                r = var[:3 * k].reshape(k, 3).mean(1)
+                add_block_sums(self._every[:k], nu[:k], Su[:k], z_pred, var, rows[:k], self._sum_nu,
+                               self._sum_g, self._sum_r, self._sum_var, self._n)
             else:
                 keep = u < nl
                 idx = u[keep]
-                nu, Su = nu[keep], Su[keep]
-                pos = rows[np.searchsorted(sel, idx)]
-                zp, r = z_pred[pos], var[pos].mean(1)
-            self._sum_nu[idx] += nu
-            self._sum_g[idx] += zp
-            self._sum_r[idx] += r
-            self._sum_var[idx] += np.maximum(np.trace(Su, axis1=1, axis2=2) / 3.0 - r, 0.0)
-            self._n[idx] += 1
+                add_block_sums(idx, nu[keep], Su[keep], z_pred, var, rows[np.searchsorted(sel, idx)],
+                               self._sum_nu, self._sum_g, self._sum_r, self._sum_var, self._n)
         if t - self._block_t >= BLOCK_S:
             if self._n.any():
                 self._block(t)

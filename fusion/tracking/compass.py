@@ -248,6 +248,12 @@ class Compass:
         they are fused only once the iron is known: :meth:`prepare`)."""
         return self.guard is not None
 
+    @property
+    def averaging(self) -> bool:
+        """A period's samples are being averaged: :meth:`turn` needs the base's rate (it does
+        nothing otherwise)."""
+        return self._n > 0
+
     def turn(self, om: np.ndarray, dt: float) -> None:
         """The base turned at ``om`` (rad/s, base axes) for ``dt``."""
         if self._n:

@@ -337,7 +337,7 @@ class Tracker:
             ukf.predict(self.process.fx_tangent, Q, dt=dt, w=w)
             # the attitude is now the propagated central point's plus a tangent vector
             anchor = ukf._sigmas[0, self._att_idx].copy() if ukf._sigmas is not None else None
-            if w is not None:
+            if w is not None and self.compass.averaging:  # (the rate is needed mid-period only)
                 self.compass.turn(self.process.rate(w, ukf._x), dt)
         if gyro is not None:
             self._omega = gyro

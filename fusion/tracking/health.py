@@ -34,6 +34,7 @@ from fusion.tracking.settings import (
     G,
     TrackerSettings,
 )
+from fusion.tracking.tracker_kernels import screen_accelerometers
 
 PLAUSIBLE_BASE_SIGMAS = 4.0
 """A reading's magnitude may differ from the prediction's by this many sigmas of the base's
@@ -60,7 +61,7 @@ class SensorHealth:
         # per accelerometer: last counts, identical run, prediction when it began, stuck,
         # implausible since, rejecting since
         self._acc = [[None, 0, None, False, None, None] for _ in range(Sa)]
-        self._last_counts: list = [None] * Sa  # per accelerometer: its last counts (3 floats)
+        self._last_counts = np.full((Sa, 3), np.nan)  # per accelerometer: its last counts (NaN: none)
         self._dirty = [False] * Sa  # a sensor whose health bookkeeping is not at rest
         self.stuck = [False] * Sa
         self.dead = [False] * Sa
@@ -116,30 +117,21 @@ class SensorHealth:
         ix = slice(0, k) if full else sel  # plain slices where every sensor spoke
         if gate_l is None:
             gate_l = inn.gate_ok.tolist()
-        zp = inn.z_pred[: 3 * k].reshape(k, 3)
-        cl, last = counts.tolist(), self._last_counts
-        if full:
-            same = [c == b for c, b in zip(cl, last, strict=True)]
-            last[:] = cl
-        else:
-            sl = sel.tolist()
-            same = [c == last[s] for c, s in zip(cl, sl, strict=True)]
-            for c, s in zip(cl, sl, strict=True):
-                last[s] = c
-        # |f| against |prediction|, sensor by sensor in plain floats (a handful of sensors)
-        tol = self.plausible_g
-        implausible = [abs(math.sqrt(a * a + b * b + c * c) - math.sqrt(u * u + v * v + w * w)) > tol
-                       for (a, b, c), (u, v, w) in zip(f.tolist(), zp.tolist(), strict=True)]
+        # identical counts in a row (stuck?) and |f| against |prediction| (dead?), compiled
+        same, implausible = np.empty(k, dtype=np.bool_), np.empty(k, dtype=np.bool_)
+        flagged = screen_accelerometers(sel, counts, f, inn.z_pred, self._last_counts, self.plausible_g,
+                                        same, implausible)
         gate_ok = inn.gate_ok[:k]
         self.seen[ix] = True
         self.last_t[ix] = t
-        if not (any(same) or any(implausible) or any(self._dirty)) and all(gate_l[:k]):
+        if not (flagged or any(self._dirty)) and all(gate_l[:k]):
             # the usual case: every sensor healthy and consistent
             self.counts[ix, C_USED] += 1
             ok = usable = gate_ok
             all_usable = True
         else:
-            ok, usable = self._slow(t, sel, zp, inn, var, same, implausible, reacquire)
+            ok, usable = self._slow(t, sel, inn.z_pred[: 3 * k].reshape(k, 3), inn, var, same, implausible,
+                                    reacquire)
             all_usable = bool(usable.all())
         u = nu = Su = None
         if all_usable or usable.any():

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fusion.tracking.tracker_kernels import ring_row_into
+
 
 # results
 @dataclass(frozen=True)
@@ -81,16 +83,16 @@ class AccelRing:
         """``which (k,)`` sensor indices; ``nu (k, 3)``, ``S (k, 3, 3)``, ``nis``, ``ok (k,)``;
         ``finite``: the caller knows every NIS is finite (each passed its gate)."""
         i = self.n % self.cap
-        self.t[i] = t
         self.n += 1
-        if len(which) == self.present.shape[1]:  # every sensor, in order: whole rows
-            self.present[i] = True
-            self.nu[i], self.S[i], self.nis[i], self.ok[i] = nu, S, nis, ok
-            if finite or math.isfinite(nis.sum()):
-                self.nis_sum += nis
+        if len(which) == self.present.shape[1]:  # every sensor, in order: whole rows (compiled)
+            count = finite or math.isfinite(nis.sum())
+            ring_row_into(i, t, nu, S, nis, ok, self.t, self.nu, self.S, self.nis, self.ok, self.present,
+                          self.nis_sum, count)
+            if count:
                 self.nis_whole += 1  # counted for every sensor (see counts)
                 return
         else:
+            self.t[i] = t
             self.present[i] = False
             self.present[i, which] = True
             self.nu[i, which] = nu

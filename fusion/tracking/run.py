@@ -19,6 +19,7 @@ from fusion.tracking.frames import Frames
 from fusion.tracking.process import attitude_sigma_rad
 from fusion.tracking.scoring import errors, truth_at, truth_summary
 from fusion.tracking.settings import C_SAMPLES, C_SATURATED, ENC, GYRO, JOINT_FLAGS, MAG, SENSOR_STATUS
+from fusion.tracking.tracker_kernels import state_row_into
 from models.sensor_models import mpu9150_temperature_c
 from sensors.samples import Recording, Stream
 
@@ -234,25 +235,25 @@ class RunArrays:
         self.status = np.zeros((T, S), dtype=np.int8)
         self.sys_var = np.zeros((T, n))
         self.att_cov = np.full((T, 9), np.nan)  # the attitude's (tangent space) covariance
-        self._att_flat = None
+        self._kept = None
         self.P = np.full((T, n + 3, n + 3), np.nan) if keep_cov else None
-        self._P_rows = None if self.P is None else self.P.reshape(T, (n + 3) ** 2)
+        # (the NEES states' covariance, flattened; no rows without truth)
+        self._P_rows = np.zeros((0, 0)) if self.P is None else self.P.reshape(T, (n + 3) ** 2)
         self.T = T
-        self._flat = None
         self._held = (None, None, None)
+        self._heading_status = (None, None, 0)
         self._changes: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
         self._last = -1
 
     def record(self, tr, i: int) -> None:
         """The tracker ``tr``'s state after instant ``i``."""
         ukf = tr._ukf
-        P = ukf._P
-        self.x[i] = ukf._x
-        self.var[i] = P.diagonal()
-        if self._att_flat is None:
-            a = tr._att_idx
-            self._att_flat = (a[:, None] * P.shape[1] + a[None, :]).reshape(-1)
-        P.take(self._att_flat, out=self.att_cov[i])
+        if self._kept is None:  # the (row, column) pairs kept of P: the attitude's, the NEES states'
+            a, ix = tr._att_idx, tr._nees_idx
+            self._kept = (np.repeat(a, len(a)), np.tile(a, len(a)),
+                          np.repeat(ix, len(ix)), np.tile(ix, len(ix)))
+        # x, diag(P) and those entries of P into row i, compiled
+        state_row_into(i, ukf._x, ukf._P, *self._kept, self.x, self.var, self.att_cov, self._P_rows)
         self.q_enc[i] = tr._q_enc
         held = self._held
         flags, status, sys_var = tr._flags, tr.health.status_codes, tr.observability.sys_var
@@ -260,15 +261,15 @@ class RunArrays:
             self._held = held = (flags, status, sys_var)
             self._changes.append((i, *held))
         self.heading_floor_var[i] = tr.compass.heading_floor_var
-        self.heading_status[i] = tr.heading_status_code()
+        # the heading's status follows the compass's and the sensors' statuses (that array is
+        # replaced when they change): worked out again only when either changed
+        hs = self._heading_status
+        if tr.compass.status is not hs[0] or tr.health.status_codes is not hs[1]:
+            self._heading_status = hs = (tr.compass.status, tr.health.status_codes, tr.heading_status_code())
+        self.heading_status[i] = hs[2]
         mf = tr.compass.flags
         if mf[0] or mf[1]:
             self.magnetic[i] = (1 if mf[0] else 0) | (2 if mf[1] else 0)
-        if self.P is not None:  # for the NEES
-            if self._flat is None:
-                ix = tr._nees_idx
-                self._flat = (ix[:, None] * P.shape[1] + ix[None, :]).reshape(-1)
-            P.take(self._flat, out=self._P_rows[i])
         self._last = i
 
     def _spread_changes(self) -> None:

@@ -14,6 +14,7 @@ import numpy as np
 
 from fusion.tracking.health import SensorHealth
 from fusion.tracking.settings import C_REACQUISITIONS, IMU_ACC, StateLayout, TrackerSettings
+from fusion.tracking.tracker_kernels import add_normalised_innovations, close_slip_block
 from models.rotations import DEG
 
 
@@ -38,6 +39,12 @@ class SlipDetector:
         in its normalised innovations (set by the observability's consider update)."""
         self._sum = np.zeros((Sa, 3))
         self._n = np.zeros(Sa, dtype=np.int64)
+        self._every = np.arange(Sa, dtype=np.int64)
+        # the last block's: which link accelerometers were heard, and their tests' weights a
+        # and variances var_w per time scale (see close_slip_block)
+        self._heard = np.zeros(n_links, dtype=np.bool_)
+        self._a = np.zeros((n_links, 2))
+        self._var_w = np.ones((n_links, 2))
         self._block_t = float(t_s)
         self._log: dict[int, list[float]] = {}
         self.reacquiring_until = np.full(n, -np.inf)
@@ -49,60 +56,42 @@ class SlipDetector:
         """The usable accelerometers ``u`` (indices or a slice) gave innovations ``nu (k, 3)``
         with covariances ``Su``. They are averaged over 50 ms, and tested then; only while
         the base behaves as modelled (``calm``: a lurch is common to all sensors)."""
-        if calm:
-            self._sum[u] += nu / np.sqrt(np.diagonal(Su, axis1=1, axis2=2))
-            self._n[u] += 1
+        if calm:  # (compiled: add_normalised_innovations)
+            add_normalised_innovations(self._every[u] if type(u) is slice else u, nu, Su, self._sum, self._n)
         else:  # paused: the averages keep what they had, and do not count the pause
             self.shift_t[u] = t
             self._sum[u] = 0.0
             self._n[u] = 0
-        if t - self._block_t >= 0.05 and self._n.any():
-            nl = self.n_links
-            have = (self._n[:nl] > 0).nonzero()[0]
-            if len(have):
-                n_ = self._n[have]
-                self._detect(t, slice(0, nl) if len(have) == nl else have, self._sum[have] / n_[:, None], n_,
-                             reacquire)
-            self._sum[:] = 0.0
-            self._n[:] = 0
-            self._block_t = t
+        if t - self._block_t >= 0.05:
+            # the block's means into the averages and their tests, compiled (close_slip_block)
+            k = close_slip_block(t, self._sum, self._n, self.n_links, self._taus, self._thr, self.shift_t,
+                                 self.shift, self._stat, self._heard, self._a, self._var_w)
+            if k >= 0:
+                self._block_t = t
+                if k:
+                    self._detect(t, np.flatnonzero(self._heard), reacquire)
 
-    def _detect(self, t: float, which: np.ndarray | slice, nu_w: np.ndarray, count: np.ndarray,
-                reacquire: Callable[[int, float], None]) -> None:
+    def _detect(self, t: float, which: np.ndarray, reacquire: Callable[[int, float], None]) -> None:
         """A lasting shift of a link accelerometer's innovations (see ``shift_threshold``),
         on two time scales: a slip shows within a second, a slow drift of the counts over a
-        few. ``nu_w`` are the normalised innovations averaged over ``count`` samples, for the
-        link accelerometers ``which`` (indices, or a slice of them)."""
-        last = self.shift_t[which]
-        dt = np.where(np.isnan(last), 0.0, t - last)
-        self.shift_t[which] = t
-        a = np.minimum(1.0, dt[:, None] / self._taus)  # (k, 2)
-        ema = self.shift[which]  # (k, 2, 3)
-        ema += a[:, :, None] * (nu_w[:, None, :] - ema)
-        self.shift[which] = ema
-        # the average of unit white noise (block means of n samples) has variance
-        # a / (2 - a) / n; each time scale has its threshold
-        pos = a > 0
-        var_w = np.where(pos, a, 1.0) / ((2.0 - a) * count[:, None])  # (k, 2)
-        stat = np.square(ema).sum(axis=2) / var_w
-        stat[~pos] = 0.0  # a sensor heard for the first time: no average yet
-        stat /= self._thr
-        # (whether the sensor agrees: no shift at all, see candidates)
-        self._stat[which] = worst = stat.max(axis=1)
+        few. The link accelerometers ``which`` were heard in the block just closed: their
+        averages, and the statistics of the test without the calibration's lasting error
+        (``_stat``), are :func:`~fusion.tracking.tracker_kernels.close_slip_block`'s."""
+        worst = self._stat[which]
         cal = self.calibration[which]  # (k, 3, 3)
         if cal.any():
             # the sensor's own calibration error lasts: it does not average away, so the
             # test that sets off a re-acquisition allows for it,
             # stat = ema^T (var_w I + C)^-1 ema (per time scale)
+            ema, var_w = self.shift[which], self._var_w[which]
             M = cal[:, None] + var_w[:, :, None, None] * self._eye3
             stat = np.einsum("kti,kti->kt", ema, np.linalg.solve(M, ema[..., None])[..., 0])
-            stat[~pos] = 0.0
+            stat[~(self._a[which] > 0)] = 0.0
             stat /= self._thr
             worst = stat.max(axis=1)
         hit = worst > 1.0
         if hit.any():
-            ids = np.arange(len(self.shift_t))[which]
-            for s in ids[hit & (t >= self._cool[which])]:
+            for s in which[hit & (t >= self._cool[which])]:
                 reacquire(int(s), t)
                 self.shift[s] = 0.0
                 self._cool[s] = t + self.settings.reacquiring_flag_s
