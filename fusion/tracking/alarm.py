@@ -17,14 +17,17 @@ joint angles for every pose; a magnetometer that gained hard iron reads off Eart
   its innovation lies across the predicted force (``mount_rotation``, the rotation
   ``dtheta`` of ``nu = [g]x dtheta`` fitted, in degrees); a bias changes the reading's size
   too, so it shows along the force (``bias_jump``, the mean shift, in g). A bias across
-  gravity while the pose does not change looks like a mount: the arm's motion tells them
-  apart;
+  gravity while the pose does not change reads as a turn would: the alarm is raised naming
+  both (``Alarm.candidates``, the likelier first) and named again with every block until
+  the arm's motion has told them apart (``Alarm.named_s``);
 - the compass: disturbed (off Earth's field as estimated) for ``HARD_IRON_AFTER_S`` without
   a break (``hard_iron``, size: the median of the field magnitude's error, µT, its sigma
   their spread).
 
 Each alarm is an :class:`Alarm` (sensor, effect, size with sigma, when it began, when it
-was raised). An alarmed accelerometer is down-weighted until :meth:`ModelChangeAlarm.clear`
+was raised, the effects not yet told apart, when it was named);
+:attr:`ModelChangeAlarm.version` counts the changes of the active alarms a listener would
+publish. An alarmed accelerometer is down-weighted until :meth:`ModelChangeAlarm.clear`
 (recalibrated): the variance of its readings per axis is widened by (``WIDEN`` x the
 change's size)² (g²; a rotation's size as ``size x 1 g``), :meth:`ModelChangeAlarm.widen`. A
 disturbed compass is already not fused (the compass's own verdict).
@@ -58,6 +61,12 @@ NAME_P = 1e-3
 """The false-naming probability of each of :func:`name_shift`'s tests (chi-square on the
 along components): below it the alarm names both effects until the arm's motion separates
 them."""
+OUTLIER_VAR = 9.0
+"""The naming leaves out a block whose variance exceeds this many times the median's (a
+sigma three times the typical one)."""
+MIN_APART = 4
+"""A turn is named once at least this many blocks (2 s) saw a force turned far enough from
+where the change began that a bias of the shift's size would have shown along it."""
 OBSERVABLE = 1e-4
 """A rotation direction whose information is below this fraction of the best-seen one's is
 not fitted (a rotation about a force that never turned)."""
@@ -150,26 +159,38 @@ class Naming:
 def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Naming:
     """Which effect explains block-mean innovations ``nu_g (N, 3)`` seen with predicted
     specific forces ``g_pred (N, 3)`` (both g, sensor axes; ``var_g2 (N,)`` each block's own
-    variance per axis, which weighs it: a block where the arm lurched or the filter
-    re-acquired weighs little).
+    variance per axis: a block more than ``OUTLIER_VAR`` times the median's, where the arm
+    lurched or the filter re-acquired, is left out; the others weigh alike).
 
-    A turned board reads gravity's full size, only in another direction (to second order:
-    ``|g| (1 - cos)`` of the turn across it); a bias changes the size too, by its component
-    along the predicted force, ``u . b``. The filter, moving joints to follow a changed
-    sensor, turns its prediction and so absorbs part of what lies across the force, never
-    what lies along it: the components along the force decide. Both are fitted to them (a
-    bias by least squares, rank-aware: a force that never turned fits only ``b`` along it; a
-    turn by the rotation ``dtheta`` of ``nu = [g]x dtheta`` fitted to the whole innovation,
-    which gives its size), each block weighed by ``1 / var``, the scale from the residuals'
-    own scatter. ``evidence`` is the drop in the residual sum over that scale (twice the log
-    likelihood ratio) of the better explanation, and decides when it is at least
-    ``NAME_EVIDENCE`` and the two explanations differ along the force by more than
-    ``FLOOR_G`` (what the model leaves in ordinary use) in RMS: a bias is named when its along
-    component shows; a turn when the shift's bias (its weighted mean) would have shown along
-    the forces seen and did not. Otherwise both stay candidates: a bias across the force
-    while the pose does not change is a turn as well, and the arm's motion tells them apart."""
-    N = len(nu_g)
-    w = 1.0 / np.maximum(np.asarray(var_g2, float), 1e-12)
+    A turned board reads gravity's full size, only in another direction: along the
+    prediction it is short by ``|g| (1 - cos)`` of the angle between them. A bias changes
+    the size too, by ``u . b`` along the predicted force ``u``. The filter, moving joints to
+    follow a changed sensor, turns its prediction and so absorbs part of what lies across the
+    force, never what lies along it: the components along the force decide, by two
+    chi-square tests at ``NAME_P``, the scale from the residuals' own scatter:
+
+    - a bias, when its along part (fitted by least squares, rank-aware: a force that never
+      turned fits only ``b`` along it) explains the along components better than the turn
+      does (``p`` parameters more), and differs from the turn's by more than ``FLOOR_G`` RMS
+      (what the model leaves in ordinary use);
+    - a turn, when the shift's mean, taken as a bias, would have shown along the forces seen
+      and did not, over the blocks (at least ``MIN_APART``) where the two differ along the
+      force by more than ``FLOOR_G``: the arm turned the sensor far enough since the change.
+
+    Otherwise both stay candidates (``effect`` the likelier first): a bias across the force
+    while the pose does not change is a turn as well, and the arm's motion tells them apart.
+    The size: a bias's, the shift's mean; a turn's, the rotation ``dtheta`` of ``nu = [g]x
+    dtheta`` fitted to the whole innovation (the rotation about a force that never turned is
+    not seen and left at zero), its sigma from the blocks' variance or the fit's residual
+    scatter where that is more."""
+    # the blocks weigh alike, at their typical variance; one far more uncertain than that (the
+    # arm lurched, the filter re-acquired) is left out: the variance of the others is no
+    # block-to-block scatter (the filter's own uncertainty, shared by neighbouring blocks),
+    # which weighing by it would take for one
+    var_g2 = np.asarray(var_g2, float)
+    v0 = max(float(np.median(var_g2)), 1e-12)
+    w = (var_g2 <= OUTLIER_VAR * v0) / v0
+    N = int(np.count_nonzero(w))
     sw = float(w.sum())
     u = g_pred / np.linalg.norm(g_pred, axis=1, keepdims=True)
     along = (nu_g * u).sum(1)
@@ -196,17 +217,20 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
     along_b = u @ b_along
     rss_m = float((w * (along - along_m) ** 2).sum())
     rss_b = float((w * (along - along_b) ** 2).sum())
-    rss_bm = float((w * (along - u @ b_mean) ** 2).sum())  # the shift's own bias, along
     p = int(kb.sum())
     # a bias: its along part, fitted, beats no along shift (p parameters more: chi-square)
     evidence_b = (rss_m - rss_b) / max(rss_b / max(N - p, 1), 1e-30)
     sep_b = _rms(along_b - along_m, w) > FLOOR_G
-    # a turn: the shift's own bias would have shown along the forces seen, and did not
-    evidence_m = (rss_bm - rss_m) / max(rss_m / N, 1e-30)
-    sep_m = _rms(u @ b_mean - along_m, w) > FLOOR_G
+    # a turn: the shift's own bias would have shown along the forces seen, and did not; the
+    # blocks that count are those where the two explanations differ by more than the model
+    # leaves (FLOOR_G): a force turned enough since the change
+    apart = (w > 0) & (np.abs(u @ b_mean - along_m) > FLOOR_G)
+    evidence_m = float((((along - u @ b_mean) ** 2 - (along - along_m) ** 2) * apart).sum()) \
+        / max(rss_m / sw, 1e-30)  # over the along components' mean square about the turn
+    sep_m = int(apart.sum()) >= MIN_APART
     if evidence_b >= chi2.isf(NAME_P, p) and sep_b:
         effect, candidates, evidence = "bias_jump", ("bias_jump",), evidence_b
-    elif evidence_m >= chi2.isf(NAME_P, 1) and sep_m and evidence_b < chi2.isf(NAME_P, p):
+    elif evidence_m >= chi2.isf(NAME_P, 1) and sep_m:  # (an along shift below the floor is no bias)
         effect, candidates, evidence = "mount_rotation", ("mount_rotation",), evidence_m
     elif evidence_b >= chi2.isf(NAME_P, p):  # an along shift, but below what the model leaves
         effect, candidates, evidence = "bias_jump", ("bias_jump", "mount_rotation"), evidence_b
@@ -266,6 +290,8 @@ class ModelChangeAlarm:
         """Every alarm raised, oldest first (a log; cleared ones stay)."""
         self.widen_g2 = np.zeros(n)
         """Per link accelerometer: the variance (g², per axis) added to its readings."""
+        self.version = 0
+        """Counts the changes of :attr:`active` (an alarm raised, named again or cleared)."""
 
 
     # -- the accelerometers -------------------------------------------------------------
@@ -391,6 +417,9 @@ class ModelChangeAlarm:
                       n.candidates, round(t, 3) if len(n.candidates) == 1 else None)
         old = self.active.get(alarm.sensor)
         self.active[alarm.sensor] = alarm
+        if old is None or set(old.candidates) != set(alarm.candidates):  # published again (the size
+            # and which candidate is the likelier ride along with the next)
+            self.version += 1
         if old is None:
             self.raised.append(alarm)
         else:  # the same change, named better: the log keeps one entry for it
@@ -428,6 +457,7 @@ class ModelChangeAlarm:
                           round(self._mag_since, 3), round(t, 3))
             self.active[self.mag_name] = alarm
             self.raised.append(alarm)
+            self.version += 1
 
     # -- lifecycle ----------------------------------------------------------------------
     def clear(self, sensor: str | None = None) -> None:
@@ -437,7 +467,8 @@ class ModelChangeAlarm:
             if name not in self.active and name not in self.names and name != self.mag_name:
                 raise KeyError(f"no sensor {name[:40]!r}; the alarm watches {list(self.names)}"
                                f"{' and ' + self.mag_name if self.mag_name else ''}")
-            self.active.pop(name, None)
+            if self.active.pop(name, None) is not None:
+                self.version += 1
             if name in self.names:
                 s = self.names.index(name)
                 self.widen_g2[s] = 0.0
