@@ -87,8 +87,12 @@ def _health_bytes(**alarm) -> bytes:
 
 
 def test_a_health_payload_round_trips():
+    """Without ``candidates`` the effect is decided; with them, they come back in order."""
     h = pl.decode(pl.health_key("chair1"), _health_bytes())
     assert h.alarms == (("acc4", "mount_rotation", 1.5, 0.8, "deg", 45.0, 49.0, ("mount_rotation",)),)
+    assert pl.decode(pl.health_key("chair1"), pl.encode(h)) == h
+    h = pl.decode(pl.health_key("chair1"), _health_bytes(candidates=["mount_rotation", "bias_jump"]))
+    assert h.alarms[0][7] == ("mount_rotation", "bias_jump")
     assert pl.decode(pl.health_key("chair1"), pl.encode(h)) == h
 
 
@@ -98,6 +102,11 @@ def test_a_health_payload_round_trips():
     ({"sensor": "x" * 5000}, r"alarm 0: sensor 'x{20,60}'… \(5000 characters\): use 1 to 64"),
     ({"size": -1.0}, "alarm 0: a negative size or sigma"),
     ({"sigma": None}, "field 'sigma': NoneType is not the expected type"),
+    ({"candidates": ["bias_jump"]}, r"alarm 0: candidates \['bias_jump'\]: the effect first, then others"),
+    ({"candidates": ["mount_rotation", "mount_rotation"]}, "alarm 0: candidates .*each once"),
+    ({"candidates": ["mount_rotation", "x" * 5000]},
+     r"^alarm 0: candidates \['mount_rotation', 'x{5,40}… \(5022 characters\): the effect first"),
+    ({"candidates": "mount_rotation"}, "field 'candidates': str is not the expected type"),
 ])
 def test_a_bad_health_payload_is_refused_naming_what(alarm, message):
     with pytest.raises(pl.PayloadError, match=message):
