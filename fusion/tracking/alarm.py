@@ -125,6 +125,11 @@ class Alarm:
         return (f"{self.sensor} {self.effect} {self.size:.3g} ± {self.sigma:.2g} {self.unit}{alt} "
                 f"since {self.since_s:.1f} s")
 
+    @classmethod
+    def of_dict(cls, d: dict) -> Alarm:
+        """From :meth:`as_dict`'s form."""
+        return cls(**{**d, "candidates": tuple(d["candidates"])})
+
     def as_dict(self) -> dict:
         return {"sensor": self.sensor, "effect": self.effect, "size": round(self.size, 6),
                 "sigma": round(self.sigma, 6), "unit": self.unit, "since_s": self.since_s,
@@ -147,7 +152,7 @@ class Naming:
     """What a shift's blocks say: ``effect`` the likelier of :data:`ACCEL_EFFECTS` with its
     ``size`` and 1-sigma ``sigma`` (a rotation in deg, a bias in g), ``candidates`` every
     effect the blocks have not ruled out (``effect`` first; ``(effect,)`` once decided) and
-    ``evidence``, twice the log likelihood ratio of ``effect`` over the other."""
+    ``evidence``, the chi-square statistic of the test for ``effect`` (:func:`name_shift`)."""
 
     effect: str
     size: float
@@ -341,7 +346,7 @@ class ModelChangeAlarm:
         g = self._sum_g[have] / n_[:, None]
         # per axis, of a block mean: the noise's share over n samples, the state's whole
         var = self._sum_r[have] / n_ / n_ + self._sum_var[have] / n_
-        own = var.copy()  # the block's own, for the naming: an uncertain block weighs little there
+        own = var.copy()  # the block's own, for the naming: a far more uncertain block is left out
         # the filter's uncertainty grows once a changed sensor disagrees (its gate, a
         # re-acquisition): the test keeps the noise of the last RECENT_S where that is less
         cap = self._hist.shape[1]

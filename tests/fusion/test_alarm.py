@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fusion.tracking.alarm import ModelChangeAlarm, name_shift, onset
+from fusion.tracking.alarm import Alarm, ModelChangeAlarm, name_shift, onset
 from fusion.tracking.tracker import start_from_recording
 from models.rotations import DEG, exp_so3
 from tools.bench_alarm import bias_jumped, iron_gained, mount_turned
@@ -76,6 +76,18 @@ def test_onset_finds_the_step():
     nu = rng.normal(scale=0.001, size=(80, 3))
     nu[50:] += [0.01, 0.0, -0.01]
     assert abs(onset(nu) - 50) <= 1
+
+
+def test_an_undecided_alarm_says_so_and_survives_its_json_form():
+    """``armfusion track`` prints its alarms from their JSON form: an alarm the motion has
+    not yet decided names both effects there."""
+    a = Alarm("acc4", "mount_rotation", 2.27, 4.9, "deg", 45.0, 49.0, ("mount_rotation", "bias_jump"))
+    assert not a.decided and a.named_s is None
+    assert a.line() == "acc4 mount_rotation 2.27 ± 4.9 deg or bias_jump (not yet told apart) since 45.0 s"
+    assert Alarm.of_dict(a.as_dict()) == a
+    b = Alarm("acc4", "mount_rotation", 1.89, 0.35, "deg", 45.0, 49.0, ("mount_rotation",), 62.0)
+    assert b.decided and b.line() == "acc4 mount_rotation 1.89 ± 0.35 deg since 45.0 s"
+    assert Alarm.of_dict(b.as_dict()) == b
 
 
 def test_clear_names_an_unknown_sensor():
