@@ -39,7 +39,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from models.rotations import DEG, skew
 
@@ -188,6 +187,8 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
     dtheta`` fitted to the whole innovation (the rotation about a force that never turned is
     not seen and left at zero), its sigma from the blocks' variance or the fit's residual
     scatter where that is more."""
+    from scipy.stats import chi2  # (here: the payloads import this module, scipy is slow to import)
+
     # the blocks weigh alike, at their typical variance; one far more uncertain than that (the
     # arm lurched, the filter re-acquired) is left out: the variance of the others is no
     # block-to-block scatter (the filter's own uncertainty, shared by neighbouring blocks),
