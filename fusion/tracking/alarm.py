@@ -63,9 +63,10 @@ them."""
 OUTLIER_VAR = 9.0
 """The naming leaves out a block whose variance exceeds this many times the median's (a
 sigma three times the typical one)."""
-MIN_APART = 4
-"""A turn is named once at least this many blocks (2 s) saw a force turned far enough from
-where the change began that a bias of the shift's size would have shown along it."""
+MIN_BLOCKS = 4
+"""An effect is decided on at least this many blocks (2 s): a bias on as many kept blocks
+since the change, a turn once as many saw a force turned far enough from where the change
+began that a bias of the shift's size would have shown along it."""
 OBSERVABLE = 1e-4
 """A rotation direction whose information is below this fraction of the best-seen one's is
 not fitted (a rotation about a force that never turned)."""
@@ -176,9 +177,9 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
     - a bias, when its along part (fitted by least squares, rank-aware: a force that never
       turned fits only ``b`` along it) explains the along components better than the turn
       does (``p`` parameters more), and differs from the turn's by more than ``FLOOR_G`` RMS
-      (what the model leaves in ordinary use);
+      (what the model leaves in ordinary use), on at least ``MIN_BLOCKS`` blocks;
     - a turn, when the shift's mean, taken as a bias, would have shown along the forces seen
-      and did not, over the blocks (at least ``MIN_APART``) where the two differ along the
+      and did not, over the blocks (at least ``MIN_BLOCKS``) where the two differ along the
       force by more than ``FLOOR_G``: the arm turned the sensor far enough since the change.
 
     Otherwise both stay candidates (``effect`` the likelier first): a bias across the force
@@ -226,14 +227,14 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
     p = int(kb.sum())
     # a bias: its along part, fitted, beats no along shift (p parameters more: chi-square)
     evidence_b = (rss_m - rss_b) / max(rss_b / max(N - p, 1), 1e-30)
-    sep_b = _rms(along_b - along_m, w) > FLOOR_G
+    sep_b = _rms(along_b - along_m, w) > FLOOR_G and N >= MIN_BLOCKS
     # a turn: the shift's own bias would have shown along the forces seen, and did not; the
     # blocks that count are those where the two explanations differ by more than the model
     # leaves (FLOOR_G): a force turned enough since the change
     apart = (w > 0) & (np.abs(u @ b_mean - along_m) > FLOOR_G)
     evidence_m = float((((along - u @ b_mean) ** 2 - (along - along_m) ** 2) * apart).sum()) \
         / max(rss_m / sw, 1e-30)  # over the along components' mean square about the turn
-    sep_m = int(apart.sum()) >= MIN_APART
+    sep_m = int(apart.sum()) >= MIN_BLOCKS
     if evidence_b >= chi2.isf(NAME_P, p) and sep_b:
         effect, candidates, evidence = "bias_jump", ("bias_jump",), evidence_b
     elif evidence_m >= chi2.isf(NAME_P, 1) and sep_m:  # (an along shift below the floor is no bias)

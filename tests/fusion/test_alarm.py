@@ -78,6 +78,17 @@ def test_onset_finds_the_step():
     assert abs(onset(nu) - 50) <= 1
 
 
+def test_a_few_blocks_decide_nothing():
+    """Three blocks far along the force (the filter diverging on a changed sensor just
+    before the alarm) are no evidence yet: both effects stay named."""
+    rng = np.random.default_rng(7)
+    g = _gravity_path(rng, 3)
+    nu = 0.2 * g + rng.normal(scale=0.001, size=(3, 3))
+    assert set(name_shift(nu, g, np.full(3, 0.1**2)).candidates) == {"mount_rotation", "bias_jump"}
+    nu = 0.2 * _gravity_path(rng, 4, step=0.0) + rng.normal(scale=0.001, size=(4, 3))
+    assert name_shift(nu, _gravity_path(rng, 4, step=0.0), np.full(4, 0.1**2)).candidates == ("bias_jump",)
+
+
 def test_an_undecided_alarm_says_so_and_survives_its_json_form():
     """``armfusion track`` prints its alarms from their JSON form: an alarm the motion has
     not yet decided names both effects there."""
