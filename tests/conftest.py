@@ -26,3 +26,22 @@ def rng():
 def random_poses(arm, n, rng):
     """Poses drawn uniformly inside the joint limits, ``(n, n_joints)`` rad."""
     return rng.uniform(arm.min_rad, arm.max_rad, size=(n, arm.n_joints))
+
+
+@pytest.fixture(scope="session")
+def calibrated_wmra_arm():
+    """The WMRA with calibrated sensors (the simulation adds noise only)."""
+    from tools.bench_track import calibrated_wmra
+
+    return calibrated_wmra()
+
+
+@pytest.fixture(scope="session")
+def daily_use_110s(calibrated_wmra_arm):
+    """110 s of the calibrated WMRA in daily use (seed 21): the model-change alarm's tests
+    turn or bias a sensor in it, in the tracker (tests/fusion/test_alarm.py) and replayed
+    into the service (tests/service/test_service_health.py)."""
+    from models.simulator import simulate
+
+    rec, _ = simulate(calibrated_wmra_arm, "daily-use", 110.0, seed=21)
+    return rec

@@ -61,7 +61,6 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
-from scipy.stats import binomtest  # noqa: E402
 from scipy.stats import chi2 as chi2_dist  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -74,7 +73,7 @@ from fusion.workbench.discover import DiscoverSettings, discover  # noqa: E402
 from models.effects import model_from_arm  # noqa: E402
 from models.simulator import simulate  # noqa: E402
 from tools.bench_calibrated import calibrate, calibrated_config  # noqa: E402
-from tools.benchdoc import machine_line, publish  # noqa: E402
+from tools.benchdoc import machine_line, publish, wilson  # noqa: E402
 
 WINDOW = 10
 """Window means of 10 samples, as ``armfusion diagnose`` by default (``--window``)."""
@@ -198,11 +197,6 @@ def _work(job: tuple) -> Outcome:
     if key not in _WORKER:
         _WORKER[key] = base if config_path is None else load_arm(config_path)
     return run_case(case, base, _WORKER[key], effects, rungs, maneuver, window)
-
-
-def wilson(k: int, n: int) -> tuple[float, float]:
-    ci = binomtest(k, n).proportion_ci(0.95, method="wilson")
-    return float(ci.low), float(ci.high)
 
 
 def _rate(k: int, n: int) -> str:

@@ -12,6 +12,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import binomtest
 
 BENCH_DOC = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 HEADER = (
@@ -49,3 +50,9 @@ def publish(name: str, body_md: str, out: Path | None, quick: bool = False) -> N
         print(f"wrote {out}")
     elif not quick:
         print("wrote", write_section(name, body_md))
+
+
+def wilson(k: int, n: int) -> tuple[float, float]:
+    """The Wilson 95 % interval on a proportion of ``k`` in ``n``."""
+    ci = binomtest(k, n).proportion_ci(0.95, method="wilson")
+    return float(ci.low), float(ci.high)

@@ -256,6 +256,8 @@ def write_estimates(run, path: Path, arm_config: str = "") -> None:
 def _print(doc: dict, run) -> None:
     from rich.markup import escape
 
+    from fusion.tracking.alarm import Alarm
+
     console.print(f"[bold]{doc['recording']}[/]: startup on t = {doc['start']['t_start_s']:.2f} … "
                   f"{doc['start']['t_end_s']:.2f} s: {doc['start']['summary']}")
     console.print(f"{doc['steps']} steps over {doc['duration_s']:.1f} s in {doc['elapsed_s']:.2f} s "
@@ -290,8 +292,8 @@ def _print(doc: dict, run) -> None:
         console.print(f"NEES mean {n['mean']:.2f} ({n['dof']} states; 95 % bounds for one instant "
                       f"{n['bounds_95_single'][0]:.1f} … {n['bounds_95_single'][1]:.1f})")
     for a in doc["model_alarms"]:
-        console.print(f"[bold red]model changed[/]: {a['sensor']} {a['effect']} {a['size']:.3g} ± "
-                      f"{a['sigma']:.2g} {a['unit']} since {a['since_s']:.1f} s (raised at {a['raised_s']:.1f} s)")
+        line = Alarm.of_dict(a).line()
+        console.print(f"[bold red]model changed[/]: {escape(line)} (raised at {a['raised_s']:.1f} s)")
     rej = {s: v for s, v in doc["rejections"].items() if v}
     console.print("rejections: " + (", ".join(f"{s} {v}" for s, v in rej.items()) or "none"))
     for s, d in doc["nis"].items():

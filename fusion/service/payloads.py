@@ -280,25 +280,29 @@ MAX_ALARMS = 64
 class Health:
     """The fusion node's model-change alarms on ``armfusion/<robot>/health``: each active
     alarm (not cleared by a recalibration) as ``(sensor, effect, size, sigma, unit, since_s,
-    raised_s)``: ``effect`` one of :data:`ALARM_EFFECTS`, ``size`` and its 1-sigma in
-    ``unit`` (deg, g, uT by effect), ``since_s`` when the change began and ``raised_s`` when
-    the alarm was raised (the tracker's clock, the samples' time stamps); ``t_s`` the
+    raised_s, candidates)``: ``effect`` one of :data:`ALARM_EFFECTS`, ``size`` and its
+    1-sigma in ``unit`` (deg, g, uT by effect), ``since_s`` when the change began and
+    ``raised_s`` when the alarm was raised (the tracker's clock, the samples' time stamps),
+    ``candidates`` the effects not yet told apart (``effect``, the likelier, first;
+    ``(effect,)`` once decided; optional on the wire, absent meaning decided); ``t_s`` the
     tracker's time when sent."""
 
     robot: str
     t_s: float
-    alarms: tuple[tuple[str, str, float, float, str, float, float], ...] = ()
+    alarms: tuple[tuple[str, str, float, float, str, float, float, tuple[str, ...]], ...] = ()
 
     @classmethod
     def of(cls, robot: str, t_s: float, alarms) -> Health:
         """From :class:`fusion.tracking.alarm.Alarm` objects."""
         return cls(robot, float(t_s), tuple((a.sensor, a.effect, float(a.size), float(a.sigma), a.unit,
-                                             float(a.since_s), float(a.raised_s)) for a in alarms))
+                                             float(a.since_s), float(a.raised_s), tuple(a.candidates))
+                                            for a in alarms))
 
     def to_json(self) -> dict[str, Any]:
         keys = ("sensor", "effect", "size", "sigma", "unit", "since_s", "raised_s")
         return {"v": VERSIONS["health"], "type": "health", "robot": self.robot, "t_s": self.t_s,
-                "alarms": [dict(zip(keys, a, strict=True)) for a in self.alarms]}
+                "alarms": [{**dict(zip(keys, a[:7], strict=True)), "candidates": list(a[7])}
+                           for a in self.alarms]}
 
 
 Payload = RawBatch | JointState | Heading | Status | Calibration | Health
@@ -485,7 +489,12 @@ def _health(d: dict, robot: str) -> Health:
         size, sigma = _finite(a, "size"), _finite(a, "sigma")
         if size < 0 or sigma < 0:
             raise PayloadError("malformed", f"alarm {i}: a negative size or sigma")
-        out.append((sensor, effect, size, sigma, unit, _finite(a, "since_s"), _finite(a, "raised_s")))
+        cands = tuple(_strings(a, "candidates")) if "candidates" in a else (effect,)
+        if not 1 <= len(cands) <= len(ALARM_EFFECTS) or cands[0] != effect or \
+                len(set(cands)) != len(cands) or not set(cands) <= set(ALARM_EFFECTS):
+            raise PayloadError("malformed", f"alarm {i}: candidates {clipped_repr(list(cands))}: the effect "
+                               f"first, then others of {', '.join(ALARM_EFFECTS)}, each once")
+        out.append((sensor, effect, size, sigma, unit, _finite(a, "since_s"), _finite(a, "raised_s"), cands))
     return Health(robot, _finite(d, "t_s"), tuple(out))
 
 

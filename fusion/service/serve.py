@@ -158,7 +158,7 @@ class FusionNode:
         self._next_pub_t = -np.inf
         self._startup_t: float | None = None
         self._counts: Counter[str] = Counter()
-        self._alarmed: set[str] = set()  # the sensors whose model-change alarm was last published
+        self._alarm_version = 0  # the model-change alarms' version last published
         self._sensors: tuple[tuple[str, str], ...] = ()
         self._arrived: dict[str, float] = {}  # sensor -> when its last batch arrived (monotonic)
         self._silent: frozenset[str] = frozenset()
@@ -448,8 +448,8 @@ class FusionNode:
             if t >= self._next_pub_t:
                 self._publish(e)
                 self._next_pub_t = t + self.publish_period_s
-            if tr.alarm.active.keys() != self._alarmed:  # an alarm raised (or cleared)
-                self._alarmed = set(tr.alarm.active)
+            if tr.alarm.version != self._alarm_version:  # an alarm raised, named again or cleared
+                self._alarm_version = tr.alarm.version
                 self._publish_health()
         if self._start is not None and tr.ambiguity():
             self._try_resolve(tr.t_s)

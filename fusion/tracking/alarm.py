@@ -17,14 +17,17 @@ joint angles for every pose; a magnetometer that gained hard iron reads off Eart
   its innovation lies across the predicted force (``mount_rotation``, the rotation
   ``dtheta`` of ``nu = [g]x dtheta`` fitted, in degrees); a bias changes the reading's size
   too, so it shows along the force (``bias_jump``, the mean shift, in g). A bias across
-  gravity while the pose does not change looks like a mount: the arm's motion tells them
-  apart;
+  gravity while the pose does not change reads as a turn would: the alarm is raised naming
+  both (``Alarm.candidates``, the likelier first) and named again with every block until
+  the arm's motion has told them apart (``Alarm.named_s``);
 - the compass: disturbed (off Earth's field as estimated) for ``HARD_IRON_AFTER_S`` without
   a break (``hard_iron``, size: the median of the field magnitude's error, µT, its sigma
   their spread).
 
 Each alarm is an :class:`Alarm` (sensor, effect, size with sigma, when it began, when it
-was raised). An alarmed accelerometer is down-weighted until :meth:`ModelChangeAlarm.clear`
+was raised, the effects not yet told apart, when it was named);
+:attr:`ModelChangeAlarm.version` counts the changes of the active alarms a listener would
+publish. An alarmed accelerometer is down-weighted until :meth:`ModelChangeAlarm.clear`
 (recalibrated): the variance of its readings per axis is widened by (``WIDEN`` x the
 change's size)² (g²; a rotation's size as ``size x 1 g``), :meth:`ModelChangeAlarm.widen`. A
 disturbed compass is already not fused (the compass's own verdict).
@@ -38,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion.tracking.tracker_kernels import add_block_sums
-from models.rotations import DEG
+from models.rotations import DEG, skew
 
 BLOCK_S = 0.5
 """Innovations are averaged over blocks this long (s) before the test."""
@@ -54,11 +57,20 @@ HOLD_S = 3.0
 """A shift must hold this long (s) to raise an alarm."""
 WINDOW_S = 60.0
 """The naming fit uses at most this much of the shift's history (s)."""
-ALONG_RATIO = 0.12
-"""A shift whose RMS along the predicted force exceeds this fraction of its RMS across it is
-a bias (see :func:`name_shift`)."""
-ALONG_SIGMA = 4.0
-"""And exceeds this many noise sigmas of the quietest block (and ``FLOOR_G``)."""
+NAME_P = 1e-3
+"""The false-naming probability of each of :func:`name_shift`'s tests (chi-square on the
+along components): below it the alarm names both effects until the arm's motion separates
+them."""
+OUTLIER_VAR = 9.0
+"""The naming leaves out a block whose variance exceeds this many times the median's (a
+sigma three times the typical one)."""
+MIN_BLOCKS = 4
+"""An effect is decided on at least this many blocks (2 s): a bias on as many kept blocks
+since the change, a turn once as many saw a force turned far enough from where the change
+began that a bias of the shift's size would have shown along it."""
+OBSERVABLE = 1e-4
+"""A rotation direction whose information is below this fraction of the best-seen one's is
+not fitted (a rotation about a force that never turned)."""
 RECENT_S = 20.0
 """A block's noise is at most the median of the last this many seconds' (s)."""
 WIDEN = 5.0
@@ -72,6 +84,8 @@ HARD_IRON_AFTER_S = 20.0
 """A compass disturbed this long without a break (s) has gained hard iron."""
 
 EFFECTS = ("mount_rotation", "bias_jump", "hard_iron")
+ACCEL_EFFECTS = ("mount_rotation", "bias_jump")
+"""The effects an accelerometer's alarm tells apart."""
 UNITS = {"mount_rotation": "deg", "bias_jump": "g", "hard_iron": "uT"}
 """Each effect's size unit."""
 
@@ -80,7 +94,9 @@ UNITS = {"mount_rotation": "deg", "bias_jump": "g", "hard_iron": "uT"}
 class Alarm:
     """One model change: ``sensor``, ``effect`` (one of :data:`EFFECTS`), ``size`` with
     its 1-sigma ``sigma`` in ``unit`` (``deg``, ``g``, ``uT``), ``since_s`` (when the shift
-    began, as the test saw it), ``raised_s`` (when the alarm was raised)."""
+    began, as the test saw it), ``raised_s`` (when the alarm was raised); ``candidates``:
+    the effects not yet told apart, ``effect`` (the likelier) first, ``(effect,)`` once
+    decided (the default), and ``named_s`` when that was (``None`` while undecided)."""
 
     sensor: str
     effect: str
@@ -89,23 +105,37 @@ class Alarm:
     unit: str
     since_s: float
     raised_s: float
+    candidates: tuple[str, ...] = ()
+    named_s: float | None = None
+
+    def __post_init__(self):
+        if not self.candidates:
+            object.__setattr__(self, "candidates", (self.effect,))
+            if self.named_s is None:
+                object.__setattr__(self, "named_s", self.raised_s)
+
+    @property
+    def decided(self) -> bool:
+        return len(self.candidates) == 1
 
     def line(self) -> str:
-        """For a person: ``acc3 mount_rotation 2.10 ± 0.31 deg since 120.5 s``."""
-        return (f"{self.sensor} {self.effect} {self.size:.3g} ± {self.sigma:.2g} {self.unit} "
+        """For a person: ``acc3 mount_rotation 2.10 ± 0.31 deg since 120.5 s``, or while
+        undecided ``acc3 mount_rotation 2.10 ± 0.31 deg or bias_jump (not yet told apart)
+        since 120.5 s``."""
+        alt = "" if self.decided else f" or {', '.join(self.candidates[1:])} (not yet told apart)"
+        return (f"{self.sensor} {self.effect} {self.size:.3g} ± {self.sigma:.2g} {self.unit}{alt} "
                 f"since {self.since_s:.1f} s")
+
+    @classmethod
+    def of_dict(cls, d: dict) -> Alarm:
+        """From :meth:`as_dict`'s form."""
+        return cls(**{**d, "candidates": tuple(d["candidates"])})
 
     def as_dict(self) -> dict:
         return {"sensor": self.sensor, "effect": self.effect, "size": round(self.size, 6),
                 "sigma": round(self.sigma, 6), "unit": self.unit, "since_s": self.since_s,
-                "raised_s": self.raised_s}
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """``[v]x`` for each row of ``v (N, 3)``: ``(N, 3, 3)``."""
-    z = np.zeros(len(v))
-    x, y, w = v[:, 0], v[:, 1], v[:, 2]
-    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], 1)
+                "raised_s": self.raised_s, "candidates": list(self.candidates),
+                "named_s": self.named_s}
 
 
 def onset(nu: np.ndarray) -> int:
@@ -118,48 +148,119 @@ def onset(nu: np.ndarray) -> int:
     return int(np.argmax(score[: max(len(nu) - 2, 1)]))
 
 
-def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray,
-               quiet_var_g2: float | None = None) -> tuple[str, float, float]:
-    """Which effect explains block-mean innovations ``nu_g (N, 3)`` seen with predicted
-    specific forces ``g_pred (N, 3)`` (both g, sensor axes; ``var_g2 (N,)`` each block's
-    noise variance per axis): ``(effect, size, sigma)``; a bias in g, a rotation in deg.
+@dataclass(frozen=True)
+class Naming:
+    """What a shift's blocks say: ``effect`` the likelier of :data:`ACCEL_EFFECTS` with its
+    ``size`` and 1-sigma ``sigma`` (a rotation in deg, a bias in g), ``candidates`` every
+    effect the blocks have not ruled out (``effect`` first; ``(effect,)`` once decided) and
+    ``evidence``, the chi-square statistic of the test for ``effect`` (:func:`name_shift`)."""
 
-    A turned board reads gravity's full size, only in another direction: its innovation
-    lies across the predicted force (and the filter, moving joints, can only turn the
-    prediction, never change its size). A bias changes the size too: it shows along the
-    predicted force. The innovation's RMS along the force against ``ALONG_RATIO`` x its
-    RMS across (and ``ALONG_SIGMA`` x the quietest block's noise, and ``FLOOR_G``) tells
-    them apart."""
-    N = len(nu_g)
-    # one weight for all blocks: a sensor's variance grows once it disagrees (its gate),
-    # which would weigh the blocks before the change over those after it
-    w = np.full(N, 1.0 / float(np.mean(var_g2)))
+    effect: str
+    size: float
+    sigma: float
+    candidates: tuple[str, ...]
+    evidence: float
+
+
+def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Naming:
+    """Which effect explains block-mean innovations ``nu_g (N, 3)`` seen with predicted
+    specific forces ``g_pred (N, 3)`` (both g, sensor axes; ``var_g2 (N,)`` each block's own
+    variance per axis: a block more than ``OUTLIER_VAR`` times the median's, where the arm
+    lurched or the filter re-acquired, is left out; the others weigh alike).
+
+    A turned board reads gravity's full size, only in another direction: along the
+    prediction it is short by ``|g| (1 - cos)`` of the angle between them. A bias changes
+    the size too, by ``u . b`` along the predicted force ``u``. The filter, moving joints to
+    follow a changed sensor, turns its prediction and so absorbs part of what lies across the
+    force, never what lies along it: the components along the force decide, by two
+    chi-square tests at ``NAME_P``, the scale from the residuals' own scatter:
+
+    - a bias, when its along part (fitted by least squares, rank-aware: a force that never
+      turned fits only ``b`` along it) explains the along components better than the turn
+      does (``p`` parameters more), and differs from the turn's by more than ``FLOOR_G`` RMS
+      (what the model leaves in ordinary use), on at least ``MIN_BLOCKS`` blocks;
+    - a turn, when the shift's mean, taken as a bias, would have shown along the forces seen
+      and did not, over the blocks (at least ``MIN_BLOCKS``) where the two differ along the
+      force by more than ``FLOOR_G``: the arm turned the sensor far enough since the change.
+
+    Otherwise both stay candidates (``effect`` the likelier first): a bias across the force
+    while the pose does not change is a turn as well, and the arm's motion tells them apart.
+    The size: a bias's, the shift's mean; a turn's, the rotation ``dtheta`` of ``nu = [g]x
+    dtheta`` fitted to the whole innovation (the rotation about a force that never turned is
+    not seen and left at zero), its sigma from the blocks' variance or the fit's residual
+    scatter where that is more."""
+    from scipy.stats import chi2  # (here: the payloads import this module, scipy is slow to import)
+
+    # the blocks weigh alike, at their typical variance; one far more uncertain than that (the
+    # arm lurched, the filter re-acquired) is left out: the variance of the others is no
+    # block-to-block scatter (the filter's own uncertainty, shared by neighbouring blocks),
+    # which weighing by it would take for one
+    var_g2 = np.asarray(var_g2, float)
+    v0 = max(float(np.median(var_g2)), 1e-12)
+    w = (var_g2 <= OUTLIER_VAR * v0) / v0
+    N = int(np.count_nonzero(w))
+    sw = float(w.sum())
     u = g_pred / np.linalg.norm(g_pred, axis=1, keepdims=True)
     along = (nu_g * u).sum(1)
-    across = nu_g - along[:, None] * u
-    rms_along = math.sqrt(float((along**2).mean()))
-    rms_across = math.sqrt(float(np.square(across).sum(1).mean()))
-    # the blocks' noise as it was before the sensor disagreed (its variance grows after):
-    # ``quiet_var_g2``, the quietest block's of the sensor's history, when given
-    sd = math.sqrt(float(var_g2.min()) if quiet_var_g2 is None else quiet_var_g2)
+    # the turn: nu = [g]x dtheta over the whole innovation; the rotation about a force that
+    # never turned is not seen and is left at zero
+    H = skew(g_pred)  # (N, 3, 3): H @ dtheta == cross(g, dtheta)
+    A = np.einsum("n,nji,njk->ik", w, H, H)
+    lam, V = np.linalg.eigh(A)
+    keep = lam > OBSERVABLE * lam[-1]
+    A_pinv = (V[:, keep] / lam[keep]) @ V[:, keep].T
+    th = A_pinv @ np.einsum("n,nji,nj->i", w, H, nu_g)
+    # a turned reading keeps its size: along the prediction it is short by |g| (1 - cos) of
+    # the angle between them, whatever share of the turn the filter absorbed
+    g_norm = np.linalg.norm(g_pred, axis=1)
+    across_rad = np.linalg.norm(nu_g - along[:, None] * u, axis=1) / g_norm
+    along_m = -g_norm * (1.0 - np.cos(across_rad))
+    # the bias: its size from the whole innovation, its along part fitted to the along
+    # components (rank-aware)
+    b_mean = (w[:, None] * nu_g).sum(0) / sw
+    Ab = np.einsum("n,ni,nj->ij", w, u, u)
+    lb, Vb = np.linalg.eigh(Ab)
+    kb = lb > OBSERVABLE * lb[-1]
+    b_along = ((Vb[:, kb] / lb[kb]) @ Vb[:, kb].T) @ (w[:, None] * u * along[:, None]).sum(0)
+    along_b = u @ b_along
+    rss_m = float((w * (along - along_m) ** 2).sum())
+    rss_b = float((w * (along - along_b) ** 2).sum())
+    p = int(kb.sum())
+    # a bias: its along part, fitted, beats no along shift (p parameters more: chi-square)
+    evidence_b = (rss_m - rss_b) / max(rss_b / max(N - p, 1), 1e-30)
+    sep_b = _rms(along_b - along_m, w) > FLOOR_G and N >= MIN_BLOCKS
+    # a turn: the shift's own bias would have shown along the forces seen, and did not; the
+    # blocks that count are those where the two explanations differ by more than the model
+    # leaves (FLOOR_G): a force turned enough since the change
+    apart = (w > 0) & (np.abs(u @ b_mean - along_m) > FLOOR_G)
+    evidence_m = float((((along - u @ b_mean) ** 2 - (along - along_m) ** 2) * apart).sum()) \
+        / max(rss_m / sw, 1e-30)  # over the along components' mean square about the turn
+    sep_m = int(apart.sum()) >= MIN_BLOCKS
+    if evidence_b >= chi2.isf(NAME_P, p) and sep_b:
+        effect, candidates, evidence = "bias_jump", ("bias_jump",), evidence_b
+    elif evidence_m >= chi2.isf(NAME_P, 1) and sep_m:  # (an along shift below the floor is no bias)
+        effect, candidates, evidence = "mount_rotation", ("mount_rotation",), evidence_m
+    elif evidence_b >= chi2.isf(NAME_P, p):  # an along shift, but below what the model leaves
+        effect, candidates, evidence = "bias_jump", ("bias_jump", "mount_rotation"), evidence_b
+    else:
+        effect, candidates, evidence = "mount_rotation", ("mount_rotation", "bias_jump"), evidence_m
+    # the size's sigma: the blocks' own variances, or the fit's residual scatter where that
+    # is more (the blocks are not white: the filter absorbs part of the change)
     dof = max(3 * N - 3, 1)
-    if rms_along > max(ALONG_RATIO * rms_across, ALONG_SIGMA * sd, FLOOR_G):
-        b = (w[:, None] * nu_g).sum(0) / w.sum()
-        rss_b = float((w * np.square(nu_g - b).sum(1)).sum())
-        s2 = max(rss_b / dof, 1.0)
-        return "bias_jump", float(np.linalg.norm(b)), math.sqrt(s2 / w.sum())
-    # nu = [g]x dtheta: the rotation that turns the prediction onto the reading
-    H = _skew(g_pred)  # (N, 3, 3)
-    A = np.einsum("n,nji,njk->ik", w, H, H) + 1e-9 * np.eye(3)
-    y = np.einsum("n,nji,nj->i", w, H, nu_g)
-    th = np.linalg.solve(A, y)
-    rss_m = float((w * np.square(nu_g - H @ th).sum(1)).sum())
-    # sigma from the fit's residual scatter (the blocks are not white: the residual's own
-    # variance factor, when it exceeds the noise's)
-    cov = max(rss_m / dof, 1.0) * np.linalg.inv(A)
-    size = float(np.linalg.norm(th))
-    e = th / max(size, 1e-12)
-    return "mount_rotation", size / DEG, math.sqrt(max(float(e @ cov @ e), 0.0)) / DEG
+    if effect == "bias_jump":
+        s2 = max(float((w * np.square(nu_g - b_mean).sum(1)).sum()) / dof, 1.0)
+        size, sigma = float(np.linalg.norm(b_mean)), math.sqrt(s2 / sw)
+    else:
+        s2 = max(float((w * np.square(nu_g - H @ th).sum(1)).sum()) / dof, 1.0)
+        size = float(np.linalg.norm(th))
+        e = th / max(size, 1e-12)
+        sigma = math.sqrt(max(float(e @ (s2 * A_pinv) @ e), 0.0)) / DEG
+        size /= DEG
+    return Naming(effect, size, sigma, candidates, float(evidence))
+
+
+def _rms(x: np.ndarray, w: np.ndarray) -> float:
+    return math.sqrt(float((w * x**2).sum() / w.sum()))
 
 
 class ModelChangeAlarm:
@@ -188,7 +289,7 @@ class ModelChangeAlarm:
         self._first_over = np.full(n, np.nan)  # sticky: kept STICKY_S after the test last held
         self._last_over = np.full(n, -np.inf)
         cap = int(WINDOW_S / BLOCK_S) + 1
-        self._hist = np.zeros((n, cap, 7))  # per block: t, nu (3), g (3)
+        self._hist = np.zeros((n, cap, 8))  # per block: t, nu (3), g (3), its own variance
         self._hist_var = np.zeros((n, cap))
         self._hist_n = np.zeros(n, dtype=np.int64)
         self._mag_since: float | None = None
@@ -198,6 +299,8 @@ class ModelChangeAlarm:
         """Every alarm raised, oldest first (a log; cleared ones stay)."""
         self.widen_g2 = np.zeros(n)
         """Per link accelerometer: the variance (g², per axis) added to its readings."""
+        self.version = 0
+        """Counts the changes of :attr:`active` (an alarm raised, named again or cleared)."""
 
 
     # -- the accelerometers -------------------------------------------------------------
@@ -239,6 +342,7 @@ class ModelChangeAlarm:
         g = self._sum_g[have] / n_[:, None]
         # per axis, of a block mean: the noise's share over n samples, the state's whole
         var = self._sum_r[have] / n_ / n_ + self._sum_var[have] / n_
+        own = var.copy()  # the block's own, for the naming: a far more uncertain block is left out
         # the filter's uncertainty grows once a changed sensor disagrees (its gate, a
         # re-acquisition): the test keeps the noise of the last RECENT_S where that is less
         cap = self._hist.shape[1]
@@ -264,9 +368,14 @@ class ModelChangeAlarm:
             self._hist[s, row, 0] = t
             self._hist[s, row, 1:4] = nu[j]
             self._hist[s, row, 4:7] = g[j]
+            self._hist[s, row, 7] = own[j]
             self._hist_var[s, row] = var[j]
             self._hist_n[s] += 1
-            if not over[j] or quiet or self.names[s] in self.active:
+            al = self.active.get(self.names[s])
+            if al is not None and not al.decided:  # wait for the motion to tell the effects apart
+                h = self._history(s)
+                self._name(s, h[h[:, 0] > al.since_s], al.since_s, al.raised_s, t)
+            if not over[j] or quiet or al is not None:
                 self._over_since[s] = np.nan
                 if quiet or t - self._last_over[s] > STICKY_S:
                     self._first_over[s] = np.nan
@@ -289,22 +398,35 @@ class ModelChangeAlarm:
             self._first_over[:] = np.nan
             self._quiet_until = t + QUIET_S
 
-    def _raise_accel(self, s: int, t: float) -> None:
+    def _history(self, s: int) -> np.ndarray:
+        """Sensor ``s``'s blocks kept (at most ``WINDOW_S``), oldest first: ``(m, 8)``."""
         m = min(int(self._hist_n[s]), self._hist.shape[1])
-        order = np.argsort(self._hist[s, :m, 0])
-        h, v = self._hist[s, order], self._hist_var[s, order]
-        quiet = float(v.min())
+        h = self._hist[s, :m]
+        return h[np.argsort(h[:, 0])]
+
+    def _raise_accel(self, s: int, t: float) -> None:
+        h = self._history(s)
         k = onset(h[:, 1:4])
-        since = float(h[k, 0]) - BLOCK_S  # the block's first sample
-        h, v = h[k:], v[k:]
-        effect, size, sigma = name_shift(h[:, 1:4], h[:, 4:7], v, quiet)
-        alarm = Alarm(self.names[s], effect, size, sigma, UNITS[effect],
-                      round(since, 3), round(t, 3))
-        self.active[alarm.sensor] = alarm
-        self.raised.append(alarm)
-        size_g = size * DEG if effect == "mount_rotation" else size  # a rotation's force, g
-        self.widen_g2[s] = (WIDEN * size_g) ** 2
+        since = round(float(h[k, 0]) - BLOCK_S, 3)  # the block's first sample
+        self._name(s, h[k:], since, round(t, 3), t)
         self._ema[s] = 0.0
+
+    def _name(self, s: int, h: np.ndarray, since_s: float, raised_s: float, t: float) -> None:
+        """Name (or name again) sensor ``s``'s alarm from its blocks ``h`` since the change."""
+        n = name_shift(h[:, 1:4], h[:, 4:7], h[:, 7])
+        alarm = Alarm(self.names[s], n.effect, n.size, n.sigma, UNITS[n.effect], since_s, raised_s,
+                      n.candidates, round(t, 3) if len(n.candidates) == 1 else None)
+        old = self.active.get(alarm.sensor)
+        self.active[alarm.sensor] = alarm
+        if old is None or set(old.candidates) != set(alarm.candidates):  # published again (the size
+            # and which candidate is the likelier ride along with the next)
+            self.version += 1
+        if old is None:
+            self.raised.append(alarm)
+        else:  # the same change, named better: the log keeps one entry for it
+            self.raised[self.raised.index(old)] = alarm
+        size_g = n.size * DEG if n.effect == "mount_rotation" else n.size  # a rotation's force, g
+        self.widen_g2[s] = (WIDEN * size_g) ** 2
 
     def widen(self, sel: np.ndarray, var: np.ndarray) -> None:
         """Add each alarmed accelerometer's widening to the update's variances ``var`` (the
@@ -336,6 +458,7 @@ class ModelChangeAlarm:
                           round(self._mag_since, 3), round(t, 3))
             self.active[self.mag_name] = alarm
             self.raised.append(alarm)
+            self.version += 1
 
     # -- lifecycle ----------------------------------------------------------------------
     def clear(self, sensor: str | None = None) -> None:
@@ -345,7 +468,8 @@ class ModelChangeAlarm:
             if name not in self.active and name not in self.names and name != self.mag_name:
                 raise KeyError(f"no sensor {name[:40]!r}; the alarm watches {list(self.names)}"
                                f"{' and ' + self.mag_name if self.mag_name else ''}")
-            self.active.pop(name, None)
+            if self.active.pop(name, None) is not None:
+                self.version += 1
             if name in self.names:
                 s = self.names.index(name)
                 self.widen_g2[s] = 0.0
