@@ -26,7 +26,7 @@ Writes its section of docs/benchmarks.md (``--out FILE``: to that file instead; 
 neither unless ``--out``) and prints it.
 
     nice python tools/bench_discover.py [--hidden 50] [--clean 20] [--duration 60]
-        [--hour-s 3600] [--quick] [--out FILE]
+        [--hour-s 3600] [--quick] [--seeds SEED ...] [--out FILE]
 """
 
 from __future__ import annotations
@@ -271,6 +271,10 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="8 hidden, 4 clean, no timed hour")
     ap.add_argument("--seed", type=int, default=0, help="the draw's seed")
     ap.add_argument("--out", type=Path, help="write the markdown section to this file")
+    ap.add_argument("--seeds", type=int, nargs="+", metavar="SEED",
+                    help="run only these recordings' seeds (3000 + k: hidden, 4000 + k: clean; the draw "
+                    "is the whole run's, so a hidden seed gets the effects it gets in the whole run); "
+                    "nothing is published unless --out")
     a = ap.parse_args(argv)
     if a.quick:
         a.hidden, a.clean, a.hour_s = 8, 4, 0.0
@@ -279,9 +283,13 @@ def main(argv=None) -> int:
     arm = load_arm("wmra")
     pool = drawable(arm, a.duration)
     rng = np.random.default_rng(a.seed)
+    chosen = None if a.seeds is None else set(a.seeds)
     hidden = []
     for k in range(a.hidden):
-        c = run_case(arm, 3000 + k, draw_hidden(pool, rng), a.duration)
+        drawn = draw_hidden(pool, rng)  # drawn for every k: a chosen seed's draw is the whole run's
+        if chosen is not None and 3000 + k not in chosen:
+            continue
+        c = run_case(arm, 3000 + k, drawn, a.duration)
         hidden.append(c)
         print(f"hidden {k + 1}/{a.hidden} seed {c.seed}: {', '.join(c.hidden_names)} -> "
               f"{'; '.join(f.words() if f.is_group else f.added for f in c.discovery.findings)} "
@@ -290,17 +298,19 @@ def main(argv=None) -> int:
               flush=True)
     clean = []
     for k in range(a.clean):
+        if chosen is not None and 4000 + k not in chosen:
+            continue
         c = run_case(arm, 4000 + k, [], a.duration)
         clean.append(c)
         print(f"clean {k + 1}/{a.clean} seed {c.seed}: {[f.added for f in c.discovery.findings]} "
               f"[{c.discovery.final.rms_ratio:.3f}x; {c.cpu_s:.1f} s]", flush=True)
     sp = None
-    if a.hour_s > 0:
+    if a.hour_s > 0 and chosen is None:
         sp = speed(arm, a.hour_s)
         print(f"speed: {sp}", flush=True)
     body = section(hidden, clean, sp, a.duration, len(pool))
     print(body)
-    publish("bench_discover", body, a.out, a.quick)
+    publish("bench_discover", body, a.out, a.quick or chosen is not None)
     return 0
 
 
