@@ -5,9 +5,11 @@ Every candidate is appended at zero (the identity: the prediction is unchanged) 
 model, and one Jacobian evaluation, accumulated chunk by chunk over the recording, gives
 all their columns. For each candidate the score (Lagrange-multiplier) test: with the
 weighted residual ``r`` and the candidate's columns ``J_c`` with the fitted parameters'
-columns ``J_f`` projected out (they would re-adjust), ``LM = gᵀ M⁺ g``, ``g = J_cᵀ r``,
+columns ``J_f`` projected out (they would re-adjust), ``LM = gᵀ M⁺ g``,
 ``M = J_c⊥ᵀ J_c⊥``, restricted to the directions the data know better than the candidate's
-prior. Under "nothing is missing" LM is χ² with that many degrees of freedom.
+prior; ``g`` is the efficient score, ``J_cᵀ r`` less what the fitted parameters'
+re-adjustment would take of it (:func:`score_tests`). Under "nothing is missing" LM is χ²
+with that many degrees of freedom.
 """
 
 from __future__ import annotations
