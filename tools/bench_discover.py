@@ -26,7 +26,7 @@ Writes its section of docs/benchmarks.md (``--out FILE``: to that file instead; 
 neither unless ``--out``) and prints it.
 
     nice python tools/bench_discover.py [--hidden 50] [--clean 20] [--duration 60]
-        [--hour-s 3600] [--quick] [--out FILE]
+        [--hour-s 3600] [--quick] [--jobs 1] [--seeds SEED ...] [--out FILE]
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -172,6 +173,17 @@ def run_case(arm, seed: int, hidden: list[dict], duration_s: float) -> Case:
     return Case(seed, hidden, disc, cpu, detectability(arm, seed, duration_s, hidden) if hidden else [])
 
 
+_WORKER: dict = {}
+
+
+def _work(job: tuple) -> Case:
+    """One recording in a worker process (the arm loaded once per process)."""
+    seed, hidden, duration_s = job
+    if "arm" not in _WORKER:
+        _WORKER["arm"] = load_arm("wmra")
+    return run_case(_WORKER["arm"], seed, hidden, duration_s)
+
+
 def speed(arm, hour_s: float) -> dict:
     t0 = time.perf_counter()
     rec, _ = simulate(arm, SCENARIO, hour_s, seed=5, effects=SPEED_HIDDEN)
@@ -271,36 +283,51 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="8 hidden, 4 clean, no timed hour")
     ap.add_argument("--seed", type=int, default=0, help="the draw's seed")
     ap.add_argument("--out", type=Path, help="write the markdown section to this file")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="worker processes for the recordings (CPU figures are per recording; the "
+                    "timed hour runs after them, alone)")
+    ap.add_argument("--seeds", type=int, nargs="+", metavar="SEED",
+                    help="run only these recordings' seeds (3000 + k: hidden, 4000 + k: clean; the draw "
+                    "is the whole run's, so a hidden seed gets the effects it gets in the whole run); "
+                    "nothing is published unless --out")
     a = ap.parse_args(argv)
     if a.quick:
         a.hidden, a.clean, a.hour_s = 8, 4, 0.0
-    if a.hidden < 0 or a.clean < 0 or a.duration <= 0:
-        ap.error("--hidden and --clean must be >= 0 and --duration > 0")
+    if a.hidden < 0 or a.clean < 0 or a.duration <= 0 or a.jobs < 1:
+        ap.error("--hidden and --clean must be >= 0, --duration > 0 and --jobs >= 1")
     arm = load_arm("wmra")
     pool = drawable(arm, a.duration)
     rng = np.random.default_rng(a.seed)
-    hidden = []
+    chosen = None if a.seeds is None else set(a.seeds)
+    jobs = []
     for k in range(a.hidden):
-        c = run_case(arm, 3000 + k, draw_hidden(pool, rng), a.duration)
-        hidden.append(c)
-        print(f"hidden {k + 1}/{a.hidden} seed {c.seed}: {', '.join(c.hidden_names)} -> "
-              f"{'; '.join(f.words() if f.is_group else f.added for f in c.discovery.findings)} "
-              f"[{c.discovery.final.rms_ratio:.3f}x, {'found' if c.found_all else 'MISSED'}; "
-              f"{c.cpu_s:.1f} s]",
-              flush=True)
-    clean = []
-    for k in range(a.clean):
-        c = run_case(arm, 4000 + k, [], a.duration)
-        clean.append(c)
-        print(f"clean {k + 1}/{a.clean} seed {c.seed}: {[f.added for f in c.discovery.findings]} "
-              f"[{c.discovery.final.rms_ratio:.3f}x; {c.cpu_s:.1f} s]", flush=True)
+        drawn = draw_hidden(pool, rng)  # drawn for every k: a chosen seed's draw is the whole run's
+        if chosen is None or 3000 + k in chosen:
+            jobs.append((3000 + k, drawn, a.duration))
+    jobs += [(4000 + k, [], a.duration) for k in range(a.clean) if chosen is None or 4000 + k in chosen]
+    workers = ProcessPoolExecutor(a.jobs) if a.jobs > 1 else None
+    results = workers.map(_work, jobs) if workers is not None else map(_work, jobs)
+    hidden, clean = [], []
+    for c in results:
+        if c.hidden:
+            hidden.append(c)
+            print(f"hidden seed {c.seed}: {', '.join(c.hidden_names)} -> "
+                  f"{'; '.join(f.words() if f.is_group else f.added for f in c.discovery.findings)} "
+                  f"[{c.discovery.final.rms_ratio:.3f}x, {'found' if c.found_all else 'MISSED'}; "
+                  f"{c.cpu_s:.1f} s]", flush=True)
+        else:
+            clean.append(c)
+            print(f"clean seed {c.seed}: {[f.added for f in c.discovery.findings]} "
+                  f"[{c.discovery.final.rms_ratio:.3f}x; {c.cpu_s:.1f} s]", flush=True)
+    if workers is not None:
+        workers.shutdown()
     sp = None
-    if a.hour_s > 0:
+    if a.hour_s > 0 and chosen is None:
         sp = speed(arm, a.hour_s)
         print(f"speed: {sp}", flush=True)
     body = section(hidden, clean, sp, a.duration, len(pool))
     print(body)
-    publish("bench_discover", body, a.out, a.quick)
+    publish("bench_discover", body, a.out, a.quick or chosen is not None)
     return 0
 
 

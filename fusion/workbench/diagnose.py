@@ -13,7 +13,8 @@ which physical effect is missing.
    Jacobian evaluation gives all their columns. For each candidate the score
    (Lagrange-multiplier) test: with the weighted residual ``r`` and the candidate's columns
    ``J_c`` with the fitted parameters' columns ``J_f`` projected out (they would re-adjust),
-   ``LM = gᵀ M⁺ g``, ``g = J_cᵀ r``, ``M = J_c⊥ᵀ J_c⊥``, restricted to the directions the
+   ``LM = gᵀ M⁺ g``, ``g = J_cᵀ r`` less what the fitted parameters' re-adjustment would
+   take of it (the efficient score), ``M = J_c⊥ᵀ J_c⊥``, restricted to the directions the
    data know better than the candidate's prior. Under "nothing is missing" LM is χ² with
    that many degrees of freedom; the p-value is Bonferroni-corrected over the candidates.
    No refit is needed for this.

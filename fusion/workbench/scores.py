@@ -5,9 +5,11 @@ Every candidate is appended at zero (the identity: the prediction is unchanged) 
 model, and one Jacobian evaluation, accumulated chunk by chunk over the recording, gives
 all their columns. For each candidate the score (Lagrange-multiplier) test: with the
 weighted residual ``r`` and the candidate's columns ``J_c`` with the fitted parameters'
-columns ``J_f`` projected out (they would re-adjust), ``LM = gᵀ M⁺ g``, ``g = J_cᵀ r``,
+columns ``J_f`` projected out (they would re-adjust), ``LM = gᵀ M⁺ g``,
 ``M = J_c⊥ᵀ J_c⊥``, restricted to the directions the data know better than the candidate's
-prior. Under "nothing is missing" LM is χ² with that many degrees of freedom.
+prior; ``g`` is the efficient score, ``J_cᵀ r`` less what the fitted parameters'
+re-adjustment would take of it (:func:`score_tests`). Under "nothing is missing" LM is χ²
+with that many degrees of freedom.
 """
 
 from __future__ import annotations
@@ -72,7 +74,8 @@ class ScoreTests:
     AiB: np.ndarray
     """``A⁻¹B``: the fitted parameters' re-adjustment per unit of each candidate column."""
     g_candidates: np.ndarray
-    """``J_cᵀ r``."""
+    """``J_cᵀ r`` less the part the fitted parameters would take up, ``(A⁻¹B)ᵀ g_f`` (``g_f``:
+    their gradient, data and prior; zero at an unscaled optimum): the efficient score."""
     chi2: float
     """Σ r² of the fit over the whole recording."""
     n_residuals: int
@@ -148,8 +151,17 @@ def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], str
     A = G[:nf, :nf] + np.diag(1.0 / pb.sigma0[fcols] ** 2)
     B = G[:nf, nf:]
     CC = G[nf:, nf:]
-    g_all = gv[nf:]
     AiB = np.linalg.solve(A, B)
+    # the efficient score: the candidates' gradient less what re-adjusting the fitted
+    # parameters would take of it. The fit is at its optimum with each stream at its own
+    # weight (identify scales down a stream it fits worse than its noise), not at the
+    # optimum of the datasheet χ² the tests measure: where a stream was scaled, the fitted
+    # parameters' gradient (data and prior) is not zero and ignoring it misreads the
+    # candidates (a turned IMU whose turn the base attitude took from the down-weighted
+    # links' side). At an unscaled optimum it is zero and this changes nothing.
+    free_fit = np.flatnonzero(~fit.held)
+    g_fit = gv[:nf] + (fit.x[free_fit] - fit.x0[free_fit]) / pb.sigma0[fcols] ** 2
+    g_all = gv[nf:] - AiB.T @ g_fit
     lnn = np.log(n_res)
     # the evidence in words is read off a few thousand evenly spread points
     stride = int(np.ceil(data.n / min(per, evidence_points)))
