@@ -1,5 +1,6 @@
-"""A chair's acceleration changes smoothly: the tracker holds its jerk (the acceleration's rate
-of change) as a state, where the config does not describe its base's motion otherwise."""
+"""A chair's acceleration changes smoothly: with ``base_jerk_sigma_mps3`` above zero (off by
+default) the tracker holds its jerk (the acceleration's rate of change) as a state, where the
+config does not describe its base's motion otherwise."""
 
 from __future__ import annotations
 
@@ -35,13 +36,13 @@ def test_the_acceleration_changes_by_its_jerk_and_the_jerk_decays():
     np.testing.assert_allclose(Z[0, L.accel], 0.5 * X[0, L.accel])
 
 
-def test_a_chair_holds_its_jerk_and_a_described_base_does_not():
+def test_a_chair_holds_its_jerk_where_asked_and_a_described_base_does_not():
     arm = load_arm("wmra")
-    tr = Tracker(arm)
+    st = TrackerSettings(base_jerk_sigma_mps3=3.0)
+    tr = Tracker(arm, st)
     assert tr.layout.jerk_B is not None
     assert [n for n in tr.state_names if n.startswith("jerk_B")] == ["jerk_B[x]", "jerk_B[y]", "jerk_B[z]"]
     # its noise: the jerk's Gauss-Markov spread, the acceleration's own share of its spread
-    st = TrackerSettings()
     Q = ProcessModel(st, tr.layout).Q(0.01, True, False).diagonal()
     assert Q[tr.layout.jerk_B] == pytest.approx(st.base_jerk_sigma_mps3**2 * (1 - np.exp(-0.02 / 0.3)))
     assert Q[tr.layout.accel] == pytest.approx((st.base_accel_direct_share * 0.7) ** 2
@@ -49,7 +50,7 @@ def test_a_chair_holds_its_jerk_and_a_described_base_does_not():
     # a base the config describes (a hand) keeps the first-order acceleration it describes
     assert st.for_base(BaseMotion(3.0, 0.5)).base_jerk_sigma_mps3 == 0.0
     assert StateLayout(7).size + 3 == StateLayout(7, jerk=True).size
-    assert Tracker(arm, TrackerSettings(base_jerk_sigma_mps3=0.0)).layout.jerk_B is None
+    assert Tracker(arm).layout.jerk_B is None  # off by default
 
 
 def test_the_euler_angle_path_and_its_numpy_reference_carry_the_jerk_alike():
@@ -62,7 +63,7 @@ def test_the_euler_angle_path_and_its_numpy_reference_carry_the_jerk_alike():
     X = rng.normal(scale=0.1, size=(7, L.size))
     args = (X, 0.01, np.array([0.1, -0.2, 0.3]), True, L.roll, L.yaw, L.bias.start, L.accel.start, L.scale,
             0.99, L.jerk_B.start, 0.9)
-    Y = ProcessModel(TrackerSettings(), L).fx(X, 0.01, np.array([0.1, -0.2, 0.3]))
+    Y = ProcessModel(TrackerSettings(base_jerk_sigma_mps3=3.0), L).fx(X, 0.01, np.array([0.1, -0.2, 0.3]))
     decay = np.exp(-0.01 / TrackerSettings().base_accel_tau_s)
     np.testing.assert_allclose(Y[:, L.accel], decay * X[:, L.accel] + 0.01 * X[:, L.jerk_B], atol=1e-12)
     ref = process_points_numpy(*args)
