@@ -45,7 +45,8 @@ def accel_points_numpy(X: np.ndarray, sel: np.ndarray, links: np.ndarray, axes: 
 
 
 def process_points_numpy(X: np.ndarray, dt: float, w: np.ndarray, have_w: bool, roll: int, yaw: int,
-                         bias: int, accel: int, scale: int, accel_decay: float) -> np.ndarray:
+                         bias: int, accel: int, scale: int, accel_decay: float, jerk: int = -1,
+                         jerk_decay: float = 1.0) -> np.ndarray:
     """:func:`fusion.tracking.tracker_kernels.process_points` in NumPy: each point's attitude
     ``R_from_rpy`` turned by ``exp_so3`` of its bias- (and z scale-) corrected rates times ``dt``, read back
     by ``rpy_from_R`` and put in the chart nearest the point's (of the two Euler triples of
@@ -67,6 +68,9 @@ def process_points_numpy(X: np.ndarray, dt: float, w: np.ndarray, have_w: bool, 
         Y[:, roll + 1] = np.where(first, p1, p2)
         Y[:, yaw] = y + np.where(first, dy1, dy2)
     Y[:, accel:accel + 3] *= accel_decay
+    if jerk >= 0:
+        Y[:, accel:accel + 3] += dt * X[:, jerk:jerk + 3]
+        Y[:, jerk:jerk + 3] = X[:, jerk:jerk + 3] * jerk_decay
     return Y
 
 

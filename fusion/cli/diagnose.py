@@ -334,7 +334,7 @@ def _correlation_table(a, rows: int = 8, per_axis: int = 3) -> Table | None:
     if not keys:
         return None
     t = Table(title=f"Where it fails ({a.source}): correlations beyond the 99 % band, corrected for "
-                    f"{int(a._tested().sum()) * (2 * a.max_lag + 1):,} tests (|r| > {a.band_flag:.3f}; "
+                    f"{a.n_tests:,} tests (|r| > {a.band_flag:.3f}; "
                     f"lags in units of {a.dt_s:.2g} s)")
     t.add_column("axis")
     t.add_column("max |autocorr.|", justify="right")

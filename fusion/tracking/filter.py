@@ -105,7 +105,9 @@ class Tracker:
         self.gyro_scale_sigma = (calibrated.heading_scale_sigma(arm, model, st.gyro_scale_sigma)
                                  if self._has_imu else 0.0)
         self.layout = L = StateLayout(n, velocity=st.base_speed_sigma_mps is not None,
-                                      gyro_scale=self.gyro_scale_sigma > 0.0)
+                                      gyro_scale=self.gyro_scale_sigma > 0.0,
+                                      jerk=(st.base_speed_sigma_mps is None and st.base_jerk_sigma_mps3 > 0
+                                            and st.motion_compensation))
         self.state_names = L.names(arm.joint_names)
         self.link_names = tuple(s.name for s in arm.link_accelerometers)
         self.accel_names = self.link_names + ((arm.imu.name,) if self._has_imu else ())
@@ -401,6 +403,8 @@ class Tracker:
             # its acceleration, held near zero while it stood, must be free to follow at once
             self.still.set_off()
             ukf.inflate(np.arange(L.accel.start, L.accel.stop), st.base_accel_sigma_mps2**2)
+            if L.jerk_B is not None:
+                ukf.inflate(np.arange(L.jerk_B.start, L.jerk_B.stop), st.base_jerk_sigma_mps3**2)
             wz = self._prediction_weights() if st.innovation_at_mean_state else None
             inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows, z_weights=wz,
                                frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)

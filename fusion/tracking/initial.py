@@ -79,6 +79,8 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
     P[L.accel, L.accel] = np.eye(3) * (0.01**2 if st.motion_compensation else 1e-16)
     if L.vel is not None:  # and so is its velocity
         P[L.vel, L.vel] = np.eye(3) * 0.01**2
+    if L.jerk_B is not None:  # and its acceleration's change
+        P[L.jerk_B, L.jerk_B] = np.eye(3) * 0.01**2
     if imu.yaw_rad is not None:
         x[L.yaw] = imu.yaw_rad
         P[L.yaw, L.yaw] = imu.yaw_sigma_rad**2

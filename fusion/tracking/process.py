@@ -83,8 +83,15 @@ class ProcessModel:
                              "one is propagated by fx_tangent")
         decay = self._decay_of(dt)
         have_w = w is not None
+        jerk, jerk_decay = self._jerk_of(dt)
         return process_points(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
-                              L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, decay)
+                              L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, decay, jerk, jerk_decay)
+
+    def _jerk_of(self, dt: float) -> tuple[int, float]:
+        """The jerk block's first column (-1 without one) and the jerk's decay over ``dt``."""
+        if self.layout.jerk_B is None:
+            return -1, 1.0
+        return self.layout.jerk_B.start, math.exp(-dt / self.settings.base_jerk_tau_s)
 
     def _decay_of(self, dt: float) -> float:
         """The base acceleration's decay over ``dt`` (cached)."""
@@ -108,9 +115,10 @@ class ProcessModel:
         vel, vel_gain = -1, 0.0
         if L.vel is not None:  # the acceleration is a bounded velocity's: see _velocity_step
             vel, vel_gain = L.vel.start, dt * self._velocity_rate_s2
+        jerk, jerk_decay = self._jerk_of(dt)  # the acceleration changes by its jerk
         T, Y = process_points_tangent(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
                                       L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, decay, vel,
-                                      vel_gain)
+                                      vel_gain, jerk, jerk_decay)
         self.last_points = (T, Y)  # the propagated points, in the tangent space and in Euler angles
         return T
 
@@ -161,6 +169,11 @@ class ProcessModel:
         rw = st.gyro_noise_dps_per_sqrt_hz if have_gyro else st.attitude_random_walk_deg_per_sqrt_s
         q[L.roll] = q[L.pitch] = q[L.yaw] = (rw * DEG) ** 2 * dt
         q[L.accel] = st.base_accel_sigma_mps2**2 * (1.0 - np.exp(-2.0 * dt / st.base_accel_tau_s))
+        if L.jerk_B is not None:  # most of the change comes through the jerk; the rest: bumps
+            q[L.accel] *= st.base_accel_direct_share**2
+            q[L.jerk_B] = st.base_jerk_sigma_mps3**2 * (1.0 - np.exp(-2.0 * dt / st.base_jerk_tau_s))
+            if still:
+                q[L.jerk_B] *= st.still_accel_q_factor
         if still:  # a parked chair's acceleration changes only when it sets off
             q[L.accel] *= st.still_accel_q_factor
         if not st.motion_compensation:

@@ -84,6 +84,22 @@ class TrackerSettings:
     config's ``base_motion`` replaces it (:meth:`for_base`)."""
     base_accel_tau_s: float = 5.0
     """Its correlation time: how long an acceleration typically lasts."""
+    base_jerk_sigma_mps3: float = 0.0
+    """A chair's acceleration changes smoothly (its motors' torque, its controller's ramps:
+    a turn's or a start's onset takes about a second): where above zero (and the base's
+    speed is not bounded), the state holds the acceleration's rate of change, its jerk, a
+    Gauss-Markov process of this spread and correlation time ``base_jerk_tau_s``, and the
+    acceleration changes by it (``a' = -a/τ_a + j``). Without it the acceleration's own
+    white noise carries every change: the filter lags each onset by a step, and the IMU's
+    innovations, averaged over 0.5 s, alternate in sign through each onset (r -0.4 from one
+    block to the next on a chair turning back and forth). 3 m/s³ made 36 of 37 clean drives
+    white (35 without), but on ``tools/bench_track_realistic.py`` j1-j3 came out 0.002-0.06°
+    worse: off (zero) by default."""
+    base_jerk_tau_s: float = 0.3
+    """How long a jerk lasts: about half an onset (the acceleration rises, then levels)."""
+    base_accel_direct_share: float = 0.05
+    """With the jerk state, the share of ``base_accel_sigma_mps2`` left as the acceleration's
+    own white noise (bumps): most of its change comes through the jerk."""
     base_speed_sigma_mps: float | None = None
     """The spread of the base's speed, where it is bounded (a hand carrying a sensor): the
     state then holds the base's velocity too, and its acceleration is that velocity's
@@ -209,14 +225,17 @@ class TrackerSettings:
 
     def for_base(self, base_motion) -> TrackerSettings:
         """These settings with the base's acceleration model a config describes
-        (:class:`models.arm.BaseMotion`: an IMU in a hand is not a wheelchair); unchanged
-        without one."""
+        (:class:`models.arm.BaseMotion`: an IMU in a hand is not a wheelchair), first-order
+        (no jerk state); unchanged without one."""
         if base_motion is None:
             return self
         speed = base_motion.speed_sigma_mps
+        # (the jerk's spread is a wheelchair's: a base described otherwise keeps the
+        # first-order acceleration it describes)
         return replace(self, base_accel_sigma_mps2=float(base_motion.accel_sigma_mps2),
                        base_accel_tau_s=float(base_motion.accel_tau_s),
-                       base_speed_sigma_mps=None if speed is None else float(speed))
+                       base_speed_sigma_mps=None if speed is None else float(speed),
+                       base_jerk_sigma_mps3=0.0)
 
 
 class NotInitialisedError(RuntimeError):
@@ -228,6 +247,7 @@ class StateLayout:
     """Where each block of the state is, for ``n_joints`` joints: the offsets, then roll,
     pitch, the base's acceleration (3), yaw, the gyro bias (3) and the IMU accelerometer's
     bias (3), then with ``velocity`` the base's velocity (3; ``vel`` None without), then
+    with ``jerk`` its acceleration's jerk (3; ``jerk_B`` None without), then
     with ``gyro_scale`` the gyro's scale error about the base's z axis (a fraction: the rate
     it reads is ``(1 + s)`` times the true one; ``scale`` -1 without); an index for a scalar
     block, a slice for the others."""
@@ -237,6 +257,9 @@ class StateLayout:
     """A base velocity block after the others (:attr:`TrackerSettings.base_speed_sigma_mps`)."""
     gyro_scale: bool = False
     """The gyro's scale about z as a state, last (:func:`fusion.tracking.calibrated.heading_scale_sigma`)."""
+    jerk: bool = False
+    """The base acceleration's rate of change (3), after the velocity
+    (:attr:`TrackerSettings.base_jerk_sigma_mps3`; ``jerk_B`` None without)."""
     offset: slice = field(init=False, compare=False, repr=False)
     roll: int = field(init=False, compare=False, repr=False)
     pitch: int = field(init=False, compare=False, repr=False)
@@ -245,6 +268,7 @@ class StateLayout:
     bias: slice = field(init=False, compare=False, repr=False)
     imu_bias: slice = field(init=False, compare=False, repr=False)
     vel: slice | None = field(init=False, compare=False, repr=False)
+    jerk_B: slice | None = field(init=False, compare=False, repr=False)
     scale: int = field(init=False, compare=False, repr=False)
     size: int = field(init=False, compare=False, repr=False)
 
@@ -257,6 +281,8 @@ class StateLayout:
             start += 1 if width is None else width
         object.__setattr__(self, "vel", slice(start, start + 3) if self.velocity else None)
         start += 3 if self.velocity else 0
+        object.__setattr__(self, "jerk_B", slice(start, start + 3) if self.jerk else None)
+        start += 3 if self.jerk else 0
         object.__setattr__(self, "scale", start if self.gyro_scale else -1)
         object.__setattr__(self, "size", start + int(self.gyro_scale))
 
@@ -265,4 +291,5 @@ class StateLayout:
                      + [f"accel_B[{a}]" for a in "xyz"] + ["yaw"] + [f"gyro_bias[{a}]" for a in "xyz"]
                      + [f"imu_accel_bias[{a}]" for a in "xyz"]
                      + ([f"vel_B[{a}]" for a in "xyz"] if self.velocity else [])
+                     + ([f"jerk_B[{a}]" for a in "xyz"] if self.jerk else [])
                      + (["gyro_scale[z]"] if self.gyro_scale else []))

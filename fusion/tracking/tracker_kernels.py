@@ -126,7 +126,7 @@ def _canonical_euler(A):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay, vel=-1,
-                           vel_gain=0.0):  # pragma: no cover
+                           vel_gain=0.0, jerk=-1, jerk_decay=1.0):  # pragma: no cover
     """:func:`process_points` for points whose attitude is in the filter's tangent space
     (:func:`points_from_tangent`), in one pass: each point's rotation ``exp([δ]x) R_0``,
     turned by its gyro rates, ``R' = R exp([w dt]x)``, taken back into the tangent space
@@ -137,7 +137,9 @@ def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, scale, acce
 
     With a velocity block (``vel >= 0``: :attr:`fusion.tracking.settings.StateLayout.vel`)
     the base's acceleration is the derivative of a bounded velocity
-    (:func:`_velocity_step`); without, it only decays."""
+    (:func:`_velocity_step`); without, it only decays, and with a jerk block (``jerk >= 0``:
+    :attr:`fusion.tracking.settings.StateLayout.jerk`) it changes by the jerk over ``dt``
+    (``a' = a e^(-dt/τ_a) + j dt``), the jerk decaying by ``jerk_decay``."""
     N = X.shape[0]
     T = X.copy()
     Y = X.copy()
@@ -194,6 +196,11 @@ def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, scale, acce
         else:
             for c3 in range(3):
                 v = X[i, accel + c3] * accel_decay
+                if jerk >= 0:
+                    v += dt * X[i, jerk + c3]
+                    jv = X[i, jerk + c3] * jerk_decay
+                    Y[i, jerk + c3] = jv
+                    T[i, jerk + c3] = jv
                 Y[i, accel + c3] = v
                 T[i, accel + c3] = v
     return T, Y
@@ -240,7 +247,8 @@ def fold_attitude(x, anchor, roll, yaw):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def process_points(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay):  # pragma: no cover
+def process_points(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay, jerk=-1,
+                   jerk_decay=1.0):  # pragma: no cover
     """The process model at every sigma point ``X (N, n)`` -> ``(N, n)``.
 
     With a gyro reading ``w`` (rad/s, body axes; ``have_w``), each point's rates minus its
@@ -249,7 +257,8 @@ def process_points(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay)
     ``R = Rz(yaw) Ry(pitch) Rx(roll)``, read back as Euler angles in the chart nearest the
     point's (:func:`euler_nearest`; exact at any rate, where a rule on the Euler-angle rates
     loses accuracy at a hand's 1000 deg/s and breaks down near pitch ±90 deg);
-    the base's acceleration decays by ``accel_decay``; everything else stays. Roll and yaw
+    the base's acceleration decays by ``accel_decay`` (and changes by its jerk over ``dt``
+    where ``jerk`` is not -1, the jerk decaying by ``jerk_decay``); everything else stays. Roll and yaw
     are not wrapped here (the filter holds the attitude's spread as a tangent vector and
     folds the mean back into canonical Euler angles:
     :meth:`fusion.tracking.process.ProcessModel.fold_attitude`)."""
@@ -269,6 +278,9 @@ def process_points(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay)
             Y[i, roll], Y[i, roll + 1], Y[i, yaw] = euler_nearest(A, X[i, roll], X[i, roll + 1], X[i, yaw])
         for c in range(3):
             Y[i, accel + c] = X[i, accel + c] * accel_decay
+            if jerk >= 0:
+                Y[i, accel + c] += dt * X[i, jerk + c]
+                Y[i, jerk + c] = X[i, jerk + c] * jerk_decay
     return Y
 
 

@@ -6,9 +6,10 @@ takes the chair as parked)."""
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -88,20 +89,62 @@ def _moving_mean(x: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([np.repeat(m[:1], pad // 2, 0), m, np.repeat(m[-1:], pad - pad // 2, 0)])
 
 
+CHAIR_ACCEL_MEAN_S = 0.5
+"""The chair's acceleration input is the IMU's reading averaged over this long (centred)."""
+
+
 def _shares_noise(stream: str, label: str) -> bool:
     """The chair's acceleration is read off the IMU's accelerometer: not evidence against it."""
     return stream == "imu_acc" and label.startswith("chair accel")
 
 
+def _first_lag(block_s: float) -> Callable[[str], int]:
+    """The smallest lag (in blocks of ``block_s``) at which each input is tested. The chair's
+    acceleration is the IMU's own reading, which the tracker fuses: an innovation is
+    orthogonal to the readings before it, not to those at or after it (they carry the same
+    state error: a correct filter's link innovations follow the IMU's later readings), so it
+    is tested only where its whole averaging window ends before the innovation's block starts.
+    The joints' angles, rates and accelerations come from the encoders (the tracker's
+    corrections to them are hundredths of a degree): every lag."""
+    first = math.ceil((CHAIR_ACCEL_MEAN_S / 2) / block_s + 0.5 - 1e-9)
+    return lambda label: first if label.startswith("chair accel") else -MAX_LAG
+
+
+def workbench_arm(arm):
+    """The arm as the workbench tracks a moving recording: its link accelerometers' noise
+    their datasheet's, without the config's unmodelled floor (the IMU's is kept: the tracker
+    carries it as a bias state). That floor is the config's doubt about a calibration (a
+    bias, a board's mount: errors that last), which the tracker takes as white noise so that
+    its sigmas stay honest; taken so on a moving recording it weighs each link accelerometer
+    ``(floor / noise)²`` times less than its noise allows (about 200 times for the shipped
+    45 mg), and a filter whose gain is not the optimal one leaves coloured innovations even
+    when its model is exact (the gimbal-locked joints read at the first reach settle over
+    seconds). The workbench asks whether the model explains the readings to their noise: a
+    calibration error is then a missing effect it shows."""
+    cal = arm.calibration
+    exact_links = replace(cal, accel_unmodelled_g=0.0, accel_unmodelled_g_per_sensor={},
+                          imu_accel_unmodelled_g=cal.imu_accel_floor_g)
+    return replace(arm, calibration=exact_links)
+
+
 def innovation_inputs(arm, rec, run, t_s: np.ndarray) -> dict[str, np.ndarray]:
-    """The inputs at the innovations' instants: each joint's tracked angle, its rate and
-    acceleration (from the angle smoothed over 0.2 s), the chair's acceleration (the IMU's
-    specific force less gravity at the tracked tilt, base axes, averaged over 0.5 s so that
-    the IMU's own noise does not correlate with its innovations) and the temperature."""
+    """The inputs at the innovations' instants: each joint's angle, its rate and acceleration
+    (from the encoders' angle, smoothed over 0.2 s: the joint's own motion, not the tracker's
+    corrections to it, which follow its innovations; the angle anchored to the tracked one at
+    the start), the chair's acceleration (the IMU's specific force less gravity at the tracked
+    tilt, base axes, averaged over 0.5 s so that the IMU's own noise does not correlate with
+    its innovations: :data:`CHAIR_ACCEL_MEAN_S`) and the temperature."""
     sm = stream_models(arm)
     tt = np.asarray(run.t_s, float)
     ok = np.all(np.isfinite(run.q_rad), 1)
-    tt, q = tt[ok], run.q_rad[ok]
+    tt, q_tracked = tt[ok], run.q_rad[ok]
+    enc = rec.get("enc")
+    if enc is not None and len(enc) > 1 and len(tt):
+        q_enc = sm["enc"].from_counts(np.asarray(enc.values, float))
+        q = np.stack([np.interp(tt, enc.t_s, q_enc[:, j]) for j in range(q_enc.shape[1])], 1)
+        q = q + (q_tracked[0] - q[0])
+    else:
+        q = q_tracked
     dt = float(np.median(np.diff(tt))) if len(tt) > 1 else 0.01
     qs = _moving_mean(q, max(1, int(round(0.2 / dt))))
     qd = np.gradient(qs, tt, axis=0)
@@ -118,7 +161,8 @@ def innovation_inputs(arm, rec, run, t_s: np.ndarray) -> dict[str, np.ndarray]:
         rpy = run.rpy_rad[ok]
         up = up_from_tilt(np.interp(ia.t_s, tt, rpy[:, 0]), np.interp(ia.t_s, tt, rpy[:, 1]))
         da = np.asarray(ia.t_s, float)
-        a = _moving_mean(f - up, max(1, int(round(0.5 / max(float(np.median(np.diff(da))), 1e-3)))))
+        step_s = max(float(np.median(np.diff(da))), 1e-3)
+        a = _moving_mean(f - up, max(1, int(round(CHAIR_ACCEL_MEAN_S / step_s))))
         for c, lab in enumerate("xyz"):
             out[f"chair accel {lab}"] = np.interp(t_s, da, a[:, c])
     tp = rec.get("imu_temp")
@@ -152,6 +196,7 @@ def innovation_diagnosis(arm, rec, settings=None, max_lag: int = MAX_LAG, block_
     t0 = time.perf_counter()
     say = progress or (lambda _m, _f: None)
     say("starting the tracker", 0.0)
+    arm = workbench_arm(arm)
     tr, _start = start_from_recording(arm, rec, settings, resolve_by_motion_s=20.0)
     say("tracking the recording", 0.1)
     run = tr.run(rec, truth=False, progress=lambda f: say("tracking the recording", 0.1 + 0.8 * f))
@@ -189,7 +234,8 @@ def innovation_diagnosis(arm, rec, settings=None, max_lag: int = MAX_LAG, block_
         t, E = _block_means(t, E, max(1, int(round(block_s / max(dt, 1e-9)))))
         dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
         a = residual_analysis(E, axes, innovation_inputs(arm, rec, run, t), dt, max_lag,
-                              source="tracker innovations", exclude=_shares_noise)
+                              source="tracker innovations", exclude=_shares_noise,
+                              min_lag=_first_lag(dt))
         if [s for s, _, _ in members] == ["imu_mag"]:
             compass = a
         else:

@@ -57,10 +57,27 @@ class ResidualAnalysis:
     excluded: np.ndarray | None = None
     """``(axes, inputs)``: pairs not tested (an input measured by that same sensor shares its
     noise: the chair's acceleration from the IMU against the IMU's own innovations)."""
+    min_lag: np.ndarray | None = None
+    """``(inputs,)``: the smallest lag tested per input (None: every lag from -max_lag). A
+    filter's innovation is orthogonal to the measurements before it, not to those at or
+    after it (they carry the same state error): an input the filter itself measures (the
+    chair's acceleration, read off the IMU) is tested only at lags where it comes first."""
 
     def _tested(self) -> np.ndarray:
         ok = np.ones((len(self.axes), len(self.inputs)), bool)
         return ok if self.excluded is None else ~self.excluded
+
+    def _lag_from(self) -> np.ndarray:
+        """Per input, the index (into ``xcorr``'s last axis) of its smallest tested lag."""
+        lo = np.zeros(len(self.inputs), dtype=int) if self.min_lag is None else \
+            np.clip(np.asarray(self.min_lag, int) + self.max_lag, 0, 2 * self.max_lag)
+        return lo
+
+    @property
+    def n_tests(self) -> int:
+        """How many correlations the input test weighs (tested pairs times their lags)."""
+        lags = 2 * self.max_lag + 1 - self._lag_from()
+        return int(np.sum(self._tested() * lags[None, :]))
 
     @property
     def band(self) -> float:
@@ -68,7 +85,7 @@ class ResidualAnalysis:
 
     @property
     def band_flag(self) -> float:
-        tests = max(int(self._tested().sum()) * (2 * self.max_lag + 1), 1)
+        tests = max(self.n_tests, 1)
         return float(norm.isf(0.005 / tests) / np.sqrt(max(self.n, 1)))
 
     @property
@@ -80,12 +97,13 @@ class ResidualAnalysis:
         out = []
         L = self.max_lag
         ok = self._tested()
+        lo = self._lag_from()
         for a, (s, ax) in enumerate(self.axes):
             for i, lab in enumerate(self.inputs):
                 if not ok[a, i]:
                     continue
                 c = self.xcorr[a, i]
-                k = int(np.argmax(np.abs(c)))
+                k = int(lo[i] + np.argmax(np.abs(c[lo[i]:])))
                 out.append(InputCorrelation(s, ax, lab, float(c[k]), k - L, float(c[L])))
         return sorted(out, key=lambda c: -abs(c.r))
 
@@ -109,7 +127,7 @@ class ResidualAnalysis:
     def as_dict(self) -> dict[str, Any]:
         return {
             "source": self.source, "n": self.n, "dt_s": self.dt_s, "max_lag": self.max_lag,
-            "band_99": round(self.band, 5), "band_flag": round(self.band_flag, 5),
+            "band_99": round(self.band, 5), "band_flag": round(self.band_flag, 5), "tests": self.n_tests,
             "band_flag_autocorr": round(self.band_flag_autocorr, 5),
             "inputs": list(self.inputs), "constant_inputs": list(self.constant_inputs),
             "white": self.white,
@@ -144,10 +162,12 @@ def fit_inputs(state, joint_names: Sequence[str]) -> dict[str, np.ndarray]:
 
 def residual_analysis(E: np.ndarray, axes: Sequence[tuple[str, str]], inputs: dict[str, np.ndarray],
                       dt_s: float, max_lag: int = MAX_LAG, source: str = "fit residuals",
-                      exclude: Callable[[str, str], bool] | None = None) -> ResidualAnalysis:
+                      exclude: Callable[[str, str], bool] | None = None,
+                      min_lag: Callable[[str], int] | None = None) -> ResidualAnalysis:
     """Auto- and cross-correlations (biased, 1/N, as MATLAB's ``resid``) of the residuals
     ``E (N, axes)`` and the ``inputs`` (each ``(N,)``), lags -max_lag … max_lag;
-    ``exclude(stream, input)`` names pairs not to test."""
+    ``exclude(stream, input)`` names pairs not to test; ``min_lag(input)`` the smallest lag
+    at which an input is tested (:attr:`ResidualAnalysis.min_lag`)."""
     E = np.asarray(E, float)
     N = E.shape[0]
     L = int(max(0, min(max_lag, N - 2)))
@@ -176,7 +196,9 @@ def residual_analysis(E: np.ndarray, axes: Sequence[tuple[str, str]], inputs: di
     if exclude is not None:
         excl = np.array([[bool(exclude(s, lab)) for lab in labels] for s, _ in axes], bool).reshape(
             len(axes), len(labels))
-    return ResidualAnalysis(tuple(axes), tuple(labels), N, float(dt_s), L, ac, X, tuple(const), source, excl)
+    lags = None if min_lag is None else np.array([max(-L, min(L, int(min_lag(lab)))) for lab in labels], int)
+    return ResidualAnalysis(tuple(axes), tuple(labels), N, float(dt_s), L, ac, X, tuple(const), source, excl,
+                            lags)
 
 
 
