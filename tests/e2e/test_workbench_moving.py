@@ -49,19 +49,20 @@ def test_a_clean_driving_recording_is_called_white(arm):
     assert inn.verdict == INNOVATIONS_WHITE, (inn.not_white()[:3], inn.flagged()[:3])
 
 
-def test_the_innovation_at_the_mean_state_keeps_the_wrist_right_through_a_turn(arm):
+def test_the_innovation_at_the_mean_state_keeps_the_joints_right_through_a_turn(arm):
     """The same drive tracked with the shipped config. Taken against the sigma points'
     weighted mean, the ready pose's vertical joints (held at 30° of sigma) shrank every
-    predicted horizontal specific force, and the gain passed that bias on to j5 through the
-    turn; at the mean state it stays a tenth of a degree."""
+    predicted horizontal specific force, and the gain passed that bias on to the joints
+    through the turn (j3 5.2°, j6 3.4° at worst); at the mean state no joint does worse, and
+    the worst is less than half as far off."""
     rec, _ = simulate(arm, "daily-use", 45.0, seed=SEED)
     worst = {}
     for at_mean in (True, False):
         tr, _ = start_from_recording(arm, rec, TrackerSettings(innovation_at_mean_state=at_mean))
         err = np.degrees(np.abs(tr.run(rec).q_error_rad))
         worst[at_mean] = np.nanmax(err, 0)
-    j5 = arm.joint_names.index("j5")
-    assert worst[True][j5] < 0.2 and worst[False][j5] > 0.5, (worst[True].round(2), worst[False].round(2))
+    assert np.all(worst[True] <= worst[False] + 0.02), (worst[True].round(2), worst[False].round(2))
+    assert worst[True].max() < 0.5 * worst[False].max(), (worst[True].round(2), worst[False].round(2))
 
 
 def test_hidden_time_offset_shows_in_the_innovations(arm):
