@@ -329,6 +329,15 @@ def limit_margins_rad(arm: ArmModel, st: StartupSettings) -> np.ndarray:
     ``limit_margin_deg`` plus ``limit_zero_sigmas`` of the joint's zero offset's sigma (the
     config's ``joint_offset`` sigma, else the effect's datasheet-typical one): the limits are
     in the joint's numbering, the branches in its geometric angle."""
+    return st.limit_margin_deg * DEG + st.limit_zero_sigmas * _zero_offset_sigma_rad(arm)
+
+
+def _zero_offset_sigma_rad(arm: ArmModel) -> np.ndarray:
+    """Per joint, its zero offset's sigma (rad), worked out once per arm (kept on it, as the
+    arm keeps its chain arrays: every solve asks)."""
+    zero = arm.__dict__.get("_zero_offset_sigma_rad")
+    if zero is not None:
+        return zero
     from models.effects.base import TargetError
     from models.effects.entries import build_effect, entry_dict
 
@@ -344,7 +353,9 @@ def limit_margins_rad(arm: ArmModel, st: StartupSettings) -> np.ndarray:
             except TargetError:
                 sig = [0.0]
         zero[j] = float(np.ravel(np.asarray(sig, float))[0])
-    return st.limit_margin_deg * DEG + st.limit_zero_sigmas * zero
+    zero.setflags(write=False)
+    arm.__dict__["_zero_offset_sigma_rad"] = zero
+    return zero
 
 
 def _feasible_branches(arm: ArmModel, q_all: np.ndarray, locked_any: np.ndarray,
