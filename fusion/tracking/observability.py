@@ -16,9 +16,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg import lapack
 
 from fusion.tracking.frames import Frames
+from fusion.tracking.observability_kernels import offsets_observability
 from fusion.tracking.settings import (
     F_AMBIGUOUS,
     F_CONVERGING,
@@ -54,6 +54,9 @@ class Observability:
         self.sees, self.correction, self._R_0I = sees, correction, R_0I
         self._eye3 = np.eye(3)
         self._eye_state = np.eye(layout.size)
+        n = layout.n_joints  # the kernel's outputs (copied out: their holders keep them)
+        self._axis_deg, self._achievable = np.empty(n), np.empty(n)
+        self._locked, self._wide = np.empty(n, np.bool_), np.empty(n, np.bool_)
         self._columns(spread, unmodelled_g, scale_sigma)
         self.reset()
 
@@ -153,37 +156,24 @@ class Observability:
         sr, cr = math.sin(x[L.roll]), math.cos(x[L.roll])
         sp, cp = math.sin(x[L.pitch]), math.cos(x[L.pitch])
         up = np.array([-sp, sr * cp, cr * cp])
-        c = np.abs(frame.axes @ up)
-        self.axis_deg = np.degrees(np.arccos(np.minimum(c, 1.0)))
         # within the lock angle of vertical, or maybe so: the base's tilt is known only to its
         # sigma, and a gravity reading through a tilt that uncertain is not a reading
         tilt_sigma_deg = math.degrees(math.sqrt(max(P[L.roll, L.roll], P[L.pitch, L.pitch], 0.0)))
-        locked = self.axis_deg < st.gimbal_lock_deg + 3.0 * tilt_sigma_deg
-        sel, coef = self._obs_sel(used)
-        info = np.zeros((n, n))
         base = x[L.accel] + G * up
-        if len(sel):
-            v, W = self._info_rows(frame, sel, coef, base)
-            info = W.T @ W
-        lam, V, _ = lapack.dsyevd(info)
-        V2 = V**2
-        readable = lam > 1e-12
-        if readable.all():
-            achievable = np.sqrt(V2 @ (1.0 / lam))
-        else:
-            achievable = np.sqrt(V2[:, readable] @ (1.0 / lam[readable]))
-            achievable[(V2[:, ~readable] > 1e-12).any(axis=1)] = np.inf
+        sel, coef = self._obs_sel(used)
+        P_off = np.ascontiguousarray(P[:n, :n])
+        W, U = self._kernel(frame, up, tilt_sigma_deg, base, sel, coef, P_off)
+        self.locked = self._locked.copy()
+        self.axis_deg = self._axis_deg.copy()
         self.observed = self.sees[sel].any(axis=0) if len(sel) else np.zeros(n, bool)
-        self.locked = locked
-        U = self._held_span(lam, V, locked, P)
-        if U is not None:
+        if U.shape[1]:
             T = self._eye_state.copy()
             T[:n, :n] -= U @ U.T
             self.hold = T
         else:
             self.hold = None
-        wide = locked & (np.diagonal(P)[:n] > (st.mean_state_held_sigma_deg * DEG) ** 2)
-        self.held_wide = self._eye_state[:n, :n][:, wide] if wide.any() else None
+        self.held_wide = self._eye_state[:n, :n][:, self._wide] if self._wide.any() else None
+        achievable = self._achievable.copy()
         if self.spread_m:
             # the calibration's pull, over every link accelerometer used since the last time
             # (sensors read at instants of their own each make a set of one)
@@ -196,51 +186,27 @@ class Observability:
                 if both:
                     sel_c, coef_c = self._obs_sel(both)
                     if both == tuple(used):
-                        v_c, W_c, hold_c = v, W, self.hold
+                        W_c, hold_c = W, self.hold
                     else:  # what the filter holds, judged on the information of them all
-                        v_c, W_c = self._info_rows(frame, sel_c, coef_c, base)
-                        lam_c, V_c, _ = lapack.dsyevd(W_c.T @ W_c)
-                        U_c = self._held_span(lam_c, V_c, locked, P)
-                        hold_c = None if U_c is None else self._eye_state[:n, :n] - U_c @ U_c.T
+                        W_c, U_c = self._kernel(frame, up, tilt_sigma_deg, base, sel_c, coef_c, P_off)
+                        hold_c = None if not U_c.shape[1] else self._eye_state[:n, :n] - U_c @ U_c.T
+                    v_c = frame.motion_mps2[sel_c] + base
                     self._consider_update(t, frame, sel_c, v_c, base, W_c, hold_c, P, P0, q_enc,
                                           slips_calibration)
         self.ill = np.sqrt(achievable**2 + self.sys_var) > st.sigma_limit_deg * DEG
 
-    def _held_span(self, lam: np.ndarray, V: np.ndarray, locked: np.ndarray,
-                   P: np.ndarray) -> np.ndarray | None:
-        """An orthonormal basis (n, h) of the offsets' directions to hold, from the window's
-        information (eigenvalues ``lam``, vectors ``V``) and the gimbal-locked joints; ``None``
-        when nothing is held. A weak direction is held only where the window's information
-        would not beat what the filter already knows along it (a joint still wide from
-        startup takes weak readings)."""
-        st, n = self.settings, self.layout.n_joints
-        weak = lam < 1.0 / (st.sigma_limit_deg * DEG) ** 2
-        if weak.any():
-            prior_var = (V * (P[:n, :n] @ V)).sum(axis=0)
-            weak &= lam * prior_var < 1.0
-        any_weak, any_locked = bool(weak.any()), bool(locked.any())
-        if not (any_weak or any_locked):
-            return None
-        # the span of the held directions (orthonormal already when of one kind)
-        if not any_locked:
-            return V[:, weak]
-        if not any_weak:
-            return self._eye_state[:n, :n][:, locked]
-        B = np.concatenate([V[:, weak], self._eye_state[:n, :n][:, locked]], axis=1)
-        w, U, _ = lapack.dsyevd(B @ B.T)
-        return U[:, w > 1e-6]
-
-    def _info_rows(self, frame: Frames, sel: np.ndarray, coef: np.ndarray, base: np.ndarray):
-        """The used link accelerometers' acceleration less gravity ``v`` (S', 3: motion plus
-        the base's ``base``) and their information rows ``W`` (3S', n): the Jacobian of each
-        reading with respect to the offsets, over its sigma, times sqrt(rate * window)."""
-        n = self.layout.n_joints
-        v = frame.motion_mps2[sel] + base  # (S', 3)
-        # df_s/d offset_j = R_0S^T (v_s x a_j) / g for the joints before the sensor's link;
-        # v x a_j = -[a_j]x v, every (j, s) in one product
-        Kv = (frame.K.reshape(3 * n, 3) @ v.T).reshape(n, 3, -1).transpose(2, 1, 0)  # (S', 3, n)
-        W = (frame.R_0S[sel].transpose(0, 2, 1) @ Kv) * coef  # J / sigma * sqrt(rate * window)
-        return v, W.reshape(-1, n)
+    def _kernel(self, frame: Frames, up: np.ndarray, tilt_sigma_deg: float, base: np.ndarray,
+                sel: np.ndarray, coef: np.ndarray, P_off: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`fusion.tracking.observability_kernels.offsets_observability` for the link
+        accelerometers ``sel``: the information rows ``W (3S', n)`` and the held span
+        ``U (n, h)``; the axes' angles to vertical, the locked and wide joints and each
+        offset's achievable sigma into this object's scratch arrays."""
+        st = self.settings
+        return offsets_observability(
+            frame.axes, up, st.gimbal_lock_deg + 3.0 * tilt_sigma_deg, frame.motion_mps2, base, frame.K,
+            frame.R_0S, sel, coef, P_off, 1.0 / (st.sigma_limit_deg * DEG) ** 2,
+            (st.mean_state_held_sigma_deg * DEG) ** 2, self._axis_deg, self._locked, self._wide,
+            self._achievable)
 
     def _consider_update(self, t: float, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray,
                          W: np.ndarray, hold: np.ndarray | None, P_now: np.ndarray, P0: np.ndarray,
