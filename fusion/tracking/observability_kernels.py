@@ -63,7 +63,8 @@ def offsets_observability(axes, up, lock_deg, motion_mps2, base_mps2, K, R_0S, s
             k1 = K[j, 1, 0] * v0 + K[j, 1, 1] * v1 + K[j, 1, 2] * v2
             k2 = K[j, 2, 0] * v0 + K[j, 2, 1] * v1 + K[j, 2, 2] * v2
             for a in range(3):
-                W[3 * r + a, j] = (R_0S[s, 0, a] * k0 + R_0S[s, 1, a] * k1 + R_0S[s, 2, a] * k2) * coef[r, a, j]
+                Rk = R_0S[s, 0, a] * k0 + R_0S[s, 1, a] * k1 + R_0S[s, 2, a] * k2
+                W[3 * r + a, j] = Rk * coef[r, a, j]
     info = W.T @ W
     lam, V = np.linalg.eigh(info)
     # a direction is unread where its eigenvalue is round-off of the largest (info's
