@@ -154,6 +154,9 @@ class Tracker:
         self.measurements.set_rates(models, rates)
         m = self.measurements
         self.observability.set_rates(m.accel_sigma_g, m.accel_rate_hz)
+        st, nl = self.settings, len(self.link_names)
+        self._link_read_horizon_s = np.maximum(st.observability_period_s,
+                                               st.observability_read_periods / m.accel_rate_hz[:nl])
         self._limits = {s: (models[s].counts_min, models[s].counts_max) for s in models}
 
     # -- lifecycle -----------------------------------------------------------------------
@@ -211,6 +214,7 @@ class Tracker:
         self._named = (None, None, (), ())  # (status codes, flags, their names): see estimate
         self._obs_used_key = None
         self._obs_t = -np.inf
+        self._link_read_t = np.full(len(self.link_names), -np.inf)  # each one's last accepted sample
         self._flags_t = -np.inf
         self._frame_cache = None
 
@@ -417,10 +421,14 @@ class Tracker:
             if u is not None:
                 self.slips.listen(t, u, nu, Su, calm and not set_off, self._reacquire)
                 self.alarm.listen(t, u, nu, Su, inn.z_pred, var, ms.rows, sel, calm and not set_off)
-            key = (key, accept[:k].tobytes())
-            if key != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
-                self._obs_used_key, self._obs_t = key, t
-                used = tuple(int(i) for i in sel[accept[:k]] if i < len(self.link_names))
+            # the link accelerometers read lately (settings.observability_read_periods)
+            read_t = self._link_read_t
+            for i, a in zip(sel.tolist(), accept[:k].tolist(), strict=True):
+                if i < len(read_t):  # (a rejected sample leaves the set at once)
+                    read_t[i] = t if a else -np.inf
+            used = tuple(np.flatnonzero(t - read_t <= self._link_read_horizon_s).tolist())
+            if used != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
+                self._obs_used_key, self._obs_t = used, t
                 self.observability.update(self._t, frame, used, ukf._x, ukf._P, self._P0, self._q_enc,
                                           self.slips.calibration)
         mask = None
