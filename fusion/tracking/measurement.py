@@ -20,7 +20,6 @@ from models.rotations import DEG
 from models.sensor_models import StreamModel
 
 
-
 class Measurements:
     """The measurement side of a tracker with accelerometer streams ``accel_streams``
     (the IMU's at ``imu_index``, -1 without), on links ``links``; ``names`` every stream it

@@ -32,7 +32,8 @@ RATE_HZ = 285.714
 def test_the_hand_config_holds_a_pivot_and_the_chair_does_not() -> None:
     hand = Tracker(load_arm("broad_imu"), rates_hz=RATE_HZ)
     assert hand.settings.base_pivot_sigma_m == 0.15
-    assert [n for n in hand.state_names if n.startswith("pivot_B")] == ["pivot_B[x]", "pivot_B[y]", "pivot_B[z]"]
+    pivot = [n for n in hand.state_names if n.startswith("pivot_B")]
+    assert pivot == ["pivot_B[x]", "pivot_B[y]", "pivot_B[z]"]
     chair = Tracker(load_arm("wmra"))
     assert chair.layout.pivot_B is None and not any(n.startswith("pivot_B") for n in chair.state_names)
 
@@ -96,7 +97,8 @@ def _swung_trial(path: Path, seed: int = 5, rate_hz: float = 200.0, still_s: flo
     f = a_B + np.einsum("nji,j->ni", Rs, [0.0, 0.0, GRAVITY_MPS2])
     mag = np.einsum("nji,j->ni", Rs, np.array([0.0, 16.0, -40.0]))
     M = np.eye(3) + np.array([[0.003, 0.002, -0.001], [-0.002, -0.003, 0.002], [0.001, -0.002, 0.003]])
-    gyr = w_true @ M.T + rng.normal(0, np.radians(0.01) * np.sqrt(rate_hz / 2), (n, 3)) + [0.002, -0.001, 0.0015]
+    gyr = (w_true @ M.T + rng.normal(0, np.radians(0.01) * np.sqrt(rate_hz / 2), (n, 3))
+           + [0.002, -0.001, 0.0015])
     acc = f + rng.normal(0, 0.0004 * GRAVITY_MPS2 * np.sqrt(rate_hz / 2), (n, 3))
     mag = mag + rng.normal(0, 0.3, (n, 3))
     tr_ = np.trace(Rs, axis1=1, axis2=2)
