@@ -176,6 +176,10 @@ class BaseMotion:
     accel_sigma_mps2: float
     accel_tau_s: float
     speed_sigma_mps: float | None = None
+    pivot_sigma_m: float | None = None
+    """Where the base turns about a point off its origin (a hand about its wrist), the
+    prior spread of the origin's offset from it, m per axis
+    (:attr:`fusion.tracking.settings.TrackerSettings.base_pivot_sigma_m`); None: no pivot."""
 
 
 @dataclass(frozen=True)

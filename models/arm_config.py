@@ -233,6 +233,7 @@ class BaseMotionSection(_Strict):
     accel_sigma_mps2: float = Field(gt=0.0, le=200.0)
     accel_tau_s: float = Field(gt=0.0, le=3600.0)
     speed_sigma_mps: float | None = Field(default=None, gt=0.0, le=100.0)
+    pivot_sigma_m: float | None = Field(default=None, gt=0.0, le=10.0)
 
 
 class SiteSection(_Strict):
@@ -479,7 +480,7 @@ def build_arm(
         calibration=_calibration(parsed.calibration),
         base_motion=(None if parsed.base_motion is None else
                      BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s,
-                                parsed.base_motion.speed_sigma_mps)),
+                                parsed.base_motion.speed_sigma_mps, parsed.base_motion.pivot_sigma_m)),
         magnetic_declination_deg=(None if parsed.site is None else parsed.site.magnetic_declination_deg),
     )
 

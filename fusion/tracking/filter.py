@@ -107,7 +107,9 @@ class Tracker:
         self.layout = L = StateLayout(n, velocity=st.base_speed_sigma_mps is not None,
                                       gyro_scale=self.gyro_scale_sigma > 0.0,
                                       jerk=(st.base_speed_sigma_mps is None and st.base_jerk_sigma_mps3 > 0
-                                            and st.motion_compensation))
+                                            and st.motion_compensation),
+                                      pivot=(st.base_pivot_sigma_m is not None and self._has_imu
+                                             and st.motion_compensation))
         self.state_names = L.names(arm.joint_names)
         self.link_names = tuple(s.name for s in arm.link_accelerometers)
         self.accel_names = self.link_names + ((arm.imu.name,) if self._has_imu else ())
@@ -387,9 +389,15 @@ class Tracker:
         plan = ms.plan(key, k, still, mag is not None)
         angle_rows = (m - 1,) if mag is not None else ()
         shift = self.compass.heading_shift_rad() if mag is not None else 0.0
+        om = None
+        if L.pivot_B is not None and k and self._omega is not None:
+            # the base turns about its pivot: the origin's acceleration at every point's offset
+            # (Measurements.h_all), the differentiated gyro's error times the offset as noise
+            om = self.process.rate(self._omega, ukf._x)
+            var[:3 * k] += ms.pivot_variance(frame, ukf._x[L.pivot_B], ukf._P[L.pivot_B, L.pivot_B])
         wz = self._prediction_weights() if st.innovation_at_mean_state else None
         inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows, z_weights=wz,
-                           frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
+                           frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift, omega_B=om)
         accept = inn.gate_ok.copy()
         gate_l = inn.gate_ok.tolist()
         set_off = still and not gate_l[k]
@@ -411,7 +419,8 @@ class Tracker:
                 ukf.inflate(np.arange(L.jerk_B.start, L.jerk_B.stop), st.base_jerk_sigma_mps3**2)
             wz = self._prediction_weights() if st.innovation_at_mean_state else None
             inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows, z_weights=wz,
-                               frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift)
+                               frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift,
+                               omega_B=om)
             accept = inn.gate_ok.copy()
             if still:
                 accept[k] = False

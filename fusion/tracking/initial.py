@@ -81,6 +81,8 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
         P[L.vel, L.vel] = np.eye(3) * 0.01**2
     if L.jerk_B is not None:  # and its acceleration's change
         P[L.jerk_B, L.jerk_B] = np.eye(3) * 0.01**2
+    if L.pivot_B is not None:  # where the base will turn about: not known before it turns
+        P[L.pivot_B, L.pivot_B] = np.eye(3) * st.base_pivot_sigma_m**2
     if imu.yaw_rad is not None:
         x[L.yaw] = imu.yaw_rad
         P[L.yaw, L.yaw] = imu.yaw_sigma_rad**2

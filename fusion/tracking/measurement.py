@@ -64,13 +64,27 @@ class Measurements:
         self.omega_dot_noise = float(gain * sig_w)
         self._sel: dict = {}  # per set of accelerometers: see selection
 
-    def h_all(self, X, frame: Frames, sel, m_B, still=False, heading_shift_rad: float = 0.0):
+    def h_all(self, X, frame: Frames, sel, m_B, still=False, heading_shift_rad: float = 0.0,
+              omega_B: np.ndarray | None = None):
         """Every measurement of one update at every sigma point, ``(N, m)``: the
         accelerometers ``sel`` (specific force in g), the still chair's zero acceleration,
         the heading residual ``yaw - tilt-compensated heading`` when ``m_B`` (the mean
-        field in base axes) is given (``heading_shift_rad``: the declination less π)."""
+        field in base axes) is given (``heading_shift_rad``: the declination less π).
+
+        With a pivot (``layout.pivot_B``) and the base's rate ``omega_B`` (rad/s, base axes),
+        the acceleration state is the pivot's and every sensor is moved with the base's origin,
+        whose acceleration is the pivot's plus ``ω̇ × r + ω × (ω × r)`` at each point's offset
+        ``r`` (``ω̇`` the frame's causal derivative of the gyro): the points' acceleration
+        columns are replaced by it before the compiled model (a copy; the still chair's rows
+        then read it too, and with ``ω`` near zero it is the pivot's)."""
         L = self.layout
         n = L.n_joints
+        if L.pivot_B is not None and omega_B is not None:
+            X = np.array(X, dtype=float, copy=True)
+            r = X[:, L.pivot_B]
+            w = np.broadcast_to(np.asarray(omega_B, float), r.shape)
+            wd = np.broadcast_to(np.asarray(frame.omega_dot_B, float), r.shape)
+            X[:, L.accel] += np.cross(wd, r) + np.cross(w, np.cross(w, r))
         if sel is None:
             sel = self._no_sel
         field = self._no_field if m_B is None else m_B
@@ -78,6 +92,14 @@ class Measurements:
         return measurement_points(np.ascontiguousarray(X), sel, self.links, frame.axes, frame.offset_ref,
                                   frame.motion_mps2, frame.R_0S, self.imu_index, L.roll, n + 2, L.yaw,
                                   n + 9, G, bool(still), field, shift)
+
+    def pivot_variance(self, frame: Frames, r_m: np.ndarray, P_r: np.ndarray) -> float:
+        """Every accelerometer row's extra variance (g²) from the base turning about its pivot
+        at the offset ``r_m`` (m, its covariance ``P_r``): the differentiated gyro's error (its
+        noise and lag, as :meth:`with_noise` takes them) times the offset's expected length."""
+        wd_err = (self.omega_dot_noise + self.settings.angular_accel_error_fraction
+                  * float(frame.omega_dot_norm)) / G
+        return wd_err * wd_err * (float(r_m @ r_m) + float(np.trace(P_r)))
 
     def with_noise(self, frames: Frames) -> Frames:
         """``frames`` with the accelerometers' measurement variances at their instants

@@ -182,6 +182,8 @@ class ProcessModel:
         q[L.imu_bias] = st.imu_accel_bias_random_walk_g_per_sqrt_s**2 * dt
         if L.scale >= 0:
             q[L.scale] = st.gyro_scale_random_walk_per_sqrt_s**2 * dt
+        if L.pivot_B is not None:
+            q[L.pivot_B] = st.base_pivot_random_walk_m_per_sqrt_s**2 * dt
         return np.diag(q)
 
 

@@ -107,6 +107,20 @@ class TrackerSettings:
     zero over time however large it is. None (a chair, which may cruise at any speed for
     minutes): no velocity, the acceleration alone (a config's ``base_motion.speed_sigma_mps``
     sets it, :meth:`for_base`)."""
+    base_pivot_sigma_m: float | None = None
+    """Where the base turns about a point off its origin (a hand turning a sensor it holds
+    about the wrist or the elbow), the prior spread of the origin's offset from that point,
+    m per base axis: the state then holds the offset ``r`` (base axes, constant in the base,
+    a slow random walk ``base_pivot_random_walk_m_per_sqrt_s``), the acceleration state is the
+    pivot's, and the origin's is the pivot's plus ``ω̇ × r + ω × (ω × r)`` (the gyro's rate and
+    its causal derivative): a sensor swung at 400 °/s on a 15 cm lever is accelerated by
+    7 m/s² towards the pivot, in the base's own axes, which a zero-mean acceleration cannot
+    explain (:meth:`fusion.tracking.measurement.Measurements.h_all`). None (a chair, whose
+    turning centre was tried and not kept: docs/tracking.md): no such state (a config's
+    ``base_motion.pivot_sigma_m`` sets it, :meth:`for_base`)."""
+    base_pivot_random_walk_m_per_sqrt_s: float = 0.01
+    """How the pivot's offset drifts where it is a state: a hand changes its grip, or turns
+    from the wrist to the elbow, over seconds: 1 cm/√s (10 cm in 100 s)."""
     still_gyro_dps: float = 0.5
     still_accel_g: float = 0.004
     still_tau_s: float = 0.3
@@ -241,9 +255,11 @@ class TrackerSettings:
         speed = base_motion.speed_sigma_mps
         # (the jerk's spread is a wheelchair's: a base described otherwise keeps the
         # first-order acceleration it describes)
+        pivot = getattr(base_motion, "pivot_sigma_m", None)
         return replace(self, base_accel_sigma_mps2=float(base_motion.accel_sigma_mps2),
                        base_accel_tau_s=float(base_motion.accel_tau_s),
                        base_speed_sigma_mps=None if speed is None else float(speed),
+                       base_pivot_sigma_m=None if pivot is None else float(pivot),
                        base_jerk_sigma_mps3=0.0)
 
 
@@ -256,7 +272,9 @@ class StateLayout:
     """Where each block of the state is, for ``n_joints`` joints: the offsets, then roll,
     pitch, the base's acceleration (3), yaw, the gyro bias (3) and the IMU accelerometer's
     bias (3), then with ``velocity`` the base's velocity (3; ``vel`` None without), then
-    with ``jerk`` its acceleration's jerk (3; ``jerk_B`` None without), then
+    with ``jerk`` its acceleration's jerk (3; ``jerk_B`` None without), then with ``pivot``
+    the base origin's offset from the point it turns about (3, m, base axes; ``pivot_B``
+    None without), then
     with ``gyro_scale`` the gyro's scale error about the base's z axis (a fraction: the rate
     it reads is ``(1 + s)`` times the true one; ``scale`` -1 without); an index for a scalar
     block, a slice for the others."""
@@ -269,6 +287,9 @@ class StateLayout:
     jerk: bool = False
     """The base acceleration's rate of change (3), after the velocity
     (:attr:`TrackerSettings.base_jerk_sigma_mps3`; ``jerk_B`` None without)."""
+    pivot: bool = False
+    """The base origin's offset from its pivot (3), after the jerk
+    (:attr:`TrackerSettings.base_pivot_sigma_m`; ``pivot_B`` None without)."""
     offset: slice = field(init=False, compare=False, repr=False)
     roll: int = field(init=False, compare=False, repr=False)
     pitch: int = field(init=False, compare=False, repr=False)
@@ -278,6 +299,7 @@ class StateLayout:
     imu_bias: slice = field(init=False, compare=False, repr=False)
     vel: slice | None = field(init=False, compare=False, repr=False)
     jerk_B: slice | None = field(init=False, compare=False, repr=False)
+    pivot_B: slice | None = field(init=False, compare=False, repr=False)
     scale: int = field(init=False, compare=False, repr=False)
     size: int = field(init=False, compare=False, repr=False)
 
@@ -292,6 +314,8 @@ class StateLayout:
         start += 3 if self.velocity else 0
         object.__setattr__(self, "jerk_B", slice(start, start + 3) if self.jerk else None)
         start += 3 if self.jerk else 0
+        object.__setattr__(self, "pivot_B", slice(start, start + 3) if self.pivot else None)
+        start += 3 if self.pivot else 0
         object.__setattr__(self, "scale", start if self.gyro_scale else -1)
         object.__setattr__(self, "size", start + int(self.gyro_scale))
 
@@ -301,4 +325,5 @@ class StateLayout:
                      + [f"imu_accel_bias[{a}]" for a in "xyz"]
                      + ([f"vel_B[{a}]" for a in "xyz"] if self.velocity else [])
                      + ([f"jerk_B[{a}]" for a in "xyz"] if self.jerk else [])
+                     + ([f"pivot_B[{a}]" for a in "xyz"] if self.pivot else [])
                      + (["gyro_scale[z]"] if self.gyro_scale else []))
