@@ -502,8 +502,9 @@ def build_arm(
                      BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s,
                                 parsed.base_motion.speed_sigma_mps)),
         magnetic_declination_deg=(None if parsed.site is None else parsed.site.magnetic_declination_deg),
-        base_from_turning_centre_m=(None if parsed.chair is None else
-                                    _ro(np.array(parsed.chair.base_from_turning_centre_mm, dtype=float) / 1000.0)),
+        base_from_turning_centre_m=(
+            None if parsed.chair is None
+            else _ro(np.array(parsed.chair.base_from_turning_centre_mm, dtype=float) / 1000.0)),
     )
 
 

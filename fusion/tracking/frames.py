@@ -84,7 +84,8 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
         qd = qdd = np.zeros_like(q)
         omega_B = omega_dot_B = np.zeros((K, 3))
     eye = np.broadcast_to(np.eye(3), (K, 3, 3))
-    rho = np.zeros(3) if arm.base_from_turning_centre_m is None else np.asarray(arm.base_from_turning_centre_m)
+    lever = arm.base_from_turning_centre_m
+    rho = np.zeros(3) if lever is None else np.asarray(lever, float)
     w_B, wd_B = np.asarray(omega_B, float), np.asarray(omega_dot_B, float)
     a_B = np.cross(wd_B, rho) + np.cross(w_B, np.cross(w_B, rho))
     st = MotionState(np.zeros(K), q, qd, qdd, eye, omega_B, omega_dot_B, a_B, 25.0)
