@@ -198,6 +198,12 @@ class ArmModel:
     magnetic_declination_deg: float | None = None
     """The site's magnetic declination (true north east of magnetic north, deg), from the
     config's ``site:`` block; None: not given, headings are from magnetic north."""
+    base_from_turning_centre_m: np.ndarray | None = None
+    """Where the arm's base origin sits from the point its wheelchair turns about (the
+    mid-point of the drive wheels' axle), chair axes, m (the config's ``chair:`` block).
+    The tracker then predicts what the chair's rotation adds to the base's acceleration
+    (:mod:`fusion.tracking.frame_kernels`); the simulator's chair turns about it. None: not
+    given (the tracker's acceleration state carries that part too)."""
 
     # -- derived views -------------------------------------------------------------
     @property

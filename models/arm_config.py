@@ -244,6 +244,26 @@ class SiteSection(_Strict):
     magnetic_declination_deg: float = Field(ge=-180.0, le=180.0)
 
 
+class ChairSection(_Strict):
+    """The ``chair:`` block: the wheelchair the arm rides on. ``base_from_turning_centre_mm``:
+    where the arm's base origin sits from the point the chair turns about (the mid-point
+    of its drive wheels' axle, on the ground), in the chair's axes (parallel to the arm
+    base's), millimetres. With it the tracker predicts the acceleration the chair's own
+    rotation gives the arm's base (``ω̇ x ρ + ω x (ω x ρ)``, from the gyro), and its
+    acceleration state holds only the turning centre's (a turn on the spot gives none)."""
+
+    base_from_turning_centre_mm: list[float]
+
+    @field_validator("base_from_turning_centre_mm")
+    @classmethod
+    def _lever(cls, v: list[float]) -> list[float]:
+        if len(v) != 3:
+            raise ValueError(f"a position has 3 entries, not {len(v)}")
+        if not all(np.isfinite(x) and abs(x) <= 5000.0 for x in v):
+            raise ValueError("each entry must be a finite number of mm within ±5000 (a wheelchair's size)")
+        return v
+
+
 class ArmConfigFile(_Strict):
     arm: ArmSection
     sensors: list[SensorSection]
@@ -251,6 +271,7 @@ class ArmConfigFile(_Strict):
     calibration: CalibrationSection = Field(default_factory=CalibrationSection)
     base_motion: BaseMotionSection | None = None
     site: SiteSection | None = None
+    chair: ChairSection | None = None
 
 
 def _loc(loc: tuple) -> str:
@@ -482,6 +503,9 @@ def build_arm(
                      BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s,
                                 parsed.base_motion.speed_sigma_mps, parsed.base_motion.pivot_sigma_m)),
         magnetic_declination_deg=(None if parsed.site is None else parsed.site.magnetic_declination_deg),
+        base_from_turning_centre_m=(
+            None if parsed.chair is None
+            else _ro(np.array(parsed.chair.base_from_turning_centre_mm, dtype=float) / 1000.0)),
     )
 
 

@@ -34,7 +34,7 @@ import numpy as np
 from numba import njit
 
 from models.arm import ArmModel
-from models.chain_kernels import chain_table, motion_one, mount_table, pose_one, sensor_one
+from models.chain_kernels import _lever, chain_table, motion_one, mount_table, pose_one, sensor_one
 from models.kinematics import sensor_indices
 from models.rotations import GRAVITY_MPS2, skew_into
 
@@ -45,7 +45,7 @@ _skew_into = njit(cache=True, nogil=True, inline="always")(skew_into)
 # the frame
 @njit(cache=True, nogil=True)
 def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B, motion, chain,
-              axis_is_z, mounts, links, g_mps2):  # pragma: no cover - compiled
+              axis_is_z, mounts, links, g_mps2, lever_m):  # pragma: no cover - compiled
     """The kinematic frame of one instant: every field of :func:`fusion.tracking.tracker.make_frames`
     for K = 1, from the arm's constants (:class:`FrameConstants`).
 
@@ -55,17 +55,22 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
     the joint effects' changes of the geometric angles (rad), added in order:
     ``q_geom[effect_joint[e]] += effect_delta[e]``; ``omega_B``, ``omega_dot_B (3,)`` the
     base's angular velocity (rad/s) and acceleration (rad/s²), base axes. ``motion`` False:
-    the rates and accelerations are taken as zero (no motion compensation).
+    the rates and accelerations are taken as zero (no motion compensation). ``lever_m (3,)``:
+    the base origin from the chair's turning centre (m, base axes; zero where the config
+    states none): the base origin's own acceleration from the chair's rotation,
+    ``ω̇ x ρ + ω x (ω x ρ)``, is in every sensor's motion, and ``dist2_m2`` is measured
+    from the turning centre (the differentiated gyro's error reaches a sensor that far off).
 
     The equations are :mod:`models.chain_kernels`' (the same functions the batch models
     call): forward kinematics (:func:`models.chain_kernels.pose_one`), the outward recursion
-    with the base origin's own acceleration zero (:func:`models.chain_kernels.motion_one`),
+    from the base origin's acceleration the chair's rotation gives it about its turning
+    centre (:func:`models.chain_kernels.motion_one`),
     and each sensor's pose and motion (:func:`models.chain_kernels.sensor_one`).
 
     Returns ``(q_ref (n,), offset_ref (n,), R_0S (S, 3, 3), motion_mps2 (S, 3), axes (n, 3),
     p_0S_m (S, 3), omega_dot_B (3,), K (n, 3, 3), motion_g (S,), dist2_m2 (S,),
     omega_dot_norm, omega_S_rad_s (S, 3))``: ``K`` the axes' skew matrices, ``motion_g``
-    ``|a_S| / g``, ``dist2_m2`` ``|p_0S|²``, ``omega_dot_norm`` ``|ω̇_B|``.
+    ``|a_S| / g``, ``dist2_m2`` ``|p_0S + ρ|²``, ``omega_dot_norm`` ``|ω̇_B|``.
     """
     n = chain.shape[0]
     S = mounts.shape[0]
@@ -100,7 +105,12 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
     ac = np.empty((n + 1, 3))
     v_o = np.empty((n, 3))
     a_o = np.empty((n, 3))
-    motion_one(p_0L, axes, origin, qd, qdd, w_B, wd_B, np.zeros(3), om, al, ve, ac, v_o, a_o)
+    # the base origin turning about the chair's turning centre, ``lever_m`` away
+    _, _, _, t0, t1, t2, u0, u1, u2 = _lever(w_B[0], w_B[1], w_B[2], wd_B[0], wd_B[1], wd_B[2],
+                                             lever_m[0], lever_m[1], lever_m[2])
+    a_B = np.empty(3)
+    a_B[0], a_B[1], a_B[2] = t0 + u0, t1 + u1, t2 + u2
+    motion_one(p_0L, axes, origin, qd, qdd, w_B, wd_B, a_B, om, al, ve, ac, v_o, a_o)
 
     R_0S = np.empty((S, 3, 3))
     acc = np.empty((S, 3))
@@ -113,7 +123,8 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
         sensor_one(R_0L, p_0L, om, al, ve, ac, links[s], mounts[s], R_0S[s], p_0S[s], vel[s], acc[s],
                    omega_S[s])
         motion_g[s] = math.sqrt(acc[s, 0] ** 2 + acc[s, 1] ** 2 + acc[s, 2] ** 2) / g_mps2
-        dist2[s] = p_0S[s, 0] ** 2 + p_0S[s, 1] ** 2 + p_0S[s, 2] ** 2
+        dist2[s] = ((p_0S[s, 0] + lever_m[0]) ** 2 + (p_0S[s, 1] + lever_m[1]) ** 2
+                    + (p_0S[s, 2] + lever_m[2]) ** 2)
 
     # the axes' skew matrices
     K = np.zeros((n, 3, 3))
@@ -125,7 +136,7 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
 
 @njit(cache=True, nogil=True)
 def frame_block(enc_fit, have, offset, effect_joint, effect_delta, omega_B, omega_dot_B, motion, chain,
-                axis_is_z, mounts, links, g_mps2):  # pragma: no cover - compiled
+                axis_is_z, mounts, links, g_mps2, lever_m):  # pragma: no cover - compiled
     """:func:`frame_one` at each of B instants, in one call (a run over a recording makes a
     block's frames at once): ``enc_fit (B, 3, n)``, ``omega_B``, ``omega_dot_B (B, 3)``,
     ``effect_delta (B, E)``, ``offset (n,)`` shared; ``have (B,)`` False: no frame at that
@@ -150,7 +161,7 @@ def frame_block(enc_fit, have, offset, effect_joint, effect_delta, omega_B, omeg
         if not have[b]:
             continue
         f = frame_one(enc_fit[b], offset, effect_joint, effect_delta[b], omega_B[b], omega_dot_B[b], motion,
-                      chain, axis_is_z, mounts, links, g_mps2)
+                      chain, axis_is_z, mounts, links, g_mps2, lever_m)
         q_ref[b] = f[0]
         offset_ref[b] = f[1]
         R_0S[b] = f[2]
@@ -202,6 +213,9 @@ class FrameConstants:
             else:
                 self._varying.append((k, e, th))
         self._zeros3 = np.zeros(3)
+        rho = arm.base_from_turning_centre_m
+        self.lever_m = np.zeros(3) if rho is None else np.array(rho, dtype=float)
+        """The base origin from the chair's turning centre (m; zero: not stated)."""
 
     def fields(self, enc_fit: np.ndarray, offset: np.ndarray, omega_B: np.ndarray | None,
                omega_dot_B: np.ndarray | None, motion: bool = True) -> tuple:
@@ -216,7 +230,7 @@ class FrameConstants:
         if self._varying:
             delta = self._varying_deltas(enc_fit, offset, w, wd, motion)
         out = frame_one(enc_fit, offset, self.effect_joint, delta, w, wd, bool(motion), self.chain,
-                        self.axis_is_z, self.mounts, self.links, self.g_mps2)
+                        self.axis_is_z, self.mounts, self.links, self.g_mps2, self.lever_m)
         offset_ref = out[1]
         offset_ref.setflags(write=False)
         return out[:10] + (np.float64(out[10]), None, out[11])
@@ -234,7 +248,7 @@ class FrameConstants:
             for b in np.flatnonzero(have):
                 delta[b] = self._varying_deltas(enc_fit[b], offset, omega_B[b], omega_dot_B[b], motion)
         out = frame_block(enc_fit, have, offset, self.effect_joint, delta, omega_B, omega_dot_B, bool(motion),
-                          self.chain, self.axis_is_z, self.mounts, self.links, self.g_mps2)
+                          self.chain, self.axis_is_z, self.mounts, self.links, self.g_mps2, self.lever_m)
         out[1].setflags(write=False)
         return out[:11] + (None, out[11])
 

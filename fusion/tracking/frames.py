@@ -74,14 +74,21 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     """Kinematic frames for K instants: ``q_enc (K, n)`` encoder angles, ``offset (n,)`` or
     ``(K, n)``, joint rates/accelerations ``(K, n)``, base rates ``(K, 3)``. ``motion``
     False: as if nothing moved (no motion compensation). ``joint_effects`` (effect,
-    parameters) pairs turn the controller's angles into the geometric ones."""
+    parameters) pairs turn the controller's angles into the geometric ones. The base origin
+    turns about the chair's turning centre where the arm states one
+    (:attr:`models.arm.ArmModel.base_from_turning_centre_m`, ``ρ``): its acceleration
+    ``ω̇ x ρ + ω x (ω x ρ)`` is in every sensor's motion, and ``dist2_m2`` is measured from there."""
     q = q_enc + offset
     K = q.shape[0]
     if not motion:
         qd = qdd = np.zeros_like(q)
         omega_B = omega_dot_B = np.zeros((K, 3))
     eye = np.broadcast_to(np.eye(3), (K, 3, 3))
-    st = MotionState(np.zeros(K), q, qd, qdd, eye, omega_B, omega_dot_B, np.zeros((K, 3)), 25.0)
+    lever = arm.base_from_turning_centre_m
+    rho = np.zeros(3) if lever is None else np.asarray(lever, float)
+    w_B, wd_B = np.asarray(omega_B, float), np.asarray(omega_dot_B, float)
+    a_B = np.cross(wd_B, rho) + np.cross(w_B, np.cross(w_B, rho))
+    st = MotionState(np.zeros(K), q, qd, qdd, eye, omega_B, omega_dot_B, a_B, 25.0)
     if joint_effects:
         from models.effects import Context
 
@@ -96,6 +103,6 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     wd = np.asarray(omega_dot_B, float)
     return Frames(q, np.broadcast_to(offset, q.shape), sm.R_0S, sm.acc_0_mps2, lm.axis_0, sm.p_0S_m,
                   wd, Ks, np.linalg.norm(sm.acc_0_mps2, axis=-1) / G,
-                  np.sum(sm.p_0S_m**2, axis=-1), np.linalg.norm(wd, axis=-1),
+                  np.sum((sm.p_0S_m + rho) ** 2, axis=-1), np.linalg.norm(wd, axis=-1),
                   omega_S_rad_s=sm.omega_S_rad_s)
 

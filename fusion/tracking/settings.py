@@ -94,7 +94,11 @@ class TrackerSettings:
     innovations, averaged over 0.5 s, alternate in sign through each onset (r -0.4 from one
     block to the next on a chair turning back and forth). 3 m/s³ made 36 of 37 clean drives
     white (35 without), but on ``tools/bench_track_realistic.py`` j1-j3 came out 0.002-0.06°
-    worse: off (zero) by default."""
+    worse: off (zero) by default. Those onsets were the arm base's swing about the chair's
+    turning centre in turns on the spot, which a config's ``chair:`` block now has the
+    frame predict from the gyro (45 of 45 white without this state); 3 m/s³ with 0.3 s and
+    ``base_accel_tau_s`` 5 s means an acceleration spread of 3.6 m/s², five times a chair's
+    (docs/tracking.md, *Limits*)."""
     base_jerk_tau_s: float = 0.3
     """How long a jerk lasts: about half an onset (the acceleration rises, then levels)."""
     base_accel_direct_share: float = 0.05

@@ -9,10 +9,12 @@ import numpy as np
 from models.arm import ArmModel
 from models.rotations import DEG
 from models.trajectories.paths import (
+    CHAIR_LEVER_M,
     DrivingChair,
     SinePath,
     StepsBuilder,
     WaypointPath,
+    chair_lever_m,
     min_jerk_duration,
 )
 from models.trajectories.scenario import Scenario, clip_pose, margin_limits, warm_up
@@ -35,7 +37,8 @@ def _reach_path(arm: ArmModel, duration_s: float, rng: np.random.Generator, stil
     return WaypointPath(b.build()), events
 
 
-def _chair_path(duration_s: float, rng: np.random.Generator, still_s: float, yaw0: float):
+def _chair_path(duration_s: float, rng: np.random.Generator, still_s: float, yaw0: float,
+                lever_m=CHAIR_LEVER_M):
     """Random drives: start, cruise with turns and ramps, stop; turns on the spot; pauses."""
     speed = StepsBuilder(0.0)
     yaw = StepsBuilder(0.0)
@@ -109,14 +112,15 @@ def _chair_path(duration_s: float, rng: np.random.Generator, still_s: float, yaw
         t += Td
         sync(t)
         events.append({"t_start_s": round(t0, 3), "t_end_s": round(t, 3), "what": ", ".join(what)})
-    return DrivingChair(speed.build(), yaw.build(), pitch.build(), roll.build(), yaw0), events
+    return DrivingChair(speed.build(), yaw.build(), pitch.build(), roll.build(), yaw0, lever_m), events
 
 
 def daily_use(arm: ArmModel, duration_s: float, rng: np.random.Generator, still_s: float = 8.0) -> Scenario:
     home = arm.ready_pose_rad
     rng_arm, rng_chair = (np.random.default_rng(s) for s in rng.integers(0, 2**62, 2))
     joints, arm_events = _reach_path(arm, duration_s, rng_arm, still_s, home)
-    chair, chair_events = _chair_path(duration_s, rng_chair, still_s, float(rng.uniform(-np.pi, np.pi)))
+    chair, chair_events = _chair_path(duration_s, rng_chair, still_s, float(rng.uniform(-np.pi, np.pi)),
+                                      chair_lever_m(arm))
     events = [{"t_start_s": 0.0, "t_end_s": still_s, "what": "still (startup)"}]
     events += sorted(arm_events + chair_events, key=lambda e: e["t_start_s"])
     return Scenario("daily-use", arm, duration_s, joints, chair, warm_up(),
@@ -150,7 +154,7 @@ def excitation(arm: ArmModel, duration_s: float, rng: np.random.Generator, still
         pitch.move([0.0], 1.5).hold(0.5)
         k += 1
     chair = DrivingChair(speed.build(), yaw.build(), pitch.build(), roll.build(),
-                         float(rng.uniform(-np.pi, np.pi)))
+                         float(rng.uniform(-np.pi, np.pi)), chair_lever_m(arm))
     return Scenario("excitation", arm, duration_s, path, chair, warm_up(20.0, 6.0, 20.0),
                     [{"t_start_s": 0.0, "t_end_s": duration_s, "what": "everything moves"}])
 
@@ -169,7 +173,7 @@ def compass_turn(arm: ArmModel, duration_s: float, rng: np.random.Generator, sti
     yaw.hold(max(still_s, duration_s - t_end))
     level = [StepsBuilder(0.0).hold(yaw.t) for _ in range(3)]  # speed, pitch, roll
     chair = DrivingChair(level[0].build(), yaw.build(), level[1].build(), level[2].build(),
-                         float(rng.uniform(-np.pi, np.pi)))
+                         float(rng.uniform(-np.pi, np.pi)), chair_lever_m(arm))
     joints = WaypointPath(StepsBuilder(arm.ready_pose_rad).hold(yaw.t).build())
     events = [{"t_start_s": 0.0, "t_end_s": still_s, "what": "still"},
               {"t_start_s": still_s, "t_end_s": round(t_end, 3),

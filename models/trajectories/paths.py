@@ -226,6 +226,19 @@ class ParkedBase(BasePath):
         return np.zeros((np.asarray(t).reshape(-1).shape[0], 3))
 
 
+CHAIR_LEVER_M = (0.25, -0.35, 0.45)
+"""Where a simulated chair carries the arm's base from its turning centre (chair axes, m),
+unless the arm's config says (:func:`chair_lever_m`)."""
+
+
+def chair_lever_m(arm) -> tuple[float, float, float]:
+    """The arm's base from its chair's turning centre (m): the config's ``chair:`` block
+    where it has one (:attr:`models.arm.ArmModel.base_from_turning_centre_m`), else
+    :data:`CHAIR_LEVER_M`."""
+    rho = getattr(arm, "base_from_turning_centre_m", None)
+    return CHAIR_LEVER_M if rho is None else tuple(float(v) for v in rho)
+
+
 class DrivingChair(BasePath):
     """A power wheelchair: forward speed ``v(t)`` along its x axis and yaw rate ``r(t)``
     (both :class:`SmoothSteps`), its pitch and roll following the ground (ramps, cross
@@ -236,7 +249,7 @@ class DrivingChair(BasePath):
     """
 
     def __init__(self, speed: SmoothSteps, yaw_rate: SmoothSteps, pitch: SmoothSteps,
-                 roll: SmoothSteps, yaw0_rad: float = 0.0, lever_m=(0.25, -0.35, 0.45)):
+                 roll: SmoothSteps, yaw0_rad: float = 0.0, lever_m=CHAIR_LEVER_M):
         self.speed, self.yaw_rate, self.pitch, self.roll = speed, yaw_rate, pitch, roll
         self.yaw0 = float(yaw0_rad)
         self.lever = np.asarray(lever_m, float)

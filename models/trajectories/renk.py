@@ -8,7 +8,7 @@ import numpy as np
 
 from models.arm import ArmModel
 from models.rotations import DEG
-from models.trajectories.paths import DrivingChair, SinePath, StepsBuilder
+from models.trajectories.paths import DrivingChair, SinePath, StepsBuilder, chair_lever_m
 from models.trajectories.scenario import Scenario, margin_limits, parked_chair, warm_up
 
 RENK_DURATION_S = 27.74 * 60.0
@@ -155,7 +155,7 @@ def renk_ramp(arm: ArmModel, duration_s: float, rng: np.random.Generator, still_
                        "tilt_deg": [round(float(np.degrees(r_lvl * angle)), 3),
                                     round(float(np.degrees(p_lvl * angle)), 3)]})
     chair = DrivingChair(speed.build(), yaw.build(), pitch.build(), roll.build(),
-                         float(rng.uniform(-np.pi, np.pi)))
+                         float(rng.uniform(-np.pi, np.pi)), chair_lever_m(arm))
     events.sort(key=lambda e: e["t_start_s"])
     return Scenario("renk-ramp", arm, duration_s, path, chair, warm_up(),
                     [e for e in events if e["t_start_s"] < duration_s])

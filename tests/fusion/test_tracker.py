@@ -124,10 +124,13 @@ def test_product_of_exponentials_prediction_equals_the_motion_model(arm, rng):
     X[:, L.pitch] = rng.normal(0, 0.05, 9)
     X[:, L.accel] = rng.normal(0, 1.0, (9, 3))
     f = tr.measurements.h_all(X, fr, np.arange(5), None).reshape(9, 5, 3)
-    # the motion model evaluated afresh at each point (its joint rates held)
+    # the motion model evaluated afresh at each point (its joint rates held); the state's
+    # acceleration is the chair's turning centre's: the base origin swings about it
+    rho = arm.base_from_turning_centre_m
+    swing = np.cross(wd, rho) + np.cross(w, np.cross(w, rho))
     ms = MotionState(np.zeros(9), q + X[:, L.offset], np.tile(qd, (9, 1)), np.tile(qdd, (9, 1)),
                      R_from_rpy(X[:, L.roll], X[:, L.pitch], np.zeros(9)), np.tile(w, (9, 1)),
-                     np.tile(wd, (9, 1)), X[:, L.accel], 25.0)
+                     np.tile(wd, (9, 1)), X[:, L.accel] + swing, 25.0)
     ref = specific_force(arm, ms, list(tr.accel_names))
     # these rates make accelerations of several g; 1e-3 rad of spread changes them by ~1 mg
     assert np.max(np.abs(f - ref)) < 2e-3
@@ -135,7 +138,8 @@ def test_product_of_exponentials_prediction_equals_the_motion_model(arm, rng):
     X[:, L.offset] = rng.normal(0, 0.3, (9, 7))  # at rest the identity is exact for any offsets
     ms = ms.replace(q_rad=q + X[:, L.offset])
     ms0 = ms.replace(qd_rad_s=np.zeros((9, 7)), qdd_rad_s2=np.zeros((9, 7)),
-                     omega_B_rad_s=np.zeros((9, 3)), omega_dot_B_rad_s2=np.zeros((9, 3)))
+                     omega_B_rad_s=np.zeros((9, 3)), omega_dot_B_rad_s2=np.zeros((9, 3)),
+                     accel_B_mps2=X[:, L.accel])  # (no turn: no swing)
     fr0 = make_frames(arm, tr.accel_names, q[None], np.zeros(7), np.zeros((1, 7)), np.zeros((1, 7)),
                       np.zeros((1, 3)), np.zeros((1, 3))).take(0)
     np.testing.assert_allclose(tr.measurements.h_all(X, fr0, np.arange(5), None).reshape(9, 5, 3),
