@@ -80,6 +80,12 @@ STICKY_S = 10.0
 QUIET_S = 60.0
 """After an accelerometer's alarm, the others' tests start again (s): the filter, moving
 joints to follow the changed sensor, shifts the sensors that share them for a while."""
+REF_HOLD_S = 60.0
+"""The joint offsets held before a re-acquisition are the innovations' reference until this
+long after the last one (s): the slip detector widens the joints a disagreeing sensor sees,
+and the filter, reading them again, follows a turned board into them (its innovations fall
+back under the test); against the offsets held before, the turn shows in full on that
+sensor alone."""
 HARD_IRON_AFTER_S = 20.0
 """A compass disturbed this long without a break (s) has gained hard iron."""
 
@@ -267,8 +273,12 @@ class ModelChangeAlarm:
     """The alarm over the link accelerometers ``names`` and the compass (``mag_name``)."""
 
     def __init__(self, names: tuple[str, ...], mag_name: str | None, t_s: float,
-                 unmodelled_g: np.ndarray | None = None):
+                 unmodelled_g: np.ndarray | None = None, sees: np.ndarray | None = None):
         n = len(names)
+        # which joints each link accelerometer sees (S, n_joints): a turn it follows moves those
+        self._sees = np.zeros((n, 0), bool) if sees is None else np.asarray(sees, bool)[:n]
+        self._offset_ref: np.ndarray | None = None
+        self._ref_until = -np.inf
         # the test's floor: FLOOR_G, or UNMODELLED_FACTOR x what the config says its model
         # leaves unexplained (an uncalibrated sensor's lasting, pose-dependent error is
         # no change: only a change well above it is)
@@ -304,17 +314,58 @@ class ModelChangeAlarm:
 
 
     # -- the accelerometers -------------------------------------------------------------
+    def reacquired(self, t: float, offset_rad: np.ndarray) -> None:
+        """The slip detector re-acquires at ``t`` (it widens joints for the filter to read
+        again): the joint offsets ``offset_rad`` the filter held until now are kept as the
+        reference (:meth:`listen` tests the innovations against them) until ``REF_HOLD_S``
+        after the last re-acquisition."""
+        if not t < self._ref_until:
+            self._offset_ref = np.array(offset_rad, dtype=float)
+        self._ref_until = t + REF_HOLD_S
+
+    def _against_reference(self, t: float, idx: np.ndarray, nu: np.ndarray, z_pred: np.ndarray,
+                           rows: np.ndarray, frame, offset_rad: np.ndarray | None) -> np.ndarray:
+        # (rows: each sensor's three rows of z_pred, (k, 3))
+        """The innovations ``nu (k, 3)`` of the link accelerometers ``idx`` against the joint
+        offsets held before a re-acquisition (:meth:`reacquired`), while it lasts: a turned
+        board the filter followed by moving the joints it sees shows there in full (to first
+        order: ``nu + f x (R_0S^T w)``, ``w = sum_j (offset_j - ref_j) a_j`` over the joints the
+        sensor sees, ``a_j`` their axes, ``f`` the predicted force); ``nu`` itself otherwise."""
+        if self._offset_ref is None or not t < self._ref_until or offset_rad is None or frame is None:
+            return nu
+        d = np.asarray(offset_rad, float) - self._offset_ref
+        if not d.any():
+            return nu
+        w = (self._sees[idx] * d) @ frame.axes  # (k, 3), base axes
+        a = np.einsum("kji,kj->ki", frame.R_0S[idx], w)  # in each sensor's axes
+        return nu + np.cross(z_pred[rows], a)
+
     def listen(self, t: float, u, nu: np.ndarray, Su: np.ndarray, z_pred: np.ndarray, var: np.ndarray,
-               rows: np.ndarray, sel: np.ndarray, calm: bool) -> None:
+               rows: np.ndarray, sel: np.ndarray, calm: bool, frame=None,
+               offset_rad: np.ndarray | None = None) -> None:
         """The usable accelerometers ``u`` (a slice of ``sel``, every one in order, or sensor
         indices) gave innovations ``nu (k, 3)`` (g) with covariances ``Su``; ``z_pred`` and
         ``var`` are the update's predictions and measurement variances (``rows``: each
         accelerometer's three, by its place in ``sel``). Only while ``calm`` (the base as
         modelled) are they counted; the link accelerometers (the first ``len(names)``) only.
+        ``frame`` (the instant's kinematics) and ``offset_rad`` (the filter's joint offsets)
+        give the innovations against the offsets held before a re-acquisition
+        (:meth:`reacquired`).
 
         A block mean's variance: the measurement noise's share averages down with the
         samples, the filter's own uncertainty (``Su`` less the noise) does not."""
         nl = len(self.names)
+        if calm and self._offset_ref is not None and t < self._ref_until:
+            if type(u) is slice:
+                pos = np.arange(min(nl, len(nu)))
+                idx = self._every[pos]
+            else:
+                pos = np.flatnonzero(u < nl)
+                idx = u[pos]
+            if len(pos):
+                nu = nu.copy()
+                nu[pos] = self._against_reference(t, idx, nu[pos], z_pred, rows[np.searchsorted(sel, idx)],
+                                                  frame, offset_rad)
         if calm:  # (the sums, compiled: add_block_sums)
             if type(u) is slice:
                 k = min(nl, len(nu))
