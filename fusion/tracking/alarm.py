@@ -286,6 +286,7 @@ class ModelChangeAlarm:
         self.floor_g = np.maximum(FLOOR_G, UNMODELLED_FACTOR * um)
         self.names, self.mag_name = names, mag_name
         self._sum_nu = np.zeros((n, 3))
+        self._sum_moved = np.zeros((n, 3))  # the offsets' move's share (see _moved), while held
         self._sum_g = np.zeros((n, 3))
         self._sum_var = np.zeros(n)
         self._sum_r = np.zeros(n)
@@ -323,22 +324,19 @@ class ModelChangeAlarm:
             self._offset_ref = np.array(offset_rad, dtype=float)
         self._ref_until = t + REF_HOLD_S
 
-    def _against_reference(self, t: float, idx: np.ndarray, nu: np.ndarray, z_pred: np.ndarray,
-                           rows: np.ndarray, frame, offset_rad: np.ndarray | None) -> np.ndarray:
-        # (rows: each sensor's three rows of z_pred, (k, 3))
-        """The innovations ``nu (k, 3)`` of the link accelerometers ``idx`` against the joint
-        offsets held before a re-acquisition (:meth:`reacquired`), while it lasts: a turned
-        board the filter followed by moving the joints it sees shows there in full (to first
-        order: ``nu + f x (R_0S^T w)``, ``w = sum_j (offset_j - ref_j) a_j`` over the joints the
-        sensor sees, ``a_j`` their axes, ``f`` the predicted force); ``nu`` itself otherwise."""
-        if self._offset_ref is None or not t < self._ref_until or offset_rad is None or frame is None:
-            return nu
+    def _moved(self, idx: np.ndarray, z_pred: np.ndarray, rows: np.ndarray, frame,
+               offset_rad: np.ndarray | None) -> np.ndarray:
+        """How much the filter's move of the joint offsets since the reference
+        (:meth:`reacquired`) changed the predictions of the link accelerometers ``idx``
+        (``rows (k, 3)``: their rows of ``z_pred``): the innovation against the reference is
+        the filter's plus this, to first order ``f x (R_0S^T w)``, ``w = sum_j (offset_j -
+        ref_j) a_j`` over the joints each sees (``a_j`` their axes, ``f`` the predicted force)."""
+        if offset_rad is None or frame is None:
+            return np.zeros((len(idx), 3))
         d = np.asarray(offset_rad, float) - self._offset_ref
-        if not d.any():
-            return nu
         w = (self._sees[idx] * d) @ frame.axes  # (k, 3), base axes
         a = np.einsum("kji,kj->ki", frame.R_0S[idx], w)  # in each sensor's axes
-        return nu + np.cross(z_pred[rows], a)
+        return np.cross(z_pred[rows], a)
 
     def listen(self, t: float, u, nu: np.ndarray, Su: np.ndarray, z_pred: np.ndarray, var: np.ndarray,
                rows: np.ndarray, sel: np.ndarray, calm: bool, frame=None,
@@ -363,9 +361,8 @@ class ModelChangeAlarm:
                 pos = np.flatnonzero(u < nl)
                 idx = u[pos]
             if len(pos):
-                nu = nu.copy()
-                nu[pos] = self._against_reference(t, idx, nu[pos], z_pred, rows[np.searchsorted(sel, idx)],
-                                                  frame, offset_rad)
+                self._sum_moved[idx] += self._moved(idx, z_pred, rows[np.searchsorted(sel, idx)], frame,
+                                                    offset_rad)
         if calm:  # (the sums, compiled: add_block_sums)
             if type(u) is slice:
                 k = min(nl, len(nu))
@@ -380,6 +377,7 @@ class ModelChangeAlarm:
             if self._n.any():
                 self._block(t)
             self._sum_nu[:] = 0.0
+            self._sum_moved[:] = 0.0
             self._sum_g[:] = 0.0
             self._sum_r[:] = 0.0
             self._sum_var[:] = 0.0
@@ -403,6 +401,7 @@ class ModelChangeAlarm:
             if m[j] >= recent:
                 rows = (self._hist_n[s] - 1 - np.arange(recent)) % cap
                 var[j] = min(var[j], float(np.median(self._hist_var[s, rows])))
+        nu = self._reference_or_filter(nu, self._sum_moved[have] / n_[:, None], var, self.floor_g[have])
         last = self._ema_t[have]
         dt = np.where(np.isnan(last), BLOCK_S, t - last)
         a = np.minimum(1.0, dt / TAU_S)
@@ -448,6 +447,24 @@ class ModelChangeAlarm:
             self._over_since[:] = np.nan
             self._first_over[:] = np.nan
             self._quiet_until = t + QUIET_S
+
+    @staticmethod
+    def _reference_or_filter(nu: np.ndarray, moved: np.ndarray, var: np.ndarray, floor_g: np.ndarray) -> np.ndarray:
+        """The block means to test: the filter's innovations ``nu`` or those against the
+        offsets held before a re-acquisition (``nu + moved``), whichever the sensors whose
+        predictions the move changed (by more than the floor) agree with, but for the one
+        that disagrees most (a changed sensor is one): an encoder that slipped moves every
+        sensor beyond its joint, which agree with the filter's new offsets; a turned board
+        the filter followed leaves the others agreeing with the reference. A move that at
+        most one sensor sees is a slip as well as a turn: the filter's innovations stay."""
+        M = np.linalg.norm(moved, axis=1) > floor_g
+        if M.sum() < 2:
+            return nu
+        ref = (np.square(nu + moved).sum(1) / var)[M]
+        new = (np.square(nu).sum(1) / var)[M]
+        if ref.sum() - ref.max() < new.sum() - new.max():
+            return nu + moved
+        return nu
 
     def _history(self, s: int) -> np.ndarray:
         """Sensor ``s``'s blocks kept (at most ``WINDOW_S``), oldest first: ``(m, 8)``."""
