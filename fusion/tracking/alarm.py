@@ -11,7 +11,12 @@ joint angles for every pose; a magnetometer that gained hard iron reads off Eart
   ``max(THRESHOLD_SIGMA`` x its noise, ``FLOOR_G``, ``UNMODELLED_FACTOR`` x the config's
   unmodelled error); a test that holds for ``HOLD_S`` raises one alarm, on the sensor that
   shifted first (the filter, moving joints to follow it, shifts the sensors that share
-  them: their tests start again ``QUIET_S`` later). The change's onset is the change point
+  them: their tests start again ``QUIET_S`` later). After a re-acquisition (the slip
+  detector widening the joints a disagreeing sensor sees, through which the filter follows
+  a turned board by degrees), the blocks are taken against the joint offsets held before
+  it where the other sensors agree with those (:meth:`ModelChangeAlarm.reacquired`,
+  ``REF_HOLD_S``): a turned board shows its turn there, on itself alone; an encoder slip,
+  which every sensor beyond the joint follows, does not. The change's onset is the change point
   of the sensor's block means (:func:`onset`); the blocks since then name it
   (:func:`name_shift`): a turned board reads gravity's full size in another direction, so
   its innovation lies across the predicted force (``mount_rotation``, the rotation
@@ -187,7 +192,15 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
       (what the model leaves in ordinary use), on at least ``MIN_BLOCKS`` blocks;
     - a turn, when the shift's mean, taken as a bias, would have shown along the forces seen
       and did not, over the blocks (at least ``MIN_BLOCKS``) where the two differ along the
-      force by more than ``FLOOR_G``: the arm turned the sensor far enough since the change.
+      force by more than ``FLOOR_G``: the arm turned the sensor far enough since the change;
+    - or a turn, when the whole innovation turns with the force as a turned board's does
+      (``nu = f x dtheta``, fitted) and a bias's (the shift's mean, constant) does not: the
+      turn explains the blocks better than the bias by a chi-square (3 dof) at ``NAME_P``,
+      the scale from the turn's residual scatter, over the blocks (at least ``MIN_BLOCKS``)
+      where the two differ by more than ``FLOOR_G``. (A force swung far averages a turn's
+      innovation out: the mean is no bias that would have shown along it, yet the blocks
+      are a turn's. A bias with a part along the force is named by the first test before
+      this one is asked.)
 
     Otherwise both stay candidates (``effect`` the likelier first): a bias across the force
     while the pose does not change is a turn as well, and the arm's motion tells them apart.
@@ -242,10 +255,20 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
     evidence_m = float((((along - u @ b_mean) ** 2 - (along - along_m) ** 2) * apart).sum()) \
         / max(rss_m / sw, 1e-30)  # over the along components' mean square about the turn
     sep_m = int(apart.sum()) >= MIN_BLOCKS
+    # a turn, by the whole innovation: it turns with the force (nu = f x dtheta), a bias stays
+    # put; the blocks that count are those where the two differ by more than the floor
+    turn = H @ th
+    rss_tf = float((w * np.square(nu_g - turn).sum(1)).sum())
+    rss_bf = float((w * np.square(nu_g - b_mean).sum(1)).sum())
+    apart_f = (w > 0) & (np.linalg.norm(turn - b_mean, axis=1) > FLOOR_G)
+    evidence_f = (rss_bf - rss_tf) / max(rss_tf / max(3 * N - int(keep.sum()), 1), 1e-30)
+    sep_f = int(apart_f.sum()) >= MIN_BLOCKS
     if evidence_b >= chi2.isf(NAME_P, p) and sep_b:
         effect, candidates, evidence = "bias_jump", ("bias_jump",), evidence_b
     elif evidence_m >= chi2.isf(NAME_P, 1) and sep_m:  # (an along shift below the floor is no bias)
         effect, candidates, evidence = "mount_rotation", ("mount_rotation",), evidence_m
+    elif evidence_f >= chi2.isf(NAME_P, 3) and sep_f:
+        effect, candidates, evidence = "mount_rotation", ("mount_rotation",), evidence_f
     elif evidence_b >= chi2.isf(NAME_P, p):  # an along shift, but below what the model leaves
         effect, candidates, evidence = "bias_jump", ("bias_jump", "mount_rotation"), evidence_b
     else:
