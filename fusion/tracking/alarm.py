@@ -472,7 +472,8 @@ class ModelChangeAlarm:
             self._quiet_until = t + QUIET_S
 
     @staticmethod
-    def _reference_or_filter(nu: np.ndarray, moved: np.ndarray, var: np.ndarray, floor_g: np.ndarray) -> np.ndarray:
+    def _reference_or_filter(nu: np.ndarray, moved: np.ndarray, var: np.ndarray,
+                             floor_g: np.ndarray) -> np.ndarray:
         """The block means to test: the filter's innovations ``nu`` or those against the
         offsets held before a re-acquisition (``nu + moved``), whichever the sensors whose
         predictions the move changed (by more than the floor) agree with, but for the one
