@@ -11,7 +11,12 @@ joint angles for every pose; a magnetometer that gained hard iron reads off Eart
   ``max(THRESHOLD_SIGMA`` x its noise, ``FLOOR_G``, ``UNMODELLED_FACTOR`` x the config's
   unmodelled error); a test that holds for ``HOLD_S`` raises one alarm, on the sensor that
   shifted first (the filter, moving joints to follow it, shifts the sensors that share
-  them: their tests start again ``QUIET_S`` later). The change's onset is the change point
+  them: their tests start again ``QUIET_S`` later). After a re-acquisition (the slip
+  detector widening the joints a disagreeing sensor sees, through which the filter follows
+  a turned board by degrees), the blocks are taken against the joint offsets held before
+  it where the other sensors agree with those (:meth:`ModelChangeAlarm.reacquired`,
+  ``REF_HOLD_S``): a turned board shows its turn there, on itself alone; an encoder slip,
+  which every sensor beyond the joint follows, does not. The change's onset is the change point
   of the sensor's block means (:func:`onset`); the blocks since then name it
   (:func:`name_shift`): a turned board reads gravity's full size in another direction, so
   its innovation lies across the predicted force (``mount_rotation``, the rotation
@@ -80,6 +85,12 @@ STICKY_S = 10.0
 QUIET_S = 60.0
 """After an accelerometer's alarm, the others' tests start again (s): the filter, moving
 joints to follow the changed sensor, shifts the sensors that share them for a while."""
+REF_HOLD_S = 60.0
+"""The joint offsets held before a re-acquisition are the innovations' reference until this
+long after the last one (s): the slip detector widens the joints a disagreeing sensor sees,
+and the filter, reading them again, follows a turned board into them (its innovations fall
+back under the test); against the offsets held before, the turn shows in full on that
+sensor alone."""
 HARD_IRON_AFTER_S = 20.0
 """A compass disturbed this long without a break (s) has gained hard iron."""
 
@@ -181,7 +192,15 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
       (what the model leaves in ordinary use), on at least ``MIN_BLOCKS`` blocks;
     - a turn, when the shift's mean, taken as a bias, would have shown along the forces seen
       and did not, over the blocks (at least ``MIN_BLOCKS``) where the two differ along the
-      force by more than ``FLOOR_G``: the arm turned the sensor far enough since the change.
+      force by more than ``FLOOR_G``: the arm turned the sensor far enough since the change;
+    - or a turn, when the whole innovation turns with the force as a turned board's does
+      (``nu = f x dtheta``, fitted) and a bias's (the shift's mean, constant) does not: the
+      turn explains the blocks better than the bias by a chi-square (3 dof) at ``NAME_P``,
+      the scale from the turn's residual scatter, over the blocks (at least ``MIN_BLOCKS``)
+      where the two differ by more than ``FLOOR_G``. (A force swung far averages a turn's
+      innovation out: the mean is no bias that would have shown along it, yet the blocks
+      are a turn's. A bias with a part along the force is named by the first test before
+      this one is asked.)
 
     Otherwise both stay candidates (``effect`` the likelier first): a bias across the force
     while the pose does not change is a turn as well, and the arm's motion tells them apart.
@@ -236,10 +255,20 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
     evidence_m = float((((along - u @ b_mean) ** 2 - (along - along_m) ** 2) * apart).sum()) \
         / max(rss_m / sw, 1e-30)  # over the along components' mean square about the turn
     sep_m = int(apart.sum()) >= MIN_BLOCKS
+    # a turn, by the whole innovation: it turns with the force (nu = f x dtheta), a bias stays
+    # put; the blocks that count are those where the two differ by more than the floor
+    turn = H @ th
+    rss_tf = float((w * np.square(nu_g - turn).sum(1)).sum())
+    rss_bf = float((w * np.square(nu_g - b_mean).sum(1)).sum())
+    apart_f = (w > 0) & (np.linalg.norm(turn - b_mean, axis=1) > FLOOR_G)
+    evidence_f = (rss_bf - rss_tf) / max(rss_tf / max(3 * N - int(keep.sum()), 1), 1e-30)
+    sep_f = int(apart_f.sum()) >= MIN_BLOCKS
     if evidence_b >= chi2.isf(NAME_P, p) and sep_b:
         effect, candidates, evidence = "bias_jump", ("bias_jump",), evidence_b
     elif evidence_m >= chi2.isf(NAME_P, 1) and sep_m:  # (an along shift below the floor is no bias)
         effect, candidates, evidence = "mount_rotation", ("mount_rotation",), evidence_m
+    elif evidence_f >= chi2.isf(NAME_P, 3) and sep_f:
+        effect, candidates, evidence = "mount_rotation", ("mount_rotation",), evidence_f
     elif evidence_b >= chi2.isf(NAME_P, p):  # an along shift, but below what the model leaves
         effect, candidates, evidence = "bias_jump", ("bias_jump", "mount_rotation"), evidence_b
     else:
@@ -267,8 +296,12 @@ class ModelChangeAlarm:
     """The alarm over the link accelerometers ``names`` and the compass (``mag_name``)."""
 
     def __init__(self, names: tuple[str, ...], mag_name: str | None, t_s: float,
-                 unmodelled_g: np.ndarray | None = None):
+                 unmodelled_g: np.ndarray | None = None, sees: np.ndarray | None = None):
         n = len(names)
+        # which joints each link accelerometer sees (S, n_joints): a turn it follows moves those
+        self._sees = np.zeros((n, 0), bool) if sees is None else np.asarray(sees, bool)[:n]
+        self._offset_ref: np.ndarray | None = None
+        self._ref_until = -np.inf
         # the test's floor: FLOOR_G, or UNMODELLED_FACTOR x what the config says its model
         # leaves unexplained (an uncalibrated sensor's lasting, pose-dependent error is
         # no change: only a change well above it is)
@@ -276,6 +309,7 @@ class ModelChangeAlarm:
         self.floor_g = np.maximum(FLOOR_G, UNMODELLED_FACTOR * um)
         self.names, self.mag_name = names, mag_name
         self._sum_nu = np.zeros((n, 3))
+        self._sum_moved = np.zeros((n, 3))  # the offsets' move's share (see _moved), while held
         self._sum_g = np.zeros((n, 3))
         self._sum_var = np.zeros(n)
         self._sum_r = np.zeros(n)
@@ -304,17 +338,54 @@ class ModelChangeAlarm:
 
 
     # -- the accelerometers -------------------------------------------------------------
+    def reacquired(self, t: float, offset_rad: np.ndarray) -> None:
+        """The slip detector re-acquires at ``t`` (it widens joints for the filter to read
+        again): the joint offsets ``offset_rad`` the filter held until now are kept as the
+        reference (:meth:`listen` tests the innovations against them) until ``REF_HOLD_S``
+        after the last re-acquisition."""
+        if not t < self._ref_until:
+            self._offset_ref = np.array(offset_rad, dtype=float)
+        self._ref_until = t + REF_HOLD_S
+
+    def _moved(self, idx: np.ndarray, z_pred: np.ndarray, rows: np.ndarray, frame,
+               offset_rad: np.ndarray | None) -> np.ndarray:
+        """How much the filter's move of the joint offsets since the reference
+        (:meth:`reacquired`) changed the predictions of the link accelerometers ``idx``
+        (``rows (k, 3)``: their rows of ``z_pred``): the innovation against the reference is
+        the filter's plus this, to first order ``f x (R_0S^T w)``, ``w = sum_j (offset_j -
+        ref_j) a_j`` over the joints each sees (``a_j`` their axes, ``f`` the predicted force)."""
+        if offset_rad is None or frame is None:
+            return np.zeros((len(idx), 3))
+        d = np.asarray(offset_rad, float) - self._offset_ref
+        w = (self._sees[idx] * d) @ frame.axes  # (k, 3), base axes
+        a = np.einsum("kji,kj->ki", frame.R_0S[idx], w)  # in each sensor's axes
+        return np.cross(z_pred[rows], a)
+
     def listen(self, t: float, u, nu: np.ndarray, Su: np.ndarray, z_pred: np.ndarray, var: np.ndarray,
-               rows: np.ndarray, sel: np.ndarray, calm: bool) -> None:
+               rows: np.ndarray, sel: np.ndarray, calm: bool, frame=None,
+               offset_rad: np.ndarray | None = None) -> None:
         """The usable accelerometers ``u`` (a slice of ``sel``, every one in order, or sensor
         indices) gave innovations ``nu (k, 3)`` (g) with covariances ``Su``; ``z_pred`` and
         ``var`` are the update's predictions and measurement variances (``rows``: each
         accelerometer's three, by its place in ``sel``). Only while ``calm`` (the base as
         modelled) are they counted; the link accelerometers (the first ``len(names)``) only.
+        ``frame`` (the instant's kinematics) and ``offset_rad`` (the filter's joint offsets)
+        give the innovations against the offsets held before a re-acquisition
+        (:meth:`reacquired`).
 
         A block mean's variance: the measurement noise's share averages down with the
         samples, the filter's own uncertainty (``Su`` less the noise) does not."""
         nl = len(self.names)
+        if calm and self._offset_ref is not None and t < self._ref_until:
+            if type(u) is slice:
+                pos = np.arange(min(nl, len(nu)))
+                idx = self._every[pos]
+            else:
+                pos = np.flatnonzero(u < nl)
+                idx = u[pos]
+            if len(pos):
+                self._sum_moved[idx] += self._moved(idx, z_pred, rows[np.searchsorted(sel, idx)], frame,
+                                                    offset_rad)
         if calm:  # (the sums, compiled: add_block_sums)
             if type(u) is slice:
                 k = min(nl, len(nu))
@@ -329,6 +400,7 @@ class ModelChangeAlarm:
             if self._n.any():
                 self._block(t)
             self._sum_nu[:] = 0.0
+            self._sum_moved[:] = 0.0
             self._sum_g[:] = 0.0
             self._sum_r[:] = 0.0
             self._sum_var[:] = 0.0
@@ -352,6 +424,7 @@ class ModelChangeAlarm:
             if m[j] >= recent:
                 rows = (self._hist_n[s] - 1 - np.arange(recent)) % cap
                 var[j] = min(var[j], float(np.median(self._hist_var[s, rows])))
+        nu = self._reference_or_filter(nu, self._sum_moved[have] / n_[:, None], var, self.floor_g[have])
         last = self._ema_t[have]
         dt = np.where(np.isnan(last), BLOCK_S, t - last)
         a = np.minimum(1.0, dt / TAU_S)
@@ -397,6 +470,25 @@ class ModelChangeAlarm:
             self._over_since[:] = np.nan
             self._first_over[:] = np.nan
             self._quiet_until = t + QUIET_S
+
+    @staticmethod
+    def _reference_or_filter(nu: np.ndarray, moved: np.ndarray, var: np.ndarray,
+                             floor_g: np.ndarray) -> np.ndarray:
+        """The block means to test: the filter's innovations ``nu`` or those against the
+        offsets held before a re-acquisition (``nu + moved``), whichever the sensors whose
+        predictions the move changed (by more than the floor) agree with, but for the one
+        that disagrees most (a changed sensor is one): an encoder that slipped moves every
+        sensor beyond its joint, which agree with the filter's new offsets; a turned board
+        the filter followed leaves the others agreeing with the reference. A move that at
+        most one sensor sees is a slip as well as a turn: the filter's innovations stay."""
+        M = np.linalg.norm(moved, axis=1) > floor_g
+        if M.sum() < 2:
+            return nu
+        ref = (np.square(nu + moved).sum(1) / var)[M]
+        new = (np.square(nu).sum(1) / var)[M]
+        if ref.sum() - ref.max() < new.sum() - new.max():
+            return nu + moved
+        return nu
 
     def _history(self, s: int) -> np.ndarray:
         """Sensor ``s``'s blocks kept (at most ``WINDOW_S``), oldest first: ``(m, 8)``."""

@@ -200,7 +200,7 @@ class Tracker:
         self.slips = SlipDetector(st, L, self.sensor_names, len(self.link_names), len(self.accel_streams),
                                   self._sees, t_s)
         self.alarm = ModelChangeAlarm(self.link_names, MAG if self._has_imu else None, t_s,
-                                      self._unmodelled_g[:len(self.link_names)])
+                                      self._unmodelled_g[:len(self.link_names)], self._sees)
         self.observability.reset()
         if prior_q_rad is None:  # no saved pose: an unread joint may be anywhere in its limits
             unread = ~read_by_startup(startup) & ~self.ambiguity_.joints
@@ -429,7 +429,8 @@ class Tracker:
                                                        None if set_off else gate_l, ms.rows, self._reacquire)
             if u is not None:
                 self.slips.listen(t, u, nu, Su, calm and not set_off, self._reacquire)
-                self.alarm.listen(t, u, nu, Su, inn.z_pred, var, ms.rows, sel, calm and not set_off)
+                self.alarm.listen(t, u, nu, Su, inn.z_pred, var, ms.rows, sel, calm and not set_off, frame,
+                                  ukf._x[L.offset])
             # the link accelerometers read lately (settings.observability_read_periods)
             read_t = self._link_read_t
             for i, a in zip(sel.tolist(), accept[:k].tolist(), strict=True):
@@ -484,6 +485,7 @@ class Tracker:
         return self.measurements.h_all(self.process.euler_points(X), **kw)
 
     def _reacquire(self, i: int, t: float) -> None:
+        self.alarm.reacquired(t, self._ukf._x[self.layout.offset])
         self.slips.reacquire(i, t, self._ukf, self.health, self.observability.locked)
 
     def _update_flags(self, t: float) -> None:
