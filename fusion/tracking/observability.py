@@ -176,7 +176,8 @@ class Observability:
         achievable = self._achievable.copy()
         if self.spread_m:
             # the calibration's pull, over every link accelerometer used since the last time
-            # (sensors read at instants of their own each make a set of one)
+            # (the sets of the updates since: sensors read lately, or each alone where a caller
+            # passes the sets of single updates)
             self._consider_used.update(used)
             if self.consider_t is None:  # the first time: the startup read every one of them
                 self._consider_used.update(range(len(self.link_names)))
