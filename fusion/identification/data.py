@@ -418,14 +418,23 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
     the same branches with it taken from the later still stretches
     (:func:`_later_still_angles`): for a recording that starts elsewhere (random still poses).
     Which one is right the fit's residuals say (:func:`fusion.workbench.diagnose.diagnose`
-    tries the rivals when the first does not fit the noise)."""
+    tries the rivals when the first does not fit the noise).
+
+    The startup solves here with the config's unmodelled-error floors left out
+    (:func:`_nominal`): a start is the pose that best explains the still start under the
+    nominal model, however unsure the config is of it. With the floors, an uncalibrated
+    config's startup leaves most joints untold (the shipped WMRA's 45 mg: every joint
+    ``ill_conditioned``, some with no angle), and a fit started from the ready pose
+    instead of a recording's random first pose stops in a wrong basin (a clean 60 s
+    ``static-poses`` recording left at 3e5 times its noise: tests/identification)."""
     from fusion.startup.solve import readings_from_recording, solve_still
 
     q = np.array(arm.ready_pose_rad, float)
+    nominal = _nominal(arm)
     try:
         t0 = rec.t_start_s
-        readings, _ = readings_from_recording(arm, rec, t0, t0 + window_s, window_s)
-        res = solve_still(arm, readings, propose_unlock=False)
+        readings, _ = readings_from_recording(nominal, rec, t0, t0 + window_s, window_s)
+        res = solve_still(nominal, readings, propose_unlock=False)
     except Exception:  # noqa: BLE001 - no still start: the ready pose
         return [q]
     enc = rec.get("enc")
@@ -442,7 +451,7 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
             b[amb] = res.candidates_rad[int(k)][amb]
             branches.append(b)
     if np.isnan(geo).any() and enc is not None and len(enc):
-        told = _later_still_angles(arm, rec, geo, e, window_s, models)
+        told = _later_still_angles(nominal, rec, geo, e, window_s, models)
         untold = np.isnan(geo) & np.isfinite(told)
         if untold.any():
             branches += [np.where(untold, told, b) for b in branches]
@@ -454,6 +463,12 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
         if not any(np.allclose(qb, o) for o in out):
             out.append(qb)
     return out
+
+
+def _nominal(arm: ArmModel) -> ArmModel:
+    """``arm`` with nothing unmodelled (its calibration's floors left out): where a fit starts
+    (:func:`start_poses`), not how sure anything is."""
+    return replace(arm, calibration=arm.calibration.as_exact())
 
 
 def _later_still_angles(arm: ArmModel, rec, geo: np.ndarray, enc0_rad: np.ndarray, window_s: float,
