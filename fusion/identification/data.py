@@ -462,6 +462,56 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
             qb[j] = b[j] - (e[j] if np.ndim(e) else 0.0)
         if not any(np.allclose(qb, o) for o in out):
             out.append(qb)
+    if enc is not None and len(enc) and (np.isnan(geo).any() or len(branches) > 1):
+        # a start the still start cannot settle: each later still pose's own answer too
+        for qb in _later_still_starts(nominal, rec, out[0], window_s, models):
+            if len(out) >= MAX_STARTS:
+                break
+            if not any(np.allclose(qb, o) for o in out):
+                out.append(qb)
+    return out
+
+
+MAX_STARTS = 16
+"""At most this many starts (the first and its rivals) from :func:`start_poses`: each rival
+costs the diagnosis a short trial fit (about 0.2 s) where the first does not reach the noise."""
+
+
+def _later_still_starts(nominal: ArmModel, rec, fallback_ref_rad: np.ndarray, window_s: float, models,
+                        max_segments: int = 8) -> list[np.ndarray]:
+    """Starts (``q_ref``, rad) from the later still stretches, each on its own: the startup's
+    angles there (each of its branches where it has several) less the encoder angles there,
+    joints it cannot tell from ``fallback_ref_rad``. Where the still start leaves the arm's
+    middle joints to a twin or untold (a shoulder at gimbal lock: the elbow and the forearm
+    read alike either way), a later pose that tells them all gives a start in the right
+    basin, which filling the untold joints one by one (:func:`_later_still_angles`) cannot."""
+    from fusion.startup.solve import readings_from_recording, solve_still
+    from fusion.startup.static import find_static_segments
+
+    enc = rec.get("enc")
+    try:
+        segments = find_static_segments(rec)
+    except Exception:  # noqa: BLE001 - no stretch found: no more starts
+        return []
+    t_enc = np.asarray(enc.t_s, float)
+    out = []
+    for seg in segments[1:max_segments + 1]:
+        if seg.t_end_s - seg.t_start_s < window_s:
+            continue
+        try:
+            readings, _ = readings_from_recording(nominal, rec, seg.t_start_s, seg.t_start_s + window_s,
+                                                  window_s)
+            res = solve_still(nominal, readings, propose_unlock=False)
+        except Exception:  # noqa: BLE001 - this stretch tells nothing: the next one
+            continue
+        i = int(np.searchsorted(t_enc, seg.t_start_s))
+        e = models["enc"].from_counts(enc.values[min(i, len(enc) - 1):][:1])[0]
+        geo = np.array([je.angle_rad if je.angle_rad is not None else np.nan for je in res.joints])
+        sets = [geo]
+        if res.candidates_rad is not None and len(res.candidates_rad) > 1:
+            amb = np.array([je.flag == "ambiguous" for je in res.joints])
+            sets = [np.where(amb, c, geo) for c in np.asarray(res.candidates_rad, float)]
+        out += [np.where(np.isfinite(g), g - e, fallback_ref_rad) for g in sets]
     return out
 
 

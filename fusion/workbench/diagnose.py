@@ -243,7 +243,8 @@ def best_start(model: Model, data: FitData, streams: Sequence[str], st: Diagnose
                rms_ratio_now: float, attitude0_rad: np.ndarray | None = None) -> FitData | None:
     """Where the fit from the recording's start pose does not reach the noise
     (``rms_ratio_now`` above ``noise_tolerance``) and the still start has rival branches
-    (``data.start_rivals_rad``: e.g. a wrist that reads the same flipped), each rival is fitted
+    (``data.start_rivals_rad``: e.g. a wrist that reads the same flipped, or a later still
+    pose's answer where the start leaves joints untold), each rival is fitted
     on ``start_points`` evenly spread points with at most ``start_nfev`` Jacobians: from the
     wrong branch the fit stays in its basin, with a residual hundreds of times the noise that
     no effect explains (measured: 260-480x on clean random still poses, against 1.0 from the
@@ -260,7 +261,8 @@ def best_start(model: Model, data: FitData, streams: Sequence[str], st: Diagnose
     k = int(np.argmin(ratios))
     if ratios[k] >= rms_ratio_now:
         return None
-    note = (f"{data.note}; the still start's rival branch {k + 2} of {len(rivals) + 1} (the first "
+    note = (f"{data.note}; the rival branch {k + 2} of {len(rivals) + 1} (the still start's, then "
+            f"later still poses'; the first "
             f"fitted to {rms_ratio_now:.3g}x the noise, this one to {ratios[k]:.3g}x)")
     return replace(rivals[k], start_rivals_rad=(), note=note)
 
