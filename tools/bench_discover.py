@@ -76,6 +76,7 @@ from fusion.workbench.discover import Discovery, discover  # noqa: E402
 from fusion.workbench.scores import EXCLUDED_CANDIDATES, candidate_effects, score_tests  # noqa: E402
 from models.effects import all_effects, model_from_arm  # noqa: E402
 from models.simulator import simulate  # noqa: E402
+from models.trajectories import Scenario  # noqa: E402
 from models.trajectories.planned import PlannedManeuver, played_scenario  # noqa: E402
 from tools.benchdoc import machine_line, publish  # noqa: E402
 
@@ -109,10 +110,13 @@ class Sweep:
     duration_s: float
     maneuver: PlannedManeuver | None = None
 
+    def scenario(self, arm, seed: int) -> str | Scenario:
+        """What recording ``seed`` plays: the named sweep, or the plan with the seed's chair."""
+        return SCENARIO if self.maneuver is None else played_scenario(arm, self.maneuver, seed)
+
     def recording(self, arm, seed: int, effects: list[dict] | None = None):
         """Recording ``seed`` of this sweep with ``effects`` hidden (the simulator's entries)."""
-        scenario = SCENARIO if self.maneuver is None else played_scenario(arm, self.maneuver, seed)
-        rec, _ = simulate(arm, scenario, self.duration_s, seed=seed, effects=effects)
+        rec, _ = simulate(arm, self.scenario(arm, seed), self.duration_s, seed=seed, effects=effects)
         return rec
 
     @property
