@@ -339,6 +339,12 @@ def _pairs(names) -> str:
     return ", ".join(f"`{n.split('.')[1]}:{n.split('.')[0]}`" for n in names)
 
 
+def _same_draws(a: SweepRun, b: SweepRun) -> int:
+    """Hidden recordings of ``b`` that hide exactly what ``a``'s of the same seed hide."""
+    drawn = {c.seed: c.hidden for c in a.hidden}
+    return sum(drawn.get(c.seed) == c.hidden for c in b.hidden)
+
+
 def section(runs: list[SweepRun], sp: dict | None) -> str:
     cols = [f"`{r.sweep.label}`" for r in runs]
     lines = [
@@ -359,6 +365,8 @@ def section(runs: list[SweepRun], sp: dict | None) -> str:
         "| what | target | " + " | ".join(cols) + " |",
         "| --- | ---: | " + " | ".join("---:" for _ in runs) + " |",
         "| (effect, target) pairs drawn from | | " + " | ".join(str(len(r.pool)) for r in runs) + " |",
+        f"| hidden draws the same as on `{runs[0].sweep.label}` | | "
+        + " | ".join(_share(_same_draws(runs[0], r), len(r.hidden)) for r in runs) + " |",
         f"| hidden set found, nothing spurious | ≥ {100 * FOUND_TARGET:.0f} % | "
         + " | ".join(f"{_share(r.found, len(r.hidden))}, {_met(r.found_met)}" for r in runs) + " |",
     ]
