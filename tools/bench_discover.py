@@ -505,7 +505,8 @@ def main(argv=None) -> int:
         print(f"speed: {sp}", flush=True)
     body = section(list(runs.values()), sp)
     print(body)
-    publish("bench_discover", body, a.out, a.quick or chosen is not None or a.maneuvers != DEFAULT_SWEEPS)
+    partial = a.quick or chosen is not None or names != DEFAULT_SWEEPS.split(",")
+    publish("bench_discover", body, a.out, partial)
     return 0
 
 
