@@ -56,7 +56,7 @@ from models.effects import entries_from_model  # noqa: E402
 from models.rotations import DEG  # noqa: E402
 from models.simulator import build_model as simulated_model  # noqa: E402
 from models.trajectories import make_scenario  # noqa: E402
-from models.trajectories.planned import planned_scenario  # noqa: E402
+from models.trajectories.planned import planned_scenario, played_scenario  # noqa: E402
 from tools.bench_calibrated import calibrate, calibrated_config, solve_poses, still_means, summary  # noqa: E402
 from tools.bench_startup import draw_poses  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
@@ -102,7 +102,7 @@ def run_seed(arm, m, model, pred, effects, renk_duration, q, tilt, near, seed: i
     """Seed ``seed``: the plan ``m`` and ``renk-maneuver`` played by its realistic arm, fitted,
     and the startup after each at 25 °C and at the maneuver's mean temperature. Per maneuver:
     (its results row, its elements beyond 4σ, that temperature, a line to print)."""
-    sc = planned_scenario(arm, m, np.random.default_rng([seed, 0x5CE]))
+    sc = played_scenario(arm, m, seed)
     renk = make_scenario(arm, "renk-maneuver", renk_duration, seed)
     out = {}
 

@@ -161,9 +161,9 @@ def run_case(case: Case, sim_arm, config_arm, effects, rungs: int, maneuver=None
     c0 = time.process_time()
     scenario = case.scenario
     if scenario == PLANNED:  # as ``simulate --maneuver`` plays it
-        from models.trajectories.planned import planned_scenario
+        from models.trajectories.planned import played_scenario
 
-        scenario = planned_scenario(sim_arm, maneuver, np.random.default_rng([case.seed, 0x5CE]))
+        scenario = played_scenario(sim_arm, maneuver, case.seed)
     rec, _ = simulate(sim_arm, scenario, case.duration_s, seed=case.seed, effects=effects)
     if chair_moves(config_arm, rec):
         return Outcome(case, parked=False, cpu_s=time.process_time() - c0)

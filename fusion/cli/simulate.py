@@ -20,7 +20,6 @@ import time
 from pathlib import Path
 from typing import Annotated, Any
 
-import numpy as np
 import typer
 
 from fusion.cli.common import emit_json, fail, json_default, output_path_problem, progress_bar
@@ -177,7 +176,7 @@ def simulate(
     if maneuver is not None:  # a planned maneuver (plan-maneuver --out): checked, then played
         from fusion.cli.plan_maneuver import load_maneuver
         from fusion.identification.planner import maneuver_problems
-        from models.trajectories.planned import planned_scenario
+        from models.trajectories.planned import played_scenario
 
         plan = load_maneuver(maneuver)
         problems = maneuver_problems(arm, plan)
@@ -188,7 +187,7 @@ def simulate(
             raise ValueError("--duration: a maneuver file sets its own length; leave --duration out")
         duration_s = plan.duration_s
         check_run_size(arm, "planned", duration_s, rate_hz)
-        scenario = planned_scenario(arm, plan, np.random.default_rng([int(seed), 0x5CE]))
+        scenario = played_scenario(arm, plan, seed)
     else:
         check_run_size(arm, scenario, duration_s, rate_hz)
     model = effects_model(arm, effect, effects_file)

@@ -45,8 +45,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
-
 from models.arm import ArmModel
 from models.trajectories.daily import compass_turn, daily_use, excitation
 from models.trajectories.paths import (
@@ -69,7 +67,7 @@ from models.trajectories.renk import (
     renk_maneuver,
     renk_ramp,
 )
-from models.trajectories.scenario import Scenario, warm_up
+from models.trajectories.scenario import Scenario, scenario_rng, warm_up
 from models.trajectories.still import random_still_poses, startup, static_poses
 
 
@@ -105,8 +103,7 @@ def make_scenario(arm: ArmModel, name: str, duration_s: float | None = None, see
     d = spec.default_duration_s if duration_s is None else float(duration_s)
     if not d > 0:
         raise ValueError(f"duration must be positive, got {duration_s!r} s")
-    rng = np.random.default_rng([int(seed), 0x5CE])
-    return spec.build(arm, d, rng, **options)
+    return spec.build(arm, d, scenario_rng(seed), **options)
 
 
 __all__ = [

@@ -21,7 +21,7 @@ import numpy as np
 from models.arm import ArmModel
 from models.rotations import DEG
 from models.trajectories.paths import StepsBuilder, WaypointPath
-from models.trajectories.scenario import Scenario, parked_chair, warm_up
+from models.trajectories.scenario import Scenario, parked_chair, scenario_rng, warm_up
 
 MAX_POSES = 1000
 """A maneuver file holds at most this many poses (a plan of 60 s has about 15)."""
@@ -129,3 +129,9 @@ def planned_scenario(arm: ArmModel, maneuver: PlannedManeuver, rng: np.random.Ge
                        "pose_deg": np.degrees(q).round(3).tolist()})
     return Scenario("planned", arm, maneuver.duration_s, WaypointPath(b.build()),
                     parked_chair(rng, tilt_sigma_rad), warm_up(), events)
+
+
+def played_scenario(arm: ArmModel, maneuver: PlannedManeuver, seed: int) -> Scenario:
+    """The maneuver as ``armfusion simulate --maneuver M --seed S`` plays it: the chair's tilt
+    and heading drawn from recording seed ``seed`` (its scenario stream, as a named scenario's)."""
+    return planned_scenario(arm, maneuver, scenario_rng(seed))

@@ -15,6 +15,16 @@ from models.motion import MotionState
 from models.rotations import DEG
 from models.trajectories.paths import BasePath, JointPath, ParkedBase
 
+SCENARIO_STREAM = 0x5CE
+"""The stream of a recording's seed that draws its scenario (the chair's tilt and heading, a
+sweep's random poses), apart from the simulator's noise."""
+
+
+def scenario_rng(seed: int) -> np.random.Generator:
+    """The generator a scenario of recording seed ``seed`` is drawn from (``make_scenario``,
+    a planned maneuver played by ``armfusion simulate --maneuver --seed``)."""
+    return np.random.default_rng([int(seed), SCENARIO_STREAM])
+
 
 def warm_up(t0_c: float = 22.0, rise_c: float = 8.0, tau_s: float = 600.0) -> Callable:
     """Electronics warming after power-up: ``T0 + rise·(1 - exp(-t/τ))`` °C."""
