@@ -420,56 +420,80 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
     Which one is right the fit's residuals say (:func:`fusion.workbench.diagnose.diagnose`
     tries the rivals when the first does not fit the noise).
 
-    The startup solves here with the config's unmodelled-error floors left out
-    (:func:`_nominal`): a start is the pose that best explains the still start under the
-    nominal model, however unsure the config is of it. With the floors, an uncalibrated
-    config's startup leaves most joints untold (the shipped WMRA's 45 mg: every joint
-    ``ill_conditioned``, some with no angle), and a fit started from the ready pose
-    instead of a recording's random first pose stops in a wrong basin (a clean 60 s
-    ``static-poses`` recording left at 3e5 times its noise: tests/identification)."""
-    from fusion.startup.solve import readings_from_recording, solve_still
-
+    Those first starts come from the startup with the config's unmodelled-error floors,
+    which leave a branch the data barely prefer open (nearest the ready pose first: right
+    for a maneuver that starts there, with effects still to be found). The same starts
+    solved with the floors left out (:func:`_nominal`: the pose the nominal model fits best,
+    however unsure the config is of it) follow as rivals: with the shipped WMRA's 45 mg every
+    joint is ``ill_conditioned``, some with no angle, and a recording that starts at a
+    random pose was left in a wrong basin (a clean 60 s ``static-poses`` recording at 3e5
+    times its noise). Then, where the still start cannot settle the pose, each later still
+    pose's own answer (:func:`_later_still_starts`); at most :data:`MAX_STARTS` in all."""
     q = np.array(arm.ready_pose_rad, float)
-    nominal = _nominal(arm)
-    try:
-        t0 = rec.t_start_s
-        readings, _ = readings_from_recording(nominal, rec, t0, t0 + window_s, window_s)
-        res = solve_still(nominal, readings, propose_unlock=False)
-    except Exception:  # noqa: BLE001 - no still start: the ready pose
-        return [q]
     enc = rec.get("enc")
     models = stream_models(arm)
     e = models["enc"].from_counts(enc.values[:1])[0] if enc is not None and len(enc) else 0.0
+    nominal = _nominal(arm)
+    out: list[np.ndarray] = []
+    unsettled = False
+    for solver_arm in (arm, nominal):
+        found = _still_start_branches(solver_arm, rec, window_s, q, e, models)
+        if found is None:
+            continue
+        branches, settled = found
+        unsettled |= not settled
+        for b in branches:
+            qb = q.copy()
+            for j in np.flatnonzero(np.isfinite(b)):
+                qb[j] = b[j] - (e[j] if np.ndim(e) else 0.0)
+            _add_start(out, qb)
+    if not out:  # no still start: the ready pose
+        return [q]
+    if enc is not None and len(enc) and unsettled:
+        # a start the still start cannot settle: each later still pose's own answer too
+        for qb in _later_still_starts(nominal, rec, out[0], window_s, models):
+            _add_start(out, qb)
+    return out
+
+
+def _add_start(out: list[np.ndarray], q_ref_rad: np.ndarray) -> None:
+    """``q_ref_rad`` appended to the starts ``out`` unless one is there already or they are full."""
+    if len(out) < MAX_STARTS and not any(np.allclose(q_ref_rad, o) for o in out):
+        out.append(q_ref_rad)
+
+
+def _still_start_branches(solver_arm: ArmModel, rec, window_s: float, q_ready_rad: np.ndarray,
+                          enc0_rad, models) -> tuple[list[np.ndarray], bool] | None:
+    """The startup on the recording's first still ``window_s`` solved for ``solver_arm``: its
+    branches as geometric angles (NaN where untold; ambiguous joints each way, nearest the
+    ready pose first, untold joints filled from later stretches where those tell them), and
+    whether it settled the pose (no joint untold, one branch). None without a still start."""
+    from fusion.startup.solve import readings_from_recording, solve_still
+
+    try:
+        t0 = rec.t_start_s
+        readings, _ = readings_from_recording(solver_arm, rec, t0, t0 + window_s, window_s)
+        res = solve_still(solver_arm, readings, propose_unlock=False)
+    except Exception:  # noqa: BLE001 - no still start
+        return None
+    enc = rec.get("enc")
     geo = np.array([je.angle_rad if je.angle_rad is not None else np.nan for je in res.joints])
     branches = [geo]
     if res.candidates_rad is not None and len(res.candidates_rad) > 1:
         amb = np.array([je.flag == "ambiguous" for je in res.joints])
-        d = np.abs(wrap_angle(res.candidates_rad - q))[:, amb].sum(1)
+        d = np.abs(wrap_angle(res.candidates_rad - q_ready_rad))[:, amb].sum(1)
         branches = []
         for k in np.argsort(d, kind="stable"):
             b = geo.copy()
             b[amb] = res.candidates_rad[int(k)][amb]
             branches.append(b)
+    settled = not np.isnan(geo).any() and len(branches) == 1
     if np.isnan(geo).any() and enc is not None and len(enc):
-        told = _later_still_angles(nominal, rec, geo, e, window_s, models)
+        told = _later_still_angles(solver_arm, rec, geo, enc0_rad, window_s, models)
         untold = np.isnan(geo) & np.isfinite(told)
         if untold.any():
             branches += [np.where(untold, told, b) for b in branches]
-    out = []
-    for b in branches:
-        qb = q.copy()
-        for j in np.flatnonzero(np.isfinite(b)):
-            qb[j] = b[j] - (e[j] if np.ndim(e) else 0.0)
-        if not any(np.allclose(qb, o) for o in out):
-            out.append(qb)
-    if enc is not None and len(enc) and (np.isnan(geo).any() or len(branches) > 1):
-        # a start the still start cannot settle: each later still pose's own answer too
-        for qb in _later_still_starts(nominal, rec, out[0], window_s, models):
-            if len(out) >= MAX_STARTS:
-                break
-            if not any(np.allclose(qb, o) for o in out):
-                out.append(qb)
-    return out
+    return branches, settled
 
 
 MAX_STARTS = 16
