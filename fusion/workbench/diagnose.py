@@ -105,6 +105,13 @@ class DiagnoseSettings:
     """Where the fit does not reach the noise and the recording's still start has rival
     branches, each rival is tried on this many evenly spread fit points (:func:`best_start`)."""
     start_nfev: int = 10
+    start_rival_gain: float = 2.0
+    """A rival start replaces the first only where its trial leaves at most ``1 / this`` of the
+    first's RMS over the noise: from a wrong basin the fit stays at tens to hundreds of times
+    the noise, while between two starts whose fits both miss an effect (discovery's first
+    rungs) a small difference says which basin absorbs the missing effect better, not which
+    is right (planned sweep, seed 3001 of tools/bench_discover.py: 17.9x against the first's
+    19.2x, and the ladder from there ended at 2.4x with nine spurious effects)."""
     """Jacobians each such trial may take (a wrong branch is hundreds of times the noise)."""
     chunk_rows: int = 400_000
     """Residual rows per chunk of the score tests' Jacobian (bounds memory: rows × ~200
@@ -249,8 +256,8 @@ def best_start(model: Model, data: FitData, streams: Sequence[str], st: Diagnose
     wrong branch the fit stays in its basin, with a residual hundreds of times the noise that
     no effect explains (measured: 260-480x on clean random still poses, against 1.0 from the
     right branch; 0.2 s a trial). Returns the data from the rival whose RMS over the noise is
-    lowest, if it is lower than ``rms_ratio_now`` (no rivals left; the note says which branch
-    was taken), else None."""
+    lowest, if that is below ``rms_ratio_now / start_rival_gain`` (no rivals left; the note
+    says which branch was taken), else None."""
     if not data.start_rivals_rad or rms_ratio_now <= st.noise_tolerance:
         return None
     stride = max(1, int(np.ceil(data.n / max(st.start_points, 2))))
@@ -259,7 +266,7 @@ def best_start(model: Model, data: FitData, streams: Sequence[str], st: Diagnose
     ratios = [rms_ratio_of(fit_model(model, b.subset(slice(None, None, stride)), streams, trial,
                                      attitude0_rad)) for b in rivals]
     k = int(np.argmin(ratios))
-    if ratios[k] >= rms_ratio_now:
+    if ratios[k] * st.start_rival_gain >= rms_ratio_now:
         return None
     note = (f"{data.note}; the rival branch {k + 2} of {len(rivals) + 1} (the still start's, then "
             f"later still poses'; the first "
