@@ -131,3 +131,26 @@ def test_a_start_the_still_start_cannot_settle_comes_whole_from_a_later_pose(arm
     d = diagnose(model_from_arm(arm), data_from_recording(arm, rec, window=WINDOW))
     assert d.verdict == FITS_TO_NOISE and d.rms_ratio < 1.1, (d.verdict, d.rms_ratio)
     assert "later still poses" in d.data.note
+
+
+def test_a_rival_start_must_explain_half_the_misfit_to_replace_the_first(arm):
+    """A rival start replaces the first only where its trial fit leaves at most half the
+    first's RMS over the noise: two starts in the same basin (here the truth and a rival
+    0.3° off on j1) fit alike, and which one absorbs an unmodelled effect a little better
+    says nothing about which is right. A rival from the right basin against a first in a
+    wrong one (tens to hundreds of times the noise) is taken."""
+    from dataclasses import replace
+
+    from fusion.workbench.diagnose import DiagnoseSettings, best_start
+
+    rec, _ = simulate(arm, "renk-maneuver", 20.0, seed=905)
+    data = data_from_recording(arm, rec, window=WINDOW)
+    near = data.q_ref_rad + np.r_[np.radians(0.3), np.zeros(arm.n_joints - 1)]
+    st = DiagnoseSettings()
+    model = model_from_arm(arm)
+    same_basin = replace(data, start_rivals_rad=(near,))
+    # as if the first start's fit had missed an effect (1.5x the noise): the rival fits alike
+    assert best_start(model, same_basin, None, st, 1.5) is None
+    # as if the first start sat in a wrong basin (300x): the rival is taken
+    taken = best_start(model, same_basin, None, st, 300.0)
+    assert taken is not None and np.allclose(taken.q_ref_rad, near)
