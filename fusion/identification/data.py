@@ -10,6 +10,7 @@ why joint offsets are a property of the recording, not of the arm.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -434,10 +435,11 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
     models = stream_models(arm)
     e = models["enc"].from_counts(enc.values[:1])[0] if enc is not None and len(enc) else 0.0
     nominal = _nominal(arm)
+    segments = functools.cache(lambda: _still_segments(rec))  # found once, where needed
     out: list[np.ndarray] = []
     unsettled = False
     for solver_arm in (arm, nominal):
-        found = _still_start_branches(solver_arm, rec, window_s, q, e, models)
+        found = _still_start_branches(solver_arm, rec, window_s, q, e, models, segments)
         if found is None:
             continue
         branches, settled = found
@@ -451,7 +453,7 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
         return [q]
     if enc is not None and len(enc) and unsettled:
         # a start the still start cannot settle: each later still pose's own answer too
-        for qb in _later_still_starts(nominal, rec, out[0], window_s, models):
+        for qb in _later_still_starts(nominal, rec, out[0], window_s, models, segments):
             _add_start(out, qb)
     return out
 
@@ -463,33 +465,19 @@ def _add_start(out: list[np.ndarray], q_ref_rad: np.ndarray) -> None:
 
 
 def _still_start_branches(solver_arm: ArmModel, rec, window_s: float, q_ready_rad: np.ndarray,
-                          enc0_rad, models) -> tuple[list[np.ndarray], bool] | None:
+                          enc0_rad, models, segments) -> tuple[list[np.ndarray], bool] | None:
     """The startup on the recording's first still ``window_s`` solved for ``solver_arm``: its
     branches as geometric angles (NaN where untold; ambiguous joints each way, nearest the
     ready pose first, untold joints filled from later stretches where those tell them), and
     whether it settled the pose (no joint untold, one branch). None without a still start."""
-    from fusion.startup.solve import readings_from_recording, solve_still
-
-    try:
-        t0 = rec.t_start_s
-        readings, _ = readings_from_recording(solver_arm, rec, t0, t0 + window_s, window_s)
-        res = solve_still(solver_arm, readings, propose_unlock=False)
-    except Exception:  # noqa: BLE001 - no still start
+    res = _solve_still_at(solver_arm, rec, rec.t_start_s, window_s)
+    if res is None:
         return None
     enc = rec.get("enc")
-    geo = np.array([je.angle_rad if je.angle_rad is not None else np.nan for je in res.joints])
-    branches = [geo]
-    if res.candidates_rad is not None and len(res.candidates_rad) > 1:
-        amb = np.array([je.flag == "ambiguous" for je in res.joints])
-        d = np.abs(wrap_angle(res.candidates_rad - q_ready_rad))[:, amb].sum(1)
-        branches = []
-        for k in np.argsort(d, kind="stable"):
-            b = geo.copy()
-            b[amb] = res.candidates_rad[int(k)][amb]
-            branches.append(b)
+    geo, branches = _branches(res, q_ready_rad)
     settled = not np.isnan(geo).any() and len(branches) == 1
     if np.isnan(geo).any() and enc is not None and len(enc):
-        told = _later_still_angles(solver_arm, rec, geo, enc0_rad, window_s, models)
+        told = _later_still_angles(solver_arm, rec, geo, enc0_rad, window_s, models, segments)
         untold = np.isnan(geo) & np.isfinite(told)
         if untold.any():
             branches += [np.where(untold, told, b) for b in branches]
@@ -502,41 +490,68 @@ costs the diagnosis a short trial fit (about 0.2 s) where the first does not rea
 
 
 def _later_still_starts(nominal: ArmModel, rec, fallback_ref_rad: np.ndarray, window_s: float, models,
-                        max_segments: int = 8) -> list[np.ndarray]:
+                        segments) -> list[np.ndarray]:
     """Starts (``q_ref``, rad) from the later still stretches, each on its own: the startup's
     angles there (each of its branches where it has several) less the encoder angles there,
     joints it cannot tell from ``fallback_ref_rad``. Where the still start leaves the arm's
     middle joints to a twin or untold (a shoulder at gimbal lock: the elbow and the forearm
     read alike either way), a later pose that tells them all gives a start in the right
     basin, which filling the untold joints one by one (:func:`_later_still_angles`) cannot."""
-    from fusion.startup.solve import readings_from_recording, solve_still
-    from fusion.startup.static import find_static_segments
-
-    enc = rec.get("enc")
-    try:
-        segments = find_static_segments(rec)
-    except Exception:  # noqa: BLE001 - no stretch found: no more starts
-        return []
-    t_enc = np.asarray(enc.t_s, float)
     out = []
-    for seg in segments[1:max_segments + 1]:
-        if seg.t_end_s - seg.t_start_s < window_s:
-            continue
-        try:
-            readings, _ = readings_from_recording(nominal, rec, seg.t_start_s, seg.t_start_s + window_s,
-                                                  window_s)
-            res = solve_still(nominal, readings, propose_unlock=False)
-        except Exception:  # noqa: BLE001 - this stretch tells nothing: the next one
-            continue
-        i = int(np.searchsorted(t_enc, seg.t_start_s))
-        e = models["enc"].from_counts(enc.values[min(i, len(enc) - 1):][:1])[0]
-        geo = np.array([je.angle_rad if je.angle_rad is not None else np.nan for je in res.joints])
-        sets = [geo]
-        if res.candidates_rad is not None and len(res.candidates_rad) > 1:
-            amb = np.array([je.flag == "ambiguous" for je in res.joints])
-            sets = [np.where(amb, c, geo) for c in np.asarray(res.candidates_rad, float)]
+    for res, e in _later_still_solutions(nominal, rec, window_s, models, segments):
+        _, sets = _branches(res)
         out += [np.where(np.isfinite(g), g - e, fallback_ref_rad) for g in sets]
     return out
+
+
+def _still_segments(rec) -> list:
+    """The recording's still stretches (:func:`fusion.startup.static.find_static_segments`);
+    none where it finds none."""
+    from fusion.startup.static import find_static_segments
+
+    try:
+        return list(find_static_segments(rec))
+    except Exception:  # noqa: BLE001 - no stretch found
+        return []
+
+
+def _solve_still_at(arm: ArmModel, rec, t0_s: float, window_s: float):
+    """The startup's answer on ``rec``'s still ``window_s`` from ``t0_s``; None where it has none."""
+    from fusion.startup.solve import readings_from_recording, solve_still
+
+    try:
+        readings, _ = readings_from_recording(arm, rec, t0_s, t0_s + window_s, window_s)
+        return solve_still(arm, readings, propose_unlock=False)
+    except Exception:  # noqa: BLE001 - this stretch tells nothing
+        return None
+
+
+def _branches(res, q_near_rad: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+    """A startup answer's angles (NaN where untold) and its branches: the ambiguous joints
+    taken from each candidate (nearest ``q_near_rad`` first, where given)."""
+    geo = np.array([je.angle_rad if je.angle_rad is not None else np.nan for je in res.joints])
+    if res.candidates_rad is None or len(res.candidates_rad) <= 1:
+        return geo, [geo]
+    cands = np.asarray(res.candidates_rad, float)
+    amb = np.array([je.flag == "ambiguous" for je in res.joints])
+    order = (np.argsort(np.abs(wrap_angle(cands - q_near_rad))[:, amb].sum(1), kind="stable")
+             if q_near_rad is not None else range(len(cands)))
+    return geo, [np.where(amb, cands[int(k)], geo) for k in order]
+
+
+def _later_still_solutions(arm: ArmModel, rec, window_s: float, models, segments, max_segments: int = 8):
+    """For each later still stretch (after the first, up to ``max_segments``) long enough and
+    with an answer: the startup's answer there and the encoder angles at its start (rad)."""
+    enc = rec.get("enc")
+    t_enc = np.asarray(enc.t_s, float)
+    for seg in segments()[1:max_segments + 1]:
+        if seg.t_end_s - seg.t_start_s < window_s:
+            continue
+        res = _solve_still_at(arm, rec, seg.t_start_s, window_s)
+        if res is None:
+            continue
+        i = int(np.searchsorted(t_enc, seg.t_start_s))
+        yield res, models["enc"].from_counts(enc.values[min(i, len(enc) - 1):][:1])[0]
 
 
 def _nominal(arm: ArmModel) -> ArmModel:
@@ -546,35 +561,19 @@ def _nominal(arm: ArmModel) -> ArmModel:
 
 
 def _later_still_angles(arm: ArmModel, rec, geo: np.ndarray, enc0_rad: np.ndarray, window_s: float,
-                        models, max_segments: int = 8) -> np.ndarray:
+                        models, segments) -> np.ndarray:
     """Joints the still start cannot tell (a joint at gimbal lock, a wrist whose roll gravity
     does not see there): their angle at the start from the first later still stretch that
     tells them, carried back through the encoders (``angle there - encoder there + encoder at
-    the start``). Joints no stretch tells stay NaN."""
-    from fusion.startup.solve import readings_from_recording, solve_still
-    from fusion.startup.static import find_static_segments
-
+    the start``). Joints no stretch tells stay NaN. ``segments``: the recording's still
+    stretches, a call (found once per recording: :func:`start_poses`)."""
     geo = geo.copy()
-    enc = rec.get("enc")
-    try:
-        segments = find_static_segments(rec)
-    except Exception:  # noqa: BLE001 - no stretch found: the joints stay untold
-        return geo
-    for seg in segments[1:max_segments + 1]:
-        if not np.isnan(geo).any():
-            break
-        if seg.t_end_s - seg.t_start_s < window_s:
-            continue
-        try:
-            readings, _ = readings_from_recording(arm, rec, seg.t_start_s, seg.t_start_s + window_s, window_s)
-            res = solve_still(arm, readings, propose_unlock=False)
-        except Exception:  # noqa: BLE001 - this stretch tells nothing: the next one
-            continue
-        i = int(np.searchsorted(np.asarray(enc.t_s, float), seg.t_start_s))
-        e = models["enc"].from_counts(enc.values[min(i, len(enc) - 1):][:1])[0]
+    for res, e in _later_still_solutions(arm, rec, window_s, models, segments):
         for j, je in enumerate(res.joints):
             if np.isnan(geo[j]) and je.angle_rad is not None and je.flag != "ambiguous":
                 geo[j] = je.angle_rad - e[j] + enc0_rad[j]
+        if not np.isnan(geo).any():
+            break
     return geo
 
 
