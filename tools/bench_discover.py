@@ -67,10 +67,9 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from fusion.cli.plan_maneuver import load_maneuver  # noqa: E402
 from fusion.configfile import load_arm  # noqa: E402
 from fusion.identification.data import FIT_STREAMS_EXCLUDED, data_from_recording  # noqa: E402
-from fusion.identification.planner import maneuver_problems  # noqa: E402
+from fusion.identification.planner import safe_maneuver  # noqa: E402
 from fusion.workbench.diagnose import DiagnoseSettings, diagnose, fit_model  # noqa: E402
 from fusion.workbench.discover import Discovery, discover  # noqa: E402
 from fusion.workbench.scores import EXCLUDED_CANDIDATES, candidate_effects, score_tests  # noqa: E402
@@ -132,12 +131,9 @@ def sweep_named(arm, name: str, duration_s: float | None) -> Sweep:
     if name in (SCENARIO, "renk"):
         return Sweep(SCENARIO, DEFAULT_DURATION_S if duration_s is None else duration_s)
     path = SHIPPED_PLAN if name == PLANNED else Path(name)
-    plan = load_maneuver(path)
+    plan = safe_maneuver(arm, path)  # (its first poses are as safe)
     if duration_s is not None:
         plan = plan.until(duration_s)
-    problems = maneuver_problems(arm, plan)
-    if problems:
-        raise ValueError(f"{path.name}: not safe to play on {arm.name}: " + "; ".join(problems))
     label = str(SHIPPED_PLAN.relative_to(ROOT)) if path == SHIPPED_PLAN else path.name
     return Sweep(label, plan.duration_s, plan)
 

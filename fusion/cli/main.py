@@ -43,11 +43,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
                "fusion.service.commands:register"),
     "serve": ("The fusion node: startup calibration on the first still window (or resume from "
               "--state-file), then the tracker; publishes armfusion/<robot>/state/joints, "
-              "state/heading and status; answers armfusion/<robot>/calibrate.",
+              "state/heading and status; answers armfusion/<robot>/calibrate (and, with --maneuver, "
+              "serves a planned calibration maneuver on armfusion/<robot>/maneuver).",
               "fusion.service.commands:register"),
     "recalibrate": ("Ask the fusion node (armfusion serve) to re-run the startup calibration now, on the "
                     "latest still stretch; it refuses, saying why, while the arm moves. Exits 1 when "
                     "refused.", "fusion.service.commands:register"),
+    "maneuver": ("The planned calibration maneuver the fusion node serves (serve --maneuver), as the arm's "
+                 "controller sees it: show it, or say the controller starts it, is done with it (the "
+                 "node then fits the sensors on it) or aborts it. Exits 1 when the node refuses.",
+                 "fusion.service.commands:register"),
     "demo": ("The whole service on this machine, no hardware, loopback only: the simulated WMRA "
              "calibrates its sensors, then fake drivers → fusion node → recorder run as processes "
              "over Zenoh; a summary against the truth and an HTML report.",

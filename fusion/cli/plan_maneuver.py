@@ -32,7 +32,6 @@ from fusion.identification.planner import (
     predict_maneuver,
 )
 from models.arm_config import ConfigError
-from models.trajectories.planned import PlannedManeuver
 
 
 def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None = "all",
@@ -84,14 +83,6 @@ def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None =
                                            strict=True)],
         },
     }
-
-
-def load_maneuver(path: str | Path) -> PlannedManeuver:
-    """A maneuver file (``plan-maneuver --out``), its shape checked (``ValueError`` naming the key)."""
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"maneuver file not found: {str(p)[:80]}")
-    return PlannedManeuver.from_dict(read_yaml(p), p.name[:60])
 
 
 def register(app: typer.Typer) -> None:

@@ -174,15 +174,10 @@ def simulate(
             raise ValueError(f"--out {p}: {why}")
     arm = load_arm(config)
     if maneuver is not None:  # a planned maneuver (plan-maneuver --out): checked, then played
-        from fusion.cli.plan_maneuver import load_maneuver
-        from fusion.identification.planner import maneuver_problems
+        from fusion.identification.planner import safe_maneuver
         from models.trajectories.planned import played_scenario
 
-        plan = load_maneuver(maneuver)
-        problems = maneuver_problems(arm, plan)
-        if problems:
-            raise ValueError(f"--maneuver {Path(maneuver).name[:60]}: not safe to play on {arm.name}: "
-                             + "; ".join(problems))
+        plan = safe_maneuver(arm, maneuver)
         if duration_s is not None:
             raise ValueError("--duration: a maneuver file sets its own length; leave --duration out")
         duration_s = plan.duration_s

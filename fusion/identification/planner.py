@@ -37,9 +37,11 @@ for the arm's controller (or the simulator) to play.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from fusion.configfile import read_yaml
 from fusion.identification.calibrated_config import config_with_estimates
 from fusion.identification.correction import startup_correction
 from fusion.identification.data import FitData, data_from_recording, fit_streams
@@ -213,6 +215,26 @@ def maneuver_problems(arm: ArmModel, maneuver: PlannedManeuver, settings: PlanSe
             out.append(f"move {k} -> {k + 1}: a link moves at {v[k]:.2f} m/s, over "
                        f"{st.max_tool_speed_mps:g} m/s (a person beside the arm)")
     return out[:limit]
+
+
+def load_maneuver(path: str | Path) -> PlannedManeuver:
+    """A maneuver file (``plan-maneuver --out``), its shape checked (``ValueError`` naming the key)."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"maneuver file not found: {str(p)[:80]}")
+    return PlannedManeuver.from_dict(read_yaml(p), p.name[:60])
+
+
+def safe_maneuver(arm: ArmModel, path: str | Path) -> PlannedManeuver:
+    """:func:`load_maneuver`, refused (``ValueError``, its first three problems named) unless
+    it is safe to play on ``arm`` (:func:`maneuver_problems`)."""
+    plan = load_maneuver(path)
+    problems = maneuver_problems(arm, plan)
+    if problems:
+        raise ValueError(f"{Path(path).name[:60]}: not safe to play on {arm.name}: "
+                         + "; ".join(problems[:3])
+                         + (f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""))
+    return plan
 
 
 def _static_problem(model: Model, poses_rad: np.ndarray, settings: PlanSettings,

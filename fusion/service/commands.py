@@ -1,5 +1,5 @@
-"""The service's ``armfusion`` subcommands: ``replay``, ``record``, ``serve``, ``recalibrate``
-(and their shared options).
+"""The service's ``armfusion`` subcommands: ``replay``, ``record``, ``serve``, ``recalibrate``,
+``maneuver`` (and their shared options).
 
 Every node takes the same Zenoh options: ``--zenoh-config`` (default config/zenoh.json5:
 peer, listening on tcp/127.0.0.1:7447, no scouting), ``--listen`` and ``--connect``
@@ -21,6 +21,7 @@ import typer
 import zenoh
 
 from fusion.cli.common import (
+    choice_or_exit,
     console,
     emit_json,
     err_console,
@@ -188,6 +189,22 @@ def register(app: typer.Typer) -> None:
             "--assume-parked", help="Take the ready pose as evidence at the startup (the arm is "
                                     "known to power up parked there): it picks the branches the "
                                     "still data cannot tell apart, and the status says so.")] = False,
+        maneuver: Annotated[Path | None, typer.Option(
+            "--maneuver", help="A planned calibration maneuver (plan-maneuver --out) to publish on "
+                               "armfusion/<robot>/maneuver for the arm's controller; the node keeps "
+                               "the samples between its start and done requests and runs calibrate "
+                               "sensors on them (it never moves the arm, and does not apply the "
+                               "config it writes).")] = None,
+        maneuver_dir: Annotated[Path, typer.Option(
+            "--maneuver-dir", help="Where the maneuver's recording and calibrated config are "
+                                   "written.")] = Path("maneuver-runs"),
+        maneuver_effects: Annotated[str | None, typer.Option(
+            "--maneuver-effects", help="calibrate sensors --effects for the maneuver's fit (default: "
+                                       "the config's, else all).")] = None,
+        maneuver_reference: Annotated[list[str] | None, typer.Option(
+            "--maneuver-reference", help="calibrate sensors --reference for the maneuver's fit "
+                                         "(JOINT=DEG[:SIGMA_DEG][@SECONDS|@segK], repeatable): the "
+                                         "installer's one-time angles.")] = None,
         zenoh_config: ZenohConfigOpt = None,
         listen: ListenOpt = None,
         connect: ConnectOpt = None,
@@ -196,7 +213,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """The fusion node: startup calibration on the first still window (or resume from
         --state-file), then the tracker; publishes armfusion/<robot>/state/joints,
-        state/heading and status; answers armfusion/<robot>/calibrate."""
+        state/heading and status; answers armfusion/<robot>/calibrate (and, with --maneuver,
+        serves a planned calibration maneuver on armfusion/<robot>/maneuver)."""
         from fusion.service.serve import FusionNode
 
         if not publish_hz > 0:
@@ -204,12 +222,16 @@ def register(app: typer.Typer) -> None:
         if not save_every_s > 0 or not state_max_age_s > 0:
             fail(f"--save-every {save_every_s!r} and --state-max-age {state_max_age_s!r}: expected > 0")
         arm = load_arm_or_exit(config)
+        served = None
+        if maneuver is not None:
+            served = _served_maneuver(arm, robot, config, maneuver, maneuver_dir, maneuver_effects,
+                                      tuple(maneuver_reference or ()))
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
                 stop_on_signals(stop), stop_after(duration_s, stop):
             node = FusionNode(session, arm, robot, publish_hz=publish_hz, state_path=state_file,
                               save_period_s=save_every_s, max_state_age_s=state_max_age_s,
-                              assume_parked=assume_parked)
+                              assume_parked=assume_parked, maneuver=served)
             threading.Thread(target=_say_serving, args=(node, robot, arm.name), daemon=True).start()
             report = node.run(stop)
         if json_out:
@@ -235,8 +257,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Ask the fusion node (armfusion serve) to re-run the startup calibration now, on the
         latest still stretch; it refuses, saying why, while the arm moves. Exits 1 when refused."""
-        from fusion.service.calibrate_request import NoReplyError, request_calibration
         from fusion.service.payloads import PayloadError
+        from fusion.service.requests import NoReplyError, request_calibration
 
         if not timeout_s > 0:
             fail(f"--timeout {timeout_s!r}: expected > 0")
@@ -258,6 +280,62 @@ def register(app: typer.Typer) -> None:
             err_console.print(f"{robot}: calibration refused: {reply.message}", highlight=False)
         if not reply.ok:
             raise typer.Exit(1)
+
+
+    @app.command("maneuver")
+    def maneuver_command(
+        request: Annotated[str, typer.Argument(help="show (the plan and its run), start (about to play "
+                                                    "it: keep the samples), done (played: fit them) "
+                                                    "or abort.")] = "show",
+        robot: RobotOpt = DEFAULT_ROBOT,
+        timeout_s: Annotated[float, typer.Option(
+            "--timeout", help="Wait this long for the reply, in s.")] = 10.0,
+        zenoh_config: ZenohConfigOpt = None,
+        listen: ListenOpt = None,
+        connect: ConnectOpt = None,
+        mode: ModeOpt = None,
+        json_out: JsonOpt = False,
+    ) -> None:
+        """The planned calibration maneuver the fusion node serves (serve --maneuver), as the arm's
+        controller sees it: show it, or say the controller starts it, is done with it (the node
+        then fits the sensors on it) or aborts it. Exits 1 when the node refuses."""
+        from fusion.service.payloads import MANEUVER_ACTIONS, PayloadError
+        from fusion.service.requests import NoReplyError, request_maneuver
+
+        choice_or_exit(request, "REQUEST", ("show", *MANEUVER_ACTIONS))
+        if not timeout_s > 0:
+            fail(f"--timeout {timeout_s!r}: expected > 0")
+        with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session:
+            try:
+                reply = request_maneuver(session, robot, None if request == "show" else request, timeout_s)
+            except (NoReplyError, PayloadError) as e:
+                fail(str(e))
+        if json_out:
+            emit_json(reply.to_json())
+        else:
+            plan = reply.plan
+            console.print(f"{robot}: maneuver {reply.state}: {reply.message}", highlight=False)
+            if request == "show":
+                for k, ((_, t0, t1), q) in enumerate(zip(plan.schedule(), plan.poses_rad, strict=True)):
+                    console.print(f"  pose {k:>2} at {t0:6.2f}-{t1:6.2f} s: "
+                                  + " ".join(f"{math.degrees(v):8.3f}" for v in q), highlight=False)
+        if not reply.accepted:
+            raise typer.Exit(1)
+
+
+def _served_maneuver(arm, robot: str, config: str, maneuver: Path, out_dir: Path, effects: str | None,
+                     references: tuple[str, ...]):
+    """``serve --maneuver``'s plan, checked safe for ``arm``, ready to serve (or exit 2, saying why)."""
+    from fusion.configfile import resolve_config_path
+    from fusion.identification.planner import safe_maneuver
+    from fusion.service.maneuver import ManeuverSettings, ServedManeuver
+
+    try:
+        plan = safe_maneuver(arm, maneuver)
+        config_path = resolve_config_path(config)
+    except (FileNotFoundError, ValueError) as e:
+        fail(f"--maneuver: {e}")
+    return ServedManeuver(arm, robot, plan, config_path, ManeuverSettings(out_dir, effects, references))
 
 
 def _say_serving(node, robot: str, arm_name: str) -> None:

@@ -111,10 +111,9 @@ def calibrate(workdir: Path, seed: int, duration_s: float | None, realistic: boo
     on the spot (:data:`COMPASS_SCENARIO`) and identify the sensors' errors, the compass's
     iron from the turn: the calibrated config, the identification's JSON, the recording and
     what was played and referenced."""
-    from fusion.cli.plan_maneuver import load_maneuver
     from fusion.cli.simulate import simulate
     from fusion.configfile import load_arm
-    from fusion.identification.planner import maneuver_problems
+    from fusion.identification.planner import safe_maneuver
     from fusion.identification.truth import installer_reference
     from fusion.shipped import shipped_config
     from sensors.recording import read_recording
@@ -122,14 +121,11 @@ def calibrate(workdir: Path, seed: int, duration_s: float | None, realistic: boo
     source = shipped_config(MANEUVER) if maneuver is None else Path(maneuver)
     arm = load_arm("wmra")
     try:
-        plan = load_maneuver(source)
-    except (FileNotFoundError, ValueError) as e:
+        plan = safe_maneuver(arm, source)
+    except FileNotFoundError as e:
         raise DemoError(f"the calibration maneuver: {e}") from None
-    problems = maneuver_problems(arm, plan)
-    if problems:
-        raise DemoError(f"the calibration maneuver {source.name[:60]}: not safe to play on {arm.name}: "
-                        + "; ".join(problems[:3])
-                        + (f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""))
+    except ValueError as e:  # its message begins with the file's name
+        raise DemoError(f"the calibration maneuver {e}") from None
     if duration_s is not None:
         if duration_s > plan.duration_s + 1e-6:
             raise DemoError(f"--calibration-duration {duration_s:g}: the maneuver {source.name[:60]} "

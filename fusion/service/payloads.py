@@ -8,10 +8,13 @@ Key expressions (``<robot>`` and ``<sensor>`` are names of letters, digits, ``_`
     armfusion/<robot>/status            Status      a node's health and counters
     armfusion/<robot>/calibrate         Calibration the fusion node's reply to a calibration request
     armfusion/<robot>/health            Health      the fusion node's model-change alarms
+    armfusion/<robot>/maneuver[/<do>]   Maneuver    the planned calibration maneuver: the plan,
+                                                    its run (queries start, done, abort) and fit
 
 Every payload is one UTF-8 JSON object (no pickle, nothing that carries code) with
 ``"v"``, its type's version (:data:`VERSIONS`: 2 for ``heading``, 1 for the others), and
-``"type"``, one of ``raw``, ``joints``, ``heading``, ``status``, ``calibration``, ``health``; the fields
+``"type"``, one of ``raw``, ``joints``, ``heading``, ``status``, ``calibration``, ``health``,
+``maneuver``; the fields
 of each are those of the dataclasses below and are written out in docs/service.md. The
 fields of ``joints`` and ``heading`` are an estimate's one wire form, written by
 :mod:`fusion.tracking.estimate` (``joints_record``, ``heading_record``). JSON keeps a
@@ -41,9 +44,11 @@ import numpy as np
 from fusion.tracking.alarm import EFFECTS as ALARM_EFFECTS
 from fusion.tracking.alarm import UNITS as ALARM_UNITS
 from fusion.tracking.estimate import HEADING_STATUS, NORTH, Estimate, heading_record, joints_record
+from models.trajectories.planned import PlannedManeuver
 from sensors.samples import RAW_KINDS, Stream, clipped_repr
 
-VERSIONS = {"raw": 2, "joints": 1, "heading": 3, "status": 1, "calibration": 1, "health": 1}
+VERSIONS = {"raw": 2, "joints": 1, "heading": 3, "status": 1, "calibration": 1, "health": 1,
+            "maneuver": 1}
 """Each payload type's schema version (the one written). ``heading`` 2: ``sigma_rad`` became
 ``heading_sigma_rad``, and the base's roll and pitch, their sigmas, the gyro bias and
 ``magnetic_recovery`` came in (the estimate's one wire form); 3: ``heading_status``,
@@ -109,6 +114,22 @@ def health_key(robot: str) -> str:
     return f"{ROOT}/{check_name(robot, 'robot')}/health"
 
 
+MANEUVER_ACTIONS = ("start", "done", "abort")
+"""What a query on ``armfusion/<robot>/maneuver/<do>`` asks of the fusion node: begin keeping the
+samples (the arm's controller is about to play the plan), end and fit them, or drop them."""
+
+
+def maneuver_key(robot: str, action: str | None = None) -> str:
+    """The planned maneuver's key (its state, published and answered), or a request's
+    (``action`` one of :data:`MANEUVER_ACTIONS`)."""
+    base = f"{ROOT}/{check_name(robot, 'robot')}/maneuver"
+    if action is None:
+        return base
+    if action not in MANEUVER_ACTIONS:
+        raise ValueError(f"maneuver request {action!r}: expected one of {', '.join(MANEUVER_ACTIONS)}")
+    return f"{base}/{action}"
+
+
 def parse_key(key: str) -> tuple[str, str, str | None]:
     """``(robot, type, sensor)`` of a key expression; raises :class:`PayloadError`."""
     parts = str(key).split("/")
@@ -124,6 +145,8 @@ def parse_key(key: str) -> tuple[str, str, str | None]:
             return robot, "calibration", None
         if rest == ["health"]:
             return robot, "health", None
+        if rest[0] == "maneuver" and (len(rest) == 1 or (len(rest) == 2 and rest[1] in MANEUVER_ACTIONS)):
+            return robot, "maneuver", None
     raise PayloadError("bad_key", f"key expression {key!r} is not an armfusion key")
 
 
@@ -305,7 +328,47 @@ class Health:
                            for a in self.alarms]}
 
 
-Payload = RawBatch | JointState | Heading | Status | Calibration | Health
+MANEUVER_STATES = ("ready", "recording", "fitting", "calibrated", "failed")
+"""A served maneuver's run: ``ready`` (the plan waits for the controller), ``recording`` (the
+node keeps every accepted sample from the ``start`` request on), ``fitting`` (``done``: the
+sensor fit runs on them), ``calibrated`` (a config written) or ``failed`` (the message says
+why; ``start`` begins again)."""
+
+
+@dataclass(frozen=True)
+class Maneuver:
+    """The planned self-calibration maneuver as the fusion node serves it, on
+    ``armfusion/<robot>/maneuver`` (published when its state changes, and the reply to a query
+    there or on ``maneuver/start``, ``/done``, ``/abort``).
+
+    ``plan``: what the arm's controller plays (the maneuver file's content: joint names, and
+    per pose its angles in degrees, the move's and the dwell's seconds); ``accepted``: whether
+    the request this replies to was done (a refusal says why in ``message``); ``t_start_s``,
+    ``t_end_s``: the samples kept (sample time; ``None`` before); ``poses_reached``: how many
+    of the plan's poses the encoders saw held (``None`` before the run ended); ``recording``,
+    ``config``: the kept samples' file and the calibrated config's, on the node's machine
+    (empty until written)."""
+
+    robot: str
+    state: str
+    accepted: bool
+    message: str
+    plan: PlannedManeuver
+    t_start_s: float | None = None
+    t_end_s: float | None = None
+    poses_reached: int | None = None
+    recording: str = ""
+    config: str = ""
+
+    def to_json(self) -> dict[str, Any]:
+        return {"v": VERSIONS["maneuver"], "type": "maneuver", "robot": self.robot, "state": self.state,
+                "accepted": self.accepted, "message": self.message, "plan": self.plan.as_dict(),
+                "duration_s": round(self.plan.duration_s, 4), "t_start_s": self.t_start_s,
+                "t_end_s": self.t_end_s, "poses_reached": self.poses_reached,
+                "recording": self.recording, "config": self.config}
+
+
+Payload = RawBatch | JointState | Heading | Status | Calibration | Health | Maneuver
 
 
 def encode(payload: Payload) -> bytes:
@@ -498,8 +561,27 @@ def _health(d: dict, robot: str) -> Health:
     return Health(robot, _finite(d, "t_s"), tuple(out))
 
 
+def _maneuver(d: dict, robot: str) -> Maneuver:
+    state = _field(d, "state", str)
+    if state not in MANEUVER_STATES:
+        raise PayloadError("malformed", f"field 'state': {clipped_repr(state)}, expected one of "
+                           f"{', '.join(MANEUVER_STATES)}")
+    try:
+        plan = PlannedManeuver.from_dict(_field(d, "plan", dict), "field 'plan'")
+    except ValueError as e:
+        raise PayloadError("malformed", str(e)[:300]) from None
+    reached = d.get("poses_reached")
+    if reached is not None and (isinstance(reached, bool) or not isinstance(reached, int)
+                                or not 0 <= reached <= len(plan.poses_rad)):
+        raise PayloadError("malformed", f"field 'poses_reached': {clipped_repr(reached)}, expected null or "
+                           f"a count of at most the plan's {len(plan.poses_rad)} poses")
+    return Maneuver(robot, state, _field(d, "accepted", bool), _field(d, "message", str), plan,
+                    _optional_finite(d, "t_start_s"), _optional_finite(d, "t_end_s"), reached,
+                    _field(d, "recording", str), _field(d, "config", str))
+
+
 _DECODERS = {"raw": _raw, "joints": _joints, "heading": _heading, "status": _status,
-             "calibration": _calibration, "health": _health}
+             "calibration": _calibration, "health": _health, "maneuver": _maneuver}
 
 
 def decode(key: str, data: bytes) -> Payload:

@@ -27,6 +27,11 @@ on the latest still stretch of the last ``recent_s`` of samples (the arm still n
 restarts the tracker from it; it refuses, saying why, while the arm moves or before there
 is a still stretch (:meth:`FusionNode.calibrate`).
 
+With a planned maneuver (``maneuver``, :mod:`fusion.service.maneuver`), the node publishes
+the plan on ``armfusion/<robot>/maneuver`` for the arm's controller, keeps the samples between
+its ``maneuver/start`` and ``maneuver/done`` requests and runs the sensor fit on them in a
+child process; it never moves the arm, and it does not apply the config the fit writes.
+
 With a ``state_path``, the node saves its state there (:mod:`fusion.service.state_file`)
 every ``save_period_s`` of wall time and when it stops, and at start resumes from it
 without a new startup calibration when the encoders kept counting; otherwise it says why
@@ -49,6 +54,7 @@ import zenoh
 from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.admission import Admission, AdmissionSettings
+from fusion.service.maneuver import ServedManeuver
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
 from fusion.service.reorder import Reorder, merge_batches
 from fusion.service.restart import RecentSamples, ambiguity_note, calibration_reply, solve_ambiguity_again
@@ -120,7 +126,8 @@ class FusionNode:
                  max_state_age_s: float = 60.0, max_joint_rate_rad_s: float = 1.5,
                  recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5,
                  queue_size: int = DEFAULT_QUEUE_SIZE, admission: AdmissionSettings | None = None,
-                 stall_after_s: float = 1.0, assume_parked: bool = False):
+                 stall_after_s: float = 1.0, assume_parked: bool = False,
+                 maneuver: ServedManeuver | None = None):
         self.session = session
         # the ready pose as evidence for the startup's branches only when the caller says the
         # arm is parked there (serve --assume-parked); by default nothing but the data chooses
@@ -141,6 +148,10 @@ class FusionNode:
         self.queue_size = queue_size
         self.stall_after_s = stall_after_s
         self._admission = Admission(arm, admission)
+        self._maneuver = maneuver
+        self._maneuver_version = -1  # the maneuver's state last published
+        self._maneuver_queries: queue.Queue = queue.Queue()
+        self._last_estimate = None
         self._stall = StallWatch(stall_after_s)
         self.ready = threading.Event()
         self._max_lag_s = max_lag_s
@@ -211,6 +222,7 @@ class FusionNode:
         token = self.session.liveliness().declare_token(pl.status_key(self.robot))
         sub = self.session.declare_subscriber(pl.raw_keys(self.robot), receiver)
         queryable = self.session.declare_queryable(pl.calibrate_key(self.robot), self._queries.put)
+        served = self._declare_maneuver()
         self._pubs = (pub_joints, pub_heading)
         self._state = "calibrating"
         self.ready.set()
@@ -222,6 +234,7 @@ class FusionNode:
                     self._on_message_guarded(msg)
                 while (query := self._next_query()) is not None:
                     self._answer(query)
+                self._serve_maneuver(served)
                 now = time.monotonic()
                 if self._stall.check(self._tracker is not None, now):
                     self._status_due = True
@@ -246,6 +259,7 @@ class FusionNode:
             queryable.undeclare()
             while (query := self._next_query()) is not None:
                 self._reply(query, pl.Calibration(self.robot, False, "the fusion node is stopping"))
+            self._close_maneuver(served)
             sub.undeclare()
             token.undeclare()
             for p in (pub_joints, pub_heading, pub_status, pub_health):
@@ -288,9 +302,13 @@ class FusionNode:
             self._buffer.pop(s.name, None)
             self._recent.forget(s.name)
             self._reorder.forget(s.name)
+            if self._maneuver is not None:
+                self._maneuver.clock_reset(s.name)
         self._counts["samples"] += len(s)
         self._arrived[s.name] = now
         self._recent.keep(s)
+        if self._maneuver is not None:
+            self._maneuver.keep(s)
         if self._tracker is None:
             self._buffer.setdefault(s.name, []).append(s)
             if self._saved is not None:
@@ -429,6 +447,81 @@ class FusionNode:
         self._begin(tracker, Recording({}), message)
         return calibration_reply(self.robot, self.arm.joint_names, start)
 
+    # -- the planned maneuver ---------------------------------------------------------------------
+    def _declare_maneuver(self):
+        """The maneuver's publisher and queryable (``maneuver`` and ``maneuver/<request>``), or
+        ``None`` without a maneuver."""
+        if self._maneuver is None:
+            return None
+        key = pl.maneuver_key(self.robot)
+        return (self.session.declare_publisher(key),
+                self.session.declare_queryable(f"{key}/**", self._maneuver_queries.put))
+
+    def _serve_maneuver(self, served) -> None:
+        """Answer the maneuver's requests, look at its fit, publish its state when it changed."""
+        if served is None:
+            return
+        m = self._maneuver
+        while True:
+            try:
+                query = self._maneuver_queries.get_nowait()
+            except queue.Empty:
+                break
+            self._answer_maneuver(query)
+        m.poll()
+        if m.version != self._maneuver_version:
+            self._maneuver_version = m.version
+            self._status_due = True
+            served[0].put(pl.encode(m.payload()))
+
+    def _answer_maneuver(self, query) -> None:
+        key = str(query.key_expr)
+        base = pl.maneuver_key(self.robot)
+        try:
+            if key == base:
+                reply = self._maneuver.payload()
+            elif key in {pl.maneuver_key(self.robot, a) for a in pl.MANEUVER_ACTIONS}:
+                reply = self._maneuver.request(key.rsplit("/", 1)[1], self._joints_note())
+            else:
+                query.reply_err(f"{key[:100]}: ask {base} or {base}/<{'|'.join(pl.MANEUVER_ACTIONS)}>")
+                return
+            query.reply(key, pl.encode(reply))
+        except Exception:  # noqa: BLE001 - a request must never stop the node
+            log.exception("serve: a maneuver request on %s failed", key[:100])
+            self._counts["errors"] += 1
+        finally:
+            query.drop()
+
+    def _joints_note(self) -> str:
+        """What the controller must know of the arm's pose before it plays the plan."""
+        e = self._last_estimate
+        if e is None:
+            return ("the node has no joint estimate yet: the controller must take the arm to the plan's "
+                    "first pose by its own means")
+        unknown = [f"{j} ({f})" for j, f in zip(e.joint_names, e.flags, strict=True) if f != "ok"]
+        if unknown:
+            return (f"not known to the tracker now: {', '.join(unknown)}: the controller must not rely on "
+                    "their estimates to reach the plan's first pose")
+        d = np.degrees(np.abs(np.asarray(e.q_rad) - self._maneuver.plan.poses_rad[0]))
+        j = int(np.argmax(d))
+        return f"the plan's first pose is {d[j]:.1f}° away ({e.joint_names[j]}) from the estimate now"
+
+    def _close_maneuver(self, served) -> None:
+        if served is None:
+            return
+        pub, queryable = served
+        queryable.undeclare()
+        while True:
+            try:
+                query = self._maneuver_queries.get_nowait()
+            except queue.Empty:
+                break
+            query.reply_err("the fusion node is stopping")
+            query.drop()
+        self._maneuver.close()
+        pub.put(pl.encode(self._maneuver.payload()))
+        pub.undeclare()
+
     # -- tracking, publishing, saving ------------------------------------------------------------
     def _fuse(self, instants) -> None:
         """Feed released instants to the tracker; publish at most every publish period."""
@@ -442,6 +535,7 @@ class FusionNode:
             if e is None:
                 continue
             self._stall.estimated_s = time.monotonic()
+            self._last_estimate = e
             if e.sensors != self._sensors:
                 self._sensors = e.sensors
                 self._status_due = True
@@ -513,6 +607,8 @@ class FusionNode:
         sensors = dict(self._sensors)
         sensors.update(dict.fromkeys(self._silent & set(sensors), "stale"))
         message = self._message
+        if self._maneuver is not None and self._maneuver.state in ("recording", "fitting", "failed"):
+            message = f"maneuver {self._maneuver.state}: {self._maneuver.message}; {message}"
         if self._tracker is not None and self._tracker.alarm.active:
             message = "model changed: " + "; ".join(a.line() for a in self._tracker.alarm.alarms) + \
                 f"; {message}"

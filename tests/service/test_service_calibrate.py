@@ -14,8 +14,8 @@ from service_helpers import Collected, cut, wait_for
 
 from fusion.configfile import load_arm
 from fusion.service import payloads as pl
-from fusion.service.calibrate_request import NoReplyError, request_calibration
 from fusion.service.replay import replay
+from fusion.service.requests import NoReplyError, request_calibration
 from fusion.service.zenoh_config import open_session
 from fusion.tracking.tracker import TrackerSettings
 

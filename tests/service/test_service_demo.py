@@ -19,9 +19,8 @@ import yaml
 from typer.testing import CliRunner
 
 from fusion.cli.main import app
-from fusion.cli.plan_maneuver import load_maneuver
 from fusion.configfile import load_arm
-from fusion.identification.planner import maneuver_problems
+from fusion.identification.planner import load_maneuver, maneuver_problems
 from fusion.service.demo import MANEUVER, REFERENCE_JOINTS
 from fusion.shipped import shipped_config
 

@@ -1,0 +1,305 @@
+"""The planned self-calibration maneuver, served: ``armfusion serve --maneuver M.yaml``.
+
+armfusion never moves the arm. The fusion node publishes the plan (``armfusion plan-maneuver``'s
+file, checked against the arm's limits and the unlock move's safety bounds when the node
+starts) on ``armfusion/<robot>/maneuver`` for the arm's controller, and answers three
+requests there:
+
+- ``maneuver/start``: the controller is about to play it. From then on the node keeps every
+  raw sample it accepts (the tracker goes on as before), at most the plan's duration and a
+  half plus ``overrun_s`` of sample time: a run that goes on longer is dropped, saying so.
+- ``maneuver/done``: the controller has played it. The node writes the kept samples as an
+  armfusion MCAP recording, counts the plan's poses the encoders saw held (the encoders are
+  relative, so a pose counts when the joints' moves between the still stretches are the
+  plan's, within ``pose_tolerance_deg``), and, when at least half were, runs
+  ``armfusion calibrate sensors`` on the recording in a child process at a lower priority
+  (the tracker keeps its core), with the installer's one-time references if the node was
+  given them. The fit's result comes as the next state on ``armfusion/<robot>/maneuver``:
+  ``calibrated`` with the written config, or ``failed`` with the fit's own message.
+- ``maneuver/abort``: drop what was kept (or stop the fit).
+
+The calibrated config is written, not applied: the node tracks on with the config it
+started with until it is restarted with the new one (``serve --config``), so a person
+reviews a calibration before the arm relies on it (``armfusion diagnose`` on the same
+recording shows what the fit left). Every state change is published; the status's message
+carries the state too.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fusion.service import payloads as pl
+from fusion.service.processes import armfusion_argv
+from fusion.service.reorder import merge_batches
+from models.arm import ArmModel
+from models.trajectories.planned import PlannedManeuver
+from sensors.recording_mcap import write_mcap
+from sensors.samples import Stream
+
+log = logging.getLogger("armfusion.service")
+
+ENCODER_STREAM = "enc"
+MAX_KEPT_SAMPLES = 2_000_000
+"""At most this many samples are kept for one run, whatever the sensors' rates (a 60 s plan
+at 200 Hz of nine sensors is about 110,000)."""
+
+
+@dataclass(frozen=True)
+class ManeuverSettings:
+    """How the node serves a planned maneuver.
+
+    ``out_dir``: where the kept recording and the calibrated config are written;
+    ``effects`` and ``references``: ``calibrate sensors``' ``--effects`` and ``--reference``
+    (``None``: the config's effects, else all); ``overrun_s``: how much longer than a plan and
+    a half a run may go on; ``pose_tolerance_deg``: how far a held pose may be from the
+    plan's; ``still_s``: how long the encoders must hold for a pose to count;
+    ``fit_timeout_s``: a fit still running after this long (wall time) is stopped."""
+
+    out_dir: Path
+    effects: str | None = None
+    references: tuple[str, ...] = ()
+    overrun_s: float = 30.0
+    pose_tolerance_deg: float = 1.0
+    still_s: float = 0.5
+    fit_timeout_s: float = 1800.0
+
+    def __post_init__(self):
+        for name in ("overrun_s", "pose_tolerance_deg", "still_s", "fit_timeout_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
+                raise ValueError(f"ManeuverSettings.{name}: expected a positive number, got {v!r}")
+
+
+def still_poses_rad(arm: ArmModel, enc: Stream, still_s: float) -> np.ndarray:
+    """The joint angles (relative to the stream's first sample, rad) of each stretch of at
+    least ``still_s`` seconds over which no encoder moved by more than one count: ``(S, n)``."""
+    counts = np.asarray(enc.values, dtype=float)
+    t = np.asarray(enc.t_s, dtype=float)
+    out, i, n = [], 0, len(t)
+    while i < n:
+        moved = np.flatnonzero(np.any(np.abs(counts[i:] - counts[i]) > 1.0, axis=1))
+        j = i + int(moved[0]) if len(moved) else n
+        if t[j - 1] - t[i] >= still_s:
+            out.append(np.mean(counts[i:j], axis=0))
+        i = j
+    if not out:
+        return np.zeros((0, len(arm.joint_names)))
+    return (np.array(out) - counts[0]) / arm.counts_per_rad
+
+
+def poses_reached(plan: PlannedManeuver, held_rad: np.ndarray, tolerance_rad: float) -> int:
+    """How many of ``plan``'s poses are among the ``held_rad`` stretches (angles relative to an
+    unknown start, as incremental encoders give them): the most poses matched by one offset,
+    each offset tried being a held stretch less a planned pose."""
+    best = 0
+    P = plan.poses_rad
+    for h in held_rad:
+        for p in P:
+            offset = h - p  # the angle the encoders count from, if stretch h is pose p
+            d = np.abs((held_rad - offset)[:, None, :] - P[None, :, :]).max(axis=2)  # (S, K)
+            best = max(best, int(np.sum(np.any(d <= tolerance_rad, axis=0))))
+    return best
+
+
+class ServedManeuver:
+    """One planned maneuver served by one fusion node: the plan, the run's kept samples and the
+    fit's child process. Called from the node's loop only (not thread-safe)."""
+
+    def __init__(self, arm: ArmModel, robot: str, plan: PlannedManeuver, config_path: Path,
+                 settings: ManeuverSettings):
+        self.arm, self.robot, self.plan = arm, robot, plan
+        self.config_path = Path(config_path)
+        self.settings = settings
+        self.state = "ready"
+        self.message = (f"the plan ({len(plan.poses_rad)} poses, {plan.duration_s:.1f} s) waits for the "
+                        f"arm's controller: query {pl.maneuver_key(robot, 'start')} before playing it")
+        self._kept: dict[str, list[Stream]] = {}
+        self._n_kept = 0
+        self._t0: float | None = None
+        self._t1: float | None = None
+        self._reached: int | None = None
+        self._recording = ""
+        self._config = ""
+        self._fit: subprocess.Popen | None = None
+        self._fit_started = 0.0
+        self._fit_out: Path | None = None
+        self._cfg_path: Path | None = None
+        self._fit_err: Path | None = None
+        self.version = 0  # bumped on every state change: the node publishes then
+
+    @property
+    def max_run_s(self) -> float:
+        return 1.5 * self.plan.duration_s + self.settings.overrun_s
+
+    def payload(self, accepted: bool = True, message: str | None = None) -> pl.Maneuver:
+        return pl.Maneuver(self.robot, self.state, accepted, self.message if message is None else message,
+                           self.plan, self._t0, self._t1, self._reached, self._recording, self._config)
+
+    def _set(self, state: str, message: str) -> None:
+        self.state, self.message = state, message
+        self.version += 1
+        log.info("serve: maneuver %s: %s", state, message)
+
+    # -- the requests ----------------------------------------------------------------------------
+    def request(self, action: str | None, joints_note: str = "") -> pl.Maneuver:
+        """The reply to a query on the maneuver's key (``None``: what it is now) or on one of
+        its requests (``start``, ``done``, ``abort``)."""
+        if action is None:
+            return self.payload()
+        if action == "start":
+            if self.state in ("recording", "fitting"):
+                return self.payload(False, f"refused: the maneuver is {self.state} already; abort it first")
+            self._clear()
+            self._set("recording", "keeping every sample until the controller queries "
+                                   f"{pl.maneuver_key(self.robot, 'done')} (at most {self.max_run_s:.0f} s)"
+                      + (f"; {joints_note}" if joints_note else ""))
+            return self.payload()
+        if action == "done":
+            if self.state != "recording":
+                return self.payload(False, "refused: nothing is being recorded (the maneuver is "
+                                           f"{self.state})")
+            self._finish_run()
+            return self.payload()
+        if action == "abort":
+            if self.state not in ("recording", "fitting"):
+                return self.payload(False, f"refused: nothing to abort (the maneuver is {self.state})")
+            was = self.state
+            self._stop_fit()
+            self._clear()
+            self._set("ready", f"aborted while {was}: nothing kept; the plan waits again")
+            return self.payload()
+        return self.payload(False, f"refused: unknown request {action[:20]!r}")
+
+    def _clear(self) -> None:
+        self._kept, self._n_kept = {}, 0
+        self._t0 = self._t1 = None
+        self._reached = None
+        self._recording = self._config = ""
+
+    # -- the run ---------------------------------------------------------------------------------
+    def keep(self, stream: Stream) -> None:
+        """An accepted raw batch: kept while recording, within the run's bounds."""
+        if self.state != "recording" or not len(stream):
+            return
+        t_first, t_last = float(stream.t_s[0]), float(stream.t_s[-1])
+        self._t0 = t_first if self._t0 is None else min(self._t0, t_first)
+        self._t1 = t_last if self._t1 is None else max(self._t1, t_last)
+        self._n_kept += len(stream)
+        if self._t1 - self._t0 > self.max_run_s or self._n_kept > MAX_KEPT_SAMPLES:
+            span = self._t1 - self._t0
+            self._clear()
+            self._set("failed", f"the run went on for {span:.0f} s of sample time, more than the "
+                                f"{self.max_run_s:.0f} s a {self.plan.duration_s:.0f} s plan may take "
+                                f"(or more than {MAX_KEPT_SAMPLES:,} samples): nothing kept; start again")
+            return
+        self._kept.setdefault(stream.name, []).append(stream)
+
+    def clock_reset(self, sensor: str) -> None:
+        """A sensor's clock restarted (the admission said so): a run's kept samples would mix
+        two clocks, so the run is dropped."""
+        if self.state == "recording":
+            self._clear()
+            self._set("failed", f"{sensor}'s clock restarted during the run: nothing kept; start again")
+
+    def _finish_run(self) -> None:
+        rec = merge_batches(self._kept)
+        self._kept = {}
+        enc = rec.streams.get(ENCODER_STREAM)
+        if enc is None or len(enc) < 2:
+            self._set("failed", "no encoder samples were kept between start and done: nothing to fit")
+            return
+        held = still_poses_rad(self.arm, enc, self.settings.still_s)
+        self._reached = reached = poses_reached(self.plan, held, np.radians(self.settings.pose_tolerance_deg))
+        k = len(self.plan.poses_rad)
+        if 2 * reached < k:
+            self._set("failed", f"the encoders saw {reached} of the plan's {k} poses held (within "
+                                f"{self.settings.pose_tolerance_deg:g}°, {len(held)} still stretches): "
+                                "not this plan played; nothing fitted")
+            return
+        out = self.settings.out_dir
+        out.mkdir(parents=True, exist_ok=True)
+        stamp = time.strftime("%Y%m%dT%H%M%S")
+        rec_path = out / f"maneuver-{self.robot}-{stamp}.mcap"
+        cfg_path = out / f"calibrated-{self.robot}-{stamp}.yaml"
+        write_mcap(rec, rec_path, arm_config=self.config_path.name)
+        self._recording = str(rec_path)
+        argv = ["calibrate", "sensors", str(rec_path), "--config", str(self.config_path),
+                "--write", str(cfg_path), "--json"]
+        if self.settings.effects:
+            argv += ["--effects", self.settings.effects]
+        for r in self.settings.references:
+            argv += ["--reference", r]
+        self._fit_out, self._fit_err = out / f"{rec_path.stem}.fit.json", out / f"{rec_path.stem}.fit.log"
+        with open(self._fit_out, "wb") as so, open(self._fit_err, "wb") as se:
+            self._fit = subprocess.Popen(armfusion_argv(*argv), stdout=so, stderr=se,
+                                         stdin=subprocess.DEVNULL, preexec_fn=_lower_priority)
+        self._fit_started = time.monotonic()
+        self._cfg_path = cfg_path
+        self._set("fitting", f"{reached} of {k} poses held; {rec.duration_s:.1f} s kept in {rec_path}; "
+                             f"armfusion calibrate sensors runs on it (pid {self._fit.pid})")
+
+    def poll(self) -> None:
+        """The fit's end, when it has ended (or its time is up)."""
+        if self.state != "fitting" or self._fit is None:
+            return
+        rc = self._fit.poll()
+        if rc is None:
+            if time.monotonic() - self._fit_started > self.settings.fit_timeout_s:
+                self._stop_fit()
+                self._set("failed", f"the sensor fit ran past {self.settings.fit_timeout_s:.0f} s and was "
+                                    f"stopped; the recording is kept: {self._recording}")
+            return
+        self._fit = None
+        if rc == 0 and self._cfg_path is not None and self._cfg_path.is_file():
+            self._config = str(self._cfg_path)
+            self._set("calibrated", f"{_fit_summary(self._fit_out)}; wrote {self._cfg_path}: restart serve "
+                                    f"with --config {self._cfg_path} to track with it")
+        else:
+            self._set("failed", f"the sensor fit failed (exit {rc}): {_last_line(self._fit_err)}; "
+                                f"the recording is kept: {self._recording}")
+
+    def _stop_fit(self) -> None:
+        if self._fit is not None and self._fit.poll() is None:
+            self._fit.kill()
+            self._fit.wait(10.0)
+        self._fit = None
+
+    def close(self) -> None:
+        """The node stops: a running fit is stopped (its recording stays)."""
+        if self.state == "fitting":
+            self._stop_fit()
+            self._set("failed", f"the fusion node stopped during the fit; the recording is kept: "
+                                f"{self._recording}")
+
+
+def _lower_priority() -> None:  # in the child, before exec: the tracker keeps its core
+    os.nice(10)
+
+
+def _fit_summary(path: Path | None) -> str:
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        ratio = max(float(np.max(np.asarray(f["rms"]) / np.asarray(f["noise"]))) for f in doc["fit"])
+        est = sum(not p["held"] for p in doc["parameters"])
+        return (f"{est} parameters estimated, {len(doc['parameters']) - est} held at their priors, "
+                f"worst stream's RMS {ratio:.2f}x its noise")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        return f"fitted (its JSON unread: {type(e).__name__})"
+
+
+def _last_line(path: Path | None) -> str:
+    try:
+        lines = [ln.strip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines()
+                 if ln.strip()]
+        return lines[-1][:300] if lines else "no message"
+    except OSError:
+        return "no message"
