@@ -257,16 +257,10 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Ask the fusion node (armfusion serve) to re-run the startup calibration now, on the
         latest still stretch; it refuses, saying why, while the arm moves. Exits 1 when refused."""
-        from fusion.service.payloads import PayloadError
-        from fusion.service.requests import NoReplyError, request_calibration
+        from fusion.service.requests import request_calibration
 
-        if not timeout_s > 0:
-            fail(f"--timeout {timeout_s!r}: expected > 0")
-        with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session:
-            try:
-                reply = request_calibration(session, robot, timeout_s)
-            except (NoReplyError, PayloadError) as e:
-                fail(str(e))
+        reply = _node_reply(zenoh_settings(zenoh_config, listen, connect, mode), timeout_s,
+                            lambda session: request_calibration(session, robot, timeout_s))
         if json_out:
             emit_json(reply.to_json())
         elif reply.ok:
@@ -299,17 +293,13 @@ def register(app: typer.Typer) -> None:
         """The planned calibration maneuver the fusion node serves (serve --maneuver), as the arm's
         controller sees it: show it, or say the controller starts it, is done with it (the node
         then fits the sensors on it) or aborts it. Exits 1 when the node refuses."""
-        from fusion.service.payloads import MANEUVER_ACTIONS, PayloadError
-        from fusion.service.requests import NoReplyError, request_maneuver
+        from fusion.service.payloads import MANEUVER_ACTIONS
+        from fusion.service.requests import request_maneuver
 
         choice_or_exit(request, "REQUEST", ("show", *MANEUVER_ACTIONS))
-        if not timeout_s > 0:
-            fail(f"--timeout {timeout_s!r}: expected > 0")
-        with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session:
-            try:
-                reply = request_maneuver(session, robot, None if request == "show" else request, timeout_s)
-            except (NoReplyError, PayloadError) as e:
-                fail(str(e))
+        action = None if request == "show" else request
+        reply = _node_reply(zenoh_settings(zenoh_config, listen, connect, mode), timeout_s,
+                            lambda session: request_maneuver(session, robot, action, timeout_s))
         if json_out:
             emit_json(reply.to_json())
         else:
@@ -321,6 +311,20 @@ def register(app: typer.Typer) -> None:
                                   + " ".join(f"{math.degrees(v):8.3f}" for v in q), highlight=False)
         if not reply.accepted:
             raise typer.Exit(1)
+
+
+def _node_reply(settings: ZenohSettings, timeout_s: float, ask):
+    """``ask(session)``'s reply from the fusion node, or exit 2 saying why there is none."""
+    from fusion.service.payloads import PayloadError
+    from fusion.service.requests import NoReplyError
+
+    if not timeout_s > 0:
+        fail(f"--timeout {timeout_s!r}: expected > 0")
+    with session_or_exit(settings) as session:
+        try:
+            return ask(session)
+        except (NoReplyError, PayloadError) as e:
+            fail(str(e))
 
 
 def _served_maneuver(arm, robot: str, config: str, maneuver: Path, out_dir: Path, effects: str | None,
