@@ -16,8 +16,15 @@ process); ``--seeds`` reruns single injections; ``--clean-wall-s`` starts no cle
 recording after that much wall time and reports the hours actually run. Rates carry their
 Wilson 95 % interval, the false-alarm rate its exact Poisson 95 % interval.
 
+``--cost`` measures instead what the alarm costs the tracker: the same ``daily-use``
+recording tracked alternately with the alarm and with a stand-in that listens for nothing
+(:class:`SilentAlarm`; every other part of the tracker the same), ``--rounds`` times each,
+in one process; CPU per step of both, their ratio, and the live step (``update_instant``)
+the same way. Its table goes to its own section (``bench_alarm_cost``).
+
     python tools/bench_alarm.py [--quick] [--out FILE] [--trials 40] [--clean-hours 100]
         [--jobs 2] [--clean-wall-s S] [--kinds mount_rotation,bias_jump] [--seeds 1002,1017]
+    python tools/bench_alarm.py --cost [--rounds 5] [--cost-duration 300] [--out FILE]
 """
 
 from __future__ import annotations
@@ -127,6 +134,88 @@ def clean(arm, i: int, duration_s: float, seed: int) -> dict:
             "got": [(al.sensor, "/".join(al.candidates), al.raised_s) for al in alarms_of(arm, rec)]}
 
 
+class SilentAlarm:
+    """The baseline of ``--cost``: a tracker's alarm that listens for nothing and never
+    raises (the interface the tracker calls, doing no work)."""
+
+    active = False
+    version = 0
+    alarms: tuple = ()
+    raised: tuple = ()
+
+    def listen(self, *args, **kwargs) -> None:
+        pass
+
+    def compass(self, *args) -> None:
+        pass
+
+    def reacquired(self, *args) -> None:
+        pass
+
+    def widen(self, *args) -> None:
+        pass
+
+
+def cost(arm, seed: int, duration_s: float, rounds: int) -> str:
+    """The alarm's share of the tracker's CPU, side by side (see the module's docstring)."""
+    rec, _ = simulate(arm, "daily-use", duration_s, seed=seed)
+    runs: dict[str, list[float]] = {"alarm": [], "silent": []}
+    live: dict[str, list[float]] = {"alarm": [], "silent": []}
+    raised = 0
+    for r in range(-1, rounds):  # round -1 warms up (compiled kernels, caches) and is not kept
+        for name in (("alarm", "silent") if r % 2 else ("silent", "alarm")):  # ABBA: no order bias
+            tr, start = start_from_recording(arm, rec)
+            if name == "silent":
+                tr.alarm = SilentAlarm()
+            c0 = time.process_time()
+            tr.run(rec)
+            if r >= 0:
+                runs[name].append(time.process_time() - c0)
+            raised = len(tr.alarm.raised) if name == "alarm" else raised
+            # the live path: the same instants one at a time, as serve feeds them
+            tr2, _ = start_from_recording(arm, rec)
+            if name == "silent":
+                tr2.alarm = SilentAlarm()
+            takes = set(tr2.sensor_names) | {"imu_temp"}  # what serve hands it
+            instants = _instants(rec, tr2.t_s, 1500)
+            c0 = time.process_time()
+            for t, samples in instants:
+                tr2.update_instant(t, {k: v for k, v in samples.items() if k in takes})
+            if r >= 0:
+                live[name].append((time.process_time() - c0) / len(instants) * 1e3)
+    best = {k: min(v) for k, v in runs.items()}
+    med = {k: float(np.median(v)) for k, v in runs.items()}
+    lbest = {k: min(v) for k, v in live.items()}
+    return "\n".join([
+        "## What the model-change alarm costs (`tools/bench_alarm.py --cost`)", "",
+        f"One {duration_s:.0f} s `daily-use` recording of the calibrated WMRA (seed {seed}; the alarm "
+        f"raised {raised} alarms on it), tracked {rounds} times with the alarm and {rounds} times with a "
+        "tracker whose alarm listens for nothing (`SilentAlarm`), alternating (ABBA, after one "
+        "untimed run of each), in one process; "
+        f"{machine_line()}. CPU time; ratios are what count on a shared machine.", "",
+        "| | with the alarm | without | ratio |",
+        "| --- | ---: | ---: | ---: |",
+        f"| whole recording, CPU s (best / median of {rounds}) | {best['alarm']:.2f} / {med['alarm']:.2f} | "
+        f"{best['silent']:.2f} / {med['silent']:.2f} | {best['alarm'] / best['silent']:.3f} / "
+        f"{med['alarm'] / med['silent']:.3f} |",
+        f"| live step (`update_instant`, 1,500 instants after the start), ms (best of {rounds}) | "
+        f"{lbest['alarm']:.3f} | {lbest['silent']:.3f} | {lbest['alarm'] / lbest['silent']:.3f} |",
+    ])
+
+
+def _instants(rec: Recording, t_from: float, n: int):
+    """The first ``n`` instants of ``rec`` after ``t_from``: ``(t, {stream: values})``, every
+    stream's samples at the same time together (the recording's streams share a clock)."""
+    from fusion.service.reorder import Reorder
+
+    reorder = Reorder(0.0)
+    for s in rec.raw().values():
+        part = s.between(t_from + 1e-9, t_from + 2.0 * n / (s.rate_hz or 100.0))
+        if len(part):
+            reorder.push(part)
+    return reorder.release(flush=True)[:n]
+
+
 _ARM: list = []
 
 
@@ -174,7 +263,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="recordings at once, each in its own process")
     ap.add_argument("--quick", action="store_true", help="3 injections of each kind, 0.5 clean hour")
     ap.add_argument("--out", type=Path, help="write the table (Markdown) here")
+    ap.add_argument("--cost", action="store_true", help="measure the alarm's CPU cost instead (see above)")
+    ap.add_argument("--rounds", type=int, default=5, help="--cost: runs of each")
+    ap.add_argument("--cost-duration", type=float, default=300.0, help="--cost: the recording, s")
     a = ap.parse_args(argv)
+    if a.cost:
+        if a.rounds < 1 or a.cost_duration <= 0:
+            ap.error("--rounds >= 1 and --cost-duration > 0")
+        table = cost(calibrated_wmra(), a.seed, a.cost_duration, a.rounds)
+        print(table)
+        publish("bench_alarm_cost", table, a.out, a.quick)
+        return 0
     if a.quick:
         a.trials, a.clean_hours = 3, 0.5
     kinds = a.kinds.split(",")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tools import bench_alarm
@@ -43,3 +44,25 @@ def test_a_small_run_writes_its_section_to_the_file_it_is_given(tmp_path: Path, 
     assert "recordings of 15 s): " in text and "exact Poisson 95 % interval" in text
     assert (BENCH_DOC.read_text() if BENCH_DOC.exists() else None) == before
     assert f"wrote {out}" in capsys.readouterr().out
+
+
+def test_the_cost_baseline_is_the_same_tracker_without_the_alarm_s_work():
+    """``--cost`` compares the tracker with a stand-in alarm that does nothing: on a recording
+    with a 2° mount turn the real alarm names it and the stand-in raises nothing, while every
+    joint estimate is the same until the real alarm down-weights the sensor (the one thing an
+    alarm does to the estimate)."""
+    from tools.bench_track import calibrated_wmra
+
+    arm = calibrated_wmra()
+    rec, _ = bench_alarm.simulate(arm, "daily-use", 90.0, seed=1003)
+    rec = bench_alarm.mount_turned(rec, "acc4", 60.0, np.radians([2.0, 0.0, 0.0]))
+    real, _ = bench_alarm.start_from_recording(arm, rec)
+    silent, _ = bench_alarm.start_from_recording(arm, rec)
+    silent.alarm = bench_alarm.SilentAlarm()
+    a, b = real.run(rec), silent.run(rec)
+    assert [al.sensor for al in real.alarm.raised] == ["acc4"]
+    assert silent.alarm.raised == ()
+    t_raised = real.alarm.raised[0].raised_s
+    before = a.t_s <= t_raised
+    assert before.sum() > 1000
+    assert np.array_equal(a.q_rad[before], b.q_rad[before])
