@@ -30,7 +30,12 @@ A part's numbers, with the units they are in:
   √(bandwidth), the bandwidth ``bandwidth_hz`` or else half the rate), or ``noise_rms`` in
   the datasheet unit at ``noise_rate_hz`` (scaled by √(rate / noise_rate_hz); without a
   rate, the same at every rate); one number or one per axis. ``noise_unit``: the
-  delivered units instead of the datasheet unit (an ADXL345's noise is given in LSB).
+  delivered units instead of the datasheet unit (an ADXL345's noise is given in LSB);
+- ``delay_s``: the part's delay: a value delivered at ``t`` is the quantity at ``t -
+  delay_s`` (a digital low-pass filter's group delay, from its datasheet table; a part that
+  decimates by averaging delivers its output period's mean, half a period late). 0 (the
+  default): the value at its own instant. The simulator draws it; the tracker turns the
+  attitude by the gyroscope's rate over each interval accordingly (docs/tracking.md).
 """
 
 from __future__ import annotations
@@ -81,6 +86,7 @@ class PartDescription:
     noise_unit: str | None = None
     bandwidth_hz: float | None = None
     rate_hz: float | None = None
+    delay_s: float = 0.0
 
     @property
     def quantity(self) -> str:
@@ -240,7 +246,9 @@ def analog_triax(settings: Mapping[str, Any]) -> SensorDescription:
 
 
 PART_KEYS = ("units", "scale", "scale_unit", "zero", "range", "limits", "resolution", "noise_density",
-             "noise_rms", "noise_rate_hz", "noise_unit", "bandwidth_hz", "rate_hz")
+             "noise_rms", "noise_rate_hz", "noise_unit", "bandwidth_hz", "rate_hz", "delay_s")
+MAX_DELAY_S = 1.0
+"""A part's ``delay_s`` is below this (a filter's delay is milliseconds; a second is a typo)."""
 
 
 def describe(device: str, kind: str | None, outputs: Mapping[str, Mapping[str, Any]] | None,
@@ -312,6 +320,9 @@ def _part(name: str, base: PartDescription | None, given: Mapping[str, Any]) -> 
     for key in ("scale", "range", "bandwidth_hz", "rate_hz", "noise_rate_hz"):
         if key in kw and not (isinstance(kw[key], int | float) and math.isfinite(kw[key]) and kw[key] > 0):
             raise ValueError(f"{where}.{key}: a positive number")
+    if "delay_s" in kw and not (isinstance(kw["delay_s"], int | float) and not isinstance(kw["delay_s"], bool)
+                                and 0.0 <= kw["delay_s"] < MAX_DELAY_S):
+        raise ValueError(f"{where}.delay_s: seconds, >= 0 and below {MAX_DELAY_S:g} (a filter's delay)")
     if "resolution" in kw and not (isinstance(kw["resolution"], int | float) and kw["resolution"] >= 0):
         raise ValueError(f"{where}.resolution: a number >= 0 (0: not rounded)")
     if "noise_unit" in kw:

@@ -84,7 +84,8 @@ class StreamModel:
     (register counts, whole numbers) or a physical unit, when the sensor delivers values
     already converted (then ``gain`` converts ``unit`` to it, and "counts" in the names
     here mean the recorded values); ``step`` is their resolution (1 for counts; 0.01 for
-    values stored rounded to 0.01; 0 for none).
+    values stored rounded to 0.01; 0 for none); ``delay_s`` the part's delay (a value
+    recorded at ``t`` is the quantity at ``t - delay_s``: its description's).
     """
 
     stream: str
@@ -99,6 +100,7 @@ class StreamModel:
     counts_max: float | None
     value_unit: str = "counts"
     step: float = 1.0
+    delay_s: float = 0.0
 
     @property
     def size(self) -> int:
@@ -161,7 +163,7 @@ def part_stream(stream: str, kind: str, sensor: SensorMount, channels: tuple[str
     if p.counts and limits is not None and float(lo).is_integer() and float(hi).is_integer():
         lo, hi = int(lo), int(hi)  # a register's limits are whole counts
     return StreamModel(stream, kind, sensor.name, channels, CANONICAL_UNIT[part], np.full(k, p.gain()),
-                       np.full(k, p.zero), p.noise(rate_hz), lo, hi, p.units, p.resolution)
+                       np.full(k, p.zero), p.noise(rate_hz), lo, hi, p.units, p.resolution, p.delay_s)
 
 
 def stream_models(arm: ArmModel, rate_hz: float | dict[str, float] = 100.0) -> dict[str, StreamModel]:

@@ -140,8 +140,9 @@ def simulate(
     values: dict[str, list[np.ndarray]] = {s: [] for s in smodels}
     times: dict[str, np.ndarray] = {}
     noise_rng = {s: _rng(seed, 2, i) for i, s in enumerate(smodels)} if noise else {}
-    # time offsets: predict once on the grid, then read each device at t - offset by cubic
-    # interpolation (4 points; at 100 Hz its error is ~1e-7 g, far below any noise)
+    # time offsets (a device's, plus a part's own delay: its description's delay_s): predict
+    # once on the grid, then read each stream at t - offset - delay by cubic interpolation
+    # (4 points; at 100 Hz its error is ~1e-7 g, far below any noise)
     offsets = model.time_offsets_s(x)
     x_now = np.array(x, dtype=float)
     for e in model.effects:
@@ -161,7 +162,8 @@ def simulate(
         n = int(np.floor(sc.duration_s * r + 1e-9))
         t_all = np.arange(n) / r
         streams = [s for d in devices for s in device_streams(arm, d)]
-        shift = {s: offsets.get(d, 0.0) * r for d in devices for s in device_streams(arm, d)}
+        shift = {s: (offsets.get(d, 0.0) + smodels[s].delay_s) * r for d in devices
+                 for s in device_streams(arm, d)}
         pad = int(np.ceil(max((abs(v) for v in shift.values()), default=0.0))) + 2
         for s in streams:
             times[s] = t_all

@@ -42,7 +42,7 @@ from fusion.tracking.innovations import InnovationLog
 from fusion.tracking.live import fuse_instant
 from fusion.tracking.measurement import Measurements
 from fusion.tracking.observability import Observability
-from fusion.tracking.process import ProcessModel, StillDetector, attitude_sigma_rad
+from fusion.tracking.process import ProcessModel, StillDetector, attitude_sigma_rad, gyro_newer_weight
 from fusion.tracking.settings import (
     C_REJECTED,
     C_USED,
@@ -160,6 +160,8 @@ class Tracker:
         self._link_read_horizon_s = np.maximum(st.observability_period_s,
                                                st.observability_read_periods / m.accel_rate_hz[:nl])
         self._limits = {s: (models[s].counts_min, models[s].counts_max) for s in models}
+        self._gyro_newer_weight = gyro_newer_weight(models[GYRO].delay_s, rates[GYRO]) \
+            if GYRO in models else 0.5
 
     # -- lifecycle -----------------------------------------------------------------------
     def initialise(self, startup: StartupResult, t_s: float, encoder_counts: np.ndarray | None = None,
@@ -340,7 +342,8 @@ class Tracker:
         anchor = None
         if dt > 0:
             w0 = self._omega if self._omega is not None else gyro
-            w = None if w0 is None else (w0 if gyro is None else 0.5 * (w0 + gyro))
+            k = self._gyro_newer_weight  # the interval's rate from its two samples (gyro_newer_weight)
+            w = None if w0 is None else (w0 if gyro is None else (1.0 - k) * w0 + k * gyro)
             Q = self.process.Q(dt, w is not None, self.still.still)
             ukf.predict(self.process.fx_tangent, Q, dt=dt, w=w)
             # the attitude is now the propagated central point's plus a tangent vector

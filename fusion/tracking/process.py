@@ -19,6 +19,18 @@ from fusion.tracking.tracker_kernels import (
 from models.rotations import DEG
 
 
+def gyro_newer_weight(delay_s: float, rate_hz: float) -> float:
+    """The newer sample's weight ``k`` in the rate the attitude turns by over the interval
+    between two gyro samples, ``(1 - k) ω_prev + k ω_new``: the rate at the interval's
+    midpoint, from samples that each stand for the rate ``delay_s`` before their stamps (the
+    gyroscope's ``delay_s``, its description's), read linearly between them: ``k = 1/2 +
+    delay_s · rate_hz``. The midpoint rule (``k`` = 1/2) for a sample that is the rate at its
+    own instant; the newer sample alone (``k`` = 1) for one that is its period's mean, half a
+    period late. Capped at 1: a longer delay is made up for to half a period, and the rest
+    stays a lag (the samples to read it from have not come yet)."""
+    return min(1.0, 0.5 + max(0.0, float(delay_s)) * float(rate_hz))
+
+
 def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray, heading_floor_var=0.0) -> np.ndarray:
     """Roll, pitch and heading sigmas ``(..., 3)`` from the attitude covariance ``C_att
     (..., 3, 3)`` of the filter's tangent space (a world-axis rotation vector ``δ``) at

@@ -177,6 +177,22 @@ def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
     return time.perf_counter() - t0
 
 
+def delay_notes(arm: ArmModel) -> list[str]:
+    """What the tracker does with the delays the sensors' descriptions declare (``delay_s``):
+    the gyroscope's is made up for (:func:`fusion.tracking.process.gyro_newer_weight`), any
+    other stream's is not, and the notes say both."""
+    delays = {k: m.delay_s for k, m in stream_models(arm).items() if m.delay_s > 0}
+    out = []
+    if GYRO in delays:
+        gyro_ms = delays.pop(GYRO) * 1e3
+        out.append(f"the gyroscope's delay ({gyro_ms:.3g} ms) made up for (up to half a sample period): "
+                   "the attitude turns by the rate at each interval's midpoint")
+    if delays:
+        out.append("delays NOT made up for by the tracker (read at their stamps): "
+                   + ", ".join(f"{k} {d * 1e3:.3g} ms" for k, d in delays.items()))
+    return out
+
+
 def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSettings | None = None,
                          prior_q_rad: np.ndarray | None = None, window_s: float = 1.0,
                          startup_settings=None, propose_unlock: bool = True,
@@ -237,6 +253,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         notes.append("the config's effects applied: " + (", ".join(applied) or "none"))
         if not_applied:
             notes.append("the config's effects NOT applied by the tracker: " + "; ".join(not_applied))
+    notes.extend(delay_notes(arm))
     startup = solve_still(arm, readings, startup_settings, prior=prior,
                           propose_unlock=propose_unlock)
     notes.extend(startup.notes)
