@@ -106,12 +106,14 @@ def trial(arm, kind: str, seed: int, duration_s: float, a) -> dict:
     raised = alarms_of(arm, rec)
     hit = [al for al in raised if al.sensor == sensor and t0 <= al.raised_s <= t0 + a.within_s]
     early = [al for al in raised if al.raised_s < t0]
+    elsewhere = [al for al in raised if al.sensor != sensor and al.raised_s >= t0]
     h = hit[0] if hit else None
     named_by_end = h is not None and h.decided and h.effect == kind
     return {"kind": kind, "seed": seed, "sensor": sensor, "t0": t0, "detected": h is not None,
             "named": named_by_end and h.named_s <= t0 + a.within_s, "named_by_end": named_by_end,
             "delay_s": h.raised_s - t0 if h else None, "size": h.size if named_by_end else None,
             "sigma": h.sigma if named_by_end else None, "false_before": len(early),
+            "elsewhere": len(elsewhere),
             "visible": visible(rec, sensor, t0, kind, d), "cpu_s": 0.0,
             "got": [(al.sensor, "/".join(al.candidates), al.raised_s, al.named_s) for al in raised]}
 
@@ -342,7 +344,8 @@ def main(argv: list[str] | None = None) -> int:
         sz = [r["size"] for r in rk if r["size"] is not None]
         sg = [r["sigma"] for r in rk if r["sigma"] is not None]
         med = [float(np.median(v)) if v else float("nan") for v in (delays, sz, sg)]
-        rows.append((kind, n, det, nam, end, *med, sum(r["false_before"] for r in rk)))
+        rows.append((kind, n, det, nam, end, *med, sum(r["elsewhere"] for r in rk),
+                     sum(r["false_before"] for r in rk)))
     cl = [r for r in res if "i" in r]
     hours = sum(r["duration_s"] for r in cl) / 3600.0
     false = sum(len(r["got"]) for r in cl)
@@ -362,11 +365,12 @@ def main(argv: list[str] | None = None) -> int:
              "their Wilson 95 % interval.", "",
              f"| change | injected | size | detected within {a.within_s:.0f} s | "
              f"named within {a.within_s:.0f} s | "
-             "named by the recording's end | median delay s | median size found (sigma) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for kind, n, det, nam, end, dl, sz, sg, _ in rows:
+             "named by the recording's end | median delay s | median size found (sigma) | "
+             "alarms on another sensor after the change |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for kind, n, det, nam, end, dl, sz, sg, other, _ in rows:
         lines.append(f"| {kind} | {n} | {units[kind]} | {_pct(det, n)} | {_pct(nam, n)} | {_pct(end, n)} | "
-                     f"{dl:.1f} | {sz:.4g} ({sg:.3g}) |")
+                     f"{dl:.1f} | {sz:.4g} ({sg:.3g}) | {other} |")
     lines.append("")
     if hours > 0:
         lo, hi = poisson_interval(false, hours / 20.0)
