@@ -51,7 +51,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                     "refused.", "fusion.service.commands:register"),
     "maneuver": ("The planned calibration maneuver the fusion node serves (serve --maneuver), as the arm's "
                  "controller sees it: show it, or say the controller starts it, is done with it (the "
-                 "node then fits the sensors on it) or aborts it. Exits 1 when the node refuses.",
+                 "node then fits the sensors on it) or aborts it; apply the fit's config. Exits 1 when the "
+                 "node refuses.",
                  "fusion.service.commands:register"),
     "demo": ("The whole service on this machine, no hardware, loopback only: the simulated WMRA "
              "calibrates its sensors, then fake drivers → fusion node → recorder run as processes "

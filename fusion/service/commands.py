@@ -279,8 +279,9 @@ def register(app: typer.Typer) -> None:
     @app.command("maneuver")
     def maneuver_command(
         request: Annotated[str, typer.Argument(help="show (the plan and its run), start (about to play "
-                                                    "it: keep the samples), done (played: fit them) "
-                                                    "or abort.")] = "show",
+                                                    "it: keep the samples), done (played: fit them), "
+                                                    "abort, or apply (track with the config the fit "
+                                                    "wrote, once reviewed).")] = "show",
         robot: RobotOpt = DEFAULT_ROBOT,
         timeout_s: Annotated[float, typer.Option(
             "--timeout", help="Wait this long for the reply, in s.")] = 10.0,
@@ -292,7 +293,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """The planned calibration maneuver the fusion node serves (serve --maneuver), as the arm's
         controller sees it: show it, or say the controller starts it, is done with it (the node
-        then fits the sensors on it) or aborts it. Exits 1 when the node refuses."""
+        then fits the sensors on it) or aborts it; apply the fit's config. Exits 1 when the node
+        refuses."""
         from fusion.service.payloads import MANEUVER_ACTIONS
         from fusion.service.requests import request_maneuver
 

@@ -17,12 +17,14 @@ requests there:
   given them. The fit's result comes as the next state on ``armfusion/<robot>/maneuver``:
   ``calibrated`` with the written config, or ``failed`` with the fit's own message.
 - ``maneuver/abort``: drop what was kept (or stop the fit).
+- ``maneuver/apply``: track with the calibrated config from now on. The written config is
+  not applied by itself: a person reviews a calibration before the arm relies on it
+  (``armfusion diagnose`` on the same recording shows what the fit left), then asks. The
+  node checks that the config is this arm's (:func:`same_arm_problem`) and runs a startup
+  calibration with it on the still arm (refused while the arm moves), and the tracker
+  goes on from it (``applied``). Restarting the node with ``serve --config`` does the same.
 
-The calibrated config is written, not applied: the node tracks on with the config it
-started with until it is restarted with the new one (``serve --config``), so a person
-reviews a calibration before the arm relies on it (``armfusion diagnose`` on the same
-recording shows what the fit left). Every state change is published; the status's message
-carries the state too.
+Every state change is published; the status's message carries the state too.
 """
 
 from __future__ import annotations
@@ -179,6 +181,16 @@ class ServedManeuver:
             return self.payload()
         return self.payload(False, f"refused: unknown request {action[:20]!r}")
 
+    @property
+    def config_written(self) -> str:
+        """The calibrated config's path, once the fit wrote it (else empty)."""
+        return self._config
+
+    def applied(self, message: str) -> pl.Maneuver:
+        """The node tracks with the written config now (``maneuver/apply`` done)."""
+        self._set("applied", message)
+        return self.payload()
+
     def _clear(self) -> None:
         self._kept, self._n_kept = {}, 0
         self._t0 = self._t1 = None
@@ -279,6 +291,23 @@ class ServedManeuver:
             self._stop_fit()
             self._set("failed", f"the fusion node stopped during the fit; the recording is kept: "
                                 f"{self._recording}")
+
+
+def same_arm_problem(arm: ArmModel, other: ArmModel) -> str:
+    """Why ``other`` is not a config of ``arm`` (another arm, other joints or encoders, other
+    sensors where they were), or empty: what a sensor calibration may change is the effects,
+    not which arm and sensors there are."""
+    if other.name != arm.name:
+        return f"it describes {other.name[:40]!r}, not {arm.name!r}"
+    if tuple(other.joint_names) != tuple(arm.joint_names):
+        return f"its joints {list(other.joint_names)[:10]} are not {list(arm.joint_names)}"
+    if not np.array_equal(other.counts_per_rad, arm.counts_per_rad):
+        return "its encoders count otherwise"
+    mine = [(s.name, s.description.device, s.link) for s in arm.sensors]
+    theirs = [(s.name, s.description.device, s.link) for s in other.sensors]
+    if mine != theirs:
+        return f"its sensors {theirs[:8]} are not {mine[:8]}"
+    return ""
 
 
 def _lower_priority() -> None:  # in the child, before exec: the tracker keeps its core

@@ -114,9 +114,10 @@ def health_key(robot: str) -> str:
     return f"{ROOT}/{check_name(robot, 'robot')}/health"
 
 
-MANEUVER_ACTIONS = ("start", "done", "abort")
+MANEUVER_ACTIONS = ("start", "done", "abort", "apply")
 """What a query on ``armfusion/<robot>/maneuver/<do>`` asks of the fusion node: begin keeping the
-samples (the arm's controller is about to play the plan), end and fit them, or drop them."""
+samples (the arm's controller is about to play the plan), end and fit them, drop them, or
+track with the config the fit wrote (a person has reviewed it)."""
 
 
 def maneuver_key(robot: str, action: str | None = None) -> str:
@@ -328,18 +329,18 @@ class Health:
                            for a in self.alarms]}
 
 
-MANEUVER_STATES = ("ready", "recording", "fitting", "calibrated", "failed")
+MANEUVER_STATES = ("ready", "recording", "fitting", "calibrated", "applied", "failed")
 """A served maneuver's run: ``ready`` (the plan waits for the controller), ``recording`` (the
 node keeps every accepted sample from the ``start`` request on), ``fitting`` (``done``: the
-sensor fit runs on them), ``calibrated`` (a config written) or ``failed`` (the message says
-why; ``start`` begins again)."""
+sensor fit runs on them), ``calibrated`` (a config written), ``applied`` (the node tracks
+with it, after ``apply``) or ``failed`` (the message says why; ``start`` begins again)."""
 
 
 @dataclass(frozen=True)
 class Maneuver:
     """The planned self-calibration maneuver as the fusion node serves it, on
     ``armfusion/<robot>/maneuver`` (published when its state changes, and the reply to a query
-    there or on ``maneuver/start``, ``/done``, ``/abort``).
+    there or on ``maneuver/start``, ``/done``, ``/abort``, ``/apply``).
 
     ``plan``: what the arm's controller plays (the maneuver file's content: joint names, and
     per pose its angles in degrees, the move's and the dwell's seconds); ``accepted``: whether

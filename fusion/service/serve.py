@@ -51,10 +51,11 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from fusion.configfile import load_arm
 from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.admission import Admission, AdmissionSettings
-from fusion.service.maneuver import ServedManeuver
+from fusion.service.maneuver import ServedManeuver, same_arm_problem
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
 from fusion.service.reorder import Reorder, merge_batches
 from fusion.service.restart import RecentSamples, ambiguity_note, calibration_reply, solve_ambiguity_again
@@ -69,6 +70,7 @@ from fusion.tracking.tracker import (
     warm_up,
 )
 from models.arm import ArmModel
+from models.arm_config import ConfigError
 from models.sensor_models import stream_models
 from sensors.samples import Recording, Stream
 
@@ -418,9 +420,12 @@ class FusionNode:
         finally:
             query.drop()
 
-    def calibrate(self) -> pl.Calibration:
+    def calibrate(self, arm: ArmModel | None = None, why: str = "calibrated on request") -> pl.Calibration:
         """Re-run the startup calibration on the latest still stretch and restart the tracker
-        from it; or refuse, saying why (the arm moves, no still stretch yet, no samples)."""
+        from it; or refuse, saying why (the arm moves, no still stretch yet, no samples).
+        ``arm``: a new config of the same arm (a sensor calibration's) to track with from then
+        on; ``why``: how the status's message begins."""
+        arm = self.arm if arm is None else arm
 
         def refuse(why: str) -> pl.Calibration:
             return pl.Calibration(self.robot, False, why)
@@ -430,8 +435,8 @@ class FusionNode:
             return refuse(still)
         _, window = still
         try:
-            tracker, start = start_from_recording(self.arm, window, self.settings,
-                                                  prior=self._parked_prior())
+            tracker, start = start_from_recording(arm, window, self.settings,
+                                                  prior=self._parked_prior(arm))
         except NoStillWindowError as e:
             return refuse(f"the arm moves: {e}")
         except (ValueError, KeyError) as e:
@@ -442,10 +447,11 @@ class FusionNode:
         else:
             tracker.set_rates(self._rates_hz)
         self._start = start
-        message = (f"calibrated on request on the still stretch {start.t_start_s:.2f}-{start.t_end_s:.2f} s"
+        self.arm = arm
+        message = (f"{why} on the still stretch {start.t_start_s:.2f}-{start.t_end_s:.2f} s"
                    f"; tracking from it: {start.startup.summary or ''}").rstrip(": ")
         self._begin(tracker, Recording({}), message)
-        return calibration_reply(self.robot, self.arm.joint_names, start)
+        return calibration_reply(self.robot, arm.joint_names, start)
 
     # -- the planned maneuver ---------------------------------------------------------------------
     def _declare_maneuver(self):
@@ -480,6 +486,8 @@ class FusionNode:
         try:
             if key == base:
                 reply = self._maneuver.payload()
+            elif key == pl.maneuver_key(self.robot, "apply"):
+                reply = self._apply_calibration()
             elif key in {pl.maneuver_key(self.robot, a) for a in pl.MANEUVER_ACTIONS}:
                 reply = self._maneuver.request(key.rsplit("/", 1)[1], self._joints_note())
             else:
@@ -491,6 +499,25 @@ class FusionNode:
             self._counts["errors"] += 1
         finally:
             query.drop()
+
+    def _apply_calibration(self) -> pl.Maneuver:
+        """``maneuver/apply``: track from now on with the config the maneuver's fit wrote, from a
+        startup calibration on the still arm (:meth:`calibrate`); or refuse, saying why."""
+        m = self._maneuver
+        if m.state != "calibrated":
+            return m.payload(False, f"refused: no calibration to apply (the maneuver is {m.state})")
+        try:
+            arm = load_arm(m.config_written)
+        except (ConfigError, OSError, ValueError) as e:
+            return m.payload(False, f"refused: {m.config_written} does not load: {str(e)[:200]}")
+        differs = same_arm_problem(self.arm, arm)
+        if differs:
+            return m.payload(False, f"refused: {m.config_written} is not this arm's config: {differs}")
+        what = f"the calibration of {Path(m.config_written).name} applied"
+        result = self.calibrate(arm, what)
+        if not result.ok:
+            return m.payload(False, f"refused: {result.message}")
+        return m.applied(f"{what}; the startup with it: {result.message}")
 
     def _joints_note(self) -> str:
         """What the controller must know of the arm's pose before it plays the plan."""
@@ -548,8 +575,8 @@ class FusionNode:
         if self._start is not None and tr.ambiguity():
             self._try_resolve(tr.t_s)
 
-    def _parked_prior(self):
-        return StartupPrior.assume_parked(self.arm) if self.assume_parked else None
+    def _parked_prior(self, arm: ArmModel | None = None):
+        return StartupPrior.assume_parked(arm or self.arm) if self.assume_parked else None
 
     def _try_resolve(self, t_now: float) -> None:
         """Joints the startup left ambiguous: on each new still stretch after it, solve again

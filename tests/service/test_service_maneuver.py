@@ -66,6 +66,8 @@ def test_the_controller_gets_the_plan_and_the_node_fits_the_sensors_on_what_it_p
         # out of turn: refused, saying why, and nothing changes
         early = request_maneuver(s, "chair1", "done")
         assert not early.accepted and "nothing is being recorded" in early.message
+        nothing = request_maneuver(s, "chair1", "apply")
+        assert not nothing.accepted and "no calibration to apply" in nothing.message
         started = request_maneuver(s, "chair1", "start")
         assert started.accepted and started.state == "recording", started.message
         assert "the node has no joint estimate yet" in started.message
@@ -89,6 +91,14 @@ def test_the_controller_gets_the_plan_and_the_node_fits_the_sensors_on_what_it_p
                              timeout=60)
         assert out.returncode == 0, out.stderr
         assert json.loads(out.stdout)["config"] == final.config
+        # reviewed, the calibration is applied: the node tracks with it from the still arm
+        assert not node.arm.effects
+        tracker_before = node.tracker
+        applied = request_maneuver(s, "chair1", "apply")
+        assert applied.accepted and applied.state == "applied", applied.message
+        assert "the calibration of calibrated-chair1-" in applied.message
+        assert node.arm.source == final.config and node.arm.effects
+        assert node.tracker is not tracker_before and node.tracker.arm is node.arm
         sub.undeclare()
     assert result["report"].errors == 0 and result["report"].estimates > 0  # it tracked throughout
 
