@@ -135,6 +135,7 @@ class FusionNode:
         # arm is parked there (serve --assume-parked); by default nothing but the data chooses
         self.assume_parked = assume_parked
         self.arm = arm
+        self._config_sha = state_file.config_fingerprint(arm)  # what a saved state was tracked with
         self.robot = pl.check_name(robot, "robot")
         self.settings = settings
         self.publish_period_s = 1.0 / publish_hz
@@ -186,7 +187,7 @@ class FusionNode:
             try:
                 self._saved = state_file.load_state(self.state_path)
                 self._saved_iron = state_file.saved_compass_calibration(self._saved, self.robot,
-                                                                         self.arm.name)
+                                                                         self.arm.name, self._config_sha)
                 self._resume_message = f"found a saved state in {self.state_path}"
             except state_file.StateFileError as e:
                 self._resume_message = f"no resume: {e}; a startup calibration on a still arm"
@@ -447,7 +448,8 @@ class FusionNode:
         else:
             tracker.set_rates(self._rates_hz)
         self._start = start
-        self.arm = arm
+        if arm is not self.arm:
+            self.arm, self._config_sha = arm, state_file.config_fingerprint(arm)
         message = (f"{why} on the still stretch {start.t_start_s:.2f}-{start.t_end_s:.2f} s"
                    f"; tracking from it: {start.startup.summary or ''}").rstrip(": ")
         self._begin(tracker, Recording({}), message)
@@ -659,4 +661,4 @@ class FusionNode:
             return False
         t_enc, counts = self._last_enc
         return state_file.save_tracker_state(self.state_path, self.robot, self.arm.name, t_enc, counts,
-                                             self._rates_hz, snap)
+                                             self._rates_hz, snap, self._config_sha)

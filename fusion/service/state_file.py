@@ -7,16 +7,21 @@ then renamed over the old one, so a crash leaves either the old or the new state
 half of one)::
 
     {"format": "armfusion.serve-state/1", "robot": "chair1", "arm": "wmra",
-     "saved_wall_s": 1790000000.0, "t_s": 812.35, "encoder_counts": [...],
-     "rates_hz": {"acc1": 100.0, ...}, "tracker": {... Tracker.snapshot() ...}}
+     "config_sha256": "3f9a…", "saved_wall_s": 1790000000.0, "t_s": 812.35,
+     "encoder_counts": [...], "rates_hz": {"acc1": 100.0, ...},
+     "tracker": {... Tracker.snapshot() ...}}
 
-``tracker`` holds the filter's state and covariance (the encoder offsets, the base's
+``config_sha256`` is the SHA-256 of the config file the node tracked with
+(:func:`config_fingerprint`): the tracker's offsets, biases and learnt iron hold only under
+that sensor model, so a state saved under another config (a sensor calibration applied
+since, or the shipped config instead of the calibrated one) is not resumed, nor is its iron
+reused. ``tracker`` holds the filter's state and covariance (the encoder offsets, the base's
 attitude and acceleration, the gyro bias), the encoders' angles and the heading's field
 reference; ``encoder_counts`` and ``t_s`` are the last encoder sample the tracker fused.
 
 On restart the node reads the file and waits for the first encoder sample. It resumes
-from the saved state only when :func:`resume_problem` finds nothing wrong: the same robot
-and arm, saved less than ``max_age_s`` ago (wall time) and no more than ``max_age_s``
+from the saved state only when :func:`resume_problem` finds nothing wrong: the same robot,
+arm and config, saved less than ``max_age_s`` ago (wall time) and no more than ``max_age_s``
 of sample time before the new sample, the sample clock not gone back (the rig did not
 restart), and every joint's encoder count moved no further than the joint could have
 turned in the gap (``max_joint_rate_rad_s``): the encoders kept counting; then
@@ -27,6 +32,7 @@ startup calibration on a still arm.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import math
@@ -92,20 +98,32 @@ def load_state(path: Path | str) -> dict:
     return doc
 
 
+def config_fingerprint(arm) -> str:
+    """The SHA-256 (hex) of the config file ``arm`` was loaded from, or empty when it came
+    from no file (an arm built in code)."""
+    try:
+        return hashlib.sha256(Path(arm.source).read_bytes()).hexdigest() if arm.source else ""
+    except OSError:
+        return ""
+
+
 def state_document(robot: str, arm_name: str, t_s: float, encoder_counts, rates_hz: Mapping[str, float],
-                   tracker_snapshot: Mapping, saved_wall_s: float | None = None) -> dict:
-    return {"format": STATE_FORMAT, "robot": robot, "arm": arm_name,
+                   tracker_snapshot: Mapping, saved_wall_s: float | None = None,
+                   config_sha256: str = "") -> dict:
+    return {"format": STATE_FORMAT, "robot": robot, "arm": arm_name, "config_sha256": config_sha256,
             "saved_wall_s": time.time() if saved_wall_s is None else float(saved_wall_s),
             "t_s": float(t_s), "encoder_counts": [int(c) for c in encoder_counts],
             "rates_hz": {k: float(v) for k, v in rates_hz.items()}, "tracker": dict(tracker_snapshot)}
 
 
 def save_tracker_state(path: Path | str, robot: str, arm_name: str, t_enc_s: float, encoder_counts,
-                       rates_hz: Mapping[str, float], tracker_snapshot: Mapping) -> bool:
+                       rates_hz: Mapping[str, float], tracker_snapshot: Mapping,
+                       config_sha256: str = "") -> bool:
     """Save the tracker's state (atomically): its snapshot, and the last encoder sample it
     fused (``t_enc_s``, ``encoder_counts``), which is the document's ``t_s`` (the snapshot's own
     time is the last fused instant). False, with a log line, when it cannot be written."""
-    doc = state_document(robot, arm_name, t_enc_s, encoder_counts, rates_hz, tracker_snapshot)
+    doc = state_document(robot, arm_name, t_enc_s, encoder_counts, rates_hz, tracker_snapshot,
+                         config_sha256=config_sha256)
     try:
         save_state(path, doc)
     except OSError as e:
@@ -114,26 +132,40 @@ def save_tracker_state(path: Path | str, robot: str, arm_name: str, t_enc_s: flo
     return True
 
 
-def saved_compass_calibration(doc: Mapping | None, robot: str, arm_name: str) -> dict | None:
+def saved_compass_calibration(doc: Mapping | None, robot: str, arm_name: str,
+                              config_sha256: str = "") -> dict | None:
     """The compass's iron as the saved state's tracker had learnt it (the online hard and
-    soft iron, :mod:`fusion.tracking.compass_calibration`), for the same robot and arm; None
-    otherwise. Unlike the rest of the state it does not go stale: the chair's iron does not
-    change while it is switched off, and a tracker started afresh reuses it."""
+    soft iron, :mod:`fusion.tracking.compass_calibration`), for the same robot and arm (and,
+    given ``config_sha256``, config: the iron learnt is what the config's own correction
+    left); None otherwise. Unlike the rest of the state it does not go stale: the chair's
+    iron does not change while it is switched off, and a tracker started afresh reuses it."""
     if not doc or doc.get("robot") != robot or doc.get("arm") != arm_name:
+        return None
+    if _other_config(doc, config_sha256):
         return None
     tracker = doc.get("tracker")
     iron = tracker.get("iron") if isinstance(tracker, Mapping) else None
     return iron if isinstance(iron, Mapping) else None
 
 
+def _other_config(doc: Mapping, config_sha256: str) -> bool:
+    """Whether ``doc`` was saved under another config than the one of ``config_sha256`` (a
+    state that names none, or a node that knows none, is not told apart)."""
+    saved = doc.get("config_sha256") or ""
+    return bool(saved and config_sha256 and saved != config_sha256)
+
+
 def resume_problem(doc: Mapping, *, robot: str, arm_name: str, joint_names, counts_per_rad,
                    t_s: float, encoder_counts, now_wall_s: float, max_age_s: float,
-                   max_joint_rate_rad_s: float) -> str | None:
+                   max_joint_rate_rad_s: float, config_sha256: str = "") -> str | None:
     """Why the saved state ``doc`` must not be resumed at the encoder sample
     (``t_s``, ``encoder_counts``), or ``None`` when it may."""
     if doc["robot"] != robot or doc["arm"] != arm_name:
         return (f"it is robot {doc['robot']!r} with arm {doc['arm']!r}; this node serves {robot!r} "
                 f"with arm {arm_name!r}")
+    if _other_config(doc, config_sha256):
+        return ("it was saved under another config (the sensors' model differs: a calibration "
+                "applied or undone since), whose offsets and biases do not hold under this one")
     age_s = now_wall_s - float(doc["saved_wall_s"])
     if not math.isfinite(age_s) or age_s > max_age_s:
         return f"it is stale: saved {age_s:.0f} s ago (more than {max_age_s:g} s)"
@@ -170,7 +202,8 @@ def resumed_tracker(doc: Mapping, arm, settings, *, robot: str, t_s: float, enco
         problem = resume_problem(
             doc, robot=robot, arm_name=arm.name, joint_names=arm.joint_names,
             counts_per_rad=arm.counts_per_rad, t_s=t_s, encoder_counts=encoder_counts,
-            now_wall_s=time.time(), max_age_s=max_age_s, max_joint_rate_rad_s=max_joint_rate_rad_s)
+            now_wall_s=time.time(), max_age_s=max_age_s, max_joint_rate_rad_s=max_joint_rate_rad_s,
+            config_sha256=config_fingerprint(arm))
     except (TypeError, ValueError, KeyError) as e:  # a hand-edited or damaged file
         return None, f"it is malformed: {type(e).__name__}: {e}"
     if problem is not None:

@@ -8,9 +8,11 @@ import json
 import re
 import shutil
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from service_helpers import Collected, cut, wait_for
 
 from fusion.configfile import load_arm
@@ -193,24 +195,55 @@ def test_a_saved_state_the_encoders_contradict_falls_back_to_a_startup_calibrati
     assert got.snapshot()[0], "no joint state after the fallback calibration"
 
 
+def test_a_state_saved_under_another_config_is_not_resumed_nor_its_iron_reused(
+        hub_settings, fusion_node, arm, renk_recording, tmp_path):
+    """A sensor calibration applied (or undone) between two runs: the saved offsets, biases
+    and learnt iron hold only under the config they were tracked with, so the node says so
+    and calibrates on the still arm instead."""
+    state = tmp_path / "chair1.state.json"
+    listener, connector = hub_settings
+    with fusion_node(listener, arm, state_path=state, save_period_s=0.2) as (node, _r), \
+            open_session(connector) as s:
+        _replay_all(s, node, cut(renk_recording, 0.0, 3.0))
+    doc = state_file.load_state(state)
+    assert doc["config_sha256"] == state_file.config_fingerprint(arm)
+    cfg = yaml.safe_load(Path(arm.source).read_text(encoding="utf-8"))
+    cfg["effects"] = [{"effect": "accel_bias", "target": "acc2", "params": {"bias_g": [0.0, 0.002, 0.0]}}]
+    (tmp_path / "calibrated.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
+    calibrated = load_arm(tmp_path / "calibrated.yaml")
+    assert calibrated.name == arm.name
+    assert state_file.saved_compass_calibration(doc, "chair1", arm.name, state_file.config_fingerprint(arm))
+    assert state_file.saved_compass_calibration(doc, "chair1", arm.name,
+                                                state_file.config_fingerprint(calibrated)) is None
+    with fusion_node(listener, calibrated, state_path=state) as (node, result), open_session(connector) as s:
+        _replay_all(s, node, cut(renk_recording, 3.0, 5.1))  # still until the sweep, 5.1 s
+    r = result["report"]
+    assert not r.resumed
+    assert "saved under another config" in r.resume_message, r.resume_message
+    assert r.message.startswith("startup calibration on the still stretch"), r.message
+
+
 @pytest.mark.parametrize("change, expected", [
     (lambda d: d.update(saved_wall_s=d["saved_wall_s"] - 3600.0),
      r"stale: saved 3605 s ago \(more than 60 s\)"),
     (lambda d: d.update(t_s=d["t_s"] + 10.0), r"sample clock went back"),
     (lambda d: d.update(robot="chair2"), r"robot 'chair2'"),
     (lambda d: d.update(encoder_counts=d["encoder_counts"][:3]), r"3 encoder counts"),
+    (lambda d: d.update(config_sha256="0" * 64), r"saved under another config"),
 ])
 def test_resume_problem_names_what_is_wrong_with_a_saved_state(arm, change, expected, tmp_path):
     cpr = arm.counts_per_rad
     counts = np.round(cpr * 0.3).astype(int)
     now = 1.79e9
+    sha = state_file.config_fingerprint(arm)
+    assert len(sha) == 64
     doc = state_file.state_document("chair1", arm.name, 100.0, counts, {"enc": 100.0}, {"x": []},
-                                    saved_wall_s=now - 5.0)
+                                    saved_wall_s=now - 5.0, config_sha256=sha)
     state_file.save_state(tmp_path / "s.json", doc)
     doc = state_file.load_state(tmp_path / "s.json")
     ok = dict(robot="chair1", arm_name=arm.name, joint_names=arm.joint_names, counts_per_rad=cpr,
               t_s=101.0, encoder_counts=counts + 5, now_wall_s=now, max_age_s=60.0,
-              max_joint_rate_rad_s=1.5)
+              max_joint_rate_rad_s=1.5, config_sha256=sha)
     assert state_file.resume_problem(doc, **ok) is None
     change(doc)
     problem = state_file.resume_problem(doc, **ok)
