@@ -238,12 +238,9 @@ class ServedManeuver:
                                 "not this plan played; nothing fitted")
             return
         out = self.settings.out_dir
-        out.mkdir(parents=True, exist_ok=True)
         stamp = time.strftime("%Y%m%dT%H%M%S")
         rec_path = out / f"maneuver-{self.robot}-{stamp}.mcap"
         cfg_path = out / f"calibrated-{self.robot}-{stamp}.yaml"
-        write_mcap(rec, rec_path, arm_config=self.config_path.name)
-        self._recording = str(rec_path)
         argv = ["calibrate", "sensors", str(rec_path), "--config", str(self.config_path),
                 "--write", str(cfg_path), "--json"]
         if self.settings.effects:
@@ -251,9 +248,16 @@ class ServedManeuver:
         for r in self.settings.references:
             argv += ["--reference", r]
         self._fit_out, self._fit_err = out / f"{rec_path.stem}.fit.json", out / f"{rec_path.stem}.fit.log"
-        with open(self._fit_out, "wb") as so, open(self._fit_err, "wb") as se:
-            self._fit = subprocess.Popen(armfusion_argv(*argv), stdout=so, stderr=se,
-                                         stdin=subprocess.DEVNULL, preexec_fn=_lower_priority)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            write_mcap(rec, rec_path, arm_config=self.config_path.name)
+            self._recording = str(rec_path)
+            with open(self._fit_out, "wb") as so, open(self._fit_err, "wb") as se:
+                self._fit = subprocess.Popen(armfusion_argv(*argv), stdout=so, stderr=se,
+                                             stdin=subprocess.DEVNULL, preexec_fn=_lower_priority)
+        except OSError as e:
+            self._set("failed", f"cannot write the run or start its fit in {out}: {str(e)[:200]}")
+            return
         self._fit_started = time.monotonic()
         self._cfg_path = cfg_path
         self._set("fitting", f"{reached} of {k} poses held; {rec.duration_s:.1f} s kept in {rec_path}; "

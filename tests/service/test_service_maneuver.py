@@ -110,7 +110,7 @@ def test_the_controller_gets_the_plan_and_the_node_fits_the_sensors_on_what_it_p
     assert np.max(np.abs(err)) < 0.005  # under 5 mg of 30
 
 
-def test_a_run_that_is_not_the_plan_is_not_fitted_and_a_run_that_never_ends_is_dropped(
+def test_a_run_that_is_not_the_plan_or_never_ends_or_cannot_be_written_is_not_fitted(
         short_plan, played, tmp_path):
     arm = load_arm("wmra")
     # another plan (pose k's j2 turned 10k°: the encoders count relative angles, so a turn of
@@ -140,6 +140,16 @@ def test_a_run_that_is_not_the_plan_is_not_fitted_and_a_run_that_never_ends_is_d
     m.keep(late)
     assert m.state == "failed" and "nothing kept" in m.message
     assert not m.request("done").accepted
+
+    # where the run cannot be written (a file where its folder should be): said, nothing started
+    (tmp_path / "blocked").write_text("a file")
+    m = ServedManeuver(arm, "chair1", short_plan, shipped_config("wmra.yaml"),
+                       ManeuverSettings(tmp_path / "blocked" / "runs", effects="accel_bias"))
+    m.request("start")
+    for s in played.raw().values():
+        m.keep(s)
+    reply = m.request("done")
+    assert m.state == "failed" and "cannot write the run or start its fit" in reply.message
 
 
 def test_the_poses_held_are_counted_from_relative_encoder_angles(short_plan, played):
