@@ -421,12 +421,18 @@ class FusionNode:
         finally:
             query.drop()
 
-    def calibrate(self, arm: ArmModel | None = None, why: str = "calibrated on request") -> pl.Calibration:
+    def calibrate(self, arm: ArmModel | None = None, why: str = "calibrated on request",
+                  carry_pose: bool = False) -> pl.Calibration:
         """Re-run the startup calibration on the latest still stretch and restart the tracker
         from it; or refuse, saying why (the arm moves, no still stretch yet, no samples).
         ``arm``: a new config of the same arm (a sensor calibration's) to track with from then
-        on; ``why``: how the status's message begins."""
+        on; ``why``: how the status's message begins; ``carry_pose``: the running tracker's
+        last pose and sigma go to the startup as a saved pose (checked against the still data)
+        and seed the joints it cannot read (the arm has not moved: it is still)."""
         arm = self.arm if arm is None else arm
+        e = self._last_estimate if carry_pose else None
+        pose = {} if e is None else {"prior_q_rad": np.asarray(e.q_rad, float),
+                                     "prior_sigma_rad": np.asarray(e.sigma_rad, float)}
 
         def refuse(why: str) -> pl.Calibration:
             return pl.Calibration(self.robot, False, why)
@@ -437,7 +443,7 @@ class FusionNode:
         _, window = still
         try:
             tracker, start = start_from_recording(arm, window, self.settings,
-                                                  prior=self._parked_prior(arm))
+                                                  prior=self._parked_prior(arm), **pose)
         except NoStillWindowError as e:
             return refuse(f"the arm moves: {e}")
         except (ValueError, KeyError) as e:
@@ -516,7 +522,7 @@ class FusionNode:
         if differs:
             return m.payload(False, f"refused: {m.config_written} is not this arm's config: {differs}")
         what = f"the calibration of {Path(m.config_written).name} applied"
-        result = self.calibrate(arm, what)
+        result = self.calibrate(arm, what, carry_pose=True)
         if not result.ok:
             return m.payload(False, f"refused: {result.message}")
         return m.applied(f"{what}; the startup with it: {result.message}")

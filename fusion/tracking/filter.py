@@ -165,13 +165,15 @@ class Tracker:
 
     # -- lifecycle -----------------------------------------------------------------------
     def initialise(self, startup: StartupResult, t_s: float, encoder_counts: np.ndarray | None = None,
-                   imu: ImuStill | None = None, prior_q_rad: np.ndarray | None = None) -> None:
+                   imu: ImuStill | None = None, prior_q_rad: np.ndarray | None = None,
+                   prior_sigma_rad: np.ndarray | None = None) -> None:
         """Seed the filter from the startup calibration (its joint angles and covariance).
 
         ``encoder_counts`` are the counts while the startup window was still (default: the
         first encoder sample that arrives). A joint the startup could not read starts at
         ``prior_q_rad`` (the pose saved at the last clean shutdown; default the ready pose)
-        with ``unknown_joint_sigma_deg``, and is ``converging`` until read; without a saved
+        with ``unknown_joint_sigma_deg`` (or ``prior_sigma_rad``, where a running tracker knew
+        it better), and is ``converging`` until read; without a saved
         pose, the sigma it reports covers every angle inside its limits until gravity reads
         it (the filter's own stays as said: a prior that wide would not linearise). ``imu`` (from
         :func:`fusion.tracking.start.imu_still_from_recording`) gives the gyro bias, heading and
@@ -186,7 +188,7 @@ class Tracker:
         self._x0, self._P0, self._q_startup = initial_state(
             startup, imu, L, st, prior, calibrated.imu_bias_prior_var(
                 self.arm, self.correction, self.R_0I if self._has_imu else None, startup.roll_rad,
-                startup.pitch_rad), self.gyro_scale_sigma**2)
+                startup.pitch_rad), self.gyro_scale_sigma**2, prior_sigma_rad)
         self.ambiguity_ = Ambiguity(startup)
         self._ukf = None  # created when the first encoder sample fixes the offsets
         self._q_enc = np.zeros(n)

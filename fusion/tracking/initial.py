@@ -27,16 +27,18 @@ class ImuStill:
 
 
 def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, settings: TrackerSettings,
-                  prior_q_rad: np.ndarray, imu_bias_var_g2: np.ndarray, gyro_scale_var: float = 0.0
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  prior_q_rad: np.ndarray, imu_bias_var_g2: np.ndarray, gyro_scale_var: float = 0.0,
+                  prior_sigma_rad: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(x, P, q0)``: the state and covariance (offsets zero: the first encoder sample sets
     them to ``q0 - q_enc``) and the joint angles ``q0`` the filter starts from. Where the
     layout holds the gyro's scale about z, it starts at zero (the config's scale is applied to
     the readings) with ``gyro_scale_var`` (fraction²).
 
     A joint the startup could not read starts at ``prior_q_rad`` with
-    ``unknown_joint_sigma_deg``; joints with rival branches start on the one nearest the
-    prior (with that branch's covariance; the sigma reported covers them all)."""
+    ``unknown_joint_sigma_deg`` (or, where ``prior_sigma_rad`` gives a finite one below it, that
+    sigma: a pose a running tracker knew, the arm unmoved since); joints with rival branches
+    start on the one nearest the prior (with that branch's covariance; the sigma reported
+    covers them all)."""
     st, L = settings, layout
     n = L.n_joints
     x = np.zeros(L.size)
@@ -67,10 +69,12 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
                               startup.pitch_sigma_rad] ** 2)
     block = np.where(np.isfinite(block), block, 0.0)
     wide = (st.unknown_joint_sigma_deg * DEG) ** 2
+    carried = (np.full(n, np.inf) if prior_sigma_rad is None
+               else np.where(np.isfinite(prior_sigma_rad), np.asarray(prior_sigma_rad, float), np.inf))
     for j in np.flatnonzero(~known):
         block[j, :] = 0.0
         block[:, j] = 0.0
-        block[j, j] = wide
+        block[j, j] = min(wide, float(carried[j]) ** 2)
     # a floor: the startup's sigma is for a still average; the tracker's model adds a little
     block[np.diag_indices(n + 2)] += (0.005 * DEG) ** 2
     P[np.ix_(tgt, tgt)] = block

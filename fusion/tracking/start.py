@@ -197,7 +197,8 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
                          prior_q_rad: np.ndarray | None = None, window_s: float = 1.0,
                          startup_settings=None, propose_unlock: bool = True,
                          prior=None, resolve_by_motion_s: float | None = None,
-                         moving_start: bool = False) -> tuple[Tracker, Start]:
+                         moving_start: bool = False,
+                         prior_sigma_rad: np.ndarray | None = None) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
     calibration there (:func:`fusion.startup.solve.solve_still`), the gyro bias, heading and field
     reference from the same window; it starts tracking at the window's end: the still
@@ -214,7 +215,10 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     branch is decisively better (the arm did not move enough).
     ``moving_start``: when the recording has no still stretch (an arm that never stops),
     start from the readings of its least-moving instants instead (:func:`moving_window`),
-    their σ widened by the motion; else :class:`NoStillWindowError`."""
+    their σ widened by the motion; else :class:`NoStillWindowError`.
+    ``prior_sigma_rad``: with ``prior_q_rad``, how well it is known per joint (a running
+    tracker's pose handed on, the arm unmoved): a joint the startup cannot read starts at
+    ``prior_q_rad`` with that sigma instead of ``TrackerSettings.unknown_joint_sigma_deg``."""
     from fusion.startup.solve import StartupPrior, readings_from_recording, solve_still
 
     if prior is None and prior_q_rad is not None:
@@ -282,7 +286,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     def tracker_from(result: StartupResult) -> Tracker:
         t = Tracker(arm, settings, rates_hz=rates, correction=corr)
         t.initialise(result, float(enc.t_s[k]), encoder_counts=enc.values[k], imu=imu,
-                     prior_q_rad=prior_q_rad)
+                     prior_q_rad=prior_q_rad, prior_sigma_rad=prior_sigma_rad)
         _prime(t, rec)
         return t
 

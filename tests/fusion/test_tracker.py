@@ -996,6 +996,29 @@ def test_an_unread_joint_without_a_saved_pose_reports_a_sigma_covering_its_limit
     assert np.all(np.abs(run.q_error_rad[late]) < 3 * run.sigma_rad[late] + 1e-4)
 
 
+def test_a_pose_handed_on_seeds_the_joints_gravity_cannot_read_with_its_sigma(arm):
+    """A running tracker's pose handed to a new start (a sensor calibration applied while the
+    arm stands parked): the joints gravity cannot read there (j3, j6 vertical) start at the
+    handed-on angles with their sigma, not anywhere in their limits; the ones it reads come
+    from the still data as before."""
+    park = arm.ready_pose_rad
+    rec, _ = simulate(arm, scenario(arm, 6.0, still_then(park, 6.0), ParkedBase(0.02, -0.01, 1.0)), seed=12)
+    known = park + np.radians([0.02, -0.03, 0.2, 0.01, 0.02, -0.15, 0.03])  # what it knew
+    sigma = np.radians([0.05, 0.05, 0.3, 0.05, 0.05, 0.25, 0.05])
+    fresh, _ = start_from_recording(arm, rec)
+    handed, start = start_from_recording(arm, rec, prior_q_rad=known, prior_sigma_rad=sigma)
+    a, b = fresh.estimate, handed.estimate
+    from fusion.tracking.initial import read_by_startup
+
+    locked = np.flatnonzero(~read_by_startup(start.startup)).tolist()  # gimbal-locked at the park pose
+    assert {2, 5} <= set(locked)
+    assert np.all(a.sigma_rad[locked] > np.radians(30.0))  # anywhere in their limits
+    np.testing.assert_allclose(b.q_rad[locked], known[locked], atol=1e-9)
+    np.testing.assert_allclose(b.sigma_rad[locked], sigma[locked], rtol=0.01)
+    read = [j for j in range(arm.n_joints) if j not in locked]
+    np.testing.assert_allclose(b.q_rad[read], a.q_rad[read], atol=np.radians(0.01))
+
+
 def test_the_notes_say_which_of_the_configs_effects_the_tracker_applies_and_what_only_in_part(arm, reaching):
     """A calibrated config holding a gyro scale, the arm's steel's compass disturbance and
     time offsets: the tracker applies them, and its notes say by name where only in part
