@@ -42,14 +42,15 @@ import numpy as np
 from fusion.service import payloads as pl
 from fusion.service.processes import armfusion_argv
 from fusion.service.reorder import merge_batches
+from fusion.startup.static import StaticDetectionSettings, find_static_segments
 from models.arm import ArmModel
+from models.sensor_models import ENCODER_STREAM, stream_models
 from models.trajectories.planned import PlannedManeuver
 from sensors.recording_mcap import write_mcap
-from sensors.samples import Stream
+from sensors.samples import Recording, Stream
 
 log = logging.getLogger("armfusion.service")
 
-ENCODER_STREAM = "enc"
 MAX_KEPT_SAMPLES = 2_000_000
 """At most this many samples are kept for one run, whatever the sensors' rates (a 60 s plan
 at 200 Hz of nine sensors is about 110,000)."""
@@ -81,21 +82,18 @@ class ManeuverSettings:
                 raise ValueError(f"ManeuverSettings.{name}: expected a positive number, got {v!r}")
 
 
-def still_poses_rad(arm: ArmModel, enc: Stream, still_s: float) -> np.ndarray:
-    """The joint angles (relative to the stream's first sample, rad) of each stretch of at
-    least ``still_s`` seconds over which no encoder moved by more than one count: ``(S, n)``."""
-    counts = np.asarray(enc.values, dtype=float)
-    t = np.asarray(enc.t_s, dtype=float)
-    out, i, n = [], 0, len(t)
-    while i < n:
-        moved = np.flatnonzero(np.any(np.abs(counts[i:] - counts[i]) > 1.0, axis=1))
-        j = i + int(moved[0]) if len(moved) else n
-        if t[j - 1] - t[i] >= still_s:
-            out.append(np.mean(counts[i:j], axis=0))
-        i = j
-    if not out:
-        return np.zeros((0, len(arm.joint_names)))
-    return (np.array(out) - counts[0]) / arm.counts_per_rad
+def still_poses_rad(arm: ArmModel, rec: Recording, still_s: float) -> np.ndarray:
+    """The joint angles (relative to the encoders' first sample, rad) held over each still
+    stretch of at least ``still_s`` seconds (the startup's still detector,
+    :func:`fusion.startup.static.find_static_segments`, over that window): ``(S, n)``."""
+    enc = rec.get(ENCODER_STREAM)
+    segs = find_static_segments(rec, StaticDetectionSettings(window_s=still_s, min_duration_s=still_s),
+                                stream_models(arm))
+    held = [enc.between(g.t_start_s, g.t_end_s).values for g in segs]
+    held = [np.mean(v, axis=0) for v in held if len(v)]
+    if not held:
+        return np.zeros((0, arm.n_joints))
+    return (np.array(held) - np.asarray(enc.values[0], float)) / arm.counts_per_rad
 
 
 def poses_reached(plan: PlannedManeuver, held_rad: np.ndarray, tolerance_rad: float) -> int:
@@ -229,7 +227,7 @@ class ServedManeuver:
         if enc is None or len(enc) < 2:
             self._set("failed", "no encoder samples were kept between start and done: nothing to fit")
             return
-        held = still_poses_rad(self.arm, enc, self.settings.still_s)
+        held = still_poses_rad(self.arm, rec, self.settings.still_s)
         self._reached = reached = poses_reached(self.plan, held, np.radians(self.settings.pose_tolerance_deg))
         k = len(self.plan.poses_rad)
         if 2 * reached < k:

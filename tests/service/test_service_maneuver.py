@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 import yaml
-from service_helpers import wait_for
+from service_helpers import cut, wait_for
 
 from fusion.configfile import load_arm
 from fusion.identification.planner import load_maneuver
@@ -156,13 +156,14 @@ def test_the_poses_held_are_counted_from_relative_encoder_angles(short_plan, pla
     arm = load_arm("wmra")
     enc = played.raw()["enc"]
     # the encoders count from wherever they started: shifted by whole counts, the same poses
-    shifted = type(enc)(enc.name, enc.kind, enc.t_s, enc.values + np.array([5000, -300, 12, 0, 7, -9, 40]),
-                        enc.channels)
+    shifted = cut(played, 0.0, played.t_end_s + 1.0, enc=lambda s: type(s)(
+        s.name, s.kind, s.t_s, s.values + np.array([5000, -300, 12, 0, 7, -9, 40]), s.channels))
+    assert not np.array_equal(shifted.get("enc").values, enc.values)
     held = still_poses_rad(arm, shifted, 0.5)
     assert len(held) == len(short_plan.poses_rad)
     assert poses_reached(short_plan, held, np.radians(1.0)) == len(short_plan.poses_rad)
     # the last pose not reached (the run cut in its move): one fewer
-    part = shifted.between(0.0, short_plan.schedule()[-1][0] + 0.2)
+    part = cut(shifted, 0.0, short_plan.schedule()[-1][0] + 0.2)
     assert poses_reached(short_plan, still_poses_rad(arm, part, 0.5), np.radians(1.0)) == \
         len(short_plan.poses_rad) - 1
 
