@@ -2,8 +2,8 @@
 
 armfusion never moves the arm. The fusion node publishes the plan (``armfusion plan-maneuver``'s
 file, checked against the arm's limits and the unlock move's safety bounds when the node
-starts) on ``armfusion/<robot>/maneuver`` for the arm's controller, and answers three
-requests there:
+starts) on ``armfusion/<robot>/maneuver`` for the arm's controller, and answers four
+requests there (:class:`ManeuverEndpoint`, the Zenoh side):
 
 - ``maneuver/start``: the controller is about to play it. From then on the node keeps every
   raw sample it accepts (the tracker goes on as before), at most the plan's duration and a
@@ -32,8 +32,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import queue
 import subprocess
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -152,7 +154,8 @@ class ServedManeuver:
     # -- the requests ----------------------------------------------------------------------------
     def request(self, action: str | None, joints_note: str = "") -> pl.Maneuver:
         """The reply to a query on the maneuver's key (``None``: what it is now) or on one of
-        its requests (``start``, ``done``, ``abort``)."""
+        its requests (``start``, ``done``, ``abort``; ``apply`` is the node's:
+        :class:`ManeuverEndpoint`)."""
         if action is None:
             return self.payload()
         if action == "start":
@@ -275,8 +278,9 @@ class ServedManeuver:
         self._fit = None
         if rc == 0 and self._cfg_path is not None and self._cfg_path.is_file():
             self._config = str(self._cfg_path)
-            self._set("calibrated", f"{_fit_summary(self._fit_out)}; wrote {self._cfg_path}: restart serve "
-                                    f"with --config {self._cfg_path} to track with it")
+            self._set("calibrated", f"{_fit_summary(self._fit_out)}; wrote {self._cfg_path}: once reviewed, "
+                                    f"query {pl.maneuver_key(self.robot, 'apply')} (or restart serve with "
+                                    f"--config {self._cfg_path}) to track with it")
         else:
             self._set("failed", f"the sensor fit failed (exit {rc}): {_last_line(self._fit_err)}; "
                                 f"the recording is kept: {self._recording}")
@@ -293,6 +297,73 @@ class ServedManeuver:
             self._stop_fit()
             self._set("failed", f"the fusion node stopped during the fit; the recording is kept: "
                                 f"{self._recording}")
+
+
+class ManeuverEndpoint:
+    """A :class:`ServedManeuver` on the node's Zenoh session: a publisher of its state on
+    ``armfusion/<robot>/maneuver`` and one queryable for that key and its requests. Queries
+    are queued by Zenoh's thread and answered in the node's loop (:meth:`serve`), where
+    ``apply()`` (the node's ``maneuver/apply``) and ``joints_note()`` (what the controller
+    must know of the pose, for ``start``) run; a request that fails gets an error reply."""
+
+    def __init__(self, session, maneuver: ServedManeuver, apply: Callable[[], pl.Maneuver],
+                 joints_note: Callable[[], str]):
+        self.maneuver, self._apply, self._joints_note = maneuver, apply, joints_note
+        key = pl.maneuver_key(maneuver.robot)
+        self._queries: queue.Queue = queue.Queue()
+        self._published = -1  # the state's version last published
+        self._pub = session.declare_publisher(key)
+        self._queryable = session.declare_queryable(f"{key}/**", self._queries.put)
+
+    def serve(self) -> bool:
+        """Answer the queued queries, look at the fit, publish the state if it changed; True
+        when it did (the status is due)."""
+        m = self.maneuver
+        for query in self._drain():
+            self._answer(query)
+        m.poll()
+        if m.version == self._published:
+            return False
+        self._published = m.version
+        self._pub.put(pl.encode(m.payload()))
+        return True
+
+    def _drain(self):
+        while True:
+            try:
+                yield self._queries.get_nowait()
+            except queue.Empty:
+                return
+
+    def _answer(self, query) -> None:
+        m, key = self.maneuver, str(query.key_expr)
+        base = pl.maneuver_key(m.robot)
+        try:
+            if key == base:
+                reply = m.payload()
+            elif key == pl.maneuver_key(m.robot, "apply"):
+                reply = self._apply()
+            elif key in {pl.maneuver_key(m.robot, a) for a in pl.MANEUVER_ACTIONS}:
+                reply = m.request(key.rsplit("/", 1)[1], self._joints_note())
+            else:
+                query.reply_err(f"{key[:100]}: ask {base} or {base}/<{'|'.join(pl.MANEUVER_ACTIONS)}>")
+                return
+            query.reply(key, pl.encode(reply))
+        except Exception as e:  # noqa: BLE001 - a request must never stop the node
+            log.exception("serve: a maneuver request on %s failed", key[:100])
+            query.reply_err(f"the request failed in the node: {type(e).__name__}: {str(e)[:200]}")
+        finally:
+            query.drop()
+
+    def close(self) -> None:
+        """The node stops: queued queries refused, a running fit stopped, the last state said."""
+        self._queryable.undeclare()
+        for query in self._drain():
+            query.reply_err("the fusion node is stopping")
+            query.drop()
+        self.maneuver.close()
+        self._pub.put(pl.encode(self.maneuver.payload()))
+        self._pub.undeclare()
 
 
 def same_arm_problem(arm: ArmModel, other: ArmModel) -> str:

@@ -30,7 +30,8 @@ is a still stretch (:meth:`FusionNode.calibrate`).
 With a planned maneuver (``maneuver``, :mod:`fusion.service.maneuver`), the node publishes
 the plan on ``armfusion/<robot>/maneuver`` for the arm's controller, keeps the samples between
 its ``maneuver/start`` and ``maneuver/done`` requests and runs the sensor fit on them in a
-child process; it never moves the arm, and it does not apply the config the fit writes.
+child process; it never moves the arm, and it tracks with the config the fit writes only
+when asked (``maneuver/apply``, :meth:`FusionNode._apply_calibration`).
 
 With a ``state_path``, the node saves its state there (:mod:`fusion.service.state_file`)
 every ``save_period_s`` of wall time and when it stops, and at start resumes from it
@@ -55,7 +56,7 @@ from fusion.configfile import load_arm
 from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.admission import Admission, AdmissionSettings
-from fusion.service.maneuver import ServedManeuver, same_arm_problem
+from fusion.service.maneuver import ManeuverEndpoint, ServedManeuver, same_arm_problem
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
 from fusion.service.reorder import Reorder, merge_batches
 from fusion.service.restart import RecentSamples, ambiguity_note, calibration_reply, solve_ambiguity_again
@@ -152,8 +153,6 @@ class FusionNode:
         self.stall_after_s = stall_after_s
         self._admission = Admission(arm, admission)
         self._maneuver = maneuver
-        self._maneuver_version = -1  # the maneuver's state last published
-        self._maneuver_queries: queue.Queue = queue.Queue()
         self._last_estimate = None
         self._stall = StallWatch(stall_after_s)
         self.ready = threading.Event()
@@ -225,7 +224,8 @@ class FusionNode:
         token = self.session.liveliness().declare_token(pl.status_key(self.robot))
         sub = self.session.declare_subscriber(pl.raw_keys(self.robot), receiver)
         queryable = self.session.declare_queryable(pl.calibrate_key(self.robot), self._queries.put)
-        served = self._declare_maneuver()
+        served = None if self._maneuver is None else ManeuverEndpoint(
+            self.session, self._maneuver, self._apply_calibration, self._joints_note)
         self._pubs = (pub_joints, pub_heading)
         self._state = "calibrating"
         self.ready.set()
@@ -237,7 +237,8 @@ class FusionNode:
                     self._on_message_guarded(msg)
                 while (query := self._next_query()) is not None:
                     self._answer(query)
-                self._serve_maneuver(served)
+                if served is not None and served.serve():
+                    self._status_due = True
                 now = time.monotonic()
                 if self._stall.check(self._tracker is not None, now):
                     self._status_due = True
@@ -262,7 +263,8 @@ class FusionNode:
             queryable.undeclare()
             while (query := self._next_query()) is not None:
                 self._reply(query, pl.Calibration(self.robot, False, "the fusion node is stopping"))
-            self._close_maneuver(served)
+            if served is not None:
+                served.close()
             sub.undeclare()
             token.undeclare()
             for p in (pub_joints, pub_heading, pub_status, pub_health):
@@ -462,52 +464,6 @@ class FusionNode:
         return calibration_reply(self.robot, arm.joint_names, start)
 
     # -- the planned maneuver ---------------------------------------------------------------------
-    def _declare_maneuver(self):
-        """The maneuver's publisher and queryable (``maneuver`` and ``maneuver/<request>``), or
-        ``None`` without a maneuver."""
-        if self._maneuver is None:
-            return None
-        key = pl.maneuver_key(self.robot)
-        return (self.session.declare_publisher(key),
-                self.session.declare_queryable(f"{key}/**", self._maneuver_queries.put))
-
-    def _serve_maneuver(self, served) -> None:
-        """Answer the maneuver's requests, look at its fit, publish its state when it changed."""
-        if served is None:
-            return
-        m = self._maneuver
-        while True:
-            try:
-                query = self._maneuver_queries.get_nowait()
-            except queue.Empty:
-                break
-            self._answer_maneuver(query)
-        m.poll()
-        if m.version != self._maneuver_version:
-            self._maneuver_version = m.version
-            self._status_due = True
-            served[0].put(pl.encode(m.payload()))
-
-    def _answer_maneuver(self, query) -> None:
-        key = str(query.key_expr)
-        base = pl.maneuver_key(self.robot)
-        try:
-            if key == base:
-                reply = self._maneuver.payload()
-            elif key == pl.maneuver_key(self.robot, "apply"):
-                reply = self._apply_calibration()
-            elif key in {pl.maneuver_key(self.robot, a) for a in pl.MANEUVER_ACTIONS}:
-                reply = self._maneuver.request(key.rsplit("/", 1)[1], self._joints_note())
-            else:
-                query.reply_err(f"{key[:100]}: ask {base} or {base}/<{'|'.join(pl.MANEUVER_ACTIONS)}>")
-                return
-            query.reply(key, pl.encode(reply))
-        except Exception:  # noqa: BLE001 - a request must never stop the node
-            log.exception("serve: a maneuver request on %s failed", key[:100])
-            self._counts["errors"] += 1
-        finally:
-            query.drop()
-
     def _apply_calibration(self) -> pl.Maneuver:
         """``maneuver/apply``: track from now on with the config the maneuver's fit wrote, from a
         startup calibration on the still arm (:meth:`calibrate`); or refuse, saying why."""
@@ -540,22 +496,6 @@ class FusionNode:
         d = np.degrees(np.abs(np.asarray(e.q_rad) - self._maneuver.plan.poses_rad[0]))
         j = int(np.argmax(d))
         return f"the plan's first pose is {d[j]:.1f}° away ({e.joint_names[j]}) from the estimate now"
-
-    def _close_maneuver(self, served) -> None:
-        if served is None:
-            return
-        pub, queryable = served
-        queryable.undeclare()
-        while True:
-            try:
-                query = self._maneuver_queries.get_nowait()
-            except queue.Empty:
-                break
-            query.reply_err("the fusion node is stopping")
-            query.drop()
-        self._maneuver.close()
-        pub.put(pl.encode(self._maneuver.payload()))
-        pub.undeclare()
 
     # -- tracking, publishing, saving ------------------------------------------------------------
     def _fuse(self, instants) -> None:
