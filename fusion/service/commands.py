@@ -193,8 +193,8 @@ def register(app: typer.Typer) -> None:
             "--maneuver", help="A planned calibration maneuver (plan-maneuver --out) to publish on "
                                "armfusion/<robot>/maneuver for the arm's controller; the node keeps "
                                "the samples between its start and done requests and runs calibrate "
-                               "sensors on them (it never moves the arm, and does not apply the "
-                               "config it writes).")] = None,
+                               "sensors on them (it never moves the arm, and tracks with the "
+                               "config it writes only when asked: armfusion maneuver apply).")] = None,
         maneuver_dir: Annotated[Path, typer.Option(
             "--maneuver-dir", help="Where the maneuver's recording and calibrated config are "
                                    "written.")] = Path("maneuver-runs"),

@@ -9,7 +9,7 @@ Key expressions (``<robot>`` and ``<sensor>`` are names of letters, digits, ``_`
     armfusion/<robot>/calibrate         Calibration the fusion node's reply to a calibration request
     armfusion/<robot>/health            Health      the fusion node's model-change alarms
     armfusion/<robot>/maneuver[/<do>]   Maneuver    the planned calibration maneuver: the plan,
-                                                    its run (queries start, done, abort) and fit
+                                                    its run (start, done, abort, apply) and fit
 
 Every payload is one UTF-8 JSON object (no pickle, nothing that carries code) with
 ``"v"``, its type's version (:data:`VERSIONS`: 2 for ``heading``, 1 for the others), and

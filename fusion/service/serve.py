@@ -333,7 +333,7 @@ class FusionNode:
         tracker, problem = state_file.resumed_tracker(
             doc, self.arm, self.settings, robot=self.robot, t_s=t_s, encoder_counts=encoder_counts,
             max_age_s=self.max_state_age_s, max_joint_rate_rad_s=self.max_joint_rate_rad_s,
-            max_gap_s=self._max_lag_s)
+            max_gap_s=self._max_lag_s, config_sha256=self._config_sha)
         if problem is not None:
             self._resume_message = (f"saved state in {self.state_path} not used: {problem}; "
                                     "a startup calibration on a still arm")

@@ -193,17 +193,19 @@ def resume_problem(doc: Mapping, *, robot: str, arm_name: str, joint_names, coun
 
 
 def resumed_tracker(doc: Mapping, arm, settings, *, robot: str, t_s: float, encoder_counts,
-                    max_age_s: float, max_joint_rate_rad_s: float, max_gap_s: float):
+                    max_age_s: float, max_joint_rate_rad_s: float, max_gap_s: float,
+                    config_sha256: str = ""):
     """``(tracker, None)``: the tracker restored from the saved state ``doc`` at the first
     encoder sample (``t_s``, ``encoder_counts``); or ``(None, why not)``. After a gap of more
     than ``max_gap_s`` of sample time the causal fits of the encoders and the gyro start
-    afresh rather than differentiate across the gap."""
+    afresh rather than differentiate across the gap. ``config_sha256``: the node's config
+    (:func:`config_fingerprint`), which the state must have been saved under."""
     try:
         problem = resume_problem(
             doc, robot=robot, arm_name=arm.name, joint_names=arm.joint_names,
             counts_per_rad=arm.counts_per_rad, t_s=t_s, encoder_counts=encoder_counts,
             now_wall_s=time.time(), max_age_s=max_age_s, max_joint_rate_rad_s=max_joint_rate_rad_s,
-            config_sha256=config_fingerprint(arm))
+            config_sha256=config_sha256)
     except (TypeError, ValueError, KeyError) as e:  # a hand-edited or damaged file
         return None, f"it is malformed: {type(e).__name__}: {e}"
     if problem is not None:
