@@ -126,6 +126,10 @@ class ArmCalibration:
     ``accel_unmodelled_g``: every accelerometer's unmodelled error, 1 sigma per axis [g],
     unless ``accel_unmodelled_g_per_sensor`` names the sensor; the base IMU's accelerometer
     uses ``imu_accel_unmodelled_g`` when given. ``mag_unmodelled_ut``: the compass's [µT].
+    ``gyro_scale_unmodelled``: the gyro's scale-and-axes error left (a fraction, 1 sigma per
+    axis), where the config states it (a factory-calibrated module); None: the tracker's
+    datasheet figure where the IMU is not exact
+    (:func:`fusion.tracking.calibrated.heading_scale_sigma`).
     ``correction_covariance``: per stream, what the fit could not pin. ``references``: the
     one-time joint references the calibration's joint zeros rest on;
     ``joint_zero_conventions``: the elements the calibration held to fix a gauge (its joint
@@ -137,6 +141,7 @@ class ArmCalibration:
     accel_unmodelled_g_per_sensor: Mapping[str, float] = field(default_factory=dict)
     imu_accel_unmodelled_g: float | None = None
     mag_unmodelled_ut: float = 0.0
+    gyro_scale_unmodelled: float | None = None
     correction_covariance: Mapping[str, CorrectionCovariance] = field(default_factory=dict)
     references: tuple[JointReference, ...] = ()
     joint_zero_conventions: tuple[str, ...] = ()
@@ -160,7 +165,8 @@ class ArmCalibration:
     def as_exact(self) -> ArmCalibration:
         """The same calibration with nothing unmodelled (no accelerometer floor, no compass
         floor): sensors exactly as modelled, as a simulation with noise only draws them."""
-        return replace(self.with_accel_floor(0.0), imu_accel_unmodelled_g=None, mag_unmodelled_ut=0.0)
+        return replace(self.with_accel_floor(0.0), imu_accel_unmodelled_g=None, mag_unmodelled_ut=0.0,
+                       gyro_scale_unmodelled=None)
 
 
 @dataclass(frozen=True)
@@ -180,6 +186,10 @@ class BaseMotion:
     """Where the base turns about a point off its origin (a hand about its wrist), the
     prior spread of the origin's offset from it, m per axis
     (:attr:`fusion.tracking.settings.TrackerSettings.base_pivot_sigma_m`); None: no pivot."""
+    turns_about: str = "vertical"
+    """``vertical``: the base turns about its vertical (a chair), and the gyro's scale error
+    that matters is its vertical axis's; ``any``: it turns about every axis (a hand), and
+    every axis's does (:attr:`fusion.tracking.settings.TrackerSettings.base_turns_about_any`)."""
 
 
 @dataclass(frozen=True)

@@ -211,6 +211,7 @@ class CalibrationSection(_Strict):
     accel_unmodelled_g_per_sensor: dict[str, UnmodelledG] | None = None
     imu_accel_unmodelled_g: UnmodelledG | None = None
     mag_unmodelled_ut: float | None = Field(default=None, ge=0.0, le=1000.0)
+    gyro_scale_unmodelled: float | None = Field(default=None, ge=0.0, le=0.5)
     correction_covariance: dict[str, CovarianceEntry] | None = None
     identified: IdentifiedRecord | None = None
 
@@ -227,13 +228,15 @@ class ArmSection(_Strict):
 
 class BaseMotionSection(_Strict):
     """The ``base_motion:`` block: how the base moves (its acceleration's spread and
-    correlation time; optionally its speed's spread, where the speed is bounded), where it
-    is not a wheelchair."""
+    correlation time; optionally its speed's spread, where the speed is bounded, the spread
+    of the point it turns about, and whether it turns about its vertical only or about every
+    axis), where it is not a wheelchair."""
 
     accel_sigma_mps2: float = Field(gt=0.0, le=200.0)
     accel_tau_s: float = Field(gt=0.0, le=3600.0)
     speed_sigma_mps: float | None = Field(default=None, gt=0.0, le=100.0)
     pivot_sigma_m: float | None = Field(default=None, gt=0.0, le=10.0)
+    turns_about: Literal["vertical", "any"] = "vertical"
 
 
 class SiteSection(_Strict):
@@ -501,7 +504,8 @@ def build_arm(
         calibration=_calibration(parsed.calibration),
         base_motion=(None if parsed.base_motion is None else
                      BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s,
-                                parsed.base_motion.speed_sigma_mps, parsed.base_motion.pivot_sigma_m)),
+                                parsed.base_motion.speed_sigma_mps, parsed.base_motion.pivot_sigma_m,
+                                parsed.base_motion.turns_about)),
         magnetic_declination_deg=(None if parsed.site is None else parsed.site.magnetic_declination_deg),
         base_from_turning_centre_m=(
             None if parsed.chair is None
@@ -517,6 +521,8 @@ def _calibration(section: CalibrationSection) -> ArmCalibration:
         accel_unmodelled_g_per_sensor=dict(section.accel_unmodelled_g_per_sensor or {}),
         imu_accel_unmodelled_g=section.imu_accel_unmodelled_g,
         mag_unmodelled_ut=float(section.mag_unmodelled_ut or 0.0),
+        gyro_scale_unmodelled=(None if section.gyro_scale_unmodelled is None
+                               else float(section.gyro_scale_unmodelled)),
         correction_covariance={
             stream: CorrectionCovariance(tuple(c.elements), _ro(np.array(c.matrix, dtype=float)))
             for stream, c in (section.correction_covariance or {}).items()},

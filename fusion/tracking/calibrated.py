@@ -126,14 +126,21 @@ def hard_iron_sigma_ut(model: Model | None) -> np.ndarray | None:
     return None
 
 
-def heading_scale_sigma(arm: ArmModel, model: Model | None, default: float) -> float:
-    """The sigma (fraction) of the gyro's scale about the base's vertical: the config's
-    ``gyro_scale`` sigmas turned into the base's axes, else ``default`` (the datasheet's)
-    where the config says its IMU is not exact (its unmodelled error above zero), else 0."""
+def heading_scale_sigma(arm: ArmModel, model: Model | None, default: float, any_axis: bool = False) -> float:
+    """The sigma (fraction) of the gyro's scale about the base's vertical (``any_axis``: of
+    any one of its axes, for a base that turns about every axis): the config's
+    ``gyro_scale`` sigmas turned into the base's axes (``any_axis``: their rms), else the
+    config's ``calibration.gyro_scale_unmodelled``, else ``default`` (the datasheet's) where
+    the config says its IMU is not exact (its unmodelled error above zero), else 0."""
     if arm.imu is None:
         return default
     for _, _, sigma in effect_blocks(model, "gyro_scale"):
+        if any_axis:
+            return float(np.sqrt(np.mean(np.asarray(sigma, float) ** 2)))
         return float(np.sqrt(np.sum((np.asarray(arm.imu.R_LS)[2] * sigma) ** 2)))
+    own = arm.calibration.gyro_scale_unmodelled
+    if own is not None:
+        return float(own)
     return default if arm.calibration.imu_accel_floor_g > 0.0 else 0.0
 
 

@@ -42,7 +42,13 @@ from fusion.tracking.innovations import InnovationLog
 from fusion.tracking.live import fuse_instant
 from fusion.tracking.measurement import Measurements
 from fusion.tracking.observability import Observability
-from fusion.tracking.process import ProcessModel, StillDetector, attitude_sigma_rad, gyro_newer_weight
+from fusion.tracking.process import (
+    MotionIntensity,
+    ProcessModel,
+    StillDetector,
+    attitude_sigma_rad,
+    gyro_newer_weight,
+)
 from fusion.tracking.settings import (
     C_REJECTED,
     C_USED,
@@ -101,11 +107,13 @@ class Tracker:
         n = arm.n_joints
         self._has_imu = arm.imu is not None
         # the gyro's scale about the vertical: a state where it is not known exactly (a turn's
-        # heading is off by the same fraction each time; the compass shows by how much)
-        self.gyro_scale_sigma = (calibrated.heading_scale_sigma(arm, model, st.gyro_scale_sigma)
+        # heading is off by the same fraction each time; the compass shows by how much); for a
+        # base that turns about every axis, every axis's scale error as the tilt's noise instead
+        self.gyro_scale_sigma = (calibrated.heading_scale_sigma(arm, model, st.gyro_scale_sigma,
+                                                                any_axis=st.base_turns_about_any)
                                  if self._has_imu else 0.0)
         self.layout = L = StateLayout(n, velocity=st.base_speed_sigma_mps is not None,
-                                      gyro_scale=self.gyro_scale_sigma > 0.0,
+                                      gyro_scale=self.gyro_scale_sigma > 0.0 and not st.base_turns_about_any,
                                       jerk=(st.base_speed_sigma_mps is None and st.base_jerk_sigma_mps3 > 0
                                             and st.motion_compensation),
                                       pivot=(st.base_pivot_sigma_m is not None and self._has_imu
@@ -135,6 +143,10 @@ class Tracker:
                                            calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
                                            self.R_0I if self._has_imu else None)
         self.process = ProcessModel(st, L, arm.joint_names)
+        if st.base_turns_about_any:
+            self.process.set_scale_noise(self.gyro_scale_sigma)
+        # a base whose speed is bounded (a hand): how vigorously it moves, from the IMU
+        self.intensity = MotionIntensity(st) if L.vel is not None and self._has_imu else None
         self.set_rates(rates_hz)
         self._points = SigmaPoints(L.size, st.alpha, st.beta, st.kappa)
         self._ukf: BatchedUKF | None = None
@@ -342,11 +354,16 @@ class Tracker:
         self._q_enc = q_enc
         dt = t - self._t
         anchor = None
+        st_any = self.settings.base_turns_about_any
         if dt > 0:
             w0 = self._omega if self._omega is not None else gyro
             k = self._gyro_newer_weight  # the interval's rate from its two samples (gyro_newer_weight)
             w = None if w0 is None else (w0 if gyro is None else (1.0 - k) * w0 + k * gyro)
-            Q = self.process.Q(dt, w is not None, self.still.still)
+            rate_sq = 0.0
+            if w is not None and st_any:  # the gyro's scale error turns the tilt by σ_s |ω|
+                om = w - ukf._x[self.layout.bias]
+                rate_sq = float(om @ om)
+            Q = self.process.Q(dt, w is not None, self.still.still, rate_sq)
             ukf.predict(self.process.fx_tangent, Q, dt=dt, w=w)
             # the attitude is now the propagated central point's plus a tangent vector
             anchor = ukf._sigmas[0, self._att_idx].copy() if ukf._sigmas is not None else None
@@ -361,6 +378,8 @@ class Tracker:
         if acc is not None and self._has_imu and acc[3][1] >= 0:
             imu_f = acc[2][acc[3][1]]
         self.still.update(dt, gyro, imu_f, ukf._x.tolist())
+        if self.intensity is not None and imu_f is not None:
+            self.process.k = self.intensity.update(dt, imu_f)
         if mag is not None:
             mi = self._sidx[MAG]
             self.health.seen[mi], self.health.last_t[mi] = True, t
@@ -419,7 +438,7 @@ class Tracker:
             # the chair set off: it is no longer still (the averages will say so later), and
             # its acceleration, held near zero while it stood, must be free to follow at once
             self.still.set_off()
-            ukf.inflate(np.arange(L.accel.start, L.accel.stop), st.base_accel_sigma_mps2**2)
+            ukf.inflate(np.arange(L.accel.start, L.accel.stop), self.process.accel_sigma_mps2**2)
             if L.jerk_B is not None:
                 ukf.inflate(np.arange(L.jerk_B.start, L.jerk_B.stop), st.base_jerk_sigma_mps3**2)
             wz = self._prediction_weights() if st.innovation_at_mean_state else None

@@ -31,6 +31,54 @@ def gyro_newer_weight(delay_s: float, rate_hz: float) -> float:
     return min(1.0, 0.5 + max(0.0, float(delay_s)) * float(rate_hz))
 
 
+class MotionIntensity:
+    """How vigorously a base whose speed is bounded (a hand) moves now, as the time scale
+    ``k`` of its motion: a hand turning a sensor slowly accelerates it by a few tenths of
+    m/s², one shaking it by 8, and a calm stretch and a vigorous one are the same kind of
+    motion played slower or faster. Played ``k`` times faster, a motion's acceleration
+    spread is ``k²`` times its nominal one (the config's ``accel_sigma_mps2``), its speed's
+    ``k`` times, its reach the same, and its correlation time ``1/k`` times: the process
+    model takes all four from ``k`` (:meth:`ProcessModel.fx_tangent`,
+    :meth:`ProcessModel.Q`). Without it one spread serves every stretch, too wide for the
+    calm ones (the tilt then rests on the gyro longer than it need) and too narrow for the
+    vigorous ones (an acceleration is then read as a tilt).
+
+    ``k`` comes from the IMU accelerometer alone, free of any attitude error: the deviation
+    of its reading's magnitude from gravity, ``‖f‖ - g``, is the acceleration along gravity
+    (to first order; across it the magnitude changes only to second order), averaged in
+    square over three of the nominal correlation times. A hand's acceleration is not
+    spread evenly over directions (at any moment it lies mostly along its stroke, which may
+    be any axis), so each axis is given the whole magnitude's spread, ``sqrt(3 m)``, not one
+    axis's share of it; ``k²`` is that over the nominal spread, within
+    :attr:`~fusion.tracking.settings.TrackerSettings.base_intensity_range`."""
+
+    def __init__(self, settings: TrackerSettings):
+        self.nominal_mps2 = float(settings.base_accel_sigma_mps2)
+        self.tau_s = 3.0 * float(settings.base_accel_tau_s)
+        self.k2_min, self.k2_max = (float(v) for v in settings.base_intensity_range)
+        self.mean_sq = self.nominal_mps2**2 / 3.0  # starts at the nominal intensity (k = 1)
+        self.k = 1.0
+
+    def update(self, dt: float, f_imu_g: np.ndarray) -> float:
+        """One IMU accelerometer reading ``f_imu_g (3,)`` (g) ``dt`` after the last: the new ``k``."""
+        if not dt > 0.0:
+            return self.k
+        fx, fy, fz = (float(v) for v in f_imu_g)
+        e = (math.sqrt(fx * fx + fy * fy + fz * fz) - 1.0) * G
+        if not math.isfinite(e):
+            return self.k
+        self.mean_sq += min(1.0, dt / self.tau_s) * (e * e - self.mean_sq)
+        k2 = math.sqrt(3.0 * self.mean_sq) / self.nominal_mps2
+        self.k = math.sqrt(min(max(k2, self.k2_min), self.k2_max))
+        return self.k
+
+    def snapshot(self) -> list:
+        return [self.mean_sq, self.k]
+
+    def restore(self, snap) -> None:
+        self.mean_sq, self.k = (float(v) for v in snap)
+
+
 def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray, heading_floor_var=0.0) -> np.ndarray:
     """Roll, pitch and heading sigmas ``(..., 3)`` from the attitude covariance ``C_att
     (..., 3, 3)`` of the filter's tangent space (a world-axis rotation vector ``δ``) at
@@ -78,6 +126,9 @@ class ProcessModel:
             # the velocity's oscillator, 1 / (τ_a τ_v) = σ_a² / σ_v² (s⁻²): its stationary spread
             # is then σ_v and its acceleration's σ_a (:func:`process_points_tangent`)
             self._velocity_rate_s2 = (settings.base_accel_sigma_mps2 / settings.base_speed_sigma_mps) ** 2
+        self.k = 1.0
+        """The base motion's time scale now (:class:`MotionIntensity`; 1: the config's own)."""
+        self._scale_noise_rad2 = 0.0
         self.last_points: tuple[np.ndarray, np.ndarray] | None = None
         self._decay: dict[float, float] = {}
         self._Q: dict = {}
@@ -105,8 +156,16 @@ class ProcessModel:
             return -1, 1.0
         return self.layout.jerk_B.start, math.exp(-dt / self.settings.base_jerk_tau_s)
 
+    def set_scale_noise(self, sigma: float) -> None:
+        """For a base that turns about every axis (:attr:`TrackerSettings.base_turns_about_any`),
+        the gyro's scale-and-axes error ``sigma`` (a fraction per axis) as the tilt's process
+        noise (:meth:`Q`)."""
+        self._scale_noise_rad2 = float(sigma) ** 2
+
     def _decay_of(self, dt: float) -> float:
-        """The base acceleration's decay over ``dt`` (cached)."""
+        """The base acceleration's decay over ``dt`` (cached), at the motion's time scale."""
+        if self.k != 1.0:
+            return math.exp(-dt * self.k / self.settings.base_accel_tau_s)
         decay = self._decay.get(dt)
         if decay is None:
             if len(self._decay) > 64:
@@ -126,7 +185,7 @@ class ProcessModel:
         have_w = w is not None
         vel, vel_gain = -1, 0.0
         if L.vel is not None:  # the acceleration is a bounded velocity's: see _velocity_step
-            vel, vel_gain = L.vel.start, dt * self._velocity_rate_s2
+            vel, vel_gain = L.vel.start, dt * self._velocity_rate_s2 * self.k**2
         jerk, jerk_decay = self._jerk_of(dt)  # the acceleration changes by its jerk
         T, Y = process_points_tangent(np.ascontiguousarray(X), dt, w if have_w else self._zeros3, have_w,
                                       L.roll, L.yaw, L.bias.start, L.accel.start, L.scale, decay, vel,
@@ -164,15 +223,40 @@ class ProcessModel:
             om[..., 2] /= 1.0 + x[L.scale]
         return om
 
-    def Q(self, dt: float, have_gyro: bool, still: bool) -> np.ndarray:
-        """The process noise over ``dt`` (cached)."""
+    def Q(self, dt: float, have_gyro: bool, still: bool, rate_sq: float = 0.0) -> np.ndarray:
+        """The process noise over ``dt`` (cached), at the motion's time scale ``k``; with the
+        gyro's scale-and-axes error as tilt noise (:meth:`set_scale_noise`), its share at the
+        turn rate's square ``rate_sq`` (rad²/s²): ``σ_s² |ω|² τ dt`` on roll and on pitch, the
+        turn's error correlated over the base motion's correlation time ``τ`` (a hand keeps
+        turning about one axis for about that long, so the error does not average away
+        faster). (The heading takes none: there it would hand the heading to a compass whose
+        disturbance the guard has not yet caught; docs/tracking.md, *An IMU alone*.)"""
         key = (round(dt * 1e9), have_gyro, still)  # dt to the nanosecond
         Q = self._Q.get(key)
         if Q is None:
             if len(self._Q) > 64:
                 self._Q.clear()
             Q = self._Q[key] = self._make_Q(dt, have_gyro, still)
+        k, scale_var = self.k, self._scale_noise_rad2 * rate_sq
+        if k == 1.0 and scale_var == 0.0:
+            return Q
+        st, L = self.settings, self.layout
+        Q = Q.copy()
+        if k != 1.0:  # the acceleration's spread k² σ_a, its correlation time τ_a / k
+            tau = st.base_accel_tau_s
+            f = k**4 * (-math.expm1(-2.0 * dt * k / tau)) / (-math.expm1(-2.0 * dt / tau))
+            for i in range(L.accel.start, L.accel.stop):
+                Q[i, i] *= f
+        if scale_var:
+            add = scale_var * st.base_accel_tau_s * dt
+            Q[L.roll, L.roll] += add
+            Q[L.pitch, L.pitch] += add
         return Q
+
+    @property
+    def accel_sigma_mps2(self) -> float:
+        """The base's acceleration spread now: the config's at the motion's intensity."""
+        return self.settings.base_accel_sigma_mps2 * self.k**2
 
     def _make_Q(self, dt: float, have_gyro: bool, still: bool) -> np.ndarray:
         st, L = self.settings, self.layout

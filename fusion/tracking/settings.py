@@ -122,6 +122,17 @@ class TrackerSettings:
     explain (:meth:`fusion.tracking.measurement.Measurements.h_all`). None (a chair, whose
     turning centre was tried and not kept: docs/tracking.md): no such state (a config's
     ``base_motion.pivot_sigma_m`` sets it, :meth:`for_base`)."""
+    base_turns_about_any: bool = False
+    """The base turns about every axis (a hand turning a sensor it holds; a config's
+    ``base_motion.turns_about: any``), not about its vertical only (a chair): the gyro's scale
+    error about the base's z axis is then no state (it describes a chair's turns only), and
+    the scale-and-axes error of every axis (:func:`fusion.tracking.calibrated.heading_scale_sigma`)
+    turns the tilt by ``σ_s |ω|``: roll and pitch take that as process noise over the turn's
+    correlation time (:meth:`fusion.tracking.process.ProcessModel.Q`)."""
+    base_intensity_range: tuple[float, float] = (1.0 / 16.0, 9.0)
+    """Where the base's speed is bounded (a hand), the range of its motion's intensity
+    (:class:`fusion.tracking.process.MotionIntensity`): its acceleration spread between 1/16
+    and 9 times the config's ``accel_sigma_mps2`` (0.19-27 m/s² for a hand's 3)."""
     base_pivot_random_walk_m_per_sqrt_s: float = 0.01
     """How the pivot's offset drifts where it is a state: a hand changes its grip, or turns
     from the wrist to the elbow, over seconds: 1 cm/√s (10 cm in 100 s)."""
@@ -261,6 +272,7 @@ class TrackerSettings:
         # first-order acceleration it describes)
         pivot = getattr(base_motion, "pivot_sigma_m", None)
         return replace(self, base_accel_sigma_mps2=float(base_motion.accel_sigma_mps2),
+                       base_turns_about_any=getattr(base_motion, "turns_about", "vertical") == "any",
                        base_accel_tau_s=float(base_motion.accel_tau_s),
                        base_speed_sigma_mps=None if speed is None else float(speed),
                        base_pivot_sigma_m=None if pivot is None else float(pivot),

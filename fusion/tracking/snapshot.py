@@ -36,6 +36,7 @@ def snapshot_of(tr) -> dict:
         "compass_floor_var": c["fused_floor_var"],
         "counters": tr.health.counts.tolist(),
         "still": tr.still.snapshot(),
+        "intensity": None if tr.intensity is None else tr.intensity.snapshot(),
         "shift": tr.slips.snapshot(),
         "consider": tr.observability.snapshot(),
         "ambiguous": tr.ambiguity_.snapshot(),
@@ -65,6 +66,9 @@ def restore_into(tr, snap: Mapping) -> None:
     tr.health.counts = np.array(snap["counters"], dtype=np.int64)
     if "still" in snap:
         tr.still.restore(snap["still"])
+    if tr.intensity is not None and snap.get("intensity") is not None:
+        tr.intensity.restore(snap["intensity"])
+        tr.process.k = tr.intensity.k
     if "shift" in snap:
         tr.slips.restore(snap["shift"])
     if tr.ambiguity_.restore(snap.get("ambiguous"), n):  # rival branches still open
