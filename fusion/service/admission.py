@@ -146,6 +146,8 @@ class Admission:
         self._jump_since: float | None = None
         self._jump_last: tuple[float, np.ndarray] | None = None
         self.rejected: Counter[str] = Counter()
+        self.rejected_samples: Counter[str] = Counter()
+        """The samples of the batches refused, by reason (:attr:`rejected` counts batches)."""
         self.missed_batches = 0
         self.seq_resets = 0
         self.encoder_rebases = 0
@@ -158,6 +160,7 @@ class Admission:
         verdict = self._check(batch, now_s)
         if not verdict.ok:
             self.rejected[verdict.reason] += 1
+            self.rejected_samples[verdict.reason] += len(batch.stream)
             self._warn(batch, verdict)
         return verdict
 

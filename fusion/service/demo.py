@@ -325,6 +325,9 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
                      "heading_status": heading_status},
         "flags_seen": seen,
         "samples": {"published": published, "received_by_serve": int(srv.get("samples", 0)),
+                    # refused by the node's admission, by reason (a driver that fell behind on a
+                    # loaded machine reads a burst, refused as too dense): counted, never lost
+                    "refused_by_serve": {k: int(v) for k, v in srv.get("refused_samples", {}).items()},
                     "recorded": int(sum(rec.get("samples", {}).values())), "dropped": dropped,
                     "estimates_published": int(srv.get("estimates", 0)),
                     # messages whose handling raised in the fusion node (logged, the node going on)

@@ -96,6 +96,9 @@ class ServeReport:
     encoder_rebases: int = 0
     stalls: int = 0
     errors: int = 0
+    refused_samples: dict[str, int] | None = None
+    """The samples of the raw batches the admission refused, by reason (``dropped`` counts
+    payloads and batches)."""
 
     def as_dict(self) -> dict:
         return {"robot": self.robot, "state": self.state, "samples": self.samples,
@@ -104,7 +107,8 @@ class ServeReport:
                 "resumed": self.resumed, "resume_message": self.resume_message,
                 "calibrations": self.calibrations, "missed_batches": self.missed_batches,
                 "seq_resets": self.seq_resets, "encoder_rebases": self.encoder_rebases,
-                "stalls": self.stalls, "errors": self.errors}
+                "stalls": self.stalls, "errors": self.errors,
+                "refused_samples": dict(self.refused_samples or {})}
 
 
 class FusionNode:
@@ -274,7 +278,8 @@ class FusionNode:
                            self._counts["out_of_order"], self._dropped(receiver), self._startup_t,
                            self._message, self._resumed, self._resume_message,
                            self._counts["calibrations"], adm.missed_batches, adm.seq_resets,
-                           adm.encoder_rebases, self._stall.stalls, self._counts["errors"])
+                           adm.encoder_rebases, self._stall.stalls, self._counts["errors"],
+                           dict(adm.rejected_samples))
 
     def _dropped(self, receiver: BoundedReceiver) -> dict[str, int]:
         d = Counter(self._inbox.dropped) + self._admission.rejected
