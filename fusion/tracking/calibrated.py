@@ -60,11 +60,23 @@ def device_time_offsets(model: Model | None) -> dict[str, tuple[float, float]]:
             for e, value, sigma in effect_blocks(model, "time_offset")}
 
 
-def stamp_offsets(model: Model | None, accel_names) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Per accelerometer, the config's calibrated time offset (s, :func:`device_time_offsets`)
-    and its variance (s²). ``None`` when the config has no time offsets."""
+def part_delays_s(arm: ArmModel, streams) -> np.ndarray:
+    """Per stream, its part's delay (s; its description's ``delay_s``, 0 where none): a
+    reading stamped ``t`` is the quantity at ``t - delay``."""
+    models = stream_models(arm)
+    return np.array([models[s].delay_s if s in models else 0.0 for s in streams], dtype=float)
+
+
+def stamp_offsets(model: Model | None, accel_names,
+                  delays_s: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Per accelerometer, how late its reading is stamped (s): the config's calibrated time
+    offset (:func:`device_time_offsets`) plus its part's own delay ``delays_s`` (both read
+    alike: the reading stands for the quantity that much before its stamp), and the
+    offset's variance (s²). ``None`` when there is neither."""
     offsets = device_time_offsets(model)
     off = np.array([offsets.get(nm, (0.0, 0.0))[0] for nm in accel_names])
+    if delays_s is not None:
+        off = off + np.asarray(delays_s, float)
     var = np.array([offsets.get(nm, (0.0, 0.0))[1] ** 2 for nm in accel_names])
     if not off.any() and not var.any():
         return None, None

@@ -132,7 +132,11 @@ class Tracker:
         scale, scale_sigma = calibrated.encoder_scales(arm, model)
         self.counts_per_rad = arm.counts_per_rad * (1.0 + scale)
         """Per joint, the encoder's counts per radian (the config's, its calibrated scale error applied)."""
-        time_offset_s, time_var_s2 = calibrated.stamp_offsets(model, self.accel_names)
+        # each accelerometer turned to its stamp by its calibrated time offset and its part's delay
+        time_offset_s, time_var_s2 = calibrated.stamp_offsets(
+            model, self.accel_names, calibrated.part_delays_s(arm, self.accel_streams))
+        # and the compass by its part's delay, with the base's turn rate
+        self._mag_delay_s = float(calibrated.part_delays_s(arm, (MAG,))[0]) if self._has_imu else 0.0
         unmodelled_g = calibrated.accel_floors_g(arm, self.link_names, self._has_imu)
         self._unmodelled_g = unmodelled_g
         self._sees = links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
@@ -383,7 +387,13 @@ class Tracker:
         if mag is not None:
             mi = self._sidx[MAG]
             self.health.seen[mi], self.health.last_t[mi] = True, t
-            mag = self.compass.average(t, mag[1]) if self.compass.listening and frame is not None else None
+            m_B = mag[1]
+            if self._mag_delay_s and self._omega is not None:
+                # a reading that stands for the field a delay before its stamp, turned to the
+                # stamp by the base's turn over the delay (the accelerometers' alike:
+                # Measurements.stack)
+                m_B = m_B - self._mag_delay_s * np.cross(self.process.rate(self._omega, ukf._x), m_B)
+            mag = self.compass.average(t, m_B) if self.compass.listening and frame is not None else None
             if mag is not None:
                 x, L = ukf._x, self.layout
                 mag = self.compass.prepare(t, mag[0], mag[1], float(x[L.roll]), float(x[L.pitch]),
@@ -401,7 +411,9 @@ class Tracker:
         st, ukf, L, ms = self.settings, self._ukf, self.layout, self.measurements
         m_B = check = None
         still = self.still.still and acc is not None and st.motion_compensation
-        sel, counts, f, (key, imu_pos, full, _), var_a, z, var = ms.stack(acc, frame, still, mag is not None)
+        up_B = None if acc is None else up_from_tilt(ukf._x[L.roll], ukf._x[L.pitch])
+        sel, counts, f, (key, imu_pos, full, _), var_a, z, var = ms.stack(acc, frame, still, mag is not None,
+                                                                          up_B)
         k, m = len(counts), len(z)
         if k and self.alarm.active:  # a changed sensor is down-weighted until recalibrated
             self.alarm.widen(sel, var)

@@ -22,7 +22,7 @@ from fusion.tracking.filter import Tracker
 from fusion.tracking.heading import FieldReference, heading_sigma_rad, tilt_compensated_heading
 from fusion.tracking.initial import ImuStill
 from fusion.tracking.run import joint_free_clock
-from fusion.tracking.settings import ENC, GYRO, MAG, TrackerSettings
+from fusion.tracking.settings import ENC, GYRO, IMU_ACC, MAG, TrackerSettings
 from models.arm import ArmModel
 from models.rotations import DEG, up_from_tilt
 from models.sensor_models import encoder_angles_at, mpu9150_temperature_c, stream_models
@@ -179,14 +179,20 @@ def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
 
 def delay_notes(arm: ArmModel) -> list[str]:
     """What the tracker does with the delays the sensors' descriptions declare (``delay_s``):
-    the gyroscope's is made up for (:func:`fusion.tracking.process.gyro_newer_weight`), any
-    other stream's is not, and the notes say both."""
+    the gyroscope's is made up for (:func:`fusion.tracking.process.gyro_newer_weight`), the
+    accelerometers' and the compass's too (each reading turned to its stamp by its sensor's
+    turn rate over the delay), any other stream's is not, and the notes say which."""
     delays = {k: m.delay_s for k, m in stream_models(arm).items() if m.delay_s > 0}
     out = []
     if GYRO in delays:
         gyro_ms = delays.pop(GYRO) * 1e3
         out.append(f"the gyroscope's delay ({gyro_ms:.3g} ms) made up for (up to half a sample period): "
                    "the attitude turns by the rate at each interval's midpoint")
+    accelerometers = {a.name for a in arm.link_accelerometers} | {IMU_ACC}
+    turned = [k for k in delays if k == MAG or k in accelerometers]
+    if turned:
+        out.append("delays made up for by turning each reading to its stamp with its sensor's turn rate: "
+                   + ", ".join(f"{k} {delays.pop(k) * 1e3:.3g} ms" for k in turned))
     if delays:
         out.append("delays NOT made up for by the tracker (read at their stamps): "
                    + ", ".join(f"{k} {d * 1e3:.3g} ms" for k, d in delays.items()))

@@ -24,7 +24,12 @@ from fusion.tracking.frames import make_frames
 from fusion.tracking.tracker import start_from_recording
 from models.arm_config import ConfigError
 from models.rotations import GRAVITY_MPS2, exp_so3
-from tests.fusion.test_base_velocity import _inclination_rmse_deg, broad_gyro_delay_s
+from tests.fusion.test_base_velocity import (
+    _inclination_rmse_deg,
+    broad_delays_s,
+    broad_gyro_delay_s,
+    turned_back,
+)
 
 RATE_HZ = 285.714
 
@@ -77,7 +82,8 @@ def _swung_trial(path: Path, seed: int = 5, rate_hz: float = 200.0, still_s: flo
     pivot itself still; the gyro with a consumer part's scale and axis errors of 0.1-0.3 % and
     a constant bias (as ``test_base_velocity``'s hand), every sensor with its white noise.
     World ENU, reference exact. Each gyro sample is the rate ``gyro_delay_s`` before its stamp
-    (default: the ``broad_imu`` config's gyroscope ``delay_s``, as its description says)."""
+    (default: the ``broad_imu`` config's gyroscope ``delay_s``, as its description says); the
+    accelerometer's and the magnetometer's samples late by that config's delays for them."""
     rng = np.random.default_rng(seed)
     n = int((still_s + moving_s) * rate_hz)
     t = np.arange(n) / rate_hz
@@ -90,7 +96,6 @@ def _swung_trial(path: Path, seed: int = 5, rate_hz: float = 200.0, still_s: flo
         return ramp * amp * np.sin(2 * np.pi * f_hz * tm[:, None] + ph) * (tt > still_s)[:, None]
 
     w_true = rate(t)
-    wd_true = np.gradient(w_true, 1.0 / rate_hz, axis=0)
     R = exp_so3(np.array([0.2, -0.3, 0.5]))
     Rs = np.empty((n, 3, 3))
     Rs[0] = R
@@ -98,9 +103,13 @@ def _swung_trial(path: Path, seed: int = 5, rate_hz: float = 200.0, still_s: flo
         R = R @ exp_so3(0.5 * (w_true[i - 1] + w_true[i]) / rate_hz)
         Rs[i] = R
     r = np.asarray(lever_m, float)
-    a_B = np.cross(wd_true, r) + np.cross(w_true, np.cross(w_true, r))  # the sensor's, base axes
-    f = a_B + np.einsum("nji,j->ni", Rs, [0.0, 0.0, GRAVITY_MPS2])
-    mag = np.einsum("nji,j->ni", Rs, np.array([0.0, 16.0, -40.0]))
+    delays = broad_delays_s()
+    d_acc = delays["imu_acc"]
+    w_acc = rate(t - d_acc)
+    wd_acc = np.gradient(w_acc, 1.0 / rate_hz, axis=0)
+    a_B = np.cross(wd_acc, r) + np.cross(w_acc, np.cross(w_acc, r))  # the sensor's, base axes
+    f = a_B + np.einsum("nji,j->ni", turned_back(Rs, w_true, d_acc), [0.0, 0.0, GRAVITY_MPS2])
+    mag = np.einsum("nji,j->ni", turned_back(Rs, w_true, delays["imu_mag"]), np.array([0.0, 16.0, -40.0]))
     M = np.eye(3) + np.array([[0.003, 0.002, -0.001], [-0.002, -0.003, 0.002], [0.001, -0.002, 0.003]])
     delay = broad_gyro_delay_s() if gyro_delay_s is None else gyro_delay_s
     gyr = (rate(t - delay) @ M.T + rng.normal(0, np.radians(0.01) * np.sqrt(rate_hz / 2), (n, 3))

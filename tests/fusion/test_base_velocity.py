@@ -128,9 +128,21 @@ def test_a_hands_acceleration_is_motion_not_a_dead_accelerometer() -> None:
 # ------------------------------------------------------------------------------ a simulated hand
 def broad_gyro_delay_s() -> float:
     """The ``broad_imu`` config's gyroscope delay: a synthetic BROAD trial's gyro is drawn so."""
+    return broad_delays_s()["imu_gyro"]
+
+
+def broad_delays_s() -> dict[str, float]:
+    """The ``broad_imu`` config's delays by stream (its description's ``delay_s``): a synthetic
+    BROAD trial's sensors are drawn so, each reading the quantity that long before its stamp."""
     from models.sensor_models import stream_models
 
-    return stream_models(load_arm("broad_imu"))["imu_gyro"].delay_s
+    return {k: m.delay_s for k, m in stream_models(load_arm("broad_imu")).items()}
+
+
+def turned_back(Rs: np.ndarray, w_rad_s: np.ndarray, delay_s: float) -> np.ndarray:
+    """Each rotation ``Rs (n, 3, 3)`` (sensor to world) ``delay_s`` earlier, the sensor turning
+    at ``w_rad_s (n, 3)`` (its axes): ``R exp(-[w d]x)``."""
+    return np.einsum("nij,njk->nik", Rs, np.array([exp_so3(-w * delay_s) for w in w_rad_s]))
 
 
 def _hand_trial(path: Path, seed: int = 3, rate_hz: float = 100.0, still_s: float = 3.0,
@@ -139,8 +151,8 @@ def _hand_trial(path: Path, seed: int = 3, rate_hz: float = 100.0, still_s: floa
     cm (accelerations of about 1 m/s²), its gyro with a consumer part's errors: scale and
     axis misalignment of 0.1-0.3 % (what BROAD's own gyro shows against its reference:
     0.1-1.4 %), a constant bias, white noise; the accelerometer and magnetometer exact but
-    for their noise; the gyro's samples late by the ``broad_imu`` config's delay (its
-    description). World ENU (the field points north and down), reference exact."""
+    for their noise; every sensor's samples late by the ``broad_imu`` config's delay for it
+    (its description). World ENU (the field points north and down), reference exact."""
     rng = np.random.default_rng(seed)
     n = int((still_s + moving_s) * rate_hz)
     t = np.arange(n) / rate_hz
@@ -159,13 +171,15 @@ def _hand_trial(path: Path, seed: int = 3, rate_hz: float = 100.0, still_s: floa
         for k in range(sub):
             R = R @ exp_so3(omega(t[i - 1] + (k + 0.5) * h) * h)
         Rs[i] = R
-    delay = broad_gyro_delay_s()
-    w_true = np.array([omega(tt - delay) for tt in t])  # as the gyro reads it
+    delays = broad_delays_s()
+    w_true = np.array([omega(tt - delays["imu_gyro"]) for tt in t])  # as the gyro reads it
+    w_now = np.array([omega(tt) for tt in t])
     moving = t > still_s
-    tm = np.clip(t - still_s, 0.0, None)
-    acc_w = amp_p * (2 * np.pi * f_p) ** 2 * np.cos(2 * np.pi * f_p * tm[:, None]) * moving[:, None]
-    f = np.einsum("nji,nj->ni", Rs, acc_w + [0.0, 0.0, GRAVITY_MPS2])
-    mag = np.einsum("nji,j->ni", Rs, np.array([0.0, 16.0, -40.0]))
+    d_acc = delays["imu_acc"]
+    tm = np.clip(t - d_acc - still_s, 0.0, None)
+    acc_w = amp_p * (2 * np.pi * f_p) ** 2 * np.cos(2 * np.pi * f_p * tm[:, None]) * (tm > 0)[:, None]
+    f = np.einsum("nji,nj->ni", turned_back(Rs, w_now, d_acc), acc_w + [0.0, 0.0, GRAVITY_MPS2])
+    mag = np.einsum("nji,j->ni", turned_back(Rs, w_now, delays["imu_mag"]), np.array([0.0, 16.0, -40.0]))
     M = np.eye(3) + np.array([[0.003, 0.002, -0.001], [-0.002, -0.003, 0.002], [0.001, -0.002, 0.003]])
     noise_rad_s = np.radians(0.01) * np.sqrt(rate_hz / 2)
     gyr = w_true @ M.T + rng.normal(0, noise_rad_s, (n, 3)) + [0.002, -0.001, 0.0015]

@@ -1,7 +1,8 @@
 """A sensor part's declared delay (``delay_s`` in its description: a filter's group delay, or
 half a period for a part that delivers its period's mean): refused when it is no delay, drawn
 by the simulator, and made up for by the tracker, which turns the attitude over each
-interval by the gyro rate at the interval's midpoint."""
+interval by the gyro rate at the interval's midpoint, and turns a late accelerometer's
+gravity and a late compass's field to their stamps by the sensor's turn over the delay."""
 
 from __future__ import annotations
 
@@ -12,9 +13,13 @@ import pytest
 import yaml
 
 from fusion.configfile import load_arm
+from fusion.tracking.filter import Tracker
+from fusion.tracking.frames import make_frames
 from fusion.tracking.process import gyro_newer_weight
 from fusion.tracking.start import delay_notes
 from models.arm_config import ConfigError
+from models.rotations import GRAVITY_MPS2, exp_so3, up_from_tilt
+from models.sensor_models import stream_models
 from models.simulator import simulate
 from tests.fusion.test_base_pivot import _swung_trial
 from tests.fusion.test_base_velocity import _inclination_rmse_deg
@@ -64,10 +69,40 @@ def test_the_simulator_draws_the_declared_delay(tmp_path):
 
 def test_a_gyro_that_delivers_period_means_keeps_the_tilt_only_when_its_delay_is_declared(tmp_path):
     # at 200 Hz, each gyro sample the rate half a period (2.5 ms) before its stamp: what a
-    # part that delivers its period's mean reads (measured 0.34 deg declared, 0.75 not)
+    # part that delivers its period's mean reads (measured 0.61 deg declared, 0.88 not; 0.34
+    # and 0.75 before the hand's gyro scale error was the tilt's noise, which leans on the
+    # accelerometer more and so on the gyro's timing less)
     trial = _swung_trial(tmp_path / "means.hdf5", gyro_delay_s=0.0025)
     declared = _config_with_gyro_delay(tmp_path, "broad_imu", 0.0025, "declared.yaml")
     instant = _config_with_gyro_delay(tmp_path, "broad_imu", 0.0, "instant.yaml")
     with_delay = _inclination_rmse_deg(declared, trial, 13.0)
     without = _inclination_rmse_deg(instant, trial, 13.0)
-    assert with_delay < 0.7 * without, (with_delay, without)
+    assert with_delay < 0.8 * without, (with_delay, without)
+
+
+def test_a_late_accelerometer_has_its_gravity_turned_to_its_stamp_and_its_motion_left_as_read():
+    arm = load_arm("broad_imu")
+    d = stream_models(arm)["imu_acc"].delay_s
+    assert d == 0.00175  # half broad_imu's period: a decimating part's
+    tr = Tracker(arm)
+    w = np.radians([300.0, -200.0, 100.0])  # a hand turning the sensor fast
+    frame = tr.measurements.with_noise(make_frames(arm, tr.accel_names, np.zeros((1, 0)), np.zeros(0),
+                                                   np.zeros((1, 0)), np.zeros((1, 0)), w[None],
+                                                   np.zeros((1, 3))).take(0))
+    up_now = up_from_tilt(0.3, -0.2)  # the world's up in the sensor's axes at the stamp
+    up_read = exp_so3(w * d) @ up_now  # what it was d earlier, when the reading was taken
+    a_g = np.array([0.5, -0.3, 0.2]) / GRAVITY_MPS2  # and the hand's own acceleration
+    sel = np.array([0])
+    acc = (sel, np.zeros((1, 3)), (up_read + a_g)[None], tr.measurements.selection(sel))
+    f = tr.measurements.stack(acc, frame, False, False, up_now)[2][0]
+    # read as it came the reading is 11 mg off (|ω| d g); turned, to second order in ω d
+    assert np.linalg.norm(up_read - up_now) > 0.01
+    np.testing.assert_allclose(f, up_now + a_g, atol=1e-4)
+
+
+def test_the_track_notes_say_which_delays_are_made_up_for():
+    notes = delay_notes(load_arm("broad_imu"))
+    assert notes[0].startswith("the gyroscope's delay (1.75 ms) made up for")
+    assert notes[1] == ("delays made up for by turning each reading to its stamp with its sensor's turn "
+                        "rate: imu_acc 1.75 ms, imu_mag 1.75 ms")
+    assert len(notes) == 2
