@@ -411,9 +411,7 @@ class Tracker:
         st, ukf, L, ms = self.settings, self._ukf, self.layout, self.measurements
         m_B = check = None
         still = self.still.still and acc is not None and st.motion_compensation
-        up_B = None if acc is None else up_from_tilt(ukf._x[L.roll], ukf._x[L.pitch])
-        sel, counts, f, (key, imu_pos, full, _), var_a, z, var = ms.stack(acc, frame, still, mag is not None,
-                                                                          up_B)
+        sel, counts, f, (key, imu_pos, full, _), var_a, z, var = ms.stack(acc, frame, still, mag is not None)
         k, m = len(counts), len(z)
         if k and self.alarm.active:  # a changed sensor is down-weighted until recalibrated
             self.alarm.widen(sel, var)

@@ -119,22 +119,21 @@ class Measurements:
             var = var + self.time_var_s2[:, None] * turn**2
         return frames._replace(accel_var_g2=var)
 
-    def stack(self, acc, frame: Frames | None, still: bool, mag: bool, up_B: np.ndarray | None = None):
+    def stack(self, acc, frame: Frames | None, still: bool, mag: bool):
         """One update's stacked measurement ``z`` and its variances ``var``: the
         accelerometers ``acc`` (indices, counts, readings in g, their selection's info; None:
         none), each turned back to its time stamp, with the frame's variances ``var_a``; the
         still chair's zero acceleration; a last row left for the heading when ``mag``.
-        ``up_B``: the world's up in base axes at the filter's tilt (the gravity a late
-        reading saw turned). Returns ``(sel, counts, f, info, var_a, z, var)``."""
+        Returns ``(sel, counts, f, info, var_a, z, var)``."""
         sel, counts, f, info = self._no_acc if acc is None else acc
         var_a = None
         k = len(counts)
         if acc is not None:
             if self.time_offset_s is not None and frame.omega_S_rad_s is not None:
-                # a reading stamped late by dt saw gravity dt earlier: turn gravity's part of it
-                # to the stamp (its motion's part is not a turned vector: left as read)
-                g_S = f if up_B is None else np.einsum("sji,j->si", frame.R_0S[sel], up_B)
-                f = f - self.time_offset_s[sel][:, None] * cross(frame.omega_S_rad_s[sel], g_S)
+                # a reading stamped late by dt saw gravity (and the acceleration, as a vector in
+                # the world) dt earlier: turn it to the stamp (what the acceleration changed by
+                # over dt is left: neither a world-fixed nor a body-fixed one is right for all)
+                f = f - self.time_offset_s[sel][:, None] * cross(frame.omega_S_rad_s[sel], f)
             var_a = frame.accel_var_g2 if info[2] else frame.accel_var_g2[sel]
         m = 3 * k + (3 if still else 0) + mag
         z = np.zeros(m)
