@@ -132,11 +132,11 @@ class Tracker:
         scale, scale_sigma = calibrated.encoder_scales(arm, model)
         self.counts_per_rad = arm.counts_per_rad * (1.0 + scale)
         """Per joint, the encoder's counts per radian (the config's, its calibrated scale error applied)."""
-        # each accelerometer turned to its stamp by its calibrated time offset and its part's delay
-        time_offset_s, time_var_s2 = calibrated.stamp_offsets(
-            model, self.accel_names, calibrated.part_delays_s(arm, self.accel_streams))
-        # and the compass by its part's delay, with the base's turn rate
-        self._mag_delay_s = float(calibrated.part_delays_s(arm, (MAG,))[0]) if self._has_imu else 0.0
+        # each accelerometer turned to its stamp by its calibrated time offset and its part's
+        # delay, and the compass by its part's delay, with the base's turn rate
+        delays_s = calibrated.part_delays_s(arm, self.accel_streams + (MAG,))
+        time_offset_s, time_var_s2 = calibrated.stamp_offsets(model, self.accel_names, delays_s[:-1])
+        self._mag_delay_s = float(delays_s[-1]) if self._has_imu else 0.0
         unmodelled_g = calibrated.accel_floors_g(arm, self.link_names, self._has_imu)
         self._unmodelled_g = unmodelled_g
         self._sees = links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
@@ -151,6 +151,7 @@ class Tracker:
             self.process.set_scale_noise(self.gyro_scale_sigma)
         # a base whose speed is bounded (a hand): how vigorously it moves, from the IMU
         self.intensity = MotionIntensity(st) if L.vel is not None and self._has_imu else None
+        self.process.intensity = self.intensity
         self.set_rates(rates_hz)
         self._points = SigmaPoints(L.size, st.alpha, st.beta, st.kappa)
         self._ukf: BatchedUKF | None = None
@@ -365,7 +366,7 @@ class Tracker:
             w = None if w0 is None else (w0 if gyro is None else (1.0 - k) * w0 + k * gyro)
             rate_sq = 0.0
             if w is not None and st_any:  # the gyro's scale error turns the tilt by σ_s |ω|
-                om = w - ukf._x[self.layout.bias]
+                om = self.process.rate(w, ukf._x)
                 rate_sq = float(om @ om)
             Q = self.process.Q(dt, w is not None, self.still.still, rate_sq)
             ukf.predict(self.process.fx_tangent, Q, dt=dt, w=w)
@@ -383,7 +384,7 @@ class Tracker:
             imu_f = acc[2][acc[3][1]]
         self.still.update(dt, gyro, imu_f, ukf._x.tolist())
         if self.intensity is not None and imu_f is not None:
-            self.process.k = self.intensity.update(dt, imu_f)
+            self.intensity.update(dt, imu_f)
         if mag is not None:
             mi = self._sidx[MAG]
             self.health.seen[mi], self.health.last_t[mi] = True, t

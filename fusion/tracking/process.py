@@ -126,8 +126,9 @@ class ProcessModel:
             # the velocity's oscillator, 1 / (τ_a τ_v) = σ_a² / σ_v² (s⁻²): its stationary spread
             # is then σ_v and its acceleration's σ_a (:func:`process_points_tangent`)
             self._velocity_rate_s2 = (settings.base_accel_sigma_mps2 / settings.base_speed_sigma_mps) ** 2
-        self.k = 1.0
-        """The base motion's time scale now (:class:`MotionIntensity`; 1: the config's own)."""
+        self.intensity: MotionIntensity | None = None
+        """How vigorously the base moves now, where that is followed (a hand's: the tracker
+        sets it); None: at the config's own motion."""
         self._scale_noise_rad2 = 0.0
         self.last_points: tuple[np.ndarray, np.ndarray] | None = None
         self._decay: dict[float, float] = {}
@@ -155,6 +156,11 @@ class ProcessModel:
         if self.layout.jerk_B is None:
             return -1, 1.0
         return self.layout.jerk_B.start, math.exp(-dt / self.settings.base_jerk_tau_s)
+
+    @property
+    def k(self) -> float:
+        """The base motion's time scale now (:class:`MotionIntensity`; 1: the config's own)."""
+        return 1.0 if self.intensity is None else self.intensity.k
 
     def set_scale_noise(self, sigma: float) -> None:
         """For a base that turns about every axis (:attr:`TrackerSettings.base_turns_about_any`),

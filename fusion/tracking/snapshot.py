@@ -68,7 +68,6 @@ def restore_into(tr, snap: Mapping) -> None:
         tr.still.restore(snap["still"])
     if tr.intensity is not None and snap.get("intensity") is not None:
         tr.intensity.restore(snap["intensity"])
-        tr.process.k = tr.intensity.k
     if "shift" in snap:
         tr.slips.restore(snap["shift"])
     if tr.ambiguity_.restore(snap.get("ambiguous"), n):  # rival branches still open

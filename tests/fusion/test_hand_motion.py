@@ -62,7 +62,7 @@ def test_a_faster_motion_has_a_wider_faster_acceleration_and_its_process_noise_s
     process, L = tr.process, tr.layout
     dt = 0.0035
     nominal = process.Q(dt, True, False)[L.accel, L.accel].diagonal().copy()
-    process.k = 2.0
+    tr.intensity.k = 2.0
     faster = process.Q(dt, True, False)[L.accel, L.accel].diagonal()
     # spread k² σ_a over τ_a / k: the noise per step k⁴ (1 - e^(-2 dt k / τ)) / (1 - e^(-2 dt / τ))
     tau = tr.settings.base_accel_tau_s
