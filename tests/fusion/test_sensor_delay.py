@@ -69,15 +69,16 @@ def test_the_simulator_draws_the_declared_delay(tmp_path):
 
 def test_a_gyro_that_delivers_period_means_keeps_the_tilt_only_when_its_delay_is_declared(tmp_path):
     # at 200 Hz, each gyro sample the rate half a period (2.5 ms) before its stamp: what a
-    # part that delivers its period's mean reads (measured 0.62 deg declared, 0.88 not; 0.34
-    # and 0.75 before the hand's gyro scale error was the tilt's noise, which leans on the
-    # accelerometer more and so on the gyro's timing less)
+    # part that delivers its period's mean reads (measured 0.40 deg declared, 0.77 not; 0.62
+    # and 0.88 with a speed spread of 1 m/s per axis; 0.34 and 0.75 before the hand's gyro
+    # scale error was the tilt's noise, which leans on the accelerometer more and so on the
+    # gyro's timing less)
     trial = _swung_trial(tmp_path / "means.hdf5", gyro_delay_s=0.0025)
     declared = _config_with_gyro_delay(tmp_path, "broad_imu", 0.0025, "declared.yaml")
     instant = _config_with_gyro_delay(tmp_path, "broad_imu", 0.0, "instant.yaml")
     with_delay = _inclination_rmse_deg(declared, trial, 13.0)
     without = _inclination_rmse_deg(instant, trial, 13.0)
-    assert with_delay < 0.8 * without, (with_delay, without)
+    assert with_delay < 0.7 * without, (with_delay, without)
 
 
 def test_a_late_accelerometer_is_turned_to_its_stamp():
