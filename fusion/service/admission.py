@@ -63,7 +63,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.service.payloads import DropLog, RawBatch
+from fusion.service.inbox import DropLog
+from fusion.service.payloads import RawBatch
 from models.arm import ArmModel
 from models.sensor_models import ENCODER_STREAM, stream_models
 

@@ -21,21 +21,18 @@ fields of ``joints`` and ``heading`` are an estimate's one wire form, written by
 float's every bit (Python writes the shortest repr that reads back the same), so a replayed
 recording is recorded unchanged.
 
-On receipt, :class:`Inbox` checks a payload: larger than :data:`MAX_PAYLOAD_BYTES`, not
-JSON, of an unknown version or type, with a missing, mistyped or inconsistent field (or
-a type that does not match its key expression): it is counted by reason and dropped with
-one log line, never an exception into the node.
+:func:`decode` checks a payload: larger than :data:`MAX_PAYLOAD_BYTES`, not JSON, of an
+unknown version or type, with a missing, mistyped or inconsistent field (or a type that does
+not match its key expression) raises :class:`PayloadError`, naming the reason; a receiving
+node's :class:`fusion.service.inbox.Inbox` counts it by reason and drops it with one log
+line, never an exception into the node.
 """
 
 from __future__ import annotations
 
 import json
-import logging
 import math
 import re
-import threading
-import time
-from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
@@ -62,8 +59,6 @@ MAX_PAYLOAD_BYTES = 1 << 20
 """1 MiB: a raw batch of 1 s of a 3-axis sensor at 1 kHz is about 60 kB."""
 ROOT = "armfusion"
 NAME_RE = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
-
-log = logging.getLogger("armfusion.service")
 
 
 class PayloadError(ValueError):
@@ -608,66 +603,3 @@ def decode(key: str, data: bytes) -> Payload:
     if isinstance(payload, RawBatch) and payload.stream.name != sensor:
         raise PayloadError("malformed", f"sensor {payload.stream.name!r} on sensor {sensor!r}'s key")
     return payload
-
-
-class DropLog:
-    """One warning line per reason per ``period_s`` at most, saying how many were not logged
-    since: a peer flooding bad payloads cannot flood the log. Thread-safe."""
-
-    def __init__(self, period_s: float = 1.0):
-        self.period_s = period_s
-        self._lock = threading.Lock()
-        self._last: dict[str, tuple[float, int]] = {}
-
-    def warn(self, reason: str, message: str, *args) -> None:
-        now = time.monotonic()
-        with self._lock:
-            last, quiet = self._last.get(reason, (-math.inf, 0))
-            if now - last < self.period_s:
-                self._last[reason] = (last, quiet + 1)
-                return
-            self._last[reason] = (now, 0)
-        more = f" ({quiet} more since the last line)" if quiet else ""
-        log.warning(message + "%s", *args, more)
-
-
-class Inbox:
-    """Decodes what a node receives, counting and dropping what is bad (with one log line per
-    reason per second at most, :class:`DropLog`).
-
-    Safe to call from Zenoh's receive threads: the counters take a lock.
-    """
-
-    def __init__(self, node: str):
-        self.node = node
-        self._lock = threading.Lock()
-        self._received = 0
-        self._dropped: Counter[str] = Counter()
-        self._log = DropLog()
-
-    def decode(self, key: str, data: bytes) -> Payload | None:
-        """The payload, or ``None`` (counted, logged) when it is not a valid one."""
-        with self._lock:
-            self._received += 1
-        try:
-            return decode(key, data)
-        except PayloadError as e:
-            reason, message = e.reason, str(e)
-        except Exception as e:  # noqa: BLE001 - a bad payload must never stop the node
-            reason, message = "malformed", f"{type(e).__name__}: {e}"
-        with self._lock:
-            self._dropped[reason] += 1
-        self._log.warn(reason, "%s: dropped a payload on %s (%s): %s", self.node, str(key)[:100], reason,
-                       message[:200])
-        return None
-
-    @property
-    def received(self) -> int:
-        with self._lock:
-            return self._received
-
-    @property
-    def dropped(self) -> dict[str, int]:
-        """Dropped payloads by reason: ``oversized``, ``malformed``, ``unknown_version``, ``bad_key``."""
-        with self._lock:
-            return dict(self._dropped)

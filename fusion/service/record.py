@@ -1,7 +1,7 @@
 """``armfusion record OUT.mcap``: record one robot's raw samples and estimates from Zenoh.
 
 Subscribes to ``armfusion/<robot>/raw/*`` and ``armfusion/<robot>/state/*``, checks each
-payload (:class:`~fusion.service.payloads.Inbox`: a bad one is counted and dropped) and
+payload (:class:`~fusion.service.inbox.Inbox`: a bad one is counted and dropped) and
 writes it through :class:`~sensors.recording_mcap.McapRecorder`: raw batches as the
 recording's streams (``armfusion replay`` of the result publishes them again), joint
 states and headings as their records (:mod:`fusion.tracking.estimate`: the payload without
@@ -23,6 +23,7 @@ from pathlib import Path
 import zenoh
 
 from fusion.service import payloads as pl
+from fusion.service.inbox import Inbox
 from fusion.service.node import BoundedReceiver
 from fusion.tracking.estimate import MCAP_CHANNELS, write_mcap_record
 from sensors.recording_mcap import McapRecorder
@@ -63,7 +64,7 @@ class Recorder:
         self.arm_config = arm_config
         self.flush_interval_s = flush_interval_s
         self.ready = threading.Event()
-        self._inbox = pl.Inbox("record")
+        self._inbox = Inbox("record")
         self._lock = threading.Lock()
         self._samples: Counter[str] = Counter()
         self._estimates: Counter[str] = Counter()

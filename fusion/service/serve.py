@@ -2,7 +2,7 @@
 then the tracker, sample by sample; publishes the joint state, the heading and a status.
 
 Raw batches arrive per sensor on ``armfusion/<robot>/raw/*``. Each is checked twice before
-anything else sees it: as a payload (:class:`~fusion.service.payloads.Inbox`) and against the
+anything else sees it: as a payload (:class:`~fusion.service.inbox.Inbox`) and against the
 arm's sensors and the sensors' own clock (:class:`~fusion.service.admission.Admission`);
 what fails is dropped and counted by reason (``dropped.<reason>`` in the status), and only
 accepted samples count as ``samples``.
@@ -56,6 +56,7 @@ from fusion.configfile import load_arm
 from fusion.service import payloads as pl
 from fusion.service import state_file
 from fusion.service.admission import Admission, AdmissionSettings
+from fusion.service.inbox import Inbox
 from fusion.service.maneuver import ManeuverEndpoint, ServedManeuver, same_arm_problem
 from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
 from fusion.service.reorder import Reorder, merge_batches
@@ -162,7 +163,7 @@ class FusionNode:
         self.ready = threading.Event()
         self._max_lag_s = max_lag_s
         self._reorder = Reorder(max_lag_s)
-        self._inbox = pl.Inbox("serve")
+        self._inbox = Inbox("serve")
         self._buffer: dict[str, list[Stream]] = {}
         self._recent = RecentSamples(recent_s, stream_models(arm))
         self._queries: queue.Queue = queue.Queue()

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from fusion.configfile import load_arm
 from fusion.service import payloads as pl
 from fusion.service.admission import REASONS, Admission, AdmissionSettings
+from fusion.service.inbox import Inbox
 from models.sensor_models import stream_models
 from sensors.samples import Stream
 
@@ -308,7 +309,7 @@ def test_a_flood_of_large_payloads_is_bounded_in_bytes_not_only_in_messages():
 def test_a_flood_of_bad_payloads_is_counted_in_full_but_logged_once_a_second(caplog, arm, models):
     import logging
 
-    inbox, adm = pl.Inbox("serve"), Admission(arm)
+    inbox, adm = Inbox("serve"), Admission(arm)
     with caplog.at_level(logging.WARNING, logger="armfusion.service"):
         for i in range(1000):
             inbox.decode(KEY, b"\x80garbage")

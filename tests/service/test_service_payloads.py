@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from fusion.service import payloads as pl
+from fusion.service.inbox import Inbox
 from fusion.tracking.estimate import Estimate
 from sensors.samples import Stream
 
@@ -170,7 +171,7 @@ def _bad_payload(case: str, rng) -> bytes:
 
 @pytest.mark.parametrize("case", list(BAD))
 def test_bad_payload_is_counted_and_dropped_with_one_log_line(case, rng, caplog):
-    inbox = pl.Inbox("record")
+    inbox = Inbox("record")
     with caplog.at_level(logging.WARNING, logger="armfusion.service"):
         got = inbox.decode(pl.raw_key("chair1", "acc1"), _bad_payload(case, rng))
     assert got is None
@@ -181,7 +182,7 @@ def test_bad_payload_is_counted_and_dropped_with_one_log_line(case, rng, caplog)
 
 
 def test_inbox_keeps_going_after_bad_payloads(rng):
-    inbox = pl.Inbox("record")
+    inbox = Inbox("record")
     key = pl.raw_key("chair1", "acc1")
     for case in BAD:
         inbox.decode(key, _bad_payload(case, rng))
@@ -190,7 +191,7 @@ def test_inbox_keeps_going_after_bad_payloads(rng):
 
 
 def test_key_outside_armfusion_is_dropped():
-    inbox = pl.Inbox("record")
+    inbox = Inbox("record")
     assert inbox.decode("other/chair1/raw/acc1", b"{}") is None
     assert inbox.dropped == {"bad_key": 1}
 
