@@ -195,8 +195,12 @@ class Compass:
     fused as one heading once the iron's doubt is below ``heading.fuse_below_deg``."""
 
     def __init__(self, arm: ArmModel, model: Model | None, field: FieldReference | None,
-                 settings: TrackerSettings, t_s: float, R_0I: np.ndarray | None = None):
+                 settings: TrackerSettings, t_s: float, R_0I: np.ndarray | None = None,
+                 delay_s: float = 0.0):
+        """``delay_s``: how long before its stamp the magnetometer's reading stands for the
+        field (its part's delay, its description's; :meth:`average` turns it to the stamp)."""
         st = settings
+        self.delay_s = float(delay_s)
         self.settings = st.heading
         self.field = field
         self.R_0I = np.eye(3) if R_0I is None else np.asarray(R_0I, float)
@@ -260,9 +264,14 @@ class Compass:
             wx, wy, wz = om.tolist()
             self._rot = self._rot @ exp_so3_one((wx * dt, wy * dt, wz * dt))
 
-    def average(self, t: float, m_B: np.ndarray):
-        """Take one field sample (µT, base axes): ``(count, mean field)`` when a period is
-        complete, else None."""
+    def average(self, t: float, m_B: np.ndarray, om: np.ndarray | None = None):
+        """Take one field sample (µT, base axes), the base turning at ``om`` (rad/s, base
+        axes; None: not known): ``(count, mean field)`` when a period is complete, else None.
+        A reading that stands for the field :attr:`delay_s` before its stamp is first turned to
+        the stamp by the base's turn over the delay (the accelerometers' alike:
+        :meth:`fusion.tracking.measurement.Measurements.stack`)."""
+        if self.delay_s and om is not None:
+            m_B = m_B - self.delay_s * np.cross(om, m_B)
         m = self._rot @ m_B  # in the base's axes at the period's start
         self._sum = m if self._n == 0 else self._sum + m
         self._n += 1

@@ -213,7 +213,7 @@ class Tracker:
         if self._enc0 is not None:
             self._start_filter(self._enc0 / self.counts_per_rad)
         self._t = float(t_s)
-        self.compass = Compass(self.arm, self.model, imu.field, st, t_s, self.R_0I)
+        self.compass = Compass(self.arm, self.model, imu.field, st, t_s, self.R_0I, self._mag_delay_s)
         self.enc_rates = CausalDifferentiator(n, st.encoder_window, st.encoder_order)
         self.gyro_rates = CausalDifferentiator(3, st.gyro_window, st.gyro_order)
         self._omega = None  # last gyro, base axes, rad/s
@@ -388,13 +388,11 @@ class Tracker:
         if mag is not None:
             mi = self._sidx[MAG]
             self.health.seen[mi], self.health.last_t[mi] = True, t
-            m_B = mag[1]
-            if self._mag_delay_s and self._omega is not None:
-                # a reading that stands for the field a delay before its stamp, turned to the
-                # stamp by the base's turn over the delay (the accelerometers' alike:
-                # Measurements.stack)
-                m_B = m_B - self._mag_delay_s * np.cross(self.process.rate(self._omega, ukf._x), m_B)
-            mag = self.compass.average(t, m_B) if self.compass.listening and frame is not None else None
+            m_B, mag = mag[1], None
+            if self.compass.listening and frame is not None:
+                om = (self.process.rate(self._omega, ukf._x)
+                      if self.compass.delay_s and self._omega is not None else None)
+                mag = self.compass.average(t, m_B, om)
             if mag is not None:
                 x, L = ukf._x, self.layout
                 mag = self.compass.prepare(t, mag[0], mag[1], float(x[L.roll]), float(x[L.pitch]),
