@@ -189,7 +189,7 @@ def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, scale, acce
             k = 1.0 if sn < 1e-12 else math.atan2(sn, c) / sn
             T[i, roll], T[i, roll + 1], T[i, yaw] = e0r + k * vx, e0p + k * vy, e0y + k * vz
         if vel >= 0:
-            _velocity_step(X, T, i, dt, w, have_w, bias, accel, accel_decay, vel, vel_gain)
+            _velocity_step(X, T, i, dt, E, have_w, accel, accel_decay, vel, vel_gain)
             for c3 in range(3):
                 Y[i, accel + c3] = T[i, accel + c3]
                 Y[i, vel + c3] = T[i, vel + c3]
@@ -207,26 +207,35 @@ def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, scale, acce
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _velocity_step(X, T, i, dt, w, have_w, bias, accel, accel_decay, vel, vel_gain):  # pragma: no cover
+def _velocity_step(X, T, i, dt, E, have_w, accel, accel_decay, vel, vel_gain):  # pragma: no cover
     """Point ``i``'s base acceleration ``a`` and velocity ``v`` (both base axes) over ``dt``,
     written into ``T``: in world axes ``v' = a`` and ``a' = -a / τ_a - v / (τ_a τ_v)``
-    (``accel_decay = exp(-dt / τ_a)``, ``vel_gain = dt / (τ_a τ_v)``), held in the base's
-    turning axes (each less ``ω ×`` itself, ``ω`` the point's gyro rates less its bias):
-    a damped oscillator for the velocity in the world, whose acceleration averages to zero
-    over time however large it is (a hand, or anything whose speed is bounded, cannot
-    accelerate one way for long), where a first-order acceleration alone can hold a
-    sustained acceleration (and so a tilt) for as long as it likes."""
-    wx = wy = wz = 0.0
-    if have_w:
-        wx, wy, wz = w[0] - X[i, bias], w[1] - X[i, bias + 1], w[2] - X[i, bias + 2]
+    (``accel_decay = exp(-dt / τ_a)``, ``vel_gain = dt / (τ_a τ_v)``): a damped oscillator
+    for the velocity in the world, whose acceleration averages to zero over time however
+    large it is (a hand, or anything whose speed is bounded, cannot accelerate one way for
+    long), where a first-order acceleration alone can hold a sustained acceleration (and so
+    a tilt) for as long as it likes. The step is taken in the world (in the base's axes at
+    the interval's start) and the result turned into the base's axes at its end by the
+    point's own turn over it, ``E = exp([ω dt]x)`` (``ω`` its gyro rates less its bias):
+    ``v' = E^T (v + a dt)``, exactly, at any turn rate (a first-order ``- ω × v dt`` lengthens
+    each vector by ``(|ω| dt)² / 2`` a step: at 1000 °/s and 285 Hz, by half of itself a
+    second)."""
     vx, vy, vz = X[i, vel], X[i, vel + 1], X[i, vel + 2]
     ax, ay, az = X[i, accel], X[i, accel + 1], X[i, accel + 2]
-    T[i, vel] = vx + dt * (ax - (wy * vz - wz * vy))
-    T[i, vel + 1] = vy + dt * (ay - (wz * vx - wx * vz))
-    T[i, vel + 2] = vz + dt * (az - (wx * vy - wy * vx))
-    T[i, accel] = ax * accel_decay - vel_gain * vx - dt * (wy * az - wz * ay)
-    T[i, accel + 1] = ay * accel_decay - vel_gain * vy - dt * (wz * ax - wx * az)
-    T[i, accel + 2] = az * accel_decay - vel_gain * vz - dt * (wx * ay - wy * ax)
+    ux, uy, uz = vx + dt * ax, vy + dt * ay, vz + dt * az
+    bx = ax * accel_decay - vel_gain * vx
+    by = ay * accel_decay - vel_gain * vy
+    bz = az * accel_decay - vel_gain * vz
+    if have_w:  # into the base's axes at the interval's end: E^T
+        T[i, vel] = E[0, 0] * ux + E[1, 0] * uy + E[2, 0] * uz
+        T[i, vel + 1] = E[0, 1] * ux + E[1, 1] * uy + E[2, 1] * uz
+        T[i, vel + 2] = E[0, 2] * ux + E[1, 2] * uy + E[2, 2] * uz
+        T[i, accel] = E[0, 0] * bx + E[1, 0] * by + E[2, 0] * bz
+        T[i, accel + 1] = E[0, 1] * bx + E[1, 1] * by + E[2, 1] * bz
+        T[i, accel + 2] = E[0, 2] * bx + E[1, 2] * by + E[2, 2] * bz
+    else:
+        T[i, vel], T[i, vel + 1], T[i, vel + 2] = ux, uy, uz
+        T[i, accel], T[i, accel + 1], T[i, accel + 2] = bx, by, bz
 
 
 @njit(cache=True, nogil=True)

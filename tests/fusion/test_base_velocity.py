@@ -117,6 +117,26 @@ def test_the_velocity_and_acceleration_are_world_vectors_held_in_the_turning_axe
     np.testing.assert_allclose(R_WB @ X[0, L.vel], [0.5, 0.5, 0.0], atol=2e-3)
 
 
+def test_a_fast_turn_at_a_hands_sample_rate_keeps_the_velocitys_length_and_world_direction() -> None:
+    # 1000 deg/s about a tilted axis for 1 s at BROAD's 285.714 Hz (3.5 deg a step), no decay,
+    # no oscillator: a world acceleration stays what it is and the velocity grows by a t,
+    # exactly (a first-order turn, v - ω × v dt, lengthens each by (|ω| dt)² / 2 a step: both
+    # would be 70 % longer after that second)
+    L = StateLayout(0, velocity=True)
+    X = np.zeros((1, L.size))
+    a_W, v_W = np.array([0.0, 0.0, 2.0]), np.array([0.3, -0.4, 0.0])
+    X[0, L.accel], X[0, L.vel] = a_W, v_W
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0
+    w, dt = np.radians(1000.0) * axis, 1.0 / 285.714
+    n = 286
+    for _ in range(n):
+        X, _ = process_points_tangent(X, dt, w, True, L.roll, L.yaw, L.bias.start, L.accel.start, L.scale,
+                                      1.0, L.vel.start, 0.0)
+    R_WB = R_from_rpy(*X[0, [L.roll, L.pitch, L.yaw]])
+    np.testing.assert_allclose(R_WB @ X[0, L.accel], a_W, atol=1e-9)
+    np.testing.assert_allclose(R_WB @ X[0, L.vel], v_W + a_W * n * dt, atol=1e-9)
+
+
 def test_a_hands_acceleration_is_motion_not_a_dead_accelerometer() -> None:
     # a reading whose magnitude is off the prediction by 1 g is implausible for a chair
     # (0.35 g, the setting), not for a hand whose own acceleration spreads 3 m/s² (4 sigma)
