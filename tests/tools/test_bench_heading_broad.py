@@ -20,12 +20,16 @@ import pytest
 from models.rotations import R_from_rpy
 from tools.bench_heading_broad import (
     PEERS,
+    FilterResult,
+    Scores,
+    TrialResult,
     enu_from_nwu,
     errors_rad,
     quat_from_rpy,
     read_trial,
     run_trial,
     scores,
+    targets_line,
 )
 
 SLICE = (Path(__file__).resolve().parents[1] / "data" / "broad"
@@ -158,3 +162,29 @@ def test_the_tool_prints_its_table_and_with_no_write_leaves_the_benchmarks_doc_a
     empty.mkdir()
     assert bench_heading_broad.main(["--data", str(empty), "--no-write"]) == 2
     assert "no .hdf5 trial in it" in capsys.readouterr().err
+
+
+def _row(trial: str, within: float, **scores: tuple[float, float]) -> TrialResult:
+    """A trial's result with each filter's (heading, inclination) RMSE as given."""
+    res = {n: FilterResult(n, n, Scores(h, i, float(np.hypot(h, i)), 100, 0, 0), 0.0, 0.0)
+           for n, (h, i) in scores.items()}
+    return TrialResult(trial, 100, 100, res, within, 1.0, (0.0, 1.0), {})
+
+
+def test_the_targets_are_judged_on_the_means_to_three_decimals_and_the_magnet_trials_sigma() -> None:
+    rows = [_row("02_undisturbed", 1.0, armfusion=(1.0, 0.682), vqf=(1.5, 0.690), ahrs=(3.0, 2.0)),
+            _row("30_disturbed_stationary_magnet_C", 0.96, armfusion=(2.0, 0.690), vqf=(2.0, 0.690),
+                 ahrs=(1.0, 3.0))]
+    line = targets_line(rows)
+    # the table's two decimals show 0.69 against 0.69; the line says which is lower, and by how much
+    assert "inclination 0.686 against 0.690 deg (0.994 times)" in line
+    assert "heading 1.500 against 1.750 deg (0.86 times)" in line
+    assert "below every peer's: met" in line  # ahrs's mean heading is 2.0
+    assert "no worse than vqf's: met" in line and "each magnetic-disturbance trial: met" in line
+    # a peer's heading lower, an inclination above vqf's, a magnet trial's heading outside its
+    # sigma too often: each said
+    worse = [_row("02_undisturbed", 1.0, armfusion=(1.0, 0.70), vqf=(1.5, 0.69), ahrs=(0.5, 2.0)),
+             _row("32_disturbed_attached_magnet_1cm", 0.90, armfusion=(2.0, 0.9), vqf=(2.0, 0.9),
+                  ahrs=(1.0, 3.0))]
+    line = targets_line(worse)
+    assert line.count("**not met**") == 3, line
