@@ -353,17 +353,17 @@ def targets_line(rows: list[TrialResult], ours: str = "armfusion", reference: st
     head = {n: _mean(rows, n, "heading_deg") for n in names}
     inc = {n: _mean(rows, n, "inclination_deg") for n in names}
     magnetic = [r.within_3sigma for r in rows if MAGNETIC in r.trial]
+    if reference not in names:
+        return f"{ours} ran without {reference}: its targets are not judged."
     verdict = {True: "met", False: "**not met**"}
     parts = [f"{ours}'s means against {reference}'s: heading {head[ours]:.3f} against "
              f"{head[reference]:.3f} deg ({head[ours] / head[reference]:.2f} times), inclination "
-             f"{inc[ours]:.3f} against {inc[reference]:.3f} deg ({inc[ours] / inc[reference]:.3f} times)."
-             if reference in names else f"{ours} ran without {reference}: its targets are not judged."]
-    if reference in names:
-        parts.append(f"Targets: mean heading below every peer's: "
-                     f"{verdict[all(head[ours] < head[n] for n in peers)]}; mean inclination no worse "
-                     f"than {reference}'s: {verdict[inc[ours] <= inc[reference]]}; heading within 3 sigma "
-                     f"on at least 95 % of each magnetic-disturbance trial: "
-                     + (verdict[min(magnetic) >= 0.95] if magnetic else "no such trial here") + ".")
+             f"{inc[ours]:.3f} against {inc[reference]:.3f} deg ({inc[ours] / inc[reference]:.3f} times).",
+             f"Targets: mean heading below every peer's: "
+             f"{verdict[all(head[ours] < head[n] for n in peers)]}; mean inclination no worse "
+             f"than {reference}'s: {verdict[inc[ours] <= inc[reference]]}; heading within 3 sigma "
+             f"on at least 95 % of each magnetic-disturbance trial: "
+             + (verdict[min(magnetic) >= 0.95] if magnetic else "no such trial here") + "."]
     return " ".join(parts)
 
 
