@@ -56,22 +56,33 @@ class ConfigError(ValueError):
 
 class _Strict(BaseModel):
     # every number finite: d_mm: .inf is a typo, not an arm
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False,
+                              use_attribute_docstrings=True)  # the reference's words
 
 
 class DhSection(_Strict):
     convention: Literal["modified", "standard"]
+    """modified (Craig): T = Rx(alpha) Tx(a) Rz(q + offset) Tz(d);
+    standard: T = Rz(q + offset) Tz(d) Tx(a) Rx(alpha)."""
     alpha_deg: list[float]
+    """Link twist, one entry per joint."""
     a_mm: list[float]
+    """Link length, one entry per joint."""
     d_mm: list[float]
+    """Link offset along the joint axis, one entry per joint."""
     offset_deg: list[float] | None = None
+    """Joint angle offset, one entry per joint (zeros by default)."""
 
 
 class JointsSection(_Strict):
     names: list[str] | None = None
+    """The joints' names (j1, j2, ... by default), one per joint, unique."""
     min_deg: list[float]
+    """Lower joint limit, one per joint."""
     max_deg: list[float]
+    """Upper joint limit, one per joint, above the lower."""
     counts_per_rev: list[float]
+    """Encoder counts per joint revolution, one per joint."""
     encoder_on_joint: list[bool] | None = None
     """Per joint, true where the encoder reads the joint itself (its counts exact); default
     false: through a gear or belt, whose ratio may be off."""
@@ -88,20 +99,33 @@ class JointsSection(_Strict):
 
 class BusSection(_Strict):
     kind: Literal["i2c", "spi"]
+    """The bus the device is on."""
     bus: int = Field(ge=0)
+    """The bus number (/dev/i2c-N, /dev/spidevN.x)."""
     address: int | None = Field(default=None, ge=0, le=0x7F)
+    """An I2C device's 7-bit address."""
     chip_select: int | None = Field(default=None, ge=0)
+    """An SPI device's chip select."""
 
 
 class SensorSection(_Strict):
     name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
+    """The sensor's name: its streams' and CSV columns' prefix (acc1_x, ...)."""
     type: str
+    """The device: adxl345, mpu9150, mpu6050, analog_triax or custom."""
     kind: str | None = None
+    """accelerometer, gyroscope, magnetometer or imu (the device's by default; a custom sensor needs it)."""
     link: int
+    """0: the base; k: rigid with link k (moved by joints 1..k)."""
     rotation: list[list[float]] = Field(default_factory=lambda: np.eye(3).tolist())
+    """R_LS: the sensor's axes in the link frame (a proper rotation)."""
     position_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    """The sensor's origin in the link frame."""
     bus: BusSection | None = None
+    """Where the driver reads it: {kind: spi, bus: 0, chip_select: 0} or
+    {kind: i2c, bus: 1, address: 0x53}."""
     settings: dict[str, Any] = Field(default_factory=dict)
+    """Device settings (an analog_triax's volts per unit and ADC)."""
     outputs: dict[str, dict[str, Any]] | None = None
     """Per part (accelerometer, gyroscope, magnetometer, temperature), how its values arrive
     where they differ from the device's datasheet (:mod:`models.sensor_description`)."""
@@ -144,10 +168,15 @@ def _rect(v) -> bool:
 
 class EffectEntry(_Strict):
     effect: str
+    """The effect's name in the effects library."""
     target: str | None = None
+    """What it acts on: a sensor, a stream or a joint, as the effect takes."""
     params: dict[str, Any] = Field(default_factory=dict)
+    """Its parameters' values, by name."""
     sigma: dict[str, Any] = Field(default_factory=dict)
+    """Their 1-sigma uncertainties, by name, where calibrated."""
     note: str | None = None
+    """Free text."""
 
 
 UnmodelledG = Annotated[float, Field(ge=0.0, le=1.0)]
@@ -208,22 +237,36 @@ class CalibrationSection(_Strict):
     """The ``calibration:`` block: how far the sensors' model is to be trusted."""
 
     accel_unmodelled_g: UnmodelledG | None = None
+    """Every accelerometer's unmodelled error, 1 sigma per axis."""
     accel_unmodelled_g_per_sensor: dict[str, UnmodelledG] | None = None
+    """A link accelerometer's (or the IMU's), by sensor name, in place of the common one."""
     imu_accel_unmodelled_g: UnmodelledG | None = None
+    """The base IMU accelerometer's unmodelled error (the common one by default)."""
     mag_unmodelled_ut: float | None = Field(default=None, ge=0.0, le=1000.0)
+    """What the compass's horizontal reading may be off Earth's field, 1 sigma."""
     gyro_scale_unmodelled: float | None = Field(default=None, ge=0.0, le=0.5)
+    """The gyro's scale-and-axes error left, a fraction, 1 sigma per axis."""
     correction_covariance: dict[str, CovarianceEntry] | None = None
+    """Per stream, the fit's covariance of its correction (written by calibrate sensors)."""
     identified: IdentifiedRecord | None = None
+    """What the fit that calibrated this config did (written by calibrate sensors)."""
 
 
 class ArmSection(_Strict):
     name: str
+    """The arm's name."""
     description: str | None = None
+    """Free text."""
     source: str | None = None
+    """Where the numbers come from (free text)."""
     dh: DhSection | None = None
+    """The DH table (or `urdf`)."""
     urdf: str | None = None
+    """A URDF file, relative to this config (or `dh`)."""
     joints: JointsSection
+    """Limits and encoders, one entry per joint."""
     ready_pose_deg: list[float]
+    """The park pose, inside the limits."""
 
 
 class BaseMotionSection(_Strict):
@@ -233,10 +276,15 @@ class BaseMotionSection(_Strict):
     axis), where it is not a wheelchair."""
 
     accel_sigma_mps2: float = Field(gt=0.0, le=200.0)
+    """The base acceleration's steady-state spread."""
     accel_tau_s: float = Field(gt=0.0, le=3600.0)
+    """How long an acceleration lasts (correlation time)."""
     speed_sigma_mps: float | None = Field(default=None, gt=0.0, le=100.0)
+    """The base speed's steady-state spread per axis, where it is bounded (a hand's)."""
     pivot_sigma_m: float | None = Field(default=None, gt=0.0, le=10.0)
+    """The prior spread of the origin's offset from the point the base turns about."""
     turns_about: Literal["vertical", "any"] = "vertical"
+    """vertical: a chair's turns; any: a hand's."""
 
 
 class SiteSection(_Strict):
@@ -245,6 +293,7 @@ class SiteSection(_Strict):
     gives it); with it the heading is from true north."""
 
     magnetic_declination_deg: float = Field(ge=-180.0, le=180.0)
+    """True north's angle from magnetic north, east positive."""
 
 
 class ChairSection(_Strict):
@@ -256,6 +305,7 @@ class ChairSection(_Strict):
     acceleration state holds only the turning centre's (a turn on the spot gives none)."""
 
     base_from_turning_centre_mm: list[float]
+    """The arm base's origin from the chair's turning centre, chair axes (x forward, y left, z up)."""
 
     @field_validator("base_from_turning_centre_mm")
     @classmethod
@@ -269,12 +319,19 @@ class ChairSection(_Strict):
 
 class ArmConfigFile(_Strict):
     arm: ArmSection
+    """The arm's kinematics, joints and encoders."""
     sensors: list[SensorSection]
+    """Every sensor: what it is, where it sits, how its values arrive."""
     effects: list[EffectEntry] = Field(default_factory=list)
+    """The calibrated physical effects."""
     calibration: CalibrationSection = Field(default_factory=CalibrationSection)
+    """How far the sensors' model is trusted."""
     base_motion: BaseMotionSection | None = None
+    """How the base moves, where it is not a wheelchair."""
     site: SiteSection | None = None
+    """Where the chair is used."""
     chair: ChairSection | None = None
+    """Where the wheelchair turns."""
 
 
 def _loc(loc: tuple) -> str:
