@@ -274,7 +274,7 @@ def benchmarks_section(results: list[TrialResult], calibrate_s: float) -> str:
             f"{_best_peer(r)} |")
     lines += [
         "",
-        "Targets (issue 18) and where they stand:",
+        "Targets and where they stand:",
         "",
         f"- Encoder as relative encoder, zero found to ≤ {ZERO_TARGET_DEG}° within {ZERO_WITHIN_S:g} s: "
         + ("met on every horizontal trial." if all(
