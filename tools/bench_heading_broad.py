@@ -367,6 +367,19 @@ def targets_line(rows: list[TrialResult], ours: str = "armfusion", reference: st
     return " ".join(parts)
 
 
+def headline_rows(rows: list[TrialResult], ours: str = "armfusion", reference: str = "vqf") -> list[dict]:
+    """The README's rows: the mean heading and inclination over the trials, against
+    ``reference`` in the same run."""
+    out = []
+    for metric, words in (("heading_deg", "heading"), ("inclination_deg", "inclination")):
+        mine = _mean(rows, ours, metric)
+        theirs = f"{reference} {_mean(rows, reference, metric):.2f}°" if reference in rows[0].results else ""
+        out.append({"what": f"BROAD, a real hand-held IMU ({len(rows)} trials, one parameter set, "
+                            f"in sample): mean {words} RMSE",
+                    "armfusion": f"{mine:.2f}°", "baseline": theirs})
+    return out
+
+
 def report_md(rows: list[TrialResult], data: Path) -> str:
     """The docs/benchmarks.md section: per trial and filter, the three RMSEs; the means."""
     from tools.benchdoc import machine_line
@@ -459,9 +472,10 @@ def main(argv=None) -> int:
     if a.no_write:
         print(md)
     else:
-        from tools.benchdoc import write_section
+        from tools.benchdoc import record_headline, write_section
 
         print(f"wrote {write_section('bench_heading_broad', md)}")
+        record_headline("bench_heading_broad", headline_rows(rows))
     return 0
 
 

@@ -6,15 +6,21 @@ several scripts share the file and re-running one replaces only its own section.
 
 from __future__ import annotations
 
+import datetime
+import json
 import os
 import platform
 import re
+import subprocess
 from pathlib import Path
 
 import numpy as np
 from scipy.stats import binomtest
 
 BENCH_DOC = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
+HEADLINE = BENCH_DOC.parent / "headline.json"
+"""The few figures the README's table shows, each written by the tool that measured it, with
+the date and commit it was measured on (``tools/headline.py`` renders them)."""
 HEADER = (
     "# Benchmarks\n\n"
     "Measured by the scripts in `tools/`, each of which rewrites its own section below.\n"
@@ -56,3 +62,28 @@ def wilson(k: int, n: int) -> tuple[float, float]:
     """The Wilson 95 % interval on a proportion of ``k`` in ``n``."""
     ci = binomtest(k, n).proportion_ci(0.95, method="wilson")
     return float(ci.low), float(ci.high)
+
+
+def measured_on() -> dict:
+    """The date (UTC), the commit (``+`` when the work tree had changes) and the machine a
+    figure is measured on."""
+    root = BENCH_DOC.parent.parent
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
+                                text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = "", ""
+    return {"date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
+            "commit": (commit or "unknown") + ("+" if dirty else ""), "machine": machine_line()}
+
+
+def record_headline(name: str, rows: list[dict], path: Path = HEADLINE) -> Path:
+    """Keep a tool's headline rows (each ``{"what", "armfusion", "baseline"}``: the figure
+    in words, ours, and the baseline's in the same run or "" where there is none) under its
+    name in ``docs/headline.json``, with when and where they were measured."""
+    data = json.loads(path.read_text(encoding="utf-8")) if path.exists() else {}
+    data[name] = {"rows": rows, **measured_on()}
+    path.write_text(json.dumps(data, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+    return path
