@@ -170,6 +170,7 @@ def info(
     config: ConfigOpt = "wmra",
     json_out: JsonOpt = False,
     plot: Annotated[Path | None, typer.Option(help="Also draw the arm at its ready pose to this PNG.")] = None,
+    urdf: Annotated[Path | None, typer.Option(help="Also write the arm's URDF (its joints and sensor frames, for robot_state_publisher: docs/ros2.md).")] = None,
 ) -> None:
     """Print the arm: its joints, its sensors, and which joints each sensor sees."""
 
@@ -177,6 +178,8 @@ def info(
 
     if plot is not None:
         check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES)
+    if urdf is not None:
+        check_output_path(urdf, "--urdf", suffixes=(".urdf",))
     arm = load_arm_or_exit(config)
     d = describe_arm(arm)
     if plot is not None:
@@ -187,6 +190,14 @@ def info(
         except OSError as e:
             fail(f"--plot {plot}: cannot write the drawing: {e.strerror or e}")
         d["plot"] = str(plot)
+    if urdf is not None:
+        from fusion.ros2.urdf import urdf_from_arm
+
+        try:
+            urdf.write_text(urdf_from_arm(arm), encoding="utf-8")
+        except OSError as e:
+            fail(f"--urdf {urdf}: cannot write the URDF: {e.strerror or e}")
+        d["urdf"] = str(urdf)
     if json_out:
         emit_json(d)
         return
@@ -211,6 +222,8 @@ def info(
             f"{e['effect']}" + (f":{e['target']}" if e["target"] else "") for e in d["effects"]))
     if plot is not None:
         console.print(f"Drawing written to {plot}")
+    if urdf is not None:
+        console.print(f"URDF written to {urdf}")
 
 
 def _table(title: str, left: tuple[str, ...], right: tuple[str, ...] = ()):

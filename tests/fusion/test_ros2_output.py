@@ -194,3 +194,45 @@ def test_the_track_command_writes_a_ros2_bag_by_its_name(tmp_path: Path) -> None
     assert json.loads(r.stdout)["out"].endswith("est.ros2.mcap")
     with open(tmp_path / "est.ros2.mcap", "rb") as f:
         assert make_reader(f).get_header().profile == "ros2"
+
+
+# ---------------------------------------------------------------------------- the URDF
+
+
+@pytest.mark.parametrize("config", ["wmra", "crs_a465", "imu_rig_yaw", "wmra with DH offsets"])
+def test_the_urdf_puts_every_sensor_and_the_flange_where_the_arm_model_does(
+    tmp_path: Path, config: str
+) -> None:
+    import yaml
+    import yourdfpy
+
+    from models.kinematics import chain_poses, sensor_poses
+
+    if config == "wmra with DH offsets":  # each joint's zero turned: the URDF's origins carry it
+        cfg = yaml.safe_load(Path(load_arm("wmra").source).read_text())
+        cfg["arm"]["dh"]["offset_deg"] = [10, -20, 30, 0, 5, 0, -45]
+        config = str(tmp_path / "offsets.yaml")
+        Path(config).write_text(yaml.safe_dump(cfg))
+    path = tmp_path / "arm.urdf"
+    r = runner.invoke(app, ["info", "--config", config, "--urdf", str(path), "--json"])
+    assert r.exit_code == 0, r.output and json.loads(r.stdout)["urdf"] == str(path)
+    arm = load_arm(config)
+    robot = yourdfpy.URDF.load(str(path), build_scene_graph=True, load_meshes=False)
+    assert [j for j in robot.actuated_joint_names] == list(arm.joint_names)
+    rng = np.random.default_rng(3)
+    names = [s.name for s in arm.sensors]
+    for _ in range(5):
+        q = rng.uniform(arm.min_rad, arm.max_rad)
+        robot.update_cfg(dict(zip(arm.joint_names, q, strict=True)))
+        R_0S, p_0S = sensor_poses(arm, q, names)
+        for k, name in enumerate(names):
+            T = robot.get_transform(frame_to=name, frame_from=BASE_FRAME)
+            np.testing.assert_allclose(T[:3, :3], R_0S[0, k], atol=1e-9, err_msg=name)
+            np.testing.assert_allclose(T[:3, 3], p_0S[0, k], atol=1e-9, err_msg=name)
+        if arm.n_joints:
+            poses = chain_poses(arm, q)
+            T = robot.get_transform(frame_to="flange", frame_from=BASE_FRAME)
+            np.testing.assert_allclose(T[:3, :3], poses.R_0L[0, -1], atol=1e-9)
+            np.testing.assert_allclose(T[:3, 3], poses.p_0L_m[0, -1], atol=1e-9)
+    lim = {j.name: (j.limit.lower, j.limit.upper) for j in robot.robot.joints if j.type == "revolute"}
+    assert lim == {j.name: (j.min_rad, j.max_rad) for j in arm.joints}
