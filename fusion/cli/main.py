@@ -72,7 +72,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
               "its first still stretch (or, with --moving-start, on its least-moving instants), then "
               "the unscented Kalman filter on every sample.",
               "fusion.cli.track:register"),
-    "import": ("Turn a foreign recording (CSV, MATLAB .mat, HDF5) into the arm's native one: each "
+    "import": ("Turn a foreign recording (CSV, MATLAB .mat, HDF5, a ROS bag) into the arm's native one: each "
                "stream from the columns the map names, in the unit the config declares; rows whose time "
                "does not increase dropped, NaN kept as gaps, every change said.",
                "fusion.cli.import_cmd:register"),
