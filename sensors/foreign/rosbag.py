@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sensors.foreign.table import ForeignFileError, available_words, check_size
+from sensors.foreign.table import MAX_FILE_BYTES, ForeignFileError, available_words, check_size
 from sensors.samples import clipped_repr
 
 MESSAGE_TYPES: dict[str, str] = {
@@ -214,6 +214,11 @@ def read_topics(path: str | Path, wanted: Mapping[str, Sequence[str]]) -> dict[s
         raise ForeignFileError(f"{p}: no such file or bag directory")
     if p.is_file():
         check_size(p)
+    else:  # a rosbag2 directory: its storage files together
+        size = sum(f.stat().st_size for f in p.iterdir() if f.is_file())
+        if size > MAX_FILE_BYTES:
+            raise ForeignFileError(f"{p}: {size / 1e9:.1f} GB of storage is more than the import reads "
+                                   f"({MAX_FILE_BYTES / 1e9:.1f} GB); split the bag")
     try:
         reader = AnyReader([p], default_typestore=_typestore())
         reader.open()

@@ -352,6 +352,13 @@ def test_a_malformed_message_is_refused_by_topic_and_index(tmp_path: Path, wmra)
         import_bag(bag, parse_column_map(_one_topic_map(), "m.yaml"), arm, "wmra")
 
 
+def test_a_file_that_is_not_a_bag_is_refused_naming_it(tmp_path: Path, wmra) -> None:
+    arm, _ = wmra
+    (tmp_path / "x.mcap").write_bytes(b"not an mcap file at all")
+    with pytest.raises(ForeignFileError, match=r"x\.mcap: not a readable rosbag2, MCAP storage \("):
+        import_bag(tmp_path / "x.mcap", parse_column_map(_one_topic_map(), "m.yaml"), arm, "wmra")
+
+
 def test_a_bag_map_is_checked_like_any_map() -> None:
     with pytest.raises(ColumnMapError) as e:
         parse_column_map(
