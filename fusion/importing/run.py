@@ -60,6 +60,9 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     config or file) or :class:`~sensors.foreign.ForeignFileError` (the file), both
     ``ValueError``, naming the stream, the column, the file and the unit."""
     path = Path(src)
+    if cmap.is_bag:
+        raise ImportMapError(f"column map {cmap.source} names topics and fields (a ROS bag's map), but "
+                             f"{path} is not a ROS bag (a rosbag2 directory, .mcap, .db3, or a ROS 1 .bag)")
     targets = check_map_against(cmap, arm, config)
     cols = read_columns(path, cmap.columns(), cmap.scalars())
     n = cols.n_rows

@@ -359,6 +359,24 @@ def test_a_file_that_is_not_a_bag_is_refused_naming_it(tmp_path: Path, wmra) -> 
         import_bag(tmp_path / "x.mcap", parse_column_map(_one_topic_map(), "m.yaml"), arm, "wmra")
 
 
+def test_a_bag_map_and_a_table_map_each_refuse_the_others_file(tmp_path: Path, wmra) -> None:
+    arm, _ = wmra
+    (tmp_path / "t.csv").write_text("t,a\n0,1\n")
+    with pytest.raises(
+        ImportMapError, match=r"names topics and fields \(a ROS bag's map\), but .*t\.csv is not a ROS bag"
+    ):
+        import_recording(tmp_path / "t.csv", parse_column_map(_one_topic_map(), "m.yaml"), arm, "wmra")
+    table = parse_column_map(
+        {
+            "time": {"column": "t", "unit": "s"},
+            "streams": {"acc1": {"columns": ["a", "a", "a"], "unit": "counts"}},
+        },
+        "t.yaml",
+    )
+    with pytest.raises(ImportMapError, match=r"is a ROS bag, but column map t\.yaml names columns"):
+        import_bag(tmp_path / "b.mcap", table, arm, "wmra")
+
+
 def test_a_bag_map_is_checked_like_any_map() -> None:
     with pytest.raises(ColumnMapError) as e:
         parse_column_map(
