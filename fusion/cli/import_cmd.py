@@ -30,7 +30,7 @@ def register(app: typer.Typer) -> None:
 
 def import_recording_cmd(
     source: Annotated[Path, typer.Argument(help="The foreign recording: .csv (a header row of names), .mat (MATLAB v5), .h5/.hdf5, or a ROS bag (a rosbag2 directory, .mcap, .db3; ROS 1 .bag).")],
-    column_map: Annotated[str, typer.Option("--map", "-m", help="Column map (YAML): a path, or a shipped one by name (imu-rig, broad).")],
+    column_map: Annotated[str, typer.Option("--map", "-m", help="Column map (YAML): a path, or a shipped one by name (imu-rig, broad, ros2-wmra).")],
     out: RecordingOutOpt,
     config: ConfigOpt = "wmra",
     json_out: JsonOpt = False,

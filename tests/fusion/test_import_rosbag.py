@@ -141,18 +141,18 @@ WMRA_MAP = {
                 "topic": f"/arm/acc{k}",
                 "fields": ["vector.x", "vector.y", "vector.z"],
                 "unit": "counts",
-                "frame_id": f"acc{k}_link",
+                "frame_id": f"acc{k}",
             }
             for k in range(1, 5)
         },
         "imu_acc": {
-            "topic": "/imu/data",
+            "topic": "/imu/data_raw",
             "fields": ["linear_acceleration.x", "linear_acceleration.y", "linear_acceleration.z"],
             "unit": "m/s^2",
             "frame_id": "imu",
         },
         "imu_gyro": {
-            "topic": "/imu/data",
+            "topic": "/imu/data_raw",
             "fields": ["angular_velocity.x", "angular_velocity.y", "angular_velocity.z"],
             "unit": "rad/s",
         },
@@ -183,11 +183,11 @@ def wmra_bag(path: Path, arm, rec, fmt: str) -> Path:
         s = rec.get(f"acc{k}")
         topics[f"/arm/acc{k}"] = (
             "geometry_msgs/msg/Vector3Stamped",
-            [(t, msg_vector3(ts, t, f"acc{k}_link", v)) for t, v in zip(_ns(s.t_s), s.values, strict=True)],
+            [(t, msg_vector3(ts, t, f"acc{k}", v)) for t, v in zip(_ns(s.t_s), s.values, strict=True)],
         )
     acc_si = models["imu_acc"].from_counts(rec.get("imu_acc").values) * 9.80665  # g -> m/s^2
     gyro_si = models["imu_gyro"].from_counts(rec.get("imu_gyro").values)
-    topics["/imu/data"] = (
+    topics["/imu/data_raw"] = (
         "sensor_msgs/msg/Imu",
         [(t, msg_imu(ts, t, "imu", a, g)) for t, a, g in zip(t_ns, acc_si, gyro_si, strict=True)],
     )
@@ -233,7 +233,7 @@ def test_a_simulated_wmra_bag_imports_to_the_samples_it_was_made_from(tmp_path: 
         np.testing.assert_array_equal(got.get(name).t_s, rec.get(name).t_s)
     assert result.summary["streams"]["enc"]["rounding_max_counts"] < 1e-6
     assert result.changes == ()
-    topic = result.summary["topics"]["/imu/data"]
+    topic = result.summary["topics"]["/imu/data_raw"]
     assert topic["messages"] == len(rec.get("imu_acc")) and topic["rate_hz"] == pytest.approx(100.0)
     assert topic["gaps"] == 0 and topic["frame_ids"] == {"imu": len(rec.get("imu_acc"))}
     assert result.summary["topics"]["/truth"]["stamp"] == "receive"
@@ -642,3 +642,20 @@ def test_the_command_reads_a_bag_directory_and_its_storage_file_alike(tmp_path: 
             "rosbag2 directory" if k == 0 else "rosbag2, SQLite3 storage"
         )
     assert outs[0].read_text() == outs[1].read_text()
+
+
+def test_the_shipped_ros2_map_imports_a_wmra_bag_through_the_command(tmp_path: Path, wmra) -> None:
+    arm, rec = wmra
+    bag = wmra_bag(tmp_path / "wmra", arm, rec, "mcap")
+    out = tmp_path / "rec.mcap"
+    r = runner.invoke(
+        app, ["import", str(bag), "--map", "ros2-wmra", "--config", "wmra", "--out", str(out), "--json"]
+    )
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout)
+    assert s["not_mapped"] == ["imu_temp", "true_q", "true_base"] and s["changes"] == []
+    assert s["topics"]["/arm/acc3"]["frame_ids"] == {"acc3": len(rec.get("acc3"))}
+    back = read_recording(out)
+    for name in ("acc1", "acc2", "acc3", "acc4", "enc"):
+        np.testing.assert_array_equal(back.get(name).values, rec.get(name).values, err_msg=name)
+    np.testing.assert_allclose(back.get("imu_gyro").values, rec.get("imu_gyro").values, rtol=0, atol=1e-6)
