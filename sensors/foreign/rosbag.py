@@ -81,12 +81,31 @@ class BagTopic:
 
 @dataclass(frozen=True)
 class _Layout:
-    """Where one message's values lie: ``numbers[path] = (offset, dtype)``; its strings;
-    the structural byte spans (``(start, stop)``) that fix the layout."""
+    """Where one message's values lie: ``numbers[path] = (offset, dtype)`` for a single number,
+    ``arrays[path] = (offset, dtype, count)`` for an array or sequence of numbers (element
+    ``path[k]`` at ``offset + k * itemsize``); its strings; the structural byte spans
+    (``(start, stop)``) that fix the layout."""
 
     numbers: dict[str, tuple[int, np.dtype]]
+    arrays: dict[str, tuple[int, np.dtype, int]]
     strings: dict[str, str]
     spans: list[tuple[int, int]]
+
+    def locate(self, path: str) -> tuple[int, np.dtype] | None:
+        """The offset and type of the number at ``path`` (``a.b``, ``a[k]``), or None."""
+        if path in self.numbers:
+            return self.numbers[path]
+        m = re.fullmatch(r"(.*)\[(\d+)\]", path)
+        if m is None or m.group(1) not in self.arrays:
+            return None
+        off, dt, n = self.arrays[m.group(1)]
+        k = int(m.group(2))
+        return (off + k * dt.itemsize, dt) if k < n else None
+
+    def fields(self) -> list[str]:
+        """The numbers' paths for a message, an array's as ``path[K]``."""
+        names = [re.sub(r"\[\d+\]", "[K]", k) for k in self.numbers]
+        return list(dict.fromkeys([*names, *(f"{k}[K]" for k in self.arrays)]))
 
 
 class _Walker:
@@ -97,6 +116,7 @@ class _Walker:
     def __init__(self, fielddefs, buf: bytes, ros1: bool):
         self.defs, self.buf, self.ros1 = fielddefs, buf, ros1
         self.numbers: dict[str, tuple[int, np.dtype]] = {}
+        self.arrays: dict[str, tuple[int, np.dtype, int]] = {}
         self.strings: dict[str, str] = {}
         if ros1:
             self.pos, self.little, self.spans = 0, True, []
@@ -152,6 +172,13 @@ class _Walker:
                 n = self.count()
                 if n > len(self.buf):
                     raise ValueError(f"sequence {path} claims {n} elements in {len(self.buf)} bytes")
+            if int(inner[0]) == 1 and inner[1][0] in _SIZES:  # numbers: where they start, at once
+                size = _SIZES[inner[1][0]]
+                if n:
+                    self.align(size)
+                self.arrays[path] = (self.take(size * n), np.dtype(
+                    f"{'<' if self.little else '>'}{_KINDS[inner[1][0]]}{size}"), n)
+                return
             for k in range(n):
                 self.node(f"{path}[{k}]", inner)
 
@@ -165,7 +192,7 @@ def _layout(fielddefs, typename: str, buf: bytes, ros1: bool) -> _Layout:
     w.message("", typename)
     if len(buf) - w.pos > (0 if ros1 else 3):  # CDR may pad the end to 4 bytes
         raise ValueError(f"holds {len(buf) - w.pos} bytes after its last field")
-    return _Layout(w.numbers, w.strings, w.spans)
+    return _Layout(w.numbers, w.arrays, w.strings, w.spans)
 
 
 def _field_path(field: str, layout: _Layout) -> str | None:
@@ -185,7 +212,7 @@ def _field_path(field: str, layout: _Layout) -> str | None:
             index = str(names.index(index))
         out.append(name if index is None else f"{name}[{int(index)}]")
     path = ".".join(out)
-    return path if path in layout.numbers else None
+    return path if layout.locate(path) is not None else None
 
 
 def check_field(field: str) -> str | None:
@@ -290,14 +317,13 @@ def _decode(path: Path, reader, msgtype: str, topic: str, raws: list, log_ns: li
             for f in fields:
                 fp = _field_path(f, lay)
                 if fp is None:
-                    have = ", ".join(dict.fromkeys(re.sub(r"\[\d+\]", "[K]", k) for k in lay.numbers
-                                                   if not k.startswith("header.")))
+                    have = ", ".join(k for k in lay.fields() if not k.startswith("header."))
                     names = [v for k, v in lay.strings.items() if k.startswith("name[")]
                     joints = f"; its joints {', '.join(names)}" if names else ""
                     raise ForeignFileError(f"{where}: message {first} (from 0) has no field "
                                            f"{clipped_repr(f)}{joints}; its numbers: "
                                            f"{clipped_repr(have, 200)[1:-1]}")
-                off, dt = lay.numbers[fp]
+                off, dt = lay.locate(fp)
                 col = part[:, off:off + dt.itemsize].copy().view(dt).reshape(-1).astype(np.float64)
                 if not _agrees(decoded, fp, col[0]):
                     raise ForeignFileError(f"{where}: message {first} (from 0): field {f} reads "
