@@ -111,7 +111,10 @@ class ColumnMap:
         """A bag's map: every topic read and its fields, once each, in map order."""
         out: dict[str, list[str]] = {}
         for s in self.streams.values():
-            out.setdefault(s.topic, []).extend(f for f in s.columns if f not in out.get(s.topic, []))
+            fields = out.setdefault(s.topic, [])
+            for f in s.columns:
+                if f not in fields:
+                    fields.append(f)
         return out
 
     def columns(self) -> list[str]:
