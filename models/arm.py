@@ -134,7 +134,9 @@ class ArmCalibration:
     one-time joint references the calibration's joint zeros rest on;
     ``joint_zero_conventions``: the elements the calibration held to fix a gauge (its joint
     zeros and mounts are fitted relative to them). An empty block (an uncalibrated config)
-    is all zeros and empty.
+    is all zeros and empty; the config loader fills in each sensor's datasheet-typical floor
+    where the block gives none, and names them in ``floors_by_default`` (where each came
+    from: ``{"forearm": "custom accelerometer, 0.05 g"}``).
     """
 
     accel_unmodelled_g: float = 0.0
@@ -145,6 +147,7 @@ class ArmCalibration:
     correction_covariance: Mapping[str, CorrectionCovariance] = field(default_factory=dict)
     references: tuple[JointReference, ...] = ()
     joint_zero_conventions: tuple[str, ...] = ()
+    floors_by_default: Mapping[str, str] = field(default_factory=dict)
 
     def accel_floor_g(self, sensor: str) -> float:
         """A link accelerometer's unmodelled error [g]: its own, else the common one."""
@@ -158,15 +161,18 @@ class ArmCalibration:
 
     def with_accel_floor(self, accel_unmodelled_g: float) -> ArmCalibration:
         """The same calibration with one unmodelled error for every accelerometer (the
-        per-sensor ones dropped), as ``track --unmodelled-g`` and the benchmarks set it."""
+        per-sensor ones dropped, and the base IMU's where it was a default), as ``track
+        --unmodelled-g`` and the benchmarks set it."""
+        imu_own = None if "imu_acc" in self.floors_by_default else self.imu_accel_unmodelled_g
         return replace(self, accel_unmodelled_g=float(accel_unmodelled_g),
-                       accel_unmodelled_g_per_sensor={})
+                       accel_unmodelled_g_per_sensor={}, imu_accel_unmodelled_g=imu_own,
+                       floors_by_default={k: v for k, v in self.floors_by_default.items() if k == "imu_mag"})
 
     def as_exact(self) -> ArmCalibration:
         """The same calibration with nothing unmodelled (no accelerometer floor, no compass
         floor): sensors exactly as modelled, as a simulation with noise only draws them."""
         return replace(self.with_accel_floor(0.0), imu_accel_unmodelled_g=None, mag_unmodelled_ut=0.0,
-                       gyro_scale_unmodelled=None)
+                       gyro_scale_unmodelled=None, floors_by_default={})
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from models.arm import (
     joints_from_dh,
 )
 from models.rotations import DEG, rotation_problem
-from models.sensor_description import DEVICE_TYPES, SensorDescription, describe
+from models.sensor_description import DEVICE_TYPES, SensorDescription, describe, unmodelled_floor
 from sensors.samples import clipped_repr
 
 
@@ -501,7 +501,7 @@ def build_arm(
         name=arm.name, joints=joints, sensors=sensors,
         ready_pose_rad=_ro(np.array(arm.ready_pose_deg) * DEG), dh=dh_table, source=source,
         effects=tuple(parsed.effects),
-        calibration=_calibration(parsed.calibration),
+        calibration=_calibration(parsed.calibration, sensors),
         base_motion=(None if parsed.base_motion is None else
                      BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s,
                                 parsed.base_motion.speed_sigma_mps, parsed.base_motion.pivot_sigma_m,
@@ -513,14 +513,42 @@ def build_arm(
     )
 
 
-def _calibration(section: CalibrationSection) -> ArmCalibration:
-    """The validated ``calibration:`` block as the typed object the estimators read."""
+def _default_floors(section: CalibrationSection, sensors: tuple[SensorMount, ...]) -> tuple[dict, dict]:
+    """The unmodelled-error floors the block does not give, each sensor's datasheet-typical
+    one (:data:`models.sensor_description.UNMODELLED_FLOOR`): ``({key: value}, {key: where
+    from})``, keys a link accelerometer's name, ``imu_acc``, ``imu_mag``. A floor the block
+    gives, even 0 (sensors as exact as modelled), is never replaced."""
+    values: dict[str, float] = {}
+    said: dict[str, str] = {}
+    given = section.accel_unmodelled_g_per_sensor or {}
+    for s in sensors:
+        if s.is_link_accelerometer and section.accel_unmodelled_g is None and s.name not in given:
+            values[s.name] = unmodelled_floor(s.description.device, "accelerometer")
+            said[s.name] = f"{s.description.device} accelerometer, {values[s.name]:g} g"
+        if s.is_base_imu:
+            if section.accel_unmodelled_g is None and section.imu_accel_unmodelled_g is None \
+                    and s.name not in given:
+                values["imu_acc"] = unmodelled_floor(s.description.device, "accelerometer")
+                said["imu_acc"] = f"{s.description.device} accelerometer, {values['imu_acc']:g} g"
+            if s.description.has("magnetometer") and section.mag_unmodelled_ut is None:
+                values["imu_mag"] = unmodelled_floor(s.description.device, "magnetometer")
+                said["imu_mag"] = f"{s.description.device} magnetometer, {values['imu_mag']:g} uT"
+    return values, said
+
+
+def _calibration(section: CalibrationSection, sensors: tuple[SensorMount, ...] = ()) -> ArmCalibration:
+    """The validated ``calibration:`` block as the typed object the estimators read, each
+    floor it does not give the sensor's datasheet-typical one (:func:`_default_floors`)."""
     identified = section.identified
+    defaults, said = _default_floors(section, sensors)
+    per_sensor = dict(section.accel_unmodelled_g_per_sensor or {})
+    per_sensor.update({k: v for k, v in defaults.items() if k not in ("imu_acc", "imu_mag")})
     return ArmCalibration(
         accel_unmodelled_g=float(section.accel_unmodelled_g or 0.0),
-        accel_unmodelled_g_per_sensor=dict(section.accel_unmodelled_g_per_sensor or {}),
-        imu_accel_unmodelled_g=section.imu_accel_unmodelled_g,
-        mag_unmodelled_ut=float(section.mag_unmodelled_ut or 0.0),
+        accel_unmodelled_g_per_sensor=per_sensor,
+        imu_accel_unmodelled_g=defaults.get("imu_acc", section.imu_accel_unmodelled_g),
+        mag_unmodelled_ut=float(defaults.get("imu_mag", section.mag_unmodelled_ut or 0.0)),
+        floors_by_default=said,
         gyro_scale_unmodelled=(None if section.gyro_scale_unmodelled is None
                                else float(section.gyro_scale_unmodelled)),
         correction_covariance={

@@ -36,7 +36,7 @@ from fusion.tracking.differentiator import CausalDifferentiator
 from fusion.tracking.estimate import HEADING_STATUS, Estimate
 from fusion.tracking.frame_kernels import FrameConstants
 from fusion.tracking.frames import Frames
-from fusion.tracking.health import SensorHealth
+from fusion.tracking.health import SensorHealth, sensor_warnings
 from fusion.tracking.initial import Ambiguity, ImuStill, initial_state, limits_cover_var, read_by_startup
 from fusion.tracking.innovations import InnovationLog
 from fusion.tracking.live import fuse_instant
@@ -623,6 +623,17 @@ class Tracker:
         out_of_order, reacquisitions."""
         self._check()
         return self.health.counters()
+
+    def sensor_warnings(self) -> list[str]:
+        """The accelerometers rejected (or left out as implausible) more often than
+        ``settings.warn_rejected_share`` of their samples so far, each with why
+        (:func:`fusion.tracking.health.sensor_warnings`)."""
+        self._check()
+        floors = dict(zip(self.accel_streams, self._unmodelled_g.tolist(), strict=True))
+        if IMU_ACC in floors:
+            floors[IMU_ACC] = self.arm.calibration.imu_accel_floor_g
+        return sensor_warnings(self.counters(), self.nis_stats(), floors,
+                               dict(self.arm.calibration.floors_by_default), self.settings)
 
     def innovations(self, sensor: str) -> InnovationLog:
         """The innovations kept for ``sensor`` (a link accelerometer, ``imu_acc``, ``imu_mag``):

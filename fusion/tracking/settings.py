@@ -161,6 +161,11 @@ class TrackerSettings:
     # gating and re-acquisition
     gate_significance: float = 1e-3
     """Chi-square gate on each sensor's NIS: probability that a good sample is rejected."""
+    warn_rejected_share: float = 0.05
+    """A sensor whose samples the gate rejected (or left out as implausible) more often than
+    this share of the time is named, with why, in the tracker's warnings
+    (:meth:`fusion.tracking.tracker.Tracker.sensor_warnings`): fifty times what the gate
+    costs a sensor its model fits (``gate_significance``)."""
     reacquire_after_s: float = 0.4
     """A sensor rejected for this long is a state change (a slip), not a bump."""
     slip_sigma_deg: float = 1.0

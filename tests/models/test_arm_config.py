@@ -95,7 +95,7 @@ def test_not_a_mapping_and_bad_yaml(tmp_path):
 
 def test_missing_config_names_the_shipped_ones():
     with pytest.raises(FileNotFoundError, match=r"no arm config 'nope'.*'crs_a465', 'imu_rig_pitch', "
-                                                  r"'imu_rig_roll', 'imu_rig_yaw', 'wmra'"):
+                                                  r"'imu_rig_roll', 'imu_rig_yaw', 'ur5_two_imu', 'wmra'"):
         load_arm("nope")
 
 

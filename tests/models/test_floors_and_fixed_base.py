@@ -1,0 +1,67 @@
+"""A config as a new user writes it: each sensor's unmodelled-error floor from its class
+where the ``calibration:`` block gives none (a given 0 kept as 0)."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+
+from fusion.configfile import read_yaml, resolve_config_path
+from models.arm_config import build_arm
+from models.sensor_description import UNMODELLED_FLOOR
+
+
+@pytest.fixture
+def ur5_dict():
+    return read_yaml(resolve_config_path("ur5_two_imu"))
+
+
+def test_an_uncalibrated_config_takes_each_sensors_datasheet_floor(ur5_dict, wmra):
+    """No calibration block: every link accelerometer gets its class's floor (a custom IMU's
+    0.05 g, never 0), and the arm says which floors came from the class."""
+    arm = build_arm(ur5_dict, "ur5.yaml")
+    cal = arm.calibration
+    custom = UNMODELLED_FLOOR["custom"]["accelerometer"]
+    assert cal.accel_floor_g("forearm") == cal.accel_floor_g("wrist") == custom
+    assert cal.accel_floor_g("forearm") > 0.0
+    assert set(cal.floors_by_default) == {"forearm", "wrist"}
+    assert "custom accelerometer, 0.05 g" in cal.floors_by_default["forearm"]
+    # the shipped WMRA gives its floors: none is a default, each as written
+    assert wmra.calibration.floors_by_default == {}
+    assert wmra.calibration.accel_floor_g("acc1") == 0.045 and wmra.calibration.mag_unmodelled_ut == 15.0
+
+
+def test_a_floor_given_even_zero_is_kept(ur5_dict):
+    """``accel_unmodelled_g: 0`` (sensors as exact as modelled) is not "not given"; a
+    per-sensor floor names one sensor and the other keeps its class's."""
+    d = copy.deepcopy(ur5_dict)
+    d["calibration"] = {"accel_unmodelled_g": 0.0}
+    cal = build_arm(d, "exact.yaml").calibration
+    assert (cal.accel_floor_g("forearm"), cal.accel_floor_g("wrist")) == (0.0, 0.0)
+    assert cal.floors_by_default == {}
+    d["calibration"] = {"accel_unmodelled_g_per_sensor": {"wrist": 0.02}}
+    cal = build_arm(d, "one.yaml").calibration
+    assert (cal.accel_floor_g("forearm"), cal.accel_floor_g("wrist")) == (0.05, 0.02)
+    assert set(cal.floors_by_default) == {"forearm"}
+    # --unmodelled-g replaces every floor, the class's too
+    assert cal.with_accel_floor(0.01).accel_floor_g("forearm") == 0.01
+    assert cal.as_exact().accel_floor_g("forearm") == 0.0
+
+
+def test_a_base_imu_and_its_compass_get_their_class_floor(wmra_dict):
+    """The WMRA's MPU-9150 without a calibration block: its accelerometer's 0.06 g and its
+    compass's 15 µT, named; ``--unmodelled-g`` replaces the accelerometer's only."""
+    d = copy.deepcopy(wmra_dict)
+    del d["calibration"]
+    cal = build_arm(d, "bare.yaml").calibration
+    assert cal.imu_accel_floor_g == 0.06 and cal.mag_unmodelled_ut == 15.0
+    assert cal.accel_floor_g("acc1") == 0.045  # an ADXL345's
+    assert {"imu_acc", "imu_mag", "acc1"} <= set(cal.floors_by_default)
+    low = cal.with_accel_floor(0.001)
+    assert (low.imu_accel_floor_g, low.accel_floor_g("acc3"), low.mag_unmodelled_ut) == (0.001, 0.001, 15.0)
+
+
+@pytest.fixture
+def wmra_dict():
+    return read_yaml(resolve_config_path("wmra"))
