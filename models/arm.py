@@ -199,6 +199,18 @@ class BaseMotion:
 
 
 @dataclass(frozen=True)
+class FixedBase:
+    """An arm bolted down (the config's ``base: fixed``): its base does not move. Its tilt
+    (roll, pitch, rad) where an installer's level gave it; None: level, the link
+    accelerometers reading the rest as the arm moves. ``tilt_sigma_rad``: the tilt's 1 sigma
+    either way (the startup's level-base prior, :func:`fusion.startup.problem.make_problem`)."""
+
+    roll_rad: float | None = None
+    pitch_rad: float | None = None
+    tilt_sigma_rad: float = 1.0 * np.pi / 180.0
+
+
+@dataclass(frozen=True)
 class ArmModel:
     """A validated arm: joints, sensors, limits and poses. Built once from a config."""
 
@@ -220,6 +232,9 @@ class ArmModel:
     The tracker then predicts what the chair's rotation adds to the base's acceleration
     (:mod:`fusion.tracking.frame_kernels`); the simulator's chair turns about it. None: not
     given (the tracker's acceleration state carries that part too)."""
+    fixed_base: FixedBase | None = None
+    """The config's ``base: fixed`` (a bolted base: no base motion, its tilt given or read
+    once); None: the base moves (a wheelchair, or as ``base_motion`` says)."""
 
     # -- derived views -------------------------------------------------------------
     @property

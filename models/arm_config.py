@@ -20,6 +20,7 @@ from models.arm import (
     BaseMotion,
     CorrectionCovariance,
     DhTable,
+    FixedBase,
     Joint,
     JointReference,
     SensorMount,
@@ -267,6 +268,31 @@ class ChairSection(_Strict):
         return v
 
 
+class FixedBaseSection(_Strict):
+    """The ``base:`` block of an arm bolted down (``base: fixed`` is the short form): its
+    base never moves, so the tracker holds no base acceleration and lets its tilt take no
+    random walk. ``roll_deg``, ``pitch_deg``: the base's tilt where an installer's level
+    gave it, to ``tilt_sigma_deg`` (1 sigma, default 0.1°); without them the base is level to
+    ``tilt_sigma_deg`` (default 1°: a floor or table levelled as built), and the link
+    accelerometers read the rest."""
+
+    mount: Literal["fixed"]
+    roll_deg: float | None = Field(default=None, ge=-90.0, le=90.0)
+    pitch_deg: float | None = Field(default=None, ge=-90.0, le=90.0)
+    tilt_sigma_deg: float | None = Field(default=None, gt=0.0, le=10.0)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _short_form(cls, v: Any) -> Any:
+        return {"mount": v} if isinstance(v, str) else v
+
+    @model_validator(mode="after")
+    def _both(self) -> FixedBaseSection:
+        if (self.roll_deg is None) != (self.pitch_deg is None):
+            raise ValueError("give both roll_deg and pitch_deg (the base's tilt), or neither")
+        return self
+
+
 class ArmConfigFile(_Strict):
     arm: ArmSection
     sensors: list[SensorSection]
@@ -275,6 +301,13 @@ class ArmConfigFile(_Strict):
     base_motion: BaseMotionSection | None = None
     site: SiteSection | None = None
     chair: ChairSection | None = None
+    base: FixedBaseSection | None = None
+
+    @model_validator(mode="after")
+    def _fixed_base_alone(self) -> ArmConfigFile:
+        if self.base is not None and (self.base_motion is not None or self.chair is not None):
+            raise ValueError("base: fixed: a bolted base has no base_motion or chair block")
+        return self
 
 
 def _loc(loc: tuple) -> str:
@@ -510,7 +543,25 @@ def build_arm(
         base_from_turning_centre_m=(
             None if parsed.chair is None
             else _ro(np.array(parsed.chair.base_from_turning_centre_mm, dtype=float) / 1000.0)),
+        fixed_base=_fixed_base(parsed.base),
     )
+
+
+def _fixed_base(section: FixedBaseSection | None) -> FixedBase | None:
+    if section is None:
+        return None
+    given = section.roll_deg is not None
+    sigma_deg = section.tilt_sigma_deg or (LEVELLED_TILT_SIGMA_DEG if given else LEVEL_AS_BUILT_SIGMA_DEG)
+    return FixedBase(roll_rad=section.roll_deg * DEG if given else None,
+                     pitch_rad=section.pitch_deg * DEG if given else None,
+                     tilt_sigma_rad=sigma_deg * DEG)
+
+
+LEVELLED_TILT_SIGMA_DEG = 0.1
+"""A bolted base's tilt read with an installer's level (a machinist's level: 0.1°), 1 sigma."""
+LEVEL_AS_BUILT_SIGMA_DEG = 1.0
+"""A bolted base's tilt from level where no level was read: a floor or a table as built
+(within about a degree), 1 sigma."""
 
 
 def _default_floors(section: CalibrationSection, sensors: tuple[SensorMount, ...]) -> tuple[dict, dict]:

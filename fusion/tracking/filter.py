@@ -104,6 +104,8 @@ class Tracker:
         self._joint_effects = calibrated.joint_effects(correction)
         # the base's own motion as the config describes it (a chair's by default)
         self.settings = st = (settings or TrackerSettings()).for_base(arm.base_motion)
+        if arm.fixed_base is not None:  # bolted down: no base motion at all
+            self.settings = st = st.bolted()
         n = arm.n_joints
         self._has_imu = arm.imu is not None
         # the gyro's scale about the vertical: a state where it is not known exactly (a turn's
@@ -206,6 +208,12 @@ class Tracker:
             startup, imu, L, st, prior, calibrated.imu_bias_prior_var(
                 self.arm, self.correction, self.R_0I if self._has_imu else None, startup.roll_rad,
                 startup.pitch_rad), self.gyro_scale_sigma**2, prior_sigma_rad)
+        fixed = self.arm.fixed_base
+        if fixed is not None and fixed.roll_rad is not None:  # a bolted base's tilt, as levelled
+            for i, v in ((L.roll, fixed.roll_rad), (L.pitch, fixed.pitch_rad)):
+                self._x0[i] = v
+                self._P0[i, :] = self._P0[:, i] = 0.0
+                self._P0[i, i] = fixed.tilt_sigma_rad**2
         self.ambiguity_ = Ambiguity(startup)
         self._ukf = None  # created when the first encoder sample fixes the offsets
         self._q_enc = np.zeros(n)

@@ -266,6 +266,16 @@ class TrackerSettings:
     """Innovations kept per sensor (a ring buffer), for the diagnosis workbench."""
 
 
+    base_fixed: bool = False
+    """The base is bolted down (the config's ``base: fixed``, :meth:`bolted`): its
+    acceleration is held at zero and its attitude takes no random walk (what the sensors
+    read of its tilt accumulates)."""
+
+    def bolted(self) -> TrackerSettings:
+        """These settings for a base bolted down: no acceleration, no jerk, no tilt walk."""
+        return replace(self, base_fixed=True, base_jerk_sigma_mps3=0.0, base_speed_sigma_mps=None,
+                       base_pivot_sigma_m=None)
+
     def for_base(self, base_motion) -> TrackerSettings:
         """These settings with the base's acceleration model a config describes
         (:class:`models.arm.BaseMotion`: an IMU in a hand is not a wheelchair), first-order

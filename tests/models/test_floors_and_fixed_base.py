@@ -1,14 +1,16 @@
 """A config as a new user writes it: each sensor's unmodelled-error floor from its class
-where the ``calibration:`` block gives none (a given 0 kept as 0)."""
+where the ``calibration:`` block gives none (a given 0 kept as 0), and ``base: fixed`` for an
+arm bolted down."""
 
 from __future__ import annotations
 
 import copy
 
+import numpy as np
 import pytest
 
 from fusion.configfile import read_yaml, resolve_config_path
-from models.arm_config import build_arm
+from models.arm_config import ConfigError, build_arm
 from models.sensor_description import UNMODELLED_FLOOR
 
 
@@ -65,3 +67,26 @@ def test_a_base_imu_and_its_compass_get_their_class_floor(wmra_dict):
 @pytest.fixture
 def wmra_dict():
     return read_yaml(resolve_config_path("wmra"))
+
+
+def test_base_fixed_short_and_long_forms(ur5_dict):
+    """``base: fixed`` (tilt read at the first still pose) and the long form with an
+    installer's level; half a tilt, a fixed base on a chair: refused by name."""
+    assert ur5_dict["base"] == "fixed"
+    arm = build_arm(ur5_dict, "ur5.yaml")
+    assert arm.fixed_base is not None and arm.fixed_base.roll_rad is None
+    d = copy.deepcopy(ur5_dict)
+    d["base"] = {"mount": "fixed", "roll_deg": 0.5, "pitch_deg": -0.25, "tilt_sigma_deg": 0.05}
+    fb = build_arm(d, "levelled.yaml").fixed_base
+    np.testing.assert_allclose(np.degrees([fb.roll_rad, fb.pitch_rad, fb.tilt_sigma_rad]), [0.5, -0.25, 0.05])
+    d["base"] = {"mount": "fixed", "roll_deg": 0.5}
+    with pytest.raises(ConfigError, match=r"base: .*give both roll_deg and pitch_deg"):
+        build_arm(d, "half.yaml")
+    d["base"] = "fixed"
+    d["chair"] = {"base_from_turning_centre_mm": [0, 0, 0]}
+    with pytest.raises(ConfigError, match=r"a bolted base has no base_motion or chair block"):
+        build_arm(d, "chair.yaml")
+    d = copy.deepcopy(ur5_dict)
+    d["base"] = "welded"
+    with pytest.raises(ConfigError, match=r"base\.mount"):
+        build_arm(d, "welded.yaml")
