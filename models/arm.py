@@ -262,15 +262,34 @@ class ArmModel:
         """Each joint's limits' middle, once per arm (the live estimate reads it every instant)."""
         return 0.5 * (self.min_rad + self.max_rad)
 
-    def angles_in_range(self, q_rad: np.ndarray) -> np.ndarray:
-        """Joint angles ``(..., n)`` rad, each moved by whole turns to the angle of the same
-        pose nearest the middle of its joint's limits: a revolute joint at ``q`` and at
-        ``q + 2 pi`` is in the same pose, and a controller reads the one inside its limits.
-        Angles within half a turn of the middle come back unchanged, to the bit."""
+    @cached_property
+    def _wide_joints(self) -> np.ndarray:
+        """Per joint: do its limits span more than a turn (a UR's ±360°)?"""
+        return (self.max_rad - self.min_rad) > 2.0 * np.pi
+
+    def angles_in_range(self, q_rad: np.ndarray, encoder_rad: np.ndarray | None = None) -> np.ndarray:
+        """Joint angles ``(..., n)`` rad, each in its joint's own range: a revolute joint at
+        ``q`` and at ``q + 2 pi`` is in the same pose, and a controller reads the one inside its
+        limits. A joint whose limits span at most a turn: moved by whole turns to the angle
+        nearest the middle of its limits (within half a turn of it: unchanged, to the bit). A
+        joint whose limits span more (one turn holds two angles inside them): the turn its
+        encoder counts, ``encoder_rad`` (what the encoders read, rad, the estimate within half
+        a turn of it), so the angle runs on continuously past ±180°; moved by whole turns
+        only where that lies outside the limits. Without ``encoder_rad`` such a joint's angle
+        is kept as it is where inside its limits."""
         q = np.asarray(q_rad, dtype=float)
         mid = self._limits_middle_rad
         d = q - mid
-        return np.where(np.abs(d) > np.pi, mid + wrap_angle(d), q)
+        out = np.where(np.abs(d) > np.pi, mid + wrap_angle(d), q)
+        wide = self._wide_joints
+        if not wide.any():
+            return out
+        ref = q if encoder_rad is None else np.asarray(encoder_rad, float) + wrap_angle(q - encoder_rad)
+        lo, hi = self.min_rad, self.max_rad
+        two_pi = 2.0 * np.pi
+        ref = np.where(ref > hi, ref - two_pi * np.ceil((ref - hi) / two_pi), ref)
+        ref = np.where(ref < lo, ref + two_pi * np.ceil((lo - ref) / two_pi), ref)
+        return np.where(wide, ref, out)
 
     @property
     def offset_rad(self) -> np.ndarray:

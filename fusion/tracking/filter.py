@@ -589,7 +589,8 @@ class Tracker:
             self._named = named = (codes, self._flags, self.health.named_statuses(),
                                    tuple(JOINT_FLAGS[f] for f in self._flags.tolist()))
         return Estimate(
-            t_s=self._t, q_rad=_ro(self.arm.angles_in_range(self._q_enc + x[:n])), sigma_rad=_ro(sig[:n]),
+            t_s=self._t, q_rad=_ro(self.arm.angles_in_range(self._q_enc + x[:n], self._q_enc)),
+            sigma_rad=_ro(sig[:n]),
             flags=named[3],
             roll_rad=float(x[L.roll]), pitch_rad=float(x[L.pitch]), yaw_rad=float(x[L.yaw]),
             attitude_sigma_rad=_ro(attitude_sigma_rad(x[self._att_idx], self._ukf._P[np.ix_(self._att_idx,

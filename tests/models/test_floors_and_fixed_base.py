@@ -1,6 +1,6 @@
 """A config as a new user writes it: each sensor's unmodelled-error floor from its class
-where the ``calibration:`` block gives none (a given 0 kept as 0), and ``base: fixed`` for an
-arm bolted down."""
+where the ``calibration:`` block gives none (a given 0 kept as 0), ``base: fixed`` for an
+arm bolted down, and a joint whose limits span more than a turn reported in its own range."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import copy
 import numpy as np
 import pytest
 
-from fusion.configfile import read_yaml, resolve_config_path
+from fusion.configfile import load_arm, read_yaml, resolve_config_path
 from models.arm_config import ConfigError, build_arm
 from models.sensor_description import UNMODELLED_FLOOR
 
@@ -90,3 +90,23 @@ def test_base_fixed_short_and_long_forms(ur5_dict):
     d["base"] = "welded"
     with pytest.raises(ConfigError, match=r"base\.mount"):
         build_arm(d, "welded.yaml")
+
+
+def test_a_joint_whose_limits_span_more_than_a_turn_runs_on_past_180():
+    """A UR joint (±360°) at -188° is reported at -188° (the turn its encoder counts), not
+    172°; a joint of the same arm driven past its limit by an estimate is moved by a turn
+    back inside; the angle is continuous as it crosses -180°."""
+    arm = load_arm("ur5_two_imu")
+    enc = np.radians([0.0, -90.0, 90.0, -188.0, -90.0, 0.0])
+    est = enc + np.radians([0.1, -0.2, 0.3, 0.4, 0.0, 0.0])
+    np.testing.assert_allclose(arm.angles_in_range(est, enc), est, atol=1e-12)
+    # the estimate a whole turn off the encoder's turn (a startup's angle wrapped to ±180°)
+    wrapped = est + np.radians([0, 0, 0, 360.0, 0, 0])
+    np.testing.assert_allclose(arm.angles_in_range(wrapped, enc), est, atol=1e-12)
+    sweep = np.radians(np.linspace(-170.0, -200.0, 31))
+    qs = np.tile(enc, (31, 1))
+    qs[:, 3] = sweep
+    out = arm.angles_in_range(qs, qs)
+    assert np.all(np.abs(np.diff(np.degrees(out[:, 3]))) < 1.01)
+    beyond = np.radians([0.0, 0.0, 0.0, 365.0, 0.0, 0.0])
+    assert np.degrees(arm.angles_in_range(beyond, beyond)[3]) == pytest.approx(5.0)
