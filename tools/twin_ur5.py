@@ -80,7 +80,8 @@ class Twin:
     still_start_s: float
 
 
-def twin_scenario(arm: ArmModel, duration_s: float, rng: np.random.Generator) -> tuple[Scenario, float, tuple]:
+def twin_scenario(arm: ArmModel, duration_s: float,
+                  rng: np.random.Generator) -> tuple[Scenario, float, tuple]:
     """The table's tilt, a short still start, then the shape repeated until ``duration_s``."""
     roll, pitch = rng.normal(0.0, TABLE_TILT_SIGMA_DEG * DEG, 2)
     still_s = float(rng.uniform(0.6, 0.9))
@@ -108,7 +109,8 @@ def imu_effects(arm: ArmModel, rng: np.random.Generator) -> list[dict]:
     return out
 
 
-def logged_and_resampled(t_true_s: np.ndarray, values: np.ndarray, offset_s, t_out_s: np.ndarray) -> np.ndarray:
+def logged_and_resampled(t_true_s: np.ndarray, values: np.ndarray, offset_s,
+                         t_out_s: np.ndarray) -> np.ndarray:
     """A logger's view of samples taken at ``t_true_s``: the sample stamped ``t`` holds the
     value at ``t - offset_s(t)`` (both linear in time between samples), then the stamped
     series read at ``t_out_s`` by linear interpolation (NaN outside it)."""
@@ -143,8 +145,7 @@ def make_twin(seed: int = 0, duration_s: float = 45.0, arm: ArmModel | None = No
         def offset_s(t, a=start, b=end):
             return 1e-3 * (a + (b - a) * np.asarray(t) / duration_s)
 
-        for stream, part, suffix in ((s.name, "acc", ("ax", "ay", "az")),
-                                     (link_gyro_stream(s.name), "gyro", ("gx", "gy", "gz"))):
+        for stream, suffix in ((s.name, ("ax", "ay", "az")), (link_gyro_stream(s.name), ("gx", "gy", "gz"))):
             st = rec.streams[stream]
             v = logged_and_resampled(st.t_s, st.values.astype(float), offset_s, t_out)
             for c, name in enumerate(suffix):
