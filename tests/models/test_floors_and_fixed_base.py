@@ -5,10 +5,13 @@ arm bolted down, and a joint whose limits span more than a turn reported in its 
 from __future__ import annotations
 
 import copy
+import json
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from fusion.cli.main import app
 from fusion.configfile import load_arm, read_yaml, resolve_config_path
 from models.arm_config import ConfigError, build_arm
 from models.sensor_description import UNMODELLED_FLOOR
@@ -110,3 +113,16 @@ def test_a_joint_whose_limits_span_more_than_a_turn_runs_on_past_180():
     assert np.all(np.abs(np.diff(np.degrees(out[:, 3]))) < 1.01)
     beyond = np.radians([0.0, 0.0, 0.0, 365.0, 0.0, 0.0])
     assert np.degrees(arm.angles_in_range(beyond, beyond)[3]) == pytest.approx(5.0)
+
+
+def test_info_says_each_floor_and_where_it_came_from_and_the_fixed_base():
+    r = CliRunner().invoke(app, ["info", "--config", "ur5_two_imu", "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    assert [(s["name"], s["unmodelled_g"], s["unmodelled_from"]) for s in d["sensors"]] == [
+        ("forearm", 0.05, "class"), ("wrist", 0.05, "class")]
+    assert d["base"] == {"mount": "fixed", "tilt_sigma_deg": pytest.approx(1.0), "roll_deg": None,
+                         "pitch_deg": None}
+    r = CliRunner().invoke(app, ["info", "--config", "wmra", "--json"])
+    d = json.loads(r.stdout)
+    assert d["base"] == "moving" and {s["unmodelled_from"] for s in d["sensors"]} == {"config"}
