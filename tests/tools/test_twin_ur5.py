@@ -116,3 +116,24 @@ def test_a_floor_set_to_zero_is_said_loudly(twin_mcap, tmp_path):
     for s in ("forearm", "wrist"):
         said = [w for w in warnings if w.startswith(f"{s}:")]
         assert said and any("0 g, as the config gives it" in w or "implausible" in w for w in said), warnings
+
+
+def test_a_levelled_base_starts_from_the_tilt_given(twin_mcap, tmp_path):
+    """``base: {mount: fixed, roll_deg, pitch_deg}`` as an installer's level read it (the
+    twin's table tilt): the tracker's tilt stays with it, within its sigma, and every joint
+    keeps within 3σ."""
+    twin, rec = twin_mcap
+    d = read_yaml(resolve_config_path("ur5_two_imu"))
+    roll, pitch = twin.table_tilt_deg
+    d["base"] = {"mount": "fixed", "roll_deg": roll, "pitch_deg": pitch, "tilt_sigma_deg": 0.1}
+    cfg = tmp_path / "levelled.yaml"
+    cfg.write_text(yaml.safe_dump(d))
+    r = runner.invoke(app, ["track", str(rec), "--config", str(cfg), "--after-s", "0", "--json"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads(r.stdout)
+    f = doc["final"]
+    for got, sigma, true in ((f["roll_rad"], f["roll_sigma_rad"], roll),
+                             (f["pitch_rad"], f["pitch_sigma_rad"], pitch)):
+        assert abs(np.degrees(got) - true) <= 3.0 * np.degrees(sigma) + 0.1
+        assert np.degrees(sigma) <= 0.1 + 1e-9
+    assert min(doc["within_3_sigma"].values()) >= 0.95
