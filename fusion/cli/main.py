@@ -211,12 +211,18 @@ def info(
                   f"{j['ready_deg']:.0f}", f"{j['counts_per_rev']:.0f}",
                   "[red]yes: gravity-blind[/]" if j["vertical_at_ready"] else "no")
     console.print(t)
-    t = _table("Sensors", ("sensor", "type", "link", "position [mm]", "bus", "sees joints"))
+    t = _table("Sensors", ("sensor", "type", "link", "position [mm]", "bus", "sees joints", "unmodelled [g]"))
     for s in d["sensors"]:
         t.add_row(s["name"], s["type"], str(s["link"]),
                   ", ".join(f"{v:.1f}" for v in s["position_mm"]), s["bus"] or "-",
-                  ", ".join(s["sees_joints"]) or "none (base)")
+                  ", ".join(s["sees_joints"]) or "none (base)",
+                  "-" if s["unmodelled_g"] is None else
+                  f"{s['unmodelled_g']:g}" + (" (its class's)" if s["unmodelled_from"] == "class" else ""))
     console.print(t)
+    b = d["base"]
+    if b != "moving":
+        tilt = ("level" if b["roll_deg"] is None else f"roll {b['roll_deg']:g}°, pitch {b['pitch_deg']:g}°")
+        console.print(f"Base: fixed (bolted down), {tilt} ± {b['tilt_sigma_deg']:g}°")
     if d["effects"]:
         console.print("Effects in the model: " + ", ".join(
             f"{e['effect']}" + (f":{e['target']}" if e["target"] else "") for e in d["effects"]))

@@ -107,6 +107,13 @@ def track(
         notes.extend(start.notes)
         advance(0.0, "tracking")
         run = tr.run(rec, progress=advance)
+    warnings = tr.sensor_warnings() if run.steps else []
+    notes.extend(warnings)
+    floors = arm.calibration.floors_by_default
+    if floors:
+        notes.append("unmodelled-error floors the config does not give, each sensor's class's: "
+                     + "; ".join(f"{k}: {v}" for k, v in floors.items())
+                     + " (docs/config.md, Unmodelled-error floors)")
     after = after_s
     if run.steps and run.t_s[-1] < rec.t_start_s + after_s:  # nothing to score after --after-s
         after = 0.0
@@ -128,6 +135,7 @@ def track(
         "out": None if out is None else str(out),
         "gyro_scale_z": tr.gyro_scale() if run.steps else None,
         "model_alarms": [a.as_dict() for a in tr.alarm.raised],
+        "sensor_warnings": warnings,
         "saturated_left_out": screen.as_dict()["saturated"],
         "encoder_withheld": withheld,
         "notes": notes,
