@@ -3,9 +3,10 @@
 
 Every node takes the same Zenoh options: ``--zenoh-config`` (default config/zenoh.json5:
 peer, listening on tcp/127.0.0.1:7447, no scouting), ``--listen`` and ``--connect``
-(repeatable; loopback only) and ``--mode``. A node given ``--connect`` but no
-``--listen`` listens on an ephemeral loopback port, so that it does not compete for
-7447 with the node it connects to. See docs/service.md.
+(repeatable; loopback only; each replaces the file's endpoints) and ``--mode``. Without
+``--zenoh-config``, a node given ``--connect`` but no ``--listen`` listens on an ephemeral
+loopback port, so that it does not compete for 7447 with the node it connects to. See
+docs/service.md.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from fusion.cli.options import (
     ZenohConfigOpt,
 )
 from fusion.service.node import stop_after, stop_on_signals
-from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, open_session
+from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, endpoints_line, load_config
 
 DEFAULT_ROBOT = "chair1"
 EPHEMERAL_LISTEN = "tcp/127.0.0.1:0"
@@ -51,20 +52,30 @@ EPHEMERAL_LISTEN = "tcp/127.0.0.1:0"
 
 def zenoh_settings(config: Path | None, listen: list[str] | None, connect: list[str] | None,
                    mode: str | None) -> ZenohSettings:
-    """The node's settings from its options (``--connect`` alone: an ephemeral listen port;
-    a client listens nowhere unless told)."""
-    if mode == "client" and not listen:
-        return ZenohSettings(config_path=config, listen=[], connect=connect or None, mode=mode)
-    if connect and not listen and mode != "client":
-        listen = [EPHEMERAL_LISTEN]
-    return ZenohSettings(config_path=config, listen=listen or None, connect=connect or None, mode=mode)
+    """The node's settings from its options: ``--listen`` and ``--connect`` replace the
+    file's endpoints; otherwise a ``--zenoh-config`` file's own are used as written. Without
+    one (the default config listens on 7447), ``--connect`` alone gets an ephemeral listen
+    port and a client listens nowhere."""
+    listen_override = list(listen) if listen else None
+    if listen_override is None and config is None:
+        if mode == "client":
+            listen_override = []
+        elif connect:
+            listen_override = [EPHEMERAL_LISTEN]
+    return ZenohSettings(config_path=config, listen=listen_override,
+                         connect=list(connect) if connect else None, mode=mode)
 
 
 @contextlib.contextmanager
-def session_or_exit(settings: ZenohSettings) -> Iterator[zenoh.Session]:
+def session_or_exit(settings: ZenohSettings, *, say_endpoints: bool | None = None) -> Iterator[zenoh.Session]:
+    """A session of ``settings``, or exit 2 saying why none opens. ``say_endpoints`` (by
+    default: when a ``--zenoh-config`` file is given) prints where it listens and connects,
+    and whether the file or the command line said so, on stderr."""
     try:
-        cm = open_session(settings)
-        session = cm.__enter__()
+        config = load_config(settings)
+        if say_endpoints if say_endpoints is not None else settings.config_path is not None:
+            err_console.print(endpoints_line(config, settings), highlight=False, soft_wrap=True)
+        session = zenoh.open(config)
     except ZenohConfigError as e:
         fail(str(e))
     except zenoh.ZError as e:
@@ -72,7 +83,7 @@ def session_or_exit(settings: ZenohSettings) -> Iterator[zenoh.Session]:
     try:
         yield session
     finally:
-        cm.__exit__(None, None, None)
+        session.close()
 
 
 def parse_speed(text: str) -> float | None:
