@@ -32,6 +32,8 @@ from fusion.cli.common import (
     read_recording_or_exit,
 )
 from fusion.cli.options import (
+    ADMITTED_WITHIN_S,
+    AdmittedWithinOpt,
     BatchMsOpt,
     ConfigOpt,
     ConnectOpt,
@@ -43,6 +45,7 @@ from fusion.cli.options import (
     StopAfterOpt,
     ZenohConfigOpt,
 )
+from fusion.service.admitted import Admission, AdmissionWatch
 from fusion.service.node import stop_after, stop_on_signals
 from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, endpoints_line, load_config
 
@@ -86,6 +89,45 @@ def session_or_exit(settings: ZenohSettings, *, say_endpoints: bool | None = Non
         session.close()
 
 
+@contextlib.contextmanager
+def watching_admission(session: zenoh.Session, robot: str, timeout_s: float,
+                       stop: threading.Event) -> Iterator[AdmissionWatch | None]:
+    """A publisher's :class:`~fusion.service.admitted.AdmissionWatch` (``None`` when
+    ``timeout_s`` is 0: no check), the fusion node's first status awaited; ``stop`` is set
+    as soon as the watch finds that nothing was admitted."""
+    if not (math.isfinite(timeout_s) and timeout_s >= 0):
+        fail(f"--admitted-within {timeout_s!r}: expected a number of seconds >= 0 (0: no check)")
+    if timeout_s == 0:
+        yield None
+        return
+    watch = AdmissionWatch(session, robot, timeout_s)
+    watch.wait_for_node(stop)
+    done = threading.Event()
+
+    def guard() -> None:
+        while not done.wait(0.1):
+            verdict = watch.check()
+            if verdict is not None:
+                if verdict.state == "refused":
+                    stop.set()
+                return
+
+    thread = threading.Thread(target=guard, name="admission watch", daemon=True)
+    thread.start()
+    try:
+        yield watch
+    finally:
+        done.set()
+        thread.join()
+        watch.close()
+
+
+def say_admission(admission: Admission | None) -> None:
+    """One line on stderr when the fusion node's admission of what was sent is not known."""
+    if admission is not None and admission.state == "unknown":
+        err_console.print(f"[yellow]note:[/] {admission.message}", highlight=False)
+
+
 def parse_speed(text: str) -> float | None:
     if text.strip().lower() == "max":
         return None
@@ -109,6 +151,7 @@ def register(app: typer.Typer) -> None:
         wait_s: Annotated[float, typer.Option(
             "--wait", help="First wait up to this long for a subscriber on every sensor, in s; "
                            "if no sensor has one by then, publish nothing and exit 1.")] = 5.0,
+        admitted_within_s: AdmittedWithinOpt = ADMITTED_WITHIN_S,
         zenoh_config: ZenohConfigOpt = None,
         listen: ListenOpt = None,
         connect: ConnectOpt = None,
@@ -124,15 +167,18 @@ def register(app: typer.Typer) -> None:
         rec = read_recording_or_exit(recording)
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
-                stop_on_signals(stop):
+                stop_on_signals(stop), watching_admission(session, robot, admitted_within_s, stop) as watch:
             try:
                 report = replay(session, rec, robot, speed=factor, batch_s=batch_ms / 1000.0,
-                                wait_for_subscribers_s=wait_s, stop=stop, require_subscriber=True)
+                                wait_for_subscribers_s=wait_s, stop=stop, require_subscriber=True,
+                                on_start=None if watch is None else watch.start)
             except NoSubscriberError as e:
                 fail(str(e), code=1)
             except ValueError as e:
                 fail(f"{recording}: {e}")
-        doc = {"recording": str(recording), **report.as_dict()}
+            admission = None if watch is None else watch.finish(stop)
+        doc = {"recording": str(recording), **report.as_dict(),
+               "admission": None if admission is None else admission.as_dict()}
         if json_out:
             emit_json(doc)
         else:
@@ -142,6 +188,9 @@ def register(app: typer.Typer) -> None:
             if report.unmatched:
                 err_console.print(f"[yellow]warning:[/] no subscriber for {', '.join(report.unmatched)} "
                                   f"after {wait_s:g} s")
+            say_admission(admission)
+        if admission is not None and admission.state == "refused":
+            fail(admission.message, code=1)
         if report.unheard:
             total = sum(report.samples.values())
             fail(f"{sum(report.unheard.values())} of {total} samples went out while nothing subscribed "
