@@ -229,8 +229,8 @@ def deploy(fleet: Path, chairs: list[str], *, base_address: str = "127.0.0.1", b
             raise DeployError(f"{what} {port}: expected 1 to 65535")
     existing = [str(fleet / c) for c in chairs if (fleet / c).exists()]
     if existing and not force:
-        raise DeployError(f"{', '.join(existing)} exist: --force to replace them (new certificates and "
-                          "passwords: the chair's nodes need the new files)")
+        raise DeployError(f"{', '.join(existing)} exist{'s' if len(existing) == 1 else ''}: --force to "
+                          "replace (new certificates and passwords: the chair's nodes need the new files)")
     host = f"[{ip}]" if ip.version == 6 else str(ip)
     base_endpoint = f"tls/{host}:{base_port}"
     chair_endpoint = f"tcp/127.0.0.1:{chair_port}"

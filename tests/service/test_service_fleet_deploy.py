@@ -1,0 +1,124 @@
+"""The fleet deployment of docs/service.md ("Deploying a fleet"), its steps as written, every
+node an ``armfusion`` process on loopback: ``armfusion deploy`` writes the certificates,
+credentials and configs; the base station's router runs from its router.json5 alone (TLS,
+mutual TLS, the access-control policy), each chair's router from its own; the fusion node,
+the drivers, the base station's monitor and recalibrate from their credential files. Then
+the attacks the docs name: a node whose user may not publish raw samples is told that nothing
+it sent was admitted, a certificate the fleet's CA did not sign and plain TCP on the TLS
+port are refused, a chair does not hear another.
+
+The certificates are made by the openssl command line (as the deploy command makes them).
+"""
+
+from __future__ import annotations
+
+import json
+import stat
+from pathlib import Path
+
+from service_helpers import free_port
+from typer.testing import CliRunner
+
+from fusion.cli.main import app
+from fusion.service.processes import Children
+
+CHAIRS = ("chair1", "chair2")
+
+
+def _run(*args: str):
+    """``armfusion ARGS`` in this process (the long-running nodes are processes); the result
+    has ``exit_code``, ``stdout`` and ``stderr``."""
+    return CliRunner(env={"COLUMNS": "200"}).invoke(app, list(args))
+
+
+def _deploy(fleet: Path, base_port: int, chair_ports: dict[str, int]) -> None:
+    """Step 1: one command per chair (each chair's own router port: they share this machine)."""
+    for c in CHAIRS:
+        r = _run("deploy", c, "--fleet", str(fleet), "--local", "--base-address", "127.0.0.1",
+                 "--base-port", str(base_port), "--chair-port", str(chair_ports[c]), "--json")
+        assert r.exit_code == 0, r.stderr
+    assert json.loads(r.stdout)["base_router_admits"] == list(CHAIRS)
+    # nothing overwritten without asking
+    again = _run("deploy", "chair1", "--fleet", str(fleet), "--local")
+    assert again.exit_code == 2 and "--force to replace" in again.stderr
+    # secrets readable by their owner only
+    for secret in ("ca/ca.key", "base/tls/router.key", "chair1/tls/chair1.key", "chair1/zenoh/chair1.users",
+                   "chair1/zenoh/drivers.json5", "chair1/zenoh/serve.json5"):
+        assert stat.S_IMODE((fleet / secret).stat().st_mode) == 0o600, secret
+    users = dict(line.split(":", 1) for line in (fleet / "chair1/zenoh/chair1.users").read_text().split())
+    assert sorted(users) == ["drivers", "monitor", "record", "serve"]
+    assert len(set(users.values())) == 4  # one password each
+    assert f'password: "{users["drivers"]}"' in (fleet / "chair1/zenoh/drivers.json5").read_text()
+
+
+def test_the_fleet_deployment_runs_as_docs_service_md_writes_it(tmp_path, startup_recording):
+    fleet = tmp_path / "fleet"
+    base_port = free_port()
+    chair_ports = {c: free_port() for c in CHAIRS}
+    _deploy(fleet, base_port, chair_ports)
+    base_dir, z1 = fleet / "base" / "zenoh", fleet / "chair1" / "zenoh"
+
+    with Children(tmp_path / "nodes") as ch:
+        # step 2: the base station's router, from its config file alone: TLS, on its port
+        base = ch.start("base-router", ["router", "--zenoh-config", str(base_dir / "router.json5")])
+        assert base.wait_for_line(f"listening on tls/127.0.0.1:{base_port} ({base_dir / 'router.json5'})",
+                                  60.0), base.stderr_tail()
+        # step 3: each chair's router (its nodes on loopback TCP; to the base over mutual TLS)
+        for c in CHAIRS:
+            r = ch.start(f"{c}-router", ["router", "--zenoh-config", str(fleet / c / "zenoh/router.json5")])
+            assert r.wait_for_line(f"listening on tcp/127.0.0.1:{chair_ports[c]}", 60.0), r.stderr_tail()
+            assert f"connecting to tls/127.0.0.1:{base_port}" in r.lines[-1]
+        serve = ch.start("serve", ["serve", "--robot", "chair1", "--zenoh-config", str(z1 / "serve.json5"),
+                                   "--json"])
+
+        # (while the fusion node starts) a certificate the fleet's CA did not sign, whatever its
+        # name, is refused at the link; and plain TCP on the TLS port
+        rogue = tmp_path / "rogue"
+        assert _run("deploy", "chair1", "--fleet", str(rogue), "--local").exit_code == 0
+        intruder = (rogue / "base/zenoh/base.json5").read_text()
+        intruder = intruder.replace(str(rogue / "base/tls/ca.pem"), str(fleet / "base/tls/ca.pem"))
+        intruder = intruder.replace('"tls/127.0.0.1:7448"', f'"tls/127.0.0.1:{base_port}"')
+        (rogue / "intruder.json5").write_text(intruder)
+        r = _run("monitor", "--zenoh-config", str(rogue / "intruder.json5"), "--once", "--duration", "1")
+        assert r.exit_code == 2 and "cannot open the Zenoh session" in r.stderr
+        r = _run("monitor", "--mode", "client", "--connect", f"tcp/127.0.0.1:{base_port}", "--once",
+                 "--duration", "1")
+        assert r.exit_code == 2 and "cannot open the Zenoh session" in r.stderr
+        assert serve.wait_for_line("serving", 120.0), serve.stderr_tail()
+
+        # a node the chair's policy forbids to publish raw samples sees a subscriber, sends, and is told
+        r = _run("replay", str(startup_recording), "--speed", "max", "--robot", "chair1",
+                 "--zenoh-config", str(z1 / "monitor.json5"), "--admitted-within", "3", "--json")
+        assert r.exit_code == 1, r.stderr
+        assert "admitted none of the samples" in r.stderr and "none reached it" in r.stderr
+        told = json.loads(r.stdout)
+        assert told["unmatched"] == [] and sum(told["samples"].values()) > 0
+        assert told["admission"]["state"] == "refused"
+
+        # the drivers (the one user allowed) publish; the base station watches and asks
+        drivers = ch.start("drivers", ["drivers", "--fake", "--realtime", "--scenario", "startup",
+                                       "--duration", "6", "--robot", "chair1", "--zenoh-config",
+                                       str(z1 / "drivers.json5"), "--wait", "60", "--json"])
+        r = _run("monitor", "--zenoh-config", str(base_dir / "base.json5"), "--once", "--expect", "1",
+                 "--duration", "60", "--json")
+        assert r.exit_code == 0, r.stderr
+        robots = json.loads(r.stdout)["robots"]
+        assert set(robots) == {"chair1"} and robots["chair1"]["joints"] is not None
+        r = _run("recalibrate", "--robot", "chair1", "--zenoh-config", str(base_dir / "base.json5"), "--json")
+        assert r.exit_code in (0, 1), r.stderr  # a reply (calibrated, or refused: the arm moves)
+        assert json.loads(r.stdout)["robot"] == "chair1"
+        # chair2 does not hear chair1 (the base router lets only the base station hear every chair)
+        r = _run("monitor", "--zenoh-config", str(fleet / "chair2/zenoh/monitor.json5"), "--once",
+                 "--duration", "2", "--json")
+        assert r.exit_code == 0, r.stderr
+        assert json.loads(r.stdout)["robots"] == {}
+
+        assert drivers.proc.wait(90) == 0, drivers.stderr_tail()
+        ch.stop(serve)
+    published = json.loads(drivers.stdout_path.read_text())["published"]
+    assert published["admission"]["state"] == "admitted"
+    report = json.loads(serve.stdout_path.read_text())
+    # what the fusion node took in came from the drivers (it stopped as their last batches came:
+    # up to all of them), none from the forbidden replay
+    assert 0 < report["samples"] <= sum(published["samples"].values())
+    assert report["startup_t_s"] is not None and report["dropped"] == {}
