@@ -122,3 +122,82 @@ def test_the_fleet_deployment_runs_as_docs_service_md_writes_it(tmp_path, startu
     # up to all of them), none from the forbidden replay
     assert 0 < report["samples"] <= sum(published["samples"].values())
     assert report["startup_t_s"] is not None and report["dropped"] == {}
+
+
+def test_a_config_files_endpoints_hold_unless_an_option_replaces_them_and_the_node_says_whose():
+    from fusion.service.commands import zenoh_settings
+    from fusion.service.zenoh_config import DEPLOY_CONFIG_DIR, endpoints_line, load_config
+
+    chair = DEPLOY_CONFIG_DIR / "chair.json5"
+    kept = zenoh_settings(chair, None, None, "router")
+    line = endpoints_line(load_config(kept), kept)
+    assert line == (f"zenoh router: listening on tcp/127.0.0.1:7447 ({chair}); "
+                    f"connecting to tls/127.0.0.1:7448 ({chair})")
+    # --connect alone replaces the connect endpoints only; --listen the listen ones
+    moved = zenoh_settings(chair, None, ["tls/127.0.0.1:9001"], "router")
+    assert endpoints_line(load_config(moved), moved) == (
+        f"zenoh router: listening on tcp/127.0.0.1:7447 ({chair}); "
+        "connecting to tls/127.0.0.1:9001 (the command line)")
+    moved = zenoh_settings(chair, ["tcp/127.0.0.1:9002"], None, None)
+    assert endpoints_line(load_config(moved), moved).startswith(
+        "zenoh router: listening on tcp/127.0.0.1:9002 (the command line); connecting to tls/127.0.0.1:7448")
+    # without a file, --connect alone listens on an ephemeral port (not the default file's 7447)
+    assert zenoh_settings(None, None, ["tcp/127.0.0.1:9003"], None).listen == ["tcp/127.0.0.1:0"]
+    assert zenoh_settings(None, None, ["tcp/127.0.0.1:9003"], "client").listen == []
+
+
+def test_deploy_adds_a_chair_to_the_base_policy_and_touches_no_other_chair(tmp_path):
+    import zenoh
+
+    from fusion.service.zenoh_config import ZenohSettings, load_config
+
+    fleet = tmp_path / "fleet"
+    assert _run("deploy", "chair1", "--fleet", str(fleet), "--local").exit_code == 0
+    before = {p: p.read_bytes() for p in (fleet / "chair1").rglob("*") if p.is_file()}
+    ca = (fleet / "ca/ca.pem").read_bytes()
+    r = _run("deploy", "chair3", "--fleet", str(fleet), "--local", "--chair-port", "7450")
+    assert r.exit_code == 0, r.stderr
+    assert "admits chair1, chair3" in r.stdout
+    assert {p: p.read_bytes() for p in (fleet / "chair1").rglob("*") if p.is_file()} == before
+    assert (fleet / "ca/ca.pem").read_bytes() == ca  # the same CA signs every chair
+    base_router = zenoh.Config.from_file(str(fleet / "base/zenoh/router.json5"))
+    acl = json.loads(base_router.get_json("access_control"))
+    assert {s["id"]: s.get("cert_common_names") for s in acl["subjects"]} == {
+        "base station": ["base"], "chair1": ["chair1"], "chair3": ["chair3"]}
+    own = {r["id"]: r["key_exprs"] for r in acl["rules"] if r["id"].endswith("sends its own")}
+    assert own == {"chair1 sends its own": ["armfusion/chair1/**"],
+                   "chair3 sends its own": ["armfusion/chair3/**"]}
+    chair3 = (fleet / "chair3/zenoh/router.json5").read_text()
+    assert "chair1" not in chair3 and '"armfusion/chair3/raw/**"' in chair3
+    assert f'"{fleet.resolve()}/chair3/tls/chair3.pem"' in chair3
+    for f in ("base/zenoh/router.json5", "base/zenoh/base.json5", "chair3/zenoh/router.json5",
+              "chair3/zenoh/serve.json5"):
+        load_config(ZenohSettings(fleet / f))  # loopback, loadable
+    # without --local the configs name /etc/armfusion; bad names and addresses are refused
+    assert _run("deploy", "chair4", "--fleet", str(fleet)).exit_code == 0
+    assert '"/etc/armfusion/tls/chair4.key"' in (fleet / "chair4/zenoh/router.json5").read_text()
+    for args, says in ((["base"], "take these names"), (["chair 5"], "use 1 to 64 letters"),
+                       (["chair5", "chair5"], "named twice"),
+                       (["chair5", "--base-address", "base.local"], "literal IP address")):
+        r = _run("deploy", *args, "--fleet", str(fleet))
+        assert r.exit_code == 2 and says in r.stderr, r.stderr
+    assert not (fleet / "chair5").exists()
+
+
+def test_a_publisher_whose_batches_the_fusion_node_refuses_is_told_why(tmp_path, fusion_node, hub_settings,
+                                                                        startup_recording):
+    from fusion.configfile import load_arm
+    from sensors.recording import read_recording, write_recording
+    from sensors.samples import Recording, Stream
+
+    listener, connector = hub_settings
+    acc = read_recording(startup_recording).get("acc1")
+    bogus = tmp_path / "acc9.mcap"  # a sensor the WMRA does not have: every batch refused
+    write_recording(Recording({"acc9": Stream("acc9", acc.kind, acc.t_s, acc.values, acc.channels)}), bogus)
+    with fusion_node(listener, load_arm("wmra")):
+        r = _run("replay", str(bogus), "--speed", "max", "--connect", connector.connect[0],
+                 "--admitted-within", "2", "--json")
+    assert r.exit_code == 1, r.stderr
+    sent = json.loads(r.stdout)
+    assert sent["admission"]["dropped"] == {"unknown_sensor": sent["batches"]}
+    assert f"it dropped batches meanwhile: unknown_sensor {sent['batches']}" in r.stderr
