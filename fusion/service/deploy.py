@@ -90,8 +90,10 @@ def _private(path: Path) -> None:
 
 
 def _folder(path: Path) -> Path:
-    path.mkdir(parents=True, exist_ok=True)
-    path.chmod(0o700)
+    """``path``, made (mode 0700) if it is not there; one that is keeps its mode."""
+    if not path.is_dir():
+        path.mkdir(parents=True)
+        path.chmod(0o700)
     return path
 
 
@@ -200,6 +202,16 @@ def _base_router(fleet: Path, chairs: tuple[str, ...], base_endpoint: str, local
             f"{head}\n  access_control: {body},\n}}\n")
 
 
+def _base_endpoint_of(base_config: Path) -> str | None:
+    """The base router's endpoint a base-station node's config connects to (None: no config yet)."""
+    if not base_config.is_file():
+        return None
+    import zenoh
+
+    endpoints = json.loads(zenoh.Config.from_file(str(base_config)).get_json("connect/endpoints"))
+    return endpoints[0] if endpoints else None
+
+
 def fleet_chairs(fleet: Path) -> tuple[str, ...]:
     """The chairs with a certificate in ``fleet``, sorted."""
     return tuple(sorted(p.parent.parent.name for p in fleet.glob("*/tls/*.pem")
@@ -241,6 +253,11 @@ def deploy(fleet: Path, chairs: list[str], *, base_address: str = "127.0.0.1", b
         make_ca(fleet / "ca")
         made += [fleet / "ca" / "ca.key", fleet / "ca" / "ca.pem"]
     base = _folder(fleet / "base")
+    made_for = _base_endpoint_of(base / "zenoh" / "base.json5")
+    if made_for is not None and made_for != base_endpoint:
+        raise DeployError(f"{base}: the base station's files were made for {made_for} (its router's "
+                          f"certificate names that address), not {base_endpoint}: give the same "
+                          "--base-address and --base-port, or remove that folder to make them again")
     if not (base / "tls" / "router.pem").is_file():
         make_certificate(fleet / "ca", base / "tls", "router", f"IP:{ip}")
         make_certificate(fleet / "ca", base / "tls", "base", "DNS:base")

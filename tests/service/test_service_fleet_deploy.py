@@ -178,7 +178,8 @@ def test_deploy_adds_a_chair_to_the_base_policy_and_touches_no_other_chair(tmp_p
     assert '"/etc/armfusion/tls/chair4.key"' in (fleet / "chair4/zenoh/router.json5").read_text()
     for args, says in ((["base"], "take these names"), (["chair 5"], "use 1 to 64 letters"),
                        (["chair5", "chair5"], "named twice"),
-                       (["chair5", "--base-address", "base.local"], "literal IP address")):
+                       (["chair5", "--base-address", "base.local"], "literal IP address"),
+                       (["chair5", "--base-port", "7449"], "made for tls/127.0.0.1:7448")):
         r = _run("deploy", *args, "--fleet", str(fleet))
         assert r.exit_code == 2 and says in r.stderr, r.stderr
     assert not (fleet / "chair5").exists()
@@ -201,3 +202,24 @@ def test_a_publisher_whose_batches_the_fusion_node_refuses_is_told_why(tmp_path,
     sent = json.loads(r.stdout)
     assert sent["admission"]["dropped"] == {"unknown_sensor": sent["batches"]}
     assert f"it dropped batches meanwhile: unknown_sensor {sent['batches']}" in r.stderr
+
+
+def test_drivers_whose_user_the_chair_forbids_to_publish_stop_and_say_so(tmp_path, fusion_node):
+    """On chair1's router as deployed, the drivers run with the monitor's credentials: the
+    router takes the fusion node's subscription to them, and drops their raw samples."""
+    from fusion.configfile import load_arm
+    from fusion.service.zenoh_config import ZenohSettings, open_session
+
+    fleet, port = tmp_path / "fleet", free_port()
+    r = _run("deploy", "chair1", "--fleet", str(fleet), "--local", "--chair-port", str(port))
+    assert r.exit_code == 0, r.stderr
+    z1 = fleet / "chair1/zenoh"
+    with open_session(ZenohSettings(z1 / "router.json5", connect=[])), \
+            fusion_node(ZenohSettings(z1 / "serve.json5"), load_arm("wmra")) as (node, _):
+        r = _run("drivers", "--fake", "--duration", "3", "--robot", "chair1", "--zenoh-config",
+                 str(z1 / "monitor.json5"), "--wait", "10", "--admitted-within", "2", "--json")
+        assert node.report_samples() == 0
+    assert r.exit_code == 1, r.stderr
+    assert "admitted none of the samples" in r.stderr and "none reached it" in r.stderr
+    published = json.loads(r.stdout)["published"]
+    assert sum(published["samples"].values()) > 0 and published["admission"]["state"] == "refused"
