@@ -14,7 +14,9 @@ One command per chair (or several at once) writes, under the fleet folder ``FLEE
 
 The CA and the base station's certificates are made once, the first time; the base router's
 config is written again on every run, with a rule, a subject and a policy for every chair
-that has a certificate in ``FLEET`` (restart the base router to apply it). A chair's folder
+that has a certificate in ``FLEET`` (restart the base router to apply it): a chair whose
+folder was removed is no longer admitted (its certificate still passes the TLS handshake, and
+the policy, default deny, drops everything it sends). A chair's folder
 that exists is refused (its certificate and passwords would change) unless ``force``.
 Certificates: P-256, made by the ``openssl`` command line as docs/service.md's recipe,
 CN = the node's name, the base router's subject alternative name its address (a client that
@@ -284,10 +286,11 @@ def register(app: typer.Typer) -> None:
 
     @app.command("deploy")
     def deploy_command(
-        chairs: Annotated[list[str], typer.Argument(
-            help="The chairs to write (each name is its certificate's CN and its key prefix).")],
         fleet: Annotated[Path, typer.Option("--fleet", help="The fleet's folder: its CA, the base station's "
                                             "files, one folder per chair.")],
+        chairs: Annotated[list[str] | None, typer.Argument(
+            help="The chairs to write (each name is its certificate's CN and its key prefix); none: "
+                 "only the base router's policy, from the chairs in the fleet.")] = None,
         base_address: Annotated[str, typer.Option(
             "--base-address", help="The base router's IP address (its certificate's subject alternative "
                                    "name, the chairs' connect endpoint).")] = "127.0.0.1",
@@ -304,9 +307,12 @@ def register(app: typer.Typer) -> None:
         """Write a fleet's certificates, credentials and Zenoh configs: each chair's (its
         certificate, its nodes' users and passwords, its router's and nodes' configs) and, the
         first time, the fleet's CA and the base station's; the base router's policy admits every
-        chair of the fleet."""
+        chair of the fleet.
+
+        To retire a chair, remove its folder and run deploy with no chair: the base router's
+        policy then has no subject for its certificate, and denies whatever it sends."""
         try:
-            report = deploy(fleet, list(chairs), base_address=base_address, base_port=base_port,
+            report = deploy(fleet, list(chairs or ()), base_address=base_address, base_port=base_port,
                             chair_port=chair_port, local=local, force=force)
         except DeployError as e:
             fail(str(e))
@@ -318,6 +324,6 @@ def register(app: typer.Typer) -> None:
         for c, folder in report.chairs.items():
             console.print(f"  {c}: {folder}/tls ({c}.pem, {c}.key), {folder}/zenoh (router.json5, "
                           f"{c}.users, {', '.join(f'{u}.json5' for u in CHAIR_NODES)})", highlight=False)
-        console.print(f"  base router's policy admits {', '.join(report.fleet_chairs)}: "
+        console.print(f"  base router's policy admits {', '.join(report.fleet_chairs) or 'no chair'}: "
                       f"{fleet / 'base' / 'zenoh' / 'router.json5'} (restart the base router to apply it)",
                       highlight=False)

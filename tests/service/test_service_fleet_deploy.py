@@ -183,6 +183,14 @@ def test_deploy_adds_a_chair_to_the_base_policy_and_touches_no_other_chair(tmp_p
         r = _run("deploy", *args, "--fleet", str(fleet))
         assert r.exit_code == 2 and says in r.stderr, r.stderr
     assert not (fleet / "chair5").exists()
+    # a chair retired: its folder removed, deploy with no chair drops it from the base policy
+    import shutil
+
+    shutil.rmtree(fleet / "chair1")
+    r = _run("deploy", "--fleet", str(fleet), "--local", "--json")
+    assert r.exit_code == 0, r.stderr
+    assert json.loads(r.stdout)["base_router_admits"] == ["chair3", "chair4"]
+    assert "chair1" not in (fleet / "base/zenoh/router.json5").read_text().split("access_control")[1]
 
 
 def test_a_publisher_whose_batches_the_fusion_node_refuses_is_told_why(tmp_path, fusion_node, hub_settings,
