@@ -220,10 +220,12 @@ def fleet_chairs(fleet: Path) -> tuple[str, ...]:
                         if p.stem == p.parent.parent.name and p.parent.parent.name not in BASE_NAMES))
 
 
-def deploy(fleet: Path, chairs: list[str], *, base_address: str = "127.0.0.1", base_port: int = 7448,
+def deploy(fleet: Path, chairs: list[str], *, base_address: str | None = None, base_port: int | None = None,
            chair_port: int = 7447, local: bool = False, force: bool = False) -> DeployReport:
     """Write ``chairs``' bundles, and the CA and base station's on first use (see the module's
-    docstring)."""
+    docstring). ``base_address``, ``base_port``: the base router's (``None``: those its files
+    were made for, else ``127.0.0.1``, ``7448``); others than those its files were made for
+    are refused."""
     for c in chairs:
         try:
             check_name(c, "chair")
@@ -233,6 +235,10 @@ def deploy(fleet: Path, chairs: list[str], *, base_address: str = "127.0.0.1", b
             raise DeployError(f"chair {c!r}: the fleet's {', '.join(BASE_NAMES)} folders take these names")
     if len(set(chairs)) != len(chairs):
         raise DeployError(f"chairs {', '.join(chairs)}: a chair named twice")
+    made_for = _base_endpoint_of(fleet / "base" / "zenoh" / "base.json5")
+    old_host, _, old_port = (made_for or "tls/127.0.0.1:7448").removeprefix("tls/").rpartition(":")
+    base_address = old_host.strip("[]") if base_address is None else base_address
+    base_port = int(old_port) if base_port is None else base_port
     try:
         ip = ipaddress.ip_address(base_address)
     except ValueError:
@@ -241,12 +247,16 @@ def deploy(fleet: Path, chairs: list[str], *, base_address: str = "127.0.0.1", b
     for what, port in (("--base-port", base_port), ("--chair-port", chair_port)):
         if not 1 <= port <= 65535:
             raise DeployError(f"{what} {port}: expected 1 to 65535")
+    host = f"[{ip}]" if ip.version == 6 else str(ip)
+    base_endpoint = f"tls/{host}:{base_port}"
+    if made_for is not None and made_for != base_endpoint:
+        raise DeployError(f"{fleet / 'base'}: the base station's files were made for {made_for} (its "
+                          f"router's certificate names that address), not {base_endpoint}: leave out "
+                          "--base-address and --base-port, or remove that folder to make them again")
     existing = [str(fleet / c) for c in chairs if (fleet / c).exists()]
     if existing and not force:
         raise DeployError(f"{', '.join(existing)} exist{'s' if len(existing) == 1 else ''}: --force to "
                           "replace (new certificates and passwords: the chair's nodes need the new files)")
-    host = f"[{ip}]" if ip.version == 6 else str(ip)
-    base_endpoint = f"tls/{host}:{base_port}"
     chair_endpoint = f"tcp/127.0.0.1:{chair_port}"
     report = DeployReport(fleet)
     made: list[Path] = []
@@ -255,11 +265,6 @@ def deploy(fleet: Path, chairs: list[str], *, base_address: str = "127.0.0.1", b
         make_ca(fleet / "ca")
         made += [fleet / "ca" / "ca.key", fleet / "ca" / "ca.pem"]
     base = _folder(fleet / "base")
-    made_for = _base_endpoint_of(base / "zenoh" / "base.json5")
-    if made_for is not None and made_for != base_endpoint:
-        raise DeployError(f"{base}: the base station's files were made for {made_for} (its router's "
-                          f"certificate names that address), not {base_endpoint}: give the same "
-                          "--base-address and --base-port, or remove that folder to make them again")
     if not (base / "tls" / "router.pem").is_file():
         make_certificate(fleet / "ca", base / "tls", "router", f"IP:{ip}")
         make_certificate(fleet / "ca", base / "tls", "base", "DNS:base")
@@ -291,10 +296,12 @@ def register(app: typer.Typer) -> None:
         chairs: Annotated[list[str] | None, typer.Argument(
             help="The chairs to write (each name is its certificate's CN and its key prefix); none: "
                  "only the base router's policy, from the chairs in the fleet.")] = None,
-        base_address: Annotated[str, typer.Option(
+        base_address: Annotated[str | None, typer.Option(
             "--base-address", help="The base router's IP address (its certificate's subject alternative "
-                                   "name, the chairs' connect endpoint).")] = "127.0.0.1",
-        base_port: Annotated[int, typer.Option("--base-port", help="The base router's TLS port.")] = 7448,
+                                   "name, the chairs' connect endpoint; default: the fleet's, else "
+                                   "127.0.0.1).")] = None,
+        base_port: Annotated[int | None, typer.Option(
+            "--base-port", help="The base router's TLS port (default: the fleet's, else 7448).")] = None,
         chair_port: Annotated[int, typer.Option(
             "--chair-port", help="The chair router's port on 127.0.0.1, for its nodes.")] = 7447,
         local: Annotated[bool, typer.Option(

@@ -179,7 +179,8 @@ def test_deploy_adds_a_chair_to_the_base_policy_and_touches_no_other_chair(tmp_p
     for args, says in ((["base"], "take these names"), (["chair 5"], "use 1 to 64 letters"),
                        (["chair5", "chair5"], "named twice"),
                        (["chair5", "--base-address", "base.local"], "literal IP address"),
-                       (["chair5", "--base-port", "7449"], "made for tls/127.0.0.1:7448")):
+                       (["chair5", "--base-port", "7449"], "made for tls/127.0.0.1:7448"),
+                       (["chair5", "--base-address", "127.0.0.2"], "made for tls/127.0.0.1:7448")):
         r = _run("deploy", *args, "--fleet", str(fleet))
         assert r.exit_code == 2 and says in r.stderr, r.stderr
     assert not (fleet / "chair5").exists()
@@ -231,3 +232,56 @@ def test_drivers_whose_user_the_chair_forbids_to_publish_stop_and_say_so(tmp_pat
     assert "admitted none of the samples" in r.stderr and "none reached it" in r.stderr
     published = json.loads(r.stdout)["published"]
     assert sum(published["samples"].values()) > 0 and published["admission"]["state"] == "refused"
+
+
+def test_a_retired_chair_reaches_the_base_router_and_is_heard_no_more(tmp_path):
+    """chair2's folder removed from the fleet and deploy run with no chair: its certificate
+    still passes the TLS handshake, and the base router's policy drops what it sends."""
+    import shutil
+    import threading
+    import time
+
+    from service_helpers import wait_for
+
+    from fusion.service.zenoh_config import ZenohSettings, open_session
+
+    fleet, base_port = tmp_path / "fleet", free_port()
+    ports = {c: free_port() for c in CHAIRS}
+    for c in CHAIRS:
+        assert _run("deploy", c, "--fleet", str(fleet), "--local", "--base-port", str(base_port),
+                    "--chair-port", str(ports[c])).exit_code == 0
+    retired = tmp_path / "chair2-retired"  # (as it is still on chair2)
+    shutil.move(fleet / "chair2", retired)
+    for f in retired.glob("zenoh/*.json5"):
+        f.write_text(f.read_text().replace(str((fleet / "chair2").resolve()), str(retired.resolve())))
+    assert json.loads(_run("deploy", "--fleet", str(fleet), "--local", "--json").stdout)[
+        "base_router_admits"] == ["chair1"]
+
+    heard: list[str] = []
+    lock = threading.Lock()
+
+    def hear(sample) -> None:
+        with lock:
+            heard.append(str(sample.key_expr))
+
+    z = {"chair1": fleet / "chair1/zenoh", "chair2": retired / "zenoh"}
+    with open_session(ZenohSettings(fleet / "base/zenoh/router.json5")) as base_router, \
+            open_session(ZenohSettings(fleet / "base/zenoh/base.json5")) as station, \
+            open_session(ZenohSettings(z["chair1"] / "router.json5")), \
+            open_session(ZenohSettings(z["chair2"] / "router.json5")) as chair2_router, \
+            open_session(ZenohSettings(z["chair1"] / "serve.json5")) as chair1, \
+            open_session(ZenohSettings(z["chair2"] / "serve.json5")) as chair2:
+        station.declare_subscriber("armfusion/**", hear)
+        pubs = {c: s.declare_publisher(f"armfusion/{c}/status") for c, s in (("chair1", chair1),
+                                                                                ("chair2", chair2))}
+        assert wait_for(lambda: pubs["chair1"].matching_status.matching, 20.0)
+        for _ in range(20):
+            for p in pubs.values():
+                p.put("status")
+            time.sleep(0.01)
+        assert wait_for(lambda: heard.count("armfusion/chair1/status") == 20, 10.0)
+        time.sleep(0.5)  # anything denied would have arrived by now
+        with lock:
+            assert "armfusion/chair2/status" not in heard
+        # the retired chair's link is up: its router reached the base router over TLS
+        assert str(base_router.zid()) in {str(r) for r in chair2_router.info.routers_zid()}
