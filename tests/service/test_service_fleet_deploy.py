@@ -96,6 +96,9 @@ def test_the_fleet_deployment_runs_as_docs_service_md_writes_it(tmp_path, startu
         assert told["admission"]["state"] == "refused"
 
         # the drivers (the one user allowed) publish; the base station watches and asks
+        record = ch.start("record", ["record", str(tmp_path / "chair1.mcap"), "--robot", "chair1",
+                                     "--zenoh-config", str(z1 / "record.json5"), "--json"])
+        assert record.wait_for_line("recording armfusion/chair1/raw/*", 60.0), record.stderr_tail()
         drivers = ch.start("drivers", ["drivers", "--fake", "--realtime", "--scenario", "startup",
                                        "--duration", "6", "--robot", "chair1", "--zenoh-config",
                                        str(z1 / "drivers.json5"), "--wait", "60", "--json"])
@@ -114,8 +117,11 @@ def test_the_fleet_deployment_runs_as_docs_service_md_writes_it(tmp_path, startu
         assert json.loads(r.stdout)["robots"] == {}
 
         assert drivers.proc.wait(90) == 0, drivers.stderr_tail()
-        ch.stop(serve)
+        ch.stop_all(children=[serve, record])
     published = json.loads(drivers.stdout_path.read_text())["published"]
+    recorded = json.loads(record.stdout_path.read_text())
+    assert 0 < sum(recorded["samples"].values()) <= sum(published["samples"].values())
+    assert recorded["dropped"] == {}
     assert published["admission"]["state"] == "admitted"
     report = json.loads(serve.stdout_path.read_text())
     # what the fusion node took in came from the drivers (it stopped as their last batches came:
