@@ -16,6 +16,7 @@ import json
 import stat
 from pathlib import Path
 
+import pytest
 from service_helpers import free_port
 from typer.testing import CliRunner
 
@@ -291,3 +292,24 @@ def test_a_retired_chair_reaches_the_base_router_and_is_heard_no_more(tmp_path):
             assert "armfusion/chair2/status" not in heard
         # the retired chair's link is up: its router reached the base router over TLS
         assert str(base_router.zid()) in {str(r) for r in chair2_router.info.routers_zid()}
+
+
+def test_a_client_refuses_a_base_router_whose_certificate_names_another_address(tmp_path):
+    """The base router's certificate names 127.0.0.2 (--base-address): a base-station node
+    reaches it there, and refuses it at 127.0.0.1 (verify_name_on_connect)."""
+    import zenoh
+
+    from fusion.service.zenoh_config import ZenohSettings, open_session
+
+    fleet, port = tmp_path / "fleet", free_port()
+    r = _run("deploy", "chair1", "--fleet", str(fleet), "--local", "--base-address", "127.0.0.2",
+             "--base-port", str(port))
+    assert r.exit_code == 0, r.stderr
+    base = fleet / "base/zenoh"
+    both = [f"tls/127.0.0.2:{port}", f"tls/127.0.0.1:{port}"]
+    with open_session(ZenohSettings(base / "router.json5", listen=both)):
+        with open_session(ZenohSettings(base / "base.json5")) as named:  # tls/127.0.0.2, as written
+            assert len(list(named.info.routers_zid())) == 1
+        other = ZenohSettings(base / "base.json5", connect=[f"tls/127.0.0.1:{port}"])
+        with pytest.raises(zenoh.ZError), open_session(other):
+            pass
