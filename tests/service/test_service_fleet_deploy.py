@@ -68,7 +68,8 @@ def test_the_fleet_deployment_runs_as_docs_service_md_writes_it(tmp_path, startu
         for c in CHAIRS:
             r = ch.start(f"{c}-router", ["router", "--zenoh-config", str(fleet / c / "zenoh/router.json5")])
             assert r.wait_for_line(f"listening on tcp/127.0.0.1:{chair_ports[c]}", 60.0), r.stderr_tail()
-            assert f"connecting to tls/127.0.0.1:{base_port}" in r.lines[-1]
+            said = next(line for line in r.lines if "listening on" in line)
+            assert f"connecting to tls/127.0.0.1:{base_port} ({fleet / c / 'zenoh/router.json5'})" in said
         serve = ch.start("serve", ["serve", "--robot", "chair1", "--zenoh-config", str(z1 / "serve.json5"),
                                    "--json"])
 
