@@ -17,9 +17,10 @@ config is written again on every run, with a rule, a subject and a policy for ev
 that has a certificate in ``FLEET`` (restart the base router to apply it): a chair whose
 folder was removed is no longer admitted (its certificate still passes the TLS handshake, and
 the policy, default deny, drops everything it sends); with no chair, a run writes only that
-config (and, in a new fleet, the CA and the base station's files). A chair's folder that exists is refused (its certificate and passwords would change)
-unless ``force``. Later runs take the base router's address and port from the base station's
-files, and refuse others (its certificate names that address).
+config (and, in a new fleet, the CA and the base station's files). A chair's folder that
+exists is refused (its certificate and passwords would change) unless ``force``. Later runs
+take the base router's address and port from the base station's files, and refuse others
+(its certificate names that address).
 Certificates: P-256, made by the ``openssl`` command line as docs/service.md's recipe,
 CN = the node's name, the base router's subject alternative name its address (a client that
 verifies the name, ``verify_name_on_connect``, accepts it only then). Passwords: 24 random
