@@ -58,8 +58,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
              "calibrates its sensors, then fake drivers → fusion node → recorder run as processes "
              "over Zenoh; a summary against the truth and an HTML report.",
              "fusion.service.demo:register"),
-    "router": ("A Zenoh router on loopback (default tcp/127.0.0.1:7447) for the nodes of several "
-               "robots; runs until SIGINT or SIGTERM.", "fusion.service.fleet:register"),
+    "router": ("A Zenoh router on loopback for the nodes of several robots: it listens where --listen "
+               "says, else where --zenoh-config's file says (default tcp/127.0.0.1:7447), and connects "
+               "where its file says (or --connect); runs until SIGINT or SIGTERM.",
+               "fusion.service.fleet:register"),
+    "deploy": ("Write a fleet's certificates, credentials and Zenoh configs: each chair's (its certificate, "
+               "its nodes' users and passwords, its router's and nodes' configs) and, the first time, the "
+               "fleet's CA and the base station's; the base router's policy admits every chair of the fleet.",
+               "fusion.service.deploy:register"),
     "fleet": ("N simulated chairs as separate processes (fake drivers → serve each), connected "
               "through one Zenoh router; watch them with `armfusion monitor --connect <router>`.",
               "fusion.service.fleet:register"),
