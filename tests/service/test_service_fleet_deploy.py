@@ -296,21 +296,27 @@ def test_a_retired_chair_reaches_the_base_router_and_is_heard_no_more(tmp_path):
 
 
 def test_a_client_refuses_a_base_router_whose_certificate_names_another_address(tmp_path):
-    """The base router's certificate names 127.0.0.2 (--base-address): a base-station node
-    reaches it there, and refuses it at 127.0.0.1 (verify_name_on_connect)."""
+    """A base router whose certificate names 127.0.0.2 (--base-address), listening on
+    127.0.0.1: a base-station node connecting to 127.0.0.1 refuses it (verify_name_on_connect);
+    the same router with a certificate that names 127.0.0.1 (the default) is reached. Nothing
+    listens on or connects to any address but 127.0.0.1."""
     import zenoh
 
     from fusion.service.zenoh_config import ZenohSettings, open_session
 
-    fleet, port = tmp_path / "fleet", free_port()
-    r = _run("deploy", "chair1", "--fleet", str(fleet), "--local", "--base-address", "127.0.0.2",
-             "--base-port", str(port))
-    assert r.exit_code == 0, r.stderr
-    base = fleet / "base/zenoh"
-    both = [f"tls/127.0.0.2:{port}", f"tls/127.0.0.1:{port}"]
-    with open_session(ZenohSettings(base / "router.json5", listen=both)):
-        with open_session(ZenohSettings(base / "base.json5")) as named:  # tls/127.0.0.2, as written
-            assert len(list(named.info.routers_zid())) == 1
-        other = ZenohSettings(base / "base.json5", connect=[f"tls/127.0.0.1:{port}"])
-        with pytest.raises(zenoh.ZError), open_session(other):
-            pass
+    port = free_port()
+    here = [f"tls/127.0.0.1:{port}"]
+    for name, address, reached in (("named-elsewhere", "127.0.0.2", False), ("named-here", "127.0.0.1", True)):
+        fleet = tmp_path / name
+        r = _run("deploy", "chair1", "--fleet", str(fleet), "--local", "--base-address", address,
+                 "--base-port", str(port))
+        assert r.exit_code == 0, r.stderr
+        base = fleet / "base/zenoh"
+        with open_session(ZenohSettings(base / "router.json5", listen=here)):
+            client = ZenohSettings(base / "base.json5", connect=here)
+            if reached:
+                with open_session(client) as s:
+                    assert len(list(s.info.routers_zid())) == 1
+            else:
+                with pytest.raises(zenoh.ZError), open_session(client):
+                    pass
