@@ -306,7 +306,8 @@ def test_a_client_refuses_a_base_router_whose_certificate_names_another_address(
 
     port = free_port()
     here = [f"tls/127.0.0.1:{port}"]
-    for name, address, reached in (("named-elsewhere", "127.0.0.2", False), ("named-here", "127.0.0.1", True)):
+    for name, address, reached in (("named-elsewhere", "127.0.0.2", False),
+                                   ("named-here", "127.0.0.1", True)):
         fleet = tmp_path / name
         r = _run("deploy", "chair1", "--fleet", str(fleet), "--local", "--base-address", address,
                  "--base-port", str(port))
