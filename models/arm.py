@@ -134,7 +134,9 @@ class ArmCalibration:
     one-time joint references the calibration's joint zeros rest on;
     ``joint_zero_conventions``: the elements the calibration held to fix a gauge (its joint
     zeros and mounts are fitted relative to them). An empty block (an uncalibrated config)
-    is all zeros and empty.
+    is all zeros and empty; the config loader fills in each sensor's datasheet-typical floor
+    where the block gives none, and names them in ``floors_by_default`` (where each came
+    from: ``{"forearm": "custom accelerometer, 0.05 g"}``).
     """
 
     accel_unmodelled_g: float = 0.0
@@ -145,6 +147,7 @@ class ArmCalibration:
     correction_covariance: Mapping[str, CorrectionCovariance] = field(default_factory=dict)
     references: tuple[JointReference, ...] = ()
     joint_zero_conventions: tuple[str, ...] = ()
+    floors_by_default: Mapping[str, str] = field(default_factory=dict)
 
     def accel_floor_g(self, sensor: str) -> float:
         """A link accelerometer's unmodelled error [g]: its own, else the common one."""
@@ -158,15 +161,18 @@ class ArmCalibration:
 
     def with_accel_floor(self, accel_unmodelled_g: float) -> ArmCalibration:
         """The same calibration with one unmodelled error for every accelerometer (the
-        per-sensor ones dropped), as ``track --unmodelled-g`` and the benchmarks set it."""
+        per-sensor ones dropped, and the base IMU's where it was a default), as ``track
+        --unmodelled-g`` and the benchmarks set it."""
+        imu_own = None if "imu_acc" in self.floors_by_default else self.imu_accel_unmodelled_g
         return replace(self, accel_unmodelled_g=float(accel_unmodelled_g),
-                       accel_unmodelled_g_per_sensor={})
+                       accel_unmodelled_g_per_sensor={}, imu_accel_unmodelled_g=imu_own,
+                       floors_by_default={k: v for k, v in self.floors_by_default.items() if k == "imu_mag"})
 
     def as_exact(self) -> ArmCalibration:
         """The same calibration with nothing unmodelled (no accelerometer floor, no compass
         floor): sensors exactly as modelled, as a simulation with noise only draws them."""
         return replace(self.with_accel_floor(0.0), imu_accel_unmodelled_g=None, mag_unmodelled_ut=0.0,
-                       gyro_scale_unmodelled=None)
+                       gyro_scale_unmodelled=None, floors_by_default={})
 
 
 @dataclass(frozen=True)
@@ -193,6 +199,18 @@ class BaseMotion:
 
 
 @dataclass(frozen=True)
+class FixedBase:
+    """An arm bolted down (the config's ``base: fixed``): its base does not move. Its tilt
+    (roll, pitch, rad) where an installer's level gave it; None: level, the link
+    accelerometers reading the rest as the arm moves. ``tilt_sigma_rad``: the tilt's 1 sigma
+    either way (the startup's level-base prior, :func:`fusion.startup.problem.make_problem`)."""
+
+    roll_rad: float | None = None
+    pitch_rad: float | None = None
+    tilt_sigma_rad: float = 1.0 * np.pi / 180.0
+
+
+@dataclass(frozen=True)
 class ArmModel:
     """A validated arm: joints, sensors, limits and poses. Built once from a config."""
 
@@ -214,6 +232,9 @@ class ArmModel:
     The tracker then predicts what the chair's rotation adds to the base's acceleration
     (:mod:`fusion.tracking.frame_kernels`); the simulator's chair turns about it. None: not
     given (the tracker's acceleration state carries that part too)."""
+    fixed_base: FixedBase | None = None
+    """The config's ``base: fixed`` (a bolted base: no base motion, its tilt given or read
+    once); None: the base moves (a wheelchair, or as ``base_motion`` says)."""
 
     # -- derived views -------------------------------------------------------------
     @property
@@ -241,15 +262,34 @@ class ArmModel:
         """Each joint's limits' middle, once per arm (the live estimate reads it every instant)."""
         return 0.5 * (self.min_rad + self.max_rad)
 
-    def angles_in_range(self, q_rad: np.ndarray) -> np.ndarray:
-        """Joint angles ``(..., n)`` rad, each moved by whole turns to the angle of the same
-        pose nearest the middle of its joint's limits: a revolute joint at ``q`` and at
-        ``q + 2 pi`` is in the same pose, and a controller reads the one inside its limits.
-        Angles within half a turn of the middle come back unchanged, to the bit."""
+    @cached_property
+    def _wide_joints(self) -> np.ndarray:
+        """Per joint: do its limits span more than a turn (a UR's ±360°)?"""
+        return (self.max_rad - self.min_rad) > 2.0 * np.pi
+
+    def angles_in_range(self, q_rad: np.ndarray, encoder_rad: np.ndarray | None = None) -> np.ndarray:
+        """Joint angles ``(..., n)`` rad, each in its joint's own range: a revolute joint at
+        ``q`` and at ``q + 2 pi`` is in the same pose, and a controller reads the one inside its
+        limits. A joint whose limits span at most a turn: moved by whole turns to the angle
+        nearest the middle of its limits (within half a turn of it: unchanged, to the bit). A
+        joint whose limits span more (one turn holds two angles inside them): the turn its
+        encoder counts, ``encoder_rad`` (what the encoders read, rad, the estimate within half
+        a turn of it), so the angle runs on continuously past ±180°; moved by whole turns
+        only where that lies outside the limits. Without ``encoder_rad`` such a joint's angle
+        is kept as it is where inside its limits."""
         q = np.asarray(q_rad, dtype=float)
         mid = self._limits_middle_rad
         d = q - mid
-        return np.where(np.abs(d) > np.pi, mid + wrap_angle(d), q)
+        out = np.where(np.abs(d) > np.pi, mid + wrap_angle(d), q)
+        wide = self._wide_joints
+        if not wide.any():
+            return out
+        ref = q if encoder_rad is None else np.asarray(encoder_rad, float) + wrap_angle(q - encoder_rad)
+        lo, hi = self.min_rad, self.max_rad
+        two_pi = 2.0 * np.pi
+        ref = np.where(ref > hi, ref - two_pi * np.ceil((ref - hi) / two_pi), ref)
+        ref = np.where(ref < lo, ref + two_pi * np.ceil((lo - ref) / two_pi), ref)
+        return np.where(wide, ref, out)
 
     @property
     def offset_rad(self) -> np.ndarray:

@@ -20,13 +20,14 @@ from models.arm import (
     BaseMotion,
     CorrectionCovariance,
     DhTable,
+    FixedBase,
     Joint,
     JointReference,
     SensorMount,
     joints_from_dh,
 )
 from models.rotations import DEG, rotation_problem
-from models.sensor_description import DEVICE_TYPES, SensorDescription, describe
+from models.sensor_description import DEVICE_TYPES, SensorDescription, describe, unmodelled_floor
 from sensors.samples import clipped_repr
 
 
@@ -317,6 +318,35 @@ class ChairSection(_Strict):
         return v
 
 
+class FixedBaseSection(_Strict):
+    """The ``base:`` block of an arm bolted down (``base: fixed`` is the short form): its
+    base never moves, so the tracker holds no base acceleration and lets its tilt take no
+    random walk. ``roll_deg``, ``pitch_deg``: the base's tilt where an installer's level
+    gave it, to ``tilt_sigma_deg`` (1 sigma, default 0.1°); without them the base is level to
+    ``tilt_sigma_deg`` (default 1°: a floor or table levelled as built), and the link
+    accelerometers read the rest."""
+
+    mount: Literal["fixed"]
+    """fixed: the base is bolted down."""
+    roll_deg: float | None = Field(default=None, ge=-90.0, le=90.0)
+    """The base's roll, where an installer's level gave it."""
+    pitch_deg: float | None = Field(default=None, ge=-90.0, le=90.0)
+    """The base's pitch, where an installer's level gave it."""
+    tilt_sigma_deg: float | None = Field(default=None, gt=0.0, le=10.0)
+    """How well the tilt is known, 1 sigma (0.1° with a level, 1° without)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _short_form(cls, v: Any) -> Any:
+        return {"mount": v} if isinstance(v, str) else v
+
+    @model_validator(mode="after")
+    def _both(self) -> FixedBaseSection:
+        if (self.roll_deg is None) != (self.pitch_deg is None):
+            raise ValueError("give both roll_deg and pitch_deg (the base's tilt), or neither")
+        return self
+
+
 class ArmConfigFile(_Strict):
     arm: ArmSection
     """The arm's kinematics, joints and encoders."""
@@ -332,6 +362,14 @@ class ArmConfigFile(_Strict):
     """Where the chair is used."""
     chair: ChairSection | None = None
     """Where the wheelchair turns."""
+    base: FixedBaseSection | None = None
+    """A base bolted down (`base: fixed`), where it is not a chair."""
+
+    @model_validator(mode="after")
+    def _fixed_base_alone(self) -> ArmConfigFile:
+        if self.base is not None and (self.base_motion is not None or self.chair is not None):
+            raise ValueError("base: fixed: a bolted base has no base_motion or chair block")
+        return self
 
 
 def _loc(loc: tuple) -> str:
@@ -558,7 +596,7 @@ def build_arm(
         name=arm.name, joints=joints, sensors=sensors,
         ready_pose_rad=_ro(np.array(arm.ready_pose_deg) * DEG), dh=dh_table, source=source,
         effects=tuple(parsed.effects),
-        calibration=_calibration(parsed.calibration),
+        calibration=_calibration(parsed.calibration, sensors),
         base_motion=(None if parsed.base_motion is None else
                      BaseMotion(parsed.base_motion.accel_sigma_mps2, parsed.base_motion.accel_tau_s,
                                 parsed.base_motion.speed_sigma_mps, parsed.base_motion.pivot_sigma_m,
@@ -567,17 +605,63 @@ def build_arm(
         base_from_turning_centre_m=(
             None if parsed.chair is None
             else _ro(np.array(parsed.chair.base_from_turning_centre_mm, dtype=float) / 1000.0)),
+        fixed_base=_fixed_base(parsed.base),
     )
 
 
-def _calibration(section: CalibrationSection) -> ArmCalibration:
-    """The validated ``calibration:`` block as the typed object the estimators read."""
+def _fixed_base(section: FixedBaseSection | None) -> FixedBase | None:
+    if section is None:
+        return None
+    given = section.roll_deg is not None
+    sigma_deg = section.tilt_sigma_deg or (LEVELLED_TILT_SIGMA_DEG if given else LEVEL_AS_BUILT_SIGMA_DEG)
+    return FixedBase(roll_rad=section.roll_deg * DEG if given else None,
+                     pitch_rad=section.pitch_deg * DEG if given else None,
+                     tilt_sigma_rad=sigma_deg * DEG)
+
+
+LEVELLED_TILT_SIGMA_DEG = 0.1
+"""A bolted base's tilt read with an installer's level (a machinist's level: 0.1°), 1 sigma."""
+LEVEL_AS_BUILT_SIGMA_DEG = 1.0
+"""A bolted base's tilt from level where no level was read: a floor or a table as built
+(within about a degree), 1 sigma."""
+
+
+def _default_floors(section: CalibrationSection, sensors: tuple[SensorMount, ...]) -> tuple[dict, dict]:
+    """The unmodelled-error floors the block does not give, each sensor's datasheet-typical
+    one (:data:`models.sensor_description.UNMODELLED_FLOOR`): ``({key: value}, {key: where
+    from})``, keys a link accelerometer's name, ``imu_acc``, ``imu_mag``. A floor the block
+    gives, even 0 (sensors as exact as modelled), is never replaced."""
+    values: dict[str, float] = {}
+    said: dict[str, str] = {}
+    given = section.accel_unmodelled_g_per_sensor or {}
+    for s in sensors:
+        if s.is_link_accelerometer and section.accel_unmodelled_g is None and s.name not in given:
+            values[s.name] = unmodelled_floor(s.description.device, "accelerometer")
+            said[s.name] = f"{s.description.device} accelerometer, {values[s.name]:g} g"
+        if s.is_base_imu:
+            if section.accel_unmodelled_g is None and section.imu_accel_unmodelled_g is None \
+                    and s.name not in given:
+                values["imu_acc"] = unmodelled_floor(s.description.device, "accelerometer")
+                said["imu_acc"] = f"{s.description.device} accelerometer, {values['imu_acc']:g} g"
+            if s.description.has("magnetometer") and section.mag_unmodelled_ut is None:
+                values["imu_mag"] = unmodelled_floor(s.description.device, "magnetometer")
+                said["imu_mag"] = f"{s.description.device} magnetometer, {values['imu_mag']:g} uT"
+    return values, said
+
+
+def _calibration(section: CalibrationSection, sensors: tuple[SensorMount, ...] = ()) -> ArmCalibration:
+    """The validated ``calibration:`` block as the typed object the estimators read, each
+    floor it does not give the sensor's datasheet-typical one (:func:`_default_floors`)."""
     identified = section.identified
+    defaults, said = _default_floors(section, sensors)
+    per_sensor = dict(section.accel_unmodelled_g_per_sensor or {})
+    per_sensor.update({k: v for k, v in defaults.items() if k not in ("imu_acc", "imu_mag")})
     return ArmCalibration(
         accel_unmodelled_g=float(section.accel_unmodelled_g or 0.0),
-        accel_unmodelled_g_per_sensor=dict(section.accel_unmodelled_g_per_sensor or {}),
-        imu_accel_unmodelled_g=section.imu_accel_unmodelled_g,
-        mag_unmodelled_ut=float(section.mag_unmodelled_ut or 0.0),
+        accel_unmodelled_g_per_sensor=per_sensor,
+        imu_accel_unmodelled_g=defaults.get("imu_acc", section.imu_accel_unmodelled_g),
+        mag_unmodelled_ut=float(defaults.get("imu_mag", section.mag_unmodelled_ut or 0.0)),
+        floors_by_default=said,
         gyro_scale_unmodelled=(None if section.gyro_scale_unmodelled is None
                                else float(section.gyro_scale_unmodelled)),
         correction_covariance={

@@ -245,6 +245,34 @@ def analog_triax(settings: Mapping[str, Any]) -> SensorDescription:
     return SensorDescription("analog_triax", "accelerometer", {"accelerometer": part})
 
 
+UNMODELLED_FLOOR: dict[str, dict[str, float]] = {
+    # an uncalibrated ADXL345: 0 g offset ±35 mg (x, y) / ±40 mg (z), sensitivity ±1 %,
+    # cross-axis ±1 %, a board glued 1-3° off (about 35 mg at 1 g): about 45 mg together
+    "adxl345": {"accelerometer": 0.045},
+    # an uncalibrated MPU-9150 / MPU-6050: initial tolerance ±80 mg x/y, ±150 mg z (σ taken
+    # as half), sensitivity ±3 %, cross-axis ±2 %, a board 1-3° off: about 60 mg together;
+    # its AK8975 compass near a chair's motors and steel: hard iron of the order of 15 µT
+    "mpu9150": {"accelerometer": 0.06, "magnetometer": 15.0},
+    "mpu6050": {"accelerometer": 0.06},
+    # the article's taps, uncalibrated: their zero and gain through the ADC are the analog
+    # part's few percent
+    "analog_triax": {"accelerometer": 0.05},
+    # a MEMS part of no known datasheet, as the class comes: zero-g offset ±40-60 mg,
+    # sensitivity ±2-4 %, a mount 1-2° off; a compass as the MPU-9150's
+    "custom": {"accelerometer": 0.05, "magnetometer": 15.0},
+}
+"""Per device and part, the error its model leaves when nothing of it is calibrated, 1 sigma
+per axis, in the part's datasheet unit (g, µT): the unmodelled-error floor the startup and
+the tracker take where the config's ``calibration:`` block gives none
+(:func:`models.arm_config` fills it in; ``docs/config.md``, *Unmodelled-error floors*)."""
+
+
+def unmodelled_floor(device: str, part: str) -> float:
+    """The datasheet-typical unmodelled error of ``device``'s ``part`` (see
+    :data:`UNMODELLED_FLOOR`; a device or part it does not name: the ``custom`` one's)."""
+    return float(UNMODELLED_FLOOR.get(device, {}).get(part, UNMODELLED_FLOOR["custom"][part]))
+
+
 PART_KEYS = ("units", "scale", "scale_unit", "zero", "range", "limits", "resolution", "noise_density",
              "noise_rms", "noise_rate_hz", "noise_unit", "bandwidth_hz", "rate_hz", "delay_s")
 MAX_DELAY_S = 1.0

@@ -41,6 +41,7 @@ _UNITS: dict[str, tuple[str, float]] = {
     "uT": ("magnetic_field", 1.0),
     "nT": ("magnetic_field", 1e-3),
     "mT": ("magnetic_field", 1e3),
+    "T": ("magnetic_field", 1e6),  # tesla: ROS's sensor_msgs/MagneticField
     "gauss": ("magnetic_field", 100.0),
     "rad": ("angle", 1.0),
     "deg": ("angle", math.pi / 180.0),

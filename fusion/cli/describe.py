@@ -46,10 +46,15 @@ def describe_arm(arm: ArmModel) -> dict:
             b = s.bus
             bus = (f"I2C bus {b['bus']} at 0x{b['address']:02X}" if b["kind"] == "i2c"
                    else f"SPI bus {b['bus']} CS {b['chip_select']}")
+        floor = (arm.calibration.imu_accel_floor_g if s.is_base_imu else
+                 arm.calibration.accel_floor_g(s.name) if s.is_link_accelerometer else None)
         sensors.append({
             "name": s.name,
             "type": s.type,
             "link": s.link,
+            "unmodelled_g": floor,
+            "unmodelled_from": ("class" if (("imu_acc" if s.is_base_imu else s.name)
+                                            in arm.calibration.floors_by_default) else "config"),
             "position_mm": (s.p_L_m * 1000).tolist(),
             "rotation": s.R_LS.tolist(),
             "bus": bus,
@@ -63,6 +68,11 @@ def describe_arm(arm: ArmModel) -> dict:
         "joints": joints,
         "sensors": sensors,
         "effects": [{"effect": e.effect, "target": e.target} for e in arm.effects],
+        "base": ("moving" if arm.fixed_base is None else
+                 {"mount": "fixed", "tilt_sigma_deg": float(np.degrees(arm.fixed_base.tilt_sigma_rad)),
+                  "roll_deg": None if arm.fixed_base.roll_rad is None else float(np.degrees(arm.fixed_base.roll_rad)),
+                  "pitch_deg": None if arm.fixed_base.pitch_rad is None
+                  else float(np.degrees(arm.fixed_base.pitch_rad))}),
     }
 
 

@@ -45,6 +45,8 @@ from fusion.cli.drivers_faults import FAULT_KINDS
 from fusion.cli.drivers_report import print_report, summary
 from fusion.cli.drivers_run import DriversRun, run_fake, run_real
 from fusion.cli.options import (
+    ADMITTED_WITHIN_S,
+    AdmittedWithinOpt,
     BatchMsOpt,
     ConfigOpt,
     ConnectOpt,
@@ -72,14 +74,25 @@ class _Live:
     publisher: Any
     stop: threading.Event
     batch_s: float
+    watch: Any = None
+    admission: Any = None
+    """The fusion node's admission of what was published (fusion.service.admitted), at the end."""
+
+    def on_batch(self, streams) -> None:
+        if self.watch is not None and not self.watch.started:
+            self.watch.start()
+        self.publisher.publish(streams)
 
 
 @contextlib.contextmanager
-def _publishing(robot: str, batch_ms: float, wait_s: float, zenoh_config: Path | None,
-                listen: list[str] | None, connect: list[str] | None, mode: str | None) -> Iterator[_Live]:
+def _publishing(robot: str, batch_ms: float, wait_s: float, admitted_within_s: float,
+                zenoh_config: Path | None, listen: list[str] | None, connect: list[str] | None,
+                mode: str | None) -> Iterator[_Live]:
     """A Zenoh session and a :class:`~fusion.service.raw_publisher.RawPublisher` for
-    ``--robot``; SIGINT and SIGTERM stop the run; the last status says ``done``."""
-    from fusion.service.commands import session_or_exit, zenoh_settings
+    ``--robot``; SIGINT and SIGTERM stop the run, and so does the fusion node's admitting
+    none of the samples within ``admitted_within_s`` (the verdict: ``_Live.admission``);
+    the last status says ``done``."""
+    from fusion.service.commands import session_or_exit, watching_admission, zenoh_settings
     from fusion.service.node import stop_on_signals
     from fusion.service.raw_publisher import RawPublisher
 
@@ -87,14 +100,17 @@ def _publishing(robot: str, batch_ms: float, wait_s: float, zenoh_config: Path |
         fail(f"--wait {wait_s!r}: expected >= 0")
     stop = threading.Event()
     with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
-            stop_on_signals(stop):
+            stop_on_signals(stop), watching_admission(session, robot, admitted_within_s, stop) as watch:
         publisher = RawPublisher(session, robot, message="publishing raw samples")
         if wait_s:
             publisher.wait_for_subscriber("imu_acc", wait_s, stop)
         publisher.status("running", "publishing raw samples")
+        live = _Live(publisher, stop, batch_ms / 1000.0, watch)
         try:
-            yield _Live(publisher, stop, batch_ms / 1000.0)
+            yield live
         finally:
+            if watch is not None:
+                live.admission = watch.finish(stop)
             n = sum(publisher.samples.values())
             publisher.close(("stopped: " if stop.is_set() else "") + f"published {n} samples")
 
@@ -129,6 +145,7 @@ def register(app: typer.Typer) -> None:
         batch_ms: BatchMsOpt = 20.0,
         wait_s: Annotated[float, typer.Option("--wait", help="With --robot: first wait up to this long "
                                               "for a subscriber to the raw samples, in s.")] = 0.0,
+        admitted_within_s: AdmittedWithinOpt = ADMITTED_WITHIN_S,
         zenoh_config: ZenohConfigOpt = None,
         listen: ListenOpt = None,
         connect: ConnectOpt = None,
@@ -151,19 +168,29 @@ def register(app: typer.Typer) -> None:
                 fail(f"{', '.join(given)}: only with --robot (which publishes over Zenoh)")
             publishing = contextlib.nullcontext(None)
         else:
-            publishing = _publishing(robot, batch_ms, wait_s, zenoh_config, listen, connect, mode)
+            publishing = _publishing(robot, batch_ms, wait_s, admitted_within_s, zenoh_config, listen,
+                                     connect, mode)
         with publishing as live, progress_bar("reading the fakes", json_out or not fake) as advance:
             run = _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file,
                        noise, fault, realtime, live, advance)
         doc = summary(run)
         if live is not None:
+            admission = live.admission
             doc["published"] = {"robot": robot, "samples": live.publisher.samples,
-                                "batches": live.publisher.batches}
+                                "batches": live.publisher.batches,
+                                "admission": None if admission is None else admission.as_dict()}
         _finish(doc, run, out, json_out)
+        if live is not None:
+            from fusion.service.commands import say_admission
+
+            if not json_out:
+                say_admission(live.admission)
+            if live.admission is not None and live.admission.state == "refused":
+                fail(live.admission.message, code=1)
 
     def _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file, noise,
              fault, realtime, live, advance) -> DriversRun:
-        on_batch = None if live is None else live.publisher.publish
+        on_batch = None if live is None else live.on_batch
         batch_s = 0.02 if live is None else live.batch_s
         stop = threading.Event() if live is None else live.stop
         try:

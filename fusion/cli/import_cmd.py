@@ -29,18 +29,20 @@ def register(app: typer.Typer) -> None:
 
 
 def import_recording_cmd(
-    source: Annotated[Path, typer.Argument(help="The foreign recording: .csv (a header row of names), .mat (MATLAB v5) or .h5/.hdf5.")],
-    column_map: Annotated[str, typer.Option("--map", "-m", help="Column map (YAML): a path, or a shipped one by name (imu-rig, broad).")],
+    source: Annotated[Path, typer.Argument(help="The foreign recording: .csv (a header row of names), .mat (MATLAB v5), .h5/.hdf5, or a ROS bag (a rosbag2 directory, .mcap, .db3; ROS 1 .bag).")],
+    column_map: Annotated[str, typer.Option("--map", "-m", help="Column map (YAML): a path, or a shipped one by name (imu-rig, broad, ros2-wmra).")],
     out: RecordingOutOpt,
     config: ConfigOpt = "wmra",
     json_out: JsonOpt = False,
 ) -> None:
-    """Turn a foreign recording (CSV, MATLAB .mat, HDF5) into the arm's native one: each stream
+    """Turn a foreign recording (CSV, MATLAB .mat, HDF5, a ROS bag) into the arm's native one: each stream
     from the columns the map names, in the unit the config declares; rows whose time does not increase dropped, NaN kept
     as gaps, every change said."""
+    from fusion.importing.bag import import_bag
     from fusion.importing.column_map import ColumnMapError, load_column_map
     from fusion.importing.run import import_recording
     from models.arm_config import ConfigError
+    from sensors.foreign.rosbag import is_bag
     from sensors.recording import write_recording
 
     out = prepare_output_path(out, "--out", OUT_SUFFIXES)
@@ -52,7 +54,7 @@ def import_recording_cmd(
         fail(str(e))
     arm = load_arm_or_exit(config)
     try:
-        result = import_recording(source, cmap, arm, config)
+        result = (import_bag if is_bag(source) else import_recording)(source, cmap, arm, config)
     except (ValueError, OSError) as e:
         fail(f"cannot import {source}: {e}")
     try:
@@ -63,10 +65,19 @@ def import_recording_cmd(
     if json_out:
         emit_json(summary)
         return
-    rows = summary["rows"]
-    console.print(f"[bold]{source}[/] -> {out}: {rows['imported']} of {rows['in_file']} rows, "
-                  f"t = {summary['time']['t_start_s']:.3f} … {summary['time']['t_end_s']:.3f} s",
-                  highlight=False, soft_wrap=True)
+    if "topics" in summary:  # a bag: each topic's messages, rate and gaps, as inspect says them
+        console.print(f"[bold]{source}[/] -> {out}: t = {summary['time']['t_start_s']:.3f} … "
+                      f"{summary['time']['t_end_s']:.3f} s", highlight=False, soft_wrap=True)
+        for topic, r in summary["topics"].items():
+            gaps = f"{r['gaps']} gaps ({r['missing_samples']} missing)" if r["gaps"] else "no gap"
+            console.print(f"  {topic} ({r['type']}, frame {', '.join(r['frame_ids']) or '-'}): "
+                          f"{r['messages']} messages, {r['rate_hz']:.1f} Hz by its {r['stamp']} stamp, "
+                          f"{gaps}", highlight=False, soft_wrap=True)
+    else:
+        rows = summary["rows"]
+        console.print(f"[bold]{source}[/] -> {out}: {rows['imported']} of {rows['in_file']} rows, "
+                      f"t = {summary['time']['t_start_s']:.3f} … {summary['time']['t_end_s']:.3f} s",
+                      highlight=False, soft_wrap=True)
     for name, s in summary["streams"].items():
         gaps = f", {s['nan_gaps'] + s['partly_nan']} gaps" if s["nan_gaps"] + s["partly_nan"] else ""
         console.print(f"  {name} ({s['kind']}): {s['samples']} samples, {', '.join(s['columns'])}: "

@@ -58,8 +58,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
              "calibrates its sensors, then fake drivers → fusion node → recorder run as processes "
              "over Zenoh; a summary against the truth and an HTML report.",
              "fusion.service.demo:register"),
-    "router": ("A Zenoh router on loopback (default tcp/127.0.0.1:7447) for the nodes of several "
-               "robots; runs until SIGINT or SIGTERM.", "fusion.service.fleet:register"),
+    "router": ("A Zenoh router on loopback for the nodes of several robots: it listens where --listen "
+               "says, else where --zenoh-config's file says (default tcp/127.0.0.1:7447), and connects "
+               "where its file says (or --connect); runs until SIGINT or SIGTERM.",
+               "fusion.service.fleet:register"),
+    "deploy": ("Write a fleet's certificates, credentials and Zenoh configs: each chair's (its certificate, "
+               "its nodes' users and passwords, its router's and nodes' configs) and, the first time, the "
+               "fleet's CA and the base station's; the base router's policy admits every chair of the fleet.",
+               "fusion.service.deploy:register"),
     "fleet": ("N simulated chairs as separate processes (fake drivers → serve each), connected "
               "through one Zenoh router; watch them with `armfusion monitor --connect <router>`.",
               "fusion.service.fleet:register"),
@@ -72,7 +78,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
               "its first still stretch (or, with --moving-start, on its least-moving instants), then "
               "the unscented Kalman filter on every sample.",
               "fusion.cli.track:register"),
-    "import": ("Turn a foreign recording (CSV, MATLAB .mat, HDF5) into the arm's native one: each "
+    "import": ("Turn a foreign recording (CSV, MATLAB .mat, HDF5, a ROS bag) into the arm's native one: each "
                "stream from the columns the map names, in the unit the config declares; rows whose time "
                "does not increase dropped, NaN kept as gaps, every change said.",
                "fusion.cli.import_cmd:register"),
@@ -170,6 +176,7 @@ def info(
     config: ConfigOpt = "wmra",
     json_out: JsonOpt = False,
     plot: Annotated[Path | None, typer.Option(help="Also draw the arm at its ready pose to this PNG.")] = None,
+    urdf: Annotated[Path | None, typer.Option(help="Also write the arm's URDF (its joints and sensor frames, for robot_state_publisher: docs/ros2.md).")] = None,
 ) -> None:
     """Print the arm: its joints, its sensors, and which joints each sensor sees."""
 
@@ -177,6 +184,8 @@ def info(
 
     if plot is not None:
         check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES)
+    if urdf is not None:
+        check_output_path(urdf, "--urdf", suffixes=(".urdf",))
     arm = load_arm_or_exit(config)
     d = describe_arm(arm)
     if plot is not None:
@@ -187,6 +196,14 @@ def info(
         except OSError as e:
             fail(f"--plot {plot}: cannot write the drawing: {e.strerror or e}")
         d["plot"] = str(plot)
+    if urdf is not None:
+        from fusion.ros2.urdf import urdf_from_arm
+
+        try:
+            urdf.write_text(urdf_from_arm(arm), encoding="utf-8")
+        except OSError as e:
+            fail(f"--urdf {urdf}: cannot write the URDF: {e.strerror or e}")
+        d["urdf"] = str(urdf)
     if json_out:
         emit_json(d)
         return
@@ -200,17 +217,25 @@ def info(
                   f"{j['ready_deg']:.0f}", f"{j['counts_per_rev']:.0f}",
                   "[red]yes: gravity-blind[/]" if j["vertical_at_ready"] else "no")
     console.print(t)
-    t = _table("Sensors", ("sensor", "type", "link", "position [mm]", "bus", "sees joints"))
+    t = _table("Sensors", ("sensor", "type", "link", "position [mm]", "bus", "sees joints", "unmodelled [g]"))
     for s in d["sensors"]:
         t.add_row(s["name"], s["type"], str(s["link"]),
                   ", ".join(f"{v:.1f}" for v in s["position_mm"]), s["bus"] or "-",
-                  ", ".join(s["sees_joints"]) or "none (base)")
+                  ", ".join(s["sees_joints"]) or "none (base)",
+                  "-" if s["unmodelled_g"] is None else
+                  f"{s['unmodelled_g']:g}" + (" (its class's)" if s["unmodelled_from"] == "class" else ""))
     console.print(t)
+    b = d["base"]
+    if b != "moving":
+        tilt = ("level" if b["roll_deg"] is None else f"roll {b['roll_deg']:g}°, pitch {b['pitch_deg']:g}°")
+        console.print(f"Base: fixed (bolted down), {tilt} ± {b['tilt_sigma_deg']:g}°")
     if d["effects"]:
         console.print("Effects in the model: " + ", ".join(
             f"{e['effect']}" + (f":{e['target']}" if e["target"] else "") for e in d["effects"]))
     if plot is not None:
         console.print(f"Drawing written to {plot}")
+    if urdf is not None:
+        console.print(f"URDF written to {urdf}")
 
 
 def _table(title: str, left: tuple[str, ...], right: tuple[str, ...] = ()):

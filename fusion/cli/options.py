@@ -83,6 +83,26 @@ ListenOpt = Annotated[list[str] | None, typer.Option(
     "--listen", help="Listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; loopback only).")]
 ConnectOpt = Annotated[list[str] | None, typer.Option(
     "--connect", help="Endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; loopback only).")]
+ADMITTED_WITHIN_S = 15.0
+"""The default of --admitted-within: the fusion node's first status after the first batch
+comes within a second, or a few while its startup calibration runs."""
+
+
+def _seconds_or_zero(option: str):
+    """A callback refusing a value that is not a finite number of seconds >= 0."""
+
+    def check(value: float) -> float:
+        if not (value >= 0 and value != float("inf")):
+            fail(f"{option} {value!r}: expected a number of seconds >= 0 (0: no check)")
+        return value
+
+    return check
+
+
+AdmittedWithinOpt = Annotated[float, typer.Option(
+    "--admitted-within", callback=_seconds_or_zero("--admitted-within"),
+    help="Exit 1 when the fusion node (its status) has admitted none of the raw samples this long "
+         "after the first went out, in s (0: do not check; no fusion node heard: not judged).")]
 ModeOpt = Annotated[str | None, typer.Option("--mode", help="peer, client or router.")]
 RobotOpt = Annotated[str, typer.Option(
     "--robot", help="The robot's name in the key expressions (1 to 64 letters, digits, '_' or '-').",

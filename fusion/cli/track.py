@@ -44,7 +44,7 @@ def _needed_streams(arm) -> list[str]:
 def track(
     recording: Annotated[Path, typer.Argument(help="Recording (.csv or .mcap) that starts with a still arm.")],
     config: ConfigOpt = "wmra",
-    out: Annotated[Path | None, typer.Option("--out", help="Write every estimate to EST.csv or EST.mcap.")] = None,
+    out: Annotated[Path | None, typer.Option("--out", help="Write every estimate to EST.csv, EST.mcap, or EST.ros2.mcap (ROS 2 messages: docs/ros2.md).")] = None,
     json_out: JsonOpt = False,
     prior: Annotated[Path | None, typer.Option(help="Pose saved at the last clean shutdown (JSON): picks startup branches.")] = None,
     after_s: Annotated[float, typer.Option(help="With truth columns: RMS errors count from this many seconds after the recording's start.")] = 60.0,
@@ -107,6 +107,13 @@ def track(
         notes.extend(start.notes)
         advance(0.0, "tracking")
         run = tr.run(rec, progress=advance)
+    warnings = tr.sensor_warnings() if run.steps else []
+    notes.extend(warnings)
+    floors = arm.calibration.floors_by_default
+    if floors:
+        notes.append("unmodelled-error floors the config does not give, each sensor's class's: "
+                     + "; ".join(f"{k}: {v}" for k, v in floors.items())
+                     + " (docs/config.md, Unmodelled-error floors)")
     after = after_s
     if run.steps and run.t_s[-1] < rec.t_start_s + after_s:  # nothing to score after --after-s
         after = 0.0
@@ -128,6 +135,7 @@ def track(
         "out": None if out is None else str(out),
         "gyro_scale_z": tr.gyro_scale() if run.steps else None,
         "model_alarms": [a.as_dict() for a in tr.alarm.raised],
+        "sensor_warnings": warnings,
         "saturated_left_out": screen.as_dict()["saturated"],
         "encoder_withheld": withheld,
         "notes": notes,
@@ -135,7 +143,7 @@ def track(
     if out is not None:
         try:
             write_estimates(run, out, arm.source)
-        except OSError as e:
+        except (OSError, ValueError) as e:
             fail(f"cannot write {out}: {e}")
     if json_out:
         emit_json(doc)
@@ -214,13 +222,19 @@ def estimate_columns(run) -> list[str]:
 
 
 def write_estimates(run, path: Path, arm_config: str = "") -> None:
-    """Every fused instant's estimate: CSV (one row each, angles in rad) or MCAP (JSON
+    """Every fused instant's estimate: CSV (one row each, angles in rad), MCAP (JSON
     messages on ``estimates/joints`` and ``estimates/heading``: the records of
-    :mod:`fusion.tracking.estimate`)."""
+    :mod:`fusion.tracking.estimate`), or, for a name ending ``.ros2.mcap``, a rosbag2 MCAP
+    file of ROS 2 messages (:mod:`fusion.ros2.estimates_bag`)."""
     from fusion.tracking.estimate import HEADING_STATUS
     from fusion.tracking.tracker import JOINT_FLAGS, SENSOR_STATUS
 
     path = Path(path)
+    if path.name.lower().endswith(".ros2.mcap"):
+        from fusion.ros2.estimates_bag import write_estimates_bag
+
+        write_estimates_bag(run, path, Path(arm_config).stem)
+        return
     if path.suffix.lower() == ".csv":
         with open(path, "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)

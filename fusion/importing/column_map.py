@@ -13,10 +13,24 @@ A YAML file (read as boundedly and safely as a config: :func:`fusion.configfile.
       enc: the IMU was moved by hand; no arm
 
 A column is ``NAME`` (a column vector, a CSV column) or ``NAME[:, K]`` (column K, from 0, of a
-2-D variable or dataset). Units are those of :mod:`sensors.units` (``counts`` too). Every
-problem of the file is reported together, naming the key (:class:`ColumnMapError`); what the
-map says about a particular arm (a stream the config lacks, a unit of another quantity) is
-checked by :mod:`fusion.importing.to_stream` when the map meets the config.
+2-D variable or dataset).
+
+A ROS bag's map names a topic and its fields instead of columns, and which time stamps a sample::
+
+    time: {stamp: header}          # the messages' header stamp; or receive (the bag's log time)
+    streams:
+      imu_acc: {topic: /imu/data, fields: [linear_acceleration.x, linear_acceleration.y,
+                                           linear_acceleration.z], unit: m/s^2, frame_id: imu_link}
+      enc:     {topic: /joint_states, fields: ["position[j1]", "position[j2]"], unit: rad}
+      acc1:    {topic: /acc1, fields: ["data[0]", "data[1]", "data[2]"], unit: counts, stamp: receive}
+
+``frame_id`` (optional) is checked against every message; ``stamp`` on a stream overrides the
+map's (a topic without a header, such as ``std_msgs/Float64MultiArray``, takes ``receive``).
+
+Units are those of :mod:`sensors.units` (``counts`` too). Every problem of the file is
+reported together, naming the key (:class:`ColumnMapError`); what the map says about a
+particular arm (a stream the config lacks, a unit of another quantity) is checked by
+:mod:`fusion.importing.to_stream` when the map meets the config.
 """
 
 from __future__ import annotations
@@ -29,6 +43,7 @@ from fusion.configfile import read_yaml
 from fusion.shipped import shipped_config_dir
 from models.arm_config import ConfigError
 from sensors.foreign import parse_address
+from sensors.foreign.rosbag import check_field
 from sensors.samples import clipped_repr
 from sensors.units import UnitError, canonical_unit_name, quantity_of
 
@@ -40,6 +55,9 @@ DEFAULT_MAX_ROUNDING_COUNTS = 0.05
 round it (unless the map's stream allows more): a twentieth of a count is what a float of the
 angle the encoder gave is off its count by when the file stored it with a few decimals more
 than the count needs."""
+
+STAMPS = ("header", "receive")
+"""What stamps a bag's sample: the message's header stamp, or the time the bag received it."""
 
 MAX_STREAMS = 64
 MAX_COLUMNS = 64
@@ -57,11 +75,16 @@ class ColumnMapError(ValueError):
 
 @dataclass(frozen=True)
 class StreamSource:
-    """One stream's source: its columns (addresses, in channel order) and their unit."""
+    """One stream's source: its columns (addresses, in channel order; a bag's: the fields of
+    ``topic``) and their unit; for a bag, the frame id its messages must carry (None: any)
+    and the stamp it takes (``header`` or ``receive``; None: the map's)."""
 
     columns: tuple[str, ...]
     unit: str
     max_rounding_counts: float = DEFAULT_MAX_ROUNDING_COUNTS
+    topic: str | None = None
+    frame_id: str | None = None
+    stamp: str | None = None
 
 
 @dataclass(frozen=True)
@@ -77,6 +100,22 @@ class ColumnMap:
     start_row: int | None = None
     start_row_variable: str | None = None
     absent: dict[str, str] = field(default_factory=dict)
+    stamp: str | None = None
+    """A bag's map: the time that stamps a sample (``header`` or ``receive``); None for a table's."""
+
+    @property
+    def is_bag(self) -> bool:
+        return self.stamp is not None
+
+    def topics(self) -> dict[str, list[str]]:
+        """A bag's map: every topic read and its fields, once each, in map order."""
+        out: dict[str, list[str]] = {}
+        for s in self.streams.values():
+            fields = out.setdefault(s.topic, [])
+            for f in s.columns:
+                if f not in fields:
+                    fields.append(f)
+        return out
 
     def columns(self) -> list[str]:
         """Every column the map reads, once each, in map order."""
@@ -143,10 +182,16 @@ def parse_column_map(data: Any, source: str) -> ColumnMap:
             problems.append(f"{clipped_repr(key)}: unknown key (expected time, start_row, streams, absent)")
     time = data.get("time")
     time_column = rate_variable = None
-    time_unit, rate_hz = "s", None
-    if not isinstance(time, dict) or not ({"column", "unit"} == set(time) or set(time) == {"rate_hz"}):
+    time_unit, rate_hz, stamp = "s", None, None
+    if not isinstance(time, dict) or not ({"column", "unit"} == set(time) or set(time) == {"rate_hz"}
+                                          or set(time) == {"stamp"}):
         problems.append("time: give {column: NAME, unit: s|ms|us|ns} or {rate_hz: NUMBER} "
-                        "(or {rate_hz: {variable: NAME}})")
+                        "(or {rate_hz: {variable: NAME}}); for a ROS bag {stamp: header|receive}")
+    elif "stamp" in time:
+        stamp = time["stamp"] if time["stamp"] in STAMPS else None
+        if stamp is None:
+            problems.append(f"time.stamp: header or receive (got {clipped_repr(time['stamp'])})")
+            stamp = "header"
     elif "column" in time:
         time_column = _address(time["column"], "time.column", problems)
         time_unit = _unit(time["unit"], "time.unit", problems) or "s"
@@ -183,15 +228,25 @@ def parse_column_map(data: Any, source: str) -> ColumnMap:
         if not isinstance(name, str) or not isinstance(entry, dict):
             problems.append(f"{key}: each stream is NAME: {{columns: [...], unit: ...}}")
             continue
-        extra = set(entry) - {"columns", "unit", "max_rounding_counts"}
+        bag = stamp is not None
+        keys = ({"topic", "fields", "unit", "max_rounding_counts", "frame_id", "stamp"} if bag
+                else {"columns", "unit", "max_rounding_counts"})
+        extra = set(entry) - keys
         if extra:
             problems.append(f"{key}: unknown key(s) {', '.join(sorted(map(str, extra)))} "
-                            "(expected columns, unit, max_rounding_counts)")
-        cols = entry.get("columns")
+                            f"(expected {', '.join(sorted(keys))}"
+                            + (")" if bag else "; topic and fields take time: {stamp: header|receive})"))
+        cols = entry.get("fields" if bag else "columns")
         if (not isinstance(cols, list) or not cols or len(cols) > MAX_COLUMNS):
-            problems.append(f"{key}.columns: a list of 1 to {MAX_COLUMNS} columns")
+            problems.append(f"{key}.{'fields' if bag else 'columns'}: a list of 1 to {MAX_COLUMNS} "
+                            f"{'fields' if bag else 'columns'}")
             continue
-        addresses = [_address(c, f"{key}.columns", problems) for c in cols]
+        if bag:
+            bag_source = _bag_source(entry, key, problems)
+            addresses = [_field(c, f"{key}.fields", problems) for c in cols]
+        else:
+            bag_source = {}
+            addresses = [_address(c, f"{key}.columns", problems) for c in cols]
         unit = _unit(entry.get("unit"), f"{key}.unit", problems) if "unit" in entry else None
         if "unit" not in entry:
             problems.append(f"{key}.unit: missing: say what unit the columns hold (g, deg/s, counts...)")
@@ -202,7 +257,7 @@ def parse_column_map(data: Any, source: str) -> ColumnMap:
                             f"(got {clipped_repr(rounding)})")
             rounding = DEFAULT_MAX_ROUNDING_COUNTS
         if unit is not None and None not in addresses:
-            streams[name] = StreamSource(tuple(addresses), unit, float(rounding))
+            streams[name] = StreamSource(tuple(addresses), unit, float(rounding), **bag_source)
     absent = data.get("absent") or {}
     if not isinstance(absent, dict) or not all(isinstance(k, str) and isinstance(v, str) and v.strip()
                                                for k, v in absent.items()):
@@ -211,10 +266,34 @@ def parse_column_map(data: Any, source: str) -> ColumnMap:
     for name in absent:
         if name in streams:
             problems.append(f"absent.{name}: the map gives this stream under streams too")
+    if stamp is not None and (start_row is not None or start_variable is not None):
+        problems.append("start_row: a ROS bag's map has none (a sample is a message)")
     if problems:
         raise ColumnMapError(source, problems)
     return ColumnMap(source, streams, time_column, time_unit, rate_hz, rate_variable, start_row,
-                     start_variable, dict(absent))
+                     start_variable, dict(absent), stamp)
+
+
+def _bag_source(entry: dict, key: str, problems: list[str]) -> dict:
+    """A bag stream's topic, frame id and stamp (checked)."""
+    topic = entry.get("topic")
+    if not (isinstance(topic, str) and 0 < len(topic) <= 256 and topic.strip() == topic):
+        problems.append(f"{key}.topic: a topic name (got {clipped_repr(topic)})")
+    frame = entry.get("frame_id")
+    if frame is not None and not (isinstance(frame, str) and len(frame) <= 256):
+        problems.append(f"{key}.frame_id: the frame id every message must carry (got {clipped_repr(frame)})")
+    stamp = entry.get("stamp")
+    if stamp is not None and stamp not in STAMPS:
+        problems.append(f"{key}.stamp: header or receive (got {clipped_repr(stamp)})")
+    return {"topic": topic, "frame_id": frame, "stamp": stamp}
+
+
+def _field(value: Any, key: str, problems: list[str]) -> str | None:
+    why = check_field(value)
+    if why:
+        problems.append(f"{key}: {why}")
+        return None
+    return value
 
 
 def _address(value: Any, key: str, problems: list[str]) -> str | None:

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.importing.column_map import ColumnMap
+from fusion.importing.column_map import ColumnMap, StreamSource
 from fusion.importing.stamps import FIRST_ROWS, increasing_rows
-from fusion.importing.to_stream import ImportMapError, check_map_against, convert_values
+from fusion.importing.to_stream import ImportMapError, Target, check_map_against, convert_values
 from fusion.importing.to_stream import targets as targets_of
 from models.arm import ArmModel
 from sensors.foreign import SUFFIXES, read_columns
@@ -60,6 +60,9 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     config or file) or :class:`~sensors.foreign.ForeignFileError` (the file), both
     ``ValueError``, naming the stream, the column, the file and the unit."""
     path = Path(src)
+    if cmap.is_bag:
+        raise ImportMapError(f"column map {cmap.source} names topics and fields (a ROS bag's map), but "
+                             f"{path} is not a ROS bag (a rosbag2 directory, .mcap, .db3, or a ROS 1 .bag)")
     targets = check_map_against(cmap, arm, config)
     cols = read_columns(path, cmap.columns(), cmap.scalars())
     n = cols.n_rows
@@ -86,47 +89,9 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     streams: dict[str, Stream] = {}
     stream_summary: dict[str, dict] = {}
     for name, src_cols in cmap.streams.items():
-        t = targets[name]
         values = np.stack([cols.columns[c][s:][keep] for c in src_cols.columns], axis=1)
-        inf = np.isinf(values)
-        if inf.any():
-            i, j = (int(x[0]) for x in np.nonzero(inf))
-            raise ImportMapError(f"{path}: column {src_cols.columns[j]}: row {rows[i]} holds "
-                                 f"{clipped_repr(float(values[i, j]))}, not a value "
-                                 "(a sample not taken is NaN)")
-        nan = np.isnan(values)
-        gap, partly = nan.all(axis=1), nan.any(axis=1) & ~nan.all(axis=1)
-        sampled = ~nan.any(axis=1)
-        done = convert_values(values[sampled], src_cols, t, str(path))
-        try:
-            streams[name] = Stream(name, t.kind, t_s[sampled], done.values, t.channels)
-        except ValueError as e:
-            raise ImportMapError(f"{path}: stream {name}: {e}") from None
-        if gap.any() or partly.any():
-            first = rows[np.flatnonzero(~sampled)[:FIRST_ROWS]].tolist()
-            changes.append(f"{name}: {int(gap.sum())} row(s) NaN in every column and {int(partly.sum())} "
-                           f"NaN in some of {', '.join(src_cols.columns)} kept as gaps (not sampled), "
-                           f"first rows {', '.join(map(str, first))}")
-        beyond = saturated = 0
-        if t.model is not None and t.model.counts_min is not None and len(streams[name]):
-            beyond = int(t.model.beyond_range(streams[name].values).any(axis=1).sum())
-            saturated = int(t.model.saturated(streams[name].values).any(axis=1).sum()) - beyond
-            if beyond:
-                notes.append(f"{name}: {beyond} sample(s) beyond the config's sensor range "
-                             f"({t.model.counts_min:g} … {t.model.counts_max:g} {t.value_unit}): the other "
-                             "commands refuse such a recording; does the config describe the sensor that "
-                             "recorded it?")
-        if done.rounding_max_counts is not None and done.rounding_max_counts > 1e-6:  # not float noise
-            changes.append(f"{name}: rounded to whole counts by up to {done.rounding_max_counts:.3f} counts "
-                           f"(rms {done.rounding_rms_counts:.3f})")
-        stream_summary[name] = {
-            "kind": t.kind, "channels": list(t.channels), "columns": list(src_cols.columns),
-            "from_unit": src_cols.unit, "to_unit": t.value_unit, "conversion": done.how,
-            "samples": int(sampled.sum()), "nan_gaps": int(gap.sum()), "partly_nan": int(partly.sum()),
-            "values_dtype": str(streams[name].values.dtype),
-            "rounding_max_counts": done.rounding_max_counts, "rounding_rms_counts": done.rounding_rms_counts,
-            "beyond_range": beyond, "at_range_limit": saturated,
-        }
+        streams[name], stream_summary[name] = stream_of(name, t_s, values, rows, "row", src_cols,
+                                                        targets[name], str(path), changes, notes)
     all_names = targets_of(arm)  # every stream the config describes
     not_mapped = [k for k, tg in all_names.items() if k not in cmap.streams and k not in cmap.absent
                   and not tg.needed]
@@ -147,3 +112,52 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
         "notes": notes,
     }
     return ImportResult(rec, summary, tuple(changes))
+
+
+def stream_of(name: str, t_s: np.ndarray, values: np.ndarray, rows: np.ndarray, row_word: str,
+              src_cols: StreamSource, t: Target, source: str, changes: list[str],
+              notes: list[str]) -> tuple[Stream, dict]:
+    """Stream ``name`` from its source ``values (N, k)`` at ``t_s (N,)``: a row with a NaN is a
+    gap (counted in ``changes``), an infinite value refused naming ``rows[i]`` (the source's
+    ``row_word``: a file's 1-based row, a bag topic's message from 0), the values brought into
+    the config's unit; what the values hold that the config may not expect goes to ``notes``.
+    Returns the stream and its summary."""
+    inf = np.isinf(values)
+    if inf.any():
+        i, j = (int(x[0]) for x in np.nonzero(inf))
+        raise ImportMapError(f"{source}: {'column' if row_word == 'row' else 'field'} {src_cols.columns[j]}: "
+                             f"{row_word} {rows[i]} holds {clipped_repr(float(values[i, j]))}, not a value "
+                             "(a sample not taken is NaN)")
+    nan = np.isnan(values)
+    gap, partly = nan.all(axis=1), nan.any(axis=1) & ~nan.all(axis=1)
+    sampled = ~nan.any(axis=1)
+    done = convert_values(values[sampled], src_cols, t, source)
+    try:
+        stream = Stream(name, t.kind, t_s[sampled], done.values, t.channels)
+    except ValueError as e:
+        raise ImportMapError(f"{source}: stream {name}: {e}") from None
+    if gap.any() or partly.any():
+        first = rows[np.flatnonzero(~sampled)[:FIRST_ROWS]].tolist()
+        changes.append(f"{name}: {int(gap.sum())} {row_word}(s) NaN in every column and {int(partly.sum())} "
+                       f"NaN in some of {', '.join(src_cols.columns)} kept as gaps (not sampled), "
+                       f"first {row_word}s {', '.join(map(str, first))}")
+    beyond = saturated = 0
+    if t.model is not None and t.model.counts_min is not None and len(stream):
+        beyond = int(t.model.beyond_range(stream.values).any(axis=1).sum())
+        saturated = int(t.model.saturated(stream.values).any(axis=1).sum()) - beyond
+        if beyond:
+            notes.append(f"{name}: {beyond} sample(s) beyond the config's sensor range "
+                         f"({t.model.counts_min:g} … {t.model.counts_max:g} {t.value_unit}): the other "
+                         "commands refuse such a recording; does the config describe the sensor that "
+                         "recorded it?")
+    if done.rounding_max_counts is not None and done.rounding_max_counts > 1e-6:  # not float noise
+        changes.append(f"{name}: rounded to whole counts by up to {done.rounding_max_counts:.3f} counts "
+                       f"(rms {done.rounding_rms_counts:.3f})")
+    return stream, {
+        "kind": t.kind, "channels": list(t.channels), "columns": list(src_cols.columns),
+        "from_unit": src_cols.unit, "to_unit": t.value_unit, "conversion": done.how,
+        "samples": int(sampled.sum()), "nan_gaps": int(gap.sum()), "partly_nan": int(partly.sum()),
+        "values_dtype": str(stream.values.dtype),
+        "rounding_max_counts": done.rounding_max_counts, "rounding_rms_counts": done.rounding_rms_counts,
+        "beyond_range": beyond, "at_range_limit": saturated,
+    }

@@ -3,9 +3,10 @@
 
 Every node takes the same Zenoh options: ``--zenoh-config`` (default config/zenoh.json5:
 peer, listening on tcp/127.0.0.1:7447, no scouting), ``--listen`` and ``--connect``
-(repeatable; loopback only) and ``--mode``. A node given ``--connect`` but no
-``--listen`` listens on an ephemeral loopback port, so that it does not compete for
-7447 with the node it connects to. See docs/service.md.
+(repeatable; loopback only; each replaces the file's endpoints) and ``--mode``. Without
+``--zenoh-config``, a node given ``--connect`` but no ``--listen`` listens on an ephemeral
+loopback port, so that it does not compete for 7447 with the node it connects to. See
+docs/service.md.
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ from fusion.cli.common import (
     read_recording_or_exit,
 )
 from fusion.cli.options import (
+    ADMITTED_WITHIN_S,
+    AdmittedWithinOpt,
     BatchMsOpt,
     ConfigOpt,
     ConnectOpt,
@@ -42,8 +45,9 @@ from fusion.cli.options import (
     StopAfterOpt,
     ZenohConfigOpt,
 )
+from fusion.service.admitted import Admission, AdmissionWatch
 from fusion.service.node import stop_after, stop_on_signals
-from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, open_session
+from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, endpoints_line, load_config
 
 DEFAULT_ROBOT = "chair1"
 EPHEMERAL_LISTEN = "tcp/127.0.0.1:0"
@@ -51,20 +55,30 @@ EPHEMERAL_LISTEN = "tcp/127.0.0.1:0"
 
 def zenoh_settings(config: Path | None, listen: list[str] | None, connect: list[str] | None,
                    mode: str | None) -> ZenohSettings:
-    """The node's settings from its options (``--connect`` alone: an ephemeral listen port;
-    a client listens nowhere unless told)."""
-    if mode == "client" and not listen:
-        return ZenohSettings(config_path=config, listen=[], connect=connect or None, mode=mode)
-    if connect and not listen and mode != "client":
-        listen = [EPHEMERAL_LISTEN]
-    return ZenohSettings(config_path=config, listen=listen or None, connect=connect or None, mode=mode)
+    """The node's settings from its options: ``--listen`` and ``--connect`` replace the
+    file's endpoints; otherwise a ``--zenoh-config`` file's own are used as written. Without
+    one (the default config listens on 7447), ``--connect`` alone gets an ephemeral listen
+    port and a client listens nowhere."""
+    listen_override = list(listen) if listen else None
+    if listen_override is None and config is None:
+        if mode == "client":
+            listen_override = []
+        elif connect:
+            listen_override = [EPHEMERAL_LISTEN]
+    return ZenohSettings(config_path=config, listen=listen_override,
+                         connect=list(connect) if connect else None, mode=mode)
 
 
 @contextlib.contextmanager
-def session_or_exit(settings: ZenohSettings) -> Iterator[zenoh.Session]:
+def session_or_exit(settings: ZenohSettings, *, say_endpoints: bool | None = None) -> Iterator[zenoh.Session]:
+    """A session of ``settings``, or exit 2 saying why none opens. ``say_endpoints`` (by
+    default: when a ``--zenoh-config`` file is given) prints where it listens and connects,
+    and whether the file or the command line said so, on stderr."""
     try:
-        cm = open_session(settings)
-        session = cm.__enter__()
+        config = load_config(settings)
+        if say_endpoints if say_endpoints is not None else settings.config_path is not None:
+            err_console.print(endpoints_line(config, settings), highlight=False, soft_wrap=True)
+        session = zenoh.open(config)
     except ZenohConfigError as e:
         fail(str(e))
     except zenoh.ZError as e:
@@ -72,7 +86,44 @@ def session_or_exit(settings: ZenohSettings) -> Iterator[zenoh.Session]:
     try:
         yield session
     finally:
-        cm.__exit__(None, None, None)
+        session.close()
+
+
+@contextlib.contextmanager
+def watching_admission(session: zenoh.Session, robot: str, timeout_s: float,
+                       stop: threading.Event) -> Iterator[AdmissionWatch | None]:
+    """A publisher's :class:`~fusion.service.admitted.AdmissionWatch` (``None`` when
+    ``timeout_s`` is 0: no check), the fusion node's first status awaited; ``stop`` is set
+    as soon as the watch finds that nothing was admitted."""
+    if timeout_s == 0:
+        yield None
+        return
+    watch = AdmissionWatch(session, robot, timeout_s)
+    watch.wait_for_node(stop)
+    done = threading.Event()
+
+    def guard() -> None:
+        while not done.wait(0.1):
+            verdict = watch.check()
+            if verdict is not None:
+                if verdict.state == "refused":
+                    stop.set()
+                return
+
+    thread = threading.Thread(target=guard, name="admission watch", daemon=True)
+    thread.start()
+    try:
+        yield watch
+    finally:
+        done.set()
+        thread.join()
+        watch.close()
+
+
+def say_admission(admission: Admission | None) -> None:
+    """One line on stderr when the fusion node's admission of what was sent is not known."""
+    if admission is not None and admission.state == "unknown":
+        err_console.print(f"[yellow]note:[/] {admission.message}", highlight=False)
 
 
 def parse_speed(text: str) -> float | None:
@@ -98,6 +149,7 @@ def register(app: typer.Typer) -> None:
         wait_s: Annotated[float, typer.Option(
             "--wait", help="First wait up to this long for a subscriber on every sensor, in s; "
                            "if no sensor has one by then, publish nothing and exit 1.")] = 5.0,
+        admitted_within_s: AdmittedWithinOpt = ADMITTED_WITHIN_S,
         zenoh_config: ZenohConfigOpt = None,
         listen: ListenOpt = None,
         connect: ConnectOpt = None,
@@ -113,15 +165,18 @@ def register(app: typer.Typer) -> None:
         rec = read_recording_or_exit(recording)
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
-                stop_on_signals(stop):
+                stop_on_signals(stop), watching_admission(session, robot, admitted_within_s, stop) as watch:
             try:
                 report = replay(session, rec, robot, speed=factor, batch_s=batch_ms / 1000.0,
-                                wait_for_subscribers_s=wait_s, stop=stop, require_subscriber=True)
+                                wait_for_subscribers_s=wait_s, stop=stop, require_subscriber=True,
+                                on_start=None if watch is None else watch.start)
             except NoSubscriberError as e:
                 fail(str(e), code=1)
             except ValueError as e:
                 fail(f"{recording}: {e}")
-        doc = {"recording": str(recording), **report.as_dict()}
+            admission = None if watch is None else watch.finish(stop)
+        doc = {"recording": str(recording), **report.as_dict(),
+               "admission": None if admission is None else admission.as_dict()}
         if json_out:
             emit_json(doc)
         else:
@@ -131,6 +186,9 @@ def register(app: typer.Typer) -> None:
             if report.unmatched:
                 err_console.print(f"[yellow]warning:[/] no subscriber for {', '.join(report.unmatched)} "
                                   f"after {wait_s:g} s")
+            say_admission(admission)
+        if admission is not None and admission.state == "refused":
+            fail(admission.message, code=1)
         if report.unheard:
             total = sum(report.samples.values())
             fail(f"{sum(report.unheard.values())} of {total} samples went out while nothing subscribed "

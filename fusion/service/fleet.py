@@ -1,6 +1,8 @@
 """``armfusion router``, ``armfusion fleet`` and ``armfusion monitor``.
 
-``router``: a Zenoh session in router mode (listening on loopback only, no scouting) that
+``router``: a Zenoh session in router mode (listening on loopback only, no scouting: on
+``--listen``, else on its ``--zenoh-config`` file's endpoints, by default
+tcp/127.0.0.1:7447) that
 the nodes of several chairs connect to; with gossip off, peers do not find each other
 through a third peer, so a fleet needs one.
 
@@ -36,9 +38,7 @@ from fusion.cli.options import (
 )
 from fusion.service.commands import session_or_exit, zenoh_settings
 from fusion.service.node import stop_on_signals
-from fusion.service.zenoh_config import ZenohConfigError, check_loopback
-
-DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+from fusion.service.zenoh_config import ZenohConfigError, check_loopback, endpoints_line, load_config
 
 
 def free_loopback_port() -> int:
@@ -52,17 +52,19 @@ def register(app: typer.Typer) -> None:
     @app.command("router")
     def router_command(
         listen: ListenOpt = None,
+        connect: ConnectOpt = None,
         zenoh_config: ZenohConfigOpt = None,
         duration_s: StopAfterOpt = None,
     ) -> None:
-        """A Zenoh router on loopback (default tcp/127.0.0.1:7447) for the nodes of several
-        robots; runs until SIGINT or SIGTERM."""
-        endpoints = listen or [DEFAULT_ROUTER]
+        """A Zenoh router on loopback for the nodes of several robots: it listens where --listen
+        says, else where --zenoh-config's file says (default tcp/127.0.0.1:7447), and connects
+        where its file says (or --connect); runs until SIGINT or SIGTERM."""
+        settings = zenoh_settings(zenoh_config, listen, connect, "router")
         stop = threading.Event()
-        with session_or_exit(zenoh_settings(zenoh_config, endpoints, [], "router")) as session, \
-                stop_on_signals(stop):
-            err_console.print(f"router {session.zid()} listening on {', '.join(endpoints)}; "
-                              "Ctrl-C (SIGINT) or SIGTERM stops", highlight=False)
+        with session_or_exit(settings, say_endpoints=False) as session, stop_on_signals(stop):
+            where = endpoints_line(load_config(settings), settings).split(": ", 1)[1]
+            err_console.print(f"router {session.zid()} {where}; Ctrl-C (SIGINT) or SIGTERM stops",
+                              highlight=False, soft_wrap=True)
             stop.wait(duration_s)
         err_console.print("router stopped", highlight=False)
 

@@ -13,7 +13,10 @@ key expression matches, anywhere the session reaches). With ``require_subscriber
 :func:`replay` first waits up to ``wait_for_subscribers_s`` for one and raises
 :class:`NoSubscriberError` (nothing published) when no sensor's key has any; every batch
 put while its key had no subscriber is counted in :attr:`ReplayReport.unheard`, so a
-subscriber that leaves half-way shows too. ``armfusion replay`` exits 1 in both cases.
+subscriber that leaves half-way shows too. ``armfusion replay`` exits 1 in both cases. A
+subscriber is not yet a receiver (a router's access-control policy may drop the puts):
+``armfusion replay`` also reads the fusion node's status (:mod:`fusion.service.admitted`)
+and exits 1 when it admitted none of the samples.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -88,13 +92,15 @@ def _wait_for_subscribers(pubs: dict[str, zenoh.Publisher], wait_s: float,
 
 def replay(session: zenoh.Session, rec: Recording, robot: str, *, speed: float | None = 1.0,
            batch_s: float = DEFAULT_BATCH_S, wait_for_subscribers_s: float = 0.0,
-           stop: threading.Event | None = None, require_subscriber: bool = False) -> ReplayReport:
+           stop: threading.Event | None = None, require_subscriber: bool = False,
+           on_start: Callable[[], None] | None = None) -> ReplayReport:
     """Publish the raw streams of ``rec`` as robot ``robot``; see the module's docstring.
 
     ``wait_for_subscribers_s``: first wait up to this long for a subscriber on every raw
     key (the sensors named in :attr:`ReplayReport.unmatched` had none by then).
     ``require_subscriber``: raise :class:`NoSubscriberError`, publishing nothing, when no
-    raw key has a subscriber after that wait.
+    raw key has a subscriber after that wait. ``on_start``: called once, as the publishing
+    starts (after the wait), e.g. :meth:`fusion.service.admitted.AdmissionWatch.start`.
     """
     if speed is not None and not speed > 0:
         raise ValueError(f"speed must be > 0 (or None for as fast as possible), got {speed!r}")
@@ -127,6 +133,8 @@ def replay(session: zenoh.Session, rec: Recording, robot: str, *, speed: float |
         status_pub.put(pl.encode(pl.Status(robot, "replay", state, time.time(), message, counters)))
 
     status("running", f"replaying {t1 - t0:.2f} s of {len(streams)} sensors")
+    if on_start is not None:
+        on_start()
     wall0 = time.monotonic()
     for t_end, spans in _windows(streams, t0, t1, batch_s):
         if speed is not None:

@@ -590,6 +590,11 @@ class FusionNode:
         message = self._message
         if self._maneuver is not None and self._maneuver.state in ("recording", "fitting", "failed"):
             message = f"maneuver {self._maneuver.state}: {self._maneuver.message}; {message}"
+        if self._tracker is not None and self._tracker.t_s is not None:
+            # a sensor the gate rejects (or the screen leaves out) more than its share, and why
+            warnings = self._tracker.sensor_warnings()
+            if warnings:
+                message = "; ".join(warnings) + f"; {message}"
         if self._tracker is not None and self._tracker.alarm.active:
             message = "model changed: " + "; ".join(a.line() for a in self._tracker.alarm.alarms) + \
                 f"; {message}"

@@ -135,6 +135,22 @@ def load_config(settings: ZenohSettings | None = None) -> zenoh.Config:
     return config
 
 
+def endpoints_line(config: zenoh.Config, settings: ZenohSettings | None = None) -> str:
+    """Where a session of ``config`` listens and connects, and where each list came from
+    (the file, or the command line's override in ``settings``), for a node to say at start."""
+    settings = settings or ZenohSettings()
+    path = settings.config_path if settings.config_path is not None else DEFAULT_CONFIG_PATH
+    mode = json.loads(config.get_json("mode"))
+
+    def part(verb: str, key: str, override: Sequence[str] | None) -> str:
+        eps = _endpoints(config, key)
+        source = path if override is None else "the command line"
+        return f"{verb} {', '.join(eps) if eps else 'nothing'} ({source})"
+
+    return (f"zenoh {mode}: {part('listening on', 'listen/endpoints', settings.listen)}; "
+            f"{part('connecting to', 'connect/endpoints', settings.connect)}")
+
+
 @contextmanager
 def open_session(settings: ZenohSettings | None = None) -> Iterator[zenoh.Session]:
     """A Zenoh session from :func:`load_config`, closed when the ``with`` block ends."""

@@ -125,7 +125,19 @@ def make_problem(arm: ArmModel, readings: StillReadings) -> StillWindowProblem:
         norm = float(np.linalg.norm(m))
         imu_m, imu_s = m / norm, np.asarray(readings.imu_sigma_g, float) / norm
         R_0I = arm.imu.R_LS
-    return StillWindowProblem(arm, names, np.array(meas), np.array(sig), imu_m, imu_s, R_0I)
+    problem = StillWindowProblem(arm, names, np.array(meas), np.array(sig), imu_m, imu_s, R_0I)
+    if arm.fixed_base is not None:  # a bolted base: level to its tilt's sigma, not a chair's 5°
+        problem.tilt_prior_rad = fixed_base_tilt_prior_rad(arm.fixed_base)
+    return problem
+
+
+def fixed_base_tilt_prior_rad(fixed) -> float:
+    """The level-base prior's sigma for a bolted base (:class:`models.arm.FixedBase`): its
+    tilt's sigma; where an installer's level gave a tilt, wide enough to hold it (three
+    sigmas past it: the prior is centred on level, the tracker starts from the tilt given)."""
+    if fixed.roll_rad is None:
+        return float(fixed.tilt_sigma_rad)
+    return float(np.hypot(fixed.roll_rad, fixed.pitch_rad) + 3.0 * fixed.tilt_sigma_rad)
 
 
 def batched_lm(problem: StillWindowProblem, x0: np.ndarray, free: np.ndarray, iters,

@@ -36,7 +36,7 @@ from fusion.tracking.differentiator import CausalDifferentiator
 from fusion.tracking.estimate import HEADING_STATUS, Estimate
 from fusion.tracking.frame_kernels import FrameConstants
 from fusion.tracking.frames import Frames
-from fusion.tracking.health import SensorHealth
+from fusion.tracking.health import SensorHealth, sensor_warnings
 from fusion.tracking.initial import Ambiguity, ImuStill, initial_state, limits_cover_var, read_by_startup
 from fusion.tracking.innovations import InnovationLog
 from fusion.tracking.live import fuse_instant
@@ -104,6 +104,8 @@ class Tracker:
         self._joint_effects = calibrated.joint_effects(correction)
         # the base's own motion as the config describes it (a chair's by default)
         self.settings = st = (settings or TrackerSettings()).for_base(arm.base_motion)
+        if arm.fixed_base is not None:  # bolted down: no base motion at all
+            self.settings = st = st.bolted()
         n = arm.n_joints
         self._has_imu = arm.imu is not None
         # the gyro's scale about the vertical: a state where it is not known exactly (a turn's
@@ -206,6 +208,12 @@ class Tracker:
             startup, imu, L, st, prior, calibrated.imu_bias_prior_var(
                 self.arm, self.correction, self.R_0I if self._has_imu else None, startup.roll_rad,
                 startup.pitch_rad), self.gyro_scale_sigma**2, prior_sigma_rad)
+        fixed = self.arm.fixed_base
+        if fixed is not None and fixed.roll_rad is not None:  # a bolted base's tilt, as levelled
+            for i, v in ((L.roll, fixed.roll_rad), (L.pitch, fixed.pitch_rad)):
+                self._x0[i] = v
+                self._P0[i, :] = self._P0[:, i] = 0.0
+                self._P0[i, i] = fixed.tilt_sigma_rad**2
         self.ambiguity_ = Ambiguity(startup)
         self._ukf = None  # created when the first encoder sample fixes the offsets
         self._q_enc = np.zeros(n)
@@ -581,7 +589,8 @@ class Tracker:
             self._named = named = (codes, self._flags, self.health.named_statuses(),
                                    tuple(JOINT_FLAGS[f] for f in self._flags.tolist()))
         return Estimate(
-            t_s=self._t, q_rad=_ro(self.arm.angles_in_range(self._q_enc + x[:n])), sigma_rad=_ro(sig[:n]),
+            t_s=self._t, q_rad=_ro(self.arm.angles_in_range(self._q_enc + x[:n], self._q_enc)),
+            sigma_rad=_ro(sig[:n]),
             flags=named[3],
             roll_rad=float(x[L.roll]), pitch_rad=float(x[L.pitch]), yaw_rad=float(x[L.yaw]),
             attitude_sigma_rad=_ro(attitude_sigma_rad(x[self._att_idx], self._ukf._P[np.ix_(self._att_idx,
@@ -623,6 +632,17 @@ class Tracker:
         out_of_order, reacquisitions."""
         self._check()
         return self.health.counters()
+
+    def sensor_warnings(self) -> list[str]:
+        """The accelerometers rejected (or left out as implausible) more often than
+        ``settings.warn_rejected_share`` of their samples so far, each with why
+        (:func:`fusion.tracking.health.sensor_warnings`)."""
+        self._check()
+        floors = dict(zip(self.accel_streams, self._unmodelled_g.tolist(), strict=True))
+        if IMU_ACC in floors:
+            floors[IMU_ACC] = self.arm.calibration.imu_accel_floor_g
+        return sensor_warnings(self.counters(), self.nis_stats(), floors,
+                               dict(self.arm.calibration.floors_by_default), self.settings)
 
     def innovations(self, sensor: str) -> InnovationLog:
         """The innovations kept for ``sensor`` (a link accelerometer, ``imu_acc``, ``imu_mag``):

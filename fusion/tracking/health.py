@@ -253,3 +253,37 @@ class SensorHealth:
     def counters(self) -> dict[str, dict[str, int]]:
         return {s: {c: int(self.counts[i, k]) for k, c in enumerate(COUNTERS)}
                 for i, s in enumerate(self.names)}
+
+
+def sensor_warnings(counters: dict[str, dict[str, int]], nis: dict[str, tuple[float, int, int]],
+                    floors_g: dict[str, float], floors_said: dict[str, str], settings: TrackerSettings
+                    ) -> list[str]:
+    """One line per accelerometer its gate rejected, or its screen left out as implausible,
+    more often than ``settings.warn_rejected_share`` of its samples: how often, against what
+    the gate expects, its mean NIS, its unmodelled-error floor (and where that came from), and
+    what to look at. ``counters``, ``nis``: the tracker's (:meth:`Tracker.counters`,
+    :meth:`Tracker.nis_stats`); ``floors_g``: each accelerometer's floor in g."""
+    out = []
+    for s, floor in floors_g.items():
+        c = counters.get(s)
+        if not c or not c["samples"]:
+            continue
+        n = c["samples"]
+        rejected, implausible = c["rejected"] / n, c["implausible"] / n
+        mean, count, dof = nis.get(s, (float("nan"), 0, 3))
+        where = floors_said.get(s)
+        floor_said = f"{floor:g} g" + (f", its class's ({where})" if where else ", as the config gives it")
+        if rejected > settings.warn_rejected_share:
+            nis_said = f"mean NIS {mean:.1f} against {dof}" if count else "no NIS kept"
+            out.append(
+                f"{s}: the gate rejected {100 * rejected:.0f} % of its samples (a sensor its model fits: "
+                f"{100 * settings.gate_significance:.1f} %): its readings sit further from the prediction "
+                f"than its noise and unmodelled error ({floor_said}) allow ({nis_said}); something of it "
+                "is not modelled (a scale, a mount, a delay, a base that moves): `calibrate sensors`, or "
+                f"state its error (calibration.accel_unmodelled_g_per_sensor.{s})")
+        if implausible > settings.warn_rejected_share:
+            out.append(
+                f"{s}: {100 * implausible:.0f} % of its samples left out as implausible (their magnitude "
+                "far from the predicted one): a dead or disconnected sensor, wrong units, or an estimate "
+                "of the base's motion gone wrong")
+    return out

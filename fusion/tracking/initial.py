@@ -80,7 +80,7 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
     P[np.ix_(tgt, tgt)] = block
     x[L.roll], x[L.pitch] = startup.roll_rad, startup.pitch_rad
     # the startup window was still: the chair's acceleration is zero there
-    P[L.accel, L.accel] = np.eye(3) * (0.01**2 if st.motion_compensation else 1e-16)
+    P[L.accel, L.accel] = np.eye(3) * (0.01**2 if st.motion_compensation and not st.base_fixed else 1e-16)
     if L.vel is not None:  # and so is its velocity
         P[L.vel, L.vel] = np.eye(3) * 0.01**2
     if L.jerk_B is not None:  # and its acceleration's change

@@ -278,8 +278,10 @@ class ProcessModel:
                 q[L.jerk_B] *= st.still_accel_q_factor
         if still:  # a parked chair's acceleration changes only when it sets off
             q[L.accel] *= st.still_accel_q_factor
-        if not st.motion_compensation:
+        if not st.motion_compensation or st.base_fixed:
             q[L.accel] = 0.0
+        if st.base_fixed:  # a bolted base keeps its attitude
+            q[L.roll] = q[L.pitch] = q[L.yaw] = 0.0
         q[L.bias] = (st.gyro_bias_random_walk_dps_per_sqrt_s * DEG) ** 2 * dt
         q[L.imu_bias] = st.imu_accel_bias_random_walk_g_per_sqrt_s**2 * dt
         if L.scale >= 0:

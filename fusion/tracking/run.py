@@ -289,7 +289,7 @@ class RunArrays:
         L, n = tr.layout, tr.arm.n_joints
         self._spread_changes()
         d = np.sqrt(np.maximum(self.var, 0.0))
-        self.q = tr.arm.angles_in_range(self.q_enc + self.x[:, :n])
+        self.q = tr.arm.angles_in_range(self.q_enc + self.x[:, :n], self.q_enc)
         self.sigma = d[:, :n]
         self.rpy = self.x[:, tr._att_idx]
         self.rpy_sigma = attitude_sigma_rad(self.rpy, self.att_cov.reshape(-1, 3, 3), self.heading_floor_var)

@@ -161,6 +161,11 @@ class TrackerSettings:
     # gating and re-acquisition
     gate_significance: float = 1e-3
     """Chi-square gate on each sensor's NIS: probability that a good sample is rejected."""
+    warn_rejected_share: float = 0.05
+    """A sensor whose samples the gate rejected (or left out as implausible) more often than
+    this share of the time is named, with why, in the tracker's warnings
+    (:meth:`fusion.tracking.tracker.Tracker.sensor_warnings`): fifty times what the gate
+    costs a sensor its model fits (``gate_significance``)."""
     reacquire_after_s: float = 0.4
     """A sensor rejected for this long is a state change (a slip), not a bump."""
     slip_sigma_deg: float = 1.0
@@ -260,6 +265,16 @@ class TrackerSettings:
     innovation_capacity: int = 100_000
     """Innovations kept per sensor (a ring buffer), for the diagnosis workbench."""
 
+
+    base_fixed: bool = False
+    """The base is bolted down (the config's ``base: fixed``, :meth:`bolted`): its
+    acceleration is held at zero and its attitude takes no random walk (what the sensors
+    read of its tilt accumulates)."""
+
+    def bolted(self) -> TrackerSettings:
+        """These settings for a base bolted down: no acceleration, no jerk, no tilt walk."""
+        return replace(self, base_fixed=True, base_jerk_sigma_mps3=0.0, base_speed_sigma_mps=None,
+                       base_pivot_sigma_m=None)
 
     def for_base(self, base_motion) -> TrackerSettings:
         """These settings with the base's acceleration model a config describes

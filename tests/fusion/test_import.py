@@ -279,7 +279,7 @@ def test_the_command_refuses_a_bad_map_and_an_unknown_shipped_one_in_one_line(tm
     r = runner.invoke(app, ["import", str(DATA / "imu-rig" / "raw_roll_slow_20s.mat"), "--map", "nosuch",
                             "--config", str(RIG), "--out", str(tmp_path / "x.mcap")])
     assert r.exit_code == 2 and "no column map 'nosuch': not a file, and not one of the shipped maps " \
-                                "['broad', 'imu-rig']" in r.output
+                                "['broad', 'imu-rig', 'ros2-wmra', 'ur5-csv']" in r.output
 
 
 def test_values_beyond_the_configs_sensor_range_are_counted_and_noted(tmp_path: Path, arm) -> None:

@@ -95,7 +95,7 @@ def test_not_a_mapping_and_bad_yaml(tmp_path):
 
 def test_missing_config_names_the_shipped_ones():
     with pytest.raises(FileNotFoundError, match=r"no arm config 'nope'.*'crs_a465', 'imu_rig_pitch', "
-                                                  r"'imu_rig_roll', 'imu_rig_yaw', 'wmra'"):
+                                                  r"'imu_rig_roll', 'imu_rig_yaw', 'ur5_two_imu', 'wmra'"):
         load_arm("nope")
 
 
@@ -186,7 +186,8 @@ def test_joint_angles_are_reported_on_the_turn_inside_their_limits(wmra):
     q = np.radians([10.0, 20.0, 30.0, 40.0, 50.0, 290.0, -200.0])
     out = wmra.angles_in_range(q)
     mid = np.degrees(0.5 * (wmra.min_rad + wmra.max_rad))
-    assert np.all(np.abs(np.degrees(out) - mid) <= 180.0)
+    assert np.all(np.abs(np.degrees(out) - mid)[:6] <= 180.0)
+    assert out[6] == q[6]  # j7's limits (±200°) span more than a turn: -200° is its own
     np.testing.assert_allclose(np.degrees(out[5]), -70.0, atol=1e-9)
     np.testing.assert_allclose(np.cos(out - q), 1.0)  # whole turns only
     inside = np.abs(np.degrees(q) - mid) <= 180.0

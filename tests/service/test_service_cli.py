@@ -37,6 +37,8 @@ def test_record_and_replay_processes_round_trip_and_sigterm_closes(startup_recor
         assert player.returncode == 0, perr
         published = json.loads(pout)
         assert published["unmatched"] == []
+        # only a recorder listens: no fusion node's admission to judge by
+        assert published["admission"]["state"] == "unknown"
     finally:
         recorder.send_signal(signal.SIGTERM)
         rout, rerr = recorder.communicate(timeout=30)

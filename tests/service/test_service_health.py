@@ -77,6 +77,7 @@ def test_a_clean_replay_raises_no_alarm(fusion_node, hub_settings, arm, daily):
     assert health == []
     assert dict(status.counters).get("model_alarms", 0) == 0
     assert "model changed" not in status.message
+    assert "the gate rejected" not in status.message and "implausible" not in status.message
 
 
 def _health_bytes(**alarm) -> bytes:

@@ -1,0 +1,125 @@
+"""The import of a ROS bag (rosbag2 with MCAP or SQLite3 storage, ROS 1): a bag, a column map
+that names topics and fields (:mod:`~fusion.importing.column_map`) and an arm's config in;
+the arm's native recording and a summary out (:func:`import_bag`).
+
+Order, as for a table (:mod:`~fusion.importing.run`): the map is checked against the config
+before the bag is read; the topics' fields are read (:func:`sensors.foreign.rosbag.read_topics`);
+each message's frame id is checked against the map's; a sample is stamped with the message's
+header stamp or its receive time (the map's ``stamp``); within a stream, a message whose
+stamp is not after every earlier one is dropped (the later of two stamped alike) and said;
+a message with a NaN field is a gap; the values are brought into the config's unit. Each
+topic's rate and gaps are reported as ``armfusion inspect`` reports a stream's.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from fusion.importing.column_map import ColumnMap
+from fusion.importing.run import ImportResult, stream_of
+from fusion.importing.stamps import FIRST_ROWS, increasing_rows
+from fusion.importing.to_stream import ImportMapError, check_map_against
+from fusion.importing.to_stream import targets as targets_of
+from models.arm import ArmModel
+from sensors.foreign.rosbag import BagTopic, bag_format, read_topics
+from sensors.samples import Recording, Stream, clipped_repr
+
+NS_PER_S = 1_000_000_000
+
+
+def seconds(t_ns: np.ndarray) -> np.ndarray:
+    """Nanoseconds (int64) as seconds: one correctly rounded division, so a time the
+    recording held as ``k / 10**d`` s (``d <= 9``) comes back bit for bit."""
+    return np.asarray(t_ns, np.int64) / float(NS_PER_S)
+
+
+def _frame_problem(topic: BagTopic, frame_id: str | None, stream: str) -> str | None:
+    if frame_id is None:
+        return None
+    for frame, (_, first) in topic.frame_ids.items():
+        if frame != frame_id:
+            return (f"stream {stream}: topic {topic.topic} message {first} (from 0) has frame_id "
+                    f"{clipped_repr(frame)}; the map says {clipped_repr(frame_id)}")
+    return None
+
+
+def _topic_report(topic: BagTopic, stamp: str, t_s: np.ndarray) -> dict:
+    """A topic's messages, frame ids, rate and gaps (as ``inspect`` reports a stream's)."""
+    from fusion.cli.describe import stream_gaps
+
+    s = Stream(topic.topic, "temperature", t_s, np.zeros((t_s.size, 1)), ("t",))
+    n_gaps, longest, missing = stream_gaps(s)
+    return {"type": topic.msgtype, "messages": len(topic), "stamp": stamp,
+            "frame_ids": {k: n for k, (n, _) in topic.frame_ids.items()},
+            "rate_hz": s.rate_hz, "gaps": n_gaps, "missing_samples": missing,
+            "missing_percent": 100.0 * missing / (len(s) + missing) if len(s) else 0.0,
+            "longest_gap_s": longest}
+
+
+def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> ImportResult:
+    """Turn the bag ``src`` into ``arm``'s recording by ``cmap`` (a bag's map: topics and
+    fields; see the module's docstring). Raises :class:`~fusion.importing.to_stream.ImportMapError`
+    or :class:`~sensors.foreign.ForeignFileError` (both ``ValueError``) naming the stream, the
+    topic, the message's index and the unit."""
+    path = Path(src)
+    if not cmap.is_bag:
+        raise ImportMapError(f"{path} is a ROS bag, but column map {cmap.source} names columns: a bag's "
+                             "map names topics and fields, with time: {stamp: header|receive}")
+    targets = check_map_against(cmap, arm, config)
+    topics = read_topics(path, cmap.topics())
+    changes: list[str] = []
+    notes: list[str] = []
+    streams: dict[str, Stream] = {}
+    stream_summary: dict[str, dict] = {}
+    reports: dict[str, dict] = {}
+    problems = []
+    for name, src in cmap.streams.items():
+        topic = topics[src.topic]
+        stamp = src.stamp or cmap.stamp
+        if stamp == "header" and topic.stamp_ns is None:
+            problems.append(f"stream {name}: topic {src.topic} ({topic.msgtype}) has no header stamp: "
+                            "give the stream stamp: receive")
+        why = _frame_problem(topic, src.frame_id, name)
+        if why:
+            problems.append(why)
+    if problems:
+        raise ImportMapError(f"{path}: " + "; ".join(problems))
+    for name, src in cmap.streams.items():
+        topic = topics[src.topic]
+        stamp = src.stamp or cmap.stamp
+        t_all = seconds(topic.stamp_ns if stamp == "header" else topic.receive_ns)
+        keep, report = increasing_rows(t_all, first_row=0)
+        if report.not_increasing:
+            back = (f", the largest step back {report.largest_step_back_s * 1e3:.3f} ms"
+                    if report.largest_step_back_s > 0 else " (each a repeat of the one before)")
+            first = ", ".join(f"{r} (t = {t:.6f} s)" for r, t in zip(report.not_increasing_rows,
+                                                                      report.not_increasing_t_s, strict=True))
+            more = " …" if report.not_increasing > FIRST_ROWS else ""
+            changes.append(f"{name}: dropped {report.not_increasing} message(s) of {src.topic} whose {stamp} "
+                           f"stamp is not after every earlier one{back}: messages {first}{more} (from 0)")
+        values = np.stack([topic.fields[f] for f in src.columns], axis=1)[keep]
+        streams[name], stream_summary[name] = stream_of(
+            name, t_all[keep], values, np.flatnonzero(keep), "message", src, targets[name],
+            f"{path}: topic {src.topic}", changes, notes)
+        stream_summary[name]["topic"] = src.topic
+        if src.topic not in reports:
+            reports[src.topic] = _topic_report(topic, stamp, t_all[keep])
+    all_names = targets_of(arm)
+    not_mapped = [k for k, tg in all_names.items() if k not in cmap.streams and k not in cmap.absent
+                  and not tg.needed]
+    rec = Recording(streams, meta={"source": str(path), "arm_config": config})
+    ts = [s.t_s for s in streams.values() if len(s)]
+    summary = {
+        "source": str(path), "format": bag_format(path), "map": cmap.source, "config": config,
+        "time": {"stamp": cmap.stamp, "t_start_s": float(min(t[0] for t in ts)) if ts else None,
+                 "t_end_s": float(max(t[-1] for t in ts)) if ts else None},
+        "topics": reports,
+        "streams": stream_summary,
+        "absent": dict(cmap.absent),
+        "not_mapped": not_mapped,
+        "changes": changes,
+        "notes": notes,
+    }
+    return ImportResult(rec, summary, tuple(changes))
