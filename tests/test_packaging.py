@@ -83,10 +83,10 @@ def test_an_unpacked_wheel_finds_its_configs_from_another_directory(wheel, tmp_p
     assert Path(wmra).name == "wmra.yaml" and int(n_joints) == 6
 
 
-def test_the_readmes_python_example_runs_as_written(tmp_path):
-    """The README's "From Python" block: what a user's code imports, run from elsewhere."""
-    readme = (ROOT / "README.md").read_text()
-    section = readme[readme.index("## From Python"):]
+def test_the_api_pages_python_example_runs_as_written(tmp_path):
+    """The Python API page's example: what a user's code imports, run from elsewhere."""
+    page = (ROOT / "docs" / "reference" / "api.md").read_text()
+    section = page
     start = section.index("```python\n") + len("```python\n")
     code = section[start:section.index("\n```", start)]
     done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
