@@ -45,7 +45,9 @@ HEADING_LEVEL = {"compass_fused": OK, "gyro_only": WARN, "disturbed": WARN, "cal
 """The heading's status as a level: ``calibrating`` (no absolute heading yet) is ERROR, the
 status a consumer of the heading should ignore it in."""
 JOINT_LEVEL = {"ok": OK, "converging": WARN, "reacquiring": WARN, "ill_conditioned": WARN,
-               "gimbal_lock": WARN, "out_of_limits": ERROR, "unobserved": ERROR, "ambiguous": ERROR}
+               "gimbal_lock": ERROR, "out_of_limits": ERROR, "unobserved": ERROR, "ambiguous": ERROR}
+"""A joint whose angle no sensor reads (``gimbal_lock``, ``unobserved``: its sigma covers its
+limits) or whose branch is not known is ERROR: its ``position`` is not to be used."""
 SENSOR_LEVEL = {"ok": OK, "rejecting": WARN, "stale": STALE, "stuck": ERROR, "dead": ERROR, "absent": STALE}
 
 

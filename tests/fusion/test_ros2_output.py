@@ -179,6 +179,8 @@ def test_the_diagnostics_say_the_heading_each_joint_and_each_sensor_with_ros_lev
     # every change of the heading's status in the run is in the diagnostics
     assert seen == {HEADING_STATUS[c] for c in np.unique(run.heading_status)}
     assert HEADING_LEVEL["calibrating"] == 2  # ERROR: no absolute heading yet, the status to ignore it in
+    # a joint whose angle no sensor reads is ERROR, never a usable WARN: its position is not to be used
+    assert all(JOINT_LEVEL[f] == 2 for f in ("gimbal_lock", "unobserved", "ambiguous", "out_of_limits"))
 
 
 def test_the_track_command_writes_a_ros2_bag_by_its_name(tmp_path: Path) -> None:
