@@ -55,6 +55,7 @@ from models.sensor_description import (  # noqa: F401  (the datasheet numbers, r
     MPU9150_TEMP_LSB_PER_C,
     MPU9150_TEMP_OFFSET_C,
 )
+from sensors.sample_checks import FEED_MAX, FEED_MIN, range_problem, sample_place
 from sensors.samples import (
     IMU_STREAMS,
     Recording,
@@ -130,6 +131,13 @@ class StreamModel:
         if self.counts_min is None:
             return np.zeros(c.shape, bool)
         return (c <= self.counts_min) | (c >= self.counts_max)
+
+    @property
+    def admissible_range(self) -> tuple[float, float]:
+        """The values the stream may hold (:mod:`models.sample_admission`): the register
+        limits, or for a stream without them (the encoders) the feed's int32."""
+        return (FEED_MIN if self.counts_min is None else self.counts_min,
+                FEED_MAX if self.counts_max is None else self.counts_max)
 
     def beyond_range(self, counts: np.ndarray) -> np.ndarray:
         """``(N, k)``: where a channel reads past its register limits (or ±inf): no such
@@ -268,7 +276,9 @@ def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: 
 
     Raises :class:`MissingSensorError` when a stream of ``required`` has no sample (naming
     them and ``needed_by``), :class:`OutOfRangeError` at the first value past its device's
-    register range (naming the stream, channel, time and sample), and otherwise counts the
+    range (:attr:`StreamModel.admissible_range`: the encoders' is the feed's int32), naming
+    the place in the file, the channel, the value and the time in the words the fusion node
+    uses (:func:`sensors.sample_checks.range_words`), and otherwise counts the
     saturated samples per stream (:meth:`StreamModel.saturated`), which the commands leave out.
     Streams the config does not describe (truth, unknown sensors) are not looked at.
     """
@@ -283,18 +293,10 @@ def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: 
         st = rec.get(name)
         if st is None or len(st) == 0 or st.values.shape[1] != model.size:
             continue
-        bad = model.beyond_range(st.values)
-        if bad.any():
-            i, k = (int(v[0]) for v in np.nonzero(bad))
-            v = float(st.values[i, k])
-            where = (f"{model.channels[k]} = {v:.6g} counts at t = {float(st.t_s[i]):.3f} s "
-                     f"(sample {i + 1:,} of {name})")
-            rng = ("" if model.counts_min is None else
-                   f" {model.counts_min:.0f}…{model.counts_max:.0f} counts")
-            sensor = next((m for m in arm.sensors if m.name == model.sensor), None)
-            device = f"the {sensor.type}'s" if sensor is not None else "its"
-            raise OutOfRangeError(f"{where}: beyond {device} register range{rng}; no such sensor "
-                                  f"can read that, so the recording is refused")
+        problem = range_problem(st, *model.admissible_range)
+        if problem is not None:
+            raise OutOfRangeError(f"{sample_place(rec, name, problem.index)}: {problem.words}; no "
+                                  "such sensor can read that, so the recording is refused")
         samples[name] = len(st)
         saturated[name] = int(model.saturated(st.values).any(axis=1).sum())
     return SampleScreen(samples, saturated)

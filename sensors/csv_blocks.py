@@ -324,6 +324,8 @@ def _text(cell: bytes) -> str:
 
 def _convert(path: Path, name: str, cell: bytes, conv: type, row0: int, lines):
     try:
+        if b"_" in cell:  # Python's literal syntax (2_59), not a number of a CSV
+            raise ValueError
         value = conv(cell)
     except ValueError:
         kind = "an integer (raw counts) or a decimal" if conv is int else "a number"

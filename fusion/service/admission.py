@@ -13,7 +13,8 @@ reason             the batch…
 ``wrong_channels`` has channels other than the config's (e.g. 3 encoder channels of 7)
 ``out_of_range``   holds a count beyond the device's register range (an ADXL345 axis
                    -512…511, the MPU-9150's int16, the AK8975's 13 bits, the encoder
-                   feed's int32)
+                   feed's int32): the rule and the words every reader of a file uses
+                   (:mod:`models.sample_admission`)
 ``encoder_jump``   moves a joint's encoder further than the joint can turn in the time
                    since the last sample (``max_joint_rate_rad_s`` plus
                    ``jump_slack_rad``)
@@ -67,8 +68,9 @@ from fusion.service.inbox import DropLog
 from fusion.service.payloads import RawBatch
 from models.arm import ArmModel
 from models.sensor_models import ENCODER_STREAM, stream_models
+from sensors.sample_checks import FEED_MAX, FEED_MIN, range_words
 
-INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
+INT32_MIN, INT32_MAX = FEED_MIN, FEED_MAX
 """The encoder feed's counts (sensors/encoders.py: int32 per joint)."""
 REASONS: tuple[str, ...] = ("unknown_sensor", "wrong_kind", "wrong_channels", "out_of_range",
                             "time_ahead", "time_behind", "too_dense", "encoder_jump")
@@ -132,9 +134,7 @@ class Admission:
         self._models = stream_models(arm)
         self._range = {}
         for name, m in self._models.items():  # register counts, or values in the declared unit
-            lo = INT32_MIN if m.counts_min is None else m.counts_min
-            hi = INT32_MAX if m.counts_max is None else m.counts_max
-            self._range[name] = (lo, hi)
+            self._range[name] = m.admissible_range  # (the encoders: the feed's int32)
         st = self.settings
         self._cpr = arm.counts_per_rad
         self._enc_step = self._cpr * st.max_joint_rate_rad_s  # counts per second
@@ -182,8 +182,7 @@ class Admission:
         if (min(flat) < lo or max(flat) > hi) if flat is not None else (
                 s.values.min().item() < lo or s.values.max().item() > hi):
             i, j = (int(x) for x in np.argwhere((s.values < lo) | (s.values > hi))[0])
-            return Verdict("out_of_range", f"{s.channels[j]} = {_shown(s.values[i, j].item())} at t = "
-                                           f"{float(s.t_s[i]):.6g} s is beyond the device's range {lo}…{hi}")
+            return Verdict("out_of_range", range_words(s.channels[j], s.values[i, j].item(), s.t_s[i], lo, hi))
         verdict = self._check_time(s.name, float(s.t_s[0]), float(s.t_s[-1]), now_s)
         if not verdict.ok:
             return verdict
