@@ -270,6 +270,8 @@ def parse_block_values(
     if fc.size:
         sub = np.where(empty[:, fc], b"0", cells[:, fc])
         try:
+            if _has_underscore(sub):
+                raise ValueError  # numpy reads 2_59 as 259: the cells one by one say where
             floats[:] = sub.astype(np.float64)
         except ValueError:
             for i, j in zip(*np.nonzero(~empty[:, fc]), strict=True):
@@ -300,6 +302,8 @@ def _raw_column(path: Path, name: str, col: np.ndarray, empty: np.ndarray, slow:
     if not decimal:
         return as_ints
     try:
+        if _has_underscore(col):
+            raise ValueError
         out = np.where(empty, b"nan", col).astype(np.float64)
     except ValueError:
         out = np.array([np.nan if e else _convert(path, name, c, float, row_offset + i, lines)
@@ -314,6 +318,11 @@ def _raw_column(path: Path, name: str, col: np.ndarray, empty: np.ndarray, slow:
 
 
 _INT64 = (-(2**63), 2**63 - 1)
+
+
+def _has_underscore(cells: np.ndarray) -> bool:
+    """Does a cell hold ``_`` (Python's digit grouping, which numpy and ``int`` read)?"""
+    return bool(cells.size) and bool((np.char.find(cells, b"_") >= 0).any())
 
 
 def _text(cell: bytes) -> str:

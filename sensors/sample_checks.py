@@ -6,6 +6,8 @@ A sample is refused when
 - its time is not finite, or beyond :data:`TIME_LIMIT_S` from 0 (a float of seconds that
   large cannot tell two instants a microsecond apart: no clock a sensor runs on);
 - its time does not increase within its stream (:class:`sensors.samples.Stream`);
+- it begins a short run of instants set apart from the rest of its recording by more than
+  the node's clock window (:func:`apart_problem`);
 - one of its raw values lies beyond :data:`FEED_MIN` … :data:`FEED_MAX`, the 32-bit range
   of the encoder feed, which holds every register a supported device has (an ADXL345 axis
   -512…511, the MPU-9150's int16, the AK8975's 13 bits).
@@ -33,6 +35,13 @@ raw value of any supported device can have."""
 TIME_LIMIT_S = 2.0**52 * 1e-6
 """4.5e9 s (143 years: Unix time until 2112): beyond it the spacing of float64 seconds
 exceeds a microsecond, a thousandth of the fastest sampling the node admits (1 kHz)."""
+
+CLOCK_WINDOW_S = 2.0
+RUN_SAMPLES = 16
+"""A run of fewer than :data:`RUN_SAMPLES` instants set apart from the rest of a recording by
+more than :data:`CLOCK_WINDOW_S` (or a hundred of its median steps, if longer) is not on the
+sensors' clock: the fusion node's clock window and burst (``AdmissionSettings``'s
+``clock_window_s`` and ``burst_samples``), applied to a file."""
 
 SHOWN = 40
 """Characters of a value a message repeats at most."""
@@ -100,14 +109,52 @@ def range_problem(stream: Stream, lo, hi) -> SampleProblem | None:
                          range_words(stream.channels[j], v[i, j].item(), stream.t_s[i], lo, hi))
 
 
+def apart_problem(rec: Recording) -> SampleProblem | None:
+    """The first instant of a short run set apart from the rest of ``rec`` (see
+    :data:`RUN_SAMPLES`): a last row stamped 10^9 s after a minute of samples, say."""
+    times = [s.t_s for s in rec.streams.values() if len(s)]
+    if not times:
+        return None
+    t = np.unique(np.concatenate(times))
+    if t.size < 2:
+        return None
+    step = np.diff(t)
+    apart_s = max(CLOCK_WINDOW_S, 100.0 * float(np.median(step)))
+    cuts = np.flatnonzero(step > apart_s) + 1
+    if not cuts.size:
+        return None
+    starts, ends = np.concatenate([[0], cuts]), np.concatenate([cuts, [t.size]])
+    sizes = ends - starts
+    body = int(np.argmax(sizes))
+    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+        if b - a >= RUN_SAMPLES or a == starts[body]:
+            continue
+        at = float(t[a])
+        for s in rec.streams.values():
+            i = int(np.searchsorted(s.t_s, at))
+            if i < len(s) and s.t_s[i] == at:
+                return SampleProblem(
+                    s.name, i, "time_apart",
+                    f"t = {at:.6g} s begins a run of {b - a} instant(s) more than {apart_s:.3g} s apart "
+                    f"from the rest of the recording (its {int(sizes[body])} instants at t = "
+                    f"{float(t[starts[body]]):.6g} … {float(t[ends[body] - 1]):.6g} s): not on the "
+                    "sensors' clock")
+    return None
+
+
 def feed_problems(rec: Recording) -> list[SampleProblem]:
     """The first refused sample of each stream of ``rec`` by the rules above (time; raw
-    values within the feed's range), config order; empty when every sample passes."""
+    values within the feed's range), config order, then an instant apart from the rest
+    (:func:`apart_problem`); empty when every sample passes."""
     out = []
     for s in rec.streams.values():
         p = time_problem(s.name, s.t_s)
         if p is None and s.kind in RAW_KINDS:
             p = range_problem(s, FEED_MIN, FEED_MAX)
+        if p is not None:
+            out.append(p)
+    if not out:
+        p = apart_problem(rec)
         if p is not None:
             out.append(p)
     return out

@@ -85,7 +85,9 @@ def read_recording_or_exit(path: Path, arm=None):
             warnings.simplefilter("always")
             rec = read_recording(path)
     except (ValueError, OSError) as e:
-        fail(f"cannot read recording {path}: {e}")
+        said = str(e)  # (a reader's message names the file first: not twice)
+        fail(f"cannot read recording {said}" if said.startswith(f"{path}: ") else
+             f"cannot read recording {path}: {said}")
     for w in caught:
         err_console.print(f"[yellow]warning:[/] {w.message}", highlight=False)
     if arm is not None:
