@@ -14,6 +14,7 @@ from fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
     choice_or_exit,
+    config_file,
     console,
     emit_json,
     err_console,
@@ -56,7 +57,7 @@ def calibrate_joints(
     """Every joint angle of a still arm, with sigma, flags, and a move that unlocks blind joints."""
     choice_or_exit(method, "--method", ("joint", "sequential"))
     if save is not None:
-        check_output_path(save, "--save")
+        check_output_path(save, "--save", inputs=(recording, config_file(config)))
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, lambda arm: [a.name for a in arm.link_accelerometers],
         "calibrate joints needs (every link accelerometer of {source})", json_out)

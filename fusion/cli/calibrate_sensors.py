@@ -31,6 +31,7 @@ from fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
     choice_or_exit,
+    config_file,
     console,
     emit_json,
     err_console,
@@ -53,6 +54,7 @@ from fusion.identification.identify import (
 )
 from models.effects import EFFECTS, Model, all_effects, model_from_arm
 from models.simulator import REALISTIC_EXCLUDE
+from sensors.output_files import write_text_replacing
 
 
 def parse_base_tilt(text: str, sigma_deg: float) -> tuple[np.ndarray, float]:
@@ -153,7 +155,7 @@ def calibrate_sensors(
     """Estimate the sensors' and the arm's effects (with σ, holds and correlations)."""
     choice_or_exit(mode, "--mode", ("separate", "simultaneous"))
     if write is not None:
-        check_output_path(write, "--write")
+        check_output_path(write, "--write", inputs=(recording, config_file(config), compass_drive))
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, fit_streams,
         "calibrate sensors fits (the encoders and every sensor stream of {source})", json_out)
@@ -215,8 +217,8 @@ def calibrate_sensors(
                        f"({c.reference.where}): calibration.identified.references\n"
                        for c in res.reference_checks)
         compass = f"# {compass_line}\n" if compass_line else ""
-        write.write_text(f"# {res.summary()}\n# from {recording}, config {src.name}\n" + refs + compass
-                         + yaml.safe_dump(out, sort_keys=False, width=110), encoding="utf-8")
+        write_text_replacing(write, f"# {res.summary()}\n# from {recording}, config {src.name}\n" + refs + compass
+                         + yaml.safe_dump(out, sort_keys=False, width=110))
     if json_out:
         d = res.as_dict()
         d["written"] = str(write) if write else None

@@ -9,9 +9,9 @@ from typing import Annotated
 import typer
 
 from fusion.cli.common import (
+    config_file,
     console,
     emit_json,
-    err_console,
     fail,
     load_arm_or_exit,
     prepare_output_path,
@@ -43,7 +43,8 @@ def import_recording_cmd(
     from models.arm_config import ConfigError
     from sensors.recording import write_recording
 
-    out = prepare_output_path(out, "--out", OUT_SUFFIXES)
+    out = prepare_output_path(out, "--out", OUT_SUFFIXES,
+                              inputs=(source, config_file(config), Path(column_map)))
     if not source.exists():
         fail(f"recording not found: {source}")
     try:
@@ -75,8 +76,6 @@ def import_recording_cmd(
         console.print(f"  {name}: absent ({why})", highlight=False)
     if summary["not_mapped"]:
         console.print(f"  not in the file: {', '.join(summary['not_mapped'])}", highlight=False)
-    for note in summary["notes"]:
-        err_console.print(f"[yellow]note:[/] {note}", highlight=False, soft_wrap=True)
     if summary["changes"]:
         console.print("Changes to the source's data:")
         for c in summary["changes"]:

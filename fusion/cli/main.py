@@ -21,6 +21,7 @@ from typer.core import TyperGroup
 from fusion import __version__
 from fusion.cli.common import (
     check_output_path,
+    config_file,
     console,
     emit_json,
     fail,
@@ -176,7 +177,7 @@ def info(
     from fusion.cli.describe import describe_arm
 
     if plot is not None:
-        check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES)
+        check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES, inputs=(config_file(config),))
     arm = load_arm_or_exit(config)
     d = describe_arm(arm)
     if plot is not None:

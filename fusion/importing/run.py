@@ -7,7 +7,9 @@ Order: the map is checked against the config before the file is read
 column is converted to seconds (or made from the rate); rows whose time does not increase
 are dropped (:mod:`~fusion.importing.stamps`); in each stream a row with a NaN in one of its
 columns is a gap (that sensor not sampled then) and counted, an infinite value is refused;
-the values are brought into the config's unit (:func:`~fusion.importing.to_stream.convert_values`).
+the values are brought into the config's unit (:func:`~fusion.importing.to_stream.convert_values`);
+then every sample meets the admission every door applies (:mod:`models.sample_admission`: a
+value past its sensor's range, a time beyond any clock, is refused naming the file's row).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from fusion.importing.stamps import FIRST_ROWS, increasing_rows
 from fusion.importing.to_stream import ImportMapError, check_map_against, convert_values
 from fusion.importing.to_stream import targets as targets_of
 from models.arm import ArmModel
+from models.sample_admission import admission_problems
 from sensors.foreign import SUFFIXES, read_columns
 from sensors.samples import Recording, Stream, clipped_repr
 from sensors.units import convert
@@ -29,10 +32,8 @@ from sensors.units import convert
 
 @dataclass(frozen=True)
 class ImportResult:
-    """The recording made and what the import did: ``summary`` (JSON-ready; its ``notes``
-    say what the data hold that the config may not expect, such as values beyond a sensor's
-    range) and ``changes``, one sentence per change to the source's data (rows left out,
-    gaps, rounding)."""
+    """The recording made and what the import did: ``summary`` (JSON-ready) and ``changes``,
+    one sentence per change to the source's data (rows left out, gaps, rounding)."""
 
     recording: Recording
     summary: dict
@@ -54,6 +55,22 @@ def _start_index(cmap: ColumnMap, scalars: dict[str, float], n_rows: int, path: 
     return int(value) - 1
 
 
+def _refuse_what_no_sensor_said(rec: Recording, arm: ArmModel, cmap: ColumnMap,
+                                stream_rows: dict[str, np.ndarray], path: Path) -> None:
+    """The admission every door applies (:mod:`models.sample_admission`): a value past the
+    range of the config's sensor (or the feed's), a time beyond any clock or apart from the
+    rest, refused naming the file's row and columns (the other commands would refuse the
+    recording written)."""
+    problems = admission_problems(arm, rec)
+    if problems:
+        p = problems[0]
+        row = int(stream_rows[p.stream][p.index]) if p.stream in stream_rows else p.index + 1
+        cols = ", ".join(cmap.streams[p.stream].columns) if p.stream in cmap.streams else p.stream
+        raise ImportMapError(f"{path}: row {row} (columns {cols}, stream {p.stream}): {p.words}; no sensor "
+                             "the config describes can have said that (does the config describe the "
+                             "sensor that recorded it?)")
+
+
 def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> ImportResult:
     """Turn the foreign file ``src`` into ``arm``'s recording by ``cmap`` (see the module's
     docstring). Raises :class:`~fusion.importing.to_stream.ImportMapError` (map against
@@ -65,7 +82,6 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     n = cols.n_rows
     s = _start_index(cmap, cols.scalars, n, path)
     changes: list[str] = []
-    notes: list[str] = []  # what the data hold that the config may not expect (no change made)
     if s:
         changes.append(f"left out the {s} row(s) before the start row {s + 1}")
     if cmap.time_column is not None:
@@ -84,6 +100,7 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     t_s = t_all[keep]
     rows = np.flatnonzero(keep) + s + 1  # the file's row of each kept row
     streams: dict[str, Stream] = {}
+    stream_rows: dict[str, np.ndarray] = {}  # the file's row of each sample of each stream
     stream_summary: dict[str, dict] = {}
     for name, src_cols in cmap.streams.items():
         t = targets[name]
@@ -102,20 +119,15 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
             streams[name] = Stream(name, t.kind, t_s[sampled], done.values, t.channels)
         except ValueError as e:
             raise ImportMapError(f"{path}: stream {name}: {e}") from None
+        stream_rows[name] = rows[sampled]
         if gap.any() or partly.any():
             first = rows[np.flatnonzero(~sampled)[:FIRST_ROWS]].tolist()
             changes.append(f"{name}: {int(gap.sum())} row(s) NaN in every column and {int(partly.sum())} "
                            f"NaN in some of {', '.join(src_cols.columns)} kept as gaps (not sampled), "
                            f"first rows {', '.join(map(str, first))}")
-        beyond = saturated = 0
+        saturated = 0
         if t.model is not None and t.model.counts_min is not None and len(streams[name]):
-            beyond = int(t.model.beyond_range(streams[name].values).any(axis=1).sum())
-            saturated = int(t.model.saturated(streams[name].values).any(axis=1).sum()) - beyond
-            if beyond:
-                notes.append(f"{name}: {beyond} sample(s) beyond the config's sensor range "
-                             f"({t.model.counts_min:g} … {t.model.counts_max:g} {t.value_unit}): the other "
-                             "commands refuse such a recording; does the config describe the sensor that "
-                             "recorded it?")
+            saturated = int(t.model.saturated(streams[name].values).any(axis=1).sum())
         if done.rounding_max_counts is not None and done.rounding_max_counts > 1e-6:  # not float noise
             changes.append(f"{name}: rounded to whole counts by up to {done.rounding_max_counts:.3f} counts "
                            f"(rms {done.rounding_rms_counts:.3f})")
@@ -125,13 +137,14 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
             "samples": int(sampled.sum()), "nan_gaps": int(gap.sum()), "partly_nan": int(partly.sum()),
             "values_dtype": str(streams[name].values.dtype),
             "rounding_max_counts": done.rounding_max_counts, "rounding_rms_counts": done.rounding_rms_counts,
-            "beyond_range": beyond, "at_range_limit": saturated,
+            "at_range_limit": saturated,
         }
     all_names = targets_of(arm)  # every stream the config describes
     not_mapped = [k for k, tg in all_names.items() if k not in cmap.streams and k not in cmap.absent
                   and not tg.needed]
     dt = np.diff(t_s)
     rec = Recording(streams, meta={"source": str(path), "arm_config": config})
+    _refuse_what_no_sensor_said(rec, arm, cmap, stream_rows, path)
     summary = {
         "source": str(path), "format": SUFFIXES[path.suffix.lower()], "map": cmap.source, "config": config,
         "rows": {"in_file": n, "start_row": s + 1, "before_start": s, "imported": int(keep.sum())},
@@ -144,6 +157,5 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
         "absent": dict(cmap.absent),
         "not_mapped": not_mapped,
         "changes": changes,
-        "notes": notes,
     }
     return ImportResult(rec, summary, tuple(changes))

@@ -182,7 +182,8 @@ class Admission:
         if (min(flat) < lo or max(flat) > hi) if flat is not None else (
                 s.values.min().item() < lo or s.values.max().item() > hi):
             i, j = (int(x) for x in np.argwhere((s.values < lo) | (s.values > hi))[0])
-            return Verdict("out_of_range", range_words(s.channels[j], s.values[i, j].item(), s.t_s[i], lo, hi))
+            return Verdict("out_of_range",
+                           range_words(s.channels[j], s.values[i, j].item(), s.t_s[i], lo, hi))
         verdict = self._check_time(s.name, float(s.t_s[0]), float(s.t_s[-1]), now_s)
         if not verdict.ok:
             return verdict

@@ -105,6 +105,7 @@ def register(app: typer.Typer) -> None:
         json_out: JsonOpt = False,
     ) -> None:
         """Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing.
+
         Exits 1 when an MCAP file ends early or is damaged (what could be read is replayed)."""
         from fusion.service.replay import NoSubscriberError, replay
 
