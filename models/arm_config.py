@@ -12,7 +12,16 @@ from dataclasses import dataclass, replace
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictInt,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from models.arm import (
     ArmCalibration,
@@ -27,7 +36,27 @@ from models.arm import (
 )
 from models.rotations import DEG, rotation_problem
 from models.sensor_description import DEVICE_TYPES, SensorDescription, describe
-from sensors.samples import clipped_repr
+from sensors.samples import IMU_STREAMS, LINK_GYRO_SUFFIX, clipped_repr
+
+MAX_LENGTH_MM = 100_000.0
+"""A length of the arm or a sensor's position is below 100 m (any arm a chair carries is
+under 2 m: a larger number is a unit slip, mm for µm, or a typo)."""
+MAX_ANGLE_DEG = 3600.0
+"""A DH angle, a joint limit or pose is within ten turns of zero."""
+COUNTS_PER_REV_RANGE = (1.0, 2.0**32)
+"""An encoder counts at least once and at most 2^32 times a turn (a 32-bit counter's
+revolution; the finest rotary encoders count 2^29)."""
+STREAM_NAMES_TAKEN = frozenset({"t", "enc", "true_q", "true_base", *IMU_STREAMS})
+"""Names of a recording's own streams and columns (:mod:`sensors.samples`): no sensor may
+take one (its stream would be another's)."""
+
+
+def _bounded(v: list[float], bound: float, unit: str) -> list[float]:
+    """``v`` when every entry is within ``±bound``, else a ``ValueError`` naming the first."""
+    for i, x in enumerate(v):
+        if not abs(x) <= bound:
+            raise ValueError(f"entry {i} is {x!r} {unit}; at most ±{bound:g} {unit}")
+    return v
 
 
 @dataclass(frozen=True)
@@ -66,38 +95,54 @@ class DhSection(_Strict):
     d_mm: list[float]
     offset_deg: list[float] | None = None
 
+    @field_validator("a_mm", "d_mm")
+    @classmethod
+    def _length(cls, v: list[float]) -> list[float]:
+        return _bounded(v, MAX_LENGTH_MM, "mm")
+
+    @field_validator("alpha_deg", "offset_deg")
+    @classmethod
+    def _angle(cls, v: list[float] | None) -> list[float] | None:
+        return v if v is None else _bounded(v, MAX_ANGLE_DEG, "deg")
+
 
 class JointsSection(_Strict):
     names: list[str] | None = None
     min_deg: list[float]
     max_deg: list[float]
     counts_per_rev: list[float]
-    encoder_on_joint: list[bool] | None = None
+    encoder_on_joint: list[StrictBool] | None = None
     """Per joint, true where the encoder reads the joint itself (its counts exact); default
     false: through a gear or belt, whose ratio may be off."""
 
     @field_validator("counts_per_rev")
     @classmethod
     def _positive(cls, v: list[float]) -> list[float]:
-        bad = [(i, x) for i, x in enumerate(v) if not x > 0]
+        lo, hi = COUNTS_PER_REV_RANGE
+        bad = [(i, x) for i, x in enumerate(v) if not lo <= x <= hi]
         if bad:
             i, x = bad[0]
-            raise ValueError(f"counts per revolution must be positive; entry {i} is {x!r}")
+            raise ValueError(f"counts per revolution must be from 1 to 2^32; entry {i} is {x!r}")
         return v
+
+    @field_validator("min_deg", "max_deg")
+    @classmethod
+    def _angle(cls, v: list[float]) -> list[float]:
+        return _bounded(v, MAX_ANGLE_DEG, "deg")
 
 
 class BusSection(_Strict):
     kind: Literal["i2c", "spi"]
-    bus: int = Field(ge=0)
-    address: int | None = Field(default=None, ge=0, le=0x7F)
-    chip_select: int | None = Field(default=None, ge=0)
+    bus: StrictInt = Field(ge=0, le=255)
+    address: StrictInt | None = Field(default=None, ge=0, le=0x7F)
+    chip_select: StrictInt | None = Field(default=None, ge=0, le=255)
 
 
 class SensorSection(_Strict):
     name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
     type: str
     kind: str | None = None
-    link: int
+    link: StrictInt
     rotation: list[list[float]] = Field(default_factory=lambda: np.eye(3).tolist())
     position_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
     bus: BusSection | None = None
@@ -135,7 +180,25 @@ class SensorSection(_Strict):
     def _three(cls, v: list[float]) -> list[float]:
         if len(v) != 3:
             raise ValueError(f"a position has 3 entries, not {len(v)}")
+        return _bounded(v, MAX_LENGTH_MM, "mm")
+
+    @field_validator("name")
+    @classmethod
+    def _not_a_stream(cls, v: str) -> str:
+        if v in STREAM_NAMES_TAKEN or v.startswith("true_") or v.endswith(LINK_GYRO_SUFFIX):
+            raise ValueError(f"a recording's own stream is called {v!r} (t, enc, true_q, true_base, "
+                             f"imu_acc…, a name ending in {LINK_GYRO_SUFFIX!r} or starting with 'true_'); "
+                             "name the sensor otherwise")
         return v
+
+
+def _positive_definite(m: np.ndarray) -> bool:
+    """Is the (symmetric to 6 digits) ``m`` positive definite: its Cholesky factor exists."""
+    try:
+        np.linalg.cholesky((m + m.T) / 2.0)
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 def _rect(v) -> bool:
@@ -171,6 +234,9 @@ class CovarianceEntry(_Strict):
         scale = float(np.abs(np.diag(m)).max()) if n else 0.0
         if n and (np.any(np.diag(m) < 0) or not np.allclose(m, m.T, rtol=1e-4, atol=1e-9 * scale)):
             raise ValueError("matrix must be symmetric with a non-negative diagonal (a covariance)")
+        if n and not _positive_definite(m):
+            raise ValueError("matrix must be positive definite (a covariance: every combination of "
+                             "the elements has a variance above 0)")
         return self
 
 
@@ -367,9 +433,26 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
     sensors = data.get("sensors")
     if isinstance(sensors, list):
         seen: dict[str, int] = {}
+        wired: dict[tuple, int] = {}  # (kind, bus, chip select or address) -> the sensor on it
         for k, s in enumerate(sensors):
             if not isinstance(s, dict):
                 continue
+            bus = s.get("bus")
+            if isinstance(bus, dict):
+                spot = (bus.get("kind"), bus.get("bus"),
+                        bus.get("chip_select") if bus.get("kind") == "spi" else bus.get("address"))
+                if None not in spot and all(isinstance(x, str | int) for x in spot):
+                    if spot in wired:
+                        what = "chip select" if spot[0] == "spi" else "address"
+                        out.append(ConfigProblem(source, f"sensors[{k}].bus", bus,
+                                                 f"the {spot[0].upper()} bus {spot[1]} {what} {spot[2]} is "
+                                                 f"sensors[{wired[spot]}]'s already: one device each"))
+                    wired.setdefault(spot, k)
+            name = s.get("name")
+            if isinstance(name, str) and name.startswith("imu") and _role(s) in ("link", "other"):
+                out.append(ConfigProblem(source, f"sensors[{k}].name", s["name"],
+                                         "a name starting with 'imu' is the base IMU's streams' (imu_acc…) "
+                                         "in a recording; name a sensor on a link otherwise"))
             name = s.get("name")
             if isinstance(name, str):
                 if name in seen:
