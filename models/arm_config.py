@@ -192,13 +192,17 @@ class SensorSection(_Strict):
         return v
 
 
-def _positive_definite(m: np.ndarray) -> bool:
-    """Is the (symmetric to 6 digits) ``m`` positive definite: its Cholesky factor exists."""
-    try:
-        np.linalg.cholesky((m + m.T) / 2.0)
-    except np.linalg.LinAlgError:
-        return False
-    return True
+COVARIANCE_ROUNDING = 1e-4
+"""How negative, relative to its largest, a covariance's least eigenvalue may be: the file
+holds 6 significant digits, so a fit's (semi-definite where an element is held) covariance
+comes back with eigenvalues off by some 1e-6 of its largest per element."""
+
+
+def _not_indefinite(m: np.ndarray) -> bool:
+    """Is the (symmetric to 6 digits) ``m`` a covariance: no eigenvalue below zero by more
+    than :data:`COVARIANCE_ROUNDING` of the largest."""
+    eig = np.linalg.eigvalsh((m + m.T) / 2.0)
+    return bool(eig[0] >= -COVARIANCE_ROUNDING * max(float(eig[-1]), 0.0))
 
 
 def _rect(v) -> bool:
@@ -234,9 +238,9 @@ class CovarianceEntry(_Strict):
         scale = float(np.abs(np.diag(m)).max()) if n else 0.0
         if n and (np.any(np.diag(m) < 0) or not np.allclose(m, m.T, rtol=1e-4, atol=1e-9 * scale)):
             raise ValueError("matrix must be symmetric with a non-negative diagonal (a covariance)")
-        if n and not _positive_definite(m):
-            raise ValueError("matrix must be positive definite (a covariance: every combination of "
-                             "the elements has a variance above 0)")
+        if n and not _not_indefinite(m):
+            raise ValueError("matrix must be positive semi-definite (a covariance: no combination of "
+                             "the elements has a negative variance)")
         return self
 
 

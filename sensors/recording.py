@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import stat
 import warnings
 from pathlib import Path
 
@@ -37,7 +38,11 @@ def read_recording(path: str | Path) -> Recording:
     (an unknown kind, no metadata).
     """
     path = Path(path)
-    if _suffix(path) == ".csv":
+    suffix = _suffix(path)
+    if path.exists() and not stat.S_ISREG(path.stat().st_mode):  # (a FIFO would block, /dev/zero not end)
+        raise RecordingError(f"{path}: not a regular file (a device, a FIFO, a directory); "
+                             "a recording is a file")
+    if suffix == ".csv":
         rec = read_csv(path)
     else:
         rec, report = read_mcap(path)

@@ -39,7 +39,7 @@ from fusion.cli.common import (
     progress_bar,
     read_recording_or_exit,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt
+from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
 from fusion.configfile import resolve_config_path
 from fusion.identification.identify import (
     REFERENCE_SIGMA_RAD,
@@ -126,7 +126,8 @@ def calibrate_sensors(
                                       "(each sensor alone, its own gravity direction).")] = "simultaneous",
     effects: Annotated[str | None, typer.Option(help="Effects to estimate, comma separated, or "
                                                 "'all' (default: the config's, else all).")] = None,
-    window: Annotated[int, typer.Option(help="Average this many samples per fit point.")] = 25,
+    window: Annotated[int, typer.Option(help="Average this many samples per fit point.",
+                                        callback=count_at_least("--window", 1, "samples per fit point"))] = 25,
     stances: Annotated[bool, typer.Option(help="Find where the chair stands parked (the IMU's gyro and "
                                           "accelerometer) and fit each stance's own base attitude, "
                                           "leaving out the moves between them (a maneuver on a "

@@ -35,7 +35,7 @@ from fusion.cli.common import (
     progress_bar,
 )
 from fusion.cli.diagnose_report import report_figures, write_innovation_report, write_report  # noqa: F401 (report_figures: imported from here by fusion.service.demo)
-from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt
+from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
 from fusion.configfile import resolve_config_path
 from fusion.identification.identify import config_with_estimates, data_from_recording, fit_streams
 from fusion.workbench.diagnose import (
@@ -106,11 +106,13 @@ def diagnose_command(
         "--add", help="Add this effect and refit (EFFECT or EFFECT:TARGET, e.g. accel_bias:acc2); repeatable.")] = None,
     write: WriteConfigOpt = None,
     window: Annotated[int, typer.Option(help="Average this many samples per fit point (small enough that "
-                                        "the motion within a window stays below the noise).")] = 10,
+                                        "the motion within a window stays below the noise).",
+                                        callback=count_at_least("--window", 1, "samples per fit point"))] = 10,
     history: Annotated[Path | None, typer.Option(help="The error ladder's history file (default: "
                                                  "CONFIG.workbench.json beside the config).")] = None,
     report: Annotated[Path | None, typer.Option(help="Write an HTML report (one file, plots embedded).")] = None,
-    top: Annotated[int, typer.Option(help="Candidates to show.")] = 8,
+    top: Annotated[int, typer.Option(help="Candidates to show.",
+                                     callback=count_at_least("--top", 0, "a number of candidates"))] = 8,
     innovations: Annotated[bool, typer.Option(
         "--innovations", help="Also run the tracker over the recording and analyse its normalised "
         "innovations (whiteness, correlation with the inputs); automatic when the chair moves.")] = False,

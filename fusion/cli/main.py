@@ -28,7 +28,7 @@ from fusion.cli.common import (
     load_arm_or_exit,
     read_recording_or_exit,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt, RecordingArg
+from fusion.cli.options import ConfigOpt, JsonOpt, RecordingArg, window_seconds
 
 # command name -> (its first help paragraph, "module:function" that registers it on the app);
 # one function may register several commands (the service's)
@@ -237,7 +237,8 @@ def _f(v) -> str:
 def inspect(
     recording: RecordingArg,
     json_out: JsonOpt = False,
-    window_s: Annotated[float, typer.Option(help="Still-detection window [s].")] = 1.0,
+    window_s: Annotated[float, typer.Option(help="Still-detection window [s].",
+                                            callback=window_seconds("--window-s"))] = 1.0,
 ) -> None:
     """Summarise a recording: sensors, samples and rate each, duration, gaps, still segments."""
 

@@ -265,6 +265,8 @@ def register(app: typer.Typer) -> None:
         """Simulate a recording of the arm's sensors (raw counts, truth columns, truth file)."""
         if (scenario is None) == (maneuver is None):
             fail("give one of --scenario NAME or --maneuver M.yaml")
+        if scenario is not None and not scenario.strip():
+            fail(f"--scenario {scenario!r}: give a scenario's name (`armfusion simulate --help` lists them)")
         try:
             with progress_bar("simulating", json_out) as advance:
                 summary = simulate(config, scenario or "planned", out, duration, rate, seed, effect or (),
