@@ -55,7 +55,8 @@ def import_recording_cmd(
     try:
         result = import_recording(source, cmap, arm, config)
     except (ValueError, OSError) as e:
-        fail(f"cannot import {source}: {e}")
+        said = str(e)  # (the import's messages name the file first: not twice)
+        fail(f"cannot import {said}" if said.startswith(f"{source}: ") else f"cannot import {source}: {said}")
     try:
         write_recording(result.recording, out)
     except (ValueError, OSError) as e:
