@@ -265,7 +265,8 @@ def test_the_broad_slice_imports_with_time_from_its_rate_and_what_it_lacks_said(
 def test_an_imported_recording_writes_back_through_both_formats_unchanged(tmp_path: Path, arm) -> None:
     rng = np.random.default_rng(18)
     rows = [f"{10 * i},{a:.2f},{b:.2f},{c:.2f},{g:.2f},{h:.2f},{k:.2f},{e:.2f}"
-            for i, (a, b, c, g, h, k, e) in enumerate(rng.normal(0, 50, (200, 7)) * np.array([0.008] * 3 + [1] * 4))]  # within ±2 g
+            for i, (a, b, c, g, h, k, e) in enumerate(rng.normal(0, 50, (200, 7))
+                                                      * np.array([0.008] * 3 + [1] * 4))]  # within ±2 g
     made = import_recording(_csv(tmp_path / "log.csv", rows), _map(RIG_STREAMS), arm, "rig").recording
     for suffix in (".mcap", ".csv"):
         write_recording(made, tmp_path / f"r{suffix}")
