@@ -6,6 +6,12 @@ within the range its device can deliver (:attr:`models.sensor_models.StreamModel
 the register's limits of the config's description, or the feed's range for a stream without
 them, the encoders).
 
+The encoders' counts are relative, so their range says little: a sample that moves a joint
+further than it can turn since the one before (:data:`MAX_JOINT_RATE_RAD_S`, plus
+:data:`JUMP_SLACK_RAD`) is refused too (:func:`encoder_jump_problem`), unless the counts
+then stay on their new course for :data:`ENCODER_REBASE_AFTER_S` (a board that restarted
+counts from elsewhere; the tracker's slip handling takes the step).
+
 A value *at* a limit is saturated, not refused (:meth:`StreamModel.saturated`: the commands
 leave such samples out); a value *past* it cannot come from the sensor, so the sample is
 refused, said in the same words wherever it came in (:func:`sensors.sample_checks.range_words`).
@@ -13,10 +19,53 @@ refused, said in the same words wherever it came in (:func:`sensors.sample_check
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
 from models.arm import ArmModel
-from models.sensor_models import StreamModel, stream_models
-from sensors.sample_checks import SampleProblem, feed_problems, range_problem
+from models.sensor_models import ENCODER_STREAM, StreamModel, stream_models
+from sensors.sample_checks import SampleProblem, feed_problems, range_problem, sample_place
 from sensors.samples import Recording, Stream
+
+MAX_JOINT_RATE_RAD_S = 3.0
+"""The fastest a joint turns (the WMRA's joints at most about 1 rad/s; a margin of three)."""
+JUMP_SLACK_RAD = math.radians(0.5)
+"""A step of the encoders taken whatever the time since the last sample (stamps' jitter)."""
+ENCODER_REBASE_AFTER_S = 1.0
+"""Sample time for which counts after a jump must stay on their course to be a new baseline."""
+
+
+def jump_words(channel: str, deg: float, dt_s: float, t_s: float, rate_rad_s: float) -> str:
+    """How an encoder jump is said, at every door (the wire's ``encoder_jump``)."""
+    return (f"{channel} moved {deg:.3g}° in {dt_s:.3g} s at t = {t_s:.6g} s, more than the joint can "
+            f"turn ({rate_rad_s:g} rad/s)")
+
+
+def encoder_jump_problem(arm: ArmModel, stream: Stream) -> SampleProblem | None:
+    """The first encoder sample that moves a joint further than it can turn since the one
+    before, and whose counts do not then stay on their course for
+    :data:`ENCODER_REBASE_AFTER_S` (a glitch, not a restart); ``None`` when there is none."""
+    if len(stream) < 2 or stream.values.shape[1] != arm.n_joints:
+        return None
+    cpr = np.asarray(arm.counts_per_rad, float)
+    t = stream.t_s
+    dt = np.diff(t)[:, None]
+    step = np.abs(np.diff(np.asarray(stream.values, float), axis=0))
+    bad = step > dt * cpr * MAX_JOINT_RATE_RAD_S + cpr * JUMP_SLACK_RAD
+    jumps = np.flatnonzero(bad.any(axis=1)) + 1  # the samples that jumped from the one before
+    for n, k in enumerate(jumps.tolist()):
+        course_until = t[jumps[n + 1]] if n + 1 < len(jumps) else t[-1]
+        if course_until - t[k] >= ENCODER_REBASE_AFTER_S:
+            continue  # the counts went on from there: a new baseline
+        j = int(np.argmax(bad[k - 1]))
+        deg = math.degrees(step[k - 1, j] / cpr[j])
+        return SampleProblem(stream.name, k, "encoder_jump",
+                             jump_words(stream.channels[j], deg, float(dt[k - 1, 0]), float(t[k]),
+                                        MAX_JOINT_RATE_RAD_S))
+    return None
 
 
 def stream_problem(model: StreamModel, stream: Stream) -> SampleProblem | None:
@@ -26,8 +75,9 @@ def stream_problem(model: StreamModel, stream: Stream) -> SampleProblem | None:
 
 def admission_problems(arm: ArmModel, rec: Recording) -> list[SampleProblem]:
     """Every stream's first refused sample: the config-free rules
-    (:func:`sensors.sample_checks.feed_problems`), then each config sensor's range; streams the
-    config does not describe (truth, other sensors) meet the first only."""
+    (:func:`sensors.sample_checks.feed_problems`), then each config sensor's range and the
+    encoders' jumps; streams the config does not describe (truth, other sensors) meet the
+    first only."""
     out = feed_problems(rec)
     seen = {p.stream for p in out}
     for name, model in stream_models(arm).items():
@@ -35,6 +85,78 @@ def admission_problems(arm: ArmModel, rec: Recording) -> list[SampleProblem]:
         if s is None or name in seen or not len(s) or s.values.shape[1] != model.size:
             continue
         p = stream_problem(model, s)
+        if p is None and name == ENCODER_STREAM:
+            p = encoder_jump_problem(arm, s)
         if p is not None:
             out.append(p)
     return out
+
+
+# --------------------------------------------------------------------------------------
+# what every command that reads samples does with range and saturation
+class OutOfRangeError(ValueError):
+    """A recording holds a value its device cannot output (past its register range)."""
+
+
+class MissingSensorError(ValueError):
+    """A recording lacks a stream that the config and the command require."""
+
+
+@dataclass(frozen=True)
+class SampleScreen:
+    """What :func:`screen_samples` found: per stream with a count model, its samples and
+    those saturated (a channel at its register limit); the commands leave those out."""
+
+    samples: dict[str, int]
+    saturated: dict[str, int]
+
+    @property
+    def any_saturated(self) -> bool:
+        return any(self.saturated.values())
+
+    def words(self) -> str:
+        """One line for a person: which streams had saturated samples, how many of how many."""
+        parts = [f"{s} {n:,} of {self.samples[s]:,} ({100.0 * n / self.samples[s]:.2g} %)"
+                 for s, n in self.saturated.items() if n]
+        return ("saturated samples (a channel at its register limit), left out: " + ", ".join(parts)
+                if parts else "no saturated sample")
+
+    def as_dict(self) -> dict:
+        return {"samples": dict(self.samples), "saturated": {s: n for s, n in self.saturated.items() if n}}
+
+
+def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: str = "") -> SampleScreen:
+    """Every command's check of a recording's samples against the config's sensors.
+
+    Raises :class:`MissingSensorError` when a stream of ``required`` has no sample (naming
+    them and ``needed_by``), :class:`OutOfRangeError` at the first value past its device's
+    range (:attr:`StreamModel.admissible_range`: the encoders' is the feed's int32), naming
+    the place in the file, the channel, the value and the time in the words the fusion node
+    uses (:func:`sensors.sample_checks.range_words`), and likewise at the first encoder jump
+    (:func:`encoder_jump_problem`); otherwise it counts the
+    saturated samples per stream (:meth:`StreamModel.saturated`), which the commands leave out.
+    Streams the config does not describe (truth, unknown sensors) are not looked at.
+    """
+    missing = [s for s in required if rec.get(s) is None or len(rec.get(s)) == 0]
+    if missing:
+        raise MissingSensorError(
+            f"the recording has no samples of {', '.join(missing)}"
+            + (f", which {needed_by}" if needed_by else "")
+            + f" (it has: {', '.join(s for s in rec.raw() if len(rec.get(s))) or 'no sensor stream'})")
+    samples, saturated = {}, {}
+    for name, model in stream_models(arm).items():
+        st = rec.get(name)
+        if st is None or len(st) == 0 or st.values.shape[1] != model.size:
+            continue
+        problem = range_problem(st, *model.admissible_range)
+        if problem is None and name == ENCODER_STREAM:
+            problem = encoder_jump_problem(arm, st)
+        if problem is not None:
+            what = ("no such sensor can read that" if problem.reason == "out_of_range" else
+                    "no joint turns so fast, and the counts do not go on from there (a glitch, not a "
+                    "restart)")
+            raise OutOfRangeError(f"{sample_place(rec, name, problem.index)}: {problem.words}; {what}, "
+                                  "so the recording is refused")
+        samples[name] = len(st)
+        saturated[name] = int(model.saturated(st.values).any(axis=1).sum())
+    return SampleScreen(samples, saturated)

@@ -102,11 +102,11 @@ def read_recording_or_exit(path: Path, arm=None):
 
 def screen_or_exit(arm, rec, path: Path, required: Sequence[str], needed_by: str,
                    json_out: bool = False):
-    """The one treatment of range and saturation (``models.sensor_models.screen_samples``)
+    """The one treatment of range and saturation (``models.sample_admission.screen_samples``)
     for a command: exit 2 with one line when ``rec`` lacks a stream of ``required`` (what
     ``needed_by`` needs) or holds a value past its device's range, naming the place; else
     say on stderr how many saturated samples are left out, and return the screen."""
-    from models.sensor_models import MissingSensorError, OutOfRangeError, screen_samples
+    from models.sample_admission import MissingSensorError, OutOfRangeError, screen_samples
 
     try:
         screen = screen_samples(arm, rec, required, needed_by)

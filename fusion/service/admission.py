@@ -67,6 +67,7 @@ import numpy as np
 from fusion.service.inbox import DropLog
 from fusion.service.payloads import RawBatch
 from models.arm import ArmModel
+from models.sample_admission import ENCODER_REBASE_AFTER_S, JUMP_SLACK_RAD, MAX_JOINT_RATE_RAD_S, jump_words
 from models.sensor_models import ENCODER_STREAM, stream_models
 from sensors.sample_checks import FEED_MAX, FEED_MIN, range_words
 
@@ -89,9 +90,9 @@ class AdmissionSettings:
 
     clock_window_s: float = 2.0
     vote_fresh_s: float = 2.0
-    max_joint_rate_rad_s: float = 3.0
-    jump_slack_rad: float = math.radians(0.5)
-    encoder_rebase_after_s: float = 1.0
+    max_joint_rate_rad_s: float = MAX_JOINT_RATE_RAD_S  # (the files' rule: models.sample_admission)
+    jump_slack_rad: float = JUMP_SLACK_RAD
+    encoder_rebase_after_s: float = ENCODER_REBASE_AFTER_S
     max_rate_hz: float = 1000.0
     burst_samples: int = 16
 
@@ -266,9 +267,8 @@ class Admission:
         i, j = bad
         deg = math.degrees(abs(int(now_c[i, j]) - int(prev_c[i, j])) / self._cpr[j])
         dt = abs(float(now_t[i]) - float(prev_t[i]))
-        return Verdict("encoder_jump", f"{self._models[ENCODER_STREAM].channels[j]} moved {deg:.3g}° in "
-                                       f"{dt:.3g} s at t = {float(now_t[i]):.6g} s, more than the joint can "
-                                       f"turn ({self.settings.max_joint_rate_rad_s:g} rad/s)"), False
+        return Verdict("encoder_jump", jump_words(self._models[ENCODER_STREAM].channels[j], deg, dt,
+                                                  float(now_t[i]), self.settings.max_joint_rate_rad_s)), False
 
     def _jumps(self, t0, c0, t1, c1) -> tuple[int, int] | None:
         """The first ``(sample, joint)`` whose step from ``c0`` to ``c1`` is too large, or ``None``."""

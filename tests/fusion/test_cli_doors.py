@@ -76,6 +76,38 @@ def test_a_file_and_the_wire_refuse_a_value_in_the_same_words(tmp_path: Path, st
     assert f"{p}: row 101 (line 102), stream acc2: {verdict.message}; " in said
 
 
+def test_an_encoder_glitch_within_the_feed_is_refused_and_a_restart_is_not(tmp_path: Path,
+                                                                          startup_csv: Path) -> None:
+    # before: one enc1 cell of 2^31-1 made track's j1 jump between 90° and 222° for 50 ms (exit 0)
+    p = _with_cell(startup_csv, tmp_path / "glitch.csv", "enc1", 150, str(2**31 - 1))
+    r = runner.invoke(app, ["track", str(p)])
+    assert r.exit_code == 2
+    assert (f"{p}: row 150 (line 151), stream enc: enc1 moved 5.83e+04° in 0.01 s at t = 1.49 s, more "
+            "than the joint can turn (3 rad/s); no joint turns so fast, and the counts do not go on from "
+            "there (a glitch, not a restart), so the recording is refused") in _one_line(r)
+    # the wire says it in the same words
+    arm = load_arm("wmra")
+    enc = stream_models(arm)["enc"]
+    adm = Admission(arm)
+    assert adm.check(RawBatch("chair1", Stream("enc", "encoder", np.array([1.48]), np.zeros((1, 7), int),
+                                               enc.channels), 1), 0.0).ok
+    jump = np.zeros((1, 7), int)
+    jump[0, 0] = 2**31 - 1
+    verdict = adm.check(RawBatch("chair1", Stream("enc", "encoder", np.array([1.49]), jump, enc.channels), 2),
+                        0.0)
+    assert verdict.reason == "encoder_jump" and verdict.message in r.stderr.replace("\n", "")
+    # a board that restarted: the counts go on from their new baseline for the rest of the file
+    lines = startup_csv.read_text().splitlines()
+    col = lines[0].split(",").index("enc1")
+    for k in range(150, len(lines)):
+        cells = lines[k].split(",")
+        cells[col] = str(int(cells[col]) + 10**6)
+        lines[k] = ",".join(cells)
+    restarted = tmp_path / "restart.csv"
+    restarted.write_text("\n".join(lines) + "\n")
+    assert runner.invoke(app, ["calibrate", "joints", str(restarted), "--json"]).exit_code == 0
+
+
 def test_import_refuses_a_value_no_sensor_of_the_config_reads(tmp_path: Path) -> None:
     src = tmp_path / "log.csv"
     src.write_text("t_ms,ax,ay,az,gx,gy,gz,angle_deg\n0,0,0,1,0,0,0,0\n10,0,0,1,0,0,0,18446744073709551616\n")

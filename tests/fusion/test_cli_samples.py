@@ -14,12 +14,8 @@ from typer.testing import CliRunner
 
 from fusion.cli.main import app
 from fusion.configfile import load_arm
-from models.sensor_models import (
-    MissingSensorError,
-    OutOfRangeError,
-    screen_samples,
-    stream_models,
-)
+from models.sample_admission import MissingSensorError, OutOfRangeError, screen_samples
+from models.sensor_models import stream_models
 from sensors.recording import read_recording
 
 runner = CliRunner()

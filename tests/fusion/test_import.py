@@ -53,7 +53,7 @@ RIG_STREAMS = {
 
 
 def test_g_deg_s_and_deg_become_the_counts_the_config_declares(tmp_path: Path, arm) -> None:
-    src = _csv(tmp_path / "log.csv", ["0,0.01,-1.00,0.5,90,0,-45,12.34", "10,0.02,-0.99,0.5,180,1,0,-0.01"])
+    src = _csv(tmp_path / "log.csv", ["0,0.01,-1.00,0.5,90,0,-45,12.34", "10,0.02,-0.99,0.5,180,1,0,12.33"])
     result = import_recording(src, _map(RIG_STREAMS), arm, str(RIG))
     rec = result.recording
     # the ADXL345 stream is in counts, 256 a g: 0.01 g is 2.56 counts, kept unrounded
@@ -62,7 +62,7 @@ def test_g_deg_s_and_deg_become_the_counts_the_config_declares(tmp_path: Path, a
     np.testing.assert_allclose(rec.get("imu_gyro").values, [[90 * 131, 0, -45 * 131], [180 * 131, 131, 0]],
                                rtol=1e-12)
     # the encoder: 36000 counts a turn, 0.01 deg a count: whole counts, exactly
-    assert rec.get("enc").values.dtype == np.int64 and rec.get("enc").values[:, 0].tolist() == [1234, -1]
+    assert rec.get("enc").values.dtype == np.int64 and rec.get("enc").values[:, 0].tolist() == [1234, 1233]
     np.testing.assert_array_equal(rec.get("enc").t_s, [0.0, 0.01])  # ms -> s
     assert result.summary["streams"]["enc"]["rounding_max_counts"] < 1e-6
 
@@ -266,7 +266,8 @@ def test_an_imported_recording_writes_back_through_both_formats_unchanged(tmp_pa
     rng = np.random.default_rng(18)
     rows = [f"{10 * i},{a:.2f},{b:.2f},{c:.2f},{g:.2f},{h:.2f},{k:.2f},{e:.2f}"
             for i, (a, b, c, g, h, k, e) in enumerate(rng.normal(0, 50, (200, 7))
-                                                      * np.array([0.008] * 3 + [1] * 4))]  # within ±2 g
+                                                      * np.array([0.008] * 3 + [1] * 3 + [0.004]))]
+    # (within ±2 g; the encoder's steps within what a joint turns in 10 ms)
     made = import_recording(_csv(tmp_path / "log.csv", rows), _map(RIG_STREAMS), arm, "rig").recording
     for suffix in (".mcap", ".csv"):
         write_recording(made, tmp_path / f"r{suffix}")
