@@ -46,6 +46,8 @@ MAX_ANGLE_DEG = 3600.0
 COUNTS_PER_REV_RANGE = (1.0, 2.0**32)
 """An encoder counts at least once and at most 2^32 times a turn (a 32-bit counter's
 revolution; the finest rotary encoders count 2^29)."""
+FEED_COUNTS = 2**31 - 1
+"""Counts the encoder feed holds either way (``sensors.encoders``: int32 per joint)."""
 STREAM_NAMES_TAKEN = frozenset({"t", "enc", "true_q", "true_base", *IMU_STREAMS})
 """Names of a recording's own streams and columns (:mod:`sensors.samples`): no sensor may
 take one (its stream would be another's)."""
@@ -428,6 +430,14 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
             if a >= b:
                 out.append(ConfigProblem(source, f"arm.joints.min_deg[{i}]", a,
                                          f"lower limit is not below the upper limit {b}"))
+        cpr = joints.get("counts_per_rev")
+        if _numlist(cpr) and len(cpr) == len(lo):
+            for i, (a, b, c) in enumerate(zip(lo, hi, cpr, strict=True)):
+                if c * (b - a) / 360.0 > FEED_COUNTS:  # relative counts: either way from power-up
+                    out.append(ConfigProblem(source, f"arm.joints.counts_per_rev[{i}]", c,
+                                             f"the joint's {b - a:g}° are {c * (b - a) / 360.0:.3g} counts, "
+                                             f"more than the encoder feed's int32 holds either side of "
+                                             f"where it powered up ({FEED_COUNTS})"))
         ready = arm.get("ready_pose_deg")
         if _numlist(ready) and len(ready) == len(lo):
             for i, r in enumerate(ready):

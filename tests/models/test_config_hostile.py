@@ -194,6 +194,9 @@ def _covariance(d: dict, matrix) -> None:
          "arm.joints.counts_per_rev: counts per revolution must be from 1 to 2^32; entry 0 is 1e-300"),
         (lambda d: d["arm"]["joints"]["counts_per_rev"].__setitem__(3, 1e300),
          "arm.joints.counts_per_rev: counts per revolution must be from 1 to 2^32; entry 3 is 1e+300"),
+        (lambda d: d["arm"]["joints"]["counts_per_rev"].__setitem__(0, 2**32),
+         "arm.joints.counts_per_rev[0]: the joint's 210° are 2.51e+09 counts, more than the encoder feed's "
+         "int32 holds either side of where it powered up (2147483647)"),
         (lambda d: d["sensors"][2].__setitem__("position_mm", [1e9, 0, 0]),
          "sensors[2].position_mm: entry 0 is 1000000000.0 mm; at most ±100000 mm"),
         (lambda d: d["sensors"][0].__setitem__("link", True),
