@@ -61,3 +61,17 @@ def test_a_recording_that_cannot_be_written_leaves_the_old_one_whole(tmp_path: P
         write_recording(bad, out)
     assert out.read_bytes() == before and sorted(tmp_path.iterdir()) == [out]
     assert read_recording(out).get("enc").values[:, 0].tolist() == list(range(10))
+
+
+def test_a_file_written_has_the_permissions_an_open_would_give_it(tmp_path: Path) -> None:
+    new, old = tmp_path / "new.csv", tmp_path / "old.csv"
+    old.write_text("x")
+    old.chmod(0o640)
+    umask = os.umask(0o022)
+    try:
+        for p in (new, old):
+            with replaced_when_done(p) as tmp:
+                tmp.write_text("y")
+    finally:
+        os.umask(umask)
+    assert (new.stat().st_mode & 0o777, old.stat().st_mode & 0o777) == (0o644, 0o640)
