@@ -6,11 +6,11 @@ within the range its device can deliver (:attr:`models.sensor_models.StreamModel
 the register's limits of the config's description, or the feed's range for a stream without
 them, the encoders).
 
-The encoders' counts are relative, so their range says little: a sample that moves a joint
-further than it can turn since the one before (:data:`MAX_JOINT_RATE_RAD_S`, plus
-:data:`JUMP_SLACK_RAD`) is refused too (:func:`encoder_jump_problem`), unless the counts
-then stay on their new course for :data:`ENCODER_REBASE_AFTER_S` (a board that restarted
-counts from elsewhere; the tracker's slip handling takes the step).
+The encoders' counts are relative, so their range says little: a spike, a sample that moves
+a joint further than any joint turns since the one before (:data:`SPIKE_RATE_RAD_S`, plus
+:data:`JUMP_SLACK_RAD`) with the next sample moving it back, is refused too
+(:func:`encoder_jump_problem`; the wire, which cannot wait for the next sample, refuses
+every such step: ``fusion.service.admission``).
 
 A value *at* a limit is saturated, not refused (:meth:`StreamModel.saturated`: the commands
 leave such samples out); a value *past* it cannot come from the sensor, so the sample is
@@ -34,8 +34,13 @@ MAX_JOINT_RATE_RAD_S = 3.0
 """The fastest a joint turns (the WMRA's joints at most about 1 rad/s; a margin of three)."""
 JUMP_SLACK_RAD = math.radians(0.5)
 """A step of the encoders taken whatever the time since the last sample (stamps' jitter)."""
+SPIKE_RATE_RAD_S = 10 * MAX_JOINT_RATE_RAD_S
+"""A file's encoder spike goes out and back faster than this (30 rad/s, 1700°/s): ten times
+the node's bound, as files hold rigs faster than an arm (the imu-rig's medium trials turn
+back and forth at up to 5.1 rad/s between samples, with stamps' jitter)."""
 ENCODER_REBASE_AFTER_S = 1.0
-"""Sample time for which counts after a jump must stay on their course to be a new baseline."""
+"""The wire's: sample time for which counts after a jump must stay on their course to be
+taken as a new baseline (a board that restarted)."""
 
 
 def jump_words(channel: str, deg: float, dt_s: float, t_s: float, rate_rad_s: float) -> str:
@@ -45,27 +50,34 @@ def jump_words(channel: str, deg: float, dt_s: float, t_s: float, rate_rad_s: fl
 
 
 def encoder_jump_problem(arm: ArmModel, stream: Stream) -> SampleProblem | None:
-    """The first encoder sample that moves a joint further than it can turn since the one
-    before, and whose counts do not then stay on their course for
-    :data:`ENCODER_REBASE_AFTER_S` (a glitch, not a restart); ``None`` when there is none."""
-    if len(stream) < 2 or stream.values.shape[1] != arm.n_joints:
+    """The first encoder sample that is a spike: it moves a joint further than
+    :data:`SPIKE_RATE_RAD_S` allows since the sample before (plus :data:`JUMP_SLACK_RAD`),
+    and the sample after moves it back as far, to where the joint could have gone from the
+    one before; ``None`` when there is none.
+
+    A file shows the sample after, which the wire does not: so a step that the counts go on
+    from (a board that restarted) is not a spike, only a value that comes and goes."""
+    if len(stream) < 3 or stream.values.shape[1] != arm.n_joints:
         return None
     cpr = np.asarray(arm.counts_per_rad, float)
     t = stream.t_s
+    c = np.asarray(stream.values, float)
     dt = np.diff(t)[:, None]
-    step = np.abs(np.diff(np.asarray(stream.values, float), axis=0))
-    bad = step > dt * cpr * MAX_JOINT_RATE_RAD_S + cpr * JUMP_SLACK_RAD
-    jumps = np.flatnonzero(bad.any(axis=1)) + 1  # the samples that jumped from the one before
-    for n, k in enumerate(jumps.tolist()):
-        course_until = t[jumps[n + 1]] if n + 1 < len(jumps) else t[-1]
-        if course_until - t[k] >= ENCODER_REBASE_AFTER_S:
-            continue  # the counts went on from there: a new baseline
-        j = int(np.argmax(bad[k - 1]))
-        deg = math.degrees(step[k - 1, j] / cpr[j])
-        return SampleProblem(stream.name, k, "encoder_jump",
-                             jump_words(stream.channels[j], deg, float(dt[k - 1, 0]), float(t[k]),
-                                        MAX_JOINT_RATE_RAD_S))
-    return None
+    step = np.diff(c, axis=0)
+    limit = dt * cpr * SPIKE_RATE_RAD_S + cpr * JUMP_SLACK_RAD
+    too_far = np.abs(step) > limit
+    across = (np.abs(c[2:] - c[:-2])
+              <= (t[2:] - t[:-2])[:, None] * cpr * SPIKE_RATE_RAD_S + cpr * JUMP_SLACK_RAD)
+    spike = too_far[:-1] & too_far[1:] & (np.sign(step[:-1]) != np.sign(step[1:])) & across
+    hits = np.flatnonzero(spike.any(axis=1))
+    if not hits.size:
+        return None
+    k = int(hits[0]) + 1  # the spike's sample
+    j = int(np.argmax(spike[k - 1]))
+    deg = math.degrees(abs(step[k - 1, j]) / cpr[j])
+    return SampleProblem(stream.name, k, "encoder_jump",
+                         jump_words(stream.channels[j], deg, float(dt[k - 1, 0]), float(t[k]),
+                                    SPIKE_RATE_RAD_S))
 
 
 def stream_problem(model: StreamModel, stream: Stream) -> SampleProblem | None:
@@ -152,10 +164,9 @@ def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: 
         if problem is None and name == ENCODER_STREAM:
             problem = encoder_jump_problem(arm, st)
         if problem is not None:
-            what = ("no such sensor can read that" if problem.reason == "out_of_range" else
-                    "no joint turns so fast, and the counts do not go on from there (a glitch, not a "
-                    "restart)")
-            raise OutOfRangeError(f"{sample_place(rec, name, problem.index)}: {problem.words}; {what}, "
+            what = ("; no such sensor can read that" if problem.reason == "out_of_range" else
+                    ", and the next sample moves it back: a spike no joint makes")
+            raise OutOfRangeError(f"{sample_place(rec, name, problem.index)}: {problem.words}{what}, "
                                   "so the recording is refused")
         samples[name] = len(st)
         saturated[name] = int(model.saturated(st.values).any(axis=1).sum())

@@ -66,9 +66,9 @@ def _refuse_what_no_sensor_said(rec: Recording, arm: ArmModel, cmap: ColumnMap,
         p = problems[0]
         row = int(stream_rows[p.stream][p.index]) if p.stream in stream_rows else p.index + 1
         cols = ", ".join(cmap.streams[p.stream].columns) if p.stream in cmap.streams else p.stream
-        why = ("no joint of the config turns so fast, and the counts do not go on from there"
-               if p.reason == "encoder_jump" else "no sensor the config describes can have said that")
-        raise ImportMapError(f"{path}: row {row} (columns {cols}, stream {p.stream}): {p.words}; {why} "
+        why = (", and the next sample moves it back: a spike no joint makes"
+               if p.reason == "encoder_jump" else "; no sensor the config describes can have said that")
+        raise ImportMapError(f"{path}: row {row} (columns {cols}, stream {p.stream}): {p.words}{why} "
                              "(does the config describe the sensor that recorded it?)")
 
 

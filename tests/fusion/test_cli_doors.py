@@ -83,8 +83,8 @@ def test_an_encoder_glitch_within_the_feed_is_refused_and_a_restart_is_not(tmp_p
     r = runner.invoke(app, ["track", str(p)])
     assert r.exit_code == 2
     assert (f"{p}: row 150 (line 151), stream enc: enc1 moved 5.83e+04° in 0.01 s at t = 1.49 s, more "
-            "than the joint can turn (3 rad/s); no joint turns so fast, and the counts do not go on from "
-            "there (a glitch, not a restart), so the recording is refused") in _one_line(r)
+            "than the joint can turn (30 rad/s), and the next sample moves it back: a spike no joint makes, "
+            "so the recording is refused") in _one_line(r)
     # the wire says it in the same words
     arm = load_arm("wmra")
     enc = stream_models(arm)["enc"]
@@ -95,8 +95,9 @@ def test_an_encoder_glitch_within_the_feed_is_refused_and_a_restart_is_not(tmp_p
     jump[0, 0] = 2**31 - 1
     verdict = adm.check(RawBatch("chair1", Stream("enc", "encoder", np.array([1.49]), jump, enc.channels), 2),
                         0.0)
-    assert verdict.reason == "encoder_jump" and verdict.message in r.stderr.replace("\n", "")
-    # a board that restarted: the counts go on from their new baseline for the rest of the file
+    assert verdict.reason == "encoder_jump"  # (the wire's bound is 3 rad/s: it cannot see the next sample)
+    assert verdict.message.replace("(3 rad/s)", "(30 rad/s)") in r.stderr.replace("\n", "")
+    # a board that restarted: the counts go on from their new baseline
     lines = startup_csv.read_text().splitlines()
     col = lines[0].split(",").index("enc1")
     for k in range(150, len(lines)):
