@@ -90,7 +90,7 @@ class AdmissionSettings:
 
     clock_window_s: float = 2.0
     vote_fresh_s: float = 2.0
-    max_joint_rate_rad_s: float = MAX_JOINT_RATE_RAD_S  # (the files' rule: models.sample_admission)
+    max_joint_rate_rad_s: float = MAX_JOINT_RATE_RAD_S  # (with the files: models.sample_admission)
     jump_slack_rad: float = JUMP_SLACK_RAD
     encoder_rebase_after_s: float = ENCODER_REBASE_AFTER_S
     max_rate_hz: float = 1000.0
