@@ -7,6 +7,7 @@ Validation itself is :func:`models.arm_config.build_arm`.
 
 from __future__ import annotations
 
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +51,7 @@ def _expanded_size(node: yaml.Node, source: str) -> int:
         if isinstance(n, yaml.SequenceNode):
             total += sum(size(c) for c in n.value)
         elif isinstance(n, yaml.MappingNode):
+            _refuse_repeated_keys(n, source)
             total += sum(size(k) + size(v) for k, v in n.value)
         open_nodes.discard(key)
         sizes[key] = total
@@ -63,26 +65,65 @@ def _expanded_size(node: yaml.Node, source: str) -> int:
     return size(node)
 
 
+def _refuse_repeated_keys(n: yaml.MappingNode, source: str) -> None:
+    """A mapping that gives one key twice (YAML keeps the last, silently) is refused, naming
+    the key and both lines."""
+    first: dict[str, int] = {}
+    for k, _ in n.value:
+        if not isinstance(k, yaml.ScalarNode) or k.tag == "tag:yaml.org,2002:merge":
+            continue
+        line = k.start_mark.line + 1
+        if k.value in first:
+            raise _yaml_problem(source, f"line {line}",
+                                f"the key {clipped_repr(k.value)} is given twice (first on line "
+                                f"{first[k.value]}); a config gives each key once")
+        first[k.value] = line
+
+
+def read_bounded(path: Path, limit: int, what: str) -> bytes:
+    """The bytes of the regular file ``path``, refused (``ValueError``, one line) when it is
+    not a regular file (a device such as /dev/zero, a FIFO that would block) or holds more
+    than ``limit`` bytes; never reads more than ``limit + 1``."""
+    # (a NUL is refused by the callers once the text is decoded: random bytes are "not
+    # UTF-8" first)
+    st = path.stat()
+    if not stat.S_ISREG(st.st_mode):
+        raise ValueError("not a regular file (a device, a FIFO, a directory)")
+    if st.st_size > limit:
+        raise ValueError(f"{st.st_size} bytes is more than {what} may be ({limit})")
+    with open(path, "rb") as f:
+        raw = f.read(limit + 1)
+    if len(raw) > limit:
+        raise ValueError(f"more than {limit} bytes is more than {what} may be")
+    return raw
+
+
 def read_yaml(path: Path) -> Any:
     """A YAML file's data, read safely and within bounds, or :class:`ConfigError` with a
-    one-line reason: not a file of at most :data:`MAX_CONFIG_BYTES`, not UTF-8 text, not
-    YAML, nested too deeply, or aliases that expand past :data:`MAX_YAML_VALUES`. Only
+    one-line reason: not a regular file of at most :data:`MAX_CONFIG_BYTES` (read no
+    further: ``/dev/zero`` is refused at once), a NUL byte, not UTF-8 text, not YAML, a key
+    given twice in one mapping, nested too deeply, or aliases that expand past
+    :data:`MAX_YAML_VALUES`. Only
     plain data is built (``yaml.SafeLoader``: no Python objects)."""
     source = str(path)
     try:
-        size = path.stat().st_size
-        if size > MAX_CONFIG_BYTES:
-            raise _yaml_problem(source, "(file)", f"{size} bytes is more than a config may be "
-                                                  f"({MAX_CONFIG_BYTES}); is it a config?")
-        raw = path.read_bytes()[: MAX_CONFIG_BYTES + 1]
+        raw = read_bounded(path, MAX_CONFIG_BYTES, "a config")
     except OSError as e:
         raise _yaml_problem(source, "(file)", f"cannot read it: {e.strerror or e}") from None
+    except ValueError as e:
+        raise _yaml_problem(source, "(file)", f"{e}; is it a config?") from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
         raise _yaml_problem(source, f"byte {e.start}",
                             "not UTF-8 text; a config is a YAML text file") from None
-    loader = yaml.SafeLoader(text)
+    if "\0" in text:
+        line = text[: text.index("\0")].count("\n") + 1
+        raise _yaml_problem(source, f"line {line}", "holds a NUL byte; a config is a YAML text file")
+    try:
+        loader = yaml.SafeLoader(text)
+    except yaml.YAMLError as e:  # (a character YAML does not take, met as the reader starts)
+        raise _yaml_problem(source, "(file)", f"not valid YAML: {clipped_repr(str(e), 80)[1:-1]}") from None
     try:
         node = loader.get_single_node()
         if node is None:
@@ -146,6 +187,45 @@ def load_arm(name_or_path: str | Path) -> ArmModel:
     return arm
 
 
+def _check_urdf_text(path: Path) -> None:
+    """Refuse, in one line naming the file, a URDF that is not a regular file of at most
+    :data:`MAX_CONFIG_BYTES`, holds a NUL, is not UTF-8, declares a DOCTYPE or an entity (a
+    URDF needs neither; an entity can expand a few bytes to gigabytes), or is not XML."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        text = read_bounded(path, MAX_CONFIG_BYTES, "a URDF").decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"URDF {path.name}: byte {e.start} is not UTF-8; a URDF is XML text") from None
+    except ValueError as e:
+        raise ValueError(f"URDF {path.name}: {e}") from None
+    if "\0" in text:
+        line = text[: text.index("\0")].count("\n") + 1
+        raise ValueError(f"URDF {path.name}: line {line} holds a NUL byte; a URDF is XML text")
+    upper = text.upper()
+    for decl in ("<!DOCTYPE", "<!ENTITY"):
+        if decl in upper:
+            line = text[: upper.index(decl)].count("\n") + 1
+            raise ValueError(f"URDF {path.name}: line {line}: a {decl[2:]} declaration; a URDF needs none, "
+                             "and it is refused (an entity can expand to gigabytes)")
+    try:
+        ET.fromstring(text)
+    except ET.ParseError as e:
+        raise ValueError(f"URDF {path.name}: not XML ({e})") from None
+
+
+def _check_urdf_origin(path: Path, joint: str, origin: np.ndarray) -> None:
+    """A joint's origin: finite, and its offset below 100 m (the configs' length bound)."""
+    from models.arm_config import MAX_LENGTH_MM
+
+    if not np.all(np.isfinite(origin)):
+        raise ValueError(f"URDF {path.name}: joint {joint!r}: its origin is not finite (xyz, rpy)")
+    far_m = float(np.abs(origin[:3, 3]).max())  # (a norm of 1e308s overflows)
+    if not far_m < MAX_LENGTH_MM / 1000.0:
+        raise ValueError(f"URDF {path.name}: joint {joint!r}: its origin is {far_m:.3g} m away along an "
+                         f"axis; a length is below {MAX_LENGTH_MM / 1000:g} m")
+
+
 def joints_from_urdf(path: Path) -> tuple[Joint, ...]:
     """The revolute/continuous joints of a URDF's serial chain, base to tip.
 
@@ -156,7 +236,12 @@ def joints_from_urdf(path: Path) -> tuple[Joint, ...]:
 
     if not Path(path).exists():
         raise ValueError(f"URDF file not found: {path}")
-    robot = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False)
+    _check_urdf_text(path)
+    try:
+        robot = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False)
+    except Exception as e:  # (yourdfpy's own errors have no common base): one line, named
+        why = clipped_repr(f"{type(e).__name__}: {e}", 100)[1:-1]
+        raise ValueError(f"URDF {path.name}: not a URDF ({why})") from None
     children: dict[str, list] = {}
     child_links = set()
     for j in robot.robot.joints:
@@ -177,9 +262,13 @@ def joints_from_urdf(path: Path) -> tuple[Joint, ...]:
             )
         j = kids[0]
         origin = np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=float)
+        _check_urdf_origin(path, j.name, origin)
         T_acc = T_acc @ origin
         if j.type in ("revolute", "continuous"):
             axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=float)
+            if not (np.all(np.isfinite(axis)) and np.linalg.norm(axis) > 1e-9):
+                raise ValueError(f"URDF {path.name}: joint {j.name!r}: axis {clipped_repr(axis.tolist())} "
+                                 "is not a direction (finite, not zero)")
             axis = axis / np.linalg.norm(axis)
             out.append(Joint(
                 name=j.name, R_pre=T_acc[:3, :3].copy(), p_pre_m=T_acc[:3, 3].copy(), axis=axis,

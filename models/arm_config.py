@@ -12,7 +12,16 @@ from dataclasses import dataclass, replace
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictInt,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from models.arm import (
     ArmCalibration,
@@ -28,7 +37,29 @@ from models.arm import (
 )
 from models.rotations import DEG, rotation_problem
 from models.sensor_description import DEVICE_TYPES, SensorDescription, describe, unmodelled_floor
-from sensors.samples import clipped_repr
+from sensors.samples import IMU_STREAMS, LINK_GYRO_SUFFIX, clipped_repr
+
+MAX_LENGTH_MM = 100_000.0
+"""A length of the arm or a sensor's position is below 100 m (any arm a chair carries is
+under 2 m: a larger number is a unit slip, mm for µm, or a typo)."""
+MAX_ANGLE_DEG = 3600.0
+"""A DH angle, a joint limit or pose is within ten turns of zero."""
+COUNTS_PER_REV_RANGE = (1.0, 2.0**32)
+"""An encoder counts at least once and at most 2^32 times a turn (a 32-bit counter's
+revolution; the finest rotary encoders count 2^29)."""
+FEED_COUNTS = 2**31 - 1
+"""Counts the encoder feed holds either way (``sensors.encoders``: int32 per joint)."""
+STREAM_NAMES_TAKEN = frozenset({"t", "enc", "true_q", "true_base", *IMU_STREAMS})
+"""Names of a recording's own streams and columns (:mod:`sensors.samples`): no sensor may
+take one (its stream would be another's)."""
+
+
+def _bounded(v: list[float], bound: float, unit: str) -> list[float]:
+    """``v`` when every entry is within ``±bound``, else a ``ValueError`` naming the first."""
+    for i, x in enumerate(v):
+        if not abs(x) <= bound:
+            raise ValueError(f"entry {i} is {x!r} {unit}; at most ±{bound:g} {unit}")
+    return v
 
 
 @dataclass(frozen=True)
@@ -74,6 +105,16 @@ class DhSection(_Strict):
     offset_deg: list[float] | None = None
     """Joint angle offset, one entry per joint (zeros by default)."""
 
+    @field_validator("a_mm", "d_mm")
+    @classmethod
+    def _length(cls, v: list[float]) -> list[float]:
+        return _bounded(v, MAX_LENGTH_MM, "mm")
+
+    @field_validator("alpha_deg", "offset_deg")
+    @classmethod
+    def _angle(cls, v: list[float] | None) -> list[float] | None:
+        return v if v is None else _bounded(v, MAX_ANGLE_DEG, "deg")
+
 
 class JointsSection(_Strict):
     names: list[str] | None = None
@@ -84,28 +125,34 @@ class JointsSection(_Strict):
     """Upper joint limit, one per joint, above the lower."""
     counts_per_rev: list[float]
     """Encoder counts per joint revolution, one per joint."""
-    encoder_on_joint: list[bool] | None = None
+    encoder_on_joint: list[StrictBool] | None = None
     """Per joint, true where the encoder reads the joint itself (its counts exact); default
     false: through a gear or belt, whose ratio may be off."""
 
     @field_validator("counts_per_rev")
     @classmethod
     def _positive(cls, v: list[float]) -> list[float]:
-        bad = [(i, x) for i, x in enumerate(v) if not x > 0]
+        lo, hi = COUNTS_PER_REV_RANGE
+        bad = [(i, x) for i, x in enumerate(v) if not lo <= x <= hi]
         if bad:
             i, x = bad[0]
-            raise ValueError(f"counts per revolution must be positive; entry {i} is {x!r}")
+            raise ValueError(f"counts per revolution must be from 1 to 2^32; entry {i} is {x!r}")
         return v
+
+    @field_validator("min_deg", "max_deg")
+    @classmethod
+    def _angle(cls, v: list[float]) -> list[float]:
+        return _bounded(v, MAX_ANGLE_DEG, "deg")
 
 
 class BusSection(_Strict):
     kind: Literal["i2c", "spi"]
     """The bus the device is on."""
-    bus: int = Field(ge=0)
+    bus: StrictInt = Field(ge=0, le=255)
     """The bus number (/dev/i2c-N, /dev/spidevN.x)."""
-    address: int | None = Field(default=None, ge=0, le=0x7F)
+    address: StrictInt | None = Field(default=None, ge=0, le=0x7F)
     """An I2C device's 7-bit address."""
-    chip_select: int | None = Field(default=None, ge=0)
+    chip_select: StrictInt | None = Field(default=None, ge=0, le=255)
     """An SPI device's chip select."""
 
 
@@ -116,7 +163,7 @@ class SensorSection(_Strict):
     """The device: adxl345, mpu9150, mpu6050, analog_triax or custom."""
     kind: str | None = None
     """accelerometer, gyroscope, magnetometer or imu (the device's by default; a custom sensor needs it)."""
-    link: int
+    link: StrictInt
     """0: the base; k: rigid with link k (moved by joints 1..k)."""
     rotation: list[list[float]] = Field(default_factory=lambda: np.eye(3).tolist())
     """R_LS: the sensor's axes in the link frame (a proper rotation)."""
@@ -160,7 +207,29 @@ class SensorSection(_Strict):
     def _three(cls, v: list[float]) -> list[float]:
         if len(v) != 3:
             raise ValueError(f"a position has 3 entries, not {len(v)}")
+        return _bounded(v, MAX_LENGTH_MM, "mm")
+
+    @field_validator("name")
+    @classmethod
+    def _not_a_stream(cls, v: str) -> str:
+        if v in STREAM_NAMES_TAKEN or v.startswith("true_") or v.endswith(LINK_GYRO_SUFFIX):
+            raise ValueError(f"a recording's own stream is called {v!r} (t, enc, true_q, true_base, "
+                             f"imu_acc…, a name ending in {LINK_GYRO_SUFFIX!r} or starting with 'true_'); "
+                             "name the sensor otherwise")
         return v
+
+
+COVARIANCE_ROUNDING = 1e-4
+"""How negative, relative to its largest, a covariance's least eigenvalue may be: the file
+holds 6 significant digits, so a fit's (semi-definite where an element is held) covariance
+comes back with eigenvalues off by some 1e-6 of its largest per element."""
+
+
+def _not_indefinite(m: np.ndarray) -> bool:
+    """Is the (symmetric to 6 digits) ``m`` a covariance: no eigenvalue below zero by more
+    than :data:`COVARIANCE_ROUNDING` of the largest."""
+    eig = np.linalg.eigvalsh((m + m.T) / 2.0)
+    return bool(eig[0] >= -COVARIANCE_ROUNDING * max(float(eig[-1]), 0.0))
 
 
 def _rect(v) -> bool:
@@ -201,6 +270,9 @@ class CovarianceEntry(_Strict):
         scale = float(np.abs(np.diag(m)).max()) if n else 0.0
         if n and (np.any(np.diag(m) < 0) or not np.allclose(m, m.T, rtol=1e-4, atol=1e-9 * scale)):
             raise ValueError("matrix must be symmetric with a non-negative diagonal (a covariance)")
+        if n and not _not_indefinite(m):
+            raise ValueError("matrix must be positive semi-definite (a covariance: no combination of "
+                             "the elements has a negative variance)")
         return self
 
 
@@ -453,6 +525,14 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
             if a >= b:
                 out.append(ConfigProblem(source, f"arm.joints.min_deg[{i}]", a,
                                          f"lower limit is not below the upper limit {b}"))
+        cpr = joints.get("counts_per_rev")
+        if _numlist(cpr) and len(cpr) == len(lo):
+            for i, (a, b, c) in enumerate(zip(lo, hi, cpr, strict=True)):
+                if c * (b - a) / 360.0 > FEED_COUNTS:  # relative counts: either way from power-up
+                    out.append(ConfigProblem(source, f"arm.joints.counts_per_rev[{i}]", c,
+                                             f"the joint's {b - a:g}° are {c * (b - a) / 360.0:.3g} counts, "
+                                             f"more than the encoder feed's int32 holds either side of "
+                                             f"where it powered up ({FEED_COUNTS})"))
         ready = arm.get("ready_pose_deg")
         if _numlist(ready) and len(ready) == len(lo):
             for i, r in enumerate(ready):
@@ -462,9 +542,26 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
     sensors = data.get("sensors")
     if isinstance(sensors, list):
         seen: dict[str, int] = {}
+        wired: dict[tuple, int] = {}  # (kind, bus, chip select or address) -> the sensor on it
         for k, s in enumerate(sensors):
             if not isinstance(s, dict):
                 continue
+            bus = s.get("bus")
+            if isinstance(bus, dict):
+                spot = (bus.get("kind"), bus.get("bus"),
+                        bus.get("chip_select") if bus.get("kind") == "spi" else bus.get("address"))
+                if None not in spot and all(isinstance(x, str | int) for x in spot):
+                    if spot in wired:
+                        what = "chip select" if spot[0] == "spi" else "address"
+                        out.append(ConfigProblem(source, f"sensors[{k}].bus", bus,
+                                                 f"the {spot[0].upper()} bus {spot[1]} {what} {spot[2]} is "
+                                                 f"sensors[{wired[spot]}]'s already: one device each"))
+                    wired.setdefault(spot, k)
+            name = s.get("name")
+            if isinstance(name, str) and name.startswith("imu") and _role(s) in ("link", "other"):
+                out.append(ConfigProblem(source, f"sensors[{k}].name", s["name"],
+                                         "a name starting with 'imu' is the base IMU's streams' (imu_acc…) "
+                                         "in a recording; name a sensor on a link otherwise"))
             name = s.get("name")
             if isinstance(name, str):
                 if name in seen:

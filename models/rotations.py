@@ -201,6 +201,9 @@ def rotation_problem(R: np.ndarray, tol: float = 1e-6) -> str | None:
         return f"expected a 3x3 matrix, got shape {R.shape}"
     if not np.all(np.isfinite(R)):
         return "contains a non-finite number"
+    big = float(np.max(np.abs(R)))
+    if big > 1.0 + tol:  # (and R^T R of 1e154 overflows)
+        return f"has an entry of {big:.3g}; a rotation's are within ±1"
     err = float(np.max(np.abs(R.T @ R - np.eye(3))))
     if err > tol:
         return f"not orthonormal (max |R^T R - I| = {err:.3g}, tolerance {tol:g})"

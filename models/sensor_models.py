@@ -37,7 +37,6 @@ the MPU-9150 the noise density times √(rate/2).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,6 +54,7 @@ from models.sensor_description import (  # noqa: F401  (the datasheet numbers, r
     MPU9150_TEMP_LSB_PER_C,
     MPU9150_TEMP_OFFSET_C,
 )
+from sensors.sample_checks import FEED_MAX, FEED_MIN
 from sensors.samples import (
     IMU_STREAMS,
     Recording,
@@ -130,6 +130,13 @@ class StreamModel:
         if self.counts_min is None:
             return np.zeros(c.shape, bool)
         return (c <= self.counts_min) | (c >= self.counts_max)
+
+    @property
+    def admissible_range(self) -> tuple[float, float]:
+        """The values the stream may hold (:mod:`models.sample_admission`): the register
+        limits, or for a stream without them (the encoders) the feed's int32."""
+        return (FEED_MIN if self.counts_min is None else self.counts_min,
+                FEED_MAX if self.counts_max is None else self.counts_max)
 
     def beyond_range(self, counts: np.ndarray) -> np.ndarray:
         """``(N, k)``: where a channel reads past its register limits (or ±inf): no such
@@ -228,76 +235,6 @@ def recording_problems(arm: ArmModel, rec: Recording) -> list[str]:
             out.append(f"ground truth {s.name!r} has {len(s.channels)} joint angles but the arm "
                        f"has {n} joints")
     return out
-
-
-# --------------------------------------------------------------------------------------
-# what every command that reads samples does with range and saturation
-class OutOfRangeError(ValueError):
-    """A recording holds a value its device cannot output (past its register range)."""
-
-
-class MissingSensorError(ValueError):
-    """A recording lacks a stream that the config and the command require."""
-
-
-@dataclass(frozen=True)
-class SampleScreen:
-    """What :func:`screen_samples` found: per stream with a count model, its samples and
-    those saturated (a channel at its register limit); the commands leave those out."""
-
-    samples: dict[str, int]
-    saturated: dict[str, int]
-
-    @property
-    def any_saturated(self) -> bool:
-        return any(self.saturated.values())
-
-    def words(self) -> str:
-        """One line for a person: which streams had saturated samples, how many of how many."""
-        parts = [f"{s} {n:,} of {self.samples[s]:,} ({100.0 * n / self.samples[s]:.2g} %)"
-                 for s, n in self.saturated.items() if n]
-        return ("saturated samples (a channel at its register limit), left out: " + ", ".join(parts)
-                if parts else "no saturated sample")
-
-    def as_dict(self) -> dict:
-        return {"samples": dict(self.samples), "saturated": {s: n for s, n in self.saturated.items() if n}}
-
-
-def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: str = "") -> SampleScreen:
-    """Every command's check of a recording's samples against the config's sensors.
-
-    Raises :class:`MissingSensorError` when a stream of ``required`` has no sample (naming
-    them and ``needed_by``), :class:`OutOfRangeError` at the first value past its device's
-    register range (naming the stream, channel, time and sample), and otherwise counts the
-    saturated samples per stream (:meth:`StreamModel.saturated`), which the commands leave out.
-    Streams the config does not describe (truth, unknown sensors) are not looked at.
-    """
-    missing = [s for s in required if rec.get(s) is None or len(rec.get(s)) == 0]
-    if missing:
-        raise MissingSensorError(
-            f"the recording has no samples of {', '.join(missing)}"
-            + (f", which {needed_by}" if needed_by else "")
-            + f" (it has: {', '.join(s for s in rec.raw() if len(rec.get(s))) or 'no sensor stream'})")
-    samples, saturated = {}, {}
-    for name, model in stream_models(arm).items():
-        st = rec.get(name)
-        if st is None or len(st) == 0 or st.values.shape[1] != model.size:
-            continue
-        bad = model.beyond_range(st.values)
-        if bad.any():
-            i, k = (int(v[0]) for v in np.nonzero(bad))
-            v = float(st.values[i, k])
-            where = (f"{model.channels[k]} = {v:.6g} counts at t = {float(st.t_s[i]):.3f} s "
-                     f"(sample {i + 1:,} of {name})")
-            rng = ("" if model.counts_min is None else
-                   f" {model.counts_min:.0f}…{model.counts_max:.0f} counts")
-            sensor = next((m for m in arm.sensors if m.name == model.sensor), None)
-            device = f"the {sensor.type}'s" if sensor is not None else "its"
-            raise OutOfRangeError(f"{where}: beyond {device} register range{rng}; no such sensor "
-                                  f"can read that, so the recording is refused")
-        samples[name] = len(st)
-        saturated[name] = int(model.saturated(st.values).any(axis=1).sum())
-    return SampleScreen(samples, saturated)
 
 
 def encoder_angles_at(arm: ArmModel, enc, t_s: float) -> tuple[int, np.ndarray]:

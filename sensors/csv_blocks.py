@@ -270,6 +270,8 @@ def parse_block_values(
     if fc.size:
         sub = np.where(empty[:, fc], b"0", cells[:, fc])
         try:
+            if _has_underscore(sub):
+                raise ValueError  # numpy reads 2_59 as 259: the cells one by one say where
             floats[:] = sub.astype(np.float64)
         except ValueError:
             for i, j in zip(*np.nonzero(~empty[:, fc]), strict=True):
@@ -300,6 +302,8 @@ def _raw_column(path: Path, name: str, col: np.ndarray, empty: np.ndarray, slow:
     if not decimal:
         return as_ints
     try:
+        if _has_underscore(col):
+            raise ValueError
         out = np.where(empty, b"nan", col).astype(np.float64)
     except ValueError:
         out = np.array([np.nan if e else _convert(path, name, c, float, row_offset + i, lines)
@@ -316,6 +320,11 @@ def _raw_column(path: Path, name: str, col: np.ndarray, empty: np.ndarray, slow:
 _INT64 = (-(2**63), 2**63 - 1)
 
 
+def _has_underscore(cells: np.ndarray) -> bool:
+    """Does a cell hold ``_`` (Python's digit grouping, which numpy and ``int`` read)?"""
+    return bool(cells.size) and bool((np.char.find(cells, b"_") >= 0).any())
+
+
 def _text(cell: bytes) -> str:
     """A parsed cell as the file wrote it: numpy stores the characters below 256 of a
     byte-string cell one byte each (latin-1); any other makes it fail earlier."""
@@ -324,6 +333,8 @@ def _text(cell: bytes) -> str:
 
 def _convert(path: Path, name: str, cell: bytes, conv: type, row0: int, lines):
     try:
+        if b"_" in cell:  # Python's literal syntax (2_59), not a number of a CSV
+            raise ValueError
         value = conv(cell)
     except ValueError:
         kind = "an integer (raw counts) or a decimal" if conv is int else "a number"

@@ -26,6 +26,7 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Metadata
 
 from sensors.mcap_format import KIND_DOC, MAGIC, METADATA_NAME, RAW_PREFIX, READ_FORMAT_VERSIONS, TRUTH_PREFIX
+from sensors.sample_checks import MCAP_TOPICS
 from sensors.samples import RAW_KINDS, Recording, RecordingError, Stream, clipped_repr
 
 
@@ -44,6 +45,15 @@ class ReadReport:
     message: str
     t_last_s: float | None = None
     ignored_topics: tuple[str, ...] = ()
+    left_out: tuple[tuple[str, int, str], ...] = ()
+    """Sample channels not read: ``(topic, messages, why)`` for a ``raw/`` or ``truth/``
+    topic of an unknown kind or without the stream's metadata, and for messages on a
+    channel id no channel record declares."""
+
+    def left_out_words(self) -> str:
+        """The channels left out, for a person (one line)."""
+        return "; ".join(f"{clipped_repr(topic)[1:-1]} ({n} messages): {why}"
+                         for topic, n, why in self.left_out)
 
 
 _MAX_CHUNK_BYTES = 1 << 31  # a larger uncompressed size is a damaged chunk header
@@ -129,7 +139,9 @@ def read_mcap(path: str | Path) -> tuple[Recording, ReadReport]:
     how much could not be read (the chunk being written when the file was cut is lost
     whole; a damaged record ends the reading the same way). A file that is not MCAP
     raises ``ValueError`` naming the path. Topics other than ``raw/*`` and
-    ``truth/*`` are counted in the report but not returned.
+    ``truth/*`` are counted in the report but not returned; a ``raw/*`` or ``truth/*`` topic
+    of an unknown kind or without metadata, and messages on an undeclared channel, are named
+    in the report's ``left_out`` (:func:`sensors.recording.read_recording` warns with them).
     """
     with _gc_paused():
         return _read_mcap(Path(path))
@@ -204,7 +216,7 @@ def _read_mcap(path: Path) -> tuple[Recording, ReadReport]:
                     problem = f"inside the closing magic bytes at byte {good_end}"
                 else:
                     damaged = f"damaged closing magic bytes at byte {good_end}"
-    rec, ignored, t_last = _assemble(path, channels, messages, meta)
+    rec, ignored, t_last, left_out = _assemble(path, channels, messages, meta)
     unread = size - good_end
     span = f" up to t = {t_last:.3f} s" if t_last is not None else ""
     recovered = f"recovered {n_messages} messages{span}"
@@ -217,7 +229,7 @@ def _read_mcap(path: Path) -> tuple[Recording, ReadReport]:
         text = f"{path}: file ends early at byte {size}, {problem}: {recovered}; {lost}"
     if "chunk record" in problem + damaged:
         text += " (the messages of that chunk are lost)"
-    return rec, ReadReport(complete, n_messages, size, unread, text, t_last, ignored)
+    return rec, ReadReport(complete, n_messages, size, unread, text, t_last, ignored, left_out)
 
 
 def _decode_samples(data: list[bytes], k: int, counts: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -250,16 +262,24 @@ def _decode_samples(data: list[bytes], k: int, counts: bool) -> tuple[np.ndarray
 
 def _assemble(
     path: Path, channels: dict[int, Channel], messages: dict[int, list[bytes]], meta: dict[str, str]
-) -> tuple[Recording, tuple[str, ...], float | None]:
+) -> tuple[Recording, tuple[str, ...], float | None, tuple[tuple[str, int, str], ...]]:
     streams: dict[str, Stream] = {}
     ignored: list[str] = []
+    left_out: list[tuple[str, int, str]] = []
+    topics: dict[str, str] = {}
     t_last: float | None = None
+    for cid in messages.keys() - channels.keys():
+        left_out.append((f"channel id {cid}", len(messages[cid]), "no channel record declares it"))
     for cid, ch in channels.items():
         kind = ch.metadata.get("kind", "")
         is_stream = ch.topic.startswith((RAW_PREFIX, TRUTH_PREFIX)) and kind in KIND_DOC
         data = messages.get(cid, [])
         if not is_stream:
             ignored.append(ch.topic)
+            if ch.topic.startswith((RAW_PREFIX, TRUTH_PREFIX)):
+                why = (f"unknown stream kind {clipped_repr(kind)}" if kind else
+                       "no stream metadata (kind, channels)")
+                left_out.append((ch.topic, len(data), why))
             continue
         name = ch.metadata.get("stream") or ch.topic.split("/", 1)[1]
         try:
@@ -273,9 +293,10 @@ def _assemble(
                 f"{clipped_repr(f'{type(e).__name__}: {e}', 120)[1:-1]}"
             ) from None
         streams[name] = stream
+        topics[name] = ch.topic
         if len(stream):
             t_last = stream.t_s[-1] if t_last is None else max(t_last, float(stream.t_s[-1]))
-    rec_meta: dict[str, Any] = {"source": str(path)}
+    rec_meta: dict[str, Any] = {"source": str(path), MCAP_TOPICS: topics}
     if meta and meta.get("format_version", "1") not in READ_FORMAT_VERSIONS:
         raise RecordingError(f"{path}: armfusion MCAP format version "
                              f"{clipped_repr(meta.get('format_version'))}; this armfusion reads "
@@ -288,4 +309,5 @@ def _assemble(
         except ValueError:
             raise RecordingError(f"{path}: the armfusion metadata's t_offset_ns is not an "
                                  f"integer: {clipped_repr(meta.get('t_offset_ns'))}") from None
-    return Recording(streams, rec_meta), tuple(ignored), (None if t_last is None else float(t_last))
+    return (Recording(streams, rec_meta), tuple(ignored), (None if t_last is None else float(t_last)),
+            tuple(left_out))

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import stat
 import warnings
 from pathlib import Path
 
 from sensors.recording_csv import RecordingWarning, read_csv, write_csv
 from sensors.recording_mcap import read_mcap, write_mcap
+from sensors.sample_checks import feed_problems, sample_place
 from sensors.samples import Recording, RecordingError
 
 __all__ = ["SUFFIXES", "RecordingError", "RecordingWarning", "read_recording", "write_recording"]
@@ -28,18 +30,40 @@ def read_recording(path: str | Path) -> Recording:
     """Read a ``.csv`` or ``.mcap`` recording.
 
     A file that is not a readable recording raises
-    :class:`~sensors.samples.RecordingError` (a ``ValueError``) naming the place.
+    :class:`~sensors.samples.RecordingError` (a ``ValueError``) naming the place; so does
+    one holding a sample the rules every door applies refuse (:func:`refuse_bad_samples`).
     For MCAP the :class:`~sensors.recording_mcap.ReadReport` is in
     ``rec.meta["read_report"]``, and a :class:`RecordingWarning` says what was lost
-    when the file ends early or is damaged.
+    when the file ends early or is damaged, and another naming the sample topics left out
+    (an unknown kind, no metadata).
     """
     path = Path(path)
-    if _suffix(path) == ".csv":
-        return read_csv(path)
-    rec, report = read_mcap(path)
-    if not report.complete:
-        warnings.warn(report.message, RecordingWarning, stacklevel=2)
-    return Recording(rec.streams, {**rec.meta, "read_report": report})
+    suffix = _suffix(path)
+    if path.exists() and not stat.S_ISREG(path.stat().st_mode):  # (a FIFO would block, /dev/zero not end)
+        raise RecordingError(f"{path}: not a regular file (a device, a FIFO, a directory); "
+                             "a recording is a file")
+    if suffix == ".csv":
+        rec = read_csv(path)
+    else:
+        rec, report = read_mcap(path)
+        if not report.complete:
+            warnings.warn(report.message, RecordingWarning, stacklevel=2)
+        if report.left_out:
+            warnings.warn(f"{path}: left out {report.left_out_words()}", RecordingWarning, stacklevel=2)
+        rec = Recording(rec.streams, {**rec.meta, "read_report": report})
+    refuse_bad_samples(rec, path)
+    return rec
+
+
+def refuse_bad_samples(rec: Recording, path: str | Path) -> None:
+    """Raise :class:`RecordingError` at the first sample of ``rec`` the config-free rules
+    refuse (:func:`sensors.sample_checks.feed_problems`: a time beyond any clock, a value
+    beyond the feed's range), naming the file, the place in it and the value."""
+    problems = feed_problems(rec)
+    if problems:
+        p = problems[0]
+        raise RecordingError(f"{path}: {sample_place(rec, p.stream, p.index)}: {p.words}; "
+                             "no sensor can have said that, so the recording is refused")
 
 
 def write_recording(rec: Recording, path: str | Path) -> None:

@@ -44,6 +44,8 @@ import numpy as np
 
 from sensors.csv_blocks import BLOCK_ROWS, DEFAULT_LIMITS, CsvLimits, parse_rows, read_header, row_error
 from sensors.csv_header import T_COLUMN, csv_columns, first_few, streams_from_header
+from sensors.output_files import replaced_when_done
+from sensors.sample_checks import CSV_ROW_LINES, CSV_ROW_TIMES
 from sensors.samples import TRUTH_KINDS, Recording, RecordingError, Stream, clipped_repr
 
 __all__ = [
@@ -166,7 +168,7 @@ def _read_csv(path: Path, limits: CsvLimits) -> Recording:
             streams[g.name] = Stream(g.name, g.kind, t_s[every], values, g.columns)
         except ValueError as e:
             raise RecordingError(f"{path}: {e}") from None
-    return Recording(streams, meta={"source": str(path)})
+    return Recording(streams, meta={"source": str(path), CSV_ROW_TIMES: t_s, CSV_ROW_LINES: lines})
 
 
 # ---------------------------------------------------------------------------- writing
@@ -211,7 +213,7 @@ def write_csv(rec: Recording, path: str | Path) -> None:
         col = np.full(n, "," * (len(s.channels) - 1), dtype=object)
         col[np.searchsorted(t_all, s.t_s)] = cells
         columns.append(col.tolist())
-    with open(path, "w", encoding="utf-8", newline="") as f:
+    with replaced_when_done(path) as tmp, open(tmp, "w", encoding="utf-8", newline="") as f:
         f.write(",".join(header) + "\n")
         for start in range(0, n, BLOCK_ROWS):
             rows = zip(*(c[start : start + BLOCK_ROWS] for c in columns), strict=True)

@@ -42,6 +42,7 @@ from sensors.mcap_format import (
     topic_for,
 )
 from sensors.mcap_reader import ReadReport, read_mcap
+from sensors.output_files import replaced_when_done
 from sensors.samples import (
     TRUTH_KINDS,
     Recording,
@@ -323,12 +324,15 @@ def write_mcap(rec: Recording, path: str | Path, *, arm_config: str | None = Non
     """Write ``rec`` as an armfusion MCAP file, all streams merged in time order.
 
     ``arm_config`` defaults to ``rec.meta["arm_config"]`` (or empty). A recording that
-    starts before t = 0 gets a whole-second time offset (see :class:`McapRecorder`).
+    starts before t = 0 gets a whole-second time offset (see :class:`McapRecorder`). Written
+    under a temporary name and renamed when complete
+    (:func:`sensors.output_files.replaced_when_done`).
     """
     config = arm_config if arm_config is not None else str(rec.meta.get("arm_config", ""))
     offset_s = float(math.ceil(-rec.t_start_s)) if rec.t_start_s < 0 else 0.0
     streams = list(rec.streams.values())
-    with McapRecorder(path, arm_config=config, t_offset_s=offset_s) as recorder:
+    with replaced_when_done(path) as tmp, \
+            McapRecorder(tmp, arm_config=config, t_offset_s=offset_s) as recorder:
         # a slice of time at a time: the messages of one slice are made in memory, not the
         # whole recording's (an hour at 100 Hz of five sensors is millions of messages)
         edges = [*np.arange(rec.t_start_s, rec.t_end_s, WRITE_SLICE_S)[1:].tolist(), np.inf]

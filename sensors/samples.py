@@ -146,6 +146,9 @@ class Stream:
                 f"({t.shape[0]}, {len(self.channels)}) for channels {list(self.channels)}"
             )
         v = v.astype(np.float64, copy=False) if self.kind in TRUTH_KINDS else _raw_values(self.name, v)
+        if not np.all(np.isfinite(t)):
+            i = int(np.argmax(~np.isfinite(t)))
+            raise ValueError(f"stream {self.name!r}: t = {float(t[i])!r} at sample {i} is not a finite time")
         if t.size > 1:
             bad = np.flatnonzero(np.diff(t) <= 0)
             if bad.size:

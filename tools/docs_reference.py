@@ -204,8 +204,10 @@ def config_reference() -> str:
     lines = [GENERATED, "", "# Config reference", "",
              "Every key of an arm config (YAML), as the loader validates it: its type, its unit "
              "(from the key's name), its default and its bounds. Every number must also be finite. "
-             "A key not listed here is refused as unknown. How to write a config for your own arm, "
-             "with examples, is [Arm configs](../config.md).", ""]
+             "A key not listed here is refused as unknown. Rules that a key's own bounds do not show "
+             "(lengths below 100 m, angles within ten turns, counts per revolution from 1 to 2^32, "
+             "unique sensor names that no stream has, one device per bus address) are in "
+             "[Arm configs, Validation](../config.md#validation), with examples of configs.", ""]
     seen: set[type] = set()
     queue: list[tuple[type[BaseModel], str]] = [(ArmConfigFile, "")]
     header = ["| key | type | unit | default | bounds | what it is |",

@@ -14,12 +14,13 @@ from fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
     choice_or_exit,
+    config_file,
     console,
     emit_json,
     err_console,
     fail,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt
+from fusion.cli.options import ConfigOpt, JsonOpt, window_seconds
 from fusion.identification.identify import startup_correction
 from fusion.startup.pose_store import load_pose, save_pose
 from fusion.startup.solve import (
@@ -45,7 +46,8 @@ def calibrate_joints(
     segments: Annotated[bool, typer.Option("--segments", help="One solution per still segment.")] = False,
     method: Annotated[str, typer.Option(help="joint (all sensors at once) or sequential (the thesis).")] = "joint",
     json_out: JsonOpt = False,
-    window_s: Annotated[float, typer.Option(help="Averaging window at the end of each still segment [s].")] = 1.0,
+    window_s: Annotated[float, typer.Option(help="Averaging window at the end of each still segment [s].",
+                                            callback=window_seconds("--window-s"))] = 1.0,
     prior: Annotated[Path | None, typer.Option(help="Pose saved at the last clean shutdown (JSON): checked against the data, used to choose a branch only if it fits.")] = None,
     assume_parked: Annotated[bool, typer.Option("--assume-parked", help="Take the ready pose as evidence (the arm is known to be parked there): it picks among branches that fit, and the result says so.")] = False,
     independent: Annotated[bool, typer.Option("--independent", help="With --segments: solve every still window alone (by default each window's answer is carried to the next through the encoder counts).")] = False,
@@ -56,7 +58,7 @@ def calibrate_joints(
     """Every joint angle of a still arm, with sigma, flags, and a move that unlocks blind joints."""
     choice_or_exit(method, "--method", ("joint", "sequential"))
     if save is not None:
-        check_output_path(save, "--save")
+        check_output_path(save, "--save", inputs=(recording, config_file(config)))
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, lambda arm: [a.name for a in arm.link_accelerometers],
         "calibrate joints needs (every link accelerometer of {source})", json_out)

@@ -31,6 +31,7 @@ from fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
     choice_or_exit,
+    config_file,
     console,
     emit_json,
     err_console,
@@ -38,7 +39,7 @@ from fusion.cli.common import (
     progress_bar,
     read_recording_or_exit,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt
+from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
 from fusion.configfile import resolve_config_path
 from fusion.identification.identify import (
     REFERENCE_SIGMA_RAD,
@@ -53,6 +54,7 @@ from fusion.identification.identify import (
 )
 from models.effects import EFFECTS, Model, all_effects, model_from_arm
 from models.simulator import REALISTIC_EXCLUDE
+from sensors.output_files import write_text_replacing
 
 
 def parse_base_tilt(text: str, sigma_deg: float) -> tuple[np.ndarray, float]:
@@ -124,7 +126,8 @@ def calibrate_sensors(
                                       "(each sensor alone, its own gravity direction).")] = "simultaneous",
     effects: Annotated[str | None, typer.Option(help="Effects to estimate, comma separated, or "
                                                 "'all' (default: the config's, else all).")] = None,
-    window: Annotated[int, typer.Option(help="Average this many samples per fit point.")] = 25,
+    window: Annotated[int, typer.Option(help="Average this many samples per fit point.",
+                                        callback=count_at_least("--window", 1, "samples per fit point"))] = 25,
     stances: Annotated[bool, typer.Option(help="Find where the chair stands parked (the IMU's gyro and "
                                           "accelerometer) and fit each stance's own base attitude, "
                                           "leaving out the moves between them (a maneuver on a "
@@ -153,7 +156,7 @@ def calibrate_sensors(
     """Estimate the sensors' and the arm's effects (with σ, holds and correlations)."""
     choice_or_exit(mode, "--mode", ("separate", "simultaneous"))
     if write is not None:
-        check_output_path(write, "--write")
+        check_output_path(write, "--write", inputs=(recording, config_file(config), compass_drive))
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, fit_streams,
         "calibrate sensors fits (the encoders and every sensor stream of {source})", json_out)
@@ -215,8 +218,8 @@ def calibrate_sensors(
                        f"({c.reference.where}): calibration.identified.references\n"
                        for c in res.reference_checks)
         compass = f"# {compass_line}\n" if compass_line else ""
-        write.write_text(f"# {res.summary()}\n# from {recording}, config {src.name}\n" + refs + compass
-                         + yaml.safe_dump(out, sort_keys=False, width=110), encoding="utf-8")
+        write_text_replacing(write, f"# {res.summary()}\n# from {recording}, config {src.name}\n" + refs + compass
+                         + yaml.safe_dump(out, sort_keys=False, width=110))
     if json_out:
         d = res.as_dict()
         d["written"] = str(write) if write else None

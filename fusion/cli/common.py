@@ -85,7 +85,9 @@ def read_recording_or_exit(path: Path, arm=None):
             warnings.simplefilter("always")
             rec = read_recording(path)
     except (ValueError, OSError) as e:
-        fail(f"cannot read recording {path}: {e}")
+        said = str(e)  # (a reader's message names the file first: not twice)
+        fail(f"cannot read recording {said}" if said.startswith(f"{path}: ") else
+             f"cannot read recording {path}: {said}")
     for w in caught:
         err_console.print(f"[yellow]warning:[/] {w.message}", highlight=False)
     if arm is not None:
@@ -100,11 +102,11 @@ def read_recording_or_exit(path: Path, arm=None):
 
 def screen_or_exit(arm, rec, path: Path, required: Sequence[str], needed_by: str,
                    json_out: bool = False):
-    """The one treatment of range and saturation (``models.sensor_models.screen_samples``)
+    """The one treatment of range and saturation (``models.sample_admission.screen_samples``)
     for a command: exit 2 with one line when ``rec`` lacks a stream of ``required`` (what
     ``needed_by`` needs) or holds a value past its device's range, naming the place; else
     say on stderr how many saturated samples are left out, and return the screen."""
-    from models.sensor_models import MissingSensorError, OutOfRangeError, screen_samples
+    from models.sample_admission import MissingSensorError, OutOfRangeError, screen_samples
 
     try:
         screen = screen_samples(arm, rec, required, needed_by)
@@ -128,36 +130,55 @@ def arm_and_recording_or_exit(config: str, path: Path, required: Callable[[Any],
     return arm, rec, screen
 
 
-def output_path_problem(path: Path, suffixes: Sequence[str] | None = None) -> str | None:
-    """Why ``path`` cannot be written (a parent that is a file, a directory in its place, a
-    suffix not among ``suffixes``), or ``None``. Checks only: creates nothing."""
+def config_file(config: str) -> Path | None:
+    """The file a ``--config`` names (a shipped name or a path), or ``None`` when it names
+    none (the command's own loading then says why)."""
+    from fusion.configfile import resolve_config_path
+
+    try:
+        return resolve_config_path(config)
+    except (FileNotFoundError, OSError, ValueError):
+        return None
+
+
+def output_path_problem(path: Path, suffixes: Sequence[str] | None = None,
+                        inputs: Sequence[Path | str | None] = ()) -> str | None:
+    """Why ``path`` cannot be written (a suffix not among ``suffixes``, a directory in its
+    place, a parent that is a file, a directory where no file can be created: tried, by a
+    file made and removed there) or must not be (it is one of the command's ``inputs``, by
+    any name: a recording, a config), or ``None``. Leaves nothing behind."""
+    from sensors.output_files import cannot_create_in, same_file
+
     path = Path(path)
     if suffixes is not None and path.suffix.lower() not in suffixes:
         return (f"unsupported suffix {path.suffix or '(none)'!r}; expected "
                 + " or ".join(suffixes))
     if path.is_dir():
         return "is a directory"
+    given = same_file(path, inputs)
+    if given is not None:
+        return f"is the input {given}; an output never replaces a file the command reads"
     for parent in path.parents:
         if parent.exists():
             if not parent.is_dir():
                 return f"{parent} is a file, not a directory"
-            if not os.access(parent, os.W_OK | os.X_OK):
-                return f"cannot create files in {parent} (no permission)"
             break
-    return None
+    return cannot_create_in(path)
 
 
-def check_output_path(path: Path, option: str, suffixes: Sequence[str] | None = None) -> None:
-    """Exit 2 with one line before any work when ``path`` cannot be written (see
-    :func:`output_path_problem`); ``option`` names it (``--out``)."""
-    why = output_path_problem(path, suffixes)
+def check_output_path(path: Path, option: str, suffixes: Sequence[str] | None = None,
+                      inputs: Sequence[Path | str | None] = ()) -> None:
+    """Exit 2 with one line before any work when ``path`` cannot or must not be written
+    (see :func:`output_path_problem`); ``option`` names it (``--out``)."""
+    why = output_path_problem(path, suffixes, inputs)
     if why is not None:
         fail(f"{option} {path}: {why}")
 
 
-def prepare_output_path(path: Path, option: str, suffixes: Sequence[str] | None = None) -> Path:
+def prepare_output_path(path: Path, option: str, suffixes: Sequence[str] | None = None,
+                        inputs: Sequence[Path | str | None] = ()) -> Path:
     """:func:`check_output_path`, then create the missing parent directories."""
-    check_output_path(path, option, suffixes)
+    check_output_path(path, option, suffixes, inputs)
     try:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:

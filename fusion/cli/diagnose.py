@@ -27,6 +27,7 @@ from rich.table import Table
 from fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
+    config_file,
     console,
     emit_json,
     err_console,
@@ -34,7 +35,7 @@ from fusion.cli.common import (
     progress_bar,
 )
 from fusion.cli.diagnose_report import report_figures, write_innovation_report, write_report  # noqa: F401 (report_figures: imported from here by fusion.service.demo)
-from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt
+from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
 from fusion.configfile import resolve_config_path
 from fusion.identification.identify import config_with_estimates, data_from_recording, fit_streams
 from fusion.workbench.diagnose import (
@@ -48,6 +49,7 @@ from fusion.workbench.diagnose import (
 )
 from fusion.workbench.discover import DiscoverSettings, Discovery, discover
 from models.effects import TargetError, model_from_arm
+from sensors.output_files import write_text_replacing
 
 HISTORY_FORMAT = "armfusion.workbench-history/1"
 
@@ -92,7 +94,7 @@ def append_history(path: Path, entries: list[dict]) -> list[dict]:
             err_console.print(f"[yellow]warning:[/] {path} is not a workbench history; starting a new one")
     runs += entries
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"format": HISTORY_FORMAT, "runs": runs}, indent=2) + "\n", encoding="utf-8")
+    write_text_replacing(path, json.dumps({"format": HISTORY_FORMAT, "runs": runs}, indent=2) + "\n")
     return runs
 
 
@@ -104,11 +106,13 @@ def diagnose_command(
         "--add", help="Add this effect and refit (EFFECT or EFFECT:TARGET, e.g. accel_bias:acc2); repeatable.")] = None,
     write: WriteConfigOpt = None,
     window: Annotated[int, typer.Option(help="Average this many samples per fit point (small enough that "
-                                        "the motion within a window stays below the noise).")] = 10,
+                                        "the motion within a window stays below the noise).",
+                                        callback=count_at_least("--window", 1, "samples per fit point"))] = 10,
     history: Annotated[Path | None, typer.Option(help="The error ladder's history file (default: "
                                                  "CONFIG.workbench.json beside the config).")] = None,
     report: Annotated[Path | None, typer.Option(help="Write an HTML report (one file, plots embedded).")] = None,
-    top: Annotated[int, typer.Option(help="Candidates to show.")] = 8,
+    top: Annotated[int, typer.Option(help="Candidates to show.",
+                                     callback=count_at_least("--top", 0, "a number of candidates"))] = 8,
     innovations: Annotated[bool, typer.Option(
         "--innovations", help="Also run the tracker over the recording and analyse its normalised "
         "innovations (whiteness, correlation with the inputs); automatic when the chair moves.")] = False,
@@ -121,11 +125,13 @@ def diagnose_command(
     """Compare the model with a recording: where it fails, which physical effect is missing."""
     if discover_ and add:
         fail("--discover chooses the effects itself: give --discover or --add, not both")
+    inputs = (recording, config_file(config))  # (--history is read and extended: not among them)
     for path, option in ((write, "--write"), (report, "--report"), (history, "--history")):
         if path is not None:
-            check_output_path(path, option)
+            check_output_path(path, option, inputs=inputs)
     if write is not None and history is None:
-        check_output_path(write.with_name(write.stem + ".workbench.json"), "--write (its history)")
+        check_output_path(write.with_name(write.stem + ".workbench.json"), "--write (its history)",
+                          inputs=inputs)
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, fit_streams,
         "diagnose fits (the encoders and every sensor stream of {source})", json_out)
@@ -179,8 +185,7 @@ def diagnose_command(
         nxt = write.with_name(write.stem + ".workbench.json")  # beside it (it is not written yet)
         if nxt.resolve() != hpath.resolve():
             nxt.parent.mkdir(parents=True, exist_ok=True)
-            nxt.write_text(json.dumps({"format": HISTORY_FORMAT, "runs": ladder}, indent=2) + "\n",
-                           encoding="utf-8")
+            write_text_replacing(nxt, json.dumps({"format": HISTORY_FORMAT, "runs": ladder}, indent=2) + "\n")
     if write is not None:
         src = resolve_config_path(config)
         cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
@@ -188,9 +193,9 @@ def diagnose_command(
         write.parent.mkdir(parents=True, exist_ok=True)
         stand_ins = "".join(f"# {f.added} stands in for one of {', '.join(f.members)} (equal fits)\n"
                             for f in (disc.findings if disc is not None else ()) if f.is_group)
-        write.write_text(f"# armfusion diagnose: rms_ratio {final.rms_ratio:.3f} ({final.verdict})\n"
+        write_text_replacing(write, f"# armfusion diagnose: rms_ratio {final.rms_ratio:.3f} ({final.verdict})\n"
                          f"# from {recording}, config {src.name}\n" + stand_ins
-                         + yaml.safe_dump(out, sort_keys=False, width=110), encoding="utf-8")
+                         + yaml.safe_dump(out, sort_keys=False, width=110))
     if report is not None:
         write_report(report, before, after, ladder, recording, config, disc)
     if json_out:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.workbench.diagnose import Diagnosis, params_words
+from sensors.output_files import write_text_replacing
 
 
 def _pyplot():
@@ -208,7 +209,7 @@ table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padd
 </body></html>
 """
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(doc, encoding="utf-8")
+    write_text_replacing(path, doc)
     return path
 
 
@@ -318,5 +319,5 @@ Model effects: {esc(', '.join(e for e in d.effects() if not e.endswith('.joint_o
 </body></html>
 """
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(doc, encoding="utf-8")
+    write_text_replacing(path, doc)
     return path

@@ -40,7 +40,7 @@ from typing import Annotated, Any
 
 import typer
 
-from fusion.cli.common import check_output_path, emit_json, fail, progress_bar
+from fusion.cli.common import check_output_path, config_file, emit_json, fail, progress_bar
 from fusion.cli.drivers_faults import FAULT_KINDS
 from fusion.cli.drivers_report import print_report, summary
 from fusion.cli.drivers_run import DriversRun, run_fake, run_real
@@ -66,6 +66,7 @@ from fusion.cli.options import (
 from fusion.cli.simulate import truth_json, truth_path
 from models.arm_config import ConfigError
 from sensors.bus import DeviceNotFoundError
+from sensors.output_files import write_text_replacing
 from sensors.recording import SUFFIXES, write_recording
 
 
@@ -158,9 +159,9 @@ def register(app: typer.Typer) -> None:
         The options of the simulated rig (--scenario … --fault, --realtime) apply with --fake
         only."""
         if out is not None:
-            check_output_path(out, "--out", SUFFIXES)
+            check_output_path(out, "--out", SUFFIXES, inputs=(config_file(config),))
             if fake:
-                check_output_path(truth_path(out), "--out")
+                check_output_path(truth_path(out), "--out", inputs=(config_file(config),))
         if robot is None:
             given = [o for o, v in (("--listen", listen), ("--connect", connect), ("--mode", mode),
                                     ("--zenoh-config", zenoh_config), ("--wait", wait_s)) if v]
@@ -221,7 +222,7 @@ def register(app: typer.Typer) -> None:
                 tp = truth_path(out)
                 truth = {**run.sim.truth, "duration_s": run.recording.t_end_s,
                          "simulated_s": run.sim.truth["duration_s"], "streams": doc["streams"]}
-                tp.write_text(truth_json(truth), encoding="utf-8")
+                write_text_replacing(tp, truth_json(truth))
                 doc["truth"] = str(tp)
         if json_out:
             emit_json(doc)

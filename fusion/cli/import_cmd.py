@@ -9,9 +9,9 @@ from typing import Annotated
 import typer
 
 from fusion.cli.common import (
+    config_file,
     console,
     emit_json,
-    err_console,
     fail,
     load_arm_or_exit,
     prepare_output_path,
@@ -45,7 +45,8 @@ def import_recording_cmd(
     from sensors.foreign.rosbag import is_bag
     from sensors.recording import write_recording
 
-    out = prepare_output_path(out, "--out", OUT_SUFFIXES)
+    out = prepare_output_path(out, "--out", OUT_SUFFIXES,
+                              inputs=(source, config_file(config), Path(column_map)))
     if not source.exists():
         fail(f"recording not found: {source}")
     try:
@@ -56,7 +57,8 @@ def import_recording_cmd(
     try:
         result = (import_bag if is_bag(source) else import_recording)(source, cmap, arm, config)
     except (ValueError, OSError) as e:
-        fail(f"cannot import {source}: {e}")
+        said = str(e)  # (the import's messages name the file first: not twice)
+        fail(f"cannot import {said}" if said.startswith(f"{source}: ") else f"cannot import {source}: {said}")
     try:
         write_recording(result.recording, out)
     except (ValueError, OSError) as e:
@@ -86,8 +88,6 @@ def import_recording_cmd(
         console.print(f"  {name}: absent ({why})", highlight=False)
     if summary["not_mapped"]:
         console.print(f"  not in the file: {', '.join(summary['not_mapped'])}", highlight=False)
-    for note in summary["notes"]:
-        err_console.print(f"[yellow]note:[/] {note}", highlight=False, soft_wrap=True)
     if summary["changes"]:
         console.print("Changes to the source's data:")
         for c in summary["changes"]:

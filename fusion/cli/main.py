@@ -21,13 +21,14 @@ from typer.core import TyperGroup
 from fusion import __version__
 from fusion.cli.common import (
     check_output_path,
+    config_file,
     console,
     emit_json,
     fail,
     load_arm_or_exit,
     read_recording_or_exit,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt, RecordingArg
+from fusion.cli.options import ConfigOpt, JsonOpt, RecordingArg, window_seconds
 
 # command name -> (its first help paragraph, "module:function" that registers it on the app);
 # one function may register several commands (the service's)
@@ -183,9 +184,9 @@ def info(
     from fusion.cli.describe import describe_arm
 
     if plot is not None:
-        check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES)
+        check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES, inputs=(config_file(config),))
     if urdf is not None:
-        check_output_path(urdf, "--urdf", suffixes=(".urdf",))
+        check_output_path(urdf, "--urdf", suffixes=(".urdf",), inputs=(config_file(config),))
     arm = load_arm_or_exit(config)
     d = describe_arm(arm)
     if plot is not None:
@@ -261,7 +262,8 @@ def _f(v) -> str:
 def inspect(
     recording: RecordingArg,
     json_out: JsonOpt = False,
-    window_s: Annotated[float, typer.Option(help="Still-detection window [s].")] = 1.0,
+    window_s: Annotated[float, typer.Option(help="Still-detection window [s].",
+                                            callback=window_seconds("--window-s"))] = 1.0,
 ) -> None:
     """Summarise a recording: sensors, samples and rate each, duration, gaps, still segments."""
 

@@ -34,6 +34,36 @@ def _positive(option: str):
     return check
 
 
+MAX_STILL_WINDOW_S = 60.0
+"""The longest still-detection or averaging window a command takes: a still stretch is
+seconds long, and the detection's work grows with the window times the recording's length
+(``--window-s 1e9`` asked for 522 GiB)."""
+
+
+def window_seconds(option: str):
+    """A callback refusing a window that is not a finite number of seconds in
+    (0, :data:`MAX_STILL_WINDOW_S`]."""
+
+    def check(value: float) -> float:
+        if not 0.0 < value <= MAX_STILL_WINDOW_S:  # (NaN fails too)
+            fail(f"{option} {value!r}: expected a window in seconds, > 0 and at most "
+                 f"{MAX_STILL_WINDOW_S:g}")
+        return value
+
+    return check
+
+
+def count_at_least(option: str, least: int, what: str):
+    """A callback refusing a whole number below ``least`` (``what`` says what it counts)."""
+
+    def check(value: int) -> int:
+        if value < least:
+            fail(f"{option} {value!r}: expected {what}, at least {least}")
+        return value
+
+    return check
+
+
 def check_robot(value: str | None) -> str | None:
     """The callback of every ``--robot`` that names one robot: a name the key expressions take."""
     if value is not None:

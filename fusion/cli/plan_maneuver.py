@@ -20,7 +20,7 @@ import numpy as np
 import typer
 import yaml
 
-from fusion.cli.common import check_output_path, console, emit_json, fail, progress_bar
+from fusion.cli.common import check_output_path, config_file, console, emit_json, fail, progress_bar
 from fusion.cli.options import ConfigOpt, JsonOpt
 from fusion.configfile import load_arm, read_yaml, resolve_config_path
 from fusion.identification.planner import (
@@ -32,6 +32,7 @@ from fusion.identification.planner import (
     predict_maneuver,
 )
 from models.arm_config import ConfigError
+from sensors.output_files import write_text_replacing
 
 
 def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None = "all",
@@ -110,7 +111,7 @@ def register(app: typer.Typer) -> None:
         parameters best known in the time given; the sigma each parameter and each joint's
         startup will have after it."""
         if out is not None:
-            check_output_path(out, "--out", (".yaml", ".yml"))
+            check_output_path(out, "--out", (".yaml", ".yml"), inputs=(config_file(config),))
         if criterion not in CRITERIA:
             fail(f"--criterion must be one of {', '.join(CRITERIA)}, not {criterion[:20]!r}")
         if focus not in FOCUS:
@@ -128,9 +129,9 @@ def register(app: typer.Typer) -> None:
             fail(str(e))
         if out is not None:
             out.parent.mkdir(parents=True, exist_ok=True)
-            out.write_text("# armfusion plan-maneuver: play with `armfusion simulate --maneuver "
+            write_text_replacing(out, "# armfusion plan-maneuver: play with `armfusion simulate --maneuver "
                            f"{out.name}` or on the arm's controller\n"
-                           + yaml.safe_dump(doc, sort_keys=False, width=110), encoding="utf-8")
+                           + yaml.safe_dump(doc, sort_keys=False, width=110))
         if json_out:
             emit_json({**doc, "out": None if out is None else str(out)})
             return

@@ -68,6 +68,9 @@ def plot_arm(arm: ArmModel, q_rad: np.ndarray, path: str | Path, title: str | No
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    from sensors.output_files import replaced_when_done
+
+    with replaced_when_done(path) as tmp:  # (the format from the real name's suffix)
+        fig.savefig(tmp, format=path.suffix.lstrip(".").lower() or None)
     plt.close(fig)
     return path

@@ -22,7 +22,7 @@ from typing import Annotated, Any
 
 import typer
 
-from fusion.cli.common import emit_json, fail, json_default, output_path_problem, progress_bar
+from fusion.cli.common import config_file, emit_json, fail, json_default, output_path_problem, progress_bar
 from fusion.cli.options import (
     ConfigOpt,
     EffectOpt,
@@ -39,6 +39,7 @@ from models.arm_config import ConfigError, ConfigProblem
 from models.effects import EFFECTS, Model, model_from_entries, parse_effect_option
 from models.simulator import simulate as simulate_recording
 from models.trajectories import SCENARIOS
+from sensors.output_files import write_text_replacing
 from sensors.recording import write_recording
 
 MEMORY_BYTES_PER_VALUE = 90
@@ -169,7 +170,7 @@ def simulate(
     if out.suffix.lower() not in (".csv", ".mcap"):
         raise ValueError(f"--out {out}: the recording must end in .csv or .mcap")
     for p in (out, truth_path(out)):
-        why = output_path_problem(p)
+        why = output_path_problem(p, inputs=(config_file(str(config)), effects_file, maneuver))
         if why is not None:
             raise ValueError(f"--out {p}: {why}")
     arm = load_arm(config)
@@ -196,7 +197,7 @@ def simulate(
     out.parent.mkdir(parents=True, exist_ok=True)
     write_recording(rec, out)
     tp = truth_path(out)
-    tp.write_text(truth_json(truth), encoding="utf-8")
+    write_text_replacing(tp, truth_json(truth))
     t_all = time.perf_counter() - t0
     return {
         "out": str(out), "truth": str(tp), "config": arm.source, "arm": arm.name,
@@ -264,6 +265,8 @@ def register(app: typer.Typer) -> None:
         """Simulate a recording of the arm's sensors (raw counts, truth columns, truth file)."""
         if (scenario is None) == (maneuver is None):
             fail("give one of --scenario NAME or --maneuver M.yaml")
+        if scenario is not None and not scenario.strip():
+            fail(f"--scenario {scenario!r}: give a scenario's name (`armfusion simulate --help` lists them)")
         try:
             with progress_bar("simulating", json_out) as advance:
                 summary = simulate(config, scenario or "planned", out, duration, rate, seed, effect or (),

@@ -14,6 +14,7 @@ from rich.table import Table
 from fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
+    config_file,
     console,
     emit_json,
     err_console,
@@ -66,7 +67,7 @@ def track(
     if not 0.0 < gate_significance < 1.0:
         fail(f"--gate-significance must be between 0 and 1, not {gate_significance!r}")
     if out is not None:
-        check_output_path(out, "--out", OUT_SUFFIXES)
+        check_output_path(out, "--out", OUT_SUFFIXES, inputs=(recording, config_file(config)))
     if unmodelled_g is not None and not unmodelled_g >= 0.0:
         fail(f"--unmodelled-g must be >= 0, not {unmodelled_g!r}")
     arm, rec, screen = arm_and_recording_or_exit(
@@ -225,17 +226,26 @@ def write_estimates(run, path: Path, arm_config: str = "") -> None:
     """Every fused instant's estimate: CSV (one row each, angles in rad), MCAP (JSON
     messages on ``estimates/joints`` and ``estimates/heading``: the records of
     :mod:`fusion.tracking.estimate`), or, for a name ending ``.ros2.mcap``, a rosbag2 MCAP
-    file of ROS 2 messages (:mod:`fusion.ros2.estimates_bag`)."""
+    file of ROS 2 messages (:mod:`fusion.ros2.estimates_bag`); under a temporary name renamed
+    when complete."""
+    from sensors.output_files import replaced_when_done
+
+    path = Path(path)
+    kind = ".ros2.mcap" if path.name.lower().endswith(".ros2.mcap") else path.suffix.lower()
+    with replaced_when_done(path) as tmp:  # a failure halfway leaves no half file
+        _write_estimates(run, tmp, kind, arm_config)
+
+
+def _write_estimates(run, path: Path, suffix: str, arm_config: str) -> None:
     from fusion.tracking.estimate import HEADING_STATUS
     from fusion.tracking.tracker import JOINT_FLAGS, SENSOR_STATUS
 
-    path = Path(path)
-    if path.name.lower().endswith(".ros2.mcap"):
+    if suffix == ".ros2.mcap":
         from fusion.ros2.estimates_bag import write_estimates_bag
 
         write_estimates_bag(run, path, Path(arm_config).stem)
         return
-    if path.suffix.lower() == ".csv":
+    if suffix == ".csv":
         with open(path, "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow(estimate_columns(run))

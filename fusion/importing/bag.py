@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.importing.column_map import ColumnMap
-from fusion.importing.run import ImportResult, stream_of
+from fusion.importing.run import ImportResult, refuse_what_no_sensor_said, stream_of
 from fusion.importing.stamps import FIRST_ROWS, increasing_rows
 from fusion.importing.to_stream import ImportMapError, check_map_against
 from fusion.importing.to_stream import targets as targets_of
@@ -70,8 +70,8 @@ def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> 
     targets = check_map_against(cmap, arm, config)
     topics = read_topics(path, cmap.topics())
     changes: list[str] = []
-    notes: list[str] = []
     streams: dict[str, Stream] = {}
+    stream_rows: dict[str, np.ndarray] = {}  # each sample's message index on its topic
     stream_summary: dict[str, dict] = {}
     reports: dict[str, dict] = {}
     problems = []
@@ -102,7 +102,8 @@ def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> 
         values = np.stack([topic.fields[f] for f in src.columns], axis=1)[keep]
         streams[name], stream_summary[name] = stream_of(
             name, t_all[keep], values, np.flatnonzero(keep), "message", src, targets[name],
-            f"{path}: topic {src.topic}", changes, notes)
+            f"{path}: topic {src.topic}", changes)
+        stream_rows[name] = np.flatnonzero(keep)[~np.isnan(values).any(axis=1)]
         stream_summary[name]["topic"] = src.topic
         if src.topic not in reports:
             reports[src.topic] = _topic_report(topic, stamp, t_all[keep])
@@ -110,6 +111,7 @@ def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> 
     not_mapped = [k for k, tg in all_names.items() if k not in cmap.streams and k not in cmap.absent
                   and not tg.needed]
     rec = Recording(streams, meta={"source": str(path), "arm_config": config})
+    refuse_what_no_sensor_said(rec, arm, cmap, stream_rows, path, row_word="message")
     ts = [s.t_s for s in streams.values() if len(s)]
     summary = {
         "source": str(path), "format": bag_format(path), "map": cmap.source, "config": config,
@@ -120,6 +122,5 @@ def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> 
         "absent": dict(cmap.absent),
         "not_mapped": not_mapped,
         "changes": changes,
-        "notes": notes,
     }
     return ImportResult(rec, summary, tuple(changes))

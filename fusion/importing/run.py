@@ -7,7 +7,9 @@ Order: the map is checked against the config before the file is read
 column is converted to seconds (or made from the rate); rows whose time does not increase
 are dropped (:mod:`~fusion.importing.stamps`); in each stream a row with a NaN in one of its
 columns is a gap (that sensor not sampled then) and counted, an infinite value is refused;
-the values are brought into the config's unit (:func:`~fusion.importing.to_stream.convert_values`).
+the values are brought into the config's unit (:func:`~fusion.importing.to_stream.convert_values`);
+then every sample meets the admission every door applies (:mod:`models.sample_admission`: a
+value past its sensor's range, a time beyond any clock, is refused naming the file's row).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from fusion.importing.stamps import FIRST_ROWS, increasing_rows
 from fusion.importing.to_stream import ImportMapError, Target, check_map_against, convert_values
 from fusion.importing.to_stream import targets as targets_of
 from models.arm import ArmModel
+from models.sample_admission import admission_problems
 from sensors.foreign import SUFFIXES, read_columns
 from sensors.samples import Recording, Stream, clipped_repr
 from sensors.units import convert
@@ -29,10 +32,8 @@ from sensors.units import convert
 
 @dataclass(frozen=True)
 class ImportResult:
-    """The recording made and what the import did: ``summary`` (JSON-ready; its ``notes``
-    say what the data hold that the config may not expect, such as values beyond a sensor's
-    range) and ``changes``, one sentence per change to the source's data (rows left out,
-    gaps, rounding)."""
+    """The recording made and what the import did: ``summary`` (JSON-ready) and ``changes``,
+    one sentence per change to the source's data (rows left out, gaps, rounding)."""
 
     recording: Recording
     summary: dict
@@ -54,6 +55,26 @@ def _start_index(cmap: ColumnMap, scalars: dict[str, float], n_rows: int, path: 
     return int(value) - 1
 
 
+def refuse_what_no_sensor_said(rec: Recording, arm: ArmModel, cmap: ColumnMap,
+                               stream_rows: dict[str, np.ndarray], path: Path, row_word: str = "row") -> None:
+    """The admission every door applies (:mod:`models.sample_admission`): a value past the
+    range of the config's sensor (or the feed's), a time beyond any clock or apart from the
+    rest, refused naming the file's row and columns, or a bag's message (``row_word``) and
+    fields (the other commands would refuse the recording written)."""
+    problems = admission_problems(arm, rec)
+    if problems:
+        p = problems[0]
+        row = int(stream_rows[p.stream][p.index]) if p.stream in stream_rows else p.index + 1
+        cols = ", ".join(cmap.streams[p.stream].columns) if p.stream in cmap.streams else p.stream
+        what = "fields" if row_word == "message" else "columns"
+        topic = getattr(cmap.streams.get(p.stream), "topic", None)
+        where = f"{row_word} {row}" + (f" of topic {topic}" if topic and row_word == "message" else "")
+        why = (", and the next sample moves it back: a spike no joint makes"
+               if p.reason == "encoder_jump" else "; no sensor the config describes can have said that")
+        raise ImportMapError(f"{path}: {where} ({what} {cols}, stream {p.stream}): {p.words}{why} "
+                             "(does the config describe the sensor that recorded it?)")
+
+
 def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> ImportResult:
     """Turn the foreign file ``src`` into ``arm``'s recording by ``cmap`` (see the module's
     docstring). Raises :class:`~fusion.importing.to_stream.ImportMapError` (map against
@@ -68,7 +89,6 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     n = cols.n_rows
     s = _start_index(cmap, cols.scalars, n, path)
     changes: list[str] = []
-    notes: list[str] = []  # what the data hold that the config may not expect (no change made)
     if s:
         changes.append(f"left out the {s} row(s) before the start row {s + 1}")
     if cmap.time_column is not None:
@@ -87,16 +107,19 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     t_s = t_all[keep]
     rows = np.flatnonzero(keep) + s + 1  # the file's row of each kept row
     streams: dict[str, Stream] = {}
+    stream_rows: dict[str, np.ndarray] = {}  # the file's row of each sample of each stream
     stream_summary: dict[str, dict] = {}
     for name, src_cols in cmap.streams.items():
         values = np.stack([cols.columns[c][s:][keep] for c in src_cols.columns], axis=1)
         streams[name], stream_summary[name] = stream_of(name, t_s, values, rows, "row", src_cols,
-                                                        targets[name], str(path), changes, notes)
+                                                        targets[name], str(path), changes)
+        stream_rows[name] = rows[~np.isnan(values).any(axis=1)]
     all_names = targets_of(arm)  # every stream the config describes
     not_mapped = [k for k, tg in all_names.items() if k not in cmap.streams and k not in cmap.absent
                   and not tg.needed]
     dt = np.diff(t_s)
     rec = Recording(streams, meta={"source": str(path), "arm_config": config})
+    refuse_what_no_sensor_said(rec, arm, cmap, stream_rows, path)
     summary = {
         "source": str(path), "format": SUFFIXES[path.suffix.lower()], "map": cmap.source, "config": config,
         "rows": {"in_file": n, "start_row": s + 1, "before_start": s, "imported": int(keep.sum())},
@@ -109,19 +132,17 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
         "absent": dict(cmap.absent),
         "not_mapped": not_mapped,
         "changes": changes,
-        "notes": notes,
     }
     return ImportResult(rec, summary, tuple(changes))
 
 
 def stream_of(name: str, t_s: np.ndarray, values: np.ndarray, rows: np.ndarray, row_word: str,
-              src_cols: StreamSource, t: Target, source: str, changes: list[str],
-              notes: list[str]) -> tuple[Stream, dict]:
+              src_cols: StreamSource, t: Target, source: str, changes: list[str]) -> tuple[Stream, dict]:
     """Stream ``name`` from its source ``values (N, k)`` at ``t_s (N,)``: a row with a NaN is a
     gap (counted in ``changes``), an infinite value refused naming ``rows[i]`` (the source's
     ``row_word``: a file's 1-based row, a bag topic's message from 0), the values brought into
-    the config's unit; what the values hold that the config may not expect goes to ``notes``.
-    Returns the stream and its summary."""
+    the config's unit. Returns the stream and its summary (a value past the sensor's range is
+    the admission's to refuse, :func:`refuse_what_no_sensor_said`)."""
     inf = np.isinf(values)
     if inf.any():
         i, j = (int(x[0]) for x in np.nonzero(inf))
@@ -141,15 +162,9 @@ def stream_of(name: str, t_s: np.ndarray, values: np.ndarray, rows: np.ndarray, 
         changes.append(f"{name}: {int(gap.sum())} {row_word}(s) NaN in every column and {int(partly.sum())} "
                        f"NaN in some of {', '.join(src_cols.columns)} kept as gaps (not sampled), "
                        f"first {row_word}s {', '.join(map(str, first))}")
-    beyond = saturated = 0
+    saturated = 0
     if t.model is not None and t.model.counts_min is not None and len(stream):
-        beyond = int(t.model.beyond_range(stream.values).any(axis=1).sum())
-        saturated = int(t.model.saturated(stream.values).any(axis=1).sum()) - beyond
-        if beyond:
-            notes.append(f"{name}: {beyond} sample(s) beyond the config's sensor range "
-                         f"({t.model.counts_min:g} … {t.model.counts_max:g} {t.value_unit}): the other "
-                         "commands refuse such a recording; does the config describe the sensor that "
-                         "recorded it?")
+        saturated = int(t.model.saturated(stream.values).any(axis=1).sum())
     if done.rounding_max_counts is not None and done.rounding_max_counts > 1e-6:  # not float noise
         changes.append(f"{name}: rounded to whole counts by up to {done.rounding_max_counts:.3f} counts "
                        f"(rms {done.rounding_rms_counts:.3f})")
@@ -159,5 +174,5 @@ def stream_of(name: str, t_s: np.ndarray, values: np.ndarray, rows: np.ndarray, 
         "samples": int(sampled.sum()), "nan_gaps": int(gap.sum()), "partly_nan": int(partly.sum()),
         "values_dtype": str(stream.values.dtype),
         "rounding_max_counts": done.rounding_max_counts, "rounding_rms_counts": done.rounding_rms_counts,
-        "beyond_range": beyond, "at_range_limit": saturated,
+        "at_range_limit": saturated,
     }

@@ -154,4 +154,6 @@ def convert_values(values: np.ndarray, src: StreamSource, t: Target, source_file
             f"counts_per_rev is the encoder's, or allow it with max_rounding_counts in the map's "
             f"{t.stream} entry")
     rms = float(np.sqrt(np.mean(off**2))) if off.size else 0.0
+    if whole.size and not float(np.abs(whole).max()) < 2.0**63:  # no int64 holds it: kept as it is,
+        return Converted(whole, how + ", rounded to whole counts", worst, rms)  # for the admission to name
     return Converted(whole.astype(np.int64), how + ", rounded to whole counts", worst, rms)

@@ -13,7 +13,8 @@ reason             the batch…
 ``wrong_channels`` has channels other than the config's (e.g. 3 encoder channels of 7)
 ``out_of_range``   holds a count beyond the device's register range (an ADXL345 axis
                    -512…511, the MPU-9150's int16, the AK8975's 13 bits, the encoder
-                   feed's int32)
+                   feed's int32): the rule and the words every reader of a file uses
+                   (:mod:`models.sample_admission`)
 ``encoder_jump``   moves a joint's encoder further than the joint can turn in the time
                    since the last sample (``max_joint_rate_rad_s`` plus
                    ``jump_slack_rad``)
@@ -66,9 +67,11 @@ import numpy as np
 from fusion.service.inbox import DropLog
 from fusion.service.payloads import RawBatch
 from models.arm import ArmModel
+from models.sample_admission import ENCODER_REBASE_AFTER_S, JUMP_SLACK_RAD, MAX_JOINT_RATE_RAD_S, jump_words
 from models.sensor_models import ENCODER_STREAM, stream_models
+from sensors.sample_checks import FEED_MAX, FEED_MIN, range_words
 
-INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
+INT32_MIN, INT32_MAX = FEED_MIN, FEED_MAX
 """The encoder feed's counts (sensors/encoders.py: int32 per joint)."""
 REASONS: tuple[str, ...] = ("unknown_sensor", "wrong_kind", "wrong_channels", "out_of_range",
                             "time_ahead", "time_behind", "too_dense", "encoder_jump")
@@ -87,9 +90,9 @@ class AdmissionSettings:
 
     clock_window_s: float = 2.0
     vote_fresh_s: float = 2.0
-    max_joint_rate_rad_s: float = 3.0
-    jump_slack_rad: float = math.radians(0.5)
-    encoder_rebase_after_s: float = 1.0
+    max_joint_rate_rad_s: float = MAX_JOINT_RATE_RAD_S  # (with the files: models.sample_admission)
+    jump_slack_rad: float = JUMP_SLACK_RAD
+    encoder_rebase_after_s: float = ENCODER_REBASE_AFTER_S
     max_rate_hz: float = 1000.0
     burst_samples: int = 16
 
@@ -132,9 +135,7 @@ class Admission:
         self._models = stream_models(arm)
         self._range = {}
         for name, m in self._models.items():  # register counts, or values in the declared unit
-            lo = INT32_MIN if m.counts_min is None else m.counts_min
-            hi = INT32_MAX if m.counts_max is None else m.counts_max
-            self._range[name] = (lo, hi)
+            self._range[name] = m.admissible_range  # (the encoders: the feed's int32)
         st = self.settings
         self._cpr = arm.counts_per_rad
         self._enc_step = self._cpr * st.max_joint_rate_rad_s  # counts per second
@@ -182,8 +183,8 @@ class Admission:
         if (min(flat) < lo or max(flat) > hi) if flat is not None else (
                 s.values.min().item() < lo or s.values.max().item() > hi):
             i, j = (int(x) for x in np.argwhere((s.values < lo) | (s.values > hi))[0])
-            return Verdict("out_of_range", f"{s.channels[j]} = {_shown(s.values[i, j].item())} at t = "
-                                           f"{float(s.t_s[i]):.6g} s is beyond the device's range {lo}…{hi}")
+            return Verdict("out_of_range",
+                           range_words(s.channels[j], s.values[i, j].item(), s.t_s[i], lo, hi))
         verdict = self._check_time(s.name, float(s.t_s[0]), float(s.t_s[-1]), now_s)
         if not verdict.ok:
             return verdict
@@ -266,9 +267,8 @@ class Admission:
         i, j = bad
         deg = math.degrees(abs(int(now_c[i, j]) - int(prev_c[i, j])) / self._cpr[j])
         dt = abs(float(now_t[i]) - float(prev_t[i]))
-        return Verdict("encoder_jump", f"{self._models[ENCODER_STREAM].channels[j]} moved {deg:.3g}° in "
-                                       f"{dt:.3g} s at t = {float(now_t[i]):.6g} s, more than the joint can "
-                                       f"turn ({self.settings.max_joint_rate_rad_s:g} rad/s)"), False
+        return Verdict("encoder_jump", jump_words(self._models[ENCODER_STREAM].channels[j], deg, dt,
+                                                  float(now_t[i]), self.settings.max_joint_rate_rad_s)), False
 
     def _jumps(self, t0, c0, t1, c1) -> tuple[int, int] | None:
         """The first ``(sample, joint)`` whose step from ``c0`` to ``c1`` is too large, or ``None``."""

@@ -156,7 +156,9 @@ def register(app: typer.Typer) -> None:
         mode: ModeOpt = None,
         json_out: JsonOpt = False,
     ) -> None:
-        """Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing."""
+        """Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing.
+
+        Exits 1 when an MCAP file ends early or is damaged (what could be read is replayed)."""
         from fusion.service.replay import NoSubscriberError, replay
 
         factor = parse_speed(speed)
@@ -189,6 +191,9 @@ def register(app: typer.Typer) -> None:
             say_admission(admission)
         if admission is not None and admission.state == "refused":
             fail(admission.message, code=1)
+        read = rec.meta.get("read_report")
+        if read is not None and not read.complete:  # the samples after the damage are lost
+            fail(f"replayed only what could be read: {read.message}", code=1)
         if report.unheard:
             total = sum(report.samples.values())
             fail(f"{sum(report.unheard.values())} of {total} samples went out while nothing subscribed "

@@ -14,12 +14,8 @@ from typer.testing import CliRunner
 
 from fusion.cli.main import app
 from fusion.configfile import load_arm
-from models.sensor_models import (
-    MissingSensorError,
-    OutOfRangeError,
-    screen_samples,
-    stream_models,
-)
+from models.sample_admission import MissingSensorError, OutOfRangeError, screen_samples
+from models.sensor_models import stream_models
 from sensors.recording import read_recording
 
 runner = CliRunner()
@@ -65,8 +61,9 @@ def test_a_value_past_the_device_range_refuses_the_recording_naming_the_place(re
     r = runner.invoke(app, [*cmd, str(recordings["range"])])
     assert r.exit_code == 2, r.output
     said = " ".join(r.stderr.split())
-    assert ("acc2_y = 5000 counts at t = 5.000 s (sample 501 of acc2): beyond the adxl345's register "
-            "range -512…511 counts") in said
+    # the place in the file, then the fusion node's own words for the same refusal
+    assert ("range.csv: row 501 (line 502), stream acc2: acc2_y = 5000 at t = 5 s is beyond the "
+            "device's range -512…511; no such sensor can read that, so the recording is refused") in said
     assert "Traceback" not in r.output and said.count("error:") == 1
 
 
@@ -130,7 +127,7 @@ def test_saturated_and_beyond_range_per_channel():
 
 def test_screen_names_the_first_value_past_range_and_what_is_missing(recordings):
     arm = load_arm("wmra")
-    place = r"^acc2_y = 5000 counts at t = 5\.000 s \(sample 501 of acc2\)"
+    place = r"^row 501 \(line 502\), stream acc2: acc2_y = 5000 at t = 5 s is beyond the device's range"
     with pytest.raises(OutOfRangeError, match=place):
         screen_samples(arm, read_recording(recordings["range"]))
     with pytest.raises(MissingSensorError, match=r"no samples of acc1, acc2, acc3, acc4, which X needs"):

@@ -49,7 +49,7 @@ def test_all_problems_reported_together(wmra_dict):
     assert "4 problems in arm config" in text
     assert "wmra.yaml: sensors[0].rotation: mounting rotation not orthonormal" in text
     assert "wmra.yaml: sensors[1].link: link index out of range: 0 (base) to 7 (got 9)" in text
-    assert "wmra.yaml: arm.joints.counts_per_rev: counts per revolution must be positive; " \
+    assert "wmra.yaml: arm.joints.counts_per_rev: counts per revolution must be from 1 to 2^32; " \
            "entry 2 is -4720000.0" in text
     assert "wmra.yaml: sensors[2].type: unknown sensor type; known types are adxl345, " \
            "mpu9150, mpu6050, analog_triax, custom (got 'adxl999')" in text

@@ -1,6 +1,7 @@
-"""Configs against hostile and broken files (issue 16): read safely and within bounds,
-every field (the ``calibration:`` block and the effects included) checked at load, each
-problem one line naming the file and key, values quoted short."""
+"""Configs against hostile and broken files: read safely and within bounds (a regular file,
+no NUL, no key twice), every field (the ``calibration:`` block and the effects included)
+checked at load against physical bounds, a URDF's geometry too, each problem one line
+naming the file and key, values quoted short; fuzzing checks the loader's answers."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from fusion.cli.main import app
@@ -164,3 +167,190 @@ def test_a_huge_value_is_quoted_short(tmp_path: Path, wmra_dict: dict) -> None:
     assert problems[0].startswith(f"{p}: arm.ready_pose_deg: has 5000 entries; the arm has 7 "
                                   "joints (got [0, 1, 2, 3, 4, 5")
     assert "… (" in problems[0] and len(message) < 600
+
+
+# ---------------------------------------------------------------------------- physical bounds
+# every number of a config within what an arm on a chair can be; every name its own
+
+
+def _spi(d: dict) -> None:
+    d["sensors"][1]["bus"]["chip_select"] = 0  # acc1's
+
+
+def _covariance(d: dict, matrix) -> None:
+    d["calibration"]["correction_covariance"] = {"acc1": {"elements": ["a", "b"], "matrix": matrix}}
+
+
+@pytest.mark.parametrize(
+    "mutate, expected",
+    [
+        (lambda d: d["arm"]["dh"]["d_mm"].__setitem__(0, 1e308),
+         "arm.dh.d_mm: entry 0 is 1e+308 mm; at most ±100000 mm"),
+        (lambda d: d["arm"]["dh"]["a_mm"].__setitem__(0, 1e200),
+         "arm.dh.a_mm: entry 0 is 1e+200 mm; at most ±100000 mm"),
+        (lambda d: d["arm"]["dh"]["alpha_deg"].__setitem__(1, 1e9),
+         "arm.dh.alpha_deg: entry 1 is 1000000000.0 deg; at most ±3600 deg"),
+        (lambda d: d["arm"]["joints"]["counts_per_rev"].__setitem__(0, 1e-300),
+         "arm.joints.counts_per_rev: counts per revolution must be from 1 to 2^32; entry 0 is 1e-300"),
+        (lambda d: d["arm"]["joints"]["counts_per_rev"].__setitem__(3, 1e300),
+         "arm.joints.counts_per_rev: counts per revolution must be from 1 to 2^32; entry 3 is 1e+300"),
+        (lambda d: d["arm"]["joints"]["counts_per_rev"].__setitem__(0, 2**32),
+         "arm.joints.counts_per_rev[0]: the joint's 210° are 2.51e+09 counts, more than the encoder feed's "
+         "int32 holds either side of where it powered up (2147483647)"),
+        (lambda d: d["sensors"][2].__setitem__("position_mm", [1e9, 0, 0]),
+         "sensors[2].position_mm: entry 0 is 1000000000.0 mm; at most ±100000 mm"),
+        (lambda d: d["sensors"][0].__setitem__("link", True),
+         "sensors[0].link: Input should be a valid integer (got True)"),
+        (lambda d: d["sensors"][0]["bus"].__setitem__("chip_select", "0"),
+         "sensors[0].bus.chip_select: Input should be a valid integer (got '0')"),
+        (_spi, "sensors[1].bus: the SPI bus 0 chip select 0 is sensors[0]'s already: one device each"),
+        (lambda d: d["sensors"][3]["bus"].__setitem__("address", 0x53),
+         "sensors[3].bus: the I2C bus 1 address 83 is sensors[2]'s already: one device each"),
+        (lambda d: d["sensors"][0].__setitem__("name", "t"),
+         "sensors[0].name: a recording's own stream is called 't'"),
+        (lambda d: d["sensors"][0].__setitem__("name", "enc"),
+         "sensors[0].name: a recording's own stream is called 'enc'"),
+        (lambda d: d["sensors"][0].__setitem__("name", "true_q"),
+         "sensors[0].name: a recording's own stream is called 'true_q'"),
+        (lambda d: d["sensors"][0].__setitem__("name", "acc2_gyro"),
+         "sensors[0].name: a recording's own stream is called 'acc2_gyro'"),
+        (lambda d: d["sensors"][0].__setitem__("name", "imu2"),
+         "sensors[0].name: a name starting with 'imu' is the base IMU's streams' (imu_acc…) in a recording"),
+        (lambda d: _covariance(d, [[1.0, 2.0], [2.0, 1.0]]),
+         "calibration.correction_covariance.acc1: matrix must be positive semi-definite"),
+    ],
+)
+def test_every_number_within_physical_bounds_and_every_name_its_own(
+    tmp_path: Path, wmra_dict: dict, mutate, expected: str
+) -> None:
+    # before: accepted by `info`; `simulate` then wrote every count as -2^63, or failed on shapes
+    mutate(wmra_dict)
+    p = _write(tmp_path / "c.yaml", wmra_dict)
+    _, problems = _load_problems(p)
+    assert any(q.startswith(f"{p}: {expected}") for q in problems), problems
+    r = runner.invoke(app, ["info", "--config", str(p)])
+    assert r.exit_code == 2 and "Traceback" not in r.output
+
+
+def test_a_fits_semi_definite_covariance_is_taken(tmp_path: Path, wmra_dict: dict) -> None:
+    # two elements known only together (one held to the other): semi-definite, and the file's
+    # 6 digits leave its least eigenvalue at -5e-8
+    _covariance(wmra_dict, [[1.0, 1.0], [1.0, 0.9999999]])
+    assert load_arm(_write(tmp_path / "c.yaml", wmra_dict)).n_joints == 7
+
+
+def test_a_key_given_twice_is_refused_naming_both_lines(tmp_path: Path) -> None:
+    text = (CONFIG_DIR / "wmra.yaml").read_text()
+    text = text.replace("  name: WMRA-II\n", "  name: WMRA-II\n  name: other\n")
+    p = tmp_path / "twice.yaml"
+    p.write_text(text)
+    _, problems = _load_problems(p)
+    assert problems == [f"{p}: line 12: the key 'name' is given twice (first on line 11); a config gives "
+                        "each key once"]
+
+
+def test_a_nul_byte_a_device_and_a_fifo_are_refused_in_one_line(tmp_path: Path) -> None:
+    p = tmp_path / "nul.yaml"
+    p.write_bytes((CONFIG_DIR / "wmra.yaml").read_bytes().replace(b"name: WMRA-II", b"name: WMRA\0II"))
+    _, problems = _load_problems(p)
+    assert problems == [f"{p}: line 11: holds a NUL byte; a config is a YAML text file"]
+    t0 = time.perf_counter()
+    _, problems = _load_problems(Path("/dev/zero"))  # before: read without end
+    not_a_file = "(file): not a regular file (a device, a FIFO, a directory); is it a config?"
+    assert problems == [f"/dev/zero: {not_a_file}"]
+    fifo = tmp_path / "pipe.yaml"
+    os.mkfifo(fifo)
+    _, problems = _load_problems(fifo)  # before: blocked until a writer came
+    assert problems == [f"{fifo}: {not_a_file}"]
+    assert time.perf_counter() - t0 < 1.0
+
+
+_URDF_JOINT = ('<joint name="j{i}" type="revolute"><parent link="{parent}"/><child link="l{i}"/>'
+               '<origin xyz="{xyz}" rpy="0 0 0"/><axis xyz="{axis}"/>'
+               '<limit lower="-3" upper="3" effort="1" velocity="1"/></joint><link name="l{i}"/>')
+
+
+def _urdf_config(tmp_path: Path, xyz: str = "0 0 0.1", axis: str = "0 0 1", head: str = "",
+                 text: str | None = None) -> Path:
+    if text is None:
+        text = (head + '<robot name="r"><link name="base"/>'
+                + _URDF_JOINT.format(i=1, parent="base", xyz=xyz, axis=axis)
+                + _URDF_JOINT.format(i=2, parent="l1", xyz="0 0 0.3", axis="0 1 0") + "</robot>")
+    (tmp_path / "r.urdf").write_text(text)
+    cfg = {"arm": {"name": "r", "urdf": "r.urdf", "ready_pose_deg": [0, 0],
+                   "joints": {"min_deg": [-90, -90], "max_deg": [90, 90], "counts_per_rev": [4096, 4096]}},
+           "sensors": [{"name": "acc1", "type": "adxl345", "link": 2, "position_mm": [0, 0, 100]}]}
+    return _write(tmp_path / "r.yaml", cfg)
+
+
+@pytest.mark.parametrize("kw, expected", [
+    (dict(xyz="nan 0 0"), "joint 'j1': its origin is not finite (xyz, rpy)"),
+    (dict(xyz="1e308 0 0"), "joint 'j1': its origin is 1e+308 m away along an axis; a length is below 100 m"),
+    (dict(xyz="0 200 0"), "joint 'j1': its origin is 200 m away along an axis; a length is below 100 m"),
+    (dict(axis="0 0 0"), "joint 'j1': axis [0.0, 0.0, 0.0] is not a direction (finite, not zero)"),
+    (dict(axis="nan 0 1"), "joint 'j1': axis [nan, 0.0, 1.0] is not a direction (finite, not zero)"),
+    (dict(text="this is not xml <<<"), "not XML (syntax error: line 1, column 0)"),
+    (dict(head='<?xml version="1.0"?>\n<!DOCTYPE r [<!ENTITY x "y">]>\n'),
+     "line 2: a DOCTYPE declaration; a URDF needs none"),
+    (dict(text='<robot name="r">\0</robot>'), "line 1 holds a NUL byte; a URDF is XML text"),
+])
+def test_a_urdf_that_is_not_geometry_is_refused_in_one_line(tmp_path: Path, kw: dict, expected: str) -> None:
+    # before: NaN or 1e308 geometry and a zero axis were accepted (then -2^63 counts, a LinAlgError);
+    # not XML, a DOCTYPE or a NUL were tracebacks
+    p = _urdf_config(tmp_path, **kw)
+    _, problems = _load_problems(p)
+    assert problems == [f"{p}: arm.urdf: URDF r.urdf: {expected} (got 'r.urdf')"] or \
+        problems[0].startswith(f"{p}: arm.urdf: URDF r.urdf: {expected}"), problems
+    r = runner.invoke(app, ["info", "--config", str(p)])
+    assert r.exit_code == 2 and "Traceback" not in r.output
+
+
+def test_a_sound_urdf_is_taken(tmp_path: Path) -> None:
+    assert load_arm(_urdf_config(tmp_path)).n_joints == 2
+
+
+# ---------------------------------------------------------------------------- fuzzing the loader
+
+_HOSTILE_NUMBERS = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True), st.integers(-(2**70), 2**70),
+    st.sampled_from([True, False, None, "", "x", 1e308, -1e308, 1e-300, 0, 2**32 + 1, [], {}]))
+
+
+def _leaves(d, path=()):
+    """The paths of every number in ``d`` (a config as loaded)."""
+    if isinstance(d, dict):
+        for k, v in d.items():
+            yield from _leaves(v, (*path, k))
+    elif isinstance(d, list):
+        for i, v in enumerate(d):
+            yield from _leaves(v, (*path, i))
+    elif isinstance(d, int | float) and not isinstance(d, bool):
+        yield path
+
+
+_WMRA = yaml.safe_load((CONFIG_DIR / "wmra.yaml").read_text())
+_PATHS = list(_leaves(_WMRA))
+
+
+@settings(derandomize=True, max_examples=60, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(changes=st.lists(st.tuples(st.sampled_from(_PATHS), _HOSTILE_NUMBERS), min_size=1, max_size=3))
+def test_fuzz_the_loader_gives_finite_bounded_geometry_or_its_own_error(tmp_path: Path, changes) -> None:
+    d = copy.deepcopy(_WMRA)
+    for path, value in changes:
+        node = d
+        for k in path[:-1]:
+            node = node[k]
+        node[path[-1]] = value
+    p = _write(tmp_path / "fuzz.yaml", d)
+    try:
+        arm = load_arm(p)
+    except ConfigError as e:
+        assert all(str(q).startswith(f"{p}: ") for q in e.problems)
+        return
+    for j in arm.joints:
+        for a in (j.R_pre, j.p_pre_m, j.axis, j.R_post, j.p_post_m):
+            assert np.all(np.isfinite(a)) and np.all(np.abs(a) < 100.0)
+        assert 1.0 <= j.counts_per_rev <= 2.0**32
+    for s in arm.sensors:
+        assert np.all(np.isfinite(s.p_L_m)) and np.all(np.abs(s.p_L_m) < 100.0) and s.link in range(8)

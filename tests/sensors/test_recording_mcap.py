@@ -460,7 +460,8 @@ def test_reads_a_file_from_another_mcap_writer(tmp_path: Path) -> None:
     gyro = back.get("imu_gyro")
     np.testing.assert_array_equal(gyro.t_s, 0.1 * np.arange(5))
     np.testing.assert_array_equal(gyro.values[:, 2], 2**40 + np.arange(5))
-    assert back.meta == {"source": str(tmp_path / "other.mcap")}  # no armfusion metadata
+    assert back.meta == {"source": str(tmp_path / "other.mcap"),  # no armfusion metadata
+                         "mcap_topics": {"imu_gyro": "raw/imu_gyro"}}
 
 
 @pytest.mark.parametrize("values, why", [

@@ -124,3 +124,21 @@ def test_replay_counts_what_went_out_after_its_subscriber_left(startup_recording
     total = sum(report.samples.values())
     unheard = sum(report.unheard.values())
     assert 0.2 * total < unheard < 0.8 * total, (unheard, total)
+
+
+def test_replay_of_a_cut_mcap_replays_what_it_can_read_and_exits_1(startup_recording, hub_settings, tmp_path):
+    # before: exit 0, the lost chunk said in a warning only
+    from fusion.service.zenoh_config import open_session
+
+    data = startup_recording.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    listener, _ = hub_settings
+    heard = []
+    with open_session(listener) as s:
+        s.declare_subscriber("armfusion/chair1/raw/*", heard.append)
+        r = CliRunner().invoke(app, ["replay", str(cut), "--speed", "max", "--wait", "5",
+                                     "--connect", listener.listen[0]])
+    assert r.exit_code == 1, r.output
+    assert f"replayed only what could be read: {cut}: file ends early at byte" in " ".join(r.stderr.split())
+    assert heard  # what could be read went out
