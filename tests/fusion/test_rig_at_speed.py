@@ -164,3 +164,47 @@ def test_a_moving_start_says_plainly_when_no_instant_can_be_used(moving_rig):
     over = _scaled(rec, "shaft", np.ones(len(acc), bool), 1.3)
     with pytest.raises(NoStillWindowError, match="shaft never is: nothing to start from"):
         start_from_recording(arm, over, moving_start=True, propose_unlock=False)
+
+
+# ------------------------------------------------------------------ the gyros' stand-in at speed
+def test_the_gyros_stand_in_for_the_encoder_at_speed_keeps_its_sigma_honest(tmp_path):
+    """The horizontal-shaft rig swept 10-170° at up to 375 °/s (its shaft accelerometer 10 cm
+    off the axis, its samples stamped 10 ms late, the frame shaking at 0.05 g), its encoder
+    withheld after 20 s: the gyros' angle, calibrated on those 20 s, carries the shaft from a
+    moving start through every sweep, never outside 3σ (0.80° RMS at a median σ of 1.26°).
+    What limits the stand-in at speed on the real rig (its residual grows from 0.7° on a slow
+    trial to 3° on a medium one) is not in this simulation: this holds what it does carry."""
+    import yaml
+
+    from fusion.tracking.gyro_encoder import (
+        calibrate_gyro_encoder,
+        settings_with_gyro_encoder,
+        with_gyro_encoder,
+    )
+    from models.effects import model_from_arm
+
+    cfg = yaml.safe_load(resolve_config_path("imu_rig_roll").read_text(encoding="utf-8"))
+    cfg["sensors"][0]["position_mm"] = [0, 100, 0]
+    cfg["effects"] = [{"effect": "time_offset", "target": "shaft", "params": {"offset_s": [0.01]},
+                       "sigma": {"offset_s": [0.001]}}]
+    path = tmp_path / "rig-fast.yaml"
+    path.write_text(yaml.safe_dump(cfg), encoding="utf-8")
+    arm = load_arm(path)
+    b = StepsBuilder([10 * DEG])
+    while b.t < 40.0:
+        b.move([170 * DEG], 0.8).hold(0.3).move([10 * DEG], 0.8).hold(0.3)
+    sc = Scenario("fast-sweeps", arm, 40.0, WaypointPath(b.build()), ShakingFrame(0.5, 11.3, 0.0),
+                  _constant_temperature)
+    rec, _ = simulate(arm, sc, seed=9, effects=model_from_arm(arm))
+    rate = np.degrees(np.abs(sc.state(rec.get("enc").t_s).qd_rad_s[:, 0]))
+    assert rate.max() > 300.0
+    t0 = rec.t_start_s
+    gcal = calibrate_gyro_encoder(arm, rec.between(t0, t0 + 20.0), 0)
+    later = rec.between(t0 + 20.0, np.inf)
+    withheld = with_gyro_encoder(arm, later, 0, gcal)
+    tr, _ = start_from_recording(arm, withheld, settings_with_gyro_encoder(None, gcal), moving_start=True,
+                                 propose_unlock=False)
+    run = tr.run(withheld, truth=True)
+    err = np.angle(np.exp(1j * run.q_error_rad[:, 0]))
+    assert np.all(np.abs(err) <= 3 * run.sigma_rad[:, 0])
+    assert np.degrees(np.sqrt(np.mean(err**2))) < 1.5
