@@ -154,15 +154,18 @@ class Observability:
 
         A joint is gravity-blind (``gimbal_lock``, held) when its axis is within the lock angle
         (``gimbal_lock_deg`` and three of the tilt's sigmas) of the filter's vertical, or of
-        ``imu_up`` (base axes: the base IMU's own averaged reading of up, its bias removed),
-        whichever says so. The filter's tilt is pulled by every accelerometer it reads: on a
+        ``imu_up`` (base axes: the base IMU's own averaged reading of up, its bias removed)
+        for a joint the filter knows no better than ``mean_state_held_sigma_deg``, whichever
+        says so. The filter's tilt is pulled by every accelerometer it reads: on a
         shaking frame, a link accelerometer beyond a vertical joint whose angle is unknown
         reads the frame's acceleration turned by that unknown angle, and the filter's tilt
         wandered by degrees in it (5-8° on a simulated rig spun at 300 °/s with its frame
         shaking at 0.1 g, the true tilt 0.1°). Past the lock angle the joint then read that
         wandering tilt's horizontal gravity as information about its angle and grew
         confidently wrong. The IMU's average is what the base's own accelerometer says, which
-        no link accelerometer pulls."""
+        no link accelerometer pulls. A joint the filter knows is not pulled that way (the
+        readings beyond it are turned by a known angle), and the IMU's average leans with a
+        chair's accelerations: its angle is judged by the filter's tilt alone."""
         st, L, n = self.settings, self.layout, self.layout.n_joints
         key = self._key
         if key is not None and key[1] == used and t - key[0] < st.observability_period_s:
@@ -178,10 +181,11 @@ class Observability:
         sel, coef = self._obs_sel(used)
         P_off = np.ascontiguousarray(P[:n, :n])
         self._blind[:] = False
-        if imu_up is not None:
+        if imu_up is not None:  # (only a joint the filter does not know: see above)
             lock_deg = st.gimbal_lock_deg + 3.0 * tilt_sigma_deg
             c = np.minimum(np.abs(frame.axes @ imu_up), 1.0)
-            self._blind[:] = np.degrees(np.arccos(c)) < lock_deg
+            unknown = np.diagonal(P_off) > (st.mean_state_held_sigma_deg * DEG) ** 2
+            self._blind[:] = (np.degrees(np.arccos(c)) < lock_deg) & unknown
         W, U = self._kernel(frame, up, tilt_sigma_deg, base, sel, coef, P_off)
         self.locked = self._locked.copy()
         self.axis_deg = self._axis_deg.copy()
