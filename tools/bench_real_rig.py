@@ -29,6 +29,11 @@ a user's recording never seen before (nothing here knows a file by its name):
    (`tools/rig_peers.py`: vqf, imufusion, ahrs) on the same samples, their zero aligned on
    the same calibration stretch.
 
+Each trial's stages are guarded: a stage that fails (an unreadable file, a start with no
+usable instant, …) is reported in the trial's row and section, the stages that needed it
+are marked not run, and the bench goes on to the next trial, so that ``--data DIR`` runs
+every trial of any folder to the end.
+
 Writes its section of docs/benchmarks.md and docs/real-data.md.
 
     python tools/bench_real_rig.py [--data DIR] [--calibrate-s 300] [--rungs 10] [--no-write]
@@ -85,21 +90,32 @@ ZERO_WITHIN_S = 30.0
 
 @dataclass
 class TrialResult:
+    """One trial's figures; a stage that failed leaves its fields None and says why in
+    ``failures`` (stage -> the error), and the stages after it that needed it are not run."""
+
     name: str
-    rows: int
-    import_changes: list[str]
-    config: str
-    fits: dict[str, float]
-    rungs: tuple[Rung, ...]
-    follows: tuple[str, ...]
-    zero_deg: float
-    zero_sigma_deg: float
-    track: dict
-    withheld: dict
-    peers: dict[str, dict]
-    seconds: dict[str, float]
+    rows: int | None = None
+    import_changes: list[str] | None = None
+    config: str | None = None
+    fits: dict[str, float] | None = None
+    rungs: tuple[Rung, ...] | None = None
+    follows: tuple[str, ...] = ()
+    zero_deg: float = float("nan")
+    zero_sigma_deg: float = float("nan")
+    track: dict | None = None
+    withheld: dict | None = None
+    peers: dict[str, dict] | None = None
+    seconds: dict[str, float] | None = None
     time_offset_s: float | None = None
     """The shaft IMU's calibrated time offset (s), when the ladder added one."""
+    failures: dict[str, str] | None = None
+
+    @property
+    def horizontal(self) -> bool:
+        return self.config is not None and self.config != "imu_rig_yaw"
+
+    def failed(self, stage: str) -> str | None:
+        return (self.failures or {}).get(stage)
 
 
 def choose_config(rec: Recording, first_s: float) -> tuple[str, dict[str, float]]:
@@ -188,46 +204,74 @@ def track_encoder_withheld(cal_config: Path, cal: Recording, rec: Recording, zer
     return out
 
 
+STAGES = ("import", "choose", "ladder", "track", "withheld", "peers")
+
+
+def _stage(r: TrialResult, stage: str, fn):
+    """Run one stage of a trial: its result, or None with the error kept in ``r.failures``
+    (a trial's failure is a row of the table, never the end of the bench)."""
+    t0 = time.perf_counter()
+    try:
+        return fn()
+    except Exception as e:  # noqa: BLE001 - any failure of a stage is reported, not raised
+        r.failures[stage] = f"{type(e).__name__}: {e}"
+        return None
+    finally:
+        r.seconds[stage] = time.perf_counter() - t0
+
+
 def run_trial(path: Path, calibrate_s: float, rungs: int, work: Path) -> TrialResult:
-    secs = {}
-    t0 = time.perf_counter()
-    cmap = load_column_map("imu-rig")
-    first = load_arm(RIG_CONFIGS[0])
-    imported = import_recording(path, cmap, first, RIG_CONFIGS[0])
+    """One trial through every stage (:data:`STAGES`); a stage that fails is reported in the
+    result and the stages that needed it are skipped, each saying so."""
+    r = TrialResult(path.stem, seconds={}, failures={})
+
+    def do_import():
+        cmap = load_column_map("imu-rig")
+        first = load_arm(RIG_CONFIGS[0])
+        return import_recording(path, cmap, first, RIG_CONFIGS[0])
+
+    imported = _stage(r, "import", do_import)
+    if imported is None:
+        return _skip(r, "import")
     rec = imported.recording
-    secs["import"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    config, fits = choose_config(rec, 60.0)
-    secs["choose"] = time.perf_counter() - t0
-    arm = load_arm(config)
+    r.rows, r.import_changes = len(rec.get("enc")), list(imported.changes)
+    chosen = _stage(r, "choose", lambda: choose_config(rec, 60.0))
+    if chosen is None:
+        return _skip(r, "choose")
+    r.config, r.fits = chosen
+    arm = load_arm(r.config)
     t_start = rec.t_start_s
     cal = rec.between(t_start, t_start + calibrate_s)
     scored = rec.between(t_start + calibrate_s, np.inf)
-    t0 = time.perf_counter()
-    disc = ladder(arm, cal, rungs)
-    rs, final, follows = disc.rungs, disc.final, disc.remaining
-    secs["ladder"] = time.perf_counter() - t0
-    zero, zero_sig = encoder_zero(final)
-    cfg = yaml.safe_load(resolve_config_path(config).read_text(encoding="utf-8"))
+    disc = _stage(r, "ladder", lambda: ladder(arm, cal, rungs))
+    if disc is None:
+        return _skip(r, "ladder")
+    r.rungs, r.follows = disc.rungs, disc.remaining
+    zero, zero_sig = encoder_zero(disc.final)
+    r.zero_deg, r.zero_sigma_deg = float(np.degrees(zero)), float(np.degrees(zero_sig))
+    cfg = yaml.safe_load(resolve_config_path(r.config).read_text(encoding="utf-8"))
     out = work / f"{path.stem}.calibrated.yaml"
-    out.write_text(yaml.safe_dump(config_with_estimates(cfg, final.fit), sort_keys=False, width=110),
+    out.write_text(yaml.safe_dump(config_with_estimates(cfg, disc.final.fit), sort_keys=False, width=110),
                    encoding="utf-8")
     shaft = arm.link_accelerometers[0].name
-    time_offset_s = device_time_offsets(config_model(load_arm(out))).get(shaft, (None, None))[0]
-    t0 = time.perf_counter()
-    tracked = track_scored(out, scored, zero)
-    secs["track"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    withheld = track_encoder_withheld(out, cal, scored, zero)
-    secs["withheld"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    _grid, peer_runs = peer_joint_angles(rec, arm, calibrate_s)
-    peers = {n: {"library": r.library, "rmse_deg": r.rmse_deg, "max_deg": r.max_deg, "seconds": r.seconds,
-                 "heading_shared": r.heading_shared} for n, r in peer_runs.items()}
-    secs["peers"] = time.perf_counter() - t0
-    return TrialResult(path.stem, len(rec.get("enc")), list(imported.changes), config, fits, rs, follows,
-                       float(np.degrees(zero)), float(np.degrees(zero_sig)), tracked, withheld, peers, secs,
-                       time_offset_s)
+    r.time_offset_s = device_time_offsets(config_model(load_arm(out))).get(shaft, (None, None))[0]
+    r.track = _stage(r, "track", lambda: track_scored(out, scored, zero))
+    r.withheld = _stage(r, "withheld", lambda: track_encoder_withheld(out, cal, scored, zero))
+
+    def do_peers():
+        _grid, peer_runs = peer_joint_angles(rec, arm, calibrate_s)
+        return {n: {"library": p.library, "rmse_deg": p.rmse_deg, "max_deg": p.max_deg, "seconds": p.seconds,
+                    "heading_shared": p.heading_shared} for n, p in peer_runs.items()}
+
+    r.peers = _stage(r, "peers", do_peers)
+    return r
+
+
+def _skip(r: TrialResult, failed: str) -> TrialResult:
+    """The stages after ``failed`` marked not run."""
+    for stage in STAGES[STAGES.index(failed) + 1:]:
+        r.failures.setdefault(stage, f"not run ({failed} failed)")
+    return r
 
 
 # ------------------------------------------------------------------------------------ reporting
@@ -237,9 +281,131 @@ def _fmt(x, spec=".2f", none="–") -> str:
     return format(x, spec)
 
 
+def _failure(r: TrialResult, stage: str) -> str:
+    return f"**{stage} failed**: {r.failed(stage)}"
+
+
 def _best_peer(r: TrialResult) -> str:
+    if not r.peers:
+        return _failure(r, "peers") if r.failed("peers") else "–"
     name, p = min(r.peers.items(), key=lambda kv: kv[1]["rmse_deg"])
     return f"{name} {_fmt(p['rmse_deg'])}°"
+
+
+def _best_peer_rmse(r: TrialResult) -> float:
+    return min((p["rmse_deg"] for p in r.peers.values()), default=float("nan")) if r.peers else float("nan")
+
+
+def _flag_words(flags: dict) -> str:
+    return ", ".join(f"{k} {100 * v:.0f} %" for k, v in sorted(flags.items(), key=lambda kv: -kv[1]))
+
+
+def _blind_share(tk: dict) -> float:
+    """The share of the time the joint was flagged gravity-blind (``gimbal_lock`` or
+    ``unobserved``)."""
+    return tk["flags"].get("gimbal_lock", 0.0) + tk["flags"].get("unobserved", 0.0)
+
+
+def _row(r: TrialResult) -> str:
+    if r.rungs is None:
+        first = next(st for st in STAGES if r.failed(st))
+        return f"| {r.name} | {_failure(r, first)} |" + " |" * 10
+    tk, wh = r.track, r.withheld
+    if tk is None:
+        track_cells = f"{_failure(r, 'track')} | | | | | "
+    else:
+        track_cells = (f"{_fmt(tk['err_at_30s_deg'])}° | {_fmt(tk['rmse_after_30s_deg'])}° | "
+                       f"{100 * tk['within_3sigma']:.1f} % | {_fmt(tk['sigma_median_deg'])}° | "
+                       f"{_flag_words(tk['flags'])} | ")
+    withheld = (_failure(r, "withheld") if wh is None else
+                f"{_fmt(wh['rmse_after_30s_deg'])}° ({100 * wh['within_3sigma']:.1f} %)")
+    return (f"| {r.name} | {r.config} ({r.fits[r.config]:.1f}) | {r.rungs[0].rms_ratio:.1f} → "
+            f"{r.rungs[-1].rms_ratio:.2f} | {len(r.rungs) - 1} | " + track_cells
+            + f"{r.zero_deg:+.2f}° ± {r.zero_sigma_deg:.2f}° | {withheld} | {_best_peer(r)} |")
+
+
+def _listing(rs: list[TrialResult], ok, words) -> str:
+    """Each trial's figure (``words(r)``) and whether every one meets the target (``ok(r)``)."""
+    if not rs:
+        return "no such trial here."
+    bad = [r.name for r in rs if not ok(r)]
+    body = ", ".join(f"{r.name} {words(r)}" for r in rs)
+    return body + (" (met)." if not bad else f" (**not met**: {', '.join(bad)}).")
+
+
+def _vertical_ok(r: TrialResult) -> bool:
+    return r.track is not None and _blind_share(r.track) >= 0.99 and r.track["within_3sigma"] >= 0.99
+
+
+def _vertical_words(r: TrialResult) -> str:
+    tk = r.track
+    if tk is None:
+        return "–"
+    return (f"{100 * _blind_share(tk):.1f} % flagged, within 3σ {100 * tk['within_3sigma']:.1f} % "
+            f"(σ {_fmt(tk['sigma_median_deg'], '.0f')}°: the joint may be anywhere in its limits)")
+
+
+def _tight_ok(r: TrialResult) -> bool:
+    tk = r.track
+    return (tk is not None and tk["sigma_median_deg"] <= 3 * tk["rmse_after_30s_deg"]
+            and tk["within_3sigma"] >= 0.95)
+
+
+def _tight_words(r: TrialResult) -> str:
+    tk = r.track
+    if tk is None:
+        return "–"
+    return (f"σ {_fmt(tk['sigma_median_deg'])}° = {tk['sigma_median_deg'] / tk['rmse_after_30s_deg']:.0f} × "
+            f"RMSE, within 3σ {100 * tk['within_3sigma']:.1f} %")
+
+
+def _withheld_ok(r: TrialResult) -> bool:
+    wh = r.withheld
+    return (wh is not None and wh["rmse_after_30s_deg"] <= 0.5
+            and wh["rmse_after_30s_deg"] < _best_peer_rmse(r))
+
+
+def _track_figure(key: str):
+    def words(r: TrialResult) -> str:
+        return "–" if r.track is None else f"{_fmt(r.track[key])}°"
+    return words
+
+
+def targets(results: list[TrialResult]) -> list[str]:
+    """The targets, each with where it stands on these trials (a trial whose stage failed
+    misses it)."""
+    horiz = [r for r in results if r.horizontal]
+    vert = [r for r in results if r.config == "imu_rig_yaw"]
+    failed = [r.name for r in results if r.config is None]
+    lines = [
+        "- Vertical shaft, every speed: flagged gravity-blind (`gimbal_lock` or `unobserved`) ≥ 99 % of "
+        "the time, within 3σ ≥ 99 %: " + _listing(vert, _vertical_ok, _vertical_words),
+        f"- Horizontal shaft, zero found to ≤ {ZERO_TARGET_DEG}° within {ZERO_WITHIN_S:g} s "
+        "(error at 25-30 s): "
+        + _listing(horiz, lambda r: r.track is not None and r.track["err_at_30s_deg"] <= ZERO_TARGET_DEG,
+                   _track_figure("err_at_30s_deg")),
+        "- Horizontal shaft, tracked RMSE after 30 s ≤ 0.2°: "
+        + _listing(horiz, lambda r: r.track is not None and r.track["rmse_after_30s_deg"] <= 0.2,
+                   _track_figure("rmse_after_30s_deg")),
+        "- Horizontal shaft, σ honest and tight: median σ ≤ 3 × RMSE and within 3σ ≥ 95 %: "
+        + _listing(horiz, _tight_ok, _tight_words),
+        "- Horizontal shaft, encoder withheld: RMSE ≤ 0.5° and better than every peer in the same run "
+        "(the joint's relative angle from the integral of the shaft's gyro less the frame's about the "
+        "shaft's axis, each read when its samples were true, its scale, bias and drift measured on the "
+        "calibration stretch, tracked as a drifting relative encoder; the peers, tools/rig_peers.py, the "
+        "twist of the two IMUs' relative orientation about the shaft, zero aligned on the same stretch): "
+        + _listing(horiz, _withheld_ok,
+                   lambda r: ("–" if r.withheld is None else f"{_fmt(r.withheld['rmse_after_30s_deg'])}°")
+                   + f" against {_best_peer(r)}"),
+        "- The bench runs every trial to the end: "
+        + ("met (a failed stage would be a row's entry)." if not any(r.failures for r in results) else
+           "every trial ran; stages failed on " + ", ".join(
+               f"{r.name} ({', '.join(k for k, v in r.failures.items() if not v.startswith('not run'))})"
+               for r in results if r.failures) + "."),
+    ]
+    if failed:
+        lines.append(f"- Trials that did not reach a set-up (every target missed): {', '.join(failed)}.")
+    return lines
 
 
 def benchmarks_section(results: list[TrialResult], calibrate_s: float) -> str:
@@ -251,7 +417,8 @@ def benchmarks_section(results: list[TrialResult], calibrate_s: float) -> str:
         f"ladder) on its first {calibrate_s:g} s, tracked over the rest with the encoder as the joint's "
         "relative encoder whose zero the tracker does not know (it starts afresh on the moving shaft). "
         "Errors against the encoder and the zero the calibration found (its σ below). "
-        "docs/real-data.md has each trial's ladder.",
+        "docs/real-data.md has each trial's ladder. A stage that fails is reported in its row; the "
+        "bench goes on to the next trial.",
         "",
         f"Machine: {machine_line()}.",
         "",
@@ -260,60 +427,23 @@ def benchmarks_section(results: list[TrialResult], calibrate_s: float) -> str:
         "RMSE after 30 s | within 3σ | σ (median) | joint flags | calibration's zero | "
         "encoder withheld: RMSE after 30 s (within 3σ) | best peer, same stretch (RMSE) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-    ]
-    for r in results:
-        tk = r.track
-        flags = ", ".join(f"{k} {100 * v:.0f} %"
-                          for k, v in sorted(tk["flags"].items(), key=lambda kv: -kv[1]))
-        lines.append(
-            f"| {r.name} | {r.config} ({r.fits[r.config]:.1f}) | {r.rungs[0].rms_ratio:.1f} → "
-            f"{r.rungs[-1].rms_ratio:.2f} | {len(r.rungs) - 1} | {_fmt(tk['err_at_30s_deg'])}° | "
-            f"{_fmt(tk['rmse_after_30s_deg'])}° | {100 * tk['within_3sigma']:.1f} % | "
-            f"{_fmt(tk['sigma_median_deg'])}° | {flags} | {r.zero_deg:+.2f}° ± {r.zero_sigma_deg:.2f}° | "
-            f"{_fmt(r.withheld['rmse_after_30s_deg'])}° ({100 * r.withheld['within_3sigma']:.1f} %) | "
-            f"{_best_peer(r)} |")
-    lines += [
+        *[_row(r) for r in results],
         "",
         "Targets and where they stand:",
         "",
-        f"- Encoder as relative encoder, zero found to ≤ {ZERO_TARGET_DEG}° within {ZERO_WITHIN_S:g} s: "
-        + ("met on every horizontal trial." if all(
-            (r.track["err_at_30s_deg"] <= ZERO_TARGET_DEG) for r in results if r.config != "imu_rig_yaw")
-           else "**not met** on "
-           + ", ".join(r.name for r in results if r.config != "imu_rig_yaw"
-                       and not r.track["err_at_30s_deg"] <= ZERO_TARGET_DEG)
-           + " (column 'error at 25-30 s')."),
-        "- Vertical shaft: flagged gravity-blind the whole time, σ honest: "
-        + ", ".join(f"{r.name} {100 * r.track['flags'].get('gimbal_lock', 0.0):.0f} % gimbal_lock, "
-                    f"within 3σ {100 * r.track['within_3sigma']:.1f} % "
-                    f"(σ {_fmt(r.track['sigma_median_deg'], '.0f')}°: "
-                    "the joint may be anywhere inside its limits)"
-                    for r in results if r.config == "imu_rig_yaw") + ".",
-        "- Horizontal shaft, encoder withheld (RMSE ≤ 0.5°, better than vqf / imufusion / ahrs in the same "
-        "run): the joint's relative angle from the integral of the shaft's gyro less the frame's about the "
-        "shaft's axis, each read when its samples were true (its scale, bias and drift measured on the "
-        "calibration stretch, where the encoder is known), tracked as a drifting relative encoder: "
-        + ", ".join(f"{r.name} {_fmt(r.withheld['rmse_after_30s_deg'])}°" for r in results
-                    if r.config != "imu_rig_yaw")
-        + (" (met)" if all(r.withheld["rmse_after_30s_deg"] <= 0.5
-                           for r in results if r.config != "imu_rig_yaw")
-           else " (**not met**)")
-        + "; the peers in the same run (tools/rig_peers.py: the twist of the two IMUs' relative "
-        "orientation about the shaft, zero aligned on the same calibration stretch): "
-        + ", ".join(f"{r.name} {_best_peer(r)}" for r in results if r.config != "imu_rig_yaw")
-        + (": **armfusion is behind them**" if any(
-            r.withheld["rmse_after_30s_deg"] > min(p["rmse_deg"] for p in r.peers.values())
-            for r in results if r.config != "imu_rig_yaw") else ": armfusion beats every peer") + ".",
-        "- The ladder ends at ≤ 1.5× the noise floor on every trial (the floor as the issue defines it: the "
-        "MPU-6050's datasheet noise and the 0.01 rounding): "
-        + ("met." if all(r.rungs[-1].rms_ratio <= 1.5 for r in results) else
+        *targets(results),
+    ]
+    done = [r for r in results if r.rungs is not None]
+    lines.append(
+        "- The ladder ends at ≤ 1.5× the noise floor on every trial (the floor: the MPU-6050's datasheet "
+        "noise and the 0.01 rounding): "
+        + ("met." if all(r.rungs[-1].rms_ratio <= 1.5 for r in done) else
            "**not met** (column 'ladder'). Against the noise each recording shows (the datasheet's with the "
            "single-sample excess the fit measures, the stepper's vibration, averaged over a fit point as "
            "white noise is) the ladders end at "
-           + ", ".join(f"{r.name} {r.rungs[-1].measured_ratio:.2f}×" for r in results)
+           + ", ".join(f"{r.name} {r.rungs[-1].measured_ratio:.2f}×" for r in done)
            + ": what is left above the datasheet's floor is that vibration, which no effect of the library "
-           "(or any model of the joint's motion) explains (docs/real-data.md)."),
-    ]
+           "(or any model of the joint's motion) explains (docs/real-data.md)."))
     return "\n".join(lines) + "\n"
 
 
@@ -359,6 +489,10 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
     ]
     for r in results:
         tk = r.track
+        if r.rungs is None:  # failed before the calibration: what failed, and nothing more
+            out += [f"## {r.name}", "",
+                    *[f"- {stage}: {r.failed(stage)}" for stage in STAGES if r.failed(stage)], ""]
+            continue
         out += [
             f"## {r.name}",
             "",
@@ -386,31 +520,42 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
             f"The calibration's joint zero (the encoder's zero on this power-up, geometric = encoder + "
             f"zero): {r.zero_deg:+.3f}° ± {r.zero_sigma_deg:.3f}°.",
             "",
-            f"Tracking the remaining {tk['duration_s']:.0f} s with the calibrated config "
-            f"({tk['seconds']:.0f} s): "
-            f"{tk['start_note']}; startup "
-            + (f"{tk['startup_deg']:.1f}° ({tk['startup_flag']})" if tk["startup_deg"] is not None
-               else f"none ({tk['startup_flag']})")
-            + f". Error against the encoder and the calibration's zero: {_fmt(tk['err_at_30s_deg'])}° "
-            f"(RMS over 25-30 s), {_fmt(tk['rmse_after_30s_deg'])}° RMS after 30 s (worst "
-            f"{_fmt(tk['max_after_30s_deg'])}°), within 3σ {100 * tk['within_3sigma']:.1f} % of the time "
-            "at a "
-            f"median σ of {_fmt(tk['sigma_median_deg'])}°; first within {ZERO_TARGET_DEG}° at "
-            f"{_fmt(tk['first_within_target_s'], '.1f', 'never')} s. Joint flags: "
-            + ", ".join(f"{k} {100 * v:.0f} %" for k, v in tk["flags"].items()) + ".",
             "",
-            f"The same stretch with the encoder withheld (the gyros' relative rate about the shaft, "
-            f"integrated: its scale and bias against the encoder on the calibration stretch "
-            f"{r.withheld['gyro_scale']:.4f} and {r.withheld['gyro_bias_deg_s']:+.4f} °/s, applied; what "
-            f"that left there {r.withheld['gyro_residual_deg']:.2f}° RMS, drifting "
-            f"{r.withheld['random_walk_deg_sqrt_s']:.3f} °/√s over 10 s, the joint's random walk in the "
-            f"tracker): "
-            f"{_fmt(r.withheld['err_at_30s_deg'])}° at 25-30 s, "
-            f"{_fmt(r.withheld['rmse_after_30s_deg'])}° RMS "
-            f"after 30 s (worst {_fmt(r.withheld['max_after_30s_deg'])}°), within 3σ "
-            f"{100 * r.withheld['within_3sigma']:.1f} % at a median σ of "
-            f"{_fmt(r.withheld['sigma_median_deg'])}°.",
-            "",
+        ]
+        wh = r.withheld
+        out += [(_failure(r, "track") if tk is None else
+                 f"Tracking the remaining {tk['duration_s']:.0f} s with the calibrated config "
+                 f"({tk['seconds']:.0f} s): "
+                 f"{tk['start_note']}; startup "
+                 + (f"{tk['startup_deg']:.1f}° ({tk['startup_flag']})" if tk["startup_deg"] is not None
+                    else f"none ({tk['startup_flag']})")
+                 + ". Error against the encoder and the calibration's zero: "
+                 f"{_fmt(tk['err_at_30s_deg'])}° "
+                 f"(RMS over 25-30 s), {_fmt(tk['rmse_after_30s_deg'])}° RMS after 30 s (worst "
+                 f"{_fmt(tk['max_after_30s_deg'])}°), within 3σ {100 * tk['within_3sigma']:.1f} % "
+                 "of the time "
+                 "at a "
+                 f"median σ of {_fmt(tk['sigma_median_deg'])}°; first within {ZERO_TARGET_DEG}° at "
+                 f"{_fmt(tk['first_within_target_s'], '.1f', 'never')} s. Joint flags: "
+                 + ", ".join(f"{k} {100 * v:.0f} %" for k, v in tk["flags"].items()) + "."),
+                "",
+                ("The same stretch with the encoder withheld: " + _failure(r, "withheld") if wh is None else
+                 f"The same stretch with the encoder withheld (the gyros' relative rate about the shaft, "
+                 f"integrated: its scale and bias against the encoder on the calibration stretch "
+                 f"{wh['gyro_scale']:.4f} and {wh['gyro_bias_deg_s']:+.4f} °/s, applied; what "
+                 f"that left there {wh['gyro_residual_deg']:.2f}° RMS, drifting "
+                 f"{wh['random_walk_deg_sqrt_s']:.3f} °/√s over 10 s, the joint's random walk in the "
+                 f"tracker): "
+                 f"{_fmt(wh['err_at_30s_deg'])}° at 25-30 s, "
+                 f"{_fmt(wh['rmse_after_30s_deg'])}° RMS "
+                 f"after 30 s (worst {_fmt(wh['max_after_30s_deg'])}°), within 3σ "
+                 f"{100 * wh['within_3sigma']:.1f} % at a median σ of "
+                 f"{_fmt(wh['sigma_median_deg'])}°."),
+                ""]
+        if r.peers is None:
+            out += ["The peer filters: " + _failure(r, "peers"), ""]
+            continue
+        out += [
             "The peer filters on the same trial (`tools/rig_peers.py`, each with its documented defaults, "
             "on both IMUs; the shaft angle the twist of their relative orientation about the config's "
             "shaft axis, the two filters' headings reconciled through that axis where the shaft is not "
@@ -449,7 +594,7 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
         "- **With the encoder withheld**, where gravity sees the shaft: "
         + "; ".join(f"{r.name} armfusion {_fmt(r.withheld['rmse_after_30s_deg'])}°, best peer "
                     f"{_best_peer(r)}" for r in results
-                    if r.withheld["flags"].get("gimbal_lock", 0.0) < 0.5)
+                    if r.horizontal and r.withheld is not None)
         + " (RMSE after 30 s).",
         "",
     ]
@@ -472,11 +617,16 @@ def main(argv=None) -> int:
         for p in trials:
             r = run_trial(p, a.calibrate_s, a.rungs, Path(tmp))
             tk = r.track
-            print(f"{r.name}: {r.config}; ladder {r.rungs[0].rms_ratio:.1f} -> {r.rungs[-1].rms_ratio:.2f} "
-                  f"({len(r.rungs) - 1} rungs); zero {r.zero_deg:+.2f} ± {r.zero_sigma_deg:.2f} deg; "
-                  f"tracked: {_fmt(tk['err_at_30s_deg'])} deg at 30 s, "
-                  f"RMSE {_fmt(tk['rmse_after_30s_deg'])}, "
-                  f"within 3 sigma {100 * tk['within_3sigma']:.1f} %, flags {tk['flags']}", flush=True)
+            ladder_words = ("" if r.rungs is None else
+                            f"ladder {r.rungs[0].rms_ratio:.1f} -> {r.rungs[-1].rms_ratio:.2f} "
+                            f"({len(r.rungs) - 1} rungs); "
+                            f"zero {r.zero_deg:+.2f} ± {r.zero_sigma_deg:.2f} deg; ")
+            track_words = ("" if tk is None else
+                           f"tracked: {_fmt(tk['err_at_30s_deg'])} deg at 30 s, "
+                           f"RMSE {_fmt(tk['rmse_after_30s_deg'])}, within 3 sigma "
+                           f"{100 * tk['within_3sigma']:.1f} %, flags {tk['flags']}")
+            print(f"{r.name}: {r.config}; {ladder_words}{track_words}"
+                  + (f"; FAILED {r.failures}" if r.failures else ""), flush=True)
             results.append(r)
     body = benchmarks_section(results, a.calibrate_s)
     doc = real_data_doc(results, a.calibrate_s)

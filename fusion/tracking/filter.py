@@ -232,7 +232,12 @@ class Tracker:
                                       self._unmodelled_g[:len(self.link_names)], self._sees)
         self.observability.reset()
         if prior_q_rad is None:  # no saved pose: an unread joint may be anywhere in its limits
-            unread = ~read_by_startup(startup) & ~self.ambiguity_.joints
+            # and one the startup read only poorly (ill_conditioned) counts as read once this
+            # filter's own test says gravity sees it: on a moving start a vertical shaft's
+            # centripetal acceleration, taken for gravity, gave it a number 56° off at a
+            # sigma of 10° (a simulated rig at 300 °/s), which the gimbal lock then held
+            poorly = np.array([j.flag == "ill_conditioned" for j in startup.joints], dtype=bool)
+            unread = (~read_by_startup(startup) | poorly) & ~self.ambiguity_.joints
             self.observability.set_unread(np.where(unread, limits_cover_var(
                 self._q_startup, self.arm.min_rad, self.arm.max_rad), 0.0))
         imu_model = self.readings.models.get(IMU_ACC)
@@ -257,6 +262,19 @@ class Tracker:
         x = self._x0.copy()
         x[L.offset] = self._q_startup - q_enc
         self._ukf = BatchedUKF(x, self._P0, self._points, angle_states=(L.yaw,))
+
+    def _imu_up(self, x: np.ndarray) -> np.ndarray | None:
+        """Up in base axes as the base IMU's accelerometer alone reads it: its average over
+        ``still_tau_s`` (:class:`fusion.tracking.process.StillDetector`), the filter's estimate
+        of its bias removed, turned into base axes; None without an IMU reading yet. A
+        shaking frame's acceleration averages out of it; the link accelerometers do not pull
+        it (see :meth:`fusion.tracking.observability.Observability.update`)."""
+        mean = self.still.mean if self._has_imu else None
+        if mean is None:
+            return None
+        f = self.R_0I @ (np.asarray(mean, float) - x[self.layout.imu_bias])
+        norm = float(np.linalg.norm(f))
+        return f / norm if norm > 0.5 else None
 
     def _check(self) -> None:
         if self._t is None:
@@ -481,7 +499,7 @@ class Tracker:
             if used != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
                 self._obs_used_key, self._obs_t = used, t
                 self.observability.update(self._t, frame, used, ukf._x, ukf._P, self._P0, self._q_enc,
-                                          self.slips.calibration)
+                                          self.slips.calibration, self._imu_up(ukf._x))
         mask = None
         if mag is not None:
             use = self.compass.verdict(t, bool(inn.gate_ok[-1]), check, inn.innovation[-1:], inn.S[-1:, -1:],

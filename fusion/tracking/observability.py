@@ -57,6 +57,7 @@ class Observability:
         n = layout.n_joints  # the kernel's outputs (copied out: their holders keep them)
         self._axis_deg, self._achievable = np.empty(n), np.empty(n)
         self._locked, self._wide = np.empty(n, np.bool_), np.empty(n, np.bool_)
+        self._blind = np.zeros(n, np.bool_)  # gravity-blind by the IMU's own up (see update)
         self._columns(spread, unmodelled_g, scale_sigma)
         self.reset()
 
@@ -78,6 +79,7 @@ class Observability:
         """Per joint, the variance the filter's own does not hold (rad²): the calibration's
         (``diag(S S^T)``) and, while a joint is unread, what covers its limits."""
         self.unread_var = np.zeros(n)
+        self._read_since: dict[int, float] = {}  # per unread joint, since when it has been readable
         """Per joint the startup could not read and gravity has not read since: the variance
         that covers every angle inside its limits (0 once read; see :meth:`set_unread`)."""
         self.consider = np.zeros((n, self.spread_m))
@@ -141,13 +143,29 @@ class Observability:
         self.spread_m = m
 
     def update(self, t: float, frame: Frames, used: tuple[int, ...], x: np.ndarray, P: np.ndarray,
-               P0: np.ndarray, q_enc: np.ndarray, slips_calibration: np.ndarray) -> None:
+               P0: np.ndarray, q_enc: np.ndarray, slips_calibration: np.ndarray,
+               imu_up: np.ndarray | None = None) -> None:
         """Each joint axis's angle to vertical, and the information the usable link
         accelerometers give about the offsets in ``observability_window_s``; sets the hold
         projection (Schmidt) and the inputs of the joint flags, at ``t``, from the state ``x``
         and covariance ``P`` (``P0`` the startup's, ``q_enc`` the encoders' angles). Writes
         into ``slips_calibration`` what the calibration leaves in the link accelerometers'
-        innovations (see :class:`fusion.tracking.slips.SlipDetector`)."""
+        innovations (see :class:`fusion.tracking.slips.SlipDetector`).
+
+        A joint is gravity-blind (``gimbal_lock``, held) when its axis is within the lock angle
+        (``gimbal_lock_deg`` and three of the tilt's sigmas) of the filter's vertical, or of
+        ``imu_up`` (base axes: the base IMU's own averaged reading of up, its bias removed)
+        for a joint the filter knows no better than ``mean_state_held_sigma_deg``, whichever
+        says so. The filter's tilt is pulled by every accelerometer it reads: on a
+        shaking frame, a link accelerometer beyond a vertical joint whose angle is unknown
+        reads the frame's acceleration turned by that unknown angle, and the filter's tilt
+        wandered by degrees in it (5-8° on a simulated rig spun at 300 °/s with its frame
+        shaking at 0.1 g, the true tilt 0.1°). Past the lock angle the joint then read that
+        wandering tilt's horizontal gravity as information about its angle and grew
+        confidently wrong. The IMU's average is what the base's own accelerometer says, which
+        no link accelerometer pulls. A joint the filter knows is not pulled that way (the
+        readings beyond it are turned by a known angle), and the IMU's average leans with a
+        chair's accelerations: its angle is judged by the filter's tilt alone."""
         st, L, n = self.settings, self.layout, self.layout.n_joints
         key = self._key
         if key is not None and key[1] == used and t - key[0] < st.observability_period_s:
@@ -162,6 +180,12 @@ class Observability:
         base = x[L.accel] + G * up
         sel, coef = self._obs_sel(used)
         P_off = np.ascontiguousarray(P[:n, :n])
+        self._blind[:] = False
+        if imu_up is not None:  # (only a joint the filter does not know: see above)
+            lock_deg = st.gimbal_lock_deg + 3.0 * tilt_sigma_deg
+            c = np.minimum(np.abs(frame.axes @ imu_up), 1.0)
+            unknown = np.diagonal(P_off) > (st.mean_state_held_sigma_deg * DEG) ** 2
+            self._blind[:] = (np.degrees(np.arccos(c)) < lock_deg) & unknown
         W, U = self._kernel(frame, up, tilt_sigma_deg, base, sel, coef, P_off)
         self.locked = self._locked.copy()
         self.axis_deg = self._axis_deg.copy()
@@ -206,7 +230,7 @@ class Observability:
         return offsets_observability(
             frame.axes, up, st.gimbal_lock_deg + 3.0 * tilt_sigma_deg, frame.motion_mps2, base, frame.K,
             frame.R_0S, sel, coef, P_off, 1.0 / (st.sigma_limit_deg * DEG) ** 2,
-            (st.mean_state_held_sigma_deg * DEG) ** 2, self._axis_deg, self._locked, self._wide,
+            (st.mean_state_held_sigma_deg * DEG) ** 2, self._blind, self._axis_deg, self._locked, self._wide,
             self._achievable)
 
     def _consider_update(self, t: float, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray,
@@ -344,9 +368,18 @@ class Observability:
             else:
                 f = 0
             flags.append(f)
-        if self.unread_var.any():  # a joint read at last no longer needs its limits' cover
-            read = [j for j in range(n)
-                    if self.unread_var[j] > 0 and flags[j] not in (F_GIMBAL, F_UNOBSERVED)]
+        if self.unread_var.any():  # a joint read at last no longer needs its limits' cover:
+            # read for a whole observability window (the information is the window's; and a
+            # test of the axis at the first instants, before the base IMU's average holds,
+            # is a test of one shaken sample)
+            read = []
+            for j in range(n):
+                if self.unread_var[j] > 0 and flags[j] not in (F_GIMBAL, F_UNOBSERVED):
+                    since = self._read_since.setdefault(j, t)
+                    if t - since >= st.observability_window_s:
+                        read.append(j)
+                else:
+                    self._read_since.pop(j, None)
             if read:
                 self.unread_var = self.unread_var.copy()
                 self.unread_var[read] = 0.0

@@ -20,7 +20,7 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def offsets_observability(axes, up, lock_deg, motion_mps2, base_mps2, K, R_0S, sel, coef, P_offsets,
-                          weak_info, wide_var, axis_deg, locked, wide,
+                          weak_info, wide_var, blind, axis_deg, locked, wide,
                           achievable):  # pragma: no cover - compiled
     """The offsets' observability at one instant, for ``n`` joints and the ``S'`` link
     accelerometers ``sel``.
@@ -32,7 +32,8 @@ def offsets_observability(axes, up, lock_deg, motion_mps2, base_mps2, K, R_0S, s
     each axis's cross-product matrix; ``R_0S (S, 3, 3)`` each sensor's orientation;
     ``coef (S', 3, n)`` the factor that turns a Jacobian row into an information row;
     ``P_offsets (n, n)`` the filter's offset covariance; ``weak_info`` the information below
-    which a direction is weak; ``wide_var`` the variance above which a locked joint is wide.
+    which a direction is weak; ``wide_var`` the variance above which a locked joint is wide;
+    ``blind (n,)`` the joints another test found gravity-blind (locked whatever ``up`` says).
 
     Out (written): ``axis_deg (n,)`` each axis's angle to vertical; ``locked (n,)``;
     ``wide (n,)`` locked and known no better than ``wide_var``; ``achievable (n,)`` the sigma
@@ -49,7 +50,7 @@ def offsets_observability(axes, up, lock_deg, motion_mps2, base_mps2, K, R_0S, s
     for j in range(n):
         c = abs(axes[j, 0] * up[0] + axes[j, 1] * up[1] + axes[j, 2] * up[2])
         axis_deg[j] = math.degrees(math.acos(min(c, 1.0)))
-        locked[j] = axis_deg[j] < lock_deg
+        locked[j] = axis_deg[j] < lock_deg or blind[j]
     m = sel.shape[0]
     W = np.zeros((3 * m, n))
     for r in range(m):

@@ -117,13 +117,22 @@ MOVING_SEARCH_S = 5.0
 
 
 def moving_window(arm: ArmModel, rec: Recording, search_s: float = MOVING_SEARCH_S,
-                  samples: int = MOVING_WINDOW_SAMPLES):
+                  samples: int = MOVING_WINDOW_SAMPLES,
+                  magnitude_range_g: tuple[float, float] = (0.8, 1.2)):
     """The startup's readings on an arm that never stands still: the ``samples`` encoder
-    instants of the first ``search_s`` over which the joints travel least, averaged. Each
-    link accelerometer's σ is widened by what that travel turns gravity by (up to 1 g per
-    radian of the joints before it) and by its reading's spread in the window, so that
-    the startup's σ covers the motion; the tracker refines the angles from there. Returns
-    ``(window, readings, checks, note)``; :class:`NoStillWindowError` when too short."""
+    instants over which the joints travel least, averaged, among those at which every link
+    accelerometer (and the base IMU's) can be used: no sample saturated and every sample
+    within ``magnitude_range_g`` of gravity (the startup's own check,
+    :func:`fusion.startup.readings.readings_from_recording`, which leaves a sensor out
+    otherwise; a shaft accelerometer reading 1.26 g at the least-moving instants of a fast
+    trial left the startup nothing to solve from). The first ``search_s`` are searched; where
+    no instant there can be used, the whole recording. Each link accelerometer's σ is
+    widened by what that travel turns gravity by (up to 1 g per radian of the joints before
+    it), by its reading's spread in the window, and by how far its mean's magnitude is from
+    1 g (at least that much of it is the motion's acceleration, not gravity), so that the
+    startup's σ covers the motion; the tracker refines the angles from there. Returns
+    ``(window, readings, checks, note)``; :class:`NoStillWindowError` when too short, or
+    when no instant has every accelerometer within range (saying which one never was)."""
     from fusion.startup.solve import readings_from_recording
 
     enc = rec.get(ENC)
@@ -131,25 +140,57 @@ def moving_window(arm: ArmModel, rec: Recording, search_s: float = MOVING_SEARCH
         raise NoStillWindowError("no still stretch, and too few encoder samples to start on a moving arm")
     t = enc.t_s
     q = enc.values / arm.counts_per_rad
+    models = stream_models(arm)
+    names = [m.name for m in arm.link_accelerometers] + ([IMU_ACC] if arm.imu is not None else [])
+    usable = np.ones(len(t) - samples + 1, dtype=bool)  # per window of encoder instants
+    never = []
+    for name in names:
+        s = rec.get(name)
+        if s is None or not len(s) or name not in models:
+            continue
+        m = models[name]
+        bad = m.saturated(s.values).any(axis=1)
+        mag = np.linalg.norm(m.from_counts(s.values), axis=1)
+        bad |= (mag < magnitude_range_g[0]) | (mag > magnitude_range_g[1])
+        # a window [t_k, t_k+samples-1] is unusable where a bad sample of this sensor falls in it
+        nbad = np.concatenate([[0], np.cumsum(bad)])
+        lo = np.searchsorted(s.t_s, t[:len(usable)], side="left")
+        hi = np.searchsorted(s.t_s, t[samples - 1:], side="right")
+        ok = (nbad[hi] - nbad[lo] == 0) & (hi > lo)
+        if not ok.any():
+            never.append(name)
+        usable &= ok
+    if not usable.any():
+        raise NoStillWindowError(
+            "no still stretch, and no instant on the moving arm at which every accelerometer can be used "
+            f"(each sample within {magnitude_range_g[0]:g}-{magnitude_range_g[1]:g} g, none saturated)"
+            + (f": {', '.join(never)} never is" if never else "") + ": nothing to start from")
     last = max(int(np.searchsorted(t, t[0] + search_s)), samples)
     last = min(last, len(t))
-    windows = np.lib.stride_tricks.sliding_window_view(q[:last], samples, axis=0)  # (W, n, samples)
+    windows = np.lib.stride_tricks.sliding_window_view(q, samples, axis=0)  # (W, n, samples)
     travel = np.ptp(windows, axis=2)  # (W, n)
-    k = int(np.argmin(travel.sum(axis=1)))
+    cost = np.where(usable, travel.sum(axis=1), np.inf)
+    first = cost[:last - samples + 1]
+    searched = search_s
+    if np.isfinite(first).any():
+        k = int(np.argmin(first))
+    else:  # none usable in the first search_s: the first usable instants of the least travel
+        k = int(np.argmin(cost))
+        searched = float(t[-1] - t[0])
     t0, t1 = float(t[k]), float(t[k + samples - 1])
-    readings, checks = readings_from_recording(arm, rec, t0, t1, t1 - t0 + 1e-9)
-    models = stream_models(arm)
+    readings, checks = readings_from_recording(arm, rec, t0, t1, t1 - t0 + 1e-9, magnitude_range_g)
     sig = {}
     for m in arm.link_accelerometers:
         if m.name in readings.accel_sigma_g:
             turned = float(np.sum(travel[k][: m.link]))
             s = rec.get(m.name).between(t0, t1 + 1e-9)
             spread = np.std(models[m.name].from_counts(s.values), axis=0) if len(s) > 1 else 0.0
-            sig[m.name] = np.sqrt(readings.accel_sigma_g[m.name] ** 2 + turned**2 + spread**2)
+            off_g = abs(float(np.linalg.norm(readings.accel_mean_g[m.name])) - 1.0)
+            sig[m.name] = np.sqrt(readings.accel_sigma_g[m.name] ** 2 + turned**2 + spread**2 + off_g**2)
     readings = replace(readings, accel_sigma_g={**readings.accel_sigma_g, **sig})
     note = (f"no still stretch: started on the moving arm at t = {t0:.2f}..{t1:.2f} s (the least joint "
-            f"travel of the first {search_s:g} s: {np.degrees(travel[k].max()):.2f} deg), its readings' "
-            "sigma widened by that motion")
+            f"travel of the first {searched:g} s at which every accelerometer can be used: "
+            f"{np.degrees(travel[k].max()):.2f} deg), its readings' sigma widened by that motion")
     return Segment(t0, t1), readings, checks, note
 
 

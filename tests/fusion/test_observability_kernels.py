@@ -37,11 +37,11 @@ def _case(rng, n=7, S=4, vertical=()):
     return axes, K, R_0S, motion, base, P
 
 
-def _numpy_form(axes, up, lock_deg, motion, base, K, R_0S, sel, coef, P, weak_info, wide_var):
+def _numpy_form(axes, up, lock_deg, motion, base, K, R_0S, sel, coef, P, weak_info, wide_var, blind):
     """The same quantities as NumPy writes them (the form the kernel replaced)."""
     n = axes.shape[0]
     axis_deg = np.degrees(np.arccos(np.minimum(np.abs(axes @ up), 1.0)))
-    locked = axis_deg < lock_deg
+    locked = (axis_deg < lock_deg) | blind
     v = motion[sel] + base
     Kv = (K.reshape(3 * n, 3) @ v.T).reshape(n, 3, -1).transpose(2, 1, 0)
     W = ((R_0S[sel].transpose(0, 2, 1) @ Kv) * coef).reshape(-1, n)
@@ -60,9 +60,12 @@ def _numpy_form(axes, up, lock_deg, motion, base, K, R_0S, sel, coef, P, weak_in
     return axis_deg, locked, W, achievable, held, wide
 
 
-@pytest.mark.parametrize("vertical, sel", [((), [0, 1, 2, 3]), ((0,), [0, 1, 2, 3]), ((), [3]),
-                                           ((0, 2), [2, 3]), ((0,), [])])
-def test_the_compiled_observability_says_what_the_equations_say(vertical, sel):
+@pytest.mark.parametrize("vertical, sel, blind", [((), [0, 1, 2, 3], ()), ((0,), [0, 1, 2, 3], ()),
+                                                  ((), [3], ()), ((0, 2), [2, 3], ()), ((0,), [], ()),
+                                                  ((0,), [0, 1, 2, 3], (4,)), ((), [1, 2], (1, 5))])
+def test_the_compiled_observability_says_what_the_equations_say(vertical, sel, blind):
+    """(``blind``: joints another test found gravity-blind, whatever their axis says: locked
+    and held as a vertical axis is.)"""
     rng = np.random.default_rng(11 + len(sel) + 10 * len(vertical))
     n, S = 7, 4
     axes, K, R_0S, motion, base, P = _case(rng, n, S, vertical)
@@ -72,12 +75,14 @@ def test_the_compiled_observability_says_what_the_equations_say(vertical, sel):
     weak_info, wide_var = 1.0 / (2.0 * DEG) ** 2, (3.0 * DEG) ** 2
     axis_deg, locked = np.empty(n), np.empty(n, np.bool_)
     wide, achievable = np.empty(n, np.bool_), np.empty(n)
+    blind_mask = np.zeros(n, np.bool_)
+    blind_mask[list(blind)] = True
     W, U = offsets_observability(axes, up, 1.0, motion, base, K, R_0S, sel, coef, P, weak_info, wide_var,
-                                 axis_deg, locked, wide, achievable)
-    ref = _numpy_form(axes, up, 1.0, motion, base, K, R_0S, sel, coef, P, weak_info, wide_var)
+                                 blind_mask, axis_deg, locked, wide, achievable)
+    ref = _numpy_form(axes, up, 1.0, motion, base, K, R_0S, sel, coef, P, weak_info, wide_var, blind_mask)
     np.testing.assert_allclose(axis_deg, ref[0], rtol=0, atol=1e-9)
     assert np.array_equal(locked, ref[1])
-    assert locked[list(vertical)].all() and locked.sum() == len(vertical)
+    assert locked[list(vertical) + list(blind)].all() and locked.sum() == len(set(vertical) | set(blind))
     np.testing.assert_allclose(W, ref[2], rtol=1e-12, atol=1e-9)
     finite = np.isfinite(ref[3])
     assert np.array_equal(np.isfinite(achievable), finite)
