@@ -45,7 +45,7 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -100,6 +100,9 @@ class ServeReport:
     refused_samples: dict[str, int] | None = None
     """The samples of the raw batches the admission refused, by reason (``dropped`` counts
     payloads and batches)."""
+    degraded_periods: int = 0
+    folded_instants: int = 0
+    lag_max_ms: int = 0
 
     def as_dict(self) -> dict:
         return {"robot": self.robot, "state": self.state, "samples": self.samples,
@@ -109,7 +112,39 @@ class ServeReport:
                 "calibrations": self.calibrations, "missed_batches": self.missed_batches,
                 "seq_resets": self.seq_resets, "encoder_rebases": self.encoder_rebases,
                 "stalls": self.stalls, "errors": self.errors,
-                "refused_samples": dict(self.refused_samples or {})}
+                "refused_samples": dict(self.refused_samples or {}),
+                "degraded_periods": self.degraded_periods, "folded_instants": self.folded_instants,
+                "lag_max_ms": self.lag_max_ms}
+
+
+@dataclass(frozen=True)
+class Lateness:
+    """How the fusion node degrades when it falls behind (see docs/service.md, "When the node
+    falls behind").
+
+    The node's lag is the age of the message it takes from its receive channel (the wall
+    time since Zenoh handed it over). While the stream is live (``max_pace``), beyond ``degrade_after_s`` the node is degraded (the
+    status's ``degraded`` 1, its ``lag_ms``, and a message saying so) until a message taken
+    is again younger than half of it. While degraded, each pass of the loop takes every
+    message waiting (for at most ``pass_s`` of wall time), admits each and queues its
+    samples, then fuses once: the instants more than ``degrade_after_s`` older than the
+    sensors' clock are folded, merged into one instant per ``fold_period_s`` of sample time
+    (each sensor's latest sample in it, at the last instant's time); the newer ones are
+    fused one by one; the joint states go out as usual (at most ``publish_hz``), so the
+    folded instants have none. The startup's kept samples are fused the same way. Every sample still goes through the admission and is counted; the
+    folded instants' samples are what the tracker does not see one by one.
+    """
+
+    degrade_after_s: float = 0.05
+    fold_period_s: float = 0.02
+    pass_s: float = 0.2
+    max_pace: float = 1.5
+    """Live only: while the sensors' newest time ran more than this many times as fast as
+    wall time over the arrivals of the last ``pace_window_s`` (a replay faster than real
+    time), or those arrivals span less than half of it (a stream just begun, or a burst),
+    the node is not degraded: every instant is fused one by one however long it takes (such
+    a stream has no real time to be late against)."""
+    pace_window_s: float = 2.0
 
 
 class FusionNode:
@@ -125,6 +160,7 @@ class FusionNode:
     ``admission``: the bounds every raw batch is checked against
     (:mod:`fusion.service.admission`). ``stall_after_s``: while tracking, no estimate for
     that long (wall time) while raw batches arrive is a stall, reported in the status.
+    ``lateness``: when the node is degraded and what it does then (:class:`Lateness`).
     """
 
     def __init__(self, session: zenoh.Session, arm: ArmModel, robot: str, *,
@@ -135,7 +171,7 @@ class FusionNode:
                  recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5,
                  queue_size: int = DEFAULT_QUEUE_SIZE, admission: AdmissionSettings | None = None,
                  stall_after_s: float = 1.0, assume_parked: bool = False,
-                 maneuver: ServedManeuver | None = None):
+                 maneuver: ServedManeuver | None = None, lateness: Lateness | None = None):
         self.session = session
         # the ready pose as evidence for the startup's branches only when the caller says the
         # arm is parked there (serve --assume-parked); by default nothing but the data chooses
@@ -157,6 +193,12 @@ class FusionNode:
         self.queue_size = queue_size
         self.stall_after_s = stall_after_s
         self._admission = Admission(arm, admission)
+        self.lateness = lateness or Lateness()
+        self._degraded = False
+        self._lag_s = 0.0
+        self._lag_max_s = 0.0
+        self._pace_marks: deque[tuple[float, float, float]] = deque()  # see _mark_pace
+        self._pace_arrived_s = -np.inf
         self._maneuver = maneuver
         self._last_estimate = None
         self._stall = StallWatch(stall_after_s)
@@ -239,7 +281,7 @@ class FusionNode:
             while not stop.is_set():
                 msg = receiver.get(timeout_s=0.1)
                 if msg is not None:
-                    self._on_message_guarded(msg)
+                    self._take(msg, receiver)
                 while (query := self._next_query()) is not None:
                     self._answer(query)
                 if served is not None and served.serve():
@@ -280,7 +322,8 @@ class FusionNode:
                            self._message, self._resumed, self._resume_message,
                            self._counts["calibrations"], adm.missed_batches, adm.seq_resets,
                            adm.encoder_rebases, self._stall.stalls, self._counts["errors"],
-                           dict(adm.rejected_samples))
+                           dict(adm.rejected_samples), self._counts["degraded_periods"],
+                           self._counts["folded_instants"], int(round(1e3 * self._lag_max_s)))
 
     def _dropped(self, receiver: BoundedReceiver) -> dict[str, int]:
         d = Counter(self._inbox.dropped) + self._admission.rejected
@@ -288,25 +331,87 @@ class FusionNode:
             d["overflow"] += receiver.overflowed
         return dict(d)
 
-    def _on_message_guarded(self, msg) -> None:
+    def _take(self, msg, receiver: BoundedReceiver) -> None:
+        """One message, or, when the node is behind, every message waiting: the lateness
+        policy (:class:`Lateness`)."""
+        lt = self.lateness
+        now = time.monotonic()
+        lag = now - (msg.arrived_s or now)
+        self._lag_s, self._lag_max_s = lag, max(self._lag_max_s, lag)
+        was = self._degraded
+        if not self._live():
+            self._degraded = False
+        elif lag > lt.degrade_after_s:
+            self._degraded = True
+        elif lag <= 0.5 * lt.degrade_after_s:
+            self._degraded = False
+        if self._degraded != was:
+            self._status_due = True
+            if self._degraded:
+                self._counts["degraded_periods"] += 1
+                log.warning("serve: degraded: %.0f ms behind the sensors; folding the backlog", 1e3 * lag)
+            else:
+                log.info("serve: caught up (%.0f ms behind); no longer degraded", 1e3 * lag)
+        if not self._degraded:
+            self._on_message_guarded(msg)
+            return
+        until = now + lt.pass_s
+        while msg is not None:
+            self._on_message_guarded(msg, fuse=False)
+            msg = receiver.get_nowait() if time.monotonic() < until else None
+        if self._tracker is not None:
+            try:
+                self._fuse(self._reorder.release(clock_s=self._admission.clock(time.monotonic())),
+                           fold=True)
+            except Exception as e:  # noqa: BLE001 - as _on_message_guarded
+                self._counts["errors"] += 1
+                log.exception("serve: error while catching up: %s: %s", type(e).__name__, str(e)[:200])
+
+    def _live(self) -> bool:
+        """Whether the sensors' time ran at about wall time (at most the lateness policy's
+        ``max_pace`` times as fast) over the arrivals of the last ``pace_window_s``, when
+        they span at least half of it."""
+        lt = self.lateness
+        marks = self._pace_marks
+        if not marks:
+            return False
+        wall = self._pace_arrived_s - marks[0][0]
+        return wall >= 0.5 * lt.pace_window_s and marks[-1][2] - marks[0][1] <= lt.max_pace * wall
+
+    def _mark_pace(self, arrived_s: float, t_s: float) -> None:
+        """Note an accepted batch's last time ``t_s``, arrived at ``arrived_s``: per 0.1 s of
+        arrivals, its first arrival, its first batch's time and the newest time; those of the
+        last ``pace_window_s`` kept."""
+        marks = self._pace_marks
+        self._pace_arrived_s = max(self._pace_arrived_s, arrived_s)
+        if marks and arrived_s < marks[-1][0] + 0.1:
+            if t_s > marks[-1][2]:
+                marks[-1] = (*marks[-1][:2], t_s)
+            return
+        marks.append((arrived_s, t_s, t_s))
+        while marks[0][0] < arrived_s - self.lateness.pace_window_s:
+            marks.popleft()
+
+    def _on_message_guarded(self, msg, fuse: bool = True) -> None:
         """:meth:`_on_message`, and the last line of defence: whatever slipped past the checks
         is counted (``errors``), logged with its traceback, and the node goes on."""
         try:
-            self._on_message(msg)
+            self._on_message(msg, fuse)
         except Exception as e:  # noqa: BLE001 - nothing a peer sends may stop the node
             self._counts["errors"] += 1
             self._status_due = True
             log.exception("serve: error on a message on %s: %s: %s", msg.key[:100], type(e).__name__,
                           str(e)[:200])
 
-    def _on_message(self, msg) -> None:
+    def _on_message(self, msg, fuse: bool = True) -> None:
         batch = self._inbox.decode(msg.key, msg.data)
         if not isinstance(batch, pl.RawBatch):
             return
         s = batch.stream
         now = time.monotonic()
+        arrived = msg.arrived_s or now  # (earlier than now when the node is behind)
         self._stall.raw_arrived_s = now
-        verdict = self._admission.check(batch, now)
+        verdict = self._admission.check(batch, now, arrived)
         if not verdict.ok:
             return
         if verdict.reset:  # what was kept of this stream was on a clock the others refute
@@ -317,6 +422,7 @@ class FusionNode:
                 self._maneuver.clock_reset(s.name)
         self._counts["samples"] += len(s)
         self._arrived[s.name] = now
+        self._mark_pace(arrived, float(s.t_s[-1]))
         self._recent.keep(s)
         if self._maneuver is not None:
             self._maneuver.keep(s)
@@ -331,7 +437,8 @@ class FusionNode:
             self._try_start(float(s.t_s[-1]))
             return
         self._counts["out_of_order"] += self._reorder.push(s)
-        self._fuse(self._reorder.release())
+        if fuse:
+            self._fuse(self._reorder.release(clock_s=self._admission.clock(now, arrived)))
 
     # -- start: a saved state, or a startup calibration on a still arm -------------------------
     def _try_resume(self, t_s: float, encoder_counts: np.ndarray) -> None:
@@ -406,7 +513,8 @@ class FusionNode:
             if len(after):
                 self._counts["out_of_order"] += self._reorder.push(after)
         self._buffer.clear()
-        self._fuse(self._reorder.release())
+        now = time.monotonic()
+        self._fuse(self._reorder.release(clock_s=self._admission.clock(now)), fold=self._live())
 
     # -- calibration on request ------------------------------------------------------------------
     def _next_query(self):
@@ -504,10 +612,44 @@ class FusionNode:
         return f"the plan's first pose is {d[j]:.1f}° away ({e.joint_names[j]}) from the estimate now"
 
     # -- tracking, publishing, saving ------------------------------------------------------------
-    def _fuse(self, instants) -> None:
-        """Feed released instants to the tracker; publish at most every publish period."""
+    def _fold(self, instants):
+        """``instants`` with those older than the sensors' clock by more than the lateness
+        policy's ``degrade_after_s`` merged, one per ``fold_period_s`` of sample time (each
+        sensor's latest sample in it, at its last instant's time); the rest as they are."""
+        lt = self.lateness
+        clock = self._admission.clock(time.monotonic())
+        if clock is None or not instants or instants[0][0] >= clock - lt.degrade_after_s:
+            return instants
+        stale_before = clock - lt.degrade_after_s
+        out: list[tuple[float, dict[str, np.ndarray]]] = []
+        window_end, merged, t_last = -np.inf, None, None
+        folded = 0
+        for i, (t, samples) in enumerate(instants):
+            if t >= stale_before:
+                break
+            if merged is not None and t > window_end:
+                out.append((t_last, merged))
+                merged = None
+            if merged is None:
+                merged, window_end = {}, t + lt.fold_period_s - 1e-9
+            else:
+                folded += 1
+            merged.update(samples)
+            t_last = t
+        else:
+            i = len(instants)
+        if merged is not None:
+            out.append((t_last, merged))
+        self._counts["folded_instants"] += folded
+        return out + list(instants[i:])
+
+    def _fuse(self, instants, fold: bool = False) -> None:
+        """Feed released instants to the tracker; publish at most every publish period.
+        ``fold``: the lateness policy's pass (:class:`Lateness`): stale instants folded."""
         tr = self._tracker
         takes = set(tr.sensor_names) | {"imu_temp"}
+        if fold:
+            instants = self._fold(instants)
         for t, samples in instants:
             enc = samples.get(ENC)
             if enc is not None and t >= tr.t_s - 1e-9:  # what the tracker fuses, not drops
@@ -583,7 +725,10 @@ class FusionNode:
                     "stalled": int(self._stall.since_s is not None), "stalls": self._stall.stalls,
                     "errors": self._counts["errors"],
                     "calibrations": self._counts["calibrations"],
-                    "model_alarms": self._counts["alarms"]}
+                    "model_alarms": self._counts["alarms"],
+                    "degraded": int(self._degraded), "lag_ms": int(round(1e3 * self._lag_s)),
+                    "degraded_periods": self._counts["degraded_periods"],
+                    "folded_instants": self._counts["folded_instants"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
         sensors = dict(self._sensors)
         sensors.update(dict.fromkeys(self._silent & set(sensors), "stale"))
@@ -596,6 +741,9 @@ class FusionNode:
         if self._silent and self._silent >= set(sensors):
             quiet_s = time.monotonic() - max(self._arrived.values())
             message = f"no samples for {quiet_s:.1f} s: every sensor stale; {message}"
+        if self._degraded:
+            message = (f"degraded: {1e3 * self._lag_s:.0f} ms behind the sensors; folding the backlog "
+                       f"({1.0 / self.lateness.fold_period_s:.0f} instants a second of it); {message}")
         if self._stall.since_s is not None:
             message = (f"stalled: no estimate for {time.monotonic() - self._stall.since_s:.1f} s while raw "
                        f"batches arrived; {message}")

@@ -1,8 +1,9 @@
 """Load, CI-sized: four link accelerometers and the IMU (accelerometer, gyro, magnetometer,
 temperature) and the encoders, all at 200 Hz, about one sample per message as a driver sends them,
 in real time through Zenoh on 127.0.0.1 to the fusion node: no sample is lost, and every
-instant after the startup calibration gives a joint state. (Latency is measured by
-tools/soak.py, not asserted here.)"""
+instant after the startup calibration gives a joint state but those the node folded while
+it was behind (its lateness policy), each counted. (Latency is measured by tools/soak.py,
+not asserted here.)"""
 
 from __future__ import annotations
 
@@ -48,7 +49,11 @@ def test_five_sensors_at_200_hz_lose_no_sample(hub_settings, fusion_node, at_200
     t = np.array([j.t_s for j in joints])
     enc_t = raw["enc"].t_s
     # a joint state for every instant after the startup (bar the last ones the reorder stage
-    # still held at the stop), none twice, none out of order, none missing in between
+    # still held at the stop) but the folded ones, none twice, none out of order
     expected = enc_t[(enc_t > r.startup_t_s + 1e-9) & (enc_t <= t[-1] + 1e-9)]
-    np.testing.assert_array_equal(t, expected)
-    assert r.estimates >= len(expected)
+    assert np.all(np.diff(t) > 0) and np.isin(t, expected).all()
+    assert len(expected) - len(t) <= r.folded_instants  # (the last ones folded may come after t[-1])
+    # folded or not, a joint state for every fold period of sample time at least
+    fold_s = node.lateness.fold_period_s
+    assert t[0] - r.startup_t_s <= fold_s + 1e-9 and np.diff(t).max() <= fold_s + 1e-9
+    assert r.estimates >= len(t)
