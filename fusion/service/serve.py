@@ -122,29 +122,34 @@ class Lateness:
     """How the fusion node degrades when it falls behind (see docs/service.md, "When the node
     falls behind").
 
-    The node's lag is the age of the message it takes from its receive channel (the wall
-    time since Zenoh handed it over). While the stream is live (``max_pace``), beyond ``degrade_after_s`` the node is degraded (the
-    status's ``degraded`` 1, its ``lag_ms``, and a message saying so) until a message taken
-    is again younger than half of it. While degraded, each pass of the loop takes every
-    message waiting (for at most ``pass_s`` of wall time), admits each and queues its
-    samples, then fuses once: the instants more than ``degrade_after_s`` older than the
-    sensors' clock are folded, merged into one instant per ``fold_period_s`` of sample time
-    (each sensor's latest sample in it, at the last instant's time); the newer ones are
-    fused one by one; the joint states go out as usual (at most ``publish_hz``), so the
-    folded instants have none. The startup's kept samples are fused the same way. Every sample still goes through the admission and is counted; the
-    folded instants' samples are what the tracker does not see one by one.
+    The node's lag is how far the samples it last took in are behind the sensors' time now,
+    in wall time: now, less the usual delivery delay (the median over the streams of the
+    least delay of each one's batches in the last ``pace_window_s``: arrival less sample
+    time), less the last sample's time. It counts the node's own queue as well as a stall
+    of the whole process (whose messages then arrive late together). While the stream is
+    live (``max_pace``), beyond
+    ``degrade_after_s`` the node is degraded (the status's ``degraded`` 1, its ``lag_ms``,
+    and a message saying so) until a message taken is again younger than half of it. While
+    degraded, each pass of the loop takes every message waiting (for at most ``pass_s`` of
+    wall time), admits each and queues its samples, then fuses once: the instants more than
+    ``degrade_after_s`` older than the sensors' clock are folded, merged into one instant
+    per ``fold_period_s`` of sample time (each sensor's latest sample in it, at the last
+    instant's time); the newer ones are fused one by one; the joint states go out as usual
+    (at most ``publish_hz``), so the folded instants have none. The startup's kept samples
+    are fused the same way. Every sample still goes through the admission and is counted;
+    the folded instants' samples are what the tracker does not see one by one.
     """
 
     degrade_after_s: float = 0.05
     fold_period_s: float = 0.02
     pass_s: float = 0.2
-    max_pace: float = 1.5
+    max_pace: float = 2.0
     """Live only: while the sensors' newest time ran more than this many times as fast as
     wall time over the arrivals of the last ``pace_window_s`` (a replay faster than real
     time), or those arrivals span less than half of it (a stream just begun, or a burst),
     the node is not degraded: every instant is fused one by one however long it takes (such
     a stream has no real time to be late against)."""
-    pace_window_s: float = 2.0
+    pace_window_s: float = 4.0
 
 
 class FusionNode:
@@ -199,6 +204,8 @@ class FusionNode:
         self._lag_max_s = 0.0
         self._pace_marks: deque[tuple[float, float, float]] = deque()  # see _mark_pace
         self._pace_arrived_s = -np.inf
+        self._delays: dict[str, deque[tuple[float, float]]] = {}  # see _note_delay
+        self._taken_t: float | None = None  # the last sample time of the last batch accepted
         self._maneuver = maneuver
         self._last_estimate = None
         self._stall = StallWatch(stall_after_s)
@@ -332,11 +339,52 @@ class FusionNode:
         return dict(d)
 
     def _take(self, msg, receiver: BoundedReceiver) -> None:
-        """One message, or, when the node is behind, every message waiting: the lateness
+        """One message, or, when the node is degraded, every message waiting: the lateness
         policy (:class:`Lateness`)."""
+        if not self._degraded:
+            self._on_message_guarded(msg)
+            self._judge_lag()
+            return
+        until = time.monotonic() + self.lateness.pass_s
+        while msg is not None:
+            self._on_message_guarded(msg, fuse=False)
+            msg = receiver.get_nowait() if time.monotonic() < until else None
+        if self._tracker is not None:
+            try:
+                self._fuse(self._reorder.release(clock_s=self._admission.clock(time.monotonic())),
+                           fold=True)
+            except Exception as e:  # noqa: BLE001 - as _on_message_guarded
+                self._counts["errors"] += 1
+                log.exception("serve: error while catching up: %s: %s", type(e).__name__, str(e)[:200])
+        self._judge_lag()
+
+    def _sensors_now(self, now_s: float) -> float | None:
+        """The sensors' time at wall time ``now_s`` as their delivery says it: ``now_s``
+        less the usual delivery delay (the median over the streams of the least delay,
+        arrival less last sample's time, of each one's batches in the last
+        ``pace_window_s``); ``None`` before any."""
+        lows = sorted(d[0][1] for d in self._delays.values() if d)
+        return None if not lows else now_s - lows[(len(lows) - 1) // 2]
+
+    def _note_delay(self, name: str, arrived_s: float, t_s: float) -> None:
+        """Note an accepted batch's delivery delay (a sliding minimum per stream)."""
+        d = self._delays.setdefault(name, deque())
+        delay = arrived_s - t_s
+        while d and d[-1][1] >= delay:
+            d.pop()
+        d.append((arrived_s, delay))
+        while d[0][0] < arrived_s - self.lateness.pace_window_s:
+            d.popleft()
+
+    def _judge_lag(self) -> None:
+        """The node's lag (how far the samples it last took are behind the sensors' time now),
+        and whether it is degraded (see :class:`Lateness`)."""
         lt = self.lateness
         now = time.monotonic()
-        lag = now - (msg.arrived_s or now)
+        sensors_now = self._sensors_now(now)
+        if sensors_now is None or self._taken_t is None:
+            return
+        lag = max(sensors_now - self._taken_t, 0.0)
         self._lag_s, self._lag_max_s = lag, max(self._lag_max_s, lag)
         was = self._degraded
         if not self._live():
@@ -352,20 +400,6 @@ class FusionNode:
                 log.warning("serve: degraded: %.0f ms behind the sensors; folding the backlog", 1e3 * lag)
             else:
                 log.info("serve: caught up (%.0f ms behind); no longer degraded", 1e3 * lag)
-        if not self._degraded:
-            self._on_message_guarded(msg)
-            return
-        until = now + lt.pass_s
-        while msg is not None:
-            self._on_message_guarded(msg, fuse=False)
-            msg = receiver.get_nowait() if time.monotonic() < until else None
-        if self._tracker is not None:
-            try:
-                self._fuse(self._reorder.release(clock_s=self._admission.clock(time.monotonic())),
-                           fold=True)
-            except Exception as e:  # noqa: BLE001 - as _on_message_guarded
-                self._counts["errors"] += 1
-                log.exception("serve: error while catching up: %s: %s", type(e).__name__, str(e)[:200])
 
     def _live(self) -> bool:
         """Whether the sensors' time ran at about wall time (at most the lateness policy's
@@ -415,6 +449,7 @@ class FusionNode:
         if not verdict.ok:
             return
         if verdict.reset:  # what was kept of this stream was on a clock the others refute
+            self._delays.pop(s.name, None)
             self._buffer.pop(s.name, None)
             self._recent.forget(s.name)
             self._reorder.forget(s.name)
@@ -422,7 +457,9 @@ class FusionNode:
                 self._maneuver.clock_reset(s.name)
         self._counts["samples"] += len(s)
         self._arrived[s.name] = now
-        self._mark_pace(arrived, float(s.t_s[-1]))
+        self._taken_t = float(s.t_s[-1])
+        self._mark_pace(arrived, self._taken_t)
+        self._note_delay(s.name, arrived, self._taken_t)
         self._recent.keep(s)
         if self._maneuver is not None:
             self._maneuver.keep(s)
@@ -617,16 +654,15 @@ class FusionNode:
         policy's ``degrade_after_s`` merged, one per ``fold_period_s`` of sample time (each
         sensor's latest sample in it, at its last instant's time); the rest as they are."""
         lt = self.lateness
-        clock = self._admission.clock(time.monotonic())
+        clock = self._sensors_now(time.monotonic())
         if clock is None or not instants or instants[0][0] >= clock - lt.degrade_after_s:
             return instants
         stale_before = clock - lt.degrade_after_s
         out: list[tuple[float, dict[str, np.ndarray]]] = []
         window_end, merged, t_last = -np.inf, None, None
         folded = 0
-        for i, (t, samples) in enumerate(instants):
-            if t >= stale_before:
-                break
+        n_stale = next((i for i, (t, _) in enumerate(instants) if t >= stale_before), len(instants))
+        for t, samples in instants[:n_stale]:
             if merged is not None and t > window_end:
                 out.append((t_last, merged))
                 merged = None
@@ -636,12 +672,10 @@ class FusionNode:
                 folded += 1
             merged.update(samples)
             t_last = t
-        else:
-            i = len(instants)
         if merged is not None:
             out.append((t_last, merged))
         self._counts["folded_instants"] += folded
-        return out + list(instants[i:])
+        return out + list(instants[n_stale:])
 
     def _fuse(self, instants, fold: bool = False) -> None:
         """Feed released instants to the tracker; publish at most every publish period.
