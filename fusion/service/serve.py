@@ -129,7 +129,7 @@ class Lateness:
     of the whole process (whose messages then arrive late together). While the stream is
     live (``max_pace``), beyond
     ``degrade_after_s`` the node is degraded (the status's ``degraded`` 1, its ``lag_ms``,
-    and a message saying so) until a message taken is again younger than half of it. While
+    and a message saying so) until its lag is back within half of it, or nothing waits. While
     degraded, each pass of the loop takes every message waiting (for at most ``pass_s`` of
     wall time), admits each and queues its samples, then fuses once: the instants more than
     ``degrade_after_s`` older than the sensors' clock are folded, merged into one instant
@@ -289,6 +289,9 @@ class FusionNode:
                 msg = receiver.get(timeout_s=0.1)
                 if msg is not None:
                     self._take(msg, receiver)
+                elif self._degraded:  # nothing waiting: whatever it was behind, it has taken in
+                    self._degraded, self._lag_s, self._status_due = False, 0.0, True
+                    log.info("serve: caught up (nothing waiting); no longer degraded")
                 while (query := self._next_query()) is not None:
                     self._answer(query)
                 if served is not None and served.serve():
@@ -772,12 +775,12 @@ class FusionNode:
         if self._tracker is not None and self._tracker.alarm.active:
             message = "model changed: " + "; ".join(a.line() for a in self._tracker.alarm.alarms) + \
                 f"; {message}"
-        if self._silent and self._silent >= set(sensors):
-            quiet_s = time.monotonic() - max(self._arrived.values())
-            message = f"no samples for {quiet_s:.1f} s: every sensor stale; {message}"
         if self._degraded:
             message = (f"degraded: {1e3 * self._lag_s:.0f} ms behind the sensors; folding the backlog "
                        f"({1.0 / self.lateness.fold_period_s:.0f} instants a second of it); {message}")
+        if self._silent and self._silent >= set(sensors):
+            quiet_s = time.monotonic() - max(self._arrived.values())
+            message = f"no samples for {quiet_s:.1f} s: every sensor stale; {message}"
         if self._stall.since_s is not None:
             message = (f"stalled: no estimate for {time.monotonic() - self._stall.since_s:.1f} s while raw "
                        f"batches arrived; {message}")
