@@ -142,7 +142,9 @@ class Lateness:
 
     degrade_after_s: float = 0.05
     fold_period_s: float = 0.02
-    pass_s: float = 0.2
+    pass_s: float = 0.025
+    """A pass takes messages for at most half ``degrade_after_s``: the samples taken first
+    wait no longer than that before they are fused."""
     max_pace: float = 2.0
     """Live only: while the sensors' newest time ran more than this many times as fast as
     wall time over the arrivals of the last ``pace_window_s`` (a replay faster than real
