@@ -544,6 +544,8 @@ def markdown(r: dict) -> str:
     msgs_per_s = len(r["sensors"]) * min(r["rate_hz"], 1000.0 / r["batch_ms"])
     per_msg = max(1.0, r["rate_hz"] * r["batch_ms"] / 1000.0)
     tracker_share = 100.0 * r["instants_per_serve_cpu_s"] / r["tracker_instants_per_cpu_s"]
+    folded = (f"; here {r['folded_instants']} instants, so the tracker's share above counts updates it "
+              "did not all make" if r.get("folded_instants") else "")
     table = "| figure | value |\n| --- | --- |\n" + "\n".join(f"| {a} | {b} |" for a, b in rows)
     busy = " with every core busy" if r.get("cpu_hog") else ""
     title = f"Soak: the fusion node at {r['rate_hz']:.0f} Hz, {r['batch_ms']:.0f} ms batches, through Zenoh"
@@ -572,10 +574,12 @@ calibration take the rest. Latency runs from the moment the message holding an i
 put (a sample first waits up to one batch, {r['batch_ms']:.0f} ms, in the driver) to its joint
 state's arrival, over the instants sent after the node caught up (before, it waits for its
 startup calibration, then fuses the samples it kept). A node that needs more than one CPU-second per
-{r['rate_hz']:.0f} instants cannot keep up: its queue, and the latency, grow for as long as
-the stream lasts, and once its receive channel (65536 messages) is full the publishers wait,
-and Zenoh closes a link whose publisher waited 5 s: samples are then lost, and counted as
-missing batches.
+{r['rate_hz']:.0f} instants cannot keep up one instant at a time: it degrades (docs/service.md,
+"When the node falls behind": it folds the instants more than 50 ms behind, one update per
+20 ms of them{folded}). If taking the messages in alone costs more than it gets, its queue
+and the latency still grow for as long as the stream lasts, and once its receive channel
+(65536 messages) is full the publishers wait, and Zenoh closes a link whose publisher
+waited 5 s: samples are then lost, and counted as missing batches.
 """
 
 

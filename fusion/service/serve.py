@@ -124,7 +124,7 @@ class Lateness:
 
     The node's lag is how far the samples it last took in are behind the sensors' time now,
     in wall time: now, less the usual delivery delay (the median over the streams of the
-    least delay of each one's batches in the last ``pace_window_s``: arrival less sample
+    least delay of each one's batches in the last ``delay_window_s``: arrival less sample
     time), less the last sample's time. It counts the node's own queue as well as a stall
     of the whole process (whose messages then arrive late together). While the stream is
     live (``max_pace``), beyond
@@ -152,6 +152,9 @@ class Lateness:
     the node is not degraded: every instant is fused one by one however long it takes (such
     a stream has no real time to be late against)."""
     pace_window_s: float = 4.0
+    delay_window_s: float = 60.0
+    """The usual delivery delay is the least of this long: a lag that grows slowly (a node
+    a little short of CPU for a minute) is not taken for the usual delay."""
 
 
 class FusionNode:
@@ -367,7 +370,7 @@ class FusionNode:
         """The sensors' time at wall time ``now_s`` as their delivery says it: ``now_s``
         less the usual delivery delay (the median over the streams of the least delay,
         arrival less last sample's time, of each one's batches in the last
-        ``pace_window_s``); ``None`` before any."""
+        ``delay_window_s``); ``None`` before any."""
         lows = sorted(d[0][1] for d in self._delays.values() if d)
         return None if not lows else now_s - lows[(len(lows) - 1) // 2]
 
@@ -378,7 +381,7 @@ class FusionNode:
         while d and d[-1][1] >= delay:
             d.pop()
         d.append((arrived_s, delay))
-        while d[0][0] < arrived_s - self.lateness.pace_window_s:
+        while d[0][0] < arrived_s - self.lateness.delay_window_s:
             d.popleft()
 
     def _judge_lag(self) -> None:
