@@ -133,15 +133,20 @@ class Lateness:
     degraded, each pass of the loop takes every message waiting (for at most ``pass_s`` of
     wall time), admits each and queues its samples, then fuses once: the instants more than
     ``degrade_after_s`` older than the sensors' clock are folded, merged into one instant
-    per ``fold_period_s`` of sample time (each sensor's latest sample in it, at the last
-    instant's time); the newer ones are fused one by one; the joint states go out as usual
-    (at most ``publish_hz``), so the folded instants have none. The startup's kept samples
+    per ``fold_period_s`` of sample time, or into ``backlog_updates`` instants when they
+    span longer (each sensor's latest sample in a window, at its last instant's time); the
+    newer ones are fused one by one; the joint states go out as usual (at most
+    ``publish_hz``), so the folded instants have none. The startup's kept samples
     are fused the same way. Every sample still goes through the admission and is counted;
     the folded instants' samples are what the tracker does not see one by one.
     """
 
     degrade_after_s: float = 0.05
     fold_period_s: float = 0.02
+    backlog_updates: int = 10
+    """A backlog longer than this many fold periods is folded into this many instants: the
+    tracker's work on a backlog of any length is bounded, so a node that can take its
+    messages in catches up."""
     pass_s: float = 0.025
     """A pass takes messages for at most half ``degrade_after_s``: the samples taken first
     wait no longer than that before they are fused."""
@@ -659,13 +664,16 @@ class FusionNode:
     # -- tracking, publishing, saving ------------------------------------------------------------
     def _fold(self, instants):
         """``instants`` with those older than the sensors' clock by more than the lateness
-        policy's ``degrade_after_s`` merged, one per ``fold_period_s`` of sample time (each
-        sensor's latest sample in it, at its last instant's time); the rest as they are."""
+        policy's ``degrade_after_s`` merged, one per ``fold_period_s`` of sample time or into
+        ``backlog_updates`` when they span longer (each sensor's latest sample in a window,
+        at its last instant's time); the rest as they are."""
         lt = self.lateness
         clock = self._sensors_now(time.monotonic())
         if clock is None or not instants or instants[0][0] >= clock - lt.degrade_after_s:
             return instants
         stale_before = clock - lt.degrade_after_s
+        # the longer the backlog, the longer a window: at most backlog_updates of them
+        period = max(lt.fold_period_s, (stale_before - instants[0][0]) / lt.backlog_updates)
         out: list[tuple[float, dict[str, np.ndarray]]] = []
         window_end, merged, t_last = -np.inf, None, None
         folded = 0
@@ -675,7 +683,7 @@ class FusionNode:
                 out.append((t_last, merged))
                 merged = None
             if merged is None:
-                merged, window_end = {}, t + lt.fold_period_s - 1e-9
+                merged, window_end = {}, t + period - 1e-9
             else:
                 folded += 1
             merged.update(samples)

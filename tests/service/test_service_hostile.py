@@ -218,6 +218,7 @@ def test_one_sample_from_the_near_future_is_refused_and_the_estimates_keep_flowi
     t = np.array([j.t_s for j in got.snapshot()[0]])
     after = t[t > sent[0] - 0.2]
     assert r.out_of_order <= 1, r.out_of_order  # (at most the hostile sample numbered 0)
-    assert after.size and np.diff(after).max() <= 0.021, np.diff(after).max()  # (20 ms: a fold period)
+    # (a sample let through 1.9 s ahead once left a 1.84 s gap; a backlog folded leaves a tenth)
+    assert after.size and np.diff(after).max() <= 0.25, (np.diff(after).max(), r.lag_max_ms)
     z = np.array([_z_scores(rec, j) for j in got.snapshot()[0] if j.t_s > 3.0])
     assert z.max() < 4.0, z.max(axis=0)

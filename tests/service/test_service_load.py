@@ -62,9 +62,11 @@ def test_five_sensors_at_200_hz_lose_no_sample(hub_settings, fusion_node, at_200
     expected = enc_t[(enc_t > r.startup_t_s + 1e-9) & (enc_t <= t[-1] + 1e-9)]
     assert np.all(np.diff(t) > 0) and np.isin(t, expected).all()
     assert len(expected) - len(t) <= r.folded_instants  # (the last ones folded may come after t[-1])
-    # folded or not, a joint state for every fold period of sample time at least
-    fold_s = node.lateness.fold_period_s
-    assert t[0] - r.startup_t_s <= fold_s + 1e-9 and np.diff(t).max() <= fold_s + 1e-9
+    # folded or not, a joint state for every fold period of sample time at least, or every
+    # tenth of the backlog when that is longer
+    lt = node.lateness
+    window_s = max(lt.fold_period_s, r.lag_max_ms / 1e3 / lt.backlog_updates) + 1e-3
+    assert t[0] - r.startup_t_s <= window_s and np.diff(t).max() <= window_s
     assert r.estimates >= len(t)
 
 
@@ -121,10 +123,10 @@ def test_a_node_that_fell_behind_degrades_says_so_and_refuses_no_catching_up_dri
     assert any(c.get("degraded") == 0 for c, _ in said[last_bad + 1:]), "never caught up"
     assert r["degraded_periods"] >= 1 and r["folded_instants"] > 0 and r["lag_max_ms"] >= 300
     # the joint states: in order, one at least every fold period (20 ms) after the startup,
-    # and true
+    # or every tenth of the backlog when that is longer, and true
     t = np.array([j.t_s for j in joints])
     assert np.all(np.diff(t) > 0)
-    assert np.diff(t[t > r["startup_t_s"] + 0.1]).max() <= 0.021
+    assert np.diff(t[t > r["startup_t_s"] + 0.1]).max() <= max(0.02, r["lag_max_ms"] / 1e4) + 1e-3
     truth = renk_recording.truth()["true_q"]
     k = np.searchsorted(truth.t_s, t + 1e-9) - 1
     err = np.abs(np.angle(np.exp(1j * (np.array([j.q_rad for j in joints]) - truth.values[k]))))
