@@ -210,6 +210,7 @@ class FusionNode:
         self._admission = Admission(arm, admission)
         self.lateness = lateness or Lateness()
         self._degraded = False
+        self._degraded_news = False  # became degraded since the last status
         self._lag_s = 0.0
         self._lag_max_s = 0.0
         self._pace_marks: deque[tuple[float, float, float]] = deque()  # see _mark_pace
@@ -312,8 +313,10 @@ class FusionNode:
                 silent = frozenset(k for k, t in self._arrived.items() if now - t > self.silent_after_s)
                 if silent != self._silent:
                     self._silent, self._status_due = silent, True
-                # every second, and at once (at most 10 a second) when a sensor's status changes
-                if now >= next_status or (self._status_due and now >= last_status + 0.1):
+                # every second, and at once (at most 10 a second) when a sensor's status changes;
+                # at once whenever the node has become degraded (however soon it catches up)
+                if now >= next_status or (self._status_due and now >= last_status + 0.1) \
+                        or self._degraded_news:
                     self._publish_status(pub_status, receiver)
                     last_status, next_status = now, now + 1.0
                 if self.state_path is not None and now >= next_save:
@@ -409,6 +412,7 @@ class FusionNode:
         if self._degraded != was:
             self._status_due = True
             if self._degraded:
+                self._degraded_news = True
                 self._counts["degraded_periods"] += 1
                 log.warning("serve: degraded: %.0f ms behind the sensors; folding the backlog", 1e3 * lag)
             else:
@@ -766,7 +770,7 @@ class FusionNode:
         self._status_due = True
 
     def _publish_status(self, pub, receiver: BoundedReceiver) -> None:
-        self._status_due = False
+        self._status_due = self._degraded_news = False
         adm = self._admission
         counters = {"samples": self._counts["samples"], "estimates": self._counts["estimates"],
                     "out_of_order": self._counts["out_of_order"],

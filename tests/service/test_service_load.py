@@ -65,7 +65,7 @@ def test_five_sensors_at_200_hz_lose_no_sample(hub_settings, fusion_node, at_200
     # folded or not, a joint state for every fold period of sample time at least, or every
     # tenth of the backlog when that is longer
     lt = node.lateness
-    window_s = max(lt.fold_period_s, r.lag_max_ms / 1e3 / lt.backlog_updates) + 1e-3
+    window_s = max(lt.fold_period_s, (r.lag_max_ms / 1e3 + 0.2) / lt.backlog_updates) + 1e-3
     assert t[0] - r.startup_t_s <= window_s and np.diff(t).max() <= window_s
     assert r.estimates >= len(t)
 
@@ -126,7 +126,10 @@ def test_a_node_that_fell_behind_degrades_says_so_and_refuses_no_catching_up_dri
     # or every tenth of the backlog when that is longer, and true
     t = np.array([j.t_s for j in joints])
     assert np.all(np.diff(t) > 0)
-    assert np.diff(t[t > r["startup_t_s"] + 0.1]).max() <= max(0.02, r["lag_max_ms"] / 1e4) + 1e-3
+    # (a backlog is the largest lag measured and at most 0.2 s more: the lag is measured
+    # between passes, the reorder stage holds up to 0.1 s)
+    window_s = max(0.02, (r["lag_max_ms"] / 1e3 + 0.2) / 10) + 1e-3
+    assert np.diff(t[t > r["startup_t_s"] + 0.1]).max() <= window_s
     truth = renk_recording.truth()["true_q"]
     k = np.searchsorted(truth.t_s, t + 1e-9) - 1
     err = np.abs(np.angle(np.exp(1j * (np.array([j.q_rad for j in joints]) - truth.values[k]))))
