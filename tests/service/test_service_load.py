@@ -118,7 +118,8 @@ def test_a_node_that_fell_behind_degrades_says_so_and_refuses_no_catching_up_dri
     degraded = [(c, m) for c, m in said if c.get("degraded") == 1]
     assert degraded, said
     assert all(c["lag_ms"] > 25 for c, _ in degraded)  # (degraded until back within 25 ms)
-    assert all(m.startswith("degraded: ") and " ms behind the sensors" in m for _, m in degraded)
+    # (after "stalled: …" when the stop outlasted the stall watch's second)
+    assert all(("degraded: " in m) and " ms behind the sensors" in m for _, m in degraded)
     last_bad = max(i for i, (c, _) in enumerate(said) if c.get("degraded") == 1)
     assert any(c.get("degraded") == 0 for c, _ in said[last_bad + 1:]), "never caught up"
     assert r["degraded_periods"] >= 1 and r["folded_instants"] > 0 and r["lag_max_ms"] >= 300
