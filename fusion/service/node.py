@@ -137,10 +137,6 @@ class BoundedReceiver:
         self._release(len(msg.data))
         return msg
 
-    def pending(self) -> int:
-        """Messages waiting (approximate, as :meth:`queue.Queue.qsize`)."""
-        return self._queue.qsize()
-
     def get_nowait(self) -> Message | None:
         try:
             msg = self._queue.get_nowait()
