@@ -18,25 +18,41 @@ reason             the batch…
 ``encoder_jump``   moves a joint's encoder further than the joint can turn in the time
                    since the last sample (``max_joint_rate_rad_s`` plus
                    ``jump_slack_rad``)
-``time_ahead``     is stamped more than ``clock_window_s`` ahead of the sensors' clock
+``time_ahead``     is stamped more than ``ahead_s`` ahead of the sensors' clock
 ``time_behind``    is stamped more than ``clock_window_s`` behind it
 ``too_dense``      holds more samples than the stream's budget allows: a token bucket
-                   per stream that fills at ``max_rate_hz`` of sample time and holds
-                   ``burst_samples`` (a real driver that fell behind reads a few samples
-                   in quick succession; a peer cannot hand the tracker 15,000 instants
-                   in one 1 MiB payload, nor a steady stream faster than any sensor)
+                   per stream, sample by sample, that fills at ``max_rate_hz`` of sample
+                   time and holds ``burst_samples`` (a real driver that fell behind
+                   reads its whole FIFO at once, its stamps squeezed together; a peer
+                   cannot hand the tracker 15,000 instants in one 1 MiB payload, nor a
+                   steady stream faster than any sensor)
 =================  =====================================================================
 
 **The sensors' clock.** A recording's time has any origin (a replay, a rig powered up a
-week ago), so the node's wall clock cannot judge a stamp. The reference is the sensors'
-own: the median (the lower of the middle two) of the newest accepted times of the *other*
-streams that were accepted in the last ``vote_fresh_s`` of wall time (a stream does not
-vote on itself, and a stream that fell silent stops voting). With no other stream voting,
-a stream is held to its own newest time; the very first batch sets the clock. So one batch stamped 10⁶ s ahead
-is refused whether the node tracks or not, and the clock does not move. Should a bogus
-batch be the first of all, the other streams are refused until its vote goes stale
-(``vote_fresh_s``) and the stream that sent it is then reset (:attr:`Verdict.reset`:
-the node discards what it kept of it).
+week ago), so the node's wall clock cannot judge a stamp by itself; what it can judge is
+how a stream's time moves against the others' and against wall time. The reference is a
+consensus of the *other* streams (a stream does not vote on itself): each stream the node
+accepted a batch of in the last ``vote_fresh_s`` of wall time votes with its newest
+accepted time carried forward by the wall time between that batch's arrival and this
+one's (``arrived_s``: when Zenoh handed the message over, not when a node that fell behind
+got to it); the reference is the median of the votes (the
+lower of the middle two). A batch whose last sample is more than ``ahead_s`` ahead of it
+is refused (``time_ahead``): one peer's sample stamped 1.9 s ahead can neither move the
+clock nor make the node wait for it. A genuine stream leads the others only by the
+difference of their latencies (a batch period and the delivery's jitter: ``ahead_s``
+0.25 s covers batches of up to 200 ms, ten times the drivers' default); a stream that resumes after its driver
+stalled is behind, not ahead, and the others' votes move on with wall time while they are
+silent. A replay faster than real time moves every stream together, so the others' newest
+times keep up with it. A batch whose first sample is more than ``clock_window_s`` behind
+the median of the others' newest times (not carried forward: a driver catching up after
+a stall sends seconds-old samples) is refused (``time_behind``). With no other stream
+voting, a stream is held to its own vote; the very first batch sets the clock. Should a
+bogus batch be the first of all, the other streams are refused until its vote goes stale
+(``vote_fresh_s``) and the stream that sent it is then reset (:attr:`Verdict.reset`: the
+node discards what it kept of it). :meth:`Admission.clock` is the same consensus over
+every voting stream: the node's reorder stage and its lateness measure take it (one
+stream running ahead does not move either). The limit: a consensus of streams can be
+moved by whoever sends for most of them.
 
 **Encoders.** Counts are relative (any value at power-up) within the feed's int32. A
 sample is compared with the last accepted one; a board that really restarted (its
@@ -47,12 +63,17 @@ are taken as a new baseline, counted in ``encoder_rebases`` (what the tracker ma
 the jump is its own slip handling). A publisher interleaving bogus counts with the real
 ones never gets there: every real sample is accepted and restarts the wait.
 
-**Batch numbers.** ``seq`` counts the batches of one sensor from one publisher. Only an
-accepted batch moves it. A gap counts as missed batches only as far as the batch's time
-leaves room: each missing batch held at least one sample, taken after the last accepted
-one and before this one, and no sensor samples faster than ``max_rate_hz``; a larger
-jump, or a number that goes back, is a new publisher session (``seq_resets``) and counts
-nothing. So a peer cannot make ``missed_batches`` grow faster than real time allows.
+**Batch numbers.** ``seq`` counts the batches of one sensor from one publisher (an integer
+0…2⁶⁴ − 1: the payload's decoder refuses any other). Only an accepted batch moves it. A
+gap counts as missed batches only as far as the batch's time leaves room: each missing
+batch held at least one sample, taken after the last accepted one and before this one,
+and no sensor samples faster than ``max_rate_hz``. A counter that wraps (from 2³² − 1,
+2⁶³ − 1 or 2⁶⁴ − 1 to 0) goes on, gaps across the wrap counted the same way. A number that
+goes back, or jumps further than the time allows, does not move the count by itself: it is
+a new publisher session (``seq_resets``, the count going on from it) only when the next
+batch of the stream follows it; when the next follows the old count instead, the odd one
+was one peer's number and counted nothing. So a peer cannot make ``missed_batches`` grow
+faster than real time allows, nor by sending one batch numbered -1, 0 or 10⁹.
 """
 
 from __future__ import annotations
@@ -69,12 +90,16 @@ from fusion.service.payloads import RawBatch
 from models.arm import ArmModel
 from models.sample_admission import ENCODER_REBASE_AFTER_S, JUMP_SLACK_RAD, MAX_JOINT_RATE_RAD_S, jump_words
 from models.sensor_models import ENCODER_STREAM, stream_models
+from sensors.adxl345 import FIFO_DEPTH
 from sensors.sample_checks import FEED_MAX, FEED_MIN, range_words
 
 INT32_MIN, INT32_MAX = FEED_MIN, FEED_MAX
 """The encoder feed's counts (sensors/encoders.py: int32 per joint)."""
 REASONS: tuple[str, ...] = ("unknown_sensor", "wrong_kind", "wrong_channels", "out_of_range",
                             "time_ahead", "time_behind", "too_dense", "encoder_jump")
+SEQ_WRAPS = (1 << 32, 1 << 63, 1 << 64)
+"""Where a publisher's batch counter may wrap to 0: an unsigned 32-bit, a signed or an
+unsigned 64-bit integer."""
 SHOWN = 40
 """Characters of a peer's text (a name, a value) a message repeats at most."""
 
@@ -89,12 +114,16 @@ class AdmissionSettings:
     """Bounds of :class:`Admission` (see the module's docstring); units in the names."""
 
     clock_window_s: float = 2.0
+    ahead_s: float = 0.25
     vote_fresh_s: float = 2.0
     max_joint_rate_rad_s: float = MAX_JOINT_RATE_RAD_S  # (with the files: models.sample_admission)
     jump_slack_rad: float = JUMP_SLACK_RAD
     encoder_rebase_after_s: float = ENCODER_REBASE_AFTER_S
     max_rate_hz: float = 1000.0
-    burst_samples: int = 16
+    burst_samples: int = 2 * (FIFO_DEPTH + 1) + 1
+    """The sample before and two whole ADXL345 FIFO reads (32 entries and the output
+    registers each): the most a driver that fell behind hands on at once, its stamps
+    squeezed together onto the last one."""
 
 
 @dataclass(frozen=True)
@@ -142,8 +171,10 @@ class Admission:
         self._enc_slack = self._cpr * st.jump_slack_rad
         self._newest: dict[str, float] = {}
         self._budget: dict[str, tuple[float, float]] = {}  # stream -> (samples left, at time)
-        self._voted_at: dict[str, float] = {}
+        self._voted_at: dict[str, float] = {}  # stream -> when the node took its newest (freshness)
+        self._arrived_at: dict[str, float] = {}  # stream -> when that batch arrived (carrying forward)
         self._seq: dict[str, tuple[int, float]] = {}
+        self._seq_odd: dict[str, tuple[int, float]] = {}  # a number that did not follow, until the next
         self._enc_last: tuple[float, np.ndarray] | None = None
         self._jump_since: float | None = None
         self._jump_last: tuple[float, np.ndarray] | None = None
@@ -156,17 +187,20 @@ class Admission:
         self._log = DropLog()
 
     # -- the checks --------------------------------------------------------------------------
-    def check(self, batch: RawBatch, now_s: float | None = None) -> Verdict:
-        """Accept ``batch`` (and note it) or say why not (counted in :attr:`rejected`)."""
+    def check(self, batch: RawBatch, now_s: float | None = None, arrived_s: float | None = None) -> Verdict:
+        """Accept ``batch`` (and note it) or say why not (counted in :attr:`rejected`).
+        ``now_s``: the wall time (monotonic) the node takes it, ``arrived_s``: when it
+        arrived (by default ``now_s``; earlier when the node is behind)."""
         now_s = time.monotonic() if now_s is None else now_s
-        verdict = self._check(batch, now_s)
+        arrived_s = now_s if arrived_s is None else arrived_s
+        verdict = self._check(batch, now_s, arrived_s)
         if not verdict.ok:
             self.rejected[verdict.reason] += 1
             self.rejected_samples[verdict.reason] += len(batch.stream)
             self._warn(batch, verdict)
         return verdict
 
-    def _check(self, batch: RawBatch, now_s: float) -> Verdict:
+    def _check(self, batch: RawBatch, now_s: float, arrived_s: float) -> Verdict:
         s = batch.stream
         model = self._models.get(s.name)
         if model is None:
@@ -185,9 +219,11 @@ class Admission:
             i, j = (int(x) for x in np.argwhere((s.values < lo) | (s.values > hi))[0])
             return Verdict("out_of_range",
                            range_words(s.channels[j], s.values[i, j].item(), s.t_s[i], lo, hi))
-        verdict = self._check_time(s.name, float(s.t_s[0]), float(s.t_s[-1]), now_s)
+        verdict = self._check_time(s.name, float(s.t_s[0]), float(s.t_s[-1]), now_s, arrived_s)
         if not verdict.ok:
             return verdict
+        if verdict.reset:  # its earlier times were on a refuted clock: so was its budget
+            self._budget.pop(s.name, None)
         dense = self._check_density(s.name, s.t_s)
         if dense is not None:
             return dense
@@ -196,44 +232,87 @@ class Admission:
             jump, rebased = self._check_encoder(s.t_s, s.values)
             if jump is not None:
                 return jump
-        missed, seq_reset = self._note(batch, now_s, rebased)
+        missed, seq_reset = self._note(batch, now_s, arrived_s, rebased)
         if not (verdict.reset or missed or seq_reset or rebased):
             return _OK  # (the common case: no object to make)
         return Verdict(None, reset=verdict.reset, missed=missed, seq_reset=seq_reset, rebased=rebased)
 
-    def _check_time(self, name: str, t0: float, t1: float, now_s: float) -> Verdict:
-        w = self.settings.clock_window_s
+    def _votes(self, now_s: float, arrived_s: float, but: str | None = None) -> list[float]:
+        """The fresh streams' newest times carried forward to ``arrived_s``, sorted (``but``:
+        leave that stream out). Fresh: taken by the node in the last ``vote_fresh_s`` before
+        ``now_s``."""
         fresh = now_s - self.settings.vote_fresh_s
-        voters = [t for k, t in self._newest.items() if k != name and self._voted_at[k] >= fresh]
-        if voters:
-            voters.sort()  # the median (the lower of the middle two); np.median costs 20x more here
-            ref = voters[(len(voters) - 1) // 2]
+        votes = [t + max(arrived_s - self._arrived_at[k], 0.0) for k, t in self._newest.items()
+                 if k != but and self._voted_at[k] >= fresh]
+        votes.sort()  # (np.median costs 20x more on a handful of streams)
+        return votes
+
+    def clock(self, now_s: float, arrived_s: float | None = None) -> float | None:
+        """The sensors' time at wall time ``arrived_s`` (monotonic; by default ``now_s``, when
+        the node asks): the median of every fresh stream's newest accepted time carried
+        forward by the wall time since it arrived (see the module's docstring); ``None``
+        before any batch was accepted or once every stream fell silent."""
+        votes = self._votes(now_s, now_s if arrived_s is None else arrived_s)
+        return votes[(len(votes) - 1) // 2] if votes else None
+
+    def _check_time(self, name: str, t0: float, t1: float, now_s: float, arrived_s: float) -> Verdict:
+        st = self.settings
+        w = st.clock_window_s
+        fresh = now_s - st.vote_fresh_s
+        votes = self._votes(now_s, arrived_s, but=name)
+        if votes:
+            ahead_ref = votes[(len(votes) - 1) // 2]
+            newest = sorted(t for k, t in self._newest.items() if k != name and self._voted_at[k] >= fresh)
+            behind_ref = newest[(len(newest) - 1) // 2]
+            whose = f"the other sensors' clock ({len(votes)} streams)"
         elif name in self._newest and self._voted_at[name] >= fresh:
-            ref = self._newest[name]
+            behind_ref = self._newest[name]
+            ahead_ref = behind_ref + max(arrived_s - self._arrived_at[name], 0.0)
+            whose = "this sensor's last sample"
         else:
-            ref = None
-        if ref is not None and not ref - w <= t0 <= t1 <= ref + w:
-            whose = (f"the other sensors' clock ({len(voters)} streams)" if voters
-                     else "this sensor's last sample")
-            if t1 > ref + w:
-                return Verdict("time_ahead", f"t = {t1:.6g} s is {t1 - ref:.6g} s ahead of {whose} "
-                                             f"(t = {ref:.6g} s; at most {w:g} s)")
-            return Verdict("time_behind", f"t = {t0:.6g} s is {ref - t0:.6g} s behind {whose} "
-                                          f"(t = {ref:.6g} s; at most {w:g} s)")
+            ahead_ref = behind_ref = None
+        if ahead_ref is not None:
+            if t1 > ahead_ref + st.ahead_s:
+                return Verdict("time_ahead", f"t = {t1:.6g} s is {t1 - ahead_ref:.6g} s ahead of {whose} "
+                                             f"(t = {ahead_ref:.6g} s; at most {st.ahead_s:g} s)")
+            if t0 < behind_ref - w:
+                return Verdict("time_behind", f"t = {t0:.6g} s is {behind_ref - t0:.6g} s behind {whose} "
+                                              f"(t = {behind_ref:.6g} s; at most {w:g} s)")
         reset = name in self._newest and self._newest[name] > t1 + w
         return Verdict(None, reset=True) if reset else _OK
 
-    def _budget_left(self, name: str, t_s: np.ndarray) -> float:
-        """Samples the stream may still deliver by its last sample's time: its bucket, filled
-        at ``max_rate_hz`` of sample time since it was last drawn on, capped at the burst."""
+    def _bucket_after(self, name: str, t_s: np.ndarray) -> tuple[float, float] | None:
+        """The stream's token bucket after ``t_s``'s samples, drawn one by one (each takes a
+        token; the bucket fills at ``max_rate_hz`` for the sample time gained since the
+        sample before, up to ``burst_samples``): ``(tokens left, last sample's time)``, or
+        ``None`` when it runs dry on one of them."""
         st = self.settings
-        left, at = self._budget.get(name, (float(st.burst_samples), float(t_s[0])))
-        return min(float(st.burst_samples), left + max(float(t_s[-1]) - at, 0.0) * st.max_rate_hz)
+        cap, rate = float(st.burst_samples), st.max_rate_hz
+        left, at = self._budget.get(name, (cap, float(t_s[0])))
+        if len(t_s) <= 64:  # (plain Python: NumPy's per-call cost is larger on a driver's few samples)
+            for t in t_s.tolist():
+                left = min(cap, left + max(t - at, 0.0) * rate) - 1.0
+                if left < 0.0:
+                    return None
+                at = t
+            return left, at
+        # the same, at once: with g_i the time gained up to sample i, the tokens after it are
+        # the least of the run from the start, left + g_i * rate - (i + 1), and of the runs
+        # from a bucket full just before sample j <= i, cap + (g_i - g_j) * rate - (i - j + 1)
+        t = np.asarray(t_s, float)
+        g = np.cumsum(np.maximum(np.diff(t, prepend=at), 0.0))
+        i = np.arange(len(t), dtype=float)
+        c = g * rate - i
+        level = np.minimum(left + c - 1.0, cap + c - np.maximum.accumulate(c) - 1.0)
+        if level.min() < 0.0:
+            return None
+        return float(level[-1]), float(t[-1])
 
     def _check_density(self, name: str, t_s: np.ndarray) -> Verdict | None:
-        """Refuse a batch with more samples than the stream's budget holds (see the module's
-        docstring); the budget is drawn on only when the batch is accepted (:meth:`_note`)."""
-        if len(t_s) <= self._budget_left(name, t_s):
+        """Refuse a batch one of whose samples finds the stream's bucket dry (see the
+        module's docstring); the bucket is drawn on only when the batch is accepted
+        (:meth:`_note`)."""
+        if self._bucket_after(name, t_s) is not None:
             return None
         span_ms = (float(t_s[-1]) - float(t_s[0])) * 1e3
         return Verdict("too_dense", f"{len(t_s)} samples in {span_ms:.3g} ms: denser than any sensor "
@@ -282,33 +361,53 @@ class Admission:
         i, j = np.argwhere(bad)[0]
         return int(i), int(j)
 
-    def _note(self, batch: RawBatch, now_s: float, rebased: bool) -> tuple[int, bool]:
+    def _note(self, batch: RawBatch, now_s: float, arrived_s: float, rebased: bool) -> tuple[int, bool]:
         """An accepted batch: the clock, the encoders' last sample, the batch numbers."""
         s = batch.stream
         t0, t1 = float(s.t_s[0]), float(s.t_s[-1])
         w = self.settings.clock_window_s
         newest = self._newest.get(s.name)
         self._newest[s.name] = t1 if newest is None or newest > t1 + w else max(newest, t1)
-        self._budget[s.name] = (self._budget_left(s.name, s.t_s) - len(s.t_s), max(t1, t0))
+        self._budget[s.name] = self._bucket_after(s.name, s.t_s)
         self._voted_at[s.name] = now_s
+        self._arrived_at[s.name] = arrived_s
         if s.name == ENCODER_STREAM and (self._enc_last is None or t1 >= self._enc_last[0]):
             self._enc_last = (t1, s.values[-1].copy())
-        missed, reset = 0, False
-        last = self._seq.get(s.name)
-        if last is not None:
-            last_seq, last_t = last
-            gap = batch.seq - last_seq - 1
-            room = math.ceil(max(t0 - last_t, 0.0) * self.settings.max_rate_hz)
-            if gap < 0 or gap > room:
-                reset = True
-                self.seq_resets += 1
-            else:
-                missed = gap
-                self.missed_batches += gap
-        self._seq[s.name] = (batch.seq, t1 if last is None or reset else max(t1, last[1]))
+        missed, reset = self._count_seq(s.name, batch.seq, t0, t1)
         if rebased:
             self.encoder_rebases += 1
         return missed, reset
+
+    def _gap(self, last_seq: int, last_t: float, seq: int, t0: float) -> int | None:
+        """Batches missing between ``last_seq`` at ``last_t`` and ``seq`` at ``t0`` (across a
+        counter's wrap too), or ``None`` when ``seq`` does not follow: it goes back, or jumps
+        further than the time between them leaves room for."""
+        room = math.ceil(max(t0 - last_t, 0.0) * self.settings.max_rate_hz)
+        gaps = [seq - last_seq - 1] + [seq + wrap - last_seq - 1 for wrap in SEQ_WRAPS
+                                       if seq < last_seq < wrap]
+        return next((g for g in gaps if 0 <= g <= room), None)
+
+    def _count_seq(self, name: str, seq: int, t0: float, t1: float) -> tuple[int, bool]:
+        """``(batches missed, a new publisher session)`` for an accepted batch numbered ``seq``
+        (see the module's docstring)."""
+        last = self._seq.get(name)
+        if last is None:
+            self._seq[name] = (seq, t1)
+            return 0, False
+        last_seq, last_t = last
+        gap = self._gap(last_seq, last_t, seq, t0)
+        if gap is not None:
+            self._seq_odd.pop(name, None)
+            self._seq[name] = (seq, max(t1, last_t))
+            self.missed_batches += gap
+            return gap, False
+        odd = self._seq_odd.pop(name, None)
+        if odd is not None and self._gap(odd[0], odd[1], seq, t0) is not None:
+            self._seq[name] = (seq, t1)  # the odd one began a new session: this one follows it
+            self.seq_resets += 1
+            return 0, True
+        self._seq_odd[name] = (seq, t1)
+        return 0, False
 
     def _warn(self, batch: RawBatch, v: Verdict) -> None:
         self._log.warn(v.reason, "serve: refused a batch of %s (%s): %s", _shown(batch.stream.name),

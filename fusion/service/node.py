@@ -16,6 +16,7 @@ import math
 import queue
 import signal
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -77,6 +78,8 @@ def stop_after(duration_s: float | None, stop: threading.Event) -> Iterator[thre
 class Message:
     key: str
     data: bytes
+    arrived_s: float = 0.0
+    """When Zenoh handed it over (monotonic): a node that fell behind judges time by it."""
 
 
 class BoundedReceiver:
@@ -103,7 +106,7 @@ class BoundedReceiver:
         """Zenoh's callback: copy the payload out and queue it."""
         if self.closed.is_set():
             return
-        msg = Message(str(sample.key_expr), sample.payload.to_bytes())
+        msg = Message(str(sample.key_expr), sample.payload.to_bytes(), time.monotonic())
         n = len(msg.data)
         with self._room:
             fits = self._room.wait_for(lambda: self._bytes == 0 or self._bytes + n <= self._max_bytes,

@@ -57,6 +57,8 @@ READ_VERSIONS = {**{k: (v,) for k, v in VERSIONS.items()}, "raw": (1, 2)}
 """The versions this node reads: a version-1 ``raw`` (whole ``counts``) is read as before."""
 MAX_PAYLOAD_BYTES = 1 << 20
 """1 MiB: a raw batch of 1 s of a 3-axis sensor at 1 kHz is about 60 kB."""
+SEQ_MAX = (1 << 64) - 1
+"""The largest batch number (an unsigned 64-bit counter's); a negative one is malformed."""
 ROOT = "armfusion"
 NAME_RE = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 
@@ -154,8 +156,9 @@ class RawBatch:
     """A batch of one sensor's raw values: ``stream.t_s (N,)``, ``stream.values (N, k)``
     (register counts, or decimals in the unit the sensor's description declares).
 
-    ``seq`` numbers the batches of one sensor from one publisher (0, 1, 2…) so that a
-    receiver can count the batches it missed.
+    ``seq`` numbers the batches of one sensor from one publisher (0, 1, 2…, at most
+    :data:`SEQ_MAX`; a counter may wrap to 0) so that a receiver can count the batches it
+    missed.
     """
 
     robot: str
@@ -441,6 +444,8 @@ def _raw(d: dict, robot: str) -> RawBatch:
         raise PayloadError("malformed", f"kind {kind!r} is not a raw kind ({', '.join(sorted(RAW_KINDS))})")
     channels = _strings(d, "channels")
     seq = _field(d, "seq", int)
+    if not 0 <= seq <= SEQ_MAX:
+        raise PayloadError("malformed", f"field 'seq' = {str(seq)[:24]} is not a batch number 0…2⁶⁴ − 1")
     t = _field(d, "t_s", list)
     whole = d["v"] == 1  # version 1: whole register counts only
     name = "counts" if whole else "values"

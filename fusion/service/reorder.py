@@ -4,7 +4,10 @@ The sensors' batches come in separately and a little out of step, while the trac
 instants in time order (it drops a sample older than the last). :class:`Reorder` queues each
 sensor's samples and releases merged instants once every sensor heard from in the last
 ``max_lag_s`` has sent something at least as late, or once they are ``max_lag_s`` older than
-the newest sample (a silent sensor does not stall the others). :func:`merge_batches` makes one
+the newest sample (a silent sensor does not stall the others). Given the sensors' clock
+(:meth:`fusion.service.admission.Admission.clock`), the newest sample is taken no later
+than it: one stream whose stamps run ahead of the others (within what the admission lets
+through) waits in its queue instead of making the others' samples late. :func:`merge_batches` makes one
 recording of kept batches, for the startup calibration.
 """
 
@@ -55,11 +58,15 @@ class Reorder:
         """Note that ``name`` has sent everything up to ``t_s`` (before any push of it)."""
         self._last[name] = max(self._last.get(name, -np.inf), t_s)
 
-    def release(self, flush: bool = False) -> list[tuple[float, dict[str, np.ndarray]]]:
-        """The instants that are safe to fuse, in time order: ``(t_s, {sensor: counts})``."""
+    def release(self, flush: bool = False, clock_s: float | None = None
+                ) -> list[tuple[float, dict[str, np.ndarray]]]:
+        """The instants that are safe to fuse, in time order: ``(t_s, {sensor: counts})``;
+        ``clock_s``: the sensors' time now (see the module), ``flush``: everything queued."""
         if not self._last:
             return []
         newest = max(self._last.values())
+        if clock_s is not None and not flush:
+            newest = min(newest, clock_s)
         alive = [t for t in self._last.values() if t >= newest - self.max_lag_s]
         mark = newest if flush else max(min(alive), newest - self.max_lag_s)
         if mark <= self._released:  # nothing queued is that old (push drops what is)

@@ -45,7 +45,7 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -100,6 +100,9 @@ class ServeReport:
     refused_samples: dict[str, int] | None = None
     """The samples of the raw batches the admission refused, by reason (``dropped`` counts
     payloads and batches)."""
+    degraded_periods: int = 0
+    folded_instants: int = 0
+    lag_max_ms: int = 0
 
     def as_dict(self) -> dict:
         return {"robot": self.robot, "state": self.state, "samples": self.samples,
@@ -109,7 +112,55 @@ class ServeReport:
                 "calibrations": self.calibrations, "missed_batches": self.missed_batches,
                 "seq_resets": self.seq_resets, "encoder_rebases": self.encoder_rebases,
                 "stalls": self.stalls, "errors": self.errors,
-                "refused_samples": dict(self.refused_samples or {})}
+                "refused_samples": dict(self.refused_samples or {}),
+                "degraded_periods": self.degraded_periods, "folded_instants": self.folded_instants,
+                "lag_max_ms": self.lag_max_ms}
+
+
+@dataclass(frozen=True)
+class Lateness:
+    """How the fusion node degrades when it falls behind (see docs/service.md, "When the node
+    falls behind").
+
+    The node's lag is how far the samples it last took in are behind the sensors' time now,
+    in wall time: now, less the usual delivery delay (the median over the streams of the
+    least delay of each one's batches in the last ``delay_window_s``: arrival less sample
+    time), less the last sample's time. It counts the node's own queue as well as a stall
+    of the whole process (whose messages then arrive late together). While the stream is
+    live (``max_pace``), beyond
+    ``degrade_after_s`` the node is degraded (the status's ``degraded`` 1, its ``lag_ms``,
+    and a message saying so) until its lag is back within half of it, or nothing waits. While
+    degraded, each pass of the loop takes every message waiting (for at most ``pass_s`` of
+    wall time), admits each and queues its samples, then fuses once: the instants more than
+    ``degrade_after_s`` older than the sensors' clock are folded, merged into one instant
+    per ``fold_period_s`` of sample time, or into ``backlog_updates`` instants when they
+    span longer (each sensor's latest sample in a window, at its last instant's time); the
+    newer ones are fused one by one; the joint states go out as usual (at most
+    ``publish_hz``), so the folded instants have none. The startup's kept samples
+    are fused the same way. Every sample still goes through the admission and is counted;
+    the folded instants' samples are what the tracker does not see one by one.
+    """
+
+    degrade_after_s: float = 0.05
+    fold_period_s: float = 0.02
+    backlog_updates: int = 10
+    """A backlog longer than this many fold periods is folded into this many instants: the
+    tracker's work on a backlog of any length is bounded, so a node that can take its
+    messages in catches up."""
+    pass_s: float = 0.025
+    """A pass takes messages for at most half ``degrade_after_s``: the samples taken first
+    wait no longer than that before they are fused."""
+    max_pace: float = 2.0
+    """Live only: while the sensors' newest time ran more than this many times as fast as
+    wall time over the arrivals of the last ``pace_window_s`` (a replay faster than real
+    time), or those arrivals span less than half of it (a stream just begun, or resumed
+    after a silence its time did not run through), the node is not degraded: every
+    instant is fused one by one however long it takes (such a stream has no real time to
+    be late against)."""
+    pace_window_s: float = 4.0
+    delay_window_s: float = 60.0
+    """The usual delivery delay is the least of this long: a lag that grows slowly (a node
+    a little short of CPU for a minute) is not taken for the usual delay."""
 
 
 class FusionNode:
@@ -125,6 +176,7 @@ class FusionNode:
     ``admission``: the bounds every raw batch is checked against
     (:mod:`fusion.service.admission`). ``stall_after_s``: while tracking, no estimate for
     that long (wall time) while raw batches arrive is a stall, reported in the status.
+    ``lateness``: when the node is degraded and what it does then (:class:`Lateness`).
     """
 
     def __init__(self, session: zenoh.Session, arm: ArmModel, robot: str, *,
@@ -135,7 +187,7 @@ class FusionNode:
                  recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5,
                  queue_size: int = DEFAULT_QUEUE_SIZE, admission: AdmissionSettings | None = None,
                  stall_after_s: float = 1.0, assume_parked: bool = False,
-                 maneuver: ServedManeuver | None = None):
+                 maneuver: ServedManeuver | None = None, lateness: Lateness | None = None):
         self.session = session
         # the ready pose as evidence for the startup's branches only when the caller says the
         # arm is parked there (serve --assume-parked); by default nothing but the data chooses
@@ -157,6 +209,15 @@ class FusionNode:
         self.queue_size = queue_size
         self.stall_after_s = stall_after_s
         self._admission = Admission(arm, admission)
+        self.lateness = lateness or Lateness()
+        self._degraded = False
+        self._degraded_news = False  # became degraded since the last status
+        self._lag_s = 0.0
+        self._lag_max_s = 0.0
+        self._pace_marks: deque[tuple[float, float, float]] = deque()  # see _mark_pace
+        self._pace_arrived_s = -np.inf
+        self._delays: dict[str, deque[tuple[float, float]]] = {}  # see _note_delay
+        self._taken_t: float | None = None  # the last sample time of the last batch accepted
         self._maneuver = maneuver
         self._last_estimate = None
         self._stall = StallWatch(stall_after_s)
@@ -239,7 +300,10 @@ class FusionNode:
             while not stop.is_set():
                 msg = receiver.get(timeout_s=0.1)
                 if msg is not None:
-                    self._on_message_guarded(msg)
+                    self._take(msg, receiver)
+                elif self._degraded:  # nothing waiting: whatever it was behind, it has taken in
+                    self._degraded, self._lag_s, self._status_due = False, 0.0, True
+                    log.info("serve: caught up (nothing waiting); no longer degraded")
                 while (query := self._next_query()) is not None:
                     self._answer(query)
                 if served is not None and served.serve():
@@ -250,8 +314,10 @@ class FusionNode:
                 silent = frozenset(k for k, t in self._arrived.items() if now - t > self.silent_after_s)
                 if silent != self._silent:
                     self._silent, self._status_due = silent, True
-                # every second, and at once (at most 10 a second) when a sensor's status changes
-                if now >= next_status or (self._status_due and now >= last_status + 0.1):
+                # every second, and at once (at most 10 a second) when a sensor's status changes;
+                # at once whenever the node has become degraded (however soon it catches up)
+                if now >= next_status or (self._status_due and now >= last_status + 0.1) \
+                        or self._degraded_news:
                     self._publish_status(pub_status, receiver)
                     last_status, next_status = now, now + 1.0
                 if self.state_path is not None and now >= next_save:
@@ -280,7 +346,8 @@ class FusionNode:
                            self._message, self._resumed, self._resume_message,
                            self._counts["calibrations"], adm.missed_batches, adm.seq_resets,
                            adm.encoder_rebases, self._stall.stalls, self._counts["errors"],
-                           dict(adm.rejected_samples))
+                           dict(adm.rejected_samples), self._counts["degraded_periods"],
+                           self._counts["folded_instants"], int(round(1e3 * self._lag_max_s)))
 
     def _dropped(self, receiver: BoundedReceiver) -> dict[str, int]:
         d = Counter(self._inbox.dropped) + self._admission.rejected
@@ -288,28 +355,123 @@ class FusionNode:
             d["overflow"] += receiver.overflowed
         return dict(d)
 
-    def _on_message_guarded(self, msg) -> None:
+    def _take(self, msg, receiver: BoundedReceiver) -> None:
+        """One message, or, when the node is degraded, every message waiting: the lateness
+        policy (:class:`Lateness`)."""
+        if not self._degraded:
+            self._on_message_guarded(msg)
+            self._judge_lag()
+            return
+        until = time.monotonic() + self.lateness.pass_s
+        while msg is not None:
+            self._on_message_guarded(msg, fuse=False)
+            msg = receiver.get_nowait() if time.monotonic() < until else None
+        if self._tracker is not None:
+            try:
+                self._fuse(self._reorder.release(clock_s=self._admission.clock(time.monotonic())),
+                           fold=True)
+            except Exception as e:  # noqa: BLE001 - as _on_message_guarded
+                self._counts["errors"] += 1
+                log.exception("serve: error while catching up: %s: %s", type(e).__name__, str(e)[:200])
+        self._judge_lag()
+
+    def _sensors_now(self, now_s: float) -> float | None:
+        """The sensors' time at wall time ``now_s`` as their delivery says it: ``now_s``
+        less the usual delivery delay (the median over the streams of the least delay,
+        arrival less last sample's time, of each one's batches in the last
+        ``delay_window_s``); ``None`` before any."""
+        lows = sorted(d[0][1] for d in self._delays.values() if d)
+        return None if not lows else now_s - lows[(len(lows) - 1) // 2]
+
+    def _note_delay(self, name: str, arrived_s: float, t_s: float) -> None:
+        """Note an accepted batch's delivery delay (a sliding minimum per stream)."""
+        d = self._delays.setdefault(name, deque())
+        delay = arrived_s - t_s
+        while d and d[-1][1] >= delay:
+            d.pop()
+        d.append((arrived_s, delay))
+        while d[0][0] < arrived_s - self.lateness.delay_window_s:
+            d.popleft()
+
+    def _judge_lag(self) -> None:
+        """The node's lag (how far the samples it last took are behind the sensors' time now),
+        and whether it is degraded (see :class:`Lateness`)."""
+        lt = self.lateness
+        now = time.monotonic()
+        sensors_now = self._sensors_now(now)
+        if sensors_now is None or self._taken_t is None:
+            return
+        lag = max(sensors_now - self._taken_t, 0.0)
+        self._lag_s, self._lag_max_s = lag, max(self._lag_max_s, lag)
+        was = self._degraded
+        if not self._live():
+            self._degraded = False
+        elif lag > lt.degrade_after_s:
+            self._degraded = True
+        elif lag <= 0.5 * lt.degrade_after_s:
+            self._degraded = False
+        if self._degraded != was:
+            self._status_due = True
+            if self._degraded:
+                self._degraded_news = True
+                self._counts["degraded_periods"] += 1
+                log.warning("serve: degraded: %.0f ms behind the sensors; folding the backlog", 1e3 * lag)
+            else:
+                log.info("serve: caught up (%.0f ms behind); no longer degraded", 1e3 * lag)
+
+    def _live(self) -> bool:
+        """Whether the sensors' time ran at about wall time (at most the lateness policy's
+        ``max_pace`` times as fast) over the arrivals of the last ``pace_window_s``, when
+        they span at least half of it."""
+        lt = self.lateness
+        marks = self._pace_marks
+        if not marks:
+            return False
+        wall = self._pace_arrived_s - marks[0][0]
+        return wall >= 0.5 * lt.pace_window_s and marks[-1][2] - marks[0][1] <= lt.max_pace * wall
+
+    def _mark_pace(self, arrived_s: float, t_s: float) -> None:
+        """Note an accepted batch's last time ``t_s``, arrived at ``arrived_s``: per 0.1 s of
+        arrivals, its first arrival, its first batch's time and the newest time; those of the
+        last ``pace_window_s`` kept, and none from before a silence across which the
+        sensors' time ran less than half as far as wall time (a replay paused and resumed:
+        its pace is judged afresh)."""
+        marks = self._pace_marks
+        self._pace_arrived_s = max(self._pace_arrived_s, arrived_s)
+        if marks and arrived_s < marks[-1][0] + 0.1:
+            if t_s > marks[-1][2]:
+                marks[-1] = (*marks[-1][:2], t_s)
+            return
+        if marks and arrived_s - marks[-1][0] > 0.2 and t_s - marks[-1][2] < 0.5 * (arrived_s - marks[-1][0]):
+            marks.clear()  # silent, and its time did not run meanwhile: a source that paused
+        marks.append((arrived_s, t_s, t_s))
+        while marks[0][0] < arrived_s - self.lateness.pace_window_s:
+            marks.popleft()
+
+    def _on_message_guarded(self, msg, fuse: bool = True) -> None:
         """:meth:`_on_message`, and the last line of defence: whatever slipped past the checks
         is counted (``errors``), logged with its traceback, and the node goes on."""
         try:
-            self._on_message(msg)
+            self._on_message(msg, fuse)
         except Exception as e:  # noqa: BLE001 - nothing a peer sends may stop the node
             self._counts["errors"] += 1
             self._status_due = True
             log.exception("serve: error on a message on %s: %s: %s", msg.key[:100], type(e).__name__,
                           str(e)[:200])
 
-    def _on_message(self, msg) -> None:
+    def _on_message(self, msg, fuse: bool = True) -> None:
         batch = self._inbox.decode(msg.key, msg.data)
         if not isinstance(batch, pl.RawBatch):
             return
         s = batch.stream
         now = time.monotonic()
+        arrived = msg.arrived_s or now  # (earlier than now when the node is behind)
         self._stall.raw_arrived_s = now
-        verdict = self._admission.check(batch, now)
+        verdict = self._admission.check(batch, now, arrived)
         if not verdict.ok:
             return
         if verdict.reset:  # what was kept of this stream was on a clock the others refute
+            self._delays.pop(s.name, None)
             self._buffer.pop(s.name, None)
             self._recent.forget(s.name)
             self._reorder.forget(s.name)
@@ -317,6 +479,9 @@ class FusionNode:
                 self._maneuver.clock_reset(s.name)
         self._counts["samples"] += len(s)
         self._arrived[s.name] = now
+        self._taken_t = float(s.t_s[-1])
+        self._mark_pace(arrived, self._taken_t)
+        self._note_delay(s.name, arrived, self._taken_t)
         self._recent.keep(s)
         if self._maneuver is not None:
             self._maneuver.keep(s)
@@ -331,7 +496,8 @@ class FusionNode:
             self._try_start(float(s.t_s[-1]))
             return
         self._counts["out_of_order"] += self._reorder.push(s)
-        self._fuse(self._reorder.release())
+        if fuse:
+            self._fuse(self._reorder.release(clock_s=self._admission.clock(now, arrived)))
 
     # -- start: a saved state, or a startup calibration on a still arm -------------------------
     def _try_resume(self, t_s: float, encoder_counts: np.ndarray) -> None:
@@ -406,7 +572,8 @@ class FusionNode:
             if len(after):
                 self._counts["out_of_order"] += self._reorder.push(after)
         self._buffer.clear()
-        self._fuse(self._reorder.release())
+        now = time.monotonic()
+        self._fuse(self._reorder.release(clock_s=self._admission.clock(now)), fold=self._live())
 
     # -- calibration on request ------------------------------------------------------------------
     def _next_query(self):
@@ -504,10 +671,44 @@ class FusionNode:
         return f"the plan's first pose is {d[j]:.1f}° away ({e.joint_names[j]}) from the estimate now"
 
     # -- tracking, publishing, saving ------------------------------------------------------------
-    def _fuse(self, instants) -> None:
-        """Feed released instants to the tracker; publish at most every publish period."""
+    def _fold(self, instants):
+        """``instants`` with those older than the sensors' clock by more than the lateness
+        policy's ``degrade_after_s`` merged, one per ``fold_period_s`` of sample time or into
+        ``backlog_updates`` when they span longer (each sensor's latest sample in a window,
+        at its last instant's time); the rest as they are."""
+        lt = self.lateness
+        clock = self._sensors_now(time.monotonic())
+        if clock is None or not instants or instants[0][0] >= clock - lt.degrade_after_s:
+            return instants
+        stale_before = clock - lt.degrade_after_s
+        # the longer the backlog, the longer a window: at most backlog_updates of them
+        period = max(lt.fold_period_s, (stale_before - instants[0][0]) / lt.backlog_updates)
+        out: list[tuple[float, dict[str, np.ndarray]]] = []
+        window_end, merged, t_last = -np.inf, None, None
+        folded = 0
+        n_stale = next((i for i, (t, _) in enumerate(instants) if t >= stale_before), len(instants))
+        for t, samples in instants[:n_stale]:
+            if merged is not None and t > window_end:
+                out.append((t_last, merged))
+                merged = None
+            if merged is None:
+                merged, window_end = {}, t + period - 1e-9
+            else:
+                folded += 1
+            merged.update(samples)
+            t_last = t
+        if merged is not None:
+            out.append((t_last, merged))
+        self._counts["folded_instants"] += folded
+        return out + list(instants[n_stale:])
+
+    def _fuse(self, instants, fold: bool = False) -> None:
+        """Feed released instants to the tracker; publish at most every publish period.
+        ``fold``: the lateness policy's pass (:class:`Lateness`): stale instants folded."""
         tr = self._tracker
         takes = set(tr.sensor_names) | {"imu_temp"}
+        if fold:
+            instants = self._fold(instants)
         for t, samples in instants:
             enc = samples.get(ENC)
             if enc is not None and t >= tr.t_s - 1e-9:  # what the tracker fuses, not drops
@@ -574,7 +775,7 @@ class FusionNode:
         self._status_due = True
 
     def _publish_status(self, pub, receiver: BoundedReceiver) -> None:
-        self._status_due = False
+        self._status_due = self._degraded_news = False
         adm = self._admission
         counters = {"samples": self._counts["samples"], "estimates": self._counts["estimates"],
                     "out_of_order": self._counts["out_of_order"],
@@ -583,7 +784,10 @@ class FusionNode:
                     "stalled": int(self._stall.since_s is not None), "stalls": self._stall.stalls,
                     "errors": self._counts["errors"],
                     "calibrations": self._counts["calibrations"],
-                    "model_alarms": self._counts["alarms"]}
+                    "model_alarms": self._counts["alarms"],
+                    "degraded": int(self._degraded), "lag_ms": int(round(1e3 * self._lag_s)),
+                    "degraded_periods": self._counts["degraded_periods"],
+                    "folded_instants": self._counts["folded_instants"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
         sensors = dict(self._sensors)
         sensors.update(dict.fromkeys(self._silent & set(sensors), "stale"))
@@ -598,6 +802,9 @@ class FusionNode:
         if self._tracker is not None and self._tracker.alarm.active:
             message = "model changed: " + "; ".join(a.line() for a in self._tracker.alarm.alarms) + \
                 f"; {message}"
+        if self._degraded:
+            message = (f"degraded: {1e3 * self._lag_s:.0f} ms behind the sensors; folding the backlog "
+                       f"({1.0 / self.lateness.fold_period_s:.0f} instants a second of it); {message}")
         if self._silent and self._silent >= set(sensors):
             quiet_s = time.monotonic() - max(self._arrived.values())
             message = f"no samples for {quiet_s:.1f} s: every sensor stale; {message}"

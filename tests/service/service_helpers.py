@@ -61,3 +61,51 @@ def cut(rec, t_start_s: float, t_end_s: float, **edits):
         part = s.between(t_start_s, t_end_s)
         streams[k] = edits[k](part) if k in edits else part
     return Recording(streams, dict(rec.meta))
+
+
+def publish_live(session, rec, robot: str = "chair1", batch_s: float = 0.01, stall=None, during=None):
+    """Publish ``rec``'s raw streams as live drivers do: every sensor's samples of each
+    ``batch_s`` of sample time as one batch, when the wall clock reaches the window's end
+    (blocking puts). ``stall = (t_s, length_s)``: every driver stalls at sample time ``t_s``
+    for ``length_s`` of wall time, then sends what it read meanwhile as one batch per
+    sensor (a driver catching up). ``during(t_s)`` is called after each window, with the
+    sample time reached. Returns the samples put."""
+    import time
+
+    import numpy as np
+    import zenoh
+
+    from fusion.service import payloads as pl
+    from sensors.samples import Stream
+
+    streams = {k: s for k, s in rec.raw().items() if len(s)}
+    block = zenoh.CongestionControl.BLOCK
+    pubs = {k: session.declare_publisher(pl.raw_key(robot, k), congestion_control=block) for k in streams}
+    t0 = min(float(s.t_s[0]) for s in streams.values())
+    t_end = max(float(s.t_s[-1]) for s in streams.values())
+    edges = list(np.arange(t0 + batch_s, t_end + batch_s, batch_s))
+    if stall is not None:  # the window of the stall's length becomes one
+        t_stall, length_s = stall
+        edges = [e for e in edges if not t_stall < e < t_stall + length_s] + [t_stall + length_s]
+        edges.sort()
+    seq = dict.fromkeys(streams, 0)
+    done = dict.fromkeys(streams, 0)
+    put = 0
+    wall0 = time.monotonic()
+    for edge in edges:
+        delay = wall0 + (edge - t0) - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        for k, s in streams.items():
+            i1 = int(np.searchsorted(s.t_s, edge, side="right"))
+            if i1 > done[k]:
+                part = Stream(k, s.kind, s.t_s[done[k]:i1], s.values[done[k]:i1], s.channels)
+                pubs[k].put(pl.encode(pl.RawBatch(robot, part, seq[k])))
+                seq[k] += 1
+                put += i1 - done[k]
+                done[k] = i1
+        if during is not None:
+            during(edge)
+    for p in pubs.values():
+        p.undeclare()
+    return put

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from service_helpers import Collected, cut, wait_for
+from service_helpers import Collected, cut, publish_live, wait_for
 
 from fusion.configfile import load_arm
 from fusion.service import payloads as pl
@@ -76,7 +76,7 @@ def test_hostile_batches_while_tracking_are_refused_and_the_estimates_stay_true(
         jumped[0] += int(np.radians(174.0) * arm.counts_per_rad[0])
         pub["enc"].put(_batch(enc, t_last + 0.003, jumped, seq=10**9 + 2))
         # a plausible acc1 sample with an invented seq: accepted (it could be real), but the
-        # seq jump is a new publisher session, not 10^9 missed batches
+        # seq jump counts nothing: the real publisher's next number follows its own
         pub["acc1"].put(_batch(acc1, t_last + 0.004, acc1.values[-1], seq=10**9))
         want = {"dropped.wrong_channels": 1, "dropped.time_ahead": 1, "dropped.out_of_range": 1,
                 "dropped.encoder_jump": 1}
@@ -100,7 +100,8 @@ def test_hostile_batches_while_tracking_are_refused_and_the_estimates_stay_true(
     assert {k: r.dropped.get(k) for k in ("wrong_channels", "time_ahead", "out_of_range",
                                           "encoder_jump")} == {k.split(".")[1]: v for k, v in want.items()}
     assert r.samples == real + 1
-    assert r.missed_batches == 0 and r.seq_resets >= 1
+    # part2's replay numbers its batches from 0 again: one new session per sensor, no more
+    assert r.missed_batches == 0 and r.seq_resets == len(part2.raw())
 
 
 def test_hostile_batches_before_tracking_are_refused_and_the_startup_goes_on(
@@ -177,4 +178,47 @@ def test_a_bogus_batch_before_any_real_one_holds_the_clock_for_2_s_only(
     assert r.dropped.get("time_behind", 0) > 0
     assert max(j.t_s for j in joints) < 5.0
     z = np.array([_z_scores(rec, j) for j in joints])
+    assert z.max() < 4.0, z.max(axis=0)
+
+
+def test_one_sample_from_the_near_future_is_refused_and_the_estimates_keep_flowing(
+        hub_settings, fusion_node, arm, renk_recording):
+    """While the node tracks a live stream, a peer sends one acc1 sample stamped 1.9 s ahead
+    of the real stream (inside the 2 s window the sensors' clock once allowed: admitted, it
+    made the node drop 1.84 s of real samples and publish nothing meanwhile), one numbered
+    -1 and one numbered 0: the first refused as time_ahead, the second as malformed, the
+    third counts nothing; the joint states go on without a gap and stay true."""
+    rec = renk_recording
+    part1, part2 = cut(rec, 0.0, 3.0), cut(rec, 3.0, 5.0)
+    acc1 = rec.get("acc1")
+    listener, connector = hub_settings
+    with fusion_node(listener, arm, publish_hz=1000.0) as (node, result), \
+            open_session(connector) as s, open_session(connector) as hostile:
+        got = Collected(s)
+        real = _replay_all(s, node, part1)
+        assert wait_for(lambda: _counters(got).get("estimates", 0) > 0, 10.0), "not tracking"
+        pub = hostile.declare_publisher(pl.raw_key("chair1", "acc1"))
+        assert wait_for(lambda: pub.matching_status.matching, 5.0)
+        sent = []
+
+        def attack(t_s: float) -> None:
+            if not sent and t_s >= 3.5:
+                pub.put(_batch(acc1, t_s + 1.9, acc1.values[0], seq=10**6))
+                pub.put(_batch(acc1, t_s + 0.001, acc1.values[0], seq=-1))
+                pub.put(_batch(acc1, t_s + 0.002, acc1.values[0], seq=0))
+                sent.append(t_s)
+
+        real += publish_live(s, part2, during=attack)
+        assert wait_for(lambda: got.snapshot()[0] and got.snapshot()[0][-1].t_s > 4.85, 10.0)
+    r = result["report"]
+    assert r.dropped.get("time_ahead") == 1 and r.dropped.get("malformed") == 1, r.dropped
+    assert r.samples == real + 1  # the sample numbered 0 (plausible) is taken
+    assert r.missed_batches == 0 and r.errors == 0 and r.stalls == 0
+    # no sample of the real stream was made late: the estimates went on through the attack
+    t = np.array([j.t_s for j in got.snapshot()[0]])
+    after = t[t > sent[0] - 0.2]
+    assert r.out_of_order <= 1, r.out_of_order  # (at most the hostile sample numbered 0)
+    # (a sample let through 1.9 s ahead once left a 1.84 s gap; a backlog folded leaves a tenth)
+    assert after.size and np.diff(after).max() <= 0.25, (np.diff(after).max(), r.lag_max_ms)
+    z = np.array([_z_scores(rec, j) for j in got.snapshot()[0] if j.t_s > 3.0])
     assert z.max() < 4.0, z.max(axis=0)
