@@ -138,6 +138,20 @@ def parse_speed(text: str) -> float | None:
     return speed
 
 
+def _write_ros2(recording: Path, out: Path, arm_name: str) -> dict:
+    """The estimates recorded in ``recording`` as the ROS 2 bag ``out`` (written under a
+    temporary name, renamed when complete); exits 1 naming why when there are none."""
+    from fusion.ros2.from_records import RecordsError, write_ros2_from_records
+    from sensors.output_files import replaced_when_done
+
+    try:
+        with replaced_when_done(out) as tmp:
+            run, counts = write_ros2_from_records(recording, tmp, Path(arm_name).stem)
+    except RecordsError as e:
+        fail(f"--ros2-out: {e}", code=1)
+    return {"path": str(out), "instants": run.steps, "left_out": run.left_out, "messages": counts}
+
+
 def register(app: typer.Typer) -> None:
     @app.command("replay")
     def replay_command(
@@ -207,6 +221,10 @@ def register(app: typer.Typer) -> None:
         duration_s: StopAfterOpt = None,
         arm_config: Annotated[str, typer.Option("--config", "-c", help="Arm config name stored "
                                                 "in the file's metadata.")] = "",
+        ros2_out: Annotated[Path | None, typer.Option(
+            "--ros2-out", help="When the recording stops, also write its estimates to EST.ros2.mcap: a "
+                               "rosbag2 of ROS 2 messages (joint states, heading as sensor_msgs/Imu, "
+                               "diagnostics; docs/ros2.md).")] = None,
         zenoh_config: ZenohConfigOpt = None,
         listen: ListenOpt = None,
         connect: ConnectOpt = None,
@@ -219,19 +237,31 @@ def register(app: typer.Typer) -> None:
         if out.suffix.lower() != ".mcap":
             fail(f"{out}: the recording must end in .mcap")
         prepare_output_path(out, "OUT")
+        if ros2_out is not None:
+            if not ros2_out.name.lower().endswith(".ros2.mcap"):
+                fail(f"--ros2-out {ros2_out}: a ROS 2 bag's name ends in .ros2.mcap")
+            if ros2_out.resolve() == out.resolve():
+                fail(f"--ros2-out {ros2_out}: the same file as the recording")
+            prepare_output_path(ros2_out, "--ros2-out")
         stop = threading.Event()
         with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
                 stop_on_signals(stop), stop_after(duration_s, stop):
             recorder = Recorder(session, out, robot, arm_config=arm_config)
             threading.Thread(target=_say_ready, args=(recorder, robot, out), daemon=True).start()
             report = recorder.run(stop)
+        ros2 = None if ros2_out is None else _write_ros2(out, ros2_out, arm_config or robot)
         if json_out:
-            emit_json(report.as_dict())
+            emit_json({**report.as_dict(), **({} if ros2 is None else {"ros2": ros2})})
             return
         console.print(f"recorded {sum(report.samples.values())} samples of {len(report.samples)} "
                       f"sensors and {sum(report.estimates.values())} estimates to {out} "
                       f"in {report.wall_s:.1f} s; dropped: "
                       + (", ".join(f"{k} {v}" for k, v in report.dropped.items()) or "none"))
+        if ros2 is not None:
+            console.print(f"wrote {ros2['instants']} estimates to {ros2['path']} as a ROS 2 bag "
+                          f"({', '.join(f'{k} {v}' for k, v in ros2['messages'].items())})"
+                          + (f"; {ros2['left_out']} heading(s) without their joints left out"
+                             if ros2["left_out"] else ""))
 
     @app.command("serve")
     def serve_command(

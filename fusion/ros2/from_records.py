@@ -1,0 +1,160 @@
+"""Estimates recorded as armfusion's own records (the JSON messages on ``estimates/joints``
+and ``estimates/heading`` that ``armfusion record`` and ``track --out EST.mcap`` write) turned
+into what :func:`fusion.ros2.estimates_bag.write_estimates_bag` writes: so the live service's
+estimates reach ROS 2 as a bag too (``armfusion record OUT.mcap --ros2-out EST.ros2.mcap``).
+
+The two records of one estimate share its time stamp; an instant is taken where its heading
+record is, with the joints record of the same stamp (an arm with joints: an instant without
+one is left out and counted). A record that is not one (bad JSON, a missing field, an
+unknown flag or status word) is refused naming its topic and its index.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fusion.tracking.estimate import HEADING_STATUS, HEADING_TOPIC, JOINTS_TOPIC, NORTH
+from fusion.tracking.settings import JOINT_FLAGS, SENSOR_STATUS
+
+
+class RecordsError(ValueError):
+    """A recorded estimate that cannot be read as one, with its topic and index."""
+
+
+@dataclass(frozen=True)
+class RecordedRun:
+    """The recorded estimates, instant by instant, in the arrays a tracked run has
+    (:class:`fusion.tracking.run.TrackRun`'s names and codes)."""
+
+    joint_names: tuple[str, ...]
+    sensor_names: tuple[str, ...]
+    t_s: np.ndarray
+    q_rad: np.ndarray
+    sigma_rad: np.ndarray
+    flags: np.ndarray
+    rpy_rad: np.ndarray
+    rpy_sigma_rad: np.ndarray
+    gyro_bias_rad_s: np.ndarray
+    magnetic: np.ndarray
+    sensor_status: np.ndarray
+    heading_status: np.ndarray
+    true_north: bool
+    left_out: int
+    """Heading records with no joints record at their stamp (an arm with joints)."""
+
+    @property
+    def steps(self) -> int:
+        return int(len(self.t_s))
+
+
+def read_records(path: str | Path) -> tuple[list[dict], list[dict]]:
+    """The joints and heading records of an MCAP file, in file order."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    joints: list[dict] = []
+    headings: list[dict] = []
+    counts = {JOINTS_TOPIC: 0, HEADING_TOPIC: 0}
+    try:
+        with open(path, "rb") as fh:
+            for _schema, channel, message in make_reader(fh).iter_messages(topics=list(counts)):
+                index = counts[channel.topic]
+                counts[channel.topic] += 1
+                try:
+                    doc = json.loads(message.data)
+                except (UnicodeDecodeError, json.JSONDecodeError) as e:
+                    raise RecordsError(f"{path}: {channel.topic} message {index}: not JSON ({e})") from None
+                if not isinstance(doc, dict):
+                    raise RecordsError(f"{path}: {channel.topic} message {index}: not a record")
+                (joints if channel.topic == JOINTS_TOPIC else headings).append(doc)
+    except McapError as e:
+        raise RecordsError(f"{path}: not a complete MCAP file ({e})") from None
+    return joints, headings
+
+
+def _code(words: tuple[str, ...], word, what: str, where: str) -> int:
+    if word not in words:
+        raise RecordsError(f"{where}: {what} {str(word)[:40]!r} is not one of {', '.join(words)}")
+    return words.index(word)
+
+
+def run_from_records(joints: list[dict], headings: list[dict], source: str = "records") -> RecordedRun:
+    """The recorded estimates as a run (see the module's docstring)."""
+    by_t: dict[float, tuple[int, dict]] = {}
+    for i, j in enumerate(joints):
+        try:
+            by_t[float(j["t_s"])] = (i, j)
+        except (KeyError, TypeError, ValueError):
+            raise RecordsError(f"{source}: {JOINTS_TOPIC} message {i}: no time stamp t_s") from None
+    names = tuple(str(n) for n in joints[0].get("joint_names", ())) if joints else ()
+    sensors = tuple(str(s) for s in joints[0].get("sensors", {})) if joints else ()
+    rows = []
+    left_out = 0
+    for k, h in enumerate(headings):
+        where = f"{source}: {HEADING_TOPIC} message {k}"
+        try:
+            t = float(h["t_s"])
+            rpy = [float(h["roll_rad"]), float(h["pitch_rad"]), float(h["heading_rad"])]
+            rpy_sigma = [float(h[k]) for k in ("roll_sigma_rad", "pitch_sigma_rad", "heading_sigma_rad")]
+            bias = [float(v) for v in h["gyro_bias_rad_s"]]
+            magnetic = (1 if h["magnetic_disturbance"] else 0) | (2 if h["magnetic_recovery"] else 0)
+            status = _code(HEADING_STATUS, h["heading_status"], "heading_status", where)
+            north = _code(NORTH, h.get("north", "magnetic"), "north", where)
+        except (KeyError, TypeError, ValueError) as e:
+            if isinstance(e, RecordsError):
+                raise
+            raise RecordsError(f"{where}: not a heading record ({type(e).__name__}: {str(e)[:80]})") from None
+        if len(bias) != 3:
+            raise RecordsError(f"{where}: gyro_bias_rad_s has {len(bias)} values, not 3")
+        q = sigma = flags = status_codes = ()
+        if names:
+            if t not in by_t:
+                left_out += 1
+                continue
+            i, j = by_t[t]
+            jwhere = f"{source}: {JOINTS_TOPIC} message {i}"
+            if tuple(j.get("joint_names", ())) != names:
+                raise RecordsError(f"{jwhere}: joint_names differ from the first record's")
+            try:
+                q = [float(v) for v in j["q_rad"]]
+                sigma = [float(v) for v in j["sigma_rad"]]
+                flags = [_code(JOINT_FLAGS, f, "flag", jwhere) for f in j["flags"]]
+                sensor_words = j.get("sensors", {})
+                status_codes = [_code(SENSOR_STATUS, sensor_words.get(s, "absent"), f"sensor {s}'s status",
+                                      jwhere) for s in sensors]
+            except (KeyError, TypeError, ValueError, AttributeError) as e:
+                if isinstance(e, RecordsError):
+                    raise
+                raise RecordsError(f"{jwhere}: not a joints record ({type(e).__name__}: "
+                                   f"{str(e)[:80]})") from None
+            if not len(q) == len(sigma) == len(flags) == len(names):
+                raise RecordsError(f"{jwhere}: q_rad, sigma_rad and flags must each have {len(names)} values")
+        rows.append((t, q, sigma, flags, rpy, rpy_sigma, bias, magnetic, status_codes, status, north))
+    n, m, s = len(rows), len(names), len(sensors)
+
+    def col(k: int, shape: tuple, dtype=float) -> np.ndarray:
+        return np.array([r[k] for r in rows], dtype=dtype).reshape(shape)
+
+    return RecordedRun(
+        joint_names=names, sensor_names=sensors, t_s=col(0, (n,)), q_rad=col(1, (n, m)),
+        sigma_rad=col(2, (n, m)), flags=col(3, (n, m), np.int8), rpy_rad=col(4, (n, 3)),
+        rpy_sigma_rad=col(5, (n, 3)), gyro_bias_rad_s=col(6, (n, 3)), magnetic=col(7, (n,), np.int8),
+        sensor_status=col(8, (n, s), np.int8), heading_status=col(9, (n,), np.int8),
+        true_north=bool(rows and rows[-1][10] == NORTH.index("true")), left_out=left_out)
+
+
+def write_ros2_from_records(src: str | Path, out: str | Path, arm_name: str) -> tuple[RecordedRun, dict]:
+    """Read the estimates recorded in ``src`` and write them to the rosbag2 MCAP ``out``;
+    returns the run read and the messages written per topic."""
+    from fusion.ros2.estimates_bag import write_estimates_bag
+
+    joints, headings = read_records(src)
+    if not headings:
+        raise RecordsError(f"{src}: no estimate recorded (no {HEADING_TOPIC} message): was a fusion "
+                           "node publishing?")
+    run = run_from_records(joints, headings, str(src))
+    return run, write_estimates_bag(run, out, arm_name)
