@@ -574,7 +574,7 @@ calibration take the rest. Latency runs from the moment the message holding an i
 put (a sample first waits up to one batch, {r['batch_ms']:.0f} ms, in the driver) to its joint
 state's arrival, over the instants sent after the node caught up (before, it waits for its
 startup calibration, then fuses the samples it kept). A node that needs more than one CPU-second per
-{r['rate_hz']:.0f} instants cannot keep up one instant at a time: it degrades (docs/service.md,
+{r['rate_hz']:.0f} instants cannot keep up one instant at a time: it degrades (docs/service-node.md,
 "When the node falls behind": it folds the instants more than 50 ms behind, one update per
 20 ms of them{folded}). If taking the messages in alone costs more than it gets, its queue
 and the latency still grow for as long as the stream lasts, and once its receive channel

@@ -4,7 +4,7 @@ A command names its parameter and its default; the flag, the help and the check 
 value come from here, so that ``--seed`` or ``--robot`` means the same in every command.
 Grouped by what they are about: the arm and the output (every command), the simulated rig
 (``simulate``, ``drivers --fake``, ``fleet``, ``demo``), the recordings, and Zenoh (every
-node; see docs/service.md).
+node; see docs/reference/service.md, "Zenoh configuration").
 
 The values are checked where they are parsed, before the command's work starts: a bad one
 gives the one-line ``error:`` of :func:`fusion.cli.common.fail` and exit 2.

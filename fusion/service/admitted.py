@@ -151,7 +151,7 @@ class AdmissionWatch:
             return Admission("refused", f"the fusion node of {self.robot} admitted none of the samples "
                              f"sent {within}; it dropped batches meanwhile: "
                              + ", ".join(f"{k} {v}" for k, v in sorted(dropped.items()))
-                             + " (see docs/service.md, What the fusion node refuses)", 0, dropped)
+                             + " (see docs/reference/service.md, What the fusion node refuses)", 0, dropped)
         return Admission("refused", f"the fusion node of {self.robot} admitted none of the samples "
                          f"sent {within}, and none reached it: a router on the way dropped them (an "
                          "access-control policy that does not let this node's user publish raw samples? "

@@ -6,7 +6,7 @@ peer, listening on tcp/127.0.0.1:7447, no scouting), ``--listen`` and ``--connec
 (repeatable; loopback only; each replaces the file's endpoints) and ``--mode``. Without
 ``--zenoh-config``, a node given ``--connect`` but no ``--listen`` listens on an ephemeral
 loopback port, so that it does not compete for 7447 with the node it connects to. See
-docs/service.md.
+docs/reference/service.md, "Zenoh configuration".
 """
 
 from __future__ import annotations

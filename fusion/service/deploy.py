@@ -21,7 +21,7 @@ config (and, in a new fleet, the CA and the base station's files). A chair's fol
 exists is refused (its certificate and passwords would change) unless ``force``. Later runs
 take the base router's address and port from the base station's files, and refuse others
 (its certificate names that address).
-Certificates: P-256, made by the ``openssl`` command line as docs/service.md's recipe,
+Certificates: P-256, made by the ``openssl`` command line as docs/service-deploy.md's recipe,
 CN = the node's name, the base router's subject alternative name its address (a client that
 verifies the name, ``verify_name_on_connect``, accepts it only then). Passwords: 24 random
 characters each (:func:`secrets.token_urlsafe`). Keys, passwords and the node configs that

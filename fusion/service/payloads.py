@@ -15,7 +15,7 @@ Every payload is one UTF-8 JSON object (no pickle, nothing that carries code) wi
 ``"v"``, its type's version (:data:`VERSIONS`: 2 for ``heading``, 1 for the others), and
 ``"type"``, one of ``raw``, ``joints``, ``heading``, ``status``, ``calibration``, ``health``,
 ``maneuver``; the fields
-of each are those of the dataclasses below and are written out in docs/service.md. The
+of each are those of the dataclasses below and are written out in docs/reference/service.md. The
 fields of ``joints`` and ``heading`` are an estimate's one wire form, written by
 :mod:`fusion.tracking.estimate` (``joints_record``, ``heading_record``). JSON keeps a
 float's every bit (Python writes the shortest repr that reads back the same), so a replayed

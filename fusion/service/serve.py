@@ -119,7 +119,7 @@ class ServeReport:
 
 @dataclass(frozen=True)
 class Lateness:
-    """How the fusion node degrades when it falls behind (see docs/service.md, "When the node
+    """How the fusion node degrades when it falls behind (see docs/service-node.md, "When the node
     falls behind").
 
     The node's lag is how far the samples it last took in are behind the sensors' time now,

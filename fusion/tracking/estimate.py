@@ -18,7 +18,7 @@ in one object: ``armfusion track --json``), the Zenoh payloads on ``state/joints
 ``state/heading`` (:mod:`fusion.service.payloads` adds its envelope ``v``, ``type``,
 ``robot``), and the MCAP topics :data:`JOINTS_TOPIC` and :data:`HEADING_TOPIC`
 (:func:`write_mcap_record`: ``armfusion record``, ``armfusion track --out EST.mcap``; each
-channel carries the record's JSON schema). docs/service.md describes them.
+channel carries the record's JSON schema). docs/reference/service.md describes them.
 """
 
 from __future__ import annotations

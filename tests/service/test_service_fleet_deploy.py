@@ -1,4 +1,4 @@
-"""The fleet deployment of docs/service.md ("Deploying a fleet"), its steps as written, every
+"""The fleet deployment of docs/service-deploy.md, its steps as written, every
 node an ``armfusion`` process on loopback: ``armfusion deploy`` writes the certificates,
 credentials and configs; the base station's router runs from its router.json5 alone (TLS,
 mutual TLS, the access-control policy), each chair's router from its own; the fusion node,
