@@ -222,7 +222,7 @@ def main(argv=None) -> None:
             f"σ by more than 1 % for {cmp['n_dsigma_over']}, at most {100 * cmp['max_dsigma']:.1f} % "
             f"({cmp['max_dsigma_element']}); held differently: {', '.join(cmp['held_differ']) or 'none'}. "
             "(The old fit stopped on a cost drop under 0.05, short of the optimum along the heading's "
-            "valley: docs/identification.md, *How the fit is made fast*.)"]),
+            "valley: docs/identification-method.md, *How the fit is made fast*.)"]),
     ])
     print(md)
     if not a.no_write:

@@ -259,7 +259,7 @@ def _with_compass_from_drive(cfg: dict, drive: Path, json_out: bool) -> tuple[di
 EXPECTED_JACOBIANS = 50
 """Jacobians a calibration fit takes, for the bar's time left: 44 measured on 300 s of the
 realistic WMRA's renk-maneuver (34 of them on the coarse subset), 55 on 60 s
-(``docs/identification.md``); past it the bar expects one more at a time."""
+(``docs/benchmarks.md``, the identification speed); past it the bar expects one more at a time."""
 
 
 def _jacobians(advance, fits: int = 1):

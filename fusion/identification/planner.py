@@ -112,7 +112,7 @@ class PlanSettings:
     from 0.20° to 0.17°, but on
     seed 2's realistic arm its fit put the compass's elements (soft iron, the IMU's mount
     about z, the arm's steel) 4-11σ off, where the 2 s plan's were within 3σ: not the
-    default until that is understood (``docs/identification.md``)."""
+    default until that is understood (``docs/maneuver-planning.md``, Limits)."""
     startup_poses: int = 16
     """``criterion="startup"``: the random still poses (chair tilted N(0, 3°)) the startup's
     σ is taken over."""
