@@ -17,7 +17,7 @@ Register map (ADXL345 data sheet, Rev. E, Table 19) used here::
     0x38 FIFO_CTL     R/W bits 7:6 mode (bypass/FIFO/stream/trigger), 4:0 samples
     0x39 FIFO_STATUS  R   bits 5:0 entries
 
-Reads (see docs/drivers.md for the reasons):
+Reads (see docs/reference/drivers.md for the reasons):
 
 * :meth:`ADXL345.read` (FIFO bypass): one 8-byte burst from INT_SOURCE (0x30):
   INT_SOURCE says whether the data are new (DATA_READY) and whether a sample was

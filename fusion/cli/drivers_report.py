@@ -1,5 +1,5 @@
 """The report of ``armfusion drivers``: a run (:class:`~fusion.cli.drivers_run.DriversRun`)
-as one JSON document (:func:`summary`, documented in docs/drivers.md) and as the tables a
+as one JSON document (:func:`summary`, documented in docs/reference/drivers.md) and as the tables a
 person reads (:func:`print_report`): per device the samples, read time, jitter, bus
 errors, retries and the drivers' other counters."""
 
@@ -30,7 +30,7 @@ def _bus(w: Wiring) -> str:
 
 
 def summary(run: DriversRun) -> dict[str, Any]:
-    """The run as one JSON-ready document (documented in docs/drivers.md)."""
+    """The run as one JSON-ready document (documented in docs/reference/drivers.md)."""
     rep = run.loop
     bus = {w.name: _bus(w) for w in run.wiring}
     devices: dict[str, Any] = {}
