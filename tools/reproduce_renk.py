@@ -2,7 +2,7 @@
 
     python tools/reproduce_renk.py [--seed 0] [--runs 25] [--img docs/img] [--no-figures]
 
-Prints Markdown (pasted into ``docs/reproduction.md``) and draws the article's Figures 3
+Prints Markdown (pasted into ``docs/reproduction-output.md``) and draws the article's Figures 3
 and 4 as ``docs/img/renk_fig3.png`` and ``renk_fig4.png``.
 
 What the article gives and what is done with it:
