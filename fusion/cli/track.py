@@ -52,7 +52,8 @@ def track(
     gate_significance: Annotated[float, typer.Option(help="Chi-square gate: probability that a good sample is rejected.")] = 1e-3,
     unmodelled_g: Annotated[float | None, typer.Option(help="Override the config's unmodelled accelerometer error (g, 1 sigma), for startup and tracking.")] = None,
     no_motion_compensation: Annotated[bool, typer.Option("--no-motion-compensation", help="Predict the accelerometers as if nothing moved (for comparison only).")] = False,
-    moving_start: Annotated[bool, typer.Option("--moving-start", help="When the recording has no still stretch (an arm that never stops), start on its least-moving instants, the sigma widened by their motion.")] = False,
+    moving_start: Annotated[bool, typer.Option("--moving-start", help="Start at the recording's start: with no still stretch in its first 5 s (an arm that never stops), on the least-moving instants there, the sigma widened by their motion.")] = False,
+    start_at: Annotated[float | None, typer.Option("--start-at", metavar="SECONDS", help="Start the startup calibration at this many seconds after the recording's start: on a still stretch that begins within 5 s of it, else on the least-moving instants from it.")] = None,
     encoder_withheld: Annotated[str | None, typer.Option("--encoder-withheld", metavar="JOINT@SECONDS", help="The joint's encoder fails SECONDS after the recording's start: the gyroscopes on either side of it stand in, calibrated against the encoder before then, and tracking starts afresh there (its zero unknown).")] = None,
 ) -> None:
     """Track the joint angles and the heading through a recording: startup calibration on
@@ -64,6 +65,8 @@ def track(
     from fusion.startup.solve import StartupInputError
     from fusion.tracking.tracker import NoStillWindowError, TrackerSettings, start_from_recording
 
+    if start_at is not None and not (np.isfinite(start_at) and start_at >= 0.0):
+        fail(f"--start-at must be a time of 0 s or more after the recording's start, not {start_at!r}")
     if not 0.0 < gate_significance < 1.0:
         fail(f"--gate-significance must be between 0 and 1, not {gate_significance!r}")
     if out is not None:
@@ -98,10 +101,11 @@ def track(
                      f"deg/sqrt(s) against the encoder before then); tracking starts afresh there")
     with progress_bar("startup calibration", json_out) as advance:
         try:
-            tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q,
-                                              resolve_by_motion_s=20.0, moving_start=moving_start)
+            tr, start = start_from_recording(
+                arm, rec, settings, prior_q_rad=prior_q, resolve_by_motion_s=20.0, moving_start=moving_start,
+                start_at_s=None if start_at is None else rec.t_start_s + start_at)
         except NoStillWindowError as e:
-            fail(f"{recording}: {e}" + ("" if moving_start else
+            fail(f"{recording}: {e}" + ("" if moving_start or start_at is not None else
                                         " (--moving-start starts on its least-moving instants)"))
         except (StartupInputError, ValueError) as e:
             fail(f"{recording}: cannot start tracking: {e}")

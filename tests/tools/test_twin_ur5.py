@@ -71,6 +71,9 @@ def test_import_calibrate_track_on_the_twin_with_the_config_as_written(twin_mcap
     r = runner.invoke(app, ["calibrate", "joints", str(rec), "--config", "ur5_two_imu", "--json"])
     assert r.exit_code == 0, r.output
     seg = json.loads(r.stdout)["segments"][0]
+    # at the recording's start, on its under-a-second still stretch, and saying how short it was
+    assert seg["t_start"] <= 0.1 and seg["t_end"] - seg["t_start"] < 1.0
+    assert any("still stretch of only" in n for n in seg["notes"])
     joints = {j["name"]: j for j in seg["joints"]}
     assert joints["base"]["angle_rad"] is None and joints["wrist3"]["angle_rad"] is None
     est = rec.with_name("est.csv")
@@ -78,6 +81,8 @@ def test_import_calibrate_track_on_the_twin_with_the_config_as_written(twin_mcap
                             "--out", str(est)])
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout)
+    assert doc["start"]["t_start_s"] <= 0.1 and doc["start"]["t_end_s"] < 1.0  # tracked from the start
+    assert not any("chair" in n for n in doc["notes"])  # a bolted base is not a chair
     assert doc["sensor_warnings"] == []
     assert all(v == 0 for v in doc["rejections"].values())
     assert min(doc["within_3_sigma"].values()) >= 0.95, doc["within_3_sigma"]
@@ -137,3 +142,24 @@ def test_a_levelled_base_starts_from_the_tilt_given(twin_mcap, tmp_path):
         assert abs(np.degrees(got) - true) <= 3.0 * np.degrees(sigma) + 0.1
         assert np.degrees(sigma) <= 0.1 + 1e-9
     assert min(doc["within_3_sigma"].values()) >= 0.95
+
+
+def test_the_start_is_where_the_user_says(twin_mcap):
+    """``--start-at T``: the startup on the first still stretch from T (the twin's rest, 3 s
+    long, once a round), never on the still start before it; past the end, a clear refusal."""
+    from fusion.tracking.start import NoStillWindowError, choose_start
+    from sensors.recording import read_recording
+
+    twin, path = twin_mcap
+    arm, rec = load_arm("ur5_two_imu"), read_recording(path)
+    first = choose_start(arm, rec)
+    assert first.segment.t_start_s <= 0.1 and first.short  # the start's under-a-second still
+    later = choose_start(arm, rec, start_at_s=rec.t_start_s + 2.0)
+    assert later.segment is not None and 2.0 <= later.segment.t_start_s <= 7.0
+    assert later.segment.duration_s >= 1.0 and not later.short
+    t = np.asarray(twin.columns["time_s"])
+    q = np.column_stack([twin.columns[f"q{i}_deg"] for i in range(1, 7)])
+    inside = (t >= later.segment.t_start_s) & (t <= later.segment.t_end_s)
+    assert np.ptp(q[inside], axis=0).max() < 0.01  # the arm truly stood there
+    with pytest.raises(NoStillWindowError, match="outside the recording"):
+        choose_start(arm, rec, start_at_s=rec.t_end_s + 1.0)
