@@ -76,6 +76,14 @@ def test_import_calibrate_track_on_the_twin_with_the_config_as_written(twin_mcap
     assert any("still stretch of only" in n for n in seg["notes"])
     joints = {j["name"]: j for j in seg["joints"]}
     assert joints["base"]["angle_rad"] is None and joints["wrist3"]["angle_rad"] is None
+    # the shoulder and the elbow (parallel axes) each unseen, their sum read, and said so
+    assert joints["shoulder"]["flag"] == joints["elbow"]["flag"] == "ill_conditioned"
+    combos = {c["name"]: c for c in seg["combinations"]}
+    assert "shoulder + elbow" in combos and "gravity reads together shoulder + elbow" in seg["summary"]
+    k = int(round(seg["t_end"] * CONTROLLER_RATE_HZ))
+    true_sum = twin.columns["q2_deg"][k] + twin.columns["q3_deg"][k]
+    c = combos["shoulder + elbow"]
+    assert abs(np.degrees(c["angle_rad"]) - true_sum) <= 3.0 * np.degrees(c["sigma_rad"]) < 15.0
     est = rec.with_name("est.csv")
     r = runner.invoke(app, ["track", str(rec), "--config", "ur5_two_imu", "--after-s", "0", "--json",
                             "--out", str(est)])
@@ -97,6 +105,17 @@ def test_import_calibrate_track_on_the_twin_with_the_config_as_written(twin_mcap
     forearm = np.degrees(e["q_shoulder"] + e["q_elbow"]) - truth["q2_deg"] - truth["q3_deg"]
     wrist = forearm + np.degrees(e["q_wrist1"]) - truth["q4_deg"]
     assert np.sqrt(np.mean(forearm[late] ** 2)) < 1.5 and np.sqrt(np.mean(wrist[late] ** 2)) < 1.5
+    # the tracker names that sum itself, in the JSON and the CSV, with a sigma that covers its
+    # error (scored here from the CSV against the controller's angles)
+    reported = {c["name"]: c for c in doc["combinations"]}
+    assert "shoulder + elbow" in reported and reported["shoulder + elbow"]["column"] in e.dtype.names
+    col = reported["shoulder + elbow"]["column"]
+    have = np.isfinite(e[col]) & late
+    assert have.mean() > 0.8 * late.mean()
+    err = np.degrees(e[col][have]) - truth["q2_deg"][have] - truth["q3_deg"][have]
+    assert np.mean(np.abs(err) <= 3.0 * np.degrees(e["sigma_" + col][have])) >= 0.95
+    assert np.sqrt(np.mean(err**2)) < 1.0
+    assert any(c["name"] == "shoulder + elbow" for c in doc["final"]["combinations"])
     arm = load_arm("ur5_two_imu")
     span = np.degrees(arm.max_rad - arm.min_rad)
     final = doc["final"]
