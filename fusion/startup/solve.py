@@ -237,7 +237,8 @@ TILT_NAMES = ("base roll", "base pitch")
 
 def startup_combinations(arm: ArmModel, result: StartupResult, cov: np.ndarray,
                          st: StartupSettings) -> tuple:
-    """The combinations of the joints not ``ok`` (and of the base's roll and pitch where
+    """The combinations of the joints not ``ok`` (nor ``gimbal_lock``: gravity reads them not
+    at all; nor ``ambiguous``: rival branches) (and of the base's roll and pitch where
     their sigma is above ``sigma_limit_deg``) that ``cov`` knows within
     ``combination_sigma_max_deg`` (:func:`fusion.startup.combinations.observable_combinations`).
     ``cov``: the solve's linear covariance (with the safety factor), before each joint's
@@ -246,7 +247,7 @@ def startup_combinations(arm: ArmModel, result: StartupResult, cov: np.ndarray,
     hundreds of degrees, would have their sum widened by as much."""
     n = len(result.joints)
     x = np.concatenate([result.q_rad, [result.roll_rad, result.pitch_rad]])
-    cand = np.array([j.flag != "ok" for j in result.joints]
+    cand = np.array([j.flag not in ("ok", "gimbal_lock", "ambiguous") for j in result.joints]
                     + [s > st.sigma_limit_deg * DEG for s in (result.roll_sigma_rad, result.pitch_sigma_rad)])
     names = [*arm.joint_names[:n], *TILT_NAMES]
     return observable_combinations(cov, x, names, st.combination_sigma_max_deg * DEG, cand)

@@ -25,6 +25,7 @@ differentiators' fits and the frames for a block of instants in one compiled cal
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 
 import numpy as np
 
@@ -56,6 +57,8 @@ from fusion.tracking.settings import (
     ENC,
     F_AMBIGUOUS,
     F_CONVERGING,
+    F_GIMBAL,
+    F_UNOBSERVED,
     FLAG_CODE,
     GYRO,
     IMU_ACC,
@@ -250,6 +253,7 @@ class Tracker:
         # could not read is not "ok" for the first instants)
         self._flags = np.array([FLAG_CODE.get(j.flag, F_CONVERGING) for j in startup.joints], dtype=np.int8)
         self._named = (None, None, (), ())  # (status codes, flags, their names): see estimate
+        self._combos = (None, -np.inf, (), None, None)  # see combinations_now
         self._obs_used_key = None
         self._obs_t = -np.inf
         self._link_read_t = np.full(len(self.link_names), -np.inf)  # each one's last accepted sample
@@ -595,7 +599,8 @@ class Tracker:
 
     def combination_vectors(self) -> tuple[tuple[Combination, ...], np.ndarray, np.ndarray]:
         """What gravity reads where it cannot read single joints, now: the combinations of
-        the joints not ``ok`` (nor ``ambiguous``) and of the base's roll and pitch (where
+        the joints not ``ok`` (nor ``ambiguous``, nor flagged as read by no sensor:
+        ``gimbal_lock``, ``unobserved``) and of the base's roll and pitch (where
         their sigma is above ``sigma_limit_deg``) that the filter knows within
         ``mean_state_held_sigma_deg`` and better than any of their terms
         (:func:`fusion.startup.combinations.observable_combinations`), from the joint and
@@ -608,7 +613,7 @@ class Tracker:
         ix = np.r_[np.arange(n), L.roll, L.pitch]
         values, P = self._joint_tilt_block(ix)
         flags = self._flags
-        cand = np.r_[(flags != 0) & (flags != F_AMBIGUOUS),
+        cand = np.r_[(flags != 0) & ~np.isin(flags, (F_AMBIGUOUS, F_GIMBAL, F_UNOBSERVED)),
                      np.sqrt(np.clip(np.diag(P)[n:], 0.0, None)) > st.sigma_limit_deg * DEG]
         names = (*self.arm.joint_names, *TILT_NAMES)
         found = observable_combinations(P, values, names, st.mean_state_held_sigma_deg * DEG, cand)
@@ -631,6 +636,21 @@ class Tracker:
         values and sigmas (rad)."""
         values, P = self._joint_tilt_block(ix)
         return C @ values, np.sqrt(np.clip(np.einsum("ki,ij,kj->k", C, P, C), 0.0, None))
+
+    def combinations_now(self) -> tuple[Combination, ...]:
+        """:meth:`combination_vectors`' combinations at the last fused instant: which ones,
+        found again when the flags change and every ``observability_window_s``; their values
+        and sigmas now (an estimate a sample carries no eigen-decomposition)."""
+        flags, t_found, found, C, ix = self._combos
+        if self._flags is not flags or self._t - t_found >= self.settings.observability_window_s:
+            found, C, ix = self.combination_vectors()
+            self._combos = (self._flags, self._t, found, C, ix)
+            return found
+        if not found:
+            return ()
+        v, sg = self.combination_values(C, ix)
+        return tuple(replace(c, angle_rad=float(a), sigma_rad=float(b))
+                     for c, a, b in zip(found, v, sg, strict=True))
 
     @property
     def estimate(self) -> Estimate:
@@ -660,7 +680,7 @@ class Tracker:
             magnetic_disturbance=self.compass.flags[0], magnetic_recovery=self.compass.flags[1],
             joint_names=self.arm.joint_names, heading_status=HEADING_STATUS[self.heading_status_code()],
             true_north=self.arm.magnetic_declination_deg is not None,
-            combinations=self.combination_vectors()[0],
+            combinations=self.combinations_now(),
         )
 
     def gyro_scale(self) -> dict | None:

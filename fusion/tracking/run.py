@@ -8,6 +8,7 @@ in the recording, scored by :mod:`fusion.tracking.scoring`."""
 
 from __future__ import annotations
 
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -443,9 +444,10 @@ class TrackRun:
 
 def combination_column(name: str) -> str:
     """A combination's value column in the estimates CSV (its sigma's is ``sigma_`` before it):
-    ``shoulder + elbow`` is ``combo_shoulder_plus_elbow``."""
-    slug = name.replace(" + ", "_plus_").replace(" - ", "_minus_").replace("-", "minus_").replace(" ", "_")
-    return "combo_" + slug
+    ``shoulder + elbow`` is ``combo_shoulder_plus_elbow``, ``0.5 a - b`` ``combo_0p5_a_minus_b``
+    (letters, digits and underscores only: a column name every CSV reader keeps)."""
+    slug = name.replace(" + ", "_plus_").replace(" - ", "_minus_").replace("-", "minus_").replace(".", "p")
+    return "combo_" + re.sub(r"[^0-9A-Za-z_]", "_", slug)
 
 
 def _tally(codes: np.ndarray, names: tuple[str, ...]) -> dict[str, int]:

@@ -182,3 +182,10 @@ def test_the_start_is_where_the_user_says(twin_mcap):
     assert np.ptp(q[inside], axis=0).max() < 0.01  # the arm truly stood there
     with pytest.raises(NoStillWindowError, match="outside the recording"):
         choose_start(arm, rec, start_at_s=rec.t_end_s + 1.0)
+    # from 12 s the arm never rests again: --moving-start takes the least-moving instants
+    # there; without it, a refusal that says so
+    assert not np.any((t >= 12.0) & (np.r_[np.abs(np.diff(q, axis=0)).max(axis=1), 1.0] == 0.0))
+    moving = rec.between(rec.t_start_s + 12.0, np.inf)
+    assert choose_start(arm, moving, moving_start=True).segment is None
+    with pytest.raises(NoStillWindowError, match="no still stretch"):
+        choose_start(arm, moving)
