@@ -54,6 +54,7 @@ def calibrate_joints(
     save: Annotated[Path | None, typer.Option(help="Save the solved pose here (atomically) when every joint is ok.")] = None,
     gimbal_lock_deg: Annotated[float, typer.Option(help="Axis-to-vertical angle below which a joint is gravity-blind.")] = StartupSettings.gimbal_lock_deg,
     sigma_limit_deg: Annotated[float, typer.Option(help="Sigma above which a joint is ill_conditioned.")] = StartupSettings.sigma_limit_deg,
+    start_at: Annotated[float | None, typer.Option("--start-at", metavar="SECONDS", help="Calibrate on the first still stretch from this many seconds after the recording's start.")] = None,
 ) -> None:
     """Every joint angle of a still arm, with sigma, flags, and a move that unlocks blind joints."""
     choice_or_exit(method, "--method", ("joint", "sequential"))
@@ -75,13 +76,30 @@ def calibrate_joints(
             first_prior = StartupPrior.saved_pose(saved.q_rad, source=f"the pose saved in {prior}")
     elif assume_parked:
         first_prior = StartupPrior.assume_parked(arm)
-    segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)),
-                                stream_models(arm))
+    from fusion.tracking.start import NoStillWindowError, choose_start, short_still_readings
+
+    if start_at is not None and not (np.isfinite(start_at) and start_at >= 0.0):
+        fail(f"--start-at must be a time of 0 s or more after the recording's start, not {start_at!r}")
+    short = set()
+    if segments:
+        segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)),
+                                    stream_models(arm))
+    else:  # where a start would calibrate: the first still stretch near the start, a short one too
+        try:
+            choice = choose_start(arm, rec, window_s, None if start_at is None else rec.t_start_s + start_at)
+        except NoStillWindowError as e:
+            fail(f"{recording}: {e}")
+        if choice.segment is None:
+            fail(f"{recording}: no still stretch within 5 s of t = {start_at:g} s; the arm must be still "
+                 "to calibrate (track --start-at starts on a moving arm)")
+        segs = [choice.segment]
+        if choice.short:
+            short.add(0)
+        if choice.note:
+            notes.append(choice.note)
     if not segs:
         fail(f"{recording}: no still segment found (accelerometers, gyro and encoders all quiet "
              "for at least 1 s); the arm must be still to calibrate")
-    if not segments:
-        segs = segs[:1]
     out = []
     temp = rec.get("imu_temp")
     temperature_c = (float(mpu9150_temperature_c(np.mean(temp.values)))
@@ -105,8 +123,11 @@ def calibrate_joints(
     by_temperature = {round(temperature_c, 1): corr}
     enc = rec.get("enc")
     carried: tuple[StartupResult, np.ndarray] | None = None  # last answer, encoder angles then
-    for seg in segs:
+    for i_seg, seg in enumerate(segs):
         readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
+        short_note = None
+        if i_seg in short:
+            readings, short_note = short_still_readings(arm, rec, seg, readings)
         enc_rad = _encoder_angles_at(arm, enc, seg.t_end_s)
         seg_prior = first_prior
         if carried is not None and not independent and enc_rad is not None:
@@ -121,7 +142,7 @@ def calibrate_joints(
                 by_temperature[key] = startup_correction(arm, key, include_joint_offsets=True)
             seg_corr = by_temperature[key]
         readings = seg_corr.readings(readings)
-        seg_notes = [c.message for c in checks]
+        seg_notes = [c.message for c in checks] + ([short_note] if short_note else [])
         try:
             geometric = solve_still(arm, readings, st, prior=seg_prior, method=method)
             res = seg_corr.controller_result(geometric)

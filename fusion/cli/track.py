@@ -52,7 +52,8 @@ def track(
     gate_significance: Annotated[float, typer.Option(help="Chi-square gate: probability that a good sample is rejected.")] = 1e-3,
     unmodelled_g: Annotated[float | None, typer.Option(help="Override the config's unmodelled accelerometer error (g, 1 sigma), for startup and tracking.")] = None,
     no_motion_compensation: Annotated[bool, typer.Option("--no-motion-compensation", help="Predict the accelerometers as if nothing moved (for comparison only).")] = False,
-    moving_start: Annotated[bool, typer.Option("--moving-start", help="When the recording has no still stretch (an arm that never stops), start on its least-moving instants, the sigma widened by their motion.")] = False,
+    moving_start: Annotated[bool, typer.Option("--moving-start", help="Start at the recording's start: with no still stretch in its first 5 s (an arm that never stops), on the least-moving instants there, the sigma widened by their motion.")] = False,
+    start_at: Annotated[float | None, typer.Option("--start-at", metavar="SECONDS", help="Start the startup calibration at this many seconds after the recording's start: on a still stretch that begins within 5 s of it, else on the least-moving instants from it.")] = None,
     encoder_withheld: Annotated[str | None, typer.Option("--encoder-withheld", metavar="JOINT@SECONDS", help="The joint's encoder fails SECONDS after the recording's start: the gyroscopes on either side of it stand in, calibrated against the encoder before then, and tracking starts afresh there (its zero unknown).")] = None,
 ) -> None:
     """Track the joint angles and the heading through a recording: startup calibration on
@@ -64,6 +65,8 @@ def track(
     from fusion.startup.solve import StartupInputError
     from fusion.tracking.tracker import NoStillWindowError, TrackerSettings, start_from_recording
 
+    if start_at is not None and not (np.isfinite(start_at) and start_at >= 0.0):
+        fail(f"--start-at must be a time of 0 s or more after the recording's start, not {start_at!r}")
     if not 0.0 < gate_significance < 1.0:
         fail(f"--gate-significance must be between 0 and 1, not {gate_significance!r}")
     if out is not None:
@@ -98,10 +101,11 @@ def track(
                      f"deg/sqrt(s) against the encoder before then); tracking starts afresh there")
     with progress_bar("startup calibration", json_out) as advance:
         try:
-            tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q,
-                                              resolve_by_motion_s=20.0, moving_start=moving_start)
+            tr, start = start_from_recording(
+                arm, rec, settings, prior_q_rad=prior_q, resolve_by_motion_s=20.0, moving_start=moving_start,
+                start_at_s=None if start_at is None else rec.t_start_s + start_at)
         except NoStillWindowError as e:
-            fail(f"{recording}: {e}" + ("" if moving_start else
+            fail(f"{recording}: {e}" + ("" if moving_start or start_at is not None else
                                         " (--moving-start starts on its least-moving instants)"))
         except (StartupInputError, ValueError) as e:
             fail(f"{recording}: cannot start tracking: {e}")
@@ -214,12 +218,16 @@ def _scoring_truth(rec, recording: Path, joint_names) -> tuple:
 
 
 def estimate_columns(run) -> list[str]:
+    from fusion.tracking.run import combination_column
+
     j = run.joint_names
     return (["t"] + [f"q_{n}" for n in j] + [f"sigma_{n}" for n in j] + [f"flag_{n}" for n in j]
             + ["roll", "pitch", "yaw", "sigma_roll", "sigma_pitch", "sigma_yaw",
                "gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "magnetic_disturbance", "magnetic_recovery",
                "heading_status"]
-            + [f"status_{s}" for s in run.sensor_names])
+            + [f"status_{s}" for s in run.sensor_names]
+            + [c for name in (getattr(run, "combinations", None) or {}) for c in (combination_column(name),
+                                                               "sigma_" + combination_column(name))])
 
 
 def write_estimates(run, path: Path, arm_config: str = "") -> None:
@@ -253,24 +261,29 @@ def _write_estimates(run, path: Path, suffix: str, arm_config: str) -> None:
             status = np.array(SENSOR_STATUS, dtype=object)[run.sensor_status]
             mag = run.magnetic
             heading_status = np.array(HEADING_STATUS, dtype=object)[run.heading_status]
+            combos = [a for _, v, sg in (run.combinations or {}).values() for a in (v, sg)]
             for i in range(run.steps):
                 w.writerow([f"{run.t_s[i]:.6f}", *(f"{v:.9f}" for v in run.q_rad[i]),
                             *(f"{v:.3e}" for v in run.sigma_rad[i]), *flags[i],
                             *(f"{v:.9f}" for v in run.rpy_rad[i]), *(f"{v:.3e}" for v in run.rpy_sigma_rad[i]),
                             *(f"{v:.4e}" for v in run.gyro_bias_rad_s[i]),
-                            int(mag[i] & 1 > 0), int(mag[i] & 2 > 0), heading_status[i], *status[i]])
+                            int(mag[i] & 1 > 0), int(mag[i] & 2 > 0), heading_status[i], *status[i],
+                            *("" if not np.isfinite(a[i]) else f"{a[i]:.9f}" for a in combos)])
         return
     from fusion.tracking import estimate as wire
     from sensors.recording_mcap import McapRecorder
 
     t0 = float(run.t_s[0]) if run.steps else 0.0
+    combos = (run.combinations or {}).items()
     with McapRecorder(path, arm_config=arm_config, t_offset_s=max(0.0, -t0)) as mc:
         for i in range(run.steps):
             t = float(run.t_s[i])
             sensors = zip(run.sensor_names, (SENSOR_STATUS[c] for c in run.sensor_status[i]), strict=True)
+            known = [{"name": nm, "coefficients": dict(coef), "angle_rad": v[i], "sigma_rad": sg[i]}
+                     for nm, (coef, v, sg) in combos if np.isfinite(v[i])]
             wire.write_mcap_record(mc, "joints", wire.joints_record(
                 t, run.joint_names, run.q_rad[i], run.sigma_rad[i], [JOINT_FLAGS[f] for f in run.flags[i]],
-                sensors))
+                sensors, combinations=known))
             wire.write_mcap_record(mc, "heading", wire.heading_record(
                 t, run.rpy_rad[i], run.rpy_sigma_rad[i], run.gyro_bias_rad_s[i],
                 run.magnetic[i] & 1, run.magnetic[i] & 2, wire.HEADING_STATUS[run.heading_status[i]],
@@ -318,6 +331,15 @@ def _print(doc: dict, run) -> None:
     for a in doc["model_alarms"]:
         line = Alarm.of_dict(a).line()
         console.print(f"[bold red]model changed[/]: {escape(line)} (raised at {a['raised_s']:.1f} s)")
+    for c in doc.get("combinations", []):
+        if c["last_angle_rad"] is None:
+            continue
+        line = (f"gravity reads together {c['name']}: {np.degrees(c['last_angle_rad']):.3f}° ± "
+                f"{np.degrees(c['last_sigma_rad']):.3f}° at the end (reported at "
+                f"{100 * c['reported_share']:.0f} % of instants; column {c['column']})")
+        if "rms_error_deg" in c:
+            line += f", RMS error {c['rms_error_deg']:.3f}°, within 3σ {100 * c['within_3_sigma']:.1f} %"
+        console.print(escape(line))
     rej = {s: v for s, v in doc["rejections"].items() if v}
     console.print("rejections: " + (", ".join(f"{s} {v}" for s, v in rej.items()) or "none"))
     for s, d in doc["nis"].items():

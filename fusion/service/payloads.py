@@ -186,17 +186,22 @@ class JointState:
     """Each sensor's status (``ok``, ``rejecting``, ``stale``, ``stuck``, ``dead``, ``absent``)."""
     axis_to_vertical_deg: tuple[float, ...] | None = None
     """Each joint axis's angle to the vertical (near 0: gimbal lock); ``None``: not sent."""
+    combinations: tuple[dict, ...] | None = None
+    """What gravity reads where it cannot read single joints (each ``name``,
+    ``coefficients``, ``angle_rad``, ``sigma_rad``); ``None``: not sent (an optional field
+    of version 1: a reader that does not know it ignores it)."""
 
     @classmethod
     def of(cls, robot: str, e: Estimate) -> JointState:
         return cls(robot, float(e.t_s), tuple(e.joint_names), tuple(float(x) for x in e.q_rad),
                    tuple(float(x) for x in e.sigma_rad), tuple(e.flags), tuple(e.sensors),
-                   tuple(float(x) for x in e.axis_to_vertical_deg))
+                   tuple(float(x) for x in e.axis_to_vertical_deg),
+                   tuple(c.as_dict() for c in e.combinations))
 
     def record(self) -> dict[str, Any]:
         """The joints record (:func:`fusion.tracking.estimate.joints_record`): no envelope."""
         return joints_record(self.t_s, self.joint_names, self.q_rad, self.sigma_rad, self.flags,
-                             self.sensors, self.axis_to_vertical_deg)
+                             self.sensors, self.axis_to_vertical_deg, self.combinations)
 
     def to_json(self) -> dict[str, Any]:
         return {"v": VERSIONS["joints"], "type": "joints", "robot": self.robot, **self.record()}
@@ -486,7 +491,26 @@ def _joints(d: dict, robot: str) -> JointState:
     n = len(names)
     axis = _floats(d, "axis_to_vertical_deg", n) if "axis_to_vertical_deg" in d else None
     return JointState(robot, _finite(d, "t_s"), names, _floats(d, "q_rad", n),
-                      _floats(d, "sigma_rad", n), _strings(d, "flags", n), _sensors(d), axis)
+                      _floats(d, "sigma_rad", n), _strings(d, "flags", n), _sensors(d), axis,
+                      _combinations(d) if "combinations" in d else None)
+
+
+def _combinations(d: dict) -> tuple[dict, ...]:
+    """The joints payload's optional ``combinations``: each an object of a ``name``, its
+    ``coefficients`` (names to finite numbers), a finite ``angle_rad`` and ``sigma_rad``."""
+    items = _field(d, "combinations", list)
+    out = []
+    for k, c in enumerate(items):
+        if not isinstance(c, dict):
+            raise PayloadError("malformed", f"combinations[{k}]: expected an object")
+        coef = _field(c, "coefficients", dict)
+        if not all(isinstance(a, str) and isinstance(v, int | float) and not isinstance(v, bool)
+                   and math.isfinite(v) for a, v in coef.items()):
+            raise PayloadError("malformed",
+                               f"combinations[{k}].coefficients: expected names to finite numbers")
+        out.append({"name": _field(c, "name", str), "coefficients": {a: float(v) for a, v in coef.items()},
+                    "angle_rad": _finite(c, "angle_rad"), "sigma_rad": _finite(c, "sigma_rad")})
+    return tuple(out)
 
 
 def _heading(d: dict, robot: str) -> Heading:

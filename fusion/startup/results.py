@@ -126,6 +126,10 @@ class StartupResult:
     """What chose the branch: "none" (the data alone), or the prior's source."""
     notes: tuple[str, ...] = ()
     disambiguating_move: DisambiguatingMove | None = None
+    combinations: tuple = ()
+    """What gravity reads where it cannot read single joints: the
+    :class:`fusion.startup.combinations.Combination` s of joints not ``ok`` (and the base's
+    tilt) known within ``StartupSettings.combination_sigma_max_deg``, better than their terms."""
 
     @property
     def flags(self) -> tuple[str, ...]:
@@ -150,6 +154,7 @@ class StartupResult:
             "disambiguating_move": (None if self.disambiguating_move is None
                                     else self.disambiguating_move.as_dict()),
             "prior": self.prior_used,
+            "combinations": [c.as_dict() for c in self.combinations],
             "summary": self.summary,
             "notes": list(self.notes),
         }
@@ -164,6 +169,10 @@ def summary(res: StartupResult) -> str:
         worst = max(j.sigma_rad for j in res.joints)
         return f"all {len(res.joints)} joints ok; worst sigma {np.degrees(worst):.3f} deg"
     text = f"{len(res.joints) - len(bad)} of {len(res.joints)} joints ok; " + ", ".join(bad)
+    if res.combinations:
+        text += "; gravity reads together " + ", ".join(
+            f"{c.name} = {np.degrees(c.angle_rad):.1f} ± {np.degrees(c.sigma_rad):.1f} deg"
+            for c in res.combinations)
     if res.unlock_move is not None:
         text += "; " + res.unlock_move.describe()
     if res.disambiguating_move is not None:

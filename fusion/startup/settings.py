@@ -54,6 +54,11 @@ class StartupSettings:
     ill_grow_max_deg: float = 30.0
     """An ill-conditioned joint's sigma grows to cover a rival minimum up to this far away
     (one valley); a rival further away makes it ``ambiguous``."""
+    combination_sigma_max_deg: float = 5.0
+    """A combination of joints not ``ok`` (parallel axes' sum; a joint and the base's tilt)
+    known within this, and better than each of its terms, is reported
+    (:mod:`fusion.startup.combinations`): the tracker's line between a joint it knows and one
+    it holds (``TrackerSettings.mean_state_held_sigma_deg``)."""
     numbered_sigma_max_deg: float = 45.0
     """A joint whose sigma would exceed this is not given a number: the data do not see it
     (its angle is null and its range the limits)."""

@@ -44,6 +44,7 @@ from fusion.startup.branches import (
     dedupe_x,
     sequential_solve,
 )
+from fusion.startup.combinations import observable_combinations
 from fusion.startup.confidence import (
     candidate_covariances,
     follow_weak,
@@ -202,6 +203,7 @@ def solve_still(
     resid_g = (r[: problem.meas.size] * problem.sigma.reshape(-1))
     # the covariance keeps the linear correlations, scaled to the sigmas the checks arrived
     # at (the profile, the sweep and the rivals widen them), every joint's included
+    linear = cov * st.sigma_safety_factor**2  # (what the combinations are read from)
     lin = np.sqrt(np.clip(np.diag(cov), 1e-30, None)) * st.sigma_safety_factor
     widen = np.where(np.isfinite(sig), np.maximum(sig / lin, 1.0), 1.0)
     cov = cov * np.outer(widen, widen)
@@ -220,12 +222,35 @@ def solve_still(
         prior_used=chooser.used,
         notes=tuple(notes),
     )
+    result = replace(result, combinations=startup_combinations(arm, result, linear, st))
     if propose_unlock and any(f in ("gimbal_lock", "ill_conditioned") for f in flags):
         result = replace(result, unlock_move=propose_unlock_move(arm, result, readings, st))
     if len(kept) > 1:
         result = replace(result, disambiguating_move=propose_disambiguating_move(
             arm, result, readings, st, roll_pitch=xb[n:]))
     return replace(result, summary=_summary_with_sensor_note(arm, problem, result))
+
+
+TILT_NAMES = ("base roll", "base pitch")
+"""The base's tilt as a combination names it."""
+
+
+def startup_combinations(arm: ArmModel, result: StartupResult, cov: np.ndarray,
+                         st: StartupSettings) -> tuple:
+    """The combinations of the joints not ``ok`` (nor ``gimbal_lock``: gravity reads them not
+    at all; nor ``ambiguous``: rival branches) (and of the base's roll and pitch where
+    their sigma is above ``sigma_limit_deg``) that ``cov`` knows within
+    ``combination_sigma_max_deg`` (:func:`fusion.startup.combinations.observable_combinations`).
+    ``cov``: the solve's linear covariance (with the safety factor), before each joint's
+    sigma is widened to what the profile, the sweep and the rivals found: that widening scales
+    a joint's row and column whole, and two joints read only as a sum, each widened to
+    hundreds of degrees, would have their sum widened by as much."""
+    n = len(result.joints)
+    x = np.concatenate([result.q_rad, [result.roll_rad, result.pitch_rad]])
+    cand = np.array([j.flag not in ("ok", "gimbal_lock", "ambiguous") for j in result.joints]
+                    + [s > st.sigma_limit_deg * DEG for s in (result.roll_sigma_rad, result.pitch_sigma_rad)])
+    names = [*arm.joint_names[:n], *TILT_NAMES]
+    return observable_combinations(cov, x, names, st.combination_sigma_max_deg * DEG, cand)
 
 
 def _base_tilt_only(arm: ArmModel, readings: StillReadings, st: StartupSettings,

@@ -3,7 +3,10 @@
 An estimate goes out as two JSON records, with the unit in every field's name:
 
 - the **joints record** (:func:`joints_record`): ``t_s``, ``joint_names``, ``q_rad``,
-  ``sigma_rad``, ``flags``, ``sensors`` and, where known, ``axis_to_vertical_deg``;
+  ``sigma_rad``, ``flags``, ``sensors`` and, where known, ``axis_to_vertical_deg`` and
+  ``combinations`` (what gravity reads where it cannot read single joints: each a ``name``
+  such as ``"shoulder + elbow"``, its ``coefficients`` by joint name (or ``base roll``,
+  ``base pitch``), ``angle_rad`` and ``sigma_rad``; :mod:`fusion.startup.combinations`);
 - the **heading record** (:func:`heading_record`): ``t_s``, ``heading_rad`` (yaw of the base
   about the vertical, counter-clockwise seen from above, from north: 0 facing north, +pi/2
   facing west), ``heading_sigma_rad``, ``roll_rad``, ``roll_sigma_rad``, ``pitch_rad``,
@@ -45,7 +48,12 @@ JOINTS_JSON_SCHEMA = {
                    "q_rad": _NUMBERS, "sigma_rad": _NUMBERS,
                    "flags": {"type": "array", "items": {"type": "string"}},
                    "sensors": {"type": "object", "additionalProperties": {"type": "string"}},
-                   "axis_to_vertical_deg": _NUMBERS},
+                   "axis_to_vertical_deg": _NUMBERS,
+                   "combinations": {"type": "array", "items": {
+                       "type": "object", "required": ["name", "coefficients", "angle_rad", "sigma_rad"],
+                       "properties": {"name": {"type": "string"},
+                                      "coefficients": {"type": "object", "additionalProperties": _NUMBER},
+                                      "angle_rad": _NUMBER, "sigma_rad": _NUMBER}}}},
 }
 HEADING_STATUS = ("compass_fused", "gyro_only", "disturbed", "calibrating")
 """The heading's status (:mod:`fusion.tracking.compass` sets it): ``compass_fused``, the
@@ -88,14 +96,21 @@ def _floats(values: Iterable) -> list[float]:
 def joints_record(t_s: float, joint_names: Iterable[str], q_rad: Iterable[float],
                   sigma_rad: Iterable[float], flags: Iterable[str],
                   sensors: Mapping[str, str] | Iterable[tuple[str, str]],
-                  axis_to_vertical_deg: Iterable[float] | None = None) -> dict:
+                  axis_to_vertical_deg: Iterable[float] | None = None,
+                  combinations: Iterable[dict] | None = None) -> dict:
     """The joints record: each joint's angle, one-sigma and flag, and each sensor's status.
-    ``axis_to_vertical_deg`` (each joint axis's angle to the vertical) only where known."""
+    ``axis_to_vertical_deg`` (each joint axis's angle to the vertical) and ``combinations``
+    (:meth:`fusion.startup.combinations.Combination.as_dict` each) only where known."""
     doc = {"t_s": float(t_s), "joint_names": [str(n) for n in joint_names], "q_rad": _floats(q_rad),
            "sigma_rad": _floats(sigma_rad), "flags": [str(f) for f in flags],
            "sensors": {str(k): str(v) for k, v in dict(sensors).items()}}
     if axis_to_vertical_deg is not None:
         doc["axis_to_vertical_deg"] = _floats(axis_to_vertical_deg)
+    if combinations is not None:
+        doc["combinations"] = [{"name": str(c["name"]),
+                                "coefficients": {str(k): float(v) for k, v in c["coefficients"].items()},
+                                "angle_rad": float(c["angle_rad"]), "sigma_rad": float(c["sigma_rad"])}
+                               for c in combinations]
     return doc
 
 
@@ -144,6 +159,9 @@ class Estimate:
     """:data:`HEADING_STATUS`."""
     true_north: bool = False
     """Whether the heading is from true north (the config gave the site's declination)."""
+    combinations: tuple = ()
+    """What gravity reads where it cannot read single joints
+    (:class:`fusion.startup.combinations.Combination` s)."""
 
     @property
     def heading_rad(self) -> float:
@@ -165,6 +183,10 @@ class Estimate:
                 f"{np.degrees(self.heading_sigma_rad):.2f}°, worst joint sigma {worst:.3f}°")
         if bad:
             text += "; " + ", ".join(bad)
+        if self.combinations:
+            text += "; known together: " + ", ".join(
+                f"{c.name} {math.degrees(c.angle_rad):.1f}±{math.degrees(c.sigma_rad):.2f}°"
+                for c in self.combinations)
         if sens:
             text += "; sensors: " + ", ".join(sens)
         if self.magnetic_disturbance:
@@ -173,7 +195,8 @@ class Estimate:
 
     def joints_record(self) -> dict:
         return joints_record(self.t_s, self.joint_names, self.q_rad, self.sigma_rad, self.flags,
-                             self.sensors, self.axis_to_vertical_deg)
+                             self.sensors, self.axis_to_vertical_deg,
+                             [c.as_dict() for c in self.combinations])
 
     def heading_record(self) -> dict:
         return heading_record(self.t_s, (self.roll_rad, self.pitch_rad, self.yaw_rad),

@@ -25,10 +25,12 @@ differentiators' fits and the frames for a block of instants in one compiled cal
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 
 import numpy as np
 
-from fusion.startup.solve import StartupResult
+from fusion.startup.combinations import Combination, observable_combinations
+from fusion.startup.solve import TILT_NAMES, StartupResult
 from fusion.tracking import calibrated
 from fusion.tracking.alarm import ModelChangeAlarm
 from fusion.tracking.compass import CALIBRATING, GYRO_ONLY, STATUS_CODE, Compass
@@ -53,7 +55,10 @@ from fusion.tracking.settings import (
     C_REJECTED,
     C_USED,
     ENC,
+    F_AMBIGUOUS,
     F_CONVERGING,
+    F_GIMBAL,
+    F_UNOBSERVED,
     FLAG_CODE,
     GYRO,
     IMU_ACC,
@@ -248,6 +253,7 @@ class Tracker:
         # could not read is not "ok" for the first instants)
         self._flags = np.array([FLAG_CODE.get(j.flag, F_CONVERGING) for j in startup.joints], dtype=np.int8)
         self._named = (None, None, (), ())  # (status codes, flags, their names): see estimate
+        self._combos = (None, -np.inf, (), None, None)  # see combinations_now
         self._obs_used_key = None
         self._obs_t = -np.inf
         self._link_read_t = np.full(len(self.link_names), -np.inf)  # each one's last accepted sample
@@ -591,6 +597,61 @@ class Tracker:
         """The encoders' angles (counts / counts per rad) at the last fused instant."""
         return self._q_enc.copy()
 
+    def combination_vectors(self) -> tuple[tuple[Combination, ...], np.ndarray, np.ndarray]:
+        """What gravity reads where it cannot read single joints, now: the combinations of
+        the joints not ``ok`` (nor ``ambiguous``, nor flagged as read by no sensor:
+        ``gimbal_lock``, ``unobserved``) and of the base's roll and pitch (where
+        their sigma is above ``sigma_limit_deg``) that the filter knows within
+        ``mean_state_held_sigma_deg`` and better than any of their terms
+        (:func:`fusion.startup.combinations.observable_combinations`), from the joint and
+        tilt block of its covariance with the calibration's own share (the consider
+        sensitivity and an unread joint's cover: what the reported sigmas hold). Returns the
+        combinations, their coefficients ``(k, n + 2)`` over the joints, roll and pitch,
+        and the state indices of those ``(n + 2,)``."""
+        self._check_filter()
+        L, n, st = self.layout, self.arm.n_joints, self.settings
+        ix = np.r_[np.arange(n), L.roll, L.pitch]
+        values, P = self._joint_tilt_block(ix)
+        flags = self._flags
+        cand = np.r_[(flags != 0) & ~np.isin(flags, (F_AMBIGUOUS, F_GIMBAL, F_UNOBSERVED)),
+                     np.sqrt(np.clip(np.diag(P)[n:], 0.0, None)) > st.sigma_limit_deg * DEG]
+        names = (*self.arm.joint_names, *TILT_NAMES)
+        found = observable_combinations(P, values, names, st.mean_state_held_sigma_deg * DEG, cand)
+        C = np.array([c.vector(names) for c in found]).reshape(len(found), n + 2)
+        return found, C, ix
+
+    def _joint_tilt_block(self, ix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The joints' angles (as reported), roll and pitch, and their covariance with the
+        calibration's own share (see :meth:`combination_vectors`)."""
+        n, L = self.arm.n_joints, self.layout
+        P = self._ukf._P[np.ix_(ix, ix)].copy()
+        obs = self.observability
+        P[:n, :n] += obs.consider @ obs.consider.T + np.diag(obs.unread_var)
+        x = self._ukf.x
+        values = np.r_[self.arm.angles_in_range(self._q_enc + x[:n], self._q_enc), x[L.roll], x[L.pitch]]
+        return values, P
+
+    def combination_values(self, C: np.ndarray, ix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The combinations of coefficients ``C`` (from :meth:`combination_vectors`) now: their
+        values and sigmas (rad)."""
+        values, P = self._joint_tilt_block(ix)
+        return C @ values, np.sqrt(np.clip(np.einsum("ki,ij,kj->k", C, P, C), 0.0, None))
+
+    def combinations_now(self) -> tuple[Combination, ...]:
+        """:meth:`combination_vectors`' combinations at the last fused instant: which ones,
+        found again when the flags change and every ``observability_window_s``; their values
+        and sigmas now (an estimate a sample carries no eigen-decomposition)."""
+        flags, t_found, found, C, ix = self._combos
+        if self._flags is not flags or self._t - t_found >= self.settings.observability_window_s:
+            found, C, ix = self.combination_vectors()
+            self._combos = (self._flags, self._t, found, C, ix)
+            return found
+        if not found:
+            return ()
+        v, sg = self.combination_values(C, ix)
+        return tuple(replace(c, angle_rad=float(a), sigma_rad=float(b))
+                     for c, a, b in zip(found, v, sg, strict=True))
+
     @property
     def estimate(self) -> Estimate:
         """The estimate at the last fused instant."""
@@ -619,6 +680,7 @@ class Tracker:
             magnetic_disturbance=self.compass.flags[0], magnetic_recovery=self.compass.flags[1],
             joint_names=self.arm.joint_names, heading_status=HEADING_STATUS[self.heading_status_code()],
             true_north=self.arm.magnetic_declination_deg is not None,
+            combinations=self.combinations_now(),
         )
 
     def gyro_scale(self) -> dict | None:

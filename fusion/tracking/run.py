@@ -8,6 +8,7 @@ in the recording, scored by :mod:`fusion.tracking.scoring`."""
 
 from __future__ import annotations
 
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -244,6 +245,10 @@ class RunArrays:
         self._heading_status = (None, None, 0)
         self._changes: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
         self._last = -1
+        self._combo = (None, -np.inf, (), None, None)  # (flags, t, combinations, C, ix) found last
+        self.combinations: dict[str, tuple[tuple, np.ndarray, np.ndarray]] = {}
+        """Per combination ever reported (its name): its coefficients, and its value and sigma
+        at every instant (NaN where it was not reported)."""
 
     def record(self, tr, i: int) -> None:
         """The tracker ``tr``'s state after instant ``i``."""
@@ -257,6 +262,7 @@ class RunArrays:
         self.q_enc[i] = tr._q_enc
         held = self._held
         flags, status, sys_var = tr._flags, tr.health.status_codes, tr.observability.sys_var
+        self._record_combinations(tr, i, flags)
         if flags is not held[0] or status is not held[1] or sys_var is not held[2]:
             self._held = held = (flags, status, sys_var)
             self._changes.append((i, *held))
@@ -271,6 +277,25 @@ class RunArrays:
         if mf[0] or mf[1]:
             self.magnetic[i] = (1 if mf[0] else 0) | (2 if mf[1] else 0)
         self._last = i
+
+    def _record_combinations(self, tr, i: int, flags: np.ndarray) -> None:
+        """What gravity reads together (:meth:`fusion.tracking.filter.Tracker.combination_vectors`):
+        which combinations, found again when the flags change and every observability window;
+        their value and sigma at every instant."""
+        held_flags, t_found, found, C, ix = self._combo
+        t = tr._t
+        if flags is not held_flags or t - t_found >= tr.settings.observability_window_s:
+            found, C, ix = tr.combination_vectors()
+            self._combo = (flags, t, found, C, ix)
+            for c in found:
+                if c.name not in self.combinations:
+                    self.combinations[c.name] = (c.coefficients, np.full(self.T, np.nan),
+                                                 np.full(self.T, np.nan))
+        if found:
+            v, sg = tr.combination_values(C, ix)
+            for k, c in enumerate(found):
+                _, vals, sigs = self.combinations[c.name]
+                vals[i], sigs[i] = v[k], sg[k]
 
     def _spread_changes(self) -> None:
         """The flags, statuses and the calibration's share at every recorded instant, and that
@@ -308,6 +333,7 @@ class RunArrays:
             sensor_status=self.status, elapsed_s=elapsed, counters=tr.counters(), nis=tr.nis_stats(),
             q_error_rad=q_err, yaw_error_rad=yaw_err, nees=nees, nees_dof=n + 3,
             heading_status=self.heading_status, true_north=tr.arm.magnetic_declination_deg is not None,
+            combinations=self.combinations,
         )
 
 
@@ -340,6 +366,11 @@ class TrackRun:
     heading_status: np.ndarray | None = None
     """Per instant, the heading's status (codes of :data:`fusion.tracking.estimate.HEADING_STATUS`)."""
     true_north: bool = False
+    combinations: dict | None = None
+    """What gravity reads where it cannot read single joints: per combination's name (e.g.
+    ``"shoulder + elbow"``), its coefficients (name, coefficient pairs over the joints and
+    ``base roll``/``base pitch``) and its value and sigma (rad) per instant, NaN where it
+    was not reported (:mod:`fusion.startup.combinations`)."""
 
     @property
     def steps(self) -> int:
@@ -382,8 +413,41 @@ class TrackRun:
                 nis[s] = {"mean": mean, "dof": dof, "count": count, "bounds_95": [float(lo), float(hi)],
                           "inside": bool(lo <= mean <= hi)}
         d["nis"] = nis
+        d["combinations"] = self.combinations_summary(self.t_s >= t0 + after_s)
         d.update(truth_summary(self, self.t_s >= t0 + after_s, after_s))
         return d
+
+    def combinations_summary(self, scored: np.ndarray | None = None) -> list[dict]:
+        """Each combination reported in the run: its name, coefficients, CSV columns
+        (:func:`combination_column`), the share of instants it was reported at, its last
+        value and sigma; with truth (joint terms only), its RMS error (deg) and share within
+        3 sigma over the ``scored`` instants it was reported at."""
+        out = []
+        for name, (coef, vals, sigs) in (self.combinations or {}).items():
+            have = np.isfinite(vals)
+            last = int(np.flatnonzero(have)[-1]) if have.any() else None
+            e = {"name": name, "coefficients": dict(coef), "column": combination_column(name),
+                 "reported_share": float(have.mean()) if len(have) else 0.0,
+                 "last_angle_rad": None if last is None else float(vals[last]),
+                 "last_sigma_rad": None if last is None else float(sigs[last])}
+            joints_only = all(k in self.joint_names for k, _ in coef)
+            if self.q_error_rad is not None and joints_only:
+                c = np.array([dict(coef).get(nm, 0.0) for nm in self.joint_names])
+                err = self.q_error_rad @ c
+                m = have & np.isfinite(err) & (np.ones_like(have) if scored is None else scored)
+                if m.any():
+                    e["rms_error_deg"] = float(np.degrees(np.sqrt(np.mean(err[m] ** 2))))
+                    e["within_3_sigma"] = float(np.mean(np.abs(err[m]) <= 3.0 * sigs[m]))
+            out.append(e)
+        return out
+
+
+def combination_column(name: str) -> str:
+    """A combination's value column in the estimates CSV (its sigma's is ``sigma_`` before it):
+    ``shoulder + elbow`` is ``combo_shoulder_plus_elbow``, ``0.5 a - b`` ``combo_0p5_a_minus_b``
+    (letters, digits and underscores only: a column name every CSV reader keeps)."""
+    slug = name.replace(" + ", "_plus_").replace(" - ", "_minus_").replace("-", "minus_").replace(".", "p")
+    return "combo_" + re.sub(r"[^0-9A-Za-z_]", "_", slug)
 
 
 def _tally(codes: np.ndarray, names: tuple[str, ...]) -> dict[str, int]:

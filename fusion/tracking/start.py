@@ -188,10 +188,107 @@ def moving_window(arm: ArmModel, rec: Recording, search_s: float = MOVING_SEARCH
             off_g = abs(float(np.linalg.norm(readings.accel_mean_g[m.name])) - 1.0)
             sig[m.name] = np.sqrt(readings.accel_sigma_g[m.name] ** 2 + turned**2 + spread**2 + off_g**2)
     readings = replace(readings, accel_sigma_g={**readings.accel_sigma_g, **sig})
-    note = (f"no still stretch: started on the moving arm at t = {t0:.2f}..{t1:.2f} s (the least joint "
-            f"travel of the first {searched:g} s at which every accelerometer can be used: "
+    note = (f"no still stretch near the start: started on the moving arm at t = {t0:.2f}..{t1:.2f} s (the "
+            f"least joint travel of the {searched:g} s from t = {float(t[0]):.2f} s at which every "
+            "accelerometer can be used: "
             f"{np.degrees(travel[k].max()):.2f} deg), its readings' sigma widened by that motion")
     return Segment(t0, t1), readings, checks, note
+
+
+SHORT_STILL_WINDOW_S = 0.2
+"""The still detector's window when it looks for a still stretch shorter than a second near the
+start (two of its 0.1 s grid steps: a 0.6 s stretch still shows as about 0.4 s)."""
+SHORT_STILL_MIN_S = 0.3
+"""The shortest still stretch a start takes (at 100 Hz, 30 samples of each sensor)."""
+LONG_STILL_S = 1.0
+"""A still stretch at least this long is read as it always was; a shorter one has its readings'
+σ widened (:func:`short_still_readings`)."""
+
+
+@dataclass(frozen=True)
+class StartChoice:
+    """Where a start calibrates: a still stretch (``segment``; ``short`` when under
+    :data:`LONG_STILL_S`), or, ``segment`` None, the least-moving instants from ``from_s``;
+    ``note`` says why, when it is not the first still stretch at the recording's start."""
+
+    segment: Segment | None
+    short: bool
+    from_s: float
+    note: str | None
+
+
+def choose_start(arm: ArmModel, rec: Recording, window_s: float = 1.0, start_at_s: float | None = None,
+                 moving_start: bool = False, near_s: float = MOVING_SEARCH_S) -> StartChoice:
+    """Where the startup calibrates: at the recording's start, or from ``start_at_s``.
+
+    The earliest still stretch that begins within ``near_s`` of there, however short (down to
+    :data:`SHORT_STILL_MIN_S`: the detector run again with a :data:`SHORT_STILL_WINDOW_S`
+    window); where it is the first stretch of a second or more, exactly as that one is found.
+    With none there: with ``moving_start`` or ``start_at_s``, the least-moving usable
+    instants from there (:func:`moving_window`); else the first still stretch anywhere (the
+    note says how far in it is). :class:`NoStillWindowError` when there is nothing to start on."""
+    models = stream_models(arm)
+    t0 = rec.t_start_s
+    if start_at_s is not None:
+        if not rec.t_start_s <= start_at_s < rec.t_end_s:
+            raise NoStillWindowError(f"the start at t = {start_at_s:g} s is outside the recording "
+                                     f"(t = {rec.t_start_s:.2f}..{rec.t_end_s:.2f} s)")
+        t0 = float(start_at_s)
+        rec = rec.between(t0, np.inf)
+    longs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)), models)
+    shorts = find_static_segments(rec, StaticDetectionSettings(window_s=SHORT_STILL_WINDOW_S,
+                                                               min_duration_s=SHORT_STILL_MIN_S), models)
+    near = [s for s in shorts if s.t_start_s <= t0 + near_s]
+    where = "the recording's start" if start_at_s is None else f"t = {t0:g} s (--start-at)"
+    if near:
+        first = near[0]
+        same = next((s for s in longs if s.t_start_s < first.t_end_s and first.t_start_s < s.t_end_s), None)
+        if same is not None:
+            return StartChoice(same, False, t0, None if start_at_s is None else
+                               f"the startup on the first still stretch from {where}")
+        return StartChoice(first, first.duration_s < LONG_STILL_S, t0, None)
+    if moving_start or start_at_s is not None:
+        return StartChoice(None, False, t0, None)
+    if longs:
+        s = longs[0]
+        return StartChoice(s, False, t0, (
+            f"no still stretch within {near_s:g} s of {where}: the startup on the first one, "
+            f"{s.t_start_s - t0:.1f} s in; nothing before it is tracked (--moving-start starts at the "
+            "start on the moving arm)"))
+    if shorts:
+        return StartChoice(shorts[0], shorts[0].duration_s < LONG_STILL_S, t0, None)
+    raise NoStillWindowError(
+        f"no still stretch in the recording (accelerometers, gyro and encoders quiet for at least "
+        f"{SHORT_STILL_MIN_S:g} s): the tracker needs a startup calibration on a still arm")
+
+
+def short_still_readings(arm: ArmModel, rec: Recording, seg: Segment, readings):
+    """The readings of a still stretch shorter than :data:`LONG_STILL_S`, each link
+    accelerometer's σ widened by what so short a stretch leaves unsure: its samples' own
+    scatter (above the datasheet's noise, where it is) over their number, and the drift of
+    its mean from the stretch's first half to its second (an arm still settling from a move
+    reads a trend a second would average out). Returns ``(readings, note)``."""
+    models = stream_models(arm)
+    sig, widest = {}, 0.0
+    for name, sigma in readings.accel_sigma_g.items():
+        s = rec.get(name)
+        if s is None or name not in models:
+            continue
+        w = s.between(seg.t_start_s, seg.t_end_s + 1e-9)
+        if len(w) < 4:
+            continue
+        g = models[name].from_counts(w.values)
+        half = len(g) // 2
+        scatter = np.std(g, axis=0, ddof=1) / np.sqrt(len(g))
+        drift = np.abs(g[half:].mean(axis=0) - g[:half].mean(axis=0))
+        sig[name] = np.sqrt(sigma**2 + scatter**2 + drift**2)
+        widest = max(widest, float(np.max(np.sqrt(scatter**2 + drift**2))))
+    readings = replace(readings, accel_sigma_g={**readings.accel_sigma_g, **sig})
+    note = (f"the startup on a still stretch of only {seg.duration_s:.2f} s (t = {seg.t_start_s:.2f}.."
+            f"{seg.t_end_s:.2f} s; {LONG_STILL_S:g} s is the usual least): each link accelerometer's "
+            f"sigma widened by its samples' scatter and its drift over so short a stretch (up to "
+            f"{widest * 1e3:.1f} mg)")
+    return readings, note
 
 
 def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
@@ -245,7 +342,8 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
                          startup_settings=None, propose_unlock: bool = True,
                          prior=None, resolve_by_motion_s: float | None = None,
                          moving_start: bool = False,
-                         prior_sigma_rad: np.ndarray | None = None) -> tuple[Tracker, Start]:
+                         prior_sigma_rad: np.ndarray | None = None,
+                         start_at_s: float | None = None) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
     calibration there (:func:`fusion.startup.solve.solve_still`), the gyro bias, heading and field
     reference from the same window; it starts tracking at the window's end: the still
@@ -260,9 +358,12 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     ``ambiguous``, track each candidate branch over the next this many seconds and keep the
     one the motion's readings favour (:func:`_branch_by_motion`); they stay ambiguous when no
     branch is decisively better (the arm did not move enough).
-    ``moving_start``: when the recording has no still stretch (an arm that never stops),
-    start from the readings of its least-moving instants instead (:func:`moving_window`),
-    their σ widened by the motion; else :class:`NoStillWindowError`.
+    Where it starts is :func:`choose_start`'s: the earliest still stretch near the
+    recording's start (or ``start_at_s``), a short one's σ widened
+    (:func:`short_still_readings`). ``moving_start`` (or ``start_at_s``): with no still
+    stretch near there (an arm that never stops), start from the readings of the
+    least-moving instants there instead (:func:`moving_window`), their σ widened by the
+    motion; else the first still stretch anywhere, and :class:`NoStillWindowError` with none.
     ``prior_sigma_rad``: with ``prior_q_rad``, how well it is known per joint (a running
     tracker's pose handed on, the arm unmoved): a joint the startup cannot read starts at
     ``prior_q_rad`` with that sigma instead of ``TrackerSettings.unknown_joint_sigma_deg``."""
@@ -270,22 +371,21 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
 
     if prior is None and prior_q_rad is not None:
         prior = StartupPrior.saved_pose(prior_q_rad)
-    segs = find_static_segments(rec, StaticDetectionSettings(window_s=min(window_s, 1.0)),
-                                stream_models(arm))
-    notes: list[str] = []
+    choice = choose_start(arm, rec, window_s, start_at_s, moving_start)
+    notes: list[str] = [choice.note] if choice.note else []
     t_still_end = None  # where the still stretch ends, when the startup leaves its end to the tracker
-    if segs:
-        seg = settled_split(segs[0], window_s, (settings or TrackerSettings()).settle_s)
-        if seg.t_end_s < segs[0].t_end_s:
-            t_still_end = segs[0].t_end_s
+    if choice.segment is not None:
+        still = choice.segment
+        seg = settled_split(still, window_s, (settings or TrackerSettings()).settle_s)
+        if seg.t_end_s < still.t_end_s:
+            t_still_end = still.t_end_s
         readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
-    elif moving_start:
-        seg, readings, checks, note = moving_window(arm, rec)
-        notes.append(note)
+        if choice.short:
+            readings, note = short_still_readings(arm, rec, seg, readings)
+            notes.append(note)
     else:
-        raise NoStillWindowError(
-            "no still stretch in the recording (accelerometers, gyro and encoders quiet for at "
-            "least 1 s): the tracker needs a startup calibration on a still arm")
+        seg, readings, checks, note = moving_window(arm, rec.between(choice.from_s, np.inf))
+        notes.append(note)
     notes += [c.message for c in checks]
     corr = None
     if arm.effects:  # a calibrated config: the startup works on corrected readings
@@ -326,7 +426,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         else:
             notes.append(f"the startup calibration on {seg.t_start_s:.2f}-{seg.t_end_s:.2f} s of the still "
                          f"stretch (to {t_still_end:.2f} s); the tracker from there, settling on the still "
-                         "chair before it moves")
+                         f"{'arm' if arm.fixed_base is not None else 'chair'} before it moves")
     k, enc_rad = encoder_angles_at(arm, enc, t_track)
     rates = {s: (v.rate_hz or 100.0) for s, v in rec.raw().items()}
 

@@ -11,6 +11,7 @@ import pytest
 
 from fusion.service import payloads as pl
 from fusion.service.inbox import Inbox
+from fusion.startup.combinations import Combination
 from fusion.tracking.estimate import Estimate
 from sensors.samples import Stream
 
@@ -48,7 +49,8 @@ def _estimate() -> Estimate:
                     gyro_bias_rad_s=np.array([1e-4, 0, -2e-4]), axis_to_vertical_deg=np.array([89.0, 1.5]),
                     sensors=(("acc1", "ok"), ("imu_mag", "rejecting")),
                     magnetic_disturbance=True, magnetic_recovery=False, joint_names=("j1", "j2"),
-                    heading_status="compass_fused", true_north=True)
+                    heading_status="compass_fused", true_north=True,
+                    combinations=(Combination("j1 + j2", (("j1", 1.0), ("j2", 1.0)), -0.75, 4e-3),))
 
 
 def test_an_estimate_has_one_wire_form_in_json_zenoh_and_mcap(tmp_path):
@@ -86,7 +88,10 @@ def test_an_estimate_has_one_wire_form_in_json_zenoh_and_mcap(tmp_path):
     # the channels' JSON schemas name exactly the records' fields, for other MCAP readers
     joints_schema, heading_schema = schemas["armfusion.JointState"], schemas["armfusion.Heading"]
     assert set(joints_schema["properties"]) == set(est.joints_record())
-    assert set(joints_schema["required"]) == set(est.joints_record()) - {"axis_to_vertical_deg"}
+    optional = {"axis_to_vertical_deg", "combinations"}
+    assert set(joints_schema["required"]) == set(est.joints_record()) - optional
+    assert est.as_dict()["combinations"] == [{"name": "j1 + j2", "coefficients": {"j1": 1.0, "j2": 1.0},
+                                              "angle_rad": -0.75, "sigma_rad": 4e-3}]
     assert set(heading_schema["properties"]) == set(heading_schema["required"]) == set(est.heading_record())
     import jsonschema
 
@@ -224,3 +229,22 @@ def test_a_raw_batch_of_decimal_values_keeps_them_and_version_1_counts_still_rea
     old = pl.decode(pl.raw_key("chair1", "acc1"), json.dumps(d).encode())
     np.testing.assert_array_equal(old.stream.values, np.array(d["counts"]))
     assert old.stream.values.dtype == np.int64
+
+
+def test_the_joints_payload_carries_the_combinations_gravity_reads_and_refuses_bad_ones():
+    """``combinations`` is an optional field of the version-1 joints payload: a payload
+    without it (an older publisher) is read as before; one with a non-finite sigma or a
+    coefficient that is not a number is refused by name."""
+    est = _estimate()
+    js = pl.JointState.of("chair1", est)
+    key = pl.joints_key("chair1")
+    assert pl.decode(key, pl.encode(js)).combinations == js.combinations
+    wire = json.loads(pl.encode(js))
+    older = {k: v for k, v in wire.items() if k != "combinations"}
+    assert pl.decode(key, json.dumps(older).encode()).combinations is None
+    for bad, why in (({"sigma_rad": float("nan")}, "not finite|NaN"),
+                     ({"coefficients": {"j1": "one"}}, "coefficients")):
+        d = json.loads(json.dumps(wire))
+        d["combinations"][0].update(bad)
+        with pytest.raises(pl.PayloadError, match=why):
+            pl.decode(key, json.dumps(d, allow_nan=True).encode())

@@ -71,13 +71,26 @@ def test_import_calibrate_track_on_the_twin_with_the_config_as_written(twin_mcap
     r = runner.invoke(app, ["calibrate", "joints", str(rec), "--config", "ur5_two_imu", "--json"])
     assert r.exit_code == 0, r.output
     seg = json.loads(r.stdout)["segments"][0]
+    # at the recording's start, on its under-a-second still stretch, and saying how short it was
+    assert seg["t_start"] <= 0.1 and seg["t_end"] - seg["t_start"] < 1.0
+    assert any("still stretch of only" in n for n in seg["notes"])
     joints = {j["name"]: j for j in seg["joints"]}
     assert joints["base"]["angle_rad"] is None and joints["wrist3"]["angle_rad"] is None
+    # the shoulder and the elbow (parallel axes) each unseen, their sum read, and said so
+    assert joints["shoulder"]["flag"] == joints["elbow"]["flag"] == "ill_conditioned"
+    combos = {c["name"]: c for c in seg["combinations"]}
+    assert "shoulder + elbow" in combos and "gravity reads together shoulder + elbow" in seg["summary"]
+    k = int(round(seg["t_end"] * CONTROLLER_RATE_HZ))
+    true_sum = twin.columns["q2_deg"][k] + twin.columns["q3_deg"][k]
+    c = combos["shoulder + elbow"]
+    assert abs(np.degrees(c["angle_rad"]) - true_sum) <= 3.0 * np.degrees(c["sigma_rad"]) < 15.0
     est = rec.with_name("est.csv")
     r = runner.invoke(app, ["track", str(rec), "--config", "ur5_two_imu", "--after-s", "0", "--json",
                             "--out", str(est)])
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout)
+    assert doc["start"]["t_start_s"] <= 0.1 and doc["start"]["t_end_s"] < 1.0  # tracked from the start
+    assert not any("chair" in n for n in doc["notes"])  # a bolted base is not a chair
     assert doc["sensor_warnings"] == []
     assert all(v == 0 for v in doc["rejections"].values())
     assert min(doc["within_3_sigma"].values()) >= 0.95, doc["within_3_sigma"]
@@ -92,6 +105,17 @@ def test_import_calibrate_track_on_the_twin_with_the_config_as_written(twin_mcap
     forearm = np.degrees(e["q_shoulder"] + e["q_elbow"]) - truth["q2_deg"] - truth["q3_deg"]
     wrist = forearm + np.degrees(e["q_wrist1"]) - truth["q4_deg"]
     assert np.sqrt(np.mean(forearm[late] ** 2)) < 1.5 and np.sqrt(np.mean(wrist[late] ** 2)) < 1.5
+    # the tracker names that sum itself, in the JSON and the CSV, with a sigma that covers its
+    # error (scored here from the CSV against the controller's angles)
+    reported = {c["name"]: c for c in doc["combinations"]}
+    assert "shoulder + elbow" in reported and reported["shoulder + elbow"]["column"] in e.dtype.names
+    col = reported["shoulder + elbow"]["column"]
+    have = np.isfinite(e[col]) & late
+    assert have.mean() > 0.8 * late.mean()
+    err = np.degrees(e[col][have]) - truth["q2_deg"][have] - truth["q3_deg"][have]
+    assert np.mean(np.abs(err) <= 3.0 * np.degrees(e["sigma_" + col][have])) >= 0.95
+    assert np.sqrt(np.mean(err**2)) < 1.0
+    assert any(c["name"] == "shoulder + elbow" for c in doc["final"]["combinations"])
     arm = load_arm("ur5_two_imu")
     span = np.degrees(arm.max_rad - arm.min_rad)
     final = doc["final"]
@@ -137,3 +161,31 @@ def test_a_levelled_base_starts_from_the_tilt_given(twin_mcap, tmp_path):
         assert abs(np.degrees(got) - true) <= 3.0 * np.degrees(sigma) + 0.1
         assert np.degrees(sigma) <= 0.1 + 1e-9
     assert min(doc["within_3_sigma"].values()) >= 0.95
+
+
+def test_the_start_is_where_the_user_says(twin_mcap):
+    """``--start-at T``: the startup on the first still stretch from T (the twin's rest, 3 s
+    long, once a round), never on the still start before it; past the end, a clear refusal."""
+    from fusion.tracking.start import NoStillWindowError, choose_start
+    from sensors.recording import read_recording
+
+    twin, path = twin_mcap
+    arm, rec = load_arm("ur5_two_imu"), read_recording(path)
+    first = choose_start(arm, rec)
+    assert first.segment.t_start_s <= 0.1 and first.short  # the start's under-a-second still
+    later = choose_start(arm, rec, start_at_s=rec.t_start_s + 2.0)
+    assert later.segment is not None and 2.0 <= later.segment.t_start_s <= 7.0
+    assert later.segment.duration_s >= 1.0 and not later.short
+    t = np.asarray(twin.columns["time_s"])
+    q = np.column_stack([twin.columns[f"q{i}_deg"] for i in range(1, 7)])
+    inside = (t >= later.segment.t_start_s) & (t <= later.segment.t_end_s)
+    assert np.ptp(q[inside], axis=0).max() < 0.01  # the arm truly stood there
+    with pytest.raises(NoStillWindowError, match="outside the recording"):
+        choose_start(arm, rec, start_at_s=rec.t_end_s + 1.0)
+    # from 12 s the arm never rests again: --moving-start takes the least-moving instants
+    # there; without it, a refusal that says so
+    assert not np.any((t >= 12.0) & (np.r_[np.abs(np.diff(q, axis=0)).max(axis=1), 1.0] == 0.0))
+    moving = rec.between(rec.t_start_s + 12.0, np.inf)
+    assert choose_start(arm, moving, moving_start=True).segment is None
+    with pytest.raises(NoStillWindowError, match="no still stretch"):
+        choose_start(arm, moving)
