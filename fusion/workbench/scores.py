@@ -24,6 +24,7 @@ from fusion.identification.data import FitData
 from fusion.identification.problem import FitProblem
 from fusion.identification.result import Identification
 from fusion.identification.settings import IdentifySettings
+from fusion.workbench.gauges import STRUCTURAL_SHARE, Gauge, candidate_gauges, own_axis_gauges
 from fusion.workbench.residuals import problem_at
 from models.effects import Effect, Model, all_effects
 
@@ -59,6 +60,9 @@ class Linearised(NamedTuple):
     """``M``: its columns' information with the fitted parameters projected out."""
     cols: np.ndarray
     """Its columns among the candidates' (0 = the first candidate column)."""
+    gauges: tuple[Gauge, ...] = ()
+    """Its directions the fit cannot tell from what it already makes free (held in a refit;
+    :mod:`fusion.workbench.gauges`)."""
 
 
 @dataclass(frozen=True)
@@ -179,6 +183,7 @@ def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], str
         i += n * k
     lin = []
     unseen = []
+    own = {g.block: g for g in own_axis_gauges(pb.model, ev, [e.block_name for e in cands])}
     for e in cands:
         sl = pb.model.index[e.block_name]
         cs = np.arange(sl.start, sl.stop) - P0
@@ -201,11 +206,44 @@ def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], str
             lm = 0.0  # only a step outside the bounds (a negative play or sag) would help
         delta = np.clip(delta, lo, hi)
         cov = (V[:, keep] / lam[keep]) @ V[:, keep].T * np.outer(sig_c, sig_c)
+        gauges = _gauges(pb, e.block_name, V[:, ~keep], sig_c, Mc, CC[np.ix_(cs, cs)], AiB[:, cs], fcols,
+                         own.get(e.block_name))
         lin.append(Linearised(e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s,
-                              Mc, cs))
+                              Mc, cs, gauges))
     lin.sort(key=lambda c: -(c.score - c.dof * lnn))
     return ScoreTests(pb, z, fcols, AiB, g_all, chi2_now, n_res, R, per, max(len(cands), 1), tuple(lin),
                       tuple(unseen), r, feat_labels, F, row_axis)
+
+
+def _gauges(pb: FitProblem, block: str, V_null: np.ndarray, sig_c: np.ndarray, Mc: np.ndarray,
+            CC: np.ndarray, AiB_c: np.ndarray, fcols: np.ndarray, own: Gauge | None) -> tuple[Gauge, ...]:
+    """A candidate's gauges: its own-axis one (structural, ``own``) first, then the directions
+    the score test left out (``V_null``, in prior-σ units: the data know them no better than
+    the prior once the fitted parameters are projected out), each named with the fitted
+    parameters that take it up (``A⁻¹B`` along it, in their prior σ)."""
+    out: list[Gauge] = [own] if own is not None else []
+    dirs, structural, partners = [], [], []
+    el = pb.model.block(block).element_names()
+    for k in range(V_null.shape[1]):
+        v = V_null[:, k] * sig_c
+        v = v / max(float(np.linalg.norm(v)), 1e-300)
+        if own is not None:  # already held along the joint's axis: what is left of it
+            u = np.array([dict(own.direction)[n] for n in el])
+            v = v - u * float(u @ v)
+            if np.linalg.norm(v) < 0.5:
+                continue
+            v = v / np.linalg.norm(v)
+        raw = float(v @ CC @ v)
+        structural.append(raw > 0 and float(v @ Mc @ v) <= STRUCTURAL_SHARE * raw)
+        a = np.abs(AiB_c @ v) / pb.sigma0[fcols]
+        top = np.argsort(-a)[:4]
+        partners.append([pb.names[fcols[i]].split("[")[0] for i in top if a[i] >= 0.3 * a.max() > 0])
+        dirs.append(v)
+    if dirs:
+        held_own = [own.held] if own is not None else []
+        V = np.column_stack(dirs)
+        out += candidate_gauges(pb.model, block, V, structural, partners, held_own)
+    return tuple(out)
 
 
 def _sums(pb: FitProblem, sub: FitData, z: np.ndarray, cols: np.ndarray, G: np.ndarray, g: np.ndarray,
