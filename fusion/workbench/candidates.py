@@ -21,7 +21,7 @@ from fusion.identification.identify import identify
 from fusion.identification.problem import FitProblem
 from fusion.identification.result import Identification
 from fusion.identification.settings import IdentifySettings
-from fusion.workbench.gauges import Gauge, held_elements, own_axis_gauges
+from fusion.workbench.gauges import Gauge, held_elements, structural_gauges
 from fusion.workbench.residuals import chi2_total
 from fusion.workbench.scores import Linearised, ScoreTests
 from models.effects import EFFECTS, Model
@@ -98,7 +98,7 @@ def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, strea
     rivals = 0
     excess = max(tests.chi2 - tests.n_residuals, 1e-300)
     sm = fit.model.stream_models()
-    model_holds = held_elements(own_axis_gauges(fit.model, sub))
+    model_holds = held_elements(structural_gauges(fit.model, sub))
     for rank, c in enumerate(lin):
         e, lm, dof, delta, dsig = c.effect, c.score, c.dof, c.delta, c.delta_sigma
         p = float(min(1.0, chi2_dist.sf(lm, dof) * K))

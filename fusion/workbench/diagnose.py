@@ -52,7 +52,7 @@ from fusion.identification.data import FIT_STREAMS_EXCLUDED, FitData, with_encod
 from fusion.identification.result import Identification
 from fusion.identification.settings import IdentifySettings
 from fusion.workbench.candidates import Candidate, at_bound, params_words, rank_candidates
-from fusion.workbench.gauges import Gauge, own_axis_gauges
+from fusion.workbench.gauges import Gauge, structural_gauges
 from fusion.workbench.heldout import HeldOut, HeldOutFit, judge
 from fusion.workbench.innovations import (
     INNOVATIONS_WHITE,
@@ -264,7 +264,7 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     dt = float(np.median(np.diff(data.state.t_s))) if data.n > 1 else 0.0
     analysis = residual_analysis(R, [(a.stream, a.axis) for a in axes],
                                  fit_inputs(data.state, m.arm.joint_names), dt)
-    gauges = tuple(own_axis_gauges(m, data))
+    gauges = tuple(structural_gauges(m, data))
     bound = tuple(n for b in m.blocks if b.effect != "joint_offset"
                   for n in at_bound({el: float(fit.x[m.index[b.name]][q])
                                      for q, el in enumerate(b.element_names())

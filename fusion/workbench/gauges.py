@@ -31,8 +31,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.linalg import qr
 
-from fusion.identification.data import FitData, with_encoder_zeros
+from fusion.identification.data import FitData, fitted_streams, with_encoder_zeros
 from fusion.identification.identifiability import suggestion_for
 from models.effects import Model
 
@@ -40,10 +41,7 @@ STRUCTURAL_SHARE = 1e-6
 """A direction whose information, with the fitted parameters projected out, is below this
 share of its own is taken up by them exactly: a gauge of the model (rounding leaves ~1e-12)."""
 OWN_AXIS_POINTS = 40
-"""Points (evenly spread) the own-axis check reads the Jacobians at."""
-OWN_AXIS_TOLERANCE = 1e-6
-"""The mount's columns along the direction must reproduce the joint zero's column to this
-share of its norm: an identity of the kinematics, not a coincidence of the motion."""
+"""Points (evenly spread) the structural check reads the Jacobians at."""
 
 
 @dataclass(frozen=True)
@@ -76,48 +74,92 @@ class Gauge:
                 "message": self.message, "suggestion": self.suggestion}
 
 
-def own_axis_gauges(model: Model, data: FitData, blocks: Sequence[str] | None = None) -> list[Gauge]:
-    """Every ``mount_rotation`` block of ``model`` (or of ``blocks``) against the zero of the
-    joint its sensor's link turns on: the rotation vector ``v`` whose columns reproduce that
-    joint zero's column at every point (``J_mount v = J_zero``) is that zero. ``model`` may lack
-    the joint zeros (they are added for the check)."""
+def still_jacobian(model: Model, data: FitData) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """Every element's column of the fitted streams' readings at a few of the recording's
+    poses held still (:data:`OWN_AXIS_POINTS`), each column in its prior σ and each stream's
+    rows scaled to its largest column. Returns ``(J, element names, prior σ)``. The model's
+    joint zeros are added where it lacks them."""
     m = with_encoder_zeros(model)
-    arm = m.arm
-    names = [b.name for b in m.blocks if b.effect == "mount_rotation"
-             and (blocks is None or b.name in blocks)]
-    if not names or data.n == 0:
-        return []
     stride = max(1, data.n // OWN_AXIS_POINTS)
-    sub = data.subset(slice(None, None, stride))
-    # the recording's poses held still: the joint zero also moves the sensor's position, which
+    st = data.subset(slice(None, None, stride)).state
+    # the recording's poses held still: a joint zero also moves the sensors after it, which
     # changes the motion's acceleration there (a lever arm's difference, second order in the
     # rates, that no calibration should lean on); gravity's part is the identity
-    st = sub.state
     still = st.replace(qd_rad_s=np.zeros_like(st.qd_rad_s), qdd_rad_s2=np.zeros_like(st.qdd_rad_s2))
+    streams = fitted_streams(m.stream_models())
+    _, jac = m.predict_with_jacobian(still, None, streams)
+    names = m.element_names()
+    sig = m.prior_sigma
+    rows = []
+    for s in streams:
+        blocks = jac.get(s, {})
+        if not blocks:
+            continue
+        N, k = next(iter(blocks.values())).shape[:2]
+        Js = np.zeros((N * k, m.size))
+        for b, Jb in blocks.items():
+            Js[:, m.index[b]] = Jb.reshape(N * k, -1)
+        Js *= sig
+        top = float(np.max(np.linalg.norm(Js, axis=0), initial=0.0))
+        if top > 0:
+            rows.append(Js / top)
+    return (np.concatenate(rows) if rows else np.zeros((0, m.size))), names, sig
+
+
+def structural_gauges(model: Model, data: FitData, eligible: Sequence[str] | None = None,
+                      held: Sequence[str] = (), jacobian=None) -> list[Gauge]:
+    """The directions of ``model``'s parameters (its joint zeros included) that change no
+    reading in any still pose: the null space of :func:`still_jacobian`, elements already
+    ``held`` and those no reading sees left out. Each is held at one element of ``eligible``
+    (default: every element but the joint zeros, which belong to the recording): a pivoted
+    choice, the element that carries most of what is left. A mount rotation about its own
+    joint's axis is one where nothing else sees that joint's zero (the last sensor's joint,
+    or parallel axes: on a UR5 the forearm's turn about the elbow's axis is the elbow's zero
+    less wrist 1's)."""
+    J, names, _ = still_jacobian(model, data) if jacobian is None else jacobian
+    if J.size == 0:
+        return []
+    norms = np.linalg.norm(J, axis=0)
+    hset = set(held)
+    active = np.flatnonzero((norms > 1e-9 * max(norms.max(), 1e-300))
+                            & np.array([n not in hset for n in names]))
+    if eligible is None:
+        ok = [i for i in active if ".joint_offset[" not in names[i]]
+    else:
+        es = set(eligible)
+        ok = [i for i in active if names[i] in es]
+    if not ok:
+        return []
+    _, sv, Vt = np.linalg.svd(J[:, active], full_matrices=True)
+    sv = np.concatenate([sv, np.zeros(len(active) - len(sv))]) if len(sv) < len(active) else sv
+    null = Vt[sv <= STRUCTURAL_SHARE * sv[0]].T  # (active, k)
+    if null.shape[1] == 0:
+        return []
+    pos = {c: r for r, c in enumerate(active)}
+    Ne = null[[pos[i] for i in ok]]  # eligible rows
+    _, R, piv = qr(Ne.T, pivoting=True)
+    diag = np.abs(np.diag(R)) if R.size else np.zeros(0)
+    rank = int(np.sum(diag > 1e-3))
+    chosen = [ok[p] for p in piv[:rank]]
+    m = with_encoder_zeros(model) if jacobian is None else model
     out = []
-    for name in names:
-        eff = m.effect(name)
-        sensor = arm.sensor(eff.target)
-        if sensor.link < 1:
-            continue
-        joint = arm.joint_names[sensor.link - 1]
-        zero = f"{joint}.joint_offset"
-        stream = eff.streams[0]
-        _, jac = m.predict_with_jacobian(still, None, [stream], blocks=[name, zero])
-        Jm = jac.get(stream, {}).get(name)
-        Jz = jac.get(stream, {}).get(zero)
-        if Jm is None or Jz is None:
-            continue
-        A = Jm.reshape(-1, Jm.shape[-1])
-        y = Jz.reshape(-1)
-        ny = float(np.linalg.norm(y))
-        if ny == 0.0:
-            continue
-        v, *_ = np.linalg.lstsq(A, y, rcond=None)
-        if np.linalg.norm(A @ v - y) > OWN_AXIS_TOLERANCE * ny or not np.any(v):
-            continue
-        out.append(_gauge(m, name, v / np.linalg.norm(v), (zero,), True,
-                          suggestion_for(f"{name}[x]", [f"{zero}[0]"])))
+    for i in chosen:
+        # the null vector that is 1 at this element and 0 at the other chosen ones
+        A = null[[pos[c] for c in chosen]]
+        coef = np.linalg.lstsq(A, (np.array(chosen) == i).astype(float), rcond=None)[0]
+        n = null @ coef
+        block = names[i].split("[")[0]
+        in_block = {names[c]: float(n[pos[c]]) for c in active if names[c].split("[")[0] == block}
+        big = float(np.max(np.abs(n)))
+        partners = tuple(dict.fromkeys(names[c].split("[")[0] for c in active[np.argsort(-np.abs(n))]
+                                       if names[c].split("[")[0] != block and abs(n[pos[c]]) >= 0.02 * big))
+        v = np.array([in_block.get(e, 0.0) for e in m.block(block).element_names()])
+        own = _own_joint_zero(m, block)
+        partners = tuple(sorted(partners, key=lambda p: p != own))  # the sensor's own joint first
+        zeros = [f"{p}[0]" for p in partners if p.endswith(".joint_offset")]
+        sugg = suggestion_for(names[i], zeros or [f"{p}[0]" for p in partners])
+        out.append(_gauge(m, block, v / max(float(np.linalg.norm(v)), 1e-300), partners, True, sugg,
+                          m.block(block).element_names().index(names[i])))
     return out
 
 
@@ -149,6 +191,16 @@ def _gauge(m: Model, block: str, v: np.ndarray, partners: tuple[str, ...], struc
     v = v * np.sign(v[i])
     direction = tuple((el[q], float(v[q])) for q in np.argsort(-np.abs(v)))
     return Gauge(block, el[i], direction, partners, structural, suggestion)
+
+
+def _own_joint_zero(m: Model, block: str) -> str | None:
+    """The zero of the joint the target sensor's link turns on (None: not a link sensor)."""
+    target = m.block(block).target
+    try:
+        link = m.arm.sensor(target).link
+    except (KeyError, ValueError, AttributeError):
+        return None
+    return f"{m.arm.joint_names[link - 1]}.joint_offset" if link >= 1 else None
 
 
 def held_elements(gauges: Sequence[Gauge]) -> list[str]:

@@ -21,7 +21,9 @@ from fusion.identification.identify import identify
 from fusion.identification.problem import FitProblem
 from fusion.identification.result import Identification
 from fusion.identification.settings import IdentifySettings
-from fusion.workbench.gauges import held_elements, own_axis_gauges
+from fusion.workbench.gauges import held_elements, structural_gauges
+from fusion.workbench.residuals import fit_model
+from models.effects import Model
 
 HELD_OUT_SHARE = 0.3
 """The share of a recording (its end) judged, not fitted."""
@@ -71,11 +73,12 @@ class HeldOutFit:
     stream_rms: dict[str, np.ndarray]
     """Per stream, each axis's residual RMS there (physical units)."""
     stream_noise: dict[str, np.ndarray]
+    stream_units: dict[str, str]
 
-    def unmodelled(self) -> dict[str, float]:
-        """Per stream, the worst axis's residual beyond the noise there."""
+    def unmodelled(self, unit: str = "g") -> dict[str, float]:
+        """Per stream in ``unit``, the worst axis's residual beyond the noise there."""
         return {s: float(np.max(np.sqrt(np.clip(r**2 - self.stream_noise[s] ** 2, 0, None))))
-                for s, r in self.stream_rms.items()}
+                for s, r in self.stream_rms.items() if self.stream_units[s] == unit}
 
 
 def judge(fit: Identification, fitted: FitData, held: HeldOut, streams: Sequence[str],
@@ -94,7 +97,7 @@ def judge(fit: Identification, fitted: FitData, held: HeldOut, streams: Sequence
     else:
         # another recording: its own encoder zeros and attitude, every effect at the fit's estimate
         effects = [b.name for b in model.blocks if b.effect != "joint_offset"]
-        hold = [*effects, *held_elements(own_axis_gauges(model, data))]
+        hold = [*effects, *held_elements(structural_gauges(model, data))]
         res = identify(model, data, streams, settings, hold=hold, attitude0_rad=fit.attitude_rad)
         pb = FitProblem(res.model.with_values(res.model_x), data, streams, res.attitude_rad is not None,
                         res.attitude_rad if res.attitude_rad is not None else np.zeros(3),
@@ -114,4 +117,14 @@ def judge(fit: Identification, fitted: FitData, held: HeldOut, streams: Sequence
         g = np.abs(sm[s].gain)
         rms[s] = np.sqrt(np.mean(d**2, 0)) / g
         noise[s] = np.broadcast_to(data.sigma_counts[s], (shape[1],)) / g
-    return HeldOutFit(float(np.sqrt(float(r @ r) / n)), rms, noise)
+    return HeldOutFit(float(np.sqrt(float(r @ r) / n)), rms, noise, {s: sm[s].unit for s in pb.streams})
+
+
+def as_it_is(model: Model, fitted: FitData, held: HeldOut, streams: Sequence[str],
+             settings: IdentifySettings, attitude0_rad: np.ndarray | None = None) -> HeldOutFit | None:
+    """The config as it is (every effect at its value), judged on ``held``: only the
+    recording's encoder zeros and the base attitude fitted, on ``fitted``. What a written
+    config must not be worse than."""
+    effects = [b.name for b in model.blocks if b.effect != "joint_offset"]
+    fit = fit_model(model, fitted, streams, settings, attitude0_rad, hold=effects)
+    return judge(fit, fitted, held, streams, settings)

@@ -24,7 +24,13 @@ from fusion.identification.data import FitData
 from fusion.identification.problem import FitProblem
 from fusion.identification.result import Identification
 from fusion.identification.settings import IdentifySettings
-from fusion.workbench.gauges import STRUCTURAL_SHARE, Gauge, candidate_gauges, own_axis_gauges
+from fusion.workbench.gauges import (
+    STRUCTURAL_SHARE,
+    Gauge,
+    candidate_gauges,
+    still_jacobian,
+    structural_gauges,
+)
 from fusion.workbench.residuals import problem_at
 from models.effects import Effect, Model, all_effects
 
@@ -183,7 +189,9 @@ def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], str
         i += n * k
     lin = []
     unseen = []
-    own = {g.block: g for g in own_axis_gauges(pb.model, ev, [e.block_name for e in cands])}
+    # the model's own structure, in still poses: the fit's columns with each candidate's
+    Js, jnames, _ = still_jacobian(pb.model, ev)
+    fit_held = {pb.names[i] for i in range(P0) if fit.held[i]}
     for e in cands:
         sl = pb.model.index[e.block_name]
         cs = np.arange(sl.start, sl.stop) - P0
@@ -206,8 +214,10 @@ def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], str
             lm = 0.0  # only a step outside the bounds (a negative play or sag) would help
         delta = np.clip(delta, lo, hi)
         cov = (V[:, keep] / lam[keep]) @ V[:, keep].T * np.outer(sig_c, sig_c)
-        gauges = _gauges(pb, e.block_name, V[:, ~keep], sig_c, Mc, CC[np.ix_(cs, cs)], AiB[:, cs], fcols,
-                         own.get(e.block_name))
+        jc = np.r_[0:P0, sl.start:sl.stop]
+        own = structural_gauges(pb.model, ev, [jnames[i] for i in range(sl.start, sl.stop)], fit_held,
+                                (Js[:, jc], [jnames[i] for i in jc], None))
+        gauges = _gauges(pb, e.block_name, V[:, ~keep], sig_c, Mc, CC[np.ix_(cs, cs)], AiB[:, cs], fcols, own)
         lin.append(Linearised(e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s,
                               Mc, cs, gauges))
     lin.sort(key=lambda c: -(c.score - c.dof * lnn))
@@ -216,20 +226,20 @@ def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], str
 
 
 def _gauges(pb: FitProblem, block: str, V_null: np.ndarray, sig_c: np.ndarray, Mc: np.ndarray,
-            CC: np.ndarray, AiB_c: np.ndarray, fcols: np.ndarray, own: Gauge | None) -> tuple[Gauge, ...]:
-    """A candidate's gauges: its own-axis one (structural, ``own``) first, then the directions
+            CC: np.ndarray, AiB_c: np.ndarray, fcols: np.ndarray, own: list[Gauge]) -> tuple[Gauge, ...]:
+    """A candidate's gauges: those of the model's structure (``own``) first, then the directions
     the score test left out (``V_null``, in prior-σ units: the data know them no better than
     the prior once the fitted parameters are projected out), each named with the fitted
     parameters that take it up (``A⁻¹B`` along it, in their prior σ)."""
-    out: list[Gauge] = [own] if own is not None else []
+    out: list[Gauge] = list(own)
     dirs, structural, partners = [], [], []
     el = pb.model.block(block).element_names()
+    U = np.array([[dict(g.direction)[n] for n in el] for g in own]).T if own else np.zeros((len(el), 0))
     for k in range(V_null.shape[1]):
         v = V_null[:, k] * sig_c
         v = v / max(float(np.linalg.norm(v)), 1e-300)
-        if own is not None:  # already held along the joint's axis: what is left of it
-            u = np.array([dict(own.direction)[n] for n in el])
-            v = v - u * float(u @ v)
+        if U.shape[1]:  # already held by the structure: what is left of it
+            v = v - U @ np.linalg.lstsq(U, v, rcond=None)[0]
             if np.linalg.norm(v) < 0.5:
                 continue
             v = v / np.linalg.norm(v)
@@ -240,7 +250,7 @@ def _gauges(pb: FitProblem, block: str, V_null: np.ndarray, sig_c: np.ndarray, M
         partners.append([pb.names[fcols[i]].split("[")[0] for i in top if a[i] >= 0.3 * a.max() > 0])
         dirs.append(v)
     if dirs:
-        held_own = [own.held] if own is not None else []
+        held_own = [g.held for g in own]
         V = np.column_stack(dirs)
         out += candidate_gauges(pb.model, block, V, structural, partners, held_own)
     return tuple(out)
