@@ -51,6 +51,7 @@ from fusion.workbench.diagnose import (
 )
 from fusion.workbench.discover import DiscoverSettings, Discovery, discover, held_out_worse
 from fusion.workbench.heldout import HeldOut, as_it_is, split_in_time
+from fusion.workbench.resampling import resampled_streams
 from models.effects import TargetError, model_from_arm
 
 HISTORY_FORMAT = "armfusion.workbench-history/1"
@@ -189,6 +190,7 @@ def diagnose_command(
         as_is = (as_it_is(model_from_arm(arm), data, held, list(dict.fromkeys(a.stream for a in before.axes)),
                           DiagnoseSettings().identify, before.fit.attitude_rad) if write is not None else None)
     inn = _run_innovations(arm, rec, json_out) if innovations else None
+    resampled = resampled_streams(rec, [s for s in fit_streams(arm) if s != "enc"])
     final = after or before
     hpath = history or history_path(config)
     if disc is not None:
@@ -243,6 +245,7 @@ def diagnose_command(
         d["as_it_was_held_out_rms_ratio"] = None if as_is is None else round(as_is.rms_ratio, 4)
         d["report"] = str(report) if report else None
         d["innovations"] = None if inn is None else inn.as_dict()
+        d["resampled_streams"] = [r.as_dict() for r in resampled]
         d["saturated_left_out"] = {"samples": screen.as_dict()["saturated"],
                                    "windows": data.saturated_windows}
         emit_json(d)
@@ -256,6 +259,8 @@ def diagnose_command(
         console.print(f"[bold yellow]The added effects are refused:[/] {refused_add}.", highlight=False)
     if inn is not None:
         _print_innovations(inn)
+    for r in resampled:
+        console.print(f"[yellow]Resampled stream:[/] {r.words()}.", highlight=False)
     console.print(f"History (error ladder, {len(ladder)} model versions): {hpath}")
     if write and write_refused is None:
         console.print(f"Wrote {write}")
