@@ -153,6 +153,10 @@ def structural_gauges(model: Model, data: FitData, eligible: Sequence[str] | Non
         big = float(np.max(np.abs(n)))
         partners = tuple(dict.fromkeys(names[c].split("[")[0] for c in active[np.argsort(-np.abs(n))]
                                        if names[c].split("[")[0] != block and abs(n[pos[c]]) >= 0.02 * big))
+        if not partners:
+            # seen by no still reading at all (an axis gravity never reaches): not a gauge of
+            # the structure; motion may see it, and the fit's identifiability analysis decides
+            continue
         v = np.array([in_block.get(e, 0.0) for e in m.block(block).element_names()])
         own = _own_joint_zero(m, block)
         partners = tuple(sorted(partners, key=lambda p: p != own))  # the sensor's own joint first

@@ -34,8 +34,8 @@ from fusion.workbench.gauges import (
 from fusion.workbench.residuals import problem_at
 from models.effects import Effect, Model, all_effects
 
-EXCLUDED_CANDIDATES = frozenset({"enc.time_offset"})
-"""The encoders are the time reference: their own delay is every other device's."""
+EXCLUDED_CANDIDATES = frozenset({"enc.time_offset", "enc.time_drift"})
+"""The encoders are the time reference: their own delay (and its drift) is every other device's."""
 
 
 def candidate_effects(model: Model, names: Sequence[str] | None) -> list[Effect]:
