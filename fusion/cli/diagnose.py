@@ -15,6 +15,7 @@ version's residual RMS to a history (the error ladder). See docs/workbench.md.
 from __future__ import annotations
 
 import json
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -37,7 +38,7 @@ from fusion.cli.common import (
 )
 from fusion.cli.diagnose_report import report_figures, write_innovation_report, write_report  # noqa: F401 (report_figures: imported from here by fusion.service.demo)
 from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt
-from fusion.configfile import resolve_config_path
+from fusion.configfile import load_arm, resolve_config_path
 from fusion.identification.identify import config_with_estimates, data_from_recording, fit_streams
 from fusion.workbench.diagnose import (
     DiagnoseSettings,
@@ -50,7 +51,7 @@ from fusion.workbench.diagnose import (
     parse_add,
 )
 from fusion.workbench.discover import DiscoverSettings, Discovery, discover, held_out_worse
-from fusion.workbench.heldout import HeldOut, as_it_is, split_in_time
+from fusion.workbench.heldout import HeldOut, as_it_is, split_in_time, tracked, tracked_worse
 from fusion.workbench.resampling import resampled_streams
 from models.effects import TargetError, model_from_arm
 
@@ -211,11 +212,14 @@ def diagnose_command(
     write_refused = None
     if write is not None:
         write_refused = refused_add or write_refusal(final, as_is)
+    consistency = None
     if write is not None and write_refused is None:
         src = resolve_config_path(config)
         cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
         out = config_with_estimates(cfg, without_bound(final))
         raise_floors(out, final)
+        consistency, write_refused = _tracked_check(arm, out, rec if validate is None else vrec, held, json_out)
+    if write is not None and write_refused is None:
         write.parent.mkdir(parents=True, exist_ok=True)
         stand_ins = "".join(f"# {f.added} stands in for one of {', '.join(f.members)} (equal fits)\n"
                             for f in (disc.findings if disc is not None else ()) if f.is_group)
@@ -243,6 +247,7 @@ def diagnose_command(
         d["write_refused"] = write_refused
         d["add_refused"] = refused_add
         d["as_it_was_held_out_rms_ratio"] = None if as_is is None else round(as_is.rms_ratio, 4)
+        d["tracked_held_out"] = consistency
         d["report"] = str(report) if report else None
         d["innovations"] = None if inn is None else inn.as_dict()
         d["resampled_streams"] = [r.as_dict() for r in resampled]
@@ -269,6 +274,27 @@ def diagnose_command(
     if write_refused is not None:
         err_console.print(f"[bold red]Not written[/] ({write}): {write_refused}", highlight=False)
         raise typer.Exit(1)
+
+
+def _tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool) -> tuple[dict | None, str | None]:
+    """The tracker over the held-out part with the config it would replace and with the one it
+    would write (``out``); the refusal's reason where the new one keeps fewer innovations
+    within 3σ there (:func:`fusion.workbench.heldout.tracked_worse`)."""
+    t_from = float(held.data.state.t_s[0]) if held.same_recording else -np.inf
+    with progress_bar("tracking the held-out part", json_out) as advance:
+        try:
+            advance(0.0, "with the config as it is")
+            before = tracked(arm, rec, t_from)
+            with tempfile.TemporaryDirectory() as d:
+                path = Path(d) / "candidate.yaml"
+                path.write_text(yaml.safe_dump(out, sort_keys=False), encoding="utf-8")
+                new_arm = load_arm(str(path))
+            advance(0.5, "with the config to write")
+            after = tracked(new_arm, rec, t_from)
+        except (ValueError, RuntimeError) as e:
+            return None, f"the tracker could not run over the held-out part to judge it: {e}"
+    doc = {"as_it_is": before.as_dict(), "written": after.as_dict()}
+    return doc, tracked_worse(before, after)
 
 
 def write_refusal(final: Diagnosis, as_is) -> str | None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -128,3 +129,64 @@ def as_it_is(model: Model, fitted: FitData, held: HeldOut, streams: Sequence[str
     effects = [b.name for b in model.blocks if b.effect != "joint_offset"]
     fit = fit_model(model, fitted, streams, settings, attitude0_rad, hold=effects)
     return judge(fit, fitted, held, streams, settings)
+
+
+TRACKED_SLACK = 0.01
+"""A written config may keep up to this share fewer held-out innovations within 3σ than the
+config it replaces (chance between two runs of one recording) and still be written."""
+NIS_3SIGMA = {1: 9.0, 2: 11.83, 3: 14.16}
+"""χ² of the 99.73 % (3σ) quantile by degrees of freedom."""
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """The tracker's consistency on the held-out part of a recording: each link
+    accelerometer's innovations from ``t_from_s`` on."""
+
+    within_3_sigma: dict[str, float]
+    """Per accelerometer, the share of its innovations inside the 3σ ellipsoid (NIS below the
+    χ² 99.73 % quantile): 99.7 % when the filter's σ are right, less when it is too sure."""
+    mean_nis_per_dof: dict[str, float]
+    """Per accelerometer, the mean NIS over its dof: 1 when right, below when cautious."""
+
+    @property
+    def worst(self) -> float:
+        return min(self.within_3_sigma.values(), default=1.0)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"within_3_sigma": {k: round(v, 4) for k, v in self.within_3_sigma.items()},
+                "mean_nis_per_dof": {k: round(v, 3) for k, v in self.mean_nis_per_dof.items()}}
+
+
+def tracked(arm, rec, t_from_s: float) -> Tracked:
+    """Run the tracker over ``rec`` with ``arm`` (a config) and read its link accelerometers'
+    innovations from ``t_from_s`` on: with no truth at hand, whether the filter's σ hold there."""
+    from fusion.tracking.tracker import start_from_recording
+
+    tr, _start = start_from_recording(arm, rec)
+    tr.run(rec, truth=False)
+    within, nis = {}, {}
+    for s in (a.name for a in arm.link_accelerometers):
+        try:
+            lg = tr.innovations(s)
+        except KeyError:
+            continue
+        k = lg.innovation.shape[1]
+        ok = np.isfinite(lg.nis) & (lg.t_s >= t_from_s)
+        if ok.sum() < 10:
+            continue
+        within[s] = float(np.mean(lg.nis[ok] <= NIS_3SIGMA.get(k, 14.16)))
+        nis[s] = float(np.mean(lg.nis[ok]) / k)
+    return Tracked(within, nis)
+
+
+def tracked_worse(before: Tracked, after: Tracked) -> str | None:
+    """Why ``after`` tracks the held-out part worse than ``before`` (None: it does not): a
+    sensor with fewer innovations within 3σ, beyond :data:`TRACKED_SLACK`."""
+    bad = [s for s in after.within_3_sigma
+           if after.within_3_sigma[s] < before.within_3_sigma.get(s, 0.0) - TRACKED_SLACK]
+    if not bad:
+        return None
+    return ("tracked over the held-out part it keeps fewer innovations within 3σ than the config it "
+            "replaces: " + ", ".join(f"{s} {100 * after.within_3_sigma[s]:.1f} % against "
+                                     f"{100 * before.within_3_sigma[s]:.1f} %" for s in bad))
