@@ -142,6 +142,8 @@ def report(rows: list[dict], seconds: float, duration_s: float) -> str:
     wrote = [r for r in rows if "fitted" in r]
     worse = [r["seed"] for r in rows if _worse(r)]
     lines = [
+        "## The workbench on the UR5 twin: held out, then tracked (`tools/bench_workbench_twin.py`)",
+        "",
         f"{n} twins of {duration_s:.0f} s (seeds 0-{n - 1}), each fitted on its first "
         f"{100 * (1 - HELD_OUT_SHARE):.0f} % by `diagnose --discover` and tracked with the shipped and the "
         f"written config; every figure on the held-out last {100 * HELD_OUT_SHARE:.0f} % only. "

@@ -145,3 +145,29 @@ def test_an_effect_the_other_recording_lacks_is_refused(wmra):
     why = held_out_worse(d, d2)
     assert why is not None and "held-out error rose" in why, (d.held_out_ratio, d2.held_out_ratio)
     assert np.isfinite(d2.held_out_ratio)
+
+
+def test_a_config_whose_tracker_is_too_sure_on_the_held_out_part_is_not_written():
+    """The write gate's rule: fewer innovations within 3σ on the held-out part than the config
+    it replaces (beyond 1 %) refuses it and names the sensor; as many, or more, passes."""
+    from fusion.workbench.heldout import Tracked, tracked_worse
+
+    before = Tracked({"forearm": 0.998, "wrist": 1.0}, {"forearm": 0.2, "wrist": 0.2})
+    same = Tracked({"forearm": 0.995, "wrist": 1.0}, {"forearm": 0.3, "wrist": 0.3})
+    assert tracked_worse(before, same) is None
+    why = tracked_worse(before, Tracked({"forearm": 0.62, "wrist": 1.0}, {"forearm": 4.0, "wrist": 0.3}))
+    assert why is not None and "forearm 62.0 % against 99.8 %" in why and "wrist" not in why
+
+
+def test_written_floors_are_at_least_the_held_out_excess(wmra, turned):
+    """What the fit leaves on the held-out part (larger than in sample) sets the floor."""
+    from fusion.cli.diagnose import raise_floors
+
+    fit_part, held = split_in_time(turned)
+    d = diagnose(model_from_arm(wmra), fit_part, held_out=held)  # acc4's turn is missing
+    cfg = {"calibration": {"accel_unmodelled_g_per_sensor": {"acc4": 1e-4}}}
+    raise_floors(cfg, d)
+    excess = d.held_out_fit.unmodelled("g")
+    per = cfg["calibration"]["accel_unmodelled_g_per_sensor"]
+    assert per["acc4"] == pytest.approx(excess["acc4"], rel=1e-3) and per["acc4"] > 5e-3
+    assert cfg["calibration"]["accel_unmodelled_g"] == max(per.values())
