@@ -15,6 +15,14 @@ rung "A -> B"), or none, the others explaining it (taken out where the BIC is lo
 "- A"). If the revisit changed the model and something is significant again, the forward
 walk goes on once more.
 
+**Judged on held-out data.** With ``held_out`` (the recording's last 30 %, or a second
+recording: :mod:`fusion.workbench.heldout`) each rung tries the first ``tries`` significant
+candidates, each added and judged there, and keeps the one with the lowest held-out error,
+if it is below the rung before's; the others are listed as refused with their reason, and
+when none is kept the ladder stops. The revisit's swaps and removals are refused alike. The
+held-out part so chooses among the candidates the fit part found significant (a
+validation set); it is never fitted.
+
 **Indistinguishable effects.** At each rung the significant refitted candidates whose whole
 recording χ² after their quick refit is within ``tie_chi2`` of the best one's are a *tie*:
 the recording fits them equally well (a likelihood ratio below ``exp(tie_chi2 / 2)``), so
@@ -55,7 +63,7 @@ STOP_NOISE = "fits to noise"
 STOP_NOTHING = "nothing significant is left, above the noise: no effect of the library explains the rest"
 STOP_RUNGS = "rung limit reached"
 STOP_NO_GAIN = "the last effect added did not lower the residual"
-STOP_HELD_OUT = "every significant candidate made the held-out error worse"
+STOP_HELD_OUT = "none of the significant candidates tried lowered the held-out error"
 
 SAME_IN_EVERY_MOTION = {
     frozenset({"mount_rotation", "accel_axes"}): "a board turned is its three axes turned together: no "
@@ -74,9 +82,9 @@ class DiscoverSettings:
     tie_chi2: float = 10.0
     """Candidates whose χ² after their refit is within this of the best's are reported
     together (the recording cannot tell them apart: likelihood ratio below e^5)."""
-    tries: int = 2
-    """Significant candidates tried at a rung, best first, while the held-out error refuses
-    them."""
+    tries: int = 3
+    """With held-out data: the significant candidates (best first in sample) each added and
+    judged there at a rung; the one with the lowest held-out error is kept."""
 
 
 @dataclass(frozen=True)
@@ -257,17 +265,27 @@ def _forward(d: Diagnosis, data: FitData, arm, st: DiscoverSettings, rungs: list
         if not sig:
             return d, STOP_NOISE if d.fits_to_noise else STOP_NOTHING
         nxt = None
-        for c in sig[:st.tries]:
-            rest = (c, *[o for o in sig if o is not c])
-            finding = _finding(rest, d.fit.n_residuals, st.tie_chi2)
-            trial = add_effects(d, [build_effect(arm, c.effect, c.target)], st.diagnose, progress=stage())
-            why = held_out_worse(d, trial)
-            if why is None:
-                nxt, chosen = trial, c
-                break
-            refused.append((f"+ {c.name}", why))
+        if d.held_out_ratio is None:  # nothing to judge on: the best in sample
+            c = sig[0]
+            nxt, chosen = add_effects(d, [build_effect(arm, c.effect, c.target)], st.diagnose,
+                                      progress=stage()), c
+        else:
+            # the first few significant candidates, each added and judged on the held-out data:
+            # the one that fits it best, if any fits it better than the rung before (in sample
+            # a bias can fit a hair better than the scale it stands in for, and tilt the angles)
+            trials = []
+            for c in sig[:st.tries]:
+                trial = add_effects(d, [build_effect(arm, c.effect, c.target)], st.diagnose, progress=stage())
+                why = held_out_worse(d, trial)
+                if why is None:
+                    trials.append((trial.held_out_ratio, len(trials), trial, c))
+                else:
+                    refused.append((f"+ {c.name}", why))
+            if trials:
+                _, _, nxt, chosen = min(trials, key=lambda t: (t[0], t[1]))
         if nxt is None:
             return d, STOP_HELD_OUT
+        finding = _finding((chosen, *[o for o in sig if o is not chosen]), d.fit.n_residuals, st.tie_chi2)
         rungs.append(_rung(f"+ {finding.added}", finding, chosen, nxt))
         findings.append(finding)
         gained = nxt.rms_ratio < d.rms_ratio * (1.0 - 1e-9)
