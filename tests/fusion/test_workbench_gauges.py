@@ -171,3 +171,9 @@ def test_written_floors_are_at_least_the_held_out_excess(wmra, turned):
     per = cfg["calibration"]["accel_unmodelled_g_per_sensor"]
     assert per["acc4"] == pytest.approx(excess["acc4"], rel=1e-3) and per["acc4"] > 5e-3
     assert cfg["calibration"]["accel_unmodelled_g"] == max(per.values())
+    # and never below the floor of the config it replaces (the fit's window means do not see
+    # what a tracker reading every sample meets)
+    cfg2 = {"calibration": {}}
+    raise_floors(cfg2, d, wmra)
+    per2 = cfg2["calibration"]["accel_unmodelled_g_per_sensor"]
+    assert all(per2[s.name] >= wmra.accel_floor_g(s.name) for s in wmra.link_accelerometers)
