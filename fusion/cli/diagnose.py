@@ -336,7 +336,7 @@ def raise_floors(cfg: dict, d: Diagnosis, arm=None) -> None:
             per[name] = max(float(per.get(name, 0.0)), g)
     if arm is not None:
         for s in arm.link_accelerometers:
-            per[s.name] = max(float(per.get(s.name, 0.0)), arm.accel_floor_g(s.name))
+            per[s.name] = max(float(per.get(s.name, 0.0)), arm.calibration.accel_floor_g(s.name))
     per = {k: round(max(v, 1e-4), 6) for k, v in per.items()}
     if per:
         cal["accel_unmodelled_g_per_sensor"] = per

@@ -176,4 +176,4 @@ def test_written_floors_are_at_least_the_held_out_excess(wmra, turned):
     cfg2 = {"calibration": {}}
     raise_floors(cfg2, d, wmra)
     per2 = cfg2["calibration"]["accel_unmodelled_g_per_sensor"]
-    assert all(per2[s.name] >= wmra.accel_floor_g(s.name) for s in wmra.link_accelerometers)
+    assert all(per2[s.name] >= wmra.calibration.accel_floor_g(s.name) for s in wmra.link_accelerometers)
