@@ -67,18 +67,23 @@ def test_a_mount_about_its_own_joints_axis_is_held_where_it_is_that_joints_zero(
                     "wrist.mount_rotation": ("wrist.mount_rotation[y]", "wrist1.joint_offset")}
 
 
-def test_the_gauge_is_held_in_the_candidates_refit_and_in_the_fit(wmra, turned):
+@pytest.fixture(scope="module")
+def turned_diagnosed(wmra, turned):
+    d = diagnose(model_from_arm(wmra), turned)
+    return d, add_effects(d, [build_effect(wmra, "mount_rotation", "acc4")])
+
+
+def test_the_gauge_is_held_in_the_candidates_refit_and_in_the_fit(turned_diagnosed):
     """The turned board's candidate is refitted with its z held at the prior (0) and says why;
     j7's zero carries the turn about its axis. Added to the model, z stays held, the turn about
     x is found within 3σ and the model fits to the noise."""
-    d = diagnose(model_from_arm(wmra), turned)
+    d, d2 = turned_diagnosed
     c = next(c for c in d.candidates if c.name == "mount_rotation:acc4")
     assert c.refitted
     assert c.params["acc4.mount_rotation[z]"][0] == 0.0
     g = c.gauges[0]
     assert g.structural and g.held == "acc4.mount_rotation[z]" and g.partners[0] == "j7.joint_offset"
     assert "no motion separates it from j7's zero" in g.message
-    d2 = add_effects(d, [build_effect(wmra, "mount_rotation", "acc4")])
     sl = d2.fit.model.index["acc4.mount_rotation"]
     assert d2.fit.x[sl][2] == 0.0 and d2.fit.held[sl][2]
     assert [g.held for g in d2.gauges] == ["acc4.mount_rotation[z]"]
@@ -107,9 +112,9 @@ def test_a_parameter_at_its_bound_is_named_and_not_written(wmra):
     assert at_bound({n: 0.0 for n in sag.element_names()}, sag) == []  # 0 is its floor, not a pull
 
 
-def test_without_bound_writes_the_prior(wmra, turned):
-    d = add_effects(diagnose(model_from_arm(wmra), turned), [build_effect(wmra, "mount_rotation", "acc2")])
-    name = "acc2.mount_rotation[x]"
+def test_without_bound_writes_the_prior(turned_diagnosed):
+    d = turned_diagnosed[1]
+    name = "acc4.mount_rotation[x]"
     fit = without_bound(replace(d, at_bound=(name,)))
     i = list(d.fit.names).index(name)
     assert fit.x[i] == d.fit.x0[i] and fit.sigma[i] == d.fit.prior_sigma[i]
