@@ -182,3 +182,32 @@ def test_written_floors_are_at_least_the_held_out_excess(wmra, turned):
     raise_floors(cfg2, d, wmra)
     per2 = cfg2["calibration"]["accel_unmodelled_g_per_sensor"]
     assert all(per2[s.name] >= wmra.calibration.accel_floor_g(s.name) for s in wmra.link_accelerometers)
+
+
+def test_cli_add_and_write_judged_on_a_second_recording(tmp_path):
+    """`--validate` judges on a second recording: a bias the first recording has and the second
+    lacks is refused there, nothing is written (exit 1, the reason said); the history carries
+    both columns."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from fusion.cli.main import app
+
+    runner = CliRunner()
+    biased, clean = tmp_path / "biased.csv", tmp_path / "clean.csv"
+    for out, seed, extra in ((biased, 41, ["--effect", "accel_bias:acc2=0,0.02,0"]), (clean, 42, [])):
+        r = runner.invoke(app, ["simulate", "--scenario", "renk-maneuver", "--duration", "20",
+                                "--seed", str(seed), *extra, "--out", str(out)])
+        assert r.exit_code == 0, r.output
+    written = tmp_path / "w.yaml"
+    r = runner.invoke(app, ["diagnose", str(biased), "--config", "wmra", "--add", "accel_bias:acc2",
+                            "--validate", str(clean), "--write", str(written), "--json",
+                            "--history", str(tmp_path / "h.json")])
+    assert r.exit_code == 1, r.output
+    doc = json.loads(r.stdout)
+    assert "held-out error rose" in doc["add_refused"] and doc["write_refused"] == doc["add_refused"]
+    assert doc["written"] is None and not written.exists()
+    assert doc["held_out"]["data"] == f"the recording {clean}"
+    assert doc["held_out"]["rms_ratio"] > doc["before"]["held_out"]["rms_ratio"]
+    assert all(e["held_out_rms_ratio"] is not None for e in doc["ladder"])
