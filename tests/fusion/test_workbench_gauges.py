@@ -203,7 +203,7 @@ def test_cli_add_and_write_judged_on_a_second_recording(tmp_path):
     written = tmp_path / "w.yaml"
     r = runner.invoke(app, ["diagnose", str(biased), "--config", "wmra", "--add", "accel_bias:acc2",
                             "--validate", str(clean), "--write", str(written), "--json",
-                            "--history", str(tmp_path / "h.json")])
+                            "--history", str(tmp_path / "h.json"), "--report", str(tmp_path / "r.html")])
     assert r.exit_code == 1, r.output
     doc = json.loads(r.stdout)
     assert "held-out error rose" in doc["add_refused"] and doc["write_refused"] == doc["add_refused"]
@@ -211,3 +211,5 @@ def test_cli_add_and_write_judged_on_a_second_recording(tmp_path):
     assert doc["held_out"]["data"] == f"the recording {clean}"
     assert doc["held_out"]["rms_ratio"] > doc["before"]["held_out"]["rms_ratio"]
     assert all(e["held_out_rms_ratio"] is not None for e in doc["ladder"])
+    page = (tmp_path / "r.html").read_text(encoding="utf-8")
+    assert f"on the held-out data (the recording {clean})" in page
