@@ -161,7 +161,12 @@ def structural_gauges(model: Model, data: FitData, eligible: Sequence[str] | Non
         own = _own_joint_zero(m, block)
         partners = tuple(sorted(partners, key=lambda p: p != own))  # the sensor's own joint first
         zeros = [f"{p}[0]" for p in partners if p.endswith(".joint_offset")]
-        sugg = suggestion_for(names[i], zeros or [f"{p}[0]" for p in partners])
+        if zeros:  # the same as a joint's zero in every pose: only an outside reference separates them
+            j = zeros[0].split(".")[0]
+            sugg = (f"no motion separates it from {j}'s zero: give {j}'s angle once, at a mechanical "
+                    f"index or a pose the installer confirms (calibrate sensors --reference {j}=DEG)")
+        else:
+            sugg = suggestion_for(names[i], [f"{p}[0]" for p in partners])
         out.append(_gauge(m, block, v / max(float(np.linalg.norm(v)), 1e-300), partners, True, sugg,
                           m.block(block).element_names().index(names[i])))
     return out
