@@ -165,7 +165,13 @@ def diagnose_command(
         try:
             data, held = split_in_time(data)
         except ValueError as e:
-            fail(f"{recording}: {e}")
+            # too short to hold a part out: diagnosed on itself, nothing written from it
+            held, no_held_out = None, f"{recording}: {e}"
+            if write is not None:
+                fail(f"{no_held_out}; --write needs a part the fit does not see (or --validate REC)")
+            if not json_out:
+                err_console.print(f"[yellow]warning:[/] {no_held_out}: judged on nothing but itself",
+                                  highlight=False)
     if data.saturated_windows and not json_out:
         err_console.print(f"[yellow]{data.saturated_windows:,} fit windows left out: they hold saturated "
                           "samples[/]", highlight=False)
@@ -189,7 +195,8 @@ def diagnose_command(
             after = add_effects(before, added, progress=stage(1)) if added else None
         refused_add = held_out_worse(before, after) if after is not None and disc is None else None
         as_is = (as_it_is(model_from_arm(arm), data, held, list(dict.fromkeys(a.stream for a in before.axes)),
-                          DiagnoseSettings().identify, before.fit.attitude_rad) if write is not None else None)
+                          DiagnoseSettings().identify, before.fit.attitude_rad)
+                 if write is not None and held is not None else None)
     inn = _run_innovations(arm, rec, json_out) if innovations else None
     resampled = resampled_streams(rec, [s for s in fit_streams(arm) if s != "enc"])
     final = after or before

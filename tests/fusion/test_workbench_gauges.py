@@ -213,3 +213,21 @@ def test_cli_add_and_write_judged_on_a_second_recording(tmp_path):
     assert all(e["held_out_rms_ratio"] is not None for e in doc["ladder"])
     page = (tmp_path / "r.html").read_text(encoding="utf-8")
     assert f"on the held-out data (the recording {clean})" in page
+
+
+def test_cli_a_recording_too_short_to_hold_out_is_diagnosed_but_never_written(tmp_path):
+    from typer.testing import CliRunner
+
+    from fusion.cli.main import app
+
+    runner = CliRunner()
+    rec = tmp_path / "short.csv"
+    r = runner.invoke(app, ["simulate", "--scenario", "renk-maneuver", "--duration", "4", "--seed", "3",
+                            "--out", str(rec)])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["diagnose", str(rec), "--config", "wmra", "--history", str(tmp_path / "h.json")])
+    assert r.exit_code == 0 and "judged on nothing but itself" in r.output
+    out = tmp_path / "w.yaml"
+    r = runner.invoke(app, ["diagnose", str(rec), "--config", "wmra", "--history", str(tmp_path / "h.json"),
+                            "--write", str(out)])
+    assert r.exit_code == 2 and "--write needs a part the fit does not see" in r.output and not out.exists()
