@@ -41,7 +41,7 @@ from sensors.samples import (
 )
 
 TRUTH_FORMAT = "armfusion.truth/1"
-REALISTIC_EXCLUDE = frozenset({"enc.time_offset"})
+REALISTIC_EXCLUDE = frozenset({"enc.time_offset", "enc.time_drift"})
 """Blocks ``--realistic`` leaves at zero: the encoders are the time reference (a common
 delay of every stream cannot be seen, so one device must define the clock)."""
 CHUNK_SAMPLES = 30000
@@ -78,9 +78,10 @@ def build_model(arm: ArmModel, effects: Model | Iterable[Any] | None = None, rea
     return model, np.array(model.x0)
 
 
-def _shifted(y: np.ndarray, pad: int, n: int, shift: float) -> np.ndarray:
-    """Rows ``pad … pad+n-1`` of ``y`` read ``shift`` samples earlier (4-point cubic)."""
-    if shift == 0.0:
+def _shifted(y: np.ndarray, pad: int, n: int, shift) -> np.ndarray:
+    """Rows ``pad … pad+n-1`` of ``y`` read ``shift`` samples earlier (4-point cubic; one
+    shift, or one per row)."""
+    if np.all(np.asarray(shift) == 0.0):
         return y[pad:pad + n]
     pos = np.arange(pad, pad + n) - shift
     i = np.floor(pos).astype(int)
@@ -144,6 +145,7 @@ def simulate(
     # once on the grid, then read each stream at t - offset - delay by cubic interpolation
     # (4 points; at 100 Hz its error is ~1e-7 g, far below any noise)
     offsets = model.time_offsets_s(x)
+    drifts = model.time_drifts(x)  # a drifting offset: offset + rate t, t from the start
     x_now = np.array(x, dtype=float)
     for e in model.effects:
         if e.stage == "time":
@@ -164,7 +166,9 @@ def simulate(
         streams = [s for d in devices for s in device_streams(arm, d)]
         shift = {s: (offsets.get(d, 0.0) + smodels[s].delay_s) * r for d in devices
                  for s in device_streams(arm, d)}
-        pad = int(np.ceil(max((abs(v) for v in shift.values()), default=0.0))) + 2
+        drift = {s: drifts.get(d, 0.0) for d in devices for s in device_streams(arm, d)}
+        most = max((abs(v) + abs(drift[s]) * sc.duration_s * r for s, v in shift.items()), default=0.0)
+        pad = int(np.ceil(most)) + 2
         for s in streams:
             times[s] = t_all
         for a in range(0, n, CHUNK_SAMPLES):
@@ -173,7 +177,8 @@ def simulate(
             state = sc.state(k / r)
             pred = model.predict(state, x_now, streams, encoder_zero_rad=q0)
             for s in streams:
-                y = _shifted(pred[s], pad, b - a, shift[s])
+                sh = shift[s] + drift[s] * t_all[a:b] * r if drift[s] else shift[s]
+                y = _shifted(pred[s], pad, b - a, sh)
                 values[s].append(smodels[s].digitise(y, noise_rng.get(s)))
             advanced(b - a)
     rec_streams: dict[str, Stream] = {}

@@ -49,7 +49,11 @@ def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict
              if k == 0 or (r["effects"], r["rms_ratio"]) != (ladder[k - 1]["effects"], ladder[k - 1]["rms_ratio"])]
     vals = [r["rms_ratio"] for r in steps]
     labels = [f"{k + 1}: {r['label']}" for k, r in enumerate(steps)]
-    ax.plot(range(len(vals)), vals, "o-", color="C0")
+    ax.plot(range(len(vals)), vals, "o-", color="C0", label="fitted")
+    held = [r.get("held_out_rms_ratio") for r in steps]
+    if any(h is not None for h in held):
+        ax.plot(range(len(vals)), [np.nan if h is None else h for h in held], "s--", color="C1",
+                label="held out (not fitted)")
     ax.axhline(1.0, color="k", ls="--", lw=1, label="noise floor")
     ax.axhspan(0, 1.1, color="green", alpha=0.08)
     ax.set_yscale("log")
@@ -230,8 +234,10 @@ def discovery_html(disc) -> str:
 
     rows = "".join(
         f"<tr><td>{k}</td><td style='text-align:left'>{html.escape(r.label)}</td>"
-        f"<td style='text-align:left'>{html.escape(r.estimate_words() or '—')}</td><td>{r.rms_ratio:.3f}</td></tr>"
+        f"<td style='text-align:left'>{html.escape(r.estimate_words() or '—')}</td><td>{r.rms_ratio:.3f}</td>"
+        f"<td>{'—' if r.held_out_ratio is None else f'{r.held_out_ratio:.3f}'}</td></tr>"
         for k, r in enumerate(disc.rungs))
+    refused = "".join(f"<li>refused: {html.escape(a)}: {html.escape(b)}</li>" for a, b in disc.refused)
     groups = "".join(f"<li>One finding, one of these: {html.escape(f.words())}.</li>"
                      for f in disc.findings if f.is_group)
     rest = ("<p>The ladder stopped above the noise, and no effect of the library explains the rest. "
@@ -240,8 +246,10 @@ def discovery_html(disc) -> str:
     n = len(disc.findings)
     return (f"<h2>Discovery: {n} effect{'' if n == 1 else 's'} found in {len(disc.rungs) - 1} rung{'' if len(disc.rungs) == 2 else 's'} "
             f"({html.escape(disc.stop)})</h2>"
-            "<table><tr><th>rung</th><th>added</th><th>its estimate ± σ</th><th>RMS / noise</th></tr>"
-            f"{rows}</table>" + (f"<ul>{groups}</ul>" if groups else "") + rest)
+            "<table><tr><th>rung</th><th>added</th><th>its estimate ± σ</th><th>RMS / noise, fitted</th>"
+            "<th>held out</th></tr>"
+            f"{rows}</table>" + (f"<ul>{refused}</ul>" if refused else "")
+            + (f"<ul>{groups}</ul>" if groups else "") + rest)
 
 
 def write_report(path: Path, before: Diagnosis, after: Diagnosis | None, ladder: list[dict],
@@ -252,6 +260,10 @@ def write_report(path: Path, before: Diagnosis, after: Diagnosis | None, ladder:
     import html
 
     figs = report_figures(before, after, ladder)
+    fin = after or before
+    held_words = ("" if fin.held_out_ratio is None else
+                  f"; {fin.held_out_ratio:.2f}× on the held-out data ({html.escape(fin.held_out.label)}), "
+                  "which the fit did not see")
     d = after or before
 
     def img(name: str) -> str:
@@ -298,7 +310,7 @@ td:nth-child(2),td:nth-child(3){{text-align:left}}.bad{{color:#b00;font-weight:b
 <h1>armfusion diagnose</h1>
 <p>Recording <code>{esc(recording)}</code>, config <code>{esc(config)}</code>; {d.fit.n_samples:,} fit points.</p>
 <h2>Verdict: {esc(d.verdict)}</h2>
-<p>Residual RMS {d.rms_ratio:.2f}× the sensors' noise floor (1.0: the model fits to noise).
+<p>Residual RMS {d.rms_ratio:.2f}× the sensors' noise floor (1.0: the model fits to noise){held_words}.
 Model effects: {esc(', '.join(e for e in d.effects() if not e.endswith('.joint_offset')) or 'none')}.</p>
 {img('ladder')}
 {'' if discovery is None else discovery_html(discovery)}

@@ -57,6 +57,8 @@ _SUGGEST = {
     "motion_acceleration": "swing the joints before the sensor fast (centripetal and tangential "
                            "acceleration)",
     "time_offset": "move faster: a time offset is seen only through the rate of change",
+    "time_drift": "move fast both early and late in the recording: a drifting offset is seen through "
+                  "the rate of change, at different times",
     "attitude": "the base attitude: tilt the chair, or turn it on the spot for the heading",
 }
 

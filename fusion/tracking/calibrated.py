@@ -96,8 +96,12 @@ def with_lever_arms(arm: ArmModel, model: Model | None) -> ArmModel:
     return replace(arm, sensors=sensors)
 
 
-NOT_APPLIED: dict[str, str] = {}
-"""The config's effects the tracker does not apply, and why (none now: it applies the
+NOT_APPLIED: dict[str, str] = {
+    "time_drift": "the tracker reads each device at its constant time offset; the offset's drift is "
+                  "not applied",
+}
+"""The config's effects the tracker does not apply, and why (a drifting time offset's rate;
+all others it applies: the
 accelerometers', the gyro's and the compass's corrections, the arm's steel's field at the
 compass, the joints' effects in the kinematics, lever arms, time offsets, encoder scales;
 the gyro's calibrated bias undone, the tracker's bias state follows what is left of it and

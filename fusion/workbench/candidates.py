@@ -21,6 +21,7 @@ from fusion.identification.identify import identify
 from fusion.identification.problem import FitProblem
 from fusion.identification.result import Identification
 from fusion.identification.settings import IdentifySettings
+from fusion.workbench.gauges import Gauge, held_elements, structural_gauges
 from fusion.workbench.residuals import chi2_total
 from fusion.workbench.scores import Linearised, ScoreTests
 from models.effects import EFFECTS, Model
@@ -51,6 +52,11 @@ class Candidate:
     significant: bool
     explanation: str
     evidence: str
+    gauges: tuple[Gauge, ...] = ()
+    """Its directions held at the prior in the refit (:mod:`fusion.workbench.gauges`)."""
+    at_bound: tuple[str, ...] = ()
+    """Elements whose refit ended at the parameter's bound: the model does not explain what
+    the candidate was pulled to (never significant, never written)."""
 
     @property
     def name(self) -> str:
@@ -63,7 +69,8 @@ class Candidate:
                 "p_value": self.p_value, "explained": round(self.explained, 4),
                 "refitted": self.refitted, "units": self.units,
                 "params": {k: {"value": v, "sigma": s} for k, (v, s) in self.params.items()},
-                "explanation": self.explanation, "evidence": self.evidence}
+                "explanation": self.explanation, "evidence": self.evidence,
+                "gauges": [g.as_dict() for g in self.gauges], "at_bound": list(self.at_bound)}
 
 
 def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, streams: Sequence[str],
@@ -91,6 +98,7 @@ def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, strea
     rivals = 0
     excess = max(tests.chi2 - tests.n_residuals, 1e-300)
     sm = fit.model.stream_models()
+    model_holds = held_elements(structural_gauges(fit.model, sub))
     for rank, c in enumerate(lin):
         e, lm, dof, delta, dsig = c.effect, c.score, c.dof, c.delta, c.delta_sigma
         p = float(min(1.0, chi2_dist.sf(lm, dof) * K))
@@ -110,9 +118,9 @@ def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, strea
             say(f"refitting with {e.block_name}", 0.85 + 0.15 * min(done / max(n_do, 1), 1.0))
             done += 1
             chi2_new, new_free, params, stepped = _refit(tests, c, fit, base_model, data, sub, streams,
-                                                         st.identify)
+                                                         st.identify, model_holds)
             if chi2_base is None and not stepped:
-                chi2_base = _rerun(tests, fit, base_model, data, sub, streams, st.identify)
+                chi2_base = _rerun(tests, fit, base_model, data, sub, streams, st.identify, model_holds)
             # a refit by identify is measured from the lower of the fit's χ² and the same refit's
             # without the candidate: re-running the fit from its own estimates (priors re-centred
             # there, each stream's scale estimated again, on the same points) moves χ² a little
@@ -127,20 +135,48 @@ def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, strea
             dbic = -lm + dof * tests.log_n
             rms_after = None
             params = {n: (float(delta[q]), float(dsig[q])) for q, n in enumerate(names)}
-        significant = bool(p < st.alpha and dbic < 0)
+        held = set(held_elements(c.gauges))
+        bound = at_bound({n: v for n, (v, _s) in params.items() if n not in held}, b)
+        significant = bool(p < st.alpha and dbic < 0 and not bound)
         explained = float(min(lm / excess, 1.0)) if tests.chi2 > tests.n_residuals else 0.0
         evidence = _evidence(tests, c, sm, data, params, b.units, explained)
+        if bound:
+            after = (f" and leaves {rms_after:.3g}x the noise" if rms_after is not None
+                     else " (the linearised step)")
+            where = ", ".join(f"{n.split('[')[-1].rstrip(']')} at {_fmt_value(params[n][0], b.units)}"
+                              for n in bound)
+            evidence = (f"the model does not explain this: the fit ends at the parameter's bound ({where}) "
+                        f"{after}; not significant. {evidence}")
         out.append(Candidate(e.name, e.target, lm, dof, p, explained, float(dbic), refit, rms_after,
-                             params, b.units, significant, EFFECTS[e.name].description, evidence))
+                             params, b.units, significant, EFFECTS[e.name].description, evidence,
+                             c.gauges, tuple(bound)))
     out.sort(key=lambda c: (not c.refitted, float(f"{c.delta_bic:.6g}"), len(c.params)))
     return out
 
 
+BOUND_SHARE = 0.98
+"""An estimate beyond this share of its parameter's bound is at the bound."""
+
+
+def at_bound(values: dict[str, float], block) -> list[str]:
+    """The elements of ``values`` (element name -> estimate, of ``block``) at the block's
+    bounds (within ``1 - BOUND_SHARE`` of a non-zero bound)."""
+    names = block.element_names()
+    out = []
+    for n, v in values.items():
+        q = names.index(n)
+        lo, hi = float(block.lower[q]), float(block.upper[q])
+        if (np.isfinite(hi) and hi > 0 and v >= BOUND_SHARE * hi) or (
+                np.isfinite(lo) and lo < 0 and v <= BOUND_SHARE * lo):
+            out.append(n)
+    return out
+
+
 def _rerun(tests: ScoreTests, fit: Identification, base_model: Model, data: FitData, sub: FitData,
-           streams: Sequence[str], identify_settings: IdentifySettings) -> float:
+           streams: Sequence[str], identify_settings: IdentifySettings, hold: Sequence[str] = ()) -> float:
     """The whole recording's χ² after :func:`_refit`'s identify without a candidate (the same
     start, priors and points): what re-running the fit gives by itself."""
-    res = identify(base_model, sub, streams, identify_settings, attitude0_rad=fit.attitude_rad)
+    res = identify(base_model, sub, streams, identify_settings, hold=hold, attitude0_rad=fit.attitude_rad)
     if sub is data:
         return chi2_total(res)
     att = res.attitude_rad if res.attitude_rad is not None else np.zeros(3)
@@ -149,8 +185,8 @@ def _rerun(tests: ScoreTests, fit: Identification, base_model: Model, data: FitD
 
 
 def _refit(tests: ScoreTests, c: Linearised, fit: Identification, base_model: Model, data: FitData,
-           sub: FitData, streams: Sequence[str], identify_settings: IdentifySettings
-           ) -> tuple[float, int, dict[str, tuple[float, float]], bool]:
+           sub: FitData, streams: Sequence[str], identify_settings: IdentifySettings,
+           model_holds: Sequence[str] = ()) -> tuple[float, int, dict[str, tuple[float, float]], bool]:
     """The quick refit of candidate ``c``: identify with it added, from the current estimates,
     on ``sub`` (at most ``refit_points`` evenly spread fit points); the residual evaluated
     exactly at its estimates over the whole recording. Returns the whole recording's χ²
@@ -161,8 +197,11 @@ def _refit(tests: ScoreTests, c: Linearised, fit: Identification, base_model: Mo
     b = pb.model.block(e.block_name)
     names = b.element_names()
     per = tests.points_per_chunk
+    # the candidate's gauges (and the model's own) held at their priors: a direction the fit
+    # cannot tell from what it already makes free would wander to wherever the noise takes it
+    gauge_held = held_elements(c.gauges)
     res = identify(base_model.with_effects([e]), sub, streams, identify_settings,
-                   attitude0_rad=fit.attitude_rad)
+                   hold=[*model_holds, *gauge_held], attitude0_rad=fit.attitude_rad)
     sl2 = res.model.index[e.block_name]
     new_free = int((~res.held[sl2]).sum())
     if sub is data:
@@ -183,6 +222,7 @@ def _refit(tests: ScoreTests, c: Linearised, fit: Identification, base_model: Mo
         H = c.information + np.diag(1.0 / sig_c**2)
         Hi = np.linalg.inv(0.5 * (H + H.T))
         dc = np.clip(-Hi @ tests.g_candidates[cs], b.lower, b.upper)
+        dc[[names.index(h) for h in gauge_held]] = 0.0
         dz = np.zeros(pb.size)
         dz[tests.fcols] = -tests.AiB[:, cs] @ dc
         xm = np.concatenate([fit.model_x + dz[:P0], dc])

@@ -51,7 +51,9 @@ import numpy as np
 from fusion.identification.data import FIT_STREAMS_EXCLUDED, FitData, with_encoder_zeros
 from fusion.identification.result import Identification
 from fusion.identification.settings import IdentifySettings
-from fusion.workbench.candidates import Candidate, params_words, rank_candidates
+from fusion.workbench.candidates import Candidate, at_bound, params_words, rank_candidates
+from fusion.workbench.gauges import Gauge, structural_gauges
+from fusion.workbench.heldout import HeldOut, HeldOutFit, judge
 from fusion.workbench.innovations import (
     INNOVATIONS_WHITE,
     InnovationDiagnosis,
@@ -142,6 +144,20 @@ class Diagnosis:
     """The worst stretches of the recording: ``(t_start_s, t_end_s, rms_ratio there)``."""
     analysis: ResidualAnalysis | None = None
     """Whiteness and cross-correlation of the residuals with the inputs."""
+    gauges: tuple[Gauge, ...] = ()
+    """The model's own directions held at their priors (a mount about its own joint's axis)."""
+    at_bound: tuple[str, ...] = ()
+    """Elements of the model's effects whose estimate ended at the parameter's bound: the
+    model does not explain what pulled them there; never written."""
+    held_out: HeldOut | None = None
+    """The data the fit is judged on (None: judged on nothing but itself)."""
+    held_out_fit: HeldOutFit | None = None
+    """The fit on the held-out data (None where there is none, or it cannot be judged)."""
+
+    @property
+    def held_out_ratio(self) -> float | None:
+        """Residual RMS over the noise on the held-out data, at the fit's estimates."""
+        return None if self.held_out_fit is None else self.held_out_fit.rms_ratio
 
     @property
     def model(self) -> Model:
@@ -204,14 +220,21 @@ class Diagnosis:
                     "n_residuals": self.fit.n_residuals,
                     "held": [h.element for h in self.fit.holds], "notes": list(self.fit.notes)},
             "residual_analysis": None if self.analysis is None else self.analysis.as_dict(),
+            "held_out": None if self.held_out is None else {
+                "data": self.held_out.label,
+                "rms_ratio": None if self.held_out_ratio is None else round(self.held_out_ratio, 4)},
+            "gauges": [g.as_dict() for g in self.gauges],
+            "at_bound": list(self.at_bound),
             "seconds": round(self.seconds, 3),
         }
 
 
 def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = None,
              streams: Sequence[str] | None = None, attitude0_rad: np.ndarray | None = None,
-             progress: Callable[[str, float], None] | None = None) -> Diagnosis:
-    """Fit ``model`` to ``data`` and rank every library effect it lacks (module docstring).
+             progress: Callable[[str, float], None] | None = None,
+             held_out: HeldOut | None = None) -> Diagnosis:
+    """Fit ``model`` to ``data`` and rank every library effect it lacks (module docstring);
+    with ``held_out``, the fit is judged there too (:mod:`fusion.workbench.heldout`).
 
     ``progress(stage, fraction_done)`` is called as the work advances (0 to 1)."""
     st = settings or DiagnoseSettings()
@@ -241,9 +264,18 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     dt = float(np.median(np.diff(data.state.t_s))) if data.n > 1 else 0.0
     analysis = residual_analysis(R, [(a.stream, a.axis) for a in axes],
                                  fit_inputs(data.state, m.arm.joint_names), dt)
+    gauges = tuple(structural_gauges(m, data))
+    bound = tuple(n for b in m.blocks if b.effect != "joint_offset"
+                  for n in at_bound({el: float(fit.x[m.index[b.name]][q])
+                                     for q, el in enumerate(b.element_names())
+                                     if not fit.held[m.index[b.name]][q]}, b))
+    judged = None
+    if held_out is not None:
+        say("judging on the held-out data", 0.98)
+        judged = judge(fit, data, held_out, tests.problem.streams, st.identify)
     say("done", 1.0)
     return Diagnosis(fit, data, tuple(axes), tests.rms_ratio, tuple(out), tests.unseen, verdict,
-                     time.perf_counter() - t0, worst, analysis)
+                     time.perf_counter() - t0, worst, analysis, gauges, bound, held_out, judged)
 
 
 def best_start(model: Model, data: FitData, streams: Sequence[str], st: DiagnoseSettings,
@@ -305,11 +337,13 @@ def parse_add(arm, items: Sequence[str]) -> list[Effect]:
 
 def add_effects(diag: Diagnosis, effects: Sequence[Effect], settings: DiagnoseSettings | None = None,
                 progress=None) -> Diagnosis:
-    """Diagnose again with ``effects`` added, starting from ``diag``'s estimates."""
+    """Diagnose again with ``effects`` added, starting from ``diag``'s estimates (judged on the
+    same held-out data)."""
     have = set(diag.fit.model.index)
     new = [e for e in effects if e.block_name not in have]
     model = diag.model.with_effects(new)
-    return diagnose(model, diag.data, settings, attitude0_rad=diag.fit.attitude_rad, progress=progress)
+    return diagnose(model, diag.data, settings, attitude0_rad=diag.fit.attitude_rad, progress=progress,
+                    held_out=diag.held_out)
 
 
 def predicted_and_measured(diag: Diagnosis) -> dict[str, tuple]:

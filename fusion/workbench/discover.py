@@ -15,6 +15,14 @@ rung "A -> B"), or none, the others explaining it (taken out where the BIC is lo
 "- A"). If the revisit changed the model and something is significant again, the forward
 walk goes on once more.
 
+**Judged on held-out data.** With ``held_out`` (the recording's last 30 %, or a second
+recording: :mod:`fusion.workbench.heldout`) each rung tries the first ``tries`` significant
+candidates, each added and judged there, and keeps the one with the lowest held-out error,
+if it is below the rung before's; the others are listed as refused with their reason, and
+when none is kept the ladder stops. The revisit's swaps and removals are refused alike. The
+held-out part so chooses among the candidates the fit part found significant (a
+validation set); it is never fitted.
+
 **Indistinguishable effects.** At each rung the significant refitted candidates whose whole
 recording χ² after their quick refit is within ``tie_chi2`` of the best one's are a *tie*:
 the recording fits them equally well (a likelihood ratio below ``exp(tie_chi2 / 2)``), so
@@ -48,12 +56,14 @@ from fusion.identification.data import FitData
 from fusion.identification.identifiability import suggestion_for
 from fusion.workbench.candidates import Candidate, params_words
 from fusion.workbench.diagnose import DiagnoseSettings, Diagnosis, add_effects, diagnose
+from fusion.workbench.heldout import HeldOut
 from models.effects import Model, build_effect
 
 STOP_NOISE = "fits to noise"
 STOP_NOTHING = "nothing significant is left, above the noise: no effect of the library explains the rest"
 STOP_RUNGS = "rung limit reached"
 STOP_NO_GAIN = "the last effect added did not lower the residual"
+STOP_HELD_OUT = "none of the significant candidates tried lowered the held-out error"
 
 SAME_IN_EVERY_MOTION = {
     frozenset({"mount_rotation", "accel_axes"}): "a board turned is its three axes turned together: no "
@@ -72,6 +82,9 @@ class DiscoverSettings:
     tie_chi2: float = 10.0
     """Candidates whose χ² after their refit is within this of the best's are reported
     together (the recording cannot tell them apart: likelihood ratio below e^5)."""
+    tries: int = 3
+    """With held-out data: the significant candidates (best first in sample) each added and
+    judged there at a rung; the one with the lowest held-out error is kept."""
 
 
 @dataclass(frozen=True)
@@ -143,8 +156,14 @@ class Rung:
     def estimate_words(self) -> str:
         return params_words(self.estimate, self.units) if self.estimate else ""
 
+    @property
+    def held_out_ratio(self) -> float | None:
+        return self.diagnosis.held_out_ratio
+
     def as_dict(self) -> dict[str, Any]:
+        h = self.held_out_ratio
         return {"label": self.label, "rms_ratio": round(self.rms_ratio, 4), "verdict": self.verdict,
+                "held_out_rms_ratio": None if h is None else round(h, 4),
                 "finding": None if self.finding is None else self.finding.as_dict(),
                 "units": self.units or None,
                 "estimate": {k: {"value": v, "sigma": s} for k, (v, s) in self.estimate.items()},
@@ -162,6 +181,8 @@ class Discovery:
     seconds: float
     findings: tuple[Finding, ...]
     """What the final model added, in the order found (after the revisit)."""
+    refused: tuple[tuple[str, str], ...] = ()
+    """Model versions refused, and why (``(label, reason)``): their held-out error rose."""
 
     @property
     def first(self) -> Diagnosis:
@@ -175,13 +196,16 @@ class Discovery:
         return {"stop": self.stop, "rms_ratio": round(self.final.rms_ratio, 4),
                 "findings": [f.as_dict() for f in self.findings],
                 "rungs": [r.as_dict() for r in self.rungs],
-                "remaining": list(self.remaining), "seconds": round(self.seconds, 3)}
+                "remaining": list(self.remaining), "seconds": round(self.seconds, 3),
+                "refused": [{"label": a, "reason": b} for a, b in self.refused]}
 
 
 def discover(model: Model, data: FitData, settings: DiscoverSettings | None = None,
              attitude0_rad: np.ndarray | None = None,
-             progress: Callable[[str, float], None] | None = None) -> Discovery:
-    """Walk the error ladder from ``model`` on ``data`` (module docstring)."""
+             progress: Callable[[str, float], None] | None = None,
+             held_out: HeldOut | None = None) -> Discovery:
+    """Walk the error ladder from ``model`` on ``data`` (module docstring); with ``held_out``
+    every rung is judged there and one whose held-out error rises is refused."""
     st = settings or DiscoverSettings()
     t0 = time.perf_counter()
     say = progress or (lambda _m, _f: None)
@@ -193,22 +217,32 @@ def discover(model: Model, data: FitData, settings: DiscoverSettings | None = No
         count[0] += 1
         return lambda msg, f: say(f"rung {k}: {msg}", min((k + f) / total, 1.0))
 
-    d = diagnose(model, data, st.diagnose, attitude0_rad=attitude0_rad, progress=stage())
+    d = diagnose(model, data, st.diagnose, attitude0_rad=attitude0_rad, progress=stage(), held_out=held_out)
     rungs = [Rung("the config as it is", None, {}, "", d)]
     findings: list[Finding] = []
+    refused: list[tuple[str, str]] = []
     stop = STOP_RUNGS
     for _round in range(2):  # forward, revisit; once more forward if the revisit changed the model
-        d, stop = _forward(d, data, model.arm, st, rungs, findings, stage)
-        if stop == STOP_NO_GAIN or len(findings) < 2:
+        d, stop = _forward(d, data, model.arm, st, rungs, findings, stage, refused)
+        if stop in (STOP_NO_GAIN, STOP_HELD_OUT) or len(findings) < 2:
             break
-        d, changed = _revisit(d, data, model.arm, st, rungs, findings, stage)
+        d, changed = _revisit(d, data, model.arm, st, rungs, findings, stage, refused)
         if not changed or not d.significant:
             if not d.significant:
                 stop = STOP_NOISE if d.fits_to_noise else STOP_NOTHING
             break
     say("done", 1.0)
     return Discovery(tuple(rungs), stop, remaining_words(d, st.diagnose.noise_tolerance),
-                     time.perf_counter() - t0, tuple(findings))
+                     time.perf_counter() - t0, tuple(findings), tuple(refused))
+
+
+def held_out_worse(before: Diagnosis, after: Diagnosis) -> str | None:
+    """Why ``after`` is refused against ``before`` (None: it is not): its held-out error is
+    higher. Without held-out data nothing is refused."""
+    a, b = before.held_out_ratio, after.held_out_ratio
+    if a is None or b is None or b <= a:
+        return None
+    return f"the held-out error rose from {a:.3f} to {b:.3f}x the noise ({after.held_out.label})"
 
 
 def _rung(label: str, finding: Finding, c: Candidate, d: Diagnosis) -> Rung:
@@ -222,17 +256,37 @@ def _rung(label: str, finding: Finding, c: Candidate, d: Diagnosis) -> Rung:
 
 
 def _forward(d: Diagnosis, data: FitData, arm, st: DiscoverSettings, rungs: list[Rung],
-             findings: list[Finding], stage) -> tuple[Diagnosis, str]:
+             findings: list[Finding], stage, refused: list[tuple[str, str]]) -> tuple[Diagnosis, str]:
     """Add the best significant candidate until nothing is significant (or the rung limit, or
-    an addition that does not lower the residual). Appends to ``rungs`` and ``findings``."""
+    an addition that does not lower the residual, or none that does not raise the held-out
+    error). Appends to ``rungs``, ``findings`` and ``refused``."""
     while len(findings) < st.max_rungs:
         sig = d.significant
         if not sig:
             return d, STOP_NOISE if d.fits_to_noise else STOP_NOTHING
-        finding = _finding(sig, d.fit.n_residuals, st.tie_chi2)
-        nxt = add_effects(d, [build_effect(arm, sig[0].effect, sig[0].target)], st.diagnose,
-                          progress=stage())
-        rungs.append(_rung(f"+ {finding.added}", finding, sig[0], nxt))
+        nxt = None
+        if d.held_out_ratio is None:  # nothing to judge on: the best in sample
+            c = sig[0]
+            nxt, chosen = add_effects(d, [build_effect(arm, c.effect, c.target)], st.diagnose,
+                                      progress=stage()), c
+        else:
+            # the first few significant candidates, each added and judged on the held-out data:
+            # the one that fits it best, if any fits it better than the rung before (in sample
+            # a bias can fit a hair better than the scale it stands in for, and tilt the angles)
+            trials = []
+            for c in sig[:st.tries]:
+                trial = add_effects(d, [build_effect(arm, c.effect, c.target)], st.diagnose, progress=stage())
+                why = held_out_worse(d, trial)
+                if why is None:
+                    trials.append((trial.held_out_ratio, len(trials), trial, c))
+                else:
+                    refused.append((f"+ {c.name}", why))
+            if trials:
+                _, _, nxt, chosen = min(trials, key=lambda t: (t[0], t[1]))
+        if nxt is None:
+            return d, STOP_HELD_OUT
+        finding = _finding((chosen, *[o for o in sig if o is not chosen]), d.fit.n_residuals, st.tie_chi2)
+        rungs.append(_rung(f"+ {finding.added}", finding, chosen, nxt))
         findings.append(finding)
         gained = nxt.rms_ratio < d.rms_ratio * (1.0 - 1e-9)
         d = nxt
@@ -247,7 +301,7 @@ def _bic(d: Diagnosis) -> float:
 
 
 def _revisit(d: Diagnosis, data: FitData, arm, st: DiscoverSettings, rungs: list[Rung],
-             findings: list[Finding], stage) -> tuple[Diagnosis, bool]:
+             findings: list[Finding], stage, refused: list[tuple[str, str]]) -> tuple[Diagnosis, bool]:
     """Each effect added, taken out again with all the others in: an early rung may have taken
     a larger effect for what a later one explains (acc3's axes for its board turned, while
     j2's sag was still missing). Diagnosed without it, the best significant candidate is it
@@ -258,11 +312,14 @@ def _revisit(d: Diagnosis, data: FitData, arm, st: DiscoverSettings, rungs: list
         if f.added_block not in d.fit.model.index:
             continue
         wo = diagnose(d.model.without([f.added_block]), d.data, st.diagnose, attitude0_rad=d.fit.attitude_rad,
-                      progress=stage())
+                      progress=stage(), held_out=d.held_out)
         sig = wo.significant
         i = findings.index(f)
         if not sig:
-            if _bic(wo) <= _bic(d):
+            why = held_out_worse(d, wo)
+            if why is not None:
+                refused.append((f"- {f.added}", why))
+            elif _bic(wo) <= _bic(d):
                 rungs.append(Rung(f"- {f.added} (the others explain it)", None, {}, "", wo))
                 findings.pop(i)
                 d, changed = wo, True
@@ -273,7 +330,10 @@ def _revisit(d: Diagnosis, data: FitData, arm, st: DiscoverSettings, rungs: list
             continue
         nxt = add_effects(wo, [build_effect(arm, sig[0].effect, sig[0].target)], st.diagnose,
                           progress=stage())
-        if _bic(nxt) < _bic(d):
+        why = held_out_worse(d, nxt)
+        if why is not None:
+            refused.append((f"{f.added} -> {g.added}", why))
+        elif _bic(nxt) < _bic(d):
             rungs.append(_rung(f"{f.added} -> {g.added}", g, sig[0], nxt))
             findings[i] = g
             d, changed = nxt, True

@@ -16,6 +16,7 @@ from fusion.identification.identify import identify
 from fusion.identification.problem import FitProblem
 from fusion.identification.result import Identification
 from fusion.identification.settings import IdentifySettings
+from fusion.workbench.gauges import held_elements, structural_gauges
 from models.effects import Effect, Model
 
 
@@ -53,9 +54,14 @@ def rms_ratio_of(res: Identification) -> float:
 
 def fit_model(model: Model, data: FitData, streams: Sequence[str] | None = None,
               settings: IdentifySettings | None = None,
-              attitude0_rad: np.ndarray | None = None, progress=None) -> Identification:
-    """``identify`` with the recording's encoder zeros added to ``model``."""
-    return identify(with_encoder_zeros(model), data, streams, settings,
+              attitude0_rad: np.ndarray | None = None, progress=None,
+              hold: Sequence[str] = ()) -> Identification:
+    """``identify`` with the recording's encoder zeros added to ``model``, its structural gauges
+    held (a mount rotation about its own joint's axis where that is the joint's zero:
+    :func:`fusion.workbench.gauges.structural_gauges`) and ``hold`` (elements or blocks) at
+    their priors."""
+    hold = [*hold, *held_elements(structural_gauges(model, data))]
+    return identify(with_encoder_zeros(model), data, streams, settings, hold=hold,
                     attitude0_rad=attitude0_rad, progress=progress)
 
 

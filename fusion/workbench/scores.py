@@ -24,11 +24,18 @@ from fusion.identification.data import FitData
 from fusion.identification.problem import FitProblem
 from fusion.identification.result import Identification
 from fusion.identification.settings import IdentifySettings
+from fusion.workbench.gauges import (
+    STRUCTURAL_SHARE,
+    Gauge,
+    candidate_gauges,
+    still_jacobian,
+    structural_gauges,
+)
 from fusion.workbench.residuals import problem_at
 from models.effects import Effect, Model, all_effects
 
-EXCLUDED_CANDIDATES = frozenset({"enc.time_offset"})
-"""The encoders are the time reference: their own delay is every other device's."""
+EXCLUDED_CANDIDATES = frozenset({"enc.time_offset", "enc.time_drift"})
+"""The encoders are the time reference: their own delay (and its drift) is every other device's."""
 
 
 def candidate_effects(model: Model, names: Sequence[str] | None) -> list[Effect]:
@@ -59,6 +66,9 @@ class Linearised(NamedTuple):
     """``M``: its columns' information with the fitted parameters projected out."""
     cols: np.ndarray
     """Its columns among the candidates' (0 = the first candidate column)."""
+    gauges: tuple[Gauge, ...] = ()
+    """Its directions the fit cannot tell from what it already makes free (held in a refit;
+    :mod:`fusion.workbench.gauges`)."""
 
 
 @dataclass(frozen=True)
@@ -179,6 +189,9 @@ def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], str
         i += n * k
     lin = []
     unseen = []
+    # the model's own structure, in still poses: the fit's columns with each candidate's
+    Js, jnames, _ = still_jacobian(pb.model, ev)
+    fit_held = {pb.names[i] for i in range(P0) if fit.held[i]}
     for e in cands:
         sl = pb.model.index[e.block_name]
         cs = np.arange(sl.start, sl.stop) - P0
@@ -201,11 +214,46 @@ def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], str
             lm = 0.0  # only a step outside the bounds (a negative play or sag) would help
         delta = np.clip(delta, lo, hi)
         cov = (V[:, keep] / lam[keep]) @ V[:, keep].T * np.outer(sig_c, sig_c)
+        jc = np.r_[0:P0, sl.start:sl.stop]
+        own = structural_gauges(pb.model, ev, [jnames[i] for i in range(sl.start, sl.stop)], fit_held,
+                                (Js[:, jc], [jnames[i] for i in jc], None))
+        gauges = _gauges(pb, e.block_name, V[:, ~keep], sig_c, Mc, CC[np.ix_(cs, cs)], AiB[:, cs], fcols, own)
         lin.append(Linearised(e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s,
-                              Mc, cs))
+                              Mc, cs, gauges))
     lin.sort(key=lambda c: -(c.score - c.dof * lnn))
     return ScoreTests(pb, z, fcols, AiB, g_all, chi2_now, n_res, R, per, max(len(cands), 1), tuple(lin),
                       tuple(unseen), r, feat_labels, F, row_axis)
+
+
+def _gauges(pb: FitProblem, block: str, V_null: np.ndarray, sig_c: np.ndarray, Mc: np.ndarray,
+            CC: np.ndarray, AiB_c: np.ndarray, fcols: np.ndarray, own: list[Gauge]) -> tuple[Gauge, ...]:
+    """A candidate's gauges: those of the model's structure (``own``) first, then the directions
+    the score test left out (``V_null``, in prior-σ units: the data know them no better than
+    the prior once the fitted parameters are projected out), each named with the fitted
+    parameters that take it up (``A⁻¹B`` along it, in their prior σ)."""
+    out: list[Gauge] = list(own)
+    dirs, structural, partners = [], [], []
+    el = pb.model.block(block).element_names()
+    U = np.array([[dict(g.direction)[n] for n in el] for g in own]).T if own else np.zeros((len(el), 0))
+    for k in range(V_null.shape[1]):
+        v = V_null[:, k] * sig_c
+        v = v / max(float(np.linalg.norm(v)), 1e-300)
+        if U.shape[1]:  # already held by the structure: what is left of it
+            v = v - U @ np.linalg.lstsq(U, v, rcond=None)[0]
+            if np.linalg.norm(v) < 0.5:
+                continue
+            v = v / np.linalg.norm(v)
+        raw = float(v @ CC @ v)
+        structural.append(raw > 0 and float(v @ Mc @ v) <= STRUCTURAL_SHARE * raw)
+        a = np.abs(AiB_c @ v) / pb.sigma0[fcols]
+        top = np.argsort(-a)[:4]
+        partners.append([pb.names[fcols[i]].split("[")[0] for i in top if a[i] >= 0.3 * a.max() > 0])
+        dirs.append(v)
+    if dirs:
+        held_own = [g.held for g in own]
+        V = np.column_stack(dirs)
+        out += candidate_gauges(pb.model, block, V, structural, partners, held_own)
+    return tuple(out)
 
 
 def _sums(pb: FitProblem, sub: FitData, z: np.ndarray, cols: np.ndarray, G: np.ndarray, g: np.ndarray,

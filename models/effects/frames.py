@@ -102,3 +102,30 @@ class TimeOffset(TimeEffect):
 
     def default_sigma(self):
         return np.array([0.005])
+
+
+class TimeDrift(TimeEffect):
+    name = "time_drift"
+    key = "rate_s_per_s"
+    shape = (1,)
+    units = "s/s"
+    labels = ("rate",)
+    bound = 0.01
+    target_kind = "device"
+    summary = "time offset drifting (the device's clock runs at another rate)"
+    description = (
+        "The device's time stamps come from a clock that is not disciplined to the encoders' "
+        "(another computer, a logger merging two files by time): its offset grows by a fixed "
+        "amount every second, what is stamped t was true at t - (offset + rate t), t from the "
+        "recording's start. With time_offset, the two are the offset at the start and its "
+        "drift; alone, an offset that starts at zero.")
+    seen_in = ("two undisciplined clocks (quartz tolerances of 20-100 ppm each) and a logger's "
+               "buffered time stamps: a few ms over a minute")
+
+    @property
+    def streams(self):
+        return device_streams(self.arm, self.target)
+
+    def default_sigma(self):
+        # 2e-4: 12 ms over a minute, a few quartz tolerances and a buffered logger's stamps
+        return np.array([2e-4])

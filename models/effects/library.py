@@ -17,7 +17,7 @@ arms show; each class says where its numbers come from.
 from __future__ import annotations
 
 from models.effects.accelerometer import AccelAxes, AccelBias, AccelScale, TemperatureDrift, axis_directions
-from models.effects.frames import BaseMount, MotionAcceleration, MountRotation, TimeOffset
+from models.effects.frames import BaseMount, MotionAcceleration, MountRotation, TimeDrift, TimeOffset
 from models.effects.imu import (
     MU0_OVER_4PI_UT_M3_PER_AM2,
     GyroBias,
@@ -32,7 +32,7 @@ from models.effects.joints import Backlash, EncoderScale, JointOffset, LinkCompl
 
 EFFECT_CLASSES = (
     AccelBias, AccelScale, AccelAxes, MountRotation, JointOffset, BaseMount, LinkCompliance,
-    MotionAcceleration, TimeOffset, EncoderScale, Backlash, GyroBias, GyroScale, MagHardIron,
+    MotionAcceleration, TimeOffset, TimeDrift, EncoderScale, Backlash, GyroBias, GyroScale, MagHardIron,
     MagSoftIron, MagArmDisturbance, TemperatureDrift,
 )
 EFFECTS: dict[str, type] = {c.name: c for c in EFFECT_CLASSES}
@@ -42,5 +42,5 @@ __all__ = [
     "EFFECTS", "EFFECT_CLASSES", "MU0_OVER_4PI_UT_M3_PER_AM2", "AccelAxes", "AccelBias", "AccelScale",
     "Backlash", "BaseMount", "EncoderScale", "GyroBias", "GyroScale", "JointOffset", "LinkCompliance",
     "MagArmDisturbance", "MagHardIron", "MagSoftIron", "MotionAcceleration", "MountRotation",
-    "TemperatureDrift", "TimeOffset", "axis_directions", "dipole_field", "soft_iron_matrix",
+    "TemperatureDrift", "TimeDrift", "TimeOffset", "axis_directions", "dipole_field", "soft_iron_matrix",
 ]

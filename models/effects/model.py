@@ -195,7 +195,12 @@ class Model:
     def time_offsets_s(self, x: np.ndarray | None = None) -> dict[str, float]:
         """Each device's time offset (s), for devices that have one."""
         th = self.unpack(x)
-        return {e.target: float(th[e.block_name][0]) for e in self._time}
+        return {e.target: float(th[e.block_name][0]) for e in self._time if e.name == "time_offset"}
+
+    def time_drifts(self, x: np.ndarray | None = None) -> dict[str, float]:
+        """Each device's time offset's drift (s per s of the recording), for devices that have one."""
+        th = self.unpack(x)
+        return {e.target: float(th[e.block_name][0]) for e in self._time if e.name == "time_drift"}
 
     # -- prediction ----------------------------------------------------------------------
     def predict(
@@ -264,42 +269,55 @@ class Model:
         q0 = state.q_rad[0] if q0 is None else np.asarray(q0, dtype=float)
         # time offsets per stream
         offset = {s: 0.0 for s in streams}
+        rate = {s: 0.0 for s in streams}
         tblock: dict[str, str] = {}
+        rblock: dict[str, str] = {}
         for e in self._time:
             for s in device_streams(self.arm, e.target):
                 if s in offset:
-                    offset[s] = float(th[e.block_name][0])
-                    tblock[s] = e.block_name
+                    if e.name == "time_drift":
+                        rate[s] = float(th[e.block_name][0])
+                        rblock[s] = e.block_name
+                    else:
+                        offset[s] = float(th[e.block_name][0])
+                        tblock[s] = e.block_name
         want_t = {s: b for s, b in tblock.items() if want is not None and b in want}
+        want_r = {s: b for s, b in rblock.items() if want is not None and b in want}
         pred: dict[str, np.ndarray] = {}
         jac: dict[str, _StreamJac] = {}
         if state_at is None:
-            p, j = self._evaluate(state, th, streams, q0, want, want_t)
+            p, j = self._evaluate(state, th, streams, q0, want, want_t, want_r)
             for s in streams:
                 y, J = p[s], j.get(s)
-                if s in tblock and (offset[s] != 0.0 or s in want_t):
-                    tau = offset[s]
+                timed = s in tblock or s in rblock
+                if timed and (offset[s] != 0.0 or rate[s] != 0.0 or s in want_t or s in want_r):
+                    # stamped t, true at t - tau(t): tau = offset + rate t (first order)
+                    tau = offset[s] + rate[s] * np.asarray(state.t_s, float) if rate[s] != 0.0 else offset[s]
                     ydot = _gradient_t(y, state.t_s)
                     if J is not None:
-                        if tau != 0.0:
+                        if np.any(tau != 0.0):
                             J.minus_time_derivative(tau, state.t_s)
                         if s in want_t:
                             J.set(want_t[s], -ydot[..., None])
-                    y = y - tau * ydot
+                        if s in want_r:
+                            J.set(want_r[s], -(np.asarray(state.t_s, float)[:, None] * ydot)[..., None])
+                    y = y - (tau[:, None] if np.ndim(tau) else tau) * ydot
                 pred[s] = y
                 if J is not None:
                     jac[s] = J
         else:
-            groups: dict[float, list[str]] = {}
+            groups: dict[tuple[float, float], list[str]] = {}
             for s in streams:
-                groups.setdefault(offset[s], []).append(s)
-            for tau, ss in groups.items():
-                st = state if tau == 0.0 else state_at(state.t_s - tau)
-                p, j = self._evaluate(st, th, tuple(ss), q0, want, want_t)
+                groups.setdefault((offset[s], rate[s]), []).append(s)
+            for (tau, r), ss in groups.items():
+                st = state if tau == 0.0 and r == 0.0 else state_at(state.t_s - tau - r * state.t_s)
+                p, j = self._evaluate(st, th, tuple(ss), q0, want, want_t, want_r)
                 for s in ss:
                     J = j.get(s)
                     if J is not None and s in want_t:
                         J.set(want_t[s], -_gradient_t(p[s], state.t_s)[..., None])
+                    if J is not None and s in want_r:
+                        J.set(want_r[s], -(state.t_s[:, None] * _gradient_t(p[s], state.t_s))[..., None])
                     pred[s] = p[s]
                     if J is not None:
                         jac[s] = J
@@ -359,7 +377,8 @@ class Model:
                 dfdq = specific_force_jacobian(arm, gstate, sensors, ctx.lm, ctx.sm)
         return ctx, Jq, dfdq
 
-    def _blocks_reaching(self, s: str, want, Jq, time_block: str | None) -> list[tuple[str, int]]:
+    def _blocks_reaching(self, s: str, want, Jq, time_block: str | None,
+                         rate_block: str | None = None) -> list[tuple[str, int]]:
         """The wanted blocks that reach stream ``s``, in the order they enter the pipeline."""
         arm = self.arm
         link_acc = {m.name: m for m in arm.link_accelerometers}
@@ -378,9 +397,11 @@ class Model:
                 if s in e.streams and e.block_name in want]
         if time_block is not None:
             out.append((time_block, 1))
+        if rate_block is not None:
+            out.append((rate_block, 1))
         return out
 
-    def _evaluate(self, state: MotionState, th, streams, q0, want, want_t=None):
+    def _evaluate(self, state: MotionState, th, streams, q0, want, want_t=None, want_r=None):
         """Stages 1-4 for one state; physical values and (if ``want``) each stream's
         Jacobian as one array (a linear stage applies to all blocks at once)."""
         arm = self.arm
@@ -412,7 +433,8 @@ class Model:
             else:  # pragma: no cover - stream_names guards this
                 raise KeyError(s)
             if want_jac:
-                J = _StreamJac(N, y.shape[1], self._blocks_reaching(s, want, Jq, (want_t or {}).get(s)))
+                J = _StreamJac(N, y.shape[1], self._blocks_reaching(s, want, Jq, (want_t or {}).get(s),
+                                                                     (want_r or {}).get(s)))
                 if s in link_acc and dfdq is not None and arm.sensor(s).link > 0:
                     i = ctx.sensor(s)
                     for b, (js, row) in Jq.items():
@@ -504,8 +526,11 @@ class _StreamJac:
         self.arr *= g
 
     def minus_time_derivative(self, tau: float, t: np.ndarray) -> None:
-        """``J <- J - tau dJ/dt`` (the first-order time offset)."""
+        """``J <- J - tau dJ/dt`` (the first-order time offset; ``tau`` a number or one per instant)."""
         if self.arr.shape[1] > 1:
+            tau = np.asarray(tau, float)
+            if tau.ndim:
+                tau = tau.reshape((1, -1) + (1,) * (self.arr.ndim - 2))
             self.arr -= tau * np.gradient(self.arr, t, axis=1, edge_order=2 if len(t) > 2 else 1)
 
     def blocks(self) -> dict[str, np.ndarray]:

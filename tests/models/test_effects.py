@@ -43,7 +43,7 @@ TARGETS = {
     "joint_offset": "j2", "base_mount": None, "link_compliance": "j2", "motion_acceleration": "acc4",
     "time_offset": "acc3", "encoder_scale": "j3", "backlash": "j4", "gyro_bias": None,
     "gyro_scale": None, "mag_hard_iron": None, "mag_soft_iron": None, "mag_arm_disturbance": "j2",
-    "temperature_drift": "acc3",
+    "temperature_drift": "acc3", "time_drift": "acc3",
 }
 # the same contract on the IMU's accelerometer, for effects that also apply there
 IMU_CASES = ["accel_bias", "accel_scale", "accel_axes", "temperature_drift", "motion_acceleration"]
@@ -217,6 +217,36 @@ def test_exact_time_offset_jacobian(wmra, scene):
     # and the exact shift agrees with the first-order one to well under the noise (3 mg)
     first = model.predict(state, x, ["acc4"], units="physical")["acc4"]
     assert np.abs(first - pred["acc4"])[5:-5].max() < 5e-4
+
+
+def test_time_drift_jacobian_and_its_first_order_prediction(wmra, scene):
+    """A drifting offset reads the state at t - (offset + rate t): exactly with a state
+    function, to first order without one; both Jacobians are -t dy/dt, and its first-order
+    prediction agrees with the exact one to well under the noise."""
+    sc, _ = scene
+    state = sc.state(np.arange(1200, 1400) / 100.0)
+    model = Model(wmra, [build_effect(wmra, "time_drift", "acc4")])
+    x = np.array([8e-4])  # 10 ms at 12.5 s
+    exact, jac = model.predict_with_jacobian(state, x, streams=["acc4"], state_at=sc.state, units="physical")
+    first, jac1 = model.predict_with_jacobian(state, x, streams=["acc4"], units="physical")
+    h = 1e-7
+    num = (model.predict(state, x + h, ["acc4"], state_at=sc.state, units="physical")["acc4"]
+           - model.predict(state, x - h, ["acc4"], state_at=sc.state, units="physical")["acc4"]) / (2 * h)
+    J = jac["acc4"]["acc4.time_drift"][..., 0]
+    # dy/dt from the samples: off where the chair's jerk jumps (one instant in 200), times t
+    np.testing.assert_allclose(J, num, atol=0.1 * np.abs(num).max())
+    assert np.mean(np.abs(J - num) > 1e-2 * np.abs(num).max()) < 0.01
+    assert np.median(np.abs(J - num)) < 1e-3 * np.abs(num).max()
+    # the first-order Jacobian reads dy/dt at the stamp, not 10 ms earlier: close where the
+    # motion is smooth (the excitation's chair jerks)
+    J1 = jac1["acc4"]["acc4.time_drift"][..., 0]
+    assert np.median(np.abs(J1 - num)) < 2e-2 * np.abs(num).max()
+    assert np.median(np.abs(first["acc4"] - exact["acc4"])) < 5e-4
+    # at the same instant a plain offset of offset + rate t reads the same
+    t = state.t_s[100]
+    off = Model(wmra, [build_effect(wmra, "time_offset", "acc4")])
+    at = off.predict(state, np.array([8e-4 * t]), ["acc4"], state_at=sc.state, units="physical")["acc4"]
+    np.testing.assert_allclose(exact["acc4"][100], at[100], atol=1e-9)
 
 
 # --------------------------------------------------------------------------------------

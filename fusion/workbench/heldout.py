@@ -1,0 +1,192 @@
+"""Judged on data the fit did not see: the recording split in time (the fit on its first
+``1 - share``, judged on the rest), or a second recording of the same arm.
+
+A model version's **held-out error** is its residual RMS over the noise on the held-out part,
+at the estimates the fit part gave. Within one recording the encoder zeros and the base
+attitude carry over (the same joints, the same stance); a second recording has its own, so
+they alone are fitted there (every effect held at the fit part's estimate) before it is
+judged. A rung of the ladder, an ``--add`` or a written config whose held-out error is above
+the one before it is refused (:mod:`fusion.workbench.discover`, ``fusion.cli.diagnose``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from fusion.identification.data import FitData
+from fusion.identification.identify import identify
+from fusion.identification.problem import FitProblem
+from fusion.identification.result import Identification
+from fusion.identification.settings import IdentifySettings
+from fusion.workbench.gauges import held_elements, structural_gauges
+from fusion.workbench.residuals import fit_model
+from models.effects import Model
+
+HELD_OUT_SHARE = 0.3
+"""The share of a recording (its end) judged, not fitted."""
+MIN_HELD_OUT_POINTS = 20
+"""Fewer held-out fit points than this and nothing is judged (the split is refused)."""
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """The data a fit is judged on."""
+
+    data: FitData
+    same_recording: bool
+    """True: the end of the fitted recording (its encoder zeros and attitude carry over)."""
+    label: str
+
+    def aligned(self, fitted: FitData) -> FitData:
+        """The held-out part with the start pose the fit ended up using (a rival branch of the
+        still start moves it: the same shift here)."""
+        if not self.same_recording:
+            return self.data
+        dq = fitted.q_ref_rad - self.data.q_ref_rad
+        return self.data.shifted(dq) if np.any(dq) else self.data
+
+
+def split_in_time(data: FitData, share: float = HELD_OUT_SHARE) -> tuple[FitData, HeldOut]:
+    """The first ``1 - share`` of the fit points to fit, the rest held out."""
+    if not 0.0 < share < 1.0:
+        raise ValueError(f"held-out share must be between 0 and 1, not {share}")
+    k = int(round(data.n * (1.0 - share)))
+    if data.n - k < MIN_HELD_OUT_POINTS or k < MIN_HELD_OUT_POINTS:
+        raise ValueError(f"the recording has {data.n} fit points: too few to fit on "
+                         f"{100 * (1 - share):.0f} % and judge on the rest (at least "
+                         f"{MIN_HELD_OUT_POINTS} each)")
+    fit_part = data.subset(slice(0, k))
+    held = data.subset(slice(k, None))
+    t0, t1 = float(held.state.t_s[0]), float(held.state.t_s[-1])
+    return fit_part, HeldOut(held, True, f"the recording's last {100 * share:.0f} % ({t0:.1f}-{t1:.1f} s)")
+
+
+@dataclass(frozen=True)
+class HeldOutFit:
+    """A fit judged on held-out data."""
+
+    rms_ratio: float
+    """Residual RMS over the noise there."""
+    stream_rms: dict[str, np.ndarray]
+    """Per stream, each axis's residual RMS there (physical units)."""
+    stream_noise: dict[str, np.ndarray]
+    stream_units: dict[str, str]
+
+    def unmodelled(self, unit: str = "g") -> dict[str, float]:
+        """Per stream in ``unit``, the worst axis's residual beyond the noise there."""
+        return {s: float(np.max(np.sqrt(np.clip(r**2 - self.stream_noise[s] ** 2, 0, None))))
+                for s, r in self.stream_rms.items() if self.stream_units[s] == unit}
+
+
+def judge(fit: Identification, fitted: FitData, held: HeldOut, streams: Sequence[str],
+          settings: IdentifySettings) -> HeldOutFit | None:
+    """``fit`` (made on ``fitted``) on the held-out data; None where it cannot be judged there
+    (the held-out part has a stance of the chair the fit never saw)."""
+    data = held.aligned(fitted)
+    model = fit.model.with_values(fit.model_x)
+    att = fit.attitude_rad if fit.attitude_rad is not None else np.zeros(3)
+    if held.same_recording:
+        if data.n_stances > fitted.n_stances:
+            return None
+        z = np.concatenate([fit.model_x, fit.x[model.size:]]) if fit.attitude_rad is not None else fit.model_x
+        pb = FitProblem(model, data, streams, fit.attitude_rad is not None, att,
+                        encoder_scale=settings.encoder_scale)
+    else:
+        # another recording: its own encoder zeros and attitude, every effect at the fit's estimate
+        effects = [b.name for b in model.blocks if b.effect != "joint_offset"]
+        hold = [*effects, *held_elements(structural_gauges(model, data))]
+        res = identify(model, data, streams, settings, hold=hold, attitude0_rad=fit.attitude_rad)
+        pb = FitProblem(res.model.with_values(res.model_x), data, streams, res.attitude_rad is not None,
+                        res.attitude_rad if res.attitude_rad is not None else np.zeros(3),
+                        encoder_scale=settings.encoder_scale)
+        z = res.x
+    pred = pb.predict(z)
+    r = (pred - pb.meas) * pb.w
+    n = max(int(np.count_nonzero(pb.w)), 1)
+    sm = model.stream_models()
+    rms, noise = {}, {}
+    i = 0
+    for s in pb.streams:
+        shape = data.counts[s].shape
+        size = data.counts[s].size
+        d = (pred[i:i + size] - pb.meas[i:i + size]).reshape(shape)
+        i += size
+        g = np.abs(sm[s].gain)
+        rms[s] = np.sqrt(np.mean(d**2, 0)) / g
+        noise[s] = np.broadcast_to(data.sigma_counts[s], (shape[1],)) / g
+    return HeldOutFit(float(np.sqrt(float(r @ r) / n)), rms, noise, {s: sm[s].unit for s in pb.streams})
+
+
+def as_it_is(model: Model, fitted: FitData, held: HeldOut, streams: Sequence[str],
+             settings: IdentifySettings, attitude0_rad: np.ndarray | None = None) -> HeldOutFit | None:
+    """The config as it is (every effect at its value), judged on ``held``: only the
+    recording's encoder zeros and the base attitude fitted, on ``fitted``. What a written
+    config must not be worse than."""
+    effects = [b.name for b in model.blocks if b.effect != "joint_offset"]
+    fit = fit_model(model, fitted, streams, settings, attitude0_rad, hold=effects)
+    return judge(fit, fitted, held, streams, settings)
+
+
+TRACKED_SLACK = 0.01
+"""A written config may keep up to this share fewer held-out innovations within 3σ than the
+config it replaces (chance between two runs of one recording) and still be written."""
+NIS_3SIGMA = {1: 9.0, 2: 11.83, 3: 14.16}
+"""χ² of the 99.73 % (3σ) quantile by degrees of freedom."""
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """The tracker's consistency on the held-out part of a recording: each link
+    accelerometer's innovations from ``t_from_s`` on."""
+
+    within_3_sigma: dict[str, float]
+    """Per accelerometer, the share of its innovations inside the 3σ ellipsoid (NIS below the
+    χ² 99.73 % quantile): 99.7 % when the filter's σ are right, less when it is too sure."""
+    mean_nis_per_dof: dict[str, float]
+    """Per accelerometer, the mean NIS over its dof: 1 when right, below when cautious."""
+
+    @property
+    def worst(self) -> float:
+        return min(self.within_3_sigma.values(), default=1.0)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"within_3_sigma": {k: round(v, 4) for k, v in self.within_3_sigma.items()},
+                "mean_nis_per_dof": {k: round(v, 3) for k, v in self.mean_nis_per_dof.items()}}
+
+
+def tracked(arm, rec, t_from_s: float) -> Tracked:
+    """Run the tracker over ``rec`` with ``arm`` (a config) and read its link accelerometers'
+    innovations from ``t_from_s`` on: with no truth at hand, whether the filter's σ hold there."""
+    from fusion.tracking.tracker import start_from_recording
+
+    tr, _start = start_from_recording(arm, rec)
+    tr.run(rec, truth=False)
+    within, nis = {}, {}
+    for s in (a.name for a in arm.link_accelerometers):
+        try:
+            lg = tr.innovations(s)
+        except KeyError:
+            continue
+        k = lg.innovation.shape[1]
+        ok = np.isfinite(lg.nis) & (lg.t_s >= t_from_s)
+        if ok.sum() < 10:
+            continue
+        within[s] = float(np.mean(lg.nis[ok] <= NIS_3SIGMA.get(k, 14.16)))
+        nis[s] = float(np.mean(lg.nis[ok]) / k)
+    return Tracked(within, nis)
+
+
+def tracked_worse(before: Tracked, after: Tracked) -> str | None:
+    """Why ``after`` tracks the held-out part worse than ``before`` (None: it does not): a
+    sensor with fewer innovations within 3σ, beyond :data:`TRACKED_SLACK`."""
+    bad = [s for s in after.within_3_sigma
+           if after.within_3_sigma[s] < before.within_3_sigma.get(s, 0.0) - TRACKED_SLACK]
+    if not bad:
+        return None
+    return ("tracked over the held-out part it keeps fewer innovations within 3σ than the config it "
+            "replaces: " + ", ".join(f"{s} {100 * after.within_3_sigma[s]:.1f} % against "
+                                     f"{100 * before.within_3_sigma[s]:.1f} %" for s in bad))

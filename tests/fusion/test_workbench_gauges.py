@@ -1,0 +1,233 @@
+"""The workbench never makes the model worse: a mount rotation about its own joint's axis is
+held (it is that joint's zero), a parameter at its bound is never significant nor written, and
+every fit is judged on data it did not see, a rung or an added effect that fits those worse
+refused."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fusion.cli.diagnose import without_bound
+from fusion.configfile import load_arm
+from fusion.identification.data import data_from_recording
+from fusion.workbench.candidates import at_bound
+from fusion.workbench.diagnose import add_effects, diagnose
+from fusion.workbench.discover import held_out_worse
+from fusion.workbench.gauges import structural_gauges
+from fusion.workbench.heldout import HeldOut, split_in_time
+from models.effects import build_effect, model_from_arm
+from models.simulator import simulate
+
+WINDOW = 10
+
+
+@pytest.fixture(scope="module")
+def wmra():
+    return load_arm("wmra")
+
+
+@pytest.fixture(scope="module")
+def ur5():
+    return load_arm("ur5_two_imu")
+
+
+def _sweep(arm, seed, duration_s=20.0, hidden=()):
+    rec, _ = simulate(arm, "renk-maneuver", duration_s, seed=seed,
+                      effects=[{"effect": e, "target": t, "params": {k: v}} for e, t, k, v in hidden])
+    return data_from_recording(arm, rec, window=WINDOW)
+
+
+@pytest.fixture(scope="module")
+def turned(wmra):
+    """acc4's board (on the last link) turned by 2° about its joint's axis and a little about x."""
+    return _sweep(wmra, 31, hidden=[("mount_rotation", "acc4", "rotvec_rad", [0.01, 0.0, 0.035])])
+
+
+def test_a_mount_about_its_own_joints_axis_is_held_where_it_is_that_joints_zero(wmra, ur5, turned):
+    """From the model's Jacobians in still poses, for any arm: on the WMRA only the last
+    board's turn about j7 (no other sensor sees j7's zero; acc2's turn about j4 is told apart
+    by acc3 and acc4, which see j4's zero and not acc2's board); on the UR5 both boards (the
+    shoulder, elbow and wrist 1 axes are parallel: the forearm's turn about the elbow's axis is
+    the elbow's zero less wrist 1's)."""
+    m = model_from_arm(wmra).with_effects([build_effect(wmra, "mount_rotation", s.name)
+                                           for s in wmra.link_accelerometers])
+    got = {g.block: (g.held, g.partners[0], g.structural) for g in structural_gauges(m, turned)}
+    assert got == {"acc4.mount_rotation": ("acc4.mount_rotation[z]", "j7.joint_offset", True)}
+    m5 = model_from_arm(ur5).with_effects([build_effect(ur5, "mount_rotation", s.name)
+                                           for s in ur5.link_accelerometers])
+    # the UR5's poses: any angles of its six joints will do (the identity is kinematic)
+    st = turned.state.replace(q_rad=turned.state.q_rad[:, :6], qd_rad_s=turned.state.qd_rad_s[:, :6],
+                              qdd_rad_s2=turned.state.qdd_rad_s2[:, :6])
+    data5 = replace(turned, state=st, counts={}, q_ref_rad=turned.q_ref_rad[:6])
+    got5 = {g.block: (g.held, g.partners[0]) for g in structural_gauges(m5, data5)}
+    assert got5 == {"forearm.mount_rotation": ("forearm.mount_rotation[z]", "elbow.joint_offset"),
+                    "wrist.mount_rotation": ("wrist.mount_rotation[y]", "wrist1.joint_offset")}
+
+
+@pytest.fixture(scope="module")
+def turned_diagnosed(wmra, turned):
+    d = diagnose(model_from_arm(wmra), turned)
+    return d, add_effects(d, [build_effect(wmra, "mount_rotation", "acc4")])
+
+
+def test_the_gauge_is_held_in_the_candidates_refit_and_in_the_fit(turned_diagnosed):
+    """The turned board's candidate is refitted with its z held at the prior (0) and says why;
+    j7's zero carries the turn about its axis. Added to the model, z stays held, the turn about
+    x is found within 3σ and the model fits to the noise."""
+    d, d2 = turned_diagnosed
+    c = next(c for c in d.candidates if c.name == "mount_rotation:acc4")
+    assert c.refitted
+    assert c.params["acc4.mount_rotation[z]"][0] == 0.0
+    g = c.gauges[0]
+    assert g.structural and g.held == "acc4.mount_rotation[z]" and g.partners[0] == "j7.joint_offset"
+    assert "no motion separates it from j7's zero" in g.message
+    sl = d2.fit.model.index["acc4.mount_rotation"]
+    assert d2.fit.x[sl][2] == 0.0 and d2.fit.held[sl][2]
+    assert [g.held for g in d2.gauges] == ["acc4.mount_rotation[z]"]
+    assert abs(d2.fit.x[sl][0] - 0.01) < 3 * d2.fit.sigma[sl][0]
+    assert d2.rms_ratio < 1.15, d2.rms_ratio
+
+
+def test_a_turn_the_structure_separates_is_not_held(wmra):
+    """acc2's turn about j4's axis: acc3 and acc4 see j4's zero, not acc2's board; it is free
+    and found."""
+    data = _sweep(wmra, 32, hidden=[("mount_rotation", "acc2", "rotvec_rad", [0.0, 0.0, 0.035])])
+    d = add_effects(diagnose(model_from_arm(wmra), data), [build_effect(wmra, "mount_rotation", "acc2")])
+    sl = d.fit.model.index["acc2.mount_rotation"]
+    assert d.gauges == () and not d.fit.held[sl][2]
+    assert abs(d.fit.x[sl][2] - 0.035) < 3 * d.fit.sigma[sl][2]
+
+
+def test_a_parameter_at_its_bound_is_named_and_not_written(wmra):
+    """``at_bound`` names an estimate within 2 % of a non-zero bound; a diagnosis's elements
+    at their bound are written at their prior (value and σ)."""
+    b = build_effect(wmra, "mount_rotation", "acc2").block()
+    assert at_bound({"acc2.mount_rotation[z]": 0.349, "acc2.mount_rotation[x]": 0.2}, b) == [
+        "acc2.mount_rotation[z]"]
+    assert at_bound({"acc2.mount_rotation[y]": -0.35}, b) == ["acc2.mount_rotation[y]"]
+    sag = build_effect(wmra, "link_compliance", "j2").block()
+    assert at_bound({n: 0.0 for n in sag.element_names()}, sag) == []  # 0 is its floor, not a pull
+
+
+def test_without_bound_writes_the_prior(turned_diagnosed):
+    d = turned_diagnosed[1]
+    name = "acc4.mount_rotation[x]"
+    fit = without_bound(replace(d, at_bound=(name,)))
+    i = list(d.fit.names).index(name)
+    assert fit.x[i] == d.fit.x0[i] and fit.sigma[i] == d.fit.prior_sigma[i]
+    assert d.fit.x[i] != d.fit.x0[i]
+
+
+def test_split_in_time_fits_the_start_and_judges_the_end(wmra, turned):
+    fit_part, held = split_in_time(turned)
+    assert fit_part.n + held.data.n == turned.n
+    assert abs(fit_part.n / turned.n - 0.7) < 0.01
+    assert held.data.state.t_s[0] > fit_part.state.t_s[-1]
+    with pytest.raises(ValueError, match="too few"):
+        split_in_time(turned.subset(slice(0, 30)))
+    d = diagnose(model_from_arm(wmra), fit_part, held_out=held)
+    # the config lacks the turn: the end is not fitted either
+    assert d.held_out_ratio > 2
+    d2 = add_effects(d, [build_effect(wmra, "mount_rotation", "acc4")])
+    assert d2.held_out_ratio < 1.2 and held_out_worse(d, d2) is None
+    assert "held-out error rose" in held_out_worse(d2, d)
+
+
+def test_an_effect_the_other_recording_lacks_is_refused(wmra):
+    """Fitted on a recording with acc2's bias hidden and judged on one without it: adding the
+    bias fits the first to the noise, the second worse than before; it is refused with that
+    reason."""
+    biased = _sweep(wmra, 41, hidden=[("accel_bias", "acc2", "bias_g", [0.0, 0.02, 0.0])])
+    clean = _sweep(wmra, 42)
+    held = HeldOut(clean, False, "the clean recording")
+    d = diagnose(model_from_arm(wmra), biased, held_out=held)
+    assert d.significant[0].name == "accel_bias:acc2"
+    d2 = add_effects(d, [build_effect(wmra, "accel_bias", "acc2")])
+    assert d2.rms_ratio < d.rms_ratio / 3
+    why = held_out_worse(d, d2)
+    assert why is not None and "held-out error rose" in why, (d.held_out_ratio, d2.held_out_ratio)
+    assert np.isfinite(d2.held_out_ratio)
+
+
+def test_a_config_whose_tracker_is_too_sure_on_the_held_out_part_is_not_written():
+    """The write gate's rule: fewer innovations within 3σ on the held-out part than the config
+    it replaces (beyond 1 %) refuses it and names the sensor; as many, or more, passes."""
+    from fusion.workbench.heldout import Tracked, tracked_worse
+
+    before = Tracked({"forearm": 0.998, "wrist": 1.0}, {"forearm": 0.2, "wrist": 0.2})
+    same = Tracked({"forearm": 0.995, "wrist": 1.0}, {"forearm": 0.3, "wrist": 0.3})
+    assert tracked_worse(before, same) is None
+    why = tracked_worse(before, Tracked({"forearm": 0.62, "wrist": 1.0}, {"forearm": 4.0, "wrist": 0.3}))
+    assert why is not None and "forearm 62.0 % against 99.8 %" in why and "wrist" not in why
+
+
+def test_written_floors_are_at_least_the_held_out_excess(wmra, turned):
+    """What the fit leaves on the held-out part (larger than in sample) sets the floor."""
+    from fusion.cli.diagnose import raise_floors
+
+    fit_part, held = split_in_time(turned)
+    d = diagnose(model_from_arm(wmra), fit_part, held_out=held)  # acc4's turn is missing
+    cfg = {"calibration": {"accel_unmodelled_g_per_sensor": {"acc4": 1e-4}}}
+    raise_floors(cfg, d)
+    excess = d.held_out_fit.unmodelled("g")
+    per = cfg["calibration"]["accel_unmodelled_g_per_sensor"]
+    assert per["acc4"] == pytest.approx(excess["acc4"], rel=1e-3) and per["acc4"] > 5e-3
+    assert cfg["calibration"]["accel_unmodelled_g"] == max(per.values())
+    # and never below the floor of the config it replaces (the fit's window means do not see
+    # what a tracker reading every sample meets)
+    cfg2 = {"calibration": {}}
+    raise_floors(cfg2, d, wmra)
+    per2 = cfg2["calibration"]["accel_unmodelled_g_per_sensor"]
+    assert all(per2[s.name] >= wmra.calibration.accel_floor_g(s.name) for s in wmra.link_accelerometers)
+
+
+def test_cli_add_and_write_judged_on_a_second_recording(tmp_path):
+    """`--validate` judges on a second recording: a bias the first recording has and the second
+    lacks is refused there, nothing is written (exit 1, the reason said); the history carries
+    both columns."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from fusion.cli.main import app
+
+    runner = CliRunner()
+    biased, clean = tmp_path / "biased.csv", tmp_path / "clean.csv"
+    for out, seed, extra in ((biased, 41, ["--effect", "accel_bias:acc2=0,0.02,0"]), (clean, 42, [])):
+        r = runner.invoke(app, ["simulate", "--scenario", "renk-maneuver", "--duration", "20",
+                                "--seed", str(seed), *extra, "--out", str(out)])
+        assert r.exit_code == 0, r.output
+    written = tmp_path / "w.yaml"
+    r = runner.invoke(app, ["diagnose", str(biased), "--config", "wmra", "--add", "accel_bias:acc2",
+                            "--validate", str(clean), "--write", str(written), "--json",
+                            "--history", str(tmp_path / "h.json"), "--report", str(tmp_path / "r.html")])
+    assert r.exit_code == 1, r.output
+    doc = json.loads(r.stdout)
+    assert "held-out error rose" in doc["add_refused"] and doc["write_refused"] == doc["add_refused"]
+    assert doc["written"] is None and not written.exists()
+    assert doc["held_out"]["data"] == f"the recording {clean}"
+    assert doc["held_out"]["rms_ratio"] > doc["before"]["held_out"]["rms_ratio"]
+    assert all(e["held_out_rms_ratio"] is not None for e in doc["ladder"])
+    page = (tmp_path / "r.html").read_text(encoding="utf-8")
+    assert f"on the held-out data (the recording {clean})" in page
+
+
+def test_cli_a_recording_too_short_to_hold_out_is_diagnosed_but_never_written(tmp_path):
+    from typer.testing import CliRunner
+
+    from fusion.cli.main import app
+
+    runner = CliRunner()
+    rec = tmp_path / "short.csv"
+    r = runner.invoke(app, ["simulate", "--scenario", "renk-maneuver", "--duration", "4", "--seed", "3",
+                            "--out", str(rec)])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["diagnose", str(rec), "--config", "wmra", "--history", str(tmp_path / "h.json")])
+    assert r.exit_code == 0 and "judged on nothing but itself" in r.output
+    out = tmp_path / "w.yaml"
+    r = runner.invoke(app, ["diagnose", str(rec), "--config", "wmra", "--history", str(tmp_path / "h.json"),
+                            "--write", str(out)])
+    assert r.exit_code == 2 and "--write needs a part the fit does not see" in r.output and not out.exists()
