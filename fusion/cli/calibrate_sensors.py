@@ -53,7 +53,7 @@ from fusion.identification.identify import (
     with_encoder_zeros,
 )
 from models.effects import EFFECTS, Model, all_effects, model_from_arm
-from models.simulator import REALISTIC_EXCLUDE
+from models.simulator import REALISTIC_EXCLUDE, drawn_by_default
 from sensors.output_files import write_text_replacing
 
 
@@ -110,11 +110,12 @@ def build_model(arm, effects: str | None) -> Model:
         bad = [n for n in names if n not in EFFECTS]
         if bad:
             raise ValueError(f"--effects: unknown effect(s) {', '.join(bad)}; known: {', '.join(EFFECTS)}")
-        model = Model(arm, [e for e in all_effects(arm, names) if e.block_name not in REALISTIC_EXCLUDE])
+        model = Model(arm, [e for e in all_effects(arm, names) if drawn_by_default(e) or
+                            (effects.strip() != "all" and e.block_name not in REALISTIC_EXCLUDE)])
     else:
         model = model_from_arm(arm)
         if not model.effects:
-            model = Model(arm, [e for e in all_effects(arm) if e.block_name not in REALISTIC_EXCLUDE])
+            model = Model(arm, [e for e in all_effects(arm) if drawn_by_default(e)])
     return with_encoder_zeros(model)
 
 

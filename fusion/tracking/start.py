@@ -259,7 +259,8 @@ def choose_start(arm: ArmModel, rec: Recording, window_s: float = 1.0, start_at_
         return StartChoice(shorts[0], shorts[0].duration_s < LONG_STILL_S, t0, None)
     raise NoStillWindowError(
         f"no still stretch in the recording (accelerometers, gyro and encoders quiet for at least "
-        f"{SHORT_STILL_MIN_S:g} s): the tracker needs a startup calibration on a still arm")
+        f"{SHORT_STILL_MIN_S:g} s): the startup calibration needs a still arm (track --moving-start "
+        "starts on a moving one)")
 
 
 def short_still_readings(arm: ArmModel, rec: Recording, seg: Segment, readings):

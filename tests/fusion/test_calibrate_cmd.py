@@ -153,7 +153,8 @@ def test_moving_recording_is_refused(tmp_path, wmra, rng):
     write_recording(rec, path)
     r = runner.invoke(app, ["calibrate", "joints", str(path)])
     assert r.exit_code == 2
-    assert "no still segment found" in r.stderr and "moving.csv" in r.stderr
+    assert "no still stretch in the recording" in r.stderr and "moving.csv" in r.stderr
+    assert "the startup calibration needs a still arm" in r.stderr
 
 
 def test_the_configs_calibrated_effects_are_applied(tmp_path, wmra):
