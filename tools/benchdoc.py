@@ -65,14 +65,17 @@ def wilson(k: int, n: int) -> tuple[float, float]:
 
 
 def measured_on() -> dict:
-    """The date (UTC), the commit (``+`` when the work tree had changes) and the machine a
-    figure is measured on."""
+    """The date (UTC), the commit (``+`` when the work tree's code differed from it: changes to
+    docs/ and the README alone do not count) and the machine a figure is measured on."""
     root = BENCH_DOC.parent.parent
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
                                 text=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+        # changes to the docs alone (a benchmark writing its section) do not make a figure's code
+        # other than the commit's
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                                ":!docs", ":!README.md"], cwd=root, capture_output=True, text=True,
+                               timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         commit, dirty = "", ""
     return {"date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
