@@ -140,9 +140,10 @@ def register(app: typer.Typer) -> None:
         duration_s: Annotated[float | None, typer.Option(
             "--duration", help="Stop after this long, in s (default: at SIGINT; with --once: 3 s).")] = None,
         once: Annotated[bool, typer.Option("--once", help="Listen for --duration (or until --expect "
-                                           "robots have joint states), print one table, exit.")] = False,
+                                           "robots have sent their state), print one table, exit.")] = False,
         expect: Annotated[int | None, typer.Option(
-            "--expect", help="Stop as soon as this many robots have sent joint states.")] = None,
+            "--expect", help="Stop as soon as this many robots have sent their state (a joint state "
+                             "and a heading).")] = None,
         refresh_hz: Annotated[float, typer.Option("--refresh-hz", help="Live table refreshes per s.")] = 4.0,
         zenoh_config: ZenohConfigOpt = None,
         listen: ListenOpt = None,
@@ -179,7 +180,7 @@ def register(app: typer.Typer) -> None:
 
             def done() -> bool:
                 return stop.is_set() or (deadline is not None and time.monotonic() >= deadline) or \
-                    (expect is not None and mon.with_joints() >= expect)
+                    (expect is not None and mon.with_state() >= expect)
 
             if live_view:
                 with Live(render(mon), console=console, refresh_per_second=refresh_hz) as live:

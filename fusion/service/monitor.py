@@ -108,6 +108,12 @@ class Monitor:
         with self._lock:
             return sum(1 for v in self._views.values() if v.joints is not None)
 
+    def with_state(self) -> int:
+        """Robots from which both halves of an estimate have come: a joint state and a heading
+        (a node publishes them one after the other)."""
+        with self._lock:
+            return sum(1 for v in self._views.values() if v.joints is not None and v.heading is not None)
+
     @property
     def dropped(self) -> dict[str, int]:
         return self._inbox.dropped
