@@ -12,43 +12,17 @@ unknown flag or status word) is refused naming its topic and its index.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from fusion.tracking.estimate import HEADING_STATUS, HEADING_TOPIC, JOINTS_TOPIC, NORTH
+from fusion.tracking.run import TrackRun
 from fusion.tracking.settings import JOINT_FLAGS, SENSOR_STATUS
 
 
 class RecordsError(ValueError):
     """A recorded estimate that cannot be read as one, with its topic and index."""
-
-
-@dataclass(frozen=True)
-class RecordedRun:
-    """The recorded estimates, instant by instant, in the arrays a tracked run has
-    (:class:`fusion.tracking.run.TrackRun`'s names and codes)."""
-
-    joint_names: tuple[str, ...]
-    sensor_names: tuple[str, ...]
-    t_s: np.ndarray
-    q_rad: np.ndarray
-    sigma_rad: np.ndarray
-    flags: np.ndarray
-    rpy_rad: np.ndarray
-    rpy_sigma_rad: np.ndarray
-    gyro_bias_rad_s: np.ndarray
-    magnetic: np.ndarray
-    sensor_status: np.ndarray
-    heading_status: np.ndarray
-    true_north: bool
-    left_out: int
-    """Heading records with no joints record at their stamp (an arm with joints)."""
-
-    @property
-    def steps(self) -> int:
-        return int(len(self.t_s))
 
 
 def read_records(path: str | Path) -> tuple[list[dict], list[dict]]:
@@ -82,8 +56,11 @@ def _code(words: tuple[str, ...], word, what: str, where: str) -> int:
     return words.index(word)
 
 
-def run_from_records(joints: list[dict], headings: list[dict], source: str = "records") -> RecordedRun:
-    """The recorded estimates as a run (see the module's docstring)."""
+def run_from_records(joints: list[dict], headings: list[dict],
+                     source: str = "records") -> tuple[TrackRun, int]:
+    """The recorded estimates as a run (a :class:`~fusion.tracking.run.TrackRun` with no
+    counters: none were recorded), and how many heading records had no joints record at
+    their stamp (left out; see the module's docstring)."""
     by_t: dict[float, tuple[int, dict]] = {}
     for i, j in enumerate(joints):
         try:
@@ -139,22 +116,24 @@ def run_from_records(joints: list[dict], headings: list[dict], source: str = "re
     def col(k: int, shape: tuple, dtype=float) -> np.ndarray:
         return np.array([r[k] for r in rows], dtype=dtype).reshape(shape)
 
-    return RecordedRun(
+    return TrackRun(
         joint_names=names, sensor_names=sensors, t_s=col(0, (n,)), q_rad=col(1, (n, m)),
         sigma_rad=col(2, (n, m)), flags=col(3, (n, m), np.int8), rpy_rad=col(4, (n, 3)),
         rpy_sigma_rad=col(5, (n, 3)), gyro_bias_rad_s=col(6, (n, 3)), magnetic=col(7, (n,), np.int8),
-        sensor_status=col(8, (n, s), np.int8), heading_status=col(9, (n,), np.int8),
-        true_north=bool(rows and rows[-1][10] == NORTH.index("true")), left_out=left_out)
+        sensor_status=col(8, (n, s), np.int8), elapsed_s=0.0, counters={}, nis={},
+        heading_status=col(9, (n,), np.int8),
+        true_north=bool(rows and rows[-1][10] == NORTH.index("true"))), left_out
 
 
-def write_ros2_from_records(src: str | Path, out: str | Path, arm_name: str) -> tuple[RecordedRun, dict]:
+def write_ros2_from_records(src: str | Path, out: str | Path,
+                            arm_name: str) -> tuple[TrackRun, int, dict]:
     """Read the estimates recorded in ``src`` and write them to the rosbag2 MCAP ``out``;
-    returns the run read and the messages written per topic."""
+    returns the run read, the heading records left out and the messages written per topic."""
     from fusion.ros2.estimates_bag import write_estimates_bag
 
     joints, headings = read_records(src)
     if not headings:
         raise RecordsError(f"{src}: no estimate recorded (no {HEADING_TOPIC} message): was a fusion "
                            "node publishing?")
-    run = run_from_records(joints, headings, str(src))
-    return run, write_estimates_bag(run, out, arm_name)
+    run, left_out = run_from_records(joints, headings, str(src))
+    return run, left_out, write_estimates_bag(run, out, arm_name)

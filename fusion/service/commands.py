@@ -146,10 +146,10 @@ def _write_ros2(recording: Path, out: Path, arm_name: str) -> dict:
 
     try:
         with replaced_when_done(out) as tmp:
-            run, counts = write_ros2_from_records(recording, tmp, Path(arm_name).stem)
+            run, left_out, counts = write_ros2_from_records(recording, tmp, Path(arm_name).stem)
     except RecordsError as e:
         fail(f"--ros2-out: {e}", code=1)
-    return {"path": str(out), "instants": run.steps, "left_out": run.left_out, "messages": counts}
+    return {"path": str(out), "instants": run.steps, "left_out": left_out, "messages": counts}
 
 
 def register(app: typer.Typer) -> None:

@@ -48,8 +48,9 @@ def test_recorded_records_become_the_same_bag_as_the_tracked_run(tracked) -> Non
     arm, run, d = tracked
     write_estimates(run, d / "direct.ros2.mcap", arm.source)
     write_estimates(run, d / "est.mcap", arm.source)  # the records a recorder writes
-    back, counts = write_ros2_from_records(d / "est.mcap", d / "via.ros2.mcap", Path(arm.source).stem)
-    assert back.steps == run.steps and back.left_out == 0
+    back, left_out, counts = write_ros2_from_records(d / "est.mcap", d / "via.ros2.mcap",
+                                                     Path(arm.source).stem)
+    assert back.steps == run.steps and left_out == 0
     assert back.joint_names == tuple(run.joint_names) and back.sensor_names == tuple(run.sensor_names)
     np.testing.assert_array_equal(back.flags, run.flags)
     np.testing.assert_array_equal(back.heading_status, run.heading_status)
@@ -65,7 +66,7 @@ def test_a_record_that_is_not_one_is_refused_by_topic_and_index(tracked) -> None
                "magnetic_disturbance": False, "magnetic_recovery": False, "heading_status": "gyro_only"}
     joints = {"t_s": 1.0, "joint_names": ["j1"], "q_rad": [0.1], "sigma_rad": [0.01], "flags": ["ok"],
               "sensors": {"acc1": "ok"}}
-    assert run_from_records([joints], [heading]).steps == 1
+    assert run_from_records([joints], [heading])[0].steps == 1
     with pytest.raises(RecordsError,
                        match=r"estimates/heading message 1: heading_status 'lost' is not one of"):
         run_from_records([joints], [heading, {**heading, "t_s": 2.0, "heading_status": "lost"}])
@@ -74,8 +75,8 @@ def test_a_record_that_is_not_one_is_refused_by_topic_and_index(tracked) -> None
     with pytest.raises(RecordsError, match=r"estimates/heading message 0: not a heading record \(KeyError"):
         run_from_records([joints], [{k: v for k, v in heading.items() if k != "roll_rad"}])
     # a heading whose joints record never came is left out and counted, not invented
-    lone = run_from_records([joints], [heading, {**heading, "t_s": 2.0}])
-    assert (lone.steps, lone.left_out) == (1, 1)
+    lone, left_out = run_from_records([joints], [heading, {**heading, "t_s": 2.0}])
+    assert (lone.steps, left_out) == (1, 1)
 
 
 def test_the_record_command_writes_a_ros2_bag_of_the_estimates_it_heard(tracked, tmp_path,
