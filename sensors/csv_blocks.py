@@ -35,7 +35,7 @@ _ECHO_START = 16  # characters of a too-long cell quoted in its message
 @dataclass(frozen=True)
 class CsvLimits:
     """What :func:`read_csv` refuses, so that a broken or hostile file costs bounded time
-    and memory (``docs/cli.md``, "What the readers refuse"). Each is far above what a
+    and memory (``docs/reference/refusals.md``). Each is far above what a
     recording needs: a number fits in 30 characters, the WMRA's richest recording has 42
     columns, and a day at 100 Hz of it is about 1.5 GB.
 

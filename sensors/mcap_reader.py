@@ -1,7 +1,7 @@
 """Reading an armfusion MCAP file (:func:`read_mcap`), also one cut off while recording or
 damaged: up to its last complete record, saying in a :class:`ReadReport` what could not be
 read. Bounded: a chunk claiming more than the reader takes, or records that do not parse,
-are named and refused (``docs/cli.md``, "What the readers refuse").
+are named and refused (``docs/reference/refusals.md``).
 """
 
 from __future__ import annotations

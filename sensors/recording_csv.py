@@ -31,7 +31,7 @@ The reader bounds its work (:class:`CsvLimits`: file size, line length, header
 columns, the length of a cell in use; a NUL byte is refused), so that a broken or
 hostile file is refused with a :class:`~sensors.samples.RecordingError` naming the
 place, within bounded time and memory, as soon as the problem is met
-(``docs/cli.md``, "What the readers refuse").
+(``docs/reference/refusals.md``).
 """
 
 from __future__ import annotations
