@@ -136,7 +136,8 @@ def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladd
     machine = "" if m.get("serve_cpu_s") is None else (
         f"<p>The fusion node used {m['serve_cpu_s']:.0f} CPU-s in {m['serve_wall_s']:.0f} s of wall time; "
         f"load average {m['load_average_1min']:.1f} on {m['cpus']} CPUs. With too little CPU the fusion "
-        "node falls behind real time: the latency grows, nothing is lost.</p>")
+        "node degrades rather than lag: it folds late instants into fewer updates, publishes fewer "
+        "estimates and says <code>degraded</code> with its lag in its status.</p>")
     heading_html = (("—" if tr["heading_rms_deg"] is None else f"{tr['heading_rms_deg']:.2f}°")
                     + esc(heading_detail(tr)))
     doc_html = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion demo</title>
@@ -211,5 +212,7 @@ def summary_table(doc: dict[str, Any], ev: dict[str, Any]):
     if m and m.get("serve_cpu_s") is not None:
         lines.append(f"the fusion node used {m['serve_cpu_s']:.0f} CPU-s in {m['serve_wall_s']:.0f} s; load "
                      f"average {m['load_average_1min']:.1f} on {m['cpus']} CPUs (with too little CPU the "
-                     "fusion node falls behind: the latency grows, nothing is lost)")
+                     "fusion node degrades rather than lag: it folds late instants into fewer updates, "
+                     "publishes fewer estimates and says `degraded` with its lag in its status; "
+                     "docs/service-node.md)")
     return t, lines
