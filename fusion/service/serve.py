@@ -153,8 +153,8 @@ class Lateness:
     max_pace: float = 2.0
     """Live only: while the sensors' newest time ran more than this many times as fast as
     wall time over the arrivals of the last ``pace_window_s`` (a replay faster than real
-    time), or those arrivals span less than half of it (a stream just begun, or resumed
-    after a silence its time did not run through), the node is not degraded: every
+    time), or those arrivals span less than half of it (a stream just begun), the node is
+    not degraded: every
     instant is fused one by one however long it takes (such a stream has no real time to
     be late against)."""
     pace_window_s: float = 4.0
@@ -433,17 +433,14 @@ class FusionNode:
     def _mark_pace(self, arrived_s: float, t_s: float) -> None:
         """Note an accepted batch's last time ``t_s``, arrived at ``arrived_s``: per 0.1 s of
         arrivals, its first arrival, its first batch's time and the newest time; those of the
-        last ``pace_window_s`` kept, and none from before a silence across which the
-        sensors' time ran less than half as far as wall time (a replay paused and resumed:
-        its pace is judged afresh)."""
+        last ``pace_window_s`` kept. (A silence its time did not run through is not judged a
+        paused source: at arrival it cannot be told from a node that was itself stopped.)"""
         marks = self._pace_marks
         self._pace_arrived_s = max(self._pace_arrived_s, arrived_s)
         if marks and arrived_s < marks[-1][0] + 0.1:
             if t_s > marks[-1][2]:
                 marks[-1] = (*marks[-1][:2], t_s)
             return
-        if marks and arrived_s - marks[-1][0] > 0.2 and t_s - marks[-1][2] < 0.5 * (arrived_s - marks[-1][0]):
-            marks.clear()  # silent, and its time did not run meanwhile: a source that paused
         marks.append((arrived_s, t_s, t_s))
         while marks[0][0] < arrived_s - self.lateness.pace_window_s:
             marks.popleft()
