@@ -31,7 +31,7 @@ import numpy as np
 
 from fusion.startup.combinations import Combination, observable_combinations
 from fusion.startup.solve import TILT_NAMES, StartupResult
-from fusion.tracking import calibrated
+from fusion.tracking import calibrated, fixed_base
 from fusion.tracking.alarm import ModelChangeAlarm
 from fusion.tracking.compass import CALIBRATING, GYRO_ONLY, STATUS_CODE, Compass
 from fusion.tracking.differentiator import CausalDifferentiator
@@ -153,6 +153,8 @@ class Tracker:
         self.observability = Observability(st, L, self.link_names, self.accel_streams, self._sees, correction,
                                            calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
                                            self.R_0I if self._has_imu else None)
+        if arm.fixed_base is not None:  # its tilt's floor, which no averaging lowers
+            self.observability.tilt_floor_var = fixed_base.floor_var_rad2(unmodelled_g[:len(self.link_names)])
         self.process = ProcessModel(st, L, arm.joint_names)
         if st.base_turns_about_any:
             self.process.set_scale_noise(self.gyro_scale_sigma)
@@ -627,6 +629,8 @@ class Tracker:
         P = self._ukf._P[np.ix_(ix, ix)].copy()
         obs = self.observability
         P[:n, :n] += obs.consider @ obs.consider.T + np.diag(obs.unread_var)
+        P[n, n] += obs.tilt_var[0]  # (a bolted base's floor in its tilt)
+        P[n + 1, n + 1] += obs.tilt_var[1]
         x = self._ukf.x
         values = np.r_[self.arm.angles_in_range(self._q_enc + x[:n], self._q_enc), x[L.roll], x[L.pitch]]
         return values, P
@@ -673,7 +677,8 @@ class Tracker:
             flags=named[3],
             roll_rad=float(x[L.roll]), pitch_rad=float(x[L.pitch]), yaw_rad=float(x[L.yaw]),
             attitude_sigma_rad=_ro(attitude_sigma_rad(x[self._att_idx], self._ukf._P[np.ix_(self._att_idx,
-                                                                                              self._att_idx)],
+                                                                                              self._att_idx)]
+                                                      + np.diag(np.r_[self.observability.tilt_var, 0.0]),
                                                       self.compass.heading_floor_var)),
             gyro_bias_rad_s=_ro(x[L.bias]),
             axis_to_vertical_deg=_ro(self.observability.axis_deg), sensors=named[2],

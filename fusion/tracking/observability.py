@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from fusion.tracking import fixed_base
 from fusion.tracking.frames import Frames
 from fusion.tracking.observability_kernels import offsets_observability
 from fusion.tracking.settings import (
@@ -58,6 +59,9 @@ class Observability:
         self._axis_deg, self._achievable = np.empty(n), np.empty(n)
         self._locked, self._wide = np.empty(n, np.bool_), np.empty(n, np.bool_)
         self._blind = np.zeros(n, np.bool_)  # gravity-blind by the IMU's own up (see update)
+        self.tilt_floor_var = 0.0
+        """A bolted base's: what the link accelerometers' floors leave in its tilt (rad²;
+        :func:`fusion.tracking.fixed_base.floor_var_rad2`; 0 for a base that moves)."""
         self._columns(spread, unmodelled_g, scale_sigma)
         self.reset()
 
@@ -86,6 +90,9 @@ class Observability:
         self.consider_t: float | None = None
         self._consider_q_enc = None
         self._consider_used: set[int] = set()
+        self.tilt_var = np.zeros(2)
+        """A bolted base's: the variance (rad², roll and pitch) the reported tilt adds to the
+        filter's (:func:`fusion.tracking.fixed_base.tilt_shortfall_var`)."""
         self._key = None
         self._cache: dict = {}
 
@@ -171,6 +178,9 @@ class Observability:
         if key is not None and key[1] == used and t - key[0] < st.observability_period_s:
             return
         self._key = (t, used)
+        if self.tilt_floor_var > 0.0:
+            ix = [L.roll, L.pitch]
+            self.tilt_var = fixed_base.tilt_shortfall_var(self.tilt_floor_var, P[ix, ix], P0[ix, ix])
         sr, cr = math.sin(x[L.roll]), math.cos(x[L.roll])
         sp, cp = math.sin(x[L.pitch]), math.cos(x[L.pitch])
         up = np.array([-sp, sr * cp, cr * cp])

@@ -235,6 +235,7 @@ class RunArrays:
         self.heading_status = np.zeros(T, dtype=np.int8)  # codes of HEADING_STATUS
         self.status = np.zeros((T, S), dtype=np.int8)
         self.sys_var = np.zeros((T, n))
+        self.tilt_var = np.zeros((T, 2))  # a bolted base's floor in its tilt (rad^2)
         self.att_cov = np.full((T, 9), np.nan)  # the attitude's (tangent space) covariance
         self._kept = None
         self.P = np.full((T, n + 3, n + 3), np.nan) if keep_cov else None
@@ -260,6 +261,7 @@ class RunArrays:
         # x, diag(P) and those entries of P into row i, compiled
         state_row_into(i, ukf._x, ukf._P, *self._kept, self.x, self.var, self.att_cov, self._P_rows)
         self.q_enc[i] = tr._q_enc
+        self.tilt_var[i] = tr.observability.tilt_var
         held = self._held
         flags, status, sys_var = tr._flags, tr.health.status_codes, tr.observability.sys_var
         self._record_combinations(tr, i, flags)
@@ -309,6 +311,12 @@ class RunArrays:
         self.var[:, :n] += self.sys_var  # the calibration's own uncertainty
         if self.P is not None:
             self.P[:, np.arange(n), np.arange(n)] += self.sys_var
+        if self.tilt_var.any():  # the tilt's share no averaging lowers (roll, pitch)
+            self.att_cov[:, 0] += self.tilt_var[:, 0]
+            self.att_cov[:, 4] += self.tilt_var[:, 1]
+            if self.P is not None:
+                self.P[:, n, n] += self.tilt_var[:, 0]
+                self.P[:, n + 1, n + 1] += self.tilt_var[:, 1]
 
     def _arrays(self, tr) -> None:
         L, n = tr.layout, tr.arm.n_joints

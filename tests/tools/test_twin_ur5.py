@@ -124,6 +124,14 @@ def test_import_calibrate_track_on_the_twin_with_the_config_as_written(twin_mcap
         assert final["flags"][i] in ("gimbal_lock", "unobserved")
         assert np.degrees(final["sigma_rad"][i]) > span[i] / np.sqrt(12.0) * 0.9  # a uniform spread's
     assert any("custom accelerometer, 0.05 g" in n for n in doc["notes"])
+    # the bolted base's tilt (read by the IMUs, whose 0.05 g floor stays however long they are
+    # read): within its 3 sigma of the table's at the scored instants, never averaged down
+    # to a few hundredths of a degree
+    for k, nm in enumerate(("roll", "pitch")):
+        err = np.degrees(e[nm][late]) - twin.table_tilt_deg[k]
+        sg = np.degrees(e["sigma_" + nm][late])
+        assert np.mean(np.abs(err) <= 3.0 * sg) >= 0.95, (nm, err[-1], sg[-1])
+        assert sg.min() > 0.3
 
 
 def test_a_floor_set_to_zero_is_said_loudly(twin_mcap, tmp_path):
