@@ -204,6 +204,8 @@ def _print_segment(d: dict) -> None:
         ang = "-" if j["angle_rad"] is None else f"{np.degrees(j['angle_rad']):.3f}"
         if j["alternatives_rad"]:
             ang = " or ".join(f"{np.degrees(a):.2f}" for a in j["alternatives_rad"])
+        elif len(j.get("turns_rad", ())) > 1:  # gravity reads it modulo a turn
+            ang = " or ".join(f"{np.degrees(a):.2f}" for a in j["turns_rad"]) + " (a turn apart)"
         elif j["angle_rad"] is None and j.get("range_rad"):
             lo, hi = np.degrees(j["range_rad"])
             ang = f"unseen: {lo:.0f} … {hi:.0f}"

@@ -123,7 +123,8 @@ class StartupCorrection:
                     flag = "ill_conditioned"
             joints.append(replace(j, angle_rad=None if j.angle_rad is None else j.angle_rad - delta[i],
                                   sigma_rad=sig, flag=flag,
-                                  alternatives_rad=tuple(a - delta[i] for a in j.alternatives_rad)))
+                                  alternatives_rad=tuple(a - delta[i] for a in j.alternatives_rad),
+                                  turns_rad=tuple(a - delta[i] for a in j.turns_rad)))
         cands = (None if res.candidates_rad is None
                  else np.atleast_2d(self.controller_angles(np.asarray(res.candidates_rad, float))))
         return replace(res, joints=tuple(joints), q_rad=q - delta, covariance=cov, candidates_rad=cands)

@@ -33,6 +33,13 @@ class JointEstimate:
     thesis_detector_locked: bool | None = None
     range_rad: tuple[float, float] | None = None
     """Where a joint with no number may be: its limits (the data do not narrow it)."""
+    turns_rad: tuple[float, ...] = ()
+    """The turn branches of a joint with a number whose limits hold it on more than one turn
+    (a UR's ±360°): every angle inside the limits a whole number of turns from
+    ``angle_rad`` (that one included), ascending. Gravity reads a revolute joint's angle only
+    modulo a turn, so the still data fit each of them equally; ``angle_rad`` is the one nearest
+    the middle of the limits, and the encoders' turn count decides between them (the tracker
+    reports the encoders' turn). Empty where one turn alone fits inside the limits."""
 
     def as_dict(self) -> dict:
         return {
@@ -42,6 +49,7 @@ class JointEstimate:
             "flag": self.flag,
             "alternatives_rad": list(self.alternatives_rad),
             "range_rad": None if self.range_rad is None else list(self.range_rad),
+            "turns_rad": list(self.turns_rad),
             "axis_to_vertical_deg": self.axis_to_vertical_deg,
             "thesis_detector_locked": self.thesis_detector_locked,
         }
@@ -165,7 +173,7 @@ class StartupResult:
 def summary(res: StartupResult) -> str:
     """One line for a person: the joints that are not ok and the moves proposed."""
     bad = [f"{j.name} {j.flag}" for j in res.joints if j.flag != "ok"]
-    if not bad:
+    if not bad and not any(len(j.turns_rad) > 1 for j in res.joints):
         worst = max(j.sigma_rad for j in res.joints)
         return f"all {len(res.joints)} joints ok; worst sigma {np.degrees(worst):.3f} deg"
     text = f"{len(res.joints) - len(bad)} of {len(res.joints)} joints ok; " + ", ".join(bad)
@@ -173,6 +181,11 @@ def summary(res: StartupResult) -> str:
         text += "; gravity reads together " + ", ".join(
             f"{c.name} = {np.degrees(c.angle_rad):.1f} ± {np.degrees(c.sigma_rad):.1f} deg"
             for c in res.combinations)
+    turns = [j for j in res.joints if len(j.turns_rad) > 1]
+    if turns:
+        text += "; gravity reads a turn apart alike: " + ", ".join(
+            f"{j.name} " + " or ".join(f"{np.degrees(a):.1f}" for a in j.turns_rad) for j in turns
+        ) + " deg inside the limits (the encoders' turn count decides)"
     if res.unlock_move is not None:
         text += "; " + res.unlock_move.describe()
     if res.disambiguating_move is not None:

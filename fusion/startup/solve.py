@@ -484,8 +484,20 @@ def _joint_estimates(arm: ArmModel, problem: StillWindowProblem, st: StartupSett
             thesis_detector_locked=thesis[j],
             range_rad=None if number or flags[j] == "ambiguous"
             else (float(arm.min_rad[j]), float(arm.max_rad[j])),
+            turns_rad=turn_branches(float(qb[j]), float(arm.min_rad[j]), float(arm.max_rad[j]))
+            if number else (),
         ))
     return tuple(joints)
+
+
+def turn_branches(q_rad: float, lo_rad: float, hi_rad: float) -> tuple[float, ...]:
+    """Every angle inside ``[lo_rad, hi_rad]`` a whole number of turns from ``q_rad``
+    (ascending), where more than one is: gravity reads a revolute joint only modulo a turn.
+    Empty where one alone fits."""
+    two_pi = 2.0 * np.pi
+    first = q_rad + two_pi * np.ceil((lo_rad - q_rad) / two_pi)
+    turns = tuple(float(first + two_pi * k) for k in range(int((hi_rad - first) // two_pi) + 1))
+    return turns if len(turns) > 1 else ()
 
 
 def _summary_with_sensor_note(arm: ArmModel, problem: StillWindowProblem,
