@@ -242,6 +242,42 @@ def _cpu_s(pid: int) -> float | None:
 LATENCY_SETTLE_S = 10.0  # tracking time after which the latency is also given on its own
 
 
+def score_combinations(reported: list, t: np.ndarray, q_true: np.ndarray, tilt_true: np.ndarray,
+                       names: list[str]) -> list[dict[str, Any]]:
+    """What gravity reads together (the joint states' ``combinations``, per estimate a tuple of
+    ``{name, coefficients, angle_rad, sigma_rad}`` or None), each combination ever reported
+    scored against the same combination of the truth (the joints' ``q_true (T, n)`` and the
+    base's ``tilt_true (T, 2)``, roll and pitch, rad) over the estimates it was reported at:
+    its share of estimates, its last value and sigma (deg), RMS error and share within 3 sigma
+    (None where no truth)."""
+    from fusion.startup.solve import TILT_NAMES
+
+    series: dict[str, dict[str, Any]] = {}
+    for i, cs in enumerate(reported):
+        for c in cs or ():
+            row = series.setdefault(c["name"], {"coefficients": dict(c["coefficients"]), "i": [], "v": [],
+                                                "s": []})
+            row["i"].append(i)
+            row["v"].append(float(c["angle_rad"]))
+            row["s"].append(float(c["sigma_rad"]))
+    truth_cols = {**{n: q_true[:, k] for k, n in enumerate(names)},
+                  **{n: tilt_true[:, k] for k, n in enumerate(TILT_NAMES)}}
+    out = []
+    for name, row in series.items():
+        idx, v, sg = np.array(row["i"]), np.array(row["v"]), np.array(row["s"])
+        true = sum(c * truth_cols.get(term, np.full(len(t), np.nan))[idx]
+                   for term, c in row["coefficients"].items())
+        err = np.degrees(v - true)
+        have = np.isfinite(err)
+        out.append({"name": name, "coefficients": row["coefficients"],
+                    "reported_share": float(len(idx) / max(len(t), 1)),
+                    "angle_deg": float(np.degrees(v[-1])), "sigma_deg": float(np.degrees(sg[-1])),
+                    "rms_error_deg": float(np.sqrt(np.mean(err[have] ** 2))) if have.any() else None,
+                    "within_3_sigma": (float(np.mean(np.abs(err[have]) <= 3.0 * np.degrees(sg[have])))
+                                       if have.any() else None)})
+    return out
+
+
 def evaluate(live: dict[str, Any]) -> dict[str, Any]:
     """Accuracy against the truth, flags, counts and latency, as one JSON-ready document."""
     from sensors.recording import read_recording
@@ -284,6 +320,8 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
     inside = np.abs(err_deg) <= 3 * sig_deg
     within = {n: float(np.mean(inside[:, k])) for k, n in enumerate(names)}
     seen = {n: dict(Counter(flags[:, k].tolist()).most_common()) for k, n in enumerate(names)}
+    tilt_true = truth_at(tb, t, angles=True)[:, :2] if tb is not None else np.full((len(t), 2), np.nan)
+    combos = score_combinations([j.combinations for j in js], t, truth_at(tq, t), tilt_true, names)
     heading_rms = heading_within = None
     heading_status: dict[str, float] = {}
     if w.headings:
@@ -322,7 +360,7 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
                      "rms_error_deg": rms, "max_error_deg": worst, "within_3_sigma": within,
                      "from_first_ok": once_ok,
                      "heading_rms_deg": heading_rms, "heading_within_3_sigma": heading_within,
-                     "heading_status": heading_status},
+                     "heading_status": heading_status, "combinations": combos},
         "flags_seen": seen,
         "samples": {"published": published, "received_by_serve": int(srv.get("samples", 0)),
                     # refused by the node's admission, by reason (a driver that fell behind on a

@@ -31,6 +31,26 @@ def settled_latency(lat: dict) -> str:
             f"p99 {lat['p99_after_settle_ms']:.1f} ms")
 
 
+def combinations_html(combos: list[dict[str, Any]]) -> str:
+    """The table of what gravity reads together (:func:`fusion.service.demo.score_combinations`):
+    name, last value, σ, error against the truth, share within 3σ and of estimates reported."""
+    if not combos:
+        return ("<p>Every joint the sensors read was read alone: no combination of joints (or of a "
+                "joint and the base's tilt) was reported.</p>")
+
+    def pct(x) -> str:
+        return "—" if x is None else f"{100 * x:.0f} %"
+
+    rows = "".join(
+        f"<tr><td>{html.escape(c['name'])}</td><td>{c['angle_deg']:+.2f}</td><td>{c['sigma_deg']:.2f}</td>"
+        f"<td>{'—' if c['rms_error_deg'] is None else format(c['rms_error_deg'], '.2f')}</td>"
+        f"<td>{pct(c['within_3_sigma'])}</td><td>{pct(c['reported_share'])}</td></tr>"
+        for c in combos)
+    return ("<table><tr><th>combination</th><th>value (last) [deg]</th><th>σ (last) [deg]</th>"
+            "<th>RMS error [deg]</th><th>within 3σ</th><th>estimates reported at</th></tr>"
+            f"{rows}</table>")
+
+
 def tracking_figures(ev: dict[str, Any]) -> dict[str, bytes]:
     import io
 
@@ -162,6 +182,10 @@ recorded; dropped: {esc(', '.join(f'{k} {v}' for k, v in s['dropped'].items()) o
 Sample→estimate latency: {'—' if lat is None else
     f"p50 {lat['p50_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms" + settled_latency(lat)}.</p>
 {machine}
+<h2>What gravity reads together</h2>
+<p>Where single joints are not read, the combinations the tracker reports with their σ
+(the joint states' <code>combinations</code>), scored against the same combination of the truth.</p>
+{combinations_html(tr.get('combinations') or [])}
 <h2>Tracking: estimate against truth, and the error with its ±2σ band</h2>{img('joints')}
 <h2>Heading</h2>{img('heading')}
 <h2>The workbench: what the sensor calibration fixed</h2>{wb_html}
