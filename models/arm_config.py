@@ -595,7 +595,7 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
         imus = [nm for nm, role in roles if role == "base_imu"]
         if not accels and all(role is not None for _, role in roles) and n != 0:
             # an arm with joints needs a link accelerometer to read them; a zero-joint arm
-            # (an IMU alone, docs/tracking.md "An IMU alone") needs only its base IMU
+            # (an IMU alone, docs/tracking-hand.md) needs only its base IMU
             out.append(ConfigProblem(source, "sensors", len(sensors),
                                      "the arm has no link accelerometer"))
         if n == 0 and not imus and all(role is not None for _, role in roles):

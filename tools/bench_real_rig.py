@@ -610,7 +610,9 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
         "plus its own bias, which a base that never moves cannot separate from it. The calibration "
         "holds that bias as a convention (`joint_zero_conventions`) and fits the joint's zero in it; "
         "the convention's σ is the absolute zero's, and the tracker reports it with the angle. The "
-        "tracker keeps the convention (`docs/tracking.md`): when it took the convention's σ as freedom "
+        "tracker keeps the convention ([A calibrated config's own uncertainty]"
+        "(tracking-health.md#a-calibrated-configs-own-uncertainty)): when it took the convention's σ "
+        "as freedom "
         "for its frame-bias state instead, the base's tilt wandered within it, pulled by the shaft's "
         "vibration, and the joint with it (2.3° and 4.7° RMS on the horizontal trials).",
         "- **Stamps are not instants.** The shaft IMU's samples are stamped about 10 ms late against "

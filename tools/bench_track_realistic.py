@@ -200,7 +200,7 @@ def main(argv=None) -> None:
         "",
         f"With the calibrated config the worst joint is within 3 sigma at **{worst:.1f} %** of the "
         f"{calibrated['steps']:,} instants ({n} joints). The calibration's own uncertainty is carried "
-        f"as the filter carries what it learnt (`Tracker._consider_update`, docs/tracking.md). "
+        f"as the filter carries what it learnt (`Tracker._consider_update`, docs/tracking-health.md). "
         f"Tracking took {shipped['cpu_s']:.0f} and {calibrated['cpu_s']:.0f} s of CPU.",
     ]
     if not a.no_write:

@@ -1,5 +1,5 @@
 """`armfusion track`: the tracker over a recording (startup calibration on its first still
-stretch, then every sample), with an estimates file and a JSON summary (docs/tracking.md)."""
+stretch, then every sample), with an estimates file and a JSON summary (docs/track-recording.md, docs/reference/track-output.md)."""
 
 from __future__ import annotations
 

@@ -194,6 +194,12 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
             # (the fusion node compiles its kernels before it serves: on the first run after
             # an install that takes minutes on a busy 2-core machine)
             if not child.wait_for_line(line, SERVE_START_S):
+                if child is serve and child.proc.poll() is None:
+                    raise DemoError(
+                        f"the {name} did not start within {SERVE_START_S:.0f} s: it compiles its "
+                        "kernels on its first run after an install, which on a busy machine can take "
+                        "longer; what it compiled is cached, so running the demo again goes on from "
+                        f"there. {child.stderr_tail()}".rstrip())
                 raise DemoError(f"the {name} did not start: {child.stderr_tail()}")
         drivers = ch.start("drivers", [
             "drivers", "--fake", "--realtime", "--scenario", scenario, "--seed", str(seed),

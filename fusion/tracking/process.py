@@ -236,7 +236,7 @@ class ProcessModel:
         turn's error correlated over the base motion's correlation time ``τ`` (a hand keeps
         turning about one axis for about that long, so the error does not average away
         faster). (The heading takes none: there it would hand the heading to a compass whose
-        disturbance the guard has not yet caught; docs/tracking.md, *An IMU alone*.)"""
+        disturbance the guard has not yet caught; docs/tracking-hand.md.)"""
         key = (round(dt * 1e9), have_gyro, still)  # dt to the nanosecond
         Q = self._Q.get(key)
         if Q is None:

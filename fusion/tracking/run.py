@@ -398,7 +398,7 @@ class TrackRun:
         return {"joints": joints, "sensors": sensors, "heading": mag}
 
     def summary(self, after_s: float = 60.0, t0_s: float | None = None) -> dict:
-        """The JSON summary (see docs/tracking.md): steps, speed, rejections, flags seen, and
+        """The JSON summary (see docs/reference/track-output.md): steps, speed, rejections, flags seen, and
         with truth the RMS errors after ``after_s`` (from ``t0_s``, default the first
         instant), NEES and NIS means with their 95 % chi-square bounds."""
         t0 = (float(self.t_s[0]) if len(self.t_s) else 0.0) if t0_s is None else t0_s

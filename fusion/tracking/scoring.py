@@ -58,7 +58,7 @@ def errors(q_rad: np.ndarray, rpy_rad: np.ndarray, P: np.ndarray | None, truth_q
 
 
 def truth_summary(run, late: np.ndarray, after_s: float) -> dict:
-    """The summary's entries against the truth (see docs/tracking.md): RMS errors per joint
+    """The summary's entries against the truth (see docs/reference/track-output.md): RMS errors per joint
     over the instants ``late`` (all, and those the joint was ``ok``), the worst error, the
     share within 3 of its sigmas, the heading RMS and the NEES with its 95 % chi-square
     bounds."""

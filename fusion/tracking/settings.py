@@ -119,8 +119,9 @@ class TrackerSettings:
     pivot's, and the origin's is the pivot's plus ``ω̇ × r + ω × (ω × r)`` (the gyro's rate and
     its causal derivative): a sensor swung at 400 °/s on a 15 cm lever is accelerated by
     7 m/s² towards the pivot, in the base's own axes, which a zero-mean acceleration cannot
-    explain (:meth:`fusion.tracking.measurement.Measurements.h_all`). None (a chair, whose
-    turning centre was tried and not kept: docs/tracking.md): no such state (a config's
+    explain (:meth:`fusion.tracking.measurement.Measurements.h_all`). None (a chair: its
+    turning centre is the config's ``chair:`` block instead, its swing predicted from the gyro;
+    docs/tracking.md, step 3): no such state (a config's
     ``base_motion.pivot_sigma_m`` sets it, :meth:`for_base`)."""
     base_turns_about_any: bool = False
     """The base turns about every axis (a hand turning a sensor it holds; a config's

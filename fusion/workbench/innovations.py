@@ -36,7 +36,7 @@ class InnovationDiagnosis:
     compass: ResidualAnalysis | None = None
     """The compass's heading innovations, analysed alike but not in the verdict: the tracker
     takes its iron's and the arm's steel's errors as biases that last a heading visit
-    (docs/tracking.md, "The compass calibrated by driving"), so they are coloured by design;
+    (docs/tracking-heading.md, "The compass calibrated by driving"), so they are coloured by design;
     their mean NIS (in ``nis``) says whether their size is right."""
 
     @property
