@@ -124,9 +124,9 @@ def graph():
 
 def test_the_graph_sees_the_imports_it_must(graph):
     assert "models.arm" in graph["fusion.configfile"]  # module level
-    assert "fusion.cli.simulate" in graph["fusion.service.demo"]  # from a module import a name
-    assert "fusion.service.payloads" in graph["fusion.service.commands"]  # inside a function
-    assert "fusion.service.fleet" not in graph["fusion.service.commands"]
+    assert "fusion.cli.simulate" in graph["fusion.cli.demo"]  # from a module import a name
+    assert "fusion.service.payloads" in graph["fusion.cli.nodes"]  # inside a function
+    assert "fusion.cli.fleet" not in graph["fusion.cli.nodes"]
     assert len(graph) > 80
 
 

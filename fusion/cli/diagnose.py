@@ -37,7 +37,7 @@ from fusion.cli.common import (
     progress_bar,
     read_recording_or_exit,
 )
-from fusion.cli.diagnose_report import report_figures, write_innovation_report, write_report  # noqa: F401 (report_figures: imported from here by fusion.service.demo)
+from fusion.cli.diagnose_report import report_figures, write_innovation_report, write_report  # noqa: F401 (report_figures: imported from here by fusion.cli.demo_report)
 from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
 from fusion.configfile import load_arm, resolve_config_path
 from fusion.identification.identify import config_with_estimates, data_from_recording, fit_streams

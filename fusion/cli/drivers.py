@@ -93,7 +93,7 @@ def _publishing(robot: str, batch_ms: float, wait_s: float, admitted_within_s: f
     ``--robot``; SIGINT and SIGTERM stop the run, and so does the fusion node's admitting
     none of the samples within ``admitted_within_s`` (the verdict: ``_Live.admission``);
     the last status says ``done``."""
-    from fusion.service.commands import session_or_exit, watching_admission, zenoh_settings
+    from fusion.cli.nodes import session_or_exit, watching_admission, zenoh_settings
     from fusion.service.node import stop_on_signals
     from fusion.service.raw_publisher import RawPublisher
 
@@ -182,7 +182,7 @@ def register(app: typer.Typer) -> None:
                                 "admission": None if admission is None else admission.as_dict()}
         _finish(doc, run, out, json_out)
         if live is not None:
-            from fusion.service.commands import say_admission
+            from fusion.cli.nodes import say_admission
 
             if not json_out:
                 say_admission(live.admission)

@@ -14,6 +14,7 @@ import ctypes
 import os
 import queue
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -135,3 +136,10 @@ class Children:
 
     def __exit__(self, *exc) -> None:
         self.stop_all()
+
+
+def free_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])

@@ -1,4 +1,4 @@
-"""What ``armfusion demo`` shows of a run (:mod:`fusion.service.demo`): the self-contained
+"""What ``armfusion demo`` shows of a run (:mod:`fusion.cli.demo`): the self-contained
 HTML report (the tracking plots against the truth, the workbench's verdict and error ladder)
 and the summary table for the terminal, both from the evaluation's document."""
 

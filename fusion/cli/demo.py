@@ -19,7 +19,7 @@
 3. **The summary**: startup and tracking accuracy against the simulator's truth, the flags
    seen, samples published / received / dropped, the sample→estimate latency (a sample's
    read time on the drivers' clock to the estimate's arrival here: one machine, one
-   monotonic clock), and an HTML report (:mod:`fusion.service.demo_report`): the tracking
+   monotonic clock), and an HTML report (:mod:`fusion.cli.demo_report`): the tracking
    plots and the workbench's verdict and error ladder on the calibration recording
    (``fusion.workbench.diagnose``).
 """
@@ -41,12 +41,11 @@ import typer
 import yaml
 
 from fusion.cli.common import console, emit_json, err_console, fail
+from fusion.cli.demo_report import summary_table, write_report
 from fusion.cli.options import JsonOpt, ScenarioOpt, SeedOpt
 from fusion.cli.simulate import truth_path
 from fusion.service import payloads as pl
-from fusion.service.demo_report import summary_table, write_report
-from fusion.service.fleet import free_loopback_port
-from fusion.service.processes import Children
+from fusion.service.processes import Children, free_loopback_port
 from fusion.tracking.tracker import truth_at
 from models.rotations import wrap_angle
 from models.simulator import angle_truth

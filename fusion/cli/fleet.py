@@ -16,7 +16,6 @@ through a third peer, so a fleet needs one.
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ from typing import Annotated
 import typer
 
 from fusion.cli.common import console, emit_json, err_console, fail
+from fusion.cli.nodes import session_or_exit, zenoh_settings
 from fusion.cli.options import (
     ConfigOpt,
     ConnectOpt,
@@ -36,16 +36,9 @@ from fusion.cli.options import (
     StopAfterOpt,
     ZenohConfigOpt,
 )
-from fusion.service.commands import session_or_exit, zenoh_settings
 from fusion.service.node import stop_on_signals
+from fusion.service.processes import free_loopback_port
 from fusion.service.zenoh_config import ZenohConfigError, check_loopback, endpoints_line, load_config
-
-
-def free_loopback_port() -> int:
-    """A TCP port on 127.0.0.1 that is free now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def register(app: typer.Typer) -> None:
