@@ -368,142 +368,152 @@ def workbench(calibration_rec: Path, identification: dict, window: int = 25):
 # --- the command ------------------------------------------------------------------------------
 
 
+def demo_command(
+    duration_s: Annotated[float, typer.Option(
+        "--duration", help="Seconds of the live run (wall clock).")] = 60.0,
+    seed: SeedOpt = 0,
+    realistic: Annotated[bool, typer.Option(
+        "--realistic/--ideal", help="Datasheet-typical sensor errors (default) or none.")] = True,
+    calibrate_sensors: Annotated[bool, typer.Option(
+        "--calibrate/--no-calibrate", help="First identify the sensors' errors on the calibration "
+        "maneuver and serve with the calibrated config (default); else the shipped config.")] = True,
+    calibration_s: Annotated[float | None, typer.Option(
+        "--calibration-duration", help="Play only the calibration maneuver's poses within its first "
+        "SECONDS (default: all of it, 60 s).")] = None,
+    maneuver: Annotated[Path | None, typer.Option(
+        "--maneuver", help="The calibration maneuver to play (armfusion plan-maneuver --config wmra "
+        "--out M.yaml); default the shipped config/maneuvers/wmra-60s.yaml.")] = None,
+    scenario: ScenarioOpt = "daily-use",
+    run_workbench: Annotated[bool, typer.Option(
+        "--workbench/--no-workbench", help="Diagnose the calibration recording for the report.")] = True,
+    out: Annotated[Path, typer.Option(
+        "--out", "-o", help="Directory for the recordings, the configs, the nodes' outputs and "
+        "the report.")] = Path("armfusion-demo"),
+    batch_ms: Annotated[float, typer.Option(
+        "--batch-ms", help="The drivers' read time per published batch, ms (keep it well under "
+        "the fusion node's 0.1 s reorder window, or samples arrive too late to fuse).")] = 20.0,
+    json_out: JsonOpt = False,
+) -> None:
+    """The whole service on this machine, no hardware, loopback only: the simulated WMRA
+    calibrates its sensors, then fake drivers → fusion node → recorder run as processes
+    over Zenoh; a summary against the truth and an HTML report."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    if not duration_s >= 5:
+        fail(f"--duration {duration_s!r}: expected at least 5 s (the arm is still for the first seconds)")
+    if calibrate_sensors and calibration_s is not None and not calibration_s >= 15:
+        fail(f"--calibration-duration {calibration_s!r}: expected at least 15 s")
+    if not 1.0 <= batch_ms <= 1000.0:
+        fail(f"--batch-ms {batch_ms!r}: expected 1 to 1000")
+    if scenario not in SCENARIOS:
+        fail(f"--scenario {scenario!r}: expected one of {', '.join(SCENARIOS)}")
+    if out.exists() and not out.is_dir():
+        fail(f"--out {out}: exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    timings: dict[str, float] = {}
+    show = not json_out
+
+    def say(msg: str) -> None:
+        if show:
+            err_console.print(f"[bold]demo:[/] {msg}", highlight=False)
+
+    identification = None
+    calibration_rec = None
+    played: dict[str, Any] = {}
+    config: str | Path = "wmra"
+    try:
+        with Children(out / "nodes") as ch:
+            if calibrate_sensors:
+                with err_console.status("calibrating the sensors…", spinner="dots") if show \
+                        else _nothing():
+                    config, identification, calibration_rec, played = calibrate(
+                        out, seed, calibration_s, realistic, ch, say, maneuver)
+                timings["calibration_s"] = time.monotonic() - t0
+                say(f"calibrated config: {config} (reduced chi-square "
+                    f"{identification['chi2_red']:.2f}, {identification['seconds']:.0f} s fit)")
+                if identification.get("compass_drive"):
+                    say(identification["compass_drive"])
+            say(f"live: router, recorder, fusion node and drivers over Zenoh on 127.0.0.1 "
+                f"({duration_s:g} s of {scenario})")
+            t1 = time.monotonic()
+            with Progress(TextColumn("{task.description}"), BarColumn(),
+                          TextColumn("{task.fields[info]}"), TimeElapsedColumn(),
+                          console=err_console, disable=not show, transient=False) as bar:
+                task = bar.add_task("live", total=duration_s, info="starting the nodes")
+
+                def progress(w: Watched) -> None:
+                    with w.lock:
+                        last = w.joints[-1][1] if w.joints else None
+                        n = len(w.joints)
+                        serve = w.status.get("serve")
+                        drv = w.status.get("drivers")
+                    published = 0 if drv is None else \
+                        sum(v for k, v in drv.counters if k.startswith("samples."))
+                    state = "" if serve is None else serve.state
+                    flags = "" if last is None else " ".join(
+                        f"{k} {v}" for k, v in Counter(last.flags).most_common())
+                    bar.update(task, completed=0.0 if last is None else min(last.t_s, duration_s),
+                               info=f"{state} · {published} samples out · {n} estimates in · {flags}")
+
+                live = run_live(out, config, seed, duration_s, scenario, realistic, ch, progress,
+                                batch_ms)
+                bar.update(task, completed=duration_s)
+            timings["live_s"] = time.monotonic() - t1
+    except DemoError as e:
+        fail(str(e))
+    t2 = time.monotonic()
+    try:
+        ev = evaluate(live)
+    except DemoError as e:
+        fail(str(e))
+    diag = ladder = None
+    if run_workbench and calibration_rec is not None:
+        with err_console.status("the workbench: diagnosing the calibration recording…") if show \
+                else _nothing():
+            diag, ladder = workbench(calibration_rec, identification)
+    doc = {"seed": seed, "realistic": realistic, "scenario": scenario, "duration_s": duration_s,
+           "config": str(config), "out": str(out), "recording": str(live["recording"]),
+           "calibration": None if identification is None else {
+               "recording": str(calibration_rec), "config": str(config), **played,
+               "chi2_red": identification["chi2_red"],
+               "compass": identification.get("compass_drive"),
+               "unmodelled_g": identification.get("unmodelled_g")},
+           **{k: v for k, v in ev.items() if not k.startswith("_")}}
+    if diag is not None:
+        doc["workbench"] = {"verdict": diag.verdict, "rms_ratio": diag.rms_ratio, "ladder": ladder}
+    report = write_report(out / "report.html", doc, ev, diag, ladder)
+    timings["report_s"] = time.monotonic() - t2
+    timings["total_s"] = time.monotonic() - t0
+    doc["report"] = str(report)
+    doc["timings_s"] = {k: round(v, 1) for k, v in timings.items()}
+    (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    if json_out:
+        emit_json(doc)
+        return
+    table, lines = summary_table(doc, ev)
+    console.print(f"startup: {ev['startup']['message']}", highlight=False)
+    console.print(table)
+    for ln in lines:
+        console.print(ln, highlight=False)
+    if diag is not None:
+        console.print(f"workbench on the calibration recording: shipped model {diag.rms_ratio:.1f}× "
+                      f"the noise ({diag.verdict}); with the identified effects "
+                      f"{ladder[-1]['rms_ratio']:.2f}×", highlight=False)
+    console.print(f"report: {report}  (recording: {live['recording']}; "
+                  f"{timings['total_s']:.0f} s in all)", highlight=False)
+
+
+COMMAND_TABLE = (
+    ("demo", demo_command),
+)
+"""The demo's command: each command's name and its function."""
+
+
 def register(app: typer.Typer) -> None:
-    @app.command("demo")
-    def demo_command(
-        duration_s: Annotated[float, typer.Option(
-            "--duration", help="Seconds of the live run (wall clock).")] = 60.0,
-        seed: SeedOpt = 0,
-        realistic: Annotated[bool, typer.Option(
-            "--realistic/--ideal", help="Datasheet-typical sensor errors (default) or none.")] = True,
-        calibrate_sensors: Annotated[bool, typer.Option(
-            "--calibrate/--no-calibrate", help="First identify the sensors' errors on the calibration "
-            "maneuver and serve with the calibrated config (default); else the shipped config.")] = True,
-        calibration_s: Annotated[float | None, typer.Option(
-            "--calibration-duration", help="Play only the calibration maneuver's poses within its first "
-            "SECONDS (default: all of it, 60 s).")] = None,
-        maneuver: Annotated[Path | None, typer.Option(
-            "--maneuver", help="The calibration maneuver to play (armfusion plan-maneuver --config wmra "
-            "--out M.yaml); default the shipped config/maneuvers/wmra-60s.yaml.")] = None,
-        scenario: ScenarioOpt = "daily-use",
-        run_workbench: Annotated[bool, typer.Option(
-            "--workbench/--no-workbench", help="Diagnose the calibration recording for the report.")] = True,
-        out: Annotated[Path, typer.Option(
-            "--out", "-o", help="Directory for the recordings, the configs, the nodes' outputs and "
-            "the report.")] = Path("armfusion-demo"),
-        batch_ms: Annotated[float, typer.Option(
-            "--batch-ms", help="The drivers' read time per published batch, ms (keep it well under "
-            "the fusion node's 0.1 s reorder window, or samples arrive too late to fuse).")] = 20.0,
-        json_out: JsonOpt = False,
-    ) -> None:
-        """The whole service on this machine, no hardware, loopback only: the simulated WMRA
-        calibrates its sensors, then fake drivers → fusion node → recorder run as processes
-        over Zenoh; a summary against the truth and an HTML report."""
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-        if not duration_s >= 5:
-            fail(f"--duration {duration_s!r}: expected at least 5 s (the arm is still for the first seconds)")
-        if calibrate_sensors and calibration_s is not None and not calibration_s >= 15:
-            fail(f"--calibration-duration {calibration_s!r}: expected at least 15 s")
-        if not 1.0 <= batch_ms <= 1000.0:
-            fail(f"--batch-ms {batch_ms!r}: expected 1 to 1000")
-        if scenario not in SCENARIOS:
-            fail(f"--scenario {scenario!r}: expected one of {', '.join(SCENARIOS)}")
-        if out.exists() and not out.is_dir():
-            fail(f"--out {out}: exists and is not a directory")
-        out.mkdir(parents=True, exist_ok=True)
-        t0 = time.monotonic()
-        timings: dict[str, float] = {}
-        show = not json_out
-
-        def say(msg: str) -> None:
-            if show:
-                err_console.print(f"[bold]demo:[/] {msg}", highlight=False)
-
-        identification = None
-        calibration_rec = None
-        played: dict[str, Any] = {}
-        config: str | Path = "wmra"
-        try:
-            with Children(out / "nodes") as ch:
-                if calibrate_sensors:
-                    with err_console.status("calibrating the sensors…", spinner="dots") if show \
-                            else _nothing():
-                        config, identification, calibration_rec, played = calibrate(
-                            out, seed, calibration_s, realistic, ch, say, maneuver)
-                    timings["calibration_s"] = time.monotonic() - t0
-                    say(f"calibrated config: {config} (reduced chi-square "
-                        f"{identification['chi2_red']:.2f}, {identification['seconds']:.0f} s fit)")
-                    if identification.get("compass_drive"):
-                        say(identification["compass_drive"])
-                say(f"live: router, recorder, fusion node and drivers over Zenoh on 127.0.0.1 "
-                    f"({duration_s:g} s of {scenario})")
-                t1 = time.monotonic()
-                with Progress(TextColumn("{task.description}"), BarColumn(),
-                              TextColumn("{task.fields[info]}"), TimeElapsedColumn(),
-                              console=err_console, disable=not show, transient=False) as bar:
-                    task = bar.add_task("live", total=duration_s, info="starting the nodes")
-
-                    def progress(w: Watched) -> None:
-                        with w.lock:
-                            last = w.joints[-1][1] if w.joints else None
-                            n = len(w.joints)
-                            serve = w.status.get("serve")
-                            drv = w.status.get("drivers")
-                        published = 0 if drv is None else \
-                            sum(v for k, v in drv.counters if k.startswith("samples."))
-                        state = "" if serve is None else serve.state
-                        flags = "" if last is None else " ".join(
-                            f"{k} {v}" for k, v in Counter(last.flags).most_common())
-                        bar.update(task, completed=0.0 if last is None else min(last.t_s, duration_s),
-                                   info=f"{state} · {published} samples out · {n} estimates in · {flags}")
-
-                    live = run_live(out, config, seed, duration_s, scenario, realistic, ch, progress,
-                                    batch_ms)
-                    bar.update(task, completed=duration_s)
-                timings["live_s"] = time.monotonic() - t1
-        except DemoError as e:
-            fail(str(e))
-        t2 = time.monotonic()
-        try:
-            ev = evaluate(live)
-        except DemoError as e:
-            fail(str(e))
-        diag = ladder = None
-        if run_workbench and calibration_rec is not None:
-            with err_console.status("the workbench: diagnosing the calibration recording…") if show \
-                    else _nothing():
-                diag, ladder = workbench(calibration_rec, identification)
-        doc = {"seed": seed, "realistic": realistic, "scenario": scenario, "duration_s": duration_s,
-               "config": str(config), "out": str(out), "recording": str(live["recording"]),
-               "calibration": None if identification is None else {
-                   "recording": str(calibration_rec), "config": str(config), **played,
-                   "chi2_red": identification["chi2_red"],
-                   "compass": identification.get("compass_drive"),
-                   "unmodelled_g": identification.get("unmodelled_g")},
-               **{k: v for k, v in ev.items() if not k.startswith("_")}}
-        if diag is not None:
-            doc["workbench"] = {"verdict": diag.verdict, "rms_ratio": diag.rms_ratio, "ladder": ladder}
-        report = write_report(out / "report.html", doc, ev, diag, ladder)
-        timings["report_s"] = time.monotonic() - t2
-        timings["total_s"] = time.monotonic() - t0
-        doc["report"] = str(report)
-        doc["timings_s"] = {k: round(v, 1) for k, v in timings.items()}
-        (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
-        if json_out:
-            emit_json(doc)
-            return
-        table, lines = summary_table(doc, ev)
-        console.print(f"startup: {ev['startup']['message']}", highlight=False)
-        console.print(table)
-        for ln in lines:
-            console.print(ln, highlight=False)
-        if diag is not None:
-            console.print(f"workbench on the calibration recording: shipped model {diag.rms_ratio:.1f}× "
-                          f"the noise ({diag.verdict}); with the identified effects "
-                          f"{ladder[-1]['rms_ratio']:.2f}×", highlight=False)
-        console.print(f"report: {report}  (recording: {live['recording']}; "
-                      f"{timings['total_s']:.0f} s in all)", highlight=False)
+    """Add the commands of :data:`COMMAND_TABLE` to ``app``."""
+    for name, command in COMMAND_TABLE:
+        app.command(name)(command)
 
 
 class _nothing:
