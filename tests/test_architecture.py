@@ -240,8 +240,6 @@ OVERSIZED: dict[str, str] = {
     "fusion.cli.demo:demo_command": _COMMAND,
     "fusion.cli.demo:evaluate": _COMMAND,
     "fusion.cli.demo_report:write_report": _COMMAND,
-    "fusion.cli.diagnose": "diagnose's command and its option checks; to split as its command is",
-    "fusion.cli.diagnose:diagnose_command": _COMMAND,
     "fusion.cli.diagnose_report:report_figures": _COMMAND,
     "fusion.cli.diagnose_report:write_report": _COMMAND,
     "fusion.cli.track:track": _COMMAND,

@@ -96,7 +96,7 @@ def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladd
     """One self-contained HTML file: the summary, the tracking plots, the workbench."""
     figs = tracking_figures(ev)
     if diag is not None:
-        from fusion.cli.diagnose import report_figures
+        from fusion.cli.diagnose_report import report_figures
 
         wb = report_figures(diag, None, ladder)
         figs.update({f"wb_{k}": v for k, v in wb.items() if k in ("ladder", "candidates")})
