@@ -41,13 +41,19 @@ import typer
 import yaml
 
 from fusion.cli.common import console, emit_json, err_console, fail
-from fusion.cli.demo_report import summary_table, write_report
+from fusion.cli.demo_report import (
+    heading_scores,
+    joint_scores,
+    latency_figures,
+    sample_counts,
+    summary_table,
+    write_report,
+)
 from fusion.cli.options import JsonOpt, ScenarioOpt, SeedOpt
 from fusion.cli.simulate import truth_path
 from fusion.service import payloads as pl
 from fusion.service.processes import Children, free_loopback_port
 from fusion.tracking.tracker import truth_at
-from models.rotations import wrap_angle
 from models.simulator import angle_truth
 from models.trajectories import SCENARIOS
 
@@ -264,75 +270,21 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
     # the truth interpolated to each estimate's instant: the fake drivers read each device at
     # an instant of its own, between the simulator's 100 Hz grid points
     err_deg = np.degrees(q - truth_at(tq, t))
-    first = 0
-    startup = {n: {"error_deg": float(err_deg[first, k]), "sigma_deg": float(np.degrees(sig[first, k])),
-                   "flag": str(flags[first, k])} for k, n in enumerate(names)}
-    scored = np.isfinite(err_deg).all(axis=1)  # (an estimate past the truth's end is not scored)
-    err_deg, sig_deg, t_scored = err_deg[scored], np.degrees(sig[scored]), t[scored]
-    rms = {n: float(np.sqrt(np.mean(err_deg[:, k] ** 2))) for k, n in enumerate(names)}
-    # from each joint's first `ok` estimate on: a joint gravity cannot read at the park pose
-    # (j3, j6 at gimbal lock) is held at its prior, with a sigma that says so, until the arm
-    # first reaches; its RMS over the whole run is mostly that wait
-    once_ok: dict[str, dict[str, float] | None] = {}
-    for k, n in enumerate(names):
-        ok = np.flatnonzero(flags[scored][:, k] == "ok")
-        once_ok[n] = None if not len(ok) else {
-            "t_s": float(t_scored[ok[0]]), "rms_error_deg": float(np.sqrt(np.mean(err_deg[ok[0]:, k] ** 2))),
-            "within_3_sigma": float(np.mean(np.abs(err_deg[ok[0]:, k]) <= 3 * sig_deg[ok[0]:, k]))}
-    worst = {n: float(np.max(np.abs(err_deg[:, k]))) for k, n in enumerate(names)}
-    inside = np.abs(err_deg) <= 3 * sig_deg
-    within = {n: float(np.mean(inside[:, k])) for k, n in enumerate(names)}
-    seen = {n: dict(Counter(flags[:, k].tolist()).most_common()) for k, n in enumerate(names)}
-    heading_rms = heading_within = None
-    heading_status: dict[str, float] = {}
-    if w.headings:
-        th = np.array([h.t_s for _, h in w.headings])
-        yaw = np.array([h.heading_rad for _, h in w.headings])
-        yaw_true = truth_at(tb, th, angles=True)[:, 2]
-        yaw_err = np.abs(wrap_angle(yaw - yaw_true))
-        heading_rms = float(np.degrees(np.sqrt(np.mean(yaw_err**2))))
-        heading_within = float(np.mean(yaw_err <= 3 * np.array([h.heading_sigma_rad for _, h in w.headings])))
-        heading_status = {s: n / len(w.headings) for s, n in
-                          Counter(h.heading_status for _, h in w.headings).most_common()}
+    joints = joint_scores(names, t, err_deg, sig, flags)
+    heading_rms, heading_within, heading_status = heading_scores(w.headings, tb)
     drv, srv, rec = live["drivers"], live["serve"], live["record"]
-    epoch = drv.get("epoch_monotonic_s")
-    latency = None
-    if epoch is not None:
-        lat_ms = 1e3 * (arrived - (epoch + t))
-        latency = {"p50_ms": float(np.percentile(lat_ms, 50)), "p99_ms": float(np.percentile(lat_ms, 99)),
-                   "max_ms": float(np.max(lat_ms)), "count": int(len(lat_ms))}
-        # the node buffers while it calibrates on the still stretch, then works off the
-        # backlog: the latency once it runs, apart
-        later = lat_ms[t >= t[0] + LATENCY_SETTLE_S]
-        if len(later):
-            latency.update({"settle_s": LATENCY_SETTLE_S,
-                            "p50_after_settle_ms": float(np.percentile(later, 50)),
-                            "p99_after_settle_ms": float(np.percentile(later, 99))})
-    published = int(sum(drv.get("published", {}).get("samples", {}).values()))
-    dropped = {f"serve.{k}": v for k, v in srv.get("dropped", {}).items()}
-    if srv.get("out_of_order"):
-        dropped["serve.out_of_order"] = srv["out_of_order"]
-    dropped.update({f"record.{k}": v for k, v in rec.get("dropped", {}).items()})
+    latency = latency_figures(arrived, t, drv.get("epoch_monotonic_s"), LATENCY_SETTLE_S)
     return {
         "joint_names": names,
         "startup": {"t_s": float(srv.get("startup_t_s") or t[0]), "message": srv.get("message", ""),
-                    "joints": startup},
+                    "joints": joints["startup"]},
         "tracking": {"t_start_s": float(t[0]), "t_end_s": float(t[-1]), "estimates": int(len(t)),
-                     "rms_error_deg": rms, "max_error_deg": worst, "within_3_sigma": within,
-                     "from_first_ok": once_ok,
+                     "rms_error_deg": joints["rms"], "max_error_deg": joints["worst"],
+                     "within_3_sigma": joints["within"], "from_first_ok": joints["once_ok"],
                      "heading_rms_deg": heading_rms, "heading_within_3_sigma": heading_within,
                      "heading_status": heading_status},
-        "flags_seen": seen,
-        "samples": {"published": published, "received_by_serve": int(srv.get("samples", 0)),
-                    # refused by the node's admission, by reason (a driver that fell behind on a
-                    # loaded machine reads a burst, refused as too dense): counted, never lost
-                    "refused_by_serve": {k: int(v) for k, v in srv.get("refused_samples", {}).items()},
-                    "recorded": int(sum(rec.get("samples", {}).values())), "dropped": dropped,
-                    "estimates_published": int(srv.get("estimates", 0)),
-                    # messages whose handling raised in the fusion node (logged, the node going on)
-                    "serve_errors": int(srv.get("errors", 0)),
-                    "estimates_received": int(len(t)),
-                    "estimates_recorded": int(sum(rec.get("estimates", {}).values()))},
+        "flags_seen": joints["seen"],
+        "samples": sample_counts(drv, srv, rec, len(t)),
         "latency": latency,
         "machine": live.get("machine"),
         "_series": {"t": t, "q": q, "sigma": sig, "flags": flags, "truth_q": tq, "truth_base": tb,

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import base64
 import html
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +14,88 @@ import numpy as np
 
 from fusion.tracking.tracker import truth_at
 from models.rotations import wrap_angle
+
+
+def joint_scores(names: list[str], t: np.ndarray, err_deg: np.ndarray, sig: np.ndarray,
+                 flags: np.ndarray) -> dict[str, dict]:
+    """Each joint's startup error, tracking RMS, worst error, share within 3 sigma, flags seen,
+    and the same from its first ``ok`` estimate on (``err_deg``: estimate - truth per instant)."""
+    first = 0
+    startup = {n: {"error_deg": float(err_deg[first, k]), "sigma_deg": float(np.degrees(sig[first, k])),
+                   "flag": str(flags[first, k])} for k, n in enumerate(names)}
+    scored = np.isfinite(err_deg).all(axis=1)  # (an estimate past the truth's end is not scored)
+    err_deg, sig_deg, t_scored = err_deg[scored], np.degrees(sig[scored]), t[scored]
+    rms = {n: float(np.sqrt(np.mean(err_deg[:, k] ** 2))) for k, n in enumerate(names)}
+    # from each joint's first `ok` estimate on: a joint gravity cannot read at the park pose
+    # (j3, j6 at gimbal lock) is held at its prior, with a sigma that says so, until the arm
+    # first reaches; its RMS over the whole run is mostly that wait
+    once_ok: dict[str, dict[str, float] | None] = {}
+    for k, n in enumerate(names):
+        ok = np.flatnonzero(flags[scored][:, k] == "ok")
+        once_ok[n] = None if not len(ok) else {
+            "t_s": float(t_scored[ok[0]]), "rms_error_deg": float(np.sqrt(np.mean(err_deg[ok[0]:, k] ** 2))),
+            "within_3_sigma": float(np.mean(np.abs(err_deg[ok[0]:, k]) <= 3 * sig_deg[ok[0]:, k]))}
+    worst = {n: float(np.max(np.abs(err_deg[:, k]))) for k, n in enumerate(names)}
+    inside = np.abs(err_deg) <= 3 * sig_deg
+    within = {n: float(np.mean(inside[:, k])) for k, n in enumerate(names)}
+    seen = {n: dict(Counter(flags[:, k].tolist()).most_common()) for k, n in enumerate(names)}
+    return {"startup": startup, "rms": rms, "once_ok": once_ok, "worst": worst, "within": within,
+            "seen": seen}
+
+
+def heading_scores(headings: list, truth_base) -> tuple[float | None, float | None, dict[str, float]]:
+    """The heading's RMS error (deg), its share within 3 sigma and its statuses' shares, from
+    the ``(arrival, Heading)`` pairs received (``None``, ``None``, ``{}`` without any)."""
+    if not headings:
+        return None, None, {}
+    th = np.array([h.t_s for _, h in headings])
+    yaw = np.array([h.heading_rad for _, h in headings])
+    yaw_true = truth_at(truth_base, th, angles=True)[:, 2]
+    yaw_err = np.abs(wrap_angle(yaw - yaw_true))
+    heading_rms = float(np.degrees(np.sqrt(np.mean(yaw_err**2))))
+    heading_within = float(np.mean(yaw_err <= 3 * np.array([h.heading_sigma_rad for _, h in headings])))
+    heading_status = {s: n / len(headings) for s, n in
+                      Counter(h.heading_status for _, h in headings).most_common()}
+    return heading_rms, heading_within, heading_status
+
+
+def latency_figures(arrived: np.ndarray, t: np.ndarray, epoch: float | None, settle_s: float) -> dict | None:
+    """The sample->estimate latency (ms) from each estimate's arrival and its sample time on the
+    drivers' clock (``epoch``: that clock's zero on this machine's monotonic clock), and the
+    same after ``settle_s`` of tracking; ``None`` without the epoch."""
+    if epoch is None:
+        return None
+    lat_ms = 1e3 * (arrived - (epoch + t))
+    latency = {"p50_ms": float(np.percentile(lat_ms, 50)), "p99_ms": float(np.percentile(lat_ms, 99)),
+               "max_ms": float(np.max(lat_ms)), "count": int(len(lat_ms))}
+    # the node buffers while it calibrates on the still stretch, then works off the
+    # backlog: the latency once it runs, apart
+    later = lat_ms[t >= t[0] + settle_s]
+    if len(later):
+        latency.update({"settle_s": settle_s,
+                        "p50_after_settle_ms": float(np.percentile(later, 50)),
+                        "p99_after_settle_ms": float(np.percentile(later, 99))})
+    return latency
+
+
+def sample_counts(drv: dict, srv: dict, rec: dict, received: int) -> dict:
+    """Samples and estimates published, received, refused, recorded and dropped, from the
+    drivers', the fusion node's and the recorder's reports (``received``: estimates here)."""
+    published = int(sum(drv.get("published", {}).get("samples", {}).values()))
+    dropped = {f"serve.{k}": v for k, v in srv.get("dropped", {}).items()}
+    if srv.get("out_of_order"):
+        dropped["serve.out_of_order"] = srv["out_of_order"]
+    dropped.update({f"record.{k}": v for k, v in rec.get("dropped", {}).items()})
+    return {"published": published, "received_by_serve": int(srv.get("samples", 0)),
+            # refused by the node's admission, by reason (a driver that fell behind on a
+            # loaded machine reads a burst, refused as too dense): counted, never lost
+            "refused_by_serve": {k: int(v) for k, v in srv.get("refused_samples", {}).items()},
+            "recorded": int(sum(rec.get("samples", {}).values())), "dropped": dropped,
+            "estimates_published": int(srv.get("estimates", 0)),
+            # messages whose handling raised in the fusion node (logged, the node going on)
+            "serve_errors": int(srv.get("errors", 0)),
+            "estimates_received": int(received),
+            "estimates_recorded": int(sum(rec.get("estimates", {}).values()))}
 
 
 def heading_detail(tr: dict) -> str:
