@@ -26,6 +26,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -40,13 +41,13 @@ import numpy as np
 import typer
 import yaml
 
-from fusion.cli.common import console, emit_json, err_console, fail
+from fusion.cli.common import emit_json, err_console, fail
 from fusion.cli.demo_report import (
     heading_scores,
     joint_scores,
     latency_figures,
     sample_counts,
-    summary_table,
+    say_summary,
     write_report,
 )
 from fusion.cli.options import JsonOpt, ScenarioOpt, SeedOpt
@@ -349,18 +350,7 @@ def demo_command(
     """The whole service on this machine, no hardware, loopback only: the simulated WMRA
     calibrates its sensors, then fake drivers → fusion node → recorder run as processes
     over Zenoh; a summary against the truth and an HTML report."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-    if not duration_s >= 5:
-        fail(f"--duration {duration_s!r}: expected at least 5 s (the arm is still for the first seconds)")
-    if calibrate_sensors and calibration_s is not None and not calibration_s >= 15:
-        fail(f"--calibration-duration {calibration_s!r}: expected at least 15 s")
-    if not 1.0 <= batch_ms <= 1000.0:
-        fail(f"--batch-ms {batch_ms!r}: expected 1 to 1000")
-    if scenario not in SCENARIOS:
-        fail(f"--scenario {scenario!r}: expected one of {', '.join(SCENARIOS)}")
-    if out.exists() and not out.is_dir():
-        fail(f"--out {out}: exists and is not a directory")
+    _check_options(duration_s, calibrate_sensors, calibration_s, batch_ms, scenario, out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
     timings: dict[str, float] = {}
@@ -370,10 +360,8 @@ def demo_command(
         if show:
             err_console.print(f"[bold]demo:[/] {msg}", highlight=False)
 
-    identification = None
-    calibration_rec = None
-    played: dict[str, Any] = {}
-    config: str | Path = "wmra"
+    # without --calibrate-sensors: the shipped config, nothing identified or played
+    identification, calibration_rec, played, config = None, None, {}, "wmra"
     try:
         with Children(out / "nodes") as ch:
             if calibrate_sensors:
@@ -389,28 +377,9 @@ def demo_command(
             say(f"live: router, recorder, fusion node and drivers over Zenoh on 127.0.0.1 "
                 f"({duration_s:g} s of {scenario})")
             t1 = time.monotonic()
-            with Progress(TextColumn("{task.description}"), BarColumn(),
-                          TextColumn("{task.fields[info]}"), TimeElapsedColumn(),
-                          console=err_console, disable=not show, transient=False) as bar:
-                task = bar.add_task("live", total=duration_s, info="starting the nodes")
-
-                def progress(w: Watched) -> None:
-                    with w.lock:
-                        last = w.joints[-1][1] if w.joints else None
-                        n = len(w.joints)
-                        serve = w.status.get("serve")
-                        drv = w.status.get("drivers")
-                    published = 0 if drv is None else \
-                        sum(v for k, v in drv.counters if k.startswith("samples."))
-                    state = "" if serve is None else serve.state
-                    flags = "" if last is None else " ".join(
-                        f"{k} {v}" for k, v in Counter(last.flags).most_common())
-                    bar.update(task, completed=0.0 if last is None else min(last.t_s, duration_s),
-                               info=f"{state} · {published} samples out · {n} estimates in · {flags}")
-
+            with _live_bar(duration_s, show) as progress:
                 live = run_live(out, config, seed, duration_s, scenario, realistic, ch, progress,
                                 batch_ms)
-                bar.update(task, completed=duration_s)
             timings["live_s"] = time.monotonic() - t1
     except DemoError as e:
         fail(str(e))
@@ -426,11 +395,7 @@ def demo_command(
             diag, ladder = workbench(calibration_rec, identification)
     doc = {"seed": seed, "realistic": realistic, "scenario": scenario, "duration_s": duration_s,
            "config": str(config), "out": str(out), "recording": str(live["recording"]),
-           "calibration": None if identification is None else {
-               "recording": str(calibration_rec), "config": str(config), **played,
-               "chi2_red": identification["chi2_red"],
-               "compass": identification.get("compass_drive"),
-               "unmodelled_g": identification.get("unmodelled_g")},
+           "calibration": _calibration_doc(identification, calibration_rec, config, played),
            **{k: v for k, v in ev.items() if not k.startswith("_")}}
     if diag is not None:
         doc["workbench"] = {"verdict": diag.verdict, "rms_ratio": diag.rms_ratio, "ladder": ladder}
@@ -443,17 +408,62 @@ def demo_command(
     if json_out:
         emit_json(doc)
         return
-    table, lines = summary_table(doc, ev)
-    console.print(f"startup: {ev['startup']['message']}", highlight=False)
-    console.print(table)
-    for ln in lines:
-        console.print(ln, highlight=False)
-    if diag is not None:
-        console.print(f"workbench on the calibration recording: shipped model {diag.rms_ratio:.1f}× "
-                      f"the noise ({diag.verdict}); with the identified effects "
-                      f"{ladder[-1]['rms_ratio']:.2f}×", highlight=False)
-    console.print(f"report: {report}  (recording: {live['recording']}; "
-                  f"{timings['total_s']:.0f} s in all)", highlight=False)
+    say_summary(doc, ev, diag, ladder, f"report: {report}  (recording: {live['recording']}; "
+                f"{timings['total_s']:.0f} s in all)")
+
+
+def _check_options(duration_s: float, calibrate_sensors: bool, calibration_s: float | None,
+                   batch_ms: float, scenario: str, out: Path) -> None:
+    """Exit 2 before any work on an option out of its range."""
+    if not duration_s >= 5:
+        fail(f"--duration {duration_s!r}: expected at least 5 s (the arm is still for the first seconds)")
+    if calibrate_sensors and calibration_s is not None and not calibration_s >= 15:
+        fail(f"--calibration-duration {calibration_s!r}: expected at least 15 s")
+    if not 1.0 <= batch_ms <= 1000.0:
+        fail(f"--batch-ms {batch_ms!r}: expected 1 to 1000")
+    if scenario not in SCENARIOS:
+        fail(f"--scenario {scenario!r}: expected one of {', '.join(SCENARIOS)}")
+    if out.exists() and not out.is_dir():
+        fail(f"--out {out}: exists and is not a directory")
+
+
+@contextlib.contextmanager
+def _live_bar(duration_s: float, show: bool):
+    """A progress bar of the live run (hidden unless ``show``): the ``progress(watched)``
+    callback that updates it, and the bar completed at the end."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(),
+                  TextColumn("{task.fields[info]}"), TimeElapsedColumn(),
+                  console=err_console, disable=not show, transient=False) as bar:
+        task = bar.add_task("live", total=duration_s, info="starting the nodes")
+
+        def progress(w: Watched) -> None:
+            with w.lock:
+                last = w.joints[-1][1] if w.joints else None
+                n = len(w.joints)
+                serve = w.status.get("serve")
+                drv = w.status.get("drivers")
+            published = 0 if drv is None else \
+                sum(v for k, v in drv.counters if k.startswith("samples."))
+            state = "" if serve is None else serve.state
+            flags = "" if last is None else " ".join(
+                f"{k} {v}" for k, v in Counter(last.flags).most_common())
+            bar.update(task, completed=0.0 if last is None else min(last.t_s, duration_s),
+                       info=f"{state} · {published} samples out · {n} estimates in · {flags}")
+
+        yield progress
+        bar.update(task, completed=duration_s)
+
+
+def _calibration_doc(identification: dict | None, calibration_rec, config, played: dict) -> dict | None:
+    """The summary's ``calibration``: what was played and identified (None: not calibrated)."""
+    if identification is None:
+        return None
+    return {"recording": str(calibration_rec), "config": str(config), **played,
+            "chi2_red": identification["chi2_red"],
+            "compass": identification.get("compass_drive"),
+            "unmodelled_g": identification.get("unmodelled_g")}
 
 
 COMMAND_TABLE = (

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from fusion.cli.common import console
 from fusion.tracking.tracker import truth_at
 from models.rotations import wrap_angle
 
@@ -299,3 +300,17 @@ def summary_table(doc: dict[str, Any], ev: dict[str, Any]):
                      "publishes fewer estimates and says `degraded` with its lag in its status; "
                      "docs/service-node.md)")
     return t, lines
+
+
+def say_summary(doc: dict, ev: dict, diag, ladder, last_line: str) -> None:
+    """The summary on the console: the startup, the table, the workbench's verdict, the report."""
+    table, lines = summary_table(doc, ev)
+    console.print(f"startup: {ev['startup']['message']}", highlight=False)
+    console.print(table)
+    for ln in lines:
+        console.print(ln, highlight=False)
+    if diag is not None:
+        console.print(f"workbench on the calibration recording: shipped model {diag.rms_ratio:.1f}× "
+                      f"the noise ({diag.verdict}); with the identified effects "
+                      f"{ladder[-1]['rms_ratio']:.2f}×", highlight=False)
+    console.print(last_line, highlight=False)
