@@ -239,7 +239,6 @@ OVERSIZED: dict[str, str] = {
     "fusion.cli.demo_report:write_report": _COMMAND,
     "fusion.cli.diagnose_report:report_figures": _COMMAND,
     "fusion.cli.diagnose_report:write_report": _COMMAND,
-    "fusion.cli.track:track": _COMMAND,
     "fusion.identification.data": "every sensor kind's rows from a recording; to split by kind",
     "fusion.identification.data:data_from_recording": _NUMERIC,
     "fusion.identification.identify:identify": _NUMERIC,
