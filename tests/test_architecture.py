@@ -234,7 +234,6 @@ _TR = "the Tracker's methods moved out as functions of `tr`; tracking is being r
 
 OVERSIZED: dict[str, str] = {
     # name -> why it is still over the rule; remove a line when its entry is split
-    "fusion.cli.calibrate_sensors:calibrate_sensors": _COMMAND,
     "fusion.cli.demo_report:write_report": _COMMAND,
     "fusion.cli.diagnose_report:report_figures": _COMMAND,
     "fusion.cli.diagnose_report:write_report": _COMMAND,
