@@ -24,6 +24,8 @@ stream         kind             CSV columns
 ``true_q``     ``truth_joints`` ``true_q1`` … ``true_qN`` (rad)
 ``true_base``  ``truth_base``   ``true_roll``, ``true_pitch``, ``true_yaw`` (rad)
 =============  ===============  =========================================
+
+:func:`stream_gaps` says where a stream misses samples (``inspect`` and the bag import report it).
 """
 
 from __future__ import annotations
@@ -219,3 +221,25 @@ class Recording:
     @property
     def duration_s(self) -> float:
         return self.t_end_s - self.t_start_s
+
+
+GAP_FACTOR = 1.5
+"""A gap is an interval longer than this many sample periods: at least one sample is
+missing there (one missing sample makes an interval of two periods). It was 3, which
+let a stream missing one sample in five pass as "0 gaps"."""
+
+PERIOD_PERCENTILE = 10.0
+"""The stream's sample period is this percentile of its intervals: the median is no
+period when half of them span a missing sample."""
+
+
+def stream_gaps(s: Stream) -> tuple[int, float, int]:
+    """Number of gaps, the longest interval between samples [s], and how many samples
+    the gaps miss (each gap's interval in sample periods, less one)."""
+    if len(s) < 3:
+        return 0, float(np.diff(s.t_s).max()) if len(s) == 2 else 0.0, 0
+    dt = np.diff(s.t_s)
+    period = float(np.percentile(dt, PERIOD_PERCENTILE))
+    gap = dt > GAP_FACTOR * period
+    missing = int(np.sum(np.maximum(np.rint(dt[gap] / period) - 1, 1)))
+    return int(np.sum(gap)), float(dt.max()), missing

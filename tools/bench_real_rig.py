@@ -68,22 +68,19 @@ from fusion.tracking.calibrated import config_model, device_time_offsets  # noqa
 from fusion.tracking.gyro_encoder import calibrate_gyro_encoder, settings_with_gyro_encoder, with_gyro_encoder  # noqa: E402
 from fusion.tracking.settings import JOINT_FLAGS, TrackerSettings  # noqa: E402
 from fusion.tracking.start import start_from_recording  # noqa: E402
-from fusion.workbench.diagnose import diagnose  # noqa: E402
 from fusion.workbench.discover import DiscoverSettings, Discovery, Rung, discover  # noqa: E402
 from models.effects import model_from_arm  # noqa: E402
 from models.rotations import wrap_angle  # noqa: E402
 from sensors.samples import Recording  # noqa: E402
 from tools.benchdoc import machine_line, record_headline, write_section  # noqa: E402
+from tools.rig_configs import RIG_CONFIGS, WINDOW, choose_config  # noqa: E402
 from tools.rig_peers import peer_joint_angles  # noqa: E402
 
-RIG_CONFIGS = ("imu_rig_roll", "imu_rig_pitch", "imu_rig_yaw")
 DATA = ROOT.parent / "shared" / "data" / "imu-rig"
 REAL_DATA_DOC = ROOT / "docs" / "real-data.md"
 CITATION = ("S. Y. Song, Y. Pei, E. T. Hsiao-Wecksler, \"Estimating Relative Angles Using Two Inertial "
             "Measurement Units Without Magnetometers\", IEEE Sensors Journal, 2022; data and code "
             "github.com/ssong47/compute_relative_angle_between_two_IMUs (MIT licence)")
-WINDOW = 10
-"""Samples per fit point of the ladder (0.1 s at 100 Hz)."""
 ZERO_TARGET_DEG = 0.2
 ZERO_WITHIN_S = 30.0
 
@@ -116,18 +113,6 @@ class TrialResult:
 
     def failed(self, stage: str) -> str | None:
         return (self.failures or {}).get(stage)
-
-
-def choose_config(rec: Recording, first_s: float) -> tuple[str, dict[str, float]]:
-    """The rig config whose model (no effects) fits the trial's first ``first_s`` best."""
-    t0 = rec.t_start_s
-    part = rec.between(t0, t0 + first_s)
-    fits = {}
-    for name in RIG_CONFIGS:
-        arm = load_arm(name)
-        data = data_from_recording(arm, part, window=WINDOW, q_ref_rad=np.zeros(arm.n_joints))
-        fits[name] = diagnose(model_from_arm(arm), data).rms_ratio
-    return min(fits, key=fits.get), fits
 
 
 def ladder(arm, rec: Recording, rungs: int) -> Discovery:

@@ -334,7 +334,7 @@ def main(argv=None) -> int:
     from fusion.configfile import load_arm
     from fusion.importing.column_map import load_column_map
     from fusion.importing.run import import_recording
-    from tools.bench_real_rig import RIG_CONFIGS, choose_config
+    from tools.rig_configs import RIG_CONFIGS, choose_config
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("trials", type=Path, nargs="+", help="the rig's .mat trials")

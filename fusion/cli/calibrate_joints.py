@@ -65,18 +65,79 @@ def calibrate_joints(
         "calibrate joints needs (every link accelerometer of {source})", json_out)
     st = StartupSettings(gimbal_lock_deg=gimbal_lock_deg, sigma_limit_deg=sigma_limit_deg)
     notes: list[str] = []
-    first_prior = None
+    first_prior = _first_prior(prior, assume_parked, arm, notes)
+    from fusion.tracking.start import short_still_readings
+
+    segs, short = _still_segments(arm, rec, recording, segments, window_s, start_at, notes)
+    out = []
+    temp = rec.get("imu_temp")
+    corr, temperature_c = _correction_with_notes(arm, temp, notes)
+    drifts = any(e.name == "temperature_drift" for e in corr.model.effects)
+    by_temperature = {round(temperature_c, 1): corr}
+    enc = rec.get("enc")
+    carried: tuple[StartupResult, np.ndarray] | None = None  # last answer, encoder angles then
+    for i_seg, seg in enumerate(segs):
+        readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
+        short_note = None
+        if i_seg in short:
+            readings, short_note = short_still_readings(arm, rec, seg, readings)
+        enc_rad = _encoder_angles_at(arm, enc, seg.t_end_s)
+        seg_prior = first_prior
+        if carried is not None and not independent and enc_rad is not None:
+            # within one power-on the encoders are continuous: what the last window found,
+            # moved by what they counted since, is this window's (checked) prior
+            seg_prior = prior_after_move(carried[0], enc_rad - carried[1], arm, st)
+        seg_corr = _segment_correction(arm, seg, temp if drifts else None, corr, by_temperature)
+        readings = seg_corr.readings(readings)
+        seg_notes = [c.message for c in checks] + ([short_note] if short_note else [])
+        try:
+            geometric = solve_still(arm, readings, st, prior=seg_prior, method=method)
+            res = seg_corr.controller_result(geometric)
+        except StartupInputError as e:
+            out.append({"t_start": seg.t_start_s, "t_end": seg.t_end_s, "error": str(e),
+                        "notes": seg_notes})
+            continue
+        if enc_rad is not None:
+            carried = (geometric, enc_rad)
+        d = res.as_dict()
+        d["t_start"], d["t_end"] = seg.t_start_s, seg.t_end_s
+        d["notes"] = seg_notes + list(res.notes)
+        out.append((d, res))
+    docs = [o[0] if isinstance(o, tuple) else o for o in out]
+    if save is not None:
+        _save_last_pose(save, arm, [o[1] for o in out if isinstance(o, tuple)], notes)
+    if json_out:
+        emit_json({"config": arm.source, "recording": str(recording), "method": method,
+                   "segments": docs, "notes": notes, "saturated_left_out": screen.as_dict()["saturated"]})
+        return
+    for n in notes:
+        err_console.print(n)
+    for d in docs:
+        _print_segment(d)
+    if all("error" in d for d in docs):
+        raise typer.Exit(1)
+
+
+def _first_prior(prior: Path | None, assume_parked: bool, arm, notes: list[str]):
+    """The first still stretch's prior: ``--prior``'s saved pose (a note when it cannot be
+    used), the ready pose with ``--assume-parked``, else none; exit 2 given both."""
     if prior is not None and assume_parked:
         fail("--prior and --assume-parked: give one (a saved pose is checked; --assume-parked asserts the ready pose)")
     if prior is not None:
         saved, why = load_pose(prior, arm)
         if saved is None:
             notes.append(why)
-        else:
-            first_prior = StartupPrior.saved_pose(saved.q_rad, source=f"the pose saved in {prior}")
-    elif assume_parked:
-        first_prior = StartupPrior.assume_parked(arm)
-    from fusion.tracking.start import NoStillWindowError, choose_start, short_still_readings
+            return None
+        return StartupPrior.saved_pose(saved.q_rad, source=f"the pose saved in {prior}")
+    return StartupPrior.assume_parked(arm) if assume_parked else None
+
+
+def _still_segments(arm, rec, recording: Path, segments: bool, window_s: float, start_at: float | None,
+                    notes: list[str]) -> tuple[list, set[int]]:
+    """The still stretches to calibrate on (every one with ``--segments``, else where a start
+    would: the first near the start, a short one too) and which of them are short; exit 2
+    when there is none."""
+    from fusion.tracking.start import NoStillWindowError, choose_start
 
     if start_at is not None and not (np.isfinite(start_at) and start_at >= 0.0):
         fail(f"--start-at must be a time of 0 s or more after the recording's start, not {start_at!r}")
@@ -100,8 +161,14 @@ def calibrate_joints(
     if not segs:
         fail(f"{recording}: no still segment found (accelerometers, gyro and encoders all quiet "
              "for at least 1 s); the arm must be still to calibrate")
-    out = []
-    temp = rec.get("imu_temp")
+    return segs, short
+
+
+def _correction_with_notes(arm, temp, notes: list[str]) -> tuple:
+    """The config's correction of a still arm's readings at the IMU's mean temperature over
+    the recording (``temp``, its stream; 25 °C without one), with notes on the effects it
+    applies, the references the zeros rest on, and the effects it leaves out: ``(correction,
+    temperature_c)``."""
     temperature_c = (float(mpu9150_temperature_c(np.mean(temp.values)))
                      if temp is not None and len(temp) else 25.0)
     try:
@@ -119,61 +186,30 @@ def calibrate_joints(
     unused = [e.block_name for e in corr.model.effects if e.block_name not in used]
     if unused:
         notes.append("not applied to a still arm: " + ", ".join(unused))
-    drifts = any(e.name == "temperature_drift" for e in corr.model.effects)
-    by_temperature = {round(temperature_c, 1): corr}
-    enc = rec.get("enc")
-    carried: tuple[StartupResult, np.ndarray] | None = None  # last answer, encoder angles then
-    for i_seg, seg in enumerate(segs):
-        readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
-        short_note = None
-        if i_seg in short:
-            readings, short_note = short_still_readings(arm, rec, seg, readings)
-        enc_rad = _encoder_angles_at(arm, enc, seg.t_end_s)
-        seg_prior = first_prior
-        if carried is not None and not independent and enc_rad is not None:
-            # within one power-on the encoders are continuous: what the last window found,
-            # moved by what they counted since, is this window's (checked) prior
-            seg_prior = prior_after_move(carried[0], enc_rad - carried[1], arm, st)
-        seg_corr = corr
-        seg_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None and drifts else None
-        if seg_temp is not None and len(seg_temp):  # each still stretch at its own temperature
-            key = round(float(mpu9150_temperature_c(np.mean(seg_temp.values))), 1)
-            if key not in by_temperature:
-                by_temperature[key] = startup_correction(arm, key, include_joint_offsets=True)
-            seg_corr = by_temperature[key]
-        readings = seg_corr.readings(readings)
-        seg_notes = [c.message for c in checks] + ([short_note] if short_note else [])
-        try:
-            geometric = solve_still(arm, readings, st, prior=seg_prior, method=method)
-            res = seg_corr.controller_result(geometric)
-        except StartupInputError as e:
-            out.append({"t_start": seg.t_start_s, "t_end": seg.t_end_s, "error": str(e),
-                        "notes": seg_notes})
-            continue
-        if enc_rad is not None:
-            carried = (geometric, enc_rad)
-        d = res.as_dict()
-        d["t_start"], d["t_end"] = seg.t_start_s, seg.t_end_s
-        d["notes"] = seg_notes + list(res.notes)
-        out.append((d, res))
-    docs = [o[0] if isinstance(o, tuple) else o for o in out]
-    if save is not None:
-        last = next((o[1] for o in reversed(out) if isinstance(o, tuple)), None)
-        if last is not None and last.all_ok:
-            save_pose(save, arm, last.q_rad)
-            notes.append(f"pose saved to {save}")
-        else:
-            notes.append(f"pose not saved to {save}: not every joint is ok")
-    if json_out:
-        emit_json({"config": arm.source, "recording": str(recording), "method": method,
-                   "segments": docs, "notes": notes, "saturated_left_out": screen.as_dict()["saturated"]})
-        return
-    for n in notes:
-        err_console.print(n)
-    for d in docs:
-        _print_segment(d)
-    if all("error" in d for d in docs):
-        raise typer.Exit(1)
+    return corr, temperature_c
+
+
+def _segment_correction(arm, seg, temp, corr, by_temperature: dict):
+    """The correction at the still stretch's own temperature (``temp``: the IMU's temperature
+    stream when the config's effects drift with it, else None: ``corr``), cached by 0.1 °C."""
+    seg_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None else None
+    if seg_temp is None or not len(seg_temp):
+        return corr
+    key = round(float(mpu9150_temperature_c(np.mean(seg_temp.values))), 1)
+    if key not in by_temperature:
+        by_temperature[key] = startup_correction(arm, key, include_joint_offsets=True)
+    return by_temperature[key]
+
+
+def _save_last_pose(save: Path, arm, results: list, notes: list[str]) -> None:
+    """Save the last still stretch's pose to ``save`` when every joint of it is ok; a note
+    either way."""
+    last = results[-1] if results else None
+    if last is not None and last.all_ok:
+        save_pose(save, arm, last.q_rad)
+        notes.append(f"pose saved to {save}")
+    else:
+        notes.append(f"pose not saved to {save}: not every joint is ok")
 
 
 def _encoder_angles_at(arm, enc, t_s: float) -> np.ndarray | None:

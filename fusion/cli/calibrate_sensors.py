@@ -161,20 +161,8 @@ def calibrate_sensors(
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, fit_streams,
         "calibrate sensors fits (the encoders and every sensor stream of {source})", json_out)
-    try:
-        model = build_model(arm, effects)
-        data = data_from_recording(arm, rec, window, nodes=2, stances=stances)
-        if base_tilt is not None:
-            data = replace(data, base_tilt_reference=parse_base_tilt(base_tilt, base_tilt_sigma))
-        if reference:
-            if mode == "separate":
-                raise ValueError("--reference pins a joint's zero in the simultaneous fit; --mode "
-                                 "separate compares each sensor's gravity direction and has no use "
-                                 "for it")
-            data = replace(data, joint_references=joint_references(
-                arm, rec, [parse_reference(r) for r in reference]))
-    except ValueError as e:
-        fail(str(e))
+    model, data = _model_and_data(arm, rec, effects, window, stances, base_tilt, base_tilt_sigma,
+                                  reference, mode)
     if not json_out:
         err_console.print(f"fitting {model.size} parameters on {data.n:,} points ({data.note})…")
     settings = IdentifySettings(encoder_scale=True)
@@ -185,17 +173,7 @@ def calibrate_sensors(
         if json_out:
             emit_json({k: v.as_dict() for k, v in fits.items()})
             return
-        t = Table(title="Gravity direction in the base frame, per sensor (separate fits; the first "
-                        "stance)", title_justify="left")
-        for c in ("sensor", "roll [deg]", "pitch [deg]", "RMS / noise", "held"):
-            t.add_column(c)
-        for k, f in fits.items():
-            ratio = np.mean([np.mean(s.rms / s.noise) for s in f.fits])
-            a = np.degrees(f.attitude_rad)  # the first stance's
-            i0 = len(f.names) - 3 * len(f.attitudes_rad)
-            t.add_row(k, f"{a[0]:.3f} ± {np.degrees(f.sigma[i0]):.3f}",
-                      f"{a[1]:.3f} ± {np.degrees(f.sigma[i0 + 1]):.3f}", f"{ratio:.2f}", str(int(f.held.sum())))
-        console.print(t)
+        _print_separate(fits)
         return
     with progress_bar("fitting", json_out) as advance:
         res, data = identify_recentred(model, data, None, settings, _jacobians(advance))
@@ -213,14 +191,8 @@ def calibrate_sensors(
     if compass_drive is not None:
         out, compass_line = _with_compass_from_drive(out, compass_drive, json_out)
     if write is not None:
-        write.parent.mkdir(parents=True, exist_ok=True)
-        refs = "".join(f"# rests on the one-time reference {c.reference.joint} = "
-                       f"{np.degrees(c.reference.angle_rad):.3f}° ± {np.degrees(c.reference.sigma_rad):.3g}° "
-                       f"({c.reference.where}): calibration.identified.references\n"
-                       for c in res.reference_checks)
-        compass = f"# {compass_line}\n" if compass_line else ""
-        write_text_replacing(write, f"# {res.summary()}\n# from {recording}, config {src.name}\n" + refs + compass
-                         + yaml.safe_dump(out, sort_keys=False, width=110))
+        _write_config(write, res, out, f"# {res.summary()}\n# from {recording}, config {src.name}\n",
+                      compass_line)
     if json_out:
         d = res.as_dict()
         d["written"] = str(write) if write else None
@@ -232,6 +204,54 @@ def calibrate_sensors(
     _print(res, write)
     if compass_line:
         console.print(compass_line)
+
+
+def _model_and_data(arm, rec, effects, window: int, stances, base_tilt, base_tilt_sigma, reference,
+                    mode: str) -> tuple:
+    """The model of the effects to fit and the fit's data (with the base tilt's and the joints'
+    one-time references given), or exit 2 saying why there are none."""
+    try:
+        model = build_model(arm, effects)
+        data = data_from_recording(arm, rec, window, nodes=2, stances=stances)
+        if base_tilt is not None:
+            data = replace(data, base_tilt_reference=parse_base_tilt(base_tilt, base_tilt_sigma))
+        if reference:
+            if mode == "separate":
+                raise ValueError("--reference pins a joint's zero in the simultaneous fit; --mode "
+                                 "separate compares each sensor's gravity direction and has no use "
+                                 "for it")
+            data = replace(data, joint_references=joint_references(
+                arm, rec, [parse_reference(r) for r in reference]))
+    except ValueError as e:
+        fail(str(e))
+    return model, data
+
+
+def _print_separate(fits: dict) -> None:
+    """The separate fits: each sensor's gravity direction in the base frame (the first stance)."""
+    t = Table(title="Gravity direction in the base frame, per sensor (separate fits; the first "
+                    "stance)", title_justify="left")
+    for c in ("sensor", "roll [deg]", "pitch [deg]", "RMS / noise", "held"):
+        t.add_column(c)
+    for k, f in fits.items():
+        ratio = np.mean([np.mean(s.rms / s.noise) for s in f.fits])
+        a = np.degrees(f.attitude_rad)  # the first stance's
+        i0 = len(f.names) - 3 * len(f.attitudes_rad)
+        t.add_row(k, f"{a[0]:.3f} ± {np.degrees(f.sigma[i0]):.3f}",
+                  f"{a[1]:.3f} ± {np.degrees(f.sigma[i0 + 1]):.3f}", f"{ratio:.2f}", str(int(f.held.sum())))
+    console.print(t)
+
+
+def _write_config(write: Path, res, out: dict, header: str, compass_line: str | None) -> None:
+    """Write the calibrated config ``out``: ``header``, the references it rests on and the
+    compass's line as comments, then the YAML."""
+    write.parent.mkdir(parents=True, exist_ok=True)
+    refs = "".join(f"# rests on the one-time reference {c.reference.joint} = "
+                   f"{np.degrees(c.reference.angle_rad):.3f}° ± {np.degrees(c.reference.sigma_rad):.3g}° "
+                   f"({c.reference.where}): calibration.identified.references\n"
+                   for c in res.reference_checks)
+    compass = f"# {compass_line}\n" if compass_line else ""
+    write_text_replacing(write, header + refs + compass + yaml.safe_dump(out, sort_keys=False, width=110))
 
 
 def _with_compass_from_drive(cfg: dict, drive: Path, json_out: bool) -> tuple[dict, str]:

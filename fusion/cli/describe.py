@@ -7,16 +7,7 @@ import numpy as np
 from fusion.startup.static import StaticDetectionSettings, find_static_segments
 from models.arm import ArmModel
 from models.kinematics import joint_axis_angle_to_vertical
-from sensors.samples import Recording, Stream
-
-GAP_FACTOR = 1.5
-"""A gap is an interval longer than this many sample periods: at least one sample is
-missing there (one missing sample makes an interval of two periods). It was 3, which
-let a stream missing one sample in five pass as "0 gaps"."""
-
-PERIOD_PERCENTILE = 10.0
-"""The stream's sample period is this percentile of its intervals: the median is no
-period when half of them span a missing sample."""
+from sensors.samples import Recording, stream_gaps
 
 
 def describe_arm(arm: ArmModel) -> dict:
@@ -74,18 +65,6 @@ def describe_arm(arm: ArmModel) -> dict:
                   "pitch_deg": None if arm.fixed_base.pitch_rad is None
                   else float(np.degrees(arm.fixed_base.pitch_rad))}),
     }
-
-
-def stream_gaps(s: Stream) -> tuple[int, float, int]:
-    """Number of gaps, the longest interval between samples [s], and how many samples
-    the gaps miss (each gap's interval in sample periods, less one)."""
-    if len(s) < 3:
-        return 0, float(np.diff(s.t_s).max()) if len(s) == 2 else 0.0, 0
-    dt = np.diff(s.t_s)
-    period = float(np.percentile(dt, PERIOD_PERCENTILE))
-    gap = dt > GAP_FACTOR * period
-    missing = int(np.sum(np.maximum(np.rint(dt[gap] / period) - 1, 1)))
-    return int(np.sum(gap)), float(dt.max()), missing
 
 
 def describe_recording(rec: Recording, settings: StaticDetectionSettings | None = None) -> dict:

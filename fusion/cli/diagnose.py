@@ -14,16 +14,12 @@ version's residual RMS to a history (the error ladder). See docs/workbench.md.
 
 from __future__ import annotations
 
-import json
-import tempfile
-import time
-from dataclasses import replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 import typer
-import yaml
 from rich.table import Table
 
 from fusion.cli.common import (
@@ -37,10 +33,10 @@ from fusion.cli.common import (
     progress_bar,
     read_recording_or_exit,
 )
-from fusion.cli.diagnose_report import report_figures, write_innovation_report, write_report  # noqa: F401 (report_figures: imported from here by fusion.service.demo)
+from fusion.cli.diagnose_report import write_innovation_report, write_report
+from fusion.cli.diagnose_write import Fits, extend_ladder, history_path, write_config, write_refusal
 from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
-from fusion.configfile import load_arm, resolve_config_path
-from fusion.identification.identify import config_with_estimates, data_from_recording, fit_streams
+from fusion.identification.identify import data_from_recording, fit_streams
 from fusion.workbench.diagnose import (
     DiagnoseSettings,
     Diagnosis,
@@ -52,12 +48,9 @@ from fusion.workbench.diagnose import (
     parse_add,
 )
 from fusion.workbench.discover import DiscoverSettings, Discovery, discover, held_out_worse
-from fusion.workbench.heldout import HeldOut, as_it_is, split_in_time, tracked, tracked_worse
+from fusion.workbench.heldout import HeldOut, as_it_is, split_in_time
 from fusion.workbench.resampling import resampled_streams
 from models.effects import TargetError, model_from_arm
-from sensors.output_files import write_text_replacing
-
-HISTORY_FORMAT = "armfusion.workbench-history/1"
 
 
 def register(app: typer.Typer) -> None:
@@ -65,44 +58,6 @@ def register(app: typer.Typer) -> None:
     if any(c.name == "diagnose" for c in app.registered_commands):
         return
     app.command("diagnose")(diagnose_command)
-
-
-def history_path(config: str) -> Path:
-    """Beside the config when it is a file the user named; in the current directory for a
-    shipped config (``wmra``), so the repository's configs stay untouched."""
-    p = Path(config)
-    if p.exists():
-        return p.with_name(p.stem + ".workbench.json")
-    return Path.cwd() / f"{Path(config).stem}.workbench.json"
-
-
-def history_entry(diag: Diagnosis, recording: Path, config: str, label: str) -> dict:
-    top = diag.candidates[0] if diag.candidates else None
-    return {
-        "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        "recording": str(recording), "config": str(config), "label": label,
-        "effects": [e for e in diag.effects() if not e.endswith(".joint_offset")],
-        "rms_ratio": round(diag.rms_ratio, 5),
-        "held_out_rms_ratio": None if diag.held_out_ratio is None else round(diag.held_out_ratio, 5),
-        "streams": {s: round(r, 5) for s, r in diag.stream_ratios().items()},
-        "verdict": diag.verdict,
-        "top_candidate": None if top is None else top.name,
-    }
-
-
-def append_history(path: Path, entries: list[dict]) -> list[dict]:
-    """Append ``entries`` to the history file at ``path``; returns the whole ladder."""
-    runs: list[dict] = []
-    if path.exists():
-        try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
-            runs = list(doc.get("runs", []))
-        except (ValueError, AttributeError):
-            err_console.print(f"[yellow]warning:[/] {path} is not a workbench history; starting a new one")
-    runs += entries
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_text_replacing(path, json.dumps({"format": HISTORY_FORMAT, "runs": runs}, indent=2) + "\n")
-    return runs
 
 
 def diagnose_command(
@@ -133,15 +88,7 @@ def diagnose_command(
     json_out: JsonOpt = False,
 ) -> None:
     """Compare the model with a recording: where it fails, which physical effect is missing."""
-    if discover_ and add:
-        fail("--discover chooses the effects itself: give --discover or --add, not both")
-    inputs = (recording, config_file(config))  # (--history is read and extended: not among them)
-    for path, option in ((write, "--write"), (report, "--report"), (history, "--history")):
-        if path is not None:
-            check_output_path(path, option, inputs=inputs)
-    if write is not None and history is None:
-        check_output_path(write.with_name(write.stem + ".workbench.json"), "--write (its history)",
-                          inputs=inputs)
+    _check_outputs(recording, config, add, write, report, history, discover_)
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, fit_streams,
         "diagnose fits (the encoders and every sensor stream of {source})", json_out)
@@ -155,6 +102,62 @@ def diagnose_command(
                  "record with the chair parked to find and add effects")
         _innovations_only(arm, rec, recording, config, report, json_out, screen, discover_)
         return
+    data, held, judged_rec = _data_and_held_out(arm, rec, recording, validate, window, write, json_out)
+    if data.saturated_windows and not json_out:
+        err_console.print(f"[yellow]{data.saturated_windows:,} fit windows left out: they hold saturated "
+                          "samples[/]", highlight=False)
+    fits = _fits(arm, data, held, added, discover_, rungs, write is not None, json_out)
+    out = _Outputs(inn=_run_innovations(arm, rec, json_out) if innovations else None,
+                   resampled=resampled_streams(rec, [s for s in fit_streams(arm) if s != "enc"]),
+                   hpath=history or history_path(config), write=write, report=report)
+    out.ladder = extend_ladder(out.hpath, fits, recording, config, write, history)
+    if write is not None:
+        out.write_refused = fits.refused_add or write_refusal(fits.final, fits.as_is)
+        if out.write_refused is None:
+            out.consistency, out.write_refused = write_config(arm, fits, recording, config, write,
+                                                               judged_rec, held, json_out)
+    if report is not None:
+        write_report(report, fits.before, fits.after, out.ladder, recording, config, fits.disc)
+    if json_out:
+        emit_json(_json_doc(fits, out, top, screen, data))
+        if out.write_refused is not None:
+            raise typer.Exit(1)
+        return
+    _say(fits, out, top)
+
+
+@dataclass
+class _Outputs:
+    """What ``diagnose`` reports beside the fits, and what it wrote or refused to."""
+
+    inn: object | None
+    resampled: list
+    hpath: Path
+    write: Path | None
+    report: Path | None
+    ladder: list = field(default_factory=list)
+    write_refused: str | None = None
+    consistency: dict | None = None
+
+
+def _check_outputs(recording: Path, config: str, add, write: Path | None, report: Path | None,
+                   history: Path | None, discover_: bool) -> None:
+    """Exit 2 before any work when the options clash or an output cannot be written."""
+    if discover_ and add:
+        fail("--discover chooses the effects itself: give --discover or --add, not both")
+    inputs = (recording, config_file(config))  # (--history is read and extended: not among them)
+    for path, option in ((write, "--write"), (report, "--report"), (history, "--history")):
+        if path is not None:
+            check_output_path(path, option, inputs=inputs)
+    if write is not None and history is None:
+        check_output_path(write.with_name(write.stem + ".workbench.json"), "--write (its history)",
+                          inputs=inputs)
+
+
+def _data_and_held_out(arm, rec, recording: Path, validate: Path | None, window: int, write: Path | None,
+                       json_out: bool):
+    """The fit's data, the held-out data (``--validate``'s recording, else the recording's last
+    part; ``None`` when it is too short to hold a part out) and the recording it comes from."""
     try:
         data = data_from_recording(arm, rec, window=window)
     except ValueError as e:
@@ -167,21 +170,22 @@ def diagnose_command(
             held = HeldOut(data_from_recording(arm, vrec, window=window), False, f"the recording {validate}")
         except ValueError as e:
             fail(f"--validate {validate}: {e}")
-    else:
-        try:
-            data, held = split_in_time(data)
-        except ValueError as e:
-            # too short to hold a part out: diagnosed on itself, nothing written from it
-            held, no_held_out = None, f"{recording}: {e}"
-            if write is not None:
-                fail(f"{no_held_out}; --write needs a part the fit does not see (or --validate REC)")
-            if not json_out:
-                err_console.print(f"[yellow]warning:[/] {no_held_out}: judged on nothing but itself",
-                                  highlight=False)
-    if data.saturated_windows and not json_out:
-        err_console.print(f"[yellow]{data.saturated_windows:,} fit windows left out: they hold saturated "
-                          "samples[/]", highlight=False)
+        return data, held, vrec
+    try:
+        data, held = split_in_time(data)
+    except ValueError as e:
+        # too short to hold a part out: diagnosed on itself, nothing written from it
+        held, no_held_out = None, f"{recording}: {e}"
+        if write is not None:
+            fail(f"{no_held_out}; --write needs a part the fit does not see (or --validate REC)")
+        if not json_out:
+            err_console.print(f"[yellow]warning:[/] {no_held_out}: judged on nothing but itself",
+                              highlight=False)
+    return data, held, rec
 
+
+def _fits(arm, data, held, added: list, discover_: bool, rungs: int, writing: bool, json_out: bool) -> Fits:
+    """The config's fit, then the discovered or the added effects', with a progress bar."""
     runs = 2 if added else 1
     disc: Discovery | None = None
     with progress_bar("diagnose", json_out) as advance:
@@ -202,158 +206,54 @@ def diagnose_command(
         refused_add = held_out_worse(before, after) if after is not None and disc is None else None
         as_is = (as_it_is(model_from_arm(arm), data, held, list(dict.fromkeys(a.stream for a in before.axes)),
                           DiagnoseSettings().identify, before.fit.attitude_rad)
-                 if write is not None and held is not None else None)
-    inn = _run_innovations(arm, rec, json_out) if innovations else None
-    resampled = resampled_streams(rec, [s for s in fit_streams(arm) if s != "enc"])
-    final = after or before
-    hpath = history or history_path(config)
-    if disc is not None:
-        entries = [history_entry(r.diagnosis, recording, config, Path(config).stem if k == 0 else r.label)
-                   for k, r in enumerate(disc.rungs)]
-    else:
-        entries = [history_entry(before, recording, config, Path(config).stem)]
-        if after is not None:
-            entries.append(history_entry(after, recording, config,
-                                         "+ " + ", ".join(e.block_name for e in added)))
-    ladder = append_history(hpath, entries)
-    if write is not None and history is None:  # the written config carries the ladder on
-        nxt = write.with_name(write.stem + ".workbench.json")  # beside it (it is not written yet)
-        if nxt.resolve() != hpath.resolve():
-            nxt.parent.mkdir(parents=True, exist_ok=True)
-            write_text_replacing(nxt, json.dumps({"format": HISTORY_FORMAT, "runs": ladder}, indent=2) + "\n")
-    write_refused = None
-    if write is not None:
-        write_refused = refused_add or write_refusal(final, as_is)
-    consistency = None
-    if write is not None and write_refused is None:
-        src = resolve_config_path(config)
-        cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
-        out = config_with_estimates(cfg, without_bound(final))
-        raise_floors(out, final, arm)
-        consistency, write_refused = _tracked_check(arm, out, rec if validate is None else vrec, held, json_out)
-    if write is not None and write_refused is None:
-        write.parent.mkdir(parents=True, exist_ok=True)
-        stand_ins = "".join(f"# {f.added} stands in for one of {', '.join(f.members)} (equal fits)\n"
-                            for f in (disc.findings if disc is not None else ()) if f.is_group)
-        bound = "".join(f"# {n}: its fit ended at the parameter's bound; written at its prior\n"
-                        for n in final.at_bound)
-        judged = (f"# held out: {final.held_out.label}: {final.held_out_ratio:.3f}x the noise "
-                  f"(the config as it was: {as_is.rms_ratio:.3f}x)\n"
-                  if final.held_out_ratio is not None and as_is is not None else "")
-        write_text_replacing(write, f"# armfusion diagnose: rms_ratio {final.rms_ratio:.3f} ({final.verdict})\n"
-                             f"# from {recording}, config {src.name}\n" + judged + stand_ins + bound
-                             + yaml.safe_dump(out, sort_keys=False, width=110))
-    if report is not None:
-        write_report(report, before, after, ladder, recording, config, disc)
-    if json_out:
-        d = final.as_dict(top)
-        d["added"] = ([f.added_block for f in disc.findings]
-                      if disc is not None else [e.block_name for e in added])
-        d["discovery"] = None if disc is None else disc.as_dict()
-        d["before"] = None if after is None else before.as_dict(top)
-        d["history"] = str(hpath)
-        d["ladder"] = [{"label": r["label"], "rms_ratio": r["rms_ratio"],
-                        "held_out_rms_ratio": r.get("held_out_rms_ratio"), "effects": r["effects"]}
-                       for r in ladder]
-        d["written"] = str(write) if write and write_refused is None else None
-        d["write_refused"] = write_refused
-        d["add_refused"] = refused_add
-        d["as_it_was_held_out_rms_ratio"] = None if as_is is None else round(as_is.rms_ratio, 4)
-        d["tracked_held_out"] = consistency
-        d["report"] = str(report) if report else None
-        d["innovations"] = None if inn is None else inn.as_dict()
-        d["resampled_streams"] = [r.as_dict() for r in resampled]
-        d["saturated_left_out"] = {"samples": screen.as_dict()["saturated"],
-                                   "windows": data.saturated_windows}
-        emit_json(d)
-        if write_refused is not None:
-            raise typer.Exit(1)
-        return
-    if disc is not None:
-        _print_discovery(disc)
-    _print(before, after, top)
-    if refused_add is not None:
-        console.print(f"[bold yellow]The added effects are refused:[/] {refused_add}.", highlight=False)
-    if inn is not None:
-        _print_innovations(inn)
-    for r in resampled:
+                 if writing and held is not None else None)
+    return Fits(before, after, disc, added, refused_add, as_is)
+
+
+def _json_doc(fits: Fits, out: _Outputs, top: int, screen, data) -> dict:
+    """``diagnose --json``'s document."""
+    before, after, disc, as_is = fits.before, fits.after, fits.disc, fits.as_is
+    d = fits.final.as_dict(top)
+    d["added"] = ([f.added_block for f in disc.findings]
+                  if disc is not None else [e.block_name for e in fits.added])
+    d["discovery"] = None if disc is None else disc.as_dict()
+    d["before"] = None if after is None else before.as_dict(top)
+    d["history"] = str(out.hpath)
+    d["ladder"] = [{"label": r["label"], "rms_ratio": r["rms_ratio"],
+                    "held_out_rms_ratio": r.get("held_out_rms_ratio"), "effects": r["effects"]}
+                   for r in out.ladder]
+    d["written"] = str(out.write) if out.write and out.write_refused is None else None
+    d["write_refused"] = out.write_refused
+    d["add_refused"] = fits.refused_add
+    d["as_it_was_held_out_rms_ratio"] = None if as_is is None else round(as_is.rms_ratio, 4)
+    d["tracked_held_out"] = out.consistency
+    d["report"] = str(out.report) if out.report else None
+    d["innovations"] = None if out.inn is None else out.inn.as_dict()
+    d["resampled_streams"] = [r.as_dict() for r in out.resampled]
+    d["saturated_left_out"] = {"samples": screen.as_dict()["saturated"],
+                               "windows": data.saturated_windows}
+    return d
+
+
+def _say(fits: Fits, out: _Outputs, top: int) -> None:
+    """``diagnose``'s report on the console; exit 1 when the config was not written."""
+    if fits.disc is not None:
+        _print_discovery(fits.disc)
+    _print(fits.before, fits.after, top)
+    if fits.refused_add is not None:
+        console.print(f"[bold yellow]The added effects are refused:[/] {fits.refused_add}.", highlight=False)
+    if out.inn is not None:
+        _print_innovations(out.inn)
+    for r in out.resampled:
         console.print(f"[yellow]Resampled stream:[/] {r.words()}.", highlight=False)
-    console.print(f"History (error ladder, {len(ladder)} model versions): {hpath}")
-    if write and write_refused is None:
-        console.print(f"Wrote {write}")
-    if report:
-        console.print(f"Report: {report}")
-    if write_refused is not None:
-        err_console.print(f"[bold red]Not written[/] ({write}): {write_refused}", highlight=False)
+    console.print(f"History (error ladder, {len(out.ladder)} model versions): {out.hpath}")
+    if out.write and out.write_refused is None:
+        console.print(f"Wrote {out.write}")
+    if out.report:
+        console.print(f"Report: {out.report}")
+    if out.write_refused is not None:
+        err_console.print(f"[bold red]Not written[/] ({out.write}): {out.write_refused}", highlight=False)
         raise typer.Exit(1)
-
-
-def _tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool) -> tuple[dict | None, str | None]:
-    """The tracker over the held-out part with the config it would replace and with the one it
-    would write (``out``); the refusal's reason where the new one keeps fewer innovations
-    within 3σ there (:func:`fusion.workbench.heldout.tracked_worse`)."""
-    t_from = float(held.data.state.t_s[0]) if held.same_recording else -np.inf
-    with progress_bar("tracking the held-out part", json_out) as advance:
-        try:
-            advance(0.0, "with the config as it is")
-            before = tracked(arm, rec, t_from)
-            with tempfile.TemporaryDirectory() as d:
-                path = Path(d) / "candidate.yaml"
-                path.write_text(yaml.safe_dump(out, sort_keys=False), encoding="utf-8")
-                new_arm = load_arm(str(path))
-            advance(0.5, "with the config to write")
-            after = tracked(new_arm, rec, t_from)
-        except (ValueError, RuntimeError) as e:
-            return None, f"the tracker could not run over the held-out part to judge it: {e}"
-    doc = {"as_it_is": before.as_dict(), "written": after.as_dict()}
-    return doc, tracked_worse(before, after)
-
-
-def write_refusal(final: Diagnosis, as_is) -> str | None:
-    """Why the fit ``final`` is not written (None: it may be): judged on the held-out data it
-    fits worse than the config it would replace (``as_is``: that config's held-out fit)."""
-    if final.held_out_ratio is None or as_is is None:
-        return None
-    if final.held_out_ratio > as_is.rms_ratio:
-        return (f"on the held-out data ({final.held_out.label}) it fits worse than the config it would "
-                f"replace: {final.held_out_ratio:.3f} against {as_is.rms_ratio:.3f}x the noise")
-    return None
-
-
-def without_bound(d: Diagnosis):
-    """The fit with every element that ended at its bound back at its prior (value and σ)."""
-    if not d.at_bound:
-        return d.fit
-    f = d.fit
-    x, sig = f.x.copy(), f.sigma.copy()
-    for n in d.at_bound:
-        i = list(f.names).index(n)
-        x[i], sig[i] = f.x0[i], f.prior_sigma[i]
-    return replace(f, x=x, sigma=sig)
-
-
-def raise_floors(cfg: dict, d: Diagnosis, arm=None) -> None:
-    """The written accelerometer floors: at least what the fit leaves on the held-out data (the
-    in-sample residual is smaller by the parameters fitted to it), and, with ``arm`` (the
-    config it replaces), never below that config's own floor. The fit's residual is of
-    window means: it does not see what a tracker reading every sample meets (a clock's
-    offset while moving, a resampled stream's shared samples); a lower floor made the UR5
-    twin's tracked forearm pitch 0.87° RMS on its held-out part against 0.23°."""
-    cal = cfg.get("calibration") or {}
-    per = dict(cal.get("accel_unmodelled_g_per_sensor") or {})
-    model_arm = d.fit.model.arm
-    if d.held_out_fit is not None:
-        for s, g in d.held_out_fit.unmodelled("g").items():
-            name = model_arm.imu.name if s == "imu_acc" and model_arm.imu is not None else s
-            per[name] = max(float(per.get(name, 0.0)), g)
-    if arm is not None:
-        for s in arm.link_accelerometers:
-            per[s.name] = max(float(per.get(s.name, 0.0)), arm.calibration.accel_floor_g(s.name))
-    per = {k: round(max(v, 1e-4), 6) for k, v in per.items()}
-    if per:
-        cal["accel_unmodelled_g_per_sensor"] = per
-        cal["accel_unmodelled_g"] = max(per.values())
-        cfg["calibration"] = cal
 
 
 def _print_discovery(disc: Discovery) -> None:

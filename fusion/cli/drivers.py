@@ -93,7 +93,7 @@ def _publishing(robot: str, batch_ms: float, wait_s: float, admitted_within_s: f
     ``--robot``; SIGINT and SIGTERM stop the run, and so does the fusion node's admitting
     none of the samples within ``admitted_within_s`` (the verdict: ``_Live.admission``);
     the last status says ``done``."""
-    from fusion.service.commands import session_or_exit, watching_admission, zenoh_settings
+    from fusion.cli.nodes import session_or_exit, watching_admission, zenoh_settings
     from fusion.service.node import stop_on_signals
     from fusion.service.raw_publisher import RawPublisher
 
@@ -116,115 +116,123 @@ def _publishing(robot: str, batch_ms: float, wait_s: float, admitted_within_s: f
             publisher.close(("stopped: " if stop.is_set() else "") + f"published {n} samples")
 
 
-def register(app: typer.Typer) -> None:
-    """Add the ``drivers`` command to ``app``."""
+def drivers_command(
+    fake: Annotated[bool, typer.Option("--fake", help="Read register-level fake devices fed by "
+                                       "the simulator instead of the real buses.")] = False,
+    config: ConfigOpt = "wmra",
+    scenario: ScenarioOpt = "startup",
+    duration: Annotated[float, typer.Option("--duration", help="Seconds to read.")] = 10.0,
+    rate: Annotated[float, typer.Option("--rate", help="Loop rate [Hz] (also the ADXL345s' "
+                                        "output data rate: 12.5 … 3200).")] = 100.0,
+    seed: SeedOpt = 0,
+    realistic: RealisticOpt = False,
+    effect: EffectOpt = None,
+    effects_file: EffectsFileOpt = None,
+    noise: NoiseOpt = True,
+    fault: Annotated[list[str] | None, typer.Option("--fault", help="With --fake: TARGET:KIND"
+                                                    "[=VALUE][@T0[-T1]], repeatable. Kinds: " + "; ".join(
+                                                        f"{k}: {v}" for k, v in FAULT_KINDS.items()))] = None,
+    out: RecordingOutOpt = None,
+    realtime: Annotated[bool, typer.Option("--realtime", help="With --fake: run on the wall "
+                                           "clock instead of as fast as possible.")] = False,
+    json_out: JsonOpt = False,
+    robot: Annotated[str | None, typer.Option("--robot", callback=check_robot, help=(
+        "Publish the raw samples over Zenoh on armfusion/<robot>/raw/<sensor> as they are "
+        "read."))] = None,
+    batch_ms: BatchMsOpt = 20.0,
+    wait_s: Annotated[float, typer.Option("--wait", help="With --robot: first wait up to this long "
+                                          "for a subscriber to the raw samples, in s.")] = 0.0,
+    admitted_within_s: AdmittedWithinOpt = ADMITTED_WITHIN_S,
+    zenoh_config: ZenohConfigOpt = None,
+    listen: ListenOpt = None,
+    connect: ConnectOpt = None,
+    mode: ModeOpt = None,
+) -> None:
+    """Read the sensors through the drivers (or, with --fake, the simulator-fed fakes) and
+    report read time, jitter, errors and samples per device; with --robot, publish the raw
+    samples over Zenoh as they are read.
 
-    @app.command("drivers")
-    def drivers_command(
-        fake: Annotated[bool, typer.Option("--fake", help="Read register-level fake devices fed by "
-                                           "the simulator instead of the real buses.")] = False,
-        config: ConfigOpt = "wmra",
-        scenario: ScenarioOpt = "startup",
-        duration: Annotated[float, typer.Option("--duration", help="Seconds to read.")] = 10.0,
-        rate: Annotated[float, typer.Option("--rate", help="Loop rate [Hz] (also the ADXL345s' "
-                                            "output data rate: 12.5 … 3200).")] = 100.0,
-        seed: SeedOpt = 0,
-        realistic: RealisticOpt = False,
-        effect: EffectOpt = None,
-        effects_file: EffectsFileOpt = None,
-        noise: NoiseOpt = True,
-        fault: Annotated[list[str] | None, typer.Option("--fault", help="With --fake: TARGET:KIND"
-                                                        "[=VALUE][@T0[-T1]], repeatable. Kinds: " + "; ".join(
-                                                            f"{k}: {v}" for k, v in FAULT_KINDS.items()))] = None,
-        out: RecordingOutOpt = None,
-        realtime: Annotated[bool, typer.Option("--realtime", help="With --fake: run on the wall "
-                                               "clock instead of as fast as possible.")] = False,
-        json_out: JsonOpt = False,
-        robot: Annotated[str | None, typer.Option("--robot", callback=check_robot, help=(
-            "Publish the raw samples over Zenoh on armfusion/<robot>/raw/<sensor> as they are "
-            "read."))] = None,
-        batch_ms: BatchMsOpt = 20.0,
-        wait_s: Annotated[float, typer.Option("--wait", help="With --robot: first wait up to this long "
-                                              "for a subscriber to the raw samples, in s.")] = 0.0,
-        admitted_within_s: AdmittedWithinOpt = ADMITTED_WITHIN_S,
-        zenoh_config: ZenohConfigOpt = None,
-        listen: ListenOpt = None,
-        connect: ConnectOpt = None,
-        mode: ModeOpt = None,
-    ) -> None:
-        """Read the sensors through the drivers (or, with --fake, the simulator-fed fakes) and
-        report read time, jitter, errors and samples per device; with --robot, publish the raw
-        samples over Zenoh as they are read.
+    The options of the simulated rig (--scenario … --fault, --realtime) apply with --fake
+    only."""
+    if out is not None:
+        check_output_path(out, "--out", SUFFIXES, inputs=(config_file(config),))
+        if fake:
+            check_output_path(truth_path(out), "--out", inputs=(config_file(config),))
+    if robot is None:
+        given = [o for o, v in (("--listen", listen), ("--connect", connect), ("--mode", mode),
+                                ("--zenoh-config", zenoh_config), ("--wait", wait_s)) if v]
+        if given:
+            fail(f"{', '.join(given)}: only with --robot (which publishes over Zenoh)")
+        publishing = contextlib.nullcontext(None)
+    else:
+        publishing = _publishing(robot, batch_ms, wait_s, admitted_within_s, zenoh_config, listen,
+                                 connect, mode)
+    with publishing as live, progress_bar("reading the fakes", json_out or not fake) as advance:
+        run = _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file,
+                   noise, fault, realtime, live, advance)
+    doc = summary(run)
+    if live is not None:
+        admission = live.admission
+        doc["published"] = {"robot": robot, "samples": live.publisher.samples,
+                            "batches": live.publisher.batches,
+                            "admission": None if admission is None else admission.as_dict()}
+    _finish(doc, run, out, json_out)
+    if live is not None:
+        from fusion.cli.nodes import say_admission
 
-        The options of the simulated rig (--scenario … --fault, --realtime) apply with --fake
-        only."""
-        if out is not None:
-            check_output_path(out, "--out", SUFFIXES, inputs=(config_file(config),))
-            if fake:
-                check_output_path(truth_path(out), "--out", inputs=(config_file(config),))
-        if robot is None:
-            given = [o for o, v in (("--listen", listen), ("--connect", connect), ("--mode", mode),
-                                    ("--zenoh-config", zenoh_config), ("--wait", wait_s)) if v]
-            if given:
-                fail(f"{', '.join(given)}: only with --robot (which publishes over Zenoh)")
-            publishing = contextlib.nullcontext(None)
+        if not json_out:
+            say_admission(live.admission)
+        if live.admission is not None and live.admission.state == "refused":
+            fail(live.admission.message, code=1)
+
+def _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file, noise,
+         fault, realtime, live, advance) -> DriversRun:
+    on_batch = None if live is None else live.on_batch
+    batch_s = 0.02 if live is None else live.batch_s
+    stop = threading.Event() if live is None else live.stop
+    try:
+        if fake:
+            return run_fake(config, scenario, duration, rate, seed=seed, realistic=realistic,
+                            effect=effect or (), effects_file=effects_file, noise=noise,
+                            faults=fault or (), realtime=realtime, stop=stop, on_batch=on_batch,
+                            batch_s=batch_s, progress=advance)
         else:
-            publishing = _publishing(robot, batch_ms, wait_s, admitted_within_s, zenoh_config, listen,
-                                     connect, mode)
-        with publishing as live, progress_bar("reading the fakes", json_out or not fake) as advance:
-            run = _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file,
-                       noise, fault, realtime, live, advance)
-        doc = summary(run)
-        if live is not None:
-            admission = live.admission
-            doc["published"] = {"robot": robot, "samples": live.publisher.samples,
-                                "batches": live.publisher.batches,
-                                "admission": None if admission is None else admission.as_dict()}
-        _finish(doc, run, out, json_out)
-        if live is not None:
-            from fusion.service.commands import say_admission
+            ignored = [o for o, v in (("--scenario", scenario != "startup"), ("--seed", seed != 0),
+                                      ("--realistic", realistic), ("--effect", bool(effect)),
+                                      ("--effects-file", effects_file is not None),
+                                      ("--fault", bool(fault)), ("--realtime", realtime)) if v]
+            if ignored:
+                fail(f"{', '.join(ignored)} only appl{'y' if len(ignored) > 1 else 'ies'} "
+                     "with --fake")
+            return run_real(config, duration, rate, stop=stop, on_batch=on_batch, batch_s=batch_s)
+    except (DeviceNotFoundError, ConfigError, FileNotFoundError, ValueError) as e:
+        fail(str(e))
+    raise AssertionError("unreachable")  # fail() exits
 
-            if not json_out:
-                say_admission(live.admission)
-            if live.admission is not None and live.admission.state == "refused":
-                fail(live.admission.message, code=1)
+def _finish(doc: dict[str, Any], run: DriversRun, out: Path | None, json_out: bool) -> None:
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_recording(run.recording, out)
+        doc["out"] = str(out)
+        if run.sim is not None:
+            tp = truth_path(out)
+            truth = {**run.sim.truth, "duration_s": run.recording.t_end_s,
+                     "simulated_s": run.sim.truth["duration_s"], "streams": doc["streams"]}
+            write_text_replacing(tp, truth_json(truth))
+            doc["truth"] = str(tp)
+    if json_out:
+        emit_json(doc)
+        return
+    print_report(doc)
 
-    def _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file, noise,
-             fault, realtime, live, advance) -> DriversRun:
-        on_batch = None if live is None else live.on_batch
-        batch_s = 0.02 if live is None else live.batch_s
-        stop = threading.Event() if live is None else live.stop
-        try:
-            if fake:
-                return run_fake(config, scenario, duration, rate, seed=seed, realistic=realistic,
-                                effect=effect or (), effects_file=effects_file, noise=noise,
-                                faults=fault or (), realtime=realtime, stop=stop, on_batch=on_batch,
-                                batch_s=batch_s, progress=advance)
-            else:
-                ignored = [o for o, v in (("--scenario", scenario != "startup"), ("--seed", seed != 0),
-                                          ("--realistic", realistic), ("--effect", bool(effect)),
-                                          ("--effects-file", effects_file is not None),
-                                          ("--fault", bool(fault)), ("--realtime", realtime)) if v]
-                if ignored:
-                    fail(f"{', '.join(ignored)} only appl{'y' if len(ignored) > 1 else 'ies'} "
-                         "with --fake")
-                return run_real(config, duration, rate, stop=stop, on_batch=on_batch, batch_s=batch_s)
-        except (DeviceNotFoundError, ConfigError, FileNotFoundError, ValueError) as e:
-            fail(str(e))
-        raise AssertionError("unreachable")  # fail() exits
 
-    def _finish(doc: dict[str, Any], run: DriversRun, out: Path | None, json_out: bool) -> None:
-        if out is not None:
-            out.parent.mkdir(parents=True, exist_ok=True)
-            write_recording(run.recording, out)
-            doc["out"] = str(out)
-            if run.sim is not None:
-                tp = truth_path(out)
-                truth = {**run.sim.truth, "duration_s": run.recording.t_end_s,
-                         "simulated_s": run.sim.truth["duration_s"], "streams": doc["streams"]}
-                write_text_replacing(tp, truth_json(truth))
-                doc["truth"] = str(tp)
-        if json_out:
-            emit_json(doc)
-            return
-        print_report(doc)
+COMMAND_TABLE = (
+    ("drivers", drivers_command),
+)
+"""The drivers' command: each command's name and its function."""
+
+
+def register(app: typer.Typer) -> None:
+    """Add the commands of :data:`COMMAND_TABLE` to ``app``."""
+    for name, command in COMMAND_TABLE:
+        app.command(name)(command)

@@ -39,40 +39,40 @@ COMMANDS: dict[str, tuple[str, str]] = {
                 "report read time, jitter, errors and samples per device; with --robot, publish the raw "
                 "samples over Zenoh as they are read.", "fusion.cli.drivers:register"),
     "replay": ("Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing.",
-               "fusion.service.commands:register"),
+               "fusion.cli.nodes:register"),
     "record": ("Record a robot's raw samples and estimates from Zenoh to MCAP until stopped.",
-               "fusion.service.commands:register"),
+               "fusion.cli.nodes:register"),
     "serve": ("The fusion node: startup calibration on the first still window (or resume from "
               "--state-file), then the tracker; publishes armfusion/<robot>/state/joints, "
               "state/heading and status; answers armfusion/<robot>/calibrate (and, with --maneuver, "
               "serves a planned calibration maneuver on armfusion/<robot>/maneuver).",
-              "fusion.service.commands:register"),
+              "fusion.cli.nodes:register"),
     "recalibrate": ("Ask the fusion node (armfusion serve) to re-run the startup calibration now, on the "
                     "latest still stretch; it refuses, saying why, while the arm moves. Exits 1 when "
-                    "refused.", "fusion.service.commands:register"),
+                    "refused.", "fusion.cli.nodes:register"),
     "maneuver": ("The planned calibration maneuver the fusion node serves (serve --maneuver), as the arm's "
                  "controller sees it: show it, or say the controller starts it, is done with it (the "
                  "node then fits the sensors on it) or aborts it; apply the fit's config. Exits 1 when the "
                  "node refuses.",
-                 "fusion.service.commands:register"),
+                 "fusion.cli.nodes:register"),
     "demo": ("The whole service on this machine, no hardware, loopback only: the simulated WMRA "
              "calibrates its sensors, then fake drivers → fusion node → recorder run as processes "
              "over Zenoh; a summary against the truth and an HTML report.",
-             "fusion.service.demo:register"),
+             "fusion.cli.demo:register"),
     "router": ("A Zenoh router on loopback for the nodes of several robots: it listens where --listen "
                "says, else where --zenoh-config's file says (default tcp/127.0.0.1:7447), and connects "
                "where its file says (or --connect); runs until SIGINT or SIGTERM.",
-               "fusion.service.fleet:register"),
+               "fusion.cli.fleet:register"),
     "deploy": ("Write a fleet's certificates, credentials and Zenoh configs: each chair's (its certificate, "
                "its nodes' users and passwords, its router's and nodes' configs) and, the first time, the "
                "fleet's CA and the base station's; the base router's policy admits every chair of the fleet.",
-               "fusion.service.deploy:register"),
+               "fusion.cli.deploy:register"),
     "fleet": ("N simulated chairs as separate processes (fake drivers → serve each), connected "
               "through one Zenoh router; watch them with `armfusion monitor --connect <router>`.",
-              "fusion.service.fleet:register"),
+              "fusion.cli.fleet:register"),
     "monitor": ("A live table of every robot: joints (deg, sigma, flags), heading, node states, "
                 "samples and drops, age of the last update. Subscribes armfusion/*/state/*, status "
-                "and the liveliness tokens.", "fusion.service.fleet:register"),
+                "and the liveliness tokens.", "fusion.cli.fleet:register"),
     "diagnose": ("Compare the model with a recording: where it fails, which physical effect is missing.",
                  "fusion.cli.diagnose:register"),
     "track": ("Track the joint angles and the heading through a recording: startup calibration on "

@@ -86,70 +86,84 @@ def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None =
     }
 
 
+def plan_command(
+    config: ConfigOpt = "wmra",
+    duration: Annotated[float, typer.Option("--duration", help="The maneuver's length [s].")] = 60.0,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the maneuver file (YAML).")] = None,
+    effects: Annotated[str, typer.Option("--effects", help="The effects to calibrate, as calibrate "
+                                         "sensors --effects (default all).")] = "all",
+    criterion: Annotated[str, typer.Option("--criterion", help="D (log det of the information), "
+                                           "E (its smallest eigenvalue) or startup (the joints' "
+                                           "linearised startup variances).")] = "D",
+    focus: Annotated[str, typer.Option("--focus", help="all: every element but the gauges; startup: "
+                                       "those the startup uses.")] = "all",
+    seed: Annotated[int, typer.Option("--seed", help="The candidates' seed.")] = 0,
+    dwells: Annotated[str, typer.Option("--dwells", help="The dwells each pose may be held [s], "
+                                        "e.g. 1,1.5,2,3 (default: every pose 2 s).")] = "",
+    json_out: JsonOpt = False,
+) -> None:
+    """Plan the self-calibration maneuver: poses, dwells and safe moves that make the fit's
+    parameters best known in the time given; the sigma each parameter and each joint's
+    startup will have after it."""
+    if out is not None:
+        check_output_path(out, "--out", (".yaml", ".yml"), inputs=(config_file(config),))
+    if criterion not in CRITERIA:
+        fail(f"--criterion must be one of {', '.join(CRITERIA)}, not {criterion[:20]!r}")
+    if focus not in FOCUS:
+        fail(f"--focus must be one of {', '.join(FOCUS)}, not {focus[:20]!r}")
+    try:
+        dwells_s = tuple(float(v) for v in dwells.split(",") if v.strip())
+        PlanSettings(dwell_choices_s=dwells_s).check()
+    except ValueError as e:
+        fail(f"--dwells: expected seconds separated by commas, got {dwells[:30]!r} ({str(e)[:80]})")
+    try:
+        with progress_bar("planning", json_out) as advance:
+            doc = run_plan(config, duration, effects, criterion, focus, seed, progress=advance,
+                           dwells_s=dwells_s)
+    except (ConfigError, FileNotFoundError, ValueError) as e:
+        fail(str(e))
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_text_replacing(out, "# armfusion plan-maneuver: play with `armfusion simulate --maneuver "
+                       f"{out.name}` or on the arm's controller\n"
+                       + yaml.safe_dump(doc, sort_keys=False, width=110))
+    if json_out:
+        emit_json({**doc, "out": None if out is None else str(out)})
+        return
+    _print_plan(doc, focus, out)
+
+
+COMMAND_TABLE = (
+    ("plan-maneuver", plan_command),
+)
+"""The planner's command: each command's name and its function."""
+
+
 def register(app: typer.Typer) -> None:
-    """Add the ``plan-maneuver`` command to ``app``."""
+    """Add the commands of :data:`COMMAND_TABLE` to ``app``."""
+    for name, command in COMMAND_TABLE:
+        app.command(name)(command)
+
+
+def _print_plan(doc: dict, focus: str, out: Path | None) -> None:
+    """The plan as a table of poses, the predicted sigmas, and where it was written."""
     from rich.table import Table
 
-    @app.command("plan-maneuver")
-    def plan_command(
-        config: ConfigOpt = "wmra",
-        duration: Annotated[float, typer.Option("--duration", help="The maneuver's length [s].")] = 60.0,
-        out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the maneuver file (YAML).")] = None,
-        effects: Annotated[str, typer.Option("--effects", help="The effects to calibrate, as calibrate "
-                                             "sensors --effects (default all).")] = "all",
-        criterion: Annotated[str, typer.Option("--criterion", help="D (log det of the information), "
-                                               "E (its smallest eigenvalue) or startup (the joints' "
-                                               "linearised startup variances).")] = "D",
-        focus: Annotated[str, typer.Option("--focus", help="all: every element but the gauges; startup: "
-                                           "those the startup uses.")] = "all",
-        seed: Annotated[int, typer.Option("--seed", help="The candidates' seed.")] = 0,
-        dwells: Annotated[str, typer.Option("--dwells", help="The dwells each pose may be held [s], "
-                                            "e.g. 1,1.5,2,3 (default: every pose 2 s).")] = "",
-        json_out: JsonOpt = False,
-    ) -> None:
-        """Plan the self-calibration maneuver: poses, dwells and safe moves that make the fit's
-        parameters best known in the time given; the sigma each parameter and each joint's
-        startup will have after it."""
-        if out is not None:
-            check_output_path(out, "--out", (".yaml", ".yml"), inputs=(config_file(config),))
-        if criterion not in CRITERIA:
-            fail(f"--criterion must be one of {', '.join(CRITERIA)}, not {criterion[:20]!r}")
-        if focus not in FOCUS:
-            fail(f"--focus must be one of {', '.join(FOCUS)}, not {focus[:20]!r}")
-        try:
-            dwells_s = tuple(float(v) for v in dwells.split(",") if v.strip())
-            PlanSettings(dwell_choices_s=dwells_s).check()
-        except ValueError as e:
-            fail(f"--dwells: expected seconds separated by commas, got {dwells[:30]!r} ({str(e)[:80]})")
-        try:
-            with progress_bar("planning", json_out) as advance:
-                doc = run_plan(config, duration, effects, criterion, focus, seed, progress=advance,
-                               dwells_s=dwells_s)
-        except (ConfigError, FileNotFoundError, ValueError) as e:
-            fail(str(e))
-        if out is not None:
-            out.parent.mkdir(parents=True, exist_ok=True)
-            write_text_replacing(out, "# armfusion plan-maneuver: play with `armfusion simulate --maneuver "
-                           f"{out.name}` or on the arm's controller\n"
-                           + yaml.safe_dump(doc, sort_keys=False, width=110))
-        if json_out:
-            emit_json({**doc, "out": None if out is None else str(out)})
-            return
-        t = Table(title=f"{len(doc['poses'])} poses, {doc['duration_s']:.1f} s ({doc['plan']['criterion']}, "
-                  f"focus {focus})", title_justify="left")
-        t.add_column("pose")
-        t.add_column("move [s]", justify="right")
-        t.add_column("dwell [s]", justify="right")
-        t.add_column("joints [deg]")
-        for k, p in enumerate(doc["poses"]):
-            t.add_row(str(k), f"{p['move_s']:.1f}", f"{p['dwell_s']:.1f}", " ".join(f"{v:7.1f}" for v in p["pose_deg"]))
-        console.print(t)
-        pr = doc["predicted"]
-        n_free = sum(not e["held"] for e in pr["elements"])
-        console.print(f"Predicted: {n_free} elements estimated, {len(pr['held'])} held at their priors "
-                      f"({', '.join(pr['held'][:5])}{', …' if len(pr['held']) > 5 else ''}).")
-        console.print("Startup sigma after it (median over ok poses): " + ", ".join(
-            f"{s['joint']} {'flagged' if s['sigma_deg'] is None else format(s['sigma_deg'], '.3f') + '°'}"
-            for s in pr["startup"]))
-        if out is not None:
-            console.print(f"Wrote {out}")
+    t = Table(title=f"{len(doc['poses'])} poses, {doc['duration_s']:.1f} s ({doc['plan']['criterion']}, "
+              f"focus {focus})", title_justify="left")
+    t.add_column("pose")
+    t.add_column("move [s]", justify="right")
+    t.add_column("dwell [s]", justify="right")
+    t.add_column("joints [deg]")
+    for k, p in enumerate(doc["poses"]):
+        t.add_row(str(k), f"{p['move_s']:.1f}", f"{p['dwell_s']:.1f}", " ".join(f"{v:7.1f}" for v in p["pose_deg"]))
+    console.print(t)
+    pr = doc["predicted"]
+    n_free = sum(not e["held"] for e in pr["elements"])
+    console.print(f"Predicted: {n_free} elements estimated, {len(pr['held'])} held at their priors "
+                  f"({', '.join(pr['held'][:5])}{', …' if len(pr['held']) > 5 else ''}).")
+    console.print("Startup sigma after it (median over ok poses): " + ", ".join(
+        f"{s['joint']} {'flagged' if s['sigma_deg'] is None else format(s['sigma_deg'], '.3f') + '°'}"
+        for s in pr["startup"]))
+    if out is not None:
+        console.print(f"Wrote {out}")

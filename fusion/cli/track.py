@@ -61,18 +61,9 @@ def track(
     the unscented Kalman filter on every sample."""
     from dataclasses import replace
 
-    from fusion.startup.pose_store import load_pose
-    from fusion.startup.solve import StartupInputError
-    from fusion.tracking.tracker import NoStillWindowError, TrackerSettings, start_from_recording
+    from fusion.tracking.tracker import TrackerSettings
 
-    if start_at is not None and not (np.isfinite(start_at) and start_at >= 0.0):
-        fail(f"--start-at must be a time of 0 s or more after the recording's start, not {start_at!r}")
-    if not 0.0 < gate_significance < 1.0:
-        fail(f"--gate-significance must be between 0 and 1, not {gate_significance!r}")
-    if out is not None:
-        check_output_path(out, "--out", OUT_SUFFIXES, inputs=(recording, config_file(config)))
-    if unmodelled_g is not None and not unmodelled_g >= 0.0:
-        fail(f"--unmodelled-g must be >= 0, not {unmodelled_g!r}")
+    _check_options(start_at, gate_significance, out, recording, config, unmodelled_g)
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, _needed_streams,
         "track needs (the encoders and every link accelerometer of {source}; "
@@ -83,13 +74,7 @@ def track(
     rec, note = _scoring_truth(rec, recording, arm.joint_names)
     if note:
         notes.append(note)
-    prior_q = None
-    if prior is not None:
-        saved, why = load_pose(prior, arm)
-        if saved is None:
-            notes.append(why)
-        else:
-            prior_q = saved.q_rad
+    prior_q = _prior_pose(prior, arm, notes)
     settings = TrackerSettings(gate_significance=gate_significance,
                                motion_compensation=not no_motion_compensation)
     withheld = None
@@ -99,36 +84,12 @@ def track(
                      f"gyros on either side of it stand in (scale {withheld['scale']:.4f}, bias "
                      f"{withheld['bias_deg_s']:+.4f} deg/s, drift {withheld['drift_deg_per_sqrt_s']:.3f} "
                      f"deg/sqrt(s) against the encoder before then); tracking starts afresh there")
-    with progress_bar("startup calibration", json_out) as advance:
-        try:
-            tr, start = start_from_recording(
-                arm, rec, settings, prior_q_rad=prior_q, resolve_by_motion_s=20.0, moving_start=moving_start,
-                start_at_s=None if start_at is None else rec.t_start_s + start_at)
-        except NoStillWindowError as e:
-            fail(f"{recording}: {e}" + ("" if moving_start or start_at is not None else
-                                        " (--moving-start starts on its least-moving instants)"))
-        except (StartupInputError, ValueError) as e:
-            fail(f"{recording}: cannot start tracking: {e}")
-        notes.extend(start.notes)
-        advance(0.0, "tracking")
-        run = tr.run(rec, progress=advance)
+    tr, start, run = _start_and_run(arm, rec, recording, settings, prior_q, moving_start, start_at, notes,
+                                    json_out)
     warnings = tr.sensor_warnings() if run.steps else []
     notes.extend(warnings)
-    floors = arm.calibration.floors_by_default
-    if floors:
-        notes.append("unmodelled-error floors the config does not give, each sensor's class's: "
-                     + "; ".join(f"{k}: {v}" for k, v in floors.items())
-                     + " (docs/config.md, Unmodelled-error floors)")
-    after = after_s
-    if run.steps and run.t_s[-1] < rec.t_start_s + after_s:  # nothing to score after --after-s
-        after = 0.0
-        if rec.get("true_q") is not None:
-            notes.append(f"the recording ends {run.t_s[-1] - rec.t_start_s:.1f} s after its start, "
-                         f"before --after-s {after_s:g} s: the RMS errors are over the whole tracked run")
-    summary = run.summary(after_s=after, t0_s=rec.t_start_s)
-    scored = run.t_s[run.t_s >= rec.t_start_s + after] - rec.t_start_s if run.steps else run.t_s
-    if "rms_error_deg" in summary:
-        summary["rms_span_s"] = [float(scored[0]), float(scored[-1])] if len(scored) else None
+    notes.extend(_floor_notes(arm))
+    summary = _scored_summary(run, rec, after_s, notes)
     doc = {
         "config": arm.source,
         "recording": str(recording),
@@ -156,6 +117,83 @@ def track(
     for n in notes:
         err_console.print(n)
     _print(doc, run)
+
+
+def _check_options(start_at: float | None, gate_significance: float, out: Path | None, recording: Path,
+                   config: str, unmodelled_g: float | None) -> None:
+    """Exit 2 before any work on an option out of its range or an output that cannot be written."""
+    if start_at is not None and not (np.isfinite(start_at) and start_at >= 0.0):
+        fail(f"--start-at must be a time of 0 s or more after the recording's start, not {start_at!r}")
+    if not 0.0 < gate_significance < 1.0:
+        fail(f"--gate-significance must be between 0 and 1, not {gate_significance!r}")
+    if out is not None:
+        check_output_path(out, "--out", OUT_SUFFIXES, inputs=(recording, config_file(config)))
+    if unmodelled_g is not None and not unmodelled_g >= 0.0:
+        fail(f"--unmodelled-g must be >= 0, not {unmodelled_g!r}")
+
+
+def _prior_pose(prior: Path | None, arm, notes: list[str]):
+    """The joint angles of ``--prior``'s saved pose, or None (with a note saying why, when one
+    was given but cannot be used)."""
+    from fusion.startup.pose_store import load_pose
+
+    if prior is None:
+        return None
+    saved, why = load_pose(prior, arm)
+    if saved is None:
+        notes.append(why)
+        return None
+    return saved.q_rad
+
+
+def _start_and_run(arm, rec, recording: Path, settings, prior_q, moving_start: bool, start_at: float | None,
+                   notes: list[str], json_out: bool) -> tuple:
+    """The startup calibration, then the tracker over the recording, with a progress bar:
+    ``(tracker, start, run)``; exit 2 saying why the tracking cannot start."""
+    from fusion.startup.solve import StartupInputError
+    from fusion.tracking.tracker import NoStillWindowError, start_from_recording
+
+    with progress_bar("startup calibration", json_out) as advance:
+        try:
+            tr, start = start_from_recording(
+                arm, rec, settings, prior_q_rad=prior_q, resolve_by_motion_s=20.0, moving_start=moving_start,
+                start_at_s=None if start_at is None else rec.t_start_s + start_at)
+        except NoStillWindowError as e:
+            fail(f"{recording}: {e}" + ("" if moving_start or start_at is not None else
+                                        " (--moving-start starts on its least-moving instants)"))
+        except (StartupInputError, ValueError) as e:
+            fail(f"{recording}: cannot start tracking: {e}")
+        notes.extend(start.notes)
+        advance(0.0, "tracking")
+        run = tr.run(rec, progress=advance)
+    return tr, start, run
+
+
+def _floor_notes(arm) -> list[str]:
+    """A note naming the unmodelled-error floors the config does not give (each sensor's
+    class's default is used), or none."""
+    floors = arm.calibration.floors_by_default
+    if not floors:
+        return []
+    return ["unmodelled-error floors the config does not give, each sensor's class's: "
+            + "; ".join(f"{k}: {v}" for k, v in floors.items())
+            + " (docs/config.md, Unmodelled-error floors)"]
+
+
+def _scored_summary(run, rec, after_s: float, notes: list[str]) -> dict:
+    """The run's summary, its errors scored from ``after_s`` on (over the whole run, with a
+    note, when the recording ends before), and the span they are scored over."""
+    after = after_s
+    if run.steps and run.t_s[-1] < rec.t_start_s + after_s:  # nothing to score after --after-s
+        after = 0.0
+        if rec.get("true_q") is not None:
+            notes.append(f"the recording ends {run.t_s[-1] - rec.t_start_s:.1f} s after its start, "
+                         f"before --after-s {after_s:g} s: the RMS errors are over the whole tracked run")
+    summary = run.summary(after_s=after, t0_s=rec.t_start_s)
+    scored = run.t_s[run.t_s >= rec.t_start_s + after] - rec.t_start_s if run.steps else run.t_s
+    if "rms_error_deg" in summary:
+        summary["rms_span_s"] = [float(scored[0]), float(scored[-1])] if len(scored) else None
+    return summary
 
 
 # --------------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from fusion.importing.to_stream import ImportMapError, check_map_against
 from fusion.importing.to_stream import targets as targets_of
 from models.arm import ArmModel
 from sensors.foreign.rosbag import BagTopic, bag_format, read_topics
-from sensors.samples import Recording, Stream, clipped_repr
+from sensors.samples import Recording, Stream, clipped_repr, stream_gaps
 
 NS_PER_S = 1_000_000_000
 
@@ -47,8 +47,6 @@ def _frame_problem(topic: BagTopic, frame_id: str | None, stream: str) -> str | 
 
 def _topic_report(topic: BagTopic, stamp: str, t_s: np.ndarray) -> dict:
     """A topic's messages, frame ids, rate and gaps (as ``inspect`` reports a stream's)."""
-    from fusion.cli.describe import stream_gaps
-
     s = Stream(topic.topic, "temperature", t_s, np.zeros((t_s.size, 1)), ("t",))
     n_gaps, longest, missing = stream_gaps(s)
     return {"type": topic.msgtype, "messages": len(topic), "stamp": stamp,

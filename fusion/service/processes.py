@@ -14,6 +14,7 @@ import ctypes
 import os
 import queue
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -47,7 +48,7 @@ class Child:
     proc: subprocess.Popen
     stdout_path: Path | None
     lines: list[str] = field(default_factory=list)
-    _new: queue.Queue = field(default_factory=queue.Queue)
+    new_lines: queue.Queue = field(default_factory=queue.Queue)
 
     def wait_for_line(self, text: str, timeout_s: float) -> bool:
         """Wait until a stderr line contains ``text``; False on timeout or when the process ended."""
@@ -56,9 +57,9 @@ class Child:
             return True
         while time.monotonic() < deadline:
             try:
-                line = self._new.get(timeout=0.1)
+                line = self.new_lines.get(timeout=0.1)
             except queue.Empty:
-                if self.proc.poll() is not None and self._new.empty():
+                if self.proc.poll() is not None and self.new_lines.empty():
                     return False
                 continue
             if line is None:
@@ -102,8 +103,8 @@ class Children:
         for raw in child.proc.stderr:
             line = raw.decode(errors="replace").rstrip()
             child.lines.append(line)
-            child._new.put(line)
-        child._new.put(None)
+            child.new_lines.put(line)
+        child.new_lines.put(None)
 
     def stop(self, child: Child, grace_s: float = 15.0) -> int:
         """SIGINT, then SIGKILL after ``grace_s``; the exit code."""
@@ -135,3 +136,10 @@ class Children:
 
     def __exit__(self, *exc) -> None:
         self.stop_all()
+
+
+def free_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])

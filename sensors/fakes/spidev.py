@@ -58,6 +58,15 @@ class FakeSpiController:
         self.faults = FaultInjector(seed)
         self.log: deque[SpiFrame] = deque(maxlen=log_limit)
 
+    def now(self) -> float:
+        """The clock's time (0 without a clock), s."""
+        return self._now()
+
+    def spend(self, seconds: float) -> None:
+        """Advance the clock (when it can be advanced) by a transfer's ``seconds``."""
+        if self._advance is not None:
+            self._advance(seconds)
+
     def SpiDev(self) -> FakeSpiDev:  # noqa: N802 - mirrors spidev.SpiDev
         return FakeSpiDev(self)
 
@@ -94,7 +103,7 @@ class FakeSpiDev:
     def xfer2(self, values: list[int], speed_hz: int = 0, delay_usecs: int = 0,
               bits_per_word: int = 0) -> list[int]:
         c = self._c
-        t = c._now()
+        t = c.now()
         speed = speed_hz or self.max_speed_hz
         mosi = [v & 0xFF for v in values]
         bus, dev = self._port if self._port is not None else (-1, -1)
@@ -114,8 +123,7 @@ class FakeSpiDev:
             c.log.append(SpiFrame(t, bus, dev, tuple(mosi), (), self.mode, speed, e.errno))
             raise
         finally:
-            if c._advance is not None:
-                c._advance(len(mosi) * 8 / speed + 5e-6 + delay_usecs * 1e-6)
+            c.spend(len(mosi) * 8 / speed + 5e-6 + delay_usecs * 1e-6)
         c.log.append(SpiFrame(t, bus, dev, tuple(mosi), tuple(miso), self.mode, speed))
         return miso
 

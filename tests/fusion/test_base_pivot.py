@@ -146,10 +146,6 @@ def test_a_sensor_swung_on_a_lever_has_its_lever_learnt_and_its_readings_explain
     np.testing.assert_allclose(x[L.pivot_B], [0.15, 0.0, 0.0], atol=0.01)
     assert np.all(np.abs(x[L.pivot_B] - [0.15, 0.0, 0.0]) < 3.0 * sigma[L.pivot_B])
     assert np.linalg.norm(x[L.accel]) < 0.3
-    cfg = yaml.safe_load(Path(load_arm("broad_imu").source).read_text())
-    del cfg["base_motion"]["pivot_sigma_m"]
-    (tmp_path / "no_pivot.yaml").write_text(yaml.safe_dump(cfg))
-    without = _track(tmp_path / "no_pivot.yaml", trial)
     # the swing's readings are explained: the IMU accelerometer's mean NIS 0.14 with the
     # pivot, 0.22 without (the centripetal and tangential terms taken for the hand's own
     # acceleration, which the motion's intensity then widens to cover: 0.60 before it was

@@ -33,7 +33,7 @@ def test_help_imports_neither_the_tracker_nor_scipy_nor_zenoh():
     assert r.returncode == 0, r.stderr
     loaded = set(json.loads(r.stdout.splitlines()[-1]))
     assert "Commands" in r.stdout and "calibrate" in r.stdout and "track" in r.stdout
-    heavy = {"fusion.tracking.tracker", "fusion.identification.identify", "fusion.service.demo",
+    heavy = {"fusion.tracking.tracker", "fusion.identification.identify", "fusion.cli.demo",
              "scipy.stats", "scipy",
              "numpy", "numba", "zenoh", "matplotlib", "models.arm_config"}
     assert not heavy & loaded, sorted(heavy & loaded)

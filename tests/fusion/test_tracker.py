@@ -966,7 +966,8 @@ def test_an_arm_that_never_stands_still_starts_on_its_least_moving_instants(arm)
     with pytest.raises(NoStillWindowError, match="no still stretch"):
         start_from_recording(arm, rec, prior_q_rad=POSE + 0.05)
     tr, start = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05, moving_start=True)
-    assert any(n.startswith("no still stretch near the start: started on the moving arm") for n in start.notes)
+    assert any(n.startswith("no still stretch near the start: started on the moving arm")
+               for n in start.notes)
     assert start.t_start_s < rec.t_start_s + 5.0  # at the recording's start
     _, later = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05, start_at_s=rec.t_start_s + 12.0,
                                     propose_unlock=False)

@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fusion.cli.diagnose import without_bound
+from fusion.cli.diagnose_write import without_bound
 from fusion.configfile import load_arm
 from fusion.identification.data import data_from_recording
 from fusion.workbench.candidates import at_bound
@@ -166,7 +166,7 @@ def test_a_config_whose_tracker_is_too_sure_on_the_held_out_part_is_not_written(
 
 def test_written_floors_are_at_least_the_held_out_excess(wmra, turned):
     """What the fit leaves on the held-out part (larger than in sample) sets the floor."""
-    from fusion.cli.diagnose import raise_floors
+    from fusion.cli.diagnose_write import raise_floors
 
     fit_part, held = split_in_time(turned)
     d = diagnose(model_from_arm(wmra), fit_part, held_out=held)  # acc4's turn is missing

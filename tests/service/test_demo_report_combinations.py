@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.service.demo import score_combinations
-from fusion.service.demo_report import write_report
+from fusion.cli.demo_report import score_combinations, write_report
 from sensors.samples import TRUTH_BASE_COLUMNS, Stream
 
 

@@ -18,10 +18,10 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from fusion.cli.demo import MANEUVER, REFERENCE_JOINTS
 from fusion.cli.main import app
 from fusion.configfile import load_arm
 from fusion.identification.planner import load_maneuver, maneuver_problems
-from fusion.service.demo import MANEUVER, REFERENCE_JOINTS
 from fusion.shipped import shipped_config
 
 

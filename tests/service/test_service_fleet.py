@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from fusion.service.fleet import free_loopback_port as free_port
+from fusion.service.processes import free_loopback_port as free_port
 
 ROBOTS = ("chair1", "chair2", "chair3")
 

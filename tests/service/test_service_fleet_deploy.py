@@ -133,7 +133,7 @@ def test_the_fleet_deployment_runs_as_docs_service_md_writes_it(tmp_path, startu
 
 
 def test_a_config_files_endpoints_hold_unless_an_option_replaces_them_and_the_node_says_whose():
-    from fusion.service.commands import zenoh_settings
+    from fusion.cli.nodes import zenoh_settings
     from fusion.service.zenoh_config import DEPLOY_CONFIG_DIR, endpoints_line, load_config
 
     chair = DEPLOY_CONFIG_DIR / "chair.json5"

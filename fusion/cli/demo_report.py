@@ -1,4 +1,4 @@
-"""What ``armfusion demo`` shows of a run (:mod:`fusion.service.demo`): the self-contained
+"""What ``armfusion demo`` shows of a run (:mod:`fusion.cli.demo`): the self-contained
 HTML report (the tracking plots against the truth, the workbench's verdict and error ladder)
 and the summary table for the terminal, both from the evaluation's document."""
 
@@ -6,13 +6,133 @@ from __future__ import annotations
 
 import base64
 import html
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from fusion.cli.common import console
 from fusion.tracking.tracker import truth_at
 from models.rotations import wrap_angle
+
+
+def score_combinations(reported: list, t: np.ndarray, q_true: np.ndarray, tilt_true: np.ndarray,
+                       names: list[str]) -> list[dict[str, Any]]:
+    """What gravity reads together (the joint states' ``combinations``, per estimate a tuple of
+    ``{name, coefficients, angle_rad, sigma_rad}`` or None), each combination ever reported
+    scored against the same combination of the truth (the joints' ``q_true (T, n)`` and the
+    base's ``tilt_true (T, 2)``, roll and pitch, rad) over the estimates it was reported at:
+    its share of estimates, its last value and sigma (deg), RMS error and share within 3 sigma
+    (None where no truth)."""
+    from fusion.startup.solve import TILT_NAMES
+
+    series: dict[str, dict[str, Any]] = {}
+    for i, cs in enumerate(reported):
+        for c in cs or ():
+            row = series.setdefault(c["name"], {"coefficients": dict(c["coefficients"]), "i": [], "v": [],
+                                                "s": []})
+            row["i"].append(i)
+            row["v"].append(float(c["angle_rad"]))
+            row["s"].append(float(c["sigma_rad"]))
+    truth_cols = {**{n: q_true[:, k] for k, n in enumerate(names)},
+                  **{n: tilt_true[:, k] for k, n in enumerate(TILT_NAMES)}}
+    out = []
+    for name, row in series.items():
+        idx, v, sg = np.array(row["i"]), np.array(row["v"]), np.array(row["s"])
+        true = sum(c * truth_cols.get(term, np.full(len(t), np.nan))[idx]
+                   for term, c in row["coefficients"].items())
+        err = np.degrees(v - true)
+        have = np.isfinite(err)
+        out.append({"name": name, "coefficients": row["coefficients"],
+                    "reported_share": float(len(idx) / max(len(t), 1)),
+                    "angle_deg": float(np.degrees(v[-1])), "sigma_deg": float(np.degrees(sg[-1])),
+                    "rms_error_deg": float(np.sqrt(np.mean(err[have] ** 2))) if have.any() else None,
+                    "within_3_sigma": (float(np.mean(np.abs(err[have]) <= 3.0 * np.degrees(sg[have])))
+                                       if have.any() else None)})
+    return out
+
+
+def joint_scores(names: list[str], t: np.ndarray, err_deg: np.ndarray, sig: np.ndarray,
+                 flags: np.ndarray) -> dict[str, dict]:
+    """Each joint's startup error, tracking RMS, worst error, share within 3 sigma, flags seen,
+    and the same from its first ``ok`` estimate on (``err_deg``: estimate - truth per instant)."""
+    first = 0
+    startup = {n: {"error_deg": float(err_deg[first, k]), "sigma_deg": float(np.degrees(sig[first, k])),
+                   "flag": str(flags[first, k])} for k, n in enumerate(names)}
+    scored = np.isfinite(err_deg).all(axis=1)  # (an estimate past the truth's end is not scored)
+    err_deg, sig_deg, t_scored = err_deg[scored], np.degrees(sig[scored]), t[scored]
+    rms = {n: float(np.sqrt(np.mean(err_deg[:, k] ** 2))) for k, n in enumerate(names)}
+    # from each joint's first `ok` estimate on: a joint gravity cannot read at the park pose
+    # (j3, j6 at gimbal lock) is held at its prior, with a sigma that says so, until the arm
+    # first reaches; its RMS over the whole run is mostly that wait
+    once_ok: dict[str, dict[str, float] | None] = {}
+    for k, n in enumerate(names):
+        ok = np.flatnonzero(flags[scored][:, k] == "ok")
+        once_ok[n] = None if not len(ok) else {
+            "t_s": float(t_scored[ok[0]]), "rms_error_deg": float(np.sqrt(np.mean(err_deg[ok[0]:, k] ** 2))),
+            "within_3_sigma": float(np.mean(np.abs(err_deg[ok[0]:, k]) <= 3 * sig_deg[ok[0]:, k]))}
+    worst = {n: float(np.max(np.abs(err_deg[:, k]))) for k, n in enumerate(names)}
+    inside = np.abs(err_deg) <= 3 * sig_deg
+    within = {n: float(np.mean(inside[:, k])) for k, n in enumerate(names)}
+    seen = {n: dict(Counter(flags[:, k].tolist()).most_common()) for k, n in enumerate(names)}
+    return {"startup": startup, "rms": rms, "once_ok": once_ok, "worst": worst, "within": within,
+            "seen": seen}
+
+
+def heading_scores(headings: list, truth_base) -> tuple[float | None, float | None, dict[str, float]]:
+    """The heading's RMS error (deg), its share within 3 sigma and its statuses' shares, from
+    the ``(arrival, Heading)`` pairs received (``None``, ``None``, ``{}`` without any)."""
+    if not headings:
+        return None, None, {}
+    th = np.array([h.t_s for _, h in headings])
+    yaw = np.array([h.heading_rad for _, h in headings])
+    yaw_true = truth_at(truth_base, th, angles=True)[:, 2]
+    yaw_err = np.abs(wrap_angle(yaw - yaw_true))
+    heading_rms = float(np.degrees(np.sqrt(np.mean(yaw_err**2))))
+    heading_within = float(np.mean(yaw_err <= 3 * np.array([h.heading_sigma_rad for _, h in headings])))
+    heading_status = {s: n / len(headings) for s, n in
+                      Counter(h.heading_status for _, h in headings).most_common()}
+    return heading_rms, heading_within, heading_status
+
+
+def latency_figures(arrived: np.ndarray, t: np.ndarray, epoch: float | None, settle_s: float) -> dict | None:
+    """The sample->estimate latency (ms) from each estimate's arrival and its sample time on the
+    drivers' clock (``epoch``: that clock's zero on this machine's monotonic clock), and the
+    same after ``settle_s`` of tracking; ``None`` without the epoch."""
+    if epoch is None:
+        return None
+    lat_ms = 1e3 * (arrived - (epoch + t))
+    latency = {"p50_ms": float(np.percentile(lat_ms, 50)), "p99_ms": float(np.percentile(lat_ms, 99)),
+               "max_ms": float(np.max(lat_ms)), "count": int(len(lat_ms))}
+    # the node buffers while it calibrates on the still stretch, then works off the
+    # backlog: the latency once it runs, apart
+    later = lat_ms[t >= t[0] + settle_s]
+    if len(later):
+        latency.update({"settle_s": settle_s,
+                        "p50_after_settle_ms": float(np.percentile(later, 50)),
+                        "p99_after_settle_ms": float(np.percentile(later, 99))})
+    return latency
+
+
+def sample_counts(drv: dict, srv: dict, rec: dict, received: int) -> dict:
+    """Samples and estimates published, received, refused, recorded and dropped, from the
+    drivers', the fusion node's and the recorder's reports (``received``: estimates here)."""
+    published = int(sum(drv.get("published", {}).get("samples", {}).values()))
+    dropped = {f"serve.{k}": v for k, v in srv.get("dropped", {}).items()}
+    if srv.get("out_of_order"):
+        dropped["serve.out_of_order"] = srv["out_of_order"]
+    dropped.update({f"record.{k}": v for k, v in rec.get("dropped", {}).items()})
+    return {"published": published, "received_by_serve": int(srv.get("samples", 0)),
+            # refused by the node's admission, by reason (a driver that fell behind on a
+            # loaded machine reads a burst, refused as too dense): counted, never lost
+            "refused_by_serve": {k: int(v) for k, v in srv.get("refused_samples", {}).items()},
+            "recorded": int(sum(rec.get("samples", {}).values())), "dropped": dropped,
+            "estimates_published": int(srv.get("estimates", 0)),
+            # messages whose handling raised in the fusion node (logged, the node going on)
+            "serve_errors": int(srv.get("errors", 0)),
+            "estimates_received": int(received),
+            "estimates_recorded": int(sum(rec.get("estimates", {}).values()))}
 
 
 def heading_detail(tr: dict) -> str:
@@ -32,7 +152,7 @@ def settled_latency(lat: dict) -> str:
 
 
 def combinations_html(combos: list[dict[str, Any]]) -> str:
-    """The table of what gravity reads together (:func:`fusion.service.demo.score_combinations`):
+    """The table of what gravity reads together (:func:`score_combinations`):
     name, last value, σ, error against the truth, share within 3σ and of estimates reported."""
     if not combos:
         return ("<p>Every joint the sensors read was read alone: no combination of joints (or of a "
@@ -116,7 +236,7 @@ def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladd
     """One self-contained HTML file: the summary, the tracking plots, the workbench."""
     figs = tracking_figures(ev)
     if diag is not None:
-        from fusion.cli.diagnose import report_figures
+        from fusion.cli.diagnose_report import report_figures
 
         wb = report_figures(diag, None, ladder)
         figs.update({f"wb_{k}": v for k, v in wb.items() if k in ("ladder", "candidates")})
@@ -240,3 +360,17 @@ def summary_table(doc: dict[str, Any], ev: dict[str, Any]):
                      "publishes fewer estimates and says `degraded` with its lag in its status; "
                      "docs/service-node.md)")
     return t, lines
+
+
+def say_summary(doc: dict, ev: dict, diag, ladder, last_line: str) -> None:
+    """The summary on the console: the startup, the table, the workbench's verdict, the report."""
+    table, lines = summary_table(doc, ev)
+    console.print(f"startup: {ev['startup']['message']}", highlight=False)
+    console.print(table)
+    for ln in lines:
+        console.print(ln, highlight=False)
+    if diag is not None:
+        console.print(f"workbench on the calibration recording: shipped model {diag.rms_ratio:.1f}× "
+                      f"the noise ({diag.verdict}); with the identified effects "
+                      f"{ladder[-1]['rms_ratio']:.2f}×", highlight=False)
+    console.print(last_line, highlight=False)

@@ -19,13 +19,14 @@
 3. **The summary**: startup and tracking accuracy against the simulator's truth, the flags
    seen, samples published / received / dropped, the sample→estimate latency (a sample's
    read time on the drivers' clock to the estimate's arrival here: one machine, one
-   monotonic clock), and an HTML report (:mod:`fusion.service.demo_report`): the tracking
+   monotonic clock), and an HTML report (:mod:`fusion.cli.demo_report`): the tracking
    plots and the workbench's verdict and error ladder on the calibration recording
    (``fusion.workbench.diagnose``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -40,15 +41,21 @@ import numpy as np
 import typer
 import yaml
 
-from fusion.cli.common import console, emit_json, err_console, fail
+from fusion.cli.common import emit_json, err_console, fail
+from fusion.cli.demo_report import (
+    heading_scores,
+    joint_scores,
+    latency_figures,
+    sample_counts,
+    say_summary,
+    score_combinations,
+    write_report,
+)
 from fusion.cli.options import JsonOpt, ScenarioOpt, SeedOpt
 from fusion.cli.simulate import truth_path
 from fusion.service import payloads as pl
-from fusion.service.demo_report import summary_table, write_report
-from fusion.service.fleet import free_loopback_port
-from fusion.service.processes import Children
+from fusion.service.processes import Children, free_loopback_port
 from fusion.tracking.tracker import truth_at
-from models.rotations import wrap_angle
 from models.simulator import angle_truth
 from models.trajectories import SCENARIOS
 
@@ -248,42 +255,6 @@ def _cpu_s(pid: int) -> float | None:
 LATENCY_SETTLE_S = 10.0  # tracking time after which the latency is also given on its own
 
 
-def score_combinations(reported: list, t: np.ndarray, q_true: np.ndarray, tilt_true: np.ndarray,
-                       names: list[str]) -> list[dict[str, Any]]:
-    """What gravity reads together (the joint states' ``combinations``, per estimate a tuple of
-    ``{name, coefficients, angle_rad, sigma_rad}`` or None), each combination ever reported
-    scored against the same combination of the truth (the joints' ``q_true (T, n)`` and the
-    base's ``tilt_true (T, 2)``, roll and pitch, rad) over the estimates it was reported at:
-    its share of estimates, its last value and sigma (deg), RMS error and share within 3 sigma
-    (None where no truth)."""
-    from fusion.startup.solve import TILT_NAMES
-
-    series: dict[str, dict[str, Any]] = {}
-    for i, cs in enumerate(reported):
-        for c in cs or ():
-            row = series.setdefault(c["name"], {"coefficients": dict(c["coefficients"]), "i": [], "v": [],
-                                                "s": []})
-            row["i"].append(i)
-            row["v"].append(float(c["angle_rad"]))
-            row["s"].append(float(c["sigma_rad"]))
-    truth_cols = {**{n: q_true[:, k] for k, n in enumerate(names)},
-                  **{n: tilt_true[:, k] for k, n in enumerate(TILT_NAMES)}}
-    out = []
-    for name, row in series.items():
-        idx, v, sg = np.array(row["i"]), np.array(row["v"]), np.array(row["s"])
-        true = sum(c * truth_cols.get(term, np.full(len(t), np.nan))[idx]
-                   for term, c in row["coefficients"].items())
-        err = np.degrees(v - true)
-        have = np.isfinite(err)
-        out.append({"name": name, "coefficients": row["coefficients"],
-                    "reported_share": float(len(idx) / max(len(t), 1)),
-                    "angle_deg": float(np.degrees(v[-1])), "sigma_deg": float(np.degrees(sg[-1])),
-                    "rms_error_deg": float(np.sqrt(np.mean(err[have] ** 2))) if have.any() else None,
-                    "within_3_sigma": (float(np.mean(np.abs(err[have]) <= 3.0 * np.degrees(sg[have])))
-                                       if have.any() else None)})
-    return out
-
-
 def evaluate(live: dict[str, Any]) -> dict[str, Any]:
     """Accuracy against the truth, flags, counts and latency, as one JSON-ready document."""
     from sensors.recording import read_recording
@@ -307,77 +278,23 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
     # the truth interpolated to each estimate's instant: the fake drivers read each device at
     # an instant of its own, between the simulator's 100 Hz grid points
     err_deg = np.degrees(q - truth_at(tq, t))
-    first = 0
-    startup = {n: {"error_deg": float(err_deg[first, k]), "sigma_deg": float(np.degrees(sig[first, k])),
-                   "flag": str(flags[first, k])} for k, n in enumerate(names)}
-    scored = np.isfinite(err_deg).all(axis=1)  # (an estimate past the truth's end is not scored)
-    err_deg, sig_deg, t_scored = err_deg[scored], np.degrees(sig[scored]), t[scored]
-    rms = {n: float(np.sqrt(np.mean(err_deg[:, k] ** 2))) for k, n in enumerate(names)}
-    # from each joint's first `ok` estimate on: a joint gravity cannot read at the park pose
-    # (j3, j6 at gimbal lock) is held at its prior, with a sigma that says so, until the arm
-    # first reaches; its RMS over the whole run is mostly that wait
-    once_ok: dict[str, dict[str, float] | None] = {}
-    for k, n in enumerate(names):
-        ok = np.flatnonzero(flags[scored][:, k] == "ok")
-        once_ok[n] = None if not len(ok) else {
-            "t_s": float(t_scored[ok[0]]), "rms_error_deg": float(np.sqrt(np.mean(err_deg[ok[0]:, k] ** 2))),
-            "within_3_sigma": float(np.mean(np.abs(err_deg[ok[0]:, k]) <= 3 * sig_deg[ok[0]:, k]))}
-    worst = {n: float(np.max(np.abs(err_deg[:, k]))) for k, n in enumerate(names)}
-    inside = np.abs(err_deg) <= 3 * sig_deg
-    within = {n: float(np.mean(inside[:, k])) for k, n in enumerate(names)}
-    seen = {n: dict(Counter(flags[:, k].tolist()).most_common()) for k, n in enumerate(names)}
+    joints = joint_scores(names, t, err_deg, sig, flags)
+    heading_rms, heading_within, heading_status = heading_scores(w.headings, tb)
     tilt_true = truth_at(tb, t, angles=True)[:, :2] if tb is not None else np.full((len(t), 2), np.nan)
     combos = score_combinations([j.combinations for j in js], t, truth_at(tq, t), tilt_true, names)
-    heading_rms = heading_within = None
-    heading_status: dict[str, float] = {}
-    if w.headings:
-        th = np.array([h.t_s for _, h in w.headings])
-        yaw = np.array([h.heading_rad for _, h in w.headings])
-        yaw_true = truth_at(tb, th, angles=True)[:, 2]
-        yaw_err = np.abs(wrap_angle(yaw - yaw_true))
-        heading_rms = float(np.degrees(np.sqrt(np.mean(yaw_err**2))))
-        heading_within = float(np.mean(yaw_err <= 3 * np.array([h.heading_sigma_rad for _, h in w.headings])))
-        heading_status = {s: n / len(w.headings) for s, n in
-                          Counter(h.heading_status for _, h in w.headings).most_common()}
     drv, srv, rec = live["drivers"], live["serve"], live["record"]
-    epoch = drv.get("epoch_monotonic_s")
-    latency = None
-    if epoch is not None:
-        lat_ms = 1e3 * (arrived - (epoch + t))
-        latency = {"p50_ms": float(np.percentile(lat_ms, 50)), "p99_ms": float(np.percentile(lat_ms, 99)),
-                   "max_ms": float(np.max(lat_ms)), "count": int(len(lat_ms))}
-        # the node buffers while it calibrates on the still stretch, then works off the
-        # backlog: the latency once it runs, apart
-        later = lat_ms[t >= t[0] + LATENCY_SETTLE_S]
-        if len(later):
-            latency.update({"settle_s": LATENCY_SETTLE_S,
-                            "p50_after_settle_ms": float(np.percentile(later, 50)),
-                            "p99_after_settle_ms": float(np.percentile(later, 99))})
-    published = int(sum(drv.get("published", {}).get("samples", {}).values()))
-    dropped = {f"serve.{k}": v for k, v in srv.get("dropped", {}).items()}
-    if srv.get("out_of_order"):
-        dropped["serve.out_of_order"] = srv["out_of_order"]
-    dropped.update({f"record.{k}": v for k, v in rec.get("dropped", {}).items()})
+    latency = latency_figures(arrived, t, drv.get("epoch_monotonic_s"), LATENCY_SETTLE_S)
     return {
         "joint_names": names,
         "startup": {"t_s": float(srv.get("startup_t_s") or t[0]), "message": srv.get("message", ""),
-                    "joints": startup},
+                    "joints": joints["startup"]},
         "tracking": {"t_start_s": float(t[0]), "t_end_s": float(t[-1]), "estimates": int(len(t)),
-                     "rms_error_deg": rms, "max_error_deg": worst, "within_3_sigma": within,
-                     "from_first_ok": once_ok,
+                     "rms_error_deg": joints["rms"], "max_error_deg": joints["worst"],
+                     "within_3_sigma": joints["within"], "from_first_ok": joints["once_ok"],
                      "heading_rms_deg": heading_rms, "heading_within_3_sigma": heading_within,
                      "heading_status": heading_status, "combinations": combos},
-        "flags_seen": seen,
-        "samples": {"published": published, "received_by_serve": int(srv.get("samples", 0)),
-                    # refused by the node's admission, by reason (a driver that fell behind on a
-                    # loaded machine reads a burst, refused as too dense): counted, never lost
-                    "refused_by_serve": {k: int(v) for k, v in srv.get("refused_samples", {}).items()},
-                    "recorded": int(sum(rec.get("samples", {}).values())), "dropped": dropped,
-                    "estimates_published": int(srv.get("estimates", 0)),
-                    # messages whose handling raised in the fusion node (logged, the node going on)
-                    "serve_errors": int(srv.get("errors", 0)),
-                    "estimates_received": int(len(t)),
-                    "estimates_recorded": int(sum(rec.get("estimates", {}).values()))},
+        "flags_seen": joints["seen"],
+        "samples": sample_counts(drv, srv, rec, len(t)),
         "latency": latency,
         "machine": live.get("machine"),
         "_series": {"t": t, "q": q, "sigma": sig, "flags": flags, "truth_q": tq, "truth_base": tb,
@@ -413,142 +330,161 @@ def workbench(calibration_rec: Path, identification: dict, window: int = 25):
 # --- the command ------------------------------------------------------------------------------
 
 
+def demo_command(
+    duration_s: Annotated[float, typer.Option(
+        "--duration", help="Seconds of the live run (wall clock).")] = 60.0,
+    seed: SeedOpt = 0,
+    realistic: Annotated[bool, typer.Option(
+        "--realistic/--ideal", help="Datasheet-typical sensor errors (default) or none.")] = True,
+    calibrate_sensors: Annotated[bool, typer.Option(
+        "--calibrate/--no-calibrate", help="First identify the sensors' errors on the calibration "
+        "maneuver and serve with the calibrated config (default); else the shipped config.")] = True,
+    calibration_s: Annotated[float | None, typer.Option(
+        "--calibration-duration", help="Play only the calibration maneuver's poses within its first "
+        "SECONDS (default: all of it, 60 s).")] = None,
+    maneuver: Annotated[Path | None, typer.Option(
+        "--maneuver", help="The calibration maneuver to play (armfusion plan-maneuver --config wmra "
+        "--out M.yaml); default the shipped config/maneuvers/wmra-60s.yaml.")] = None,
+    scenario: ScenarioOpt = "daily-use",
+    run_workbench: Annotated[bool, typer.Option(
+        "--workbench/--no-workbench", help="Diagnose the calibration recording for the report.")] = True,
+    out: Annotated[Path, typer.Option(
+        "--out", "-o", help="Directory for the recordings, the configs, the nodes' outputs and "
+        "the report.")] = Path("armfusion-demo"),
+    batch_ms: Annotated[float, typer.Option(
+        "--batch-ms", help="The drivers' read time per published batch, ms (keep it well under "
+        "the fusion node's 0.1 s reorder window, or samples arrive too late to fuse).")] = 20.0,
+    json_out: JsonOpt = False,
+) -> None:
+    """The whole service on this machine, no hardware, loopback only: the simulated WMRA
+    calibrates its sensors, then fake drivers → fusion node → recorder run as processes
+    over Zenoh; a summary against the truth and an HTML report."""
+    _check_options(duration_s, calibrate_sensors, calibration_s, batch_ms, scenario, out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    timings: dict[str, float] = {}
+    show = not json_out
+
+    def say(msg: str) -> None:
+        if show:
+            err_console.print(f"[bold]demo:[/] {msg}", highlight=False)
+
+    # without --calibrate-sensors: the shipped config, nothing identified or played
+    identification, calibration_rec, played, config = None, None, {}, "wmra"
+    try:
+        with Children(out / "nodes") as ch:
+            if calibrate_sensors:
+                with err_console.status("calibrating the sensors…", spinner="dots") if show \
+                        else _nothing():
+                    config, identification, calibration_rec, played = calibrate(
+                        out, seed, calibration_s, realistic, ch, say, maneuver)
+                timings["calibration_s"] = time.monotonic() - t0
+                say(f"calibrated config: {config} (reduced chi-square "
+                    f"{identification['chi2_red']:.2f}, {identification['seconds']:.0f} s fit)")
+                if identification.get("compass_drive"):
+                    say(identification["compass_drive"])
+            say(f"live: router, recorder, fusion node and drivers over Zenoh on 127.0.0.1 "
+                f"({duration_s:g} s of {scenario})")
+            t1 = time.monotonic()
+            with _live_bar(duration_s, show) as progress:
+                live = run_live(out, config, seed, duration_s, scenario, realistic, ch, progress,
+                                batch_ms)
+            timings["live_s"] = time.monotonic() - t1
+    except DemoError as e:
+        fail(str(e))
+    t2 = time.monotonic()
+    try:
+        ev = evaluate(live)
+    except DemoError as e:
+        fail(str(e))
+    diag = ladder = None
+    if run_workbench and calibration_rec is not None:
+        with err_console.status("the workbench: diagnosing the calibration recording…") if show \
+                else _nothing():
+            diag, ladder = workbench(calibration_rec, identification)
+    doc = {"seed": seed, "realistic": realistic, "scenario": scenario, "duration_s": duration_s,
+           "config": str(config), "out": str(out), "recording": str(live["recording"]),
+           "calibration": _calibration_doc(identification, calibration_rec, config, played),
+           **{k: v for k, v in ev.items() if not k.startswith("_")}}
+    if diag is not None:
+        doc["workbench"] = {"verdict": diag.verdict, "rms_ratio": diag.rms_ratio, "ladder": ladder}
+    report = write_report(out / "report.html", doc, ev, diag, ladder)
+    timings["report_s"] = time.monotonic() - t2
+    timings["total_s"] = time.monotonic() - t0
+    doc["report"] = str(report)
+    doc["timings_s"] = {k: round(v, 1) for k, v in timings.items()}
+    (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    if json_out:
+        emit_json(doc)
+        return
+    say_summary(doc, ev, diag, ladder, f"report: {report}  (recording: {live['recording']}; "
+                f"{timings['total_s']:.0f} s in all)")
+
+
+def _check_options(duration_s: float, calibrate_sensors: bool, calibration_s: float | None,
+                   batch_ms: float, scenario: str, out: Path) -> None:
+    """Exit 2 before any work on an option out of its range."""
+    if not duration_s >= 5:
+        fail(f"--duration {duration_s!r}: expected at least 5 s (the arm is still for the first seconds)")
+    if calibrate_sensors and calibration_s is not None and not calibration_s >= 15:
+        fail(f"--calibration-duration {calibration_s!r}: expected at least 15 s")
+    if not 1.0 <= batch_ms <= 1000.0:
+        fail(f"--batch-ms {batch_ms!r}: expected 1 to 1000")
+    if scenario not in SCENARIOS:
+        fail(f"--scenario {scenario!r}: expected one of {', '.join(SCENARIOS)}")
+    if out.exists() and not out.is_dir():
+        fail(f"--out {out}: exists and is not a directory")
+
+
+@contextlib.contextmanager
+def _live_bar(duration_s: float, show: bool):
+    """A progress bar of the live run (hidden unless ``show``): the ``progress(watched)``
+    callback that updates it, and the bar completed at the end."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(),
+                  TextColumn("{task.fields[info]}"), TimeElapsedColumn(),
+                  console=err_console, disable=not show, transient=False) as bar:
+        task = bar.add_task("live", total=duration_s, info="starting the nodes")
+
+        def progress(w: Watched) -> None:
+            with w.lock:
+                last = w.joints[-1][1] if w.joints else None
+                n = len(w.joints)
+                serve = w.status.get("serve")
+                drv = w.status.get("drivers")
+            published = 0 if drv is None else \
+                sum(v for k, v in drv.counters if k.startswith("samples."))
+            state = "" if serve is None else serve.state
+            flags = "" if last is None else " ".join(
+                f"{k} {v}" for k, v in Counter(last.flags).most_common())
+            bar.update(task, completed=0.0 if last is None else min(last.t_s, duration_s),
+                       info=f"{state} · {published} samples out · {n} estimates in · {flags}")
+
+        yield progress
+        bar.update(task, completed=duration_s)
+
+
+def _calibration_doc(identification: dict | None, calibration_rec, config, played: dict) -> dict | None:
+    """The summary's ``calibration``: what was played and identified (None: not calibrated)."""
+    if identification is None:
+        return None
+    return {"recording": str(calibration_rec), "config": str(config), **played,
+            "chi2_red": identification["chi2_red"],
+            "compass": identification.get("compass_drive"),
+            "unmodelled_g": identification.get("unmodelled_g")}
+
+
+COMMAND_TABLE = (
+    ("demo", demo_command),
+)
+"""The demo's command: each command's name and its function."""
+
+
 def register(app: typer.Typer) -> None:
-    @app.command("demo")
-    def demo_command(
-        duration_s: Annotated[float, typer.Option(
-            "--duration", help="Seconds of the live run (wall clock).")] = 60.0,
-        seed: SeedOpt = 0,
-        realistic: Annotated[bool, typer.Option(
-            "--realistic/--ideal", help="Datasheet-typical sensor errors (default) or none.")] = True,
-        calibrate_sensors: Annotated[bool, typer.Option(
-            "--calibrate/--no-calibrate", help="First identify the sensors' errors on the calibration "
-            "maneuver and serve with the calibrated config (default); else the shipped config.")] = True,
-        calibration_s: Annotated[float | None, typer.Option(
-            "--calibration-duration", help="Play only the calibration maneuver's poses within its first "
-            "SECONDS (default: all of it, 60 s).")] = None,
-        maneuver: Annotated[Path | None, typer.Option(
-            "--maneuver", help="The calibration maneuver to play (armfusion plan-maneuver --config wmra "
-            "--out M.yaml); default the shipped config/maneuvers/wmra-60s.yaml.")] = None,
-        scenario: ScenarioOpt = "daily-use",
-        run_workbench: Annotated[bool, typer.Option(
-            "--workbench/--no-workbench", help="Diagnose the calibration recording for the report.")] = True,
-        out: Annotated[Path, typer.Option(
-            "--out", "-o", help="Directory for the recordings, the configs, the nodes' outputs and "
-            "the report.")] = Path("armfusion-demo"),
-        batch_ms: Annotated[float, typer.Option(
-            "--batch-ms", help="The drivers' read time per published batch, ms (keep it well under "
-            "the fusion node's 0.1 s reorder window, or samples arrive too late to fuse).")] = 20.0,
-        json_out: JsonOpt = False,
-    ) -> None:
-        """The whole service on this machine, no hardware, loopback only: the simulated WMRA
-        calibrates its sensors, then fake drivers → fusion node → recorder run as processes
-        over Zenoh; a summary against the truth and an HTML report."""
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-        if not duration_s >= 5:
-            fail(f"--duration {duration_s!r}: expected at least 5 s (the arm is still for the first seconds)")
-        if calibrate_sensors and calibration_s is not None and not calibration_s >= 15:
-            fail(f"--calibration-duration {calibration_s!r}: expected at least 15 s")
-        if not 1.0 <= batch_ms <= 1000.0:
-            fail(f"--batch-ms {batch_ms!r}: expected 1 to 1000")
-        if scenario not in SCENARIOS:
-            fail(f"--scenario {scenario!r}: expected one of {', '.join(SCENARIOS)}")
-        if out.exists() and not out.is_dir():
-            fail(f"--out {out}: exists and is not a directory")
-        out.mkdir(parents=True, exist_ok=True)
-        t0 = time.monotonic()
-        timings: dict[str, float] = {}
-        show = not json_out
-
-        def say(msg: str) -> None:
-            if show:
-                err_console.print(f"[bold]demo:[/] {msg}", highlight=False)
-
-        identification = None
-        calibration_rec = None
-        played: dict[str, Any] = {}
-        config: str | Path = "wmra"
-        try:
-            with Children(out / "nodes") as ch:
-                if calibrate_sensors:
-                    with err_console.status("calibrating the sensors…", spinner="dots") if show \
-                            else _nothing():
-                        config, identification, calibration_rec, played = calibrate(
-                            out, seed, calibration_s, realistic, ch, say, maneuver)
-                    timings["calibration_s"] = time.monotonic() - t0
-                    say(f"calibrated config: {config} (reduced chi-square "
-                        f"{identification['chi2_red']:.2f}, {identification['seconds']:.0f} s fit)")
-                    if identification.get("compass_drive"):
-                        say(identification["compass_drive"])
-                say(f"live: router, recorder, fusion node and drivers over Zenoh on 127.0.0.1 "
-                    f"({duration_s:g} s of {scenario})")
-                t1 = time.monotonic()
-                with Progress(TextColumn("{task.description}"), BarColumn(),
-                              TextColumn("{task.fields[info]}"), TimeElapsedColumn(),
-                              console=err_console, disable=not show, transient=False) as bar:
-                    task = bar.add_task("live", total=duration_s, info="starting the nodes")
-
-                    def progress(w: Watched) -> None:
-                        with w.lock:
-                            last = w.joints[-1][1] if w.joints else None
-                            n = len(w.joints)
-                            serve = w.status.get("serve")
-                            drv = w.status.get("drivers")
-                        published = 0 if drv is None else \
-                            sum(v for k, v in drv.counters if k.startswith("samples."))
-                        state = "" if serve is None else serve.state
-                        flags = "" if last is None else " ".join(
-                            f"{k} {v}" for k, v in Counter(last.flags).most_common())
-                        bar.update(task, completed=0.0 if last is None else min(last.t_s, duration_s),
-                                   info=f"{state} · {published} samples out · {n} estimates in · {flags}")
-
-                    live = run_live(out, config, seed, duration_s, scenario, realistic, ch, progress,
-                                    batch_ms)
-                    bar.update(task, completed=duration_s)
-                timings["live_s"] = time.monotonic() - t1
-        except DemoError as e:
-            fail(str(e))
-        t2 = time.monotonic()
-        try:
-            ev = evaluate(live)
-        except DemoError as e:
-            fail(str(e))
-        diag = ladder = None
-        if run_workbench and calibration_rec is not None:
-            with err_console.status("the workbench: diagnosing the calibration recording…") if show \
-                    else _nothing():
-                diag, ladder = workbench(calibration_rec, identification)
-        doc = {"seed": seed, "realistic": realistic, "scenario": scenario, "duration_s": duration_s,
-               "config": str(config), "out": str(out), "recording": str(live["recording"]),
-               "calibration": None if identification is None else {
-                   "recording": str(calibration_rec), "config": str(config), **played,
-                   "chi2_red": identification["chi2_red"],
-                   "compass": identification.get("compass_drive"),
-                   "unmodelled_g": identification.get("unmodelled_g")},
-               **{k: v for k, v in ev.items() if not k.startswith("_")}}
-        if diag is not None:
-            doc["workbench"] = {"verdict": diag.verdict, "rms_ratio": diag.rms_ratio, "ladder": ladder}
-        report = write_report(out / "report.html", doc, ev, diag, ladder)
-        timings["report_s"] = time.monotonic() - t2
-        timings["total_s"] = time.monotonic() - t0
-        doc["report"] = str(report)
-        doc["timings_s"] = {k: round(v, 1) for k, v in timings.items()}
-        (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
-        if json_out:
-            emit_json(doc)
-            return
-        table, lines = summary_table(doc, ev)
-        console.print(f"startup: {ev['startup']['message']}", highlight=False)
-        console.print(table)
-        for ln in lines:
-            console.print(ln, highlight=False)
-        if diag is not None:
-            console.print(f"workbench on the calibration recording: shipped model {diag.rms_ratio:.1f}× "
-                          f"the noise ({diag.verdict}); with the identified effects "
-                          f"{ladder[-1]['rms_ratio']:.2f}×", highlight=False)
-        console.print(f"report: {report}  (recording: {live['recording']}; "
-                      f"{timings['total_s']:.0f} s in all)", highlight=False)
+    """Add the commands of :data:`COMMAND_TABLE` to ``app``."""
+    for name, command in COMMAND_TABLE:
+        app.command(name)(command)
 
 
 class _nothing:
