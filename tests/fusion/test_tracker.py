@@ -371,8 +371,8 @@ def test_a_block_prepared_at_once_gives_each_instant_the_live_path_s_pieces(arm,
     gyro = rng.normal(0.0, 0.2, (len(i), 3))
     enc_has, gyro_has, need = (rng.uniform(size=len(i)) < p for p in (0.7, 0.6, 0.8))
     gyro_has[:5] = False  # the block opens on the gyro's last reading before it
-    b._omega = a._omega = np.array([0.01, -0.02, 0.03])
-    prepared = prepare_block(a, t, q, enc_has, gyro, gyro_has, need, a._ukf.x)
+    b.last_gyro_B = a.last_gyro_B = np.array([0.01, -0.02, 0.03])
+    prepared = prepare_block(a, t, q, enc_has, gyro, gyro_has, need, a.x)
     assert len(prepared) == len(i)
     frames = 0
     for r in range(len(i)):
@@ -390,7 +390,7 @@ def test_a_block_prepared_at_once_gives_each_instant_the_live_path_s_pieces(arm,
             for name, got, want in zip(Frames.FIELDS, frame, ref, strict=True):
                 np.testing.assert_array_equal(got, want, err_msg=name)
         if gyro_has[r]:
-            b._omega = gyro[r]  # as the filter's step keeps it
+            b.last_gyro_B = gyro[r]  # as the filter's step keeps it
     assert frames > 50
     for d_a, d_b in ((a.enc_rates, b.enc_rates), (a.gyro_rates, b.gyro_rates)):
         np.testing.assert_array_equal(d_a._y, d_b._y)
