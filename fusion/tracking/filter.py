@@ -1,7 +1,8 @@
 """The tracking filter, :class:`Tracker`: a small object with a frozen settings struct
 (:class:`fusion.tracking.settings.TrackerSettings`), a few lifecycle verbs (``initialise``,
-``update`` / ``update_instant``, ``run``, ``snapshot`` / ``restore``) and results by value
-(:attr:`Tracker.estimate`), composed of parts that own their state:
+``update`` / ``update_instant`` / ``step``, ``run``, ``state`` / ``resume``,
+``snapshot`` / ``restore``) and results by value (:attr:`Tracker.estimate`), composed of
+parts that own their state:
 :class:`~fusion.tracking.health.SensorHealth` (counters, verdicts, statuses),
 :class:`~fusion.tracking.slips.SlipDetector` (slips and re-acquisition),
 :class:`~fusion.tracking.observability.Observability` (hold, consider sensitivity, joint
@@ -13,13 +14,13 @@ flags), :class:`~fusion.tracking.compass.Compass` (the heading),
 :mod:`fusion.tracking.tracker` and docs/tracking.md.
 
 One filter path, live and over a recording alike: each instant's readings go through
-:meth:`Tracker._instant` (the differentiators take them, the mean pose's kinematic frame
+:meth:`Tracker.step` (the differentiators take them, the mean pose's kinematic frame
 is made, compiled, with the offsets and gyro bias of the moment, the filter predicts and
 fuses). :meth:`Tracker.update_instant` feeds it one instant's raw samples;
 :meth:`Tracker.run` (:func:`fusion.tracking.run.run_recording`) a whole recording, with the
 conversion to SI units and the saturation checks done for many instants at once, and the
 differentiators' fits and the frames for a block of instants in one compiled call each
-(:func:`fusion.tracking.run.prepare_block`, given to ``_instant`` as its ``prepared`` pieces).
+(:func:`fusion.tracking.run.prepare_block`, given to ``step`` as its ``prepared`` pieces).
 """
 
 from __future__ import annotations

@@ -170,7 +170,7 @@ def prepare_block(tr, t: np.ndarray, q_enc: np.ndarray, enc_has: np.ndarray, gyr
     and the kinematic frame of each instant ``need_frame`` (those with accelerometers or the compass) made
     as ``Tracker._frame_now`` makes it, with the offsets and gyro bias of ``x``, in one
     compiled call. Returns, per instant, the encoder fit at it
-    (None before any encoder sample) and its frame (or None), for ``_instant``'s
+    (None before any encoder sample) and its frame (or None), for ``step``'s
     ``prepared``; ``Tracker._frame_now`` and this hold the same inputs to the frame."""
     L = tr.layout
     e_at, _, e_have = tr.enc_rates.push_block(t, q_enc, enc_has)
