@@ -112,6 +112,7 @@ def main() -> None:
     print(f"steps per CPU second: {a.base} ({base_sha}) {rate_b:.0f}, this tree {rate_o:.0f}: "
           f"ratio {rate_o / rate_b:.3f}")
     print("largest difference per output:", json.dumps(diffs))
+    sys.path.insert(0, str(HERE))
     from tools.benchdoc import machine_line, write_section
 
     md = [
