@@ -132,6 +132,18 @@ def R_from_rpy(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
     return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
 
 
+def R_from_rpy_into(roll_rad: float, pitch_rad: float, yaw_rad: float, R: np.ndarray) -> None:
+    """:func:`R_from_rpy` of one attitude written into ``R (3, 3)``, its product multiplied
+    out. Scalar arithmetic only, so that numba compiles this same function for its kernels
+    (``fusion.tracking.tracker_kernels`` does)."""
+    sr, cr = math.sin(roll_rad), math.cos(roll_rad)
+    sp, cp = math.sin(pitch_rad), math.cos(pitch_rad)
+    sy, cy = math.sin(yaw_rad), math.cos(yaw_rad)
+    R[0, 0], R[0, 1], R[0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    R[1, 0], R[1, 1], R[1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    R[2, 0], R[2, 1], R[2, 2] = -sp, cp * sr, cp * cr
+
+
 def rpy_from_R(R_WB: np.ndarray) -> np.ndarray:
     """Inverse of :func:`R_from_rpy`: ``(..., 3)`` roll, pitch, yaw in rad."""
     R = np.asarray(R_WB, dtype=float)

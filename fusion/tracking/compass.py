@@ -418,12 +418,13 @@ class Compass:
                                                        fld["declination_rad"])
 
     def restore(self, snap: dict) -> None:
+        """Resume from :meth:`snapshot` (its field is taken at construction: :meth:`field_from`)."""
         if self.guard is not None and snap.get("guard") is not None:
             self.guard.restore(snap["guard"])
         self.restore_iron(snap.get("iron"))
-        if snap.get("heading_status") in STATUS_CODE:
-            self.status = snap["heading_status"]
-        floor = snap.get("compass_floor_var")
+        if snap.get("status") in STATUS_CODE:
+            self.status = snap["status"]
+        floor = snap.get("fused_floor_var")
         if isinstance(floor, (int, float)) and math.isfinite(floor) and floor >= 0.0:
             self._fused_floor_var = float(floor)
 

@@ -1,7 +1,8 @@
 """The tracking filter, :class:`Tracker`: a small object with a frozen settings struct
 (:class:`fusion.tracking.settings.TrackerSettings`), a few lifecycle verbs (``initialise``,
-``update`` / ``update_instant``, ``run``, ``snapshot`` / ``restore``) and results by value
-(:attr:`Tracker.estimate`), composed of parts that own their state:
+``update`` / ``update_instant`` / ``step``, ``run``, ``state`` / ``resume``,
+``snapshot`` / ``restore``) and results by value (:attr:`Tracker.estimate`), composed of
+parts that own their state:
 :class:`~fusion.tracking.health.SensorHealth` (counters, verdicts, statuses),
 :class:`~fusion.tracking.slips.SlipDetector` (slips and re-acquisition),
 :class:`~fusion.tracking.observability.Observability` (hold, consider sensitivity, joint
@@ -13,13 +14,13 @@ flags), :class:`~fusion.tracking.compass.Compass` (the heading),
 :mod:`fusion.tracking.tracker` and docs/tracking.md.
 
 One filter path, live and over a recording alike: each instant's readings go through
-:meth:`Tracker._instant` (the differentiators take them, the mean pose's kinematic frame
+:meth:`Tracker.step` (the differentiators take them, the mean pose's kinematic frame
 is made, compiled, with the offsets and gyro bias of the moment, the filter predicts and
 fuses). :meth:`Tracker.update_instant` feeds it one instant's raw samples;
 :meth:`Tracker.run` (:func:`fusion.tracking.run.run_recording`) a whole recording, with the
 conversion to SI units and the saturation checks done for many instants at once, and the
 differentiators' fits and the frames for a block of instants in one compiled call each
-(:func:`fusion.tracking.run.prepare_block`, given to ``_instant`` as its ``prepared`` pieces).
+(:func:`fusion.tracking.run.prepare_block`, given to ``step`` as its ``prepared`` pieces).
 """
 
 from __future__ import annotations
@@ -39,10 +40,17 @@ from fusion.tracking.estimate import HEADING_STATUS, Estimate
 from fusion.tracking.frame_kernels import FrameConstants
 from fusion.tracking.frames import Frames
 from fusion.tracking.health import SensorHealth, sensor_warnings
-from fusion.tracking.initial import Ambiguity, ImuStill, initial_state, limits_cover_var, read_by_startup
+from fusion.tracking.initial import (
+    Ambiguity,
+    ImuStill,
+    initial_state,
+    limits_cover_var,
+    read_by_startup,
+    restored_startup,
+)
 from fusion.tracking.innovations import InnovationLog
-from fusion.tracking.live import fuse_instant
-from fusion.tracking.measurement import Measurements
+from fusion.tracking.live import admit_instant
+from fusion.tracking.measurement import AccelReadings, Measurements
 from fusion.tracking.observability import Observability
 from fusion.tracking.process import (
     MotionIntensity,
@@ -73,8 +81,9 @@ from fusion.tracking.settings import (
     TrackerSettings,
 )
 from fusion.tracking.slips import SlipDetector
-from fusion.tracking.snapshot import restore_into, snapshot_of
-from fusion.tracking.ukf import BatchedUKF, SigmaPoints
+from fusion.tracking.snapshot import SNAPSHOT_FORMAT, TrackerState
+from fusion.tracking.ukf import BatchedUKF, Innovation, SigmaPoints
+from fusion.tracking.update import InstantReadings, MagReading, UpdateResult
 from models.arm import ArmModel
 from models.rotations import DEG, up_from_tilt
 from sensors.samples import Recording
@@ -89,7 +98,7 @@ class Tracker:
     :meth:`snapshot` / :meth:`restore` carry the state across a restart of the process.
     """
 
-    SNAPSHOT_FORMAT = "armfusion.tracker/1"
+    SNAPSHOT_FORMAT = SNAPSHOT_FORMAT
 
     def __init__(self, arm: ArmModel, settings: TrackerSettings | None = None,
                  rates_hz: Mapping[str, float] | float = 100.0, correction=None):
@@ -130,10 +139,11 @@ class Tracker:
         self.accel_names = self.link_names + ((arm.imu.name,) if self._has_imu else ())
         self.accel_streams = self.link_names + ((IMU_ACC,) if self._has_imu else ())
         self.sensor_names = self.accel_streams + ((GYRO, MAG) if self._has_imu else ()) + (ENC,)
-        self._sidx = {s: i for i, s in enumerate(self.sensor_names)}
+        self.sensor_index = {s: i for i, s in enumerate(self.sensor_names)}
+        """Each stream's index in :attr:`sensor_names`."""
         links = np.array([arm.sensor(nm).link for nm in self.accel_names], dtype=int)
         self._links = links  # (the accelerometers' links and the IMU's index: for the kernels' tests)
-        self._imu_acc_index = self._sidx.get(IMU_ACC, -1)
+        self._imu_acc_index = self.sensor_index.get(IMU_ACC, -1)
         self._links_list = [int(k) for k in links[: len(self.link_names)]]
         self.R_0I = arm.imu.R_LS if self._has_imu else np.eye(3)  # the IMU's axes in the base's
         scale, scale_sigma = calibrated.encoder_scales(arm, model)
@@ -148,7 +158,7 @@ class Tracker:
         self._unmodelled_g = unmodelled_g
         self._sees = links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
-                                         self._sidx.get(IMU_ACC, -1), unmodelled_g, time_offset_s,
+                                         self.sensor_index.get(IMU_ACC, -1), unmodelled_g, time_offset_s,
                                          time_var_s2)
         self.observability = Observability(st, L, self.link_names, self.accel_streams, self._sees, correction,
                                            calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
@@ -165,11 +175,14 @@ class Tracker:
         self._points = SigmaPoints(L.size, st.alpha, st.beta, st.kappa)
         self._ukf: BatchedUKF | None = None
         self._t: float | None = None
-        self._att_idx = np.array([L.roll, L.pitch, L.yaw])
-        self._nees_idx = np.r_[np.arange(n), L.roll, L.pitch, L.yaw]
+        self.attitude_index = np.array([L.roll, L.pitch, L.yaw])
+        """The attitude's (roll, pitch, yaw) indices in the state."""
+        self.nees_index = np.r_[np.arange(n), L.roll, L.pitch, L.yaw]
+        """The joints' and the attitude's indices in the state (what a NEES is taken over)."""
         self._min_list = arm.min_rad.tolist()
         self._max_list = arm.max_rad.tolist()
-        self._frame_consts = FrameConstants(arm, self.accel_names, self._joint_effects, G)
+        self.frame_constants = FrameConstants(arm, self.accel_names, self._joint_effects, G)
+        """What the compiled kinematic frames are made with (:mod:`fusion.tracking.frame_kernels`)."""
 
     def set_rates(self, rates_hz: Mapping[str, float] | float) -> None:
         """Sample rates (Hz) per stream, which set each sensor's noise (datasheet rms at rate)."""
@@ -185,7 +198,8 @@ class Tracker:
         st, nl = self.settings, len(self.link_names)
         self._link_read_horizon_s = np.maximum(st.observability_period_s,
                                                st.observability_read_periods / m.accel_rate_hz[:nl])
-        self._limits = {s: (models[s].counts_min, models[s].counts_max) for s in models}
+        self.count_limits = {s: (models[s].counts_min, models[s].counts_max) for s in models}
+        """Per stream, the counts' range (a sample at either end is saturated)."""
         self._gyro_newer_weight = gyro_newer_weight(models[GYRO].delay_s, rates[GYRO]) \
             if GYRO in models else 0.5
 
@@ -226,7 +240,7 @@ class Tracker:
         self._q_enc = np.zeros(n)
         self._enc0 = None if encoder_counts is None else np.asarray(encoder_counts, float)
         if self._enc0 is not None:
-            self._start_filter(self._enc0 / self.counts_per_rad)
+            self.start_filter(self._enc0 / self.counts_per_rad)
         self._t = float(t_s)
         self.compass = Compass(self.arm, self.model, imu.field, st, t_s, self.R_0I, self._mag_delay_s)
         self.enc_rates = CausalDifferentiator(n, st.encoder_window, st.encoder_order)
@@ -262,7 +276,14 @@ class Tracker:
         self._flags_t = -np.inf
         self._frame_cache = None
 
-    def _start_filter(self, q_enc: np.ndarray) -> None:
+    def start_filter(self, q_enc: np.ndarray) -> None:
+        """Start the filter at the first encoder sample's angles ``q_enc`` (rad), which fix
+        the offsets (the startup's encoder counts where :meth:`initialise` was given them);
+        nothing when it runs already."""
+        if self._ukf is not None:
+            return
+        if self._enc0 is not None:
+            q_enc = self._enc0 / self.counts_per_rad
         L = self.layout
         self._q_enc = np.array(q_enc, dtype=float)
         if self.ambiguity_.q_enc is None:
@@ -303,6 +324,45 @@ class Tracker:
         return self._t
 
     @property
+    def filter_started(self) -> bool:
+        """Whether the filter runs (the first encoder sample has fixed the offsets)."""
+        return self._ukf is not None
+
+    @property
+    def mean(self) -> np.ndarray:
+        """The filter's mean itself, not a copy (:attr:`x` is one): for reading at once
+        (:attr:`fusion.tracking.ukf.BatchedUKF.mean`)."""
+        return self._ukf.mean
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """The filter's covariance itself, not a copy (:attr:`P` is one); as :attr:`mean`."""
+        return self._ukf.covariance
+
+    @property
+    def q_enc(self) -> np.ndarray:
+        """The encoders' angles at the last fused instant (rad) itself, not a copy
+        (:meth:`q_enc_now` is one): replaced at every instant, never written into."""
+        return self._q_enc
+
+    @property
+    def joint_flag_codes(self) -> np.ndarray:
+        """The joints' flags (codes of :data:`fusion.tracking.settings.JOINT_FLAGS`) as last
+        worked out: replaced when they are, never written into (a reader may keep it and
+        compare by identity)."""
+        return self._flags
+
+    @property
+    def last_gyro_B(self) -> np.ndarray | None:
+        """The gyro's last reading, base axes (rad/s); None before any."""
+        return self._omega
+
+    @last_gyro_B.setter
+    def last_gyro_B(self, w: np.ndarray | None) -> None:
+        """Prime it (a start from a recording's still window, before the first step)."""
+        self._omega = None if w is None else np.asarray(w, dtype=float)
+
+    @property
     def x(self) -> np.ndarray:
         """The filter's state (read-only copy; names in :attr:`state_names`)."""
         self._check_filter()
@@ -324,27 +384,32 @@ class Tracker:
 
     def update_instant(self, t_s: float, samples: Mapping[str, np.ndarray]) -> Estimate | None:
         """Fuse every sample of one instant together (one stacked update): raw counts by
-        stream, as the devices gave them (:func:`fusion.tracking.live.fuse_instant`)."""
+        stream, as the devices gave them: admitted (:func:`fusion.tracking.live.admit_instant`), then
+        :meth:`step`."""
         self._check()
-        return fuse_instant(self, t_s, samples)
+        t = float(t_s)
+        readings = admit_instant(self, t, samples)
+        if readings is None or not self.step(t, readings):
+            return None
+        return self.estimate
 
-    def _instant(self, t: float, q_enc: np.ndarray | None, gyro: np.ndarray | None, acc, mag,
-                 prepared: tuple | None = None) -> bool:
-        """One instant's readings through the filter: the encoders' angles ``q_enc`` (rad),
-        the gyro (rad/s, base axes), the accelerometers ``acc`` (indices, counts, readings in
-        g, their selection's info) and the compass ``mag`` (counts, µT in base axes); any of
-        them None when it has no sample here. False before the first encoder sample.
+    def step(self, t: float, readings: InstantReadings, prepared: tuple | None = None) -> bool:
+        """One instant's admitted readings through the filter (the one path, live and over a
+        recording): the encoders' angles, the gyro, the accelerometers and the compass,
+        any of them None when it has no sample here. False before the first encoder sample.
 
         The differentiators take the encoders and the gyro, and the kinematic frame is made
         with the filter's offsets and gyro bias now (:meth:`_frame_now`); or, over a
         recording, ``prepared`` = ``(encoder fit at t (3, n) or None, frame or None)`` from
         :func:`fusion.tracking.run.prepare_block`, which pushed the samples and made the frames of a block of
-        instants at once, with the offsets and gyro bias of the block's start."""
+        instants at once, with the offsets and gyro bias of the block's start. Then
+        predict, stack, innovate, gate, correct (:meth:`_step`)."""
+        q_enc, gyro, acc, mag = readings
         health = self.health
         if q_enc is not None:
-            health.mark_used(self._sidx[ENC], t)
+            health.mark_used(self.sensor_index[ENC], t)
             if self._ukf is None:
-                self._start_filter(q_enc if self._enc0 is None else self._enc0 / self.counts_per_rad)
+                self.start_filter(q_enc)
             if prepared is None:
                 self.enc_rates.push(t, q_enc)
             self._frame_cache = None
@@ -353,7 +418,7 @@ class Tracker:
         if gyro is not None:
             if prepared is None:
                 self.gyro_rates.push(t, gyro)
-            health.mark_used(self._sidx[GYRO], t)
+            health.mark_used(self.sensor_index[GYRO], t)
         if prepared is None:
             # (the compass's heading residual is computed through the frame too: a
             # magnetometer read at an instant of its own needs one)
@@ -382,13 +447,16 @@ class Tracker:
         om = None if w is None else self.process.rate(w, x)
         g = self.gyro_rates.latest
         omd = None if g is None else g[1]
-        fields = self._frame_consts.fields(e, x[L.offset], om, omd, self.settings.motion_compensation)
-        frame = self.measurements.with_noise(tuple.__new__(Frames, fields))
+        fields = self.frame_constants.fields(e, x[L.offset], om, omd, self.settings.motion_compensation)
+        frame = self.measurements.with_noise(Frames.of(fields))
         self._frame_cache = (t, frame)
         return frame
 
-    def _step(self, t: float, gyro: np.ndarray | None, acc, mag, frame: Frames | None,
-              q_enc: np.ndarray) -> None:
+    def _step(self, t: float, gyro: np.ndarray | None, acc: AccelReadings | None, mag: MagReading | None,
+              frame: Frames | None, q_enc: np.ndarray) -> None:
+        """Predict to ``t`` (the gyro's rate over the interval), the base's stillness and
+        motion averages, the compass's averaged reading, then the update (:meth:`_fuse`),
+        the attitude folded back into Euler angles, the flags when due."""
         ukf = self._ukf
         self._q_enc = q_enc
         dt = t - self._t
@@ -400,125 +468,167 @@ class Tracker:
             w = None if w0 is None else (w0 if gyro is None else (1.0 - k) * w0 + k * gyro)
             rate_sq = 0.0
             if w is not None and st_any:  # the gyro's scale error turns the tilt by σ_s |ω|
-                om = self.process.rate(w, ukf._x)
+                om = self.process.rate(w, ukf.mean)
                 rate_sq = float(om @ om)
             Q = self.process.Q(dt, w is not None, self.still.still, rate_sq)
             ukf.predict(self.process.fx_tangent, Q, dt=dt, w=w)
             # the attitude is now the propagated central point's plus a tangent vector
-            anchor = ukf._sigmas[0, self._att_idx].copy() if ukf._sigmas is not None else None
+            Y = ukf.propagated_points
+            anchor = Y[0, self.attitude_index].copy() if Y is not None else None
             if w is not None and self.compass.averaging:  # (the rate is needed mid-period only)
-                self.compass.turn(self.process.rate(w, ukf._x), dt)
+                self.compass.turn(self.process.rate(w, ukf.mean), dt)
         if gyro is not None:
             self._omega = gyro
         self._t = t
         if frame is None:
             acc = None
         imu_f = None
-        if acc is not None and self._has_imu and acc[3][1] >= 0:
-            imu_f = acc[2][acc[3][1]]
-        self.still.update(dt, gyro, imu_f, ukf._x.tolist())
+        if acc is not None and self._has_imu and acc.selection.imu_pos >= 0:
+            imu_f = acc.g[acc.selection.imu_pos]
+        self.still.update(dt, gyro, imu_f, ukf.mean.tolist())
         if self.intensity is not None and imu_f is not None:
             self.intensity.update(dt, imu_f)
         if mag is not None:
-            mi = self._sidx[MAG]
-            self.health.seen[mi], self.health.last_t[mi] = True, t
-            m_B, mag = mag[1], None
+            self.health.heard(self.sensor_index[MAG], t)
+            m_B, mag = mag.field_B_ut, None
             if self.compass.listening and frame is not None:
-                om = (self.process.rate(self._omega, ukf._x)
+                om = (self.process.rate(self._omega, ukf.mean)
                       if self.compass.delay_s and self._omega is not None else None)
                 mag = self.compass.average(t, m_B, om)
             if mag is not None:
-                x, L = ukf._x, self.layout
+                x, L = ukf.mean, self.layout
                 mag = self.compass.prepare(t, mag[0], mag[1], float(x[L.roll]), float(x[L.pitch]),
                                            x[L.offset] + q_enc)
         if acc is not None or mag is not None:
             self._fuse(t, acc, mag, frame)
         if dt > 0 and anchor is not None:  # back to Euler angles about the anchor (a reset)
-            ukf._x = self.process.fold_attitude(ukf._x, anchor)
+            ukf.recentre(self.process.fold_attitude(ukf.mean, anchor))
         if t - self._flags_t >= self.settings.observability_period_s or self.health.changed:
             self._update_flags(t)
 
-    def _fuse(self, t: float, acc, mag, frame: Frames | None) -> None:
+    def _fuse(self, t: float, acc: AccelReadings | None, mag: tuple | None, frame: Frames | None) -> None:
         """One update with every accelerometer and the magnetometer of this instant, each
-        sensor gated on its own NIS; health checks and re-acquisition on the way."""
+        sensor gated on its own NIS: stack and innovate (:meth:`_innovate`), gate
+        (:meth:`_gate`: the base setting off; then health, slips, the alarm and the
+        observability read the accelerometers' rows, :meth:`_listen_accels`, and the compass
+        its row, :meth:`_listen_compass`, each deciding what is used), correct."""
+        upd = self._innovate(t, acc, mag, frame)
+        self._gate(upd)
+        if upd.k:
+            self._listen_accels(upd)
+        if mag is not None:
+            self._listen_compass(upd)
+        self._ukf.correct(upd.inn, upd.accept, self.observability.hold, upd.mask)
+
+    def _innovate(self, t: float, acc: AccelReadings | None, mag: tuple | None,
+                  frame: Frames | None) -> UpdateResult:
+        """Stack this instant's measurements with their noise (a recalibration alarm's
+        widening, the compass's variance, a pivot's share) and innovate them at once."""
         st, ukf, L, ms = self.settings, self._ukf, self.layout, self.measurements
         m_B = check = None
         still = self.still.still and acc is not None and st.motion_compensation
-        sel, counts, f, (key, imu_pos, full, _), var_a, z, var = ms.stack(acc, frame, still, mag is not None)
-        k, m = len(counts), len(z)
+        stack = ms.stack(acc, frame, still, mag is not None)
+        var = stack.var
+        k, m = len(stack.counts), len(stack.z)
         if k and self.alarm.active:  # a changed sensor is down-weighted until recalibrated
-            self.alarm.widen(sel, var)
+            self.alarm.widen(stack.index, var)
         if mag is not None:
             m_count, m_B, extra_var = mag
-            x = ukf._x
+            x = ukf.mean
             check, var[-1] = self.compass.variance(m_B, up_from_tilt(x[L.roll], x[L.pitch]), m_count)
             var[-1] += extra_var
-        plan = ms.plan(key, k, still, mag is not None)
-        angle_rows = (m - 1,) if mag is not None else ()
-        shift = self.compass.heading_shift_rad() if mag is not None else 0.0
+        plan = ms.plan(stack.selection.key, k, still, mag is not None)
         om = None
         if L.pivot_B is not None and k and self._omega is not None:
             # the base turns about its pivot: the origin's acceleration at every point's offset
             # (Measurements.h_all), the differentiated gyro's error times the offset as noise
-            om = self.process.rate(self._omega, ukf._x)
-            var[:3 * k] += ms.pivot_variance(frame, ukf._x[L.pivot_B], ukf._P[L.pivot_B, L.pivot_B])
-        wz = self._prediction_weights() if st.innovation_at_mean_state else None
-        inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows, z_weights=wz,
-                           frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift, omega_B=om)
-        accept = inn.gate_ok.copy()
-        gate_l = inn.gate_ok.tolist()
-        set_off = still and not gate_l[k]
+            om = self.process.rate(self._omega, ukf.mean)
+            var[:3 * k] += ms.pivot_variance(frame, ukf.mean[L.pivot_B], ukf.covariance[L.pivot_B, L.pivot_B])
+        upd = UpdateResult(t, frame, stack, k, still, plan, (m - 1,) if mag is not None else (),
+                           self.compass.heading_shift_rad() if mag is not None else 0.0, om, m_B, mag, check)
+        upd.inn = inn = self._innovation(upd)
+        upd.accept = inn.gate_ok.copy()
+        upd.gate = inn.gate_ok.tolist()
+        return upd
+
+    def _innovation(self, upd: UpdateResult) -> Innovation:
+        wz = self._prediction_weights() if self.settings.innovation_at_mean_state else None
+        s = upd.stack
+        return self._ukf.innovate(s.z, self._h_tangent, s.var, upd.plan, angle_rows=upd.angle_rows,
+                                  z_weights=wz,
+                                  frame=upd.frame, sel=s.index, m_B=upd.m_B, still=upd.still,
+                                  heading_shift_rad=upd.heading_shift_rad, omega_B=upd.omega_B)
+
+    def _gate(self, upd: UpdateResult) -> None:
+        """Whether the base set off (its still rows failed, or the IMU disagrees while it
+        stood): then its acceleration is freed and the update innovated again; whether it is
+        calm (the slip detector listens only then)."""
+        st, L, k = self.settings, self.layout, upd.k
+        gate_l = upd.gate
+        set_off = upd.still and not gate_l[k]
         imu_ok = True
         if k:
+            imu_pos = upd.stack.selection.imu_pos
             if imu_pos >= 0:
-                imu_ok = self.still.imu_agrees(t, inn.nis.item(imu_pos), gate_l[imu_pos])
+                imu_ok = self.still.imu_agrees(upd.t, upd.inn.nis.item(imu_pos), gate_l[imu_pos])
             set_off |= self.still.still and not imu_ok
             # the slip detector listens only while the base behaves as modelled: the IMU
             # agrees and the chair is not wrenched about (a lurch is common to all sensors)
-            calm = (imu_ok and self.still.imu_nis < 4.5
-                    and frame.omega_dot_norm.item() < st.shift_max_angular_accel_rad_s2)
+            upd.calm = (imu_ok and self.still.imu_nis < 4.5
+                        and upd.frame.omega_dot_norm.item() < st.shift_max_angular_accel_rad_s2)
         if set_off:
             # the chair set off: it is no longer still (the averages will say so later), and
             # its acceleration, held near zero while it stood, must be free to follow at once
+            ukf = self._ukf
             self.still.set_off()
             ukf.inflate(np.arange(L.accel.start, L.accel.stop), self.process.accel_sigma_mps2**2)
             if L.jerk_B is not None:
                 ukf.inflate(np.arange(L.jerk_B.start, L.jerk_B.stop), st.base_jerk_sigma_mps3**2)
-            wz = self._prediction_weights() if st.innovation_at_mean_state else None
-            inn = ukf.innovate(z, self._h_tangent, var, plan, angle_rows=angle_rows, z_weights=wz,
-                               frame=frame, sel=sel, m_B=m_B, still=still, heading_shift_rad=shift,
-                               omega_B=om)
-            accept = inn.gate_ok.copy()
-            if still:
-                accept[k] = False
-        if k:
-            accept[:k], u, nu, Su = self.health.accel(t, sel, counts, f, inn, var_a, full,
-                                                       None if set_off else gate_l, ms.rows, self._reacquire)
-            if u is not None:
-                self.slips.listen(t, u, nu, Su, calm and not set_off, self._reacquire)
-                self.alarm.listen(t, u, nu, Su, inn.z_pred, var, ms.rows, sel, calm and not set_off, frame,
-                                  ukf._x[L.offset])
-            # the link accelerometers read lately (settings.observability_read_periods)
-            read_t = self._link_read_t
-            for i, a in zip(sel.tolist(), accept[:k].tolist(), strict=True):
-                if i < len(read_t):  # (a rejected sample leaves the set at once)
-                    read_t[i] = t if a else -np.inf
-            used = tuple(np.flatnonzero(t - read_t <= self._link_read_horizon_s).tolist())
-            if used != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
-                self._obs_used_key, self._obs_t = used, t
-                self.observability.update(self._t, frame, used, ukf._x, ukf._P, self._P0, self._q_enc,
-                                          self.slips.calibration, self._imu_up(ukf._x))
-        mask = None
-        if mag is not None:
-            use = self.compass.verdict(t, bool(inn.gate_ok[-1]), check, inn.innovation[-1:], inn.S[-1:, -1:],
-                                       inn.nis[-1])
-            mi = self._sidx[MAG]
-            self.health.rejecting[mi] = not use
-            self.health.counts[mi, C_USED if use else C_REJECTED] += m_count
-            accept[-1] = use
-            self.alarm.compass(t, check.disturbed, check.magnitude_error_ut)
-            mask = ms.heading_mask(m)
-        ukf.correct(inn, accept, self.observability.hold, mask)
+            upd.inn = inn = self._innovation(upd)
+            upd.accept = inn.gate_ok.copy()
+            if upd.still:
+                upd.accept[k] = False
+        upd.set_off = set_off
+
+    def _listen_accels(self, upd: UpdateResult) -> None:
+        """The accelerometers' rows: health's verdicts (which are used), the slip detector
+        and the recalibration alarm on the residuals, the links read lately and the
+        observability when they change."""
+        st, ukf, L, ms, t, k = self.settings, self._ukf, self.layout, self.measurements, upd.t, upd.k
+        s, inn, accept = upd.stack, upd.inn, upd.accept
+        sel = s.index
+        gate_l = None if upd.set_off else upd.gate
+        accept[:k], u, nu, Su = self.health.accel(t, sel, s.counts, s.f_g, inn, s.var_a, s.selection.full,
+                                                   gate_l, ms.rows, self._reacquire)
+        if u is not None:
+            calm = upd.calm and not upd.set_off
+            self.slips.listen(t, u, nu, Su, calm, self._reacquire)
+            self.alarm.listen(t, u, nu, Su, inn.z_pred, s.var, ms.rows, sel, calm, upd.frame,
+                              ukf.mean[L.offset])
+        # the link accelerometers read lately (settings.observability_read_periods)
+        read_t = self._link_read_t
+        for i, a in zip(sel.tolist(), accept[:k].tolist(), strict=True):
+            if i < len(read_t):  # (a rejected sample leaves the set at once)
+                read_t[i] = t if a else -np.inf
+        used = tuple(np.flatnonzero(t - read_t <= self._link_read_horizon_s).tolist())
+        if used != self._obs_used_key or t - self._obs_t >= st.observability_period_s:
+            self._obs_used_key, self._obs_t = used, t
+            self.observability.update(self._t, upd.frame, used, ukf.mean, ukf.covariance, self._P0,
+                                      self._q_enc,
+                                      self.slips.calibration, self._imu_up(ukf.mean))
+
+    def _listen_compass(self, upd: UpdateResult) -> None:
+        """The heading's row: the compass's verdict (used or not), the health's count, the
+        alarm; the gain mask that keeps the heading off the tilt and the arm."""
+        inn, check, t = upd.inn, upd.check, upd.t
+        use = self.compass.verdict(t, bool(inn.gate_ok[-1]), check, inn.innovation[-1:], inn.S[-1:, -1:],
+                                   inn.nis[-1])
+        mi = self.sensor_index[MAG]
+        self.health.rejecting[mi] = not use
+        self.health.counts[mi, C_USED if use else C_REJECTED] += upd.mag[0]
+        upd.accept[-1] = use
+        self.alarm.compass(t, check.disturbed, check.magnitude_error_ut)
+        upd.mask = self.measurements.heading_mask(len(upd.stack.z))
 
     def _prediction_weights(self) -> np.ndarray | None:
         """The sigma points' weights in the prediction an update's innovation is taken
@@ -531,15 +641,15 @@ class Tracker:
         not drawn yet."""
         U = self.observability.held_wide
         ukf = self._ukf
-        X = ukf._sigmas
+        X = ukf.propagated_points
         if U is None or X is None:
             return None
-        n, ns = self.arm.n_joints, ukf._x.shape[0]
+        n, ns = self.arm.n_joints, ukf.mean.shape[0]
         D = X[1:1 + ns, :n] - X[0, :n]  # each pair's displacement of the offsets
         d2 = np.einsum("ij,ij->i", D, D)
         along = np.einsum("ij,ij->i", D @ U, D @ U)
         keep = 1.0 - np.divide(along, d2, out=np.zeros(ns), where=d2 > 0.0)
-        w = ukf._Wm.copy()
+        w = ukf.mean_weights.copy()
         w[1:1 + ns] *= keep
         w[1 + ns:] *= keep
         w[0] = 1.0 - w[1:].sum()
@@ -552,7 +662,7 @@ class Tracker:
         return self.measurements.h_all(self.process.euler_points(X), **kw)
 
     def _reacquire(self, i: int, t: float) -> None:
-        self.alarm.reacquired(t, self._ukf._x[self.layout.offset])
+        self.alarm.reacquired(t, self._ukf.mean[self.layout.offset])
         self.slips.reacquire(i, t, self._ukf, self.health, self.observability.locked)
 
     def _update_flags(self, t: float) -> None:
@@ -564,7 +674,8 @@ class Tracker:
             return
         n = self.arm.n_joints
         self._flags = self.observability.joint_flags(
-            t, codes, self._links_list, self._ukf._P, self._q_enc + self._ukf._x[:n], self.ambiguity_.joints,
+            t, codes, self._links_list, self._ukf.covariance, self._q_enc + self._ukf.mean[:n],
+            self.ambiguity_.joints,
             self.slips.reacquiring_until, self._min_list, self._max_list)
 
     # -- a whole recording -------------------------------------------------------------------
@@ -579,15 +690,54 @@ class Tracker:
         return run_recording(self, rec, t_stop_s, truth, block, progress)
 
     # -- restart -----------------------------------------------------------------------------
-    def snapshot(self) -> dict:
-        """The tracker's state as a JSON-ready dict: enough to resume after a restart of the
-        process without a new startup calibration, provided the encoders kept counting."""
+    def state(self) -> TrackerState:
+        """What the started tracker knows now, by value (:class:`fusion.tracking.snapshot.TrackerState`)."""
         self._check_filter()
-        return snapshot_of(self)
+        ukf = self._ukf
+        return TrackerState(
+            t_s=self._t, x=ukf.x.copy(), P=ukf.P.copy(), q_enc=self._q_enc.copy(),
+            omega=None if self._omega is None else np.array(self._omega, dtype=float),
+            encoder_fit=self.enc_rates.snapshot(), gyro_fit=self.gyro_rates.snapshot(),
+            compass=self.compass.snapshot(), counters=self.health.counts.copy(),
+            still=self.still.snapshot(),
+            intensity=None if self.intensity is None else self.intensity.snapshot(),
+            shift=self.slips.snapshot(), consider=self.observability.snapshot(),
+            ambiguous=self.ambiguity_.snapshot())
+
+    def resume(self, state: TrackerState) -> None:
+        """Start from ``state`` (:meth:`state`, maybe of another process) instead of
+        :meth:`initialise`."""
+        L = self.layout
+        x = np.array(state.x, dtype=float)
+        self.initialise(restored_startup(self.arm), float(state.t_s),
+                        imu=ImuStill(x[L.bias], 1e-3, None, None, Compass.field_from(state.compass)))
+        self._q_enc = np.array(state.q_enc, dtype=float)
+        self._ukf = BatchedUKF(x, np.array(state.P, dtype=float), self._points, angle_states=(L.yaw,))
+        self._omega = None if state.omega is None else np.array(state.omega, dtype=float)
+        self.enc_rates.restore(state.encoder_fit)
+        self.gyro_rates.restore(state.gyro_fit)
+        self.compass.restore(state.compass)
+        self.health.counts = np.array(state.counters, dtype=np.int64)
+        if state.still is not None:
+            self.still.restore(state.still)
+        if self.intensity is not None and state.intensity is not None:
+            self.intensity.restore(state.intensity)
+        if state.shift is not None:
+            self.slips.restore(state.shift)
+        if self.ambiguity_.restore(state.ambiguous, self.arm.n_joints):  # rival branches still open
+            self._flags = np.where(self.ambiguity_.joints, F_AMBIGUOUS, self._flags).astype(np.int8)
+        # the calibration's pull on the offsets so far
+        self.observability.restore(state.consider, float(state.t_s))
+
+    def snapshot(self) -> dict:
+        """The tracker's state as a JSON-ready dict (:meth:`TrackerState.to_dict`): enough to
+        resume after a restart of the process without a new startup calibration, provided the
+        encoders kept counting."""
+        return self.state().to_dict(self.arm.name, self.state_names)
 
     def restore(self, snap: Mapping) -> None:
         """Resume from :meth:`snapshot` (replaces :meth:`initialise`)."""
-        restore_into(self, snap)
+        self.resume(TrackerState.from_dict(snap, self.arm.name, self.state_names))
 
     # -- results (by value) ------------------------------------------------------------------
     def ambiguity(self) -> dict[str, tuple[float, ...]]:
@@ -626,7 +776,7 @@ class Tracker:
         """The joints' angles (as reported), roll and pitch, and their covariance with the
         calibration's own share (see :meth:`combination_vectors`)."""
         n, L = self.arm.n_joints, self.layout
-        P = self._ukf._P[np.ix_(ix, ix)].copy()
+        P = self._ukf.covariance[np.ix_(ix, ix)].copy()
         obs = self.observability
         P[:n, :n] += obs.consider @ obs.consider.T + np.diag(obs.unread_var)
         P[n, n] += obs.tilt_var[0]  # (a bolted base's floor in its tilt)
@@ -663,6 +813,7 @@ class Tracker:
         L, n = self.layout, self.arm.n_joints
         x, sig = self._ukf.x, self._ukf.sigma.copy()
         sig[:n] = np.sqrt(sig[:n] ** 2 + self.observability.sys_var)  # the calibration's own uncertainty
+        ai = self.attitude_index
         amb = self.ambiguity_
         if amb.joints.any():  # the sigma of a joint with rival branches covers them
             sig[:n] = np.maximum(sig[:n], amb.half_gap)
@@ -676,8 +827,7 @@ class Tracker:
             sigma_rad=_ro(sig[:n]),
             flags=named[3],
             roll_rad=float(x[L.roll]), pitch_rad=float(x[L.pitch]), yaw_rad=float(x[L.yaw]),
-            attitude_sigma_rad=_ro(attitude_sigma_rad(x[self._att_idx], self._ukf._P[np.ix_(self._att_idx,
-                                                                                              self._att_idx)]
+            attitude_sigma_rad=_ro(attitude_sigma_rad(x[ai], self._ukf.covariance[np.ix_(ai, ai)]
                                                       + np.diag(np.r_[self.observability.tilt_var, 0.0]),
                                                       self.compass.heading_floor_var)),
             gyro_bias_rad_s=_ro(x[L.bias]),
@@ -697,7 +847,7 @@ class Tracker:
         L = self.layout
         if L.scale < 0 or self._ukf is None:
             return None
-        x, P = self._ukf._x, self._ukf._P
+        x, P = self._ukf.mean, self._ukf.covariance
         return {"value": float(x[L.scale]), "sigma": float(np.sqrt(P[L.scale, L.scale])),
                 "prior_sigma": self.gyro_scale_sigma}
 
@@ -706,7 +856,7 @@ class Tracker:
         the compass's, or ``gyro_only`` where the magnetometer has gone quiet (stale, dead or
         absent) since it last said otherwise."""
         code = STATUS_CODE[self.compass.status]
-        mi = self._sidx.get(MAG)
+        mi = self.sensor_index.get(MAG)
         if mi is not None and code != STATUS_CODE[CALIBRATING] and \
                 self.health.status_codes[mi] in (S_STALE, S_DEAD, S_ABSENT):
             return STATUS_CODE[GYRO_ONLY]

@@ -55,6 +55,13 @@ class Frames(_FrameFields):
     __slots__ = ()
     FIELDS = _FrameFields._fields
 
+    @classmethod
+    def of(cls, fields) -> Frames:
+        """The record of ``fields`` in :attr:`FIELDS` order (all of them, as
+        :meth:`fusion.tracking.frame_kernels.FrameConstants.fields` gives them: no
+        per-field checks, the cheapest construction)."""
+        return tuple.__new__(cls, fields)
+
     def take(self, k: int) -> Frames:
         """The frame of instant ``k`` (a plain read-only record; one per fused instant)."""
         return tuple.__new__(Frames, [None if a is None else a[k] for a in self])

@@ -100,6 +100,10 @@ class SensorHealth:
             phys[s] = (c, physical(s, c[None])[0])
         return phys
 
+    def heard(self, i, t: float) -> None:
+        """Sensor(s) ``i`` spoke at ``t`` (whether or not their samples are then used)."""
+        self.seen[i], self.last_t[i] = True, t
+
     def mark_used(self, i: int, t: float) -> None:
         self.seen[i], self.last_t[i] = True, t
         self.counts[i, C_USED] += 1

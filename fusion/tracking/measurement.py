@@ -7,6 +7,7 @@ update's groups, each gated on its own NIS (:meth:`Measurements.plan`)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import NamedTuple
 
 import numpy as np
 
@@ -18,6 +19,49 @@ from fusion.tracking.ukf_groups import GroupPlan, MeasurementGroup, nis_bound
 from models.motion import cross
 from models.rotations import DEG
 from models.sensor_models import StreamModel
+
+
+class Selection(NamedTuple):
+    """What an update needs to know of a set of accelerometers (:meth:`Measurements.selection`,
+    cached per set)."""
+
+    key: bytes
+    """The set's indices as bytes (the key of its cached plan)."""
+    imu_pos: int
+    """The base IMU's position in the set (-1: absent)."""
+    full: bool
+    """Whether the set is every accelerometer, in order."""
+    var_g2: np.ndarray | None
+    """Their datasheet variances, ``(k, 3)`` (g²)."""
+
+
+class AccelReadings(NamedTuple):
+    """One instant's accelerometer samples, admitted (finite, not saturated)."""
+
+    index: np.ndarray | None
+    """``(k,)`` int64: each one's index in the tracker's ``sensor_names``."""
+    counts: np.ndarray
+    """``(k, 3)``: as the devices gave them."""
+    g: np.ndarray | None
+    """``(k, 3)``: in g, sensor axes, the config's corrections applied."""
+    selection: Selection
+
+
+class Stack(NamedTuple):
+    """One update's stacked measurement (:meth:`Measurements.stack`)."""
+
+    index: np.ndarray | None
+    """The accelerometers' indices (as :attr:`AccelReadings.index`)."""
+    counts: np.ndarray
+    f_g: np.ndarray | None
+    """Their readings in g, each turned back to its time stamp."""
+    selection: Selection
+    var_a: np.ndarray | None
+    """Their variances at this instant, ``(k, 3)`` (g²): the frame's."""
+    z: np.ndarray
+    """``(m,)``: the readings, the still chair's zero acceleration, a row left for the heading."""
+    var: np.ndarray
+    """``(m,)``: their variances (the heading's left to fill)."""
 
 
 class Measurements:
@@ -34,7 +78,7 @@ class Measurements:
         self.links = links.astype(np.int64)
         self.imu_index = imu_index
         self.unmodelled_g, self.time_offset_s, self.time_var_s2 = unmodelled_g, time_offset_s, time_var_s2
-        self._no_acc = (None, np.zeros((0, 3)), None, (b"", -1, False, None))
+        self._no_acc = AccelReadings(None, np.zeros((0, 3)), None, Selection(b"", -1, False, None))
         self.rows = np.arange(3 * len(accel_streams)).reshape(-1, 3)
         self._gate3 = float(nis_bound(3, settings.gate_significance))
         self._gate1 = float(nis_bound(1, settings.gate_significance))
@@ -119,12 +163,11 @@ class Measurements:
             var = var + self.time_var_s2[:, None] * turn**2
         return frames._replace(accel_var_g2=var)
 
-    def stack(self, acc, frame: Frames | None, still: bool, mag: bool):
+    def stack(self, acc: AccelReadings | None, frame: Frames | None, still: bool, mag: bool) -> Stack:
         """One update's stacked measurement ``z`` and its variances ``var``: the
-        accelerometers ``acc`` (indices, counts, readings in g, their selection's info; None:
-        none), each turned back to its time stamp, with the frame's variances ``var_a``; the
-        still chair's zero acceleration; a last row left for the heading when ``mag``.
-        Returns ``(sel, counts, f, info, var_a, z, var)``."""
+        accelerometers ``acc`` (None: none), each turned back to its time stamp, with the
+        frame's variances ``var_a``; the still chair's zero acceleration; a last row left for
+        the heading when ``mag``."""
         sel, counts, f, info = self._no_acc if acc is None else acc
         var_a = None
         k = len(counts)
@@ -134,7 +177,7 @@ class Measurements:
                 # the world) dt earlier: turn it to the stamp (what the acceleration changed by
                 # over dt is left: neither a world-fixed nor a body-fixed one is right for all)
                 f = f - self.time_offset_s[sel][:, None] * cross(frame.omega_S_rad_s[sel], f)
-            var_a = frame.accel_var_g2 if info[2] else frame.accel_var_g2[sel]
+            var_a = frame.accel_var_g2 if info.full else frame.accel_var_g2[sel]
         m = 3 * k + (3 if still else 0) + mag
         z = np.zeros(m)
         var = np.empty(m)
@@ -143,9 +186,9 @@ class Measurements:
             var[:3 * k] = var_a.reshape(-1)
         if still:
             var[3 * k:3 * k + 3] = self.still_var3
-        return sel, counts, f, info, var_a, z, var
+        return Stack(sel, counts, f, info, var_a, z, var)
 
-    def selection(self, sel: np.ndarray) -> tuple:
+    def selection(self, sel: np.ndarray) -> Selection:
         """For the accelerometers ``sel`` (cached): its key, the IMU's position in it (-1:
         absent), whether it is every accelerometer in order, and their datasheet variances."""
         key = sel.tobytes()
@@ -153,9 +196,13 @@ class Measurements:
         if info is None:
             hit = np.flatnonzero(sel == self.imu_index)
             full = bool(len(sel) == len(self.accel_streams) and np.array_equal(sel, np.arange(len(sel))))
-            info = self._sel[key] = (key, int(hit[0]) if len(hit) else -1, full,
-                                     self.accel_var_g2[sel].copy())
+            info = self._sel[key] = Selection(key, int(hit[0]) if len(hit) else -1, full,
+                                              self.accel_var_g2[sel].copy())
         return info
+
+    def readings(self, sel: np.ndarray, counts: np.ndarray, g: np.ndarray) -> AccelReadings:
+        """The accelerometers ``sel``'s admitted samples of one instant as a record."""
+        return AccelReadings(sel, counts, g, self.selection(sel))
 
     def plan(self, sel_key: bytes, k: int, still: bool, mag: bool) -> GroupPlan:
         """The update's groups: each accelerometer, the still chair, the heading (cached)."""

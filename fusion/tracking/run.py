@@ -1,5 +1,5 @@
 """A tracker's run over a whole recording: :func:`run_recording` feeds every instant of it
-through the filter's one path (:meth:`fusion.tracking.filter.Tracker._instant`, the same as
+through the filter's one path (:meth:`fusion.tracking.filter.Tracker.step`, the same as
 live), with the conversions to SI units and the saturation checks done for the whole span
 at once, and the differentiators' fits and the kinematic frames for a block of instants at
 once (:func:`prepare_block`, one compiled call each), and
@@ -17,10 +17,12 @@ import numpy as np
 from scipy.stats import chi2
 
 from fusion.tracking.frames import Frames
+from fusion.tracking.measurement import AccelReadings
 from fusion.tracking.process import attitude_sigma_rad
 from fusion.tracking.scoring import errors, truth_at, truth_summary
 from fusion.tracking.settings import C_SAMPLES, C_SATURATED, ENC, GYRO, JOINT_FLAGS, MAG, SENSOR_STATUS
 from fusion.tracking.tracker_kernels import state_row_into
+from fusion.tracking.update import InstantReadings, MagReading
 from models.sensor_models import mpu9150_temperature_c
 from sensors.samples import Recording, Stream
 
@@ -80,18 +82,17 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
         valid[s] = ok
         phys[s] = tr.readings.physical(s, c, temperature_at(v.t_s))
         used = rows[s][rows[s] >= 0]
-        i = tr._sidx[s]
+        i = tr.sensor_index[s]
         counts[i, C_SAMPLES] += len(used)
         counts[i, C_SATURATED] += int((~ok[used]).sum())
     enc = raw[ENC]
     q_enc_all = enc.values / tr.counts_per_rad
     gyro_B = phys[GYRO] @ tr.R_0I.T if GYRO in raw else None
     mag_B = phys[MAG] @ tr.R_0I.T if MAG in raw else None
-    if tr._ukf is None:  # the offsets are fixed by the first encoder sample
-        k = min(int(np.searchsorted(enc.t_s, t_from - 1e-9)), len(enc) - 1)
-        tr._start_filter(q_enc_all[k] if tr._enc0 is None else tr._enc0 / tr.counts_per_rad)
+    if not tr.filter_started:  # the offsets are fixed by the first encoder sample
+        tr.start_filter(q_enc_all[min(int(np.searchsorted(enc.t_s, t_from - 1e-9)), len(enc) - 1)])
     acc_streams = [s for s in tr.accel_streams if s in raw]
-    acc_idx = np.array([tr._sidx[s] for s in acc_streams], dtype=np.int64)
+    acc_idx = np.array([tr.sensor_index[s] for s in acc_streams], dtype=np.int64)
     acc_info = tr.measurements.selection(acc_idx)
     # per instant: which accelerometers have a valid sample, as (T, Sa) row indices
     acc_rows = np.stack([np.where(rows[s] >= 0, rows[s], -1) for s in acc_streams], 1) \
@@ -113,10 +114,10 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
     mag_counts = raw[MAG].values if MAG in raw else None
     has_truth = truth and rec.get("true_q") is not None and rec.get("true_base") is not None
     out = RunArrays(T, tr.arm.n_joints, len(tr.sensor_names), keep_cov=has_truth, size=tr.layout.size)
-    health = tr.health
+    health, step, readings_of = tr.health, tr.step, tr.measurements.readings
     for b0 in range(0, T, block):
         b1 = min(T, b0 + block)
-        x_block = tr._ukf.x  # the frames' offsets and gyro bias: the block's start's
+        x_block = tr.x  # the frames' offsets and gyro bias: the block's start's
         for c0 in range(b0, b1, PREPARED_MAX):  # (a long block: its frames a part at a time)
             c1 = min(b1, c0 + PREPARED_MAX)
             # the per-instant rows as plain Python values (cheaper to test one by one)
@@ -139,18 +140,17 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
                 t = t_l[r]
                 acc = None
                 if all_l[r]:
-                    acc = (acc_idx, acc_counts[i], acc_phys[i], acc_info)
+                    acc = AccelReadings(acc_idx, acc_counts[i], acc_phys[i], acc_info)
                 else:
                     ok = acc_ok[i]
                     if ok.any():
-                        sel = acc_idx[ok]
-                        acc = (sel, acc_counts[i, ok], acc_phys[i, ok], tr.measurements.selection(sel))
+                        acc = readings_of(acc_idx[ok], acc_counts[i, ok], acc_phys[i, ok])
                     if acc_seen[i].any():  # saturated samples: the sensors did speak
-                        health.seen[acc_idx[acc_seen[i]]] = True
-                        health.last_t[acc_idx[acc_seen[i]]] = t
+                        health.heard(acc_idx[acc_seen[i]], t)
                 ke, kg, km = enc_l[r], gyro_l[r], mag_l[r]
-                tr._instant(t, q_enc_all[ke] if ke >= 0 else None, gyro_B[kg] if kg >= 0 else None, acc,
-                            (mag_counts[km], mag_B[km]) if km >= 0 else None, prepared[r])
+                step(t, InstantReadings(q_enc_all[ke] if ke >= 0 else None, gyro_B[kg] if kg >= 0 else None,
+                                        acc, MagReading(mag_counts[km], mag_B[km]) if km >= 0 else None),
+                     prepared[r])
                 out.record(tr, i)
         if progress is not None:
             progress(b1 / T)
@@ -164,24 +164,24 @@ def run_recording(tr, rec: Recording, t_stop_s: float | None = None, truth: bool
 
 def prepare_block(tr, t: np.ndarray, q_enc: np.ndarray, enc_has: np.ndarray, gyro: np.ndarray,
                   gyro_has: np.ndarray, need_frame: np.ndarray, x: np.ndarray):
-    """For a block of B instants ``t`` that the tracker ``tr``'s ``_instant`` will then take in
+    """For a block of B instants ``t`` that the tracker ``tr``'s ``step`` will then take in
     order (its started filter's): the encoders' angles ``q_enc (B, n)`` and the gyro ``(B, 3)``
     (rad/s, base axes) where ``enc_has``/``gyro_has``, through the differentiators at once,
     and the kinematic frame of each instant ``need_frame`` (those with accelerometers or the compass) made
     as ``Tracker._frame_now`` makes it, with the offsets and gyro bias of ``x``, in one
     compiled call. Returns, per instant, the encoder fit at it
-    (None before any encoder sample) and its frame (or None), for ``_instant``'s
+    (None before any encoder sample) and its frame (or None), for ``step``'s
     ``prepared``; ``Tracker._frame_now`` and this hold the same inputs to the frame."""
     L = tr.layout
     e_at, _, e_have = tr.enc_rates.push_block(t, q_enc, enc_has)
     _, g_latest, g_have = tr.gyro_rates.push_block(t, gyro, gyro_has)
     B = len(t)
-    # the gyro's reading at each instant, else its last (the filter's _omega before it)
+    # the gyro's reading at each instant, else its last (the filter's before it)
     last = np.maximum.accumulate(np.where(gyro_has, np.arange(B), -1))
     w = gyro[np.maximum(last, 0)]
     w_have = last >= 0
-    if tr._omega is not None:
-        w[~w_have] = tr._omega
+    if tr.last_gyro_B is not None:
+        w[~w_have] = tr.last_gyro_B
         w_have[:] = True
     om = np.where(w_have[:, None], tr.process.rate(w, x), 0.0)
     omd = g_latest[:, 1]  # zero where the gyro has no fit yet, as _frame_now's None
@@ -189,8 +189,9 @@ def prepare_block(tr, t: np.ndarray, q_enc: np.ndarray, enc_has: np.ndarray, gyr
     e_l = [e if h else None for e, h in zip(list(e_at), e_have.tolist(), strict=True)]
     if not make.any():
         return [(e, None) for e in e_l]
-    fields = tr._frame_consts.fields_block(e_at, make, x[L.offset], om, omd, tr.settings.motion_compensation)
-    frames = tr.measurements.with_noise(tuple.__new__(Frames, fields)).split()
+    fields = tr.frame_constants.fields_block(e_at, make, x[L.offset], om, omd,
+                                             tr.settings.motion_compensation)
+    frames = tr.measurements.with_noise(Frames.of(fields)).split()
     return [(e, f if m else None) for e, f, m in zip(e_l, frames, make.tolist(), strict=True)]
 
 
@@ -253,17 +254,16 @@ class RunArrays:
 
     def record(self, tr, i: int) -> None:
         """The tracker ``tr``'s state after instant ``i``."""
-        ukf = tr._ukf
         if self._kept is None:  # the (row, column) pairs kept of P: the attitude's, the NEES states'
-            a, ix = tr._att_idx, tr._nees_idx
+            a, ix = tr.attitude_index, tr.nees_index
             self._kept = (np.repeat(a, len(a)), np.tile(a, len(a)),
                           np.repeat(ix, len(ix)), np.tile(ix, len(ix)))
         # x, diag(P) and those entries of P into row i, compiled
-        state_row_into(i, ukf._x, ukf._P, *self._kept, self.x, self.var, self.att_cov, self._P_rows)
-        self.q_enc[i] = tr._q_enc
+        state_row_into(i, tr.mean, tr.covariance, *self._kept, self.x, self.var, self.att_cov, self._P_rows)
+        self.q_enc[i] = tr.q_enc
         self.tilt_var[i] = tr.observability.tilt_var
         held = self._held
-        flags, status, sys_var = tr._flags, tr.health.status_codes, tr.observability.sys_var
+        flags, status, sys_var = tr.joint_flag_codes, tr.health.status_codes, tr.observability.sys_var
         self._record_combinations(tr, i, flags)
         if flags is not held[0] or status is not held[1] or sys_var is not held[2]:
             self._held = held = (flags, status, sys_var)
@@ -285,7 +285,7 @@ class RunArrays:
         which combinations, found again when the flags change and every observability window;
         their value and sigma at every instant."""
         held_flags, t_found, found, C, ix = self._combo
-        t = tr._t
+        t = tr.t_s
         if flags is not held_flags or t - t_found >= tr.settings.observability_window_s:
             found, C, ix = tr.combination_vectors()
             self._combo = (flags, t, found, C, ix)
@@ -324,7 +324,7 @@ class RunArrays:
         d = np.sqrt(np.maximum(self.var, 0.0))
         self.q = tr.arm.angles_in_range(self.q_enc + self.x[:, :n], self.q_enc)
         self.sigma = d[:, :n]
-        self.rpy = self.x[:, tr._att_idx]
+        self.rpy = self.x[:, tr.attitude_index]
         self.rpy_sigma = attitude_sigma_rad(self.rpy, self.att_cov.reshape(-1, 3, 3), self.heading_floor_var)
         self.bias = self.x[:, L.bias]
 

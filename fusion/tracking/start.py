@@ -519,4 +519,4 @@ def _prime(tr: Tracker, rec: Recording) -> None:
         prime(tr.gyro_rates, g.t_s, wB, tr.t_s)
         k = int(np.searchsorted(g.t_s, tr.t_s + 1e-9)) - 1
         if k >= 0:
-            tr._omega = wB[k]
+            tr.last_gyro_B = wB[k]

@@ -54,7 +54,7 @@ Samples that are not finite, saturated, implausible (far from the predicted magn
 a dead sensor) or stuck are skipped and counted.
 
 One filter path, live and over a recording alike: each instant's readings go through
-:meth:`Tracker._instant` (the differentiators take them, the mean pose's kinematic frame is
+:meth:`Tracker.step` (the differentiators take them, the mean pose's kinematic frame is
 made in one compiled call, the filter predicts and fuses). :meth:`Tracker.update_instant`
 (:mod:`fusion.tracking.live`) feeds it one instant's raw samples; :meth:`Tracker.run`
 (:mod:`fusion.tracking.run`) a whole recording, with only the conversions to SI units and
@@ -105,6 +105,7 @@ from fusion.tracking.settings import (
     StateLayout,
     TrackerSettings,
 )
+from fusion.tracking.snapshot import TrackerState
 from fusion.tracking.start import (
     NoStillWindowError,
     Start,
@@ -112,11 +113,13 @@ from fusion.tracking.start import (
     start_from_recording,
     warm_up,
 )
+from fusion.tracking.update import InstantReadings, UpdateResult
 
 __all__ = [
     "COUNTERS", "ENC", "FLAG_CODE", "G", "GYRO", "IMU_ACC", "JOINT_FLAGS", "MAG", "SENSOR_STATUS",
     "STATUS_CODE", "CausalDifferentiator", "Estimate", "Frames", "ImuStill", "InnovationLog",
-    "NoStillWindowError", "NotInitialisedError", "Start", "StateLayout", "TrackRun", "Tracker",
-    "TrackerSettings", "causal_fits", "causal_poly_fit", "imu_still_from_recording", "make_frames",
-    "start_from_recording", "truth_at", "warm_up",
+    "InstantReadings", "NoStillWindowError", "NotInitialisedError", "Start", "StateLayout",
+    "TrackRun", "Tracker", "TrackerSettings", "TrackerState", "UpdateResult", "causal_fits",
+    "causal_poly_fit", "imu_still_from_recording", "make_frames", "start_from_recording",
+    "truth_at", "warm_up",
 ]

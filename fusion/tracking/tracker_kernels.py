@@ -26,23 +26,12 @@ import numpy as np
 from numba import njit
 
 from models.chain_kernels import cross3
-from models.rotations import TWO_PI, exp_so3_into, wrap_angle
+from models.rotations import TWO_PI, R_from_rpy_into, exp_so3_into, wrap_angle
 from models.sensor_kernels import gravity_plus, magnetic_heading_one, tilt_up, to_sensor_axes
 
 _exp_so3_into = njit(cache=True, nogil=True, inline="always")(exp_so3_into)
 _wrap = njit(cache=True, nogil=True, inline="always")(wrap_angle)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _R_into(r, p, y, R):  # pragma: no cover - compiled
-    """``R = Rz(y) Ry(p) Rx(r)`` (the recording spec's base attitude,
-    :func:`models.rotations.R_from_rpy`) written into ``R (3, 3)``."""
-    sr, cr = math.sin(r), math.cos(r)
-    sp, cp = math.sin(p), math.cos(p)
-    sy, cy = math.sin(y), math.cos(y)
-    R[0, 0], R[0, 1], R[0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
-    R[1, 0], R[1, 1], R[1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
-    R[2, 0], R[2, 1], R[2, 2] = -sp, cp * sr, cp * cr
+_R_into = njit(cache=True, nogil=True, inline="always")(R_from_rpy_into)  # R_from_rpy
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -254,6 +254,29 @@ class BatchedUKF:
     def sigma(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diagonal(self._P), 0.0, None))
 
+    @property
+    def mean(self) -> np.ndarray:
+        """The state's mean itself, not a copy (:attr:`x` is a read-only copy): to read within
+        a step. The filter replaces the array on every change and never writes into it, so a
+        reference keeps the value of its moment; a caller must not write into it either."""
+        return self._x
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """The state's covariance itself, not a copy (:attr:`P` is one); as :attr:`mean`."""
+        return self._P
+
+    @property
+    def propagated_points(self) -> np.ndarray | None:
+        """The sigma points the last :meth:`predict` propagated, ``(2n+1, n)``, while no
+        correction has been applied since (None after one, or before any predict)."""
+        return self._sigmas
+
+    @property
+    def mean_weights(self) -> np.ndarray:
+        """The sigma points' weights in the unscented mean, ``(2n+1,)``."""
+        return self._Wm
+
     def sigma_points(self) -> np.ndarray:
         return self.points.sigma_points(self._x, self._P)
 
@@ -267,6 +290,15 @@ class BatchedUKF:
                              f"got {x.shape} and {P.shape}")
         self._x, self._P = x, repair_covariance(P)
         self._sigmas = None
+
+    def recentre(self, x: np.ndarray) -> None:
+        """Replace the mean with ``x`` (the same point in other coordinates: an attitude's
+        tangent vector folded back into Euler angles about its anchor), keeping the
+        covariance and the points this step propagated."""
+        x = np.asarray(x, dtype=float)
+        if x.shape != self._x.shape:
+            raise ValueError(f"recentre: expected a mean of shape {self._x.shape}, got {x.shape}")
+        self._x = x
 
     def inflate(self, index: Sequence[int] | np.ndarray, variance: np.ndarray | float) -> None:
         """Add ``variance`` to the diagonal at ``index`` (a re-acquisition after a slip)."""

@@ -129,9 +129,9 @@ def test_a_block_s_frames_are_each_instant_s_frame(arm, effects, motion):
     w, wd = np.stack([s[2] for s in states]), np.stack([s[3] for s in states])
     have = np.ones(len(states), dtype=bool)
     have[[0, 5]] = False
-    fc = tr._frame_consts
+    fc = tr.frame_constants
     noise = tr.measurements.with_noise
-    block = noise(tuple.__new__(Frames, fc.fields_block(fit, have, offset, w, wd, motion)))
+    block = noise(Frames.of(fc.fields_block(fit, have, offset, w, wd, motion)))
     split = block.split()
     assert len(split) == len(states)
     for b in range(len(states)):
@@ -140,7 +140,7 @@ def test_a_block_s_frames_are_each_instant_s_frame(arm, effects, motion):
         if not have[b]:
             assert not np.any(got.R_0S) and not np.any(got.q_ref)
             continue
-        one = noise(tuple.__new__(Frames, fc.fields(fit[b], offset, w[b], wd[b], motion)))
+        one = noise(Frames.of(fc.fields(fit[b], offset, w[b], wd[b], motion)))
         assert_frames_equal(got, one)
 
 
@@ -307,7 +307,7 @@ def test_update_instant_gives_the_same_estimates_as_the_numpy_path(arm, effects,
         m.setattr("fusion.tracking.filter.CausalDifferentiator", NumpyDifferentiator)
         b, _ = start_from_recording(arm, rec)
     assert isinstance(b.enc_rates, NumpyDifferentiator) and not isinstance(a.enc_rates, NumpyDifferentiator)
-    b._frame_consts = NumpyFrame(b)
+    b.frame_constants = NumpyFrame(b)
     assert a.t_s < 4.0
     names = a.sensor_names
     enc = rec.get("enc")

@@ -95,8 +95,8 @@ def test_a_late_accelerometer_is_turned_to_its_stamp():
     f_now = up_from_tilt(0.3, -0.2) + np.array([0.5, -0.3, 0.2]) / GRAVITY_MPS2
     f_read = exp_so3(w * d) @ f_now
     sel = np.array([0])
-    acc = (sel, np.zeros((1, 3)), f_read[None], tr.measurements.selection(sel))
-    f = tr.measurements.stack(acc, frame, False, False)[2][0]
+    acc = tr.measurements.readings(sel, np.zeros((1, 3)), f_read[None])
+    f = tr.measurements.stack(acc, frame, False, False).f_g[0]
     # read as it came the reading is 11 mg off (|ω| d g); turned, to second order in ω d
     assert np.linalg.norm(f_read - f_now) > 0.01
     np.testing.assert_allclose(f, f_now, atol=1e-4)

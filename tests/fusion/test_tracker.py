@@ -18,6 +18,7 @@ import pytest
 from scipy.stats import chi2
 
 from fusion.tracking.run import prepare_block
+from fusion.tracking.snapshot import TrackerState
 from fusion.tracking.tracker import (
     COUNTERS,
     FLAG_CODE,
@@ -371,8 +372,8 @@ def test_a_block_prepared_at_once_gives_each_instant_the_live_path_s_pieces(arm,
     gyro = rng.normal(0.0, 0.2, (len(i), 3))
     enc_has, gyro_has, need = (rng.uniform(size=len(i)) < p for p in (0.7, 0.6, 0.8))
     gyro_has[:5] = False  # the block opens on the gyro's last reading before it
-    b._omega = a._omega = np.array([0.01, -0.02, 0.03])
-    prepared = prepare_block(a, t, q, enc_has, gyro, gyro_has, need, a._ukf.x)
+    b.last_gyro_B = a.last_gyro_B = np.array([0.01, -0.02, 0.03])
+    prepared = prepare_block(a, t, q, enc_has, gyro, gyro_has, need, a.x)
     assert len(prepared) == len(i)
     frames = 0
     for r in range(len(i)):
@@ -390,7 +391,7 @@ def test_a_block_prepared_at_once_gives_each_instant_the_live_path_s_pieces(arm,
             for name, got, want in zip(Frames.FIELDS, frame, ref, strict=True):
                 np.testing.assert_array_equal(got, want, err_msg=name)
         if gyro_has[r]:
-            b._omega = gyro[r]  # as the filter's step keeps it
+            b.last_gyro_B = gyro[r]  # as the filter's step keeps it
     assert frames > 50
     for d_a, d_b in ((a.enc_rates, b.enc_rates), (a.gyro_rates, b.gyro_rates)):
         np.testing.assert_array_equal(d_a._y, d_b._y)
@@ -445,6 +446,27 @@ def test_snapshot_and_restore_resume_where_it_stopped(arm, reaching):
     np.testing.assert_allclose(rb.q_rad, ra.q_rad, atol=1e-6)
     with pytest.raises(ValueError, match="not a tracker snapshot"):
         b.restore({"format": "something else"})
+
+
+def test_a_tracker_s_state_is_a_value_that_another_tracker_resumes_from(arm, reaching):
+    a, _ = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
+    a.run(reaching, t_stop_s=12.0)
+    state = a.state()
+    x_then = state.x.copy()
+    a.run(reaching, t_stop_s=13.0)  # the tracker moves on; the value it gave does not
+    np.testing.assert_array_equal(state.x, x_then)
+    assert state.t_s == pytest.approx(12.0, abs=0.02) and a.t_s > state.t_s
+    b = Tracker(arm)
+    b.resume(state)
+    assert b.t_s == state.t_s
+    np.testing.assert_array_equal(b.x, state.x)
+    np.testing.assert_allclose(b.P, state.P, rtol=1e-9, atol=1e-15)  # (repaired: to rounding)
+    # and through its snapshot: the same value back
+    again = TrackerState.from_dict(b.snapshot(), arm.name, b.state_names)
+    np.testing.assert_array_equal(again.x, state.x)
+    np.testing.assert_array_equal(again.counters, state.counters)
+    with pytest.raises(ValueError, match="for arm"):
+        TrackerState.from_dict(b.snapshot(), "another arm", b.state_names)
 
 
 def test_use_before_initialise_says_so(arm):

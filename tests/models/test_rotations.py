@@ -61,3 +61,14 @@ def test_one_vector_rodrigues_is_the_batched_one():
     # below 1e-12 rad the one-vector form returns the identity: off by at most the angle
     np.testing.assert_allclose(one, exp_so3(v), atol=1e-12)
     np.testing.assert_allclose(exp_so3_one(tuple(v[0])), one[0], atol=0)
+
+
+def test_the_one_attitude_form_of_R_from_rpy_is_the_same_rotation():
+    """The scalar form the compiled kernels use equals the batched one (to rounding)."""
+    from models.rotations import R_from_rpy, R_from_rpy_into
+
+    rng = np.random.default_rng(7)
+    for r, p, y in rng.uniform(-np.pi, np.pi, (50, 3)):
+        R = np.empty((3, 3))
+        R_from_rpy_into(r, p, y, R)
+        np.testing.assert_allclose(R, R_from_rpy(r, p, y), atol=1e-15)
