@@ -54,7 +54,7 @@ from fusion.cli.demo_report import (
 from fusion.cli.options import JsonOpt, ScenarioOpt, SeedOpt
 from fusion.cli.simulate import truth_path
 from fusion.service import payloads as pl
-from fusion.service.processes import Children, free_loopback_port
+from fusion.service.processes import Children, cpu_seconds, free_loopback_port
 from fusion.tracking.tracker import truth_at
 from models.simulator import angle_truth
 from models.trajectories import SCENARIOS
@@ -173,6 +173,22 @@ def calibrate(workdir: Path, seed: int, duration_s: float | None, realistic: boo
     return cfg, json.loads(child.stdout_path.read_text()), rec, what
 
 
+def _wait_until_serving(record, serve) -> None:
+    """Waits for the recorder and the fusion node to say they subscribe; a DemoError says why not."""
+    for name, child, line in (("recorder", record, "recording"), ("fusion node", serve, "serving")):
+        # (the fusion node compiles its kernels before it serves: on the first run after
+        # an install that takes minutes on a busy 2-core machine)
+        if child.wait_for_line(line, SERVE_START_S):
+            continue
+        if child is serve and child.proc.poll() is None:
+            raise DemoError(
+                f"the {name} did not start within {SERVE_START_S:.0f} s: it compiles its "
+                "kernels on its first run after an install, which on a busy machine can take "
+                "longer; what it compiled is cached, so running the demo again goes on from "
+                f"there. {child.stderr_tail()}".rstrip())
+        raise DemoError(f"the {name} did not start: {child.stderr_tail()}")
+
+
 def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, scenario: str,
              realistic: bool, ch: Children, progress, batch_ms: float = 20.0) -> dict[str, Any]:
     """Router, recorder, fusion node and drivers as processes; returns what each reported
@@ -197,17 +213,7 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
         subs = [session.declare_subscriber(k, watched.on_sample)
                 for k in (pl.joints_key(ROBOT), pl.heading_key(ROBOT), pl.status_key(ROBOT))]
         # the drivers once both subscribe: every sample published reaches both
-        for name, child, line in (("recorder", record, "recording"), ("fusion node", serve, "serving")):
-            # (the fusion node compiles its kernels before it serves: on the first run after
-            # an install that takes minutes on a busy 2-core machine)
-            if not child.wait_for_line(line, SERVE_START_S):
-                if child is serve and child.proc.poll() is None:
-                    raise DemoError(
-                        f"the {name} did not start within {SERVE_START_S:.0f} s: it compiles its "
-                        "kernels on its first run after an install, which on a busy machine can take "
-                        "longer; what it compiled is cached, so running the demo again goes on from "
-                        f"there. {child.stderr_tail()}".rstrip())
-                raise DemoError(f"the {name} did not start: {child.stderr_tail()}")
+        _wait_until_serving(record, serve)
         drivers = ch.start("drivers", [
             "drivers", "--fake", "--realtime", "--scenario", scenario, "--seed", str(seed),
             "--duration", str(duration_s), "--robot", ROBOT, "--wait", "60", "--out", str(truth_path),
@@ -224,7 +230,7 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
             n_before = len(watched.joints)
             time.sleep(1.0)
         machine = {"cpus": os.cpu_count(), "load_average_1min": round(os.getloadavg()[0], 2),
-                   "serve_cpu_s": _cpu_s(serve.proc.pid),
+                   "serve_cpu_s": cpu_seconds(serve.proc.pid),
                    "serve_wall_s": round(time.monotonic() - serve_t0, 1)}
         ch.stop_all(children=[serve, record])
         for s in subs:
@@ -238,15 +244,6 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
             "serve": json.loads(serve.stdout_path.read_text()),
             "record": json.loads(record.stdout_path.read_text()),
             "watched": watched, "truth_path": truth_path, "recording": rec_path, "machine": machine}
-
-
-def _cpu_s(pid: int) -> float | None:
-    """CPU seconds (user + system) a process has used so far (Linux /proc), or None."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return round((int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), 1)
-    except (OSError, ValueError, IndexError):
-        return None
 
 
 # --- the figures of merit ---------------------------------------------------------------------
