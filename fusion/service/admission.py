@@ -259,10 +259,16 @@ class Admission:
         st = self.settings
         w = st.clock_window_s
         fresh = now_s - st.vote_fresh_s
-        votes = self._votes(now_s, arrived_s, but=name)
+        newest, votes = [], []
+        for k, t in self._newest.items():  # (one pass: this runs for every batch)
+            if k != name and self._voted_at[k] >= fresh:
+                newest.append(t)
+                gained = arrived_s - self._arrived_at[k]
+                votes.append(t + gained if gained > 0.0 else t)
         if votes:
+            votes.sort()
+            newest.sort()
             ahead_ref = votes[(len(votes) - 1) // 2]
-            newest = sorted(t for k, t in self._newest.items() if k != name and self._voted_at[k] >= fresh)
             behind_ref = newest[(len(newest) - 1) // 2]
             whose = f"the other sensors' clock ({len(votes)} streams)"
         elif name in self._newest and self._voted_at[name] >= fresh:
