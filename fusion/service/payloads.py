@@ -498,7 +498,10 @@ def _raw(d: dict, robot: str) -> RawBatch:
                and all(isinstance(x, number) and not isinstance(x, bool) for x in r) for r in rows):
         raise PayloadError("malformed", f"field {name!r}: expected rows of {len(channels)} "
                            + ("integers" if whole else "numbers"))
-    t_s = np.asarray(t, dtype=np.float64)
+    try:
+        t_s = np.asarray(t, dtype=np.float64)
+    except OverflowError:  # (an integer beyond any float)
+        raise PayloadError("malformed", "field 't_s' is not finite") from None
     if not np.all(np.isfinite(t_s)):
         raise PayloadError("malformed", "field 't_s' is not finite")
     try:
