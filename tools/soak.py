@@ -67,6 +67,8 @@ CAUGHT_UP_S = 0.05
 """A joint state this soon after its samples were put: the node has caught up with the stream."""
 ON_TIME_S = 0.1
 """A joint state this soon after its samples were put is on time (the latency target's p99)."""
+STOP_S = 600.0
+"""A node stops within this (it first drains its receive channel: a node far behind takes long)."""
 HOG_GRACE_S = 30.0
 """A CPU hog ends by itself this long after the stream's duration, whatever the tool does."""
 
@@ -341,9 +343,12 @@ class ServeProcess:
                                f"{self.proc.stderr.read()[-2000:]}")
         threading.Thread(target=lambda: self.err_lines.extend(self.proc.stderr), daemon=True).start()
 
-    def stop(self) -> dict:
+    def interrupt(self) -> None:
         self.proc.send_signal(signal.SIGINT)
-        out, _ = self.proc.communicate(timeout=60)
+
+    def report(self, timeout_s: float = STOP_S) -> dict:
+        """Its summary once it stopped (a node behind drains what it received first)."""
+        out, _ = self.proc.communicate(timeout=timeout_s)
         return json.loads(out)
 
     def kill(self) -> None:
@@ -431,7 +436,9 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
                 cpus_all.append(_cpu_s(n.proc.pid) - c)
             time.sleep(0.2)
             status_seen = [st.summary(wall0, wall0 + wall_pub) for st in statuses]
-        reports = [n.stop() for n in nodes]
+        for n in nodes:
+            n.interrupt()
+        reports = [n.report() for n in nodes]
     finally:
         for n in nodes:
             n.kill()
