@@ -68,7 +68,7 @@ def run(duration_s: float, seed: int, batch_ms: float) -> dict:
 
 
 def markdown(r: dict) -> str:
-    lat, srv, smp = r["latency"] or {}, r["serve"], r["samples"] or {}
+    lat, srv, smp, m = r["latency"] or {}, r["serve"], r["samples"] or {}, r.get("machine") or {}
     p99 = lat.get("p99_after_settle_ms", lat.get("p99_ms"))
     verdict = ("none: no joint state arrived" if p99 is None else
                "this run meets it" if p99 <= TARGET_P99_MS else "this run misses it")
@@ -84,11 +84,15 @@ def markdown(r: dict) -> str:
          f"{smp.get('published')} / {srv.get('samples')}"),
         ("samples the node refused (genuine: the drivers are the only publishers), by reason",
          ", ".join(f"{k} {v}" for k, v in sorted(refused.items())) or "none"),
-        ("payloads dropped by the node, by reason",
+        ("batches (payloads) the node refused or dropped, by reason",
          ", ".join(f"{k} {v}" for k, v in sorted(dropped.items())) or "none"),
         ("the node degraded (periods) / instants folded / largest lag",
          f"{srv.get('degraded_periods')} / {srv.get('folded_instants')} / {srv.get('lag_max_ms')} ms"),
         ("joint states received by the demo's consumer", f"{r['tracking']['estimates']}"),
+        ("the fusion node's CPU / wall time from its start (share of one core)",
+         f"{m.get('serve_cpu_s')} s / {m.get('serve_wall_s')} s"
+         + (f" ({100 * m['serve_cpu_s'] / m['serve_wall_s']:.0f} %)"
+            if m.get("serve_cpu_s") and m.get("serve_wall_s") else "")),
         ("stalls / errors in the node", f"{srv.get('stalls')} / {srv.get('errors')}"),
         ("the node's last message", (srv.get("message") or "")[:160].replace("|", "/")),
     ]
@@ -107,7 +111,8 @@ spin beside it, one per core, from before the nodes start until the demo ends
 The p99 latency target with every core busy is {TARGET_P99_MS:.0f} ms (after the settling):
 {verdict}. The demo publishes at the node's default 50 joint states a second, so a folded
 instant (docs/service-node.md, "When the node falls behind") rarely leaves a gap a
-consumer sees.
+consumer sees. Every refusal here is of a genuine batch: the fake drivers are the only
+publishers.
 """
 
 
