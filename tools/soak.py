@@ -67,6 +67,9 @@ CAUGHT_UP_S = 0.05
 """A joint state this soon after its samples were put: the node has caught up with the stream."""
 ON_TIME_S = 0.1
 """A joint state this soon after its samples were put is on time (the latency target's p99)."""
+START_S = 900.0
+"""A node subscribes within this (it first readies its tracker kernels: minutes on a busy
+machine with a cold cache)."""
 STOP_S = 600.0
 """A node stops within this (it first drains its receive channel: a node far behind takes long)."""
 HOG_GRACE_S = 30.0
@@ -335,12 +338,8 @@ class ServeProcess:
             cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
     def wait_serving(self) -> None:
-        """Until it listens and serves (its first line on stderr says so); then keep reading
-        its stderr so that a full pipe never stalls it."""
-        line = self.proc.stderr.readline()
-        if "serving" not in line:
-            raise RuntimeError(f"armfusion serve ({self.root}) did not start: {line}"
-                               f"{self.proc.stderr.read()[-2000:]}")
+        """Keep reading its stderr (a full pipe would stall it); whether it serves is told by
+        its subscriber (the publishers' matching status), however long its start takes."""
         threading.Thread(target=lambda: self.err_lines.extend(self.proc.stderr), daemon=True).start()
 
     def interrupt(self) -> None:
@@ -385,7 +384,7 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
             pubs = [{k: session.declare_publisher(pl.raw_key(n.robot, k),
                                                   congestion_control=zenoh.CongestionControl.BLOCK)
                      for k in streams} for n in nodes]
-            deadline = time.monotonic() + 60.0
+            deadline = time.monotonic() + START_S
             while not all(p.matching_status for ps in pubs for p in ps.values()):
                 if time.monotonic() > deadline or any(n.proc.poll() is not None for n in nodes):
                     raise RuntimeError("armfusion serve did not subscribe: "
