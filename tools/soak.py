@@ -385,7 +385,7 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
                                                   congestion_control=zenoh.CongestionControl.BLOCK)
                      for k in streams} for n in nodes]
             deadline = time.monotonic() + START_S
-            while not all(p.matching_status for ps in pubs for p in ps.values()):
+            while not all(p.matching_status.matching for ps in pubs for p in ps.values()):
                 if time.monotonic() > deadline or any(n.proc.poll() is not None for n in nodes):
                     raise RuntimeError("armfusion serve did not subscribe: "
                                        + "".join(nodes[0].err_lines)[-2000:])
