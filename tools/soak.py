@@ -317,6 +317,8 @@ def _z_scores(joints: Joints, truth: Stream, after_t_s: float) -> np.ndarray:
     with joints.lock:
         t = np.array(joints.t_s)
         q, sig = np.array(joints.q_rad), np.array(joints.sigma_rad)
+    if not t.size:
+        return np.zeros((0, 1))
     keep = t > after_t_s
     t, q, sig = t[keep], q[keep], sig[keep]
     k = np.clip(np.searchsorted(truth.t_s, t + 1e-9) - 1, 0, len(truth) - 1)
@@ -473,7 +475,10 @@ def _node_figures(report: dict, joints: Joints, status_seen: dict, truth: Stream
     with joints.lock:
         got_t, got_wall = np.array(joints.t_s), np.array(joints.wall_s)
     startup_t = report["startup_t_s"]
-    expected = enc_t[(enc_t > startup_t + 1e-9) & (enc_t <= got_t.max() + 1e-9)]
+    # (a node that published no joint state at all while the tool listened: every instant
+    # after its startup is missing)
+    last_t = got_t.max() if got_t.size else enc_t[-1]
+    expected = enc_t[(enc_t > startup_t + 1e-9) & (enc_t <= last_t + 1e-9)]
     missing = int(len(np.setdiff1d(expected, got_t)))
     # latency in the steady state: from the moment a joint state first arrives within
     # CAUGHT_UP_S of its samples being put (before, the node waited for its startup
