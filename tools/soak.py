@@ -61,10 +61,17 @@ from sensors.samples import Stream  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 ROBOT = "soak"
+BASELINE_ROBOT = "soak-baseline"
+"""The robot name the baseline's node serves (``--baseline``): its own keys, the same stream."""
 CAUGHT_UP_S = 0.05
 """A joint state this soon after its samples were put: the node has caught up with the stream."""
 ON_TIME_S = 0.1
 """A joint state this soon after its samples were put is on time (the latency target's p99)."""
+START_S = 900.0
+"""A node subscribes within this (it first readies its tracker kernels: minutes on a busy
+machine with a cold cache)."""
+STOP_S = 600.0
+"""A node stops within this (it first drains its receive channel: a node far behind takes long)."""
 HOG_GRACE_S = 30.0
 """A CPU hog ends by itself this long after the stream's duration, whatever the tool does."""
 
@@ -75,15 +82,16 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _commit() -> str:
-    """The commit measured, marked ``+changes`` when fusion/ or models/ differ from it."""
+def _commit(root: Path = ROOT) -> str:
+    """The commit measured, marked ``+changes`` when fusion/ or models/ differ from it; a
+    folder that is no git checkout (an exported tree) is named by its path."""
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
                               text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "fusion", "models"], cwd=ROOT,
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "fusion", "models"], cwd=root,
                                capture_output=True, text=True, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+        return "unknown" if root == ROOT else str(root)
     return head + (" +changes" if dirty else "")
 
 
@@ -96,13 +104,13 @@ def _cpu_s(pid: int) -> float:
 class Joints:
     """Arrival time (monotonic), sample time, angles and sigmas of every joint state."""
 
-    def __init__(self, session: zenoh.Session):
+    def __init__(self, session: zenoh.Session, robot: str = ROBOT):
         self.lock = threading.Lock()
         self.t_s: list[float] = []
         self.wall_s: list[float] = []
         self.q_rad: list[tuple[float, ...]] = []
         self.sigma_rad: list[tuple[float, ...]] = []
-        self.sub = session.declare_subscriber(pl.joints_key(ROBOT), self)
+        self.sub = session.declare_subscriber(pl.joints_key(robot), self)
 
     def __call__(self, sample: zenoh.Sample) -> None:
         now = time.monotonic()
@@ -247,10 +255,10 @@ class _HostileLoop:
 class Statuses:
     """Arrival time (monotonic), ``degraded`` and ``lag_ms`` of every status of the node."""
 
-    def __init__(self, session: zenoh.Session):
+    def __init__(self, session: zenoh.Session, robot: str = ROBOT):
         self.lock = threading.Lock()
         self.seen: list[tuple[float, int, int]] = []
-        self.sub = session.declare_subscriber(pl.status_key(ROBOT), self)
+        self.sub = session.declare_subscriber(pl.status_key(robot), self)
 
     def __call__(self, sample: zenoh.Sample) -> None:
         now = time.monotonic()
@@ -309,6 +317,8 @@ def _z_scores(joints: Joints, truth: Stream, after_t_s: float) -> np.ndarray:
     with joints.lock:
         t = np.array(joints.t_s)
         q, sig = np.array(joints.q_rad), np.array(joints.sigma_rad)
+    if not t.size:
+        return np.zeros((0, 1))
     keep = t > after_t_s
     t, q, sig = t[keep], q[keep], sig[keep]
     k = np.clip(np.searchsorted(truth.t_s, t + 1e-9) - 1, 0, len(truth) - 1)
@@ -316,41 +326,71 @@ def _z_scores(joints: Joints, truth: Stream, after_t_s: float) -> np.ndarray:
     return err / sig
 
 
+class ServeProcess:
+    """``armfusion serve`` as its own process for ``robot``, listening on a port of its own,
+    run from the checkout ``root`` (this one, or a baseline's: ``python -m fusion.cli`` in
+    that folder takes its code)."""
+
+    def __init__(self, robot: str, root: Path):
+        self.robot, self.root, self.port = robot, root, _free_port()
+        self.err_lines: list[str] = []
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "fusion.cli", "serve", "--robot", robot, "--listen",
+             f"tcp/127.0.0.1:{self.port}", "--publish-hz", "1000", "--json"],
+            cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def wait_serving(self) -> None:
+        """Keep reading its stderr (a full pipe would stall it); whether it serves is told by
+        its subscriber (the publishers' matching status), however long its start takes."""
+        threading.Thread(target=lambda: self.err_lines.extend(self.proc.stderr), daemon=True).start()
+
+    def interrupt(self) -> None:
+        self.proc.send_signal(signal.SIGINT)
+
+    def report(self, timeout_s: float = STOP_S) -> dict:
+        """Its summary once it stopped (a node behind drains what it received first)."""
+        out, _ = self.proc.communicate(timeout=timeout_s)
+        return json.loads(out)
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+
+
 def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_hz: float = 0.0,
-         cpu_hog: bool = False) -> dict:
+         cpu_hog: bool = False, baseline: Path | None = None) -> dict:
+    """The soak's figures; with ``baseline`` (a checkout of other code), a second node run
+    from it beside this one on the same stream, its figures under ``"baseline"``: both
+    nodes get the same samples at the same moments and share the machine (and the hog)."""
     arm = load_arm("wmra")
     rec, sim_truth = simulate(arm, "daily-use", duration_s, rate_hz, seed=seed)
     truth = angle_truth(rec.get("true_q"), sim_truth, arm.joint_names)
     streams = {k: s for k, s in rec.raw().items() if len(s)}
-    port = _free_port()
-    serve = subprocess.Popen(
-        [sys.executable, "-m", "fusion.cli", "serve", "--robot", ROBOT, "--listen",
-         f"tcp/127.0.0.1:{port}", "--publish-hz", "1000", "--json"],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    err_lines: list[str] = []
+    nodes = [ServeProcess(ROBOT, ROOT)]
+    if baseline is not None:
+        nodes.append(ServeProcess(BASELINE_ROBOT, Path(baseline).resolve()))
+    port = nodes[0].port
     try:
-        # connect once it listens and serves (its first line on stderr says so); then keep
-        # reading its stderr so that a full pipe never stalls it
-        line = serve.stderr.readline()
-        if "serving" not in line:
-            raise RuntimeError(f"armfusion serve did not start: {line}{serve.stderr.read()[-2000:]}")
-        threading.Thread(target=lambda: err_lines.extend(serve.stderr), daemon=True).start()
-        settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
+        for node in nodes:
+            node.wait_serving()
+        settings = ZenohSettings(listen=["tcp/127.0.0.1:0"],
+                                 connect=[f"tcp/127.0.0.1:{n.port}" for n in nodes])
         with open_session(settings) as session:
-            joints = Joints(session)
-            statuses = Statuses(session)
+            joints = [Joints(session, n.robot) for n in nodes]
+            statuses = [Statuses(session, n.robot) for n in nodes]
             hog = CpuHog(duration_s + HOG_GRACE_S) if cpu_hog else None
             hostile = (Hostile(f"tcp/127.0.0.1:{port}", streams, hostile_hz, seed, arm.counts_per_rad)
                        if hostile_hz > 0 else None)
             if hostile is not None:  # (its process starts while the node waits for samples)
                 hostile.start()
-            pubs = {k: session.declare_publisher(pl.raw_key(ROBOT, k),
-                                                 congestion_control=zenoh.CongestionControl.BLOCK)
-                    for k in streams}
-            deadline = time.monotonic() + 60.0
-            while not all(p.matching_status for p in pubs.values()):
-                if time.monotonic() > deadline or serve.poll() is not None:
-                    raise RuntimeError("armfusion serve did not subscribe: " + "".join(err_lines)[-2000:])
+            pubs = [{k: session.declare_publisher(pl.raw_key(n.robot, k),
+                                                  congestion_control=zenoh.CongestionControl.BLOCK)
+                     for k in streams} for n in nodes]
+            deadline = time.monotonic() + START_S
+            while not all(p.matching_status.matching for ps in pubs for p in ps.values()):
+                if time.monotonic() > deadline or any(n.proc.poll() is not None for n in nodes):
+                    raise RuntimeError("armfusion serve did not subscribe: "
+                                       + "".join(nodes[0].err_lines)[-2000:])
                 time.sleep(0.05)
             # windows of batch_s: every sensor's samples in it go out as one message each
             t0 = min(s.t_s[0] for s in streams.values())
@@ -363,7 +403,7 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
             published = 0
             if hog is not None:
                 hog.start()
-            cpu0, wall0 = _cpu_s(serve.pid), time.monotonic()
+            cpu0, wall0 = [_cpu_s(n.proc.pid) for n in nodes], time.monotonic()
             for w in range(len(edges)):
                 delay = wall0 + (edges[w] - t0) - time.monotonic()
                 if delay > 0:
@@ -373,38 +413,72 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
                     i1 = int(cuts[k][w])
                     if i1 > i0:
                         part = Stream(k, s.kind, s.t_s[i0:i1], s.values[i0:i1], s.channels)
-                        pubs[k].put(pl.encode(pl.RawBatch(ROBOT, part, seq[k])))
+                        # (the nodes take turns to be sent to first)
+                        for j in (range(len(nodes)) if w % 2 == 0 else reversed(range(len(nodes)))):
+                            pubs[j][k].put(pl.encode(pl.RawBatch(nodes[j].robot, part, seq[k])))
                         seq[k] += 1
                         published += i1 - i0
                         if hostile is not None:
                             hostile.saw(k, float(s.t_s[i1 - 1]), s.values[i1 - 1])
                 put_wall[enc_window == w] = time.monotonic()
             wall_pub = time.monotonic() - wall0
-            cpu_pub = _cpu_s(serve.pid) - cpu0
+            cpu_pub = [_cpu_s(n.proc.pid) - c for n, c in zip(nodes, cpu0, strict=True)]
             if hog is not None:
                 hog.stop()
             if hostile is not None:
                 hostile.stop()
-            # let the node finish (the reorder stage holds the newest 0.1 s until the stop)
+            # let the nodes finish (the reorder stage holds the newest 0.1 s until the stop)
             done_by = time.monotonic() + max(30.0, 2.0 * duration_s)
-            while joints.last_t() < enc_t[-1] - 0.11 and time.monotonic() < done_by:
-                time.sleep(0.05)
-            wall_all = time.monotonic() - wall0
-            cpu_all = _cpu_s(serve.pid) - cpu0
+            walls_all, cpus_all = [], []
+            for n, js, c in zip(nodes, joints, cpu0, strict=True):
+                while js.last_t() < enc_t[-1] - 0.11 and time.monotonic() < done_by:
+                    time.sleep(0.05)
+                walls_all.append(time.monotonic() - wall0)
+                cpus_all.append(_cpu_s(n.proc.pid) - c)
             time.sleep(0.2)
-            status_seen = statuses.summary(wall0, wall0 + wall_pub)
-        serve.send_signal(signal.SIGINT)
-        out, _ = serve.communicate(timeout=60)
+            status_seen = [st.summary(wall0, wall0 + wall_pub) for st in statuses]
+        for n in nodes:
+            n.interrupt()
+        reports = [n.report() for n in nodes]
     finally:
-        if serve.poll() is None:
-            serve.kill()
-    report = json.loads(out)
+        for n in nodes:
+            n.kill()
+    hostile_sent = hostile.sent if hostile is not None else {}
+    common = {
+        "hostile_hz": hostile_hz, "hostile_sent": hostile_sent, "cpu_hog": cpu_hog,
+        "cpu_hog_processes": (os.cpu_count() or 1) if cpu_hog else 0,
+        "duration_s": duration_s, "rate_hz": rate_hz, "batch_ms": 1e3 * batch_s,
+        "sensors": sorted(streams), "published": published, "wall_publish_s": wall_pub,
+        "load_average_1min": os.getloadavg()[0], "cores": os.cpu_count(),
+        "tracker_instants_per_cpu_s": tracker_alone(rec),
+    }
+    read_wall = wall0 + (enc_t - t0)  # when each instant was sampled, on this clock (real time)
+    figures = [{**common, **_node_figures(rep, js, st, truth, enc_t, put_wall, read_wall, published,
+                                          hostile_sent, wall_pub, cp, wa, ca)}
+               for rep, js, st, cp, wa, ca in zip(reports, joints, status_seen, cpu_pub, walls_all,
+                                                   cpus_all, strict=True)]
+    figures[0]["commit"] = _commit()
+    if baseline is not None:
+        figures[1]["commit"] = _commit(Path(baseline).resolve())
+        figures[0]["baseline"] = figures[1]
+    return figures[0]
+
+
+def _node_figures(report: dict, joints: Joints, status_seen: dict, truth: Stream, enc_t: np.ndarray,
+                  put_wall: np.ndarray, read_wall: np.ndarray, published: int, hostile_sent: dict,
+                  wall_pub: float, cpu_pub: float, wall_all: float, cpu_all: float) -> dict:
+    """One node's figures from what it reported and what its subscribers saw. ``put_wall``:
+    when each instant's last message went out; ``read_wall``: when it was sampled (the
+    stream runs in real time: the driver's batch wait is in the latency)."""
     if report["startup_t_s"] is None:
         raise RuntimeError(f"armfusion serve did not start tracking: {report['message']}")
     with joints.lock:
         got_t, got_wall = np.array(joints.t_s), np.array(joints.wall_s)
     startup_t = report["startup_t_s"]
-    expected = enc_t[(enc_t > startup_t + 1e-9) & (enc_t <= got_t.max() + 1e-9)]
+    # (a node that published no joint state at all while the tool listened: every instant
+    # after its startup is missing)
+    last_t = got_t.max() if got_t.size else enc_t[-1]
+    expected = enc_t[(enc_t > startup_t + 1e-9) & (enc_t <= last_t + 1e-9)]
     missing = int(len(np.setdiff1d(expected, got_t)))
     # latency in the steady state: from the moment a joint state first arrives within
     # CAUGHT_UP_S of its samples being put (before, the node waited for its startup
@@ -415,19 +489,20 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
     lat = arrive - put
     up = np.flatnonzero(lat <= CAUGHT_UP_S)
     t_up = float(arrive[up[0]]) if up.size else np.inf
-    lat_ms = 1e3 * lat[put >= t_up]
+    lat_ms = 1e3 * (arrive - read_wall[k[matched]])[put >= t_up]  # sample time -> joint state
     first_put = float(np.nanmin(put_wall[enc_t >= startup_t]))
     catch_up_s = t_up - first_put if up.size else None
     in_time = np.zeros(len(enc_t), bool)  # instants whose joint state came within ON_TIME_S
     in_time[k[matched][lat <= ON_TIME_S]] = True
     after_up = (enc_t > startup_t + 1e-9) & (put_wall >= t_up)
     on_time_percent = float(100.0 * in_time[after_up].mean()) if after_up.any() else None
+    # what a user meets: every instant after the catch-up, a joint state on time or not (a
+    # folded instant has none: the user's latest is then the previous one); the age of the
+    # newest joint state at each instant's put, plus the wait for the next
+    fresh_ms = _staleness_ms(got_t, got_wall, enc_t, put_wall, read_wall, t_up)
     z = _z_scores(joints, truth, startup_t)
-    hostile_sent = hostile.sent if hostile is not None else {}
     accepted_hostile = hostile_sent.get("invented_seq", 0)
     return {
-        "hostile_hz": hostile_hz, "hostile_sent": hostile_sent, "cpu_hog": cpu_hog,
-        "cpu_hog_processes": (os.cpu_count() or 1) if cpu_hog else 0,
         "on_time_percent": on_time_percent, "status_seen": status_seen,
         "degraded_periods": report.get("degraded_periods"), "folded_instants": report.get("folded_instants"),
         "lag_max_ms": report.get("lag_max_ms"),
@@ -438,8 +513,7 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
                       float(100.0 * (z <= 3.0).mean(axis=0).min()) if z.size else None},
         "seq_resets": report.get("seq_resets"), "stalls": report.get("stalls"),
         "errors": report.get("errors"),
-        "duration_s": duration_s, "rate_hz": rate_hz, "batch_ms": 1e3 * batch_s,
-        "sensors": sorted(streams), "published": published, "received": report["samples"],
+        "received": report["samples"],
         "lost": published + accepted_hostile - report["samples"], "dropped": report["dropped"],
         "out_of_order": report["out_of_order"], "missed_batches": report["missed_batches"],
         "startup_t_s": startup_t,
@@ -448,14 +522,32 @@ def soak(duration_s: float, rate_hz: float, batch_s: float, seed: int, hostile_h
         "latency_ms": {"n": int(lat_ms.size), **({
             "p50": float(np.percentile(lat_ms, 50)), "p99": float(np.percentile(lat_ms, 99)),
             "max": float(lat_ms.max())} if lat_ms.size else {"p50": None, "p99": None, "max": None})},
-        "wall_publish_s": wall_pub, "wall_total_s": wall_all,
+        "staleness_ms": fresh_ms,
+        "wall_total_s": wall_all,
         "serve_cpu_percent_while_publishing": 100.0 * cpu_pub / wall_pub,
         "serve_cpu_percent_overall": 100.0 * cpu_all / wall_all,
         "instants_per_serve_cpu_s": float(len(enc_t) / cpu_all) if cpu_all > 0 else None,
-        "load_average_1min": os.getloadavg()[0], "cores": os.cpu_count(),
-        "tracker_instants_per_cpu_s": tracker_alone(rec),
-        "commit": _commit(),
     }
+
+
+def _staleness_ms(got_t, got_wall, enc_t, put_wall, read_wall, t_up: float) -> dict:
+    """For every instant put after ``t_up``: how long from its sampling until a joint state
+    of it or of a later instant arrived (a folded instant gets none of its own: the user
+    waits for the next one). p50 / p99 / max in ms, over the instants that got one."""
+    if not np.isfinite(t_up) or not len(got_t):
+        return {"n": 0, "p50": None, "p99": None, "max": None}
+    order = np.argsort(got_t, kind="stable")
+    t_sorted, wall_sorted = got_t[order], got_wall[order]
+    # the earliest arrival of a joint state of this instant or a later one
+    first_after = np.minimum.accumulate(wall_sorted[::-1])[::-1]
+    pick = (put_wall >= t_up) & np.isfinite(put_wall)
+    idx = np.searchsorted(t_sorted, enc_t[pick] - 1e-9)
+    ok = idx < len(t_sorted)
+    wait = 1e3 * (first_after[idx[ok]] - read_wall[pick][ok])
+    if not wait.size:
+        return {"n": 0, "p50": None, "p99": None, "max": None}
+    return {"n": int(wait.size), "p50": float(np.percentile(wait, 50)),
+            "p99": float(np.percentile(wait, 99)), "max": float(wait.max())}
 
 
 def tracker_alone(rec, n_instants: int = 1000) -> float:
@@ -476,15 +568,61 @@ def tracker_alone(rec, n_instants: int = 1000) -> float:
     return float(len(idx) / (time.process_time() - c0))
 
 
+def _side_by_side(r: dict) -> str:
+    """This code's figures beside the baseline's (``--baseline``), same stream, same moments."""
+    b = r["baseline"]
+
+    def p(d: dict, key: str) -> float | None:
+        return (d.get(key) or {}).get("p99")
+
+    def refused(d: dict) -> int:
+        return sum(v for k, v in d["dropped"].items() if k != "overflow")
+
+    rows = [
+        ("wait p99, every instant (ms)", p(r, "staleness_ms"), p(b, "staleness_ms")),
+        ("latency p99 of the joint states (ms)", p(r, "latency_ms"), p(b, "latency_ms")),
+        ("latency p50 of the joint states (ms)", r["latency_ms"]["p50"], b["latency_ms"]["p50"]),
+        ("caught up after (s of wall time)", r["catch_up_s"], b["catch_up_s"]),
+        ("largest lag (ms)", r["lag_max_ms"], b["lag_max_ms"]),
+        ("degraded periods", r["degraded_periods"], b["degraded_periods"]),
+        ("instants folded", r["folded_instants"], b["folded_instants"]),
+        ("joint states missing", r["estimates_missing"], b["estimates_missing"]),
+        ("instants per CPU-second of serve", r["instants_per_serve_cpu_s"], b["instants_per_serve_cpu_s"]),
+        ("serve CPU while publishing (% of one core)", r["serve_cpu_percent_while_publishing"],
+         b["serve_cpu_percent_while_publishing"]),
+        ("genuine batches refused", refused(r), refused(b)),
+    ]
+
+    def cell(v) -> str:
+        if v is None:
+            return "none (never caught up)"
+        return f"{v:.3g}" if isinstance(v, float) else str(v)
+
+    def ratio(a, c) -> str:
+        return f"{a / c:.2f}" if isinstance(a, int | float) and isinstance(c, int | float) and c else "-"
+
+    lines = "\n".join(f"| {name} | {cell(a)} | {cell(c)} | {ratio(a, c)} |" for name, a, c in rows)
+    return (f"Side by side, in the same run: this code (commit {r.get('commit', 'unknown')}, robot "
+            f"`{ROBOT}`) and the baseline (commit {b.get('commit', 'unknown')}, robot `{BASELINE_ROBOT}`), "
+            "each a node of its own, sent the same batches at the same moments (taking turns to be "
+            "first), sharing the machine and the hog.\n\n"
+            f"| figure | this code | baseline | ratio |\n| --- | --- | --- | --- |\n{lines}\n\n"
+            "The table above is this code's.\n\n")
+
+
 def markdown(r: dict) -> str:
     lat = r["latency_ms"]
+    wait = r.get("staleness_ms") or {"n": 0}
     target_ms = 100.0 if r.get("cpu_hog") else 10.0
     if lat["n"]:
-        ok_lat = "this run meets it" if lat["p99"] <= target_ms else "this run misses it"
+        judged = wait if wait["n"] else lat
+        ok_lat = "this run meets it" if judged["p99"] <= target_ms else "this run misses it"
         lat_text = f"{lat['p50']:.1f} / {lat['p99']:.1f} / {lat['max']:.1f} ms (n = {lat['n']})"
     else:
         ok_lat = "this run never caught up, so it has no figure"
         lat_text = "none: the node never caught up with the stream"
+    wait_text = (f"{wait['p50']:.1f} / {wait['p99']:.1f} / {wait['max']:.1f} ms (n = {wait['n']})"
+                 if wait["n"] else "none")
     rows = [
         ("samples published / received", f"{r['published']} / {r['received']}"),
         ("samples lost / dropped / late",
@@ -494,7 +632,9 @@ def markdown(r: dict) -> str:
         ("startup calibration at (sample time)", f"{r['startup_t_s']:.2f} s"),
         ("caught up (a joint state within 50 ms of its samples) after",
          "never" if r["catch_up_s"] is None else f"{r['catch_up_s']:.2f} s of wall time"),
-        ("latency sample -> joint state once caught up, p50 / p99 / max", lat_text),
+        ("latency, a sample's time -> its joint state, once caught up, p50 / p99 / max", lat_text),
+        ("wait, a sample's time -> a joint state of it or a later instant (every instant, folded "
+         "ones too), p50 / p99 / max", wait_text),
         ("serve CPU while publishing / overall",
          f"{r['serve_cpu_percent_while_publishing']:.0f} % / "
          f"{r['serve_cpu_percent_overall']:.0f} % of one core"),
@@ -553,6 +693,7 @@ def markdown(r: dict) -> str:
         title += ", a hostile publisher beside the real one"
     if r.get("cpu_hog"):
         title += ", every core kept busy beside it"
+    side = _side_by_side(r) if r.get("baseline") else ""
     return f"""## {title} (`tools/soak.py`)
 
 {machine_line()}; commit {r.get('commit', 'unknown')}; load average
@@ -564,16 +705,19 @@ def markdown(r: dict) -> str:
 
 {table}
 
-The p99 latency target is {target_ms:.0f} ms{busy}: {ok_lat}. To keep up, the node needs
+{side}The p99 target (on the wait, every instant counted) is {target_ms:.0f} ms{busy}: {ok_lat}.
+To keep up, the node needs
 {need:.0f} % of one core ({r['rate_hz']:.0f} instants a second at {r['instants_per_serve_cpu_s']:.0f}
 per CPU-second); it got {r['serve_cpu_percent_while_publishing']:.0f} % on this shared machine. The
 tracker alone does {r['tracker_instants_per_cpu_s']:.0f} instants per CPU-second on the same
 samples, so it takes {tracker_share:.0f} % of the node's CPU; Zenoh's receive threads (about
 {msgs_per_s:.0f} messages a second), decoding, the reorder stage, publishing and the startup
-calibration take the rest. Latency runs from the moment the message holding an instant is
-put (a sample first waits up to one batch, {r['batch_ms']:.0f} ms, in the driver) to its joint
-state's arrival, over the instants sent after the node caught up (before, it waits for its
-startup calibration, then fuses the samples it kept). A node that needs more than one CPU-second per
+calibration take the rest. Latency runs from an instant's sample time (the stream is sent in
+real time: a sample first waits up to one batch, {r['batch_ms']:.0f} ms, in the driver) to its joint
+state's arrival at a subscriber, over the instants sent after the node caught up (before, it waits
+for its startup calibration, then fuses the samples it kept); the wait counts every instant, also
+one the node folded (it has no joint state of its own: a user waits for the next). A node that
+needs more than one CPU-second per
 {r['rate_hz']:.0f} instants cannot keep up one instant at a time: it degrades (docs/service-node.md,
 "When the node falls behind": it folds the instants more than 50 ms behind, one update per
 20 ms of them{folded}). If taking the messages in alone costs more than it gets, its queue
@@ -593,6 +737,9 @@ def main(argv=None) -> int:
                     help="Cycles a second of a hostile publisher beside the real one (0: none).")
     ap.add_argument("--cpu-hog", action="store_true",
                     help="Keep every core busy beside the node while publishing (one spinning process each).")
+    ap.add_argument("--baseline", type=Path, metavar="DIR",
+                    help="A checkout of other code (e.g. main's HEAD) whose node runs beside this one's "
+                         "on the same stream; the section then shows both, side by side.")
     ap.add_argument("--write", action="store_true", help="Write the soak section of docs/benchmarks.md.")
     ap.add_argument("--json", action="store_true", help="Print the figures as JSON.")
     ap.add_argument("--from-json", type=Path, help="Render the figures of an earlier --json run "
@@ -601,7 +748,8 @@ def main(argv=None) -> int:
     if args.from_json is not None:
         r = json.loads(args.from_json.read_text())
     else:
-        r = soak(args.duration, args.rate, args.batch_ms / 1000.0, args.seed, args.hostile, args.cpu_hog)
+        r = soak(args.duration, args.rate, args.batch_ms / 1000.0, args.seed, args.hostile, args.cpu_hog,
+                 args.baseline)
     print(json.dumps(r, indent=2) if args.json else markdown(r))
     if args.write:
         section = "soak-{:.0f}hz-{:.0f}ms".format(r["rate_hz"], r["batch_ms"])

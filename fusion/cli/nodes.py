@@ -448,7 +448,8 @@ def _served_maneuver(arm, robot: str, config: str, maneuver: Path, out_dir: Path
 
 
 def _say_serving(node, robot: str, arm_name: str) -> None:
-    if node.ready.wait(30.0):
+    # (however long the kernels take to be ready: a busy machine's first run takes minutes)
+    if node.ready.wait():
         err_console.print(f"serving {arm_name} as {robot}: armfusion/{robot}/raw/* in, state/joints, "
                           "state/heading and status out; Ctrl-C (SIGINT) or SIGTERM stops", highlight=False)
 

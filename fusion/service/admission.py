@@ -224,15 +224,15 @@ class Admission:
             return verdict
         if verdict.reset:  # its earlier times were on a refuted clock: so was its budget
             self._budget.pop(s.name, None)
-        dense = self._check_density(s.name, s.t_s)
-        if dense is not None:
-            return dense
+        bucket = self._bucket_after(s.name, s.t_s)
+        if bucket is None:
+            return self._too_dense(s.t_s)
         rebased = False
         if s.name == ENCODER_STREAM:
             jump, rebased = self._check_encoder(s.t_s, s.values)
             if jump is not None:
                 return jump
-        missed, seq_reset = self._note(batch, now_s, arrived_s, rebased)
+        missed, seq_reset = self._note(batch, now_s, arrived_s, rebased, bucket)
         if not (verdict.reset or missed or seq_reset or rebased):
             return _OK  # (the common case: no object to make)
         return Verdict(None, reset=verdict.reset, missed=missed, seq_reset=seq_reset, rebased=rebased)
@@ -259,10 +259,16 @@ class Admission:
         st = self.settings
         w = st.clock_window_s
         fresh = now_s - st.vote_fresh_s
-        votes = self._votes(now_s, arrived_s, but=name)
+        newest, votes = [], []
+        for k, t in self._newest.items():  # (one pass: this runs for every batch)
+            if k != name and self._voted_at[k] >= fresh:
+                newest.append(t)
+                gained = arrived_s - self._arrived_at[k]
+                votes.append(t + gained if gained > 0.0 else t)
         if votes:
+            votes.sort()
+            newest.sort()
             ahead_ref = votes[(len(votes) - 1) // 2]
-            newest = sorted(t for k, t in self._newest.items() if k != name and self._voted_at[k] >= fresh)
             behind_ref = newest[(len(newest) - 1) // 2]
             whose = f"the other sensors' clock ({len(votes)} streams)"
         elif name in self._newest and self._voted_at[name] >= fresh:
@@ -308,12 +314,10 @@ class Admission:
             return None
         return float(level[-1]), float(t[-1])
 
-    def _check_density(self, name: str, t_s: np.ndarray) -> Verdict | None:
-        """Refuse a batch one of whose samples finds the stream's bucket dry (see the
+    def _too_dense(self, t_s: np.ndarray) -> Verdict:
+        """The refusal of a batch one of whose samples finds the stream's bucket dry (see the
         module's docstring); the bucket is drawn on only when the batch is accepted
         (:meth:`_note`)."""
-        if self._bucket_after(name, t_s) is not None:
-            return None
         span_ms = (float(t_s[-1]) - float(t_s[0])) * 1e3
         return Verdict("too_dense", f"{len(t_s)} samples in {span_ms:.3g} ms: denser than any sensor "
                                     f"samples (at most {self.settings.max_rate_hz:g} Hz, bursts of "
@@ -361,14 +365,16 @@ class Admission:
         i, j = np.argwhere(bad)[0]
         return int(i), int(j)
 
-    def _note(self, batch: RawBatch, now_s: float, arrived_s: float, rebased: bool) -> tuple[int, bool]:
-        """An accepted batch: the clock, the encoders' last sample, the batch numbers."""
+    def _note(self, batch: RawBatch, now_s: float, arrived_s: float, rebased: bool,
+              bucket: tuple[float, float]) -> tuple[int, bool]:
+        """An accepted batch: the clock, the stream's token bucket after it (``bucket``), the
+        encoders' last sample, the batch numbers."""
         s = batch.stream
         t0, t1 = float(s.t_s[0]), float(s.t_s[-1])
         w = self.settings.clock_window_s
         newest = self._newest.get(s.name)
         self._newest[s.name] = t1 if newest is None or newest > t1 + w else max(newest, t1)
-        self._budget[s.name] = self._bucket_after(s.name, s.t_s)
+        self._budget[s.name] = bucket
         self._voted_at[s.name] = now_s
         self._arrived_at[s.name] = arrived_s
         if s.name == ENCODER_STREAM and (self._enc_last is None or t1 >= self._enc_last[0]):

@@ -34,6 +34,7 @@ import json
 import math
 import re
 from dataclasses import dataclass
+from itertools import chain
 from typing import Any
 
 import numpy as np
@@ -442,7 +443,39 @@ def _sensors(d: dict) -> tuple[tuple[str, str], ...]:
     return tuple(v.items())
 
 
+def _raw_plain(d: dict, robot: str) -> RawBatch | None:
+    """A raw batch as a driver sends it (names, a batch number in range, finite times, rows
+    of whole counts within 64 bits), checked with C-level passes over its lists; ``None``
+    when any check fails or the batch holds anything else (decimals, a version-1 payload):
+    :func:`_raw` then checks it field by field and says what is wrong. The checks are those
+    of :func:`_raw`, and :class:`~sensors.samples.Stream`'s still run on the arrays."""
+    sensor, kind, channels, seq = d.get("sensor"), d.get("kind"), d.get("channels"), d.get("seq")
+    t, rows = d.get("t_s"), d.get("values")
+    if not (type(sensor) is str and type(kind) is str and type(channels) is list and type(seq) is int
+            and type(t) is list and type(rows) is list and d["v"] != 1 and channels and t
+            and len(t) == len(rows) and 0 <= seq <= SEQ_MAX and kind in RAW_KINDS
+            and NAME_RE.match(sensor)):
+        return None
+    n = len(channels)
+    try:
+        if not (set(map(type, channels)) == {str} and set(map(type, rows)) == {list}
+                and set(map(len, rows)) == {n} and set(map(type, t)) <= _NUMBER_TYPES
+                and set(map(type, chain.from_iterable(rows))) == {int} and all(map(math.isfinite, t))):
+            return None
+        stream = Stream(sensor, kind, np.array(t, dtype=np.float64), np.array(rows, dtype=np.int64),
+                        tuple(channels))
+    except (OverflowError, ValueError):  # (an integer beyond 64 bits, times not increasing…)
+        return None
+    return RawBatch(robot, stream, seq)
+
+
+_NUMBER_TYPES = frozenset((int, float))
+
+
 def _raw(d: dict, robot: str) -> RawBatch:
+    plain = _raw_plain(d, robot)
+    if plain is not None:
+        return plain
     sensor = check_name_or_fail(_field(d, "sensor", str), "sensor")
     kind = _field(d, "kind", str)
     if kind not in RAW_KINDS:
@@ -465,7 +498,10 @@ def _raw(d: dict, robot: str) -> RawBatch:
                and all(isinstance(x, number) and not isinstance(x, bool) for x in r) for r in rows):
         raise PayloadError("malformed", f"field {name!r}: expected rows of {len(channels)} "
                            + ("integers" if whole else "numbers"))
-    t_s = np.asarray(t, dtype=np.float64)
+    try:
+        t_s = np.asarray(t, dtype=np.float64)
+    except OverflowError:  # (an integer beyond any float)
+        raise PayloadError("malformed", "field 't_s' is not finite") from None
     if not np.all(np.isfinite(t_s)):
         raise PayloadError("malformed", "field 't_s' is not finite")
     try:

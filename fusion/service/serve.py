@@ -135,8 +135,9 @@ class Lateness:
     ``degrade_after_s`` older than the sensors' clock are folded, merged into one instant
     per ``fold_period_s`` of sample time, or into ``backlog_updates`` instants when they
     span longer (each sensor's latest sample in a window, at its last instant's time); the
-    newer ones are fused one by one; the joint states go out as usual (at most
-    ``publish_hz``), so the folded instants have none. The startup's kept samples
+    newer ones are merged one window per ``fold_period_s`` too (the update rate lowered:
+    a node short of CPU spends less of it on the tracker); the joint states go out as usual
+    (at most ``publish_hz``), so the folded instants have none. The startup's kept samples
     are fused the same way. Every sample still goes through the admission and is counted;
     the folded instants' samples are what the tracker does not see one by one.
     """
@@ -669,35 +670,39 @@ class FusionNode:
 
     # -- tracking, publishing, saving ------------------------------------------------------------
     def _fold(self, instants):
-        """``instants`` with those older than the sensors' clock by more than the lateness
-        policy's ``degrade_after_s`` merged, one per ``fold_period_s`` of sample time or into
-        ``backlog_updates`` when they span longer (each sensor's latest sample in a window,
-        at its last instant's time); the rest as they are."""
+        """``instants`` merged, each sensor's latest sample in a window at its last instant's
+        time: those older than the sensors' clock by more than the lateness policy's
+        ``degrade_after_s`` one window per ``fold_period_s`` of sample time, or
+        ``backlog_updates`` windows when they span longer; the newer ones one window per
+        ``fold_period_s`` (the update rate lowered while the node is behind)."""
+        if not instants:
+            return instants
         lt = self.lateness
         clock = self._sensors_now(time.monotonic())
-        if clock is None or not instants or instants[0][0] >= clock - lt.degrade_after_s:
-            return instants
-        stale_before = clock - lt.degrade_after_s
+        stale_before = -np.inf if clock is None else clock - lt.degrade_after_s
+        n_stale = next((i for i, (t, _) in enumerate(instants) if t >= stale_before), len(instants))
         # the longer the backlog, the longer a window: at most backlog_updates of them
-        period = max(lt.fold_period_s, (stale_before - instants[0][0]) / lt.backlog_updates)
+        period = lt.fold_period_s if not n_stale else max(
+            lt.fold_period_s, (stale_before - instants[0][0]) / lt.backlog_updates)
+        return self._merged(instants[:n_stale], period) + self._merged(instants[n_stale:], lt.fold_period_s)
+
+    def _merged(self, instants, period_s: float) -> list[tuple[float, dict[str, np.ndarray]]]:
+        """``instants`` merged into windows of ``period_s`` from the first (see :meth:`_fold`);
+        the instants merged into another are counted in ``folded_instants``."""
         out: list[tuple[float, dict[str, np.ndarray]]] = []
         window_end, merged, t_last = -np.inf, None, None
-        folded = 0
-        n_stale = next((i for i, (t, _) in enumerate(instants) if t >= stale_before), len(instants))
-        for t, samples in instants[:n_stale]:
+        for t, samples in instants:
             if merged is not None and t > window_end:
                 out.append((t_last, merged))
                 merged = None
             if merged is None:
-                merged, window_end = {}, t + period - 1e-9
-            else:
-                folded += 1
+                merged, window_end = {}, t + period_s - 1e-9
             merged.update(samples)
             t_last = t
         if merged is not None:
             out.append((t_last, merged))
-        self._counts["folded_instants"] += folded
-        return out + list(instants[n_stale:])
+        self._counts["folded_instants"] += len(instants) - len(out)
+        return out
 
     def _fuse(self, instants, fold: bool = False) -> None:
         """Feed released instants to the tracker; publish at most every publish period.

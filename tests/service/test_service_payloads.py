@@ -248,3 +248,51 @@ def test_the_joints_payload_carries_the_combinations_gravity_reads_and_refuses_b
         d["combinations"][0].update(bad)
         with pytest.raises(pl.PayloadError, match=why):
             pl.decode(key, json.dumps(d, allow_nan=True).encode())
+
+
+_VARIANTS = {
+    "a driver's batch": {},
+    "a count of true": {"values": [[True, 0, 1], [2, 3, 4]]},
+    "a decimal": {"values": [[0.5, 0, 1], [2, 3, 4]]},
+    "a count of 2^63": {"values": [[2**63, 0, 1], [2, 3, 4]]},
+    "a count of -2^63": {"values": [[-(2**63), 0, 1], [2, 3, 4]]},
+    "a short row": {"values": [[0, 1], [2, 3, 4]]},
+    "a row that is a string": {"values": ["abc", [2, 3, 4]]},
+    "times not increasing": {"t_s": [1.0, 1.0]},
+    "a time of 10^400": {"t_s": [1.0, 10**400]},
+    "a time as text": {"t_s": [1.0, "2"]},
+    "a channel that is a number": {"channels": ["acc1_x", 2, "acc1_z"]},
+    "seq -1": {"seq": -1},
+    "seq 2^64": {"seq": 2**64},
+    "seq true": {"seq": True},
+    "a sensor name with a slash": {"sensor": "acc/1"},
+    "a kind of true": {"kind": True},
+    "no values": {"values": [], "t_s": []},
+    "version 1 counts": {"v": 1, "counts": [[0, 1, 2], [2, 3, 4]]},
+}
+
+
+@pytest.mark.parametrize("variant", list(_VARIANTS))
+def test_a_raw_batch_decodes_the_same_by_the_quick_checks_and_field_by_field(variant, monkeypatch):
+    """The node decodes a driver's plain batch with quick passes over its lists: whatever it
+    receives, the outcome (the batch, or the refusal and its reason) is the one the checks
+    field by field give."""
+    doc = {"v": 2, "type": "raw", "robot": "chair1", "sensor": "acc1", "kind": "accel",
+           "channels": ["acc1_x", "acc1_y", "acc1_z"], "seq": 3, "t_s": [1.0, 1.005],
+           "values": [[0, 1, 2], [2, 3, 4]], **_VARIANTS[variant]}
+    data = json.dumps(doc).encode()
+
+    def outcome():
+        try:
+            b = pl.decode(pl.raw_key("chair1", "acc1"), data)
+        except pl.PayloadError as e:
+            return ("refused", e.reason, str(e))
+        s = b.stream
+        return ("batch", b.seq, s.name, s.kind, s.channels, s.t_s.tolist(), s.values.dtype.str,
+                s.values.tolist())
+
+    quick = outcome()
+    monkeypatch.setattr(pl, "_raw_plain", lambda d, robot: None)
+    assert quick == outcome()
+    if variant == "a driver's batch":
+        assert quick[0] == "batch"
