@@ -52,7 +52,7 @@ from fusion.workbench.diagnose import (
     parse_add,
 )
 from fusion.workbench.discover import DiscoverSettings, Discovery, discover, held_out_worse
-from fusion.workbench.heldout import HeldOut, as_it_is, split_in_time, tracked, tracked_worse
+from fusion.workbench.heldout import HeldOut, as_it_is, judge, split_in_time, tracked, tracked_worse
 from fusion.workbench.resampling import resampled_streams
 from models.effects import TargetError, model_from_arm
 from sensors.output_files import write_text_replacing
@@ -223,7 +223,10 @@ def diagnose_command(
             write_text_replacing(nxt, json.dumps({"format": HISTORY_FORMAT, "runs": ladder}, indent=2) + "\n")
     write_refused = None
     if write is not None:
-        write_refused = refused_add or write_refusal(final, as_is)
+        written_held = (judge(without_bound(final), final.data, final.held_out,
+                              list(dict.fromkeys(a.stream for a in final.axes)), DiagnoseSettings().identify)
+                        if final.at_bound and final.held_out is not None else None)
+        write_refused = refused_add or write_refusal(final, as_is, written_held)
     consistency = None
     if write is not None and write_refused is None:
         src = resolve_config_path(config)
@@ -309,14 +312,18 @@ def _tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool) -> tuple[
     return doc, tracked_worse(before, after)
 
 
-def write_refusal(final: Diagnosis, as_is) -> str | None:
+def write_refusal(final: Diagnosis, as_is, written=None) -> str | None:
     """Why the fit ``final`` is not written (None: it may be): judged on the held-out data it
-    fits worse than the config it would replace (``as_is``: that config's held-out fit)."""
-    if final.held_out_ratio is None or as_is is None:
+    fits worse than the config it would replace (``as_is``: that config's held-out fit).
+    ``written``: where elements ended at their bound, what is written (those at their prior:
+    :func:`without_bound`) judged there, which is what must not be worse."""
+    ratio = final.held_out_ratio if written is None else written.rms_ratio
+    if ratio is None or as_is is None:
         return None
-    if final.held_out_ratio > as_is.rms_ratio:
-        return (f"on the held-out data ({final.held_out.label}) it fits worse than the config it would "
-                f"replace: {final.held_out_ratio:.3f} against {as_is.rms_ratio:.3f}x the noise")
+    if ratio > as_is.rms_ratio:
+        what = "it" if written is None else "what it would write (the elements at their bound at their prior)"
+        return (f"on the held-out data ({final.held_out.label}) {what} fits worse than the config it would "
+                f"replace: {ratio:.3f} against {as_is.rms_ratio:.3f}x the noise")
     return None
 
 
