@@ -221,7 +221,7 @@ def diagnose_command(
         if nxt.resolve() != hpath.resolve():
             nxt.parent.mkdir(parents=True, exist_ok=True)
             write_text_replacing(nxt, json.dumps({"format": HISTORY_FORMAT, "runs": ladder}, indent=2) + "\n")
-    write_refused = None
+    write_refused = written_held = None
     if write is not None:
         written_held = (judge(without_bound(final), final.data, final.held_out,
                               list(dict.fromkeys(a.stream for a in final.axes)), DiagnoseSettings().identify)
@@ -240,9 +240,10 @@ def diagnose_command(
                             for f in (disc.findings if disc is not None else ()) if f.is_group)
         bound = "".join(f"# {n}: its fit ended at the parameter's bound; written at its prior\n"
                         for n in final.at_bound)
-        judged = (f"# held out: {final.held_out.label}: {final.held_out_ratio:.3f}x the noise "
+        held_ratio = final.held_out_ratio if written_held is None else written_held.rms_ratio
+        judged = (f"# held out: {final.held_out.label}: {held_ratio:.3f}x the noise "
                   f"(the config as it was: {as_is.rms_ratio:.3f}x)\n"
-                  if final.held_out_ratio is not None and as_is is not None else "")
+                  if held_ratio is not None and as_is is not None else "")
         write_text_replacing(write, f"# armfusion diagnose: rms_ratio {final.rms_ratio:.3f} ({final.verdict})\n"
                              f"# from {recording}, config {src.name}\n" + judged + stand_ins + bound
                              + yaml.safe_dump(out, sort_keys=False, width=110))
@@ -262,6 +263,7 @@ def diagnose_command(
         d["write_refused"] = write_refused
         d["add_refused"] = refused_add
         d["as_it_was_held_out_rms_ratio"] = None if as_is is None else round(as_is.rms_ratio, 4)
+        d["written_held_out_rms_ratio"] = (None if written_held is None else round(written_held.rms_ratio, 4))
         d["tracked_held_out"] = consistency
         d["report"] = str(report) if report else None
         d["innovations"] = None if inn is None else inn.as_dict()
@@ -328,15 +330,19 @@ def write_refusal(final: Diagnosis, as_is, written=None) -> str | None:
 
 
 def without_bound(d: Diagnosis):
-    """The fit with every element that ended at its bound back at its prior (value and σ)."""
+    """The fit with every element that ended at its bound back at its prior (value and σ, its
+    covariance with every other element none: the fit told nothing of it)."""
     if not d.at_bound:
         return d.fit
     f = d.fit
-    x, sig = f.x.copy(), f.sigma.copy()
+    x, sig, cov = f.x.copy(), f.sigma.copy(), f.covariance.copy()
     for n in d.at_bound:
         i = list(f.names).index(n)
         x[i], sig[i] = f.x0[i], f.prior_sigma[i]
-    return replace(f, x=x, sigma=sig)
+        cov[i, :] = 0.0
+        cov[:, i] = 0.0
+        cov[i, i] = f.prior_sigma[i] ** 2
+    return replace(f, x=x, sigma=sig, covariance=cov)
 
 
 def raise_floors(cfg: dict, d: Diagnosis, arm=None) -> None:
