@@ -34,7 +34,14 @@ from fusion.cli.common import (
     read_recording_or_exit,
 )
 from fusion.cli.diagnose_report import write_innovation_report, write_report
-from fusion.cli.diagnose_write import Fits, extend_ladder, history_path, write_config, write_refusal
+from fusion.cli.diagnose_write import (
+    Fits,
+    extend_ladder,
+    history_path,
+    without_bound,
+    write_config,
+    write_refusal,
+)
 from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
 from fusion.identification.identify import data_from_recording, fit_streams
 from fusion.workbench.diagnose import (
@@ -48,7 +55,7 @@ from fusion.workbench.diagnose import (
     parse_add,
 )
 from fusion.workbench.discover import DiscoverSettings, Discovery, discover, held_out_worse
-from fusion.workbench.heldout import HeldOut, as_it_is, split_in_time
+from fusion.workbench.heldout import HeldOut, as_it_is, judge, split_in_time
 from fusion.workbench.resampling import resampled_streams
 from models.effects import TargetError, model_from_arm
 
@@ -112,10 +119,11 @@ def diagnose_command(
                    hpath=history or history_path(config), write=write, report=report)
     out.ladder = extend_ladder(out.hpath, fits, recording, config, write, history)
     if write is not None:
-        out.write_refused = fits.refused_add or write_refusal(fits.final, fits.as_is)
+        out.written_held = _written_held_out(fits.final)
+        out.write_refused = fits.refused_add or write_refusal(fits.final, fits.as_is, out.written_held)
         if out.write_refused is None:
             out.consistency, out.write_refused = write_config(arm, fits, recording, config, write,
-                                                               judged_rec, held, json_out)
+                                                               judged_rec, held, json_out, out.written_held)
     if report is not None:
         write_report(report, fits.before, fits.after, out.ladder, recording, config, fits.disc)
     if json_out:
@@ -124,6 +132,15 @@ def diagnose_command(
             raise typer.Exit(1)
         return
     _say(fits, out, top)
+
+
+def _written_held_out(final: Diagnosis):
+    """Where elements of the fit ended at their bound, what is written (those at their prior)
+    judged on the held-out data; None where nothing ended at a bound or nothing is held out."""
+    if not final.at_bound or final.held_out is None:
+        return None
+    return judge(without_bound(final), final.data, final.held_out,
+                 list(dict.fromkeys(a.stream for a in final.axes)), DiagnoseSettings().identify)
 
 
 @dataclass
@@ -138,6 +155,7 @@ class _Outputs:
     ladder: list = field(default_factory=list)
     write_refused: str | None = None
     consistency: dict | None = None
+    written_held: object | None = None  # what is written, judged on the held-out data (elements at a bound)
 
 
 def _check_outputs(recording: Path, config: str, add, write: Path | None, report: Path | None,
@@ -226,6 +244,8 @@ def _json_doc(fits: Fits, out: _Outputs, top: int, screen, data) -> dict:
     d["write_refused"] = out.write_refused
     d["add_refused"] = fits.refused_add
     d["as_it_was_held_out_rms_ratio"] = None if as_is is None else round(as_is.rms_ratio, 4)
+    d["written_held_out_rms_ratio"] = (None if out.written_held is None
+                                       else round(out.written_held.rms_ratio, 4))
     d["tracked_held_out"] = out.consistency
     d["report"] = str(out.report) if out.report else None
     d["innovations"] = None if out.inn is None else out.inn.as_dict()

@@ -102,7 +102,7 @@ def extend_ladder(hpath: Path, fits: Fits, recording: Path, config: str, write: 
 
 
 def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, judged_rec, held,
-                  json_out: bool) -> tuple[dict | None, str | None]:
+                  json_out: bool, written_held=None) -> tuple[dict | None, str | None]:
     """Write the config with the final fit's estimates when the tracker over the held-out part
     does not refuse it: the tracker's figures, and the refusal's reason (None: written)."""
     final, disc, as_is = fits.final, fits.disc, fits.as_is
@@ -118,9 +118,10 @@ def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, jud
                         for f in (disc.findings if disc is not None else ()) if f.is_group)
     bound = "".join(f"# {n}: its fit ended at the parameter's bound; written at its prior\n"
                     for n in final.at_bound)
-    judged = (f"# held out: {final.held_out.label}: {final.held_out_ratio:.3f}x the noise "
+    held_ratio = final.held_out_ratio if written_held is None else written_held.rms_ratio
+    judged = (f"# held out: {final.held_out.label}: {held_ratio:.3f}x the noise "
               f"(the config as it was: {as_is.rms_ratio:.3f}x)\n"
-              if final.held_out_ratio is not None and as_is is not None else "")
+              if held_ratio is not None and as_is is not None else "")
     write_text_replacing(write, f"# armfusion diagnose: rms_ratio {final.rms_ratio:.3f} ({final.verdict})\n"
                          f"# from {recording}, config {src.name}\n" + judged + stand_ins + bound
                          + yaml.safe_dump(out, sort_keys=False, width=110))
@@ -148,27 +149,35 @@ def tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool) -> tuple[d
     return doc, tracked_worse(before, after)
 
 
-def write_refusal(final: Diagnosis, as_is) -> str | None:
+def write_refusal(final: Diagnosis, as_is, written=None) -> str | None:
     """Why the fit ``final`` is not written (None: it may be): judged on the held-out data it
-    fits worse than the config it would replace (``as_is``: that config's held-out fit)."""
-    if final.held_out_ratio is None or as_is is None:
+    fits worse than the config it would replace (``as_is``: that config's held-out fit).
+    ``written``: where elements ended at their bound, what is written (those at their prior:
+    :func:`without_bound`) judged there, which is what must not be worse."""
+    ratio = final.held_out_ratio if written is None else written.rms_ratio
+    if ratio is None or as_is is None:
         return None
-    if final.held_out_ratio > as_is.rms_ratio:
-        return (f"on the held-out data ({final.held_out.label}) it fits worse than the config it would "
-                f"replace: {final.held_out_ratio:.3f} against {as_is.rms_ratio:.3f}x the noise")
+    if ratio > as_is.rms_ratio:
+        what = "it" if written is None else "what it would write (the elements at their bound at their prior)"
+        return (f"on the held-out data ({final.held_out.label}) {what} fits worse than the config it would "
+                f"replace: {ratio:.3f} against {as_is.rms_ratio:.3f}x the noise")
     return None
 
 
 def without_bound(d: Diagnosis):
-    """The fit with every element that ended at its bound back at its prior (value and σ)."""
+    """The fit with every element that ended at its bound back at its prior (value and σ, its
+    covariance with every other element none: the fit told nothing of it)."""
     if not d.at_bound:
         return d.fit
     f = d.fit
-    x, sig = f.x.copy(), f.sigma.copy()
+    x, sig, cov = f.x.copy(), f.sigma.copy(), f.covariance.copy()
     for n in d.at_bound:
         i = list(f.names).index(n)
         x[i], sig[i] = f.x0[i], f.prior_sigma[i]
-    return replace(f, x=x, sigma=sig)
+        cov[i, :] = 0.0
+        cov[:, i] = 0.0
+        cov[i, i] = f.prior_sigma[i] ** 2
+    return replace(f, x=x, sigma=sig, covariance=cov)
 
 
 def raise_floors(cfg: dict, d: Diagnosis, arm=None) -> None:

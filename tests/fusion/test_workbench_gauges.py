@@ -161,7 +161,30 @@ def test_a_config_whose_tracker_is_too_sure_on_the_held_out_part_is_not_written(
     same = Tracked({"forearm": 0.995, "wrist": 1.0}, {"forearm": 0.3, "wrist": 0.3})
     assert tracked_worse(before, same) is None
     why = tracked_worse(before, Tracked({"forearm": 0.62, "wrist": 1.0}, {"forearm": 4.0, "wrist": 0.3}))
-    assert why is not None and "forearm 62.0 % against 99.8 %" in why and "wrist" not in why
+    assert why is not None and "forearm keeps 62.0 % of its innovations within 3σ against 99.8 %" in why
+    assert "forearm's mean NIS per dof is 4.00" in why and "wrist" not in why
+
+
+def test_a_config_whose_tracked_angles_wander_off_the_encoders_is_not_written():
+    """Without the truth, the tracked error the held-out part shows: each joint's angle against
+    its encoder wandering about its median, and the innovations' RMS. A config under which
+    either grows (beyond 1 % and, for the angles, one encoder count) is refused, naming the
+    joint or sensor; one under which they shrink passes, though it is more cautious."""
+    from fusion.workbench.heldout import Tracked, tracked_worse
+
+    before = Tracked({"forearm": 1.0}, {"forearm": 0.3}, {"forearm": 0.020},
+                     {"shoulder": 0.10, "elbow": 0.20}, 0.001)
+    better = Tracked({"forearm": 1.0}, {"forearm": 0.1}, {"forearm": 0.012},
+                     {"shoulder": 0.05, "elbow": 0.2005}, 0.001)
+    assert tracked_worse(before, better) is None
+    why = tracked_worse(before, Tracked({"forearm": 1.0}, {"forearm": 0.3}, {"forearm": 0.020},
+                                        {"shoulder": 0.10, "elbow": 0.35}, 0.001))
+    assert why is not None
+    assert "elbow's tracked angle wanders 0.350° RMS off its encoder against 0.200°" in why
+    assert "shoulder" not in why
+    why = tracked_worse(before, Tracked({"forearm": 1.0}, {"forearm": 0.3}, {"forearm": 0.025},
+                                        {"shoulder": 0.10, "elbow": 0.20}, 0.001))
+    assert why is not None and "forearm's innovations are 0.025 RMS against 0.02" in why
 
 
 def test_written_floors_are_at_least_the_held_out_excess(wmra, turned):
@@ -231,3 +254,28 @@ def test_cli_a_recording_too_short_to_hold_out_is_diagnosed_but_never_written(tm
     r = runner.invoke(app, ["diagnose", str(rec), "--config", "wmra", "--history", str(tmp_path / "h.json"),
                             "--write", str(out)])
     assert r.exit_code == 2 and "--write needs a part the fit does not see" in r.output and not out.exists()
+
+
+def test_the_held_out_tracker_check_sees_a_wrong_scale_without_the_truth(tmp_path):
+    """acc2 reads 8 % low: tracked with the config that lacks it, acc2's innovations grow and
+    the angles wander off the encoders on the held-out part, which the check names; with the
+    config that has it, nothing is worse than without."""
+    import yaml
+
+    from fusion.configfile import load_arm, resolve_config_path
+    from fusion.workbench.heldout import tracked, tracked_worse
+    from models.simulator import simulate
+
+    base = yaml.safe_load(resolve_config_path("wmra").read_text(encoding="utf-8"))
+    effect = {"effect": "accel_scale", "target": "acc2", "params": {"scale_error": [-0.08, -0.08, -0.08]}}
+    arms = {}
+    for label, eff in (("right", [*base.get("effects", []), effect]), ("lacking", base.get("effects", []))):
+        p = tmp_path / f"{label}.yaml"
+        p.write_text(yaml.safe_dump({**base, "effects": eff}), encoding="utf-8")
+        arms[label] = load_arm(str(p))
+    rec, _ = simulate(arms["lacking"], "renk-maneuver", 20.0, seed=7, effects=[effect])
+    t_from = 14.0
+    right, lacking = tracked(arms["right"], rec, t_from), tracked(arms["lacking"], rec, t_from)
+    assert tracked_worse(lacking, right) is None
+    why = tracked_worse(right, lacking)
+    assert why is not None and "acc2's innovations" in why
