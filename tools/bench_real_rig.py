@@ -133,20 +133,37 @@ def encoder_zero(d) -> tuple[float, float]:
     return 0.0, float("nan")
 
 
+def _run_errors(arm, rec: Recording, zero_rad: float, settings: TrackerSettings | None,
+                given_conventions: bool):
+    """One tracker run from scratch (moving start): the run, its start, its error against the
+    encoder plus the calibration's zero (deg) and its reported σ (deg), per fused instant."""
+    tr, start = start_from_recording(arm, rec, settings, moving_start=True, propose_unlock=False,
+                                     sigma_given_conventions=given_conventions)
+    run = tr.run(rec, truth=False)
+    tq = rec.get("true_q")
+    ref = np.interp(run.t_s, tq.t_s, tq.values[:, 0]) + zero_rad
+    err = np.degrees(wrap_angle(run.q_rad[:, 0] - ref))
+    return run, start, err, np.degrees(run.sigma_rad[:, 0])
+
+
 def track_scored(cal_config: Path, rec: Recording, zero_rad: float,
-                 settings: TrackerSettings | None = None) -> dict:
+                 settings: TrackerSettings | None = None, relative_sigma: bool = False) -> dict:
     """Track ``rec`` from scratch (moving start, encoder zero unknown to the tracker) with the
-    calibrated config; errors against the encoder plus the calibration's zero."""
+    calibrated config; errors against the encoder plus the calibration's zero.
+
+    The reference is aligned by the calibration's own zero, so the error is the angle's
+    against that calibration; the σ the tracker reports (what a controller needs) also holds
+    the absolute zero's doubt (the calibration's joint-zero convention, ``zero_sigma_deg``),
+    which this error shares and so cannot show. ``relative_sigma``: the same stretch tracked
+    again with the σ taken relative to the calibration's conventions
+    (``start_from_recording(sigma_given_conventions=True)``), the σ this error is to be
+    judged by, reported beside the absolute one (``sigma_rel_*``; ``rmse_rel_run_deg`` that
+    run's own error, the same estimate up to the gating the σ touches)."""
     arm = load_arm(cal_config)
     t_wall = time.perf_counter()
-    tr, start = start_from_recording(arm, rec, settings, moving_start=True, propose_unlock=False)
-    run = tr.run(rec, truth=False)
+    run, start, err, sig = _run_errors(arm, rec, zero_rad, settings, False)
     elapsed = time.perf_counter() - t_wall
-    tq = rec.get("true_q")
     t = run.t_s
-    ref = np.interp(t, tq.t_s, tq.values[:, 0]) + zero_rad
-    err = np.degrees(wrap_angle(run.q_rad[:, 0] - ref))
-    sig = np.degrees(run.sigma_rad[:, 0])
     rel = t - t[0]
     flags = run.flags[:, 0]
     share = {JOINT_FLAGS[f]: float(np.mean(flags == f)) for f in np.unique(flags)}
@@ -169,7 +186,18 @@ def track_scored(cal_config: Path, rec: Recording, zero_rad: float,
         "duration_s": float(rel[-1]),
         "seconds": elapsed,
         "pitch_end_deg": float(np.degrees(run.rpy_rad[-1, 1])),
+        **(_relative_sigma(arm, rec, zero_rad, settings) if relative_sigma and late.any() else {}),
     }
+
+
+def _relative_sigma(arm, rec: Recording, zero_rad: float, settings: TrackerSettings | None) -> dict:
+    """The σ relative to the calibration's conventions, scored after 30 s (see
+    :func:`track_scored`)."""
+    run, _start, err, sig = _run_errors(arm, rec, zero_rad, settings, True)
+    late = run.t_s - run.t_s[0] >= ZERO_WITHIN_S
+    return {"sigma_rel_median_deg": float(np.median(sig[late])),
+            "within_3sigma_rel": float(np.mean(np.abs(err[late]) <= 3 * sig[late])),
+            "rmse_rel_run_deg": float(np.sqrt(np.mean(err[late] ** 2)))}
 
 
 def track_encoder_withheld(cal_config: Path, cal: Recording, rec: Recording, zero_rad: float) -> dict:
@@ -240,7 +268,7 @@ def run_trial(path: Path, calibrate_s: float, rungs: int, work: Path) -> TrialRe
                    encoding="utf-8")
     shaft = arm.link_accelerometers[0].name
     r.time_offset_s = device_time_offsets(config_model(load_arm(out))).get(shaft, (None, None))[0]
-    r.track = _stage(r, "track", lambda: track_scored(out, scored, zero))
+    r.track = _stage(r, "track", lambda: track_scored(out, scored, zero, relative_sigma=r.horizontal))
     r.withheld = _stage(r, "withheld", lambda: track_encoder_withheld(out, cal, scored, zero))
 
     def do_peers():
@@ -294,13 +322,14 @@ def _blind_share(tk: dict) -> float:
 def _row(r: TrialResult) -> str:
     if r.rungs is None:
         first = next(st for st in STAGES if r.failed(st))
-        return f"| {r.name} | {_failure(r, first)} |" + " |" * 10
+        return f"| {r.name} | {_failure(r, first)} |" + " |" * 11
     tk, wh = r.track, r.withheld
     if tk is None:
-        track_cells = f"{_failure(r, 'track')} | | | | | "
+        track_cells = f"{_failure(r, 'track')} | | | | | | "
     else:
         track_cells = (f"{_fmt(tk['err_at_30s_deg'])}° | {_fmt(tk['rmse_after_30s_deg'])}° | "
                        f"{100 * tk['within_3sigma']:.1f} % | {_fmt(tk['sigma_median_deg'])}° | "
+                       f"{_rel_cell(tk)} | "
                        f"{_flag_words(tk['flags'])} | ")
     withheld = (_failure(r, "withheld") if wh is None else
                 f"{_fmt(wh['rmse_after_30s_deg'])}° ({100 * wh['within_3sigma']:.1f} %)")
@@ -330,18 +359,34 @@ def _vertical_words(r: TrialResult) -> str:
             f"(σ {_fmt(tk['sigma_median_deg'], '.0f')}°: the joint may be anywhere in its limits)")
 
 
+def _rel_cell(tk: dict) -> str:
+    """The σ relative to the calibration (median, within 3σ of it), or – where not measured."""
+    if "sigma_rel_median_deg" not in tk:
+        return "–"
+    return f"{_fmt(tk['sigma_rel_median_deg'])}° ({100 * tk['within_3sigma_rel']:.1f} %)"
+
+
 def _tight_ok(r: TrialResult) -> bool:
+    """Median σ ≤ 3 × RMSE and within 3σ ≥ 95 %, judged with the σ the error can show: the σ
+    relative to the calibration (the error is measured against the calibration's own zero)."""
     tk = r.track
-    return (tk is not None and tk["sigma_median_deg"] <= 3 * tk["rmse_after_30s_deg"]
-            and tk["within_3sigma"] >= 0.95)
+    return (tk is not None and "sigma_rel_median_deg" in tk
+            and tk["sigma_rel_median_deg"] <= 3 * tk["rmse_after_30s_deg"]
+            and tk["within_3sigma_rel"] >= 0.95)
 
 
 def _tight_words(r: TrialResult) -> str:
     tk = r.track
     if tk is None:
         return "–"
-    return (f"σ {_fmt(tk['sigma_median_deg'])}° = {tk['sigma_median_deg'] / tk['rmse_after_30s_deg']:.0f} × "
-            f"RMSE, within 3σ {100 * tk['within_3sigma']:.1f} %")
+    rmse = tk["rmse_after_30s_deg"]
+    words = (f"absolute σ {_fmt(tk['sigma_median_deg'])}° = {tk['sigma_median_deg'] / rmse:.0f} × RMSE "
+             f"(within 3σ {100 * tk['within_3sigma']:.1f} %)")
+    if "sigma_rel_median_deg" in tk:
+        rel = tk["sigma_rel_median_deg"]
+        words = (f"relative σ {_fmt(rel)}° = {rel / rmse:.1f} × RMSE "
+                 f"(within 3σ {100 * tk['within_3sigma_rel']:.1f} %), " + words)
+    return words
 
 
 def _withheld_ok(r: TrialResult) -> bool:
@@ -372,7 +417,10 @@ def targets(results: list[TrialResult]) -> list[str]:
         "- Horizontal shaft, tracked RMSE after 30 s ≤ 0.2°: "
         + _listing(horiz, lambda r: r.track is not None and r.track["rmse_after_30s_deg"] <= 0.2,
                    _track_figure("rmse_after_30s_deg")),
-        "- Horizontal shaft, σ honest and tight: median σ ≤ 3 × RMSE and within 3σ ≥ 95 %: "
+        "- Horizontal shaft, σ honest and tight: median σ ≤ 3 × RMSE and within 3σ ≥ 95 %, judged with "
+        "the σ relative to the calibration (the error is measured against the calibration's own zero, "
+        "so the absolute zero's doubt, which the tracker's σ carries for a controller, is shared by "
+        "reference and estimate and cannot show in it; the absolute σ beside it): "
         + _listing(horiz, _tight_ok, _tight_words),
         "- Horizontal shaft, encoder withheld: RMSE ≤ 0.5° and better than every peer in the same run "
         "(the joint's relative angle from the integral of the shaft's gyro less the frame's about the "
@@ -429,7 +477,11 @@ def benchmarks_section(results: list[TrialResult], calibrate_s: float) -> str:
         f"set-up chosen by which rig config fits its first minute best, calibrated (the workbench's error "
         f"ladder) on its first {calibrate_s:g} s, tracked over the rest with the encoder as the joint's "
         "relative encoder whose zero the tracker does not know (it starts afresh on the moving shaft). "
-        "Errors against the encoder and the zero the calibration found (its σ below). "
+        "Errors against the encoder and the zero the calibration found (its σ below). The σ the tracker "
+        "reports is absolute: it holds the doubt of that zero (the calibration's joint-zero convention), "
+        "which reference and estimate share, so the error cannot show it; the σ relative to the "
+        "calibration is the same stretch tracked with that doubt left out (the calibration's spreads "
+        "given its conventions), the σ this error is judged by. "
         "docs/real-data.md has each trial's ladder. A stage that fails is reported in its row; the "
         "bench goes on to the next trial.",
         "",
@@ -437,9 +489,10 @@ def benchmarks_section(results: list[TrialResult], calibrate_s: float) -> str:
         "",
         "| trial | set-up (fit ratio) | ladder: start → end (× noise) | rungs | "
         "zero found: error at 25-30 s | "
-        "RMSE after 30 s | within 3σ | σ (median) | joint flags | calibration's zero | "
+        "RMSE after 30 s | within 3σ | σ (median) | σ relative to the calibration (within 3σ) | "
+        "joint flags | calibration's zero | "
         "encoder withheld: RMSE after 30 s (within 3σ) | best peer, same stretch (RMSE) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[_row(r) for r in results],
         "",
         "Targets and where they stand:",
@@ -548,7 +601,13 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
                  f"{_fmt(tk['max_after_30s_deg'])}°), within 3σ {100 * tk['within_3sigma']:.1f} % "
                  "of the time "
                  "at a "
-                 f"median σ of {_fmt(tk['sigma_median_deg'])}°; first within {ZERO_TARGET_DEG}° at "
+                 f"median σ of {_fmt(tk['sigma_median_deg'])}° (absolute: it holds the calibration's zero "
+                 "doubt, which this error shares)"
+                 + ("" if "sigma_rel_median_deg" not in tk else
+                    f"; relative to the calibration (the same stretch tracked again with that doubt left "
+                    f"out; its error {_fmt(tk['rmse_rel_run_deg'])}° RMS) a median σ of "
+                    f"{_fmt(tk['sigma_rel_median_deg'])}°, within 3σ {100 * tk['within_3sigma_rel']:.1f} %")
+                 + f"; first within {ZERO_TARGET_DEG}° at "
                  f"{_fmt(tk['first_within_target_s'], '.1f', 'never')} s. Joint flags: "
                  + ", ".join(f"{k} {100 * v:.0f} %" for k, v in tk["flags"].items()) + "."),
                 "",

@@ -47,6 +47,14 @@ class StartupCorrection:
     of its IMU's corrected reading; the convention's own σ is the absolute zero's, in
     :attr:`spread`."""
 
+    def given_conventions(self) -> StartupCorrection:
+        """This correction with its doubt taken relative to the calibration's joint-zero
+        conventions (:attr:`spread_given_conventions` as :attr:`spread`): what a tracker
+        built on it reports is the σ of its angles against the calibration's own zeros,
+        without the absolute zero's doubt that a reference aligned by the same calibration
+        shares."""
+        return replace(self, spread=dict(self.spread_given_conventions))
+
     def readings(self, r):
         from fusion.startup.solve import StillReadings
 

@@ -344,7 +344,8 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
                          prior=None, resolve_by_motion_s: float | None = None,
                          moving_start: bool = False,
                          prior_sigma_rad: np.ndarray | None = None,
-                         start_at_s: float | None = None) -> tuple[Tracker, Start]:
+                         start_at_s: float | None = None,
+                         sigma_given_conventions: bool = False) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
     calibration there (:func:`fusion.startup.solve.solve_still`), the gyro bias, heading and field
     reference from the same window; it starts tracking at the window's end: the still
@@ -367,7 +368,11 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     motion; else the first still stretch anywhere, and :class:`NoStillWindowError` with none.
     ``prior_sigma_rad``: with ``prior_q_rad``, how well it is known per joint (a running
     tracker's pose handed on, the arm unmoved): a joint the startup cannot read starts at
-    ``prior_q_rad`` with that sigma instead of ``TrackerSettings.unknown_joint_sigma_deg``."""
+    ``prior_q_rad`` with that sigma instead of ``TrackerSettings.unknown_joint_sigma_deg``.
+    ``sigma_given_conventions``: a calibrated config's doubt taken relative to its joint-zero
+    conventions (:meth:`fusion.identification.correction.StartupCorrection.given_conventions`):
+    the σ against the calibration's own zeros, for scoring against a reference those zeros
+    aligned (the default, the absolute σ, is what a user's controller needs)."""
     from fusion.startup.solve import StartupPrior, readings_from_recording, solve_still
 
     if prior is None and prior_q_rad is not None:
@@ -400,6 +405,8 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         temperature_c = (float(mpu9150_temperature_c(np.mean(still_temp.values)))
                          if still_temp is not None and len(still_temp) else 25.0)
         corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
+        if sigma_given_conventions:
+            corr = corr.given_conventions()
         readings = corr.readings(readings)
         applied, not_applied = effects_applied(corr.model)
         notes.append("the config's effects applied: " + (", ".join(applied) or "none"))

@@ -218,3 +218,21 @@ def test_an_encoder_on_the_shaft_itself_is_never_given_a_scale_error(roll, tmp_p
     with pytest.raises(ConfigError, match=r"effects\[0\]\.target: encoder_scale applies to a joint whose "
                                           r"encoder turns .* \(got 'shaft'\)"):
         load_arm(path)
+
+
+def test_the_sigma_relative_to_the_calibration_leaves_out_only_the_zeros_shared_doubt(roll_calibrated):
+    """The tracker's σ is absolute: it holds the doubt of the calibration's zero (its
+    joint-zero convention), which an error measured against that same zero cannot show.
+    Tracked with the calibration's doubt taken given its conventions, the angle is the same,
+    its σ is smaller, and it still covers the error against the calibration's zero."""
+    calibrated, zero_rad, _, scored = roll_calibrated
+    runs = {}
+    for given in (False, True):
+        tr, _ = start_from_recording(calibrated, scored, moving_start=True, propose_unlock=False,
+                                     sigma_given_conventions=given)
+        runs[given] = tr.run(scored, truth=False)
+    absolute, relative = runs[False], runs[True]
+    assert np.degrees(np.max(np.abs(absolute.q_rad - relative.q_rad))) < 0.05
+    sig_abs, sig_rel = np.degrees(absolute.sigma_rad[:, 0]), np.degrees(relative.sigma_rad[:, 0])
+    assert np.all(sig_rel <= sig_abs + 1e-9) and np.median(sig_rel) < 0.8 * np.median(sig_abs)
+    assert np.all(_error_deg(relative, scored, zero_rad) <= 3 * sig_rel)
