@@ -38,13 +38,27 @@ FIELDS = ("q_rad", "sigma_rad", "rpy_rad", "rpy_sigma_rad", "gyro_bias_rad_s", "
 def child(root: str, out: str, duration_s: float, seed: int) -> None:
     """In a process of its own: the code under ``root`` over the recording, run twice (the
     first loads the compiled kernels), the second timed; its per-instant outputs to ``out``."""
-    sys.path.insert(0, root)
-    import fusion
+    import importlib
+    import tempfile
 
-    if not str(Path(fusion.__file__).resolve()).startswith(str(Path(root).resolve())):
-        raise SystemExit(f"the code under {root} was not the one imported ({fusion.__file__})")
-    from fusion.tracking.tracker import start_from_recording
-    from models.simulator import simulate
+    sys.path.insert(0, root)  # (its tools/; the staged layers, if any, go before it)
+    if (Path(root) / "armfusion" / "__init__.py").exists():
+        # the layers install below armfusion: lay the revision's folders out as installed
+        staged = Path(tempfile.mkdtemp(prefix="armfusion-rev-")) / "armfusion"
+        staged.mkdir()
+        (staged / "__init__.py").symlink_to(Path(root) / "armfusion" / "__init__.py")
+        for layer in ("fusion", "models", "sensors"):
+            (staged / layer).symlink_to(Path(root) / layer, target_is_directory=True)
+        sys.path.insert(0, str(staged.parent))
+        prefix = "armfusion."
+    else:  # a revision whose layers were top-level packages
+        prefix = ""
+    layer = importlib.import_module(prefix + "fusion")
+    if not str(Path(layer.__file__).resolve()).startswith(str(Path(root).resolve())):
+        raise SystemExit(f"the code under {root} was not the one imported ({layer.__file__})")
+    start_from_recording = importlib.import_module(prefix + "fusion.tracking.tracker").start_from_recording
+    simulate = importlib.import_module(prefix + "models.simulator").simulate
+
     from tools.bench_track import calibrated_wmra
 
     arm = calibrated_wmra()
