@@ -261,7 +261,6 @@ OVERSIZED: dict[str, str] = {
     "fusion.tracking.alarm:name_shift": _TRACKING,
     "fusion.tracking.filter": _TRACKING,
     "fusion.tracking.filter:Tracker": _TRACKING,
-    "fusion.tracking.filter:Tracker.__init__": _TRACKING,
     "fusion.tracking.initial:initial_state": _TRACKING,
     "fusion.tracking.observability:Observability": _TRACKING,
     "fusion.tracking.observability_kernels:offsets_observability": _TRACKING,
