@@ -32,43 +32,29 @@ import numpy as np
 
 from fusion.startup.combinations import Combination
 from fusion.startup.solve import StartupResult
-from fusion.tracking import calibrated
 from fusion.tracking.alarm import ModelChangeAlarm
 from fusion.tracking.combos import JointTiltCombinations
 from fusion.tracking.compass import Compass
-from fusion.tracking.differentiator import CausalDifferentiator
 from fusion.tracking.estimate import Estimate
 from fusion.tracking.frames import Frames
 from fusion.tracking.fuse import InstantUpdate, UpdateParts
-from fusion.tracking.health import SensorHealth
 from fusion.tracking.initial import (
-    Ambiguity,
     ImuStill,
-    initial_state,
-    limits_cover_var,
-    read_by_startup,
     restored_startup,
 )
 from fusion.tracking.innovations import InnovationLog
 from fusion.tracking.live import admit_instant
 from fusion.tracking.measurement import AccelReadings
-from fusion.tracking.process import (
-    StillDetector,
-)
 from fusion.tracking.report import Reports
 from fusion.tracking.settings import (
     ENC,
     F_AMBIGUOUS,
-    F_CONVERGING,
-    FLAG_CODE,
     GYRO,
-    IMU_ACC,
     MAG,
     NotInitialisedError,
     TrackerSettings,
 )
 from fusion.tracking.setup import TrackerSetup
-from fusion.tracking.slips import SlipDetector
 from fusion.tracking.snapshot import SNAPSHOT_FORMAT, TrackerState
 from fusion.tracking.ukf import BatchedUKF
 from fusion.tracking.update import InstantReadings, MagReading
@@ -112,62 +98,30 @@ class Tracker(TrackerSetup):
         :func:`fusion.tracking.start.imu_still_from_recording`) gives the gyro bias, heading and
         field reference.
         """
-        st, L, n = self.settings, self.layout, self.arm.n_joints
-        if len(startup.joints) != n:
-            raise ValueError(f"startup result has {len(startup.joints)} joints; arm {self.arm.name!r} "
-                             f"has {n}")
-        imu = imu or ImuStill(np.zeros(3), 0.5 * DEG, None, None, None)
-        prior = self.arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
-        self._x0, self._P0, self._q_startup = initial_state(
-            startup, imu, L, st, prior, calibrated.imu_bias_prior_var(
-                self.arm, self.correction, self.R_0I if self._has_imu else None, startup.roll_rad,
-                startup.pitch_rad), self.gyro_scale_sigma**2, prior_sigma_rad)
-        fixed = self.arm.fixed_base
-        if fixed is not None and fixed.roll_rad is not None:  # a bolted base's tilt, as levelled
-            for i, v in ((L.roll, fixed.roll_rad), (L.pitch, fixed.pitch_rad)):
-                self._x0[i] = v
-                self._P0[i, :] = self._P0[:, i] = 0.0
-                self._P0[i, i] = fixed.tilt_sigma_rad**2
-        self.ambiguity_ = Ambiguity(startup)
+        n = self.arm.n_joints
+        p = self.start_parts(startup, imu or ImuStill(np.zeros(3), 0.5 * DEG, None, None, None), t_s,
+                             prior_q_rad, prior_sigma_rad)
+        self._x0, self._P0, self._q_startup, self.ambiguity_ = p.x0, p.P0, p.q_startup, p.ambiguity
         self._ukf = None  # created when the first encoder sample fixes the offsets
         self._q_enc = np.zeros(n)
         self._enc0 = None if encoder_counts is None else np.asarray(encoder_counts, float)
         if self._enc0 is not None:
             self.start_filter(self._enc0 / self.counts_per_rad)
         self._t = float(t_s)
-        self.compass = Compass(self.arm, self.model, imu.field, st, t_s, self.R_0I, self._mag_delay_s)
-        self.enc_rates = CausalDifferentiator(n, st.encoder_window, st.encoder_order)
-        self.gyro_rates = CausalDifferentiator(3, st.gyro_window, st.gyro_order)
+        self.compass, self.enc_rates, self.gyro_rates = p.compass, p.enc_rates, p.gyro_rates
+        self.health, self.slips, self._alarm, self.still = p.health, p.slips, p.alarm, p.still
         self._omega = None  # last gyro, base axes, rad/s
-        self.health = SensorHealth(self.sensor_names, len(self.accel_streams), st)
-        self.slips = SlipDetector(st, L, self.sensor_names, len(self.link_names), len(self.accel_streams),
-                                  self._sees, t_s)
-        self._alarm = ModelChangeAlarm(self.link_names, MAG if self._has_imu else None, t_s,
-                                      self._unmodelled_g[:len(self.link_names)], self._sees)
         self.observability.reset()
-        if prior_q_rad is None:  # no saved pose: an unread joint may be anywhere in its limits
-            # and one the startup read only poorly (ill_conditioned) counts as read once this
-            # filter's own test says gravity sees it: on a moving start a vertical shaft's
-            # centripetal acceleration, taken for gravity, gave it a number 56° off at a
-            # sigma of 10° (a simulated rig at 300 °/s), which the gimbal lock then held
-            poorly = np.array([j.flag == "ill_conditioned" for j in startup.joints], dtype=bool)
-            unread = (~read_by_startup(startup) | poorly) & ~self.ambiguity_.joints
-            self.observability.set_unread(np.where(unread, limits_cover_var(
-                self._q_startup, self.arm.min_rad, self.arm.max_rad), 0.0))
-        imu_model = self.readings.models.get(IMU_ACC)
-        imu_noise_g = (0.0 if imu_model is None else
-                       float(np.max(np.asarray(imu_model.noise_counts_rms) / np.abs(imu_model.gain))))
-        self.still = StillDetector(st, L, t_s, imu_noise_g)
-        # until the first update says more, each joint as the startup left it (a joint it
-        # could not read is not "ok" for the first instants)
-        self._flags = np.array([FLAG_CODE.get(j.flag, F_CONVERGING) for j in startup.joints], dtype=np.int8)
-        self._combos = JointTiltCombinations(self.arm, L, st, self.observability)
-        self._reports = Reports(self.arm, st, L, self.accel_streams, self._unmodelled_g,
+        if p.unread_var is not None:
+            self.observability.set_unread(p.unread_var)
+        self._flags = p.flags
+        self._combos = JointTiltCombinations(self.arm, self.layout, self.settings, self.observability)
+        self._reports = Reports(self.arm, self.settings, self.layout, self.accel_streams, self._unmodelled_g,
                                 self.sensor_index.get(MAG), self.gyro_scale_sigma, self.health, self.compass,
                                 self.observability, self.ambiguity_, self._combos)
         self._update = InstantUpdate(UpdateParts(
-            st, L, n, self.measurements, self.process, self.observability, self.still, self.compass,
-            self.health, self.slips, self._alarm, self.sensor_index.get(MAG),
+            self.settings, self.layout, n, self.measurements, self.process, self.observability, self.still,
+            self.intensity, self.compass, self.health, self.slips, self._alarm, self.sensor_index.get(MAG),
             self.R_0I if self._has_imu else None, self._P0), len(self.link_names), self._reacquire)
         self._flags_t = -np.inf
         self._frame_cache = None
@@ -349,60 +303,28 @@ class Tracker(TrackerSetup):
     def _step(self, t: float, gyro: np.ndarray | None, acc: AccelReadings | None, mag: MagReading | None,
               frame: Frames | None, q_enc: np.ndarray) -> None:
         """Predict to ``t`` (the gyro's rate over the interval), the base's stillness and
-        motion averages, the compass's averaged reading, then the update (:meth:`_fuse`),
-        the attitude folded back into Euler angles, the flags when due."""
-        ukf = self._ukf
+        motion averages, the compass's averaged reading, then the update
+        (:class:`fusion.tracking.fuse.InstantUpdate`), the attitude folded back into Euler
+        angles, the flags when due."""
+        ukf, up = self._ukf, self._update
         self._q_enc = q_enc
         dt = t - self._t
-        anchor = None
-        st_any = self.settings.base_turns_about_any
-        if dt > 0:
-            w0 = self._omega if self._omega is not None else gyro
-            k = self._gyro_newer_weight  # the interval's rate from its two samples (gyro_newer_weight)
-            w = None if w0 is None else (w0 if gyro is None else (1.0 - k) * w0 + k * gyro)
-            rate_sq = 0.0
-            if w is not None and st_any:  # the gyro's scale error turns the tilt by σ_s |ω|
-                om = self.process.rate(w, ukf.mean)
-                rate_sq = float(om @ om)
-            Q = self.process.Q(dt, w is not None, self.still.still, rate_sq)
-            ukf.predict(self.process.fx_tangent, Q, dt=dt, w=w)
-            # the attitude is now the propagated central point's plus a tangent vector
-            Y = ukf.propagated_points
-            anchor = Y[0, self.attitude_index].copy() if Y is not None else None
-            if w is not None and self.compass.averaging:  # (the rate is needed mid-period only)
-                self.compass.turn(self.process.rate(w, ukf.mean), dt)
+        anchor = (up.predict(ukf, dt, self._omega, gyro, self._gyro_newer_weight, self.attitude_index)
+                  if dt > 0 else None)
         if gyro is not None:
             self._omega = gyro
         self._t = t
         if frame is None:
             acc = None
-        imu_f = None
-        if acc is not None and self._has_imu and acc.selection.imu_pos >= 0:
-            imu_f = acc.g[acc.selection.imu_pos]
-        self.still.update(dt, gyro, imu_f, ukf.mean.tolist())
-        if self.intensity is not None and imu_f is not None:
-            self.intensity.update(dt, imu_f)
+        up.averages(ukf, dt, gyro, acc)
         if mag is not None:
-            self.health.heard(self.sensor_index[MAG], t)
-            m_B, mag = mag.field_B_ut, None
-            if self.compass.listening and frame is not None:
-                om = (self.process.rate(self._omega, ukf.mean)
-                      if self.compass.delay_s and self._omega is not None else None)
-                mag = self.compass.average(t, m_B, om)
-            if mag is not None:
-                x, L = ukf.mean, self.layout
-                mag = self.compass.prepare(t, mag[0], mag[1], float(x[L.roll]), float(x[L.pitch]),
-                                           x[L.offset] + q_enc)
+            mag = up.compass_reading(ukf, t, mag, frame, self._omega, q_enc)
         if acc is not None or mag is not None:
-            self._fuse(t, acc, mag, frame)
+            up.fuse(ukf, t, acc, mag, frame, self._omega, q_enc, self._link_read_horizon_s)
         if dt > 0 and anchor is not None:  # back to Euler angles about the anchor (a reset)
             ukf.recentre(self.process.fold_attitude(ukf.mean, anchor))
         if t - self._flags_t >= self.settings.observability_period_s or self.health.changed:
             self._update_flags(t)
-
-    def _fuse(self, t: float, acc: AccelReadings | None, mag: tuple | None, frame: Frames | None) -> None:
-        """The update (:class:`fusion.tracking.fuse.InstantUpdate`)."""
-        self._update.fuse(self._ukf, t, acc, mag, frame, self._omega, self._q_enc, self._link_read_horizon_s)
 
     def _reacquire(self, i: int, t: float) -> None:
         self.alarm.reacquired(t, self._ukf.mean[self.layout.offset])

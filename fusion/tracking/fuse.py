@@ -1,9 +1,12 @@
-"""One instant's update, the tracker's pipeline after the prediction
-(:class:`InstantUpdate`): stack and innovate every accelerometer and the compass of the
-instant at once, gate (the base setting off), let the listeners read the rows (health, the
-slip detector, the recalibration alarm, the observability; the compass), correct. It holds
-the parts it talks to and what it keeps between instants (the links read lately); the
-filter, the time, the gyro and the encoders' angles come with each call."""
+"""One instant through the filter, the tracker's pipeline once the instant's frame is made
+(:class:`InstantUpdate`): predict (:meth:`InstantUpdate.predict`), the base's stillness and
+motion averages (:meth:`InstantUpdate.averages`), the compass's averaged reading
+(:meth:`InstantUpdate.compass_reading`), then the update (:meth:`InstantUpdate.fuse`): stack
+and innovate every accelerometer and the compass of the instant at once, gate (the base
+setting off), let the listeners read the rows (health, the slip detector, the recalibration
+alarm, the observability; the compass), correct. It holds the parts it talks to and what it
+keeps between instants (the links read lately); the filter, the time, the gyro and the
+encoders' angles come with each call."""
 
 from __future__ import annotations
 
@@ -18,11 +21,11 @@ from fusion.tracking.frames import Frames
 from fusion.tracking.health import SensorHealth
 from fusion.tracking.measurement import AccelReadings, Measurements
 from fusion.tracking.observability import Observability
-from fusion.tracking.process import ProcessModel, StillDetector
+from fusion.tracking.process import MotionIntensity, ProcessModel, StillDetector
 from fusion.tracking.settings import C_REJECTED, C_USED, StateLayout, TrackerSettings
 from fusion.tracking.slips import SlipDetector
 from fusion.tracking.ukf import BatchedUKF, Innovation
-from fusion.tracking.update import UpdateResult
+from fusion.tracking.update import MagReading, UpdateResult
 from models.rotations import up_from_tilt
 
 
@@ -37,6 +40,7 @@ class UpdateParts:
     process: ProcessModel
     observability: Observability
     still: StillDetector
+    intensity: MotionIntensity | None
     compass: Compass
     health: SensorHealth
     slips: SlipDetector
@@ -62,6 +66,60 @@ class InstantUpdate:
         """Each link accelerometer's last accepted sample, s."""
         self.obs_used_key: tuple | None = None
         self.obs_t = -np.inf
+
+    def predict(self, ukf: BatchedUKF, dt: float, omega_prev: np.ndarray | None, gyro: np.ndarray | None,
+                newer_weight: float, attitude_index: np.ndarray) -> np.ndarray | None:
+        """Predict over ``dt`` > 0 with the gyro's rate over the interval (from its last
+        reading ``omega_prev`` and this instant's ``gyro``, the newer weighted by
+        ``newer_weight``: :func:`fusion.tracking.process.gyro_newer_weight`), the compass's
+        average turned with it. Returns the attitude's anchor (the propagated central
+        point's, ``attitude_index``), or None when the step drew no points."""
+        p = self.parts
+        process = p.process
+        w0 = omega_prev if omega_prev is not None else gyro
+        k = newer_weight
+        w = None if w0 is None else (w0 if gyro is None else (1.0 - k) * w0 + k * gyro)
+        rate_sq = 0.0
+        if w is not None and p.settings.base_turns_about_any:  # the gyro's scale error: σ_s |ω| on the tilt
+            om = process.rate(w, ukf.mean)
+            rate_sq = float(om @ om)
+        Q = process.Q(dt, w is not None, p.still.still, rate_sq)
+        ukf.predict(process.fx_tangent, Q, dt=dt, w=w)
+        # the attitude is now the propagated central point's plus a tangent vector
+        Y = ukf.propagated_points
+        anchor = Y[0, attitude_index].copy() if Y is not None else None
+        if w is not None and p.compass.averaging:  # (the rate is needed mid-period only)
+            p.compass.turn(process.rate(w, ukf.mean), dt)
+        return anchor
+
+    def averages(self, ukf: BatchedUKF, dt: float, gyro: np.ndarray | None,
+                 acc: AccelReadings | None) -> None:
+        """The base's stillness and the motion's intensity, from the gyro and the IMU's
+        accelerometer."""
+        p = self.parts
+        imu_f = None
+        if acc is not None and p.R_0I is not None and acc.selection.imu_pos >= 0:
+            imu_f = acc.g[acc.selection.imu_pos]
+        p.still.update(dt, gyro, imu_f, ukf.mean.tolist())
+        if p.intensity is not None and imu_f is not None:
+            p.intensity.update(dt, imu_f)
+
+    def compass_reading(self, ukf: BatchedUKF, t: float, mag: MagReading, frame: Frames | None,
+                        omega_B: np.ndarray | None, q_enc: np.ndarray) -> tuple | None:
+        """The magnetometer's sample heard; the compass's averaged reading when it has one
+        to give (:meth:`fusion.tracking.compass.Compass.prepare`), else None."""
+        p = self.parts
+        compass = p.compass
+        p.health.heard(p.mag_index, t)
+        m_B, out = mag.field_B_ut, None
+        if compass.listening and frame is not None:
+            om = (p.process.rate(omega_B, ukf.mean)
+                  if compass.delay_s and omega_B is not None else None)
+            out = compass.average(t, m_B, om)
+        if out is not None:
+            x, L = ukf.mean, p.layout
+            out = compass.prepare(t, out[0], out[1], float(x[L.roll]), float(x[L.pitch]), x[L.offset] + q_enc)
+        return out
 
     def fuse(self, ukf: BatchedUKF, t: float, acc: AccelReadings | None, mag: tuple | None,
              frame: Frames | None, omega_B: np.ndarray | None, q_enc: np.ndarray,

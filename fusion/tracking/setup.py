@@ -8,17 +8,59 @@ constants)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
+from fusion.startup.solve import StartupResult
 from fusion.tracking import calibrated, fixed_base
+from fusion.tracking.alarm import ModelChangeAlarm
+from fusion.tracking.compass import Compass
+from fusion.tracking.differentiator import CausalDifferentiator
 from fusion.tracking.frame_kernels import FrameConstants
+from fusion.tracking.health import SensorHealth
+from fusion.tracking.initial import Ambiguity, ImuStill, initial_state, limits_cover_var, read_by_startup
 from fusion.tracking.measurement import Measurements
 from fusion.tracking.observability import Observability
-from fusion.tracking.process import MotionIntensity, ProcessModel, gyro_newer_weight
-from fusion.tracking.settings import ENC, GYRO, IMU_ACC, MAG, G, StateLayout, TrackerSettings
+from fusion.tracking.process import MotionIntensity, ProcessModel, StillDetector, gyro_newer_weight
+from fusion.tracking.settings import (
+    ENC,
+    F_CONVERGING,
+    FLAG_CODE,
+    GYRO,
+    IMU_ACC,
+    MAG,
+    G,
+    StateLayout,
+    TrackerSettings,
+)
+from fusion.tracking.slips import SlipDetector
 from fusion.tracking.ukf import SigmaPoints
 from models.arm import ArmModel
+
+
+@dataclass(frozen=True, slots=True)
+class StartParts:
+    """What a start (:meth:`TrackerSetup.start_parts`) gives a tracker: its first state and
+    the parts that begin afresh."""
+
+    x0: np.ndarray
+    P0: np.ndarray
+    q_startup: np.ndarray
+    """The startup's joint angles (a joint it could not read: the prior's), rad."""
+    ambiguity: Ambiguity
+    compass: Compass
+    enc_rates: CausalDifferentiator
+    gyro_rates: CausalDifferentiator
+    health: SensorHealth
+    slips: SlipDetector
+    alarm: ModelChangeAlarm
+    still: StillDetector
+    unread_var: np.ndarray | None
+    """Per joint, the variance that covers its limits where the startup did not read it
+    (None where a saved pose stands in for it)."""
+    flags: np.ndarray
+    """The joints' flags as the startup left them (a joint it could not read: ``converging``)."""
 
 
 class TrackerSetup:
@@ -131,3 +173,50 @@ class TrackerSetup:
         """Per stream, the counts' range (a sample at either end is saturated)."""
         self._gyro_newer_weight = gyro_newer_weight(models[GYRO].delay_s, rates[GYRO]) \
             if GYRO in models else 0.5
+
+    def start_parts(self, startup: StartupResult, imu: ImuStill, t_s: float, prior_q_rad: np.ndarray | None,
+                    prior_sigma_rad: np.ndarray | None) -> StartParts:
+        """A start's first state and fresh parts (see
+        :meth:`fusion.tracking.filter.Tracker.initialise` for the arguments)."""
+        st, L, n, arm = self.settings, self.layout, self.arm.n_joints, self.arm
+        if len(startup.joints) != n:
+            raise ValueError(f"startup result has {len(startup.joints)} joints; arm {arm.name!r} "
+                             f"has {n}")
+        prior = arm.ready_pose_rad if prior_q_rad is None else np.asarray(prior_q_rad, float)
+        x0, P0, q_startup = initial_state(
+            startup, imu, L, st, prior, calibrated.imu_bias_prior_var(
+                arm, self.correction, self.R_0I if self._has_imu else None, startup.roll_rad,
+                startup.pitch_rad), self.gyro_scale_sigma**2, prior_sigma_rad)
+        fixed = arm.fixed_base
+        if fixed is not None and fixed.roll_rad is not None:  # a bolted base's tilt, as levelled
+            for i, v in ((L.roll, fixed.roll_rad), (L.pitch, fixed.pitch_rad)):
+                x0[i] = v
+                P0[i, :] = P0[:, i] = 0.0
+                P0[i, i] = fixed.tilt_sigma_rad**2
+        ambiguity = Ambiguity(startup)
+        unread_var = None
+        if prior_q_rad is None:  # no saved pose: an unread joint may be anywhere in its limits
+            # and one the startup read only poorly (ill_conditioned) counts as read once this
+            # filter's own test says gravity sees it: on a moving start a vertical shaft's
+            # centripetal acceleration, taken for gravity, gave it a number 56° off at a
+            # sigma of 10° (a simulated rig at 300 °/s), which the gimbal lock then held
+            poorly = np.array([j.flag == "ill_conditioned" for j in startup.joints], dtype=bool)
+            unread = (~read_by_startup(startup) | poorly) & ~ambiguity.joints
+            unread_var = np.where(unread, limits_cover_var(q_startup, arm.min_rad, arm.max_rad), 0.0)
+        imu_model = self.readings.models.get(IMU_ACC)
+        imu_noise_g = (0.0 if imu_model is None else
+                       float(np.max(np.asarray(imu_model.noise_counts_rms) / np.abs(imu_model.gain))))
+        nl, na = len(self.link_names), len(self.accel_streams)
+        return StartParts(
+            x0, P0, q_startup, ambiguity,
+            Compass(arm, self.model, imu.field, st, t_s, self.R_0I, self._mag_delay_s),
+            CausalDifferentiator(n, st.encoder_window, st.encoder_order),
+            CausalDifferentiator(3, st.gyro_window, st.gyro_order),
+            SensorHealth(self.sensor_names, na, st),
+            SlipDetector(st, L, self.sensor_names, nl, na, self._sees, t_s),
+            ModelChangeAlarm(self.link_names, MAG if self._has_imu else None, t_s,
+                             self._unmodelled_g[:nl], self._sees),
+            StillDetector(st, L, t_s, imu_noise_g), unread_var,
+            # until the first update says more, each joint as the startup left it (a joint it
+            # could not read is not "ok" for the first instants)
+            np.array([FLAG_CODE.get(j.flag, F_CONVERGING) for j in startup.joints], dtype=np.int8))
