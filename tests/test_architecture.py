@@ -259,7 +259,6 @@ OVERSIZED: dict[str, str] = {
     "fusion.tracking.alarm": _TRACKING,
     "fusion.tracking.alarm:ModelChangeAlarm._block": _TRACKING,
     "fusion.tracking.alarm:name_shift": _TRACKING,
-    "fusion.tracking.filter:Tracker": _TRACKING,
     "fusion.tracking.initial:initial_state": _TRACKING,
     "fusion.tracking.observability:Observability": _TRACKING,
     "fusion.tracking.observability_kernels:offsets_observability": _TRACKING,
