@@ -13,6 +13,12 @@ flags), :class:`~fusion.tracking.compass.Compass` (the heading),
 :class:`~fusion.tracking.initial.Ambiguity`. The model it runs is described in
 :mod:`fusion.tracking.tracker` and docs/tracking.md.
 
+Its rooms: :class:`fusion.tracking.setup.TrackerSetup` (what it is made of for an arm, and a
+start's first state and fresh parts), :class:`fusion.tracking.readout.TrackerReadout` (what it
+holds and reports, read only; the reports themselves in :mod:`fusion.tracking.report` and
+:mod:`fusion.tracking.combos`), :class:`fusion.tracking.fuse.InstantUpdate` (an instant's
+predict and update); this class keeps the lifecycle and the one filter path.
+
 One filter path, live and over a recording alike: each instant's readings go through
 :meth:`Tracker.step` (the differentiators take them, the mean pose's kinematic frame
 is made, compiled, with the offsets and gyro bias of the moment, the filter predicts and
