@@ -9,14 +9,19 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-
-from fusion.startup.combinations import Combination, observable_combinations
-from fusion.startup.solve import TILT_NAMES
-from fusion.tracking.observability import Observability
-from fusion.tracking.settings import F_AMBIGUOUS, F_GIMBAL, F_UNOBSERVED, StateLayout, TrackerSettings
-from fusion.tracking.ukf import BatchedUKF
-from models.arm import ArmModel
-from models.rotations import DEG
+from armfusion.fusion.startup.combinations import Combination, observable_combinations
+from armfusion.fusion.startup.solve import TILT_NAMES
+from armfusion.fusion.tracking.observability import Observability
+from armfusion.fusion.tracking.settings import (
+    F_AMBIGUOUS,
+    F_GIMBAL,
+    F_UNOBSERVED,
+    StateLayout,
+    TrackerSettings,
+)
+from armfusion.fusion.tracking.ukf import BatchedUKF
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG
 
 
 class JointTiltCombinations:
@@ -36,7 +41,7 @@ class JointTiltCombinations:
         ``gimbal_lock``, ``unobserved``) and of the base's roll and pitch (where
         their sigma is above ``sigma_limit_deg``) that the filter knows within
         ``mean_state_held_sigma_deg`` and better than any of their terms
-        (:func:`fusion.startup.combinations.observable_combinations`), from the joint and
+        (:func:`armfusion.fusion.startup.combinations.observable_combinations`), from the joint and
         tilt block of its covariance with the calibration's own share (the consider
         sensitivity and an unread joint's cover: what the reported sigmas hold). Returns the
         combinations, their coefficients ``(k, n + 2)`` over the joints, roll and pitch,

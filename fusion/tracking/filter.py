@@ -1,32 +1,32 @@
 """The tracking filter, :class:`Tracker`: a small object with a frozen settings struct
-(:class:`fusion.tracking.settings.TrackerSettings`), a few lifecycle verbs (``initialise``,
+(:class:`armfusion.fusion.tracking.settings.TrackerSettings`), a few lifecycle verbs (``initialise``,
 ``update`` / ``update_instant`` / ``step``, ``run``, ``state`` / ``resume``,
 ``snapshot`` / ``restore``) and results by value (:attr:`Tracker.estimate`), composed of
 parts that own their state:
-:class:`~fusion.tracking.health.SensorHealth` (counters, verdicts, statuses),
-:class:`~fusion.tracking.slips.SlipDetector` (slips and re-acquisition),
-:class:`~fusion.tracking.observability.Observability` (hold, consider sensitivity, joint
-flags), :class:`~fusion.tracking.compass.Compass` (the heading),
-:class:`~fusion.tracking.process.StillDetector` and :class:`~fusion.tracking.process.ProcessModel`,
-:class:`~fusion.tracking.measurement.Measurements`, the two
-:class:`~fusion.tracking.differentiator.CausalDifferentiator` and
-:class:`~fusion.tracking.initial.Ambiguity`. The model it runs is described in
-:mod:`fusion.tracking.tracker` and docs/tracking.md.
+:class:`~armfusion.fusion.tracking.health.SensorHealth` (counters, verdicts, statuses),
+:class:`~armfusion.fusion.tracking.slips.SlipDetector` (slips and re-acquisition),
+:class:`~armfusion.fusion.tracking.observability.Observability` (hold, consider sensitivity, joint
+flags), :class:`~armfusion.fusion.tracking.compass.Compass` (the heading),
+:class:`~armfusion.fusion.tracking.process.StillDetector` and :class:`~armfusion.fusion.tracking.process.ProcessModel`,
+:class:`~armfusion.fusion.tracking.measurement.Measurements`, the two
+:class:`~armfusion.fusion.tracking.differentiator.CausalDifferentiator` and
+:class:`~armfusion.fusion.tracking.initial.Ambiguity`. The model it runs is described in
+:mod:`armfusion.fusion.tracking.tracker` and docs/tracking.md.
 
-Its rooms: :class:`fusion.tracking.setup.TrackerSetup` (what it is made of for an arm, and a
-start's first state and fresh parts), :class:`fusion.tracking.readout.TrackerReadout` (what it
-holds and reports, read only; the reports themselves in :mod:`fusion.tracking.report` and
-:mod:`fusion.tracking.combos`), :class:`fusion.tracking.fuse.InstantUpdate` (an instant's
+Its rooms: :class:`armfusion.fusion.tracking.setup.TrackerSetup` (what it is made of for an arm, and a
+start's first state and fresh parts), :class:`armfusion.fusion.tracking.readout.TrackerReadout` (what it
+holds and reports, read only; the reports themselves in :mod:`armfusion.fusion.tracking.report` and
+:mod:`armfusion.fusion.tracking.combos`), :class:`armfusion.fusion.tracking.fuse.InstantUpdate` (an instant's
 predict and update); this class keeps the lifecycle and the one filter path.
 
 One filter path, live and over a recording alike: each instant's readings go through
 :meth:`Tracker.step` (the differentiators take them, the mean pose's kinematic frame
 is made, compiled, with the offsets and gyro bias of the moment, the filter predicts and
 fuses). :meth:`Tracker.update_instant` feeds it one instant's raw samples;
-:meth:`Tracker.run` (:func:`fusion.tracking.run.run_recording`) a whole recording, with the
+:meth:`Tracker.run` (:func:`armfusion.fusion.tracking.run.run_recording`) a whole recording, with the
 conversion to SI units and the saturation checks done for many instants at once, and the
 differentiators' fits and the frames for a block of instants in one compiled call each
-(:func:`fusion.tracking.run.prepare_block`, given to ``step`` as its ``prepared`` pieces).
+(:func:`armfusion.fusion.tracking.run.prepare_block`, given to ``step`` as its ``prepared`` pieces).
 """
 
 from __future__ import annotations
@@ -35,35 +35,34 @@ from collections.abc import Callable, Mapping
 from dataclasses import replace
 
 import numpy as np
-
-from fusion.startup.solve import StartupResult
-from fusion.tracking.alarm import ModelChangeAlarm
-from fusion.tracking.combos import JointTiltCombinations
-from fusion.tracking.compass import Compass
-from fusion.tracking.estimate import Estimate
-from fusion.tracking.frames import Frames
-from fusion.tracking.fuse import InstantUpdate, UpdateParts
-from fusion.tracking.initial import (
+from armfusion.fusion.startup.solve import StartupResult
+from armfusion.fusion.tracking.alarm import ModelChangeAlarm
+from armfusion.fusion.tracking.combos import JointTiltCombinations
+from armfusion.fusion.tracking.compass import Compass
+from armfusion.fusion.tracking.estimate import Estimate
+from armfusion.fusion.tracking.frames import Frames
+from armfusion.fusion.tracking.fuse import InstantUpdate, UpdateParts
+from armfusion.fusion.tracking.initial import (
     ImuStill,
     restored_startup,
 )
-from fusion.tracking.live import admit_instant
-from fusion.tracking.measurement import AccelReadings
-from fusion.tracking.readout import TrackerReadout
-from fusion.tracking.report import Reports
-from fusion.tracking.settings import (
+from armfusion.fusion.tracking.live import admit_instant
+from armfusion.fusion.tracking.measurement import AccelReadings
+from armfusion.fusion.tracking.readout import TrackerReadout
+from armfusion.fusion.tracking.report import Reports
+from armfusion.fusion.tracking.settings import (
     ENC,
     F_AMBIGUOUS,
     GYRO,
     MAG,
     TrackerSettings,
 )
-from fusion.tracking.snapshot import SNAPSHOT_FORMAT, TrackerState
-from fusion.tracking.ukf import BatchedUKF
-from fusion.tracking.update import InstantReadings, MagReading
-from models.arm import ArmModel
-from models.rotations import DEG
-from sensors.samples import Recording
+from armfusion.fusion.tracking.snapshot import SNAPSHOT_FORMAT, TrackerState
+from armfusion.fusion.tracking.ukf import BatchedUKF
+from armfusion.fusion.tracking.update import InstantReadings, MagReading
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG
+from armfusion.sensors.samples import Recording
 
 
 class Tracker(TrackerReadout):
@@ -79,7 +78,7 @@ class Tracker(TrackerReadout):
 
     def __init__(self, arm: ArmModel, settings: TrackerSettings | None = None,
                  rates_hz: Mapping[str, float] | float = 100.0, correction=None):
-        """The arm's tracker, not started (:class:`fusion.tracking.setup.TrackerSetup` has the
+        """The arm's tracker, not started (:class:`armfusion.fusion.tracking.setup.TrackerSetup` has the
         arguments)."""
         super().__init__(arm, settings, rates_hz, correction)
 
@@ -96,7 +95,7 @@ class Tracker(TrackerReadout):
         it better), and is ``converging`` until read; without a saved
         pose, the sigma it reports covers every angle inside its limits until gravity reads
         it (the filter's own stays as said: a prior that wide would not linearise). ``imu`` (from
-        :func:`fusion.tracking.start.imu_still_from_recording`) gives the gyro bias, heading and
+        :func:`armfusion.fusion.tracking.start.imu_still_from_recording`) gives the gyro bias, heading and
         field reference.
         """
         n = self.arm.n_joints
@@ -145,7 +144,7 @@ class Tracker(TrackerReadout):
 
     @property
     def alarm(self) -> ModelChangeAlarm:
-        """The recalibration alarm (:class:`fusion.tracking.alarm.ModelChangeAlarm`); another
+        """The recalibration alarm (:class:`armfusion.fusion.tracking.alarm.ModelChangeAlarm`); another
         may stand in for it (a benchmark's that does nothing)."""
         return self._alarm
 
@@ -165,7 +164,7 @@ class Tracker(TrackerReadout):
 
     def update_instant(self, t_s: float, samples: Mapping[str, np.ndarray]) -> Estimate | None:
         """Fuse every sample of one instant together (one stacked update): raw counts by
-        stream, as the devices gave them: admitted (:func:`fusion.tracking.live.admit_instant`), then
+        stream, as the devices gave them: admitted (:func:`armfusion.fusion.tracking.live.admit_instant`), then
         :meth:`step`."""
         self._check()
         t = float(t_s)
@@ -182,7 +181,7 @@ class Tracker(TrackerReadout):
         The differentiators take the encoders and the gyro, and the kinematic frame is made
         with the filter's offsets and gyro bias now (:meth:`_frame_now`); or, over a
         recording, ``prepared`` = ``(encoder fit at t (3, n) or None, frame or None)`` from
-        :func:`fusion.tracking.run.prepare_block`, which pushed the samples and made the frames of a block of
+        :func:`armfusion.fusion.tracking.run.prepare_block`, which pushed the samples and made the frames of a block of
         instants at once, with the offsets and gyro bias of the block's start. Then
         predict, stack, innovate, gate, correct (:meth:`_step`)."""
         q_enc, gyro, acc, mag = readings
@@ -215,7 +214,7 @@ class Tracker(TrackerReadout):
         the gyro's reading at ``t`` (else its last) and its derivative at its last sample
         (kept for further samples of the same instant: the product of exponentials carries
         any change of the offsets since, exactly, and into the motion term to first order).
-        Compiled (:mod:`fusion.tracking.frame_kernels`); :func:`fusion.tracking.run.prepare_block`
+        Compiled (:mod:`armfusion.fusion.tracking.frame_kernels`); :func:`armfusion.fusion.tracking.run.prepare_block`
         is the same for a block of instants."""
         if self._frame_cache is not None and self._frame_cache[0] == t:
             return self._frame_cache[1]
@@ -237,7 +236,7 @@ class Tracker(TrackerReadout):
               frame: Frames | None, q_enc: np.ndarray) -> None:
         """Predict to ``t`` (the gyro's rate over the interval), the base's stillness and
         motion averages, the compass's averaged reading, then the update
-        (:class:`fusion.tracking.fuse.InstantUpdate`), the attitude folded back into Euler
+        (:class:`armfusion.fusion.tracking.fuse.InstantUpdate`), the attitude folded back into Euler
         angles, the flags when due."""
         ukf, up = self._ukf, self._update
         self._q_enc = q_enc
@@ -280,16 +279,16 @@ class Tracker(TrackerReadout):
     def run(self, rec: Recording, t_stop_s: float | None = None, truth: bool = True,
             block: int = 256, progress: Callable[[float], None] | None = None):
         """Fuse every sample of ``rec`` after the current time (up to ``t_stop_s``), through
-        the same path as :meth:`update_instant`: a :class:`fusion.tracking.run.TrackRun`
-        (:func:`fusion.tracking.run.run_recording` has the details)."""
-        from fusion.tracking.run import run_recording
+        the same path as :meth:`update_instant`: a :class:`armfusion.fusion.tracking.run.TrackRun`
+        (:func:`armfusion.fusion.tracking.run.run_recording` has the details)."""
+        from armfusion.fusion.tracking.run import run_recording
 
         self._check()
         return run_recording(self, rec, t_stop_s, truth, block, progress)
 
     # -- restart -----------------------------------------------------------------------------
     def state(self) -> TrackerState:
-        """What the started tracker knows now, by value (:class:`fusion.tracking.snapshot.TrackerState`)."""
+        """What the started tracker knows now, by value (:class:`armfusion.fusion.tracking.snapshot.TrackerState`)."""
         self._check_filter()
         ukf = self._ukf
         return TrackerState(

@@ -14,19 +14,18 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.tracking.alarm import ModelChangeAlarm
-from fusion.tracking.compass import Compass
-from fusion.tracking.frames import Frames
-from fusion.tracking.health import SensorHealth
-from fusion.tracking.measurement import AccelReadings, Measurements
-from fusion.tracking.observability import Observability
-from fusion.tracking.process import MotionIntensity, ProcessModel, StillDetector
-from fusion.tracking.settings import C_REJECTED, C_USED, StateLayout, TrackerSettings
-from fusion.tracking.slips import SlipDetector
-from fusion.tracking.ukf import BatchedUKF, Innovation
-from fusion.tracking.update import MagReading, UpdateResult
-from models.rotations import up_from_tilt
+from armfusion.fusion.tracking.alarm import ModelChangeAlarm
+from armfusion.fusion.tracking.compass import Compass
+from armfusion.fusion.tracking.frames import Frames
+from armfusion.fusion.tracking.health import SensorHealth
+from armfusion.fusion.tracking.measurement import AccelReadings, Measurements
+from armfusion.fusion.tracking.observability import Observability
+from armfusion.fusion.tracking.process import MotionIntensity, ProcessModel, StillDetector
+from armfusion.fusion.tracking.settings import C_REJECTED, C_USED, StateLayout, TrackerSettings
+from armfusion.fusion.tracking.slips import SlipDetector
+from armfusion.fusion.tracking.ukf import BatchedUKF, Innovation
+from armfusion.fusion.tracking.update import MagReading, UpdateResult
+from armfusion.models.rotations import up_from_tilt
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,7 +70,7 @@ class InstantUpdate:
                 newer_weight: float, attitude_index: np.ndarray) -> np.ndarray | None:
         """Predict over ``dt`` > 0 with the gyro's rate over the interval (from its last
         reading ``omega_prev`` and this instant's ``gyro``, the newer weighted by
-        ``newer_weight``: :func:`fusion.tracking.process.gyro_newer_weight`), the compass's
+        ``newer_weight``: :func:`armfusion.fusion.tracking.process.gyro_newer_weight`), the compass's
         average turned with it. Returns the attitude's anchor (the propagated central
         point's, ``attitude_index``), or None when the step drew no points."""
         p = self.parts
@@ -107,7 +106,7 @@ class InstantUpdate:
     def compass_reading(self, ukf: BatchedUKF, t: float, mag: MagReading, frame: Frames | None,
                         omega_B: np.ndarray | None, q_enc: np.ndarray) -> tuple | None:
         """The magnetometer's sample heard; the compass's averaged reading when it has one
-        to give (:meth:`fusion.tracking.compass.Compass.prepare`), else None."""
+        to give (:meth:`armfusion.fusion.tracking.compass.Compass.prepare`), else None."""
         p = self.parts
         compass = p.compass
         p.health.heard(p.mag_index, t)
@@ -252,10 +251,10 @@ class InstantUpdate:
 
     def imu_up(self, x: np.ndarray) -> np.ndarray | None:
         """Up in base axes as the base IMU's accelerometer alone reads it: its average over
-        ``still_tau_s`` (:class:`fusion.tracking.process.StillDetector`), the filter's estimate
+        ``still_tau_s`` (:class:`armfusion.fusion.tracking.process.StillDetector`), the filter's estimate
         of its bias removed, turned into base axes; None without an IMU reading yet. A
         shaking frame's acceleration averages out of it; the link accelerometers do not pull
-        it (see :meth:`fusion.tracking.observability.Observability.update`)."""
+        it (see :meth:`armfusion.fusion.tracking.observability.Observability.update`)."""
         p = self.parts
         mean = p.still.mean if p.R_0I is not None else None
         if mean is None:
@@ -290,7 +289,7 @@ class InstantUpdate:
 
     def h_tangent(self, X: np.ndarray, **kw) -> np.ndarray:
         """Every measurement at sigma points whose attitude is in the filter's tangent space
-        (:meth:`fusion.tracking.process.ProcessModel.fx_tangent`), through the Euler-angle
-        models (:meth:`fusion.tracking.measurement.Measurements.h_all`)."""
+        (:meth:`armfusion.fusion.tracking.process.ProcessModel.fx_tangent`), through the Euler-angle
+        models (:meth:`armfusion.fusion.tracking.measurement.Measurements.h_all`)."""
         p = self.parts
         return p.measurements.h_all(p.process.euler_points(X), **kw)

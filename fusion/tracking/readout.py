@@ -1,33 +1,32 @@
 """What a started tracker holds and reports, read only (:class:`TrackerReadout`, which
-:class:`fusion.tracking.filter.Tracker` extends with its lifecycle and its one filter path):
+:class:`armfusion.fusion.tracking.filter.Tracker` extends with its lifecycle and its one filter path):
 the filter (its mean and covariance), the time of the last fused instant, the encoders'
 angles, the joints' flags and the gyro's last reading, and the results by value: the
 estimate, the combinations gravity reads, the counters, NIS, warnings and innovations
-(:class:`fusion.tracking.report.Reports`, :class:`fusion.tracking.combos.JointTiltCombinations`)."""
+(:class:`armfusion.fusion.tracking.report.Reports`, :class:`armfusion.fusion.tracking.combos.JointTiltCombinations`)."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 
 import numpy as np
-
-from fusion.startup.combinations import Combination
-from fusion.tracking.combos import JointTiltCombinations
-from fusion.tracking.compass import Compass
-from fusion.tracking.estimate import Estimate
-from fusion.tracking.health import SensorHealth
-from fusion.tracking.initial import Ambiguity
-from fusion.tracking.innovations import InnovationLog
-from fusion.tracking.report import Reports
-from fusion.tracking.settings import NotInitialisedError, TrackerSettings
-from fusion.tracking.setup import TrackerSetup
-from fusion.tracking.ukf import BatchedUKF
-from models.arm import ArmModel
+from armfusion.fusion.startup.combinations import Combination
+from armfusion.fusion.tracking.combos import JointTiltCombinations
+from armfusion.fusion.tracking.compass import Compass
+from armfusion.fusion.tracking.estimate import Estimate
+from armfusion.fusion.tracking.health import SensorHealth
+from armfusion.fusion.tracking.initial import Ambiguity
+from armfusion.fusion.tracking.innovations import InnovationLog
+from armfusion.fusion.tracking.report import Reports
+from armfusion.fusion.tracking.settings import NotInitialisedError, TrackerSettings
+from armfusion.fusion.tracking.setup import TrackerSetup
+from armfusion.fusion.tracking.ukf import BatchedUKF
+from armfusion.models.arm import ArmModel
 
 
 class TrackerReadout(TrackerSetup):
     """A tracker's held values and its results by value (see the module's docstring); a
-    :class:`fusion.tracking.filter.Tracker`'s lifecycle writes them."""
+    :class:`armfusion.fusion.tracking.filter.Tracker`'s lifecycle writes them."""
 
     def __init__(self, arm: ArmModel, settings: TrackerSettings | None = None,
                  rates_hz: Mapping[str, float] | float = 100.0, correction=None):
@@ -69,7 +68,7 @@ class TrackerReadout(TrackerSetup):
     @property
     def mean(self) -> np.ndarray:
         """The filter's mean itself, not a copy (:attr:`x` is one): for reading at once
-        (:attr:`fusion.tracking.ukf.BatchedUKF.mean`)."""
+        (:attr:`armfusion.fusion.tracking.ukf.BatchedUKF.mean`)."""
         return self._ukf.mean
 
     @property
@@ -85,7 +84,7 @@ class TrackerReadout(TrackerSetup):
 
     @property
     def joint_flag_codes(self) -> np.ndarray:
-        """The joints' flags (codes of :data:`fusion.tracking.settings.JOINT_FLAGS`) as last
+        """The joints' flags (codes of :data:`armfusion.fusion.tracking.settings.JOINT_FLAGS`) as last
         worked out: replaced when they are, never written into (a reader may keep it and
         compare by identity)."""
         return self._flags
@@ -123,7 +122,7 @@ class TrackerReadout(TrackerSetup):
 
     def combination_vectors(self) -> tuple[tuple[Combination, ...], np.ndarray, np.ndarray]:
         """What gravity reads where it cannot read single joints, now
-        (:meth:`fusion.tracking.combos.JointTiltCombinations.vectors`)."""
+        (:meth:`armfusion.fusion.tracking.combos.JointTiltCombinations.vectors`)."""
         self._check_filter()
         return self._combos.vectors(self._ukf, self._q_enc, self._flags)
 
@@ -134,23 +133,23 @@ class TrackerReadout(TrackerSetup):
 
     def combinations_now(self) -> tuple[Combination, ...]:
         """:meth:`combination_vectors`' combinations at the last fused instant
-        (:meth:`fusion.tracking.combos.JointTiltCombinations.now`)."""
+        (:meth:`armfusion.fusion.tracking.combos.JointTiltCombinations.now`)."""
         return self._combos.now(self._ukf, self._q_enc, self._flags, self._t)
 
     @property
     def estimate(self) -> Estimate:
-        """The estimate at the last fused instant (:meth:`fusion.tracking.report.Reports.estimate`)."""
+        """The estimate at the last fused instant (:meth:`armfusion.fusion.tracking.report.Reports.estimate`)."""
         self._check_filter()
         return self._reports.estimate(self._t, self._ukf, self._q_enc, self._flags)
 
     def gyro_scale(self) -> dict | None:
         """The gyro's scale error as the filter holds it
-        (:meth:`fusion.tracking.report.Reports.gyro_scale`)."""
+        (:meth:`armfusion.fusion.tracking.report.Reports.gyro_scale`)."""
         self._check()
         return self._reports.gyro_scale(self._ukf)
 
     def heading_status_code(self) -> int:
-        """The heading's status (:meth:`fusion.tracking.report.Reports.heading_status_code`)."""
+        """The heading's status (:meth:`armfusion.fusion.tracking.report.Reports.heading_status_code`)."""
         return self._reports.heading_status_code()
 
     def counters(self) -> dict[str, dict[str, int]]:
@@ -160,12 +159,12 @@ class TrackerReadout(TrackerSetup):
         return self.health.counters()
 
     def sensor_warnings(self) -> list[str]:
-        """The accelerometers rejected too often (:meth:`fusion.tracking.report.Reports.sensor_warnings`)."""
+        """The accelerometers rejected too often (:meth:`armfusion.fusion.tracking.report.Reports.sensor_warnings`)."""
         self._check()
         return self._reports.sensor_warnings()
 
     def innovations(self, sensor: str) -> InnovationLog:
-        """The innovations kept for ``sensor`` (:meth:`fusion.tracking.report.Reports.innovations`)."""
+        """The innovations kept for ``sensor`` (:meth:`armfusion.fusion.tracking.report.Reports.innovations`)."""
         self._check()
         return self._reports.innovations(sensor)
 

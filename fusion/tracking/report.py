@@ -1,5 +1,5 @@
 """What a tracker reports, by value (:class:`Reports`): the estimate at the last fused
-instant (:class:`fusion.tracking.estimate.Estimate`), the heading's status, the gyro's scale
+instant (:class:`armfusion.fusion.tracking.estimate.Estimate`), the heading's status, the gyro's scale
 as the filter holds it, the sensors' counters, NIS and warnings, the innovations kept. It
 reads the tracker's parts (health, the compass, the observability, the ambiguous joints, the
 combinations); the filter, the time, the encoders' angles and the flags come with each call."""
@@ -7,16 +7,15 @@ combinations); the filter, the time, the encoders' angles and the flags come wit
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.tracking.combos import JointTiltCombinations
-from fusion.tracking.compass import CALIBRATING, GYRO_ONLY, STATUS_CODE, Compass
-from fusion.tracking.estimate import HEADING_STATUS, Estimate
-from fusion.tracking.health import SensorHealth, sensor_warnings
-from fusion.tracking.initial import Ambiguity
-from fusion.tracking.innovations import InnovationLog
-from fusion.tracking.observability import Observability
-from fusion.tracking.process import attitude_sigma_rad
-from fusion.tracking.settings import (
+from armfusion.fusion.tracking.combos import JointTiltCombinations
+from armfusion.fusion.tracking.compass import CALIBRATING, GYRO_ONLY, STATUS_CODE, Compass
+from armfusion.fusion.tracking.estimate import HEADING_STATUS, Estimate
+from armfusion.fusion.tracking.health import SensorHealth, sensor_warnings
+from armfusion.fusion.tracking.initial import Ambiguity
+from armfusion.fusion.tracking.innovations import InnovationLog
+from armfusion.fusion.tracking.observability import Observability
+from armfusion.fusion.tracking.process import attitude_sigma_rad
+from armfusion.fusion.tracking.settings import (
     IMU_ACC,
     JOINT_FLAGS,
     MAG,
@@ -26,8 +25,8 @@ from fusion.tracking.settings import (
     StateLayout,
     TrackerSettings,
 )
-from fusion.tracking.ukf import BatchedUKF
-from models.arm import ArmModel
+from armfusion.fusion.tracking.ukf import BatchedUKF
+from armfusion.models.arm import ArmModel
 
 
 class Reports:
@@ -94,7 +93,7 @@ class Reports:
                 "prior_sigma": self.gyro_scale_sigma}
 
     def heading_status_code(self) -> int:
-        """The heading's status (an index into :data:`~fusion.tracking.estimate.HEADING_STATUS`):
+        """The heading's status (an index into :data:`~armfusion.fusion.tracking.estimate.HEADING_STATUS`):
         the compass's, or ``gyro_only`` where the magnetometer has gone quiet (stale, dead or
         absent) since it last said otherwise."""
         code = STATUS_CODE[self.compass.status]
@@ -107,7 +106,7 @@ class Reports:
     def sensor_warnings(self) -> list[str]:
         """The accelerometers rejected (or left out as implausible) more often than
         ``settings.warn_rejected_share`` of their samples so far, each with why
-        (:func:`fusion.tracking.health.sensor_warnings`)."""
+        (:func:`armfusion.fusion.tracking.health.sensor_warnings`)."""
         floors = dict(zip(self.accel_streams, self.unmodelled_g.tolist(), strict=True))
         if IMU_ACC in floors:
             floors[IMU_ACC] = self.arm.calibration.imu_accel_floor_g

@@ -1,5 +1,5 @@
 """What a tracker is made of for an arm (:class:`TrackerSetup`, which
-:class:`fusion.tracking.filter.Tracker` extends with its lifecycle): the config's model and
+:class:`armfusion.fusion.tracking.filter.Tracker` extends with its lifecycle): the config's model and
 corrections, the settings for the arm's base, the state's layout, the sensors' names, links,
 delays and noise at their rates, and the parts that do not change over a start (the
 measurements, the observability, the process model, the sigma points, the kinematic frames'
@@ -11,19 +11,24 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.startup.solve import StartupResult
-from fusion.tracking import calibrated, fixed_base
-from fusion.tracking.alarm import ModelChangeAlarm
-from fusion.tracking.compass import Compass
-from fusion.tracking.differentiator import CausalDifferentiator
-from fusion.tracking.frame_kernels import FrameConstants
-from fusion.tracking.health import SensorHealth
-from fusion.tracking.initial import Ambiguity, ImuStill, initial_state, limits_cover_var, read_by_startup
-from fusion.tracking.measurement import Measurements
-from fusion.tracking.observability import Observability
-from fusion.tracking.process import MotionIntensity, ProcessModel, StillDetector, gyro_newer_weight
-from fusion.tracking.settings import (
+from armfusion.fusion.startup.solve import StartupResult
+from armfusion.fusion.tracking import calibrated, fixed_base
+from armfusion.fusion.tracking.alarm import ModelChangeAlarm
+from armfusion.fusion.tracking.compass import Compass
+from armfusion.fusion.tracking.differentiator import CausalDifferentiator
+from armfusion.fusion.tracking.frame_kernels import FrameConstants
+from armfusion.fusion.tracking.health import SensorHealth
+from armfusion.fusion.tracking.initial import (
+    Ambiguity,
+    ImuStill,
+    initial_state,
+    limits_cover_var,
+    read_by_startup,
+)
+from armfusion.fusion.tracking.measurement import Measurements
+from armfusion.fusion.tracking.observability import Observability
+from armfusion.fusion.tracking.process import MotionIntensity, ProcessModel, StillDetector, gyro_newer_weight
+from armfusion.fusion.tracking.settings import (
     ENC,
     F_CONVERGING,
     FLAG_CODE,
@@ -34,9 +39,9 @@ from fusion.tracking.settings import (
     StateLayout,
     TrackerSettings,
 )
-from fusion.tracking.slips import SlipDetector
-from fusion.tracking.ukf import SigmaPoints
-from models.arm import ArmModel
+from armfusion.fusion.tracking.slips import SlipDetector
+from armfusion.fusion.tracking.ukf import SigmaPoints
+from armfusion.models.arm import ArmModel
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,7 +73,7 @@ class TrackerSetup:
 
     def __init__(self, arm: ArmModel, settings: TrackerSettings | None = None,
                  rates_hz: Mapping[str, float] | float = 100.0, correction=None):
-        """``correction`` (a :class:`fusion.identification.identify.StartupCorrection`, default: made from the
+        """``correction`` (a :class:`armfusion.fusion.identification.identify.StartupCorrection`, default: made from the
         config's effects when it has any) undoes the calibrated accelerometer errors (affine:
         mount, axes, scale, bias) on every sample, and maps the controller's joint angles to
         the geometric ones (zero offsets, sag, play) in the kinematics."""
@@ -76,7 +81,7 @@ class TrackerSetup:
         arm = calibrated.with_lever_arms(arm, model)
         self.arm = arm
         if correction is None and arm.effects:
-            from fusion.identification.identify import startup_correction
+            from armfusion.fusion.identification.identify import startup_correction
 
             correction = startup_correction(arm, include_joint_offsets=True)
         self.correction = correction
@@ -139,7 +144,7 @@ class TrackerSetup:
         self._min_list = arm.min_rad.tolist()
         self._max_list = arm.max_rad.tolist()
         self.frame_constants = FrameConstants(arm, self.accel_names, self._joint_effects, G)
-        """What the compiled kinematic frames are made with (:mod:`fusion.tracking.frame_kernels`)."""
+        """What the compiled kinematic frames are made with (:mod:`armfusion.fusion.tracking.frame_kernels`)."""
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
                                          self.sensor_index.get(IMU_ACC, -1), unmodelled_g, time_offset_s,
                                          time_var_s2)
@@ -177,7 +182,7 @@ class TrackerSetup:
     def start_parts(self, startup: StartupResult, imu: ImuStill, t_s: float, prior_q_rad: np.ndarray | None,
                     prior_sigma_rad: np.ndarray | None) -> StartParts:
         """A start's first state and fresh parts (see
-        :meth:`fusion.tracking.filter.Tracker.initialise` for the arguments)."""
+        :meth:`armfusion.fusion.tracking.filter.Tracker.initialise` for the arguments)."""
         st, L, n, arm = self.settings, self.layout, self.arm.n_joints, self.arm
         if len(startup.joints) != n:
             raise ValueError(f"startup result has {len(startup.joints)} joints; arm {arm.name!r} "
