@@ -243,7 +243,7 @@ class TrackerSettings:
     the filter knows it no better than ``mean_state_held_sigma_deg``, each update's
     innovation is taken without the sigma points' spread along it: each pair of points keeps
     its weight in the prediction only for the share of its offsets' displacement off the
-    held joints (:meth:`armfusion.fusion.tracking.filter.Tracker._prediction_weights`,
+    held joints (:meth:`armfusion.fusion.tracking.fuse.InstantUpdate.prediction_weights`,
     ``BatchedUKF.innovate(z_weights=)``); the innovation covariance and the cross covariance
     stay the unscented ones. Such a joint starts at ``unknown_joint_sigma_deg``: the points
     spread it over ±65°, and their weighted mean shrank every horizontal specific force that

@@ -303,7 +303,7 @@ def test_update_instant_gives_the_same_estimates_as_the_numpy_path(arm, effects,
                       effects=effects if calibrated else None)
     a, _ = start_from_recording(arm, rec)
     with monkeypatch.context() as m:
-        m.setattr("armfusion.fusion.tracking.filter.CausalDifferentiator", NumpyDifferentiator)
+        m.setattr("armfusion.fusion.tracking.setup.CausalDifferentiator", NumpyDifferentiator)
         b, _ = start_from_recording(arm, rec)
     assert isinstance(b.enc_rates, NumpyDifferentiator) and not isinstance(a.enc_rates, NumpyDifferentiator)
     b.frame_constants = NumpyFrame(b)
