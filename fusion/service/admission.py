@@ -35,19 +35,23 @@ consensus of the *other* streams (a stream does not vote on itself): each stream
 accepted a batch of in the last ``vote_fresh_s`` of wall time votes with the sensors' time
 its batches say it is at this one's arrival (``arrived_s``: when Zenoh handed the message
 over, not when a node that fell behind got to it): this arrival less the stream's least
-delivery delay (arrival less last sample's time) over its batches of the last
-``stall_memory_s``, and never less than its newest accepted time; the reference is the
-median of the votes (the lower of the middle two). The least delay, not the newest
-batch's: after a stall (a starved node whose receive thread stamps a backlog on arrival,
-all at once; a driver that read some sensors before it and sent them after it) a stream's
-newest batch may have arrived seconds after it was read, and carrying its time forward
-from that late arrival would put the clock seconds behind the genuine samples of the same
-burst, one stream's backlog taken before another's. A batch whose last sample is more
-than ``ahead_s`` ahead of it is refused (``time_ahead``): one peer's sample stamped 1.9 s
-ahead can neither move the clock nor make the node wait for it. A genuine stream leads the others only by the
-difference of their latencies (a batch period and the delivery's jitter: ``ahead_s``
-0.25 s covers batches of up to 200 ms, ten times the drivers' default); a stream that resumes after its driver
-stalled is behind, not ahead, and the others' votes move on with wall time while they are
+delivery delay (arrival less last sample's time) over its batches whose last samples are
+within ``ahead_s`` of its newest (and arrived in the last ``stall_memory_s``), and never
+less than its newest accepted time; the reference is the median of the votes (the lower
+of the middle two). The least delay, not the newest batch's: after a stall (a starved
+node whose receive thread stamps a backlog on arrival, all at once; a driver that read
+some sensors before it and sent them after it) a stream's newest batch may have arrived
+seconds after it was read, and carrying its time forward from that late arrival would put
+the clock seconds behind the genuine samples of the same burst, one stream's backlog
+taken before another's. Only the last ``ahead_s`` of the stream's own time: a stream
+whose time stood still while wall time went on (a replay paused, then live) has a larger
+delay from then on, and its clock follows it once its samples have moved on that far. A
+batch whose last sample is more than ``ahead_s`` ahead of the reference is refused
+(``time_ahead``): one peer's sample stamped 1.9 s ahead can neither move the clock nor
+make the node wait for it. A genuine stream leads the others only by the difference of
+their latencies (a batch period and the delivery's jitter: ``ahead_s`` 0.25 s covers
+batches of up to 200 ms, ten times the drivers' default); a stream that resumes after its
+driver stalled is behind, not ahead, and the others' votes move on with wall time while they are
 silent. A replay faster than real time moves every stream together, so the others' newest
 times keep up with it. A batch whose first sample is more than ``clock_window_s`` behind
 the median of the others' newest times (not carried forward: a driver catching up after
@@ -60,9 +64,10 @@ bogus batch be the first of all, the other streams are refused until its vote go
 node discards what it kept of it). :meth:`Admission.clock` is the same consensus over
 every voting stream: the node's reorder stage and its lateness measure take it (one
 stream running ahead does not move either). The limits: a consensus of streams can be
-moved by whoever sends for most of them; a stream whose time runs slower than wall time (a
-replay at half speed) leads its votes by up to the wall time its time lagged in
-``stall_memory_s``, so the clock is that much more lenient with it; and a stream's very
+moved by whoever sends for most of them; after a stall, a stream whose backlog has been
+taken more than ``ahead_s`` of the way, not to its end, votes from its late arrivals, so
+a stream whose backlog is taken further than most others' at once (not the order of one
+publisher's messages, which interleaves them) may be refused as ahead; and a stream's very
 first batch, taken after the others' backlogs and more than ``clock_window_s`` older than
 their newest samples, is refused as ``time_behind`` (it has no sample of its own to follow).
 
@@ -129,9 +134,10 @@ class AdmissionSettings:
     ahead_s: float = 0.25
     vote_fresh_s: float = 2.0
     stall_memory_s: float = 60.0
-    """How long (arrival time) a stream's least delivery delay is remembered: the longest
-    stall of a starved node or driver after which the genuine samples of a burst are still
-    judged by the wall time that passed (beside a CPU hog the demo's node lagged 43 s)."""
+    """How long (arrival time) at most a stream's least delivery delay is remembered while
+    its time does not move on: the longest stall of a starved node or driver after which
+    the genuine samples of a burst are still judged by the wall time that passed (beside a
+    CPU hog the demo's node lagged 43 s)."""
     max_joint_rate_rad_s: float = MAX_JOINT_RATE_RAD_S  # (with the files: models.sample_admission)
     jump_slack_rad: float = JUMP_SLACK_RAD
     encoder_rebase_after_s: float = ENCODER_REBASE_AFTER_S
@@ -188,7 +194,7 @@ class Admission:
         self._newest: dict[str, float] = {}
         self._budget: dict[str, tuple[float, float]] = {}  # stream -> (samples left, at time)
         self._voted_at: dict[str, float] = {}  # stream -> when the node took its newest (freshness)
-        self._leads: dict[str, deque[tuple[float, float]]] = {}  # stream -> (arrived, t - arrived)
+        self._leads: dict[str, deque[tuple[float, float, float]]] = {}  # stream -> (t, arrived, t - arrived)
         self._seq: dict[str, tuple[int, float]] = {}
         self._seq_odd: dict[str, tuple[int, float]] = {}  # a number that did not follow, until the next
         self._enc_last: tuple[float, np.ndarray] | None = None
@@ -258,7 +264,7 @@ class Admission:
         leave that stream out). Fresh: taken by the node in the last ``vote_fresh_s`` before
         ``now_s``."""
         fresh = now_s - self.settings.vote_fresh_s
-        votes = [max(t, arrived_s + self._leads[k][0][1]) for k, t in self._newest.items()
+        votes = [max(t, arrived_s + self._leads[k][0][2]) for k, t in self._newest.items()
                  if k != but and self._voted_at[k] >= fresh]
         votes.sort()  # (np.median costs 20x more on a handful of streams)
         return votes
@@ -279,7 +285,7 @@ class Admission:
         for k, t in self._newest.items():  # (one pass: this runs for every batch)
             if k != name and self._voted_at[k] >= fresh:
                 newest.append(t)
-                carried = arrived_s + self._leads[k][0][1]
+                carried = arrived_s + self._leads[k][0][2]
                 votes.append(carried if carried > t else t)
         if votes:
             votes.sort()
@@ -292,7 +298,7 @@ class Admission:
             whose = f"the other sensors' clock ({len(votes)} streams)"
         elif name in self._newest and self._voted_at[name] >= fresh:
             behind_ref = self._newest[name]
-            ahead_ref = max(behind_ref, arrived_s + self._leads[name][0][1])
+            ahead_ref = max(behind_ref, arrived_s + self._leads[name][0][2])
             whose = "this sensor's last sample"
         else:
             ahead_ref = behind_ref = None
@@ -394,16 +400,17 @@ class Admission:
         newest = self._newest.get(s.name)
         leads = self._leads.setdefault(s.name, deque())
         if newest is None or newest > t1 + w:  # (a new clock: what was remembered of the old goes)
-            self._newest[s.name] = t1
+            newest = None
             leads.clear()
-        else:
-            self._newest[s.name] = max(newest, t1)
-        lead = t1 - arrived_s  # the sliding maximum of the stream's lead over its arrivals
-        while leads and leads[-1][1] <= lead:
-            leads.pop()
-        leads.append((arrived_s, lead))
-        while leads[0][0] < arrived_s - self.settings.stall_memory_s:
-            leads.popleft()
+        if newest is None or t1 >= newest:  # the sliding maximum of the stream's lead, t - arrival
+            self._newest[s.name] = t1
+            lead = t1 - arrived_s
+            while leads and leads[-1][2] <= lead:
+                leads.pop()
+            leads.append((t1, arrived_s, lead))
+            since_t, since_arrived = t1 - self.settings.ahead_s, arrived_s - self.settings.stall_memory_s
+            while leads[0][0] < since_t or leads[0][1] < since_arrived:
+                leads.popleft()
         self._budget[s.name] = bucket
         self._voted_at[s.name] = now_s
         if s.name == ENCODER_STREAM and (self._enc_last is None or t1 >= self._enc_last[0]):

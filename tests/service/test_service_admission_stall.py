@@ -126,3 +126,20 @@ def test_one_sample_stamped_ahead_is_still_refused_after_a_stall(arm, models, ah
     assert feed.adm.check(stale, late, late).reason == "time_behind"  # nor does one from the past pass
     feed.live(15.0, 15.5)
     assert feed.refused == []
+
+
+def test_a_stream_that_paused_and_goes_on_live_is_judged_by_its_live_delay(arm, models):
+    """A recording replayed as fast as it goes, then nothing for 5 s, then the rest live: the
+    sensors' time stood still during the pause, so the clock follows the live samples (not
+    the delay from before the pause), and one sample 1.9 s ahead of them is refused."""
+    feed = Feed(arm, models)
+    for t in _ticks(0.0, 3.0):  # 3 s of samples in 0.3 s of wall time
+        for k in NAMES:
+            feed.take(k, t, 0.1 * t)
+    start_s = 0.3 + 5.0
+    for t in _ticks(3.0, 3.5):
+        for k in NAMES:
+            feed.take(k, t, start_s + (t - 3.0))
+    assert feed.refused == []
+    now = start_s + 0.5
+    assert feed.adm.check(feed.batch("acc1", 3.5 + 1.9), now, now).reason == "time_ahead"
