@@ -398,17 +398,19 @@ class Admission:
         t0, t1 = float(s.t_s[0]), float(s.t_s[-1])
         w = self.settings.clock_window_s
         newest = self._newest.get(s.name)
-        leads = self._leads.setdefault(s.name, deque())
         if newest is None or newest > t1 + w:  # (a new clock: what was remembered of the old goes)
             newest = None
-            leads.clear()
+            self._leads[s.name] = leads = deque()
+        else:
+            leads = self._leads[s.name]
         if newest is None or t1 >= newest:  # the sliding maximum of the stream's lead, t - arrival
             self._newest[s.name] = t1
             lead = t1 - arrived_s
             while leads and leads[-1][2] <= lead:
                 leads.pop()
             leads.append((t1, arrived_s, lead))
-            since_t, since_arrived = t1 - self.settings.ahead_s, arrived_s - self.settings.stall_memory_s
+            st = self.settings
+            since_t, since_arrived = t1 - st.ahead_s, arrived_s - st.stall_memory_s
             while leads[0][0] < since_t or leads[0][1] < since_arrived:
                 leads.popleft()
         self._budget[s.name] = bucket
