@@ -1,2 +1,1 @@
 """armfusion: fusion layer (calibration, tracking, diagnosis, service, CLI)."""
-__version__ = "0.1.0"

@@ -1,8 +1,8 @@
 """Reading arm configs from disk: YAML (DH table or a URDF reference) and URDF files.
 
 ``load_arm("wmra")`` finds the shipped ``config/wmra.yaml`` (package data wherever
-armfusion is installed: :mod:`fusion.shipped`); any other argument is a path.
-Validation itself is :func:`models.arm_config.build_arm`.
+armfusion is installed: :mod:`armfusion.fusion.shipped`); any other argument is a path.
+Validation itself is :func:`armfusion.models.arm_config.build_arm`.
 """
 
 from __future__ import annotations
@@ -13,11 +13,10 @@ from typing import Any
 
 import numpy as np
 import yaml
-
-from fusion.shipped import shipped_config_dir
-from models.arm import ArmModel, Joint
-from models.arm_config import ConfigError, ConfigProblem, build_arm
-from sensors.samples import clipped_repr
+from armfusion.fusion.shipped import shipped_config_dir
+from armfusion.models.arm import ArmModel, Joint
+from armfusion.models.arm_config import ConfigError, ConfigProblem, build_arm
+from armfusion.sensors.samples import clipped_repr
 
 MAX_CONFIG_BYTES = 4_000_000
 """A config file larger than this is refused unread (the shipped ones are 2-4 kB; a
@@ -179,7 +178,7 @@ def load_arm(name_or_path: str | Path) -> ArmModel:
             raise ConfigError([ConfigProblem(source, "arm.urdf", data["arm"]["urdf"], str(e))]) from e
     arm = build_arm(data, source, urdf_joints)
     # the effects too, now: a bad one found later would be blamed on the recording
-    from models.effects import model_problems
+    from armfusion.models.effects import model_problems
 
     _, problems = model_problems(arm, arm.effects, source, "effects")
     if problems:
@@ -216,7 +215,7 @@ def _check_urdf_text(path: Path) -> None:
 
 def _check_urdf_origin(path: Path, joint: str, origin: np.ndarray) -> None:
     """A joint's origin: finite, and its offset below 100 m (the configs' length bound)."""
-    from models.arm_config import MAX_LENGTH_MM
+    from armfusion.models.arm_config import MAX_LENGTH_MM
 
     if not np.all(np.isfinite(origin)):
         raise ValueError(f"URDF {path.name}: joint {joint!r}: its origin is not finite (xyz, rpy)")

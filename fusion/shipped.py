@@ -1,12 +1,12 @@
 """Where the shipped configs are: the repository's ``config/`` folder, installed as the
-data-only package ``armfusion_config``.
+data-only package ``armfusion.config``.
 
 ``config/`` holds files only (the arm configs ``*.yaml``, the Zenoh configs ``*.json5``
 and ``deploy/*.json5``); ``pyproject.toml`` maps it to the package name
-``armfusion_config`` (a namespace package: no ``__init__.py``), so a wheel carries it as
+``armfusion.config`` (a namespace package: no ``__init__.py``), so a wheel carries it as
 package data and the import system finds it wherever the project is installed; an
 editable install finds it in the working tree. Run from a checkout that was never
-installed (``python -m fusion.cli`` with the repository on ``sys.path``), the package is
+installed (``python -m armfusion.fusion.cli`` with the repository on ``sys.path``), the package is
 not importable and the ``config/`` folder beside ``fusion/`` is used instead.
 
 The folder comes from the package's import spec, not from
@@ -20,7 +20,7 @@ from __future__ import annotations
 from importlib.util import find_spec
 from pathlib import Path
 
-PACKAGE = "armfusion_config"
+PACKAGE = "armfusion.config"
 """The import name of the shipped ``config/`` folder."""
 
 _CHECKOUT_CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"

@@ -21,9 +21,8 @@ from functools import cached_property
 from typing import Literal
 
 import numpy as np
-
-from models.rotations import rot_x, rot_z, wrap_angle
-from models.sensor_description import SensorDescription, describe
+from armfusion.models.rotations import rot_x, rot_z, wrap_angle
+from armfusion.models.sensor_description import SensorDescription, describe
 
 DhConvention = Literal["modified", "standard", "urdf"]
 
@@ -129,7 +128,7 @@ class ArmCalibration:
     ``gyro_scale_unmodelled``: the gyro's scale-and-axes error left (a fraction, 1 sigma per
     axis), where the config states it (a factory-calibrated module); None: the tracker's
     datasheet figure where the IMU is not exact
-    (:func:`fusion.tracking.calibrated.heading_scale_sigma`).
+    (:func:`armfusion.fusion.tracking.calibrated.heading_scale_sigma`).
     ``correction_covariance``: per stream, what the fit could not pin. ``references``: the
     one-time joint references the calibration's joint zeros rest on;
     ``joint_zero_conventions``: the elements the calibration held to fix a gauge (its joint
@@ -183,7 +182,7 @@ class BaseMotion:
     (0.7 m/s², 5 s); an IMU held in a hand moves faster and more briefly. With
     ``speed_sigma_mps`` the base's speed is bounded too (a hand's, not a chair's that may
     cruise for minutes): the acceleration is then a velocity's derivative, with that spread
-    (:attr:`fusion.tracking.settings.TrackerSettings.base_speed_sigma_mps`)."""
+    (:attr:`armfusion.fusion.tracking.settings.TrackerSettings.base_speed_sigma_mps`)."""
 
     accel_sigma_mps2: float
     accel_tau_s: float
@@ -191,11 +190,11 @@ class BaseMotion:
     pivot_sigma_m: float | None = None
     """Where the base turns about a point off its origin (a hand about its wrist), the
     prior spread of the origin's offset from it, m per axis
-    (:attr:`fusion.tracking.settings.TrackerSettings.base_pivot_sigma_m`); None: no pivot."""
+    (:attr:`armfusion.fusion.tracking.settings.TrackerSettings.base_pivot_sigma_m`); None: no pivot."""
     turns_about: str = "vertical"
     """``vertical``: the base turns about its vertical (a chair), and the gyro's scale error
     that matters is its vertical axis's; ``any``: it turns about every axis (a hand), and
-    every axis's does (:attr:`fusion.tracking.settings.TrackerSettings.base_turns_about_any`)."""
+    every axis's does (:attr:`armfusion.fusion.tracking.settings.TrackerSettings.base_turns_about_any`)."""
 
 
 @dataclass(frozen=True)
@@ -203,7 +202,7 @@ class FixedBase:
     """An arm bolted down (the config's ``base: fixed``): its base does not move. Its tilt
     (roll, pitch, rad) where an installer's level gave it; None: level, the link
     accelerometers reading the rest as the arm moves. ``tilt_sigma_rad``: the tilt's 1 sigma
-    either way (the startup's level-base prior, :func:`fusion.startup.problem.make_problem`)."""
+    either way (the startup's level-base prior, :func:`armfusion.fusion.startup.problem.make_problem`)."""
 
     roll_rad: float | None = None
     pitch_rad: float | None = None
@@ -230,7 +229,7 @@ class ArmModel:
     """Where the arm's base origin sits from the point its wheelchair turns about (the
     mid-point of the drive wheels' axle), chair axes, m (the config's ``chair:`` block).
     The tracker then predicts what the chair's rotation adds to the base's acceleration
-    (:mod:`fusion.tracking.frame_kernels`); the simulator's chair turns about it. None: not
+    (:mod:`armfusion.fusion.tracking.frame_kernels`); the simulator's chair turns about it. None: not
     given (the tracker's acceleration state carries that part too)."""
     fixed_base: FixedBase | None = None
     """The config's ``base: fixed`` (a bolted base: no base motion, its tilt given or read

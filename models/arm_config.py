@@ -1,7 +1,7 @@
 """Arm config schema and validation: a parsed YAML mapping in, an :class:`ArmModel` out.
 
 Validation runs once, here, and reports every problem together, each naming the file,
-the key and the bad value. File reading lives in ``fusion.configfile`` (models do no I/O).
+the key and the bad value. File reading lives in ``armfusion.fusion.configfile`` (models do no I/O).
 
 Units are in the key names: ``_deg``, ``_mm``. Inside the model everything is SI.
 """
@@ -12,18 +12,7 @@ from dataclasses import dataclass, replace
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    StrictBool,
-    StrictInt,
-    ValidationError,
-    field_validator,
-    model_validator,
-)
-
-from models.arm import (
+from armfusion.models.arm import (
     ArmCalibration,
     ArmModel,
     BaseMotion,
@@ -35,9 +24,19 @@ from models.arm import (
     SensorMount,
     joints_from_dh,
 )
-from models.rotations import DEG, rotation_problem
-from models.sensor_description import DEVICE_TYPES, SensorDescription, describe, unmodelled_floor
-from sensors.samples import IMU_STREAMS, LINK_GYRO_SUFFIX, clipped_repr
+from armfusion.models.rotations import DEG, rotation_problem
+from armfusion.models.sensor_description import DEVICE_TYPES, SensorDescription, describe, unmodelled_floor
+from armfusion.sensors.samples import IMU_STREAMS, LINK_GYRO_SUFFIX, clipped_repr
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictInt,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 MAX_LENGTH_MM = 100_000.0
 """A length of the arm or a sensor's position is below 100 m (any arm a chair carries is
@@ -48,9 +47,9 @@ COUNTS_PER_REV_RANGE = (1.0, 2.0**32)
 """An encoder counts at least once and at most 2^32 times a turn (a 32-bit counter's
 revolution; the finest rotary encoders count 2^29)."""
 FEED_COUNTS = 2**31 - 1
-"""Counts the encoder feed holds either way (``sensors.encoders``: int32 per joint)."""
+"""Counts the encoder feed holds either way (``armfusion.sensors.encoders``: int32 per joint)."""
 STREAM_NAMES_TAKEN = frozenset({"t", "enc", "true_q", "true_base", *IMU_STREAMS})
-"""Names of a recording's own streams and columns (:mod:`sensors.samples`): no sensor may
+"""Names of a recording's own streams and columns (:mod:`armfusion.sensors.samples`): no sensor may
 take one (its stream would be another's)."""
 
 
@@ -176,7 +175,7 @@ class SensorSection(_Strict):
     """Device settings (an analog_triax's volts per unit and ADC)."""
     outputs: dict[str, dict[str, Any]] | None = None
     """Per part (accelerometer, gyroscope, magnetometer, temperature), how its values arrive
-    where they differ from the device's datasheet (:mod:`models.sensor_description`)."""
+    where they differ from the device's datasheet (:mod:`armfusion.models.sensor_description`)."""
 
     @field_validator("type")
     @classmethod
@@ -725,7 +724,7 @@ LEVEL_AS_BUILT_SIGMA_DEG = 1.0
 
 def _default_floors(section: CalibrationSection, sensors: tuple[SensorMount, ...]) -> tuple[dict, dict]:
     """The unmodelled-error floors the block does not give, each sensor's datasheet-typical
-    one (:data:`models.sensor_description.UNMODELLED_FLOOR`): ``({key: value}, {key: where
+    one (:data:`armfusion.models.sensor_description.UNMODELLED_FLOOR`): ``({key: value}, {key: where
     from})``, keys a link accelerometer's name, ``imu_acc``, ``imu_mag``. A floor the block
     gives, even 0 (sensors as exact as modelled), is never replaced."""
     values: dict[str, float] = {}

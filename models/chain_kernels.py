@@ -13,12 +13,12 @@ Three equations, each written once here for ONE instant and called by every path
 - :func:`sensor_one`, a sensor on link k at ``p_LS`` turned by ``R_LS``: ``r = R_0k p_LS``,
   ``R_0S = R_0k R_LS``, ``p_0S = p_k + r``, its point's velocity and acceleration by the
   lever-arm rule above, and the angular velocity in its own axes ``R_0S^T ω_k``; what an
-  ideal accelerometer there reads is :func:`models.sensor_kernels.specific_force_one`.
+  ideal accelerometer there reads is :func:`armfusion.models.sensor_kernels.specific_force_one`.
 
 The batch functions (:func:`chain_poses_batch`, :func:`link_motion_batch`,
 :func:`sensor_motion_batch`, :func:`sensor_poses_batch`) loop over N instants calling the
-one-instant forms; :mod:`models.kinematics` and :mod:`models.motion` wrap them in their
-NumPy-facing records, and the tracker's live frame (:func:`fusion.tracking.frame_kernels.frame_one`)
+one-instant forms; :mod:`armfusion.models.kinematics` and :mod:`armfusion.models.motion` wrap them in their
+NumPy-facing records, and the tracker's live frame (:func:`armfusion.fusion.tracking.frame_kernels.frame_one`)
 calls the one-instant forms inside its own compiled loop. A new joint or mount effect on
 the geometry is written here, once.
 
@@ -33,11 +33,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import exp_so3_into
+from armfusion.models.sensor_kernels import specific_force_one, to_sensor_axes
 from numba import njit
-
-from models.arm import ArmModel
-from models.rotations import exp_so3_into
-from models.sensor_kernels import specific_force_one, to_sensor_axes
 
 _exp_so3_into = njit(cache=True, nogil=True, inline="always")(exp_so3_into)
 
@@ -153,7 +152,7 @@ def pose_one(q, chain, axis_is_z, R_0L, p_0L, axes, origin):  # pragma: no cover
                 R[r, 0] = ct * T[r, 0] + st * T[r, 1]
                 R[r, 1] = ct * T[r, 1] - st * T[r, 0]
                 R[r, 2] = T[r, 2]
-        else:  # T exp([v]x), v = axis theta (models.rotations.exp_so3)
+        else:  # T exp([v]x), v = axis theta (armfusion.models.rotations.exp_so3)
             E = np.empty((3, 3))
             _exp_so3_into(a0 * th, a1 * th, a2 * th, E)
             for r in range(3):
@@ -237,7 +236,7 @@ def sensor_one(R_0L, p_0L, om, al, ve, ac, k, mount, R_0S, p_0S, vel, acc, omega
     :func:`pose_one` and :func:`motion_one`'s link arrays: writes ``R_0S (3, 3)``, ``p_0S``,
     its point's velocity ``vel`` and acceleration ``acc`` (without gravity), and its angular
     velocity in its own axes ``omega_S`` (rad/s: what an ideal gyro reads). What an ideal
-    accelerometer there reads is :func:`models.sensor_kernels.specific_force_one` of ``acc``."""
+    accelerometer there reads is :func:`armfusion.models.sensor_kernels.specific_force_one` of ``acc``."""
     r0, r1, r2 = sensor_pose_one(R_0L, p_0L, k, mount, R_0S, p_0S)
     w0, w1, w2 = om[k, 0], om[k, 1], om[k, 2]
     x0, x1, x2, t0, t1, t2, u0, u1, u2 = _lever(w0, w1, w2, al[k, 0], al[k, 1], al[k, 2], r0, r1, r2)
@@ -300,7 +299,7 @@ def sensor_poses_batch(R_0L, p_0L, links, mounts):  # pragma: no cover - compile
 @njit(cache=True, nogil=True)
 def sensor_motion_batch(R_0L, p_0L, om, al, ve, ac, links, mounts, up, g_mps2):  # pragma: no cover
     """:func:`sensor_one` for every instant and sensor, and what an ideal accelerometer there
-    reads (:func:`models.sensor_kernels.specific_force_one`, world-up ``up (N, 3)`` in base
+    reads (:func:`armfusion.models.sensor_kernels.specific_force_one`, world-up ``up (N, 3)`` in base
     axes, m/s²): ``R_0S (N, S, 3, 3)`` and ``p_0S, vel, acc, f, omega_S`` ``(N, S, 3)``."""
     N = R_0L.shape[0]
     S = links.shape[0]

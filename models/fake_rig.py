@@ -1,4 +1,4 @@
-"""The simulator feeding the fake devices: one :class:`~sensors.fakes.physics.PhysicsSource`
+"""The simulator feeding the fake devices: one :class:`~armfusion.sensors.fakes.physics.PhysicsSource`
 per device, from a simulator run.
 
 ``sensors/`` may not import ``models/``, so the bridge lives here, beside the simulator
@@ -19,7 +19,7 @@ the moment the rig powers up; before 0 and after the end the values are held). T
 devices do the rest: scaling to counts, rounding, saturation, their register formats.
 
 Noise: the fakes model ideal parts, so the sensors' white noise (the simulator's
-datasheet rms at the sampling rate, :mod:`models.sensor_models`) is added here, drawn
+datasheet rms at the sampling rate, :mod:`armfusion.models.sensor_models`) is added here, drawn
 per call from a seeded generator per device (``noise=False`` leaves it out).
 
 An ADXL345 whose config sets ``lsb_per_g`` other than the nominal 256 is fed
@@ -34,14 +34,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.effects import Model
-from models.effects.base import device_streams
-from models.sensor_models import ADXL345_LSB_PER_G, EARTH_FIELD_TAMPA_UT, stream_models
-from models.simulator import build_model, truth_document
-from models.trajectories import SCENARIOS, Scenario, make_scenario
-from sensors.samples import TRUTH_BASE_COLUMNS, Stream, truth_joint_columns
+from armfusion.models.arm import ArmModel
+from armfusion.models.effects import Model
+from armfusion.models.effects.base import device_streams
+from armfusion.models.sensor_models import ADXL345_LSB_PER_G, EARTH_FIELD_TAMPA_UT, stream_models
+from armfusion.models.simulator import build_model, truth_document
+from armfusion.models.trajectories import SCENARIOS, Scenario, make_scenario
+from armfusion.sensors.samples import TRUTH_BASE_COLUMNS, Stream, truth_joint_columns
 
 FINE_RATE_HZ = 1000.0
 """Rate of the simulator's grid; at 1 kHz linear interpolation is off by < 1e-5 g for
@@ -123,7 +122,7 @@ def simulate_physics(
 ) -> SimulatedRun:
     """The physical values of ``scenario`` on ``arm`` from 0 to ``duration_s`` on a grid at
     ``rate_hz``, with the same scenario, effects and seed semantics as
-    :func:`models.simulator.simulate` (the same seed gives the same motion and arm).
+    :func:`armfusion.models.simulator.simulate` (the same seed gives the same motion and arm).
     ``sample_rate_hz`` (the devices' read rate) sets the noise rms.
     """
     if not duration_s > 0:
@@ -178,7 +177,7 @@ def simulate_physics(
 
 
 class SimulatedPhysics:
-    """One device's :class:`~sensors.fakes.physics.PhysicsSource` from a :class:`SimulatedRun`.
+    """One device's :class:`~armfusion.sensors.fakes.physics.PhysicsSource` from a :class:`SimulatedRun`.
 
     ``device``: a link accelerometer's name, or the IMU's name (then all four quantities
     come from the ``imu_*`` streams). ``epoch_s``: the fakes' clock time of the
@@ -243,7 +242,7 @@ def physics_for(run: SimulatedRun, devices: Iterable[str], epoch_s: float, *, no
 
 
 def encoder_counts_at(run: SimulatedRun, epoch_s: float):
-    """``counts_at(t)`` for :class:`~sensors.encoders.SimulatedEncoderFeed`: the encoders'
+    """``counts_at(t)`` for :class:`~armfusion.sensors.encoders.SimulatedEncoderFeed`: the encoders'
     counts at clock time ``t`` (rounded, as the controller counts them)."""
 
     def counts_at(t_s: float) -> list[int]:

@@ -2,7 +2,7 @@
 with its derivatives, written once.
 
 Only rotations matter to what a still accelerometer reads. With the constant frame changes
-of :class:`models.kinematics.GravityChain` (``C_i``: the previous joint's axis frame to
+of :class:`armfusion.models.kinematics.GravityChain` (``C_i``: the previous joint's axis frame to
 joint i's, before its turn; its axis is z there), going through joint i is ``v <- Rz(q_i +
 offset_i)^T C_i v``, and turning joint i changes ``v`` by ``v x z = [v_y, -v_x, 0]``. Every
 later step is linear in ``v``, so derivative columns are carried by the same steps as ``v``.
@@ -12,8 +12,8 @@ d/d outer_{E-1}]`` (the outer parameters move up itself: the base roll and pitch
 startup solve). :func:`seed_up_and_tilt` starts it from the base tilt, :func:`turn_joint`
 carries it through one joint, and :func:`propagate` runs every joint for a batch of poses.
 
-Called by :class:`models.kinematics.GravityChain` (batched, for NumPy callers) and by the
-startup solve's compiled Levenberg-Marquardt (:mod:`fusion.startup.kernels`), so the two
+Called by :class:`armfusion.models.kinematics.GravityChain` (batched, for NumPy callers) and by the
+startup solve's compiled Levenberg-Marquardt (:mod:`armfusion.fusion.startup.kernels`), so the two
 are one arithmetic. Compiled once per machine and cached next to this file.
 """
 
@@ -22,11 +22,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from armfusion.models.rotations import up_and_tilt_derivatives_into
 from numba import njit
 
-from models.rotations import up_and_tilt_derivatives_into
-
-# models.rotations.up_and_tilt_derivatives_into compiled: the one definition of up's tilt
+# armfusion.models.rotations.up_and_tilt_derivatives_into compiled: the one definition of up's tilt
 # Jacobian, for NumPy and compiled callers alike
 _up_and_tilt_into = njit(cache=True, nogil=True)(up_and_tilt_derivatives_into)
 
@@ -34,7 +33,7 @@ _up_and_tilt_into = njit(cache=True, nogil=True)(up_and_tilt_derivatives_into)
 @njit(cache=True, nogil=True)
 def seed_up_and_tilt(roll_rad, pitch_rad, V):  # pragma: no cover - compiled
     """``V (3, n + 3)`` before the first joint, for a base at (roll, pitch): column 0 up
-    (:func:`models.rotations.up_from_tilt`), the last two its derivatives by roll and by
+    (:func:`armfusion.models.rotations.up_from_tilt`), the last two its derivatives by roll and by
     pitch, every other column zero."""
     w = V.shape[1]
     for a in range(3):

@@ -2,8 +2,8 @@
 
 Every function takes joint angles ``q_rad`` of shape ``(N, n)`` (N samples or sigma
 points; a single pose is N = 1). The chain and the sensors' poses and still readings are
-the compiled one-pose equations of :mod:`models.chain_kernels` and
-:mod:`models.sensor_kernels`, looped over N in compiled code; the rest is NumPy over N.
+the compiled one-pose equations of :mod:`armfusion.models.chain_kernels` and
+:mod:`armfusion.models.sensor_kernels`, looped over N in compiled code; the rest is NumPy over N.
 
 Conventions: frame 0 is the arm base. ``up_0`` is the world "up" direction expressed
 in frame 0 (unit); at rest an accelerometer reads specific force ``f_S = R_0S^T up_0``
@@ -15,12 +15,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.chain_kernels import chain_poses_batch, chain_table, kernel_input, mount_table, sensor_poses_batch
-from models.gravity_kernels import propagate
-from models.rotations import skew
-from models.sensor_kernels import still_readings_batch
+from armfusion.models.arm import ArmModel
+from armfusion.models.chain_kernels import (
+    chain_poses_batch,
+    chain_table,
+    kernel_input,
+    mount_table,
+    sensor_poses_batch,
+)
+from armfusion.models.gravity_kernels import propagate
+from armfusion.models.rotations import skew
+from armfusion.models.sensor_kernels import still_readings_batch
 
 
 @dataclass(frozen=True)
@@ -47,7 +52,7 @@ def _as_q(arm: ArmModel, q_rad: np.ndarray) -> np.ndarray:
 
 def chain_poses(arm: ArmModel, q_rad: np.ndarray) -> ChainPoses:
     """Forward kinematics of every link frame, batched over N poses (the compiled
-    :func:`models.chain_kernels.pose_one` at each pose: its docstring has the equation)."""
+    :func:`armfusion.models.chain_kernels.pose_one` at each pose: its docstring has the equation)."""
     q = kernel_input(_as_q(arm, q_rad))
     return ChainPoses(*chain_poses_batch(q, chain_table(arm), bool(arm.chain.axis_is_z)))
 
@@ -86,7 +91,7 @@ def _mount_arrays(arm: ArmModel, names) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 
 def _mount_table(arm: ArmModel, names, R_LS: np.ndarray, p_LS: np.ndarray) -> np.ndarray:
-    """:func:`models.chain_kernels.mount_table` of the named sensors, made once per arm and
+    """:func:`armfusion.models.chain_kernels.mount_table` of the named sensors, made once per arm and
     name list."""
     cache = arm.__dict__.setdefault("_mount_table_cache", {})
     key = None if names is None else tuple(names)
@@ -114,7 +119,7 @@ def gravity_in_sensors(
     arm: ArmModel, q_rad: np.ndarray, up_0: np.ndarray | None = None, names=None
 ) -> np.ndarray:
     """Static specific force each sensor reads, in g: ``f_S = R_0S^T up_0``, ``(N, S, 3)``
-    (:func:`models.sensor_kernels.still_readings_batch`).
+    (:func:`armfusion.models.sensor_kernels.still_readings_batch`).
 
     ``up_0`` is world-up in the base frame, shape ``(3,)`` or ``(N, 3)``; default level base.
     """
@@ -218,7 +223,7 @@ class GravityChain:
         parameters) through the joints: ``V (N, 3, 1 + n + E - 1)`` before joint 0 (index 0)
         and after each joint i (index i + 1), columns [up, d/dq_0..q_{n-1}, outer]; stacked,
         ``(last + 2, N, 3, n + E)``. ``upto_joint``: stop after that joint (``last``;
-        default the last joint). The compiled core is :func:`models.gravity_kernels.propagate`."""
+        default the last joint). The compiled core is :func:`armfusion.models.gravity_kernels.propagate`."""
         q = np.ascontiguousarray(q_rad, dtype=float)
         last = q.shape[1] - 1 if upto_joint is None else upto_joint
         return propagate(q, np.ascontiguousarray(seed, dtype=float), self.step_in,

@@ -28,17 +28,16 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.chain_kernels import (
+from armfusion.models.arm import ArmModel
+from armfusion.models.chain_kernels import (
     chain_table,
     kernel_input,
     link_motion_batch,
     mount_table,
     sensor_motion_batch,
 )
-from models.kinematics import chain_poses, sensor_indices
-from models.rotations import GRAVITY_MPS2, R_from_rpy, rpy_from_R
+from armfusion.models.kinematics import chain_poses, sensor_indices
+from armfusion.models.rotations import GRAVITY_MPS2, R_from_rpy, rpy_from_R
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -245,7 +244,7 @@ def _as_state(arm: ArmModel, state: MotionState) -> MotionState:
 def link_motion(arm: ArmModel, state: MotionState) -> LinkMotion:
     """Outward recursion: pose, angular velocity and acceleration, and the linear velocity
     and acceleration of every link origin and joint origin, batched over N instants (the
-    compiled :func:`models.chain_kernels.pose_one` and :func:`models.chain_kernels.motion_one`
+    compiled :func:`armfusion.models.chain_kernels.pose_one` and :func:`armfusion.models.chain_kernels.motion_one`
     at each instant).
 
     For joint i with axis z (base axes) at origin o (fixed in link i-1):
@@ -304,8 +303,8 @@ def sensor_motion(
     """Pose, motion and ideal readings of the sensors ``names`` (default: the link
     accelerometers, config order). ``R_LS (S, 3, 3)`` and ``p_LS_m (S, 3)`` override the
     configured mounts (an effect that moves or turns a sensor on its link). The compiled
-    :func:`models.chain_kernels.sensor_one` at each instant and sensor (its docstring and
-    :func:`models.sensor_kernels.specific_force_one` have the equations)."""
+    :func:`armfusion.models.chain_kernels.sensor_one` at each instant and sensor (its docstring and
+    :func:`armfusion.models.sensor_kernels.specific_force_one` have the equations)."""
     lm = link_motion(arm, state) if lm is None else lm
     idx = sensor_indices(arm, names)
     names = tuple(arm.sensors[i].name for i in idx)
@@ -327,7 +326,7 @@ def sensor_motion(
 def specific_force(arm: ArmModel, state: MotionState, names=None) -> np.ndarray:
     """What ideal accelerometers read, in g, ``(N, S, 3)``, motion included.
 
-    For a state at rest this equals :func:`models.kinematics.gravity_in_sensors`.
+    For a state at rest this equals :func:`armfusion.models.kinematics.gravity_in_sensors`.
     """
     return sensor_motion(arm, state, names).specific_force_g
 
@@ -347,7 +346,7 @@ def specific_force_jacobian(
         da_P/dq_j = ω̇_j x (z x r) + ω_j x (ω_j x (z x r)) + 2 ω_j x (z x v_rel) + z x a_rel
         df/dq_j   = R_0S^T (da_P/dq_j - z x (a_P + g·up_0)) / g
 
-    which reduces to :func:`models.kinematics.gravity_jacobian` at rest.
+    which reduces to :func:`armfusion.models.kinematics.gravity_jacobian` at rest.
     """
     lm = link_motion(arm, state) if lm is None else lm
     sm = sensor_motion(arm, state, names, lm=lm) if sm is None else sm

@@ -21,7 +21,7 @@ def wrap_angle(a):
     maps to -pi). A float, a NumPy scalar or an array; the same type comes back.
 
     Plain arithmetic only, so that numba compiles this same function for its kernels
-    (``fusion.tracking.ukf_kernels`` does): one definition for NumPy and compiled code alike.
+    (``armfusion.fusion.tracking.ukf_kernels`` does): one definition for NumPy and compiled code alike.
     """
     return (a + np.pi) % TWO_PI - np.pi
 
@@ -78,7 +78,7 @@ def skew_into(x: float, y: float, z: float, K: np.ndarray) -> None:
     """:func:`skew` of one vector ``(x, y, z)`` written into ``K (3, 3)``.
 
     Scalar arithmetic only, so that numba compiles this same function for its kernels
-    (``fusion.tracking.frame_kernels`` does).
+    (``armfusion.fusion.tracking.frame_kernels`` does).
     """
     K[0, 0], K[0, 1], K[0, 2] = 0.0, -z, y
     K[1, 0], K[1, 1], K[1, 2] = z, 0.0, -x
@@ -91,7 +91,7 @@ def exp_so3_into(x: float, y: float, z: float, E: np.ndarray) -> None:
     1e-8 rad), so that the compiled chain equals :func:`exp_so3` to the bit.
 
     Scalar arithmetic only, so that numba compiles this same function for its kernels
-    (``models.chain_kernels`` does). :func:`exp_so3_one` is the faster plain-Python form
+    (``armfusion.models.chain_kernels`` does). :func:`exp_so3_one` is the faster plain-Python form
     for one vector, which rounds differently.
     """
     ang = math.sqrt(x * x + y * y + z * z)
@@ -135,7 +135,7 @@ def R_from_rpy(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
 def R_from_rpy_into(roll_rad: float, pitch_rad: float, yaw_rad: float, R: np.ndarray) -> None:
     """:func:`R_from_rpy` of one attitude written into ``R (3, 3)``, its product multiplied
     out. Scalar arithmetic only, so that numba compiles this same function for its kernels
-    (``fusion.tracking.tracker_kernels`` does)."""
+    (``armfusion.fusion.tracking.tracker_kernels`` does)."""
     sr, cr = math.sin(roll_rad), math.cos(roll_rad)
     sp, cp = math.sin(pitch_rad), math.cos(pitch_rad)
     sy, cy = math.sin(yaw_rad), math.cos(yaw_rad)
@@ -172,7 +172,7 @@ def up_from_sines(sin_roll, cos_roll, sin_pitch, cos_pitch):
     ``(-sp, sr cp, cr cp)``, three floats or three arrays.
 
     Plain arithmetic, so that numba compiles this same function for its kernels
-    (``models.sensor_kernels``, ``models.gravity_kernels``): up is written once.
+    (``armfusion.models.sensor_kernels``, ``armfusion.models.gravity_kernels``): up is written once.
     """
     return -sin_pitch, sin_roll * cos_pitch, cos_roll * cos_pitch
 
@@ -183,7 +183,7 @@ def up_and_tilt_derivatives_into(roll_rad: float, pitch_rad: float, V: np.ndarra
     written into the columns ``col_up``, ``col_roll``, ``col_pitch`` of ``V (3, w)``.
 
     Scalar arithmetic only, so that numba compiles this same function for its kernels
-    (``models.gravity_kernels`` does): the compiled form of up and its tilt Jacobian.
+    (``armfusion.models.gravity_kernels`` does): the compiled form of up and its tilt Jacobian.
     """
     sr, cr = math.sin(roll_rad), math.cos(roll_rad)
     sp, cp = math.sin(pitch_rad), math.cos(pitch_rad)

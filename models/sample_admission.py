@@ -1,8 +1,8 @@
 """The one admission of raw samples, at every door: a recording file read by a command, an
-import, a batch over the wire (``fusion.service.admission``). The rules that need no config
+import, a batch over the wire (``armfusion.fusion.service.admission``). The rules that need no config
 (a finite time within any clock's reach, values within the feed's 32-bit range) are
-:mod:`sensors.sample_checks`; here the one that needs the sensor's description: every value
-within the range its device can deliver (:attr:`models.sensor_models.StreamModel.admissible_range`:
+:mod:`armfusion.sensors.sample_checks`; here the one that needs the sensor's description: every value
+within the range its device can deliver (:attr:`armfusion.models.sensor_models.StreamModel.admissible_range`:
 the register's limits of the config's description, or the feed's range for a stream without
 them, the encoders).
 
@@ -10,11 +10,11 @@ The encoders' counts are relative, so their range says little: a spike, a sample
 a joint further than any joint turns since the one before (:data:`SPIKE_RATE_RAD_S`, plus
 :data:`JUMP_SLACK_RAD`) with the next sample moving it back, is refused too
 (:func:`encoder_jump_problem`; the wire, which cannot wait for the next sample, refuses
-every such step: ``fusion.service.admission``).
+every such step: ``armfusion.fusion.service.admission``).
 
 A value *at* a limit is saturated, not refused (:meth:`StreamModel.saturated`: the commands
 leave such samples out); a value *past* it cannot come from the sensor, so the sample is
-refused, said in the same words wherever it came in (:func:`sensors.sample_checks.range_words`).
+refused, said in the same words wherever it came in (:func:`armfusion.sensors.sample_checks.range_words`).
 """
 
 from __future__ import annotations
@@ -24,11 +24,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.sensor_models import ENCODER_STREAM, StreamModel, stream_models
-from sensors.sample_checks import SampleProblem, feed_problems, range_problem, sample_place
-from sensors.samples import Recording, Stream
+from armfusion.models.arm import ArmModel
+from armfusion.models.sensor_models import ENCODER_STREAM, StreamModel, stream_models
+from armfusion.sensors.sample_checks import SampleProblem, feed_problems, range_problem, sample_place
+from armfusion.sensors.samples import Recording, Stream
 
 MAX_JOINT_RATE_RAD_S = 3.0
 """The fastest a joint turns (the WMRA's joints at most about 1 rad/s; a margin of three)."""
@@ -87,7 +86,7 @@ def stream_problem(model: StreamModel, stream: Stream) -> SampleProblem | None:
 
 def admission_problems(arm: ArmModel, rec: Recording) -> list[SampleProblem]:
     """Every stream's first refused sample: the config-free rules
-    (:func:`sensors.sample_checks.feed_problems`), then each config sensor's range and the
+    (:func:`armfusion.sensors.sample_checks.feed_problems`), then each config sensor's range and the
     encoders' jumps; streams the config does not describe (truth, other sensors) meet the
     first only."""
     out = feed_problems(rec)
@@ -144,7 +143,7 @@ def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: 
     them and ``needed_by``), :class:`OutOfRangeError` at the first value past its device's
     range (:attr:`StreamModel.admissible_range`: the encoders' is the feed's int32), naming
     the place in the file, the channel, the value and the time in the words the fusion node
-    uses (:func:`sensors.sample_checks.range_words`), and likewise at the first encoder jump
+    uses (:func:`armfusion.sensors.sample_checks.range_words`), and likewise at the first encoder jump
     (:func:`encoder_jump_problem`); otherwise it counts the
     saturated samples per stream (:meth:`StreamModel.saturated`), which the commands leave out.
     Streams the config does not describe (truth, unknown sensors) are not looked at.

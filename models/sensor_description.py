@@ -7,7 +7,7 @@ MPU-9150, MPU-6050, an analog triaxial accelerometer through an ADC), which its
 ``outputs`` may override part by part (a logger that stored the MPU-6050's values in g
 rounded to 0.01, a gyro set to ±1000 °/s), or ``custom``, described wholly by ``kind`` and
 ``outputs``. Everything downstream works from these descriptions: the count models of
-:mod:`models.sensor_models` (gain, zero, noise, range, resolution), hence the simulator,
+:mod:`armfusion.models.sensor_models` (gain, zero, noise, range, resolution), hence the simulator,
 the startup, the identification, the tracker and the workbench.
 
 Kinds: ``accelerometer`` (one part, ``accelerometer``), ``gyroscope``, ``magnetometer``,
@@ -19,7 +19,7 @@ accelerometer (stream ``<name>``) and its gyroscope a link gyroscope (``<name>_g
 A part's numbers, with the units they are in:
 
 - ``units``: of the delivered values: ``counts`` (register counts) or a unit of the part's
-  quantity (:mod:`sensors.units`: ``g``, ``m/s^2``, ``deg/s``, ``rad/s``, ``uT``…);
+  quantity (:mod:`armfusion.sensors.units`: ``g``, ``m/s^2``, ``deg/s``, ``rad/s``, ``uT``…);
 - ``scale`` (counts per ``scale_unit``, for counts only) and ``zero`` (the delivered value
   at zero, in the delivered units);
 - ``range``: ± full scale in the datasheet unit (``g``, ``deg/s``, ``uT``, ``degC``); or
@@ -46,8 +46,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-
-from sensors.units import COUNTS, UnitError, canonical_unit_name, factor, quantity_of
+from armfusion.sensors.units import COUNTS, UnitError, canonical_unit_name, factor, quantity_of
 
 KINDS: dict[str, tuple[str, ...]] = {
     # kind: (parts it must have, ...) ; optional parts are listed in OPTIONAL_PARTS
@@ -264,7 +263,7 @@ UNMODELLED_FLOOR: dict[str, dict[str, float]] = {
 """Per device and part, the error its model leaves when nothing of it is calibrated, 1 sigma
 per axis, in the part's datasheet unit (g, µT): the unmodelled-error floor the startup and
 the tracker take where the config's ``calibration:`` block gives none
-(:func:`models.arm_config` fills it in; ``docs/config.md``, *Unmodelled-error floors*)."""
+(:func:`armfusion.models.arm_config` fills it in; ``docs/config.md``, *Unmodelled-error floors*)."""
 
 
 def unmodelled_floor(device: str, part: str) -> float:

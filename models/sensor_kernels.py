@@ -4,19 +4,19 @@
   ``a`` (base axes, m/s², gravity not included) in a base whose world-up is ``up`` (base
   axes, unit) reads the specific force ``f = R_0S^T (a + g up)`` in its own axes: gravity
   plus motion (:func:`gravity_plus`), turned into the sensor's axes (:func:`to_sensor_axes`).
-  The batch model (:func:`models.motion.sensor_motion`, through
-  :func:`models.chain_kernels.sensor_one`) and the tracker's measurement model
-  (:func:`fusion.tracking.tracker_kernels.measurement_points`, which turns the sum by each
+  The batch model (:func:`armfusion.models.motion.sensor_motion`, through
+  :func:`armfusion.models.chain_kernels.sensor_one`) and the tracker's measurement model
+  (:func:`armfusion.fusion.tracking.tracker_kernels.measurement_points`, which turns the sum by each
   sigma point's joint angles between the two steps) both call these.
 - World-up in the axes of a base at roll and pitch (:func:`tilt_up`, from their sines and
   cosines): ``[-sin p, sin r cos
-  p, cos r cos p]`` (the compiled form of :func:`models.rotations.up_from_tilt`).
+  p, cos r cos p]`` (the compiled form of :func:`armfusion.models.rotations.up_from_tilt`).
 - The compass (:func:`magnetic_heading_one`): the heading of a base at roll and pitch whose
   magnetometer reads ``m`` (base axes) is ``atan2(-h_y, h_x)`` of the de-tilted field ``h =
-  Ry(p) Rx(r) m`` (the compiled form of :func:`fusion.tracking.heading.tilt_compensated_heading`,
+  Ry(p) Rx(r) m`` (the compiled form of :func:`armfusion.fusion.tracking.heading.tilt_compensated_heading`,
   before the declination and the wrap).
-- Still accelerometers (:func:`still_readings_batch`, for :func:`models.kinematics.gravity_in_sensors`
-  and :func:`models.kinematics.gravity_jacobian`): the accelerometer's equation with no
+- Still accelerometers (:func:`still_readings_batch`, for :func:`armfusion.models.kinematics.gravity_in_sensors`
+  and :func:`armfusion.models.kinematics.gravity_jacobian`): the accelerometer's equation with no
   motion, in g.
 
 Everything is plain float arithmetic on three components, inlined into the kernels that
@@ -26,12 +26,11 @@ call it. Compiled once per machine and cached next to this file (``__pycache__``
 from __future__ import annotations
 
 import numpy as np
+from armfusion.models.rotations import up_from_sines
 from numba import njit
 
-from models.rotations import up_from_sines
-
 # World-up in base axes from the sines and cosines of roll and pitch: the equation of
-# models.rotations.up_from_tilt, compiled.
+# armfusion.models.rotations.up_from_tilt, compiled.
 tilt_up = njit(cache=True, nogil=True, inline="always")(up_from_sines)
 
 
@@ -59,7 +58,7 @@ def specific_force_one(R_0S, a0, a1, a2, u0, u1, u2, g_mps2):  # pragma: no cove
 def magnetic_heading(m0, m1, m2, sr, cr, sp, cp):
     """Magnetic heading (rad, in [-pi, pi]) of a base at roll r and pitch p (``sin r, cos r,
     sin p, cos p``) whose magnetometer reads ``m`` (base axes): ``atan2(-h_y, h_x)``, ``h =
-    Ry(p) Rx(r) m``. Plain arithmetic: floats or arrays alike (``fusion.tracking.heading``
+    Ry(p) Rx(r) m``. Plain arithmetic: floats or arrays alike (``armfusion.fusion.tracking.heading``
     calls it batched), and compiled below as :func:`magnetic_heading_one`."""
     y1 = cr * m1 - sr * m2
     hx = cp * m0 + sp * (sr * m1 + cr * m2)

@@ -5,13 +5,13 @@ sensor's own axes (specific force in g, angular rate in rad/s, magnetic field in
 temperature in °C, joint angle in rad) becomes register counts by a nominal gain and
 zero, then (only when simulating) noise, rounding and saturation. Everything that makes
 a real sensor differ from its datasheet (bias, scale, axis directions, drift…) is an
-effect (:mod:`models.effects`), applied to the physical value before this step, so that
+effect (:mod:`armfusion.models.effects`), applied to the physical value before this step, so that
 it stays estimable. The physical values themselves are what ideal sensors read
-(:func:`models.motion.sensor_motion`): the accelerometer's specific force and the compass's
-heading are written once, compiled, in :mod:`models.sensor_kernels`.
+(:func:`armfusion.models.motion.sensor_motion`): the accelerometer's specific force and the compass's
+heading are written once, compiled, in :mod:`armfusion.models.sensor_kernels`.
 
-Streams and their models (names as in :mod:`sensors.samples`), each made from its
-sensor's description (:mod:`models.sensor_description`: the datasheet's, or the config's
+Streams and their models (names as in :mod:`armfusion.sensors.samples`), each made from its
+sensor's description (:mod:`armfusion.models.sensor_description`: the datasheet's, or the config's
 ``outputs``):
 
 =================  ======================================================================
@@ -40,9 +40,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from models.arm import ArmModel, SensorMount
-from models.sensor_description import (  # noqa: F401  (the datasheet numbers, re-exported)
+from armfusion.models.arm import ArmModel, SensorMount
+from armfusion.models.sensor_description import (  # noqa: F401  (the datasheet numbers, re-exported)
     ADXL345_LSB_PER_G,
     ADXL345_NOISE_LSB_RMS_AT_100HZ,
     AK8975_NOISE_UT_RMS,
@@ -54,8 +53,8 @@ from models.sensor_description import (  # noqa: F401  (the datasheet numbers, r
     MPU9150_TEMP_LSB_PER_C,
     MPU9150_TEMP_OFFSET_C,
 )
-from sensors.sample_checks import FEED_MAX, FEED_MIN
-from sensors.samples import (
+from armfusion.sensors.sample_checks import FEED_MAX, FEED_MIN
+from armfusion.sensors.samples import (
     IMU_STREAMS,
     Recording,
     accel_columns,
@@ -80,7 +79,7 @@ class StreamModel:
 
     ``gain`` and ``zero`` are per channel; ``noise_counts_rms`` is per channel at the
     stream's rate; ``counts_min``/``counts_max`` the register limits (None: unbounded).
-    ``value_unit`` is the unit of the recorded values (:mod:`sensors.units`): ``counts``
+    ``value_unit`` is the unit of the recorded values (:mod:`armfusion.sensors.units`): ``counts``
     (register counts, whole numbers) or a physical unit, when the sensor delivers values
     already converted (then ``gain`` converts ``unit`` to it, and "counts" in the names
     here mean the recorded values); ``step`` is their resolution (1 for counts; 0.01 for
@@ -133,7 +132,7 @@ class StreamModel:
 
     @property
     def admissible_range(self) -> tuple[float, float]:
-        """The values the stream may hold (:mod:`models.sample_admission`): the register
+        """The values the stream may hold (:mod:`armfusion.models.sample_admission`): the register
         limits, or for a stream without them (the encoders) the feed's int32."""
         return (FEED_MIN if self.counts_min is None else self.counts_min,
                 FEED_MAX if self.counts_max is None else self.counts_max)
@@ -176,7 +175,7 @@ def part_stream(stream: str, kind: str, sensor: SensorMount, channels: tuple[str
 def stream_models(arm: ArmModel, rate_hz: float | dict[str, float] = 100.0) -> dict[str, StreamModel]:
     """The count model of every raw stream the arm's sensors produce, config order: each
     link accelerometer (and a link's gyroscope, ``<name>_gyro``), the base IMU's parts,
-    the encoders. Made from the sensors' descriptions (:mod:`models.sensor_description`).
+    the encoders. Made from the sensors' descriptions (:mod:`armfusion.models.sensor_description`).
 
     ``rate_hz`` sets the noise (a number for all streams, or per stream name).
     """

@@ -1,6 +1,6 @@
 """The simulator: a scenario plus a model with effects becomes a recording of raw counts.
 
-``simulate(arm, scenario, …)`` returns a :class:`~sensors.samples.Recording` (every raw
+``simulate(arm, scenario, …)`` returns a :class:`~armfusion.sensors.samples.Recording` (every raw
 stream as the devices would give it, plus the ground-truth streams ``true_q`` and
 ``true_base``) and a JSON-ready truth dict (every effect's true parameters as config
 entries, the scenario's events, the settings). It does no I/O: ``armfusion simulate``
@@ -8,7 +8,7 @@ entries, the scenario's events, the settings). It does no I/O: ``armfusion simul
 
 The chain per device, per chunk of samples (no loop per sample):
 
-1. the scenario's exact :class:`~models.motion.MotionState` at the sample instants;
+1. the scenario's exact :class:`~armfusion.models.motion.MotionState` at the sample instants;
 2. the model's prediction in float counts (every effect but the time offsets);
 3. a device with a time offset is read ``offset`` earlier, by 4-point cubic
    interpolation along time (its error at 100 Hz is ~1e-7 g);
@@ -26,14 +26,19 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.effects import Model, all_effects, entries_from_model, model_from_entries, realistic_values
-from models.effects.base import device_names, device_streams
-from models.rotations import GRAVITY_MPS2
-from models.sensor_models import EARTH_FIELD_TAMPA_UT, stream_models
-from models.trajectories import SCENARIOS, Scenario, make_scenario
-from sensors.samples import (
+from armfusion.models.arm import ArmModel
+from armfusion.models.effects import (
+    Model,
+    all_effects,
+    entries_from_model,
+    model_from_entries,
+    realistic_values,
+)
+from armfusion.models.effects.base import device_names, device_streams
+from armfusion.models.rotations import GRAVITY_MPS2
+from armfusion.models.sensor_models import EARTH_FIELD_TAMPA_UT, stream_models
+from armfusion.models.trajectories import SCENARIOS, Scenario, make_scenario
+from armfusion.sensors.samples import (
     TRUTH_BASE_COLUMNS,
     Recording,
     Stream,

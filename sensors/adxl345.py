@@ -1,6 +1,6 @@
 """ADXL345 3-axis accelerometer over I2C (smbus2) or 4-wire SPI (spidev).
 
-One driver, two transports (:mod:`sensors.bus`). It returns raw counts exactly as
+One driver, two transports (:mod:`armfusion.sensors.bus`). It returns raw counts exactly as
 the device gives them, stamped with the host's monotonic clock; conversion to g
 is a model step (the only place this module uses g is the self-test limits).
 
@@ -36,8 +36,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
-from sensors.bus import (
+from armfusion.sensors.bus import (
     DEFAULT_RECOVERY,
     DEFAULT_RETRY,
     BusError,
@@ -52,8 +51,8 @@ from sensors.bus import (
     Status,
     s16_le,
 )
-from sensors.device import SupervisedDevice, check_identity, check_read_back
-from sensors.samples import Stream, accel_columns
+from armfusion.sensors.device import SupervisedDevice, check_identity, check_read_back
+from armfusion.sensors.samples import Stream, accel_columns
 
 # registers
 DEVID = 0x00

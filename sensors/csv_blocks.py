@@ -22,8 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from sensors.samples import RecordingError, clipped_repr
+from armfusion.sensors.samples import RecordingError, clipped_repr
 
 BLOCK_ROWS = 65536  # rows parsed per np.loadtxt call at most (and written per write)
 _BLOCK_CELLS = 1 << 19  # and cells: a block's parse takes ~ 100 B a cell (~50 MB)

@@ -11,7 +11,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from sensors.samples import (
+from armfusion.sensors.samples import (
     IMU_STREAMS,
     LINK_GYRO_SUFFIX,
     TRUTH_BASE_COLUMNS,

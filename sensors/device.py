@@ -1,5 +1,5 @@
-"""What the register-level drivers (:mod:`sensors.adxl345`, :mod:`sensors.mpu9150`) share:
-a device behind a :class:`~sensors.bus.Supervisor` (retries, counters, online or
+"""What the register-level drivers (:mod:`armfusion.sensors.adxl345`, :mod:`armfusion.sensors.mpu9150`) share:
+a device behind a :class:`~armfusion.sensors.bus.Supervisor` (retries, counters, online or
 offline) that is brought back by re-initialising it when the supervisor says it is due,
 and the two checks of an ``init``: the part answers with its identity register, and the
 configuration reads back as written. Each failure is one line naming the part and where
@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Self
 
-from sensors.bus import (
+from armfusion.sensors.bus import (
     DEFAULT_RECOVERY,
     DEFAULT_RETRY,
     BusError,
@@ -30,7 +30,7 @@ from sensors.bus import (
 
 
 class SupervisedDevice:
-    """A driver of one device on ``transport``: its :class:`~sensors.bus.Supervisor`, its
+    """A driver of one device on ``transport``: its :class:`~armfusion.sensors.bus.Supervisor`, its
     health, ``with`` support, and re-initialisation when it went offline (a subclass
     writes :meth:`init`).
 
@@ -110,7 +110,7 @@ class SupervisedDevice:
 
 def check_identity(sup: Supervisor, transport: RegisterTransport, part: str, register: int,
                    register_name: str, expected: int, hint: str = "") -> None:
-    """Raise :class:`~sensors.bus.DeviceNotFoundError` unless the identity register reads
+    """Raise :class:`~armfusion.sensors.bus.DeviceNotFoundError` unless the identity register reads
     ``expected`` (``hint``: what to check, after the message)."""
     try:
         got = sup.call(transport.read, register, 1)[0]
@@ -124,7 +124,7 @@ def check_identity(sup: Supervisor, transport: RegisterTransport, part: str, reg
 
 
 def check_read_back(part: str, where: str, registers: Iterable[tuple[int, str, int, int]]) -> None:
-    """Raise :class:`~sensors.bus.DeviceConfigError` at the first register of
+    """Raise :class:`~armfusion.sensors.bus.DeviceConfigError` at the first register of
     ``(register, name, written, read back)`` that did not take its value."""
     for reg, name, want, got in registers:
         if want != got:

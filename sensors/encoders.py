@@ -37,8 +37,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-
-from sensors.samples import Stream, encoder_columns
+from armfusion.sensors.samples import Stream, encoder_columns
 
 MAGIC = b"AFEN"
 VERSION = 1

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sensors.samples import RAW_KINDS, TRUTH_KINDS
+from armfusion.sensors.samples import RAW_KINDS, TRUTH_KINDS
 
 MAGIC = b"\x89MCAP0\r\n"
 METADATA_NAME = "armfusion"

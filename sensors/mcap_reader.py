@@ -21,13 +21,19 @@ from typing import Any
 import lz4.frame
 import numpy as np
 import zstandard
+from armfusion.sensors.mcap_format import (
+    KIND_DOC,
+    MAGIC,
+    METADATA_NAME,
+    RAW_PREFIX,
+    READ_FORMAT_VERSIONS,
+    TRUTH_PREFIX,
+)
+from armfusion.sensors.sample_checks import MCAP_TOPICS
+from armfusion.sensors.samples import RAW_KINDS, Recording, RecordingError, Stream, clipped_repr
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Metadata
-
-from sensors.mcap_format import KIND_DOC, MAGIC, METADATA_NAME, RAW_PREFIX, READ_FORMAT_VERSIONS, TRUTH_PREFIX
-from sensors.sample_checks import MCAP_TOPICS
-from sensors.samples import RAW_KINDS, Recording, RecordingError, Stream, clipped_repr
 
 
 @dataclass(frozen=True)
@@ -141,7 +147,7 @@ def read_mcap(path: str | Path) -> tuple[Recording, ReadReport]:
     raises ``ValueError`` naming the path. Topics other than ``raw/*`` and
     ``truth/*`` are counted in the report but not returned; a ``raw/*`` or ``truth/*`` topic
     of an unknown kind or without metadata, and messages on an undeclared channel, are named
-    in the report's ``left_out`` (:func:`sensors.recording.read_recording` warns with them).
+    in the report's ``left_out`` (:func:`armfusion.sensors.recording.read_recording` warns with them).
     """
     with _gc_paused():
         return _read_mcap(Path(path))

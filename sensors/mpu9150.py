@@ -43,8 +43,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
-from sensors.bus import (
+from armfusion.sensors.bus import (
     DEFAULT_RECOVERY,
     DEFAULT_RETRY,
     BusError,
@@ -61,8 +60,8 @@ from sensors.bus import (
     s16_be,
     s16_le,
 )
-from sensors.device import SupervisedDevice, check_identity, check_read_back
-from sensors.samples import IMU_STREAMS, Stream
+from armfusion.sensors.device import SupervisedDevice, check_identity, check_read_back
+from armfusion.sensors.samples import IMU_STREAMS, Stream
 
 # MPU-9150 registers
 SMPLRT_DIV = 0x19
@@ -425,7 +424,7 @@ class MPU9150(SupervisedDevice):
 
 
 def imu_streams(samples: Sequence[ImuSample]) -> dict[str, Stream]:
-    """The valid parts of IMU samples as the raw streams of ``sensors.samples``."""
+    """The valid parts of IMU samples as the raw streams of ``armfusion.sensors.samples``."""
     good = [s for s in samples if s.valid]
     mags = [s for s in samples if s.mag_valid]
     t = np.array([s.t_s for s in good], dtype=np.float64)

@@ -6,10 +6,10 @@ import stat
 import warnings
 from pathlib import Path
 
-from sensors.recording_csv import RecordingWarning, read_csv, write_csv
-from sensors.recording_mcap import read_mcap, write_mcap
-from sensors.sample_checks import feed_problems, sample_place
-from sensors.samples import Recording, RecordingError
+from armfusion.sensors.recording_csv import RecordingWarning, read_csv, write_csv
+from armfusion.sensors.recording_mcap import read_mcap, write_mcap
+from armfusion.sensors.sample_checks import feed_problems, sample_place
+from armfusion.sensors.samples import Recording, RecordingError
 
 __all__ = ["SUFFIXES", "RecordingError", "RecordingWarning", "read_recording", "write_recording"]
 
@@ -30,9 +30,9 @@ def read_recording(path: str | Path) -> Recording:
     """Read a ``.csv`` or ``.mcap`` recording.
 
     A file that is not a readable recording raises
-    :class:`~sensors.samples.RecordingError` (a ``ValueError``) naming the place; so does
+    :class:`~armfusion.sensors.samples.RecordingError` (a ``ValueError``) naming the place; so does
     one holding a sample the rules every door applies refuse (:func:`refuse_bad_samples`).
-    For MCAP the :class:`~sensors.recording_mcap.ReadReport` is in
+    For MCAP the :class:`~armfusion.sensors.recording_mcap.ReadReport` is in
     ``rec.meta["read_report"]``, and a :class:`RecordingWarning` says what was lost
     when the file ends early or is damaged, and another naming the sample topics left out
     (an unknown kind, no metadata).
@@ -57,7 +57,7 @@ def read_recording(path: str | Path) -> Recording:
 
 def refuse_bad_samples(rec: Recording, path: str | Path) -> None:
     """Raise :class:`RecordingError` at the first sample of ``rec`` the config-free rules
-    refuse (:func:`sensors.sample_checks.feed_problems`: a time beyond any clock, a value
+    refuse (:func:`armfusion.sensors.sample_checks.feed_problems`: a time beyond any clock, a value
     beyond the feed's range), naming the file, the place in it and the value."""
     problems = feed_problems(rec)
     if problems:

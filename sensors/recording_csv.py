@@ -5,13 +5,13 @@ sample instant; an empty cell means that sensor was not sampled at that instant.
 The spec's raw columns hold integer counts; this reader is a superset: a raw column may
 also hold finite decimals (a sensor that delivers its values in g or deg/s, the unit its
 sensor description in the config declares), and the stream then holds floats
-(:class:`~sensors.samples.Stream`); ``nan``/``inf`` there is refused.
+(:class:`~armfusion.sensors.samples.Stream`); ``nan``/``inf`` there is refused.
 Each stream takes the rows where *all* of its columns are filled; a row with only
 some of them filled is an error, and so is a row with fewer or more cells than the
 header. One :class:`RecordingWarning` names the sensors left out because only some of
 their columns are there, and the first few unknown columns ignored.
 
-Which columns make which stream (see :mod:`sensors.samples`):
+Which columns make which stream (see :mod:`armfusion.sensors.samples`):
 
 - ``t``: the time of the row in seconds, strictly increasing;
 - ``P_x, P_y, P_z`` for any prefix ``P`` (not ``imu``/``imu_*``/``true_*``): the link
@@ -24,12 +24,12 @@ Which columns make which stream (see :mod:`sensors.samples`):
   true_yaw``: ``true_base``.
 
 Parsing is column-wise with numpy (``np.loadtxt`` on fixed-width byte strings, in
-blocks: :mod:`sensors.csv_blocks`), so a one-hour, 100 Hz, 30-column file reads in a few
-seconds; the columns of each stream are :mod:`sensors.csv_header`.
+blocks: :mod:`armfusion.sensors.csv_blocks`), so a one-hour, 100 Hz, 30-column file reads in a few
+seconds; the columns of each stream are :mod:`armfusion.sensors.csv_header`.
 
 The reader bounds its work (:class:`CsvLimits`: file size, line length, header
 columns, the length of a cell in use; a NUL byte is refused), so that a broken or
-hostile file is refused with a :class:`~sensors.samples.RecordingError` naming the
+hostile file is refused with a :class:`~armfusion.sensors.samples.RecordingError` naming the
 place, within bounded time and memory, as soon as the problem is met
 (``docs/reference/refusals.md``).
 """
@@ -41,12 +41,18 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-
-from sensors.csv_blocks import BLOCK_ROWS, DEFAULT_LIMITS, CsvLimits, parse_rows, read_header, row_error
-from sensors.csv_header import T_COLUMN, csv_columns, first_few, streams_from_header
-from sensors.output_files import replaced_when_done
-from sensors.sample_checks import CSV_ROW_LINES, CSV_ROW_TIMES
-from sensors.samples import TRUTH_KINDS, Recording, RecordingError, Stream, clipped_repr
+from armfusion.sensors.csv_blocks import (
+    BLOCK_ROWS,
+    DEFAULT_LIMITS,
+    CsvLimits,
+    parse_rows,
+    read_header,
+    row_error,
+)
+from armfusion.sensors.csv_header import T_COLUMN, csv_columns, first_few, streams_from_header
+from armfusion.sensors.output_files import replaced_when_done
+from armfusion.sensors.sample_checks import CSV_ROW_LINES, CSV_ROW_TIMES
+from armfusion.sensors.samples import TRUTH_KINDS, Recording, RecordingError, Stream, clipped_repr
 
 __all__ = [
     "DEFAULT_LIMITS",
@@ -66,7 +72,7 @@ class RecordingWarning(UserWarning):
 def read_csv(path: str | Path, limits: CsvLimits = DEFAULT_LIMITS) -> Recording:
     """Read a recording CSV (``shared/spec/recording-csv.md``) into a :class:`Recording`.
 
-    Raises :class:`~sensors.samples.RecordingError` (a ``ValueError``) naming the file,
+    Raises :class:`~armfusion.sensors.samples.RecordingError` (a ``ValueError``) naming the file,
     row (1-based data row), line and column for a missing ``t`` column, an empty or
     non-increasing ``t``, a cell that is not a number (or not an integer in a count
     column, or one beyond 64 bits), a row with fewer or more cells than the header, and

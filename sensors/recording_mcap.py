@@ -16,8 +16,8 @@ every ``flush_interval_s``, so a process killed while recording loses at most th
 last chunk. :func:`read_mcap` reads such a cut-off file up to its last complete
 record and says in a :class:`ReadReport` what it could not read.
 
-This module is the writer; the reader is :mod:`sensors.mcap_reader`, the layout both share
-:mod:`sensors.mcap_format` (every name importable from here as before).
+This module is the writer; the reader is :mod:`armfusion.sensors.mcap_reader`, the layout both share
+:mod:`armfusion.sensors.mcap_format` (every name importable from here as before).
 """
 
 from __future__ import annotations
@@ -31,9 +31,7 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
-from mcap.writer import CompressionType, Writer
-
-from sensors.mcap_format import (
+from armfusion.sensors.mcap_format import (
     FORMAT_VERSION,
     METADATA_NAME,
     RAW_PREFIX,
@@ -41,14 +39,15 @@ from sensors.mcap_format import (
     schema_for_kind,
     topic_for,
 )
-from sensors.mcap_reader import ReadReport, read_mcap
-from sensors.output_files import replaced_when_done
-from sensors.samples import (
+from armfusion.sensors.mcap_reader import ReadReport, read_mcap
+from armfusion.sensors.output_files import replaced_when_done
+from armfusion.sensors.samples import (
     TRUTH_KINDS,
     Recording,
     Stream,
     StreamKind,
 )
+from mcap.writer import CompressionType, Writer
 
 __all__ = [
     "FORMAT_VERSION",
@@ -326,7 +325,7 @@ def write_mcap(rec: Recording, path: str | Path, *, arm_config: str | None = Non
     ``arm_config`` defaults to ``rec.meta["arm_config"]`` (or empty). A recording that
     starts before t = 0 gets a whole-second time offset (see :class:`McapRecorder`). Written
     under a temporary name and renamed when complete
-    (:func:`sensors.output_files.replaced_when_done`).
+    (:func:`armfusion.sensors.output_files.replaced_when_done`).
     """
     config = arm_config if arm_config is not None else str(rec.meta.get("arm_config", ""))
     offset_s = float(math.ceil(-rec.t_start_s)) if rec.t_start_s < 0 else 0.0

@@ -5,7 +5,7 @@ A sample is refused when
 
 - its time is not finite, or beyond :data:`TIME_LIMIT_S` from 0 (a float of seconds that
   large cannot tell two instants a microsecond apart: no clock a sensor runs on);
-- its time does not increase within its stream (:class:`sensors.samples.Stream`);
+- its time does not increase within its stream (:class:`armfusion.sensors.samples.Stream`);
 - it begins a short run of instants set apart from the rest of its recording by more than
   the node's clock window (:func:`apart_problem`);
 - one of its raw values lies beyond :data:`FEED_MIN` … :data:`FEED_MAX`, the 32-bit range
@@ -13,8 +13,8 @@ A sample is refused when
   -512…511, the MPU-9150's int16, the AK8975's 13 bits).
 
 The device's own, narrower range comes from the sensor's description in the config and is
-checked by :mod:`models.sample_admission`, with the same words (:func:`range_words`); the
-fusion node's admission (``fusion.service.admission``) says its refusals with them too.
+checked by :mod:`armfusion.models.sample_admission`, with the same words (:func:`range_words`); the
+fusion node's admission (``armfusion.fusion.service.admission``) says its refusals with them too.
 
 :func:`sample_place` names a sample in its file: ``row 5001 (line 5002)`` of a recording
 CSV, ``topic raw/enc, message 12`` of an MCAP file, ``sample 12 of enc`` otherwise.
@@ -25,11 +25,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from sensors.samples import RAW_KINDS, Recording, Stream
+from armfusion.sensors.samples import RAW_KINDS, Recording, Stream
 
 FEED_MIN, FEED_MAX = -(1 << 31), (1 << 31) - 1
-"""The encoder feed's counts (:mod:`sensors.encoders`: int32 per joint), the widest range a
+"""The encoder feed's counts (:mod:`armfusion.sensors.encoders`: int32 per joint), the widest range a
 raw value of any supported device can have."""
 
 TIME_LIMIT_S = 2.0**52 * 1e-6

@@ -27,15 +27,15 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from sensors.adxl345 import ADXL345, ADXL345Config
-from sensors.bus import (
+from armfusion.sensors.adxl345 import ADXL345, ADXL345Config
+from armfusion.sensors.bus import (
     DeviceConfigError,
     DeviceNotFoundError,
     SMBusLike,
     SpiDevLike,
     open_smbus,
 )
-from sensors.mpu9150 import MPU9150, MPU9150Config
+from armfusion.sensors.mpu9150 import MPU9150, MPU9150Config
 
 
 class RunningStats:

@@ -1,6 +1,6 @@
 """The units a sensor's values may arrive in, and the one conversion between them.
 
-A sensor description (:mod:`models.sensor_description`) declares what unit its values are
+A sensor description (:mod:`armfusion.models.sensor_description`) declares what unit its values are
 delivered in: register ``counts`` (with a scale), or a physical unit of its quantity. The
 quantities and their units, each with its factor to the quantity's canonical unit (the one
 armfusion computes in):

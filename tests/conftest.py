@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from fusion.configfile import load_arm
+from armfusion.fusion.configfile import load_arm
 
 
 @pytest.fixture(scope="session")
@@ -41,7 +40,7 @@ def daily_use_110s(calibrated_wmra_arm):
     """110 s of the calibrated WMRA in daily use (seed 21): the model-change alarm's tests
     turn or bias a sensor in it, in the tracker (tests/fusion/test_alarm.py) and replayed
     into the service (tests/service/test_service_health.py)."""
-    from models.simulator import simulate
+    from armfusion.models.simulator import simulate
 
     rec, _ = simulate(calibrated_wmra_arm, "daily-use", 110.0, seed=21)
     return rec

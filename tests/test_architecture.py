@@ -123,10 +123,10 @@ def graph():
 
 
 def test_the_graph_sees_the_imports_it_must(graph):
-    assert "models.arm" in graph["fusion.configfile"]  # module level
-    assert "fusion.cli.simulate" in graph["fusion.cli.demo"]  # from a module import a name
-    assert "fusion.service.payloads" in graph["fusion.cli.nodes"]  # inside a function
-    assert "fusion.cli.fleet" not in graph["fusion.cli.nodes"]
+    assert "armfusion.models.arm" in graph["armfusion.fusion.configfile"]  # module level
+    assert "armfusion.fusion.cli.simulate" in graph["armfusion.fusion.cli.demo"]  # from a module import a name
+    assert "armfusion.fusion.service.payloads" in graph["armfusion.fusion.cli.nodes"]  # inside a function
+    assert "armfusion.fusion.cli.fleet" not in graph["armfusion.fusion.cli.nodes"]
     assert len(graph) > 80
 
 
@@ -157,23 +157,23 @@ def test_the_checks_catch_a_lazy_upward_import_and_a_cycle_through_a_relative_im
         "sensors/bus.py": "def f():\n    from models import arm\n",
         "models/arm.py": "import numpy\n",
         "fusion/service/a.py": "from . import b\n",
-        "fusion/service/b.py": "from fusion.service.c import x\n",
+        "fusion/service/b.py": "from armfusion.fusion.service.c import x\n",
         "fusion/service/c.py": "if False:\n    from .a import y\nx = 1\n",
         "fusion/d.py": "import tools.bench\n",
         "tools/bench.py": "import fusion.d\n",
     })
     graph = import_graph(tmp_path)
-    assert layer_violations(graph) == ["fusion.d imports tools.bench", "sensors.bus imports models.arm"]
+    assert layer_violations(graph) == ["fusion.d imports tools.bench", "armfusion.sensors.bus imports armfusion.models.arm"]
     assert cycles(graph) == [["fusion.d", "tools.bench"],
-                             ["fusion.service.a", "fusion.service.b", "fusion.service.c"]]
+                             ["armfusion.fusion.service.a", "armfusion.fusion.service.b", "armfusion.fusion.service.c"]]
 
 
 # --- rooms: the sub-packages, and tools/ ---------------------------------------------------------
 
 
 def room(module: str, root: Path = ROOT) -> str:
-    """The room a module lives in: its sub-package of a layer (``fusion.cli``,
-    ``models.effects``), else the module itself (``fusion.configfile``, ``tools.benchdoc``)."""
+    """The room a module lives in: its sub-package of a layer (``armfusion.fusion.cli``,
+    ``armfusion.models.effects``), else the module itself (``armfusion.fusion.configfile``, ``tools.benchdoc``)."""
     parts = module.split(".")
     if len(parts) >= 2 and (root / parts[0] / parts[1]).is_dir():
         return ".".join(parts[:2])
@@ -193,8 +193,8 @@ def room_graph(graph: dict[str, set[str]], root: Path = ROOT) -> dict[str, set[s
 def test_no_import_cycle_among_the_rooms_so_the_command_line_imports_the_service_one_way(graph):
     assert cycles(room_graph(graph)) == []
     rooms = room_graph(graph)
-    assert "fusion.service" in rooms["fusion.cli"]
-    assert "fusion.cli" not in rooms["fusion.service"]
+    assert "armfusion.fusion.service" in rooms["armfusion.fusion.cli"]
+    assert "armfusion.fusion.cli" not in rooms["armfusion.fusion.service"]
 
 
 def test_no_import_cycle_among_the_tools(graph):
@@ -207,13 +207,13 @@ def test_the_room_check_catches_a_cycle_between_sub_packages(tmp_path):
     _write(tmp_path, {
         "fusion/__init__.py": "", "fusion/cli/__init__.py": "", "fusion/service/__init__.py": "",
         "sensors/__init__.py": "", "models/__init__.py": "", "tools/__init__.py": "",
-        "fusion/cli/main.py": "from fusion.service import node\n",
+        "fusion/cli/main.py": "from armfusion.fusion.service import node\n",
         "fusion/service/node.py": "x = 1\n",
-        "fusion/service/commands.py": "def f():\n    from fusion.cli.main import y\n",
+        "fusion/service/commands.py": "def f():\n    from armfusion.fusion.cli.main import y\n",
     })
     graph = import_graph(tmp_path)
     assert cycles(graph) == []  # no module-level cycle...
-    assert cycles(room_graph(graph, tmp_path)) == [["fusion.cli", "fusion.service"]]  # ...but a room one
+    assert cycles(room_graph(graph, tmp_path)) == [["armfusion.fusion.cli", "armfusion.fusion.service"]]  # ...but a room one
 
 
 # --- the size rule (docs/architecture.md, "Sizes") -----------------------------------------------
@@ -232,64 +232,64 @@ _KERNEL = "a compiled (numba) kernel: one loop, split only with its speed measur
 
 OVERSIZED: dict[str, str] = {
     # name -> why it is still over the rule; remove a line when its entry is split
-    "fusion.cli.demo_report:write_report": _COMMAND,
-    "fusion.cli.diagnose_report:report_figures": _COMMAND,
-    "fusion.cli.diagnose_report:write_report": _COMMAND,
-    "fusion.identification.data": "every sensor kind's rows from a recording; to split by kind",
-    "fusion.identification.data:data_from_recording": _NUMERIC,
-    "fusion.identification.identify:identify": _NUMERIC,
-    "fusion.identification.planner": "the maneuver planner's candidates, choice and schedule; to split",
-    "fusion.identification.planner:plan_maneuver": _NUMERIC,
-    "fusion.identification.problem:FitProblem": "residuals and Jacobians per sensor kind; to split by kind",
-    "fusion.identification.problem:FitProblem._jacobian_rows": _NUMERIC,
-    "fusion.identification.renk:fit_triax": _NUMERIC,
-    "fusion.identification.solver:levenberg_marquardt": _NUMERIC,
-    "fusion.importing.bag:import_bag": _READER,
-    "fusion.importing.column_map:parse_column_map": _READER,
-    "fusion.ros2.from_records:run_from_records": _NUMERIC,
-    "fusion.service.payloads": "every payload's encoding and checked decoding; to split by family",
-    "fusion.service.serve": _NODE,
-    "fusion.service.serve:FusionNode": _NODE,
-    "fusion.service.serve:FusionNode.__init__": _NODE,
-    "fusion.service.serve:FusionNode.run": _NODE,
-    "fusion.startup.kernels:lm_solve": _KERNEL,
-    "fusion.startup.moves:propose_disambiguating_move": _NUMERIC,
-    "fusion.startup.solve": "the still solve and its branch handling; to split",
-    "fusion.startup.solve:solve_still": _NUMERIC,
-    "fusion.tracking.alarm": _TRACKING,
-    "fusion.tracking.alarm:ModelChangeAlarm._block": _TRACKING,
-    "fusion.tracking.alarm:name_shift": _TRACKING,
-    "fusion.tracking.filter": _TRACKING,
-    "fusion.tracking.filter:Tracker": _TRACKING,
-    "fusion.tracking.filter:Tracker.__init__": _TRACKING,
-    "fusion.tracking.initial:initial_state": _TRACKING,
-    "fusion.tracking.observability:Observability": _TRACKING,
-    "fusion.tracking.observability_kernels:offsets_observability": _TRACKING,
-    "fusion.tracking.run:run_recording": _TRACKING,
-    "fusion.tracking.start": _TRACKING,
-    "fusion.tracking.start:start_from_recording": _TRACKING,
-    "fusion.tracking.tracker_kernels": _TRACKING,
-    "fusion.tracking.tracker_kernels:process_points_tangent": _TRACKING,
-    "fusion.tracking.ukf": _TRACKING,
-    "fusion.tracking.ukf:BatchedUKF": _TRACKING,
-    "fusion.workbench.candidates:rank_candidates": _WORKBENCH,
-    "fusion.workbench.scores:score_tests": _WORKBENCH,
-    "models.arm_config": "the config's schema, parsing and cross-checks; to split the cross-checks out",
-    "models.arm_config:_cross_checks": "one check after another; to become a table of checks",
-    "models.effects.entries:model_problems": _NUMERIC,
-    "models.effects.model": "the effects' model class; to split prediction from evaluation",
-    "models.effects.model:Model": "prediction, evaluation and Jacobians in one class; to split",
-    "models.effects.model:Model._evaluate": _NUMERIC,
-    "models.effects.model:Model._predict": _NUMERIC,
-    "models.sensor_description:_part": _NUMERIC,
-    "models.simulator:simulate": _NUMERIC,
-    "models.trajectories.daily:_chair_path": _NUMERIC,
-    "models.trajectories.renk:renk_ramp": _NUMERIC,
-    "sensors.adxl345": "the ADXL345 driver: its registers, setup and FIFO reads (one datasheet)",
-    "sensors.adxl345:ADXL345": "the ADXL345 driver: its registers, setup and FIFO reads (one datasheet)",
-    "sensors.csv_header:streams_from_header": _READER,
-    "sensors.mcap_reader:_read_mcap": _READER,
-    "sensors.recording_csv:_read_csv": _READER,
+    "armfusion.fusion.cli.demo_report:write_report": _COMMAND,
+    "armfusion.fusion.cli.diagnose_report:report_figures": _COMMAND,
+    "armfusion.fusion.cli.diagnose_report:write_report": _COMMAND,
+    "armfusion.fusion.identification.data": "every sensor kind's rows from a recording; to split by kind",
+    "armfusion.fusion.identification.data:data_from_recording": _NUMERIC,
+    "armfusion.fusion.identification.identify:identify": _NUMERIC,
+    "armfusion.fusion.identification.planner": "the maneuver planner's candidates, choice and schedule; to split",
+    "armfusion.fusion.identification.planner:plan_maneuver": _NUMERIC,
+    "armfusion.fusion.identification.problem:FitProblem": "residuals and Jacobians per sensor kind; to split by kind",
+    "armfusion.fusion.identification.problem:FitProblem._jacobian_rows": _NUMERIC,
+    "armfusion.fusion.identification.renk:fit_triax": _NUMERIC,
+    "armfusion.fusion.identification.solver:levenberg_marquardt": _NUMERIC,
+    "armfusion.fusion.importing.bag:import_bag": _READER,
+    "armfusion.fusion.importing.column_map:parse_column_map": _READER,
+    "armfusion.fusion.ros2.from_records:run_from_records": _NUMERIC,
+    "armfusion.fusion.service.payloads": "every payload's encoding and checked decoding; to split by family",
+    "armfusion.fusion.service.serve": _NODE,
+    "armfusion.fusion.service.serve:FusionNode": _NODE,
+    "armfusion.fusion.service.serve:FusionNode.__init__": _NODE,
+    "armfusion.fusion.service.serve:FusionNode.run": _NODE,
+    "armfusion.fusion.startup.kernels:lm_solve": _KERNEL,
+    "armfusion.fusion.startup.moves:propose_disambiguating_move": _NUMERIC,
+    "armfusion.fusion.startup.solve": "the still solve and its branch handling; to split",
+    "armfusion.fusion.startup.solve:solve_still": _NUMERIC,
+    "armfusion.fusion.tracking.alarm": _TRACKING,
+    "armfusion.fusion.tracking.alarm:ModelChangeAlarm._block": _TRACKING,
+    "armfusion.fusion.tracking.alarm:name_shift": _TRACKING,
+    "armfusion.fusion.tracking.filter": _TRACKING,
+    "armfusion.fusion.tracking.filter:Tracker": _TRACKING,
+    "armfusion.fusion.tracking.filter:Tracker.__init__": _TRACKING,
+    "armfusion.fusion.tracking.initial:initial_state": _TRACKING,
+    "armfusion.fusion.tracking.observability:Observability": _TRACKING,
+    "armfusion.fusion.tracking.observability_kernels:offsets_observability": _TRACKING,
+    "armfusion.fusion.tracking.run:run_recording": _TRACKING,
+    "armfusion.fusion.tracking.start": _TRACKING,
+    "armfusion.fusion.tracking.start:start_from_recording": _TRACKING,
+    "armfusion.fusion.tracking.tracker_kernels": _TRACKING,
+    "armfusion.fusion.tracking.tracker_kernels:process_points_tangent": _TRACKING,
+    "armfusion.fusion.tracking.ukf": _TRACKING,
+    "armfusion.fusion.tracking.ukf:BatchedUKF": _TRACKING,
+    "armfusion.fusion.workbench.candidates:rank_candidates": _WORKBENCH,
+    "armfusion.fusion.workbench.scores:score_tests": _WORKBENCH,
+    "armfusion.models.arm_config": "the config's schema, parsing and cross-checks; to split the cross-checks out",
+    "armfusion.models.arm_config:_cross_checks": "one check after another; to become a table of checks",
+    "armfusion.models.effects.entries:model_problems": _NUMERIC,
+    "armfusion.models.effects.model": "the effects' model class; to split prediction from evaluation",
+    "armfusion.models.effects.model:Model": "prediction, evaluation and Jacobians in one class; to split",
+    "armfusion.models.effects.model:Model._evaluate": _NUMERIC,
+    "armfusion.models.effects.model:Model._predict": _NUMERIC,
+    "armfusion.models.sensor_description:_part": _NUMERIC,
+    "armfusion.models.simulator:simulate": _NUMERIC,
+    "armfusion.models.trajectories.daily:_chair_path": _NUMERIC,
+    "armfusion.models.trajectories.renk:renk_ramp": _NUMERIC,
+    "armfusion.sensors.adxl345": "the ADXL345 driver: its registers, setup and FIFO reads (one datasheet)",
+    "armfusion.sensors.adxl345:ADXL345": "the ADXL345 driver: its registers, setup and FIFO reads (one datasheet)",
+    "armfusion.sensors.csv_header:streams_from_header": _READER,
+    "armfusion.sensors.mcap_reader:_read_mcap": _READER,
+    "armfusion.sensors.recording_csv:_read_csv": _READER,
 }
 """What is still over the size rule, each with its reason. A shrinking list: a new entry is
 a new violation, and an entry that now keeps the rule must leave the list."""
@@ -360,11 +360,11 @@ def test_the_size_check_measures_a_body_without_its_docstring_and_names_nested_f
 
 PRIVATE_REACHES: dict[str, tuple[int, str]] = {
     # module -> (how many ``x._name`` with x not self/cls, why)
-    "fusion.cli.diagnose_report": (1, "a workbench analysis's _tested(): the workbench changes in parallel"),
-    "fusion.cli.main": (1, "typer vendors click as typer._click: its UsageError has no public name"),
-    "fusion.tracking.frames": (1, "a named tuple's own _fields (underscored not to clash with fields)"),
-    "fusion.tracking.measurement": (1, "a named tuple's own _replace"),
-    "fusion.tracking.ukf": (10, "the sigma-point filter reads its own update plan's prepared arrays"),
+    "armfusion.fusion.cli.diagnose_report": (1, "a workbench analysis's _tested(): the workbench changes in parallel"),
+    "armfusion.fusion.cli.main": (1, "typer vendors click as typer._click: its UsageError has no public name"),
+    "armfusion.fusion.tracking.frames": (1, "a named tuple's own _fields (underscored not to clash with fields)"),
+    "armfusion.fusion.tracking.measurement": (1, "a named tuple's own _replace"),
+    "armfusion.fusion.tracking.ukf": (10, "the sigma-point filter reads its own update plan's prepared arrays"),
 }
 """Where code still reads or writes another object's private attribute, with the count and
 the reason."""

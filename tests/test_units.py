@@ -2,8 +2,7 @@
 
 import numpy as np
 import pytest
-
-from sensors.units import UnitError, canonical_unit_name, convert, factor, quantity_of, units_of
+from armfusion.sensors.units import UnitError, canonical_unit_name, convert, factor, quantity_of, units_of
 
 
 def test_physical_units_convert_through_their_quantity():

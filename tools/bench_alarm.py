@@ -46,11 +46,12 @@ from scipy.stats import chi2  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.tracking.tracker import start_from_recording  # noqa: E402
-from models.rotations import DEG, exp_so3  # noqa: E402
-from models.sensor_models import AK8975_UT_PER_LSB  # noqa: E402
-from models.simulator import simulate  # noqa: E402
-from sensors.samples import Recording  # noqa: E402
+from armfusion.fusion.tracking.tracker import start_from_recording  # noqa: E402
+from armfusion.models.rotations import DEG, exp_so3  # noqa: E402
+from armfusion.models.sensor_models import AK8975_UT_PER_LSB  # noqa: E402
+from armfusion.models.simulator import simulate  # noqa: E402
+from armfusion.sensors.samples import Recording  # noqa: E402
+
 from tools.bench_track import calibrated_wmra, with_stream  # noqa: E402
 from tools.benchdoc import machine_line, publish, wilson  # noqa: E402
 
@@ -208,7 +209,7 @@ def cost(arm, seed: int, duration_s: float, rounds: int) -> str:
 def _instants(rec: Recording, t_from: float, n: int):
     """The first ``n`` instants of ``rec`` after ``t_from``: ``(t, {stream: values})``, every
     stream's samples at the same time together (the recording's streams share a clock)."""
-    from fusion.service.reorder import Reorder
+    from armfusion.fusion.service.reorder import Reorder
 
     reorder = Reorder(0.0)
     for s in rec.raw().values():

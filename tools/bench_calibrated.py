@@ -36,9 +36,9 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.cli.calibrate_sensors import build_model as identification_model  # noqa: E402
-from fusion.configfile import load_arm, resolve_config_path  # noqa: E402
-from fusion.identification.identify import (  # noqa: E402
+from armfusion.fusion.cli.calibrate_sensors import build_model as identification_model  # noqa: E402
+from armfusion.fusion.configfile import load_arm, resolve_config_path  # noqa: E402
+from armfusion.fusion.identification.identify import (  # noqa: E402
     IdentifySettings,
     compare_with_truth,
     config_with_estimates,
@@ -49,19 +49,20 @@ from fusion.identification.identify import (  # noqa: E402
     startup_correction,
     truth_values,
 )
-from fusion.identification.truth import installer_reference  # noqa: E402
-from fusion.startup.solve import (  # noqa: E402
+from armfusion.fusion.identification.truth import installer_reference  # noqa: E402
+from armfusion.fusion.startup.solve import (  # noqa: E402
     StartupPrior,
     StartupSettings,
     prior_after_move,
     readings_from_counts,
     solve_still,
 )
-from models.motion import MotionState  # noqa: E402
-from models.rotations import DEG, wrap_angle  # noqa: E402
-from models.sensor_models import stream_models  # noqa: E402
-from models.simulator import build_model as true_model  # noqa: E402
-from models.simulator import simulate  # noqa: E402
+from armfusion.models.motion import MotionState  # noqa: E402
+from armfusion.models.rotations import DEG, wrap_angle  # noqa: E402
+from armfusion.models.sensor_models import stream_models  # noqa: E402
+from armfusion.models.simulator import build_model as true_model  # noqa: E402
+from armfusion.models.simulator import simulate  # noqa: E402
+
 from tools.bench_startup import draw_poses, moved_poses  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 

@@ -67,16 +67,17 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.identification.data import FIT_STREAMS_EXCLUDED, data_from_recording  # noqa: E402
-from fusion.identification.planner import safe_maneuver  # noqa: E402
-from fusion.workbench.diagnose import DiagnoseSettings, diagnose, fit_model  # noqa: E402
-from fusion.workbench.discover import Discovery, discover  # noqa: E402
-from fusion.workbench.scores import EXCLUDED_CANDIDATES, candidate_effects, score_tests  # noqa: E402
-from models.effects import all_effects, model_from_arm  # noqa: E402
-from models.simulator import simulate  # noqa: E402
-from models.trajectories import Scenario  # noqa: E402
-from models.trajectories.planned import PlannedManeuver, played_scenario  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.identification.data import FIT_STREAMS_EXCLUDED, data_from_recording  # noqa: E402
+from armfusion.fusion.identification.planner import safe_maneuver  # noqa: E402
+from armfusion.fusion.workbench.diagnose import DiagnoseSettings, diagnose, fit_model  # noqa: E402
+from armfusion.fusion.workbench.discover import Discovery, discover  # noqa: E402
+from armfusion.fusion.workbench.scores import EXCLUDED_CANDIDATES, candidate_effects, score_tests  # noqa: E402
+from armfusion.models.effects import all_effects, model_from_arm  # noqa: E402
+from armfusion.models.simulator import simulate  # noqa: E402
+from armfusion.models.trajectories import Scenario  # noqa: E402
+from armfusion.models.trajectories.planned import PlannedManeuver, played_scenario  # noqa: E402
+
 from tools.benchdoc import machine_line, publish  # noqa: E402
 
 SCENARIO = "renk-maneuver"

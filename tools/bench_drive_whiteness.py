@@ -3,7 +3,7 @@
 
 Each recording is simulated with a correct model (the shipped WMRA, no hidden effect, the
 sensors' own noise) and diagnosed as `diagnose` diagnoses a recording in which the chair
-moves (:func:`fusion.workbench.innovations.innovation_diagnosis`: the tracker's normalised
+moves (:func:`armfusion.fusion.workbench.innovations.innovation_diagnosis`: the tracker's normalised
 innovations over 0.5 s blocks, their whiteness and their correlation with the inputs). A
 correct model should be called "innovations white" on all but about 1 % of them (the
 analysis's corrected 99 % band). The scenarios:
@@ -13,7 +13,7 @@ analysis's corrected 99 % band). The scenarios:
 - ``excitation`` (``--excitation-s`` each): every joint moving while the chair turns on the
   spot back and forth and rocks on ramps.
 
-A recording in which the chair does not turn (:func:`fusion.workbench.innovations.chair_moves`
+A recording in which the chair does not turn (:func:`armfusion.fusion.workbench.innovations.chair_moves`
 false: `diagnose` would fit it as parked) is not a driving recording and is counted apart.
 The default 24 seeds of each give at least 40 driving recordings (a few ``daily-use`` seeds
 do not turn within their 90 s).
@@ -43,9 +43,10 @@ from pathlib import Path  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.workbench.innovations import chair_moves, innovation_diagnosis  # noqa: E402
-from models.simulator import simulate  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.workbench.innovations import chair_moves, innovation_diagnosis  # noqa: E402
+from armfusion.models.simulator import simulate  # noqa: E402
+
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 
@@ -124,7 +125,7 @@ def main() -> None:
         f"Clean recordings (the shipped WMRA, no hidden effect), seeds {seeds[0]}-{seeds[-1]} of "
         + " and of ".join(f"`{sc}` ({length[sc]:.0f} s each)" for sc in scenarios) + ", each diagnosed as "
         "`armfusion diagnose` diagnoses a moving chair (the tracker's normalised innovations over 0.5 s "
-        f"blocks, `fusion.workbench.innovations.innovation_diagnosis`); code {_commit()}; {machine_line()}.",
+        f"blocks, `armfusion.fusion.workbench.innovations.innovation_diagnosis`); code {_commit()}; {machine_line()}.",
         "",
         "| scenario | driving recordings | called white |",
         "| --- | ---: | ---: |",

@@ -62,7 +62,8 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from models.rotations import GRAVITY_MPS2  # noqa: E402
+from armfusion.models.rotations import GRAVITY_MPS2  # noqa: E402
+
 from tools.rig_peers import _qconj, _qmul  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "broad"
@@ -227,10 +228,10 @@ def run_armfusion(trial: Trial, config: str = CONFIG) -> ArmfusionTrack:
     """The trial through ``armfusion import`` and ``armfusion track``'s own path: the shipped
     BROAD map onto ``config``, the startup on the first still stretch, the tracker after it.
     Each tracked instant is put back on the trial's sample at that time."""
-    from fusion.configfile import load_arm
-    from fusion.importing.column_map import load_column_map
-    from fusion.importing.run import import_recording
-    from fusion.tracking.tracker import start_from_recording
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.fusion.importing.column_map import load_column_map
+    from armfusion.fusion.importing.run import import_recording
+    from armfusion.fusion.tracking.tracker import start_from_recording
 
     arm = load_arm(config)
     rec = import_recording(trial.path, load_column_map("broad"), arm, config).recording

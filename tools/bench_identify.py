@@ -38,14 +38,21 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.cli.calibrate_sensors import build_model  # noqa: E402
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.identification.data import data_from_recording  # noqa: E402
-from fusion.identification.identify import identify_recentred  # noqa: E402
-from fusion.identification.renk import ARTICLE_SAMPLES, TABLE2, TriaxParams, fit_triax, simulate_article  # noqa: E402
-from fusion.identification.settings import IdentifySettings  # noqa: E402
-from fusion.identification.truth import compare_with_truth  # noqa: E402
-from models.simulator import simulate  # noqa: E402
+from armfusion.fusion.cli.calibrate_sensors import build_model  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.identification.data import data_from_recording  # noqa: E402
+from armfusion.fusion.identification.identify import identify_recentred  # noqa: E402
+from armfusion.fusion.identification.renk import (  # noqa: E402
+    ARTICLE_SAMPLES,
+    TABLE2,
+    TriaxParams,
+    fit_triax,
+    simulate_article,
+)
+from armfusion.fusion.identification.settings import IdentifySettings  # noqa: E402
+from armfusion.fusion.identification.truth import compare_with_truth  # noqa: E402
+from armfusion.models.simulator import simulate  # noqa: E402
+
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 TARGET_S = 10.0
@@ -65,12 +72,12 @@ def article(seed: int = 0) -> dict:
 _FIT_SCRIPT = """
 import hashlib, sys, time
 import numpy as np
-from fusion.cli.calibrate_sensors import build_model
-from fusion.configfile import load_arm
-from fusion.identification.data import data_from_recording
-from fusion.identification.identify import identify_recentred
-from fusion.identification.settings import IdentifySettings
-from models.simulator import simulate
+from armfusion.fusion.cli.calibrate_sensors import build_model
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.data import data_from_recording
+from armfusion.fusion.identification.identify import identify_recentred
+from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.models.simulator import simulate
 seed, duration_s, out = int(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
 arm = load_arm("wmra")
 rec, truth = simulate(arm, "renk-maneuver", duration_s, seed=seed, realistic=True)

@@ -5,7 +5,7 @@ Simulates `daily-use` on the WMRA for ``--duration`` s at 100 Hz and writes it w
 own writer as a rosbag2 bag (MCAP storage, and SQLite3 storage): the four link
 accelerometers as ``geometry_msgs/Vector3Stamped`` (counts), the base IMU as
 ``sensor_msgs/Imu`` (m/s^2, rad/s), the encoders as ``sensor_msgs/JointState`` (rad). Then
-times ``fusion.importing.bag.import_bag`` (best of ``--repeats``), and, in the same process on
+times ``armfusion.fusion.importing.bag.import_bag`` (best of ``--repeats``), and, in the same process on
 the same bag, the straightforward way as the baseline: rosbags' reader and its deserialiser
 for every message, the fields gathered into arrays. Checks that both give the same values.
 BLAS is held to one thread. Writes its section of docs/benchmarks.md.
@@ -30,11 +30,12 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.importing.bag import import_bag  # noqa: E402
-from fusion.importing.column_map import parse_column_map  # noqa: E402
-from models.sensor_models import stream_models  # noqa: E402
-from models.simulator import simulate  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.importing.bag import import_bag  # noqa: E402
+from armfusion.fusion.importing.column_map import parse_column_map  # noqa: E402
+from armfusion.models.sensor_models import stream_models  # noqa: E402
+from armfusion.models.simulator import simulate  # noqa: E402
+
 from tools.benchdoc import machine_line, publish  # noqa: E402
 
 TARGET_S = 10.0

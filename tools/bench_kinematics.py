@@ -18,9 +18,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.configfile import load_arm  # noqa: E402
-from models.arm import dh_transform  # noqa: E402
-from models.kinematics import chain_poses, gravity_in_sensors, gravity_jacobian  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.models.arm import dh_transform  # noqa: E402
+from armfusion.models.kinematics import chain_poses, gravity_in_sensors, gravity_jacobian  # noqa: E402
+
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 
@@ -55,7 +56,7 @@ def main() -> None:
     arm = load_arm("wmra")
     rng = np.random.default_rng(1)
     q = rng.uniform(arm.min_rad, arm.max_rad, size=(a.poses, arm.n_joints))
-    # the compiled kernels (models.chain_kernels) load from numba's cache on their first call,
+    # the compiled kernels (armfusion.models.chain_kernels) load from numba's cache on their first call,
     # once per process (about 0.5 s): done before the clock starts, as for every best-of
     gravity_jacobian(arm, q[:2])
     t_fk = best_of(lambda: chain_poses(arm, q), a.repeats)

@@ -40,10 +40,10 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.cli.calibrate_sensors import build_model  # noqa: E402
-from fusion.configfile import load_arm, read_yaml, resolve_config_path  # noqa: E402
-from fusion.identification.identify import compare_with_truth  # noqa: E402
-from fusion.identification.planner import (  # noqa: E402
+from armfusion.fusion.cli.calibrate_sensors import build_model  # noqa: E402
+from armfusion.fusion.configfile import load_arm, read_yaml, resolve_config_path  # noqa: E402
+from armfusion.fusion.identification.identify import compare_with_truth  # noqa: E402
+from armfusion.fusion.identification.planner import (  # noqa: E402
     CRITERIA,
     PlanSettings,
     maneuver_problems,
@@ -51,12 +51,13 @@ from fusion.identification.planner import (  # noqa: E402
     predicted_identification,
     startup_sigmas,
 )
-from fusion.startup.solve import StartupPrior  # noqa: E402
-from models.effects import entries_from_model  # noqa: E402
-from models.rotations import DEG  # noqa: E402
-from models.simulator import build_model as simulated_model  # noqa: E402
-from models.trajectories import make_scenario  # noqa: E402
-from models.trajectories.planned import planned_scenario, played_scenario  # noqa: E402
+from armfusion.fusion.startup.solve import StartupPrior  # noqa: E402
+from armfusion.models.effects import entries_from_model  # noqa: E402
+from armfusion.models.rotations import DEG  # noqa: E402
+from armfusion.models.simulator import build_model as simulated_model  # noqa: E402
+from armfusion.models.trajectories import make_scenario  # noqa: E402
+from armfusion.models.trajectories.planned import planned_scenario, played_scenario  # noqa: E402
+
 from tools.bench_calibrated import calibrate, calibrated_config, solve_poses, still_means, summary  # noqa: E402
 from tools.bench_startup import draw_poses  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402

@@ -66,12 +66,13 @@ from scipy.stats import chi2 as chi2_dist  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.identification.data import data_from_recording  # noqa: E402
-from fusion.workbench.diagnose import chair_moves  # noqa: E402
-from fusion.workbench.discover import DiscoverSettings, discover  # noqa: E402
-from models.effects import model_from_arm  # noqa: E402
-from models.simulator import simulate  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.identification.data import data_from_recording  # noqa: E402
+from armfusion.fusion.workbench.diagnose import chair_moves  # noqa: E402
+from armfusion.fusion.workbench.discover import DiscoverSettings, discover  # noqa: E402
+from armfusion.models.effects import model_from_arm  # noqa: E402
+from armfusion.models.simulator import simulate  # noqa: E402
+
 from tools.bench_calibrated import calibrate, calibrated_config  # noqa: E402
 from tools.benchdoc import machine_line, publish, wilson  # noqa: E402
 
@@ -150,8 +151,8 @@ def realistic_arm(arm, arm_seed: int, calibration_s: float, folder: Path):
 
 def planned_maneuver(arm):
     """The planned maneuver (``PLANNED``), as ``plan-maneuver --duration PLANNED_S`` plans it."""
-    from fusion.cli.calibrate_sensors import build_model
-    from fusion.identification.planner import PlanSettings, plan_maneuver
+    from armfusion.fusion.cli.calibrate_sensors import build_model
+    from armfusion.fusion.identification.planner import PlanSettings, plan_maneuver
 
     return plan_maneuver(build_model(arm, "all"), PlanSettings(duration_s=PLANNED_S)).maneuver
 
@@ -161,7 +162,7 @@ def run_case(case: Case, sim_arm, config_arm, effects, rungs: int, maneuver=None
     c0 = time.process_time()
     scenario = case.scenario
     if scenario == PLANNED:  # as ``simulate --maneuver`` plays it
-        from models.trajectories.planned import played_scenario
+        from armfusion.models.trajectories.planned import played_scenario
 
         scenario = played_scenario(sim_arm, maneuver, case.seed)
     rec, _ = simulate(sim_arm, scenario, case.duration_s, seed=case.seed, effects=effects)

@@ -67,7 +67,7 @@ LIMITS_SPREAD_DEG = 720.0 / np.sqrt(12.0)
 
 
 def armfusion(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "fusion.cli", *args], cwd=ROOT, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "armfusion.fusion.cli", *args], cwd=ROOT, capture_output=True,
                           text=True, check=False)
 
 

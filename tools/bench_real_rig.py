@@ -23,7 +23,7 @@ a user's recording never seen before (nothing here knows a file by its name):
 
 5. **The encoder withheld**: the scored stretch again, the joint's relative angle from the
    integral of the shaft's gyro less the frame's about the shaft's axis, each read when its
-   samples were true (:mod:`fusion.tracking.gyro_encoder`, as ``track --encoder-withheld``
+   samples were true (:mod:`armfusion.fusion.tracking.gyro_encoder`, as ``track --encoder-withheld``
    does: its scale, bias and drift calibrated on the calibration stretch, the drift the
    joint's random walk in the tracker), beside the peer filters of the package index
    (`tools/rig_peers.py`: vqf, imufusion, ahrs) on the same samples, their zero aligned on
@@ -59,19 +59,24 @@ import yaml  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from fusion.configfile import load_arm, resolve_config_path  # noqa: E402
-from fusion.identification.calibrated_config import config_with_estimates  # noqa: E402
-from fusion.identification.identify import data_from_recording  # noqa: E402
-from fusion.importing.column_map import load_column_map  # noqa: E402
-from fusion.importing.run import import_recording  # noqa: E402
-from fusion.tracking.calibrated import config_model, device_time_offsets  # noqa: E402
-from fusion.tracking.gyro_encoder import calibrate_gyro_encoder, settings_with_gyro_encoder, with_gyro_encoder  # noqa: E402
-from fusion.tracking.settings import JOINT_FLAGS, TrackerSettings  # noqa: E402
-from fusion.tracking.start import start_from_recording  # noqa: E402
-from fusion.workbench.discover import DiscoverSettings, Discovery, Rung, discover  # noqa: E402
-from models.effects import model_from_arm  # noqa: E402
-from models.rotations import wrap_angle  # noqa: E402
-from sensors.samples import Recording  # noqa: E402
+from armfusion.fusion.configfile import load_arm, resolve_config_path  # noqa: E402
+from armfusion.fusion.identification.calibrated_config import config_with_estimates  # noqa: E402
+from armfusion.fusion.identification.identify import data_from_recording  # noqa: E402
+from armfusion.fusion.importing.column_map import load_column_map  # noqa: E402
+from armfusion.fusion.importing.run import import_recording  # noqa: E402
+from armfusion.fusion.tracking.calibrated import config_model, device_time_offsets  # noqa: E402
+from armfusion.fusion.tracking.gyro_encoder import (  # noqa: E402
+    calibrate_gyro_encoder,
+    settings_with_gyro_encoder,
+    with_gyro_encoder,
+)
+from armfusion.fusion.tracking.settings import JOINT_FLAGS, TrackerSettings  # noqa: E402
+from armfusion.fusion.tracking.start import start_from_recording  # noqa: E402
+from armfusion.fusion.workbench.discover import DiscoverSettings, Discovery, Rung, discover  # noqa: E402
+from armfusion.models.effects import model_from_arm  # noqa: E402
+from armfusion.models.rotations import wrap_angle  # noqa: E402
+from armfusion.sensors.samples import Recording  # noqa: E402
+
 from tools.benchdoc import machine_line, record_headline, write_section  # noqa: E402
 from tools.rig_configs import RIG_CONFIGS, WINDOW, choose_config  # noqa: E402
 from tools.rig_peers import peer_joint_angles  # noqa: E402
@@ -116,7 +121,7 @@ class TrialResult:
 
 
 def ladder(arm, rec: Recording, rungs: int) -> Discovery:
-    """Walk the error ladder (:func:`fusion.workbench.discover.discover`): rung 0 the config as
+    """Walk the error ladder (:func:`armfusion.fusion.workbench.discover.discover`): rung 0 the config as
     it is, then the most significant missing effect added each time, until nothing significant
     is left or ``rungs`` were added."""
     data = data_from_recording(arm, rec, window=WINDOW, q_ref_rad=np.zeros(arm.n_joints))
@@ -202,7 +207,7 @@ def _relative_sigma(arm, rec: Recording, zero_rad: float, settings: TrackerSetti
 
 def track_encoder_withheld(cal_config: Path, cal: Recording, rec: Recording, zero_rad: float) -> dict:
     """The scored stretch tracked with the encoder withheld: the joint's relative angle from
-    the gyros on either side of it (:mod:`fusion.tracking.gyro_encoder`: its scale, bias and
+    the gyros on either side of it (:mod:`armfusion.fusion.tracking.gyro_encoder`: its scale, bias and
     drift measured against the encoder on the calibration stretch, the drift the tracker's
     random walk for the joint), scored against the encoder and the calibration's zero as
     :func:`track_scored` is."""

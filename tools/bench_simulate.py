@@ -1,6 +1,6 @@
 """How fast the simulator is: one hour of `daily-use` at 100 Hz, on one core.
 
-Times ``models.simulator.simulate`` (motion, kinematics with every motion term, effects,
+Times ``armfusion.models.simulator.simulate`` (motion, kinematics with every motion term, effects,
 noise, rounding) for ideal sensors and for ``--realistic`` (every effect of the library on
 every target), then writing the recording as CSV and as MCAP. BLAS is held to one thread
 so the figure is a one-core figure. Writes its section of docs/benchmarks.md.
@@ -23,9 +23,10 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.configfile import load_arm  # noqa: E402
-from models.simulator import build_model, simulate  # noqa: E402
-from sensors.recording import write_recording  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.models.simulator import build_model, simulate  # noqa: E402
+from armfusion.sensors.recording import write_recording  # noqa: E402
+
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 TARGET_S = 30.0

@@ -6,7 +6,7 @@ thesis's sequential method in the same run. Writes its section of docs/benchmark
 
 Each pose: a random WMRA pose inside the joint limits (a tenth of them near the park
 pose's gimbal lock), the chair tilted by up to a few degrees, 1 s of ADXL345 and MPU-9150
-samples at 100 Hz (noise, rounding to counts, saturation: `models.sensor_models`),
+samples at 100 Hz (noise, rounding to counts, saturation: `armfusion.models.sensor_models`),
 averaged exactly as `calibrate joints` averages a still window. Three priors on the same
 poses: none (no saved pose), a stale saved pose (another pose's: the arm was moved by hand
 while off), and a saved pose near the truth (the true pose + N(0, 10 deg)); after each, the
@@ -35,9 +35,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.startup.problem import expected_sigma, make_problem  # noqa: E402
-from fusion.startup.solve import (  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.startup.problem import expected_sigma, make_problem  # noqa: E402
+from armfusion.fusion.startup.solve import (  # noqa: E402
     StartupPrior,
     StartupSettings,
     move_delta_rad,
@@ -45,9 +45,10 @@ from fusion.startup.solve import (  # noqa: E402
     readings_from_counts,
     solve_still,
 )
-from models.kinematics import gravity_in_sensors, joint_axis_angle_to_vertical  # noqa: E402
-from models.rotations import DEG, up_from_tilt, wrap_angle  # noqa: E402
-from models.sensor_models import stream_models  # noqa: E402
+from armfusion.models.kinematics import gravity_in_sensors, joint_axis_angle_to_vertical  # noqa: E402
+from armfusion.models.rotations import DEG, up_from_tilt, wrap_angle  # noqa: E402
+from armfusion.models.sensor_models import stream_models  # noqa: E402
+
 from tools.benchdoc import machine_line, record_headline, write_section  # noqa: E402
 
 THESIS_RAD = 0.1
@@ -76,8 +77,8 @@ def simulate_means(arm, q, tilt, rng, n_samples=100, rate_hz=100.0, realistic=Fa
     streams = [*names, "imu_acc"]
     up = up_from_tilt(tilt[:, 0], tilt[:, 1])
     if realistic:
-        from models.motion import MotionState
-        from models.simulator import build_model
+        from armfusion.models.motion import MotionState
+        from armfusion.models.simulator import build_model
 
         phys = {s: np.empty((len(q), 3)) for s in streams}
         for a in range(0, len(q), arm_every):

@@ -36,8 +36,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.tracking.tracker import (  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.tracking.tracker import (  # noqa: E402
     ENC,
     GYRO,
     MAG,
@@ -45,12 +45,13 @@ from fusion.tracking.tracker import (  # noqa: E402
     make_frames,
     start_from_recording,
 )
-from fusion.tracking.ukf import repair_covariance, unscented_mean  # noqa: E402
-from models.rotations import DEG, wrap_angle  # noqa: E402
-from models.rotations import GRAVITY_MPS2 as G  # noqa: E402
-from models.sensor_models import AK8975_UT_PER_LSB  # noqa: E402
-from models.simulator import simulate  # noqa: E402
-from sensors.samples import Recording, Stream  # noqa: E402
+from armfusion.fusion.tracking.ukf import repair_covariance, unscented_mean  # noqa: E402
+from armfusion.models.rotations import DEG, wrap_angle  # noqa: E402
+from armfusion.models.rotations import GRAVITY_MPS2 as G  # noqa: E402
+from armfusion.models.sensor_models import AK8975_UT_PER_LSB  # noqa: E402
+from armfusion.models.simulator import simulate  # noqa: E402
+from armfusion.sensors.samples import Recording, Stream  # noqa: E402
+
 from tools.bench_track_numpy import measurement_points_numpy, process_points_numpy  # noqa: E402
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 

@@ -2,25 +2,24 @@
 
 The filterpy baseline of ``tools/bench_track.py`` calls these one sigma point at a time
 (its "NumPy fx/hx" row); tests/fusion/test_tracker_kernels.py holds the tracker's compiled
-kernels (:mod:`fusion.tracking.tracker_kernels`, whose equations are :mod:`models.sensor_kernels`'
-and :mod:`models.chain_kernels`') to them. They are a second coding of the same equations on
+kernels (:mod:`armfusion.fusion.tracking.tracker_kernels`, whose equations are :mod:`armfusion.models.sensor_kernels`'
+and :mod:`armfusion.models.chain_kernels`') to them. They are a second coding of the same equations on
 purpose (a reference and a baseline), so they live here, outside the production packages.
 
 Same arguments and columns as the compiled kernels; the state layout is
-:class:`fusion.tracking.tracker.StateLayout`'s.
+:class:`armfusion.fusion.tracking.tracker.StateLayout`'s.
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-from models.rotations import TWO_PI, R_from_rpy, exp_so3, rpy_from_R, up_from_tilt, wrap_angle
+from armfusion.models.rotations import TWO_PI, R_from_rpy, exp_so3, rpy_from_R, up_from_tilt, wrap_angle
 
 
 def accel_points_numpy(X: np.ndarray, sel: np.ndarray, links: np.ndarray, axes: np.ndarray,
                        offset_ref: np.ndarray, motion_mps2: np.ndarray, R_0S: np.ndarray, imu_index: int,
                        roll: int, accel: int, imu_bias: int, g_mps2: float) -> np.ndarray:
-    """The accelerometer columns of :func:`fusion.tracking.tracker_kernels.measurement_points`,
+    """The accelerometer columns of :func:`armfusion.fusion.tracking.tracker_kernels.measurement_points`,
     in NumPy: each joint's ``E_j = I + sin d_j K_j + (1 - cos d_j) K_j²`` for every point,
     multiplied out per sensor."""
     N, n_joints = X.shape[0], axes.shape[0]
@@ -47,7 +46,7 @@ def accel_points_numpy(X: np.ndarray, sel: np.ndarray, links: np.ndarray, axes: 
 def process_points_numpy(X: np.ndarray, dt: float, w: np.ndarray, have_w: bool, roll: int, yaw: int,
                          bias: int, accel: int, scale: int, accel_decay: float, jerk: int = -1,
                          jerk_decay: float = 1.0) -> np.ndarray:
-    """:func:`fusion.tracking.tracker_kernels.process_points` in NumPy: each point's attitude
+    """:func:`armfusion.fusion.tracking.tracker_kernels.process_points` in NumPy: each point's attitude
     ``R_from_rpy`` turned by ``exp_so3`` of its bias- (and z scale-) corrected rates times ``dt``, read back
     by ``rpy_from_R`` and put in the chart nearest the point's (of the two Euler triples of
     the rotation, the closer, roll and yaw unwrapped onto the old ones)."""
@@ -76,7 +75,7 @@ def process_points_numpy(X: np.ndarray, dt: float, w: np.ndarray, have_w: bool, 
 
 def measurement_points_numpy(X, sel, links, axes, offset_ref, motion_mps2, R_0S, imu_index, roll, accel,
                              yaw, imu_bias, g_mps2, still, m_B, heading_shift) -> np.ndarray:
-    """:func:`fusion.tracking.tracker_kernels.measurement_points` in NumPy (same arguments, same columns)."""
+    """:func:`armfusion.fusion.tracking.tracker_kernels.measurement_points` in NumPy (same arguments, same columns)."""
     parts = [accel_points_numpy(X, sel, links, axes, offset_ref, motion_mps2, R_0S, imu_index, roll, accel,
                                 imu_bias, g_mps2)]
     if still:

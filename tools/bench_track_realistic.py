@@ -12,7 +12,7 @@ its section of docs/benchmarks.md.
 3. ``armfusion track`` on it twice, side by side: with the shipped config (no effects, the
    uncalibrated 45 mg floor) and with the calibrated one.
 
-Scored against the angle gravity can find (``models.simulator.angle_truth``: the true
+Scored against the angle gravity can find (``armfusion.models.simulator.angle_truth``: the true
 angle plus the joint's true DH zero offset, which relative encoders cannot know). The
 figure that matters for safety is the share of estimates within 3 sigma of the truth:
 an estimate outside is a confident wrong answer.
@@ -31,14 +31,15 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.tracking.calibrated import config_model, hard_iron_sigma_ut  # noqa: E402
-from fusion.tracking.compass import mount_heading_sigma_rad  # noqa: E402
-from fusion.tracking.estimate import HEADING_STATUS  # noqa: E402
-from fusion.tracking.settings import TrackerSettings  # noqa: E402
-from fusion.tracking.tracker import start_from_recording  # noqa: E402
-from models.simulator import angle_truth, simulate  # noqa: E402
-from sensors.samples import Recording  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.tracking.calibrated import config_model, hard_iron_sigma_ut  # noqa: E402
+from armfusion.fusion.tracking.compass import mount_heading_sigma_rad  # noqa: E402
+from armfusion.fusion.tracking.estimate import HEADING_STATUS  # noqa: E402
+from armfusion.fusion.tracking.settings import TrackerSettings  # noqa: E402
+from armfusion.fusion.tracking.tracker import start_from_recording  # noqa: E402
+from armfusion.models.simulator import angle_truth, simulate  # noqa: E402
+from armfusion.sensors.samples import Recording  # noqa: E402
+
 from tools.bench_calibrated import calibrate, calibrated_config  # noqa: E402
 from tools.bench_track import disturbed  # noqa: E402
 
@@ -160,7 +161,7 @@ def main(argv=None) -> None:
         f"({t_cal:.0f} s of CPU); then the same physical sensors in {a.duration:.0f} s of `daily-use` "
         f"(seed {a.use_seed}: reaching while the chair drives, turns and climbs a ramp), tracked with "
         f"the shipped config (uncalibrated, 45 mg floor) and with the calibrated one. Truth: the "
-        f"simulator's angle plus each joint's true DH zero offset (`models.simulator.angle_truth`). "
+        f"simulator's angle plus each joint's true DH zero offset (`armfusion.models.simulator.angle_truth`). "
         f"Every instant from the startup on counts in the within-3-sigma share; an estimate outside "
         f"it is a confident wrong answer. {machine_line()}.",
         "",

@@ -39,12 +39,12 @@ def child(root: str, out: str, duration_s: float, seed: int) -> None:
     """In a process of its own: the code under ``root`` over the recording, run twice (the
     first loads the compiled kernels), the second timed; its per-instant outputs to ``out``."""
     sys.path.insert(0, root)
-    import fusion
 
     if not str(Path(fusion.__file__).resolve()).startswith(str(Path(root).resolve())):
         raise SystemExit(f"the code under {root} was not the one imported ({fusion.__file__})")
-    from fusion.tracking.tracker import start_from_recording
-    from models.simulator import simulate
+    from armfusion.fusion.tracking.tracker import start_from_recording
+    from armfusion.models.simulator import simulate
+
     from tools.bench_track import calibrated_wmra
 
     arm = calibrated_wmra()

@@ -40,10 +40,11 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.identification.data import data_from_recording  # noqa: E402
-from fusion.workbench.diagnose import add_effects, diagnose  # noqa: E402
-from models.effects import build_effect, model_from_arm  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.identification.data import data_from_recording  # noqa: E402
+from armfusion.fusion.workbench.diagnose import add_effects, diagnose  # noqa: E402
+from armfusion.models.effects import build_effect, model_from_arm  # noqa: E402
+
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 BASELINE_COMMIT = "372beab"
@@ -104,7 +105,7 @@ def _baseline_module():
     src = subprocess.run(["git", "show", f"{BASELINE_COMMIT}:fusion/diagnose.py"], cwd=ROOT,
                          capture_output=True, text=True, check=True).stdout
     # the workbench of then, on today's fit (its module and its problem class have moved since)
-    src = src.replace("from fusion.identify import (", "from fusion.identification.identify import (")
+    src = src.replace("from fusion.identify import (", "from armfusion.fusion.identification.identify import (")
     src = src.replace("    _Problem,\n", "    FitProblem as _Problem,\n", 1)
     path = Path(tempfile.mkdtemp()) / "diagnose_baseline.py"
     path.write_text(src)
@@ -116,7 +117,7 @@ def _baseline_module():
 
 
 def speed(arm, hour_s: float, baseline_s: float) -> dict:
-    from models.simulator import simulate
+    from armfusion.models.simulator import simulate
 
     t0 = time.perf_counter()
     rec, _ = simulate(arm, "renk-maneuver", hour_s, seed=5, effects=HIDDEN_SPEED)

@@ -49,7 +49,8 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from fusion.workbench.heldout import HELD_OUT_SHARE  # noqa: E402
+from armfusion.fusion.workbench.heldout import HELD_OUT_SHARE  # noqa: E402
+
 from tools.bench_real_arm import armfusion  # noqa: E402
 from tools.benchdoc import machine_line, publish  # noqa: E402
 from tools.twin_ur5 import CONFIG, make_twin, write_csv  # noqa: E402

@@ -44,7 +44,7 @@ def run(duration_s: float, seed: int, batch_ms: float) -> dict:
         t0 = time.monotonic()
         try:
             proc = subprocess.run(
-                [sys.executable, "-m", "fusion.cli", "demo", "--no-calibrate", "--no-workbench",
+                [sys.executable, "-m", "armfusion.fusion.cli", "demo", "--no-calibrate", "--no-workbench",
                  "--duration", str(duration_s), "--seed", str(seed), "--batch-ms", str(batch_ms),
                  "--out", str(out), "--json"],
                 cwd=ROOT, capture_output=True, text=True, timeout=DEMO_START_S + 4 * duration_s + 120)

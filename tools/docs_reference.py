@@ -3,7 +3,7 @@
 - ``docs/reference/cli.md``: every command of the ``armfusion`` command line, its
   arguments and options, read from the typer application itself;
 - ``docs/reference/config.md``: every key of an arm config, its type, default and bounds,
-  read from the pydantic models that validate the file (``models.arm_config``).
+  read from the pydantic models that validate the file (``armfusion.models.arm_config``).
 
 ``--check`` writes nothing and exits 1 naming each page that differs from what the code
 would generate (the test suite runs it, so a stale reference fails the build).
@@ -65,8 +65,7 @@ def _command_md(path: str, cmd, ctx) -> list[str]:
 
 def cli_reference() -> str:
     import typer
-
-    from fusion.cli.main import app
+    from armfusion.fusion.cli.main import app
 
     root = typer.main.get_command(app)
     lines = [GENERATED, "", "# Command-line reference", "",
@@ -200,7 +199,7 @@ def _model_rows(model: type[BaseModel], prefix: str, rows: list[str], blocks: li
 
 
 def config_reference() -> str:
-    from models.arm_config import ArmConfigFile
+    from armfusion.models.arm_config import ArmConfigFile
 
     lines = [GENERATED, "", "# Config reference", "",
              "Every key of an arm config (YAML), as the loader validates it: its type, its unit "

@@ -21,10 +21,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.tracking.settings import JOINT_FLAGS  # noqa: E402
-from fusion.tracking.tracker import start_from_recording  # noqa: E402
-from models.simulator import simulate  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.tracking.settings import JOINT_FLAGS  # noqa: E402
+from armfusion.fusion.tracking.tracker import start_from_recording  # noqa: E402
+from armfusion.models.simulator import simulate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 

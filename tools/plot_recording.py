@@ -23,11 +23,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.configfile import load_arm  # noqa: E402
-from models.rotations import GRAVITY_MPS2, up_from_tilt  # noqa: E402
-from models.sensor_models import stream_models  # noqa: E402
-from sensors.recording import read_recording  # noqa: E402
-from sensors.samples import Recording  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.models.rotations import GRAVITY_MPS2, up_from_tilt  # noqa: E402
+from armfusion.models.sensor_models import stream_models  # noqa: E402
+from armfusion.sensors.recording import read_recording  # noqa: E402
+from armfusion.sensors.samples import Recording  # noqa: E402
 
 COLORS = ("#d62728", "#2ca02c", "#1f77b4", "#9467bd", "#8c564b", "#e377c2", "#17becf")
 MAX_POINTS = 2500

@@ -15,7 +15,7 @@ What the article gives and what is done with it:
   our errors, and, over ``--runs`` noise draws, how often those bounds hold and whether
   the errors scatter as the σ say (the estimator's consistency, which the article doubts).
 * **Magnetometer**: the article simulates none; its Table 10 estimates serve as the truth
-  (as in ``fusion.identification.renk.TABLE10``), noise 8.5 / 6.8 / 11.7 mV and ×10, field magnitude 1 G.
+  (as in ``armfusion.fusion.identification.renk.TABLE10``), noise 8.5 / 6.8 / 11.7 mV and ×10, field magnitude 1 G.
 * **Tables 3-12** are estimates from the real sensor, whose data we do not have. Two
   things can be checked: the angles between axes recomputed from its Tables 3, 5, 8, 10
   (our reading of eq. 6) against its Tables 4, 6, 9, 11; and its Tables 7 and 12 (the
@@ -39,8 +39,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.identification.renk import (  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.identification.renk import (  # noqa: E402
     ACCEL_NOISE_V,
     ARTICLE_JOINTS,
     GRAVITY_ARTICLE_MPS2,

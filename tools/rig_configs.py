@@ -5,12 +5,11 @@ trial's first stretch best. Shared by ``tools/bench_real_rig.py`` and ``tools/ri
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.configfile import load_arm
-from fusion.identification.identify import data_from_recording
-from fusion.workbench.diagnose import diagnose
-from models.effects import model_from_arm
-from sensors.samples import Recording
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.identify import data_from_recording
+from armfusion.fusion.workbench.diagnose import diagnose
+from armfusion.models.effects import model_from_arm
+from armfusion.sensors.samples import Recording
 
 RIG_CONFIGS = ("imu_rig_roll", "imu_rig_pitch", "imu_rig_yaw")
 WINDOW = 10

@@ -68,11 +68,11 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from models.arm import ArmModel  # noqa: E402
-from models.kinematics import chain_poses, sensor_poses  # noqa: E402
-from models.rotations import GRAVITY_MPS2, wrap_angle  # noqa: E402
-from models.sensor_models import stream_models  # noqa: E402
-from sensors.samples import LINK_GYRO_SUFFIX, Recording  # noqa: E402
+from armfusion.models.arm import ArmModel  # noqa: E402
+from armfusion.models.kinematics import chain_poses, sensor_poses  # noqa: E402
+from armfusion.models.rotations import GRAVITY_MPS2, wrap_angle  # noqa: E402
+from armfusion.models.sensor_models import stream_models  # noqa: E402
+from armfusion.sensors.samples import LINK_GYRO_SUFFIX, Recording  # noqa: E402
 
 GAP_PERIODS = 1.5
 """A stretch between two samples longer than this many grid periods counts as a gap."""
@@ -331,9 +331,10 @@ def peer_joint_angles(rec: Recording, arm: ArmModel, calibrate_s: float,
 
 # ------------------------------------------------------------------------------------ command line
 def main(argv=None) -> int:
-    from fusion.configfile import load_arm
-    from fusion.importing.column_map import load_column_map
-    from fusion.importing.run import import_recording
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.fusion.importing.column_map import load_column_map
+    from armfusion.fusion.importing.run import import_recording
+
     from tools.rig_configs import RIG_CONFIGS, choose_config
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -53,11 +53,12 @@ import zenoh
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from fusion.configfile import load_arm  # noqa: E402
-from fusion.service import payloads as pl  # noqa: E402
-from fusion.service.zenoh_config import ZenohSettings, open_session  # noqa: E402
-from models.simulator import angle_truth, simulate  # noqa: E402
-from sensors.samples import Stream  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.fusion.service import payloads as pl  # noqa: E402
+from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session  # noqa: E402
+from armfusion.models.simulator import angle_truth, simulate  # noqa: E402
+from armfusion.sensors.samples import Stream  # noqa: E402
+
 from tools.benchdoc import machine_line, write_section  # noqa: E402
 
 ROBOT = "soak"
@@ -328,14 +329,14 @@ def _z_scores(joints: Joints, truth: Stream, after_t_s: float) -> np.ndarray:
 
 class ServeProcess:
     """``armfusion serve`` as its own process for ``robot``, listening on a port of its own,
-    run from the checkout ``root`` (this one, or a baseline's: ``python -m fusion.cli`` in
+    run from the checkout ``root`` (this one, or a baseline's: ``python -m armfusion.fusion.cli`` in
     that folder takes its code)."""
 
     def __init__(self, robot: str, root: Path):
         self.robot, self.root, self.port = robot, root, _free_port()
         self.err_lines: list[str] = []
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "fusion.cli", "serve", "--robot", robot, "--listen",
+            [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--robot", robot, "--listen",
              f"tcp/127.0.0.1:{self.port}", "--publish-hz", "1000", "--json"],
             cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
@@ -553,7 +554,7 @@ def _staleness_ms(got_t, got_wall, enc_t, put_wall, read_wall, t_up: float) -> d
 def tracker_alone(rec, n_instants: int = 1000) -> float:
     """Instants per CPU-second of the tracker by itself (no Zenoh, no decoding), on the
     first ``n_instants`` after a startup calibration on the recording's first 3 s."""
-    from fusion.tracking.tracker import start_from_recording
+    from armfusion.fusion.tracking.tracker import start_from_recording
 
     arm = load_arm("wmra")
     head = rec.between(-np.inf, rec.t_start_s + 3.0)

@@ -36,13 +36,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from fusion.configfile import load_arm  # noqa: E402
-from models.arm import ArmModel  # noqa: E402
-from models.rotations import DEG  # noqa: E402
-from models.simulator import simulate  # noqa: E402
-from models.trajectories.paths import ParkedBase, StepsBuilder, WaypointPath, min_jerk_duration  # noqa: E402
-from models.trajectories.scenario import Scenario, warm_up  # noqa: E402
-from sensors.samples import link_gyro_stream  # noqa: E402
+from armfusion.fusion.configfile import load_arm  # noqa: E402
+from armfusion.models.arm import ArmModel  # noqa: E402
+from armfusion.models.rotations import DEG  # noqa: E402
+from armfusion.models.simulator import simulate  # noqa: E402
+from armfusion.models.trajectories.paths import ParkedBase, StepsBuilder, WaypointPath, min_jerk_duration  # noqa: E402
+from armfusion.models.trajectories.scenario import Scenario, warm_up  # noqa: E402
+from armfusion.sensors.samples import link_gyro_stream  # noqa: E402
 
 CONFIG = ROOT / "config" / "ur5_two_imu.yaml"
 IMU_RATE_HZ = 100.0

@@ -1,5 +1,5 @@
-"""``python -m fusion.cli``: the same entry point as the ``armfusion`` script."""
+"""``python -m armfusion.fusion.cli``: the same entry point as the ``armfusion`` script."""
 
-from fusion.cli.main import app
+from armfusion.fusion.cli.main import app
 
 app()

@@ -7,10 +7,7 @@ from typing import Annotated
 
 import numpy as np
 import typer
-from rich.markup import escape
-from rich.table import Table
-
-from fusion.cli.common import (
+from armfusion.fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
     choice_or_exit,
@@ -20,10 +17,10 @@ from fusion.cli.common import (
     err_console,
     fail,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt, window_seconds
-from fusion.identification.identify import startup_correction
-from fusion.startup.pose_store import load_pose, save_pose
-from fusion.startup.solve import (
+from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, window_seconds
+from armfusion.fusion.identification.identify import startup_correction
+from armfusion.fusion.startup.pose_store import load_pose, save_pose
+from armfusion.fusion.startup.solve import (
     StartupInputError,
     StartupPrior,
     StartupResult,
@@ -32,8 +29,10 @@ from fusion.startup.solve import (
     readings_from_recording,
     solve_still,
 )
-from fusion.startup.static import StaticDetectionSettings, find_static_segments
-from models.sensor_models import encoder_angles_at, mpu9150_temperature_c, stream_models
+from armfusion.fusion.startup.static import StaticDetectionSettings, find_static_segments
+from armfusion.models.sensor_models import encoder_angles_at, mpu9150_temperature_c, stream_models
+from rich.markup import escape
+from rich.table import Table
 
 calibrate_app = typer.Typer(help="Calibrate: joint angles from a still arm, or the sensors.",
                             no_args_is_help=True)
@@ -66,7 +65,7 @@ def calibrate_joints(
     st = StartupSettings(gimbal_lock_deg=gimbal_lock_deg, sigma_limit_deg=sigma_limit_deg)
     notes: list[str] = []
     first_prior = _first_prior(prior, assume_parked, arm, notes)
-    from fusion.tracking.start import short_still_readings
+    from armfusion.fusion.tracking.start import short_still_readings
 
     segs, short = _still_segments(arm, rec, recording, segments, window_s, start_at, notes)
     out = []
@@ -137,7 +136,7 @@ def _still_segments(arm, rec, recording: Path, segments: bool, window_s: float, 
     """The still stretches to calibrate on (every one with ``--segments``, else where a start
     would: the first near the start, a short one too) and which of them are short; exit 2
     when there is none."""
-    from fusion.tracking.start import NoStillWindowError, choose_start
+    from armfusion.fusion.tracking.start import NoStillWindowError, choose_start
 
     if start_at is not None and not (np.isfinite(start_at) and start_at >= 0.0):
         fail(f"--start-at must be a time of 0 s or more after the recording's start, not {start_at!r}")

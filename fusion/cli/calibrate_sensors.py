@@ -25,9 +25,7 @@ from typing import Annotated
 import numpy as np
 import typer
 import yaml
-from rich.table import Table
-
-from fusion.cli.common import (
+from armfusion.fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
     choice_or_exit,
@@ -39,9 +37,9 @@ from fusion.cli.common import (
     progress_bar,
     read_recording_or_exit,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
-from fusion.configfile import resolve_config_path
-from fusion.identification.identify import (
+from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
+from armfusion.fusion.configfile import resolve_config_path
+from armfusion.fusion.identification.identify import (
     REFERENCE_SIGMA_RAD,
     IdentifySettings,
     config_with_estimates,
@@ -52,9 +50,10 @@ from fusion.identification.identify import (
     joint_references,
     with_encoder_zeros,
 )
-from models.effects import EFFECTS, Model, all_effects, model_from_arm
-from models.simulator import REALISTIC_EXCLUDE, drawn_by_default
-from sensors.output_files import write_text_replacing
+from armfusion.models.effects import EFFECTS, Model, all_effects, model_from_arm
+from armfusion.models.simulator import REALISTIC_EXCLUDE, drawn_by_default
+from armfusion.sensors.output_files import write_text_replacing
+from rich.table import Table
 
 
 def parse_base_tilt(text: str, sigma_deg: float) -> tuple[np.ndarray, float]:
@@ -259,8 +258,8 @@ def _with_compass_from_drive(cfg: dict, drive: Path, json_out: bool) -> tuple[di
     in ``drive`` in place of the parked fit's; the line that says what the drive gave."""
     import tempfile
 
-    from fusion.configfile import load_arm
-    from fusion.tracking.compass_drive import calibrate_compass_on_drive
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.fusion.tracking.compass_drive import calibrate_compass_on_drive
 
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "fitted.yaml"

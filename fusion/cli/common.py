@@ -1,8 +1,8 @@
 """What every `armfusion` command shares: consoles, one-line failures, JSON output, loading a
 config and a recording with a clear error, checked output paths and progress bars (the
-shared options are in ``fusion.cli.options``).
+shared options are in ``armfusion.fusion.cli.options``).
 
-Kept apart from ``fusion.cli.main`` (which registers the commands) so that command modules can
+Kept apart from ``armfusion.fusion.cli.main`` (which registers the commands) so that command modules can
 import it without an import cycle. It imports typer and rich only: ``armfusion --help``
 loads it, so numpy, the config loader and the recording readers are imported by the
 functions that use them.
@@ -60,8 +60,8 @@ def json_default(o):
 
 
 def load_arm_or_exit(config: str):
-    from fusion.configfile import load_arm
-    from models.arm_config import ConfigError
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.models.arm_config import ConfigError
 
     try:
         return load_arm(config)
@@ -72,9 +72,9 @@ def load_arm_or_exit(config: str):
 def read_recording_or_exit(path: Path, arm=None):
     """The recording at ``path``, or a one-line error and exit 2. With ``arm`` (the
     command's config), also exit 2 when the recording does not fit it (an encoder per
-    joint, a config sensor's channels: ``models.sensor_models.recording_problems``):
+    joint, a config sensor's channels: ``armfusion.models.sensor_models.recording_problems``):
     this is where every command's recording meets its config."""
-    from sensors.recording import read_recording
+    from armfusion.sensors.recording import read_recording
 
     if not path.exists():
         fail(f"recording not found: {path}")
@@ -91,7 +91,7 @@ def read_recording_or_exit(path: Path, arm=None):
     for w in caught:
         err_console.print(f"[yellow]warning:[/] {w.message}", highlight=False)
     if arm is not None:
-        from models.sensor_models import recording_problems
+        from armfusion.models.sensor_models import recording_problems
 
         problems = recording_problems(arm, rec)
         if problems:
@@ -102,11 +102,11 @@ def read_recording_or_exit(path: Path, arm=None):
 
 def screen_or_exit(arm, rec, path: Path, required: Sequence[str], needed_by: str,
                    json_out: bool = False):
-    """The one treatment of range and saturation (``models.sample_admission.screen_samples``)
+    """The one treatment of range and saturation (``armfusion.models.sample_admission.screen_samples``)
     for a command: exit 2 with one line when ``rec`` lacks a stream of ``required`` (what
     ``needed_by`` needs) or holds a value past its device's range, naming the place; else
     say on stderr how many saturated samples are left out, and return the screen."""
-    from models.sample_admission import MissingSensorError, OutOfRangeError, screen_samples
+    from armfusion.models.sample_admission import MissingSensorError, OutOfRangeError, screen_samples
 
     try:
         screen = screen_samples(arm, rec, required, needed_by)
@@ -133,7 +133,7 @@ def arm_and_recording_or_exit(config: str, path: Path, required: Callable[[Any],
 def config_file(config: str) -> Path | None:
     """The file a ``--config`` names (a shipped name or a path), or ``None`` when it names
     none (the command's own loading then says why)."""
-    from fusion.configfile import resolve_config_path
+    from armfusion.fusion.configfile import resolve_config_path
 
     try:
         return resolve_config_path(config)
@@ -147,7 +147,7 @@ def output_path_problem(path: Path, suffixes: Sequence[str] | None = None,
     place, a parent that is a file, a directory where no file can be created: tried, by a
     file made and removed there) or must not be (it is one of the command's ``inputs``, by
     any name: a recording, a config), or ``None``. Leaves nothing behind."""
-    from sensors.output_files import cannot_create_in, same_file
+    from armfusion.sensors.output_files import cannot_create_in, same_file
 
     path = Path(path)
     if suffixes is not None and path.suffix.lower() not in suffixes:

@@ -6,7 +6,7 @@
    with the code (``config/maneuvers/wmra-60s.yaml``, made once by ``armfusion
    plan-maneuver --config wmra --duration 60``; ``--maneuver`` plays another); the
    simulated installer gives j1's and j7's angle once, at the maneuver's still start
-   (their true geometric angle plus N(0, 0.05°): :func:`fusion.identification.truth.installer_reference`);
+   (their true geometric angle plus N(0, 0.05°): :func:`armfusion.fusion.identification.truth.installer_reference`);
    the chair turns once on the spot (``compass-turn``); and ``armfusion calibrate sensors
    --reference … --compass-drive TURN --write`` identifies the errors (the compass's iron
    from the turn) and writes a calibrated config. Uncalibrated, the startup calibration honestly flags most
@@ -19,9 +19,9 @@
 3. **The summary**: startup and tracking accuracy against the simulator's truth, the flags
    seen, samples published / received / dropped, the sample→estimate latency (a sample's
    read time on the drivers' clock to the estimate's arrival here: one machine, one
-   monotonic clock), and an HTML report (:mod:`fusion.cli.demo_report`): the tracking
+   monotonic clock), and an HTML report (:mod:`armfusion.fusion.cli.demo_report`): the tracking
    plots and the workbench's verdict and error ladder on the calibration recording
-   (``fusion.workbench.diagnose``).
+   (``armfusion.fusion.workbench.diagnose``).
 """
 
 from __future__ import annotations
@@ -40,9 +40,8 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 import yaml
-
-from fusion.cli.common import emit_json, err_console, fail
-from fusion.cli.demo_report import (
+from armfusion.fusion.cli.common import emit_json, err_console, fail
+from armfusion.fusion.cli.demo_report import (
     heading_scores,
     joint_scores,
     latency_figures,
@@ -51,13 +50,13 @@ from fusion.cli.demo_report import (
     score_combinations,
     write_report,
 )
-from fusion.cli.options import JsonOpt, ScenarioOpt, SeedOpt
-from fusion.cli.simulate import truth_path
-from fusion.service import payloads as pl
-from fusion.service.processes import Children, cpu_seconds, free_loopback_port
-from fusion.tracking.tracker import truth_at
-from models.simulator import angle_truth
-from models.trajectories import SCENARIOS
+from armfusion.fusion.cli.options import JsonOpt, ScenarioOpt, SeedOpt
+from armfusion.fusion.cli.simulate import truth_path
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.processes import Children, cpu_seconds, free_loopback_port
+from armfusion.fusion.tracking.tracker import truth_at
+from armfusion.models.simulator import angle_truth
+from armfusion.models.trajectories import SCENARIOS
 
 ROBOT = "chair1"
 SERVE_START_S = 600.0
@@ -66,7 +65,7 @@ tracker kernels first (cached after the first run; a fresh copy's first demo on 
 machine loaded by other work took more than 120 s)."""
 MANEUVER = "maneuvers/wmra-60s.yaml"
 """The shipped planned self-calibration maneuver the demo's arm plays (a file of the shipped
-configs' folder: ``fusion.shipped.shipped_config``)."""
+configs' folder: ``armfusion.fusion.shipped.shipped_config``)."""
 REFERENCE_JOINTS = ("j1", "j7")
 """The joints whose angle the demo's simulated installer gives once: what no parked maneuver
 can pin (j1's zero against the IMU's mount about its axis, j7's against acc4's)."""
@@ -118,12 +117,12 @@ def calibrate(workdir: Path, seed: int, duration_s: float | None, realistic: boo
     on the spot (:data:`COMPASS_SCENARIO`) and identify the sensors' errors, the compass's
     iron from the turn: the calibrated config, the identification's JSON, the recording and
     what was played and referenced."""
-    from fusion.cli.simulate import simulate
-    from fusion.configfile import load_arm
-    from fusion.identification.planner import safe_maneuver
-    from fusion.identification.truth import installer_reference
-    from fusion.shipped import shipped_config
-    from sensors.recording import read_recording
+    from armfusion.fusion.cli.simulate import simulate
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.fusion.identification.planner import safe_maneuver
+    from armfusion.fusion.identification.truth import installer_reference
+    from armfusion.fusion.shipped import shipped_config
+    from armfusion.sensors.recording import read_recording
 
     source = shipped_config(MANEUVER) if maneuver is None else Path(maneuver)
     arm = load_arm("wmra")
@@ -194,8 +193,7 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
     """Router, recorder, fusion node and drivers as processes; returns what each reported
     and what the demo's consumer received."""
     import zenoh
-
-    from fusion.service.zenoh_config import ZenohSettings, open_session
+    from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session
 
     router = f"tcp/127.0.0.1:{free_loopback_port()}"
     client = ["--mode", "client", "--connect", router]
@@ -254,7 +252,7 @@ LATENCY_SETTLE_S = 10.0  # tracking time after which the latency is also given o
 
 def evaluate(live: dict[str, Any]) -> dict[str, Any]:
     """Accuracy against the truth, flags, counts and latency, as one JSON-ready document."""
-    from sensors.recording import read_recording
+    from armfusion.sensors.recording import read_recording
 
     truth = read_recording(live["truth_path"]).truth()
     tq, tb = truth["true_q"], truth["true_base"]
@@ -305,11 +303,11 @@ def evaluate(live: dict[str, Any]) -> dict[str, Any]:
 def workbench(calibration_rec: Path, identification: dict, window: int = 25):
     """The workbench on the calibration recording: the shipped model's diagnosis (verdict,
     ranked missing effects) and the error ladder (shipped model → + the identified effects)."""
-    from fusion.configfile import load_arm
-    from fusion.identification.identify import data_from_recording
-    from fusion.workbench.diagnose import diagnose
-    from models.effects import model_from_arm
-    from sensors.recording import read_recording
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.fusion.identification.identify import data_from_recording
+    from armfusion.fusion.workbench.diagnose import diagnose
+    from armfusion.models.effects import model_from_arm
+    from armfusion.sensors.recording import read_recording
 
     arm = load_arm("wmra")
     data = data_from_recording(arm, read_recording(calibration_rec), window=window)

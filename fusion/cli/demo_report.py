@@ -1,4 +1,4 @@
-"""What ``armfusion demo`` shows of a run (:mod:`fusion.cli.demo`): the self-contained
+"""What ``armfusion demo`` shows of a run (:mod:`armfusion.fusion.cli.demo`): the self-contained
 HTML report (the tracking plots against the truth, the workbench's verdict and error ladder)
 and the summary table for the terminal, both from the evaluation's document."""
 
@@ -11,10 +11,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from fusion.cli.common import console
-from fusion.tracking.tracker import truth_at
-from models.rotations import wrap_angle
+from armfusion.fusion.cli.common import console
+from armfusion.fusion.tracking.tracker import truth_at
+from armfusion.models.rotations import wrap_angle
 
 
 def score_combinations(reported: list, t: np.ndarray, q_true: np.ndarray, tilt_true: np.ndarray,
@@ -25,7 +24,7 @@ def score_combinations(reported: list, t: np.ndarray, q_true: np.ndarray, tilt_t
     base's ``tilt_true (T, 2)``, roll and pitch, rad) over the estimates it was reported at:
     its share of estimates, its last value and sigma (deg), RMS error and share within 3 sigma
     (None where no truth)."""
-    from fusion.startup.solve import TILT_NAMES
+    from armfusion.fusion.startup.solve import TILT_NAMES
 
     series: dict[str, dict[str, Any]] = {}
     for i, cs in enumerate(reported):
@@ -236,7 +235,7 @@ def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladd
     """One self-contained HTML file: the summary, the tracking plots, the workbench."""
     figs = tracking_figures(ev)
     if diag is not None:
-        from fusion.cli.diagnose_report import report_figures
+        from armfusion.fusion.cli.diagnose_report import report_figures
 
         wb = report_figures(diag, None, ladder)
         figs.update({f"wb_{k}": v for k, v in wb.items() if k in ("ladder", "candidates")})

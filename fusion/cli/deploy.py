@@ -1,4 +1,4 @@
-"""``armfusion deploy``: the command line of :mod:`fusion.service.deploy` (a fleet's
+"""``armfusion deploy``: the command line of :mod:`armfusion.fusion.service.deploy` (a fleet's
 certificates, credentials and Zenoh configs)."""
 
 from __future__ import annotations
@@ -7,10 +7,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-
-from fusion.cli.common import console, emit_json, fail
-from fusion.cli.options import JsonOpt
-from fusion.service.deploy import CHAIR_NODES, INSTALL_DIR, DeployError, deploy
+from armfusion.fusion.cli.common import console, emit_json, fail
+from armfusion.fusion.cli.options import JsonOpt
+from armfusion.fusion.service.deploy import CHAIR_NODES, INSTALL_DIR, DeployError, deploy
 
 
 def register(app: typer.Typer) -> None:

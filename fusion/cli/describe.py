@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.startup.static import StaticDetectionSettings, find_static_segments
-from models.arm import ArmModel
-from models.kinematics import joint_axis_angle_to_vertical
-from sensors.samples import Recording, stream_gaps
+from armfusion.fusion.startup.static import StaticDetectionSettings, find_static_segments
+from armfusion.models.arm import ArmModel
+from armfusion.models.kinematics import joint_axis_angle_to_vertical
+from armfusion.sensors.samples import Recording, stream_gaps
 
 
 def describe_arm(arm: ArmModel) -> dict:

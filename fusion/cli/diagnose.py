@@ -3,10 +3,10 @@
     armfusion diagnose --config C REC [--json] [--add EFFECT[:TARGET] … | --discover [--rungs 10]]
         [--write C2.yaml] [--window 10] [--history H.json] [--report out.html]
 
-Fits the config's model to the recording (``fusion.workbench.diagnose``), shows every sensor axis's
+Fits the config's model to the recording (``armfusion.fusion.workbench.diagnose``), shows every sensor axis's
 residual RMS against its noise floor, the verdict and the ranked missing effects. ``--add``
 refits with the named effects starting from the estimates and shows before and after;
-``--discover`` walks the ladder by itself (``fusion.workbench.discover``: add the best
+``--discover`` walks the ladder by itself (``armfusion.fusion.workbench.discover``: add the best
 significant candidate, refit, until nothing is significant) and shows every rung;
 ``--write`` saves the config with the (last) estimates. Every run appends each model
 version's residual RMS to a history (the error ladder). See docs/workbench.md.
@@ -20,9 +20,7 @@ from typing import Annotated
 
 import numpy as np
 import typer
-from rich.table import Table
-
-from fusion.cli.common import (
+from armfusion.fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
     config_file,
@@ -33,8 +31,8 @@ from fusion.cli.common import (
     progress_bar,
     read_recording_or_exit,
 )
-from fusion.cli.diagnose_report import write_innovation_report, write_report
-from fusion.cli.diagnose_write import (
+from armfusion.fusion.cli.diagnose_report import write_innovation_report, write_report
+from armfusion.fusion.cli.diagnose_write import (
     Fits,
     extend_ladder,
     history_path,
@@ -42,9 +40,9 @@ from fusion.cli.diagnose_write import (
     write_config,
     write_refusal,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
-from fusion.identification.identify import data_from_recording, fit_streams
-from fusion.workbench.diagnose import (
+from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
+from armfusion.fusion.identification.identify import data_from_recording, fit_streams
+from armfusion.fusion.workbench.diagnose import (
     DiagnoseSettings,
     Diagnosis,
     add_effects,
@@ -54,10 +52,11 @@ from fusion.workbench.diagnose import (
     params_words,
     parse_add,
 )
-from fusion.workbench.discover import DiscoverSettings, Discovery, discover, held_out_worse
-from fusion.workbench.heldout import HeldOut, as_it_is, judge, split_in_time
-from fusion.workbench.resampling import resampled_streams
-from models.effects import TargetError, model_from_arm
+from armfusion.fusion.workbench.discover import DiscoverSettings, Discovery, discover, held_out_worse
+from armfusion.fusion.workbench.heldout import HeldOut, as_it_is, judge, split_in_time
+from armfusion.fusion.workbench.resampling import resampled_streams
+from armfusion.models.effects import TargetError, model_from_arm
+from rich.table import Table
 
 
 def register(app: typer.Typer) -> None:

@@ -10,9 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-from fusion.workbench.diagnose import Diagnosis, params_words
-from sensors.output_files import write_text_replacing
+from armfusion.fusion.workbench.diagnose import Diagnosis, params_words
+from armfusion.sensors.output_files import write_text_replacing
 
 
 def _pyplot():
@@ -39,7 +38,7 @@ def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict
     against measured, the worst axes) and ``residuals`` (the worst axis against the input the
     top candidate's evidence names)."""
     plt = _pyplot()
-    from fusion.workbench.diagnose import predicted_and_measured
+    from armfusion.fusion.workbench.diagnose import predicted_and_measured
 
     figs: dict[str, bytes] = {}
 
@@ -125,7 +124,7 @@ def analysis_figures(d: Diagnosis) -> dict[str, bytes]:
     worst = sorted(range(len(d.axes)), key=lambda k: -d.axes[k].ratio)[:3]
     w = worst[0]
     ax0 = d.axes[w]
-    from fusion.workbench.diagnose import fit_inputs
+    from armfusion.fusion.workbench.diagnose import fit_inputs
 
     inputs = fit_inputs(d.data.state, d.fit.model.arm.joint_names)
     shown = [k for k in inputs if k not in a.constant_inputs]
@@ -219,7 +218,7 @@ table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padd
 
 def _residual_of_axis(d: Diagnosis, k: int) -> np.ndarray:
     """Axis ``k``'s residual in units of its noise σ (measured minus model)."""
-    from fusion.workbench.diagnose import predicted_and_measured
+    from armfusion.fusion.workbench.diagnose import predicted_and_measured
 
     a = d.axes[k]
     t, ym, yp, unit, ch = predicted_and_measured(d)[a.stream]
@@ -255,7 +254,7 @@ def discovery_html(disc) -> str:
 def write_report(path: Path, before: Diagnosis, after: Diagnosis | None, ladder: list[dict],
                  recording: Path, config: str, discovery=None) -> Path:
     """One HTML file a person reads top to bottom: verdict, ladder, ranked candidates, plots;
-    with ``discovery`` (:class:`fusion.workbench.discover.Discovery`) its rungs under the ladder."""
+    with ``discovery`` (:class:`armfusion.fusion.workbench.discover.Discovery`) its rungs under the ladder."""
     import base64
     import html
 

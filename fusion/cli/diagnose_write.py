@@ -12,14 +12,13 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-
-from fusion.cli.common import err_console, progress_bar
-from fusion.configfile import load_arm, resolve_config_path
-from fusion.identification.identify import config_with_estimates
-from fusion.workbench.diagnose import Diagnosis
-from fusion.workbench.discover import Discovery
-from fusion.workbench.heldout import HeldOut, tracked, tracked_worse
-from sensors.output_files import write_text_replacing
+from armfusion.fusion.cli.common import err_console, progress_bar
+from armfusion.fusion.configfile import load_arm, resolve_config_path
+from armfusion.fusion.identification.identify import config_with_estimates
+from armfusion.fusion.workbench.diagnose import Diagnosis
+from armfusion.fusion.workbench.discover import Discovery
+from armfusion.fusion.workbench.heldout import HeldOut, tracked, tracked_worse
+from armfusion.sensors.output_files import write_text_replacing
 
 HISTORY_FORMAT = "armfusion.workbench-history/1"
 
@@ -131,7 +130,7 @@ def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, jud
 def tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool) -> tuple[dict | None, str | None]:
     """The tracker over the held-out part with the config it would replace and with the one it
     would write (``out``); the refusal's reason where the new one keeps fewer innovations
-    within 3σ there (:func:`fusion.workbench.heldout.tracked_worse`)."""
+    within 3σ there (:func:`armfusion.fusion.workbench.heldout.tracked_worse`)."""
     t_from = float(held.data.state.t_s[0]) if held.same_recording else -np.inf
     with progress_bar("tracking the held-out part", json_out) as advance:
         try:

@@ -10,19 +10,19 @@ buses (smbus2, spidev). A device that cannot be opened or does not answer gives 
 each, and the exit code is 2.
 
 With ``--fake`` the same driver code runs against the register-level fakes
-(:class:`~sensors.fakes.FakeRig`), whose physics come from the simulator
-(:mod:`models.fake_rig`): the scenario, the effects and the seed mean what they mean for
-``armfusion simulate``. The sampling loop runs on a :class:`~sensors.fakes.FakeClock`, as
+(:class:`~armfusion.sensors.fakes.FakeRig`), whose physics come from the simulator
+(:mod:`armfusion.models.fake_rig`): the scenario, the effects and the seed mean what they mean for
+``armfusion simulate``. The sampling loop runs on a :class:`~armfusion.sensors.fakes.FakeClock`, as
 fast as the host can (the buses' wire time still counts), or on the wall clock with
-``--realtime``. The encoders come from a :class:`~sensors.encoders.SimulatedEncoderFeed`
+``--realtime``. The encoders come from a :class:`~armfusion.sensors.encoders.SimulatedEncoderFeed`
 of the simulator's counts. ``--fault`` injects bus and device faults on the fakes
-(:mod:`fusion.cli.drivers_faults`). Recording times are seconds since the rig powered up
+(:mod:`armfusion.fusion.cli.drivers_faults`). Recording times are seconds since the rig powered up
 (the scenario's t = 0); ``--out`` writes the recording and, with ``--fake``, its truth file.
 ``--scenario``, ``--seed``, ``--realistic``, ``--effect``, ``--effects-file``, ``--no-noise``,
 ``--fault`` and ``--realtime`` apply with ``--fake`` only (given without it: exit 2).
 
-This module is the command; the runs are :mod:`fusion.cli.drivers_run` (``run_fake``,
-``run_real``), the report :mod:`fusion.cli.drivers_report`.
+This module is the command; the runs are :mod:`armfusion.fusion.cli.drivers_run` (``run_fake``,
+``run_real``), the report :mod:`armfusion.fusion.cli.drivers_report`.
 
 The report: per device, the samples collected, read time, jitter, bus errors, retries and
 the drivers' other counters (stale, overruns, offline, re-initialisations…). See
@@ -39,12 +39,11 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-
-from fusion.cli.common import check_output_path, config_file, emit_json, fail, progress_bar
-from fusion.cli.drivers_faults import FAULT_KINDS
-from fusion.cli.drivers_report import print_report, summary
-from fusion.cli.drivers_run import DriversRun, run_fake, run_real
-from fusion.cli.options import (
+from armfusion.fusion.cli.common import check_output_path, config_file, emit_json, fail, progress_bar
+from armfusion.fusion.cli.drivers_faults import FAULT_KINDS
+from armfusion.fusion.cli.drivers_report import print_report, summary
+from armfusion.fusion.cli.drivers_run import DriversRun, run_fake, run_real
+from armfusion.fusion.cli.options import (
     ADMITTED_WITHIN_S,
     AdmittedWithinOpt,
     BatchMsOpt,
@@ -63,11 +62,11 @@ from fusion.cli.options import (
     ZenohConfigOpt,
     check_robot,
 )
-from fusion.cli.simulate import truth_json, truth_path
-from models.arm_config import ConfigError
-from sensors.bus import DeviceNotFoundError
-from sensors.output_files import write_text_replacing
-from sensors.recording import SUFFIXES, write_recording
+from armfusion.fusion.cli.simulate import truth_json, truth_path
+from armfusion.models.arm_config import ConfigError
+from armfusion.sensors.bus import DeviceNotFoundError
+from armfusion.sensors.output_files import write_text_replacing
+from armfusion.sensors.recording import SUFFIXES, write_recording
 
 
 @dataclass
@@ -77,7 +76,7 @@ class _Live:
     batch_s: float
     watch: Any = None
     admission: Any = None
-    """The fusion node's admission of what was published (fusion.service.admitted), at the end."""
+    """The fusion node's admission of what was published (armfusion.fusion.service.admitted), at the end."""
 
     def on_batch(self, streams) -> None:
         if self.watch is not None and not self.watch.started:
@@ -89,13 +88,13 @@ class _Live:
 def _publishing(robot: str, batch_ms: float, wait_s: float, admitted_within_s: float,
                 zenoh_config: Path | None, listen: list[str] | None, connect: list[str] | None,
                 mode: str | None) -> Iterator[_Live]:
-    """A Zenoh session and a :class:`~fusion.service.raw_publisher.RawPublisher` for
+    """A Zenoh session and a :class:`~armfusion.fusion.service.raw_publisher.RawPublisher` for
     ``--robot``; SIGINT and SIGTERM stop the run, and so does the fusion node's admitting
     none of the samples within ``admitted_within_s`` (the verdict: ``_Live.admission``);
     the last status says ``done``."""
-    from fusion.cli.nodes import session_or_exit, watching_admission, zenoh_settings
-    from fusion.service.node import stop_on_signals
-    from fusion.service.raw_publisher import RawPublisher
+    from armfusion.fusion.cli.nodes import session_or_exit, watching_admission, zenoh_settings
+    from armfusion.fusion.service.node import stop_on_signals
+    from armfusion.fusion.service.raw_publisher import RawPublisher
 
     if wait_s < 0:
         fail(f"--wait {wait_s!r}: expected >= 0")
@@ -178,7 +177,7 @@ def drivers_command(
                             "admission": None if admission is None else admission.as_dict()}
     _finish(doc, run, out, json_out)
     if live is not None:
-        from fusion.cli.nodes import say_admission
+        from armfusion.fusion.cli.nodes import say_admission
 
         if not json_out:
             say_admission(live.admission)

@@ -2,7 +2,7 @@
 
 A fault is written ``TARGET:KIND[=VALUE][@T0[-T1]]`` (:func:`parse_fault`, the kinds in
 :data:`FAULT_KINDS`); a :class:`FaultSchedule` applies the specs to a
-:class:`~sensors.fakes.FakeRig` as its simulated time passes. See docs/drivers.md.
+:class:`~armfusion.sensors.fakes.FakeRig` as its simulated time passes. See docs/drivers.md.
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from sensors.fakes import FakeRig
-from sensors.fakes.faults import FaultInjector
+from armfusion.sensors.fakes import FakeRig
+from armfusion.sensors.fakes.faults import FaultInjector
 
 FAULT_KINDS = {
     "nack": "the next K transactions fail with EIO (default K = 1), at T0",

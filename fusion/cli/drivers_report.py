@@ -1,4 +1,4 @@
-"""The report of ``armfusion drivers``: a run (:class:`~fusion.cli.drivers_run.DriversRun`)
+"""The report of ``armfusion drivers``: a run (:class:`~armfusion.fusion.cli.drivers_run.DriversRun`)
 as one JSON document (:func:`summary`, documented in docs/reference/drivers.md) and as the tables a
 person reads (:func:`print_report`): per device the samples, read time, jitter, bus
 errors, retries and the drivers' other counters."""
@@ -8,8 +8,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from fusion.cli.drivers_run import ENCODER_READER, DriversRun
-from sensors.sampling import Wiring
+from armfusion.fusion.cli.drivers_run import ENCODER_READER, DriversRun
+from armfusion.sensors.sampling import Wiring
 
 
 def _valid_count(name: str, results: list[Any]) -> int:

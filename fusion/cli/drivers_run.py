@@ -2,7 +2,7 @@
 register-level fakes fed by the simulator (:func:`run_fake`), for ``armfusion drivers``.
 
 Both open the devices of the config's ``bus:`` entries (:func:`wiring_from_arm`), run one
-:class:`~sensors.sampling.SamplingLoop` over their readers (:func:`_sample`) and return a
+:class:`~armfusion.sensors.sampling.SamplingLoop` over their readers (:func:`_sample`) and return a
 :class:`DriversRun`: the loop's timing, every reader's results, the valid samples as a raw
 recording (:func:`recording_from`) and each device's counters. With ``on_batch`` the
 samples also go out as they are read (:class:`LiveSink`), which is how ``--robot``
@@ -21,19 +21,27 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fusion.cli.drivers_faults import FaultSchedule, FaultSpec, parse_fault
-from fusion.cli.simulate import effects_model
-from fusion.configfile import load_arm
-from models.arm import ArmModel
-from models.fake_rig import SimulatedRun, encoder_counts_at, physics_for, simulate_physics
-from models.trajectories import SCENARIOS
-from sensors.adxl345 import ADXL345, ADXL345Config, accel_stream
-from sensors.bus import DeviceNotFoundError
-from sensors.encoders import N_JOINTS, EncoderSample, SimulatedEncoderFeed, encoder_stream
-from sensors.fakes import FakeClock, FakeRig
-from sensors.mpu9150 import MPU9150, imu_streams
-from sensors.samples import Recording, Stream
-from sensors.sampling import Collector, LoopReport, SamplingLoop, Wiring, close_all, open_devices, readers_for
+from armfusion.fusion.cli.drivers_faults import FaultSchedule, FaultSpec, parse_fault
+from armfusion.fusion.cli.simulate import effects_model
+from armfusion.fusion.configfile import load_arm
+from armfusion.models.arm import ArmModel
+from armfusion.models.fake_rig import SimulatedRun, encoder_counts_at, physics_for, simulate_physics
+from armfusion.models.trajectories import SCENARIOS
+from armfusion.sensors.adxl345 import ADXL345, ADXL345Config, accel_stream
+from armfusion.sensors.bus import DeviceNotFoundError
+from armfusion.sensors.encoders import N_JOINTS, EncoderSample, SimulatedEncoderFeed, encoder_stream
+from armfusion.sensors.fakes import FakeClock, FakeRig
+from armfusion.sensors.mpu9150 import MPU9150, imu_streams
+from armfusion.sensors.samples import Recording, Stream
+from armfusion.sensors.sampling import (
+    Collector,
+    LoopReport,
+    SamplingLoop,
+    Wiring,
+    close_all,
+    open_devices,
+    readers_for,
+)
 
 SIM_MARGIN_S = 2.0
 """Simulated beyond the run's duration: device initialisation (≈ 0.17 s: the MPU-9150's
@@ -132,7 +140,7 @@ def recording_from(samples: Mapping[str, list[Any]], devices: Mapping[str, ADXL3
 @dataclass
 class LiveSink:
     """The sampling loop's sink when publishing: keeps every result (as a
-    :class:`~sensors.sampling.Collector`) and, every ``batch_s`` of the loop's clock, hands
+    :class:`~armfusion.sensors.sampling.Collector`) and, every ``batch_s`` of the loop's clock, hands
     the samples read since the last batch to ``on_batch`` as raw streams (times relative to
     ``epoch_s``; a sensor with no valid sample in the batch is left out)."""
 

@@ -11,7 +11,7 @@ through a third peer, so a fleet needs one.
 (its own, started as a process, or ``--connect``'s); stops them all on SIGINT or SIGTERM
 (or after ``--duration``), and leaves no child behind.
 
-``monitor``: a live table of every robot it hears (:mod:`fusion.service.monitor`).
+``monitor``: a live table of every robot it hears (:mod:`armfusion.fusion.service.monitor`).
 """
 
 from __future__ import annotations
@@ -22,10 +22,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-
-from fusion.cli.common import console, emit_json, err_console, fail
-from fusion.cli.nodes import session_or_exit, zenoh_settings
-from fusion.cli.options import (
+from armfusion.fusion.cli.common import console, emit_json, err_console, fail
+from armfusion.fusion.cli.nodes import session_or_exit, zenoh_settings
+from armfusion.fusion.cli.options import (
     ConfigOpt,
     ConnectOpt,
     JsonOpt,
@@ -36,9 +35,14 @@ from fusion.cli.options import (
     StopAfterOpt,
     ZenohConfigOpt,
 )
-from fusion.service.node import stop_on_signals
-from fusion.service.processes import free_loopback_port
-from fusion.service.zenoh_config import ZenohConfigError, check_loopback, endpoints_line, load_config
+from armfusion.fusion.service.node import stop_on_signals
+from armfusion.fusion.service.processes import free_loopback_port
+from armfusion.fusion.service.zenoh_config import (
+    ZenohConfigError,
+    check_loopback,
+    endpoints_line,
+    load_config,
+)
 
 
 def router_command(
@@ -80,8 +84,8 @@ def fleet_command(
     through one Zenoh router; watch them with `armfusion monitor --connect <router>`."""
     import tempfile
 
-    from fusion.service.payloads import check_name
-    from fusion.service.processes import Children
+    from armfusion.fusion.service.payloads import check_name
+    from armfusion.fusion.service.processes import Children
 
     if not 1 <= chairs <= 50:
         fail(f"--chairs {chairs}: expected 1 to 50")
@@ -143,9 +147,8 @@ def monitor_command(
     """A live table of every robot: joints (deg, sigma, flags), heading, node states,
     samples and drops, age of the last update. Subscribes armfusion/*/state/*, status and
     the liveliness tokens."""
+    from armfusion.fusion.service.monitor import Monitor, render, snapshot_json
     from rich.live import Live
-
-    from fusion.service.monitor import Monitor, render, snapshot_json
 
     if duration_s is not None and not duration_s > 0:
         fail(f"--duration {duration_s!r}: expected > 0")

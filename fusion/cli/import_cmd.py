@@ -7,8 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-
-from fusion.cli.common import (
+from armfusion.fusion.cli.common import (
     config_file,
     console,
     emit_json,
@@ -16,7 +15,7 @@ from fusion.cli.common import (
     load_arm_or_exit,
     prepare_output_path,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt, RecordingOutOpt
+from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, RecordingOutOpt
 
 OUT_SUFFIXES = (".csv", ".mcap")
 
@@ -38,12 +37,12 @@ def import_recording_cmd(
     """Turn a foreign recording (CSV, MATLAB .mat, HDF5, a ROS bag) into the arm's native one: each stream
     from the columns the map names, in the unit the config declares; rows whose time does not increase dropped, NaN kept
     as gaps, every change said."""
-    from fusion.importing.bag import import_bag
-    from fusion.importing.column_map import ColumnMapError, load_column_map
-    from fusion.importing.run import import_recording
-    from models.arm_config import ConfigError
-    from sensors.foreign.rosbag import is_bag
-    from sensors.recording import write_recording
+    from armfusion.fusion.importing.bag import import_bag
+    from armfusion.fusion.importing.column_map import ColumnMapError, load_column_map
+    from armfusion.fusion.importing.run import import_recording
+    from armfusion.models.arm_config import ConfigError
+    from armfusion.sensors.foreign.rosbag import is_bag
+    from armfusion.sensors.recording import write_recording
 
     out = prepare_output_path(out, "--out", OUT_SUFFIXES,
                               inputs=(source, config_file(config), Path(column_map)))

@@ -16,10 +16,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from typer.core import TyperGroup
-
-from fusion import __version__
-from fusion.cli.common import (
+from armfusion.fusion.cli.common import (
     check_output_path,
     config_file,
     console,
@@ -28,74 +25,77 @@ from fusion.cli.common import (
     load_arm_or_exit,
     read_recording_or_exit,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt, RecordingArg, window_seconds
+from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, RecordingArg, window_seconds
+from typer.core import TyperGroup
+
+from armfusion import __version__
 
 # command name -> (its first help paragraph, "module:function" that registers it on the app);
 # one function may register several commands (the service's)
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("Simulate a recording of the arm's sensors (raw counts, truth columns, truth file).",
-                 "fusion.cli.simulate:register"),
+                 "armfusion.fusion.cli.simulate:register"),
     "drivers": ("Read the sensors through the drivers (or, with --fake, the simulator-fed fakes) and "
                 "report read time, jitter, errors and samples per device; with --robot, publish the raw "
-                "samples over Zenoh as they are read.", "fusion.cli.drivers:register"),
+                "samples over Zenoh as they are read.", "armfusion.fusion.cli.drivers:register"),
     "replay": ("Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing.",
-               "fusion.cli.nodes:register"),
+               "armfusion.fusion.cli.nodes:register"),
     "record": ("Record a robot's raw samples and estimates from Zenoh to MCAP until stopped.",
-               "fusion.cli.nodes:register"),
+               "armfusion.fusion.cli.nodes:register"),
     "serve": ("The fusion node: startup calibration on the first still window (or resume from "
               "--state-file), then the tracker; publishes armfusion/<robot>/state/joints, "
               "state/heading and status; answers armfusion/<robot>/calibrate (and, with --maneuver, "
               "serves a planned calibration maneuver on armfusion/<robot>/maneuver).",
-              "fusion.cli.nodes:register"),
+              "armfusion.fusion.cli.nodes:register"),
     "recalibrate": ("Ask the fusion node (armfusion serve) to re-run the startup calibration now, on the "
                     "latest still stretch; it refuses, saying why, while the arm moves. Exits 1 when "
-                    "refused.", "fusion.cli.nodes:register"),
+                    "refused.", "armfusion.fusion.cli.nodes:register"),
     "maneuver": ("The planned calibration maneuver the fusion node serves (serve --maneuver), as the arm's "
                  "controller sees it: show it, or say the controller starts it, is done with it (the "
                  "node then fits the sensors on it) or aborts it; apply the fit's config. Exits 1 when the "
                  "node refuses.",
-                 "fusion.cli.nodes:register"),
+                 "armfusion.fusion.cli.nodes:register"),
     "demo": ("The whole service on this machine, no hardware, loopback only: the simulated WMRA "
              "calibrates its sensors, then fake drivers → fusion node → recorder run as processes "
              "over Zenoh; a summary against the truth and an HTML report.",
-             "fusion.cli.demo:register"),
+             "armfusion.fusion.cli.demo:register"),
     "router": ("A Zenoh router on loopback for the nodes of several robots: it listens where --listen "
                "says, else where --zenoh-config's file says (default tcp/127.0.0.1:7447), and connects "
                "where its file says (or --connect); runs until SIGINT or SIGTERM.",
-               "fusion.cli.fleet:register"),
+               "armfusion.fusion.cli.fleet:register"),
     "deploy": ("Write a fleet's certificates, credentials and Zenoh configs: each chair's (its certificate, "
                "its nodes' users and passwords, its router's and nodes' configs) and, the first time, the "
                "fleet's CA and the base station's; the base router's policy admits every chair of the fleet.",
-               "fusion.cli.deploy:register"),
+               "armfusion.fusion.cli.deploy:register"),
     "fleet": ("N simulated chairs as separate processes (fake drivers → serve each), connected "
               "through one Zenoh router; watch them with `armfusion monitor --connect <router>`.",
-              "fusion.cli.fleet:register"),
+              "armfusion.fusion.cli.fleet:register"),
     "monitor": ("A live table of every robot: joints (deg, sigma, flags), heading, node states, "
                 "samples and drops, age of the last update. Subscribes armfusion/*/state/*, status "
-                "and the liveliness tokens.", "fusion.cli.fleet:register"),
+                "and the liveliness tokens.", "armfusion.fusion.cli.fleet:register"),
     "diagnose": ("Compare the model with a recording: where it fails, which physical effect is missing.",
-                 "fusion.cli.diagnose:register"),
+                 "armfusion.fusion.cli.diagnose:register"),
     "track": ("Track the joint angles and the heading through a recording: startup calibration on "
               "its first still stretch (or, with --moving-start, on its least-moving instants), then "
               "the unscented Kalman filter on every sample.",
-              "fusion.cli.track:register"),
+              "armfusion.fusion.cli.track:register"),
     "import": ("Turn a foreign recording (CSV, MATLAB .mat, HDF5, a ROS bag) into the arm's native one: each "
                "stream from the columns the map names, in the unit the config declares; rows whose time "
                "does not increase dropped, NaN kept as gaps, every change said.",
-               "fusion.cli.import_cmd:register"),
+               "armfusion.fusion.cli.import_cmd:register"),
     "plan-maneuver": ("Plan the self-calibration maneuver: poses, dwells and safe moves that make the "
                       "fit's parameters best known in the time given; the sigma each parameter and each "
-                      "joint's startup will have after it.", "fusion.cli.plan_maneuver:register"),
+                      "joint's startup will have after it.", "armfusion.fusion.cli.plan_maneuver:register"),
     "calibrate": ("Calibrate: joint angles from a still arm, or the sensors.",
-                  "fusion.cli.main:register_calibrate"),
+                  "armfusion.fusion.cli.main:register_calibrate"),
 }
 
 
 def register_calibrate(app: typer.Typer) -> None:
-    """``calibrate joints`` (fusion.cli.calibrate_joints) and ``calibrate sensors``
-    (fusion.cli.calibrate_sensors) under ``calibrate``."""
-    from fusion.cli.calibrate_joints import calibrate_app
-    from fusion.cli.calibrate_sensors import calibrate_sensors
+    """``calibrate joints`` (armfusion.fusion.cli.calibrate_joints) and ``calibrate sensors``
+    (armfusion.fusion.cli.calibrate_sensors) under ``calibrate``."""
+    from armfusion.fusion.cli.calibrate_joints import calibrate_app
+    from armfusion.fusion.cli.calibrate_sensors import calibrate_sensors
 
     if not any(c.name == "sensors" for c in calibrate_app.registered_commands):
         calibrate_app.command("sensors")(calibrate_sensors)
@@ -181,7 +181,7 @@ def info(
 ) -> None:
     """Print the arm: its joints, its sensors, and which joints each sensor sees."""
 
-    from fusion.cli.describe import describe_arm
+    from armfusion.fusion.cli.describe import describe_arm
 
     if plot is not None:
         check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES, inputs=(config_file(config),))
@@ -190,7 +190,7 @@ def info(
     arm = load_arm_or_exit(config)
     d = describe_arm(arm)
     if plot is not None:
-        from fusion.cli.plots import plot_arm
+        from armfusion.fusion.cli.plots import plot_arm
 
         try:
             plot_arm(arm, arm.ready_pose_rad, plot)
@@ -198,7 +198,7 @@ def info(
             fail(f"--plot {plot}: cannot write the drawing: {e.strerror or e}")
         d["plot"] = str(plot)
     if urdf is not None:
-        from fusion.ros2.urdf import urdf_from_arm
+        from armfusion.fusion.ros2.urdf import urdf_from_arm
 
         try:
             urdf.write_text(urdf_from_arm(arm), encoding="utf-8")
@@ -267,8 +267,8 @@ def inspect(
 ) -> None:
     """Summarise a recording: sensors, samples and rate each, duration, gaps, still segments."""
 
-    from fusion.cli.describe import describe_recording
-    from fusion.startup.static import StaticDetectionSettings
+    from armfusion.fusion.cli.describe import describe_recording
+    from armfusion.fusion.startup.static import StaticDetectionSettings
 
     rec = read_recording_or_exit(recording)
     d = describe_recording(rec, StaticDetectionSettings(window_s=window_s))

@@ -20,8 +20,7 @@ from typing import Annotated
 
 import typer
 import zenoh
-
-from fusion.cli.common import (
+from armfusion.fusion.cli.common import (
     choice_or_exit,
     console,
     emit_json,
@@ -31,7 +30,7 @@ from fusion.cli.common import (
     prepare_output_path,
     read_recording_or_exit,
 )
-from fusion.cli.options import (
+from armfusion.fusion.cli.options import (
     ADMITTED_WITHIN_S,
     AdmittedWithinOpt,
     BatchMsOpt,
@@ -45,9 +44,9 @@ from fusion.cli.options import (
     StopAfterOpt,
     ZenohConfigOpt,
 )
-from fusion.service.admitted import Admission, AdmissionWatch
-from fusion.service.node import stop_after, stop_on_signals
-from fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, endpoints_line, load_config
+from armfusion.fusion.service.admitted import Admission, AdmissionWatch
+from armfusion.fusion.service.node import stop_after, stop_on_signals
+from armfusion.fusion.service.zenoh_config import ZenohConfigError, ZenohSettings, endpoints_line, load_config
 
 DEFAULT_ROBOT = "chair1"
 EPHEMERAL_LISTEN = "tcp/127.0.0.1:0"
@@ -92,7 +91,7 @@ def session_or_exit(settings: ZenohSettings, *, say_endpoints: bool | None = Non
 @contextlib.contextmanager
 def watching_admission(session: zenoh.Session, robot: str, timeout_s: float,
                        stop: threading.Event) -> Iterator[AdmissionWatch | None]:
-    """A publisher's :class:`~fusion.service.admitted.AdmissionWatch` (``None`` when
+    """A publisher's :class:`~armfusion.fusion.service.admitted.AdmissionWatch` (``None`` when
     ``timeout_s`` is 0: no check), the fusion node's first status awaited; ``stop`` is set
     as soon as the watch finds that nothing was admitted."""
     if timeout_s == 0:
@@ -141,8 +140,8 @@ def parse_speed(text: str) -> float | None:
 def _write_ros2(recording: Path, out: Path, arm_name: str) -> dict:
     """The estimates recorded in ``recording`` as the ROS 2 bag ``out`` (written under a
     temporary name, renamed when complete); exits 1 naming why when there are none."""
-    from fusion.ros2.from_records import RecordsError, write_ros2_from_records
-    from sensors.output_files import replaced_when_done
+    from armfusion.fusion.ros2.from_records import RecordsError, write_ros2_from_records
+    from armfusion.sensors.output_files import replaced_when_done
 
     try:
         with replaced_when_done(out) as tmp:
@@ -171,7 +170,7 @@ def replay_command(
     """Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing.
 
     Exits 1 when an MCAP file ends early or is damaged (what could be read is replayed)."""
-    from fusion.service.replay import NoSubscriberError, replay
+    from armfusion.fusion.service.replay import NoSubscriberError, replay
 
     factor = parse_speed(speed)
     if not (math.isfinite(wait_s) and wait_s >= 0):
@@ -229,7 +228,7 @@ def record_command(
     json_out: JsonOpt = False,
 ) -> None:
     """Record a robot's raw samples and estimates from Zenoh to MCAP until stopped."""
-    from fusion.service.record import Recorder
+    from armfusion.fusion.service.record import Recorder
 
     if out.suffix.lower() != ".mcap":
         fail(f"{out}: the recording must end in .mcap")
@@ -304,7 +303,7 @@ def serve_command(
     --state-file), then the tracker; publishes armfusion/<robot>/state/joints,
     state/heading and status; answers armfusion/<robot>/calibrate (and, with --maneuver,
     serves a planned calibration maneuver on armfusion/<robot>/maneuver)."""
-    from fusion.service.serve import FusionNode
+    from armfusion.fusion.service.serve import FusionNode
 
     if not publish_hz > 0:
         fail(f"--publish-hz {publish_hz!r}: expected > 0")
@@ -345,7 +344,7 @@ def recalibrate_command(
 ) -> None:
     """Ask the fusion node (armfusion serve) to re-run the startup calibration now, on the
     latest still stretch; it refuses, saying why, while the arm moves. Exits 1 when refused."""
-    from fusion.service.requests import request_calibration
+    from armfusion.fusion.service.requests import request_calibration
 
     reply = _node_reply(zenoh_settings(zenoh_config, listen, connect, mode), timeout_s,
                         lambda session: request_calibration(session, robot, timeout_s))
@@ -382,8 +381,8 @@ def maneuver_command(
     controller sees it: show it, or say the controller starts it, is done with it (the node
     then fits the sensors on it) or aborts it; apply the fit's config. Exits 1 when the node
     refuses."""
-    from fusion.service.payloads import MANEUVER_ACTIONS
-    from fusion.service.requests import request_maneuver
+    from armfusion.fusion.service.payloads import MANEUVER_ACTIONS
+    from armfusion.fusion.service.requests import request_maneuver
 
     choice_or_exit(request, "REQUEST", ("show", *MANEUVER_ACTIONS))
     action = None if request == "show" else request
@@ -420,8 +419,8 @@ def register(app: typer.Typer) -> None:
 
 def _node_reply(settings: ZenohSettings, timeout_s: float, ask):
     """``ask(session)``'s reply from the fusion node, or exit 2 saying why there is none."""
-    from fusion.service.payloads import PayloadError
-    from fusion.service.requests import NoReplyError
+    from armfusion.fusion.service.payloads import PayloadError
+    from armfusion.fusion.service.requests import NoReplyError
 
     if not timeout_s > 0:
         fail(f"--timeout {timeout_s!r}: expected > 0")
@@ -435,9 +434,9 @@ def _node_reply(settings: ZenohSettings, timeout_s: float, ask):
 def _served_maneuver(arm, robot: str, config: str, maneuver: Path, out_dir: Path, effects: str | None,
                      references: tuple[str, ...]):
     """``serve --maneuver``'s plan, checked safe for ``arm``, ready to serve (or exit 2, saying why)."""
-    from fusion.configfile import resolve_config_path
-    from fusion.identification.planner import safe_maneuver
-    from fusion.service.maneuver import ManeuverSettings, ServedManeuver
+    from armfusion.fusion.configfile import resolve_config_path
+    from armfusion.fusion.identification.planner import safe_maneuver
+    from armfusion.fusion.service.maneuver import ManeuverSettings, ServedManeuver
 
     try:
         plan = safe_maneuver(arm, maneuver)

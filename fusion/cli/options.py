@@ -7,7 +7,7 @@ Grouped by what they are about: the arm and the output (every command), the simu
 node; see docs/reference/service.md, "Zenoh configuration").
 
 The values are checked where they are parsed, before the command's work starts: a bad one
-gives the one-line ``error:`` of :func:`fusion.cli.common.fail` and exit 2.
+gives the one-line ``error:`` of :func:`armfusion.fusion.cli.common.fail` and exit 2.
 
 Imports typer only (``armfusion --help`` loads it): a check that needs more imports it when
 it runs.
@@ -19,8 +19,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-
-from fusion.cli.common import fail
+from armfusion.fusion.cli.common import fail
 
 
 def _positive(option: str):
@@ -67,7 +66,7 @@ def count_at_least(option: str, least: int, what: str):
 def check_robot(value: str | None) -> str | None:
     """The callback of every ``--robot`` that names one robot: a name the key expressions take."""
     if value is not None:
-        from fusion.service.payloads import check_name
+        from armfusion.fusion.service.payloads import check_name
 
         try:
             check_name(value, "--robot")
@@ -92,7 +91,7 @@ RecordingOutOpt = Annotated[Path, typer.Option(
 
 # --- the simulated rig -------------------------------------------------------------------------
 ScenarioOpt = Annotated[str, typer.Option(
-    "--scenario", "-s", help="The simulated motion: a scenario of models.trajectories "
+    "--scenario", "-s", help="The simulated motion: a scenario of armfusion.models.trajectories "
     "(`armfusion simulate --help` lists them).")]
 SeedOpt = Annotated[int, typer.Option(
     "--seed", help="Seed: the same seed, the same motion, effects and noise.")]

@@ -19,11 +19,10 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 import yaml
-
-from fusion.cli.common import check_output_path, config_file, console, emit_json, fail, progress_bar
-from fusion.cli.options import ConfigOpt, JsonOpt
-from fusion.configfile import load_arm, read_yaml, resolve_config_path
-from fusion.identification.planner import (
+from armfusion.fusion.cli.common import check_output_path, config_file, console, emit_json, fail, progress_bar
+from armfusion.fusion.cli.options import ConfigOpt, JsonOpt
+from armfusion.fusion.configfile import load_arm, read_yaml, resolve_config_path
+from armfusion.fusion.identification.planner import (
     CRITERIA,
     FOCUS,
     PlanSettings,
@@ -31,15 +30,15 @@ from fusion.identification.planner import (
     plan_maneuver,
     predict_maneuver,
 )
-from models.arm_config import ConfigError
-from sensors.output_files import write_text_replacing
+from armfusion.models.arm_config import ConfigError
+from armfusion.sensors.output_files import write_text_replacing
 
 
 def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None = "all",
              criterion: str = "D", focus: str = "all", seed: int = 0, startup_poses: int = 64,
              candidates: int = 192, progress=None, dwells_s: tuple[float, ...] = ()) -> dict[str, Any]:
     """Plan, check, predict: the maneuver file's content (``maneuver`` is the plan itself)."""
-    from fusion.cli.calibrate_sensors import build_model
+    from armfusion.fusion.cli.calibrate_sensors import build_model
 
     arm = load_arm(config)
     st = PlanSettings(duration_s=duration_s, criterion=criterion, focus=focus, seed=seed, candidates=candidates,

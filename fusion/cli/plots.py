@@ -5,9 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.kinematics import chain_poses, joint_axis_angle_to_vertical, sensor_poses
+from armfusion.models.arm import ArmModel
+from armfusion.models.kinematics import chain_poses, joint_axis_angle_to_vertical, sensor_poses
 
 
 def _mpl():
@@ -68,7 +67,7 @@ def plot_arm(arm: ArmModel, q_rad: np.ndarray, path: str | Path, title: str | No
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    from sensors.output_files import replaced_when_done
+    from armfusion.sensors.output_files import replaced_when_done
 
     with replaced_when_done(path) as tmp:  # (the format from the real name's suffix)
         fig.savefig(tmp, format=path.suffix.lstrip(".").lower() or None)

@@ -21,9 +21,15 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-
-from fusion.cli.common import config_file, emit_json, fail, json_default, output_path_problem, progress_bar
-from fusion.cli.options import (
+from armfusion.fusion.cli.common import (
+    config_file,
+    emit_json,
+    fail,
+    json_default,
+    output_path_problem,
+    progress_bar,
+)
+from armfusion.fusion.cli.options import (
     ConfigOpt,
     EffectOpt,
     EffectsFileOpt,
@@ -33,14 +39,14 @@ from fusion.cli.options import (
     RecordingOutOpt,
     SeedOpt,
 )
-from fusion.configfile import load_arm, read_yaml
-from models.arm import ArmModel
-from models.arm_config import ConfigError, ConfigProblem
-from models.effects import EFFECTS, Model, model_from_entries, parse_effect_option
-from models.simulator import simulate as simulate_recording
-from models.trajectories import SCENARIOS
-from sensors.output_files import write_text_replacing
-from sensors.recording import write_recording
+from armfusion.fusion.configfile import load_arm, read_yaml
+from armfusion.models.arm import ArmModel
+from armfusion.models.arm_config import ConfigError, ConfigProblem
+from armfusion.models.effects import EFFECTS, Model, model_from_entries, parse_effect_option
+from armfusion.models.simulator import simulate as simulate_recording
+from armfusion.models.trajectories import SCENARIOS
+from armfusion.sensors.output_files import write_text_replacing
+from armfusion.sensors.recording import write_recording
 
 MEMORY_BYTES_PER_VALUE = 90
 """Peak memory per simulated value (one channel at one instant, truth columns included):
@@ -175,8 +181,8 @@ def simulate(
             raise ValueError(f"--out {p}: {why}")
     arm = load_arm(config)
     if maneuver is not None:  # a planned maneuver (plan-maneuver --out): checked, then played
-        from fusion.identification.planner import safe_maneuver
-        from models.trajectories.planned import played_scenario
+        from armfusion.fusion.identification.planner import safe_maneuver
+        from armfusion.models.trajectories.planned import played_scenario
 
         plan = safe_maneuver(arm, maneuver)
         if duration_s is not None:
@@ -246,7 +252,7 @@ def register(app: typer.Typer) -> None:
     def simulate_command(
         out: RecordingOutOpt,
         scenario: Annotated[str | None, typer.Option(
-            "--scenario", "-s", help="The simulated motion: a scenario of models.trajectories (listed "
+            "--scenario", "-s", help="The simulated motion: a scenario of armfusion.models.trajectories (listed "
             "below); or give --maneuver.")] = None,
         maneuver: Annotated[Path | None, typer.Option(
             "--maneuver", help="Play a planned maneuver (armfusion plan-maneuver --out M.yaml) instead "

@@ -9,9 +9,7 @@ from typing import Annotated
 
 import numpy as np
 import typer
-from rich.table import Table
-
-from fusion.cli.common import (
+from armfusion.fusion.cli.common import (
     arm_and_recording_or_exit,
     check_output_path,
     config_file,
@@ -21,8 +19,9 @@ from fusion.cli.common import (
     fail,
     progress_bar,
 )
-from fusion.cli.options import ConfigOpt, JsonOpt
-from sensors.samples import clipped_repr
+from armfusion.fusion.cli.options import ConfigOpt, JsonOpt
+from armfusion.sensors.samples import clipped_repr
+from rich.table import Table
 
 OUT_SUFFIXES = (".csv", ".mcap")
 
@@ -61,7 +60,7 @@ def track(
     the unscented Kalman filter on every sample."""
     from dataclasses import replace
 
-    from fusion.tracking.tracker import TrackerSettings
+    from armfusion.fusion.tracking.tracker import TrackerSettings
 
     _check_options(start_at, gate_significance, out, recording, config, unmodelled_g)
     arm, rec, screen = arm_and_recording_or_exit(
@@ -135,7 +134,7 @@ def _check_options(start_at: float | None, gate_significance: float, out: Path |
 def _prior_pose(prior: Path | None, arm, notes: list[str]):
     """The joint angles of ``--prior``'s saved pose, or None (with a note saying why, when one
     was given but cannot be used)."""
-    from fusion.startup.pose_store import load_pose
+    from armfusion.fusion.startup.pose_store import load_pose
 
     if prior is None:
         return None
@@ -150,8 +149,8 @@ def _start_and_run(arm, rec, recording: Path, settings, prior_q, moving_start: b
                    notes: list[str], json_out: bool) -> tuple:
     """The startup calibration, then the tracker over the recording, with a progress bar:
     ``(tracker, start, run)``; exit 2 saying why the tracking cannot start."""
-    from fusion.startup.solve import StartupInputError
-    from fusion.tracking.tracker import NoStillWindowError, start_from_recording
+    from armfusion.fusion.startup.solve import StartupInputError
+    from armfusion.fusion.tracking.tracker import NoStillWindowError, start_from_recording
 
     with progress_bar("startup calibration", json_out) as advance:
         try:
@@ -201,7 +200,7 @@ def _withhold_encoder(arm, rec, settings, spec: str) -> tuple:
     """``--encoder-withheld JOINT@SECONDS``: the recording from then on with the joint's
     encoder made from the gyros (calibrated on what comes before), the settings with the
     gyros' drift as the joint's random walk, and what was done (for the JSON)."""
-    from fusion.tracking.gyro_encoder import (
+    from armfusion.fusion.tracking.gyro_encoder import (
         calibrate_gyro_encoder,
         settings_with_gyro_encoder,
         with_gyro_encoder,
@@ -231,13 +230,13 @@ def _withhold_encoder(arm, rec, settings, spec: str) -> tuple:
 def _scoring_truth(rec, recording: Path, joint_names) -> tuple:
     """With a simulator's ``REC.truth.json`` beside the recording, the joint truth the
     errors are scored against is the true angle plus each joint's true DH zero offset (the
-    angle gravity can find; :func:`models.simulator.angle_truth`). Returns the recording
+    angle gravity can find; :func:`armfusion.models.simulator.angle_truth`). Returns the recording
     (its ``true_q`` replaced when it applies) and a note, or ``None``."""
     import json
 
-    from fusion.cli.simulate import truth_path
-    from models.simulator import angle_truth, true_zero_offsets_rad
-    from sensors.samples import Recording
+    from armfusion.fusion.cli.simulate import truth_path
+    from armfusion.models.simulator import angle_truth, true_zero_offsets_rad
+    from armfusion.sensors.samples import Recording
 
     tq = rec.get("true_q")
     sidecar = truth_path(recording)
@@ -256,7 +255,7 @@ def _scoring_truth(rec, recording: Path, joint_names) -> tuple:
 
 
 def estimate_columns(run) -> list[str]:
-    from fusion.tracking.run import combination_column
+    from armfusion.fusion.tracking.run import combination_column
 
     j = run.joint_names
     return (["t"] + [f"q_{n}" for n in j] + [f"sigma_{n}" for n in j] + [f"flag_{n}" for n in j]
@@ -271,10 +270,10 @@ def estimate_columns(run) -> list[str]:
 def write_estimates(run, path: Path, arm_config: str = "") -> None:
     """Every fused instant's estimate: CSV (one row each, angles in rad), MCAP (JSON
     messages on ``estimates/joints`` and ``estimates/heading``: the records of
-    :mod:`fusion.tracking.estimate`), or, for a name ending ``.ros2.mcap``, a rosbag2 MCAP
-    file of ROS 2 messages (:mod:`fusion.ros2.estimates_bag`); under a temporary name renamed
+    :mod:`armfusion.fusion.tracking.estimate`), or, for a name ending ``.ros2.mcap``, a rosbag2 MCAP
+    file of ROS 2 messages (:mod:`armfusion.fusion.ros2.estimates_bag`); under a temporary name renamed
     when complete."""
-    from sensors.output_files import replaced_when_done
+    from armfusion.sensors.output_files import replaced_when_done
 
     path = Path(path)
     kind = ".ros2.mcap" if path.name.lower().endswith(".ros2.mcap") else path.suffix.lower()
@@ -283,11 +282,11 @@ def write_estimates(run, path: Path, arm_config: str = "") -> None:
 
 
 def _write_estimates(run, path: Path, suffix: str, arm_config: str) -> None:
-    from fusion.tracking.estimate import HEADING_STATUS
-    from fusion.tracking.tracker import JOINT_FLAGS, SENSOR_STATUS
+    from armfusion.fusion.tracking.estimate import HEADING_STATUS
+    from armfusion.fusion.tracking.tracker import JOINT_FLAGS, SENSOR_STATUS
 
     if suffix == ".ros2.mcap":
-        from fusion.ros2.estimates_bag import write_estimates_bag
+        from armfusion.fusion.ros2.estimates_bag import write_estimates_bag
 
         write_estimates_bag(run, path, Path(arm_config).stem)
         return
@@ -308,8 +307,8 @@ def _write_estimates(run, path: Path, suffix: str, arm_config: str) -> None:
                             int(mag[i] & 1 > 0), int(mag[i] & 2 > 0), heading_status[i], *status[i],
                             *("" if not np.isfinite(a[i]) else f"{a[i]:.9f}" for a in combos)])
         return
-    from fusion.tracking import estimate as wire
-    from sensors.recording_mcap import McapRecorder
+    from armfusion.fusion.tracking import estimate as wire
+    from armfusion.sensors.recording_mcap import McapRecorder
 
     t0 = float(run.t_s[0]) if run.steps else 0.0
     combos = (run.combinations or {}).items()
@@ -329,9 +328,8 @@ def _write_estimates(run, path: Path, suffix: str, arm_config: str) -> None:
 
 
 def _print(doc: dict, run) -> None:
+    from armfusion.fusion.tracking.alarm import Alarm
     from rich.markup import escape
-
-    from fusion.tracking.alarm import Alarm
 
     console.print(f"[bold]{doc['recording']}[/]: startup on t = {doc['start']['t_start_s']:.2f} … "
                   f"{doc['start']['t_end_s']:.2f} s: {doc['start']['summary']}")

@@ -6,10 +6,9 @@ joint-zero conventions, the references' checks)."""
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.identification.result import Identification
-from models.effects import entries_from_model
-from models.effects.base import SensorEffect
+from armfusion.fusion.identification.result import Identification
+from armfusion.models.effects import entries_from_model
+from armfusion.models.effects.base import SensorEffect
 
 
 def joint_zero_conventions(result: Identification) -> list[str]:

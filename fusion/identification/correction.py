@@ -8,12 +8,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.effects import Model, model_from_arm
-from models.effects.base import Context, JointEffect, SensorEffect
-from models.motion import MotionState
-from models.rotations import DEG
+from armfusion.models.arm import ArmModel
+from armfusion.models.effects import Model, model_from_arm
+from armfusion.models.effects.base import Context, JointEffect, SensorEffect
+from armfusion.models.motion import MotionState
+from armfusion.models.rotations import DEG
 
 
 @dataclass(frozen=True)
@@ -26,7 +25,7 @@ class StartupCorrection:
       inverts it, σ mapped through ``L⁻¹``;
     * ``maps``: per stream, that affine map ``(L, c)``; besides the accelerometers', the
       compass's (its soft and hard iron) and the IMU gyro's (its scale and bias), which
-      the tracker undoes on every reading (:class:`fusion.tracking.calibrated.Readings`);
+      the tracker undoes on every reading (:class:`armfusion.fusion.tracking.calibrated.Readings`);
     * ``controller_angles(q_geom)``: the startup solves the geometric joint angles; the
       joint-stage effects (offsets, sag, play) map the controller's angles to them, and
       this inverts that map (fixed point, three passes).
@@ -56,7 +55,7 @@ class StartupCorrection:
         return replace(self, spread=dict(self.spread_given_conventions))
 
     def readings(self, r):
-        from fusion.startup.solve import StillReadings
+        from armfusion.fusion.startup.solve import StillReadings
 
         means, sigmas = {}, {}
         for name, m in r.accel_mean_g.items():
@@ -94,7 +93,7 @@ class StartupCorrection:
         joint at any angle of its range), each numbered joint's σ grows to cover, at 2 σ,
         what its correction would be there; one pushed past ``sigma_limit_rad`` (default:
         the startup's limit) becomes ``ill_conditioned``."""
-        from fusion.startup.solve import StartupSettings
+        from armfusion.fusion.startup.solve import StartupSettings
 
         limit = (StartupSettings().sigma_limit_deg * DEG if sigma_limit_rad is None
                  else sigma_limit_rad)

@@ -16,12 +16,11 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.effects import Model, build_effect
-from models.motion import MotionState
-from models.rotations import DEG, wrap_angle
-from models.sensor_models import stream_models
+from armfusion.models.arm import ArmModel
+from armfusion.models.effects import Model, build_effect
+from armfusion.models.motion import MotionState
+from armfusion.models.rotations import DEG, wrap_angle
+from armfusion.models.sensor_models import stream_models
 
 FIT_STREAMS_EXCLUDED = ("enc", "imu_temp")
 """Streams a fit reads but does not fit: the encoders (the joint angles) and the IMU's
@@ -418,7 +417,7 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
     the ready pose, so that comes first and is right there. Then, where a joint was untold,
     the same branches with it taken from the later still stretches
     (:func:`_later_still_angles`): for a recording that starts elsewhere (random still poses).
-    Which one is right the fit's residuals say (:func:`fusion.workbench.diagnose.diagnose`
+    Which one is right the fit's residuals say (:func:`armfusion.fusion.workbench.diagnose.diagnose`
     tries the rivals when the first does not fit the noise).
 
     Those first starts come from the startup with the config's unmodelled-error floors,
@@ -505,9 +504,9 @@ def _later_still_starts(nominal: ArmModel, rec, fallback_ref_rad: np.ndarray, wi
 
 
 def _still_segments(rec) -> list:
-    """The recording's still stretches (:func:`fusion.startup.static.find_static_segments`);
+    """The recording's still stretches (:func:`armfusion.fusion.startup.static.find_static_segments`);
     none where it finds none."""
-    from fusion.startup.static import find_static_segments
+    from armfusion.fusion.startup.static import find_static_segments
 
     try:
         return list(find_static_segments(rec))
@@ -517,7 +516,7 @@ def _still_segments(rec) -> list:
 
 def _solve_still_at(arm: ArmModel, rec, t0_s: float, window_s: float):
     """The startup's answer on ``rec``'s still ``window_s`` from ``t0_s``; None where it has none."""
-    from fusion.startup.solve import readings_from_recording, solve_still
+    from armfusion.fusion.startup.solve import readings_from_recording, solve_still
 
     try:
         readings, _ = readings_from_recording(arm, rec, t0_s, t0_s + window_s, window_s)
@@ -582,9 +581,9 @@ def joint_references(arm: ArmModel, rec, specs: Sequence[tuple[str, float, float
     """One-time references from ``specs``: ``(joint, angle_rad, sigma_rad, when)``, ``when``
     ``None`` (the recording's first still segment), an ``int`` k (its k-th still segment,
     from 1) or a ``float`` time (s, on the recording's clock; the still segment that holds
-    it). The arm must be still there (``fusion.startup.static.find_static_segments``); the encoder
+    it). The arm must be still there (``armfusion.fusion.startup.static.find_static_segments``); the encoder
     angles are their mean over that segment."""
-    from fusion.startup.static import find_static_segments
+    from armfusion.fusion.startup.static import find_static_segments
 
     if not specs:
         return ()

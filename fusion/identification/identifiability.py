@@ -7,7 +7,7 @@ data know no better than their priors. Each such combination is reported in word
 element of it (the one that carries most of it) is **held** at its prior, as Ceres holds a
 parameter block (here element by element, like a subset manifold). The other elements then
 carry the combination; their σ includes the held ones' prior uncertainty (a consider
-covariance, :func:`fusion.identification.identify.identify`), so it stays honest.
+covariance, :func:`armfusion.fusion.identification.identify.identify`), so it stays honest.
 """
 
 from __future__ import annotations
@@ -16,9 +16,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.identification.problem import ATTITUDE
-from fusion.identification.settings import IdentifySettings
+from armfusion.fusion.identification.problem import ATTITUDE
+from armfusion.fusion.identification.settings import IdentifySettings
 
 
 @dataclass(frozen=True)

@@ -1,24 +1,24 @@
 """Sensor and model identification: the arm calibrates its own sensors.
 
 From a recording in which the arm moves through many orientations, estimate the
-parameters of the model's effects (``models.effects``: biases, scales, axis directions,
+parameters of the model's effects (``armfusion.models.effects``: biases, scales, axis directions,
 mounts, joint zeros, sag, the IMU's gyro and compass errors…) and the base attitude (the
 gravity and Earth-field directions in the base frame, as the sensor-calibration article's
-φ, ψ; one per parked stance of the chair, :func:`~fusion.identification.data.parked_stances`,
+φ, ψ; one per parked stance of the chair, :func:`~armfusion.fusion.identification.data.parked_stances`,
 optionally with an inclinometer's reading of the first stance's tilt), by weighted nonlinear
 least squares:
 
 * residuals: every reading's prediction minus the measurement, divided by its noise
-  (window means of ``window`` samples: the noise of a mean; :mod:`~fusion.identification.data`);
+  (window means of ``window`` samples: the noise of a mean; :mod:`~armfusion.fusion.identification.data`);
 * priors as pseudo-measurements ``(x - x0) / σ0`` (each block's prior, from the config or
   the effect's datasheet-typical magnitude);
 * analytic Jacobians from :meth:`Model.predict_with_jacobian`; the base attitude's three
   columns by forward differences of the model (the only numerical ones;
-  :mod:`~fusion.identification.problem`);
-* identifiability first (:mod:`~fusion.identification.identifiability`): what the data know
+  :mod:`~armfusion.fusion.identification.problem`);
+* identifiability first (:mod:`~armfusion.fusion.identification.identifiability`): what the data know
   no better than their priors is held there, its σ carried into the others' as a consider
   covariance;
-* Levenberg-Marquardt with geodesic acceleration (:mod:`~fusion.identification.solver`),
+* Levenberg-Marquardt with geodesic acceleration (:mod:`~armfusion.fusion.identification.solver`),
   a long recording's solves started on a quarter of its points, then each stream weighted
   by its own residual's size and correlation and fitted again.
 
@@ -37,14 +37,17 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 
 import numpy as np
-
-from fusion.identification.calibrated_config import (
+from armfusion.fusion.identification.calibrated_config import (
     config_with_estimates,
     correction_covariance,
     joint_zero_conventions,
 )
-from fusion.identification.correction import COMPASS_MAP_EFFECTS, StartupCorrection, startup_correction
-from fusion.identification.data import (
+from armfusion.fusion.identification.correction import (
+    COMPASS_MAP_EFFECTS,
+    StartupCorrection,
+    startup_correction,
+)
+from armfusion.fusion.identification.data import (
     ENCODER_ZERO_SIGMA_RAD,
     FIT_STREAMS_EXCLUDED,
     REFERENCE_SIGMA_RAD,
@@ -57,29 +60,29 @@ from fusion.identification.data import (
     start_pose,
     with_encoder_zeros,
 )
-from fusion.identification.identifiability import (
+from armfusion.fusion.identification.identifiability import (
     Hold,
     analyse_identifiability,
     analyse_information,
     suggestion_for,
 )
-from fusion.identification.problem import (
+from armfusion.fusion.identification.problem import (
     ATTITUDE,
     ATTITUDE_LABELS,
     ATTITUDE_SIGMA_RAD,
     FitProblem,
     attitude_names,
 )
-from fusion.identification.result import (
+from armfusion.fusion.identification.result import (
     REFERENCE_CONTRADICTION_SIGMA,
     Identification,
     ReferenceCheck,
     StreamFit,
 )
-from fusion.identification.settings import IdentifySettings
-from fusion.identification.solver import coarse_points, solve, stream_scales
-from fusion.identification.truth import compare_with_truth, truth_values
-from models.effects import Model
+from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.fusion.identification.solver import coarse_points, solve, stream_scales
+from armfusion.fusion.identification.truth import compare_with_truth, truth_values
+from armfusion.models.effects import Model
 
 __all__ = [
     "ATTITUDE", "ATTITUDE_LABELS", "ATTITUDE_SIGMA_RAD", "COMPASS_MAP_EFFECTS", "ENCODER_ZERO_SIGMA_RAD",

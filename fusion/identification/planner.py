@@ -2,12 +2,12 @@
 held how long and joined by which moves, make the identification's parameters best known in
 the time given, and how well they will be known after it.
 
-Nothing here moves the arm: the plan is a :class:`~models.trajectories.planned.PlannedManeuver`
+Nothing here moves the arm: the plan is a :class:`~armfusion.models.trajectories.planned.PlannedManeuver`
 for the arm's controller (or the simulator) to play.
 
 * **Information.** A still pose held ``T`` seconds gives the fit ``T·rate/window`` window
   means; their information is ``JᵀWJ`` per window, ``J`` the fit's own Jacobian
-  (:class:`~fusion.identification.problem.FitProblem`: the model's effects, the encoder
+  (:class:`~armfusion.fusion.identification.problem.FitProblem`: the model's effects, the encoder
   zeros and scales, the base attitude) at the priors. In prior-σ units the fit's
   information is ``A = I + D H D`` (``D``: the prior σ).
 * **The gauges left out.** What no pose of the chair parked can tell (a sensor's mount about
@@ -16,7 +16,7 @@ for the arm's controller (or the simulator) to play.
   analysis of a pool of random poses sharing the whole duration holds them; the criterion is
   taken over the others only.
 * **Greedy, sequential.** From the current pose, :attr:`PlanSettings.candidates` random moves
-  that pass the unlock move's checks (:func:`fusion.startup.moves.moves_within_limits`:
+  that pass the unlock move's checks (:func:`armfusion.fusion.startup.moves.moves_within_limits`:
   inside the limits, at most 45° per joint), a peak joint rate and a tool speed for a person
   beside the arm (:attr:`PlanSettings.max_tool_speed_mps`); each scored by its gain in the
   criterion per second of its move and dwell, held each of :attr:`PlanSettings.dwell_choices_s`:
@@ -27,9 +27,9 @@ for the arm's controller (or the simulator) to play.
   time is spent.
 * **Predicted σ** (:func:`predict_maneuver`): the maneuver played noise-free by the simulator
   at the priors, turned into the fit's data as a recording would be
-  (:func:`~fusion.identification.data.data_from_recording`: the moves count too), the
+  (:func:`~armfusion.fusion.identification.data.data_from_recording`: the moves count too), the
   identifiability analysis and the consider covariance of the fit
-  (:func:`~fusion.identification.identify.identify`'s). The startup's σ of each joint
+  (:func:`~armfusion.fusion.identification.identify.identify`'s). The startup's σ of each joint
   after it (:func:`startup_sigmas`): the calibrated config such a fit would write, and the
   startup solved on it at random still poses.
 """
@@ -40,32 +40,31 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from fusion.configfile import read_yaml
-from fusion.identification.calibrated_config import config_with_estimates
-from fusion.identification.correction import startup_correction
-from fusion.identification.data import FitData, data_from_recording, fit_streams
-from fusion.identification.identifiability import analyse_information
-from fusion.identification.identify import _consider_covariance
-from fusion.identification.problem import FitProblem
-from fusion.identification.result import Identification, StreamFit
-from fusion.identification.settings import IdentifySettings
-from fusion.startup.moves import MAX_MOVE_DEG, moves_within_limits
-from fusion.startup.prior import StartupPrior
-from fusion.startup.readings import readings_from_counts
-from fusion.startup.solve import solve_still
-from models.arm import ArmModel
-from models.arm_config import build_arm
-from models.effects import Model, model_from_arm
-from models.effects.base import JointEffect, SensorEffect
-from models.kinematics import chain_poses
-from models.motion import MotionState
-from models.rotations import DEG
-from models.sensor_models import stream_models
-from models.simulator import simulate
-from models.trajectories.paths import min_jerk_progress
-from models.trajectories.planned import PlannedManeuver, planned_scenario
-from models.trajectories.scenario import Scenario, margin_limits
+from armfusion.fusion.configfile import read_yaml
+from armfusion.fusion.identification.calibrated_config import config_with_estimates
+from armfusion.fusion.identification.correction import startup_correction
+from armfusion.fusion.identification.data import FitData, data_from_recording, fit_streams
+from armfusion.fusion.identification.identifiability import analyse_information
+from armfusion.fusion.identification.identify import _consider_covariance
+from armfusion.fusion.identification.problem import FitProblem
+from armfusion.fusion.identification.result import Identification, StreamFit
+from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.fusion.startup.moves import MAX_MOVE_DEG, moves_within_limits
+from armfusion.fusion.startup.prior import StartupPrior
+from armfusion.fusion.startup.readings import readings_from_counts
+from armfusion.fusion.startup.solve import solve_still
+from armfusion.models.arm import ArmModel
+from armfusion.models.arm_config import build_arm
+from armfusion.models.effects import Model, model_from_arm
+from armfusion.models.effects.base import JointEffect, SensorEffect
+from armfusion.models.kinematics import chain_poses
+from armfusion.models.motion import MotionState
+from armfusion.models.rotations import DEG
+from armfusion.models.sensor_models import stream_models
+from armfusion.models.simulator import simulate
+from armfusion.models.trajectories.paths import min_jerk_progress
+from armfusion.models.trajectories.planned import PlannedManeuver, planned_scenario
+from armfusion.models.trajectories.scenario import Scenario, margin_limits
 
 CRITERIA = ("D", "E", "startup")
 FOCUS = ("all", "startup")

@@ -1,7 +1,7 @@
 """The fit problem: the noise-weighted residuals of every reading (prediction minus
 measurement) and their Jacobian over the model's elements and the base attitude.
 
-:class:`FitProblem` holds a model, the data (:class:`~fusion.identification.data.FitData`)
+:class:`FitProblem` holds a model, the data (:class:`~armfusion.fusion.identification.data.FitData`)
 and the streams fitted. The model's columns are analytic (:meth:`Model.predict_with_jacobian`);
 the base attitude's (one roll, pitch, yaw per parked stance) and the encoder scales' without
 a joint offset beside them are forward differences of the model. One-time joint references
@@ -15,12 +15,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-
-from fusion.identification.data import FitData
-from models.effects import Model
-from models.effects.base import JointEffect
-from models.motion import MotionState
-from models.rotations import DEG, R_from_rpy, wrap_angle
+from armfusion.fusion.identification.data import FitData
+from armfusion.models.effects import Model
+from armfusion.models.effects.base import JointEffect
+from armfusion.models.motion import MotionState
+from armfusion.models.rotations import DEG, R_from_rpy, wrap_angle
 
 ATTITUDE = "base.attitude"
 ATTITUDE_LABELS = ("roll", "pitch", "yaw")

@@ -19,7 +19,7 @@ gradients), weighted by each axis's noise; σ from the Jacobian. The start is li
 the article's "every axis along î, S = 1, δ = 2.5 V": for each of 64 trial field
 directions the model is linear in ``(m S_k P_k, δ_k)``, the best one starts the fit.
 Where the field points along the base's k̂ (φ = ±90°), ψ does not change the prediction:
-the identifiability analysis of :mod:`fusion.identification.identifiability` says so and the fit reports ψ as
+the identifiability analysis of :mod:`armfusion.fusion.identification.identifiability` says so and the fit reports ψ as
 undefined (the article's Table 3 and 7 notice the same: ψ spread by 100°, σ 88.8°).
 """
 
@@ -29,13 +29,12 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from armfusion.fusion.identification.identifiability import analyse_identifiability
+from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.models.arm import ArmModel
+from armfusion.models.kinematics import forward_kinematics
+from armfusion.models.rotations import wrap_angle
 from scipy.optimize import least_squares
-
-from fusion.identification.identifiability import analyse_identifiability
-from fusion.identification.settings import IdentifySettings
-from models.arm import ArmModel
-from models.kinematics import forward_kinematics
-from models.rotations import wrap_angle
 
 GRAVITY_ARTICLE_MPS2 = 9.8
 ARTICLE_JOINTS = ("j1", "j5", "j6")
@@ -111,7 +110,7 @@ def simulate_article(arm: ArmModel, truth: TriaxParams, noise_v=ACCEL_NOISE_V, n
     """The article's simulated experiment: its maneuver (joints 1, 5, 6; 166,400 samples at
     100 Hz, every ``every``-th kept), voltages from ``truth``, white noise N(0, σ_k·scale).
     Returns ``(q_rad (n, 6), R_0E (n, 3, 3), V (n, 3))``."""
-    from models.trajectories import make_scenario
+    from armfusion.models.trajectories import make_scenario
 
     sc = make_scenario(arm, "renk-maneuver", samples / 100.0, seed, joints=list(ARTICLE_JOINTS))
     t = np.arange(0, samples, every) / 100.0

@@ -10,10 +10,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-from fusion.identification.data import JointReference
-from fusion.identification.identifiability import Hold
-from models.effects import Model
+from armfusion.fusion.identification.data import JointReference
+from armfusion.fusion.identification.identifiability import Hold
+from armfusion.models.effects import Model
 
 REFERENCE_CONTRADICTION_SIGMA = 4.0
 """A reference farther than this many σ from where the rest of the fit (data and priors) puts
@@ -74,7 +73,7 @@ class StreamFit:
     noise: np.ndarray
     sample_excess: np.ndarray | None = None
     """Per axis, the fast error one sample carries beyond its noise (vibration…), which the
-    window means do not show (:func:`fusion.identification.data.sample_excess`); None: none."""
+    window means do not show (:func:`armfusion.fusion.identification.data.sample_excess`); None: none."""
 
     def excess(self) -> np.ndarray:
         """RMS beyond the noise, per axis (0 where the fit is at the noise): the window means'
@@ -113,7 +112,7 @@ class Identification:
     """Each one-time joint reference of the data against the rest of the fit."""
     coarse_iterations: int = 0
     """Of ``iterations``, the Jacobians of the coarse starts (a subset of the points,
-    :func:`fusion.identification.solver.solve`)."""
+    :func:`armfusion.fusion.identification.solver.solve`)."""
 
     @property
     def references_contradicted(self) -> list[ReferenceCheck]:

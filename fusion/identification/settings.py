@@ -1,4 +1,4 @@
-"""The settings of a fit (:func:`fusion.identification.identify.identify`): when the
+"""The settings of a fit (:func:`armfusion.fusion.identification.identify.identify`): when the
 identifiability analysis holds an element and names its partners, how long the solver may go on,
 and which unknowns besides the model's effects the fit estimates."""
 
@@ -18,7 +18,7 @@ class IdentifySettings:
     """An element is named as part of a combination when its share exceeds this."""
     max_nfev: int = 100
     """Most Jacobians (Levenberg-Marquardt iterations) per solve, its coarse start's
-    included (:func:`fusion.identification.solver.solve`)."""
+    included (:func:`armfusion.fusion.identification.solver.solve`)."""
     estimate_attitude: bool = True
     """Estimate the base attitude (gravity and Earth-field directions); else take it as zero
     (the base level and facing magnetic north) or as the data's state says."""

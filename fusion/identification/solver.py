@@ -1,5 +1,5 @@
 """The solver of a fit: Levenberg-Marquardt on the normal equations of a
-:class:`~fusion.identification.problem.FitProblem` (the priors as pseudo-measurements,
+:class:`~armfusion.fusion.identification.problem.FitProblem` (the priors as pseudo-measurements,
 bounds by projection), started on a coarse subset of the points when the recording is
 long, and each stream's scale, the factor by which its residual exceeds what white noise
 at its weights would give.
@@ -10,8 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-
-from fusion.identification.problem import CHUNK_POINTS, FitProblem
+from armfusion.fusion.identification.problem import CHUNK_POINTS, FitProblem
 
 STEP_TOL_SIGMA = 0.01
 """A solve has converged when its last step moved every element by less than this share of
@@ -20,7 +19,7 @@ COST_TOL = 1e-3
 """... or when it lowered the cost (half the χ²) by less than this."""
 COARSE_FACTOR = 4
 """The coarse start (:func:`solve`) fits one point in this many (or fewer: at most one
-chunk of points, :data:`~fusion.identification.problem.CHUNK_POINTS`)."""
+chunk of points, :data:`~armfusion.fusion.identification.problem.CHUNK_POINTS`)."""
 COARSE_MIN_POINTS = 250
 """A recording gets a coarse start when its coarse subset still has this many points."""
 COARSE_BLOCK = 8

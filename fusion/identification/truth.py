@@ -5,11 +5,10 @@ references say (:func:`installer_reference`)."""
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.identification.result import Identification
-from fusion.startup.static import find_static_segments
-from models.motion import MotionState
-from models.simulator import build_model as true_model
+from armfusion.fusion.identification.result import Identification
+from armfusion.fusion.startup.static import find_static_segments
+from armfusion.models.motion import MotionState
+from armfusion.models.simulator import build_model as true_model
 
 
 def truth_values(result: Identification, truth: dict) -> dict[str, float]:

@@ -1,9 +1,9 @@
 """The import of a ROS bag (rosbag2 with MCAP or SQLite3 storage, ROS 1): a bag, a column map
-that names topics and fields (:mod:`~fusion.importing.column_map`) and an arm's config in;
+that names topics and fields (:mod:`~armfusion.fusion.importing.column_map`) and an arm's config in;
 the arm's native recording and a summary out (:func:`import_bag`).
 
-Order, as for a table (:mod:`~fusion.importing.run`): the map is checked against the config
-before the bag is read; the topics' fields are read (:func:`sensors.foreign.rosbag.read_topics`);
+Order, as for a table (:mod:`~armfusion.fusion.importing.run`): the map is checked against the config
+before the bag is read; the topics' fields are read (:func:`armfusion.sensors.foreign.rosbag.read_topics`);
 each message's frame id is checked against the map's; a sample is stamped with the message's
 header stamp or its receive time (the map's ``stamp``); within a stream, a message whose
 stamp is not after every earlier one is dropped (the later of two stamped alike) and said;
@@ -16,15 +16,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-from fusion.importing.column_map import ColumnMap
-from fusion.importing.run import ImportResult, refuse_what_no_sensor_said, stream_of
-from fusion.importing.stamps import FIRST_ROWS, increasing_rows
-from fusion.importing.to_stream import ImportMapError, check_map_against
-from fusion.importing.to_stream import targets as targets_of
-from models.arm import ArmModel
-from sensors.foreign.rosbag import BagTopic, bag_format, read_topics
-from sensors.samples import Recording, Stream, clipped_repr, stream_gaps
+from armfusion.fusion.importing.column_map import ColumnMap
+from armfusion.fusion.importing.run import ImportResult, refuse_what_no_sensor_said, stream_of
+from armfusion.fusion.importing.stamps import FIRST_ROWS, increasing_rows
+from armfusion.fusion.importing.to_stream import ImportMapError, check_map_against
+from armfusion.fusion.importing.to_stream import targets as targets_of
+from armfusion.models.arm import ArmModel
+from armfusion.sensors.foreign.rosbag import BagTopic, bag_format, read_topics
+from armfusion.sensors.samples import Recording, Stream, clipped_repr, stream_gaps
 
 NS_PER_S = 1_000_000_000
 
@@ -58,8 +57,8 @@ def _topic_report(topic: BagTopic, stamp: str, t_s: np.ndarray) -> dict:
 
 def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> ImportResult:
     """Turn the bag ``src`` into ``arm``'s recording by ``cmap`` (a bag's map: topics and
-    fields; see the module's docstring). Raises :class:`~fusion.importing.to_stream.ImportMapError`
-    or :class:`~sensors.foreign.ForeignFileError` (both ``ValueError``) naming the stream, the
+    fields; see the module's docstring). Raises :class:`~armfusion.fusion.importing.to_stream.ImportMapError`
+    or :class:`~armfusion.sensors.foreign.ForeignFileError` (both ``ValueError``) naming the stream, the
     topic, the message's index and the unit."""
     path = Path(src)
     if not cmap.is_bag:

@@ -1,6 +1,6 @@
 """The column map: which columns of a foreign file make which stream of an arm, in which unit.
 
-A YAML file (read as boundedly and safely as a config: :func:`fusion.configfile.read_yaml`)::
+A YAML file (read as boundedly and safely as a config: :func:`armfusion.fusion.configfile.read_yaml`)::
 
     time: {column: all_time, unit: s}          # or {rate_hz: 100}, or {rate_hz: {variable: sampling_rate}}
     start_row: {variable: data_line}           # optional: 1-based first row of the data (or a number)
@@ -27,10 +27,10 @@ A ROS bag's map names a topic and its fields instead of columns, and which time 
 ``frame_id`` (optional) is checked against every message; ``stamp`` on a stream overrides the
 map's (a topic without a header, such as ``std_msgs/Float64MultiArray``, takes ``receive``).
 
-Units are those of :mod:`sensors.units` (``counts`` too). Every problem of the file is
+Units are those of :mod:`armfusion.sensors.units` (``counts`` too). Every problem of the file is
 reported together, naming the key (:class:`ColumnMapError`); what the map says about a
 particular arm (a stream the config lacks, a unit of another quantity) is checked by
-:mod:`fusion.importing.to_stream` when the map meets the config.
+:mod:`armfusion.fusion.importing.to_stream` when the map meets the config.
 """
 
 from __future__ import annotations
@@ -39,13 +39,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fusion.configfile import read_yaml
-from fusion.shipped import shipped_config_dir
-from models.arm_config import ConfigError
-from sensors.foreign import parse_address
-from sensors.foreign.rosbag import check_field
-from sensors.samples import clipped_repr
-from sensors.units import UnitError, canonical_unit_name, quantity_of
+from armfusion.fusion.configfile import read_yaml
+from armfusion.fusion.shipped import shipped_config_dir
+from armfusion.models.arm_config import ConfigError
+from armfusion.sensors.foreign import parse_address
+from armfusion.sensors.foreign.rosbag import check_field
+from armfusion.sensors.samples import clipped_repr
+from armfusion.sensors.units import UnitError, canonical_unit_name, quantity_of
 
 IMPORTS_DIR = "imports"
 """The shipped column maps' folder inside the shipped configs (``config/imports/``)."""

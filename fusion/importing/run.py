@@ -2,13 +2,13 @@
 recording and a summary of every change out (:func:`import_recording`).
 
 Order: the map is checked against the config before the file is read
-(:func:`~fusion.importing.to_stream.check_map_against`); the file's columns are read
-(:func:`sensors.foreign.read_columns`); rows before the start row are left out; the time
+(:func:`~armfusion.fusion.importing.to_stream.check_map_against`); the file's columns are read
+(:func:`armfusion.sensors.foreign.read_columns`); rows before the start row are left out; the time
 column is converted to seconds (or made from the rate); rows whose time does not increase
-are dropped (:mod:`~fusion.importing.stamps`); in each stream a row with a NaN in one of its
+are dropped (:mod:`~armfusion.fusion.importing.stamps`); in each stream a row with a NaN in one of its
 columns is a gap (that sensor not sampled then) and counted, an infinite value is refused;
-the values are brought into the config's unit (:func:`~fusion.importing.to_stream.convert_values`);
-then every sample meets the admission every door applies (:mod:`models.sample_admission`: a
+the values are brought into the config's unit (:func:`~armfusion.fusion.importing.to_stream.convert_values`);
+then every sample meets the admission every door applies (:mod:`armfusion.models.sample_admission`: a
 value past its sensor's range, a time beyond any clock, is refused naming the file's row).
 """
 
@@ -18,16 +18,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from fusion.importing.column_map import ColumnMap, StreamSource
-from fusion.importing.stamps import FIRST_ROWS, increasing_rows
-from fusion.importing.to_stream import ImportMapError, Target, check_map_against, convert_values
-from fusion.importing.to_stream import targets as targets_of
-from models.arm import ArmModel
-from models.sample_admission import admission_problems
-from sensors.foreign import SUFFIXES, read_columns
-from sensors.samples import Recording, Stream, clipped_repr
-from sensors.units import convert
+from armfusion.fusion.importing.column_map import ColumnMap, StreamSource
+from armfusion.fusion.importing.stamps import FIRST_ROWS, increasing_rows
+from armfusion.fusion.importing.to_stream import ImportMapError, Target, check_map_against, convert_values
+from armfusion.fusion.importing.to_stream import targets as targets_of
+from armfusion.models.arm import ArmModel
+from armfusion.models.sample_admission import admission_problems
+from armfusion.sensors.foreign import SUFFIXES, read_columns
+from armfusion.sensors.samples import Recording, Stream, clipped_repr
+from armfusion.sensors.units import convert
 
 
 @dataclass(frozen=True)
@@ -57,7 +56,7 @@ def _start_index(cmap: ColumnMap, scalars: dict[str, float], n_rows: int, path: 
 
 def refuse_what_no_sensor_said(rec: Recording, arm: ArmModel, cmap: ColumnMap,
                                stream_rows: dict[str, np.ndarray], path: Path, row_word: str = "row") -> None:
-    """The admission every door applies (:mod:`models.sample_admission`): a value past the
+    """The admission every door applies (:mod:`armfusion.models.sample_admission`): a value past the
     range of the config's sensor (or the feed's), a time beyond any clock or apart from the
     rest, refused naming the file's row and columns, or a bag's message (``row_word``) and
     fields (the other commands would refuse the recording written)."""
@@ -77,8 +76,8 @@ def refuse_what_no_sensor_said(rec: Recording, arm: ArmModel, cmap: ColumnMap,
 
 def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> ImportResult:
     """Turn the foreign file ``src`` into ``arm``'s recording by ``cmap`` (see the module's
-    docstring). Raises :class:`~fusion.importing.to_stream.ImportMapError` (map against
-    config or file) or :class:`~sensors.foreign.ForeignFileError` (the file), both
+    docstring). Raises :class:`~armfusion.fusion.importing.to_stream.ImportMapError` (map against
+    config or file) or :class:`~armfusion.sensors.foreign.ForeignFileError` (the file), both
     ``ValueError``, naming the stream, the column, the file and the unit."""
     path = Path(src)
     if cmap.is_bag:

@@ -2,7 +2,7 @@
 
 Real loggers stamp badly: the rig's files hold some steps of 0 ms (two samples with one
 time), other loggers step back after a buffer flush. A recording's time must increase
-(:class:`sensors.samples.Stream`), and the import changes no time: a row whose time is not
+(:class:`armfusion.sensors.samples.Stream`), and the import changes no time: a row whose time is not
 after every time before it is dropped, whole (every stream's values of that row: the later
 of two samples stamped alike is the one that has no instant of its own), and a row without a
 time (NaN) too; :class:`StampReport` counts them and names the first few rows, for the

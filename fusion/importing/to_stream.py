@@ -3,7 +3,7 @@ channels and the unit its values are recorded in, ``StreamModel.value_unit``), a
 source's values brought into that unit.
 
 - into a physical unit (a sensor described as delivering g, deg/s…): the source's unit must
-  be of the same quantity, converted by :func:`sensors.units.convert`;
+  be of the same quantity, converted by :func:`armfusion.sensors.units.convert`;
 - into counts (a sensor described by its register counts, as the ADXL345 today): a physical
   source becomes counts through the description's nominal gain and zero
   (``StreamModel.to_counts``), unrounded (a value between two counts keeps what it says);
@@ -18,12 +18,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.importing.column_map import ColumnMap, StreamSource
-from models.arm import ArmModel
-from models.sensor_models import ENCODER_STREAM, StreamModel, stream_models
-from sensors.samples import TRUTH_BASE_COLUMNS, StreamKind, truth_joint_columns
-from sensors.units import COUNTS, UnitError, convert, factor, quantity_of
+from armfusion.fusion.importing.column_map import ColumnMap, StreamSource
+from armfusion.models.arm import ArmModel
+from armfusion.models.sensor_models import ENCODER_STREAM, StreamModel, stream_models
+from armfusion.sensors.samples import TRUTH_BASE_COLUMNS, StreamKind, truth_joint_columns
+from armfusion.sensors.units import COUNTS, UnitError, convert, factor, quantity_of
 
 
 class ImportMapError(ValueError):

@@ -6,7 +6,7 @@ and the base's attitude is ``R_WB = Rz(heading) Ry(pitch) Rx(roll)`` (docs/track
 REP 103's world is ENU (x east, y north, z up), yaw counter-clockwise from east: the same
 up axis, turned by +pi/2 about it, so ``R_ENU_B = Rz(pi/2) R_WB = Rz(heading + pi/2)
 Ry(pitch) Rx(roll)``: roll and pitch are unchanged, the ENU yaw is the heading plus pi/2
-(:func:`fusion.tracking.estimate.yaw_enu_rad`, which the heading feed's ``yaw_enu_rad`` uses).
+(:func:`armfusion.fusion.tracking.estimate.yaw_enu_rad`, which the heading feed's ``yaw_enu_rad`` uses).
 
 REP 145 (and ``sensor_msgs/Imu``): each covariance is 3 x 3, row-major, about the x, y and z
 axes; a quantity not estimated has ``-1`` in its covariance's first element. armfusion

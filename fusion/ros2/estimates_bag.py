@@ -10,7 +10,7 @@ Per fused instant, stamped with its time:
 - ``/armfusion/heading`` (``sensor_msgs/Imu``, frame :data:`BASE_FRAME`): the base's orientation
   in ENU (REP 103: roll, pitch and the heading as ENU yaw), its covariance as REP 145 has it,
   the angular velocity and linear acceleration marked not estimated
-  (:mod:`~fusion.ros2.conventions`);
+  (:mod:`~armfusion.fusion.ros2.conventions`);
 
 and ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, the ROS convention for health) at
 the first instant, whenever a status changes and at least once a second: one status for the
@@ -22,8 +22,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-from fusion.ros2.conventions import enu_quaternion_xyzw, not_estimated, orientation_covariance
+from armfusion.fusion.ros2.conventions import enu_quaternion_xyzw, not_estimated, orientation_covariance
 
 BASE_FRAME = "arm_base"
 """The frame of the heading's orientation: the arm's base frame, the URDF's root link."""
@@ -72,11 +71,11 @@ def _status(w, level: int, name: str, message: str, hardware_id: str, values: di
 
 
 def write_estimates_bag(run, path: str | Path, arm_name: str) -> dict[str, int]:
-    """Write ``run`` (:class:`fusion.tracking.run.TrackRun`) to ``path`` (see the module's
+    """Write ``run`` (:class:`armfusion.fusion.tracking.run.TrackRun`) to ``path`` (see the module's
     docstring); returns the messages written per topic. Times before 0 s are refused: a ROS
     stamp is unsigned seconds."""
-    from fusion.tracking.estimate import HEADING_STATUS, NORTH
-    from sensors.ros2_mcap import Ros2McapWriter
+    from armfusion.fusion.tracking.estimate import HEADING_STATUS, NORTH
+    from armfusion.sensors.ros2_mcap import Ros2McapWriter
 
     t_ns = np.rint(np.asarray(run.t_s, float) * 1e9).astype(np.int64)
     if t_ns.size and t_ns[0] < 0:
@@ -119,8 +118,8 @@ def write_estimates_bag(run, path: str | Path, arm_name: str) -> dict[str, int]:
 
 def _diagnostics(w, run, i: int, t: int, codes: tuple, arm_name: str, north: str):
     """Instant ``i``'s ``DiagnosticArray``: the heading, each joint, each sensor."""
-    from fusion.tracking.estimate import HEADING_STATUS, yaw_enu_rad
-    from fusion.tracking.settings import JOINT_FLAGS, SENSOR_STATUS
+    from armfusion.fusion.tracking.estimate import HEADING_STATUS, yaw_enu_rad
+    from armfusion.fusion.tracking.settings import JOINT_FLAGS, SENSOR_STATUS
 
     heading = HEADING_STATUS[codes[0]]
     r, p, h = (float(v) for v in run.rpy_rad[i])

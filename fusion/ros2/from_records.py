@@ -1,6 +1,6 @@
 """Estimates recorded as armfusion's own records (the JSON messages on ``estimates/joints``
 and ``estimates/heading`` that ``armfusion record`` and ``track --out EST.mcap`` write) turned
-into what :func:`fusion.ros2.estimates_bag.write_estimates_bag` writes: so the live service's
+into what :func:`armfusion.fusion.ros2.estimates_bag.write_estimates_bag` writes: so the live service's
 estimates reach ROS 2 as a bag too (``armfusion record OUT.mcap --ros2-out EST.ros2.mcap``).
 
 The two records of one estimate share its time stamp; an instant is taken where its heading
@@ -15,10 +15,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-
-from fusion.tracking.estimate import HEADING_STATUS, HEADING_TOPIC, JOINTS_TOPIC, NORTH
-from fusion.tracking.run import TrackRun
-from fusion.tracking.settings import JOINT_FLAGS, SENSOR_STATUS
+from armfusion.fusion.tracking.estimate import HEADING_STATUS, HEADING_TOPIC, JOINTS_TOPIC, NORTH
+from armfusion.fusion.tracking.run import TrackRun
+from armfusion.fusion.tracking.settings import JOINT_FLAGS, SENSOR_STATUS
 
 
 class RecordsError(ValueError):
@@ -58,7 +57,7 @@ def _code(words: tuple[str, ...], word, what: str, where: str) -> int:
 
 def run_from_records(joints: list[dict], headings: list[dict],
                      source: str = "records") -> tuple[TrackRun, int]:
-    """The recorded estimates as a run (a :class:`~fusion.tracking.run.TrackRun` with no
+    """The recorded estimates as a run (a :class:`~armfusion.fusion.tracking.run.TrackRun` with no
     counters: none were recorded), and how many heading records had no joints record at
     their stamp (left out; see the module's docstring)."""
     by_t: dict[float, tuple[int, dict]] = {}
@@ -129,7 +128,7 @@ def write_ros2_from_records(src: str | Path, out: str | Path,
                             arm_name: str) -> tuple[TrackRun, int, dict]:
     """Read the estimates recorded in ``src`` and write them to the rosbag2 MCAP ``out``;
     returns the run read, the heading records left out and the messages written per topic."""
-    from fusion.ros2.estimates_bag import write_estimates_bag
+    from armfusion.fusion.ros2.estimates_bag import write_estimates_bag
 
     joints, headings = read_records(src)
     if not headings:

@@ -2,7 +2,7 @@
 robot_state_publisher: with the joint states armfusion publishes it gives every link's and
 every sensor's frame in TF.
 
-The arm model's chain (:class:`models.arm.Joint`): joint i is a fixed transform ``T_pre``, a
+The arm model's chain (:class:`armfusion.models.arm.Joint`): joint i is a fixed transform ``T_pre``, a
 turn about ``axis`` by ``q + offset``, then a fixed ``T_post``; link i's frame is after
 ``T_post``. A URDF joint is a fixed origin then a turn by ``q`` about its axis, the child
 link's frame right after it. So URDF joint i's origin is ``T_post(i-1) T_pre(i) Rot(axis,
@@ -10,7 +10,7 @@ offset)`` (a turn about the axis commutes with the turn by ``q``), the URDF link
 is the model's link before its ``T_post``, and the last ``T_post`` is a fixed joint to the
 ``flange`` link. Each sensor is a fixed joint from its link to a link of its own name (the
 frame id of its messages): ``T_post(L) T_LS``; a sensor on link 0 hangs from the base
-(:data:`~fusion.ros2.estimates_bag.BASE_FRAME`). Joints keep the config's names and limits;
+(:data:`~armfusion.fusion.ros2.estimates_bag.BASE_FRAME`). Joints keep the config's names and limits;
 the links carry no geometry (armfusion knows the chain, not the shapes).
 """
 
@@ -19,10 +19,9 @@ from __future__ import annotations
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
-
-from fusion.ros2.estimates_bag import BASE_FRAME
-from models.arm import ArmModel
-from models.rotations import exp_so3, rpy_from_R
+from armfusion.fusion.ros2.estimates_bag import BASE_FRAME
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import exp_so3, rpy_from_R
 
 FLANGE_LINK = "flange"
 

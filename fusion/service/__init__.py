@@ -1,5 +1,5 @@
 """The armfusion service over Eclipse Zenoh: key expressions, payloads, and the nodes.
 
-See docs/service.md. Every session is configured by :mod:`fusion.service.zenoh_config`:
+See docs/service.md. Every session is configured by :mod:`armfusion.fusion.service.zenoh_config`:
 loopback only, no scouting.
 """

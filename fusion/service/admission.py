@@ -1,6 +1,6 @@
 """What the fusion node lets through to its estimator: every raw batch checked against the arm.
 
-:mod:`fusion.service.payloads` checks that a payload is a well-formed ``raw`` batch; this
+:mod:`armfusion.fusion.service.payloads` checks that a payload is a well-formed ``raw`` batch; this
 module checks that it could have come from *this* robot's sensors, now. A batch that fails
 is dropped whole, counted under its reason, and logged (at most one line a second per
 reason); nothing in it reaches the estimator or the counters of what was received.
@@ -14,7 +14,7 @@ reason             the batch…
 ``out_of_range``   holds a count beyond the device's register range (an ADXL345 axis
                    -512…511, the MPU-9150's int16, the AK8975's 13 bits, the encoder
                    feed's int32): the rule and the words every reader of a file uses
-                   (:mod:`models.sample_admission`)
+                   (:mod:`armfusion.models.sample_admission`)
 ``encoder_jump``   moves a joint's encoder further than the joint can turn in the time
                    since the last sample (``max_joint_rate_rad_s`` plus
                    ``jump_slack_rad``)
@@ -101,14 +101,18 @@ from collections import Counter, deque
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.service.inbox import DropLog
-from fusion.service.payloads import RawBatch
-from models.arm import ArmModel
-from models.sample_admission import ENCODER_REBASE_AFTER_S, JUMP_SLACK_RAD, MAX_JOINT_RATE_RAD_S, jump_words
-from models.sensor_models import ENCODER_STREAM, stream_models
-from sensors.adxl345 import FIFO_DEPTH
-from sensors.sample_checks import FEED_MAX, FEED_MIN, range_words
+from armfusion.fusion.service.inbox import DropLog
+from armfusion.fusion.service.payloads import RawBatch
+from armfusion.models.arm import ArmModel
+from armfusion.models.sample_admission import (
+    ENCODER_REBASE_AFTER_S,
+    JUMP_SLACK_RAD,
+    MAX_JOINT_RATE_RAD_S,
+    jump_words,
+)
+from armfusion.models.sensor_models import ENCODER_STREAM, stream_models
+from armfusion.sensors.adxl345 import FIFO_DEPTH
+from armfusion.sensors.sample_checks import FEED_MAX, FEED_MIN, range_words
 
 INT32_MIN, INT32_MAX = FEED_MIN, FEED_MAX
 """The encoder feed's counts (sensors/encoders.py: int32 per joint)."""
@@ -138,7 +142,7 @@ class AdmissionSettings:
     its time does not move on: the longest stall of a starved node or driver after which
     the genuine samples of a burst are still judged by the wall time that passed (beside a
     CPU hog the demo's node lagged 43 s)."""
-    max_joint_rate_rad_s: float = MAX_JOINT_RATE_RAD_S  # (with the files: models.sample_admission)
+    max_joint_rate_rad_s: float = MAX_JOINT_RATE_RAD_S  # (with the files: armfusion.models.sample_admission)
     jump_slack_rad: float = JUMP_SLACK_RAD
     encoder_rebase_after_s: float = ENCODER_REBASE_AFTER_S
     max_rate_hz: float = 1000.0

@@ -30,9 +30,8 @@ import time
 from dataclasses import dataclass, field
 
 import zenoh
-
-from fusion.service import payloads as pl
-from fusion.service.inbox import Inbox
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.inbox import Inbox
 
 FUSION_NODE = "serve"
 STATUS_PERIOD_S = 1.0

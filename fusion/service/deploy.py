@@ -43,8 +43,8 @@ import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fusion.service.payloads import check_name
-from fusion.service.zenoh_config import DEPLOY_CONFIG_DIR
+from armfusion.fusion.service.payloads import check_name
+from armfusion.fusion.service.zenoh_config import DEPLOY_CONFIG_DIR
 
 INSTALL_DIR = "/etc/armfusion"
 """Where a machine's files go: ``tls/`` and ``zenoh/`` below it (the templates' paths)."""

@@ -1,5 +1,5 @@
 """What a node does with what it receives: :class:`Inbox` decodes each payload
-(:func:`fusion.service.payloads.decode`) and counts and drops what is bad, with one log line
+(:func:`armfusion.fusion.service.payloads.decode`) and counts and drops what is bad, with one log line
 per reason per second at most (:class:`DropLog`), never an exception into the node."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import threading
 import time
 from collections import Counter
 
-from fusion.service.payloads import Payload, PayloadError, decode
+from armfusion.fusion.service.payloads import Payload, PayloadError, decode
 
 log = logging.getLogger("armfusion.service")
 

@@ -40,16 +40,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from fusion.service import payloads as pl
-from fusion.service.processes import armfusion_argv
-from fusion.service.reorder import merge_batches
-from fusion.startup.static import StaticDetectionSettings, find_static_segments
-from models.arm import ArmModel
-from models.sensor_models import ENCODER_STREAM, stream_models
-from models.trajectories.planned import PlannedManeuver
-from sensors.recording_mcap import write_mcap
-from sensors.samples import Recording, Stream
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.processes import armfusion_argv
+from armfusion.fusion.service.reorder import merge_batches
+from armfusion.fusion.startup.static import StaticDetectionSettings, find_static_segments
+from armfusion.models.arm import ArmModel
+from armfusion.models.sensor_models import ENCODER_STREAM, stream_models
+from armfusion.models.trajectories.planned import PlannedManeuver
+from armfusion.sensors.recording_mcap import write_mcap
+from armfusion.sensors.samples import Recording, Stream
 
 log = logging.getLogger("armfusion.service")
 
@@ -87,7 +86,7 @@ class ManeuverSettings:
 def still_poses_rad(arm: ArmModel, rec: Recording, still_s: float) -> np.ndarray:
     """The joint angles (relative to the encoders' first sample, rad) held over each still
     stretch of at least ``still_s`` seconds (the startup's still detector,
-    :func:`fusion.startup.static.find_static_segments`, over that window): ``(S, n)``."""
+    :func:`armfusion.fusion.startup.static.find_static_segments`, over that window): ``(S, n)``."""
     enc = rec.get(ENCODER_STREAM)
     segs = find_static_segments(rec, StaticDetectionSettings(window_s=still_s, min_duration_s=still_s),
                                 stream_models(arm))

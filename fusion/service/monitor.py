@@ -4,7 +4,7 @@ A :class:`Monitor` subscribes to ``armfusion/*/state/joints``, ``armfusion/*/sta
 and ``armfusion/*/status``, and to the liveliness tokens on ``armfusion/*/status`` (with
 their history, so robots already running are seen at once): a robot appears with its first
 message or token and is marked gone when its fusion node's token vanishes. Every payload is
-checked on receipt (:class:`~fusion.service.inbox.Inbox`: a bad one is counted and
+checked on receipt (:class:`~armfusion.fusion.service.inbox.Inbox`: a bad one is counted and
 dropped). :meth:`Monitor.snapshot` gives, per robot, the last joint state (angles, sigma,
 flags), the heading, each node's state and counters, and the age of the last update;
 :func:`render` draws it as a rich table and :func:`snapshot_json` as one JSON document.
@@ -19,9 +19,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
-
-from fusion.service import payloads as pl
-from fusion.service.inbox import Inbox
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.inbox import Inbox
 
 ALL_JOINTS = f"{pl.ROOT}/*/state/joints"
 ALL_HEADINGS = f"{pl.ROOT}/*/state/heading"

@@ -1,7 +1,7 @@
 """What every armfusion node shares: a stop signal, a bounded receive channel, a stall watch.
 
 A node's shape (the one zenoh-python's examples share): a config from a file with
-explicit overrides (:mod:`fusion.service.zenoh_config`), a session in a ``with`` block, a
+explicit overrides (:mod:`armfusion.fusion.service.zenoh_config`), a session in a ``with`` block, a
 :class:`BoundedReceiver` per subscription, and :func:`stop_on_signals`, which turns
 SIGINT and SIGTERM into a :class:`threading.Event` that the node's loop waits on
 (:func:`stop_after` sets it after ``--duration``). A node that estimates watches for

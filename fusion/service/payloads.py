@@ -17,14 +17,14 @@ Every payload is one UTF-8 JSON object (no pickle, nothing that carries code) wi
 ``maneuver``; the fields
 of each are those of the dataclasses below and are written out in docs/reference/service.md. The
 fields of ``joints`` and ``heading`` are an estimate's one wire form, written by
-:mod:`fusion.tracking.estimate` (``joints_record``, ``heading_record``). JSON keeps a
+:mod:`armfusion.fusion.tracking.estimate` (``joints_record``, ``heading_record``). JSON keeps a
 float's every bit (Python writes the shortest repr that reads back the same), so a replayed
 recording is recorded unchanged.
 
 :func:`decode` checks a payload: larger than :data:`MAX_PAYLOAD_BYTES`, not JSON, of an
 unknown version or type, with a missing, mistyped or inconsistent field (or a type that does
 not match its key expression) raises :class:`PayloadError`, naming the reason; a receiving
-node's :class:`fusion.service.inbox.Inbox` counts it by reason and drops it with one log
+node's :class:`armfusion.fusion.service.inbox.Inbox` counts it by reason and drops it with one log
 line, never an exception into the node.
 """
 
@@ -38,12 +38,11 @@ from itertools import chain
 from typing import Any
 
 import numpy as np
-
-from fusion.tracking.alarm import EFFECTS as ALARM_EFFECTS
-from fusion.tracking.alarm import UNITS as ALARM_UNITS
-from fusion.tracking.estimate import HEADING_STATUS, NORTH, Estimate, heading_record, joints_record
-from models.trajectories.planned import PlannedManeuver
-from sensors.samples import RAW_KINDS, Stream, clipped_repr
+from armfusion.fusion.tracking.alarm import EFFECTS as ALARM_EFFECTS
+from armfusion.fusion.tracking.alarm import UNITS as ALARM_UNITS
+from armfusion.fusion.tracking.estimate import HEADING_STATUS, NORTH, Estimate, heading_record, joints_record
+from armfusion.models.trajectories.planned import PlannedManeuver
+from armfusion.sensors.samples import RAW_KINDS, Stream, clipped_repr
 
 VERSIONS = {"raw": 2, "joints": 1, "heading": 3, "status": 1, "calibration": 1, "health": 1,
             "maneuver": 1}
@@ -175,7 +174,7 @@ class RawBatch:
 
 @dataclass(frozen=True)
 class JointState:
-    """One instant's joint estimate: the joints record of an :class:`~fusion.tracking.estimate.Estimate`."""
+    """One instant's joint estimate: the joints record of an :class:`~armfusion.fusion.tracking.estimate.Estimate`."""
 
     robot: str
     t_s: float
@@ -200,7 +199,7 @@ class JointState:
                    tuple(c.as_dict() for c in e.combinations))
 
     def record(self) -> dict[str, Any]:
-        """The joints record (:func:`fusion.tracking.estimate.joints_record`): no envelope."""
+        """The joints record (:func:`armfusion.fusion.tracking.estimate.joints_record`): no envelope."""
         return joints_record(self.t_s, self.joint_names, self.q_rad, self.sigma_rad, self.flags,
                              self.sensors, self.axis_to_vertical_deg, self.combinations)
 
@@ -212,7 +211,7 @@ class JointState:
 class Heading:
     """The base's heading (yaw about the vertical), roll and pitch, each with its one-sigma
     uncertainty, the gyro bias and the magnetometer's state: the heading record of an
-    :class:`~fusion.tracking.estimate.Estimate`."""
+    :class:`~armfusion.fusion.tracking.estimate.Estimate`."""
 
     robot: str
     t_s: float
@@ -237,7 +236,7 @@ class Heading:
                    bool(e.magnetic_recovery), e.heading_status, bool(e.true_north))
 
     def record(self) -> dict[str, Any]:
-        """The heading record (:func:`fusion.tracking.estimate.heading_record`): no envelope."""
+        """The heading record (:func:`armfusion.fusion.tracking.estimate.heading_record`): no envelope."""
         return heading_record(self.t_s, (self.roll_rad, self.pitch_rad, self.heading_rad),
                               (self.roll_sigma_rad, self.pitch_sigma_rad, self.heading_sigma_rad),
                               self.gyro_bias_rad_s, self.magnetic_disturbance, self.magnetic_recovery,
@@ -321,7 +320,7 @@ class Health:
 
     @classmethod
     def of(cls, robot: str, t_s: float, alarms) -> Health:
-        """From :class:`fusion.tracking.alarm.Alarm` objects."""
+        """From :class:`armfusion.fusion.tracking.alarm.Alarm` objects."""
         return cls(robot, float(t_s), tuple((a.sensor, a.effect, float(a.size), float(a.sigma), a.unit,
                                              float(a.since_s), float(a.raised_s), tuple(a.candidates))
                                             for a in alarms))
@@ -448,7 +447,7 @@ def _raw_plain(d: dict, robot: str) -> RawBatch | None:
     of whole counts within 64 bits), checked with C-level passes over its lists; ``None``
     when any check fails or the batch holds anything else (decimals, a version-1 payload):
     :func:`_raw` then checks it field by field and says what is wrong. The checks are those
-    of :func:`_raw`, and :class:`~sensors.samples.Stream`'s still run on the arrays."""
+    of :func:`_raw`, and :class:`~armfusion.sensors.samples.Stream`'s still run on the arrays."""
     sensor, kind, channels, seq = d.get("sensor"), d.get("kind"), d.get("channels"), d.get("seq")
     t, rows = d.get("t_s"), d.get("values")
     if not (type(sensor) is str and type(kind) is str and type(channels) is list and type(seq) is int

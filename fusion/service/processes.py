@@ -1,7 +1,7 @@
 """Child processes of ``armfusion fleet`` and ``armfusion demo``: each node an
 ``armfusion`` subcommand in its own process, started, watched and stopped cleanly.
 
-A child is started with ``python -m fusion.cli …`` (the interpreter running this one), in
+A child is started with ``python -m armfusion.fusion.cli …`` (the interpreter running this one), in
 its own process group, and on Linux asks the kernel to send it SIGTERM when its parent
 dies (``PR_SET_PDEATHSIG``): even a parent killed with SIGKILL leaves no orphan.
 :meth:`Children.stop_all` sends SIGINT (the nodes' clean stop), then SIGKILL to whatever
@@ -37,7 +37,7 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
 
 def armfusion_argv(*args: str) -> list[str]:
     """The command line of an ``armfusion`` subcommand run by this interpreter."""
-    return [sys.executable, "-m", "fusion.cli", *args]
+    return [sys.executable, "-m", "armfusion.fusion.cli", *args]
 
 
 @dataclass

@@ -1,10 +1,10 @@
 """Raw samples out over Zenoh, as ``armfusion drivers --robot R`` reads them.
 
-:class:`RawPublisher` takes batches of raw streams (one :class:`~sensors.samples.Stream`
+:class:`RawPublisher` takes batches of raw streams (one :class:`~armfusion.sensors.samples.Stream`
 per sensor, the samples read since the last batch) and puts each on
-``armfusion/<robot>/raw/<sensor>`` as a :class:`~fusion.service.payloads.RawBatch`, with a
+``armfusion/<robot>/raw/<sensor>`` as a :class:`~armfusion.fusion.service.payloads.RawBatch`, with a
 per-sensor ``seq``; the publishers block rather than drop when a subscriber falls behind
-(``CongestionControl.BLOCK``). A :class:`~fusion.service.payloads.Status` of node
+(``CongestionControl.BLOCK``). A :class:`~armfusion.fusion.service.payloads.Status` of node
 ``drivers`` goes out on ``armfusion/<robot>/status`` when it starts, about once a second
 of wall time, and when it stops, with the samples published per sensor
 (``samples.<sensor>``) and the batches.
@@ -18,9 +18,8 @@ from collections import Counter
 from collections.abc import Iterable
 
 import zenoh
-
-from fusion.service import payloads as pl
-from sensors.samples import Stream
+from armfusion.fusion.service import payloads as pl
+from armfusion.sensors.samples import Stream
 
 STATUS_PERIOD_S = 1.0
 

@@ -1,10 +1,10 @@
 """``armfusion record OUT.mcap``: record one robot's raw samples and estimates from Zenoh.
 
 Subscribes to ``armfusion/<robot>/raw/*`` and ``armfusion/<robot>/state/*``, checks each
-payload (:class:`~fusion.service.inbox.Inbox`: a bad one is counted and dropped) and
-writes it through :class:`~sensors.recording_mcap.McapRecorder`: raw batches as the
+payload (:class:`~armfusion.fusion.service.inbox.Inbox`: a bad one is counted and dropped) and
+writes it through :class:`~armfusion.sensors.recording_mcap.McapRecorder`: raw batches as the
 recording's streams (``armfusion replay`` of the result publishes them again), joint
-states and headings as their records (:mod:`fusion.tracking.estimate`: the payload without
+states and headings as their records (:mod:`armfusion.fusion.tracking.estimate`: the payload without
 its envelope) on ``estimates/joints`` and ``estimates/heading``. The chunk
 in progress is flushed at least every ``flush_interval_s`` (1 s), also while nothing
 arrives, so a recorder killed with SIGKILL loses at most about that much; on SIGINT or
@@ -21,12 +21,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
-
-from fusion.service import payloads as pl
-from fusion.service.inbox import Inbox
-from fusion.service.node import BoundedReceiver
-from fusion.tracking.estimate import MCAP_CHANNELS, write_mcap_record
-from sensors.recording_mcap import McapRecorder
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.inbox import Inbox
+from armfusion.fusion.service.node import BoundedReceiver
+from armfusion.fusion.tracking.estimate import MCAP_CHANNELS, write_mcap_record
+from armfusion.sensors.recording_mcap import McapRecorder
 
 log = logging.getLogger("armfusion.service")
 

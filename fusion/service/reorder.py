@@ -5,7 +5,7 @@ instants in time order (it drops a sample older than the last). :class:`Reorder`
 sensor's samples and releases merged instants once every sensor heard from in the last
 ``max_lag_s`` has sent something at least as late, or once they are ``max_lag_s`` older than
 the newest sample (a silent sensor does not stall the others). Given the sensors' clock
-(:meth:`fusion.service.admission.Admission.clock`), the newest sample is taken no later
+(:meth:`armfusion.fusion.service.admission.Admission.clock`), the newest sample is taken no later
 than it: one stream whose stamps run ahead of the others (within what the admission lets
 through) waits in its queue instead of making the others' samples late. :func:`merge_batches` makes one
 recording of kept batches, for the startup calibration.
@@ -17,8 +17,7 @@ import bisect
 from collections import deque
 
 import numpy as np
-
-from sensors.samples import Recording, Stream
+from armfusion.sensors.samples import Recording, Stream
 
 
 class Reorder:

@@ -1,10 +1,10 @@
 """``armfusion replay REC``: publish a recording's raw samples over Zenoh, with their timing.
 
 The recording's raw streams are cut into windows of ``batch_s`` of recording time; each
-window's samples of one sensor go out as one :class:`~fusion.service.payloads.RawBatch`
+window's samples of one sensor go out as one :class:`~armfusion.fusion.service.payloads.RawBatch`
 on ``armfusion/<robot>/raw/<sensor>`` when the wall clock reaches the window's end
 (scaled by ``speed``; ``speed=None`` publishes as fast as the subscribers take them: the
-publishers block rather than drop). A :class:`~fusion.service.payloads.Status` goes out
+publishers block rather than drop). A :class:`~armfusion.fusion.service.payloads.Status` goes out
 on ``armfusion/<robot>/status`` at the start and at the end, with the samples published
 per sensor.
 
@@ -15,7 +15,7 @@ key expression matches, anywhere the session reaches). With ``require_subscriber
 put while its key had no subscriber is counted in :attr:`ReplayReport.unheard`, so a
 subscriber that leaves half-way shows too. ``armfusion replay`` exits 1 in both cases. A
 subscriber is not yet a receiver (a router's access-control policy may drop the puts):
-``armfusion replay`` also reads the fusion node's status (:mod:`fusion.service.admitted`)
+``armfusion replay`` also reads the fusion node's status (:mod:`armfusion.fusion.service.admitted`)
 and exits 1 when it admitted none of the samples.
 """
 
@@ -29,9 +29,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import zenoh
-
-from fusion.service import payloads as pl
-from sensors.samples import Recording, Stream
+from armfusion.fusion.service import payloads as pl
+from armfusion.sensors.samples import Recording, Stream
 
 log = logging.getLogger("armfusion.service")
 
@@ -100,7 +99,7 @@ def replay(session: zenoh.Session, rec: Recording, robot: str, *, speed: float |
     key (the sensors named in :attr:`ReplayReport.unmatched` had none by then).
     ``require_subscriber``: raise :class:`NoSubscriberError`, publishing nothing, when no
     raw key has a subscriber after that wait. ``on_start``: called once, as the publishing
-    starts (after the wait), e.g. :meth:`fusion.service.admitted.AdmissionWatch.start`.
+    starts (after the wait), e.g. :meth:`armfusion.fusion.service.admitted.AdmissionWatch.start`.
     """
     if speed is not None and not speed > 0:
         raise ValueError(f"speed must be > 0 (or None for as fast as possible), got {speed!r}")

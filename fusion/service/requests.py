@@ -1,18 +1,17 @@
 """Requests to a fusion node (``armfusion serve``) over Zenoh queries, answered with a payload:
 
 - ``armfusion/<robot>/calibrate`` (``armfusion recalibrate``): re-run the startup calibration
-  now; the reply is a :class:`~fusion.service.payloads.Calibration` (accepted with the result,
+  now; the reply is a :class:`~armfusion.fusion.service.payloads.Calibration` (accepted with the result,
   or refused with the reason);
 - ``armfusion/<robot>/maneuver`` and ``maneuver/start``, ``/done``, ``/abort``
   (``armfusion maneuver``): the planned calibration maneuver the node serves, and its run;
-  the reply is a :class:`~fusion.service.payloads.Maneuver`.
+  the reply is a :class:`~armfusion.fusion.service.payloads.Maneuver`.
 """
 
 from __future__ import annotations
 
 import zenoh
-
-from fusion.service import payloads as pl
+from armfusion.fusion.service import payloads as pl
 
 
 class NoReplyError(RuntimeError):
@@ -23,7 +22,7 @@ def ask(session: zenoh.Session, key: str, expected: type, timeout_s: float):
     """The first reply to a query on ``key``, which must be an ``expected`` payload.
 
     Raises :class:`NoReplyError` when no node answers within ``timeout_s`` (or answers with an
-    error), and :class:`~fusion.service.payloads.PayloadError` when the reply is not a valid
+    error), and :class:`~armfusion.fusion.service.payloads.PayloadError` when the reply is not a valid
     payload of that type.
     """
     for reply in session.get(key, timeout=timeout_s):

@@ -14,12 +14,11 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.service import payloads as pl
-from fusion.service.reorder import merge_batches
-from fusion.startup.solve import prior_after_move
-from fusion.startup.static import Segment, StaticDetectionSettings, find_static_segments
-from fusion.tracking.tracker import (
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.reorder import merge_batches
+from armfusion.fusion.startup.solve import prior_after_move
+from armfusion.fusion.startup.static import Segment, StaticDetectionSettings, find_static_segments
+from armfusion.fusion.tracking.tracker import (
     ENC,
     NoStillWindowError,
     Start,
@@ -27,9 +26,9 @@ from fusion.tracking.tracker import (
     TrackerSettings,
     start_from_recording,
 )
-from models.arm import ArmModel
-from models.sensor_models import encoder_angles_at
-from sensors.samples import Recording, Stream
+from armfusion.models.arm import ArmModel
+from armfusion.models.sensor_models import encoder_angles_at
+from armfusion.sensors.samples import Recording, Stream
 
 log = logging.getLogger("armfusion.service")  # the fusion node's own log
 
@@ -121,7 +120,7 @@ def solve_ambiguity_again(arm: ArmModel, settings: TrackerSettings, start: Start
                           ambiguous: set[str]) -> SolvedAgain | None:
     """Solve the startup again on the still stretch ``still`` (``(segment, window)`` of
     :meth:`RecentSamples.still_now`) with the startup's candidates carried through the
-    encoder counts (:func:`fusion.startup.solve.prior_after_move`). None when the stretch
+    encoder counts (:func:`armfusion.fusion.startup.solve.prior_after_move`). None when the stretch
     is the startup's own or the solve fails (logged); else what it told apart of the
     joints ``ambiguous`` now."""
     seg, window = still

@@ -2,21 +2,21 @@
 then the tracker, sample by sample; publishes the joint state, the heading and a status.
 
 Raw batches arrive per sensor on ``armfusion/<robot>/raw/*``. Each is checked twice before
-anything else sees it: as a payload (:class:`~fusion.service.inbox.Inbox`) and against the
-arm's sensors and the sensors' own clock (:class:`~fusion.service.admission.Admission`);
+anything else sees it: as a payload (:class:`~armfusion.fusion.service.inbox.Inbox`) and against the
+arm's sensors and the sensors' own clock (:class:`~armfusion.fusion.service.admission.Admission`);
 what fails is dropped and counted by reason (``dropped.<reason>`` in the status), and only
 accepted samples count as ``samples``.
 
 Until the tracker starts, the samples are kept; once ``min_data_s`` of them are in, every
 ``retry_s`` the node looks for the first still stretch in them and runs the startup
-calibration there (:func:`fusion.tracking.tracker.start_from_recording`); the samples after
+calibration there (:func:`armfusion.fusion.tracking.tracker.start_from_recording`); the samples after
 it are then fed to the tracker, and from then on every sample as it comes, merged in time
-across the sensors (:mod:`fusion.service.reorder`). While tracking, no estimate for
+across the sensors (:mod:`armfusion.fusion.service.reorder`). While tracking, no estimate for
 ``stall_after_s`` while raw batches arrive is a stall (``stalled`` 1 in the status, and said
 in its message, until estimates come again).
 
 Estimates go out on ``state/joints`` and ``state/heading`` (an estimate's two records,
-:mod:`fusion.tracking.estimate`) at most ``publish_hz`` per second of sample time, a status
+:mod:`armfusion.fusion.tracking.estimate`) at most ``publish_hz`` per second of sample time, a status
 on ``status`` every second (and at once when a sensor's status changes), and the node holds
 a liveliness token on ``armfusion/<robot>/status`` while it runs. Every joint state and
 status carries each sensor's status (``ok``, ``stale``…): a sensor that stops is ``stale``
@@ -27,13 +27,13 @@ on the latest still stretch of the last ``recent_s`` of samples (the arm still n
 restarts the tracker from it; it refuses, saying why, while the arm moves or before there
 is a still stretch (:meth:`FusionNode.calibrate`).
 
-With a planned maneuver (``maneuver``, :mod:`fusion.service.maneuver`), the node publishes
+With a planned maneuver (``maneuver``, :mod:`armfusion.fusion.service.maneuver`), the node publishes
 the plan on ``armfusion/<robot>/maneuver`` for the arm's controller, keeps the samples between
 its ``maneuver/start`` and ``maneuver/done`` requests and runs the sensor fit on them in a
 child process; it never moves the arm, and it tracks with the config the fit writes only
 when asked (``maneuver/apply``, :meth:`FusionNode._apply_calibration`).
 
-With a ``state_path``, the node saves its state there (:mod:`fusion.service.state_file`)
+With a ``state_path``, the node saves its state there (:mod:`armfusion.fusion.service.state_file`)
 every ``save_period_s`` of wall time and when it stops, and at start resumes from it
 without a new startup calibration when the encoders kept counting; otherwise it says why
 and calibrates on a still arm as usual.
@@ -51,18 +51,22 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
-
-from fusion.configfile import load_arm
-from fusion.service import payloads as pl
-from fusion.service import state_file
-from fusion.service.admission import Admission, AdmissionSettings
-from fusion.service.inbox import Inbox
-from fusion.service.maneuver import ManeuverEndpoint, ServedManeuver, same_arm_problem
-from fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
-from fusion.service.reorder import Reorder, merge_batches
-from fusion.service.restart import RecentSamples, ambiguity_note, calibration_reply, solve_ambiguity_again
-from fusion.startup.solve import StartupPrior
-from fusion.tracking.tracker import (
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service import state_file
+from armfusion.fusion.service.admission import Admission, AdmissionSettings
+from armfusion.fusion.service.inbox import Inbox
+from armfusion.fusion.service.maneuver import ManeuverEndpoint, ServedManeuver, same_arm_problem
+from armfusion.fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
+from armfusion.fusion.service.reorder import Reorder, merge_batches
+from armfusion.fusion.service.restart import (
+    RecentSamples,
+    ambiguity_note,
+    calibration_reply,
+    solve_ambiguity_again,
+)
+from armfusion.fusion.startup.solve import StartupPrior
+from armfusion.fusion.tracking.tracker import (
     ENC,
     NoStillWindowError,
     Start,
@@ -71,10 +75,10 @@ from fusion.tracking.tracker import (
     start_from_recording,
     warm_up,
 )
-from models.arm import ArmModel
-from models.arm_config import ConfigError
-from models.sensor_models import stream_models
-from sensors.samples import Recording, Stream
+from armfusion.models.arm import ArmModel
+from armfusion.models.arm_config import ConfigError
+from armfusion.models.sensor_models import stream_models
+from armfusion.sensors.samples import Recording, Stream
 
 log = logging.getLogger("armfusion.service")
 
@@ -167,7 +171,7 @@ class Lateness:
 class FusionNode:
     """Subscribes to a robot's raw samples on ``session``, calibrates, tracks, publishes.
 
-    ``state_path``: the saved state (see :mod:`fusion.service.state_file`), written every
+    ``state_path``: the saved state (see :mod:`armfusion.fusion.service.state_file`), written every
     ``save_period_s`` of wall time and at stop, and resumed from at start when it is no
     older than ``max_state_age_s`` and the encoders moved no faster than
     ``max_joint_rate_rad_s`` in between. ``recent_s``: how much of the latest samples the
@@ -175,7 +179,7 @@ class FusionNode:
     batches arrived for that long (wall time) is ``stale`` in the status, also when every
     sensor stops and the tracker, which judges staleness in sample time, hears nothing.
     ``admission``: the bounds every raw batch is checked against
-    (:mod:`fusion.service.admission`). ``stall_after_s``: while tracking, no estimate for
+    (:mod:`armfusion.fusion.service.admission`). ``stall_after_s``: while tracking, no estimate for
     that long (wall time) while raw batches arrive is a stall, reported in the status.
     ``lateness``: when the node is degraded and what it does then (:class:`Lateness`).
     """
@@ -737,7 +741,7 @@ class FusionNode:
 
     def _try_resolve(self, t_now: float) -> None:
         """Joints the startup left ambiguous: on each new still stretch after it, solve again
-        (:func:`fusion.service.restart.solve_ambiguity_again`); when that tells the branches
+        (:func:`armfusion.fusion.service.restart.solve_ambiguity_again`); when that tells the branches
         apart, track from it. Nothing here moves the arm: the status names the move that would
         help."""
         if t_now < self._next_resolve_t:

@@ -43,8 +43,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
-
-from fusion.tracking.tracker import Tracker
+from armfusion.fusion.tracking.tracker import Tracker
 
 log = logging.getLogger("armfusion.service")
 
@@ -135,7 +134,7 @@ def save_tracker_state(path: Path | str, robot: str, arm_name: str, t_enc_s: flo
 def saved_compass_calibration(doc: Mapping | None, robot: str, arm_name: str,
                               config_sha256: str = "") -> dict | None:
     """The compass's iron as the saved state's tracker had learnt it (the online hard and
-    soft iron, :mod:`fusion.tracking.compass_calibration`), for the same robot and arm (and,
+    soft iron, :mod:`armfusion.fusion.tracking.compass_calibration`), for the same robot and arm (and,
     given ``config_sha256``, config: the iron learnt is what the config's own correction
     left); None otherwise. Unlike the rest of the state it does not go stale: the chair's
     iron does not change while it is switched off, and a tracker started afresh reuses it."""

@@ -1,7 +1,7 @@
 """The Zenoh configuration of every armfusion node: loopback only, no scouting.
 
 Every node builds its :class:`zenoh.Config` here, from the shipped ``config/zenoh.json5``
-(package data: :mod:`fusion.shipped`) or another JSON5 file, with explicit overrides from
+(package data: :mod:`armfusion.fusion.shipped`) or another JSON5 file, with explicit overrides from
 its command line::
 
     settings = ZenohSettings(listen=("tcp/127.0.0.1:0",), connect=("tcp/127.0.0.1:7447",))
@@ -27,8 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
-
-from fusion.shipped import shipped_config
+from armfusion.fusion.shipped import shipped_config
 
 DEFAULT_CONFIG_PATH = shipped_config("zenoh.json5")
 DEPLOY_CONFIG_DIR = shipped_config("deploy")

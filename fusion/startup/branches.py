@@ -12,11 +12,10 @@ pair-by-pair method (the reference); :func:`dedupe` keeps each branch once.
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.startup.problem import StillWindowProblem, batched_lm
-from fusion.startup.settings import StartupSettings
-from models.arm import ArmModel
-from models.rotations import DEG, skew, up_from_tilt, wrap_angle
+from armfusion.fusion.startup.problem import StillWindowProblem, batched_lm
+from armfusion.fusion.startup.settings import StartupSettings
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG, skew, up_from_tilt, wrap_angle
 
 
 def _subproblem1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:

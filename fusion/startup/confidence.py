@@ -10,10 +10,9 @@ others follow; :func:`candidate_covariances` gives every rival its own covarianc
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.startup.problem import StillWindowProblem, batched_lm, expected_covariance
-from models.arm import ArmModel
-from models.rotations import DEG, wrap_angle
+from armfusion.fusion.startup.problem import StillWindowProblem, batched_lm, expected_covariance
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG, wrap_angle
 
 
 def profile_sigma(problem: StillWindowProblem, xb: np.ndarray, cost_b: float, sig: np.ndarray,

@@ -1,20 +1,20 @@
 """The startup solve's Levenberg-Marquardt, compiled (numba), for every start at once.
 
-A still solve (:func:`fusion.startup.solve.solve_still`) is a few batched Levenberg-Marquardt
+A still solve (:func:`armfusion.fusion.startup.solve.solve_still`) is a few batched Levenberg-Marquardt
 runs over 9 to 90 starts, each iteration one evaluation of every start's weighted
 residuals and Jacobian and one 9x9 linear solve per start. That is a few thousand
 floating-point operations per start, which as NumPy calls on small arrays cost far more
 in call overhead than in arithmetic. Here each start is iterated on its own, in one
 compiled loop:
 
-- the gravity chain is :mod:`models.gravity_kernels` (the one implementation, which
-  :class:`models.kinematics.GravityChain` calls too): the state ``x = [q, roll, pitch]``
+- the gravity chain is :mod:`armfusion.models.gravity_kernels` (the one implementation, which
+  :class:`armfusion.models.kinematics.GravityChain` calls too): the state ``x = [q, roll, pitch]``
   seeds ``V = [up, 0 ... 0, d up/d roll, d up/d pitch]`` (3 x (n + 3)), and each joint
   turns it and sets its own derivative column;
 - a sensor on link k reads rows ``W_s V`` with V taken after joint k - 1 (``W_s = -D_s /
   sigma_s``, the read-out weighted and negated), column 0 plus ``meas / sigma`` being its
   weighted residual and the others its Jacobian (:func:`augmented`, which
-  :meth:`fusion.startup.problem.StillWindowProblem.residuals_and_jacobian` returns);
+  :meth:`armfusion.fusion.startup.problem.StillWindowProblem.residuals_and_jacobian` returns);
   without the base accelerometer two rows of the level-chair prior follow: residual
   ``(roll, pitch) / s``, Jacobian ``1 / s`` on the tilt's columns;
 - LM (:func:`lm_solve`) works from ``N = [r J]^T [r J]``: with
@@ -24,23 +24,22 @@ compiled loop:
   passes 1e8, or when its iterations are used; a step is kept when it lowers the cost
   ``r . r / 2`` (``lam * 0.3``), else refused (``lam * 10``).
 
-The layout of one kind of solve (:class:`fusion.startup.problem.SolveLayout`) is passed as
+The layout of one kind of solve (:class:`armfusion.fusion.startup.problem.SolveLayout`) is passed as
 arrays: the read-outs ``read_W (R, 3, 3)``, their first rows ``read_row (R,)`` and links
 ``read_link (R,)``, the weighted measurements ``meas_w (m,)``, the rows of the sensors
 ``n_sensor_rows``, whether the base accelerometer is in (``imu``; else the prior's two
 rows with ``tilt_prior``), and the last joint any row needs (``last``).
 
 The tests (tests/fusion/test_startup_kernels.py) hold the evaluation to the kinematics of
-the frames (:func:`models.kinematics.gravity_jacobian`) and the LM to its NumPy form.
+the frames (:func:`armfusion.models.kinematics.gravity_jacobian`) and the LM to its NumPy form.
 Compiled once per machine and cached next to this file (``__pycache__``).
 """
 
 from __future__ import annotations
 
 import numpy as np
+from armfusion.models.gravity_kernels import seed_up_and_tilt, turn_joint
 from numba import njit
-
-from models.gravity_kernels import seed_up_and_tilt, turn_joint
 
 
 @njit(cache=True, nogil=True)

@@ -11,14 +11,13 @@ safe move after which they read far apart. After a move the encoders counted,
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.startup.prior import StartupPrior
-from fusion.startup.problem import axis_to_vertical, expected_sigma, make_problem
-from fusion.startup.readings import StillReadings
-from fusion.startup.results import DisambiguatingMove, StartupResult, UnlockMove
-from fusion.startup.settings import StartupSettings
-from models.arm import ArmModel
-from models.rotations import DEG, wrap_angle
+from armfusion.fusion.startup.prior import StartupPrior
+from armfusion.fusion.startup.problem import axis_to_vertical, expected_sigma, make_problem
+from armfusion.fusion.startup.readings import StillReadings
+from armfusion.fusion.startup.results import DisambiguatingMove, StartupResult, UnlockMove
+from armfusion.fusion.startup.settings import StartupSettings
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG, wrap_angle
 
 MAX_MOVE_DEG = 45.0
 """The largest move of one joint the startup proposes (the unlock and disambiguating moves)."""

@@ -15,8 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from models.arm import ArmModel
+from armfusion.models.arm import ArmModel
 
 FORMAT = "armfusion.saved_pose.v1"
 

@@ -12,10 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.startup.settings import StartupSettings
-from models.arm import ArmModel
-from models.rotations import DEG, wrap_angle
+from armfusion.fusion.startup.settings import StartupSettings
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG, wrap_angle
 
 
 @dataclass(frozen=True)

@@ -4,8 +4,8 @@
 unknowns are every joint angle, then the base roll and pitch (``x (B, n + 2)``). It gives
 weighted residuals and their Jacobian for any batch of states, and the layout of one kind
 of solve (which sensors, with or without the base accelerometer: :class:`SolveLayout`) as
-the compiled kernels take it (:mod:`fusion.startup.kernels`, on the gravity chain's core
-:mod:`models.gravity_kernels`). :func:`batched_lm` polishes many starts at once;
+the compiled kernels take it (:mod:`armfusion.fusion.startup.kernels`, on the gravity chain's core
+:mod:`armfusion.models.gravity_kernels`). :func:`batched_lm` polishes many starts at once;
 :func:`expected_covariance` and :func:`axis_to_vertical` read a state's geometry.
 """
 
@@ -15,18 +15,17 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
-
-from fusion.startup.kernels import augmented, lm_solve
-from fusion.startup.readings import StillReadings
-from fusion.startup.results import StartupInputError
-from models.arm import ArmModel
-from models.kinematics import gravity_chain
-from models.rotations import DEG, up_from_tilt
+from armfusion.fusion.startup.kernels import augmented, lm_solve
+from armfusion.fusion.startup.readings import StillReadings
+from armfusion.fusion.startup.results import StartupInputError
+from armfusion.models.arm import ArmModel
+from armfusion.models.kinematics import gravity_chain
+from armfusion.models.rotations import DEG, up_from_tilt
 
 
 class SolveLayout(NamedTuple):
     """The chain and the rows of one kind of solve, as the compiled kernels take them
-    (:mod:`fusion.startup.kernels`; passed as ``*layout``)."""
+    (:mod:`armfusion.fusion.startup.kernels`; passed as ``*layout``)."""
 
     step_in: np.ndarray  # (n, 3, 3) the gravity chain's constant steps
     offset: np.ndarray  # (n,) rad, the joints' zero offsets
@@ -99,7 +98,7 @@ class StillWindowProblem:
         leaves the base accelerometer out (the level-chair prior takes its place).
         Rows: 3 per sensor used (in config order), then the IMU's 3 or the prior's 2.
         Computed by the compiled kernel the Levenberg-Marquardt runs on
-        (:func:`fusion.startup.kernels.augmented`).
+        (:func:`armfusion.fusion.startup.kernels.augmented`).
         """
         rJ = augmented(np.ascontiguousarray(x, dtype=float), *self.layout(active, use_imu))
         return rJ[:, :, 0], rJ[:, :, 1:]
@@ -132,7 +131,7 @@ def make_problem(arm: ArmModel, readings: StillReadings) -> StillWindowProblem:
 
 
 def fixed_base_tilt_prior_rad(fixed) -> float:
-    """The level-base prior's sigma for a bolted base (:class:`models.arm.FixedBase`): its
+    """The level-base prior's sigma for a bolted base (:class:`armfusion.models.arm.FixedBase`): its
     tilt's sigma; where an installer's level gave a tilt, wide enough to hold it (three
     sigmas past it: the prior is centred on level, the tracker starts from the tilt given)."""
     if fixed.roll_rad is None:
@@ -143,7 +142,7 @@ def fixed_base_tilt_prior_rad(fixed) -> float:
 def batched_lm(problem: StillWindowProblem, x0: np.ndarray, free: np.ndarray, iters,
                active: np.ndarray | None = None, use_imu: bool = True,
                ) -> tuple[np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt on every start, compiled (:func:`fusion.startup.kernels.lm_solve`):
+    """Levenberg-Marquardt on every start, compiled (:func:`armfusion.fusion.startup.kernels.lm_solve`):
     the same arithmetic as ``batched_lm_numpy`` in tests/fusion/test_startup_kernels.py."""
     # fresh writable C arrays of one type each: a single compiled signature
     x = np.array(x0, dtype=float, order="C")

@@ -12,10 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.startup.results import StartupInputError
-from models.arm import ArmModel
-from models.sensor_models import stream_models
+from armfusion.fusion.startup.results import StartupInputError
+from armfusion.models.arm import ArmModel
+from armfusion.models.sensor_models import stream_models
 
 
 @dataclass(frozen=True)
@@ -61,7 +60,7 @@ def readings_from_recording(
 ) -> tuple[StillReadings, list[InputCheck]]:
     """Average every sensor over the last ``window_s`` of a still segment.
 
-    Counts become g with each sensor's count model (``models.sensor_models``). A sensor
+    Counts become g with each sensor's count model (``armfusion.models.sensor_models``). A sensor
     whose window holds saturated counts, or whose mean is far from 1 g in magnitude (dead,
     disconnected, or the arm was not still), is left out with a message; the others are kept.
     """

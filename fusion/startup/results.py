@@ -136,7 +136,7 @@ class StartupResult:
     disambiguating_move: DisambiguatingMove | None = None
     combinations: tuple = ()
     """What gravity reads where it cannot read single joints: the
-    :class:`fusion.startup.combinations.Combination` s of joints not ``ok`` (and the base's
+    :class:`armfusion.fusion.startup.combinations.Combination` s of joints not ``ok`` (and the base's
     tilt) known within ``StartupSettings.combination_sigma_max_deg``, better than their terms."""
 
     @property

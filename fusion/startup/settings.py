@@ -1,6 +1,6 @@
 """What the startup solve may assume and where it draws its lines: :class:`StartupSettings`.
 
-Every threshold of :func:`fusion.startup.solve.solve_still` and its moves, in one frozen
+Every threshold of :func:`armfusion.fusion.startup.solve.solve_still` and its moves, in one frozen
 struct with its unit in the name and its reason beside it.
 """
 
@@ -57,7 +57,7 @@ class StartupSettings:
     combination_sigma_max_deg: float = 5.0
     """A combination of joints not ``ok`` (parallel axes' sum; a joint and the base's tilt)
     known within this, and better than each of its terms, is reported
-    (:mod:`fusion.startup.combinations`): the tracker's line between a joint it knows and one
+    (:mod:`armfusion.fusion.startup.combinations`): the tracker's line between a joint it knows and one
     it holds (``TrackerSettings.mean_state_held_sigma_deg``)."""
     numbered_sigma_max_deg: float = 45.0
     """A joint whose sigma would exceed this is not given a number: the data do not see it

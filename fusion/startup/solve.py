@@ -5,26 +5,26 @@ solve:
 
 1. averages every sensor over a still window (readings in g, with the standard error of
    each mean and a floor for what the sensor model does not capture:
-   :mod:`fusion.startup.readings`);
+   :mod:`armfusion.fusion.startup.readings`);
 2. enumerates every branch in closed form, walking the chain sensor by sensor
-   (:mod:`fusion.startup.branches`);
+   (:mod:`armfusion.fusion.startup.branches`);
 3. polishes every branch at once with a batched Levenberg-Marquardt on all joints, the base
    roll and pitch, and every sensor's residual weighted by its noise (``method="joint"``,
-   :mod:`fusion.startup.problem`), or pair by pair as the thesis did
+   :mod:`armfusion.fusion.startup.problem`), or pair by pair as the thesis did
    (``method="sequential"``, the reference);
 4. keeps the branches inside the joint limits. With no prior every branch that fits is a
    rival: the joints on which fitting branches differ are flagged ``ambiguous`` with every
-   candidate, and :func:`~fusion.startup.moves.propose_disambiguating_move` finds the
+   candidate, and :func:`~armfusion.fusion.startup.moves.propose_disambiguating_move` finds the
    smallest safe move after which they read differently. A prior
-   (:class:`~fusion.startup.prior.StartupPrior`: a saved pose, or an earlier window's
+   (:class:`~armfusion.fusion.startup.prior.StartupPrior`: a saved pose, or an earlier window's
    answer carried through the encoder counts) chooses only when it fits the data
    (chi-square test); the ready pose chooses only when the caller asserts the arm is
    parked, and the result says so;
 5. gives every joint a sigma from the weighted Jacobian (base tilt included), widened where
-   the cost is flatter than quadratic (:mod:`fusion.startup.confidence`), and a flag.
+   the cost is flatter than quadratic (:mod:`armfusion.fusion.startup.confidence`), and a flag.
 
 Nothing here moves the arm. When joints are gravity-blind,
-:func:`~fusion.startup.moves.propose_unlock_move` finds the smallest move of a well-known
+:func:`~armfusion.fusion.startup.moves.propose_unlock_move` finds the smallest move of a well-known
 joint that would make them readable.
 
 This module is also where the startup's public names are imported from (they are defined
@@ -36,37 +36,36 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-
-from fusion.startup.branches import (
+from armfusion.fusion.startup.branches import (
     closed_form_branches,
     complete_combinations,
     dedupe,
     dedupe_x,
     sequential_solve,
 )
-from fusion.startup.combinations import observable_combinations
-from fusion.startup.confidence import (
+from armfusion.fusion.startup.combinations import observable_combinations
+from armfusion.fusion.startup.confidence import (
     candidate_covariances,
     follow_weak,
     follow_weak_starts,
     profile_sigma,
     thesis_detector,
 )
-from fusion.startup.moves import (
+from armfusion.fusion.startup.moves import (
     move_delta_rad,
     prior_after_move,
     propose_disambiguating_move,
     propose_unlock_move,
 )
-from fusion.startup.prior import BranchChooser, StartupPrior
-from fusion.startup.problem import (
+from armfusion.fusion.startup.prior import BranchChooser, StartupPrior
+from armfusion.fusion.startup.problem import (
     StillWindowProblem,
     axis_to_vertical,
     batched_lm,
     expected_covariance,
     make_problem,
 )
-from fusion.startup.readings import (
+from armfusion.fusion.startup.readings import (
     InputCheck,
     StillReadings,
     check_readings,
@@ -74,7 +73,7 @@ from fusion.startup.readings import (
     readings_from_recording,
     sensor_floor_g,
 )
-from fusion.startup.results import (
+from armfusion.fusion.startup.results import (
     FLAGS,
     DisambiguatingMove,
     JointEstimate,
@@ -83,9 +82,9 @@ from fusion.startup.results import (
     UnlockMove,
     summary,
 )
-from fusion.startup.settings import StartupSettings
-from models.arm import ArmModel
-from models.rotations import DEG, tilt_from_up, wrap_angle
+from armfusion.fusion.startup.settings import StartupSettings
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG, tilt_from_up, wrap_angle
 
 __all__ = [
     "FLAGS", "DisambiguatingMove", "InputCheck", "JointEstimate", "StartupInputError",
@@ -240,7 +239,7 @@ def startup_combinations(arm: ArmModel, result: StartupResult, cov: np.ndarray,
     """The combinations of the joints not ``ok`` (nor ``gimbal_lock``: gravity reads them not
     at all; nor ``ambiguous``: rival branches) (and of the base's roll and pitch where
     their sigma is above ``sigma_limit_deg``) that ``cov`` knows within
-    ``combination_sigma_max_deg`` (:func:`fusion.startup.combinations.observable_combinations`).
+    ``combination_sigma_max_deg`` (:func:`armfusion.fusion.startup.combinations.observable_combinations`).
     ``cov``: the solve's linear covariance (with the safety factor), before each joint's
     sigma is widened to what the profile, the sweep and the rivals found: that widening scales
     a joint's row and column whole, and two joints read only as a sum, each widened to
@@ -256,7 +255,7 @@ def startup_combinations(arm: ArmModel, result: StartupResult, cov: np.ndarray,
 def _base_tilt_only(arm: ArmModel, readings: StillReadings, st: StartupSettings,
                     method: str) -> StartupResult:
     """An arm with no joints (an IMU alone): the base's roll and pitch from its IMU's
-    averaged reading in closed form (:func:`models.rotations.tilt_from_up`, as the joint
+    averaged reading in closed form (:func:`armfusion.models.rotations.tilt_from_up`, as the joint
     solve starts from), their covariance from the reading's sigma (its noise over the
     window, as the joint solve takes the IMU's: what the IMU accelerometer is off by is
     the tracker's ``imu_bias`` state, whose prior is the config's unmodelled error) through
@@ -363,8 +362,8 @@ def _zero_offset_sigma_rad(arm: ArmModel) -> np.ndarray:
     zero = arm.__dict__.get("_zero_offset_sigma_rad")
     if zero is not None:
         return zero
-    from models.effects.base import TargetError
-    from models.effects.entries import build_effect, entry_dict
+    from armfusion.models.effects.base import TargetError
+    from armfusion.models.effects.entries import build_effect, entry_dict
 
     entries = [entry_dict(e) for e in arm.effects]
     stated = {e.get("target"): (e.get("sigma") or {}).get("offset_rad") for e in entries

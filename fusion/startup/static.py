@@ -15,10 +15,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-
-from models.sensor_description import ADXL345_LSB_PER_G, MPU9150_ACCEL_LSB_PER_G, MPU9150_GYRO_LSB_PER_DPS
-from models.sensor_models import StreamModel
-from sensors.samples import Recording, Stream
+from armfusion.models.sensor_description import (
+    ADXL345_LSB_PER_G,
+    MPU9150_ACCEL_LSB_PER_G,
+    MPU9150_GYRO_LSB_PER_DPS,
+)
+from armfusion.models.sensor_models import StreamModel
+from armfusion.sensors.samples import Recording, Stream
 
 
 @dataclass(frozen=True)

@@ -44,9 +44,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.tracking.tracker_kernels import add_block_sums
-from models.rotations import DEG, skew
+from armfusion.fusion.tracking.tracker_kernels import add_block_sums
+from armfusion.models.rotations import DEG, skew
 
 BLOCK_S = 0.5
 """Innovations are averaged over blocks this long (s) before the test."""

@@ -1,5 +1,5 @@
 """What a calibrated config's effects tell the tracker, read through the effects' own model
-(:class:`models.effects.Model`, built from the config's ``effects:`` list), and the
+(:class:`armfusion.models.effects.Model`, built from the config's ``effects:`` list), and the
 readings those effects correct: counts to SI units with the calibrated sensor errors
 undone at the temperature the IMU reads (:class:`Readings`).
 
@@ -13,12 +13,11 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-
-from fusion.tracking.settings import GYRO, IMU_ACC, MAG
-from models.arm import ArmModel
-from models.effects import JointEffect, Model, model_from_arm
-from models.rotations import up_from_tilt
-from models.sensor_models import StreamModel, stream_models
+from armfusion.fusion.tracking.settings import GYRO, IMU_ACC, MAG
+from armfusion.models.arm import ArmModel
+from armfusion.models.effects import JointEffect, Model, model_from_arm
+from armfusion.models.rotations import up_from_tilt
+from armfusion.models.sensor_models import StreamModel, stream_models
 
 
 def config_model(arm: ArmModel) -> Model | None:
@@ -166,7 +165,7 @@ def offset_per_degree(arm: ArmModel, model: Model | None, correction) -> dict[st
     now rather than the startup's."""
     if not has_effect(model, "temperature_drift"):
         return {}
-    from fusion.identification.identify import startup_correction
+    from armfusion.fusion.identification.identify import startup_correction
 
     t0 = float(correction.temperature_c)
     warmer = startup_correction(arm, t0 + 1.0, include_joint_offsets=True)
@@ -234,7 +233,7 @@ def joint_effects(correction) -> list:
 def spread_maps(correction) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
     """Per accelerometer stream, the correction's spreads (every calibrated element moved by
     its sigma along a principal direction) as the maps ``(M, c)`` that undo them; the
-    compass's doubt is :func:`fusion.tracking.compass.compass_unmodelled_ut` instead."""
+    compass's doubt is :func:`armfusion.fusion.tracking.compass.compass_unmodelled_ut` instead."""
     if correction is None:
         return {}
     return {stream: [(np.linalg.inv(L1), np.asarray(c1, float)) for L1, c1 in maps]

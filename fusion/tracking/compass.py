@@ -3,8 +3,8 @@ Earth's field (the iron it leaves unmodelled), the map that undoes the iron it m
 the field of the arm's own steel at the joint angles the tracker knows (:class:`ArmSteel`),
 and :class:`Compass`, the part of the filter that averages the magnetometer over a
 period, calibrates the iron the config leaves unknown from the chair's turns
-(:class:`fusion.tracking.compass_calibration.IronEstimator`), checks the field
-(:class:`fusion.tracking.heading.MagneticGuard`), sets the heading measurement's noise and
+(:class:`armfusion.fusion.tracking.compass_calibration.IronEstimator`), checks the field
+(:class:`armfusion.fusion.tracking.heading.MagneticGuard`), sets the heading measurement's noise and
 decides whether it is used; its :attr:`Compass.status` is the heading feed's."""
 
 from __future__ import annotations
@@ -12,28 +12,27 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from fusion.tracking.calibrated import effect_blocks, hard_iron_sigma_ut, has_effect
-from fusion.tracking.compass_calibration import IronEstimator, detilt
-from fusion.tracking.estimate import HEADING_STATUS
-from fusion.tracking.heading import FieldCheck, FieldReference, MagneticGuard, heading_sigma_rad
-from fusion.tracking.innovations import InnovationRing
-from fusion.tracking.settings import MAG, TrackerSettings
-from models.arm import ArmModel
-from models.effects import Model
-from models.effects.imu import dipole_field
-from models.kinematics import chain_poses
-from models.rotations import DEG, exp_so3_one
+from armfusion.fusion.tracking.calibrated import effect_blocks, hard_iron_sigma_ut, has_effect
+from armfusion.fusion.tracking.compass_calibration import IronEstimator, detilt
+from armfusion.fusion.tracking.estimate import HEADING_STATUS
+from armfusion.fusion.tracking.heading import FieldCheck, FieldReference, MagneticGuard, heading_sigma_rad
+from armfusion.fusion.tracking.innovations import InnovationRing
+from armfusion.fusion.tracking.settings import MAG, TrackerSettings
+from armfusion.models.arm import ArmModel
+from armfusion.models.effects import Model
+from armfusion.models.effects.imu import dipole_field
+from armfusion.models.kinematics import chain_poses
+from armfusion.models.rotations import DEG, exp_so3_one
 
 
 def compass_unmodelled_ut(arm: ArmModel, model: Model | None = None) -> float:
     """How far the compass's horizontal reading may be from Earth's field, µT, by what the
     config says: the σ of a hard iron it holds (the tracker undoes the hard and soft iron,
-    :data:`fusion.identification.identify.COMPASS_MAP_EFFECTS`, so what stays is how well they are known),
+    :data:`armfusion.fusion.identification.identify.COMPASS_MAP_EFFECTS`, so what stays is how well they are known),
     else ``calibration.mag_unmodelled_ut``, else 0. ``model``: the config's effects
-    (:func:`fusion.tracking.calibrated.config_model`), when the caller has it."""
+    (:func:`armfusion.fusion.tracking.calibrated.config_model`), when the caller has it."""
     if model is None and arm.effects:
-        from fusion.tracking.calibrated import config_model
+        from armfusion.fusion.tracking.calibrated import config_model
 
         model = config_model(arm)
     s = hard_iron_sigma_ut(model)
@@ -54,19 +53,19 @@ def compass_map(arm: ArmModel, correction=None, model: Model | None = None
                 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The config's soft and hard iron as the map that undoes them, ``(A, c)``: the field
     in the compass's axes is ``(y - c) @ A`` for readings ``y (N, 3)`` µT; None without them.
-    ``correction``: the config's :class:`fusion.identification.identify.StartupCorrection`, if
+    ``correction``: the config's :class:`armfusion.fusion.identification.identify.StartupCorrection`, if
     made already."""
     if correction is None:
         if model is None and arm.effects:
-            from fusion.tracking.calibrated import config_model
+            from armfusion.fusion.tracking.calibrated import config_model
 
             model = config_model(arm)
         if not (has_effect(model, "mag_hard_iron") or has_effect(model, "mag_soft_iron")):
             return None
-        from fusion.identification.identify import startup_correction
+        from armfusion.fusion.identification.identify import startup_correction
 
         correction = startup_correction(arm)
-    from fusion.tracking.calibrated import undo_map
+    from armfusion.fusion.tracking.calibrated import undo_map
 
     return undo_map(correction, MAG)
 
@@ -133,8 +132,8 @@ def typical_steel(arm: ArmModel) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """``(joint index, moment, sigma)`` of an unknown ``mag_arm_disturbance`` on every joint
     it can model (its link's origin far enough from the IMU): zero moment, the effect's
     datasheet-typical sigma."""
-    from models.effects.base import TargetError
-    from models.effects.entries import build_effect
+    from armfusion.models.effects.base import TargetError
+    from armfusion.models.effects.entries import build_effect
 
     out = []
     for j, name in enumerate(arm.joint_names):
@@ -178,7 +177,7 @@ def mount_heading_sigma_rad(arm: ArmModel, model: Model | None) -> float:
     if sigma is None:
         if arm.calibration.imu_accel_floor_g <= 0.0:
             return 0.0
-        from models.effects.entries import build_effect
+        from armfusion.models.effects.entries import build_effect
 
         sigma = build_effect(arm, "base_mount", arm.imu.name).default_sigma()
     return float(math.sqrt(np.sum((np.asarray(arm.imu.R_LS)[2] * sigma) ** 2)))
@@ -191,7 +190,7 @@ class Compass:
     Its samples are averaged over ``mag_fuse_period_s``; each is first turned, with the
     gyro, into the base's axes at the period's end, so that a turning chair does not smear
     the average. Each average has the arm's steel (:class:`ArmSteel`) and the estimated
-    iron (:class:`~fusion.tracking.compass_calibration.IronEstimator`) taken out, and is
+    iron (:class:`~armfusion.fusion.tracking.compass_calibration.IronEstimator`) taken out, and is
     fused as one heading once the iron's doubt is below ``heading.fuse_below_deg``."""
 
     def __init__(self, arm: ArmModel, model: Model | None, field: FieldReference | None,
@@ -269,7 +268,7 @@ class Compass:
         axes; None: not known): ``(count, mean field)`` when a period is complete, else None.
         A reading that stands for the field :attr:`delay_s` before its stamp is first turned to
         the stamp by the base's turn over the delay (the accelerometers' alike:
-        :meth:`fusion.tracking.measurement.Measurements.stack`)."""
+        :meth:`armfusion.fusion.tracking.measurement.Measurements.stack`)."""
         if self.delay_s and om is not None:
             m_B = m_B - self.delay_s * np.cross(om, m_B)
         m = self._rot @ m_B  # in the base's axes at the period's start

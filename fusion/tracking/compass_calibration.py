@@ -56,7 +56,7 @@ def soft_matrix(e: np.ndarray) -> np.ndarray:
 
 def detilt(roll_rad: float, pitch_rad: float, R_0I: np.ndarray) -> np.ndarray:
     """``T``: a vector in the compass's axes into the frame of world up and the base's
-    heading (``Ry(pitch) Rx(roll) R_0I``: :func:`models.rotations.R_from_rpy` at zero yaw,
+    heading (``Ry(pitch) Rx(roll) R_0I``: :func:`armfusion.models.rotations.R_from_rpy` at zero yaw,
     written out for one attitude, ten times faster)."""
     sr, cr, sp, cp = math.sin(roll_rad), math.cos(roll_rad), math.sin(pitch_rad), math.cos(pitch_rad)
     return np.array([[cp, sp * sr, sp * cr], [0.0, cr, -sr], [-sp, cp * sr, cp * cr]]) @ R_0I
@@ -270,7 +270,7 @@ def drive_compass_entries(correction_map: tuple[np.ndarray, np.ndarray] | None, 
                           target: str, source: str) -> list[dict]:
     """The config's ``mag_hard_iron`` and ``mag_soft_iron`` entries that a drive's estimate
     makes: the config's own map (``correction_map``, ``(A, c0)`` as
-    :func:`fusion.tracking.calibrated.undo_map` gives it; None: none) composed with the
+    :func:`armfusion.fusion.tracking.calibrated.undo_map` gives it; None: none) composed with the
     estimate, with the estimate's sigmas (its covariance is the whole doubt: the config's
     was its prior).
 

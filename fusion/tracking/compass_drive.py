@@ -1,5 +1,5 @@
 """A drive's turns as the config's compass calibration: the tracker run over a driving
-recording, its online iron estimate (:mod:`fusion.tracking.compass_calibration`) turned
+recording, its online iron estimate (:mod:`armfusion.fusion.tracking.compass_calibration`) turned
 into the config's ``mag_hard_iron`` and ``mag_soft_iron`` entries
 (``armfusion calibrate sensors --compass-drive``)."""
 
@@ -8,11 +8,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from fusion.tracking.calibrated import undo_map
-from fusion.tracking.compass_calibration import drive_compass_entries
-from fusion.tracking.settings import MAG
-from fusion.tracking.tracker import start_from_recording
+from armfusion.fusion.tracking.calibrated import undo_map
+from armfusion.fusion.tracking.compass_calibration import drive_compass_entries
+from armfusion.fusion.tracking.settings import MAG
+from armfusion.fusion.tracking.tracker import start_from_recording
 
 
 def calibrate_compass_on_drive(arm, rec, source: str = "a drive",

@@ -3,7 +3,7 @@ angular acceleration from the gyro, by a least-squares polynomial through the la
 samples (no sample after the instant it is evaluated at).
 
 :class:`CausalDifferentiator` is what the filter uses, sample by sample, both live and over
-a recording (compiled: :func:`fusion.tracking.frame_kernels.push_fit`).
+a recording (compiled: :func:`armfusion.fusion.tracking.frame_kernels.push_fit`).
 :func:`causal_poly_fit` and :func:`causal_fits` are the same fit in NumPy, batched over
 windows: the reference the tests hold the compiled fit to, and the benchmark baseline's
 inputs (tools/bench_track.py).
@@ -12,8 +12,7 @@ inputs (tools/bench_track.py).
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.tracking.frame_kernels import extrapolate_fit, poly_fit_one, push_fit, push_fits
+from armfusion.fusion.tracking.frame_kernels import extrapolate_fit, poly_fit_one, push_fit, push_fits
 
 
 def causal_poly_fit(t_win: np.ndarray, y_win: np.ndarray, t_eval: np.ndarray, order: int = 2) -> np.ndarray:
@@ -70,14 +69,14 @@ class CausalDifferentiator:
 
     def push(self, t: float, y: np.ndarray) -> None:
         """Take one sample (its window shifts in place) and fit the window at it (compiled:
-        :func:`fusion.tracking.frame_kernels.push_fit`, :func:`causal_poly_fit` for one window)."""
+        :func:`armfusion.fusion.tracking.frame_kernels.push_fit`, :func:`causal_poly_fit` for one window)."""
         self._n = min(self._n + 1, self.window)
         self._fit = push_fit(self._t, self._y, float(t), np.asarray(y, dtype=float).reshape(self.dim),
                              self._n, self.order)
         self._t_last = t
 
     def push_block(self, t: np.ndarray, y: np.ndarray, pushed: np.ndarray) -> tuple:
-        """A block of B instants ``t`` at once (compiled: :func:`fusion.tracking.frame_kernels.push_fits`):
+        """A block of B instants ``t`` at once (compiled: :func:`armfusion.fusion.tracking.frame_kernels.push_fits`):
         where ``pushed[b]``, :meth:`push` ``(t[b], y[b])``; at every instant, what :meth:`at`
         and :attr:`latest` would then give. Returns ``(at (B, 3, d), latest (B, 3, d), have
         (B,))``, ``have[b]`` False where there was no sample yet (those rows zero)."""

@@ -6,7 +6,7 @@ An estimate goes out as two JSON records, with the unit in every field's name:
   ``sigma_rad``, ``flags``, ``sensors`` and, where known, ``axis_to_vertical_deg`` and
   ``combinations`` (what gravity reads where it cannot read single joints: each a ``name``
   such as ``"shoulder + elbow"``, its ``coefficients`` by joint name (or ``base roll``,
-  ``base pitch``), ``angle_rad`` and ``sigma_rad``; :mod:`fusion.startup.combinations`);
+  ``base pitch``), ``angle_rad`` and ``sigma_rad``; :mod:`armfusion.fusion.startup.combinations`);
 - the **heading record** (:func:`heading_record`): ``t_s``, ``heading_rad`` (yaw of the base
   about the vertical, counter-clockwise seen from above, from north: 0 facing north, +pi/2
   facing west), ``heading_sigma_rad``, ``roll_rad``, ``roll_sigma_rad``, ``pitch_rad``,
@@ -18,7 +18,7 @@ An estimate goes out as two JSON records, with the unit in every field's name:
 
 Every writer of an estimate uses these two functions: :meth:`Estimate.as_dict` (both records
 in one object: ``armfusion track --json``), the Zenoh payloads on ``state/joints`` and
-``state/heading`` (:mod:`fusion.service.payloads` adds its envelope ``v``, ``type``,
+``state/heading`` (:mod:`armfusion.fusion.service.payloads` adds its envelope ``v``, ``type``,
 ``robot``), and the MCAP topics :data:`JOINTS_TOPIC` and :data:`HEADING_TOPIC`
 (:func:`write_mcap_record`: ``armfusion record``, ``armfusion track --out EST.mcap``; each
 channel carries the record's JSON schema). docs/reference/service.md describes them.
@@ -56,7 +56,7 @@ JOINTS_JSON_SCHEMA = {
                                       "angle_rad": _NUMBER, "sigma_rad": _NUMBER}}}},
 }
 HEADING_STATUS = ("compass_fused", "gyro_only", "disturbed", "calibrating")
-"""The heading's status (:mod:`fusion.tracking.compass` sets it): ``compass_fused``, the
+"""The heading's status (:mod:`armfusion.fusion.tracking.compass` sets it): ``compass_fused``, the
 compass corrected the heading at its last period; ``gyro_only``, there is no compass (or
 no field reference), the gyro carries the heading; ``disturbed``, the field is disturbed
 and the compass is not used (the gyro carries the heading, its sigma growing);
@@ -84,7 +84,7 @@ MCAP_CHANNELS = {"joints": (JOINTS_TOPIC, JOINTS_SCHEMA, JOINTS_JSON_SCHEMA),
 
 def write_mcap_record(mcap, kind: str, record: dict) -> None:
     """Write one record (``kind`` ``joints`` or ``heading``) to an open
-    :class:`sensors.recording_mcap.McapRecorder`, on its topic with its schema."""
+    :class:`armfusion.sensors.recording_mcap.McapRecorder`, on its topic with its schema."""
     topic, name, schema = MCAP_CHANNELS[kind]
     mcap.write_json(topic, name, record, t_s=record["t_s"], schema=schema)
 
@@ -100,7 +100,7 @@ def joints_record(t_s: float, joint_names: Iterable[str], q_rad: Iterable[float]
                   combinations: Iterable[dict] | None = None) -> dict:
     """The joints record: each joint's angle, one-sigma and flag, and each sensor's status.
     ``axis_to_vertical_deg`` (each joint axis's angle to the vertical) and ``combinations``
-    (:meth:`fusion.startup.combinations.Combination.as_dict` each) only where known."""
+    (:meth:`armfusion.fusion.startup.combinations.Combination.as_dict` each) only where known."""
     doc = {"t_s": float(t_s), "joint_names": [str(n) for n in joint_names], "q_rad": _floats(q_rad),
            "sigma_rad": _floats(sigma_rad), "flags": [str(f) for f in flags],
            "sensors": {str(k): str(v) for k, v in dict(sensors).items()}}
@@ -161,7 +161,7 @@ class Estimate:
     """Whether the heading is from true north (the config gave the site's declination)."""
     combinations: tuple = ()
     """What gravity reads where it cannot read single joints
-    (:class:`fusion.startup.combinations.Combination` s)."""
+    (:class:`armfusion.fusion.startup.combinations.Combination` s)."""
 
     @property
     def heading_rad(self) -> float:

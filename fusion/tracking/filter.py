@@ -1,26 +1,26 @@
 """The tracking filter, :class:`Tracker`: a small object with a frozen settings struct
-(:class:`fusion.tracking.settings.TrackerSettings`), a few lifecycle verbs (``initialise``,
+(:class:`armfusion.fusion.tracking.settings.TrackerSettings`), a few lifecycle verbs (``initialise``,
 ``update`` / ``update_instant`` / ``step``, ``run``, ``state`` / ``resume``,
 ``snapshot`` / ``restore``) and results by value (:attr:`Tracker.estimate`), composed of
 parts that own their state:
-:class:`~fusion.tracking.health.SensorHealth` (counters, verdicts, statuses),
-:class:`~fusion.tracking.slips.SlipDetector` (slips and re-acquisition),
-:class:`~fusion.tracking.observability.Observability` (hold, consider sensitivity, joint
-flags), :class:`~fusion.tracking.compass.Compass` (the heading),
-:class:`~fusion.tracking.process.StillDetector` and :class:`~fusion.tracking.process.ProcessModel`,
-:class:`~fusion.tracking.measurement.Measurements`, the two
-:class:`~fusion.tracking.differentiator.CausalDifferentiator` and
-:class:`~fusion.tracking.initial.Ambiguity`. The model it runs is described in
-:mod:`fusion.tracking.tracker` and docs/tracking.md.
+:class:`~armfusion.fusion.tracking.health.SensorHealth` (counters, verdicts, statuses),
+:class:`~armfusion.fusion.tracking.slips.SlipDetector` (slips and re-acquisition),
+:class:`~armfusion.fusion.tracking.observability.Observability` (hold, consider sensitivity, joint
+flags), :class:`~armfusion.fusion.tracking.compass.Compass` (the heading),
+:class:`~armfusion.fusion.tracking.process.StillDetector` and :class:`~armfusion.fusion.tracking.process.ProcessModel`,
+:class:`~armfusion.fusion.tracking.measurement.Measurements`, the two
+:class:`~armfusion.fusion.tracking.differentiator.CausalDifferentiator` and
+:class:`~armfusion.fusion.tracking.initial.Ambiguity`. The model it runs is described in
+:mod:`armfusion.fusion.tracking.tracker` and docs/tracking.md.
 
 One filter path, live and over a recording alike: each instant's readings go through
 :meth:`Tracker.step` (the differentiators take them, the mean pose's kinematic frame
 is made, compiled, with the offsets and gyro bias of the moment, the filter predicts and
 fuses). :meth:`Tracker.update_instant` feeds it one instant's raw samples;
-:meth:`Tracker.run` (:func:`fusion.tracking.run.run_recording`) a whole recording, with the
+:meth:`Tracker.run` (:func:`armfusion.fusion.tracking.run.run_recording`) a whole recording, with the
 conversion to SI units and the saturation checks done for many instants at once, and the
 differentiators' fits and the frames for a block of instants in one compiled call each
-(:func:`fusion.tracking.run.prepare_block`, given to ``step`` as its ``prepared`` pieces).
+(:func:`armfusion.fusion.tracking.run.prepare_block`, given to ``step`` as its ``prepared`` pieces).
 """
 
 from __future__ import annotations
@@ -29,18 +29,17 @@ from collections.abc import Callable, Mapping
 from dataclasses import replace
 
 import numpy as np
-
-from fusion.startup.combinations import Combination, observable_combinations
-from fusion.startup.solve import TILT_NAMES, StartupResult
-from fusion.tracking import calibrated, fixed_base
-from fusion.tracking.alarm import ModelChangeAlarm
-from fusion.tracking.compass import CALIBRATING, GYRO_ONLY, STATUS_CODE, Compass
-from fusion.tracking.differentiator import CausalDifferentiator
-from fusion.tracking.estimate import HEADING_STATUS, Estimate
-from fusion.tracking.frame_kernels import FrameConstants
-from fusion.tracking.frames import Frames
-from fusion.tracking.health import SensorHealth, sensor_warnings
-from fusion.tracking.initial import (
+from armfusion.fusion.startup.combinations import Combination, observable_combinations
+from armfusion.fusion.startup.solve import TILT_NAMES, StartupResult
+from armfusion.fusion.tracking import calibrated, fixed_base
+from armfusion.fusion.tracking.alarm import ModelChangeAlarm
+from armfusion.fusion.tracking.compass import CALIBRATING, GYRO_ONLY, STATUS_CODE, Compass
+from armfusion.fusion.tracking.differentiator import CausalDifferentiator
+from armfusion.fusion.tracking.estimate import HEADING_STATUS, Estimate
+from armfusion.fusion.tracking.frame_kernels import FrameConstants
+from armfusion.fusion.tracking.frames import Frames
+from armfusion.fusion.tracking.health import SensorHealth, sensor_warnings
+from armfusion.fusion.tracking.initial import (
     Ambiguity,
     ImuStill,
     initial_state,
@@ -48,18 +47,18 @@ from fusion.tracking.initial import (
     read_by_startup,
     restored_startup,
 )
-from fusion.tracking.innovations import InnovationLog
-from fusion.tracking.live import admit_instant
-from fusion.tracking.measurement import AccelReadings, Measurements
-from fusion.tracking.observability import Observability
-from fusion.tracking.process import (
+from armfusion.fusion.tracking.innovations import InnovationLog
+from armfusion.fusion.tracking.live import admit_instant
+from armfusion.fusion.tracking.measurement import AccelReadings, Measurements
+from armfusion.fusion.tracking.observability import Observability
+from armfusion.fusion.tracking.process import (
     MotionIntensity,
     ProcessModel,
     StillDetector,
     attitude_sigma_rad,
     gyro_newer_weight,
 )
-from fusion.tracking.settings import (
+from armfusion.fusion.tracking.settings import (
     C_REJECTED,
     C_USED,
     ENC,
@@ -80,13 +79,13 @@ from fusion.tracking.settings import (
     StateLayout,
     TrackerSettings,
 )
-from fusion.tracking.slips import SlipDetector
-from fusion.tracking.snapshot import SNAPSHOT_FORMAT, TrackerState
-from fusion.tracking.ukf import BatchedUKF, Innovation, SigmaPoints
-from fusion.tracking.update import InstantReadings, MagReading, UpdateResult
-from models.arm import ArmModel
-from models.rotations import DEG, up_from_tilt
-from sensors.samples import Recording
+from armfusion.fusion.tracking.slips import SlipDetector
+from armfusion.fusion.tracking.snapshot import SNAPSHOT_FORMAT, TrackerState
+from armfusion.fusion.tracking.ukf import BatchedUKF, Innovation, SigmaPoints
+from armfusion.fusion.tracking.update import InstantReadings, MagReading, UpdateResult
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG, up_from_tilt
+from armfusion.sensors.samples import Recording
 
 
 class Tracker:
@@ -102,7 +101,7 @@ class Tracker:
 
     def __init__(self, arm: ArmModel, settings: TrackerSettings | None = None,
                  rates_hz: Mapping[str, float] | float = 100.0, correction=None):
-        """``correction`` (a :class:`fusion.identification.identify.StartupCorrection`, default: made from the
+        """``correction`` (a :class:`armfusion.fusion.identification.identify.StartupCorrection`, default: made from the
         config's effects when it has any) undoes the calibrated accelerometer errors (affine:
         mount, axes, scale, bias) on every sample, and maps the controller's joint angles to
         the geometric ones (zero offsets, sag, play) in the kinematics."""
@@ -110,7 +109,7 @@ class Tracker:
         arm = calibrated.with_lever_arms(arm, model)
         self.arm = arm
         if correction is None and arm.effects:
-            from fusion.identification.identify import startup_correction
+            from armfusion.fusion.identification.identify import startup_correction
 
             correction = startup_correction(arm, include_joint_offsets=True)
         self.correction = correction
@@ -182,7 +181,7 @@ class Tracker:
         self._min_list = arm.min_rad.tolist()
         self._max_list = arm.max_rad.tolist()
         self.frame_constants = FrameConstants(arm, self.accel_names, self._joint_effects, G)
-        """What the compiled kinematic frames are made with (:mod:`fusion.tracking.frame_kernels`)."""
+        """What the compiled kinematic frames are made with (:mod:`armfusion.fusion.tracking.frame_kernels`)."""
 
     def set_rates(self, rates_hz: Mapping[str, float] | float) -> None:
         """Sample rates (Hz) per stream, which set each sensor's noise (datasheet rms at rate)."""
@@ -216,7 +215,7 @@ class Tracker:
         it better), and is ``converging`` until read; without a saved
         pose, the sigma it reports covers every angle inside its limits until gravity reads
         it (the filter's own stays as said: a prior that wide would not linearise). ``imu`` (from
-        :func:`fusion.tracking.start.imu_still_from_recording`) gives the gyro bias, heading and
+        :func:`armfusion.fusion.tracking.start.imu_still_from_recording`) gives the gyro bias, heading and
         field reference.
         """
         st, L, n = self.settings, self.layout, self.arm.n_joints
@@ -294,10 +293,10 @@ class Tracker:
 
     def _imu_up(self, x: np.ndarray) -> np.ndarray | None:
         """Up in base axes as the base IMU's accelerometer alone reads it: its average over
-        ``still_tau_s`` (:class:`fusion.tracking.process.StillDetector`), the filter's estimate
+        ``still_tau_s`` (:class:`armfusion.fusion.tracking.process.StillDetector`), the filter's estimate
         of its bias removed, turned into base axes; None without an IMU reading yet. A
         shaking frame's acceleration averages out of it; the link accelerometers do not pull
-        it (see :meth:`fusion.tracking.observability.Observability.update`)."""
+        it (see :meth:`armfusion.fusion.tracking.observability.Observability.update`)."""
         mean = self.still.mean if self._has_imu else None
         if mean is None:
             return None
@@ -331,7 +330,7 @@ class Tracker:
     @property
     def mean(self) -> np.ndarray:
         """The filter's mean itself, not a copy (:attr:`x` is one): for reading at once
-        (:attr:`fusion.tracking.ukf.BatchedUKF.mean`)."""
+        (:attr:`armfusion.fusion.tracking.ukf.BatchedUKF.mean`)."""
         return self._ukf.mean
 
     @property
@@ -347,7 +346,7 @@ class Tracker:
 
     @property
     def joint_flag_codes(self) -> np.ndarray:
-        """The joints' flags (codes of :data:`fusion.tracking.settings.JOINT_FLAGS`) as last
+        """The joints' flags (codes of :data:`armfusion.fusion.tracking.settings.JOINT_FLAGS`) as last
         worked out: replaced when they are, never written into (a reader may keep it and
         compare by identity)."""
         return self._flags
@@ -384,7 +383,7 @@ class Tracker:
 
     def update_instant(self, t_s: float, samples: Mapping[str, np.ndarray]) -> Estimate | None:
         """Fuse every sample of one instant together (one stacked update): raw counts by
-        stream, as the devices gave them: admitted (:func:`fusion.tracking.live.admit_instant`), then
+        stream, as the devices gave them: admitted (:func:`armfusion.fusion.tracking.live.admit_instant`), then
         :meth:`step`."""
         self._check()
         t = float(t_s)
@@ -401,7 +400,7 @@ class Tracker:
         The differentiators take the encoders and the gyro, and the kinematic frame is made
         with the filter's offsets and gyro bias now (:meth:`_frame_now`); or, over a
         recording, ``prepared`` = ``(encoder fit at t (3, n) or None, frame or None)`` from
-        :func:`fusion.tracking.run.prepare_block`, which pushed the samples and made the frames of a block of
+        :func:`armfusion.fusion.tracking.run.prepare_block`, which pushed the samples and made the frames of a block of
         instants at once, with the offsets and gyro bias of the block's start. Then
         predict, stack, innovate, gate, correct (:meth:`_step`)."""
         q_enc, gyro, acc, mag = readings
@@ -434,7 +433,7 @@ class Tracker:
         the gyro's reading at ``t`` (else its last) and its derivative at its last sample
         (kept for further samples of the same instant: the product of exponentials carries
         any change of the offsets since, exactly, and into the motion term to first order).
-        Compiled (:mod:`fusion.tracking.frame_kernels`); :func:`fusion.tracking.run.prepare_block`
+        Compiled (:mod:`armfusion.fusion.tracking.frame_kernels`); :func:`armfusion.fusion.tracking.run.prepare_block`
         is the same for a block of instants."""
         if self._frame_cache is not None and self._frame_cache[0] == t:
             return self._frame_cache[1]
@@ -657,8 +656,8 @@ class Tracker:
 
     def _h_tangent(self, X: np.ndarray, **kw) -> np.ndarray:
         """Every measurement at sigma points whose attitude is in the filter's tangent space
-        (:meth:`fusion.tracking.process.ProcessModel.fx_tangent`), through the Euler-angle
-        models (:meth:`fusion.tracking.measurement.Measurements.h_all`)."""
+        (:meth:`armfusion.fusion.tracking.process.ProcessModel.fx_tangent`), through the Euler-angle
+        models (:meth:`armfusion.fusion.tracking.measurement.Measurements.h_all`)."""
         return self.measurements.h_all(self.process.euler_points(X), **kw)
 
     def _reacquire(self, i: int, t: float) -> None:
@@ -682,16 +681,16 @@ class Tracker:
     def run(self, rec: Recording, t_stop_s: float | None = None, truth: bool = True,
             block: int = 256, progress: Callable[[float], None] | None = None):
         """Fuse every sample of ``rec`` after the current time (up to ``t_stop_s``), through
-        the same path as :meth:`update_instant`: a :class:`fusion.tracking.run.TrackRun`
-        (:func:`fusion.tracking.run.run_recording` has the details)."""
-        from fusion.tracking.run import run_recording
+        the same path as :meth:`update_instant`: a :class:`armfusion.fusion.tracking.run.TrackRun`
+        (:func:`armfusion.fusion.tracking.run.run_recording` has the details)."""
+        from armfusion.fusion.tracking.run import run_recording
 
         self._check()
         return run_recording(self, rec, t_stop_s, truth, block, progress)
 
     # -- restart -----------------------------------------------------------------------------
     def state(self) -> TrackerState:
-        """What the started tracker knows now, by value (:class:`fusion.tracking.snapshot.TrackerState`)."""
+        """What the started tracker knows now, by value (:class:`armfusion.fusion.tracking.snapshot.TrackerState`)."""
         self._check_filter()
         ukf = self._ukf
         return TrackerState(
@@ -755,7 +754,7 @@ class Tracker:
         ``gimbal_lock``, ``unobserved``) and of the base's roll and pitch (where
         their sigma is above ``sigma_limit_deg``) that the filter knows within
         ``mean_state_held_sigma_deg`` and better than any of their terms
-        (:func:`fusion.startup.combinations.observable_combinations`), from the joint and
+        (:func:`armfusion.fusion.startup.combinations.observable_combinations`), from the joint and
         tilt block of its covariance with the calibration's own share (the consider
         sensitivity and an unread joint's cover: what the reported sigmas hold). Returns the
         combinations, their coefficients ``(k, n + 2)`` over the joints, roll and pitch,
@@ -852,7 +851,7 @@ class Tracker:
                 "prior_sigma": self.gyro_scale_sigma}
 
     def heading_status_code(self) -> int:
-        """The heading's status (an index into :data:`~fusion.tracking.estimate.HEADING_STATUS`):
+        """The heading's status (an index into :data:`~armfusion.fusion.tracking.estimate.HEADING_STATUS`):
         the compass's, or ``gyro_only`` where the magnetometer has gone quiet (stale, dead or
         absent) since it last said otherwise."""
         code = STATUS_CODE[self.compass.status]
@@ -871,7 +870,7 @@ class Tracker:
     def sensor_warnings(self) -> list[str]:
         """The accelerometers rejected (or left out as implausible) more often than
         ``settings.warn_rejected_share`` of their samples so far, each with why
-        (:func:`fusion.tracking.health.sensor_warnings`)."""
+        (:func:`armfusion.fusion.tracking.health.sensor_warnings`)."""
         self._check()
         floors = dict(zip(self.accel_streams, self._unmodelled_g.tolist(), strict=True))
         if IMU_ACC in floors:

@@ -1,22 +1,22 @@
 """The kinematic frame of one instant, and the causal fits that feed it, compiled (numba).
 
-The live path (:meth:`fusion.tracking.tracker.Tracker.update_instant`) makes one frame per fused
+The live path (:meth:`armfusion.fusion.tracking.tracker.Tracker.update_instant`) makes one frame per fused
 instant: the mean pose's sensor rotations, joint axes and motion accelerations
-(:func:`fusion.tracking.tracker.make_frames` with K = 1). In NumPy that is a few hundred
+(:func:`armfusion.fusion.tracking.tracker.make_frames` with K = 1). In NumPy that is a few hundred
 floating-point operations spread over some two hundred small array calls (the chain's
 forward kinematics, the outward recursion's cross products, the sensors' lever arms), so
 nearly all of its cost is call overhead. :func:`frame_one` calls the same compiled
-equations the batch models call (:mod:`models.chain_kernels`: written once there) in one
+equations the batch models call (:mod:`armfusion.models.chain_kernels`: written once there) in one
 compiled loop; :class:`FrameConstants` holds the arm's chain and the sensors' mounts
 as a few contiguous arrays, made once per tracker, and turns one instant's inputs into
-the fields of a :class:`fusion.tracking.tracker.Frames` record. A run over a recording
+the fields of a :class:`armfusion.fusion.tracking.tracker.Frames` record. A run over a recording
 makes a block of instants' frames in one call (:func:`frame_block`, a loop of
 :func:`frame_one`; :meth:`FrameConstants.fields_block`).
 
-The encoder and gyro differentiators (:class:`fusion.tracking.tracker.CausalDifferentiator`) fit
+The encoder and gyro differentiators (:class:`armfusion.fusion.tracking.tracker.CausalDifferentiator`) fit
 a polynomial to the last few samples at every sample; :func:`push_fit` shifts the window
 and solves that one small least-squares problem in one call (:func:`causal_poly_fit` in
-:mod:`fusion.tracking.tracker` is the batched NumPy form, for whole recordings);
+:mod:`armfusion.fusion.tracking.tracker` is the batched NumPy form, for whole recordings);
 :func:`push_fits` is a block of instants through it in one call (a loop of :func:`push_fit`
 and :func:`extrapolate_fit`).
 
@@ -31,12 +31,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from armfusion.models.arm import ArmModel
+from armfusion.models.chain_kernels import _lever, chain_table, motion_one, mount_table, pose_one, sensor_one
+from armfusion.models.kinematics import sensor_indices
+from armfusion.models.rotations import GRAVITY_MPS2, skew_into
 from numba import njit
-
-from models.arm import ArmModel
-from models.chain_kernels import _lever, chain_table, motion_one, mount_table, pose_one, sensor_one
-from models.kinematics import sensor_indices
-from models.rotations import GRAVITY_MPS2, skew_into
 
 _skew_into = njit(cache=True, nogil=True, inline="always")(skew_into)
 
@@ -46,7 +45,7 @@ _skew_into = njit(cache=True, nogil=True, inline="always")(skew_into)
 @njit(cache=True, nogil=True)
 def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B, motion, chain,
               axis_is_z, mounts, links, g_mps2, lever_m):  # pragma: no cover - compiled
-    """The kinematic frame of one instant: every field of :func:`fusion.tracking.tracker.make_frames`
+    """The kinematic frame of one instant: every field of :func:`armfusion.fusion.tracking.tracker.make_frames`
     for K = 1, from the arm's constants (:class:`FrameConstants`).
 
     Inputs: ``enc_fit (3, n)`` the encoder angles (rad), rates (rad/s) and accelerations
@@ -61,11 +60,11 @@ def frame_one(enc_fit, offset, effect_joint, effect_delta, omega_B, omega_dot_B,
     ``ω̇ x ρ + ω x (ω x ρ)``, is in every sensor's motion, and ``dist2_m2`` is measured
     from the turning centre (the differentiated gyro's error reaches a sensor that far off).
 
-    The equations are :mod:`models.chain_kernels`' (the same functions the batch models
-    call): forward kinematics (:func:`models.chain_kernels.pose_one`), the outward recursion
+    The equations are :mod:`armfusion.models.chain_kernels`' (the same functions the batch models
+    call): forward kinematics (:func:`armfusion.models.chain_kernels.pose_one`), the outward recursion
     from the base origin's acceleration the chair's rotation gives it about its turning
-    centre (:func:`models.chain_kernels.motion_one`),
-    and each sensor's pose and motion (:func:`models.chain_kernels.sensor_one`).
+    centre (:func:`armfusion.models.chain_kernels.motion_one`),
+    and each sensor's pose and motion (:func:`armfusion.models.chain_kernels.sensor_one`).
 
     Returns ``(q_ref (n,), offset_ref (n,), R_0S (S, 3, 3), motion_mps2 (S, 3), axes (n, 3),
     p_0S_m (S, 3), omega_dot_B (3,), K (n, 3, 3), motion_g (S,), dist2_m2 (S,),
@@ -180,18 +179,18 @@ def frame_block(enc_fit, have, offset, effect_joint, effect_delta, omega_B, omeg
 # --------------------------------------------------------------------------------------
 class FrameConstants:
     """The arm's chain and the sensors' mounts as contiguous arrays for :func:`frame_one`,
-    made once (per tracker): ``chain`` (:func:`models.chain_kernels.chain_table`),
-    ``mounts`` (:func:`models.chain_kernels.mount_table`) and ``links (S,)`` int64.
+    made once (per tracker): ``chain`` (:func:`armfusion.models.chain_kernels.chain_table`),
+    ``mounts`` (:func:`armfusion.models.chain_kernels.mount_table`) and ``links (S,)`` int64.
 
     ``joint_effects``: the (effect, parameters) pairs of
-    :func:`fusion.tracking.tracker.make_frames`. Those that add a constant (``joint_offset``) are
+    :func:`armfusion.fusion.tracking.tracker.make_frames`. Those that add a constant (``joint_offset``) are
     added in the kernel; any other (sag, play: functions of the gravity torque) is
     evaluated here in NumPy exactly as :func:`make_frames` evaluates it, and its change
     passed on.
     """
 
     def __init__(self, arm: ArmModel, names, joint_effects=(), g_mps2: float = GRAVITY_MPS2):
-        from models.effects.library import JointOffset
+        from armfusion.models.effects.library import JointOffset
 
         idx = sensor_indices(arm, list(names))
         mounts = mount_table(np.stack([arm.sensors[i].R_LS for i in idx]),
@@ -219,7 +218,7 @@ class FrameConstants:
 
     def fields(self, enc_fit: np.ndarray, offset: np.ndarray, omega_B: np.ndarray | None,
                omega_dot_B: np.ndarray | None, motion: bool = True) -> tuple:
-        """The fields of the one-instant :class:`fusion.tracking.tracker.Frames` record (the same as
+        """The fields of the one-instant :class:`armfusion.fusion.tracking.tracker.Frames` record (the same as
         ``make_frames(arm, names, enc_fit[0][None], offset[None], enc_fit[1][None],
         enc_fit[2][None], omega_B[None], omega_dot_B[None], motion, joint_effects).take(0)``),
         in its field order, without the measurement variances. ``omega_B``/``omega_dot_B``
@@ -255,8 +254,8 @@ class FrameConstants:
     def _varying_deltas(self, enc_fit, offset, w, wd, motion) -> np.ndarray:
         """The joint effects' changes at this instant, as :func:`make_frames` computes them
         (its motion state, its context)."""
-        from models.effects import Context
-        from models.motion import MotionState
+        from armfusion.models.effects import Context
+        from armfusion.models.motion import MotionState
 
         q = (enc_fit[0] + offset)[None]
         if motion:
@@ -277,7 +276,7 @@ class FrameConstants:
 @njit(cache=True, nogil=True)
 def poly_fit_one(t_win, y_win, t_eval, order):  # pragma: no cover - compiled
     """Least-squares polynomial through one window, evaluated at ``t_eval``:
-    :func:`fusion.tracking.tracker.causal_poly_fit` for K = 1.
+    :func:`armfusion.fusion.tracking.tracker.causal_poly_fit` for K = 1.
 
     ``t_win (W,)`` s, ``y_win (W, d)`` -> ``(3, d)``: value, first and second derivative
     (per s, per s²; zero beyond ``order``, which is capped by W - 1). With ``τ = t - t_eval``

@@ -3,9 +3,9 @@ motion accelerations, which the filter's measurement model turns into every sigm
 point's prediction by the product of exponentials (see docs/tracking.md).
 
 :class:`Frames` is the record (K instants, or one). The filter makes one per fused instant
-with the compiled :class:`fusion.tracking.frame_kernels.FrameConstants`, live and over a
+with the compiled :class:`armfusion.fusion.tracking.frame_kernels.FrameConstants`, live and over a
 recording alike; :func:`make_frames` is the same frame from the models' batched functions
-(:func:`models.motion.link_motion`, :func:`models.motion.sensor_motion`), the reference
+(:func:`armfusion.models.motion.link_motion`, :func:`armfusion.models.motion.sensor_motion`), the reference
 the compiled frame is held to and the benchmark baseline's frames.
 """
 
@@ -14,11 +14,10 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-
-from fusion.tracking.settings import G
-from models.arm import ArmModel
-from models.motion import MotionState, link_motion, sensor_motion
-from models.rotations import skew
+from armfusion.fusion.tracking.settings import G
+from armfusion.models.arm import ArmModel
+from armfusion.models.motion import MotionState, link_motion, sensor_motion
+from armfusion.models.rotations import skew
 
 
 class _FrameFields(NamedTuple):
@@ -58,7 +57,7 @@ class Frames(_FrameFields):
     @classmethod
     def of(cls, fields) -> Frames:
         """The record of ``fields`` in :attr:`FIELDS` order (all of them, as
-        :meth:`fusion.tracking.frame_kernels.FrameConstants.fields` gives them: no
+        :meth:`armfusion.fusion.tracking.frame_kernels.FrameConstants.fields` gives them: no
         per-field checks, the cheapest construction)."""
         return tuple.__new__(cls, fields)
 
@@ -83,7 +82,7 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     False: as if nothing moved (no motion compensation). ``joint_effects`` (effect,
     parameters) pairs turn the controller's angles into the geometric ones. The base origin
     turns about the chair's turning centre where the arm states one
-    (:attr:`models.arm.ArmModel.base_from_turning_centre_m`, ``ρ``): its acceleration
+    (:attr:`armfusion.models.arm.ArmModel.base_from_turning_centre_m`, ``ρ``): its acceleration
     ``ω̇ x ρ + ω x (ω x ρ)`` is in every sensor's motion, and ``dist2_m2`` is measured from there."""
     q = q_enc + offset
     K = q.shape[0]
@@ -97,7 +96,7 @@ def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset
     a_B = np.cross(wd_B, rho) + np.cross(w_B, np.cross(w_B, rho))
     st = MotionState(np.zeros(K), q, qd, qdd, eye, omega_B, omega_dot_B, a_B, 25.0)
     if joint_effects:
-        from models.effects import Context
+        from armfusion.models.effects import Context
 
         ctx = Context(arm, st)
         qg = np.array(q, dtype=float, copy=True)

@@ -3,7 +3,7 @@ mode an arm needs when an encoder fails, and how the real rig of ``docs/real-dat
 tracked with its encoder withheld.
 
 The joint's rate is the difference of the two links' angular rates about its axis
-(:func:`models.kinematics.joint_rate_from_link_rates`), each gyroscope read at the instant
+(:func:`armfusion.models.kinematics.joint_rate_from_link_rates`), each gyroscope read at the instant
 its samples were true (a device's calibrated ``time_offset``: what is stamped t was true at
 t - offset) and corrected as the tracker corrects it. Its integral is a relative encoder
 that drifts: :func:`calibrate_gyro_encoder` measures its scale, bias and drift against the
@@ -18,14 +18,13 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-
-from fusion.identification.correction import startup_correction
-from fusion.tracking.calibrated import Readings, config_model, device_time_offsets, encoder_scales
-from fusion.tracking.settings import GYRO, TrackerSettings
-from models.arm import ArmModel
-from models.kinematics import joint_rate_from_link_rates
-from models.sensor_models import stream_models
-from sensors.samples import Recording, Stream, link_gyro_stream
+from armfusion.fusion.identification.correction import startup_correction
+from armfusion.fusion.tracking.calibrated import Readings, config_model, device_time_offsets, encoder_scales
+from armfusion.fusion.tracking.settings import GYRO, TrackerSettings
+from armfusion.models.arm import ArmModel
+from armfusion.models.kinematics import joint_rate_from_link_rates
+from armfusion.models.sensor_models import stream_models
+from armfusion.sensors.samples import Recording, Stream, link_gyro_stream
 
 DRIFT_SPAN_S = 10.0
 """The longest span over which the integral's drift is measured (:func:`calibrate_gyro_encoder`)."""

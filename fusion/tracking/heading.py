@@ -36,10 +36,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from models.rotations import DEG, wrap_angle
-from models.sensor_kernels import magnetic_heading
-from models.sensor_models import AK8975_NOISE_UT_RMS, EARTH_FIELD_TAMPA_UT
+from armfusion.models.rotations import DEG, wrap_angle
+from armfusion.models.sensor_kernels import magnetic_heading
+from armfusion.models.sensor_models import AK8975_NOISE_UT_RMS, EARTH_FIELD_TAMPA_UT
 
 
 # --------------------------------------------------------------------------------------
@@ -59,7 +58,7 @@ class HeadingSettings:
     """Magnetometer noise per axis, µT rms (AK8975: about 2 LSB)."""
     reference: str = "startup"
     """Where the expected field comes from: "startup" (the still window) or "model"."""
-    # the compass calibrated by driving (:mod:`fusion.tracking.compass_calibration`)
+    # the compass calibrated by driving (:mod:`armfusion.fusion.tracking.compass_calibration`)
     fuse_below_deg: float = 10.0
     """The compass is fused once the iron it leaves unknown (the config's, narrowed by the
     turns the chair has made) would turn its heading by less than this (1 sigma); until

@@ -1,7 +1,7 @@
 """Each sensor's health, as the tracker judges it sample by sample: the counters
-(:data:`fusion.tracking.settings.COUNTERS`), the accelerometers' stuck, implausible (dead)
+(:data:`armfusion.fusion.tracking.settings.COUNTERS`), the accelerometers' stuck, implausible (dead)
 and gate verdicts, the innovations kept for diagnosis, and the statuses
-(:data:`fusion.tracking.settings.SENSOR_STATUS`) reported with every estimate.
+(:data:`armfusion.fusion.tracking.settings.SENSOR_STATUS`) reported with every estimate.
 
 A handful of sensors: plain Python is faster here than array calls.
 """
@@ -12,9 +12,8 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-
-from fusion.tracking.innovations import AccelRing
-from fusion.tracking.settings import (
+from armfusion.fusion.tracking.innovations import AccelRing
+from armfusion.fusion.tracking.settings import (
     C_IMPLAUSIBLE,
     C_NAN,
     C_OUT_OF_ORDER,
@@ -34,7 +33,7 @@ from fusion.tracking.settings import (
     G,
     TrackerSettings,
 )
-from fusion.tracking.tracker_kernels import screen_accelerometers
+from armfusion.fusion.tracking.tracker_kernels import screen_accelerometers
 
 PLAUSIBLE_BASE_SIGMAS = 4.0
 """A reading's magnitude may differ from the prediction's by this many sigmas of the base's

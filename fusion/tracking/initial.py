@@ -7,11 +7,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.startup.solve import StartupResult
-from fusion.tracking.heading import FieldReference
-from fusion.tracking.settings import StateLayout, TrackerSettings
-from models.rotations import DEG, wrap_angle
+from armfusion.fusion.startup.solve import StartupResult
+from armfusion.fusion.tracking.heading import FieldReference
+from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
+from armfusion.models.rotations import DEG, wrap_angle
 
 
 @dataclass(frozen=True)

@@ -8,8 +8,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.tracking.tracker_kernels import ring_row_into
+from armfusion.fusion.tracking.tracker_kernels import ring_row_into
 
 
 # results

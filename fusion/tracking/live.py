@@ -2,8 +2,8 @@
 devices gave them) admitted (:func:`admit_instant`: unknown streams refused; out-of-order,
 non-finite and saturated samples counted and skipped), turned into SI readings with the
 config's corrections at the IMU's latest temperature, as the
-:class:`fusion.tracking.update.InstantReadings` the filter's one path
-(:meth:`fusion.tracking.filter.Tracker.step`) takes. :mod:`fusion.tracking.run` admits a
+:class:`armfusion.fusion.tracking.update.InstantReadings` the filter's one path
+(:meth:`armfusion.fusion.tracking.filter.Tracker.step`) takes. :mod:`armfusion.fusion.tracking.run` admits a
 whole recording's samples at once into the same records."""
 
 from __future__ import annotations
@@ -12,14 +12,13 @@ import math
 from collections.abc import Mapping
 
 import numpy as np
-
-from fusion.tracking.settings import ENC, GYRO, MAG
-from fusion.tracking.update import InstantReadings, MagReading
-from models.sensor_models import mpu9150_temperature_c
+from armfusion.fusion.tracking.settings import ENC, GYRO, MAG
+from armfusion.fusion.tracking.update import InstantReadings, MagReading
+from armfusion.models.sensor_models import mpu9150_temperature_c
 
 
 def admit_instant(tr, t: float, samples: Mapping[str, np.ndarray]) -> InstantReadings | None:
-    """``samples`` at ``t`` for the (initialised) :class:`fusion.tracking.filter.Tracker`
+    """``samples`` at ``t`` for the (initialised) :class:`armfusion.fusion.tracking.filter.Tracker`
     ``tr``, admitted: None when the instant is out of order (counted)."""
     idx = tr.sensor_index
     unknown = [s for s in samples if s not in idx and s != "imu_temp"]

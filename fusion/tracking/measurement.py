@@ -1,6 +1,6 @@
 """The measurement model of one update: every accelerometer's specific force, the still
 chair's zero acceleration and the tilt-compensated heading, at every sigma point
-(compiled: :func:`fusion.tracking.tracker_kernels.measurement_points`, whose docstring has the
+(compiled: :func:`armfusion.fusion.tracking.tracker_kernels.measurement_points`, whose docstring has the
 model); the accelerometers' noise at their rates (:meth:`Measurements.with_noise`); and the
 update's groups, each gated on its own NIS (:meth:`Measurements.plan`)."""
 
@@ -10,15 +10,14 @@ from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
-
-from fusion.tracking.differentiator import derivative_noise_gain
-from fusion.tracking.frames import Frames
-from fusion.tracking.settings import GYRO, MAG, G, StateLayout, TrackerSettings
-from fusion.tracking.tracker_kernels import measurement_points
-from fusion.tracking.ukf_groups import GroupPlan, MeasurementGroup, nis_bound
-from models.motion import cross
-from models.rotations import DEG
-from models.sensor_models import StreamModel
+from armfusion.fusion.tracking.differentiator import derivative_noise_gain
+from armfusion.fusion.tracking.frames import Frames
+from armfusion.fusion.tracking.settings import GYRO, MAG, G, StateLayout, TrackerSettings
+from armfusion.fusion.tracking.tracker_kernels import measurement_points
+from armfusion.fusion.tracking.ukf_groups import GroupPlan, MeasurementGroup, nis_bound
+from armfusion.models.motion import cross
+from armfusion.models.rotations import DEG
+from armfusion.models.sensor_models import StreamModel
 
 
 class Selection(NamedTuple):

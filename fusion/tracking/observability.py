@@ -16,11 +16,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from fusion.tracking import fixed_base
-from fusion.tracking.frames import Frames
-from fusion.tracking.observability_kernels import offsets_observability
-from fusion.tracking.settings import (
+from armfusion.fusion.tracking import fixed_base
+from armfusion.fusion.tracking.frames import Frames
+from armfusion.fusion.tracking.observability_kernels import offsets_observability
+from armfusion.fusion.tracking.settings import (
     F_AMBIGUOUS,
     F_CONVERGING,
     F_GIMBAL,
@@ -34,8 +33,8 @@ from fusion.tracking.settings import (
     StateLayout,
     TrackerSettings,
 )
-from models.motion import cross
-from models.rotations import DEG
+from armfusion.models.motion import cross
+from armfusion.models.rotations import DEG
 
 
 class Observability:
@@ -61,7 +60,7 @@ class Observability:
         self._blind = np.zeros(n, np.bool_)  # gravity-blind by the IMU's own up (see update)
         self.tilt_floor_var = 0.0
         """A bolted base's: what the link accelerometers' floors leave in its tilt (rad²;
-        :func:`fusion.tracking.fixed_base.floor_var_rad2`; 0 for a base that moves)."""
+        :func:`armfusion.fusion.tracking.fixed_base.floor_var_rad2`; 0 for a base that moves)."""
         self._columns(spread, unmodelled_g, scale_sigma)
         self.reset()
 
@@ -92,7 +91,7 @@ class Observability:
         self._consider_used: set[int] = set()
         self.tilt_var = np.zeros(2)
         """A bolted base's: the variance (rad², roll and pitch) the reported tilt adds to the
-        filter's (:func:`fusion.tracking.fixed_base.tilt_shortfall_var`)."""
+        filter's (:func:`armfusion.fusion.tracking.fixed_base.tilt_shortfall_var`)."""
         self._key = None
         self._cache: dict = {}
 
@@ -157,7 +156,7 @@ class Observability:
         projection (Schmidt) and the inputs of the joint flags, at ``t``, from the state ``x``
         and covariance ``P`` (``P0`` the startup's, ``q_enc`` the encoders' angles). Writes
         into ``slips_calibration`` what the calibration leaves in the link accelerometers'
-        innovations (see :class:`fusion.tracking.slips.SlipDetector`).
+        innovations (see :class:`armfusion.fusion.tracking.slips.SlipDetector`).
 
         A joint is gravity-blind (``gimbal_lock``, held) when its axis is within the lock angle
         (``gimbal_lock_deg`` and three of the tilt's sigmas) of the filter's vertical, or of
@@ -232,7 +231,7 @@ class Observability:
 
     def _kernel(self, frame: Frames, up: np.ndarray, tilt_sigma_deg: float, base: np.ndarray,
                 sel: np.ndarray, coef: np.ndarray, P_off: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:func:`fusion.tracking.observability_kernels.offsets_observability` for the link
+        """:func:`armfusion.fusion.tracking.observability_kernels.offsets_observability` for the link
         accelerometers ``sel``: the information rows ``W (3S', n)`` and the held span
         ``U (n, h)``; the axes' angles to vertical, the locked and wide joints and each
         offset's achievable sigma into this object's scratch arrays."""
@@ -347,7 +346,7 @@ class Observability:
 
     def joint_flags(self, t: float, codes: list[int], links: list[int], P: np.ndarray, q: np.ndarray,
                     ambiguous: np.ndarray, reacquiring_until: np.ndarray, lo: list, hi: list) -> np.ndarray:
-        """Each joint's flag (:data:`fusion.tracking.settings.JOINT_FLAGS`: the most severe
+        """Each joint's flag (:data:`armfusion.fusion.tracking.settings.JOINT_FLAGS`: the most severe
         condition wins) from the link accelerometers' status ``codes`` (on ``links``), the
         covariance ``P``, the joint angles ``q`` and the limits ``lo``, ``hi``. A few joints:
         plain Python."""

@@ -1,5 +1,5 @@
 """The observability of the joint offsets, compiled (numba): what
-:meth:`fusion.tracking.observability.Observability.update` recomputes 20 times a second.
+:meth:`armfusion.fusion.tracking.observability.Observability.update` recomputes 20 times a second.
 
 The arithmetic is small (a 7×7 information matrix, its eigen-decomposition, a few
 projections) but, written as some thirty NumPy calls, cost the tracker a tenth of its time

@@ -8,15 +8,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from fusion.tracking.settings import G, StateLayout, TrackerSettings
-from fusion.tracking.tracker_kernels import (
+from armfusion.fusion.tracking.settings import G, StateLayout, TrackerSettings
+from armfusion.fusion.tracking.tracker_kernels import (
     fold_attitude,
     points_from_tangent,
     process_points,
     process_points_tangent,
 )
-from models.rotations import DEG
+from armfusion.models.rotations import DEG
 
 
 def gyro_newer_weight(delay_s: float, rate_hz: float) -> float:
@@ -50,7 +49,7 @@ class MotionIntensity:
     spread evenly over directions (at any moment it lies mostly along its stroke, which may
     be any axis), so each axis is given the whole magnitude's spread, ``sqrt(3 m)``, not one
     axis's share of it; ``k²`` is that over the nominal spread, within
-    :attr:`~fusion.tracking.settings.TrackerSettings.base_intensity_range`."""
+    :attr:`~armfusion.fusion.tracking.settings.TrackerSettings.base_intensity_range`."""
 
     def __init__(self, settings: TrackerSettings):
         self.nominal_mps2 = float(settings.base_accel_sigma_mps2)
@@ -87,7 +86,7 @@ def attitude_sigma_rad(rpy_rad: np.ndarray, C_att: np.ndarray, heading_floor_var
     undefined: held at pi), the heading as ``δ``'s vertical part, whose sigma stays finite
     at any attitude (for a level base all three are ``δ``'s own), with
     ``heading_floor_var`` (rad², scalar or ``(...)``: what the filter cannot average away,
-    :attr:`fusion.tracking.compass.Compass.heading_floor_var`) added."""
+    :attr:`armfusion.fusion.tracking.compass.Compass.heading_floor_var`) added."""
     r, p = (np.asarray(rpy_rad, float)[..., k] for k in range(2))
     cp = np.cos(p)
     cp_safe = np.where(np.abs(cp) < 1e-9, np.copysign(1e-9, cp), cp)
@@ -137,7 +136,7 @@ class ProcessModel:
 
     def fx(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
         """Every sigma point at once (compiled:
-        :func:`fusion.tracking.tracker_kernels.process_points`): the gyro (minus each point's bias)
+        :func:`armfusion.fusion.tracking.tracker_kernels.process_points`): the gyro (minus each point's bias)
         turns the attitude exactly, the base's acceleration decays, offsets and bias stay.
         The points' attitude columns are Euler angles (the filter calls
         :meth:`fx_tangent`, which alone carries a base velocity block)."""
@@ -184,7 +183,7 @@ class ProcessModel:
         point's Euler angles plus a world-axis rotation vector, whose covariance the filter
         holds: meaningful at any attitude, where Euler angles are singular at pitch ±90 deg):
         turned into Euler angles for the kernel
-        (:func:`~fusion.tracking.tracker_kernels.points_from_tangent`), and back about the
+        (:func:`~armfusion.fusion.tracking.tracker_kernels.points_from_tangent`), and back about the
         propagated central point."""
         L = self.layout
         decay = self._decay_of(dt)

@@ -1,10 +1,10 @@
 """A tracker's run over a whole recording: :func:`run_recording` feeds every instant of it
-through the filter's one path (:meth:`fusion.tracking.filter.Tracker.step`, the same as
+through the filter's one path (:meth:`armfusion.fusion.tracking.filter.Tracker.step`, the same as
 live), with the conversions to SI units and the saturation checks done for the whole span
 at once, and the differentiators' fits and the kinematic frames for a block of instants at
 once (:func:`prepare_block`, one compiled call each), and
 keeps what the filter said at each (:class:`RunArrays`), as a :class:`TrackRun`; with truth
-in the recording, scored by :mod:`fusion.tracking.scoring`."""
+in the recording, scored by :mod:`armfusion.fusion.tracking.scoring`."""
 
 from __future__ import annotations
 
@@ -14,17 +14,24 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from armfusion.fusion.tracking.frames import Frames
+from armfusion.fusion.tracking.measurement import AccelReadings
+from armfusion.fusion.tracking.process import attitude_sigma_rad
+from armfusion.fusion.tracking.scoring import errors, truth_at, truth_summary
+from armfusion.fusion.tracking.settings import (
+    C_SAMPLES,
+    C_SATURATED,
+    ENC,
+    GYRO,
+    JOINT_FLAGS,
+    MAG,
+    SENSOR_STATUS,
+)
+from armfusion.fusion.tracking.tracker_kernels import state_row_into
+from armfusion.fusion.tracking.update import InstantReadings, MagReading
+from armfusion.models.sensor_models import mpu9150_temperature_c
+from armfusion.sensors.samples import Recording, Stream
 from scipy.stats import chi2
-
-from fusion.tracking.frames import Frames
-from fusion.tracking.measurement import AccelReadings
-from fusion.tracking.process import attitude_sigma_rad
-from fusion.tracking.scoring import errors, truth_at, truth_summary
-from fusion.tracking.settings import C_SAMPLES, C_SATURATED, ENC, GYRO, JOINT_FLAGS, MAG, SENSOR_STATUS
-from fusion.tracking.tracker_kernels import state_row_into
-from fusion.tracking.update import InstantReadings, MagReading
-from models.sensor_models import mpu9150_temperature_c
-from sensors.samples import Recording, Stream
 
 PREPARED_MAX = 1024
 """The most instants whose kinematic frames a run holds at once (about 2 kB each)."""
@@ -281,7 +288,7 @@ class RunArrays:
         self._last = i
 
     def _record_combinations(self, tr, i: int, flags: np.ndarray) -> None:
-        """What gravity reads together (:meth:`fusion.tracking.filter.Tracker.combination_vectors`):
+        """What gravity reads together (:meth:`armfusion.fusion.tracking.filter.Tracker.combination_vectors`):
         which combinations, found again when the flags change and every observability window;
         their value and sigma at every instant."""
         held_flags, t_found, found, C, ix = self._combo
@@ -372,13 +379,13 @@ class TrackRun:
     nees: np.ndarray | None = None
     nees_dof: int = 0
     heading_status: np.ndarray | None = None
-    """Per instant, the heading's status (codes of :data:`fusion.tracking.estimate.HEADING_STATUS`)."""
+    """Per instant, the heading's status (codes of :data:`armfusion.fusion.tracking.estimate.HEADING_STATUS`)."""
     true_north: bool = False
     combinations: dict | None = None
     """What gravity reads where it cannot read single joints: per combination's name (e.g.
     ``"shoulder + elbow"``), its coefficients (name, coefficient pairs over the joints and
     ``base roll``/``base pitch``) and its value and sigma (rad) per instant, NaN where it
-    was not reported (:mod:`fusion.startup.combinations`)."""
+    was not reported (:mod:`armfusion.fusion.startup.combinations`)."""
 
     @property
     def steps(self) -> int:

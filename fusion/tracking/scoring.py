@@ -1,16 +1,15 @@
 """Scoring a tracker's run against the truth of a simulated (or instrumented) recording:
 the truth at the run's instants (:func:`truth_at`), the joint and heading errors and the
 NEES (:func:`errors`), and their summary (:func:`truth_summary`). The filter itself never
-sees the truth: :mod:`fusion.tracking.run` calls these after the run, when asked."""
+sees the truth: :mod:`armfusion.fusion.tracking.run` calls these after the run, when asked."""
 
 from __future__ import annotations
 
 import numpy as np
+from armfusion.fusion.tracking.settings import FLAG_CODE
+from armfusion.models.rotations import wrap_angle
+from armfusion.sensors.samples import Stream
 from scipy.stats import chi2
-
-from fusion.tracking.settings import FLAG_CODE
-from models.rotations import wrap_angle
-from sensors.samples import Stream
 
 
 def truth_at(truth: Stream, times: np.ndarray, angles: bool = False) -> np.ndarray:

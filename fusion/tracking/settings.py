@@ -6,9 +6,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-from fusion.tracking.heading import HeadingSettings
-from models.rotations import GRAVITY_MPS2
-from models.sensor_models import MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ
+from armfusion.fusion.tracking.heading import HeadingSettings
+from armfusion.models.rotations import GRAVITY_MPS2
+from armfusion.models.sensor_models import MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ
 
 G = GRAVITY_MPS2
 
@@ -68,7 +68,7 @@ class TrackerSettings:
     offset_random_walk_by_joint_deg_per_sqrt_s: tuple[tuple[str, float], ...] = ()
     """``(joint, deg/√s)`` pairs: a joint whose relative angle drifts more than a slipping
     encoder's (its encoder withheld and its angle integrated from the gyros on either side,
-    :mod:`fusion.tracking.gyro_encoder`) takes this random walk instead."""
+    :mod:`armfusion.fusion.tracking.gyro_encoder`) takes this random walk instead."""
     gyro_noise_dps_per_sqrt_hz: float = MPU9150_GYRO_NOISE_DPS_PER_SQRT_HZ
     gyro_bias_random_walk_dps_per_sqrt_s: float = 0.0005
     gyro_scale_sigma: float = 0.015
@@ -107,7 +107,7 @@ class TrackerSettings:
     base_speed_sigma_mps: float | None = None
     """The spread of the base's speed, where it is bounded (a hand carrying a sensor): the
     state then holds the base's velocity too, and its acceleration is that velocity's
-    derivative (:func:`fusion.tracking.tracker_kernels._velocity_step`), so it averages to
+    derivative (:func:`armfusion.fusion.tracking.tracker_kernels._velocity_step`), so it averages to
     zero over time however large it is. None (a chair, which may cruise at any speed for
     minutes): no velocity, the acceleration alone (a config's ``base_motion.speed_sigma_mps``
     sets it, :meth:`for_base`)."""
@@ -119,7 +119,7 @@ class TrackerSettings:
     pivot's, and the origin's is the pivot's plus ``ω̇ × r + ω × (ω × r)`` (the gyro's rate and
     its causal derivative): a sensor swung at 400 °/s on a 15 cm lever is accelerated by
     7 m/s² towards the pivot, in the base's own axes, which a zero-mean acceleration cannot
-    explain (:meth:`fusion.tracking.measurement.Measurements.h_all`). None (a chair: its
+    explain (:meth:`armfusion.fusion.tracking.measurement.Measurements.h_all`). None (a chair: its
     turning centre is the config's ``chair:`` block instead, its swing predicted from the gyro;
     docs/tracking.md, step 3): no such state (a config's
     ``base_motion.pivot_sigma_m`` sets it, :meth:`for_base`)."""
@@ -127,12 +127,12 @@ class TrackerSettings:
     """The base turns about every axis (a hand turning a sensor it holds; a config's
     ``base_motion.turns_about: any``), not about its vertical only (a chair): the gyro's scale
     error about the base's z axis is then no state (it describes a chair's turns only), and
-    the scale-and-axes error of every axis (:func:`fusion.tracking.calibrated.heading_scale_sigma`)
+    the scale-and-axes error of every axis (:func:`armfusion.fusion.tracking.calibrated.heading_scale_sigma`)
     turns the tilt by ``σ_s |ω|``: roll and pitch take that as process noise over the turn's
-    correlation time (:meth:`fusion.tracking.process.ProcessModel.Q`)."""
+    correlation time (:meth:`armfusion.fusion.tracking.process.ProcessModel.Q`)."""
     base_intensity_range: tuple[float, float] = (1.0 / 16.0, 9.0)
     """Where the base's speed is bounded (a hand), the range of its motion's intensity
-    (:class:`fusion.tracking.process.MotionIntensity`): its acceleration spread between 1/16
+    (:class:`armfusion.fusion.tracking.process.MotionIntensity`): its acceleration spread between 1/16
     and 9 times the config's ``accel_sigma_mps2`` (0.19-27 m/s² for a hand's 3)."""
     base_pivot_random_walk_m_per_sqrt_s: float = 0.01
     """How the pivot's offset drifts where it is a state: a hand changes its grip, or turns
@@ -165,7 +165,7 @@ class TrackerSettings:
     warn_rejected_share: float = 0.05
     """A sensor whose samples the gate rejected (or left out as implausible) more often than
     this share of the time is named, with why, in the tracker's warnings
-    (:meth:`fusion.tracking.tracker.Tracker.sensor_warnings`): fifty times what the gate
+    (:meth:`armfusion.fusion.tracking.tracker.Tracker.sensor_warnings`): fifty times what the gate
     costs a sensor its model fits (``gate_significance``)."""
     reacquire_after_s: float = 0.4
     """A sensor rejected for this long is a state change (a slip), not a bump."""
@@ -243,7 +243,7 @@ class TrackerSettings:
     the filter knows it no better than ``mean_state_held_sigma_deg``, each update's
     innovation is taken without the sigma points' spread along it: each pair of points keeps
     its weight in the prediction only for the share of its offsets' displacement off the
-    held joints (:meth:`fusion.tracking.filter.Tracker._prediction_weights`,
+    held joints (:meth:`armfusion.fusion.tracking.filter.Tracker._prediction_weights`,
     ``BatchedUKF.innovate(z_weights=)``); the innovation covariance and the cross covariance
     stay the unscented ones. Such a joint starts at ``unknown_joint_sigma_deg``: the points
     spread it over ±65°, and their weighted mean shrank every horizontal specific force that
@@ -279,7 +279,7 @@ class TrackerSettings:
 
     def for_base(self, base_motion) -> TrackerSettings:
         """These settings with the base's acceleration model a config describes
-        (:class:`models.arm.BaseMotion`: an IMU in a hand is not a wheelchair), first-order
+        (:class:`armfusion.models.arm.BaseMotion`: an IMU in a hand is not a wheelchair), first-order
         (no jerk state); unchanged without one."""
         if base_motion is None:
             return self
@@ -315,7 +315,7 @@ class StateLayout:
     velocity: bool = False
     """A base velocity block after the others (:attr:`TrackerSettings.base_speed_sigma_mps`)."""
     gyro_scale: bool = False
-    """The gyro's scale about z as a state, last (:func:`fusion.tracking.calibrated.heading_scale_sigma`)."""
+    """The gyro's scale about z as a state, last (:func:`armfusion.fusion.tracking.calibrated.heading_scale_sigma`)."""
     jerk: bool = False
     """The base acceleration's rate of change (3), after the velocity
     (:attr:`TrackerSettings.base_jerk_sigma_mps3`; ``jerk_B`` None without)."""

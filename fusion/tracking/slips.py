@@ -11,11 +11,10 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-
-from fusion.tracking.health import SensorHealth
-from fusion.tracking.settings import C_REACQUISITIONS, IMU_ACC, StateLayout, TrackerSettings
-from fusion.tracking.tracker_kernels import add_normalised_innovations, close_slip_block
-from models.rotations import DEG
+from armfusion.fusion.tracking.health import SensorHealth
+from armfusion.fusion.tracking.settings import C_REACQUISITIONS, IMU_ACC, StateLayout, TrackerSettings
+from armfusion.fusion.tracking.tracker_kernels import add_normalised_innovations, close_slip_block
+from armfusion.models.rotations import DEG
 
 
 class SlipDetector:
@@ -76,7 +75,7 @@ class SlipDetector:
         on two time scales: a slip shows within a second, a slow drift of the counts over a
         few. The link accelerometers ``which`` were heard in the block just closed: their
         averages, and the statistics of the test without the calibration's lasting error
-        (``_stat``), are :func:`~fusion.tracking.tracker_kernels.close_slip_block`'s."""
+        (``_stat``), are :func:`~armfusion.fusion.tracking.tracker_kernels.close_slip_block`'s."""
         worst = self._stat[which]
         cal = self.calibration[which]  # (k, 3, 3)
         if cal.any():

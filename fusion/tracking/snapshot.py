@@ -2,8 +2,8 @@
 (the offsets, biases, attitude and the base's motion are states of it), the encoders' angles,
 the differentiators' windows, the compass's learnt field, iron and floor, the health counters,
 the stillness and motion averages, the slip detector's and the calibration's pull, the rival
-branches. :meth:`fusion.tracking.filter.Tracker.state` makes it and
-:meth:`fusion.tracking.filter.Tracker.resume` takes it; :meth:`TrackerState.to_dict` and
+branches. :meth:`armfusion.fusion.tracking.filter.Tracker.state` makes it and
+:meth:`armfusion.fusion.tracking.filter.Tracker.resume` takes it; :meth:`TrackerState.to_dict` and
 :meth:`TrackerState.from_dict` are the JSON-ready snapshot (enough to resume after a restart
 of the process without a new startup calibration, provided the encoders kept counting)."""
 
@@ -25,7 +25,7 @@ class TrackerState:
 
     t_s: float
     x: np.ndarray
-    """The filter's mean (names: :attr:`fusion.tracking.filter.Tracker.state_names`)."""
+    """The filter's mean (names: :attr:`armfusion.fusion.tracking.filter.Tracker.state_names`)."""
     P: np.ndarray
     """Its covariance."""
     q_enc: np.ndarray
@@ -35,7 +35,7 @@ class TrackerState:
     encoder_fit: Any
     gyro_fit: Any
     compass: Mapping
-    """:meth:`fusion.tracking.compass.Compass.snapshot`: the field, the guard, the iron, the
+    """:meth:`armfusion.fusion.tracking.compass.Compass.snapshot`: the field, the guard, the iron, the
     heading's status and its floor."""
     counters: np.ndarray
     still: Any = None

@@ -1,5 +1,5 @@
 """Starting a tracker from a recording: the first still stretch's startup calibration
-(:func:`fusion.startup.solve.solve_still`, on readings the config's effects corrected), the
+(:func:`armfusion.fusion.startup.solve.solve_still`, on readings the config's effects corrected), the
 gyro bias, heading and Earth-field reference from the same window
 (:func:`imu_still_from_recording`), and, offline, the choice between rival branches by the
 motion that follows (:func:`_branch_by_motion`). :func:`warm_up` compiles (or loads) the
@@ -11,22 +11,21 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-
-from fusion.identification.correction import startup_correction
-from fusion.startup.solve import StartupResult
-from fusion.startup.static import Segment, StaticDetectionSettings, find_static_segments
-from fusion.tracking.calibrated import effects_applied, undo_map
-from fusion.tracking.compass import compass_map, compass_unmodelled_rad
-from fusion.tracking.differentiator import prime
-from fusion.tracking.filter import Tracker
-from fusion.tracking.heading import FieldReference, heading_sigma_rad, tilt_compensated_heading
-from fusion.tracking.initial import ImuStill
-from fusion.tracking.run import joint_free_clock
-from fusion.tracking.settings import ENC, GYRO, IMU_ACC, MAG, TrackerSettings
-from models.arm import ArmModel
-from models.rotations import DEG, up_from_tilt
-from models.sensor_models import encoder_angles_at, mpu9150_temperature_c, stream_models
-from sensors.samples import Recording
+from armfusion.fusion.identification.correction import startup_correction
+from armfusion.fusion.startup.solve import StartupResult
+from armfusion.fusion.startup.static import Segment, StaticDetectionSettings, find_static_segments
+from armfusion.fusion.tracking.calibrated import effects_applied, undo_map
+from armfusion.fusion.tracking.compass import compass_map, compass_unmodelled_rad
+from armfusion.fusion.tracking.differentiator import prime
+from armfusion.fusion.tracking.filter import Tracker
+from armfusion.fusion.tracking.heading import FieldReference, heading_sigma_rad, tilt_compensated_heading
+from armfusion.fusion.tracking.initial import ImuStill
+from armfusion.fusion.tracking.run import joint_free_clock
+from armfusion.fusion.tracking.settings import ENC, GYRO, IMU_ACC, MAG, TrackerSettings
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG, up_from_tilt
+from armfusion.models.sensor_models import encoder_angles_at, mpu9150_temperature_c, stream_models
+from armfusion.sensors.samples import Recording
 
 
 def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_end_s: float,
@@ -35,7 +34,7 @@ def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_
     """The gyro bias, initial heading and Earth-field reference from a still window, the
     gyro and the compass read as the tracker reads them (the config's calibrated errors
     undone). ``correction``: the config's
-    :class:`fusion.identification.identify.StartupCorrection`, when the caller has it (else
+    :class:`armfusion.fusion.identification.identify.StartupCorrection`, when the caller has it (else
     made here when the config has effects)."""
     st = settings or TrackerSettings()
     if correction is None and arm.effects:
@@ -101,7 +100,7 @@ class Start:
     notes: tuple[str, ...]
     geometric: StartupResult | None = None
     """The startup before the config's joint effects were undone (what a later still
-    window's solve compares with, through :func:`fusion.startup.solve.prior_after_move`)."""
+    window's solve compares with, through :func:`armfusion.fusion.startup.solve.prior_after_move`)."""
     encoder_rad: np.ndarray | None = None
     """The encoders' angles (counts / counts per rad) at the end of the still window."""
 
@@ -123,7 +122,7 @@ def moving_window(arm: ArmModel, rec: Recording, search_s: float = MOVING_SEARCH
     instants over which the joints travel least, averaged, among those at which every link
     accelerometer (and the base IMU's) can be used: no sample saturated and every sample
     within ``magnitude_range_g`` of gravity (the startup's own check,
-    :func:`fusion.startup.readings.readings_from_recording`, which leaves a sensor out
+    :func:`armfusion.fusion.startup.readings.readings_from_recording`, which leaves a sensor out
     otherwise; a shaft accelerometer reading 1.26 g at the least-moving instants of a fast
     trial left the startup nothing to solve from). The first ``search_s`` are searched; where
     no instant there can be used, the whole recording. Each link accelerometer's σ is
@@ -133,7 +132,7 @@ def moving_window(arm: ArmModel, rec: Recording, search_s: float = MOVING_SEARCH
     startup's σ covers the motion; the tracker refines the angles from there. Returns
     ``(window, readings, checks, note)``; :class:`NoStillWindowError` when too short, or
     when no instant has every accelerometer within range (saying which one never was)."""
-    from fusion.startup.solve import readings_from_recording
+    from armfusion.fusion.startup.solve import readings_from_recording
 
     enc = rec.get(ENC)
     if enc is None or len(enc) < samples:
@@ -297,7 +296,7 @@ def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
     kernels with the signatures the live path uses, by tracking 2 s of a simulated arm
     sample by sample after a startup on the 2 s before, so that a node does not pay for it
     while samples queue up. Returns the seconds it took."""
-    from models.simulator import simulate
+    from armfusion.models.simulator import simulate
 
     t0 = time.perf_counter()
     rec, _ = simulate(arm, "daily-use", 4.0, seed=0)
@@ -318,7 +317,7 @@ def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
 
 def delay_notes(arm: ArmModel) -> list[str]:
     """What the tracker does with the delays the sensors' descriptions declare (``delay_s``):
-    the gyroscope's is made up for (:func:`fusion.tracking.process.gyro_newer_weight`), the
+    the gyroscope's is made up for (:func:`armfusion.fusion.tracking.process.gyro_newer_weight`), the
     accelerometers' and the compass's too (each reading turned to its stamp by its sensor's
     turn rate over the delay), any other stream's is not, and the notes say which."""
     delays = {k: m.delay_s for k, m in stream_models(arm).items() if m.delay_s > 0}
@@ -347,14 +346,14 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
                          start_at_s: float | None = None,
                          sigma_given_conventions: bool = False) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
-    calibration there (:func:`fusion.startup.solve.solve_still`), the gyro bias, heading and field
+    calibration there (:func:`armfusion.fusion.startup.solve.solve_still`), the gyro bias, heading and field
     reference from the same window; it starts tracking at the window's end: the still
     stretch's end less ``settings.settle_s`` where the stretch is long enough
     (:func:`settled_split`), so that the filter settles on the still chair before it moves.
     ``propose_unlock`` False: no search for a move that would unlock gravity-blind joints
     (about 2 s of the startup's time, for a caller that does not show it).
     ``prior_q_rad``: a pose saved at the last clean shutdown, checked against the still data
-    before it may choose a branch (:class:`fusion.startup.solve.StartupPrior`); ``prior``: any
+    before it may choose a branch (:class:`armfusion.fusion.startup.solve.StartupPrior`); ``prior``: any
     other startup prior (e.g. ``StartupPrior.assume_parked``).
     ``resolve_by_motion_s``: for a whole recording (not live), when the startup left joints
     ``ambiguous``, track each candidate branch over the next this many seconds and keep the
@@ -370,10 +369,10 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     tracker's pose handed on, the arm unmoved): a joint the startup cannot read starts at
     ``prior_q_rad`` with that sigma instead of ``TrackerSettings.unknown_joint_sigma_deg``.
     ``sigma_given_conventions``: a calibrated config's doubt taken relative to its joint-zero
-    conventions (:meth:`fusion.identification.correction.StartupCorrection.given_conventions`):
+    conventions (:meth:`armfusion.fusion.identification.correction.StartupCorrection.given_conventions`):
     the σ against the calibration's own zeros, for scoring against a reference those zeros
     aligned (the default, the absolute σ, is what a user's controller needs)."""
-    from fusion.startup.solve import StartupPrior, readings_from_recording, solve_still
+    from armfusion.fusion.startup.solve import StartupPrior, readings_from_recording, solve_still
 
     if prior is None and prior_q_rad is not None:
         prior = StartupPrior.saved_pose(prior_q_rad)
@@ -395,7 +394,7 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
     notes += [c.message for c in checks]
     corr = None
     if arm.effects:  # a calibrated config: the startup works on corrected readings
-        from fusion.identification.identify import startup_correction
+        from armfusion.fusion.identification.identify import startup_correction
 
         temp = rec.get("imu_temp")
         still_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None else None
@@ -476,7 +475,7 @@ def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s
     it beats every other by ``decisive_nis`` (a log-likelihood ratio of 25); it is then a
     startup with those joints numbered (the candidate's own covariance), and the note says
     so. Otherwise ``None``: the joints stay ``ambiguous``."""
-    from fusion.startup.solve import StartupSettings
+    from armfusion.fusion.startup.solve import StartupSettings
 
     st = startup_settings or StartupSettings()
     n = len(startup.joints)

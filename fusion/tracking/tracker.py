@@ -1,7 +1,7 @@
 """Continuous tracking: the absolute joint angles all day, from relative encoders, the link
-accelerometers and the base IMU, with an unscented Kalman filter (:mod:`fusion.tracking.ukf`).
+accelerometers and the base IMU, with an unscented Kalman filter (:mod:`armfusion.fusion.tracking.ukf`).
 
-The state (:class:`fusion.tracking.settings.StateLayout`), seeded from the startup calibration:
+The state (:class:`armfusion.fusion.tracking.settings.StateLayout`), seeded from the startup calibration:
 
 =================  ====  ============================================================
 block              size  model
@@ -25,12 +25,12 @@ block              size  model
 Every step:
 
 1. **Encoders** give ``q`` (counts plus the offsets) and, through a causal polynomial
-   differentiator (:class:`fusion.tracking.differentiator.CausalDifferentiator`), the joint
+   differentiator (:class:`armfusion.fusion.tracking.differentiator.CausalDifferentiator`), the joint
    rates and accelerations.
 2. **Gyro** propagates the attitude (every sigma point, its own bias).
 3. **Link accelerometers and the IMU accelerometer** are predicted with motion
    compensated, ``f_S = R_0S^T (a_S + a_B + g·up)``: ``a_S`` (the joints' motion and
-   the base's rotation, from :func:`models.motion.sensor_motion`), the base's linear
+   the base's rotation, from :func:`armfusion.models.motion.sensor_motion`), the base's linear
    acceleration ``a_B`` from the state (so the IMU accelerometer, which reads it too,
    separates the chair's acceleration from gravity and the arm's accelerometers stay
    right while the chair drives). The sigma points differ from the mean only in the
@@ -41,7 +41,7 @@ Every step:
    sigma points is first order in their offset spread: ~0.1 mg once converged). See
    docs/tracking.md.
 4. **Magnetometer** corrects the yaw through the tilt-compensated heading, guarded by
-   :class:`fusion.tracking.heading.MagneticGuard` (disturbance detection, rejection, recovery).
+   :class:`armfusion.fusion.tracking.heading.MagneticGuard` (disturbance detection, rejection, recovery).
 
 Every joint's observability is checked every step (its axis's angle to gravity, and the
 eigen-decomposition of the accelerometers' information about the offsets, per second):
@@ -56,41 +56,41 @@ a dead sensor) or stuck are skipped and counted.
 One filter path, live and over a recording alike: each instant's readings go through
 :meth:`Tracker.step` (the differentiators take them, the mean pose's kinematic frame is
 made in one compiled call, the filter predicts and fuses). :meth:`Tracker.update_instant`
-(:mod:`fusion.tracking.live`) feeds it one instant's raw samples; :meth:`Tracker.run`
-(:mod:`fusion.tracking.run`) a whole recording, with only the conversions to SI units and
+(:mod:`armfusion.fusion.tracking.live`) feeds it one instant's raw samples; :meth:`Tracker.run`
+(:mod:`armfusion.fusion.tracking.run`) a whole recording, with only the conversions to SI units and
 the saturation checks done for many instants at once, and the frames made with the offsets
 and gyro bias of each block of instants' start (the instant's, live).
 
 Where it lives (each module one idea; this one gathers the public names):
 
-- :mod:`fusion.tracking.settings`: :class:`TrackerSettings`, the flags, statuses,
+- :mod:`armfusion.fusion.tracking.settings`: :class:`TrackerSettings`, the flags, statuses,
   counters and the state layout;
-- :mod:`fusion.tracking.filter`: :class:`Tracker`, the filter, composed of parts that own
-  their state: :mod:`~fusion.tracking.health` (sensor health),
-  :mod:`~fusion.tracking.slips` (slips, re-acquisition),
-  :mod:`~fusion.tracking.observability` (hold, consider sensitivity, joint flags),
-  :mod:`~fusion.tracking.compass` and :mod:`~fusion.tracking.heading` (the heading),
-  :mod:`~fusion.tracking.process` (process model, still chair),
-  :mod:`~fusion.tracking.measurement` (measurement model and noise),
-  :mod:`~fusion.tracking.differentiator` (joint rates, angular acceleration),
-  :mod:`~fusion.tracking.frames` (the kinematic frame), :mod:`~fusion.tracking.initial`
-  (first state, ambiguity), :mod:`~fusion.tracking.calibrated` (what the config's
-  effects say), :mod:`~fusion.tracking.innovations`, :mod:`~fusion.tracking.snapshot`;
-- :mod:`fusion.tracking.live` and :mod:`fusion.tracking.run`: the live front and a run
+- :mod:`armfusion.fusion.tracking.filter`: :class:`Tracker`, the filter, composed of parts that own
+  their state: :mod:`~armfusion.fusion.tracking.health` (sensor health),
+  :mod:`~armfusion.fusion.tracking.slips` (slips, re-acquisition),
+  :mod:`~armfusion.fusion.tracking.observability` (hold, consider sensitivity, joint flags),
+  :mod:`~armfusion.fusion.tracking.compass` and :mod:`~armfusion.fusion.tracking.heading` (the heading),
+  :mod:`~armfusion.fusion.tracking.process` (process model, still chair),
+  :mod:`~armfusion.fusion.tracking.measurement` (measurement model and noise),
+  :mod:`~armfusion.fusion.tracking.differentiator` (joint rates, angular acceleration),
+  :mod:`~armfusion.fusion.tracking.frames` (the kinematic frame), :mod:`~armfusion.fusion.tracking.initial`
+  (first state, ambiguity), :mod:`~armfusion.fusion.tracking.calibrated` (what the config's
+  effects say), :mod:`~armfusion.fusion.tracking.innovations`, :mod:`~armfusion.fusion.tracking.snapshot`;
+- :mod:`armfusion.fusion.tracking.live` and :mod:`armfusion.fusion.tracking.run`: the live front and a run
   over a recording (:class:`TrackRun`), scored against truth by
-  :mod:`fusion.tracking.scoring`;
-- :mod:`fusion.tracking.start`: :func:`start_from_recording`, :func:`warm_up`.
+  :mod:`armfusion.fusion.tracking.scoring`;
+- :mod:`armfusion.fusion.tracking.start`: :func:`start_from_recording`, :func:`warm_up`.
 """
 
-from fusion.tracking.differentiator import CausalDifferentiator, causal_fits, causal_poly_fit
-from fusion.tracking.estimate import Estimate
-from fusion.tracking.filter import Tracker
-from fusion.tracking.frames import Frames, make_frames
-from fusion.tracking.initial import ImuStill
-from fusion.tracking.innovations import InnovationLog
-from fusion.tracking.run import TrackRun
-from fusion.tracking.scoring import truth_at
-from fusion.tracking.settings import (
+from armfusion.fusion.tracking.differentiator import CausalDifferentiator, causal_fits, causal_poly_fit
+from armfusion.fusion.tracking.estimate import Estimate
+from armfusion.fusion.tracking.filter import Tracker
+from armfusion.fusion.tracking.frames import Frames, make_frames
+from armfusion.fusion.tracking.initial import ImuStill
+from armfusion.fusion.tracking.innovations import InnovationLog
+from armfusion.fusion.tracking.run import TrackRun
+from armfusion.fusion.tracking.scoring import truth_at
+from armfusion.fusion.tracking.settings import (
     COUNTERS,
     ENC,
     FLAG_CODE,
@@ -105,15 +105,15 @@ from fusion.tracking.settings import (
     StateLayout,
     TrackerSettings,
 )
-from fusion.tracking.snapshot import TrackerState
-from fusion.tracking.start import (
+from armfusion.fusion.tracking.snapshot import TrackerState
+from armfusion.fusion.tracking.start import (
     NoStillWindowError,
     Start,
     imu_still_from_recording,
     start_from_recording,
     warm_up,
 )
-from fusion.tracking.update import InstantReadings, UpdateResult
+from armfusion.fusion.tracking.update import InstantReadings, UpdateResult
 
 __all__ = [
     "COUNTERS", "ENC", "FLAG_CODE", "G", "GYRO", "IMU_ACC", "JOINT_FLAGS", "MAG", "SENSOR_STATUS",

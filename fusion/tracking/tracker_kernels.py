@@ -3,14 +3,14 @@
 A tracker step evaluates its models at 2n + 1 = 39 sigma points of a 19-state filter: a
 few thousand floating-point operations, which as NumPy array calls cost far more in
 interpreter overhead than in arithmetic. These kernels do the same arithmetic in one
-compiled loop per call. :mod:`fusion.tracking.tracker` calls them. The accelerometer's and the
-compass's equations are :mod:`models.sensor_kernels`' (written once there, for the batch
+compiled loop per call. :mod:`armfusion.fusion.tracking.tracker` calls them. The accelerometer's and the
+compass's equations are :mod:`armfusion.models.sensor_kernels`' (written once there, for the batch
 models too). The tests hold the kernels to the motion model computed from scratch
-(:func:`models.motion.specific_force`, tests/fusion/test_tracker.py) and to the same
+(:func:`armfusion.models.motion.specific_force`, tests/fusion/test_tracker.py) and to the same
 equations written in NumPy (``tools/bench_track_numpy.py``, the filterpy baseline of
 ``tools/bench_track.py``, tests/fusion/test_tracker_kernels.py).
 
-The state layout (see :class:`fusion.tracking.tracker.StateLayout`): joint offsets ``0 … n-1``,
+The state layout (see :class:`armfusion.fusion.tracking.tracker.StateLayout`): joint offsets ``0 … n-1``,
 roll, pitch, the base's linear acceleration (3), yaw, the gyro bias (3), the IMU
 accelerometer's bias (3), and where the base's speed is bounded its velocity (3). Kernels
 take the first index of each block.
@@ -23,11 +23,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from armfusion.models.chain_kernels import cross3
+from armfusion.models.rotations import TWO_PI, R_from_rpy_into, exp_so3_into, wrap_angle
+from armfusion.models.sensor_kernels import gravity_plus, magnetic_heading_one, tilt_up, to_sensor_axes
 from numba import njit
-
-from models.chain_kernels import cross3
-from models.rotations import TWO_PI, R_from_rpy_into, exp_so3_into, wrap_angle
-from models.sensor_kernels import gravity_plus, magnetic_heading_one, tilt_up, to_sensor_axes
 
 _exp_so3_into = njit(cache=True, nogil=True, inline="always")(exp_so3_into)
 _wrap = njit(cache=True, nogil=True, inline="always")(wrap_angle)
@@ -108,7 +107,7 @@ def tangent_from_points(Y, roll, yaw):  # pragma: no cover - compiled
 @njit(cache=True, nogil=True, inline="always")
 def _canonical_euler(A):  # pragma: no cover - compiled
     """Roll, pitch (within ±pi/2) and yaw of the rotation ``A (3, 3)``
-    (:func:`models.rotations.rpy_from_R`, pitch by ``atan2`` to stay exact near ±pi/2)."""
+    (:func:`armfusion.models.rotations.rpy_from_R`, pitch by ``atan2`` to stay exact near ±pi/2)."""
     pitch = math.atan2(-A[2, 0], math.sqrt(A[2, 1] * A[2, 1] + A[2, 2] * A[2, 2]))
     return math.atan2(A[2, 1], A[2, 2]), pitch, math.atan2(A[1, 0], A[0, 0])
 
@@ -124,10 +123,10 @@ def process_points_tangent(X, dt, w, have_w, roll, yaw, bias, accel, scale, acce
     Euler angles (the same rotations, for the measurement models: they use the angles'
     sines and cosines, and wrap the heading). ``scale``: as :func:`process_points`.
 
-    With a velocity block (``vel >= 0``: :attr:`fusion.tracking.settings.StateLayout.vel`)
+    With a velocity block (``vel >= 0``: :attr:`armfusion.fusion.tracking.settings.StateLayout.vel`)
     the base's acceleration is the derivative of a bounded velocity
     (:func:`_velocity_step`); without, it only decays, and with a jerk block (``jerk >= 0``:
-    :attr:`fusion.tracking.settings.StateLayout.jerk`) it changes by the jerk over ``dt``
+    :attr:`armfusion.fusion.tracking.settings.StateLayout.jerk`) it changes by the jerk over ``dt``
     (``a' = a e^(-dt/τ_a) + j dt``), the jerk decaying by ``jerk_decay``."""
     N = X.shape[0]
     T = X.copy()
@@ -258,7 +257,7 @@ def process_points(X, dt, w, have_w, roll, yaw, bias, accel, scale, accel_decay,
     where ``jerk`` is not -1, the jerk decaying by ``jerk_decay``); everything else stays. Roll and yaw
     are not wrapped here (the filter holds the attitude's spread as a tangent vector and
     folds the mean back into canonical Euler angles:
-    :meth:`fusion.tracking.process.ProcessModel.fold_attitude`)."""
+    :meth:`armfusion.fusion.tracking.process.ProcessModel.fold_attitude`)."""
     N, n = X.shape
     Y = X.copy()
     E = np.empty((3, 3))
@@ -293,17 +292,17 @@ def measurement_points(X, sel, links, axes, offset_ref, motion_mps2, R_0S, imu_i
     ``yaw - tilt-compensated heading`` wrapped to [-pi, pi) (``heading_shift``:
     declination - pi).
 
-    The accelerometers (the model of :mod:`models.sensor_kernels`, ``f = R_0S^T (a + g up)``):
+    The accelerometers (the model of :mod:`armfusion.models.sensor_kernels`, ``f = R_0S^T (a + g up)``):
     each point's base-axis specific force is the frame's motion acceleration (at the mean
     pose) plus the point's base acceleration plus gravity turned by its roll and pitch (``g
-    up``, :func:`models.sensor_kernels.tilt_up`), carried to the sensor by the joints
+    up``, :func:`armfusion.models.sensor_kernels.tilt_up`), carried to the sensor by the joints
     between the base and its link. The point's joint angles
     differ from the frame's by ``d_j = offset_j - offset_ref_j``, so its rotation is the
     frame's times ``exp([a_j]x d_j)`` for each joint ``j`` below the link (product of
     exponentials about the base-axis joint axes ``axes`` of the frame): in row form
     ``f^T = v^T E_0 … E_(link-1) R_0S / g``, each ``v^T E_j`` being
     ``v - sin d (a x v) + (1 - cos d) a x (a x v)``. The IMU (``imu_index``) adds its bias.
-    The heading is :func:`models.sensor_kernels.magnetic_heading_one` at the point's roll and
+    The heading is :func:`armfusion.models.sensor_kernels.magnetic_heading_one` at the point's roll and
     pitch: the residual ``yaw - heading - heading_shift``, wrapped.
     """
     N = X.shape[0]
@@ -355,7 +354,7 @@ def measurement_points(X, sel, links, axes, offset_ref, motion_mps2, R_0S, imu_i
 # -- the innovation tests' per-instant sums (the slip detector's, the model-change alarm's) ---
 @njit(cache=True, nogil=True)
 def add_normalised_innovations(which, nu, Su, sums, counts):  # pragma: no cover - compiled
-    """The slip detector's per-instant sums (:meth:`fusion.tracking.slips.SlipDetector.listen`):
+    """The slip detector's per-instant sums (:meth:`armfusion.fusion.tracking.slips.SlipDetector.listen`):
     for each accelerometer ``which[i]``, ``sums[which[i]] += nu[i] / sqrt(diag(Su[i]))`` (its
     innovation ``nu (k, 3)``, g, over each axis's sigma) and ``counts[which[i]] += 1``."""
     for i in range(which.shape[0]):
@@ -369,7 +368,7 @@ def add_normalised_innovations(which, nu, Su, sums, counts):  # pragma: no cover
 def add_block_sums(which, nu, Su, z_pred, var, rows, sum_nu, sum_g, sum_r, sum_var,
                    counts):  # pragma: no cover - compiled
     """The model-change alarm's per-instant sums
-    (:meth:`fusion.tracking.alarm.ModelChangeAlarm.listen`): for each accelerometer
+    (:meth:`armfusion.fusion.tracking.alarm.ModelChangeAlarm.listen`): for each accelerometer
     ``which[i]`` with innovation ``nu[i] (3,)`` and its covariance ``Su[i] (3, 3)``, whose
     update rows are ``rows[i] (3,)`` (its predicted force in ``z_pred``, its measurement
     variances in ``var``): the innovation, the prediction, the noise ``r`` (the mean of its
@@ -394,7 +393,7 @@ def add_block_sums(which, nu, Su, z_pred, var, rows, sum_nu, sum_g, sum_r, sum_v
         counts[s] += 1
 
 
-# -- the accelerometers' health screening (fusion.tracking.health.SensorHealth.accel) ----------
+# -- the accelerometers' health screening (armfusion.fusion.tracking.health.SensorHealth.accel) ----------
 @njit(cache=True, nogil=True)
 def screen_accelerometers(sel, counts, f, z_pred, last_counts, tol_g, same,
                           implausible):  # pragma: no cover - compiled
@@ -420,7 +419,7 @@ def screen_accelerometers(sel, counts, f, z_pred, last_counts, tol_g, same,
 @njit(cache=True, nogil=True)
 def close_slip_block(t, sums, counts, n_links, taus, thresholds, shift_t, shift, stat, heard, a_out,
                      var_w_out):  # pragma: no cover - compiled
-    """The slip detector's block at ``t`` (:meth:`fusion.tracking.slips.SlipDetector.listen`):
+    """The slip detector's block at ``t`` (:meth:`armfusion.fusion.tracking.slips.SlipDetector.listen`):
     every link accelerometer ``s < n_links`` heard in it (``counts[s] > 0``; ``heard[s]``
     says which) gets its mean normalised innovation ``sums[s] / counts[s]`` into its
     averages on each time scale (``shift[s] (2, 3)``, weight ``a = min(1, dt / taus)``,
@@ -469,7 +468,7 @@ def close_slip_block(t, sums, counts, n_links, taus, thresholds, shift_t, shift,
 @njit(cache=True, nogil=True)
 def ring_row_into(i, t, nu, S, nis, ok, ring_t, ring_nu, ring_S, ring_nis, ring_ok, present, nis_sum,
                   count_nis):  # pragma: no cover - compiled
-    """Row ``i`` of the accelerometers' innovation ring (:class:`fusion.tracking.innovations.AccelRing`)
+    """Row ``i`` of the accelerometers' innovation ring (:class:`armfusion.fusion.tracking.innovations.AccelRing`)
     set to one update's with every accelerometer, in order: time ``t``, innovations ``nu (Sa, 3)``,
     their covariances ``S (Sa, 3, 3)``, NIS and acceptance ``(Sa,)``, every sensor present; with
     ``count_nis`` each NIS added to ``nis_sum``."""
@@ -489,7 +488,7 @@ def ring_row_into(i, t, nu, S, nis, ok, ring_t, ring_nu, ring_S, ring_nis, ring_
 @njit(cache=True, nogil=True)
 def state_row_into(i, x, P, att_rows, att_cols, nees_rows, nees_cols, x_out, var_out, att_out,
                    P_out):  # pragma: no cover - compiled
-    """Row ``i`` of a run's arrays (:class:`fusion.tracking.run.RunArrays`) from the state ``x``
+    """Row ``i`` of a run's arrays (:class:`armfusion.fusion.tracking.run.RunArrays`) from the state ``x``
     and its covariance ``P``: ``x``, ``diag(P)``, the attitude's covariance entries
     ``P[att_rows, att_cols]`` and, when ``P_out`` has rows, the NEES states' ``P[nees_rows,
     nees_cols]`` (flattened)."""

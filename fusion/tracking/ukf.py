@@ -24,7 +24,7 @@ Angles in the state or the measurement (a heading) are handled by ``angle_states
 ``angle_rows``: residuals are wrapped to (-pi, pi] and means taken about the central
 sigma point.
 
-The arithmetic of a step runs in compiled kernels (:mod:`fusion.tracking.ukf_kernels`, one call per
+The arithmetic of a step runs in compiled kernels (:mod:`armfusion.fusion.tracking.ukf_kernels`, one call per
 stage) in the common case: :class:`SigmaPoints`' own points, at most one angle state and
 one angle row, a diagonal ``R``, groups that tile the measurement rows, a positive definite
 ``P + Q`` and ``S``. Everything else takes the NumPy path, which stays the reference the
@@ -36,17 +36,14 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from filterpy.kalman import MerweScaledSigmaPoints
-from scipy.linalg import lapack
-
-from fusion.tracking.ukf_groups import (
+from armfusion.fusion.tracking.ukf_groups import (
     GroupPlan,
     Innovation,
     MeasurementGroup,
     group_nis,
     nis_bound,
 )
-from fusion.tracking.ukf_kernels import (
+from armfusion.fusion.tracking.ukf_kernels import (
     DIAGONAL_NOT_POSITIVE,
     NOT_POSITIVE_DEFINITE,
     OK,
@@ -55,7 +52,9 @@ from fusion.tracking.ukf_kernels import (
     sigma_points_into,
     unscented_moments_into,
 )
-from models.rotations import wrap_angle
+from armfusion.models.rotations import wrap_angle
+from filterpy.kalman import MerweScaledSigmaPoints
+from scipy.linalg import lapack
 
 _NONE_2D = np.zeros((0, 0))  # "no hold / no gain mask" for the compiled update
 
@@ -222,7 +221,7 @@ class BatchedUKF:
         self._sigmas: np.ndarray | None = None
         self._Wm = self.points.Wm
         self._Wc = self.points.Wc
-        # the compiled step (fusion.tracking.ukf_kernels) serves the common case: SigmaPoints' own
+        # the compiled step (armfusion.fusion.tracking.ukf_kernels) serves the common case: SigmaPoints' own
         # points and at most one angle state; anything else takes the NumPy path below
         sp = type(self.points)
         self._use_kernels = (isinstance(self.points, SigmaPoints) and sp.points_of is SigmaPoints.points_of

@@ -1,4 +1,4 @@
-"""The measurement side of :class:`fusion.tracking.ukf.BatchedUKF`: measurement groups
+"""The measurement side of :class:`armfusion.fusion.tracking.ukf.BatchedUKF`: measurement groups
 (one sensor's rows, gated as a whole on its normalised innovation squared, NIS), a plan
 of them prepared once for updates of the same shape (:class:`GroupPlan`: the NIS of every
 group from one Cholesky factor when they tile the rows), the chi-square gate

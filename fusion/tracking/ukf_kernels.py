@@ -1,4 +1,4 @@
-"""Compiled (numba) kernels for the common case of :class:`fusion.tracking.ukf.BatchedUKF`'s step.
+"""Compiled (numba) kernels for the common case of :class:`armfusion.fusion.tracking.ukf.BatchedUKF`'s step.
 
 A step of a 19-state filter is a few dozen small matrix products; called from NumPy, their
 interpreter and dispatch overhead, not their arithmetic, sets the pace. Each kernel here
@@ -27,9 +27,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from armfusion.models.rotations import wrap_angle
 from numba import njit
-
-from models.rotations import wrap_angle
 
 # status codes of the kernels that may decline
 OK = 0
@@ -37,7 +36,7 @@ NOT_POSITIVE_DEFINITE = 1  # a matrix to factor (S, a block of S, s (P + Q)) is 
 DIAGONAL_NOT_POSITIVE = 2  # the updated covariance has a diagonal entry <= 0 (or NaN)
 
 
-# models.rotations.wrap_angle compiled: the one definition, a scalar here (numba's float
+# armfusion.models.rotations.wrap_angle compiled: the one definition, a scalar here (numba's float
 # ``%`` is Python's: the sign of the divisor, so the same numbers as NumPy's)
 _wrap = njit(cache=True)(wrap_angle)
 
@@ -130,7 +129,7 @@ def sigma_points_into(X: np.ndarray, x: np.ndarray, P: np.ndarray, Q: np.ndarray
 @njit(cache=True)
 def _mean_and_residuals(Y: np.ndarray, Wm: np.ndarray, angle: int, mean: np.ndarray, D: np.ndarray) -> None:
     """``mean = Wm Y`` and ``D = Y - mean`` for points ``Y (N, k)``, one column ``angle``
-    treated as :func:`fusion.tracking.ukf._ut` does: when its points lie within 3 rad of the central
+    treated as :func:`armfusion.fusion.tracking.ukf._ut` does: when its points lie within 3 rad of the central
     one the plain mean (then wrapped) and plain residuals stand; else the mean is the
     central point plus the weighted mean of the wrapped offsets from it, and the residuals
     are those offsets minus their mean."""

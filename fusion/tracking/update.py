@@ -11,10 +11,9 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
-
-from fusion.tracking.frames import Frames
-from fusion.tracking.measurement import AccelReadings, Stack
-from fusion.tracking.ukf_groups import GroupPlan, Innovation
+from armfusion.fusion.tracking.frames import Frames
+from armfusion.fusion.tracking.measurement import AccelReadings, Stack
+from armfusion.fusion.tracking.ukf_groups import GroupPlan, Innovation
 
 
 class MagReading(NamedTuple):
@@ -39,7 +38,7 @@ class InstantReadings(NamedTuple):
 
 @dataclass(slots=True)
 class UpdateResult:
-    """One update, as its stages fill it: stacked (:meth:`fusion.tracking.measurement.Measurements.stack`),
+    """One update, as its stages fill it: stacked (:meth:`armfusion.fusion.tracking.measurement.Measurements.stack`),
     innovated, gated, then read by the listeners, which set ``accept`` and ``mask``, and
     finally applied (``BatchedUKF.correct(inn, accept, hold, mask)``)."""
 
@@ -60,7 +59,7 @@ class UpdateResult:
     mag: tuple | None
     """The compass's ``(count, field, extra variance)`` (None: no heading row)."""
     check: Any = None
-    """The compass's field check (:meth:`fusion.tracking.compass.Compass.variance`)."""
+    """The compass's field check (:meth:`armfusion.fusion.tracking.compass.Compass.variance`)."""
     inn: Innovation | None = None
     gate: list = field(default_factory=list)
     """Each group's first verdict against its gate."""

@@ -14,17 +14,16 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from armfusion.fusion.identification.data import FitData
+from armfusion.fusion.identification.identify import identify
+from armfusion.fusion.identification.problem import FitProblem
+from armfusion.fusion.identification.result import Identification
+from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.fusion.workbench.gauges import Gauge, held_elements, structural_gauges
+from armfusion.fusion.workbench.residuals import chi2_total
+from armfusion.fusion.workbench.scores import Linearised, ScoreTests
+from armfusion.models.effects import EFFECTS, Model
 from scipy.stats import chi2 as chi2_dist
-
-from fusion.identification.data import FitData
-from fusion.identification.identify import identify
-from fusion.identification.problem import FitProblem
-from fusion.identification.result import Identification
-from fusion.identification.settings import IdentifySettings
-from fusion.workbench.gauges import Gauge, held_elements, structural_gauges
-from fusion.workbench.residuals import chi2_total
-from fusion.workbench.scores import Linearised, ScoreTests
-from models.effects import EFFECTS, Model
 
 
 @dataclass(frozen=True)
@@ -53,7 +52,7 @@ class Candidate:
     explanation: str
     evidence: str
     gauges: tuple[Gauge, ...] = ()
-    """Its directions held at the prior in the refit (:mod:`fusion.workbench.gauges`)."""
+    """Its directions held at the prior in the refit (:mod:`armfusion.fusion.workbench.gauges`)."""
     at_bound: tuple[str, ...] = ()
     """Elements whose refit ended at the parameter's bound: the model does not explain what
     the candidate was pulled to (never significant, never written)."""
@@ -78,7 +77,7 @@ def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, strea
     """Every candidate the data see, ranked: the best few by the linearised ΔBIC whose score
     test is significant are refitted (more while none reaches the noise, and the rivals of
     the best on its target), the rest keep their linearised ΔBIC. ``settings`` is the
-    workbench's :class:`~fusion.workbench.diagnose.DiagnoseSettings`. Refitted first, then by
+    workbench's :class:`~armfusion.fusion.workbench.diagnose.DiagnoseSettings`. Refitted first, then by
     ΔBIC; ties (effects the recording cannot tell apart, e.g. hard and soft iron on a parked
     chair): the one with fewer parameters first."""
     st = settings

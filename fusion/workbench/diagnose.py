@@ -4,7 +4,7 @@ which physical effect is missing.
 ``diagnose(model, data)``:
 
 1. **Compare.** Fit the model (its effects, the recording's encoder zeros, the base
-   attitude) with :func:`fusion.identification.identify.identify`; per sensor axis the residual RMS
+   attitude) with :func:`armfusion.fusion.identification.identify.identify`; per sensor axis the residual RMS
    against the noise floor of the sensor model, and the fit in % (NRMSE, as MATLAB's
    ``compare``: ``100 (1 - |y - ŷ| / |y - mean y|)``). ``rms_ratio`` is the whole model's
    residual RMS over its noise floor (1.0: it fits to noise).
@@ -27,10 +27,10 @@ which physical effect is missing.
    Each comes with the effect's plain-language description and the evidence: which input
    its residual follows, and how much of the residual the candidate explains.
 4. **Where it fails.** Each axis's residual auto- and cross-correlation with the inputs
-   (:func:`~fusion.workbench.whiteness.residual_analysis`, as MATLAB's ``resid``) and the worst
+   (:func:`~armfusion.fusion.workbench.whiteness.residual_analysis`, as MATLAB's ``resid``) and the worst
    stretches.
 
-On moving data (the chair driving) :func:`~fusion.workbench.innovations.innovation_diagnosis`
+On moving data (the chair driving) :func:`~armfusion.fusion.workbench.innovations.innovation_diagnosis`
 runs the same analysis on the tracker's normalised innovations. See docs/workbench.md.
 
 This module is the workbench's entry (:func:`diagnose`, :func:`add_effects`) and its result
@@ -47,30 +47,36 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-
-from fusion.identification.data import FIT_STREAMS_EXCLUDED, FitData, with_encoder_zeros
-from fusion.identification.result import Identification
-from fusion.identification.settings import IdentifySettings
-from fusion.workbench.candidates import Candidate, at_bound, params_words, rank_candidates
-from fusion.workbench.gauges import Gauge, structural_gauges
-from fusion.workbench.heldout import HeldOut, HeldOutFit, judge
-from fusion.workbench.innovations import (
+from armfusion.fusion.identification.data import FIT_STREAMS_EXCLUDED, FitData, with_encoder_zeros
+from armfusion.fusion.identification.result import Identification
+from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.fusion.workbench.candidates import Candidate, at_bound, params_words, rank_candidates
+from armfusion.fusion.workbench.gauges import Gauge, structural_gauges
+from armfusion.fusion.workbench.heldout import HeldOut, HeldOutFit, judge
+from armfusion.fusion.workbench.innovations import (
     INNOVATIONS_WHITE,
     InnovationDiagnosis,
     chair_moves,
     innovation_diagnosis,
     innovation_inputs,
 )
-from fusion.workbench.residuals import AxisFit, axis_fits, chi2_total, fit_model, problem_at, rms_ratio_of
-from fusion.workbench.scores import EXCLUDED_CANDIDATES, candidate_effects, score_tests
-from fusion.workbench.whiteness import (
+from armfusion.fusion.workbench.residuals import (
+    AxisFit,
+    axis_fits,
+    chi2_total,
+    fit_model,
+    problem_at,
+    rms_ratio_of,
+)
+from armfusion.fusion.workbench.scores import EXCLUDED_CANDIDATES, candidate_effects, score_tests
+from armfusion.fusion.workbench.whiteness import (
     InputCorrelation,
     ResidualAnalysis,
     fit_inputs,
     residual_analysis,
     worst_stretches,
 )
-from models.effects import Effect, Model, build_effect
+from armfusion.models.effects import Effect, Model, build_effect
 
 __all__ = [
     "EXCLUDED_CANDIDATES", "FITS_TO_NOISE", "INNOVATIONS_WHITE", "AxisFit", "Candidate", "DiagnoseSettings",
@@ -234,7 +240,7 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
              progress: Callable[[str, float], None] | None = None,
              held_out: HeldOut | None = None) -> Diagnosis:
     """Fit ``model`` to ``data`` and rank every library effect it lacks (module docstring);
-    with ``held_out``, the fit is judged there too (:mod:`fusion.workbench.heldout`).
+    with ``held_out``, the fit is judged there too (:mod:`armfusion.fusion.workbench.heldout`).
 
     ``progress(stage, fraction_done)`` is called as the work advances (0 to 1)."""
     st = settings or DiagnoseSettings()

@@ -1,6 +1,6 @@
 """Automatic model discovery: the error ladder walked without a person.
 
-``discover(model, data)`` diagnoses the model (:func:`fusion.workbench.diagnose.diagnose`),
+``discover(model, data)`` diagnoses the model (:func:`armfusion.fusion.workbench.diagnose.diagnose`),
 adds the best significant candidate, refits, diagnoses again, and stops when nothing is
 significant (the corrected score test and ΔBIC < 0, as ``diagnose`` decides) or after
 ``max_rungs``. Every rung keeps what it added, the added block's estimate ± σ from that
@@ -16,7 +16,7 @@ rung "A -> B"), or none, the others explaining it (taken out where the BIC is lo
 walk goes on once more.
 
 **Judged on held-out data.** With ``held_out`` (the recording's last 30 %, or a second
-recording: :mod:`fusion.workbench.heldout`) each rung tries the first ``tries`` significant
+recording: :mod:`armfusion.fusion.workbench.heldout`) each rung tries the first ``tries`` significant
 candidates, each added and judged there, and keeps the one with the lowest held-out error,
 if it is below the rung before's; the others are listed as refused with their reason, and
 when none is kept the ladder stops. The revisit's swaps and removals are refused alike. The
@@ -27,7 +27,7 @@ validation set); it is never fitted.
 recording χ² after their quick refit is within ``tie_chi2`` of the best one's are a *tie*:
 the recording fits them equally well (a likelihood ratio below ``exp(tie_chi2 / 2)``), so
 they are reported together as one :class:`Finding` ("one of these"), with the motion that
-would separate them (:func:`fusion.identification.identifiability.suggestion_for` of each
+would separate them (:func:`armfusion.fusion.identification.identifiability.suggestion_for` of each
 member). The ladder goes on with the first of them in the ranking (the best ΔBIC: on equal
 fits, the one with fewer parameters) as the group's stand-in, so that what remains can be
 found; the finding says it is a stand-in.
@@ -51,13 +51,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
-from fusion.identification.data import FitData
-from fusion.identification.identifiability import suggestion_for
-from fusion.workbench.candidates import Candidate, params_words
-from fusion.workbench.diagnose import DiagnoseSettings, Diagnosis, add_effects, diagnose
-from fusion.workbench.heldout import HeldOut
-from models.effects import Model, build_effect
+from armfusion.fusion.identification.data import FitData
+from armfusion.fusion.identification.identifiability import suggestion_for
+from armfusion.fusion.workbench.candidates import Candidate, params_words
+from armfusion.fusion.workbench.diagnose import DiagnoseSettings, Diagnosis, add_effects, diagnose
+from armfusion.fusion.workbench.heldout import HeldOut
+from armfusion.models.effects import Model, build_effect
 
 STOP_NOISE = "fits to noise"
 STOP_NOTHING = "nothing significant is left, above the noise: no effect of the library explains the rest"

@@ -15,12 +15,12 @@ Two kinds:
   mount; it is held whether or not the recording happens to tell it.
 - **by the recording** (:func:`candidate_gauges`): the candidate's directions whose columns,
   with the fitted parameters' columns projected out, the data know no better than the
-  candidate's prior (the score test's own criterion: ``fusion.workbench.scores``). Those
+  candidate's prior (the score test's own criterion: ``armfusion.fusion.workbench.scores``). Those
   whose information the fitted parameters take up to all but :data:`STRUCTURAL_SHARE` are
   reported as structural too (a gauge of the model, not of this motion).
 
 A direction is held by holding the element of the block that carries most of it (as Ceres
-holds a parameter, and as :mod:`fusion.identification.identifiability` does): the other
+holds a parameter, and as :mod:`armfusion.fusion.identification.identifiability` does): the other
 elements then describe the same readings, the gauge fixed at that element's prior.
 """
 
@@ -31,11 +31,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from armfusion.fusion.identification.data import FitData, fitted_streams, with_encoder_zeros
+from armfusion.fusion.identification.identifiability import suggestion_for
+from armfusion.models.effects import Model
 from scipy.linalg import qr
-
-from fusion.identification.data import FitData, fitted_streams, with_encoder_zeros
-from fusion.identification.identifiability import suggestion_for
-from models.effects import Model
 
 STRUCTURAL_SHARE = 1e-6
 """A direction whose information, with the fitted parameters projected out, is below this

@@ -6,7 +6,7 @@ at the estimates the fit part gave. Within one recording the encoder zeros and t
 attitude carry over (the same joints, the same stance); a second recording has its own, so
 they alone are fitted there (every effect held at the fit part's estimate) before it is
 judged. A rung of the ladder, an ``--add`` or a written config whose held-out error is above
-the one before it is refused (:mod:`fusion.workbench.discover`, ``fusion.cli.diagnose``).
+the one before it is refused (:mod:`armfusion.fusion.workbench.discover`, ``armfusion.fusion.cli.diagnose``).
 """
 
 from __future__ import annotations
@@ -16,15 +16,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
-from fusion.identification.data import FitData
-from fusion.identification.identify import identify
-from fusion.identification.problem import FitProblem
-from fusion.identification.result import Identification
-from fusion.identification.settings import IdentifySettings
-from fusion.workbench.gauges import held_elements, structural_gauges
-from fusion.workbench.residuals import fit_model
-from models.effects import Model
+from armfusion.fusion.identification.data import FitData
+from armfusion.fusion.identification.identify import identify
+from armfusion.fusion.identification.problem import FitProblem
+from armfusion.fusion.identification.result import Identification
+from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.fusion.workbench.gauges import held_elements, structural_gauges
+from armfusion.fusion.workbench.residuals import fit_model
+from armfusion.models.effects import Model
 
 HELD_OUT_SHARE = 0.3
 """The share of a recording (its end) judged, not fitted."""
@@ -181,9 +180,9 @@ def tracked(arm, rec, t_from_s: float) -> Tracked:
     link accelerometers' innovations and each joint's tracked angle against its encoder: with
     no truth at hand, whether the filter's σ hold there and how far the angles wander off the
     encoders (:class:`Tracked`)."""
-    from fusion.tracking.settings import ENC
-    from fusion.tracking.tracker import start_from_recording
-    from models.rotations import wrap_angle
+    from armfusion.fusion.tracking.settings import ENC
+    from armfusion.fusion.tracking.tracker import start_from_recording
+    from armfusion.models.rotations import wrap_angle
 
     tr, _start = start_from_recording(arm, rec)
     run = tr.run(rec, truth=False)

@@ -1,7 +1,7 @@
 """The workbench on moving data (the chair driving): the tracker run over the recording,
-and the same whiteness and input-correlation analysis (:mod:`fusion.workbench.whiteness`) on
+and the same whiteness and input-correlation analysis (:mod:`armfusion.fusion.workbench.whiteness`) on
 its normalised innovations, with each sensor's mean NIS. :func:`chair_moves` says whether a
-recording is one for this analysis (the fit of :func:`fusion.workbench.diagnose.diagnose`
+recording is one for this analysis (the fit of :func:`armfusion.fusion.workbench.diagnose.diagnose`
 takes the chair as parked)."""
 
 from __future__ import annotations
@@ -13,10 +13,14 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-
-from fusion.workbench.whiteness import MAX_LAG, InputCorrelation, ResidualAnalysis, residual_analysis
-from models.rotations import DEG, up_from_tilt
-from models.sensor_models import stream_models
+from armfusion.fusion.workbench.whiteness import (
+    MAX_LAG,
+    InputCorrelation,
+    ResidualAnalysis,
+    residual_analysis,
+)
+from armfusion.models.rotations import DEG, up_from_tilt
+from armfusion.models.sensor_models import stream_models
 
 INNOVATIONS_WHITE = "innovations white: the model fits the moving recording"
 
@@ -182,7 +186,7 @@ def _block_means(t: np.ndarray, x: np.ndarray, n: int) -> tuple[np.ndarray, np.n
 
 def innovation_diagnosis(arm, rec, settings=None, max_lag: int = MAX_LAG, block_s: float = 0.5,
                          progress: Callable[[str, float], None] | None = None) -> InnovationDiagnosis:
-    """Run the tracker (``fusion.tracking.tracker``, started on the recording's first still stretch)
+    """Run the tracker (``armfusion.fusion.tracking.tracker``, started on the recording's first still stretch)
     over ``rec`` and analyse its normalised innovations: whiteness per axis and
     cross-correlation with the inputs (:func:`residual_analysis`).
 
@@ -191,7 +195,7 @@ def innovation_diagnosis(arm, rec, settings=None, max_lag: int = MAX_LAG, block_
     lag in the motion terms, the encoders' rounding, a gain below the optimum where the
     noise is taken larger than it is), which the block means wash out, while a missing
     effect (a bias that follows the pose, a drift) lasts for seconds and survives."""
-    from fusion.tracking.tracker import start_from_recording
+    from armfusion.fusion.tracking.tracker import start_from_recording
 
     t0 = time.perf_counter()
     say = progress or (lambda _m, _f: None)

@@ -10,14 +10,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
-from fusion.identification.data import FitData, with_encoder_zeros
-from fusion.identification.identify import identify
-from fusion.identification.problem import FitProblem
-from fusion.identification.result import Identification
-from fusion.identification.settings import IdentifySettings
-from fusion.workbench.gauges import held_elements, structural_gauges
-from models.effects import Effect, Model
+from armfusion.fusion.identification.data import FitData, with_encoder_zeros
+from armfusion.fusion.identification.identify import identify
+from armfusion.fusion.identification.problem import FitProblem
+from armfusion.fusion.identification.result import Identification
+from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.fusion.workbench.gauges import held_elements, structural_gauges
+from armfusion.models.effects import Effect, Model
 
 
 @dataclass(frozen=True)
@@ -58,7 +57,7 @@ def fit_model(model: Model, data: FitData, streams: Sequence[str] | None = None,
               hold: Sequence[str] = ()) -> Identification:
     """``identify`` with the recording's encoder zeros added to ``model``, its structural gauges
     held (a mount rotation about its own joint's axis where that is the joint's zero:
-    :func:`fusion.workbench.gauges.structural_gauges`) and ``hold`` (elements or blocks) at
+    :func:`armfusion.fusion.workbench.gauges.structural_gauges`) and ``hold`` (elements or blocks) at
     their priors."""
     hold = [*hold, *held_elements(structural_gauges(model, data))]
     return identify(with_encoder_zeros(model), data, streams, settings, hold=hold,

@@ -19,20 +19,19 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-
-from fusion.identification.data import FitData
-from fusion.identification.problem import FitProblem
-from fusion.identification.result import Identification
-from fusion.identification.settings import IdentifySettings
-from fusion.workbench.gauges import (
+from armfusion.fusion.identification.data import FitData
+from armfusion.fusion.identification.problem import FitProblem
+from armfusion.fusion.identification.result import Identification
+from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.fusion.workbench.gauges import (
     STRUCTURAL_SHARE,
     Gauge,
     candidate_gauges,
     still_jacobian,
     structural_gauges,
 )
-from fusion.workbench.residuals import problem_at
-from models.effects import Effect, Model, all_effects
+from armfusion.fusion.workbench.residuals import problem_at
+from armfusion.models.effects import Effect, Model, all_effects
 
 EXCLUDED_CANDIDATES = frozenset({"enc.time_offset", "enc.time_drift"})
 """The encoders are the time reference: their own delay (and its drift) is every other device's."""
@@ -68,7 +67,7 @@ class Linearised(NamedTuple):
     """Its columns among the candidates' (0 = the first candidate column)."""
     gauges: tuple[Gauge, ...] = ()
     """Its directions the fit cannot tell from what it already makes free (held in a refit;
-    :mod:`fusion.workbench.gauges`)."""
+    :mod:`armfusion.fusion.workbench.gauges`)."""
 
 
 @dataclass(frozen=True)

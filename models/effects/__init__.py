@@ -1,16 +1,16 @@
 """The library of physical effects and the model that composes them.
 
-- :mod:`models.effects.base`: parameter blocks, stages, targets, the context;
-- :mod:`models.effects.library`: the effects themselves (``EFFECTS``);
-- :mod:`models.effects.model`: :class:`Model`, an ordered composition with one flat
+- :mod:`armfusion.models.effects.base`: parameter blocks, stages, targets, the context;
+- :mod:`armfusion.models.effects.library`: the effects themselves (``EFFECTS``);
+- :mod:`armfusion.models.effects.model`: :class:`Model`, an ordered composition with one flat
   parameter vector, predictions in counts and their Jacobians by block name;
-- :mod:`models.effects.entries`: effects as written in configs, on the command line and
+- :mod:`armfusion.models.effects.entries`: effects as written in configs, on the command line and
   in truth files, validated with messages that name the key.
 
 See docs/effects.md.
 """
 
-from models.effects.base import (
+from armfusion.models.effects.base import (
     STAGES,
     Context,
     Effect,
@@ -21,7 +21,7 @@ from models.effects.base import (
     TargetError,
     TimeEffect,
 )
-from models.effects.entries import (
+from armfusion.models.effects.entries import (
     all_effects,
     build_effect,
     describe_effects,
@@ -33,8 +33,8 @@ from models.effects.entries import (
     parse_effect_option,
     realistic_values,
 )
-from models.effects.library import EFFECTS
-from models.effects.model import Model
+from armfusion.models.effects.library import EFFECTS
+from armfusion.models.effects.model import Model
 
 __all__ = [
     "EFFECTS", "STAGES", "Context", "Effect", "JointEffect", "Model", "MountEffect", "ParamBlock",

@@ -8,9 +8,8 @@ the ADXL345 and MPU-9150 datasheets; each class says where its numbers come from
 from __future__ import annotations
 
 import numpy as np
-
-from models.effects.base import SensorEffect, accel_stream
-from models.effects.shapes import XYZ, AxisOffset, AxisScale, by_sensor_type, diag_batch
+from armfusion.models.effects.base import SensorEffect, accel_stream
+from armfusion.models.effects.shapes import XYZ, AxisOffset, AxisScale, by_sensor_type, diag_batch
 
 
 class _AccelEffect(SensorEffect):

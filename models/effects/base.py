@@ -25,11 +25,16 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.motion import DEFAULT_MASSES, MassModel, MotionState, gravity_torques, lever_arm_jacobian
-from models.sensor_models import IMU_STREAM_PARTS
-from sensors.samples import link_gyro_stream
+from armfusion.models.arm import ArmModel
+from armfusion.models.motion import (
+    DEFAULT_MASSES,
+    MassModel,
+    MotionState,
+    gravity_torques,
+    lever_arm_jacobian,
+)
+from armfusion.models.sensor_models import IMU_STREAM_PARTS
+from armfusion.sensors.samples import link_gyro_stream
 
 STAGES = ("joints", "mounts", "sensor", "time")
 ENCODER_DEVICE = "enc"

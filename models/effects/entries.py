@@ -17,12 +17,11 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.arm_config import ConfigError, ConfigProblem
-from models.effects.base import Effect, ParamBlock, TargetError
-from models.effects.library import EFFECTS
-from models.effects.model import Model
+from armfusion.models.arm import ArmModel
+from armfusion.models.arm_config import ConfigError, ConfigProblem
+from armfusion.models.effects.base import Effect, ParamBlock, TargetError
+from armfusion.models.effects.library import EFFECTS
+from armfusion.models.effects.model import Model
 
 
 def effect_names() -> tuple[str, ...]:

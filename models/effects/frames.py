@@ -5,10 +5,9 @@ parallel to the arm's base, a sensor's lever arm off, samples stamped late.
 from __future__ import annotations
 
 import numpy as np
-
-from models.effects.base import MountEffect, TimeEffect, accel_stream, device_streams
-from models.effects.shapes import XYZ, FrameRotation
-from models.rotations import DEG
+from armfusion.models.effects.base import MountEffect, TimeEffect, accel_stream, device_streams
+from armfusion.models.effects.shapes import XYZ, FrameRotation
+from armfusion.models.rotations import DEG
 
 
 class MountRotation(FrameRotation):

@@ -5,12 +5,11 @@ the compass: gyro offset and scale, hard and soft iron, a dipole that moves with
 from __future__ import annotations
 
 import numpy as np
-
-from models.effects.base import SensorEffect, TargetError
-from models.effects.shapes import XYZ, AxisOffset, AxisScale
-from models.kinematics import chain_poses
-from models.motion import cross
-from models.rotations import DEG
+from armfusion.models.effects.base import SensorEffect, TargetError
+from armfusion.models.effects.shapes import XYZ, AxisOffset, AxisScale
+from armfusion.models.kinematics import chain_poses
+from armfusion.models.motion import cross
+from armfusion.models.rotations import DEG
 
 
 class _ImuEffect(SensorEffect):

@@ -5,10 +5,9 @@ play, and an encoder's counts per revolution off.
 from __future__ import annotations
 
 import numpy as np
-
-from models.effects.base import JointEffect, SensorEffect
-from models.effects.shapes import diag_batch
-from models.rotations import DEG
+from armfusion.models.effects.base import JointEffect, SensorEffect
+from armfusion.models.effects.shapes import diag_batch
+from armfusion.models.rotations import DEG
 
 
 class JointOffset(JointEffect):

@@ -2,11 +2,11 @@
 config, each as a small object with one parameter block, a vectorised ``apply`` and its
 analytic Jacobians. Units are in the parameter keys; every identity is zero.
 
-The effects live by family: :mod:`models.effects.accelerometer` (the accelerometers' own
-errors), :mod:`models.effects.frames` (where sensors sit, when they sample),
-:mod:`models.effects.joints`, :mod:`models.effects.imu` (gyro, magnetometer, the arm's
+The effects live by family: :mod:`armfusion.models.effects.accelerometer` (the accelerometers' own
+errors), :mod:`armfusion.models.effects.frames` (where sensors sit, when they sample),
+:mod:`armfusion.models.effects.joints`, :mod:`armfusion.models.effects.imu` (gyro, magnetometer, the arm's
 disturbance of the compass); the shapes several share (an offset, a scale error, a frame
-rotation) are :mod:`models.effects.shapes`. This module is their one list: a new effect is
+rotation) are :mod:`armfusion.models.effects.shapes`. This module is their one list: a new effect is
 added to :data:`EFFECT_CLASSES`.
 
 Magnitudes (the 1-σ of ``default_sigma``, used as prior and by ``--realistic``) come from
@@ -16,9 +16,21 @@ arms show; each class says where its numbers come from.
 
 from __future__ import annotations
 
-from models.effects.accelerometer import AccelAxes, AccelBias, AccelScale, TemperatureDrift, axis_directions
-from models.effects.frames import BaseMount, MotionAcceleration, MountRotation, TimeDrift, TimeOffset
-from models.effects.imu import (
+from armfusion.models.effects.accelerometer import (
+    AccelAxes,
+    AccelBias,
+    AccelScale,
+    TemperatureDrift,
+    axis_directions,
+)
+from armfusion.models.effects.frames import (
+    BaseMount,
+    MotionAcceleration,
+    MountRotation,
+    TimeDrift,
+    TimeOffset,
+)
+from armfusion.models.effects.imu import (
     MU0_OVER_4PI_UT_M3_PER_AM2,
     GyroBias,
     GyroScale,
@@ -28,7 +40,7 @@ from models.effects.imu import (
     dipole_field,
     soft_iron_matrix,
 )
-from models.effects.joints import Backlash, EncoderScale, JointOffset, LinkCompliance
+from armfusion.models.effects.joints import Backlash, EncoderScale, JointOffset, LinkCompliance
 
 EFFECT_CLASSES = (
     AccelBias, AccelScale, AccelAxes, MountRotation, JointOffset, BaseMount, LinkCompliance,

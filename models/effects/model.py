@@ -9,12 +9,12 @@ A prediction runs the stages in physical order, whatever order the effects were 
 
 1. joints: ``q_geom = q + Σ delta_e(q)`` (joint offsets, sag, play);
 2. mounts: sensors moved on their links (lever arms);
-3. kinematics (:mod:`models.motion`): specific force, angular rate, Earth's field and
+3. kinematics (:mod:`armfusion.models.motion`): specific force, angular rate, Earth's field and
    temperature in each sensor's axes; the encoders see the controller's ``q``;
 4. sensor: each stream's value through its effects by rank (frame 10, axes 20, scale 30,
    bias 40, drift 50; the arm's magnetic disturbance 5, before the IMU frame);
 5. time: a device's samples taken ``offset`` before their stamps;
-6. counts: nominal gain and zero (:mod:`models.sensor_models`).
+6. counts: nominal gain and zero (:mod:`armfusion.models.sensor_models`).
 
 The Jacobian w.r.t. the parameters is accumulated forward through the same stages, as a
 dict ``{stream: {block: (N, k, p)}}`` holding only the blocks that reach that stream.
@@ -25,9 +25,8 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.effects.base import (
+from armfusion.models.arm import ArmModel
+from armfusion.models.effects.base import (
     Context,
     Effect,
     JointEffect,
@@ -37,7 +36,7 @@ from models.effects.base import (
     TimeEffect,
     device_streams,
 )
-from models.motion import (
+from armfusion.models.motion import (
     DEFAULT_MASSES,
     MassModel,
     MotionState,
@@ -45,8 +44,8 @@ from models.motion import (
     sensor_motion,
     specific_force_jacobian,
 )
-from models.sensor_models import EARTH_FIELD_TAMPA_UT, StreamModel, stream_models
-from sensors.samples import link_gyro_stream
+from armfusion.models.sensor_models import EARTH_FIELD_TAMPA_UT, StreamModel, stream_models
+from armfusion.sensors.samples import link_gyro_stream
 
 StateAt = Callable[[np.ndarray], MotionState]
 Jacobian = dict[str, dict[str, np.ndarray]]

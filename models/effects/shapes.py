@@ -10,10 +10,9 @@ name, target, units, magnitudes and where they come from.
 from __future__ import annotations
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.effects.base import SensorEffect
-from models.rotations import exp_so3, skew, so3_right_jacobian
+from armfusion.models.arm import ArmModel
+from armfusion.models.effects.base import SensorEffect
+from armfusion.models.rotations import exp_so3, skew, so3_right_jacobian
 
 XYZ = ("x", "y", "z")
 

@@ -1,6 +1,6 @@
 """Scenarios: how the arm's joints and the chair move over time, as smooth functions.
 
-A :class:`Scenario` gives the full :class:`~models.motion.MotionState` at any instants
+A :class:`Scenario` gives the full :class:`~armfusion.models.motion.MotionState` at any instants
 ``t`` (vectorised; no loop per sample), with joint rates and accelerations and the base's
 angular velocity, angular acceleration and linear acceleration that are the exact
 derivatives of the poses it gives. That is what lets the simulator sample each device at
@@ -34,10 +34,10 @@ Scenarios (``make_scenario(arm, name, …)``):
 The motion profiles are quintic "minimum-jerk" blends between levels (continuous up to
 the acceleration), so accelerations and their derivatives stay finite and realistic.
 
-The package: :mod:`~models.trajectories.paths` (the smooth pieces),
-:mod:`~models.trajectories.scenario` (:class:`Scenario` and what the families share), one
-module per family (:mod:`~models.trajectories.still`, :mod:`~models.trajectories.renk`,
-:mod:`~models.trajectories.daily`), and here the table of scenarios by name.
+The package: :mod:`~armfusion.models.trajectories.paths` (the smooth pieces),
+:mod:`~armfusion.models.trajectories.scenario` (:class:`Scenario` and what the families share), one
+module per family (:mod:`~armfusion.models.trajectories.still`, :mod:`~armfusion.models.trajectories.renk`,
+:mod:`~armfusion.models.trajectories.daily`), and here the table of scenarios by name.
 """
 
 from __future__ import annotations
@@ -45,9 +45,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from models.arm import ArmModel
-from models.trajectories.daily import compass_turn, daily_use, excitation
-from models.trajectories.paths import (
+from armfusion.models.arm import ArmModel
+from armfusion.models.trajectories.daily import compass_turn, daily_use, excitation
+from armfusion.models.trajectories.paths import (
     BaseMotion,
     BasePath,
     DrivingChair,
@@ -59,7 +59,7 @@ from models.trajectories.paths import (
     WaypointPath,
     min_jerk_duration,
 )
-from models.trajectories.renk import (
+from armfusion.models.trajectories.renk import (
     RAMP_SLOPE,
     RAMP_STANCES,
     RENK_DURATION_S,
@@ -67,8 +67,8 @@ from models.trajectories.renk import (
     renk_maneuver,
     renk_ramp,
 )
-from models.trajectories.scenario import Scenario, scenario_rng, warm_up
-from models.trajectories.still import random_still_poses, startup, static_poses
+from armfusion.models.trajectories.scenario import Scenario, scenario_rng, warm_up
+from armfusion.models.trajectories.still import random_still_poses, startup, static_poses
 
 
 @dataclass(frozen=True)

@@ -5,10 +5,9 @@ and takes ramps), ``excitation`` (everything at once, for identification) and
 from __future__ import annotations
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.rotations import DEG
-from models.trajectories.paths import (
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG
+from armfusion.models.trajectories.paths import (
     CHAIR_LEVER_M,
     DrivingChair,
     SinePath,
@@ -17,7 +16,7 @@ from models.trajectories.paths import (
     chair_lever_m,
     min_jerk_duration,
 )
-from models.trajectories.scenario import Scenario, clip_pose, margin_limits, warm_up
+from armfusion.models.trajectories.scenario import Scenario, clip_pose, margin_limits, warm_up
 
 
 def _reach_path(arm: ArmModel, duration_s: float, rng: np.random.Generator, still_s: float,

@@ -9,9 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from models.motion import body_rates_from_rpy, cross
-from models.rotations import R_from_rpy
+from armfusion.models.motion import body_rates_from_rpy, cross
+from armfusion.models.rotations import R_from_rpy
 
 
 # --------------------------------------------------------------------------------------
@@ -233,7 +232,7 @@ unless the arm's config says (:func:`chair_lever_m`)."""
 
 def chair_lever_m(arm) -> tuple[float, float, float]:
     """The arm's base from its chair's turning centre (m): the config's ``chair:`` block
-    where it has one (:attr:`models.arm.ArmModel.base_from_turning_centre_m`), else
+    where it has one (:attr:`armfusion.models.arm.ArmModel.base_from_turning_centre_m`), else
     :data:`CHAIR_LEVER_M`."""
     rho = getattr(arm, "base_from_turning_centre_m", None)
     return CHAIR_LEVER_M if rho is None else tuple(float(v) for v in rho)

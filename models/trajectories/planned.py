@@ -4,9 +4,9 @@ poses, each held for a dwell, joined by minimum-jerk moves, the chair parked.
 :class:`PlannedManeuver` is the plan itself (poses, dwells, move durations), as the
 planner writes it and a maneuver file holds it (:meth:`PlannedManeuver.as_dict`,
 :meth:`PlannedManeuver.from_dict`: the file's shape, checked here; whether the plan is
-safe for this arm is checked in ``fusion.identification.planner.maneuver_problems``).
-:func:`planned_scenario` turns it into a :class:`~models.trajectories.scenario.Scenario` the
-simulator plays (a :class:`~models.trajectories.paths.WaypointPath`, the same pieces as
+safe for this arm is checked in ``armfusion.fusion.identification.planner.maneuver_problems``).
+:func:`planned_scenario` turns it into a :class:`~armfusion.models.trajectories.scenario.Scenario` the
+simulator plays (a :class:`~armfusion.models.trajectories.paths.WaypointPath`, the same pieces as
 ``static-poses``).
 """
 
@@ -17,11 +17,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.rotations import DEG
-from models.trajectories.paths import StepsBuilder, WaypointPath
-from models.trajectories.scenario import Scenario, parked_chair, scenario_rng, warm_up
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG
+from armfusion.models.trajectories.paths import StepsBuilder, WaypointPath
+from armfusion.models.trajectories.scenario import Scenario, parked_chair, scenario_rng, warm_up
 
 MAX_POSES = 1000
 """A maneuver file holds at most this many poses (a plan of 60 s has about 15)."""

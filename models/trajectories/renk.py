@@ -5,11 +5,10 @@ down and across it both ways)."""
 from __future__ import annotations
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.rotations import DEG
-from models.trajectories.paths import DrivingChair, SinePath, StepsBuilder, chair_lever_m
-from models.trajectories.scenario import Scenario, margin_limits, parked_chair, warm_up
+from armfusion.models.arm import ArmModel
+from armfusion.models.rotations import DEG
+from armfusion.models.trajectories.paths import DrivingChair, SinePath, StepsBuilder, chair_lever_m
+from armfusion.models.trajectories.scenario import Scenario, margin_limits, parked_chair, warm_up
 
 RENK_DURATION_S = 27.74 * 60.0
 RENK_RATES_DEG_S = {"yaw": 3.1, "pitch": 0.87, "roll": 13.9}

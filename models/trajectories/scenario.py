@@ -9,11 +9,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.motion import MotionState
-from models.rotations import DEG
-from models.trajectories.paths import BasePath, JointPath, ParkedBase
+from armfusion.models.arm import ArmModel
+from armfusion.models.motion import MotionState
+from armfusion.models.rotations import DEG
+from armfusion.models.trajectories.paths import BasePath, JointPath, ParkedBase
 
 SCENARIO_STREAM = 0x5CE
 """The stream of a recording's seed that draws its scenario (the chair's tilt and heading, a

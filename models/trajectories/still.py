@@ -4,12 +4,11 @@ poses, a share near gimbal lock, slow moves between), and the random poses thems
 from __future__ import annotations
 
 import numpy as np
-
-from models.arm import ArmModel
-from models.kinematics import joint_axis_angle_to_vertical
-from models.rotations import DEG, up_from_tilt
-from models.trajectories.paths import SmoothSteps, StepsBuilder, WaypointPath, min_jerk_duration
-from models.trajectories.scenario import Scenario, clip_pose, margin_limits, parked_chair, warm_up
+from armfusion.models.arm import ArmModel
+from armfusion.models.kinematics import joint_axis_angle_to_vertical
+from armfusion.models.rotations import DEG, up_from_tilt
+from armfusion.models.trajectories.paths import SmoothSteps, StepsBuilder, WaypointPath, min_jerk_duration
+from armfusion.models.trajectories.scenario import Scenario, clip_pose, margin_limits, parked_chair, warm_up
 
 
 def startup(arm: ArmModel, duration_s: float, rng: np.random.Generator, pose_rad=None) -> Scenario:

@@ -5,18 +5,18 @@
 * :class:`FakeSMBus` (smbus2.SMBus methods) and :class:`FakeSpiController` /
   :class:`FakeSpiDev` (spidev.SpiDev attributes and ``xfer2``) to reach them;
 * :class:`FaultInjector` on every bus and device; :class:`FakeClock` for time;
-* :class:`FakeRig`: the WMRA's five sensors wired as in ``sensors.sampling``.
+* :class:`FakeRig`: the WMRA's five sensors wired as in ``armfusion.sensors.sampling``.
 """
 
-from sensors.fakes.adxl345 import FakeADXL345, ProducedSample
-from sensors.fakes.clock import FakeClock
-from sensors.fakes.faults import FaultInjector
-from sensors.fakes.mpu9150 import FakeAK8975, FakeMPU9150, ProducedImuSample
-from sensors.fakes.physics import FunctionPhysics, PhysicsSource, StaticPhysics
-from sensors.fakes.registers import FakeRegisterDevice, RegisterAccess
-from sensors.fakes.rig import FakeRig
-from sensors.fakes.smbus import FakeSMBus, I2CTransaction
-from sensors.fakes.spidev import FakeSpiController, FakeSpiDev, SpiFrame
+from armfusion.sensors.fakes.adxl345 import FakeADXL345, ProducedSample
+from armfusion.sensors.fakes.clock import FakeClock
+from armfusion.sensors.fakes.faults import FaultInjector
+from armfusion.sensors.fakes.mpu9150 import FakeAK8975, FakeMPU9150, ProducedImuSample
+from armfusion.sensors.fakes.physics import FunctionPhysics, PhysicsSource, StaticPhysics
+from armfusion.sensors.fakes.registers import FakeRegisterDevice, RegisterAccess
+from armfusion.sensors.fakes.rig import FakeRig
+from armfusion.sensors.fakes.smbus import FakeSMBus, I2CTransaction
+from armfusion.sensors.fakes.spidev import FakeSpiController, FakeSpiDev, SpiFrame
 
 __all__ = [
     "FakeADXL345",

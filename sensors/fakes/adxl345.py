@@ -33,9 +33,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
-from sensors.fakes.physics import PhysicsSource
-from sensors.fakes.registers import FakeRegisterDevice
+from armfusion.sensors.fakes.physics import PhysicsSource
+from armfusion.sensors.fakes.registers import FakeRegisterDevice
 
 DEVID, BW_RATE, POWER_CTL, INT_SOURCE, DATA_FORMAT = 0x00, 0x2C, 0x2D, 0x30, 0x31
 OFSX, OFSY, OFSZ = 0x1E, 0x1F, 0x20

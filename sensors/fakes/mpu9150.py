@@ -35,9 +35,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
-from sensors.fakes.physics import PhysicsSource
-from sensors.fakes.registers import FakeRegisterDevice
+from armfusion.sensors.fakes.physics import PhysicsSource
+from armfusion.sensors.fakes.registers import FakeRegisterDevice
 
 SMPLRT_DIV, CONFIG, GYRO_CONFIG, ACCEL_CONFIG = 0x19, 0x1A, 0x1B, 0x1C
 INT_PIN_CFG, INT_ENABLE, INT_STATUS, ACCEL_XOUT_H = 0x37, 0x38, 0x3A, 0x3B

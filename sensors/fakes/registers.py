@@ -7,7 +7,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal
 
-from sensors.fakes.faults import FaultInjector
+from armfusion.sensors.fakes.faults import FaultInjector
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""FakeRig: the WMRA's sensors as fakes, wired as ``sensors.sampling.WMRA_WIRING``.
+"""FakeRig: the WMRA's sensors as fakes, wired as ``armfusion.sensors.sampling.WMRA_WIRING``.
 
 The real drivers open the rig exactly as they open hardware, with the rig's
 factories in place of ``smbus2.SMBus`` and ``spidev.SpiDev``::
@@ -13,13 +13,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 
-from sensors.fakes.adxl345 import FakeADXL345
-from sensors.fakes.mpu9150 import FakeMPU9150
-from sensors.fakes.physics import PhysicsSource, StaticPhysics
-from sensors.fakes.registers import FakeRegisterDevice
-from sensors.fakes.smbus import FakeSMBus
-from sensors.fakes.spidev import FakeSpiController
-from sensors.sampling import WMRA_WIRING, Wiring
+from armfusion.sensors.fakes.adxl345 import FakeADXL345
+from armfusion.sensors.fakes.mpu9150 import FakeMPU9150
+from armfusion.sensors.fakes.physics import PhysicsSource, StaticPhysics
+from armfusion.sensors.fakes.registers import FakeRegisterDevice
+from armfusion.sensors.fakes.smbus import FakeSMBus
+from armfusion.sensors.fakes.spidev import FakeSpiController
+from armfusion.sensors.sampling import WMRA_WIRING, Wiring
 
 
 class FakeRig:

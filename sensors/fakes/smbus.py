@@ -8,7 +8,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
-from sensors.fakes.faults import FaultInjector, os_error
+from armfusion.sensors.fakes.faults import FaultInjector, os_error
 
 I2C_SMBUS_BLOCK_MAX = 32
 

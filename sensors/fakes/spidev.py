@@ -20,8 +20,8 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from sensors.fakes.faults import FaultInjector, os_error
-from sensors.fakes.registers import FakeRegisterDevice
+from armfusion.sensors.fakes.faults import FaultInjector, os_error
+from armfusion.sensors.fakes.registers import FakeRegisterDevice
 
 MAX_SPEED_HZ = 5_000_000
 REQUIRED_MODE = 3

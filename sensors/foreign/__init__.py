@@ -2,8 +2,8 @@
 
 A foreign file knows nothing of arms or streams: it is a table of named columns (a CSV with a
 header, the column vectors of a MATLAB ``.mat`` v5 file, the datasets of an HDF5 file). The
-import (:mod:`fusion.importing`) names the columns it needs by their address
-(:mod:`sensors.foreign.table`), and :func:`read_columns` reads those, and only those, as
+import (:mod:`armfusion.fusion.importing`) names the columns it needs by their address
+(:mod:`armfusion.sensors.foreign.table`), and :func:`read_columns` reads those, and only those, as
 float64, bounded in size, naming the file and the column in every refusal.
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from sensors.foreign.table import ForeignColumns, ForeignFileError, parse_address
+from armfusion.sensors.foreign.table import ForeignColumns, ForeignFileError, parse_address
 
 __all__ = ["SUFFIXES", "ForeignColumns", "ForeignFileError", "parse_address", "read_columns"]
 
@@ -35,13 +35,13 @@ def read_columns(path: str | Path, columns: Sequence[str], scalars: Sequence[str
     if not path.is_file():
         raise ForeignFileError(f"{path}: no such file")
     if suffix == ".csv":
-        from sensors.foreign.csv_table import read_csv_columns
+        from armfusion.sensors.foreign.csv_table import read_csv_columns
 
         return read_csv_columns(path, columns, scalars)
     if suffix == ".mat":
-        from sensors.foreign.mat_table import read_mat_columns
+        from armfusion.sensors.foreign.mat_table import read_mat_columns
 
         return read_mat_columns(path, columns, scalars)
-    from sensors.foreign.hdf5_table import read_hdf5_columns
+    from armfusion.sensors.foreign.hdf5_table import read_hdf5_columns
 
     return read_hdf5_columns(path, columns, scalars)

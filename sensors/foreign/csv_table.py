@@ -1,6 +1,6 @@
 """The columns of a foreign CSV file: a header row of names, then rows of numbers; an empty
 cell (or ``NaN``) is a value not recorded, read as NaN. Read with the recording CSV's bounded
-block parser (:mod:`sensors.csv_blocks`: the same :class:`~sensors.csv_blocks.CsvLimits`,
+block parser (:mod:`armfusion.sensors.csv_blocks`: the same :class:`~armfusion.sensors.csv_blocks.CsvLimits`,
 the same messages naming row, line and column), only the columns named. A CSV has no
 scalars: a start row is given as a number in the column map."""
 
@@ -11,10 +11,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-
-from sensors.csv_blocks import DEFAULT_LIMITS, CsvLimits, parse_rows, read_header
-from sensors.foreign.table import ForeignColumns, ForeignFileError, parse_address, unknown_column
-from sensors.samples import clipped_repr
+from armfusion.sensors.csv_blocks import DEFAULT_LIMITS, CsvLimits, parse_rows, read_header
+from armfusion.sensors.foreign.table import ForeignColumns, ForeignFileError, parse_address, unknown_column
+from armfusion.sensors.samples import clipped_repr
 
 
 def read_csv_columns(path: Path, columns: Sequence[str], scalars: Sequence[str] = (),

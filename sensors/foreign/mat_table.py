@@ -9,8 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-
-from sensors.foreign.table import (
+from armfusion.sensors.foreign.table import (
     ForeignColumns,
     ForeignFileError,
     check_size,

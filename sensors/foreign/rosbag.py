@@ -23,9 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from sensors.foreign.table import MAX_FILE_BYTES, ForeignFileError, available_words, check_size
-from sensors.samples import clipped_repr
+from armfusion.sensors.foreign.table import MAX_FILE_BYTES, ForeignFileError, available_words, check_size
+from armfusion.sensors.samples import clipped_repr
 
 MESSAGE_TYPES: dict[str, str] = {
     "sensor_msgs/msg/Imu": "orientation, angular_velocity, linear_acceleration (.x .y .z; .w too)",

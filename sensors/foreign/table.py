@@ -11,8 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from sensors.samples import RecordingError, clipped_repr
+from armfusion.sensors.samples import RecordingError, clipped_repr
 
 MAX_FILE_BYTES = 4 * 1024**3
 """A foreign file larger than this is refused unread (the rig's 25-minute trials are 3 MB)."""

@@ -9,16 +9,15 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm, resolve_config_path
+from armfusion.fusion.identification.data import data_from_recording
+from armfusion.fusion.identification.truth import truth_values
+from armfusion.fusion.workbench.diagnose import FITS_TO_NOISE, DiagnoseSettings, add_effects, diagnose
+from armfusion.models.effects import EFFECTS, build_effect, model_from_arm
+from armfusion.models.simulator import simulate
+from armfusion.models.trajectories import SinePath, make_scenario
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import load_arm, resolve_config_path
-from fusion.identification.data import data_from_recording
-from fusion.identification.truth import truth_values
-from fusion.workbench.diagnose import FITS_TO_NOISE, DiagnoseSettings, add_effects, diagnose
-from models.effects import EFFECTS, build_effect, model_from_arm
-from models.simulator import simulate
-from models.trajectories import SinePath, make_scenario
 
 DURATION_S = 60.0
 WINDOW = 10

@@ -4,11 +4,10 @@ import json
 
 import numpy as np
 import yaml
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm
+from armfusion.models.effects import build_effect
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import load_arm
-from models.effects import build_effect
 
 
 def test_an_estimate_at_its_bound_is_written_at_its_prior_and_said(tmp_path):

@@ -8,15 +8,14 @@ import json
 
 import numpy as np
 import pytest
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.data import data_from_recording
+from armfusion.fusion.workbench.diagnose import DiagnoseSettings
+from armfusion.fusion.workbench.discover import STOP_NOISE, STOP_NOTHING, DiscoverSettings, discover
+from armfusion.models.effects import model_from_arm
+from armfusion.models.simulator import simulate
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import load_arm
-from fusion.identification.data import data_from_recording
-from fusion.workbench.diagnose import DiagnoseSettings
-from fusion.workbench.discover import STOP_NOISE, STOP_NOTHING, DiscoverSettings, discover
-from models.effects import model_from_arm
-from models.simulator import simulate
 
 WINDOW = 10
 
@@ -97,7 +96,7 @@ def test_cli_discover_json_write_report(arm, tmp_path):
                             "--effect", "accel_scale:acc1=0.012,-0.01,0.015", "--out", str(rec)])
     assert r.exit_code == 0, r.output
     cfg = tmp_path / "wmra.yaml"
-    from fusion.configfile import resolve_config_path
+    from armfusion.fusion.configfile import resolve_config_path
 
     cfg.write_text(resolve_config_path("wmra").read_text(encoding="utf-8"), encoding="utf-8")
     out, report = tmp_path / "wmra2.yaml", tmp_path / "r.html"

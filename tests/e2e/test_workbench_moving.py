@@ -8,14 +8,13 @@ import json
 
 import numpy as np
 import pytest
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.tracking.settings import TrackerSettings
+from armfusion.fusion.tracking.tracker import start_from_recording
+from armfusion.fusion.workbench.innovations import INNOVATIONS_WHITE, chair_moves, innovation_diagnosis
+from armfusion.models.simulator import simulate
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import load_arm
-from fusion.tracking.settings import TrackerSettings
-from fusion.tracking.tracker import start_from_recording
-from fusion.workbench.innovations import INNOVATIONS_WHITE, chair_moves, innovation_diagnosis
-from models.simulator import simulate
 
 DURATION_S = 45.0
 SEED = 2
@@ -84,7 +83,7 @@ def test_cli_moving_chair_goes_to_the_innovations(arm, tmp_path):
     r = runner.invoke(app, ["simulate", "--scenario", "daily-use", "--duration", "30", "--seed", str(SEED),
                             "--out", str(rec_path)])
     assert r.exit_code == 0, r.output
-    from sensors.recording import read_recording
+    from armfusion.sensors.recording import read_recording
 
     assert chair_moves(arm, read_recording(rec_path))
     report = tmp_path / "moving.html"

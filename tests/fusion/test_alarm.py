@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from armfusion.fusion.tracking.alarm import Alarm, ModelChangeAlarm, name_shift, onset
+from armfusion.fusion.tracking.settings import C_REACQUISITIONS
+from armfusion.fusion.tracking.tracker import start_from_recording
+from armfusion.models.rotations import DEG, exp_so3
 
-from fusion.tracking.alarm import Alarm, ModelChangeAlarm, name_shift, onset
-from fusion.tracking.settings import C_REACQUISITIONS
-from fusion.tracking.tracker import start_from_recording
-from models.rotations import DEG, exp_so3
 from tools.bench_alarm import bias_jumped, iron_gained, mount_turned
 from tools.bench_track import with_stream
 

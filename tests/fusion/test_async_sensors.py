@@ -10,11 +10,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from fusion.configfile import load_arm
-from fusion.tracking.tracker import TrackerSettings, start_from_recording
-from models.simulator import simulate
-from sensors.samples import Recording
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.tracking.tracker import TrackerSettings, start_from_recording
+from armfusion.models.simulator import simulate
+from armfusion.sensors.samples import Recording
 
 PHASE_MS = {"acc1": 1, "acc2": 2, "acc3": 3, "acc4": 4, "imu_acc": 5, "imu_gyro": 5, "imu_temp": 5,
             "imu_mag": 5}

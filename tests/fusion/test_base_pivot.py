@@ -15,15 +15,15 @@ import h5py
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.importing.column_map import load_column_map
+from armfusion.fusion.importing.run import import_recording
+from armfusion.fusion.tracking.filter import Tracker
+from armfusion.fusion.tracking.frames import make_frames
+from armfusion.fusion.tracking.tracker import start_from_recording
+from armfusion.models.arm_config import ConfigError
+from armfusion.models.rotations import GRAVITY_MPS2, exp_so3
 
-from fusion.configfile import load_arm
-from fusion.importing.column_map import load_column_map
-from fusion.importing.run import import_recording
-from fusion.tracking.filter import Tracker
-from fusion.tracking.frames import make_frames
-from fusion.tracking.tracker import start_from_recording
-from models.arm_config import ConfigError
-from models.rotations import GRAVITY_MPS2, exp_so3
 from tests.fusion.test_base_velocity import (
     _inclination_rmse_deg,
     broad_delays_s,

@@ -15,19 +15,18 @@ import h5py
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.importing.column_map import load_column_map
+from armfusion.fusion.importing.run import import_recording
+from armfusion.fusion.tracking.filter import Tracker
+from armfusion.fusion.tracking.health import SensorHealth
+from armfusion.fusion.tracking.process import ProcessModel
+from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
+from armfusion.fusion.tracking.tracker import start_from_recording
+from armfusion.fusion.tracking.tracker_kernels import process_points_tangent
+from armfusion.models.arm_config import ConfigError
+from armfusion.models.rotations import GRAVITY_MPS2, R_from_rpy, exp_so3
 from scipy.linalg import solve_discrete_lyapunov
-
-from fusion.configfile import load_arm
-from fusion.importing.column_map import load_column_map
-from fusion.importing.run import import_recording
-from fusion.tracking.filter import Tracker
-from fusion.tracking.health import SensorHealth
-from fusion.tracking.process import ProcessModel
-from fusion.tracking.settings import StateLayout, TrackerSettings
-from fusion.tracking.tracker import start_from_recording
-from fusion.tracking.tracker_kernels import process_points_tangent
-from models.arm_config import ConfigError
-from models.rotations import GRAVITY_MPS2, R_from_rpy, exp_so3
 
 RATE_HZ = 285.714
 
@@ -155,7 +154,7 @@ def broad_gyro_delay_s() -> float:
 def broad_delays_s() -> dict[str, float]:
     """The ``broad_imu`` config's delays by stream (its description's ``delay_s``): a synthetic
     BROAD trial's sensors are drawn so, each reading the quantity that long before its stamp."""
-    from models.sensor_models import stream_models
+    from armfusion.models.sensor_models import stream_models
 
     return {k: m.delay_s for k, m in stream_models(load_arm("broad_imu")).items()}
 

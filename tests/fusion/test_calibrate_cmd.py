@@ -8,14 +8,13 @@ import json
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.startup.pose_store import load_pose
+from armfusion.models.kinematics import gravity_in_sensors
+from armfusion.models.rotations import DEG, up_from_tilt
+from armfusion.sensors.recording import write_recording
+from armfusion.sensors.samples import Recording, Stream, accel_columns, encoder_columns
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.startup.pose_store import load_pose
-from models.kinematics import gravity_in_sensors
-from models.rotations import DEG, up_from_tilt
-from sensors.recording import write_recording
-from sensors.samples import Recording, Stream, accel_columns, encoder_columns
 
 runner = CliRunner()
 
@@ -63,8 +62,7 @@ def still_recording(arm, segments, rng, rate_hz=100.0, roll_deg=1.0, pitch_deg=-
 def _calibrated(arm):
     """The WMRA config with perfectly known sensors (no unmodelled-error floor)."""
     import yaml
-
-    from fusion.configfile import resolve_config_path
+    from armfusion.fusion.configfile import resolve_config_path
 
     d = yaml.safe_load(resolve_config_path("wmra").read_text())
     d["calibration"] = {"accel_unmodelled_g": 0.0}
@@ -161,9 +159,8 @@ def test_the_configs_calibrated_effects_are_applied(tmp_path, wmra):
     """An arm with a biased, rotated accelerometer and a joint zero off by a degree: with
     those effects in the config the startup is right again; without them it is not."""
     import yaml
-
-    from fusion.configfile import resolve_config_path
-    from models.simulator import simulate
+    from armfusion.fusion.configfile import resolve_config_path
+    from armfusion.models.simulator import simulate
 
     effects = [
         {"effect": "accel_bias", "target": "acc2", "params": {"bias_g": [0.03, -0.02, 0.035]}},
@@ -197,7 +194,7 @@ def test_the_configs_calibrated_effects_are_applied(tmp_path, wmra):
 
 @pytest.fixture(scope="module")
 def ramp_recording(tmp_path_factory, wmra):
-    from models.simulator import simulate
+    from armfusion.models.simulator import simulate
 
     rec, truth = simulate(wmra, "renk-ramp", 125.0, seed=3, effects=[
         {"effect": "accel_bias", "target": "imu", "params": {"bias_g": [0.02, -0.015, 0.01]}},
@@ -241,8 +238,8 @@ def j7_gauge_recording(tmp_path_factory, wmra):
     about j7's axis (and a little about the others) and whose joints sit off their zeros; the
     true geometric angle of j7 over the first still segment (no sag or play: controller angle
     plus zero offset)."""
-    from fusion.startup.static import find_static_segments
-    from models.simulator import simulate
+    from armfusion.fusion.startup.static import find_static_segments
+    from armfusion.models.simulator import simulate
 
     offsets = np.radians([0.6, -0.4, 0.8, -0.5, 0.3, -0.7, 0.9])
     entries = [{"effect": "mount_rotation", "target": "acc4",
@@ -338,7 +335,7 @@ def test_a_drive_gives_the_written_config_its_compass(j7_gauge_recording, tmp_pa
     recording of the chair turning with the fitted config and writes the iron its turns
     pinned, with its sigma (the truth within 3 sigma, well under the shipped 15 µT), and
     says so in the file and the JSON."""
-    from models.simulator import simulate
+    from armfusion.models.simulator import simulate
 
     path, _ = j7_gauge_recording
     true_iron_ut = np.array([14.0, -14.0, 5.0])

@@ -11,13 +11,12 @@ import json
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import resolve_config_path
+from armfusion.fusion.startup.pose_store import save_pose
+from armfusion.models.simulator import angle_truth
+from armfusion.sensors.recording import read_recording
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import resolve_config_path
-from fusion.startup.pose_store import save_pose
-from models.simulator import angle_truth
-from sensors.recording import read_recording
 
 runner = CliRunner()
 

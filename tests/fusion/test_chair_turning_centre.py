@@ -13,14 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
-from fusion.configfile import load_arm
-from fusion.tracking.frame_kernels import FrameConstants
-from fusion.tracking.frames import make_frames
-from fusion.tracking.tracker import start_from_recording
-from models.arm_config import ConfigError, build_arm
-from models.simulator import simulate
-from models.trajectories import make_scenario
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.tracking.frame_kernels import FrameConstants
+from armfusion.fusion.tracking.frames import make_frames
+from armfusion.fusion.tracking.tracker import start_from_recording
+from armfusion.models.arm_config import ConfigError, build_arm
+from armfusion.models.simulator import simulate
+from armfusion.models.trajectories import make_scenario
 
 WMRA_YAML = Path(__file__).resolve().parents[2] / "config" / "wmra.yaml"
 

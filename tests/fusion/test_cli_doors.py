@@ -10,14 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.service.admission import Admission
+from armfusion.fusion.service.payloads import RawBatch
+from armfusion.models.sensor_models import stream_models
+from armfusion.sensors.samples import Stream
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import load_arm
-from fusion.service.admission import Admission
-from fusion.service.payloads import RawBatch
-from models.sensor_models import stream_models
-from sensors.samples import Stream
 
 runner = CliRunner()
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -25,7 +24,7 @@ DATA = Path(__file__).resolve().parents[1] / "data"
 
 @pytest.fixture(scope="module")
 def startup_csv(tmp_path_factory) -> Path:
-    from fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import simulate
 
     path = tmp_path_factory.mktemp("rec") / "startup.csv"
     simulate("wmra", "startup", path, duration_s=3.0, seed=1)

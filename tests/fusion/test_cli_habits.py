@@ -8,9 +8,8 @@ import subprocess
 import sys
 
 import pytest
+from armfusion.fusion.cli.main import COMMANDS, LazyCommands, app
 from typer.testing import CliRunner
-
-from fusion.cli.main import COMMANDS, LazyCommands, app
 
 runner = CliRunner()
 
@@ -26,16 +25,16 @@ def test_dash_h_is_help_everywhere(cmd):
 
 def test_help_imports_neither_the_tracker_nor_scipy_nor_zenoh():
     code = ("import sys; sys.argv = ['armfusion', '--help']\n"
-            "from fusion.cli.main import app\n"
+            "from armfusion.fusion.cli.main import app\n"
             "try:\n    app()\nexcept SystemExit:\n    pass\n"
             "import json; print(json.dumps(sorted(sys.modules)))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     loaded = set(json.loads(r.stdout.splitlines()[-1]))
     assert "Commands" in r.stdout and "calibrate" in r.stdout and "track" in r.stdout
-    heavy = {"fusion.tracking.tracker", "fusion.identification.identify", "fusion.cli.demo",
+    heavy = {"armfusion.fusion.tracking.tracker", "armfusion.fusion.identification.identify", "armfusion.fusion.cli.demo",
              "scipy.stats", "scipy",
-             "numpy", "numba", "zenoh", "matplotlib", "models.arm_config"}
+             "numpy", "numba", "zenoh", "matplotlib", "armfusion.models.arm_config"}
     assert not heavy & loaded, sorted(heavy & loaded)
 
 
@@ -60,7 +59,7 @@ def test_the_listing_says_what_each_command_says_of_itself():
 
 @pytest.fixture(scope="module")
 def startup_csv(tmp_path_factory):
-    from fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import simulate
 
     path = tmp_path_factory.mktemp("rec") / "startup.csv"
     simulate("wmra", "startup", path, duration_s=3.0, seed=1)
@@ -113,8 +112,8 @@ def test_simulate_refuses_a_run_larger_than_memory_naming_the_bound(tmp_path):
 
 
 def test_the_run_size_bound_is_what_memory_allows():
-    from fusion.cli.simulate import MEMORY_BYTES_PER_VALUE, check_run_size
-    from fusion.configfile import load_arm
+    from armfusion.fusion.cli.simulate import MEMORY_BYTES_PER_VALUE, check_run_size
+    from armfusion.fusion.configfile import load_arm
 
     arm = load_arm("wmra")
     per_s = 100 * 39 * MEMORY_BYTES_PER_VALUE  # 39 values an instant on the WMRA
@@ -129,7 +128,7 @@ def test_the_run_size_bound_is_what_memory_allows():
 def test_track_says_which_span_its_rms_covers_on_a_short_recording(tmp_path):
     import re
 
-    from fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import simulate
 
     path = tmp_path / "short.csv"
     simulate("wmra", "daily-use", path, duration_s=25.0, seed=2)
@@ -169,7 +168,7 @@ def _at_a_terminal(args: list[str], cwd) -> str:
     master, slave = pty.openpty()
     env = {**os.environ, "TERM": "xterm", "COLUMNS": "120"}
     env.pop("NO_COLOR", None)
-    p = subprocess.Popen([sys.executable, "-m", "fusion.cli", *args], stdout=slave, stderr=slave,
+    p = subprocess.Popen([sys.executable, "-m", "armfusion.fusion.cli", *args], stdout=slave, stderr=slave,
                          stdin=subprocess.DEVNULL, cwd=cwd, env=env)
     os.close(slave)
     out = b""
@@ -207,7 +206,7 @@ def test_simulate_shows_a_bar_with_the_time_left_at_a_terminal_only(tmp_path):
 
 
 def test_track_shows_its_bar_at_a_terminal(tmp_path, startup_csv):
-    from fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import simulate
 
     simulate("wmra", "daily-use", tmp_path / "d.csv", duration_s=60.0, seed=4)
     shown = _at_a_terminal(["track", "d.csv"], tmp_path)
@@ -231,7 +230,7 @@ def test_table_headers_keep_their_units(startup_csv):
 
 
 # --------------------------------------------------------------------------------------
-# shared options (fusion.cli.options): the same check, before any work, in every command
+# shared options (armfusion.fusion.cli.options): the same check, before any work, in every command
 
 @pytest.mark.parametrize("args", [
     ["replay", "no-such.csv", "--robot", "chair 1"],

@@ -5,9 +5,8 @@ from __future__ import annotations
 import json
 
 import pytest
+from armfusion.fusion.cli.main import app
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
 
 runner = CliRunner()
 

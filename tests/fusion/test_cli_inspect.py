@@ -6,9 +6,8 @@ import csv
 import json
 
 import numpy as np
+from armfusion.fusion.cli.main import app
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
 
 runner = CliRunner()
 

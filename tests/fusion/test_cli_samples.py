@@ -10,13 +10,12 @@ import json
 
 import numpy as np
 import pytest
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm
+from armfusion.models.sample_admission import MissingSensorError, OutOfRangeError, screen_samples
+from armfusion.models.sensor_models import stream_models
+from armfusion.sensors.recording import read_recording
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import load_arm
-from models.sample_admission import MissingSensorError, OutOfRangeError, screen_samples
-from models.sensor_models import stream_models
-from sensors.recording import read_recording
 
 runner = CliRunner()
 COMMANDS = [["track"], ["calibrate", "joints"], ["calibrate", "sensors"], ["diagnose"]]
@@ -29,7 +28,7 @@ def recordings(tmp_path_factory):
     """A 30 s calibration maneuver (parked chair), and three spoilt copies of its CSV: one
     5000-count cell on acc2_y (row 501), acc3_z at its 511 rail for 100 rows (1000-1099),
     every link accelerometer's columns gone."""
-    from fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import simulate
 
     d = tmp_path_factory.mktemp("samples")
     good = d / "m30.csv"
@@ -103,7 +102,7 @@ def test_a_clean_recording_reports_nothing_left_out(recordings):
 
 
 def test_the_fit_data_leaves_out_exactly_the_windows_that_hold_saturation(recordings):
-    from fusion.identification.identify import data_from_recording
+    from armfusion.fusion.identification.identify import data_from_recording
 
     arm = load_arm("wmra")
     clean = data_from_recording(arm, read_recording(recordings["good"]), window=25)

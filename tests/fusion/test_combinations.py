@@ -4,9 +4,8 @@ found from the covariance the readings leave, never from a list of known pairs."
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.startup.combinations import combination_name, observable_combinations
-from models.rotations import DEG
+from armfusion.fusion.startup.combinations import combination_name, observable_combinations
+from armfusion.models.rotations import DEG
 
 PRIOR_DEG = 30.0
 """Each variable's prior sigma (the tracker's unknown joint's)."""

@@ -9,18 +9,17 @@ import pathlib
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.cli.drivers_faults import parse_fault
+from armfusion.fusion.cli.drivers_report import summary
+from armfusion.fusion.cli.drivers_run import run_fake
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import resolve_config_path
+from armfusion.models.fake_rig import simulate_physics
+from armfusion.models.sensor_models import ADXL345_NOISE_LSB_RMS_AT_100HZ, stream_models
+from armfusion.models.simulator import simulate
+from armfusion.sensors.bus import Status
+from armfusion.sensors.recording import read_recording, write_recording
 from typer.testing import CliRunner
-
-from fusion.cli.drivers_faults import parse_fault
-from fusion.cli.drivers_report import summary
-from fusion.cli.drivers_run import run_fake
-from fusion.cli.main import app
-from fusion.configfile import resolve_config_path
-from models.fake_rig import simulate_physics
-from models.sensor_models import ADXL345_NOISE_LSB_RMS_AT_100HZ, stream_models
-from models.simulator import simulate
-from sensors.bus import Status
-from sensors.recording import read_recording, write_recording
 
 runner = CliRunner()
 ACCS = ("acc1", "acc2", "acc3", "acc4")
@@ -53,7 +52,7 @@ def _accel_vs_sim(run, name, tmp_path):
 
 def test_the_fakes_get_the_simulators_physics():
     """fake_rig keeps the simulator's chain: its values, rounded, are simulate()'s counts."""
-    from fusion.configfile import load_arm
+    from armfusion.fusion.configfile import load_arm
 
     arm = load_arm("wmra")
     rec, _ = simulate(arm, "excitation", 4.0, seed=4, realistic=True, noise=False)

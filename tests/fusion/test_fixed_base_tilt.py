@@ -4,8 +4,7 @@ they are read, so the reported tilt sigma never falls below what it allows."""
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.tracking.fixed_base import floor_var_rad2, tilt_shortfall_var
+from armfusion.fusion.tracking.fixed_base import floor_var_rad2, tilt_shortfall_var
 
 
 def test_the_floors_combine_as_information_and_an_exact_sensor_says_none():

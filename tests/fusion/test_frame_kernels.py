@@ -1,11 +1,11 @@
 """The live path's compiled kinematic frame and causal fits equal their batch forms.
 
-:func:`fusion.tracking.frame_kernels.frame_one` (through :class:`FrameConstants`) against
-:func:`fusion.tracking.tracker.make_frames` for one instant, field by field and to the bit
-(both call the compiled equations of :mod:`models.chain_kernels`), at seeded random
+:func:`armfusion.fusion.tracking.frame_kernels.frame_one` (through :class:`FrameConstants`) against
+:func:`armfusion.fusion.tracking.tracker.make_frames` for one instant, field by field and to the bit
+(both call the compiled equations of :mod:`armfusion.models.chain_kernels`), at seeded random
 states: motion on and off, a calibrated config's joint effects, and joint axes that are
 not z (the chain's general path). The compiled differentiator against
-:func:`fusion.tracking.tracker.causal_poly_fit`. Then the tracker's live path
+:func:`armfusion.fusion.tracking.tracker.causal_poly_fit`. Then the tracker's live path
 (:meth:`Tracker.update_instant`, the one filter path) with both compiled against the same
 tracker given the NumPy frame and the NumPy differentiator, instant by instant.
 """
@@ -16,10 +16,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from fusion.configfile import load_arm
-from fusion.tracking.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
-from fusion.tracking.tracker import (
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.tracking.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
+from armfusion.fusion.tracking.tracker import (
     CausalDifferentiator,
     Frames,
     Tracker,
@@ -27,8 +26,8 @@ from fusion.tracking.tracker import (
     make_frames,
     start_from_recording,
 )
-from models.simulator import simulate
-from models.trajectories import DrivingChair, Scenario, StepsBuilder, WaypointPath
+from armfusion.models.simulator import simulate
+from armfusion.models.trajectories import DrivingChair, Scenario, StepsBuilder, WaypointPath
 
 POSE = np.radians([45.0, 60.0, 30.0, -50.0, 40.0, 30.0, 20.0])
 JOINT_EFFECTS = ("joint_offset", "link_compliance", "backlash")
@@ -57,7 +56,7 @@ def random_states(arm, rng, count):
 
 def assert_frames_equal(got: tuple, ref: Frames) -> None:
     """Every field the same number: the live frame and make_frames run the same compiled
-    equations (models.chain_kernels), so not even round-off may differ."""
+    equations (armfusion.models.chain_kernels), so not even round-off may differ."""
     assert len(got) == len(Frames.FIELDS)
     for name, a, b in zip(Frames.FIELDS, got, ref, strict=True):
         if b is None:
@@ -107,7 +106,7 @@ def test_the_compiled_frame_applies_a_calibrated_config_s_joint_effects(arm, eff
 
 
 def test_the_compiled_frame_turns_about_axes_that_are_not_z(arm):
-    """Joint axes tilted off z: the chain's Rodrigues path (models.chain_kernels.pose_one)."""
+    """Joint axes tilted off z: the chain's Rodrigues path (armfusion.models.chain_kernels.pose_one)."""
     rng = np.random.default_rng(104)
     axes = [np.array([0.0, 0.0, 1.0]) + rng.normal(0, 0.3, 3) for _ in arm.joints]
     tilted = replace(arm, joints=tuple(replace(j, axis=a / np.linalg.norm(a))
@@ -304,7 +303,7 @@ def test_update_instant_gives_the_same_estimates_as_the_numpy_path(arm, effects,
                       effects=effects if calibrated else None)
     a, _ = start_from_recording(arm, rec)
     with monkeypatch.context() as m:
-        m.setattr("fusion.tracking.filter.CausalDifferentiator", NumpyDifferentiator)
+        m.setattr("armfusion.fusion.tracking.filter.CausalDifferentiator", NumpyDifferentiator)
         b, _ = start_from_recording(arm, rec)
     assert isinstance(b.enc_rates, NumpyDifferentiator) and not isinstance(a.enc_rates, NumpyDifferentiator)
     b.frame_constants = NumpyFrame(b)

@@ -10,17 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
-from fusion.configfile import load_arm, resolve_config_path
-from fusion.tracking.gyro_encoder import (
+from armfusion.fusion.configfile import load_arm, resolve_config_path
+from armfusion.fusion.tracking.gyro_encoder import (
     calibrate_gyro_encoder,
     gyro_joint_rate,
     with_gyro_encoder,
 )
-from fusion.tracking.process import ProcessModel
-from fusion.tracking.settings import StateLayout, TrackerSettings
-from models.effects import model_from_arm
-from models.simulator import simulate
+from armfusion.fusion.tracking.process import ProcessModel
+from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
+from armfusion.models.effects import model_from_arm
+from armfusion.models.simulator import simulate
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "imu-rig"
 
@@ -104,10 +103,9 @@ def test_track_withholds_a_failed_encoder_and_says_so(tmp_path):
     malformed request is refused naming what it takes."""
     import json
 
+    from armfusion.fusion.cli.main import app
+    from armfusion.sensors.recording import read_recording
     from typer.testing import CliRunner
-
-    from fusion.cli.main import app
-    from sensors.recording import read_recording
 
     runner = CliRunner()
     rec = tmp_path / "roll.mcap"

@@ -1,5 +1,5 @@
 """A hand is not a chair: it moves calmly, then vigorously (the tracker follows how vigorously,
-:class:`fusion.tracking.process.MotionIntensity`), and it turns what it holds about every
+:class:`armfusion.fusion.tracking.process.MotionIntensity`), and it turns what it holds about every
 axis (``base_motion.turns_about: any``: every gyro axis's scale error is the tilt's noise,
 not a state about the vertical). A chair's tracker is left as it was."""
 
@@ -10,12 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
-from fusion.configfile import load_arm
-from fusion.tracking.filter import Tracker
-from fusion.tracking.process import MotionIntensity
-from fusion.tracking.settings import G, TrackerSettings
-from models.arm_config import ConfigError
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.tracking.filter import Tracker
+from armfusion.fusion.tracking.process import MotionIntensity
+from armfusion.fusion.tracking.settings import G, TrackerSettings
+from armfusion.models.arm_config import ConfigError
 
 
 def _hand_settings() -> TrackerSettings:

@@ -7,19 +7,18 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from fusion.tracking.heading import (
+from armfusion.fusion.tracking.heading import (
     FieldReference,
     HeadingSettings,
     MagneticGuard,
     field_magnitude_and_dip,
     tilt_compensated_heading,
 )
-from fusion.tracking.tracker import TrackerSettings, start_from_recording
-from models.rotations import DEG, R_from_rpy, wrap_angle
-from models.sensor_models import AK8975_UT_PER_LSB, EARTH_FIELD_TAMPA_UT
-from models.simulator import simulate
-from sensors.samples import Recording, Stream
+from armfusion.fusion.tracking.tracker import TrackerSettings, start_from_recording
+from armfusion.models.rotations import DEG, R_from_rpy, wrap_angle
+from armfusion.models.sensor_models import AK8975_UT_PER_LSB, EARTH_FIELD_TAMPA_UT
+from armfusion.models.simulator import simulate
+from armfusion.sensors.samples import Recording, Stream
 
 
 def test_tilt_compensated_heading_recovers_yaw_at_any_attitude(rng):

@@ -3,15 +3,14 @@ identifiability warning for a pair the data cannot separate."""
 
 import numpy as np
 import pytest
-
-from fusion.configfile import load_arm
-from fusion.identification.correction import startup_correction
-from fusion.identification.data import FitData
-from fusion.identification.identify import identify
-from fusion.identification.settings import IdentifySettings
-from fusion.startup.solve import StartupPrior
-from models.effects import Model, build_effect
-from models.trajectories import make_scenario
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.correction import startup_correction
+from armfusion.fusion.identification.data import FitData
+from armfusion.fusion.identification.identify import identify
+from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.fusion.startup.solve import StartupPrior
+from armfusion.models.effects import Model, build_effect
+from armfusion.models.trajectories import make_scenario
 
 NO_ATTITUDE = IdentifySettings(estimate_attitude=False)
 
@@ -103,14 +102,14 @@ def test_attitude_estimated_with_the_effects(arm, state):
 def test_startup_correction_inverts_sensor_effects(arm):
     import dataclasses
 
-    from fusion.startup.solve import StillReadings
+    from armfusion.fusion.startup.solve import StillReadings
     entries = [{"effect": "accel_bias", "target": "acc1", "params": {"bias_g": [0.03, -0.02, 0.01]}},
                {"effect": "accel_scale", "target": "acc1", "params": {"scale_error": [0.01, 0.0, -0.02]}},
                {"effect": "mount_rotation", "target": "acc1", "params": {"rotvec_rad": [0.02, 0.0, -0.01]}}]
     arm2 = dataclasses.replace(arm, effects=tuple(entries))
     corr = startup_correction(arm2)
     model = Model(arm2, [build_effect(arm2, e["effect"], e["target"]) for e in entries])
-    from models.motion import MotionState
+    from armfusion.models.motion import MotionState
     st = MotionState.static(np.array(arm.ready_pose_rad)[None])
     ideal = Model(arm2).predict(st, None, ["acc1"], units="physical")["acc1"][0]
     x = model.pack({f"{e['target']}.{e['effect']}": list(e["params"].values())[0] for e in entries})
@@ -164,8 +163,8 @@ def test_calibrated_config_makes_the_startup_ok_on_the_same_sensors(arm):
     from pathlib import Path
 
     import yaml
+    from armfusion.fusion.configfile import load_arm as load
 
-    from fusion.configfile import load_arm as load
     from tools.bench_calibrated import (
         calibrate,
         calibrated_config,
@@ -211,8 +210,8 @@ def test_one_time_references_make_j1_and_j7_ok_after_self_calibration(arm):
     from pathlib import Path
 
     import yaml
+    from armfusion.fusion.configfile import load_arm as load
 
-    from fusion.configfile import load_arm as load
     from tools.bench_calibrated import calibrate, calibrated_config, solve_poses, still_means
     from tools.bench_startup import draw_poses
 
@@ -248,9 +247,9 @@ def test_a_locked_joint_s_unknown_angle_widens_the_sag_correction_it_drives(arm)
     puts a locked joint anywhere), or a calibrated config makes it confidently wrong."""
     import dataclasses
 
-    from fusion.startup.solve import StartupSettings, StillReadings, solve_still
-    from models.effects import model_from_arm
-    from models.motion import MotionState
+    from armfusion.fusion.startup.solve import StartupSettings, StillReadings, solve_still
+    from armfusion.models.effects import model_from_arm
+    from armfusion.models.motion import MotionState
     entries = [{"effect": "link_compliance", "target": "j2", "params": {"compliance_rad_per_nm": [4e-4]}}]
     arm2 = dataclasses.replace(arm, effects=tuple(entries))
     model = model_from_arm(arm2)
@@ -278,11 +277,11 @@ def test_a_heading_the_parked_chair_cannot_see_keeps_its_prior_sized_sigma(arm):
     trade freely (the field's horizontal part can point anywhere). The whole sensor set's
     fit must say so: heading σ near its prior's reach, the hard iron's estimate within 3 σ
     of the truth, instead of both known to a fraction of a degree and wrong."""
-    from fusion.cli.calibrate_sensors import build_model as identification_model
-    from fusion.identification.data import data_from_recording
-    from fusion.identification.identify import identify_recentred
-    from fusion.identification.truth import compare_with_truth
-    from models.simulator import simulate
+    from armfusion.fusion.cli.calibrate_sensors import build_model as identification_model
+    from armfusion.fusion.identification.data import data_from_recording
+    from armfusion.fusion.identification.identify import identify_recentred
+    from armfusion.fusion.identification.truth import compare_with_truth
+    from armfusion.models.simulator import simulate
 
     rec, truth = simulate(arm, "renk-maneuver", 120.0, seed=1, realistic=True)
     data = data_from_recording(arm, rec, 25, nodes=2)
@@ -301,15 +300,15 @@ def test_turning_the_base_frame_about_j1s_axis_changes_no_reading(arm):
     base's tilt about the axis can all move together by the same angle and every stream
     (link accelerometers, IMU accelerometer and compass) reads the same, at any set of
     base tilts. One independent reference of the base's tilt (an inclinometer) breaks it."""
-    from models.motion import MotionState
-    from models.rotations import R_from_rpy, rpy_from_R
+    from armfusion.models.motion import MotionState
+    from armfusion.models.rotations import R_from_rpy, rpy_from_R
 
     model = Model(arm, [build_effect(arm, "base_mount", "imu"), build_effect(arm, "joint_offset", "j1")])
     rng = np.random.default_rng(0)
     q = rng.uniform(arm.min_rad, arm.max_rad, (30, arm.n_joints))
     rpy = np.column_stack([rng.normal(0, 0.08, 30), rng.normal(0, 0.08, 30), rng.uniform(-3, 3, 30)])
     axis = np.array([0.0, 1.0, 0.0])  # j1's axis in the base frame (modified DH, alpha_1 = -90 deg)
-    from models.kinematics import chain_poses
+    from armfusion.models.kinematics import chain_poses
     np.testing.assert_allclose(chain_poses(arm, q[:1]).axis_0[0, 0], axis, atol=1e-12)
     streams = ["acc1", "acc2", "acc3", "acc4", "imu_acc", "imu_mag"]
 
@@ -344,11 +343,12 @@ def imu_truth(arm):
 def _imu_fit(arm, scenario, entries, reference_sigma_deg=0.0):
     from dataclasses import replace
 
-    from fusion.cli.calibrate_sensors import build_model
-    from fusion.identification.data import data_from_recording
-    from fusion.identification.identify import identify_recentred
-    from fusion.identification.truth import compare_with_truth
-    from models.simulator import simulate
+    from armfusion.fusion.cli.calibrate_sensors import build_model
+    from armfusion.fusion.identification.data import data_from_recording
+    from armfusion.fusion.identification.identify import identify_recentred
+    from armfusion.fusion.identification.truth import compare_with_truth
+    from armfusion.models.simulator import simulate
+
     from tools.bench_calibrated import inclinometer
 
     rec, truth = simulate(arm, scenario, 150.0, seed=8, effects=entries)
@@ -363,8 +363,8 @@ def _imu_fit(arm, scenario, entries, reference_sigma_deg=0.0):
 def test_parked_stances_are_found_from_the_imu(arm, imu_truth):
     """On the ramp maneuver each parked stance gets its own attitude and the moves between
     them are left out; a parked chair stays one stance with every window (the old fit)."""
-    from fusion.identification.data import data_from_recording
-    from models.simulator import simulate
+    from armfusion.fusion.identification.data import data_from_recording
+    from armfusion.models.simulator import simulate
 
     rec, truth = simulate(arm, "renk-ramp", 150.0, seed=8, effects=imu_truth)
     data = data_from_recording(arm, rec, 25, nodes=2, stances=True)
@@ -410,9 +410,9 @@ def test_fast_error_the_window_means_hide_is_measured_sample_by_sample(arm):
     """A sensor that shakes (white error well above its datasheet noise, as a stepper motor's
     vibration makes) looks clean in window means; the fit measures it on the single samples
     and the calibrated floor, which a filter reading every sample needs, carries it."""
-    from fusion.identification.data import data_from_recording
-    from models.simulator import simulate
-    from sensors.samples import Recording, Stream
+    from armfusion.fusion.identification.data import data_from_recording
+    from armfusion.models.simulator import simulate
+    from armfusion.sensors.samples import Recording, Stream
 
     rec, _ = simulate(arm, "renk-maneuver", 60.0, seed=3)
     assert data_from_recording(arm, rec, window=10).sample_excess_counts == {}  # noise as modelled

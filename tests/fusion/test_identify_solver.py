@@ -5,11 +5,10 @@ recording's fit alone."""
 
 import numpy as np
 import pytest
-
-from fusion.configfile import load_arm
-from fusion.identification.data import data_from_recording
-from fusion.identification.problem import CHUNK_POINTS, FitProblem
-from fusion.identification.solver import (
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.data import data_from_recording
+from armfusion.fusion.identification.problem import CHUNK_POINTS, FitProblem
+from armfusion.fusion.identification.solver import (
     COARSE_BLOCK,
     COARSE_FACTOR,
     COARSE_MIN_POINTS,
@@ -17,8 +16,8 @@ from fusion.identification.solver import (
     levenberg_marquardt,
     solve,
 )
-from models.effects import Model, build_effect
-from models.simulator import simulate
+from armfusion.models.effects import Model, build_effect
+from armfusion.models.simulator import simulate
 
 
 @pytest.fixture(scope="module")

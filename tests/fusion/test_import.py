@@ -12,16 +12,15 @@ import numpy as np
 import pytest
 import scipy.io
 import yaml
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.importing.column_map import ColumnMapError, load_column_map, parse_column_map
+from armfusion.fusion.importing.run import import_recording
+from armfusion.fusion.importing.stamps import increasing_rows
+from armfusion.fusion.importing.to_stream import ImportMapError, convert_values, targets
+from armfusion.sensors.foreign import ForeignFileError
+from armfusion.sensors.recording import read_recording, write_recording
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import load_arm
-from fusion.importing.column_map import ColumnMapError, load_column_map, parse_column_map
-from fusion.importing.run import import_recording
-from fusion.importing.stamps import increasing_rows
-from fusion.importing.to_stream import ImportMapError, convert_values, targets
-from sensors.foreign import ForeignFileError
-from sensors.recording import read_recording, write_recording
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 RIG = DATA / "one_joint_rig.yaml"
@@ -85,7 +84,7 @@ def test_into_streams_declared_in_g_and_rad_s_the_values_convert_by_their_unit_a
     np.testing.assert_allclose(out.values, [[np.pi, -np.pi / 2, np.pi / 18000]], rtol=1e-15)
     back = convert_values(out.values, replace(cmap.streams["imu_gyro"], unit="rad/s"), t["shaft_gyro"], "f")
     np.testing.assert_allclose(back.values, [[180.0, -90.0, 0.01]], rtol=1e-14)  # rad/s into deg/s
-    from fusion.importing.to_stream import unit_problem
+    from armfusion.fusion.importing.to_stream import unit_problem
 
     said = unit_problem("counts", g_stream)
     assert said == ("unit counts cannot become g: the config describes shaft as delivering g, and counts "

@@ -14,22 +14,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.importing.bag import import_bag
+from armfusion.fusion.importing.column_map import ColumnMapError, load_column_map, parse_column_map
+from armfusion.fusion.importing.run import import_recording
+from armfusion.fusion.importing.to_stream import ImportMapError
+from armfusion.models.sensor_models import stream_models
+from armfusion.models.simulator import simulate
+from armfusion.sensors.foreign import ForeignFileError
+from armfusion.sensors.recording import read_recording
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import load_arm
-from fusion.importing.bag import import_bag
-from fusion.importing.column_map import ColumnMapError, load_column_map, parse_column_map
-from fusion.importing.run import import_recording
-from fusion.importing.to_stream import ImportMapError
-from models.sensor_models import stream_models
-from models.simulator import simulate
-from sensors.foreign import ForeignFileError
-from sensors.recording import read_recording
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 runner = CliRunner()
@@ -605,7 +604,7 @@ def test_the_rig_slice_as_a_ros1_bag_imports_and_tracks_to_the_native_imports_fi
     np.testing.assert_array_equal(got.get("enc").values, native.get("enc").values)
     for name in ("shaft", "shaft_gyro", "imu_acc", "imu_gyro"):
         np.testing.assert_allclose(got.get(name).values, native.get(name).values, rtol=1e-12, atol=1e-15)
-    from sensors.recording import write_recording
+    from armfusion.sensors.recording import write_recording
 
     write_recording(native, tmp_path / "native.mcap")
     write_recording(got, tmp_path / "bag.mcap")

@@ -17,15 +17,18 @@ import h5py
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.tracking.process import ProcessModel, attitude_sigma_rad
+from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
+from armfusion.fusion.tracking.tracker_kernels import (
+    points_from_tangent,
+    process_points_tangent,
+    tangent_from_points,
+)
+from armfusion.models.arm_config import ConfigError
+from armfusion.models.rotations import R_from_rpy, exp_so3
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import load_arm
-from fusion.tracking.process import ProcessModel, attitude_sigma_rad
-from fusion.tracking.settings import StateLayout, TrackerSettings
-from fusion.tracking.tracker_kernels import points_from_tangent, process_points_tangent, tangent_from_points
-from models.arm_config import ConfigError
-from models.rotations import R_from_rpy, exp_so3
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "broad"
 SLICE = DATA / "02_undisturbed_slow_rotation_B_6s_moving.hdf5"

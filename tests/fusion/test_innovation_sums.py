@@ -1,4 +1,4 @@
-"""The per-instant bookkeeping compiled in :mod:`fusion.tracking.tracker_kernels` (the slip
+"""The per-instant bookkeeping compiled in :mod:`armfusion.fusion.tracking.tracker_kernels` (the slip
 detector's and the model-change alarm's sums, the slip test's block, the sensor health's
 screen, the innovation ring's rows) does what the NumPy and Python forms it replaced did, to
 the bit: the tests' averages, hence their verdicts (a slip re-acquired, an alarm raised, a
@@ -8,9 +8,8 @@ difference in the order of the additions would show in the last bits."""
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.tracking.alarm import ModelChangeAlarm
-from fusion.tracking.tracker_kernels import add_block_sums, add_normalised_innovations
+from armfusion.fusion.tracking.alarm import ModelChangeAlarm
+from armfusion.fusion.tracking.tracker_kernels import add_block_sums, add_normalised_innovations
 
 
 def _instants(rng, steps: int, k: int):
@@ -90,7 +89,7 @@ def test_the_alarm_counts_every_sensor_alike_given_all_of_them_or_their_indices(
 def test_the_health_screen_flags_the_samples_the_plain_python_form_flagged():
     """Stuck (identical counts in a row) and implausible (magnitude off the prediction by
     more than the tolerance) as the sensor-by-sensor Python form had them, any subset."""
-    from fusion.tracking.tracker_kernels import screen_accelerometers
+    from armfusion.fusion.tracking.tracker_kernels import screen_accelerometers
 
     rng = np.random.default_rng(6)
     Sa, tol = 5, 0.35
@@ -180,8 +179,8 @@ class _SlipTestBefore:
 
 
 def test_the_slip_test_re_acquires_as_its_numpy_form_did_with_and_without_the_calibrations_error():
-    from fusion.tracking.settings import StateLayout, TrackerSettings
-    from fusion.tracking.slips import SlipDetector
+    from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
+    from armfusion.fusion.tracking.slips import SlipDetector
 
     st, n, Sa, nl = TrackerSettings(), 7, 5, 4
     names = ("acc1", "acc2", "acc3", "acc4", "imu_acc", "imu_gyro", "imu_mag", "enc")
@@ -215,7 +214,7 @@ def test_the_innovation_ring_keeps_whole_rows_as_it_keeps_rows_sensor_by_sensor(
     """A row of every accelerometer (written compiled) reads back, in each sensor's log and
     its NIS statistics, as the same row given sensor by sensor; a non-finite NIS is kept
     but not counted."""
-    from fusion.tracking.innovations import AccelRing
+    from armfusion.fusion.tracking.innovations import AccelRing
 
     rng = np.random.default_rng(9)
     names = ("acc1", "acc2", "acc3")

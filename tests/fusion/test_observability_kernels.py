@@ -1,4 +1,4 @@
-"""The offsets' observability compiled in :mod:`fusion.tracking.observability_kernels` says
+"""The offsets' observability compiled in :mod:`armfusion.fusion.tracking.observability_kernels` says
 what the equations say: which axes are gimbal-locked, how much the link accelerometers read
 each offset, and which directions the filter must hold (its gain zero along them). A wrong
 held span lets a gimbal-locked joint wander on noise, or freezes one gravity reads; a wrong
@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from fusion.tracking.observability_kernels import offsets_observability
-from models.rotations import DEG
+from armfusion.fusion.tracking.observability_kernels import offsets_observability
+from armfusion.models.rotations import DEG
 
 
 def _skew(a):

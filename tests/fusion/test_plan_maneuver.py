@@ -8,20 +8,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
-from fusion.cli.calibrate_sensors import build_model
-from fusion.configfile import load_arm
-from fusion.identification.planner import (
+from armfusion.fusion.cli.calibrate_sensors import build_model
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.planner import (
     PlanSettings,
     maneuver_problems,
     move_durations_s,
     plan_maneuver,
     predicted_identification,
 )
-from fusion.startup.moves import moves_within_limits
-from models.kinematics import chain_poses
-from models.trajectories.planned import PlannedManeuver, planned_scenario
-from models.trajectories.scenario import margin_limits
+from armfusion.fusion.startup.moves import moves_within_limits
+from armfusion.models.kinematics import chain_poses
+from armfusion.models.trajectories.planned import PlannedManeuver, planned_scenario
+from armfusion.models.trajectories.scenario import margin_limits
 
 EFFECTS = "accel_bias,accel_scale,mount_rotation"
 FAST = dict(candidates=48, pool_poses=120)
@@ -67,7 +66,7 @@ def test_a_planned_maneuver_stays_inside_the_limits_and_moves_as_the_unlock_move
 def test_the_plan_knows_more_than_random_safe_poses_of_the_same_timing(arm, model, plan):
     """Its own criterion (log det of the information, prior units, the gauges left out) beats
     the same schedule through random poses that pass the same checks."""
-    from fusion.identification.planner import _rows_per_pose, _static_problem
+    from armfusion.fusion.identification.planner import _rows_per_pose, _static_problem
 
     st = PlanSettings(duration_s=30.0, **FAST)
     m = plan.maneuver
@@ -133,7 +132,8 @@ def test_the_predicted_sigma_are_the_fitted_ones_within_30_percent(arm, model, p
     """A plan's prediction against the fit on a simulated recording of it (datasheet-typical
     accelerometer errors, joint zeros): each element both estimate, σ within 30 % (within 4x
     beside a held gauge); the estimates within 4σ of the truth."""
-    from fusion.identification.identify import compare_with_truth
+    from armfusion.fusion.identification.identify import compare_with_truth
+
     from tests.fusion.test_identify import _drawn_effects
     from tools.bench_calibrated import calibrate
 
@@ -163,10 +163,9 @@ def test_the_predicted_sigma_are_the_fitted_ones_within_30_percent(arm, model, p
 
 
 def test_plan_maneuver_writes_a_file_that_simulate_plays(tmp_path: Path, arm):
+    from armfusion.fusion.cli.main import app
+    from armfusion.fusion.cli.plan_maneuver import run_plan
     from typer.testing import CliRunner
-
-    from fusion.cli.main import app
-    from fusion.cli.plan_maneuver import run_plan
 
     doc = run_plan("wmra", 20.0, EFFECTS, startup_poses=8, candidates=24)
     assert [p["pose_deg"] for p in doc["poses"]][0] == pytest.approx(np.degrees(arm.ready_pose_rad).tolist())
@@ -201,9 +200,8 @@ def test_move_durations_keep_the_peak_rate(arm):
 
 
 def test_plan_maneuver_refuses_a_bad_option_before_planning(tmp_path: Path):
+    from armfusion.fusion.cli.main import app
     from typer.testing import CliRunner
-
-    from fusion.cli.main import app
 
     r = CliRunner().invoke(app, ["plan-maneuver", "--criterion", "A-optimal" * 20])
     assert r.exit_code == 2
@@ -223,8 +221,8 @@ def test_the_fit_reads_a_planned_moves_joint_accelerations_from_the_encoders_to_
     # twice) missed them by 7.5 % here (14 % on a 60 s plan's shorter moves), and the fit took
     # the missing tangential acceleration for lever-arm errors (acc4.motion_acceleration[z]
     # 7-10 sigma off on an error-free arm)
-    from fusion.identification.data import data_from_recording, encoder_motion
-    from models.simulator import simulate
+    from armfusion.fusion.identification.data import data_from_recording, encoder_motion
+    from armfusion.models.simulator import simulate
 
     q0 = np.asarray(arm.ready_pose_rad, float)
     lo, hi = margin_limits(arm)
@@ -255,7 +253,12 @@ def test_a_startup_plan_keeps_the_checks_and_beats_random_poses_on_the_worst_joi
     unlock move's checks, holds each pose one of the dwells offered, and its worst joint's
     startup σ beats the same number of random safe poses held as long, and the D-optimal plan
     of the same settings."""
-    from fusion.identification.planner import _rows_per_pose, _startup_rows, _startup_value, _static_problem
+    from armfusion.fusion.identification.planner import (
+        _rows_per_pose,
+        _startup_rows,
+        _startup_value,
+        _static_problem,
+    )
 
     st = PlanSettings(duration_s=30.0, criterion="startup", dwell_choices_s=(1.0, 2.0, 3.0), **FAST)
     plan = plan_maneuver(model, st)
@@ -305,9 +308,8 @@ def test_plan_settings_refuse_bad_dwell_choices_and_startup_poses():
 
 
 def test_plan_maneuver_refuses_bad_dwells_by_option():
+    from armfusion.fusion.cli.main import app
     from typer.testing import CliRunner
-
-    from fusion.cli.main import app
 
     r = CliRunner().invoke(app, ["plan-maneuver", "--dwells", "1,x" * 30])
     assert r.exit_code == 2

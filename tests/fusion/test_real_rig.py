@@ -9,16 +9,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.identify import data_from_recording
+from armfusion.fusion.importing.column_map import load_column_map
+from armfusion.fusion.importing.run import import_recording
+from armfusion.fusion.tracking.settings import FLAG_CODE
+from armfusion.fusion.tracking.start import start_from_recording
+from armfusion.fusion.workbench.diagnose import add_effects, diagnose, parse_add
+from armfusion.fusion.workbench.discover import STOP_NOTHING
+from armfusion.models.effects import model_from_arm
 
-from fusion.configfile import load_arm
-from fusion.identification.identify import data_from_recording
-from fusion.importing.column_map import load_column_map
-from fusion.importing.run import import_recording
-from fusion.tracking.settings import FLAG_CODE
-from fusion.tracking.start import start_from_recording
-from fusion.workbench.diagnose import add_effects, diagnose, parse_add
-from fusion.workbench.discover import STOP_NOTHING
-from models.effects import model_from_arm
 from tools.bench_real_rig import choose_config, ladder
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "imu-rig"
@@ -101,9 +101,8 @@ def test_a_vertical_shaft_is_gravity_blind_the_whole_time(yaw, tmp_path):
     the tracker flags the vertical shaft gravity-blind at every instant; uncalibrated it
     never calls it known either."""
     import yaml
-
-    from fusion.configfile import resolve_config_path
-    from fusion.identification.calibrated_config import config_with_estimates
+    from armfusion.fusion.configfile import resolve_config_path
+    from armfusion.fusion.identification.calibrated_config import config_with_estimates
 
     arm = load_arm("imu_rig_yaw")
     tr, start = start_from_recording(arm, yaw, moving_start=True, propose_unlock=False)
@@ -128,9 +127,9 @@ def roll_calibrated(roll, tmp_path_factory):
     rungs, as the benchmark walks them); the rest is scored: ``(calibrated arm, the
     calibration's joint zero (rad), calibration stretch, scored stretch)``."""
     import yaml
+    from armfusion.fusion.configfile import resolve_config_path
+    from armfusion.fusion.identification.calibrated_config import config_with_estimates
 
-    from fusion.configfile import resolve_config_path
-    from fusion.identification.calibrated_config import config_with_estimates
     from tools.bench_real_rig import encoder_zero
 
     arm = load_arm("imu_rig_roll")
@@ -175,7 +174,7 @@ def test_the_encoder_withheld_the_gyros_and_gravity_carry_the_shaft(roll_calibra
     """The encoder withheld on the scored stretch: the shaft's gyro less the frame's,
     calibrated against the encoder on the first 12 s, stands in for it, and gravity holds
     its drift: the angle stays within a degree or two of the encoder, inside its sigma."""
-    from fusion.tracking.gyro_encoder import (
+    from armfusion.fusion.tracking.gyro_encoder import (
         calibrate_gyro_encoder,
         settings_with_gyro_encoder,
         with_gyro_encoder,
@@ -199,10 +198,9 @@ def test_an_encoder_on_the_shaft_itself_is_never_given_a_scale_error(roll, tmp_p
     it mimics the accelerometer's scale error, and taking it moved the pitch trial's tracked
     angle off the encoder by about 1 %), and a config that gives it one is refused."""
     import yaml
-
-    from fusion.configfile import resolve_config_path
-    from models.arm_config import ConfigError
-    from models.effects.base import TargetError
+    from armfusion.fusion.configfile import resolve_config_path
+    from armfusion.models.arm_config import ConfigError
+    from armfusion.models.effects.base import TargetError
 
     arm = load_arm("imu_rig_roll")
     assert arm.joints[0].encoder_on_joint

@@ -7,13 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armfusion.fusion.cli.main import app
+from armfusion.models.sensor_models import recording_problems
+from armfusion.models.simulator import simulate
+from armfusion.sensors.recording import write_recording
+from armfusion.sensors.samples import Recording, Stream
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from models.sensor_models import recording_problems
-from models.simulator import simulate
-from sensors.recording import write_recording
-from sensors.samples import Recording, Stream
 
 runner = CliRunner()
 

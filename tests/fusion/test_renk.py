@@ -3,9 +3,8 @@ fits agree on the gravity direction."""
 
 import numpy as np
 import pytest
-
-from fusion.configfile import load_arm
-from fusion.identification.renk import (
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.renk import (
     ACCEL_NOISE_V,
     MAG_NOISE_V,
     TABLE2,

@@ -14,15 +14,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from fusion.configfile import load_arm, resolve_config_path
-from fusion.tracking.settings import FLAG_CODE
-from fusion.tracking.start import NoStillWindowError, moving_window, start_from_recording
-from models.rotations import DEG, R_from_rpy
-from models.simulator import simulate
-from models.trajectories import Scenario, SinePath, StepsBuilder, WaypointPath
-from models.trajectories.paths import BaseMotion, BasePath
-from sensors.samples import Recording, Stream
+from armfusion.fusion.configfile import load_arm, resolve_config_path
+from armfusion.fusion.tracking.settings import FLAG_CODE
+from armfusion.fusion.tracking.start import NoStillWindowError, moving_window, start_from_recording
+from armfusion.models.rotations import DEG, R_from_rpy
+from armfusion.models.simulator import simulate
+from armfusion.models.trajectories import Scenario, SinePath, StepsBuilder, WaypointPath
+from armfusion.models.trajectories.paths import BaseMotion, BasePath
+from armfusion.sensors.samples import Recording, Stream
 
 
 class ShakingFrame(BasePath):
@@ -175,13 +174,12 @@ def test_the_gyros_stand_in_for_the_encoder_at_speed_keeps_its_sigma_honest(tmp_
     What limits the stand-in at speed on the real rig (its residual grows from 0.7° on a slow
     trial to 3° on a medium one) is not in this simulation: this holds what it does carry."""
     import yaml
-
-    from fusion.tracking.gyro_encoder import (
+    from armfusion.fusion.tracking.gyro_encoder import (
         calibrate_gyro_encoder,
         settings_with_gyro_encoder,
         with_gyro_encoder,
     )
-    from models.effects import model_from_arm
+    from armfusion.models.effects import model_from_arm
 
     cfg = yaml.safe_load(resolve_config_path("imu_rig_roll").read_text(encoding="utf-8"))
     cfg["sensors"][0]["position_mm"] = [0, 100, 0]

@@ -11,22 +11,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.cli.track import write_estimates
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.ros2.conventions import enu_quaternion_xyzw
+from armfusion.fusion.ros2.estimates_bag import BASE_FRAME, HEADING_LEVEL, JOINT_LEVEL, TOPICS
+from armfusion.fusion.tracking.estimate import HEADING_STATUS
+from armfusion.fusion.tracking.settings import JOINT_FLAGS
+from armfusion.fusion.tracking.tracker import start_from_recording
+from armfusion.models.rotations import R_from_rpy, rot_z
+from armfusion.models.simulator import simulate
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.cli.track import write_estimates
-from fusion.configfile import load_arm
-from fusion.ros2.conventions import enu_quaternion_xyzw
-from fusion.ros2.estimates_bag import BASE_FRAME, HEADING_LEVEL, JOINT_LEVEL, TOPICS
-from fusion.tracking.estimate import HEADING_STATUS
-from fusion.tracking.settings import JOINT_FLAGS
-from fusion.tracking.tracker import start_from_recording
-from models.rotations import R_from_rpy, rot_z
-from models.simulator import simulate
 
 runner = CliRunner()
 
@@ -207,8 +206,7 @@ def test_the_urdf_puts_every_sensor_and_the_flange_where_the_arm_model_does(
 ) -> None:
     import yaml
     import yourdfpy
-
-    from models.kinematics import chain_poses, sensor_poses
+    from armfusion.models.kinematics import chain_poses, sensor_poses
 
     if config == "wmra with DH offsets":  # each joint's zero turned: the URDF's origins carry it
         cfg = yaml.safe_load(Path(load_arm("wmra").source).read_text())

@@ -11,16 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.tracking.filter import Tracker
+from armfusion.fusion.tracking.frames import make_frames
+from armfusion.fusion.tracking.process import gyro_newer_weight
+from armfusion.fusion.tracking.start import delay_notes
+from armfusion.models.arm_config import ConfigError
+from armfusion.models.rotations import GRAVITY_MPS2, exp_so3, up_from_tilt
+from armfusion.models.sensor_models import stream_models
+from armfusion.models.simulator import simulate
 
-from fusion.configfile import load_arm
-from fusion.tracking.filter import Tracker
-from fusion.tracking.frames import make_frames
-from fusion.tracking.process import gyro_newer_weight
-from fusion.tracking.start import delay_notes
-from models.arm_config import ConfigError
-from models.rotations import GRAVITY_MPS2, exp_so3, up_from_tilt
-from models.sensor_models import stream_models
-from models.simulator import simulate
 from tests.fusion.test_base_pivot import _swung_trial
 from tests.fusion.test_base_velocity import _inclination_rmse_deg
 

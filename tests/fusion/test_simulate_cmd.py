@@ -7,11 +7,10 @@ import json
 import numpy as np
 import pytest
 import typer
+from armfusion.fusion.cli.simulate import load_effect_entries, register, simulate, truth_path
+from armfusion.models.arm_config import ConfigError
+from armfusion.sensors.recording import read_recording
 from typer.testing import CliRunner
-
-from fusion.cli.simulate import load_effect_entries, register, simulate, truth_path
-from models.arm_config import ConfigError
-from sensors.recording import read_recording
 
 
 @pytest.fixture(scope="module")

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from fusion.startup.solve import (
+from armfusion.fusion.startup.solve import (
     StartupInputError,
     StartupPrior,
     StartupSettings,
@@ -14,8 +13,8 @@ from fusion.startup.solve import (
     prior_after_move,
     solve_still,
 )
-from models.kinematics import gravity_in_sensors
-from models.rotations import DEG, up_from_tilt
+from armfusion.models.kinematics import gravity_in_sensors
+from armfusion.models.rotations import DEG, up_from_tilt
 
 ADXL_SIGMA_G = np.array([0.75, 0.75, 1.1]) / 256 / np.sqrt(100)  # 1 s of 100 Hz, averaged
 IMU_SIGMA_G = np.full(3, 400e-6 * np.sqrt(50) / np.sqrt(100))
@@ -224,7 +223,7 @@ RECORDED_FAILURES = [
 def test_recorded_confident_wrong_answers_are_now_honest(wmra, case):
     import dataclasses
 
-    from fusion.startup.solve import readings_from_counts
+    from armfusion.fusion.startup.solve import readings_from_counts
 
     arm = dataclasses.replace(wmra, calibration=wmra.calibration.with_accel_floor(0.0))
     r = readings_from_counts(arm, {s: np.array(c) for s, c in case["counts"].items()},
@@ -242,7 +241,7 @@ def test_one_lm_batch_gives_what_separate_solves_give(wmra, rng):
     """Rows of the batched LM are independent: starts with their own held unknowns and
     iteration limits, solved together, end where each would alone (the solve batches the
     released profile probes with the weak joints' sweep on this)."""
-    from fusion.startup.problem import batched_lm, make_problem
+    from armfusion.fusion.startup.problem import batched_lm, make_problem
 
     q = np.radians([30, 40, 20, -50, 60, 30, 100])
     problem = make_problem(wmra, still(wmra, np.degrees(q), rng))
@@ -263,11 +262,11 @@ def test_still_detection_reads_each_sensor_in_its_own_units():
     """The still limits are physical: a sensor that delivers g (the real rig's MPU-6050s,
     0.01 g steps) is judged by its g, not as if its values were ADXL345 counts (where a
     whole g of shaking would look like four counts of noise)."""
-    from fusion.configfile import load_arm
-    from fusion.startup.static import find_static_segments
-    from models.sensor_models import stream_models
-    from models.simulator import simulate
-    from sensors.samples import Recording, Stream
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.fusion.startup.static import find_static_segments
+    from armfusion.models.sensor_models import stream_models
+    from armfusion.models.simulator import simulate
+    from armfusion.sensors.samples import Recording, Stream
 
     rig = load_arm("imu_rig_roll")
     rec, _ = simulate(rig, "startup", 12.0, seed=2)

@@ -11,8 +11,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-
-from fusion.startup.solve import (
+from armfusion.fusion.startup.solve import (
     StartupPrior,
     StillReadings,
     move_delta_rad,
@@ -20,10 +19,10 @@ from fusion.startup.solve import (
     readings_from_recording,
     solve_still,
 )
-from fusion.startup.static import StaticDetectionSettings, find_static_segments
-from models.kinematics import gravity_in_sensors
-from models.rotations import DEG, up_from_tilt, wrap_angle
-from models.simulator import angle_truth, simulate
+from armfusion.fusion.startup.static import StaticDetectionSettings, find_static_segments
+from armfusion.models.kinematics import gravity_in_sensors
+from armfusion.models.rotations import DEG, up_from_tilt, wrap_angle
+from armfusion.models.simulator import angle_truth, simulate
 
 
 @pytest.fixture(scope="module")

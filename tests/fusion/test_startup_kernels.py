@@ -1,7 +1,7 @@
 """The compiled startup kernels equal their references on the same inputs.
 
 (What the solve gives is tested in tests/fusion/test_startup.py; here, that the compiled
-evaluation agrees with the frames of the whole chain (``models.kinematics.gravity_jacobian``)
+evaluation agrees with the frames of the whole chain (``armfusion.models.kinematics.gravity_jacobian``)
 and the compiled Levenberg-Marquardt with its NumPy form, ``batched_lm_numpy`` below (the
 reference; it left the production module), for every kind of solve the startup runs: all
 sensors with the base accelerometer, without it (the level-chair prior's rows), one sensor
@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from fusion.startup.kernels import augmented
-from fusion.startup.problem import batched_lm, make_problem
-from fusion.startup.readings import StillReadings
-from models.kinematics import gravity_in_sensors, gravity_jacobian
-from models.rotations import DEG, up_from_tilt
+from armfusion.fusion.startup.kernels import augmented
+from armfusion.fusion.startup.problem import batched_lm, make_problem
+from armfusion.fusion.startup.readings import StillReadings
+from armfusion.models.kinematics import gravity_in_sensors, gravity_jacobian
+from armfusion.models.rotations import DEG, up_from_tilt
 
 Q_DEG = np.array([30.0, 40.0, 20.0, -50.0, 60.0, 30.0, 100.0])
 
@@ -34,7 +33,7 @@ def batched_lm_numpy(problem, x0: np.ndarray, free: np.ndarray, iters,
                      active: np.ndarray | None = None, use_imu: bool = True,
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on every start at once (the NumPy form of the compiled
-    :func:`fusion.startup.problem.batched_lm`, the reference it is held to).
+    :func:`armfusion.fusion.startup.problem.batched_lm`, the reference it is held to).
     ``free`` selects the unknowns: ``(n+2,)`` for all starts, or ``(B, n+2)`` per start (a
     held unknown keeps its start value). ``iters``: the most iterations, for all starts or
     ``(B,)`` per start.
@@ -125,7 +124,7 @@ def problem(wmra, request):
 
 def _frames_reference(problem, X, active, use_imu):
     """The weighted residuals and Jacobian of states ``X`` from the frames of the whole
-    chain (:func:`models.kinematics.gravity_jacobian`; the tilt's columns by central
+    chain (:func:`armfusion.models.kinematics.gravity_jacobian`; the tilt's columns by central
     differences of up), rows as the solve lays them out."""
     n = problem.n
     used = np.arange(len(problem.names)) if active is None else np.flatnonzero(active)

@@ -4,7 +4,7 @@ gimbal lock, an encoder slip, a dead or stuck accelerometer, NaN and saturated s
 the sample-by-sample path against the whole-recording path, restart from a snapshot, and
 NEES/NIS consistency over Monte Carlo runs.
 
-The simulator (models.simulator) makes every recording, seeded; the arm is the WMRA with
+The simulator (armfusion.models.simulator) makes every recording, seeded; the arm is the WMRA with
 its sensors calibrated (no unmodelled-error floor), as the simulation has no sensor errors
 beyond noise.
 """
@@ -15,11 +15,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scipy.stats import chi2
-
-from fusion.tracking.run import prepare_block
-from fusion.tracking.snapshot import TrackerState
-from fusion.tracking.tracker import (
+from armfusion.fusion.tracking.run import prepare_block
+from armfusion.fusion.tracking.snapshot import TrackerState
+from armfusion.fusion.tracking.tracker import (
     COUNTERS,
     FLAG_CODE,
     JOINT_FLAGS,
@@ -33,11 +31,11 @@ from fusion.tracking.tracker import (
     make_frames,
     start_from_recording,
 )
-from models.arm import CorrectionCovariance
-from models.motion import MotionState, specific_force
-from models.rotations import DEG, R_from_rpy
-from models.simulator import simulate
-from models.trajectories import (
+from armfusion.models.arm import CorrectionCovariance
+from armfusion.models.motion import MotionState, specific_force
+from armfusion.models.rotations import DEG, R_from_rpy
+from armfusion.models.simulator import simulate
+from armfusion.models.trajectories import (
     DrivingChair,
     ParkedBase,
     Scenario,
@@ -45,7 +43,8 @@ from models.trajectories import (
     StepsBuilder,
     WaypointPath,
 )
-from sensors.samples import Recording, Stream
+from armfusion.sensors.samples import Recording, Stream
+from scipy.stats import chi2
 
 POSE = np.radians([45.0, 60.0, 30.0, -50.0, 40.0, 30.0, 20.0])  # every joint readable
 ACCELS = ("acc1", "acc2", "acc3", "acc4", "imu_acc")
@@ -110,7 +109,7 @@ def rms_deg(run, after_s, joints=slice(None)):
 # building blocks
 def test_product_of_exponentials_prediction_equals_the_motion_model(arm, rng):
     """The sigma points' specific force (rotations carried from the mean pose) equals what
-    models.motion computes from scratch for each point: exactly at rest, whatever the
+    armfusion.models.motion computes from scratch for each point: exactly at rest, whatever the
     offsets; in motion, up to the motion term's change across the points (it is taken at
     the mean pose), first order in their spread."""
     tr = Tracker(arm)
@@ -401,7 +400,7 @@ def test_a_block_prepared_at_once_gives_each_instant_the_live_path_s_pieces(arm,
 def test_a_long_block_s_frames_made_a_part_at_a_time_change_nothing(arm, reaching, monkeypatch):
     """A run holds at most PREPARED_MAX instants' frames at once: a block longer than that
     is prepared in parts, all with the block's start's offsets, and fuses the same numbers."""
-    import fusion.tracking.run as run_module
+    import armfusion.fusion.tracking.run as run_module
 
     whole, start = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
     parts, _ = start_from_recording(arm, reaching, prior_q_rad=POSE + 0.05)
@@ -484,7 +483,7 @@ def test_estimates_innovations_and_counters_are_complete(arm, reaching):
     assert est.q_rad.shape == (7,) and est.sigma_rad.shape == (7,) and len(est.flags) == 7
     with pytest.raises(ValueError, match="read-only"):
         est.q_rad[0] = 0.0
-    d = est.as_dict()  # the one wire form (fusion.tracking.estimate): joints and heading records
+    d = est.as_dict()  # the one wire form (armfusion.fusion.tracking.estimate): joints and heading records
     assert d["joint_names"] == list(arm.joint_names) and d["q_rad"] == est.q_rad.tolist()
     assert d["heading_rad"] == est.yaw_rad and d["heading_sigma_rad"] == est.heading_sigma_rad > 0
     log = tr.innovations("acc2")
@@ -557,10 +556,9 @@ def test_the_track_command(arm, reaching, tmp_path):
     import json
 
     import typer
+    from armfusion.fusion.cli.track import estimate_columns, register
+    from armfusion.sensors.recording import read_recording, write_recording
     from typer.testing import CliRunner
-
-    from fusion.cli.track import estimate_columns, register
-    from sensors.recording import read_recording, write_recording
 
     app = typer.Typer()
 
@@ -573,7 +571,7 @@ def test_the_track_command(arm, reaching, tmp_path):
     assert [c.name for c in app.registered_commands] == ["track"]
     path = tmp_path / "rec.csv"
     write_recording(Recording({k: v for k, v in reaching.streams.items()}, {}), path)
-    from fusion.startup.pose_store import save_pose
+    from armfusion.fusion.startup.pose_store import save_pose
 
     prior = save_pose(tmp_path / "pose.json", arm, POSE + 0.05)  # saved at the last shutdown
     runner = CliRunner()
@@ -692,7 +690,7 @@ def test_the_learnt_iron_is_saved_and_a_fresh_start_fuses_the_compass_without_tu
     to resume) on a chair that only drives straight reuses it: the compass is fused from the
     start and the heading is right, where without it the heading stays the gyro's, its
     sigma tens of degrees wide."""
-    from fusion.service.state_file import load_state, save_tracker_state, saved_compass_calibration
+    from armfusion.fusion.service.state_file import load_state, save_tracker_state, saved_compass_calibration
 
     config_entry = {"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": [0.0, 0.0, 0.0]},
                     "sigma": {"offset_ut": [15.0, 15.0, 15.0]}}
@@ -733,7 +731,7 @@ def test_a_drive_calibrates_the_configs_compass(arm):
     config's hard and soft iron entries (the parked fit's 15 µT doubt replaced by what the
     turns pinned, the truth within 3 sigma); a config holding them fuses the compass from
     the start of a drive that never turns, its heading within a degree."""
-    from fusion.tracking.compass_drive import calibrate_compass_on_drive
+    from armfusion.fusion.tracking.compass_drive import calibrate_compass_on_drive
 
     config_entry = {"effect": "mag_hard_iron", "target": "imu", "params": {"offset_ut": [0.0, 0.0, 0.0]},
                     "sigma": {"offset_ut": [15.0, 15.0, 15.0]}}
@@ -909,9 +907,8 @@ def test_track_scores_against_the_angle_with_the_true_zero_offset(tmp_path):
     sidecar it can only score against the recording's own column."""
     import json
 
+    from armfusion.fusion.cli.main import app
     from typer.testing import CliRunner
-
-    from fusion.cli.main import app
 
     runner = CliRunner()
     rec = tmp_path / "rec.csv"
@@ -1035,7 +1032,7 @@ def test_a_pose_handed_on_seeds_the_joints_gravity_cannot_read_with_its_sigma(ar
     fresh, _ = start_from_recording(arm, rec)
     handed, start = start_from_recording(arm, rec, prior_q_rad=known, prior_sigma_rad=sigma)
     a, b = fresh.estimate, handed.estimate
-    from fusion.tracking.initial import read_by_startup
+    from armfusion.fusion.tracking.initial import read_by_startup
 
     locked = np.flatnonzero(~read_by_startup(start.startup)).tolist()  # gimbal-locked at the park pose
     assert {2, 5} <= set(locked)

@@ -1,7 +1,7 @@
 """The compiled process and measurement models equal their NumPy form on the same inputs.
 
 The NumPy form is the filterpy baseline's (``tools/bench_track_numpy.py``), written apart
-from the compiled one (whose equations are :mod:`models.sensor_kernels`').
+from the compiled one (whose equations are :mod:`armfusion.models.sensor_kernels`').
 
 (The measurement model itself is held to the motion model computed from scratch in
 tests/fusion/test_tracker.py; here, that the two implementations of it agree wherever the
@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.tracking.settings import StateLayout
+from armfusion.fusion.tracking.tracker import G, Tracker, make_frames
+from armfusion.fusion.tracking.tracker_kernels import measurement_points, process_points
 
-from fusion.configfile import load_arm
-from fusion.tracking.settings import StateLayout
-from fusion.tracking.tracker import G, Tracker, make_frames
-from fusion.tracking.tracker_kernels import measurement_points, process_points
 from tools.bench_track_numpy import measurement_points_numpy, process_points_numpy
 
 

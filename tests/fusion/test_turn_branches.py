@@ -4,13 +4,12 @@ two turns (the UR5's ±360°) is reported with both, not silently on the middle 
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.configfile import load_arm
-from fusion.startup.readings import StillReadings
-from fusion.startup.results import summary
-from fusion.startup.solve import solve_still, turn_branches
-from models.kinematics import gravity_in_sensors
-from models.rotations import DEG, up_from_tilt
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.startup.readings import StillReadings
+from armfusion.fusion.startup.results import summary
+from armfusion.fusion.startup.solve import solve_still, turn_branches
+from armfusion.models.kinematics import gravity_in_sensors
+from armfusion.models.rotations import DEG, up_from_tilt
 
 
 def test_turn_branches_are_every_angle_inside_the_limits_a_turn_apart():

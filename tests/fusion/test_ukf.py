@@ -5,10 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from filterpy.kalman import MerweScaledSigmaPoints
-from scipy.stats import chi2
-
-from fusion.tracking.ukf import (
+from armfusion.fusion.tracking.ukf import (
     BatchedUKF,
     GroupPlan,
     Innovation,
@@ -19,12 +16,14 @@ from fusion.tracking.ukf import (
     unscented_transform,
     wrap_angle,
 )
-from fusion.tracking.ukf_kernels import (
+from armfusion.fusion.tracking.ukf_kernels import (
     DIAGONAL_NOT_POSITIVE,
     NOT_POSITIVE_DEFINITE,
     kalman_update_into,
     sigma_points_into,
 )
+from filterpy.kalman import MerweScaledSigmaPoints
+from scipy.stats import chi2
 
 
 def spd(rng, n, scale=1.0):
@@ -218,7 +217,7 @@ def test_repair_restores_positive_definiteness():
     np.testing.assert_allclose(Q, Q.T)
 
 
-# -- the compiled step (fusion.tracking.ukf_kernels) against the NumPy reference ---------------------
+# -- the compiled step (armfusion.fusion.tracking.ukf_kernels) against the NumPy reference ---------------------
 N_STATE, YAW = 19, 12  # the tracker's state size and its one angle state
 
 

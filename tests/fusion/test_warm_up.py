@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-
-from fusion.tracking import frame_kernels, tracker_kernels, ukf_kernels
-from fusion.tracking.tracker import start_from_recording, warm_up
-from models.simulator import simulate
+from armfusion.fusion.tracking import frame_kernels, tracker_kernels, ukf_kernels
+from armfusion.fusion.tracking.tracker import start_from_recording, warm_up
+from armfusion.models.simulator import simulate
 
 
 def _signatures() -> dict[str, int]:

@@ -9,17 +9,16 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from fusion.cli.diagnose_write import without_bound
-from fusion.configfile import load_arm
-from fusion.identification.data import data_from_recording
-from fusion.workbench.candidates import at_bound
-from fusion.workbench.diagnose import add_effects, diagnose
-from fusion.workbench.discover import held_out_worse
-from fusion.workbench.gauges import structural_gauges
-from fusion.workbench.heldout import HeldOut, split_in_time
-from models.effects import build_effect, model_from_arm
-from models.simulator import simulate
+from armfusion.fusion.cli.diagnose_write import without_bound
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.data import data_from_recording
+from armfusion.fusion.workbench.candidates import at_bound
+from armfusion.fusion.workbench.diagnose import add_effects, diagnose
+from armfusion.fusion.workbench.discover import held_out_worse
+from armfusion.fusion.workbench.gauges import structural_gauges
+from armfusion.fusion.workbench.heldout import HeldOut, split_in_time
+from armfusion.models.effects import build_effect, model_from_arm
+from armfusion.models.simulator import simulate
 
 WINDOW = 10
 
@@ -155,7 +154,7 @@ def test_an_effect_the_other_recording_lacks_is_refused(wmra):
 def test_a_config_whose_tracker_is_too_sure_on_the_held_out_part_is_not_written():
     """The write gate's rule: fewer innovations within 3σ on the held-out part than the config
     it replaces (beyond 1 %) refuses it and names the sensor; as many, or more, passes."""
-    from fusion.workbench.heldout import Tracked, tracked_worse
+    from armfusion.fusion.workbench.heldout import Tracked, tracked_worse
 
     before = Tracked({"forearm": 0.998, "wrist": 1.0}, {"forearm": 0.2, "wrist": 0.2})
     same = Tracked({"forearm": 0.995, "wrist": 1.0}, {"forearm": 0.3, "wrist": 0.3})
@@ -170,7 +169,7 @@ def test_a_config_whose_tracked_angles_wander_off_the_encoders_is_not_written():
     its encoder wandering about its median, and the innovations' RMS. A config under which
     either grows (beyond 1 % and, for the angles, one encoder count) is refused, naming the
     joint or sensor; one under which they shrink passes, though it is more cautious."""
-    from fusion.workbench.heldout import Tracked, tracked_worse
+    from armfusion.fusion.workbench.heldout import Tracked, tracked_worse
 
     before = Tracked({"forearm": 1.0}, {"forearm": 0.3}, {"forearm": 0.020},
                      {"shoulder": 0.10, "elbow": 0.20}, 0.001)
@@ -189,7 +188,7 @@ def test_a_config_whose_tracked_angles_wander_off_the_encoders_is_not_written():
 
 def test_written_floors_are_at_least_the_held_out_excess(wmra, turned):
     """What the fit leaves on the held-out part (larger than in sample) sets the floor."""
-    from fusion.cli.diagnose_write import raise_floors
+    from armfusion.fusion.cli.diagnose_write import raise_floors
 
     fit_part, held = split_in_time(turned)
     d = diagnose(model_from_arm(wmra), fit_part, held_out=held)  # acc4's turn is missing
@@ -213,9 +212,8 @@ def test_cli_add_and_write_judged_on_a_second_recording(tmp_path):
     both columns."""
     import json
 
+    from armfusion.fusion.cli.main import app
     from typer.testing import CliRunner
-
-    from fusion.cli.main import app
 
     runner = CliRunner()
     biased, clean = tmp_path / "biased.csv", tmp_path / "clean.csv"
@@ -239,9 +237,8 @@ def test_cli_add_and_write_judged_on_a_second_recording(tmp_path):
 
 
 def test_cli_a_recording_too_short_to_hold_out_is_diagnosed_but_never_written(tmp_path):
+    from armfusion.fusion.cli.main import app
     from typer.testing import CliRunner
-
-    from fusion.cli.main import app
 
     runner = CliRunner()
     rec = tmp_path / "short.csv"
@@ -261,10 +258,9 @@ def test_the_held_out_tracker_check_sees_a_wrong_scale_without_the_truth(tmp_pat
     the angles wander off the encoders on the held-out part, which the check names; with the
     config that has it, nothing is worse than without."""
     import yaml
-
-    from fusion.configfile import load_arm, resolve_config_path
-    from fusion.workbench.heldout import tracked, tracked_worse
-    from models.simulator import simulate
+    from armfusion.fusion.configfile import load_arm, resolve_config_path
+    from armfusion.fusion.workbench.heldout import tracked, tracked_worse
+    from armfusion.models.simulator import simulate
 
     base = yaml.safe_load(resolve_config_path("wmra").read_text(encoding="utf-8"))
     effect = {"effect": "accel_scale", "target": "acc2", "params": {"scale_error": [-0.08, -0.08, -0.08]}}

@@ -9,10 +9,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from fusion.configfile import load_arm
-from fusion.workbench.innovations import _first_lag, workbench_arm
-from fusion.workbench.whiteness import MAX_LAG, residual_analysis
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.workbench.innovations import _first_lag, workbench_arm
+from armfusion.fusion.workbench.whiteness import MAX_LAG, residual_analysis
 
 N = 400
 AXES = [("acc1", "acc1_x"), ("acc1", "acc1_y")]

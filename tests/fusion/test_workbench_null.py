@@ -7,15 +7,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.data import data_from_recording, start_poses
+from armfusion.fusion.workbench.diagnose import FITS_TO_NOISE, diagnose
+from armfusion.fusion.workbench.whiteness import fit_inputs, residual_analysis
+from armfusion.models.effects import model_from_arm
+from armfusion.models.rotations import wrap_angle
+from armfusion.models.simulator import simulate
 from scipy.stats import chi2
-
-from fusion.configfile import load_arm
-from fusion.identification.data import data_from_recording, start_poses
-from fusion.workbench.diagnose import FITS_TO_NOISE, diagnose
-from fusion.workbench.whiteness import fit_inputs, residual_analysis
-from models.effects import model_from_arm
-from models.rotations import wrap_angle
-from models.simulator import simulate
 
 WINDOW = 10
 
@@ -145,7 +144,7 @@ def test_a_rival_start_must_explain_half_the_misfit_to_replace_the_first(arm):
     wrong one (tens to hundreds of times the noise) is taken."""
     from dataclasses import replace
 
-    from fusion.workbench.diagnose import DiagnoseSettings, best_start
+    from armfusion.fusion.workbench.diagnose import DiagnoseSettings, best_start
 
     rec, _ = simulate(arm, "renk-maneuver", 20.0, seed=905)
     data = data_from_recording(arm, rec, window=WINDOW)

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from fusion.workbench.resampling import interpolation_pattern, resampling
+from armfusion.fusion.workbench.resampling import interpolation_pattern, resampling
 
 
 def _motion(t):

@@ -8,10 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
-from fusion.configfile import load_arm
-from models.arm_config import ConfigError, build_arm
-from models.kinematics import chain_poses
+from armfusion.fusion.configfile import load_arm
+from armfusion.models.arm_config import ConfigError, build_arm
+from armfusion.models.kinematics import chain_poses
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 

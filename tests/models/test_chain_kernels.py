@@ -1,4 +1,4 @@
-"""The compiled chain (models.chain_kernels) and sensor equations (models.sensor_kernels)
+"""The compiled chain (armfusion.models.chain_kernels) and sensor equations (armfusion.models.sensor_kernels)
 against the NumPy forms they replaced.
 
 The references below are the batched NumPy code that ``chain_poses``, ``link_motion`` and
@@ -14,11 +14,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from armfusion.models.kinematics import chain_poses, gravity_in_sensors, sensor_poses
+from armfusion.models.motion import MotionState, cross, link_motion, sensor_motion
+from armfusion.models.rotations import GRAVITY_MPS2, R_from_rpy, exp_so3, up_from_tilt
+from armfusion.models.sensor_kernels import magnetic_heading_one, specific_force_one, tilt_up
 
-from models.kinematics import chain_poses, gravity_in_sensors, sensor_poses
-from models.motion import MotionState, cross, link_motion, sensor_motion
-from models.rotations import GRAVITY_MPS2, R_from_rpy, exp_so3, up_from_tilt
-from models.sensor_kernels import magnetic_heading_one, specific_force_one, tilt_up
 from tests.conftest import random_poses
 
 # the former NumPy forms reached the compiled ones' numbers to the bit on this machine;
@@ -129,7 +129,7 @@ def test_the_compiled_recursion_and_sensors_give_the_numpy_motion(arm_name, requ
 
 def test_the_accelerometer_and_compass_equations(rng):
     """f = R^T (a + g up) with up from the tilt, and the compass's de-tilted heading, against
-    the NumPy helpers of models.rotations and a rotation built from the angles."""
+    the NumPy helpers of armfusion.models.rotations and a rotation built from the angles."""
     for roll, pitch, yaw in rng.uniform(-1.2, 1.2, (20, 3)):
         sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
         up = np.array(tilt_up(sr, cr, sp, cp))

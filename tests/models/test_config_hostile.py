@@ -13,13 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import MAX_YAML_VALUES, load_arm, read_yaml
+from armfusion.models.arm_config import ConfigError
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import MAX_YAML_VALUES, load_arm, read_yaml
-from models.arm_config import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 runner = CliRunner()

@@ -13,10 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.optimize import least_squares
-
-from models.arm_config import ConfigError, build_arm
-from models.effects import (
+from armfusion.models.arm_config import ConfigError, build_arm
+from armfusion.models.effects import (
     EFFECTS,
     JointEffect,
     Model,
@@ -32,9 +30,10 @@ from models.effects import (
     parse_effect_option,
     realistic_values,
 )
-from models.motion import MotionState
-from models.simulator import simulate
-from models.trajectories import make_scenario
+from armfusion.models.motion import MotionState
+from armfusion.models.simulator import simulate
+from armfusion.models.trajectories import make_scenario
+from scipy.optimize import least_squares
 
 # where each effect is checked: a target with something to see (a joint with gravity torque,
 # the wrist accelerometer for lever arms, …); None = its only possible target
@@ -347,8 +346,7 @@ def _config_with(wmra_data, effects):
 @pytest.fixture(scope="module")
 def wmra_data():
     import yaml
-
-    from fusion.configfile import resolve_config_path
+    from armfusion.fusion.configfile import resolve_config_path
 
     return yaml.safe_load(resolve_config_path("wmra").read_text())
 

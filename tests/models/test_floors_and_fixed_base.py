@@ -9,12 +9,11 @@ import json
 
 import numpy as np
 import pytest
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm, read_yaml, resolve_config_path
+from armfusion.models.arm_config import ConfigError, build_arm
+from armfusion.models.sensor_description import UNMODELLED_FLOOR
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.configfile import load_arm, read_yaml, resolve_config_path
-from models.arm_config import ConfigError, build_arm
-from models.sensor_description import UNMODELLED_FLOOR
 
 
 @pytest.fixture

@@ -6,9 +6,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-
-from models.arm import dh_transform
-from models.kinematics import (
+from armfusion.models.arm import dh_transform
+from armfusion.models.kinematics import (
     chain_poses,
     dependency_matrix,
     forward_kinematics,
@@ -18,7 +17,8 @@ from models.kinematics import (
     joint_axis_angle_to_vertical,
     sensor_poses,
 )
-from models.rotations import up_from_tilt
+from armfusion.models.rotations import up_from_tilt
+
 from tests.conftest import random_poses
 
 
@@ -99,7 +99,7 @@ def test_gravity_jacobian_matches_finite_differences(arm_name, request, rng):
 def _turned_axes(arm, rng):
     """The same arm with every joint axis expressed in a random frame (not z): the same
     kinematics, through the general-axis path."""
-    from models.rotations import exp_so3
+    from armfusion.models.rotations import exp_so3
 
     joints = []
     for j in arm.joints:
@@ -169,10 +169,10 @@ def test_thesis_failure_case_joint_3_axis_along_gravity(wmra):
 def test_a_joints_rate_from_the_gyros_on_either_side_of_it(config):
     """The real rig's layout simulated without noise: the shaft's gyro less the frame's,
     about the joint's axis, is the encoder's rate (to the values' 0.01 deg/s rounding)."""
-    from fusion.configfile import load_arm
-    from models.kinematics import joint_rate_from_link_rates
-    from models.sensor_models import stream_models
-    from models.simulator import simulate
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.models.kinematics import joint_rate_from_link_rates
+    from armfusion.models.sensor_models import stream_models
+    from armfusion.models.simulator import simulate
 
     arm = load_arm(config)
     rec, _ = simulate(arm, "excitation", 20.0, seed=4, noise=False)

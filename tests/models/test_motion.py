@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from models.kinematics import gravity_in_sensors, gravity_jacobian, sensor_poses
-from models.motion import (
+from armfusion.models.kinematics import gravity_in_sensors, gravity_jacobian, sensor_poses
+from armfusion.models.motion import (
     MassModel,
     MotionState,
     body_rates_from_rpy,
@@ -22,8 +21,9 @@ from models.motion import (
     specific_force,
     specific_force_jacobian,
 )
-from models.rotations import GRAVITY_MPS2, R_from_rpy, up_from_tilt
-from models.trajectories import make_scenario
+from armfusion.models.rotations import GRAVITY_MPS2, R_from_rpy, up_from_tilt
+from armfusion.models.trajectories import make_scenario
+
 from tests.conftest import random_poses
 
 H = 1e-3  # s, finite-difference step

@@ -1,10 +1,9 @@
-"""The one set of rotation and angle helpers (models.rotations): conventions a user relies on."""
+"""The one set of rotation and angle helpers (armfusion.models.rotations): conventions a user relies on."""
 
 from __future__ import annotations
 
 import numpy as np
-
-from models.rotations import (
+from armfusion.models.rotations import (
     DEG,
     R_from_rpy,
     exp_so3,
@@ -38,7 +37,7 @@ def test_wrap_angle_keeps_minus_pi_to_pi_and_the_input_type():
 
 
 def test_wrap_angle_compiled_gives_the_numpy_numbers():
-    from fusion.tracking.ukf_kernels import _wrap
+    from armfusion.fusion.tracking.ukf_kernels import _wrap
 
     x = np.random.default_rng(4).uniform(-20.0, 20.0, 200)
     assert np.array_equal([_wrap(float(v)) for v in x], wrap_angle(x))
@@ -65,7 +64,7 @@ def test_one_vector_rodrigues_is_the_batched_one():
 
 def test_the_one_attitude_form_of_R_from_rpy_is_the_same_rotation():
     """The scalar form the compiled kernels use equals the batched one (to rounding)."""
-    from models.rotations import R_from_rpy, R_from_rpy_into
+    from armfusion.models.rotations import R_from_rpy, R_from_rpy_into
 
     rng = np.random.default_rng(7)
     for r, p, y in rng.uniform(-np.pi, np.pi, (50, 3)):

@@ -9,10 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
-from fusion.configfile import load_arm
-from models.arm_config import ConfigError, build_arm
-from models.sensor_models import stream_models
+from armfusion.fusion.configfile import load_arm
+from armfusion.models.arm_config import ConfigError, build_arm
+from armfusion.models.sensor_models import stream_models
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 
@@ -96,7 +95,7 @@ def test_the_simulator_writes_what_the_descriptions_say():
     """A rig whose MPU-6050s deliver g and deg/s rounded to 0.01, with a gyroscope on the
     shaft and no magnetometer: simulated in those units, the shaft's gyro turning with
     the joint, no compass stream."""
-    from models.simulator import simulate
+    from armfusion.models.simulator import simulate
 
     rig = load_arm(CONFIG_DIR / "imu_rig_roll.yaml")
     rec, _ = simulate(rig, "excitation", 20.0, seed=4)

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from models.effects import Model
-from models.motion import MotionState
-from models.sensor_models import (
+from armfusion.models.effects import Model
+from armfusion.models.motion import MotionState
+from armfusion.models.sensor_models import (
     ADXL345_LSB_PER_G,
     AK8975_UT_PER_LSB,
     EARTH_FIELD_TAMPA_UT,

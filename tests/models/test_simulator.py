@@ -7,14 +7,13 @@ import json
 
 import numpy as np
 import pytest
-
-from models.effects import model_from_entries
-from models.kinematics import gravity_in_sensors, joint_axis_angle_to_vertical, sensor_poses
-from models.motion import MotionState
-from models.rotations import GRAVITY_MPS2, R_from_rpy, up_from_tilt
-from models.sensor_models import stream_models
-from models.simulator import simulate
-from models.trajectories import RENK_RATES_DEG_S, SCENARIOS, make_scenario
+from armfusion.models.effects import model_from_entries
+from armfusion.models.kinematics import gravity_in_sensors, joint_axis_angle_to_vertical, sensor_poses
+from armfusion.models.motion import MotionState
+from armfusion.models.rotations import GRAVITY_MPS2, R_from_rpy, up_from_tilt
+from armfusion.models.sensor_models import stream_models
+from armfusion.models.simulator import simulate
+from armfusion.models.trajectories import RENK_RATES_DEG_S, SCENARIOS, make_scenario
 
 ACCS = ("acc1", "acc2", "acc3", "acc4")
 

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import pytest
-
-from sensors.adxl345 import ADXL345, ADXL345Config
-from sensors.bus import RecoveryPolicy, RetryPolicy
-from sensors.fakes import (
+from armfusion.sensors.adxl345 import ADXL345, ADXL345Config
+from armfusion.sensors.bus import RecoveryPolicy, RetryPolicy
+from armfusion.sensors.fakes import (
     FakeADXL345,
     FakeClock,
     FakeMPU9150,
@@ -14,7 +13,7 @@ from sensors.fakes import (
     FakeSpiController,
     StaticPhysics,
 )
-from sensors.mpu9150 import MPU9150, MPU9150Config
+from armfusion.sensors.mpu9150 import MPU9150, MPU9150Config
 
 #: Retry/recovery used in the tests: the defaults, spelled out so tests can reason.
 RETRY = RetryPolicy(attempts=3, backoff_s=0.0005, factor=2.0, max_backoff_s=0.01)

@@ -6,16 +6,15 @@ import errno
 
 import numpy as np
 import pytest
-
-from sensors.adxl345 import (
+from armfusion.sensors.adxl345 import (
     ADXL345,
     ADXL345Config,
     accel_stream,
     rate_code,
     self_test_limits_lsb,
 )
-from sensors.bus import DeviceNotFoundError, SpiRegisters, Status
-from sensors.fakes import FakeADXL345, FakeSMBus, FakeSpiController, FunctionPhysics, StaticPhysics
+from armfusion.sensors.bus import DeviceNotFoundError, SpiRegisters, Status
+from armfusion.sensors.fakes import FakeADXL345, FakeSMBus, FakeSpiController, FunctionPhysics, StaticPhysics
 
 #: Data sheet init: standby, DATA_FORMAT, BW_RATE, offsets zeroed, FIFO_CTL, measure
 #: (configuration in standby, measure last, as the data sheet advises).

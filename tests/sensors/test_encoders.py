@@ -8,8 +8,7 @@ import struct
 
 import numpy as np
 import pytest
-
-from sensors.encoders import (
+from armfusion.sensors.encoders import (
     DATAGRAM,
     FLAG_BOOT,
     MalformedDatagram,
@@ -21,7 +20,7 @@ from sensors.encoders import (
     pack_datagram,
     parse_datagram,
 )
-from sensors.fakes import FakeClock
+from armfusion.sensors.fakes import FakeClock
 
 COUNTS = (1, -2, 300_000, -400_000, 2**31 - 1, -(2**31), 0)
 

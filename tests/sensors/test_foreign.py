@@ -9,9 +9,8 @@ import h5py
 import numpy as np
 import pytest
 import scipy.io
-
-from sensors.foreign import ForeignFileError, parse_address, read_columns
-from sensors.samples import RecordingError
+from armfusion.sensors.foreign import ForeignFileError, parse_address, read_columns
+from armfusion.sensors.samples import RecordingError
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 

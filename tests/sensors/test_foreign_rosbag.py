@@ -8,9 +8,8 @@ import itertools
 
 import numpy as np
 import pytest
+from armfusion.sensors.foreign.rosbag import _layout
 from rosbags.typesys import Stores, get_typestore
-
-from sensors.foreign.rosbag import _layout
 
 TYPE = "sensor_msgs/msg/JointState"
 

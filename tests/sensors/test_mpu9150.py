@@ -6,10 +6,9 @@ import errno
 
 import numpy as np
 import pytest
-
-from sensors.bus import DeviceNotFoundError, Status
-from sensors.fakes import FakeMPU9150, FakeSMBus, FunctionPhysics, StaticPhysics
-from sensors.mpu9150 import MPU9150, MPU9150Config, asa_factor, imu_streams
+from armfusion.sensors.bus import DeviceNotFoundError, Status
+from armfusion.sensors.fakes import FakeMPU9150, FakeSMBus, FunctionPhysics, StaticPhysics
+from armfusion.sensors.mpu9150 import MPU9150, MPU9150Config, asa_factor, imu_streams
 
 #: MPU-9150: reset, wake on the X-gyro PLL, rate divider, DLPF, ±250 °/s, ±2 g,
 #: I2C master off, then bypass on (the AK8975 appears on the host's bus).

@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from sensors.output_files import cannot_create_in, replaced_when_done, same_file
-from sensors.recording import read_recording, write_recording
-from sensors.samples import Recording, Stream
+from armfusion.sensors.output_files import cannot_create_in, replaced_when_done, same_file
+from armfusion.sensors.recording import read_recording, write_recording
+from armfusion.sensors.samples import Recording, Stream
 
 
 def test_an_output_that_is_an_input_by_any_name_is_found(tmp_path: Path) -> None:

@@ -8,11 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
-from sensors.recording_csv import RecordingWarning, read_csv, write_csv
-from sensors.samples import (
+from armfusion.sensors.recording_csv import RecordingWarning, read_csv, write_csv
+from armfusion.sensors.samples import (
     IMU_STREAMS,
     TRUTH_BASE_COLUMNS,
     Recording,
@@ -21,6 +18,8 @@ from sensors.samples import (
     encoder_columns,
     truth_joint_columns,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 
 def _recording(seed: int = 0, duration_s: float = 3.0) -> Recording:
@@ -364,7 +363,7 @@ _FINITE = st.floats(allow_nan=False, allow_infinity=False, width=64)
 @settings(derandomize=True, max_examples=60, deadline=None)
 @given(st.lists(st.tuples(_FINITE, _FINITE, _FINITE), min_size=1, max_size=20))
 def test_any_finite_raw_values_read_back_bit_for_bit_from_both_formats(tmp_path_factory, rows) -> None:
-    from sensors.recording_mcap import read_mcap, write_mcap
+    from armfusion.sensors.recording_mcap import read_mcap, write_mcap
 
     values = np.array(rows, dtype=np.float64)
     rec = Recording({"shaft_gyro": Stream("shaft_gyro", "link_gyro", np.arange(len(rows)) * 0.01, values,

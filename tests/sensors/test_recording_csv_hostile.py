@@ -14,13 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armfusion.sensors.recording import read_recording
+from armfusion.sensors.recording_csv import CsvLimits, RecordingError, RecordingWarning, read_csv
+from armfusion.sensors.sample_checks import TIME_LIMIT_S, feed_problems
+from armfusion.sensors.samples import Recording
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-from sensors.recording import read_recording
-from sensors.recording_csv import CsvLimits, RecordingError, RecordingWarning, read_csv
-from sensors.sample_checks import TIME_LIMIT_S, feed_problems
-from sensors.samples import Recording
 
 HEADER = "t,acc1_x,acc1_y,acc1_z,enc1,enc2\n"
 
@@ -283,7 +282,7 @@ def test_fuzz_the_reader_returns_a_recording_or_its_own_clear_error(
 
 
 # ---------------------------------------------------------------------------- the admission
-# every reader's (sensors.sample_checks): what no sensor can have said is refused at the door,
+# every reader's (armfusion.sensors.sample_checks): what no sensor can have said is refused at the door,
 # naming the row and line, in the words the fusion node uses for the same sample
 
 

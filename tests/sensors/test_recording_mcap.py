@@ -13,11 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
-
-from sensors.recording import RecordingWarning, read_recording, write_recording
-from sensors.recording_mcap import McapRecorder, read_mcap, schema_for_kind, write_mcap
-from sensors.samples import (
+from armfusion.sensors.recording import RecordingWarning, read_recording, write_recording
+from armfusion.sensors.recording_mcap import McapRecorder, read_mcap, schema_for_kind, write_mcap
+from armfusion.sensors.samples import (
     IMU_STREAMS,
     TRUTH_BASE_COLUMNS,
     Recording,
@@ -27,6 +25,7 @@ from sensors.samples import (
     encoder_columns,
     truth_joint_columns,
 )
+from mcap.reader import make_reader
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -287,8 +286,8 @@ _CHILD = textwrap.dedent(
     """
     import sys, time
     import numpy as np
-    from sensors.recording_mcap import McapRecorder
-    from sensors.samples import accel_columns
+    from armfusion.sensors.recording_mcap import McapRecorder
+    from armfusion.sensors.samples import accel_columns
 
     with McapRecorder(sys.argv[1], flush_interval_s=0.05) as rec:
         for i in range(100000):
@@ -473,7 +472,7 @@ def test_messages_that_do_not_fit_are_refused_naming_the_topic(
     tmp_path: Path, values: str, why: str
 ) -> None:
 
-    from sensors.samples import RecordingError
+    from armfusion.sensors.samples import RecordingError
 
     with open(tmp_path / "bad.mcap", "wb") as f:
         w, _, cid = _foreign_gyro_writer(f)
@@ -490,7 +489,7 @@ def test_a_recording_longer_than_a_write_slice_is_written_whole_and_in_order(tmp
     """``write_mcap`` makes a slice of time's messages at a time (memory bounded by the slice,
     not the recording): every sample comes back, each stream in order, the file's messages in
     time order across the slices, samples at a slice's edge included once."""
-    import sensors.recording_mcap as rm
+    import armfusion.sensors.recording_mcap as rm
 
     monkeypatch.setattr(rm, "WRITE_SLICE_S", 1.0)
     t_fast = np.arange(0, 500) * 0.01  # 5 s at 100 Hz: 1.0, 2.0 … fall on slice edges

@@ -11,13 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armfusion.sensors.recording import RecordingWarning, read_recording, write_recording
+from armfusion.sensors.sample_checks import feed_problems
+from armfusion.sensors.samples import Recording, RecordingError, Stream
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mcap.writer import Writer
-
-from sensors.recording import RecordingWarning, read_recording, write_recording
-from sensors.sample_checks import feed_problems
-from sensors.samples import Recording, RecordingError, Stream
 
 CHANNELS = ["acc1_x", "acc1_y", "acc1_z"]
 

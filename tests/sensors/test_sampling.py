@@ -7,12 +7,11 @@ import time
 
 import numpy as np
 import pytest
-
-from sensors.adxl345 import ADXL345Config, accel_stream
-from sensors.bus import DeviceNotFoundError, Status
-from sensors.fakes import FakeClock, FakeRig, FunctionPhysics
-from sensors.mpu9150 import imu_streams
-from sensors.sampling import (
+from armfusion.sensors.adxl345 import ADXL345Config, accel_stream
+from armfusion.sensors.bus import DeviceNotFoundError, Status
+from armfusion.sensors.fakes import FakeClock, FakeRig, FunctionPhysics
+from armfusion.sensors.mpu9150 import imu_streams
+from armfusion.sensors.sampling import (
     WMRA_WIRING,
     Collector,
     SamplingLoop,

@@ -5,8 +5,7 @@ from __future__ import annotations
 import socket
 
 import pytest
-
-from fusion.service.zenoh_config import ZenohSettings
+from armfusion.fusion.service.zenoh_config import ZenohSettings
 
 
 def free_port() -> int:
@@ -27,7 +26,7 @@ def hub_settings():
 @pytest.fixture(scope="session")
 def startup_recording(tmp_path_factory):
     """4 s of the WMRA's startup scenario at 100 Hz, as MCAP."""
-    from fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import simulate
 
     out = tmp_path_factory.mktemp("rec") / "startup.mcap"
     simulate("wmra", "startup", out, duration_s=4.0, rate_hz=100.0, seed=3)
@@ -51,8 +50,8 @@ def fusion_node():
     import contextlib
     import threading
 
-    from fusion.service.serve import FusionNode
-    from fusion.service.zenoh_config import open_session
+    from armfusion.fusion.service.serve import FusionNode
+    from armfusion.fusion.service.zenoh_config import open_session
 
     @contextlib.contextmanager
     def run(settings, arm, robot: str = "chair1", **kwargs):
@@ -78,8 +77,8 @@ def fusion_node():
 def renk_recording():
     """9 s of the WMRA's renk-maneuver at 100 Hz: still until 5 s, then every joint sweeps
     slowly (the chair parked). In memory, with truth."""
-    from fusion.configfile import load_arm
-    from models.simulator import simulate
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.models.simulator import simulate
 
     rec, _ = simulate(load_arm("wmra"), "renk-maneuver", 9.0, 100.0, seed=11)
     return rec

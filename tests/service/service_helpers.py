@@ -19,7 +19,7 @@ class Collected:
     def __init__(self, session, robot: str = "chair1"):
         import threading
 
-        from fusion.service import payloads as pl
+        from armfusion.fusion.service import payloads as pl
 
         self._lock = threading.Lock()
         self.joints: list = []
@@ -28,7 +28,7 @@ class Collected:
                       session.declare_subscriber(pl.status_key(robot), self._put(self.status))]
 
     def _put(self, into: list):
-        from fusion.service import payloads as pl
+        from armfusion.fusion.service import payloads as pl
 
         def callback(sample) -> None:
             p = pl.decode(str(sample.key_expr), sample.payload.to_bytes())
@@ -53,8 +53,8 @@ def wait_for(pred, timeout_s: float) -> bool:
 
 def cut(rec, t_start_s: float, t_end_s: float, **edits):
     """The recording's streams between the two times; ``edits`` map a stream's name to a
-    function of its part (a :class:`~sensors.samples.Stream`) giving the stream to keep."""
-    from sensors.samples import Recording
+    function of its part (a :class:`~armfusion.sensors.samples.Stream`) giving the stream to keep."""
+    from armfusion.sensors.samples import Recording
 
     streams = {}
     for k, s in rec.streams.items():
@@ -74,9 +74,8 @@ def publish_live(session, rec, robot: str = "chair1", batch_s: float = 0.01, sta
 
     import numpy as np
     import zenoh
-
-    from fusion.service import payloads as pl
-    from sensors.samples import Stream
+    from armfusion.fusion.service import payloads as pl
+    from armfusion.sensors.samples import Stream
 
     streams = {k: s for k, s in rec.raw().items() if len(s)}
     block = zenoh.CongestionControl.BLOCK

@@ -4,9 +4,8 @@ JSON and CSV do, scored against the same combination of the truth."""
 from __future__ import annotations
 
 import numpy as np
-
-from fusion.cli.demo_report import score_combinations, write_report
-from sensors.samples import TRUTH_BASE_COLUMNS, Stream
+from armfusion.fusion.cli.demo_report import score_combinations, write_report
+from armfusion.sensors.samples import TRUTH_BASE_COLUMNS, Stream
 
 
 def _ev(tmp_path):

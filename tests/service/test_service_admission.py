@@ -11,15 +11,14 @@ import time
 
 import numpy as np
 import pytest
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.admission import REASONS, Admission, AdmissionSettings
+from armfusion.fusion.service.inbox import Inbox
+from armfusion.models.sensor_models import stream_models
+from armfusion.sensors.samples import Stream
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-from fusion.configfile import load_arm
-from fusion.service import payloads as pl
-from fusion.service.admission import REASONS, Admission, AdmissionSettings
-from fusion.service.inbox import Inbox
-from models.sensor_models import stream_models
-from sensors.samples import Stream
 
 
 @pytest.fixture(scope="module")
@@ -394,7 +393,7 @@ class _Sample:
 
 
 def test_a_flood_of_large_payloads_is_bounded_in_bytes_not_only_in_messages():
-    from fusion.service.node import BoundedReceiver
+    from armfusion.fusion.service.node import BoundedReceiver
 
     mib = b" " * (1 << 20)
     rx = BoundedReceiver(maxsize=1000, block_s=0.05, max_bytes=3 << 20)

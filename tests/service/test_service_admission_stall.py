@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from fusion.configfile import load_arm
-from fusion.service import payloads as pl
-from fusion.service.admission import Admission
-from models.sensor_models import stream_models
-from sensors.samples import Stream
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.admission import Admission
+from armfusion.models.sensor_models import stream_models
+from armfusion.sensors.samples import Stream
 
 NAMES = ("acc1", "acc2", "imu_acc", "enc")
 RATE_HZ = 100.0

@@ -9,16 +9,15 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.zenoh_config import open_session
+from armfusion.fusion.startup.solve import move_delta_rad, readings_from_recording, solve_still
+from armfusion.fusion.startup.static import StaticDetectionSettings, find_static_segments
+from armfusion.models.rotations import DEG
+from armfusion.models.simulator import simulate
+from armfusion.models.trajectories import ParkedBase, Scenario, StepsBuilder, WaypointPath, warm_up
 from service_helpers import Collected, cut, wait_for
-
-from fusion.configfile import load_arm
-from fusion.service.replay import replay
-from fusion.service.zenoh_config import open_session
-from fusion.startup.solve import move_delta_rad, readings_from_recording, solve_still
-from fusion.startup.static import StaticDetectionSettings, find_static_segments
-from models.rotations import DEG
-from models.simulator import simulate
-from models.trajectories import ParkedBase, Scenario, StepsBuilder, WaypointPath, warm_up
 
 # the still pose at t = 45.4 s of `simulate --config wmra --scenario static-poses --seed 11`:
 # the twins of the j3-j4 pair both lie inside the limits and read the same

@@ -10,14 +10,13 @@ import sys
 
 import numpy as np
 import pytest
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.requests import NoReplyError, request_calibration
+from armfusion.fusion.service.zenoh_config import open_session
+from armfusion.fusion.tracking.tracker import TrackerSettings
 from service_helpers import Collected, cut, wait_for
-
-from fusion.configfile import load_arm
-from fusion.service import payloads as pl
-from fusion.service.replay import replay
-from fusion.service.requests import NoReplyError, request_calibration
-from fusion.service.zenoh_config import open_session
-from fusion.tracking.tracker import TrackerSettings
 
 
 def _replay_all(session, node, rec) -> None:
@@ -69,7 +68,7 @@ def test_calibrate_on_request_replies_with_the_result_and_refuses_while_the_arm_
         assert moving.q_rad == () and moving.flags == ()
 
         # the command line says the same and exits 1
-        out = subprocess.run([sys.executable, "-m", "fusion.cli", "recalibrate", "--json",
+        out = subprocess.run([sys.executable, "-m", "armfusion.fusion.cli", "recalibrate", "--json",
                               "--connect", f"tcp/127.0.0.1:{port}"],
                              capture_output=True, text=True, timeout=60)
         assert out.returncode == 1, out.stderr

@@ -9,17 +9,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+from armfusion.fusion.cli.main import app
+from armfusion.sensors.recording import read_recording
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from sensors.recording import read_recording
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _cli(*args: str, **kw) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, "-m", "fusion.cli", *args], cwd=ROOT, env=env,
+    return subprocess.Popen([sys.executable, "-m", "armfusion.fusion.cli", *args], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
 
@@ -64,8 +63,8 @@ def test_bad_speed_is_refused(startup_recording):
 
 
 def test_serve_process_calibrates_on_a_replay_and_stops_on_sigint(startup_recording, loopback_port):
-    from fusion.service.replay import replay
-    from fusion.service.zenoh_config import ZenohSettings, open_session
+    from armfusion.fusion.service.replay import replay
+    from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session
 
     server = _cli("serve", "--listen", f"tcp/127.0.0.1:{loopback_port}", "--json")
     try:
@@ -94,7 +93,7 @@ def test_replay_to_an_endpoint_nobody_listens_on_exits_1_saying_so(startup_recor
 
 
 def test_replay_to_a_node_that_listens_for_another_robot_exits_1(startup_recording, hub_settings):
-    from fusion.service.zenoh_config import open_session
+    from armfusion.fusion.service.zenoh_config import open_session
 
     listener, _ = hub_settings
     with open_session(listener) as s:
@@ -109,9 +108,9 @@ def test_replay_counts_what_went_out_after_its_subscriber_left(startup_recording
     import threading
     import time
 
-    from fusion.service.replay import replay
-    from fusion.service.zenoh_config import open_session
-    from sensors.recording import read_recording
+    from armfusion.fusion.service.replay import replay
+    from armfusion.fusion.service.zenoh_config import open_session
+    from armfusion.sensors.recording import read_recording
 
     listener, connector = hub_settings
     rec = read_recording(startup_recording)
@@ -128,7 +127,7 @@ def test_replay_counts_what_went_out_after_its_subscriber_left(startup_recording
 
 def test_replay_of_a_cut_mcap_replays_what_it_can_read_and_exits_1(startup_recording, hub_settings, tmp_path):
     # before: exit 0, the lost chunk said in a warning only
-    from fusion.service.zenoh_config import open_session
+    from armfusion.fusion.service.zenoh_config import open_session
 
     data = startup_recording.read_bytes()
     cut = tmp_path / "cut.mcap"

@@ -16,13 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.cli.demo import MANEUVER, REFERENCE_JOINTS
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.planner import load_maneuver, maneuver_problems
+from armfusion.fusion.shipped import shipped_config
 from typer.testing import CliRunner
-
-from fusion.cli.demo import MANEUVER, REFERENCE_JOINTS
-from fusion.cli.main import app
-from fusion.configfile import load_arm
-from fusion.identification.planner import load_maneuver, maneuver_problems
-from fusion.shipped import shipped_config
 
 
 def _processes_mentioning(text: str) -> list[int]:
@@ -40,7 +39,7 @@ def _processes_mentioning(text: str) -> list[int]:
 
 def test_demo_end_to_end(tmp_path):
     out = tmp_path / "demo"
-    run = subprocess.run([sys.executable, "-m", "fusion.cli", "demo", "--duration", "8",
+    run = subprocess.run([sys.executable, "-m", "armfusion.fusion.cli", "demo", "--duration", "8",
                           "--calibration-duration", "20", "--no-workbench", "--seed", "2",
                           "--out", str(out), "--json"], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]

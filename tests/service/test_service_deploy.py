@@ -14,9 +14,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from service_helpers import free_port, wait_for
-
-from fusion.service.zenoh_config import (
+from armfusion.fusion.service.zenoh_config import (
     DEPLOY_CONFIG_DIR,
     ZenohConfigError,
     ZenohSettings,
@@ -24,6 +22,7 @@ from fusion.service.zenoh_config import (
     load_config,
     open_session,
 )
+from service_helpers import free_port, wait_for
 
 
 def _openssl(*args: str, cwd: Path) -> None:
@@ -168,11 +167,10 @@ def test_only_the_drivers_may_publish_raw_samples_on_a_chair_and_the_node_checks
     drivers (allowed) send is still checked by the fusion node, which refuses a hostile
     batch and counts it."""
     import numpy as np
-
-    from fusion.configfile import load_arm
-    from fusion.service import payloads as pl
-    from fusion.service.replay import replay
-    from sensors.samples import Stream
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.fusion.service import payloads as pl
+    from armfusion.fusion.service.replay import replay
+    from armfusion.sensors.samples import Stream
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = ZenohSettings(DEPLOY_CONFIG_DIR / "chair.json5", listen=[endpoint], connect=[],

@@ -13,14 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service import state_file
+from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.zenoh_config import open_session
+from armfusion.sensors.samples import Stream
 from service_helpers import Collected, cut, wait_for
-
-from fusion.configfile import load_arm
-from fusion.service import payloads as pl
-from fusion.service import state_file
-from fusion.service.replay import replay
-from fusion.service.zenoh_config import open_session
-from sensors.samples import Stream
 
 
 @pytest.fixture(scope="module")
@@ -270,9 +269,8 @@ def test_serve_processes_restart_from_the_state_file(renk_recording, tmp_path):
     import sys
     from pathlib import Path
 
+    from armfusion.fusion.service.zenoh_config import ZenohSettings
     from service_helpers import free_port
-
-    from fusion.service.zenoh_config import ZenohSettings
 
     root = Path(__file__).resolve().parents[2]
     state = tmp_path / "chair1.json"
@@ -280,7 +278,7 @@ def test_serve_processes_restart_from_the_state_file(renk_recording, tmp_path):
     def serve_with(rec) -> dict:
         port = free_port()
         proc = subprocess.Popen(
-            [sys.executable, "-m", "fusion.cli", "serve", "--listen", f"tcp/127.0.0.1:{port}",
+            [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--listen", f"tcp/127.0.0.1:{port}",
              "--state-file", str(state), "--json"], cwd=root, env={**os.environ, "PYTHONPATH": str(root)},
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:

@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from fusion.service.processes import free_loopback_port as free_port
+from armfusion.fusion.service.processes import free_loopback_port as free_port
 
 ROBOTS = ("chair1", "chair2", "chair3")
 
@@ -56,7 +56,7 @@ def _alive(pid: int) -> bool:
 def test_monitor_sees_three_chairs_of_a_fleet(tmp_path):
     port = free_port()
     router = f"tcp/127.0.0.1:{port}"
-    cli = [sys.executable, "-m", "fusion.cli"]
+    cli = [sys.executable, "-m", "armfusion.fusion.cli"]
     fleet = subprocess.Popen([*cli, "fleet", "--chairs", "3", "--duration", "60", "--rate", "50",
                               "--router-listen", router,
                               "--workdir", str(tmp_path / "fleet")],

@@ -17,11 +17,10 @@ import stat
 from pathlib import Path
 
 import pytest
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.service.processes import Children
 from service_helpers import free_port
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.service.processes import Children
 
 CHAIRS = ("chair1", "chair2")
 
@@ -133,8 +132,8 @@ def test_the_fleet_deployment_runs_as_docs_service_md_writes_it(tmp_path, startu
 
 
 def test_a_config_files_endpoints_hold_unless_an_option_replaces_them_and_the_node_says_whose():
-    from fusion.cli.nodes import zenoh_settings
-    from fusion.service.zenoh_config import DEPLOY_CONFIG_DIR, endpoints_line, load_config
+    from armfusion.fusion.cli.nodes import zenoh_settings
+    from armfusion.fusion.service.zenoh_config import DEPLOY_CONFIG_DIR, endpoints_line, load_config
 
     chair = DEPLOY_CONFIG_DIR / "chair.json5"
     kept = zenoh_settings(chair, None, None, "router")
@@ -156,8 +155,7 @@ def test_a_config_files_endpoints_hold_unless_an_option_replaces_them_and_the_no
 
 def test_deploy_adds_a_chair_to_the_base_policy_and_touches_no_other_chair(tmp_path):
     import zenoh
-
-    from fusion.service.zenoh_config import ZenohSettings, load_config
+    from armfusion.fusion.service.zenoh_config import ZenohSettings, load_config
 
     fleet = tmp_path / "fleet"
     assert _run("deploy", "chair1", "--fleet", str(fleet), "--local").exit_code == 0
@@ -204,9 +202,9 @@ def test_deploy_adds_a_chair_to_the_base_policy_and_touches_no_other_chair(tmp_p
 
 def test_a_publisher_whose_batches_the_fusion_node_refuses_is_told_why(tmp_path, fusion_node, hub_settings,
                                                                         startup_recording):
-    from fusion.configfile import load_arm
-    from sensors.recording import read_recording, write_recording
-    from sensors.samples import Recording, Stream
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.sensors.recording import read_recording, write_recording
+    from armfusion.sensors.samples import Recording, Stream
 
     listener, connector = hub_settings
     acc = read_recording(startup_recording).get("acc1")
@@ -224,8 +222,8 @@ def test_a_publisher_whose_batches_the_fusion_node_refuses_is_told_why(tmp_path,
 def test_drivers_whose_user_the_chair_forbids_to_publish_stop_and_say_so(tmp_path, fusion_node):
     """On chair1's router as deployed, the drivers run with the monitor's credentials: the
     router takes the fusion node's subscription to them, and drops their raw samples."""
-    from fusion.configfile import load_arm
-    from fusion.service.zenoh_config import ZenohSettings, open_session
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session
 
     fleet, port = tmp_path / "fleet", free_port()
     r = _run("deploy", "chair1", "--fleet", str(fleet), "--local", "--chair-port", str(port))
@@ -249,9 +247,8 @@ def test_a_retired_chair_reaches_the_base_router_and_is_heard_no_more(tmp_path):
     import threading
     import time
 
+    from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session
     from service_helpers import wait_for
-
-    from fusion.service.zenoh_config import ZenohSettings, open_session
 
     fleet, base_port = tmp_path / "fleet", free_port()
     ports = {c: free_port() for c in CHAIRS}
@@ -301,8 +298,7 @@ def test_a_client_refuses_a_base_router_whose_certificate_names_another_address(
     the same router with a certificate that names 127.0.0.1 (the default) is reached. Nothing
     listens on or connects to any address but 127.0.0.1."""
     import zenoh
-
-    from fusion.service.zenoh_config import ZenohSettings, open_session
+    from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session
 
     port = free_port()
     here = [f"tls/127.0.0.1:{port}"]

@@ -9,11 +9,11 @@ import threading
 
 import numpy as np
 import pytest
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.replay import replay
+from armfusion.models.rotations import DEG
 from service_helpers import Collected, cut, wait_for
 
-from fusion.service import payloads as pl
-from fusion.service.replay import replay
-from models.rotations import DEG
 from tools.bench_alarm import mount_turned
 
 T_TURN_S = 45.0
@@ -34,7 +34,7 @@ def _serve(fusion_node, hub_settings, arm, rec):
     """Replay ``rec`` as fast as it goes to a fusion node; the health payloads and the last
     status received once every sample was taken in."""
     listener, connector = hub_settings
-    from fusion.service.zenoh_config import open_session
+    from armfusion.fusion.service.zenoh_config import open_session
 
     health, lock = [], threading.Lock()
 

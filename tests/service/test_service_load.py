@@ -18,12 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session
+from armfusion.models.simulator import simulate
 from service_helpers import Collected, cut, publish_live, wait_for
-
-from fusion.configfile import load_arm
-from fusion.service.replay import replay
-from fusion.service.zenoh_config import ZenohSettings, open_session
-from models.simulator import simulate
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +83,7 @@ def test_a_node_that_fell_behind_degrades_says_so_and_refuses_no_catching_up_dri
     port = loopback_port
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     serve = subprocess.Popen(
-        [sys.executable, "-m", "fusion.cli", "serve", "--robot", "chair1", "--listen",
+        [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--robot", "chair1", "--listen",
          f"tcp/127.0.0.1:{port}", "--publish-hz", "1000", "--json"],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -12,18 +12,17 @@ import sys
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.planner import load_maneuver
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.maneuver import ManeuverSettings, ServedManeuver, poses_reached, still_poses_rad
+from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.requests import request_maneuver
+from armfusion.fusion.service.zenoh_config import open_session
+from armfusion.fusion.shipped import shipped_config
+from armfusion.models.simulator import simulate
+from armfusion.models.trajectories.planned import played_scenario
 from service_helpers import cut, wait_for
-
-from fusion.configfile import load_arm
-from fusion.identification.planner import load_maneuver
-from fusion.service import payloads as pl
-from fusion.service.maneuver import ManeuverSettings, ServedManeuver, poses_reached, still_poses_rad
-from fusion.service.replay import replay
-from fusion.service.requests import request_maneuver
-from fusion.service.zenoh_config import open_session
-from fusion.shipped import shipped_config
-from models.simulator import simulate
-from models.trajectories.planned import played_scenario
 
 HIDDEN_BIAS_G = (0.0, 0.03, -0.02)
 """acc2's zero-g offset in the simulated arm (30 and 20 mg: several times a fit's σ)."""
@@ -86,7 +85,7 @@ def test_the_controller_gets_the_plan_and_the_node_fits_the_sensors_on_what_it_p
         final = published[-1]
         assert final.state == "calibrated", final.message
         # the command line shows the same, and exits 0
-        out = subprocess.run([sys.executable, "-m", "fusion.cli", "maneuver", "show", "--json",
+        out = subprocess.run([sys.executable, "-m", "armfusion.fusion.cli", "maneuver", "show", "--json",
                               "--connect", f"tcp/127.0.0.1:{port}"], capture_output=True, text=True,
                              timeout=60)
         assert out.returncode == 0, out.stderr
@@ -169,9 +168,8 @@ def test_the_poses_held_are_counted_from_relative_encoder_angles(short_plan, pla
 
 
 def test_serve_refuses_a_maneuver_that_is_not_safe_to_play(tmp_path):
+    from armfusion.fusion.cli.main import app
     from typer.testing import CliRunner
-
-    from fusion.cli.main import app
 
     doc = yaml.safe_load(shipped_config("maneuvers/wmra-60s.yaml").read_text(encoding="utf-8"))
     doc["poses"][2]["pose_deg"][1] = 150.0  # j2 beyond its limit

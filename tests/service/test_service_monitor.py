@@ -8,14 +8,13 @@ from __future__ import annotations
 import math
 import time
 
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.monitor import Monitor, render, snapshot_json
+from armfusion.fusion.service.zenoh_config import open_session
 from rich.console import Console
 from service_helpers import wait_for
 from typer.testing import CliRunner
-
-from fusion.cli.main import app
-from fusion.service import payloads as pl
-from fusion.service.monitor import Monitor, render, snapshot_json
-from fusion.service.zenoh_config import open_session
 
 NAMES = ("j1", "j2")
 

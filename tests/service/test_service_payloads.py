@@ -8,12 +8,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from fusion.service import payloads as pl
-from fusion.service.inbox import Inbox
-from fusion.startup.combinations import Combination
-from fusion.tracking.estimate import Estimate
-from sensors.samples import Stream
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.inbox import Inbox
+from armfusion.fusion.startup.combinations import Combination
+from armfusion.fusion.tracking.estimate import Estimate
+from armfusion.sensors.samples import Stream
 
 
 def _batch(rng, n=5) -> pl.RawBatch:
@@ -56,10 +55,9 @@ def _estimate() -> Estimate:
 def test_an_estimate_has_one_wire_form_in_json_zenoh_and_mcap(tmp_path):
     """`track --json`, the Zenoh payloads and the recorder's MCAP messages carry the same
     fields with the same values: one record of the joints and one of the heading."""
+    from armfusion.fusion.service.record import Recorder
+    from armfusion.sensors.recording_mcap import McapRecorder
     from mcap.reader import make_reader
-
-    from fusion.service.record import Recorder
-    from sensors.recording_mcap import McapRecorder
 
     est = _estimate()
     js, hd = pl.JointState.of("chair1", est), pl.Heading.of("chair1", est)

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from armfusion.fusion.service.replay import replay
 from service_helpers import Collected, cut, wait_for
 
-from fusion.service.replay import replay
 from tools.bench_alarm import with_stream
 
 
@@ -19,7 +19,7 @@ def daily(daily_use_110s):
 
 def _last_status(fusion_node, hub_settings, arm, rec):
     listener, connector = hub_settings
-    from fusion.service.zenoh_config import open_session
+    from armfusion.fusion.service.zenoh_config import open_session
 
     with fusion_node(listener, arm) as (node, _), open_session(connector) as s:
         got = Collected(s)

@@ -14,16 +14,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armfusion.fusion.cli.track import write_estimates
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.ros2.from_records import RecordsError, run_from_records, write_ros2_from_records
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.tracking.estimate import HEADING_STATUS
+from armfusion.fusion.tracking.settings import JOINT_FLAGS, SENSOR_STATUS
+from armfusion.fusion.tracking.tracker import start_from_recording
+from armfusion.models.simulator import simulate
 from mcap.reader import make_reader
-
-from fusion.cli.track import write_estimates
-from fusion.configfile import load_arm
-from fusion.ros2.from_records import RecordsError, run_from_records, write_ros2_from_records
-from fusion.service import payloads as pl
-from fusion.tracking.estimate import HEADING_STATUS
-from fusion.tracking.settings import JOINT_FLAGS, SENSOR_STATUS
-from fusion.tracking.tracker import start_from_recording
-from models.simulator import simulate
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -84,13 +83,13 @@ def test_the_record_command_writes_a_ros2_bag_of_the_estimates_it_heard(tracked,
     """``record --ros2-out`` as a process on loopback: a node's joint states and headings
     published over Zenoh come out, when the recorder stops, as the same ROS 2 messages a
     tracked run's bag holds for them."""
-    from fusion.service.zenoh_config import ZenohSettings, open_session
+    from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session
 
     arm, run, _ = tracked
     n = 60
     out, bag = tmp_path / "live.mcap", tmp_path / "live.ros2.mcap"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    recorder = subprocess.Popen([sys.executable, "-m", "fusion.cli", "record", str(out), "--ros2-out",
+    recorder = subprocess.Popen([sys.executable, "-m", "armfusion.fusion.cli", "record", str(out), "--ros2-out",
                                  str(bag), "--config", "wmra", "--listen", f"tcp/127.0.0.1:{loopback_port}",
                                  "--json"],
                                 cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -133,9 +132,8 @@ def test_the_record_command_writes_a_ros2_bag_of_the_estimates_it_heard(tracked,
 
 
 def test_the_record_command_refuses_a_ros2_name_it_would_not_write(tmp_path) -> None:
+    from armfusion.fusion.cli.main import app
     from typer.testing import CliRunner
-
-    from fusion.cli.main import app
 
     r = CliRunner().invoke(app, ["record", str(tmp_path / "a.mcap"), "--ros2-out", str(tmp_path / "b.mcap")])
     assert r.exit_code == 2 and "a ROS 2 bag's name ends in .ros2.mcap" in r.output

@@ -7,13 +7,12 @@ import time
 
 import numpy as np
 import pytest
-
-from fusion.service import payloads as pl
-from fusion.service.record import Recorder
-from fusion.service.replay import replay
-from fusion.service.zenoh_config import open_session
-from sensors.recording import read_recording
-from sensors.samples import Stream
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.record import Recorder
+from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.zenoh_config import open_session
+from armfusion.sensors.recording import read_recording
+from armfusion.sensors.samples import Stream
 
 
 def _wait(pred, timeout_s: float) -> bool:
@@ -28,9 +27,9 @@ def _rig_slice():
     deg/s with decimals (tests/data/imu-rig)."""
     from pathlib import Path
 
-    from fusion.configfile import load_arm
-    from fusion.importing.column_map import load_column_map
-    from fusion.importing.run import import_recording
+    from armfusion.fusion.configfile import load_arm
+    from armfusion.fusion.importing.column_map import load_column_map
+    from armfusion.fusion.importing.run import import_recording
 
     src = Path(__file__).resolve().parents[1] / "data" / "imu-rig" / "raw_roll_slow_20s.mat"
     arm = load_arm("imu_rig_roll")

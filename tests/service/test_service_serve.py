@@ -7,14 +7,13 @@ import threading
 import time
 
 import numpy as np
-
-from fusion.configfile import load_arm
-from fusion.service import payloads as pl
-from fusion.service.node import BoundedReceiver
-from fusion.service.replay import replay
-from fusion.service.serve import FusionNode
-from fusion.service.zenoh_config import open_session
-from sensors.recording import read_recording
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.node import BoundedReceiver
+from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.serve import FusionNode
+from armfusion.fusion.service.zenoh_config import open_session
+from armfusion.sensors.recording import read_recording
 
 
 def test_serve_calibrates_then_tracks_and_publishes(hub_settings, startup_recording):

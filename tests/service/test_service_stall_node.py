@@ -10,13 +10,12 @@ import time
 
 import numpy as np
 import pytest
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.zenoh_config import open_session
+from armfusion.sensors.samples import Stream
 from service_helpers import cut, wait_for
-
-from fusion.configfile import load_arm
-from fusion.service import payloads as pl
-from fusion.service.replay import replay
-from fusion.service.zenoh_config import open_session
-from sensors.samples import Stream
 
 BATCH_S = 0.01
 STALL_AT_S, STALL_S = 4.0, 1.5

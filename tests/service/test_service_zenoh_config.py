@@ -5,8 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-
-from fusion.service.zenoh_config import (
+from armfusion.fusion.service.zenoh_config import (
     ZenohConfigError,
     ZenohSettings,
     endpoint_problem,

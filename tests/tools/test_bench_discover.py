@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.identification.planner import maneuver_problems
+from armfusion.models.effects import all_effects
 
-from fusion.configfile import load_arm
-from fusion.identification.planner import maneuver_problems
-from models.effects import all_effects
 from tools import bench_discover as bd
 
 

@@ -16,8 +16,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from armfusion.models.rotations import R_from_rpy
 
-from models.rotations import R_from_rpy
 from tools.bench_heading_broad import (
     PEERS,
     FilterResult,

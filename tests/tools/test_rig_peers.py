@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.importing.column_map import load_column_map
+from armfusion.fusion.importing.run import import_recording
+from armfusion.models.rotations import wrap_angle
+from armfusion.sensors.samples import Recording
 
-from fusion.configfile import load_arm
-from fusion.importing.column_map import load_column_map
-from fusion.importing.run import import_recording
-from models.rotations import wrap_angle
-from sensors.samples import Recording
 from tools.rig_peers import PEERS, peer_joint_angles, shaft_axes, shared_heading, twist_angle_rad
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "imu-rig"

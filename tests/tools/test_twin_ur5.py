@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 import yaml
+from armfusion.fusion.cli.main import app
+from armfusion.fusion.configfile import load_arm, read_yaml, resolve_config_path
+from armfusion.models.rotations import DEG
 from typer.testing import CliRunner
 
-from fusion.cli.main import app
-from fusion.configfile import load_arm, read_yaml, resolve_config_path
-from models.rotations import DEG
 from tools.twin_ur5 import CONTROLLER_RATE_HZ, logged_and_resampled, make_twin, write_csv
 
 runner = CliRunner()
@@ -174,8 +174,8 @@ def test_a_levelled_base_starts_from_the_tilt_given(twin_mcap, tmp_path):
 def test_the_start_is_where_the_user_says(twin_mcap):
     """``--start-at T``: the startup on the first still stretch from T (the twin's rest, 3 s
     long, once a round), never on the still start before it; past the end, a clear refusal."""
-    from fusion.tracking.start import NoStillWindowError, choose_start
-    from sensors.recording import read_recording
+    from armfusion.fusion.tracking.start import NoStillWindowError, choose_start
+    from armfusion.sensors.recording import read_recording
 
     twin, path = twin_mcap
     arm, rec = load_arm("ur5_two_imu"), read_recording(path)
