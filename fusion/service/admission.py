@@ -32,27 +32,44 @@ reason             the batch…
 week ago), so the node's wall clock cannot judge a stamp by itself; what it can judge is
 how a stream's time moves against the others' and against wall time. The reference is a
 consensus of the *other* streams (a stream does not vote on itself): each stream the node
-accepted a batch of in the last ``vote_fresh_s`` of wall time votes with its newest
-accepted time carried forward by the wall time between that batch's arrival and this
-one's (``arrived_s``: when Zenoh handed the message over, not when a node that fell behind
-got to it); the reference is the median of the votes (the
-lower of the middle two). A batch whose last sample is more than ``ahead_s`` ahead of it
-is refused (``time_ahead``): one peer's sample stamped 1.9 s ahead can neither move the
-clock nor make the node wait for it. A genuine stream leads the others only by the
-difference of their latencies (a batch period and the delivery's jitter: ``ahead_s``
-0.25 s covers batches of up to 200 ms, ten times the drivers' default); a stream that resumes after its driver
-stalled is behind, not ahead, and the others' votes move on with wall time while they are
+accepted a batch of in the last ``vote_fresh_s`` of wall time votes with the sensors' time
+its batches say it is at this one's arrival (``arrived_s``: when Zenoh handed the message
+over, not when a node that fell behind got to it): this arrival less the stream's least
+delivery delay (arrival less last sample's time) over its batches whose last samples are
+within ``ahead_s`` of its newest (and arrived in the last ``stall_memory_s``), and never
+less than its newest accepted time; the reference is the median of the votes (the lower
+of the middle two). The least delay, not the newest batch's: after a stall (a starved
+node whose receive thread stamps a backlog on arrival, all at once; a driver that read
+some sensors before it and sent them after it) a stream's newest batch may have arrived
+seconds after it was read, and carrying its time forward from that late arrival would put
+the clock seconds behind the genuine samples of the same burst, one stream's backlog
+taken before another's. Only the last ``ahead_s`` of the stream's own time: a stream
+whose time stood still while wall time went on (a replay paused, then live) has a larger
+delay from then on, and its clock follows it once its samples have moved on that far. A
+batch whose last sample is more than ``ahead_s`` ahead of the reference is refused
+(``time_ahead``): one peer's sample stamped 1.9 s ahead can neither move the clock nor
+make the node wait for it. A genuine stream leads the others only by the difference of
+their latencies (a batch period and the delivery's jitter: ``ahead_s`` 0.25 s covers
+batches of up to 200 ms, ten times the drivers' default); a stream that resumes after its
+driver stalled is behind, not ahead, and the others' votes move on with wall time while they are
 silent. A replay faster than real time moves every stream together, so the others' newest
 times keep up with it. A batch whose first sample is more than ``clock_window_s`` behind
 the median of the others' newest times (not carried forward: a driver catching up after
-a stall sends seconds-old samples) is refused (``time_behind``). With no other stream
+a stall sends seconds-old samples) and behind the stream's own newest (its backlog taken
+after the others' is as old as the stall, and follows its own stream) is refused
+(``time_behind``). With no other stream
 voting, a stream is held to its own vote; the very first batch sets the clock. Should a
 bogus batch be the first of all, the other streams are refused until its vote goes stale
 (``vote_fresh_s``) and the stream that sent it is then reset (:attr:`Verdict.reset`: the
 node discards what it kept of it). :meth:`Admission.clock` is the same consensus over
 every voting stream: the node's reorder stage and its lateness measure take it (one
-stream running ahead does not move either). The limit: a consensus of streams can be
-moved by whoever sends for most of them.
+stream running ahead does not move either). The limits: a consensus of streams can be
+moved by whoever sends for most of them; after a stall, a stream whose backlog has been
+taken more than ``ahead_s`` of the way, not to its end, votes from its late arrivals, so
+a stream whose backlog is taken further than most others' at once (not the order of one
+publisher's messages, which interleaves them) may be refused as ahead; and a stream's very
+first batch, taken after the others' backlogs and more than ``clock_window_s`` older than
+their newest samples, is refused as ``time_behind`` (it has no sample of its own to follow).
 
 **Encoders.** Counts are relative (any value at power-up) within the feed's int32. A
 sample is compared with the last accepted one; a board that really restarted (its
@@ -80,7 +97,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,6 +137,11 @@ class AdmissionSettings:
     clock_window_s: float = 2.0
     ahead_s: float = 0.25
     vote_fresh_s: float = 2.0
+    stall_memory_s: float = 60.0
+    """How long (arrival time) at most a stream's least delivery delay is remembered while
+    its time does not move on: the longest stall of a starved node or driver after which
+    the genuine samples of a burst are still judged by the wall time that passed (beside a
+    CPU hog the demo's node lagged 43 s)."""
     max_joint_rate_rad_s: float = MAX_JOINT_RATE_RAD_S  # (with the files: armfusion.models.sample_admission)
     jump_slack_rad: float = JUMP_SLACK_RAD
     encoder_rebase_after_s: float = ENCODER_REBASE_AFTER_S
@@ -176,7 +198,7 @@ class Admission:
         self._newest: dict[str, float] = {}
         self._budget: dict[str, tuple[float, float]] = {}  # stream -> (samples left, at time)
         self._voted_at: dict[str, float] = {}  # stream -> when the node took its newest (freshness)
-        self._arrived_at: dict[str, float] = {}  # stream -> when that batch arrived (carrying forward)
+        self._leads: dict[str, deque[tuple[float, float, float]]] = {}  # stream -> (t, arrived, t - arrived)
         self._seq: dict[str, tuple[int, float]] = {}
         self._seq_odd: dict[str, tuple[int, float]] = {}  # a number that did not follow, until the next
         self._enc_last: tuple[float, np.ndarray] | None = None
@@ -246,7 +268,7 @@ class Admission:
         leave that stream out). Fresh: taken by the node in the last ``vote_fresh_s`` before
         ``now_s``."""
         fresh = now_s - self.settings.vote_fresh_s
-        votes = [t + max(arrived_s - self._arrived_at[k], 0.0) for k, t in self._newest.items()
+        votes = [max(t, arrived_s + self._leads[k][0][2]) for k, t in self._newest.items()
                  if k != but and self._voted_at[k] >= fresh]
         votes.sort()  # (np.median costs 20x more on a handful of streams)
         return votes
@@ -267,17 +289,20 @@ class Admission:
         for k, t in self._newest.items():  # (one pass: this runs for every batch)
             if k != name and self._voted_at[k] >= fresh:
                 newest.append(t)
-                gained = arrived_s - self._arrived_at[k]
-                votes.append(t + gained if gained > 0.0 else t)
+                carried = arrived_s + self._leads[k][0][2]
+                votes.append(carried if carried > t else t)
         if votes:
             votes.sort()
             newest.sort()
             ahead_ref = votes[(len(votes) - 1) // 2]
             behind_ref = newest[(len(newest) - 1) // 2]
+            own = self._newest.get(name)
+            if own is not None and own < behind_ref:  # its backlog, taken after the others'
+                behind_ref = own
             whose = f"the other sensors' clock ({len(votes)} streams)"
         elif name in self._newest and self._voted_at[name] >= fresh:
             behind_ref = self._newest[name]
-            ahead_ref = behind_ref + max(arrived_s - self._arrived_at[name], 0.0)
+            ahead_ref = max(behind_ref, arrived_s + self._leads[name][0][2])
             whose = "this sensor's last sample"
         else:
             ahead_ref = behind_ref = None
@@ -377,10 +402,23 @@ class Admission:
         t0, t1 = float(s.t_s[0]), float(s.t_s[-1])
         w = self.settings.clock_window_s
         newest = self._newest.get(s.name)
-        self._newest[s.name] = t1 if newest is None or newest > t1 + w else max(newest, t1)
+        if newest is None or newest > t1 + w:  # (a new clock: what was remembered of the old goes)
+            newest = None
+            self._leads[s.name] = leads = deque()
+        else:
+            leads = self._leads[s.name]
+        if newest is None or t1 >= newest:  # the sliding maximum of the stream's lead, t - arrival
+            self._newest[s.name] = t1
+            lead = t1 - arrived_s
+            while leads and leads[-1][2] <= lead:
+                leads.pop()
+            leads.append((t1, arrived_s, lead))
+            st = self.settings
+            since_t, since_arrived = t1 - st.ahead_s, arrived_s - st.stall_memory_s
+            while leads[0][0] < since_t or leads[0][1] < since_arrived:
+                leads.popleft()
         self._budget[s.name] = bucket
         self._voted_at[s.name] = now_s
-        self._arrived_at[s.name] = arrived_s
         if s.name == ENCODER_STREAM and (self._enc_last is None or t1 >= self._enc_last[0]):
             self._enc_last = (t1, s.values[-1].copy())
         missed, reset = self._count_seq(s.name, batch.seq, t0, t1)
