@@ -22,13 +22,26 @@ def _cli(*args: str, **kw) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
 
+def _first_line(proc: subprocess.Popen, timeout_s: float = 300.0) -> str:
+    """The process's first line on stderr; a failure, not a hang, when none comes within
+    ``timeout_s`` (the first node of a run compiles its kernels: minutes on a busy machine)."""
+    import threading
+
+    got: list[str] = []
+    reader = threading.Thread(target=lambda: got.append(proc.stderr.readline()), daemon=True)
+    reader.start()
+    reader.join(timeout_s)
+    assert got, f"nothing on stderr within {timeout_s:.0f} s"
+    return got[0]
+
+
 def test_record_and_replay_processes_round_trip_and_sigterm_closes(startup_recording, tmp_path,
                                                                    loopback_port):
     port = loopback_port
     out = tmp_path / "rec.mcap"
     recorder = _cli("record", str(out), "--listen", f"tcp/127.0.0.1:{port}", "--json")
     try:
-        line = recorder.stderr.readline()
+        line = _first_line(recorder)
         assert "recording armfusion/chair1/raw/*" in line, line
         player = _cli("replay", str(startup_recording), "--speed", "max", "--wait", "10",
                       "--connect", f"tcp/127.0.0.1:{port}", "--json")
@@ -68,7 +81,7 @@ def test_serve_process_calibrates_on_a_replay_and_stops_on_sigint(startup_record
 
     server = _cli("serve", "--listen", f"tcp/127.0.0.1:{loopback_port}", "--json")
     try:
-        line = server.stderr.readline()
+        line = _first_line(server)
         assert "as chair1: armfusion/chair1/raw/* in" in line, line
         rec = read_recording(startup_recording)
         settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{loopback_port}"])
