@@ -173,7 +173,7 @@ def correlation_figure(a, worst: list[tuple[str, str]]) -> bytes:
     w = idx[0]
     if a.inputs:
         xl = np.arange(-a.max_lag, a.max_lag + 1)
-        score = np.where(a._tested()[w], np.max(np.abs(a.xcorr[w]), 1), -1.0)
+        score = np.where(a.tested()[w], np.max(np.abs(a.xcorr[w]), 1), -1.0)
         for i in np.argsort(-score)[:4]:
             p2.plot(xl, a.xcorr[w, i], "-", label=a.inputs[i])
         p2.axhspan(-a.band, a.band, color="0.85", label="99 % band")

@@ -63,7 +63,9 @@ class ResidualAnalysis:
     after it (they carry the same state error): an input the filter itself measures (the
     chair's acceleration, read off the IMU) is tested only at lags where it comes first."""
 
-    def _tested(self) -> np.ndarray:
+    def tested(self) -> np.ndarray:
+        """``(axes, inputs)`` bool: which axis-input pairs the test looked at (the excluded
+        ones left out)."""
         ok = np.ones((len(self.axes), len(self.inputs)), bool)
         return ok if self.excluded is None else ~self.excluded
 
@@ -77,7 +79,7 @@ class ResidualAnalysis:
     def n_tests(self) -> int:
         """How many correlations the input test weighs (tested pairs times their lags)."""
         lags = 2 * self.max_lag + 1 - self._lag_from()
-        return int(np.sum(self._tested() * lags[None, :]))
+        return int(np.sum(self.tested() * lags[None, :]))
 
     @property
     def band(self) -> float:
@@ -96,7 +98,7 @@ class ResidualAnalysis:
         """Every axis-input pair's strongest correlation, strongest first."""
         out = []
         L = self.max_lag
-        ok = self._tested()
+        ok = self.tested()
         lo = self._lag_from()
         for a, (s, ax) in enumerate(self.axes):
             for i, lab in enumerate(self.inputs):
@@ -138,7 +140,7 @@ class ResidualAnalysis:
             "flagged": [{"stream": c.stream, "axis": c.axis, "input": c.input, "r": round(c.r, 4),
                          "lag": c.lag, "r_lag0": round(c.r_lag0, 4)} for c in self.flagged()],
             "xcorr_lag0": {f"{s}:{ax}": {lab: round(float(self.xcorr[a, i, self.max_lag]), 4)
-                                         for i, lab in enumerate(self.inputs) if self._tested()[a, i]}
+                                         for i, lab in enumerate(self.inputs) if self.tested()[a, i]}
                            for a, (s, ax) in enumerate(self.axes)},
         }
 
