@@ -43,10 +43,15 @@ def test_the_generated_references_are_current():
 
 
 def test_the_cli_reference_lists_every_command_and_option():
-    text = (DOCS / "reference" / "cli.md").read_text(encoding="utf-8")
+    """The index links every command to the page of its group, which holds its options."""
+    index = (DOCS / "reference" / "cli.md").read_text(encoding="utf-8")
+    pages = {p.name: p.read_text(encoding="utf-8") for p in (DOCS / "reference").glob("cli-*.md")}
     for heading in ("armfusion track", "armfusion calibrate joints", "armfusion calibrate sensors",
                     "armfusion serve", "armfusion import"):
-        assert f"## `{heading}`" in text
+        link = re.search(rf"\[`{heading}`\]\((cli-[a-z]+\.md)#{heading.replace(' ', '-')}\)", index)
+        assert link, heading
+        assert f"## `{heading}`" in pages[link.group(1)]
+    text = "\n".join(pages.values())
     assert "`--moving-start`" in text and "`--zenoh-config <path>`" in text
 
 
