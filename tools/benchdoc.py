@@ -87,6 +87,9 @@ SECTION_FAMILIES = (
 """Sections whose names a tool composes from its options: the first pattern that matches the
 whole name decides."""
 
+INDEX_BLOCK = "headline"
+"""The one marked block of the index: the headline table ``tools/headline.py`` writes."""
+
 UNMAPPED = "more"
 """Where a section no rule names lands (and the docs test names it, to be given a page)."""
 
@@ -237,6 +240,8 @@ def reroute(source: dict[str, str], base: dict[str, str] | None) -> list[str]:
         current.update(sections(path.read_text(encoding="utf-8")))
     said = []
     for name, body in source.items():
+        if name == INDEX_BLOCK:
+            continue
         if base is not None and base.get(name) == body:
             continue
         if current.get(name) == body:
