@@ -80,9 +80,11 @@ def test_the_committed_pages_hold_each_section_where_the_map_puts_it() -> None:
     index = benchdoc.BENCH_DOC.read_text(encoding="utf-8")
     assert set(benchdoc.sections(index)) == {benchdoc.INDEX_BLOCK}  # tools/headline.py's table only
     for path in sorted(benchdoc.BENCH_DIR.glob("*.md")):
-        assert path.stem in benchdoc.PAGES, f"{path.name} is no page of PAGES"
+        names = list(benchdoc.sections(path.read_text(encoding="utf-8")))
+        assert path.stem in benchdoc.PAGES, (f"{path.name} is no page of PAGES: give its sections "
+                                             f"{names} a page in SECTION_PAGES of tools/benchdoc.py")
         assert f"(benchmarks/{path.name})" in index, f"the index does not link {path.name}"
-        for name in benchdoc.sections(path.read_text(encoding="utf-8")):
+        for name in names:
             assert benchdoc.is_mapped(name), f"{name} has no page in tools/benchdoc.py"
             assert benchdoc.page_for(name) == path, f"{name} is on {path.name}, mapped elsewhere"
     mkdocs = (benchdoc.ROOT / "mkdocs.yml").read_text(encoding="utf-8")
