@@ -1,7 +1,9 @@
 """Write the generated reference pages of the docs from the code they describe.
 
-- ``docs/reference/cli.md``: every command of the ``armfusion`` command line, its
-  arguments and options, read from the typer application itself;
+- ``docs/reference/cli.md`` and ``docs/reference/cli-<group>.md``: every command of the
+  ``armfusion`` command line, its arguments and options, read from the typer application
+  itself; the index lists every command with its first line, and each group's page
+  (``CLI_GROUPS``) holds its commands in full, so no page grows long;
 - ``docs/reference/config.md``: every key of an arm config, its type, default and bounds,
   read from the pydantic models that validate the file (``armfusion.models.arm_config``).
 
@@ -63,33 +65,80 @@ def _command_md(path: str, cmd, ctx) -> list[str]:
     return out
 
 
-def cli_reference() -> str:
+CLI_GROUPS = {
+    "calibration": ("Calibrating", "Find the joints at startup, identify the sensors, plan and "
+                    "check a calibration maneuver, judge a model against a recording.",
+                    ("calibrate", "recalibrate", "maneuver", "plan-maneuver", "diagnose")),
+    "recordings": ("Recordings", "Simulate, import, record, replay, inspect and track recordings.",
+                   ("track", "import", "simulate", "record", "replay", "inspect", "info")),
+    "service": ("The service", "Run the fusion node, its router and drivers over Zenoh; the demo; "
+                "deploy to a chair and a fleet, and watch it.",
+                ("serve", "router", "drivers", "demo", "monitor", "deploy", "fleet")),
+}
+"""Each page of the command-line reference: its title, its one line, and its top-level
+commands (a group such as ``calibrate`` with its subcommands), in the order they are shown."""
+
+_CLI_INTRO = ("Every command of `armfusion`, with its arguments and options, as the program itself "
+              "defines them (`armfusion COMMAND --help` prints the same). What each command does "
+              "with its input, and what it refuses, is in the [guides](../index.md).")
+
+
+def _commands(group, prefix: str, gctx) -> list[tuple[str, object, object]]:
+    """``(path, command, context)`` of every visible command under ``group``, groups first
+    then their subcommands, by name."""
+    found = []
+    for name in sorted(group.list_commands(gctx)):
+        if hasattr(group, "load") and name not in group.commands:
+            group.load(name)
+        cmd = group.get_command(gctx, name)
+        if cmd is None or getattr(cmd, "hidden", False):
+            continue
+        cctx = cmd.context_class(cmd, info_name=name, parent=gctx)
+        found.append((f"{prefix} {name}", cmd, cctx))
+        if hasattr(cmd, "list_commands"):  # a group of commands
+            found.extend(_commands(cmd, f"{prefix} {name}", cctx))
+    return found
+
+
+def _slug(path: str) -> str:
+    """The anchor MkDocs gives the heading ``## `path` ``."""
+    return path.replace(" ", "-")
+
+
+def cli_pages() -> dict[str, str]:
+    """The command-line reference: ``cli.md`` (the index) and one page per ``CLI_GROUPS``
+    entry, by file name."""
     import typer
     from armfusion.fusion.cli.main import app
 
     root = typer.main.get_command(app)
-    lines = [GENERATED, "", "# Command-line reference", "",
-             "Every command of `armfusion`, with its arguments and options, as the program itself "
-             "defines them (`armfusion COMMAND --help` prints the same). What each command does "
-             "with its input, and what it refuses, is in the [guides](../index.md).", ""]
     ctx = root.context_class(root, info_name="armfusion")
-
-    def walk(group, prefix: str, gctx) -> None:
-        for name in sorted(group.list_commands(gctx)):
-            if hasattr(group, "load") and name not in group.commands:
-                group.load(name)
-            cmd = group.get_command(gctx, name)
-            if cmd is None or getattr(cmd, "hidden", False):
-                continue
-            cctx = cmd.context_class(cmd, info_name=name, parent=gctx)
-            if hasattr(cmd, "list_commands"):  # a group of commands
-                lines.extend([f"## `{prefix} {name}`", "", (cmd.help or "").strip().split("\n\n")[0], ""])
-                walk(cmd, f"{prefix} {name}", cctx)
-            else:
-                lines.extend(_command_md(f"{prefix} {name}", cmd, cctx))
-
-    walk(root, "armfusion", ctx)
-    return "\n".join(lines).rstrip() + "\n"
+    commands = _commands(root, "armfusion", ctx)
+    page_of = {top: page for page, (_t, _l, tops) in CLI_GROUPS.items() for top in tops}
+    unplaced = sorted({p.split()[1] for p, _c, _x in commands} - set(page_of))
+    if unplaced:
+        raise SystemExit(f"docs_reference: command(s) {', '.join(unplaced)} on no page of the "
+                         "command-line reference: add each to CLI_GROUPS in tools/docs_reference.py")
+    index = [GENERATED, "", "# Command-line reference", "", _CLI_INTRO, ""]
+    pages = {}
+    for page, (title, line, tops) in CLI_GROUPS.items():
+        name = f"cli-{page}.md"
+        body = [GENERATED, "", f"# Command-line reference: {title[0].lower() + title[1:]}",
+                "", line, "", "Every command on one list: the [command-line reference](cli.md).", ""]
+        index += [f"## [{title}]({name})", "", line, "", "| command | what it does |", "| --- | --- |"]
+        for top in tops:
+            for path, cmd, cctx in commands:
+                if path.split()[1] != top:
+                    continue
+                first = _cell((cmd.help or "").strip().split("\n\n")[0])
+                index.append(f"| [`{path}`]({name}#{_slug(path)}) | {first} |")
+                if hasattr(cmd, "list_commands"):
+                    body += [f"## `{path}`", "", (cmd.help or "").strip().split("\n\n")[0], ""]
+                else:
+                    body += _command_md(path, cmd, cctx)
+        index.append("")
+        pages[name] = "\n".join(body).rstrip() + "\n"
+    return {"cli.md": "\n".join(index).rstrip() + "\n", **pages}
 
 
 # --------------------------------------------------------------------------------------
@@ -229,7 +278,9 @@ def config_reference() -> str:
 
 # --------------------------------------------------------------------------------------
 
-PAGES = {"cli.md": cli_reference, "config.md": config_reference}
+def pages() -> dict[str, str]:
+    """Every generated page of docs/reference/, by file name."""
+    return {**cli_pages(), "config.md": config_reference()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -238,9 +289,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="write nothing; exit 1 when a committed page differs from the code's")
     args = ap.parse_args(argv)
     stale = []
-    for name, make in PAGES.items():
+    generated = pages()
+    for name, text in generated.items():
         path = REFERENCE / name
-        text = make()
         if args.check:
             if not path.exists() or path.read_text(encoding="utf-8") != text:
                 stale.append(path.relative_to(ROOT))
@@ -248,6 +299,14 @@ def main(argv: list[str] | None = None) -> int:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(text, encoding="utf-8")
             print(f"wrote {path.relative_to(ROOT)}")
+    # a page of a group no longer generated (renamed or gone)
+    for path in sorted(REFERENCE.glob("cli-*.md")):
+        if path.name not in generated:
+            if args.check:
+                stale.append(path.relative_to(ROOT))
+            else:
+                path.unlink()
+                print(f"removed {path.relative_to(ROOT)} (no longer generated)")
     if stale:
         print("stale (run python tools/docs_reference.py): " + ", ".join(map(str, stale)), file=sys.stderr)
         return 1

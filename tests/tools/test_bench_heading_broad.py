@@ -145,16 +145,16 @@ def test_the_tool_prints_its_table_and_with_no_write_leaves_the_benchmarks_doc_a
     import shutil
 
     from tools import bench_heading_broad
-    from tools.benchdoc import BENCH_DOC
+    from tools.benchdoc import bench_texts
 
-    before = BENCH_DOC.read_text() if BENCH_DOC.exists() else None
+    before = bench_texts()
     shutil.copy(SLICE, tmp_path / SLICE.name)
     argv = ["--data", str(tmp_path), "--no-write", "--json", str(tmp_path / "b.json")]
     assert bench_heading_broad.main(argv) == 0
     out = capsys.readouterr().out
     assert "| 02_undisturbed_slow_rotation_B_6s_moving | 837 (0) |" in out
     assert "armfusion heading within 3 sigma" in out and "mean vqf" in out
-    assert (BENCH_DOC.read_text() if BENCH_DOC.exists() else None) == before
+    assert bench_texts() == before
     doc = json.loads((tmp_path / "b.json").read_text())
     assert doc["02_undisturbed_slow_rotation_B_6s_moving"]["filters"]["armfusion"]["scored"] == 837
     # a folder without trials is refused, saying so

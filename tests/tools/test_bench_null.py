@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from tools import bench_null
-from tools.benchdoc import BENCH_DOC
+from tools.benchdoc import bench_texts
 
 
 def test_wilson_interval_of_a_rate():
@@ -20,7 +20,7 @@ def test_wilson_interval_of_a_rate():
 
 
 def test_the_quick_run_writes_its_section_to_the_file_it_is_given(tmp_path: Path, capsys) -> None:
-    before = BENCH_DOC.read_text() if BENCH_DOC.exists() else None
+    before = bench_texts()
     out = tmp_path / "null.md"
     bench_null.main(["--quick", "--only", "renk-maneuver 30 s", "--out", str(out)])
     text = out.read_text(encoding="utf-8")
@@ -28,5 +28,5 @@ def test_the_quick_run_writes_its_section_to_the_file_it_is_given(tmp_path: Path
     assert "| shipped, `renk-maneuver`, 30 s | 0 of 4 (0.0 %, 0.0–49.0 %) |" in text
     assert "| target ≤ 5 % over all | met | met | met |" in text
     assert "The score tests one by one on `renk-maneuver`" in text
-    assert (BENCH_DOC.read_text() if BENCH_DOC.exists() else None) == before
+    assert bench_texts() == before
     assert f"wrote {out}" in capsys.readouterr().out
