@@ -303,7 +303,7 @@ def main(argv=None) -> None:
     *solved, geo_near = solve_poses(cal, means, near)
     after = summary(base, *solved, truth_q)
     t_solve = time.perf_counter() - t0
-    # issue 15: the calibrated config's startup under each prior, and after the proposed move
+    # the calibrated config's startup under each prior, and after the proposed move
     stale = [StartupPrior.saved_pose(p) for p in q[rng.permutation(len(q))]]
     prior_rows = []
     for key, priors in (("none", [None] * len(q)), ("stale", stale), ("near", near)):

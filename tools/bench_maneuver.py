@@ -16,7 +16,7 @@ the startup after each, on several realistic arms. Writes its section of docs/be
    each calibrated config (``tools/bench_calibrated``'s ``still_means`` and ``solve_poses``):
    per joint the RMS error and the median σ of the ok answers.
 
-Targets (issue 20): ≥ 99 % of the estimated elements within 3σ of the truth and none beyond
+Targets: ≥ 99 % of the estimated elements within 3σ of the truth and none beyond
 5σ; startup ≤ 0.1° on every ok joint; the planned maneuver's worst joint startup σ below
 ``renk-maneuver``'s. ``--figure``: the predicted σ against the maneuver's length, planned
 and ``renk-maneuver`` (predictions only: no fit). ``--quick``: 1 seed, 30 s against 60 s,

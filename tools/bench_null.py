@@ -1,5 +1,5 @@
 """The workbench's false alarms measured: clean recordings through `diagnose`, `--discover`
-and the residual analysis (issue #21 item 4).
+and the residual analysis.
 
 A **clean** recording is simulated with exactly the effects its config states, so anything
 other than "fits to noise" is a false alarm:

@@ -10,7 +10,7 @@ samples at 100 Hz (noise, rounding to counts, saturation: `armfusion.models.sens
 averaged exactly as `calibrate joints` averages a still window. Three priors on the same
 poses: none (no saved pose), a stale saved pose (another pose's: the arm was moved by hand
 while off), and a saved pose near the truth (the true pose + N(0, 10 deg)); after each, the
-proposed disambiguating move is made and the pose solved again (issue 15). With
+proposed disambiguating move is made and the pose solved again. With
 ``--realistic`` every sensor carries datasheet-typical errors the solver's config does not
 know (the simulator's `--realistic` draw of every effect in the library, a new imperfect arm
 every 100 poses), which is the thesis's situation, and
@@ -18,7 +18,7 @@ the solver uses the shipped config's unmodelled-error floor; without it the sens
 exactly as configured and the config claims no unmodelled error.
 
 The solve time is the CPU time (``time.process_time``) of one ``solve_still`` call (every
-branch, sigma checks included, no unlock move), median over the poses, against issue 4's
+branch, sigma checks included, no unlock move), median over the poses, against the
 target of 5 ms: the machine is shared, and wall-clock time would measure the other
 processes too.
 """
@@ -52,7 +52,7 @@ from armfusion.models.sensor_models import stream_models  # noqa: E402
 from tools.benchdoc import machine_line, record_headline, write_section  # noqa: E402
 
 THESIS_RAD = 0.1
-TARGET_S = 5e-3  # issue 4: median solve time, all 7 joints, every branch
+TARGET_S = 5e-3  # target: median solve time, all 7 joints, every branch
 
 
 def draw_poses(arm, n, rng):

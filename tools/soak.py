@@ -21,7 +21,7 @@ The figures then add what the node's lateness policy did (its status's ``degrade
 section is ``soak-<rate>hz-<batch>ms-cpu-hog``.
 
 ``--hostile HZ`` runs a second publisher beside the real one, in its own process and Zenoh session:
-``HZ`` times a second it sends one payload of each case of issue 16 and the earlier hostile
+``HZ`` times a second it sends one payload of each hostile case and the earlier hostile
 input (:data:`HOSTILE_CASES`: garbage bytes, another schema version, NaN, another robot,
 deep nesting, an oversized payload, 3 encoder channels, a batch 10⁶ s ahead, counts of
 2⁶³ − 1, a 174° encoder jump, an unknown sensor, a plausible accelerometer sample with

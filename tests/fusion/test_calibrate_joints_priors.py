@@ -1,4 +1,4 @@
-"""`armfusion calibrate joints` as issue 15 asks, from the command line: with no saved pose
+"""`armfusion calibrate joints` from the command line: with no saved pose
 the data alone choose (the seed-11 still poses: j3 and j4 ambiguous in two windows, solved
 alone); `--segments` carries each window's answer to the next through the encoder counts,
 so no window is then wrong or ambiguous; a stale `--prior` is ignored with a note;

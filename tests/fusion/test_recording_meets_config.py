@@ -1,4 +1,4 @@
-"""Where a recording meets a config (issue 16): a recording that does not fit the arm is
+"""Where a recording meets a config: a recording that does not fit the arm is
 refused by every command with one line, and `inspect` says when samples are missing."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""What the startup does when the data cannot choose a branch (issue 15): the still poses of
+"""What the startup does when the data cannot choose a branch: the still poses of
 ``armfusion simulate --config wmra --scenario static-poses --seed 11`` with ideal sensors,
 where two windows have rival branches 170 deg apart that predict every accelerometer within
 a fraction of a milligram. No prior: `ambiguous`, every candidate, a move that separates

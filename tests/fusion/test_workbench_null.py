@@ -1,4 +1,4 @@
-"""The workbench's statistics on clean recordings (issue #21 item 4; the full measurement is
+"""The workbench's statistics on clean recordings (the full measurement is
 ``tools/bench_null.py``): each score test holds its level, the residual analysis's flag band
 holds its 1 %, and a recording that starts where the still start is ambiguous is fitted from
 the right branch instead of raising a false "missing effect"."""

@@ -1,4 +1,4 @@
-"""Joints the startup cannot choose a branch for, in the running service (issue 15): with no
+"""Joints the startup cannot choose a branch for, in the running service: with no
 saved pose the fusion node does not track them as known (flag `ambiguous`, the status names
 the candidates and the move that would tell them apart); after the controller makes that
 move and the arm is still again, the node solves again with the candidates carried through

@@ -1,4 +1,4 @@
-"""Issue 16, the service: a second Zenoh client publishing well-formed v1 payloads on the
+"""The service under attack: a second Zenoh client publishing well-formed v1 payloads on the
 fusion node's raw key expressions, beside a real replay, over 127.0.0.1. Each case asserts
 what a user sees: the node alive and tracking, its joint states within their sigma of the
 truth, the refused batch counted under its reason in the status, the counters honest."""
