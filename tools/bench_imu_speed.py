@@ -150,7 +150,8 @@ def main() -> None:
     best: dict = {(k, w): None for k in kinds for w in ("base", "ours")}
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "base"
-        subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(tree), a.base], cwd=HERE, check=True)
+        subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(tree), a.base], cwd=HERE,
+                       check=True)
         try:
             load_before = os.getloadavg()[0]
             for rep in range(a.repeats):
