@@ -139,7 +139,7 @@ class Measurements:
         noise and lag, as :meth:`with_noise` takes them) times the offset's expected length."""
         wd_err = (self.omega_dot_noise + self.settings.angular_accel_error_fraction
                   * float(frame.omega_dot_norm)) / G
-        return wd_err * wd_err * (float(r_m @ r_m) + float(np.trace(P_r)))
+        return wd_err * wd_err * (float(r_m @ r_m) + float(P_r.trace()))
 
     def with_noise(self, frames: Frames) -> Frames:
         """``frames`` with the accelerometers' measurement variances at their instants
