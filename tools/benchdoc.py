@@ -74,7 +74,7 @@ SECTION_PAGES = {
     "bench_workbench_twin": "workbench", "bench_real_arm": "workbench",
     "demo-cpu-hog": "service-load",
     "bench_kinematics": "speed", "bench_simulate": "speed", "bench_track_revisions": "speed",
-    "bench_alarm_cost": "speed",
+    "bench_alarm_cost": "speed", "bench_imu_speed": "speed",
 }
 """Every section's page, by the name its tool writes it under."""
 

@@ -49,7 +49,7 @@ class JointTiltCombinations:
         L, n, st = self.layout, self.arm.n_joints, self.settings
         ix = np.r_[np.arange(n), L.roll, L.pitch]
         values, P = self.block(ukf, q_enc, ix)
-        cand = np.r_[(flags != 0) & ~np.isin(flags, (F_AMBIGUOUS, F_GIMBAL, F_UNOBSERVED)),
+        cand = np.r_[(flags != 0) & (flags != F_AMBIGUOUS) & (flags != F_GIMBAL) & (flags != F_UNOBSERVED),
                      np.sqrt(np.clip(np.diag(P)[n:], 0.0, None)) > st.sigma_limit_deg * DEG]
         names = (*self.arm.joint_names, *TILT_NAMES)
         found = observable_combinations(P, values, names, st.mean_state_held_sigma_deg * DEG, cand)

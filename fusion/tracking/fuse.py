@@ -226,10 +226,12 @@ class InstantUpdate:
             p.alarm.listen(t, u, nu, Su, inn.z_pred, s.var, ms.rows, sel, calm, upd.frame,
                            ukf.mean[L.offset])
         read_t = self.link_read_t
-        for i, a in zip(sel.tolist(), accept[:k].tolist(), strict=True):
-            if i < len(read_t):  # (a rejected sample leaves the set at once)
-                read_t[i] = t if a else -np.inf
-        used = tuple(np.flatnonzero(t - read_t <= link_read_horizon_s).tolist())
+        used = ()
+        if len(read_t):  # (none without link accelerometers: an IMU alone)
+            for i, a in zip(sel.tolist(), accept[:k].tolist(), strict=True):
+                if i < len(read_t):  # (a rejected sample leaves the set at once)
+                    read_t[i] = t if a else -np.inf
+            used = tuple(np.flatnonzero(t - read_t <= link_read_horizon_s).tolist())
         if used != self.obs_used_key or t - self.obs_t >= p.settings.observability_period_s:
             self.obs_used_key, self.obs_t = used, t
             p.observability.update(t, upd.frame, used, ukf.mean, ukf.covariance, p.P0, q_enc,

@@ -14,6 +14,7 @@ from armfusion.fusion.tracking.differentiator import derivative_noise_gain
 from armfusion.fusion.tracking.frames import Frames
 from armfusion.fusion.tracking.settings import GYRO, MAG, G, StateLayout, TrackerSettings
 from armfusion.fusion.tracking.tracker_kernels import measurement_points
+from armfusion.fusion.tracking.turn_kernels import cross_rows, origin_accel_points
 from armfusion.fusion.tracking.ukf_groups import GroupPlan, MeasurementGroup, nis_bound
 from armfusion.models.motion import cross
 from armfusion.models.rotations import DEG
@@ -123,11 +124,7 @@ class Measurements:
         L = self.layout
         n = L.n_joints
         if L.pivot_B is not None and omega_B is not None:
-            X = np.array(X, dtype=float, copy=True)
-            r = X[:, L.pivot_B]
-            w = np.broadcast_to(np.asarray(omega_B, float), r.shape)
-            wd = np.broadcast_to(np.asarray(frame.omega_dot_B, float), r.shape)
-            X[:, L.accel] += np.cross(wd, r) + np.cross(w, np.cross(w, r))
+            X = origin_accel_points(X, L.pivot_B.start, L.accel.start, omega_B, frame.omega_dot_B)
         if sel is None:
             sel = self._no_sel
         field = self._no_field if m_B is None else m_B
@@ -142,7 +139,7 @@ class Measurements:
         noise and lag, as :meth:`with_noise` takes them) times the offset's expected length."""
         wd_err = (self.omega_dot_noise + self.settings.angular_accel_error_fraction
                   * float(frame.omega_dot_norm)) / G
-        return wd_err * wd_err * (float(r_m @ r_m) + float(np.trace(P_r)))
+        return wd_err * wd_err * (float(r_m @ r_m) + float(P_r.trace()))
 
     def with_noise(self, frames: Frames) -> Frames:
         """``frames`` with the accelerometers' measurement variances at their instants
@@ -175,7 +172,7 @@ class Measurements:
                 # a reading stamped late by dt saw gravity (and the acceleration, as a vector in
                 # the world) dt earlier: turn it to the stamp (what the acceleration changed by
                 # over dt is left: neither a world-fixed nor a body-fixed one is right for all)
-                f = f - self.time_offset_s[sel][:, None] * cross(frame.omega_S_rad_s[sel], f)
+                f = f - self.time_offset_s[sel][:, None] * cross_rows(frame.omega_S_rad_s[sel], f)
             var_a = frame.accel_var_g2 if info.full else frame.accel_var_g2[sel]
         m = 3 * k + (3 if still else 0) + mag
         z = np.zeros(m)
