@@ -39,7 +39,7 @@ class GyroEncoderCalibration:
     (:data:`DRIFT_SPAN_S` unless asked), per √s (the tracker's random walk for the joint);
     ``residual_deg``: its RMS over the whole stretch; ``span_s``: the stretch's length;
     ``bounded_deg``: the part of what is left that does not grow with the span (the spread of
-    its changes over spans of 1 s to ``DRIFT_SPAN_S`` fitted as ``2 b² + w² τ``: a bounded
+    its changes over 40 spans from 1 s to ``DRIFT_SPAN_S`` fitted as ``2 b² + w² τ``: a bounded
     error ``b`` and a random walk ``w``), the error a gravity correction slower than a second
     cannot remove (the gyros' samples aliasing a vibration faster than half their rate)."""
 
@@ -142,7 +142,7 @@ def _bounded_deg(rest_rad: np.ndarray, t_s: np.ndarray, longest_s: float) -> flo
     """The bounded part of ``rest_rad`` (deg): the variance of its changes over spans τ from
     1 s to ``longest_s`` fitted (least squares, both terms ≥ 0) as ``2 b² + w² τ``."""
     dt = float(np.median(np.diff(t_s)))
-    spans = np.geomspace(1.0, max(longest_s, 1.0), 6)
+    spans = np.geomspace(1.0, max(longest_s, 1.0), 40)  # many spans: a tone's period averages out
     var, tau = [], []
     for span in spans:
         k = max(int(round(span / dt)), 1)
