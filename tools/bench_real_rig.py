@@ -459,7 +459,9 @@ def targets(results: list[TrialResult]) -> list[str]:
         "twist of the two IMUs' relative orientation about the shaft, zero aligned on the same stretch): "
         + _listing(horiz, _withheld_ok,
                    lambda r: ("–" if r.withheld is None else f"{_fmt(r.withheld['rmse_after_30s_deg'])}°")
-                   + f" against {_best_peer(r)}"),
+                   + f" against {_best_peer(r)} (the encoder's own roughness {_fmt(r.encoder_rough_deg)}°, "
+                   + ("–" if r.withheld is None else
+                      f"the stand-in's bounded error {_fmt(r.withheld['gyro_bounded_deg'])}°") + ")"),
         "- The bench runs every trial to the end: "
         + ("met (a failed stage would be a row's entry)." if not any(r.failures for r in results) else
            "every trial ran; stages failed on " + ", ".join(
@@ -647,12 +649,15 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
                  f"{wh['gyro_scale']:.4f} and {wh['gyro_bias_deg_s']:+.4f} °/s, applied; what "
                  f"that left there {wh['gyro_residual_deg']:.2f}° RMS, drifting "
                  f"{wh['random_walk_deg_sqrt_s']:.3f} °/√s over 10 s, the joint's random walk in the "
-                 f"tracker): "
+                 f"tracker, of which a bounded {wh['gyro_bounded_deg']:.2f}° that no span makes larger): "
                  f"{_fmt(wh['err_at_30s_deg'])}° at 25-30 s, "
                  f"{_fmt(wh['rmse_after_30s_deg'])}° RMS "
                  f"after 30 s (worst {_fmt(wh['max_after_30s_deg'])}°), within 3σ "
                  f"{100 * wh['within_3sigma']:.1f} % at a median σ of "
-                 f"{_fmt(wh['sigma_median_deg'])}°."),
+                 f"{_fmt(wh['sigma_median_deg'])}°. The encoder itself departs from a smooth "
+                 f"curve through {ROUGH_SAMPLES} samples by {_fmt(r.encoder_rough_deg)}° RMS on this "
+                 "stretch (the shaft's motion from one sample to the next, which an estimate "
+                 "without the encoder cannot follow)."),
                 ""]
         if r.peers is None:
             out += ["The peer filters: " + _failure(r, "peers"), ""]
@@ -695,6 +700,16 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
                     if r.time_offset_s is not None)
         + "). A gyro integral read at its stamps seemed to drift by degrees per √s against the "
         "encoder at the rig's speeds; read when its samples were true, most of that drift is gone.",
+        "- **The stepper's steps shake the shaft.** The stepper turns the shaft in steps: the shaft "
+        "oscillates about its mean motion at a frequency that rises with its speed (tens of hertz), "
+        "tens of °/s in the gyro's samples. The encoder follows that oscillation, and the gyros' "
+        "integral follows it differently (within a sample's timing, or the shaft's twist between "
+        "them): an error of the stand-in that swings about the encoder without drifting away (its "
+        "bounded part, measured over spans of 1 to 10 s, beside its drift), faster than gravity "
+        "through the shaking shaft's accelerometer can correct. The encoder's roughness about a "
+        f"smooth curve through {ROUGH_SAMPLES} samples ("
+        + ", ".join(f"{r.name} {_fmt(r.encoder_rough_deg)}°" for r in results if r.horizontal)
+        + ") is a floor on the error of any estimate without the encoder, scored against it.",
         "- **With the encoder withheld**, where gravity sees the shaft: "
         + "; ".join(f"{r.name} armfusion {_fmt(r.withheld['rmse_after_30s_deg'])}°, best peer "
                     f"{_best_peer(r)}" for r in results

@@ -41,7 +41,8 @@ class GyroEncoderCalibration:
     ``bounded_deg``: the part of what is left that does not grow with the span (the spread of
     its changes over 40 spans from 1 s to ``DRIFT_SPAN_S`` fitted as ``2 b² + w² τ``: a bounded
     error ``b`` and a random walk ``w``), the error a gravity correction slower than a second
-    cannot remove (the gyros' samples aliasing a vibration faster than half their rate)."""
+    cannot remove (a vibration of the joint that the gyros read otherwise than the encoder,
+    or that their samples alias)."""
 
     joint: str
     scale: float
