@@ -37,7 +37,12 @@ class GyroEncoderCalibration:
     """The gyros' joint angle against the encoder: ``angle = scale · ∫rate − bias · t``.
     ``drift_deg_per_sqrt_s``: the spread of what that still leaves over a span
     (:data:`DRIFT_SPAN_S` unless asked), per √s (the tracker's random walk for the joint);
-    ``residual_deg``: its RMS over the whole stretch; ``span_s``: the stretch's length."""
+    ``residual_deg``: its RMS over the whole stretch; ``span_s``: the stretch's length;
+    ``bounded_deg``: the part of what is left that does not grow with the span (the spread of
+    its changes over 40 spans from 1 s to ``DRIFT_SPAN_S`` fitted as ``2 b² + w² τ``: a bounded
+    error ``b`` and a random walk ``w``), the error a gravity correction slower than a second
+    cannot remove (a vibration of the joint that the gyros read otherwise than the encoder,
+    or that their samples alias)."""
 
     joint: str
     scale: float
@@ -45,11 +50,12 @@ class GyroEncoderCalibration:
     drift_deg_per_sqrt_s: float
     residual_deg: float
     span_s: float
+    bounded_deg: float = 0.0
 
     def as_dict(self) -> dict:
         return {"joint": self.joint, "scale": self.scale, "bias_deg_s": float(np.degrees(self.bias_rad_s)),
                 "drift_deg_per_sqrt_s": self.drift_deg_per_sqrt_s, "residual_deg": self.residual_deg,
-                "span_s": self.span_s}
+                "span_s": self.span_s, "bounded_deg": self.bounded_deg}
 
 
 def _gyros(arm: ArmModel, joint: int) -> tuple[str, object, str, object]:
@@ -129,7 +135,28 @@ def calibrate_gyro_encoder(arm: ArmModel, rec: Recording, joint: int,
     k = max(int(round(drift_span_s / float(np.median(np.diff(t))))), 1)
     drift = float(np.degrees(np.std(rest[k:] - rest[:-k])) / np.sqrt(drift_span_s))
     return GyroEncoderCalibration(arm.joint_names[joint], float(coef[0]), float(coef[1]), drift,
-                                  float(np.degrees(np.sqrt(np.mean(rest**2)))), span)
+                                  float(np.degrees(np.sqrt(np.mean(rest**2)))), span,
+                                  _bounded_deg(rest, t, drift_span_s))
+
+
+def _bounded_deg(rest_rad: np.ndarray, t_s: np.ndarray, longest_s: float) -> float:
+    """The bounded part of ``rest_rad`` (deg): the variance of its changes over spans τ from
+    1 s to ``longest_s`` fitted (least squares, both terms ≥ 0) as ``2 b² + w² τ``."""
+    dt = float(np.median(np.diff(t_s)))
+    spans = np.geomspace(1.0, max(longest_s, 1.0), 40)  # many spans: a tone's period averages out
+    var, tau = [], []
+    for span in spans:
+        k = max(int(round(span / dt)), 1)
+        if k < len(rest_rad):
+            var.append(float(np.var(rest_rad[k:] - rest_rad[:-k])))
+            tau.append(k * dt)
+    if len(var) < 2:
+        return 0.0
+    A = np.stack([np.full(len(tau), 2.0), np.asarray(tau)], axis=1)
+    coef, *_ = np.linalg.lstsq(A, np.asarray(var), rcond=None)
+    if coef[1] < 0:  # no random walk: all of it bounded
+        coef = np.array([np.mean(var) / 2.0, 0.0])
+    return float(np.degrees(np.sqrt(max(coef[0], 0.0))))
 
 
 def with_gyro_encoder(arm: ArmModel, rec: Recording, joint: int, cal: GyroEncoderCalibration) -> Recording:

@@ -32,3 +32,14 @@ def test_the_stages_after_a_failed_one_say_they_were_not_run(tmp_path):
     doc = real_data_doc([r], 300.0)
     assert "## broken" in doc and "- import: ForeignFileError" in doc
     assert "| broken | **import failed**" in benchmarks_section([r], 300.0)
+
+
+def test_trials_run_side_by_side_come_back_in_the_folders_order(tmp_path, capsys):
+    for name in ("c_third", "a_first", "b_second"):
+        (tmp_path / f"{name}.mat").write_text("not a MATLAB file", encoding="utf-8")
+    from tools.bench_real_rig import main
+
+    assert main(["--data", str(tmp_path), "--no-write", "--jobs", "2"]) == 0
+    rows = [line.split(" |")[0] for line in capsys.readouterr().out.splitlines()
+            if line.startswith("| ") and "**import failed**" in line]
+    assert rows == ["| a_first", "| b_second", "| c_third"]
