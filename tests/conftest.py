@@ -1,6 +1,11 @@
-"""Shared fixtures: the shipped arm configs and seeded random generators."""
+"""Shared fixtures: the shipped arm configs and seeded random generators; and which tests
+share the network, so a parallel run (pytest-xdist, ``-n``) runs them one at a time."""
 
 from __future__ import annotations
+
+import re
+from functools import cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -44,3 +49,23 @@ def daily_use_110s(calibrated_wmra_arm):
 
     rec, _ = simulate(calibrated_wmra_arm, "daily-use", 110.0, seed=21)
     return rec
+
+
+_NETWORK = re.compile(r'zenoh|"(serve|demo|replay|record|monitor|drivers|fleet)"')
+"""What marks a test module as one that may open Zenoh sessions: it names zenoh, or runs a
+command that publishes or listens."""
+
+
+@cache
+def _uses_network(path: Path) -> bool:
+    return "service" in path.parts or bool(_NETWORK.search(path.read_text(encoding="utf-8")))
+
+
+def pytest_collection_modifyitems(items):
+    """Every test that may open a Zenoh session goes to one worker of a parallel run: the
+    default endpoint (tcp/127.0.0.1:7447), the timing of a node under test and the ports
+    picked free are then never contended by a second worker. The rest spread over the workers."""
+    for item in items:
+        if _uses_network(Path(str(item.path))):
+            item.add_marker(pytest.mark.xdist_group("network"))
+
