@@ -3,13 +3,21 @@ share the network, so a parallel run (pytest-xdist, ``-n``) runs them one at a t
 
 from __future__ import annotations
 
+import os
 import re
 from functools import cache
 from pathlib import Path
 
 import numpy as np
 import pytest
-from armfusion.fusion.configfile import load_arm
+
+# a parallel run's workers inherit a terminal size (COLUMNS 80) that a serial run does not
+# have, and the command line's consoles take their width from it once, at import: each test
+# that needs a width gives its own (CliRunner's env), so the workers start without one
+for _size in ("COLUMNS", "LINES"):
+    os.environ.pop(_size, None)
+
+from armfusion.fusion.configfile import load_arm  # noqa: E402
 
 
 @pytest.fixture(scope="session")
