@@ -56,6 +56,4 @@ def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def cross_vec(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a x b`` of two 3-vectors (float), ``(3,)``."""
-    a0, a1, a2 = a.tolist()
-    b0, b1, b2 = b.tolist()
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+    return np.array(cross3(*a.tolist(), *b.tolist()))
