@@ -124,7 +124,11 @@ class ArmCalibration:
 
     ``accel_unmodelled_g``: every accelerometer's unmodelled error, 1 sigma per axis [g],
     unless ``accel_unmodelled_g_per_sensor`` names the sensor; the base IMU's accelerometer
-    uses ``imu_accel_unmodelled_g`` when given. ``mag_unmodelled_ut``: the compass's [µT].
+    uses ``imu_accel_unmodelled_g`` when given. It is an error that stays (an offset, a
+    board's tilt): averaging does not lower it. ``accel_fast_error_g_per_sensor``: per
+    accelerometer (the IMU's by its sensor name), the fast error one sample carries beyond
+    its datasheet noise (vibration, aliasing) [g]: it joins each reading's noise and averages
+    away as noise does. ``mag_unmodelled_ut``: the compass's [µT].
     ``gyro_scale_unmodelled``: the gyro's scale-and-axes error left (a fraction, 1 sigma per
     axis), where the config states it (a factory-calibrated module); None: the tracker's
     datasheet figure where the IMU is not exact
@@ -140,6 +144,7 @@ class ArmCalibration:
 
     accel_unmodelled_g: float = 0.0
     accel_unmodelled_g_per_sensor: Mapping[str, float] = field(default_factory=dict)
+    accel_fast_error_g_per_sensor: Mapping[str, float] = field(default_factory=dict)
     imu_accel_unmodelled_g: float | None = None
     mag_unmodelled_ut: float = 0.0
     gyro_scale_unmodelled: float | None = None
@@ -151,6 +156,10 @@ class ArmCalibration:
     def accel_floor_g(self, sensor: str) -> float:
         """A link accelerometer's unmodelled error [g]: its own, else the common one."""
         return float(self.accel_unmodelled_g_per_sensor.get(sensor, self.accel_unmodelled_g))
+
+    def accel_fast_error_g(self, sensor: str) -> float:
+        """An accelerometer's fast error beyond its datasheet noise [g] (0 unless given)."""
+        return float(self.accel_fast_error_g_per_sensor.get(sensor, 0.0))
 
     @property
     def imu_accel_floor_g(self) -> float:
@@ -171,7 +180,7 @@ class ArmCalibration:
         """The same calibration with nothing unmodelled (no accelerometer floor, no compass
         floor): sensors exactly as modelled, as a simulation with noise only draws them."""
         return replace(self.with_accel_floor(0.0), imu_accel_unmodelled_g=None, mag_unmodelled_ut=0.0,
-                       gyro_scale_unmodelled=None, floors_by_default={})
+                       gyro_scale_unmodelled=None, floors_by_default={}, accel_fast_error_g_per_sensor={})
 
 
 @dataclass(frozen=True)

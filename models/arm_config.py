@@ -314,6 +314,11 @@ class CalibrationSection(_Strict):
     """A link accelerometer's (or the IMU's), by sensor name, in place of the common one."""
     imu_accel_unmodelled_g: UnmodelledG | None = None
     """The base IMU accelerometer's unmodelled error (the common one by default)."""
+    accel_fast_error_g_per_sensor: dict[str, UnmodelledG] | None = None
+    """Per accelerometer (link or IMU, by sensor name), the fast error one sample carries
+    beyond the sensor's datasheet noise (a motor's vibration, aliasing), 1 sigma per axis:
+    it joins each reading's noise and averages away as noise does; the unmodelled error is
+    what stays."""
     mag_unmodelled_ut: float | None = Field(default=None, ge=0.0, le=1000.0)
     """What the compass's horizontal reading may be off Earth's field, 1 sigma."""
     gyro_scale_unmodelled: float | None = Field(default=None, ge=0.0, le=0.5)
@@ -607,6 +612,7 @@ def _cross_checks(data: dict, source: str, urdf_joints) -> list[ConfigProblem]:
         if isinstance(cal, dict):
             # per sensor: by the sensor's name (the IMU's too); covariances: by stream
             for key, allowed in (("accel_unmodelled_g_per_sensor", accels + imus),
+                                 ("accel_fast_error_g_per_sensor", accels + imus),
                                  ("correction_covariance", accels + ["imu_acc"] * bool(imus))):
                 given = cal.get(key)
                 if isinstance(given, dict):
@@ -755,6 +761,7 @@ def _calibration(section: CalibrationSection, sensors: tuple[SensorMount, ...] =
     return ArmCalibration(
         accel_unmodelled_g=float(section.accel_unmodelled_g or 0.0),
         accel_unmodelled_g_per_sensor=per_sensor,
+        accel_fast_error_g_per_sensor=dict(section.accel_fast_error_g_per_sensor or {}),
         imu_accel_unmodelled_g=defaults.get("imu_acc", section.imu_accel_unmodelled_g),
         mag_unmodelled_ut=float(defaults.get("imu_mag", section.mag_unmodelled_ut or 0.0)),
         floors_by_default=said,

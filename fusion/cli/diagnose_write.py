@@ -180,12 +180,14 @@ def without_bound(d: Diagnosis):
 
 
 def raise_floors(cfg: dict, d: Diagnosis, arm=None) -> None:
-    """The written accelerometer floors: at least what the fit leaves on the held-out data (the
-    in-sample residual is smaller by the parameters fitted to it), and, with ``arm`` (the
-    config it replaces), never below that config's own floor. The fit's residual is of
-    window means: it does not see what a tracker reading every sample meets (a clock's
-    offset while moving, a resampled stream's shared samples); a lower floor made the UR5
-    twin's tracked forearm pitch 0.87° RMS on its held-out part against 0.23°."""
+    """The written accelerometer floors (the unmodelled error, what stays): at least what the
+    fit leaves on the held-out data (the in-sample residual is smaller by the parameters
+    fitted to it), and, with ``arm`` (the config it replaces), never below that config's own
+    floor. The fit's residual is of window means: it does not see what a tracker reading
+    every sample meets (a clock's offset while moving, a resampled stream's shared samples);
+    a lower floor made the UR5 twin's tracked forearm pitch 0.87° RMS on its held-out part
+    against 0.23°. The fast error the fit measured (``accel_fast_error_g_per_sensor``, one
+    sample's excess) is kept as written: it only adds to a reading's noise."""
     cal = cfg.get("calibration") or {}
     per = dict(cal.get("accel_unmodelled_g_per_sensor") or {})
     model_arm = d.fit.model.arm

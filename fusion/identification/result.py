@@ -75,11 +75,20 @@ class StreamFit:
     """Per axis, the fast error one sample carries beyond its noise (vibration…), which the
     window means do not show (:func:`armfusion.fusion.identification.data.sample_excess`); None: none."""
 
+    def lasting(self) -> np.ndarray:
+        """RMS beyond the noise of the window means, per axis (0 where the fit is at the
+        noise): the misfit a window's mean keeps, an error averaging does not lower."""
+        return np.sqrt(np.maximum(self.rms**2 - self.noise**2, 0.0))
+
+    def fast(self) -> np.ndarray:
+        """One sample's fast excess beyond its noise, per axis (0 where none was measured):
+        an error that averages away as noise does."""
+        return np.zeros_like(self.rms) if self.sample_excess is None else np.asarray(self.sample_excess)
+
     def excess(self) -> np.ndarray:
-        """RMS beyond the noise, per axis (0 where the fit is at the noise): the window means'
-        misfit, and one sample's fast excess with it."""
-        slow = np.sqrt(np.maximum(self.rms**2 - self.noise**2, 0.0))
-        return slow if self.sample_excess is None else np.hypot(slow, self.sample_excess)
+        """RMS beyond the noise, per axis: the window means' misfit (:meth:`lasting`) and one
+        sample's fast excess (:meth:`fast`) together."""
+        return np.hypot(self.lasting(), self.fast())
 
 
 @dataclass(frozen=True)
@@ -148,13 +157,16 @@ class Identification:
         i = self.names.index(element)
         return float(self.x[i]), float(self.sigma[i])
 
-    def unmodelled_g(self) -> dict[str, float]:
-        """Per accelerometer: what the fit leaves beyond the noise (the worst axis), in g."""
+    def unmodelled_g(self, part: str = "all") -> dict[str, float]:
+        """Per accelerometer (by sensor name): what the fit leaves beyond the noise (the worst
+        axis), in g; ``part``: ``"all"``, ``"lasting"`` (:meth:`StreamFit.lasting`: what
+        stays) or ``"fast"`` (:meth:`StreamFit.fast`: what averages away)."""
+        of = {"all": StreamFit.excess, "lasting": StreamFit.lasting, "fast": StreamFit.fast}[part]
         out = {}
         for f in self.fits:
             if f.unit == "g":
                 name = self.model.arm.imu.name if f.stream == "imu_acc" else f.stream
-                out[name] = float(np.max(f.excess()))
+                out[name] = float(np.max(of(f)))
         return out
 
     def as_dict(self) -> dict[str, Any]:

@@ -48,10 +48,11 @@ def sensor_floor_g(arm: ArmModel, name: str) -> float:
     return arm.calibration.accel_floor_g(name)
 
 
-def _noise_g(model, n_samples: int) -> np.ndarray:
+def _noise_g(model, n_samples: int, fast_error_g: float = 0.0) -> np.ndarray:
     """Standard error of a mean of ``n_samples`` counts, in g, the rounding to the values'
-    resolution included."""
-    return model.sigma_counts / np.abs(model.gain) / np.sqrt(n_samples)
+    resolution and the sensor's fast error beyond it (``fast_error_g``, per sample:
+    ``calibration.accel_fast_error_g_per_sensor``) included."""
+    return np.hypot(model.sigma_counts / np.abs(model.gain), fast_error_g) / np.sqrt(n_samples)
 
 
 def readings_from_recording(
@@ -80,7 +81,9 @@ def readings_from_recording(
                 else f"{name}: no samples in the recording"))
             continue
         w = s.between(t0, t_end_s + 1e-9)
-        m, sg, msg = _average(label, w, models[name], magnitude_range_g, t0, t_end_s)
+        sensor = arm.imu.name if name == "imu_acc" else name
+        m, sg, msg = _average(label, w, models[name], magnitude_range_g, t0, t_end_s,
+                              arm.calibration.accel_fast_error_g(sensor))
         if msg:
             checks.append(InputCheck(label, msg))
         elif name == "imu_acc":
@@ -91,7 +94,7 @@ def readings_from_recording(
     return StillReadings(means, sigmas, imu_m, imu_s, t0, t_end_s), checks
 
 
-def _average(name, w, model, mag_range, t0, t1):
+def _average(name, w, model, mag_range, t0, t1, fast_error_g: float = 0.0):
     """One sensor's window ``w`` averaged: ``(mean_g, sigma_g, None)``, or ``(None, None,
     message)`` when it is too short, saturated or far from 1 g."""
     where = f"{name} in t = {t0:.2f}..{t1:.2f} s"
@@ -110,7 +113,7 @@ def _average(name, w, model, mag_range, t0, t1):
     if not mag_range[0] <= mag <= mag_range[1]:
         return None, None, (f"{where}: reads {mag:.3f} g in magnitude while still, expected about "
                             f"1 g: a dead or disconnected sensor, or a wrong scale; left out")
-    return mean_g, _noise_g(model, len(w)), None
+    return mean_g, _noise_g(model, len(w), fast_error_g), None
 
 
 def readings_from_counts(arm: ArmModel, mean_counts: dict[str, np.ndarray], n_samples: int,
@@ -123,13 +126,14 @@ def readings_from_counts(arm: ArmModel, mean_counts: dict[str, np.ndarray], n_sa
         if mount.name in mean_counts:
             mdl = models[mount.name]
             means[mount.name] = mdl.from_counts(np.asarray(mean_counts[mount.name], float)[None])[0]
-            sigmas[mount.name] = np.sqrt(_noise_g(mdl, n_samples) ** 2
+            fast = arm.calibration.accel_fast_error_g(mount.name)
+            sigmas[mount.name] = np.sqrt(_noise_g(mdl, n_samples, fast) ** 2
                                          + sensor_floor_g(arm, mount.name) ** 2)
     imu_m = imu_s = None
     if "imu_acc" in mean_counts and "imu_acc" in models:
         mdl = models["imu_acc"]
         imu_m = mdl.from_counts(np.asarray(mean_counts["imu_acc"], float)[None])[0]
-        imu_s = _noise_g(mdl, n_samples)
+        imu_s = _noise_g(mdl, n_samples, arm.calibration.accel_fast_error_g(arm.imu.name))
     return StillReadings(means, sigmas, imu_m, imu_s)
 
 

@@ -246,6 +246,15 @@ def accel_floors_g(arm: ArmModel, link_names, has_imu: bool) -> np.ndarray:
     return np.array([arm.calibration.accel_floor_g(nm) for nm in link_names] + [0.0] * has_imu)
 
 
+def accel_fast_errors_g(arm: ArmModel, link_names, has_imu: bool) -> np.ndarray:
+    """Per accelerometer stream (the link ones, then the IMU's), the config's fast error
+    beyond the datasheet noise in g (vibration: it joins each reading's noise, and only
+    there; what stays is :func:`accel_floors_g`'s)."""
+    cal = arm.calibration
+    imu = [cal.accel_fast_error_g(arm.imu.name)] if has_imu and arm.imu is not None else [0.0] * has_imu
+    return np.array([cal.accel_fast_error_g(nm) for nm in link_names] + imu)
+
+
 def imu_bias_prior_var(arm: ArmModel, correction, R_0I: np.ndarray | None, roll_rad: float,
                        pitch_rad: float) -> np.ndarray:
     """Prior variance (g²) of what the IMU accelerometer's correction leaves, per IMU axis,

@@ -67,7 +67,8 @@ class Stack(NamedTuple):
 class Measurements:
     """The measurement side of a tracker with accelerometer streams ``accel_streams``
     (the IMU's at ``imu_index``, -1 without), on links ``links``; ``names`` every stream it
-    takes; ``unmodelled_g`` per accelerometer the config's unmodelled-error floor;
+    takes; ``unmodelled_g`` per accelerometer the error each reading carries beyond the
+    datasheet noise (the config's unmodelled error with its fast one);
     ``time_offset_s``, ``time_var_s2`` per accelerometer its time stamp's offset and variance
     (None: none stated)."""
 

@@ -127,6 +127,7 @@ class TrackerSetup:
         self._mag_delay_s = float(delays_s[-1]) if self._has_imu else 0.0
         unmodelled_g = calibrated.accel_floors_g(arm, self.link_names, self._has_imu)
         self._unmodelled_g = unmodelled_g
+        self._fast_error_g = calibrated.accel_fast_errors_g(arm, self.link_names, self._has_imu)
         self._sees = links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
         self._make_parts(links, unmodelled_g, time_offset_s, time_var_s2, scale_sigma)
         self.set_rates(rates_hz)
@@ -145,9 +146,11 @@ class TrackerSetup:
         self._max_list = arm.max_rad.tolist()
         self.frame_constants = FrameConstants(arm, self.accel_names, self._joint_effects, G)
         """What the compiled kinematic frames are made with (:mod:`armfusion.fusion.tracking.frame_kernels`)."""
+        # a reading's noise holds both the error that stays and the fast one; the consider
+        # sensitivity (Observability) carries only the one that stays
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
-                                         self.sensor_index.get(IMU_ACC, -1), unmodelled_g, time_offset_s,
-                                         time_var_s2)
+                                         self.sensor_index.get(IMU_ACC, -1),
+                                         np.hypot(unmodelled_g, self._fast_error_g), time_offset_s, time_var_s2)
         self.observability = Observability(st, L, self.link_names, self.accel_streams, self._sees, correction,
                                            calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
                                            self.R_0I if self._has_imu else None)
