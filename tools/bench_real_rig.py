@@ -24,7 +24,7 @@ a user's recording never seen before (nothing here knows a file by its name):
 5. **The encoder withheld**: the scored stretch again, the joint's relative angle from the
    integral of the shaft's gyro less the frame's about the shaft's axis, each read when its
    samples were true (:mod:`armfusion.fusion.tracking.gyro_encoder`, as ``track --encoder-withheld``
-   does: its scale, bias and drift calibrated on the calibration stretch, the drift the
+   does: its scale, delay, bias and drift calibrated on the calibration stretch, the drift the
    joint's random walk in the tracker), beside the peer filters of the package index
    (`tools/rig_peers.py`: vqf, imufusion, ahrs) on the same samples, their zero aligned on
    the same calibration stretch.
@@ -240,6 +240,7 @@ def track_encoder_withheld(cal_config: Path, cal: Recording, rec: Recording, zer
     out = track_scored(cal_config, with_gyro_encoder(arm, rec, 0, gcal), zero_rad, settings)
     out["gyro_scale"] = gcal.scale
     out["gyro_bias_deg_s"] = float(np.degrees(gcal.bias_rad_s))
+    out["gyro_delay_ms"] = 1e3 * gcal.delay_s
     out["random_walk_deg_sqrt_s"] = gcal.drift_deg_per_sqrt_s
     out["gyro_residual_deg"] = gcal.residual_deg
     out["gyro_bounded_deg"] = gcal.bounded_deg
@@ -454,7 +455,7 @@ def targets(results: list[TrialResult]) -> list[str]:
         + _listing(horiz, _tight_ok, _tight_words),
         "- Horizontal shaft, encoder withheld: RMSE ≤ 0.5° and better than every peer in the same run "
         "(the joint's relative angle from the integral of the shaft's gyro less the frame's about the "
-        "shaft's axis, each read when its samples were true, its scale, bias and drift measured on the "
+        "shaft's axis, each read when its samples were true, its scale, delay, bias and drift measured on the "
         "calibration stretch, tracked as a drifting relative encoder; the peers, tools/rig_peers.py, the "
         "twist of the two IMUs' relative orientation about the shaft, zero aligned on the same stretch): "
         + _listing(horiz, _withheld_ok,
@@ -645,8 +646,9 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
                 "",
                 ("The same stretch with the encoder withheld: " + _failure(r, "withheld") if wh is None else
                  f"The same stretch with the encoder withheld (the gyros' relative rate about the shaft, "
-                 f"integrated: its scale and bias against the encoder on the calibration stretch "
-                 f"{wh['gyro_scale']:.4f} and {wh['gyro_bias_deg_s']:+.4f} °/s, applied; what "
+                 f"integrated: its scale, delay and bias against the encoder on the calibration stretch "
+                 f"{wh['gyro_scale']:.4f}, {wh.get('gyro_delay_ms', 0.0):+.1f} ms and "
+                 f"{wh['gyro_bias_deg_s']:+.4f} °/s, applied; what "
                  f"that left there {wh['gyro_residual_deg']:.2f}° RMS, drifting "
                  f"{wh['random_walk_deg_sqrt_s']:.3f} °/√s over 10 s, the joint's random walk in the "
                  f"tracker, of which a bounded {wh['gyro_bounded_deg']:.2f}° that no span makes larger): "

@@ -34,7 +34,10 @@ MIN_CALIBRATION_S = 10.0
 
 @dataclass(frozen=True)
 class GyroEncoderCalibration:
-    """The gyros' joint angle against the encoder: ``angle = scale · ∫rate − bias · t``.
+    """The gyros' joint angle against the encoder: ``angle(t) = scale · ∫rate(t − delay) −
+    bias · t``, ``delay_s`` how much later the encoder read what the gyros' integral says (the
+    two clocks' offset while the joint turns: each part's filter delay, the logger's reading
+    order), measured where both are known as the other three are.
     ``drift_deg_per_sqrt_s``: the spread of what that still leaves over a span
     (:data:`DRIFT_SPAN_S` unless asked), per √s (the tracker's random walk for the joint);
     ``residual_deg``: its RMS over the whole stretch; ``span_s``: the stretch's length;
@@ -51,11 +54,12 @@ class GyroEncoderCalibration:
     residual_deg: float
     span_s: float
     bounded_deg: float = 0.0
+    delay_s: float = 0.0
 
     def as_dict(self) -> dict:
         return {"joint": self.joint, "scale": self.scale, "bias_deg_s": float(np.degrees(self.bias_rad_s)),
                 "drift_deg_per_sqrt_s": self.drift_deg_per_sqrt_s, "residual_deg": self.residual_deg,
-                "span_s": self.span_s, "bounded_deg": self.bounded_deg}
+                "span_s": self.span_s, "bounded_deg": self.bounded_deg, "delay_s": self.delay_s}
 
 
 def _gyros(arm: ArmModel, joint: int) -> tuple[str, object, str, object]:
@@ -128,15 +132,24 @@ def calibrate_gyro_encoder(arm: ArmModel, rec: Recording, joint: int,
                          f"the encoder known, got {span:.1f} s")
     if drift_span_s is None:
         drift_span_s = min(DRIFT_SPAN_S, span / 3.0)
-    angle = _integral(gyro_joint_rate(arm, rec, joint, t), t)
-    A = np.stack([angle, -(t - t[0]), np.ones_like(t)], axis=1)
+    rate = gyro_joint_rate(arm, rec, joint, t)
+    angle = _integral(rate, t)
+    # scale · ∫rate(t − delay) ≈ scale · ∫rate(t) − scale · delay · rate(t): linear in each
+    A = np.stack([angle, -rate, -(t - t[0]), np.ones_like(t)], axis=1)
     coef, *_ = np.linalg.lstsq(A, q - q[0], rcond=None)
-    rest = A @ coef - (q - q[0])
+    scale, delay_s, bias = float(coef[0]), float(coef[1] / coef[0]), float(coef[2])
+    rest = _delayed(scale * angle - bias * (t - t[0]), t, delay_s) + coef[3] - (q - q[0])
     k = max(int(round(drift_span_s / float(np.median(np.diff(t))))), 1)
     drift = float(np.degrees(np.std(rest[k:] - rest[:-k])) / np.sqrt(drift_span_s))
-    return GyroEncoderCalibration(arm.joint_names[joint], float(coef[0]), float(coef[1]), drift,
+    return GyroEncoderCalibration(arm.joint_names[joint], scale, bias, drift,
                                   float(np.degrees(np.sqrt(np.mean(rest**2)))), span,
-                                  _bounded_deg(rest, t, drift_span_s))
+                                  _bounded_deg(rest, t, drift_span_s), delay_s)
+
+
+def _delayed(angle: np.ndarray, t_s: np.ndarray, delay_s: float) -> np.ndarray:
+    """``angle`` (at ``t_s``) as read ``delay_s`` later: its value at ``t_s − delay_s`` (the
+    first sample's before the start)."""
+    return np.interp(t_s - delay_s, t_s, angle) if delay_s else angle
 
 
 def _bounded_deg(rest_rad: np.ndarray, t_s: np.ndarray, longest_s: float) -> float:
@@ -165,7 +178,8 @@ def with_gyro_encoder(arm: ArmModel, rec: Recording, joint: int, cal: GyroEncode
     calibrated encoder scale undone); the other joints' counts kept."""
     enc = rec.get("enc")
     t = enc.t_s
-    angle = _integral(cal.scale * gyro_joint_rate(arm, rec, joint, t) - cal.bias_rad_s, t)
+    angle = _delayed(_integral(cal.scale * gyro_joint_rate(arm, rec, joint, t) - cal.bias_rad_s, t), t,
+                     cal.delay_s)
     scale, _ = encoder_scales(arm, config_model(arm))
     values = np.array(enc.values, dtype=float)
     values[:, joint] = angle * arm.counts_per_rad[joint] * (1.0 + scale[joint])

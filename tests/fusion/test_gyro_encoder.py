@@ -5,6 +5,7 @@ and gravity. Simulated on the real rig's layout, then on the real rig's slice.""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -71,6 +72,34 @@ def test_the_gyros_angle_stands_in_for_the_encoder():
     rel_gyro = gyro.values[:, 0] / arm.counts_per_rad[0]
     assert np.degrees(np.max(np.abs(rel_gyro - rel_enc))) < 0.5
     assert np.degrees(np.ptp(rel_enc)) > 20.0  # the joint did turn
+
+
+def test_an_encoder_that_reads_later_than_the_gyros_is_measured_and_followed():
+    """The encoder's counts read 6 ms after the gyros' samples (the rig's logger read them in
+    turn): calibrated where both are known, the stand-in measures the delay, and its angle on
+    the next stretch follows the encoder where, read undelayed, it would lead it by the
+    joint's rate times 6 ms."""
+    arm = load_arm("imu_rig_roll")
+    rec, _ = simulate(arm, "excitation", 60.0, seed=7, noise=False)
+    enc = rec.get("enc")
+    late_counts = np.interp(enc.t_s - 0.006, enc.t_s, enc.values[:, 0].astype(float))
+    late = Recording({**rec.streams, "enc": Stream(enc.name, enc.kind, enc.t_s, late_counts[:, None],
+                                                    enc.channels)}, dict(rec.meta))
+    t0 = rec.t_start_s
+    cal = calibrate_gyro_encoder(arm, late.between(t0, t0 + 40.0), 0)
+    assert abs(cal.delay_s - 0.006) < 0.001
+    later = late.between(t0 + 40.0, np.inf)
+    rel = (later.get("enc").values[:, 0] - later.get("enc").values[0, 0]) / arm.counts_per_rad[0]
+    followed = with_gyro_encoder(arm, later, 0, cal).get("enc").values[:, 0] / arm.counts_per_rad[0]
+    undelayed = with_gyro_encoder(arm, later, 0, replace(cal, delay_s=0.0)).get("enc").values[:, 0]
+    rate = _true_rate(later, later.get("enc").t_s)
+
+    def lead_s(angle):  # the part of the angle's error that goes with the joint's rate
+        err = angle - angle[0] - rel
+        return float(np.polyfit(rate, err - err.mean(), 1)[0])
+
+    assert abs(lead_s(followed)) < 0.001
+    assert abs(lead_s(undelayed / arm.counts_per_rad[0]) - 0.006) < 0.001
 
 
 def test_a_vibration_the_gyros_alias_is_a_bounded_error_not_a_drift():
