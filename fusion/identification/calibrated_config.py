@@ -10,7 +10,6 @@ from armfusion.fusion.identification.result import Identification
 from armfusion.models.effects import entries_from_model
 from armfusion.models.effects.base import SensorEffect
 
-
 CONVENTION_SHARE = 0.1
 """A held element whose prior carries at least this share of a joint zero's variance (its
 squared correlation with the zero) is that zero's convention: the zero is known only

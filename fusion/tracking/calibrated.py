@@ -95,16 +95,33 @@ def with_lever_arms(arm: ArmModel, model: Model | None) -> ArmModel:
     return replace(arm, sensors=sensors)
 
 
+APPLIED: dict[str, str] = {
+    "accel_bias": "each accelerometer's reading corrected",
+    "accel_scale": "each accelerometer's reading corrected",
+    "accel_axes": "each accelerometer's reading corrected",
+    "mount_rotation": "each accelerometer's reading corrected",
+    "temperature_drift": "each accelerometer's reading corrected at its temperature",
+    "gyro_bias": "the gyro's reading corrected; the bias state follows what is left and its drift",
+    "gyro_scale": "the gyro's reading corrected",
+    "mag_hard_iron": "the compass's reading corrected",
+    "mag_soft_iron": "the compass's reading corrected",
+    "mag_arm_disturbance": "the arm's steel's field at the compass, with the joints' angles",
+    "joint_offset": "the joints' zeros: the startup finds them (relative encoders)",
+    "link_compliance": "in the kinematics",
+    "backlash": "in the kinematics",
+    "encoder_scale": "each encoder's counts per radian",
+    "motion_acceleration": "each sensor's lever arm",
+    "time_offset": "each device read at the instant its samples were true",
+    "base_mount": "the base IMU's accelerometer corrected",
+}
+"""The config's effects the tracker applies, and where (the code that reads each is named
+by :func:`effect_blocks` calls with its name in this module, ``setup``, ``compass`` and
+:func:`armfusion.fusion.identification.correction.startup_correction`)."""
 NOT_APPLIED: dict[str, str] = {
     "time_drift": "the tracker reads each device at its constant time offset; the offset's drift is "
                   "not applied",
 }
-"""The config's effects the tracker does not apply, and why (a drifting time offset's rate;
-all others it applies: the
-accelerometers', the gyro's and the compass's corrections, the arm's steel's field at the
-compass, the joints' effects in the kinematics, lever arms, time offsets, encoder scales;
-the gyro's calibrated bias undone, the tracker's bias state follows what is left of it and
-its drift)."""
+"""The config's effects the tracker does not apply, and why (a drifting time offset's rate)."""
 PARTLY_APPLIED: dict[str, str] = {
     "base_mount": ("applied to the IMU's accelerometer, not to its gyro and compass (a parked fit's "
                    "mount is gravity's)"),
@@ -113,11 +130,14 @@ IMU_PARTLY_APPLIED: dict[str, str] = {
     "time_offset": "applied to the IMU's accelerometer, not to its gyro and compass",
 }
 """Effects applied in part where their target is the base IMU, and what is left out."""
+UNKNOWN_EFFECT = "the tracker has no code for this effect: not applied"
 
 
 def effects_applied(model: Model | None) -> tuple[list[str], list[str]]:
     """The config's effects the tracker applies (their block names, with a word where only
-    in part), and those it does not, each with why: what its notes say."""
+    in part), and those it does not, each with why: what its notes say. An effect the
+    tracker does not know (in none of :data:`APPLIED`, :data:`NOT_APPLIED`) is said not
+    applied, never assumed to be."""
     if model is None:
         return [], []
     applied, not_applied = [], []
@@ -129,8 +149,10 @@ def effects_applied(model: Model | None) -> tuple[list[str], list[str]]:
             not_applied.append(f"{e.block_name} ({NOT_APPLIED[e.name]})")
         elif e.name in PARTLY_APPLIED:
             applied.append(f"{e.block_name} ({PARTLY_APPLIED[e.name]})")
-        else:
+        elif e.name in APPLIED:
             applied.append(e.block_name)
+        else:
+            not_applied.append(f"{e.block_name} ({UNKNOWN_EFFECT})")
     return applied, not_applied
 
 

@@ -164,7 +164,8 @@ def test_the_tracker_keeps_the_calibrations_convention_for_the_zero(roll_calibra
     assert "frame.accel_bias[z]" in conventions
     # the shaft board's turn about the shaft (its axes' y.gamma, held by the model's structure)
     # is the other half of the zero's doubt: a convention too, and nothing else is
-    assert set(conventions) <= {"frame.accel_bias[z]", "shaft.accel_axes[y.gamma]", "shaft.accel_axes[z.beta]"}
+    assert set(conventions) <= {"frame.accel_bias[z]", "shaft.accel_axes[y.gamma]",
+                                "shaft.accel_axes[z.beta]"}
     tr, _ = start_from_recording(calibrated, scored, moving_start=True, propose_unlock=False)
     run = tr.run(scored, truth=False)
     err_deg = _error_deg(run, scored, zero_rad)
