@@ -150,7 +150,8 @@ class TrackerSetup:
         # sensitivity (Observability) carries only the one that stays
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
                                          self.sensor_index.get(IMU_ACC, -1),
-                                         np.hypot(unmodelled_g, self._fast_error_g), time_offset_s, time_var_s2)
+                                         np.hypot(unmodelled_g, self._fast_error_g), time_offset_s,
+                                         time_var_s2)
         self.observability = Observability(st, L, self.link_names, self.accel_streams, self._sees, correction,
                                            calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
                                            self.R_0I if self._has_imu else None)
