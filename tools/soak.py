@@ -327,17 +327,41 @@ def _z_scores(joints: Joints, truth: Stream, after_t_s: float) -> np.ndarray:
     return err / sig
 
 
+CHECKOUT_BOOT = """
+import importlib.abc, importlib.machinery, importlib.util, os, runpy, sys
+root = sys.argv.pop(1)
+dirs = {"armfusion": "armfusion", "armfusion.fusion": "fusion", "armfusion.models": "models",
+        "armfusion.sensors": "sensors", "armfusion.config": "config"}
+class Checkout(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name not in dirs:
+            return None
+        d = os.path.join(root, dirs[name])
+        init = os.path.join(d, "__init__.py")
+        if os.path.exists(init):
+            return importlib.util.spec_from_file_location(name, init, submodule_search_locations=[d])
+        spec = importlib.machinery.ModuleSpec(name, None, is_package=True)
+        spec.submodule_search_locations = [d]
+        return spec
+sys.meta_path.insert(0, Checkout())
+runpy.run_module("armfusion.fusion.cli", run_name="__main__", alter_sys=True)
+"""
+"""Runs ``armfusion`` from the checkout given as its first argument: the layers' packages
+mapped to that folder's ``fusion``, ``models``… ahead of any install (an editable install
+of this checkout would otherwise be imported whatever the folder)."""
+
+
 class ServeProcess:
     """``armfusion serve`` as its own process for ``robot``, listening on a port of its own,
-    run from the checkout ``root`` (this one, or a baseline's: ``python -m armfusion.fusion.cli`` in
-    that folder takes its code)."""
+    run from the checkout ``root`` (this one, or a baseline's: its packages imported from
+    that folder, :data:`CHECKOUT_BOOT`)."""
 
     def __init__(self, robot: str, root: Path):
         self.robot, self.root, self.port = robot, root, _free_port()
         self.err_lines: list[str] = []
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--robot", robot, "--listen",
-             f"tcp/127.0.0.1:{self.port}", "--publish-hz", "1000", "--json"],
+            [sys.executable, "-c", CHECKOUT_BOOT, str(Path(root).resolve()), "serve", "--robot", robot,
+             "--listen", f"tcp/127.0.0.1:{self.port}", "--publish-hz", "1000", "--json"],
             cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
     def wait_serving(self) -> None:
