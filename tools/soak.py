@@ -539,7 +539,9 @@ def _node_figures(report: dict, joints: Joints, status_seen: dict, truth: Stream
         "seq_resets": report.get("seq_resets"), "stalls": report.get("stalls"),
         "errors": report.get("errors"),
         "received": report["samples"],
-        "lost": published + accepted_hostile - report["samples"], "dropped": report["dropped"],
+        "shed_batches": report.get("shed_batches", 0), "shed_samples": report.get("shed_samples", 0),
+        "lost": published + accepted_hostile - report["samples"] - report.get("shed_samples", 0),
+        "dropped": report["dropped"],
         "out_of_order": report["out_of_order"], "missed_batches": report["missed_batches"],
         "startup_t_s": startup_t,
         "estimates_expected": int(len(expected)), "estimates_received": int(len(np.unique(got_t))),
@@ -611,6 +613,7 @@ def _side_by_side(r: dict) -> str:
         ("largest lag (ms)", r["lag_max_ms"], b["lag_max_ms"]),
         ("degraded periods", r["degraded_periods"], b["degraded_periods"]),
         ("instants folded", r["folded_instants"], b["folded_instants"]),
+        ("samples shed unread", r.get("shed_samples", 0), b.get("shed_samples", 0)),
         ("joint states missing", r["estimates_missing"], b["estimates_missing"]),
         ("instants per CPU-second of serve", r["instants_per_serve_cpu_s"], b["instants_per_serve_cpu_s"]),
         ("serve CPU while publishing (% of one core)", r["serve_cpu_percent_while_publishing"],
@@ -649,7 +652,8 @@ def markdown(r: dict) -> str:
     wait_text = (f"{wait['p50']:.1f} / {wait['p99']:.1f} / {wait['max']:.1f} ms (n = {wait['n']})"
                  if wait["n"] else "none")
     rows = [
-        ("samples published / received", f"{r['published']} / {r['received']}"),
+        ("samples published / received / shed unread while behind (batches)",
+         f"{r['published']} / {r['received']} / {r.get('shed_samples', 0)} ({r.get('shed_batches', 0)})"),
         ("samples lost / dropped / late",
          f"{r['lost']} / {sum(r['dropped'].values())} / {r['out_of_order']}"),
         ("batches the node saw missing (seq gaps)", f"{r.get('missed_batches', 'not counted')}"),
@@ -745,10 +749,10 @@ one the node folded (it has no joint state of its own: a user waits for the next
 needs more than one CPU-second per
 {r['rate_hz']:.0f} instants cannot keep up one instant at a time: it degrades (docs/service-node.md,
 "When the node falls behind": it folds the instants more than 50 ms behind, one update per
-20 ms of them{folded}). If taking the messages in alone costs more than it gets, its queue
-and the latency still grow for as long as the stream lasts, and once its receive channel
-(65536 messages) is full the publishers wait, and Zenoh closes a link whose publisher
-waited 5 s: samples are then lost, and counted as missing batches.
+20 ms of them{folded}). If taking the messages in alone costs more than it gets, it sheds
+unread, of what waited more than 100 ms in its receive channel, all but each sensor's newest
+(counted: `shed_samples`), so that its lag stays bounded; what it cannot even receive (Zenoh's
+own threads starved) waits in Zenoh and counts in its lag.
 """
 
 

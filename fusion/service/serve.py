@@ -41,6 +41,7 @@ and calibrates on a still arm as usual.
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
@@ -107,6 +108,8 @@ class ServeReport:
     degraded_periods: int = 0
     folded_instants: int = 0
     lag_max_ms: int = 0
+    shed_batches: int = 0
+    shed_samples: int = 0
 
     def as_dict(self) -> dict:
         return {"robot": self.robot, "state": self.state, "samples": self.samples,
@@ -118,7 +121,8 @@ class ServeReport:
                 "stalls": self.stalls, "errors": self.errors,
                 "refused_samples": dict(self.refused_samples or {}),
                 "degraded_periods": self.degraded_periods, "folded_instants": self.folded_instants,
-                "lag_max_ms": self.lag_max_ms}
+                "lag_max_ms": self.lag_max_ms, "shed_batches": self.shed_batches,
+                "shed_samples": self.shed_samples}
 
 
 @dataclass(frozen=True)
@@ -142,8 +146,9 @@ class Lateness:
     newer ones are merged one window per ``fold_period_s`` too (the update rate lowered:
     a node short of CPU spends less of it on the tracker); the joint states go out as usual
     (at most ``publish_hz``), so the folded instants have none. The startup's kept samples
-    are fused the same way. Every sample still goes through the admission and is counted;
-    the folded instants' samples are what the tracker does not see one by one.
+    are fused the same way. Every sample still goes through the admission and is counted,
+    but those of the batches shed (``shed_after_s``); the folded instants' samples are
+    what the tracker does not see one by one.
     """
 
     degrade_after_s: float = 0.05
@@ -168,6 +173,13 @@ class Lateness:
     """The pace is judged once the arrivals the node has taken in span this long: a node
     behind from the stream's start (its startup calibration, a starved CPU) judges it
     before it has taken in half ``pace_window_s`` of them, and degrades."""
+    shed_after_s: float = 0.1
+    """While degraded, of the messages that waited longer than this in the node's receive
+    channel (arrival to now: the latency target, 100 ms, already missed), a pass keeps
+    each sensor's newest and sheds the others unread: counted (``shed_batches``, and
+    their samples), never admitted, refused nor fused, their batch numbers not counted
+    as missed. A node that cannot even take its messages in as fast as they come keeps
+    its lag bounded."""
     delay_window_s: float = 60.0
     """The usual delivery delay is the least of this long: a lag that grows slowly (a node
     a little short of CPU for a minute) is not taken for the usual delay."""
@@ -359,7 +371,8 @@ class FusionNode:
                            self._counts["calibrations"], adm.missed_batches, adm.seq_resets,
                            adm.encoder_rebases, self._stall.stalls, self._counts["errors"],
                            dict(adm.rejected_samples), self._counts["degraded_periods"],
-                           self._counts["folded_instants"], int(round(1e3 * self._lag_max_s)))
+                           self._counts["folded_instants"], int(round(1e3 * self._lag_max_s)),
+                           self._counts["shed_batches"], self._counts["shed_samples"])
 
     def _dropped(self, receiver: BoundedReceiver) -> dict[str, int]:
         d = Counter(self._inbox.dropped) + self._admission.rejected
@@ -374,10 +387,21 @@ class FusionNode:
             self._on_message_guarded(msg)
             self._judge_lag()
             return
-        until = time.monotonic() + self.lateness.pass_s
+        now = time.monotonic()
+        until, shed_before = now + self.lateness.pass_s, now - self.lateness.shed_after_s
+        stale: dict[str, object] = {}  # key -> the newest message that waited too long
         while msg is not None:
-            self._on_message_guarded(msg, fuse=False)
+            if msg.arrived_s and msg.arrived_s < shed_before:
+                self._shed(stale.get(msg.key))
+                stale[msg.key] = msg
+            else:
+                for m in stale.values():  # (older than this one: they go first)
+                    self._on_message_guarded(m, fuse=False)
+                stale.clear()
+                self._on_message_guarded(msg, fuse=False)
             msg = receiver.get_nowait() if time.monotonic() < until else None
+        for m in stale.values():
+            self._on_message_guarded(m, fuse=False)
         if self._tracker is not None:
             try:
                 self._fuse(self._reorder.release(clock_s=self._admission.clock(time.monotonic())),
@@ -386,6 +410,19 @@ class FusionNode:
                 self._counts["errors"] += 1
                 log.exception("serve: error while catching up: %s: %s", type(e).__name__, str(e)[:200])
         self._judge_lag()
+
+    def _shed(self, msg) -> None:
+        """Shed ``msg`` unread but for its count of samples (:class:`Lateness`,
+        ``shed_after_s``); ``None``: nothing."""
+        if msg is None:
+            return
+        self._counts["shed_batches"] += 1
+        try:  # (the JSON parser's C alone: no check, no array, no sample handled in Python)
+            values = json.loads(msg.data).get("values")
+            self._counts["shed_samples"] += len(values) if isinstance(values, list) else 0
+        except (ValueError, AttributeError, RecursionError):
+            pass
+        self._admission.shed(msg.key.rpartition("/")[2])
 
     def _sensors_now(self, now_s: float) -> float | None:
         """The sensors' time at wall time ``now_s`` as their delivery says it: ``now_s``
@@ -820,7 +857,8 @@ class FusionNode:
                     "model_alarms": self._counts["alarms"],
                     "degraded": int(self._degraded), "lag_ms": int(round(1e3 * self._lag_s)),
                     "degraded_periods": self._counts["degraded_periods"],
-                    "folded_instants": self._counts["folded_instants"]}
+                    "folded_instants": self._counts["folded_instants"],
+                    "shed_batches": self._counts["shed_batches"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
         sensors = dict(self._sensors)
         sensors.update(dict.fromkeys(self._silent & set(sensors), "stale"))
