@@ -62,8 +62,8 @@ def run(duration_s: float, seed: int, batch_ms: float) -> dict:
             "machine": ev.get("machine"), "tracking": {k: ev.get("tracking", {}).get(k) for k in
                                                       ("estimates", "rms_error_deg", "within_3_sigma")},
             "serve": {k: serve.get(k) for k in ("samples", "estimates", "dropped", "refused_samples",
-                                               "degraded_periods", "folded_instants", "lag_max_ms", "shed_samples",
-                                               "stalls", "errors", "message")},
+                                               "degraded_periods", "folded_instants", "lag_max_ms",
+                                               "shed_samples", "stalls", "errors", "message")},
             "commit": _commit()}
 
 

@@ -750,7 +750,7 @@ needs more than one CPU-second per
 {r['rate_hz']:.0f} instants cannot keep up one instant at a time: it degrades (docs/service-node.md,
 "When the node falls behind": it folds the instants more than 50 ms behind, one update per
 20 ms of them{folded}). If taking the messages in alone costs more than it gets, it sheds
-unread, of what waited more than 100 ms in its receive channel, all but each sensor's newest
+unread, of what waited more than 0.5 s in its receive channel, all but each sensor's newest
 (counted: `shed_samples`), so that its lag stays bounded; what it cannot even receive (Zenoh's
 own threads starved) waits in Zenoh and counts in its lag.
 """

@@ -173,13 +173,15 @@ class Lateness:
     """The pace is judged once the arrivals the node has taken in span this long: a node
     behind from the stream's start (its startup calibration, a starved CPU) judges it
     before it has taken in half ``pace_window_s`` of them, and degrades."""
-    shed_after_s: float = 0.1
-    """While degraded, of the messages that waited longer than this in the node's receive
-    channel (arrival to now: the latency target, 100 ms, already missed), a pass keeps
-    each sensor's newest and sheds the others unread: counted (``shed_batches``, and
-    their samples), never admitted, refused nor fused, their batch numbers not counted
-    as missed. A node that cannot even take its messages in as fast as they come keeps
-    its lag bounded."""
+    shed_after_s: float = 0.5
+    """While degraded and tracking, of the messages that waited longer than this in the
+    node's receive channel (arrival to now: ten times ``degrade_after_s``, a backlog the
+    folding is not working off: a node that takes its messages in as fast as they come is
+    back within ``degrade_after_s`` in a few passes), a pass keeps each sensor's newest
+    and sheds the others unread: counted (``shed_batches``, and their samples), never
+    admitted, refused nor fused, their batch numbers not counted as missed. A node that
+    cannot even take its messages in as fast as they come keeps its lag bounded. (Before
+    it tracks, none: the startup calibration gets every sample.)"""
     delay_window_s: float = 60.0
     """The usual delivery delay is the least of this long: a lag that grows slowly (a node
     a little short of CPU for a minute) is not taken for the usual delay."""
@@ -388,7 +390,9 @@ class FusionNode:
             self._judge_lag()
             return
         now = time.monotonic()
-        until, shed_before = now + self.lateness.pass_s, now - self.lateness.shed_after_s
+        until = now + self.lateness.pass_s
+        # (while it tracks: the startup calibration gets every sample it keeps)
+        shed_before = now - self.lateness.shed_after_s if self._tracker is not None else -np.inf
         stale: dict[str, object] = {}  # key -> the newest message that waited too long
         while msg is not None:
             if msg.arrived_s and msg.arrived_s < shed_before:
@@ -417,12 +421,14 @@ class FusionNode:
         if msg is None:
             return
         self._counts["shed_batches"] += 1
+        self._admission.shed(msg.key.rpartition("/")[2])
+        if len(msg.data) > pl.MAX_PAYLOAD_BYTES:  # (what the decoder would not read either)
+            return
         try:  # (the JSON parser's C alone: no check, no array, no sample handled in Python)
             values = json.loads(msg.data).get("values")
-            self._counts["shed_samples"] += len(values) if isinstance(values, list) else 0
         except (ValueError, AttributeError, RecursionError):
-            pass
-        self._admission.shed(msg.key.rpartition("/")[2])
+            return
+        self._counts["shed_samples"] += len(values) if isinstance(values, list) else 0
 
     def _sensors_now(self, now_s: float) -> float | None:
         """The sensors' time at wall time ``now_s`` as their delivery says it: ``now_s``
