@@ -63,7 +63,7 @@ def run(duration_s: float, seed: int, batch_ms: float) -> dict:
                                                       ("estimates", "rms_error_deg", "within_3_sigma")},
             "serve": {k: serve.get(k) for k in ("samples", "estimates", "dropped", "refused_samples",
                                                "degraded_periods", "folded_instants", "lag_max_ms",
-                                               "stalls", "errors", "message")},
+                                               "shed_samples", "stalls", "errors", "message")},
             "commit": _commit()}
 
 
@@ -80,8 +80,8 @@ def markdown(r: dict) -> str:
          f"{lat.get('max_ms', float('nan')):.1f} ms (n = {lat.get('count')})"),
         (f"the same after the first {lat.get('settle_s', 10):g} s of tracking, p50 / p99",
          f"{lat.get('p50_after_settle_ms', float('nan')):.1f} / {p99:.1f} ms" if p99 is not None else "none"),
-        ("samples published by the drivers / accepted by the node",
-         f"{smp.get('published')} / {srv.get('samples')}"),
+        ("samples published by the drivers / accepted by the node / shed unread while it was behind",
+         f"{smp.get('published')} / {srv.get('samples')} / {srv.get('shed_samples') or 0}"),
         ("samples the node refused (genuine: the drivers are the only publishers), by reason",
          ", ".join(f"{k} {v}" for k, v in sorted(refused.items())) or "none"),
         ("batches (payloads) the node refused or dropped, by reason",

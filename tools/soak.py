@@ -327,17 +327,41 @@ def _z_scores(joints: Joints, truth: Stream, after_t_s: float) -> np.ndarray:
     return err / sig
 
 
+CHECKOUT_BOOT = """
+import importlib.abc, importlib.machinery, importlib.util, os, runpy, sys
+root = sys.argv.pop(1)
+dirs = {"armfusion": "armfusion", "armfusion.fusion": "fusion", "armfusion.models": "models",
+        "armfusion.sensors": "sensors", "armfusion.config": "config"}
+class Checkout(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name not in dirs:
+            return None
+        d = os.path.join(root, dirs[name])
+        init = os.path.join(d, "__init__.py")
+        if os.path.exists(init):
+            return importlib.util.spec_from_file_location(name, init, submodule_search_locations=[d])
+        spec = importlib.machinery.ModuleSpec(name, None, is_package=True)
+        spec.submodule_search_locations = [d]
+        return spec
+sys.meta_path.insert(0, Checkout())
+runpy.run_module("armfusion.fusion.cli", run_name="__main__", alter_sys=True)
+"""
+"""Runs ``armfusion`` from the checkout given as its first argument: the layers' packages
+mapped to that folder's ``fusion``, ``models``… ahead of any install (an editable install
+of this checkout would otherwise be imported whatever the folder)."""
+
+
 class ServeProcess:
     """``armfusion serve`` as its own process for ``robot``, listening on a port of its own,
-    run from the checkout ``root`` (this one, or a baseline's: ``python -m armfusion.fusion.cli`` in
-    that folder takes its code)."""
+    run from the checkout ``root`` (this one, or a baseline's: its packages imported from
+    that folder, :data:`CHECKOUT_BOOT`)."""
 
     def __init__(self, robot: str, root: Path):
         self.robot, self.root, self.port = robot, root, _free_port()
         self.err_lines: list[str] = []
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--robot", robot, "--listen",
-             f"tcp/127.0.0.1:{self.port}", "--publish-hz", "1000", "--json"],
+            [sys.executable, "-c", CHECKOUT_BOOT, str(Path(root).resolve()), "serve", "--robot", robot,
+             "--listen", f"tcp/127.0.0.1:{self.port}", "--publish-hz", "1000", "--json"],
             cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
     def wait_serving(self) -> None:
@@ -515,7 +539,9 @@ def _node_figures(report: dict, joints: Joints, status_seen: dict, truth: Stream
         "seq_resets": report.get("seq_resets"), "stalls": report.get("stalls"),
         "errors": report.get("errors"),
         "received": report["samples"],
-        "lost": published + accepted_hostile - report["samples"], "dropped": report["dropped"],
+        "shed_batches": report.get("shed_batches", 0), "shed_samples": report.get("shed_samples", 0),
+        "lost": published + accepted_hostile - report["samples"] - report.get("shed_samples", 0),
+        "dropped": report["dropped"],
         "out_of_order": report["out_of_order"], "missed_batches": report["missed_batches"],
         "startup_t_s": startup_t,
         "estimates_expected": int(len(expected)), "estimates_received": int(len(np.unique(got_t))),
@@ -587,6 +613,7 @@ def _side_by_side(r: dict) -> str:
         ("largest lag (ms)", r["lag_max_ms"], b["lag_max_ms"]),
         ("degraded periods", r["degraded_periods"], b["degraded_periods"]),
         ("instants folded", r["folded_instants"], b["folded_instants"]),
+        ("samples shed unread", r.get("shed_samples", 0), b.get("shed_samples", 0)),
         ("joint states missing", r["estimates_missing"], b["estimates_missing"]),
         ("instants per CPU-second of serve", r["instants_per_serve_cpu_s"], b["instants_per_serve_cpu_s"]),
         ("serve CPU while publishing (% of one core)", r["serve_cpu_percent_while_publishing"],
@@ -625,7 +652,8 @@ def markdown(r: dict) -> str:
     wait_text = (f"{wait['p50']:.1f} / {wait['p99']:.1f} / {wait['max']:.1f} ms (n = {wait['n']})"
                  if wait["n"] else "none")
     rows = [
-        ("samples published / received", f"{r['published']} / {r['received']}"),
+        ("samples published / received / shed unread while behind (batches)",
+         f"{r['published']} / {r['received']} / {r.get('shed_samples', 0)} ({r.get('shed_batches', 0)})"),
         ("samples lost / dropped / late",
          f"{r['lost']} / {sum(r['dropped'].values())} / {r['out_of_order']}"),
         ("batches the node saw missing (seq gaps)", f"{r.get('missed_batches', 'not counted')}"),
@@ -721,10 +749,10 @@ one the node folded (it has no joint state of its own: a user waits for the next
 needs more than one CPU-second per
 {r['rate_hz']:.0f} instants cannot keep up one instant at a time: it degrades (docs/service-node.md,
 "When the node falls behind": it folds the instants more than 50 ms behind, one update per
-20 ms of them{folded}). If taking the messages in alone costs more than it gets, its queue
-and the latency still grow for as long as the stream lasts, and once its receive channel
-(65536 messages) is full the publishers wait, and Zenoh closes a link whose publisher
-waited 5 s: samples are then lost, and counted as missing batches.
+20 ms of them{folded}). If taking the messages in alone costs more than it gets, it sheds
+unread, of what waited more than 0.5 s in its receive channel, all but each sensor's newest
+(counted: `shed_samples`), so that its lag stays bounded; what it cannot even receive (Zenoh's
+own threads starved) waits in Zenoh and counts in its lag.
 """
 
 

@@ -114,6 +114,12 @@ def latency_figures(arrived: np.ndarray, t: np.ndarray, epoch: float | None, set
     return latency
 
 
+def shed_words(s: dict) -> str:
+    """`` (N more shed unread while it was behind)`` when the node shed samples, else ``""``."""
+    n = s.get("shed_by_serve", 0)
+    return f" ({n} more shed unread while it was behind)" if n else ""
+
+
 def sample_counts(drv: dict, srv: dict, rec: dict, received: int) -> dict:
     """Samples and estimates published, received, refused, recorded and dropped, from the
     drivers', the fusion node's and the recorder's reports (``received``: estimates here)."""
@@ -126,6 +132,8 @@ def sample_counts(drv: dict, srv: dict, rec: dict, received: int) -> dict:
             # refused by the node's admission, by reason (a driver that fell behind on a
             # loaded machine reads a burst, refused as too dense): counted, never lost
             "refused_by_serve": {k: int(v) for k, v in srv.get("refused_samples", {}).items()},
+            # shed unread while the node was behind (its lateness policy): counted, not fused
+            "shed_by_serve": int(srv.get("shed_samples", 0)),
             "recorded": int(sum(rec.get("samples", {}).values())), "dropped": dropped,
             "estimates_published": int(srv.get("estimates", 0)),
             # messages whose handling raised in the fusion node (logged, the node going on)
@@ -296,7 +304,7 @@ separate processes over Zenoh on 127.0.0.1.</p>
 {rows}</table>
 <p>Heading RMS error: {heading_html}.
 {tr['estimates']} joint states from t = {tr['t_start_s']:.2f} to {tr['t_end_s']:.2f} s.</p>
-<p>Samples: {s['published']} published, {s['received_by_serve']} received by the fusion node, {s['recorded']}
+<p>Samples: {s['published']} published, {s['received_by_serve']} received by the fusion node{shed_words(s)}, {s['recorded']}
 recorded; dropped: {esc(', '.join(f'{k} {v}' for k, v in s['dropped'].items()) or 'none')}.
 Sample→estimate latency: {'—' if lat is None else
     f"p50 {lat['p50_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms" + settled_latency(lat)}.</p>
@@ -340,7 +348,7 @@ def summary_table(doc: dict[str, Any], ev: dict[str, Any]):
         "heading RMS error: " + ("—" if tr["heading_rms_deg"] is None else f"{tr['heading_rms_deg']:.2f}°")
         + heading_detail(tr),
         f"samples: {s['published']} published by the drivers, {s['received_by_serve']} received by the "
-        f"fusion node, {s['recorded']} recorded; dropped: "
+        f"fusion node{shed_words(s)}, {s['recorded']} recorded; dropped: "
         + (", ".join(f"{k} {v}" for k, v in s["dropped"].items()) or "none"),
         f"estimates: {s['estimates_published']} published, {s['estimates_received']} received here, "
         f"{s['estimates_recorded']} recorded"

@@ -90,7 +90,9 @@ goes back, or jumps further than the time allows, does not move the count by its
 a new publisher session (``seq_resets``, the count going on from it) only when the next
 batch of the stream follows it; when the next follows the old count instead, the odd one
 was one peer's number and counted nothing. So a peer cannot make ``missed_batches`` grow
-faster than real time allows, nor by sending one batch numbered -1, 0 or 10⁹.
+faster than real time allows, nor by sending one batch numbered -1, 0 or 10⁹. The batches
+the node shed unread while it was behind (:meth:`Admission.shed`) are not counted as
+missed either.
 """
 
 from __future__ import annotations
@@ -208,6 +210,7 @@ class Admission:
         self.rejected_samples: Counter[str] = Counter()
         """The samples of the batches refused, by reason (:attr:`rejected` counts batches)."""
         self.missed_batches = 0
+        self._shed: Counter[str] = Counter()  # stream -> batches the node shed since its last accepted
         self.seq_resets = 0
         self.encoder_rebases = 0
         self._log = DropLog()
@@ -435,9 +438,17 @@ class Admission:
                                        if seq < last_seq < wrap]
         return next((g for g in gaps if 0 <= g <= room), None)
 
+    def shed(self, name: str) -> None:
+        """The node shed a batch on ``name``'s key unread (its lateness policy): the gap it
+        leaves in the stream's batch numbers is not counted as missed batches."""
+        if name in self._models:  # (a peer's invented names are not remembered)
+            self._shed[name] += 1
+
     def _count_seq(self, name: str, seq: int, t0: float, t1: float) -> tuple[int, bool]:
         """``(batches missed, a new publisher session)`` for an accepted batch numbered ``seq``
-        (see the module's docstring)."""
+        (see the module's docstring; the batches the node shed since the stream's last
+        accepted one are not missed)."""
+        shed = self._shed.pop(name, 0) if self._shed else 0
         last = self._seq.get(name)
         if last is None:
             self._seq[name] = (seq, t1)
@@ -447,6 +458,7 @@ class Admission:
         if gap is not None:
             self._seq_odd.pop(name, None)
             self._seq[name] = (seq, max(t1, last_t))
+            gap = max(gap - shed, 0)
             self.missed_batches += gap
             return gap, False
         odd = self._seq_odd.pop(name, None)

@@ -41,6 +41,7 @@ and calibrates on a still arm as usual.
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
@@ -107,6 +108,8 @@ class ServeReport:
     degraded_periods: int = 0
     folded_instants: int = 0
     lag_max_ms: int = 0
+    shed_batches: int = 0
+    shed_samples: int = 0
 
     def as_dict(self) -> dict:
         return {"robot": self.robot, "state": self.state, "samples": self.samples,
@@ -118,7 +121,8 @@ class ServeReport:
                 "stalls": self.stalls, "errors": self.errors,
                 "refused_samples": dict(self.refused_samples or {}),
                 "degraded_periods": self.degraded_periods, "folded_instants": self.folded_instants,
-                "lag_max_ms": self.lag_max_ms}
+                "lag_max_ms": self.lag_max_ms, "shed_batches": self.shed_batches,
+                "shed_samples": self.shed_samples}
 
 
 @dataclass(frozen=True)
@@ -142,8 +146,9 @@ class Lateness:
     newer ones are merged one window per ``fold_period_s`` too (the update rate lowered:
     a node short of CPU spends less of it on the tracker); the joint states go out as usual
     (at most ``publish_hz``), so the folded instants have none. The startup's kept samples
-    are fused the same way. Every sample still goes through the admission and is counted;
-    the folded instants' samples are what the tracker does not see one by one.
+    are fused the same way. Every sample still goes through the admission and is counted,
+    but those of the batches shed (``shed_after_s``); the folded instants' samples are
+    what the tracker does not see one by one.
     """
 
     degrade_after_s: float = 0.05
@@ -157,12 +162,26 @@ class Lateness:
     wait no longer than that before they are fused."""
     max_pace: float = 2.0
     """Live only: while the sensors' newest time ran more than this many times as fast as
-    wall time over the arrivals of the last ``pace_window_s`` (a replay faster than real
-    time), or those arrivals span less than half of it (a stream just begun), the node is
-    not degraded: every
+    wall time over the arrivals of the last ``pace_window_s`` the node has taken in (a
+    replay faster than real time; judged once they span ``pace_min_s``), or the stream's
+    arrivals began less than half ``pace_window_s`` ago in wall time (a stream just begun;
+    after a silence of ``pace_window_s`` it begins again), the node is not degraded: every
     instant is fused one by one however long it takes (such a stream has no real time to
     be late against)."""
     pace_window_s: float = 4.0
+    pace_min_s: float = 0.5
+    """The pace is judged once the arrivals the node has taken in span this long: a node
+    behind from the stream's start (its startup calibration, a starved CPU) judges it
+    before it has taken in half ``pace_window_s`` of them, and degrades."""
+    shed_after_s: float = 0.5
+    """While degraded and tracking, of the messages that waited longer than this in the
+    node's receive channel (arrival to now: ten times ``degrade_after_s``, a backlog the
+    folding is not working off: a node that takes its messages in as fast as they come is
+    back within ``degrade_after_s`` in a few passes), a pass keeps each sensor's newest
+    and sheds the others unread: counted (``shed_batches``, and their samples), never
+    admitted, refused nor fused, their batch numbers not counted as missed. A node that
+    cannot even take its messages in as fast as they come keeps its lag bounded. (Before
+    it tracks, none: the startup calibration gets every sample.)"""
     delay_window_s: float = 60.0
     """The usual delivery delay is the least of this long: a lag that grows slowly (a node
     a little short of CPU for a minute) is not taken for the usual delay."""
@@ -221,6 +240,7 @@ class FusionNode:
         self._lag_max_s = 0.0
         self._pace_marks: deque[tuple[float, float, float]] = deque()  # see _mark_pace
         self._pace_arrived_s = -np.inf
+        self._run_began_s = -np.inf  # the first arrival after a silence of pace_window_s (or ever)
         self._delays: dict[str, deque[tuple[float, float]]] = {}  # see _note_delay
         self._taken_t: float | None = None  # the last sample time of the last batch accepted
         self._maneuver = maneuver
@@ -231,6 +251,7 @@ class FusionNode:
         self._reorder = Reorder(max_lag_s)
         self._inbox = Inbox("serve")
         self._buffer: dict[str, list[Stream]] = {}
+        self._buffered: tuple[float, float] | None = None  # the kept samples' first and last time
         self._recent = RecentSamples(recent_s, stream_models(arm))
         self._queries: queue.Queue = queue.Queue()
         self._tracker: Tracker | None = None
@@ -352,7 +373,8 @@ class FusionNode:
                            self._counts["calibrations"], adm.missed_batches, adm.seq_resets,
                            adm.encoder_rebases, self._stall.stalls, self._counts["errors"],
                            dict(adm.rejected_samples), self._counts["degraded_periods"],
-                           self._counts["folded_instants"], int(round(1e3 * self._lag_max_s)))
+                           self._counts["folded_instants"], int(round(1e3 * self._lag_max_s)),
+                           self._counts["shed_batches"], self._counts["shed_samples"])
 
     def _dropped(self, receiver: BoundedReceiver) -> dict[str, int]:
         d = Counter(self._inbox.dropped) + self._admission.rejected
@@ -367,10 +389,23 @@ class FusionNode:
             self._on_message_guarded(msg)
             self._judge_lag()
             return
-        until = time.monotonic() + self.lateness.pass_s
+        now = time.monotonic()
+        until = now + self.lateness.pass_s
+        # (while it tracks: the startup calibration gets every sample it keeps)
+        shed_before = now - self.lateness.shed_after_s if self._tracker is not None else -np.inf
+        stale: dict[str, object] = {}  # key -> the newest message that waited too long
         while msg is not None:
-            self._on_message_guarded(msg, fuse=False)
+            if msg.arrived_s and msg.arrived_s < shed_before:
+                self._shed(stale.get(msg.key))
+                stale[msg.key] = msg
+            else:
+                for m in stale.values():  # (older than this one: they go first)
+                    self._on_message_guarded(m, fuse=False)
+                stale.clear()
+                self._on_message_guarded(msg, fuse=False)
             msg = receiver.get_nowait() if time.monotonic() < until else None
+        for m in stale.values():
+            self._on_message_guarded(m, fuse=False)
         if self._tracker is not None:
             try:
                 self._fuse(self._reorder.release(clock_s=self._admission.clock(time.monotonic())),
@@ -379,6 +414,21 @@ class FusionNode:
                 self._counts["errors"] += 1
                 log.exception("serve: error while catching up: %s: %s", type(e).__name__, str(e)[:200])
         self._judge_lag()
+
+    def _shed(self, msg) -> None:
+        """Shed ``msg`` unread but for its count of samples (:class:`Lateness`,
+        ``shed_after_s``); ``None``: nothing."""
+        if msg is None:
+            return
+        self._counts["shed_batches"] += 1
+        self._admission.shed(msg.key.rpartition("/")[2])
+        if len(msg.data) > pl.MAX_PAYLOAD_BYTES:  # (what the decoder would not read either)
+            return
+        try:  # (the JSON parser's C alone: no check, no array, no sample handled in Python)
+            values = json.loads(msg.data).get("values")
+        except (ValueError, AttributeError, RecursionError):
+            return
+        self._counts["shed_samples"] += len(values) if isinstance(values, list) else 0
 
     def _sensors_now(self, now_s: float) -> float | None:
         """The sensors' time at wall time ``now_s`` as their delivery says it: ``now_s``
@@ -409,7 +459,7 @@ class FusionNode:
         lag = max(sensors_now - self._taken_t, 0.0)
         self._lag_s, self._lag_max_s = lag, max(self._lag_max_s, lag)
         was = self._degraded
-        if not self._live():
+        if not self._live(now):
             self._degraded = False
         elif lag > lt.degrade_after_s:
             self._degraded = True
@@ -424,16 +474,20 @@ class FusionNode:
             else:
                 log.info("serve: caught up (%.0f ms behind); no longer degraded", 1e3 * lag)
 
-    def _live(self) -> bool:
-        """Whether the sensors' time ran at about wall time (at most the lateness policy's
-        ``max_pace`` times as fast) over the arrivals of the last ``pace_window_s``, when
-        they span at least half of it."""
+    def _live(self, now_s: float | None = None) -> bool:
+        """Whether the stream is live: its arrivals began at least half ``pace_window_s``
+        ago (wall time ``now_s``, whatever the node has taken in of them since), and the
+        sensors' time ran at about wall time (at most the lateness policy's ``max_pace``
+        times as fast) over the arrivals of the last ``pace_window_s`` the node has taken
+        in, once they span ``pace_min_s``."""
         lt = self.lateness
         marks = self._pace_marks
         if not marks:
             return False
+        now_s = time.monotonic() if now_s is None else now_s
         wall = self._pace_arrived_s - marks[0][0]
-        return wall >= 0.5 * lt.pace_window_s and marks[-1][2] - marks[0][1] <= lt.max_pace * wall
+        return (now_s - self._run_began_s >= 0.5 * lt.pace_window_s and wall >= lt.pace_min_s
+                and marks[-1][2] - marks[0][1] <= lt.max_pace * wall)
 
     def _mark_pace(self, arrived_s: float, t_s: float) -> None:
         """Note an accepted batch's last time ``t_s``, arrived at ``arrived_s``: per 0.1 s of
@@ -441,6 +495,8 @@ class FusionNode:
         last ``pace_window_s`` kept. (A silence its time did not run through is not judged a
         paused source: at arrival it cannot be told from a node that was itself stopped.)"""
         marks = self._pace_marks
+        if arrived_s - self._pace_arrived_s > self.lateness.pace_window_s:
+            self._run_began_s = arrived_s
         self._pace_arrived_s = max(self._pace_arrived_s, arrived_s)
         if marks and arrived_s < marks[-1][0] + 0.1:
             if t_s > marks[-1][2]:
@@ -474,7 +530,8 @@ class FusionNode:
             return
         if verdict.reset:  # what was kept of this stream was on a clock the others refute
             self._delays.pop(s.name, None)
-            self._buffer.pop(s.name, None)
+            if self._buffer.pop(s.name, None) is not None:
+                self._buffered = self._span(self._buffer)
             self._recent.forget(s.name)
             self._reorder.forget(s.name)
             if self._maneuver is not None:
@@ -489,6 +546,9 @@ class FusionNode:
             self._maneuver.keep(s)
         if self._tracker is None:
             self._buffer.setdefault(s.name, []).append(s)
+            t0, t1 = float(s.t_s[0]), float(s.t_s[-1])
+            b = self._buffered
+            self._buffered = (t0, t1) if b is None else (min(b[0], t0), max(b[1], t1))
             if self._saved is not None:
                 if s.name != ENC:
                     return  # the first encoder sample decides whether the saved state holds
@@ -525,14 +585,23 @@ class FusionNode:
         self._last_enc = (float(doc["t_s"]), np.asarray(doc["encoder_counts"], dtype=np.int64))
         self._begin(tracker, merge_batches(self._buffer), self._resume_message)
 
+    @staticmethod
+    def _span(parts: dict[str, list[Stream]]) -> tuple[float, float] | None:
+        """The first and last time of the batches in ``parts``, or ``None``."""
+        ends = [(float(p.t_s[0]), float(p.t_s[-1])) for ps in parts.values() for p in ps]
+        return None if not ends else (min(e[0] for e in ends), max(e[1] for e in ends))
+
     def _try_start(self, t_now: float) -> None:
         if t_now < self._next_try_t:
             return
-        rec = merge_batches(self._buffer)
-        if rec.duration_s < self.min_data_s:
+        # (the kept samples' span, not a merge of them on every batch: a node that merged its
+        # growing buffer per message fell further behind the longer it collected)
+        kept_s = 0.0 if self._buffered is None else self._buffered[1] - self._buffered[0]
+        if kept_s < self.min_data_s:
             self._message = (f"collecting {self.min_data_s:g} s of samples for the startup calibration "
-                             f"({rec.duration_s:.1f} s so far)")
+                             f"({kept_s:.1f} s so far)")
             return
+        rec = merge_batches(self._buffer)
         self._next_try_t = t_now + self.retry_s
         try:
             # (the unlock-move search is for a person asking: calibrate on request shows it)
@@ -574,6 +643,7 @@ class FusionNode:
             if len(after):
                 self._counts["out_of_order"] += self._reorder.push(after)
         self._buffer.clear()
+        self._buffered = None
         now = time.monotonic()
         self._fuse(self._reorder.release(clock_s=self._admission.clock(now)), fold=self._live())
 
@@ -793,7 +863,8 @@ class FusionNode:
                     "model_alarms": self._counts["alarms"],
                     "degraded": int(self._degraded), "lag_ms": int(round(1e3 * self._lag_s)),
                     "degraded_periods": self._counts["degraded_periods"],
-                    "folded_instants": self._counts["folded_instants"]}
+                    "folded_instants": self._counts["folded_instants"],
+                    "shed_batches": self._counts["shed_batches"]}
         counters.update({f"dropped.{k}": v for k, v in self._dropped(receiver).items()})
         sensors = dict(self._sensors)
         sensors.update(dict.fromkeys(self._silent & set(sensors), "stale"))

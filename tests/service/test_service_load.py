@@ -137,3 +137,131 @@ def test_a_node_that_fell_behind_degrades_says_so_and_refuses_no_catching_up_dri
     k = np.searchsorted(truth.t_s, t + 1e-9) - 1
     err = np.abs(np.angle(np.exp(1j * (np.array([j.q_rad for j in joints]) - truth.values[k]))))
     assert (err / np.array([j.sigma_rad for j in joints])).max() < 4.0
+
+
+@pytest.fixture(scope="module")
+def four_s_at_200_hz():
+    rec, _ = simulate(load_arm("wmra"), "startup", 4.0, 200.0, seed=22)
+    return rec
+
+
+def test_a_node_collecting_for_its_startup_keeps_up_with_the_stream(hub_settings, fusion_node,
+                                                                    four_s_at_200_hz):
+    """A node that collects samples for its startup calibration (here for longer than the
+    stream lasts) takes every batch in as it comes: the cost of a batch does not grow with
+    what it has kept (about 1800 messages a second of 200 Hz streams, one sample each)."""
+    listener, connector = hub_settings
+    with fusion_node(listener, load_arm("wmra"), min_data_s=60.0) as (node, result), \
+            open_session(connector) as s:
+        got = Collected(s)
+        put = publish_live(s, four_s_at_200_hz, batch_s=0.005)
+        # (a node that merged its kept batches on every message took tens of seconds more)
+        assert wait_for(lambda: node.report_samples() >= put, 3.0), (node.report_samples(), put)
+        time.sleep(1.1)  # a status after the end
+        statuses = got.snapshot()[1]
+    r = result["report"]
+    assert r.samples == put and r.dropped == {} and r.startup_t_s is None
+    assert "collecting 60 s of samples for the startup calibration" in statuses[-1].message
+
+
+def test_a_node_starved_from_the_streams_start_says_it_is_degraded_while_behind(
+        four_s_at_200_hz, loopback_port):
+    """``armfusion serve`` as its own process, starved of CPU from the stream's first batch
+    (stopped 150 ms of every 250 ms, SIGSTOP/SIGCONT, as a machine whose cores other work
+    takes): while the stream is still published, its status says ``degraded`` with its lag
+    (the node does not first take seconds of the stream in one instant at a time), it
+    folds, and it refuses no genuine batch, neither as ahead of the sensors' clock nor as
+    too dense; what waited too long in its channel it sheds, counted."""
+    rec = four_s_at_200_hz
+    port = loopback_port
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--robot", "chair1", "--listen",
+         f"tcp/127.0.0.1:{port}", "--publish-hz", "1000", "--json"],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    done = threading.Event()
+
+    def starve() -> None:
+        while not done.is_set():
+            os.kill(serve.pid, signal.SIGSTOP)
+            time.sleep(0.15)
+            os.kill(serve.pid, signal.SIGCONT)
+            time.sleep(0.1)
+
+    starver = threading.Thread(target=starve, daemon=True)
+    try:
+        line = serve.stderr.readline()
+        assert "serving" in line, line + serve.stderr.read()[-2000:]
+        threading.Thread(target=serve.stderr.read, daemon=True).start()  # (a full pipe never stalls it)
+        settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
+        with open_session(settings) as s:
+            got = Collected(s)
+            # (from the first batch on: the first window's callback starts the starving)
+            put = publish_live(s, rec, batch_s=0.005,
+                               during=lambda _t: None if starver.ident else starver.start())
+            while_published = got.snapshot()[1]
+            done.set()
+            starver.join()
+            os.kill(serve.pid, signal.SIGCONT)
+            assert wait_for(lambda: got.snapshot()[0] and got.snapshot()[0][-1].t_s > 3.8, 20.0)
+    finally:
+        done.set()
+        os.kill(serve.pid, signal.SIGCONT)
+        serve.send_signal(signal.SIGINT)
+        out, _ = serve.communicate(timeout=60)
+    r = json.loads(out)
+    # every sample admitted, or shed unread while it waited too long (counted, not missed)
+    assert r["samples"] + r["shed_samples"] == put and r["missed_batches"] == 0, r
+    assert r["dropped"] == {} and r["refused_samples"] == {}, r
+    said = [(dict(st.counters), st.message) for st in while_published]
+    degraded = [(c, m) for c, m in said if c.get("degraded") == 1]
+    assert degraded, said
+    assert all(c["lag_ms"] > 25 and " ms behind the sensors" in m for c, m in degraded)
+    assert r["folded_instants"] > 0
+
+
+SPIN = "import time\nt = time.monotonic() + {s}\nwhile time.monotonic() < t:\n    pass\n"
+
+
+def test_a_node_short_of_cpu_for_its_messages_keeps_its_lag_bounded(four_s_at_200_hz, loopback_port):
+    """``armfusion serve`` on one core that three spinning processes share with it (a
+    quarter of a core, less than taking 1800 messages a second in costs on a slow machine):
+    its lag stays bounded while the stream lasts (what waited too long in its channel is
+    shed unread, counted; the rest admitted), and no genuine batch is refused or counted as
+    missed."""
+    rec = four_s_at_200_hz
+    port = loopback_port
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    core = {min(os.sched_getaffinity(0))}
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--robot", "chair1", "--listen",
+         f"tcp/127.0.0.1:{port}", "--publish-hz", "1000", "--json"],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: os.sched_setaffinity(0, core))
+    spinners = []
+    try:
+        line = serve.stderr.readline()
+        assert "serving" in line, line + serve.stderr.read()[-2000:]
+        threading.Thread(target=serve.stderr.read, daemon=True).start()  # (a full pipe never stalls it)
+        spinners = [subprocess.Popen([sys.executable, "-c", SPIN.format(s=30.0)],
+                                     preexec_fn=lambda: os.sched_setaffinity(0, core)) for _ in range(3)]
+        settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
+        with open_session(settings) as s:
+            got = Collected(s)
+            put = publish_live(s, rec, batch_s=0.005)
+            lags = [dict(st.counters).get("lag_ms", 0) for st in got.snapshot()[1]]
+            for p in spinners:
+                p.kill()
+            assert wait_for(lambda: got.snapshot()[0] and got.snapshot()[0][-1].t_s > 3.8, 20.0)
+    finally:
+        for p in spinners:
+            p.kill()
+            p.wait()
+        serve.send_signal(signal.SIGINT)
+        out, _ = serve.communicate(timeout=60)
+    r = json.loads(out)
+    assert r["samples"] + r["shed_samples"] == put and r["missed_batches"] == 0, r
+    assert r["dropped"] == {} and r["refused_samples"] == {}, r
+    # (a node that took every message in one by one fell further behind the longer the stream
+    # lasted: seconds by its end)
+    assert lags and max(lags) < 1500, (lags, {k: r[k] for k in ("lag_max_ms", "shed_samples")})
