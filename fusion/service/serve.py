@@ -194,7 +194,10 @@ class FusionNode:
     ``save_period_s`` of wall time and at stop, and resumed from at start when it is no
     older than ``max_state_age_s`` and the encoders moved no faster than
     ``max_joint_rate_rad_s`` in between. ``recent_s``: how much of the latest samples the
-    node keeps for a calibration on request. ``silent_after_s``: a sensor none of whose
+    node keeps for a calibration on request. ``startup_keep_s``: until the tracker starts, how
+    much of the latest samples the node keeps for its startup calibration (older batches are
+    let go: a node waiting for a still arm holds, and searches on each retry, at most that
+    much, however long it waits). ``silent_after_s``: a sensor none of whose
     batches arrived for that long (wall time) is ``stale`` in the status, also when every
     sensor stops and the tracker, which judges staleness in sample time, hears nothing.
     ``admission``: the bounds every raw batch is checked against
@@ -209,6 +212,7 @@ class FusionNode:
                  state_path: Path | str | None = None, save_period_s: float = 1.0,
                  max_state_age_s: float = 60.0, max_joint_rate_rad_s: float = 1.5,
                  recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5,
+                 startup_keep_s: float = 60.0,
                  queue_size: int = DEFAULT_QUEUE_SIZE, admission: AdmissionSettings | None = None,
                  stall_after_s: float = 1.0, assume_parked: bool = False,
                  maneuver: ServedManeuver | None = None, lateness: Lateness | None = None):
@@ -228,6 +232,10 @@ class FusionNode:
         self.max_state_age_s = max_state_age_s
         self.max_joint_rate_rad_s = max_joint_rate_rad_s
         self.recent_s = recent_s
+        if not startup_keep_s >= 2.0 * min_data_s:
+            raise ValueError(f"startup_keep_s must be at least twice min_data_s ({2.0 * min_data_s:g} s), "
+                             f"not {startup_keep_s!r}")
+        self.startup_keep_s = startup_keep_s
         self.still_tolerance_s = still_tolerance_s
         self.silent_after_s = silent_after_s
         self.queue_size = queue_size
@@ -549,6 +557,8 @@ class FusionNode:
             t0, t1 = float(s.t_s[0]), float(s.t_s[-1])
             b = self._buffered
             self._buffered = (t0, t1) if b is None else (min(b[0], t0), max(b[1], t1))
+            if self._buffered[1] - self._buffered[0] > 1.25 * self.startup_keep_s:
+                self._let_go_of_old(self._buffered[1] - self.startup_keep_s)
             if self._saved is not None:
                 if s.name != ENC:
                     return  # the first encoder sample decides whether the saved state holds
@@ -585,6 +595,23 @@ class FusionNode:
         self._last_enc = (float(doc["t_s"]), np.asarray(doc["encoder_counts"], dtype=np.int64))
         self._begin(tracker, merge_batches(self._buffer), self._resume_message)
 
+    @property
+    def startup_kept_s(self) -> float:
+        """Until the tracker starts, the span of sample time kept for the startup calibration
+        (s; at most 1.25 × ``startup_keep_s``); 0 once tracking."""
+        return 0.0 if self._buffered is None else self._buffered[1] - self._buffered[0]
+
+    def _let_go_of_old(self, t_from_s: float) -> None:
+        """Before the tracker starts: the kept batches that end before ``t_from_s`` let go (a
+        quarter of ``startup_keep_s`` at a time, so a batch's cost stays bounded)."""
+        for name in list(self._buffer):
+            kept = [b for b in self._buffer[name] if float(b.t_s[-1]) >= t_from_s]
+            if kept:
+                self._buffer[name] = kept
+            else:
+                del self._buffer[name]
+        self._buffered = self._span(self._buffer)
+
     @staticmethod
     def _span(parts: dict[str, list[Stream]]) -> tuple[float, float] | None:
         """The first and last time of the batches in ``parts``, or ``None``."""
@@ -596,7 +623,7 @@ class FusionNode:
             return
         # (the kept samples' span, not a merge of them on every batch: a node that merged its
         # growing buffer per message fell further behind the longer it collected)
-        kept_s = 0.0 if self._buffered is None else self._buffered[1] - self._buffered[0]
+        kept_s = self.startup_kept_s
         if kept_s < self.min_data_s:
             self._message = (f"collecting {self.min_data_s:g} s of samples for the startup calibration "
                              f"({kept_s:.1f} s so far)")

@@ -164,6 +164,35 @@ def test_a_node_collecting_for_its_startup_keeps_up_with_the_stream(hub_settings
     assert "collecting 60 s of samples for the startup calibration" in statuses[-1].message
 
 
+def test_a_node_waiting_for_a_still_arm_keeps_a_bounded_stretch(hub_settings, fusion_node):
+    """An arm that never stops (everything moving at once) gives the startup no still stretch:
+    the node waits, and while it waits it keeps only the latest ``startup_keep_s`` of samples
+    (a quarter more before it lets the oldest go), however long the stream lasts, taking
+    every sample in all the same."""
+    rec, _ = simulate(load_arm("wmra"), "excitation", 14.0, 100.0, seed=3)
+    rec = rec.between(rec.t_start_s + 2.0, np.inf)  # (it starts still: from its motion on)
+    listener, connector = hub_settings
+    with fusion_node(listener, load_arm("wmra"), min_data_s=1.0, startup_keep_s=3.0) as (node, result), \
+            open_session(connector) as s:
+        got = Collected(s)
+        put = publish_live(s, rec, batch_s=0.02)
+        assert wait_for(lambda: node.report_samples() >= put, 5.0), (node.report_samples(), put)
+        kept_s = node.startup_kept_s
+        time.sleep(1.1)  # a status after the end
+        statuses = got.snapshot()[1]
+    r = result["report"]
+    assert r.samples == put and r.startup_t_s is None
+    assert 2.0 < kept_s <= 1.25 * 3.0 + 0.05, kept_s
+    assert "waiting for a still arm" in statuses[-1].message
+
+
+def test_a_node_refuses_a_startup_stretch_shorter_than_its_collection():
+    from armfusion.fusion.service.serve import FusionNode
+
+    with pytest.raises(ValueError, match=r"startup_keep_s must be at least twice min_data_s \(4 s\), not 3.0"):
+        FusionNode(None, load_arm("wmra"), "chair1", min_data_s=2.0, startup_keep_s=3.0)
+
+
 def test_a_node_starved_from_the_streams_start_says_it_is_degraded_while_behind(
         four_s_at_200_hz, loopback_port):
     """``armfusion serve`` as its own process, starved of CPU from the stream's first batch
