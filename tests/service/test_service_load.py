@@ -25,6 +25,25 @@ from armfusion.models.simulator import simulate
 from service_helpers import Collected, cut, publish_live, wait_for
 
 
+def _serve_process(port: int, **popen) -> subprocess.Popen:
+    """``armfusion serve`` as its own process on 127.0.0.1:``port``, its JSON report at the end
+    (``popen``: more of ``subprocess.Popen``'s arguments)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen(
+        [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--robot", "chair1", "--listen",
+         f"tcp/127.0.0.1:{port}", "--publish-hz", "1000", "--json"],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
+
+
+def _when_serving(serve: subprocess.Popen, port: int) -> ZenohSettings:
+    """Once ``serve`` says it serves (its stderr read on after, so a full pipe never stalls
+    it): the settings of a session that connects to it."""
+    line = serve.stderr.readline()
+    assert "serving" in line, line + serve.stderr.read()[-2000:]
+    threading.Thread(target=serve.stderr.read, daemon=True).start()
+    return ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
+
+
 @pytest.fixture(scope="module")
 def at_200_hz():
     rec, _ = simulate(load_arm("wmra"), "startup", 2.5, 200.0, seed=21)
@@ -81,16 +100,9 @@ def test_a_node_that_fell_behind_degrades_says_so_and_refuses_no_catching_up_dri
     has caught up, and refuses no batch: the drivers' catching up included."""
     rec = cut(renk_recording, 0.0, 6.5)
     port = loopback_port
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    serve = subprocess.Popen(
-        [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--robot", "chair1", "--listen",
-         f"tcp/127.0.0.1:{port}", "--publish-hz", "1000", "--json"],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    serve = _serve_process(port)
     try:
-        line = serve.stderr.readline()
-        assert "serving" in line, line + serve.stderr.read()[-2000:]
-        threading.Thread(target=serve.stderr.read, daemon=True).start()  # (a full pipe never stalls it)
-        settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
+        settings = _when_serving(serve, port)
         with open_session(settings) as s:
             got = Collected(s)
             stopped = []
@@ -151,7 +163,7 @@ def test_a_node_collecting_for_its_startup_keeps_up_with_the_stream(hub_settings
     stream lasts) takes every batch in as it comes: the cost of a batch does not grow with
     what it has kept (about 1800 messages a second of 200 Hz streams, one sample each)."""
     listener, connector = hub_settings
-    with fusion_node(listener, load_arm("wmra"), min_data_s=60.0) as (node, result), \
+    with fusion_node(listener, load_arm("wmra"), min_data_s=60.0, startup_keep_s=120.0) as (node, result), \
             open_session(connector) as s:
         got = Collected(s)
         put = publish_live(s, four_s_at_200_hz, batch_s=0.005)
@@ -189,7 +201,8 @@ def test_a_node_waiting_for_a_still_arm_keeps_a_bounded_stretch(hub_settings, fu
 def test_a_node_refuses_a_startup_stretch_shorter_than_its_collection():
     from armfusion.fusion.service.serve import FusionNode
 
-    with pytest.raises(ValueError, match=r"startup_keep_s must be at least twice min_data_s \(4 s\), not 3.0"):
+    with pytest.raises(ValueError,
+                       match=r"startup_keep_s must be at least twice min_data_s \(4 s\), not 3.0"):
         FusionNode(None, load_arm("wmra"), "chair1", min_data_s=2.0, startup_keep_s=3.0)
 
 
@@ -203,11 +216,7 @@ def test_a_node_starved_from_the_streams_start_says_it_is_degraded_while_behind(
     too dense; what waited too long in its channel it sheds, counted."""
     rec = four_s_at_200_hz
     port = loopback_port
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    serve = subprocess.Popen(
-        [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--robot", "chair1", "--listen",
-         f"tcp/127.0.0.1:{port}", "--publish-hz", "1000", "--json"],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    serve = _serve_process(port)
     done = threading.Event()
 
     def starve() -> None:
@@ -219,10 +228,7 @@ def test_a_node_starved_from_the_streams_start_says_it_is_degraded_while_behind(
 
     starver = threading.Thread(target=starve, daemon=True)
     try:
-        line = serve.stderr.readline()
-        assert "serving" in line, line + serve.stderr.read()[-2000:]
-        threading.Thread(target=serve.stderr.read, daemon=True).start()  # (a full pipe never stalls it)
-        settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
+        settings = _when_serving(serve, port)
         with open_session(settings) as s:
             got = Collected(s)
             # (from the first batch on: the first window's callback starts the starving)
@@ -260,21 +266,13 @@ def test_a_node_short_of_cpu_for_its_messages_keeps_its_lag_bounded(four_s_at_20
     missed."""
     rec = four_s_at_200_hz
     port = loopback_port
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     core = {min(os.sched_getaffinity(0))}
-    serve = subprocess.Popen(
-        [sys.executable, "-m", "armfusion.fusion.cli", "serve", "--robot", "chair1", "--listen",
-         f"tcp/127.0.0.1:{port}", "--publish-hz", "1000", "--json"],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        preexec_fn=lambda: os.sched_setaffinity(0, core))
+    serve = _serve_process(port, preexec_fn=lambda: os.sched_setaffinity(0, core))
     spinners = []
     try:
-        line = serve.stderr.readline()
-        assert "serving" in line, line + serve.stderr.read()[-2000:]
-        threading.Thread(target=serve.stderr.read, daemon=True).start()  # (a full pipe never stalls it)
+        settings = _when_serving(serve, port)
         spinners = [subprocess.Popen([sys.executable, "-c", SPIN.format(s=30.0)],
                                      preexec_fn=lambda: os.sched_setaffinity(0, core)) for _ in range(3)]
-        settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
         with open_session(settings) as s:
             got = Collected(s)
             put = publish_live(s, rec, batch_s=0.005)
