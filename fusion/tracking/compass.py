@@ -29,7 +29,8 @@ from armfusion.models.rotations import DEG, exp_so3_one
 def compass_unmodelled_ut(arm: ArmModel, model: Model | None = None) -> float:
     """How far the compass's horizontal reading may be from Earth's field, µT, by what the
     config says: the σ of a hard iron it holds (the tracker undoes the hard and soft iron,
-    :data:`armfusion.fusion.identification.identify.COMPASS_MAP_EFFECTS`, so what stays is how well they are known),
+    :data:`armfusion.fusion.identification.identify.COMPASS_MAP_EFFECTS`, so what stays is how
+    well they are known),
     else ``calibration.mag_unmodelled_ut``, else 0. ``model``: the config's effects
     (:func:`armfusion.fusion.tracking.calibrated.config_model`), when the caller has it."""
     if model is None and arm.effects:
