@@ -35,7 +35,7 @@ The 3-sigma share: armfusion's heading error against three times its own heading
 the share of scored samples inside, reported for every trial (the issue's target is on the
 magnetic-disturbance trials, the ones whose name says ``magnet``).
 
-    python tools/bench_heading_broad.py [--data DIR] [--no-write] [--json OUT]
+    python tools/bench_heading_broad.py [--data DIR] [--no-write] [--json OUT] [--jobs N]
 
 needs the optional ``[bench]`` extra (``pip install -e '.[bench]'``) and ``h5py``. Without
 ``--no-write`` it rewrites its section of docs/benchmarks.md.
@@ -425,12 +425,22 @@ def report_md(rows: list[TrialResult], data: Path) -> str:
     return "\n".join(lines)
 
 
+def _run_path(path: Path) -> TrialResult:
+    """One trial read and run (a worker's task: :func:`main`'s ``--jobs``)."""
+    return run_trial(read_trial(path))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder of BROAD .hdf5 trials")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="trials run at once, each in its own process (its timings then share the cores)")
     a = ap.parse_args(argv)
+    if a.jobs < 1:
+        print(f"error: --jobs {a.jobs}: must be 1 or more", file=sys.stderr)
+        return 2
     if not a.data.is_dir():
         print(f"error: --data {str(a.data)[:80]}: no such folder", file=sys.stderr)
         return 2
@@ -438,14 +448,21 @@ def main(argv=None) -> int:
     if not paths:
         print(f"error: --data {str(a.data)[:80]}: no .hdf5 trial in it", file=sys.stderr)
         return 2
-    rows = []
-    for path in paths:
+    for path in paths:  # every trial checked before any runs
         try:
-            trial = read_trial(path)
+            read_trial(path)
         except ValueError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
-        r = run_trial(trial)
+    rows = []
+    if a.jobs > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(max_workers=min(a.jobs, len(paths)))
+        results = pool.map(_run_path, paths)
+    else:
+        pool, results = None, map(_run_path, paths)
+    for r in results:
         rows.append(r)
         print(f"{r.trial}: {r.samples:,} samples, {r.movement:,} in movement; armfusion started on "
               f"{r.start_window_s[0]:.1f}..{r.start_window_s[1]:.1f} s", flush=True)
@@ -458,6 +475,8 @@ def main(argv=None) -> int:
                   flush=True)
         print(f"  armfusion heading within 3 sigma: {100 * r.within_3sigma:.1f} % "
               f"(median sigma {r.heading_sigma_median_deg:.2f} deg)", flush=True)
+    if pool is not None:
+        pool.shutdown()
     for n in rows[0].results:
         print(f"mean {n:14s} heading {_mean(rows, n, 'heading_deg'):6.2f}  incl. "
               f"{_mean(rows, n, 'inclination_deg'):6.2f}  total {_mean(rows, n, 'total_deg'):6.2f} deg")

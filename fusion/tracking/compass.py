@@ -29,7 +29,8 @@ from armfusion.models.rotations import DEG, exp_so3_one
 def compass_unmodelled_ut(arm: ArmModel, model: Model | None = None) -> float:
     """How far the compass's horizontal reading may be from Earth's field, µT, by what the
     config says: the σ of a hard iron it holds (the tracker undoes the hard and soft iron,
-    :data:`armfusion.fusion.identification.identify.COMPASS_MAP_EFFECTS`, so what stays is how well they are known),
+    :data:`armfusion.fusion.identification.identify.COMPASS_MAP_EFFECTS`, so what stays is how
+    well they are known),
     else ``calibration.mag_unmodelled_ut``, else 0. ``model``: the config's effects
     (:func:`armfusion.fusion.tracking.calibrated.config_model`), when the caller has it."""
     if model is None and arm.effects:
@@ -48,6 +49,15 @@ def compass_unmodelled_rad(arm: ArmModel, field: FieldReference, model: Model | 
     u = compass_unmodelled_ut(arm, model)
     h = max(field.horizontal_ut, 1e-6)
     return float(np.pi if u >= h else np.arcsin(u / h))
+
+
+def _iron_axes_ut(arm: ArmModel, model: Model | None) -> np.ndarray:
+    """The σ per compass axis (µT) of the iron the config leaves in its readings: its hard
+    iron's, else ``calibration.mag_unmodelled_ut`` on every axis."""
+    s = hard_iron_sigma_ut(model)
+    if s is not None:
+        return np.asarray(s, float)[:3]
+    return np.full(3, float(arm.calibration.mag_unmodelled_ut))
 
 
 def compass_map(arm: ArmModel, correction=None, model: Model | None = None
@@ -229,16 +239,30 @@ class Compass:
         self.status = CALIBRATING if self.iron is not None else GYRO_ONLY
         """The heading feed's status (:data:`HEADING_STATUS`)."""
         self.iron_sigma_rad = np.inf if self.iron is not None else doubt_rad
+        # the config's iron where nothing estimates it: a field fixed in the compass's axes
+        # (σ per axis, µT), whose heading error turns with the sensor (:meth:`_iron_var`)
+        self.iron_axes_ut = (None if self.iron is not None or doubt_rad <= 0.0
+                             else _iron_axes_ut(arm, model))
+        self.iron_gain = None
+        """What the heading holds of a fixed iron ``b`` (compass axes): its error is
+        ``iron_gain · b`` (rad per µT), the fused headings' iron errors as the filter weighted them."""
+        self._iron_row = None  # d heading / d b of the last prepared reading
+        self._extra_var = 0.0  # the last prepared reading's extra variance (rad²)
+        self._noise_var = 0.0  # the last field check's measurement variance (rad²)
         """The heading's sigma from the iron still unknown (the estimate's at the last period,
         or the config's own doubt where nothing is estimated)."""
         self.steel_sigma_rad = 0.0
         """The heading's sigma from the arm's steel as the config knows it, at the last period."""
         self.mount_var = mount_heading_sigma_rad(arm, model) ** 2 if field is not None else 0.0
-        # a tilt wrong by d turns the compass's heading by d tan(dip): the IMU accelerometer's
-        # unmodelled error (the config's floor, a bias the filter cannot average away) is such a d
+        # a tilt wrong by d about the field's horizontal direction turns the compass's heading
+        # by d tan(dip). The IMU accelerometer's unmodelled error (the config's floor) is such a
+        # d, and a state of the filter (its prior σ the floor): the filter's tilt covariance
+        # holds it as far as the motion has not revealed it (:meth:`tilt_seen`). Until the
+        # filter has said, the floor itself.
         floor_g = min(arm.calibration.imu_accel_floor_g, 1.0) if arm.imu is not None else 0.0
         self.tilt_var = ((math.asin(floor_g) * math.tan(min(abs(field.dip_rad), 1.4))) ** 2
                          if field is not None else 0.0)
+        """The heading's variance from the tilt's error (rad²), at the last prepared reading."""
         self._fused_floor_var = 0.0  # the compass's biases at the last fused period (rad²)
         self.recovery_t = -np.inf
         self._sum = None
@@ -283,6 +307,17 @@ class Compass:
         self._rot = np.eye(3)
         return out
 
+    def tilt_seen(self, C_tilt: np.ndarray) -> None:
+        """The filter's covariance ``C_tilt (2, 2)`` (rad²) of the attitude's world-axis
+        rotation about x and y (its tangent space's) at a reading: the heading's share of the
+        tilt is its part about the field's horizontal direction, times tan²(dip)."""
+        if self.field is None:
+            return
+        d = self.field.declination_rad
+        n = np.array([math.cos(d), math.sin(d)])
+        v = max(float(n @ np.asarray(C_tilt, float) @ n), 0.0)
+        self.tilt_var = v * math.tan(min(abs(self.field.dip_rad), 1.4)) ** 2
+
     def prepare(self, t: float, count: int, m_B: np.ndarray, roll_rad: float, pitch_rad: float,
                 q_rad: np.ndarray):
         """One period's average ``m_B`` (µT, base axes) with the arm's steel and the estimated
@@ -320,12 +355,16 @@ class Compass:
                 anchor, k = psi, 0
             self._visit = (anchor, k + 1)
             extra += self.iron_sigma_rad**2 * (k + 1) ** 2
+            if self.iron_axes_ut is not None:
+                n2 = max(h[0] ** 2 + h[1] ** 2, 1e-12)
+                self._iron_row = np.array([h[1], -h[0], 0.0]) / n2 @ T  # d psi / d b (sign aside)
         if J_arm is not None:
             C_arm = self.steel.covariance(J_arm)
             n2 = max(h[0] ** 2 + h[1] ** 2, 1e-12)
             g = np.array([h[1], -h[0], 0.0]) / n2 @ T  # d psi / d b_arm (compass axes), sign aside
             self.steel_sigma_rad = math.sqrt(max(float(g @ C_arm @ g), 0.0))
             extra += self.steel_sigma_rad**2 * self.corr_count
+        self._extra_var = extra
         return count, R @ m_S, extra
 
     @property
@@ -346,7 +385,19 @@ class Compass:
     def _biases_var(self) -> float:
         """The compass's biases in a heading it sets now (rad²): the tilt's share, the arm's
         steel at the present pose, the iron at the present heading."""
-        return self.tilt_var + self.steel_sigma_rad**2 + self.iron_sigma_rad**2
+        return self.tilt_var + self.steel_sigma_rad**2 + self._iron_var()
+
+    def _iron_var(self) -> float:
+        """The iron's share of the heading's variance (rad²). An iron the compass estimates:
+        its estimate's doubt at the present heading. The config's own word (a fixed iron of
+        σ per axis in the compass's axes): the error of the heading the filter holds is
+        ``iron_gain · b``, whose variance is ``Σ (σ_k iron_gain_k)²``: as a hand turns the
+        compass, the iron's heading error changes (its row ``d ψ / d b`` turns with it) and the
+        heading, a weighted mean of the fused headings, holds the mean of those errors; at one
+        attitude it holds all of it (the σ over the horizontal field)."""
+        if self.iron_axes_ut is None or self.iron_gain is None:
+            return self.iron_sigma_rad**2
+        return min(float(np.sum((self.iron_axes_ut * self.iron_gain) ** 2)), math.pi**2)
 
     def sigma_psi_ut2(self, count: int) -> float:
         """One averaged reading's noise variance per axis, µT²."""
@@ -381,6 +432,7 @@ class Compass:
         v = self.sigma_psi**2 / count
         if check.disturbed:
             v += check.doubt_rad(self.field) ** 2
+        self._noise_var = v
         return check, v
 
     def verdict(self, t: float, gate_ok: bool, check: FieldCheck, innovation, S, nis: float) -> bool:
@@ -396,8 +448,24 @@ class Compass:
         self.flags = (check.disturbed, self.guard.last_recovering)
         self.status = COMPASS_FUSED if use else DISTURBED
         if use:
+            self._follow_iron(float(np.asarray(S).reshape(-1)[-1]))
             self._fused_floor_var = self._biases_var()
         return use
+
+    def _follow_iron(self, S: float) -> None:
+        """A heading was fused with innovation variance ``S`` (rad²): the filter's heading moved
+        by ``K = 1 - R / S`` of the way to it (``R`` its measurement variance), and so did its
+        iron error. The first fused heading stands for the startup's too (it read the compass
+        at the still start, the gain all its own)."""
+        g = self._iron_row
+        if self.iron_axes_ut is None or g is None:
+            return
+        if self.iron_gain is None:
+            self.iron_gain = g.copy()
+            return
+        R = self._noise_var + self._extra_var
+        K = min(max(1.0 - R / S, 0.0), 1.0) if S > 0.0 else 0.0
+        self.iron_gain = (1.0 - K) * self.iron_gain + K * g
 
     def heading_shift_rad(self) -> float:
         """What the measurement model adds to the tilt-compensated heading: the declination less π."""
@@ -409,7 +477,8 @@ class Compass:
                     "declination_rad": self.field.declination_rad},
                 "guard": None if self.guard is None else self.guard.snapshot(),
                 "iron": None if self.iron is None else self.iron.snapshot(),
-                "status": self.status, "fused_floor_var": self._fused_floor_var}
+                "status": self.status, "fused_floor_var": self._fused_floor_var,
+                "iron_gain": None if self.iron_gain is None else self.iron_gain.tolist()}
 
     @staticmethod
     def field_from(snap: dict) -> FieldReference | None:
@@ -427,6 +496,11 @@ class Compass:
         floor = snap.get("fused_floor_var")
         if isinstance(floor, (int, float)) and math.isfinite(floor) and floor >= 0.0:
             self._fused_floor_var = float(floor)
+        gain = snap.get("iron_gain")
+        if self.iron_axes_ut is not None and isinstance(gain, list) and len(gain) == 3:
+            g = np.asarray(gain, float)
+            if np.all(np.isfinite(g)):
+                self.iron_gain = g
 
     def restore_iron(self, iron: dict | None) -> bool:
         """Start the iron's estimate from a saved one (the compass's calibration outlives the

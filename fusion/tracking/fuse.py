@@ -117,6 +117,8 @@ class InstantUpdate:
             out = compass.average(t, m_B, om)
         if out is not None:
             x, L = ukf.mean, p.layout
+            ix = [L.roll, L.pitch]
+            compass.tilt_seen(ukf.covariance[np.ix_(ix, ix)])
             out = compass.prepare(t, out[0], out[1], float(x[L.roll]), float(x[L.pitch]), x[L.offset] + q_enc)
         return out
 

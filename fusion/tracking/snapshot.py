@@ -64,6 +64,7 @@ class TrackerState:
             "iron": c["iron"],
             "heading_status": c["status"],
             "compass_floor_var": c["fused_floor_var"],
+            "compass_iron_gain": c.get("iron_gain"),
             "counters": np.asarray(self.counters).tolist(),
             "still": self.still,
             "intensity": self.intensity,
@@ -88,7 +89,8 @@ class TrackerState:
             omega=None if snap.get("omega") is None else np.array(snap["omega"], dtype=float),
             encoder_fit=snap["encoder_fit"], gyro_fit=snap["gyro_fit"],
             compass={"field": snap.get("field"), "guard": snap.get("guard"), "iron": snap.get("iron"),
-                     "status": snap.get("heading_status"), "fused_floor_var": snap.get("compass_floor_var")},
+                     "status": snap.get("heading_status"), "fused_floor_var": snap.get("compass_floor_var"),
+                     "iron_gain": snap.get("compass_iron_gain")},
             counters=np.array(snap["counters"], dtype=np.int64), still=snap.get("still"),
             intensity=snap.get("intensity"), shift=snap.get("shift"), consider=snap.get("consider", []),
             ambiguous=snap.get("ambiguous"))
