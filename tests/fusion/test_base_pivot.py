@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pytest
 import yaml
@@ -29,6 +28,7 @@ from tests.fusion.test_base_velocity import (
     broad_delays_s,
     broad_gyro_delay_s,
     turned_back,
+    write_broad_trial,
 )
 
 RATE_HZ = 285.714
@@ -116,16 +116,7 @@ def _swung_trial(path: Path, seed: int = 5, rate_hz: float = 200.0, still_s: flo
            + [0.002, -0.001, 0.0015])
     acc = f + rng.normal(0, 0.0004 * GRAVITY_MPS2 * np.sqrt(rate_hz / 2), (n, 3))
     mag = mag + rng.normal(0, 0.3, (n, 3))
-    tr_ = np.trace(Rs, axis1=1, axis2=2)
-    qw = np.sqrt(np.clip(1 + tr_, 1e-12, None)) / 2
-    q = np.column_stack([qw, (Rs[:, 2, 1] - Rs[:, 1, 2]) / (4 * qw), (Rs[:, 0, 2] - Rs[:, 2, 0]) / (4 * qw),
-                         (Rs[:, 1, 0] - Rs[:, 0, 1]) / (4 * qw)])
-    with h5py.File(path, "w") as hf:
-        hf.attrs["sampling_rate"] = rate_hz
-        for k, v in (("imu_acc", acc), ("imu_gyr", gyr), ("imu_mag", mag), ("opt_quat", q),
-                     ("movement", t > still_s), ("opt_pos", np.zeros((n, 3)))):
-            hf[k] = v
-    return path
+    return write_broad_trial(path, rate_hz, Rs, acc, gyr, mag, t > still_s)
 
 
 def _track(config, trial: Path) -> Tracker:

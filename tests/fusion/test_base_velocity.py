@@ -165,6 +165,36 @@ def turned_back(Rs: np.ndarray, w_rad_s: np.ndarray, delay_s: float) -> np.ndarr
     return np.einsum("nij,njk->nik", Rs, np.array([exp_so3(-w * delay_s) for w in w_rad_s]))
 
 
+def turned_by(R0: np.ndarray, omega, t_s: np.ndarray, rate_hz: float, sub: int = 4) -> np.ndarray:
+    """The rotations (sensor to world) at ``t_s`` of a sensor starting at ``R0`` and turning at
+    ``omega(t)`` (rad/s, its axes), integrated ``sub`` steps per sample."""
+    n = len(t_s)
+    Rs = np.empty((n, 3, 3))
+    Rs[0] = R = R0
+    h = 1.0 / rate_hz / sub
+    for i in range(1, n):
+        for k in range(sub):
+            R = R @ exp_so3(omega(t_s[i - 1] + (k + 0.5) * h) * h)
+        Rs[i] = R
+    return Rs
+
+
+def write_broad_trial(path: Path, rate_hz: float, Rs: np.ndarray, acc: np.ndarray, gyr: np.ndarray,
+                      mag: np.ndarray, moving: np.ndarray) -> Path:
+    """A BROAD-format HDF5 trial at ``path``: the readings, ``movement`` and the reference
+    (w x y z, ENU) from each rotation ``Rs`` (sensor to world)."""
+    tr = np.trace(Rs, axis1=1, axis2=2)
+    qw = np.sqrt(np.clip(1 + tr, 1e-12, None)) / 2
+    q = np.column_stack([qw, (Rs[:, 2, 1] - Rs[:, 1, 2]) / (4 * qw), (Rs[:, 0, 2] - Rs[:, 2, 0]) / (4 * qw),
+                         (Rs[:, 1, 0] - Rs[:, 0, 1]) / (4 * qw)])
+    with h5py.File(path, "w") as hf:
+        hf.attrs["sampling_rate"] = rate_hz
+        for k, v in (("imu_acc", acc), ("imu_gyr", gyr), ("imu_mag", mag), ("opt_quat", q),
+                     ("movement", moving), ("opt_pos", np.zeros((len(Rs), 3)))):
+            hf[k] = v
+    return path
+
+
 def _hand_trial(path: Path, seed: int = 3, rate_hz: float = 100.0, still_s: float = 3.0,
                 moving_s: float = 60.0) -> Path:
     """A BROAD-format trial of a hand turning an IMU slowly (60-90 deg/s) and moving it a few
@@ -182,15 +212,7 @@ def _hand_trial(path: Path, seed: int = 3, rate_hz: float = 100.0, still_s: floa
     def omega(tt: float) -> np.ndarray:
         return amp_w * np.sin(2 * np.pi * f_w * max(tt - still_s, 0.0))
 
-    R = exp_so3(np.array([0.2, -0.3, 0.5]))
-    Rs = np.empty((n, 3, 3))
-    Rs[0] = R
-    sub = 4
-    h = 1.0 / rate_hz / sub
-    for i in range(1, n):
-        for k in range(sub):
-            R = R @ exp_so3(omega(t[i - 1] + (k + 0.5) * h) * h)
-        Rs[i] = R
+    Rs = turned_by(exp_so3(np.array([0.2, -0.3, 0.5])), omega, t, rate_hz)
     delays = broad_delays_s()
     w_true = np.array([omega(tt - delays["imu_gyro"]) for tt in t])  # as the gyro reads it
     w_now = np.array([omega(tt) for tt in t])
@@ -205,17 +227,7 @@ def _hand_trial(path: Path, seed: int = 3, rate_hz: float = 100.0, still_s: floa
     gyr = w_true @ M.T + rng.normal(0, noise_rad_s, (n, 3)) + [0.002, -0.001, 0.0015]
     acc = f + rng.normal(0, 0.0004 * GRAVITY_MPS2 * np.sqrt(rate_hz / 2), (n, 3))
     mag = mag + rng.normal(0, 0.3, (n, 3))
-    # the reference, w x y z (ENU) from each rotation
-    tr = np.trace(Rs, axis1=1, axis2=2)
-    qw = np.sqrt(np.clip(1 + tr, 1e-12, None)) / 2
-    q = np.column_stack([qw, (Rs[:, 2, 1] - Rs[:, 1, 2]) / (4 * qw), (Rs[:, 0, 2] - Rs[:, 2, 0]) / (4 * qw),
-                         (Rs[:, 1, 0] - Rs[:, 0, 1]) / (4 * qw)])
-    with h5py.File(path, "w") as hf:
-        hf.attrs["sampling_rate"] = rate_hz
-        for k, v in (("imu_acc", acc), ("imu_gyr", gyr), ("imu_mag", mag), ("opt_quat", q),
-                     ("movement", moving), ("opt_pos", np.zeros((n, 3)))):
-            hf[k] = v
-    return path
+    return write_broad_trial(path, rate_hz, Rs, acc, gyr, mag, moving)
 
 
 def _inclination_rmse_deg(config, trial: Path, after_s: float) -> float:

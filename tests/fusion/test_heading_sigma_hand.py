@@ -9,11 +9,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import h5py
 import numpy as np
 from armfusion.models.rotations import GRAVITY_MPS2, exp_so3
 
-from tests.fusion.test_base_velocity import broad_delays_s, turned_back
+from tests.fusion.test_base_velocity import broad_delays_s, turned_back, turned_by, write_broad_trial
 from tools.bench_heading_broad import errors_rad, read_trial, run_armfusion
 
 IRON_UT = np.array([1.5, -2.0, 1.0])
@@ -38,15 +37,7 @@ def _spun_trial(path: Path, magnet_ut=None, seed: int = 4, rate_hz: float = 100.
         wob = 0.3 * np.sin(2 * np.pi * f_w * max(tt - still_s, 0.0))
         return on * np.array([wob[0], wob[1], 1.05])
 
-    R = exp_so3(np.array([0.05, -0.04, 0.5]))
-    Rs = np.empty((n, 3, 3))
-    Rs[0] = R
-    sub = 4
-    h = 1.0 / rate_hz / sub
-    for i in range(1, n):
-        for k in range(sub):
-            R = R @ exp_so3(omega(t[i - 1] + (k + 0.5) * h) * h)
-        Rs[i] = R
+    Rs = turned_by(exp_so3(np.array([0.05, -0.04, 0.5])), omega, t, rate_hz)
     delays = broad_delays_s()
     w_now = np.array([omega(tt) for tt in t])
     w_gyro = np.array([omega(tt - delays["imu_gyro"]) for tt in t])
@@ -60,16 +51,7 @@ def _spun_trial(path: Path, magnet_ut=None, seed: int = 4, rate_hz: float = 100.
     gyr = w_gyro + rng.normal(0, np.radians(0.01) * np.sqrt(rate_hz / 2), (n, 3)) + [0.002, -0.001, 0.0015]
     acc = f + rng.normal(0, 0.0004 * GRAVITY_MPS2 * np.sqrt(rate_hz / 2), (n, 3))
     mag = mag + rng.normal(0, 0.3, (n, 3))
-    tr = np.trace(Rs, axis1=1, axis2=2)
-    qw = np.sqrt(np.clip(1 + tr, 1e-12, None)) / 2
-    q = np.column_stack([qw, (Rs[:, 2, 1] - Rs[:, 1, 2]) / (4 * qw), (Rs[:, 0, 2] - Rs[:, 2, 0]) / (4 * qw),
-                         (Rs[:, 1, 0] - Rs[:, 0, 1]) / (4 * qw)])
-    with h5py.File(path, "w") as hf:
-        hf.attrs["sampling_rate"] = rate_hz
-        for k, v in (("imu_acc", acc), ("imu_gyr", gyr), ("imu_mag", mag), ("opt_quat", q),
-                     ("movement", t > still_s), ("opt_pos", np.zeros((n, 3)))):
-            hf[k] = v
-    return path
+    return write_broad_trial(path, rate_hz, Rs, acc, gyr, mag, t > still_s)
 
 
 def _heading(path: Path):
