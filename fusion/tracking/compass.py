@@ -14,6 +14,7 @@ import math
 import numpy as np
 from armfusion.fusion.tracking.calibrated import effect_blocks, hard_iron_sigma_ut, has_effect
 from armfusion.fusion.tracking.compass_calibration import IronEstimator, detilt
+from armfusion.fusion.tracking.compass_iron import FixedIron, iron_axes_ut
 from armfusion.fusion.tracking.estimate import HEADING_STATUS
 from armfusion.fusion.tracking.heading import FieldCheck, FieldReference, MagneticGuard, heading_sigma_rad
 from armfusion.fusion.tracking.innovations import InnovationRing
@@ -49,15 +50,6 @@ def compass_unmodelled_rad(arm: ArmModel, field: FieldReference, model: Model | 
     u = compass_unmodelled_ut(arm, model)
     h = max(field.horizontal_ut, 1e-6)
     return float(np.pi if u >= h else np.arcsin(u / h))
-
-
-def _iron_axes_ut(arm: ArmModel, model: Model | None) -> np.ndarray:
-    """The σ per compass axis (µT) of the iron the config leaves in its readings: its hard
-    iron's, else ``calibration.mag_unmodelled_ut`` on every axis."""
-    s = hard_iron_sigma_ut(model)
-    if s is not None:
-        return np.asarray(s, float)[:3]
-    return np.full(3, float(arm.calibration.mag_unmodelled_ut))
 
 
 def compass_map(arm: ArmModel, correction=None, model: Model | None = None
@@ -241,12 +233,8 @@ class Compass:
         self.iron_sigma_rad = np.inf if self.iron is not None else doubt_rad
         # the config's iron where nothing estimates it: a field fixed in the compass's axes
         # (σ per axis, µT), whose heading error turns with the sensor (:meth:`_iron_var`)
-        self.iron_axes_ut = (None if self.iron is not None or doubt_rad <= 0.0
-                             else _iron_axes_ut(arm, model))
-        self.iron_gain = None
-        """What the heading holds of a fixed iron ``b`` (compass axes): its error is
-        ``iron_gain · b`` (rad per µT), the fused headings' iron errors as the filter weighted them."""
-        self._iron_row = None  # d heading / d b of the last prepared reading
+        self.fixed_iron = (None if self.iron is not None or doubt_rad <= 0.0
+                           else FixedIron(iron_axes_ut(arm, model)))
         self._extra_var = 0.0  # the last prepared reading's extra variance (rad²)
         self._noise_var = 0.0  # the last field check's measurement variance (rad²)
         """The heading's sigma from the iron still unknown (the estimate's at the last period,
@@ -355,9 +343,8 @@ class Compass:
                 anchor, k = psi, 0
             self._visit = (anchor, k + 1)
             extra += self.iron_sigma_rad**2 * (k + 1) ** 2
-            if self.iron_axes_ut is not None:
-                n2 = max(h[0] ** 2 + h[1] ** 2, 1e-12)
-                self._iron_row = np.array([h[1], -h[0], 0.0]) / n2 @ T  # d psi / d b (sign aside)
+            if self.fixed_iron is not None:
+                self.fixed_iron.read(h, T)
         if J_arm is not None:
             C_arm = self.steel.covariance(J_arm)
             n2 = max(h[0] ** 2 + h[1] ** 2, 1e-12)
@@ -388,16 +375,11 @@ class Compass:
         return self.tilt_var + self.steel_sigma_rad**2 + self._iron_var()
 
     def _iron_var(self) -> float:
-        """The iron's share of the heading's variance (rad²). An iron the compass estimates:
-        its estimate's doubt at the present heading. The config's own word (a fixed iron of
-        σ per axis in the compass's axes): the error of the heading the filter holds is
-        ``iron_gain · b``, whose variance is ``Σ (σ_k iron_gain_k)²``: as a hand turns the
-        compass, the iron's heading error changes (its row ``d ψ / d b`` turns with it) and the
-        heading, a weighted mean of the fused headings, holds the mean of those errors; at one
-        attitude it holds all of it (the σ over the horizontal field)."""
-        if self.iron_axes_ut is None or self.iron_gain is None:
-            return self.iron_sigma_rad**2
-        return min(float(np.sum((self.iron_axes_ut * self.iron_gain) ** 2)), math.pi**2)
+        """The iron's share of the heading's variance (rad²): an iron the compass estimates,
+        its estimate's doubt at the present heading; the config's own word, what the heading
+        holds of it (:class:`armfusion.fusion.tracking.compass_iron.FixedIron`)."""
+        v = None if self.fixed_iron is None else self.fixed_iron.var_rad2()
+        return self.iron_sigma_rad**2 if v is None else v
 
     def sigma_psi_ut2(self, count: int) -> float:
         """One averaged reading's noise variance per axis, µT²."""
@@ -448,24 +430,10 @@ class Compass:
         self.flags = (check.disturbed, self.guard.last_recovering)
         self.status = COMPASS_FUSED if use else DISTURBED
         if use:
-            self._follow_iron(float(np.asarray(S).reshape(-1)[-1]))
+            if self.fixed_iron is not None:
+                self.fixed_iron.fused(self._noise_var + self._extra_var, float(np.asarray(S).reshape(-1)[-1]))
             self._fused_floor_var = self._biases_var()
         return use
-
-    def _follow_iron(self, S: float) -> None:
-        """A heading was fused with innovation variance ``S`` (rad²): the filter's heading moved
-        by ``K = 1 - R / S`` of the way to it (``R`` its measurement variance), and so did its
-        iron error. The first fused heading stands for the startup's too (it read the compass
-        at the still start, the gain all its own)."""
-        g = self._iron_row
-        if self.iron_axes_ut is None or g is None:
-            return
-        if self.iron_gain is None:
-            self.iron_gain = g.copy()
-            return
-        R = self._noise_var + self._extra_var
-        K = min(max(1.0 - R / S, 0.0), 1.0) if S > 0.0 else 0.0
-        self.iron_gain = (1.0 - K) * self.iron_gain + K * g
 
     def heading_shift_rad(self) -> float:
         """What the measurement model adds to the tilt-compensated heading: the declination less π."""
@@ -478,7 +446,7 @@ class Compass:
                 "guard": None if self.guard is None else self.guard.snapshot(),
                 "iron": None if self.iron is None else self.iron.snapshot(),
                 "status": self.status, "fused_floor_var": self._fused_floor_var,
-                "iron_gain": None if self.iron_gain is None else self.iron_gain.tolist()}
+                "iron_gain": None if self.fixed_iron is None else self.fixed_iron.snapshot()}
 
     @staticmethod
     def field_from(snap: dict) -> FieldReference | None:
@@ -496,11 +464,8 @@ class Compass:
         floor = snap.get("fused_floor_var")
         if isinstance(floor, (int, float)) and math.isfinite(floor) and floor >= 0.0:
             self._fused_floor_var = float(floor)
-        gain = snap.get("iron_gain")
-        if self.iron_axes_ut is not None and isinstance(gain, list) and len(gain) == 3:
-            g = np.asarray(gain, float)
-            if np.all(np.isfinite(g)):
-                self.iron_gain = g
+        if self.fixed_iron is not None:
+            self.fixed_iron.restore(snap.get("iron_gain"))
 
     def restore_iron(self, iron: dict | None) -> bool:
         """Start the iron's estimate from a saved one (the compass's calibration outlives the
