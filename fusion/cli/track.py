@@ -54,6 +54,7 @@ def track(
     moving_start: Annotated[bool, typer.Option("--moving-start", help="Start at the recording's start: with no still stretch in its first 5 s (an arm that never stops), on the least-moving instants there, the sigma widened by their motion.")] = False,
     start_at: Annotated[float | None, typer.Option("--start-at", metavar="SECONDS", help="Start the startup calibration at this many seconds after the recording's start: on a still stretch that begins within 5 s of it, else on the least-moving instants from it.")] = None,
     encoder_withheld: Annotated[str | None, typer.Option("--encoder-withheld", metavar="JOINT@SECONDS", help="The joint's encoder fails SECONDS after the recording's start: the gyroscopes on either side of it stand in, calibrated against the encoder before then, and tracking starts afresh there (its zero unknown).")] = None,
+    sigma_relative: Annotated[bool, typer.Option("--sigma-relative", help="Report each sigma relative to a calibrated config's joint-zero conventions (the doubt of the angles against the calibration's own zeros), not the absolute one that also holds the zeros' own doubt.")] = False,
 ) -> None:
     """Track the joint angles and the heading through a recording: startup calibration on
     its first still stretch (or, with --moving-start, on its least-moving instants), then
@@ -83,8 +84,14 @@ def track(
                      f"gyros on either side of it stand in (scale {withheld['scale']:.4f}, bias "
                      f"{withheld['bias_deg_s']:+.4f} deg/s, drift {withheld['drift_deg_per_sqrt_s']:.3f} "
                      f"deg/sqrt(s) against the encoder before then); tracking starts afresh there")
+    if sigma_relative:
+        notes.append("sigma relative to the calibration's joint-zero conventions (--sigma-relative): "
+                     "the angles' doubt against the calibration's own zeros, without those zeros' own "
+                     "doubt (a board's turn about its joint, which no motion shows)"
+                     + ("" if arm.calibration.correction_covariance else
+                        "; this config holds no calibration's covariance, so it is the absolute sigma"))
     tr, start, run = _start_and_run(arm, rec, recording, settings, prior_q, moving_start, start_at, notes,
-                                    json_out)
+                                    json_out, sigma_relative)
     warnings = tr.sensor_warnings() if run.steps else []
     notes.extend(warnings)
     notes.extend(_floor_notes(arm))
@@ -146,9 +153,10 @@ def _prior_pose(prior: Path | None, arm, notes: list[str]):
 
 
 def _start_and_run(arm, rec, recording: Path, settings, prior_q, moving_start: bool, start_at: float | None,
-                   notes: list[str], json_out: bool) -> tuple:
+                   notes: list[str], json_out: bool, sigma_relative: bool = False) -> tuple:
     """The startup calibration, then the tracker over the recording, with a progress bar:
-    ``(tracker, start, run)``; exit 2 saying why the tracking cannot start."""
+    ``(tracker, start, run)``; exit 2 saying why the tracking cannot start.
+    ``sigma_relative``: the σ relative to the calibration's joint-zero conventions."""
     from armfusion.fusion.startup.solve import StartupInputError
     from armfusion.fusion.tracking.tracker import NoStillWindowError, start_from_recording
 
@@ -156,7 +164,8 @@ def _start_and_run(arm, rec, recording: Path, settings, prior_q, moving_start: b
         try:
             tr, start = start_from_recording(
                 arm, rec, settings, prior_q_rad=prior_q, resolve_by_motion_s=20.0, moving_start=moving_start,
-                start_at_s=None if start_at is None else rec.t_start_s + start_at)
+                start_at_s=None if start_at is None else rec.t_start_s + start_at,
+                sigma_given_conventions=sigma_relative)
         except NoStillWindowError as e:
             fail(f"{recording}: {e}" + ("" if moving_start or start_at is not None else
                                         " (--moving-start starts on its least-moving instants)"))

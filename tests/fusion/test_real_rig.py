@@ -264,3 +264,30 @@ def test_the_stepper_s_vibration_is_noise_and_the_sigma_is_tight_against_the_cal
     rmse = float(np.sqrt(np.mean(err_deg[late] ** 2)))
     assert np.median(sig_deg[late]) <= 3 * max(rmse, 0.05)
     assert np.mean(err_deg[late] <= 3 * sig_deg[late]) >= 0.95
+
+
+def test_track_reports_the_sigma_relative_to_the_calibration_when_asked(roll_calibrated, tmp_path):
+    """`armfusion track --sigma-relative` with the calibrated rig: the same angles, a σ
+    without the calibration's own zero doubt (smaller), and a note saying which σ it is."""
+    import json
+
+    from armfusion.fusion.cli.main import app
+    from typer.testing import CliRunner
+
+    calibrated, *_ = roll_calibrated
+    runner = CliRunner()
+    rec = tmp_path / "roll.mcap"
+    r = runner.invoke(app, ["import", str(DATA / "raw_roll_slow_20s.mat"), "--map", "imu-rig",
+                            "--config", "imu_rig_roll", "--out", str(rec)])
+    assert r.exit_code == 0, r.output
+    docs = {}
+    for extra in ([], ["--sigma-relative"]):
+        r = runner.invoke(app, ["track", str(rec), "--config", str(calibrated.source), "--moving-start",
+                                "--json", *extra])
+        assert r.exit_code == 0, r.output
+        docs[bool(extra)] = json.loads(r.stdout)
+    absolute, relative = docs[False]["final"], docs[True]["final"]
+    assert np.degrees(abs(absolute["q_rad"][0] - relative["q_rad"][0])) < 0.05
+    assert relative["sigma_rad"][0] < 0.5 * absolute["sigma_rad"][0]
+    assert any(n.startswith("sigma relative to the calibration's joint-zero conventions")
+               for n in docs[True]["notes"])
