@@ -85,11 +85,7 @@ def track(
                      f"{withheld['bias_deg_s']:+.4f} deg/s, drift {withheld['drift_deg_per_sqrt_s']:.3f} "
                      f"deg/sqrt(s) against the encoder before then); tracking starts afresh there")
     if sigma_relative:
-        notes.append("sigma relative to the calibration's joint-zero conventions (--sigma-relative): "
-                     "the angles' doubt against the calibration's own zeros, without those zeros' own "
-                     "doubt (a board's turn about its joint, which no motion shows)"
-                     + ("" if arm.calibration.correction_covariance else
-                        "; this config holds no calibration's covariance, so it is the absolute sigma"))
+        notes.append(_relative_sigma_note(arm))
     tr, start, run = _start_and_run(arm, rec, recording, settings, prior_q, moving_start, start_at, notes,
                                     json_out, sigma_relative)
     warnings = tr.sensor_warnings() if run.steps else []
@@ -175,6 +171,15 @@ def _start_and_run(arm, rec, recording: Path, settings, prior_q, moving_start: b
         advance(0.0, "tracking")
         run = tr.run(rec, progress=advance)
     return tr, start, run
+
+
+def _relative_sigma_note(arm) -> str:
+    """What ``--sigma-relative`` makes of the σ, for the notes."""
+    return ("sigma relative to the calibration's joint-zero conventions (--sigma-relative): the angles' "
+            "doubt against the calibration's own zeros, without those zeros' own doubt (a board's turn "
+            "about its joint, which no motion shows)"
+            + ("" if arm.calibration.correction_covariance else
+               "; this config holds no calibration's covariance, so it is the absolute sigma"))
 
 
 def _floor_notes(arm) -> list[str]:
