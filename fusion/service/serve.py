@@ -59,13 +59,14 @@ from armfusion.fusion.service.admission import Admission, AdmissionSettings
 from armfusion.fusion.service.inbox import Inbox
 from armfusion.fusion.service.maneuver import ManeuverEndpoint, ServedManeuver, same_arm_problem
 from armfusion.fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
-from armfusion.fusion.service.reorder import Reorder, merge_batches
+from armfusion.fusion.service.reorder import Reorder
 from armfusion.fusion.service.restart import (
     RecentSamples,
     ambiguity_note,
     calibration_reply,
     solve_ambiguity_again,
 )
+from armfusion.fusion.service.startup_buffer import StartupBuffer
 from armfusion.fusion.startup.solve import StartupPrior
 from armfusion.fusion.tracking.tracker import (
     ENC,
@@ -79,7 +80,7 @@ from armfusion.fusion.tracking.tracker import (
 from armfusion.models.arm import ArmModel
 from armfusion.models.arm_config import ConfigError
 from armfusion.models.sensor_models import stream_models
-from armfusion.sensors.samples import Recording, Stream
+from armfusion.sensors.samples import Recording
 
 log = logging.getLogger("armfusion.service")
 
@@ -258,8 +259,7 @@ class FusionNode:
         self._max_lag_s = max_lag_s
         self._reorder = Reorder(max_lag_s)
         self._inbox = Inbox("serve")
-        self._buffer: dict[str, list[Stream]] = {}
-        self._buffered: tuple[float, float] | None = None  # the kept samples' first and last time
+        self._buffer = StartupBuffer(startup_keep_s)
         self._recent = RecentSamples(recent_s, stream_models(arm))
         self._queries: queue.Queue = queue.Queue()
         self._tracker: Tracker | None = None
@@ -538,8 +538,7 @@ class FusionNode:
             return
         if verdict.reset:  # what was kept of this stream was on a clock the others refute
             self._delays.pop(s.name, None)
-            if self._buffer.pop(s.name, None) is not None:
-                self._buffered = self._span(self._buffer)
+            self._buffer.forget(s.name)
             self._recent.forget(s.name)
             self._reorder.forget(s.name)
             if self._maneuver is not None:
@@ -553,12 +552,7 @@ class FusionNode:
         if self._maneuver is not None:
             self._maneuver.keep(s)
         if self._tracker is None:
-            self._buffer.setdefault(s.name, []).append(s)
-            t0, t1 = float(s.t_s[0]), float(s.t_s[-1])
-            b = self._buffered
-            self._buffered = (t0, t1) if b is None else (min(b[0], t0), max(b[1], t1))
-            if self._buffered[1] - self._buffered[0] > 1.25 * self.startup_keep_s:
-                self._let_go_of_old(self._buffered[1] - self.startup_keep_s)
+            self._buffer.keep(s)
             if self._saved is not None:
                 if s.name != ENC:
                     return  # the first encoder sample decides whether the saved state holds
@@ -593,30 +587,13 @@ class FusionNode:
         self._resumed = True
         self._rates_hz = dict(doc["rates_hz"])
         self._last_enc = (float(doc["t_s"]), np.asarray(doc["encoder_counts"], dtype=np.int64))
-        self._begin(tracker, merge_batches(self._buffer), self._resume_message)
+        self._begin(tracker, self._buffer.merged(), self._resume_message)
 
     @property
     def startup_kept_s(self) -> float:
         """Until the tracker starts, the span of sample time kept for the startup calibration
         (s; at most 1.25 × ``startup_keep_s``); 0 once tracking."""
-        return 0.0 if self._buffered is None else self._buffered[1] - self._buffered[0]
-
-    def _let_go_of_old(self, t_from_s: float) -> None:
-        """Before the tracker starts: the kept batches that end before ``t_from_s`` let go (a
-        quarter of ``startup_keep_s`` at a time, so a batch's cost stays bounded)."""
-        for name in list(self._buffer):
-            kept = [b for b in self._buffer[name] if float(b.t_s[-1]) >= t_from_s]
-            if kept:
-                self._buffer[name] = kept
-            else:
-                del self._buffer[name]
-        self._buffered = self._span(self._buffer)
-
-    @staticmethod
-    def _span(parts: dict[str, list[Stream]]) -> tuple[float, float] | None:
-        """The first and last time of the batches in ``parts``, or ``None``."""
-        ends = [(float(p.t_s[0]), float(p.t_s[-1])) for ps in parts.values() for p in ps]
-        return None if not ends else (min(e[0] for e in ends), max(e[1] for e in ends))
+        return self._buffer.span_s
 
     def _try_start(self, t_now: float) -> None:
         if t_now < self._next_try_t:
@@ -628,7 +605,7 @@ class FusionNode:
             self._message = (f"collecting {self.min_data_s:g} s of samples for the startup calibration "
                              f"({kept_s:.1f} s so far)")
             return
-        rec = merge_batches(self._buffer)
+        rec = self._buffer.merged()
         self._next_try_t = t_now + self.retry_s
         try:
             # (the unlock-move search is for a person asking: calibrate on request shows it)
@@ -670,7 +647,6 @@ class FusionNode:
             if len(after):
                 self._counts["out_of_order"] += self._reorder.push(after)
         self._buffer.clear()
-        self._buffered = None
         now = time.monotonic()
         self._fuse(self._reorder.release(clock_s=self._admission.clock(now)), fold=self._live())
 
