@@ -30,14 +30,21 @@ DRIFT_SPAN_S = 10.0
 """The longest span over which the integral's drift is measured (:func:`calibrate_gyro_encoder`)."""
 MIN_CALIBRATION_S = 10.0
 """The shortest stretch with the encoder known that a gyro encoder is calibrated on."""
+RESPONSE_SPAN_S = 0.1
+"""How far back what the encoder reads otherwise than the link reaches (s): a period of a
+shaft's ringing down to 10 Hz, and any offset between the two clocks."""
 
 
 @dataclass(frozen=True)
 class GyroEncoderCalibration:
-    """The gyros' joint angle against the encoder: ``angle(t) = scale · ∫rate(t − delay) −
-    bias · t``, ``delay_s`` how much later the encoder read what the gyros' integral says (the
-    two clocks' offset while the joint turns: each part's filter delay, the logger's reading
-    order), measured where both are known as the other three are.
+    """The gyros' joint angle against the encoder: ``angle(t) = scale · ∫rate(t) − Σₖ tapₖ ·
+    tap_spacing_s · rate(t − k·tap_spacing_s) − bias · t``. The taps (``rate_taps``) are what
+    the encoder reads otherwise than the link over the last :data:`RESPONSE_SPAN_S`: the
+    encoder reads the shaft where it is driven and the gyros the link where they sit, and
+    between the two are the shaft's own twist and ringing and the two clocks' offset (each
+    part's filter delay, the logger's reading order). Causal: the stand-in at ``t`` needs no
+    sample after ``t``. ``delay_s``: the taps' sum in seconds (per unit scale), how much
+    later the encoder reads what the gyros' integral says.
     ``drift_deg_per_sqrt_s``: the spread of what that still leaves over a span
     (:data:`DRIFT_SPAN_S` unless asked), per √s (the tracker's random walk for the joint);
     ``residual_deg``: its RMS over the whole stretch; ``span_s``: the stretch's length;
@@ -55,11 +62,14 @@ class GyroEncoderCalibration:
     span_s: float
     bounded_deg: float = 0.0
     delay_s: float = 0.0
+    rate_taps: tuple[float, ...] = ()
+    tap_spacing_s: float = 0.0
 
     def as_dict(self) -> dict:
         return {"joint": self.joint, "scale": self.scale, "bias_deg_s": float(np.degrees(self.bias_rad_s)),
                 "drift_deg_per_sqrt_s": self.drift_deg_per_sqrt_s, "residual_deg": self.residual_deg,
-                "span_s": self.span_s, "bounded_deg": self.bounded_deg, "delay_s": self.delay_s}
+                "span_s": self.span_s, "bounded_deg": self.bounded_deg, "delay_s": self.delay_s,
+                "rate_taps": [float(w) for w in self.rate_taps], "tap_spacing_s": self.tap_spacing_s}
 
 
 def _gyros(arm: ArmModel, joint: int) -> tuple[str, object, str, object]:
@@ -122,7 +132,7 @@ def encoder_angle_rad(arm: ArmModel, rec: Recording, joint: int) -> tuple[np.nda
 def calibrate_gyro_encoder(arm: ArmModel, rec: Recording, joint: int,
                            drift_span_s: float | None = None) -> GyroEncoderCalibration:
     """Where the encoder is known (``rec``, at least :data:`MIN_CALIBRATION_S`): the
-    least-squares scale and bias of the gyros' angle against the encoder's, and the drift
+    least-squares scale, taps and bias of the gyros' angle against the encoder's, and the drift
     that leaves over ``drift_span_s`` (default a third of the stretch, at most
     :data:`DRIFT_SPAN_S`)."""
     t, q = encoder_angle_rad(arm, rec, joint)
@@ -133,23 +143,27 @@ def calibrate_gyro_encoder(arm: ArmModel, rec: Recording, joint: int,
     if drift_span_s is None:
         drift_span_s = min(DRIFT_SPAN_S, span / 3.0)
     rate = gyro_joint_rate(arm, rec, joint, t)
-    angle = _integral(rate, t)
-    # scale · ∫rate(t − delay) ≈ scale · ∫rate(t) − scale · delay · rate(t): linear in each
-    A = np.stack([angle, -rate, -(t - t[0]), np.ones_like(t)], axis=1)
+    spacing = float(np.median(np.diff(t)))
+    taps = _rate_taps(rate, t, spacing, int(round(RESPONSE_SPAN_S / spacing)))
+    A = np.concatenate([_integral(rate, t)[:, None], -taps, np.stack([-(t - t[0]), np.ones_like(t)], axis=1)],
+                       axis=1)
     coef, *_ = np.linalg.lstsq(A, q - q[0], rcond=None)
-    scale, delay_s, bias = float(coef[0]), float(coef[1] / coef[0]), float(coef[2])
-    rest = _delayed(scale * angle - bias * (t - t[0]), t, delay_s) + coef[3] - (q - q[0])
-    k = max(int(round(drift_span_s / float(np.median(np.diff(t))))), 1)
+    scale, weights, bias = float(coef[0]), coef[1:-2], float(coef[-2])
+    rest = A @ coef - (q - q[0])
+    k = max(int(round(drift_span_s / spacing)), 1)
     drift = float(np.degrees(np.std(rest[k:] - rest[:-k])) / np.sqrt(drift_span_s))
     return GyroEncoderCalibration(arm.joint_names[joint], scale, bias, drift,
                                   float(np.degrees(np.sqrt(np.mean(rest**2)))), span,
-                                  _bounded_deg(rest, t, drift_span_s), delay_s)
+                                  _bounded_deg(rest, t, drift_span_s),
+                                  float(spacing * np.sum(weights) / scale), tuple(float(w) for w in weights),
+                                  spacing)
 
 
-def _delayed(angle: np.ndarray, t_s: np.ndarray, delay_s: float) -> np.ndarray:
-    """``angle`` (at ``t_s``) as read ``delay_s`` later: its value at ``t_s − delay_s`` (the
-    first sample's before the start)."""
-    return np.interp(t_s - delay_s, t_s, angle) if delay_s else angle
+def _rate_taps(rate: np.ndarray, t_s: np.ndarray, spacing_s: float, n_lags: int) -> np.ndarray:
+    """``spacing_s · rate`` as read 0, 1, … ``n_lags`` spacings earlier, one column each (the
+    first sample's before the start; between samples, across a gap too, interpolated)."""
+    lags = [spacing_s * np.interp(t_s - k * spacing_s, t_s, rate) for k in range(n_lags + 1)]
+    return np.stack(lags, axis=1)
 
 
 def _bounded_deg(rest_rad: np.ndarray, t_s: np.ndarray, longest_s: float) -> float:
@@ -178,8 +192,11 @@ def with_gyro_encoder(arm: ArmModel, rec: Recording, joint: int, cal: GyroEncode
     calibrated encoder scale undone); the other joints' counts kept."""
     enc = rec.get("enc")
     t = enc.t_s
-    angle = _delayed(_integral(cal.scale * gyro_joint_rate(arm, rec, joint, t) - cal.bias_rad_s, t), t,
-                     cal.delay_s)
+    rate = gyro_joint_rate(arm, rec, joint, t)
+    angle = cal.scale * _integral(rate, t) - cal.bias_rad_s * (t - t[0])
+    if cal.rate_taps:
+        taps = np.asarray(cal.rate_taps)
+        angle = angle - _rate_taps(rate, t, cal.tap_spacing_s, len(taps) - 1) @ taps
     scale, _ = encoder_scales(arm, config_model(arm))
     values = np.array(enc.values, dtype=float)
     values[:, joint] = angle * arm.counts_per_rad[joint] * (1.0 + scale[joint])
