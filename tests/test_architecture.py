@@ -235,7 +235,6 @@ MAX_FUNCTION_BODY_LINES = 60
 
 _TRACKING = "a tracking routine written as one pass (start, observability, kernels); to split into steps"
 _WORKBENCH = "a workbench pass over every candidate (fit, score, rank) in one body; to split into named steps"
-_NODE = "the fusion node's wiring and run loop; to split admission, scheduling and publishing into rooms"
 _COMMAND = "a command's checks, run and printing in one body; to split into helpers"
 _NUMERIC = "a long numeric routine; to split into named steps"
 _READER = "a reader's one pass over a file with its checks; to split into per-stream helpers"
@@ -259,10 +258,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.importing.column_map:parse_column_map": _READER,
     "armfusion.fusion.ros2.from_records:run_from_records": _NUMERIC,
     "armfusion.fusion.service.payloads": "every payload's encoding and checked decoding; to split by family",
-    "armfusion.fusion.service.serve": _NODE,
-    "armfusion.fusion.service.serve:FusionNode": _NODE,
-    "armfusion.fusion.service.serve:FusionNode.__init__": _NODE,
-    "armfusion.fusion.service.serve:FusionNode.run": _NODE,
     "armfusion.fusion.startup.kernels:lm_solve": _KERNEL,
     "armfusion.fusion.startup.moves:propose_disambiguating_move": _NUMERIC,
     "armfusion.fusion.startup.solve": "the still solve and its branch handling; to split",
