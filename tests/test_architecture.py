@@ -257,7 +257,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.importing.bag:import_bag": _READER,
     "armfusion.fusion.importing.column_map:parse_column_map": _READER,
     "armfusion.fusion.ros2.from_records:run_from_records": _NUMERIC,
-    "armfusion.fusion.service.payloads": "every payload's encoding and checked decoding; to split by family",
     "armfusion.fusion.startup.kernels:lm_solve": _KERNEL,
     "armfusion.fusion.startup.moves:propose_disambiguating_move": _NUMERIC,
     "armfusion.fusion.startup.solve": "the still solve and its branch handling; to split",
