@@ -272,8 +272,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.tracking.start:start_from_recording": _TRACKING,
     "armfusion.fusion.tracking.tracker_kernels": _TRACKING,
     "armfusion.fusion.tracking.tracker_kernels:process_points_tangent": _TRACKING,
-    "armfusion.fusion.tracking.ukf": _TRACKING,
-    "armfusion.fusion.tracking.ukf:BatchedUKF": _TRACKING,
     "armfusion.fusion.workbench.candidates:rank_candidates": _WORKBENCH,
     "armfusion.fusion.workbench.scores:score_tests": _WORKBENCH,
     "armfusion.models.arm_config": "the config's schema, parsing and cross-checks; to split the cross-checks out",
@@ -365,7 +363,6 @@ PRIVATE_REACHES: dict[str, tuple[int, str]] = {
     "armfusion.fusion.cli.main": (1, "typer vendors click as typer._click: its UsageError has no public name"),
     "armfusion.fusion.tracking.frames": (1, "a named tuple's own _fields (underscored not to clash with fields)"),
     "armfusion.fusion.tracking.measurement": (1, "a named tuple's own _replace"),
-    "armfusion.fusion.tracking.ukf": (10, "the sigma-point filter reads its own update plan's prepared arrays"),
 }
 """Where code still reads or writes another object's private attribute, with the count and
 the reason."""
