@@ -243,6 +243,7 @@ def track_encoder_withheld(cal_config: Path, cal: Recording, rec: Recording, zer
     out["gyro_bias_deg_s"] = float(np.degrees(gcal.bias_rad_s))
     out["gyro_delay_ms"] = 1e3 * gcal.delay_s
     out["gyro_taps"] = len(gcal.rate_taps)
+    out["drift_span_s"] = gcal.drift_span_s
     out["random_walk_deg_sqrt_s"] = gcal.drift_deg_per_sqrt_s
     out["gyro_residual_deg"] = gcal.residual_deg
     out["gyro_bounded_deg"] = gcal.bounded_deg
@@ -653,7 +654,8 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
                  f"{wh['gyro_bias_deg_s']:+.4f} °/s, and {wh.get('gyro_taps', 0)} taps over the last "
                  f"{RESPONSE_SPAN_S:.1f} s for what the encoder reads otherwise than the link, applied; what "
                  f"that left there {wh['gyro_residual_deg']:.2f}° RMS, drifting "
-                 f"{wh['random_walk_deg_sqrt_s']:.3f} °/√s over 10 s, the joint's random walk in the "
+                 f"{wh['random_walk_deg_sqrt_s']:.3f} °/√s over {wh.get('drift_span_s', 10.0):.2f} s, the "
+                 f"time gravity takes to correct it, the joint's random walk in the "
                  f"tracker, of which a bounded {wh['gyro_bounded_deg']:.2f}° that no span makes larger): "
                  f"{_fmt(wh['err_at_30s_deg'])}° at 25-30 s, "
                  f"{_fmt(wh['rmse_after_30s_deg'])}° RMS "

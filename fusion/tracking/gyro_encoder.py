@@ -28,6 +28,9 @@ from armfusion.sensors.samples import Recording, Stream, link_gyro_stream
 
 DRIFT_SPAN_S = 10.0
 """The longest span over which the integral's drift is measured (:func:`calibrate_gyro_encoder`)."""
+RAD_PER_G = 1.0
+"""What one g of error across a joint's accelerometer makes of the joint's angle where
+gravity sees it best (the axis level, gravity across it): the most gravity can say."""
 MIN_CALIBRATION_S = 10.0
 """The shortest stretch with the encoder known that a gyro encoder is calibrated on."""
 RESPONSE_SPAN_S = 0.1
@@ -45,8 +48,9 @@ class GyroEncoderCalibration:
     part's filter delay, the logger's reading order). Causal: the stand-in at ``t`` needs no
     sample after ``t``. ``delay_s``: the taps' sum in seconds (per unit scale), how much
     later the encoder reads what the gyros' integral says.
-    ``drift_deg_per_sqrt_s``: the spread of what that still leaves over a span
-    (:data:`DRIFT_SPAN_S` unless asked), per √s (the tracker's random walk for the joint);
+    ``drift_deg_per_sqrt_s``: the spread of what that still leaves over ``drift_span_s``,
+    per √s (the tracker's random walk for the joint): by default the time gravity takes to
+    correct it (:func:`correction_span_s`);
     ``residual_deg``: its RMS over the whole stretch; ``span_s``: the stretch's length;
     ``bounded_deg``: the part of what is left that does not grow with the span (the spread of
     its changes over 40 spans from 1 s to ``DRIFT_SPAN_S`` fitted as ``2 b² + w² τ``: a bounded
@@ -64,12 +68,14 @@ class GyroEncoderCalibration:
     delay_s: float = 0.0
     rate_taps: tuple[float, ...] = ()
     tap_spacing_s: float = 0.0
+    drift_span_s: float = DRIFT_SPAN_S
 
     def as_dict(self) -> dict:
         return {"joint": self.joint, "scale": self.scale, "bias_deg_s": float(np.degrees(self.bias_rad_s)),
                 "drift_deg_per_sqrt_s": self.drift_deg_per_sqrt_s, "residual_deg": self.residual_deg,
                 "span_s": self.span_s, "bounded_deg": self.bounded_deg, "delay_s": self.delay_s,
-                "rate_taps": [float(w) for w in self.rate_taps], "tap_spacing_s": self.tap_spacing_s}
+                "rate_taps": [float(w) for w in self.rate_taps], "tap_spacing_s": self.tap_spacing_s,
+                "drift_span_s": self.drift_span_s}
 
 
 def _gyros(arm: ArmModel, joint: int) -> tuple[str, object, str, object]:
@@ -133,15 +139,13 @@ def calibrate_gyro_encoder(arm: ArmModel, rec: Recording, joint: int,
                            drift_span_s: float | None = None) -> GyroEncoderCalibration:
     """Where the encoder is known (``rec``, at least :data:`MIN_CALIBRATION_S`): the
     least-squares scale, taps and bias of the gyros' angle against the encoder's, and the drift
-    that leaves over ``drift_span_s`` (default a third of the stretch, at most
-    :data:`DRIFT_SPAN_S`)."""
+    that leaves over ``drift_span_s`` (default the time gravity takes to correct it,
+    :func:`correction_span_s`, at most a third of the stretch and :data:`DRIFT_SPAN_S`)."""
     t, q = encoder_angle_rad(arm, rec, joint)
     span = float(t[-1] - t[0])
     if span < MIN_CALIBRATION_S:
         raise ValueError(f"a gyro encoder's calibration needs at least {MIN_CALIBRATION_S:.0f} s with "
                          f"the encoder known, got {span:.1f} s")
-    if drift_span_s is None:
-        drift_span_s = min(DRIFT_SPAN_S, span / 3.0)
     rate = gyro_joint_rate(arm, rec, joint, t)
     spacing = float(np.median(np.diff(t)))
     taps = _rate_taps(rate, t, spacing, int(round(RESPONSE_SPAN_S / spacing)))
@@ -150,13 +154,38 @@ def calibrate_gyro_encoder(arm: ArmModel, rec: Recording, joint: int,
     coef, *_ = np.linalg.lstsq(A, q - q[0], rcond=None)
     scale, weights, bias = float(coef[0]), coef[1:-2], float(coef[-2])
     rest = A @ coef - (q - q[0])
+    longest_s = min(DRIFT_SPAN_S, span / 3.0)
+    if drift_span_s is None:
+        drift_span_s = correction_span_s(arm, rec, joint, rest, spacing, longest_s)
     k = max(int(round(drift_span_s / spacing)), 1)
+    drift_span_s = k * spacing
     drift = float(np.degrees(np.std(rest[k:] - rest[:-k])) / np.sqrt(drift_span_s))
     return GyroEncoderCalibration(arm.joint_names[joint], scale, bias, drift,
                                   float(np.degrees(np.sqrt(np.mean(rest**2)))), span,
-                                  _bounded_deg(rest, t, drift_span_s),
+                                  _bounded_deg(rest, t, max(drift_span_s, longest_s)),
                                   float(spacing * np.sum(weights) / scale), tuple(float(w) for w in weights),
-                                  spacing)
+                                  spacing, drift_span_s)
+
+
+def correction_span_s(arm: ArmModel, rec: Recording, joint: int, rest_rad: np.ndarray, spacing_s: float,
+                      longest_s: float) -> float:
+    """The time over which gravity corrects the stand-in's drift, so the drift the tracker
+    takes is the one that acts over it: a random walk ``w²`` seen through the accelerometer
+    after the joint, whose one sample errs by ``σ`` (its datasheet noise and the config's
+    fast error, in rad at :data:`RAD_PER_G`) every ``dt``, is corrected over ``T = √(σ² dt /
+    w²)``; ``w²`` measured over ``T`` (the spread of ``rest_rad``'s changes over it),
+    solved by a few rounds from ``longest_s``, between two samples and ``longest_s``."""
+    _, _, _, sensor = _gyros(arm, joint)
+    st = rec.get(sensor.name)
+    noise_g = float(np.max(stream_models(arm)[sensor.name].noise_physical_rms()))
+    sigma_rad = RAD_PER_G * float(np.hypot(noise_g, arm.calibration.accel_fast_error_g(sensor.name)))
+    density = sigma_rad**2 * float(np.median(np.diff(st.t_s)))  # rad² s
+    span = longest_s
+    for _ in range(8):
+        k = max(int(round(span / spacing_s)), 1)
+        w2 = float(np.var(rest_rad[k:] - rest_rad[:-k])) / (k * spacing_s)
+        span = float(np.clip(np.sqrt(density / max(w2, 1e-30)), 2 * spacing_s, longest_s))
+    return span
 
 
 def _rate_taps(rate: np.ndarray, t_s: np.ndarray, spacing_s: float, n_lags: int) -> np.ndarray:

@@ -20,6 +20,7 @@ from armfusion.fusion.tracking.gyro_encoder import (
 from armfusion.fusion.tracking.process import ProcessModel
 from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
 from armfusion.models.effects import model_from_arm
+from armfusion.models.sensor_models import stream_models
 from armfusion.models.simulator import simulate
 from armfusion.sensors.samples import Recording, Stream
 
@@ -201,3 +202,25 @@ def test_track_withholds_a_failed_encoder_and_says_so(tmp_path):
         r = runner.invoke(app, ["track", str(rec), "--config", "imu_rig_roll", "--moving-start",
                                 "--encoder-withheld", bad])
         assert r.exit_code != 0 and said in r.output, (bad, r.output)
+
+
+def test_the_drift_is_measured_over_the_time_gravity_takes_to_correct_it():
+    """A stand-in's error that walks 0.5 °/√s, seen through the shaft accelerometer: the
+    tracker's correction takes √(σ² dt / w²), σ the accelerometer's one-sample error in rad.
+    Shaken four times as hard (the config's fast error), gravity takes four times as long,
+    and the drift is measured over that span."""
+    from armfusion.fusion.tracking.gyro_encoder import correction_span_s
+
+    arm = load_arm("imu_rig_roll")
+    rec, _ = simulate(arm, "excitation", 30.0, seed=3)
+    spacing = float(np.median(np.diff(rec.get("enc").t_s)))
+    walk = np.cumsum(np.random.default_rng(5).normal(0.0, np.radians(0.5) * np.sqrt(spacing), 200_000))
+    spans = []
+    for fast_g in (0.01, 0.04):
+        cal = replace(arm.calibration, accel_fast_error_g_per_sensor={"shaft": fast_g})
+        shaken = replace(arm, calibration=cal)
+        spans.append(correction_span_s(shaken, rec, 0, walk, spacing, 10.0))
+        sigma_rad = np.hypot(fast_g, np.max(stream_models(arm)["shaft"].noise_physical_rms()))
+        expected = np.sqrt(sigma_rad**2 * spacing / np.radians(0.5) ** 2)
+        assert abs(spans[-1] - expected) < 0.1 * expected
+    assert 3.0 < spans[1] / spans[0] < 4.2
