@@ -109,7 +109,7 @@ def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, jud
     cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
     out = config_with_estimates(cfg, without_bound(final))
     raise_floors(out, final, arm)
-    consistency, refused = tracked_check(arm, out, judged_rec, held, json_out)
+    consistency, refused = tracked_check(arm, out, judged_rec, held, json_out, convention_joints(final))
     if refused is not None:
         return consistency, refused
     write.parent.mkdir(parents=True, exist_ok=True)
@@ -127,10 +127,19 @@ def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, jud
     return consistency, None
 
 
-def tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool) -> tuple[dict | None, str | None]:
+def convention_joints(final: Diagnosis) -> tuple[str, ...]:
+    """The joints whose zero the fit's structural gauges make the same as a held turn (a
+    mount about that joint's axis): the written config takes the turn for the joint's zero."""
+    return tuple(dict.fromkeys(p.removesuffix(".joint_offset") for g in final.gauges if g.structural
+                               for p in g.partners if p.endswith(".joint_offset")))
+
+
+def tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool,
+                  conventions: tuple[str, ...] = ()) -> tuple[dict | None, str | None]:
     """The tracker over the held-out part with the config it would replace and with the one it
-    would write (``out``); the refusal's reason where the new one keeps fewer innovations
-    within 3σ there (:func:`armfusion.fusion.workbench.heldout.tracked_worse`)."""
+    would write (``out``); the refusal's reason where the new one tracks worse there
+    (:func:`armfusion.fusion.workbench.heldout.tracked_worse`; ``conventions``: the joints
+    whose zero a held gauge makes the same as a turn, :func:`convention_joints`)."""
     t_from = float(held.data.state.t_s[0]) if held.same_recording else -np.inf
     with progress_bar("tracking the held-out part", json_out) as advance:
         try:
@@ -145,7 +154,7 @@ def tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool) -> tuple[d
         except (ValueError, RuntimeError) as e:
             return None, f"the tracker could not run over the held-out part to judge it: {e}"
     doc = {"as_it_is": before.as_dict(), "written": after.as_dict()}
-    return doc, tracked_worse(before, after)
+    return doc, tracked_worse(before, after, conventions)
 
 
 def write_refusal(final: Diagnosis, as_is, written=None) -> str | None:
