@@ -199,7 +199,8 @@ def test_the_start_is_where_the_user_says(twin_mcap):
         choose_start(arm, moving)
 
 
-def test_the_fit_reads_the_joints_where_the_controller_says_and_the_true_effects_fit_to_noise(twin_mcap):
+def test_the_fit_reads_the_joints_where_the_controller_says_and_the_true_effects_fit_to_noise(twin_mcap,
+                                                                                            tmp_path):
     """The controller's angles are absolute: the fit's joint angles are theirs (the elbow not
     placed where the still start cannot tell it: 90° off, its tangential acceleration then
     14x the noise of a clean twin), so the twin's own errors (each IMU's scale and mount, its
@@ -219,14 +220,15 @@ def test_the_fit_reads_the_joints_where_the_controller_says_and_the_true_effects
     assert off[[1, 2, 4]].max() < 0.01, off  # the shoulder, the elbow, wrist 2: untold at the start
     adds = [f"--add={e}:{s}" for s in ("forearm", "wrist")
             for e in ("accel_scale", "mount_rotation", "time_offset", "time_drift")]
-    r = runner.invoke(app, ["diagnose", str(rec), "--config", "ur5_two_imu", *adds, "--json"])
+    r = runner.invoke(app, ["diagnose", str(rec), "--config", "ur5_two_imu", *adds, "--json",
+                            "--history", str(tmp_path / "h.json")])
     assert r.exit_code in (0, 1), r.output
     doc = json.loads(r.stdout)
     assert doc["before"]["rms_ratio"] > 20.0  # the shipped config: the scales' 4 % alone
     assert doc["rms_ratio"] < 1.2 and doc["held_out"]["rms_ratio"] < 1.3, (doc["rms_ratio"], doc["held_out"])
 
 
-def test_a_write_that_tracks_the_held_out_part_further_off_the_controllers_angles_is_refused(twin_mcap, tmp_path):
+def test_a_write_that_tracks_further_off_the_controllers_angles_is_refused(twin_mcap, tmp_path):
     """The twin's own errors added by hand and written: the fit holds each mount's turn about
     its own joint's axis at zero (the joint's zero takes it), and the tracker with that config
     puts the shoulder and the elbow further off the controller's angles on the held-out part
