@@ -189,11 +189,13 @@ def reads_its_own_angle(offset_deg: np.ndarray, sigma_deg: np.ndarray) -> bool:
     return bool(np.median(np.abs(offset_deg)) <= 3.0 * np.median(sigma_deg))
 
 
-def tracked(arm, rec, t_from_s: float) -> Tracked:
+def tracked(arm, rec, t_from_s: float, groups: Sequence[Sequence[str]] = ()) -> Tracked:
     """Run the tracker over ``rec`` with ``arm`` (a config) and read, from ``t_from_s`` on, its
     link accelerometers' innovations and each joint's tracked angle against its encoder: with
     no truth at hand, whether the filter's σ hold there and how far the angles wander off the
-    encoders (:class:`Tracked`)."""
+    encoders (:class:`Tracked`). ``groups``: joints whose sum is also read so (keyed
+    ``"a + b"``: the angle of the link after them, where their axes are parallel), where
+    each of them reads its own angle."""
     from armfusion.fusion.tracking.settings import ENC
     from armfusion.fusion.tracking.tracker import start_from_recording
     from armfusion.models.rotations import wrap_angle
@@ -220,12 +222,18 @@ def tracked(arm, rec, t_from_s: float) -> Tracked:
     late = (run.t_s >= t_from_s) & np.all(np.isfinite(run.q_rad), axis=1)
     if enc is not None and len(enc) and late.sum() >= 10:
         q_enc = enc.values / tr.counts_per_rad
+        offs = {}
         for j, name in enumerate(arm.joint_names):
             e = np.interp(run.t_s[late], enc.t_s, q_enc[:, j])
-            off = np.degrees(wrap_angle(run.q_rad[late, j] - e))
+            offs[name] = off = np.degrees(wrap_angle(run.q_rad[late, j] - e))
             wander[name] = float(np.sqrt(np.mean((off - np.median(off)) ** 2)))
             if reads_its_own_angle(off, np.degrees(run.sigma_rad[late, j])):
                 absolute[name] = float(np.sqrt(np.mean(off**2)))
+        for g in groups:
+            if len(g) > 1 and all(j in absolute for j in g):
+                off = np.sum([offs[j] for j in g], axis=0)
+                wander[" + ".join(g)] = float(np.sqrt(np.mean((off - np.median(off)) ** 2)))
+                absolute[" + ".join(g)] = float(np.sqrt(np.mean(off**2)))
     step = float(np.degrees(1.0 / np.max(np.atleast_1d(tr.counts_per_rad))))
     return Tracked(within, nis, rms, wander, step, absolute)
 
