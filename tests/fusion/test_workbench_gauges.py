@@ -207,6 +207,11 @@ def test_a_config_that_moves_the_angles_off_absolute_encoders_is_not_written():
     assert "shoulder" not in why
     # no held turn makes the elbow's zero a convention: its constant is the startup's, not judged
     assert tracked_worse(before, tracked({"shoulder": 0.092, "elbow": 0.478}), ()) is None
+    # each joint as close as before, but their sum (the forearm's pitch) further off
+    group = {"shoulder": 0.092, "elbow": 0.069}
+    why = tracked_worse(tracked({**group, "elbow + shoulder": 0.05}),
+                        tracked({**group, "elbow + shoulder": 0.4}), (*held, "elbow + shoulder"))
+    assert why is not None and "elbow + shoulder's tracked angle is 0.400° RMS off its encoder" in why
     rng = np.random.default_rng(7)
     assert reads_its_own_angle(0.5 + 0.03 * rng.standard_normal(500), np.full(500, 3.4))
     assert not reads_its_own_angle(35.0 + 0.03 * rng.standard_normal(500), np.full(500, 2.0))
