@@ -235,7 +235,6 @@ MAX_FUNCTION_BODY_LINES = 60
 
 _TRACKING = "a tracking routine written as one pass (start, observability, kernels); to split into steps"
 _WORKBENCH = "a workbench pass over every candidate (fit, score, rank) in one body; to split into named steps"
-_NODE = "the fusion node's wiring and run loop; to split admission, scheduling and publishing into rooms"
 _COMMAND = "a command's checks, run and printing in one body; to split into helpers"
 _NUMERIC = "a long numeric routine; to split into named steps"
 _READER = "a reader's one pass over a file with its checks; to split into per-stream helpers"
@@ -258,11 +257,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.importing.bag:import_bag": _READER,
     "armfusion.fusion.importing.column_map:parse_column_map": _READER,
     "armfusion.fusion.ros2.from_records:run_from_records": _NUMERIC,
-    "armfusion.fusion.service.payloads": "every payload's encoding and checked decoding; to split by family",
-    "armfusion.fusion.service.serve": _NODE,
-    "armfusion.fusion.service.serve:FusionNode": _NODE,
-    "armfusion.fusion.service.serve:FusionNode.__init__": _NODE,
-    "armfusion.fusion.service.serve:FusionNode.run": _NODE,
     "armfusion.fusion.startup.kernels:lm_solve": _KERNEL,
     "armfusion.fusion.startup.moves:propose_disambiguating_move": _NUMERIC,
     "armfusion.fusion.startup.solve": "the still solve and its branch handling; to split",
@@ -278,8 +272,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.tracking.start:start_from_recording": _TRACKING,
     "armfusion.fusion.tracking.tracker_kernels": _TRACKING,
     "armfusion.fusion.tracking.tracker_kernels:process_points_tangent": _TRACKING,
-    "armfusion.fusion.tracking.ukf": _TRACKING,
-    "armfusion.fusion.tracking.ukf:BatchedUKF": _TRACKING,
     "armfusion.fusion.workbench.candidates:rank_candidates": _WORKBENCH,
     "armfusion.fusion.workbench.scores:score_tests": _WORKBENCH,
     "armfusion.models.arm_config": "the config's schema, parsing and cross-checks; to split the cross-checks out",
@@ -371,7 +363,6 @@ PRIVATE_REACHES: dict[str, tuple[int, str]] = {
     "armfusion.fusion.cli.main": (1, "typer vendors click as typer._click: its UsageError has no public name"),
     "armfusion.fusion.tracking.frames": (1, "a named tuple's own _fields (underscored not to clash with fields)"),
     "armfusion.fusion.tracking.measurement": (1, "a named tuple's own _replace"),
-    "armfusion.fusion.tracking.ukf": (10, "the sigma-point filter reads its own update plan's prepared arrays"),
 }
 """Where code still reads or writes another object's private attribute, with the count and
 the reason."""

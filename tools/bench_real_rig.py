@@ -24,7 +24,7 @@ a user's recording never seen before (nothing here knows a file by its name):
 5. **The encoder withheld**: the scored stretch again, the joint's relative angle from the
    integral of the shaft's gyro less the frame's about the shaft's axis, each read when its
    samples were true (:mod:`armfusion.fusion.tracking.gyro_encoder`, as ``track --encoder-withheld``
-   does: its scale, delay, bias and drift calibrated on the calibration stretch, the drift the
+   does: its scale, taps, bias and drift calibrated on the calibration stretch, the drift the
    joint's random walk in the tracker), beside the peer filters of the package index
    (`tools/rig_peers.py`: vqf, imufusion, ahrs) on the same samples, their zero aligned on
    the same calibration stretch.
@@ -66,6 +66,7 @@ from armfusion.fusion.importing.column_map import load_column_map  # noqa: E402
 from armfusion.fusion.importing.run import import_recording  # noqa: E402
 from armfusion.fusion.tracking.calibrated import config_model, device_time_offsets  # noqa: E402
 from armfusion.fusion.tracking.gyro_encoder import (  # noqa: E402
+    RESPONSE_SPAN_S,
     calibrate_gyro_encoder,
     settings_with_gyro_encoder,
     with_gyro_encoder,
@@ -241,6 +242,8 @@ def track_encoder_withheld(cal_config: Path, cal: Recording, rec: Recording, zer
     out["gyro_scale"] = gcal.scale
     out["gyro_bias_deg_s"] = float(np.degrees(gcal.bias_rad_s))
     out["gyro_delay_ms"] = 1e3 * gcal.delay_s
+    out["gyro_taps"] = len(gcal.rate_taps)
+    out["drift_span_s"] = gcal.drift_span_s
     out["random_walk_deg_sqrt_s"] = gcal.drift_deg_per_sqrt_s
     out["gyro_residual_deg"] = gcal.residual_deg
     out["gyro_bounded_deg"] = gcal.bounded_deg
@@ -648,9 +651,11 @@ def real_data_doc(results: list[TrialResult], calibrate_s: float) -> str:
                  f"The same stretch with the encoder withheld (the gyros' relative rate about the shaft, "
                  f"integrated: its scale, delay and bias against the encoder on the calibration stretch "
                  f"{wh['gyro_scale']:.4f}, {wh.get('gyro_delay_ms', 0.0):+.1f} ms and "
-                 f"{wh['gyro_bias_deg_s']:+.4f} °/s, applied; what "
+                 f"{wh['gyro_bias_deg_s']:+.4f} °/s, and {wh.get('gyro_taps', 0)} taps over the last "
+                 f"{RESPONSE_SPAN_S:.1f} s for what the encoder reads otherwise than the link, applied; what "
                  f"that left there {wh['gyro_residual_deg']:.2f}° RMS, drifting "
-                 f"{wh['random_walk_deg_sqrt_s']:.3f} °/√s over 10 s, the joint's random walk in the "
+                 f"{wh['random_walk_deg_sqrt_s']:.3f} °/√s over {wh.get('drift_span_s', 10.0):.2f} s, the "
+                 f"time gravity takes to correct it, the joint's random walk in the "
                  f"tracker, of which a bounded {wh['gyro_bounded_deg']:.2f}° that no span makes larger): "
                  f"{_fmt(wh['err_at_30s_deg'])}° at 25-30 s, "
                  f"{_fmt(wh['rmse_after_30s_deg'])}° RMS "

@@ -40,11 +40,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.service import payloads as pl
 from armfusion.fusion.service.processes import armfusion_argv
 from armfusion.fusion.service.reorder import merge_batches
 from armfusion.fusion.startup.static import StaticDetectionSettings, find_static_segments
 from armfusion.models.arm import ArmModel
+from armfusion.models.arm_config import ConfigError
 from armfusion.models.sensor_models import ENCODER_STREAM, stream_models
 from armfusion.models.trajectories.planned import PlannedManeuver
 from armfusion.sensors.recording_mcap import write_mcap
@@ -380,6 +382,44 @@ def same_arm_problem(arm: ArmModel, other: ArmModel) -> str:
     if mine != theirs:
         return f"its sensors {theirs[:8]} are not {mine[:8]}"
     return ""
+
+
+def apply_fitted_config(maneuver: ServedManeuver, arm: ArmModel,
+                        calibrate: Callable[[ArmModel, str], pl.Calibration]) -> pl.Maneuver:
+    """``maneuver/apply``: track from now on with the config the maneuver's fit wrote (of the
+    same ``arm``), by ``calibrate(new_arm, why)``: the fusion node's startup calibration on
+    the still arm, the running tracker's pose carried; or refuse, saying why."""
+    m = maneuver
+    if m.state != "calibrated":
+        return m.payload(False, f"refused: no calibration to apply (the maneuver is {m.state})")
+    try:
+        new_arm = load_arm(m.config_written)
+    except (ConfigError, OSError, ValueError) as e:
+        return m.payload(False, f"refused: {m.config_written} does not load: {str(e)[:200]}")
+    differs = same_arm_problem(arm, new_arm)
+    if differs:
+        return m.payload(False, f"refused: {m.config_written} is not this arm's config: {differs}")
+    what = f"the calibration of {Path(m.config_written).name} applied"
+    result = calibrate(new_arm, what)
+    if not result.ok:
+        return m.payload(False, f"refused: {result.message}")
+    return m.applied(f"{what}; the startup with it: {result.message}")
+
+
+def joints_note(estimate, plan: PlannedManeuver) -> str:
+    """What the controller must know of the arm's pose (the tracker's last ``estimate``, or
+    ``None``) before it plays ``plan``."""
+    e = estimate
+    if e is None:
+        return ("the node has no joint estimate yet: the controller must take the arm to the plan's "
+                "first pose by its own means")
+    unknown = [f"{j} ({f})" for j, f in zip(e.joint_names, e.flags, strict=True) if f != "ok"]
+    if unknown:
+        return (f"not known to the tracker now: {', '.join(unknown)}: the controller must not rely on "
+                "their estimates to reach the plan's first pose")
+    d = np.degrees(np.abs(np.asarray(e.q_rad) - plan.poses_rad[0]))
+    j = int(np.argmax(d))
+    return f"the plan's first pose is {d[j]:.1f}° away ({e.joint_names[j]}) from the estimate now"
 
 
 def _lower_priority() -> None:  # in the child, before exec: the tracker keeps its core

@@ -28,18 +28,29 @@ from armfusion.sensors.samples import Recording, Stream, link_gyro_stream
 
 DRIFT_SPAN_S = 10.0
 """The longest span over which the integral's drift is measured (:func:`calibrate_gyro_encoder`)."""
+RAD_PER_G = 1.0
+"""What one g of error across a joint's accelerometer makes of the joint's angle where
+gravity sees it best (the axis level, gravity across it): the most gravity can say."""
 MIN_CALIBRATION_S = 10.0
 """The shortest stretch with the encoder known that a gyro encoder is calibrated on."""
+RESPONSE_SPAN_S = 0.1
+"""How far back what the encoder reads otherwise than the link reaches (s): a period of a
+shaft's ringing down to 10 Hz, and any offset between the two clocks."""
 
 
 @dataclass(frozen=True)
 class GyroEncoderCalibration:
-    """The gyros' joint angle against the encoder: ``angle(t) = scale · ∫rate(t − delay) −
-    bias · t``, ``delay_s`` how much later the encoder read what the gyros' integral says (the
-    two clocks' offset while the joint turns: each part's filter delay, the logger's reading
-    order), measured where both are known as the other three are.
-    ``drift_deg_per_sqrt_s``: the spread of what that still leaves over a span
-    (:data:`DRIFT_SPAN_S` unless asked), per √s (the tracker's random walk for the joint);
+    """The gyros' joint angle against the encoder: ``angle(t) = scale · ∫rate(t) − Σₖ tapₖ ·
+    tap_spacing_s · rate(t − k·tap_spacing_s) − bias · t``. The taps (``rate_taps``) are what
+    the encoder reads otherwise than the link over the last :data:`RESPONSE_SPAN_S`: the
+    encoder reads the shaft where it is driven and the gyros the link where they sit, and
+    between the two are the shaft's own twist and ringing and the two clocks' offset (each
+    part's filter delay, the logger's reading order). Causal: the stand-in at ``t`` needs no
+    sample after ``t``. ``delay_s``: the taps' sum in seconds (per unit scale), how much
+    later the encoder reads what the gyros' integral says.
+    ``drift_deg_per_sqrt_s``: the spread of what that still leaves over ``drift_span_s``,
+    per √s (the tracker's random walk for the joint): by default the time gravity takes to
+    correct it (:func:`correction_span_s`);
     ``residual_deg``: its RMS over the whole stretch; ``span_s``: the stretch's length;
     ``bounded_deg``: the part of what is left that does not grow with the span (the spread of
     its changes over 40 spans from 1 s to ``DRIFT_SPAN_S`` fitted as ``2 b² + w² τ``: a bounded
@@ -55,11 +66,16 @@ class GyroEncoderCalibration:
     span_s: float
     bounded_deg: float = 0.0
     delay_s: float = 0.0
+    rate_taps: tuple[float, ...] = ()
+    tap_spacing_s: float = 0.0
+    drift_span_s: float = DRIFT_SPAN_S
 
     def as_dict(self) -> dict:
         return {"joint": self.joint, "scale": self.scale, "bias_deg_s": float(np.degrees(self.bias_rad_s)),
                 "drift_deg_per_sqrt_s": self.drift_deg_per_sqrt_s, "residual_deg": self.residual_deg,
-                "span_s": self.span_s, "bounded_deg": self.bounded_deg, "delay_s": self.delay_s}
+                "span_s": self.span_s, "bounded_deg": self.bounded_deg, "delay_s": self.delay_s,
+                "rate_taps": [float(w) for w in self.rate_taps], "tap_spacing_s": self.tap_spacing_s,
+                "drift_span_s": self.drift_span_s}
 
 
 def _gyros(arm: ArmModel, joint: int) -> tuple[str, object, str, object]:
@@ -122,34 +138,61 @@ def encoder_angle_rad(arm: ArmModel, rec: Recording, joint: int) -> tuple[np.nda
 def calibrate_gyro_encoder(arm: ArmModel, rec: Recording, joint: int,
                            drift_span_s: float | None = None) -> GyroEncoderCalibration:
     """Where the encoder is known (``rec``, at least :data:`MIN_CALIBRATION_S`): the
-    least-squares scale and bias of the gyros' angle against the encoder's, and the drift
-    that leaves over ``drift_span_s`` (default a third of the stretch, at most
-    :data:`DRIFT_SPAN_S`)."""
+    least-squares scale, taps and bias of the gyros' angle against the encoder's, and the drift
+    that leaves over ``drift_span_s`` (default the time gravity takes to correct it,
+    :func:`correction_span_s`, at most a third of the stretch and :data:`DRIFT_SPAN_S`)."""
     t, q = encoder_angle_rad(arm, rec, joint)
     span = float(t[-1] - t[0])
     if span < MIN_CALIBRATION_S:
         raise ValueError(f"a gyro encoder's calibration needs at least {MIN_CALIBRATION_S:.0f} s with "
                          f"the encoder known, got {span:.1f} s")
-    if drift_span_s is None:
-        drift_span_s = min(DRIFT_SPAN_S, span / 3.0)
     rate = gyro_joint_rate(arm, rec, joint, t)
-    angle = _integral(rate, t)
-    # scale · ∫rate(t − delay) ≈ scale · ∫rate(t) − scale · delay · rate(t): linear in each
-    A = np.stack([angle, -rate, -(t - t[0]), np.ones_like(t)], axis=1)
+    spacing = float(np.median(np.diff(t)))
+    taps = _rate_taps(rate, t, spacing, int(round(RESPONSE_SPAN_S / spacing)))
+    A = np.concatenate([_integral(rate, t)[:, None], -taps, np.stack([-(t - t[0]), np.ones_like(t)], axis=1)],
+                       axis=1)
     coef, *_ = np.linalg.lstsq(A, q - q[0], rcond=None)
-    scale, delay_s, bias = float(coef[0]), float(coef[1] / coef[0]), float(coef[2])
-    rest = _delayed(scale * angle - bias * (t - t[0]), t, delay_s) + coef[3] - (q - q[0])
-    k = max(int(round(drift_span_s / float(np.median(np.diff(t))))), 1)
+    scale, weights, bias = float(coef[0]), coef[1:-2], float(coef[-2])
+    rest = A @ coef - (q - q[0])
+    longest_s = min(DRIFT_SPAN_S, span / 3.0)
+    if drift_span_s is None:
+        drift_span_s = correction_span_s(arm, rec, joint, rest, spacing, longest_s)
+    k = max(int(round(drift_span_s / spacing)), 1)
+    drift_span_s = k * spacing
     drift = float(np.degrees(np.std(rest[k:] - rest[:-k])) / np.sqrt(drift_span_s))
     return GyroEncoderCalibration(arm.joint_names[joint], scale, bias, drift,
                                   float(np.degrees(np.sqrt(np.mean(rest**2)))), span,
-                                  _bounded_deg(rest, t, drift_span_s), delay_s)
+                                  _bounded_deg(rest, t, max(drift_span_s, longest_s)),
+                                  float(spacing * np.sum(weights) / scale), tuple(float(w) for w in weights),
+                                  spacing, drift_span_s)
 
 
-def _delayed(angle: np.ndarray, t_s: np.ndarray, delay_s: float) -> np.ndarray:
-    """``angle`` (at ``t_s``) as read ``delay_s`` later: its value at ``t_s − delay_s`` (the
-    first sample's before the start)."""
-    return np.interp(t_s - delay_s, t_s, angle) if delay_s else angle
+def correction_span_s(arm: ArmModel, rec: Recording, joint: int, rest_rad: np.ndarray, spacing_s: float,
+                      longest_s: float) -> float:
+    """The time over which gravity corrects the stand-in's drift, so the drift the tracker
+    takes is the one that acts over it: a random walk ``w²`` seen through the accelerometer
+    after the joint, whose one sample errs by ``σ`` (its datasheet noise and the config's
+    fast error, in rad at :data:`RAD_PER_G`) every ``dt``, is corrected over ``T = √(σ² dt /
+    w²)``; ``w²`` measured over ``T`` (the spread of ``rest_rad``'s changes over it),
+    solved by a few rounds from ``longest_s``, between two samples and ``longest_s``."""
+    _, _, _, sensor = _gyros(arm, joint)
+    st = rec.get(sensor.name)
+    noise_g = float(np.max(stream_models(arm)[sensor.name].noise_physical_rms()))
+    sigma_rad = RAD_PER_G * float(np.hypot(noise_g, arm.calibration.accel_fast_error_g(sensor.name)))
+    density = sigma_rad**2 * float(np.median(np.diff(st.t_s)))  # rad² s
+    span = longest_s
+    for _ in range(8):
+        k = max(int(round(span / spacing_s)), 1)
+        w2 = float(np.var(rest_rad[k:] - rest_rad[:-k])) / (k * spacing_s)
+        span = float(np.clip(np.sqrt(density / max(w2, 1e-30)), 2 * spacing_s, longest_s))
+    return span
+
+
+def _rate_taps(rate: np.ndarray, t_s: np.ndarray, spacing_s: float, n_lags: int) -> np.ndarray:
+    """``spacing_s · rate`` as read 0, 1, … ``n_lags`` spacings earlier, one column each (the
+    first sample's before the start; between samples, across a gap too, interpolated)."""
+    lags = [spacing_s * np.interp(t_s - k * spacing_s, t_s, rate) for k in range(n_lags + 1)]
+    return np.stack(lags, axis=1)
 
 
 def _bounded_deg(rest_rad: np.ndarray, t_s: np.ndarray, longest_s: float) -> float:
@@ -178,8 +221,11 @@ def with_gyro_encoder(arm: ArmModel, rec: Recording, joint: int, cal: GyroEncode
     calibrated encoder scale undone); the other joints' counts kept."""
     enc = rec.get("enc")
     t = enc.t_s
-    angle = _delayed(_integral(cal.scale * gyro_joint_rate(arm, rec, joint, t) - cal.bias_rad_s, t), t,
-                     cal.delay_s)
+    rate = gyro_joint_rate(arm, rec, joint, t)
+    angle = cal.scale * _integral(rate, t) - cal.bias_rad_s * (t - t[0])
+    if cal.rate_taps:
+        taps = np.asarray(cal.rate_taps)
+        angle = angle - _rate_taps(rate, t, cal.tap_spacing_s, len(taps) - 1) @ taps
     scale, _ = encoder_scales(arm, config_model(arm))
     values = np.array(enc.values, dtype=float)
     values[:, joint] = angle * arm.counts_per_rad[joint] * (1.0 + scale[joint])

@@ -29,6 +29,12 @@ stage) in the common case: :class:`SigmaPoints`' own points, at most one angle s
 one angle row, a diagonal ``R``, groups that tile the measurement rows, a positive definite
 ``P + Q`` and ``S``. Everything else takes the NumPy path, which stays the reference the
 kernels are tested against (to round-off).
+
+Its parts: the sigma points and the unscented transform in
+:mod:`armfusion.fusion.tracking.unscented`, the measurement groups, their gates and the
+prepared update plan (with the compiled innovation that reads it) in
+:mod:`armfusion.fusion.tracking.ukf_groups`, the correction in
+:mod:`armfusion.fusion.tracking.ukf_correct`.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from armfusion.fusion.tracking.ukf_correct import correct_compiled, correct_numpy
 from armfusion.fusion.tracking.ukf_groups import (
     GroupPlan,
     Innovation,
@@ -43,156 +50,18 @@ from armfusion.fusion.tracking.ukf_groups import (
     group_nis,
     nis_bound,
 )
-from armfusion.fusion.tracking.ukf_kernels import (
-    DIAGONAL_NOT_POSITIVE,
-    NOT_POSITIVE_DEFINITE,
-    OK,
-    innovation_into,
-    kalman_update_into,
-    sigma_points_into,
-    unscented_moments_into,
+from armfusion.fusion.tracking.ukf_kernels import sigma_points_into, unscented_moments_into
+from armfusion.fusion.tracking.unscented import (
+    SigmaPoints,
+    repair_covariance,
+    residuals,
+    symmetrise,
+    unscented_mean,
+    unscented_moments,
+    unscented_transform,
+    weighted_prediction,
 )
 from armfusion.models.rotations import wrap_angle
-from filterpy.kalman import MerweScaledSigmaPoints
-from scipy.linalg import lapack
-
-_NONE_2D = np.zeros((0, 0))  # "no hold / no gain mask" for the compiled update
-
-
-# --------------------------------------------------------------------------------------
-class SigmaPoints(MerweScaledSigmaPoints):
-    """filterpy's scaled sigma points (van der Merwe), made in one shot.
-
-    ``sigma_points(x, P)`` returns exactly what filterpy's does (rows of the upper
-    Cholesky factor of ``(n + lambda) P``), as one ``(2n+1, n)`` array without a loop.
-    When ``P`` is not numerically positive definite the square root falls back to a
-    symmetric eigen-decomposition with negative eigenvalues clipped to zero.
-    """
-
-    def __init__(self, n: int, alpha: float = 0.5, beta: float = 2.0, kappa: float = 0.0):
-        super().__init__(n, alpha, beta, kappa)
-        self.lambda_ = alpha**2 * (n + kappa) - n
-        self.Wm.setflags(write=False)
-        self.Wc.setflags(write=False)
-
-    @property
-    def scale(self) -> float:
-        """``n + lambda``: the points sit at ``x ± sqrt(scale) * columns of sqrt(P)``."""
-        return self.n + self.lambda_
-
-    def sqrt_rows(self, P: np.ndarray) -> np.ndarray:
-        """Rows ``U[k]`` with ``U^T U = (n + lambda) P`` (filterpy's convention: the upper
-        Cholesky factor, here straight from LAPACK's ``dpotrf``)."""
-        A = self.scale * P
-        U, info = lapack.dpotrf(A, lower=0, clean=1)
-        if info == 0:
-            return U
-        w, V = np.linalg.eigh(0.5 * (A + A.T))
-        return (V * np.sqrt(np.clip(w, 0.0, None))).T
-
-    def sigma_points(self, x, P) -> np.ndarray:
-        x = np.asarray(x, dtype=float).reshape(-1)
-        if x.shape[0] != self.n:
-            raise ValueError(f"expected size(x) {self.n}, but size is {x.shape[0]}")
-        return self.points_of(x, np.atleast_2d(np.asarray(P, dtype=float)))
-
-    def points_of(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """:meth:`sigma_points` for a float ``x (n,)`` and ``P (n, n)`` as they are (no checks)."""
-        U = self.sqrt_rows(P)
-        n = self.n
-        X = np.empty((2 * n + 1, n))
-        X[0] = x
-        np.add(x, U, out=X[1:n + 1])
-        np.subtract(x, U, out=X[n + 1:])
-        return X
-
-
-# --------------------------------------------------------------------------------------
-def unscented_mean(Y: np.ndarray, Wm: np.ndarray, angles: np.ndarray | None = None) -> np.ndarray:
-    """Weighted mean of sigma points ``Y (2n+1, k)``; ``angles`` (column indices) are
-    averaged as wrapped offsets from the central point."""
-    if angles is None or len(angles) == 0:
-        return Wm @ Y
-    ref = Y[0, angles]
-    m = Wm @ Y
-    m[angles] = wrap_angle(ref + Wm @ wrap_angle(Y[:, angles] - ref))
-    return m
-
-
-def residuals(Y: np.ndarray, mean: np.ndarray, angles: np.ndarray | None = None) -> np.ndarray:
-    d = Y - mean
-    if angles is not None and len(angles):
-        d[..., angles] = wrap_angle(d[..., angles])
-    return d
-
-
-def unscented_transform(Y, Wm, Wc, noise_cov=None, angles=None):
-    """Mean, residuals and covariance of transformed sigma points (plus an additive noise).
-
-    Angle columns are averaged as wrapped offsets from the central point, and their
-    residuals are those offsets minus the mean offset (one wrap, no second pass).
-    """
-    m = Wm @ Y
-    D = Y - m
-    if angles is not None and len(angles):
-        ref = Y[0, angles]
-        dA = wrap_angle(Y[:, angles] - ref)
-        mA = Wm @ dA
-        m[angles] = wrap_angle(ref + mA)
-        D[:, angles] = dA - mA
-    C = (D.T * Wc) @ D
-    if noise_cov is not None:
-        C = C + noise_cov
-    return m, D, C
-
-
-def _ut(Y: np.ndarray, Wm: np.ndarray, WcT: np.ndarray, angle: int | None):
-    """:func:`unscented_transform` for at most one angle column, returning also the
-    weighted residuals ``D^T * Wc`` (the cross covariance needs them again). When the
-    angle's points lie within 3 rad of the central one (no wrap between them, the usual
-    case) their plain mean and residuals are the wrapped ones; the mean is then wrapped."""
-    m = Wm @ Y
-    D = Y - m
-    if angle is not None:
-        y = Y[:, angle]
-        dA = y - y[0]
-        if np.abs(dA).max() < 3.0:
-            m[angle] = wrap_angle(float(m[angle]))
-        else:
-            dA = wrap_angle(dA)
-            mA = float(Wm @ dA)
-            m[angle] = wrap_angle(float(y[0]) + mA)
-            dA -= mA
-            D[:, angle] = dA
-    DW = D.T * WcT
-    return m, D, DW, DW @ D
-
-
-def _weighted_prediction(Z: np.ndarray, w: np.ndarray, angle_rows) -> np.ndarray:
-    """``Σ w_i Z_i`` (``w`` summing to 1), the ``angle_rows`` as the central point plus the
-    weighted mean of the wrapped offsets from it."""
-    zp = np.asarray(w, float) @ Z
-    for a in angle_rows:
-        zp[a] = wrap_angle(float(Z[0, a] + np.asarray(w, float) @ wrap_angle(Z[:, a] - Z[0, a])))
-    return zp
-
-
-def symmetrise(P: np.ndarray) -> np.ndarray:
-    return 0.5 * (P + P.T)
-
-
-def repair_covariance(P: np.ndarray, floor: float = 0.0) -> np.ndarray:
-    """``P`` symmetrised, with eigenvalues below ``floor`` raised to it (only if needed)."""
-    P = symmetrise(P)
-    d = np.diagonal(P)
-    if np.all(d > floor):
-        try:
-            np.linalg.cholesky(P)
-            return P
-        except np.linalg.LinAlgError:
-            pass
-    w, V = np.linalg.eigh(P)
-    return symmetrise((V * np.clip(w, floor, None)) @ V.T)
 
 
 class BatchedUKF:
@@ -338,7 +207,7 @@ class BatchedUKF:
     def _propagate(self, Y: np.ndarray) -> None:
         """The NumPy unscented transform of the propagated points ``Y`` (any number of angles)."""
         if len(self._angles) <= 1:
-            m, D, DW, C = _ut(Y, self._Wm, self._Wc, self._angle1)
+            m, D, DW, C = unscented_moments(Y, self._Wm, self._Wc, self._angle1)
         else:
             m, D, C = unscented_transform(Y, self._Wm, self._Wc, None, self._angles)
             DW = D.T * self._Wc
@@ -414,20 +283,20 @@ class BatchedUKF:
             X = self.sigma_points() if X is None else X
             DXW = residuals(X, self._x, self._angles).T * self._Wc
         Z = hx(X, **kw)
-        if self._use_kernels and R.ndim == 1 and len(angle_rows) <= 1 and plan._tiled:
+        if self._use_kernels and R.ndim == 1 and len(angle_rows) <= 1 and plan.tiled:
             a = int(angle_rows[0]) if len(angle_rows) else None
-            inn = self._innovation_compiled(z, Z, R, plan, a, DXW, z_weights)
+            inn = plan.innovation_compiled(z, Z, R, self._weights, z_weights, a, DXW)
             if inn is not None:
                 return inn
         if len(angle_rows) <= 1:
             a = int(angle_rows[0]) if len(angle_rows) else None
-            zp, DZ, _, S = _ut(Z, self._Wm, self._Wc, a)
+            zp, DZ, _, S = unscented_moments(Z, self._Wm, self._Wc, a)
             if R.ndim == 1:
                 S.reshape(-1)[::S.shape[0] + 1] += R
             else:
                 S += R
             if z_weights is not None:
-                zp = _weighted_prediction(Z, z_weights, () if a is None else (a,))
+                zp = weighted_prediction(Z, z_weights, () if a is None else (a,))
             nu = z - zp
             if a is not None:
                 nu[a] = wrap_angle(nu[a])
@@ -435,44 +304,13 @@ class BatchedUKF:
             ang = np.asarray(angle_rows, dtype=int)
             zp, DZ, S = unscented_transform(Z, self._Wm, self._Wc, np.diag(R) if R.ndim == 1 else R, ang)
             if z_weights is not None:
-                zp = _weighted_prediction(Z, z_weights, ang)
+                zp = weighted_prediction(Z, z_weights, ang)
             nu = z - zp
             nu[ang] = wrap_angle(nu[ang])
         Pxz = DXW @ DZ
         nis = plan.nis(nu, S)
-        # (a NaN NIS fails any gate; an infinite one fails every finite gate)
-        ok = nis <= plan.gates if plan._finite_gates else np.isfinite(nis) & (nis <= plan.gates)
+        ok = plan.gate_ok(nis)
         return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, zp, plan.last_blocks)
-
-    def _innovation_compiled(self, z: np.ndarray, Z: np.ndarray, R: np.ndarray, plan: GroupPlan,
-                             angle_row: int | None, DXW: np.ndarray,
-                             z_weights: np.ndarray | None = None) -> Innovation | None:
-        """:meth:`innovate`'s statistics from the compiled kernel (a diagonal ``R``, a tiled
-        plan, at most one angle row); None when the shapes are not those of the common case."""
-        Zc = np.ascontiguousarray(Z, dtype=np.float64)
-        N, n = self._weights.shape[1], self._x.shape[0]
-        m = plan.m
-        if Zc.shape != (N, m) or z.shape[0] != m or R.shape[0] != m or DXW.shape != (n, N):
-            return None
-        if angle_row is None:
-            angle_row = -1
-        elif -m <= angle_row < m:
-            angle_row %= m
-        else:
-            return None
-        G = len(plan.rows)
-        z_pred, nu, S, Pxz = np.empty(m), np.empty(m), np.empty((m, m)), np.empty((n, m))
-        flat, nis, ok = np.empty(plan._block_size), np.empty(G), np.empty(G, dtype=np.bool_)
-        wz = self._weights[0] if z_weights is None else np.ascontiguousarray(z_weights, dtype=np.float64)
-        status = innovation_into(Zc, self._weights, wz, angle_row, np.ascontiguousarray(z),
-                                 np.ascontiguousarray(R), np.ascontiguousarray(DXW), plan._group_rows,
-                                 plan._group_start, plan._block_start, plan._gates_c,
-                                 z_pred, nu, S, Pxz, flat, nis, ok)
-        blocks = plan.last_blocks = plan._blocks_from(flat)
-        if status != OK:  # a block of S is not positive definite: NumPy, block by block
-            nis = plan._nis_blocks(nu)
-            ok = nis <= plan.gates if plan._finite_gates else np.isfinite(nis) & (nis <= plan.gates)
-        return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, z_pred, blocks)
 
     def correct(self, inn: Innovation, accept: np.ndarray | None = None,
                 hold: np.ndarray | None = None, gain_mask: np.ndarray | None = None) -> bool:
@@ -504,70 +342,20 @@ class BatchedUKF:
 
     def _apply(self, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray, hold: np.ndarray | None,
                gain_mask: np.ndarray | None = None) -> None:
-        if not (self._use_kernels and self._apply_compiled(nu, S, Pxz, hold, gain_mask)):
+        """Correct the state (:mod:`armfusion.fusion.tracking.ukf_correct`): through the compiled
+        kernel in the common case, else (or when it declines) in NumPy."""
+        out = (correct_compiled(self._x, self._P, nu, S, Pxz, hold, gain_mask, self._angle_index)
+               if self._use_kernels else None)
+        if out is None:
             self._apply_numpy(nu, S, Pxz, hold, gain_mask)
-
-    def _apply_compiled(self, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray, hold: np.ndarray | None,
-                        gain_mask: np.ndarray | None) -> bool:
-        """:meth:`_apply` through the compiled kernel; False, with nothing done, when ``S``
-        is not positive definite or a shape is not the common case's (``hold (n, n)``,
-        ``gain_mask (n, m)``)."""
-        n, m = Pxz.shape
-        hold_c = _NONE_2D if hold is None else np.ascontiguousarray(hold, dtype=np.float64)
-        mask_c = _NONE_2D if gain_mask is None else np.ascontiguousarray(gain_mask, dtype=np.float64)
-        if not (m > 0 and nu.shape == (m,) and S.shape == (m, m) and n == self._x.shape[0]
-                and (hold is None or hold_c.shape == (n, n))
-                and (gain_mask is None or mask_c.shape == (n, m))):
-            return False
-        x, P = np.empty(n), np.empty((n, n))
-        status = kalman_update_into(self._x, self._P, np.ascontiguousarray(nu, dtype=np.float64),
-                                    np.ascontiguousarray(S, dtype=np.float64),
-                                    np.ascontiguousarray(Pxz, dtype=np.float64), hold_c, mask_c,
-                                    self._angle_index, x, P)
-        if status == NOT_POSITIVE_DEFINITE:
-            return False
-        if status == DIAGONAL_NOT_POSITIVE:
-            P = repair_covariance(P, 1e-18)
-        self._x, self._P = x, P
+            return
+        self._x, self._P = out
         self._sigmas = None
-        return True
 
     def _apply_numpy(self, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray, hold: np.ndarray | None,
                      gain_mask: np.ndarray | None = None) -> None:
         """:meth:`_apply` in NumPy: any gain, any angles, an ``S`` that is not positive definite."""
-        _, Kt, info = lapack.dposv(S, Pxz.T)  # S is symmetric positive definite
-        if info != 0:
-            Kt = np.linalg.lstsq(S, Pxz.T, rcond=None)[0]
-        K = Kt.T
-        if hold is None and gain_mask is None:
-            # the optimal gain: P - K S K^T = P - K Pxz^T
-            P = self._P - K @ Pxz.T
-        else:
-            # a held gain is not optimal: the general (Joseph-equivalent) form stays exact
-            if hold is not None:
-                K = hold @ K
-            if gain_mask is not None:
-                K = K * gain_mask
-            # P - K Pxz^T - Pxz K^T + K S K^T = P + B + B^T with B = (K S / 2 - Pxz) K^T:
-            # exactly symmetric as it is summed
-            B = K @ S
-            B *= 0.5
-            B -= Pxz
-            B = B @ K.T
-            B += B.T
-            P = self._P + B
-        x = self._x + K @ nu
-        a = self._angle1
-        if a is not None:
-            x[a] = wrap_angle(float(x[a]))
-        elif len(self._angles):
-            x[self._angles] = wrap_angle(x[self._angles])
-        if hold is None and gain_mask is None:
-            P += P.T
-            P *= 0.5
-        if not P.diagonal().min() > 0.0:  # (NaN too)
-            P = repair_covariance(P, 1e-18)
-        self._x, self._P = x, P
+        self._x, self._P = correct_numpy(self._x, self._P, nu, S, Pxz, hold, gain_mask, self._angles)
         self._sigmas = None
 
 

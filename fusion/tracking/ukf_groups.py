@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from armfusion.fusion.tracking.ukf_kernels import OK, innovation_into
 from scipy.linalg import lapack
 from scipy.stats import chi2
 
@@ -62,7 +63,9 @@ class MeasurementGroup:
 
 class GroupPlan:
     """Measurement groups prepared once for repeated updates of the same shape: their
-    names, rows, gates, and the index arrays that batch the NIS of equal-sized groups."""
+    names, rows, gates, and the index arrays that batch the NIS of equal-sized groups
+    (and, when the groups tile the rows, those the compiled innovation reads:
+    :meth:`innovation_compiled`)."""
 
     def __init__(self, groups: Sequence[MeasurementGroup]):
         self.groups = tuple(groups)
@@ -108,6 +111,51 @@ class GroupPlan:
                 self._block_spans.append((k, which, slice(start, start + g * k * k), (g, k, k)))
                 start += g * k * k
             self._block_size = start
+
+    @property
+    def tiled(self) -> bool:
+        """Whether the groups tile the measurement rows (each row in exactly one group): the
+        NIS of every group from one Cholesky factor, and the compiled innovation."""
+        return self._tiled
+
+    def gate_ok(self, nis: np.ndarray) -> np.ndarray:
+        """Whether each group's NIS passes its gate (a NaN NIS fails any gate; an infinite
+        one fails every finite gate)."""
+        return nis <= self.gates if self._finite_gates else np.isfinite(nis) & (nis <= self.gates)
+
+    def innovation_compiled(self, z: np.ndarray, Z: np.ndarray, R: np.ndarray, weights: np.ndarray,
+                            z_weights: np.ndarray | None, angle_row: int | None,
+                            DXW: np.ndarray) -> Innovation | None:
+        """The innovation of ``z (m,)`` against the sigma points' measurements ``Z (N, m)``
+        from the compiled kernel, for a tiled plan: ``R`` diagonal ``(m,)``, ``weights``
+        the points' mean and covariance weights ``(2, N)``, ``z_weights`` those the
+        prediction is taken with (None: the mean's), at most one ``angle_row``, ``DXW`` the
+        weighted state residuals ``(n, N)``. None when the shapes are not those of the
+        common case (the caller's NumPy path takes over)."""
+        Zc = np.ascontiguousarray(Z, dtype=np.float64)
+        N, n = weights.shape[1], DXW.shape[0]
+        m = self.m
+        if Zc.shape != (N, m) or z.shape[0] != m or R.shape[0] != m or DXW.shape != (n, N):
+            return None
+        if angle_row is None:
+            angle_row = -1
+        elif -m <= angle_row < m:
+            angle_row %= m
+        else:
+            return None
+        G = len(self.rows)
+        z_pred, nu, S, Pxz = np.empty(m), np.empty(m), np.empty((m, m)), np.empty((n, m))
+        flat, nis, ok = np.empty(self._block_size), np.empty(G), np.empty(G, dtype=np.bool_)
+        wz = weights[0] if z_weights is None else np.ascontiguousarray(z_weights, dtype=np.float64)
+        status = innovation_into(Zc, weights, wz, angle_row, np.ascontiguousarray(z),
+                                 np.ascontiguousarray(R), np.ascontiguousarray(DXW), self._group_rows,
+                                 self._group_start, self._block_start, self._gates_c,
+                                 z_pred, nu, S, Pxz, flat, nis, ok)
+        blocks = self.last_blocks = self._blocks_from(flat)
+        if status != OK:  # a block of S is not positive definite: NumPy, block by block
+            nis = self._nis_blocks(nu)
+            ok = self.gate_ok(nis)
+        return Innovation(self.names, self.rows, nu, S, Pxz, nis, ok, z_pred, blocks)
 
     def _blocks_of(self, S: np.ndarray) -> dict:
         """The diagonal blocks of S by group size: size -> (group indices, blocks (g, k, k))."""

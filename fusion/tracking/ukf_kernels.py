@@ -129,10 +129,10 @@ def sigma_points_into(X: np.ndarray, x: np.ndarray, P: np.ndarray, Q: np.ndarray
 @njit(cache=True)
 def _mean_and_residuals(Y: np.ndarray, Wm: np.ndarray, angle: int, mean: np.ndarray, D: np.ndarray) -> None:
     """``mean = Wm Y`` and ``D = Y - mean`` for points ``Y (N, k)``, one column ``angle``
-    treated as :func:`armfusion.fusion.tracking.ukf._ut` does: when its points lie within 3 rad of the central
-    one the plain mean (then wrapped) and plain residuals stand; else the mean is the
-    central point plus the weighted mean of the wrapped offsets from it, and the residuals
-    are those offsets minus their mean."""
+    treated as :func:`armfusion.fusion.tracking.unscented.unscented_moments` does: when its
+    points lie within 3 rad of the central one the plain mean (then wrapped) and plain
+    residuals stand; else the mean is the central point plus the weighted mean of the
+    wrapped offsets from it, and the residuals are those offsets minus their mean."""
     N, k = Y.shape
     for j in range(k):
         mean[j] = 0.0

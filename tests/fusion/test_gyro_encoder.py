@@ -20,6 +20,7 @@ from armfusion.fusion.tracking.gyro_encoder import (
 from armfusion.fusion.tracking.process import ProcessModel
 from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
 from armfusion.models.effects import model_from_arm
+from armfusion.models.sensor_models import stream_models
 from armfusion.models.simulator import simulate
 from armfusion.sensors.samples import Recording, Stream
 
@@ -91,7 +92,7 @@ def test_an_encoder_that_reads_later_than_the_gyros_is_measured_and_followed():
     later = late.between(t0 + 40.0, np.inf)
     rel = (later.get("enc").values[:, 0] - later.get("enc").values[0, 0]) / arm.counts_per_rad[0]
     followed = with_gyro_encoder(arm, later, 0, cal).get("enc").values[:, 0] / arm.counts_per_rad[0]
-    undelayed = with_gyro_encoder(arm, later, 0, replace(cal, delay_s=0.0)).get("enc").values[:, 0]
+    undelayed = with_gyro_encoder(arm, later, 0, replace(cal, rate_taps=())).get("enc").values[:, 0]
     rate = _true_rate(later, later.get("enc").t_s)
 
     def lead_s(angle):  # the part of the angle's error that goes with the joint's rate
@@ -102,24 +103,49 @@ def test_an_encoder_that_reads_later_than_the_gyros_is_measured_and_followed():
     assert abs(lead_s(undelayed / arm.counts_per_rad[0]) - 0.006) < 0.001
 
 
-def test_a_vibration_the_gyros_alias_is_a_bounded_error_not_a_drift():
-    """The shaft ringing about its axis at 97 Hz (30 °/s), sampled at 100 Hz with no filter
-    before the samples: they read a 3 Hz rate whose integral swings ±1.6° (30 / 2π·3) about
-    the encoder, 1.1° RMS. The calibration reports that as the stand-in's bounded error, which
-    no span makes larger; without the ringing it reports next to none."""
-    arm = load_arm("imu_rig_roll")
-    rec, _ = simulate(arm, "excitation", 60.0, seed=7)
-    clean = calibrate_gyro_encoder(arm, rec, 0)
+def _rung(rec, phase_rad):
+    """``rec`` with the shaft gyro ringing about the shaft's axis at 30 °/s with ``phase_rad``."""
     g = rec.get("shaft_gyro")
     rung = np.array(g.values, dtype=float)
-    rung[:, 0] += 30.0 * np.sin(2 * np.pi * 97.0 * (g.t_s - g.t_s[0]))  # deg/s about the shaft's axis
-    ringing = Recording({**rec.streams, g.name: Stream(g.name, g.kind, g.t_s, rung, g.channels)},
-                        dict(rec.meta))
-    cal = calibrate_gyro_encoder(arm, ringing, 0)
-    expected = 30.0 / (2 * np.pi * 3.0) / np.sqrt(2.0)
-    assert abs(cal.bounded_deg - expected) < 0.2 * expected
-    assert clean.bounded_deg < 0.1
-    assert abs(cal.scale - clean.scale) < 0.01  # the ringing is not the joint's motion
+    rung[:, 0] += 30.0 * np.sin(phase_rad(g.t_s - g.t_s[0]))  # deg/s about the shaft's axis
+    return Recording({**rec.streams, g.name: Stream(g.name, g.kind, g.t_s, rung, g.channels)}, dict(rec.meta))
+
+
+def _held_out_deg(arm, rec, split_s: float):
+    """Calibrated on the first ``split_s``: the calibration, and the RMS (deg) of the
+    stand-in's error against the encoder on the rest, its mean removed."""
+    t0 = rec.t_start_s
+    cal = calibrate_gyro_encoder(arm, rec.between(t0, t0 + split_s), 0)
+    later = rec.between(t0 + split_s, np.inf)
+    enc = later.get("enc").values[:, 0]
+    stand_in = with_gyro_encoder(arm, later, 0, cal).get("enc").values[:, 0]
+    err = (stand_in - (enc - enc[0])) / arm.counts_per_rad[0]
+    return cal, float(np.degrees(np.std(err)))
+
+
+def test_a_vibration_the_gyros_alias_is_learnt_when_steady_and_reported_when_not():
+    """The shaft ringing about its axis near 97 Hz (30 °/s), sampled at 100 Hz with no filter
+    before the samples: they read a rate near 3 Hz whose integral swings ±1.6° (30 / 2π·3)
+    about the encoder, 1.1° RMS. Steady, it is what the encoder reads otherwise than the link
+    on every stretch: the taps learn it and the stand-in on the next stretch is within a tenth
+    of that. Wandering (97 ± 1 Hz, as a stepper's steps follow its speed), the taps cannot
+    follow it: the calibration reports what is left as the stand-in's bounded error, which
+    the next stretch's error bears out. Neither is taken for the joint's motion."""
+    arm = load_arm("imu_rig_roll")
+    rec, _ = simulate(arm, "excitation", 60.0, seed=7)
+    clean, clean_err = _held_out_deg(arm, rec, 40.0)
+    steady, steady_err = _held_out_deg(arm, _rung(rec, lambda t: 2 * np.pi * 97.0 * t), 40.0)
+    def wander(t):  # 97 Hz ± 1 Hz over 20 s
+        return 2 * np.pi * (97.0 * t - np.cos(2 * np.pi * 0.05 * t) / (2 * np.pi * 0.05))
+
+    wandering, wandering_err = _held_out_deg(arm, _rung(rec, wander), 40.0)
+    aliased = 30.0 / (2 * np.pi * 3.0) / np.sqrt(2.0)
+    assert clean.bounded_deg < 0.02 and clean_err < 0.02
+    assert steady_err < 0.1 * aliased
+    assert wandering.bounded_deg > 0.2 * aliased  # reported, and no smaller than what it does next
+    assert 0.7 * wandering_err < wandering.bounded_deg < 1.5 * wandering_err
+    for cal in (steady, wandering):
+        assert abs(cal.scale - clean.scale) < 0.01  # the ringing is not the joint's motion
 
 
 def test_a_joint_without_gyros_on_both_sides_is_refused_by_name():
@@ -176,3 +202,25 @@ def test_track_withholds_a_failed_encoder_and_says_so(tmp_path):
         r = runner.invoke(app, ["track", str(rec), "--config", "imu_rig_roll", "--moving-start",
                                 "--encoder-withheld", bad])
         assert r.exit_code != 0 and said in r.output, (bad, r.output)
+
+
+def test_the_drift_is_measured_over_the_time_gravity_takes_to_correct_it():
+    """A stand-in's error that walks 0.5 °/√s, seen through the shaft accelerometer: the
+    tracker's correction takes √(σ² dt / w²), σ the accelerometer's one-sample error in rad.
+    Shaken four times as hard (the config's fast error), gravity takes four times as long,
+    and the drift is measured over that span."""
+    from armfusion.fusion.tracking.gyro_encoder import correction_span_s
+
+    arm = load_arm("imu_rig_roll")
+    rec, _ = simulate(arm, "excitation", 30.0, seed=3)
+    spacing = float(np.median(np.diff(rec.get("enc").t_s)))
+    walk = np.cumsum(np.random.default_rng(5).normal(0.0, np.radians(0.5) * np.sqrt(spacing), 200_000))
+    spans = []
+    for fast_g in (0.01, 0.04):
+        cal = replace(arm.calibration, accel_fast_error_g_per_sensor={"shaft": fast_g})
+        shaken = replace(arm, calibration=cal)
+        spans.append(correction_span_s(shaken, rec, 0, walk, spacing, 10.0))
+        sigma_rad = np.hypot(fast_g, np.max(stream_models(arm)["shaft"].noise_physical_rms()))
+        expected = np.sqrt(sigma_rad**2 * spacing / np.radians(0.5) ** 2)
+        assert abs(spans[-1] - expected) < 0.1 * expected
+    assert 3.0 < spans[1] / spans[0] < 4.2

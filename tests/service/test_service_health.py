@@ -10,8 +10,8 @@ import threading
 import numpy as np
 import pytest
 from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service.lateness import Lateness
 from armfusion.fusion.service.replay import replay
-from armfusion.fusion.service.serve import Lateness
 from armfusion.models.rotations import DEG
 from service_helpers import Collected, cut, wait_for
 

@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from armfusion.fusion.service import payloads as pl
+from armfusion.fusion.service import raw_payload
 from armfusion.fusion.service.inbox import Inbox
 from armfusion.fusion.startup.combinations import Combination
 from armfusion.fusion.tracking.estimate import Estimate
@@ -290,7 +291,7 @@ def test_a_raw_batch_decodes_the_same_by_the_quick_checks_and_field_by_field(var
                 s.values.tolist())
 
     quick = outcome()
-    monkeypatch.setattr(pl, "_raw_plain", lambda d, robot: None)
+    monkeypatch.setattr(raw_payload, "_raw_plain", lambda d, robot: None)
     assert quick == outcome()
     if variant == "a driver's batch":
         assert quick[0] == "batch"
