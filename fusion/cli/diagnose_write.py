@@ -109,7 +109,7 @@ def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, jud
     cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
     out = config_with_estimates(cfg, without_bound(final))
     raise_floors(out, final, arm)
-    consistency, refused = tracked_check(arm, out, judged_rec, held, json_out)
+    consistency, refused = tracked_check(arm, out, judged_rec, held, json_out, convention_groups(final))
     if refused is not None:
         return consistency, refused
     write.parent.mkdir(parents=True, exist_ok=True)
@@ -127,25 +127,39 @@ def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, jud
     return consistency, None
 
 
-def tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool) -> tuple[dict | None, str | None]:
+def convention_groups(final: Diagnosis) -> tuple[tuple[str, ...], ...]:
+    """Per structural gauge of the fit (a held turn of a mount about a joint's axis), the
+    joints whose zeros take it (parallel axes: the turn is their sum's): the written config
+    takes the turn for their zeros."""
+    return tuple(dict.fromkeys(
+        tuple(sorted(p.removesuffix(".joint_offset") for p in g.partners if p.endswith(".joint_offset")))
+        for g in final.gauges if g.structural))
+
+
+def tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool,
+                  groups: tuple[tuple[str, ...], ...] = ()) -> tuple[dict | None, str | None]:
     """The tracker over the held-out part with the config it would replace and with the one it
-    would write (``out``); the refusal's reason where the new one keeps fewer innovations
-    within 3σ there (:func:`armfusion.fusion.workbench.heldout.tracked_worse`)."""
+    would write (``out``); the refusal's reason where the new one tracks worse there
+    (:func:`armfusion.fusion.workbench.heldout.tracked_worse`; ``groups``: the joints whose
+    zeros a held gauge makes the same as a turn, :func:`convention_groups`, each joint and
+    each group's sum judged against the encoders)."""
+    conventions = tuple(dict.fromkeys([j for g in groups for j in g] + [" + ".join(g) for g in groups
+                                                                       if len(g) > 1]))
     t_from = float(held.data.state.t_s[0]) if held.same_recording else -np.inf
     with progress_bar("tracking the held-out part", json_out) as advance:
         try:
             advance(0.0, "with the config as it is")
-            before = tracked(arm, rec, t_from)
+            before = tracked(arm, rec, t_from, groups)
             with tempfile.TemporaryDirectory() as d:
                 path = Path(d) / "candidate.yaml"
                 path.write_text(yaml.safe_dump(out, sort_keys=False), encoding="utf-8")
                 new_arm = load_arm(str(path))
             advance(0.5, "with the config to write")
-            after = tracked(new_arm, rec, t_from)
+            after = tracked(new_arm, rec, t_from, groups)
         except (ValueError, RuntimeError) as e:
             return None, f"the tracker could not run over the held-out part to judge it: {e}"
     doc = {"as_it_is": before.as_dict(), "written": after.as_dict()}
-    return doc, tracked_worse(before, after)
+    return doc, tracked_worse(before, after, conventions)
 
 
 def write_refusal(final: Diagnosis, as_is, written=None) -> str | None:

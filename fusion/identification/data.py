@@ -437,6 +437,10 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
     segments = functools.cache(lambda: _still_segments(rec))  # found once, where needed
     out: list[np.ndarray] = []
     unsettled = False
+    # an untold joint starts at the ready pose (as the tracker's startup takes it): its q_ref is
+    # the ready angle less the encoder's first reading, which an absolute encoder (a UR's
+    # controller angles) does not give as zero
+    ready_ref = q - e
     for solver_arm in (arm, nominal):
         found = _still_start_branches(solver_arm, rec, window_s, q, e, models, segments)
         if found is None:
@@ -444,12 +448,10 @@ def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
         branches, settled = found
         unsettled |= not settled
         for b in branches:
-            qb = q.copy()
-            for j in np.flatnonzero(np.isfinite(b)):
-                qb[j] = b[j] - (e[j] if np.ndim(e) else 0.0)
+            qb = np.where(np.isfinite(b), b - e, ready_ref)
             _add_start(out, qb)
     if not out:  # no still start: the ready pose
-        return [q]
+        return [ready_ref]
     if enc is not None and len(enc) and unsettled:
         # a start the still start cannot settle: each later still pose's own answer too
         for qb in _later_still_starts(nominal, rec, out[0], window_s, models, segments):

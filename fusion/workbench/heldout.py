@@ -163,6 +163,10 @@ class Tracked:
     """Per joint, the RMS of (tracked angle - encoder angle) about its median, deg."""
     encoder_step_deg: float = 0.0
     """One encoder count, deg: differences below it are the encoders' rounding."""
+    encoder_rms_deg: dict[str, float] = field(default_factory=dict)
+    """Per joint whose encoder reads its own angle (:func:`reads_its_own_angle`), the RMS of
+    (tracked angle - encoder angle), its constant part included: what a user with absolute
+    encoders (an industrial arm's controller angles) sees of the tracked angle's error."""
 
     @property
     def worst(self) -> float:
@@ -172,14 +176,26 @@ class Tracked:
         return {"within_3_sigma": {k: round(v, 4) for k, v in self.within_3_sigma.items()},
                 "mean_nis_per_dof": {k: round(v, 3) for k, v in self.mean_nis_per_dof.items()},
                 "innovation_rms": {k: float(f"{v:.4g}") for k, v in self.innovation_rms.items()},
-                "offset_wander_deg": {k: round(v, 4) for k, v in self.offset_wander_deg.items()}}
+                "offset_wander_deg": {k: round(v, 4) for k, v in self.offset_wander_deg.items()},
+                "encoder_rms_deg": {k: round(v, 4) for k, v in self.encoder_rms_deg.items()}}
 
 
-def tracked(arm, rec, t_from_s: float) -> Tracked:
+def reads_its_own_angle(offset_deg: np.ndarray, sigma_deg: np.ndarray) -> bool:
+    """Does a joint's encoder read the joint's own angle (an absolute encoder, its zero the
+    joint's)? Where the tracker's angle keeps within its own 3σ of the encoder's over the part
+    judged (its offsets ``offset_deg``, its σ ``sigma_deg``), the encoder's zero is the one
+    gravity reads; a relative encoder counts from where the arm stood at power-up, and the
+    tracker's offset is that pose's angle, well outside its σ."""
+    return bool(np.median(np.abs(offset_deg)) <= 3.0 * np.median(sigma_deg))
+
+
+def tracked(arm, rec, t_from_s: float, groups: Sequence[Sequence[str]] = ()) -> Tracked:
     """Run the tracker over ``rec`` with ``arm`` (a config) and read, from ``t_from_s`` on, its
     link accelerometers' innovations and each joint's tracked angle against its encoder: with
     no truth at hand, whether the filter's σ hold there and how far the angles wander off the
-    encoders (:class:`Tracked`)."""
+    encoders (:class:`Tracked`). ``groups``: joints whose sum is also read so (keyed
+    ``"a + b"``: the angle of the link after them, where their axes are parallel), where
+    each of them reads its own angle."""
     from armfusion.fusion.tracking.settings import ENC
     from armfusion.fusion.tracking.tracker import start_from_recording
     from armfusion.models.rotations import wrap_angle
@@ -201,19 +217,28 @@ def tracked(arm, rec, t_from_s: float) -> Tracked:
         inn = lg.innovation[ok]
         rms[s] = float(np.sqrt(np.mean(inn[np.all(np.isfinite(inn), axis=1)] ** 2)))
     wander: dict[str, float] = {}
+    absolute: dict[str, float] = {}
     enc = rec.streams.get(ENC)
     late = (run.t_s >= t_from_s) & np.all(np.isfinite(run.q_rad), axis=1)
     if enc is not None and len(enc) and late.sum() >= 10:
         q_enc = enc.values / tr.counts_per_rad
+        offs = {}
         for j, name in enumerate(arm.joint_names):
             e = np.interp(run.t_s[late], enc.t_s, q_enc[:, j])
-            off = np.degrees(wrap_angle(run.q_rad[late, j] - e))
+            offs[name] = off = np.degrees(wrap_angle(run.q_rad[late, j] - e))
             wander[name] = float(np.sqrt(np.mean((off - np.median(off)) ** 2)))
+            if reads_its_own_angle(off, np.degrees(run.sigma_rad[late, j])):
+                absolute[name] = float(np.sqrt(np.mean(off**2)))
+        for g in groups:
+            if len(g) > 1 and all(j in absolute for j in g):
+                off = np.sum([offs[j] for j in g], axis=0)
+                wander[" + ".join(g)] = float(np.sqrt(np.mean((off - np.median(off)) ** 2)))
+                absolute[" + ".join(g)] = float(np.sqrt(np.mean(off**2)))
     step = float(np.degrees(1.0 / np.max(np.atleast_1d(tr.counts_per_rad))))
-    return Tracked(within, nis, rms, wander, step)
+    return Tracked(within, nis, rms, wander, step, absolute)
 
 
-def tracked_worse(before: Tracked, after: Tracked) -> str | None:
+def tracked_worse(before: Tracked, after: Tracked, convention_joints: Sequence[str] = ()) -> str | None:
     """Why ``after`` tracks the held-out part worse than ``before`` (None: it does not), each
     beyond :data:`TRACKED_SLACK` (a share, or a relative change): a sensor with fewer
     innovations within 3σ, a larger innovation RMS, or a mean NIS per dof above 1 and above
@@ -221,7 +246,12 @@ def tracked_worse(before: Tracked, after: Tracked) -> str | None:
     it did in all (the excess, added in quadrature, above ``before``'s wander and one encoder
     count): under a right model the wander is the readings' noise passed to the angles, which
     two configs' tracks of one recording show differently by a fraction of itself (the test's
-    WMRA sweep: a few thousandths of a degree either way)."""
+    WMRA sweep: a few thousandths of a degree either way); or, for the joints of
+    ``convention_joints`` (those whose zero the written config's held gauges make the same
+    as a mount's turn about that joint's axis) whose encoder reads the joint's own angle
+    (:func:`reads_its_own_angle`), a tracked angle further off it, its constant part
+    included, by more than ``before``'s wander: the config took the turn for the joint's
+    zero, a convention the encoder contradicts."""
     why = []
     for s, w in after.within_3_sigma.items():
         if w < before.within_3_sigma.get(s, 0.0) - TRACKED_SLACK:
@@ -239,6 +269,12 @@ def tracked_worse(before: Tracked, after: Tracked) -> str | None:
         b = before.offset_wander_deg.get(j)
         if b is not None and np.sqrt(max(w * w - b * b, 0.0)) > max(b, step):
             why.append(f"{j}'s tracked angle wanders {w:.3f}° RMS off its encoder against {b:.3f}°")
+    for j, a in after.encoder_rms_deg.items():
+        b = before.encoder_rms_deg.get(j) if j in convention_joints else None
+        noise = max(before.offset_wander_deg.get(j, 0.0), step)
+        if b is not None and a > b * (1.0 + TRACKED_SLACK) + noise:
+            why.append(f"{j}'s tracked angle is {a:.3f}° RMS off its encoder, which reads the joint's own "
+                       f"angle (its constant part included), against {b:.3f}°")
     if not why:
         return None
     return ("tracked over the held-out part it does worse than the config it replaces: " + "; ".join(why))

@@ -186,6 +186,37 @@ def test_a_config_whose_tracked_angles_wander_off_the_encoders_is_not_written():
     assert why is not None and "forearm's innovations are 0.025 RMS against 0.02" in why
 
 
+def test_a_config_that_moves_the_angles_off_absolute_encoders_is_not_written():
+    """Where the encoder reads the joint's own angle (a controller's absolute angles: the
+    tracker keeps within its σ of them), the tracked angle's whole offset from it counts, its
+    constant part included: a config that puts the elbow half a degree off it, steadily (a
+    mount's turn about the elbow's axis, held by the fit, taken for the elbow's zero), is
+    refused, naming the joint; the same angles as close as before pass. A relative encoder (its count from the
+    power-up pose, tens of degrees off the joint's angle) is not judged so."""
+    from armfusion.fusion.workbench.heldout import Tracked, reads_its_own_angle, tracked_worse
+
+    def tracked(rms):
+        return Tracked({"forearm": 1.0}, {"forearm": 0.3}, {"forearm": 0.02},
+                       {"shoulder": 0.037, "elbow": 0.037}, 0.0003, rms)
+
+    before = tracked({"shoulder": 0.092, "elbow": 0.069})
+    held = ("elbow", "shoulder")  # a held turn about their axes is their zero
+    assert tracked_worse(before, tracked({"shoulder": 0.10, "elbow": 0.05}), held) is None
+    why = tracked_worse(before, tracked({"shoulder": 0.092, "elbow": 0.478}), held)
+    assert why is not None and "elbow's tracked angle is 0.478° RMS off its encoder" in why
+    assert "shoulder" not in why
+    # no held turn makes the elbow's zero a convention: its constant is the startup's, not judged
+    assert tracked_worse(before, tracked({"shoulder": 0.092, "elbow": 0.478}), ()) is None
+    # each joint as close as before, but their sum (the forearm's pitch) further off
+    group = {"shoulder": 0.092, "elbow": 0.069}
+    why = tracked_worse(tracked({**group, "elbow + shoulder": 0.05}),
+                        tracked({**group, "elbow + shoulder": 0.4}), (*held, "elbow + shoulder"))
+    assert why is not None and "elbow + shoulder's tracked angle is 0.400° RMS off its encoder" in why
+    rng = np.random.default_rng(7)
+    assert reads_its_own_angle(0.5 + 0.03 * rng.standard_normal(500), np.full(500, 3.4))
+    assert not reads_its_own_angle(35.0 + 0.03 * rng.standard_normal(500), np.full(500, 2.0))
+
+
 def test_written_floors_are_at_least_the_held_out_excess(wmra, turned):
     """What the fit leaves on the held-out part (larger than in sample) sets the floor."""
     from armfusion.fusion.cli.diagnose_write import raise_floors
