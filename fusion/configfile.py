@@ -265,10 +265,12 @@ def joints_from_urdf(path: Path) -> tuple[Joint, ...]:
         T_acc = T_acc @ origin
         if j.type in ("revolute", "continuous"):
             axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=float)
-            if not (np.all(np.isfinite(axis)) and np.linalg.norm(axis) > 1e-9):
+            with np.errstate(over="ignore"):  # (a length of 1e308s overflows: no direction then)
+                length = float(np.linalg.norm(axis)) if np.all(np.isfinite(axis)) else np.nan
+            if not 1e-9 < length < np.inf:
                 raise ValueError(f"URDF {path.name}: joint {j.name!r}: axis {clipped_repr(axis.tolist())} "
                                  "is not a direction (finite, not zero)")
-            axis = axis / np.linalg.norm(axis)
+            axis = axis / length
             out.append(Joint(
                 name=j.name, R_pre=T_acc[:3, :3].copy(), p_pre_m=T_acc[:3, 3].copy(), axis=axis,
                 R_post=np.eye(3), p_post_m=np.zeros(3), offset_rad=0.0,

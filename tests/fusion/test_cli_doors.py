@@ -171,6 +171,13 @@ def test_an_unwritable_place_is_refused_before_the_work(startup_csv: Path, args)
     (["diagnose", "{rec}", "--window", "0"], "--window 0: expected samples per fit point, at least 1"),
     (["diagnose", "{rec}", "--top", "-3"], "--top -3: expected a number of candidates, at least 0"),
     (["simulate", "--scenario", "", "--out", "{tmp}/s.csv"], "--scenario '': give a scenario's name"),
+    # before: exit 0, no joint ever gravity-blind (nan) or ill-conditioned (-1)
+    (["calibrate", "joints", "{rec}", "--gimbal-lock-deg", "nan"],
+     "--gimbal-lock-deg nan: expected an angle in degrees, from 0 and below 90"),
+    (["calibrate", "joints", "{rec}", "--sigma-limit-deg", "-1"],
+     "--sigma-limit-deg -1.0: expected a sigma in degrees, above 0 to 180"),
+    # before: exit 0, every RMS error null and `NaN` (not JSON) in --json
+    (["track", "{rec}", "--after-s", "nan", "--json"], "--after-s nan: expected a number of seconds, at least 0"),
 ])
 def test_arguments_that_make_no_sense_are_refused_in_one_line(tmp_path: Path, startup_csv: Path, args,
                                                               said: str) -> None:
@@ -179,3 +186,24 @@ def test_arguments_that_make_no_sense_are_refused_in_one_line(tmp_path: Path, st
     r = runner.invoke(app, [a.format(rec=startup_csv, tmp=tmp_path) for a in args])
     assert r.exit_code == 2 and said in _one_line(r)
     assert not (tmp_path / "s.csv").exists()
+
+
+@pytest.mark.parametrize("prior", ["/dev/zero", "fifo", "rec", "list"])
+def test_a_prior_that_is_not_a_saved_pose_is_said_and_not_used_at_once(tmp_path: Path, startup_csv: Path,
+                                                                       prior: str) -> None:
+    # before: `--prior /dev/zero` read until the machine's 16 GB were gone (killed), a FIFO blocked,
+    # a JSON list was an AttributeError traceback
+    import os
+
+    path = {"/dev/zero": Path("/dev/zero"), "fifo": tmp_path / "p.json", "rec": startup_csv,
+            "list": tmp_path / "l.json"}[prior]
+    if prior == "fifo":
+        os.mkfifo(path)
+    if prior == "list":
+        path.write_text("[1, 2]")
+    t0 = time.perf_counter()
+    r = runner.invoke(app, ["calibrate", "joints", str(startup_csv), "--prior", str(path)])
+    assert time.perf_counter() - t0 < 20.0
+    assert r.exit_code == 0 and "Traceback" not in r.output
+    said = " ".join(r.output.split())
+    assert f"{path}: unreadable saved pose (" in said and "); not used" in said
