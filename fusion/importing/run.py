@@ -158,8 +158,9 @@ def stream_of(name: str, t_s: np.ndarray, values: np.ndarray, rows: np.ndarray, 
         i, j = (int(x[0]) for x in np.nonzero(over))
         where = f"{row_word} {rows[np.flatnonzero(sampled)[i]]}"
         what = "fields" if row_word == "message" else "columns"
+        value = clipped_repr(float(values[sampled][i, j]))
         raise ImportMapError(f"{source}: {where} ({what} {', '.join(src_cols.columns)}, stream {name}): "
-                             f"{t.channels[j]} = {clipped_repr(float(values[sampled][i, j]))} {src_cols.unit} "
+                             f"{t.channels[j]} = {value} {src_cols.unit} "
                              f"is beyond any {t.value_unit} a float holds; no sensor the config describes "
                              "can have said that")
     try:

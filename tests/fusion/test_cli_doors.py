@@ -177,7 +177,8 @@ def test_an_unwritable_place_is_refused_before_the_work(startup_csv: Path, args)
     (["calibrate", "joints", "{rec}", "--sigma-limit-deg", "-1"],
      "--sigma-limit-deg -1.0: expected a sigma in degrees, above 0 to 180"),
     # before: exit 0, every RMS error null and `NaN` (not JSON) in --json
-    (["track", "{rec}", "--after-s", "nan", "--json"], "--after-s nan: expected a number of seconds, at least 0"),
+    (["track", "{rec}", "--after-s", "nan", "--json"],
+     "--after-s nan: expected a number of seconds, at least 0"),
 ])
 def test_arguments_that_make_no_sense_are_refused_in_one_line(tmp_path: Path, startup_csv: Path, args,
                                                               said: str) -> None:
