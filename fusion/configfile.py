@@ -213,6 +213,18 @@ def _check_urdf_text(path: Path) -> None:
         raise ValueError(f"URDF {path.name}: not XML ({e})") from None
 
 
+def read_yaml_of(path: Path, what: str) -> Any:
+    """:func:`read_yaml` for a YAML file that is not an arm config (``what``: ``maneuver file``):
+    its refusal a ``ValueError`` headed ``what`` and the path (its end kept whole), not "arm
+    config"."""
+    try:
+        return read_yaml(path)
+    except ConfigError as e:
+        where = str(path) if len(str(path)) <= 80 else "…" + str(path)[-79:]
+        said = "; ".join(f"{q.key}: {q.message}" for q in e.problems)
+        raise ValueError(f"{what} {where}: {said}") from None
+
+
 def _check_urdf_origin(path: Path, joint: str, origin: np.ndarray) -> None:
     """A joint's origin: finite, and its offset below 100 m (the configs' length bound)."""
     from armfusion.models.arm_config import MAX_LENGTH_MM
