@@ -106,6 +106,27 @@ def test_an_encoder_glitch_within_the_feed_is_refused_and_a_restart_is_not(tmp_p
     restarted = tmp_path / "restart.csv"
     restarted.write_text("\n".join(lines) + "\n")
     assert runner.invoke(app, ["calibrate", "joints", str(restarted), "--json"]).exit_code == 0
+    # ... but a fit over the whole recording reads angles from counts that do not carry across it
+    # (before: calibrate sensors exited 0 at a reduced chi-square of 954510, diagnose with a
+    # residual 6e6 times the noise)
+    for cmd in (["calibrate", "sensors"], ["diagnose"]):
+        r = runner.invoke(app, [*cmd, str(restarted)])
+        assert r.exit_code == 2
+        assert (f"{restarted}: row 150 (line 151), stream enc: enc1 moved 27.2° in 0.01 s at t = 1.49 s, "
+                "more than the joint can turn (30 rad/s); the counts do not carry across such a step (a board "
+                "that restarted?), and a fit over the whole recording cannot span it") in _one_line(r)
+
+
+def test_a_second_recording_meets_the_same_door(tmp_path: Path, startup_csv: Path) -> None:
+    # before: diagnose --validate and calibrate sensors --compass-drive read their second recording
+    # without the range screen (acc1_x = 5000 went into the judging or the compass fit)
+    p = _with_cell(startup_csv, tmp_path / "acc.csv", "acc1_x", 101, "5000")
+    for cmd in (["diagnose", str(startup_csv), "--validate", str(p)],
+                ["calibrate", "sensors", str(startup_csv), "--compass-drive", str(p)]):
+        r = runner.invoke(app, cmd)
+        assert r.exit_code == 2
+        assert (f"{p}: row 101 (line 102), stream acc1: acc1_x = 5000 at t = 1 s is beyond the device's "
+                "range -512…511") in _one_line(r)
 
 
 def test_import_refuses_a_value_no_sensor_of_the_config_reads(tmp_path: Path) -> None:
