@@ -114,7 +114,8 @@ def test_an_encoder_glitch_within_the_feed_is_refused_and_a_restart_is_not(tmp_p
         assert r.exit_code == 2
         assert (f"{restarted}: row 150 (line 151), stream enc: enc1 moved 27.2° in 0.01 s at t = 1.49 s, "
                 "more than the joint can turn (30 rad/s); the counts do not carry across such a step "
-                "(a board that restarted?), and a fit over the whole recording cannot span it") in _one_line(r)
+                "(a board that restarted?), and a fit over the whole recording cannot span it"
+                ) in _one_line(r)
 
 
 def test_a_second_recording_meets_the_same_door(tmp_path: Path, startup_csv: Path) -> None:
