@@ -201,6 +201,9 @@ def test_an_unwritable_place_is_refused_before_the_work(startup_csv: Path, args)
     # before: exit 0, every RMS error null and `NaN` (not JSON) in --json
     (["track", "{rec}", "--after-s", "nan", "--json"],
      "--after-s nan: expected a number of seconds, at least 0"),
+    # before: a MemoryError traceback (7.28 TiB)
+    (["drivers", "--fake", "--duration", "1e9"],
+     "--duration 1e+09 s at 100 Hz would need about 351 TB of memory"),
 ])
 def test_arguments_that_make_no_sense_are_refused_in_one_line(tmp_path: Path, startup_csv: Path, args,
                                                               said: str) -> None:
@@ -230,3 +233,20 @@ def test_a_prior_that_is_not_a_saved_pose_is_said_and_not_used_at_once(tmp_path:
     assert r.exit_code == 0 and "Traceback" not in r.output
     said = " ".join(r.output.split())
     assert f"{path}: unreadable saved pose (" in said and "); not used" in said
+
+
+def test_serve_never_replaces_what_is_not_its_state(tmp_path: Path, startup_csv: Path) -> None:
+    # before: `serve --state-file rec.csv` replaced the recording with its state at the first save,
+    # and as root `--state-file /dev/zero` would have replaced the device with a file
+    import os
+
+    rec = tmp_path / "rec.csv"
+    rec.write_bytes(startup_csv.read_bytes())
+    os.mkfifo(tmp_path / "p.json")
+    for path, said in [(rec, "holds something other than a saved fusion state; the node would replace"),
+                       (Path("/dev/zero"), "not a regular file (a device, a FIFO); the node would"),
+                       (tmp_path / "p.json", "not a regular file (a device, a FIFO)"),
+                       (Path("/sys/s.json"), "cannot create files in /sys (Permission denied)")]:
+        r = runner.invoke(app, ["serve", "--state-file", str(path), "--duration", "1"])
+        assert r.exit_code == 2 and f"--state-file {path}: {said}" in _one_line(r)
+    assert rec.read_bytes() == startup_csv.read_bytes()
