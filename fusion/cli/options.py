@@ -111,7 +111,8 @@ ScenarioOpt = Annotated[str, typer.Option(
     "--scenario", "-s", help="The simulated motion: a scenario of armfusion.models.trajectories "
     "(`armfusion simulate --help` lists them).")]
 SeedOpt = Annotated[int, typer.Option(
-    "--seed", help="Seed: the same seed, the same motion, effects and noise.")]
+    "--seed", help="Seed: the same seed, the same motion, effects and noise.",
+    callback=count_at_least("--seed", 0, "a seed"))]
 RealisticOpt = Annotated[bool, typer.Option(
     "--realistic", help="Draw every effect on every target at datasheet-typical magnitudes (seeded).")]
 EffectOpt = Annotated[list[str] | None, typer.Option(

@@ -201,6 +201,9 @@ def test_an_unwritable_place_is_refused_before_the_work(startup_csv: Path, args)
     # before: exit 0, every RMS error null and `NaN` (not JSON) in --json
     (["track", "{rec}", "--after-s", "nan", "--json"],
      "--after-s nan: expected a number of seconds, at least 0"),
+    # before: numpy's "expected non-negative integer", naming no option
+    (["simulate", "-s", "startup", "--seed", "-1", "--out", "{tmp}/s.csv"],
+     "--seed -1: expected a seed, at least 0"),
     # before: a MemoryError traceback (7.28 TiB)
     (["drivers", "--fake", "--duration", "1e9"],
      "--duration 1e+09 s at 100 Hz would need about 351 TB of memory"),
