@@ -171,7 +171,8 @@ def replay_command(
 ) -> None:
     """Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing.
 
-    Exits 1 when an MCAP file ends early or is damaged (what could be read is replayed)."""
+    Exits 1 when an MCAP file ends early or is damaged, or holds a sample topic the reader
+    cannot take (what could be read is replayed)."""
     from armfusion.fusion.service.replay import NoSubscriberError, replay
 
     factor = parse_speed(speed)
@@ -207,6 +208,8 @@ def replay_command(
     read = rec.meta.get("read_report")
     if read is not None and not read.complete:  # the samples after the damage are lost
         fail(f"replayed only what could be read: {read.message}", code=1)
+    if read is not None and read.left_out:  # a sample topic the reader cannot take was not sent
+        fail(f"replayed only what could be read: {recording}: left out {read.left_out_words()}", code=1)
     if report.unheard:
         total = sum(report.samples.values())
         fail(f"{sum(report.unheard.values())} of {total} samples went out while nothing subscribed "
