@@ -213,6 +213,18 @@ def _check_urdf_text(path: Path) -> None:
         raise ValueError(f"URDF {path.name}: not XML ({e})") from None
 
 
+def read_yaml_of(path: Path, what: str) -> Any:
+    """:func:`read_yaml` for a YAML file that is not an arm config (``what``: ``maneuver file``):
+    its refusal a ``ValueError`` headed ``what`` and the path (its end kept whole), not "arm
+    config"."""
+    try:
+        return read_yaml(path)
+    except ConfigError as e:
+        where = str(path) if len(str(path)) <= 80 else "…" + str(path)[-79:]
+        said = "; ".join(f"{q.key}: {q.message}" for q in e.problems)
+        raise ValueError(f"{what} {where}: {said}") from None
+
+
 def _check_urdf_origin(path: Path, joint: str, origin: np.ndarray) -> None:
     """A joint's origin: finite, and its offset below 100 m (the configs' length bound)."""
     from armfusion.models.arm_config import MAX_LENGTH_MM
@@ -265,10 +277,12 @@ def joints_from_urdf(path: Path) -> tuple[Joint, ...]:
         T_acc = T_acc @ origin
         if j.type in ("revolute", "continuous"):
             axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=float)
-            if not (np.all(np.isfinite(axis)) and np.linalg.norm(axis) > 1e-9):
+            with np.errstate(over="ignore"):  # (a length of 1e308s overflows: no direction then)
+                length = float(np.linalg.norm(axis)) if np.all(np.isfinite(axis)) else np.nan
+            if not 1e-9 < length < np.inf:
                 raise ValueError(f"URDF {path.name}: joint {j.name!r}: axis {clipped_repr(axis.tolist())} "
                                  "is not a direction (finite, not zero)")
-            axis = axis / np.linalg.norm(axis)
+            axis = axis / length
             out.append(Joint(
                 name=j.name, R_pre=T_acc[:3, :3].copy(), p_pre_m=T_acc[:3, 3].copy(), axis=axis,
                 R_post=np.eye(3), p_post_m=np.zeros(3), offset_rad=0.0,

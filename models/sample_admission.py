@@ -79,6 +79,29 @@ def encoder_jump_problem(arm: ArmModel, stream: Stream) -> SampleProblem | None:
                                     SPIKE_RATE_RAD_S))
 
 
+def encoder_step_problem(arm: ArmModel, stream: Stream) -> SampleProblem | None:
+    """The first encoder sample that moves a joint further than :data:`SPIKE_RATE_RAD_S`
+    allows since the sample before (plus :data:`JUMP_SLACK_RAD`), whether or not the counts go
+    on from it: a spike, or a board that restarted (its counts from a new zero). The tracker
+    takes such a step as a slip; a fit over the whole recording (``calibrate sensors``,
+    ``diagnose``) reads the angles from the counts, which do not carry across it."""
+    if len(stream) < 2 or stream.values.shape[1] != arm.n_joints:
+        return None
+    cpr = np.asarray(arm.counts_per_rad, float)
+    dt = np.diff(stream.t_s)[:, None]
+    step = np.diff(np.asarray(stream.values, float), axis=0)
+    too_far = np.abs(step) > dt * cpr * SPIKE_RATE_RAD_S + cpr * JUMP_SLACK_RAD
+    hits = np.flatnonzero(too_far.any(axis=1))
+    if not hits.size:
+        return None
+    k = int(hits[0]) + 1
+    j = int(np.argmax(too_far[k - 1]))
+    deg = math.degrees(abs(step[k - 1, j]) / cpr[j])
+    return SampleProblem(stream.name, k, "encoder_step",
+                         jump_words(stream.channels[j], deg, float(dt[k - 1, 0]), float(stream.t_s[k]),
+                                    SPIKE_RATE_RAD_S))
+
+
 def stream_problem(model: StreamModel, stream: Stream) -> SampleProblem | None:
     """The first sample of ``stream`` (``model``'s) with a value past its device's range."""
     return range_problem(stream, *model.admissible_range)
@@ -136,7 +159,16 @@ class SampleScreen:
         return {"samples": dict(self.samples), "saturated": {s: n for s, n in self.saturated.items() if n}}
 
 
-def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: str = "") -> SampleScreen:
+_REFUSED_BECAUSE = {
+    "out_of_range": "; no such sensor can read that",
+    "encoder_jump": ", and the next sample moves it back: a spike no joint makes",
+    "encoder_step": ("; the counts do not carry across such a step (a board that restarted?), and a fit "
+                     "over the whole recording cannot span it (cut the recording there)"),
+}
+
+
+def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: str = "",
+                   encoder_steps: bool = False) -> SampleScreen:
     """Every command's check of a recording's samples against the config's sensors.
 
     Raises :class:`MissingSensorError` when a stream of ``required`` has no sample (naming
@@ -144,7 +176,9 @@ def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: 
     range (:attr:`StreamModel.admissible_range`: the encoders' is the feed's int32), naming
     the place in the file, the channel, the value and the time in the words the fusion node
     uses (:func:`armfusion.sensors.sample_checks.range_words`), and likewise at the first encoder jump
-    (:func:`encoder_jump_problem`); otherwise it counts the
+    (:func:`encoder_jump_problem`), and with ``encoder_steps`` at the first encoder step no
+    joint makes (:func:`encoder_step_problem`: the commands that fit over the whole recording);
+    otherwise it counts the
     saturated samples per stream (:meth:`StreamModel.saturated`), which the commands leave out.
     Streams the config does not describe (truth, unknown sensors) are not looked at.
     """
@@ -162,11 +196,11 @@ def screen_samples(arm: ArmModel, rec, required: Iterable[str] = (), needed_by: 
         problem = range_problem(st, *model.admissible_range)
         if problem is None and name == ENCODER_STREAM:
             problem = encoder_jump_problem(arm, st)
+            if problem is None and encoder_steps:
+                problem = encoder_step_problem(arm, st)
         if problem is not None:
-            what = ("; no such sensor can read that" if problem.reason == "out_of_range" else
-                    ", and the next sample moves it back: a spike no joint makes")
-            raise OutOfRangeError(f"{sample_place(rec, name, problem.index)}: {problem.words}{what}, "
-                                  "so the recording is refused")
+            raise OutOfRangeError(f"{sample_place(rec, name, problem.index)}: {problem.words}"
+                                  f"{_REFUSED_BECAUSE[problem.reason]}, so the recording is refused")
         samples[name] = len(st)
         saturated[name] = int(model.saturated(st.values).any(axis=1).sum())
     return SampleScreen(samples, saturated)

@@ -17,7 +17,7 @@ from armfusion.fusion.cli.common import (
     err_console,
     fail,
 )
-from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, window_seconds
+from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, finite_between, window_seconds
 from armfusion.fusion.identification.identify import startup_correction
 from armfusion.fusion.startup.pose_store import load_pose, save_pose
 from armfusion.fusion.startup.solve import (
@@ -51,8 +51,8 @@ def calibrate_joints(
     assume_parked: Annotated[bool, typer.Option("--assume-parked", help="Take the ready pose as evidence (the arm is known to be parked there): it picks among branches that fit, and the result says so.")] = False,
     independent: Annotated[bool, typer.Option("--independent", help="With --segments: solve every still window alone (by default each window's answer is carried to the next through the encoder counts).")] = False,
     save: Annotated[Path | None, typer.Option(help="Save the solved pose here (atomically) when every joint is ok.")] = None,
-    gimbal_lock_deg: Annotated[float, typer.Option(help="Axis-to-vertical angle below which a joint is gravity-blind.")] = StartupSettings.gimbal_lock_deg,
-    sigma_limit_deg: Annotated[float, typer.Option(help="Sigma above which a joint is ill_conditioned.")] = StartupSettings.sigma_limit_deg,
+    gimbal_lock_deg: Annotated[float, typer.Option(help="Axis-to-vertical angle below which a joint is gravity-blind.", callback=finite_between("--gimbal-lock-deg", 0.0, 90.0, "an angle in degrees", hi_open=True))] = StartupSettings.gimbal_lock_deg,
+    sigma_limit_deg: Annotated[float, typer.Option(help="Sigma above which a joint is ill_conditioned.", callback=finite_between("--sigma-limit-deg", 0.0, 180.0, "a sigma in degrees", lo_open=True))] = StartupSettings.sigma_limit_deg,
     start_at: Annotated[float | None, typer.Option("--start-at", metavar="SECONDS", help="Calibrate on the first still stretch from this many seconds after the recording's start.")] = None,
 ) -> None:
     """Every joint angle of a still arm, with sigma, flags, and a move that unlocks blind joints."""

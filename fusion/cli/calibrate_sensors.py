@@ -36,6 +36,7 @@ from armfusion.fusion.cli.common import (
     fail,
     progress_bar,
     read_recording_or_exit,
+    screen_or_exit,
 )
 from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, WriteConfigOpt, count_at_least
 from armfusion.fusion.configfile import resolve_config_path
@@ -159,7 +160,8 @@ def calibrate_sensors(
         check_output_path(write, "--write", inputs=(recording, config_file(config), compass_drive))
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, fit_streams,
-        "calibrate sensors fits (the encoders and every sensor stream of {source})", json_out)
+        "calibrate sensors fits (the encoders and every sensor stream of {source})", json_out,
+        encoder_steps=True)
     model, data = _model_and_data(arm, rec, effects, window, stances, base_tilt, base_tilt_sigma,
                                   reference, mode)
     if not json_out:
@@ -266,6 +268,7 @@ def _with_compass_from_drive(cfg: dict, drive: Path, json_out: bool) -> tuple[di
         path.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
         arm = load_arm(str(path))
     rec = read_recording_or_exit(drive, arm)
+    screen_or_exit(arm, rec, drive, (), "", True)  # (the same door as the recording's; saturation unsaid)
     try:
         entries, line = calibrate_compass_on_drive(arm, rec, drive.name)
     except ValueError as e:

@@ -101,15 +101,17 @@ def read_recording_or_exit(path: Path, arm=None):
 
 
 def screen_or_exit(arm, rec, path: Path, required: Sequence[str], needed_by: str,
-                   json_out: bool = False):
+                   json_out: bool = False, encoder_steps: bool = False):
     """The one treatment of range and saturation (``armfusion.models.sample_admission.screen_samples``)
     for a command: exit 2 with one line when ``rec`` lacks a stream of ``required`` (what
     ``needed_by`` needs) or holds a value past its device's range, naming the place; else
-    say on stderr how many saturated samples are left out, and return the screen."""
+    say on stderr how many saturated samples are left out, and return the screen.
+    ``encoder_steps``: a command whose fit spans the whole recording refuses an encoder step no
+    joint makes, too (``screen_samples``)."""
     from armfusion.models.sample_admission import MissingSensorError, OutOfRangeError, screen_samples
 
     try:
-        screen = screen_samples(arm, rec, required, needed_by)
+        screen = screen_samples(arm, rec, required, needed_by, encoder_steps)
     except (MissingSensorError, OutOfRangeError) as e:
         fail(f"{path}: {e}")
     if screen.any_saturated and not json_out:
@@ -118,7 +120,7 @@ def screen_or_exit(arm, rec, path: Path, required: Sequence[str], needed_by: str
 
 
 def arm_and_recording_or_exit(config: str, path: Path, required: Callable[[Any], Sequence[str]],
-                              needed_by: str, json_out: bool = False):
+                              needed_by: str, json_out: bool = False, encoder_steps: bool = False):
     """``(arm, recording, screen)`` for a command that reads a recording with a config: the
     config (:func:`load_arm_or_exit`), the recording fitting it (:func:`read_recording_or_exit`)
     and its range screen (:func:`screen_or_exit`) of the streams ``required(arm)`` names, for
@@ -126,7 +128,7 @@ def arm_and_recording_or_exit(config: str, path: Path, required: Callable[[Any],
     arm = load_arm_or_exit(config)
     rec = read_recording_or_exit(path, arm)
     screen = screen_or_exit(arm, rec, path, required(arm), needed_by.format(source=arm.source),
-                            json_out)
+                            json_out, encoder_steps)
     return arm, rec, screen
 
 

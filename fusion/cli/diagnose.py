@@ -30,6 +30,7 @@ from armfusion.fusion.cli.common import (
     fail,
     progress_bar,
     read_recording_or_exit,
+    screen_or_exit,
 )
 from armfusion.fusion.cli.diagnose_report import write_innovation_report, write_report
 from armfusion.fusion.cli.diagnose_write import (
@@ -97,7 +98,7 @@ def diagnose_command(
     _check_outputs(recording, config, add, write, report, history, discover_)
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, fit_streams,
-        "diagnose fits (the encoders and every sensor stream of {source})", json_out)
+        "diagnose fits (the encoders and every sensor stream of {source})", json_out, encoder_steps=True)
     try:
         added = parse_add(arm, add or [])
     except (KeyError, TargetError) as e:
@@ -181,6 +182,7 @@ def _data_and_held_out(arm, rec, recording: Path, validate: Path | None, window:
         fail(str(e))
     if validate is not None:
         vrec = read_recording_or_exit(validate, arm)
+        screen_or_exit(arm, vrec, validate, (), "", json_out, encoder_steps=True)  # (the same door)
         if chair_moves(arm, vrec):
             fail(f"--validate: the chair moves in {validate}: a fit is judged on a parked recording")
         try:

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from armfusion.fusion.cli.drivers_faults import FaultSchedule, FaultSpec, parse_fault
-from armfusion.fusion.cli.simulate import effects_model
+from armfusion.fusion.cli.simulate import check_run_size, effects_model
 from armfusion.fusion.configfile import load_arm
 from armfusion.models.arm import ArmModel
 from armfusion.models.fake_rig import SimulatedRun, encoder_counts_at, physics_for, simulate_physics
@@ -249,6 +249,7 @@ def run_fake(
     arm = config if isinstance(config, ArmModel) else load_arm(config)
     wiring, notes = wiring_from_arm(arm)
     adxl_config = _adxl_config(rate_hz)
+    check_run_size(arm, scenario, duration_s + SIM_MARGIN_S, rate_hz)  # (1e9 s: 7 TiB, a traceback)
     specs = [f if isinstance(f, FaultSpec) else parse_fault(f) for f in faults]
     model = effects_model(arm, tuple(effect), effects_file)
     sim = simulate_physics(arm, scenario, duration_s + SIM_MARGIN_S, seed=seed, effects=model,

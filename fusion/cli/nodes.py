@@ -21,7 +21,9 @@ from typing import Annotated
 import typer
 import zenoh
 from armfusion.fusion.cli.common import (
+    check_output_path,
     choice_or_exit,
+    config_file,
     console,
     emit_json,
     err_console,
@@ -169,7 +171,8 @@ def replay_command(
 ) -> None:
     """Publish a recording's raw samples on armfusion/<robot>/raw/<sensor>, with their timing.
 
-    Exits 1 when an MCAP file ends early or is damaged (what could be read is replayed)."""
+    Exits 1 when an MCAP file ends early or is damaged, or holds a sample topic the reader
+    cannot take (what could be read is replayed)."""
     from armfusion.fusion.service.replay import NoSubscriberError, replay
 
     factor = parse_speed(speed)
@@ -205,11 +208,38 @@ def replay_command(
     read = rec.meta.get("read_report")
     if read is not None and not read.complete:  # the samples after the damage are lost
         fail(f"replayed only what could be read: {read.message}", code=1)
+    if read is not None and read.left_out:  # a sample topic the reader cannot take was not sent
+        fail(f"replayed only what could be read: {recording}: left out {read.left_out_words()}", code=1)
     if report.unheard:
         total = sum(report.samples.values())
         fail(f"{sum(report.unheard.values())} of {total} samples went out while nothing subscribed "
              f"to their key ({', '.join(f'{k} {n}' for k, n in report.unheard.items())}): the "
              "subscriber left or never came", code=1)
+
+def _check_state_file(path: Path, inputs) -> None:
+    """Exit 2 unless ``serve --state-file`` may be written over: a place where a file can be
+    made (:func:`check_output_path`), not one of the node's inputs, and either no file yet or a
+    saved fusion state (of any version: it is read, or said stale, and replaced). A device such
+    as /dev/zero, a FIFO, or a file that is no fusion state (a recording; the node writes its
+    state whole, so a power cut leaves none half written) is never replaced."""
+    import json
+
+    from armfusion.fusion.configfile import read_bounded
+    from armfusion.fusion.service.state_file import STATE_FORMAT
+
+    check_output_path(path, "--state-file", inputs=inputs)
+    if not path.exists():
+        return
+    if not path.is_file():
+        fail(f"--state-file {path}: not a regular file (a device, a FIFO); the node would replace it")
+    try:
+        doc = json.loads(read_bounded(path, 64 << 20, "a saved state"))
+    except (OSError, ValueError):
+        doc = None
+    if not (isinstance(doc, dict) and str(doc.get("format", "")).startswith(STATE_FORMAT.split("/")[0])):
+        fail(f"--state-file {path}: holds something other than a saved fusion state; the node would "
+             "replace it: give another path, or remove the file")
+
 
 def record_command(
     out: Annotated[Path, typer.Argument(help="Output recording (.mcap).")],
@@ -309,6 +339,8 @@ def serve_command(
         fail(f"--publish-hz {publish_hz!r}: expected > 0")
     if not save_every_s > 0 or not state_max_age_s > 0:
         fail(f"--save-every {save_every_s!r} and --state-max-age {state_max_age_s!r}: expected > 0")
+    if state_file is not None:
+        _check_state_file(state_file, (config_file(config), maneuver))
     arm = load_arm_or_exit(config)
     served = None
     if maneuver is not None:

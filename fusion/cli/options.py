@@ -52,6 +52,23 @@ def window_seconds(option: str):
     return check
 
 
+def finite_between(option: str, lo: float, hi: float, what: str, *, lo_open: bool = False,
+                   hi_open: bool = False):
+    """A callback refusing a value that is not a finite number from ``lo`` to ``hi`` (either end
+    left out when ``lo_open``/``hi_open``); ``what`` says what it is (``an angle in degrees``)."""
+
+    def check(value: float) -> float:
+        above = value > lo if lo_open else value >= lo
+        below = value < hi if hi_open else value <= hi
+        if not (above and below and value == value and abs(value) != float("inf")):  # (NaN fails)
+            span = (f"{'above' if lo_open else 'at least'} {lo:g}" if hi == float("inf") else
+                    f"{'above' if lo_open else 'from'} {lo:g} {'and below' if hi_open else 'to'} {hi:g}")
+            fail(f"{option} {value!r}: expected {what}, {span}")
+        return value
+
+    return check
+
+
 def count_at_least(option: str, least: int, what: str):
     """A callback refusing a whole number below ``least`` (``what`` says what it counts)."""
 
@@ -94,7 +111,8 @@ ScenarioOpt = Annotated[str, typer.Option(
     "--scenario", "-s", help="The simulated motion: a scenario of armfusion.models.trajectories "
     "(`armfusion simulate --help` lists them).")]
 SeedOpt = Annotated[int, typer.Option(
-    "--seed", help="Seed: the same seed, the same motion, effects and noise.")]
+    "--seed", help="Seed: the same seed, the same motion, effects and noise.",
+    callback=count_at_least("--seed", 0, "a seed"))]
 RealisticOpt = Annotated[bool, typer.Option(
     "--realistic", help="Draw every effect on every target at datasheet-typical magnitudes (seeded).")]
 EffectOpt = Annotated[list[str] | None, typer.Option(

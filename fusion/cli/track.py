@@ -19,7 +19,7 @@ from armfusion.fusion.cli.common import (
     fail,
     progress_bar,
 )
-from armfusion.fusion.cli.options import ConfigOpt, JsonOpt
+from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, finite_between
 from armfusion.sensors.samples import clipped_repr
 from rich.table import Table
 
@@ -47,7 +47,7 @@ def track(
     out: Annotated[Path | None, typer.Option("--out", help="Write every estimate to EST.csv, EST.mcap, or EST.ros2.mcap (ROS 2 messages: docs/ros2.md).")] = None,
     json_out: JsonOpt = False,
     prior: Annotated[Path | None, typer.Option(help="Pose saved at the last clean shutdown (JSON): picks startup branches.")] = None,
-    after_s: Annotated[float, typer.Option(help="With truth columns: RMS errors count from this many seconds after the recording's start.")] = 60.0,
+    after_s: Annotated[float, typer.Option(help="With truth columns: RMS errors count from this many seconds after the recording's start.", callback=finite_between("--after-s", 0.0, float("inf"), "a number of seconds", hi_open=True))] = 60.0,
     gate_significance: Annotated[float, typer.Option(help="Chi-square gate: probability that a good sample is rejected.")] = 1e-3,
     unmodelled_g: Annotated[float | None, typer.Option(help="Override the config's unmodelled accelerometer error (g, 1 sigma), for startup and tracking.")] = None,
     no_motion_compensation: Annotated[bool, typer.Option("--no-motion-compensation", help="Predict the accelerometers as if nothing moved (for comparison only).")] = False,

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from armfusion.fusion.configfile import read_yaml
+from armfusion.fusion.configfile import read_yaml_of
 from armfusion.fusion.identification.calibrated_config import config_with_estimates
 from armfusion.fusion.identification.correction import startup_correction
 from armfusion.fusion.identification.data import FitData, data_from_recording, fit_streams
@@ -219,9 +219,9 @@ def maneuver_problems(arm: ArmModel, maneuver: PlannedManeuver, settings: PlanSe
 def load_maneuver(path: str | Path) -> PlannedManeuver:
     """A maneuver file (``plan-maneuver --out``), its shape checked (``ValueError`` naming the key)."""
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():  # (one that is there but not a file, /dev/zero or a FIFO: read_yaml says so)
         raise FileNotFoundError(f"maneuver file not found: {str(p)[:80]}")
-    return PlannedManeuver.from_dict(read_yaml(p), p.name[:60])
+    return PlannedManeuver.from_dict(read_yaml_of(p, "maneuver file"), p.name[:60])
 
 
 def safe_maneuver(arm: ArmModel, path: str | Path) -> PlannedManeuver:

@@ -151,7 +151,18 @@ def stream_of(name: str, t_s: np.ndarray, values: np.ndarray, rows: np.ndarray, 
     nan = np.isnan(values)
     gap, partly = nan.all(axis=1), nan.any(axis=1) & ~nan.all(axis=1)
     sampled = ~nan.any(axis=1)
-    done = convert_values(values[sampled], src_cols, t, source)
+    with np.errstate(over="ignore", invalid="ignore"):  # (said below, once)
+        done = convert_values(values[sampled], src_cols, t, source)
+    over = ~np.isfinite(done.values)
+    if over.any():  # a finite value whose conversion overflows (1e308 deg in counts): not a reading
+        i, j = (int(x[0]) for x in np.nonzero(over))
+        where = f"{row_word} {rows[np.flatnonzero(sampled)[i]]}"
+        what = "fields" if row_word == "message" else "columns"
+        value = clipped_repr(float(values[sampled][i, j]))
+        raise ImportMapError(f"{source}: {where} ({what} {', '.join(src_cols.columns)}, stream {name}): "
+                             f"{t.channels[j]} = {value} {src_cols.unit} "
+                             f"is beyond any {t.value_unit} a float holds; no sensor the config describes "
+                             "can have said that")
     try:
         stream = Stream(name, t.kind, t_s[sampled], done.values, t.channels)
     except ValueError as e:

@@ -15,9 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from armfusion.fusion.configfile import read_bounded
 from armfusion.models.arm import ArmModel
 
 FORMAT = "armfusion.saved_pose.v1"
+MAX_POSE_BYTES = 65_536
+"""A saved pose is a few hundred bytes (its angles and joint names); a larger file is not one,
+and is not read further (``/dev/zero`` would not end)."""
 
 
 @dataclass(frozen=True)
@@ -60,7 +64,7 @@ def load_pose(path: str | Path, arm: ArmModel) -> tuple[SavedPose | None, str | 
     if not path.exists():
         return None, f"no saved pose at {path}; the ready pose is the prior"
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(read_bounded(path, MAX_POSE_BYTES, "a saved pose"))
         if doc.get("format") != FORMAT:
             return None, f"{path}: not an armfusion saved pose (format {doc.get('format')!r})"
         if doc.get("arm") != arm.name:
@@ -69,5 +73,5 @@ def load_pose(path: str | Path, arm: ArmModel) -> tuple[SavedPose | None, str | 
         if q.shape != (arm.n_joints,) or not np.all(np.isfinite(q)):
             return None, f"{path}: q_rad must be {arm.n_joints} finite numbers; not used"
         return SavedPose(doc["arm"], q, float(doc.get("saved_unix_s", 0.0))), None
-    except (ValueError, KeyError, TypeError) as e:
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
         return None, f"{path}: unreadable saved pose ({e}); not used"

@@ -32,8 +32,11 @@ def read_columns(path: str | Path, columns: Sequence[str], scalars: Sequence[str
     if suffix not in SUFFIXES:
         raise ForeignFileError(f"{path}: unknown suffix {path.suffix or '(none)'!r}; the import reads "
                                + ", ".join(f"{k} ({v})" for k, v in SUFFIXES.items()))
-    if not path.is_file():
+    if not path.exists():
         raise ForeignFileError(f"{path}: no such file")
+    if not path.is_file():  # (a FIFO would block, /dev/zero not end)
+        raise ForeignFileError(f"{path}: not a regular file (a device, a FIFO, a directory); a recording "
+                               "is a file")
     if suffix == ".csv":
         from armfusion.sensors.foreign.csv_table import read_csv_columns
 

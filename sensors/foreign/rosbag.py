@@ -240,6 +240,9 @@ def read_topics(path: str | Path, wanted: Mapping[str, Sequence[str]]) -> dict[s
         raise ForeignFileError(f"{p}: no such file or bag directory")
     if p.is_file():
         check_size(p)
+    elif not p.is_dir():  # (a FIFO would block, /dev/zero not end)
+        raise ForeignFileError(f"{p}: not a regular file or a bag directory (a device, a FIFO); a bag is "
+                               "a file or a directory")
     else:  # a rosbag2 directory: its storage files together
         size = sum(f.stat().st_size for f in p.iterdir() if f.is_file())
         if size > MAX_FILE_BYTES:

@@ -106,6 +106,28 @@ def test_an_encoder_glitch_within_the_feed_is_refused_and_a_restart_is_not(tmp_p
     restarted = tmp_path / "restart.csv"
     restarted.write_text("\n".join(lines) + "\n")
     assert runner.invoke(app, ["calibrate", "joints", str(restarted), "--json"]).exit_code == 0
+    # ... but a fit over the whole recording reads angles from counts that do not carry across it
+    # (before: calibrate sensors exited 0 at a reduced chi-square of 954510, diagnose with a
+    # residual 6e6 times the noise)
+    for cmd in (["calibrate", "sensors"], ["diagnose"]):
+        r = runner.invoke(app, [*cmd, str(restarted)])
+        assert r.exit_code == 2
+        assert (f"{restarted}: row 150 (line 151), stream enc: enc1 moved 27.2° in 0.01 s at t = 1.49 s, "
+                "more than the joint can turn (30 rad/s); the counts do not carry across such a step "
+                "(a board that restarted?), and a fit over the whole recording cannot span it"
+                ) in _one_line(r)
+
+
+def test_a_second_recording_meets_the_same_door(tmp_path: Path, startup_csv: Path) -> None:
+    # before: diagnose --validate and calibrate sensors --compass-drive read their second recording
+    # without the range screen (acc1_x = 5000 went into the judging or the compass fit)
+    p = _with_cell(startup_csv, tmp_path / "acc.csv", "acc1_x", 101, "5000")
+    for cmd in (["diagnose", str(startup_csv), "--validate", str(p)],
+                ["calibrate", "sensors", str(startup_csv), "--compass-drive", str(p)]):
+        r = runner.invoke(app, cmd)
+        assert r.exit_code == 2
+        assert (f"{p}: row 101 (line 102), stream acc1: acc1_x = 5000 at t = 1 s is beyond the device's "
+                "range -512…511") in _one_line(r)
 
 
 def test_import_refuses_a_value_no_sensor_of_the_config_reads(tmp_path: Path) -> None:
@@ -171,6 +193,20 @@ def test_an_unwritable_place_is_refused_before_the_work(startup_csv: Path, args)
     (["diagnose", "{rec}", "--window", "0"], "--window 0: expected samples per fit point, at least 1"),
     (["diagnose", "{rec}", "--top", "-3"], "--top -3: expected a number of candidates, at least 0"),
     (["simulate", "--scenario", "", "--out", "{tmp}/s.csv"], "--scenario '': give a scenario's name"),
+    # before: exit 0, no joint ever gravity-blind (nan) or ill-conditioned (-1)
+    (["calibrate", "joints", "{rec}", "--gimbal-lock-deg", "nan"],
+     "--gimbal-lock-deg nan: expected an angle in degrees, from 0 and below 90"),
+    (["calibrate", "joints", "{rec}", "--sigma-limit-deg", "-1"],
+     "--sigma-limit-deg -1.0: expected a sigma in degrees, above 0 to 180"),
+    # before: exit 0, every RMS error null and `NaN` (not JSON) in --json
+    (["track", "{rec}", "--after-s", "nan", "--json"],
+     "--after-s nan: expected a number of seconds, at least 0"),
+    # before: numpy's "expected non-negative integer", naming no option
+    (["simulate", "-s", "startup", "--seed", "-1", "--out", "{tmp}/s.csv"],
+     "--seed -1: expected a seed, at least 0"),
+    # before: a MemoryError traceback (7.28 TiB)
+    (["drivers", "--fake", "--duration", "1e9"],
+     "--duration 1e+09 s at 100 Hz would need about 351 TB of memory"),
 ])
 def test_arguments_that_make_no_sense_are_refused_in_one_line(tmp_path: Path, startup_csv: Path, args,
                                                               said: str) -> None:
@@ -179,3 +215,41 @@ def test_arguments_that_make_no_sense_are_refused_in_one_line(tmp_path: Path, st
     r = runner.invoke(app, [a.format(rec=startup_csv, tmp=tmp_path) for a in args])
     assert r.exit_code == 2 and said in _one_line(r)
     assert not (tmp_path / "s.csv").exists()
+
+
+@pytest.mark.parametrize("prior", ["/dev/zero", "fifo", "rec", "list"])
+def test_a_prior_that_is_not_a_saved_pose_is_said_and_not_used_at_once(tmp_path: Path, startup_csv: Path,
+                                                                       prior: str) -> None:
+    # before: `--prior /dev/zero` read until the machine's 16 GB were gone (killed), a FIFO blocked,
+    # a JSON list was an AttributeError traceback
+    import os
+
+    path = {"/dev/zero": Path("/dev/zero"), "fifo": tmp_path / "p.json", "rec": startup_csv,
+            "list": tmp_path / "l.json"}[prior]
+    if prior == "fifo":
+        os.mkfifo(path)
+    if prior == "list":
+        path.write_text("[1, 2]")
+    t0 = time.perf_counter()
+    r = runner.invoke(app, ["calibrate", "joints", str(startup_csv), "--prior", str(path)])
+    assert time.perf_counter() - t0 < 20.0
+    assert r.exit_code == 0 and "Traceback" not in r.output
+    said = " ".join(r.output.split())
+    assert f"{path}: unreadable saved pose (" in said and "); not used" in said
+
+
+def test_serve_never_replaces_what_is_not_its_state(tmp_path: Path, startup_csv: Path) -> None:
+    # before: `serve --state-file rec.csv` replaced the recording with its state at the first save,
+    # and as root `--state-file /dev/zero` would have replaced the device with a file
+    import os
+
+    rec = tmp_path / "rec.csv"
+    rec.write_bytes(startup_csv.read_bytes())
+    os.mkfifo(tmp_path / "p.json")
+    for path, said in [(rec, "holds something other than a saved fusion state; the node would replace"),
+                       (Path("/dev/zero"), "not a regular file (a device, a FIFO); the node would"),
+                       (tmp_path / "p.json", "not a regular file (a device, a FIFO)"),
+                       (Path("/sys/s.json"), "cannot create files in /sys (Permission denied)")]:
+        r = runner.invoke(app, ["serve", "--state-file", str(path), "--duration", "1"])
+        assert r.exit_code == 2 and f"--state-file {path}: {said}" in _one_line(r)
+    assert rec.read_bytes() == startup_csv.read_bytes()

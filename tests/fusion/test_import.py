@@ -5,6 +5,7 @@ and said, NaN kept as gaps, and the rig's real slices imported end to end."""
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -185,6 +186,18 @@ def test_an_infinite_value_is_refused_naming_column_and_row(tmp_path: Path, arm)
     src = _csv(tmp_path / "log.csv", ["0,0,0,1,1,2,3,0", "10,0,inf,1,1,2,3,0"])
     with pytest.raises(ImportMapError, match=r"log\.csv: column ay: row 2 holds inf, not a value"):
         import_recording(src, _map(RIG_STREAMS), arm, "rig")
+
+
+def test_an_angle_whose_counts_overflow_is_refused_naming_row_and_columns(tmp_path: Path, arm) -> None:
+    # before: 1e308 deg is finite, but inf once in counts: refused by the stream's own check,
+    # "raw value inf at sample 1" with no row, column or unit, and numpy's overflow warnings
+    src = _csv(tmp_path / "log.csv", ["0,0,0,1,1,2,3,0", "10,0,0,1,1,2,3,1e308", "20,0,0,1,1,2,3,0"])
+    with warnings.catch_warnings(record=True) as seen, pytest.raises(ImportMapError) as e:
+        warnings.simplefilter("always")
+        import_recording(src, _map(RIG_STREAMS), arm, "rig")
+    assert str(e.value) == (f"{src}: row 2 (columns angle_deg, stream enc): enc1 = 1e+308 deg is beyond "
+                            "any counts a float holds; no sensor the config describes can have said that")
+    assert not [w for w in seen if issubclass(w.category, RuntimeWarning)]
 
 
 # ---------------------------------------------------------------------------- round trips, the real slices

@@ -314,3 +314,23 @@ def test_plan_maneuver_refuses_bad_dwells_by_option():
     r = CliRunner().invoke(app, ["plan-maneuver", "--dwells", "1,x" * 30])
     assert r.exit_code == 2
     assert "--dwells: expected seconds separated by commas, got '1,x1,x1,x1,x1,x1,x1,x1,x1,x1,x'" in r.output
+
+
+def test_a_maneuver_file_that_is_not_one_is_refused_in_its_own_words(tmp_path: Path) -> None:
+    # before: /dev/zero or a FIFO was "maneuver file not found" (it is there), and the loader's
+    # refusals of the YAML itself were headed "1 problem in arm config"
+    import os
+
+    from armfusion.fusion.identification.planner import load_maneuver
+
+    os.mkfifo(tmp_path / "m.yaml")
+    (tmp_path / "twice.yaml").write_text("joints: [j1]\njoints: [j2]\n")
+    for p, said in [(Path("/dev/zero"), "/dev/zero: (file): not a regular file (a device, a FIFO, a dir"),
+                    (tmp_path / "m.yaml", "m.yaml: (file): not a regular file"),
+                    (tmp_path / "twice.yaml", "twice.yaml: line 2: the key 'joints' is given twice")]:
+        with pytest.raises(ValueError) as e:
+            load_maneuver(p)
+        assert str(e.value).startswith("maneuver file ") and said in str(e.value)
+        assert "arm config" not in str(e.value)
+    with pytest.raises(FileNotFoundError, match="maneuver file not found"):
+        load_maneuver(tmp_path / "none.yaml")

@@ -288,6 +288,9 @@ def _urdf_config(tmp_path: Path, xyz: str = "0 0 0.1", axis: str = "0 0 1", head
     (dict(xyz="0 200 0"), "joint 'j1': its origin is 200 m away along an axis; a length is below 100 m"),
     (dict(axis="0 0 0"), "joint 'j1': axis [0.0, 0.0, 0.0] is not a direction (finite, not zero)"),
     (dict(axis="nan 0 1"), "joint 'j1': axis [nan, 0.0, 1.0] is not a direction (finite, not zero)"),
+    # its length overflows to inf, so the axis divided by it was [0, 0, 0], and accepted
+    (dict(axis="1e308 1e308 0"),
+     "joint 'j1': axis [1e+308, 1e+308, 0.0] is not a direction (finite, not zero)"),
     (dict(text="this is not xml <<<"), "not XML (syntax error: line 1, column 0)"),
     (dict(head='<?xml version="1.0"?>\n<!DOCTYPE r [<!ENTITY x "y">]>\n'),
      "line 2: a DOCTYPE declaration; a URDF needs none"),

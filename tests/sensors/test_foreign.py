@@ -84,6 +84,25 @@ def test_a_file_of_another_kind_or_suffix_is_refused_by_name(tmp_path: Path) -> 
         read_columns(tmp_path / "x.xlsx", ["t"])
 
 
+def test_a_fifo_a_directory_and_a_device_are_refused_as_not_a_file_at_once(tmp_path: Path) -> None:
+    # before: a FIFO or a directory was "no such file" (it is there), a FIFO as a bag
+    # "[Errno 20] Not a directory"
+    import os
+
+    from armfusion.sensors.foreign.rosbag import read_topics
+
+    os.mkfifo(tmp_path / "pipe.csv")
+    os.mkfifo(tmp_path / "pipe.mcap")
+    (tmp_path / "dir.csv").mkdir()
+    for p in (tmp_path / "pipe.csv", tmp_path / "dir.csv"):
+        with pytest.raises(ForeignFileError, match=r"not a regular file \(a device, a FIFO, a directory\)"):
+            read_columns(p, ["t"])
+    with pytest.raises(ForeignFileError, match=r"pipe\.mcap: not a regular file or a bag directory"):
+        read_topics(tmp_path / "pipe.mcap", {"/a": ["x"]})
+    with pytest.raises(ForeignFileError, match=r"x\.csv: no such file"):
+        read_columns(tmp_path / "x.csv", ["t"])
+
+
 def test_the_shipped_rig_slice_holds_what_its_readme_says() -> None:
     cols = read_columns(DATA / "imu-rig" / "raw_roll_slow_20s.mat", ["all_time", "all_encoder"],
                         ["data_line"])

@@ -154,3 +154,44 @@ def test_replay_of_a_cut_mcap_replays_what_it_can_read_and_exits_1(startup_recor
     assert r.exit_code == 1, r.output
     assert f"replayed only what could be read: {cut}: file ends early at byte" in " ".join(r.stderr.split())
     assert heard  # what could be read went out
+
+
+def test_replay_of_an_mcap_with_a_topic_it_cannot_take_says_so_and_exits_1(startup_recording, hub_settings,
+                                                                          tmp_path):
+    # before: exit 0, the topic of an unknown kind left out with a warning only
+    import json as _json
+
+    from armfusion.fusion.service.zenoh_config import open_session
+    from armfusion.sensors.mcap_format import schema_for_kind, topic_for
+    from mcap.writer import Writer
+
+    rec = read_recording(startup_recording)
+    odd = tmp_path / "odd.mcap"
+    with open(odd, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        w.add_metadata("armfusion", {"format_version": "2", "armfusion_version": "x", "arm_config": "",
+                                     "t_offset_ns": "0"})
+        for k, s in enumerate(s for s in rec.streams.values() if s.name in ("acc1", "acc2")):
+            schema = _json.dumps(schema_for_kind(s.kind)).encode()
+            sid = w.register_schema(f"armfusion.{s.kind}", "jsonschema", schema)
+            kind = "bogus" if k == 0 else s.kind
+            meta = {"stream": s.name, "kind": kind, "channels": _json.dumps(list(s.channels))}
+            cid = w.register_channel(topic_for(s.name, s.kind), "json", sid, meta)
+            for i in range(len(s)):
+                ns = int(s.t_s[i] * 1e9)
+                body = _json.dumps({"t_s": float(s.t_s[i]), "values": s.values[i].tolist()}).encode()
+                w.add_message(cid, ns, body, ns, i)
+        w.finish()
+    listener, _ = hub_settings
+    heard = []
+    with open_session(listener) as s:
+        s.declare_subscriber("armfusion/chair1/raw/*", heard.append)
+        r = CliRunner().invoke(app, ["replay", str(odd), "--speed", "max", "--wait", "5",
+                                     "--connect", listener.listen[0]])
+    assert r.exit_code == 1, r.output
+    said = " ".join(r.stderr.split())
+    n = len(rec.get("acc1"))
+    assert (f"replayed only what could be read: {odd}: left out raw/acc1 ({n} messages): unknown stream "
+            "kind 'bogus'") in said
+    assert heard  # acc2 went out
