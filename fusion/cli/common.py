@@ -188,6 +188,21 @@ def prepare_output_path(path: Path, option: str, suffixes: Sequence[str] | None 
     return Path(path)
 
 
+def beside_existing(path: Path) -> Path:
+    """``path``, or where it already holds a file, the first free ``NAME-1.EXT``,
+    ``NAME-2.EXT``, … beside it: a recording restarted under its old name never replaces the
+    one it would have overwritten (a compound suffix such as ``.ros2.mcap`` is kept whole)."""
+    path = Path(path)
+    if not path.exists():
+        return path
+    suffix = "".join(path.suffixes[-2:]) if path.name.lower().endswith(".ros2.mcap") else path.suffix
+    stem = path.name[: len(path.name) - len(suffix)]
+    n = 1
+    while (path.parent / f"{stem}-{n}{suffix}").exists():
+        n += 1
+    return path.parent / f"{stem}-{n}{suffix}"
+
+
 # --------------------------------------------------------------------------------------
 def progress_shown(json_out: bool) -> bool:
     """Progress bars only for a person at a terminal: not with --json, not when stdout or

@@ -195,3 +195,20 @@ def test_replay_of_an_mcap_with_a_topic_it_cannot_take_says_so_and_exits_1(start
     assert (f"replayed only what could be read: {odd}: left out raw/acc1 ({n} messages): unknown stream "
             "kind 'bogus'") in said
     assert heard  # acc2 went out
+
+
+def test_a_record_under_an_existing_name_keeps_the_recording_there(tmp_path, loopback_port):
+    """A service restarted with the same `record chair1.mcap` (as the deployment runs it)
+    writes beside the earlier recording, which stays byte for byte, and says where."""
+    earlier = tmp_path / "chair1.mcap"
+    earlier.write_bytes(b"an earlier session's recording")
+    (tmp_path / "chair1-1.mcap").write_bytes(b"and the one after it")
+    r = CliRunner().invoke(app, ["record", str(earlier), "--listen", f"tcp/127.0.0.1:{loopback_port}",
+                                 "--duration", "0.5", "--json"])
+    assert r.exit_code == 0, r.output
+    assert earlier.read_bytes() == b"an earlier session's recording"
+    assert (tmp_path / "chair1-1.mcap").read_bytes() == b"and the one after it"
+    assert json.loads(r.stdout)["path"] == str(tmp_path / "chair1-2.mcap")
+    assert read_recording(tmp_path / "chair1-2.mcap").meta["read_report"].complete
+    said = r.stderr.replace("\n", "")  # the console wraps long paths
+    assert f"OUT {earlier} exists and is kept: recording to {tmp_path / 'chair1-2.mcap'}" in said
