@@ -8,6 +8,8 @@ A sample is refused when
 - its time does not increase within its stream (:class:`armfusion.sensors.samples.Stream`);
 - it begins a short run of instants set apart from the rest of its recording by more than
   the node's clock window (:func:`apart_problem`);
+- its stream's samples come, by their median step, faster than :data:`FASTEST_SAMPLING_HZ`
+  (:func:`density_problem`: times in another unit than the second);
 - one of its raw values lies beyond :data:`FEED_MIN` … :data:`FEED_MAX`, the 32-bit range
   of the encoder feed, which holds every register a supported device has (an ADXL345 axis
   -512…511, the MPU-9150's int16, the AK8975's 13 bits).
@@ -34,6 +36,11 @@ raw value of any supported device can have."""
 TIME_LIMIT_S = 2.0**52 * 1e-6
 """4.5e9 s (143 years: Unix time until 2112): beyond it the spacing of float64 seconds
 exceeds a microsecond, a thousandth of the fastest sampling the node admits (1 kHz)."""
+
+FASTEST_SAMPLING_HZ = 100e3
+"""No supported device delivers its samples faster than 8 kHz (the MPU-9150's gyroscope at
+its fastest; the ADXL345 3.2 kHz): a raw stream whose median step is under 10 µs is not
+stamped in seconds of a sensor's clock."""
 
 CLOCK_WINDOW_S = 2.0
 RUN_SAMPLES = 16
@@ -66,7 +73,8 @@ def range_words(channel: str, value, t_s: float, lo, hi) -> str:
 @dataclass(frozen=True)
 class SampleProblem:
     """Why sample ``index`` of stream ``stream`` is refused: ``reason`` (``out_of_range``,
-    ``time_not_finite``, ``time_beyond_limit``) and ``words`` (one line, no place)."""
+    ``time_not_finite``, ``time_beyond_limit``, ``time_too_dense``, …) and ``words`` (one
+    line, no place)."""
 
     stream: str
     index: int
@@ -106,6 +114,20 @@ def range_problem(stream: Stream, lo, hi) -> SampleProblem | None:
     i, j = (int(x) for x in np.argwhere(bad)[0])
     return SampleProblem(stream.name, i, "out_of_range",
                          range_words(stream.channels[j], v[i, j].item(), stream.t_s[i], lo, hi))
+
+
+def density_problem(stream: Stream) -> SampleProblem | None:
+    """``stream`` refused as a whole (at its second sample) when its median step is shorter
+    than one sample at :data:`FASTEST_SAMPLING_HZ`."""
+    if len(stream) < 3:
+        return None
+    step_s = float(np.median(np.diff(np.asarray(stream.t_s, dtype=np.float64))))
+    if not step_s < 1.0 / FASTEST_SAMPLING_HZ:
+        return None
+    return SampleProblem(stream.name, 1, "time_too_dense",
+                         f"a sample every {step_s:.3g} s (the stream's median step), faster than any "
+                         f"sensor delivers ({FASTEST_SAMPLING_HZ / 1e3:.0f} kHz at most): are its times in "
+                         f"seconds?")
 
 
 def apart_problem(rec: Recording) -> SampleProblem | None:
@@ -149,7 +171,7 @@ def feed_problems(rec: Recording) -> list[SampleProblem]:
     for s in rec.streams.values():
         p = time_problem(s.name, s.t_s)
         if p is None and s.kind in RAW_KINDS:
-            p = range_problem(s, FEED_MIN, FEED_MAX)
+            p = range_problem(s, FEED_MIN, FEED_MAX) or density_problem(s)
         if p is not None:
             out.append(p)
     if not out:

@@ -330,6 +330,20 @@ def test_a_time_beyond_reason_is_refused_naming_its_row(tmp_path: Path, t_last: 
     assert str(e.value).startswith(f"{p}: row 41 (line 42), stream acc1: {words}")
 
 
+def test_times_in_another_unit_than_the_second_are_refused(tmp_path: Path) -> None:
+    # before: a recording stamped in 10 ps steps (its times scaled by 1e-9) was read, and
+    # `calibrate sensors` and `diagnose` exited 0 on it
+    rows = "".join(f"{i * 1e-11!r},10,-3,250,{i},7\n" for i in range(40))
+    p = _write(tmp_path / "dense.csv", HEADER + rows)
+    with pytest.raises(RecordingError) as e:
+        _read(p)
+    assert str(e.value).startswith(f"{p}: row 2 (line 3), stream acc1: a sample every 1e-11 s (the stream's "
+                                   "median step), faster than any sensor delivers (100 kHz at most): are its "
+                                   "times in seconds?")
+    fast = "".join(f"{i * 1.25e-4!r},10,-3,250,{i},7\n" for i in range(40))  # 8 kHz: a gyro's fastest
+    assert len(_read(_write(tmp_path / "fast.csv", HEADER + fast)).get("acc1")) == 40
+
+
 def test_a_recording_with_a_long_pause_and_much_after_it_is_read(tmp_path: Path) -> None:
     # a logger paused for an hour: 40 instants, then 40 more; only a short run apart is refused
     later = "".join(f"{3600 + i * 0.01:.2f},10,-3,250,{i},7\n" for i in range(40))
