@@ -188,13 +188,20 @@ def prepare_output_path(path: Path, option: str, suffixes: Sequence[str] | None 
     return Path(path)
 
 
-def beside_existing(path: Path) -> Path:
+def beside_existing(path: Path, option: str) -> Path:
     """``path``, or where it already holds a file, the first free ``NAME-1.EXT``,
-    ``NAME-2.EXT``, … beside it: a recording restarted under its old name never replaces the
-    one it would have overwritten (a compound suffix such as ``.ros2.mcap`` is kept whole)."""
+    ``NAME-2.EXT``, … beside it, said on stderr under ``option``: a recording restarted under
+    its old name never replaces the one it would have overwritten (a compound suffix such as
+    ``.ros2.mcap`` is kept whole)."""
     path = Path(path)
     if not path.exists():
         return path
+    free = _free_beside(path)
+    err_console.print(f"{option} {path} exists and is kept: recording to {free}")
+    return free
+
+
+def _free_beside(path: Path) -> Path:
     suffix = "".join(path.suffixes[-2:]) if path.name.lower().endswith(".ros2.mcap") else path.suffix
     stem = path.name[: len(path.name) - len(suffix)]
     n = 1

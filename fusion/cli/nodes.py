@@ -242,14 +242,6 @@ def _check_state_file(path: Path, inputs) -> None:
              "replace it: give another path, or remove the file")
 
 
-def _never_over_a_recording(path: Path, option: str) -> Path:
-    """Where ``path`` already holds a file, the free name beside it, said on stderr."""
-    free = beside_existing(path)
-    if free != path:
-        err_console.print(f"{option} {path} exists and is kept: recording to {free}")
-    return free
-
-
 def record_command(
     out: Annotated[Path, typer.Argument(help="Output recording (.mcap).")],
     robot: RobotOpt = DEFAULT_ROBOT,
@@ -271,12 +263,12 @@ def record_command(
 
     if out.suffix.lower() != ".mcap":
         fail(f"{out}: the recording must end in .mcap")
-    out = _never_over_a_recording(out, "OUT")
+    out = beside_existing(out, "OUT")
     prepare_output_path(out, "OUT")
     if ros2_out is not None:
         if not ros2_out.name.lower().endswith(".ros2.mcap"):
             fail(f"--ros2-out {ros2_out}: a ROS 2 bag's name ends in .ros2.mcap")
-        ros2_out = _never_over_a_recording(ros2_out, "--ros2-out")
+        ros2_out = beside_existing(ros2_out, "--ros2-out")
         if ros2_out.resolve() == out.resolve():
             fail(f"--ros2-out {ros2_out}: the same file as the recording")
         prepare_output_path(ros2_out, "--ros2-out")
