@@ -138,19 +138,26 @@ def test_replay_counts_what_went_out_after_its_subscriber_left(startup_recording
     assert 0.2 * total < unheard < 0.8 * total, (unheard, total)
 
 
-def test_replay_of_a_cut_mcap_replays_what_it_can_read_and_exits_1(startup_recording, hub_settings, tmp_path):
-    # before: exit 0, the lost chunk said in a warning only
+def _replayed(path, hub_settings):
+    """``replay`` of ``path`` at full speed to a listener on the hub: its result and the raw
+    samples the listener heard."""
     from armfusion.fusion.service.zenoh_config import open_session
 
-    data = startup_recording.read_bytes()
-    cut = tmp_path / "cut.mcap"
-    cut.write_bytes(data[: len(data) * 2 // 3])
     listener, _ = hub_settings
     heard = []
     with open_session(listener) as s:
         s.declare_subscriber("armfusion/chair1/raw/*", heard.append)
-        r = CliRunner().invoke(app, ["replay", str(cut), "--speed", "max", "--wait", "5",
+        r = CliRunner().invoke(app, ["replay", str(path), "--speed", "max", "--wait", "5",
                                      "--connect", listener.listen[0]])
+    return r, heard
+
+
+def test_replay_of_a_cut_mcap_replays_what_it_can_read_and_exits_1(startup_recording, hub_settings, tmp_path):
+    # before: exit 0, the lost chunk said in a warning only
+    data = startup_recording.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    r, heard = _replayed(cut, hub_settings)
     assert r.exit_code == 1, r.output
     assert f"replayed only what could be read: {cut}: file ends early at byte" in " ".join(r.stderr.split())
     assert heard  # what could be read went out
@@ -161,7 +168,6 @@ def test_replay_of_an_mcap_with_a_topic_it_cannot_take_says_so_and_exits_1(start
     # before: exit 0, the topic of an unknown kind left out with a warning only
     import json as _json
 
-    from armfusion.fusion.service.zenoh_config import open_session
     from armfusion.sensors.mcap_format import schema_for_kind, topic_for
     from mcap.writer import Writer
 
@@ -183,12 +189,7 @@ def test_replay_of_an_mcap_with_a_topic_it_cannot_take_says_so_and_exits_1(start
                 body = _json.dumps({"t_s": float(s.t_s[i]), "values": s.values[i].tolist()}).encode()
                 w.add_message(cid, ns, body, ns, i)
         w.finish()
-    listener, _ = hub_settings
-    heard = []
-    with open_session(listener) as s:
-        s.declare_subscriber("armfusion/chair1/raw/*", heard.append)
-        r = CliRunner().invoke(app, ["replay", str(odd), "--speed", "max", "--wait", "5",
-                                     "--connect", listener.listen[0]])
+    r, heard = _replayed(odd, hub_settings)
     assert r.exit_code == 1, r.output
     said = " ".join(r.stderr.split())
     n = len(rec.get("acc1"))
