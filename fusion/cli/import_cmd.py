@@ -11,6 +11,7 @@ from armfusion.fusion.cli.common import (
     config_file,
     console,
     emit_json,
+    err_console,
     fail,
     load_arm_or_exit,
     prepare_output_path,
@@ -65,6 +66,7 @@ def import_recording_cmd(
     summary = {**result.summary, "out": str(out)}
     if json_out:
         emit_json(summary)
+        _exit_if_lost(result.lost, out)
         return
     if "topics" in summary:  # a bag: each topic's messages, rate and gaps, as inspect says them
         console.print(f"[bold]{source}[/] -> {out}: t = {summary['time']['t_start_s']:.3f} … "
@@ -93,3 +95,15 @@ def import_recording_cmd(
             console.print(f"  - {c}", highlight=False, soft_wrap=True)
     else:
         console.print("No change to the source's data (every row kept, no gap, nothing rounded).")
+    _exit_if_lost(result.lost, out)
+
+
+def _exit_if_lost(lost: int, out: Path) -> None:
+    """Exit 1 where the import left out, for its time, a row that was not a copy of the one
+    before (named in its changes): samples lost; what it wrote holds the rest, as ``replay``
+    exits 1 having sent what it could read."""
+    if lost:
+        err_console.print(f"exit 1: {lost} row(s) left out for their time were not copies of the row "
+                          f"before (named above): samples lost; {out} holds the rest",
+                          highlight=False, soft_wrap=True)
+        raise typer.Exit(1)

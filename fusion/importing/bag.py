@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from armfusion.fusion.importing.column_map import ColumnMap
 from armfusion.fusion.importing.run import ImportResult, refuse_what_no_sensor_said, stream_of
-from armfusion.fusion.importing.stamps import FIRST_ROWS, increasing_rows
+from armfusion.fusion.importing.stamps import FIRST_ROWS, copies_dropped, increasing_rows
 from armfusion.fusion.importing.to_stream import ImportMapError, check_map_against
 from armfusion.fusion.importing.to_stream import targets as targets_of
 from armfusion.models.arm import ArmModel
@@ -67,6 +67,7 @@ def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> 
     targets = check_map_against(cmap, arm, config)
     topics = read_topics(path, cmap.topics())
     changes: list[str] = []
+    dropped = copies = 0
     streams: dict[str, Stream] = {}
     stream_rows: dict[str, np.ndarray] = {}  # each sample's message index on its topic
     stream_summary: dict[str, dict] = {}
@@ -88,6 +89,8 @@ def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> 
         stamp = src.stamp or cmap.stamp
         t_all = seconds(topic.stamp_ns if stamp == "header" else topic.receive_ns)
         keep, report = increasing_rows(t_all, first_row=0)
+        dropped += report.not_increasing + report.no_time
+        copies += copies_dropped(keep, [t_all] + [topic.fields[f] for f in src.columns])
         if report.not_increasing:
             back = (f", the largest step back {report.largest_step_back_s * 1e3:.3f} ms"
                     if report.largest_step_back_s > 0 else " (each a repeat of the one before)")
@@ -119,5 +122,6 @@ def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> 
         "absent": dict(cmap.absent),
         "not_mapped": not_mapped,
         "changes": changes,
+        "dropped": {"messages": dropped, "copies": copies, "lost": dropped - copies},
     }
-    return ImportResult(rec, summary, tuple(changes))
+    return ImportResult(rec, summary, tuple(changes), dropped - copies)

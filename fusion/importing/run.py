@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 from armfusion.fusion.importing.column_map import ColumnMap, StreamSource
-from armfusion.fusion.importing.stamps import FIRST_ROWS, increasing_rows
+from armfusion.fusion.importing.stamps import FIRST_ROWS, copies_dropped, increasing_rows
 from armfusion.fusion.importing.to_stream import ImportMapError, Target, check_map_against, convert_values
 from armfusion.fusion.importing.to_stream import targets as targets_of
 from armfusion.models.arm import ArmModel
@@ -37,6 +37,9 @@ class ImportResult:
     recording: Recording
     summary: dict
     changes: tuple[str, ...]
+    lost: int = 0
+    """Rows (a bag's messages) left out for their time that were not copies of the one before:
+    samples the recording does not hold."""
 
 
 def _start_index(cmap: ColumnMap, scalars: dict[str, float], n_rows: int, path: Path) -> int:
@@ -103,6 +106,8 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
         t_all = np.arange(n - s) / rate_hz
     keep, stamps = increasing_rows(t_all, first_row=s + 1)
     changes.extend(stamps.words())
+    dropped = stamps.not_increasing + stamps.no_time
+    copies = copies_dropped(keep, [cols.columns[c][s:] for c in cmap.columns()])
     t_s = t_all[keep]
     rows = np.flatnonzero(keep) + s + 1  # the file's row of each kept row
     streams: dict[str, Stream] = {}
@@ -131,8 +136,9 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
         "absent": dict(cmap.absent),
         "not_mapped": not_mapped,
         "changes": changes,
+        "dropped": {"rows": dropped, "copies": copies, "lost": dropped - copies},
     }
-    return ImportResult(rec, summary, tuple(changes))
+    return ImportResult(rec, summary, tuple(changes), dropped - copies)
 
 
 def stream_of(name: str, t_s: np.ndarray, values: np.ndarray, rows: np.ndarray, row_word: str,

@@ -6,7 +6,9 @@ time), other loggers step back after a buffer flush. A recording's time must inc
 after every time before it is dropped, whole (every stream's values of that row: the later
 of two samples stamped alike is the one that has no instant of its own), and a row without a
 time (NaN) too; :class:`StampReport` counts them and names the first few rows, for the
-import's summary. Nothing is interpolated or re-spaced.
+import's summary. Nothing is interpolated or re-spaced. A dropped row that copies the row
+before it in every column read (:func:`copies_dropped`: the rig's logger writing one row
+twice) loses nothing; any other loses a sample, and the import exits 1 for it.
 """
 
 from __future__ import annotations
@@ -77,3 +79,15 @@ def increasing_rows(t_s: np.ndarray, first_row: int = 1) -> tuple[np.ndarray, St
         tuple(t[rows_back[:FIRST_ROWS]].tolist()), float(steps.max()) if steps.size else 0.0,
         int(no_time.size), tuple((no_time[:FIRST_ROWS] + first_row).tolist()))
     return keep, report
+
+
+def copies_dropped(keep: np.ndarray, columns) -> int:
+    """How many of the rows ``keep`` drops copy the row before them in every one of
+    ``columns`` (arrays over the same rows; NaN equal to NaN): rows whose loss loses nothing."""
+    drop = np.flatnonzero(~np.asarray(keep, bool))
+    drop = drop[drop > 0]
+    same = np.ones(len(drop), bool)
+    for column in columns:
+        a, b = np.asarray(column)[drop], np.asarray(column)[drop - 1]
+        same &= (a == b) | (np.isnan(a) & np.isnan(b))
+    return int(same.sum())

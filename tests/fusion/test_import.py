@@ -182,6 +182,31 @@ def test_nan_is_a_gap_of_that_sensor_only_and_repeated_stamps_are_counted(tmp_pa
            "sampled), first rows 2, 4" in result.changes
 
 
+def test_a_row_written_twice_loses_nothing_and_a_sample_with_a_repeated_stamp_exits_1(tmp_path: Path) -> None:
+    # a logger writing one row twice: dropped, said, exit 0; two samples stamped alike: the
+    # later is dropped, a sample lost: said, the recording written with the rest, exit 1
+    twice = _csv(tmp_path / "twice.csv", ["0,0,0,1,1,2,3,0", "10,0,0,1,1,2,3,0.01", "10,0,0,1,1,2,3,0.01",
+                                          "20,0,0,1,1,2,3,0.02"])
+    alike = _csv(tmp_path / "alike.csv", ["0,0,0,1,1,2,3,0", "10,0,0,1,1,2,3,0.01", "10,0,0,1,1,2,3,0.015",
+                                          "20,0,0,1,1,2,3,0.02"])
+    cmap = tmp_path / "m.yaml"
+    cmap.write_text(yaml.safe_dump({"time": {"column": "t_ms", "unit": "ms"}, "streams": RIG_STREAMS}))
+    runs = {}
+    for src in (twice, alike):
+        out = tmp_path / f"{src.stem}.mcap"
+        r = runner.invoke(app, ["import", str(src), "--map", str(cmap), "--config", str(RIG), "--out", str(out),
+                                "--json"])
+        runs[src.stem] = (r, json.loads(r.stdout), read_recording(out))
+    r, s, rec = runs["twice"]
+    assert r.exit_code == 0, r.output
+    assert s["dropped"] == {"rows": 1, "copies": 1, "lost": 0} and len(rec.get("enc")) == 3
+    r, s, rec = runs["alike"]
+    assert r.exit_code == 1, r.output
+    assert s["dropped"] == {"rows": 1, "copies": 0, "lost": 1} and len(rec.get("enc")) == 3
+    assert (f"exit 1: 1 row(s) left out for their time were not copies of the row before (named above): "
+            f"samples lost; {tmp_path / 'alike.mcap'} holds the rest") in " ".join(r.stderr.split())
+
+
 def test_an_infinite_value_is_refused_naming_column_and_row(tmp_path: Path, arm) -> None:
     src = _csv(tmp_path / "log.csv", ["0,0,0,1,1,2,3,0", "10,0,inf,1,1,2,3,0"])
     with pytest.raises(ImportMapError, match=r"log\.csv: column ay: row 2 holds inf, not a value"):
