@@ -194,8 +194,8 @@ def test_a_row_written_twice_loses_nothing_and_a_sample_with_a_repeated_stamp_ex
     runs = {}
     for src in (twice, alike):
         out = tmp_path / f"{src.stem}.mcap"
-        r = runner.invoke(app, ["import", str(src), "--map", str(cmap), "--config", str(RIG), "--out", str(out),
-                                "--json"])
+        r = runner.invoke(app, ["import", str(src), "--map", str(cmap), "--config", str(RIG),
+                                "--out", str(out), "--json"])
         runs[src.stem] = (r, json.loads(r.stdout), read_recording(out))
     r, s, rec = runs["twice"]
     assert r.exit_code == 0, r.output
