@@ -159,7 +159,7 @@ def calibrate_gyro_encoder(arm: ArmModel, rec: Recording, joint: int,
         drift_span_s = correction_span_s(arm, rec, joint, rest, spacing, longest_s)
     k = max(int(round(drift_span_s / spacing)), 1)
     drift_span_s = k * spacing
-    drift = float(np.degrees(np.std(rest[k:] - rest[:-k])) / np.sqrt(drift_span_s))
+    drift = float(np.degrees(np.sqrt(_walk_rad2_per_s(rest, k, spacing))))
     return GyroEncoderCalibration(arm.joint_names[joint], scale, bias, drift,
                                   float(np.degrees(np.sqrt(np.mean(rest**2)))), span,
                                   _bounded_deg(rest, t, max(drift_span_s, longest_s)),
@@ -182,10 +182,15 @@ def correction_span_s(arm: ArmModel, rec: Recording, joint: int, rest_rad: np.nd
     density = sigma_rad**2 * float(np.median(np.diff(st.t_s)))  # rad² s
     span = longest_s
     for _ in range(8):
-        k = max(int(round(span / spacing_s)), 1)
-        w2 = float(np.var(rest_rad[k:] - rest_rad[:-k])) / (k * spacing_s)
+        w2 = _walk_rad2_per_s(rest_rad, max(int(round(span / spacing_s)), 1), spacing_s)
         span = float(np.clip(np.sqrt(density / max(w2, 1e-30)), 2 * spacing_s, longest_s))
     return span
+
+
+def _walk_rad2_per_s(rest_rad: np.ndarray, k: int, spacing_s: float) -> float:
+    """The spread of ``rest_rad``'s changes over ``k`` samples, per second of them: the
+    random walk that would spread that much (rad²/s)."""
+    return float(np.var(rest_rad[k:] - rest_rad[:-k])) / (k * spacing_s)
 
 
 def _rate_taps(rate: np.ndarray, t_s: np.ndarray, spacing_s: float, n_lags: int) -> np.ndarray:
