@@ -460,7 +460,8 @@ def targets(results: list[TrialResult]) -> list[str]:
         "(the joint's relative angle from the integral of the shaft's gyro less the frame's about the "
         "shaft's axis, each read when its samples were true, its scale, taps (their delay), bias and drift "
         "measured on the calibration stretch, tracked as a drifting relative encoder; the peers, "
-        "tools/rig_peers.py, the twist of the two IMUs' relative orientation about the shaft, zero aligned on the same stretch): "
+        "tools/rig_peers.py, the twist of the two IMUs' relative orientation about the shaft, zero "
+        "aligned on the same stretch): "
         + _listing(horiz, _withheld_ok,
                    lambda r: ("–" if r.withheld is None else f"{_fmt(r.withheld['rmse_after_30s_deg'])}°")
                    + f" against {_best_peer(r)} (the encoder's own roughness {_fmt(r.encoder_rough_deg)}°, "
