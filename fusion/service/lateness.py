@@ -29,7 +29,8 @@ class Lateness:
     of the whole process (whose messages then arrive late together). While the stream is
     live (``max_pace``), beyond
     ``degrade_after_s`` the node is degraded (the status's ``degraded`` 1, its ``lag_ms``,
-    and a message saying so) until its lag is back within half of it, or nothing waits. While
+    and a message saying so) until its lag is back within half of it, or nothing waits, and
+    it was last behind more than ``hold_s`` ago. While
     degraded, each pass of the loop takes every message waiting (for at most ``pass_s`` of
     wall time), admits each and queues its samples, then fuses once: the instants more than
     ``degrade_after_s`` older than the sensors' clock are folded, merged into one instant
@@ -44,6 +45,12 @@ class Lateness:
     """
 
     degrade_after_s: float = 0.05
+    hold_s: float = 1.0
+    """Once degraded, the node stays so until it was last behind (its lag over
+    ``degrade_after_s``) this long ago: one status period (statuses go out every second), so
+    a node that falls behind again and again on a starved machine (its lag back under the
+    line between the scheduler's slices) is one degraded period, said once, in every status
+    it spans, and folds the while through, instead of flipping at every slice."""
     fold_period_s: float = 0.02
     backlog_updates: int = 10
     """A backlog longer than this many fold periods is folded into this many instants: the
@@ -100,6 +107,7 @@ class LagWatch:
         self._run_began_s = -np.inf  # the first arrival after a silence of pace_window_s (or ever)
         self._delays: dict[str, deque[tuple[float, float]]] = {}  # see _note_delay
         self._taken_t: float | None = None  # the last sample time of the last batch accepted
+        self._behind_s = -np.inf  # wall time the lag was last judged over degrade_after_s
 
     def taken(self, name: str, arrived_s: float, t_s: float) -> None:
         """Note a batch of sensor ``name`` accepted, arrived at ``arrived_s``, its last sample
@@ -112,12 +120,14 @@ class LagWatch:
         """Let go of sensor ``name``'s delivery delays (its clock was reset)."""
         self._delays.pop(name, None)
 
-    def nothing_waits(self) -> bool:
-        """Nothing waits in the node's channel: whatever it was behind, it has taken in; no
-        longer degraded. True when it was."""
-        if not self.degraded:
+    def nothing_waits(self, now_s: float) -> bool:
+        """Nothing waits in the node's channel at wall time ``now_s``: whatever it was behind,
+        it has taken in; no longer degraded once it was last behind ``hold_s`` ago. True when
+        that changed."""
+        self.lag_s = 0.0
+        if not self.degraded or now_s - self._behind_s < self.lateness.hold_s:
             return False
-        self.degraded, self.lag_s = False, 0.0
+        self.degraded = False
         log.info("serve: caught up (nothing waiting); no longer degraded")
         return True
 
@@ -152,8 +162,8 @@ class LagWatch:
         if not self.live(now_s):
             self.degraded = False
         elif lag > lt.degrade_after_s:
-            self.degraded = True
-        elif lag <= 0.5 * lt.degrade_after_s:
+            self.degraded, self._behind_s = True, now_s
+        elif lag <= 0.5 * lt.degrade_after_s and now_s - self._behind_s >= lt.hold_s:
             self.degraded = False
         if self.degraded == was:
             return False

@@ -214,7 +214,7 @@ class FusionNode:
             msg = receiver.get(timeout_s=0.1)
             if msg is not None:
                 self._take(msg, receiver)
-            elif self._lag.nothing_waits():  # whatever it was behind, it has taken in
+            elif self._lag.nothing_waits(time.monotonic()):  # whatever it was behind, it has taken in
                 board.due = True
             while (query := self.tracking.endpoints.next_query()) is not None:
                 self._answer(query)

@@ -120,7 +120,9 @@ def status_message(message: str, *, maneuver, tracker, lag: LagWatch, every_sens
     if tracker is not None and tracker.alarm.active:
         message = "model changed: " + "; ".join(a.line() for a in tracker.alarm.alarms) + f"; {message}"
     if lag.degraded:
-        message = (f"degraded: {1e3 * lag.lag_s:.0f} ms behind the sensors; folding the backlog "
+        held = ("" if lag.lag_s > lag.lateness.degrade_after_s else
+                f" (held for {lag.lateness.hold_s:g} s after it was last behind)")
+        message = (f"degraded: {1e3 * lag.lag_s:.0f} ms behind the sensors{held}; folding the backlog "
                    f"({1.0 / lag.lateness.fold_period_s:.0f} instants a second of it); {message}")
     if every_sensor_quiet_s is not None:
         message = f"no samples for {every_sensor_quiet_s:.1f} s: every sensor stale; {message}"
