@@ -40,12 +40,12 @@ disturbed compass is already not fused (the compass's own verdict).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
+from armfusion.fusion.tracking.alarm_naming import FLOOR_G, name_shift, onset
 from armfusion.fusion.tracking.tracker_kernels import add_block_sums
-from armfusion.models.rotations import DEG, skew
+from armfusion.models.rotations import DEG
 
 BLOCK_S = 0.5
 """Innovations are averaged over blocks this long (s) before the test."""
@@ -53,28 +53,12 @@ TAU_S = 3.0
 """The test's exponential average of block means (s)."""
 THRESHOLD_SIGMA = 6.0
 """The average's size against its noise (white innovations) that counts as a shift."""
-FLOOR_G = 0.004
-"""And against this floor (g): what the model leaves in ordinary use, below any alarm."""
 UNMODELLED_FACTOR = 2.0
 """Or against this many times the config's unmodelled error (``accel_unmodelled_g``)."""
 HOLD_S = 3.0
 """A shift must hold this long (s) to raise an alarm."""
 WINDOW_S = 60.0
 """The naming fit uses at most this much of the shift's history (s)."""
-NAME_P = 1e-3
-"""The false-naming probability of each of :func:`name_shift`'s tests (chi-square on the
-along components): below it the alarm names both effects until the arm's motion separates
-them."""
-OUTLIER_VAR = 9.0
-"""The naming leaves out a block whose variance exceeds this many times the median's (a
-sigma three times the typical one)."""
-MIN_BLOCKS = 4
-"""An effect is decided on at least this many blocks (2 s): a bias on as many kept blocks
-since the change, a turn once as many saw a force turned far enough from where the change
-began that a bias of the shift's size would have shown along it."""
-OBSERVABLE = 1e-4
-"""A rotation direction whose information is below this fraction of the best-seen one's is
-not fitted (a rotation about a force that never turned)."""
 RECENT_S = 20.0
 """A block's noise is at most the median of the last this many seconds' (s)."""
 WIDEN = 5.0
@@ -94,8 +78,6 @@ HARD_IRON_AFTER_S = 20.0
 """A compass disturbed this long without a break (s) has gained hard iron."""
 
 EFFECTS = ("mount_rotation", "bias_jump", "hard_iron")
-ACCEL_EFFECTS = ("mount_rotation", "bias_jump")
-"""The effects an accelerometer's alarm tells apart."""
 UNITS = {"mount_rotation": "deg", "bias_jump": "g", "hard_iron": "uT"}
 """Each effect's size unit."""
 
@@ -148,147 +130,23 @@ class Alarm:
                 "named_s": self.named_s}
 
 
-def onset(nu: np.ndarray) -> int:
-    """Where a lasting shift began in the block means ``nu (N, 3)`` (oldest first): the
-    start ``k`` whose later blocks' mean, times their count, is largest (a shift from
-    then on against none before: the change point of a step in white noise)."""
-    tail = np.cumsum(nu[::-1], axis=0)[::-1]  # sum of blocks k..N-1
-    n = np.arange(len(nu), 0, -1)
-    score = np.square(tail).sum(1) / n
-    return int(np.argmax(score[: max(len(nu) - 2, 1)]))
-
-
-@dataclass(frozen=True)
-class Naming:
-    """What a shift's blocks say: ``effect`` the likelier of :data:`ACCEL_EFFECTS` with its
-    ``size`` and 1-sigma ``sigma`` (a rotation in deg, a bias in g), ``candidates`` every
-    effect the blocks have not ruled out (``effect`` first; ``(effect,)`` once decided) and
-    ``evidence``, the chi-square statistic of the test for ``effect`` (:func:`name_shift`)."""
-
-    effect: str
-    size: float
-    sigma: float
-    candidates: tuple[str, ...]
-    evidence: float
-
-
-def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Naming:
-    """Which effect explains block-mean innovations ``nu_g (N, 3)`` seen with predicted
-    specific forces ``g_pred (N, 3)`` (both g, sensor axes; ``var_g2 (N,)`` each block's own
-    variance per axis: a block more than ``OUTLIER_VAR`` times the median's, where the arm
-    lurched or the filter re-acquired, is left out; the others weigh alike).
-
-    A turned board reads gravity's full size, only in another direction: along the
-    prediction it is short by ``|g| (1 - cos)`` of the angle between them. A bias changes
-    the size too, by ``u . b`` along the predicted force ``u``. The filter, moving joints to
-    follow a changed sensor, turns its prediction and so absorbs part of what lies across the
-    force, never what lies along it: the components along the force decide, by two
-    chi-square tests at ``NAME_P``, the scale from the residuals' own scatter:
-
-    - a bias, when its along part (fitted by least squares, rank-aware: a force that never
-      turned fits only ``b`` along it) explains the along components better than the turn
-      does (``p`` parameters more), and differs from the turn's by more than ``FLOOR_G`` RMS
-      (what the model leaves in ordinary use), on at least ``MIN_BLOCKS`` blocks;
-    - a turn, when the shift's mean, taken as a bias, would have shown along the forces seen
-      and did not, over the blocks (at least ``MIN_BLOCKS``) where the two differ along the
-      force by more than ``FLOOR_G``: the arm turned the sensor far enough since the change;
-    - or a turn, when the whole innovation turns with the force as a turned board's does
-      (``nu = f x dtheta``, fitted) and a bias's (the shift's mean, constant) does not: the
-      turn explains the blocks better than the bias by a chi-square (3 dof) at ``NAME_P``,
-      the scale from the turn's residual scatter, over the blocks (at least ``MIN_BLOCKS``)
-      where the two differ by more than ``FLOOR_G``. (A force swung far averages a turn's
-      innovation out: the mean is no bias that would have shown along it, yet the blocks
-      are a turn's. A bias with a part along the force is named by the first test before
-      this one is asked.)
-
-    Otherwise both stay candidates (``effect`` the likelier first): a bias across the force
-    while the pose does not change is a turn as well, and the arm's motion tells them apart.
-    The size: a bias's, the shift's mean; a turn's, the rotation ``dtheta`` of ``nu = [g]x
-    dtheta`` fitted to the whole innovation (the rotation about a force that never turned is
-    not seen and left at zero), its sigma from the blocks' variance or the fit's residual
-    scatter where that is more."""
-    from scipy.stats import chi2  # (here: the payloads import this module, scipy is slow to import)
-
-    # the blocks weigh alike, at their typical variance; one far more uncertain than that (the
-    # arm lurched, the filter re-acquired) is left out: the variance of the others is no
-    # block-to-block scatter (the filter's own uncertainty, shared by neighbouring blocks),
-    # which weighing by it would take for one
-    var_g2 = np.asarray(var_g2, float)
-    v0 = max(float(np.median(var_g2)), 1e-12)
-    w = (var_g2 <= OUTLIER_VAR * v0) / v0
-    N = int(np.count_nonzero(w))
-    sw = float(w.sum())
-    u = g_pred / np.linalg.norm(g_pred, axis=1, keepdims=True)
-    along = (nu_g * u).sum(1)
-    # the turn: nu = [g]x dtheta over the whole innovation; the rotation about a force that
-    # never turned is not seen and is left at zero
-    H = skew(g_pred)  # (N, 3, 3): H @ dtheta == cross(g, dtheta)
-    A = np.einsum("n,nji,njk->ik", w, H, H)
-    lam, V = np.linalg.eigh(A)
-    keep = lam > OBSERVABLE * lam[-1]
-    A_pinv = (V[:, keep] / lam[keep]) @ V[:, keep].T
-    th = A_pinv @ np.einsum("n,nji,nj->i", w, H, nu_g)
-    # a turned reading keeps its size: along the prediction it is short by |g| (1 - cos) of
-    # the angle between them, whatever share of the turn the filter absorbed
-    g_norm = np.linalg.norm(g_pred, axis=1)
-    across_rad = np.linalg.norm(nu_g - along[:, None] * u, axis=1) / g_norm
-    along_m = -g_norm * (1.0 - np.cos(across_rad))
-    # the bias: its size from the whole innovation, its along part fitted to the along
-    # components (rank-aware)
-    b_mean = (w[:, None] * nu_g).sum(0) / sw
-    Ab = np.einsum("n,ni,nj->ij", w, u, u)
-    lb, Vb = np.linalg.eigh(Ab)
-    kb = lb > OBSERVABLE * lb[-1]
-    b_along = ((Vb[:, kb] / lb[kb]) @ Vb[:, kb].T) @ (w[:, None] * u * along[:, None]).sum(0)
-    along_b = u @ b_along
-    rss_m = float((w * (along - along_m) ** 2).sum())
-    rss_b = float((w * (along - along_b) ** 2).sum())
-    p = int(kb.sum())
-    # a bias: its along part, fitted, beats no along shift (p parameters more: chi-square)
-    evidence_b = (rss_m - rss_b) / max(rss_b / max(N - p, 1), 1e-30)
-    sep_b = _rms(along_b - along_m, w) > FLOOR_G and N >= MIN_BLOCKS
-    # a turn: the shift's own bias would have shown along the forces seen, and did not; the
-    # blocks that count are those where the two explanations differ by more than the model
-    # leaves (FLOOR_G): a force turned enough since the change
-    apart = (w > 0) & (np.abs(u @ b_mean - along_m) > FLOOR_G)
-    evidence_m = float((((along - u @ b_mean) ** 2 - (along - along_m) ** 2) * apart).sum()) \
-        / max(rss_m / sw, 1e-30)  # over the along components' mean square about the turn
-    sep_m = int(apart.sum()) >= MIN_BLOCKS
-    # a turn, by the whole innovation: it turns with the force (nu = f x dtheta), a bias stays
-    # put; the blocks that count are those where the two differ by more than the floor
-    turn = H @ th
-    rss_tf = float((w * np.square(nu_g - turn).sum(1)).sum())
-    rss_bf = float((w * np.square(nu_g - b_mean).sum(1)).sum())
-    apart_f = (w > 0) & (np.linalg.norm(turn - b_mean, axis=1) > FLOOR_G)
-    evidence_f = (rss_bf - rss_tf) / max(rss_tf / max(3 * N - int(keep.sum()), 1), 1e-30)
-    sep_f = int(apart_f.sum()) >= MIN_BLOCKS
-    if evidence_b >= chi2.isf(NAME_P, p) and sep_b:
-        effect, candidates, evidence = "bias_jump", ("bias_jump",), evidence_b
-    elif evidence_m >= chi2.isf(NAME_P, 1) and sep_m:  # (an along shift below the floor is no bias)
-        effect, candidates, evidence = "mount_rotation", ("mount_rotation",), evidence_m
-    elif evidence_f >= chi2.isf(NAME_P, 3) and sep_f:
-        effect, candidates, evidence = "mount_rotation", ("mount_rotation",), evidence_f
-    elif evidence_b >= chi2.isf(NAME_P, p):  # an along shift, but below what the model leaves
-        effect, candidates, evidence = "bias_jump", ("bias_jump", "mount_rotation"), evidence_b
-    else:
-        effect, candidates, evidence = "mount_rotation", ("mount_rotation", "bias_jump"), evidence_m
-    # the size's sigma: the blocks' own variances, or the fit's residual scatter where that
-    # is more (the blocks are not white: the filter absorbs part of the change)
-    dof = max(3 * N - 3, 1)
-    if effect == "bias_jump":
-        s2 = max(float((w * np.square(nu_g - b_mean).sum(1)).sum()) / dof, 1.0)
-        size, sigma = float(np.linalg.norm(b_mean)), math.sqrt(s2 / sw)
-    else:
-        s2 = max(float((w * np.square(nu_g - H @ th).sum(1)).sum()) / dof, 1.0)
-        size = float(np.linalg.norm(th))
-        e = th / max(size, 1e-12)
-        sigma = math.sqrt(max(float(e @ (s2 * A_pinv) @ e), 0.0)) / DEG
-        size /= DEG
-    return Naming(effect, size, sigma, candidates, float(evidence))
-
-
-def _rms(x: np.ndarray, w: np.ndarray) -> float:
-    return math.sqrt(float((w * x**2).sum() / w.sum()))
+def reference_or_filter(nu: np.ndarray, moved: np.ndarray, var: np.ndarray,
+                         floor_g: np.ndarray) -> np.ndarray:
+    """The block means to test: the filter's innovations ``nu`` or those against the
+    offsets held before a re-acquisition (``nu + moved``), whichever the sensors whose
+    predictions the move changed (by more than the floor) agree with, but for the one
+    that disagrees most (a changed sensor is one): an encoder that slipped moves every
+    sensor beyond its joint, which agree with the filter's new offsets; a turned board
+    the filter followed leaves the others agreeing with the reference. A move that at
+    most one sensor sees is a slip as well as a turn: the filter's innovations stay."""
+    M = np.linalg.norm(moved, axis=1) > floor_g
+    if M.sum() < 2:
+        return nu
+    ref = (np.square(nu + moved).sum(1) / var)[M]
+    new = (np.square(nu).sum(1) / var)[M]
+    if ref.sum() - ref.max() < new.sum() - new.max():
+        return nu + moved
+    return nu
 
 
 class ModelChangeAlarm:
@@ -423,7 +281,7 @@ class ModelChangeAlarm:
             if m[j] >= recent:
                 rows = (self._hist_n[s] - 1 - np.arange(recent)) % cap
                 var[j] = min(var[j], float(np.median(self._hist_var[s, rows])))
-        nu = self._reference_or_filter(nu, self._sum_moved[have] / n_[:, None], var, self.floor_g[have])
+        nu = reference_or_filter(nu, self._sum_moved[have] / n_[:, None], var, self.floor_g[have])
         last = self._ema_t[have]
         dt = np.where(np.isnan(last), BLOCK_S, t - last)
         a = np.minimum(1.0, dt / TAU_S)
@@ -469,25 +327,6 @@ class ModelChangeAlarm:
             self._over_since[:] = np.nan
             self._first_over[:] = np.nan
             self._quiet_until = t + QUIET_S
-
-    @staticmethod
-    def _reference_or_filter(nu: np.ndarray, moved: np.ndarray, var: np.ndarray,
-                             floor_g: np.ndarray) -> np.ndarray:
-        """The block means to test: the filter's innovations ``nu`` or those against the
-        offsets held before a re-acquisition (``nu + moved``), whichever the sensors whose
-        predictions the move changed (by more than the floor) agree with, but for the one
-        that disagrees most (a changed sensor is one): an encoder that slipped moves every
-        sensor beyond its joint, which agree with the filter's new offsets; a turned board
-        the filter followed leaves the others agreeing with the reference. A move that at
-        most one sensor sees is a slip as well as a turn: the filter's innovations stay."""
-        M = np.linalg.norm(moved, axis=1) > floor_g
-        if M.sum() < 2:
-            return nu
-        ref = (np.square(nu + moved).sum(1) / var)[M]
-        new = (np.square(nu).sum(1) / var)[M]
-        if ref.sum() - ref.max() < new.sum() - new.max():
-            return nu + moved
-        return nu
 
     def _history(self, s: int) -> np.ndarray:
         """Sensor ``s``'s blocks kept (at most ``WINDOW_S``), oldest first: ``(m, 8)``."""
@@ -552,6 +391,30 @@ class ModelChangeAlarm:
             self.version += 1
 
     # -- lifecycle ----------------------------------------------------------------------
+    def snapshot(self) -> dict:
+        """What a restart must not forget (the tracker's snapshot): the active alarms, the
+        log of those raised and each accelerometer's widening. The tests' running averages
+        start afresh on :meth:`restore`: an active alarm stays raised and its sensor
+        down-weighted until :meth:`clear`, as it was."""
+        return {"names": list(self.names), "mag_name": self.mag_name,
+                "active": [a.as_dict() for a in self.alarms],
+                "raised": [a.as_dict() for a in self.raised], "widen_g2": self.widen_g2.tolist()}
+
+    def restore(self, snap: dict) -> None:
+        """Take the alarms of :meth:`snapshot` back (one of an alarm over the same sensors);
+        a listener publishes them again (:attr:`version`)."""
+        if list(snap["names"]) != list(self.names) or snap["mag_name"] != self.mag_name:
+            raise ValueError(f"the alarm's snapshot watches {snap['names']} and {snap['mag_name']!r}; "
+                             f"this one {list(self.names)} and {self.mag_name!r}")
+        widen = np.array(snap["widen_g2"], dtype=float)
+        if widen.shape != self.widen_g2.shape or not np.all(np.isfinite(widen) & (widen >= 0)):
+            raise ValueError(f"the alarm's snapshot widens by {snap['widen_g2']!r}: not one "
+                             f"variance >= 0 per accelerometer")
+        self.raised = [Alarm.of_dict(d) for d in snap["raised"]]
+        self.active = {al.sensor: al for al in map(Alarm.of_dict, snap["active"])}
+        self.widen_g2 = widen
+        self.version += 1
+
     def clear(self, sensor: str | None = None) -> None:
         """The sensor (every one, when None) was recalibrated: its alarm is cleared and its
         weight restored."""

@@ -299,7 +299,7 @@ class Tracker(TrackerReadout):
             still=self.still.snapshot(),
             intensity=None if self.intensity is None else self.intensity.snapshot(),
             shift=self.slips.snapshot(), consider=self.observability.snapshot(),
-            ambiguous=self.ambiguity_.snapshot())
+            ambiguous=self.ambiguity_.snapshot(), alarm=self.alarm.snapshot())
 
     def resume(self, state: TrackerState) -> None:
         """Start from ``state`` (:meth:`state`, maybe of another process) instead of
@@ -325,6 +325,8 @@ class Tracker(TrackerReadout):
             self._flags = np.where(self.ambiguity_.joints, F_AMBIGUOUS, self._flags).astype(np.int8)
         # the calibration's pull on the offsets so far
         self.observability.restore(state.consider, float(state.t_s))
+        if state.alarm is not None:  # (raised before the restart: still raised, still down-weighted)
+            self.alarm.restore(state.alarm)
 
     def snapshot(self) -> dict:
         """The tracker's state as a JSON-ready dict (:meth:`TrackerState.to_dict`): enough to

@@ -2,7 +2,8 @@
 (the offsets, biases, attitude and the base's motion are states of it), the encoders' angles,
 the differentiators' windows, the compass's learnt field, iron and floor, the health counters,
 the stillness and motion averages, the slip detector's and the calibration's pull, the rival
-branches. :meth:`armfusion.fusion.tracking.filter.Tracker.state` makes it and
+branches, the model-change alarm's active alarms.
+:meth:`armfusion.fusion.tracking.filter.Tracker.state` makes it and
 :meth:`armfusion.fusion.tracking.filter.Tracker.resume` takes it; :meth:`TrackerState.to_dict` and
 :meth:`TrackerState.from_dict` are the JSON-ready snapshot (enough to resume after a restart
 of the process without a new startup calibration, provided the encoders kept counting)."""
@@ -43,6 +44,9 @@ class TrackerState:
     shift: Any = None
     consider: Any = ()
     ambiguous: Any = None
+    alarm: Any = None
+    """:meth:`armfusion.fusion.tracking.alarm.ModelChangeAlarm.snapshot`: the active alarms and
+    their sensors' widening (None in a snapshot from before the alarm was kept)."""
 
     def to_dict(self, arm_name: str, state_names: tuple[str, ...]) -> dict:
         """The JSON-ready snapshot of this state, for the arm ``arm_name`` whose filter's
@@ -71,6 +75,7 @@ class TrackerState:
             "shift": self.shift,
             "consider": self.consider,
             "ambiguous": self.ambiguous,
+            "alarm": self.alarm,
         }
 
     @classmethod
@@ -93,4 +98,4 @@ class TrackerState:
                      "iron_gain": snap.get("compass_iron_gain")},
             counters=np.array(snap["counters"], dtype=np.int64), still=snap.get("still"),
             intensity=snap.get("intensity"), shift=snap.get("shift"), consider=snap.get("consider", []),
-            ambiguous=snap.get("ambiguous"))
+            ambiguous=snap.get("ambiguous"), alarm=snap.get("alarm"))

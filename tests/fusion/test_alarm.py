@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from armfusion.fusion.tracking.alarm import Alarm, ModelChangeAlarm, name_shift, onset
+from armfusion.fusion.tracking.alarm import Alarm, ModelChangeAlarm, reference_or_filter
+from armfusion.fusion.tracking.alarm_naming import name_shift, onset
 from armfusion.fusion.tracking.settings import C_REACQUISITIONS
 from armfusion.fusion.tracking.tracker import start_from_recording
 from armfusion.models.rotations import DEG, exp_so3
@@ -146,6 +147,32 @@ def test_a_turned_board_is_named_and_down_weighted(arm, daily):
     assert not tr.alarm.widen_g2.any() and tr.alarm.alarms == ()
 
 
+def test_a_raised_alarm_survives_a_restart_of_the_tracker(arm, daily):
+    """A tracker restored from another's snapshot (a restarted node) keeps the alarm raised
+    before the restart and its sensor down-weighted; the shift that goes on is not raised
+    again as a new change."""
+    import json
+
+    from armfusion.fusion.tracking.filter import Tracker
+
+    rec = mount_turned(daily, "acc4", T_CHANGE_S, np.array([0.6, -0.8, 0.0]) * 2.0 * DEG)
+    a, _ = start_from_recording(arm, rec)
+    a.run(rec, t_stop_s=T_CHANGE_S + 32.0)
+    (raised,) = a.alarm.raised
+    snap = json.loads(json.dumps(a.snapshot()))
+    b = Tracker(arm)
+    b.restore(snap)
+    # (as published: sizes to the micro-unit) and published again
+    assert [x.as_dict() for x in b.alarm.alarms] == [x.as_dict() for x in a.alarm.alarms]
+    assert b.alarm.alarms and b.alarm.version > 0
+    np.testing.assert_array_equal(b.alarm.widen_g2, a.alarm.widen_g2)
+    b.run(rec)
+    assert [al.sensor for al in b.alarm.raised] == ["acc4"] and b.alarm.raised[0].since_s == raised.since_s
+    assert b.alarm.widen_g2[b.link_names.index("acc4")] > 0
+    with pytest.raises(ValueError, match="the alarm's snapshot watches"):
+        ModelChangeAlarm(("acc1",), None, 0.0).restore(snap["alarm"])
+
+
 def test_a_bias_jump_is_named(arm, daily):
     rec = bias_jumped(daily, "acc3", T_CHANGE_S, np.array([0.0, 0.03, -0.04]))
     (a,) = _alarms(arm, rec).alarm.raised
@@ -184,7 +211,7 @@ def test_the_held_offsets_are_tested_only_where_the_other_sensors_agree_with_the
     noise = rng.normal(scale=0.001, size=(3, 3))
     turned = noise - moved  # the filter followed sensor 0's turn; 1 and 2 disagree by as much
     turned[0] += [0.0, 0.0, 0.035]
-    pick = ModelChangeAlarm._reference_or_filter
+    pick = reference_or_filter
     assert np.array_equal(pick(turned, moved, var, floor), turned + moved)
     slipped = noise.copy()  # every sensor beyond the joint follows the new offsets
     assert np.array_equal(pick(slipped, moved, var, floor), slipped)
