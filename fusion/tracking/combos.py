@@ -63,7 +63,7 @@ class JointTiltCombinations:
         P = ukf.covariance[np.ix_(ix, ix)].copy()
         obs = self.observability
         P[:n, :n] += obs.consider @ obs.consider.T + np.diag(obs.unread_var)
-        P[n, n] += obs.tilt_var[0]  # (a bolted base's floor in its tilt)
+        P[n, n] += obs.tilt_var[0]  # (the accelerometers' floor in the tilt)
         P[n + 1, n + 1] += obs.tilt_var[1]
         x = ukf.x
         values = np.r_[self.arm.angles_in_range(q_enc + x[:n], q_enc), x[L.roll], x[L.pitch]]

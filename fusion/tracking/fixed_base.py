@@ -13,8 +13,10 @@ the smaller of ``f²`` and the variance the filter started from (the startup's, 
 the floor as a floor, or the installer's level, which the readings need not better). That
 floor joins the reported roll and pitch and the joint-and-tilt block the combinations come
 from, never the filter's own covariance (a sigma floor, not a change in what the filter
-weighs). A base that moves (a chair) keeps its attitude walk, which already forgets, and
-takes none.
+weighs). A base that moves takes the same floor (its attitude walk did not keep a chair's
+reported tilt from 0.03° while it was 2° off), with its IMU's floor where the base only
+yaws (the IMU's bias, a state of the filter, is revealed only by turning about a horizontal
+axis), and not bounded by the start's variance (a still average, which the floor bounds).
 """
 
 from __future__ import annotations

@@ -118,7 +118,8 @@ class InstantUpdate:
         if out is not None:
             x, L = ukf.mean, p.layout
             ix = [L.roll, L.pitch]
-            compass.tilt_seen(ukf.covariance[np.ix_(ix, ix)])
+            # (the filter's tilt, floored where it claims more than the accelerometers can tell)
+            compass.tilt_seen(ukf.covariance[np.ix_(ix, ix)] + np.diag(p.observability.tilt_var))
             out = compass.prepare(t, out[0], out[1], float(x[L.roll]), float(x[L.pitch]), x[L.offset] + q_enc)
         return out
 

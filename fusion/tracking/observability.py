@@ -59,8 +59,12 @@ class Observability:
         self._locked, self._wide = np.empty(n, np.bool_), np.empty(n, np.bool_)
         self._blind = np.zeros(n, np.bool_)  # gravity-blind by the IMU's own up (see update)
         self.tilt_floor_var = 0.0
-        """A bolted base's: what the link accelerometers' floors leave in its tilt (rad²;
-        :func:`armfusion.fusion.tracking.fixed_base.floor_var_rad2`; 0 for a base that moves)."""
+        """What the accelerometers' floors leave in the base's tilt (rad²;
+        :func:`armfusion.fusion.tracking.fixed_base.floor_var_rad2`), bolted or moving."""
+        self.tilt_start_holds = False
+        """Whether the startup's tilt variance may stand below that floor (a bolted base's:
+        its level's prior or the installer's, :mod:`armfusion.fusion.tracking.fixed_base`); a
+        moving base's start is a still average, which the floor bounds as any other."""
         self._columns(spread, unmodelled_g, scale_sigma)
         self.reset()
 
@@ -179,7 +183,8 @@ class Observability:
         self._key = (t, used)
         if self.tilt_floor_var > 0.0:
             ix = [L.roll, L.pitch]
-            self.tilt_var = fixed_base.tilt_shortfall_var(self.tilt_floor_var, P[ix, ix], P0[ix, ix])
+            start = P0[ix, ix] if self.tilt_start_holds else np.full(2, np.inf)
+            self.tilt_var = fixed_base.tilt_shortfall_var(self.tilt_floor_var, P[ix, ix], start)
         sr, cr = math.sin(x[L.roll]), math.cos(x[L.roll])
         sp, cp = math.sin(x[L.pitch]), math.cos(x[L.pitch])
         up = np.array([-sp, sr * cp, cr * cp])

@@ -243,7 +243,7 @@ class RunArrays:
         self.heading_status = np.zeros(T, dtype=np.int8)  # codes of HEADING_STATUS
         self.status = np.zeros((T, S), dtype=np.int8)
         self.sys_var = np.zeros((T, n))
-        self.tilt_var = np.zeros((T, 2))  # a bolted base's floor in its tilt (rad^2)
+        self.tilt_var = np.zeros((T, 2))  # the accelerometers' floor in the tilt (rad^2)
         self.att_cov = np.full((T, 9), np.nan)  # the attitude's (tangent space) covariance
         self._kept = None
         self.P = np.full((T, n + 3, n + 3), np.nan) if keep_cov else None
