@@ -35,6 +35,13 @@ The 3-sigma share: armfusion's heading error against three times its own heading
 the share of scored samples inside, reported for every trial (the issue's target is on the
 magnetic-disturbance trials, the ones whose name says ``magnet``).
 
+Leave one trial out: one constant of ``broad_imu`` is chosen from the recordings, the
+magnetometer's ``delay_s`` (the gyroscope's plus the median of the trials' compass lags,
+:func:`compass_lag_s`, found from the IMU's own readings without the reference). With three
+trials or more the tool chooses it again on all trials but one, scores armfusion on that
+one with it, for each trial, and prints that table and its targets beside the in-sample
+one (a fold that chooses the shipped value reuses the in-sample run).
+
     python tools/bench_heading_broad.py [--data DIR] [--no-write] [--json OUT] [--jobs N]
 
 needs the optional ``[bench]`` extra (``pip install -e '.[bench]'``) and ``h5py``. Without
@@ -250,6 +257,65 @@ def run_armfusion(trial: Trial, config: str = CONFIG) -> ArmfusionTrack:
                           seconds, run.summary())
 
 
+# ------------------------------------------------------------------------------------ the compass's lag
+LAG_GRID_S = np.arange(0.0, 0.030 + 1e-9, 0.00025)
+"""The compass's lag behind the gyro tried by :func:`compass_lag_s`: 0-30 ms in 0.25 ms."""
+SMOOTH_S = 0.05
+"""The derivative's window (Savitzky-Golay, quadratic): 50 ms, shorter than a hand's turn."""
+
+
+def compass_lag_s(trial: Trial) -> float:
+    """How far the magnetometer's readings lag the gyro's, s, from the IMU's own readings (no
+    reference): while the sensor turns, a field fixed in the world changes in its axes as
+    ``dm/dt = -ω × m``, so a compass ``d`` late changes as ``-ω(t - d) × m(t)``; the lag is
+    the ``d``, on :data:`LAG_GRID_S`, at which that prediction (both sides smoothed alike
+    over :data:`SMOOTH_S`) best matches the compass's change over the ``movement`` samples."""
+    from scipy.signal import savgol_filter
+
+    r = trial.rate_hz
+    win = max(5, int(round(SMOOTH_S * r)) | 1)
+    m = np.asarray(trial.mag_ut, float)
+    dm = savgol_filter(m, win, 2, deriv=1, axis=0) * r
+    mv = np.asarray(trial.movement, bool)
+    if not mv.any():
+        return 0.0
+    i = np.arange(len(m), dtype=float)
+    cost = []
+    for d in LAG_GRID_S:
+        w = np.column_stack([np.interp(i - d * r, i, trial.gyr_rad_s[:, k]) for k in range(3)])
+        pred = savgol_filter(-np.cross(w, m), win, 2, axis=0)
+        cost.append(float(np.mean((dm[mv] - pred[mv]) ** 2)))
+    return float(LAG_GRID_S[int(np.argmin(cost))])
+
+
+def chosen_lag_s(lags: list[float]) -> float:
+    """The compass's lag one parameter set takes from trials' lags: their median, on the grid."""
+    m = float(np.median(lags))
+    return float(LAG_GRID_S[int(np.argmin(np.abs(LAG_GRID_S - m)))])
+
+
+def sensor_delays_s(config: str) -> tuple[float, float]:
+    """``config``'s gyroscope and magnetometer ``delay_s`` (its IMU's description)."""
+    from armfusion.fusion.configfile import read_yaml, resolve_config_path
+
+    data = read_yaml(resolve_config_path(config))
+    out = next(s for s in data["sensors"] if s.get("kind") == "imu")["outputs"]
+    return float(out["gyroscope"].get("delay_s", 0.0)), float(out["magnetometer"].get("delay_s", 0.0))
+
+
+def config_with_compass_delay(config: str, delay_s: float, folder: Path) -> Path:
+    """``config`` with its magnetometer's ``delay_s`` set to ``delay_s``, written into ``folder``."""
+    import yaml
+    from armfusion.fusion.configfile import read_yaml, resolve_config_path
+
+    data = read_yaml(resolve_config_path(config))
+    next(s for s in data["sensors"] if s.get("kind") == "imu")["outputs"]["magnetometer"]["delay_s"] = \
+        float(delay_s)
+    path = folder / f"{Path(config).stem}_compass_{delay_s * 1e6:.0f}us.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    return path
+
+
 # ------------------------------------------------------------------------------------ the peers
 # Each peer: (gyroscope rad/s, accelerometer m/s², magnetometer µT, all (N, 3); period s) ->
 # the sensor's orientation in ENU, unit quaternions w x y z (N, 4).
@@ -339,6 +405,98 @@ def run_trial(trial: Trial, peers: tuple[str, ...] = tuple(PEERS), config: str =
                        af.start_window_s, af.summary)
 
 
+@dataclass(frozen=True)
+class LooResult:
+    """armfusion on one trial with the compass's delay chosen on the other trials."""
+
+    trial: str
+    compass_delay_s: float
+    scores: Scores
+    within_3sigma: float
+
+
+def _loo_of(row: TrialResult, delay_s: float) -> LooResult:
+    """An in-sample row taken as the leave-one-out one (its fold chose the shipped delay)."""
+    return LooResult(row.trial, delay_s, row.results["armfusion"].scores, row.within_3sigma)
+
+
+def _run_loo(job: tuple[Path, str, float]) -> LooResult:
+    """armfusion alone on a trial with ``config`` (its fold's compass delay ``delay_s``)."""
+    path, config, delay_s = job
+    trial = read_trial(path)
+    af = run_armfusion(trial, config)
+    sc, ok, heading = scores(af.q_enu, trial.opt_quat, trial.movement)
+    inside = heading[ok] <= 3.0 * af.heading_sigma_rad[ok]
+    return LooResult(trial.name, delay_s, sc, float(inside.mean()) if inside.size else float("nan"))
+
+
+def leave_one_out(paths: list[Path], rows: list[TrialResult], jobs: int, folder: Path
+                  ) -> tuple[list[float], float, list[LooResult]]:
+    """The one constant chosen from these trials, the compass's delay (the gyro's delay plus
+    the median of the trials' :func:`compass_lag_s`), chosen on all trials but one and
+    armfusion scored on that one, for each: the trials' lags (s), the delay chosen on all of
+    them (s), and the leave-one-out results (a fold that chooses the shipped delay reuses
+    the in-sample run)."""
+    lags = [compass_lag_s(read_trial(p)) for p in paths]
+    gyro_s, shipped_s = sensor_delays_s(CONFIG)
+    folds = [gyro_s + chosen_lag_s(lags[:k] + lags[k + 1:]) for k in range(len(paths))]
+    out: list[LooResult | None] = [None] * len(paths)
+    todo = []
+    for k, d in enumerate(folds):
+        if abs(d - shipped_s) < 1e-9:
+            out[k] = _loo_of(rows[k], d)
+        else:
+            todo.append((k, (paths[k], str(config_with_compass_delay(CONFIG, d, folder)), d)))
+    if jobs > 1 and len(todo) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=min(jobs, len(todo))) as pool:
+            done = list(pool.map(_run_loo, [j for _, j in todo]))
+    else:
+        done = [_run_loo(j) for _, j in todo]
+    for (k, _), r in zip(todo, done, strict=True):
+        out[k] = r
+    return lags, gyro_s + chosen_lag_s(lags), [r for r in out if r is not None]
+
+
+def loo_md(rows: list[TrialResult], lags: list[float], chosen_s: float, loo: list[LooResult],
+           reference: str = "vqf") -> list[str]:
+    """The leave-one-trial-out table (armfusion's heading and inclination with the compass's
+    delay chosen on the other trials, beside ``reference``'s in the same run) and its targets."""
+    shipped_s = sensor_delays_s(CONFIG)[1]
+    lines = ["", "### Leave one trial out", "",
+             "One constant of `broad_imu` is chosen from these recordings: the magnetometer's "
+             "`delay_s`, the gyroscope's plus the median of the trials' compass lags (each "
+             "found from the IMU's own readings, no reference: the lag at which the gyro's "
+             "turn best predicts the compass's change, `compass_lag_s`). Lags found, ms: "
+             + ", ".join(f"{r.trial[:2]} {1e3 * g:.2f}" for r, g in zip(rows, lags, strict=True))
+             + f". Chosen on all {len(rows)}: {1e3 * chosen_s:.2f} ms (the config ships "
+             f"{1e3 * shipped_s:.2f} ms). Below, each trial scored with the delay chosen on the "
+             "other trials (its fold's value in the second column); every other constant is the "
+             "config's, from datasheets and physics, chosen on no trial.", "",
+             f"| trial | compass delay [ms] | armfusion heading / incl. [deg] | {reference} heading / "
+             "incl. [deg] | heading ratio |",
+             "| --- | --- | --- | --- | --- |"]
+    for r, o in zip(rows, loo, strict=True):
+        v = r.results[reference].scores
+        lines.append(f"| {r.trial} | {1e3 * o.compass_delay_s:.2f} | {o.scores.heading_deg:.2f} / "
+                     f"{o.scores.inclination_deg:.2f} | {v.heading_deg:.2f} / {v.inclination_deg:.2f} | "
+                     f"{o.scores.heading_deg / v.heading_deg:.2f} |")
+    h = float(np.mean([o.scores.heading_deg for o in loo]))
+    i = float(np.mean([o.scores.inclination_deg for o in loo]))
+    vh, vi = _mean(rows, reference, "heading_deg"), _mean(rows, reference, "inclination_deg")
+    worst = max(o.scores.heading_deg / r.results[reference].scores.heading_deg
+                for r, o in zip(rows, loo, strict=True))
+    verdict = {True: "met", False: "**not met**"}
+    lines += [f"| **mean** | | **{h:.2f} / {i:.2f}** | **{vh:.2f} / {vi:.2f}** | |", "",
+              f"Leave one out: armfusion's mean heading {h:.3f} against {reference}'s {vh:.3f} deg "
+              f"({h / vh:.2f} times), inclination {i:.3f} against {vi:.3f} deg ({i / vi:.3f} times). "
+              f"Targets: mean heading below {reference}'s: {verdict[h < vh]}; mean inclination no "
+              f"worse: {verdict[i <= vi]}; no trial's heading above 2 times {reference}'s: "
+              f"{verdict[worst <= 2.0]} (worst {worst:.2f} times)."]
+    return lines
+
+
 # ------------------------------------------------------------------------------------ the report
 def _mean(rows: list[TrialResult], name: str, metric: str) -> float:
     return float(np.mean([getattr(r.results[name].scores, metric) for r in rows]))
@@ -381,7 +539,7 @@ def headline_rows(rows: list[TrialResult], ours: str = "armfusion", reference: s
     return out
 
 
-def report_md(rows: list[TrialResult], data: Path) -> str:
+def report_md(rows: list[TrialResult], data: Path, loo_lines: list[str] | None = None) -> str:
     """The docs/benchmarks.md section: per trial and filter, the three RMSEs; the means."""
     from tools.benchdoc import machine_line
 
@@ -421,6 +579,7 @@ def report_md(rows: list[TrialResult], data: Path) -> str:
         tag = " (magnetic disturbance)" if MAGNETIC in r.trial else ""
         lines.append(f"- {r.trial}{tag}: {100 * r.within_3sigma:.1f} % "
                      f"(sigma {r.heading_sigma_median_deg:.2f} deg)")
+    lines += loo_lines or []
     lines += ["", f"Machine: {machine_line()}."]
     return "\n".join(lines)
 
@@ -481,7 +640,15 @@ def main(argv=None) -> int:
         print(f"mean {n:14s} heading {_mean(rows, n, 'heading_deg'):6.2f}  incl. "
               f"{_mean(rows, n, 'inclination_deg'):6.2f}  total {_mean(rows, n, 'total_deg'):6.2f} deg")
     print(targets_line(rows))
-    md = report_md(rows, a.data)
+    loo_lines = None
+    if len(rows) >= 3:  # a constant chosen on the others needs others
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as folder:
+            lags, chosen_s, loo = leave_one_out(paths, rows, a.jobs, Path(folder))
+        loo_lines = loo_md(rows, lags, chosen_s, loo)
+        print("\n".join(loo_lines))
+    md = report_md(rows, a.data, loo_lines)
     if a.json is not None:
         a.json.write_text(json.dumps({r.trial: {
             "samples": r.samples, "movement": r.movement, "within_3sigma": r.within_3sigma,

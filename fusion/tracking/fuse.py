@@ -79,7 +79,7 @@ class InstantUpdate:
         k = newer_weight
         w = None if w0 is None else (w0 if gyro is None else (1.0 - k) * w0 + k * gyro)
         rate_sq = 0.0
-        if w is not None and p.settings.base_turns_about_any:  # the gyro's scale error: σ_s |ω| on the tilt
+        if w is not None and p.settings.base_turns_about_any:  # the scale error: σ_s |ω| on the attitude
             om = process.rate(w, ukf.mean)
             rate_sq = float(om @ om)
         Q = process.Q(dt, w is not None, p.still.still, rate_sq)

@@ -163,8 +163,8 @@ class ProcessModel:
 
     def set_scale_noise(self, sigma: float) -> None:
         """For a base that turns about every axis (:attr:`TrackerSettings.base_turns_about_any`),
-        the gyro's scale-and-axes error ``sigma`` (a fraction per axis) as the tilt's process
-        noise (:meth:`Q`)."""
+        the gyro's scale-and-axes error ``sigma`` (a fraction per axis) as the attitude's
+        process noise (:meth:`Q`)."""
         self._scale_noise_rad2 = float(sigma) ** 2
 
     def _decay_of(self, dt: float) -> float:
@@ -230,12 +230,13 @@ class ProcessModel:
 
     def Q(self, dt: float, have_gyro: bool, still: bool, rate_sq: float = 0.0) -> np.ndarray:
         """The process noise over ``dt`` (cached), at the motion's time scale ``k``; with the
-        gyro's scale-and-axes error as tilt noise (:meth:`set_scale_noise`), its share at the
-        turn rate's square ``rate_sq`` (rad²/s²): ``σ_s² |ω|² τ dt`` on roll and on pitch, the
-        turn's error correlated over the base motion's correlation time ``τ`` (a hand keeps
+        gyro's scale-and-axes error as attitude noise (:meth:`set_scale_noise`), its share at the
+        turn rate's square ``rate_sq`` (rad²/s²): ``σ_s² |ω|² τ dt`` on roll, pitch and yaw,
+        the turn's error correlated over the base motion's correlation time ``τ`` (a hand keeps
         turning about one axis for about that long, so the error does not average away
-        faster). (The heading takes none: there it would hand the heading to a compass whose
-        disturbance the guard has not yet caught; docs/tracking-hand.md.)"""
+        faster). The heading takes it as the tilt does: a gyro that turns the sensor wrong
+        turns its heading wrong by as much, and a heading whose sigma did not grow would
+        barely hear the compass that shows it (docs/tracking-hand.md)."""
         key = (round(dt * 1e9), have_gyro, still)  # dt to the nanosecond
         Q = self._Q.get(key)
         if Q is None:
@@ -256,6 +257,7 @@ class ProcessModel:
             add = scale_var * st.base_accel_tau_s * dt
             Q[L.roll, L.roll] += add
             Q[L.pitch, L.pitch] += add
+            Q[L.yaw, L.yaw] += add
         return Q
 
     @property

@@ -95,7 +95,7 @@ class TrackerSetup:
         self._has_imu = arm.imu is not None
         # the gyro's scale about the vertical: a state where it is not known exactly (a turn's
         # heading is off by the same fraction each time; the compass shows by how much); for a
-        # base that turns about every axis, every axis's scale error as the tilt's noise instead
+        # base that turns about every axis, every axis's scale error as the attitude's noise instead
         self.gyro_scale_sigma = (calibrated.heading_scale_sigma(arm, model, st.gyro_scale_sigma,
                                                                 any_axis=st.base_turns_about_any)
                                  if self._has_imu else 0.0)

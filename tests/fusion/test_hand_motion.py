@@ -70,7 +70,7 @@ def test_a_faster_motion_has_a_wider_faster_acceleration_and_its_process_noise_s
     assert process.accel_sigma_mps2 == pytest.approx(4.0 * tr.settings.base_accel_sigma_mps2)
 
 
-def test_a_hand_that_turns_about_every_axis_has_its_gyro_scale_error_as_tilt_noise() -> None:
+def test_a_hand_that_turns_about_every_axis_has_its_gyro_scale_error_as_attitude_noise() -> None:
     arm = load_arm("broad_imu")
     assert arm.base_motion.turns_about == "any" and arm.calibration.gyro_scale_unmodelled == 0.003
     tr = Tracker(arm)
@@ -80,11 +80,10 @@ def test_a_hand_that_turns_about_every_axis_has_its_gyro_scale_error_as_tilt_noi
     still = tr.process.Q(dt, True, False)
     turning = tr.process.Q(dt, True, False, rate_sq=np.radians(300.0) ** 2)
     extra = np.diag(turning - still)
-    # roll and pitch: σ_s² |ω|² τ dt, 0.3 % at 300 °/s over the hand's 0.3 s
+    # roll, pitch and yaw: σ_s² |ω|² τ dt, 0.3 % at 300 °/s over the hand's 0.3 s
     want = 0.003**2 * np.radians(300.0) ** 2 * tr.settings.base_accel_tau_s * dt
-    np.testing.assert_allclose(extra[[L.roll, L.pitch]], want, rtol=1e-12)
-    assert extra[L.yaw] == 0.0
-    assert np.count_nonzero(extra) == 2
+    np.testing.assert_allclose(extra[[L.roll, L.pitch, L.yaw]], want, rtol=1e-12)
+    assert np.count_nonzero(extra) == 3
 
 
 def test_a_chair_keeps_its_scale_state_its_fixed_motion_and_no_tilt_noise_from_its_turns() -> None:

@@ -70,8 +70,10 @@ def test_a_sensor_turned_round_averages_its_iron_and_its_sigma_says_so(tmp_path:
     med = float(np.median(sig[late]))
     assert np.mean(err <= 3 * sig) >= 0.95  # honest
     # and tight: a few times the error (the IMU's mount about the vertical, 1°, is in it
-    # whatever the turns do), far below the iron's full 7° at one attitude (2 µT of 16)
-    assert med < 4.0 * rms and med < np.radians(3.0), (np.degrees(med), np.degrees(rms))
+    # whatever the turns do, and the gyro's scale the config leaves unknown, 0.3 % of the
+    # turns, though this gyro's is exact), far below the iron's full 7° at one attitude
+    # (2 µT of 16)
+    assert med < 4.5 * rms and med < np.radians(3.0), (np.degrees(med), np.degrees(rms))
 
 
 def test_a_magnet_beside_the_turning_sensor_stays_within_the_heading_s_sigma(tmp_path: Path) -> None:

@@ -106,5 +106,5 @@ def test_the_track_notes_say_which_delays_are_made_up_for():
     notes = delay_notes(load_arm("broad_imu"))
     assert notes[0].startswith("the gyroscope's delay (1.75 ms) made up for")
     assert notes[1] == ("delays made up for by turning each reading to its stamp with its sensor's turn "
-                        "rate: imu_acc 1.75 ms, imu_mag 1.75 ms")
+                        "rate: imu_acc 1.75 ms, imu_mag 13 ms")
     assert len(notes) == 2

@@ -21,10 +21,15 @@ from armfusion.models.rotations import R_from_rpy
 from tools.bench_heading_broad import (
     PEERS,
     FilterResult,
+    LooResult,
     Scores,
+    Trial,
     TrialResult,
+    chosen_lag_s,
+    compass_lag_s,
     enu_from_nwu,
     errors_rad,
+    loo_md,
     quat_from_rpy,
     read_trial,
     run_trial,
@@ -188,3 +193,44 @@ def test_the_targets_are_judged_on_the_means_to_three_decimals_and_the_magnet_tr
                   ahrs=(1.0, 3.0))]
     line = targets_line(worse)
     assert line.count("**not met**") == 3, line
+
+
+def _turning_trial(lag_s: float, seed: int = 5, rate_hz: float = 2000.0 / 7.0, seconds: float = 8.0) -> Trial:
+    """An IMU turned about every axis at up to about 300 deg/s; its gyro exact, its compass
+    reading Earth's field ``lag_s`` late, with noise."""
+    from armfusion.models.rotations import exp_so3
+
+    from tests.fusion.test_base_velocity import turned_back, turned_by
+
+    rng = np.random.default_rng(seed)
+    f, ph = rng.uniform(0.3, 1.2, 3), rng.uniform(0, 2 * np.pi, 3)
+
+    def omega(t: float) -> np.ndarray:
+        return 4.0 * np.sin(2 * np.pi * f * t + ph)
+
+    t = np.arange(int(seconds * rate_hz)) / rate_hz
+    Rs = turned_by(exp_so3(np.array([0.1, -0.2, 0.4])), omega, t, rate_hz, sub=2)
+    w = np.array([omega(tt) for tt in t])
+    n = len(t)
+    mag = np.einsum("nji,j->ni", turned_back(Rs, w, lag_s), [0.0, 16.0, -40.0]) + rng.normal(0, 0.3, (n, 3))
+    return Trial("synthetic", Path("synthetic.hdf5"), rate_hz, np.zeros((n, 3)), w, mag,
+                 np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), np.ones(n, bool))
+
+
+def test_the_compass_lag_is_found_from_the_imu_alone_whatever_it_is() -> None:
+    for lag in (0.002, 0.008):
+        assert abs(compass_lag_s(_turning_trial(lag)) - lag) <= 0.0005, lag
+
+
+def test_the_constant_chosen_on_the_trials_is_their_median_and_each_trial_is_scored_on_the_others() -> None:
+    assert chosen_lag_s([0.005, 0.0081, 0.02]) == pytest.approx(0.008)
+    rows = [_row("01_a", 1.0, armfusion=(1.0, 0.5), vqf=(1.0, 0.5)),
+            _row("02_b", 1.0, armfusion=(1.0, 0.5), vqf=(2.0, 0.5)),
+            _row("03_c", 1.0, armfusion=(1.0, 0.5), vqf=(1.0, 0.5))]
+    loo = [LooResult(r.trial, d, Scores(h, 0.5, h, 100, 0, 0), 1.0)
+           for r, d, h in ((rows[0], 0.0095, 1.5), (rows[1], 0.0090, 4.5), (rows[2], 0.0095, 0.9))]
+    text = "\n".join(loo_md(rows, [0.007, 0.009, 0.008], 0.00975, loo))
+    assert "| 02_b | 9.00 | 4.50 / 0.50 | 2.00 / 0.50 | 2.25 |" in text
+    # the left-out figures, not the in-sample ones, are judged: a mean of 2.3 against 1.33
+    assert "mean heading 2.300 against vqf's 1.333" in text
+    assert text.count("**not met**") == 2 and "(worst 2.25 times)" in text
