@@ -27,6 +27,11 @@ MAX_YAML_VALUES = 200_000
 (nine anchors each repeating the one before ten times) means 10^9 of them."""
 
 
+MAX_NUMBER_CHARS = 64
+"""An integer of a config in more characters than this is refused (a float needs at most 24;
+the largest a config holds, 2^32 counts per revolution, ten), as the recording CSV's cells."""
+
+
 def _yaml_problem(source: str, where: str, message: str) -> ConfigError:
     return ConfigError([ConfigProblem(source, where, None, message)])
 
@@ -47,6 +52,11 @@ def _expanded_size(node: yaml.Node, source: str) -> int:
                                 "a YAML alias refers to a node that contains it (a recursive alias)")
         open_nodes.add(key)
         total = 1
+        if (isinstance(n, yaml.ScalarNode) and n.tag == "tag:yaml.org,2002:int"
+                and len(n.value) > MAX_NUMBER_CHARS):  # (Python's int() stops at 4300 digits: a traceback)
+            raise _yaml_problem(source, f"line {n.start_mark.line + 1}",
+                                f"a number of {len(n.value)} characters (it starts {n.value[:16]!r}); "
+                                "no number needs so many")
         if isinstance(n, yaml.SequenceNode):
             total += sum(size(c) for c in n.value)
         elif isinstance(n, yaml.MappingNode):

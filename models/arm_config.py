@@ -143,6 +143,14 @@ class JointsSection(_Strict):
     def _angle(cls, v: list[float]) -> list[float]:
         return _bounded(v, MAX_ANGLE_DEG, "deg")
 
+    @field_validator("names")
+    @classmethod
+    def _unique(cls, v: list[str] | None) -> list[str] | None:
+        twice = sorted({x for x in v or [] if v.count(x) > 1})
+        if twice:
+            raise ValueError(f"joint names must be unique; {', '.join(map(repr, twice))} is given twice")
+        return v
+
 
 class BusSection(_Strict):
     kind: Literal["i2c", "spi"]
@@ -156,7 +164,7 @@ class BusSection(_Strict):
 
 
 class SensorSection(_Strict):
-    name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
+    name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=64)
     """The sensor's name: its streams' and CSV columns' prefix (acc1_x, ...)."""
     type: str
     """The device: adxl345, mpu9150, mpu6050, analog_triax or custom."""

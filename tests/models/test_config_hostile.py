@@ -217,6 +217,11 @@ def _covariance(d: dict, matrix) -> None:
          "sensors[0].name: a name starting with 'imu' is the base IMU's streams' (imu_acc…) in a recording"),
         (lambda d: _covariance(d, [[1.0, 2.0], [2.0, 1.0]]),
          "calibration.correction_covariance.acc1: matrix must be positive semi-definite"),
+        # (two joints of one name: a --reference, --encoder-withheld or effect target meant either)
+        (lambda d: d["arm"]["joints"].__setitem__("names", ["j1", "j1", "j3", "j4", "j5", "j6", "j7"]),
+         "arm.joints.names: joint names must be unique; 'j1' is given twice"),
+        (lambda d: d["sensors"][0].__setitem__("name", "a" * 5000),
+         "sensors[0].name: String should have at most 64 characters"),
     ],
 )
 def test_every_number_within_physical_bounds_and_every_name_its_own(
@@ -236,6 +241,19 @@ def test_a_fits_semi_definite_covariance_is_taken(tmp_path: Path, wmra_dict: dic
     # 6 digits leave its least eigenvalue at -5e-8
     _covariance(wmra_dict, [[1.0, 1.0], [1.0, 0.9999999]])
     assert load_arm(_write(tmp_path / "c.yaml", wmra_dict)).n_joints == 7
+
+
+def test_an_integer_of_thousands_of_digits_is_refused_naming_its_line(tmp_path: Path) -> None:
+    # before: Python's int() limit (4300 digits) was a ValueError traceback in every command
+    text = (CONFIG_DIR / "wmra.yaml").read_text().replace("d_mm: [120.4,", "d_mm: [" + "9" * 5000 + ",")
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    line = text[: text.index("9" * 5000)].count("\n") + 1
+    _, problems = _load_problems(p)
+    assert problems == [f"{p}: line {line}: a number of 5000 characters (it starts '9999999999999999'); "
+                        "no number needs so many"]
+    r = runner.invoke(app, ["info", "--config", str(p)])
+    assert r.exit_code == 2 and "Traceback" not in r.output
 
 
 def test_a_key_given_twice_is_refused_naming_both_lines(tmp_path: Path) -> None:
