@@ -109,7 +109,8 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     dropped = stamps.not_increasing + stamps.no_time
     copies = copies_dropped(keep, [cols.columns[c][s:] for c in cmap.columns()])
     if not keep.any():
-        why = f"none of its {n - s} data row(s) has a usable time" if n > s else "no data row after the header"
+        why = (f"none of its {n - s} data row(s) has a usable time" if n > s
+               else "no data row after the header")
         raise ImportMapError(f"{path}: no row to import: {why}")
     t_s = t_all[keep]
     rows = np.flatnonzero(keep) + s + 1  # the file's row of each kept row
