@@ -26,6 +26,7 @@ from armfusion.models.arm import (
 )
 from armfusion.models.rotations import DEG, rotation_problem
 from armfusion.models.sensor_description import DEVICE_TYPES, SensorDescription, describe, unmodelled_floor
+from armfusion.sensors.csv_blocks import CsvLimits
 from armfusion.sensors.samples import IMU_STREAMS, LINK_GYRO_SUFFIX, clipped_repr
 from pydantic import (
     BaseModel,
@@ -472,6 +473,11 @@ def _get(data: Any, loc: tuple) -> Any:
     return data
 
 
+MAX_SENSORS = (CsvLimits.max_columns - 1) // 3
+"""Sensors a config may hold: a recording of them fits the recording CSV's columns (``t`` and at
+least three a sensor)."""
+
+
 def _friendly(msg: str) -> str:
     return msg.removeprefix("Value error, ")
 
@@ -485,6 +491,11 @@ def validate_config_dict(
     if not isinstance(data, dict):
         return None, [ConfigProblem(source, "(top level)", type(data).__name__,
                                     "an arm config is a mapping with keys arm, sensors")]
+    sensors = data.get("sensors")
+    if isinstance(sensors, list) and len(sensors) > MAX_SENSORS:  # (checking each would take minutes)
+        return None, [ConfigProblem(source, "sensors", None, (
+            f"{len(sensors)} sensors, more than a recording holds: each has at least 3 columns, and a "
+            f"recording CSV at most {CsvLimits.max_columns} (so at most {MAX_SENSORS} sensors)"))]
     try:
         parsed = ArmConfigFile.model_validate(data)
     except ValidationError as e:

@@ -256,6 +256,19 @@ def test_an_integer_of_thousands_of_digits_is_refused_naming_its_line(tmp_path: 
     assert r.exit_code == 2 and "Traceback" not in r.output
 
 
+def test_more_sensors_than_a_recording_holds_are_refused_at_once(tmp_path: Path, wmra_dict: dict) -> None:
+    # before: 2000 sensors took `info` 31 s to accept; `simulate` ran past a minute towards a
+    # recording of 6000 columns that the reader refuses
+    extra = {"type": "adxl345", "link": 2, "rotation": np.eye(3).tolist(), "position_mm": [0, 0, 0]}
+    wmra_dict["sensors"] += [{"name": f"s{i}", **extra} for i in range(2000)]
+    p = _write(tmp_path / "c.yaml", wmra_dict)
+    t0 = time.perf_counter()
+    _, problems = _load_problems(p)
+    assert time.perf_counter() - t0 < 10
+    assert problems == [f"{p}: sensors: 2005 sensors, more than a recording holds: each has at least 3 "
+                        "columns, and a recording CSV at most 1000 (so at most 333 sensors)"]
+
+
 def test_a_key_given_twice_is_refused_naming_both_lines(tmp_path: Path) -> None:
     text = (CONFIG_DIR / "wmra.yaml").read_text()
     text = text.replace("  name: WMRA-II\n", "  name: WMRA-II\n  name: other\n")
