@@ -46,6 +46,8 @@ def read_recording(path: str | Path) -> Recording:
         rec = read_csv(path)
     else:
         rec, report = read_mcap(path)
+        if not report.complete and report.messages_read == 0:  # (an empty file, a cut header, a bad chunk)
+            raise RecordingError(f"{report.message}; no message in it could be read")
         if not report.complete:
             warnings.warn(report.message, RecordingWarning, stacklevel=2)
         if report.left_out:
