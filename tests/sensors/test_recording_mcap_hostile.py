@@ -129,8 +129,8 @@ def test_a_damaged_file_with_no_message_left_is_refused_not_summarised_as_empty(
         read_recording(p)
     said = str(e.value)
     assert said.startswith(f"{p}: file ends early at byte {keep}")
-    assert said.endswith(("recovered 0 messages; the file's summary is missing; no message in it could be read",
-                          "could not be read; no message in it could be read")), said
+    assert said.endswith(("recovered 0 messages; the file's summary is missing; no message in it "
+                          "could be read", "could not be read; no message in it could be read")), said
 
 
 def _valid_file(tmp_path: Path) -> bytes:
