@@ -204,6 +204,10 @@ def test_an_unwritable_place_is_refused_before_the_work(startup_csv: Path, args)
     # before: numpy's "expected non-negative integer", naming no option
     (["simulate", "-s", "startup", "--seed", "-1", "--out", "{tmp}/s.csv"],
      "--seed -1: expected a seed, at least 0"),
+    # before: an OverflowError traceback in the startup's sigmas (1e308 squared)
+    (["track", "{rec}", "--unmodelled-g", "1e308"],
+     "--unmodelled-g must be from 0 to 1 g (more than gravity itself would make the sensor useless), "
+     "not 1e+308"),
     # before: a MemoryError traceback (7.28 TiB)
     (["drivers", "--fake", "--duration", "1e9"],
      "--duration 1e+09 s at 100 Hz would need about 351 TB of memory"),
