@@ -64,8 +64,10 @@ def refuse_bad_samples(rec: Recording, path: str | Path) -> None:
     problems = feed_problems(rec)
     if problems:
         p = problems[0]
+        why = ("no ground truth can be that" if p.reason == "truth_not_finite"
+               else "no sensor can have said that")
         raise RecordingError(f"{path}: {sample_place(rec, p.stream, p.index)}: {p.words}; "
-                             "no sensor can have said that, so the recording is refused")
+                             f"{why}, so the recording is refused")
 
 
 def write_recording(rec: Recording, path: str | Path) -> None:
