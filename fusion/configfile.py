@@ -218,9 +218,23 @@ def _check_urdf_text(path: Path) -> None:
             raise ValueError(f"URDF {path.name}: line {line}: a {decl[2:]} declaration; a URDF needs none, "
                              "and it is refused (an entity can expand to gigabytes)")
     try:
-        ET.fromstring(text)
+        root = ET.fromstring(text)
     except ET.ParseError as e:
         raise ValueError(f"URDF {path.name}: not XML ({e})") from None
+    for joint in root.iter("joint"):  # (the URDF parser's own words were numpy's broadcasting)
+        for tag, attr in (("origin", "xyz"), ("origin", "rpy"), ("axis", "xyz")):
+            for el in joint.iter(tag):
+                value = el.get(attr)
+                if value is not None and not _three_numbers(value):
+                    raise ValueError(f"URDF {path.name}: joint {clipped_repr(joint.get('name', '?'))}: "
+                                     f"{tag} {attr}={clipped_repr(value)} is not three numbers")
+
+
+def _three_numbers(text: str) -> bool:
+    try:
+        return len([float(x) for x in text.split()]) == 3
+    except ValueError:
+        return False
 
 
 def read_yaml_of(path: Path, what: str) -> Any:

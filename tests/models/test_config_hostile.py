@@ -326,6 +326,9 @@ def _urdf_config(tmp_path: Path, xyz: str = "0 0 0.1", axis: str = "0 0 1", head
     (dict(head='<?xml version="1.0"?>\n<!DOCTYPE r [<!ENTITY x "y">]>\n'),
      "line 2: a DOCTYPE declaration; a URDF needs none"),
     (dict(text='<robot name="r">\0</robot>'), "line 1 holds a NUL byte; a URDF is XML text"),
+    # before: "not a URDF (ValueError: could not broadcast input array from shape (2,) into shape (3,))"
+    (dict(xyz="0 0"), "joint 'j1': origin xyz='0 0' is not three numbers"),
+    (dict(axis="a b c"), "joint 'j1': axis xyz='a b c' is not three numbers"),
 ])
 def test_a_urdf_that_is_not_geometry_is_refused_in_one_line(tmp_path: Path, kw: dict, expected: str) -> None:
     # before: NaN or 1e308 geometry and a zero axis were accepted (then -2^63 counts, a LinAlgError);
