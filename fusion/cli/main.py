@@ -25,7 +25,13 @@ from armfusion.fusion.cli.common import (
     load_arm_or_exit,
     read_recording_or_exit,
 )
-from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, RecordingArg, window_seconds
+from armfusion.fusion.cli.options import (
+    ConfigOpt,
+    JsonOpt,
+    RecordingArg,
+    window_holds_samples,
+    window_seconds,
+)
 from typer.core import TyperGroup
 
 from armfusion import __version__
@@ -271,6 +277,7 @@ def inspect(
     from armfusion.fusion.startup.static import StaticDetectionSettings
 
     rec = read_recording_or_exit(recording)
+    window_holds_samples(rec, window_s)
     d = describe_recording(rec, StaticDetectionSettings(window_s=window_s))
     d["path"] = str(recording)
     if json_out:

@@ -188,6 +188,12 @@ def test_an_unwritable_place_is_refused_before_the_work(startup_csv: Path, args)
     (["inspect", "{rec}", "--window-s", "1e9"], "--window-s 1000000000.0: expected a window in seconds"),
     (["inspect", "{rec}", "--window-s", "0"], "--window-s 0.0: expected a window in seconds"),
     (["calibrate", "joints", "{rec}", "--window-s", "-1"], "--window-s -1.0: expected a window in seconds"),
+    # before: exit 0, each sample judged still alone (a still stretch 0.4 s longer than at 1 s)
+    (["inspect", "{rec}", "--window-s", "1e-9"],
+     "--window-s 1e-09: shorter than two samples of the recording (one every 0.01 s); a window must hold "
+     "samples"),
+    (["calibrate", "joints", "{rec}", "--window-s", "0.001"],
+     "--window-s 0.001: shorter than two samples of the recording (one every 0.01 s)"),
     (["calibrate", "sensors", "{rec}", "--window", "0"],
      "--window 0: expected samples per fit point, at least 1"),
     (["diagnose", "{rec}", "--window", "0"], "--window 0: expected samples per fit point, at least 1"),
