@@ -214,6 +214,11 @@ def test_an_unwritable_place_is_refused_before_the_work(startup_csv: Path, args)
     (["track", "{rec}", "--unmodelled-g", "1e308"],
      "--unmodelled-g must be from 0 to 1 g (more than gravity itself would make the sensor useless), "
      "not 1e+308"),
+    # before: exit 0, a recording of its header alone; one every reader refuses (times too dense)
+    (["simulate", "-s", "startup", "--rate", "1e-6", "--duration", "1", "--out", "{tmp}/s.csv"],
+     "--duration 1 s at 1e-06 Hz holds no sample (one every 1e+06 s)"),
+    (["simulate", "-s", "startup", "--rate", "200000", "--duration", "0.01", "--out", "{tmp}/s.csv"],
+     "--rate 200000 Hz is faster than any sensor delivers (100 kHz at most)"),
     # before: a MemoryError traceback (7.28 TiB)
     (["drivers", "--fake", "--duration", "1e9"],
      "--duration 1e+09 s at 100 Hz would need about 351 TB of memory"),
