@@ -4,6 +4,7 @@ found unwritable after the work; arguments that make no sense are refused in one
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -128,6 +129,18 @@ def test_a_second_recording_meets_the_same_door(tmp_path: Path, startup_csv: Pat
         assert r.exit_code == 2
         assert (f"{p}: row 101 (line 102), stream acc1: acc1_x = 5000 at t = 1 s is beyond the device's "
                 "range -512…511") in _one_line(r)
+
+
+def test_a_compass_drive_that_is_no_recording_is_refused_before_the_fit(tmp_path: Path,
+                                                                       startup_csv: Path) -> None:
+    # before: read only after the whole fit (a minute of work on a real maneuver), then refused
+    fifo = tmp_path / "drive.csv"
+    os.mkfifo(fifo)
+    for drive, said in (("/dev/zero", "cannot read recording /dev/zero: unknown recording suffix '(none)'"),
+                        (str(fifo), f"cannot read recording {fifo}: not a regular file")):
+        r = runner.invoke(app, ["calibrate", "sensors", str(startup_csv), "--compass-drive", drive])
+        assert r.exit_code == 2 and said in _one_line(r)
+        assert "fitting" not in r.stderr
 
 
 def test_import_refuses_a_value_no_sensor_of_the_config_reads(tmp_path: Path) -> None:
