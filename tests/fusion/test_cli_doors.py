@@ -143,6 +143,24 @@ def test_a_compass_drive_that_is_no_recording_is_refused_before_the_fit(tmp_path
         assert "fitting" not in r.stderr
 
 
+def test_diagnose_never_replaces_a_file_that_is_no_history(tmp_path: Path, startup_csv: Path) -> None:
+    # before: --history naming another recording (or any file that is not JSON) was warned about
+    # and replaced by a new history, exit 0; /dev/zero was read without end, a FIFO blocked
+    other = tmp_path / "other.csv"
+    other.write_bytes(startup_csv.read_bytes())
+    fifo = tmp_path / "h.json"
+    os.mkfifo(fifo)
+    device = "not a regular file (a device, a FIFO); diagnose would replace it"
+    for history, why in ((other, "holds something other than a workbench history; diagnose would replace "
+                                 "it: give another path, or remove the file"),
+                         (Path("/dev/zero"), device), (fifo, device)):
+        t0 = time.perf_counter()
+        r = runner.invoke(app, ["diagnose", str(startup_csv), "--history", str(history)])
+        assert r.exit_code == 2 and f"--history {history}: {why}" in _one_line(r)
+        assert time.perf_counter() - t0 < 30
+    assert other.read_bytes() == startup_csv.read_bytes()
+
+
 def test_import_refuses_a_value_no_sensor_of_the_config_reads(tmp_path: Path) -> None:
     src = tmp_path / "log.csv"
     src.write_text("t_ms,ax,ay,az,gx,gy,gz,angle_deg\n0,0,0,1,0,0,0,0\n10,0,0,1,0,0,0,18446744073709551616\n")
