@@ -161,6 +161,15 @@ def test_diagnose_never_replaces_a_file_that_is_no_history(tmp_path: Path, start
     assert other.read_bytes() == startup_csv.read_bytes()
 
 
+def test_track_writes_its_estimates_into_a_directory_still_to_be_made(tmp_path: Path,
+                                                                     startup_csv: Path) -> None:
+    # before: the whole run, then "cannot write .../new/sub/est.csv: No such file or directory"
+    out = tmp_path / "new" / "sub" / "est.csv"
+    r = runner.invoke(app, ["track", str(startup_csv), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert out.read_text().startswith("t")
+
+
 def test_import_refuses_a_value_no_sensor_of_the_config_reads(tmp_path: Path) -> None:
     src = tmp_path / "log.csv"
     src.write_text("t_ms,ax,ay,az,gx,gy,gz,angle_deg\n0,0,0,1,0,0,0,0\n10,0,0,1,0,0,0,18446744073709551616\n")
