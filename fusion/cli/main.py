@@ -190,9 +190,9 @@ def info(
     from armfusion.fusion.cli.describe import describe_arm
 
     if plot is not None:
-        check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES, inputs=(config_file(config),))
+        check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES, inputs=_config_inputs(config))
     if urdf is not None:
-        check_output_path(urdf, "--urdf", suffixes=(".urdf",), inputs=(config_file(config),))
+        check_output_path(urdf, "--urdf", suffixes=(".urdf",), inputs=_config_inputs(config))
     arm = load_arm_or_exit(config)
     d = describe_arm(arm)
     if plot is not None:
@@ -261,6 +261,19 @@ def _table(title: str, left: tuple[str, ...], right: tuple[str, ...] = ()):
 
 def _f(v) -> str:
     return "-" if v is None else f"{v:g}"
+
+
+def _config_inputs(config: str) -> tuple[Path | None, ...]:
+    """The files a config is read from: its YAML and the URDF it names (``arm.urdf``), which no
+    output may replace (``info --urdf`` had written over the config's own URDF)."""
+    from armfusion.fusion.configfile import read_yaml
+
+    path = config_file(config)
+    try:
+        named = read_yaml(path)["arm"]["urdf"] if path is not None else None
+    except (ValueError, KeyError, TypeError):
+        named = None
+    return (path, (path.parent / named) if isinstance(named, str) else None)
 
 
 # --------------------------------------------------------------------------------------

@@ -345,6 +345,17 @@ def test_a_sound_urdf_is_taken(tmp_path: Path) -> None:
     assert load_arm(_urdf_config(tmp_path)).n_joints == 2
 
 
+def test_info_never_writes_over_the_urdf_its_config_reads(tmp_path: Path) -> None:
+    # before: `info --urdf` replaced the config's own URDF with its generated one, exit 0
+    p = _urdf_config(tmp_path)
+    before = (tmp_path / "r.urdf").read_bytes()
+    r = runner.invoke(app, ["info", "--config", str(p), "--urdf", str(tmp_path / "r.urdf")])
+    assert r.exit_code == 2 and "Traceback" not in r.output
+    assert (f"--urdf {tmp_path / 'r.urdf'}: is the input {tmp_path / 'r.urdf'}; an output never replaces "
+            "a file the command reads") in " ".join(r.stderr.split())
+    assert (tmp_path / "r.urdf").read_bytes() == before
+
+
 # ---------------------------------------------------------------------------- fuzzing the loader
 
 _HOSTILE_NUMBERS = st.one_of(
