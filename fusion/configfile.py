@@ -27,6 +27,11 @@ MAX_YAML_VALUES = 200_000
 (nine anchors each repeating the one before ten times) means 10^9 of them."""
 
 
+MAX_NUMBER_CHARS = 64
+"""An integer of a config in more characters than this is refused (a float needs at most 24;
+the largest a config holds, 2^32 counts per revolution, ten), as the recording CSV's cells."""
+
+
 def _yaml_problem(source: str, where: str, message: str) -> ConfigError:
     return ConfigError([ConfigProblem(source, where, None, message)])
 
@@ -47,6 +52,11 @@ def _expanded_size(node: yaml.Node, source: str) -> int:
                                 "a YAML alias refers to a node that contains it (a recursive alias)")
         open_nodes.add(key)
         total = 1
+        if (isinstance(n, yaml.ScalarNode) and n.tag == "tag:yaml.org,2002:int"
+                and len(n.value) > MAX_NUMBER_CHARS):  # (Python's int() stops at 4300 digits: a traceback)
+            raise _yaml_problem(source, f"line {n.start_mark.line + 1}",
+                                f"a number of {len(n.value)} characters (it starts {n.value[:16]!r}); "
+                                "no number needs so many")
         if isinstance(n, yaml.SequenceNode):
             total += sum(size(c) for c in n.value)
         elif isinstance(n, yaml.MappingNode):
@@ -208,9 +218,23 @@ def _check_urdf_text(path: Path) -> None:
             raise ValueError(f"URDF {path.name}: line {line}: a {decl[2:]} declaration; a URDF needs none, "
                              "and it is refused (an entity can expand to gigabytes)")
     try:
-        ET.fromstring(text)
+        root = ET.fromstring(text)
     except ET.ParseError as e:
         raise ValueError(f"URDF {path.name}: not XML ({e})") from None
+    for joint in root.iter("joint"):  # (the URDF parser's own words were numpy's broadcasting)
+        for tag, attr in (("origin", "xyz"), ("origin", "rpy"), ("axis", "xyz")):
+            for el in joint.iter(tag):
+                value = el.get(attr)
+                if value is not None and not _three_numbers(value):
+                    raise ValueError(f"URDF {path.name}: joint {clipped_repr(joint.get('name', '?'))}: "
+                                     f"{tag} {attr}={clipped_repr(value)} is not three numbers")
+
+
+def _three_numbers(text: str) -> bool:
+    try:
+        return len([float(x) for x in text.split()]) == 3
+    except ValueError:
+        return False
 
 
 def read_yaml_of(path: Path, what: str) -> Any:

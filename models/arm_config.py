@@ -26,6 +26,7 @@ from armfusion.models.arm import (
 )
 from armfusion.models.rotations import DEG, rotation_problem
 from armfusion.models.sensor_description import DEVICE_TYPES, SensorDescription, describe, unmodelled_floor
+from armfusion.sensors.csv_blocks import CsvLimits
 from armfusion.sensors.samples import IMU_STREAMS, LINK_GYRO_SUFFIX, clipped_repr
 from pydantic import (
     BaseModel,
@@ -143,6 +144,14 @@ class JointsSection(_Strict):
     def _angle(cls, v: list[float]) -> list[float]:
         return _bounded(v, MAX_ANGLE_DEG, "deg")
 
+    @field_validator("names")
+    @classmethod
+    def _unique(cls, v: list[str] | None) -> list[str] | None:
+        twice = sorted({x for x in v or [] if v.count(x) > 1})
+        if twice:
+            raise ValueError(f"joint names must be unique; {', '.join(map(repr, twice))} is given twice")
+        return v
+
 
 class BusSection(_Strict):
     kind: Literal["i2c", "spi"]
@@ -156,7 +165,7 @@ class BusSection(_Strict):
 
 
 class SensorSection(_Strict):
-    name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
+    name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=64)
     """The sensor's name: its streams' and CSV columns' prefix (acc1_x, ...)."""
     type: str
     """The device: adxl345, mpu9150, mpu6050, analog_triax or custom."""
@@ -464,6 +473,11 @@ def _get(data: Any, loc: tuple) -> Any:
     return data
 
 
+MAX_SENSORS = (CsvLimits.max_columns - 1) // 3
+"""Sensors a config may hold: a recording of them fits the recording CSV's columns (``t`` and at
+least three a sensor)."""
+
+
 def _friendly(msg: str) -> str:
     return msg.removeprefix("Value error, ")
 
@@ -477,6 +491,11 @@ def validate_config_dict(
     if not isinstance(data, dict):
         return None, [ConfigProblem(source, "(top level)", type(data).__name__,
                                     "an arm config is a mapping with keys arm, sensors")]
+    sensors = data.get("sensors")
+    if isinstance(sensors, list) and len(sensors) > MAX_SENSORS:  # (checking each would take minutes)
+        return None, [ConfigProblem(source, "sensors", None, (
+            f"{len(sensors)} sensors, more than a recording holds: each has at least 3 columns, and a "
+            f"recording CSV at most {CsvLimits.max_columns} (so at most {MAX_SENSORS} sensors)"))]
     try:
         parsed = ArmConfigFile.model_validate(data)
     except ValidationError as e:

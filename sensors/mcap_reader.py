@@ -252,7 +252,10 @@ def _decode_samples(data: list[bytes], k: int, counts: bool) -> tuple[np.ndarray
         plain = text.replace(head, b"").replace(mid, b",").replace(tail, b"").replace(b"\n", b",")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", DeprecationWarning)  # fromstring on bad text
-            flat = np.fromstring(plain.decode("ascii"), sep=",") if n else np.zeros(0)
+            try:
+                flat = np.fromstring(plain.decode("ascii"), sep=",") if n else np.zeros(0)
+            except ValueError:  # (a word such as true or null: numpy's words; json's below say where)
+                flat = np.zeros(0)
         if flat.size == n * (k + 1):
             table = flat.reshape(n, k + 1)
             values = table[:, 1:]
@@ -262,8 +265,18 @@ def _decode_samples(data: list[bytes], k: int, counts: bool) -> tuple[np.ndarray
                 whole = np.all(values == np.round(values))
                 return table[:, 0], (values.astype(np.int64) if whole else values)
     samples = json.loads(b"[" + b",".join(data) + b"]")
+    for i, m in enumerate(samples):  # a number is a JSON number: not "12", not true (the schema's)
+        if not (isinstance(m, dict) and _is_number(m.get("t_s")) and isinstance(m.get("values"), list)
+                and all(_is_number(v) for v in m["values"])):
+            said = json.dumps(m)
+            raise ValueError(f"message {i + 1} is not {{\"t_s\": number, \"values\": [numbers]}}: "
+                             + (said if len(said) <= 60 else said[:60] + "…"))
     t_s = np.array([m["t_s"] for m in samples], dtype=np.float64)
     return t_s, np.array([m["values"] for m in samples]).reshape(n, k)
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool)
 
 
 def _assemble(
@@ -298,6 +311,9 @@ def _assemble(
                 f"{path}: topic {clipped_repr(ch.topic)}: messages do not fit the stream: "
                 f"{clipped_repr(f'{type(e).__name__}: {e}', 120)[1:-1]}"
             ) from None
+        if name in streams:
+            raise RecordingError(f"{path}: topics {clipped_repr(topics[name])} and {clipped_repr(ch.topic)} "
+                                 f"both hold stream {clipped_repr(name)}; a stream is one topic's")
         streams[name] = stream
         topics[name] = ch.topic
         if len(stream):

@@ -59,9 +59,13 @@ def cannot_create_in(path: str | Path) -> str | None:
 
 @contextlib.contextmanager
 def replaced_when_done(path: str | Path) -> Iterator[Path]:
-    """A temporary path beside ``path`` to write to; renamed over ``path`` when the block
-    ends without an exception (and flushed to disk first), removed when it raises."""
+    """A temporary path beside ``path`` to write to (its missing directories made); renamed
+    over ``path`` when the block ends without an exception (and flushed to disk first),
+    removed when it raises."""
     path = Path(path)
+    # (a missing directory on the way is made, as :func:`cannot_create_in` found it can be:
+    # a run's output was lost at its end on "No such file or directory")
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent or ".")
     os.close(fd)
     try:

@@ -46,6 +46,8 @@ def read_recording(path: str | Path) -> Recording:
         rec = read_csv(path)
     else:
         rec, report = read_mcap(path)
+        if not report.complete and report.messages_read == 0:  # (an empty file, a cut header, a bad chunk)
+            raise RecordingError(f"{report.message}; no message in it could be read")
         if not report.complete:
             warnings.warn(report.message, RecordingWarning, stacklevel=2)
         if report.left_out:
@@ -62,8 +64,10 @@ def refuse_bad_samples(rec: Recording, path: str | Path) -> None:
     problems = feed_problems(rec)
     if problems:
         p = problems[0]
+        why = ("no ground truth can be that" if p.reason == "truth_not_finite"
+               else "no sensor can have said that")
         raise RecordingError(f"{path}: {sample_place(rec, p.stream, p.index)}: {p.words}; "
-                             "no sensor can have said that, so the recording is refused")
+                             f"{why}, so the recording is refused")
 
 
 def write_recording(rec: Recording, path: str | Path) -> None:

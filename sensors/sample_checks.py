@@ -27,7 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from armfusion.sensors.samples import RAW_KINDS, Recording, Stream
+from armfusion.sensors.samples import RAW_KINDS, TRUTH_KINDS, Recording, Stream
 
 FEED_MIN, FEED_MAX = -(1 << 31), (1 << 31) - 1
 """The encoder feed's counts (:mod:`armfusion.sensors.encoders`: int32 per joint), the widest range a
@@ -116,6 +116,22 @@ def range_problem(stream: Stream, lo, hi) -> SampleProblem | None:
                          range_words(stream.channels[j], v[i, j].item(), stream.t_s[i], lo, hi))
 
 
+def truth_problem(stream: Stream) -> SampleProblem | None:
+    """The first ground-truth angle of ``stream`` that is infinite or whose degrees overflow a
+    float (beyond 3e306 rad): no angle, and every error against it would be one. An empty
+    (NaN) value is a gap, not refused."""
+    v = np.asarray(stream.values, dtype=np.float64)
+    with np.errstate(over="ignore"):
+        bad = np.isinf(np.degrees(v))
+    if not bad.any():
+        return None
+    i, j = (int(x) for x in np.argwhere(bad)[0])
+    return SampleProblem(stream.name, i, "truth_not_finite",
+                         f"{stream.channels[j]} = {shown(v[i, j].item())} rad at t = "
+                         f"{float(stream.t_s[i]):.6g} s is not an angle (its degrees are not a finite "
+                         "number)")
+
+
 def density_problem(stream: Stream) -> SampleProblem | None:
     """``stream`` refused as a whole (at its second sample) when its median step is shorter
     than one sample at :data:`FASTEST_SAMPLING_HZ`."""
@@ -172,6 +188,8 @@ def feed_problems(rec: Recording) -> list[SampleProblem]:
         p = time_problem(s.name, s.t_s)
         if p is None and s.kind in RAW_KINDS:
             p = range_problem(s, FEED_MIN, FEED_MAX) or density_problem(s)
+        elif p is None and s.kind in TRUTH_KINDS:
+            p = truth_problem(s)
         if p is not None:
             out.append(p)
     if not out:

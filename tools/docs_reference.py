@@ -176,7 +176,8 @@ def _type_name(tp) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
-def _bounds(metadata) -> str:
+def _bounds(metadata, of: str = "entries") -> str:
+    """The bounds' words; ``of`` what a length counts (a list's entries, a string's characters)."""
     words = []
     for m in metadata:
         if isinstance(m, Ge):
@@ -188,9 +189,9 @@ def _bounds(metadata) -> str:
         elif isinstance(m, Lt):
             words.append(f"< {m.lt}")
         elif isinstance(m, MinLen):
-            words.append(f"at least {m.min_length} entries")
+            words.append(f"at least {m.min_length} {of}")
         elif isinstance(m, MaxLen):
-            words.append(f"at most {m.max_length} entries")
+            words.append(f"at most {m.max_length} {of}")
         elif getattr(m, "pattern", None):
             words.append(f"matches `{m.pattern}`")
     return ", ".join(words)
@@ -237,7 +238,7 @@ def _model_rows(model: type[BaseModel], prefix: str, rows: list[str], blocks: li
                 pass
         else:
             default = "none" if f.default is None else f"`{f.default}`"
-        bounds = _bounds([*f.metadata, *_inner_metadata(tp)])
+        bounds = _bounds([*f.metadata, *_inner_metadata(tp)], "characters" if tp is str else "entries")
         desc = " ".join((f.description or "").split())
         rows.append(f"| `{key}` | {_cell(_type_name(tp))} | {_unit(name)} | {_cell(default)} | "
                     f"{_cell(bounds)} | {_cell(desc)} |")

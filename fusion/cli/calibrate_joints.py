@@ -17,7 +17,13 @@ from armfusion.fusion.cli.common import (
     err_console,
     fail,
 )
-from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, finite_between, window_seconds
+from armfusion.fusion.cli.options import (
+    ConfigOpt,
+    JsonOpt,
+    finite_between,
+    window_holds_samples,
+    window_seconds,
+)
 from armfusion.fusion.identification.identify import startup_correction
 from armfusion.fusion.startup.pose_store import load_pose, save_pose
 from armfusion.fusion.startup.solve import (
@@ -62,6 +68,7 @@ def calibrate_joints(
     arm, rec, screen = arm_and_recording_or_exit(
         config, recording, lambda arm: [a.name for a in arm.link_accelerometers],
         "calibrate joints needs (every link accelerometer of {source})", json_out)
+    window_holds_samples(rec, window_s)
     st = StartupSettings(gimbal_lock_deg=gimbal_lock_deg, sigma_limit_deg=sigma_limit_deg)
     notes: list[str] = []
     first_prior = _first_prior(prior, assume_parked, arm, notes)

@@ -162,6 +162,8 @@ def calibrate_sensors(
         config, recording, fit_streams,
         "calibrate sensors fits (the encoders and every sensor stream of {source})", json_out,
         encoder_steps=True)
+    # the drive read before the fit, not after a minute of it (/dev/zero, a FIFO, a damaged file)
+    drive_rec = read_recording_or_exit(compass_drive, arm) if compass_drive is not None else None
     model, data = _model_and_data(arm, rec, effects, window, stances, base_tilt, base_tilt_sigma,
                                   reference, mode)
     if not json_out:
@@ -190,7 +192,7 @@ def calibrate_sensors(
     src = resolve_config_path(config)
     out = config_with_estimates(yaml.safe_load(src.read_text(encoding="utf-8")), res)
     if compass_drive is not None:
-        out, compass_line = _with_compass_from_drive(out, compass_drive, json_out)
+        out, compass_line = _with_compass_from_drive(out, compass_drive, drive_rec, json_out)
     if write is not None:
         _write_config(write, res, out, f"# {res.summary()}\n# from {recording}, config {src.name}\n",
                       compass_line)
@@ -255,9 +257,10 @@ def _write_config(write: Path, res, out: dict, header: str, compass_line: str | 
     write_text_replacing(write, header + refs + compass + yaml.safe_dump(out, sort_keys=False, width=110))
 
 
-def _with_compass_from_drive(cfg: dict, drive: Path, json_out: bool) -> tuple[dict, str]:
+def _with_compass_from_drive(cfg: dict, drive: Path, rec, json_out: bool) -> tuple[dict, str]:
     """``cfg`` (the fitted config, as written) with the compass's iron learnt from the turns
-    in ``drive`` in place of the parked fit's; the line that says what the drive gave."""
+    in ``drive`` (read as ``rec``) in place of the parked fit's; the line that says what the
+    drive gave."""
     import tempfile
 
     from armfusion.fusion.configfile import load_arm
@@ -267,7 +270,6 @@ def _with_compass_from_drive(cfg: dict, drive: Path, json_out: bool) -> tuple[di
         path = Path(d) / "fitted.yaml"
         path.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
         arm = load_arm(str(path))
-    rec = read_recording_or_exit(drive, arm)
     screen_or_exit(arm, rec, drive, (), "", True)  # (the same door as the recording's; saturation unsaid)
     try:
         entries, line = calibrate_compass_on_drive(arm, rec, drive.name)

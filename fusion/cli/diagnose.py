@@ -37,6 +37,7 @@ from armfusion.fusion.cli.diagnose_write import (
     Fits,
     extend_ladder,
     history_path,
+    history_problem,
     without_bound,
     write_config,
     write_refusal,
@@ -170,6 +171,10 @@ def _check_outputs(recording: Path, config: str, add, write: Path | None, report
     if write is not None and history is None:
         check_output_path(write.with_name(write.stem + ".workbench.json"), "--write (its history)",
                           inputs=inputs)
+    hpath = history or history_path(config)
+    why = history_problem(hpath)  # (read, then replaced: checked before the work)
+    if why is not None:
+        fail(f"{'--history ' if history is not None else 'the history '}{hpath}: {why}")
 
 
 def _data_and_held_out(arm, rec, recording: Path, validate: Path | None, window: int, write: Path | None,

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from armfusion.fusion.cli.common import err_console, progress_bar
+from armfusion.fusion.cli.common import progress_bar
 from armfusion.fusion.configfile import load_arm, resolve_config_path
 from armfusion.fusion.identification.identify import config_with_estimates
 from armfusion.fusion.workbench.diagnose import Diagnosis
@@ -46,15 +46,41 @@ def history_entry(diag: Diagnosis, recording: Path, config: str, label: str) -> 
     }
 
 
+MAX_HISTORY_BYTES = 64 << 20
+"""A history file larger than this is not read (a run adds about a kilobyte)."""
+
+
+def _history_doc(path: Path) -> dict | None:
+    from armfusion.fusion.configfile import read_bounded
+
+    try:
+        doc = json.loads(read_bounded(path, MAX_HISTORY_BYTES, "a workbench history"))
+    except (OSError, ValueError):
+        return None
+    ok = (isinstance(doc, dict) and str(doc.get("format", "")).startswith(HISTORY_FORMAT.split("/")[0])
+          and isinstance(doc.get("runs", []), list))
+    return doc if ok else None
+
+
+def history_problem(path: Path) -> str | None:
+    """Why the history file ``path``, which ``diagnose`` reads and then replaces, must not be
+    (a device, a FIFO: read without end or blocking; a file that is no workbench history: a
+    recording or a report would be replaced), or ``None`` (absent, or a history)."""
+    if not path.exists():
+        return None
+    if not path.is_file():
+        return "not a regular file (a device, a FIFO); diagnose would replace it"
+    if _history_doc(path) is None:
+        return ("holds something other than a workbench history; diagnose would replace it: give "
+                "another path, or remove the file")
+    return None
+
+
 def append_history(path: Path, entries: list[dict]) -> list[dict]:
-    """Append ``entries`` to the history file at ``path``; returns the whole ladder."""
-    runs: list[dict] = []
-    if path.exists():
-        try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
-            runs = list(doc.get("runs", []))
-        except (ValueError, AttributeError):
-            err_console.print(f"[yellow]warning:[/] {path} is not a workbench history; starting a new one")
+    """Append ``entries`` to the history file at ``path`` (absent, or a history:
+    :func:`history_problem`); returns the whole ladder."""
+    doc = _history_doc(path) if path.exists() else None
+    runs: list[dict] = list(doc.get("runs", [])) if doc else []
     runs += entries
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text_replacing(path, json.dumps({"format": HISTORY_FORMAT, "runs": runs}, indent=2) + "\n")

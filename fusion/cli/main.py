@@ -25,7 +25,13 @@ from armfusion.fusion.cli.common import (
     load_arm_or_exit,
     read_recording_or_exit,
 )
-from armfusion.fusion.cli.options import ConfigOpt, JsonOpt, RecordingArg, window_seconds
+from armfusion.fusion.cli.options import (
+    ConfigOpt,
+    JsonOpt,
+    RecordingArg,
+    window_holds_samples,
+    window_seconds,
+)
 from typer.core import TyperGroup
 
 from armfusion import __version__
@@ -184,9 +190,9 @@ def info(
     from armfusion.fusion.cli.describe import describe_arm
 
     if plot is not None:
-        check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES, inputs=(config_file(config),))
+        check_output_path(plot, "--plot", suffixes=PLOT_SUFFIXES, inputs=_config_inputs(config))
     if urdf is not None:
-        check_output_path(urdf, "--urdf", suffixes=(".urdf",), inputs=(config_file(config),))
+        check_output_path(urdf, "--urdf", suffixes=(".urdf",), inputs=_config_inputs(config))
     arm = load_arm_or_exit(config)
     d = describe_arm(arm)
     if plot is not None:
@@ -257,6 +263,19 @@ def _f(v) -> str:
     return "-" if v is None else f"{v:g}"
 
 
+def _config_inputs(config: str) -> tuple[Path | None, ...]:
+    """The files a config is read from: its YAML and the URDF it names (``arm.urdf``), which no
+    output may replace (``info --urdf`` had written over the config's own URDF)."""
+    from armfusion.fusion.configfile import read_yaml
+
+    path = config_file(config)
+    try:
+        named = read_yaml(path)["arm"]["urdf"] if path is not None else None
+    except (ValueError, KeyError, TypeError):
+        named = None
+    return (path, (path.parent / named) if isinstance(named, str) else None)
+
+
 # --------------------------------------------------------------------------------------
 @app.command()
 def inspect(
@@ -271,6 +290,7 @@ def inspect(
     from armfusion.fusion.startup.static import StaticDetectionSettings
 
     rec = read_recording_or_exit(recording)
+    window_holds_samples(rec, window_s)
     d = describe_recording(rec, StaticDetectionSettings(window_s=window_s))
     d["path"] = str(recording)
     if json_out:

@@ -52,6 +52,19 @@ def window_seconds(option: str):
     return check
 
 
+def window_holds_samples(rec, window_s: float, option: str = "--window-s") -> None:
+    """Exit 2 when ``window_s`` is shorter than two steps of the recording's fastest raw
+    stream (its median step): a window must hold samples to judge stillness or to average
+    (1e-9 s had judged each sample still alone, and found a longer still stretch)."""
+    import numpy as np
+
+    steps = [float(np.median(np.diff(s.t_s))) for s in rec.streams.values()
+             if s.kind not in ("truth_joints", "truth_base") and len(s) > 2]
+    if steps and window_s < 2.0 * min(steps):
+        fail(f"{option} {window_s!r}: shorter than two samples of the recording (one every "
+             f"{min(steps):.3g} s); a window must hold samples")
+
+
 def finite_between(option: str, lo: float, hi: float, what: str, *, lo_open: bool = False,
                    hi_open: bool = False):
     """A callback refusing a value that is not a finite number from ``lo`` to ``hi`` (either end

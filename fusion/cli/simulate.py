@@ -71,9 +71,12 @@ def available_memory_bytes() -> int | None:
 def check_run_size(arm: ArmModel, scenario: str, duration_s: float | None, rate_hz: float,
                    available_bytes: int | None = None) -> None:
     """Refuse, before anything is allocated, a duration or rate that is not a positive finite
-    number or whose run would need more than :data:`MEMORY_SHARE` of the available memory
+    number, a run that holds no sample, a rate faster than any sensor delivers (the readers'
+    bound), or a run that would need more than :data:`MEMORY_SHARE` of the available memory
     (``available_bytes``, default: the machine's now)."""
     import math
+
+    from armfusion.sensors.sample_checks import FASTEST_SAMPLING_HZ
 
     if not (math.isfinite(rate_hz) and rate_hz > 0):
         raise ValueError(f"--rate must be a positive number of Hz, not {rate_hz!r}")
@@ -83,6 +86,12 @@ def check_run_size(arm: ArmModel, scenario: str, duration_s: float | None, rate_
         duration_s = SCENARIOS[scenario].default_duration_s
     if not (math.isfinite(duration_s) and duration_s > 0):
         raise ValueError(f"--duration must be a positive number of seconds, not {duration_s!r}")
+    if duration_s * rate_hz < 1.0:  # (a recording of a header alone had been written, exit 0)
+        raise ValueError(f"--duration {duration_s:g} s at {rate_hz:g} Hz holds no sample (one every "
+                         f"{1.0 / rate_hz:g} s)")
+    if rate_hz > FASTEST_SAMPLING_HZ:  # (every reader would refuse the recording)
+        raise ValueError(f"--rate {rate_hz:g} Hz is faster than any sensor delivers "
+                         f"({FASTEST_SAMPLING_HZ / 1e3:.0f} kHz at most)")
     values = (3 * len(arm.link_accelerometers) + (10 if arm.imu is not None else 0)
               + 2 * arm.n_joints + 3)  # + the truth columns
     need = duration_s * rate_hz * values * MEMORY_BYTES_PER_VALUE

@@ -130,8 +130,9 @@ def _check_options(start_at: float | None, gate_significance: float, out: Path |
         fail(f"--gate-significance must be between 0 and 1, not {gate_significance!r}")
     if out is not None:
         check_output_path(out, "--out", OUT_SUFFIXES, inputs=(recording, config_file(config)))
-    if unmodelled_g is not None and not unmodelled_g >= 0.0:
-        fail(f"--unmodelled-g must be >= 0, not {unmodelled_g!r}")
+    if unmodelled_g is not None and not 0.0 <= unmodelled_g <= 1.0:  # (the config's accel_unmodelled_g)
+        fail(f"--unmodelled-g must be from 0 to 1 g (more than gravity itself would make the sensor "
+             f"useless), not {unmodelled_g!r}")
 
 
 def _prior_pose(prior: Path | None, arm, notes: list[str]):

@@ -77,6 +77,21 @@ def refuse_what_no_sensor_said(rec: Recording, arm: ArmModel, cmap: ColumnMap,
                              "(does the config describe the sensor that recorded it?)")
 
 
+def _times(cmap: ColumnMap, cols, s: int, path: Path) -> tuple[np.ndarray, float | None]:
+    """Every row's time from the start row on, in s (from the time column, or the rate), and
+    the rate when the time comes from it."""
+    if cmap.time_column is not None:
+        t_all = convert(cols.columns[cmap.time_column][s:], cmap.time_unit, "s")
+        if np.isinf(t_all).any():
+            i = int(np.argmax(np.isinf(t_all)))
+            raise ImportMapError(f"{path}: column {cmap.time_column}: row {s + i + 1} holds an infinite time")
+        return t_all, None
+    rate_hz = cmap.rate_hz if cmap.rate_hz is not None else cols.scalars[cmap.rate_variable]
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise ImportMapError(f"{path}: {cmap.rate_variable} = {rate_hz!r} is not a rate in Hz")
+    return np.arange(cols.n_rows - s) / rate_hz, rate_hz
+
+
 def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> ImportResult:
     """Turn the foreign file ``src`` into ``arm``'s recording by ``cmap`` (see the module's
     docstring). Raises :class:`~armfusion.fusion.importing.to_stream.ImportMapError` (map against
@@ -93,21 +108,15 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     changes: list[str] = []
     if s:
         changes.append(f"left out the {s} row(s) before the start row {s + 1}")
-    if cmap.time_column is not None:
-        t_all = convert(cols.columns[cmap.time_column][s:], cmap.time_unit, "s")
-        if np.isinf(t_all).any():
-            i = int(np.argmax(np.isinf(t_all)))
-            raise ImportMapError(f"{path}: column {cmap.time_column}: row {s + i + 1} holds an infinite time")
-        rate_hz = None
-    else:
-        rate_hz = cmap.rate_hz if cmap.rate_hz is not None else cols.scalars[cmap.rate_variable]
-        if not (np.isfinite(rate_hz) and rate_hz > 0):
-            raise ImportMapError(f"{path}: {cmap.rate_variable} = {rate_hz!r} is not a rate in Hz")
-        t_all = np.arange(n - s) / rate_hz
+    t_all, rate_hz = _times(cmap, cols, s, path)
     keep, stamps = increasing_rows(t_all, first_row=s + 1)
     changes.extend(stamps.words())
     dropped = stamps.not_increasing + stamps.no_time
     copies = copies_dropped(keep, [cols.columns[c][s:] for c in cmap.columns()])
+    if not keep.any():
+        why = (f"none of its {n - s} data row(s) has a usable time" if n > s
+               else "no data row after the header")
+        raise ImportMapError(f"{path}: no row to import: {why}")
     t_s = t_all[keep]
     rows = np.flatnonzero(keep) + s + 1  # the file's row of each kept row
     streams: dict[str, Stream] = {}

@@ -45,10 +45,18 @@ def link_name(arm: ArmModel, link: int) -> str:
     return BASE_FRAME if link == 0 else f"{arm.joints[link - 1].name}_link"
 
 
+def _comment_text(text: str) -> str:
+    """``text`` as an XML comment may hold it: no ``--`` (a comment that holds one is not XML:
+    no parser reads the file), no ``-`` at its end."""
+    while "--" in text:
+        text = text.replace("--", "-")
+    return text.rstrip("-")
+
+
 def urdf_from_arm(arm: ArmModel) -> str:
     """The URDF text of ``arm`` (see the module's docstring)."""
-    lines = ['<?xml version="1.0"?>', f"<robot name={quoteattr(arm.name)}>",
-             f"  <!-- from {arm.source or 'an armfusion config'} by armfusion info --urdf -->",
+    made = _comment_text(f"from {arm.source or 'an armfusion config'} by armfusion info")
+    lines = ['<?xml version="1.0"?>', f"<robot name={quoteattr(arm.name)}>", f"  <!-- {made} -->",
              f"  <link name={quoteattr(BASE_FRAME)}/>"]
     R_post, p_post = np.eye(3), np.zeros(3)  # the previous joint's post transform
     for i, j in enumerate(arm.joints):

@@ -4,6 +4,7 @@ found unwritable after the work; arguments that make no sense are refused in one
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -130,6 +131,45 @@ def test_a_second_recording_meets_the_same_door(tmp_path: Path, startup_csv: Pat
                 "range -512…511") in _one_line(r)
 
 
+def test_a_compass_drive_that_is_no_recording_is_refused_before_the_fit(tmp_path: Path,
+                                                                       startup_csv: Path) -> None:
+    # before: read only after the whole fit (a minute of work on a real maneuver), then refused
+    fifo = tmp_path / "drive.csv"
+    os.mkfifo(fifo)
+    for drive, said in (("/dev/zero", "cannot read recording /dev/zero: unknown recording suffix '(none)'"),
+                        (str(fifo), f"cannot read recording {fifo}: not a regular file")):
+        r = runner.invoke(app, ["calibrate", "sensors", str(startup_csv), "--compass-drive", drive])
+        assert r.exit_code == 2 and said in _one_line(r)
+        assert "fitting" not in r.stderr
+
+
+def test_diagnose_never_replaces_a_file_that_is_no_history(tmp_path: Path, startup_csv: Path) -> None:
+    # before: --history naming another recording (or any file that is not JSON) was warned about
+    # and replaced by a new history, exit 0; /dev/zero was read without end, a FIFO blocked
+    other = tmp_path / "other.csv"
+    other.write_bytes(startup_csv.read_bytes())
+    fifo = tmp_path / "h.json"
+    os.mkfifo(fifo)
+    device = "not a regular file (a device, a FIFO); diagnose would replace it"
+    for history, why in ((other, "holds something other than a workbench history; diagnose would replace "
+                                 "it: give another path, or remove the file"),
+                         (Path("/dev/zero"), device), (fifo, device)):
+        t0 = time.perf_counter()
+        r = runner.invoke(app, ["diagnose", str(startup_csv), "--history", str(history)])
+        assert r.exit_code == 2 and f"--history {history}: {why}" in _one_line(r)
+        assert time.perf_counter() - t0 < 30
+    assert other.read_bytes() == startup_csv.read_bytes()
+
+
+def test_track_writes_its_estimates_into_a_directory_still_to_be_made(tmp_path: Path,
+                                                                     startup_csv: Path) -> None:
+    # before: the whole run, then "cannot write .../new/sub/est.csv: No such file or directory"
+    out = tmp_path / "new" / "sub" / "est.csv"
+    r = runner.invoke(app, ["track", str(startup_csv), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert out.read_text().startswith("t")
+
+
 def test_import_refuses_a_value_no_sensor_of_the_config_reads(tmp_path: Path) -> None:
     src = tmp_path / "log.csv"
     src.write_text("t_ms,ax,ay,az,gx,gy,gz,angle_deg\n0,0,0,1,0,0,0,0\n10,0,0,1,0,0,0,18446744073709551616\n")
@@ -188,6 +228,12 @@ def test_an_unwritable_place_is_refused_before_the_work(startup_csv: Path, args)
     (["inspect", "{rec}", "--window-s", "1e9"], "--window-s 1000000000.0: expected a window in seconds"),
     (["inspect", "{rec}", "--window-s", "0"], "--window-s 0.0: expected a window in seconds"),
     (["calibrate", "joints", "{rec}", "--window-s", "-1"], "--window-s -1.0: expected a window in seconds"),
+    # before: exit 0, each sample judged still alone (a still stretch 0.4 s longer than at 1 s)
+    (["inspect", "{rec}", "--window-s", "1e-9"],
+     "--window-s 1e-09: shorter than two samples of the recording (one every 0.01 s); a window must hold "
+     "samples"),
+    (["calibrate", "joints", "{rec}", "--window-s", "0.001"],
+     "--window-s 0.001: shorter than two samples of the recording (one every 0.01 s)"),
     (["calibrate", "sensors", "{rec}", "--window", "0"],
      "--window 0: expected samples per fit point, at least 1"),
     (["diagnose", "{rec}", "--window", "0"], "--window 0: expected samples per fit point, at least 1"),
@@ -204,6 +250,15 @@ def test_an_unwritable_place_is_refused_before_the_work(startup_csv: Path, args)
     # before: numpy's "expected non-negative integer", naming no option
     (["simulate", "-s", "startup", "--seed", "-1", "--out", "{tmp}/s.csv"],
      "--seed -1: expected a seed, at least 0"),
+    # before: an OverflowError traceback in the startup's sigmas (1e308 squared)
+    (["track", "{rec}", "--unmodelled-g", "1e308"],
+     "--unmodelled-g must be from 0 to 1 g (more than gravity itself would make the sensor useless), "
+     "not 1e+308"),
+    # before: exit 0, a recording of its header alone; one every reader refuses (times too dense)
+    (["simulate", "-s", "startup", "--rate", "1e-6", "--duration", "1", "--out", "{tmp}/s.csv"],
+     "--duration 1 s at 1e-06 Hz holds no sample (one every 1e+06 s)"),
+    (["simulate", "-s", "startup", "--rate", "200000", "--duration", "0.01", "--out", "{tmp}/s.csv"],
+     "--rate 200000 Hz is faster than any sensor delivers (100 kHz at most)"),
     # before: a MemoryError traceback (7.28 TiB)
     (["drivers", "--fake", "--duration", "1e9"],
      "--duration 1e+09 s at 100 Hz would need about 351 TB of memory"),

@@ -207,6 +207,22 @@ def test_a_row_written_twice_loses_nothing_and_a_sample_with_a_repeated_stamp_ex
             f"samples lost; {tmp_path / 'alike.mcap'} holds the rest") in " ".join(r.stderr.split())
 
 
+def test_a_file_with_no_row_to_import_is_refused_in_one_line(tmp_path: Path) -> None:
+    # before: a header alone was a TypeError traceback after the import had written an empty recording
+    cmap = tmp_path / "m.yaml"
+    cmap.write_text(yaml.safe_dump({"time": {"column": "t_ms", "unit": "ms"}, "streams": RIG_STREAMS}))
+    header_only = _csv(tmp_path / "head.csv", [])
+    no_time = _csv(tmp_path / "notime.csv", ["nan,0,0,1,1,2,3,0", ",0,0,1,1,2,3,0"])
+    for src, why in ((header_only, "no data row after the header"),
+                     (no_time, "none of its 2 data row(s) has a usable time")):
+        out = tmp_path / f"{src.stem}.mcap"
+        r = runner.invoke(app, ["import", str(src), "--map", str(cmap), "--config", str(RIG),
+                                "--out", str(out)])
+        assert r.exit_code == 2 and "Traceback" not in r.output, r.output
+        assert " ".join(r.stderr.split()) == f"error: cannot import {src}: no row to import: {why}"
+        assert not out.exists()
+
+
 def test_an_infinite_value_is_refused_naming_column_and_row(tmp_path: Path, arm) -> None:
     src = _csv(tmp_path / "log.csv", ["0,0,0,1,1,2,3,0", "10,0,inf,1,1,2,3,0"])
     with pytest.raises(ImportMapError, match=r"log\.csv: column ay: row 2 holds inf, not a value"):

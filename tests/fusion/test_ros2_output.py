@@ -236,3 +236,20 @@ def test_the_urdf_puts_every_sensor_and_the_flange_where_the_arm_model_does(
             np.testing.assert_allclose(T[:3, 3], poses.p_0L_m[0, -1], atol=1e-9)
     lim = {j.name: (j.limit.lower, j.limit.upper) for j in robot.robot.joints if j.type == "revolute"}
     assert lim == {j.name: (j.min_rad, j.max_rad) for j in arm.joints}
+
+
+
+
+def test_the_urdf_is_xml_a_strict_parser_reads(tmp_path: Path) -> None:
+    # before: its comment held "--urdf", which no XML comment may: ElementTree (and armfusion's
+    # own URDF reader) refused the file, "not well-formed (invalid token): line 3, column 64"
+    import xml.etree.ElementTree as ET
+
+    src = tmp_path / "my--arm-.yaml"  # a source path with "--" in it lands in the comment too
+    src.write_text(Path(load_arm("wmra").source).read_text())
+    path = tmp_path / "arm.urdf"
+    r = runner.invoke(app, ["info", "--config", str(src), "--urdf", str(path)])
+    assert r.exit_code == 0, r.output
+    robot = ET.parse(path).getroot()
+    assert [j.get("name") for j in robot.iter("joint") if j.get("type") == "revolute"] == \
+        list(load_arm("wmra").joint_names)

@@ -217,6 +217,11 @@ def _covariance(d: dict, matrix) -> None:
          "sensors[0].name: a name starting with 'imu' is the base IMU's streams' (imu_acc…) in a recording"),
         (lambda d: _covariance(d, [[1.0, 2.0], [2.0, 1.0]]),
          "calibration.correction_covariance.acc1: matrix must be positive semi-definite"),
+        # (two joints of one name: a --reference, --encoder-withheld or effect target meant either)
+        (lambda d: d["arm"]["joints"].__setitem__("names", ["j1", "j1", "j3", "j4", "j5", "j6", "j7"]),
+         "arm.joints.names: joint names must be unique; 'j1' is given twice"),
+        (lambda d: d["sensors"][0].__setitem__("name", "a" * 5000),
+         "sensors[0].name: String should have at most 64 characters"),
     ],
 )
 def test_every_number_within_physical_bounds_and_every_name_its_own(
@@ -236,6 +241,32 @@ def test_a_fits_semi_definite_covariance_is_taken(tmp_path: Path, wmra_dict: dic
     # 6 digits leave its least eigenvalue at -5e-8
     _covariance(wmra_dict, [[1.0, 1.0], [1.0, 0.9999999]])
     assert load_arm(_write(tmp_path / "c.yaml", wmra_dict)).n_joints == 7
+
+
+def test_an_integer_of_thousands_of_digits_is_refused_naming_its_line(tmp_path: Path) -> None:
+    # before: Python's int() limit (4300 digits) was a ValueError traceback in every command
+    text = (CONFIG_DIR / "wmra.yaml").read_text().replace("d_mm: [120.4,", "d_mm: [" + "9" * 5000 + ",")
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    line = text[: text.index("9" * 5000)].count("\n") + 1
+    _, problems = _load_problems(p)
+    assert problems == [f"{p}: line {line}: a number of 5000 characters (it starts '9999999999999999'); "
+                        "no number needs so many"]
+    r = runner.invoke(app, ["info", "--config", str(p)])
+    assert r.exit_code == 2 and "Traceback" not in r.output
+
+
+def test_more_sensors_than_a_recording_holds_are_refused_at_once(tmp_path: Path, wmra_dict: dict) -> None:
+    # before: 2000 sensors took `info` 31 s to accept; `simulate` ran past a minute towards a
+    # recording of 6000 columns that the reader refuses
+    extra = {"type": "adxl345", "link": 2, "rotation": np.eye(3).tolist(), "position_mm": [0, 0, 0]}
+    wmra_dict["sensors"] += [{"name": f"s{i}", **extra} for i in range(2000)]
+    p = _write(tmp_path / "c.yaml", wmra_dict)
+    t0 = time.perf_counter()
+    _, problems = _load_problems(p)
+    assert time.perf_counter() - t0 < 10
+    assert problems == [f"{p}: sensors: 2005 sensors, more than a recording holds: each has at least 3 "
+                        "columns, and a recording CSV at most 1000 (so at most 333 sensors)"]
 
 
 def test_a_key_given_twice_is_refused_naming_both_lines(tmp_path: Path) -> None:
@@ -295,6 +326,9 @@ def _urdf_config(tmp_path: Path, xyz: str = "0 0 0.1", axis: str = "0 0 1", head
     (dict(head='<?xml version="1.0"?>\n<!DOCTYPE r [<!ENTITY x "y">]>\n'),
      "line 2: a DOCTYPE declaration; a URDF needs none"),
     (dict(text='<robot name="r">\0</robot>'), "line 1 holds a NUL byte; a URDF is XML text"),
+    # before: "not a URDF (ValueError: could not broadcast input array from shape (2,) into shape (3,))"
+    (dict(xyz="0 0"), "joint 'j1': origin xyz='0 0' is not three numbers"),
+    (dict(axis="a b c"), "joint 'j1': axis xyz='a b c' is not three numbers"),
 ])
 def test_a_urdf_that_is_not_geometry_is_refused_in_one_line(tmp_path: Path, kw: dict, expected: str) -> None:
     # before: NaN or 1e308 geometry and a zero axis were accepted (then -2^63 counts, a LinAlgError);
@@ -309,6 +343,17 @@ def test_a_urdf_that_is_not_geometry_is_refused_in_one_line(tmp_path: Path, kw: 
 
 def test_a_sound_urdf_is_taken(tmp_path: Path) -> None:
     assert load_arm(_urdf_config(tmp_path)).n_joints == 2
+
+
+def test_info_never_writes_over_the_urdf_its_config_reads(tmp_path: Path) -> None:
+    # before: `info --urdf` replaced the config's own URDF with its generated one, exit 0
+    p = _urdf_config(tmp_path)
+    before = (tmp_path / "r.urdf").read_bytes()
+    r = runner.invoke(app, ["info", "--config", str(p), "--urdf", str(tmp_path / "r.urdf")])
+    assert r.exit_code == 2 and "Traceback" not in r.output
+    assert (f"--urdf {tmp_path / 'r.urdf'}: is the input {tmp_path / 'r.urdf'}; an output never replaces "
+            "a file the command reads") in " ".join(r.stderr.split())
+    assert (tmp_path / "r.urdf").read_bytes() == before
 
 
 # ---------------------------------------------------------------------------- fuzzing the loader

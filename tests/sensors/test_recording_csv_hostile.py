@@ -330,6 +330,35 @@ def test_a_time_beyond_reason_is_refused_naming_its_row(tmp_path: Path, t_last: 
     assert str(e.value).startswith(f"{p}: row 41 (line 42), stream acc1: {words}")
 
 
+@pytest.mark.parametrize("cell, shown", [("inf", "inf"), ("1e308", "1e+308"), ("-1e308", "-1e+308")])
+def test_a_ground_truth_that_is_no_angle_is_refused_naming_its_row(tmp_path: Path, cell: str,
+                                                                    shown: str) -> None:
+    # before: read, and track printed numpy's overflow warnings over its RMS errors against it
+    rows = "".join(f"{i * 0.01:.2f},10,-3,250,{cell if i == 20 else '0.5'}\n" for i in range(40))
+    p = _write(tmp_path / "truth.csv", "t,acc1_x,acc1_y,acc1_z,true_q1\n" + rows)
+    with pytest.raises(RecordingError) as e:
+        _read(p)
+    assert str(e.value) == (f"{p}: row 21 (line 22), stream true_q: true_q1 = {shown} rad at t = 0.2 s "
+                            "is not an angle (its degrees are not a finite number); no ground truth can be "
+                            "that, so the recording is refused")
+
+
+@settings(derandomize=True, max_examples=80, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(angle=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.sampled_from(["", "1e309", "-0"])))
+def test_fuzz_a_ground_truth_read_is_an_angle_or_a_gap(tmp_path: Path, angle) -> None:
+    rows = "".join(f"{i * 0.01:.2f},10,-3,250,{angle if i == 3 else 0.5}\n" for i in range(10))
+    p = _write(tmp_path / "truth.csv", "t,acc1_x,acc1_y,acc1_z,true_q1\n" + rows)
+    try:
+        rec = _read(p)
+    except RecordingError as e:
+        assert str(e).startswith(f"{p}: row 4 (line 5), stream true_q: true_q1 = "), str(e)
+        return
+    q = rec.get("true_q").values
+    with np.errstate(over="raise"):
+        assert np.all(np.isnan(q) | np.isfinite(np.degrees(q)))
+
+
 def test_times_in_another_unit_than_the_second_are_refused(tmp_path: Path) -> None:
     # before: a recording stamped in 10 ps steps (its times scaled by 1e-9) was read, and
     # `calibrate sensors` and `diagnose` exited 0 on it

@@ -81,6 +81,58 @@ def test_a_topic_of_its_own_is_not_a_sample_topic_and_is_not_warned_about(tmp_pa
     assert rec.meta["read_report"].ignored_topics == ("estimates/joints",)
 
 
+@pytest.mark.parametrize("payload, shown", [
+    (b'{"t_s":0.05,"values":["12",2,256]}', '{"t_s": 0.05, "values": ["12", 2, 256]}'),
+    (b'{"t_s":0.05,"values":[true,2,256]}', '{"t_s": 0.05, "values": [true, 2, 256]}'),
+    (b'{"t_s":"0.05","values":[1,2,256]}', '{"t_s": "0.05", "values": [1, 2, 256]}'),
+    (b'{"t_s":0.05,"values":[null,2,256]}', '{"t_s": 0.05, "values": [null, 2, 256]}'),
+])
+def test_a_value_that_is_not_a_json_number_is_refused_naming_topic_and_message(
+        tmp_path: Path, payload: bytes, shown: str) -> None:
+    # before: "12" and true were read as 12 and 1, calibrate joints exited 0 on them
+    msgs = _good()
+    msgs[5] = payload
+    p = _mcap(tmp_path / "str.mcap", msgs)
+    with pytest.raises(RecordingError) as e:
+        read_recording(p)
+    assert str(e.value) == (f"{p}: topic 'raw/acc1': messages do not fit the stream: ValueError: message 6 "
+                            f'is not {{"t_s": number, "values": [numbers]}}: {shown}')
+
+
+def test_two_topics_holding_one_stream_are_refused(tmp_path: Path) -> None:
+    # before: the second topic's samples replaced the first's without a word (inspect exited 0)
+    p = tmp_path / "two.mcap"
+    with open(p, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("x", "jsonschema", b"{}")
+        meta = {"stream": "acc1", "kind": "accel", "channels": json.dumps(CHANNELS)}
+        for topic in ("raw/acc1", "raw/acc2"):
+            cid = w.register_channel(topic, "json", sid, meta)
+            for i, m in enumerate(_good()):
+                w.add_message(cid, i, m, i)
+        w.finish()
+    with pytest.raises(RecordingError) as e:
+        read_recording(p)
+    assert str(e.value) == (f"{p}: topics 'raw/acc1' and 'raw/acc2' both hold stream 'acc1'; "
+                            "a stream is one topic's")
+
+
+@pytest.mark.parametrize("keep", [0, 8, 40])
+def test_a_damaged_file_with_no_message_left_is_refused_not_summarised_as_empty(tmp_path: Path,
+                                                                                keep: int) -> None:
+    # before: inspect of an empty file, of the magic alone or of a header cut short exited 0
+    # with a recording of 0.00 s
+    p = tmp_path / "cut.mcap"
+    p.write_bytes(_mcap(tmp_path / "full.mcap", _good()).read_bytes()[:keep])
+    with pytest.raises(RecordingError) as e:
+        read_recording(p)
+    said = str(e.value)
+    assert said.startswith(f"{p}: file ends early at byte {keep}")
+    assert said.endswith(("recovered 0 messages; the file's summary is missing; no message in it "
+                          "could be read", "could not be read; no message in it could be read")), said
+
+
 def _valid_file(tmp_path: Path) -> bytes:
     t = np.arange(60) * 0.01
     rec = Recording({"acc1": Stream("acc1", "accel", t, np.tile([1, 2, 256], (60, 1)), tuple(CHANNELS)),
