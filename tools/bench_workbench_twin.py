@@ -155,7 +155,30 @@ def _worse(row: dict, chance: bool = False) -> bool:
                for k, j in SCORED)
 
 
-def report(rows: list[dict], seconds: float, duration_s: float) -> str:
+def _refusals(rows: list[dict]) -> str:
+    """The refused configs re-examined against the truth: the twin's controller angles are its
+    encoders, so the gate's tracked figures of the config it refused (``tracked_held_out``)
+    are its RMS off the truth on the held-out part, joint by joint and by the sums judged."""
+    refused = [r for r in rows if not r["wrote"]]
+    worse, ratios = [], []
+    for r in refused:
+        t = r.get("tracked_held_out") or {}
+        a, w = t.get("as_it_is") or {}, t.get("written") or {}
+        chance = a.get("chance_deg", {})
+        excess = [(w["encoder_rms_deg"][j] - a["encoder_rms_deg"][j])
+                  / max(CHANCE_Z * chance.get(j, 0.0), ENCODER_STEP_DEG)
+                  for j in w.get("encoder_rms_deg", {}) if j in a.get("encoder_rms_deg", {})]
+        if excess and max(excess) > 1.0:
+            worse.append(r["seed"])
+            ratios.append(max(excess))
+    return (f"- Refused: {len(refused)} of {len(rows)}; of them, {len(worse)} would have tracked a joint "
+            "(or a sum of joints) further off the controller's angles, which are the twin's truth, than the "
+            "shipped config by more than the chance floor (the largest excess per refusal "
+            + (f"{min(ratios):.1f}-{max(ratios):.0f} × the floor" if ratios else "none") + "); the other "
+            f"{len(refused) - len(worse)} were refused for their held-out fit or innovations.")
+
+
+def report(rows: list[dict], seconds: float, duration_s: float, load: float | None = None) -> str:
     n = len(rows)
     wrote = [r for r in rows if "fitted" in r]
     worse = [r["seed"] for r in rows if _worse(r)]
@@ -166,7 +189,8 @@ def report(rows: list[dict], seconds: float, duration_s: float) -> str:
         f"{n} twins of {duration_s:.0f} s (seeds 0-{n - 1}), each fitted on its first "
         f"{100 * (1 - HELD_OUT_SHARE):.0f} % by `diagnose --discover` and tracked with the shipped and the "
         f"written config; every figure on the held-out last {100 * HELD_OUT_SHARE:.0f} % only. "
-        f"{machine_line()}; {seconds:.0f} s in all.",
+        f"{machine_line()}; {seconds:.0f} s in all"
+        + (f", beside other work (load average {load:.1f} on its cores)" if load is not None else "") + ".",
         "",
         "| seed | rungs (refused) | held out: first → last rung | written "
         "| forearm pitch RMS ° shipped → written | wrist pitch RMS ° | j4 RMS ° "
@@ -198,9 +222,7 @@ def report(rows: list[dict], seconds: float, duration_s: float) -> str:
         f"chance floor ({CHANCE_Z:.0f} × the spread the accelerometers' datasheet noise gives two RMS "
         f"figures over the held-out part, at least one count): {len(beyond)}"
         + (f" (seeds {', '.join(map(str, beyond))})" if beyond else "") + ". Target: none.",
-        f"- Refused: {n - len(wrote)} of {n}, each with the joints (or sums) it tracks further off the "
-        "controller's angles (the twin's truth) than the shipped config by more than that floor, or the "
-        "held-out fit it makes worse, named in its row.",
+        _refusals(rows),
     ]
     if fitted:
         fp = np.array([f["forearm_pitch_rms"] for f in fitted])
@@ -235,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.from_rows is not None:
         kept = json.loads(a.from_rows.read_text(encoding="utf-8"))
-        body = report(kept["rows"], kept["seconds"], kept["duration_s"])
+        body = report(kept["rows"], kept["seconds"], kept["duration_s"], kept.get("load_average"))
         print(body)
         publish("bench_workbench_twin", body, a.out, a.quick)
         return 0
@@ -255,9 +277,10 @@ def main(argv: list[str] | None = None) -> int:
                   + ("" if r["wrote"] else f"; not written: {r['write_refused']}"), flush=True)
     seconds = time.perf_counter() - t0
     if a.rows is not None:
-        kept = {"rows": rows, "seconds": seconds, "duration_s": a.duration}
+        kept = {"rows": rows, "seconds": seconds, "duration_s": a.duration,
+                "load_average": os.getloadavg()[0]}
         a.rows.write_text(json.dumps(kept, default=float), encoding="utf-8")
-    body = report(rows, seconds, a.duration)
+    body = report(rows, seconds, a.duration, os.getloadavg()[0])
     print(body)
     publish("bench_workbench_twin", body, a.out, a.quick)
     return 0
