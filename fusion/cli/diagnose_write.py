@@ -167,10 +167,8 @@ def tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool,
     """The tracker over the held-out part with the config it would replace and with the one it
     would write (``out``); the refusal's reason where the new one tracks worse there
     (:func:`armfusion.fusion.workbench.heldout.tracked_worse`; ``groups``: the joints whose
-    zeros a held gauge makes the same as a turn, :func:`convention_groups`, each joint and
-    each group's sum judged against the encoders)."""
-    conventions = tuple(dict.fromkeys([j for g in groups for j in g] + [" + ".join(g) for g in groups
-                                                                       if len(g) > 1]))
+    zeros a held gauge makes the same as a turn, :func:`convention_groups`, whose sums are
+    judged against the encoders beside each joint)."""
     t_from = float(held.data.state.t_s[0]) if held.same_recording else -np.inf
     with progress_bar("tracking the held-out part", json_out) as advance:
         try:
@@ -185,7 +183,7 @@ def tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool,
         except (ValueError, RuntimeError) as e:
             return None, f"the tracker could not run over the held-out part to judge it: {e}"
     doc = {"as_it_is": before.as_dict(), "written": after.as_dict()}
-    return doc, tracked_worse(before, after, conventions)
+    return doc, tracked_worse(before, after)
 
 
 def write_refusal(final: Diagnosis, as_is, written=None) -> str | None:

@@ -132,8 +132,12 @@ def as_it_is(model: Model, fitted: FitData, held: HeldOut, streams: Sequence[str
 
 TRACKED_SLACK = 0.01
 """A written config may keep up to this share fewer held-out innovations within 3σ than the
-config it replaces, or its innovations' RMS, mean NIS or angles' wander off the encoders be
-up to this share larger (chance between two runs of one recording), and still be written."""
+config it replaces, or its innovations' RMS or mean NIS be up to this share larger (chance
+between two runs of one recording), and still be written."""
+CHANCE_Z = 3.0
+"""A tracked angle's RMS off its encoder must rise by more than this many of its chance
+spreads (:func:`chance_deg`) to count as worse: the 3σ used everywhere else (a config no
+different refused by chance 0.13 % of the time, one-sided)."""
 NIS_3SIGMA = {1: 9.0, 2: 11.83, 3: 14.16}
 """χ² of the 99.73 % (3σ) quantile by degrees of freedom."""
 
@@ -167,6 +171,10 @@ class Tracked:
     """Per joint whose encoder reads its own angle (:func:`reads_its_own_angle`), the RMS of
     (tracked angle - encoder angle), its constant part included: what a user with absolute
     encoders (an industrial arm's controller angles) sees of the tracked angle's error."""
+    chance_deg: dict[str, float] = field(default_factory=dict)
+    """Per joint (and group), the spread (1σ, deg) by which two configs' RMS figures of it
+    over the part judged differ by chance: the readings' noise, not the model
+    (:func:`chance_deg`)."""
 
     @property
     def worst(self) -> float:
@@ -177,7 +185,8 @@ class Tracked:
                 "mean_nis_per_dof": {k: round(v, 3) for k, v in self.mean_nis_per_dof.items()},
                 "innovation_rms": {k: float(f"{v:.4g}") for k, v in self.innovation_rms.items()},
                 "offset_wander_deg": {k: round(v, 4) for k, v in self.offset_wander_deg.items()},
-                "encoder_rms_deg": {k: round(v, 4) for k, v in self.encoder_rms_deg.items()}}
+                "encoder_rms_deg": {k: round(v, 4) for k, v in self.encoder_rms_deg.items()},
+                "chance_deg": {k: float(f"{v:.3g}") for k, v in self.chance_deg.items()}}
 
 
 def reads_its_own_angle(offset_deg: np.ndarray, sigma_deg: np.ndarray) -> bool:
@@ -235,23 +244,63 @@ def tracked(arm, rec, t_from_s: float, groups: Sequence[Sequence[str]] = ()) -> 
                 wander[" + ".join(g)] = float(np.sqrt(np.mean((off - np.median(off)) ** 2)))
                 absolute[" + ".join(g)] = float(np.sqrt(np.mean(off**2)))
     step = float(np.degrees(1.0 / np.max(np.atleast_1d(tr.counts_per_rad))))
-    return Tracked(within, nis, rms, wander, step, absolute)
+    return Tracked(within, nis, rms, wander, step, absolute, chance_deg(arm, rec, t_from_s, groups))
 
 
-def tracked_worse(before: Tracked, after: Tracked, convention_joints: Sequence[str] = ()) -> str | None:
-    """Why ``after`` tracks the held-out part worse than ``before`` (None: it does not), each
-    beyond :data:`TRACKED_SLACK` (a share, or a relative change): a sensor with fewer
-    innovations within 3σ, a larger innovation RMS, or a mean NIS per dof above 1 and above
-    ``before``'s (too sure); a joint whose angle wanders further off its encoder by more than
-    it did in all (the excess, added in quadrature, above ``before``'s wander and one encoder
-    count): under a right model the wander is the readings' noise passed to the angles, which
-    two configs' tracks of one recording show differently by a fraction of itself (the test's
-    WMRA sweep: a few thousandths of a degree either way); or, for the joints of
-    ``convention_joints`` (those whose zero the written config's held gauges make the same
-    as a mount's turn about that joint's axis) whose encoder reads the joint's own angle
-    (:func:`reads_its_own_angle`), a tracked angle further off it, its constant part
-    included, by more than ``before``'s wander: the config took the turn for the joint's
-    zero, a convention the encoder contradicts."""
+def chance_deg(arm, rec, t_from_s: float, groups: Sequence[Sequence[str]] = ()) -> dict[str, float]:
+    """Per joint (and per group of ``groups``, keyed as :func:`tracked` keys it), the spread
+    (1σ, deg) by which two configs' RMS of the tracked angle off its encoder, over ``rec``
+    from ``t_from_s`` on, differ by chance: from the config's noise figures and the part's
+    length alone, not from the model.
+
+    A tracked angle's error there is a part the model makes, ``s(t)``, and the part the
+    readings' noise makes through the filter, ``n(t)``. The mean square over ``N`` readings
+    carries ``2·mean(s·n)`` by chance: as an RMS, a spread of ``σ_n / √N_eff``, whatever the
+    filter's bandwidth (a filter averaging ``k`` readings has ``σ_n² = σ²/k`` and ``N/k``
+    independent values, so ``σ_n² / N_eff = σ² / N``). ``σ``: one reading's tilt noise, its
+    accelerometer's datasheet noise and rounding at the rate it delivers independent readings
+    (the config's ``rate_hz``: a stream resampled to a higher rate adds none), with the
+    config's fast error, read as a tilt (1 g ≙ 1 rad); ``N``: its readings in the part. Each
+    accelerometer on a link the joint moves reads the joint's angle, their information adds
+    (``1 / Σ N_i/σ_i²``); two configs' figures each carry it (``√2``). A joint no
+    accelerometer reads: 0 (its encoder's count is the only floor)."""
+    from armfusion.models.sensor_models import stream_models
+
+    info = []
+    for s in arm.link_accelerometers:
+        st = rec.get(s.name)
+        if st is None or len(st) < 2:
+            continue
+        n = int(np.count_nonzero(st.t_s >= t_from_s))
+        own = s.description.part("accelerometer").rate_hz
+        rate = min(st.rate_hz, own) if own else st.rate_hz
+        n = n * min(1.0, rate / st.rate_hz)
+        sm = stream_models(arm, {s.name: rate})[s.name]
+        noise_g = float(np.max(sm.sigma_counts / np.abs(sm.gain)))
+        sigma = float(np.hypot(noise_g, arm.calibration.accel_fast_error_g(s.name)))
+        if n >= 1 and sigma > 0:
+            info.append((s.link, n / sigma**2))
+    index = {name: j for j, name in enumerate(arm.joint_names)}
+    keys = {name: (j,) for name, j in index.items()}
+    keys.update({" + ".join(g): tuple(index[j] for j in g) for g in groups if len(g) > 1})
+    out = {}
+    for key, joints in keys.items():
+        total = sum(w for link, w in info if link >= max(joints) + 1)  # link k moves with joints 1..k
+        out[key] = float(np.degrees(np.sqrt(2.0 / total))) if total > 0 else 0.0
+    return out
+
+
+def tracked_worse(before: Tracked, after: Tracked) -> str | None:
+    """Why ``after`` tracks the held-out part worse than ``before`` (None: it does not): a
+    sensor with fewer innovations within 3σ, a larger innovation RMS, or a mean NIS per dof
+    above 1 and above ``before``'s (too sure), each beyond :data:`TRACKED_SLACK`; or a joint
+    (or group's sum) whose tracked angle is further off its encoder by more than chance
+    (:data:`CHANCE_Z` times ``before``'s :attr:`Tracked.chance_deg`, at least one encoder
+    count). Where the encoder reads the joint's own angle (:func:`reads_its_own_angle`, in
+    both) the figure is the whole RMS off it, its constant part included (what a user with
+    a controller's angles sees: a config that takes a mount's turn about the joint's axis
+    for its zero is further off); elsewhere (a relative encoder, its zero the power-up
+    pose's) its wander about the median."""
     why = []
     for s, w in after.within_3_sigma.items():
         if w < before.within_3_sigma.get(s, 0.0) - TRACKED_SLACK:
@@ -264,17 +313,26 @@ def tracked_worse(before: Tracked, after: Tracked, convention_joints: Sequence[s
         b = before.mean_nis_per_dof.get(s)
         if b is not None and v > 1.0 and v > max(b, 1.0) * (1.0 + TRACKED_SLACK):
             why.append(f"{s}'s mean NIS per dof is {v:.2f} against {b:.2f} (too sure)")
-    step = max(before.encoder_step_deg, after.encoder_step_deg)
-    for j, w in after.offset_wander_deg.items():
-        b = before.offset_wander_deg.get(j)
-        if b is not None and np.sqrt(max(w * w - b * b, 0.0)) > max(b, step):
-            why.append(f"{j}'s tracked angle wanders {w:.3f}° RMS off its encoder against {b:.3f}°")
-    for j, a in after.encoder_rms_deg.items():
-        b = before.encoder_rms_deg.get(j) if j in convention_joints else None
-        noise = max(before.offset_wander_deg.get(j, 0.0), step)
-        if b is not None and a > b * (1.0 + TRACKED_SLACK) + noise:
-            why.append(f"{j}'s tracked angle is {a:.3f}° RMS off its encoder, which reads the joint's own "
-                       f"angle (its constant part included), against {b:.3f}°")
+    why += _angles_worse(before, after)
     if not why:
         return None
     return ("tracked over the held-out part it does worse than the config it replaces: " + "; ".join(why))
+
+
+def _angles_worse(before: Tracked, after: Tracked) -> list[str]:
+    """The joints (and groups) :func:`tracked_worse` finds further off their encoders."""
+    step = max(before.encoder_step_deg, after.encoder_step_deg)
+    why = []
+    for j in dict.fromkeys([*after.encoder_rms_deg, *after.offset_wander_deg]):
+        floor = max(CHANCE_Z * before.chance_deg.get(j, 0.0), step)
+        a, b = after.encoder_rms_deg.get(j), before.encoder_rms_deg.get(j)
+        if a is not None and b is not None:
+            if a - b > floor:
+                why.append(f"{j}'s tracked angle is {a:.3f}° RMS off its encoder, which reads the joint's "
+                           f"own angle (its constant part included), against {b:.3f}° (chance {floor:.4f}°)")
+            continue
+        a, b = after.offset_wander_deg.get(j), before.offset_wander_deg.get(j)
+        if a is not None and b is not None and a - b > floor:
+            why.append(f"{j}'s tracked angle wanders {a:.3f}° RMS off its encoder against {b:.3f}° "
+                       f"(chance {floor:.4f}°)")
+    return why
