@@ -197,7 +197,7 @@ def main(argv=None) -> None:
     calibrated = track(cal, rec)
     t1, t2 = min(200.0, 0.4 * a.duration), min(290.0, 0.55 * a.duration)
     disturbed_run = track(cal, disturbed(rec, t1, t2, DISTURBANCE_UT), (t1, t2))
-    meets = chair_meets(cal, rec, cd.chair_path(base, rec, a.use_seed), a.use_seed)
+    meets = chair_meets(cal, rec, cd.chair_path(base, a.duration, a.use_seed), a.use_seed)
     runs = (("shipped", shipped), ("calibrated", calibrated), ("calibrated, disturbed", disturbed_run),
             *((what, r) for what, _, r in meets))
     for name, r in runs:

@@ -55,9 +55,10 @@ def magnet_clipped(rec: Recording, t_on_s: float, field_imu_ut: np.ndarray) -> R
                        1.0 / AK8975_UT_PER_LSB, AK8975_COUNTS)
 
 
-def chair_path(arm, rec: Recording, seed: int):
-    """The scenario that drove ``rec`` (``daily-use``, its length, ``seed``)."""
-    return make_scenario(arm, "daily-use", rec.t_end_s - rec.t_start_s + 0.0, seed)
+def chair_path(arm, duration_s: float, seed: int):
+    """The scenario that drove a ``daily-use`` recording simulated for ``duration_s`` with
+    ``seed`` (the simulator's own length: the path's drives are drawn up to it)."""
+    return make_scenario(arm, "daily-use", duration_s, seed)
 
 
 def dipole_ut(moment_am2: np.ndarray, r_m: np.ndarray) -> np.ndarray:

@@ -159,9 +159,9 @@ class TrackerSetup:
         # IMU's lasting error is a state of the filter (its prior the config's floor): a base
         # that turns about any axis reveals it (gravity turns in the IMU's axes, the bias does
         # not), one that only yaws (a chair) never does, and it stays in the tilt
-        nl = len(self.link_names)
-        imu_floor_g = [] if st.base_turns_about_any else [arm.calibration.imu_accel_floor_g]
-        floors_g = np.r_[unmodelled_g[:nl], imu_floor_g * (len(unmodelled_g) - nl)]
+        imu_floor_g = ([arm.calibration.imu_accel_floor_g]
+                       if self._has_imu and not st.base_turns_about_any else [])
+        floors_g = np.r_[unmodelled_g[:len(self.link_names)], imu_floor_g]
         self.observability.tilt_floor_var = fixed_base.floor_var_rad2(floors_g)
         self.observability.tilt_start_holds = arm.fixed_base is not None
         self.process = ProcessModel(st, L, arm.joint_names)

@@ -28,7 +28,14 @@ def test_a_dipole_gives_twice_on_its_axis_what_it_gives_on_its_equator_falling_a
 def drive():
     arm = load_arm("wmra")
     rec, _ = simulate(arm, "daily-use", 120.0, seed=11)
-    return arm, rec, cd.chair_path(arm, rec, 11)
+    return arm, rec, cd.chair_path(arm, 120.0, 11)
+
+
+def test_the_rebuilt_path_is_the_one_that_drove_the_recording(drive):
+    _, rec, sc = drive
+    tb = rec.get("true_base")
+    rpy, _, _ = sc.base.rpy(tb.t_s)
+    np.testing.assert_allclose(rpy, tb.values, atol=1e-9)
 
 
 def test_the_passed_magnet_is_strongest_where_the_chair_passes_it_and_gone_far_from_it(drive):
