@@ -355,6 +355,117 @@ def test_the_size_check_measures_a_body_without_its_docstring_and_names_nested_f
                                    "armfusion.fusion.b:register.command": MAX_FUNCTION_BODY_LINES + 1}
 
 
+# --- parameters: at most eight, outside compiled kernels ---------------------------------------
+
+MAX_PARAMETERS = 8
+
+_COMMAND_OPTIONS = ("a typer command: its signature is its table of command-line options, each with its "
+                    "help, which typer reads to build the command")
+_TO_RECORD = "positional values that travel together; to become a typed record"
+
+MANY_PARAMETERS: dict[str, tuple[int, str]] = {
+    # name -> (its parameter count today, why); remove a line when its entry takes at most the limit
+    "armfusion.fusion.cli.calibrate_joints:calibrate_joints": (13, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.calibrate_sensors:_model_and_data": (9, _TO_RECORD),
+    "armfusion.fusion.cli.calibrate_sensors:calibrate_sensors": (12, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.demo:demo_command": (11, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.demo:run_live": (9, _TO_RECORD),
+    "armfusion.fusion.cli.diagnose:diagnose_command": (13, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.diagnose_write:write_config": (9, _TO_RECORD),
+    "armfusion.fusion.cli.drivers:_run": (14, _TO_RECORD),
+    "armfusion.fusion.cli.drivers:drivers_command": (22, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.drivers_run:_sample": (10, _TO_RECORD),
+    "armfusion.fusion.cli.drivers_run:run_fake": (16, _TO_RECORD),
+    "armfusion.fusion.cli.fleet:fleet_command": (11, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.fleet:monitor_command": (10, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.nodes:record_command": (10, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.nodes:replay_command": (11, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.nodes:serve_command": (17, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.plan_maneuver:plan_command": (9, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.plan_maneuver:run_plan": (10, _TO_RECORD),
+    "armfusion.fusion.cli.simulate:register.simulate_command": (12, _COMMAND_OPTIONS),
+    "armfusion.fusion.cli.simulate:simulate": (12, _TO_RECORD),
+    "armfusion.fusion.cli.track:_start_and_run": (10, _TO_RECORD),
+    "armfusion.fusion.cli.track:track": (13, _COMMAND_OPTIONS),
+    "armfusion.fusion.importing.run:stream_of": (9, _TO_RECORD),
+    "armfusion.fusion.service.replay:replay": (9, _TO_RECORD),
+    "armfusion.fusion.service.serve:FusionNode.__init__": (22, _TO_RECORD),
+    "armfusion.fusion.service.state_file:resume_problem": (11, _TO_RECORD),
+    "armfusion.fusion.service.state_file:resumed_tracker": (10, _TO_RECORD),
+    "armfusion.fusion.startup.moves:_separating": (12, _TO_RECORD),
+    "armfusion.fusion.startup.solve:_joint_estimates": (9, _TO_RECORD),
+    "armfusion.fusion.tracking.alarm:ModelChangeAlarm.listen": (11, _TO_RECORD),
+    "armfusion.fusion.tracking.frames:make_frames": (10, _TO_RECORD),
+    "armfusion.fusion.tracking.health:SensorHealth.accel": (10, _TO_RECORD),
+    "armfusion.fusion.tracking.measurement:Measurements.__init__": (9, _TO_RECORD),
+    "armfusion.fusion.tracking.observability:Observability.__init__": (10, _TO_RECORD),
+    "armfusion.fusion.tracking.observability:Observability._consider_update": (11, _TO_RECORD),
+    "armfusion.fusion.tracking.observability:Observability.joint_flags": (9, _TO_RECORD),
+    "armfusion.fusion.tracking.observability:Observability.update": (9, _TO_RECORD),
+    "armfusion.fusion.tracking.report:Reports.__init__": (12, _TO_RECORD),
+    "armfusion.fusion.tracking.start:start_from_recording": (13, _TO_RECORD),
+    "armfusion.fusion.tracking.ukf:BatchedUKF.update": (9, _TO_RECORD),
+    "armfusion.fusion.workbench.candidates:_refit": (9, _TO_RECORD),
+    "armfusion.fusion.workbench.scores:_gauges": (9, _TO_RECORD),
+    "armfusion.models.arm:joints_from_dh": (9, _TO_RECORD),
+    "armfusion.models.fake_rig:simulate_physics": (10, _TO_RECORD),
+    "armfusion.models.simulator:simulate": (12, _TO_RECORD),
+    "armfusion.models.simulator:truth_document": (13, _TO_RECORD),
+    "armfusion.models.trajectories.renk:renk_ramp": (9, _TO_RECORD),
+}
+"""Functions of the layers over the parameter limit, with their count and why. A shrinking list
+like ``OVERSIZED``: a new one fails, and so does one that has come down to the limit."""
+
+
+def _is_kernel(node: ast.FunctionDef) -> bool:
+    """Whether a function is compiled by numba (``@njit``/``@jit``, called or bare)."""
+    def name(d: ast.expr) -> str:
+        d = d.func if isinstance(d, ast.Call) else d
+        return d.id if isinstance(d, ast.Name) else d.attr if isinstance(d, ast.Attribute) else ""
+    return any(name(d) in ("njit", "jit") for d in node.decorator_list)
+
+
+def many_parameters(root: Path) -> dict[str, int]:
+    """Every function of the layers, compiled kernels aside, taking more than the limit
+    (``self``/``cls`` not counted, ``*args``/``**kwargs`` one each) -> its count."""
+    found: dict[str, int] = {}
+    for module, path in module_files(root, LAYERS).items():
+        def visit(node: ast.AST, prefix: str, module: str = module) -> None:
+            for child in ast.iter_child_nodes(node):
+                if isinstance(child, ast.ClassDef):
+                    visit(child, f"{prefix}{child.name}.")
+                elif isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef):
+                    a = child.args
+                    n = (sum(x.arg not in ("self", "cls") for x in a.posonlyargs + a.args + a.kwonlyargs)
+                         + (a.vararg is not None) + (a.kwarg is not None))
+                    if n > MAX_PARAMETERS and not _is_kernel(child):
+                        found[f"{module}:{prefix}{child.name}"] = n
+                    visit(child, f"{prefix}{child.name}.")
+                else:
+                    visit(child, prefix)
+
+        visit(ast.parse(path.read_text(), str(path)), "")
+    return found
+
+
+def test_no_function_over_the_parameter_limit_but_the_listed_ones():
+    found = many_parameters(ROOT)
+    listed = {name: n for name, (n, _) in MANY_PARAMETERS.items()}
+    assert {k: n for k, n in found.items() if n > listed.get(k, 0)} == {}, "new functions over the limit"
+    assert sorted(set(listed) - set(found)) == [], "now within the limit: remove from MANY_PARAMETERS"
+
+
+def test_the_parameter_count_skips_self_and_kernels_and_counts_star_args(tmp_path):
+    _write(tmp_path, {
+        "sensors/__init__.py": "", "models/__init__.py": "", "fusion/__init__.py": "",
+        "fusion/a.py": ("from numba import njit\n"
+                        "class A:\n    def m(self, a, b, c, d, e, f, g, h):\n        pass\n"
+                        "def f(a, b, c, d, e, f2, g, h, *rest):\n    pass\n"
+                        "@njit(cache=True)\ndef k(a, b, c, d, e, f, g, h, i):\n    pass\n"),
+    })
+    assert many_parameters(tmp_path) == {"armfusion.fusion.a:f": 9}
+
+
 # --- reaches into another object's private attributes --------------------------------------------
 
 PRIVATE_REACHES: dict[str, tuple[int, str]] = {
