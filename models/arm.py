@@ -374,17 +374,15 @@ class ChainArrays:
 
 
 def joints_from_dh(
-    convention: DhConvention,
-    alpha_rad: np.ndarray,
-    a_m: np.ndarray,
-    d_m: np.ndarray,
-    offset_rad: np.ndarray,
+    dh: DhTable,
     names: list[str],
     min_rad: np.ndarray,
     max_rad: np.ndarray,
     counts_per_rev: np.ndarray,
 ) -> tuple[Joint, ...]:
-    """Chain joints from a DH table in the named convention."""
+    """Chain joints from a DH table in its convention, each joint with its name, limits and
+    encoder resolution."""
+    convention, alpha_rad, a_m, d_m, offset_rad = dh.convention, dh.alpha_rad, dh.a_m, dh.d_m, dh.offset_rad
     out = []
     eye = np.eye(3)
     zero = np.zeros(3)

@@ -685,11 +685,9 @@ def build_arm(
         alpha = np.array(arm.dh.alpha_deg) * DEG
         a_m = np.array(arm.dh.a_mm) / 1000.0
         d_m = np.array(arm.dh.d_mm) / 1000.0
-        joints = joints_from_dh(
-            arm.dh.convention, alpha, a_m, d_m, offset, names,
-            np.array(js.min_deg) * DEG, np.array(js.max_deg) * DEG, np.array(js.counts_per_rev),
-        )
         dh_table = DhTable(arm.dh.convention, alpha, a_m, d_m, offset)
+        joints = joints_from_dh(dh_table, names, np.array(js.min_deg) * DEG, np.array(js.max_deg) * DEG,
+                                np.array(js.counts_per_rev))
     else:
         assert urdf_joints is not None
         names = js.names or [j.name for j in urdf_joints]

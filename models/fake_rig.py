@@ -37,9 +37,16 @@ import numpy as np
 from armfusion.models.arm import ArmModel
 from armfusion.models.effects import Model
 from armfusion.models.effects.base import device_streams
-from armfusion.models.sensor_models import ADXL345_LSB_PER_G, EARTH_FIELD_TAMPA_UT, stream_models
-from armfusion.models.simulator import build_model, truth_document
-from armfusion.models.trajectories import SCENARIOS, Scenario, make_scenario
+from armfusion.models.sensor_models import ADXL345_LSB_PER_G, stream_models
+from armfusion.models.simulator import (
+    SimulationOptions,
+    TruthSettings,
+    build_model,
+    resolve_scenario,
+    truth_document,
+    without_time_effects,
+)
+from armfusion.models.trajectories import Scenario
 from armfusion.sensors.samples import TRUTH_BASE_COLUMNS, Stream, truth_joint_columns
 
 FINE_RATE_HZ = 1000.0
@@ -116,25 +123,20 @@ def simulate_physics(
     effects: Model | Iterable[Any] | None = None,
     realistic: bool = False,
     sample_rate_hz: float = 100.0,
-    rate_hz: float = FINE_RATE_HZ,
-    scenario_options: dict | None = None,
-    earth_field_ut: np.ndarray = EARTH_FIELD_TAMPA_UT,
+    options: SimulationOptions = SimulationOptions(),
 ) -> SimulatedRun:
     """The physical values of ``scenario`` on ``arm`` from 0 to ``duration_s`` on a grid at
-    ``rate_hz``, with the same scenario, effects and seed semantics as
+    :data:`FINE_RATE_HZ`, with the same scenario, effects and seed semantics as
     :func:`armfusion.models.simulator.simulate` (the same seed gives the same motion and arm).
-    ``sample_rate_hz`` (the devices' read rate) sets the noise rms.
+    ``sample_rate_hz`` (the devices' read rate) sets the noise rms. Of ``options`` the
+    scenario's options and Earth's field are read (the fake devices add the noise,
+    :func:`physics_for`, and sample at their own rates).
     """
     if not duration_s > 0:
         raise ValueError(f"duration must be positive, got {duration_s!r} s")
-    if isinstance(scenario, Scenario):
-        sc = Scenario(scenario.name, scenario.arm, float(duration_s), scenario.joints, scenario.base,
-                      scenario.temperature, scenario.events)
-    else:
-        if scenario not in SCENARIOS:
-            raise ValueError(f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
-        sc = make_scenario(arm, scenario, duration_s, seed, **(scenario_options or {}))
-    model, x = build_model(arm, effects, realistic, seed, earth_field_ut=earth_field_ut)
+    rate_hz = FINE_RATE_HZ
+    sc = resolve_scenario(arm, scenario, duration_s, seed, options.scenario_options)
+    model, x = build_model(arm, effects, realistic, seed, earth_field_ut=options.earth_field_ut)
     smodels = stream_models(arm, float(sample_rate_hz))
     streams = tuple(model.stream_names)
     n = int(np.floor(duration_s * rate_hz + 1e-9)) + 1
@@ -143,10 +145,7 @@ def simulate_physics(
     # time offsets as the simulator applies them: predict without them, then read each
     # device ``offset`` earlier on the grid (SimulatedRun.at)
     offsets = {s: off for d, off in model.time_offsets_s(x).items() for s in device_streams(arm, d)}
-    x_now = np.array(x, dtype=float)
-    for e in model.effects:
-        if e.stage == "time":
-            x_now[model.index[e.block_name]] = 0.0
+    x_now = without_time_effects(model, x)
     parts: dict[str, list[np.ndarray]] = {s: [] for s in streams}
     for a in range(0, n, CHUNK_SAMPLES):
         st = sc.state(t[a:a + CHUNK_SAMPLES])
@@ -170,8 +169,8 @@ def simulate_physics(
             noise[s] = sm.noise_physical_rms()
         v.setflags(write=False)
         values[s] = v
-    truth = truth_document(arm, sc, model, x, q0, generator="armfusion drivers --fake",
-                           rate_hz=sample_rate_hz, seed=seed, realistic=realistic)
+    truth = truth_document(arm, sc, model, x, q0, TruthSettings("armfusion drivers --fake", sample_rate_hz,
+                                                                seed, realistic))
     return SimulatedRun(arm, sc, model, np.array(x), float(rate_hz), t, values, noise,
                         {s: offsets.get(s, 0.0) for s in streams}, truth)
 

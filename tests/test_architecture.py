@@ -281,9 +281,7 @@ OVERSIZED: dict[str, str] = {
     "armfusion.models.effects.model:Model._evaluate": _NUMERIC,
     "armfusion.models.effects.model:Model._predict": _NUMERIC,
     "armfusion.models.sensor_description:_part": _NUMERIC,
-    "armfusion.models.simulator:simulate": _NUMERIC,
     "armfusion.models.trajectories.daily:_chair_path": _NUMERIC,
-    "armfusion.models.trajectories.renk:renk_ramp": _NUMERIC,
     "armfusion.sensors.adxl345": "the ADXL345 driver: its registers, setup and FIFO reads (one datasheet)",
     "armfusion.sensors.adxl345:ADXL345": "the ADXL345 driver: its registers, setup and FIFO reads (one datasheet)",
     "armfusion.sensors.csv_header:streams_from_header": _READER,
@@ -407,11 +405,6 @@ MANY_PARAMETERS: dict[str, tuple[int, str]] = {
     "armfusion.fusion.tracking.ukf:BatchedUKF.update": (9, _TO_RECORD),
     "armfusion.fusion.workbench.candidates:_refit": (9, _TO_RECORD),
     "armfusion.fusion.workbench.scores:_gauges": (9, _TO_RECORD),
-    "armfusion.models.arm:joints_from_dh": (9, _TO_RECORD),
-    "armfusion.models.fake_rig:simulate_physics": (10, _TO_RECORD),
-    "armfusion.models.simulator:simulate": (12, _TO_RECORD),
-    "armfusion.models.simulator:truth_document": (13, _TO_RECORD),
-    "armfusion.models.trajectories.renk:renk_ramp": (9, _TO_RECORD),
 }
 """Functions of the layers over the parameter limit, with their count and why. A shrinking list
 like ``OVERSIZED``: a new one fails, and so does one that has come down to the limit."""

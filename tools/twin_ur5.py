@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 from armfusion.fusion.configfile import load_arm  # noqa: E402
 from armfusion.models.arm import ArmModel  # noqa: E402
 from armfusion.models.rotations import DEG  # noqa: E402
-from armfusion.models.simulator import simulate  # noqa: E402
+from armfusion.models.simulator import SimulationOptions, simulate  # noqa: E402
 from armfusion.models.trajectories.paths import ParkedBase, StepsBuilder, WaypointPath, min_jerk_duration  # noqa: E402
 from armfusion.models.trajectories.scenario import Scenario, warm_up  # noqa: E402
 from armfusion.sensors.samples import link_gyro_stream  # noqa: E402
@@ -129,7 +129,7 @@ def make_twin(seed: int = 0, duration_s: float = 45.0, arm: ArmModel | None = No
     sc, still_s, tilt = twin_scenario(arm, duration_s, rng)
     effects = imu_effects(arm, rng)
     rates = {s.name: IMU_RATE_HZ for s in arm.link_accelerometers}
-    rec, _ = simulate(arm, sc, rate_hz=CONTROLLER_RATE_HZ, rates_hz=rates, seed=seed, effects=effects)
+    rec, _ = simulate(arm, sc, rate_hz=CONTROLLER_RATE_HZ, options=SimulationOptions(rates_hz=rates), seed=seed, effects=effects)
     q_true = rec.streams["true_q"]
     t_out = q_true.t_s
     cols: dict[str, np.ndarray] = {"time_s": t_out}

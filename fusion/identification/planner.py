@@ -61,7 +61,7 @@ from armfusion.models.kinematics import chain_poses
 from armfusion.models.motion import MotionState
 from armfusion.models.rotations import DEG
 from armfusion.models.sensor_models import stream_models
-from armfusion.models.simulator import simulate
+from armfusion.models.simulator import SimulationOptions, simulate
 from armfusion.models.trajectories.paths import min_jerk_progress
 from armfusion.models.trajectories.planned import PlannedManeuver, planned_scenario
 from armfusion.models.trajectories.scenario import Scenario, margin_limits
@@ -462,7 +462,7 @@ def predicted_identification(model: Model, maneuver: PlannedManeuver | Scenario,
     arm = model.arm
     sc = (planned_scenario(arm, maneuver, np.random.default_rng(0), tilt_sigma_rad=0.0)
           if isinstance(maneuver, PlannedManeuver) else maneuver)
-    rec, _ = simulate(arm, sc, rate_hz=rate_hz, noise=False)
+    rec, _ = simulate(arm, sc, rate_hz=rate_hz, options=SimulationOptions(noise=False))
     data = data_from_recording(arm, rec, window, nodes=2, stances=True)
     return _predicted(model, data)
 

@@ -64,6 +64,7 @@ from armfusion.models.trajectories.renk import (
     RAMP_STANCES,
     RENK_DURATION_S,
     RENK_RATES_DEG_S,
+    RampDrive,
     renk_maneuver,
     renk_ramp,
 )
@@ -107,7 +108,7 @@ def make_scenario(arm: ArmModel, name: str, duration_s: float | None = None, see
 
 
 __all__ = [
-    "RAMP_SLOPE", "RAMP_STANCES", "RENK_DURATION_S", "RENK_RATES_DEG_S", "SCENARIOS", "BaseMotion",
+    "RAMP_SLOPE", "RAMP_STANCES", "RENK_DURATION_S", "RENK_RATES_DEG_S", "SCENARIOS", "RampDrive", "BaseMotion",
     "BasePath", "DrivingChair", "JointPath", "ParkedBase", "Scenario", "ScenarioSpec", "SinePath",
     "SmoothSteps", "StepsBuilder", "WaypointPath", "compass_turn", "daily_use", "excitation", "make_scenario",
     "min_jerk_duration", "random_still_poses", "renk_maneuver", "renk_ramp", "startup",

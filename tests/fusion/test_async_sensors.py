@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.tracking.tracker import TrackerSettings, start_from_recording
-from armfusion.models.simulator import simulate
+from armfusion.models.simulator import SimulationOptions, simulate
 from armfusion.sensors.samples import Recording
 
 PHASE_MS = {"acc1": 1, "acc2": 2, "acc3": 3, "acc4": 4, "imu_acc": 5, "imu_gyro": 5, "imu_temp": 5,
@@ -24,7 +24,7 @@ def drive_read_both_ways():
     """One 1 kHz simulation of the WMRA reaching while the chair drives, read at 100 Hz twice:
     every device at the same instants, and each at its own phase (1-5 ms after the encoders)."""
     arm = load_arm("wmra")
-    rec, _ = simulate(arm, "daily-use", 45.0, rate_hz=1000.0, seed=2, noise=False)
+    rec, _ = simulate(arm, "daily-use", 45.0, rate_hz=1000.0, seed=2, options=SimulationOptions(noise=False))
 
     def read(phases):  # (the truth kept at 1 kHz: it is looked up at every instant)
         raw = rec.raw()

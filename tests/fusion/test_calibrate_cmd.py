@@ -160,7 +160,7 @@ def test_the_configs_calibrated_effects_are_applied(tmp_path, wmra):
     those effects in the config the startup is right again; without them it is not."""
     import yaml
     from armfusion.fusion.configfile import resolve_config_path
-    from armfusion.models.simulator import simulate
+    from armfusion.models.simulator import SimulationOptions, simulate
 
     effects = [
         {"effect": "accel_bias", "target": "acc2", "params": {"bias_g": [0.03, -0.02, 0.035]}},
@@ -170,7 +170,7 @@ def test_the_configs_calibrated_effects_are_applied(tmp_path, wmra):
     ]
     q = np.radians([30, 40, 20, -50, 60, 30, 100])
     rec, _ = simulate(wmra, "startup", duration_s=4.0, seed=3, effects=effects,
-                      scenario_options={"pose_rad": q})
+                      options=SimulationOptions(scenario_options={"pose_rad": q}))
     path = tmp_path / "s.csv"
     write_recording(rec, path)
     base = yaml.safe_load(resolve_config_path("wmra").read_text())

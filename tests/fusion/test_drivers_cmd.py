@@ -16,7 +16,7 @@ from armfusion.fusion.cli.main import app
 from armfusion.fusion.configfile import resolve_config_path
 from armfusion.models.fake_rig import simulate_physics
 from armfusion.models.sensor_models import ADXL345_NOISE_LSB_RMS_AT_100HZ, stream_models
-from armfusion.models.simulator import simulate
+from armfusion.models.simulator import SimulationOptions, simulate
 from armfusion.sensors.bus import Status
 from armfusion.sensors.recording import read_recording, write_recording
 from typer.testing import CliRunner
@@ -55,7 +55,7 @@ def test_the_fakes_get_the_simulators_physics():
     from armfusion.fusion.configfile import load_arm
 
     arm = load_arm("wmra")
-    rec, _ = simulate(arm, "excitation", 4.0, seed=4, realistic=True, noise=False)
+    rec, _ = simulate(arm, "excitation", 4.0, seed=4, realistic=True, options=SimulationOptions(noise=False))
     run = simulate_physics(arm, "excitation", 4.0, seed=4, realistic=True)
     sm = stream_models(arm)
     for s in ("acc1", "acc4", "imu_acc", "imu_gyro", "imu_mag", "imu_temp", "enc"):

@@ -21,7 +21,7 @@ from armfusion.fusion.tracking.process import ProcessModel
 from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
 from armfusion.models.effects import model_from_arm
 from armfusion.models.sensor_models import stream_models
-from armfusion.models.simulator import simulate
+from armfusion.models.simulator import SimulationOptions, simulate
 from armfusion.sensors.samples import Recording, Stream
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "imu-rig"
@@ -46,7 +46,7 @@ def test_each_gyro_is_read_when_its_samples_were_true(tmp_path):
     late = {"effect": "time_offset", "target": "shaft", "params": {"offset_s": [0.02]},
             "sigma": {"offset_s": [0.001]}}
     arm = _rig_with(tmp_path, [late])
-    rec, _ = simulate(arm, "excitation", 20.0, seed=4, noise=False, effects=model_from_arm(arm))
+    rec, _ = simulate(arm, "excitation", 20.0, seed=4, options=SimulationOptions(noise=False), effects=model_from_arm(arm))
     t = rec.get("enc").t_s[50:-50]
     truth = _true_rate(rec, t)
     err_deg_s = np.degrees(np.sqrt(np.mean((gyro_joint_rate(arm, rec, 0, t) - truth) ** 2)))
@@ -81,7 +81,7 @@ def test_an_encoder_that_reads_later_than_the_gyros_is_measured_and_followed():
     the next stretch follows the encoder where, read undelayed, it would lead it by the
     joint's rate times 6 ms."""
     arm = load_arm("imu_rig_roll")
-    rec, _ = simulate(arm, "excitation", 60.0, seed=7, noise=False)
+    rec, _ = simulate(arm, "excitation", 60.0, seed=7, options=SimulationOptions(noise=False))
     enc = rec.get("enc")
     late_counts = np.interp(enc.t_s - 0.006, enc.t_s, enc.values[:, 0].astype(float))
     late = Recording({**rec.streams, "enc": Stream(enc.name, enc.kind, enc.t_s, late_counts[:, None],

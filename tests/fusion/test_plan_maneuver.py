@@ -222,7 +222,7 @@ def test_the_fit_reads_a_planned_moves_joint_accelerations_from_the_encoders_to_
     # the missing tangential acceleration for lever-arm errors (acc4.motion_acceleration[z]
     # 7-10 sigma off on an error-free arm)
     from armfusion.fusion.identification.data import data_from_recording, encoder_motion
-    from armfusion.models.simulator import simulate
+    from armfusion.models.simulator import SimulationOptions, simulate
 
     q0 = np.asarray(arm.ready_pose_rad, float)
     lo, hi = margin_limits(arm)
@@ -230,7 +230,7 @@ def test_the_fit_reads_a_planned_moves_joint_accelerations_from_the_encoders_to_
     m = PlannedManeuver(tuple(arm.joint_names), np.array([q0, q1]), np.array([2.0, 2.0]),
                         move_durations_s(PlanSettings(), q0, q1))
     sc = planned_scenario(arm, m, np.random.default_rng(0), 0.0)
-    rec, _ = simulate(arm, sc, noise=False)
+    rec, _ = simulate(arm, sc, options=SimulationOptions(noise=False))
     data = data_from_recording(arm, rec, 25, nodes=2)
     exact = sc.state(data.state.t_s)
     peak = np.abs(exact.qdd_rad_s2).max()

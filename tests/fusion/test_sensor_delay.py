@@ -19,7 +19,7 @@ from armfusion.fusion.tracking.start import delay_notes
 from armfusion.models.arm_config import ConfigError
 from armfusion.models.rotations import GRAVITY_MPS2, exp_so3, up_from_tilt
 from armfusion.models.sensor_models import stream_models
-from armfusion.models.simulator import simulate
+from armfusion.models.simulator import SimulationOptions, simulate
 
 from tests.fusion.test_base_pivot import _swung_trial
 from tests.fusion.test_base_velocity import _inclination_rmse_deg
@@ -50,8 +50,8 @@ def test_a_delay_that_is_no_filter_s_is_refused_naming_the_key(tmp_path, delay):
 def test_the_simulator_draws_the_declared_delay(tmp_path):
     delayed = load_arm(_config_with_gyro_delay(tmp_path, "wmra", 0.005))
     plain = load_arm("wmra")
-    a, _ = simulate(delayed, "daily-use", 40.0, seed=2, noise=False)
-    b, _ = simulate(plain, "daily-use", 40.0, seed=2, noise=False)
+    a, _ = simulate(delayed, "daily-use", 40.0, seed=2, options=SimulationOptions(noise=False))
+    b, _ = simulate(plain, "daily-use", 40.0, seed=2, options=SimulationOptions(noise=False))
     ga, gb = a.get("imu_gyro"), b.get("imu_gyro")
     # half a sample late: the delayed stream is the plain one read 5 ms earlier (between
     # samples, within the counts' rounding); the other streams are unchanged

@@ -172,10 +172,10 @@ def test_a_joints_rate_from_the_gyros_on_either_side_of_it(config):
     from armfusion.fusion.configfile import load_arm
     from armfusion.models.kinematics import joint_rate_from_link_rates
     from armfusion.models.sensor_models import stream_models
-    from armfusion.models.simulator import simulate
+    from armfusion.models.simulator import SimulationOptions, simulate
 
     arm = load_arm(config)
-    rec, _ = simulate(arm, "excitation", 20.0, seed=4, noise=False)
+    rec, _ = simulate(arm, "excitation", 20.0, seed=4, options=SimulationOptions(noise=False))
     sm = stream_models(arm)
     shaft = sm["shaft_gyro"].from_counts(rec.get("shaft_gyro").values) @ arm.sensor("shaft").R_LS.T
     base = sm["imu_gyro"].from_counts(rec.get("imu_gyro").values) @ arm.imu.R_LS.T

@@ -12,7 +12,7 @@ from armfusion.models.kinematics import gravity_in_sensors, joint_axis_angle_to_
 from armfusion.models.motion import MotionState
 from armfusion.models.rotations import GRAVITY_MPS2, R_from_rpy, up_from_tilt
 from armfusion.models.sensor_models import stream_models
-from armfusion.models.simulator import simulate
+from armfusion.models.simulator import SimulationOptions, simulate
 from armfusion.models.trajectories import RENK_RATES_DEG_S, SCENARIOS, make_scenario
 
 ACCS = ("acc1", "acc2", "acc3", "acc4")
@@ -65,7 +65,7 @@ def test_still_pose_with_realistic_effects_matches_the_model_with_the_true_effec
 def test_moving_arm_on_a_driving_chair_matches_finite_differences_of_positions(wmra, rng):
     """daily-use, no noise: the counts are the finite-difference specific force, rounded."""
     sc = make_scenario(wmra, "daily-use", duration_s=120, seed=9)
-    rec, _ = simulate(wmra, sc, noise=False, seed=9)
+    rec, _ = simulate(wmra, sc, options=SimulationOptions(noise=False), seed=9)
     idx = rng.choice(np.arange(1000, 11900), 400, replace=False)
     t = rec.streams["acc1"].t_s[idx]
     h = 1e-3
@@ -137,7 +137,7 @@ def test_time_offset_is_read_at_the_earlier_instant(wmra):
     """The simulator shifts by interpolation; the model re-evaluated at t - offset agrees."""
     sc = make_scenario(wmra, "excitation", duration_s=12, seed=3)
     entries = [{"effect": "time_offset", "target": "acc4", "value": [0.023]}]
-    rec, _ = simulate(wmra, sc, noise=False, effects=entries)
+    rec, _ = simulate(wmra, sc, options=SimulationOptions(noise=False), effects=entries)
     model = model_from_entries(wmra, entries)
     t = rec.streams["acc4"].t_s
     exact = model.predict(sc.state(t), streams=["acc4"], state_at=sc.state)["acc4"]
@@ -147,14 +147,14 @@ def test_time_offset_is_read_at_the_earlier_instant(wmra):
 
 
 def test_devices_at_their_own_rates(wmra):
-    rec, truth = simulate(wmra, "startup", duration_s=4, rate_hz=100, rates_hz={"imu": 50, "acc1": 400})
+    rec, truth = simulate(wmra, "startup", duration_s=4, rate_hz=100, options=SimulationOptions(rates_hz={"imu": 50, "acc1": 400}))
     assert len(rec.streams["imu_mag"]) == 200 and len(rec.streams["acc1"]) == 1600
     assert len(rec.streams["acc2"]) == 400 and len(rec.streams["true_q"]) == 400
     assert truth["streams"]["acc1"]["rate_hz"] == 400
     # faster sampling, more noise per sample (bandwidth = rate / 2)
     assert rec.streams["acc1"].values[:, 2].std() > 1.6 * rec.streams["acc2"].values[:, 2].std()
     with pytest.raises(ValueError, match="no device 'gps'"):
-        simulate(wmra, "startup", duration_s=1, rates_hz={"gps": 10})
+        simulate(wmra, "startup", duration_s=1, options=SimulationOptions(rates_hz={"gps": 10}))
 
 
 def test_unknown_scenario_is_refused_with_the_list(wmra):
@@ -199,7 +199,7 @@ def test_renk_maneuver_has_the_articles_rates(wmra):
     assert mean_rate[-1] == pytest.approx(RENK_RATES_DEG_S["roll"], rel=0.05)
     assert mean_rate[1] == pytest.approx(RENK_RATES_DEG_S["pitch"], rel=0.1)
     # slow enough that gravity dominates (the article's assumption): motion terms < 5 mg
-    rec, _ = simulate(wmra, sc, duration_s=300, noise=False, seed=0)
+    rec, _ = simulate(wmra, sc, duration_s=300, options=SimulationOptions(noise=False), seed=0)
     for name in ACCS:
         norm = np.linalg.norm(rec.streams[name].values / 256.0, axis=1)
         assert np.abs(norm - 1).max() < 0.02
