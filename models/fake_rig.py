@@ -39,6 +39,7 @@ from armfusion.models.effects import Model
 from armfusion.models.effects.base import device_streams
 from armfusion.models.sensor_models import ADXL345_LSB_PER_G, stream_models
 from armfusion.models.simulator import (
+    DEFAULT_OPTIONS,
     SimulationOptions,
     TruthSettings,
     build_model,
@@ -123,7 +124,7 @@ def simulate_physics(
     effects: Model | Iterable[Any] | None = None,
     realistic: bool = False,
     sample_rate_hz: float = 100.0,
-    options: SimulationOptions = SimulationOptions(),
+    options: SimulationOptions = DEFAULT_OPTIONS,
 ) -> SimulatedRun:
     """The physical values of ``scenario`` on ``arm`` from 0 to ``duration_s`` on a grid at
     :data:`FINE_RATE_HZ`, with the same scenario, effects and seed semantics as

@@ -126,6 +126,10 @@ class SimulationOptions:
     """Called with the fraction done after every chunk of samples."""
 
 
+DEFAULT_OPTIONS = SimulationOptions()
+"""Noise on, every device at the run's rate, the scenario's own options, Earth's field at Tampa."""
+
+
 def resolve_scenario(arm: ArmModel, scenario: str | Scenario, duration_s: float | None, seed: int,
                      scenario_options: Mapping[str, Any] | None = None) -> Scenario:
     """``scenario`` itself (with ``duration_s`` where given), or the named one built for ``arm``
@@ -238,7 +242,8 @@ def _truth_streams(run: _TrueRun, rate_hz: float, progress: _Progress) -> dict[s
         st = run.sc.state(truth_t[a:a + CHUNK_SAMPLES])
         q_true[a:a + CHUNK_SAMPLES], rpy_true[a:a + CHUNK_SAMPLES] = st.q_rad, st.rpy_rad
         progress.advanced(len(st.q_rad))
-    return {"true_q": Stream("true_q", "truth_joints", truth_t, q_true, truth_joint_columns(run.arm.n_joints)),
+    return {"true_q": Stream("true_q", "truth_joints", truth_t, q_true,
+                             truth_joint_columns(run.arm.n_joints)),
             "true_base": Stream("true_base", "truth_base", truth_t, rpy_true, TRUTH_BASE_COLUMNS)}
 
 
@@ -250,7 +255,7 @@ def simulate(
     seed: int = 0,
     effects: Model | Iterable[Any] | None = None,
     realistic: bool = False,
-    options: SimulationOptions = SimulationOptions(),
+    options: SimulationOptions = DEFAULT_OPTIONS,
 ) -> tuple[Recording, dict]:
     """Simulate ``scenario`` on ``arm`` for ``duration_s`` seconds (default: the scenario's).
 
@@ -265,7 +270,8 @@ def simulate(
     model, x = build_model(arm, effects, realistic, seed, earth_field_ut=options.earth_field_ut)
     rates = _device_rates(arm, rate_hz, options.rates_hz)
     smodels = stream_models(arm, {s: rates[d] for d in rates for s in device_streams(arm, d)})
-    run = _TrueRun(arm, sc, model, x, without_time_effects(model, x), sc.state(np.zeros(1)).q_rad[0], smodels)
+    q0 = sc.state(np.zeros(1)).q_rad[0]
+    run = _TrueRun(arm, sc, model, x, without_time_effects(model, x), q0, smodels)
     # devices grouped by rate: one state per grid and chunk, shared by the devices on it
     grids: dict[float, list[str]] = {}
     for d, r in rates.items():

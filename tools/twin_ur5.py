@@ -129,7 +129,8 @@ def make_twin(seed: int = 0, duration_s: float = 45.0, arm: ArmModel | None = No
     sc, still_s, tilt = twin_scenario(arm, duration_s, rng)
     effects = imu_effects(arm, rng)
     rates = {s.name: IMU_RATE_HZ for s in arm.link_accelerometers}
-    rec, _ = simulate(arm, sc, rate_hz=CONTROLLER_RATE_HZ, options=SimulationOptions(rates_hz=rates), seed=seed, effects=effects)
+    rec, _ = simulate(arm, sc, rate_hz=CONTROLLER_RATE_HZ, seed=seed, effects=effects,
+                      options=SimulationOptions(rates_hz=rates))
     q_true = rec.streams["true_q"]
     t_out = q_true.t_s
     cols: dict[str, np.ndarray] = {"time_s": t_out}

@@ -108,9 +108,10 @@ def make_scenario(arm: ArmModel, name: str, duration_s: float | None = None, see
 
 
 __all__ = [
-    "RAMP_SLOPE", "RAMP_STANCES", "RENK_DURATION_S", "RENK_RATES_DEG_S", "SCENARIOS", "RampDrive", "BaseMotion",
+    "RAMP_SLOPE", "RAMP_STANCES", "RENK_DURATION_S", "RENK_RATES_DEG_S", "SCENARIOS", "BaseMotion",
     "BasePath", "DrivingChair", "JointPath", "ParkedBase", "Scenario", "ScenarioSpec", "SinePath",
-    "SmoothSteps", "StepsBuilder", "WaypointPath", "compass_turn", "daily_use", "excitation", "make_scenario",
+    "RampDrive", "SmoothSteps", "StepsBuilder", "WaypointPath", "compass_turn", "daily_use", "excitation",
+    "make_scenario",
     "min_jerk_duration", "random_still_poses", "renk_maneuver", "renk_ramp", "startup",
     "static_poses", "warm_up",
 ]

@@ -46,7 +46,8 @@ def test_each_gyro_is_read_when_its_samples_were_true(tmp_path):
     late = {"effect": "time_offset", "target": "shaft", "params": {"offset_s": [0.02]},
             "sigma": {"offset_s": [0.001]}}
     arm = _rig_with(tmp_path, [late])
-    rec, _ = simulate(arm, "excitation", 20.0, seed=4, options=SimulationOptions(noise=False), effects=model_from_arm(arm))
+    rec, _ = simulate(arm, "excitation", 20.0, seed=4, effects=model_from_arm(arm),
+                      options=SimulationOptions(noise=False))
     t = rec.get("enc").t_s[50:-50]
     truth = _true_rate(rec, t)
     err_deg_s = np.degrees(np.sqrt(np.mean((gyro_joint_rate(arm, rec, 0, t) - truth) ** 2)))

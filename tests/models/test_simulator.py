@@ -147,7 +147,8 @@ def test_time_offset_is_read_at_the_earlier_instant(wmra):
 
 
 def test_devices_at_their_own_rates(wmra):
-    rec, truth = simulate(wmra, "startup", duration_s=4, rate_hz=100, options=SimulationOptions(rates_hz={"imu": 50, "acc1": 400}))
+    rec, truth = simulate(wmra, "startup", duration_s=4, rate_hz=100,
+                          options=SimulationOptions(rates_hz={"imu": 50, "acc1": 400}))
     assert len(rec.streams["imu_mag"]) == 200 and len(rec.streams["acc1"]) == 1600
     assert len(rec.streams["acc2"]) == 400 and len(rec.streams["true_q"]) == 400
     assert truth["streams"]["acc1"]["rate_hz"] == 400
