@@ -8,6 +8,7 @@ columns are there and the unknown columns, for the reader's one warning.
 from __future__ import annotations
 
 import re
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -105,77 +106,100 @@ def _contiguous(header: set[str], stem: str) -> tuple[str, ...]:
     return tuple(cols)
 
 
-def streams_from_header(
-    header: list[str], path: Path
-) -> tuple[list[StreamColumns], list[str], list[str], list[str]]:
-    """Column groups found in ``header``, the columns used, the sensors left out because
-    only some of their columns are there (each saying what it has and what it needs),
-    and the unknown columns."""
-    present = set(header)
-    found: list[StreamColumns] = []
-    incomplete: list[str] = []
+class _HeaderScan:
+    """What a header scan has found so far: the streams, their names, the columns they take,
+    and the sensors left out because only some of their columns are there."""
 
-    def partial(name: str, cols: tuple[str, ...]) -> None:
-        have = [c for c in cols if c in present]
+    def __init__(self, header: list[str]):
+        self.present = set(header)
+        self.found: list[StreamColumns] = []
+        self.names: set[str] = set()
+        self.taken: set[str] = {T_COLUMN}
+        self.incomplete: list[str] = []
+
+    def complete(self, cols: tuple[str, ...]) -> bool:
+        """Whether every one of ``cols`` is in the header."""
+        return all(c in self.present for c in cols)
+
+    def add(self, name: str, kind: StreamKind, cols: tuple[str, ...]) -> None:
+        """A stream found: ``name`` of ``kind`` in ``cols``."""
+        self.found.append(StreamColumns(name, kind, cols))
+        self.names.add(name)
+        self.taken |= set(cols)
+
+    def partial(self, name: str, cols: tuple[str, ...]) -> None:
+        """Say ``name`` is left out when the header has some of ``cols`` but not all."""
+        have = [c for c in cols if c in self.present]
         if have and len(have) < len(cols):
-            missing = [c for c in cols if c not in present]
-            incomplete.append(f"{name} (has {', '.join(have)}; needs {', '.join(missing)} too)")
+            missing = [c for c in cols if c not in self.present]
+            self.incomplete.append(f"{name} (has {', '.join(have)}; needs {', '.join(missing)} too)")
 
+
+def _fixed_streams(scan: _HeaderScan) -> None:
+    """The streams of fixed names: the IMU's, the encoders, the truth's."""
     for name, (kind, cols) in IMU_STREAMS.items():
-        if all(c in present for c in cols):
-            found.append(StreamColumns(name, kind, cols))
-        partial(name, cols)
-    enc = _contiguous(present, "enc")
+        if scan.complete(cols):
+            scan.add(name, kind, cols)
+        scan.partial(name, cols)
+    enc = _contiguous(scan.present, "enc")
     if enc:
-        found.append(StreamColumns("enc", "encoder", enc))
-    tq = _contiguous(present, "true_q")
+        scan.add("enc", "encoder", enc)
+    tq = _contiguous(scan.present, "true_q")
     if tq:
-        found.append(StreamColumns("true_q", "truth_joints", tq))
-    if all(c in present for c in TRUTH_BASE_COLUMNS):
-        found.append(StreamColumns("true_base", "truth_base", TRUTH_BASE_COLUMNS))
-    partial("true_base", TRUTH_BASE_COLUMNS)
-    taken = {c for s in found for c in s.columns} | {T_COLUMN}
-    names = {s.name for s in found}
-    imu_columns = {c for _, cols in IMU_STREAMS.values() for c in cols} | set(TRUTH_BASE_COLUMNS)
-    gyro_prefixes: list[str] = []  # link gyroscopes: P_gx, P_gy, P_gz -> stream P_gyro
+        scan.add("true_q", "truth_joints", tq)
+    if scan.complete(TRUTH_BASE_COLUMNS):
+        scan.add("true_base", "truth_base", TRUTH_BASE_COLUMNS)
+    scan.partial("true_base", TRUTH_BASE_COLUMNS)
+
+
+def _prefixes(header: list[str], suffixes: tuple[str, ...], skip: Collection[str] = ()) -> list[str]:
+    """The sensors' names the header's columns ending in ``suffixes`` (all of one length)
+    give, in the header's order; none reserved, no column of ``skip``."""
+    out: list[str] = []
+    n = len(suffixes[0])
     for col in header:
-        prefix = col[:-3]
-        if col[-3:] in ("_gx", "_gy", "_gz") and prefix and not _is_reserved_prefix(prefix):
-            if prefix not in gyro_prefixes:
-                gyro_prefixes.append(prefix)
-    for prefix in gyro_prefixes:
-        cols, name = link_gyro_columns(prefix), prefix + LINK_GYRO_SUFFIX
-        if all(c in present for c in cols):
-            found.append(StreamColumns(name, "link_gyro", cols))
-            names.add(name)
-            taken |= set(cols)
-        else:
-            partial(name, cols)
-    accel_prefixes: list[str] = []
-    for col in header:
-        if col in taken or col[-2:] not in ("_x", "_y", "_z"):
+        if col in skip or col[-n:] not in suffixes:
             continue
-        prefix = col[:-2]
-        if prefix and not _is_reserved_prefix(prefix) and prefix not in accel_prefixes:
-            accel_prefixes.append(prefix)
-    for prefix in accel_prefixes:
+        prefix = col[:-n]
+        if prefix and not _is_reserved_prefix(prefix) and prefix not in out:
+            out.append(prefix)
+    return out
+
+
+def _link_gyros(scan: _HeaderScan, prefixes: list[str]) -> None:
+    """Link gyroscopes: ``P_gx, P_gy, P_gz`` -> stream ``P_gyro``."""
+    for prefix in prefixes:
+        cols, name = link_gyro_columns(prefix), prefix + LINK_GYRO_SUFFIX
+        if scan.complete(cols):
+            scan.add(name, "link_gyro", cols)
+        else:
+            scan.partial(name, cols)
+
+
+def _accelerometers(scan: _HeaderScan, prefixes: list[str], path: Path) -> None:
+    """Link accelerometers: ``P_x, P_y, P_z`` -> stream ``P`` (a ``RecordingError`` when ``P``
+    is another stream's name)."""
+    for prefix in prefixes:
         cols = accel_columns(prefix)
-        if all(c in present for c in cols):
-            if prefix in names:
+        if scan.complete(cols):
+            if prefix in scan.names:
                 raise RecordingError(
                     f"{path}: columns {', '.join(cols)} would make an accelerometer stream "
                     f"{prefix!r}, which clashes with another stream of that name"
                 )
-            found.append(StreamColumns(prefix, "accel", cols))
-            names.add(prefix)
-            taken |= set(cols)
+            scan.add(prefix, "accel", cols)
         else:
-            partial(prefix, cols)
-    order = {c: i for i, c in enumerate(header)}
-    found.sort(key=lambda s: order[s.columns[0]])
+            scan.partial(prefix, cols)
+
+
+def _unknown_columns(scan: _HeaderScan, header: list[str], accel_prefixes: list[str],
+                     gyro_prefixes: list[str]) -> list[str]:
+    """The columns no stream takes and no incomplete sensor explains (a gap in ``enc1..N``
+    or ``true_q1..N`` is said as incomplete)."""
+    imu_columns = {c for _, cols in IMU_STREAMS.values() for c in cols} | set(TRUTH_BASE_COLUMNS)
     unknown = []
     for col in header:
-        if col in taken or col in imu_columns:
+        if col in scan.taken or col in imu_columns:
             continue
         if col[-2:] in ("_x", "_y", "_z") and col[:-2] in accel_prefixes:
             continue  # said as an incomplete sensor
@@ -183,10 +207,28 @@ def streams_from_header(
             continue  # said as an incomplete link gyroscope
         m = re.fullmatch(r"(enc|true_q)(\d+)", col)
         if m:
-            incomplete.append(f"{col} ({m.group(1)}1..N must be contiguous from 1)")
+            scan.incomplete.append(f"{col} ({m.group(1)}1..N must be contiguous from 1)")
             continue
         unknown.append(clipped_repr(col))
-    return found, sorted(taken), incomplete, unknown
+    return unknown
+
+
+def streams_from_header(
+    header: list[str], path: Path
+) -> tuple[list[StreamColumns], list[str], list[str], list[str]]:
+    """Column groups found in ``header``, the columns used, the sensors left out because
+    only some of their columns are there (each saying what it has and what it needs),
+    and the unknown columns."""
+    scan = _HeaderScan(header)
+    _fixed_streams(scan)
+    gyro_prefixes = _prefixes(header, ("_gx", "_gy", "_gz"))
+    _link_gyros(scan, gyro_prefixes)
+    accel_prefixes = _prefixes(header, ("_x", "_y", "_z"), skip=scan.taken)
+    _accelerometers(scan, accel_prefixes, path)
+    order = {c: i for i, c in enumerate(header)}
+    scan.found.sort(key=lambda s: order[s.columns[0]])
+    unknown = _unknown_columns(scan, header, accel_prefixes, gyro_prefixes)
+    return scan.found, sorted(scan.taken), scan.incomplete, unknown
 
 
 def first_few(items: list[str], first: int = 8) -> str:

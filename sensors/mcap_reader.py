@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import lz4.frame
 import numpy as np
@@ -153,89 +153,141 @@ def read_mcap(path: str | Path) -> tuple[Recording, ReadReport]:
         return _read_mcap(Path(path))
 
 
-def _read_mcap(path: Path) -> tuple[Recording, ReadReport]:
-    size = path.stat().st_size
-    channels: dict[int, Channel] = {}
-    messages: dict[int, list[bytes]] = {}
-    meta: dict[str, str] = {}
-    n_messages = 0
-    complete = False
-    problem = ""  # where the file ends early
-    damaged = ""  # or which record could not be parsed
-    with open(path, "rb") as f:
-        head = f.read(len(MAGIC))
-        if head != MAGIC[: len(head)]:
-            raise ValueError(
-                f"{path}: not an MCAP file (it does not start with the MCAP magic bytes "
-                f"{MAGIC!r}, but with {head[:8]!r})"
-            )
-        good_end = len(head)
-        if len(head) < len(MAGIC):
-            problem = "before anything was written" if size == 0 else "inside the opening magic bytes"
-        while not (problem or damaged or complete):
-            start = good_end
-            header = f.read(9)
-            if len(header) < 9:
-                if header:
-                    problem = f"inside the header of a {_opcode_name(header[0])} at byte {start}"
-                elif start == len(MAGIC):
-                    problem = "right after the opening magic bytes"
-                else:
-                    problem = f"after the complete record that ends at byte {start}"
-                break
-            op, length = _HEADER.unpack(header)
-            what = _opcode_name(op)
-            if length > size - start - 9:
-                problem = f"inside a {what} that starts at byte {start}"
-                break
-            body = f.read(length)
-            try:
-                if op == Opcode.CHUNK:
-                    new_channels, new_messages = _chunk_records(body)
-                    for ch in new_channels:
-                        channels[ch.id] = ch
-                    for cid, _, data in new_messages:
-                        messages.setdefault(cid, []).append(data)
-                    n_messages += len(new_messages)
-                elif op == Opcode.MESSAGE:
-                    cid, _, _, _ = _MESSAGE.unpack_from(body)
-                    messages.setdefault(cid, []).append(body[22:])
-                    n_messages += 1
-                elif op == Opcode.CHANNEL:
-                    ch = _parse_record(Channel, body)
-                    channels[ch.id] = ch
-                elif op == Opcode.METADATA:
-                    m = _parse_record(Metadata, body)
-                    if m.name == METADATA_NAME:
-                        meta = dict(m.metadata)
-            except Exception as e:  # a complete but damaged record ends the reading
-                why = str(e) if isinstance(e, _Damaged) else f"{type(e).__name__}: {e}"
-                damaged = f"a damaged {what} at byte {start} ({why})"
-                break
-            good_end = start + 9 + length
-            if op == Opcode.FOOTER:
-                tail = f.read(len(MAGIC))
-                if tail == MAGIC:
-                    complete = True
-                    good_end += len(MAGIC)
-                elif MAGIC.startswith(tail):
-                    problem = f"inside the closing magic bytes at byte {good_end}"
-                else:
-                    damaged = f"damaged closing magic bytes at byte {good_end}"
-    rec, ignored, t_last, left_out = _assemble(path, channels, messages, meta)
-    unread = size - good_end
+class _Records:
+    """What the records read so far hold: the channels by id, each channel id's messages,
+    the armfusion metadata."""
+
+    def __init__(self) -> None:
+        self.channels: dict[int, Channel] = {}
+        self.messages: dict[int, list[bytes]] = {}
+        self.meta: dict[str, str] = {}
+        self.n_messages = 0
+
+    def take(self, op: int, body: bytes) -> None:
+        """Keep what record ``op`` with ``body`` holds (raises on a damaged record)."""
+        if op == Opcode.CHUNK:
+            new_channels, new_messages = _chunk_records(body)
+            for ch in new_channels:
+                self.channels[ch.id] = ch
+            for cid, _, data in new_messages:
+                self.messages.setdefault(cid, []).append(data)
+            self.n_messages += len(new_messages)
+        elif op == Opcode.MESSAGE:
+            cid, _, _, _ = _MESSAGE.unpack_from(body)
+            self.messages.setdefault(cid, []).append(body[22:])
+            self.n_messages += 1
+        elif op == Opcode.CHANNEL:
+            ch = _parse_record(Channel, body)
+            self.channels[ch.id] = ch
+        elif op == Opcode.METADATA:
+            m = _parse_record(Metadata, body)
+            if m.name == METADATA_NAME:
+                self.meta = dict(m.metadata)
+
+
+@dataclass(frozen=True)
+class _End:
+    """Where the reading stopped: the end of the last record read whole, and why: the
+    file is ``complete``, or ends early (``problem``: where), or holds a ``damaged`` record."""
+
+    good_end: int
+    complete: bool = False
+    problem: str = ""
+    damaged: str = ""
+
+
+def _opening(f: BinaryIO, path: Path, size: int) -> _End | None:
+    """Check the opening magic bytes (a ``ValueError`` for a file that is not MCAP): None
+    when whole, else where the file ends inside them."""
+    head = f.read(len(MAGIC))
+    if head != MAGIC[: len(head)]:
+        raise ValueError(
+            f"{path}: not an MCAP file (it does not start with the MCAP magic bytes "
+            f"{MAGIC!r}, but with {head[:8]!r})"
+        )
+    if len(head) < len(MAGIC):
+        return _End(len(head), problem="before anything was written" if size == 0
+                    else "inside the opening magic bytes")
+    return None
+
+
+def _record_at(f: BinaryIO, size: int, start: int) -> tuple[int, bytes] | _End:
+    """The record starting at byte ``start``: its opcode and body, or where the file ends
+    inside it."""
+    header = f.read(9)
+    if len(header) < 9:
+        if header:
+            return _End(start, problem=f"inside the header of a {_opcode_name(header[0])} at byte {start}")
+        if start == len(MAGIC):
+            return _End(start, problem="right after the opening magic bytes")
+        return _End(start, problem=f"after the complete record that ends at byte {start}")
+    op, length = _HEADER.unpack(header)
+    if length > size - start - 9:
+        return _End(start, problem=f"inside a {_opcode_name(op)} that starts at byte {start}")
+    return op, f.read(length)
+
+
+def _closing(f: BinaryIO, good_end: int) -> _End:
+    """After the footer: the closing magic bytes, whole, cut or damaged."""
+    tail = f.read(len(MAGIC))
+    if tail == MAGIC:
+        return _End(good_end + len(MAGIC), complete=True)
+    if MAGIC.startswith(tail):
+        return _End(good_end, problem=f"inside the closing magic bytes at byte {good_end}")
+    return _End(good_end, damaged=f"damaged closing magic bytes at byte {good_end}")
+
+
+def _read_records(f: BinaryIO, path: Path, size: int, records: _Records) -> _End:
+    """Read the records in file order into ``records`` up to the end of the file, where it
+    ends early, or a damaged record."""
+    end = _opening(f, path, size)
+    if end is not None:
+        return end
+    good_end = len(MAGIC)
+    while True:
+        start = good_end
+        record = _record_at(f, size, start)
+        if isinstance(record, _End):
+            return record
+        op, body = record
+        try:
+            records.take(op, body)
+        except Exception as e:  # a complete but damaged record ends the reading
+            why = str(e) if isinstance(e, _Damaged) else f"{type(e).__name__}: {e}"
+            return _End(start, damaged=f"a damaged {_opcode_name(op)} at byte {start} ({why})")
+        good_end = start + 9 + len(body)
+        if op == Opcode.FOOTER:
+            return _closing(f, good_end)
+
+
+def _report_text(path: Path, size: int, end: _End, n_messages: int, t_last: float | None) -> str:
+    """The report's one line: complete, or where the file ends or is damaged and what was
+    recovered."""
+    unread = size - end.good_end
     span = f" up to t = {t_last:.3f} s" if t_last is not None else ""
     recovered = f"recovered {n_messages} messages{span}"
     lost = f"the last {_kb(unread)} could not be read" if unread else "the file's summary is missing"
-    if complete:
+    if end.complete:
         text = f"{path}: complete: {n_messages} messages{span}"
-    elif damaged:
-        text = f"{path}: {damaged}: {recovered}; {lost}"
+    elif end.damaged:
+        text = f"{path}: {end.damaged}: {recovered}; {lost}"
     else:
-        text = f"{path}: file ends early at byte {size}, {problem}: {recovered}; {lost}"
-    if "chunk record" in problem + damaged:
+        text = f"{path}: file ends early at byte {size}, {end.problem}: {recovered}; {lost}"
+    if "chunk record" in end.problem + end.damaged:
         text += " (the messages of that chunk are lost)"
-    return rec, ReadReport(complete, n_messages, size, unread, text, t_last, ignored, left_out)
+    return text
+
+
+def _read_mcap(path: Path) -> tuple[Recording, ReadReport]:
+    """:func:`read_mcap`'s work: the records, the streams they hold, the report."""
+    size = path.stat().st_size
+    records = _Records()
+    with open(path, "rb") as f:
+        end = _read_records(f, path, size, records)
+    rec, ignored, t_last, left_out = _assemble(path, records.channels, records.messages, records.meta)
+    text = _report_text(path, size, end, records.n_messages, t_last)
+    return rec, ReadReport(end.complete, records.n_messages, size, size - end.good_end, text, t_last,
+                           ignored, left_out)
 
 
 def _decode_samples(data: list[bytes], k: int, counts: bool) -> tuple[np.ndarray, np.ndarray]:

@@ -37,7 +37,9 @@ place, within bounded time and memory, as soon as the problem is met
 from __future__ import annotations
 
 import warnings
+from array import array
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +51,7 @@ from armfusion.sensors.csv_blocks import (
     read_header,
     row_error,
 )
-from armfusion.sensors.csv_header import T_COLUMN, csv_columns, first_few, streams_from_header
+from armfusion.sensors.csv_header import T_COLUMN, StreamColumns, csv_columns, first_few, streams_from_header
 from armfusion.sensors.output_files import replaced_when_done
 from armfusion.sensors.sample_checks import CSV_ROW_LINES, CSV_ROW_TIMES
 from armfusion.sensors.samples import TRUTH_KINDS, Recording, RecordingError, Stream, clipped_repr
@@ -89,92 +91,148 @@ def read_csv(path: str | Path, limits: CsvLimits = DEFAULT_LIMITS) -> Recording:
         raise RecordingError(f"{path}: not UTF-8 text ({e.reason}); is it a recording CSV?") from None
 
 
-def _read_csv(path: Path, limits: CsvLimits) -> Recording:
-    with open(path, encoding="utf-8-sig", newline=None) as f:
-        source, header, header_line_no = read_header(
-            path, f, limits, "expected a header row starting with 't'", " (is it a recording CSV?)")
-        if T_COLUMN not in header:
-            raise RecordingError(
-                f"{path}: no column 't' in the header (line {header_line_no}): "
-                f"{first_few([clipped_repr(h) for h in header])}"
-            )
-        dup = sorted(h for h, k in Counter(header).items() if k > 1)
-        if dup:
-            raise RecordingError(
-                f"{path}: the header repeats column(s) {first_few([clipped_repr(h) for h in dup])}"
-            )
-        groups, used, incomplete, unknown = streams_from_header(header, path)
-        said = []
-        if incomplete:
-            said.append(f"incomplete sensor(s) left out: {first_few(incomplete)}")
-        if unknown:
-            said.append(f"ignored {len(unknown)} unknown column(s): {first_few(unknown)}")
-        if said:
-            warnings.warn(f"{path}: " + "; ".join(said), RecordingWarning, stacklevel=3)
+def _check_header(path: Path, header: list[str], header_line_no: int) -> None:
+    """A ``RecordingError`` for a header without ``t`` or one that repeats a column."""
+    if T_COLUMN not in header:
+        raise RecordingError(
+            f"{path}: no column 't' in the header (line {header_line_no}): "
+            f"{first_few([clipped_repr(h) for h in header])}"
+        )
+    dup = sorted(h for h, k in Counter(header).items() if k > 1)
+    if dup:
+        raise RecordingError(
+            f"{path}: the header repeats column(s) {first_few([clipped_repr(h) for h in dup])}"
+        )
+
+
+def _warn_left_out(path: Path, incomplete: list[str], unknown: list[str]) -> None:
+    """The one :class:`RecordingWarning` naming the incomplete sensors and the first few
+    unknown columns, pointing at the caller of :func:`read_csv`."""
+    said = []
+    if incomplete:
+        said.append(f"incomplete sensor(s) left out: {first_few(incomplete)}")
+    if unknown:
+        said.append(f"ignored {len(unknown)} unknown column(s): {first_few(unknown)}")
+    if said:
+        warnings.warn(f"{path}: " + "; ".join(said), RecordingWarning, stacklevel=4)
+
+
+@dataclass(frozen=True)
+class _ColumnLayout:
+    """Where each used column is read from: its index among the used columns (the empty
+    mask's), and whether it is an integer column with its index among those (else among
+    the float columns)."""
+
+    used: list[str]
+    usecols: list[int]
+    col_of: dict[str, int]
+    where: dict[str, tuple[bool, int]]
+    int_cols: np.ndarray
+    float_cols: np.ndarray
+
+    @classmethod
+    def of(cls, header: list[str], used: list[str], groups: list[StreamColumns]) -> _ColumnLayout:
+        """The layout of the ``used`` columns of ``header`` (truth columns and ``t`` read as
+        floats, the raw ones as integers)."""
         index = {c: i for i, c in enumerate(header)}
         used = sorted(used, key=index.__getitem__)
-        usecols = [index[c] for c in used]
-        col_of = {c: j for j, c in enumerate(used)}
         is_float = {T_COLUMN: True}
         for g in groups:
             for c in g.columns:
                 is_float[c] = g.kind in TRUTH_KINDS
         is_int = np.array([not is_float[c] for c in used], bool)
         ic, fc = np.flatnonzero(is_int), np.flatnonzero(~is_int)
-        # where each used column's values are: (is it an int column, its index there)
         where = {c: (bool(is_int[j]), int(np.searchsorted(ic if is_int[j] else fc, j)))
                  for j, c in enumerate(used)}
-        all_ints, all_decimals, all_floats, all_empty, lines = parse_rows(
-            path, source, len(header), used, usecols, ic, fc, limits)
+        return cls(used, [index[c] for c in used], {c: j for j, c in enumerate(used)}, where, ic, fc)
 
-    def column(c: str) -> np.ndarray:
-        as_int, k = where[c]
+
+@dataclass(frozen=True)
+class _Rows:
+    """The parsed data rows: the integer, decimal and float columns' values, the empty mask
+    of the used columns, and each row's line number."""
+
+    layout: _ColumnLayout
+    ints: np.ndarray
+    decimals: np.ndarray | None
+    floats: np.ndarray
+    empty: np.ndarray
+    lines: array
+
+    def column(self, c: str) -> np.ndarray:
+        """Column ``c``'s values (a raw column that holds decimals, as its decimals)."""
+        as_int, k = self.layout.where[c]
         if not as_int:
-            return all_floats[:, k]
-        if all_decimals is not None and not np.isnan(all_decimals[:1, k]).all():
-            return all_decimals[:, k]  # a raw column that holds decimals
-        return all_ints[:, k]
+            return self.floats[:, k]
+        if self.decimals is not None and not np.isnan(self.decimals[:1, k]).all():
+            return self.decimals[:, k]  # a raw column that holds decimals
+        return self.ints[:, k]
 
-    t_s = column(T_COLUMN)
-    t_empty = all_empty[:, col_of[T_COLUMN]]
+    def filled(self, columns: tuple[str, ...]) -> np.ndarray:
+        """``(rows, len(columns))``: where each of ``columns`` holds a value."""
+        return ~self.empty[:, [self.layout.col_of[c] for c in columns]]
+
+
+def _row_times(path: Path, rows: _Rows) -> np.ndarray:
+    """The ``t`` column, checked: filled, finite and strictly increasing in every row."""
+    t_s = rows.column(T_COLUMN)
+    t_empty = rows.empty[:, rows.layout.col_of[T_COLUMN]]
     if t_empty.any():
-        raise row_error(path, int(np.argmax(t_empty)), lines, "t is empty; every row needs a time")
+        raise row_error(path, int(np.argmax(t_empty)), rows.lines, "t is empty; every row needs a time")
     if not np.all(np.isfinite(t_s)):
         i = int(np.argmax(~np.isfinite(t_s)))
-        raise row_error(path, i, lines, f"t = {float(t_s[i])!r} is not a finite time")
+        raise row_error(path, i, rows.lines, f"t = {float(t_s[i])!r} is not a finite time")
     bad = np.flatnonzero(np.diff(t_s) <= 0)
     if bad.size:
         i = int(bad[0]) + 1
         raise row_error(
             path,
             i,
-            lines,
+            rows.lines,
             f"t must increase from row to row, but t = {float(t_s[i])!r} follows "
-            f"t = {float(t_s[i - 1])!r} at row {i} (line {lines[i - 1]})",
+            f"t = {float(t_s[i - 1])!r} at row {i} (line {rows.lines[i - 1]})",
         )
+    return t_s
 
-    streams: dict[str, Stream] = {}
-    for g in groups:
-        filled = ~all_empty[:, [col_of[c] for c in g.columns]]
-        every = filled.all(axis=1)
-        partial = filled.any(axis=1) & ~every
-        if partial.any():
-            i = int(np.argmax(partial))
-            have = [c for c, f_ in zip(g.columns, filled[i], strict=True) if f_]
-            miss = [c for c, f_ in zip(g.columns, filled[i], strict=True) if not f_]
-            raise row_error(
-                path,
-                i,
-                lines,
-                f"stream {g.name!r} has {', '.join(have)} but column(s) {', '.join(miss)} "
-                "empty; a sensor's columns must be all filled or all empty",
-            )
-        values = np.stack([column(c)[every] for c in g.columns], axis=1)
-        try:
-            streams[g.name] = Stream(g.name, g.kind, t_s[every], values, g.columns)
-        except ValueError as e:
-            raise RecordingError(f"{path}: {e}") from None
-    return Recording(streams, meta={"source": str(path), CSV_ROW_TIMES: t_s, CSV_ROW_LINES: lines})
+
+def _stream(path: Path, rows: _Rows, g: StreamColumns, t_s: np.ndarray) -> Stream:
+    """Stream ``g`` from the rows that fill all its columns (a ``RecordingError`` naming the
+    first row that fills only some)."""
+    filled = rows.filled(g.columns)
+    every = filled.all(axis=1)
+    partial = filled.any(axis=1) & ~every
+    if partial.any():
+        i = int(np.argmax(partial))
+        have = [c for c, f_ in zip(g.columns, filled[i], strict=True) if f_]
+        miss = [c for c, f_ in zip(g.columns, filled[i], strict=True) if not f_]
+        raise row_error(
+            path,
+            i,
+            rows.lines,
+            f"stream {g.name!r} has {', '.join(have)} but column(s) {', '.join(miss)} "
+            "empty; a sensor's columns must be all filled or all empty",
+        )
+    values = np.stack([rows.column(c)[every] for c in g.columns], axis=1)
+    try:
+        return Stream(g.name, g.kind, t_s[every], values, g.columns)
+    except ValueError as e:
+        raise RecordingError(f"{path}: {e}") from None
+
+
+def _read_csv(path: Path, limits: CsvLimits) -> Recording:
+    """:func:`read_csv`'s work: the header, its streams, the rows, each stream checked."""
+    with open(path, encoding="utf-8-sig", newline=None) as f:
+        source, header, header_line_no = read_header(
+            path, f, limits, "expected a header row starting with 't'", " (is it a recording CSV?)")
+        _check_header(path, header, header_line_no)
+        groups, used, incomplete, unknown = streams_from_header(header, path)
+        _warn_left_out(path, incomplete, unknown)
+        layout = _ColumnLayout.of(header, used, groups)
+        rows = _Rows(layout, *parse_rows(path, source, len(header), layout.used, layout.usecols,
+                                         layout.int_cols, layout.float_cols, limits))
+    t_s = _row_times(path, rows)
+    streams = {g.name: _stream(path, rows, g, t_s) for g in groups}
+    return Recording(streams, meta={"source": str(path), CSV_ROW_TIMES: t_s, CSV_ROW_LINES: rows.lines})
 
 
 # ---------------------------------------------------------------------------- writing
