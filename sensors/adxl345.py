@@ -4,18 +4,8 @@ One driver, two transports (:mod:`armfusion.sensors.bus`). It returns raw counts
 the device gives them, stamped with the host's monotonic clock; conversion to g
 is a model step (the only place this module uses g is the self-test limits).
 
-Register map (ADXL345 data sheet, Rev. E, Table 19) used here::
-
-    0x00 DEVID        R   0xE5
-    0x1E-0x20 OFSX/Y/Z R/W offsets, 15.6 mg/LSB (zeroed at init: counts stay raw)
-    0x2C BW_RATE      R/W reset 0x0A: bit 4 LOW_POWER, bits 3:0 rate code
-    0x2D POWER_CTL    R/W reset 0x00: bit 3 Measure
-    0x30 INT_SOURCE   R   bit 7 DATA_READY, bit 1 Watermark, bit 0 Overrun
-    0x31 DATA_FORMAT  R/W reset 0x00: bit 7 SELF_TEST, bit 6 SPI (3-wire), bit 3
-                          FULL_RES, bit 2 Justify, bits 1:0 range (±2/4/8/16 g)
-    0x32-0x37 DATAX0..DATAZ1  R  little-endian two's complement
-    0x38 FIFO_CTL     R/W bits 7:6 mode (bypass/FIFO/stream/trigger), 4:0 samples
-    0x39 FIFO_STATUS  R   bits 5:0 entries
+The register map, the configuration (:class:`ADXL345Config`) and the data sheet's tables
+are :mod:`armfusion.sensors.adxl345_registers`.
 
 Reads (see docs/reference/drivers.md for the reasons):
 
@@ -36,6 +26,40 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from armfusion.sensors.adxl345_registers import (
+    BW_RATE,
+    DATA_FORMAT,
+    DATA_READY,
+    DATAX0,
+    DEFAULT_CONFIG,
+    DEVID,
+    DEVID_VALUE,
+    FIFO_BYPASS,
+    FIFO_CTL,
+    FIFO_DEPTH,
+    FULL_RES,
+    I2C_ADDRESS,
+    I2C_ADDRESS_ALT,
+    INT_SOURCE,
+    MEASURE,
+    OFSX,
+    OFSY,
+    OFSZ,
+    OVERRUN,
+    POWER_CTL,
+    RANGE_BITS,
+    SELF_TEST,
+    SPI_DEFAULT_SPEED_HZ,
+    SPI_MAX_SPEED_HZ,
+    SPI_MODE,
+    SPI_MULTI,
+    SPI_READ,
+    ADXL345Config,
+    rate_code,
+    self_test_limits_lsb,
+    self_test_verdict,
+    xyz_counts,
+)
 from armfusion.sensors.bus import (
     DEFAULT_RECOVERY,
     DEFAULT_RETRY,
@@ -49,133 +73,9 @@ from armfusion.sensors.bus import (
     SpiDevLike,
     SpiRegisters,
     Status,
-    s16_le,
 )
 from armfusion.sensors.device import SupervisedDevice, check_identity, check_read_back
 from armfusion.sensors.samples import Stream, accel_columns
-
-# registers
-DEVID = 0x00
-OFSX, OFSY, OFSZ = 0x1E, 0x1F, 0x20
-BW_RATE = 0x2C
-POWER_CTL = 0x2D
-INT_ENABLE = 0x2E
-INT_SOURCE = 0x30
-DATA_FORMAT = 0x31
-DATAX0 = 0x32
-FIFO_CTL = 0x38
-FIFO_STATUS = 0x39
-
-DEVID_VALUE = 0xE5
-I2C_ADDRESS = 0x53  # ALT ADDRESS (SDO) low
-I2C_ADDRESS_ALT = 0x1D  # ALT ADDRESS (SDO) high
-SPI_MODE = 3  # CPOL = 1, CPHA = 1
-SPI_MAX_SPEED_HZ = 5_000_000  # data sheet limit
-SPI_DEFAULT_SPEED_HZ = 1_000_000  # the thesis's rig: cables up the arm, 8 bytes take 72 µs
-SPI_READ = 0x80
-SPI_MULTI = 0x40
-
-# bits
-MEASURE = 0x08
-SELF_TEST = 0x80
-FULL_RES = 0x08
-LOW_POWER = 0x10
-DATA_READY = 0x80
-WATERMARK = 0x02
-OVERRUN = 0x01
-FIFO_BYPASS = 0x00
-FIFO_STREAM = 0x80
-FIFO_DEPTH = 32
-
-RANGE_BITS = {2: 0b00, 4: 0b01, 8: 0b10, 16: 0b11}
-
-#: Self-test output change, LSB at 3.9 mg/LSB, VS = 2.5 V (data sheet Table 15:
-#: ±2 g 10-bit or any full-resolution range): (min, max) per axis.
-SELF_TEST_LIMITS_2V5_LSB = ((50.0, 540.0), (-540.0, -50.0), (75.0, 875.0))
-#: Data sheet Table 14: scale factors of the self-test change (X/Y, Z) per supply.
-SELF_TEST_SUPPLY_SCALE = {2.0: (0.64, 0.8), 2.5: (1.0, 1.0), 3.3: (1.77, 1.47), 3.6: (2.11, 1.69)}
-
-
-#: Data sheet Table 7: output data rate (Hz, as printed) -> BW_RATE rate code.
-#: The device's actual rate is 3200 Hz / 2**(15 - code) (0.1 Hz is 0.098 Hz).
-RATE_CODES = {3200: 0x0F, 1600: 0x0E, 800: 0x0D, 400: 0x0C, 200: 0x0B, 100: 0x0A, 50: 0x09,
-              25: 0x08, 12.5: 0x07, 6.25: 0x06, 3.13: 0x05, 1.56: 0x04, 0.78: 0x03,
-              0.39: 0x02, 0.2: 0x01, 0.1: 0x00}
-
-
-def rate_code(rate_hz: float) -> int:
-    """BW_RATE rate code for a data sheet output data rate."""
-    if rate_hz not in RATE_CODES:
-        allowed = ", ".join(f"{r:g}" for r in RATE_CODES)
-        raise ValueError(f"ADXL345 output data rate {rate_hz!r} Hz is not one of {allowed}")
-    return RATE_CODES[rate_hz]
-
-
-def self_test_limits_lsb(supply_v: float) -> tuple[tuple[float, float], ...]:
-    """(min, max) self-test change per axis in LSB (3.9 mg/LSB) for a supply voltage."""
-    if supply_v not in SELF_TEST_SUPPLY_SCALE:
-        raise ValueError(
-            f"self-test limits are tabulated for VS in {sorted(SELF_TEST_SUPPLY_SCALE)} V, "
-            f"not {supply_v!r}"
-        )
-    sxy, sz = SELF_TEST_SUPPLY_SCALE[supply_v]
-    scales = (sxy, sxy, sz)
-    return tuple((lo * s, hi * s) for (lo, hi), s in zip(SELF_TEST_LIMITS_2V5_LSB, scales, strict=True))
-
-
-@dataclass(frozen=True)
-class ADXL345Config:
-    """What init writes. Defaults: ±2 g, 10-bit (256 LSB/g nominal), 100 Hz, no FIFO."""
-
-    range_g: int = 2
-    full_resolution: bool = False
-    rate_hz: float = 100.0
-    fifo: bool = False  # stream mode, read with read_fifo()
-    fifo_watermark: int = 16  # FIFO_CTL samples bits (only the watermark flag uses it)
-    supply_v: float = 3.3  # VS, chooses the self-test limits
-    stale_timeout_s: float | None = None  # no new data for this long -> NOT_READY
-
-    def __post_init__(self) -> None:
-        if self.range_g not in RANGE_BITS:
-            raise ValueError(f"ADXL345 range_g must be one of 2, 4, 8, 16, not {self.range_g!r}")
-        rate_code(self.rate_hz)
-        if not 0 <= self.fifo_watermark <= 31:
-            raise ValueError(f"fifo_watermark must be 0..31, not {self.fifo_watermark}")
-        self_test_limits_lsb(self.supply_v)
-
-    @property
-    def bw_rate(self) -> int:
-        return rate_code(self.rate_hz)
-
-    @property
-    def data_format(self) -> int:
-        return (FULL_RES if self.full_resolution else 0) | RANGE_BITS[self.range_g]
-
-    @property
-    def fifo_ctl(self) -> int:
-        return (FIFO_STREAM | self.fifo_watermark) if self.fifo else FIFO_BYPASS
-
-    @property
-    def output_rate_hz(self) -> float:
-        """The device's actual output data rate, 3200 Hz / 2**(15 - code)."""
-        return 3200.0 / 2 ** (15 - self.bw_rate)
-
-    @property
-    def lsb_per_g(self) -> float:
-        """Nominal sensitivity: 256 LSB/g in full resolution or ±2 g 10-bit."""
-        return 256.0 if self.full_resolution else 256.0 * 2 / self.range_g
-
-    @property
-    def count_limits(self) -> tuple[int, int]:
-        """Output range in counts (10-bit, or 10..13 bits in full resolution)."""
-        bits = 10 + (RANGE_BITS[self.range_g] if self.full_resolution else 0)
-        return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
-
-    @property
-    def stale_timeout(self) -> float:
-        if self.stale_timeout_s is not None:
-            return self.stale_timeout_s
-        return 10.0 / self.output_rate_hz + 0.05
 
 
 @dataclass(frozen=True)
@@ -217,7 +117,7 @@ class ADXL345(SupervisedDevice):
     def __init__(
         self,
         transport: RegisterTransport,
-        config: ADXL345Config = ADXL345Config(),
+        config: ADXL345Config = DEFAULT_CONFIG,
         *,
         name: str = "adxl345",
         retry: RetryPolicy = DEFAULT_RETRY,
@@ -366,7 +266,7 @@ class ADXL345(SupervisedDevice):
                                      f"0x{self._expected_format:02X}")
         if not raw[0] & DATA_READY:
             return self._no_new_data(t)
-        counts = (s16_le(raw[2], raw[3]), s16_le(raw[4], raw[5]), s16_le(raw[6], raw[7]))
+        counts = xyz_counts(raw, 2)
         overrun = bool(raw[0] & OVERRUN)
         return self._fresh(t, counts, overrun)
 
@@ -405,7 +305,7 @@ class ADXL345(SupervisedDevice):
             except BusError as e:
                 out.append(self._bus_error(t, e))
                 break
-            counts = (s16_le(b[0], b[1]), s16_le(b[2], b[3]), s16_le(b[4], b[5]))
+            counts = xyz_counts(b)
             ti = max(t - (entries - 1 - i) * period, self._last_t_s + 1e-6)
             self._last_t_s = ti
             out.append(AccelSample(ti, counts, Status.OK, overrun=overrun and i == 0))
@@ -484,19 +384,10 @@ class ADXL345(SupervisedDevice):
             return SelfTestResult(False, None, limits, vs, f"ADXL345 on {where}: self-test "
                                                           f"FAILED: {e}")
         delta = tuple(float(a - b) for a, b in zip(on, off, strict=True))
-        bad = [
-            f"{ax} change {d:+.1f} LSB outside [{lo:.1f}, {hi:.1f}]"
-            for ax, d, (lo, hi) in zip("xyz", delta, limits, strict=True)
-            if not lo <= d <= hi
-        ]
-        if bad:
+        passed, msg = self_test_verdict(where, vs, limits, delta)
+        if not passed:
             self._sup.count("self_test_failures")
-            msg = f"ADXL345 on {where}: self-test FAILED (VS = {vs} V limits): " + "; ".join(bad)
-        else:
-            msg = (f"ADXL345 on {where}: self-test passed, change "
-                   + ", ".join(f"{ax} {d:+.1f}" for ax, d in zip("xyz", delta, strict=True))
-                   + f" LSB (VS = {vs} V limits)")
-        return SelfTestResult(not bad, delta, limits, vs, msg)  # type: ignore[arg-type]
+        return SelfTestResult(passed, delta, limits, vs, msg)  # type: ignore[arg-type]
 
     def _average(self, n: int, settle: int, rate_hz: float, fmt: int) -> np.ndarray:
         period = 1.0 / rate_hz
@@ -507,7 +398,7 @@ class ADXL345(SupervisedDevice):
             if raw[1] != fmt:
                 raise DeviceConfigError(f"DATA_FORMAT read 0x{raw[1]:02X}, expected 0x{fmt:02X}")
             if raw[0] & DATA_READY:
-                got.append((s16_le(raw[2], raw[3]), s16_le(raw[4], raw[5]), s16_le(raw[6], raw[7])))
+                got.append(xyz_counts(raw, 2))
                 continue
             if self._clock() > deadline:
                 raise TimeoutError(f"no data (DATA_READY never set) after {len(got)} samples")
