@@ -312,14 +312,20 @@ def describe(device: str, kind: str | None, outputs: Mapping[str, Mapping[str, A
 
 
 def _part(name: str, base: PartDescription | None, given: Mapping[str, Any]) -> PartDescription:
+    """Part ``name`` of a sensor: ``given``'s keys checked and laid over ``base`` (the device's
+    part, None for one described from scratch). Raises ValueError naming the first key wrong."""
     unknown = [k for k in given if k not in PART_KEYS]
     if unknown:
         raise ValueError(f"outputs.{name}.{unknown[0]}: not a part's key (known: {', '.join(PART_KEYS)})")
-    kw: dict[str, Any] = {}
-    for key in PART_KEYS:
-        if key in given:
-            kw[key] = given[key]
+    kw: dict[str, Any] = {key: given[key] for key in PART_KEYS if key in given}
     where = f"outputs.{name}"
+    for check in _KEY_CHECKS:
+        check(kw, name, base, where)
+    return _checked_part(_laid_over(name, base, kw), name, where)
+
+
+def _check_units(kw: dict[str, Any], name: str, base: PartDescription | None, where: str) -> None:
+    """``units``: a known unit of the part's quantity (or counts); needed for a new part."""
     if "units" in kw:
         try:
             kw["units"] = canonical_unit_name(kw["units"])
@@ -331,6 +337,10 @@ def _part(name: str, base: PartDescription | None, given: Mapping[str, Any]) -> 
                              f"{PART_QUANTITY[name]} (the {name}'s)")
     elif base is None:
         raise ValueError(f"{where}.units: needed (counts, or a unit of {PART_QUANTITY[name]})")
+
+
+def _check_noise(kw: dict[str, Any], name: str, base: PartDescription | None, where: str) -> None:
+    """``noise_density``, ``noise_rms``: one number or one per axis, finite and >= 0."""
     for key in ("noise_density", "noise_rms"):
         if key in kw:
             v = kw[key]
@@ -339,11 +349,19 @@ def _part(name: str, base: PartDescription | None, given: Mapping[str, Any]) -> 
                                                            and x >= 0 for x in vals):
                 raise ValueError(f"{where}.{key}: one number or one per axis, each finite and >= 0")
             kw[key] = tuple(float(x) for x in vals)
+
+
+def _check_limits(kw: dict[str, Any], name: str, base: PartDescription | None, where: str) -> None:
+    """``limits``: [min, max] of the delivered values."""
     if "limits" in kw:
         lim = kw["limits"]
         if not (isinstance(lim, list | tuple) and len(lim) == 2 and lim[0] < lim[1]):
             raise ValueError(f"{where}.limits: [min, max] of the delivered values, min below max")
         kw["limits"] = (float(lim[0]), float(lim[1]))
+
+
+def _check_numbers(kw: dict[str, Any], name: str, base: PartDescription | None, where: str) -> None:
+    """The positive numbers (scale, range, the rates, the bandwidth), the delay, the resolution."""
     for key in ("scale", "range", "bandwidth_hz", "rate_hz", "noise_rate_hz"):
         if key in kw and not (isinstance(kw[key], int | float) and math.isfinite(kw[key]) and kw[key] > 0):
             raise ValueError(f"{where}.{key}: a positive number")
@@ -352,20 +370,27 @@ def _part(name: str, base: PartDescription | None, given: Mapping[str, Any]) -> 
         raise ValueError(f"{where}.delay_s: seconds, >= 0 and below {MAX_DELAY_S:g} (a filter's delay)")
     if "resolution" in kw and not (isinstance(kw["resolution"], int | float) and kw["resolution"] >= 0):
         raise ValueError(f"{where}.resolution: a number >= 0 (0: not rounded)")
-    if "noise_unit" in kw:
-        try:
-            kw["noise_unit"] = canonical_unit_name(kw["noise_unit"])
-        except UnitError as e:
-            raise ValueError(f"{where}.noise_unit: {e}") from None
-    if "scale_unit" in kw:
-        try:
-            kw["scale_unit"] = canonical_unit_name(kw["scale_unit"])
-        except UnitError as e:
-            raise ValueError(f"{where}.scale_unit: {e}") from None
-    if base is None:
-        part = PartDescription(name, kw.pop("units"))
-    else:
-        part = base
+
+
+def _check_unit_names(kw: dict[str, Any], name: str, base: PartDescription | None, where: str) -> None:
+    """``noise_unit``, ``scale_unit``: known units, by their canonical names."""
+    for key in ("noise_unit", "scale_unit"):
+        if key in kw:
+            try:
+                kw[key] = canonical_unit_name(kw[key])
+            except UnitError as e:
+                raise ValueError(f"{where}.{key}: {e}") from None
+
+
+_KEY_CHECKS = (_check_units, _check_noise, _check_limits, _check_numbers, _check_unit_names)
+"""A part's key checks in the order they are made (each canonicalises the keys it checks)."""
+
+
+def _laid_over(name: str, base: PartDescription | None, kw: dict[str, Any]) -> PartDescription:
+    """The checked keys ``kw`` laid over ``base``: delivered in other units than the device's
+    registers, the registers' scale, limits, zero and resolution no longer apply; a noise
+    given one way replaces the other."""
+    part = PartDescription(name, kw.pop("units")) if base is None else base
     if "units" in kw and kw["units"] != part.units:
         # delivered in other units than the device's registers: the register's scale, limits,
         # zero and resolution no longer apply (range, noise in datasheet units still do)
@@ -380,7 +405,12 @@ def _part(name: str, base: PartDescription | None, given: Mapping[str, Any]) -> 
         part = replace(part, noise_rms=None, noise_rate_hz=None, noise_unit=None)
     elif "noise_rms" in kw:
         part = replace(part, noise_density=None, noise_rate_hz=None, noise_unit=None)
-    part = replace(part, **kw)
+    return replace(part, **kw)
+
+
+def _checked_part(part: PartDescription, name: str, where: str) -> PartDescription:
+    """The part as a whole: one delivering counts has its scale (in the datasheet's unit
+    where none is given); its noise is in the datasheet's unit or the delivered one."""
     if part.counts:
         if part.scale is None:
             raise ValueError(f"{where}.scale: a part delivering counts needs its scale (counts per "

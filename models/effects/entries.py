@@ -79,6 +79,70 @@ def entry_dict(e: Any) -> dict:
     return {"effect": e}
 
 
+def _effect_of(arm: ArmModel, e: dict, k: str, source: str) -> Effect | ConfigProblem:
+    """The effect entry ``e`` (at key ``k``) names, or the problem with its name or target."""
+    name = e.get("effect")
+    if name not in EFFECTS:
+        return ConfigProblem(source, f"{k}.effect", name, _unknown_effect(name))
+    target = e.get("target")
+    try:
+        return EFFECTS[name](arm, target)
+    except TargetError as err:
+        return ConfigProblem(source, f"{k}.target", target, str(err))
+
+
+def _given_value(e: dict, b: ParamBlock, name: str, k: str, source: str,
+                 ) -> tuple[np.ndarray | None, list[ConfigProblem]]:
+    """The block's value entry ``e`` gives (``params: {key: ...}`` or ``value:``), checked
+    against the block's shape and bounds; None where it gives none."""
+    problems = []
+    value = None
+    params = dict(e.get("params") or {})
+    if "value" in e and e["value"] is not None:
+        params.setdefault(b.key, e["value"])
+    for pk, pv in params.items():
+        if pk != b.key:
+            problems.append(ConfigProblem(source, f"{k}.params.{pk}", pv,
+                                          f"unknown parameter {pk!r} of {name}; it has "
+                                          f"{b.key!r}: {_describe_block(b)}"))
+            continue
+        a, msg = _as_array(pv, b)
+        if msg:
+            problems.append(ConfigProblem(source, f"{k}.params.{pk}", pv, msg))
+            continue
+        out = (a < b.lower) | (a > b.upper)
+        if np.any(out):
+            j = int(np.flatnonzero(out)[0])
+            problems.append(ConfigProblem(
+                source, f"{k}.params.{pk}", pv,
+                f"{b.labels[j]} = {a[j]:g} is outside the bounds [{b.lower[j]:g}, "
+                f"{b.upper[j]:g}] {b.units} of {name}"))
+            continue
+        value = a
+    return value, problems
+
+
+def _given_sigma(e: dict, b: ParamBlock, name: str, k: str, source: str,
+                 ) -> tuple[np.ndarray | None, list[ConfigProblem]]:
+    """The block's prior sigma entry ``e`` gives (``sigma: {key: ...}``, one number for every
+    element or one each), every one positive; None where it gives none."""
+    problems = []
+    sigma = None
+    for sk, sv in dict(e.get("sigma") or {}).items():
+        if sk != b.key:
+            problems.append(ConfigProblem(source, f"{k}.sigma.{sk}", sv,
+                                          f"unknown parameter {sk!r} of {name}; it has {b.key!r}"))
+            continue
+        a, msg = _as_array([sv] * b.size if np.ndim(sv) == 0 else sv, b)
+        if msg is None and np.any(a <= 0):
+            msg = "every sigma must be positive"
+        if msg:
+            problems.append(ConfigProblem(source, f"{k}.sigma.{sk}", sv, msg))
+            continue
+        sigma = a
+    return sigma, problems
+
+
 def model_problems(
     arm: ArmModel, entries: Iterable[Any], source: str = "(effects)", key: str = "effects",
     **model_kwargs,
@@ -92,16 +156,11 @@ def model_problems(
     for i, raw in enumerate(entries):
         e = entry_dict(raw)
         k = f"{key}[{i}]"
+        eff = _effect_of(arm, e, k, source)
+        if isinstance(eff, ConfigProblem):
+            problems.append(eff)
+            continue
         name = e.get("effect")
-        if name not in EFFECTS:
-            problems.append(ConfigProblem(source, f"{k}.effect", name, _unknown_effect(name)))
-            continue
-        target = e.get("target")
-        try:
-            eff = EFFECTS[name](arm, target)
-        except TargetError as err:
-            problems.append(ConfigProblem(source, f"{k}.target", target, str(err)))
-            continue
         if eff.block_name in seen:
             problems.append(ConfigProblem(source, k, f"{name}:{eff.target}",
                                           f"{name} on {eff.target} is already given by "
@@ -109,47 +168,14 @@ def model_problems(
             continue
         seen[eff.block_name] = i
         b = eff.block()
-        ok = True
-        params = dict(e.get("params") or {})
-        if "value" in e and e["value"] is not None:
-            params.setdefault(b.key, e["value"])
-        for pk, pv in params.items():
-            if pk != b.key:
-                problems.append(ConfigProblem(source, f"{k}.params.{pk}", pv,
-                                              f"unknown parameter {pk!r} of {name}; it has "
-                                              f"{b.key!r}: {_describe_block(b)}"))
-                ok = False
-                continue
-            a, msg = _as_array(pv, b)
-            if msg:
-                problems.append(ConfigProblem(source, f"{k}.params.{pk}", pv, msg))
-                ok = False
-                continue
-            out = (a < b.lower) | (a > b.upper)
-            if np.any(out):
-                j = int(np.flatnonzero(out)[0])
-                problems.append(ConfigProblem(
-                    source, f"{k}.params.{pk}", pv,
-                    f"{b.labels[j]} = {a[j]:g} is outside the bounds [{b.lower[j]:g}, "
-                    f"{b.upper[j]:g}] {b.units} of {name}"))
-                ok = False
-                continue
-            values[eff.block_name] = a
-        for sk, sv in dict(e.get("sigma") or {}).items():
-            if sk != b.key:
-                problems.append(ConfigProblem(source, f"{k}.sigma.{sk}", sv,
-                                              f"unknown parameter {sk!r} of {name}; it has {b.key!r}"))
-                ok = False
-                continue
-            a, msg = _as_array([sv] * b.size if np.ndim(sv) == 0 else sv, b)
-            if msg is None and np.any(a <= 0):
-                msg = "every sigma must be positive"
-            if msg:
-                problems.append(ConfigProblem(source, f"{k}.sigma.{sk}", sv, msg))
-                ok = False
-                continue
-            sigmas[eff.block_name] = a
-        if ok:
+        value, value_problems = _given_value(e, b, name, k, source)
+        sigma, sigma_problems = _given_sigma(e, b, name, k, source)
+        problems += value_problems + sigma_problems
+        if value is not None:
+            values[eff.block_name] = value
+        if sigma is not None:
+            sigmas[eff.block_name] = sigma
+        if not value_problems and not sigma_problems:
             effects.append(eff)
     if problems:
         return None, problems

@@ -36,82 +36,111 @@ def _reach_path(arm: ArmModel, duration_s: float, rng: np.random.Generator, stil
     return WaypointPath(b.build()), events
 
 
+RAMP_ANGLE_RAD = float(np.arctan(1 / 12))
+"""The steepest ramp of a drive (1:12); a ramp taken is 0.5-1 of it."""
+CROSS_SLOPE_RAD = float(np.arctan(1 / 50))
+"""A pavement's cross-slope (1:50)."""
+
+
+class _DrivenChair:
+    """The driven chair's four channels (speed, yaw rate, pitch, roll), built in step."""
+
+    def __init__(self, still_s: float):
+        self.speed, self.yaw = StepsBuilder(0.0), StepsBuilder(0.0)
+        self.pitch, self.roll = StepsBuilder(0.0), StepsBuilder(0.0)
+        self.sync(still_s)
+
+    def sync(self, t_s: float) -> None:
+        """Hold every channel until ``t_s``."""
+        for ch in (self.speed, self.yaw, self.pitch, self.roll):
+            ch.hold(t_s - ch.t)
+
+    def build(self, yaw0: float, lever_m) -> DrivingChair:
+        """The chair's motion, starting at heading ``yaw0``."""
+        return DrivingChair(self.speed.build(), self.yaw.build(), self.pitch.build(), self.roll.build(),
+                            yaw0, lever_m)
+
+
+def _turn_on_the_spot(chair: _DrivenChair, rng: np.random.Generator, t: float) -> tuple[float, dict]:
+    """A turn on the spot of 60-180° at 45 °/s from ``t``: when it ends, and its event."""
+    ang = rng.uniform(60, 180) * DEG * rng.choice([-1, 1])
+    r = 45 * DEG * np.sign(ang)
+    Tr = 0.8
+    cruise = abs(ang) / abs(r) - Tr
+    chair.yaw.move([r], Tr).hold(cruise).move([0.0], Tr)
+    event = {"t_start_s": round(t, 3), "t_end_s": round(chair.yaw.t, 3),
+             "what": f"turn on the spot {np.degrees(ang):.0f}°"}
+    return chair.yaw.t, event
+
+
+def _cruise_piece(chair: _DrivenChair, rng: np.random.Generator, t: float, v: float) -> tuple[float, str]:
+    """One piece of a cruise at ``v`` m/s from ``t``: straight on, a turn, a ramp up or down or
+    a cross-slope; when it ends, and what it was."""
+    kind = rng.choice(["straight", "turn", "ramp", "cross"], p=[0.35, 0.35, 0.15, 0.15])
+    if kind == "straight":
+        return t + rng.uniform(2.0, 10.0), ""
+    if kind == "turn":
+        r_max = min(60 * DEG, 0.6 / v)
+        r = rng.uniform(0.5, 1.0) * r_max * rng.choice([-1, 1])
+        ang = rng.uniform(30, 150) * DEG
+        Tr = max(0.6, abs(r) / (90 * DEG))
+        cruise = max(0.0, ang / abs(r) - Tr)
+        chair.yaw.move([r], Tr).hold(cruise).move([0.0], Tr)
+        return chair.yaw.t, f"turn {np.degrees(np.sign(r) * ang):.0f}°"
+    up = rng.choice([-1, 1])
+    level = (RAMP_ANGLE_RAD * rng.uniform(0.5, 1.0) if kind == "ramp" else CROSS_SLOPE_RAD) * up
+    ch = chair.pitch if kind == "ramp" else chair.roll
+    Tt = max(0.6, 0.6 / v)  # the wheelbase rolls onto the slope
+    length = rng.uniform(2.0, 9.0)
+    # nose up climbing: negative pitch in R = Rz Ry Rx
+    ch.move([-level if kind == "ramp" else level], Tt).hold(length / v).move([0.0], Tt)
+    if kind == "ramp":
+        what = f"ramp 1:{round(1 / np.tan(abs(level)))} " + ("up" if up > 0 else "down")
+    else:
+        what = "cross-slope 1:50 " + ("right" if up > 0 else "left") + " low"
+    return ch.t, what
+
+
+def _drive(chair: _DrivenChair, rng: np.random.Generator, t: float) -> tuple[float, dict]:
+    """A drive from ``t``: start, cruise in one to three pieces, stop; when it ends, and its
+    event."""
+    v = rng.uniform(0.4, 1.3)
+    acc = rng.uniform(0.4, 1.0)
+    Ta = np.sqrt(5.7735 * v / acc)  # quintic: peak acceleration 5.77·Δ/T²
+    t0 = t
+    chair.speed.move([v], Ta)
+    t += Ta
+    chair.sync(t)
+    what = [f"drive {v:.1f} m/s"]
+    for _ in range(rng.integers(1, 4)):  # cruise pieces: straight, a turn or a ramp
+        t, piece = _cruise_piece(chair, rng, t, v)
+        if piece:
+            what.append(piece)
+        chair.sync(t)
+    dec = rng.uniform(0.4, 1.0)
+    Td = np.sqrt(5.7735 * v / dec)
+    chair.speed.move([0.0], Td)
+    t += Td
+    chair.sync(t)
+    return t, {"t_start_s": round(t0, 3), "t_end_s": round(t, 3), "what": ", ".join(what)}
+
+
 def _chair_path(duration_s: float, rng: np.random.Generator, still_s: float, yaw0: float,
                 lever_m=CHAIR_LEVER_M):
     """Random drives: start, cruise with turns and ramps, stop; turns on the spot; pauses."""
-    speed = StepsBuilder(0.0)
-    yaw = StepsBuilder(0.0)
-    pitch = StepsBuilder(0.0)
-    roll = StepsBuilder(0.0)
-    for ch in (speed, yaw, pitch, roll):
-        ch.hold(still_s)
-    ramp = np.arctan(1 / 12)
-    cross_slope = np.arctan(1 / 50)
+    chair = _DrivenChair(still_s)
     events = []
     t = still_s
-
-    def sync(t_):
-        for ch in (speed, yaw, pitch, roll):
-            ch.hold(t_ - ch.t)
-
     while t < duration_s:
         t += rng.uniform(3.0, 20.0)  # pause
-        sync(t)
-        if rng.uniform() < 0.2:  # turn on the spot
-            ang = rng.uniform(60, 180) * DEG * rng.choice([-1, 1])
-            r = 45 * DEG * np.sign(ang)
-            Tr = 0.8
-            cruise = abs(ang) / abs(r) - Tr
-            yaw.move([r], Tr).hold(cruise).move([0.0], Tr)
-            events.append({"t_start_s": round(t, 3), "t_end_s": round(yaw.t, 3),
-                           "what": f"turn on the spot {np.degrees(ang):.0f}°"})
-            t = yaw.t
-            sync(t)
-            continue
-        v = rng.uniform(0.4, 1.3)
-        acc = rng.uniform(0.4, 1.0)
-        Ta = np.sqrt(5.7735 * v / acc)  # quintic: peak acceleration 5.77·Δ/T²
-        t0 = t
-        speed.move([v], Ta)
-        t += Ta
-        sync(t)
-        what = [f"drive {v:.1f} m/s"]
-        for _ in range(rng.integers(1, 4)):  # cruise pieces: straight, a turn or a ramp
-            kind = rng.choice(["straight", "turn", "ramp", "cross"], p=[0.35, 0.35, 0.15, 0.15])
-            if kind == "straight":
-                t += rng.uniform(2.0, 10.0)
-            elif kind == "turn":
-                r_max = min(60 * DEG, 0.6 / v)
-                r = rng.uniform(0.5, 1.0) * r_max * rng.choice([-1, 1])
-                ang = rng.uniform(30, 150) * DEG
-                Tr = max(0.6, abs(r) / (90 * DEG))
-                cruise = max(0.0, ang / abs(r) - Tr)
-                yaw.move([r], Tr).hold(cruise).move([0.0], Tr)
-                what.append(f"turn {np.degrees(np.sign(r) * ang):.0f}°")
-                t = yaw.t
-            else:
-                up = rng.choice([-1, 1])
-                level = (ramp * rng.uniform(0.5, 1.0) if kind == "ramp" else cross_slope) * up
-                ch = pitch if kind == "ramp" else roll
-                Tt = max(0.6, 0.6 / v)  # the wheelbase rolls onto the slope
-                length = rng.uniform(2.0, 9.0)
-                # nose up climbing: negative pitch in R = Rz Ry Rx
-                ch.move([-level if kind == "ramp" else level], Tt).hold(length / v).move([0.0], Tt)
-                slope = f"ramp 1:{round(1 / np.tan(abs(level)))}" if kind == "ramp" else "cross-slope 1:50"
-                if kind == "ramp":
-                    way = "up" if up > 0 else "down"
-                else:
-                    way = ("right" if up > 0 else "left") + " low"
-                what.append(f"{slope} {way}")
-                t = ch.t
-            sync(t)
-        dec = rng.uniform(0.4, 1.0)
-        Td = np.sqrt(5.7735 * v / dec)
-        speed.move([0.0], Td)
-        t += Td
-        sync(t)
-        events.append({"t_start_s": round(t0, 3), "t_end_s": round(t, 3), "what": ", ".join(what)})
-    return DrivingChair(speed.build(), yaw.build(), pitch.build(), roll.build(), yaw0, lever_m), events
+        chair.sync(t)
+        if rng.uniform() < 0.2:
+            t, event = _turn_on_the_spot(chair, rng, t)
+        else:
+            t, event = _drive(chair, rng, t)
+        chair.sync(t)
+        events.append(event)
+    return chair.build(yaw0, lever_m), events
 
 
 def daily_use(arm: ArmModel, duration_s: float, rng: np.random.Generator, still_s: float = 8.0) -> Scenario:
