@@ -77,6 +77,11 @@ from armfusion.sensors.bus import (
 from armfusion.sensors.device import SupervisedDevice, check_identity, check_read_back
 from armfusion.sensors.samples import Stream, accel_columns
 
+__all__ = [
+    "FIFO_DEPTH", "I2C_ADDRESS", "I2C_ADDRESS_ALT", "ADXL345", "ADXL345Config", "AccelSample",
+    "SelfTestResult", "accel_stream", "rate_code", "self_test_limits_lsb",
+]
+
 
 @dataclass(frozen=True)
 class AccelSample:

@@ -13,7 +13,7 @@ from armfusion.models.motion import MotionState
 from armfusion.models.rotations import GRAVITY_MPS2, R_from_rpy, up_from_tilt
 from armfusion.models.sensor_models import stream_models
 from armfusion.models.simulator import SimulationOptions, simulate
-from armfusion.models.trajectories import RENK_RATES_DEG_S, SCENARIOS, make_scenario
+from armfusion.models.trajectories import RENK_RATES_DEG_S, SCENARIOS, RampDrive, make_scenario
 
 ACCS = ("acc1", "acc2", "acc3", "acc4")
 
@@ -158,6 +158,18 @@ def test_devices_at_their_own_rates(wmra):
         simulate(wmra, "startup", duration_s=1, options=SimulationOptions(rates_hz={"gps": 10}))
 
 
+def test_another_earth_field_is_what_the_compass_reads_and_the_truth_says(wmra):
+    """Earth's field given in the options (here 30 µT north, 20 µT down) is the one the truth
+    file records and the one the compass reads, in counts, without noise."""
+    field_ut = np.array([30.0, 0.0, -20.0])
+    here, truth = simulate(wmra, "startup", duration_s=1, seed=3,
+                           options=SimulationOptions(noise=False, earth_field_ut=field_ut))
+    tampa, _ = simulate(wmra, "startup", duration_s=1, seed=3, options=SimulationOptions(noise=False))
+    assert truth["earth_field_world_ut"] == [30.0, 0.0, -20.0]
+    assert not np.array_equal(here.streams["imu_mag"].values, tampa.streams["imu_mag"].values)
+    np.testing.assert_array_equal(here.streams["acc1"].values, tampa.streams["acc1"].values)
+
+
 def test_unknown_scenario_is_refused_with_the_list(wmra):
     with pytest.raises(ValueError, match="unknown scenario 'dayly-use'; known: startup, static-poses"):
         simulate(wmra, "dayly-use", duration_s=1)
@@ -250,6 +262,18 @@ def test_renk_ramp_parks_the_chair_level_then_up_down_and_across_a_ramp(wmra):
     np.testing.assert_allclose(sc.state(t).q_rad, parked_sweep.state(t).q_rad)
     with pytest.raises(ValueError, match="too short"):
         make_scenario(wmra, "renk-ramp", 60.0)
+
+
+def test_renk_ramp_takes_a_steeper_ramp_and_refuses_one_no_chair_climbs(wmra):
+    """A ramp of 1:8 parks the chair at its 7.1°; a slope of 0.5 (27°) or a chair that does
+    not move is refused, saying which."""
+    sc = make_scenario(wmra, "renk-ramp", 300.0, seed=4, ramp=RampDrive(slope=1 / 8))
+    up = next(e for e in sc.events if e["what"] == "parked: ramp facing up")
+    assert abs(up["tilt_deg"][1] + np.degrees(np.arctan(1 / 8))) < 1.0
+    with pytest.raises(ValueError, match=r"slope must be in \(0, 0.3\] \(rise over run\), got 0.5"):
+        make_scenario(wmra, "renk-ramp", 300.0, ramp=RampDrive(slope=0.5))
+    with pytest.raises(ValueError, match="drive speed and turn rate must be positive"):
+        make_scenario(wmra, "renk-ramp", 300.0, ramp=RampDrive(drive_speed_mps=0.0))
 
 
 def test_daily_use_drives_turns_and_climbs_ramps_like_a_wheelchair(wmra):
