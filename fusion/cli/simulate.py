@@ -206,8 +206,8 @@ def simulate(
     say = progress or (lambda _f, _m=None: None)
     share = SIMULATED_SHARE[out.suffix.lower()]
     t0 = time.perf_counter()
-    rec, truth = simulate_recording(arm, scenario, duration_s, rate_hz, seed, model, realistic, SimulationOptions(
-        noise=noise, progress=lambda f: say(share * f, "simulating")))
+    options = SimulationOptions(noise=noise, progress=lambda f: say(share * f, "simulating"))
+    rec, truth = simulate_recording(arm, scenario, duration_s, rate_hz, seed, model, realistic, options)
     t_sim = time.perf_counter() - t0
     say(share, f"writing {out.name}")
     out.parent.mkdir(parents=True, exist_ok=True)
