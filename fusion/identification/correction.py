@@ -46,6 +46,10 @@ class StartupCorrection:
     of its IMU's corrected reading; the convention's own σ is the absolute zero's, in
     :attr:`spread`."""
 
+    offset_per_c: dict[str, np.ndarray] = field(default_factory=dict)
+    """Per stream with a calibrated ``temperature_drift``, how its map's offset ``c`` moves per
+    °C (its drift through the linear part of the effects after it): ``dc/dT = L_after θ``."""
+
     def given_conventions(self) -> StartupCorrection:
         """This correction with its doubt taken relative to the calibration's joint-zero
         conventions (:attr:`spread_given_conventions` as :attr:`spread`): what a tracker
@@ -176,7 +180,7 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
     accel = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
     th = model.unpack()
     cov = arm.calibration.correction_covariance
-    maps, spread, given = {}, {}, {}
+    maps, spread, given, per_c = {}, {}, {}, {}
     conventions = set(arm.calibration.joint_zero_conventions)
     imu_parts = [] if arm.imu is None else ["imu_mag", "imu_gyro"]
     for s in accel + imu_parts:
@@ -199,6 +203,12 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
             return (y[1:] - y[0]).T, y[0]
 
         maps[s] = affine(th)
+        drift = next((e for e in effs if e.name == "temperature_drift"), None)
+        if drift is not None:  # the offset's slope: the drift through what comes after it
+            after = effs[effs.index(drift) + 1:]
+            slope = affine(th, effs=after)[0] @ np.asarray(th[drift.block_name], float)
+            if np.any(slope):
+                per_c[s] = slope
         c = cov.get(s)
         if c:  # a calibrated config: the fit's covariance of this sensor's correction
             names = model.element_names()
@@ -214,7 +224,7 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
                 given[s] = _spread_maps(model, th, [els[i] for i in free], C_g, affine)
             else:
                 given[s] = spread[s]
-    return StartupCorrection(model, temperature_c, maps, spread, given)
+    return StartupCorrection(model, temperature_c, maps, spread, given, per_c)
 
 
 def _spread_maps(model: Model, th, els: list[str], C: np.ndarray, affine) -> list:

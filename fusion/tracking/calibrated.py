@@ -181,24 +181,6 @@ def heading_scale_sigma(arm: ArmModel, model: Model | None, default: float, any_
     return default if arm.calibration.imu_accel_floor_g > 0.0 else 0.0
 
 
-def offset_per_degree(arm: ArmModel, model: Model | None, correction) -> dict[str, np.ndarray]:
-    """Per accelerometer stream, how the correction's offset moves per °C (the config's
-    ``temperature_drift``), so that readings are corrected at the temperature the IMU reads
-    now rather than the startup's."""
-    if not has_effect(model, "temperature_drift"):
-        return {}
-    from armfusion.fusion.identification.identify import startup_correction
-
-    t0 = float(correction.temperature_c)
-    warmer = startup_correction(arm, t0 + 1.0, include_joint_offsets=True)
-    out = {}
-    for stream, (_, c) in correction.maps.items():
-        slope = np.asarray(warmer.maps[stream][1], float) - np.asarray(c, float)
-        if np.any(slope):
-            out[stream] = slope
-    return out
-
-
 def undo_map(correction, stream: str) -> tuple[np.ndarray, np.ndarray] | None:
     """The map that undoes ``correction``'s calibrated errors of ``stream``, ``(A, c)``: the
     ideal sensor's reading is ``(y - c) @ A`` for readings ``y (N, 3)`` in SI units; None
@@ -221,7 +203,7 @@ class Readings:
         if correction is not None:
             for stream in correction.maps:
                 self.undo[stream] = undo_map(correction, stream)
-            self.per_c = offset_per_degree(arm, model, correction)
+            self.per_c = dict(correction.offset_per_c)
         self.models: dict[str, StreamModel] = stream_models(arm)
 
     def set_rates(self, rates_hz: dict[str, float]) -> None:

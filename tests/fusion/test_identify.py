@@ -118,6 +118,32 @@ def test_startup_correction_inverts_sensor_effects(arm):
     assert np.allclose(corr.readings(r).accel_mean_g["acc1"], ideal, atol=1e-12)
 
 
+def test_the_correction_s_offset_moves_with_temperature_as_the_model_predicts(arm):
+    """A calibrated offset drift (with a scale and a bias beside it): the correction's slope
+    per °C, written from the effects, is how far its offset moves between two temperatures,
+    and readings taken warm are undone to the ideal sensor's with the offset moved by it."""
+    import dataclasses
+
+    from armfusion.models.motion import MotionState
+    drift = [0.0004, -0.0003, 0.0011]
+    entries = [{"effect": "accel_bias", "target": "acc1", "params": {"bias_g": [0.03, -0.02, 0.01]}},
+               {"effect": "accel_scale", "target": "acc1", "params": {"scale_error": [0.01, 0.0, -0.02]}},
+               {"effect": "temperature_drift", "target": "acc1", "params": {"drift_g_per_c": drift}}]
+    arm2 = dataclasses.replace(arm, effects=tuple(entries))
+    cold, warm = startup_correction(arm2, 25.0), startup_correction(arm2, 37.0)
+    slope = cold.offset_per_c["acc1"]
+    np.testing.assert_allclose(slope, drift, atol=1e-15)
+    np.testing.assert_allclose(warm.maps["acc1"][1] - cold.maps["acc1"][1], 12.0 * slope, atol=1e-15)
+    assert "acc2" not in cold.offset_per_c  # no drift calibrated there: no slope
+    model = Model(arm2, [build_effect(arm2, e["effect"], e["target"]) for e in entries])
+    st = MotionState.static(np.array(arm.ready_pose_rad)[None], temperature_c=37.0)
+    x = model.pack({f"{e['target']}.{e['effect']}": list(e["params"].values())[0] for e in entries})
+    seen = model.predict(st, x, ["acc1"], units="physical")["acc1"][0]
+    ideal = Model(arm2).predict(st, None, ["acc1"], units="physical")["acc1"][0]
+    L, c = cold.maps["acc1"]
+    np.testing.assert_allclose(np.linalg.solve(L, seen - (c + 12.0 * slope)), ideal, atol=1e-12)
+
+
 def test_compass_jacobian_follows_the_imu_position(arm, state):
     """The IMU's lever arm moves it relative to the arm's magnetic dipoles: the compass's
     analytic Jacobian must see that (it once did not, and the fit crept along for ever)."""
