@@ -45,7 +45,8 @@ from armfusion.fusion.tracking.tracker import (  # noqa: E402
     make_frames,
     start_from_recording,
 )
-from armfusion.fusion.tracking.ukf import repair_covariance, unscented_mean  # noqa: E402
+from armfusion.fusion.tracking.ukf import repair_covariance  # noqa: E402
+from armfusion.fusion.tracking.ukf_reference import unscented_mean  # noqa: E402
 from armfusion.models.rotations import DEG, wrap_angle  # noqa: E402
 from armfusion.models.rotations import GRAVITY_MPS2 as G  # noqa: E402
 from armfusion.models.sensor_models import AK8975_UT_PER_LSB  # noqa: E402
