@@ -135,7 +135,7 @@ def R_from_rpy(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
 def R_from_rpy_into(roll_rad: float, pitch_rad: float, yaw_rad: float, R: np.ndarray) -> None:
     """:func:`R_from_rpy` of one attitude written into ``R (3, 3)``, its product multiplied
     out. Scalar arithmetic only, so that numba compiles this same function for its kernels
-    (``armfusion.fusion.tracking.tracker_kernels`` does)."""
+    (``armfusion.fusion.tracking.process_kernels`` does)."""
     sr, cr = math.sin(roll_rad), math.cos(roll_rad)
     sp, cp = math.sin(pitch_rad), math.cos(pitch_rad)
     sy, cy = math.sin(yaw_rad), math.cos(yaw_rad)

@@ -269,8 +269,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.tracking.run:run_recording": _TRACKING,
     "armfusion.fusion.tracking.start": _TRACKING,
     "armfusion.fusion.tracking.start:start_from_recording": _TRACKING,
-    "armfusion.fusion.tracking.tracker_kernels": _TRACKING,
-    "armfusion.fusion.tracking.tracker_kernels:process_points_tangent": _TRACKING,
     "armfusion.fusion.workbench.candidates:rank_candidates": _WORKBENCH,
     "armfusion.fusion.workbench.scores:score_tests": _WORKBENCH,
 }
@@ -388,7 +386,6 @@ MANY_PARAMETERS: dict[str, tuple[int, str]] = {
     "armfusion.fusion.tracking.observability:Observability.update": (9, _TO_RECORD),
     "armfusion.fusion.tracking.report:Reports.__init__": (12, _TO_RECORD),
     "armfusion.fusion.tracking.start:start_from_recording": (13, _TO_RECORD),
-    "armfusion.fusion.tracking.ukf:BatchedUKF.update": (9, _TO_RECORD),
     "armfusion.fusion.workbench.candidates:_refit": (9, _TO_RECORD),
     "armfusion.fusion.workbench.scores:_gauges": (9, _TO_RECORD),
 }

@@ -45,7 +45,7 @@ from armfusion.fusion.tracking.tracker import (  # noqa: E402
     make_frames,
     start_from_recording,
 )
-from armfusion.fusion.tracking.ukf import repair_covariance, unscented_mean  # noqa: E402
+from armfusion.fusion.tracking.ukf import repair_covariance  # noqa: E402
 from armfusion.models.rotations import DEG, wrap_angle  # noqa: E402
 from armfusion.models.rotations import GRAVITY_MPS2 as G  # noqa: E402
 from armfusion.models.sensor_models import AK8975_UT_PER_LSB  # noqa: E402
@@ -129,6 +129,10 @@ def filterpy_baseline(arm, rec: Recording, steps: int, model: str = "numpy"):
         d = a - b
         d[L.yaw] = wrap_angle(d[L.yaw])
         return d
+
+    # (imported here: the revisions tools/bench_track_revisions.py loads calibrated_wmra
+    # from may predate the reference module)
+    from armfusion.fusion.tracking.ukf_reference import unscented_mean
 
     def mean_x(sigmas, Wm):
         return unscented_mean(sigmas, Wm, np.array([L.yaw]))

@@ -46,7 +46,7 @@ def accel_points_numpy(X: np.ndarray, sel: np.ndarray, links: np.ndarray, axes: 
 def process_points_numpy(X: np.ndarray, dt: float, w: np.ndarray, have_w: bool, roll: int, yaw: int,
                          bias: int, accel: int, scale: int, accel_decay: float, jerk: int = -1,
                          jerk_decay: float = 1.0) -> np.ndarray:
-    """:func:`armfusion.fusion.tracking.tracker_kernels.process_points` in NumPy: each point's attitude
+    """:func:`armfusion.fusion.tracking.process_kernels.process_points` in NumPy: each point's attitude
     ``R_from_rpy`` turned by ``exp_so3`` of its bias- (and z scale-) corrected rates times ``dt``, read back
     by ``rpy_from_R`` and put in the chart nearest the point's (of the two Euler triples of
     the rotation, the closer, roll and yaw unwrapped onto the old ones)."""

@@ -8,13 +8,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from armfusion.fusion.tracking.settings import G, StateLayout, TrackerSettings
-from armfusion.fusion.tracking.tracker_kernels import (
+from armfusion.fusion.tracking.process_kernels import (
     fold_attitude,
     points_from_tangent,
     process_points,
     process_points_tangent,
 )
+from armfusion.fusion.tracking.settings import G, StateLayout, TrackerSettings
 from armfusion.models.rotations import DEG
 
 
@@ -136,7 +136,7 @@ class ProcessModel:
 
     def fx(self, X: np.ndarray, dt: float, w: np.ndarray | None) -> np.ndarray:
         """Every sigma point at once (compiled:
-        :func:`armfusion.fusion.tracking.tracker_kernels.process_points`): the gyro (minus each point's bias)
+        :func:`armfusion.fusion.tracking.process_kernels.process_points`): the gyro (minus each point's bias)
         turns the attitude exactly, the base's acceleration decays, offsets and bias stay.
         The points' attitude columns are Euler angles (the filter calls
         :meth:`fx_tangent`, which alone carries a base velocity block)."""
@@ -183,7 +183,7 @@ class ProcessModel:
         point's Euler angles plus a world-axis rotation vector, whose covariance the filter
         holds: meaningful at any attitude, where Euler angles are singular at pitch ±90 deg):
         turned into Euler angles for the kernel
-        (:func:`~armfusion.fusion.tracking.tracker_kernels.points_from_tangent`), and back about the
+        (:func:`~armfusion.fusion.tracking.process_kernels.points_from_tangent`), and back about the
         propagated central point."""
         L = self.layout
         decay = self._decay_of(dt)

@@ -107,7 +107,7 @@ class TrackerSettings:
     base_speed_sigma_mps: float | None = None
     """The spread of the base's speed, where it is bounded (a hand carrying a sensor): the
     state then holds the base's velocity too, and its acceleration is that velocity's
-    derivative (:func:`armfusion.fusion.tracking.tracker_kernels._velocity_step`), so it averages to
+    derivative (:func:`armfusion.fusion.tracking.process_kernels._velocity_step`), so it averages to
     zero over time however large it is. None (a chair, which may cruise at any speed for
     minutes): no velocity, the acceleration alone (a config's ``base_motion.speed_sigma_mps``
     sets it, :meth:`for_base`)."""

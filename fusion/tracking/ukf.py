@@ -24,44 +24,57 @@ Angles in the state or the measurement (a heading) are handled by ``angle_states
 ``angle_rows``: residuals are wrapped to (-pi, pi] and means taken about the central
 sigma point.
 
-The arithmetic of a step runs in compiled kernels (:mod:`armfusion.fusion.tracking.ukf_kernels`, one call per
-stage) in the common case: :class:`SigmaPoints`' own points, at most one angle state and
-one angle row, a diagonal ``R``, groups that tile the measurement rows, a positive definite
-``P + Q`` and ``S``. Everything else takes the NumPy path, which stays the reference the
-kernels are tested against (to round-off).
+The arithmetic of a step runs in compiled kernels (:mod:`armfusion.fusion.tracking.ukf_kernels`,
+one call per stage), always: any number of angle states and rows, ``R`` full or diagonal,
+any groups of rows, a ``P + Q`` or ``S`` that is not positive definite (their own compiled
+branches). There is no other run-time path; the NumPy form of the same step,
+:mod:`armfusion.fusion.tracking.ukf_reference`, is the oracle the tests hold the kernels to
+(to round-off).
 
-Its parts: the sigma points and the unscented transform in
-:mod:`armfusion.fusion.tracking.unscented`, the measurement groups, their gates and the
-prepared update plan (with the compiled innovation that reads it) in
-:mod:`armfusion.fusion.tracking.ukf_groups`, the correction in
+Its parts: the sigma points in :mod:`armfusion.fusion.tracking.unscented`, the measurement
+groups, their gates and the prepared update plan (with the compiled innovation that reads
+it) in :mod:`armfusion.fusion.tracking.ukf_groups`, the correction in
 :mod:`armfusion.fusion.tracking.ukf_correct`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import numpy as np
-from armfusion.fusion.tracking.ukf_correct import correct_compiled, correct_numpy
+from armfusion.fusion.tracking.ukf_correct import correct as _correct
 from armfusion.fusion.tracking.ukf_groups import (
     GroupPlan,
     Innovation,
     MeasurementGroup,
-    group_nis,
     nis_bound,
 )
-from armfusion.fusion.tracking.ukf_kernels import sigma_points_into, unscented_moments_into
-from armfusion.fusion.tracking.unscented import (
-    SigmaPoints,
-    repair_covariance,
-    residuals,
-    symmetrise,
-    unscented_mean,
-    unscented_moments,
-    unscented_transform,
-    weighted_prediction,
+from armfusion.fusion.tracking.ukf_kernels import (
+    sigma_points_into,
+    unscented_moments_into,
+    weighted_residuals_into,
 )
+from armfusion.fusion.tracking.unscented import SigmaPoints, repair_covariance, symmetrise
 from armfusion.models.rotations import wrap_angle
+
+
+class GainLimits(NamedTuple):
+    """What an update's gain may not do: ``hold (n, n)``, a projection applied to it (the
+    directions it removes get no correction), and ``gain_mask (n, m)``, entries zeroed (a
+    row that may correct only some states). None: no limit."""
+
+    hold: np.ndarray | None = None
+    gain_mask: np.ndarray | None = None
+
+
+def _indices(values: Sequence[int], size: int, what: str) -> np.ndarray:
+    """``values`` as sorted int64 indices into ``[0, size)`` (negative ones from the end)."""
+    out = np.array(sorted({int(v) % size if -size <= int(v) < size else size for v in values}),
+                   dtype=np.int64)
+    if len(out) and out[-1] >= size:
+        raise ValueError(f"{what} {list(values)} must lie within [-{size}, {size})")
+    return out
 
 
 class BatchedUKF:
@@ -69,6 +82,8 @@ class BatchedUKF:
 
     ``fx(X, **kw) -> X'`` and ``hx(X, **kw) -> Z`` take and return ``(2n+1, ·)`` arrays.
     ``angle_states`` are the state indices that are angles (wrapped residuals and means).
+    ``points`` are :class:`SigmaPoints` (its ``alpha``, ``beta``, ``kappa``); the filter makes
+    them itself in its compiled step.
     """
 
     def __init__(self, x0: np.ndarray, P0: np.ndarray, points: SigmaPoints | None = None,
@@ -81,25 +96,22 @@ class BatchedUKF:
         if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(P0))):
             raise ValueError("initial state and covariance must be finite")
         self.points = SigmaPoints(n) if points is None else points
+        if type(self.points) is not SigmaPoints:
+            raise TypeError(f"points must be SigmaPoints (its alpha, beta, kappa), got "
+                            f"{type(self.points).__name__}: the filter makes its points itself")
         if self.points.n != n:
             raise ValueError(f"sigma points are for n = {self.points.n}, the state has {n}")
-        self._angles = np.array(sorted(angle_states), dtype=int)
-        self._angle1 = int(self._angles[0]) if len(self._angles) == 1 else None
+        self._angles = _indices(angle_states, n, "angle_states")
         self._x = x0
         self._P = repair_covariance(P0)
         self._sigmas: np.ndarray | None = None
+        self._sigmas_DW: np.ndarray | None = None
         self._Wm = self.points.Wm
         self._Wc = self.points.Wc
-        # the compiled step (armfusion.fusion.tracking.ukf_kernels) serves the common case: SigmaPoints' own
-        # points and at most one angle state; anything else takes the NumPy path below
-        sp = type(self.points)
-        self._use_kernels = (isinstance(self.points, SigmaPoints) and sp.points_of is SigmaPoints.points_of
-                             and sp.sqrt_rows is SigmaPoints.sqrt_rows and len(self._angles) <= 1
-                             and (self._angle1 is None or -n <= self._angle1 < n))
-        if self._use_kernels:
-            self._weights = np.ascontiguousarray(np.stack([self._Wm, self._Wc]), dtype=np.float64)  # (2, N)
-            self._angle_index = -1 if self._angle1 is None else self._angle1 % n  # (-1: none)
-            self._scale = float(self.points.scale)
+        self._weights = np.ascontiguousarray(np.stack([self._Wm, self._Wc]), dtype=np.float64)  # (2, N)
+        self._scale = float(self.points.scale)
+        self._no_noise = np.zeros((n, n))
+        self._row_angles: dict[tuple, np.ndarray] = {}  # (angle_rows, m) -> their int64 indices
 
     # -- read-only state ------------------------------------------------------------------
     @property
@@ -146,7 +158,10 @@ class BatchedUKF:
         return self._Wm
 
     def sigma_points(self) -> np.ndarray:
-        return self.points.sigma_points(self._x, self._P)
+        """The sigma points ``(2n+1, n)`` of the current state."""
+        X = np.empty((2 * self.n + 1, self.n))
+        sigma_points_into(X, self._x, self._P, self._no_noise, self._scale)
+        return X
 
     # -- lifecycle ------------------------------------------------------------------------
     def reset(self, x: np.ndarray, P: np.ndarray) -> None:
@@ -193,54 +208,26 @@ class BatchedUKF:
     def predict(self, fx: Callable[..., np.ndarray], Q: np.ndarray, **kw) -> None:
         """Propagate every sigma point through ``fx`` in one call.
 
-        The process noise ``Q`` is added to the covariance *before* the sigma points are
-        drawn (exact for the additive, near-identity steps of a tracker: one step of a
+        The process noise ``Q (n, n)`` is added to the covariance *before* the sigma points
+        are drawn (exact for the additive, near-identity steps of a tracker: one step of a
         random walk or of a slowly decaying state), so the propagated points represent
         the predicted density, noise included, and the next update uses them directly:
         one matrix square root per step, not two.
         """
-        if self._use_kernels and self._predict_compiled(fx, Q, kw):
-            return
-        X = self.points.points_of(self._x, self._P + Q)
-        self._propagate(fx(X, **kw))
-
-    def _propagate(self, Y: np.ndarray) -> None:
-        """The NumPy unscented transform of the propagated points ``Y`` (any number of angles)."""
-        if len(self._angles) <= 1:
-            m, D, DW, C = unscented_moments(Y, self._Wm, self._Wc, self._angle1)
-        else:
-            m, D, C = unscented_transform(Y, self._Wm, self._Wc, None, self._angles)
-            DW = D.T * self._Wc
-        self._x = m
-        C += C.T
-        C *= 0.5
-        self._P = C
-        self._sigmas = Y
-        self._sigmas_DW = DW
-
-    def _predict_compiled(self, fx: Callable[..., np.ndarray], Q, kw: dict) -> bool:
-        """:meth:`predict` through the compiled kernels: the points from a Cholesky factor of
-        ``P + Q``, then the unscented transform of ``fx``'s points. False, with nothing done,
-        when ``Q`` is not an ``(n, n)`` matrix or ``P + Q`` is not positive definite (the
-        NumPy path and its eigen-decomposition take over)."""
         P = self._P
         Qc = np.ascontiguousarray(Q, dtype=np.float64)
         if Qc.shape != P.shape:
-            return False
+            raise ValueError(f"Q must have shape {P.shape}, got {Qc.shape}")
         n = P.shape[0]
         N = 2 * n + 1
         X = np.empty((N, n))
-        if not sigma_points_into(X, self._x, P, Qc, self._scale):
-            return False
-        Y = fx(X, **kw)
-        Yc = np.ascontiguousarray(Y, dtype=np.float64)
-        if Yc.shape != X.shape:
-            self._propagate(Y)  # (let NumPy say what is wrong with Y)
-            return True
+        sigma_points_into(X, self._x, P, Qc, self._scale)
+        Y = np.ascontiguousarray(fx(X, **kw), dtype=np.float64)
+        if Y.shape != X.shape:
+            raise ValueError(f"fx returned shape {Y.shape}, expected {X.shape}: every sigma point propagated")
         x, P, DW = np.empty(n), np.empty((n, n)), np.empty((n, N))
-        unscented_moments_into(Yc, self._weights, self._angle_index, x, P, DW)
-        self._x, self._P, self._sigmas, self._sigmas_DW = x, P, Yc, DW
-        return True
+        unscented_moments_into(Y, self._weights, self._angles, x, P, DW)
+        self._x, self._P, self._sigmas, self._sigmas_DW = x, P, Y, DW
 
     def sigma_points_now(self) -> np.ndarray:
         """The sigma points of the current state: those the last predict propagated when no
@@ -280,37 +267,20 @@ class BatchedUKF:
         if X is None and self._sigmas is not None:
             X, DXW = self._sigmas, self._sigmas_DW
         else:
-            X = self.sigma_points() if X is None else X
-            DXW = residuals(X, self._x, self._angles).T * self._Wc
+            X = self.sigma_points() if X is None else np.ascontiguousarray(X, dtype=np.float64)
+            DXW = np.empty((self.n, X.shape[0]))
+            weighted_residuals_into(X, self._x, self._angles, self._Wc, DXW)
         Z = hx(X, **kw)
-        if self._use_kernels and R.ndim == 1 and len(angle_rows) <= 1 and plan.tiled:
-            a = int(angle_rows[0]) if len(angle_rows) else None
-            inn = plan.innovation_compiled(z, Z, R, self._weights, z_weights, a, DXW)
-            if inn is not None:
-                return inn
-        if len(angle_rows) <= 1:
-            a = int(angle_rows[0]) if len(angle_rows) else None
-            zp, DZ, _, S = unscented_moments(Z, self._Wm, self._Wc, a)
-            if R.ndim == 1:
-                S.reshape(-1)[::S.shape[0] + 1] += R
-            else:
-                S += R
-            if z_weights is not None:
-                zp = weighted_prediction(Z, z_weights, () if a is None else (a,))
-            nu = z - zp
-            if a is not None:
-                nu[a] = wrap_angle(nu[a])
-        else:
-            ang = np.asarray(angle_rows, dtype=int)
-            zp, DZ, S = unscented_transform(Z, self._Wm, self._Wc, np.diag(R) if R.ndim == 1 else R, ang)
-            if z_weights is not None:
-                zp = weighted_prediction(Z, z_weights, ang)
-            nu = z - zp
-            nu[ang] = wrap_angle(nu[ang])
-        Pxz = DXW @ DZ
-        nis = plan.nis(nu, S)
-        ok = plan.gate_ok(nis)
-        return Innovation(plan.names, plan.rows, nu, S, Pxz, nis, ok, zp, plan.last_blocks)
+        angles = self._angle_rows(angle_rows, z.shape[0])
+        return plan.innovation(z, Z, R, self._weights, z_weights, angles, DXW)
+
+    def _angle_rows(self, angle_rows: Sequence[int], m: int) -> np.ndarray:
+        """``angle_rows`` as int64 indices into a measurement of ``m`` rows (kept per shape)."""
+        key = (tuple(angle_rows), m)
+        rows = self._row_angles.get(key)
+        if rows is None:
+            rows = self._row_angles[key] = _indices(angle_rows, m, "angle_rows")
+        return rows
 
     def correct(self, inn: Innovation, accept: np.ndarray | None = None,
                 hold: np.ndarray | None = None, gain_mask: np.ndarray | None = None) -> bool:
@@ -333,33 +303,24 @@ class BatchedUKF:
                         None if gain_mask is None else gain_mask[:, use])
         return True
 
-    def update(self, z, hx, R, groups=None, angle_rows=(), hold=None, X=None, gain_mask=None,
-               **kw) -> Innovation:
-        """:meth:`innovate` then :meth:`correct` with the groups that pass their gates."""
+    def update(self, z: np.ndarray, hx: Callable[..., np.ndarray], R: np.ndarray,
+               groups: Sequence[MeasurementGroup] | GroupPlan | None = None, angle_rows: Sequence[int] = (),
+               X: np.ndarray | None = None, limits: GainLimits | None = None, **kw) -> Innovation:
+        """:meth:`innovate` then :meth:`correct` with the groups that pass their gates (the
+        gain within ``limits``, None: none)."""
         inn = self.innovate(z, hx, R, groups, angle_rows, X, **kw)
-        self.correct(inn, None, hold, gain_mask)
+        limits = GainLimits() if limits is None else limits
+        self.correct(inn, None, limits.hold, limits.gain_mask)
         return inn
 
     def _apply(self, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray, hold: np.ndarray | None,
                gain_mask: np.ndarray | None = None) -> None:
-        """Correct the state (:mod:`armfusion.fusion.tracking.ukf_correct`): through the compiled
-        kernel in the common case, else (or when it declines) in NumPy."""
-        out = (correct_compiled(self._x, self._P, nu, S, Pxz, hold, gain_mask, self._angle_index)
-               if self._use_kernels else None)
-        if out is None:
-            self._apply_numpy(nu, S, Pxz, hold, gain_mask)
-            return
-        self._x, self._P = out
-        self._sigmas = None
-
-    def _apply_numpy(self, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray, hold: np.ndarray | None,
-                     gain_mask: np.ndarray | None = None) -> None:
-        """:meth:`_apply` in NumPy: any gain, any angles, an ``S`` that is not positive definite."""
-        self._x, self._P = correct_numpy(self._x, self._P, nu, S, Pxz, hold, gain_mask, self._angles)
+        """Correct the state (:mod:`armfusion.fusion.tracking.ukf_correct`)."""
+        self._x, self._P = _correct(self._x, self._P, nu, S, Pxz, hold, gain_mask, self._angles)
         self._sigmas = None
 
 
 __all__ = [
-    "BatchedUKF", "GroupPlan", "Innovation", "MeasurementGroup", "SigmaPoints", "group_nis", "nis_bound",
-    "repair_covariance", "residuals", "symmetrise", "unscented_mean", "unscented_transform", "wrap_angle",
+    "BatchedUKF", "GainLimits", "GroupPlan", "Innovation", "MeasurementGroup", "SigmaPoints", "nis_bound",
+    "repair_covariance", "symmetrise", "wrap_angle",
 ]

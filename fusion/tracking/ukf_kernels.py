@@ -1,4 +1,4 @@
-"""Compiled (numba) kernels for the common case of :class:`armfusion.fusion.tracking.ukf.BatchedUKF`'s step.
+"""Compiled (numba) kernels: every stage of :class:`armfusion.fusion.tracking.ukf.BatchedUKF`'s step.
 
 A step of a 19-state filter is a few dozen small matrix products; called from NumPy, their
 interpreter and dispatch overhead, not their arithmetic, sets the pace. Each kernel here
@@ -14,9 +14,12 @@ does one stage of the step in one call:
   covariance (optimal, or held / masked through the general form).
 
 They write into arrays the caller allocates (cheaper than returning new ones to Python)
-and report by a status code when the caller must fall back to the NumPy path (a matrix
-that is not numerically positive definite). The caller guarantees shapes, float64 and C
-order: the kernels do not check bounds. ``angle`` is a column (or row) index, -1 for none.
+and are the filter's only implementation: a matrix that is not numerically positive
+definite takes its own compiled branch (an eigen-decomposition for the points, a
+least-squares gain, a general solve for a group's NIS), the same algorithms the NumPy
+reference (:mod:`armfusion.fusion.tracking.ukf_reference`, the tests' oracle) uses. The
+caller guarantees shapes, float64 and C order: the kernels do not check bounds.
+``angles (int64)`` are column (or row) indices, any number of them.
 The matrix products go to BLAS (``np.dot``); the Cholesky factors and triangular solves
 are written out, their inner loops running along contiguous rows (``b[j] -= u * a[j]``,
 which the compiler turns into vector instructions), four rows at a time.
@@ -30,9 +33,8 @@ import numpy as np
 from armfusion.models.rotations import wrap_angle
 from numba import njit
 
-# status codes of the kernels that may decline
+# status codes of the update kernel (the caller repairs the covariance on the second)
 OK = 0
-NOT_POSITIVE_DEFINITE = 1  # a matrix to factor (S, a block of S, s (P + Q)) is not
 DIAGONAL_NOT_POSITIVE = 2  # the updated covariance has a diagonal entry <= 0 (or NaN)
 
 
@@ -107,32 +109,63 @@ def _solve_row(B: np.ndarray, r: int, u: np.ndarray, q: int, q_end: int, d: floa
 @njit(cache=True)
 def sigma_points_into(X: np.ndarray, x: np.ndarray, P: np.ndarray, Q: np.ndarray, scale: float) -> bool:
     """Van der Merwe's points of ``x (n,)`` and ``P + Q`` into ``X (2n+1, n)``: ``X[0] = x``,
-    ``X[1 + k] = x + U[k]``, ``X[1 + n + k] = x - U[k]`` with ``U`` the upper Cholesky factor
-    of ``scale (P + Q)``. False (``X`` unfinished) when that is not positive definite."""
+    ``X[1 + k] = x + U[k]``, ``X[1 + n + k] = x - U[k]`` with ``U^T U = scale (P + Q)``: the
+    upper Cholesky factor (filterpy's convention). When that is not positive definite the
+    rows are ``sqrt(max(w_k, 0)) V[:, k]`` from the symmetric eigen-decomposition
+    ``V diag(w) V^T`` of its symmetric part. Returns whether the Cholesky factor served."""
     n = x.shape[0]
     A = np.empty((n, n))
     for i in range(n):
-        for j in range(i, n):
+        for j in range(n):
             A[i, j] = scale * (P[i, j] + Q[i, j])
     U = np.empty((n, n))
-    if not _cholesky_upper(A, U, n):
-        return False
+    factored = _cholesky_upper(A, U, n)
+    if not factored:
+        w, V = np.linalg.eigh(0.5 * (A + A.T))
+        for k in range(n):
+            r = math.sqrt(max(w[k], 0.0))
+            for j in range(n):
+                U[k, j] = V[j, k] * r
     for j in range(n):
         X[0, j] = x[j]
     for k in range(n):
         for j in range(n):
             X[1 + k, j] = x[j] + U[k, j]
             X[1 + n + k, j] = x[j] - U[k, j]
-    return True
+    return factored
+
+
+@njit(cache=True, inline="always")
+def _angle_mean_and_residuals(Y: np.ndarray, Wm: np.ndarray, a: int, mean: np.ndarray, D: np.ndarray) -> None:
+    """Column ``a`` of :func:`_mean_and_residuals` made an angle's (its plain mean and
+    residuals already in ``mean``, ``D``)."""
+    N = Y.shape[0]
+    y0 = Y[0, a]
+    near = True
+    for p in range(N):
+        if not abs(Y[p, a] - y0) < 3.0:
+            near = False
+    if near:
+        mean[a] = _wrap(mean[a])
+        return
+    offset_mean = 0.0
+    for p in range(N):
+        d = _wrap(Y[p, a] - y0)
+        D[p, a] = d
+        offset_mean += Wm[p] * d
+    mean[a] = _wrap(y0 + offset_mean)
+    for p in range(N):
+        D[p, a] -= offset_mean
 
 
 @njit(cache=True)
-def _mean_and_residuals(Y: np.ndarray, Wm: np.ndarray, angle: int, mean: np.ndarray, D: np.ndarray) -> None:
-    """``mean = Wm Y`` and ``D = Y - mean`` for points ``Y (N, k)``, one column ``angle``
-    treated as :func:`armfusion.fusion.tracking.unscented.unscented_moments` does: when its
-    points lie within 3 rad of the central one the plain mean (then wrapped) and plain
-    residuals stand; else the mean is the central point plus the weighted mean of the
-    wrapped offsets from it, and the residuals are those offsets minus their mean."""
+def _mean_and_residuals(Y: np.ndarray, Wm: np.ndarray, angles: np.ndarray, mean: np.ndarray,
+                        D: np.ndarray) -> None:
+    """``mean = Wm Y`` and ``D = Y - mean`` for points ``Y (N, k)``, each column in
+    ``angles`` treated as an angle: when its points lie within 3 rad of the central one the
+    plain mean (then wrapped) and plain residuals stand; else the mean is the central point
+    plus the weighted mean of the wrapped offsets from it, and the residuals are those
+    offsets minus their mean."""
     N, k = Y.shape
     for j in range(k):
         mean[j] = 0.0
@@ -143,23 +176,8 @@ def _mean_and_residuals(Y: np.ndarray, Wm: np.ndarray, angle: int, mean: np.ndar
     for p in range(N):
         for j in range(k):
             D[p, j] = Y[p, j] - mean[j]
-    if angle >= 0:
-        y0 = Y[0, angle]
-        near = True
-        for p in range(N):
-            if not abs(Y[p, angle] - y0) < 3.0:
-                near = False
-        if near:
-            mean[angle] = _wrap(mean[angle])
-        else:
-            offset_mean = 0.0
-            for p in range(N):
-                d = _wrap(Y[p, angle] - y0)
-                D[p, angle] = d
-                offset_mean += Wm[p] * d
-            mean[angle] = _wrap(y0 + offset_mean)
-            for p in range(N):
-                D[p, angle] -= offset_mean
+    for a in angles:
+        _angle_mean_and_residuals(Y, Wm, a, mean, D)
 
 
 @njit(cache=True)
@@ -184,46 +202,114 @@ def _weighted_transpose(D: np.ndarray, Wc: np.ndarray, DW: np.ndarray) -> None:
 
 
 @njit(cache=True)
-def unscented_moments_into(Y: np.ndarray, W: np.ndarray, angle: int, mean: np.ndarray, cov: np.ndarray,
-                           DW: np.ndarray) -> None:
+def unscented_moments_into(Y: np.ndarray, W: np.ndarray, angles: np.ndarray, mean: np.ndarray,
+                           cov: np.ndarray, DW: np.ndarray) -> None:
     """The unscented transform of propagated points ``Y (N, n)`` with weights ``W (2, N)``
     (rows ``Wm``, ``Wc``): ``mean (n,)``, the weighted residuals ``DW = D^T diag(Wc) (n, N)``
     (the cross covariance needs them) and ``cov = DW D (n, n)``, symmetrised."""
     N, n = Y.shape
     D = np.empty((N, n))
-    _mean_and_residuals(Y, W[0], angle, mean, D)
+    _mean_and_residuals(Y, W[0], angles, mean, D)
     _weighted_transpose(D, W[1], DW)
     np.dot(DW, D, cov)
     _symmetrise(cov)
 
 
 @njit(cache=True)
-def innovation_into(Z: np.ndarray, W: np.ndarray, wz: np.ndarray, angle: int, z: np.ndarray, R: np.ndarray,
-                    DXW: np.ndarray,
+def weighted_residuals_into(X: np.ndarray, x: np.ndarray, angles: np.ndarray, Wc: np.ndarray,
+                            DW: np.ndarray) -> None:
+    """``DW = (X - x)^T diag(Wc) (n, N)``: the weighted residuals of points ``X (N, n)``
+    about the state ``x``, the ``angles`` columns wrapped (points the caller made, or made
+    after a correction, that no predict has transformed)."""
+    N, n = X.shape
+    for p in range(N):
+        w = Wc[p]
+        for i in range(n):
+            DW[i, p] = (X[p, i] - x[i]) * w
+    for a in angles:
+        for p in range(N):
+            DW[a, p] = _wrap(X[p, a] - x[a]) * Wc[p]
+
+
+@njit(cache=True, inline="always")
+def _weighted_prediction(Z: np.ndarray, wz: np.ndarray, angles: np.ndarray, z_pred: np.ndarray) -> None:
+    """``z_pred = Σ wz_p Z_p`` (``wz`` summing to 1), each row in ``angles`` as the central
+    point plus the weighted mean of the wrapped offsets from it."""
+    N, m = Z.shape
+    for i in range(m):
+        acc = 0.0
+        for p in range(N):
+            acc += wz[p] * Z[p, i]
+        z_pred[i] = acc
+    for a in angles:
+        acc = 0.0
+        for p in range(N):
+            acc += wz[p] * _wrap(Z[p, a] - Z[0, a])
+        z_pred[a] = _wrap(Z[0, a] + acc)
+
+
+@njit(cache=True, inline="always")
+def _add_noise(S: np.ndarray, R: np.ndarray) -> None:
+    """``S += R`` for ``R (m, m)``, or ``S += diag(R[0])`` for one row ``R (1, m)`` (the
+    variances of independent rows)."""
+    m = S.shape[0]
+    if R.shape[0] == m and m > 1:
+        for i in range(m):
+            for j in range(m):
+                S[i, j] += R[i, j]
+    else:
+        for i in range(m):
+            S[i, i] += R[0, i]
+
+
+@njit(cache=True)
+def _block_nis(block: np.ndarray, v: np.ndarray, U: np.ndarray) -> float:
+    """``v^T B^-1 v`` for a group's block ``B (k, k)`` of ``S``: from its Cholesky factor
+    (into ``U``), or, when ``B`` is not positive definite, a general solve (one row:
+    ``v^2 / B``, inf unless ``B > 0``; a singular block: inf)."""
+    k = v.shape[0]
+    if _cholesky_upper(block, U, k):
+        total = 0.0  # the forward substitution U^T u = v, NIS = |u|^2
+        u = np.empty(k)
+        for i in range(k):
+            s = v[i]
+            for j in range(i):
+                s -= U[j, i] * u[j]
+            u[i] = s / U[i, i]
+            total += u[i] * u[i]
+        return total
+    if k == 1:
+        return v[0] * v[0] / block[0, 0] if block[0, 0] > 0.0 else np.inf
+    try:
+        return np.dot(v, np.linalg.solve(block, v))
+    except Exception:  # (numba's solve raises on an exactly singular block)
+        return np.inf
+
+
+@njit(cache=True)
+def innovation_into(Z: np.ndarray, W: np.ndarray, wz: np.ndarray, angles: np.ndarray, z: np.ndarray,
+                    R: np.ndarray, DXW: np.ndarray,
                     group_rows: np.ndarray, group_start: np.ndarray, block_start: np.ndarray,
                     gates: np.ndarray, z_pred: np.ndarray, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray,
-                    blocks: np.ndarray, nis: np.ndarray, gate_ok: np.ndarray) -> int:
+                    blocks: np.ndarray, nis: np.ndarray, gate_ok: np.ndarray) -> None:
     """The statistics of a measurement ``z (m,)`` predicted by the points ``Z (N, m)``:
-    ``z_pred = Σ wz_p Z_p`` (``wz`` summing to 1: ``W[0]`` for the unscented mean; row
-    ``angle`` as the central point plus the weighted mean of the wrapped offsets from it),
-    ``S = DZ^T diag(Wc) DZ + diag(R)`` (symmetrised; ``DZ`` the residuals about the unscented
-    mean, as in :func:`_mean_and_residuals`, whatever ``wz``), ``nu = z - z_pred`` (row
-    ``angle`` wrapped), ``Pxz = DXW DZ`` (``DXW (n, N)``: the state's weighted residuals) and, for
-    each group ``g`` of ``k`` rows ``group_rows[group_start[g]:group_start[g + 1]]``: its
-    diagonal block of ``S``, row by row into ``blocks[block_start[g]:block_start[g] + k k]``,
-    its NIS ``nu_g^T S_gg^-1 nu_g = |U_g^-T nu_g|^2`` from the block's Cholesky factor
-    ``U_g``, and whether that is finite and within ``gates[g]``.
-
-    Returns :data:`NOT_POSITIVE_DEFINITE` when a group's block does not factor (``nis``
-    and ``gate_ok`` are then unfinished), else :data:`OK`."""
+    ``z_pred = Σ wz_p Z_p`` (``wz`` summing to 1: ``W[0]`` for the unscented mean; rows in
+    ``angles`` as the central point plus the weighted mean of the wrapped offsets from it),
+    ``S = DZ^T diag(Wc) DZ + R`` (``R (m, m)``, or ``(1, m)``: a diagonal; symmetrised;
+    ``DZ`` the residuals about the unscented mean, as in :func:`_mean_and_residuals`,
+    whatever ``wz``), ``nu = z - z_pred`` (angle rows wrapped), ``Pxz = DXW DZ`` (``DXW (n,
+    N)``: the state's weighted residuals) and, for each group ``g`` of ``k`` rows
+    ``group_rows[group_start[g]:group_start[g + 1]]`` (any rows, in any order): its diagonal
+    block of ``S``, row by row into ``blocks[block_start[g]:block_start[g] + k k]``, its NIS
+    ``nu_g^T S_gg^-1 nu_g`` (:func:`_block_nis`), and whether that is finite and within
+    ``gates[g]``."""
     N, m = Z.shape
     DZ = np.empty((N, m))
-    _mean_and_residuals(Z, W[0], angle, z_pred, DZ)
+    _mean_and_residuals(Z, W[0], angles, z_pred, DZ)
     DZW = np.empty((m, N))
     _weighted_transpose(DZ, W[1], DZW)
     np.dot(DZW, DZ, S)
-    for i in range(m):
-        S[i, i] += R[i]
+    _add_noise(S, R)
     _symmetrise(S)
     np.dot(DXW, DZ, Pxz)
     same = True
@@ -231,20 +317,11 @@ def innovation_into(Z: np.ndarray, W: np.ndarray, wz: np.ndarray, angle: int, z:
         if wz[p] != W[0, p]:
             same = False
     if not same:  # the prediction the innovation is taken against, with the weights wz
-        for i in range(m):
-            acc = 0.0
-            for p in range(N):
-                acc += wz[p] * Z[p, i]
-            z_pred[i] = acc
-        if angle >= 0:
-            acc = 0.0
-            for p in range(N):
-                acc += wz[p] * _wrap(Z[p, angle] - Z[0, angle])
-            z_pred[angle] = _wrap(Z[0, angle] + acc)
+        _weighted_prediction(Z, wz, angles, z_pred)
     for i in range(m):
         nu[i] = z[i] - z_pred[i]
-    if angle >= 0:
-        nu[angle] = _wrap(nu[angle])
+    for a in angles:
+        nu[a] = _wrap(nu[a])
     G = gates.shape[0]
     largest = 0
     for g in range(G):
@@ -256,53 +333,54 @@ def innovation_into(Z: np.ndarray, W: np.ndarray, wz: np.ndarray, angle: int, z:
             for j in range(k):
                 blocks[b0 + i * k + j] = S[group_rows[r0 + i], group_rows[r0 + j]]
     U = np.empty((largest, largest))
-    v = np.empty(largest)
     for g in range(G):
         r0 = group_start[g]
         k = group_start[g + 1] - r0
         b0 = block_start[g]
-        if not _cholesky_upper(blocks[b0:b0 + k * k].reshape((k, k)), U, k):
-            return NOT_POSITIVE_DEFINITE
-        # forward substitution U^T v = nu_g, NIS = |v|^2
-        total = 0.0
+        v = np.empty(k)
         for i in range(k):
-            s = nu[group_rows[r0 + i]]
-            for j in range(i):
-                s -= U[j, i] * v[j]
-            v[i] = s / U[i, i]
-            total += v[i] * v[i]
+            v[i] = nu[group_rows[r0 + i]]
+        total = _block_nis(blocks[b0:b0 + k * k].reshape((k, k)), v, U)
         nis[g] = total
         gate_ok[g] = math.isfinite(total) and total <= gates[g]
-    return OK
+
+
+@njit(cache=True, inline="always")
+def _gain_transposed(S: np.ndarray, PxzT: np.ndarray) -> np.ndarray:
+    """``K^T = S^-1 Pxz^T (m, n)``: two triangular solves with the Cholesky factor of ``S``,
+    or, when ``S`` is not positive definite, its least-squares solution (LAPACK's
+    ``gelsd``, singular values below ``eps m`` of the largest cut, as NumPy's default)."""
+    m = S.shape[0]
+    U = np.empty((m, m))
+    if _cholesky_upper(S, U, m):
+        Kt = PxzT.copy()
+        _cholesky_solve_rows(U, Kt)
+        return Kt
+    Kt, _, _, _ = np.linalg.lstsq(S, PxzT, 2.220446049250313e-16 * m)
+    return np.ascontiguousarray(Kt)
 
 
 @njit(cache=True)
 def kalman_update_into(x: np.ndarray, P: np.ndarray, nu: np.ndarray, S: np.ndarray, Pxz: np.ndarray,
-                       hold: np.ndarray, gain_mask: np.ndarray, angle: int,
+                       hold: np.ndarray, gain_mask: np.ndarray, angles: np.ndarray,
                        x_new: np.ndarray, P_new: np.ndarray) -> int:
     """The Kalman update of ``x (n,)``, ``P (n, n)`` by the innovation ``nu (m,)`` with
     covariance ``S (m, m)`` and cross covariance ``Pxz (n, m)``.
 
-    The gain ``K = Pxz S^-1`` comes from the Cholesky factor of ``S`` (``U^T U = S``: two
-    triangular solves for ``K^T``). With ``hold (n, n)`` the gain is ``hold K``, with
-    ``gain_mask (n, m)`` it is then multiplied entry by entry (an empty ``(0, 0)`` array
-    means none). The state is ``x + K nu`` (``angle`` wrapped). The covariance is, for the
-    optimal gain, ``P - K Pxz^T`` symmetrised; for a held or masked one, the general
-    (Joseph-equivalent) form ``P + B + B^T`` with ``B = (K S / 2 - Pxz) K^T``.
+    The gain is ``K = Pxz S^-1`` (:func:`_gain_transposed`). With ``hold (n, n)`` the gain
+    is ``hold K``, with ``gain_mask (n, m)`` it is then multiplied entry by entry (an empty
+    ``(0, 0)`` array means none). The state is ``x + K nu`` (``angles`` wrapped). The
+    covariance is, for the optimal gain, ``P - K Pxz^T`` symmetrised; for a held or masked
+    one, the general (Joseph-equivalent) form ``P + B + B^T`` with ``B = (K S / 2 - Pxz) K^T``.
 
-    Returns :data:`NOT_POSITIVE_DEFINITE` when ``S`` does not factor (nothing written),
-    :data:`DIAGONAL_NOT_POSITIVE` when the new covariance has a diagonal entry that is not
-    positive (it needs repair), else :data:`OK`."""
+    Returns :data:`DIAGONAL_NOT_POSITIVE` when the new covariance has a diagonal entry that
+    is not positive (it needs repair), else :data:`OK`."""
     n, m = Pxz.shape
-    U = np.empty((m, m))
-    if not _cholesky_upper(S, U, m):
-        return NOT_POSITIVE_DEFINITE
     PxzT = np.empty((m, n))
     for i in range(n):
         for r in range(m):
             PxzT[r, i] = Pxz[i, r]
-    Kt = PxzT.copy()
-    _cholesky_solve_rows(U, Kt)  # K^T = S^-1 Pxz^T
+    Kt = _gain_transposed(S, PxzT)
     K = np.empty((n, m))
     for i in range(n):
         for r in range(m):
@@ -322,8 +400,8 @@ def kalman_update_into(x: np.ndarray, P: np.ndarray, nu: np.ndarray, S: np.ndarr
         for r in range(m):
             s += K[i, r] * nu[r]
         x_new[i] = x[i] + s
-    if angle >= 0:
-        x_new[angle] = _wrap(x_new[angle])
+    for a in angles:
+        x_new[a] = _wrap(x_new[a])
     if not (held or masked):
         # P - K Pxz^T, symmetrised
         np.dot(K, PxzT, P_new)

@@ -10,7 +10,7 @@ from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.tracking.process import ProcessModel
 from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
 from armfusion.fusion.tracking.tracker import Tracker
-from armfusion.fusion.tracking.tracker_kernels import process_points_tangent
+from armfusion.fusion.tracking.process_kernels import process_points_tangent
 from armfusion.models.arm import BaseMotion
 
 
@@ -68,6 +68,6 @@ def test_the_euler_angle_path_and_its_numpy_reference_carry_the_jerk_alike():
     ref = process_points_numpy(*args)
     np.testing.assert_allclose(ref[:, L.accel], 0.99 * X[:, L.accel] + 0.01 * X[:, L.jerk_B], atol=1e-12)
     np.testing.assert_allclose(ref[:, L.jerk_B], 0.9 * X[:, L.jerk_B], atol=1e-12)
-    from armfusion.fusion.tracking.tracker_kernels import process_points
+    from armfusion.fusion.tracking.process_kernels import process_points
 
     np.testing.assert_allclose(process_points(*args), process_points_numpy(*args), atol=1e-12)

@@ -23,7 +23,7 @@ from armfusion.fusion.tracking.health import SensorHealth
 from armfusion.fusion.tracking.process import ProcessModel
 from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
 from armfusion.fusion.tracking.tracker import start_from_recording
-from armfusion.fusion.tracking.tracker_kernels import process_points_tangent
+from armfusion.fusion.tracking.process_kernels import process_points_tangent
 from armfusion.models.arm_config import ConfigError
 from armfusion.models.rotations import GRAVITY_MPS2, R_from_rpy, exp_so3
 from scipy.linalg import solve_discrete_lyapunov

@@ -20,12 +20,12 @@ import yaml
 from armfusion.fusion.cli.main import app
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.tracking.process import ProcessModel, attitude_sigma_rad
-from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
-from armfusion.fusion.tracking.tracker_kernels import (
+from armfusion.fusion.tracking.process_kernels import (
     points_from_tangent,
     process_points_tangent,
     tangent_from_points,
 )
+from armfusion.fusion.tracking.settings import StateLayout, TrackerSettings
 from armfusion.models.arm_config import ConfigError
 from armfusion.models.rotations import R_from_rpy, exp_so3
 from typer.testing import CliRunner

@@ -13,9 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from armfusion.fusion.configfile import load_arm
+from armfusion.fusion.tracking.process_kernels import process_points
 from armfusion.fusion.tracking.settings import StateLayout
 from armfusion.fusion.tracking.tracker import G, Tracker, make_frames
-from armfusion.fusion.tracking.tracker_kernels import measurement_points, process_points
+from armfusion.fusion.tracking.tracker_kernels import measurement_points
 
 from tools.bench_track_numpy import measurement_points_numpy, process_points_numpy
 

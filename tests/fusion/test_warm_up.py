@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from armfusion.fusion.tracking import frame_kernels, tracker_kernels, ukf_kernels
+from armfusion.fusion.tracking import frame_kernels, process_kernels, tracker_kernels, ukf_kernels
 from armfusion.fusion.tracking.tracker import start_from_recording, warm_up
 from armfusion.models.simulator import simulate
 
 
 def _signatures() -> dict[str, int]:
     out = {}
-    for mod in (tracker_kernels, ukf_kernels, frame_kernels):
+    for mod in (process_kernels, tracker_kernels, ukf_kernels, frame_kernels):
         for name in dir(mod):
             f = getattr(mod, name)
             if isinstance(f, numba.core.registry.CPUDispatcher):
