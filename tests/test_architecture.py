@@ -257,7 +257,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.importing.bag:import_bag": _READER,
     "armfusion.fusion.importing.column_map:parse_column_map": _READER,
     "armfusion.fusion.ros2.from_records:run_from_records": _NUMERIC,
-    "armfusion.fusion.startup.kernels:lm_solve": _KERNEL,
     "armfusion.fusion.tracking.alarm:ModelChangeAlarm._block": _TRACKING,
     "armfusion.fusion.tracking.alarm_naming:name_shift": _TRACKING,
     "armfusion.fusion.tracking.initial:initial_state": _TRACKING,
