@@ -261,7 +261,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.tracking.alarm_naming:name_shift": _TRACKING,
     "armfusion.fusion.tracking.initial:initial_state": _TRACKING,
     "armfusion.fusion.tracking.observability:Observability": _TRACKING,
-    "armfusion.fusion.tracking.observability_kernels:offsets_observability": _TRACKING,
     "armfusion.fusion.tracking.run:run_recording": _TRACKING,
     "armfusion.fusion.tracking.start": _TRACKING,
     "armfusion.fusion.tracking.start:start_from_recording": _TRACKING,
