@@ -109,6 +109,7 @@ from armfusion.fusion.tracking.snapshot import TrackerState
 from armfusion.fusion.tracking.start import (
     NoStillWindowError,
     Start,
+    StartOptions,
     imu_still_from_recording,
     start_from_recording,
     warm_up,
@@ -118,7 +119,7 @@ from armfusion.fusion.tracking.update import InstantReadings, UpdateResult
 __all__ = [
     "COUNTERS", "ENC", "FLAG_CODE", "G", "GYRO", "IMU_ACC", "JOINT_FLAGS", "MAG", "SENSOR_STATUS",
     "STATUS_CODE", "CausalDifferentiator", "Estimate", "Frames", "ImuStill", "InnovationLog",
-    "InstantReadings", "NoStillWindowError", "NotInitialisedError", "Start", "StateLayout",
+    "InstantReadings", "NoStillWindowError", "NotInitialisedError", "Start", "StartOptions", "StateLayout",
     "TrackRun", "Tracker", "TrackerSettings", "TrackerState", "UpdateResult", "causal_fits",
     "causal_poly_fit", "imu_still_from_recording", "make_frames", "start_from_recording",
     "truth_at", "warm_up",

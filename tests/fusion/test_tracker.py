@@ -24,6 +24,7 @@ from armfusion.fusion.tracking.tracker import (
     Frames,
     NoStillWindowError,
     NotInitialisedError,
+    StartOptions,
     Tracker,
     TrackerSettings,
     causal_fits,
@@ -987,12 +988,14 @@ def test_an_arm_that_never_stands_still_starts_on_its_least_moving_instants(arm)
     rec, _ = simulate(arm, scenario(arm, 25.0, jp, ParkedBase(0.02, -0.01, 1.0)), seed=11)
     with pytest.raises(NoStillWindowError, match="no still stretch"):
         start_from_recording(arm, rec, prior_q_rad=POSE + 0.05)
-    tr, start = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05, moving_start=True)
+    tr, start = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05,
+                                     options=StartOptions(moving_start=True))
     assert any(n.startswith("no still stretch near the start: started on the moving arm")
                for n in start.notes)
     assert start.t_start_s < rec.t_start_s + 5.0  # at the recording's start
-    _, later = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05, start_at_s=rec.t_start_s + 12.0,
-                                    propose_unlock=False)
+    _, later = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05,
+                                    options=StartOptions(start_at_s=rec.t_start_s + 12.0,
+                                                         propose_unlock=False))
     assert rec.t_start_s + 12.0 <= later.t_start_s < rec.t_start_s + 17.0  # from where it is asked to
     run = tr.run(rec)
     late = run.t_s > 15.0
