@@ -380,7 +380,6 @@ MANY_PARAMETERS: dict[str, tuple[int, str]] = {
     "armfusion.fusion.service.serve:FusionNode.__init__": (22, _TO_RECORD),
     "armfusion.fusion.service.state_file:resume_problem": (11, _TO_RECORD),
     "armfusion.fusion.service.state_file:resumed_tracker": (10, _TO_RECORD),
-    "armfusion.fusion.tracking.frames:make_frames": (10, _TO_RECORD),
     "armfusion.fusion.tracking.ukf:BatchedUKF.update": (9, _TO_RECORD),
     "armfusion.fusion.workbench.candidates:_refit": (9, _TO_RECORD),
     "armfusion.fusion.workbench.scores:_gauges": (9, _TO_RECORD),
