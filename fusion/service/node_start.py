@@ -112,7 +112,8 @@ def start_on_still_now(arm: ArmModel, still, settings: TrackerSettings | None, *
         return still
     _, window = still
     try:
-        tracker, start = start_from_recording(arm, window, settings, **pose, options=StartOptions(prior=prior))
+        tracker, start = start_from_recording(arm, window, settings, **pose,
+                                              options=StartOptions(prior=prior))
     except NoStillWindowError as e:
         return f"the arm moves: {e}"
     except (ValueError, KeyError) as e:

@@ -152,10 +152,11 @@ class TrackerSetup:
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
                                          self.sensor_index.get(IMU_ACC, -1),
                                          np.hypot(unmodelled_g, self._fast_error_g), stamps)
-        self.observability = Observability(
-            st, L, LinkSensors(self.link_names, self._links_list, self._sees, self._min_list, self._max_list),
-            ConsiderColumns(self.link_names, self.accel_streams, correction, calibrated.spread_maps(correction),
-                            unmodelled_g, scale_sigma, self.R_0I if self._has_imu else None))
+        sensors = LinkSensors(self.link_names, self._links_list, self._sees, self._min_list, self._max_list)
+        columns = ConsiderColumns(self.link_names, self.accel_streams, correction,
+                                  calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
+                                  self.R_0I if self._has_imu else None)
+        self.observability = Observability(st, L, sensors, columns)
         # the tilt's floor, which no averaging lowers: every accelerometer that reads it. The
         # IMU's lasting error is a state of the filter (its prior the config's floor): a base
         # that turns about any axis reveals it (gravity turns in the IMU's axes, the bias does

@@ -242,7 +242,8 @@ def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
     t0 = time.perf_counter()
     rec, _ = simulate(arm, "daily-use", 4.0, seed=0)
     first = rec.between(0.0, 2.0)
-    tr, _ = start_from_recording(arm, first, settings, options=StartOptions(propose_unlock=False))  # then 2 s more
+    # started on the first two seconds; the next two are fused below
+    tr, _ = start_from_recording(arm, first, settings, options=StartOptions(propose_unlock=False))
     values = {s: rec.get(s).values for s in tr.sensor_names if s in rec.streams}
     t_enc = rec.get(ENC).t_s
     n = min(len(v) for v in values.values())
