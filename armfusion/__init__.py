@@ -29,6 +29,7 @@ _API = {
     "simulate": "armfusion.models.simulator",
     "solve_still": "armfusion.fusion.startup.solve",
     "start_from_recording": "armfusion.fusion.tracking.tracker",
+    "StartOptions": "armfusion.fusion.tracking.tracker",
     "Tracker": "armfusion.fusion.tracking.tracker",
     "identify": "armfusion.fusion.identification.identify",
     "diagnose": "armfusion.fusion.workbench.diagnose",

@@ -72,7 +72,7 @@ from armfusion.fusion.tracking.gyro_encoder import (  # noqa: E402
     with_gyro_encoder,
 )
 from armfusion.fusion.tracking.settings import JOINT_FLAGS, TrackerSettings  # noqa: E402
-from armfusion.fusion.tracking.start import start_from_recording  # noqa: E402
+from armfusion.fusion.tracking.start import StartOptions, start_from_recording  # noqa: E402
 from armfusion.fusion.workbench.discover import DiscoverSettings, Discovery, Rung, discover  # noqa: E402
 from armfusion.models.effects import model_from_arm  # noqa: E402
 from armfusion.models.rotations import wrap_angle  # noqa: E402
@@ -166,8 +166,9 @@ def _run_errors(arm, rec: Recording, zero_rad: float, settings: TrackerSettings 
                 given_conventions: bool):
     """One tracker run from scratch (moving start): the run, its start, its error against the
     encoder plus the calibration's zero (deg) and its reported σ (deg), per fused instant."""
-    tr, start = start_from_recording(arm, rec, settings, moving_start=True, propose_unlock=False,
-                                     sigma_given_conventions=given_conventions)
+    tr, start = start_from_recording(arm, rec, settings,
+                                     options=StartOptions(moving_start=True, propose_unlock=False,
+                                                          sigma_given_conventions=given_conventions))
     run = tr.run(rec, truth=False)
     tq = rec.get("true_q")
     ref = np.interp(run.t_s, tq.t_s, tq.values[:, 0]) + zero_rad
@@ -185,7 +186,7 @@ def track_scored(cal_config: Path, rec: Recording, zero_rad: float,
     the absolute zero's doubt (the calibration's joint-zero convention, ``zero_sigma_deg``),
     which this error shares and so cannot show. ``relative_sigma``: the same stretch tracked
     again with the σ taken relative to the calibration's conventions
-    (``start_from_recording(sigma_given_conventions=True)``), the σ this error is to be
+    (``StartOptions(sigma_given_conventions=True)``), the σ this error is to be
     judged by, reported beside the absolute one (``sigma_rel_*``; ``rmse_rel_run_deg`` that
     run's own error, the same estimate up to the gating the σ touches)."""
     arm = load_arm(cal_config)

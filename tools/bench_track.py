@@ -41,6 +41,8 @@ from armfusion.fusion.tracking.tracker import (  # noqa: E402
     ENC,
     GYRO,
     MAG,
+    BaseTurn,
+    JointMotion,
     causal_fits,
     make_frames,
     start_from_recording,
@@ -94,8 +96,8 @@ def filterpy_baseline(arm, rec: Recording, steps: int, model: str = "numpy"):
     fit = causal_fits(t, q_enc, st.encoder_window, st.encoder_order)
     w_B = tr.readings.models[GYRO].from_counts(gyro.values) @ tr.R_0I.T
     wfit = causal_fits(gyro.t_s, w_B, st.gyro_window, st.gyro_order)
-    frames = make_frames(arm, tr.accel_names, fit[idx, 0], x0[L.offset], fit[idx, 1], fit[idx, 2],
-                         w_B[idx] - x0[L.bias], wfit[idx, 1])
+    frames = make_frames(arm, tr.accel_names, JointMotion(fit[idx, 0], fit[idx, 1], fit[idx, 2]),
+                         x0[L.offset], BaseTurn(w_B[idx] - x0[L.bias], wfit[idx, 1]))
     sel = np.arange(len(tr.accel_streams))
     f = np.concatenate([tr.readings.physical(s, rec.get(s).values.astype(float))[idx]
                         for s in tr.accel_streams], 1)

@@ -155,14 +155,14 @@ def _start_and_run(arm, rec, recording: Path, settings, prior_q, moving_start: b
     ``(tracker, start, run)``; exit 2 saying why the tracking cannot start.
     ``sigma_relative``: the σ relative to the calibration's joint-zero conventions."""
     from armfusion.fusion.startup.solve import StartupInputError
-    from armfusion.fusion.tracking.tracker import NoStillWindowError, start_from_recording
+    from armfusion.fusion.tracking.tracker import NoStillWindowError, StartOptions, start_from_recording
 
     with progress_bar("startup calibration", json_out) as advance:
         try:
-            tr, start = start_from_recording(
-                arm, rec, settings, prior_q_rad=prior_q, resolve_by_motion_s=20.0, moving_start=moving_start,
+            tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q, options=StartOptions(
+                resolve_by_motion_s=20.0, moving_start=moving_start,
                 start_at_s=None if start_at is None else rec.t_start_s + start_at,
-                sigma_given_conventions=sigma_relative)
+                sigma_given_conventions=sigma_relative))
         except NoStillWindowError as e:
             fail(f"{recording}: {e}" + ("" if moving_start or start_at is not None else
                                         " (--moving-start starts on its least-moving instants)"))

@@ -19,6 +19,7 @@ from armfusion.fusion.startup.solve import StartupPrior
 from armfusion.fusion.tracking.tracker import (
     NoStillWindowError,
     Start,
+    StartOptions,
     Tracker,
     TrackerSettings,
     start_from_recording,
@@ -57,8 +58,9 @@ def first_start(arm: ArmModel, rec: Recording, settings: TrackerSettings | None,
     restored; or why not (no still stretch yet, the calibration failed)."""
     try:
         # (the unlock-move search is for a person asking: calibrate on request shows it)
-        tracker, start = start_from_recording(arm, rec, settings, propose_unlock=False,
-                                              prior=parked_prior(arm, assume_parked))
+        tracker, start = start_from_recording(arm, rec, settings,
+                                              options=StartOptions(propose_unlock=False,
+                                                                   prior=parked_prior(arm, assume_parked)))
     except NoStillWindowError as e:
         return f"waiting for a still arm: {e}"
     except (ValueError, KeyError) as e:
@@ -110,7 +112,8 @@ def start_on_still_now(arm: ArmModel, still, settings: TrackerSettings | None, *
         return still
     _, window = still
     try:
-        tracker, start = start_from_recording(arm, window, settings, prior=prior, **pose)
+        tracker, start = start_from_recording(arm, window, settings, **pose,
+                                              options=StartOptions(prior=prior))
     except NoStillWindowError as e:
         return f"the arm moves: {e}"
     except (ValueError, KeyError) as e:

@@ -22,6 +22,7 @@ from armfusion.fusion.tracking.tracker import (
     ENC,
     NoStillWindowError,
     Start,
+    StartOptions,
     Tracker,
     TrackerSettings,
     start_from_recording,
@@ -129,7 +130,8 @@ def solve_ambiguity_again(arm: ArmModel, settings: TrackerSettings, start: Start
     moved = encoder_angles_at(arm, window.get(ENC), seg.t_end_s)[1] - start.encoder_rad
     prior = prior_after_move(start.geometric, moved, arm)
     try:
-        tracker, again = start_from_recording(arm, window, settings, prior=prior, propose_unlock=False)
+        tracker, again = start_from_recording(arm, window, settings,
+                                              options=StartOptions(prior=prior, propose_unlock=False))
     except (NoStillWindowError, ValueError, KeyError) as e:
         log.info("serve: the ambiguous joints were not solved again: %s", e)
         return None

@@ -11,7 +11,8 @@ imported from; it reads as its steps, each in a module of its own:
 - ``prior.py``: what is known before the window (:class:`StartupPrior`) and how it chooses;
 - ``confidence.py``: sigmas beyond the linear ones (profile, weak-joint sweep, rivals);
 - ``moves.py``: the unlocking and disambiguating moves, and the prior a counted move carries;
-- ``results.py``: what the solve gives (:class:`StartupResult` and its parts).
+- ``results.py``: what the solve gives (:class:`StartupResult` and its parts);
+- ``tilt_only.py``: an arm with no joints, its base's tilt from its IMU alone.
 
 ``static.py`` finds the still stretches of a recording and ``pose_store.py`` keeps the pose
 saved at the last clean shutdown.

@@ -7,15 +7,18 @@ pair of joints is the Paden-Kahan "subproblem 2": two rotations that carry one d
 onto another, with up to two solutions); :func:`complete_combinations` crosses the
 groups' solutions where the polish lost one; :func:`sequential_solve` is the thesis's
 pair-by-pair method (the reference); :func:`dedupe` keeps each branch once.
+:func:`fitting_branches` runs them all into every branch that fits a window, and
+:func:`feasible_branches` keeps those inside the limits (:func:`limit_margins_rad`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+from armfusion.fusion.startup.prior import StartupPrior
 from armfusion.fusion.startup.problem import StillWindowProblem, batched_lm
 from armfusion.fusion.startup.settings import StartupSettings
 from armfusion.models.arm import ArmModel
-from armfusion.models.rotations import DEG, skew, up_from_tilt, wrap_angle
+from armfusion.models.rotations import DEG, skew, tilt_from_up, up_from_tilt, wrap_angle
 
 
 def _subproblem1(w: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -218,3 +221,109 @@ def sequential_solve(problem: StillWindowProblem, x0: np.ndarray, st: StartupSet
         prev = k
     r, _ = problem.residuals_and_jacobian(x)
     return x, 0.5 * np.sum(r**2, 1)
+
+
+def fitting_branches(problem: StillWindowProblem, st: StartupSettings, prior: StartupPrior | None,
+                     method: str) -> tuple[np.ndarray, np.ndarray]:
+    """Every branch that fits the data, polished, best first: states ``(B, n + 2)`` (joint
+    angles brought to the representative nearest the middle of their limits) and costs.
+
+    The closed-form branches (and, for the joint method, the ready pose and the prior's
+    poses as further starts), polished; minima just outside a limit re-solved held at it;
+    the groups' solutions crossed; those fitting much worse than the best dropped."""
+    arm, n = problem.arm, problem.n
+    # base tilt from the IMU (the thesis's eq. 4.1, in the recording spec's convention)
+    if problem.imu_meas is not None:
+        roll0, pitch0 = (float(a) for a in tilt_from_up(problem.R_0I @ problem.imu_meas))
+    else:
+        roll0 = pitch0 = 0.0
+    starts = closed_form_branches(problem, roll0, pitch0)
+    if method == "joint":
+        # Near a singular pair the closed-form starts are noisy and LM from them can slide
+        # into a neighbouring branch: start at the ready pose and the prior's poses too
+        # (starts only: where the search begins is no evidence).
+        extra = [arm.ready_pose_rad[None]]
+        if prior is not None:
+            extra.append(np.where(np.isfinite(prior.sigma_rad), prior.candidates_rad, arm.ready_pose_rad))
+        starts = np.vstack([starts, *extra])
+    x0 = np.concatenate([starts, np.tile([roll0, pitch0], (len(starts), 1))], 1)
+    free = np.ones(n + 2, dtype=bool)
+    if method == "joint":
+        x, cost = batched_lm(problem, x0, free, st.max_iterations)
+    elif method == "sequential":
+        x, cost = sequential_solve(problem, x0, st)
+    else:
+        raise ValueError(f"unknown method {method!r}: use 'joint' or 'sequential'")
+    mid = (arm.min_rad + arm.max_rad) / 2
+    x[:, :n] = mid + wrap_angle(x[:, :n] - mid)
+    margin = limit_margins_rad(arm, st)
+    # A minimum just outside a limit (a flat valley, noise pushing its floor past the limit)
+    # leaves a real solution at the limit itself: hold the joints there, re-solve the rest,
+    # and let that constrained solution compete like any other branch.
+    past = np.maximum(arm.min_rad - margin - x[:, :n], x[:, :n] - arm.max_rad - margin)
+    near_out = (past > 0).any(1) & (past.max(1) < st.limit_reach_deg * DEG)
+    if near_out.any():
+        xc = x[near_out].copy()
+        xc[:, :n] = np.clip(xc[:, :n], arm.min_rad, arm.max_rad)
+        free_c = np.ones((len(xc), n + 2), dtype=bool)
+        free_c[:, :n] = ~(past[near_out] > 0)
+        xc, cost_c = batched_lm(problem, xc, free_c, st.max_iterations)
+        xc[:, :n] = mid + wrap_angle(xc[:, :n] - mid)
+        x, cost = np.vstack([x, xc]), np.concatenate([cost, cost_c])
+    if method == "joint":
+        x, cost = complete_combinations(problem, x, cost, st, mid)
+    # drop branches that fit much worse than the best (not solutions of the data)
+    good = cost <= cost.min() + 0.5 * st.fit_chi2 + 1e-9
+    x, cost = x[good], cost[good]
+    order = np.argsort(cost)
+    return x[order], cost[order]
+
+
+def limit_margins_rad(arm: ArmModel, st: StartupSettings) -> np.ndarray:
+    """Per joint, how far outside its limits a branch is still feasible (rad): the readings'
+    ``limit_margin_deg`` plus ``limit_zero_sigmas`` of the joint's zero offset's sigma (the
+    config's ``joint_offset`` sigma, else the effect's datasheet-typical one): the limits are
+    in the joint's numbering, the branches in its geometric angle."""
+    return st.limit_margin_deg * DEG + st.limit_zero_sigmas * _zero_offset_sigma_rad(arm)
+
+
+def _zero_offset_sigma_rad(arm: ArmModel) -> np.ndarray:
+    """Per joint, its zero offset's sigma (rad), worked out once per arm (kept on it, as the
+    arm keeps its chain arrays: every solve asks)."""
+    zero = arm.__dict__.get("_zero_offset_sigma_rad")
+    if zero is not None:
+        return zero
+    from armfusion.models.effects.base import TargetError
+    from armfusion.models.effects.entries import build_effect, entry_dict
+
+    entries = [entry_dict(e) for e in arm.effects]
+    stated = {e.get("target"): (e.get("sigma") or {}).get("offset_rad") for e in entries
+              if e.get("effect") == "joint_offset"}
+    zero = np.zeros(arm.n_joints)
+    for j, name in enumerate(arm.joint_names):
+        sig = stated.get(name)
+        if sig is None:
+            try:
+                sig = build_effect(arm, "joint_offset", name).default_sigma()
+            except TargetError:
+                sig = [0.0]
+        zero[j] = float(np.ravel(np.asarray(sig, float))[0])
+    zero.setflags(write=False)
+    arm.__dict__["_zero_offset_sigma_rad"] = zero
+    return zero
+
+
+def feasible_branches(arm: ArmModel, q_all: np.ndarray, locked_any: np.ndarray,
+                      margin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct branches inside the limits ``(F, n)`` (every branch when none is), and
+    the rows of ``q_all`` that may be the arm's: the feasible ones, or when none is, those
+    least outside (flagged out_of_limits later). Locked joints can take any value, so only
+    readable joints are checked."""
+    inside = (arm.within_limits(q_all, margin) | locked_any).all(1)
+    feasible_idx = np.flatnonzero(inside)
+    branches = dedupe(q_all[feasible_idx] if len(feasible_idx) else q_all, 1e-3)
+    if len(feasible_idx):
+        return branches, feasible_idx
+    excess = np.sum(np.maximum(0, np.maximum(arm.min_rad - q_all, q_all - arm.max_rad))
+                    * ~locked_any, 1)
+    return branches, np.flatnonzero(excess <= excess.min() + DEG)

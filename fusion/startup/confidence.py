@@ -4,13 +4,16 @@ Near a singular pair the cost is flatter than quadratic: :func:`profile_sigma` m
 each wide joint's sigma from the cost itself; :func:`follow_weak_starts` and
 :func:`follow_weak` sweep each weak joint across what the data allow and see how far the
 others follow; :func:`candidate_covariances` gives every rival its own covariance; and
-:func:`thesis_detector` is the thesis's own gimbal-lock test, reported beside ours.
+:func:`thesis_detector` is the thesis's own gimbal-lock test, reported beside ours. The linear
+sigmas themselves come from :func:`linear_covariance`, and :func:`weigh_rivals` widens them
+(or flags a joint ambiguous) where a rival branch fits as well.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from armfusion.fusion.startup.problem import StillWindowProblem, batched_lm, expected_covariance
+from armfusion.fusion.startup.settings import StartupSettings
 from armfusion.models.arm import ArmModel
 from armfusion.models.rotations import DEG, wrap_angle
 
@@ -127,3 +130,68 @@ def thesis_detector(arm: ArmModel, names, meas: np.ndarray, threshold_g: float) 
             continue  # no sensor axis along this joint
         out[j] = bool(abs(meas[s][i]) > threshold_g)
     return out
+
+
+def linear_covariance(J: np.ndarray, free: np.ndarray, inflate: float) -> np.ndarray:
+    """The covariance of every unknown ``(n + 2, n + 2)`` from the weighted Jacobian ``J (m,
+    n + 2)`` at the chosen solution, times ``inflate`` (NaN for unknowns not ``free``).
+
+    Information from the data, plus the only thing known about a gravity-blind joint: it
+    is somewhere in its range (a flat prior of width pi). Every joint gets that flat
+    prior: it costs nothing where the data speak, and where they do not (a singular pair:
+    two axes and gravity coplanar) the sigma becomes honestly large instead of being cut
+    off by a pseudo-inverse. The marginal sigma of every joint carries its correlation
+    with the blind ones."""
+    cols = free.copy()
+    Jr = J[:, cols]
+    info = Jr.T @ Jr
+    prior_info = np.full(int(cols.sum()), 1.0 / np.pi**2)
+    cov = np.full((len(free), len(free)), np.nan)
+    cov_r = np.linalg.inv(info + np.diag(prior_info)) * inflate
+    cov[np.ix_(cols, cols)] = cov_r
+    return cov
+
+
+def weigh_rivals(st: StartupSettings, rivals_x: np.ndarray, sig: np.ndarray, cov: np.ndarray,
+                  flags: np.ndarray) -> tuple[list[np.ndarray], list[list[float]]]:
+    """Every rival the chooser kept against the chosen state (``rivals_x[0]``): a joint on
+    which they differ by more than its sigma can cover is ambiguous; an ill-conditioned
+    joint's sigma grows to cover a rival in the same valley instead. Widens ``sig`` and
+    ``cov`` and sets ``flags`` in place; returns the candidates kept (the chosen first) and
+    each joint's alternative values."""
+    n = len(flags)
+    xb = rivals_x[0]
+    qb = xb[:n]
+    limit = st.sigma_limit_deg * DEG
+    alternatives: list[list[float]] = [[] for _ in range(n)]
+    kept = [xb]
+    for other in rivals_x[1:]:
+        gap = np.abs(wrap_angle(other[:n] - qb))
+        differ = (gap > np.maximum(3 * sig[:n], 1e-3)) & (flags != "gimbal_lock")
+        if not differ.any():
+            continue
+        # a rival in the same valley (every angle close by) widens the sigmas of the joints
+        # that differ, which makes them ill-conditioned; another branch (some angle far off)
+        # makes every joint that differs ambiguous
+        same_valley = np.all(gap[differ] <= st.ill_grow_max_deg * DEG)
+        grow = differ & same_valley
+        # one rival per distinct set of readable angles (a locked joint's value is arbitrary),
+        # and only one that makes a joint ambiguous (a weak joint's sigma covers the rest)
+        if (differ & ~grow).any() and not any(
+                np.all((np.abs(wrap_angle(other[:n] - k[:n])) <= np.maximum(3 * sig[:n], 1e-3))
+                       | (flags == "gimbal_lock")) for k in kept[1:]):
+            kept.append(other)
+        for j in np.flatnonzero(grow):
+            scale = max(gap[j] / 2.0 / sig[j], 1.0)
+            sig[j] *= scale
+            cov[j, :] *= scale
+            cov[:, j] *= scale
+            if flags[j] == "ok" and sig[j] > limit:
+                flags[j] = "ill_conditioned"
+        for j in np.flatnonzero(differ & ~grow):
+            flags[j] = "ambiguous"
+            if not alternatives[j]:
+                alternatives[j].append(float(qb[j]))
+            if all(abs(wrap_angle(other[j] - v)) > 1e-3 for v in alternatives[j]):
+                alternatives[j].append(float(other[j]))
+    return kept, alternatives

@@ -135,6 +135,33 @@ def augmented(X, step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _damped_system(N, f, lam, A, g):  # pragma: no cover - compiled
+    """The Levenberg-Marquardt system of one iteration from the augmented normal matrix ``N``
+    (row and column 0 the residuals, the rest the unknowns): ``A = J^T J`` restricted to the
+    free unknowns (``f`` 1.0 free, 0.0 held: a held unknown's row is the identity, so its
+    step is zero) with ``lam`` times its diagonal added, and ``g = J^T r`` likewise."""
+    p = A.shape[0]
+    for i in range(p):
+        for j in range(p):
+            A[i, j] = N[1 + i, 1 + j] * f[i] * f[j]
+        g[i] = N[1 + i, 0] * f[i]
+    for i in range(p):
+        A[i, i] += lam * (A[i, i] + 1e-9)
+        A[i, i] += 1.0 - f[i]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _negated_size(step):  # pragma: no cover - compiled
+    """Turns the solution of the system into the step (its negative, in place) and returns
+    its largest element's magnitude."""
+    big = 0.0
+    for i in range(step.shape[0]):
+        step[i] = -step[i]
+        big = max(big, abs(step[i]))
+    return big
+
+
 @njit(cache=True, nogil=True)
 def lm_solve(X0, free, iters, step_in, offset, read_W, read_row, read_link, meas_w, n_sensor_rows,
              imu, tilt_prior, last):  # pragma: no cover - compiled
@@ -186,19 +213,9 @@ def lm_solve(X0, free, iters, step_in, offset, read_W, read_row, read_link, meas
                     break
             if left <= 0:
                 break
-            for i in range(p):
-                for j in range(p):
-                    A[i, j] = N[1 + i, 1 + j] * f[i] * f[j]
-                g[i] = N[1 + i, 0] * f[i]
-            for i in range(p):
-                A[i, i] += lam * (A[i, i] + 1e-9)
-                A[i, i] += 1.0 - f[i]
+            _damped_system(N, f, lam, A, g)
             _lu_solve(A, g, step)
-            big = 0.0
-            for i in range(p):
-                step[i] = -step[i]
-                big = max(big, abs(step[i]))
-            if big < 1e-7:  # converged: the step is not taken
+            if _negated_size(step) < 1e-7:  # converged: the step is not taken
                 break
             for i in range(p):
                 xt[i] = x[i] + step[i]

@@ -10,9 +10,16 @@ safe move after which they read far apart. After a move the encoders counted,
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from armfusion.fusion.startup.prior import StartupPrior
-from armfusion.fusion.startup.problem import axis_to_vertical, expected_sigma, make_problem
+from armfusion.fusion.startup.problem import (
+    StillWindowProblem,
+    axis_to_vertical,
+    expected_sigma,
+    make_problem,
+)
 from armfusion.fusion.startup.readings import StillReadings
 from armfusion.fusion.startup.results import DisambiguatingMove, StartupResult, UnlockMove
 from armfusion.fusion.startup.settings import StartupSettings
@@ -117,6 +124,29 @@ def prior_after_move(result: StartupResult, move, arm: ArmModel,
         "through the encoder counts"))
 
 
+@dataclass(frozen=True)
+class _Rivals:
+    """What a disambiguating move is judged against: the rival branches of one still window
+    and what the next window will know of them. Built once per proposal."""
+
+    arm: ArmModel
+    problem: StillWindowProblem
+    candidates_rad: np.ndarray
+    """The rival poses, ``(R, n)`` rad."""
+    roll_pitch_rad: np.ndarray
+    """The base's roll and pitch, ``(2,)`` rad."""
+    ambiguous: np.ndarray
+    """The joints to resolve, ``(n,)`` bool."""
+    unsure: np.ndarray
+    """The joints read but not to a number, ``(n,)`` bool: a move of one keeps a margin."""
+    pair_a: np.ndarray
+    pair_b: np.ndarray
+    """Every pair of rivals: ``candidates_rad[pair_a[k]]`` against ``candidates_rad[pair_b[k]]``."""
+    carried_cov_rad2: np.ndarray
+    """The covariance the next window starts from, as the encoders carry it, ``(n + 2, n + 2)``."""
+    settings: StartupSettings
+
+
 def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: StillReadings,
                                 settings: StartupSettings | None = None,
                                 roll_pitch: np.ndarray | None = None,
@@ -135,7 +165,6 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
     if cands is None or len(cands) < 2:
         return None
     n = arm.n_joints
-    problem = make_problem(arm, readings)
     rp = np.array([result.roll_rad, result.pitch_rad]) if roll_pitch is None else np.asarray(roll_pitch)
     flags = [j.flag for j in result.joints]
     known = [j for j in range(n) if flags[j] == "ok"]
@@ -145,8 +174,38 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
     unsure = [j for j in range(n) if flags[j] in ("ambiguous", "ill_conditioned", "out_of_limits")
               or (flags[j] == "gimbal_lock" and result.joints[j].axis_to_vertical_deg
                   >= 2 * st.gimbal_lock_deg)]
-    resolves = tuple(j.name for j in result.joints if j.flag == "ambiguous")
-    amb = np.array([j.flag == "ambiguous" for j in result.joints])
+    ia, ib = np.triu_indices(len(cands), 1)
+    rivals = _Rivals(arm, make_problem(arm, readings), cands, rp,
+                     np.array([j.flag == "ambiguous" for j in result.joints]),
+                     np.isin(np.arange(n), unsure), ia, ib, _carried_covariance(result, st, n), st)
+    found = _smallest_separating_move(rivals, _move_classes(known, unsure, max_move_deg))
+    if found is None:
+        return None
+    m, sep = found
+    return DisambiguatingMove(
+        joints=tuple(arm.joints[j].name for j, _ in m),
+        delta_rad=tuple(float(d) for _, d in m),
+        separation_sigma=float(np.sqrt(sep)),
+        resolves=tuple(j.name for j in result.joints if j.flag == "ambiguous"))
+
+
+def _carried_covariance(result: StartupResult, st: StartupSettings, n: int) -> np.ndarray:
+    """What the next window knows of each rival: this window's covariance (as the encoders
+    carry it), the joints it could not read anywhere in their turn."""
+    carried = np.array(result.covariance, float)
+    bad = ~np.isfinite(np.diag(carried))
+    carried[bad, :] = carried[:, bad] = 0.0
+    carried[bad, bad] = np.pi**2
+    # (the result's covariance is already scaled to the sigmas its checks arrived at)
+    carried[np.diag_indices(n)] += (st.encoder_carry_sigma_deg * DEG) ** 2
+    return carried
+
+
+def _move_classes(known: list[int], unsure: list[int], max_move_deg: float):
+    """The candidate moves in classes of growing size, each a function that builds its list
+    (built only when the smaller classes found nothing): single moves of the known joints,
+    pairs of them, single moves of the unsure joints, pairs of any. A move is a tuple of
+    ``(joint index, delta rad)``, each list ordered smallest first."""
     steps = np.array([2, 3, 5, 7.5, 10, 15, 20, 30, 45], float)
     steps = steps[steps <= max_move_deg] * DEG
     pair_steps = np.array([5, 10, 15, 20, 30], float) * DEG
@@ -161,27 +220,23 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
         return [((j, sj * dj), (k, sk * dk)) for dj, dk in sizes for j in js for k in js if j < k
                 for sj in (1, -1) for sk in (1, -1)]
 
-    R = len(cands)
-    ia, ib = np.triu_indices(R, 1)
-    # what the next window knows of each rival: this window's covariance (as the encoders
-    # carry it), the joints it could not read anywhere in their turn
-    carried = np.array(result.covariance, float)
-    bad = ~np.isfinite(np.diag(carried))
-    carried[bad, :] = carried[:, bad] = 0.0
-    carried[bad, bad] = np.pi**2
-    # (the result's covariance is already scaled to the sigmas its checks arrived at)
-    carried[np.diag_indices(n)] += (st.encoder_carry_sigma_deg * DEG) ** 2
-    # After the move every joint should be readable, whichever rival is true (a joint still
-    # weak leaves the next window with rivals of its own); failing that, at least the joints
-    # to resolve. Moves are tried smallest first, class by class; within the class where a
-    # move does the second, one that does the first is preferred.
+    return (lambda: singles(known), lambda: pairs(known), lambda: singles(unsure),
+            lambda: pairs(known + unsure))
+
+
+def _smallest_separating_move(rivals: _Rivals, classes, chunk_size: int = 64):
+    """The first move, class by class and smallest first, that separates the rivals:
+    ``(move, chi-square)`` or None.
+
+    After the move every joint should be readable, whichever rival is true (a joint still
+    weak leaves the next window with rivals of its own); failing that, at least the joints
+    to resolve. Within the class where a move does the second, one that does the first is
+    preferred."""
     fallback = None
-    for make in (lambda: singles(known), lambda: pairs(known), lambda: singles(unsure),
-                 lambda: pairs(known + unsure)):
-        moves = make()  # built only when the smaller classes found nothing
-        for i in range(0, len(moves), 64):
-            found = _separating(arm, problem, cands, rp, moves[i:i + 64], amb, ia, ib, st,
-                                np.isin(np.arange(n), unsure), carried)
+    for make in classes:
+        moves = make()
+        for i in range(0, len(moves), chunk_size):
+            found = _separating(rivals, moves[i:i + chunk_size])
             if found is None:
                 continue
             m, sep, every = found
@@ -190,20 +245,19 @@ def propose_disambiguating_move(arm: ArmModel, result: StartupResult, readings: 
                 break
             fallback = fallback or (m, sep)
         if fallback is not None:
-            m, sep = fallback
-            return DisambiguatingMove(
-                joints=tuple(arm.joints[j].name for j, _ in m),
-                delta_rad=tuple(float(d) for _, d in m),
-                separation_sigma=float(np.sqrt(sep)), resolves=resolves)
+            return fallback
     return None
 
 
-def _separating(arm, problem, cands, rp, chunk, amb, ia, ib, st, unsure, carried,
-                unsure_margin_deg=5.0):
+def _separating(rivals: _Rivals, chunk, unsure_margin_deg=5.0):
     """The first move of ``chunk`` (ordered by size) that keeps every rival inside the
-    limits, leaves the ``amb`` joints readable (axis off vertical, expected sigma within half
-    the limit, at every rival), and separates every pair of rivals by ``st.separation_chi2``:
-    ``(move, chi-square, every joint readable too)``, preferring the last; or None."""
+    limits, leaves the ambiguous joints readable (axis off vertical, expected sigma within
+    half the limit, at every rival), and separates every pair of rivals by
+    ``settings.separation_chi2``: ``(move, chi-square, every joint readable too)``,
+    preferring the last; or None."""
+    arm, problem, cands, rp = rivals.arm, rivals.problem, rivals.candidates_rad, rivals.roll_pitch_rad
+    amb, unsure, ia, ib, st = rivals.ambiguous, rivals.unsure, rivals.pair_a, rivals.pair_b, rivals.settings
+    carried = rivals.carried_cov_rad2
     n, R = arm.n_joints, len(cands)
     delta = np.zeros((len(chunk), n))
     for c, m in enumerate(chunk):

@@ -33,23 +33,26 @@ in the modules named above).
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 from armfusion.fusion.startup.branches import (
-    closed_form_branches,
-    complete_combinations,
     dedupe,
     dedupe_x,
-    sequential_solve,
+    feasible_branches,
+    fitting_branches,
+    limit_margins_rad,
 )
 from armfusion.fusion.startup.combinations import observable_combinations
 from armfusion.fusion.startup.confidence import (
     candidate_covariances,
     follow_weak,
     follow_weak_starts,
+    linear_covariance,
     profile_sigma,
     thesis_detector,
+    weigh_rivals,
 )
 from armfusion.fusion.startup.moves import (
     move_delta_rad,
@@ -83,8 +86,9 @@ from armfusion.fusion.startup.results import (
     summary,
 )
 from armfusion.fusion.startup.settings import StartupSettings
+from armfusion.fusion.startup.tilt_only import base_tilt_only
 from armfusion.models.arm import ArmModel
-from armfusion.models.rotations import DEG, tilt_from_up, wrap_angle
+from armfusion.models.rotations import DEG, wrap_angle
 
 __all__ = [
     "FLAGS", "DisambiguatingMove", "InputCheck", "JointEstimate", "StartupInputError",
@@ -114,17 +118,90 @@ def solve_still(
     st = settings or StartupSettings()
     check_readings(readings)
     if arm.n_joints == 0:
-        return _base_tilt_only(arm, readings, st, method)
+        return base_tilt_only(arm, readings, st, method)
     problem = make_problem(arm, readings)
-    n = arm.n_joints
+    chosen = _choose_branch(problem, st, prior, method)
+    fit = _linear_fit(problem, chosen, st)
+    sig, flags, rivals_x = _follow_weak_and_probes(problem, chosen, fit, st)
+    verdict = _final_flags(arm, chosen, fit, sig, flags, rivals_x, st)
+    result = _result(problem, readings, chosen, fit, verdict, st, method)
+    if propose_unlock and any(f in ("gimbal_lock", "ill_conditioned") for f in verdict.flags):
+        result = replace(result, unlock_move=propose_unlock_move(arm, result, readings, st))
+    if len(verdict.kept) > 1:
+        result = replace(result, disambiguating_move=propose_disambiguating_move(
+            arm, result, readings, st, roll_pitch=chosen.xb[arm.n_joints:]))
+    return replace(result, summary=_summary_with_sensor_note(arm, problem, result))
+
+
+@dataclass(frozen=True)
+class _ChosenBranch:
+    """The branch a still solve settles on, among every branch that fits the data."""
+
+    x: np.ndarray
+    """Every fitting branch, polished, best first: ``(B, n + 2)`` (joints, base roll, pitch)."""
+    cost: np.ndarray
+    """Each branch's cost (half its weighted chi-square), ``(B,)``."""
+    candidates: np.ndarray
+    """The rows of ``x`` that may be the arm's (the feasible ones)."""
+    pool: np.ndarray
+    """The rows the chooser keeps (the data's, or the prior's choice)."""
+    best: int
+    """The chosen row of ``x``."""
+    branches_rad: np.ndarray
+    """The distinct branches inside the limits, ``(F, n)``."""
+    axis_deg: np.ndarray
+    """Every joint's axis to vertical on every branch, ``(B, n)`` deg."""
+    locked_any: np.ndarray
+    """Where that is within ``gimbal_lock_deg``, ``(B, n)``."""
+    margin_rad: np.ndarray
+    """Per joint, how far outside its limits a branch is still feasible."""
+    chooser: BranchChooser
+    notes: list[str]
+    """What the chooser said, for the result's notes."""
+    dof: int
+    """The fit's degrees of freedom (two per direction read, less the unknowns)."""
+
+    @property
+    def xb(self) -> np.ndarray:
+        """The chosen state ``(n + 2,)``."""
+        return self.x[self.best]
+
+    @property
+    def locked(self) -> np.ndarray:
+        """The chosen branch's locked joints ``(n,)``."""
+        return self.locked_any[self.best]
+
+
+@dataclass(frozen=True)
+class _LinearFit:
+    """The fit at the chosen branch: its weighted residuals and Jacobian, and the covariance
+    and sigmas they give (the readable joints' sigmas profiled along the cost)."""
+
+    r: np.ndarray
+    J: np.ndarray
+    chi2_dof: float
+    inflate: float
+    """The Birge ratio, at least one: how much worse the fit is than its sigmas say."""
+    cov: np.ndarray
+    """The linear covariance ``(n + 2, n + 2)`` times ``inflate``."""
+    sig: np.ndarray
+    """Every unknown's sigma ``(n + 2,)``: the linear one, profiled where readable."""
+    probes: np.ndarray
+    """The profile's probe states, each to roll to its own minimum."""
+
+
+def _choose_branch(problem: StillWindowProblem, st: StartupSettings, prior: StartupPrior | None,
+                   method: str) -> _ChosenBranch:
+    """Every fitting branch, those inside the limits, and the one the prior (or, with none,
+    the data) chooses."""
+    arm, n = problem.arm, problem.arm.n_joints
     free = np.ones(n + 2, dtype=bool)
-    mid = (arm.min_rad + arm.max_rad) / 2
     margin = limit_margins_rad(arm, st)
-    x, cost = _fitting_branches(problem, st, prior, method)
+    x, cost = fitting_branches(problem, st, prior, method)
     q_all = x[:, :n]
     axis_deg = np.degrees(axis_to_vertical(arm, q_all, x[:, n], x[:, n + 1]))
     locked_any = axis_deg < st.gimbal_lock_deg  # (B, n)
-    branches, cand = _feasible_branches(arm, q_all, locked_any, margin)
+    branches, cand = feasible_branches(arm, q_all, locked_any, margin)
     n_dir = len(problem.names) + 1  # the IMU's direction, or the level-chair prior
     dof = max(2 * n_dir - int(free.sum()), 1)
     inflate0 = max(2.0 * float(cost[cand].min()) / dof, 1.0)
@@ -134,35 +211,52 @@ def solve_still(
                                  expected_covariance(problem, x[cand])[:, :n, :n] * inflate0, notes)
     pool = cand[chooser.keep]
     best = pool[int(np.argmin(chooser.rank[chooser.keep]))]
-    xb = x[best]
-    qb = xb[:n]
-    # covariance from the weighted Jacobian at the chosen solution
+    return _ChosenBranch(x, cost, cand, pool, best, branches, axis_deg, locked_any, margin,
+                         chooser, notes, dof)
+
+
+def _linear_fit(problem: StillWindowProblem, chosen: _ChosenBranch, st: StartupSettings) -> _LinearFit:
+    """The covariance from the weighted Jacobian at the chosen solution, and each readable
+    joint's sigma from the cost's own profile."""
+    n = problem.arm.n_joints
+    free = np.ones(n + 2, dtype=bool)
+    xb = chosen.xb
     r, J = problem.residuals_and_jacobian(xb[None])
     r, J = r[0], J[0]
     # a normalised direction carries two constraints, not three; the tilt prior two more
-    chi2_dof = float(r @ r / dof)
-    locked = locked_any[best]
+    chi2_dof = float(r @ r / chosen.dof)
     # the fit itself says when the model is worse than its sigmas (Birge ratio)
     inflate = max(chi2_dof, 1.0)
-    cov = _linear_covariance(J, free, inflate)
+    cov = linear_covariance(J, free, inflate)
     sig = np.sqrt(np.clip(np.diag(cov), 0, None))
     # the cost's own verdict on every readable joint (flat valleys near singular pairs)
     # (well-read joints are quadratic over many sigmas: only the wider ones are checked)
-    readable = np.flatnonzero(~locked & np.isfinite(sig[:n]) & (sig[:n] > st.profile_above_deg * DEG))
+    readable = np.flatnonzero(~chosen.locked & np.isfinite(sig[:n]) & (sig[:n] > st.profile_above_deg * DEG))
     sig[readable], probes = profile_sigma(problem, xb, float(0.5 * r @ r), sig, readable,
                                           np.sqrt(inflate))
+    return _LinearFit(r, J, chi2_dof, inflate, cov, sig, probes)
+
+
+def _follow_weak_and_probes(problem: StillWindowProblem, chosen: _ChosenBranch, fit: _LinearFit,
+                            st: StartupSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every sigma widened by how far it follows a weak joint, the first flags, and the rival
+    states (the chooser's pool, and the profile's probes that rolled to a minimum as good).
+
+    Joints whose value rests on a weak one (locked, or sigma above the limit): sweep the
+    weak joint across what the data allow, re-solve the rest, and widen the others' sigma by
+    how far they follow. A joint pushed over the limit by a locked joint inherits its flag;
+    by an ill-conditioned one, it becomes ill-conditioned. A valley may hold other minima
+    than the branches the starts reached: the profile's probes are released, each rolls to
+    its own; good ones join the branches as rivals. Those and the sweep are solved in one
+    batch (every row on its own). Returns ``(sig, flags, rivals_x)``."""
+    arm, n = problem.arm, problem.arm.n_joints
+    xb, locked, probes, r = chosen.xb, chosen.locked, fit.probes, fit.r
+    sig = fit.sig.copy()
     flags = np.array(["ok"] * n, dtype=object)
     flags[locked] = "gimbal_lock"
     limit = st.sigma_limit_deg * DEG
-    # Joints whose value rests on a weak one (locked, or sigma above the limit): sweep the
-    # weak joint across what the data allow, re-solve the rest, and widen the others'
-    # sigma by how far they follow. A joint pushed over the limit by a locked joint
-    # inherits its flag; by an ill-conditioned one, it becomes ill-conditioned.
     weak = locked | (sig[:n] > limit)
     follow_x0, follow_free, follow_j = follow_weak_starts(xb, sig, weak, locked)
-    # A valley may hold other minima than the branches the starts reached: the profile's
-    # probes are released, each rolls to its own; good ones join the branches as rivals
-    # below. Those and the sweep are solved in one batch (every row on its own).
     solved, solved_cost = np.zeros((0, n + 2)), np.zeros(0)
     if len(probes) or len(follow_j):
         solved, solved_cost = batched_lm(
@@ -170,36 +264,74 @@ def solve_still(
             np.vstack([np.ones(probes.shape, bool), follow_free]),
             np.concatenate([np.full(len(probes), st.max_iterations), np.full(len(follow_j), 12)]))
     xr, cost_r = solved[: len(probes)], solved_cost[: len(probes)]
-    rivals_x = x[pool]
+    rivals_x = chosen.x[chosen.pool]
     if len(probes):
+        mid = (arm.min_rad + arm.max_rad) / 2
         xr[:, :n] = mid + wrap_angle(xr[:, :n] - mid)
-        keep = ((cost_r <= cost[cand].min() + 0.5 * st.fit_chi2 + 1e-9)
-                & (arm.within_limits(xr[:, :n], margin) | locked).all(1))
+        keep = ((cost_r <= chosen.cost[chosen.candidates].min() + 0.5 * st.fit_chi2 + 1e-9)
+                & (arm.within_limits(xr[:, :n], chosen.margin_rad) | locked).all(1))
         if keep.any():
             xr = dedupe(xr[keep], 1e-3)
-            joins = chooser.admits(xr[:, :n], np.broadcast_to(locked, (len(xr), n)),
-                                   expected_covariance(problem, xr)[:, :n, :n] * inflate)
+            joins = chosen.chooser.admits(xr[:, :n], np.broadcast_to(locked, (len(xr), n)),
+                                          expected_covariance(problem, xr)[:, :n, :n] * fit.inflate)
             rivals_x = np.vstack([rivals_x, xr[joins]])
     if weak.any():
         follow = follow_weak(solved[len(probes):], solved_cost[len(probes):], follow_j, xb,
-                             float(0.5 * r @ r), locked, inflate)
+                             float(0.5 * r @ r), locked, fit.inflate)
         moved = follow.max(0)  # (n,): the widest any weak joint drags each joint
         widened = np.maximum(sig[:n], moved / 3.0)
         by_locked = follow[locked[weak]].max(0) if locked.any() else np.zeros(n)
         from_locked = ~weak & (widened > limit) & (by_locked / 3.0 > limit)
         sig[:n] = np.where(weak, sig[:n], widened)
         flags[from_locked] = "gimbal_lock"
+    return sig, flags, rivals_x
+
+
+class _Verdict(NamedTuple):
+    """Each joint's last word: its sigma and flag, whether it gets a number, the rivals kept
+    and every joint's alternative values."""
+
+    sig: np.ndarray
+    """Every unknown's sigma ``(n + 2,)``, the safety factor and the rivals' widening in."""
+    flags: np.ndarray
+    blind: np.ndarray
+    """The joints the data cannot see ``(n,)``: no number."""
+    cov: np.ndarray
+    """The linear covariance, widened where a rival in the same valley widens a sigma."""
+    kept: list[np.ndarray]
+    """The candidates kept, the chosen first."""
+    alternatives: list[list[float]]
+
+
+def _final_flags(arm: ArmModel, chosen: _ChosenBranch, fit: _LinearFit, sig: np.ndarray,
+                 flags: np.ndarray, rivals_x: np.ndarray, st: StartupSettings) -> _Verdict:
+    """The safety factor on every sigma, then each joint's last flags: ill-conditioned over
+    the limit, out of limits, ambiguous between rivals
+    (:func:`~armfusion.fusion.startup.confidence.weigh_rivals`), and blind (no number) where
+    the data cannot see it."""
+    n = arm.n_joints
     sig = sig * st.sigma_safety_factor
-    ill = (sig[:n] > limit) & (flags == "ok")
+    cov = fit.cov.copy()
+    ill = (sig[:n] > st.sigma_limit_deg * DEG) & (flags == "ok")
     flags[ill] = "ill_conditioned"
-    out_of_limits = ~arm.within_limits(qb, margin) & (flags == "ok")
+    out_of_limits = ~arm.within_limits(chosen.xb[:n], chosen.margin_rad) & (flags == "ok")
     flags[out_of_limits] = "out_of_limits"
-    kept, alternatives = _weigh_rivals(st, dedupe_x(rivals_x, xb), sig, cov, flags)
+    kept, alternatives = weigh_rivals(st, dedupe_x(rivals_x, chosen.xb), sig, cov, flags)
     # a joint the data cannot see gets no number (never a sigma of thousands of degrees)
     blind = (sig[:n] > st.numbered_sigma_max_deg * DEG) & ~np.isin(flags, ("gimbal_lock", "ambiguous"))
     flags[blind] = "ill_conditioned"
-    joints = _joint_estimates(arm, problem, st, qb, sig, flags, blind, alternatives, axis_deg[best])
-    resid_g = (r[: problem.meas.size] * problem.sigma.reshape(-1))
+    return _Verdict(sig, flags, blind, cov, kept, alternatives)
+
+
+def _result(problem: StillWindowProblem, readings: StillReadings, chosen: _ChosenBranch,
+            fit: _LinearFit, verdict: _Verdict, st: StartupSettings, method: str) -> StartupResult:
+    """The result of the solve, before its moves and summary: every joint's estimate, the
+    base tilt, the covariance widened to the sigmas the checks arrived at, the candidates
+    and the combinations the linear covariance knows."""
+    arm, n = problem.arm, problem.arm.n_joints
+    xb, cov, sig, kept = chosen.xb, verdict.cov, verdict.sig, verdict.kept
+    joints = _joint_estimates(problem, st, xb[:n], verdict, chosen.axis_deg[chosen.best])
+    resid_g = (fit.r[: problem.meas.size] * problem.sigma.reshape(-1))
     # the covariance keeps the linear correlations, scaled to the sigmas the checks arrived
     # at (the profile, the sweep and the rivals widen them), every joint's included
     linear = cov * st.sigma_safety_factor**2  # (what the combinations are read from)
@@ -211,23 +343,17 @@ def solve_still(
         roll_rad=float(xb[n]), pitch_rad=float(xb[n + 1]),
         roll_sigma_rad=float(sig[n]), pitch_sigma_rad=float(sig[n + 1]),
         residual_rms_g=float(np.sqrt(np.mean(resid_g**2))),
-        chi2_per_dof=chi2_dof,
-        q_rad=qb.copy(), covariance=cov * st.sigma_safety_factor**2, branches_rad=branches,
+        chi2_per_dof=fit.chi2_dof,
+        q_rad=xb[:n].copy(), covariance=cov * st.sigma_safety_factor**2, branches_rad=chosen.branches_rad,
         method=method,
         t_start_s=readings.t_start_s, t_end_s=readings.t_end_s,
         candidates_rad=np.array([k[:n] for k in kept]),
         candidates_covariance=candidate_covariances(problem, kept, cov * st.sigma_safety_factor**2,
-                                                    inflate * st.sigma_safety_factor**2),
-        prior_used=chooser.used,
-        notes=tuple(notes),
+                                                    fit.inflate * st.sigma_safety_factor**2),
+        prior_used=chosen.chooser.used,
+        notes=tuple(chosen.notes),
     )
-    result = replace(result, combinations=startup_combinations(arm, result, linear, st))
-    if propose_unlock and any(f in ("gimbal_lock", "ill_conditioned") for f in flags):
-        result = replace(result, unlock_move=propose_unlock_move(arm, result, readings, st))
-    if len(kept) > 1:
-        result = replace(result, disambiguating_move=propose_disambiguating_move(
-            arm, result, readings, st, roll_pitch=xb[n:]))
-    return replace(result, summary=_summary_with_sensor_note(arm, problem, result))
+    return replace(result, combinations=startup_combinations(arm, result, linear, st))
 
 
 TILT_NAMES = ("base roll", "base pitch")
@@ -252,223 +378,12 @@ def startup_combinations(arm: ArmModel, result: StartupResult, cov: np.ndarray,
     return observable_combinations(cov, x, names, st.combination_sigma_max_deg * DEG, cand)
 
 
-def _base_tilt_only(arm: ArmModel, readings: StillReadings, st: StartupSettings,
-                    method: str) -> StartupResult:
-    """An arm with no joints (an IMU alone): the base's roll and pitch from its IMU's
-    averaged reading in closed form (:func:`armfusion.models.rotations.tilt_from_up`, as the joint
-    solve starts from), their covariance from the reading's sigma (its noise over the
-    window, as the joint solve takes the IMU's: what the IMU accelerometer is off by is
-    the tracker's ``imu_bias`` state, whose prior is the config's unmodelled error) through
-    the same direction's Jacobian, times the safety factor. No joint, no branch."""
-    if readings.imu_mean_g is None or arm.imu is None:
-        raise StartupInputError("an arm with no joints is started from its base IMU, and the still "
-                                "window has no IMU accelerometer reading")
-    f = np.asarray(readings.imu_mean_g, float)
-    norm = float(np.linalg.norm(f))
-    if not norm > 0.0:
-        raise StartupInputError("the IMU accelerometer's still reading is zero: no tilt to read")
-    R_0I = arm.imu.R_LS
-    up = R_0I @ (f / norm)
-    roll, pitch = (float(a) for a in tilt_from_up(up))
-    # d up / d (roll, pitch), base axes; the reading's per-axis sigma turned into them
-    sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
-    J = np.array([[0.0, -cp], [cr * cp, -sr * sp], [-sr * cp, -cr * sp]])
-    sig_I = np.asarray(readings.imu_sigma_g, float) / norm
-    C_up = R_0I @ np.diag(sig_I**2) @ R_0I.T
-    info = J.T @ np.linalg.inv(C_up) @ J  # J is normal to up: the norm's own error drops out
-    cov = np.linalg.inv(info) * st.sigma_safety_factor**2
-    resid = f / norm - R_0I.T @ up  # zero: the direction is read exactly; kept for the record
-    result = StartupResult(
-        joints=(), roll_rad=roll, pitch_rad=pitch,
-        roll_sigma_rad=float(np.sqrt(cov[0, 0])), pitch_sigma_rad=float(np.sqrt(cov[1, 1])),
-        residual_rms_g=float(np.sqrt(np.mean(resid**2))), chi2_per_dof=0.0,
-        q_rad=np.zeros(0), covariance=cov, branches_rad=np.zeros((1, 0)), method=method,
-        t_start_s=readings.t_start_s, t_end_s=readings.t_end_s,
-        candidates_rad=np.zeros((1, 0)), candidates_covariance=cov[None],
-        notes=("no joints: the base tilt from the IMU accelerometer alone",))
-    sig_deg = np.degrees([result.roll_sigma_rad, result.pitch_sigma_rad])
-    return replace(result, summary=(f"no joints; base roll {np.degrees(roll):.2f} deg, pitch "
-                                    f"{np.degrees(pitch):.2f} deg (sigma {sig_deg[0]:.3f}, "
-                                    f"{sig_deg[1]:.3f} deg)"))
-
-
-def _fitting_branches(problem: StillWindowProblem, st: StartupSettings, prior: StartupPrior | None,
-                      method: str) -> tuple[np.ndarray, np.ndarray]:
-    """Every branch that fits the data, polished, best first: states ``(B, n + 2)`` (joint
-    angles brought to the representative nearest the middle of their limits) and costs.
-
-    The closed-form branches (and, for the joint method, the ready pose and the prior's
-    poses as further starts), polished; minima just outside a limit re-solved held at it;
-    the groups' solutions crossed; those fitting much worse than the best dropped."""
-    arm, n = problem.arm, problem.n
-    # base tilt from the IMU (the thesis's eq. 4.1, in the recording spec's convention)
-    if problem.imu_meas is not None:
-        roll0, pitch0 = (float(a) for a in tilt_from_up(problem.R_0I @ problem.imu_meas))
-    else:
-        roll0 = pitch0 = 0.0
-    starts = closed_form_branches(problem, roll0, pitch0)
-    if method == "joint":
-        # Near a singular pair the closed-form starts are noisy and LM from them can slide
-        # into a neighbouring branch: start at the ready pose and the prior's poses too
-        # (starts only: where the search begins is no evidence).
-        extra = [arm.ready_pose_rad[None]]
-        if prior is not None:
-            extra.append(np.where(np.isfinite(prior.sigma_rad), prior.candidates_rad, arm.ready_pose_rad))
-        starts = np.vstack([starts, *extra])
-    x0 = np.concatenate([starts, np.tile([roll0, pitch0], (len(starts), 1))], 1)
-    free = np.ones(n + 2, dtype=bool)
-    if method == "joint":
-        x, cost = batched_lm(problem, x0, free, st.max_iterations)
-    elif method == "sequential":
-        x, cost = sequential_solve(problem, x0, st)
-    else:
-        raise ValueError(f"unknown method {method!r}: use 'joint' or 'sequential'")
-    mid = (arm.min_rad + arm.max_rad) / 2
-    x[:, :n] = mid + wrap_angle(x[:, :n] - mid)
-    margin = limit_margins_rad(arm, st)
-    # A minimum just outside a limit (a flat valley, noise pushing its floor past the limit)
-    # leaves a real solution at the limit itself: hold the joints there, re-solve the rest,
-    # and let that constrained solution compete like any other branch.
-    past = np.maximum(arm.min_rad - margin - x[:, :n], x[:, :n] - arm.max_rad - margin)
-    near_out = (past > 0).any(1) & (past.max(1) < st.limit_reach_deg * DEG)
-    if near_out.any():
-        xc = x[near_out].copy()
-        xc[:, :n] = np.clip(xc[:, :n], arm.min_rad, arm.max_rad)
-        free_c = np.ones((len(xc), n + 2), dtype=bool)
-        free_c[:, :n] = ~(past[near_out] > 0)
-        xc, cost_c = batched_lm(problem, xc, free_c, st.max_iterations)
-        xc[:, :n] = mid + wrap_angle(xc[:, :n] - mid)
-        x, cost = np.vstack([x, xc]), np.concatenate([cost, cost_c])
-    if method == "joint":
-        x, cost = complete_combinations(problem, x, cost, st, mid)
-    # drop branches that fit much worse than the best (not solutions of the data)
-    good = cost <= cost.min() + 0.5 * st.fit_chi2 + 1e-9
-    x, cost = x[good], cost[good]
-    order = np.argsort(cost)
-    return x[order], cost[order]
-
-
-def limit_margins_rad(arm: ArmModel, st: StartupSettings) -> np.ndarray:
-    """Per joint, how far outside its limits a branch is still feasible (rad): the readings'
-    ``limit_margin_deg`` plus ``limit_zero_sigmas`` of the joint's zero offset's sigma (the
-    config's ``joint_offset`` sigma, else the effect's datasheet-typical one): the limits are
-    in the joint's numbering, the branches in its geometric angle."""
-    return st.limit_margin_deg * DEG + st.limit_zero_sigmas * _zero_offset_sigma_rad(arm)
-
-
-def _zero_offset_sigma_rad(arm: ArmModel) -> np.ndarray:
-    """Per joint, its zero offset's sigma (rad), worked out once per arm (kept on it, as the
-    arm keeps its chain arrays: every solve asks)."""
-    zero = arm.__dict__.get("_zero_offset_sigma_rad")
-    if zero is not None:
-        return zero
-    from armfusion.models.effects.base import TargetError
-    from armfusion.models.effects.entries import build_effect, entry_dict
-
-    entries = [entry_dict(e) for e in arm.effects]
-    stated = {e.get("target"): (e.get("sigma") or {}).get("offset_rad") for e in entries
-              if e.get("effect") == "joint_offset"}
-    zero = np.zeros(arm.n_joints)
-    for j, name in enumerate(arm.joint_names):
-        sig = stated.get(name)
-        if sig is None:
-            try:
-                sig = build_effect(arm, "joint_offset", name).default_sigma()
-            except TargetError:
-                sig = [0.0]
-        zero[j] = float(np.ravel(np.asarray(sig, float))[0])
-    zero.setflags(write=False)
-    arm.__dict__["_zero_offset_sigma_rad"] = zero
-    return zero
-
-
-def _feasible_branches(arm: ArmModel, q_all: np.ndarray, locked_any: np.ndarray,
-                       margin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct branches inside the limits ``(F, n)`` (every branch when none is), and
-    the rows of ``q_all`` that may be the arm's: the feasible ones, or when none is, those
-    least outside (flagged out_of_limits later). Locked joints can take any value, so only
-    readable joints are checked."""
-    inside = (arm.within_limits(q_all, margin) | locked_any).all(1)
-    feasible_idx = np.flatnonzero(inside)
-    branches = dedupe(q_all[feasible_idx] if len(feasible_idx) else q_all, 1e-3)
-    if len(feasible_idx):
-        return branches, feasible_idx
-    excess = np.sum(np.maximum(0, np.maximum(arm.min_rad - q_all, q_all - arm.max_rad))
-                    * ~locked_any, 1)
-    return branches, np.flatnonzero(excess <= excess.min() + DEG)
-
-
-def _linear_covariance(J: np.ndarray, free: np.ndarray, inflate: float) -> np.ndarray:
-    """The covariance of every unknown ``(n + 2, n + 2)`` from the weighted Jacobian ``J (m,
-    n + 2)`` at the chosen solution, times ``inflate`` (NaN for unknowns not ``free``).
-
-    Information from the data, plus the only thing known about a gravity-blind joint: it
-    is somewhere in its range (a flat prior of width pi). Every joint gets that flat
-    prior: it costs nothing where the data speak, and where they do not (a singular pair:
-    two axes and gravity coplanar) the sigma becomes honestly large instead of being cut
-    off by a pseudo-inverse. The marginal sigma of every joint carries its correlation
-    with the blind ones."""
-    cols = free.copy()
-    Jr = J[:, cols]
-    info = Jr.T @ Jr
-    prior_info = np.full(int(cols.sum()), 1.0 / np.pi**2)
-    cov = np.full((len(free), len(free)), np.nan)
-    cov_r = np.linalg.inv(info + np.diag(prior_info)) * inflate
-    cov[np.ix_(cols, cols)] = cov_r
-    return cov
-
-
-def _weigh_rivals(st: StartupSettings, rivals_x: np.ndarray, sig: np.ndarray, cov: np.ndarray,
-                  flags: np.ndarray) -> tuple[list[np.ndarray], list[list[float]]]:
-    """Every rival the chooser kept against the chosen state (``rivals_x[0]``): a joint on
-    which they differ by more than its sigma can cover is ambiguous; an ill-conditioned
-    joint's sigma grows to cover a rival in the same valley instead. Widens ``sig`` and
-    ``cov`` and sets ``flags`` in place; returns the candidates kept (the chosen first) and
-    each joint's alternative values."""
-    n = len(flags)
-    xb = rivals_x[0]
-    qb = xb[:n]
-    limit = st.sigma_limit_deg * DEG
-    alternatives: list[list[float]] = [[] for _ in range(n)]
-    kept = [xb]
-    for other in rivals_x[1:]:
-        gap = np.abs(wrap_angle(other[:n] - qb))
-        differ = (gap > np.maximum(3 * sig[:n], 1e-3)) & (flags != "gimbal_lock")
-        if not differ.any():
-            continue
-        # a rival in the same valley (every angle close by) widens the sigmas of the joints
-        # that differ, which makes them ill-conditioned; another branch (some angle far off)
-        # makes every joint that differs ambiguous
-        same_valley = np.all(gap[differ] <= st.ill_grow_max_deg * DEG)
-        grow = differ & same_valley
-        # one rival per distinct set of readable angles (a locked joint's value is arbitrary),
-        # and only one that makes a joint ambiguous (a weak joint's sigma covers the rest)
-        if (differ & ~grow).any() and not any(
-                np.all((np.abs(wrap_angle(other[:n] - k[:n])) <= np.maximum(3 * sig[:n], 1e-3))
-                       | (flags == "gimbal_lock")) for k in kept[1:]):
-            kept.append(other)
-        for j in np.flatnonzero(grow):
-            scale = max(gap[j] / 2.0 / sig[j], 1.0)
-            sig[j] *= scale
-            cov[j, :] *= scale
-            cov[:, j] *= scale
-            if flags[j] == "ok" and sig[j] > limit:
-                flags[j] = "ill_conditioned"
-        for j in np.flatnonzero(differ & ~grow):
-            flags[j] = "ambiguous"
-            if not alternatives[j]:
-                alternatives[j].append(float(qb[j]))
-            if all(abs(wrap_angle(other[j] - v)) > 1e-3 for v in alternatives[j]):
-                alternatives[j].append(float(other[j]))
-    return kept, alternatives
-
-
-def _joint_estimates(arm: ArmModel, problem: StillWindowProblem, st: StartupSettings,
-                     qb: np.ndarray, sig: np.ndarray, flags: np.ndarray, blind: np.ndarray,
-                     alternatives: list[list[float]], axis_deg: np.ndarray,
-                     ) -> tuple[JointEstimate, ...]:
+def _joint_estimates(problem: StillWindowProblem, st: StartupSettings, qb: np.ndarray,
+                     verdict: _Verdict, axis_deg: np.ndarray) -> tuple[JointEstimate, ...]:
     """Each joint's estimate: a number and sigma unless it is locked, ambiguous or blind
     (then its range: the limits, or for an ambiguous one its alternatives)."""
+    arm = problem.arm
+    sig, flags, blind, alternatives = verdict.sig, verdict.flags, verdict.blind, verdict.alternatives
     thesis = thesis_detector(arm, problem.names, problem.meas, st.thesis_detector_g)
     joints = []
     for j in range(arm.n_joints):

@@ -41,6 +41,7 @@ disturbed compass is already not fused (the compass's own verdict).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from armfusion.fusion.tracking.alarm_naming import FLOOR_G, name_shift, onset
@@ -80,6 +81,19 @@ HARD_IRON_AFTER_S = 20.0
 EFFECTS = ("mount_rotation", "bias_jump", "hard_iron")
 UNITS = {"mount_rotation": "deg", "bias_jump": "g", "hard_iron": "uT"}
 """Each effect's size unit."""
+
+
+class AccelRows(NamedTuple):
+    """The accelerometer update as the alarm reads it (one per update)."""
+
+    z_pred: np.ndarray
+    """The update's predictions ``(m,)`` (g)."""
+    var: np.ndarray
+    """Its measurement variances ``(m,)`` (g²)."""
+    rows: np.ndarray
+    """Each accelerometer's three rows ``(S, 3)``, by its place in ``sel``."""
+    sel: np.ndarray
+    """The update's accelerometers (sensor indices), in order."""
 
 
 @dataclass(frozen=True)
@@ -149,6 +163,22 @@ def reference_or_filter(nu: np.ndarray, moved: np.ndarray, var: np.ndarray,
     return nu
 
 
+def moved_by_offsets(sees: np.ndarray, offset_ref_rad: np.ndarray, offset_rad: np.ndarray | None, frame,
+                     idx: np.ndarray, f_pred_g: np.ndarray) -> np.ndarray:
+    """How much the filter's move of the joint offsets since the reference
+    (:meth:`ModelChangeAlarm.reacquired`) changed the predictions ``f_pred_g (k, 3)`` of the
+    link accelerometers ``idx`` (``sees (k, n)``: the joints each sees): the innovation against
+    the reference is the filter's plus this, to first order ``f x (R_0S^T w)``, ``w = sum_j
+    (offset_j - ref_j) a_j`` over the joints each sees (``a_j`` their axes, from ``frame``, the
+    instant's kinematics). Zero without ``frame`` or ``offset_rad``."""
+    if offset_rad is None or frame is None:
+        return np.zeros((len(idx), 3))
+    d = np.asarray(offset_rad, float) - offset_ref_rad
+    w = (sees * d) @ frame.axes  # (k, 3), base axes
+    a = np.einsum("kji,kj->ki", frame.R_0S[idx], w)  # in each sensor's axes
+    return np.cross(f_pred_g, a)
+
+
 class ModelChangeAlarm:
     """The alarm over the link accelerometers ``names`` and the compass (``mag_name``)."""
 
@@ -166,7 +196,7 @@ class ModelChangeAlarm:
         self.floor_g = np.maximum(FLOOR_G, UNMODELLED_FACTOR * um)
         self.names, self.mag_name = names, mag_name
         self._sum_nu = np.zeros((n, 3))
-        self._sum_moved = np.zeros((n, 3))  # the offsets' move's share (see _moved), while held
+        self._sum_moved = np.zeros((n, 3))  # the offsets' move's share (moved_by_offsets), while held
         self._sum_g = np.zeros((n, 3))
         self._sum_var = np.zeros(n)
         self._sum_r = np.zeros(n)
@@ -204,28 +234,13 @@ class ModelChangeAlarm:
             self._offset_ref = np.array(offset_rad, dtype=float)
         self._ref_until = t + REF_HOLD_S
 
-    def _moved(self, idx: np.ndarray, z_pred: np.ndarray, rows: np.ndarray, frame,
-               offset_rad: np.ndarray | None) -> np.ndarray:
-        """How much the filter's move of the joint offsets since the reference
-        (:meth:`reacquired`) changed the predictions of the link accelerometers ``idx``
-        (``rows (k, 3)``: their rows of ``z_pred``): the innovation against the reference is
-        the filter's plus this, to first order ``f x (R_0S^T w)``, ``w = sum_j (offset_j -
-        ref_j) a_j`` over the joints each sees (``a_j`` their axes, ``f`` the predicted force)."""
-        if offset_rad is None or frame is None:
-            return np.zeros((len(idx), 3))
-        d = np.asarray(offset_rad, float) - self._offset_ref
-        w = (self._sees[idx] * d) @ frame.axes  # (k, 3), base axes
-        a = np.einsum("kji,kj->ki", frame.R_0S[idx], w)  # in each sensor's axes
-        return np.cross(z_pred[rows], a)
-
-    def listen(self, t: float, u, nu: np.ndarray, Su: np.ndarray, z_pred: np.ndarray, var: np.ndarray,
-               rows: np.ndarray, sel: np.ndarray, calm: bool, frame=None,
-               offset_rad: np.ndarray | None = None) -> None:
-        """The usable accelerometers ``u`` (a slice of ``sel``, every one in order, or sensor
-        indices) gave innovations ``nu (k, 3)`` (g) with covariances ``Su``; ``z_pred`` and
-        ``var`` are the update's predictions and measurement variances (``rows``: each
-        accelerometer's three, by its place in ``sel``). Only while ``calm`` (the base as
-        modelled) are they counted; the link accelerometers (the first ``len(names)``) only.
+    def listen(self, t: float, u, nu: np.ndarray, Su: np.ndarray, update: AccelRows, calm: bool,
+               frame=None, offset_rad: np.ndarray | None = None) -> None:
+        """The usable accelerometers ``u`` (a slice of ``update.sel``, every one in order, or
+        sensor indices) gave innovations ``nu (k, 3)`` (g) with covariances ``Su``; ``update``
+        holds the update's predictions and measurement variances and where each
+        accelerometer's rows are. Only while ``calm`` (the base as modelled) are they counted;
+        the link accelerometers (the first ``len(names)``) only.
         ``frame`` (the instant's kinematics) and ``offset_rad`` (the filter's joint offsets)
         give the innovations against the offsets held before a re-acquisition
         (:meth:`reacquired`).
@@ -233,6 +248,7 @@ class ModelChangeAlarm:
         A block mean's variance: the measurement noise's share averages down with the
         samples, the filter's own uncertainty (``Su`` less the noise) does not."""
         nl = len(self.names)
+        z_pred, var, rows, sel = update
         if calm and self._offset_ref is not None and t < self._ref_until:
             if type(u) is slice:
                 pos = np.arange(min(nl, len(nu)))
@@ -241,8 +257,8 @@ class ModelChangeAlarm:
                 pos = np.flatnonzero(u < nl)
                 idx = u[pos]
             if len(pos):
-                self._sum_moved[idx] += self._moved(idx, z_pred, rows[np.searchsorted(sel, idx)], frame,
-                                                    offset_rad)
+                self._sum_moved[idx] += moved_by_offsets(self._sees[idx], self._offset_ref, offset_rad, frame,
+                                                         idx, z_pred[rows[np.searchsorted(sel, idx)]])
         if calm:  # (the sums, compiled: add_block_sums)
             if type(u) is slice:
                 k = min(nl, len(nu))
@@ -265,42 +281,22 @@ class ModelChangeAlarm:
             self._block_t = t
 
     def _block(self, t: float) -> None:
+        """A block's end: each sensor's block mean tested against its noise (an exponential
+        average over ``TAU_S``), kept in its history, named again where an alarm waits for the
+        motion, and an alarm raised where the test has held ``HOLD_S``."""
         have = np.flatnonzero(self._n > 0)
         n_ = self._n[have].astype(float)
         nu = self._sum_nu[have] / n_[:, None]
         g = self._sum_g[have] / n_[:, None]
-        # per axis, of a block mean: the noise's share over n samples, the state's whole
-        var = self._sum_r[have] / n_ / n_ + self._sum_var[have] / n_
-        own = var.copy()  # the block's own, for the naming: a far more uncertain block is left out
-        # the filter's uncertainty grows once a changed sensor disagrees (its gate, a
-        # re-acquisition): the test keeps the noise of the last RECENT_S where that is less
-        cap = self._hist.shape[1]
-        m = np.minimum(self._hist_n[have], cap)
-        recent = int(RECENT_S / BLOCK_S)
-        for j, s in enumerate(have.tolist()):
-            if m[j] >= recent:
-                rows = (self._hist_n[s] - 1 - np.arange(recent)) % cap
-                var[j] = min(var[j], float(np.median(self._hist_var[s, rows])))
+        var, own = self._block_variances(have, n_)
         nu = reference_or_filter(nu, self._sum_moved[have] / n_[:, None], var, self.floor_g[have])
-        last = self._ema_t[have]
-        dt = np.where(np.isnan(last), BLOCK_S, t - last)
-        a = np.minimum(1.0, dt / TAU_S)
-        self._ema_t[have] = t
-        self._ema[have] += a[:, None] * (nu - self._ema[have])
-        sd = np.sqrt(var * a / (2.0 - a))
-        size = np.linalg.norm(self._ema[have], axis=1) / np.maximum(THRESHOLD_SIGMA * sd, self.floor_g[have])
+        size = self._test(t, have, nu, var)
         over = size > 1.0
         ratio = np.zeros(len(self.names))
         ratio[have] = size
         quiet = t < self._quiet_until
         for j, s in enumerate(have.tolist()):
-            row = self._hist_n[s] % cap
-            self._hist[s, row, 0] = t
-            self._hist[s, row, 1:4] = nu[j]
-            self._hist[s, row, 4:7] = g[j]
-            self._hist[s, row, 7] = own[j]
-            self._hist_var[s, row] = var[j]
-            self._hist_n[s] += 1
+            self._record(s, t, nu[j], g[j], own[j], var[j])
             al = self.active.get(self.names[s])
             if al is not None and not al.decided:  # wait for the motion to tell the effects apart
                 h = self._history(s)
@@ -315,18 +311,62 @@ class ModelChangeAlarm:
                 self._over_since[s] = t
             if np.isnan(self._first_over[s]):
                 self._first_over[s] = t
-        held = np.flatnonzero(t - self._over_since >= HOLD_S)  # (nan compares False)
-        if len(held):
-            # the culprit: the first sensor to shift, though the filter may since have
-            # pulled its innovation back under the test by moving the joints it shares with
-            # the others (which then shift); the largest shift among those that shifted together
-            on = np.flatnonzero(~np.isnan(self._first_over))
-            first = self._first_over[on].min()
-            tied = on[self._first_over[on] < first + 0.5 * BLOCK_S]  # the same block
-            self._raise_accel(int(tied[np.argmax(ratio[tied])]), t)
-            self._over_since[:] = np.nan
-            self._first_over[:] = np.nan
-            self._quiet_until = t + QUIET_S
+        if (t - self._over_since >= HOLD_S).any():  # (nan compares False)
+            self._raise_first(t, ratio)
+
+    def _block_variances(self, have: np.ndarray, n_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per axis, of the block means of the sensors ``have`` (``n_`` samples each): the
+        variance the test uses, and the block's own (for the naming: a far more uncertain
+        block is left out). The noise's share averages down over the samples, the state's
+        does not; the filter's uncertainty grows once a changed sensor disagrees (its gate, a
+        re-acquisition), so the test keeps the noise of the last ``RECENT_S`` where that is
+        less."""
+        var = self._sum_r[have] / n_ / n_ + self._sum_var[have] / n_
+        own = var.copy()
+        cap = self._hist.shape[1]
+        m = np.minimum(self._hist_n[have], cap)
+        recent = int(RECENT_S / BLOCK_S)
+        for j, s in enumerate(have.tolist()):
+            if m[j] >= recent:
+                rows = (self._hist_n[s] - 1 - np.arange(recent)) % cap
+                var[j] = min(var[j], float(np.median(self._hist_var[s, rows])))
+        return var, own
+
+    def _test(self, t: float, have: np.ndarray, nu: np.ndarray, var: np.ndarray) -> np.ndarray:
+        """The block means ``nu`` folded into each sensor's exponential average; its size over
+        the test's line (``THRESHOLD_SIGMA`` of its noise, at least the floor): over 1.0 is a
+        shift."""
+        last = self._ema_t[have]
+        dt = np.where(np.isnan(last), BLOCK_S, t - last)
+        a = np.minimum(1.0, dt / TAU_S)
+        self._ema_t[have] = t
+        self._ema[have] += a[:, None] * (nu - self._ema[have])
+        sd = np.sqrt(var * a / (2.0 - a))
+        return np.linalg.norm(self._ema[have], axis=1) / np.maximum(THRESHOLD_SIGMA * sd, self.floor_g[have])
+
+    def _record(self, s: int, t: float, nu: np.ndarray, g: np.ndarray, own: float, var: float) -> None:
+        """Sensor ``s``'s block kept in its ring of history (``WINDOW_S``): its time, mean
+        innovation, mean predicted force and own variance, and the test's variance."""
+        row = self._hist_n[s] % self._hist.shape[1]
+        self._hist[s, row, 0] = t
+        self._hist[s, row, 1:4] = nu
+        self._hist[s, row, 4:7] = g
+        self._hist[s, row, 7] = own
+        self._hist_var[s, row] = var
+        self._hist_n[s] += 1
+
+    def _raise_first(self, t: float, ratio: np.ndarray) -> None:
+        """The test has held: the alarm raised on the culprit, the first sensor to shift,
+        though the filter may since have pulled its innovation back under the test by moving
+        the joints it shares with the others (which then shift); the largest shift (``ratio``)
+        among those that shifted together. Then quiet for ``QUIET_S``."""
+        on = np.flatnonzero(~np.isnan(self._first_over))
+        first = self._first_over[on].min()
+        tied = on[self._first_over[on] < first + 0.5 * BLOCK_S]  # the same block
+        self._raise_accel(int(tied[np.argmax(ratio[tied])]), t)
+        self._over_since[:] = np.nan
+        self._first_over[:] = np.nan
+        self._quiet_until = t + QUIET_S
 
     def _history(self, s: int) -> np.ndarray:
         """Sensor ``s``'s blocks kept (at most ``WINDOW_S``), oldest first: ``(m, 8)``."""

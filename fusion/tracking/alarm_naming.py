@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from armfusion.models.rotations import DEG, skew
@@ -93,43 +94,112 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
     dtheta`` fitted to the whole innovation (the rotation about a force that never turned is
     not seen and left at zero), its sigma from the blocks' variance or the fit's residual
     scatter where that is more."""
-    from scipy.stats import chi2  # (here: the payloads import this module, scipy is slow to import)
+    blocks = _weigh_blocks(nu_g, g_pred, var_g2)
+    turn = _fit_turn(nu_g, g_pred, blocks)
+    bias = _fit_bias(nu_g, blocks)
+    effect, candidates, evidence = _decide(nu_g, blocks, turn, bias)
+    # the size's sigma: the blocks' own variances, or the fit's residual scatter where that
+    # is more (the blocks are not white: the filter absorbs part of the change)
+    w, sw = blocks.weight, blocks.weight_sum
+    dof = max(3 * blocks.count - 3, 1)
+    if effect == "bias_jump":
+        s2 = max(float((w * np.square(nu_g - bias.mean_g).sum(1)).sum()) / dof, 1.0)
+        size, sigma = float(np.linalg.norm(bias.mean_g)), math.sqrt(s2 / sw)
+    else:
+        th = turn.dtheta_rad
+        s2 = max(float((w * np.square(nu_g - turn.H @ th).sum(1)).sum()) / dof, 1.0)
+        size = float(np.linalg.norm(th))
+        e = th / max(size, 1e-12)
+        sigma = math.sqrt(max(float(e @ (s2 * turn.A_pinv) @ e), 0.0)) / DEG
+        size /= DEG
+    return Naming(effect, size, sigma, candidates, float(evidence))
 
-    # the blocks weigh alike, at their typical variance; one far more uncertain than that (the
-    # arm lurched, the filter re-acquired) is left out: the variance of the others is no
-    # block-to-block scatter (the filter's own uncertainty, shared by neighbouring blocks),
-    # which weighing by it would take for one
+
+class _Blocks(NamedTuple):
+    """The blocks as the naming weighs them: ``weight (N,)`` (zero for a left-out block),
+    ``count`` and ``weight_sum`` of the kept ones, ``u (N, 3)`` the predicted force's
+    direction and ``along (N,)`` each innovation's component along it (g)."""
+
+    weight: np.ndarray
+    count: int
+    weight_sum: float
+    u: np.ndarray
+    along: np.ndarray
+
+
+class _TurnFit(NamedTuple):
+    """The turn ``nu = [g]x dtheta`` fitted: ``H (N, 3, 3)`` the cross-product matrices of the
+    forces, ``dtheta_rad (3,)``, ``A_pinv`` the rank-aware inverse of its information,
+    ``rank`` the directions fitted, ``along_g (N,)`` what a turned reading shows along the
+    predicted force."""
+
+    H: np.ndarray
+    dtheta_rad: np.ndarray
+    A_pinv: np.ndarray
+    rank: int
+    along_g: np.ndarray
+
+
+class _BiasFit(NamedTuple):
+    """The bias: ``mean_g (3,)`` the shift's mean, ``along_g (N,)`` its along part fitted to
+    the along components (rank-aware), ``rank`` the directions that fit had."""
+
+    mean_g: np.ndarray
+    along_g: np.ndarray
+    rank: int
+
+
+def _weigh_blocks(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> _Blocks:
+    """The blocks weigh alike, at their typical variance; one far more uncertain than that
+    (the arm lurched, the filter re-acquired) is left out: the variance of the others is no
+    block-to-block scatter (the filter's own uncertainty, shared by neighbouring blocks),
+    which weighing by it would take for one."""
     var_g2 = np.asarray(var_g2, float)
     v0 = max(float(np.median(var_g2)), 1e-12)
     w = (var_g2 <= OUTLIER_VAR * v0) / v0
-    N = int(np.count_nonzero(w))
-    sw = float(w.sum())
     u = g_pred / np.linalg.norm(g_pred, axis=1, keepdims=True)
-    along = (nu_g * u).sum(1)
-    # the turn: nu = [g]x dtheta over the whole innovation; the rotation about a force that
-    # never turned is not seen and is left at zero
+    return _Blocks(w, int(np.count_nonzero(w)), float(w.sum()), u, (nu_g * u).sum(1))
+
+
+def _fit_turn(nu_g: np.ndarray, g_pred: np.ndarray, blocks: _Blocks) -> _TurnFit:
+    """The turn: ``nu = [g]x dtheta`` over the whole innovation; the rotation about a force
+    that never turned is not seen and is left at zero. A turned reading keeps its size:
+    along the prediction it is short by ``|g| (1 - cos)`` of the angle between them, whatever
+    share of the turn the filter absorbed."""
+    w, u, along = blocks.weight, blocks.u, blocks.along
     H = skew(g_pred)  # (N, 3, 3): H @ dtheta == cross(g, dtheta)
     A = np.einsum("n,nji,njk->ik", w, H, H)
     lam, V = np.linalg.eigh(A)
     keep = lam > OBSERVABLE * lam[-1]
     A_pinv = (V[:, keep] / lam[keep]) @ V[:, keep].T
     th = A_pinv @ np.einsum("n,nji,nj->i", w, H, nu_g)
-    # a turned reading keeps its size: along the prediction it is short by |g| (1 - cos) of
-    # the angle between them, whatever share of the turn the filter absorbed
     g_norm = np.linalg.norm(g_pred, axis=1)
     across_rad = np.linalg.norm(nu_g - along[:, None] * u, axis=1) / g_norm
-    along_m = -g_norm * (1.0 - np.cos(across_rad))
-    # the bias: its size from the whole innovation, its along part fitted to the along
-    # components (rank-aware)
-    b_mean = (w[:, None] * nu_g).sum(0) / sw
+    return _TurnFit(H, th, A_pinv, int(keep.sum()), -g_norm * (1.0 - np.cos(across_rad)))
+
+
+def _fit_bias(nu_g: np.ndarray, blocks: _Blocks) -> _BiasFit:
+    """The bias: its size from the whole innovation, its along part fitted to the along
+    components (rank-aware: a force that never turned fits only the bias along it)."""
+    w, u, along = blocks.weight, blocks.u, blocks.along
+    b_mean = (w[:, None] * nu_g).sum(0) / blocks.weight_sum
     Ab = np.einsum("n,ni,nj->ij", w, u, u)
     lb, Vb = np.linalg.eigh(Ab)
     kb = lb > OBSERVABLE * lb[-1]
     b_along = ((Vb[:, kb] / lb[kb]) @ Vb[:, kb].T) @ (w[:, None] * u * along[:, None]).sum(0)
-    along_b = u @ b_along
+    return _BiasFit(b_mean, u @ b_along, int(kb.sum()))
+
+
+def _decide(nu_g: np.ndarray, blocks: _Blocks, turn: _TurnFit,
+            bias: _BiasFit) -> tuple[str, tuple[str, ...], float]:
+    """The three chi-square tests of :func:`name_shift` and the verdict they give:
+    ``(effect, candidates, evidence)``."""
+    from scipy.stats import chi2  # (here: the payloads import this module, scipy is slow to import)
+
+    w, N, sw, u, along = blocks
+    along_m, along_b, b_mean, p = turn.along_g, bias.along_g, bias.mean_g, bias.rank
     rss_m = float((w * (along - along_m) ** 2).sum())
     rss_b = float((w * (along - along_b) ** 2).sum())
-    p = int(kb.sum())
     # a bias: its along part, fitted, beats no along shift (p parameters more: chi-square)
     evidence_b = (rss_m - rss_b) / max(rss_b / max(N - p, 1), 1e-30)
     sep_b = _rms(along_b - along_m, w) > FLOOR_G and N >= MIN_BLOCKS
@@ -142,35 +212,21 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
     sep_m = int(apart.sum()) >= MIN_BLOCKS
     # a turn, by the whole innovation: it turns with the force (nu = f x dtheta), a bias stays
     # put; the blocks that count are those where the two differ by more than the floor
-    turn = H @ th
-    rss_tf = float((w * np.square(nu_g - turn).sum(1)).sum())
+    turned = turn.H @ turn.dtheta_rad
+    rss_tf = float((w * np.square(nu_g - turned).sum(1)).sum())
     rss_bf = float((w * np.square(nu_g - b_mean).sum(1)).sum())
-    apart_f = (w > 0) & (np.linalg.norm(turn - b_mean, axis=1) > FLOOR_G)
-    evidence_f = (rss_bf - rss_tf) / max(rss_tf / max(3 * N - int(keep.sum()), 1), 1e-30)
+    apart_f = (w > 0) & (np.linalg.norm(turned - b_mean, axis=1) > FLOOR_G)
+    evidence_f = (rss_bf - rss_tf) / max(rss_tf / max(3 * N - turn.rank, 1), 1e-30)
     sep_f = int(apart_f.sum()) >= MIN_BLOCKS
     if evidence_b >= chi2.isf(NAME_P, p) and sep_b:
-        effect, candidates, evidence = "bias_jump", ("bias_jump",), evidence_b
-    elif evidence_m >= chi2.isf(NAME_P, 1) and sep_m:  # (an along shift below the floor is no bias)
-        effect, candidates, evidence = "mount_rotation", ("mount_rotation",), evidence_m
-    elif evidence_f >= chi2.isf(NAME_P, 3) and sep_f:
-        effect, candidates, evidence = "mount_rotation", ("mount_rotation",), evidence_f
-    elif evidence_b >= chi2.isf(NAME_P, p):  # an along shift, but below what the model leaves
-        effect, candidates, evidence = "bias_jump", ("bias_jump", "mount_rotation"), evidence_b
-    else:
-        effect, candidates, evidence = "mount_rotation", ("mount_rotation", "bias_jump"), evidence_m
-    # the size's sigma: the blocks' own variances, or the fit's residual scatter where that
-    # is more (the blocks are not white: the filter absorbs part of the change)
-    dof = max(3 * N - 3, 1)
-    if effect == "bias_jump":
-        s2 = max(float((w * np.square(nu_g - b_mean).sum(1)).sum()) / dof, 1.0)
-        size, sigma = float(np.linalg.norm(b_mean)), math.sqrt(s2 / sw)
-    else:
-        s2 = max(float((w * np.square(nu_g - H @ th).sum(1)).sum()) / dof, 1.0)
-        size = float(np.linalg.norm(th))
-        e = th / max(size, 1e-12)
-        sigma = math.sqrt(max(float(e @ (s2 * A_pinv) @ e), 0.0)) / DEG
-        size /= DEG
-    return Naming(effect, size, sigma, candidates, float(evidence))
+        return "bias_jump", ("bias_jump",), evidence_b
+    if evidence_m >= chi2.isf(NAME_P, 1) and sep_m:  # (an along shift below the floor is no bias)
+        return "mount_rotation", ("mount_rotation",), evidence_m
+    if evidence_f >= chi2.isf(NAME_P, 3) and sep_f:
+        return "mount_rotation", ("mount_rotation",), evidence_f
+    if evidence_b >= chi2.isf(NAME_P, p):  # an along shift, but below what the model leaves
+        return "bias_jump", ("bias_jump", "mount_rotation"), evidence_b
+    return "mount_rotation", ("mount_rotation", "bias_jump"), evidence_m
 
 
 def _rms(x: np.ndarray, w: np.ndarray) -> float:

@@ -11,6 +11,7 @@ else the effect's datasheet-typical one (the prior a refit would start from).
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 from armfusion.fusion.tracking.settings import GYRO, IMU_ACC, MAG
@@ -66,8 +67,17 @@ def part_delays_s(arm: ArmModel, streams) -> np.ndarray:
     return np.array([models[s].delay_s if s in models else 0.0 for s in streams], dtype=float)
 
 
+class StampOffsets(NamedTuple):
+    """Per accelerometer, how late its reading is stamped and how well that is known."""
+
+    offset_s: np.ndarray | None
+    """How late each reading is stamped (s), ``(S,)``; None when no stamp is off."""
+    var_s2: np.ndarray | None
+    """The offset's variance (s²), ``(S,)``; None alike."""
+
+
 def stamp_offsets(model: Model | None, accel_names,
-                  delays_s: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
+                  delays_s: np.ndarray | None = None) -> StampOffsets:
     """Per accelerometer, how late its reading is stamped (s): the config's calibrated time
     offset (:func:`device_time_offsets`) plus its part's own delay ``delays_s`` (both read
     alike: the reading stands for the quantity that much before its stamp), and the
@@ -78,8 +88,8 @@ def stamp_offsets(model: Model | None, accel_names,
         off = off + np.asarray(delays_s, float)
     var = np.array([offsets.get(nm, (0.0, 0.0))[1] ** 2 for nm in accel_names])
     if not off.any() and not var.any():
-        return None, None
-    return off, var
+        return StampOffsets(None, None)
+    return StampOffsets(off, var)
 
 
 def with_lever_arms(arm: ArmModel, model: Model | None) -> ArmModel:

@@ -49,7 +49,7 @@ from armfusion.fusion.tracking.initial import (
 from armfusion.fusion.tracking.live import admit_instant
 from armfusion.fusion.tracking.measurement import AccelReadings
 from armfusion.fusion.tracking.readout import TrackerReadout
-from armfusion.fusion.tracking.report import Reports
+from armfusion.fusion.tracking.report import ReportedParts, Reports
 from armfusion.fusion.tracking.settings import (
     ENC,
     F_AMBIGUOUS,
@@ -95,7 +95,7 @@ class Tracker(TrackerReadout):
         it better), and is ``converging`` until read; without a saved
         pose, the sigma it reports covers every angle inside its limits until gravity reads
         it (the filter's own stays as said: a prior that wide would not linearise). ``imu`` (from
-        :func:`armfusion.fusion.tracking.start.imu_still_from_recording`) gives the gyro bias, heading and
+        :func:`armfusion.fusion.tracking.imu_still.imu_still_from_recording`) gives the gyro bias, heading and
         field reference.
         """
         n = self.arm.n_joints
@@ -117,8 +117,9 @@ class Tracker(TrackerReadout):
         self._flags = p.flags
         self._combos = JointTiltCombinations(self.arm, self.layout, self.settings, self.observability)
         self._reports = Reports(self.arm, self.settings, self.layout, self.accel_streams, self._unmodelled_g,
-                                self.sensor_index.get(MAG), self.gyro_scale_sigma, self.health, self.compass,
-                                self.observability, self.ambiguity_, self._combos)
+                                self.sensor_index.get(MAG), self.gyro_scale_sigma,
+                                ReportedParts(self.health, self.compass, self.observability, self.ambiguity_,
+                                              self._combos))
         self._update = InstantUpdate(UpdateParts(
             self.settings, self.layout, n, self.measurements, self.process, self.observability, self.still,
             self.intensity, self.compass, self.health, self.slips, self._alarm, self.sensor_index.get(MAG),
@@ -271,9 +272,8 @@ class Tracker(TrackerReadout):
             return
         n = self.arm.n_joints
         self._flags = self.observability.joint_flags(
-            t, codes, self._links_list, self._ukf.covariance, self._q_enc + self._ukf.mean[:n],
-            self.ambiguity_.joints,
-            self.slips.reacquiring_until, self._min_list, self._max_list)
+            t, codes, self._ukf.covariance, self._q_enc + self._ukf.mean[:n], self.ambiguity_.joints,
+            self.slips.reacquiring_until)
 
     # -- a whole recording -------------------------------------------------------------------
     def run(self, rec: Recording, t_stop_s: float | None = None, truth: bool = True,

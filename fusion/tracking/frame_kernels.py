@@ -219,8 +219,8 @@ class FrameConstants:
     def fields(self, enc_fit: np.ndarray, offset: np.ndarray, omega_B: np.ndarray | None,
                omega_dot_B: np.ndarray | None, motion: bool = True) -> tuple:
         """The fields of the one-instant :class:`armfusion.fusion.tracking.tracker.Frames` record (the same as
-        ``make_frames(arm, names, enc_fit[0][None], offset[None], enc_fit[1][None],
-        enc_fit[2][None], omega_B[None], omega_dot_B[None], motion, joint_effects).take(0)``),
+        ``make_frames(arm, names, JointMotion(enc_fit[0][None], enc_fit[1][None], enc_fit[2][None]),
+        offset[None], BaseTurn(omega_B[None], omega_dot_B[None]), motion, joint_effects).take(0)``),
         in its field order, without the measurement variances. ``omega_B``/``omega_dot_B``
         None: zero."""
         w = self._zeros3 if omega_B is None else omega_B

@@ -74,16 +74,37 @@ class Frames(_FrameFields):
         return [new(Frames, f) for f in zip(*cols, strict=True)]
 
 
-def make_frames(arm: ArmModel, names: tuple[str, ...], q_enc: np.ndarray, offset: np.ndarray,
-                qd: np.ndarray, qdd: np.ndarray, omega_B: np.ndarray, omega_dot_B: np.ndarray,
-                motion: bool = True, joint_effects=()) -> Frames:
-    """Kinematic frames for K instants: ``q_enc (K, n)`` encoder angles, ``offset (n,)`` or
-    ``(K, n)``, joint rates/accelerations ``(K, n)``, base rates ``(K, 3)``. ``motion``
+class JointMotion(NamedTuple):
+    """The joints at K instants, as the encoders' causal fit gives them."""
+
+    q_enc_rad: np.ndarray
+    """The encoders' angles ``(K, n)``."""
+    qd_rad_s: np.ndarray
+    """Their rates ``(K, n)``."""
+    qdd_rad_s2: np.ndarray
+    """Their accelerations ``(K, n)``."""
+
+
+class BaseTurn(NamedTuple):
+    """The base's turn at K instants, base axes."""
+
+    omega_rad_s: np.ndarray
+    """Its rate ``(K, 3)``."""
+    omega_dot_rad_s2: np.ndarray
+    """Its rate's change ``(K, 3)``."""
+
+
+def make_frames(arm: ArmModel, names: tuple[str, ...], joints: JointMotion, offset: np.ndarray,
+                base: BaseTurn, motion: bool = True, joint_effects=()) -> Frames:
+    """Kinematic frames for K instants: the ``joints``' encoder angles, rates and
+    accelerations, the offsets ``offset (n,)`` or ``(K, n)``, the ``base``'s turn. ``motion``
     False: as if nothing moved (no motion compensation). ``joint_effects`` (effect,
     parameters) pairs turn the controller's angles into the geometric ones. The base origin
     turns about the chair's turning centre where the arm states one
     (:attr:`armfusion.models.arm.ArmModel.base_from_turning_centre_m`, ``ρ``): its acceleration
     ``ω̇ x ρ + ω x (ω x ρ)`` is in every sensor's motion, and ``dist2_m2`` is measured from there."""
+    q_enc, qd, qdd = joints
+    omega_B, omega_dot_B = base
     q = q_enc + offset
     K = q.shape[0]
     if not motion:

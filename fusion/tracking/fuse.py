@@ -14,12 +14,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from armfusion.fusion.tracking.alarm import ModelChangeAlarm
+from armfusion.fusion.tracking.alarm import AccelRows, ModelChangeAlarm
 from armfusion.fusion.tracking.compass import Compass
 from armfusion.fusion.tracking.frames import Frames
 from armfusion.fusion.tracking.health import SensorHealth
 from armfusion.fusion.tracking.measurement import AccelReadings, Measurements
-from armfusion.fusion.tracking.observability import Observability
+from armfusion.fusion.tracking.observability import FilterNow, Observability
 from armfusion.fusion.tracking.process import MotionIntensity, ProcessModel, StillDetector
 from armfusion.fusion.tracking.settings import C_REJECTED, C_USED, StateLayout, TrackerSettings
 from armfusion.fusion.tracking.slips import SlipDetector
@@ -221,12 +221,11 @@ class InstantUpdate:
         s, inn, accept = upd.stack, upd.inn, upd.accept
         sel = s.index
         gate_l = None if upd.set_off else upd.gate
-        accept[:k], u, nu, Su = p.health.accel(t, sel, s.counts, s.f_g, inn, s.var_a, s.selection.full,
-                                                gate_l, ms.rows, self.reacquire)
+        accept[:k], u, nu, Su = p.health.accel(t, s, inn, gate_l, ms.rows, self.reacquire)
         if u is not None:
             calm = upd.calm and not upd.set_off
             p.slips.listen(t, u, nu, Su, calm, self.reacquire)
-            p.alarm.listen(t, u, nu, Su, inn.z_pred, s.var, ms.rows, sel, calm, upd.frame,
+            p.alarm.listen(t, u, nu, Su, AccelRows(inn.z_pred, s.var, ms.rows, sel), calm, upd.frame,
                            ukf.mean[L.offset])
         read_t = self.link_read_t
         used = ()
@@ -237,7 +236,7 @@ class InstantUpdate:
             used = tuple(np.flatnonzero(t - read_t <= link_read_horizon_s).tolist())
         if used != self.obs_used_key or t - self.obs_t >= p.settings.observability_period_s:
             self.obs_used_key, self.obs_t = used, t
-            p.observability.update(t, upd.frame, used, ukf.mean, ukf.covariance, p.P0, q_enc,
+            p.observability.update(t, upd.frame, used, FilterNow(ukf.mean, ukf.covariance, p.P0, q_enc),
                                    p.slips.calibration, self.imu_up(ukf.mean))
 
     def listen_compass(self, upd: UpdateResult) -> None:

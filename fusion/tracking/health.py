@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 from armfusion.fusion.tracking.innovations import AccelRing
+from armfusion.fusion.tracking.measurement import Stack
 from armfusion.fusion.tracking.settings import (
     C_IMPLAUSIBLE,
     C_NAN,
@@ -107,15 +108,16 @@ class SensorHealth:
         self.seen[i], self.last_t[i] = True, t
         self.counts[i, C_USED] += 1
 
-    def accel(self, t: float, sel: np.ndarray, counts: np.ndarray, f: np.ndarray, inn, var: np.ndarray,
-              full: bool, gate_l: list | None, rows: np.ndarray,
+    def accel(self, t: float, stack: Stack, inn, gate_l: list | None, rows: np.ndarray,
               reacquire: Callable[[int, float], None]) -> tuple[np.ndarray, object, np.ndarray, np.ndarray]:
-        """Stuck, implausible (dead) and gate verdicts for the accelerometers ``sel`` of the
-        update ``inn``; returns which may enter the update and the usable ones' sensors, normalised
-        innovations' inputs ``(u, nu, Su)`` (``u`` None when none is usable). ``full``: ``sel`` is
-        every accelerometer, in order; ``gate_l``: ``inn.gate_ok`` as a list, when the caller
-        has it; ``rows``: each accelerometer's three rows; ``reacquire(sensor, t)``: a sensor
-        rejected for longer than a bump lasts."""
+        """Stuck, implausible (dead) and gate verdicts for the accelerometers of the stacked
+        measurement ``stack`` (their indices, counts, readings in g and variances) and its
+        update ``inn``; returns which may enter the update and the usable ones' sensors,
+        normalised innovations' inputs ``(u, nu, Su)`` (``u`` None when none is usable).
+        ``gate_l``: ``inn.gate_ok`` as a list, when the caller has it; ``rows``: each
+        accelerometer's three rows; ``reacquire(sensor, t)``: a sensor rejected for longer
+        than a bump lasts."""
+        sel, counts, f, var, full = stack.index, stack.counts, stack.f_g, stack.var_a, stack.selection.full
         k = len(sel)
         ix = slice(0, k) if full else sel  # plain slices where every sensor spoke
         if gate_l is None:

@@ -42,25 +42,44 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
     n = L.n_joints
     x = np.zeros(L.size)
     P = np.zeros((L.size, L.size))
+    prior = np.asarray(prior_q_rad, float)
+    q0, cov, known = _start_pose(startup, prior)
+    tgt = np.r_[np.arange(n), L.roll, L.pitch]
+    P[np.ix_(tgt, tgt)] = _joints_and_tilt_covariance(startup, cov, known, prior_sigma_rad, st)
+    x[L.roll], x[L.pitch] = startup.roll_rad, startup.pitch_rad
+    _base_and_imu_prior(x, P, L, st, imu, imu_bias_var_g2, gyro_scale_var)
+    return x, _as_rotation_vector(x, P, L), q0
+
+
+def _start_pose(startup: StartupResult, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The joint angles the filter starts from ``(n,)``, the startup covariance they come
+    with, and which joints the startup read (or left between rival branches): a joint not
+    read starts at ``prior``. With rival branches the filter runs on one of them, the one
+    nearest the prior pose (where the search started: no evidence, so the flag stays
+    ``ambiguous`` and the sigma covers every candidate), each one a real minimum with its
+    own covariance."""
     cov = np.array(startup.covariance, dtype=float)
     q0 = np.array(startup.q_rad, dtype=float)
     known = read_by_startup(startup)
-    prior = np.asarray(prior_q_rad, float)
     amb = np.array([j.flag == "ambiguous" for j in startup.joints], dtype=bool)
     cands = startup.candidates_rad
     if amb.any() and cands is not None and len(cands) > 1:
-        # rival branches: the filter runs on one of them, the one nearest the prior pose
-        # (where the search started: no evidence, so the flag stays `ambiguous` and the
-        # sigma covers every candidate), each one a real minimum with its own covariance
         d = np.abs(wrap_angle(np.asarray(cands) - prior))[:, amb].sum(1)
         c = int(np.argmin(d))
         q0 = np.array(cands[c], dtype=float)
         if startup.candidates_covariance is not None:
             cov = np.array(startup.candidates_covariance[c], dtype=float)
         known = known | amb
-    q0 = np.where(known, q0, prior)
+    return np.where(known, q0, prior), cov, known
+
+
+def _joints_and_tilt_covariance(startup: StartupResult, cov: np.ndarray, known: np.ndarray,
+                                prior_sigma_rad: np.ndarray | None, st: TrackerSettings) -> np.ndarray:
+    """The joints' and the base tilt's covariance ``(n + 2, n + 2)``: the startup's (its
+    sigmas where it gives no covariance), a joint it did not read uncorrelated with
+    ``unknown_joint_sigma_deg`` (or a finite carried sigma below it), plus a small floor."""
+    n = len(startup.joints)
     jb = np.r_[np.arange(n), n, n + 1]  # joints, roll, pitch in the startup covariance
-    tgt = np.r_[np.arange(n), L.roll, L.pitch]
     if cov.shape == (n + 2, n + 2):
         block = cov[np.ix_(jb, jb)].copy()
     else:
@@ -76,8 +95,13 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
         block[j, j] = min(wide, float(carried[j]) ** 2)
     # a floor: the startup's sigma is for a still average; the tracker's model adds a little
     block[np.diag_indices(n + 2)] += (0.005 * DEG) ** 2
-    P[np.ix_(tgt, tgt)] = block
-    x[L.roll], x[L.pitch] = startup.roll_rad, startup.pitch_rad
+    return block
+
+
+def _base_and_imu_prior(x: np.ndarray, P: np.ndarray, L: StateLayout, st: TrackerSettings, imu: ImuStill,
+                        imu_bias_var_g2: np.ndarray, gyro_scale_var: float) -> None:
+    """The base's motion states (still in the startup window), the heading, the gyro's bias
+    and scale and the IMU accelerometer's bias, into ``x`` and ``P`` in place."""
     # the startup window was still: the chair's acceleration is zero there
     P[L.accel, L.accel] = np.eye(3) * (0.01**2 if st.motion_compensation and not st.base_fixed else 1e-16)
     if L.vel is not None:  # and so is its velocity
@@ -96,17 +120,20 @@ def initial_state(startup: StartupResult, imu: ImuStill, layout: StateLayout, se
     P[L.imu_bias, L.imu_bias] = np.diag(imu_bias_var_g2)
     if L.scale >= 0:
         P[L.scale, L.scale] = gyro_scale_var
-    # the filter holds the attitude's covariance as a world-axis rotation vector's: the
-    # startup's (and the yaw's) are of Euler-angle increments, so turn them (and their
-    # correlations with the joints) through d(delta)/d(roll, pitch, yaw) at the start
+
+
+def _as_rotation_vector(x: np.ndarray, P: np.ndarray, L: StateLayout) -> np.ndarray:
+    """``P`` with the attitude's covariance as the filter holds it, a world-axis rotation
+    vector's: the startup's (and the yaw's) are of Euler-angle increments, so they (and
+    their correlations with the joints) are turned through d(delta)/d(roll, pitch, yaw) at
+    the start."""
     pch, y = x[L.pitch], x[L.yaw]
     cy, sy, cp, sp = np.cos(y), np.sin(y), np.cos(pch), np.sin(pch)
     T = np.array([[cy * cp, -sy, 0.0], [sy * cp, cy, 0.0], [-sp, 0.0, 1.0]])  # columns: roll, pitch, yaw
     att = np.array([L.roll, L.pitch, L.yaw])
     M = np.eye(L.size)
     M[np.ix_(att, att)] = T
-    P = M @ P @ M.T
-    return x, P, q0
+    return M @ P @ M.T
 
 
 def read_by_startup(startup: StartupResult) -> np.ndarray:

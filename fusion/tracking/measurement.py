@@ -10,6 +10,7 @@ from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
+from armfusion.fusion.tracking.calibrated import StampOffsets
 from armfusion.fusion.tracking.differentiator import derivative_noise_gain
 from armfusion.fusion.tracking.frames import Frames
 from armfusion.fusion.tracking.settings import GYRO, MAG, G, StateLayout, TrackerSettings
@@ -69,16 +70,15 @@ class Measurements:
     (the IMU's at ``imu_index``, -1 without), on links ``links``; ``names`` every stream it
     takes; ``unmodelled_g`` per accelerometer the error each reading carries beyond the
     datasheet noise (the config's unmodelled error with its fast one);
-    ``time_offset_s``, ``time_var_s2`` per accelerometer its time stamp's offset and variance
-    (None: none stated)."""
+    ``stamps`` per accelerometer its time stamp's offset and variance (None: none stated)."""
 
     def __init__(self, settings: TrackerSettings, layout: StateLayout, names: tuple[str, ...],
                  accel_streams: tuple[str, ...], links: np.ndarray, imu_index: int,
-                 unmodelled_g: np.ndarray, time_offset_s: np.ndarray | None, time_var_s2: np.ndarray | None):
+                 unmodelled_g: np.ndarray, stamps: StampOffsets):
         self.settings, self.layout, self.names, self.accel_streams = settings, layout, names, accel_streams
         self.links = links.astype(np.int64)
         self.imu_index = imu_index
-        self.unmodelled_g, self.time_offset_s, self.time_var_s2 = unmodelled_g, time_offset_s, time_var_s2
+        self.unmodelled_g, self.time_offset_s, self.time_var_s2 = unmodelled_g, stamps.offset_s, stamps.var_s2
         self._no_acc = AccelReadings(None, np.zeros((0, 3)), None, Selection(b"", -1, False, None))
         self.rows = np.arange(3 * len(accel_streams)).reshape(-1, 3)
         self._gate3 = float(nis_bound(3, settings.gate_significance))

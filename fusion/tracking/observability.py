@@ -14,9 +14,11 @@ square joins the reported sigmas and the ``ill_conditioned`` test.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from armfusion.fusion.tracking import fixed_base
+from armfusion.fusion.tracking.consider import ConsiderColumns
 from armfusion.fusion.tracking.frames import Frames
 from armfusion.fusion.tracking.observability_kernels import offsets_observability
 from armfusion.fusion.tracking.settings import (
@@ -27,32 +29,51 @@ from armfusion.fusion.tracking.settings import (
     F_OUT,
     F_REACQ,
     F_UNOBSERVED,
-    IMU_ACC,
     S_REJECTING,
     G,
     StateLayout,
     TrackerSettings,
 )
-from armfusion.models.motion import cross
 from armfusion.models.rotations import DEG
 
 
+class LinkSensors(NamedTuple):
+    """A tracker's link accelerometers as the observability reads them, and the joints'
+    limits its flags test."""
+
+    names: tuple[str, ...]
+    links: list[int]
+    """The link each is on."""
+    sees: np.ndarray
+    """``(S, n)``: accelerometer s sees joint j (the IMU's row last, where there is one)."""
+    min_rad: list[float]
+    max_rad: list[float]
+    """Each joint's limits."""
+
+
+class FilterNow(NamedTuple):
+    """What the filter holds at the instant of an observability update."""
+
+    x: np.ndarray
+    """The state."""
+    P: np.ndarray
+    """Its covariance."""
+    P0: np.ndarray
+    """The startup's covariance."""
+    q_enc: np.ndarray
+    """The encoders' angles (rad)."""
+
+
 class Observability:
-    """The observability of the offsets and the consider sensitivity, for a tracker's
-    link accelerometers ``link_names`` (of its accelerometer streams ``accel_streams``).
+    """The observability of the offsets and the consider sensitivity (its columns:
+    ``columns``), for a tracker's link accelerometers ``sensors``."""
 
-    ``sees (S, n)``: sensor s sees joint j; ``spread``: per stream, the correction spreads
-    as maps ``(M, c)`` (``StartupCorrection.spread``, inverted); ``unmodelled_g``: per
-    accelerometer the config's unmodelled-error floor; ``scale_sigma``: per joint the
-    encoder scale's sigma; ``R_0I``: the IMU's mount (None without an IMU)."""
-
-    def __init__(self, settings: TrackerSettings, layout: StateLayout, link_names: tuple[str, ...],
-                 accel_streams: tuple[str, ...], sees: np.ndarray, correction, spread: dict,
-                 unmodelled_g: np.ndarray, scale_sigma: np.ndarray, R_0I: np.ndarray | None):
+    def __init__(self, settings: TrackerSettings, layout: StateLayout, sensors: LinkSensors,
+                 columns: ConsiderColumns):
         self.settings, self.layout = settings, layout
-        self.link_names, self.accel_streams = link_names, accel_streams
-        self.sees, self.correction, self._R_0I = sees, correction, R_0I
-        self._eye3 = np.eye(3)
+        self.link_names, self.sees, self.columns = sensors.names, sensors.sees, columns
+        self._links, self._lo, self._hi = sensors.links, sensors.min_rad, sensors.max_rad
+        self.spread_m = columns.m
         self._eye_state = np.eye(layout.size)
         n = layout.n_joints  # the kernel's outputs (copied out: their holders keep them)
         self._axis_deg, self._achievable = np.empty(n), np.empty(n)
@@ -65,7 +86,6 @@ class Observability:
         """Whether the startup's tilt variance may stand below that floor (a bolted base's:
         its level's prior or the installer's, :mod:`armfusion.fusion.tracking.fixed_base`); a
         moving base's start is a still average, which the floor bounds as any other."""
-        self._columns(spread, unmodelled_g, scale_sigma)
         self.reset()
 
     def reset(self) -> None:
@@ -125,40 +145,12 @@ class Observability:
         array each time: its holders compare identities to see a change)."""
         self.sys_var = (self.consider**2).sum(axis=1) + self.unread_var
 
-    def _columns(self, spread: dict, unmodelled_g: np.ndarray, scale_sig: np.ndarray) -> None:
-        """The columns of the consider sensitivity (see :meth:`_consider_update`): each
-        correction spread of a calibrated config, and, per link accelerometer whose config
-        states an unmodelled error (``calibration.accel_unmodelled_g``), one column per axis:
-        an error of that size that stays (an uncalibrated ADXL345's offset and its board's
-        tilt do not average away)."""
-        self._spread_cols: dict[str, np.ndarray] = {}
-        self._spread_stack: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self._floor_cols: dict[str, tuple[np.ndarray, float]] = {}
-        m = 0
-        for stream, maps in spread.items():
-            if maps:
-                self._spread_cols[stream] = np.arange(m, m + len(maps))
-                self._spread_stack[stream] = (np.array([M for M, _ in maps]), np.array([c for _, c in maps]))
-                m += len(maps)
-        for stream, floor_g in zip(self.link_names, unmodelled_g.tolist(), strict=False):
-            if floor_g > 0.0:
-                self._floor_cols[stream] = (np.arange(m, m + 3), floor_g)
-                m += 3
-        # an encoder scale known to sigma_s moves the joint's true offset by sigma_s per radian
-        # the encoder turns: one column per joint whose config gives that sigma
-        self._scale_joints = np.flatnonzero(scale_sig > 0.0)
-        self._scale_sigma = scale_sig[self._scale_joints]
-        self._scale_cols = np.arange(m, m + len(self._scale_joints))
-        m += len(self._scale_joints)
-        self.spread_m = m
-
-    def update(self, t: float, frame: Frames, used: tuple[int, ...], x: np.ndarray, P: np.ndarray,
-               P0: np.ndarray, q_enc: np.ndarray, slips_calibration: np.ndarray,
-               imu_up: np.ndarray | None = None) -> None:
+    def update(self, t: float, frame: Frames, used: tuple[int, ...], now: FilterNow,
+               slips_calibration: np.ndarray, imu_up: np.ndarray | None = None) -> None:
         """Each joint axis's angle to vertical, and the information the usable link
         accelerometers give about the offsets in ``observability_window_s``; sets the hold
-        projection (Schmidt) and the inputs of the joint flags, at ``t``, from the state ``x``
-        and covariance ``P`` (``P0`` the startup's, ``q_enc`` the encoders' angles). Writes
+        projection (Schmidt) and the inputs of the joint flags, at ``t``, from what the filter
+        holds ``now`` (the state, its covariance, the startup's, the encoders' angles). Writes
         into ``slips_calibration`` what the calibration leaves in the link accelerometers'
         innovations (see :class:`armfusion.fusion.tracking.slips.SlipDetector`).
 
@@ -177,6 +169,7 @@ class Observability:
         readings beyond it are turned by a known angle), and the IMU's average leans with a
         chair's accelerations: its angle is judged by the filter's tilt alone."""
         st, L, n = self.settings, self.layout, self.layout.n_joints
+        x, P, P0 = now.x, now.P, now.P0
         key = self._key
         if key is not None and key[1] == used and t - key[0] < st.observability_period_s:
             return
@@ -229,9 +222,7 @@ class Observability:
                     else:  # what the filter holds, judged on the information of them all
                         W_c, U_c = self._kernel(frame, up, tilt_sigma_deg, base, sel_c, coef_c, P_off)
                         hold_c = None if not U_c.shape[1] else self._eye_state[:n, :n] - U_c @ U_c.T
-                    v_c = frame.motion_mps2[sel_c] + base
-                    self._consider_update(t, frame, sel_c, v_c, base, W_c, hold_c, P, P0, q_enc,
-                                          slips_calibration)
+                    self._consider_update(t, frame, sel_c, base, W_c, hold_c, now, slips_calibration)
         self.ill = np.sqrt(achievable**2 + self.sys_var) > st.sigma_limit_deg * DEG
 
     def _kernel(self, frame: Frames, up: np.ndarray, tilt_sigma_deg: float, base: np.ndarray,
@@ -247,9 +238,8 @@ class Observability:
             (st.mean_state_held_sigma_deg * DEG) ** 2, self._blind, self._axis_deg, self._locked, self._wide,
             self._achievable)
 
-    def _consider_update(self, t: float, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray,
-                         W: np.ndarray, hold: np.ndarray | None, P_now: np.ndarray, P0: np.ndarray,
-                         q_enc: np.ndarray, slips_calibration: np.ndarray) -> None:
+    def _consider_update(self, t: float, frame: Frames, sel: np.ndarray, base: np.ndarray, W: np.ndarray,
+                         hold: np.ndarray | None, now: FilterNow, slips_calibration: np.ndarray) -> None:
         """The calibration's own uncertainty in the offsets, carried as the filter carries
         what it learnt (a consider, or Schmidt, sensitivity). Each of a calibrated config's
         correction spreads (every calibrated element moved by its sigma along a principal
@@ -262,8 +252,11 @@ class Observability:
         holds ``A``. What the filter learnt from a pose keeps that pose's calibration error
         until new readings replace it (a joint read once in a poorly conditioned pose, then
         held, keeps its doubt). Reported sigmas and the ``ill_conditioned`` flag include
-        ``diag(S S^T)``; the filter's own covariance does not."""
+        ``diag(S S^T)``; the filter's own covariance does not. ``sel``: the link accelerometers
+        read since the last time, ``W`` their information rows and ``hold`` the projection
+        the filter held them with; ``base``: the base's specific force."""
         n = self.layout.n_joints
+        P_now, P0, q_enc = now.P, now.P0, now.q_enc
         window = self.settings.observability_window_s
         # the first time: the startup's answer already rests on at least a window of these
         # readings (its still stretch), so it carries a whole window's pull
@@ -274,7 +267,8 @@ class Observability:
         if w <= 0.0:
             return
         k = len(sel)
-        E = self._spread_errors(frame, sel, v, base).reshape(3 * k, -1)  # (3k, m)
+        E = self.columns.errors(frame, sel, frame.motion_mps2[sel] + base, base, self._accel_sigma_g,
+                                self._accel_rate, window).reshape(3 * k, -1)  # (3k, m)
         Wn = W if hold is None else W @ hold[:n, :n]
         A = (Wn.T @ Wn) * w
         B = (Wn.T @ E) * w
@@ -285,10 +279,11 @@ class Observability:
         lam, V = np.linalg.eigh(np.linalg.inv(P) - A)
         prior = (V * np.clip(lam, 0.0, None)) @ V.T
         S = self.consider
-        if len(self._scale_joints):  # the true offsets moved with the encoders since
+        cols = self.columns
+        if len(cols.scale_joints):  # the true offsets moved with the encoders since
             if self._consider_q_enc is not None:
-                travel = q_enc[self._scale_joints] - self._consider_q_enc[self._scale_joints]
-                S[self._scale_joints, self._scale_cols] += self._scale_sigma * travel
+                travel = q_enc[cols.scale_joints] - self._consider_q_enc[cols.scale_joints]
+                S[cols.scale_joints, cols.scale_cols] += cols.scale_sigma * travel
             self._consider_q_enc = q_enc.copy()
         self.consider = np.linalg.solve(prior + A + 1e-12 * np.eye(n), prior @ S + B)
         self._set_sys_var()
@@ -299,42 +294,6 @@ class Observability:
             D = E.reshape(k, 3, -1)[links]
             scale = self._accel_rate[sel[links]] * self.settings.observability_window_s
             slips_calibration[sel[links]] = (D @ D.transpose(0, 2, 1)) / scale[:, None, None]
-
-    def _spread_errors(self, frame: Frames, sel: np.ndarray, v: np.ndarray, base: np.ndarray) -> np.ndarray:
-        """Each correction spread's error in the used sensors' corrected readings, in the
-        information rows' units (per sigma, times sqrt(rate * window)): (k, 3, m), the
-        columns in ``self._spread_cols`` order. A link accelerometer's spread errs on its own
-        rows; the IMU's turns the base's reference (tilt and the chair's acceleration) for
-        every link accelerometer at once."""
-        k = len(sel)
-        E = np.zeros((k, 3, self.spread_m))
-        R = frame.R_0S[sel]  # (k, 3, 3)
-        f = np.einsum("kji,kj->ki", R, v) / G  # corrected readings, g (sensor axes)
-        for i, s_idx in enumerate(sel.tolist()):
-            stream = self.accel_streams[s_idx]
-            floor = self._floor_cols.get(stream)
-            if floor is not None:
-                E[i, :, floor[0]] = floor[1] * self._eye3
-            cols = self._spread_cols.get(stream)
-            if cols is None:
-                continue
-            Lm, c = self.correction.maps[stream]
-            raw = Lm @ f[i] + c
-            M1, c1 = self._spread_stack[stream]  # (m_s, 3, 3), (m_s, 3)
-            E[i, :, cols] = (M1 @ raw - np.einsum("mab,mb->ma", M1, c1) - f[i])
-        cols = self._spread_cols.get(IMU_ACC) if self._R_0I is not None else None
-        if cols is not None:
-            Lm, c = self.correction.maps[IMU_ACC]
-            raw = Lm @ (self._R_0I.T @ base / G) + c
-            y0 = np.linalg.solve(Lm, raw - c)
-            M1, c1 = self._spread_stack[IMU_ACC]
-            d = M1 @ raw - np.einsum("mab,mb->ma", M1, c1) - y0  # (m_s, 3)
-            r = cross(y0 / np.linalg.norm(y0), d) @ self._R_0I.T  # the reference turned by
-            # each link sensor's reading error: R^T (r x v) / g
-            rv = cross(r[:, None, :], v[None, :, :])  # (m_s, k, 3)
-            E[:, :, cols] = np.einsum("kji,mkj->kim", R, rv) / G
-        scale = np.sqrt(self._accel_rate[sel] * self.settings.observability_window_s)
-        return E / self._accel_sigma_g[sel][:, :, None] * scale[:, None, None]
 
     def _obs_sel(self, used: tuple[int, ...]):
         """The link accelerometers ``used`` as an index array, and the factor that turns
@@ -349,13 +308,14 @@ class Observability:
             hit = self._cache[used] = (sel, coef)
         return hit
 
-    def joint_flags(self, t: float, codes: list[int], links: list[int], P: np.ndarray, q: np.ndarray,
-                    ambiguous: np.ndarray, reacquiring_until: np.ndarray, lo: list, hi: list) -> np.ndarray:
+    def joint_flags(self, t: float, codes: list[int], P: np.ndarray, q: np.ndarray,
+                    ambiguous: np.ndarray, reacquiring_until: np.ndarray) -> np.ndarray:
         """Each joint's flag (:data:`armfusion.fusion.tracking.settings.JOINT_FLAGS`: the most severe
-        condition wins) from the link accelerometers' status ``codes`` (on ``links``), the
-        covariance ``P``, the joint angles ``q`` and the limits ``lo``, ``hi``. A few joints:
-        plain Python."""
+        condition wins) from the link accelerometers' status ``codes``, the covariance ``P``,
+        the joint angles ``q`` (against the joints' limits), the joints with rival branches
+        and until when each is re-acquired. A few joints: plain Python."""
         st, n = self.settings, self.layout.n_joints
+        links, lo, hi = self._links, self._lo, self._hi
         nl = len(self.link_names)
         # a joint is seen by a usable link accelerometer on a later link
         reach = max((links[i] for i in range(nl) if codes[i] <= S_REJECTING), default=-1)

@@ -47,10 +47,31 @@ def offsets_observability(axes, up, lock_deg, motion_mps2, base_mps2, K, R_0S, s
     joints.
     """
     n = axes.shape[0]
+    _axes_to_vertical(axes, up, lock_deg, blind, axis_deg, locked)
+    W = _information_rows(sel, motion_mps2, base_mps2, K, R_0S, coef, n)
+    info = W.T @ W
+    lam, V = np.linalg.eigh(info)
+    _achievable_sigmas(lam, V, achievable)
+    weak = _weak_directions(lam, V, P_offsets, weak_info)
     for j in range(n):
+        wide[j] = locked[j] and P_offsets[j, j] > wide_var
+    return W, _held_basis(V, weak, locked)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _axes_to_vertical(axes, up, lock_deg, blind, axis_deg, locked):  # pragma: no cover - compiled
+    """Each joint axis's angle to vertical ``axis_deg (n,)`` and whether it is locked (within
+    ``lock_deg``, or ``blind``), written."""
+    for j in range(axes.shape[0]):
         c = abs(axes[j, 0] * up[0] + axes[j, 1] * up[1] + axes[j, 2] * up[2])
         axis_deg[j] = math.degrees(math.acos(min(c, 1.0)))
         locked[j] = axis_deg[j] < lock_deg or blind[j]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _information_rows(sel, motion_mps2, base_mps2, K, R_0S, coef, n):  # pragma: no cover - compiled
+    """The information rows ``W (3S', n)``: each selected reading's Jacobian with respect to
+    the offsets (its turn about each axis, in the sensor's axes), times ``coef``."""
     m = sel.shape[0]
     W = np.zeros((3 * m, n))
     for r in range(m):
@@ -66,8 +87,14 @@ def offsets_observability(axes, up, lock_deg, motion_mps2, base_mps2, K, R_0S, s
             for a in range(3):
                 Rk = R_0S[s, 0, a] * k0 + R_0S[s, 1, a] * k1 + R_0S[s, 2, a] * k2
                 W[3 * r + a, j] = Rk * coef[r, a, j]
-    info = W.T @ W
-    lam, V = np.linalg.eigh(info)
+    return W
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _achievable_sigmas(lam, V, achievable):  # pragma: no cover - compiled
+    """The sigma the information (eigenvalues ``lam``, vectors ``V``) alone would give each
+    offset, written to ``achievable (n,)``: inf where a direction it touches is unread."""
+    n = lam.shape[0]
     # a direction is unread where its eigenvalue is round-off of the largest (info's
     # entries reach 1e7 1/rad², so an absolute threshold would be the round-off's to decide)
     readable = 1e-12 * max(lam[n - 1], 0.0)
@@ -81,9 +108,14 @@ def offsets_observability(axes, up, lock_deg, motion_mps2, base_mps2, K, R_0S, s
                 acc = np.inf
                 break
         achievable[j] = math.sqrt(acc)
-    # the held span: weak directions the window would not read better than the filter knows
-    # them (prior variance times information below one), and the locked joints
-    n_weak = 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _weak_directions(lam, V, P_offsets, weak_info):  # pragma: no cover - compiled
+    """Which eigen-directions are weak ``(n,)``: below ``weak_info`` and not read better by
+    the window than the filter already knows them (prior variance times information below
+    one)."""
+    n = lam.shape[0]
     weak = np.zeros(n, dtype=np.bool_)
     for i in range(n):
         if lam[i] < weak_info:
@@ -95,14 +127,23 @@ def offsets_observability(axes, up, lock_deg, motion_mps2, base_mps2, K, R_0S, s
                 prior_var += V[a, i] * pv
             if lam[i] * prior_var < 1.0:
                 weak[i] = True
-                n_weak += 1
+    return weak
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _held_basis(V, weak, locked):  # pragma: no cover - compiled
+    """An orthonormal basis ``(n, h)`` of the held span: the ``weak`` eigen-directions (columns
+    of ``V``) and the ``locked`` joints' own axes; ``(n, 0)`` when there is none."""
+    n = V.shape[0]
+    n_weak = 0
     n_locked = 0
     for j in range(n):
-        wide[j] = locked[j] and P_offsets[j, j] > wide_var
+        if weak[j]:
+            n_weak += 1
         if locked[j]:
             n_locked += 1
     if n_weak == 0 and n_locked == 0:
-        return W, np.zeros((n, 0))
+        return np.zeros((n, 0))
     B = np.zeros((n, n_weak + n_locked))
     c = 0
     for i in range(n):
@@ -114,7 +155,7 @@ def offsets_observability(axes, up, lock_deg, motion_mps2, base_mps2, K, R_0S, s
             B[j, c] = 1.0
             c += 1
     if n_locked == 0 or n_weak == 0:  # orthonormal already when of one kind
-        return W, B
+        return B
     w, Ub = np.linalg.eigh(B @ B.T)
     h = 0
     for i in range(n):
@@ -126,4 +167,4 @@ def offsets_observability(axes, up, lock_deg, motion_mps2, base_mps2, K, R_0S, s
         if w[i] > 1e-6:
             U[:, c] = Ub[:, i]
             c += 1
-    return W, U
+    return U

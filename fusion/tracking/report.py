@@ -6,6 +6,8 @@ combinations); the filter, the time, the encoders' angles and the flags come wit
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from armfusion.fusion.tracking.combos import JointTiltCombinations
 from armfusion.fusion.tracking.compass import CALIBRATING, GYRO_ONLY, STATUS_CODE, Compass
@@ -29,19 +31,30 @@ from armfusion.fusion.tracking.ukf import BatchedUKF
 from armfusion.models.arm import ArmModel
 
 
+class ReportedParts(NamedTuple):
+    """The parts of a started tracker that its reports read (each owns its state; the
+    reports never write it)."""
+
+    health: SensorHealth
+    compass: Compass
+    observability: Observability
+    ambiguity: Ambiguity
+    """The joints with rival branches, and how far apart those lie."""
+    combinations: JointTiltCombinations
+
+
 class Reports:
     """A started tracker's reports (see the module's docstring), with the named statuses and
     flags kept until their codes change."""
 
     def __init__(self, arm: ArmModel, settings: TrackerSettings, layout: StateLayout,
                  accel_streams: tuple[str, ...], unmodelled_g: np.ndarray, mag_index: int | None,
-                 gyro_scale_sigma: float, health: SensorHealth, compass: Compass,
-                 observability: Observability, ambiguity: Ambiguity, combinations: JointTiltCombinations):
+                 gyro_scale_sigma: float, parts: ReportedParts):
         self.arm, self.settings, self.layout = arm, settings, layout
         self.accel_streams, self.unmodelled_g = accel_streams, unmodelled_g
         self.gyro_scale_sigma = gyro_scale_sigma
-        self.health, self.compass, self.observability = health, compass, observability
-        self.ambiguity, self.combinations = ambiguity, combinations
+        self.health, self.compass, self.observability = parts.health, parts.compass, parts.observability
+        self.ambiguity, self.combinations = parts.ambiguity, parts.combinations
         self.mag_index = mag_index
         """The magnetometer's index among the tracker's sensors (None without an IMU)."""
         self.has_imu = mag_index is not None

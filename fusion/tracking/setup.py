@@ -15,6 +15,7 @@ from armfusion.fusion.startup.solve import StartupResult
 from armfusion.fusion.tracking import calibrated, fixed_base
 from armfusion.fusion.tracking.alarm import ModelChangeAlarm
 from armfusion.fusion.tracking.compass import Compass
+from armfusion.fusion.tracking.consider import ConsiderColumns
 from armfusion.fusion.tracking.differentiator import CausalDifferentiator
 from armfusion.fusion.tracking.frame_kernels import FrameConstants
 from armfusion.fusion.tracking.health import SensorHealth
@@ -26,7 +27,7 @@ from armfusion.fusion.tracking.initial import (
     read_by_startup,
 )
 from armfusion.fusion.tracking.measurement import Measurements
-from armfusion.fusion.tracking.observability import Observability
+from armfusion.fusion.tracking.observability import LinkSensors, Observability
 from armfusion.fusion.tracking.process import MotionIntensity, ProcessModel, StillDetector, gyro_newer_weight
 from armfusion.fusion.tracking.settings import (
     ENC,
@@ -123,13 +124,13 @@ class TrackerSetup:
         # each accelerometer turned to its stamp by its calibrated time offset and its part's
         # delay, and the compass by its part's delay, with the base's turn rate
         delays_s = calibrated.part_delays_s(arm, self.accel_streams + (MAG,))
-        time_offset_s, time_var_s2 = calibrated.stamp_offsets(model, self.accel_names, delays_s[:-1])
+        stamps = calibrated.stamp_offsets(model, self.accel_names, delays_s[:-1])
         self._mag_delay_s = float(delays_s[-1]) if self._has_imu else 0.0
         unmodelled_g = calibrated.accel_floors_g(arm, self.link_names, self._has_imu)
         self._unmodelled_g = unmodelled_g
         self._fast_error_g = calibrated.accel_fast_errors_g(arm, self.link_names, self._has_imu)
         self._sees = links[:, None] > np.arange(n)[None, :]  # (S, n): sensor s sees joint j
-        self._make_parts(links, unmodelled_g, time_offset_s, time_var_s2, scale_sigma)
+        self._make_parts(links, unmodelled_g, stamps, scale_sigma)
         self.set_rates(rates_hz)
         self._points = SigmaPoints(L.size, st.alpha, st.beta, st.kappa)
         self.attitude_index = np.array([L.roll, L.pitch, L.yaw])
@@ -137,8 +138,8 @@ class TrackerSetup:
         self.nees_index = np.r_[np.arange(n), L.roll, L.pitch, L.yaw]
         """The joints' and the attitude's indices in the state (what a NEES is taken over)."""
 
-    def _make_parts(self, links: np.ndarray, unmodelled_g: np.ndarray, time_offset_s: np.ndarray,
-                    time_var_s2: np.ndarray, scale_sigma: np.ndarray) -> None:
+    def _make_parts(self, links: np.ndarray, unmodelled_g: np.ndarray, stamps: calibrated.StampOffsets,
+                    scale_sigma: np.ndarray) -> None:
         """The stacked measurement, the observability, the process model and the motion's
         intensity, the kinematic frames' constants, for the sensors named."""
         st, L, arm, correction = self.settings, self.layout, self.arm, self.correction
@@ -150,11 +151,12 @@ class TrackerSetup:
         # sensitivity (Observability) carries only the one that stays
         self.measurements = Measurements(st, L, self.sensor_names, self.accel_streams, links,
                                          self.sensor_index.get(IMU_ACC, -1),
-                                         np.hypot(unmodelled_g, self._fast_error_g), time_offset_s,
-                                         time_var_s2)
-        self.observability = Observability(st, L, self.link_names, self.accel_streams, self._sees, correction,
-                                           calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
-                                           self.R_0I if self._has_imu else None)
+                                         np.hypot(unmodelled_g, self._fast_error_g), stamps)
+        sensors = LinkSensors(self.link_names, self._links_list, self._sees, self._min_list, self._max_list)
+        columns = ConsiderColumns(self.link_names, self.accel_streams, correction,
+                                  calibrated.spread_maps(correction), unmodelled_g, scale_sigma,
+                                  self.R_0I if self._has_imu else None)
+        self.observability = Observability(st, L, sensors, columns)
         # the tilt's floor, which no averaging lowers: every accelerometer that reads it. The
         # IMU's lasting error is a state of the filter (its prior the config's floor): a base
         # that turns about any axis reveals it (gravity turns in the IMU's axes, the bias does

@@ -1,9 +1,10 @@
-"""Starting a tracker from a recording: the first still stretch's startup calibration
-(:func:`armfusion.fusion.startup.solve.solve_still`, on readings the config's effects corrected), the
-gyro bias, heading and Earth-field reference from the same window
-(:func:`imu_still_from_recording`), and, offline, the choice between rival branches by the
-motion that follows (:func:`_branch_by_motion`). :func:`warm_up` compiles (or loads) the
-tracker's kernels before a node takes samples."""
+"""Starting a tracker from a recording (:func:`start_from_recording`, how: :class:`StartOptions`):
+the first still stretch's startup calibration (:func:`armfusion.fusion.startup.solve.solve_still`,
+on readings the config's effects corrected), the gyro bias, heading and Earth-field reference
+from the same window (:func:`armfusion.fusion.tracking.imu_still.imu_still_from_recording`), and,
+offline, the choice between rival branches by the motion that follows
+(:func:`armfusion.fusion.tracking.branch_motion.branch_by_motion`). :func:`warm_up` compiles (or
+loads) the tracker's kernels before a node takes samples."""
 
 from __future__ import annotations
 
@@ -11,81 +12,21 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-from armfusion.fusion.identification.correction import startup_correction
-from armfusion.fusion.startup.solve import StartupResult
+from armfusion.fusion.startup.prior import StartupPrior
+from armfusion.fusion.startup.results import StartupResult
+from armfusion.fusion.startup.settings import StartupSettings
 from armfusion.fusion.startup.static import Segment, StaticDetectionSettings, find_static_segments
-from armfusion.fusion.tracking.calibrated import effects_applied, undo_map
-from armfusion.fusion.tracking.compass import compass_map, compass_unmodelled_rad
+from armfusion.fusion.tracking.branch_motion import branch_by_motion
+from armfusion.fusion.tracking.calibrated import effects_applied
 from armfusion.fusion.tracking.differentiator import prime
 from armfusion.fusion.tracking.filter import Tracker
-from armfusion.fusion.tracking.heading import FieldReference, heading_sigma_rad, tilt_compensated_heading
+from armfusion.fusion.tracking.imu_still import imu_still_from_recording
 from armfusion.fusion.tracking.initial import ImuStill
 from armfusion.fusion.tracking.run import joint_free_clock
 from armfusion.fusion.tracking.settings import ENC, GYRO, IMU_ACC, MAG, TrackerSettings
 from armfusion.models.arm import ArmModel
-from armfusion.models.rotations import DEG, up_from_tilt
 from armfusion.models.sensor_models import encoder_angles_at, mpu9150_temperature_c, stream_models
 from armfusion.sensors.samples import Recording
-
-
-def imu_still_from_recording(arm: ArmModel, rec: Recording, t_start_s: float, t_end_s: float,
-                             startup: StartupResult, settings: TrackerSettings | None = None,
-                             correction=None) -> ImuStill:
-    """The gyro bias, initial heading and Earth-field reference from a still window, the
-    gyro and the compass read as the tracker reads them (the config's calibrated errors
-    undone). ``correction``: the config's
-    :class:`armfusion.fusion.identification.identify.StartupCorrection`, when the caller has it (else
-    made here when the config has effects)."""
-    st = settings or TrackerSettings()
-    if correction is None and arm.effects:
-        correction = startup_correction(arm)
-    sm = stream_models(arm)
-    R_0I = arm.imu.R_LS if arm.imu is not None else np.eye(3)
-    bias = np.zeros(3)
-    bias_sigma = 0.5 * DEG  # no gyro samples: a wide guess
-    g = rec.get(GYRO)
-    if g is not None:
-        w = g.between(t_start_s, t_end_s + 1e-9)
-        if len(w) >= 3:
-            rate = w.rate_hz or 100.0
-            omega = sm[GYRO].from_counts(w.values)
-            undo = undo_map(correction, GYRO)
-            if undo is not None:  # the config's gyro scale and bias, as the tracker undoes them
-                omega = (omega - undo[1]) @ undo[0]
-            omega = omega @ R_0I.T
-            bias = omega.mean(axis=0)
-            noise = st.gyro_noise_dps_per_sqrt_hz * DEG * np.sqrt(rate / 2.0)
-            # the window's own scatter where it is above the datasheet's (a vibrating base):
-            # the mean of a few shaken samples is no better than they are
-            scatter = float(np.max(np.std(omega, axis=0, ddof=1)))
-            if scatter < noise * (1.0 + 3.0 / np.sqrt(2.0 * (len(w) - 1))):
-                scatter = noise  # within what the datasheet's noise scatters by
-            bias_sigma = float(max(scatter / np.sqrt(len(w)), 2e-5))
-    yaw = yaw_sigma = None
-    field_ref = None
-    m = rec.get(MAG)
-    if m is not None:
-        w = m.between(t_start_s, t_end_s + 1e-9)
-        if len(w) >= 1:
-            y = sm[MAG].from_counts(w.values)
-            undo = compass_map(arm, correction)
-            if undo is not None:  # the config's hard and soft iron, as the tracker undoes them
-                y = (y - undo[1]) @ undo[0]
-            mB = y @ R_0I.T
-            up = up_from_tilt(np.array(startup.roll_rad), np.array(startup.pitch_rad))
-            if st.heading.reference == "model":
-                field_ref = FieldReference.from_world_field()
-            else:
-                declination_rad = float(np.radians(arm.magnetic_declination_deg or 0.0))
-                field_ref = FieldReference.from_samples(mB, up, declination_rad)
-            mean = mB.mean(axis=0)
-            yaw = float(tilt_compensated_heading(mean, startup.roll_rad, startup.pitch_rad,
-                                                 field_ref.declination_rad))
-            sig = heading_sigma_rad(field_ref, st.heading.noise_ut) / np.sqrt(len(w))
-            tilt_sig = np.hypot(startup.roll_sigma_rad, startup.pitch_sigma_rad) * np.tan(field_ref.dip_rad)
-            iron_sig = compass_unmodelled_rad(arm, field_ref)
-            yaw_sigma = float(np.sqrt(sig**2 + tilt_sig**2 + iron_sig**2) + 0.2 * DEG)
-    return ImuStill(bias, bias_sigma, yaw, yaw_sigma, field_ref)
 
 
 @dataclass(frozen=True)
@@ -301,7 +242,8 @@ def warm_up(arm: ArmModel, settings: TrackerSettings | None = None) -> float:
     t0 = time.perf_counter()
     rec, _ = simulate(arm, "daily-use", 4.0, seed=0)
     first = rec.between(0.0, 2.0)
-    tr, _ = start_from_recording(arm, first, settings, propose_unlock=False)  # then 2 s more
+    # started on the first two seconds; the next two are fused below
+    tr, _ = start_from_recording(arm, first, settings, options=StartOptions(propose_unlock=False))
     values = {s: rec.get(s).values for s in tr.sensor_names if s in rec.streams}
     t_enc = rec.get(ENC).t_s
     n = min(len(v) for v in values.values())
@@ -337,103 +279,79 @@ def delay_notes(arm: ArmModel) -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class StartOptions:
+    """How :func:`start_from_recording` finds its start and solves the startup there; the
+    defaults: the earliest still stretch near the recording's start, a one-second window,
+    the startup's own settings, the unlock-move search on, no prior but a saved pose."""
+
+    window_s: float = 1.0
+    """The startup's still window (s)."""
+    moving_start: bool = False
+    """With no still stretch near the start (an arm that never stops), start from the
+    readings of the least-moving instants there (:func:`moving_window`)."""
+    start_at_s: float | None = None
+    """Start near this time (s, the recording's clock) rather than at its start; as
+    ``moving_start`` where no still stretch is near."""
+    startup_settings: StartupSettings | None = None
+    propose_unlock: bool = True
+    """False: no search for a move that would unlock gravity-blind joints (about 2 s of the
+    startup's time, for a caller that does not show it)."""
+    prior: StartupPrior | None = None
+    """A startup prior other than the saved pose (e.g. ``StartupPrior.assume_parked``)."""
+    resolve_by_motion_s: float | None = None
+    """For a whole recording (not live), when the startup left joints ``ambiguous``: track
+    each candidate branch over the next this many seconds and keep the one the motion's
+    readings favour (:func:`armfusion.fusion.tracking.branch_motion.branch_by_motion`)."""
+    sigma_given_conventions: bool = False
+    """A calibrated config's doubt taken relative to its joint-zero conventions
+    (:meth:`armfusion.fusion.identification.correction.StartupCorrection.given_conventions`):
+    the σ against the calibration's own zeros, for scoring against a reference those zeros
+    aligned (the default, the absolute σ, is what a user's controller needs)."""
+
+
 def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSettings | None = None,
-                         prior_q_rad: np.ndarray | None = None, window_s: float = 1.0,
-                         startup_settings=None, propose_unlock: bool = True,
-                         prior=None, resolve_by_motion_s: float | None = None,
-                         moving_start: bool = False,
-                         prior_sigma_rad: np.ndarray | None = None,
-                         start_at_s: float | None = None,
-                         sigma_given_conventions: bool = False) -> tuple[Tracker, Start]:
+                         prior_q_rad: np.ndarray | None = None, prior_sigma_rad: np.ndarray | None = None,
+                         options: StartOptions = StartOptions()) -> tuple[Tracker, Start]:
     """A tracker initialised from the recording's first still stretch: the startup
     calibration there (:func:`armfusion.fusion.startup.solve.solve_still`), the gyro bias, heading and field
     reference from the same window; it starts tracking at the window's end: the still
     stretch's end less ``settings.settle_s`` where the stretch is long enough
     (:func:`settled_split`), so that the filter settles on the still chair before it moves.
-    ``propose_unlock`` False: no search for a move that would unlock gravity-blind joints
-    (about 2 s of the startup's time, for a caller that does not show it).
     ``prior_q_rad``: a pose saved at the last clean shutdown, checked against the still data
-    before it may choose a branch (:class:`armfusion.fusion.startup.solve.StartupPrior`); ``prior``: any
-    other startup prior (e.g. ``StartupPrior.assume_parked``).
-    ``resolve_by_motion_s``: for a whole recording (not live), when the startup left joints
-    ``ambiguous``, track each candidate branch over the next this many seconds and keep the
-    one the motion's readings favour (:func:`_branch_by_motion`); they stay ambiguous when no
-    branch is decisively better (the arm did not move enough).
+    before it may choose a branch (:class:`armfusion.fusion.startup.solve.StartupPrior`);
+    ``options.prior``: any other startup prior.
     Where it starts is :func:`choose_start`'s: the earliest still stretch near the
-    recording's start (or ``start_at_s``), a short one's σ widened
-    (:func:`short_still_readings`). ``moving_start`` (or ``start_at_s``): with no still
-    stretch near there (an arm that never stops), start from the readings of the
-    least-moving instants there instead (:func:`moving_window`), their σ widened by the
-    motion; else the first still stretch anywhere, and :class:`NoStillWindowError` with none.
+    recording's start (or ``options.start_at_s``), a short one's σ widened
+    (:func:`short_still_readings`). ``options.moving_start`` (or ``start_at_s``): with no
+    still stretch near there, start from the least-moving instants there instead
+    (:func:`moving_window`), their σ widened by the motion; else the first still stretch
+    anywhere, and :class:`NoStillWindowError` with none.
     ``prior_sigma_rad``: with ``prior_q_rad``, how well it is known per joint (a running
     tracker's pose handed on, the arm unmoved): a joint the startup cannot read starts at
     ``prior_q_rad`` with that sigma instead of ``TrackerSettings.unknown_joint_sigma_deg``.
-    ``sigma_given_conventions``: a calibrated config's doubt taken relative to its joint-zero
-    conventions (:meth:`armfusion.fusion.identification.correction.StartupCorrection.given_conventions`):
-    the σ against the calibration's own zeros, for scoring against a reference those zeros
-    aligned (the default, the absolute σ, is what a user's controller needs)."""
-    from armfusion.fusion.startup.solve import StartupPrior, readings_from_recording, solve_still
+    The rest of the options: :class:`StartOptions`."""
+    from armfusion.fusion.startup.solve import solve_still
 
+    prior = options.prior
     if prior is None and prior_q_rad is not None:
         prior = StartupPrior.saved_pose(prior_q_rad)
-    choice = choose_start(arm, rec, window_s, start_at_s, moving_start)
-    notes: list[str] = [choice.note] if choice.note else []
-    t_still_end = None  # where the still stretch ends, when the startup leaves its end to the tracker
-    if choice.segment is not None:
-        still = choice.segment
-        seg = settled_split(still, window_s, (settings or TrackerSettings()).settle_s)
-        if seg.t_end_s < still.t_end_s:
-            t_still_end = still.t_end_s
-        readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, window_s)
-        if choice.short:
-            readings, note = short_still_readings(arm, rec, seg, readings)
-            notes.append(note)
-    else:
-        seg, readings, checks, note = moving_window(arm, rec.between(choice.from_s, np.inf))
-        notes.append(note)
-    notes += [c.message for c in checks]
-    corr = None
-    if arm.effects:  # a calibrated config: the startup works on corrected readings
-        from armfusion.fusion.identification.identify import startup_correction
-
-        temp = rec.get("imu_temp")
-        still_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None else None
-        if still_temp is None or not len(still_temp):
-            still_temp = temp
-        # corrected at the temperature of the still stretch (the tracker follows it after)
-        temperature_c = (float(mpu9150_temperature_c(np.mean(still_temp.values)))
-                         if still_temp is not None and len(still_temp) else 25.0)
-        corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
-        if sigma_given_conventions:
-            corr = corr.given_conventions()
-        readings = corr.readings(readings)
-        applied, not_applied = effects_applied(corr.model)
-        notes.append("the config's effects applied: " + (", ".join(applied) or "none"))
-        if not_applied:
-            notes.append("the config's effects NOT applied by the tracker: " + "; ".join(not_applied))
-    notes.extend(delay_notes(arm))
-    startup = solve_still(arm, readings, startup_settings, prior=prior,
-                          propose_unlock=propose_unlock)
+    window = _startup_window(arm, rec, settings, options)
+    corr, readings, notes = _corrected_readings(arm, rec, window, options)
+    notes = [*window.notes, *notes, *delay_notes(arm)]
+    startup = solve_still(arm, readings, options.startup_settings, prior=prior,
+                          propose_unlock=options.propose_unlock)
     notes.extend(startup.notes)
     geometric = startup
     if corr is not None:
         startup = corr.controller_result(startup)
+    seg = window.segment
     imu = imu_still_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, startup, settings, corr)
     enc = rec.get(ENC) if arm.n_joints else joint_free_clock(rec)
     if enc is None or not len(enc):
         raise ValueError("the recording has no encoder stream 'enc': nothing to track")
-    t_track = seg.t_end_s
-    if t_still_end is not None:
-        if any(j.flag == "ambiguous" for j in startup.joints):
-            # a filter on one of rival branches that fit the still readings alike grows sure of
-            # the one it sits on while the arm stands: it starts where the motion can decide
-            t_track = t_still_end
-            notes.append(f"the startup calibration on {seg.t_start_s:.2f}-{seg.t_end_s:.2f} s of the still "
-                         f"stretch, the tracker from its end ({t_still_end:.2f} s): rival branches")
-        else:
-            notes.append(f"the startup calibration on {seg.t_start_s:.2f}-{seg.t_end_s:.2f} s of the still "
-                         f"stretch (to {t_still_end:.2f} s); the tracker from there, settling on the still "
-                         f"{'arm' if arm.fixed_base is not None else 'chair'} before it moves")
+    t_track, note = _tracking_from(arm, window, startup)
+    notes += [note] if note else []
     k, enc_rad = encoder_angles_at(arm, enc, t_track)
     rates = {s: (v.rate_hz or 100.0) for s, v in rec.raw().items()}
 
@@ -444,14 +362,96 @@ def start_from_recording(arm: ArmModel, rec: Recording, settings: TrackerSetting
         _prime(t, rec)
         return t
 
-    if resolve_by_motion_s and startup.candidates_rad is not None and len(startup.candidates_rad) > 1:
-        chosen, note = _branch_by_motion(startup, tracker_from, rec, float(enc.t_s[k]),
-                                         resolve_by_motion_s, startup_settings)
+    if (options.resolve_by_motion_s and startup.candidates_rad is not None
+            and len(startup.candidates_rad) > 1):
+        chosen, note = branch_by_motion(startup, tracker_from, rec, float(enc.t_s[k]),
+                                        options.resolve_by_motion_s, options.startup_settings)
         notes.append(note)
         if chosen is not None:
             startup = chosen
     tr = tracker_from(startup)
     return tr, Start(seg.t_start_s, seg.t_end_s, startup, imu, tuple(notes), geometric, enc_rad)
+
+
+@dataclass(frozen=True)
+class _StartupWindow:
+    """Where the startup calibrates: its ``segment`` and averaged ``readings`` (with the
+    notes on how they were chosen and checked), and where the still stretch ends when the
+    startup leaves its end to the tracker (``t_still_end_s``, else None)."""
+
+    segment: Segment
+    readings: object
+    notes: list[str]
+    t_still_end_s: float | None
+
+
+def _startup_window(arm: ArmModel, rec: Recording, settings: TrackerSettings | None,
+                    options: StartOptions) -> _StartupWindow:
+    """The startup's window: the still stretch :func:`choose_start` picks, less the part the
+    tracker settles on (:func:`settled_split`), a short one's σ widened; or the
+    least-moving instants (:func:`moving_window`)."""
+    from armfusion.fusion.startup.solve import readings_from_recording
+
+    choice = choose_start(arm, rec, options.window_s, options.start_at_s, options.moving_start)
+    notes: list[str] = [choice.note] if choice.note else []
+    t_still_end = None
+    if choice.segment is not None:
+        still = choice.segment
+        seg = settled_split(still, options.window_s, (settings or TrackerSettings()).settle_s)
+        if seg.t_end_s < still.t_end_s:
+            t_still_end = still.t_end_s
+        readings, checks = readings_from_recording(arm, rec, seg.t_start_s, seg.t_end_s, options.window_s)
+        if choice.short:
+            readings, note = short_still_readings(arm, rec, seg, readings)
+            notes.append(note)
+    else:
+        seg, readings, checks, note = moving_window(arm, rec.between(choice.from_s, np.inf))
+        notes.append(note)
+    notes += [c.message for c in checks]
+    return _StartupWindow(seg, readings, notes, t_still_end)
+
+
+def _corrected_readings(arm: ArmModel, rec: Recording, window: _StartupWindow, options: StartOptions):
+    """For a calibrated config: its correction at the still stretch's temperature (the
+    tracker follows the temperature after) and the window's readings corrected by it, with
+    notes of the effects applied; ``(None, readings, [])`` for a config with no effects.
+    Returns ``(correction, readings, notes)``."""
+    if not arm.effects:
+        return None, window.readings, []
+    from armfusion.fusion.identification.identify import startup_correction
+
+    seg = window.segment
+    temp = rec.get("imu_temp")
+    still_temp = temp.between(seg.t_start_s, seg.t_end_s) if temp is not None else None
+    if still_temp is None or not len(still_temp):
+        still_temp = temp
+    temperature_c = (float(mpu9150_temperature_c(np.mean(still_temp.values)))
+                     if still_temp is not None and len(still_temp) else 25.0)
+    corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
+    if options.sigma_given_conventions:
+        corr = corr.given_conventions()
+    applied, not_applied = effects_applied(corr.model)
+    notes = ["the config's effects applied: " + (", ".join(applied) or "none")]
+    if not_applied:
+        notes.append("the config's effects NOT applied by the tracker: " + "; ".join(not_applied))
+    return corr, corr.readings(window.readings), notes
+
+
+def _tracking_from(arm: ArmModel, window: _StartupWindow, startup: StartupResult) -> tuple[float, str | None]:
+    """Where the tracker starts, with a note when that is not the window's end: the still
+    stretch's end where the startup left it, when the startup left rival branches (a filter
+    on one of rival branches that fit the still readings alike grows sure of the one it
+    sits on while the arm stands: it starts where the motion can decide); else the
+    window's end, the tracker settling on the still arm before it moves."""
+    seg, t_still_end = window.segment, window.t_still_end_s
+    if t_still_end is None:
+        return seg.t_end_s, None
+    if any(j.flag == "ambiguous" for j in startup.joints):
+        return t_still_end, (f"the startup calibration on {seg.t_start_s:.2f}-{seg.t_end_s:.2f} s of the "
+                             f"still stretch, the tracker from its end ({t_still_end:.2f} s): rival branches")
+    return seg.t_end_s, (f"the startup calibration on {seg.t_start_s:.2f}-{seg.t_end_s:.2f} s of the still "
+                         f"stretch (to {t_still_end:.2f} s); the tracker from there, settling on the still "
+                         f"{'arm' if arm.fixed_base is not None else 'chair'} before it moves")
 
 
 def settled_split(seg: Segment, window_s: float, settle_s: float) -> Segment:
@@ -461,56 +461,6 @@ def settled_split(seg: Segment, window_s: float, settle_s: float) -> Segment:
     started at that instant meets the motion before it has learnt what a still chair reads.)"""
     end = max(seg.t_start_s + window_s, seg.t_end_s - max(settle_s, 0.0))
     return seg if end >= seg.t_end_s else Segment(seg.t_start_s, end)
-
-
-def _branch_by_motion(startup: StartupResult, tracker_from, rec: Recording, t0_s: float,
-                      horizon_s: float, startup_settings=None,
-                      decisive_nis: float = 50.0) -> tuple[StartupResult | None, str]:
-    """The candidate branch the motion after a still window favours, offline.
-
-    Twins that read the same still read differently once the arm or the chair moves (as a
-    disambiguating move makes them). Each candidate of ``startup`` seeds a tracker, run over
-    ``horizon_s`` of the recording after ``t0_s``; the link accelerometers' normalised
-    innovations (NIS) summed over that stretch are the evidence. A candidate is chosen when
-    it beats every other by ``decisive_nis`` (a log-likelihood ratio of 25); it is then a
-    startup with those joints numbered (the candidate's own covariance), and the note says
-    so. Otherwise ``None``: the joints stay ``ambiguous``."""
-    from armfusion.fusion.startup.solve import StartupSettings
-
-    st = startup_settings or StartupSettings()
-    n = len(startup.joints)
-    amb = [j for j, je in enumerate(startup.joints) if je.flag == "ambiguous"]
-    names = ", ".join(startup.joints[j].name for j in amb)
-    covs = (startup.candidates_covariance if startup.candidates_covariance is not None
-            else np.repeat(np.asarray(startup.covariance)[None], len(startup.candidates_rad), 0))
-    window = rec.between(-np.inf, t0_s + horizon_s)
-    totals, variants = [], []
-    for cand, cov in zip(startup.candidates_rad, covs, strict=True):
-        sig = np.sqrt(np.clip(np.diag(cov)[:n], 0, None))
-        joints = tuple(
-            replace(je, angle_rad=float(cand[j]), sigma_rad=float(sig[j]), alternatives_rad=(),
-                    flag="ok" if sig[j] <= st.sigma_limit_deg * DEG else "ill_conditioned")
-            if j in amb else je for j, je in enumerate(startup.joints))
-        v = replace(startup, joints=joints, q_rad=np.array(cand, float), covariance=np.array(cov),
-                    candidates_rad=np.array(cand, float)[None], candidates_covariance=np.array(cov)[None],
-                    disambiguating_move=None)
-        tr = tracker_from(v)
-        tr.run(window, truth=False)
-        total = 0.0
-        for s_ in tr.link_names:
-            lg = tr.innovations(s_)
-            ok = np.isfinite(lg.nis) & (lg.t_s > t0_s)
-            total += float(np.sum(lg.nis[ok]))
-        totals.append(total)
-        variants.append(v)
-    order = np.argsort(totals)
-    best, second = totals[order[0]], totals[order[1]]
-    if second - best >= decisive_nis:
-        return variants[order[0]], (
-            f"{names}: the branch chosen by the motion after the still window (the candidates' "
-            f"summed NIS over {horizon_s:g} s: {best:.0f} against {second:.0f} at the next)")
-    return None, (f"{names}: ambiguous, and the motion after the still window does not tell the "
-                  f"branches apart (summed NIS over {horizon_s:g} s: {best:.0f} and {second:.0f})")
 
 
 def _prime(tr: Tracker, rec: Recording) -> None:

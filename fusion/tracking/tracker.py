@@ -85,7 +85,7 @@ Where it lives (each module one idea; this one gathers the public names):
 from armfusion.fusion.tracking.differentiator import CausalDifferentiator, causal_fits, causal_poly_fit
 from armfusion.fusion.tracking.estimate import Estimate
 from armfusion.fusion.tracking.filter import Tracker
-from armfusion.fusion.tracking.frames import Frames, make_frames
+from armfusion.fusion.tracking.frames import BaseTurn, Frames, JointMotion, make_frames
 from armfusion.fusion.tracking.initial import ImuStill
 from armfusion.fusion.tracking.innovations import InnovationLog
 from armfusion.fusion.tracking.run import TrackRun
@@ -109,6 +109,7 @@ from armfusion.fusion.tracking.snapshot import TrackerState
 from armfusion.fusion.tracking.start import (
     NoStillWindowError,
     Start,
+    StartOptions,
     imu_still_from_recording,
     start_from_recording,
     warm_up,
@@ -117,9 +118,9 @@ from armfusion.fusion.tracking.update import InstantReadings, UpdateResult
 
 __all__ = [
     "COUNTERS", "ENC", "FLAG_CODE", "G", "GYRO", "IMU_ACC", "JOINT_FLAGS", "MAG", "SENSOR_STATUS",
-    "STATUS_CODE", "CausalDifferentiator", "Estimate", "Frames", "ImuStill", "InnovationLog",
-    "InstantReadings", "NoStillWindowError", "NotInitialisedError", "Start", "StateLayout",
-    "TrackRun", "Tracker", "TrackerSettings", "TrackerState", "UpdateResult", "causal_fits",
+    "STATUS_CODE", "BaseTurn", "CausalDifferentiator", "Estimate", "Frames", "ImuStill", "InnovationLog",
+    "InstantReadings", "JointMotion", "NoStillWindowError", "NotInitialisedError", "Start", "StartOptions",
+    "StateLayout", "TrackRun", "Tracker", "TrackerSettings", "TrackerState", "UpdateResult", "causal_fits",
     "causal_poly_fit", "imu_still_from_recording", "make_frames", "start_from_recording",
     "truth_at", "warm_up",
 ]

@@ -195,13 +195,13 @@ def innovation_diagnosis(arm, rec, settings=None, max_lag: int = MAX_LAG, block_
     lag in the motion terms, the encoders' rounding, a gain below the optimum where the
     noise is taken larger than it is), which the block means wash out, while a missing
     effect (a bias that follows the pose, a drift) lasts for seconds and survives."""
-    from armfusion.fusion.tracking.tracker import start_from_recording
+    from armfusion.fusion.tracking.tracker import StartOptions, start_from_recording
 
     t0 = time.perf_counter()
     say = progress or (lambda _m, _f: None)
     say("starting the tracker", 0.0)
     arm = workbench_arm(arm)
-    tr, _start = start_from_recording(arm, rec, settings, resolve_by_motion_s=20.0)
+    tr, _start = start_from_recording(arm, rec, settings, options=StartOptions(resolve_by_motion_s=20.0))
     say("tracking the recording", 0.1)
     run = tr.run(rec, truth=False, progress=lambda f: say("tracking the recording", 0.1 + 0.8 * f))
     say("analysing the innovations", 0.9)

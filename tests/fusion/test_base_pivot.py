@@ -18,7 +18,7 @@ from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.importing.column_map import load_column_map
 from armfusion.fusion.importing.run import import_recording
 from armfusion.fusion.tracking.filter import Tracker
-from armfusion.fusion.tracking.frames import make_frames
+from armfusion.fusion.tracking.frames import BaseTurn, JointMotion, make_frames
 from armfusion.fusion.tracking.tracker import start_from_recording
 from armfusion.models.arm_config import ConfigError
 from armfusion.models.rotations import GRAVITY_MPS2, exp_so3
@@ -55,9 +55,9 @@ def test_the_imu_reads_the_pivots_acceleration_plus_the_lever_terms() -> None:
     tr = Tracker(load_arm("broad_imu"), rates_hz=RATE_HZ)
     L = tr.layout
     w, wd = np.array([0.5, -4.0, 6.0]), np.array([30.0, 10.0, -20.0])
-    frame = tr.measurements.with_noise(make_frames(tr.arm, tr.accel_names, np.zeros((1, 0)), np.zeros(0),
-                                                   np.zeros((1, 0)), np.zeros((1, 0)), w[None],
-                                                   wd[None]).take(0))
+    none = np.zeros((1, 0))  # (an arm with no joints)
+    frame = tr.measurements.with_noise(make_frames(tr.arm, tr.accel_names, JointMotion(none, none, none),
+                                                   np.zeros(0), BaseTurn(w[None], wd[None])).take(0))
     X = np.zeros((3, L.size))
     X[:, L.accel] = [0.3, -0.2, 0.1]  # the pivot's acceleration, m/s²
     X[1, L.pivot_B] = [0.15, 0.0, 0.0]  # 15 cm along x from the pivot

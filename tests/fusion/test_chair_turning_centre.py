@@ -15,7 +15,7 @@ import pytest
 import yaml
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.tracking.frame_kernels import FrameConstants
-from armfusion.fusion.tracking.frames import make_frames
+from armfusion.fusion.tracking.frames import BaseTurn, JointMotion, make_frames
 from armfusion.fusion.tracking.tracker import start_from_recording
 from armfusion.models.arm_config import ConfigError, build_arm
 from armfusion.models.simulator import simulate
@@ -61,8 +61,8 @@ def test_a_turning_chair_swings_every_sensor_about_its_turning_centre():
     enc = np.stack([arm.ready_pose_rad, rng.normal(0, 0.1, 7), rng.normal(0, 0.2, 7)])
     w, wd = np.array([0.02, -0.03, 0.8]), np.array([0.1, 0.05, 1.5])
     f = FrameConstants(arm, names).fields(enc, np.zeros(7), w, wd)
-    ref = make_frames(arm, names, enc[0][None], np.zeros(7), enc[1][None], enc[2][None], w[None],
-                      wd[None]).take(0)
+    ref = make_frames(arm, names, JointMotion(enc[0][None], enc[1][None], enc[2][None]), np.zeros(7),
+                      BaseTurn(w[None], wd[None])).take(0)
     np.testing.assert_allclose(f[3], ref.motion_mps2, atol=1e-12)
     np.testing.assert_allclose(f[9], ref.dist2_m2, atol=1e-12)
     np.testing.assert_allclose(f[3][-1], np.cross(wd, rho) + np.cross(w, np.cross(w, rho)), atol=1e-12)

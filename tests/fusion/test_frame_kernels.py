@@ -19,8 +19,10 @@ import pytest
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.tracking.frame_kernels import FrameConstants, extrapolate_fit, poly_fit_one, push_fit
 from armfusion.fusion.tracking.tracker import (
+    BaseTurn,
     CausalDifferentiator,
     Frames,
+    JointMotion,
     Tracker,
     causal_poly_fit,
     make_frames,
@@ -70,8 +72,8 @@ def assert_frames_equal(got: tuple, ref: Frames) -> None:
 def check_against_make_frames(tr: Tracker, rng, motion: bool, count: int = 25) -> None:
     fc = FrameConstants(tr.arm, tr.accel_names, tr._joint_effects)
     for fit, offset, w, wd in random_states(tr.arm, rng, count):
-        ref = make_frames(tr.arm, tr.accel_names, fit[0][None], offset[None], fit[1][None], fit[2][None],
-                          w[None], wd[None], motion, tr._joint_effects).take(0)
+        ref = make_frames(tr.arm, tr.accel_names, JointMotion(fit[0][None], fit[1][None], fit[2][None]),
+                          offset[None], BaseTurn(w[None], wd[None]), motion, tr._joint_effects).take(0)
         assert_frames_equal(fc.fields(fit, offset, w, wd, motion), ref)
 
 
@@ -90,8 +92,8 @@ def test_no_gyro_yet_is_a_base_at_rest(arm):
     fc = FrameConstants(tr.arm, tr.accel_names)
     fit, offset, _, _ = next(random_states(arm, np.random.default_rng(102), 1))
     z = np.zeros((1, 3))
-    ref = make_frames(arm, tr.accel_names, fit[0][None], offset[None], fit[1][None], fit[2][None],
-                      z, z).take(0)
+    ref = make_frames(arm, tr.accel_names, JointMotion(fit[0][None], fit[1][None], fit[2][None]),
+                      offset[None], BaseTurn(z, z)).take(0)
     assert_frames_equal(fc.fields(fit, offset, None, None), ref)
 
 
@@ -288,10 +290,11 @@ class NumpyFrame:
 
     def fields(self, fit, offset, omega_B, omega_dot_B, motion):
         z = np.zeros(3)
-        return tuple(make_frames(self.tr.arm, self.tr.accel_names, fit[0][None], offset[None], fit[1][None],
-                                 fit[2][None], (z if omega_B is None else omega_B)[None],
-                                 (z if omega_dot_B is None else omega_dot_B)[None], motion,
-                                 self.tr._joint_effects).take(0))
+        base = BaseTurn((z if omega_B is None else omega_B)[None],
+                        (z if omega_dot_B is None else omega_dot_B)[None])
+        return tuple(make_frames(self.tr.arm, self.tr.accel_names,
+                                 JointMotion(fit[0][None], fit[1][None], fit[2][None]), offset[None], base,
+                                 motion, self.tr._joint_effects).take(0))
 
 
 @pytest.mark.parametrize("calibrated", [False, True])

@@ -8,7 +8,7 @@ difference in the order of the additions would show in the last bits."""
 from __future__ import annotations
 
 import numpy as np
-from armfusion.fusion.tracking.alarm import ModelChangeAlarm
+from armfusion.fusion.tracking.alarm import AccelRows, ModelChangeAlarm
 from armfusion.fusion.tracking.tracker_kernels import add_block_sums, add_normalised_innovations
 
 
@@ -77,8 +77,8 @@ def test_the_alarm_counts_every_sensor_alike_given_all_of_them_or_their_indices(
     sel = np.arange(5)
     for i, (nu, Su, z_pred, var) in enumerate(_instants(rng, 60, 5)):
         t = 0.01 * (i + 1)
-        a_all.listen(t, slice(0, 5), nu, Su, z_pred, var, rows, sel, True)
-        a_idx.listen(t, sel, nu, Su, z_pred, var, rows, sel, True)
+        a_all.listen(t, slice(0, 5), nu, Su, AccelRows(z_pred, var, rows, sel), True)
+        a_idx.listen(t, sel, nu, Su, AccelRows(z_pred, var, rows, sel), True)
     for name in ("_sum_nu", "_sum_g", "_sum_r", "_sum_var", "_n", "_ema"):
         assert np.array_equal(getattr(a_all, name), getattr(a_idx, name)), name
     # a block closed at 0.5 s (its means in the test's average), ten instants summed since

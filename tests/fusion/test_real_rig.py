@@ -14,7 +14,7 @@ from armfusion.fusion.identification.identify import data_from_recording
 from armfusion.fusion.importing.column_map import load_column_map
 from armfusion.fusion.importing.run import import_recording
 from armfusion.fusion.tracking.settings import FLAG_CODE
-from armfusion.fusion.tracking.start import start_from_recording
+from armfusion.fusion.tracking.start import StartOptions, start_from_recording
 from armfusion.fusion.workbench.diagnose import add_effects, diagnose, parse_add
 from armfusion.fusion.workbench.discover import STOP_NOTHING
 from armfusion.models.effects import model_from_arm
@@ -82,7 +82,7 @@ def test_discovery_walks_the_real_rigs_ladder_and_says_what_is_left(roll):
 
 def test_tracking_the_real_shaft_from_a_moving_start_keeps_its_sigma_honest(roll):
     arm = load_arm("imu_rig_roll")
-    tr, start = start_from_recording(arm, roll, moving_start=True, propose_unlock=False)
+    tr, start = start_from_recording(arm, roll, options=StartOptions(moving_start=True, propose_unlock=False))
     assert start.notes[0].startswith("no still stretch")
     run = tr.run(roll, truth=False)
     enc = roll.get("true_q")
@@ -105,7 +105,7 @@ def test_a_vertical_shaft_is_gravity_blind_the_whole_time(yaw, tmp_path):
     from armfusion.fusion.identification.calibrated_config import config_with_estimates
 
     arm = load_arm("imu_rig_yaw")
-    tr, start = start_from_recording(arm, yaw, moving_start=True, propose_unlock=False)
+    tr, start = start_from_recording(arm, yaw, options=StartOptions(moving_start=True, propose_unlock=False))
     assert start.startup.joints[0].flag == "gimbal_lock"
     run = tr.run(yaw, truth=False)
     assert FLAG_CODE["ok"] not in run.flags[:, 0]
@@ -116,7 +116,8 @@ def test_a_vertical_shaft_is_gravity_blind_the_whole_time(yaw, tmp_path):
     cfg = yaml.safe_load(resolve_config_path("imu_rig_yaw").read_text(encoding="utf-8"))
     path = tmp_path / "yaw-calibrated.yaml"
     path.write_text(yaml.safe_dump(config_with_estimates(cfg, d.fit)), encoding="utf-8")
-    tr, _ = start_from_recording(load_arm(path), yaw, moving_start=True, propose_unlock=False)
+    tr, _ = start_from_recording(load_arm(path), yaw,
+                                 options=StartOptions(moving_start=True, propose_unlock=False))
     run = tr.run(yaw, truth=False)
     assert np.all(run.flags[:, 0] == FLAG_CODE["gimbal_lock"])
 
@@ -166,7 +167,8 @@ def test_the_tracker_keeps_the_calibrations_convention_for_the_zero(roll_calibra
     # is the other half of the zero's doubt: a convention too, and nothing else is
     assert set(conventions) <= {"frame.accel_bias[z]", "shaft.accel_axes[y.gamma]",
                                 "shaft.accel_axes[z.beta]"}
-    tr, _ = start_from_recording(calibrated, scored, moving_start=True, propose_unlock=False)
+    tr, _ = start_from_recording(calibrated, scored,
+                                 options=StartOptions(moving_start=True, propose_unlock=False))
     run = tr.run(scored, truth=False)
     err_deg = _error_deg(run, scored, zero_rad)
     last = run.t_s > run.t_s[-1] - 2.0
@@ -190,7 +192,8 @@ def test_the_encoder_withheld_the_gyros_and_gravity_carry_the_shaft(roll_calibra
     withheld = with_gyro_encoder(calibrated, scored, 0, gcal)
     assert not np.array_equal(withheld.get("enc").values, scored.get("enc").values)
     settings = settings_with_gyro_encoder(None, gcal)
-    tr, _ = start_from_recording(calibrated, withheld, settings, moving_start=True, propose_unlock=False)
+    tr, _ = start_from_recording(calibrated, withheld, settings,
+                                 options=StartOptions(moving_start=True, propose_unlock=False))
     run = tr.run(withheld, truth=False)
     err_deg = _error_deg(run, scored, zero_rad)
     assert np.sqrt(np.mean(err_deg**2)) < 1.5 and err_deg.max() < 3.0
@@ -231,8 +234,9 @@ def test_the_sigma_relative_to_the_calibration_leaves_out_only_the_zeros_shared_
     calibrated, zero_rad, _, scored = roll_calibrated
     runs = {}
     for given in (False, True):
-        tr, _ = start_from_recording(calibrated, scored, moving_start=True, propose_unlock=False,
-                                     sigma_given_conventions=given)
+        tr, _ = start_from_recording(calibrated, scored,
+                                     options=StartOptions(moving_start=True, propose_unlock=False,
+                                                          sigma_given_conventions=given))
         runs[given] = tr.run(scored, truth=False)
     absolute, relative = runs[False], runs[True]
     # the same angle: the startup's first instants differ by the doubt each takes (a few
@@ -255,8 +259,9 @@ def test_the_stepper_s_vibration_is_noise_and_the_sigma_is_tight_against_the_cal
     cal = calibrated.calibration
     datasheet_g = 400e-6 * np.sqrt(50.0)  # the MPU-6050's 400 µg/√Hz over half the 100 Hz rate
     assert cal.accel_fast_error_g("shaft") > max(cal.accel_floor_g("shaft"), 3 * datasheet_g)
-    tr, _ = start_from_recording(calibrated, scored, moving_start=True, propose_unlock=False,
-                                 sigma_given_conventions=True)
+    tr, _ = start_from_recording(calibrated, scored,
+                                 options=StartOptions(moving_start=True, propose_unlock=False,
+                                                      sigma_given_conventions=True))
     run = tr.run(scored, truth=False)
     err_deg = _error_deg(run, scored, zero_rad)
     sig_deg = np.degrees(run.sigma_rad[:, 0])

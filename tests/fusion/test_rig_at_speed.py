@@ -16,7 +16,12 @@ import numpy as np
 import pytest
 from armfusion.fusion.configfile import load_arm, resolve_config_path
 from armfusion.fusion.tracking.settings import FLAG_CODE
-from armfusion.fusion.tracking.start import NoStillWindowError, moving_window, start_from_recording
+from armfusion.fusion.tracking.start import (
+    NoStillWindowError,
+    StartOptions,
+    moving_window,
+    start_from_recording,
+)
 from armfusion.models.rotations import DEG, R_from_rpy
 from armfusion.models.simulator import simulate
 from armfusion.models.trajectories import Scenario, SinePath, StepsBuilder, WaypointPath
@@ -79,7 +84,7 @@ def test_a_vertical_shaft_spun_fast_on_a_shaking_frame_is_never_confidently_wron
     sc = Scenario("fast-vertical", arm, 30.0, SinePath([90 * DEG], [amplitude], [freq], [0.0], 1.0, 1.0),
                   ShakingFrame(1.0), _constant_temperature)
     rec, _ = simulate(arm, sc, seed=3)
-    tr, start = start_from_recording(arm, rec, moving_start=True, propose_unlock=False)
+    tr, start = start_from_recording(arm, rec, options=StartOptions(moving_start=True, propose_unlock=False))
     assert start.notes[0].startswith("no still stretch")
     run = tr.run(rec, truth=True)
     flags, sigma = run.flags[:, 0], run.sigma_rad[:, 0]
@@ -105,7 +110,7 @@ def test_the_wmra_spinning_a_vertical_joint_fast_on_a_shaking_chair_creates_no_i
                   ShakingFrame(0.5, 9.1, 0.001), _constant_temperature)
     rec, _ = simulate(arm, sc, seed=5)
     # the shaking chair is never still: the start takes the arm's least-moving instants
-    tr, start = start_from_recording(arm, rec, moving_start=True, propose_unlock=False)
+    tr, start = start_from_recording(arm, rec, options=StartOptions(moving_start=True, propose_unlock=False))
     assert start.startup.joints[2].flag in ("gimbal_lock", "ill_conditioned")  # (the shaking's tilt)
     run = tr.run(rec, truth=True)
     j = 2
@@ -153,7 +158,7 @@ def test_a_moving_start_skips_instants_a_sensor_reads_beyond_the_range_of_gravit
     assert not (seg2.t_start_s <= seg.t_end_s + 0.1 and seg2.t_end_s >= seg.t_start_s - 0.1)
     assert "shaft" in readings.accel_mean_g and not checks
     assert "every accelerometer can be used" in note
-    tr, start = start_from_recording(arm, over, moving_start=True, propose_unlock=False)
+    tr, start = start_from_recording(arm, over, options=StartOptions(moving_start=True, propose_unlock=False))
     assert start.startup.joints[0].angle_rad is not None
 
 
@@ -162,7 +167,7 @@ def test_a_moving_start_says_plainly_when_no_instant_can_be_used(moving_rig):
     acc = rec.get("shaft")
     over = _scaled(rec, "shaft", np.ones(len(acc), bool), 1.3)
     with pytest.raises(NoStillWindowError, match="shaft never is: nothing to start from"):
-        start_from_recording(arm, over, moving_start=True, propose_unlock=False)
+        start_from_recording(arm, over, options=StartOptions(moving_start=True, propose_unlock=False))
 
 
 # ------------------------------------------------------------------ the gyros' stand-in at speed
@@ -204,8 +209,8 @@ def test_the_gyros_stand_in_for_the_encoder_at_speed_keeps_its_sigma_honest(tmp_
     gcal = calibrate_gyro_encoder(arm, rec.between(t0, t0 + 20.0), 0)
     later = rec.between(t0 + 20.0, np.inf)
     withheld = with_gyro_encoder(arm, later, 0, gcal)
-    tr, _ = start_from_recording(arm, withheld, settings_with_gyro_encoder(None, gcal), moving_start=True,
-                                 propose_unlock=False)
+    tr, _ = start_from_recording(arm, withheld, settings_with_gyro_encoder(None, gcal),
+                                 options=StartOptions(moving_start=True, propose_unlock=False))
     run = tr.run(withheld, truth=True)
     err = np.angle(np.exp(1j * run.q_error_rad[:, 0]))
     assert np.all(np.abs(err) <= 3 * run.sigma_rad[:, 0])

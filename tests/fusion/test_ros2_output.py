@@ -18,7 +18,7 @@ from armfusion.fusion.ros2.conventions import enu_quaternion_xyzw
 from armfusion.fusion.ros2.estimates_bag import BASE_FRAME, HEADING_LEVEL, JOINT_LEVEL, TOPICS
 from armfusion.fusion.tracking.estimate import HEADING_STATUS
 from armfusion.fusion.tracking.settings import JOINT_FLAGS
-from armfusion.fusion.tracking.tracker import start_from_recording
+from armfusion.fusion.tracking.tracker import StartOptions, start_from_recording
 from armfusion.models.rotations import R_from_rpy, rot_z
 from armfusion.models.simulator import simulate
 from mcap.reader import make_reader
@@ -86,7 +86,7 @@ def tracked(tmp_path_factory):
     learnt), tracked; its estimates written as CSV and as a ROS 2 bag."""
     arm = load_arm("wmra")
     rec, _ = simulate(arm, "compass-turn", seed=2)
-    tr, _ = start_from_recording(arm, rec, propose_unlock=False)
+    tr, _ = start_from_recording(arm, rec, options=StartOptions(propose_unlock=False))
     run = tr.run(rec)
     d = tmp_path_factory.mktemp("ros2")
     write_estimates(run, d / "est.ros2.mcap", arm.source)

@@ -13,7 +13,7 @@ import pytest
 import yaml
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.tracking.filter import Tracker
-from armfusion.fusion.tracking.frames import make_frames
+from armfusion.fusion.tracking.frames import BaseTurn, JointMotion, make_frames
 from armfusion.fusion.tracking.process import gyro_newer_weight
 from armfusion.fusion.tracking.start import delay_notes
 from armfusion.models.arm_config import ConfigError
@@ -87,9 +87,9 @@ def test_a_late_accelerometer_is_turned_to_its_stamp():
     assert d == 0.00175  # half broad_imu's period: a decimating part's
     tr = Tracker(arm)
     w = np.radians([300.0, -200.0, 100.0])  # a hand turning the sensor fast
-    frame = tr.measurements.with_noise(make_frames(arm, tr.accel_names, np.zeros((1, 0)), np.zeros(0),
-                                                   np.zeros((1, 0)), np.zeros((1, 0)), w[None],
-                                                   np.zeros((1, 3))).take(0))
+    none = np.zeros((1, 0))  # (an arm with no joints)
+    frame = tr.measurements.with_noise(make_frames(arm, tr.accel_names, JointMotion(none, none, none),
+                                                   np.zeros(0), BaseTurn(w[None], np.zeros((1, 3)))).take(0))
     # the specific force at the stamp (gravity up, and an acceleration steady in the world),
     # in the sensor's axes; the reading is it as it was d earlier, in the axes of then
     f_now = up_from_tilt(0.3, -0.2) + np.array([0.5, -0.3, 0.2]) / GRAVITY_MPS2

@@ -21,9 +21,12 @@ from armfusion.fusion.tracking.tracker import (
     COUNTERS,
     FLAG_CODE,
     JOINT_FLAGS,
+    BaseTurn,
     Frames,
+    JointMotion,
     NoStillWindowError,
     NotInitialisedError,
+    StartOptions,
     Tracker,
     TrackerSettings,
     causal_fits,
@@ -115,8 +118,8 @@ def test_product_of_exponentials_prediction_equals_the_motion_model(arm, rng):
     tr = Tracker(arm)
     q, qd, qdd = POSE, rng.normal(0, 0.5, 7), rng.normal(0, 1.0, 7)
     w, wd = rng.normal(0, 0.3, 3), rng.normal(0, 1.0, 3)
-    fr = make_frames(arm, tr.accel_names, q[None], np.zeros(7), qd[None], qdd[None], w[None],
-                     wd[None]).take(0)
+    fr = make_frames(arm, tr.accel_names, JointMotion(q[None], qd[None], qdd[None]), np.zeros(7),
+                     BaseTurn(w[None], wd[None])).take(0)
     L = tr.layout
     X = np.zeros((9, L.size))
     X[:, L.offset] = rng.normal(0, 1e-3, (9, 7))  # a wide spread of sigma points: 0.06°
@@ -140,8 +143,8 @@ def test_product_of_exponentials_prediction_equals_the_motion_model(arm, rng):
     ms0 = ms.replace(qd_rad_s=np.zeros((9, 7)), qdd_rad_s2=np.zeros((9, 7)),
                      omega_B_rad_s=np.zeros((9, 3)), omega_dot_B_rad_s2=np.zeros((9, 3)),
                      accel_B_mps2=X[:, L.accel])  # (no turn: no swing)
-    fr0 = make_frames(arm, tr.accel_names, q[None], np.zeros(7), np.zeros((1, 7)), np.zeros((1, 7)),
-                      np.zeros((1, 3)), np.zeros((1, 3))).take(0)
+    fr0 = make_frames(arm, tr.accel_names, JointMotion(q[None], np.zeros((1, 7)), np.zeros((1, 7))),
+                      np.zeros(7), BaseTurn(np.zeros((1, 3)), np.zeros((1, 3)))).take(0)
     np.testing.assert_allclose(tr.measurements.h_all(X, fr0, np.arange(5), None).reshape(9, 5, 3),
                                specific_force(arm, ms0, list(tr.accel_names)), atol=1e-12)
 
@@ -987,12 +990,14 @@ def test_an_arm_that_never_stands_still_starts_on_its_least_moving_instants(arm)
     rec, _ = simulate(arm, scenario(arm, 25.0, jp, ParkedBase(0.02, -0.01, 1.0)), seed=11)
     with pytest.raises(NoStillWindowError, match="no still stretch"):
         start_from_recording(arm, rec, prior_q_rad=POSE + 0.05)
-    tr, start = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05, moving_start=True)
+    tr, start = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05,
+                                     options=StartOptions(moving_start=True))
     assert any(n.startswith("no still stretch near the start: started on the moving arm")
                for n in start.notes)
     assert start.t_start_s < rec.t_start_s + 5.0  # at the recording's start
-    _, later = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05, start_at_s=rec.t_start_s + 12.0,
-                                    propose_unlock=False)
+    _, later = start_from_recording(arm, rec, prior_q_rad=POSE + 0.05,
+                                    options=StartOptions(start_at_s=rec.t_start_s + 12.0,
+                                                         propose_unlock=False))
     assert rec.t_start_s + 12.0 <= later.t_start_s < rec.t_start_s + 17.0  # from where it is asked to
     run = tr.run(rec)
     late = run.t_s > 15.0

@@ -15,7 +15,7 @@ import pytest
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.tracking.process_kernels import process_points
 from armfusion.fusion.tracking.settings import StateLayout
-from armfusion.fusion.tracking.tracker import G, Tracker, make_frames
+from armfusion.fusion.tracking.tracker import BaseTurn, G, JointMotion, Tracker, make_frames
 from armfusion.fusion.tracking.tracker_kernels import measurement_points
 
 from tools.bench_track_numpy import measurement_points_numpy, process_points_numpy
@@ -27,8 +27,9 @@ def setup():
     tr = Tracker(arm)
     rng = np.random.default_rng(7)
     q = rng.normal(0, 1, (1, 7))
-    fr = make_frames(arm, tr.accel_names, q, rng.normal(0, 0.1, 7), rng.normal(0, 0.5, (1, 7)),
-                     rng.normal(0, 1, (1, 7)), rng.normal(0, 0.3, (1, 3)), rng.normal(0, 1, (1, 3))).take(0)
+    offset, qd, qdd = rng.normal(0, 0.1, 7), rng.normal(0, 0.5, (1, 7)), rng.normal(0, 1, (1, 7))
+    w, wd = rng.normal(0, 0.3, (1, 3)), rng.normal(0, 1, (1, 3))
+    fr = make_frames(arm, tr.accel_names, JointMotion(q, qd, qdd), offset, BaseTurn(w, wd)).take(0)
     L = tr.layout
     X = rng.normal(0, 0.05, (39, L.size))
     X[:, L.offset] += fr.offset_ref

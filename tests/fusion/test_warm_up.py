@@ -6,7 +6,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 from armfusion.fusion.tracking import frame_kernels, process_kernels, tracker_kernels, ukf_kernels
-from armfusion.fusion.tracking.tracker import start_from_recording, warm_up
+from armfusion.fusion.tracking.tracker import StartOptions, start_from_recording, warm_up
 from armfusion.models.simulator import simulate
 
 
@@ -26,7 +26,7 @@ def test_the_warm_up_compiles_what_the_live_path_uses(wmra):
     assert sum(before.values()) >= 8  # the models, the filter's stages, the frame, the fits
     # another arm state, another scene, sample by sample as a node fuses them
     rec, _ = simulate(wmra, "static-poses", 6.0, seed=3)
-    tr, _ = start_from_recording(wmra, rec, propose_unlock=False)
+    tr, _ = start_from_recording(wmra, rec, options=StartOptions(propose_unlock=False))
     names = [s for s in tr.sensor_names if s in rec.streams]
     t = rec.get("enc").t_s
     for i in range(int(np.searchsorted(t, tr.t_s + 1e-9)), len(t)):

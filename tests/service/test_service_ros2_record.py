@@ -20,7 +20,7 @@ from armfusion.fusion.ros2.from_records import RecordsError, run_from_records, w
 from armfusion.fusion.service import payloads as pl
 from armfusion.fusion.tracking.estimate import HEADING_STATUS
 from armfusion.fusion.tracking.settings import JOINT_FLAGS, SENSOR_STATUS
-from armfusion.fusion.tracking.tracker import start_from_recording
+from armfusion.fusion.tracking.tracker import StartOptions, start_from_recording
 from armfusion.models.simulator import simulate
 from mcap.reader import make_reader
 
@@ -37,7 +37,7 @@ def tracked(tmp_path_factory):
     """A simulated WMRA turning on the spot (its heading's status changes), tracked."""
     arm = load_arm("wmra")
     rec, _ = simulate(arm, "compass-turn", seed=2)
-    tr, _ = start_from_recording(arm, rec, propose_unlock=False)
+    tr, _ = start_from_recording(arm, rec, options=StartOptions(propose_unlock=False))
     return arm, tr.run(rec), tmp_path_factory.mktemp("ros2rec")
 
 
