@@ -26,10 +26,10 @@ def hub_settings():
 @pytest.fixture(scope="session")
 def startup_recording(tmp_path_factory):
     """4 s of the WMRA's startup scenario at 100 Hz, as MCAP."""
-    from armfusion.fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import SimulationOptions, simulate
 
     out = tmp_path_factory.mktemp("rec") / "startup.mcap"
-    simulate("wmra", "startup", out, duration_s=4.0, rate_hz=100.0, seed=3)
+    simulate("wmra", "startup", out, SimulationOptions(duration_s=4.0, rate_hz=100.0, seed=3))
     return out
 
 
