@@ -242,9 +242,6 @@ _KERNEL = "a compiled (numba) kernel: one loop, split only with its speed measur
 
 OVERSIZED: dict[str, str] = {
     # name -> why it is still over the rule; remove a line when its entry is split
-    "armfusion.fusion.cli.demo_report:write_report": _COMMAND,
-    "armfusion.fusion.cli.diagnose_report:report_figures": _COMMAND,
-    "armfusion.fusion.cli.diagnose_report:write_report": _COMMAND,
     "armfusion.fusion.identification.data": "every sensor kind's rows from a recording; to split by kind",
     "armfusion.fusion.identification.data:data_from_recording": _NUMERIC,
     "armfusion.fusion.identification.identify:identify": _NUMERIC,
