@@ -242,9 +242,6 @@ _KERNEL = "a compiled (numba) kernel: one loop, split only with its speed measur
 
 OVERSIZED: dict[str, str] = {
     # name -> why it is still over the rule; remove a line when its entry is split
-    "armfusion.fusion.cli.demo_report:write_report": _COMMAND,
-    "armfusion.fusion.cli.diagnose_report:report_figures": _COMMAND,
-    "armfusion.fusion.cli.diagnose_report:write_report": _COMMAND,
     "armfusion.fusion.identification.data": "every sensor kind's rows from a recording; to split by kind",
     "armfusion.fusion.identification.data:data_from_recording": _NUMERIC,
     "armfusion.fusion.identification.identify:identify": _NUMERIC,
@@ -336,32 +333,19 @@ _TO_RECORD = "positional values that travel together; to become a typed record"
 MANY_PARAMETERS: dict[str, tuple[int, str]] = {
     # name -> (its parameter count today, why); remove a line when its entry takes at most the limit
     "armfusion.fusion.cli.calibrate_joints:calibrate_joints": (13, _COMMAND_OPTIONS),
-    "armfusion.fusion.cli.calibrate_sensors:_model_and_data": (9, _TO_RECORD),
     "armfusion.fusion.cli.calibrate_sensors:calibrate_sensors": (12, _COMMAND_OPTIONS),
     "armfusion.fusion.cli.demo:demo_command": (11, _COMMAND_OPTIONS),
-    "armfusion.fusion.cli.demo:run_live": (9, _TO_RECORD),
     "armfusion.fusion.cli.diagnose:diagnose_command": (13, _COMMAND_OPTIONS),
-    "armfusion.fusion.cli.diagnose_write:write_config": (9, _TO_RECORD),
-    "armfusion.fusion.cli.drivers:_run": (14, _TO_RECORD),
     "armfusion.fusion.cli.drivers:drivers_command": (22, _COMMAND_OPTIONS),
-    "armfusion.fusion.cli.drivers_run:_sample": (10, _TO_RECORD),
-    "armfusion.fusion.cli.drivers_run:run_fake": (16, _TO_RECORD),
     "armfusion.fusion.cli.fleet:fleet_command": (11, _COMMAND_OPTIONS),
     "armfusion.fusion.cli.fleet:monitor_command": (10, _COMMAND_OPTIONS),
     "armfusion.fusion.cli.nodes:record_command": (10, _COMMAND_OPTIONS),
     "armfusion.fusion.cli.nodes:replay_command": (11, _COMMAND_OPTIONS),
     "armfusion.fusion.cli.nodes:serve_command": (17, _COMMAND_OPTIONS),
     "armfusion.fusion.cli.plan_maneuver:plan_command": (9, _COMMAND_OPTIONS),
-    "armfusion.fusion.cli.plan_maneuver:run_plan": (10, _TO_RECORD),
     "armfusion.fusion.cli.simulate:register.simulate_command": (12, _COMMAND_OPTIONS),
-    "armfusion.fusion.cli.simulate:simulate": (12, _TO_RECORD),
-    "armfusion.fusion.cli.track:_start_and_run": (10, _TO_RECORD),
     "armfusion.fusion.cli.track:track": (13, _COMMAND_OPTIONS),
     "armfusion.fusion.importing.run:stream_of": (9, _TO_RECORD),
-    "armfusion.fusion.service.replay:replay": (9, _TO_RECORD),
-    "armfusion.fusion.service.serve:FusionNode.__init__": (22, _TO_RECORD),
-    "armfusion.fusion.service.state_file:resume_problem": (11, _TO_RECORD),
-    "armfusion.fusion.service.state_file:resumed_tracker": (10, _TO_RECORD),
     "armfusion.fusion.workbench.candidates:_refit": (9, _TO_RECORD),
     "armfusion.fusion.workbench.scores:_gauges": (9, _TO_RECORD),
 }

@@ -18,7 +18,7 @@ the fit (a contradiction writes nothing) and is recorded in the written config.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated
 
@@ -164,8 +164,8 @@ def calibrate_sensors(
         encoder_steps=True)
     # the drive read before the fit, not after a minute of it (/dev/zero, a FIFO, a damaged file)
     drive_rec = read_recording_or_exit(compass_drive, arm) if compass_drive is not None else None
-    model, data = _model_and_data(arm, rec, effects, window, stances, base_tilt, base_tilt_sigma,
-                                  reference, mode)
+    fit = FitOptions(mode, effects, window, stances, base_tilt, base_tilt_sigma, tuple(reference or ()))
+    model, data = _model_and_data(arm, rec, fit)
     if not json_out:
         err_console.print(f"fitting {model.size} parameters on {data.n:,} points ({data.note})…")
     settings = IdentifySettings(encoder_scale=True)
@@ -209,22 +209,40 @@ def calibrate_sensors(
         console.print(compass_line)
 
 
-def _model_and_data(arm, rec, effects, window: int, stances, base_tilt, base_tilt_sigma, reference,
-                    mode: str) -> tuple:
+@dataclass(frozen=True)
+class FitOptions:
+    """What ``calibrate sensors`` is told besides the recording: the fit's ``mode``
+    (``simultaneous`` or ``separate``), the ``effects`` to fit (``--effects``; ``None``: the
+    config's, else all), ``window`` samples averaged per fit point, the chair's ``stances``
+    fitted each with its own base attitude; and the installer's one-time references: the
+    base's tilt ``base_tilt`` (``"ROLL,PITCH"`` in degrees, ``None``: none) read by an
+    inclinometer of σ ``base_tilt_sigma_deg``, and the joints' angles ``references``
+    (``--reference`` specs)."""
+
+    mode: str = "simultaneous"
+    effects: str | None = None
+    window: int = 25
+    stances: bool = True
+    base_tilt: str | None = None
+    base_tilt_sigma_deg: float = 0.05
+    references: tuple[str, ...] = ()
+
+
+def _model_and_data(arm, rec, fit: FitOptions) -> tuple:
     """The model of the effects to fit and the fit's data (with the base tilt's and the joints'
     one-time references given), or exit 2 saying why there are none."""
     try:
-        model = build_model(arm, effects)
-        data = data_from_recording(arm, rec, window, nodes=2, stances=stances)
-        if base_tilt is not None:
-            data = replace(data, base_tilt_reference=parse_base_tilt(base_tilt, base_tilt_sigma))
-        if reference:
-            if mode == "separate":
+        model = build_model(arm, fit.effects)
+        data = data_from_recording(arm, rec, fit.window, nodes=2, stances=fit.stances)
+        if fit.base_tilt is not None:
+            data = replace(data, base_tilt_reference=parse_base_tilt(fit.base_tilt, fit.base_tilt_sigma_deg))
+        if fit.references:
+            if fit.mode == "separate":
                 raise ValueError("--reference pins a joint's zero in the simultaneous fit; --mode "
                                  "separate compares each sensor's gravity direction and has no use "
                                  "for it")
             data = replace(data, joint_references=joint_references(
-                arm, rec, [parse_reference(r) for r in reference]))
+                arm, rec, [parse_reference(r) for r in fit.references]))
     except ValueError as e:
         fail(str(e))
     return model, data

@@ -245,3 +245,13 @@ def progress_bar(description: str, json_out: bool) -> Iterator[Callable[[float, 
             bar.update(task, completed=min(max(float(fraction), 0.0), 1.0), **kw)
 
         yield advance
+
+
+def png_img(figs: dict[str, bytes], name: str) -> str:
+    """The figure ``name`` of ``figs`` (PNG bytes) as an HTML ``<img>`` holding it inline, for a
+    report that is one file; nothing when there is no such figure."""
+    import base64
+
+    if name not in figs:
+        return ""
+    return f'<img alt="{name}" src="data:image/png;base64,{base64.b64encode(figs[name]).decode()}">'

@@ -117,7 +117,7 @@ def calibrate(workdir: Path, seed: int, duration_s: float | None, realistic: boo
     on the spot (:data:`COMPASS_SCENARIO`) and identify the sensors' errors, the compass's
     iron from the turn: the calibrated config, the identification's JSON, the recording and
     what was played and referenced."""
-    from armfusion.fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import SimulationOptions, simulate
     from armfusion.fusion.configfile import load_arm
     from armfusion.fusion.identification.planner import safe_maneuver
     from armfusion.fusion.identification.truth import installer_reference
@@ -145,12 +145,12 @@ def calibrate(workdir: Path, seed: int, duration_s: float | None, realistic: boo
     say(f"simulating the planned calibration maneuver ({source.name}, {plan.duration_s:.1f} s, "
         f"{len(plan.poses_rad)} poses)")
     try:
-        simulate("wmra", "planned", rec, seed=seed, realistic=realistic, maneuver=played)
+        simulate("wmra", "planned", rec, SimulationOptions(seed=seed, realistic=realistic, maneuver=played))
     except ValueError as e:
         raise DemoError(f"the calibration maneuver {source.name[:60]}: {e}") from None
     drive = workdir / "compass-turn.mcap"
     say(f"simulating one turn of the chair on the spot ({COMPASS_SCENARIO}: the compass's iron)")
-    simulate("wmra", COMPASS_SCENARIO, drive, seed=seed, realistic=realistic)
+    simulate("wmra", COMPASS_SCENARIO, drive, SimulationOptions(seed=seed, realistic=realistic))
     refs = installer_reference(arm, read_recording(rec), REFERENCE_JOINTS, REFERENCE_SIGMA_DEG, seed,
                                None if realistic else [])
     given = [f"{j}={math.degrees(a):.9f}:{math.degrees(sg):g}" for j, a, sg, _ in refs]
@@ -188,10 +188,24 @@ def _wait_until_serving(record, serve) -> None:
         raise DemoError(f"the {name} did not start: {child.stderr_tail()}")
 
 
-def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, scenario: str,
-             realistic: bool, ch: Children, progress, batch_ms: float = 20.0) -> dict[str, Any]:
-    """Router, recorder, fusion node and drivers as processes; returns what each reported
-    and what the demo's consumer received."""
+@dataclass(frozen=True)
+class LiveDrive:
+    """The demo's live run: the fake drivers play ``duration_s`` (wall clock) of ``scenario``
+    from ``seed``, with ``realistic`` sensor errors or none, publishing a batch every
+    ``batch_ms``; the fusion node and the recorder run with ``config``."""
+
+    config: Path | str
+    scenario: str
+    duration_s: float
+    seed: int
+    realistic: bool
+    batch_ms: float = 20.0
+
+
+def run_live(workdir: Path, drive: LiveDrive, ch: Children, progress) -> dict[str, Any]:
+    """Router, recorder, fusion node and drivers as processes (``ch``), the drivers as
+    ``drive`` says, ``progress`` told what was received as it comes; returns what each
+    reported and what the demo's consumer received."""
     import zenoh
     from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session
 
@@ -201,9 +215,9 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
     if not r.wait_for_line("listening", 60.0):
         raise DemoError(f"the router did not start: {r.stderr_tail()}")
     rec_path = workdir / "demo.mcap"
-    record = ch.start("record", ["record", str(rec_path), "--robot", ROBOT, "--config", str(config),
-                                 "--json", *client])
-    serve = ch.start("serve", ["serve", "--config", str(config), "--robot", ROBOT, "--json", *client])
+    config = str(drive.config)
+    record = ch.start("record", ["record", str(rec_path), "--robot", ROBOT, "--config", config, "--json", *client])
+    serve = ch.start("serve", ["serve", "--config", config, "--robot", ROBOT, "--json", *client])
     serve_t0 = time.monotonic()
     watched = Watched()
     truth_path = workdir / "drivers.mcap"
@@ -213,10 +227,10 @@ def run_live(workdir: Path, config: Path | str, seed: int, duration_s: float, sc
         # the drivers once both subscribe: every sample published reaches both
         _wait_until_serving(record, serve)
         drivers = ch.start("drivers", [
-            "drivers", "--fake", "--realtime", "--scenario", scenario, "--seed", str(seed),
-            "--duration", str(duration_s), "--robot", ROBOT, "--wait", "60", "--out", str(truth_path),
-            "--batch-ms", str(batch_ms),
-            "--json", *(["--realistic"] if realistic else []), *client])
+            "drivers", "--fake", "--realtime", "--scenario", drive.scenario, "--seed", str(drive.seed),
+            "--duration", str(drive.duration_s), "--robot", ROBOT, "--wait", "60", "--out", str(truth_path),
+            "--batch-ms", str(drive.batch_ms),
+            "--json", *(["--realistic"] if drive.realistic else []), *client])
         while drivers.running:
             progress(watched)
             time.sleep(0.25)
@@ -370,7 +384,7 @@ def demo_command(
         with Children(out / "nodes") as ch:
             if calibrate_sensors:
                 with err_console.status("calibrating the sensors…", spinner="dots") if show \
-                        else _nothing():
+                        else contextlib.nullcontext():
                     config, identification, calibration_rec, played = calibrate(
                         out, seed, calibration_s, realistic, ch, say, maneuver)
                 timings["calibration_s"] = time.monotonic() - t0
@@ -382,8 +396,8 @@ def demo_command(
                 f"({duration_s:g} s of {scenario})")
             t1 = time.monotonic()
             with _live_bar(duration_s, show) as progress:
-                live = run_live(out, config, seed, duration_s, scenario, realistic, ch, progress,
-                                batch_ms)
+                live = run_live(out, LiveDrive(config, scenario, duration_s, seed, realistic, batch_ms), ch,
+                                progress)
             timings["live_s"] = time.monotonic() - t1
     except DemoError as e:
         fail(str(e))
@@ -395,7 +409,7 @@ def demo_command(
     diag = ladder = None
     if run_workbench and calibration_rec is not None:
         with err_console.status("the workbench: diagnosing the calibration recording…") if show \
-                else _nothing():
+                else contextlib.nullcontext():
             diag, ladder = workbench(calibration_rec, identification)
     doc = {"seed": seed, "realistic": realistic, "scenario": scenario, "duration_s": duration_s,
            "config": str(config), "out": str(out), "recording": str(live["recording"]),
@@ -480,11 +494,3 @@ def register(app: typer.Typer) -> None:
     """Add the commands of :data:`COMMAND_TABLE` to ``app``."""
     for name, command in COMMAND_TABLE:
         app.command(name)(command)
-
-
-class _nothing:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        return None

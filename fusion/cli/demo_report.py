@@ -4,14 +4,13 @@ and the summary table for the terminal, both from the evaluation's document."""
 
 from __future__ import annotations
 
-import base64
 import html
 from collections import Counter
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from armfusion.fusion.cli.common import console
+from armfusion.fusion.cli.common import console, png_img
 from armfusion.fusion.tracking.tracker import truth_at
 from armfusion.models.rotations import wrap_angle
 
@@ -239,6 +238,55 @@ def tracking_figures(ev: dict[str, Any]) -> dict[str, bytes]:
     return figs
 
 
+def _esc(x) -> str:
+    """``x`` as text, escaped for HTML."""
+    return html.escape(str(x))
+
+
+def _joint_rows(ev: dict[str, Any]) -> str:
+    """The accuracy table's rows: per joint, the startup's error, σ and flag, the tracking's
+    errors, the share within 3σ, the first ok estimate and the flags seen."""
+    tr, esc = ev["tracking"], _esc
+    return "".join(
+        f"<tr><td>{esc(n)}</td><td>{ev['startup']['joints'][n]['error_deg']:+.3f}</td>"
+        f"<td>{ev['startup']['joints'][n]['sigma_deg']:.3f}</td><td>{esc(ev['startup']['joints'][n]['flag'])}</td>"
+        f"<td>{tr['rms_error_deg'][n]:.3f}</td><td>{tr['max_error_deg'][n]:.3f}</td>"
+        f"<td>{100 * tr['within_3_sigma'][n]:.0f} %</td>"
+        + ("<td>never ok</td><td>—</td>" if tr["from_first_ok"][n] is None else
+           f"<td>{tr['from_first_ok'][n]['t_s']:.1f}</td><td>{tr['from_first_ok'][n]['rms_error_deg']:.3f}</td>")
+        + f"<td>{esc(', '.join(f'{k} {v}' for k, v in ev['flags_seen'][n].items()))}</td></tr>"
+        for n in ev["joint_names"])
+
+
+def _workbench_section(doc: dict[str, Any], diag, ladder, figs: dict[str, bytes]) -> str:
+    """What the workbench said of the calibration recording (the shipped model's residual, the
+    best candidate's evidence, the identified model's residual) with its figures; or that it
+    was not run."""
+    if diag is None:
+        return "<p>The workbench was not run (--no-workbench).</p>"
+    esc = _esc
+    best = diag.candidates[0] if diag.candidates and diag.candidates[0].significant else None
+    return (f"<p>On the calibration recording (<code>{esc(doc['calibration']['recording'])}"
+            f"</code>), the shipped model (no sensor errors) leaves a residual of "
+            f"<b>{diag.rms_ratio:.1f}×</b> the sensors' noise: <b>{esc(diag.verdict)}</b>."
+            + (f" {esc(best.evidence)}." if best else "")
+            + " With the identified effects the fit's residual is "
+            f"<b>{ladder[-1]['rms_ratio']:.2f}×</b> the noise (the identification's fit on the "
+            "same window means).</p>"
+            + png_img(figs, "wb_ladder") + png_img(figs, "wb_candidates"))
+
+
+def _machine_words(ev: dict[str, Any]) -> str:
+    """The fusion node's CPU time and the machine's load, with what the node does when short
+    of CPU; nothing when not measured."""
+    m = ev.get("machine") or {}
+    return "" if m.get("serve_cpu_s") is None else (
+        f"<p>The fusion node used {m['serve_cpu_s']:.0f} CPU-s in {m['serve_wall_s']:.0f} s of wall time; "
+        f"load average {m['load_average_1min']:.1f} on {m['cpus']} CPUs. With too little CPU the fusion "
+        "node degrades rather than lag: it folds late instants into fewer updates, publishes fewer "
+        "estimates and says <code>degraded</code> with its lag in its status.</p>")
+
+
 def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladder) -> Path:
     """One self-contained HTML file: the summary, the tracking plots, the workbench."""
     figs = tracking_figures(ev)
@@ -249,42 +297,15 @@ def write_report(path: Path, doc: dict[str, Any], ev: dict[str, Any], diag, ladd
         figs.update({f"wb_{k}": v for k, v in wb.items() if k in ("ladder", "candidates")})
 
     def img(name: str) -> str:
-        if name not in figs:
-            return ""
-        return f'<img alt="{name}" src="data:image/png;base64,{base64.b64encode(figs[name]).decode()}">'
+        return png_img(figs, name)
 
-    def esc(x) -> str:
-        return html.escape(str(x))
-
+    esc = _esc
     tr = ev["tracking"]
-    rows = "".join(
-        f"<tr><td>{esc(n)}</td><td>{ev['startup']['joints'][n]['error_deg']:+.3f}</td>"
-        f"<td>{ev['startup']['joints'][n]['sigma_deg']:.3f}</td><td>{esc(ev['startup']['joints'][n]['flag'])}</td>"
-        f"<td>{tr['rms_error_deg'][n]:.3f}</td><td>{tr['max_error_deg'][n]:.3f}</td>"
-        f"<td>{100 * tr['within_3_sigma'][n]:.0f} %</td>"
-        + ("<td>never ok</td><td>—</td>" if tr["from_first_ok"][n] is None else
-           f"<td>{tr['from_first_ok'][n]['t_s']:.1f}</td><td>{tr['from_first_ok'][n]['rms_error_deg']:.3f}</td>")
-        + f"<td>{esc(', '.join(f'{k} {v}' for k, v in ev['flags_seen'][n].items()))}</td></tr>"
-        for n in ev["joint_names"])
-    wb_html = "<p>The workbench was not run (--no-workbench).</p>"
-    if diag is not None:
-        best = diag.candidates[0] if diag.candidates and diag.candidates[0].significant else None
-        wb_html = (f"<p>On the calibration recording (<code>{esc(doc['calibration']['recording'])}"
-                   f"</code>), the shipped model (no sensor errors) leaves a residual of "
-                   f"<b>{diag.rms_ratio:.1f}×</b> the sensors' noise: <b>{esc(diag.verdict)}</b>."
-                   + (f" {esc(best.evidence)}." if best else "")
-                   + " With the identified effects the fit's residual is "
-                   f"<b>{ladder[-1]['rms_ratio']:.2f}×</b> the noise (the identification's fit on the "
-                   "same window means).</p>"
-                   + img("wb_ladder") + img("wb_candidates"))
+    rows = _joint_rows(ev)
+    wb_html = _workbench_section(doc, diag, ladder, figs)
     s = ev["samples"]
     lat = ev["latency"]
-    m = ev.get("machine") or {}
-    machine = "" if m.get("serve_cpu_s") is None else (
-        f"<p>The fusion node used {m['serve_cpu_s']:.0f} CPU-s in {m['serve_wall_s']:.0f} s of wall time; "
-        f"load average {m['load_average_1min']:.1f} on {m['cpus']} CPUs. With too little CPU the fusion "
-        "node degrades rather than lag: it folds late instants into fewer updates, publishes fewer "
-        "estimates and says <code>degraded</code> with its lag in its status.</p>")
+    machine = _machine_words(ev)
     heading_html = (("—" if tr["heading_rms_deg"] is None else f"{tr['heading_rms_deg']:.2f}°")
                     + esc(heading_detail(tr)))
     doc_html = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion demo</title>

@@ -35,6 +35,7 @@ from armfusion.fusion.cli.common import (
 from armfusion.fusion.cli.diagnose_report import write_innovation_report, write_report
 from armfusion.fusion.cli.diagnose_write import (
     Fits,
+    HeldOutCheck,
     extend_ladder,
     history_path,
     history_problem,
@@ -123,8 +124,9 @@ def diagnose_command(
         out.written_held = _written_held_out(fits.final)
         out.write_refused = fits.refused_add or write_refusal(fits.final, fits.as_is, out.written_held)
         if out.write_refused is None:
-            out.consistency, out.write_refused = write_config(arm, fits, recording, config, write,
-                                                               judged_rec, held, json_out, out.written_held)
+            check = HeldOutCheck(judged_rec, held, out.written_held)
+            out.consistency, out.write_refused = write_config(arm, fits, recording, config, write, check,
+                                                               json_out)
     if report is not None:
         write_report(report, fits.before, fits.after, out.ladder, recording, config, fits.disc)
     if json_out:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from armfusion.fusion.cli.common import png_img
 from armfusion.fusion.workbench.diagnose import Diagnosis, params_words
 from armfusion.sensors.output_files import write_text_replacing
 
@@ -33,16 +34,10 @@ def png_bytes(fig) -> bytes:
     return buf.getvalue()
 
 
-def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict]) -> dict[str, bytes]:
-    """The report's figures as PNG bytes: ``ladder``, ``candidates``, ``compare`` (predicted
-    against measured, the worst axes) and ``residuals`` (the worst axis against the input the
-    top candidate's evidence names)."""
+def ladder_figure(ladder: list[dict]) -> bytes:
+    """The error ladder: the residual RMS over the noise per model version (a re-run of the
+    same model is the same rung), fitted and, where judged, on the held-out data."""
     plt = _pyplot()
-    from armfusion.fusion.workbench.diagnose import predicted_and_measured
-
-    figs: dict[str, bytes] = {}
-
-    # the error ladder: residual RMS per model version
     fig, ax = plt.subplots(figsize=(7, 3.2))
     steps = [r for k, r in enumerate(ladder)  # a re-run of the same model is the same rung
              if k == 0 or (r["effects"], r["rms_ratio"]) != (ladder[k - 1]["effects"], ladder[k - 1]["rms_ratio"])]
@@ -60,23 +55,28 @@ def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict
     ax.set_ylabel("residual RMS / noise")
     ax.set_title("The error ladder")
     ax.legend(fontsize=8)
-    figs["ladder"] = png_bytes(fig)
-    # the ranked candidates (of the diagnosis before adding: what suggested the step)
-    src = before
-    top = [c for c in src.candidates[:10]]
-    if top:
-        fig, ax = plt.subplots(figsize=(7, 0.35 * len(top) + 1))
-        y = np.arange(len(top))[::-1]
-        v = [-c.delta_bic for c in top]
-        ax.barh(y, np.maximum(v, 1e-1), color=["C3" if c.significant else "0.6" for c in top])
-        ax.set_yticks(y, [c.name for c in top], fontsize=8)
-        ax.set_xscale("log")
-        ax.set_xlabel("-ΔBIC (red: significant)")
-        ax.set_title("Which effect is missing")
-        figs["candidates"] = png_bytes(fig)
-    # predicted against measured on the worst axes, residual underneath
-    pm = predicted_and_measured(src)
-    worst = sorted(src.axes, key=lambda a: -a.ratio)[:4]
+    return png_bytes(fig)
+
+
+def candidates_figure(top: list) -> bytes:
+    """The ranked candidates ``top`` by their -ΔBIC, the significant ones in red."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 0.35 * len(top) + 1))
+    y = np.arange(len(top))[::-1]
+    v = [-c.delta_bic for c in top]
+    ax.barh(y, np.maximum(v, 1e-1), color=["C3" if c.significant else "0.6" for c in top])
+    ax.set_yticks(y, [c.name for c in top], fontsize=8)
+    ax.set_xscale("log")
+    ax.set_xlabel("-ΔBIC (red: significant)")
+    ax.set_title("Which effect is missing")
+    return png_bytes(fig)
+
+
+def compare_figure(pm: dict, worst: list) -> bytes:
+    """Predicted against measured on the ``worst`` axes (of ``pm``, the diagnosis's
+    :func:`~armfusion.fusion.workbench.diagnose.predicted_and_measured`), the residual beside
+    each with its ±1σ band."""
+    plt = _pyplot()
     fig, axs = plt.subplots(len(worst), 2, figsize=(10, 2.2 * len(worst)), squeeze=False,
                             layout="constrained")
     for row, a in zip(axs, worst, strict=True):
@@ -93,23 +93,45 @@ def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict
     axs[0][0].legend(fontsize=8)
     axs[-1][0].set_xlabel("t [s]")
     axs[-1][1].set_xlabel("t [s]")
-    figs["compare"] = png_bytes(fig)
-    if after is not None:
-        pm2 = predicted_and_measured(after)
-        fig, axs = plt.subplots(len(worst), 1, figsize=(10, 1.8 * len(worst)), squeeze=False,
+    return png_bytes(fig)
+
+
+def before_after_figure(pm: dict, pm_after: dict, worst: list) -> bytes:
+    """The ``worst`` axes' residual before (``pm``) and after (``pm_after``) the effects were
+    added, with the ±1σ band."""
+    plt = _pyplot()
+    fig, axs = plt.subplots(len(worst), 1, figsize=(10, 1.8 * len(worst)), squeeze=False,
                             layout="constrained")
-        for (axx,), a in zip(axs, worst, strict=True):
-            t, ym, yp, unit, ch = pm[a.stream]
-            t2, ym2, yp2, _, _ = pm2[a.stream]
-            k = ch.index(a.axis)
-            axx.plot(t, ym[:, k] - yp[:, k], ".", ms=2, color="C3", label="before")
-            axx.plot(t2, ym2[:, k] - yp2[:, k], ".", ms=2, color="C2", label="after")
-            axx.axhspan(-a.noise, a.noise, color="green", alpha=0.15)
-            axx.set_title(f"{a.axis} residual before and after ({unit})", fontsize=9)
-        axs[0][0].legend(fontsize=8)
-        figs["after"] = png_bytes(fig)
-    if src.analysis is not None:
-        figs.update(analysis_figures(src))
+    for (axx,), a in zip(axs, worst, strict=True):
+        t, ym, yp, unit, ch = pm[a.stream]
+        t2, ym2, yp2, _, _ = pm_after[a.stream]
+        k = ch.index(a.axis)
+        axx.plot(t, ym[:, k] - yp[:, k], ".", ms=2, color="C3", label="before")
+        axx.plot(t2, ym2[:, k] - yp2[:, k], ".", ms=2, color="C2", label="after")
+        axx.axhspan(-a.noise, a.noise, color="green", alpha=0.15)
+        axx.set_title(f"{a.axis} residual before and after ({unit})", fontsize=9)
+    axs[0][0].legend(fontsize=8)
+    return png_bytes(fig)
+
+
+def report_figures(before: Diagnosis, after: Diagnosis | None, ladder: list[dict]) -> dict[str, bytes]:
+    """The report's figures as PNG bytes: ``ladder``, ``candidates``, ``compare`` (predicted
+    against measured, the worst axes), ``after`` (their residual before and after, given
+    ``after``) and, with the diagnosis's analysis, ``inputs`` and ``correlation``."""
+    from armfusion.fusion.workbench.diagnose import predicted_and_measured
+
+    figs: dict[str, bytes] = {"ladder": ladder_figure(ladder)}
+    # the ranked candidates (of the diagnosis before adding: what suggested the step)
+    top = before.candidates[:10]
+    if top:
+        figs["candidates"] = candidates_figure(top)
+    pm = predicted_and_measured(before)
+    worst = sorted(before.axes, key=lambda a: -a.ratio)[:4]
+    figs["compare"] = compare_figure(pm, worst)
+    if after is not None:
+        figs["after"] = before_after_figure(pm, predicted_and_measured(after), worst)
+    if before.analysis is not None:
+        figs.update(analysis_figures(before))
     return figs
 
 
@@ -251,56 +273,79 @@ def discovery_html(disc) -> str:
             + (f"<ul>{groups}</ul>" if groups else "") + rest)
 
 
-def write_report(path: Path, before: Diagnosis, after: Diagnosis | None, ladder: list[dict],
-                 recording: Path, config: str, discovery=None) -> Path:
-    """One HTML file a person reads top to bottom: verdict, ladder, ranked candidates, plots;
-    with ``discovery`` (:class:`armfusion.fusion.workbench.discover.Discovery`) its rungs under the ladder."""
-    import base64
+def _esc(x) -> str:
+    """``x`` as text, escaped for HTML."""
     import html
 
-    figs = report_figures(before, after, ladder)
-    fin = after or before
-    held_words = ("" if fin.held_out_ratio is None else
-                  f"; {fin.held_out_ratio:.2f}× on the held-out data ({html.escape(fin.held_out.label)}), "
-                  "which the fit did not see")
-    d = after or before
+    return html.escape(str(x))
 
-    def img(name: str) -> str:
-        if name not in figs:
-            return ""
-        return (f'<img alt="{name}" src="data:image/png;base64,'
-                f'{base64.b64encode(figs[name]).decode()}">')
 
-    def esc(x) -> str:
-        return html.escape(str(x))
-
-    rows = "".join(
+def _candidate_rows(before: Diagnosis) -> str:
+    """The ranked candidates' table rows (the first ten): effect, target, ΔBIC, RMS after,
+    what they explain, significance and the refitted estimate."""
+    esc = _esc
+    return "".join(
         f"<tr><td>{i}</td><td>{esc(c.effect)}</td><td>{esc(c.target)}</td><td>{c.delta_bic:.1f}</td>"
         f"<td>{'' if c.rms_after is None else f'{c.rms_after:.2f}'}</td><td>{100 * c.explained:.0f} %</td>"
         f"<td>{'yes' if c.significant else 'no'}</td>"
         f"<td>{esc(params_words(c.params, c.units)) if c.refitted else ''}</td></tr>"
         for i, c in enumerate(before.candidates[:10], 1))
-    axes = "".join(
+
+
+def _axis_rows(d: Diagnosis) -> str:
+    """Per sensor axis of ``d``, a table row: its residual RMS, noise, their ratio (marked over
+    1.1) and the fit percentage."""
+    esc = _esc
+    return "".join(
         f"<tr><td>{esc(a.axis)}</td><td>{a.rms:.3g} {esc(a.unit)}</td><td>{a.noise:.3g}</td>"
         f"<td{' class=bad' if a.ratio > 1.1 else ''}>{a.ratio:.2f}</td>"
         f"<td>{'—' if a.fit_percent is None else f'{a.fit_percent:.2f}'}</td></tr>" for a in d.axes)
+
+
+def _most_likely_missing(before: Diagnosis) -> str:
+    """The significant top candidate, its explanation and evidence; or that none is."""
+    esc = _esc
     best = before.candidates[0] if before.candidates and before.candidates[0].significant else None
-    why = (f"<h2>Most likely missing: {esc(best.effect)} on {esc(best.target)}</h2>"
-           f"<p>{esc(best.explanation)}</p><p><b>Evidence:</b> {esc(best.evidence)}.</p>") if best else \
+    return (f"<h2>Most likely missing: {esc(best.effect)} on {esc(best.target)}</h2>"
+            f"<p>{esc(best.explanation)}</p><p><b>Evidence:</b> {esc(best.evidence)}.</p>") if best else \
         "<p>No effect of the library is significant: nothing to add.</p>"
+
+
+def _correlation_words(before: Diagnosis) -> str:
+    """The residuals' correlations beyond the corrected 99 % band, in a sentence; nothing
+    without the diagnosis's analysis."""
+    if before.analysis is None:
+        return ""
+    an = before.analysis
+    fl = an.flagged()[:5]
+    return (f"Correlations beyond the 99 % band ±{an.band:.3f}, corrected for the number of "
+            f"tests (|r| > {an.band_flag:.3f}): "
+            + ("; ".join(f"{c.axis} with {c.input} (r = {c.r:+.2f} at lag {c.lag:+d})" for c in fl)
+               if fl else "none: the residuals are white and follow no input") + ".")
+
+
+def write_report(path: Path, before: Diagnosis, after: Diagnosis | None, ladder: list[dict],
+                 recording: Path, config: str, discovery=None) -> Path:
+    """One HTML file a person reads top to bottom: verdict, ladder, ranked candidates, plots;
+    with ``discovery`` (:class:`armfusion.fusion.workbench.discover.Discovery`) its rungs under the ladder."""
+    figs = report_figures(before, after, ladder)
+    fin = after or before
+    held_words = ("" if fin.held_out_ratio is None else
+                  f"; {fin.held_out_ratio:.2f}× on the held-out data ({_esc(fin.held_out.label)}), "
+                  "which the fit did not see")
+    d = after or before
+
+    def img(name: str) -> str:
+        return png_img(figs, name)
+
+    esc = _esc
+    rows, axes, why = _candidate_rows(before), _axis_rows(d), _most_likely_missing(before)
     step = ""
     if after is not None:
         step = (f"<h2>After adding {esc(', '.join(b for b in after.effects() if b not in before.effects()))}</h2>"
                 f"<p>Residual RMS {before.rms_ratio:.2f}× → {after.rms_ratio:.2f}× the noise floor: "
                 f"<b>{esc(after.verdict)}</b>.</p>{img('after')}")
-    corr_words = ""
-    if before.analysis is not None:
-        an = before.analysis
-        fl = an.flagged()[:5]
-        corr_words = (f"Correlations beyond the 99 % band ±{an.band:.3f}, corrected for the number of "
-                      f"tests (|r| > {an.band_flag:.3f}): "
-                      + ("; ".join(f"{c.axis} with {c.input} (r = {c.r:+.2f} at lag {c.lag:+d})" for c in fl)
-                         if fl else "none: the residuals are white and follow no input") + ".")
+    corr_words = _correlation_words(before)
     doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>armfusion diagnose</title>
 <style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}}
 table{{border-collapse:collapse;font-size:90%}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}

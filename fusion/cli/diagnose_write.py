@@ -19,6 +19,7 @@ from armfusion.fusion.workbench.diagnose import Diagnosis
 from armfusion.fusion.workbench.discover import Discovery
 from armfusion.fusion.workbench.heldout import HeldOut, tracked, tracked_worse
 from armfusion.sensors.output_files import write_text_replacing
+from armfusion.sensors.samples import Recording
 
 HISTORY_FORMAT = "armfusion.workbench-history/1"
 
@@ -126,16 +127,30 @@ def extend_ladder(hpath: Path, fits: Fits, recording: Path, config: str, write: 
     return ladder
 
 
-def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, judged_rec, held,
-                  json_out: bool, written_held=None) -> tuple[dict | None, str | None]:
-    """Write the config with the final fit's estimates when the tracker over the held-out part
-    does not refuse it: the tracker's figures, and the refusal's reason (None: written)."""
+@dataclass(frozen=True)
+class HeldOutCheck:
+    """What a config is judged on before it is written: the recording the tracker runs over
+    (``rec``), the held-out part of the fit's data (``held``), and, where elements of the fit
+    ended at their bound, what is written judged on that part (``written_held``; ``None``:
+    none did)."""
+
+    rec: Recording
+    held: HeldOut
+    written_held: object | None = None
+
+
+def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, check: HeldOutCheck,
+                 json_out: bool) -> tuple[dict | None, str | None]:
+    """Write the config with the final fit's estimates to ``write`` when the tracker over the
+    held-out part (``check``) does not refuse it: the tracker's figures, and the refusal's
+    reason (None: written). ``recording`` and ``config``: what the fit ran on, for the header."""
     final, disc, as_is = fits.final, fits.disc, fits.as_is
+    held, written_held = check.held, check.written_held
     src = resolve_config_path(config)
     cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
     out = config_with_estimates(cfg, without_bound(final))
     raise_floors(out, final, arm)
-    consistency, refused = tracked_check(arm, out, judged_rec, held, json_out, convention_groups(final))
+    consistency, refused = tracked_check(arm, out, check.rec, held, json_out, convention_groups(final))
     if refused is not None:
         return consistency, refused
     write.parent.mkdir(parents=True, exist_ok=True)

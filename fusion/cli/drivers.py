@@ -42,7 +42,7 @@ import typer
 from armfusion.fusion.cli.common import check_output_path, config_file, emit_json, fail, progress_bar
 from armfusion.fusion.cli.drivers_faults import FAULT_KINDS
 from armfusion.fusion.cli.drivers_report import print_report, summary
-from armfusion.fusion.cli.drivers_run import DriversRun, run_fake, run_real
+from armfusion.fusion.cli.drivers_run import DriversRun, FakeRigOptions, LiveFeed, run_fake, run_real
 from armfusion.fusion.cli.options import (
     ADMITTED_WITHIN_S,
     AdmittedWithinOpt,
@@ -67,6 +67,19 @@ from armfusion.models.arm_config import ConfigError
 from armfusion.sensors.bus import DeviceNotFoundError
 from armfusion.sensors.output_files import write_text_replacing
 from armfusion.sensors.recording import SUFFIXES, write_recording
+
+
+@dataclass(frozen=True)
+class DriverOptions:
+    """What ``armfusion drivers`` reads: the ``config``'s devices for ``duration_s`` at
+    ``rate_hz``, on the fakes of the simulated ``rig`` (``fake``) or the real buses (where
+    the rig's options, given, are an error)."""
+
+    fake: bool
+    config: str | Path
+    duration_s: float
+    rate_hz: float
+    rig: FakeRigOptions
 
 
 @dataclass
@@ -166,9 +179,10 @@ def drivers_command(
     else:
         publishing = _publishing(robot, batch_ms, wait_s, admitted_within_s, zenoh_config, listen,
                                  connect, mode)
+    rig = FakeRigOptions(scenario, seed, realistic, tuple(effect or ()), effects_file, noise,
+                         tuple(fault or ()), realtime)
     with publishing as live, progress_bar("reading the fakes", json_out or not fake) as advance:
-        run = _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file,
-                   noise, fault, realtime, live, advance)
+        run = _run(DriverOptions(fake, config, duration, rate, rig), live, advance)
     doc = summary(run)
     if live is not None:
         admission = live.admission
@@ -184,29 +198,29 @@ def drivers_command(
         if live.admission is not None and live.admission.state == "refused":
             fail(live.admission.message, code=1)
 
-def _run(fake, config, scenario, duration, rate, seed, realistic, effect, effects_file, noise,
-         fault, realtime, live, advance) -> DriversRun:
-    on_batch = None if live is None else live.on_batch
-    batch_s = 0.02 if live is None else live.batch_s
-    stop = threading.Event() if live is None else live.stop
+def _run(options: DriverOptions, live: _Live | None, advance) -> DriversRun:
+    """The run ``options`` asks for, its samples handed to ``live`` (``None``: not published)
+    as they are read and, on the fakes, its progress to ``advance``; a bad option or a device
+    that cannot be opened exits 2 with its message."""
+    feed = LiveFeed() if live is None else LiveFeed(live.on_batch, live.batch_s, live.stop)
+    rig = options.rig
     try:
-        if fake:
-            return run_fake(config, scenario, duration, rate, seed=seed, realistic=realistic,
-                            effect=effect or (), effects_file=effects_file, noise=noise,
-                            faults=fault or (), realtime=realtime, stop=stop, on_batch=on_batch,
-                            batch_s=batch_s, progress=advance)
+        if options.fake:
+            return run_fake(options.config, rig, options.duration_s, options.rate_hz, live=feed,
+                            progress=advance)
         else:
-            ignored = [o for o, v in (("--scenario", scenario != "startup"), ("--seed", seed != 0),
-                                      ("--realistic", realistic), ("--effect", bool(effect)),
-                                      ("--effects-file", effects_file is not None),
-                                      ("--fault", bool(fault)), ("--realtime", realtime)) if v]
+            ignored = [o for o, v in (("--scenario", rig.scenario != "startup"), ("--seed", rig.seed != 0),
+                                      ("--realistic", rig.realistic), ("--effect", bool(rig.effects)),
+                                      ("--effects-file", rig.effects_file is not None),
+                                      ("--fault", bool(rig.faults)), ("--realtime", rig.realtime)) if v]
             if ignored:
                 fail(f"{', '.join(ignored)} only appl{'y' if len(ignored) > 1 else 'ies'} "
                      "with --fake")
-            return run_real(config, duration, rate, stop=stop, on_batch=on_batch, batch_s=batch_s)
+            return run_real(options.config, options.duration_s, options.rate_hz, live=feed)
     except (DeviceNotFoundError, ConfigError, FileNotFoundError, ValueError) as e:
         fail(str(e))
     raise AssertionError("unreachable")  # fail() exits
+
 
 def _finish(doc: dict[str, Any], run: DriversRun, out: Path | None, json_out: bool) -> None:
     if out is not None:

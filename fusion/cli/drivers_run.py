@@ -4,9 +4,9 @@ register-level fakes fed by the simulator (:func:`run_fake`), for ``armfusion dr
 Both open the devices of the config's ``bus:`` entries (:func:`wiring_from_arm`), run one
 :class:`~armfusion.sensors.sampling.SamplingLoop` over their readers (:func:`_sample`) and return a
 :class:`DriversRun`: the loop's timing, every reader's results, the valid samples as a raw
-recording (:func:`recording_from`) and each device's counters. With ``on_batch`` the
+recording (:func:`recording_from`) and each device's counters. With a :class:`LiveFeed` the
 samples also go out as they are read (:class:`LiveSink`), which is how ``--robot``
-publishes them. Recording times are seconds since the rig powered up (the scenario's
+publishes them; the fakes' simulated rig is a :class:`FakeRigOptions`. Recording times are seconds since the rig powered up (the scenario's
 t = 0 with the fakes).
 """
 
@@ -16,7 +16,7 @@ import contextlib
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -96,6 +96,47 @@ class DriversRun:
     sim: SimulatedRun | None = None
     rig: FakeRig | None = None
     settings: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class FakeRigOptions:
+    """The simulated rig behind the fakes (``armfusion drivers --fake``): the ``scenario``, the
+    ``seed``, ``realistic`` and the ``effects`` (``--effect`` specs) and ``effects_file`` mean what
+    they mean for ``armfusion simulate``; ``noise``: the sensors' noise on; ``faults``: bus and
+    device faults to inject (``--fault`` specs or parsed,
+    :mod:`armfusion.fusion.cli.drivers_faults`); ``realtime``: run on the wall clock instead of
+    as fast as the host can."""
+
+    scenario: str = "startup"
+    seed: int = 0
+    realistic: bool = False
+    effects: tuple[str, ...] = ()
+    effects_file: str | Path | None = None
+    noise: bool = True
+    faults: tuple[str | FaultSpec, ...] = ()
+    realtime: bool = False
+
+
+@dataclass(frozen=True)
+class LiveFeed:
+    """Where the samples go as they are read: ``on_batch(streams)`` receives the samples read
+    in each ``batch_s`` of the rig's clock (:class:`LiveSink`); ``stop``, when set, ends the
+    run (Ctrl-C sets it too)."""
+
+    on_batch: Callable[[list[Stream]], None] | None = None
+    batch_s: float = 0.02
+    stop: threading.Event | None = None
+
+
+@dataclass(frozen=True)
+class LoopClock:
+    """The sampling loop's clock: ``now()`` in seconds, ``wait(s)`` to sleep on it (``None``:
+    the loop's own), and ``epoch_s``, the rig's power-up on it (recording times count from
+    there)."""
+
+    now: Callable[[], float]
+    wait: Callable[[float], Any] | None
+    epoch_s: float
 
 
 class _WallClock:
@@ -199,16 +240,15 @@ def _health(devices: Mapping[str, ADXL345 | MPU9150]) -> dict[str, Any]:
 
 
 def _sample(devices: Mapping[str, ADXL345 | MPU9150], readers: dict[str, Callable[[], Any]],
-            rate_hz: float, duration_s: float | None, epoch_s: float, clock: Callable[[], float],
-            wait: Callable[[float], Any] | None, stop: threading.Event | None,
-            on_batch: Callable[[list[Stream]], None] | None, batch_s: float,
+            rate_hz: float, duration_s: float | None, clock: LoopClock, live: LiveFeed,
             ) -> tuple[LoopReport, dict[str, list[Any]], dict[str, Any]]:
-    """Run the sampling loop over ``readers`` until ``stop`` (or Ctrl-C) or ``duration_s``;
-    the loop's report, every reader's results and each device's counters at the end."""
-    sink: Collector | LiveSink = Collector() if on_batch is None else \
-        LiveSink(devices, epoch_s, clock, batch_s, on_batch, last_reader=list(readers)[-1])
-    loop = SamplingLoop(readers, rate_hz, sink=sink, clock=clock, wait=wait)
-    stop = stop or threading.Event()
+    """Run the sampling loop over ``readers`` on ``clock`` until ``live.stop`` (or Ctrl-C) or
+    ``duration_s``, handing the samples to ``live.on_batch`` as they come; the loop's report,
+    every reader's results and each device's counters at the end."""
+    sink: Collector | LiveSink = Collector() if live.on_batch is None else \
+        LiveSink(devices, clock.epoch_s, clock.now, live.batch_s, live.on_batch, last_reader=list(readers)[-1])
+    loop = SamplingLoop(readers, rate_hz, sink=sink, clock=clock.now, wait=clock.wait)
+    stop = live.stop or threading.Event()
     with _stop_on_sigint(stop):
         report = loop.run(stop, duration_s=duration_s)
     if isinstance(sink, LiveSink):
@@ -216,92 +256,94 @@ def _sample(devices: Mapping[str, ADXL345 | MPU9150], readers: dict[str, Callabl
     return report, sink.results, _health(devices)
 
 
+def _with_faults_and_progress(read: Callable[[], Any], clock: LoopClock, schedule: FaultSchedule,
+                              duration_s: float, progress: Callable[[float], None] | None,
+                              ) -> Callable[[], Any]:
+    """The loop's first reader ``read``, preceded by the fault ``schedule`` stepped to the rig's
+    time and, every 1 % of ``duration_s``, ``progress`` told the fraction done."""
+    shown = [-1]
+
+    def first_with_faults() -> Any:
+        t = clock.now() - clock.epoch_s
+        schedule.step(t)
+        if progress is not None and int(100 * t / duration_s) > shown[0]:
+            shown[0] = int(100 * t / duration_s)
+            progress(min(t / duration_s, 1.0))
+        return read()
+
+    return first_with_faults
+
+
+def _simulated(arm: ArmModel, rig: FakeRigOptions, duration_s: float, rate_hz: float) -> SimulatedRun:
+    """The simulator's run behind the fakes: ``duration_s`` plus :data:`SIM_MARGIN_S` of
+    ``rig``'s scenario, effects and seed, sampled at ``rate_hz``."""
+    model = effects_model(arm, tuple(rig.effects), rig.effects_file)
+    return simulate_physics(arm, rig.scenario, duration_s + SIM_MARGIN_S, seed=rig.seed, effects=model,
+                            realistic=rig.realistic, sample_rate_hz=rate_hz)
+
+
 def run_fake(
     config: str | Path | ArmModel = "wmra",
-    scenario: str = "startup",
+    rig: FakeRigOptions | None = None,
     duration_s: float = 10.0,
     rate_hz: float = 100.0,
     *,
-    seed: int = 0,
-    realistic: bool = False,
-    effect: Sequence[str] = (),
-    effects_file: str | Path | None = None,
-    noise: bool = True,
-    faults: Sequence[str | FaultSpec] = (),
-    realtime: bool = False,
-    stop: threading.Event | None = None,
+    live: LiveFeed | None = None,
     prepare: Callable[[FakeRig], None] | None = None,
-    on_batch: Callable[[list[Stream]], None] | None = None,
-    batch_s: float = 0.02,
     progress: Callable[[float], None] | None = None,
 ) -> DriversRun:
-    """Run the real drivers against the simulator-fed fakes for ``duration_s`` seconds.
+    """Run the real drivers against the fakes of the simulated ``rig`` (``None``: its defaults)
+    for ``duration_s`` seconds.
 
     ``prepare(rig)`` runs after the devices are opened and before the first tick (a
-    test's hook for fault injection beyond ``faults``). ``on_batch(streams)`` receives the
-    samples read in each ``batch_s`` of the rig's clock as they come (:class:`LiveSink`).
+    test's hook for fault injection beyond ``rig.faults``). ``live``: where the samples go as
+    they are read, and what stops the run (:class:`LiveFeed`).
     ``progress(fraction_done)`` follows the rig's clock (every 1 % of ``duration_s``).
     """
+    rig = FakeRigOptions() if rig is None else rig
     if not duration_s > 0:
         raise ValueError(f"--duration must be positive, got {duration_s!r} s")
-    if scenario not in SCENARIOS:
-        raise ValueError(f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
+    if rig.scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {rig.scenario!r}; known: {', '.join(SCENARIOS)}")
     arm = config if isinstance(config, ArmModel) else load_arm(config)
     wiring, notes = wiring_from_arm(arm)
     adxl_config = _adxl_config(rate_hz)
-    check_run_size(arm, scenario, duration_s + SIM_MARGIN_S, rate_hz)  # (1e9 s: 7 TiB, a traceback)
-    specs = [f if isinstance(f, FaultSpec) else parse_fault(f) for f in faults]
-    model = effects_model(arm, tuple(effect), effects_file)
-    sim = simulate_physics(arm, scenario, duration_s + SIM_MARGIN_S, seed=seed, effects=model,
-                           realistic=realistic, sample_rate_hz=rate_hz)
-    clock: Any = _WallClock() if realtime else FakeClock()
-    now: Callable[[], float] = clock.monotonic
-    sleep: Callable[[float], None] = clock.sleep
-    epoch = now()  # power-up: the scenario's t = 0
-    physics = physics_for(sim, [w.name for w in wiring], epoch, noise=noise, seed=seed)
-    rig = FakeRig(clock, physics, wiring=wiring, seed=seed)
-    schedule = FaultSchedule(rig, specs)
-    devices = open_devices(wiring, smbus_factory=rig.smbus, spi_factory=rig.spi.SpiDev,
-                           adxl_config=adxl_config, clock=now, sleep=sleep)
+    check_run_size(arm, rig.scenario, duration_s + SIM_MARGIN_S, rate_hz)  # (1e9 s: 7 TiB, a traceback)
+    specs = [f if isinstance(f, FaultSpec) else parse_fault(f) for f in rig.faults]
+    sim = _simulated(arm, rig, duration_s, rate_hz)
+    host: Any = _WallClock() if rig.realtime else FakeClock()
+    clock = LoopClock(host.monotonic, None if rig.realtime else host.sleep, host.monotonic())  # power-up: t = 0
+    physics = physics_for(sim, [w.name for w in wiring], clock.epoch_s, noise=rig.noise, seed=rig.seed)
+    fake_rig = FakeRig(host, physics, wiring=wiring, seed=rig.seed)
+    schedule = FaultSchedule(fake_rig, specs)
+    devices = open_devices(wiring, smbus_factory=fake_rig.smbus, spi_factory=fake_rig.spi.SpiDev,
+                           adxl_config=adxl_config, clock=host.monotonic, sleep=host.sleep)
     try:
         if prepare is not None:
-            prepare(rig)
+            prepare(fake_rig)
         readers = readers_for(devices)
         feed = None
         if arm.n_joints == N_JOINTS:
-            feed = SimulatedEncoderFeed(encoder_counts_at(sim, epoch), rate_hz, clock=now)
+            feed = SimulatedEncoderFeed(encoder_counts_at(sim, clock.epoch_s), rate_hz, clock=host.monotonic)
             readers[ENCODER_READER] = feed.poll
         else:
             notes.append(f"encoders: the feed carries {N_JOINTS} joints, {arm.name} has "
                          f"{arm.n_joints}; not read")
         first = next(iter(readers))
-        read_first = readers[first]
-
-        shown = [-1]
-
-        def first_with_faults() -> Any:
-            t = now() - epoch
-            schedule.step(t)
-            if progress is not None and int(100 * t / duration_s) > shown[0]:
-                shown[0] = int(100 * t / duration_s)
-                progress(min(t / duration_s, 1.0))
-            return read_first()
-
-        readers[first] = first_with_faults
-        report, results, health = _sample(devices, readers, rate_hz, duration_s, epoch, now,
-                                          None if realtime else sleep, stop, on_batch, batch_s)
+        readers[first] = _with_faults_and_progress(readers[first], clock, schedule, duration_s, progress)
+        report, results, health = _sample(devices, readers, rate_hz, duration_s, clock, live or LiveFeed())
     finally:
         close_all(devices)
     meta = {"generator": "armfusion drivers --fake", "arm": arm.name, "arm_config": arm.source,
-            "scenario": scenario, "seed": int(seed), "rate_hz": float(rate_hz),
-            "realistic": bool(realistic), "noise": bool(noise), "realtime": bool(realtime)}
-    if realtime:
-        meta["epoch_monotonic_s"] = float(epoch)
-    rec = recording_from(results, devices, epoch, meta)
+            "scenario": rig.scenario, "seed": int(rig.seed), "rate_hz": float(rate_hz),
+            "realistic": bool(rig.realistic), "noise": bool(rig.noise), "realtime": bool(rig.realtime)}
+    if rig.realtime:
+        meta["epoch_monotonic_s"] = float(clock.epoch_s)
+    rec = recording_from(results, devices, clock.epoch_s, meta)
     rec = Recording({**rec.streams, **sim.truth_streams(rate_hz, rec.t_end_s)}, rec.meta)
-    return DriversRun("fake", arm, wiring, float(rate_hz), float(duration_s), epoch, report,
+    return DriversRun("fake", arm, wiring, float(rate_hz), float(duration_s), clock.epoch_s, report,
                       results, rec, health, feed.stats() if feed else None, notes, specs,
-                      schedule.injected(), sim, rig, meta)
+                      schedule.injected(), sim, fake_rig, meta)
 
 
 def run_real(
@@ -309,12 +351,10 @@ def run_real(
     duration_s: float | None = 10.0,
     rate_hz: float = 100.0,
     *,
-    stop: threading.Event | None = None,
-    on_batch: Callable[[list[Stream]], None] | None = None,
-    batch_s: float = 0.02,
+    live: LiveFeed | None = None,
 ) -> DriversRun:
-    """Open the config's devices on the real buses and read them (until ``stop`` or
-    ``duration_s``); ``on_batch`` as for :func:`run_fake`. Raises
+    """Open the config's devices on the real buses and read them (until ``live.stop`` or
+    ``duration_s``); ``live`` as for :func:`run_fake`. Raises
     :class:`DeviceNotFoundError` with one line per device that cannot be opened or does
     not answer."""
     arm = config if isinstance(config, ArmModel) else load_arm(config)
@@ -330,8 +370,8 @@ def run_real(
         raise DeviceNotFoundError(f"cannot reach the buses: {e} (pip install smbus2 spidev)") from None
     epoch = time.monotonic()
     try:
-        report, results, health = _sample(devices, readers_for(devices), rate_hz, duration_s, epoch,
-                                          time.monotonic, None, stop, on_batch, batch_s)
+        report, results, health = _sample(devices, readers_for(devices), rate_hz, duration_s,
+                                          LoopClock(time.monotonic, None, epoch), live or LiveFeed())
     finally:
         close_all(devices)
     meta = {"generator": "armfusion drivers", "arm": arm.name, "arm_config": arm.source,

@@ -174,7 +174,7 @@ def replay_command(
 
     Exits 1 when an MCAP file ends early or is damaged, or holds a sample topic the reader
     cannot take (what could be read is replayed)."""
-    from armfusion.fusion.service.replay import NoSubscriberError, replay
+    from armfusion.fusion.service.replay import NoSubscriberError, ReplayPacing, replay
 
     factor = parse_speed(speed)
     if not (math.isfinite(wait_s) and wait_s >= 0):
@@ -184,8 +184,9 @@ def replay_command(
     with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
             stop_on_signals(stop), watching_admission(session, robot, admitted_within_s, stop) as watch:
         try:
-            report = replay(session, rec, robot, speed=factor, batch_s=batch_ms / 1000.0,
-                            wait_for_subscribers_s=wait_s, stop=stop, require_subscriber=True,
+            pacing = ReplayPacing(speed=factor, batch_s=batch_ms / 1000.0, wait_for_subscribers_s=wait_s,
+                                  require_subscriber=True)
+            report = replay(session, rec, robot, pacing, stop=stop,
                             on_start=None if watch is None else watch.start)
         except NoSubscriberError as e:
             fail(str(e), code=1)
@@ -337,6 +338,7 @@ def serve_command(
     state/heading and status; answers armfusion/<robot>/calibrate (and, with --maneuver,
     serves a planned calibration maneuver on armfusion/<robot>/maneuver)."""
     from armfusion.fusion.service.serve import FusionNode
+    from armfusion.fusion.service.serve_settings import NodeSettings
 
     if not publish_hz > 0:
         fail(f"--publish-hz {publish_hz!r}: expected > 0")
@@ -344,6 +346,8 @@ def serve_command(
         fail(f"--save-every {save_every_s!r} and --state-max-age {state_max_age_s!r}: expected > 0")
     if state_file is not None:
         _check_state_file(state_file, (config_file(config), maneuver))
+    settings = NodeSettings(publish_hz=publish_hz, state_path=state_file, save_period_s=save_every_s,
+                            max_state_age_s=state_max_age_s, assume_parked=assume_parked)
     arm = load_arm_or_exit(config)
     served = None
     if maneuver is not None:
@@ -352,9 +356,7 @@ def serve_command(
     stop = threading.Event()
     with session_or_exit(zenoh_settings(zenoh_config, listen, connect, mode)) as session, \
             stop_on_signals(stop), stop_after(duration_s, stop):
-        node = FusionNode(session, arm, robot, publish_hz=publish_hz, state_path=state_file,
-                          save_period_s=save_every_s, max_state_age_s=state_max_age_s,
-                          assume_parked=assume_parked, maneuver=served)
+        node = FusionNode(session, arm, robot, settings, maneuver=served)
         threading.Thread(target=_say_serving, args=(node, robot, arm.name), daemon=True).start()
         report = node.run(stop)
     if json_out:

@@ -34,15 +34,18 @@ from armfusion.models.arm_config import ConfigError
 from armfusion.sensors.output_files import write_text_replacing
 
 
-def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None = "all",
-             criterion: str = "D", focus: str = "all", seed: int = 0, startup_poses: int = 64,
-             candidates: int = 192, progress=None, dwells_s: tuple[float, ...] = ()) -> dict[str, Any]:
-    """Plan, check, predict: the maneuver file's content (``maneuver`` is the plan itself)."""
+def run_plan(config: str | Path, settings: PlanSettings | None = None, effects: str | None = "all",
+             startup_poses: int = 64, progress=None) -> dict[str, Any]:
+    """Plan, check, predict: the maneuver file's content (``maneuver`` is the plan itself).
+
+    ``settings``: the planner's (length, criterion, focus, seed, candidates, dwells; ``None``:
+    its defaults); ``effects``: the effects to calibrate, as ``calibrate sensors --effects``;
+    ``startup_poses``: the random still poses the startup's predicted σ is the median over;
+    ``progress(fraction_done, stage)`` follows the work."""
     from armfusion.fusion.cli.calibrate_sensors import build_model
 
     arm = load_arm(config)
-    st = PlanSettings(duration_s=duration_s, criterion=criterion, focus=focus, seed=seed, candidates=candidates,
-                      dwell_choices_s=tuple(dwells_s))
+    st = PlanSettings() if settings is None else settings
     st.check()
     model = build_model(arm, effects)
     say = progress or (lambda _f, _m=None: None)
@@ -59,7 +62,7 @@ def run_plan(config: str | Path, duration_s: float = 60.0, effects: str | None =
     return {
         **plan.maneuver.as_dict(),
         "config": arm.source, "arm": arm.name, "duration_s": round(plan.maneuver.duration_s, 3),
-        "plan": {"criterion": f"{criterion}-optimal", "focus": focus, "seed": seed,
+        "plan": {"criterion": f"{st.criterion}-optimal", "focus": st.focus, "seed": st.seed,
                  "candidates_scored": plan.candidates_scored,
                  "gauges_left_out": list(plan.gauges),
                  "checks": {"joint_limits": "every pose inside [min_deg, max_deg]",
@@ -117,8 +120,9 @@ def plan_command(
         fail(f"--dwells: expected seconds separated by commas, got {dwells[:30]!r} ({str(e)[:80]})")
     try:
         with progress_bar("planning", json_out) as advance:
-            doc = run_plan(config, duration, effects, criterion, focus, seed, progress=advance,
-                           dwells_s=dwells_s)
+            settings = PlanSettings(duration_s=duration, criterion=criterion, focus=focus, seed=seed,
+                                    dwell_choices_s=dwells_s)
+            doc = run_plan(config, settings, effects, progress=advance)
     except (ConfigError, FileNotFoundError, ValueError) as e:
         fail(str(e))
     if out is not None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import re
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -164,24 +165,34 @@ def effects_model(arm: ArmModel, effect_options: list[str] | tuple[str, ...] = (
     return model
 
 
-def simulate(
-    config: str | Path,
-    scenario: str,
-    out: str | Path,
-    duration_s: float | None = None,
-    rate_hz: float = 100.0,
-    seed: int = 0,
-    effect: list[str] | tuple[str, ...] = (),
-    realistic: bool = False,
-    effects_file: str | Path | None = None,
-    noise: bool = True,
-    progress=None,
-    maneuver: str | Path | None = None,
-) -> dict[str, Any]:
-    """Simulate and write ``out`` and its truth file; a JSON-ready summary of what was done.
+@dataclass(frozen=True)
+class SimulationOptions:
+    """How ``armfusion simulate`` simulates (its options): ``duration_s`` (``None``: the
+    scenario's) at ``rate_hz`` from ``seed``; ``effects`` (``--effect`` specs) over those of
+    ``effects_file``, and with ``realistic`` drawn ones; ``noise``: the sensors' noise on;
+    ``maneuver``: a planned maneuver's file (``plan-maneuver --out``) to play instead of a
+    scenario, which sets its own length."""
+
+    duration_s: float | None = None
+    rate_hz: float = 100.0
+    seed: int = 0
+    effects: tuple[str, ...] = ()
+    realistic: bool = False
+    effects_file: str | Path | None = None
+    noise: bool = True
+    maneuver: str | Path | None = None
+
+
+def simulate(config: str | Path, scenario: str, out: str | Path, options: SimulationOptions | None = None,
+             progress=None) -> dict[str, Any]:
+    """Simulate ``scenario`` on the arm of ``config`` as ``options`` say (``None``: the
+    defaults) and write ``out`` and its truth file; a JSON-ready summary of what was done.
 
     ``progress(fraction_done, stage)`` follows the work: the simulation up to
     :data:`SIMULATED_SHARE` of it (by suffix), then the writing."""
+    o = SimulationOptions() if options is None else options
+    duration_s, rate_hz, seed, maneuver = o.duration_s, o.rate_hz, o.seed, o.maneuver
+    effects_file, realistic, noise = o.effects_file, o.realistic, o.noise
     out = Path(out)
     if out.suffix.lower() not in (".csv", ".mcap"):
         raise ValueError(f"--out {out}: the recording must end in .csv or .mcap")
@@ -202,7 +213,7 @@ def simulate(
         scenario = played_scenario(arm, plan, seed)
     else:
         check_run_size(arm, scenario, duration_s, rate_hz)
-    model = effects_model(arm, effect, effects_file)
+    model = effects_model(arm, o.effects, effects_file)
     say = progress or (lambda _f, _m=None: None)
     share = SIMULATED_SHARE[out.suffix.lower()]
     t0 = time.perf_counter()
@@ -285,8 +296,9 @@ def register(app: typer.Typer) -> None:
             fail(f"--scenario {scenario!r}: give a scenario's name (`armfusion simulate --help` lists them)")
         try:
             with progress_bar("simulating", json_out) as advance:
-                summary = simulate(config, scenario or "planned", out, duration, rate, seed, effect or (),
-                                   realistic, effects_file, noise, progress=advance, maneuver=maneuver)
+                options = SimulationOptions(duration, rate, seed, tuple(effect or ()), realistic, effects_file,
+                                            noise, maneuver)
+                summary = simulate(config, scenario or "planned", out, options, progress=advance)
         except (ConfigError, FileNotFoundError, ValueError) as e:
             fail(str(e))
         if json_out:

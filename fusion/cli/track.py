@@ -4,6 +4,7 @@ stretch, then every sample), with an estimates file and a JSON summary (docs/tra
 from __future__ import annotations
 
 import csv
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
@@ -86,8 +87,8 @@ def track(
                      f"deg/sqrt(s) against the encoder before then); tracking starts afresh there")
     if sigma_relative:
         notes.append(_relative_sigma_note(arm))
-    tr, start, run = _start_and_run(arm, rec, recording, settings, prior_q, moving_start, start_at, notes,
-                                    json_out, sigma_relative)
+    how = TrackStart(prior_q, moving_start, start_at, sigma_relative)
+    tr, start, run = _start_and_run(arm, rec, recording, settings, how, notes, json_out)
     warnings = tr.sensor_warnings() if run.steps else []
     notes.extend(warnings)
     notes.extend(_floor_notes(arm))
@@ -149,22 +150,35 @@ def _prior_pose(prior: Path | None, arm, notes: list[str]):
     return saved.q_rad
 
 
-def _start_and_run(arm, rec, recording: Path, settings, prior_q, moving_start: bool, start_at: float | None,
-                   notes: list[str], json_out: bool, sigma_relative: bool = False) -> tuple:
-    """The startup calibration, then the tracker over the recording, with a progress bar:
-    ``(tracker, start, run)``; exit 2 saying why the tracking cannot start.
-    ``sigma_relative``: the σ relative to the calibration's joint-zero conventions."""
+@dataclass(frozen=True)
+class TrackStart:
+    """How ``track``'s startup calibration starts: with the saved pose's joint angles
+    ``prior_q_rad`` (``--prior``; ``None``: none) to pick its branches; on the least-moving
+    instants when the recording has no still stretch (``--moving-start``); at ``start_at_s``
+    after the recording's start (``--start-at``; ``None``: its first still stretch); its σ
+    relative to the calibration's joint-zero conventions (``--sigma-relative``)."""
+
+    prior_q_rad: np.ndarray | None = None
+    moving_start: bool = False
+    start_at_s: float | None = None
+    sigma_relative: bool = False
+
+
+def _start_and_run(arm, rec, recording: Path, settings, how: TrackStart, notes: list[str],
+                   json_out: bool) -> tuple:
+    """The startup calibration as ``how`` says, then the tracker over the recording, with a
+    progress bar: ``(tracker, start, run)``; exit 2 saying why the tracking cannot start."""
     from armfusion.fusion.startup.solve import StartupInputError
     from armfusion.fusion.tracking.tracker import NoStillWindowError, StartOptions, start_from_recording
 
     with progress_bar("startup calibration", json_out) as advance:
         try:
-            tr, start = start_from_recording(arm, rec, settings, prior_q_rad=prior_q, options=StartOptions(
-                resolve_by_motion_s=20.0, moving_start=moving_start,
-                start_at_s=None if start_at is None else rec.t_start_s + start_at,
-                sigma_given_conventions=sigma_relative))
+            tr, start = start_from_recording(arm, rec, settings, prior_q_rad=how.prior_q_rad, options=StartOptions(
+                resolve_by_motion_s=20.0, moving_start=how.moving_start,
+                start_at_s=None if how.start_at_s is None else rec.t_start_s + how.start_at_s,
+                sigma_given_conventions=how.sigma_relative))
         except NoStillWindowError as e:
-            fail(f"{recording}: {e}" + ("" if moving_start or start_at is not None else
+            fail(f"{recording}: {e}" + ("" if how.moving_start or how.start_at_s is not None else
                                         " (--moving-start starts on its least-moving instants)"))
         except (StartupInputError, ValueError) as e:
             fail(f"{recording}: cannot start tracking: {e}")

@@ -80,13 +80,13 @@ def first_start(arm: ArmModel, rec: Recording, settings: TrackerSettings | None,
                  + compass)
 
 
-def resume_from(doc: dict, arm: ArmModel, settings: TrackerSettings | None, *, t_s: float,
-                encoder_counts: np.ndarray, state_path: Path | None, **checks) -> Began | str:
-    """The tracker restored from the saved state ``doc`` at the first encoder sample (``t_s``,
-    ``encoder_counts``); or why not, in a line for the status. ``checks``: what
-    :func:`armfusion.fusion.service.state_file.resumed_tracker` checks the state against."""
-    tracker, problem = state_file.resumed_tracker(doc, arm, settings, t_s=t_s, encoder_counts=encoder_counts,
-                                                  **checks)
+def resume_from(doc: dict, arm: ArmModel, settings: TrackerSettings | None, checks: state_file.ResumeChecks,
+                *, t_s: float, encoder_counts: np.ndarray, state_path: Path | None) -> Began | str:
+    """The tracker restored from the saved state ``doc``, read from ``state_path``, at the first
+    encoder sample (``t_s``, ``encoder_counts``) when it passes ``checks``; or why not, in a line
+    for the status."""
+    tracker, problem = state_file.resumed_tracker(doc, arm, settings, checks, t_s=t_s,
+                                                  encoder_counts=encoder_counts)
     if problem is not None:
         return f"saved state in {state_path} not used: {problem}; a startup calibration on a still arm"
     moved = np.abs(np.asarray(encoder_counts, float) - np.asarray(doc["encoder_counts"], float))

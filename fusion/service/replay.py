@@ -3,14 +3,14 @@
 The recording's raw streams are cut into windows of ``batch_s`` of recording time; each
 window's samples of one sensor go out as one :class:`~armfusion.fusion.service.payloads.RawBatch`
 on ``armfusion/<robot>/raw/<sensor>`` when the wall clock reaches the window's end
-(scaled by ``speed``; ``speed=None`` publishes as fast as the subscribers take them: the
+(scaled by :attr:`ReplayPacing.speed`; ``speed=None`` publishes as fast as the subscribers take them: the
 publishers block rather than drop). A :class:`~armfusion.fusion.service.payloads.Status` goes out
 on ``armfusion/<robot>/status`` at the start and at the end, with the samples published
 per sensor.
 
 Whether anything hears it is Zenoh's matching status of each publisher (a subscriber whose
 key expression matches, anywhere the session reaches). With ``require_subscriber``,
-:func:`replay` first waits up to ``wait_for_subscribers_s`` for one and raises
+:func:`replay` first waits up to ``wait_for_subscribers_s`` (its :class:`ReplayPacing`) for one and raises
 :class:`NoSubscriberError` (nothing published) when no sensor's key has any; every batch
 put while its key had no subscriber is counted in :attr:`ReplayReport.unheard`, so a
 subscriber that leaves half-way shows too. ``armfusion replay`` exits 1 in both cases. A
@@ -89,22 +89,37 @@ def _wait_for_subscribers(pubs: dict[str, zenoh.Publisher], wait_s: float,
         stop.wait(0.02)
 
 
-def replay(session: zenoh.Session, rec: Recording, robot: str, *, speed: float | None = 1.0,
-           batch_s: float = DEFAULT_BATCH_S, wait_for_subscribers_s: float = 0.0,
-           stop: threading.Event | None = None, require_subscriber: bool = False,
-           on_start: Callable[[], None] | None = None) -> ReplayReport:
-    """Publish the raw streams of ``rec`` as robot ``robot``; see the module's docstring.
+@dataclass(frozen=True)
+class ReplayPacing:
+    """How a replay publishes: ``speed`` times the recording's pace (``None``: as fast as the
+    subscribers take the samples), in windows of ``batch_s`` of recording time; first waiting
+    up to ``wait_for_subscribers_s`` for a subscriber on every raw key (the sensors named in
+    :attr:`ReplayReport.unmatched` had none by then); with ``require_subscriber``, raising
+    :class:`NoSubscriberError`, publishing nothing, when no raw key has a subscriber after that
+    wait."""
 
-    ``wait_for_subscribers_s``: first wait up to this long for a subscriber on every raw
-    key (the sensors named in :attr:`ReplayReport.unmatched` had none by then).
-    ``require_subscriber``: raise :class:`NoSubscriberError`, publishing nothing, when no
-    raw key has a subscriber after that wait. ``on_start``: called once, as the publishing
+    speed: float | None = 1.0
+    batch_s: float = DEFAULT_BATCH_S
+    wait_for_subscribers_s: float = 0.0
+    require_subscriber: bool = False
+
+    def __post_init__(self) -> None:
+        if self.speed is not None and not self.speed > 0:
+            raise ValueError(f"speed must be > 0 (or None for as fast as possible), got {self.speed!r}")
+        if not self.batch_s > 0:
+            raise ValueError(f"batch_s must be > 0, got {self.batch_s!r}")
+
+
+def replay(session: zenoh.Session, rec: Recording, robot: str, pacing: ReplayPacing | None = None, *,
+           stop: threading.Event | None = None, on_start: Callable[[], None] | None = None) -> ReplayReport:
+    """Publish the raw streams of ``rec`` as robot ``robot``, paced by ``pacing`` (``None``:
+    at the recording's pace, not waiting for subscribers); see the module's docstring.
+    ``stop``: ends the replay early when set. ``on_start``: called once, as the publishing
     starts (after the wait), e.g. :meth:`armfusion.fusion.service.admitted.AdmissionWatch.start`.
     """
-    if speed is not None and not speed > 0:
-        raise ValueError(f"speed must be > 0 (or None for as fast as possible), got {speed!r}")
-    if not batch_s > 0:
-        raise ValueError(f"batch_s must be > 0, got {batch_s!r}")
+    pacing = ReplayPacing() if pacing is None else pacing
+    speed, batch_s = pacing.speed, pacing.batch_s
+    wait_for_subscribers_s = pacing.wait_for_subscribers_s
     stop = stop or threading.Event()
     streams = {k: s for k, s in rec.raw().items() if len(s)}
     if not streams:
@@ -115,7 +130,7 @@ def replay(session: zenoh.Session, rec: Recording, robot: str, *, speed: float |
                                          congestion_control=zenoh.CongestionControl.BLOCK)
             for k in streams}
     unmatched = _wait_for_subscribers(pubs, wait_for_subscribers_s, stop) if wait_for_subscribers_s else ()
-    if require_subscriber and all(not p.matching_status.matching for p in pubs.values()):
+    if pacing.require_subscriber and all(not p.matching_status.matching for p in pubs.values()):
         for p in (*pubs.values(), status_pub):
             p.undeclare()
         raise NoSubscriberError(

@@ -37,6 +37,9 @@ With a ``state_path``, the node saves its state there (:mod:`armfusion.fusion.se
 every ``save_period_s`` of wall time and when it stops, and at start resumes from it
 without a new startup calibration when the encoders kept counting; otherwise it says why
 and calibrates on a still arm as usual.
+
+The names above (``min_data_s``, ``publish_hz``, ``state_path``…) are the fields of the node's
+:class:`~armfusion.fusion.service.serve_settings.NodeSettings`, where their defaults are.
 """
 
 from __future__ import annotations
@@ -45,25 +48,25 @@ import logging
 import threading
 import time
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import zenoh
 from armfusion.fusion.service import payloads as pl
-from armfusion.fusion.service.admission import Admission, AdmissionSettings
+from armfusion.fusion.service.admission import Admission
 from armfusion.fusion.service.inbox import Inbox
-from armfusion.fusion.service.lateness import LagWatch, Lateness, shed_samples
+from armfusion.fusion.service.lateness import LagWatch, shed_samples
 from armfusion.fusion.service.maneuver import (
     ManeuverEndpoint,
     ServedManeuver,
     apply_fitted_config,
     joints_note,
 )
-from armfusion.fusion.service.node import DEFAULT_QUEUE_SIZE, BoundedReceiver, StallWatch
+from armfusion.fusion.service.node import BoundedReceiver, StallWatch
 from armfusion.fusion.service.serve_endpoints import NodeEndpoints
+from armfusion.fusion.service.serve_settings import NodeSettings
 from armfusion.fusion.service.serve_status import NodeBoard, NodeCounts, ServeReport, status_message
-from armfusion.fusion.service.serve_tracking import NodeParts, NodeTracking, TrackingConfig
-from armfusion.fusion.tracking.tracker import Tracker, TrackerSettings, warm_up
+from armfusion.fusion.service.serve_tracking import NodeParts, NodeTracking
+from armfusion.fusion.tracking.tracker import Tracker, warm_up
 from armfusion.models.arm import ArmModel
 
 log = logging.getLogger("armfusion.service")
@@ -72,23 +75,10 @@ log = logging.getLogger("armfusion.service")
 class FusionNode:
     """Subscribes to a robot's raw samples on ``session``, calibrates, tracks, publishes.
 
-    ``state_path``: the saved state (see :mod:`armfusion.fusion.service.state_file`), written every
-    ``save_period_s`` of wall time and at stop, and resumed from at start when it is no
-    older than ``max_state_age_s`` and the encoders moved no faster than
-    ``max_joint_rate_rad_s`` in between. ``recent_s``: how much of the latest samples the
-    node keeps for a calibration on request. ``startup_keep_s``: until the tracker starts, how
-    much of the latest samples the node keeps for its startup calibration (older batches are
-    let go: a node waiting for a still arm holds, and searches on each retry, at most that
-    much, however long it waits). ``silent_after_s``: a sensor none of whose
-    batches arrived for that long (wall time) is ``stale`` in the status, also when every
-    sensor stops and the tracker, which judges staleness in sample time, hears nothing.
-    ``admission``: the bounds every raw batch is checked against
-    (:mod:`armfusion.fusion.service.admission`). ``stall_after_s``: while tracking, no estimate for
-    that long (wall time) while raw batches arrive is a stall, reported in the status.
-    ``lateness``: when the node is degraded and what it does then
-    (:class:`~armfusion.fusion.service.lateness.Lateness`). ``assume_parked``: the ready pose
-    as evidence for the startup's branches (``serve --assume-parked``); by default nothing
-    but the data chooses them.
+    ``settings``: how it runs (:class:`~armfusion.fusion.service.serve_settings.NodeSettings`:
+    its saved state, what it keeps, its admission, stall and lateness; ``None``: the defaults).
+    ``maneuver``: a planned calibration maneuver it serves (:mod:`armfusion.fusion.service.maneuver`),
+    or ``None``.
 
     The node takes its messages in (each checked as a payload, then by the admission),
     judges its lag (:mod:`~armfusion.fusion.service.lateness`) and says its status
@@ -97,33 +87,19 @@ class FusionNode:
     state are its tracking's (:mod:`~armfusion.fusion.service.serve_tracking`).
     """
 
-    def __init__(self, session: zenoh.Session, arm: ArmModel, robot: str, *,
-                 settings: TrackerSettings | None = None, publish_hz: float = 50.0,
-                 min_data_s: float = 2.0, retry_s: float = 0.5, max_lag_s: float = 0.1,
-                 state_path: Path | str | None = None, save_period_s: float = 1.0,
-                 max_state_age_s: float = 60.0, max_joint_rate_rad_s: float = 1.5,
-                 recent_s: float = 5.0, still_tolerance_s: float = 0.3, silent_after_s: float = 0.5,
-                 startup_keep_s: float = 60.0,
-                 queue_size: int = DEFAULT_QUEUE_SIZE, admission: AdmissionSettings | None = None,
-                 stall_after_s: float = 1.0, assume_parked: bool = False,
-                 maneuver: ServedManeuver | None = None, lateness: Lateness | None = None):
-        if not startup_keep_s >= 2.0 * min_data_s:
-            raise ValueError(f"startup_keep_s must be at least twice min_data_s ({2.0 * min_data_s:g} s), "
-                             f"not {startup_keep_s!r}")
-        self.session, self.settings = session, settings
+    def __init__(self, session: zenoh.Session, arm: ArmModel, robot: str,
+                 settings: NodeSettings | None = None, *, maneuver: ServedManeuver | None = None):
+        self.session = session
+        self.settings = settings = NodeSettings() if settings is None else settings
         self.robot = pl.check_name(robot, "robot")
-        self.state_path = None if state_path is None else Path(state_path)
-        self.save_period_s, self.silent_after_s = save_period_s, silent_after_s
-        self.queue_size, self.stall_after_s = queue_size, stall_after_s
-        self.lateness = lateness or Lateness()
+        self.state_path = settings.state_path
+        self.lateness = settings.lateness
         self.ready = threading.Event()
         self._board = NodeBoard()
-        self._admission, self._lag = Admission(arm, admission), LagWatch(self.lateness)
-        self._maneuver, self._stall, self._inbox = maneuver, StallWatch(stall_after_s), Inbox("serve")
-        config = TrackingConfig(settings, 1.0 / publish_hz, min_data_s, retry_s, max_lag_s, recent_s,
-                                still_tolerance_s, startup_keep_s, assume_parked, self.state_path,
-                                max_state_age_s, max_joint_rate_rad_s)
-        self.tracking = NodeTracking(arm, self.robot, config,
+        self._admission, self._lag = Admission(arm, settings.admission), LagWatch(self.lateness)
+        self._maneuver, self._inbox = maneuver, Inbox("serve")
+        self._stall = StallWatch(settings.stall_after_s)
+        self.tracking = NodeTracking(arm, self.robot, settings,
                                      NodeParts(self._board, self._admission, self._lag, self._stall))
         self._arrived: dict[str, float] = {}  # sensor -> when its last batch arrived (monotonic)
         self._silent: frozenset[str] = frozenset()
@@ -170,14 +146,14 @@ class FusionNode:
         # the compiled kernels ready before any sample is taken in (compiled once after an
         # install: seconds the node would otherwise spend while the samples queue up)
         try:
-            log.info("serve: tracker kernels ready in %.1f s", warm_up(self.arm, self.settings))
+            log.info("serve: tracker kernels ready in %.1f s", warm_up(self.arm, self.settings.tracker))
         except (ValueError, KeyError, RuntimeError) as e:  # (a speed-up only: they compile on first use)
             log.warning("serve: could not warm the tracker's kernels up (%s); they compile on first use", e)
         # a deep channel: while the node catches up (after its startup calibration, or on a
         # busy machine) Zenoh's receive thread must not block for long, or a blocking
         # publisher waits and Zenoh closes the link after 5 s (block/wait_before_close),
         # losing what was in flight
-        receiver = BoundedReceiver(maxsize=self.queue_size)
+        receiver = BoundedReceiver(maxsize=self.settings.queue_size)
         self.tracking.endpoints = endpoints = NodeEndpoints(self.session, self.robot, receiver)
         served = None if self._maneuver is None else ManeuverEndpoint(
             self.session, self._maneuver,
@@ -223,7 +199,7 @@ class FusionNode:
             now = time.monotonic()
             if self._stall.check(self.tracker is not None, now):
                 board.due = True
-            silent = frozenset(k for k, t in self._arrived.items() if now - t > self.silent_after_s)
+            silent = frozenset(k for k, t in self._arrived.items() if now - t > self.settings.silent_after_s)
             if silent != self._silent:
                 self._silent, board.due = silent, True
             # every second, and at once (at most 10 a second) when a sensor's status changes;
@@ -233,7 +209,7 @@ class FusionNode:
                 last_status, next_status = now, now + 1.0
             if self.state_path is not None and now >= next_save:
                 self.save_state()
-                next_save = now + self.save_period_s
+                next_save = now + self.settings.save_period_s
 
     def _counts(self, receiver: BoundedReceiver) -> NodeCounts:
         dropped = Counter(self._inbox.dropped) + self._admission.rejected

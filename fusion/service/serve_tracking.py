@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from armfusion.fusion.service import payloads as pl
@@ -32,33 +31,15 @@ from armfusion.fusion.service.node_start import (
 from armfusion.fusion.service.reorder import Reorder
 from armfusion.fusion.service.restart import RecentSamples, calibration_reply
 from armfusion.fusion.service.serve_endpoints import NodeEndpoints
+from armfusion.fusion.service.serve_settings import NodeSettings
 from armfusion.fusion.service.serve_status import NodeBoard
 from armfusion.fusion.service.startup_buffer import StartupBuffer
-from armfusion.fusion.tracking.tracker import ENC, Start, Tracker, TrackerSettings
+from armfusion.fusion.tracking.tracker import ENC, Start, Tracker
 from armfusion.models.arm import ArmModel
 from armfusion.models.sensor_models import stream_models
 from armfusion.sensors.samples import Recording, Stream
 
 log = logging.getLogger("armfusion.service")
-
-
-@dataclass(frozen=True)
-class TrackingConfig:
-    """The fusion node's settings for its tracker (see
-    :class:`~armfusion.fusion.service.serve.FusionNode`, whose arguments they are)."""
-
-    settings: TrackerSettings | None = None
-    publish_period_s: float = 0.02
-    min_data_s: float = 2.0
-    retry_s: float = 0.5
-    max_lag_s: float = 0.1
-    recent_s: float = 5.0
-    still_tolerance_s: float = 0.3
-    startup_keep_s: float = 60.0
-    assume_parked: bool = False
-    state_path: Path | None = None
-    max_state_age_s: float = 60.0
-    max_joint_rate_rad_s: float = 1.5
 
 
 @dataclass(frozen=True)
@@ -77,7 +58,7 @@ class NodeTracking:
     """The tracker of the fusion node for ``robot`` on ``arm`` under ``config``, and what it
     keeps for its starts; ``endpoints``: where it publishes, set before the first batch."""
 
-    def __init__(self, arm: ArmModel, robot: str, config: TrackingConfig, parts: NodeParts):
+    def __init__(self, arm: ArmModel, robot: str, config: NodeSettings, parts: NodeParts):
         self.arm, self.robot, self.config = arm, robot, config
         self.endpoints: NodeEndpoints | None = None
         self._config_sha = state_file.config_fingerprint(arm)  # what a saved state was tracked with
@@ -151,10 +132,11 @@ class NodeTracking:
     def _try_resume(self, t_s: float, encoder_counts: np.ndarray) -> None:
         doc, self._saved = self._saved, None
         c = self.config
-        began = resume_from(doc, self.arm, c.settings, t_s=t_s, encoder_counts=encoder_counts,
-                            state_path=c.state_path, robot=self.robot, max_age_s=c.max_state_age_s,
-                            max_joint_rate_rad_s=c.max_joint_rate_rad_s, max_gap_s=c.max_lag_s,
-                            config_sha256=self._config_sha)
+        checks = state_file.ResumeChecks(self.robot, max_age_s=c.max_state_age_s,
+                                         max_joint_rate_rad_s=c.max_joint_rate_rad_s, max_gap_s=c.max_lag_s,
+                                         config_sha256=self._config_sha)
+        began = resume_from(doc, self.arm, c.tracker, checks, t_s=t_s, encoder_counts=encoder_counts,
+                            state_path=c.state_path)
         if isinstance(began, str):
             self.resume_message = self._board.message = began
             log.warning("serve: %s", began)
@@ -177,7 +159,7 @@ class NodeTracking:
             return
         rec = self._buffer.merged()
         self._next_try_t = t_now + c.retry_s
-        began = first_start(self.arm, rec, c.settings, assume_parked=c.assume_parked,
+        began = first_start(self.arm, rec, c.tracker, assume_parked=c.assume_parked,
                             saved_iron=self._saved_iron, state_path=c.state_path)
         if isinstance(began, str):
             self._board.message = began
@@ -207,7 +189,7 @@ class NodeTracking:
         """:meth:`FusionNode.calibrate <armfusion.fusion.service.serve.FusionNode.calibrate>`."""
         arm = self.arm if arm is None else arm
         c = self.config
-        began = start_on_still_now(arm, self._recent.still_now(c.still_tolerance_s), c.settings,
+        began = start_on_still_now(arm, self._recent.still_now(c.still_tolerance_s), c.tracker,
                                    prior=parked_prior(arm, c.assume_parked), why=why,
                                    last_estimate=self.last_estimate if carry_pose else None)
         if isinstance(began, str):
@@ -261,7 +243,7 @@ class NodeTracking:
         if t_now < self._next_resolve_t:
             return
         self._next_resolve_t = t_now + c.retry_s
-        began = resolve_again(self.arm, c.settings, self._start, self._recent.still_now(c.still_tolerance_s),
+        began = resolve_again(self.arm, c.tracker, self._start, self._recent.still_now(c.still_tolerance_s),
                               set(self.tracker.ambiguity()))
         if isinstance(began, str):
             self._board.message, self._board.due = began, True

@@ -40,6 +40,7 @@ import os
 import tempfile
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -154,15 +155,32 @@ def _other_config(doc: Mapping, config_sha256: str) -> bool:
     return bool(saved and config_sha256 and saved != config_sha256)
 
 
-def resume_problem(doc: Mapping, *, robot: str, arm_name: str, joint_names, counts_per_rad,
-                   t_s: float, encoder_counts, now_wall_s: float, max_age_s: float,
-                   max_joint_rate_rad_s: float, config_sha256: str = "") -> str | None:
+@dataclass(frozen=True)
+class ResumeChecks:
+    """What a saved state is checked against before the node resumes from it: the node's
+    ``robot``; the state saved at most ``max_age_s`` ago (wall time, and of sample time before
+    the new sample); every joint's encoder moved no faster than ``max_joint_rate_rad_s`` in
+    between; ``config_sha256``, the node's config (:func:`config_fingerprint`; empty: not told
+    apart). After a gap of more than ``max_gap_s`` of sample time the tracker's causal fits
+    of the encoders and the gyro start afresh rather than differentiate across the gap."""
+
+    robot: str
+    max_age_s: float
+    max_joint_rate_rad_s: float
+    max_gap_s: float
+    config_sha256: str = ""
+
+
+def resume_problem(doc: Mapping, arm, checks: ResumeChecks, *, t_s: float, encoder_counts,
+                   now_wall_s: float) -> str | None:
     """Why the saved state ``doc`` must not be resumed at the encoder sample
-    (``t_s``, ``encoder_counts``), or ``None`` when it may."""
+    (``t_s``, ``encoder_counts``) of ``arm`` at wall time ``now_wall_s``, or ``None`` when it may."""
+    robot, arm_name, max_age_s = checks.robot, arm.name, checks.max_age_s
+    max_joint_rate_rad_s = checks.max_joint_rate_rad_s
     if doc["robot"] != robot or doc["arm"] != arm_name:
         return (f"it is robot {doc['robot']!r} with arm {doc['arm']!r}; this node serves {robot!r} "
                 f"with arm {arm_name!r}")
-    if _other_config(doc, config_sha256):
+    if _other_config(doc, checks.config_sha256):
         return ("it was saved under another config (the sensors' model differs: a calibration "
                 "applied or undone since), whose offsets and biases do not hold under this one")
     age_s = now_wall_s - float(doc["saved_wall_s"])
@@ -177,7 +195,7 @@ def resume_problem(doc: Mapping, *, robot: str, arm_name: str, joint_names, coun
         return f"it is stale: {gap_s:.0f} s of samples since it was saved (more than {max_age_s:g} s)"
     saved = np.asarray(doc["encoder_counts"], dtype=float)
     now = np.asarray(encoder_counts, dtype=float)
-    cpr = np.asarray(counts_per_rad, dtype=float)
+    cpr = np.asarray(arm.counts_per_rad, dtype=float)
     if saved.shape != now.shape or saved.shape != cpr.shape:
         return f"it has {saved.size} encoder counts; the arm has {cpr.size} joints"
     moved_rad = np.abs(now - saved) / cpr
@@ -185,32 +203,24 @@ def resume_problem(doc: Mapping, *, robot: str, arm_name: str, joint_names, coun
     bad = np.flatnonzero(moved_rad > allowed_rad)
     if bad.size:
         j = int(bad[np.argmax(moved_rad[bad] - allowed_rad[bad])])
-        return (f"joint {joint_names[j]}'s encoder jumped {math.degrees(moved_rad[j]):.1f}° in "
+        return (f"joint {arm.joint_names[j]}'s encoder jumped {math.degrees(moved_rad[j]):.1f}° in "
                 f"{gap_s:.3f} s, more than it can turn at {max_joint_rate_rad_s:g} rad/s: the "
                 "encoders were reset or lost counts")
     return None
 
 
-def resumed_tracker(doc: Mapping, arm, settings, *, robot: str, t_s: float, encoder_counts,
-                    max_age_s: float, max_joint_rate_rad_s: float, max_gap_s: float,
-                    config_sha256: str = ""):
+def resumed_tracker(doc: Mapping, arm, settings, checks: ResumeChecks, *, t_s: float, encoder_counts):
     """``(tracker, None)``: the tracker restored from the saved state ``doc`` at the first
-    encoder sample (``t_s``, ``encoder_counts``); or ``(None, why not)``. After a gap of more
-    than ``max_gap_s`` of sample time the causal fits of the encoders and the gyro start
-    afresh rather than differentiate across the gap. ``config_sha256``: the node's config
-    (:func:`config_fingerprint`), which the state must have been saved under."""
+    encoder sample (``t_s``, ``encoder_counts``) when it passes ``checks``; or ``(None, why not)``."""
     try:
-        problem = resume_problem(
-            doc, robot=robot, arm_name=arm.name, joint_names=arm.joint_names,
-            counts_per_rad=arm.counts_per_rad, t_s=t_s, encoder_counts=encoder_counts,
-            now_wall_s=time.time(), max_age_s=max_age_s, max_joint_rate_rad_s=max_joint_rate_rad_s,
-            config_sha256=config_sha256)
+        problem = resume_problem(doc, arm, checks, t_s=t_s, encoder_counts=encoder_counts,
+                                 now_wall_s=time.time())
     except (TypeError, ValueError, KeyError) as e:  # a hand-edited or damaged file
         return None, f"it is malformed: {type(e).__name__}: {e}"
     if problem is not None:
         return None, problem
     snap = dict(doc["tracker"])
-    if t_s - float(doc["t_s"]) > max_gap_s:
+    if t_s - float(doc["t_s"]) > checks.max_gap_s:
         snap["encoder_fit"] = {**snap["encoder_fit"], "n": 0}
         snap["gyro_fit"] = {**snap["gyro_fit"], "n": 0}
         snap["omega"] = None

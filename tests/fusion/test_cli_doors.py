@@ -25,10 +25,10 @@ DATA = Path(__file__).resolve().parents[1] / "data"
 
 @pytest.fixture(scope="module")
 def startup_csv(tmp_path_factory) -> Path:
-    from armfusion.fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import SimulationOptions, simulate
 
     path = tmp_path_factory.mktemp("rec") / "startup.csv"
-    simulate("wmra", "startup", path, duration_s=3.0, seed=1)
+    simulate("wmra", "startup", path, SimulationOptions(duration_s=3.0, seed=1))
     return path
 
 

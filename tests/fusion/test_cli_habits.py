@@ -59,10 +59,10 @@ def test_the_listing_says_what_each_command_says_of_itself():
 
 @pytest.fixture(scope="module")
 def startup_csv(tmp_path_factory):
-    from armfusion.fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import SimulationOptions, simulate
 
     path = tmp_path_factory.mktemp("rec") / "startup.csv"
-    simulate("wmra", "startup", path, duration_s=3.0, seed=1)
+    simulate("wmra", "startup", path, SimulationOptions(duration_s=3.0, seed=1))
     return path
 
 
@@ -128,10 +128,10 @@ def test_the_run_size_bound_is_what_memory_allows():
 def test_track_says_which_span_its_rms_covers_on_a_short_recording(tmp_path):
     import re
 
-    from armfusion.fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import SimulationOptions, simulate
 
     path = tmp_path / "short.csv"
-    simulate("wmra", "daily-use", path, duration_s=25.0, seed=2)
+    simulate("wmra", "daily-use", path, SimulationOptions(duration_s=25.0, seed=2))
     r = runner.invoke(app, ["track", str(path)], env={"COLUMNS": "200"})
     assert r.exit_code == 0, r.output
     assert "after 60 s" not in r.stdout
@@ -206,9 +206,9 @@ def test_simulate_shows_a_bar_with_the_time_left_at_a_terminal_only(tmp_path):
 
 
 def test_track_shows_its_bar_at_a_terminal(tmp_path, startup_csv):
-    from armfusion.fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import SimulationOptions, simulate
 
-    simulate("wmra", "daily-use", tmp_path / "d.csv", duration_s=60.0, seed=4)
+    simulate("wmra", "daily-use", tmp_path / "d.csv", SimulationOptions(duration_s=60.0, seed=4))
     shown = _at_a_terminal(["track", "d.csv"], tmp_path)
     assert "tracking" in shown and BAR.search(shown)
     r = runner.invoke(app, ["track", str(tmp_path / "d.csv")])

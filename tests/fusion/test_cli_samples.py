@@ -28,11 +28,11 @@ def recordings(tmp_path_factory):
     """A 30 s calibration maneuver (parked chair), and three spoilt copies of its CSV: one
     5000-count cell on acc2_y (row 501), acc3_z at its 511 rail for 100 rows (1000-1099),
     every link accelerometer's columns gone."""
-    from armfusion.fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import SimulationOptions, simulate
 
     d = tmp_path_factory.mktemp("samples")
     good = d / "m30.csv"
-    simulate("wmra", "renk-maneuver", good, duration_s=30.0, seed=3)
+    simulate("wmra", "renk-maneuver", good, SimulationOptions(duration_s=30.0, seed=3))
     with open(good, newline="") as fh:
         rows = list(csv.reader(fh))
     head = rows[0]

@@ -11,7 +11,7 @@ import pytest
 import yaml
 from armfusion.fusion.cli.drivers_faults import parse_fault
 from armfusion.fusion.cli.drivers_report import summary
-from armfusion.fusion.cli.drivers_run import run_fake
+from armfusion.fusion.cli.drivers_run import FakeRigOptions, run_fake
 from armfusion.fusion.cli.main import app
 from armfusion.fusion.configfile import resolve_config_path
 from armfusion.models.fake_rig import simulate_physics
@@ -29,13 +29,13 @@ LSB_G = 1 / 256  # ADXL345, ±2 g 10-bit
 @pytest.fixture(scope="module")
 def moving():
     """5 s of the excitation scenario (everything moves) with every effect drawn, noise on."""
-    return run_fake("wmra", "excitation", 5.0, 100.0, seed=5, realistic=True)
+    return run_fake("wmra", FakeRigOptions("excitation", seed=5, realistic=True), 5.0, 100.0)
 
 
 @pytest.fixture(scope="module")
 def moving_ideal():
     """The same arm and motion without sensor noise: counts are the physics, rounded."""
-    return run_fake("wmra", "excitation", 3.0, 100.0, seed=5, realistic=True, noise=False)
+    return run_fake("wmra", FakeRigOptions("excitation", seed=5, realistic=True, noise=False), 3.0, 100.0)
 
 
 def _accel_vs_sim(run, name, tmp_path):
@@ -180,8 +180,8 @@ def test_injected_faults_are_counted_and_reported_not_a_crash():
         seen["acc1"] = rig["acc1"].faults
         seen["i2c1"] = rig.i2c[1].faults
 
-    run = run_fake("wmra", "startup", 2.0, seed=2, prepare=prepare,
-                   faults=["acc3:unplug@0.5-1.0"])
+    run = run_fake("wmra", FakeRigOptions("startup", seed=2, faults=("acc3:unplug@0.5-1.0",)), 2.0,
+                   prepare=prepare)
     doc = summary(run)
     acc1 = doc["devices"]["acc1"]
     # every injected failure is a counted bus error; most are absorbed by the retries

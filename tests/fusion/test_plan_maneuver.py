@@ -167,7 +167,7 @@ def test_plan_maneuver_writes_a_file_that_simulate_plays(tmp_path: Path, arm):
     from armfusion.fusion.cli.plan_maneuver import run_plan
     from typer.testing import CliRunner
 
-    doc = run_plan("wmra", 20.0, EFFECTS, startup_poses=8, candidates=24)
+    doc = run_plan("wmra", PlanSettings(duration_s=20.0, candidates=24), EFFECTS, startup_poses=8)
     assert [p["pose_deg"] for p in doc["poses"]][0] == pytest.approx(np.degrees(arm.ready_pose_rad).tolist())
     assert {"name", "sigma", "prior_sigma", "held"} <= set(doc["predicted"]["elements"][0])
     assert [s["joint"] for s in doc["predicted"]["startup"]] == list(arm.joint_names)

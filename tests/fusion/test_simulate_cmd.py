@@ -7,7 +7,13 @@ import json
 import numpy as np
 import pytest
 import typer
-from armfusion.fusion.cli.simulate import load_effect_entries, register, simulate, truth_path
+from armfusion.fusion.cli.simulate import (
+    SimulationOptions,
+    load_effect_entries,
+    register,
+    simulate,
+    truth_path,
+)
 from armfusion.models.arm_config import ConfigError
 from armfusion.sensors.recording import read_recording
 from typer.testing import CliRunner
@@ -27,8 +33,8 @@ def app():
 
 def test_writes_the_recording_and_its_truth_file(tmp_path):
     out = tmp_path / "rec.csv"
-    s = simulate("wmra", "daily-use", out, duration_s=15, seed=3, realistic=True,
-                 effect=["mount_rotation:acc3=0.01,0.02,0"])
+    s = simulate("wmra", "daily-use", out, SimulationOptions(duration_s=15, seed=3, realistic=True,
+                                                             effects=("mount_rotation:acc3=0.01,0.02,0",)))
     assert truth_path(out) == tmp_path / "rec.truth.json" and truth_path(out).exists()
     rec = read_recording(out)
     assert set(rec.streams) >= {"acc1", "acc4", "imu_acc", "imu_gyro", "imu_mag", "imu_temp", "enc",
@@ -42,8 +48,8 @@ def test_writes_the_recording_and_its_truth_file(tmp_path):
 
 def test_effects_file_replays_the_same_arm_in_another_scenario(tmp_path):
     a, b = tmp_path / "a.csv", tmp_path / "b.mcap"
-    simulate("wmra", "static-poses", a, duration_s=10, seed=8, realistic=True)
-    simulate("wmra", "startup", b, duration_s=3, seed=1, effects_file=truth_path(a))
+    simulate("wmra", "static-poses", a, SimulationOptions(duration_s=10, seed=8, realistic=True))
+    simulate("wmra", "startup", b, SimulationOptions(duration_s=3, seed=1, effects_file=truth_path(a)))
     ta, tb = (json.loads(truth_path(p).read_text()) for p in (a, b))
     assert ta["effects"] == tb["effects"]
     assert read_recording(b).streams["acc2"].values.shape == (300, 3)
@@ -87,4 +93,4 @@ def test_errors_name_the_option_and_the_fix(app, tmp_path):
     bad = tmp_path / "bad.truth.json"
     bad.write_text('{"effects": [{"effect": "gyro_bias", "params": {"bias_rad_s": [1, 2]}}]}')
     with pytest.raises(ConfigError, match=r"bad.truth.json: effects\[0\].params.bias_rad_s: expected 3"):
-        simulate("wmra", "startup", tmp_path / "x.csv", effects_file=bad)
+        simulate("wmra", "startup", tmp_path / "x.csv", SimulationOptions(effects_file=bad))

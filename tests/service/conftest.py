@@ -26,10 +26,10 @@ def hub_settings():
 @pytest.fixture(scope="session")
 def startup_recording(tmp_path_factory):
     """4 s of the WMRA's startup scenario at 100 Hz, as MCAP."""
-    from armfusion.fusion.cli.simulate import simulate
+    from armfusion.fusion.cli.simulate import SimulationOptions, simulate
 
     out = tmp_path_factory.mktemp("rec") / "startup.mcap"
-    simulate("wmra", "startup", out, duration_s=4.0, rate_hz=100.0, seed=3)
+    simulate("wmra", "startup", out, SimulationOptions(duration_s=4.0, rate_hz=100.0, seed=3))
     return out
 
 
@@ -44,21 +44,23 @@ def loopback_port() -> int:
 
 @pytest.fixture
 def fusion_node():
-    """``fusion_node(settings, arm, **kwargs)``: a context manager running a FusionNode in a
-    thread on a session opened from ``settings``; yields ``(node, result)`` where
-    ``result["report"]`` is its ServeReport once the block has ended."""
+    """``fusion_node(settings, arm, maneuver=None, **node_settings)``: a context manager running a
+    FusionNode (its ``NodeSettings`` made of ``node_settings``) in a thread on a session opened
+    from ``settings``; yields ``(node, result)`` where ``result["report"]`` is its ServeReport
+    once the block has ended."""
     import contextlib
     import threading
 
     from armfusion.fusion.service.serve import FusionNode
+    from armfusion.fusion.service.serve_settings import NodeSettings
     from armfusion.fusion.service.zenoh_config import open_session
 
     @contextlib.contextmanager
-    def run(settings, arm, robot: str = "chair1", **kwargs):
+    def run(settings, arm, robot: str = "chair1", maneuver=None, **node_settings):
         stop = threading.Event()
         result: dict = {}
         with open_session(settings) as session:
-            node = FusionNode(session, arm, robot, **kwargs)
+            node = FusionNode(session, arm, robot, NodeSettings(**node_settings), maneuver=maneuver)
             th = threading.Thread(target=lambda: result.setdefault("report", node.run(stop)), daemon=True)
             th.start()
             try:

@@ -10,7 +10,7 @@ import dataclasses
 
 import numpy as np
 from armfusion.fusion.configfile import load_arm
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from armfusion.fusion.service.zenoh_config import open_session
 from armfusion.fusion.startup.solve import move_delta_rad, readings_from_recording, solve_still
 from armfusion.fusion.startup.static import StaticDetectionSettings, find_static_segments
@@ -50,7 +50,7 @@ def test_ambiguous_joints_are_not_tracked_as_known_until_the_proposed_move_resol
     listener, connector = hub_settings
     with fusion_node(listener, arm, publish_hz=50.0) as (node, result), open_session(connector) as s:
         got = Collected(s)
-        replay(s, cut(rec, 0.0, 5.0), "chair1", speed=None, wait_for_subscribers_s=5.0)
+        replay(s, cut(rec, 0.0, 5.0), "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=5.0))
         assert wait_for(lambda: node.tracker is not None and got.snapshot()[0], 20.0)
         # still at the pose: tracked, but j3 and j4 are not known
         assert set(node.tracker.ambiguity()) >= {"j3", "j4"}
@@ -61,7 +61,8 @@ def test_ambiguous_joints_are_not_tracked_as_known_until_the_proposed_move_resol
         assert wait_for(lambda: any("ambiguous" in st.message and "to tell them apart: move" in st.message
                                     for st in got.snapshot()[1]), 5.0)
         # the controller makes the proposed move; the arm is still again
-        replay(s, cut(rec, 5.0, rec.t_end_s + 1.0), "chair1", speed=None, wait_for_subscribers_s=5.0)
+        replay(s, cut(rec, 5.0, rec.t_end_s + 1.0), "chair1",
+               ReplayPacing(speed=None, wait_for_subscribers_s=5.0))
         assert wait_for(lambda: node.tracker is not None and not node.tracker.ambiguity(), 30.0)
         assert wait_for(lambda: got.snapshot()[0][-1].t_s > rec.t_end_s - 0.5, 20.0)
     last = got.snapshot()[0][-1]

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.service import payloads as pl
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from armfusion.fusion.service.requests import NoReplyError, request_calibration
 from armfusion.fusion.service.zenoh_config import open_session
 from armfusion.fusion.tracking.tracker import TrackerSettings
@@ -21,7 +21,7 @@ from service_helpers import Collected, cut, wait_for
 
 def _replay_all(session, node, rec) -> None:
     before = node.report_samples()
-    report = replay(session, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
+    report = replay(session, rec, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=5.0))
     total = sum(report.samples.values())
     assert wait_for(lambda: node.report_samples() >= before + total, 30.0)
 

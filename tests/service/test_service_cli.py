@@ -76,7 +76,7 @@ def test_bad_speed_is_refused(startup_recording):
 
 
 def test_serve_process_calibrates_on_a_replay_and_stops_on_sigint(startup_recording, loopback_port):
-    from armfusion.fusion.service.replay import replay
+    from armfusion.fusion.service.replay import ReplayPacing, replay
     from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session
 
     server = _cli("serve", "--listen", f"tcp/127.0.0.1:{loopback_port}", "--json")
@@ -86,7 +86,7 @@ def test_serve_process_calibrates_on_a_replay_and_stops_on_sigint(startup_record
         rec = read_recording(startup_recording)
         settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{loopback_port}"])
         with open_session(settings) as s:
-            report = replay(s, rec, "chair1", speed=None, wait_for_subscribers_s=10.0)
+            report = replay(s, rec, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=10.0))
         assert report.unmatched == ()
     finally:
         server.send_signal(signal.SIGINT)
@@ -121,7 +121,7 @@ def test_replay_counts_what_went_out_after_its_subscriber_left(startup_recording
     import threading
     import time
 
-    from armfusion.fusion.service.replay import replay
+    from armfusion.fusion.service.replay import ReplayPacing, replay
     from armfusion.fusion.service.zenoh_config import open_session
     from armfusion.sensors.recording import read_recording
 
@@ -131,7 +131,8 @@ def test_replay_counts_what_went_out_after_its_subscriber_left(startup_recording
         sub = node.declare_subscriber("armfusion/chair1/raw/*", lambda sample: None)
         threading.Timer(2.0, sub.undeclare).start()  # the subscriber leaves after 2 s of the 4 s
         start = time.monotonic()
-        report = replay(s, rec, "chair1", speed=1.0, wait_for_subscribers_s=5.0, require_subscriber=True)
+        report = replay(s, rec, "chair1",
+                        ReplayPacing(speed=1.0, wait_for_subscribers_s=5.0, require_subscriber=True))
     assert report.unmatched == () and time.monotonic() - start > 3.5
     total = sum(report.samples.values())
     unheard = sum(report.unheard.values())

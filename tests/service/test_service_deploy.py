@@ -169,7 +169,7 @@ def test_only_the_drivers_may_publish_raw_samples_on_a_chair_and_the_node_checks
     import numpy as np
     from armfusion.fusion.configfile import load_arm
     from armfusion.fusion.service import payloads as pl
-    from armfusion.fusion.service.replay import replay
+    from armfusion.fusion.service.replay import ReplayPacing, replay
     from armfusion.sensors.samples import Stream
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -212,7 +212,7 @@ def test_only_the_drivers_may_publish_raw_samples_on_a_chair_and_the_node_checks
                 open_session(node("drivers")) as drivers:
             rec = renk_recording
             part = type(rec)({k: s.between(0.0, 3.0) for k, s in rec.streams.items()})
-            sent = replay(drivers, part, "chair1", speed=None, wait_for_subscribers_s=10.0)
+            sent = replay(drivers, part, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=10.0))
             total = sum(sent.samples.values())
             assert wait_for(lambda: fnode.report_samples() >= total, 30.0)
             enc = part.get("enc")

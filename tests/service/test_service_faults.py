@@ -16,7 +16,7 @@ import yaml
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.service import payloads as pl
 from armfusion.fusion.service import state_file
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from armfusion.fusion.service.zenoh_config import open_session
 from armfusion.sensors.samples import Stream
 from service_helpers import Collected, cut, wait_for
@@ -31,7 +31,7 @@ def _replay_all(session, node, rec, batches: bool = False):
     """Replay ``rec`` as fast as the node takes it; wait until the node has every sample.
     Returns the samples published (and the batches, with ``batches``)."""
     before = node.report_samples()
-    report = replay(session, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
+    report = replay(session, rec, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=5.0))
     assert report.unmatched == ()
     total = sum(report.samples.values())
     assert wait_for(lambda: node.report_samples() >= before + total, 30.0), (node.report_samples(), total)
@@ -54,7 +54,7 @@ def test_a_sensor_that_stops_is_flagged_stale_and_the_estimates_go_on(
         _replay_all(s, node, cut(rec, 0.0, 3.2))
         # the last 1.3 s in real time: the others keep coming (a status while they do)
         before = node.report_samples()
-        report = replay(s, cut(rec, 3.2, 4.5), "chair1", speed=1.0)
+        report = replay(s, cut(rec, 3.2, 4.5), "chair1", ReplayPacing(speed=1.0))
         assert wait_for(lambda: node.report_samples() >= before + sum(report.samples.values()), 30.0)
         assert wait_for(lambda: any(st.message.startswith("no samples for") for st in got.snapshot()[1]), 5.0)
     joints, status = got.snapshot()
@@ -240,12 +240,12 @@ def test_resume_problem_names_what_is_wrong_with_a_saved_state(arm, change, expe
                                     saved_wall_s=now - 5.0, config_sha256=sha)
     state_file.save_state(tmp_path / "s.json", doc)
     doc = state_file.load_state(tmp_path / "s.json")
-    ok = dict(robot="chair1", arm_name=arm.name, joint_names=arm.joint_names, counts_per_rad=cpr,
-              t_s=101.0, encoder_counts=counts + 5, now_wall_s=now, max_age_s=60.0,
-              max_joint_rate_rad_s=1.5, config_sha256=sha)
-    assert state_file.resume_problem(doc, **ok) is None
+    checks = state_file.ResumeChecks("chair1", max_age_s=60.0, max_joint_rate_rad_s=1.5, max_gap_s=0.1,
+                                     config_sha256=sha)
+    sample = dict(t_s=101.0, encoder_counts=counts + 5, now_wall_s=now)
+    assert state_file.resume_problem(doc, arm, checks, **sample) is None
     change(doc)
-    problem = state_file.resume_problem(doc, **ok)
+    problem = state_file.resume_problem(doc, arm, checks, **sample)
     assert problem is not None and re.search(expected, problem), problem
 
 
@@ -285,7 +285,7 @@ def test_serve_processes_restart_from_the_state_file(renk_recording, tmp_path):
             assert "serving" in proc.stderr.readline()
             settings = ZenohSettings(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
             with open_session(settings) as s:
-                report = replay(s, rec, "chair1", speed=None, wait_for_subscribers_s=10.0)
+                report = replay(s, rec, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=10.0))
             assert report.unmatched == ()
             time.sleep(0.5)  # the last batches on their way; SIGTERM then drains and saves
         finally:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from armfusion.fusion.service import payloads as pl
 from armfusion.fusion.service.lateness import Lateness
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from armfusion.models.rotations import DEG
 from service_helpers import Collected, cut, wait_for
 
@@ -50,7 +50,7 @@ def _serve(fusion_node, hub_settings, arm, rec):
     with fusion_node(listener, arm, lateness=never_degraded) as (node, _), open_session(connector) as s:
         s.declare_subscriber(pl.health_key("chair1"), on_health)
         got = Collected(s)
-        report = replay(s, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
+        report = replay(s, rec, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=5.0))
         total = sum(report.samples.values())
         assert wait_for(lambda: node.report_samples() >= total, 120.0)
         assert wait_for(lambda: any(st.counters and dict(st.counters).get("samples", 0) >= total

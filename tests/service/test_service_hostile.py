@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.service import payloads as pl
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from armfusion.fusion.service.zenoh_config import open_session
 from armfusion.sensors.samples import Stream
 from service_helpers import Collected, cut, publish_live, wait_for
@@ -23,7 +23,7 @@ def arm():
 def _replay_all(session, node, rec) -> int:
     """Replay ``rec`` as fast as the node takes it; wait until the node has counted every sample."""
     before = node.report_samples()
-    report = replay(session, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
+    report = replay(session, rec, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=5.0))
     total = sum(report.samples.values())
     assert wait_for(lambda: node.report_samples() >= before + total, 30.0), (node.report_samples(), total)
     return total
@@ -145,7 +145,7 @@ def test_a_replay_restarted_while_the_node_tracks_is_reported_as_a_stall(
         _replay_all(s, node, cut(renk_recording, 0.0, 4.0))
         assert wait_for(lambda: _counters(got).get("estimates", 0) > 0, 10.0)
         assert _counters(got).get("stalled") == 0
-        replay(s, cut(renk_recording, 0.0, 2.0), "chair1", speed=1.0)
+        replay(s, cut(renk_recording, 0.0, 2.0), "chair1", ReplayPacing(speed=1.0))
 
         def stalled() -> bool:
             st = got.snapshot()[1]
@@ -171,7 +171,7 @@ def test_a_bogus_batch_before_any_real_one_holds_the_clock_for_2_s_only(
         got = Collected(s)
         hostile.put(pl.raw_key("chair1", "acc1"), _batch(acc1, 1e6, acc1.values[0]))
         assert wait_for(lambda: node.report_samples() == 1, 10.0)
-        replay(s, cut(rec, 0.0, 5.0), "chair1", speed=1.0, wait_for_subscribers_s=5.0)
+        replay(s, cut(rec, 0.0, 5.0), "chair1", ReplayPacing(speed=1.0, wait_for_subscribers_s=5.0))
         assert wait_for(lambda: got.snapshot()[0] and got.snapshot()[0][-1].t_s > 4.8, 10.0), \
             (node.refused(), _counters(got))
     r = result["report"]

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from armfusion.fusion.configfile import load_arm
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from armfusion.fusion.service.zenoh_config import ZenohSettings, open_session
 from armfusion.models.simulator import simulate
 from service_helpers import Collected, cut, publish_live, wait_for
@@ -60,7 +60,7 @@ def test_five_sensors_at_200_hz_lose_no_sample(hub_settings, fusion_node, at_200
     with fusion_node(listener, load_arm("wmra"), publish_hz=1000.0, min_data_s=1.0) as (node, result), \
             open_session(connector) as s:
         got = Collected(s)
-        report = replay(s, rec, "chair1", speed=1.0, batch_s=0.005, wait_for_subscribers_s=5.0)
+        report = replay(s, rec, "chair1", ReplayPacing(speed=1.0, batch_s=0.005, wait_for_subscribers_s=5.0))
         published = sum(report.samples.values())
         assert published == sum(len(x) for x in raw.values())
         assert report.batches > 0.85 * published  # nearly one sample per message
@@ -201,11 +201,11 @@ def test_a_node_waiting_for_a_still_arm_keeps_a_bounded_stretch(hub_settings, fu
 
 
 def test_a_node_refuses_a_startup_stretch_shorter_than_its_collection():
-    from armfusion.fusion.service.serve import FusionNode
+    from armfusion.fusion.service.serve_settings import NodeSettings
 
     with pytest.raises(ValueError,
                        match=r"startup_keep_s must be at least twice min_data_s \(4 s\), not 3.0"):
-        FusionNode(None, load_arm("wmra"), "chair1", min_data_s=2.0, startup_keep_s=3.0)
+        NodeSettings(min_data_s=2.0, startup_keep_s=3.0)
 
 
 def test_a_node_starved_from_the_streams_start_says_it_is_degraded_while_behind(

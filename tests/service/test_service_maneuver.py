@@ -16,7 +16,7 @@ from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.identification.planner import load_maneuver
 from armfusion.fusion.service import payloads as pl
 from armfusion.fusion.service.maneuver import ManeuverSettings, ServedManeuver, poses_reached, still_poses_rad
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from armfusion.fusion.service.requests import request_maneuver
 from armfusion.fusion.service.zenoh_config import open_session
 from armfusion.fusion.shipped import shipped_config
@@ -74,7 +74,7 @@ def test_the_controller_gets_the_plan_and_the_node_fits_the_sensors_on_what_it_p
         assert not again.accepted and "recording already" in again.message
 
         # the controller plays it (here: the simulated arm's samples, replayed)
-        report = replay(s, played, "chair1", speed=None, wait_for_subscribers_s=5.0)
+        report = replay(s, played, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=5.0))
         assert wait_for(lambda: node.report_samples() >= sum(report.samples.values()), 30.0)
         assert wait_for(lambda: node.tracker is not None, 10.0)
         done = request_maneuver(s, "chair1", "done")

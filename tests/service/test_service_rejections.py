@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from service_helpers import Collected, cut, wait_for
 
 from tools.bench_alarm import with_stream
@@ -23,7 +23,7 @@ def _last_status(fusion_node, hub_settings, arm, rec):
 
     with fusion_node(listener, arm) as (node, _), open_session(connector) as s:
         got = Collected(s)
-        report = replay(s, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
+        report = replay(s, rec, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=5.0))
         total = sum(report.samples.values())
         assert wait_for(lambda: node.report_samples() >= total, 120.0)
         assert wait_for(lambda: any(st.counters and dict(st.counters).get("samples", 0) >= total

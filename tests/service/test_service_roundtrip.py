@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from armfusion.fusion.service import payloads as pl
 from armfusion.fusion.service.record import Recorder
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from armfusion.fusion.service.zenoh_config import open_session
 from armfusion.sensors.recording import read_recording
 from armfusion.sensors.samples import Stream
@@ -52,7 +52,8 @@ def test_replay_to_record_loses_no_sample(hub_settings, startup_recording, tmp_p
         try:
             assert recorder.ready.wait(5.0)
             with open_session(connector) as pub_session:
-                report = replay(pub_session, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
+                report = replay(pub_session, rec, "chair1",
+                                ReplayPacing(speed=None, wait_for_subscribers_s=5.0))
                 assert report.unmatched == ()
                 assert _wait(lambda: recorder.counts() == report.samples, 10.0), \
                     (recorder.counts(), report.samples)
@@ -76,7 +77,7 @@ def test_replay_keeps_the_recording_timing(hub_settings, startup_recording):
     rec = read_recording(startup_recording)
     _, connector = hub_settings
     with open_session(connector) as s:
-        report = replay(s, rec, "chair1", speed=4.0)
+        report = replay(s, rec, "chair1", ReplayPacing(speed=4.0))
     assert 0.95 <= report.wall_s <= 2.0
     assert sum(report.samples.values()) == sum(len(x) for x in rec.raw().values())
 
@@ -148,7 +149,7 @@ def test_replay_waits_for_subscribers_and_names_the_sensors_nobody_hears(hub_set
     _, connector = hub_settings
     with open_session(connector) as s:
         t0 = time.monotonic()
-        report = replay(s, rec, "chair1", speed=None, wait_for_subscribers_s=0.5)
+        report = replay(s, rec, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=0.5))
         waited = time.monotonic() - t0
     assert set(report.unmatched) == set(rec.raw())
     assert waited >= 0.5

@@ -10,7 +10,7 @@ import numpy as np
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.service import payloads as pl
 from armfusion.fusion.service.node import BoundedReceiver
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from armfusion.fusion.service.serve import FusionNode
 from armfusion.fusion.service.zenoh_config import open_session
 from armfusion.sensors.recording import read_recording
@@ -31,7 +31,7 @@ def test_serve_calibrates_then_tracks_and_publishes(hub_settings, startup_record
                 joints, heading = BoundedReceiver(), BoundedReceiver()
                 s.declare_subscriber(pl.joints_key("chair1"), joints)
                 s.declare_subscriber(pl.heading_key("chair1"), heading)
-                report = replay(s, rec, "chair1", speed=None, wait_for_subscribers_s=5.0)
+                report = replay(s, rec, "chair1", ReplayPacing(speed=None, wait_for_subscribers_s=5.0))
                 assert report.unmatched == ()
                 deadline = time.monotonic() + 20.0
                 while node.report_samples() < sum(report.samples.values()) and time.monotonic() < deadline:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from armfusion.fusion.configfile import load_arm
 from armfusion.fusion.service import payloads as pl
-from armfusion.fusion.service.replay import replay
+from armfusion.fusion.service.replay import ReplayPacing, replay
 from armfusion.fusion.service.zenoh_config import open_session
 from armfusion.sensors.samples import Stream
 from service_helpers import cut, wait_for
@@ -38,7 +38,8 @@ def test_sensors_read_before_a_driver_stall_and_sent_after_it_are_not_refused(
     assert len(streams) == 9
     before = list(streams)[:READ_BEFORE]
     with fusion_node(listener, arm, publish_hz=1000.0) as (node, result), open_session(connector) as s:
-        sent = sum(replay(s, part1, "chair1", speed=None, wait_for_subscribers_s=5.0).samples.values())
+        sent = sum(replay(s, part1, "chair1",
+                          ReplayPacing(speed=None, wait_for_subscribers_s=5.0)).samples.values())
         assert wait_for(lambda: node.report_samples() >= sent, 30.0)
         pubs = {k: s.declare_publisher(pl.raw_key("chair1", k)) for k in streams}
         done, seq = dict.fromkeys(streams, 0), dict.fromkeys(streams, 10**4)
