@@ -44,7 +44,7 @@ from armfusion.fusion.configfile import load_arm, read_yaml
 from armfusion.models.arm import ArmModel
 from armfusion.models.arm_config import ConfigError, ConfigProblem
 from armfusion.models.effects import EFFECTS, Model, model_from_entries, parse_effect_option
-from armfusion.models.simulator import SimulationOptions
+from armfusion.models.simulator import SimulationOptions as SimulatorSettings
 from armfusion.models.simulator import simulate as simulate_recording
 from armfusion.models.trajectories import SCENARIOS
 from armfusion.sensors.output_files import write_text_replacing
@@ -217,8 +217,8 @@ def simulate(config: str | Path, scenario: str, out: str | Path, options: Simula
     say = progress or (lambda _f, _m=None: None)
     share = SIMULATED_SHARE[out.suffix.lower()]
     t0 = time.perf_counter()
-    options = SimulationOptions(noise=noise, progress=lambda f: say(share * f, "simulating"))
-    rec, truth = simulate_recording(arm, scenario, duration_s, rate_hz, seed, model, realistic, options)
+    settings = SimulatorSettings(noise=noise, progress=lambda f: say(share * f, "simulating"))
+    rec, truth = simulate_recording(arm, scenario, duration_s, rate_hz, seed, model, realistic, settings)
     t_sim = time.perf_counter() - t0
     say(share, f"writing {out.name}")
     out.parent.mkdir(parents=True, exist_ok=True)
