@@ -254,7 +254,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.identification.problem:FitProblem._jacobian_rows": _NUMERIC,
     "armfusion.fusion.identification.renk:fit_triax": _NUMERIC,
     "armfusion.fusion.identification.solver:levenberg_marquardt": _NUMERIC,
-    "armfusion.fusion.ros2.from_records:run_from_records": _NUMERIC,
     "armfusion.fusion.startup.kernels:lm_solve": _KERNEL,
     "armfusion.fusion.startup.moves:propose_disambiguating_move": _NUMERIC,
     "armfusion.fusion.startup.solve": "the still solve and its branch handling; to split",
