@@ -252,7 +252,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.identification.planner:plan_maneuver": _NUMERIC,
     "armfusion.fusion.identification.problem:FitProblem": "residuals and Jacobians per sensor kind; to split by kind",
     "armfusion.fusion.identification.problem:FitProblem._jacobian_rows": _NUMERIC,
-    "armfusion.fusion.identification.renk:fit_triax": _NUMERIC,
     "armfusion.fusion.startup.kernels:lm_solve": _KERNEL,
     "armfusion.fusion.startup.moves:propose_disambiguating_move": _NUMERIC,
     "armfusion.fusion.startup.solve": "the still solve and its branch handling; to split",
