@@ -247,8 +247,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.cli.diagnose_report:write_report": _COMMAND,
     "armfusion.fusion.identification.data": "every sensor kind's rows from a recording; to split by kind",
     "armfusion.fusion.identification.data:data_from_recording": _NUMERIC,
-    "armfusion.fusion.identification.planner": "the maneuver planner's candidates, choice and schedule; to split",
-    "armfusion.fusion.identification.planner:plan_maneuver": _NUMERIC,
     "armfusion.fusion.identification.problem:FitProblem": "residuals and Jacobians per sensor kind; to split by kind",
     "armfusion.fusion.identification.problem:FitProblem._jacobian_rows": _NUMERIC,
     "armfusion.fusion.startup.kernels:lm_solve": _KERNEL,
