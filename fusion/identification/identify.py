@@ -4,7 +4,7 @@ From a recording in which the arm moves through many orientations, estimate the
 parameters of the model's effects (``armfusion.models.effects``: biases, scales, axis directions,
 mounts, joint zeros, sag, the IMU's gyro and compass errors…) and the base attitude (the
 gravity and Earth-field directions in the base frame, as the sensor-calibration article's
-φ, ψ; one per parked stance of the chair, :func:`~armfusion.fusion.identification.data.parked_stances`,
+φ, ψ; one per parked stance of the chair, :func:`~armfusion.fusion.identification.stances.parked_stances`,
 optionally with an inclinometer's reading of the first stance's tilt), by weighted nonlinear
 least squares:
 
@@ -57,8 +57,6 @@ from armfusion.fusion.identification.data import (
     data_from_recording,
     fit_streams,
     joint_references,
-    parked_stances,
-    start_pose,
     with_encoder_zeros,
 )
 from armfusion.fusion.identification.identifiability import (
@@ -82,6 +80,8 @@ from armfusion.fusion.identification.result import (
 )
 from armfusion.fusion.identification.settings import IdentifySettings
 from armfusion.fusion.identification.solver import coarse_points, solve, stream_scales
+from armfusion.fusion.identification.stances import parked_stances
+from armfusion.fusion.identification.starts import start_pose
 from armfusion.fusion.identification.truth import compare_with_truth, truth_values
 from armfusion.models.effects import Model
 
