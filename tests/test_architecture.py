@@ -245,8 +245,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.cli.demo_report:write_report": _COMMAND,
     "armfusion.fusion.cli.diagnose_report:report_figures": _COMMAND,
     "armfusion.fusion.cli.diagnose_report:write_report": _COMMAND,
-    "armfusion.fusion.identification.problem:FitProblem": "residuals and Jacobians per sensor kind; to split by kind",
-    "armfusion.fusion.identification.problem:FitProblem._jacobian_rows": _NUMERIC,
     "armfusion.fusion.startup.kernels:lm_solve": _KERNEL,
     "armfusion.fusion.startup.moves:propose_disambiguating_move": _NUMERIC,
     "armfusion.fusion.startup.solve": "the still solve and its branch handling; to split",
