@@ -242,18 +242,6 @@ _KERNEL = "a compiled (numba) kernel: one loop, split only with its speed measur
 
 OVERSIZED: dict[str, str] = {
     # name -> why it is still over the rule; remove a line when its entry is split
-    "armfusion.fusion.identification.data": "every sensor kind's rows from a recording; to split by kind",
-    "armfusion.fusion.identification.data:data_from_recording": _NUMERIC,
-    "armfusion.fusion.identification.identify:identify": _NUMERIC,
-    "armfusion.fusion.identification.planner": "the maneuver planner's candidates, choice and schedule; to split",
-    "armfusion.fusion.identification.planner:plan_maneuver": _NUMERIC,
-    "armfusion.fusion.identification.problem:FitProblem": "residuals and Jacobians per sensor kind; to split by kind",
-    "armfusion.fusion.identification.problem:FitProblem._jacobian_rows": _NUMERIC,
-    "armfusion.fusion.identification.renk:fit_triax": _NUMERIC,
-    "armfusion.fusion.identification.solver:levenberg_marquardt": _NUMERIC,
-    "armfusion.fusion.importing.bag:import_bag": _READER,
-    "armfusion.fusion.importing.column_map:parse_column_map": _READER,
-    "armfusion.fusion.ros2.from_records:run_from_records": _NUMERIC,
     "armfusion.fusion.workbench.candidates:rank_candidates": _WORKBENCH,
     "armfusion.fusion.workbench.scores:score_tests": _WORKBENCH,
 }
@@ -345,7 +333,6 @@ MANY_PARAMETERS: dict[str, tuple[int, str]] = {
     "armfusion.fusion.cli.plan_maneuver:plan_command": (9, _COMMAND_OPTIONS),
     "armfusion.fusion.cli.simulate:register.simulate_command": (12, _COMMAND_OPTIONS),
     "armfusion.fusion.cli.track:track": (13, _COMMAND_OPTIONS),
-    "armfusion.fusion.importing.run:stream_of": (9, _TO_RECORD),
     "armfusion.fusion.workbench.candidates:_refit": (9, _TO_RECORD),
     "armfusion.fusion.workbench.scores:_gauges": (9, _TO_RECORD),
 }

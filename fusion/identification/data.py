@@ -1,7 +1,8 @@
 """What a fit sees of a recording: window means of every stream on the encoders' time grid
-(:class:`FitData`, :func:`data_from_recording`), the chair's parked stances, the pose the
-recording starts from, one-time joint references, and the unknown encoder zeros the model
-gains for it (:func:`with_encoder_zeros`).
+(:class:`FitData`, :func:`data_from_recording`), one-time joint references, and the unknown
+encoder zeros the model gains for it (:func:`with_encoder_zeros`). The chair's parked
+stances are :mod:`~armfusion.fusion.identification.stances`'s, the pose the recording starts
+from :mod:`~armfusion.fusion.identification.starts`'s (both names importable from here too).
 
 The encoders are relative: the joint angles of the fit are ``q_ref + encoder angle``, and
 every joint's ``joint_offset`` block absorbs the unknown zero ``q_true(0) - q_ref``. That is
@@ -10,16 +11,17 @@ why joint offsets are a property of the recording, not of the arm.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
+from armfusion.fusion.identification.stances import parked_stances  # importable from here too
+from armfusion.fusion.identification.starts import start_poses  # importable from here too
 from armfusion.models.arm import ArmModel
 from armfusion.models.effects import Model, build_effect
 from armfusion.models.motion import MotionState
-from armfusion.models.rotations import DEG, wrap_angle
+from armfusion.models.rotations import DEG
 from armfusion.models.sensor_models import stream_models
 
 FIT_STREAMS_EXCLUDED = ("enc", "imu_temp")
@@ -194,6 +196,109 @@ def fitted_streams(models: dict) -> list[str]:
     return [s for s, m in models.items() if s not in FIT_STREAMS_EXCLUDED and m.kind != "link_gyro"]
 
 
+class _Windows(NamedTuple):
+    """The fit's windows: ``n`` of ``size`` consecutive encoder samples each (the samples past
+    the last whole window left out)."""
+
+    n: int
+    size: int
+
+    def mean(self, a: np.ndarray) -> np.ndarray:
+        """Each window's mean of ``a`` (one row per encoder sample)."""
+        a = a[: self.n * self.size]
+        return a.reshape(self.n, self.size, *a.shape[1:]).mean(1)
+
+
+class _StreamMeans(NamedTuple):
+    """Every stream's window means on the encoders' grid (counts) and their σ, the fast error
+    of its single samples where it has one (:func:`sample_excess`), its saturated samples'
+    count, and per encoder instant how many saturated samples reach it (a running sum of
+    ``reach``: the instants strictly between a saturated sample's neighbours)."""
+
+    counts: dict[str, np.ndarray]
+    sigma: dict[str, np.ndarray]
+    excess: dict[str, np.ndarray]
+    saturated: dict[str, int]
+    reach: np.ndarray
+
+
+def _stream_means(rec, names: Sequence[str], models: dict, t: np.ndarray, keep: np.ndarray,
+                  windows: _Windows) -> _StreamMeans:
+    """Each stream of ``names`` that ``rec`` holds, on the encoders' instants ``t`` (the
+    encoder samples ``keep`` of the recording's; a stream sampled elsewhere interpolated),
+    as window means."""
+    enc = rec.get("enc")
+    counts, sig, excess = {}, {}, {}
+    reach = np.zeros(len(t) + 1, int)
+    saturated: dict[str, int] = {}
+    for s in names:
+        st = rec.get(s)
+        if st is None or len(st) == 0:
+            continue
+        v = np.asarray(st.values, float)
+        ts = np.asarray(st.t_s, float)
+        inside = (ts >= t[0]) & (ts <= t[-1]) if len(t) else np.zeros(len(ts), bool)
+        fast = sample_excess(v[inside], models[s].sigma_counts)
+        if fast is not None:
+            excess[s] = fast
+        sat = np.flatnonzero(models[s].saturated(v).any(axis=1))
+        if len(sat):  # its window is left out: the instants strictly between its neighbours
+            saturated[s] = len(sat)
+            before = np.where(sat > 0, ts[np.maximum(sat - 1, 0)], -np.inf)
+            after = np.where(sat < len(ts) - 1, ts[np.minimum(sat + 1, len(ts) - 1)], np.inf)
+            i0, i1 = np.searchsorted(t, before, "right"), np.searchsorted(t, after, "left")
+            np.add.at(reach, i0[i1 > i0], 1)
+            np.add.at(reach, i1[i1 > i0], -1)
+        if len(ts) != len(enc.t_s) or not np.allclose(ts, enc.t_s):
+            v = np.stack([np.interp(t, ts, v[:, k]) for k in range(v.shape[1])], 1)
+        else:
+            v = v[keep]
+        counts[s] = windows.mean(v)
+        sig[s] = models[s].sigma_counts / np.sqrt(windows.size)
+    return _StreamMeans(counts, sig, excess, saturated, reach)
+
+
+def _temperature_c(rec, models: dict, t: np.ndarray, windows: _Windows) -> float | np.ndarray:
+    """Each window's mean of the IMU's temperature (°C), or 25 °C without one."""
+    ts = rec.get("imu_temp")
+    if ts is None or not len(ts):
+        return 25.0
+    tc = models["imu_temp"].from_counts(np.asarray(ts.values, float))[:, 0]
+    return windows.mean(np.interp(t, np.asarray(ts.t_s, float), tc))
+
+
+def _motion(t: np.ndarray, q: np.ndarray, temperature_c, windows: _Windows, nodes: int) -> MotionState:
+    """The fit's instants: each window's mean (``nodes=1``) or its two Gauss-Legendre nodes
+    (``nodes=2``), with the joints' angles, rates and accelerations there from the encoders
+    (:func:`encoder_motion`)."""
+    if nodes == 1:
+        _, qd, qdd = encoder_motion(t, q, windows.mean(t))
+        return replace(MotionState.static(windows.mean(q), temperature_c=temperature_c, t_s=windows.mean(t)),
+                       qd_rad_s=qd, qdd_rad_s2=qdd)
+    n, w = windows
+    tw = t[: n * w].reshape(n, w)
+    dt = (tw[:, -1] - tw[:, 0]) * w / max(w - 1, 1)  # the window's length
+    tn = (tw.mean(1)[:, None] + dt[:, None] / (2 * np.sqrt(3)) * np.array([-1.0, 1.0])).ravel()
+    qn, qd, qdd = encoder_motion(t, q, tn)
+    tempn = np.repeat(np.broadcast_to(temperature_c, (n,)), 2)
+    return replace(MotionState.static(qn, temperature_c=tempn, t_s=tn), qd_rad_s=qd, qdd_rad_s2=qdd)
+
+
+def _without_saturated(data: FitData, means: _StreamMeans, windows: _Windows) -> FitData:
+    """``data`` without the windows holding a saturated sample (or interpolated from one)."""
+    n, w = windows
+    saturated = means.saturated
+    bad = (np.cumsum(means.reach)[: n * w] > 0).reshape(n, w).any(axis=1)
+    if int((~bad).sum()) < 2:
+        raise ValueError(f"every window of {w} samples holds a saturated sample (a channel at its "
+                         f"register limit: " + ", ".join(f"{s} {k:,}" for s, k in saturated.items())
+                         + "): nothing left to fit")
+    return replace(data.subset(np.flatnonzero(~bad)), saturated_samples=saturated,
+                   saturated_windows=int(bad.sum()),
+                   note=data.note + f"; {int(bad.sum()):,} of {n:,} windows left out: they hold "
+                   "saturated samples (" + ", ".join(f"{s} {k:,}" for s, k in saturated.items()) + ")")
+
+
 def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndarray | None = None,
                         streams: Sequence[str] | None = None,
                         t_range_s: tuple[float, float] | None = None, nodes: int = 1,
@@ -236,83 +341,27 @@ def data_from_recording(arm: ArmModel, rec, window: int = 25, q_ref_rad: np.ndar
         rivals = tuple(rest)
     q = np.asarray(q_ref_rad, float) + q_enc
     names = fitted_streams(models) if streams is None else list(streams)
-    counts, sig, excess = {}, {}, {}
     w = max(1, int(window))
-    n = len(t) // w
-    if n < 2:
+    windows = _Windows(len(t) // w, w)
+    if windows.n < 2:
         raise ValueError(f"too few samples ({len(t)}) for windows of {w}")
-
-    def mean(a: np.ndarray) -> np.ndarray:
-        a = a[: n * w]
-        return a.reshape(n, w, *a.shape[1:]).mean(1)
-
-    reach = np.zeros(len(t) + 1, int)  # instants a saturated sample reaches (below)
-    saturated: dict[str, int] = {}
-    for s in names:
-        st = rec.get(s)
-        if st is None or len(st) == 0:
-            continue
-        v = np.asarray(st.values, float)
-        ts = np.asarray(st.t_s, float)
-        inside = (ts >= t[0]) & (ts <= t[-1]) if len(t) else np.zeros(len(ts), bool)
-        fast = sample_excess(v[inside], models[s].sigma_counts)
-        if fast is not None:
-            excess[s] = fast
-        sat = np.flatnonzero(models[s].saturated(v).any(axis=1))
-        if len(sat):  # its window is left out: the instants strictly between its neighbours
-            saturated[s] = len(sat)
-            before = np.where(sat > 0, ts[np.maximum(sat - 1, 0)], -np.inf)
-            after = np.where(sat < len(ts) - 1, ts[np.minimum(sat + 1, len(ts) - 1)], np.inf)
-            i0, i1 = np.searchsorted(t, before, "right"), np.searchsorted(t, after, "left")
-            np.add.at(reach, i0[i1 > i0], 1)
-            np.add.at(reach, i1[i1 > i0], -1)
-        if len(ts) != len(enc.t_s) or not np.allclose(ts, enc.t_s):
-            v = np.stack([np.interp(t, ts, v[:, k]) for k in range(v.shape[1])], 1)
-        else:
-            v = v[keep]
-        counts[s] = mean(v)
-        sig[s] = models[s].sigma_counts / np.sqrt(w)
-    temp = 25.0
-    ts = rec.get("imu_temp")
-    if ts is not None and len(ts):
-        tc = models["imu_temp"].from_counts(np.asarray(ts.values, float))[:, 0]
-        temp = mean(np.interp(t, np.asarray(ts.t_s, float), tc))
+    means = _stream_means(rec, names, models, t, keep, windows)
+    temp = _temperature_c(rec, models, t, windows)
     stance = used = None
     note = ""
     if stances:
-        stance, used = parked_stances(arm, rec, mean(t), w)
+        stance, used = parked_stances(arm, rec, windows.mean(t), w)
         if stance is not None:
             note = (f"; {int(stance.max()) + 1} parked stances, each its own base attitude "
                     f"({int((~used).sum())} windows left out while the chair moved)")
     if nodes not in (1, 2):
         raise ValueError(f"nodes must be 1 or 2, not {nodes!r}")
-    if nodes == 1:
-        _, qd, qdd = encoder_motion(t, q, mean(t))
-        state = replace(MotionState.static(mean(q), temperature_c=temp, t_s=mean(t)), qd_rad_s=qd,
-                        qdd_rad_s2=qdd)
-        data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
-                       f"window means of {w} samples" + note, stance=stance, used=used,
-                       sample_excess_counts=excess, start_rivals_rad=rivals)
-    else:
-        tw = t[: n * w].reshape(n, w)
-        dt = (tw[:, -1] - tw[:, 0]) * w / max(w - 1, 1)  # the window's length
-        tn = (tw.mean(1)[:, None] + dt[:, None] / (2 * np.sqrt(3)) * np.array([-1.0, 1.0])).ravel()
-        qn, qd, qdd = encoder_motion(t, q, tn)
-        tempn = np.repeat(np.broadcast_to(temp, (n,)), 2)
-        state = replace(MotionState.static(qn, temperature_c=tempn, t_s=tn), qd_rad_s=qd, qdd_rad_s2=qdd)
-        data = FitData(state, counts, sig, np.asarray(q_ref_rad, float), w,
-                       f"window means of {w} samples (model at two nodes per window)" + note, nodes=2,
-                       stance=stance, used=used, sample_excess_counts=excess, start_rivals_rad=rivals)
-    if saturated:  # a window holding a saturated sample (or interpolated from one) is left out
-        bad = (np.cumsum(reach)[: n * w] > 0).reshape(n, w).any(axis=1)
-        if int((~bad).sum()) < 2:
-            raise ValueError(f"every window of {w} samples holds a saturated sample (a channel at its "
-                             f"register limit: " + ", ".join(f"{s} {k:,}" for s, k in saturated.items())
-                             + "): nothing left to fit")
-        data = replace(data.subset(np.flatnonzero(~bad)), saturated_samples=saturated,
-                       saturated_windows=int(bad.sum()),
-                       note=data.note + f"; {int(bad.sum()):,} of {n:,} windows left out: they hold "
-                       "saturated samples (" + ", ".join(f"{s} {k:,}" for s, k in saturated.items()) + ")")
+    how = f"window means of {w} samples" + (" (model at two nodes per window)" if nodes == 2 else "")
+    data = FitData(_motion(t, q, temp, windows, nodes), means.counts, means.sigma,
+                   np.asarray(q_ref_rad, float), w, how + note, nodes=nodes, stance=stance, used=used,
+                   sample_excess_counts=means.excess, start_rivals_rad=rivals)
+    if means.saturated:  # a window holding a saturated sample (or interpolated from one) is left out
+        data = _without_saturated(data, means, windows)
     return data
 
 
@@ -338,244 +387,6 @@ def sample_excess(values: np.ndarray, sigma_counts: np.ndarray) -> np.ndarray | 
     if not beyond.any():
         return None
     return np.where(beyond, np.sqrt(np.maximum(var - s2, 0.0)), 0.0)
-
-
-def parked_stances(arm: ArmModel, rec, t_windows_s: np.ndarray, window: int,
-                   rate_threshold_rad_s: float = 0.3 * DEG, accel_threshold_g: float = 0.005,
-                   margin_s: float = 1.0, min_stance_s: float = 10.0):
-    """Where the chair stands parked: per window (``t_windows_s``, means of ``window``
-    encoder samples), the stance it belongs to and whether it is parked.
-
-    The chair moves where the IMU's gyro departs from its median (the gyro bias: a
-    calibration stands parked most of the time) by more than ``rate_threshold_rad_s`` on
-    some axis, or where its accelerometer's window mean changes from one window to the next
-    by more than ``accel_threshold_g`` (rolling onto a slope, driving); the arm's own motion
-    moves neither. Those windows, ``margin_s`` either side and parked stretches shorter than
-    ``min_stance_s`` are left out. Every window gets the nearest stance (so a time
-    derivative across the edge of a stance sees one attitude). Returns ``(stance, used)``,
-    or ``(None, None)`` when the chair never moves (one stance, every window).
-    """
-    if arm.imu is None:
-        raise ValueError("finding the parked stances needs the base IMU's gyro and accelerometer")
-    models = stream_models(arm)
-    n = len(t_windows_s)
-    moving = np.zeros(n, bool)
-    for name, thr, diff in (("imu_gyro", rate_threshold_rad_s, False), ("imu_acc", accel_threshold_g, True)):
-        st = rec.get(name)
-        if st is None or len(st) == 0:
-            raise ValueError(f"finding the parked stances needs the IMU's {name!r} stream")
-        v = models[name].from_counts(np.asarray(st.values, float))
-        ts = np.asarray(st.t_s, float)
-        # the stream's mean over each window, on the windows' own instants
-        half = 0.5 * window * np.median(np.diff(ts)) if len(ts) > 1 else 0.0
-        cs = np.vstack([np.zeros((1, v.shape[1])), np.cumsum(v, 0)])
-        a = np.searchsorted(ts, t_windows_s - half)
-        b = np.maximum(np.searchsorted(ts, t_windows_s + half), a + 1)
-        b = np.minimum(b, len(ts))
-        m = (cs[b] - cs[a]) / np.maximum(b - a, 1)[:, None]
-        if diff:
-            d = np.zeros(n)
-            d[1:] = np.max(np.abs(np.diff(m, axis=0)), 1)
-            moving |= d > thr
-            moving[:-1] |= d[1:] > thr
-        else:
-            moving |= np.max(np.abs(m - np.median(m, 0)), 1) > thr
-    if not moving.any():
-        return None, None
-    dt = float(np.median(np.diff(t_windows_s))) if n > 1 else 1.0
-    pad = int(np.ceil(margin_s / dt))
-    grown = moving.copy()
-    for k in range(1, pad + 1):
-        grown[k:] |= moving[:-k]
-        grown[:-k] |= moving[k:]
-    parked = ~grown
-    # runs of parked windows
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], parked.astype(int), [0]])))
-    runs = [(a, b) for a, b in zip(edges[::2], edges[1::2], strict=True) if (b - a) * dt >= min_stance_s]
-    if not runs:
-        raise ValueError("the chair never stands parked for "
-                         f"{min_stance_s:g} s: no stance to calibrate on")
-    used = np.zeros(n, bool)
-    for a, b in runs:
-        used[a:b] = True
-    # every window to its nearest run (by index distance to the run's ends)
-    idx = np.arange(n)
-    dist = np.stack([np.where(idx < a, a - idx, np.where(idx >= b, idx - b + 1, 0)) for a, b in runs])
-    return np.argmin(dist, 0), used
-
-
-def start_pose(arm: ArmModel, rec, window_s: float = 1.0) -> np.ndarray:
-    """The joint angles at the recording's first sample: the startup calibration on its first
-    ``window_s`` (the arm must be still), the ready pose for joints it cannot tell."""
-    return start_poses(arm, rec, window_s)[0]
-
-
-def start_poses(arm: ArmModel, rec, window_s: float = 1.0) -> list[np.ndarray]:
-    """:func:`start_pose`, then its rivals: where the fit may start. First the startup's
-    branches on the first still ``window_s`` (its candidates, nearest the ready pose first),
-    joints it cannot tell (gimbal lock) at the ready pose: a calibration maneuver starts from
-    the ready pose, so that comes first and is right there. Then, where a joint was untold,
-    the same branches with it taken from the later still stretches
-    (:func:`_later_still_angles`): for a recording that starts elsewhere (random still poses).
-    Which one is right the fit's residuals say (:func:`armfusion.fusion.workbench.diagnose.diagnose`
-    tries the rivals when the first does not fit the noise).
-
-    Those first starts come from the startup with the config's unmodelled-error floors,
-    which leave a branch the data barely prefer open (nearest the ready pose first: right
-    for a maneuver that starts there, with effects still to be found). The same starts
-    solved with the floors left out (:func:`_nominal`: the pose the nominal model fits best,
-    however unsure the config is of it) follow as rivals: with the shipped WMRA's 45 mg every
-    joint is ``ill_conditioned``, some with no angle, and a recording that starts at a
-    random pose was left in a wrong basin (a clean 60 s ``static-poses`` recording at 3e5
-    times its noise). Then, where the still start cannot settle the pose, each later still
-    pose's own answer (:func:`_later_still_starts`); at most :data:`MAX_STARTS` in all."""
-    q = np.array(arm.ready_pose_rad, float)
-    enc = rec.get("enc")
-    models = stream_models(arm)
-    e = models["enc"].from_counts(enc.values[:1])[0] if enc is not None and len(enc) else 0.0
-    nominal = _nominal(arm)
-    segments = functools.cache(lambda: _still_segments(rec))  # found once, where needed
-    out: list[np.ndarray] = []
-    unsettled = False
-    # an untold joint starts at the ready pose (as the tracker's startup takes it): its q_ref is
-    # the ready angle less the encoder's first reading, which an absolute encoder (a UR's
-    # controller angles) does not give as zero
-    ready_ref = q - e
-    for solver_arm in (arm, nominal):
-        found = _still_start_branches(solver_arm, rec, window_s, q, e, models, segments)
-        if found is None:
-            continue
-        branches, settled = found
-        unsettled |= not settled
-        for b in branches:
-            qb = np.where(np.isfinite(b), b - e, ready_ref)
-            _add_start(out, qb)
-    if not out:  # no still start: the ready pose
-        return [ready_ref]
-    if enc is not None and len(enc) and unsettled:
-        # a start the still start cannot settle: each later still pose's own answer too
-        for qb in _later_still_starts(nominal, rec, out[0], window_s, models, segments):
-            _add_start(out, qb)
-    return out
-
-
-def _add_start(out: list[np.ndarray], q_ref_rad: np.ndarray) -> None:
-    """``q_ref_rad`` appended to the starts ``out`` unless one is there already or they are full."""
-    if len(out) < MAX_STARTS and not any(np.allclose(q_ref_rad, o) for o in out):
-        out.append(q_ref_rad)
-
-
-def _still_start_branches(solver_arm: ArmModel, rec, window_s: float, q_ready_rad: np.ndarray,
-                          enc0_rad, models, segments) -> tuple[list[np.ndarray], bool] | None:
-    """The startup on the recording's first still ``window_s`` solved for ``solver_arm``: its
-    branches as geometric angles (NaN where untold; ambiguous joints each way, nearest the
-    ready pose first, untold joints filled from later stretches where those tell them), and
-    whether it settled the pose (no joint untold, one branch). None without a still start."""
-    res = _solve_still_at(solver_arm, rec, rec.t_start_s, window_s)
-    if res is None:
-        return None
-    enc = rec.get("enc")
-    geo, branches = _branches(res, q_ready_rad)
-    settled = not np.isnan(geo).any() and len(branches) == 1
-    if np.isnan(geo).any() and enc is not None and len(enc):
-        told = _later_still_angles(solver_arm, rec, geo, enc0_rad, window_s, models, segments)
-        untold = np.isnan(geo) & np.isfinite(told)
-        if untold.any():
-            branches += [np.where(untold, told, b) for b in branches]
-    return branches, settled
-
-
-MAX_STARTS = 16
-"""At most this many starts (the first and its rivals) from :func:`start_poses`: each rival
-costs the diagnosis a short trial fit (about 0.2 s) where the first does not reach the noise."""
-
-
-def _later_still_starts(nominal: ArmModel, rec, fallback_ref_rad: np.ndarray, window_s: float, models,
-                        segments) -> list[np.ndarray]:
-    """Starts (``q_ref``, rad) from the later still stretches, each on its own: the startup's
-    angles there (each of its branches where it has several) less the encoder angles there,
-    joints it cannot tell from ``fallback_ref_rad``. Where the still start leaves the arm's
-    middle joints to a twin or untold (a shoulder at gimbal lock: the elbow and the forearm
-    read alike either way), a later pose that tells them all gives a start in the right
-    basin, which filling the untold joints one by one (:func:`_later_still_angles`) cannot."""
-    out = []
-    for res, e in _later_still_solutions(nominal, rec, window_s, models, segments):
-        _, sets = _branches(res)
-        out += [np.where(np.isfinite(g), g - e, fallback_ref_rad) for g in sets]
-    return out
-
-
-def _still_segments(rec) -> list:
-    """The recording's still stretches (:func:`armfusion.fusion.startup.static.find_static_segments`);
-    none where it finds none."""
-    from armfusion.fusion.startup.static import find_static_segments
-
-    try:
-        return list(find_static_segments(rec))
-    except Exception:  # noqa: BLE001 - no stretch found
-        return []
-
-
-def _solve_still_at(arm: ArmModel, rec, t0_s: float, window_s: float):
-    """The startup's answer on ``rec``'s still ``window_s`` from ``t0_s``; None where it has none."""
-    from armfusion.fusion.startup.solve import readings_from_recording, solve_still
-
-    try:
-        readings, _ = readings_from_recording(arm, rec, t0_s, t0_s + window_s, window_s)
-        return solve_still(arm, readings, propose_unlock=False)
-    except Exception:  # noqa: BLE001 - this stretch tells nothing
-        return None
-
-
-def _branches(res, q_near_rad: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
-    """A startup answer's angles (NaN where untold) and its branches: the ambiguous joints
-    taken from each candidate (nearest ``q_near_rad`` first, where given)."""
-    geo = np.array([je.angle_rad if je.angle_rad is not None else np.nan for je in res.joints])
-    if res.candidates_rad is None or len(res.candidates_rad) <= 1:
-        return geo, [geo]
-    cands = np.asarray(res.candidates_rad, float)
-    amb = np.array([je.flag == "ambiguous" for je in res.joints])
-    order = (np.argsort(np.abs(wrap_angle(cands - q_near_rad))[:, amb].sum(1), kind="stable")
-             if q_near_rad is not None else range(len(cands)))
-    return geo, [np.where(amb, cands[int(k)], geo) for k in order]
-
-
-def _later_still_solutions(arm: ArmModel, rec, window_s: float, models, segments, max_segments: int = 8):
-    """For each later still stretch (after the first, up to ``max_segments``) long enough and
-    with an answer: the startup's answer there and the encoder angles at its start (rad)."""
-    enc = rec.get("enc")
-    t_enc = np.asarray(enc.t_s, float)
-    for seg in segments()[1:max_segments + 1]:
-        if seg.t_end_s - seg.t_start_s < window_s:
-            continue
-        res = _solve_still_at(arm, rec, seg.t_start_s, window_s)
-        if res is None:
-            continue
-        i = int(np.searchsorted(t_enc, seg.t_start_s))
-        yield res, models["enc"].from_counts(enc.values[min(i, len(enc) - 1):][:1])[0]
-
-
-def _nominal(arm: ArmModel) -> ArmModel:
-    """``arm`` with nothing unmodelled (its calibration's floors left out): where a fit starts
-    (:func:`start_poses`), not how sure anything is."""
-    return replace(arm, calibration=arm.calibration.as_exact())
-
-
-def _later_still_angles(arm: ArmModel, rec, geo: np.ndarray, enc0_rad: np.ndarray, window_s: float,
-                        models, segments) -> np.ndarray:
-    """Joints the still start cannot tell (a joint at gimbal lock, a wrist whose roll gravity
-    does not see there): their angle at the start from the first later still stretch that
-    tells them, carried back through the encoders (``angle there - encoder there + encoder at
-    the start``). Joints no stretch tells stay NaN. ``segments``: the recording's still
-    stretches, a call (found once per recording: :func:`start_poses`)."""
-    geo = geo.copy()
-    for res, e in _later_still_solutions(arm, rec, window_s, models, segments):
-        for j, je in enumerate(res.joints):
-            if np.isnan(geo[j]) and je.angle_rad is not None and je.flag != "ambiguous":
-                geo[j] = je.angle_rad - e[j] + enc0_rad[j]
-        if not np.isnan(geo).any():
-            break
-    return geo
 
 
 def joint_references(arm: ArmModel, rec, specs: Sequence[tuple[str, float, float, float | int | None]]

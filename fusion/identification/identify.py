@@ -4,7 +4,7 @@ From a recording in which the arm moves through many orientations, estimate the
 parameters of the model's effects (``armfusion.models.effects``: biases, scales, axis directions,
 mounts, joint zeros, sag, the IMU's gyro and compass errors…) and the base attitude (the
 gravity and Earth-field directions in the base frame, as the sensor-calibration article's
-φ, ψ; one per parked stance of the chair, :func:`~armfusion.fusion.identification.data.parked_stances`,
+φ, ψ; one per parked stance of the chair, :func:`~armfusion.fusion.identification.stances.parked_stances`,
 optionally with an inclinometer's reading of the first stance's tilt), by weighted nonlinear
 least squares:
 
@@ -35,6 +35,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 from armfusion.fusion.identification.calibrated_config import (
@@ -56,8 +57,6 @@ from armfusion.fusion.identification.data import (
     data_from_recording,
     fit_streams,
     joint_references,
-    parked_stances,
-    start_pose,
     with_encoder_zeros,
 )
 from armfusion.fusion.identification.identifiability import (
@@ -81,6 +80,8 @@ from armfusion.fusion.identification.result import (
 )
 from armfusion.fusion.identification.settings import IdentifySettings
 from armfusion.fusion.identification.solver import coarse_points, solve, stream_scales
+from armfusion.fusion.identification.stances import parked_stances
+from armfusion.fusion.identification.starts import start_pose
 from armfusion.fusion.identification.truth import compare_with_truth, truth_values
 from armfusion.models.effects import Model
 
@@ -94,6 +95,116 @@ __all__ = [
     "joint_zero_conventions", "parked_stances", "start_pose", "startup_correction", "suggestion_for",
     "truth_values", "with_encoder_zeros",
 ]
+
+
+class _JacobianCounter:
+    """Counts the Jacobians of every solve of one fit, passing each to the caller's
+    ``progress(k, cost)`` numbered over the whole fit."""
+
+    def __init__(self, progress: Callable[[int, float], None] | None):
+        self.n = 0
+        self._progress = progress
+
+    def __call__(self, k: int, cost: float) -> None:
+        self.n += 1
+        if self._progress is not None:
+            self._progress(self.n, cost)
+
+
+class _Solution(NamedTuple):
+    """Where a fit's solves ended: the estimate, which elements were free, what the
+    identifiability analysis holds, each stream's weight and scale (the scale empty when
+    nothing was free), whether the last solve converged (None: nothing to solve), and the
+    Jacobians the coarse starts took."""
+
+    z: np.ndarray
+    free: np.ndarray
+    holds: list[Hold]
+    w_stream: dict[str, float]
+    scale: dict[str, float]
+    converged: bool | None
+    coarse_iterations: int
+
+
+def _problems(model: Model, data: FitData, streams: list[str], st: IdentifySettings,
+              attitude0_rad: np.ndarray) -> tuple[FitProblem, FitProblem | None]:
+    """The fit's problem, its start the compass's coarse headings where it has them, and, for a
+    long recording, the same problem on a subset of the points (:func:`~.solver.coarse_points`)
+    with the same priors, which each solve starts on (:func:`~.solver.solve`)."""
+    pb = FitProblem(model, data, streams, st.estimate_attitude, attitude0_rad, encoder_scale=st.encoder_scale)
+    if pb.attitude and "imu_mag" in pb.streams:
+        _coarse_headings(pb, data)
+    idx = coarse_points(data.n, data.stance, data.used)
+    if idx is None:
+        return pb, None
+    coarse = FitProblem(model, data.subset(idx), streams, st.estimate_attitude, attitude0_rad,
+                        encoder_scale=st.encoder_scale)
+    coarse.x0 = pb.x0  # the same priors (the coarse headings included)
+    return pb, coarse
+
+
+def _not_held(names: Sequence[str], hold: set[str]) -> np.ndarray:
+    """Per element, whether the caller leaves it free (``hold`` names elements or whole blocks)."""
+    return np.array([not (n in hold or n.split("[")[0] in hold) for n in names], bool)
+
+
+def _freed_at_estimate(pb: FitProblem, z: np.ndarray, hold: set[str], holds: list[Hold],
+                       st: IdentifySettings) -> tuple[np.ndarray, list[Hold]] | None:
+    """The free elements and holds of the identifiability analysed again at the estimate ``z``,
+    or None when it holds the same. Bilinear effects (a compass dipole's field and the IMU's
+    position, a soft-iron matrix on that field) are invisible at the prior, where the other
+    factor is zero: the data may see them at the estimate. A held element is freed only when
+    the data know it well (to half its prior σ): one barely above the line makes a long flat
+    valley the solver creeps along."""
+    H1, _, _ = pb.normal_equations(z, np.arange(pb.size))
+    free = _not_held(pb.names, hold)
+    holds1 = analyse_information(H1, pb.sigma0, pb.names, free, replace(st, hold_ratio=0.5 * st.hold_ratio))
+    before = {h.element for h in holds}
+    holds1 = [h for h in holds1 if h.element in before]
+    if {h.element for h in holds1} == before:
+        return None
+    for h in holds1:
+        free[pb.names.index(h.element)] = False
+    return free, holds1
+
+
+def _solve(pb: FitProblem, coarse: FitProblem | None, hold: set[str], st: IdentifySettings,
+           counter: _JacobianCounter) -> _Solution:
+    """Hold what the data cannot see at the prior, solve, free what the data see at the
+    estimate and solve again, then weight each stream by its own scale (:func:`_reweighted`)."""
+    z0 = pb.x0.copy()
+    free = _not_held(pb.names, hold)
+    H0, _, _ = pb.normal_equations(z0, np.arange(pb.size))
+    holds = analyse_information(H0, pb.sigma0, pb.names, free, st)
+    for h in holds:
+        free[pb.names.index(h.element)] = False
+    w_stream = {s_: 1.0 for s_ in pb.streams}
+    if not free.any():
+        return _Solution(z0.copy(), free, holds, w_stream, {}, None, 0)
+    z, converged, n_coarse = solve(pb, coarse, z0, np.flatnonzero(free), w_stream, st.max_nfev, counter)
+    freed = _freed_at_estimate(pb, z, hold, holds, st)
+    if freed is not None:
+        free, holds = freed
+        z[~free] = z0[~free]
+        z, converged, nc = solve(pb, coarse, z, np.flatnonzero(free), w_stream, st.max_nfev, counter)
+        n_coarse += nc
+    z, converged, scale = _reweighted(pb, z, np.flatnonzero(free), st, counter, converged)
+    return _Solution(z, free, holds, {s_: 1.0 / scale[s_] for s_ in pb.streams}, scale, converged, n_coarse)
+
+
+def _reweighted(pb: FitProblem, z: np.ndarray, fcols: np.ndarray, st: IdentifySettings,
+                counter: _JacobianCounter, converged: bool) -> tuple[np.ndarray, bool, dict[str, float]]:
+    """Each stream at its own scale (:func:`~.solver.stream_scales`): a stream the model fits
+    worse than its noise (or with smooth, correlated residuals) counts for fewer independent
+    readings; weight it so and fit again (one pass, from the optimum at the first weights:
+    no coarse start, it would walk away), so its errors neither pull the others' estimates
+    nor shrink their σ. Returns the estimate, whether its solve converged, and the scales."""
+    scale = stream_scales(pb, z)
+    if any(v > 1.05 for v in scale.values()):
+        w_stream = {s_: 1.0 / scale[s_] for s_ in pb.streams}
+        z, converged, _ = solve(pb, None, z, fcols, w_stream, st.max_nfev, counter)
+        scale = stream_scales(pb, z)
+    return z, converged, scale
 
 
 def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
@@ -110,86 +221,19 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     t0 = time.perf_counter()
     streams = [s for s in (data.counts if streams is None else streams) if s not in FIT_STREAMS_EXCLUDED]
     att0 = np.zeros(3) if attitude0_rad is None else np.asarray(attitude0_rad, float)
-    pb = FitProblem(model, data, streams, st.estimate_attitude, att0, encoder_scale=st.encoder_scale)
-    names = pb.names
-    free = np.ones(pb.size, bool)
-    hold = set(hold)
-    for i, n in enumerate(names):
-        if n in hold or n.split("[")[0] in hold:
-            free[i] = False
+    pb, coarse = _problems(model, data, streams, st, att0)
+    counter = _JacobianCounter(progress)
+    sol = _solve(pb, coarse, set(hold), st, counter)
+    z, free = sol.z, sol.free
     notes = []
-    if pb.attitude and "imu_mag" in pb.streams:
-        _coarse_headings(pb, data)
-    z0 = pb.x0.copy()
-    # a long recording: each solve starts on a subset of the points (solver.solve)
-    idx = coarse_points(data.n, data.stance, data.used)
-    coarse = None
-    if idx is not None:
-        coarse = FitProblem(model, data.subset(idx), streams, st.estimate_attitude, att0,
-                            encoder_scale=st.encoder_scale)
-        coarse.x0 = pb.x0  # the same priors (the coarse headings included)
-    # identifiability at the prior
-    all_cols = np.arange(pb.size)
-    H0, _, _ = pb.normal_equations(z0, all_cols)
-    holds = analyse_information(H0, pb.sigma0, names, free, st)
-    for h in holds:
-        free[names.index(h.element)] = False
-    fcols = np.flatnonzero(free)
-    n_jac = [0]
-    n_coarse = 0
-
-    def counted(k, cost):
-        n_jac[0] += 1
-        if progress is not None:
-            progress(n_jac[0], cost)
-
-    z = z0.copy()
-    w_stream = {s_: 1.0 for s_ in pb.streams}
-    scale: dict[str, float] = {}
-    if len(fcols):
-        z, converged, nc = solve(pb, coarse, z0, fcols, w_stream, st.max_nfev, counted)
-        n_coarse += nc
-        # bilinear effects (a compass dipole's field and the IMU's position, a soft-iron matrix
-        # on that field) are invisible at the prior, where the other factor is zero: analyse
-        # again at the estimate and free what the data now see
-        H1, _, _ = pb.normal_equations(z, all_cols)
-        free1 = np.ones(pb.size, bool)
-        for i, n in enumerate(names):
-            if n in hold or n.split("[")[0] in hold:
-                free1[i] = False
-        # a bilinear element is freed only when the data know it well (to half its prior σ):
-        # one barely above the line makes a long flat valley the solver creeps along
-        holds1 = analyse_information(H1, pb.sigma0, names, free1, replace(st, hold_ratio=0.5 * st.hold_ratio))
-        before = {h.element for h in holds}
-        holds1 = [h for h in holds1 if h.element in before]
-        if {h.element for h in holds1} != before:
-            free = free1
-            for h in holds1:
-                free[names.index(h.element)] = False
-            holds = holds1
-            fcols = np.flatnonzero(free)
-            z[~free] = z0[~free]
-            z, converged, nc = solve(pb, coarse, z, fcols, w_stream, st.max_nfev, counted)
-            n_coarse += nc
-        # each stream at its own scale: a stream the model fits worse than its noise (or with
-        # smooth, correlated residuals) counts for fewer independent readings; weight it so
-        # and fit again (one pass), so its errors neither pull the others' estimates nor
-        # shrink their σ
-        scale = stream_scales(pb, z)
-        if any(v > 1.05 for v in scale.values()):
-            w_stream = {s_: 1.0 / scale[s_] for s_ in pb.streams}
-            # from the optimum at the first weights: no coarse start (it would walk away)
-            z, converged, nc = solve(pb, None, z, fcols, w_stream, st.max_nfev, counted)
-            scale = stream_scales(pb, z)
-        w_stream = {s_: 1.0 / scale[s_] for s_ in pb.streams}
-        if not converged:
-            notes.append(f"the solver stopped before converging (after {n_jac[0]} Jacobians)")
-    H, grad, rr = pb.normal_equations(z, all_cols, w_stream)
+    if sol.converged is not None and not sol.converged:
+        notes.append(f"the solver stopped before converging (after {counter.n} Jacobians)")
+    H, grad, rr = pb.normal_equations(z, np.arange(pb.size), sol.w_stream)
     r = pb.residual(z)
     m_res = int(np.count_nonzero(pb.w))
-    dof = max(m_res - len(fcols), 1)
+    dof = max(m_res - int(free.sum()), 1)
     chi2 = float(np.sum(r**2) / dof)
-    worse = {s_: v for s_, v in scale.items() if v > 1.05}
+    worse = {s_: v for s_, v in sol.scale.items() if v > 1.05}
     if worse:
         notes.append("σ scaled per stream by its residual's size and correlation (some effect is not "
                      "modelled, or the noise is larger than the datasheet's): "
@@ -200,13 +244,13 @@ def identify(model: Model, data: FitData, streams: Sequence[str] | None = None,
     notes += [c.message() for c in checks]
     fits = _stream_fits(pb, model, data, z)
     return Identification(
-        model=model, names=names, x=z, x0=pb.x0.copy(), sigma=sigma, prior_sigma=pb.sigma0.copy(),
-        covariance=C, held=~free, holds=tuple(holds), fits=tuple(fits), chi2_red=chi2,
+        model=model, names=pb.names, x=z, x0=pb.x0.copy(), sigma=sigma, prior_sigma=pb.sigma0.copy(),
+        covariance=C, held=~free, holds=tuple(sol.holds), fits=tuple(fits), chi2_red=chi2,
         n_samples=data.n if data.used is None else int(data.used.sum()), n_residuals=m_res,
-        iterations=n_jac[0], seconds=time.perf_counter() - t0,
+        iterations=counter.n, seconds=time.perf_counter() - t0,
         attitude_rad=z[pb.P:pb.P + 3] if pb.attitude else None, q_ref_rad=data.q_ref_rad, mode=mode,
         notes=tuple(notes), attitudes_rad=z[pb.P:].reshape(-1, 3) if pb.attitude else None,
-        reference_checks=checks, coarse_iterations=n_coarse)
+        reference_checks=checks, coarse_iterations=sol.coarse_iterations)
 
 
 def _coarse_headings(pb: FitProblem, data: FitData) -> None:

@@ -25,46 +25,42 @@ for the arm's controller (or the simulator) to play.
   joints' startup variances, linearised at random still poses, ``noise + gᵀA⁻¹g``; the sum
   of their logs, by Woodbury per candidate). The best pose and dwell are appended until the
   time is spent.
-* **Predicted σ** (:func:`predict_maneuver`): the maneuver played noise-free by the simulator
-  at the priors, turned into the fit's data as a recording would be
-  (:func:`~armfusion.fusion.identification.data.data_from_recording`: the moves count too), the
-  identifiability analysis and the consider covariance of the fit
-  (:func:`~armfusion.fusion.identification.identify.identify`'s). The startup's σ of each joint
-  after it (:func:`startup_sigmas`): the calibrated config such a fit would write, and the
-  startup solved on it at random still poses.
+* **Predicted σ** (:func:`~armfusion.fusion.identification.prediction.predict_maneuver`, in
+  :mod:`~armfusion.fusion.identification.prediction`, importable from here too): the maneuver
+  played noise-free at the priors, turned into the fit's data as a recording would be, the
+  identifiability analysis and the consider covariance of the fit; the startup's σ of each
+  joint after it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from armfusion.fusion.configfile import read_yaml_of
-from armfusion.fusion.identification.calibrated_config import config_with_estimates
-from armfusion.fusion.identification.correction import startup_correction
-from armfusion.fusion.identification.data import FitData, data_from_recording, fit_streams
-from armfusion.fusion.identification.identifiability import analyse_information
-from armfusion.fusion.identification.identify import _consider_covariance
+from armfusion.fusion.identification.data import FitData, fit_streams
+from armfusion.fusion.identification.identifiability import Hold, analyse_information
+from armfusion.fusion.identification.prediction import (  # the prediction, importable from here too
+    Prediction,
+    predict_maneuver,
+    predicted_identification,
+    startup_sigmas,
+)
 from armfusion.fusion.identification.problem import FitProblem
-from armfusion.fusion.identification.result import Identification, StreamFit
 from armfusion.fusion.identification.settings import IdentifySettings
 from armfusion.fusion.startup.moves import MAX_MOVE_DEG, moves_within_limits
-from armfusion.fusion.startup.prior import StartupPrior
-from armfusion.fusion.startup.readings import readings_from_counts
-from armfusion.fusion.startup.solve import solve_still
 from armfusion.models.arm import ArmModel
-from armfusion.models.arm_config import build_arm
-from armfusion.models.effects import Model, model_from_arm
+from armfusion.models.effects import Model
 from armfusion.models.effects.base import JointEffect, SensorEffect
 from armfusion.models.kinematics import chain_poses
 from armfusion.models.motion import MotionState
 from armfusion.models.rotations import DEG
 from armfusion.models.sensor_models import stream_models
-from armfusion.models.simulator import SimulationOptions, simulate
 from armfusion.models.trajectories.paths import min_jerk_progress
-from armfusion.models.trajectories.planned import PlannedManeuver, planned_scenario
-from armfusion.models.trajectories.scenario import Scenario, margin_limits
+from armfusion.models.trajectories.planned import PlannedManeuver
+from armfusion.models.trajectories.scenario import margin_limits
 
 CRITERIA = ("D", "E", "startup")
 FOCUS = ("all", "startup")
@@ -278,9 +274,19 @@ def startup_elements(model: Model) -> set[str]:
     return out
 
 
+class _StartupRows(NamedTuple):
+    """The startup's joint angles linearised (:func:`_startup_rows`): the rows ``G (R, cols)``
+    in the criterion's prior units, each row's noise variance ``(R,)`` (rad²), each row's
+    joint ``(R,)``, and the names of the joints counted."""
+
+    G: np.ndarray
+    noise: np.ndarray
+    joint: np.ndarray
+    counted: list[str]
+
+
 def _startup_rows(model: Model, settings: PlanSettings, q_ref_rad: np.ndarray, cols: np.ndarray,
-                  unanswered: set[str], rng: np.random.Generator
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+                  unanswered: set[str], rng: np.random.Generator) -> _StartupRows:
     """The startup's joint angles, linearised: at ``startup_poses`` random still poses (the
     chair tilted N(0, 3°), as :func:`startup_sigmas`), 1 s of the accelerometers' readings
     (the link accelerometers' and the IMU's) solved for the geometric joint angles and the
@@ -335,8 +341,8 @@ def _startup_rows(model: Model, settings: PlanSettings, q_ref_rad: np.ndarray, c
     joint = np.tile(np.arange(arm.n_joints), K)
     ok = np.array([j not in unanswered for j in arm.joint_names])
     rows = ok[joint] & (np.sqrt(noise) <= 0.5 * settings.startup_sigma_limit_deg * DEG)
-    return (G[rows][:, cols] * pb.sigma0[cols], noise[rows], joint[rows],
-            [j for j, o in zip(arm.joint_names, ok, strict=True) if o])
+    return _StartupRows(G[rows][:, cols] * pb.sigma0[cols], noise[rows], joint[rows],
+                        [j for j, o in zip(arm.joint_names, ok, strict=True) if o])
 
 
 def _startup_value(var_rows: np.ndarray, joint: np.ndarray, n_joints: int) -> np.ndarray:
@@ -349,22 +355,86 @@ def _startup_value(var_rows: np.ndarray, joint: np.ndarray, n_joints: int) -> np
     return np.sum(np.log(per), -1)
 
 
+def _gauges(model: Model, st: PlanSettings, q0: np.ndarray, rng: np.random.Generator
+            ) -> tuple[FitProblem, list[Hold]]:
+    """The problem over a pool of :attr:`PlanSettings.pool_poses` random poses sharing the
+    whole duration, and what its identifiability analysis holds: the gauges no maneuver of
+    the chair parked can tell, which the criterion leaves out."""
+    arm = model.arm
+    lo, hi = margin_limits(arm)
+    pool = rng.uniform(lo, hi, (st.pool_poses, arm.n_joints))
+    pb = _static_problem(model, pool, st, q0)
+    Jp = _rows_per_pose(pb)
+    windows_per_s = st.rate_hz / st.window
+    H_pool = np.einsum("nri,nrj->ij", Jp, Jp) * (st.duration_s * windows_per_s / st.pool_poses)
+    return pb, analyse_information(H_pool, pb.sigma0, pb.names, np.ones(pb.size, bool), IdentifySettings())
+
+
+def _dwell_choices_s(st: PlanSettings) -> np.ndarray:
+    """The dwells a pose may be held, shortest first."""
+    return np.array(sorted(set(st.dwell_choices_s) or {st.dwell_s}))
+
+
+def _candidates(arm: ArmModel, st: PlanSettings, q: np.ndarray, time_left_s: float,
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The random next poses from ``q`` that pass the unlock move's checks, the tool speed and
+    the time left (with the shortest dwell), and each one's move duration (s)."""
+    lo, hi = margin_limits(arm)
+    cand = np.clip(q + rng.uniform(-1, 1, (st.candidates, arm.n_joints)) * st.max_move_deg * DEG, lo, hi)
+    T = move_durations_s(st, q, cand)
+    ok = (moves_within_limits(arm, q, cand, st.max_move_deg)
+          & (_tool_speed_mps(arm, np.broadcast_to(q, cand.shape), cand, T) <= st.max_tool_speed_mps)
+          & (T + _dwell_choices_s(st)[0] <= time_left_s))
+    return cand[ok], T[ok]
+
+
+def _best_move(st: PlanSettings, A: np.ndarray, Jc: np.ndarray, move_s: np.ndarray, time_left_s: float,
+               startup: _StartupRows | None, n_joints: int) -> tuple[int, float]:
+    """The candidate and dwell with the best gain in the criterion per second of move and
+    dwell: ``A`` the information so far and ``Jc (C, rows, cols)`` each candidate's rows, in
+    prior units; ``startup`` the startup's rows for ``criterion="startup"``."""
+    windows_per_s = st.rate_hz / st.window
+    Ainv = np.linalg.inv(A)
+    K = np.einsum("cri,ij,csj->crs", Jc, Ainv, Jc)  # (C, r, r)
+    if startup is not None:
+        GA = startup.G @ Ainv
+        v_now = startup.noise + np.einsum("Rp,Rp->R", GA, startup.G)
+        f_now = _startup_value(v_now, startup.joint, n_joints)
+        U = np.einsum("Rp,crp->cRr", GA, Jc)  # (C, R, r)
+    else:
+        lam0 = np.linalg.eigvalsh(A)[0]
+    best_rate, best = -np.inf, None
+    for d in _dwell_choices_s(st):
+        fits = move_s + d <= time_left_s
+        if not fits.any():
+            continue
+        w = d * windows_per_s
+        if st.criterion == "D":
+            gain = np.linalg.slogdet(np.eye(Jc.shape[1]) + w * K)[1]
+        elif st.criterion == "E":
+            gain = np.array([np.linalg.eigvalsh(A + w * J.T @ J)[0] - lam0 for J in Jc])
+        else:  # Woodbury: each row's variance falls by w uᵀ(I + w K)⁻¹u
+            Mi = np.linalg.inv(np.eye(Jc.shape[1]) + w * K)
+            drop = w * np.einsum("cRr,crs,cRs->cR", U, Mi, U)
+            gain = f_now - _startup_value(v_now - drop, startup.joint, n_joints)
+        rate = np.where(fits, gain / (move_s + d), -np.inf)
+        i = int(np.argmax(rate))
+        if rate[i] > best_rate:
+            best_rate, best = rate[i], (i, float(d))
+    return best
+
+
 def plan_maneuver(model: Model, settings: PlanSettings | None = None, progress=None) -> Plan:
     """Choose the poses of a maneuver of ``settings.duration_s`` for ``model``'s parameters
-    (module docstring). Starts at the arm's ready pose, held ``start_still_s``."""
+    (module docstring). Starts at the arm's ready pose, held ``start_still_s``; then, while
+    the time allows, the best of the candidate moves (:func:`_candidates`, :func:`_best_move`)."""
     st = settings or PlanSettings()
     st.check()
     arm = model.arm
     rng = np.random.default_rng([st.seed, 0x91A])
-    lo, hi = margin_limits(arm)
     q0 = np.clip(np.asarray(arm.ready_pose_rad, float), arm.min_rad, arm.max_rad)
     windows_per_s = st.rate_hz / st.window
-    # the gauges: held when the whole duration is spread over a pool of random poses
-    pool = rng.uniform(lo, hi, (st.pool_poses, arm.n_joints))
-    pb = _static_problem(model, pool, st, q0)
-    Jp = _rows_per_pose(pb)
-    H_pool = np.einsum("nri,nrj->ij", Jp, Jp) * (st.duration_s * windows_per_s / st.pool_poses)
-    holds = analyse_information(H_pool, pb.sigma0, pb.names, np.ones(pb.size, bool), IdentifySettings())
+    pb, holds = _gauges(model, st, q0, rng)
     gauges = {h.element for h in holds}
     wanted = set(pb.names) if st.focus == "all" else startup_elements(model)
     cols = np.array([i for i, n in enumerate(pb.names) if n not in gauges and n in wanted])
@@ -376,55 +446,21 @@ def plan_maneuver(model: Model, settings: PlanSettings | None = None, progress=N
 
     J0 = scaled_rows(q0[None])[0]
     A = np.eye(len(cols)) + (J0.T @ J0) * (st.start_still_s * windows_per_s)
+    startup = None
     if st.criterion == "startup":
         unanswered = {j for h in holds for p, _ in h.partners for j in arm.joint_names
                       if p == f"{j}.joint_offset[offset]"}
-        G, noise, joint, counted = _startup_rows(model, st, q0, cols, unanswered,
-                                                 np.random.default_rng([st.seed, 0x57A]))
-    dwell_choices = np.array(sorted(set(st.dwell_choices_s) or {st.dwell_s}))
+        startup = _startup_rows(model, st, q0, cols, unanswered, np.random.default_rng([st.seed, 0x57A]))
     poses, dwells, moves = [q0], [st.start_still_s], []
     t = st.start_still_s
     scored = 0
-    while st.duration_s - t >= st.min_move_s + dwell_choices[0]:
-        q = poses[-1]
-        cand = np.clip(q + rng.uniform(-1, 1, (st.candidates, arm.n_joints)) * st.max_move_deg * DEG, lo, hi)
-        T = move_durations_s(st, q, cand)
-        ok = (moves_within_limits(arm, q, cand, st.max_move_deg)
-              & (_tool_speed_mps(arm, np.broadcast_to(q, cand.shape), cand, T) <= st.max_tool_speed_mps)
-              & (T + dwell_choices[0] <= st.duration_s - t))
-        if not ok.any():
+    while st.duration_s - t >= st.min_move_s + _dwell_choices_s(st)[0]:
+        cand, T = _candidates(arm, st, poses[-1], st.duration_s - t, rng)
+        if not len(cand):
             break
-        cand, T = cand[ok], T[ok]
         scored += len(cand)
         Jc = scaled_rows(cand)  # (C, r, p)
-        Ainv = np.linalg.inv(A)
-        K = np.einsum("cri,ij,csj->crs", Jc, Ainv, Jc)  # (C, r, r)
-        if st.criterion == "startup":
-            GA = G @ Ainv
-            v_now = noise + np.einsum("Rp,Rp->R", GA, G)
-            f_now = _startup_value(v_now, joint, arm.n_joints)
-            U = np.einsum("Rp,crp->cRr", GA, Jc)  # (C, R, r)
-        else:
-            lam0 = np.linalg.eigvalsh(A)[0]
-        best_rate, best = -np.inf, None
-        for d in dwell_choices:
-            fits = T + d <= st.duration_s - t
-            if not fits.any():
-                continue
-            w = d * windows_per_s
-            if st.criterion == "D":
-                gain = np.linalg.slogdet(np.eye(Jc.shape[1]) + w * K)[1]
-            elif st.criterion == "E":
-                gain = np.array([np.linalg.eigvalsh(A + w * J.T @ J)[0] - lam0 for J in Jc])
-            else:  # Woodbury: each row's variance falls by w uᵀ(I + w K)⁻¹u
-                Mi = np.linalg.inv(np.eye(Jc.shape[1]) + w * K)
-                drop = w * np.einsum("cRr,crs,cRs->cR", U, Mi, U)
-                gain = f_now - _startup_value(v_now - drop, joint, arm.n_joints)
-            rate = np.where(fits, gain / (T + d), -np.inf)
-            i = int(np.argmax(rate))
-            if rate[i] > best_rate:
-                best_rate, best = rate[i], (i, float(d))
-        i, d = best
+        i, d = _best_move(st, A, Jc, T, st.duration_s - t, startup, arm.n_joints)
         A = A + d * windows_per_s * Jc[i].T @ Jc[i]
         poses.append(cand[i])
         moves.append(float(T[i]))
@@ -435,102 +471,7 @@ def plan_maneuver(model: Model, settings: PlanSettings | None = None, progress=N
     dwells[-1] += max(0.0, st.duration_s - t)  # the time left: the last pose held longer
     m = PlannedManeuver(tuple(arm.joint_names), np.array(poses), np.array(dwells), np.array(moves))
     return Plan(m, st.criterion, pb.names, tuple(sorted(gauges)), scored,
-                tuple(counted) if st.criterion == "startup" else ())
-
-
-@dataclass(frozen=True)
-class Prediction:
-    """What a fit on the maneuver will know: every element's σ (the held ones at their prior
-    σ), what it will hold, the startup's σ of each joint after it."""
-
-    identification: Identification
-    """The fit's σ as :func:`identify` would report them, at the priors (``x = x0``)."""
-    joint_sigma_rad: np.ndarray
-    """Per joint: the median σ of the startup's ``ok`` answers at random still poses on the
-    calibrated config (nan where none is ok)."""
-    joint_ok_share: np.ndarray
-
-
-def predicted_identification(model: Model, maneuver: PlannedManeuver | Scenario, window: int = 25,
-                             rate_hz: float = 100.0) -> Identification:
-    """The σ a fit of ``model`` on ``maneuver`` (a plan, or any scenario) will report: the
-    maneuver simulated without noise on the priors' arm, its data and problem as the fit
-    builds them, the identifiability analysis and the consider covariance at the priors.
-    (The fit analyses again at its
-    estimate and may free a bilinear element held here; it also scales a stream whose residual
-    exceeds its noise: neither can be known before the recording.)"""
-    arm = model.arm
-    sc = (planned_scenario(arm, maneuver, np.random.default_rng(0), tilt_sigma_rad=0.0)
-          if isinstance(maneuver, PlannedManeuver) else maneuver)
-    rec, _ = simulate(arm, sc, rate_hz=rate_hz, options=SimulationOptions(noise=False))
-    data = data_from_recording(arm, rec, window, nodes=2, stances=True)
-    return _predicted(model, data)
-
-
-def _predicted(model: Model, data: FitData) -> Identification:
-    st = IdentifySettings(encoder_scale=True)
-    streams = [s for s in data.counts if s in fit_streams(model.arm)]
-    pb = FitProblem(model, data, streams, True, np.zeros(3), encoder_scale=True)
-    H, _, _ = pb.normal_equations(pb.x0, np.arange(pb.size))
-    holds = analyse_information(H, pb.sigma0, pb.names, np.ones(pb.size, bool), st)
-    free = np.ones(pb.size, bool)
-    for h in holds:
-        free[pb.names.index(h.element)] = False
-    C = _consider_covariance(pb, H, free)
-    sm = model.stream_models()
-    fits = tuple(StreamFit(s, sm[s].unit, data.sigma_counts[s] / np.abs(sm[s].gain),
-                           data.sigma_counts[s] / np.abs(sm[s].gain)) for s in pb.streams)
-    return Identification(
-        model=model, names=pb.names, x=pb.x0.copy(), x0=pb.x0.copy(),
-        sigma=np.sqrt(np.clip(np.diag(C), 0, None)), prior_sigma=pb.sigma0.copy(), covariance=C,
-        held=~free, holds=tuple(holds), fits=fits, chi2_red=1.0, n_samples=data.n,
-        n_residuals=int(np.count_nonzero(pb.w)), iterations=0, seconds=0.0,
-        attitude_rad=pb.x0[pb.P:pb.P + 3], q_ref_rad=data.q_ref_rad, mode="predicted",
-        notes=("predicted at the priors, before any recording",),
-        attitudes_rad=pb.x0[pb.P:].reshape(-1, 3))
-
-
-def startup_sigmas(config_data: dict, result: Identification, poses: int = 64, seed: int = 0,
-                   temperature_c: float = 25.0, tilt_sigma_deg: float = 3.0,
-                   prior_sigma_deg: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
-    """The startup after a calibration ``result`` (its config written as ``calibrate sensors
-    --write`` writes it, over ``config_data``): the still solve at ``poses`` random poses
-    inside the limits, the chair tilted N(0, ``tilt_sigma_deg``) per axis, 1 s of readings at
-    the prior's values, the pose saved at the last shutdown ``prior_sigma_deg`` from the truth
-    as its prior (the startup benchmark's draw); per joint the median σ of the ``ok`` answers
-    (nan where none) and the share of poses it is ok."""
-    cal = build_arm(config_with_estimates(config_data, result), "(predicted calibrated config)")
-    corr = startup_correction(cal, temperature_c)
-    model = model_from_arm(cal)
-    rng = np.random.default_rng([seed, 0x57A])
-    lo, hi = margin_limits(cal)
-    Q = rng.uniform(lo, hi, (poses, cal.n_joints))
-    tilt = rng.normal(0.0, tilt_sigma_deg * DEG, (poses, 2))
-    saved = Q + rng.normal(0.0, prior_sigma_deg * DEG, Q.shape)
-    streams = [s.name for s in cal.link_accelerometers] + (["imu_acc"] if cal.imu is not None else [])
-    phys = model.predict(MotionState.static(Q, tilt[:, 0], tilt[:, 1], temperature_c=temperature_c),
-                         model.x0, streams, units="physical")
-    sm = stream_models(cal)
-    means = {s: sm[s].to_counts(phys[s]) for s in streams}
-    sig = np.full((poses, cal.n_joints), np.nan)
-    for k in range(poses):
-        r = readings_from_counts(cal, {s: m[k] for s, m in means.items()}, n_samples=100)
-        prior = StartupPrior.saved_pose(saved[k], sigma_deg=prior_sigma_deg)
-        res = corr.controller_result(solve_still(cal, corr.readings(r), prior=prior, propose_unlock=False))
-        for j, je in enumerate(res.joints):
-            if je.flag == "ok" and je.sigma_rad is not None:
-                sig[k, j] = je.sigma_rad
-    ok = np.isfinite(sig)
-    med = np.array([np.median(sig[ok[:, j], j]) if ok[:, j].any() else np.nan for j in range(cal.n_joints)])
-    return med, ok.mean(0)
-
-
-def predict_maneuver(model: Model, maneuver: PlannedManeuver | Scenario, config_data: dict, poses: int = 64,
-                     window: int = 25) -> Prediction:
-    """:func:`predicted_identification` and :func:`startup_sigmas` of ``maneuver``."""
-    ident = predicted_identification(model, maneuver, window)
-    sig, share = startup_sigmas(config_data, ident, poses)
-    return Prediction(ident, sig, share)
+                tuple(startup.counted) if startup is not None else ())
 
 
 __all__ = ["CRITERIA", "Plan", "PlanSettings", "Prediction", "maneuver_problems", "move_durations_s",

@@ -16,10 +16,10 @@ from collections.abc import Sequence
 
 import numpy as np
 from armfusion.fusion.identification.data import FitData
+from armfusion.fusion.identification.references import ReferenceRows
 from armfusion.models.effects import Model
-from armfusion.models.effects.base import JointEffect
 from armfusion.models.motion import MotionState
-from armfusion.models.rotations import DEG, R_from_rpy, wrap_angle
+from armfusion.models.rotations import DEG, R_from_rpy
 
 ATTITUDE = "base.attitude"
 ATTITUDE_LABELS = ("roll", "pitch", "yaw")
@@ -34,6 +34,22 @@ def attitude_names(n_stances: int) -> tuple[str, ...]:
     if n_stances == 1:
         return tuple(f"{ATTITUDE}[{k}]" for k in ATTITUDE_LABELS)
     return tuple(f"{ATTITUDE}[{i + 1}.{k}]" for i in range(n_stances) for k in ATTITUDE_LABELS)
+
+
+def scaled_joints(st: MotionState, z: np.ndarray, enc_scale: Sequence[tuple[int, int, str | None]],
+                  q_ref_rad: np.ndarray, n_joints: int) -> MotionState:
+    """The motion ``st`` with the encoder scale errors at ``z`` taken out: a joint whose encoder
+    counts too fast by ``s`` (``z[c]``, for each ``(c, joint, _)`` of ``enc_scale``) stands at
+    ``q_ref + (encoder angle)/(1 + s)``, its rate and acceleration scaled alike."""
+    if not enc_scale:
+        return st
+    f = np.ones(n_joints)
+    for c, j, _ in enc_scale:
+        f[j] = 1.0 / (1.0 + z[c])
+    if np.all(f == 1.0):
+        return st
+    return st.replace(q_rad=q_ref_rad + (st.q_rad - q_ref_rad) * f, qd_rad_s=st.qd_rad_s * f,
+                      qdd_rad_s2=st.qdd_rad_s2 * f)
 
 
 class FitProblem:
@@ -85,59 +101,26 @@ class FitProblem:
                 off = f"{e.target}.joint_offset"
                 self.enc_scale.append((model.index[e.block_name].start, e.j,
                                        off if off in model.index else None))
-        self._init_references(encoder_scale)
-
-    # one-time joint references: pseudo-measurements of a joint's geometric angle
-    def _init_references(self, encoder_scale: bool) -> None:
-        m, d = self.model, self.data
-        arm = m.arm
-        self.refs = tuple(d.joint_references)
-        self.ref_cols = np.zeros(0, int)
-        if not self.refs:
-            return
-        if not arm.link_accelerometers:
-            raise ValueError("a joint reference needs the arm's link accelerometers")
-        for r in self.refs:
-            if r.joint not in arm.joint_names:
-                raise ValueError(f"joint reference: no joint {r.joint[:20]!r} on this arm")
-        self._ref_j = np.array([arm.joint_names.index(r.joint) for r in self.refs])
-        self._ref_angle = np.array([r.angle_rad for r in self.refs], float)
-        self._ref_sigma = np.array([r.sigma_rad for r in self.refs], float)
-        self._ref_enc = np.array([np.asarray(r.encoder_rad, float) for r in self.refs])
-        # the stance each reference stands in (its nearest point's), for the base attitude
-        # its sag and play see
-        t_pts = d.state.t_s.reshape(d.n, d.nodes).mean(1)
-        near = np.array([int(np.argmin(np.abs(t_pts - 0.5 * (r.t_start_s + r.t_end_s)))) for r in self.refs])
-        self._ref_point = near
-        self._ref_stance = np.zeros(len(near), int) if d.stance is None else d.stance[near]
-        # what moves a joint's geometric angle at a still instant: the joint stage (offsets,
-        # sag, play), the encoder scales, the base attitude (sag follows the tilt)
-        cols: list[int] = []
-        for e in m.effects:
-            if isinstance(e, JointEffect) or (encoder_scale and e.name == "encoder_scale"):
-                sl = m.index[e.block_name]
-                cols += range(sl.start, sl.stop)
-        cols += range(m.size, self.size)
-        self.ref_cols = np.array(sorted(cols), int)
-        self._ref_stream = arm.link_accelerometers[0].name
+        self.refs = tuple(data.joint_references)
+        self._references = ReferenceRows.of(model, data, self.size, encoder_scale)
 
     def reference_angles(self, z: np.ndarray) -> np.ndarray:
         """Each reference's joint's geometric angle at the reference, as the fit at ``z`` has it."""
-        q = self.data.q_ref_rad + self._ref_enc
-        st = self._scaled_joints(MotionState.static(q), z)
+        ref = self._references
+        st = self._scaled_joints(MotionState.static(self.data.q_ref_rad + ref.encoder_rad), z)
         if self.attitude:
-            a = z[self.P:].reshape(-1, 3)[self._ref_stance]
+            a = z[self.P:].reshape(-1, 3)[ref.stance]
             st = st.replace(R_WB=R_from_rpy(a[:, 0], a[:, 1], a[:, 2]))
         else:
-            st = st.replace(R_WB=np.asarray(self._R0)[self._ref_point * self.data.nodes])
-        ctx = self.model.context(st, z[: self.P], (self._ref_stream,))
-        return np.asarray(ctx.q_geom, float)[np.arange(len(self.refs)), self._ref_j]
+            st = st.replace(R_WB=np.asarray(self._R0)[ref.point * self.data.nodes])
+        ctx = self.model.context(st, z[: self.P], (ref.stream,))
+        return np.asarray(ctx.q_geom, float)[np.arange(len(self.refs)), ref.joint]
 
     def reference_residual(self, z: np.ndarray) -> np.ndarray:
+        """The references' weighted residuals at ``z`` (none without references)."""
         if not self.refs:
             return np.zeros(0)
-        dq = wrap_angle(self.reference_angles(z) - self._ref_angle)
-        return dq / self._ref_sigma
+        return self._references.residual(self.reference_angles(z))
 
     def reference_rows(self, z: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The references' weighted residuals and their Jacobian over columns ``cols`` (forward
@@ -146,7 +129,7 @@ class FitProblem:
         J = np.zeros((len(r), len(cols)))
         if not len(r):
             return r, J
-        moving = set(self.ref_cols.tolist())
+        moving = set(self._references.cols.tolist())
         for i, c in enumerate(cols):
             if int(c) in moving:
                 h = 1e-3 * self.sigma0[c]
@@ -156,16 +139,7 @@ class FitProblem:
         return r, J
 
     def _scaled_joints(self, st: MotionState, z: np.ndarray) -> MotionState:
-        if not self.enc_scale:
-            return st
-        f = np.ones(self.model.arm.n_joints)
-        for c, j, _ in self.enc_scale:
-            f[j] = 1.0 / (1.0 + z[c])
-        if np.all(f == 1.0):
-            return st
-        q_ref = self.data.q_ref_rad
-        return st.replace(q_rad=q_ref + (st.q_rad - q_ref) * f, qd_rad_s=st.qd_rad_s * f,
-                          qdd_rad_s2=st.qdd_rad_s2 * f)
+        return scaled_joints(st, z, self.enc_scale, self.data.q_ref_rad, self.model.arm.n_joints)
 
     def state(self, z: np.ndarray, rows: slice | None = None) -> MotionState:
         return self._state_of(self.data if rows is None else self.data.subset(rows), z)
@@ -218,7 +192,11 @@ class FitProblem:
             w.append(ws.ravel())
         return np.concatenate(meas), np.concatenate(w)
 
-    def _jacobian_rows(self, z, cols, rows, keep, w, meas=None):
+    def _predicted(self, z, cols, rows, keep):
+        """The model's prediction at ``z`` of the points ``rows`` (then ``keep`` of them), per
+        stream and node-averaged, with the block Jacobians that columns ``cols`` need; the
+        state it was evaluated at; and the encoder-scale columns among ``cols`` (column ->
+        its joint and the joint offset block beside it, or None)."""
         m = self.model
         mcols = cols[cols < self.P]
         want = set(b.name for b in m.blocks
@@ -236,24 +214,37 @@ class FitProblem:
             jac = {s: {b: v[keep] for b, v in jac.get(s, {}).items()} for s in self.streams}
         else:
             pred = {s: pred[s] for s in self.streams}
-        y = np.concatenate([pred[s].ravel() for s in self.streams])
-        if meas is None:
-            meas = self.meas
-        r = (y - meas) * w
-        J = np.zeros((len(r), len(cols)))
-        # the model's own columns straight from each stream's block Jacobians, weighted
+        return st, pred, jac, enc_cols
+
+    def _model_columns(self, J, cols, enc_cols, pred, jac, w) -> dict[str, slice]:
+        """Fill ``J``'s columns of the model's own elements straight from each stream's block
+        Jacobians, weighted; returns each stream's rows."""
         at = {int(c): i for i, c in enumerate(cols) if c < self.P and c not in enc_cols}
-        span: dict[str, slice] = {}  # each stream's rows
+        span: dict[str, slice] = {}
         o = 0
         for s in self.streams:
             n_s = pred[s].size
             span[s] = slice(o, o + n_s)
             for b, v in jac.get(s, {}).items():
-                first = m.index[b].start
+                first = self.model.index[b].start
                 src = [jj for jj in range(v.shape[-1]) if first + jj in at]
                 if src:
                     J[span[s], [at[first + jj] for jj in src]] = v.reshape(n_s, -1)[:, src] * w[span[s], None]
             o += n_s
+        return span
+
+    def _jacobian_rows(self, z, cols, rows, keep, w, meas=None):
+        """Weighted residuals of the points ``rows`` (then ``keep`` of them) and their Jacobian
+        over columns ``cols``: the model's own columns analytic (:meth:`_model_columns`), an
+        encoder scale's from its joint offset's column where the model has one, the rest
+        (the base attitude, an encoder scale alone) forward differences."""
+        st, pred, jac, enc_cols = self._predicted(z, cols, rows, keep)
+        y = np.concatenate([pred[s].ravel() for s in self.streams])
+        if meas is None:
+            meas = self.meas
+        r = (y - meas) * w
+        J = np.zeros((len(r), len(cols)))
+        span = self._model_columns(J, cols, enc_cols, pred, jac, w)
 
         def offset_column(block: str) -> np.ndarray:  # a joint offset's column, unweighted
             col = np.zeros(len(r))

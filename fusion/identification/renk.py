@@ -19,14 +19,16 @@ gradients), weighted by each axis's noise; σ from the Jacobian. The start is li
 the article's "every axis along î, S = 1, δ = 2.5 V": for each of 64 trial field
 directions the model is linear in ``(m S_k P_k, δ_k)``, the best one starts the fit.
 Where the field points along the base's k̂ (φ = ±90°), ψ does not change the prediction:
-the identifiability analysis of :mod:`armfusion.fusion.identification.identifiability` says so and the fit reports ψ as
-undefined (the article's Table 3 and 7 notice the same: ψ spread by 100°, σ 88.8°).
+the identifiability analysis of :mod:`armfusion.fusion.identification.identifiability` says so
+and the fit reports ψ as undefined (the article's Table 3 and 7 notice the same: ψ spread by
+100°, σ 88.8°).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from armfusion.fusion.identification.identifiability import analyse_identifiability
@@ -173,7 +175,34 @@ def _axis_fun(R, V, w, magnitude):
     return res_jac
 
 
-def _linear_start(R, V, magnitude, dirs):
+class _Start(NamedTuple):
+    """A fit's start: β, γ [rad], S, δ [V] per axis, ``(3,)`` each, and the one field
+    direction φ, ψ [rad]."""
+
+    beta: np.ndarray
+    gamma: np.ndarray
+    S: np.ndarray
+    delta: np.ndarray
+    phi: float
+    psi: float
+
+
+class _Solved(NamedTuple):
+    """A least-squares fit's values and σ [per :class:`TriaxParams` field, 3 values each; σ NaN
+    where undefined], the elements the identifiability analysis calls undefined, and the
+    function evaluations it took."""
+
+    values: dict[str, np.ndarray]
+    sigma: dict[str, np.ndarray]
+    undefined: list[str]
+    nfev: int
+
+
+AXIS_PARAMS = ("beta", "gamma", "S", "delta", "phi", "psi")
+"""One axis's parameters, in the order of its Jacobian's columns (:func:`_axis_fun`)."""
+
+
+def _linear_start(R, V, magnitude, dirs) -> _Start:
     """For each trial direction, the linear fit of every axis; the best direction's values."""
     best = None
     for gd in dirs:
@@ -191,7 +220,7 @@ def _linear_start(R, V, magnitude, dirs):
     gamma = np.arctan2(P[:, 1], P[:, 0])
     phi = -np.arcsin(np.clip(gd[2], -1, 1))
     psi = np.arctan2(gd[1], gd[0])
-    return beta, gamma, S, sol[3], phi, psi
+    return _Start(beta, gamma, S, sol[3], phi, psi)
 
 
 def _sphere(n: int = 64) -> np.ndarray:
@@ -212,9 +241,86 @@ def _psi_identifiable(J, x, names) -> list[str]:
     return [h.element for h in holds]
 
 
+def _fit_separate(R: np.ndarray, V: np.ndarray, w: np.ndarray, magnitude: float, start: _Start) -> _Solved:
+    """Eq. 14, 20: each axis alone, with its own field direction (six parameters each)."""
+    out = {k: np.zeros(3) for k in AXIS_PARAMS}
+    sig = {k: np.zeros(3) for k in out}
+    undefined: list[str] = []
+    nfev = 0
+    for k in range(3):
+        f = _axis_fun(R, V[:, k], w[k], magnitude)
+        x0 = np.array([start.beta[k], start.gamma[k], start.S[k], start.delta[k], start.phi, start.psi])
+        sol = least_squares(f, x0, jac=lambda x, f=f: f(x, True)[1], method="lm",
+                            xtol=1e-12, ftol=1e-12)
+        nfev += sol.nfev
+        x = sol.x
+        r, J = f(x, True)
+        C = np.linalg.pinv(J.T @ J)
+        names = [f"{n}{k + 1}" for n in AXIS_PARAMS]
+        held = _psi_identifiable(J, x, names)
+        undefined += held
+        for i, key in enumerate(AXIS_PARAMS):
+            out[key][k] = x[i]
+            sig[key][k] = np.nan if names[i] in held else np.sqrt(C[i, i])
+    return _Solved(out, sig, undefined, nfev)
+
+
+def _fit_simultaneous(R: np.ndarray, V: np.ndarray, w: np.ndarray, magnitude: float,
+                      start: _Start) -> _Solved:
+    """Eq. 15, 21: the three axes with one field direction (14 parameters: β, γ, S, δ of
+    each axis, then φ, ψ)."""
+    fs = [_axis_fun(R, V[:, k], w[k], magnitude) for k in range(3)]
+    N = len(V)
+
+    def unpack(x):
+        return [np.array([x[4 * k], x[4 * k + 1], x[4 * k + 2], x[4 * k + 3], x[12], x[13]])
+                for k in range(3)]
+
+    def fun(x):
+        return np.concatenate([fs[k](xk) for k, xk in enumerate(unpack(x))])
+
+    def jac(x):
+        J = np.zeros((3 * N, 14))
+        for k, xk in enumerate(unpack(x)):
+            _, Jk = fs[k](xk, True)
+            J[k * N:(k + 1) * N, 4 * k:4 * k + 4] = Jk[:, :4]
+            J[k * N:(k + 1) * N, 12:14] = Jk[:, 4:6]
+        return J
+
+    x0 = np.concatenate([np.stack([start.beta, start.gamma, start.S, start.delta], 1).ravel(),
+                         [start.phi, start.psi]])
+    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-12, ftol=1e-12)
+    x = sol.x
+    J = jac(x)
+    C = np.linalg.pinv(J.T @ J)
+    names = [f"{n}{k + 1}" for k in range(3) for n in AXIS_PARAMS[:4]] + ["phi", "psi"]
+    held = _psi_identifiable(J, x, names)
+    out = {k: np.zeros(3) for k in AXIS_PARAMS}
+    sig = {k: np.zeros(3) for k in out}
+    for k in range(3):
+        for i, key in enumerate(AXIS_PARAMS[:4]):
+            j = 4 * k + i
+            out[key][k] = x[j]
+            sig[key][k] = np.nan if names[j] in held else np.sqrt(C[j, j])
+    for key, j in (("phi", 12), ("psi", 13)):
+        out[key][:] = x[j]
+        sig[key][:] = np.nan if names[j] in held else np.sqrt(C[j, j])
+    return _Solved(out, sig, list(held), sol.nfev)
+
+
+def _undefined_messages(undefined: list[str], phi_deg: float) -> tuple[str, ...]:
+    """One sentence per element the fit reports as undefined."""
+    return tuple(f"{u}: undefined: the field points along the base's k̂ axis (φ = {phi_deg:.2f}°), "
+                 "so a turn ψ about k̂ does not change it; reported, not estimated" if u.startswith("psi")
+                 else f"{u}: the data cannot tell it" for u in undefined)
+
+
 def fit_triax(R_0E: np.ndarray, V: np.ndarray, mode: str = "simultaneous", noise_v=ACCEL_NOISE_V,
               magnitude: float = GRAVITY_ARTICLE_MPS2) -> TriaxFit:
-    """Fit the article's model to voltages ``V (N, 3)`` at end-effector rotations ``R_0E``."""
+    """Fit the article's model to voltages ``V (N, 3)`` at end-effector rotations ``R_0E``:
+    ``separate`` (:func:`_fit_separate`) or ``simultaneous`` (:func:`_fit_simultaneous`),
+    both from the linear start (:func:`_linear_start`), the result in its canonical form
+    (:func:`_canonical`)."""
     if mode not in ("separate", "simultaneous"):
         raise ValueError(f"mode must be 'separate' or 'simultaneous', not {mode!r}")
     t0 = time.perf_counter()
@@ -223,72 +329,15 @@ def fit_triax(R_0E: np.ndarray, V: np.ndarray, mode: str = "simultaneous", noise
     noise = np.broadcast_to(np.asarray(noise_v, float), (3,))
     w = 1.0 / noise
     sub = slice(None, None, max(1, len(V) // 7000))  # the start needs no more than ~7,000 points
-    b0, g0, S0, d0, ph0, ps0 = _linear_start(R[sub], V[sub], magnitude, _sphere())
-    out = {k: np.zeros(3) for k in ("beta", "gamma", "S", "delta", "phi", "psi")}
-    sig = {k: np.zeros(3) for k in out}
-    undefined: list[str] = []
-    nfev = 0
-    if mode == "separate":
-        for k in range(3):
-            f = _axis_fun(R, V[:, k], w[k], magnitude)
-            x0 = np.array([b0[k], g0[k], S0[k], d0[k], ph0, ps0])
-            sol = least_squares(f, x0, jac=lambda x, f=f: f(x, True)[1], method="lm",
-                                xtol=1e-12, ftol=1e-12)
-            nfev += sol.nfev
-            x = sol.x
-            r, J = f(x, True)
-            C = np.linalg.pinv(J.T @ J)
-            names = [f"{n}{k + 1}" for n in ("beta", "gamma", "S", "delta", "phi", "psi")]
-            held = _psi_identifiable(J, x, names)
-            undefined += held
-            for i, key in enumerate(("beta", "gamma", "S", "delta", "phi", "psi")):
-                out[key][k] = x[i]
-                sig[key][k] = np.nan if names[i] in held else np.sqrt(C[i, i])
-    else:
-        fs = [_axis_fun(R, V[:, k], w[k], magnitude) for k in range(3)]
-        N = len(V)
-
-        def unpack(x):
-            return [np.array([x[4 * k], x[4 * k + 1], x[4 * k + 2], x[4 * k + 3], x[12], x[13]])
-                    for k in range(3)]
-
-        def fun(x):
-            return np.concatenate([fs[k](xk) for k, xk in enumerate(unpack(x))])
-
-        def jac(x):
-            J = np.zeros((3 * N, 14))
-            for k, xk in enumerate(unpack(x)):
-                _, Jk = fs[k](xk, True)
-                J[k * N:(k + 1) * N, 4 * k:4 * k + 4] = Jk[:, :4]
-                J[k * N:(k + 1) * N, 12:14] = Jk[:, 4:6]
-            return J
-
-        x0 = np.concatenate([np.stack([b0, g0, S0, d0], 1).ravel(), [ph0, ps0]])
-        sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-12, ftol=1e-12)
-        nfev = sol.nfev
-        x = sol.x
-        J = jac(x)
-        C = np.linalg.pinv(J.T @ J)
-        names = [f"{n}{k + 1}" for k in range(3) for n in ("beta", "gamma", "S", "delta")] + ["phi", "psi"]
-        held = _psi_identifiable(J, x, names)
-        undefined += held
-        for k in range(3):
-            for i, key in enumerate(("beta", "gamma", "S", "delta")):
-                j = 4 * k + i
-                out[key][k] = x[j]
-                sig[key][k] = np.nan if names[j] in held else np.sqrt(C[j, j])
-        for key, j in (("phi", 12), ("psi", 13)):
-            out[key][:] = x[j]
-            sig[key][:] = np.nan if names[j] in held else np.sqrt(C[j, j])
-    p = _canonical(TriaxParams(**out))
+    start = _linear_start(R[sub], V[sub], magnitude, _sphere())
+    fit = _fit_separate if mode == "separate" else _fit_simultaneous
+    solved = fit(R, V, w, magnitude, start)
+    p = _canonical(TriaxParams(**solved.values))
     resid = predict_voltages(R, p, magnitude) - V
     rms = np.sqrt(np.mean(resid**2, 0))
-    phi_deg = np.degrees(p.phi[0])
-    msgs = tuple(f"{u}: undefined: the field points along the base's k̂ axis (φ = {phi_deg:.2f}°), "
-                 "so a turn ψ about k̂ does not change it; reported, not estimated" if u.startswith("psi")
-                 else f"{u}: the data cannot tell it" for u in undefined)
-    return TriaxFit(mode, p, TriaxParams(**sig), rms, float(np.sqrt(np.mean(resid**2))), len(V),
-                    time.perf_counter() - t0, int(nfev), tuple(undefined), msgs)
+    msgs = _undefined_messages(solved.undefined, np.degrees(p.phi[0]))
+    return TriaxFit(mode, p, TriaxParams(**solved.sigma), rms, float(np.sqrt(np.mean(resid**2))), len(V),
+                    time.perf_counter() - t0, int(solved.nfev), tuple(solved.undefined), msgs)
 
 
 def _canonical(p: TriaxParams) -> TriaxParams:

@@ -8,6 +8,8 @@ at its weights would give.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from armfusion.fusion.identification.problem import CHUNK_POINTS, FitProblem
@@ -76,6 +78,109 @@ def solve(pb: FitProblem, coarse: FitProblem | None, z0: np.ndarray, fcols: np.n
     return z, converged, n_coarse
 
 
+class _Linearisation(NamedTuple):
+    """A solve's problem linearised at one estimate: the normal equations over the free
+    elements with the priors in (``H``, gradient ``g``), the cost there (half the χ²), each
+    element's scale ``√H_ii`` (for the damping), each element's σ at these normal equations,
+    and, on a problem of one chunk of points, the residuals and their Jacobian (else None)."""
+
+    H: np.ndarray
+    g: np.ndarray
+    cost: float
+    scale: np.ndarray
+    sigma: np.ndarray
+    r: np.ndarray | None
+    J: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class _FreeElements:
+    """What stays fixed through one solve: the problem, its free elements ``cols`` with their
+    prior (mean, σ) and bounds, the streams' weights, and whether each step gets its geodesic
+    acceleration (a problem of one chunk of points, whose Jacobian is kept)."""
+
+    pb: FitProblem
+    cols: np.ndarray
+    w_stream: dict[str, float]
+    mean: np.ndarray
+    sigma: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    accelerate: bool
+
+    @classmethod
+    def of(cls, pb: FitProblem, fcols: np.ndarray, w_stream: dict[str, float]) -> _FreeElements:
+        return cls(pb, fcols, w_stream, pb.x0[fcols], pb.sigma0[fcols], pb.lower[fcols], pb.upper[fcols],
+                   pb.data.n <= CHUNK_POINTS)
+
+    def at(self, z: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """A copy of the estimate ``z`` with its free elements ``x``, projected onto the bounds."""
+        out = z.copy()
+        out[self.cols] = np.clip(x, self.lower, self.upper)
+        return out
+
+    def residual(self, z: np.ndarray) -> np.ndarray:
+        return self.pb.residual_rows(z, self.w_stream)
+
+    def cost(self, z: np.ndarray) -> float:
+        """Half the χ² at ``z``: the weighted residuals' and the priors'."""
+        r = self.residual(z)
+        p = (z[self.cols] - self.mean) / self.sigma
+        return 0.5 * float(r @ r + p @ p)
+
+    def linearise(self, z: np.ndarray) -> _Linearisation:
+        """The normal equations at ``z`` (accumulated chunk by chunk), the priors added as
+        pseudo-measurements."""
+        rows: list = []
+        H, g, rr = self.pb.normal_equations(z, self.cols, self.w_stream,
+                                            rows_out=rows if self.accelerate else None)
+        r0 = J = None
+        if self.accelerate:
+            r0 = np.concatenate([r for r, _ in rows])
+            J = np.concatenate([j for _, j in rows])
+        x, sd = z[self.cols], self.sigma
+        H = H + np.diag(1.0 / sd**2)
+        g = g + (x - self.mean) / sd**2
+        cost = 0.5 * (rr + float(np.sum(((x - self.mean) / sd) ** 2)))
+        scale = np.sqrt(np.clip(np.diag(H), 1e-300, None))
+        # each element's σ at these normal equations (in prior units H is well scaled)
+        try:
+            sigma = np.sqrt(np.clip(np.diag(np.linalg.inv(H * np.outer(sd, sd))), 0, None)) * sd
+        except np.linalg.LinAlgError:
+            sigma = sd
+        return _Linearisation(H, g, cost, scale, sigma, r0, J)
+
+    def trial(self, z: np.ndarray, at: _Linearisation, lam: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """The damped step ``v`` from ``z`` (an element at a bound whose gradient pushes it out
+        held) and the point it tries: ``z + v``, or, accelerated, ``z + v + a/2``; None when
+        the acceleration bends the step too much for its length."""
+        x, d = z[self.cols], at.scale
+        stuck = ((x <= self.lower) & (at.g > 0)) | ((x >= self.upper) & (at.g < 0))
+        move = ~stuck
+        Hm = at.H[np.ix_(move, move)] / np.outer(d[move], d[move])
+        Hm[np.diag_indices_from(Hm)] += lam
+        v = _damped_step(Hm, at.g, move, d)
+        if not self.accelerate:
+            return v, self.at(z, x + v)
+        zh = self.at(z, x + ACCELERATION_H * v)
+        vh = (zh[self.cols] - x) / ACCELERATION_H
+        rvv = 2.0 / ACCELERATION_H * ((self.residual(zh) - at.r) / ACCELERATION_H - at.J @ vh)
+        a = _damped_step(Hm, at.J.T @ rvv, move, d)
+        if 2.0 * np.linalg.norm(a * d) <= ACCELERATION_MAX * np.linalg.norm(v * d):
+            return v, self.at(z, x + (v + 0.5 * a))
+        return v, None  # the step bends too much for its length: shorten it
+
+    def damping_after(self, lam: float, z: np.ndarray, at: _Linearisation, v: np.ndarray,
+                      cost_new: float) -> float:
+        """The damping after a step that lowered the cost to ``cost_new`` (Nielsen's rule on
+        the gain ratio ρ of the plain step ``v``)."""
+        x = z[self.cols]
+        vs = np.clip(x + v, self.lower, self.upper) - x
+        predicted = -float(at.g @ vs + 0.5 * vs @ at.H @ vs)
+        rho = (at.cost - cost_new) / predicted if predicted > 0 else 0.0
+        return max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-12)
+
+
 def levenberg_marquardt(pb: FitProblem, z0: np.ndarray, fcols: np.ndarray, w_stream: dict[str, float],
                         max_jac: int, progress: Callable[[int, float], None], lam: float = LAMBDA0
                         ) -> tuple[np.ndarray, bool, int, float]:
@@ -97,68 +202,22 @@ def levenberg_marquardt(pb: FitProblem, z0: np.ndarray, fcols: np.ndarray, w_str
     Returns the estimate, whether it converged (the last step moved every element by less
     than :data:`STEP_TOL_SIGMA` of its σ, or lowered the cost by less than :data:`COST_TOL`), the
     Jacobians it took and the last damping λ (``lam``: the first)."""
-    mu, sd = pb.x0[fcols], pb.sigma0[fcols]
-    lo, hi = pb.lower[fcols], pb.upper[fcols]
-    accelerate = pb.data.n <= CHUNK_POINTS
-
-    def residual(z):
-        return pb.residual_rows(z, w_stream)
-
-    def cost_of(r, z):
-        p = (z[fcols] - mu) / sd
-        return 0.5 * float(r @ r + p @ p)
-
+    fit = _FreeElements.of(pb, fcols, w_stream)
     z = np.array(z0, float)
-    z[fcols] = np.clip(z[fcols], lo, hi)
+    z = fit.at(z, z[fcols])
     nu = 2.0
     for k in range(max(1, max_jac)):
-        rows: list = []
-        H, g, rr = pb.normal_equations(z, fcols, w_stream, rows_out=rows if accelerate else None)
-        if accelerate:
-            r0 = np.concatenate([r for r, _ in rows])
-            J = np.concatenate([j for _, j in rows])
-        x = z[fcols]
-        H = H + np.diag(1.0 / sd**2)
-        g = g + (x - mu) / sd**2
-        c = 0.5 * (rr + float(np.sum(((x - mu) / sd) ** 2)))
-        progress(k + 1, c)
-        d = np.sqrt(np.clip(np.diag(H), 1e-300, None))
-        # each element's σ at these normal equations (in prior units H is well scaled)
-        try:
-            sig = np.sqrt(np.clip(np.diag(np.linalg.inv(H * np.outer(sd, sd))), 0, None)) * sd
-        except np.linalg.LinAlgError:
-            sig = sd
+        at = fit.linearise(z)
+        progress(k + 1, at.cost)
         while True:
-            stuck = ((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0))
-            move = ~stuck
-            Hm = H[np.ix_(move, move)] / np.outer(d[move], d[move])
-            Hm[np.diag_indices_from(Hm)] += lam
-            v = _damped_step(Hm, g, move, d)
-            dx = v
-            if accelerate:
-                zh = z.copy()
-                zh[fcols] = np.clip(x + ACCELERATION_H * v, lo, hi)
-                vh = (zh[fcols] - x) / ACCELERATION_H
-                rvv = 2.0 / ACCELERATION_H * ((residual(zh) - r0) / ACCELERATION_H - J @ vh)
-                a = _damped_step(Hm, J.T @ rvv, move, d)
-                if 2.0 * np.linalg.norm(a * d) <= ACCELERATION_MAX * np.linalg.norm(v * d):
-                    dx = v + 0.5 * a
-                else:
-                    dx = None  # the step bends too much for its length: shorten it
-            cn = np.inf
-            if dx is not None:
-                zn = z.copy()
-                zn[fcols] = np.clip(x + dx, lo, hi)
-                cn = cost_of(residual(zn), zn)
-            if cn <= c:
-                vs = np.clip(x + v, lo, hi) - x
-                predicted = -float(g @ vs + 0.5 * vs @ H @ vs)
-                rho = (c - cn) / predicted if predicted > 0 else 0.0
-                lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-12)
+            v, zn = fit.trial(z, at, lam)
+            cn = fit.cost(zn) if zn is not None else np.inf
+            if cn <= at.cost:
+                lam = fit.damping_after(lam, z, at, v, cn)
                 nu = 2.0
-                step = zn[fcols] - x
+                step = zn[fcols] - z[fcols]
                 z = zn
-                if c - cn <= COST_TOL or np.all(np.abs(step) <= STEP_TOL_SIGMA * sig):
+                if at.cost - cn <= COST_TOL or np.all(np.abs(step) <= STEP_TOL_SIGMA * at.sigma):
                     return z, True, k + 1, lam
                 break
             lam *= nu

@@ -14,12 +14,13 @@ topic's rate and gaps are reported as ``armfusion inspect`` reports a stream's.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
-from armfusion.fusion.importing.column_map import ColumnMap
-from armfusion.fusion.importing.run import ImportResult, refuse_what_no_sensor_said, stream_of
-from armfusion.fusion.importing.stamps import FIRST_ROWS, copies_dropped, increasing_rows
-from armfusion.fusion.importing.to_stream import ImportMapError, check_map_against
+from armfusion.fusion.importing.column_map import ColumnMap, StreamSource
+from armfusion.fusion.importing.run import ImportResult, Origin, refuse_what_no_sensor_said, stream_of
+from armfusion.fusion.importing.stamps import FIRST_ROWS, StampReport, copies_dropped, increasing_rows
+from armfusion.fusion.importing.to_stream import ImportMapError, Target, check_map_against
 from armfusion.fusion.importing.to_stream import targets as targets_of
 from armfusion.models.arm import ArmModel
 from armfusion.sensors.foreign.rosbag import BagTopic, bag_format, read_topics
@@ -55,23 +56,22 @@ def _topic_report(topic: BagTopic, stamp: str, t_s: np.ndarray) -> dict:
             "longest_gap_s": longest}
 
 
-def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> ImportResult:
-    """Turn the bag ``src`` into ``arm``'s recording by ``cmap`` (a bag's map: topics and
-    fields; see the module's docstring). Raises :class:`~armfusion.fusion.importing.to_stream.ImportMapError`
-    or :class:`~armfusion.sensors.foreign.ForeignFileError` (both ``ValueError``) naming the stream, the
-    topic, the message's index and the unit."""
-    path = Path(src)
-    if not cmap.is_bag:
-        raise ImportMapError(f"{path} is a ROS bag, but column map {cmap.source} names columns: a bag's "
-                             "map names topics and fields, with time: {stamp: header|receive}")
-    targets = check_map_against(cmap, arm, config)
-    topics = read_topics(path, cmap.topics())
-    changes: list[str] = []
-    dropped = copies = 0
-    streams: dict[str, Stream] = {}
-    stream_rows: dict[str, np.ndarray] = {}  # each sample's message index on its topic
-    stream_summary: dict[str, dict] = {}
-    reports: dict[str, dict] = {}
+class _TopicStream(NamedTuple):
+    """One stream read from its topic: the stream and its summary, each sample's message index
+    on the topic, the kept messages' times (s), and the messages dropped for their stamp (of
+    which ``copies`` repeated the message before them)."""
+
+    stream: Stream
+    summary: dict
+    rows: np.ndarray
+    t_s: np.ndarray
+    dropped: int
+    copies: int
+
+
+def _refuse_unmatched_topics(cmap: ColumnMap, topics: dict[str, BagTopic], path: Path) -> None:
+    """Refuse, in one message naming every one, a stream whose topic has no header stamp the
+    map would stamp it with, or whose messages carry another frame id than the map's."""
     problems = []
     for name, src in cmap.streams.items():
         topic = topics[src.topic]
@@ -84,43 +84,76 @@ def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> 
             problems.append(why)
     if problems:
         raise ImportMapError(f"{path}: " + "; ".join(problems))
-    for name, src in cmap.streams.items():
-        topic = topics[src.topic]
-        stamp = src.stamp or cmap.stamp
-        t_all = seconds(topic.stamp_ns if stamp == "header" else topic.receive_ns)
-        keep, report = increasing_rows(t_all, first_row=0)
-        dropped += report.not_increasing + report.no_time
-        copies += copies_dropped(keep, [t_all] + [topic.fields[f] for f in src.columns])
-        if report.not_increasing:
-            back = (f", the largest step back {report.largest_step_back_s * 1e3:.3f} ms"
-                    if report.largest_step_back_s > 0 else " (each a repeat of the one before)")
-            first = ", ".join(f"{r} (t = {t:.6f} s)" for r, t in zip(report.not_increasing_rows,
-                                                                      report.not_increasing_t_s, strict=True))
-            more = " …" if report.not_increasing > FIRST_ROWS else ""
-            changes.append(f"{name}: dropped {report.not_increasing} message(s) of {src.topic} whose {stamp} "
-                           f"stamp is not after every earlier one{back}: messages {first}{more} (from 0)")
-        values = np.stack([topic.fields[f] for f in src.columns], axis=1)[keep]
-        streams[name], stream_summary[name] = stream_of(
-            name, t_all[keep], values, np.flatnonzero(keep), "message", src, targets[name],
-            f"{path}: topic {src.topic}", changes)
-        stream_rows[name] = np.flatnonzero(keep)[~np.isnan(values).any(axis=1)]
-        stream_summary[name]["topic"] = src.topic
-        if src.topic not in reports:
-            reports[src.topic] = _topic_report(topic, stamp, t_all[keep])
-    all_names = targets_of(arm)
-    not_mapped = [k for k, tg in all_names.items() if k not in cmap.streams and k not in cmap.absent
-                  and not tg.needed]
+
+
+def _stamps_dropped_words(name: str, topic_name: str, stamp: str, report: StampReport) -> str:
+    """The sentence for a stream's messages dropped because their stamp is not after every
+    earlier one."""
+    back = (f", the largest step back {report.largest_step_back_s * 1e3:.3f} ms"
+            if report.largest_step_back_s > 0 else " (each a repeat of the one before)")
+    first = ", ".join(f"{r} (t = {t:.6f} s)" for r, t in zip(report.not_increasing_rows,
+                                                              report.not_increasing_t_s, strict=True))
+    more = " …" if report.not_increasing > FIRST_ROWS else ""
+    return (f"{name}: dropped {report.not_increasing} message(s) of {topic_name} whose {stamp} "
+            f"stamp is not after every earlier one{back}: messages {first}{more} (from 0)")
+
+
+def _stream_from_topic(name: str, src: StreamSource, topic: BagTopic, stamp: str, target: Target,
+                       path: Path, changes: list[str]) -> _TopicStream:
+    """Stream ``name`` from the fields of its topic, stamped by ``stamp`` (``header`` or
+    ``receive``): the messages whose stamp is not after every earlier one dropped and said in
+    ``changes``, then gaps and units as for a table (:func:`~armfusion.fusion.importing.run.stream_of`)."""
+    t_all = seconds(topic.stamp_ns if stamp == "header" else topic.receive_ns)
+    keep, report = increasing_rows(t_all, first_row=0)
+    copies = copies_dropped(keep, [t_all] + [topic.fields[f] for f in src.columns])
+    if report.not_increasing:
+        changes.append(_stamps_dropped_words(name, src.topic, stamp, report))
+    values = np.stack([topic.fields[f] for f in src.columns], axis=1)[keep]
+    messages = np.flatnonzero(keep)
+    origin = Origin(messages, "message", f"{path}: topic {src.topic}")
+    stream, summary = stream_of(name, t_all[keep], values, origin, src, target, changes)
+    summary["topic"] = src.topic
+    return _TopicStream(stream, summary, messages[~np.isnan(values).any(axis=1)], t_all[keep],
+                        report.not_increasing + report.no_time, copies)
+
+
+def import_bag(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: str) -> ImportResult:
+    """Turn the bag ``src`` into ``arm``'s recording by ``cmap`` (a bag's map: topics and
+    fields; see the module's docstring). Raises :class:`~armfusion.fusion.importing.to_stream.ImportMapError`
+    or :class:`~armfusion.sensors.foreign.ForeignFileError` (both ``ValueError``) naming the stream, the
+    topic, the message's index and the unit."""
+    path = Path(src)
+    if not cmap.is_bag:
+        raise ImportMapError(f"{path} is a ROS bag, but column map {cmap.source} names columns: a bag's "
+                             "map names topics and fields, with time: {stamp: header|receive}")
+    targets = check_map_against(cmap, arm, config)
+    topics = read_topics(path, cmap.topics())
+    _refuse_unmatched_topics(cmap, topics, path)
+    changes: list[str] = []
+    read: dict[str, _TopicStream] = {}
+    reports: dict[str, dict] = {}
+    for name, source in cmap.streams.items():
+        stamp = source.stamp or cmap.stamp
+        read[name] = _stream_from_topic(name, source, topics[source.topic], stamp, targets[name], path,
+                                        changes)
+        if source.topic not in reports:
+            reports[source.topic] = _topic_report(topics[source.topic], stamp, read[name].t_s)
+    streams = {name: r.stream for name, r in read.items()}
     rec = Recording(streams, meta={"source": str(path), "arm_config": config})
-    refuse_what_no_sensor_said(rec, arm, cmap, stream_rows, path, row_word="message")
+    refuse_what_no_sensor_said(rec, arm, cmap, {name: r.rows for name, r in read.items()}, path,
+                               row_word="message")
+    dropped = sum(r.dropped for r in read.values())
+    copies = sum(r.copies for r in read.values())
     ts = [s.t_s for s in streams.values() if len(s)]
     summary = {
         "source": str(path), "format": bag_format(path), "map": cmap.source, "config": config,
         "time": {"stamp": cmap.stamp, "t_start_s": float(min(t[0] for t in ts)) if ts else None,
                  "t_end_s": float(max(t[-1] for t in ts)) if ts else None},
         "topics": reports,
-        "streams": stream_summary,
+        "streams": {name: r.summary for name, r in read.items()},
         "absent": dict(cmap.absent),
-        "not_mapped": not_mapped,
+        "not_mapped": [k for k, tg in targets_of(arm).items()
+                       if k not in cmap.streams and k not in cmap.absent and not tg.needed],
         "changes": changes,
         "dropped": {"messages": dropped, "copies": copies, "lost": dropped - copies},
     }

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from armfusion.fusion.configfile import read_yaml
 from armfusion.fusion.shipped import shipped_config_dir
@@ -172,106 +172,145 @@ def _variable(value: Any) -> str | None:
     return None
 
 
+class _MapTime(NamedTuple):
+    """A map's ``time``: a column and its unit, a rate (a number or a file's variable), or a
+    bag's stamp (``header`` or ``receive``); the fields the map does not give are None."""
+
+    column: str | None = None
+    unit: str = "s"
+    rate_hz: float | None = None
+    rate_variable: str | None = None
+    stamp: str | None = None
+
+
+def _map_time(time: Any, problems: list[str]) -> _MapTime:
+    """The map's ``time`` entry, checked (a problem appended, defaults returned, when it is wrong)."""
+    if not isinstance(time, dict) or not ({"column", "unit"} == set(time) or set(time) == {"rate_hz"}
+                                          or set(time) == {"stamp"}):
+        problems.append("time: give {column: NAME, unit: s|ms|us|ns} or {rate_hz: NUMBER} "
+                        "(or {rate_hz: {variable: NAME}}); for a ROS bag {stamp: header|receive}")
+        return _MapTime()
+    if "stamp" in time:
+        if time["stamp"] in STAMPS:
+            return _MapTime(stamp=time["stamp"])
+        problems.append(f"time.stamp: header or receive (got {clipped_repr(time['stamp'])})")
+        return _MapTime(stamp="header")
+    if "column" in time:
+        column = _address(time["column"], "time.column", problems)
+        unit = _unit(time["unit"], "time.unit", problems) or "s"
+        if quantity_of(unit) != "time":
+            problems.append(f"time.unit: {unit!r} is not a unit of time (s, ms, us, ns)")
+        return _MapTime(column=column, unit=unit)
+    rate_variable = _variable(time["rate_hz"])
+    if rate_variable is not None:
+        return _MapTime(rate_variable=rate_variable)
+    if _positive_number(time["rate_hz"]):
+        return _MapTime(rate_hz=float(time["rate_hz"]))
+    problems.append(f"time.rate_hz: a rate > 0 in Hz, or {{variable: NAME}} "
+                    f"(got {clipped_repr(time['rate_hz'])})")
+    return _MapTime()
+
+
+def _map_start_row(start: Any, problems: list[str]) -> tuple[int | None, str | None]:
+    """The map's ``start_row``: a row number from 1, or the file's variable that holds one."""
+    if start is None:
+        return None, None
+    variable = _variable(start)
+    if variable is not None:
+        return None, variable
+    if isinstance(start, int) and not isinstance(start, bool) and start >= 1:
+        return start, None
+    problems.append(f"start_row: a row number from 1, or {{variable: NAME}} (got {clipped_repr(start)})")
+    return None, None
+
+
+def _stream_source(entry: dict, key: str, bag: bool, problems: list[str]) -> StreamSource | None:
+    """One stream's entry (a table's columns or a bag's topic and fields, its unit and
+    rounding), checked; None when a problem leaves it unusable."""
+    keys = ({"topic", "fields", "unit", "max_rounding_counts", "frame_id", "stamp"} if bag
+            else {"columns", "unit", "max_rounding_counts"})
+    extra = set(entry) - keys
+    if extra:
+        problems.append(f"{key}: unknown key(s) {', '.join(sorted(map(str, extra)))} "
+                        f"(expected {', '.join(sorted(keys))}"
+                        + (")" if bag else "; topic and fields take time: {stamp: header|receive})"))
+    cols = entry.get("fields" if bag else "columns")
+    if (not isinstance(cols, list) or not cols or len(cols) > MAX_COLUMNS):
+        problems.append(f"{key}.{'fields' if bag else 'columns'}: a list of 1 to {MAX_COLUMNS} "
+                        f"{'fields' if bag else 'columns'}")
+        return None
+    if bag:
+        bag_source = _bag_source(entry, key, problems)
+        addresses = [_field(c, f"{key}.fields", problems) for c in cols]
+    else:
+        bag_source = {}
+        addresses = [_address(c, f"{key}.columns", problems) for c in cols]
+    unit = _unit(entry.get("unit"), f"{key}.unit", problems) if "unit" in entry else None
+    if "unit" not in entry:
+        problems.append(f"{key}.unit: missing: say what unit the columns hold (g, deg/s, counts...)")
+    rounding = entry.get("max_rounding_counts", DEFAULT_MAX_ROUNDING_COUNTS)
+    if not (isinstance(rounding, int | float) and not isinstance(rounding, bool)
+            and 0 <= rounding <= 0.5):
+        problems.append(f"{key}.max_rounding_counts: a number of counts from 0 to 0.5 "
+                        f"(got {clipped_repr(rounding)})")
+        rounding = DEFAULT_MAX_ROUNDING_COUNTS
+    if unit is None or None in addresses:
+        return None
+    return StreamSource(tuple(addresses), unit, float(rounding), **bag_source)
+
+
+def _map_streams(raw: Any, bag: bool, problems: list[str]) -> dict[str, StreamSource]:
+    """The map's ``streams``: every stream name -> its source, the ones with a problem left out."""
+    if not isinstance(raw, dict) or not raw:
+        problems.append("streams: a mapping of stream name -> {columns: [...], unit: ...}")
+        return {}
+    if len(raw) > MAX_STREAMS:
+        problems.append(f"streams: {len(raw)} streams; a map takes at most {MAX_STREAMS}")
+        return {}
+    streams: dict[str, StreamSource] = {}
+    for name, entry in raw.items():
+        key = f"streams.{clipped_repr(name)[1:-1] if isinstance(name, str) else clipped_repr(name)}"
+        if not isinstance(name, str) or not isinstance(entry, dict):
+            problems.append(f"{key}: each stream is NAME: {{columns: [...], unit: ...}}")
+            continue
+        source = _stream_source(entry, key, bag, problems)
+        if source is not None:
+            streams[name] = source
+    return streams
+
+
+def _map_absent(absent: Any, streams: dict[str, StreamSource], problems: list[str]) -> dict[str, str]:
+    """The map's ``absent``: stream name -> why the file lacks it (none of them under ``streams``)."""
+    absent = absent or {}
+    if not isinstance(absent, dict) or not all(isinstance(k, str) and isinstance(v, str) and v.strip()
+                                               for k, v in absent.items()):
+        problems.append("absent: a mapping of stream name -> why the file lacks it")
+        return {}
+    for name in absent:
+        if name in streams:
+            problems.append(f"absent.{name}: the map gives this stream under streams too")
+    return dict(absent)
+
+
 def parse_column_map(data: Any, source: str) -> ColumnMap:
-    """A :class:`ColumnMap` from the YAML's data, or :class:`ColumnMapError`."""
+    """A :class:`ColumnMap` from the YAML's data, or :class:`ColumnMapError` listing every
+    problem (in the map's order: its keys, time, start row, streams, absent)."""
     problems: list[str] = []
     if not isinstance(data, dict):
         raise ColumnMapError(source, ["the file should be a mapping with 'time' and 'streams'"])
     for key in data:
         if key not in ("time", "start_row", "streams", "absent"):
             problems.append(f"{clipped_repr(key)}: unknown key (expected time, start_row, streams, absent)")
-    time = data.get("time")
-    time_column = rate_variable = None
-    time_unit, rate_hz, stamp = "s", None, None
-    if not isinstance(time, dict) or not ({"column", "unit"} == set(time) or set(time) == {"rate_hz"}
-                                          or set(time) == {"stamp"}):
-        problems.append("time: give {column: NAME, unit: s|ms|us|ns} or {rate_hz: NUMBER} "
-                        "(or {rate_hz: {variable: NAME}}); for a ROS bag {stamp: header|receive}")
-    elif "stamp" in time:
-        stamp = time["stamp"] if time["stamp"] in STAMPS else None
-        if stamp is None:
-            problems.append(f"time.stamp: header or receive (got {clipped_repr(time['stamp'])})")
-            stamp = "header"
-    elif "column" in time:
-        time_column = _address(time["column"], "time.column", problems)
-        time_unit = _unit(time["unit"], "time.unit", problems) or "s"
-        if quantity_of(time_unit) != "time":
-            problems.append(f"time.unit: {time_unit!r} is not a unit of time (s, ms, us, ns)")
-    else:
-        rate_variable = _variable(time["rate_hz"])
-        if rate_variable is None:
-            if _positive_number(time["rate_hz"]):
-                rate_hz = float(time["rate_hz"])
-            else:
-                problems.append(f"time.rate_hz: a rate > 0 in Hz, or {{variable: NAME}} "
-                                f"(got {clipped_repr(time['rate_hz'])})")
-    start = data.get("start_row")
-    start_row = start_variable = None
-    if start is not None:
-        start_variable = _variable(start)
-        if start_variable is None:
-            if isinstance(start, int) and not isinstance(start, bool) and start >= 1:
-                start_row = start
-            else:
-                problems.append(f"start_row: a row number from 1, or {{variable: NAME}} "
-                                f"(got {clipped_repr(start)})")
-    streams: dict[str, StreamSource] = {}
-    raw = data.get("streams")
-    if not isinstance(raw, dict) or not raw:
-        problems.append("streams: a mapping of stream name -> {columns: [...], unit: ...}")
-        raw = {}
-    if len(raw) > MAX_STREAMS:
-        problems.append(f"streams: {len(raw)} streams; a map takes at most {MAX_STREAMS}")
-        raw = {}
-    for name, entry in raw.items():
-        key = f"streams.{clipped_repr(name)[1:-1] if isinstance(name, str) else clipped_repr(name)}"
-        if not isinstance(name, str) or not isinstance(entry, dict):
-            problems.append(f"{key}: each stream is NAME: {{columns: [...], unit: ...}}")
-            continue
-        bag = stamp is not None
-        keys = ({"topic", "fields", "unit", "max_rounding_counts", "frame_id", "stamp"} if bag
-                else {"columns", "unit", "max_rounding_counts"})
-        extra = set(entry) - keys
-        if extra:
-            problems.append(f"{key}: unknown key(s) {', '.join(sorted(map(str, extra)))} "
-                            f"(expected {', '.join(sorted(keys))}"
-                            + (")" if bag else "; topic and fields take time: {stamp: header|receive})"))
-        cols = entry.get("fields" if bag else "columns")
-        if (not isinstance(cols, list) or not cols or len(cols) > MAX_COLUMNS):
-            problems.append(f"{key}.{'fields' if bag else 'columns'}: a list of 1 to {MAX_COLUMNS} "
-                            f"{'fields' if bag else 'columns'}")
-            continue
-        if bag:
-            bag_source = _bag_source(entry, key, problems)
-            addresses = [_field(c, f"{key}.fields", problems) for c in cols]
-        else:
-            bag_source = {}
-            addresses = [_address(c, f"{key}.columns", problems) for c in cols]
-        unit = _unit(entry.get("unit"), f"{key}.unit", problems) if "unit" in entry else None
-        if "unit" not in entry:
-            problems.append(f"{key}.unit: missing: say what unit the columns hold (g, deg/s, counts...)")
-        rounding = entry.get("max_rounding_counts", DEFAULT_MAX_ROUNDING_COUNTS)
-        if not (isinstance(rounding, int | float) and not isinstance(rounding, bool)
-                and 0 <= rounding <= 0.5):
-            problems.append(f"{key}.max_rounding_counts: a number of counts from 0 to 0.5 "
-                            f"(got {clipped_repr(rounding)})")
-            rounding = DEFAULT_MAX_ROUNDING_COUNTS
-        if unit is not None and None not in addresses:
-            streams[name] = StreamSource(tuple(addresses), unit, float(rounding), **bag_source)
-    absent = data.get("absent") or {}
-    if not isinstance(absent, dict) or not all(isinstance(k, str) and isinstance(v, str) and v.strip()
-                                               for k, v in absent.items()):
-        problems.append("absent: a mapping of stream name -> why the file lacks it")
-        absent = {}
-    for name in absent:
-        if name in streams:
-            problems.append(f"absent.{name}: the map gives this stream under streams too")
-    if stamp is not None and (start_row is not None or start_variable is not None):
+    time = _map_time(data.get("time"), problems)
+    start_row, start_variable = _map_start_row(data.get("start_row"), problems)
+    streams = _map_streams(data.get("streams"), time.stamp is not None, problems)
+    absent = _map_absent(data.get("absent"), streams, problems)
+    if time.stamp is not None and (start_row is not None or start_variable is not None):
         problems.append("start_row: a ROS bag's map has none (a sample is a message)")
     if problems:
         raise ColumnMapError(source, problems)
-    return ColumnMap(source, streams, time_column, time_unit, rate_hz, rate_variable, start_row,
-                     start_variable, dict(absent), stamp)
+    return ColumnMap(source, streams, time.column, time.unit, time.rate_hz, time.rate_variable, start_row,
+                     start_variable, absent, time.stamp)
 
 
 def _bag_source(entry: dict, key: str, problems: list[str]) -> dict:

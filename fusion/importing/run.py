@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from armfusion.fusion.importing.column_map import ColumnMap, StreamSource
@@ -40,6 +41,17 @@ class ImportResult:
     lost: int = 0
     """Rows (a bag's messages) left out for their time that were not copies of the one before:
     samples the recording does not hold."""
+
+
+class Origin(NamedTuple):
+    """Where a stream's values came from, for the messages that refuse one of them."""
+
+    rows: np.ndarray
+    """The source's row of each value: a file's 1-based row, or a bag topic's message index from 0."""
+    row_word: str
+    """What a row is called in a message: ``"row"`` (a file's) or ``"message"`` (a bag's)."""
+    source: str
+    """The source as a message names it: the file, or the bag and its topic."""
 
 
 def _start_index(cmap: ColumnMap, scalars: dict[str, float], n_rows: int, path: Path) -> int:
@@ -124,8 +136,8 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     stream_summary: dict[str, dict] = {}
     for name, src_cols in cmap.streams.items():
         values = np.stack([cols.columns[c][s:][keep] for c in src_cols.columns], axis=1)
-        streams[name], stream_summary[name] = stream_of(name, t_s, values, rows, "row", src_cols,
-                                                        targets[name], str(path), changes)
+        streams[name], stream_summary[name] = stream_of(name, t_s, values, Origin(rows, "row", str(path)),
+                                                        src_cols, targets[name], changes)
         stream_rows[name] = rows[~np.isnan(values).any(axis=1)]
     all_names = targets_of(arm)  # every stream the config describes
     not_mapped = [k for k, tg in all_names.items() if k not in cmap.streams and k not in cmap.absent
@@ -150,13 +162,14 @@ def import_recording(src: str | Path, cmap: ColumnMap, arm: ArmModel, config: st
     return ImportResult(rec, summary, tuple(changes), dropped - copies)
 
 
-def stream_of(name: str, t_s: np.ndarray, values: np.ndarray, rows: np.ndarray, row_word: str,
-              src_cols: StreamSource, t: Target, source: str, changes: list[str]) -> tuple[Stream, dict]:
+def stream_of(name: str, t_s: np.ndarray, values: np.ndarray, origin: Origin,
+              src_cols: StreamSource, t: Target, changes: list[str]) -> tuple[Stream, dict]:
     """Stream ``name`` from its source ``values (N, k)`` at ``t_s (N,)``: a row with a NaN is a
-    gap (counted in ``changes``), an infinite value refused naming ``rows[i]`` (the source's
-    ``row_word``: a file's 1-based row, a bag topic's message from 0), the values brought into
-    the config's unit. Returns the stream and its summary (a value past the sensor's range is
-    the admission's to refuse, :func:`refuse_what_no_sensor_said`)."""
+    gap (counted in ``changes``), an infinite value refused naming ``origin.rows[i]`` (the
+    source's ``origin.row_word``: a file's 1-based row, a bag topic's message from 0), the values
+    brought into the config's unit. Returns the stream and its summary (a value past the
+    sensor's range is the admission's to refuse, :func:`refuse_what_no_sensor_said`)."""
+    rows, row_word, source = origin
     inf = np.isinf(values)
     if inf.any():
         i, j = (int(x[0]) for x in np.nonzero(inf))
