@@ -18,6 +18,7 @@ from armfusion.fusion.identification.identify import config_with_estimates
 from armfusion.fusion.workbench.diagnose import Diagnosis
 from armfusion.fusion.workbench.discover import Discovery
 from armfusion.fusion.workbench.heldout import HeldOut, tracked, tracked_worse
+from armfusion.fusion.workbench.zeros import turns_from_encoder_zeros
 from armfusion.sensors.output_files import write_text_replacing
 
 HISTORY_FORMAT = "armfusion.workbench-history/1"
@@ -133,7 +134,9 @@ def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, jud
     final, disc, as_is = fits.final, fits.disc, fits.as_is
     src = resolve_config_path(config)
     cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
-    out = config_with_estimates(cfg, without_bound(final))
+    fit = without_bound(final)
+    moved = turns_from_encoder_zeros(fit, final.data, final.gauges)
+    out = config_with_estimates(cfg, fit if moved is None else moved.fit)
     raise_floors(out, final, arm)
     consistency, refused = tracked_check(arm, out, judged_rec, held, json_out, convention_groups(final))
     if refused is not None:
