@@ -53,9 +53,16 @@ def _zero_index(fit: Identification, joint: str) -> int | None:
     return fit.names.index(name) if name in fit.names else None
 
 
-def turns_from_encoder_zeros(fit: Identification, data: FitData, gauges: Sequence[Gauge]) -> ZeroTurns | None:
+def turns_from_encoder_zeros(fit: Identification, data: FitData, gauges: Sequence[Gauge],
+                             own_angle: Sequence[str]) -> ZeroTurns | None:
     """The fit with each structural gauge's held turn taken from the encoders' zeros (None where
-    there is none, or where the fitted zeros are not the encoders' own: :data:`OWN_ANGLE_Z`).
+    there is none, or where the encoders do not read the joints' own angles).
+
+    The encoders read their joints' own angles where both say so: the tracker with the config
+    as it is keeps within its σ of them (``own_angle``, the joints
+    :func:`armfusion.fusion.workbench.heldout.reads_its_own_angle` finds; every joint a gauge
+    names must be among them), and the fit's zeros are the encoders' but for a turn of the
+    size the turn's prior allows (:data:`OWN_ANGLE_Z`).
 
     The zeros of the joints the gauges name (``partners``) are set to the encoders' (``q_ref +
     offset = 0``); the held elements take the turn that changes no still reading
@@ -67,6 +74,8 @@ def turns_from_encoder_zeros(fit: Identification, data: FitData, gauges: Sequenc
         return None
     joints = tuple(dict.fromkeys(p.removesuffix(".joint_offset") for g in structural for p in g.partners
                                  if p.endswith(".joint_offset")))
+    if not set(joints) <= set(own_angle):
+        return None
     held = list(dict.fromkeys(g.held for g in structural))
     # the step takes every element of the gauges' blocks: a gauge's direction is mostly its
     # held element, with a little of the block's others (free in the fit)
