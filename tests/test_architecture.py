@@ -234,7 +234,6 @@ MAX_CLASS_LINES = 300
 MAX_FUNCTION_BODY_LINES = 60
 
 _TRACKING = "a tracking routine written as one pass (start, observability, kernels); to split into steps"
-_WORKBENCH = "a workbench pass over every candidate (fit, score, rank) in one body; to split into named steps"
 _COMMAND = "a command's checks, run and printing in one body; to split into helpers"
 _NUMERIC = "a long numeric routine; to split into named steps"
 _READER = "a reader's one pass over a file with its checks; to split into per-stream helpers"
@@ -271,8 +270,6 @@ OVERSIZED: dict[str, str] = {
     "armfusion.fusion.tracking.start:start_from_recording": _TRACKING,
     "armfusion.fusion.tracking.tracker_kernels": _TRACKING,
     "armfusion.fusion.tracking.tracker_kernels:process_points_tangent": _TRACKING,
-    "armfusion.fusion.workbench.candidates:rank_candidates": _WORKBENCH,
-    "armfusion.fusion.workbench.scores:score_tests": _WORKBENCH,
     "armfusion.models.arm_config": "the config's schema, parsing and cross-checks; to split the cross-checks out",
     "armfusion.models.arm_config:_cross_checks": "one check after another; to become a table of checks",
     "armfusion.models.effects.entries:model_problems": _NUMERIC,
@@ -405,8 +402,6 @@ MANY_PARAMETERS: dict[str, tuple[int, str]] = {
     "armfusion.fusion.tracking.report:Reports.__init__": (12, _TO_RECORD),
     "armfusion.fusion.tracking.start:start_from_recording": (13, _TO_RECORD),
     "armfusion.fusion.tracking.ukf:BatchedUKF.update": (9, _TO_RECORD),
-    "armfusion.fusion.workbench.candidates:_refit": (9, _TO_RECORD),
-    "armfusion.fusion.workbench.scores:_gauges": (9, _TO_RECORD),
     "armfusion.models.arm:joints_from_dh": (9, _TO_RECORD),
     "armfusion.models.fake_rig:simulate_physics": (10, _TO_RECORD),
     "armfusion.models.simulator:simulate": (12, _TO_RECORD),
