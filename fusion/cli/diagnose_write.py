@@ -17,7 +17,8 @@ from armfusion.fusion.configfile import load_arm, resolve_config_path
 from armfusion.fusion.identification.identify import config_with_estimates
 from armfusion.fusion.workbench.diagnose import Diagnosis
 from armfusion.fusion.workbench.discover import Discovery
-from armfusion.fusion.workbench.heldout import HeldOut, tracked, tracked_worse
+from armfusion.fusion.workbench.heldout import HeldOut, Tracked, tracked, tracked_worse
+from armfusion.fusion.workbench.zeros import turns_from_encoder_zeros
 from armfusion.sensors.output_files import write_text_replacing
 from armfusion.sensors.samples import Recording
 
@@ -148,9 +149,15 @@ def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, che
     held, written_held = check.held, check.written_held
     src = resolve_config_path(config)
     cfg = yaml.safe_load(src.read_text(encoding="utf-8"))
-    out = config_with_estimates(cfg, without_bound(final))
+    judge = TrackedJudge(arm, check.rec, held, json_out, convention_groups(final))
+    before, failed = judge.as_it_is()
+    if failed is not None:
+        return None, failed
+    fit = without_bound(final)
+    moved = turns_from_encoder_zeros(fit, final.data, final.gauges, tuple(before.encoder_rms_deg))
+    out = config_with_estimates(cfg, fit if moved is None else moved.fit)
     raise_floors(out, final, arm)
-    consistency, refused = tracked_check(arm, out, check.rec, held, json_out, convention_groups(final))
+    consistency, refused = judge.against(before, out)
     if refused is not None:
         return consistency, refused
     write.parent.mkdir(parents=True, exist_ok=True)
@@ -158,12 +165,15 @@ def write_config(arm, fits: Fits, recording: Path, config: str, write: Path, che
                         for f in (disc.findings if disc is not None else ()) if f.is_group)
     bound = "".join(f"# {n}: its fit ended at the parameter's bound; written at its prior\n"
                     for n in final.at_bound)
+    turns = ("".join(f"# {n}: {np.degrees(v):+.3f}° ± {np.degrees(sg):.3f}°, from the encoders' zeros "
+                     f"({', '.join(moved.joints)} read their own angles)\n" for n, (v, sg) in moved.turns.items())
+             if moved is not None else "")
     held_ratio = final.held_out_ratio if written_held is None else written_held.rms_ratio
     judged = (f"# held out: {final.held_out.label}: {held_ratio:.3f}x the noise "
               f"(the config as it was: {as_is.rms_ratio:.3f}x)\n"
               if held_ratio is not None and as_is is not None else "")
     write_text_replacing(write, f"# armfusion diagnose: rms_ratio {final.rms_ratio:.3f} ({final.verdict})\n"
-                         f"# from {recording}, config {src.name}\n" + judged + stand_ins + bound
+                         f"# from {recording}, config {src.name}\n" + judged + stand_ins + bound + turns
                          + yaml.safe_dump(out, sort_keys=False, width=110))
     return consistency, None
 
@@ -177,28 +187,47 @@ def convention_groups(final: Diagnosis) -> tuple[tuple[str, ...], ...]:
         for g in final.gauges if g.structural))
 
 
-def tracked_check(arm, out: dict, rec, held: HeldOut, json_out: bool,
-                  groups: tuple[tuple[str, ...], ...] = ()) -> tuple[dict | None, str | None]:
-    """The tracker over the held-out part with the config it would replace and with the one it
-    would write (``out``); the refusal's reason where the new one tracks worse there
-    (:func:`armfusion.fusion.workbench.heldout.tracked_worse`; ``groups``: the joints whose
-    zeros a held gauge makes the same as a turn, :func:`convention_groups`, whose sums are
-    judged against the encoders beside each joint)."""
-    t_from = float(held.data.state.t_s[0]) if held.same_recording else -np.inf
-    with progress_bar("tracking the held-out part", json_out) as advance:
-        try:
-            advance(0.0, "with the config as it is")
-            before = tracked(arm, rec, t_from, groups)
-            with tempfile.TemporaryDirectory() as d:
-                path = Path(d) / "candidate.yaml"
-                path.write_text(yaml.safe_dump(out, sort_keys=False), encoding="utf-8")
-                new_arm = load_arm(str(path))
-            advance(0.5, "with the config to write")
-            after = tracked(new_arm, rec, t_from, groups)
-        except (ValueError, RuntimeError) as e:
-            return None, f"the tracker could not run over the held-out part to judge it: {e}"
-    doc = {"as_it_is": before.as_dict(), "written": after.as_dict()}
-    return doc, tracked_worse(before, after)
+@dataclass(frozen=True)
+class TrackedJudge:
+    """The tracker over the held-out part of ``rec``: with the config it would replace
+    (:meth:`as_it_is`), then with the one it would write (:meth:`against`); ``groups``: the
+    joints whose zeros a held gauge makes the same as a turn, :func:`convention_groups`, whose
+    sums are judged against the encoders beside each joint."""
+
+    arm: object
+    rec: object
+    held: HeldOut
+    json_out: bool
+    groups: tuple[tuple[str, ...], ...] = ()
+
+    @property
+    def t_from_s(self) -> float:
+        return float(self.held.data.state.t_s[0]) if self.held.same_recording else -np.inf
+
+    def as_it_is(self) -> tuple[Tracked | None, str | None]:
+        """The config as it is tracked; or why the tracker could not run."""
+        with progress_bar("tracking the held-out part", self.json_out) as advance:
+            try:
+                advance(0.0, "with the config as it is")
+                return tracked(self.arm, self.rec, self.t_from_s, self.groups), None
+            except (ValueError, RuntimeError) as e:
+                return None, f"the tracker could not run over the held-out part to judge it: {e}"
+
+    def against(self, before: Tracked, out: dict) -> tuple[dict | None, str | None]:
+        """The config ``out`` (a dict, as written) tracked and judged against ``before``
+        (:func:`armfusion.fusion.workbench.heldout.tracked_worse`): both runs' figures, and the
+        refusal's reason (None: no worse)."""
+        with progress_bar("tracking the held-out part", self.json_out) as advance:
+            try:
+                with tempfile.TemporaryDirectory() as d:
+                    path = Path(d) / "candidate.yaml"
+                    path.write_text(yaml.safe_dump(out, sort_keys=False), encoding="utf-8")
+                    new_arm = load_arm(str(path))
+                advance(0.5, "with the config to write")
+                after = tracked(new_arm, self.rec, self.t_from_s, self.groups)
+            except (ValueError, RuntimeError) as e:
+                return None, f"the tracker could not run over the held-out part to judge it: {e}"
+        return {"as_it_is": before.as_dict(), "written": after.as_dict()}, tracked_worse(before, after)
 
 
 def write_refusal(final: Diagnosis, as_is, written=None) -> str | None:

@@ -72,6 +72,84 @@ class Candidate:
                 "gauges": [g.as_dict() for g in self.gauges], "at_bound": list(self.at_bound)}
 
 
+@dataclass(frozen=True)
+class RefitBasis:
+    """What every quick refit of a candidate starts from: the score tests, the fit and its
+    model at the estimates, the whole recording and the refits' evenly spread subsample, the
+    streams fitted, the identify settings and the model's own held gauges."""
+
+    tests: ScoreTests
+    fit: Identification
+    base_model: Model
+    data: FitData
+    sub: FitData
+    streams: Sequence[str]
+    identify: IdentifySettings
+    model_holds: Sequence[str] = ()
+
+
+def refit_basis(tests: ScoreTests, fit: Identification, data: FitData, streams: Sequence[str],
+                settings) -> RefitBasis:
+    """The refits' basis (:class:`RefitBasis`): the subsample at most ``settings.refit_points``
+    evenly spread fit points, the model's structural gauges held on it."""
+    rstride = int(np.ceil(data.n / max(settings.refit_points, 2)))
+    sub = data.subset(slice(None, None, rstride)) if rstride > 1 else data
+    return RefitBasis(tests, fit, fit.model.with_values(fit.model_x), data, sub, streams, settings.identify,
+                      held_elements(structural_gauges(fit.model, sub)))
+
+
+@dataclass
+class _RefitPlan:
+    """Which candidates, in the linearised ranking, are refitted: the first ``n_refit``
+    significant ones, more while no refit has reached the noise (up to ``max_refit``), and
+    the rivals of the best so far on its target (up to ``max_rivals``); what the refits found."""
+
+    settings: Any
+    n_do: int
+    done: int = 0
+    chi2_base: float | None = None
+    best_after: float = np.inf
+    best_target: str | None = None
+    rivals: int = 0
+
+    def refits(self, rank: int, target: str, p: float) -> bool:
+        # only a significant score can be significant; past the first n_refit, go on while no
+        # refit has reached the noise (the linearised ranking misleads when the current fit
+        # has bent other parameters to take up the missing effect)
+        # and refit the rivals of the best so far: effects on the same sensor or joint often
+        # explain nearly the same (a turned IMU and its accelerometer's axes on a parked chair)
+        st = self.settings
+        rival = self.best_target == target and self.rivals < st.max_rivals
+        refit = p < st.alpha and (rank < st.n_refit or rival or (
+            rank < st.max_refit and self.best_after > st.noise_tolerance))
+        if refit and rival and rank >= st.n_refit:
+            self.rivals += 1
+        return refit
+
+
+def _refitted(basis: RefitBasis, plan: _RefitPlan, c: Linearised,
+              say: Callable[[str, float], None]) -> tuple[float, float, dict[str, tuple[float, float]]]:
+    """Candidate ``c`` refitted: its ΔBIC, the whole-model RMS over the noise after it, its
+    estimates with σ; the plan's best so far updated."""
+    tests, e = basis.tests, c.effect
+    say(f"refitting with {e.block_name}", 0.85 + 0.15 * min(plan.done / max(plan.n_do, 1), 1.0))
+    plan.done += 1
+    chi2_new, new_free, params, stepped = _refit(basis, c)
+    if plan.chi2_base is None and not stepped:
+        plan.chi2_base = _rerun(basis)
+    # a refit by identify is measured from the lower of the fit's χ² and the same refit's
+    # without the candidate: re-running the fit from its own estimates (priors re-centred
+    # there, each stream's scale estimated again, on the same points) moves χ² a little
+    # by itself where streams are scaled (tens, at 10x the noise), which is not the
+    # candidate's. The Gauss-Newton step moves only the candidate and what it pulls.
+    ref = tests.chi2 if stepped else min(tests.chi2, plan.chi2_base)
+    dbic = chi2_new - ref + new_free * tests.log_n
+    rms_after = float(np.sqrt(chi2_new / tests.n_residuals))
+    if rms_after < plan.best_after:
+        plan.best_after, plan.best_target = rms_after, e.target
+    return dbic, rms_after, params
+
+
 def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, streams: Sequence[str],
                     settings, say: Callable[[str, float], None]) -> list[Candidate]:
     """Every candidate the data see, ranked: the best few by the linearised ΔBIC whose score
@@ -80,77 +158,61 @@ def rank_candidates(tests: ScoreTests, fit: Identification, data: FitData, strea
     workbench's :class:`~armfusion.fusion.workbench.diagnose.DiagnoseSettings`. Refitted first, then by
     ΔBIC; ties (effects the recording cannot tell apart, e.g. hard and soft iron on a parked
     chair): the one with fewer parameters first."""
-    st = settings
-    pb = tests.problem
-    K = tests.n_candidates
-    lin = tests.tested
-    out: list[Candidate] = []
-    base_model = fit.model.with_values(fit.model_x)
-    rstride = int(np.ceil(data.n / max(st.refit_points, 2)))
-    sub = data.subset(slice(None, None, rstride)) if rstride > 1 else data
-    n_do = sum(1 for rank, c in enumerate(lin) if rank < st.n_refit
-               and min(1.0, chi2_dist.sf(c.score, c.dof) * K) < st.alpha)
-    done = 0
-    chi2_base: float | None = None
-    best_after = np.inf
-    best_target = None
-    rivals = 0
-    excess = max(tests.chi2 - tests.n_residuals, 1e-300)
+    K, lin = tests.n_candidates, tests.tested
+    basis = refit_basis(tests, fit, data, streams, settings)
+    plan = _RefitPlan(settings, sum(1 for rank, c in enumerate(lin) if rank < settings.n_refit
+                                    and min(1.0, chi2_dist.sf(c.score, c.dof) * K) < settings.alpha))
     sm = fit.model.stream_models()
-    model_holds = held_elements(structural_gauges(fit.model, sub))
+    out: list[Candidate] = []
     for rank, c in enumerate(lin):
-        e, lm, dof, delta, dsig = c.effect, c.score, c.dof, c.delta, c.delta_sigma
-        p = float(min(1.0, chi2_dist.sf(lm, dof) * K))
-        b = pb.model.block(e.block_name)
-        names = b.element_names()
-        # only a significant score can be significant; past the first n_refit, go on while no
-        # refit has reached the noise (the linearised ranking misleads when the current fit
-        # has bent other parameters to take up the missing effect)
-        # and refit the rivals of the best so far: effects on the same sensor or joint often
-        # explain nearly the same (a turned IMU and its accelerometer's axes on a parked chair)
-        rival = best_target == e.target and rivals < st.max_rivals
-        refit = p < st.alpha and (rank < st.n_refit or rival or (
-            rank < st.max_refit and best_after > st.noise_tolerance))
-        if refit and rival and rank >= st.n_refit:
-            rivals += 1
+        p = float(min(1.0, chi2_dist.sf(c.score, c.dof) * K))
+        refit = plan.refits(rank, c.effect.target, p)
         if refit:
-            say(f"refitting with {e.block_name}", 0.85 + 0.15 * min(done / max(n_do, 1), 1.0))
-            done += 1
-            chi2_new, new_free, params, stepped = _refit(tests, c, fit, base_model, data, sub, streams,
-                                                         st.identify, model_holds)
-            if chi2_base is None and not stepped:
-                chi2_base = _rerun(tests, fit, base_model, data, sub, streams, st.identify, model_holds)
-            # a refit by identify is measured from the lower of the fit's χ² and the same refit's
-            # without the candidate: re-running the fit from its own estimates (priors re-centred
-            # there, each stream's scale estimated again, on the same points) moves χ² a little
-            # by itself where streams are scaled (tens, at 10x the noise), which is not the
-            # candidate's. The Gauss-Newton step moves only the candidate and what it pulls.
-            ref = tests.chi2 if stepped else min(tests.chi2, chi2_base)
-            dbic = chi2_new - ref + new_free * tests.log_n
-            rms_after = float(np.sqrt(chi2_new / tests.n_residuals))
-            if rms_after < best_after:
-                best_after, best_target = rms_after, e.target
+            dbic, rms_after, params = _refitted(basis, plan, c, say)
         else:
-            dbic = -lm + dof * tests.log_n
-            rms_after = None
-            params = {n: (float(delta[q]), float(dsig[q])) for q, n in enumerate(names)}
-        held = set(held_elements(c.gauges))
-        bound = at_bound({n: v for n, (v, _s) in params.items() if n not in held}, b)
-        significant = bool(p < st.alpha and dbic < 0 and not bound)
-        explained = float(min(lm / excess, 1.0)) if tests.chi2 > tests.n_residuals else 0.0
-        evidence = _evidence(tests, c, sm, data, params, b.units, explained)
-        if bound:
-            after = (f" and leaves {rms_after:.3g}x the noise" if rms_after is not None
-                     else " (the linearised step)")
-            where = ", ".join(f"{n.split('[')[-1].rstrip(']')} at {_fmt_value(params[n][0], b.units)}"
-                              for n in bound)
-            evidence = (f"the model does not explain this: the fit ends at the parameter's bound ({where}) "
-                        f"{after}; not significant. {evidence}")
-        out.append(Candidate(e.name, e.target, lm, dof, p, explained, float(dbic), refit, rms_after,
-                             params, b.units, significant, EFFECTS[e.name].description, evidence,
-                             c.gauges, tuple(bound)))
+            names = tests.problem.model.block(c.effect.block_name).element_names()
+            dbic, rms_after = -c.score + c.dof * tests.log_n, None
+            params = {n: (float(c.delta[q]), float(c.delta_sigma[q])) for q, n in enumerate(names)}
+        out.append(_candidate(tests, c, sm, data, _Judgement(p, float(dbic), refit, rms_after, params),
+                              settings.alpha))
     out.sort(key=lambda c: (not c.refitted, float(f"{c.delta_bic:.6g}"), len(c.params)))
     return out
+
+
+@dataclass(frozen=True)
+class _Judgement:
+    """What the ranking found of one candidate: its corrected p-value, its ΔBIC, whether it was
+    refitted, the RMS over the noise after the refit (None: not refitted), its estimates."""
+
+    p: float
+    delta_bic: float
+    refitted: bool
+    rms_after: float | None
+    params: dict[str, tuple[float, float]]
+
+
+def _candidate(tests: ScoreTests, c: Linearised, sm: dict, data: FitData, j: _Judgement,
+               alpha: float) -> Candidate:
+    """The ranked candidate ``c``: significant when its corrected p-value is below ``alpha``,
+    its ΔBIC negative and no free element at its bound; its evidence in words."""
+    e, p, dbic, rms_after, params = c.effect, j.p, j.delta_bic, j.rms_after, j.params
+    b = tests.problem.model.block(e.block_name)
+    held = set(held_elements(c.gauges))
+    bound = at_bound({n: v for n, (v, _s) in params.items() if n not in held}, b)
+    significant = bool(p < alpha and dbic < 0 and not bound)
+    excess = max(tests.chi2 - tests.n_residuals, 1e-300)
+    explained = float(min(c.score / excess, 1.0)) if tests.chi2 > tests.n_residuals else 0.0
+    evidence = _evidence(tests, c, sm, data, params, b.units, explained)
+    if bound:
+        after = (f" and leaves {rms_after:.3g}x the noise" if rms_after is not None
+                 else " (the linearised step)")
+        where = ", ".join(f"{n.split('[')[-1].rstrip(']')} at {_fmt_value(params[n][0], b.units)}"
+                          for n in bound)
+        evidence = (f"the model does not explain this: the fit ends at the parameter's bound ({where}) "
+                    f"{after}; not significant. {evidence}")
+    return Candidate(e.name, e.target, c.score, c.dof, p, explained, dbic, j.refitted, rms_after,
+                     params, b.units, significant, EFFECTS[e.name].description, evidence,
+                     c.gauges, tuple(bound))
 
 
 BOUND_SHARE = 0.98
@@ -171,43 +233,40 @@ def at_bound(values: dict[str, float], block) -> list[str]:
     return out
 
 
-def _rerun(tests: ScoreTests, fit: Identification, base_model: Model, data: FitData, sub: FitData,
-           streams: Sequence[str], identify_settings: IdentifySettings, hold: Sequence[str] = ()) -> float:
+def _rerun(basis: RefitBasis) -> float:
     """The whole recording's χ² after :func:`_refit`'s identify without a candidate (the same
     start, priors and points): what re-running the fit gives by itself."""
-    res = identify(base_model, sub, streams, identify_settings, hold=hold, attitude0_rad=fit.attitude_rad)
+    fit, data, sub = basis.fit, basis.data, basis.sub
+    res = identify(basis.base_model, sub, basis.streams, basis.identify, hold=basis.model_holds,
+                   attitude0_rad=fit.attitude_rad)
     if sub is data:
         return chi2_total(res)
     att = res.attitude_rad if res.attitude_rad is not None else np.zeros(3)
-    pb = tests.problem
-    return chi2_of(res.model, data, pb.streams, pb.attitude, res.model_x, att, tests.points_per_chunk)
+    pb = basis.tests.problem
+    return chi2_of(res.model, data, pb.streams, pb.attitude, res.model_x, att, basis.tests.points_per_chunk)
 
 
-def _refit(tests: ScoreTests, c: Linearised, fit: Identification, base_model: Model, data: FitData,
-           sub: FitData, streams: Sequence[str], identify_settings: IdentifySettings,
-           model_holds: Sequence[str] = ()) -> tuple[float, int, dict[str, tuple[float, float]], bool]:
+def _refit(basis: RefitBasis, c: Linearised) -> tuple[float, int, dict[str, tuple[float, float]], bool]:
     """The quick refit of candidate ``c``: identify with it added, from the current estimates,
-    on ``sub`` (at most ``refit_points`` evenly spread fit points); the residual evaluated
-    exactly at its estimates over the whole recording. Returns the whole recording's χ²
-    after it, the candidate's free elements, its estimates with σ and whether the
-    Gauss-Newton step (below) gave them rather than identify."""
-    pb, z, e = tests.problem, tests.z, c.effect
-    P0 = fit.model.size
-    b = pb.model.block(e.block_name)
-    names = b.element_names()
-    per = tests.points_per_chunk
+    on the basis's subsample (at most ``refit_points`` evenly spread fit points); the residual
+    evaluated exactly at its estimates over the whole recording. Returns the whole
+    recording's χ² after it, the candidate's free elements, its estimates with σ and whether
+    the Gauss-Newton step (:func:`_gauss_newton`) gave them rather than identify."""
+    tests, fit, data, sub, e = basis.tests, basis.fit, basis.data, basis.sub, c.effect
+    pb = tests.problem
+    names = pb.model.block(e.block_name).element_names()
     # the candidate's gauges (and the model's own) held at their priors: a direction the fit
     # cannot tell from what it already makes free would wander to wherever the noise takes it
     gauge_held = held_elements(c.gauges)
-    res = identify(base_model.with_effects([e]), sub, streams, identify_settings,
-                   hold=[*model_holds, *gauge_held], attitude0_rad=fit.attitude_rad)
+    res = identify(basis.base_model.with_effects([e]), sub, basis.streams, basis.identify,
+                   hold=[*basis.model_holds, *gauge_held], attitude0_rad=fit.attitude_rad)
     sl2 = res.model.index[e.block_name]
     new_free = int((~res.held[sl2]).sum())
     if sub is data:
         chi2_new = chi2_total(res)
     else:
         att = res.attitude_rad if res.attitude_rad is not None else np.zeros(3)
-        chi2_new = chi2_of(res.model, data, pb.streams, pb.attitude, res.model_x, att, per)
+        chi2_new = chi2_of(res.model, data, pb.streams, pb.attitude, res.model_x, att, tests.points_per_chunk)
     shrink = np.sqrt(sub.n / data.n)  # σ of the whole recording from the subsample's
     params = {n: (float(res.x[sl2][q]), float(res.sigma[sl2][q] * shrink))
               for q, n in enumerate(names)}
@@ -216,23 +275,36 @@ def _refit(tests: ScoreTests, c: Linearised, fit: Identification, base_model: Mo
         # the subsample's estimates carry its noise into every parameter; where the
         # problem is nearly linear, one Gauss-Newton step from the current fit on the
         # whole recording's sums does better: keep whichever fits the recording better
-        cs = c.cols
-        sig_c = pb.sigma0[pb.model.index[e.block_name]]
-        H = c.information + np.diag(1.0 / sig_c**2)
-        Hi = np.linalg.inv(0.5 * (H + H.T))
-        dc = np.clip(-Hi @ tests.g_candidates[cs], b.lower, b.upper)
-        dc[[names.index(h) for h in gauge_held]] = 0.0
-        dz = np.zeros(pb.size)
-        dz[tests.fcols] = -tests.AiB[:, cs] @ dc
-        xm = np.concatenate([fit.model_x + dz[:P0], dc])
-        chi2_gn = chi2_of(base_model.with_effects([e]), data, pb.streams, pb.attitude, xm,
-                          z[pb.P:] + dz[pb.P:], per)
+        chi2_gn, gn_params = _gauss_newton(basis, c, gauge_held)
         if chi2_gn < chi2_new:
-            chi2_new, stepped = chi2_gn, True
-            infl = max(1.0, chi2_gn / max(tests.n_residuals - len(tests.fcols) - c.dof, 1))
-            sd = np.sqrt(np.clip(np.diag(Hi), 0, None) * infl)
-            params = {n: (float(dc[q]), float(sd[q])) for q, n in enumerate(names)}
+            chi2_new, stepped, params = chi2_gn, True, gn_params
     return chi2_new, new_free, params, stepped
+
+
+def _gauss_newton(basis: RefitBasis, c: Linearised,
+                  gauge_held: Sequence[str]) -> tuple[float, dict[str, tuple[float, float]]]:
+    """One Gauss-Newton step of candidate ``c`` (its ``gauge_held`` elements at their prior)
+    from the current fit on the whole recording's sums: the recording's χ² there, and the
+    candidate's estimates with σ (inflated by the χ² per degree of freedom where above 1)."""
+    tests, fit, e = basis.tests, basis.fit, c.effect
+    pb, z = tests.problem, tests.z
+    P0 = fit.model.size
+    b = pb.model.block(e.block_name)
+    names = b.element_names()
+    cs = c.cols
+    sig_c = pb.sigma0[pb.model.index[e.block_name]]
+    H = c.information + np.diag(1.0 / sig_c**2)
+    Hi = np.linalg.inv(0.5 * (H + H.T))
+    dc = np.clip(-Hi @ tests.g_candidates[cs], b.lower, b.upper)
+    dc[[names.index(h) for h in gauge_held]] = 0.0
+    dz = np.zeros(pb.size)
+    dz[tests.fcols] = -tests.AiB[:, cs] @ dc
+    xm = np.concatenate([fit.model_x + dz[:P0], dc])
+    chi2_gn = chi2_of(basis.base_model.with_effects([e]), basis.data, pb.streams, pb.attitude, xm,
+                      z[pb.P:] + dz[pb.P:], tests.points_per_chunk)
+    infl = max(1.0, chi2_gn / max(tests.n_residuals - len(tests.fcols) - c.dof, 1))
+    sd = np.sqrt(np.clip(np.diag(Hi), 0, None) * infl)
+    return chi2_gn, {n: (float(dc[q]), float(sd[q])) for q, n in enumerate(names)}
 
 
 def chi2_of(model: Model, data: FitData, streams: Sequence[str], attitude: bool, x: np.ndarray,

@@ -129,6 +129,53 @@ def features(data: FitData, names: Sequence[str]) -> tuple[list[str], np.ndarray
     return labels, np.stack(cols, 1)
 
 
+@dataclass(frozen=True)
+class _Projection:
+    """The information the score tests share: the candidates' ``JcᵀJc`` (``CC``), the fitted
+    parameters' cross terms (``B``) and ``A⁻¹B`` (``A``: the fitted parameters' information
+    with their priors), in the problem ``pb``; ``fcols``: the fitted parameters' columns of
+    ``z``, ``P0``: the model's size (the candidates' columns follow it)."""
+
+    pb: FitProblem
+    CC: np.ndarray
+    B: np.ndarray
+    AiB: np.ndarray
+    fcols: np.ndarray
+    P0: int
+
+
+def _accumulated(pb: FitProblem, data: FitData, z: np.ndarray, cols: np.ndarray, per: int,
+                 say: Callable[[str, float], None], n_cands: int) -> tuple[np.ndarray, np.ndarray, float, int,
+                                                                          np.ndarray]:
+    """The sums the score tests need over the columns ``cols``, accumulated over chunks of
+    ``per`` points of the recording (memory stays bounded on long recordings): ``JᵀJ``,
+    ``Jᵀr``, ``rᵀr``, the residual count, and each point's noise-weighted residuals."""
+    n_axes = sum(data.counts[s].shape[1] for s in pb.streams)
+    G = np.zeros((len(cols), len(cols)))
+    gv = np.zeros(len(cols))
+    chi2_now = 0.0
+    n_res = 0
+    R = np.zeros((data.n, n_axes))
+    n_chunks = -(-data.n // per)
+    for ci, a0 in enumerate(range(0, data.n, per)):
+        say(f"score tests of {n_cands} candidates", 0.45 + 0.4 * ci / n_chunks)
+        c2, nr = _sums(pb, data.subset(slice(a0, a0 + per)), z, cols, G, gv, R[a0:a0 + per])
+        chi2_now += c2
+        n_res += nr
+    return G, gv, chi2_now, n_res, R
+
+
+def _row_axis(pb: FitProblem, ev: FitData) -> list[tuple[str, int, int, int]]:
+    """Row -> (stream, axes, first row, points) of the evidence points' residual."""
+    row_axis: list[tuple[str, int, int, int]] = []
+    i = 0
+    for s in pb.streams:
+        n, k = ev.counts[s].shape
+        row_axis.append((s, k, i, n))
+        i += n * k
+    return row_axis
+
+
 def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], streams: Sequence[str],
                 identify_settings: IdentifySettings, chunk_rows: int, evidence_points: int,
                 say: Callable[[str, float], None]) -> ScoreTests:
@@ -139,28 +186,14 @@ def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], str
     P0 = m.size
     free_old = np.concatenate([~fit.held[:P0], np.zeros(pb.P - P0, bool), ~fit.held[P0:]])
     fcols = np.flatnonzero(free_old)
-    ccols = np.arange(P0, pb.P)
-    cols = np.concatenate([fcols, ccols])
+    cols = np.concatenate([fcols, np.arange(P0, pb.P)])
     nf = len(fcols)
-    # the sums the score tests need, accumulated over chunks of the recording (memory stays
-    # bounded on long recordings): JfᵀJf, JfᵀJc, JcᵀJc, Jcᵀr, rᵀr, and each point's Σr²
     n_axes = sum(data.counts[s].shape[1] for s in pb.streams)
     per = max(20, int(chunk_rows // max(n_axes, 1)))
-    G = np.zeros((len(cols), len(cols)))
-    gv = np.zeros(len(cols))
-    chi2_now = 0.0
-    n_res = 0
-    R = np.zeros((data.n, n_axes))
-    n_chunks = -(-data.n // per)
-    for ci, a0 in enumerate(range(0, data.n, per)):
-        say(f"score tests of {len(cands)} candidates", 0.45 + 0.4 * ci / n_chunks)
-        c2, nr = _sums(pb, data.subset(slice(a0, a0 + per)), z, cols, G, gv, R[a0:a0 + per])
-        chi2_now += c2
-        n_res += nr
+    G, gv, chi2_now, n_res, R = _accumulated(pb, data, z, cols, per, say, len(cands))
     A = G[:nf, :nf] + np.diag(1.0 / pb.sigma0[fcols] ** 2)
     B = G[:nf, nf:]
-    CC = G[nf:, nf:]
-    AiB = np.linalg.solve(A, B)
+    proj = _Projection(pb, G[nf:, nf:], B, np.linalg.solve(A, B), fcols, P0)
     # the efficient score: the candidates' gradient less what re-adjusting the fitted
     # parameters would take of it. The fit is at its optimum with each stream at its own
     # weight (identify scales down a stream it fits worse than its noise), not at the
@@ -170,72 +203,79 @@ def score_tests(fit: Identification, data: FitData, cands: Sequence[Effect], str
     # links' side). At an unscaled optimum it is zero and this changes nothing.
     free_fit = np.flatnonzero(~fit.held)
     g_fit = gv[:nf] + (fit.x[free_fit] - fit.x0[free_fit]) / pb.sigma0[fcols] ** 2
-    g_all = gv[nf:] - AiB.T @ g_fit
-    lnn = np.log(n_res)
+    g_all = gv[nf:] - proj.AiB.T @ g_fit
     # the evidence in words is read off a few thousand evenly spread points
     stride = int(np.ceil(data.n / min(per, evidence_points)))
     ev = data.subset(slice(None, None, stride)) if stride > 1 else data
     r, Je = FitProblem(pb.model, ev, pb.streams, pb.attitude, z[pb.P:],
                        encoder_scale=bool(pb.enc_scale)).jacobian(z, cols)
-    Jperp = Je[:, nf:] - Je[:, :nf] @ AiB
+    Jperp = Je[:, nf:] - Je[:, :nf] @ proj.AiB
     feat_labels, F = features(ev, m.arm.joint_names)
-    # row -> (stream, axis) map of the evidence points
-    row_axis: list[tuple[str, int, int, int]] = []  # stream, k, start, n
-    i = 0
-    for s in pb.streams:
-        n, k = ev.counts[s].shape
-        row_axis.append((s, k, i, n))
-        i += n * k
-    lin = []
-    unseen = []
     # the model's own structure, in still poses: the fit's columns with each candidate's
-    Js, jnames, _ = still_jacobian(pb.model, ev)
+    still = still_jacobian(pb.model, ev)
     fit_held = {pb.names[i] for i in range(P0) if fit.held[i]}
+    lin, unseen = [], []
     for e in cands:
-        sl = pb.model.index[e.block_name]
-        cs = np.arange(sl.start, sl.stop) - P0
-        sig_c = pb.sigma0[sl]
-        Sp = Jperp[:, cs] * sig_c
-        Mc = CC[np.ix_(cs, cs)] - B[:, cs].T @ AiB[:, cs]
-        Ms = Mc * np.outer(sig_c, sig_c)
-        lam, V = np.linalg.eigh(0.5 * (Ms + Ms.T))
-        keep = lam > max(1.0, 1e-9 * lam.max(initial=0.0))
-        if not keep.any():
+        one = _linearised(proj, e, Jperp, g_all, (ev, still, fit_held))
+        if one is None:
             unseen.append(e.block_name)
-            continue
-        gs = V[:, keep].T @ (g_all[cs] * sig_c)
-        lm = float(np.sum(gs**2 / lam[keep]))
-        dof = int(keep.sum())
-        step_s = -V[:, keep] @ (gs / lam[keep])  # in prior-σ units
-        delta = step_s * sig_c
-        lo, hi = pb.lower[sl], pb.upper[sl]
-        if np.all(np.clip(delta, lo, hi) == 0.0):
-            lm = 0.0  # only a step outside the bounds (a negative play or sag) would help
-        delta = np.clip(delta, lo, hi)
-        cov = (V[:, keep] / lam[keep]) @ V[:, keep].T * np.outer(sig_c, sig_c)
-        jc = np.r_[0:P0, sl.start:sl.stop]
-        own = structural_gauges(pb.model, ev, [jnames[i] for i in range(sl.start, sl.stop)], fit_held,
-                                (Js[:, jc], [jnames[i] for i in jc], None))
-        gauges = _gauges(pb, e.block_name, V[:, ~keep], sig_c, Mc, CC[np.ix_(cs, cs)], AiB[:, cs], fcols, own)
-        lin.append(Linearised(e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s,
-                              Mc, cs, gauges))
-    lin.sort(key=lambda c: -(c.score - c.dof * lnn))
-    return ScoreTests(pb, z, fcols, AiB, g_all, chi2_now, n_res, R, per, max(len(cands), 1), tuple(lin),
-                      tuple(unseen), r, feat_labels, F, row_axis)
+        else:
+            lin.append(one)
+    lin.sort(key=lambda c: -(c.score - c.dof * np.log(n_res)))
+    return ScoreTests(pb, z, fcols, proj.AiB, g_all, chi2_now, n_res, R, per, max(len(cands), 1), tuple(lin),
+                      tuple(unseen), r, feat_labels, F, _row_axis(pb, ev))
 
 
-def _gauges(pb: FitProblem, block: str, V_null: np.ndarray, sig_c: np.ndarray, Mc: np.ndarray,
-            CC: np.ndarray, AiB_c: np.ndarray, fcols: np.ndarray, own: list[Gauge]) -> tuple[Gauge, ...]:
+def _linearised(proj: _Projection, e: Effect, Jperp: np.ndarray, g_all: np.ndarray,
+                structure: tuple[FitData, tuple, set[str]]) -> Linearised | None:
+    """Candidate ``e``'s score test (None: the data see none of its directions): its score and
+    dof, its linearised step with σ and the residual's change along it, its information with
+    the fitted parameters projected out, its gauges. ``structure``: the evidence points, the
+    model's still Jacobian on them (:func:`still_jacobian`) and the fit's held elements."""
+    ev, (Js, jnames, _), fit_held = structure
+    pb, P0, AiB, CC = proj.pb, proj.P0, proj.AiB, proj.CC
+    sl = pb.model.index[e.block_name]
+    cs = np.arange(sl.start, sl.stop) - P0
+    sig_c = pb.sigma0[sl]
+    Sp = Jperp[:, cs] * sig_c
+    Mc = CC[np.ix_(cs, cs)] - proj.B[:, cs].T @ AiB[:, cs]
+    Ms = Mc * np.outer(sig_c, sig_c)
+    lam, V = np.linalg.eigh(0.5 * (Ms + Ms.T))
+    keep = lam > max(1.0, 1e-9 * lam.max(initial=0.0))
+    if not keep.any():
+        return None
+    gs = V[:, keep].T @ (g_all[cs] * sig_c)
+    lm = float(np.sum(gs**2 / lam[keep]))
+    dof = int(keep.sum())
+    step_s = -V[:, keep] @ (gs / lam[keep])  # in prior-σ units
+    delta = step_s * sig_c
+    lo, hi = pb.lower[sl], pb.upper[sl]
+    if np.all(np.clip(delta, lo, hi) == 0.0):
+        lm = 0.0  # only a step outside the bounds (a negative play or sag) would help
+    delta = np.clip(delta, lo, hi)
+    cov = (V[:, keep] / lam[keep]) @ V[:, keep].T * np.outer(sig_c, sig_c)
+    jc = np.r_[0:P0, sl.start:sl.stop]
+    own = structural_gauges(pb.model, ev, [jnames[i] for i in range(sl.start, sl.stop)], fit_held,
+                            (Js[:, jc], [jnames[i] for i in jc], None))
+    gauges = _gauges(proj, e.block_name, V[:, ~keep] * sig_c[:, None], Mc, cs, own)
+    return Linearised(e, lm, dof, delta, np.sqrt(np.clip(np.diag(cov), 0, None)), Sp @ step_s, Mc, cs, gauges)
+
+
+def _gauges(proj: _Projection, block: str, V_null: np.ndarray, Mc: np.ndarray, cs: np.ndarray,
+            own: list[Gauge]) -> tuple[Gauge, ...]:
     """A candidate's gauges: those of the model's structure (``own``) first, then the directions
-    the score test left out (``V_null``, in prior-σ units: the data know them no better than
-    the prior once the fitted parameters are projected out), each named with the fitted
-    parameters that take it up (``A⁻¹B`` along it, in their prior σ)."""
+    the score test left out (``V_null``, in the block's units: the data know them no better
+    than the prior once the fitted parameters are projected out), each named with the fitted
+    parameters that take it up (``A⁻¹B`` along it, in their prior σ). ``Mc``: the candidate's
+    information with them projected out; ``cs``: its columns among the candidates'."""
+    pb, fcols = proj.pb, proj.fcols
+    CC, AiB_c = proj.CC[np.ix_(cs, cs)], proj.AiB[:, cs]
     out: list[Gauge] = list(own)
     dirs, structural, partners = [], [], []
     el = pb.model.block(block).element_names()
     U = np.array([[dict(g.direction)[n] for n in el] for g in own]).T if own else np.zeros((len(el), 0))
     for k in range(V_null.shape[1]):
-        v = V_null[:, k] * sig_c
+        v = V_null[:, k]
         v = v / max(float(np.linalg.norm(v)), 1e-300)
         if U.shape[1]:  # already held by the structure: what is left of it
             v = v - U @ np.linalg.lstsq(U, v, rcond=None)[0]

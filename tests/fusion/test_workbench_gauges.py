@@ -376,3 +376,58 @@ def test_the_held_out_tracker_check_sees_a_wrong_scale_without_the_truth(tmp_pat
     assert tracked_worse(lacking, right) is None
     why = tracked_worse(right, lacking)
     assert why is not None and "acc2's innovations" in why
+
+
+@pytest.fixture(scope="module")
+def twin_turned(ur5, tmp_path_factory):
+    """The UR5 twin (tools/twin_ur5.py, seed 1: the forearm's board turned -0.97° about the
+    shoulder's, elbow's and wrist 1's axes, the wrist's -0.45° about wrist 1's), imported, its
+    scales and mounts fitted: what the twin draws, and the diagnosis."""
+    from armfusion.fusion.cli.main import app
+    from typer.testing import CliRunner
+
+    from tools.twin_ur5 import make_twin, write_csv
+
+    tmp = tmp_path_factory.mktemp("twin")
+    twin = make_twin(seed=1, duration_s=20.0, arm=ur5)
+    r = CliRunner().invoke(app, ["import", str(write_csv(twin, tmp / "twin.csv")), "--map", "ur5-csv",
+                                 "--config", "ur5_two_imu", "--out", str(tmp / "twin.mcap"), "--json"])
+    assert r.exit_code == 0, r.output
+    from armfusion.sensors.recording import read_recording
+
+    data = data_from_recording(ur5, read_recording(tmp / "twin.mcap"), window=WINDOW)
+    m = model_from_arm(ur5).with_effects([build_effect(ur5, e, s.name) for s in ur5.link_accelerometers
+                                          for e in ("accel_scale", "mount_rotation")])
+    return twin, diagnose(m, data)
+
+
+def test_a_held_turn_is_read_off_encoders_that_give_the_joints_own_angles(ur5, twin_turned):
+    """The fit holds each board's turn about its joint's axis at none and lets the joints'
+    zeros take it; with a controller's angles (the encoders read the joints' own angles) the
+    written fit books it back to the board, so that the tracker, which finds the zeros from
+    gravity through the board, puts the forearm's pitch where the controller does. The turn
+    comes out within 0.05° of the twin's (the fit also leaves the clocks' offsets unmodelled
+    here), and the zeros at the encoders'. Not where the tracker says the encoders are
+    relative, nor where the zeros are further from the encoders' than a turn's prior allows
+    (a relative encoder counting from 10° off the joint's zero)."""
+    from armfusion.fusion.workbench.zeros import turns_from_encoder_zeros
+
+    twin, d = twin_turned
+    fit = without_bound(d)
+    z = turns_from_encoder_zeros(fit, d.data, d.gauges, ur5.joint_names)
+    assert z is not None and set(z.joints) == {"shoulder", "elbow", "wrist1"}
+    drawn = {e["target"]: np.asarray(e["params"]["rotvec_rad"]) for e in twin.effects
+             if e["effect"] == "mount_rotation"}
+    for element, truth in (("forearm.mount_rotation[z]", drawn["forearm"][2]),
+                           ("wrist.mount_rotation[y]", drawn["wrist"][1])):
+        value, sigma = z.turns[element]
+        assert abs(np.degrees(value - truth)) < 0.05, element
+        assert 0.0 < np.degrees(sigma) < 0.05, element
+        assert not z.fit.held[z.fit.names.index(element)]
+    for j in z.joints:
+        i = z.fit.names.index(f"{j}.joint_offset[offset]")
+        assert z.fit.x[i] + z.fit.q_ref_rad[ur5.joint_names.index(j)] == pytest.approx(0.0, abs=1e-12)
+    assert turns_from_encoder_zeros(fit, d.data, d.gauges, ("base", "shoulder")) is None
+    q_ref = fit.q_ref_rad.copy()
+    q_ref[ur5.joint_names.index("elbow")] += np.radians(10.0)
+    assert turns_from_encoder_zeros(replace(fit, q_ref_rad=q_ref), d.data, d.gauges, ur5.joint_names) is None
