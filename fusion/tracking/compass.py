@@ -19,7 +19,7 @@ from armfusion.fusion.tracking.estimate import HEADING_STATUS
 from armfusion.fusion.tracking.heading import FieldCheck, FieldReference, MagneticGuard, heading_sigma_rad
 from armfusion.fusion.tracking.innovations import InnovationRing
 from armfusion.fusion.tracking.settings import MAG, TrackerSettings
-from armfusion.fusion.tracking.turn_kernels import cross_vec
+from armfusion.fusion.tracking.turn_kernels import turned_back
 from armfusion.models.arm import ArmModel
 from armfusion.models.effects import Model
 from armfusion.models.effects.imu import dipole_field
@@ -283,7 +283,7 @@ class Compass:
         the stamp by the base's turn over the delay (the accelerometers' alike:
         :meth:`armfusion.fusion.tracking.measurement.Measurements.stack`)."""
         if self.delay_s and om is not None:
-            m_B = m_B - self.delay_s * cross_vec(om, m_B)
+            m_B = turned_back(m_B, om, self.delay_s)
         m = self._rot @ m_B  # in the base's axes at the period's start
         self._sum = m if self._n == 0 else self._sum + m
         self._n += 1

@@ -65,6 +65,7 @@ class InstantUpdate:
         """Each link accelerometer's last accepted sample, s."""
         self.obs_used_key: tuple | None = None
         self.obs_t = -np.inf
+        self._rate_of: tuple | None = None  # (gyro, state, the turn rate): :meth:`turn_rate`
 
     def predict(self, ukf: BatchedUKF, dt: float, omega_prev: np.ndarray | None, gyro: np.ndarray | None,
                 newer_weight: float, attitude_index: np.ndarray) -> np.ndarray | None:
@@ -75,9 +76,7 @@ class InstantUpdate:
         point's, ``attitude_index``), or None when the step drew no points."""
         p = self.parts
         process = p.process
-        w0 = omega_prev if omega_prev is not None else gyro
-        k = newer_weight
-        w = None if w0 is None else (w0 if gyro is None else (1.0 - k) * w0 + k * gyro)
+        w = mid_rate(omega_prev if omega_prev is not None else gyro, gyro, newer_weight)
         rate_sq = 0.0
         if w is not None and p.settings.base_turns_about_any:  # the scale error: σ_s |ω| on the attitude
             om = process.rate(w, ukf.mean)
@@ -86,7 +85,7 @@ class InstantUpdate:
         ukf.predict(process.fx_tangent, Q, dt=dt, w=w)
         # the attitude is now the propagated central point's plus a tangent vector
         Y = ukf.propagated_points
-        anchor = Y[0, attitude_index].copy() if Y is not None else None
+        anchor = Y[0, attitude_index] if Y is not None else None  # (a copy: fancy indexing)
         if w is not None and p.compass.averaging:  # (the rate is needed mid-period only)
             p.compass.turn(process.rate(w, ukf.mean), dt)
         return anchor
@@ -112,8 +111,7 @@ class InstantUpdate:
         p.health.heard(p.mag_index, t)
         m_B, out = mag.field_B_ut, None
         if compass.listening and frame is not None:
-            om = (p.process.rate(omega_B, ukf.mean)
-                  if compass.delay_s and omega_B is not None else None)
+            om = self.turn_rate(omega_B, ukf.mean) if compass.delay_s and omega_B is not None else None
             out = compass.average(t, m_B, om)
         if out is not None:
             x, L = ukf.mean, p.layout
@@ -162,7 +160,7 @@ class InstantUpdate:
         if L.pivot_B is not None and k and omega_B is not None:
             # the base turns about its pivot: the origin's acceleration at every point's offset
             # (Measurements.h_all), the differentiated gyro's error times the offset as noise
-            om = p.process.rate(omega_B, ukf.mean)
+            om = self.turn_rate(omega_B, ukf.mean)
             var[:3 * k] += ms.pivot_variance(frame, ukf.mean[L.pivot_B], ukf.covariance[L.pivot_B, L.pivot_B])
         upd = UpdateResult(t, frame, stack, k, still, plan, (m - 1,) if mag is not None else (),
                            p.compass.heading_shift_rad() if mag is not None else 0.0, om, m_B, mag, check)
@@ -253,6 +251,19 @@ class InstantUpdate:
         p.alarm.compass(t, check.disturbed, check.magnitude_error_ut)
         upd.mask = p.measurements.heading_mask(len(upd.stack.z))
 
+    def turn_rate(self, omega_B: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The base's turn rate from the gyro's ``omega_B`` at the state ``x``
+        (:meth:`armfusion.fusion.tracking.process.ProcessModel.rate`), kept for the same two
+        arrays: the compass's reading and the pivot's rows of one instant read the same
+        rate. (The filter replaces its mean on every change and never writes into it, so the
+        same array is the same state; the rate is read, never written.)"""
+        kept = self._rate_of
+        if kept is not None and kept[0] is omega_B and kept[1] is x:
+            return kept[2]
+        om = self.parts.process.rate(omega_B, x)
+        self._rate_of = (omega_B, x, om)
+        return om
+
     def imu_up(self, x: np.ndarray) -> np.ndarray | None:
         """Up in base axes as the base IMU's accelerometer alone reads it: its average over
         ``still_tau_s`` (:class:`armfusion.fusion.tracking.process.StillDetector`), the filter's estimate
@@ -297,3 +308,16 @@ class InstantUpdate:
         models (:meth:`armfusion.fusion.tracking.measurement.Measurements.h_all`)."""
         p = self.parts
         return p.measurements.h_all(p.process.euler_points(X), **kw)
+
+
+def mid_rate(w0: np.ndarray | None, gyro: np.ndarray | None, newer_weight: float) -> np.ndarray | None:
+    """The gyro's rate over an interval, ``(1 - k) w0 + k gyro`` (``k`` = ``newer_weight``;
+    :func:`armfusion.fusion.tracking.process.gyro_newer_weight`), from its last reading ``w0``
+    and this instant's ``gyro`` (either may be None: the other alone). Three floats each,
+    the same operations as on the arrays, so the same numbers."""
+    if w0 is None or gyro is None:
+        return w0 if gyro is None else gyro
+    a0, a1, a2 = w0.tolist()
+    b0, b1, b2 = gyro.tolist()
+    c = 1.0 - newer_weight
+    return np.array([c * a0 + newer_weight * b0, c * a1 + newer_weight * b1, c * a2 + newer_weight * b2])

@@ -62,7 +62,7 @@ class MotionIntensity:
         """One IMU accelerometer reading ``f_imu_g (3,)`` (g) ``dt`` after the last: the new ``k``."""
         if not dt > 0.0:
             return self.k
-        fx, fy, fz = (float(v) for v in f_imu_g)
+        fx, fy, fz = f_imu_g.tolist()
         e = (math.sqrt(fx * fx + fy * fy + fz * fz) - 1.0) * G
         if not math.isfinite(e):
             return self.k
@@ -248,16 +248,15 @@ class ProcessModel:
             return Q
         st, L = self.settings, self.layout
         Q = Q.copy()
+        q = Q.reshape(-1)[::L.size + 1]  # its diagonal (a view: each entry changed as itself)
         if k != 1.0:  # the acceleration's spread k² σ_a, its correlation time τ_a / k
             tau = st.base_accel_tau_s
-            f = k**4 * (-math.expm1(-2.0 * dt * k / tau)) / (-math.expm1(-2.0 * dt / tau))
-            for i in range(L.accel.start, L.accel.stop):
-                Q[i, i] *= f
+            q[L.accel] *= k**4 * (-math.expm1(-2.0 * dt * k / tau)) / (-math.expm1(-2.0 * dt / tau))
         if scale_var:
             add = scale_var * st.base_accel_tau_s * dt
-            Q[L.roll, L.roll] += add
-            Q[L.pitch, L.pitch] += add
-            Q[L.yaw, L.yaw] += add
+            q[L.roll] += add
+            q[L.pitch] += add
+            q[L.yaw] += add
         return Q
 
     @property
@@ -310,12 +309,17 @@ class StillDetector:
         self.quiet_s = 0.0  # how long the gyro and the IMU accelerometer have been quiet
         self.imu_nis = 3.0  # EMA of the IMU accelerometer's NIS over 0.2 s
         self._imu_nis_t = float(t_s)
+        # the settings' thresholds, computed once (:meth:`update` runs every instant)
+        self._tau_s = settings.still_tau_s
+        self._gyro_limit_rad_s = settings.still_gyro_dps * DEG
+        self._quiet_outlasts_s = 3.0 * settings.base_accel_tau_s
+        self._limits_for: float | None = None
+        self._limits = (0.0, 0.0)
 
     def update(self, dt: float, gyro: np.ndarray | None, f_imu: np.ndarray | None, x: list) -> None:
         """One instant: ``gyro`` (rad/s, base axes), ``f_imu`` the IMU accelerometer (g), ``x``
         the state (a list)."""
-        st = self.settings
-        a = min(1.0, max(dt, 1e-4) / st.still_tau_s)
+        a = min(1.0, max(dt, 1e-4) / self._tau_s)
         n = self.layout.n_joints
         if gyro is not None:
             b = n + 6  # gyro_bias
@@ -325,22 +329,28 @@ class StillDetector:
             w0 = self.w
             self.w = wn if not math.isfinite(w0) else w0 + a * (wn - w0)
         if f_imu is not None:
-            fi = f_imu.tolist()
+            fx, fy, fz = f_imu.tolist()
             if self.mean is None:
-                self.mean = fi
-            else:
-                d = [u - v for u, v in zip(fi, self.mean, strict=True)]
-                self.mean = [m + a * e for m, e in zip(self.mean, d, strict=True)]
-                self.var += a * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - self.var)
+                self.mean = [fx, fy, fz]
+            else:  # (three floats, not arrays: a step's few numbers)
+                mx, my, mz = self.mean
+                dx, dy, dz = fx - mx, fy - my, fz - mz
+                self.mean = [mx + a * dx, my + a * dy, mz + a * dz]
+                self.var += a * (dx * dx + dy * dy + dz * dz - self.var)
         # and the filter itself no longer sees the chair accelerate (a smooth stop looks
         # quiet to the averages before it is over), or the quiet has outlasted any of the
         # base's accelerations (three of their correlation times): then an acceleration the
         # filter still holds is a tilt it mistook for one, and only stillness tells it so
-        quiet = self.w < st.still_gyro_dps * DEG and self.var < 3.0 * self.quiet_accel_g**2
+        quiet_g = self.quiet_accel_g
+        if quiet_g != self._limits_for:  # (the thresholds, kept while the quiet level is)
+            self._limits_for = quiet_g
+            self._limits = (3.0 * quiet_g**2, (2.0 * quiet_g * G) ** 2)
+        var_limit, accel_limit = self._limits
+        quiet = self.w < self._gyro_limit_rad_s and self.var < var_limit
         self.quiet_s = self.quiet_s + dt if quiet else 0.0
         ax, ay, az = x[n + 2:n + 5]  # accel_B
-        self.still = quiet and (ax * ax + ay * ay + az * az < (2.0 * self.quiet_accel_g * G) ** 2
-                                or self.quiet_s >= 3.0 * st.base_accel_tau_s)
+        self.still = quiet and (ax * ax + ay * ay + az * az < accel_limit
+                                or self.quiet_s >= self._quiet_outlasts_s)
 
     def imu_agrees(self, t: float, nis: float, gate_ok: bool) -> bool:
         """The IMU accelerometer's NIS, averaged over 0.2 s: a chair that sets off smoothly

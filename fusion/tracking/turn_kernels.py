@@ -57,3 +57,12 @@ def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def cross_vec(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a x b`` of two 3-vectors (float), ``(3,)``."""
     return np.array(cross3(*a.tolist(), *b.tolist()))
+
+
+def turned_back(v: np.ndarray, a: np.ndarray, s: float) -> np.ndarray:
+    """``v - s (a x v)`` of two 3-vectors (float), ``(3,)``: a reading ``v`` turned back by a
+    rate ``a`` over ``s``. :func:`cross_vec`'s product and NumPy's scaled difference, element
+    by element in floats (one array made, not three), so the same numbers."""
+    v0, v1, v2 = v.tolist()
+    c0, c1, c2 = cross3(*a.tolist(), v0, v1, v2)
+    return np.array([v0 - s * c0, v1 - s * c1, v2 - s * c2])
