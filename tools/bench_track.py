@@ -41,8 +41,6 @@ from armfusion.fusion.tracking.tracker import (  # noqa: E402
     ENC,
     GYRO,
     MAG,
-    BaseTurn,
-    JointMotion,
     causal_fits,
     make_frames,
     start_from_recording,
@@ -96,6 +94,9 @@ def filterpy_baseline(arm, rec: Recording, steps: int, model: str = "numpy"):
     fit = causal_fits(t, q_enc, st.encoder_window, st.encoder_order)
     w_B = tr.readings.models[GYRO].from_counts(gyro.values) @ tr.R_0I.T
     wfit = causal_fits(gyro.t_s, w_B, st.gyro_window, st.gyro_order)
+    # imported here: the speed tools load this module beside older revisions of the package
+    from armfusion.fusion.tracking.tracker import BaseTurn, JointMotion
+
     frames = make_frames(arm, tr.accel_names, JointMotion(fit[idx, 0], fit[idx, 1], fit[idx, 2]),
                          x0[L.offset], BaseTurn(w_B[idx] - x0[L.bias], wfit[idx, 1]))
     sel = np.arange(len(tr.accel_streams))
