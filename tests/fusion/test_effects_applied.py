@@ -5,7 +5,7 @@ effect the tracker has no code for is never reported as applied."""
 from __future__ import annotations
 
 from armfusion.fusion.configfile import load_arm
-from armfusion.fusion.tracking.calibrated import (
+from armfusion.fusion.calibration import (
     APPLIED,
     NOT_APPLIED,
     UNKNOWN_EFFECT,
