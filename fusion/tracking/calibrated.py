@@ -18,7 +18,13 @@ from armfusion.fusion.calibration import AffineMap, Calibration
 from armfusion.fusion.tracking.settings import GYRO, IMU_ACC, MAG
 from armfusion.models.arm import ArmModel
 from armfusion.models.effects import JointEffect, Model, model_from_arm
-from armfusion.models.effects.library import EncoderScale, GyroScale, MagHardIron, MotionAcceleration, TimeOffset
+from armfusion.models.effects.library import (
+    EncoderScale,
+    GyroScale,
+    MagHardIron,
+    MotionAcceleration,
+    TimeOffset,
+)
 from armfusion.models.rotations import up_from_tilt
 from armfusion.models.sensor_models import StreamModel, stream_models
 

@@ -62,7 +62,8 @@ def test_the_calibration_undoes_a_reading_at_the_temperature_it_was_taken(drifti
     the wrong temperature it is off by the drift it did not undo."""
     cal = startup_correction(drifting, 25.0)
     assert isinstance(cal, Calibration) and cal.drifts_with_temperature
-    (seen_31, ideal_31), (seen_43, ideal_43) = _seen_and_ideal(drifting, 31.0), _seen_and_ideal(drifting, 43.0)
+    seen_31, ideal_31 = _seen_and_ideal(drifting, 31.0)
+    seen_43, ideal_43 = _seen_and_ideal(drifting, 43.0)
     np.testing.assert_allclose(cal.ideal("acc1", seen_31, 31.0), ideal_31, atol=1e-12)
     np.testing.assert_allclose(cal.ideal("acc1", seen_43, 43.0), ideal_43, atol=1e-12)
     batch = cal.ideal("acc1", np.array([seen_31, seen_43]), np.array([31.0, 43.0]))
@@ -91,7 +92,8 @@ def test_the_calibration_says_truthfully_what_the_tracker_applies(arm):
     bias = build_effect(arm, AccelBias.name, "acc2")
     mount = build_effect(arm, BaseMount.name, arm.imu.name)
     wobble = AccelWobble(arm, "acc3")
-    applied, not_applied = Calibration(model_from_arm(arm).with_effects([bias, mount, wobble])).effects_applied()
+    model = model_from_arm(arm).with_effects([bias, mount, wobble])
+    applied, not_applied = Calibration(model).effects_applied()
     assert bias.block_name in applied
     assert f"{mount.block_name} ({PARTLY_APPLIED[BaseMount.name]})" in applied
     assert "not to its gyro and compass" in PARTLY_APPLIED[BaseMount.name]
