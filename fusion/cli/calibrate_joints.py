@@ -36,6 +36,7 @@ from armfusion.fusion.startup.solve import (
     solve_still,
 )
 from armfusion.fusion.startup.static import StaticDetectionSettings, find_static_segments
+from armfusion.models.effects.library import TemperatureDrift
 from armfusion.models.sensor_models import encoder_angles_at, mpu9150_temperature_c, stream_models
 from rich.markup import escape
 from rich.table import Table
@@ -78,7 +79,7 @@ def calibrate_joints(
     out = []
     temp = rec.get("imu_temp")
     corr, temperature_c = _correction_with_notes(arm, temp, notes)
-    drifts = any(e.name == "temperature_drift" for e in corr.model.effects)
+    drifts = any(e.name == TemperatureDrift.name for e in corr.model.effects)
     by_temperature = {round(temperature_c, 1): corr}
     enc = rec.get("enc")
     carried: tuple[StartupResult, np.ndarray] | None = None  # last answer, encoder angles then

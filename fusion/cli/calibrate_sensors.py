@@ -52,6 +52,7 @@ from armfusion.fusion.identification.identify import (
     with_encoder_zeros,
 )
 from armfusion.models.effects import EFFECTS, Model, all_effects, model_from_arm
+from armfusion.models.effects.library import MagHardIron, MagSoftIron
 from armfusion.models.simulator import REALISTIC_EXCLUDE, drawn_by_default
 from armfusion.sensors.output_files import write_text_replacing
 from rich.table import Table
@@ -295,7 +296,7 @@ def _with_compass_from_drive(cfg: dict, drive: Path, rec, json_out: bool) -> tup
         fail(f"--compass-drive {drive}: {e}")
     if entries is None:
         return cfg, line
-    kept = [e for e in cfg.get("effects", []) if e.get("effect") not in ("mag_hard_iron", "mag_soft_iron")]
+    kept = [e for e in cfg.get("effects", []) if e.get("effect") not in (MagHardIron.name, MagSoftIron.name)]
     return {**cfg, "effects": kept + entries}, line
 
 

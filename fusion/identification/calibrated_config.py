@@ -9,6 +9,7 @@ import numpy as np
 from armfusion.fusion.identification.result import Identification
 from armfusion.models.effects import entries_from_model
 from armfusion.models.effects.base import SensorEffect
+from armfusion.models.effects.library import JointOffset
 
 CONVENTION_SHARE = 0.1
 """A held element whose prior carries at least this share of a joint zero's variance (its
@@ -79,7 +80,7 @@ def config_with_estimates(config_data: dict, result: Identification,
     cm = result.calibrated_model()
     entries = entries_from_model(cm, cm.x0)
     if not include_joint_offsets:
-        entries = [e for e in entries if e["effect"] != "joint_offset"]
+        entries = [e for e in entries if e["effect"] != JointOffset.name]
     for e in entries:
         b = cm.block(f"{e['target']}.{e['effect']}")
         sl = cm.index[b.name]

@@ -5,19 +5,24 @@ on the startup's geometric joint angles."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
+from armfusion.fusion.calibration import COMPASS_MAP_EFFECTS, GYRO_MAP_EFFECTS, Calibration
 from armfusion.models.arm import ArmModel
 from armfusion.models.effects import Model, model_from_arm
 from armfusion.models.effects.base import Context, JointEffect, SensorEffect
+from armfusion.models.effects.library import JointOffset, TemperatureDrift
 from armfusion.models.motion import MotionState
 from armfusion.models.rotations import DEG
 
 
 @dataclass(frozen=True)
-class StartupCorrection:
-    """A calibrated config's effects, as the startup calibration needs them.
+class StartupCorrection(Calibration):
+    """A calibrated config's effects, as the startup calibration needs them: a
+    :class:`armfusion.fusion.calibration.Calibration` (per stream, the affine map of its
+    sensor-stage effects, its temperature slope and its spread, applied by ``ideal``) with
+    the startup's own uses of it.
 
     * ``readings(r)``: averaged still readings (g, sensor axes) back to what an ideal sensor
       on its nominal mount would read: every sensor-stage effect of an accelerometer
@@ -30,25 +35,6 @@ class StartupCorrection:
       joint-stage effects (offsets, sag, play) map the controller's angles to them, and
       this inverts that map (fixed point, three passes).
     """
-
-    model: Model
-    temperature_c: float = 25.0
-    maps: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    spread: dict[str, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
-    """Per stream, the map with each calibrated element moved by its σ: how uncertain the
-    correction itself is, added to each reading's σ (along the reading's own direction)."""
-    spread_given_conventions: dict[str, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
-    """The same, given the calibration's joint-zero conventions (``calibration.
-    identified.joint_zero_conventions``: the elements it held to fix a gauge, such as the
-    frame accelerometer's bias along a still base's only horizontal joint axis): what is
-    uncertain in the correction *relative to* the convention every calibrated joint zero
-    and mount was fitted in. A tracker that keeps that convention takes this as the doubt
-    of its IMU's corrected reading; the convention's own σ is the absolute zero's, in
-    :attr:`spread`."""
-
-    offset_per_c: dict[str, np.ndarray] = field(default_factory=dict)
-    """Per stream with a calibrated ``temperature_drift``, how its map's offset ``c`` moves per
-    °C (its drift through the linear part of the effects after it): ``dc/dT = L_after θ``."""
 
     def given_conventions(self) -> StartupCorrection:
         """This correction with its doubt taken relative to the calibration's joint-zero
@@ -70,7 +56,8 @@ class StartupCorrection:
         return StillReadings(means, sigmas, imu_m, imu_s, r.t_start_s, r.t_end_s)
 
     def readings_one(self, stream: str, mean_g: np.ndarray) -> np.ndarray:
-        """One still reading of ``stream`` (g, sensor axes) corrected, as :meth:`readings`."""
+        """One still reading of ``stream`` (g, sensor axes) corrected, as :meth:`readings`
+        (the map solved for this one reading rather than its inverse applied)."""
         if stream not in self.maps:
             return np.asarray(mean_g, float)
         L, c = self.maps[stream]
@@ -79,11 +66,9 @@ class StartupCorrection:
     def _undo(self, stream, mean, sigma):
         if stream not in self.maps:
             return mean, sigma
-        L, c = self.maps[stream]
-        Li = np.linalg.inv(L)
         m = np.asarray(mean, float)
-        y = Li @ (m - c)
-        var = (Li**2) @ (np.asarray(sigma, float) ** 2)
+        y = self.ideal(stream, m)
+        var = (self.undo_map(stream)[0].T ** 2) @ (np.asarray(sigma, float) ** 2)
         for L1, c1 in self.spread.get(stream, ()):
             var = var + (np.linalg.solve(L1, m - c1) - y) ** 2
         return y, np.sqrt(var)
@@ -157,15 +142,6 @@ class StartupCorrection:
         return q.reshape(np.shape(q_geom_rad))
 
 
-COMPASS_MAP_EFFECTS = ("mag_soft_iron", "mag_hard_iron")
-"""The compass effects that are a fixed affine map of its reading (the tracker undoes them)."""
-GYRO_MAP_EFFECTS = ("gyro_scale", "gyro_bias")
-"""The gyro effects the tracker undoes on its readings. Not ``base_mount``: fitted on a parked
-chair it is the rotation that best explains gravity in the IMU accelerometer (it trades
-against the base's attitude), and applied to the gyro it turned the chair's yaw rate into
-tilt rates (the realistic WMRA's j2 0.042 -> 0.088 deg RMS, within 3 sigma 100 -> 97.4 %)."""
-
-
 def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
                        include_joint_offsets: bool = False) -> StartupCorrection:
     """The correction the startup calibration applies for ``arm``'s config effects.
@@ -176,7 +152,7 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
     """
     model = model_from_arm(arm)
     if not include_joint_offsets:
-        model = model.without([e.block_name for e in model.effects if e.name == "joint_offset"])
+        model = model.without([e.block_name for e in model.effects if e.name == JointOffset.name])
     accel = [s.name for s in arm.link_accelerometers] + (["imu_acc"] if arm.imu is not None else [])
     th = model.unpack()
     cov = arm.calibration.correction_covariance
@@ -203,7 +179,7 @@ def startup_correction(arm: ArmModel, temperature_c: float = 25.0,
             return (y[1:] - y[0]).T, y[0]
 
         maps[s] = affine(th)
-        drift = next((e for e in effs if e.name == "temperature_drift"), None)
+        drift = next((e for e in effs if e.name == TemperatureDrift.name), None)
         if drift is not None:  # the offset's slope: the drift through what comes after it
             after = effs[effs.index(drift) + 1:]
             slope = affine(th, effs=after)[0] @ np.asarray(th[drift.block_name], float)

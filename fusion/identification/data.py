@@ -20,6 +20,7 @@ from armfusion.fusion.identification.stances import parked_stances  # importable
 from armfusion.fusion.identification.starts import start_poses  # importable from here too
 from armfusion.models.arm import ArmModel
 from armfusion.models.effects import Model, build_effect
+from armfusion.models.effects.library import JointOffset
 from armfusion.models.motion import MotionState
 from armfusion.models.rotations import DEG
 from armfusion.models.sensor_models import stream_models
@@ -452,7 +453,7 @@ def with_encoder_zeros(model: Model, sigma_rad: float = ENCODER_ZERO_SIGMA_RAD) 
     """The model plus a ``joint_offset`` on every joint that lacks one (the recording's unknown
     encoder zeros), prior σ ``sigma_rad`` on all of them."""
     arm = model.arm
-    extra = [build_effect(arm, "joint_offset", j) for j in arm.joint_names
+    extra = [build_effect(arm, JointOffset.name, j) for j in arm.joint_names
              if f"{j}.joint_offset" not in model.index]
     sig = {f"{j}.joint_offset": np.array([sigma_rad]) for j in arm.joint_names}
     return model.with_effects(extra, sigmas=sig)

@@ -18,6 +18,26 @@ from dataclasses import dataclass
 import numpy as np
 from armfusion.fusion.identification.problem import ATTITUDE
 from armfusion.fusion.identification.settings import IdentifySettings
+from armfusion.models.effects.library import (
+    AccelAxes,
+    AccelBias,
+    AccelScale,
+    Backlash,
+    BaseMount,
+    EncoderScale,
+    GyroBias,
+    GyroScale,
+    JointOffset,
+    LinkCompliance,
+    MagArmDisturbance,
+    MagHardIron,
+    MagSoftIron,
+    MotionAcceleration,
+    MountRotation,
+    TemperatureDrift,
+    TimeDrift,
+    TimeOffset,
+)
 
 
 @dataclass(frozen=True)
@@ -32,32 +52,32 @@ class Hold:
 
 
 _SUGGEST = {
-    "joint_offset": "move the joints between {j} and the sensor so that {j}'s axis turns in the "
-                    "sensor's frame, or tilt {j}'s axis away from vertical",
-    "mount_rotation": "turn the sensor about each of its axes (move the joints just before it)",
-    "accel_axes": "turn the sensor so that every axis points up and down in turn",
-    "accel_bias": "turn the sensor so that each axis sees gravity both up (+1 g) and down (-1 g)",
-    "accel_scale": "turn the sensor so that each axis sees gravity both up (+1 g) and down (-1 g)",
-    "temperature_drift": "record while the electronics warm up (a temperature change of 10 °C or more)",
-    "base_mount": "park the chair on a ramp facing up, down and across (renk-ramp) so the base "
-                  "attitude and the IMU's mount separate; its angle about the first joint's axis no "
-                  "tilt can separate from that joint's zero: read the base's tilt with an "
-                  "inclinometer in the first stance (calibrate sensors --base-tilt)",
-    "gyro_bias": "hold the chair still for a while (the gyro bias is its reading at rest)",
-    "gyro_scale": "turn the chair on the spot (a full turn both ways at 30 °/s or more)",
-    "mag_hard_iron": "turn the chair on the spot through a full circle (the compass readings "
-                     "trace a circle around the hard iron)",
-    "mag_soft_iron": "turn the chair through a full circle and tilt it (the readings trace an "
-                     "ellipsoid)",
-    "mag_arm_disturbance": "move {j} through its range while the chair is still",
-    "link_compliance": "move {j} so that its gravity torque changes sign and size",
-    "backlash": "move {j} so that its gravity torque changes sign",
-    "encoder_scale": "move {j} through most of its range",
-    "motion_acceleration": "swing the joints before the sensor fast (centripetal and tangential "
-                           "acceleration)",
-    "time_offset": "move faster: a time offset is seen only through the rate of change",
-    "time_drift": "move fast both early and late in the recording: a drifting offset is seen through "
-                  "the rate of change, at different times",
+    JointOffset.name: "move the joints between {j} and the sensor so that {j}'s axis turns in the "
+                      "sensor's frame, or tilt {j}'s axis away from vertical",
+    MountRotation.name: "turn the sensor about each of its axes (move the joints just before it)",
+    AccelAxes.name: "turn the sensor so that every axis points up and down in turn",
+    AccelBias.name: "turn the sensor so that each axis sees gravity both up (+1 g) and down (-1 g)",
+    AccelScale.name: "turn the sensor so that each axis sees gravity both up (+1 g) and down (-1 g)",
+    TemperatureDrift.name: "record while the electronics warm up (a temperature change of 10 °C or more)",
+    BaseMount.name: "park the chair on a ramp facing up, down and across (renk-ramp) so the base "
+                    "attitude and the IMU's mount separate; its angle about the first joint's axis no "
+                    "tilt can separate from that joint's zero: read the base's tilt with an "
+                    "inclinometer in the first stance (calibrate sensors --base-tilt)",
+    GyroBias.name: "hold the chair still for a while (the gyro bias is its reading at rest)",
+    GyroScale.name: "turn the chair on the spot (a full turn both ways at 30 °/s or more)",
+    MagHardIron.name: "turn the chair on the spot through a full circle (the compass readings "
+                      "trace a circle around the hard iron)",
+    MagSoftIron.name: "turn the chair through a full circle and tilt it (the readings trace an "
+                      "ellipsoid)",
+    MagArmDisturbance.name: "move {j} through its range while the chair is still",
+    LinkCompliance.name: "move {j} so that its gravity torque changes sign and size",
+    Backlash.name: "move {j} so that its gravity torque changes sign",
+    EncoderScale.name: "move {j} through most of its range",
+    MotionAcceleration.name: "swing the joints before the sensor fast (centripetal and tangential "
+                             "acceleration)",
+    TimeOffset.name: "move faster: a time offset is seen only through the rate of change",
+    TimeDrift.name: "move fast both early and late in the recording: a drifting offset is seen through "
+                    "the rate of change, at different times",
     "attitude": "the base attitude: tilt the chair, or turn it on the spot for the heading",
 }
 
@@ -76,17 +96,17 @@ def suggestion_for(element: str, partners: Sequence[str] = ()) -> str:
     if "{j}" in text and not target.startswith("j"):
         js = [_element_effect(p)[1] for p in partners if _element_effect(p)[1].startswith("j")]
         j = js[0] if js else "the joint"
-    zeros = [_element_effect(p)[1] for p in partners if _element_effect(p)[0] == "joint_offset"]
-    if effect == "joint_offset" and any(_element_effect(p)[0] == "mount_rotation" for p in partners):
+    zeros = [_element_effect(p)[1] for p in partners if _element_effect(p)[0] == JointOffset.name]
+    if effect == JointOffset.name and any(_element_effect(p)[0] == MountRotation.name for p in partners):
         zeros = [target]
-        effect = "mount_rotation"
-    if effect == "mount_rotation" and zeros:
+        effect = MountRotation.name
+    if effect == MountRotation.name and zeros:
         # a gauge: the sensor turned about the joint's axis and the joint's zero turned back
         # read the same in every motion; only an outside reference of the angle separates them
         return (f"no motion separates it from {zeros[0]}'s zero: give {zeros[0]}'s angle once, at a "
                 f"mechanical index or a pose the installer confirms (calibrate sensors --reference "
                 f"{zeros[0]}=DEG)")
-    if effect == "base_mount" and zeros:
+    if effect == BaseMount.name and zeros:
         text += f", or give {zeros[0]}'s angle once (calibrate sensors --reference {zeros[0]}=DEG)"
     return text.format(j=j)
 

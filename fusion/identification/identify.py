@@ -84,6 +84,7 @@ from armfusion.fusion.identification.stances import parked_stances
 from armfusion.fusion.identification.starts import start_pose
 from armfusion.fusion.identification.truth import compare_with_truth, truth_values
 from armfusion.models.effects import Model
+from armfusion.models.effects.library import JointOffset
 
 __all__ = [
     "ATTITUDE", "ATTITUDE_LABELS", "ATTITUDE_SIGMA_RAD", "COMPASS_MAP_EFFECTS", "ENCODER_ZERO_SIGMA_RAD",
@@ -352,7 +353,7 @@ def identify_recentred(model: Model, data: FitData, streams: Sequence[str] | Non
     its bound, fold the offsets into ``q_ref`` and fit again. Returns the last fit and data."""
     res = identify(model, data, streams, settings, progress=progress)
     for _ in range(passes - 1):
-        jo = [b for b in model.blocks if b.effect == "joint_offset"]
+        jo = [b for b in model.blocks if b.effect == JointOffset.name]
         near = [b for b in jo if abs(res.model_x[model.index[b.name]][0]) > 0.5 * b.upper[0]]
         if not near:
             break

@@ -54,6 +54,7 @@ from armfusion.fusion.startup.moves import MAX_MOVE_DEG, moves_within_limits
 from armfusion.models.arm import ArmModel
 from armfusion.models.effects import Model
 from armfusion.models.effects.base import JointEffect, SensorEffect
+from armfusion.models.effects.library import EncoderScale
 from armfusion.models.kinematics import chain_poses
 from armfusion.models.motion import MotionState
 from armfusion.models.rotations import DEG
@@ -267,7 +268,7 @@ def startup_elements(model: Model) -> set[str]:
     names = model.element_names()
     out = set()
     for e in model.effects:
-        if (isinstance(e, JointEffect) or e.name == "encoder_scale"
+        if (isinstance(e, JointEffect) or e.name == EncoderScale.name
                 or (isinstance(e, SensorEffect) and streams & set(e.streams))):
             sl = model.index[e.block_name]
             out |= set(names[sl.start:sl.stop])

@@ -18,6 +18,7 @@ import numpy as np
 from armfusion.fusion.identification.data import FitData
 from armfusion.fusion.identification.references import ReferenceRows
 from armfusion.models.effects import Model
+from armfusion.models.effects.library import EncoderScale
 from armfusion.models.motion import MotionState
 from armfusion.models.rotations import DEG, R_from_rpy
 
@@ -97,7 +98,7 @@ class FitProblem:
         # -(encoder angle)/(1 + s)²
         self.enc_scale: list[tuple[int, int, str | None]] = []
         for e in model.effects:
-            if encoder_scale and e.name == "encoder_scale":
+            if encoder_scale and e.name == EncoderScale.name:
                 off = f"{e.target}.joint_offset"
                 self.enc_scale.append((model.index[e.block_name].start, e.j,
                                        off if off in model.index else None))

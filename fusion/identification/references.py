@@ -16,6 +16,7 @@ import numpy as np
 from armfusion.fusion.identification.data import FitData, JointReference
 from armfusion.models.effects import Model
 from armfusion.models.effects.base import JointEffect
+from armfusion.models.effects.library import EncoderScale
 from armfusion.models.rotations import wrap_angle
 
 
@@ -59,7 +60,7 @@ class ReferenceRows:
         near = np.array([int(np.argmin(np.abs(t_pts - 0.5 * (r.t_start_s + r.t_end_s)))) for r in refs])
         cols: list[int] = []
         for e in model.effects:
-            if isinstance(e, JointEffect) or (encoder_scale and e.name == "encoder_scale"):
+            if isinstance(e, JointEffect) or (encoder_scale and e.name == EncoderScale.name):
                 sl = model.index[e.block_name]
                 cols += range(sl.start, sl.stop)
         cols += range(model.size, size)

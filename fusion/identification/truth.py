@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 from armfusion.fusion.identification.result import Identification
 from armfusion.fusion.startup.static import find_static_segments
+from armfusion.models.effects.library import JointOffset
 from armfusion.models.motion import MotionState
 from armfusion.models.simulator import build_model as true_model
 
@@ -22,7 +23,7 @@ def truth_values(result: Identification, truth: dict) -> dict[str, float]:
     zero = np.asarray(truth.get("encoder_zero_rad", np.zeros(m.arm.n_joints)), float)
     for b in m.blocks:
         v = true_blocks.get(b.name, np.zeros(b.size))
-        if b.effect == "joint_offset":
+        if b.effect == JointOffset.name:
             j = m.arm.joint_names.index(b.target)
             v = v + (zero[j] - result.q_ref_rad[j])
         for lab, x in zip(b.labels, v, strict=True):

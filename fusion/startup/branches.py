@@ -18,6 +18,7 @@ from armfusion.fusion.startup.prior import StartupPrior
 from armfusion.fusion.startup.problem import StillWindowProblem, batched_lm
 from armfusion.fusion.startup.settings import StartupSettings
 from armfusion.models.arm import ArmModel
+from armfusion.models.effects.library import JointOffset
 from armfusion.models.rotations import DEG, skew, tilt_from_up, up_from_tilt, wrap_angle
 
 
@@ -298,13 +299,13 @@ def _zero_offset_sigma_rad(arm: ArmModel) -> np.ndarray:
 
     entries = [entry_dict(e) for e in arm.effects]
     stated = {e.get("target"): (e.get("sigma") or {}).get("offset_rad") for e in entries
-              if e.get("effect") == "joint_offset"}
+              if e.get("effect") == JointOffset.name}
     zero = np.zeros(arm.n_joints)
     for j, name in enumerate(arm.joint_names):
         sig = stated.get(name)
         if sig is None:
             try:
-                sig = build_effect(arm, "joint_offset", name).default_sigma()
+                sig = build_effect(arm, JointOffset.name, name).default_sigma()
             except TargetError:
                 sig = [0.0]
         zero[j] = float(np.ravel(np.asarray(sig, float))[0])

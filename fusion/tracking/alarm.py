@@ -44,7 +44,15 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from armfusion.fusion.tracking.alarm_naming import FLOOR_G, name_shift, onset
+from armfusion.fusion.tracking.alarm_naming import (
+    ACCEL_EFFECTS,
+    BIAS_JUMP,
+    FLOOR_G,
+    HARD_IRON,
+    MOUNT_ROTATION,
+    name_shift,
+    onset,
+)
 from armfusion.fusion.tracking.tracker_kernels import add_block_sums
 from armfusion.models.rotations import DEG
 
@@ -78,8 +86,8 @@ sensor alone."""
 HARD_IRON_AFTER_S = 20.0
 """A compass disturbed this long without a break (s) has gained hard iron."""
 
-EFFECTS = ("mount_rotation", "bias_jump", "hard_iron")
-UNITS = {"mount_rotation": "deg", "bias_jump": "g", "hard_iron": "uT"}
+EFFECTS = (*ACCEL_EFFECTS, HARD_IRON)
+UNITS = {MOUNT_ROTATION: "deg", BIAS_JUMP: "g", HARD_IRON: "uT"}
 """Each effect's size unit."""
 
 
@@ -395,7 +403,7 @@ class ModelChangeAlarm:
             self.raised.append(alarm)
         else:  # the same change, named better: the log keeps one entry for it
             self.raised[self.raised.index(old)] = alarm
-        size_g = n.size * DEG if n.effect == "mount_rotation" else n.size  # a rotation's force, g
+        size_g = n.size * DEG if n.effect == MOUNT_ROTATION else n.size  # a rotation's force, g
         self.widen_g2[s] = (WIDEN * size_g) ** 2
 
     def widen(self, sel: np.ndarray, var: np.ndarray) -> None:
@@ -423,8 +431,8 @@ class ModelChangeAlarm:
             self._mag_err = self._mag_err[::2]
         if self.mag_name not in self.active and t - self._mag_since >= HARD_IRON_AFTER_S:
             e = np.abs(np.asarray(self._mag_err))
-            alarm = Alarm(self.mag_name, "hard_iron", float(np.median(e)), float(np.std(e)),
-                          UNITS["hard_iron"],
+            alarm = Alarm(self.mag_name, HARD_IRON, float(np.median(e)), float(np.std(e)),
+                          UNITS[HARD_IRON],
                           round(self._mag_since, 3), round(t, 3))
             self.active[self.mag_name] = alarm
             self.raised.append(alarm)

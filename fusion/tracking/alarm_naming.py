@@ -13,9 +13,20 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from armfusion.models.effects.library import AccelBias, MagHardIron, MountRotation
 from armfusion.models.rotations import DEG, skew
 
-ACCEL_EFFECTS = ("mount_rotation", "bias_jump")
+MOUNT_ROTATION = MountRotation.name
+"""The alarm's name for a board turned on its link: the model's own ``mount_rotation``."""
+BIAS_JUMP = "bias_jump"
+"""The alarm's name for an accelerometer's bias that jumped (the model's ``accel_bias`` changed)."""
+HARD_IRON = "hard_iron"
+"""The alarm's name for a compass whose hard iron changed (the model's ``mag_hard_iron``)."""
+MODEL_EFFECT: dict[str, str] = {MOUNT_ROTATION: MountRotation.name, BIAS_JUMP: AccelBias.name,
+                                HARD_IRON: MagHardIron.name}
+"""Each change the alarm names, with the model effect (:data:`armfusion.models.effects.EFFECTS`)
+whose value it says has changed: what a refit would move."""
+ACCEL_EFFECTS = (MOUNT_ROTATION, BIAS_JUMP)
 """The effects an accelerometer's alarm tells apart."""
 FLOOR_G = 0.004
 """And against this floor (g): what the model leaves in ordinary use, below any alarm."""
@@ -102,7 +113,7 @@ def name_shift(nu_g: np.ndarray, g_pred: np.ndarray, var_g2: np.ndarray) -> Nami
     # is more (the blocks are not white: the filter absorbs part of the change)
     w, sw = blocks.weight, blocks.weight_sum
     dof = max(3 * blocks.count - 3, 1)
-    if effect == "bias_jump":
+    if effect == BIAS_JUMP:
         s2 = max(float((w * np.square(nu_g - bias.mean_g).sum(1)).sum()) / dof, 1.0)
         size, sigma = float(np.linalg.norm(bias.mean_g)), math.sqrt(s2 / sw)
     else:
@@ -219,14 +230,14 @@ def _decide(nu_g: np.ndarray, blocks: _Blocks, turn: _TurnFit,
     evidence_f = (rss_bf - rss_tf) / max(rss_tf / max(3 * N - turn.rank, 1), 1e-30)
     sep_f = int(apart_f.sum()) >= MIN_BLOCKS
     if evidence_b >= chi2.isf(NAME_P, p) and sep_b:
-        return "bias_jump", ("bias_jump",), evidence_b
+        return BIAS_JUMP, (BIAS_JUMP,), evidence_b
     if evidence_m >= chi2.isf(NAME_P, 1) and sep_m:  # (an along shift below the floor is no bias)
-        return "mount_rotation", ("mount_rotation",), evidence_m
+        return MOUNT_ROTATION, (MOUNT_ROTATION,), evidence_m
     if evidence_f >= chi2.isf(NAME_P, 3) and sep_f:
-        return "mount_rotation", ("mount_rotation",), evidence_f
+        return MOUNT_ROTATION, (MOUNT_ROTATION,), evidence_f
     if evidence_b >= chi2.isf(NAME_P, p):  # an along shift, but below what the model leaves
-        return "bias_jump", ("bias_jump", "mount_rotation"), evidence_b
-    return "mount_rotation", ("mount_rotation", "bias_jump"), evidence_m
+        return BIAS_JUMP, (BIAS_JUMP, MOUNT_ROTATION), evidence_b
+    return MOUNT_ROTATION, (MOUNT_ROTATION, BIAS_JUMP), evidence_m
 
 
 def _rms(x: np.ndarray, w: np.ndarray) -> float:

@@ -14,9 +14,17 @@ from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
+from armfusion.fusion.calibration import AffineMap, Calibration
 from armfusion.fusion.tracking.settings import GYRO, IMU_ACC, MAG
 from armfusion.models.arm import ArmModel
 from armfusion.models.effects import JointEffect, Model, model_from_arm
+from armfusion.models.effects.library import (
+    EncoderScale,
+    GyroScale,
+    MagHardIron,
+    MotionAcceleration,
+    TimeOffset,
+)
 from armfusion.models.rotations import up_from_tilt
 from armfusion.models.sensor_models import StreamModel, stream_models
 
@@ -27,7 +35,8 @@ def config_model(arm: ArmModel) -> Model | None:
 
 
 def effect_blocks(model: Model | None, effect: str):
-    """``(effect object, value, sigma)`` of every entry of ``effect`` in ``model`` (flat arrays)."""
+    """``(effect object, value, sigma)`` of every entry of ``effect`` in ``model`` (flat arrays).
+    ``effect`` is an effect class's own ``name`` (``GyroScale.name``), never a copy of it."""
     if model is None:
         return
     values = model.unpack()
@@ -45,7 +54,7 @@ def encoder_scales(arm: ArmModel, model: Model | None) -> tuple[np.ndarray, np.n
     ``1 + s`` times the counts the config's counts per revolution say) and its sigma (0
     where the config has none)."""
     s, sig = np.zeros(arm.n_joints), np.zeros(arm.n_joints)
-    for e, value, sigma in effect_blocks(model, "encoder_scale"):
+    for e, value, sigma in effect_blocks(model, EncoderScale.name):
         if e.target in arm.joint_names:
             j = arm.joint_names.index(e.target)
             s[j], sig[j] = float(value[0]), float(sigma[0])
@@ -57,7 +66,7 @@ def device_time_offsets(model: Model | None) -> dict[str, tuple[float, float]]:
     ``time_offset``: what is stamped t was true at t - offset) and its σ (s). Every stream
     of the device (a link sensor's accelerometer and gyroscope, the IMU's parts) shares it."""
     return {e.target: (float(value[0]), float(sigma[0]))
-            for e, value, sigma in effect_blocks(model, "time_offset")}
+            for e, value, sigma in effect_blocks(model, TimeOffset.name)}
 
 
 def part_delays_s(arm: ArmModel, streams) -> np.ndarray:
@@ -96,7 +105,7 @@ def with_lever_arms(arm: ArmModel, model: Model | None) -> ArmModel:
     """The arm with each sensor where its config's calibrated lever arm puts it (the
     ``motion_acceleration`` effects: an offset in the link's axes), so that the motion the
     tracker predicts at a sensor (centripetal, tangential) is at the right point."""
-    shift = {e.target: value for e, value, _ in effect_blocks(model, "motion_acceleration")
+    shift = {e.target: value for e, value, _ in effect_blocks(model, MotionAcceleration.name)
              if e.target and value.shape == (3,) and np.any(value)}
     if not shift:
         return arm
@@ -105,70 +114,9 @@ def with_lever_arms(arm: ArmModel, model: Model | None) -> ArmModel:
     return replace(arm, sensors=sensors)
 
 
-APPLIED: dict[str, str] = {
-    "accel_bias": "each accelerometer's reading corrected",
-    "accel_scale": "each accelerometer's reading corrected",
-    "accel_axes": "each accelerometer's reading corrected",
-    "mount_rotation": "each accelerometer's reading corrected",
-    "temperature_drift": "each accelerometer's reading corrected at its temperature",
-    "gyro_bias": "the gyro's reading corrected; the bias state follows what is left and its drift",
-    "gyro_scale": "the gyro's reading corrected",
-    "mag_hard_iron": "the compass's reading corrected",
-    "mag_soft_iron": "the compass's reading corrected",
-    "mag_arm_disturbance": "the arm's steel's field at the compass, with the joints' angles",
-    "joint_offset": "the joints' zeros: the startup finds them (relative encoders)",
-    "link_compliance": "in the kinematics",
-    "backlash": "in the kinematics",
-    "encoder_scale": "each encoder's counts per radian",
-    "motion_acceleration": "each sensor's lever arm",
-    "time_offset": "each device read at the instant its samples were true",
-    "base_mount": "the base IMU's accelerometer corrected",
-}
-"""The config's effects the tracker applies, and where (the code that reads each is named
-by :func:`effect_blocks` calls with its name in this module, ``setup``, ``compass`` and
-:func:`armfusion.fusion.identification.correction.startup_correction`)."""
-NOT_APPLIED: dict[str, str] = {
-    "time_drift": "the tracker reads each device at its constant time offset; the offset's drift is "
-                  "not applied",
-}
-"""The config's effects the tracker does not apply, and why (a drifting time offset's rate)."""
-PARTLY_APPLIED: dict[str, str] = {
-    "base_mount": ("applied to the IMU's accelerometer, not to its gyro and compass (a parked fit's "
-                   "mount is gravity's)"),
-}
-IMU_PARTLY_APPLIED: dict[str, str] = {
-    "time_offset": "applied to the IMU's accelerometer, not to its gyro and compass",
-}
-"""Effects applied in part where their target is the base IMU, and what is left out."""
-UNKNOWN_EFFECT = "the tracker has no code for this effect: not applied"
-
-
-def effects_applied(model: Model | None) -> tuple[list[str], list[str]]:
-    """The config's effects the tracker applies (their block names, with a word where only
-    in part), and those it does not, each with why: what its notes say. An effect the
-    tracker does not know (in none of :data:`APPLIED`, :data:`NOT_APPLIED`) is said not
-    applied, never assumed to be."""
-    if model is None:
-        return [], []
-    applied, not_applied = [], []
-    imu = model.arm.imu.name if model.arm.imu is not None else None
-    for e in model.effects:
-        if e.name in IMU_PARTLY_APPLIED and e.target == imu:
-            applied.append(f"{e.block_name} ({IMU_PARTLY_APPLIED[e.name]})")
-        elif e.name in NOT_APPLIED:
-            not_applied.append(f"{e.block_name} ({NOT_APPLIED[e.name]})")
-        elif e.name in PARTLY_APPLIED:
-            applied.append(f"{e.block_name} ({PARTLY_APPLIED[e.name]})")
-        elif e.name in APPLIED:
-            applied.append(e.block_name)
-        else:
-            not_applied.append(f"{e.block_name} ({UNKNOWN_EFFECT})")
-    return applied, not_applied
-
-
 def hard_iron_sigma_ut(model: Model | None) -> np.ndarray | None:
     """The sigma (µT, per compass axis) of the config's ``mag_hard_iron``; None without one."""
-    for _, _, sigma in effect_blocks(model, "mag_hard_iron"):
+    for _, _, sigma in effect_blocks(model, MagHardIron.name):
         return sigma
     return None
 
@@ -181,7 +129,7 @@ def heading_scale_sigma(arm: ArmModel, model: Model | None, default: float, any_
     the config says its IMU is not exact (its unmodelled error above zero), else 0."""
     if arm.imu is None:
         return default
-    for _, _, sigma in effect_blocks(model, "gyro_scale"):
+    for _, _, sigma in effect_blocks(model, GyroScale.name):
         if any_axis:
             return float(np.sqrt(np.mean(np.asarray(sigma, float) ** 2)))
         return float(np.sqrt(np.sum((np.asarray(arm.imu.R_LS)[2] * sigma) ** 2)))
@@ -191,30 +139,30 @@ def heading_scale_sigma(arm: ArmModel, model: Model | None, default: float, any_
     return default if arm.calibration.imu_accel_floor_g > 0.0 else 0.0
 
 
-def undo_map(correction, stream: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """The map that undoes ``correction``'s calibrated errors of ``stream``, ``(A, c)``: the
-    ideal sensor's reading is ``(y - c) @ A`` for readings ``y (N, 3)`` in SI units; None
-    where the correction has none."""
-    m = None if correction is None else correction.maps.get(stream)
-    return None if m is None else (np.linalg.inv(m[0]).T, np.asarray(m[1], float))
+def undo_map(correction: Calibration | None, stream: str) -> AffineMap | None:
+    """The map that undoes ``correction``'s calibrated errors of ``stream``, ``(A, c)``
+    (:meth:`armfusion.fusion.calibration.Calibration.undo_map`); None without a correction."""
+    return None if correction is None else correction.undo_map(stream)
 
 
 class Readings:
-    """Counts to SI units per stream, the correction's calibrated sensor errors (affine:
-    mount, axes, scale, bias; the offset's temperature drift) undone."""
+    """Counts to SI units per stream, the calibration's sensor errors (affine: mount, axes,
+    scale, bias; the offset's temperature drift) undone at the temperature the IMU last read
+    (:meth:`armfusion.fusion.calibration.Calibration.ideal`)."""
 
-    def __init__(self, arm: ArmModel, model: Model | None, correction):
+    def __init__(self, arm: ArmModel, model: Model | None, correction: Calibration | None):
         self.arm = arm
-        self.undo: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self.per_c: dict[str, np.ndarray] = {}
-        self.temperature_ref_c = float(getattr(correction, "temperature_c", 25.0)) if correction else 25.0
+        self.calibration = correction
+        """The config's calibration; None: readings are taken as they are."""
+        self.temperature_ref_c = float(correction.temperature_c) if correction is not None else 25.0
         self.temperature_c = self.temperature_ref_c
         """The latest temperature the IMU read, °C."""
-        if correction is not None:
-            for stream in correction.maps:
-                self.undo[stream] = undo_map(correction, stream)
-            self.per_c = dict(correction.offset_per_c)
         self.models: dict[str, StreamModel] = stream_models(arm)
+
+    @property
+    def drifts_with_temperature(self) -> bool:
+        """Whether any stream's correction depends on the temperature."""
+        return self.calibration is not None and self.calibration.drifts_with_temperature
 
     def set_rates(self, rates_hz: dict[str, float]) -> None:
         """Each stream's model at its rate (which sets its datasheet noise)."""
@@ -224,15 +172,9 @@ class Readings:
         """Counts ``(N, k)`` to SI units, the calibrated errors undone at ``temperature_c``
         (scalar or ``(N,)``, °C; default the latest the IMU read)."""
         y = self.models[s].from_counts(counts)
-        u = self.undo.get(s)
-        if u is None:
+        if self.calibration is None:
             return y
-        c = u[1]
-        slope = self.per_c.get(s)
-        if slope is not None:
-            t_c = self.temperature_c if temperature_c is None else np.asarray(temperature_c, float)
-            c = c + np.multiply.outer(t_c - self.temperature_ref_c, slope)
-        return (y - c) @ u[0]
+        return self.calibration.ideal(s, y, self.temperature_c if temperature_c is None else temperature_c)
 
 
 def joint_effects(correction) -> list:

@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from armfusion.models.effects.library import MagHardIron, MagSoftIron
 
 N_PARAMS = 11
 """c (3), e (6: xx, yy, zz, xy, xz, yz), H, V."""
@@ -288,10 +289,10 @@ def drive_compass_entries(correction_map: tuple[np.ndarray, np.ndarray] | None, 
     e_new = [S[a, b] - (1.0 if a == b else 0.0) for a, b in SOFT_PAIRS]
     note = f"from the chair's turns in {source} (the tracker's online compass calibration)"
     return [
-        {"effect": "mag_hard_iron", "target": target,
+        {"effect": MagHardIron.name, "target": target,
          "params": {"offset_ut": [float(v) for v in c_new]},
          "sigma": {"offset_ut": [float(v) for v in sig_c]}, "note": note},
-        {"effect": "mag_soft_iron", "target": target,
+        {"effect": MagSoftIron.name, "target": target,
          "params": {"matrix_error": [float(v) for v in e_new]},
          "sigma": {"matrix_error": [float(v) for v in sig_e]}, "note": note},
     ]

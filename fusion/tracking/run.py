@@ -257,7 +257,7 @@ def _temperatures(tr, rec: Recording):
     """The IMU's latest temperature reading (°C) at each of some times (the tracker's, before
     any), when the config's corrections depend on it; else a function that gives None."""
     temp = rec.get("imu_temp")
-    if temp is None or not len(temp) or not tr.readings.per_c:
+    if temp is None or not len(temp) or not tr.readings.drifts_with_temperature:
         return lambda t: None
     temp_t, temp_c = temp.t_s, mpu9150_temperature_c(temp.values[:, 0])
     before = tr.readings.temperature_c

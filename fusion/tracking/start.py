@@ -17,7 +17,6 @@ from armfusion.fusion.startup.results import StartupResult
 from armfusion.fusion.startup.settings import StartupSettings
 from armfusion.fusion.startup.static import Segment, StaticDetectionSettings, find_static_segments
 from armfusion.fusion.tracking.branch_motion import branch_by_motion
-from armfusion.fusion.tracking.calibrated import effects_applied
 from armfusion.fusion.tracking.differentiator import prime
 from armfusion.fusion.tracking.filter import Tracker
 from armfusion.fusion.tracking.imu_still import imu_still_from_recording
@@ -430,7 +429,7 @@ def _corrected_readings(arm: ArmModel, rec: Recording, window: _StartupWindow, o
     corr = startup_correction(arm, temperature_c, include_joint_offsets=True)
     if options.sigma_given_conventions:
         corr = corr.given_conventions()
-    applied, not_applied = effects_applied(corr.model)
+    applied, not_applied = corr.effects_applied()
     notes = ["the config's effects applied: " + (", ".join(applied) or "none")]
     if not_applied:
         notes.append("the config's effects NOT applied by the tracker: " + "; ".join(not_applied))

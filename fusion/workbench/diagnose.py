@@ -77,6 +77,7 @@ from armfusion.fusion.workbench.whiteness import (
     worst_stretches,
 )
 from armfusion.models.effects import Effect, Model, build_effect
+from armfusion.models.effects.library import JointOffset
 
 __all__ = [
     "EXCLUDED_CANDIDATES", "FITS_TO_NOISE", "INNOVATIONS_WHITE", "AxisFit", "Candidate", "DiagnoseSettings",
@@ -271,7 +272,7 @@ def diagnose(model: Model, data: FitData, settings: DiagnoseSettings | None = No
     analysis = residual_analysis(R, [(a.stream, a.axis) for a in axes],
                                  fit_inputs(data.state, m.arm.joint_names), dt)
     gauges = tuple(structural_gauges(m, data))
-    bound = tuple(n for b in m.blocks if b.effect != "joint_offset"
+    bound = tuple(n for b in m.blocks if b.effect != JointOffset.name
                   for n in at_bound({el: float(fit.x[m.index[b.name]][q])
                                      for q, el in enumerate(b.element_names())
                                      if not fit.held[m.index[b.name]][q]}, b))
@@ -325,7 +326,7 @@ def _fit(model: Model, data: FitData, streams: Sequence[str], st: DiagnoseSettin
                         streams, st.identify, attitude0_rad,
                         progress=lambda k, _c: say("fitting the model", 0.1 * min(k / max_j, 1.0)))
         zeros = {b.name: pre.x[pre.model.index[b.name]] for b in pre.model.blocks
-                 if b.effect == "joint_offset" and b.name not in model.index}
+                 if b.effect == JointOffset.name and b.name not in model.index}
         model = with_encoder_zeros(model).with_values(zeros)
         attitude0_rad = pre.attitude_rad
     return fit_model(model, data, streams, st.identify, attitude0_rad,

@@ -57,6 +57,7 @@ from armfusion.fusion.workbench.candidates import Candidate, params_words
 from armfusion.fusion.workbench.diagnose import DiagnoseSettings, Diagnosis, add_effects, diagnose
 from armfusion.fusion.workbench.heldout import HeldOut
 from armfusion.models.effects import Model, build_effect
+from armfusion.models.effects.library import AccelAxes, MountRotation
 
 STOP_NOISE = "fits to noise"
 STOP_NOTHING = "nothing significant is left, above the noise: no effect of the library explains the rest"
@@ -65,7 +66,7 @@ STOP_NO_GAIN = "the last effect added did not lower the residual"
 STOP_HELD_OUT = "none of the significant candidates tried lowered the held-out error"
 
 SAME_IN_EVERY_MOTION = {
-    frozenset({"mount_rotation", "accel_axes"}): "a board turned is its three axes turned together: no "
+    frozenset({MountRotation.name, AccelAxes.name}): "a board turned is its three axes turned together: no "
     "motion separates them",
 }
 """Pairs of effects on one sensor one of which contains the other in every recording

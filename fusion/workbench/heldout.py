@@ -24,6 +24,7 @@ from armfusion.fusion.identification.settings import IdentifySettings
 from armfusion.fusion.workbench.gauges import held_elements, structural_gauges
 from armfusion.fusion.workbench.residuals import fit_model
 from armfusion.models.effects import Model
+from armfusion.models.effects.library import JointOffset
 
 HELD_OUT_SHARE = 0.3
 """The share of a recording (its end) judged, not fitted."""
@@ -96,7 +97,7 @@ def judge(fit: Identification, fitted: FitData, held: HeldOut, streams: Sequence
                         encoder_scale=settings.encoder_scale)
     else:
         # another recording: its own encoder zeros and attitude, every effect at the fit's estimate
-        effects = [b.name for b in model.blocks if b.effect != "joint_offset"]
+        effects = [b.name for b in model.blocks if b.effect != JointOffset.name]
         hold = [*effects, *held_elements(structural_gauges(model, data))]
         res = identify(model, data, streams, settings, hold=hold, attitude0_rad=fit.attitude_rad)
         pb = FitProblem(res.model.with_values(res.model_x), data, streams, res.attitude_rad is not None,
@@ -125,7 +126,7 @@ def as_it_is(model: Model, fitted: FitData, held: HeldOut, streams: Sequence[str
     """The config as it is (every effect at its value), judged on ``held``: only the
     recording's encoder zeros and the base attitude fitted, on ``fitted``. What a written
     config must not be worse than."""
-    effects = [b.name for b in model.blocks if b.effect != "joint_offset"]
+    effects = [b.name for b in model.blocks if b.effect != JointOffset.name]
     fit = fit_model(model, fitted, streams, settings, attitude0_rad, hold=effects)
     return judge(fit, fitted, held, streams, settings)
 

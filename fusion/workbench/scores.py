@@ -32,6 +32,7 @@ from armfusion.fusion.workbench.gauges import (
 )
 from armfusion.fusion.workbench.residuals import problem_at
 from armfusion.models.effects import Effect, Model, all_effects
+from armfusion.models.effects.library import EncoderScale
 
 EXCLUDED_CANDIDATES = frozenset({"enc.time_offset", "enc.time_drift"})
 """The encoders are the time reference: their own delay (and its drift) is every other device's."""
@@ -311,7 +312,7 @@ def _sums(pb: FitProblem, sub: FitData, z: np.ndarray, cols: np.ndarray, G: np.n
     # ``FitProblem`` scales them); the column is the joint's joint_offset column times
     # -(encoder angle)/(1 + s)
     enc = [(b.name, m.effect(b.name).j) for b in m.blocks
-           if b.effect == "encoder_scale" and pos[m.index[b.name].start] >= 0]
+           if b.effect == EncoderScale.name and pos[m.index[b.name].start] >= 0]
     need = {f"{m.arm.joint_names[j]}.joint_offset" for _, j in enc}
     blocks = [b.name for b in m.blocks if np.any(pos[m.index[b.name]] >= 0) or b.name in need]
     st = spb.state(z)

@@ -4,13 +4,13 @@ effect the tracker has no code for is never reported as applied."""
 
 from __future__ import annotations
 
-from armfusion.fusion.configfile import load_arm
-from armfusion.fusion.tracking.calibrated import (
+from armfusion.fusion.calibration import (
     APPLIED,
     NOT_APPLIED,
     UNKNOWN_EFFECT,
     effects_applied,
 )
+from armfusion.fusion.configfile import load_arm
 from armfusion.models.effects import build_effect, model_from_arm
 from armfusion.models.effects.accelerometer import AccelScale
 from armfusion.models.effects.library import EFFECTS
