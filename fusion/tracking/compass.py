@@ -23,6 +23,7 @@ from armfusion.fusion.tracking.turn_kernels import turned_back
 from armfusion.models.arm import ArmModel
 from armfusion.models.effects import Model
 from armfusion.models.effects.imu import dipole_field
+from armfusion.models.effects.library import BaseMount, MagArmDisturbance, MagHardIron, MagSoftIron
 from armfusion.models.kinematics import chain_poses
 from armfusion.models.rotations import DEG, exp_so3_one
 
@@ -63,7 +64,7 @@ def compass_map(arm: ArmModel, correction=None, model: Model | None = None
             from armfusion.fusion.tracking.calibrated import config_model
 
             model = config_model(arm)
-        if not (has_effect(model, "mag_hard_iron") or has_effect(model, "mag_soft_iron")):
+        if not (has_effect(model, MagHardIron.name) or has_effect(model, MagSoftIron.name)):
             return None
         from armfusion.fusion.identification.identify import startup_correction
 
@@ -89,7 +90,7 @@ class ArmSteel:
     def __init__(self, arm: ArmModel, model: Model | None):
         self.arm = arm
         self.dipoles = [(arm.joint_names.index(e.target), value, sigma)
-                        for e, value, sigma in effect_blocks(model, "mag_arm_disturbance")]
+                        for e, value, sigma in effect_blocks(model, MagArmDisturbance.name)]
         if not self.dipoles and arm.imu is not None and arm.calibration.imu_accel_floor_g > 0.0:
             # a config that says nothing of the arm's steel and whose IMU is not exact (sensors
             # as they come): every link's steel unknown at the library's typical size, so its
@@ -141,7 +142,7 @@ def typical_steel(arm: ArmModel) -> list[tuple[int, np.ndarray, np.ndarray]]:
     out = []
     for j, name in enumerate(arm.joint_names):
         try:
-            sigma = build_effect(arm, "mag_arm_disturbance", name).default_sigma()
+            sigma = build_effect(arm, MagArmDisturbance.name, name).default_sigma()
         except TargetError:
             continue
         out.append((j, np.zeros(3), np.asarray(sigma, float)))
@@ -154,7 +155,7 @@ def iron_prior_sigma(arm: ArmModel, model: Model | None) -> np.ndarray | None:
     ``calibration.mag_unmodelled_ut`` with a datasheet-typical soft iron; None when the config
     says its compass is exact (neither)."""
     hard = hard_iron_sigma_ut(model)
-    soft = next((sigma for _, _, sigma in effect_blocks(model, "mag_soft_iron")), None)
+    soft = next((sigma for _, _, sigma in effect_blocks(model, MagSoftIron.name)), None)
     if hard is None:
         u = arm.calibration.mag_unmodelled_ut
         if u <= 0:
@@ -174,7 +175,7 @@ def mount_heading_sigma_rad(arm: ArmModel, model: Model | None) -> float:
     if arm.imu is None:
         return 0.0
     sigma = None
-    for e, _, s in effect_blocks(model, "base_mount"):
+    for e, _, s in effect_blocks(model, BaseMount.name):
         if e.target == arm.imu.name:
             sigma = s
     if sigma is None:
@@ -182,7 +183,7 @@ def mount_heading_sigma_rad(arm: ArmModel, model: Model | None) -> float:
             return 0.0
         from armfusion.models.effects.entries import build_effect
 
-        sigma = build_effect(arm, "base_mount", arm.imu.name).default_sigma()
+        sigma = build_effect(arm, BaseMount.name, arm.imu.name).default_sigma()
     return float(math.sqrt(np.sum((np.asarray(arm.imu.R_LS)[2] * sigma) ** 2)))
 
 

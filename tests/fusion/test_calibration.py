@@ -112,9 +112,6 @@ def test_every_effect_name_the_fusion_code_keys_on_is_one_the_models_know():
 
 
 FUSION = Path(__file__).resolve().parents[2] / "fusion"
-SPELLED_OUT_STILL = {"tracking/compass.py"}
-"""Modules that still spell effect names out (its per-step paths are being reworked; its
-names move to the effect classes' own with them)."""
 
 
 def _effect_names_spelled_out(path: Path) -> list[tuple[int, str]]:
@@ -131,5 +128,4 @@ def _effect_names_spelled_out(path: Path) -> list[tuple[int, str]]:
 def test_the_fusion_code_names_effects_by_their_classes_never_by_a_copied_string():
     spelled = {str(p.relative_to(FUSION)): found for p in sorted(FUSION.rglob("*.py"))
                if (found := _effect_names_spelled_out(p))}
-    assert set(spelled) <= SPELLED_OUT_STILL, spelled
-    assert all(_effect_names_spelled_out(FUSION / m) for m in SPELLED_OUT_STILL)  # the list shrinks
+    assert spelled == {}
