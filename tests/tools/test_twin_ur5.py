@@ -228,21 +228,24 @@ def test_the_fit_reads_the_joints_where_the_controller_says_and_the_true_effects
     assert doc["rms_ratio"] < 1.2 and doc["held_out"]["rms_ratio"] < 1.3, (doc["rms_ratio"], doc["held_out"])
 
 
-def test_a_write_that_tracks_further_off_the_controllers_angles_is_refused(twin_mcap, tmp_path):
+def test_a_turn_about_a_joint_s_axis_is_booked_from_the_encoders_zeros_and_tracks_no_worse(twin_mcap, tmp_path):
     """The twin's own errors added by hand and written: the fit holds each mount's turn about
-    its own joint's axis at zero (the joint's zero takes it), and the tracker with that config
-    puts the shoulder and the elbow further off the controller's angles on the held-out part
-    than the shipped config does. Nothing is written, and the reason names the joints."""
+    its own joint's axis at zero (the joint's zero takes it). The UR5's controller reads each
+    joint's own angle, so the written config moves the joints' zeros back to the encoders' and
+    books the turn to the mount (its header says so); tracked over the held-out part, the
+    shoulder and the elbow are then no further off the controller's angles than with the
+    shipped config. (Booked to the zeros instead, they were 0.2-0.5 deg further off.)"""
     _, rec = twin_mcap
     adds = [f"--add={e}:{s}" for s in ("forearm", "wrist")
             for e in ("accel_scale", "mount_rotation", "time_offset", "time_drift")]
     out = tmp_path / "written.yaml"
     r = runner.invoke(app, ["diagnose", str(rec), "--config", "ur5_two_imu", *adds, "--write", str(out),
                             "--history", str(tmp_path / "h.json"), "--json"])
-    assert r.exit_code == 1, r.output
+    assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout)
-    assert not out.exists() and doc["written"] is None
-    why = doc["write_refused"]
-    assert "elbow's tracked angle is" in why and "off its encoder, which reads the joint's own angle" in why
+    assert out.exists() and doc["write_refused"] is None
+    assert "from the encoders' zeros" in out.read_text()
     t = doc["tracked_held_out"]
-    assert t["written"]["encoder_rms_deg"]["elbow"] > t["as_it_is"]["encoder_rms_deg"]["elbow"]
+    for joint in ("shoulder", "elbow"):
+        # within the write gate's chance floor for one joint (0.01 deg)
+        assert t["written"]["encoder_rms_deg"][joint] <= t["as_it_is"]["encoder_rms_deg"][joint] + 0.01, t
