@@ -190,7 +190,7 @@ def report(rows: list[dict], seconds: float, duration_s: float, load: float | No
         f"{100 * (1 - HELD_OUT_SHARE):.0f} % by `diagnose --discover` and tracked with the shipped and the "
         f"written config; every figure on the held-out last {100 * HELD_OUT_SHARE:.0f} % only. "
         f"{machine_line()}; {seconds:.0f} s in all"
-        + (f", beside other work (load average {load:.1f} on its cores)" if load is not None else "") + ".",
+        + (f", beside other work (the one-minute load average {load:.1f} as it ended)" if load is not None else "") + ".",
         "",
         "| seed | rungs (refused) | held out: first → last rung | written "
         "| forearm pitch RMS ° shipped → written | wrist pitch RMS ° | j4 RMS ° "
