@@ -194,12 +194,13 @@ def measured_on() -> dict:
             "commit": (commit or "unknown") + ("+" if dirty else ""), "machine": machine_line()}
 
 
-def record_headline(name: str, rows: list[dict], path: Path = HEADLINE) -> Path:
+def record_headline(name: str, rows: list[dict], path: Path = HEADLINE, measured: dict | None = None) -> Path:
     """Keep a tool's headline rows (each ``{"what", "armfusion", "baseline"}``: the figure
     in words, ours, and the baseline's in the same run or "" where there is none) under its
-    name in ``docs/headline.json``, with when and where they were measured."""
+    name in ``docs/headline.json``, with when and where they were measured (``measured``: as
+    :func:`measured_on` gave it then, for figures kept from an earlier run; default now)."""
     data = json.loads(path.read_text(encoding="utf-8")) if path.exists() else {}
-    data[name] = {"rows": rows, **measured_on()}
+    data[name] = {"rows": rows, **(measured_on() if measured is None else measured)}
     path.write_text(json.dumps(data, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
     return path
 

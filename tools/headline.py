@@ -30,8 +30,10 @@ TARGETS = {README: "docs/", BENCH_DOC: ""}
 """Each file the table goes into, and the path from it to docs/ (for the links to the pages)."""
 START, END = "<!-- headline:start -->", "<!-- headline:end -->"
 
-ORDER = ("bench_startup_realistic", "bench_track_realistic", "bench_heading_broad", "bench_real_rig")
-"""The sections in the order a reader meets the jobs: startup, tracking, heading, real data."""
+ORDER = ("bench_startup_realistic", "bench_track_realistic", "bench_heading_broad", "bench_real_rig",
+         "bench_workbench_twin")
+"""The sections in the order a reader meets the jobs: startup, tracking, heading, real data,
+the workbench."""
 
 
 def table(data: dict, to_docs: str = "docs/") -> str:
