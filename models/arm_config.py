@@ -55,15 +55,6 @@ def _loc(loc: tuple) -> str:
     return out
 
 
-def _get(data: Any, loc: tuple) -> Any:
-    for part in loc:
-        try:
-            data = data[part]
-        except (KeyError, IndexError, TypeError):
-            return None
-    return data
-
-
 MAX_SENSORS = (CsvLimits.max_columns - 1) // 3
 """Sensors a config may hold: a recording of them fits the recording CSV's columns (``t`` and at
 least three a sensor)."""

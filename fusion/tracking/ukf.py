@@ -229,11 +229,6 @@ class BatchedUKF:
         unscented_moments_into(Y, self._weights, self._angles, x, P, DW)
         self._x, self._P, self._sigmas, self._sigmas_DW = x, P, Y, DW
 
-    def sigma_points_now(self) -> np.ndarray:
-        """The sigma points of the current state: those the last predict propagated when no
-        correction has happened since, else fresh ones."""
-        return self._sigmas if self._sigmas is not None else self.sigma_points()
-
     # -- update -----------------------------------------------------------------------------
     def innovate(
         self,

@@ -573,11 +573,14 @@ def test_compiled_filter_is_the_reference_over_every_case(rng, full_R, plan, ang
 
 
 def test_points_passed_to_the_update_are_weighed_about_the_state(rng):
-    """Sigma points the caller makes (``X``) give the cross covariance the reference gives
-    (their yaw residuals wrapped)."""
+    """Sigma points the caller makes (``X``, spread by 1.3 P and crossing the ±π seam) give
+    the cross covariance the reference gives, their yaw residuals wrapped: the yaw's cross
+    covariance with the heading row that reads it is the points' own yaw variance (an
+    unwrapped residual of 2π would make it tens of rad²)."""
     x, P = _state(rng, yaw=np.pi - 0.01)
     fast, ref = _compiled_and_reference(x, P)
     X = reference_sigma_points(SigmaPoints(N_STATE), x, 1.3 * P)
+    assert X[:, YAW].max() > np.pi  # the points do cross the seam
     m = 10
     hx = _hx_of(rng, m)
     z = hx(x[None])[0]
@@ -585,6 +588,7 @@ def test_points_passed_to_the_update_are_weighed_about_the_state(rng):
     b = ref.innovate(z, hx, np.full(m, 0.01), None, (m - 1,), X)
     _assert_close(a.Pxz, b.Pxz, 1e-11)
     _assert_close(a.S, b.S, 1e-11)
+    assert a.Pxz[YAW, m - 1] == pytest.approx(1.3 * P[YAW, YAW], rel=1e-9)
 
 
 def test_the_filter_says_what_is_wrong_with_its_inputs(rng):
